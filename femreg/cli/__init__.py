@@ -1,0 +1,51 @@
+"""The ``femreg`` command.  Each subcommand lives in its own module of this package exposing
+``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``.
+
+Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
+:class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: Subcommand modules, in --help order.  One line per module.
+COMMANDS = [
+
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="femreg",
+        description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.")
+    from femreg import __version__
+    parser.add_argument("--version", action="version", version=f"femreg {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(f"femreg.cli.{name}").add_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    from femreg.errors import InputError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except (InputError, ValueError, FileNotFoundError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"femreg {args.command}: interrupted (finished work is kept)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

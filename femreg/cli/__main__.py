@@ -1,0 +1,5 @@
+import sys
+
+from femreg.cli import main
+
+sys.exit(main())
