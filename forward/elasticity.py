@@ -173,22 +173,24 @@ class Solution:
     def symmetry(self) -> str:
         return self.params.get("symmetry", "full") if self.dim == 3 else "full"
 
-    def _eval(self, points, outside):
+    def _eval(self, points, outside, ncoord=2):
         pts = np.asarray(points, dtype=float)
-        if pts.ndim != 2 or pts.shape[1] != 2:
-            raise ValueError(f"points must have shape (n, 2) [x depth, y lateral] in mm, got {pts.shape}")
+        if pts.ndim != 2 or pts.shape[1] != ncoord:
+            axes = "[x depth, y lateral]" if ncoord == 2 else "[x depth, y lateral, z elevation]"
+            raise ValueError(f"points must have shape (n, {ncoord}) {axes} in mm, got {pts.shape}")
         if outside not in ("nan", "raise"):
             raise ValueError(f"outside must be 'nan' or 'raise', got {outside!r}")
         if self._locator is None:
             self._locator = _Locator(self.mesh)
-        sgn = np.ones(len(pts))
+        # sgn[:, c]: mirror factors of the coordinates (y, z) mapped onto the modelled part (quarter/half model)
+        sgn = np.ones((len(pts), 3))
         if self.dim == 3:
             q = np.zeros((len(pts), 3))
-            q[:, 0] = pts[:, 0]
-            q[:, 1] = pts[:, 1]
-            if self.symmetry == "quarter":   # mirror y < 0 onto the modelled half: u_y, e_xy change sign
-                sgn = np.where(pts[:, 1] < 0, -1.0, 1.0)
-                q[:, 1] = np.abs(pts[:, 1])
+            q[:, :ncoord] = pts
+            mirror = {"quarter": (1, 2), "half": (2,), "full": ()}[self.symmetry]
+            for c in mirror:
+                sgn[:, c] = np.where(q[:, c] < 0, -1.0, 1.0)
+                q[:, c] = np.abs(q[:, c])
         else:
             q = pts
         finite = np.all(np.isfinite(q), axis=1)
@@ -201,8 +203,16 @@ class Solution:
         if outside == "raise" and not np.all(inside):
             bad = pts[~inside][0]
             raise ValueError(f"points: {np.sum(~inside)} of {len(pts)} points lie outside the model domain "
-                             f"(first: x={bad[0]:g}, y={bad[1]:g} mm)")
+                             f"(first: {', '.join(f'{v:g}' for v in bad)} mm)")
         return pts, sgn, elem, X, inside
+
+    def _mirror(self, v, sgn, grad):
+        """Apply the reflection(s) of the symmetric model: component c and derivative c flip with sgn[:, c]."""
+        d = v.shape[1]
+        s = sgn[:, :d]
+        if grad:
+            return v * s[:, :, None] * s[:, None, :]
+        return v * s
 
     def _values(self, elem, X, grad):
         """Displacement (m, dim) or gradient (m, dim, dim) [component, derivative] at located points."""
@@ -242,9 +252,20 @@ class Solution:
         pts, sgn, elem, X, inside = self._eval(points, outside)
         out = np.full((len(pts), 2), np.nan)
         if np.any(inside):
-            v = self._values(elem[inside], X[inside], grad=False)[:, :2]
-            v[:, 1] *= sgn[inside]
-            out[inside] = v
+            v = self._values(elem[inside], X[inside], grad=False)
+            out[inside] = self._mirror(v, sgn[inside], False)[:, :2]
+        return out
+
+    def displacement_3d(self, points, *, outside: str = "nan") -> np.ndarray:
+        """3D model only: displacement ``(n, 3)`` ``[u_x, u_y, u_z]`` mm at points ``(n, 3)`` ``[x, y, z]`` mm
+        anywhere in the block (the symmetric parts are reconstructed by reflection)."""
+        if self.dim != 3:
+            raise ValueError(f"displacement_3d needs a 3d model, this one is {self.model!r}")
+        pts, sgn, elem, X, inside = self._eval(points, outside, ncoord=3)
+        out = np.full((len(pts), 3), np.nan)
+        if np.any(inside):
+            v = self._values(elem[inside], X[inside], grad=False)
+            out[inside] = self._mirror(v, sgn[inside], False)
         return out
 
     def displacement_gradient(self, points, *, outside: str = "nan") -> np.ndarray:
@@ -253,11 +274,8 @@ class Solution:
         pts, sgn, elem, X, inside = self._eval(points, outside)
         out = np.full((len(pts), 2, 2), np.nan)
         if np.any(inside):
-            g = self._values(elem[inside], X[inside], grad=True)[:, :2, :2]
-            s = sgn[inside]
-            g[:, 0, 1] *= s
-            g[:, 1, 0] *= s
-            out[inside] = g
+            g = self._values(elem[inside], X[inside], grad=True)
+            out[inside] = self._mirror(g, sgn[inside], True)[:, :2, :2]
         return out
 
     def strain(self, points, *, outside: str = "nan") -> np.ndarray:
@@ -373,7 +391,8 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
                      inclusion_diameter_mm: float = 15.0, inclusion_depth_mm: float = 30.0,
                      patch_mm: float | None = 50.0, compression_mm: float = 1.0, mesh_size_mm: float | None = None,
                      coarse_size_mm: float | None = None, refine_region_mm: tuple | None = None,
-                     symmetry: str = "quarter", solver: str = "auto", cache: bool = False) -> Solution:
+                     symmetry: str = "quarter", bottom: str = "fixed", solver: str = "auto",
+                     cache: bool = False) -> Solution:
     """Solve the paper's phantom as plane strain, plane stress or 3D linear elasticity (P2 elements).
 
     Parameters
@@ -401,6 +420,10 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
         default ``(80, 30, 3)``.
     symmetry : {"quarter", "half", "full"}
         3D only: part of the block that is meshed (the quarter model is exact by symmetry and 4x cheaper).
+    bottom : {"fixed", "slip"}
+        Bottom face clamped (the paper) or sliding (only ``u_x = 0``; lateral rigid motion removed by symmetry
+        planes or by fixing the bottom vertex nearest the centre line).  ``"slip"`` with ``patch_mm=None`` gives
+        exactly uniaxial stress in a homogeneous block (used by the tests).
     solver : {"auto", "pardiso", "superlu"}
         Sparse direct solver; ``"auto"`` = MKL PARDISO (``pypardiso``) when installed, else SciPy's SuperLU.
     cache : bool
@@ -420,7 +443,7 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
                   block_mm=block_mm, inclusion_diameter_mm=inclusion_diameter_mm,
                   inclusion_depth_mm=inclusion_depth_mm, patch_mm=patch_mm, compression_mm=compression_mm,
                   mesh_size_mm=mesh_size_mm, coarse_size_mm=coarse_size_mm, refine_region_mm=refine_region_mm,
-                  symmetry=symmetry, solver=solver)
+                  symmetry=symmetry, bottom=bottom, solver=solver)
     if cache:
         return cached_solve(model, **kwargs)
     from skfem import Basis, ElementTetP2, ElementTriP2, ElementVector, asm, condense
@@ -428,6 +451,11 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
     from . import geometry
 
     _check_params(model, inclusion_modulus, background_modulus, poisson, compression_mm, symmetry)
+    if bottom not in ("fixed", "slip"):
+        raise ValueError(f"bottom must be 'fixed' or 'slip', got {bottom!r}")
+    for name, val in [("mesh_size_mm", mesh_size_mm), ("coarse_size_mm", coarse_size_mm)]:
+        if val is not None and (not np.isfinite(val) or val <= 0):
+            raise ValueError(f"{name} must be a positive element size (mm), got {val!r}")
     h_fine, h_coarse = DEFAULT_MESH[model]
     h_fine = h_fine if mesh_size_mm is None else mesh_size_mm
     h_coarse = max(h_coarse, h_fine) if coarse_size_mm is None else coarse_size_mm
@@ -457,7 +485,20 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
     t_asm = time.perf_counter() - t1
     # Dirichlet data: bottom clamped, patch axial (u^1 = x component), symmetry planes normal component
     u = ib.zeros()
-    D_bottom = ib.get_dofs("bottom").all()
+    if bottom == "fixed":
+        D_bottom = ib.get_dofs("bottom").all()
+    else:
+        D_bottom = [ib.get_dofs("bottom").all("u^1")]
+        bverts = np.unique(mesh.facets[:, mesh.boundaries["bottom"]])
+        centre = bverts[np.argmin(np.sum(mesh.p[1:, bverts] ** 2, axis=0))]
+        if "sym_y" not in mesh.boundaries:
+            D_bottom.append(ib.nodal_dofs[1, [centre]])
+        if dim == 3 and "sym_z" not in mesh.boundaries:
+            D_bottom.append(ib.nodal_dofs[2, [centre]])
+            if "sym_y" not in mesh.boundaries:  # rotation about the x axis: fix u_z at a second bottom vertex
+                other = bverts[np.argmax(mesh.p[1, bverts])]
+                D_bottom.append(ib.nodal_dofs[2, [other]])
+        D_bottom = np.concatenate(D_bottom)
     D_patch = ib.get_dofs("patch").all("u^1")
     u[D_patch] = compression_mm
     D = [D_bottom, D_patch]
@@ -481,7 +522,7 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
                   inclusion_depth_mm=float(inclusion_depth_mm),
                   patch_mm=None if patch_mm is None else float(patch_mm), compression_mm=float(compression_mm),
                   mesh_size_mm=float(h_fine), coarse_size_mm=float(h_coarse), refine_region_mm=list(region),
-                  symmetry=symmetry, element="P2")
+                  symmetry=symmetry, bottom=bottom, element="P2")
     info = dict(n_dofs=int(ib.N), n_elements=int(mesh.t.shape[1]), n_vertices=int(mesh.p.shape[1]),
                 mesh_time_s=t_mesh, assembly_time_s=t_asm, solve_time_s=t_solve,
                 total_time_s=time.perf_counter() - t0, solver=used, reaction_force=reaction,
