@@ -417,7 +417,7 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
         Element size far from the imaged area, mm.  Default 8 (2D) / 16 (3D).
     refine_region_mm : tuple, optional
         Refined box: 2D ``(depth, half_width)`` default ``(80, 30)``; 3D ``(depth, half_width, half_thickness)``
-        default ``(80, 30, 3)``.
+        default ``(80, 30, 3)``; ``()`` = no box (only the inclusion boundary and patch edges are refined).
     symmetry : {"quarter", "half", "full"}
         3D only: part of the block that is meshed (the quarter model is exact by symmetry and 4x cheaper).
     bottom : {"fixed", "slip"}
@@ -464,14 +464,14 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
         region = (80.0, 30.0, 3.0) if refine_region_mm is None else tuple(refine_region_mm)
         mesh = geometry.mesh_3d(block_mm=block_mm, inclusion_diameter_mm=inclusion_diameter_mm,
                                 inclusion_depth_mm=inclusion_depth_mm, patch_mm=patch_mm, mesh_size_mm=h_fine,
-                                coarse_size_mm=h_coarse, fine_region_mm=region, symmetry=symmetry)
+                                coarse_size_mm=h_coarse, fine_region_mm=region or None, symmetry=symmetry)
         elem = ElementTetP2()
     else:
         symmetry = "full"
         region = (80.0, 30.0) if refine_region_mm is None else tuple(refine_region_mm)
         mesh = geometry.mesh_2d(block_mm=block_mm, inclusion_diameter_mm=inclusion_diameter_mm,
                                 inclusion_depth_mm=inclusion_depth_mm, patch_mm=patch_mm, mesh_size_mm=h_fine,
-                                coarse_size_mm=h_coarse, fine_region_mm=region)
+                                coarse_size_mm=h_coarse, fine_region_mm=region or None)
         elem = ElementTriP2()
     t_mesh = time.perf_counter() - t0
     dim = mesh.p.shape[0]
