@@ -71,13 +71,23 @@ def _parse_header(path: Path):
     raise fail(path, "MetaImage header has no ElementDataFile line (truncated or not a header)")
 
 
+_CANON = {k.lower(): k for k in (
+    "ObjectType", "NDims", "DimSize", "ElementType", "ElementSpacing", "ElementSize", "Offset", "Origin", "Position",
+    "HeaderSize", "ElementDataFile", "ElementByteOrderMSB", "BinaryDataByteOrderMSB", "CompressedData",
+    "ElementNumberOfChannels")}
+
+
+def _name(key):
+    return _CANON.get(key, key)
+
+
 def _ints(path, fields, key, n=None):
     try:
         vals = [int(v) for v in fields[key].split()]
     except ValueError:
-        raise fail(path, f"bad header field {key}: {fields[key][:40]!r} (expected integers)") from None
+        raise fail(path, f"bad header field {_name(key)}: {fields[key][:40]!r} (expected integers)") from None
     if n is not None and len(vals) != n:
-        raise fail(path, f"bad header field {key}: {len(vals)} value(s), expected {n}")
+        raise fail(path, f"bad header field {_name(key)}: {len(vals)} value(s), expected {n}")
     return vals
 
 
@@ -85,11 +95,11 @@ def _floats(path, fields, key, n):
     try:
         vals = [float(v) for v in fields[key].split()]
     except ValueError:
-        raise fail(path, f"bad header field {key}: {fields[key][:40]!r} (expected numbers)") from None
+        raise fail(path, f"bad header field {_name(key)}: {fields[key][:40]!r} (expected numbers)") from None
     if len(vals) < n:
-        raise fail(path, f"bad header field {key}: {len(vals)} value(s), expected {n}")
+        raise fail(path, f"bad header field {_name(key)}: {len(vals)} value(s), expected {n}")
     if not np.all(np.isfinite(vals)):
-        raise fail(path, f"bad header field {key}: non-finite value {fields[key]!r}")
+        raise fail(path, f"bad header field {_name(key)}: non-finite value {fields[key]!r}")
     return vals[:n]
 
 
@@ -99,7 +109,7 @@ def _bool(path, fields, key):
         return True
     if v in ("false", "0", "no", ""):
         return False
-    raise fail(path, f"bad header field {key}: {fields[key][:40]!r} (expected True/False)")
+    raise fail(path, f"bad header field {_name(key)}: {fields[key][:40]!r} (expected True/False)")
 
 
 def _data_files(path: Path, fields, value: str, header_end: int, ndims: int, dims):
