@@ -463,3 +463,41 @@ def test_result_npz_contract_round_trip_and_errors(tmp_path):
         load_result(tmp_path / "junk.npz")
     with pytest.raises(InputError, match="vtu, .xdmf or .npz"):
         export_result(res, tmp_path / "r.obj")
+
+
+def _mat5_element(order, mtype, payload: bytes, small_ok=True):
+    if small_ok and len(payload) <= 4:
+        return np.array([(len(payload) << 16) | mtype], order + "u4").tobytes() + payload.ljust(4, b"\0")
+    head = np.array([mtype, len(payload)], order + "u4").tobytes()
+    return head + payload + b"\0" * (-len(payload) % 8)
+
+
+def _mat5_file(order, variables):
+    """Hand-made Level-5 MAT-file with MATLAB's own tricks: small data elements for short names, and a
+    double array stored as miUINT8 (MATLAB demotes integer-valued data)."""
+    endian = b"IM" if order == "<" else b"MI"
+    head = b"MATLAB 5.0 MAT-file, hand made".ljust(116, b" ") + b"\0" * 8
+    head += np.array([0x0100], order + "u2").tobytes() + endian
+    body = b""
+    for name, arr, cls_id, mi_type, store in variables:
+        flags = _mat5_element(order, 6, np.array([cls_id, 0], order + "u4").tobytes(), small_ok=False)
+        dims = _mat5_element(order, 5, np.array(arr.shape, order + "i4").tobytes())
+        nm = _mat5_element(order, 1, name.encode())
+        real = _mat5_element(order, mi_type, np.asarray(arr, order + store).ravel(order="F").tobytes())
+        body += _mat5_element(order, 14, flags + dims + nm + real, small_ok=False)
+    return head + body
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_mat5_reader_handles_matlab_storage_tricks(tmp_path, order):
+    vals = np.arange(3 * 4 * 2).reshape(3, 4, 2) % 200  # MATLAB rf(axial=3, lateral=4, frame=2)
+    blob = _mat5_file(order, [("rf", vals, 6, 2, "u1"),  # class double, stored as miUINT8
+                              ("spacing", np.array([[0.05, 0.3]]), 6, 9, "f8")])
+    (tmp_path / "h.mat").write_bytes(blob)
+    fr = read_frames(tmp_path / "h.mat")
+    np.testing.assert_array_equal(fr.frames, np.moveaxis(vals, -1, 0))
+    assert fr.spacing == (0.05, 0.3)
+    assert fr.metadata["format"] == "mat-v5"
+    (tmp_path / "t.mat").write_bytes(blob[:-9])
+    with pytest.raises(FileFormatError, match="truncated"):
+        read_frames(tmp_path / "t.mat")

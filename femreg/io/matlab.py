@@ -1,4 +1,5 @@
-"""MATLAB ``.mat`` files: v4/v5/v7 through :func:`scipy.io.loadmat`, v7.3 (HDF5) through h5py.
+"""MATLAB ``.mat`` files: v5/v7 by :mod:`femreg.io.mat5` (pure Python; scipy's compiled reader can crash on
+corrupt files), v4 by :func:`scipy.io.loadmat`, v7.3 (HDF5) by h5py.
 
 Layout: MATLAB users keep a sequence as ``rf(axial, lateral, frame)`` (frames on the *last* axis), which is
 how both readers return a 3D variable in MATLAB index order; it is moved to our ``(n, axial, lateral)``.
@@ -92,6 +93,8 @@ def _aux(path, values: dict, spacing):
     file_spacing = None
     if "spacing" in values:
         try:
+            if np.iscomplexobj(values["spacing"]):
+                raise TypeError
             sp = np.asarray(values["spacing"], dtype=float).ravel()
         except (TypeError, ValueError):
             raise fail(path, "variable 'spacing' is not numeric") from None
@@ -109,27 +112,50 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     version = mat_version(path)
     if version == "7.3":
         return _read_mat73(path, variable, spacing, frames)
+    if version == "5":
+        from .mat5 import read_mat5
+
+        try:
+            blob = path.read_bytes()
+        except OSError as exc:
+            raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+        order, variables = read_mat5(path, blob)
+        byname = {v.name: v for v in variables}
+        cands = {v.name: (v.shape, v.numeric) for v in variables}
+        name = _choose(path, cands, variable)
+        var = byname[name]
+        if not var.numeric:
+            raise fail(path, f"variable {name!r} is a MATLAB {var.cls}, not a numeric array")
+        data = {name: var.array(order)}
+        for a in AUX:
+            if a in byname and a != name and byname[a].numeric:
+                data[a] = byname[a].array(order)
+    else:
+        data, cands, name = _read_mat4(path, variable)
+    sp, origin = _aux(path, data, spacing)
+    meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    return finalize(path, _mat_layout(data[name]), sp, origin, meta, frames)
+
+
+def _read_mat4(path, variable):
+    """Level-4 files (no header) through scipy.io's pure-Python v4 reader."""
     import scipy.io
 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             info = scipy.io.whosmat(str(path))
-            cands = {name: (tuple(shape), cls in _NUMERIC_CLASSES) for name, shape, cls in info}
+            cands = {n: (tuple(shape), cls in _NUMERIC_CLASSES) for n, shape, cls in info}
             name = _choose(path, cands, variable)
             wanted = [name] + [a for a in AUX if a in cands and a != name]
-            data = scipy.io.loadmat(str(path), variable_names=wanted, squeeze_me=False, mat_dtype=False)
+            data = scipy.io.loadmat(str(path), variable_names=wanted, squeeze_me=False)
     except InputError:
         raise
-    except (NotImplementedError, MemoryError) as exc:
-        raise fail(path, f"cannot read MAT-file v{version} ({type(exc).__name__}: {exc})") from None
-    except Exception as exc:  # scipy raises MatReadError, ValueError, TypeError, struct/zlib errors, ...
-        raise fail(path, f"corrupt or truncated MAT-file v{version} ({type(exc).__name__}: {exc})") from None
+    except Exception as exc:  # scipy raises MatReadError, ValueError, TypeError, struct errors, ...
+        raise fail(path, f"corrupt or truncated MAT-file v4 ({type(exc).__name__}: {exc})") from None
     if name not in data:
         raise fail(path, f"missing variable {name!r} (could not be read)")
-    sp, origin = _aux(path, data, spacing)
-    meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
-    return finalize(path, _mat_layout(data[name]), sp, origin, meta, frames)
+    return data, cands, name
 
 
 def _read_mat73(path, variable, spacing, frames):

@@ -150,7 +150,7 @@ def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
     fields, keys, header_end = _parse_header(path)
     for req in ("ndims", "dimsize", "elementtype"):
         if req not in fields:
-            raise fail(path, f"MetaImage header lacks the {req[0].upper()}{req[1:]} field")
+            raise fail(path, f"MetaImage header lacks the {_name(req)} field")
     (ndims,) = _ints(path, fields, "ndims", 1)
     if ndims not in (2, 3):
         raise fail(path, f"bad header field NDims = {ndims} (need 2 or 3)")

@@ -133,8 +133,10 @@ def _parse_npy(fh, size: int, path, label: str):
             shape, fortran, dtype = fmt.read_array_header_2_0(fh, max_header_size=100_000)
         else:
             raise ValueError(f"unsupported .npy version {version}")
-    except (ValueError, EOFError, OSError, SyntaxError, TypeError, UnicodeDecodeError) as exc:
-        raise fail(path, f"{label}: bad .npy header ({exc})") from None
+    except MemoryError:
+        raise
+    except Exception as exc:  # ValueError, EOFError, SyntaxError, tokenize.TokenError, UnicodeDecodeError...
+        raise fail(path, f"{label}: bad .npy header ({type(exc).__name__}: {exc})") from None
     if dtype.hasobject or dtype.names is not None or dtype.subdtype is not None:
         raise fail(path, f"{label}: dtype {dtype} is not a plain numeric array (object arrays are never loaded)")
     if dtype.kind not in "biufc":
