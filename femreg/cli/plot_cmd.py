@@ -37,6 +37,10 @@ def run(args) -> int:
     from ..io.results import element_strains
     from ..plot import plot_result, render_mesh
 
+    for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--xdmf", args.xdmf, ".xdmf"),
+                            ("--render", args.render, ".png")):
+        if path and Path(path).suffix.lower() != ext:
+            raise InputError(f"{flag} must name a {ext} file, got {path}")
     res = load_result(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
