@@ -518,7 +518,8 @@ def simulate_sequence(model: str = "3d", inclusion: str = "HI", n_frames: int = 
     x0, x1, y0, y1 = grid.extent()
     box = (max(0.0, x0 - mx), x1 + mx, y0 - my, y1 + my)  # tissue starts at the top face x = 0
     scat = make_scatterers(np.random.default_rng(ss_scat), box, density_per_mm2=density_per_mm2,
-                           inclusion_center=inc_center, inclusion_radius_mm=inc_radius)
+                           inclusion_center=inc_center, inclusion_radius_mm=inc_radius,
+                           cell_aspect=psf.sigma_axial_mm / psf.sigma_lateral_mm)
     u_scat = _eval_displacement(field, scat.positions)
     t_scat = time.perf_counter() - t0
 
