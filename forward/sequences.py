@@ -22,6 +22,7 @@ sequence plus the PSF support plus 0.5 mm) on the sides and bottom, so no tissue
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -602,7 +603,16 @@ def get_sequence(model: str = "3d", inclusion: str = "HI", *, seed: int = 0, snr
         raise ValueError("get_sequence caches FE-based sequences only; call simulate_sequence(field=...) instead")
     name = dataset_name(model, inclusion)
     args = dict(seed=seed, snr_db=snr_db, n_frames=n_frames, **kwargs)
-    path = sequence_cache_dir(cache_dir) / f"{name}_seed{seed}_{_cache_key(model, inclusion, args)}.npz"
+    # Key over the full argument set with defaults filled in, so equivalent calls share one file.
+    bound = inspect.signature(simulate_sequence).bind(model, inclusion, **args)
+    bound.apply_defaults()
+    key_args = {k: v for k, v in bound.arguments.items() if k not in ("model", "inclusion", "verbose")}
+    key_args["psf"] = (PSF(**key_args["psf"]) if isinstance(key_args["psf"], dict)
+                       else key_args["psf"] or PSF()).to_dict()
+    key_args["fe_options"] = dict(key_args["fe_options"] or {})
+    if key_args["snr_db"] is not None:
+        key_args["snr_db"] = float(key_args["snr_db"])
+    path = sequence_cache_dir(cache_dir) / f"{name}_seed{seed}_{_cache_key(model, inclusion, key_args)}.npz"
     if path.is_file() and not refresh:
         try:
             return load_sequence(path)
