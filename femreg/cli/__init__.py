@@ -15,6 +15,7 @@ COMMANDS = [
     "info_cmd",
     "plot_cmd",
     "simulate_cmd",
+    "track_cmd",
 ]
 
 

@@ -80,3 +80,30 @@ def frames_from_args(args, path=None):
 
     path = path if path is not None else args.file
     return read_frames(path, **reader_kwargs(args))
+
+
+def add_registration_args(parser: argparse.ArgumentParser) -> None:
+    """Flags shared by ``register`` and ``track``: regulariser, alpha, mesh and solver settings."""
+    from ..regularizers import available_regularizers
+
+    g = parser.add_argument_group("registration options")
+    g.add_argument("-r", "--regularizer", default="momentum-stress", choices=available_regularizers(),
+                   help="regulariser (default momentum-stress = R_P_sigma)")
+    g.add_argument("--alpha", type=float, help="regulariser weight (default: the regulariser's documented one)")
+    g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
+                   help="element size in mm (one value, or axial and lateral)")
+    g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
+    g.add_argument("--maxiter", type=int, default=20, help="Gauss-Newton iterations (default 20)")
+    g.add_argument("--tol", type=float, default=1e-3, help="stop when ||du||/||u|| < TOL (default 1e-3)")
+
+
+def registration_kwargs(args) -> dict:
+    """Keyword arguments of :func:`femreg.register` / :func:`femreg.track` from the registration flags."""
+    es = args.element_size
+    if es is not None and len(es) not in (1, 2):
+        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    if args.alpha is not None and not (args.alpha >= 0 and args.alpha < float("inf")):
+        raise InputError(f"--alpha must be a finite number >= 0, got {args.alpha}")
+    return dict(regularizer=args.regularizer, alpha=args.alpha,
+                element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
+                margin=args.margin, maxiter=args.maxiter, tol=args.tol)
