@@ -94,6 +94,11 @@ def main(argv=None):
             print(f"{h:6.3g} {info['n_dofs']:9d} {info['mesh_time_s']:7.1f} {info['assembly_time_s']:7.1f} "
                   f"{info['solve_time_s']:8.1f} {info['total_time_s']:8.1f} {info['peak_rss_mb']:8.0f} "
                   f"{info['reaction_force']:10.3f} {info['eval_pixels_s']:12.2f} {centre:11.5f}", flush=True)
+            if len(fields) > 1:
+                d = fields[-2] - fields[-1]
+                print(f"       e_xx over the imaged area vs previous mesh: rel. L2 diff "
+                      f"{np.linalg.norm(d) / np.linalg.norm(fields[-1]):.2%} (outside 1 mm interface band: "
+                      f"{np.linalg.norm(d[band]) / np.linalg.norm(fields[-1][band]):.2%})", flush=True)
         for i in range(len(sizes) - 1):
             d = fields[i] - fields[-1]
             rel = np.linalg.norm(d) / np.linalg.norm(fields[-1])

@@ -182,3 +182,16 @@ def test_bad_model_and_symmetry():
         forward.solve_elasticity("3d", symmetry="eighth")
     with pytest.raises(ValueError, match="unknown parameter"):
         forward.cached_solve("3d", modulus=3)
+
+
+def test_cli_forward(tmp_path, capsys):
+    from femreg.cli import main
+
+    out = tmp_path / "ps.npz"
+    assert main(["forward", "plane-stress", "--mesh-size-mm", "5", "--coarse-size-mm", "20", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "DOFs" in text and "peak memory" in text
+    sol = forward.load_solution(out)
+    assert sol.model == "plane-stress" and sol.params["mesh_size_mm"] == 5.0
+    assert main(["forward", "plane-strain", "--poisson", "0.5", "-o", str(tmp_path / "x.npz")]) == 2
+    assert "poisson" in capsys.readouterr().err
