@@ -164,6 +164,25 @@ class AnalyticField:
         return np.column_stack([exx, eyy, 0.5 * dux_dy])
 
 
+def _fe_kwargs(model, inclusion_modulus, background_modulus, inclusion_depth_mm, inclusion_diameter_mm,
+               fe_options) -> dict:
+    return dict(model=model, inclusion_modulus=float(inclusion_modulus),
+                background_modulus=float(background_modulus), inclusion_depth_mm=float(inclusion_depth_mm),
+                inclusion_diameter_mm=float(inclusion_diameter_mm), compression_mm=1.0, **dict(fe_options or {}))
+
+
+def _fe_cache_key(model, **kw) -> str | None:
+    """The forward model's own cache key of the solve :func:`_fe_field` makes (captures its mesh defaults and
+    version), or None when the FE module is not available."""
+    try:
+        from .elasticity import cache_key
+    except ImportError:
+        return None
+    kwargs = _fe_kwargs(model, **kw)
+    kwargs.pop("model")
+    return cache_key(model, **kwargs)
+
+
 def _fe_field(model: str, inclusion_modulus: float, background_modulus: float, inclusion_depth_mm: float,
               inclusion_diameter_mm: float, fe_options: dict):
     """The one place that calls the FE forward model (issue 2): a solution at 1 mm patch compression.
@@ -173,9 +192,8 @@ def _fe_field(model: str, inclusion_modulus: float, background_modulus: float, i
     """
     import forward
 
-    kwargs = dict(model=model, inclusion_modulus=inclusion_modulus, background_modulus=background_modulus,
-                  inclusion_depth_mm=inclusion_depth_mm, inclusion_diameter_mm=inclusion_diameter_mm,
-                  compression_mm=1.0, **fe_options)
+    kwargs = _fe_kwargs(model, inclusion_modulus, background_modulus, inclusion_depth_mm, inclusion_diameter_mm,
+                        fe_options)
     solver = getattr(forward, "cached_solve", None) or getattr(forward, "solve_elasticity", None)
     if solver is None:
         # Until the FE models land (issue 2): a labelled stand-in, never silently passed off as FE truth.
@@ -615,6 +633,10 @@ def get_sequence(model: str = "3d", inclusion: str = "HI", *, seed: int = 0, snr
     key_args["fe_options"] = dict(key_args["fe_options"] or {})
     if key_args["snr_db"] is not None:
         key_args["snr_db"] = float(key_args["snr_db"])
+    key_args["fe_cache_key"] = _fe_cache_key(
+        model, inclusion_modulus=INCLUSIONS[_check_inclusion(inclusion)],
+        background_modulus=key_args["background_modulus"], inclusion_depth_mm=key_args["inclusion_depth_mm"],
+        inclusion_diameter_mm=key_args["inclusion_diameter_mm"], fe_options=key_args["fe_options"])
     path = sequence_cache_dir(cache_dir) / f"{name}_seed{seed}_{_cache_key(model, inclusion, key_args)}.npz"
     if path.is_file() and not refresh:
         try:
