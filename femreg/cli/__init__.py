@@ -12,6 +12,8 @@ import sys
 
 #: Subcommand modules, in --help order.  One line per module.
 COMMANDS = [
+    "info_cmd",
+    "plot_cmd",
     "simulate_cmd",
 ]
 
