@@ -129,7 +129,8 @@ class AnalyticField:
     distance to the inclusion centre ``(x_c, y_c)``, ``R`` its radius and ``beta = sqrt(E_b / E_i) - 1``: uniform
     compression ``-1/H`` (``H`` = block height, bottom fixed) plus a Gaussian bump that lowers the axial strain in a
     hard inclusion and raises it in a soft one.  Same interface as the FE ``Solution``: ``displacement(points)``
-    -> (n, 2) mm, ``strain(points)`` -> (n, 3) [exx, eyy, exy].  Not a solution of elasticity.
+    -> (n, 2) mm, ``strain(points)`` -> (n, 3) [exx, eyy, exy], NaN outside the block ``0 <= x <= H``,
+    ``|y| <= H/2`` (like the FE solution's default).  Not a solution of elasticity.
     """
 
     def __init__(self, inclusion_modulus: float = 40.0, background_modulus: float = BACKGROUND_MODULUS, *,
@@ -145,20 +146,41 @@ class AnalyticField:
             raise ValueError(f"points must be (n, 2) [x, y] mm, got shape {p.shape}")
         dx, dy = p[:, 0] - self.xc, p[:, 1] - self.yc
         g = np.exp(-(dx**2 + dy**2) / (2 * self.R**2))
+        outside = (p[:, 0] < 0) | (p[:, 0] > self.H) | (np.abs(p[:, 1]) > self.H / 2)
+        g[outside] = np.nan
         return p, dx, dy, g
 
     def displacement(self, points) -> np.ndarray:
         p, dx, _, g = self._parts(points)
         ux = (self.H - p[:, 0]) / self.H - self.beta * dx * g / self.H
-        uy = p[:, 1] / (2 * self.H)
+        uy = p[:, 1] / (2 * self.H) + 0 * g  # NaN outside, like ux
         return np.column_stack([ux, uy])
 
     def strain(self, points) -> np.ndarray:
         p, dx, dy, g = self._parts(points)
         exx = -1.0 / self.H - self.beta * g * (1.0 - dx**2 / self.R**2) / self.H
-        eyy = np.full(len(p), 0.5 / self.H)
+        eyy = 0.5 / self.H + 0 * g
         dux_dy = self.beta * dx * dy * g / (self.H * self.R**2)
         return np.column_stack([exx, eyy, 0.5 * dux_dy])
+
+
+def _fe_kwargs(model, inclusion_modulus, background_modulus, inclusion_depth_mm, inclusion_diameter_mm,
+               fe_options) -> dict:
+    return dict(model=model, inclusion_modulus=float(inclusion_modulus),
+                background_modulus=float(background_modulus), inclusion_depth_mm=float(inclusion_depth_mm),
+                inclusion_diameter_mm=float(inclusion_diameter_mm), compression_mm=1.0, **dict(fe_options or {}))
+
+
+def _fe_cache_key(model, **kw) -> str | None:
+    """The forward model's own cache key of the solve :func:`_fe_field` makes (captures its mesh defaults and
+    version), or None when the FE module is not available."""
+    try:
+        from .elasticity import cache_key
+    except ImportError:
+        return None
+    kwargs = _fe_kwargs(model, **kw)
+    kwargs.pop("model")
+    return cache_key(model, **kwargs)
 
 
 def _fe_field(model: str, inclusion_modulus: float, background_modulus: float, inclusion_depth_mm: float,
@@ -170,9 +192,8 @@ def _fe_field(model: str, inclusion_modulus: float, background_modulus: float, i
     """
     import forward
 
-    kwargs = dict(model=model, inclusion_modulus=inclusion_modulus, background_modulus=background_modulus,
-                  inclusion_depth_mm=inclusion_depth_mm, inclusion_diameter_mm=inclusion_diameter_mm,
-                  compression_mm=1.0, **fe_options)
+    kwargs = _fe_kwargs(model, inclusion_modulus, background_modulus, inclusion_depth_mm, inclusion_diameter_mm,
+                        fe_options)
     solver = getattr(forward, "cached_solve", None) or getattr(forward, "solve_elasticity", None)
     if solver is None:
         # Until the FE models land (issue 2): a labelled stand-in, never silently passed off as FE truth.
@@ -383,7 +404,7 @@ def schedule_figures(seq: Sequence) -> dict:
 
 def _field_grid(grid: ImagingGrid, spacing_mm: float, pad_mm: float = 1.0):
     x0, x1, y0, y1 = grid.extent()
-    top = max(0.0, x0 - pad_mm) if x0 >= 0 else x0 - pad_mm  # no tissue above the top face x = 0
+    top = max(0.0, x0 - pad_mm) if grid.x0 >= 0 else x0 - pad_mm  # no tissue above the top face x = 0
     nx = int(math.ceil((x1 + pad_mm - top) / spacing_mm)) + 1
     ny = int(math.ceil((y1 - y0 + 2 * pad_mm) / spacing_mm)) + 1
     fx = top + spacing_mm * np.arange(nx)
@@ -612,6 +633,10 @@ def get_sequence(model: str = "3d", inclusion: str = "HI", *, seed: int = 0, snr
     key_args["fe_options"] = dict(key_args["fe_options"] or {})
     if key_args["snr_db"] is not None:
         key_args["snr_db"] = float(key_args["snr_db"])
+    key_args["fe_cache_key"] = _fe_cache_key(
+        model, inclusion_modulus=INCLUSIONS[_check_inclusion(inclusion)],
+        background_modulus=key_args["background_modulus"], inclusion_depth_mm=key_args["inclusion_depth_mm"],
+        inclusion_diameter_mm=key_args["inclusion_diameter_mm"], fe_options=key_args["fe_options"])
     path = sequence_cache_dir(cache_dir) / f"{name}_seed{seed}_{_cache_key(model, inclusion, key_args)}.npz"
     if path.is_file() and not refresh:
         try:

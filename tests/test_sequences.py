@@ -152,6 +152,7 @@ def test_true_fields_scale_linearly_and_reject_far_points():
 
 def test_analytic_field_strain_is_its_gradient():
     f = AnalyticField(5.0)
+    assert np.isnan(f.displacement(np.array([[-0.01, 0.0]]))).all(), "NaN above the top face, like the FE field"
     p = np.array([[25.0, 3.0], [31.0, -2.0], [40.0, 0.5]])
     h = 1e-5
     gx = (f.displacement(p + [h, 0]) - f.displacement(p - [h, 0])) / (2 * h)
