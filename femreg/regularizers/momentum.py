@@ -396,7 +396,7 @@ class MomentumRegularizer(TVRegularizer):
     """
 
     name = "momentum"
-    default_alpha = 1e-3
+    default_alpha = 0.3
     default_lambda_bar = LAMBDA_BAR_PLANE_STRESS
     default_dilatation = "edge"
 
@@ -424,7 +424,7 @@ class PlaneStrainMomentumRegularizer(MomentumRegularizer):
     r"""R_P_eps: plane strain, :math:`\bar\lambda = 9` (nu = 0.45), dilatation at the element centre."""
 
     name = "momentum-strain"
-    default_alpha = 1e-3
+    default_alpha = 1.0
     default_lambda_bar = LAMBDA_BAR_PLANE_STRAIN
     default_dilatation = "centre"
 
@@ -433,7 +433,7 @@ class PlaneStressMomentumRegularizer(MomentumRegularizer):
     r"""R_P_sigma: incompressible plane stress, :math:`\bar\lambda = 2`, all of A at the edge midpoint."""
 
     name = "momentum-stress"
-    default_alpha = 1e-3
+    default_alpha = 0.3
     default_lambda_bar = LAMBDA_BAR_PLANE_STRESS
     default_dilatation = "edge"
 
