@@ -378,6 +378,18 @@ def test_read_invivo_sequence():
     np.testing.assert_array_equal(one.frames[0], fr.frames[2])
 
 
+def test_metaimage_header_for_invivo_frame_agrees(tmp_path):
+    """A MetaImage header as the sequence's own (x = 128 lines, y = 2000 samples) gives the same frame and spacing."""
+    raw = INVIVO / "seq304" / "frame2.raw"
+    if not raw.is_file():
+        pytest.skip(f"in vivo data not found at {INVIVO}")
+    _mhd(tmp_path / "f.mhd", ["ObjectType = Image", "NDims = 2", "DimSize = 128 2000", "ElementSpacing = 0.2 0.02",
+                              "ElementType = MET_FLOAT", "ElementByteOrderMSB = False", f"ElementDataFile = {raw}"])
+    fr = read_frames(tmp_path / "f.mhd")
+    assert fr.spacing == (0.02, 0.2) and fr.frames.shape == (1, 2000, 128)
+    np.testing.assert_array_equal(fr.frames[0], np.fromfile(raw, "<f4").reshape(2000, 128))
+
+
 # ---------------------------------------------------------------------------------------------- results
 
 def _quad_mesh(nx=4, ny=3, skew=0.0):
