@@ -63,6 +63,8 @@ def test_round_trip_every_format(tmp_path, rf3, case, ndim):
     if has_origin:
         assert fr.origin == pytest.approx(origin), (case, fr.origin)
     assert fr.source == path
+    fr.save(tmp_path / "again.npz")  # Frames.save -> save_frames
+    np.testing.assert_array_equal(read_frames(tmp_path / "again.npz").frames, expect)
     if has_spacing and case != "rf" and case != "rf-frame-tags":
         # spacing stored in the file: reading without spacing= gives it; spacing= overrides it
         assert read_frames(path, spacing=(0.5, 0.7)).spacing == (0.5, 0.7)
