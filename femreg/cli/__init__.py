@@ -14,6 +14,7 @@ import sys
 COMMANDS = [
     "info_cmd",
     "plot_cmd",
+    "simulate_cmd",
 ]
 
 
