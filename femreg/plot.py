@@ -245,11 +245,13 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
             grid.cell_data[name] = v
         else:
             raise InputError(f"values has {v.size} entries; need n_nodes = {p.shape[1]} or n_el = {t.shape[1]}")
-        kw = dict(scalars=name, cmap=cmap, clim=clim, scalar_bar_args={"title": name})
+        kw = dict(scalars=name, cmap=cmap, clim=clim, scalar_bar_args={"title": name, "vertical": True, "position_x": 0.85,
+                                                                 "position_y": 0.1, "height": 0.8})
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
         plotter.add_mesh(grid, show_edges=show_edges, **kw)
         plotter.view_xy()
+        plotter.camera.zoom(1.15)
         plotter.screenshot(str(out_png))
     finally:
         plotter.close()

@@ -63,6 +63,8 @@ def test_round_trip_every_format(tmp_path, rf3, case, ndim):
     if has_origin:
         assert fr.origin == pytest.approx(origin), (case, fr.origin)
     assert fr.source == path
+    fr.save(tmp_path / "again.npz")  # Frames.save -> save_frames
+    np.testing.assert_array_equal(read_frames(tmp_path / "again.npz").frames, expect)
     if has_spacing and case != "rf" and case != "rf-frame-tags":
         # spacing stored in the file: reading without spacing= gives it; spacing= overrides it
         assert read_frames(path, spacing=(0.5, 0.7)).spacing == (0.5, 0.7)
@@ -376,6 +378,18 @@ def test_read_invivo_sequence():
     assert 0.5 < np.abs(fr.frames).max() < 2.0, np.abs(fr.frames).max()  # "normalised to about +-1"
     one = read_frames(seq / "frame3.raw", shape=(2000, 128), spacing=(0.02, 0.2))
     np.testing.assert_array_equal(one.frames[0], fr.frames[2])
+
+
+def test_metaimage_header_for_invivo_frame_agrees(tmp_path):
+    """A MetaImage header as the sequence's own (x = 128 lines, y = 2000 samples) gives the same frame and spacing."""
+    raw = INVIVO / "seq304" / "frame2.raw"
+    if not raw.is_file():
+        pytest.skip(f"in vivo data not found at {INVIVO}")
+    _mhd(tmp_path / "f.mhd", ["ObjectType = Image", "NDims = 2", "DimSize = 128 2000", "ElementSpacing = 0.2 0.02",
+                              "ElementType = MET_FLOAT", "ElementByteOrderMSB = False", f"ElementDataFile = {raw}"])
+    fr = read_frames(tmp_path / "f.mhd")
+    assert fr.spacing == (0.02, 0.2) and fr.frames.shape == (1, 2000, 128)
+    np.testing.assert_array_equal(fr.frames[0], np.fromfile(raw, "<f4").reshape(2000, 128))
 
 
 # ---------------------------------------------------------------------------------------------- results

@@ -31,6 +31,14 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
+    try:
+        return _run(args)
+    except OSError as exc:  # unwritable output folder, full disk: a one-line reason, not a traceback
+        name = getattr(exc, "filename", None) or ""
+        raise InputError(f"cannot write {name}: {exc.strerror or exc}".replace("write :", "write:")) from None
+
+
+def _run(args) -> int:
     import numpy as np
 
     from ..io import export_result, load_result

@@ -66,6 +66,12 @@ class Frames:
     def __iter__(self):
         return iter(self.frames)
 
+    def save(self, path, **kwargs):
+        """Write these frames with :func:`femreg.io.save_frames` (format from the extension)."""
+        from .writers import save_frames
+
+        return save_frames(path, self.frames, self.spacing, origin=self.origin, **kwargs)
+
 
 # ----------------------------------------------------------------------------------------------- checks
 

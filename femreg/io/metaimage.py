@@ -55,7 +55,9 @@ def _parse_header(path: Path):
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError:
-            raise fail(path, f"MetaImage header has non-text bytes in line {len(fields) + 1}") from None
+            line = "\0"
+        if any(ord(ch) < 32 and ch not in "\t\r" for ch in line):
+            raise fail(path, f"MetaImage header has non-text bytes in line {len(fields) + 1}")
         if not line:
             continue
         if "=" not in line:
