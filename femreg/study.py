@@ -1,0 +1,1093 @@
+r"""The paper's simulation study, end to end: alpha selection, single-frame, dual-frame and accumulated
+registrations of the six simulated data sets, every metric beside the paper's number, and the figures.
+
+What it runs (the paper's "Results" and appendix "Algorithmic Parameter Justification"):
+
+1. **alpha selection** (:func:`select_alphas`): single-frame registration frames 1 -> 7 (indices 0 -> 6) of the 3D
+   sequences of every inclusion (HI, mHI, HOM, SI); :math:`\alpha` swept over a log grid 1e-6 ... 1e6 (one point
+   per decade), then refined around the optimum in rounds of half the previous step (+-1/2, +-1/4, +-1/8 decade);
+   per regulariser the chosen :math:`\alpha` is the grid point minimising the total strain error averaged over the
+   inclusions.  Because the choice is a grid point, the 3D single-frame results at the chosen alphas are exactly
+   sweep results (reused, not recomputed).
+2. **single frame 1 -> 7** of all six data sets at the chosen alphas (paper Table "strs" and appendix "Astrs").
+3. **dual frame** 1 -> 3, 1 -> 7, 1 -> 10 of the 3D sequences (markers of paper Figs. 5-6).
+4. **accumulated** frames 1 -> 20 (eq:IR, :func:`femreg.track`) of the 3D sequences (paper Table "acc_strs",
+   Figs. 5-8), with the error of every frame.
+
+Every registration is one *case* (an accumulated track is one case); each case's record (JSON: metrics, timings,
+solver status) and its nodal field (npz) are written atomically into ``OUTDIR/cases/`` as it finishes, so a run
+that is interrupted resumes without recomputing finished cases.  Cases run in a process pool (``jobs``), one case
+per task.  The key of a case hashes every setting that changes its result (data set and its simulation options,
+frames, regulariser, alpha, mesh, solver), so changed settings never reuse stale results.
+
+Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_strain(k, points)`` are frame 0 -> k in
+frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
+at frame k.  All metrics are computed by ONE function, :func:`case_metrics`.
+
+Public names: :class:`StudySettings`, :func:`run_study`, :func:`select_alphas`, :func:`case_metrics`,
+:func:`write_report`, :func:`read_default_alphas`, :data:`PAPER`, :data:`PAPER_ALPHAS`, :data:`REGULARIZERS`.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["StudySettings", "run_study", "select_alphas", "case_metrics", "write_report", "read_default_alphas",
+           "write_default_alphas", "PAPER", "PAPER_ALPHAS", "PAPER_TRUE", "REGULARIZERS", "LABELS",
+           "DEFAULT_ALPHAS_PATH", "StudyResult"]
+
+#: The four regularisers of the paper, in the paper's column order.
+REGULARIZERS = ("strain", "strain-incompressible", "momentum-strain", "momentum-stress")
+#: Paper symbols.
+LABELS = {"strain": "R_eps", "strain-incompressible": "R_eps_i", "momentum-strain": "R_P_eps",
+          "momentum-stress": "R_P_sigma"}
+#: Metric columns of the paper's tables (errors in %, then contrast of exx).
+COLUMNS = ("ux", "uy", "u", "exx", "eyy", "exy", "e", "SR", "CNR_e")
+COLUMN_HEAD = {"ux": "u_x", "uy": "u_y", "u": "**u**", "exx": "e_xx", "eyy": "e_yy", "exy": "e_xy",
+               "e": "**e** total", "SR": "SR", "CNR_e": "CNR_e"}
+#: The paper's alphas (its own image scaling and units, not transferable; shown for reference only).
+PAPER_ALPHAS = {"strain": 24.8, "strain-incompressible": 1.89e4, "momentum-strain": 1.14e-4,
+                "momentum-stress": 2.33e-4}
+
+
+def _row(*v):
+    return dict(zip(COLUMNS, v))
+
+
+#: The paper's numbers: PAPER[table][dataset][regularizer] -> {column: value} (errors in %).
+#: Tables: "single" (frames 1 -> 7, Table strs + appendix Astrs), "accumulated" (frame 20, Table acc_strs).
+PAPER = {
+    "single": {
+        "3d-HI": {"strain": _row(0.2, 20.5, 3.0, 14.9, 45.0, 60.4, 26.2, 1.68, 2.72),
+                  "strain-incompressible": _row(0.3, 97.0, 14.0, 6.0, 92.1, 75.6, 43.8, 1.54, 2.54),
+                  "momentum-strain": _row(0.1, 17.1, 2.5, 6.2, 20.8, 55.6, 14.3, 1.67, 3.53),
+                  "momentum-stress": _row(0.1, 9.0, 1.3, 4.9, 16.5, 33.6, 10.3, 1.67, 3.68)},
+        "plane-strain-HI": {"strain": _row(0.3, 11.8, 3.3, 18.7, 36.7, 77.1, 31.1, 2.04, 5.19),
+                            "strain-incompressible": _row(0.3, 3.0, 0.9, 5.9, 5.7, 24.5, 6.9, 1.90, 7.21),
+                            "momentum-strain": _row(0.1, 4.3, 1.2, 3.8, 5.5, 19.6, 5.6, 1.94, 8.93),
+                            "momentum-stress": _row(0.1, 6.7, 1.9, 5.2, 11.7, 37.2, 10.7, 2.02, 8.93)},
+        "plane-stress-HI": {"strain": _row(0.3, 21.0, 2.6, 16.4, 45.1, 66.6, 25.7, 2.49, 11.5),
+                            "strain-incompressible": _row(0.3, 136.0, 17.1, 7.5, 133.0, 98.8, 57.3, 2.2, 14.2),
+                            "momentum-strain": _row(0.2, 16.8, 2.1, 6.1, 23.2, 60.4, 14.1, 2.47, 21.9),
+                            "momentum-stress": _row(0.1, 9.9, 1.3, 3.5, 14.6, 30.9, 8.2, 2.45, 24.8)},
+        "3d-SI": {"strain": _row(0.2, 18.6, 2.7, 13.3, 41.4, 66.6, 23.8, 0.60, 7.15),
+                  "strain-incompressible": _row(0.2, 98.0, 14.2, 4.7, 94.7, 70.5, 43.8, 0.61, 8.42),
+                  "momentum-strain": _row(0.1, 15.5, 2.3, 5.2, 17.4, 50.3, 11.3, 0.60, 9.04),
+                  "momentum-stress": _row(0.1, 7.5, 1.1, 4.2, 12.9, 34.1, 8.3, 0.60, 9.25)},
+        "3d-HOM": {"strain": _row(0.2, 18.3, 2.7, 13.7, 43.6, 63.0, 24.7, 0.76, 1.85),
+                   "strain-incompressible": _row(0.2, 96.3, 13.9, 4.6, 93.6, 55.0, 43.0, 0.76, 2.55),
+                   "momentum-strain": _row(0.1, 13.9, 2.0, 4.3, 16.3, 40.0, 10.0, 0.76, 2.47),
+                   "momentum-stress": _row(0.1, 5.4, 0.8, 3.4, 12.2, 25.4, 7.2, 0.77, 2.53)},
+        "3d-mHI": {"strain": _row(0.2, 19.1, 2.8, 13.9, 42.5, 59.9, 24.5, 1.08, 0.12),
+                   "strain-incompressible": _row(0.2, 96.0, 13.9, 5.0, 92.7, 59.9, 43.0, 1.05, 0.05),
+                   "momentum-strain": _row(0.1, 16.3, 2.4, 5.2, 19.5, 48.8, 12.4, 1.08, 0.14),
+                   "momentum-stress": _row(0.1, 7.3, 1.1, 4.1, 14.9, 28.5, 8.8, 1.08, 0.15)},
+    },
+    "accumulated": {
+        "3d-HI": {"strain": _row(0.1, 21.4, 3.1, 7.5, 42.8, 36.0, 21.3, 1.68, 3.54),
+                  "strain-incompressible": _row(4.7, 79.4, 12.4, 20.6, 75.2, 61.0, 39.8, 1.01, 6.58e-4),
+                  "momentum-strain": _row(0.1, 9.6, 1.4, 5.1, 15.7, 41.1, 10.8, 1.68, 3.75),
+                  "momentum-stress": _row(0.1, 4.4, 0.6, 4.0, 14.4, 26.1, 8.6, 1.68, 3.84)},
+    },
+}
+#: SR and CNR_e of the paper's true strains (frames 1 -> 7 / accumulated; the paper states one value per model).
+PAPER_TRUE = {"3d-HI": (1.65, 3.77), "plane-strain-HI": (2.01, 9.20), "plane-stress-HI": (2.45, 24.0),
+              "3d-SI": (0.60, 9.64), "3d-HOM": (0.76, 2.59), "3d-mHI": (1.07, 0.13)}
+#: Targets of the issue: R_P_sigma total strain error at or below the paper's.
+TARGETS = {("single", "3d-HI"): 10.3, ("accumulated", "3d-HI"): 8.6}
+
+#: Where the selected alphas live (read by :func:`read_default_alphas`; the regularisers' defaults).
+DEFAULT_ALPHAS_PATH = Path(__file__).resolve().parent / "data" / "default_alphas.json"
+
+SWEEP_3D = ("3d-HI", "3d-mHI", "3d-HOM", "3d-SI")
+ALL_DATASETS = ("3d-HI", "plane-strain-HI", "plane-stress-HI", "3d-SI", "3d-HOM", "3d-mHI")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Settings
+# ----------------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StudySettings:
+    """Everything that defines a study run.  :meth:`full` is the paper's study, :meth:`quick` a reduced one.
+
+    Frame indices are 0-based (the paper's frame 1 is index 0).
+
+    Attributes
+    ----------
+    regularizers : names of the regularisers compared.
+    sweep_datasets : data sets of the alpha selection (paper: the four 3D inclusions).
+    single_datasets : data sets of the single-frame tables.
+    track_datasets : data sets tracked by accumulation (paper Figs. 5-8, Table acc_strs).
+    pair : (ref, mov) of the single-frame registration and of the alpha sweep (paper 1 -> 7 = (0, 6)).
+    dual_pairs : direct registrations plotted as markers on the accumulated error curves (paper 1->3, 1->7, 1->10).
+    n_track_frames : frames tracked (paper 20).
+    alpha_decades : (lo, hi) exponents of the log grid, one point per decade (paper 1e-6 ... 1e6).
+    alpha_step : grid step in decades.
+    refine_rounds : rounds of refinement, each at +-step/2^r decades around the current optimum.
+    alphas : fixed alphas per regulariser (skip the sweep), or None.
+    element_size, margin : registration mesh (mm); None = femreg's defaults.
+    linear_solver, maxiter, tol : Gauss-Newton options of :func:`femreg.register`.
+    seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
+    sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
+    crop_mm : (x0, x1, y0, y1) mm, optional: register only this part of the images.
+    image_step : axial pixel decimation of the field images (figures only).
+    """
+
+    regularizers: tuple = REGULARIZERS
+    sweep_datasets: tuple = SWEEP_3D
+    single_datasets: tuple = ALL_DATASETS
+    track_datasets: tuple = SWEEP_3D
+    pair: tuple = (0, 6)
+    dual_pairs: tuple = ((0, 2), (0, 6), (0, 9))
+    n_track_frames: int = 20
+    alpha_decades: tuple = (-6, 6)
+    alpha_step: float = 1.0
+    refine_rounds: int = 3
+    alphas: dict | None = None
+    element_size: float | None = None
+    margin: float | None = None
+    linear_solver: str = "spsolve"
+    maxiter: int = 20
+    tol: float = 1e-3
+    seed: int = 0
+    snr_db: float | None = 12.0
+    n_frames: int = 20
+    sequence_options: dict = field(default_factory=dict)
+    crop_mm: tuple | None = None
+    image_step: int = 4
+    name: str = "full"
+
+    @classmethod
+    def full(cls, **kw) -> "StudySettings":
+        """The paper's study."""
+        return replace(cls(), **kw)
+
+    @classmethod
+    def quick(cls, **kw) -> "StudySettings":
+        """One model (3D HI), a coarse alpha grid (1e-4 ... 1e4, every 2 decades, one refinement round), the
+        single-frame 1 -> 7 table, dual frames 1 -> 3 and 1 -> 7, accumulation to frame 7."""
+        base = cls(sweep_datasets=("3d-HI",), single_datasets=("3d-HI",), track_datasets=("3d-HI",),
+                   dual_pairs=((0, 2), (0, 6)), n_track_frames=7, alpha_decades=(-4, 4), alpha_step=2.0,
+                   refine_rounds=1, name="quick")
+        return replace(base, **kw)
+
+    def validate(self) -> "StudySettings":
+        from .regularizers import available_regularizers
+
+        bad = [r for r in self.regularizers if r not in available_regularizers()]
+        if bad:
+            raise InputError(f"unknown regularizer(s) {bad}; available: {available_regularizers()}")
+        for name in set(self.sweep_datasets) | set(self.single_datasets) | set(self.track_datasets):
+            _parse_dataset(name)
+        ref, mov = self.pair
+        if not (0 <= ref < mov < self.n_frames):
+            raise InputError(f"pair {self.pair} must satisfy 0 <= ref < mov < n_frames = {self.n_frames}")
+        for a, b in self.dual_pairs:
+            if not (0 <= a < b < self.n_frames):
+                raise InputError(f"dual pair {(a, b)} outside the {self.n_frames} frames")
+        if not 2 <= self.n_track_frames <= self.n_frames:
+            raise InputError(f"n_track_frames must be in [2, n_frames = {self.n_frames}], got {self.n_track_frames}")
+        lo, hi = self.alpha_decades
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi and self.alpha_step > 0):
+            raise InputError(f"bad alpha grid: decades {self.alpha_decades}, step {self.alpha_step}")
+        if self.alphas is None and not self.sweep_datasets:
+            raise InputError("either give alphas or at least one sweep data set")
+        if self.alphas is not None:
+            missing = [r for r in self.regularizers if r not in self.alphas]
+            if missing:
+                raise InputError(f"alphas missing for {missing}")
+        return self
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return json.loads(json.dumps(d, default=list))
+
+
+def _parse_dataset(name):
+    from forward.sequences import parse_dataset_name
+
+    try:
+        return parse_dataset_name(name)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Metrics: the ONE place that computes them
+# ----------------------------------------------------------------------------------------------------------------
+
+def inclusion_roi(seq):
+    """The inclusion ROI of a sequence as a callable (n, 2) mm -> (n,) bool (the disk of the forward model in the
+    imaging plane; the paper's green dotted line)."""
+    xc = float(seq.params.get("inclusion_depth_mm", 30.0))
+    r = float(seq.params.get("inclusion_diameter_mm", 15.0)) / 2.0
+
+    def roi(points):
+        p = np.asarray(points, float)
+        return (p[:, 0] - xc) ** 2 + p[:, 1] ** 2 < r * r
+
+    return roi
+
+
+def case_metrics(result, seq, k: int) -> dict:
+    """The paper's metrics of a registration frame 0 -> ``k`` (or an accumulated track at ``k``).
+
+    Returns a dict: ``ux, uy, u, exx, eyy, exy, e`` -- relative L2 errors in **percent** integrated over the FE
+    mesh against ``seq.true_displacement(k, .)`` / ``seq.true_strain(k, .)`` (total strain with e:e); ``SR``,
+    ``CNR_e`` of the measured exx and ``SR_true``, ``CNR_e_true`` of the true exx, both over the mesh quadrature
+    points with the inclusion disk (:func:`inclusion_roi`) as ROI.
+    """
+    roi = inclusion_roi(seq)
+    true_u = lambda p: seq.true_displacement(k, p)  # noqa: E731
+    true_e = lambda p: seq.true_strain(k, p)  # noqa: E731
+    return _metrics_impl(result, true_u, true_e, roi)
+
+
+def _metrics_impl(result, true_u, true_e, roi) -> dict:
+    # Engine's femreg.metrics when it is there; otherwise the same definitions on a 3x3 Gauss rule per element.
+    try:
+        from . import metrics as M  # noqa: F401
+    except ImportError:
+        M = None
+    if M is not None:
+        err = M.field_errors(result, true_u, true_e)
+        pts, w, _ = M.mesh_quadrature(result.mesh)
+        inside = np.asarray(roi(pts), bool)
+        con = M.contrast_metrics(result, roi)
+        et = np.asarray(true_e(pts), float)[:, 0]
+        out = {k: 100.0 * float(v) for k, v in err.items()}
+        out.update(SR=float(con["SR"]), CNR_e=float(con["CNR_e"]),
+                   SR_true=float(M.strain_ratio(et, inside, w)), CNR_e_true=float(M.cnr_e(et, inside, w)))
+        return out
+    return _fallback_metrics(result, true_u, true_e, roi)
+
+
+def _fallback_metrics(result, true_u, true_e, roi) -> dict:
+    """Stand-in until ``femreg.metrics`` lands (same formulas as the paper's "Results" section)."""
+    from skfem import Basis, ElementQuad1, ElementVector
+
+    basis = Basis(result.mesh, ElementVector(ElementQuad1()), intorder=4)
+    X = basis.mapping.F(basis.X)
+    pts = np.column_stack([X[0].ravel(), X[1].ravel()])
+    w = np.asarray(basis.dx).ravel()
+    f = basis.interpolate(np.asarray(result.u, float))
+    v, g = f.value, f.grad
+    um = np.column_stack([v[0].ravel(), v[1].ravel()])
+    em = np.column_stack([g[0, 0].ravel(), g[1, 1].ravel(), 0.5 * (g[0, 1] + g[1, 0]).ravel()])
+    ut = np.asarray(true_u(pts), float)
+    et = np.asarray(true_e(pts), float)
+
+    def rel(d, t, c=None):
+        c = np.ones(d.shape[1]) if c is None else np.asarray(c, float)
+        return 100.0 * float(np.sqrt(np.sum(w[:, None] * c * d**2) / np.sum(w[:, None] * c * t**2)))
+
+    du, de = um - ut, em - et
+    out = {"ux": rel(du[:, :1], ut[:, :1]), "uy": rel(du[:, 1:], ut[:, 1:]), "u": rel(du, ut),
+           "exx": rel(de[:, :1], et[:, :1]), "eyy": rel(de[:, 1:2], et[:, 1:2]), "exy": rel(de[:, 2:], et[:, 2:]),
+           "e": rel(de, et, [1.0, 1.0, 2.0])}
+    inside = np.asarray(roi(pts), bool)
+
+    def contrast(e):
+        a, b = ~inside, inside
+        ea = np.sum(w[a] * e[a]) / np.sum(w[a])
+        eb = np.sum(w[b] * e[b]) / np.sum(w[b])
+        va = np.sum(w[a] * (e[a] - ea) ** 2) / np.sum(w[a])
+        vb = np.sum(w[b] * (e[b] - eb) ** 2) / np.sum(w[b])
+        return float(ea / eb), float(2 * (ea - eb) ** 2 / (va + vb))
+
+    out["SR"], out["CNR_e"] = contrast(em[:, 0])
+    out["SR_true"], out["CNR_e_true"] = contrast(et[:, 0])
+    return out
+
+
+def mesh_floor(seq, k: int, *, element_size=None, margin=None, crop_mm=None) -> dict:
+    """Best error a registration on this mesh could reach: the true field interpolated at the mesh nodes, scored
+    by :func:`case_metrics` (the discretisation floor of the bilinear mesh; no images involved)."""
+    from .mesh import roi_mesh
+    from .registration import RegistrationResult
+
+    frames, origin = _crop(seq, crop_mm)
+    mesh = roi_mesh(frames.shape[1:], seq.spacing, origin, element_size=element_size, margin=margin)
+    ut = seq.true_displacement(k, mesh.p.T)
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = ut[:, 0], ut[:, 1]
+    res = RegistrationResult(mesh, u, shape=frames.shape[1:], spacing=seq.spacing, origin=origin)
+    return case_metrics(res, seq, k)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Cases
+# ----------------------------------------------------------------------------------------------------------------
+
+def _fmt_alpha(a: float) -> str:
+    return f"{a:.6g}"
+
+
+def alpha_grid(lo: float, hi: float, step: float) -> list:
+    """Log grid 10^lo ... 10^hi with ``step`` decades (exponents rounded to 1e-9 so keys are stable)."""
+    n = int(round((hi - lo) / step))
+    return [float(10 ** round(lo + i * step, 9)) for i in range(n + 1)]
+
+
+def _log10(a):
+    return round(math.log10(a), 9)
+
+
+def _dataset_key(s: StudySettings, dataset: str) -> dict:
+    return {"dataset": dataset, "seed": s.seed, "snr_db": s.snr_db, "n_frames": s.n_frames,
+            "sequence_options": s.sequence_options}
+
+
+def _reg_key(s: StudySettings) -> dict:
+    return {"element_size": s.element_size, "margin": s.margin, "linear_solver": s.linear_solver,
+            "maxiter": s.maxiter, "tol": s.tol, "crop_mm": s.crop_mm}
+
+
+def make_case(s: StudySettings, kind: str, dataset: str, regularizer: str, alpha: float, frames) -> dict:
+    """A case spec: ``kind`` "pair" (frames = (ref, mov)) or "track" (frames = number of frames tracked)."""
+    spec = {"kind": kind, "regularizer": regularizer, "alpha": float(alpha),
+            "frames": list(frames) if kind == "pair" else int(frames), **_dataset_key(s, dataset), **_reg_key(s)}
+    blob = json.dumps(spec, sort_keys=True, default=str)
+    h = hashlib.sha256(blob.encode()).hexdigest()[:10]
+    fr = f"{frames[0]}-{frames[1]}" if kind == "pair" else f"acc{int(frames)}"
+    spec["key"] = f"{kind}_{dataset}_{regularizer}_a{_fmt_alpha(alpha)}_{fr}_{h}"
+    return spec
+
+
+_SEQ_CACHE: dict = {}
+
+
+def _load_sequence(spec):
+    import forward
+
+    key = json.dumps({k: spec[k] for k in ("dataset", "seed", "snr_db", "n_frames", "sequence_options")},
+                     sort_keys=True, default=str)
+    if key not in _SEQ_CACHE:
+        model, inc = _parse_dataset(spec["dataset"])
+        _SEQ_CACHE.clear()  # one sequence per worker at a time (memory)
+        _SEQ_CACHE[key] = forward.get_sequence(model, inc, seed=spec["seed"], snr_db=spec["snr_db"],
+                                               n_frames=spec["n_frames"], **(spec["sequence_options"] or {}))
+    return _SEQ_CACHE[key]
+
+
+def _crop(seq, crop_mm):
+    """Frames and origin of the crop box (x0, x1, y0, y1) mm of a sequence (all frames if None)."""
+    frames = seq.frames
+    origin = np.asarray(seq.origin, float)
+    if crop_mm is None:
+        return frames, origin
+    x0, x1, y0, y1 = (float(c) for c in crop_mm)
+    dx, dy = seq.spacing
+    i0 = max(0, int(math.ceil((x0 - origin[0]) / dx)))
+    i1 = min(frames.shape[1], int(math.floor((x1 - origin[0]) / dx)) + 1)
+    j0 = max(0, int(math.ceil((y0 - origin[1]) / dy)))
+    j1 = min(frames.shape[2], int(math.floor((y1 - origin[1]) / dy)) + 1)
+    if i1 - i0 < 8 or j1 - j0 < 8:
+        raise InputError(f"crop_mm {crop_mm} leaves fewer than 8 pixels along an axis")
+    return frames[:, i0:i1, j0:j1], origin + np.array([i0 * dx, j0 * dy])
+
+
+def _atomic_write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=float))
+    os.replace(tmp, path)
+
+
+def _atomic_write_npz(path: Path, **arrays) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _reg_kwargs(spec, seq, origin):
+    return dict(spacing=seq.spacing, origin=origin, regularizer=spec["regularizer"], alpha=spec["alpha"],
+                element_size=spec["element_size"], margin=spec["margin"], linear_solver=spec["linear_solver"],
+                maxiter=spec["maxiter"], tol=spec["tol"])
+
+
+def run_case(spec: dict, outdir) -> dict:
+    """Run one case and write ``cases/<key>.json`` (record) and ``cases/<key>.npz`` (mesh and nodal field(s))
+    atomically.  Returns the record."""
+    import femreg
+
+    casedir = Path(outdir) / "cases"
+    casedir.mkdir(parents=True, exist_ok=True)
+    seq = _load_sequence(spec)
+    frames, origin = _crop(seq, spec["crop_mm"])
+    kw = _reg_kwargs(spec, seq, origin)
+    t0 = time.perf_counter()
+    rec = {"key": spec["key"], "spec": spec}
+    if spec["kind"] == "pair":
+        a, b = spec["frames"]
+        res = femreg.register(frames[a], frames[b], **kw)
+        k = b - a
+        if a != 0:
+            raise InputError("pair cases compare with the truth frame 0 -> k; ref must be frame 0")
+        rec.update(metrics=case_metrics(res, seq, k), nit=res.nit, success=res.success, message=res.message,
+                   ncc_after=res.ncc_after, time_s=time.perf_counter() - t0)
+        arrays = dict(mesh_points=res.mesh.p, mesh_cells=res.mesh.t, u=res.u, frame=np.int64(k))
+    else:
+        n = int(spec["frames"])
+        per_frame = []
+        us = []
+
+        def on_frame(k, res, flag):
+            m = case_metrics(res, seq, k)
+            per_frame.append({"frame": k, "metrics": m, "nit": res.nit, "success": res.success,
+                              "ncc_after": res.ncc_after, "flag": flag})
+            us.append(np.asarray(res.u, float))
+
+        out = femreg.track(frames[:n], mode="accumulate", on_frame=on_frame, **kw)
+        last = out[-1]
+        rec.update(metrics=per_frame[-1]["metrics"], frames=per_frame, nit=sum(f["nit"] for f in per_frame),
+                   success=all(f["success"] for f in per_frame), message=last.message,
+                   ncc_after=last.ncc_after, time_s=time.perf_counter() - t0)
+        arrays = dict(mesh_points=last.mesh.p, mesh_cells=last.mesh.t, u=last.u, u_frames=np.array(us),
+                      frame=np.int64(n - 1))
+    _atomic_write_npz(casedir / f"{spec['key']}.npz", **arrays)
+    _atomic_write_json(casedir / f"{spec['key']}.json", rec)
+    return rec
+
+
+def _case_worker(args):
+    spec, outdir = args
+    try:
+        return run_case(spec, outdir)
+    except Exception as exc:  # noqa: BLE001 - a failed case is recorded, the study goes on
+        rec = {"key": spec["key"], "spec": spec, "error": f"{type(exc).__name__}: {exc}"}
+        _atomic_write_json(Path(outdir) / "cases" / f"{spec['key']}.json", rec)
+        return rec
+
+
+def _init_worker():
+    # One BLAS thread per worker: the pool already uses every core.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    import warnings
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+
+def load_record(outdir, key):
+    p = Path(outdir) / "cases" / f"{key}.json"
+    if p.exists():
+        try:
+            return json.loads(p.read_text())
+        except ValueError:
+            return None
+    return None
+
+
+def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str = "cases", retry_failed=False):
+    """Run every spec whose record is not already in ``outdir`` (resume), ``jobs`` processes, longest first.
+    Returns {key: record}."""
+    records, todo = {}, []
+    seen = set()
+    for spec in specs:
+        if spec["key"] in seen:
+            continue
+        seen.add(spec["key"])
+        rec = load_record(outdir, spec["key"])
+        if rec is not None and not ("error" in rec and retry_failed):
+            records[spec["key"]] = rec
+        else:
+            todo.append(spec)
+    todo.sort(key=lambda s: -(s["frames"] if s["kind"] == "track" else 1))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(todo), desc=desc, unit="case", smoothing=0.1)
+    try:
+        if jobs <= 1 or len(todo) <= 1:
+            for spec in todo:
+                rec = _case_worker((spec, outdir))
+                records[spec["key"]] = rec
+                if bar is not None:
+                    bar.update(1)
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(processes=int(jobs), initializer=_init_worker, maxtasksperchild=40) as pool:
+                for rec in pool.imap_unordered(_case_worker, [(s, str(outdir)) for s in todo], chunksize=1):
+                    records[rec["key"]] = rec
+                    if bar is not None:
+                        bar.set_postfix_str(rec["key"][:40])
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return records
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Alpha selection
+# ----------------------------------------------------------------------------------------------------------------
+
+def _sweep_curves(s: StudySettings, records, reg):
+    """{dataset: {alpha: total strain error %}} of the sweep records of one regulariser."""
+    curves = {d: {} for d in s.sweep_datasets}
+    for rec in records.values():
+        sp = rec["spec"]
+        if sp["kind"] != "pair" or sp["regularizer"] != reg or tuple(sp["frames"]) != tuple(s.pair):
+            continue
+        if sp["dataset"] in curves and "metrics" in rec:
+            curves[sp["dataset"]][sp["alpha"]] = rec["metrics"]["e"]
+    return curves
+
+
+def _best_alpha(curves):
+    """alpha minimising the mean over data sets (only alphas evaluated on all of them)."""
+    common = set.intersection(*[set(c) for c in curves.values()]) if curves else set()
+    if not common:
+        return None, {}
+    mean = {a: float(np.mean([curves[d][a] for d in curves])) for a in common}
+    return min(mean, key=mean.get), mean
+
+
+def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True):
+    """The paper's alpha selection (module docstring, step 1).  Returns (alphas {reg: alpha}, sweep dict)."""
+    grid = alpha_grid(s.alpha_decades[0], s.alpha_decades[1], s.alpha_step)
+    specs = [make_case(s, "pair", d, r, a, s.pair) for r in s.regularizers for d in s.sweep_datasets for a in grid]
+    records = run_cases(specs, outdir, jobs=jobs, progress=progress, desc="alpha sweep")
+    alphas = {}
+    for rnd in range(1, s.refine_rounds + 1):
+        step = s.alpha_step / 2**rnd
+        new = []
+        for r in s.regularizers:
+            best, _ = _best_alpha(_sweep_curves(s, records, r))
+            if best is None:
+                continue
+            for sgn in (-1, 1):
+                a = float(10 ** round(_log10(best) + sgn * step, 9))
+                new += [make_case(s, "pair", d, r, a, s.pair) for d in s.sweep_datasets]
+        records.update(run_cases(new, outdir, jobs=jobs, progress=progress, desc=f"alpha refine {rnd}"))
+    sweep = {}
+    for r in s.regularizers:
+        curves = _sweep_curves(s, records, r)
+        best, mean = _best_alpha(curves)
+        if best is None:
+            raise RuntimeError(f"alpha sweep of {r} produced no results (see {outdir}/cases/*.json errors)")
+        alphas[r] = best
+        per = {d: (min(c, key=c.get) if c else None) for d, c in curves.items()}
+        sweep[r] = {"curves": {d: sorted(c.items()) for d, c in curves.items()}, "mean": sorted(mean.items()),
+                    "best": best, "best_mean_error": mean[best], "best_per_dataset": per}
+    return alphas, sweep, records
+
+
+def write_default_alphas(alphas: dict, path=None, *, sweep=None, settings=None) -> Path:
+    """Write the selected alphas as JSON (``{"alphas": {name: value}, "provenance": ...}``)."""
+    path = Path(path) if path is not None else DEFAULT_ALPHAS_PATH
+    path.parent.mkdir(parents=True, exist_ok=True)
+    prov = {"procedure": "paper appendix 'Algorithmic Parameter Justification': single-frame registration frames "
+                         "1 -> 7 of the 3D sequences, log sweep of alpha with refinement, minimum of the total "
+                         "strain error averaged over the inclusions; images normalised by the reference RMS "
+                         "(femreg.image), lengths in mm"}
+    if settings is not None:
+        prov["settings"] = settings.to_dict()
+    if sweep is not None:
+        prov["mean_total_strain_error_percent"] = {r: sweep[r]["best_mean_error"] for r in sweep}
+    _atomic_write_json(path, {"alphas": {r: float(a) for r, a in alphas.items()}, "provenance": prov})
+    return path
+
+
+def read_default_alphas(path=None) -> dict:
+    """{regularizer name: alpha} from :data:`DEFAULT_ALPHAS_PATH` (or ``path``); {} if the file is absent."""
+    path = Path(path) if path is not None else DEFAULT_ALPHAS_PATH
+    if not path.exists():
+        return {}
+    return {k: float(v) for k, v in json.loads(path.read_text())["alphas"].items()}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The study
+# ----------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class StudyResult:
+    """What :func:`run_study` produced: settings, alphas, the sweep, every record, report path, wall time."""
+
+    settings: StudySettings
+    alphas: dict
+    sweep: dict
+    records: dict
+    outdir: Path
+    report: Path
+    wall_s: float
+    tables: dict = field(default_factory=dict)
+
+
+def _case_sets(s: StudySettings, alphas):
+    single = {(d, r): make_case(s, "pair", d, r, alphas[r], s.pair) for d in s.single_datasets
+              for r in s.regularizers}
+    dual = {(d, r, p): make_case(s, "pair", d, r, alphas[r], p) for d in s.track_datasets
+            for r in s.regularizers for p in s.dual_pairs}
+    tracks = {(d, r): make_case(s, "track", d, r, alphas[r], s.n_track_frames) for d in s.track_datasets
+              for r in s.regularizers}
+    return single, dual, tracks
+
+
+def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
+              resume: bool = False, progress: bool = True, figures: bool = True,
+              write_defaults: bool = False) -> StudyResult:
+    """Run the study into ``outdir`` and write ``outdir/report.md`` with figures.
+
+    Parameters
+    ----------
+    outdir : path
+        Report folder; ``cases/`` holds one JSON record + npz per case.
+    settings : StudySettings, optional
+        Default :meth:`StudySettings.full` (``quick=False``) or :meth:`StudySettings.quick`.
+    jobs : int
+        Worker processes (one case per task).
+    resume : bool
+        Keep the finished cases of an earlier run in ``outdir`` (required if ``outdir`` already holds one).
+    write_defaults : bool
+        Also write the selected alphas to :data:`DEFAULT_ALPHAS_PATH` (the package's defaults).
+    """
+    t0 = time.perf_counter()
+    s = settings if settings is not None else (StudySettings.quick() if quick else StudySettings.full())
+    s.validate()
+    if int(jobs) < 1:
+        raise InputError(f"jobs must be >= 1, got {jobs}")
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    if not resume and any((outdir / "cases").glob("*.json")):
+        raise InputError(f"{outdir} already holds study results; use resume=True (--resume) or another folder")
+    _atomic_write_json(outdir / "settings.json", s.to_dict())
+
+    # 0. data sets (cached): generate each once in the parent so workers only read the cache.
+    import forward
+
+    names = list(dict.fromkeys(list(s.sweep_datasets) + list(s.single_datasets) + list(s.track_datasets)))
+    for name in (names if not progress else _tqdm(names, "data sets")):
+        m, i = _parse_dataset(name)
+        forward.get_sequence(m, i, seed=s.seed, snr_db=s.snr_db, n_frames=s.n_frames, **s.sequence_options)
+
+    # 1. alphas
+    if s.alphas is None:
+        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, progress=progress)
+    else:
+        alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
+    write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
+    if write_defaults:
+        write_default_alphas(alphas, sweep=sweep or None, settings=s)
+
+    # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
+    single, dual, tracks = _case_sets(s, alphas)
+    specs = list(tracks.values()) + list(single.values()) + list(dual.values())
+    records.update(run_cases(specs, outdir, jobs=jobs, progress=progress, desc="study cases"))
+    wall = time.perf_counter() - t0
+    res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
+                      report=outdir / "report.md", wall_s=wall)
+    write_report(res, figures=figures)
+    return res
+
+
+def _tqdm(it, desc):
+    from tqdm.auto import tqdm
+
+    return tqdm(it, desc=desc, unit="set")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Report
+# ----------------------------------------------------------------------------------------------------------------
+
+def _fmt(v, col):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "--"
+    if col in ("SR",):
+        return f"{v:.2f}"
+    if col == "CNR_e":
+        return f"{v:.3g}"
+    return f"{v:.1f}%" if v < 100 else f"{v:.0f}%"
+
+
+def _ranking(values: dict) -> list:
+    """Regularisers ordered best (lowest) first."""
+    return sorted(values, key=lambda r: values[r])
+
+
+def _table_block(title, rows_femreg, rows_paper, regs, truth=None, truth_paper=None):
+    """Markdown table: one row per regulariser, each cell 'femreg (paper)'."""
+    lines = [f"| {title} | " + " | ".join(COLUMN_HEAD[c] for c in COLUMNS) + " |",
+             "|---|" + "---|" * len(COLUMNS)]
+    for r in regs:
+        f = rows_femreg.get(r)
+        p = (rows_paper or {}).get(r, {})
+        cells = []
+        for c in COLUMNS:
+            fv = None if f is None else f.get(c)
+            pv = p.get(c)
+            cells.append(f"{_fmt(fv, c)} ({_fmt(pv, c)})" if pv is not None else _fmt(fv, c))
+        lines.append(f"| {LABELS.get(r, r)} | " + " | ".join(cells) + " |")
+    if truth is not None:
+        tp = truth_paper or (None, None)
+        cells = [""] * 7 + [f"{_fmt(truth[0], 'SR')} ({_fmt(tp[0], 'SR')})",
+                            f"{_fmt(truth[1], 'CNR_e')} ({_fmt(tp[1], 'CNR_e')})"]
+        lines.append("| true strain | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _ranking_lines(name, rows_femreg, rows_paper, regs):
+    """Compare orderings: total strain error ranking, and per column who is best."""
+    out = []
+    f_tot = {r: rows_femreg[r]["e"] for r in regs if r in rows_femreg}
+    if rows_paper is None or len(f_tot) < len(regs):
+        if f_tot:
+            out.append(f"- {name}: femreg ranking by total strain error: "
+                       + " < ".join(LABELS[r] for r in _ranking(f_tot)) + " (no paper numbers)")
+        return out, None
+    p_tot = {r: rows_paper[r]["e"] for r in regs}
+    fr, pr = _ranking(f_tot), _ranking(p_tot)
+    same = fr == pr
+    best_same = fr[0] == pr[0]
+    cols = [c for c in ("ux", "uy", "u", "exx", "eyy", "exy", "e")]
+    agree = [c for c in cols if _ranking({r: rows_femreg[r][c] for r in regs})[0]
+             == _ranking({r: rows_paper[r][c] for r in regs})[0]]
+    out.append(f"- {name}: total strain error ranking femreg " + " < ".join(LABELS[r] for r in fr)
+               + ", paper " + " < ".join(LABELS[r] for r in pr) + " -> "
+               + ("**same order**" if same else ("same best, different order" if best_same else "**different best**"))
+               + f"; best regulariser agrees in {len(agree)}/{len(cols)} error columns"
+               + (f" ({', '.join(agree)})" if agree else ""))
+    return out, {"same_order": same, "same_best": best_same, "columns_agree": agree}
+
+
+def _single_rows(res: StudyResult, dataset):
+    s = res.settings
+    rows, truth = {}, None
+    for r in s.regularizers:
+        spec = make_case(s, "pair", dataset, r, res.alphas[r], s.pair)
+        rec = res.records.get(spec["key"])
+        if rec and "metrics" in rec:
+            rows[r] = rec["metrics"]
+            truth = (rec["metrics"]["SR_true"], rec["metrics"]["CNR_e_true"])
+    return rows, truth
+
+
+def _track_rows(res: StudyResult, dataset):
+    s = res.settings
+    rows, truth, curves = {}, None, {}
+    for r in s.regularizers:
+        spec = make_case(s, "track", dataset, r, res.alphas[r], s.n_track_frames)
+        rec = res.records.get(spec["key"])
+        if rec and "metrics" in rec:
+            rows[r] = rec["metrics"]
+            truth = (rec["metrics"]["SR_true"], rec["metrics"]["CNR_e_true"])
+            curves[r] = rec["frames"]
+    return rows, truth, curves
+
+
+def write_report(res: StudyResult, *, figures: bool = True) -> Path:
+    """Write ``report.md`` (tables femreg (paper), rankings, targets, diagnostics) and the PNG figures."""
+    s, out = res.settings, Path(res.outdir)
+    regs = s.regularizers
+    L = [f"# femreg reproduction of the paper's simulation study ({s.name})", ""]
+    L += [f"Wall time of this run: **{res.wall_s / 60:.1f} min** ({res.wall_s:.0f} s; cases loaded from an earlier "
+          f"run count as 0).  Cases: {len(res.records)} "
+          f"({sum(1 for r in res.records.values() if 'error' in r)} failed).  Settings: `settings.json`; every "
+          f"case's record: `cases/`.  Cells read **femreg (paper)**; errors are relative L2 errors over the FE mesh "
+          f"in %, SR and CNR_e of the axial strain with the inclusion disk as ROI.", ""]
+    errs = [r for r in res.records.values() if "error" in r]
+    if errs:
+        L += ["Failed cases:", ""] + [f"- `{r['key']}`: {r['error']}" for r in errs[:20]] + [""]
+
+    # alphas
+    L += ["## Regularisation weights (paper appendix 'Algorithmic Parameter Justification')", ""]
+    if res.sweep:
+        L += [f"Single-frame registration frames {s.pair[0] + 1} -> {s.pair[1] + 1} of "
+              f"{', '.join(s.sweep_datasets)}; alpha on a log grid 1e{s.alpha_decades[0]:g} ... "
+              f"1e{s.alpha_decades[1]:g} (step {s.alpha_step:g} decade), {s.refine_rounds} refinement round(s) "
+              f"(+-{s.alpha_step / 2:g}, ... decade); chosen: minimum of the total strain error averaged over the "
+              f"data sets.  Figure: `alphachoice.png`.  femreg's alphas are for RMS-normalised images in mm; the "
+              f"paper's are in its own (unstated) scaling and are not comparable as numbers.", "",
+              "| regulariser | femreg alpha | mean total strain error at it | best alpha per data set | "
+              "paper alpha |", "|---|---|---|---|---|"]
+        for r in regs:
+            sw = res.sweep[r]
+            per = ", ".join(f"{d}: {a:.3g}" for d, a in sw["best_per_dataset"].items() if a is not None)
+            L.append(f"| {LABELS[r]} (`{r}`) | {sw['best']:.4g} | {sw['best_mean_error']:.1f}% | {per} | "
+                     f"{PAPER_ALPHAS[r]:.3g} |")
+    else:
+        L += ["Fixed alphas (no sweep): " + ", ".join(f"{LABELS[r]} {res.alphas[r]:.4g}" for r in regs)]
+    L.append("")
+
+    verdicts = {}
+    # single frame
+    L += [f"## Single-frame registration, frames {s.pair[0] + 1} -> {s.pair[1] + 1}", ""]
+    rank_lines = []
+    for d in s.single_datasets:
+        rows, truth = _single_rows(res, d)
+        paper = PAPER["single"].get(d)
+        L += _table_block(d, rows, paper, regs, truth, PAPER_TRUE.get(d)) + [""]
+        rl, v = _ranking_lines(f"single frame {d}", rows, paper, regs)
+        rank_lines += rl
+        verdicts[("single", d)] = v
+        res.tables[("single", d)] = rows
+    # accumulated
+    L += [f"## Accumulated displacement, frames 1 -> {s.n_track_frames} (eq:IR)", ""]
+    track_curves = {}
+    for d in s.track_datasets:
+        rows, truth, curves = _track_rows(res, d)
+        track_curves[d] = curves
+        paper = PAPER["accumulated"].get(d) if s.n_track_frames == 20 else None
+        L += _table_block(d, rows, paper, regs, truth, PAPER_TRUE.get(d) if paper else None) + [""]
+        rl, v = _ranking_lines(f"accumulated {d}", rows, paper, regs)
+        rank_lines += rl
+        verdicts[("accumulated", d)] = v
+        res.tables[("accumulated", d)] = rows
+    # dual frames
+    if s.dual_pairs:
+        L += ["## Dual-frame (direct) registrations of the 3D sequences: total strain error %", "",
+              "| data set | " + " | ".join(f"{LABELS[r]} {a + 1}->{b + 1}" for r in regs for a, b in s.dual_pairs)
+              + " |", "|---|" + "---|" * (len(regs) * len(s.dual_pairs))]
+        for d in s.track_datasets:
+            cells = []
+            for r in regs:
+                for p in s.dual_pairs:
+                    rec = res.records.get(make_case(s, "pair", d, r, res.alphas[r], p)["key"])
+                    cells.append(_fmt(rec["metrics"]["e"], "e") if rec and "metrics" in rec else "--")
+            L.append(f"| {d} | " + " | ".join(cells) + " |")
+        L.append("")
+
+    # rankings and targets
+    L += ["## Ranking of the regularisers, femreg vs paper", ""] + rank_lines + [""]
+    L += ["## Targets (R_P_sigma total strain error at or below the paper's)", ""]
+    for (table, d), target in TARGETS.items():
+        row = res.tables.get((table, d), {}).get("momentum-stress")
+        if row is None:
+            L.append(f"- {table} {d}: not run in this configuration")
+            continue
+        if table == "accumulated" and s.n_track_frames != 20:
+            L.append(f"- {table} {d}: tracked to frame {s.n_track_frames} only (paper: 20); "
+                     f"R_P_sigma {row['e']:.1f}% (paper at frame 20: {target}%)")
+            continue
+        ok = row["e"] <= target
+        L.append(f"- {table} {d}: R_P_sigma {row['e']:.1f}% vs paper {target}% -> **{'met' if ok else 'NOT met'}**")
+    L.append("")
+
+    # diagnostics
+    L += _diagnostics(res)
+
+    # figures
+    if figures:
+        figs = make_figures(res, track_curves)
+        L += ["## Figures", ""] + [f"- `{name}`: {what}" for name, what in figs] + [""]
+        L += [f"![{name}]({name})" for name, _ in figs] + [""]
+    path = out / "report.md"
+    tmp = path.with_name(".report.md.tmp")
+    tmp.write_text("\n".join(L) + "\n")
+    os.replace(tmp, path)
+    summary = {"wall_s": res.wall_s, "alphas": res.alphas, "settings": s.name,
+               "tables": {f"{t}:{d}": rows for (t, d), rows in res.tables.items()},
+               "verdicts": {f"{t}:{d}": v for (t, d), v in verdicts.items()}}
+    _atomic_write_json(out / "summary.json", summary)
+    return path
+
+
+def _diagnostics(res: StudyResult) -> list:
+    """Evidence for where the errors come from: mesh floor (true field interpolated on the mesh) for several
+    element sizes, the simulator's true contrast vs the paper's, and the solver status of the cases."""
+    s = res.settings
+    L = ["## Diagnostics", ""]
+    d = "3d-HI" if "3d-HI" in s.single_datasets else s.single_datasets[0]
+    spec = make_case(s, "pair", d, s.regularizers[0], 1.0, s.pair)
+    try:
+        seq = _load_sequence(spec)
+    except Exception as exc:  # noqa: BLE001
+        return L + [f"(diagnostics skipped: {exc})", ""]
+    k = s.pair[1] - s.pair[0]
+    from .mesh import DEFAULT_ELEMENT_SIZE
+
+    h0 = s.element_size if s.element_size is not None else DEFAULT_ELEMENT_SIZE[0]
+    L += [f"**Mesh floor** ({d}, frame {s.pair[0] + 1} -> {s.pair[1] + 1}): the error of the *true* displacement "
+          "interpolated at the mesh nodes (bilinear), i.e. the best any registration on that mesh can do.  If a "
+          "regulariser's error is close to it, the mesh, not the regulariser, limits the accuracy.", "",
+          "| element size (mm) | " + " | ".join(COLUMN_HEAD[c] for c in COLUMNS[:7]) + " |",
+          "|---|" + "---|" * 7]
+    for h in sorted({0.5, float(h0), 2.0}):
+        try:
+            m = mesh_floor(seq, k, element_size=h, margin=s.margin, crop_mm=s.crop_mm)
+            L.append(f"| {h:g}{' (used)' if h == h0 else ''} | " + " | ".join(_fmt(m[c], c) for c in COLUMNS[:7])
+                     + " |")
+        except Exception as exc:  # noqa: BLE001
+            L.append(f"| {h:g} | failed: {exc} |")
+    L.append("")
+    # true contrast vs the paper's
+    lines = []
+    for dd in s.single_datasets:
+        _, truth = _single_rows(res, dd)
+        if truth and dd in PAPER_TRUE:
+            lines.append(f"| {dd} | {truth[0]:.2f} ({PAPER_TRUE[dd][0]:.2f}) | {truth[1]:.3g} ({PAPER_TRUE[dd][1]:.3g}) |")
+    if lines:
+        L += ["**Simulator vs the paper's**: SR and CNR_e of the *true* axial strain, femreg's forward model "
+              "(paper's COMSOL model).  Differences here are differences of the data, not of the registration.",
+              "", "| data set | true SR | true CNR_e |", "|---|---|---|"] + lines + [""]
+    # solver status
+    nits = [r.get("nit", 0) for r in res.records.values() if r.get("spec", {}).get("kind") == "pair" and "nit" in r]
+    fails = [r["key"] for r in res.records.values() if r.get("success") is False]
+    times = [r["time_s"] for r in res.records.values() if r.get("spec", {}).get("kind") == "pair" and "time_s" in r]
+    if nits:
+        L += [f"**Solver**: {len(nits)} pair registrations, Gauss-Newton iterations median {np.median(nits):.0f} "
+              f"(max {max(nits)}), {len(fails)} case(s) not flagged successful; median time per pair "
+              f"{np.median(times):.1f} s.", ""]
+    return L
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------------------------------
+
+def _plt():
+    import matplotlib
+
+    if "MPLBACKEND" not in os.environ:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def make_figures(res: StudyResult, track_curves) -> list:
+    """Write the PNGs; returns [(file name, description)]."""
+    out = Path(res.outdir)
+    figs = []
+    plt = _plt()
+    s = res.settings
+    if res.sweep:
+        fig, axs = plt.subplots(1, len(s.regularizers), figsize=(4 * len(s.regularizers), 3.4), squeeze=False)
+        for ax, r in zip(axs[0], s.regularizers):
+            sw = res.sweep[r]
+            for d, c in sw["curves"].items():
+                if c:
+                    a, e = zip(*c)
+                    ax.loglog(a, e, "o-", ms=3, label=d)
+            if sw["mean"]:
+                a, e = zip(*sw["mean"])
+                ax.loglog(a, e, "k--", lw=1, label="mean")
+            ax.axvline(sw["best"], color="k", lw=0.8)
+            ax.set_title(f"{LABELS[r]}: alpha = {sw['best']:.3g}")
+            ax.set_xlabel("alpha")
+            ax.set_ylabel("total strain error (%)")
+            ax.grid(True, which="both", alpha=0.3)
+        axs[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "alphachoice.png", dpi=90)
+        plt.close(fig)
+        figs.append(("alphachoice.png", "total strain error vs alpha per inclusion (paper Fig. alphachoice)"))
+    # error vs frame (paper Figs. 5-6)
+    for metric, fname, what in (("u", "error_vs_frame_displacement.png", "total displacement error vs frame "
+                                 "(paper Fig. 5)"),
+                                ("e", "error_vs_frame_strain.png", "total strain error vs frame, dual-frame "
+                                 "markers (paper Fig. 6)")):
+        fig, axs = plt.subplots(2, 2, figsize=(10, 7), squeeze=False)
+        colors = {"3d-HI": "tab:blue", "3d-mHI": "tab:red", "3d-HOM": "tab:green", "3d-SI": "tab:purple"}
+        markers = ["o", "s", "^", "D"]
+        for ax, r in zip(axs.ravel(), s.regularizers):
+            for d, curves in track_curves.items():
+                fr = curves.get(r)
+                if not fr:
+                    continue
+                ks = [f["frame"] + 1 for f in fr]
+                ax.plot(ks, [f["metrics"][metric] for f in fr], "-", color=colors.get(d), label=d)
+                for p, mk in zip(s.dual_pairs, markers):
+                    rec = res.records.get(make_case(s, "pair", d, r, res.alphas[r], p)["key"])
+                    if rec and "metrics" in rec:
+                        ax.plot(p[1] + 1, rec["metrics"][metric], mk, color=colors.get(d), mfc="none")
+            ax.set_title(LABELS[r])
+            ax.set_xlabel("frame")
+            ax.set_ylabel(("total displacement" if metric == "u" else "total strain") + " error (%)")
+            ax.grid(True, alpha=0.3)
+        axs[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=90)
+        plt.close(fig)
+        figs.append((fname, what))
+    # field images
+    try:
+        figs += _field_figures(res)
+    except Exception as exc:  # noqa: BLE001 - a figure failure must not lose the tables
+        figs.append(("(field images failed)", str(exc)))
+    return figs
+
+
+def _grid_fields(res: StudyResult, spec, k):
+    """ux, uy, exx, eyy, exy of a case's stored field and of the truth on a decimated pixel grid."""
+    from skfem import MeshQuad1
+
+    from .registration import RegistrationResult
+
+    seq = _load_sequence(spec)
+    frames, origin = _crop(seq, spec["crop_mm"])
+    shape = frames.shape[1:]
+    z = np.load(Path(res.outdir) / "cases" / f"{spec['key']}.npz")
+    mesh = MeshQuad1(z["mesh_points"], z["mesh_cells"])
+    rr = RegistrationResult(mesh, z["u"], shape=shape, spacing=seq.spacing, origin=origin)
+    st = max(1, int(res.settings.image_step))
+    x = origin[0] + seq.spacing[0] * np.arange(0, shape[0], st)
+    y = origin[1] + seq.spacing[1] * np.arange(shape[1])
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    d, e = rr.displacement(pts), rr.strain(pts)
+    inside = np.isfinite(d[:, 0])
+    td = np.full_like(d, np.nan)
+    te = np.full_like(e, np.nan)
+    td[inside] = seq.true_displacement(k, pts[inside])
+    te[inside] = seq.true_strain(k, pts[inside])
+    meas = np.column_stack([d, e]).reshape(len(x), len(y), 5)
+    true = np.column_stack([td, te]).reshape(len(x), len(y), 5)
+    extent = [y[0], y[-1], x[-1], x[0]]
+    return meas, true, extent
+
+
+def _field_figures(res: StudyResult) -> list:
+    plt = _plt()
+    s = res.settings
+    names = ["ux", "uy", "exx", "eyy", "exy"]
+    out = []
+    jobs = []
+    for d in s.single_datasets:
+        jobs.append((f"fields_single_{d}.png", f"single frame {s.pair[0] + 1} -> {s.pair[1] + 1}, {d}: "
+                     "u_x, u_y, e_xx, e_yy, e_xy per regulariser and the truth (paper Figs. 1-4)",
+                     {r: make_case(s, "pair", d, r, res.alphas[r], s.pair) for r in s.regularizers},
+                     s.pair[1] - s.pair[0]))
+    for d in s.track_datasets[:1]:
+        jobs.append((f"fields_accumulated_{d}.png", f"accumulated to frame {s.n_track_frames}, {d} "
+                     "(paper Figs. 7-8)",
+                     {r: make_case(s, "track", d, r, res.alphas[r], s.n_track_frames) for r in s.regularizers},
+                     s.n_track_frames - 1))
+    for fname, what, specs, k in jobs:
+        fields, true, extent = {}, None, None
+        for r, spec in specs.items():
+            if not (Path(res.outdir) / "cases" / f"{spec['key']}.npz").exists():
+                continue
+            fields[r], true, extent = _grid_fields(res, spec, k)
+        if not fields:
+            continue
+        cols = list(fields) + ["truth"]
+        fig, axs = plt.subplots(len(names), len(cols), figsize=(2.0 * len(cols) + 1, 2.6 * len(names)),
+                                squeeze=False)
+        for i, n in enumerate(names):
+            t = true[..., i]
+            lo, hi = np.nanpercentile(t, [1, 99])
+            pad = 0.1 * (hi - lo) if hi > lo else 1e-6
+            for j, c in enumerate(cols):
+                a = true[..., i] if c == "truth" else fields[c][..., i]
+                im = axs[i][j].imshow(a, extent=extent, aspect="auto", cmap="jet", vmin=lo - pad, vmax=hi + pad)
+                axs[i][j].set_title(f"{'true' if c == 'truth' else LABELS[c]} {n}", fontsize=8)
+                axs[i][j].tick_params(labelsize=6)
+            fig.colorbar(im, ax=axs[i].tolist(), shrink=0.8)
+        fig.savefig(Path(res.outdir) / fname, dpi=80)
+        plt.close(fig)
+        out.append((fname, what))
+    return out
