@@ -55,8 +55,9 @@ class SPDSolver:
                 self.n_factorizations += 1
             return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=500)
         if not (reuse and self._key is H and self._fact is not None):
-            self._fact = spla.splu(self._shifted(H), permc_spec="MMD_AT_PLUS_A",
-                                   options={"SymmetricMode": True})
+            # COLAMD: on the paper geometry (6106 DOF, momentum Hessian) MMD_AT_PLUS_A filled 10.8 M entries and
+            # took 6 s per factorisation, COLAMD 2.1 M and 0.7 s (measured by the study, femreg/study.py).
+            self._fact = spla.splu(self._shifted(H), permc_spec="COLAMD")
             self._key = H
             self.n_factorizations += 1
         return self._fact.solve(b)

@@ -156,7 +156,7 @@ class StudySettings:
     alphas: dict | None = None
     element_size: float | None = None
     margin: float | None = None
-    linear_solver: str = "spsolve"
+    linear_solver: str = "splu"
     maxiter: int = 20
     tol: float = 1e-3
     seed: int = 0
@@ -487,9 +487,10 @@ def load_record(outdir, key):
     return None
 
 
-def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str = "cases", retry_failed=False):
+def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str = "cases", retry_failed=False,
+              stats: dict | None = None):
     """Run every spec whose record is not already in ``outdir`` (resume), ``jobs`` processes, longest first.
-    Returns {key: record}."""
+    Returns {key: record}; ``stats["computed"]`` (if given) is increased by the number of cases run."""
     records, todo = {}, []
     seen = set()
     for spec in specs:
@@ -502,6 +503,8 @@ def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str 
         else:
             todo.append(spec)
     todo.sort(key=lambda s: -(s["frames"] if s["kind"] == "track" else 1))
+    if stats is not None:
+        stats["computed"] = stats.get("computed", 0) + len(todo)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -554,11 +557,11 @@ def _best_alpha(curves):
     return min(mean, key=mean.get), mean
 
 
-def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True):
+def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True, stats=None):
     """The paper's alpha selection (module docstring, step 1).  Returns (alphas {reg: alpha}, sweep dict)."""
     grid = alpha_grid(s.alpha_decades[0], s.alpha_decades[1], s.alpha_step)
     specs = [make_case(s, "pair", d, r, a, s.pair) for r in s.regularizers for d in s.sweep_datasets for a in grid]
-    records = run_cases(specs, outdir, jobs=jobs, progress=progress, desc="alpha sweep")
+    records = run_cases(specs, outdir, jobs=jobs, progress=progress, desc="alpha sweep", stats=stats)
     alphas = {}
     for rnd in range(1, s.refine_rounds + 1):
         step = s.alpha_step / 2**rnd
@@ -570,7 +573,8 @@ def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True):
             for sgn in (-1, 1):
                 a = float(10 ** round(_log10(best) + sgn * step, 9))
                 new += [make_case(s, "pair", d, r, a, s.pair) for d in s.sweep_datasets]
-        records.update(run_cases(new, outdir, jobs=jobs, progress=progress, desc=f"alpha refine {rnd}"))
+        records.update(run_cases(new, outdir, jobs=jobs, progress=progress, desc=f"alpha refine {rnd}",
+                                 stats=stats))
     sweep = {}
     for r in s.regularizers:
         curves = _sweep_curves(s, records, r)
@@ -624,6 +628,7 @@ class StudyResult:
     report: Path
     wall_s: float
     tables: dict = field(default_factory=dict)
+    n_computed: int = 0
 
 
 def _case_sets(s: StudySettings, alphas):
@@ -674,8 +679,9 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
         forward.get_sequence(m, i, seed=s.seed, snr_db=s.snr_db, n_frames=s.n_frames, **s.sequence_options)
 
     # 1. alphas
+    stats = {"computed": 0}
     if s.alphas is None:
-        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, progress=progress)
+        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, progress=progress, stats=stats)
     else:
         alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
     write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
@@ -685,10 +691,10 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
     # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
     single, dual, tracks = _case_sets(s, alphas)
     specs = list(tracks.values()) + list(single.values()) + list(dual.values())
-    records.update(run_cases(specs, outdir, jobs=jobs, progress=progress, desc="study cases"))
+    records.update(run_cases(specs, outdir, jobs=jobs, progress=progress, desc="study cases", stats=stats))
     wall = time.perf_counter() - t0
     res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
-                      report=outdir / "report.md", wall_s=wall)
+                      report=outdir / "report.md", wall_s=wall, n_computed=stats.get("computed", 0))
     write_report(res, figures=figures)
     return res
 
@@ -793,8 +799,8 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
     s, out = res.settings, Path(res.outdir)
     regs = s.regularizers
     L = [f"# femreg reproduction of the paper's simulation study ({s.name})", ""]
-    L += [f"Wall time of this run: **{res.wall_s / 60:.1f} min** ({res.wall_s:.0f} s; cases loaded from an earlier "
-          f"run count as 0).  Cases: {len(res.records)} "
+    L += [f"Wall time of this run: **{res.wall_s / 60:.1f} min** ({res.wall_s:.0f} s; {res.n_computed} cases computed, "
+          f"the rest loaded from an earlier run).  Cases: {len(res.records)} "
           f"({sum(1 for r in res.records.values() if 'error' in r)} failed).  Settings: `settings.json`; every "
           f"case's record: `cases/`.  Cells read **femreg (paper)**; errors are relative L2 errors over the FE mesh "
           f"in %, SR and CNR_e of the axial strain with the inclusion disk as ROI.", ""]

@@ -1,0 +1,165 @@
+"""The paper's study (femreg.study / `femreg study`): metrics, alpha selection, case records, resume, report.
+
+The default test is a reduced quick study (a small plane-stress sequence cropped around the inclusion, two
+regularisers, a 3-point alpha grid, 4 frames) that goes through the same code path as `femreg study --quick`
+end to end and checks the report's content; the real quick study is marked slow.
+"""
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import forward
+from femreg.errors import InputError
+from femreg.mesh import roi_mesh
+from femreg.registration import RegistrationResult
+from femreg.study import (PAPER, StudySettings, alpha_grid, case_metrics, make_case, mesh_floor,
+                          read_default_alphas, run_study, write_default_alphas)
+
+SEQ_OPTS = {"depth_mm": 42.0, "width_mm": 24.0}
+CROP = (18.0, 42.0, -10.0, 10.0)
+
+
+def _small_settings(**kw):
+    base = dict(regularizers=("strain", "momentum-stress"), sweep_datasets=("plane-stress-HI",),
+                single_datasets=("plane-stress-HI",), track_datasets=("plane-stress-HI",), pair=(0, 3),
+                dual_pairs=((0, 2),), n_track_frames=3, alpha_decades=(-1.0, 3.0), alpha_step=2.0, refine_rounds=0,
+                n_frames=4, sequence_options=SEQ_OPTS, crop_mm=CROP, image_step=8, name="test")
+    base.update(kw)
+    return StudySettings(**base)
+
+
+@pytest.fixture(scope="module")
+def small_seq():
+    return forward.get_sequence("plane-stress", "HI", n_frames=4, **SEQ_OPTS)
+
+
+def _field_result(seq, k, scale=1.0):
+    mesh = roi_mesh(seq.frames.shape[1:], seq.spacing, seq.origin)
+    t = seq.true_displacement(k, mesh.p.T) * scale
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = t[:, 0], t[:, 1]
+    return RegistrationResult(mesh, u, shape=seq.frames.shape[1:], spacing=seq.spacing, origin=seq.origin)
+
+
+def test_metrics_of_true_zero_and_scaled_fields(small_seq):
+    k = 3
+    exact = case_metrics(_field_result(small_seq, k), small_seq, k)
+    zero = case_metrics(_field_result(small_seq, k, 0.0), small_seq, k)
+    half = case_metrics(_field_result(small_seq, k, 0.5), small_seq, k)
+    # The nodal interpolant of the truth: displacement almost exact, strain limited by the bilinear mesh.
+    assert exact["u"] < 0.5 and exact["e"] < 15.0, f"interpolated truth errors {exact}"
+    for c in ("ux", "uy", "u", "exx", "eyy", "exy", "e"):
+        assert abs(zero[c] - 100.0) < 1e-9, f"zero field must give 100 % error in {c}, got {zero[c]}"
+    assert abs(half["u"] - 50.0) < 0.5, f"half the true field must give ~50 % displacement error, got {half['u']}"
+    # Contrast of the interpolated truth ~ the true contrast; SR is scale-free.
+    assert abs(exact["SR"] - exact["SR_true"]) < 0.1 * exact["SR_true"], exact
+    assert abs(half["SR"] - exact["SR"]) < 1e-9, (half["SR"], exact["SR"])
+    assert exact["SR_true"] > 1.2, f"hard inclusion: the true SR must exceed 1, got {exact['SR_true']}"
+
+
+def test_mesh_floor_decreases_with_element_size(small_seq):
+    coarse = mesh_floor(small_seq, 3, element_size=2.0)
+    fine = mesh_floor(small_seq, 3, element_size=0.5)
+    assert fine["e"] < coarse["e"], f"mesh floor must drop with h: 0.5 mm {fine['e']:.2f} % vs 2 mm {coarse['e']:.2f} %"
+
+
+def test_settings_and_case_keys():
+    s = StudySettings.full()
+    assert s.alpha_decades == (-6, 6) and s.pair == (0, 6) and s.n_track_frames == 20
+    assert len(alpha_grid(-6, 6, 1.0)) == 13 and alpha_grid(-6, 6, 1.0)[0] == 1e-6
+    a = make_case(s, "pair", "3d-HI", "strain", 1.0, (0, 6))
+    b = make_case(s, "pair", "3d-HI", "strain", 1.0, (0, 6))
+    c = make_case(StudySettings.full(element_size=0.5), "pair", "3d-HI", "strain", 1.0, (0, 6))
+    assert a["key"] == b["key"] and a["key"] != c["key"], "case keys must hash every setting that matters"
+    with pytest.raises(InputError, match="regularizer"):
+        StudySettings(regularizers=("nope",)).validate()
+    with pytest.raises(InputError, match="pair"):
+        StudySettings(pair=(3, 2)).validate()
+    with pytest.raises((InputError, ValueError), match="data set|dataset"):
+        StudySettings(sweep_datasets=("3d-XX",)).validate()
+
+
+def test_default_alphas_round_trip(tmp_path):
+    p = write_default_alphas({"strain": 12.5, "momentum-stress": 0.3}, tmp_path / "a.json")
+    assert read_default_alphas(p) == {"strain": 12.5, "momentum-stress": 0.3}
+    assert read_default_alphas(tmp_path / "absent.json") == {}
+
+
+def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
+    s = _small_settings()
+    out = tmp_path / "study"
+    t0 = time.perf_counter()
+    res = run_study(out, settings=s, jobs=2, progress=False)
+    t_first = time.perf_counter() - t0
+    report = (out / "report.md").read_text()
+    errors = [r for r in res.records.values() if "error" in r]
+    assert not errors, f"failed cases: {[r['error'] for r in errors]}"
+    # Alpha chosen from the evaluated grid, per regulariser, written to alphas.json.
+    grid = alpha_grid(-1.0, 3.0, 2.0)
+    assert set(res.alphas) == {"strain", "momentum-stress"}
+    assert all(a in grid for a in res.alphas.values()), res.alphas
+    saved = json.loads((out / "alphas.json").read_text())["alphas"]
+    assert saved == res.alphas
+    for r, sw in res.sweep.items():
+        mean = dict(sw["mean"])
+        assert len(mean) == len(grid) and min(mean, key=mean.get) == res.alphas[r], (r, mean)
+    # Tables: femreg (paper) cells with the paper's plane-stress numbers, rankings, targets, diagnostics.
+    ps = PAPER["single"]["plane-stress-HI"]
+    assert f"({ps['momentum-stress']['e']:.1f}%)" in report and f"({ps['strain']['uy']:.1f}%)" in report
+    assert "| R_P_sigma |" in report and "| R_eps |" in report and "true strain" in report
+    assert "## Ranking of the regularisers" in report and "paper" in report
+    assert "Mesh floor" in report and "## Accumulated displacement, frames 1 -> 3" in report
+    row = res.tables[("single", "plane-stress-HI")]["momentum-stress"]
+    assert 0 < row["e"] < 100 and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
+    # Records: one JSON + npz per case, tracks with per-frame metrics.
+    tracks = [r for r in res.records.values() if r["spec"]["kind"] == "track"]
+    assert len(tracks) == 2 and all(len(t["frames"]) == 2 for t in tracks)
+    for key in res.records:
+        assert (out / "cases" / f"{key}.json").exists() and (out / "cases" / f"{key}.npz").exists()
+    for png in ("alphachoice.png", "error_vs_frame_strain.png", "fields_single_plane-stress-HI.png"):
+        assert (out / png).stat().st_size > 1000, png
+    # Without resume an existing folder is refused; with resume nothing is recomputed.
+    with pytest.raises(InputError, match="resume"):
+        run_study(out, settings=s, jobs=1, progress=False)
+    t0 = time.perf_counter()
+    res2 = run_study(out, settings=s, jobs=1, progress=False, figures=False)
+    t_second = time.perf_counter() - t0
+    assert res2.n_computed == 0, f"resume recomputed {res2.n_computed} cases"
+    assert res2.alphas == res.alphas
+    assert t_second < t_first, (t_second, t_first)
+
+
+def test_resume_after_interruption_recomputes_only_missing(tmp_path):
+    s = _small_settings(regularizers=("strain",), alphas={"strain": 10.0}, track_datasets=(), dual_pairs=())
+    out = tmp_path / "study"
+    res = run_study(out, settings=s, jobs=1, progress=False, figures=False)
+    assert res.n_computed == 1
+    rec_path = next((out / "cases").glob("*.json"))
+    before = rec_path.read_text()
+    # a partial write never leaves a record: simulate an interrupted second case by deleting nothing but
+    # checking that rerunning keeps the finished record byte for byte
+    res2 = run_study(out, settings=s, jobs=1, progress=False, figures=False, resume=True)
+    assert res2.n_computed == 0 and rec_path.read_text() == before
+
+
+def test_cli_study_rejects_bad_jobs(tmp_path):
+    from femreg.cli import main
+
+    assert main(["study", "-o", str(tmp_path / "x"), "--jobs", "0", "--no-progress"]) == 2
+
+
+@pytest.mark.slow
+def test_quick_study_cli_under_five_minutes(tmp_path):
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "femreg.cli", "study", "--quick", "-o", str(tmp_path / "q"),
+                        "--no-progress"], capture_output=True, text=True, cwd=Path(__file__).resolve().parent.parent)
+    wall = time.perf_counter() - t0
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = (tmp_path / "q" / "report.md").read_text()
+    assert "single frame 3d-HI" in report and "(10.3%)" in report
+    assert wall < 300, f"quick study took {wall:.0f} s"
