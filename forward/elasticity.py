@@ -43,7 +43,7 @@ MODELS = ("plane-strain", "plane-stress", "3d")
 CACHE_VERSION = 1
 
 #: Default element sizes (mm) in the refined region / far away, per model.
-DEFAULT_MESH = {"plane-strain": (0.75, 8.0), "plane-stress": (0.75, 8.0), "3d": (1.0, 16.0)}
+DEFAULT_MESH = {"plane-strain": (0.5, 8.0), "plane-stress": (0.5, 8.0), "3d": (1.0, 16.0)}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -412,7 +412,7 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
         Axial displacement prescribed on the patch, mm (positive = into the block).
     mesh_size_mm : float, optional
         Element size in the refined region (imaged area, inclusion; in 3D a slab around the imaging plane), mm.
-        Default 0.75 (2D) / 1.0 (3D).
+        Default 0.5 (2D) / 1.0 (3D).
     coarse_size_mm : float, optional
         Element size far from the imaged area, mm.  Default 8 (2D) / 16 (3D).
     refine_region_mm : tuple, optional
