@@ -195,3 +195,16 @@ def test_cli_forward(tmp_path, capsys):
     assert sol.model == "plane-stress" and sol.params["mesh_size_mm"] == 5.0
     assert main(["forward", "plane-strain", "--poisson", "0.5", "-o", str(tmp_path / "x.npz")]) == 2
     assert "poisson" in capsys.readouterr().err
+
+
+def test_gmsh_session_of_caller_is_kept():
+    import gmsh
+
+    gmsh.initialize()
+    try:
+        gmsh.model.add("callers_model")
+        m = geometry.mesh_2d(mesh_size_mm=5.0, coarse_size_mm=20.0)
+        assert m.t.shape[1] > 100
+        assert gmsh.isInitialized() and "callers_model" in gmsh.model.list()
+    finally:
+        gmsh.finalize()
