@@ -254,6 +254,12 @@ class Sequence:
     params: dict = dc_field(default_factory=dict)
     path: Path | None = None
 
+    def __repr__(self) -> str:
+        p = self.params
+        return (f"Sequence({p.get('model')}/{p.get('inclusion')}, frames {tuple(self.frames.shape)}, spacing "
+                f"{self.spacing} mm, origin {self.origin} mm, seed {p.get('seed')}, snr_db {p.get('snr_db')}, "
+                f"field {p.get('field_source')})")
+
     @property
     def spacing(self) -> tuple[float, float]:
         """(dx, dy) pixel spacing, mm."""
