@@ -12,7 +12,7 @@ import sys
 
 #: Subcommand modules, in --help order.  One line per module.
 COMMANDS = [
-
+    "register_cmd",
 ]
 
 
