@@ -77,8 +77,9 @@ class JumpOperators:
     Attributes
     ----------
     Kx, Ky : (n_edges, 2 n_nodes) csr_matrix
-        x and y components of :math:`[\![A]\!]\cdot n` (1/mm) at each interior edge midpoint, acting on the
-        interleaved nodal displacement (mm).  Jump = side 0 minus side 1, n = side-0 outward unit normal.
+        x and y components of :math:`[\![A]\!]\cdot n` (dimensionless, like strain) at each interior edge
+        midpoint, acting on the interleaved nodal displacement (mm; entries in 1/mm).  Jump = side 0 minus
+        side 1, n = side-0 outward unit normal.
     lengths : (n_edges,) float
         Edge lengths l_j (mm).
     facets : (n_edges,) int
@@ -352,7 +353,7 @@ class TVRegularizer(Regularizer):
         return val
 
     def term_norms(self, u: np.ndarray) -> np.ndarray:
-        """|K_j u| per term (e.g. |[[A]]·n| per edge, 1/mm), shape (n_terms,)."""
+        """|K_j u| per term (e.g. |[[A]]·n| per edge, dimensionless), shape (n_terms,)."""
         return np.sqrt(np.sum(self.term_values(u) ** 2, axis=0))
 
     def diffusivity(self, u: np.ndarray) -> np.ndarray:
@@ -390,7 +391,7 @@ class MomentumRegularizer(TVRegularizer):
     lambda_bar : float
         :math:`\bar\lambda` of A (eq:meq).
     delta : float
-        :math:`\delta` of eq:dmreg (1/mm^2), 1e-8 as in the paper.
+        :math:`\delta` of eq:dmreg (dimensionless, squared-strain units), 1e-8 as in the paper.
     dilatation : {"edge", "centre"}
         Where the :math:`\bar\lambda\nabla\cdot u` part of A is evaluated (see :func:`momentum_jump_operators`).
     """
