@@ -1,0 +1,151 @@
+"""Images on a pixel grid: validation, normalisation, cubic B-spline interpolation, reference gradient.
+
+Convention: an image is a 2D array indexed ``[i, j]`` = (axial x, lateral y); pixel ``[i, j]`` has its centre at
+``origin + (i * dx, j * dy)`` (mm).
+
+Normalisation (why alpha is scale-free)
+---------------------------------------
+The image term psi of eq:IR is quadratic in the intensities, so multiplying both RF frames by a gain ``c``
+multiplies psi by ``c**2`` and would change the meaning of every regularisation weight alpha.  femreg therefore
+divides *both* images of a pair by the root-mean-square of the reference, ``s = sqrt(mean(I_1**2))`` (no mean
+subtraction: RF data is zero-mean already and a shift would not be "zero outside the image").  After that the
+reference has unit RMS, psi is measured in mm^2 (unit-RMS intensity squared times area) and an alpha means the
+same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale so that callers can undo it.
+
+Interpolation
+-------------
+``I(x)`` between pixel centres is the cubic B-spline interpolant (scipy.ndimage): the spline coefficients are
+computed once (``spline_filter``, mirror boundary) and every evaluation is
+``map_coordinates(coeffs, order=3, prefilter=False)``; points outside the image (outside the pixel cells,
+i.e. more than half a pixel beyond the first/last pixel centre) read 0, as in the paper.  The reference gradient of eq:wfnew is the exact
+gradient of the same interpolant; at pixel centres (spline knots) it is a closed-form stencil of the
+coefficients, :meth:`SplineImage.gradient_at_pixels`.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import InputError
+
+__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes"]
+
+
+def validate_spacing(spacing, origin=(0.0, 0.0)):
+    """Return ``(spacing, origin)`` as float arrays of shape (2,), raising :class:`InputError` if invalid."""
+    try:
+        sp = np.asarray(spacing, dtype=float).reshape(-1)
+        org = np.asarray(origin, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"spacing/origin must be numbers: {exc}") from None
+    if sp.size == 1:
+        sp = np.repeat(sp, 2)
+    if sp.size != 2:
+        raise InputError(f"spacing must be (dx, dy) in mm, got {spacing!r}")
+    if not np.all(np.isfinite(sp)) or np.any(sp <= 0):
+        raise InputError(f"spacing must be finite and > 0 mm, got {tuple(sp)}")
+    if org.size != 2 or not np.all(np.isfinite(org)):
+        raise InputError(f"origin must be two finite numbers (mm), got {origin!r}")
+    return sp, org
+
+
+def validate_image(image, name: str = "image") -> np.ndarray:
+    """Check a 2D finite, non-constant image; return it as float64.  Raises :class:`InputError`."""
+    try:
+        a = np.asarray(image, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} is not a numeric array: {exc}") from None
+    if a.ndim != 2:
+        raise InputError(f"{name} must be 2D (axial, lateral), got ndim={a.ndim} shape={a.shape}")
+    if min(a.shape) < 4:
+        raise InputError(f"{name} is too small: shape {a.shape}, need at least 4 x 4 pixels")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf pixels (first at [{i}, {j}])")
+    if np.ptp(a) == 0:
+        raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register")
+    return a
+
+
+def pixel_axes(shape, spacing, origin):
+    """Pixel-centre coordinates along each axis: ``(x (n_axial,), y (n_lateral,))`` in mm."""
+    return (origin[0] + spacing[0] * np.arange(shape[0]), origin[1] + spacing[1] * np.arange(shape[1]))
+
+
+def normalize_pair(reference, moving):
+    """Divide both images by the RMS of the reference (see module docstring).  Returns ``(ref, mov, scale)``."""
+    scale = float(np.sqrt(np.mean(np.square(reference))))
+    if not scale > 0:
+        raise InputError("reference image has zero RMS: nothing to register")
+    return reference / scale, moving / scale, scale
+
+
+class SplineImage:
+    """Cubic B-spline interpolant of an image on its pixel grid, zero outside.
+
+    Parameters
+    ----------
+    data : (n_axial, n_lateral) array
+    spacing, origin : (2,) mm
+    """
+
+    def __init__(self, data, spacing, origin=(0.0, 0.0)):
+        self.data = np.ascontiguousarray(data, dtype=float)
+        self.spacing = np.asarray(spacing, dtype=float)
+        self.origin = np.asarray(origin, dtype=float)
+        self.shape = self.data.shape
+        # Prefilter once; every later evaluation uses prefilter=False.
+        self.coeffs = ndimage.spline_filter(self.data, order=3, mode="mirror")
+        # Mirror-extend the coefficients by 2 (as scipy does internally) so that points within half a pixel of
+        # the edge interpolate instead of dropping to zero through round-off; zero outside is applied
+        # explicitly at the pixel-cell boundary [-1/2, n - 1/2].
+        self._padded = np.pad(self.coeffs, 2, mode="reflect")
+        self._hi = np.array(self.shape, dtype=float) - 0.5
+
+    def to_index(self, points):
+        """(n, 2) mm -> (2, n) fractional pixel indices."""
+        pts = np.asarray(points, dtype=float)
+        return ((pts - self.origin) / self.spacing).T
+
+    def __call__(self, points, out=None):
+        """Interpolated values at ``points`` (n, 2) mm; 0 outside the image."""
+        return self.at_index(self.to_index(points), out=out)
+
+    def at_index(self, idx, out=None):
+        """Values at fractional pixel indices ``idx`` (2, n)."""
+        idx = np.asarray(idx, dtype=float)
+        v = ndimage.map_coordinates(self._padded, idx + 2.0, order=3, mode="constant", cval=0.0,
+                                    prefilter=False, output=out)
+        outside = (idx[0] < -0.5) | (idx[0] > self._hi[0]) | (idx[1] < -0.5) | (idx[1] > self._hi[1])
+        if outside.any():
+            v[outside] = 0.0
+        return v
+
+    def gradient(self, points, h: float = 1e-3):
+        """Gradient (n, 2) [dI/dx, dI/dy] per mm of the interpolant at arbitrary points.
+
+        Central difference of the spline with step ``h`` pixels; inside a cell the spline is cubic, so the
+        error is exactly ``h**2/6 * I'''`` (about 1e-7 relative for h = 1e-3).
+        """
+        idx = self.to_index(points)
+        g = np.empty((idx.shape[1], 2))
+        for a in range(2):
+            e = np.zeros((2, 1))
+            e[a] = h
+            g[:, a] = (self.at_index(idx + e) - self.at_index(idx - e)) / (2 * h * self.spacing[a])
+        return g
+
+    def gradient_at_pixels(self):
+        """Exact gradient of the interpolant at every pixel centre: ``(gx, gy)``, each (n_axial, n_lateral).
+
+        At a knot the cubic B-spline has weights (1/6, 4/6, 1/6) and derivative weights (-1/2, 0, 1/2), so
+        dI/dx[i, j] = ((S_y c)[i+1, j] - (S_y c)[i-1, j]) / (2 dx) with S_y the lateral (1, 4, 1)/6 smoother,
+        and the coefficients mirror-extended exactly as scipy evaluates them.
+        """
+        c = np.pad(self.coeffs, 1, mode="reflect")
+        sx = (c[:-2, :] + 4.0 * c[1:-1, :] + c[2:, :]) / 6.0   # smooth along axis 0
+        sy = (c[:, :-2] + 4.0 * c[:, 1:-1] + c[:, 2:]) / 6.0   # smooth along axis 1
+        gx = (sy[2:, :] - sy[:-2, :]) / (2.0 * self.spacing[0])
+        gy = (sx[:, 2:] - sx[:, :-2]) / (2.0 * self.spacing[1])
+        return gx, gy
