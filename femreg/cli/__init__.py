@@ -1,5 +1,6 @@
 """The ``femreg`` command.  Each subcommand lives in its own module of this package exposing
-``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``.
+``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``;
+modules named ``*_cmd`` are found automatically.
 
 Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
 :class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).
