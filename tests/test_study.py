@@ -121,7 +121,10 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert np.isfinite(row["e"]) and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
     # Records: one JSON + npz per case, tracks with per-frame metrics.
     tracks = [r for r in res.records.values() if r["spec"]["kind"] == "track"]
-    assert len(tracks) == 2 and all(len(t["frames"]) == 2 for t in tracks)
+    # two regularisers x (paper method + the lateral pre-smoothing variant)
+    assert len(tracks) == 4 and all(len(t["frames"]) == 2 for t in tracks), [t["key"] for t in tracks]
+    assert sum(1 for t in tracks if t["spec"].get("lateral_prefilter_px") == 1.0) == 2
+    assert "## Variant (not in the paper)" in report
     for key in res.records:
         assert (out / "cases" / f"{key}.json").exists() and (out / "cases" / f"{key}.npz").exists()
     for png in ("alphachoice.png", "error_vs_frame_strain.png", "fields_single_plane-stress-HI.png"):
@@ -138,7 +141,8 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
 
 
 def test_resume_after_interruption_recomputes_only_missing(tmp_path):
-    s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=())
+    s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=(),
+                        variant_prefilter_px=())
     out = tmp_path / "study"
     res = run_study(out, settings=s, jobs=1, progress=False, figures=False)
     assert res.n_computed == 2
