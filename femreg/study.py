@@ -146,6 +146,9 @@ class StudySettings:
     variant_prefilter_px : lateral Gaussian pre-smoothing widths (pixels) of an extra, non-paper variant: the
         single-frame and accumulated cases of the first tracked data set re-run on frames smoothed laterally
         (removes the noise above the PSF's lateral band that biases sub-pixel sampling; see the report).
+    diagnose_element_sizes, diagnose_alpha_factors : element-size check of the report: the single-frame case of
+        the first single-frame data set with R_eps and R_P_sigma on meshes of these sizes (mm), at the selected
+        alpha times each factor (alpha depends on the mesh), best of them reported.
     """
 
     regularizers: tuple = REGULARIZERS
@@ -173,6 +176,8 @@ class StudySettings:
     diagnose_offsets: tuple = (0.0, 0.01, 0.03)
     diagnose_noise_free: bool = True
     variant_prefilter_px: tuple = (1.0,)
+    diagnose_element_sizes: tuple = (0.5, 2.0)
+    diagnose_alpha_factors: tuple = (0.3, 1.0, 3.0)
     name: str = "full"
 
     @classmethod
@@ -187,7 +192,7 @@ class StudySettings:
         base = cls(sweep_datasets=("3d-HI",), single_datasets=("3d-HI",), track_datasets=("3d-HI",),
                    dual_pairs=((0, 2), (0, 6)), n_track_frames=7, alpha_decades=(-4, 4), alpha_step=2.0,
                    refine_rounds=1, diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False,
-                   variant_prefilter_px=(), name="quick")
+                   variant_prefilter_px=(), diagnose_element_sizes=(), name="quick")
         return replace(base, **kw)
 
     def validate(self) -> "StudySettings":
@@ -663,7 +668,16 @@ def _case_sets(s: StudySettings, alphas):
                 variant[(pf, "single", r)] = make_case(s, "pair", d, r, alphas[r], s.pair, prefilter_px=pf)
                 variant[(pf, "accumulated", r)] = make_case(s, "track", d, r, alphas[r], s.n_track_frames,
                                                             prefilter_px=pf)
-    return single, dual, tracks, variant
+    esize = {}
+    if s.single_datasets and s.diagnose_element_sizes:
+        d = s.single_datasets[0]
+        for h in s.diagnose_element_sizes:
+            sh = replace(s, element_size=float(h))
+            for r in ("strain", "momentum-stress"):
+                if r in s.regularizers:
+                    for f in s.diagnose_alpha_factors:
+                        esize[(h, r, f)] = make_case(sh, "pair", d, r, alphas[r] * f, s.pair)
+    return single, dual, tracks, variant, esize
 
 
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
@@ -714,8 +728,9 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
         write_default_alphas(alphas, sweep=sweep or None, settings=s)
 
     # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
-    single, dual, tracks, variant = _case_sets(s, alphas)
-    specs = list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
+    single, dual, tracks, variant, esize = _case_sets(s, alphas)
+    specs = (list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
+             + list(esize.values()))
     records.update(run_cases(specs, outdir, jobs=jobs, progress=progress, desc="study cases", stats=stats))
     wall = time.perf_counter() - t0
     res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
@@ -894,7 +909,7 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
     # variant (not the paper's method): lateral pre-smoothing
     if s.variant_prefilter_px and s.track_datasets:
         d = s.track_datasets[0]
-        _, _, _, variant = _case_sets(s, res.alphas)
+        _, _, _, variant, _ = _case_sets(s, res.alphas)
         for pf in s.variant_prefilter_px:
             L += [f"## Variant (not in the paper): frames smoothed laterally (Gaussian, sigma {pf:g} px = "
                   f"{pf * 0.3:.2f} mm) before registration, same alphas", "",
@@ -976,6 +991,29 @@ def _diagnostics(res: StudyResult) -> list:
         except Exception as exc:  # noqa: BLE001
             L.append(f"| {h:g} | failed: {exc} |")
     L.append("")
+    # registration on other meshes (alpha re-tuned over a few factors)
+    _, _, _, _, esize = _case_sets(s, res.alphas)
+    if esize:
+        rows = []
+        sizes = sorted({h for h, _, _ in esize})
+        for r in ("strain", "momentum-stress"):
+            base = res.tables.get(("single", d), {}).get(r)
+            cells = [f"{base['e']:.1f}% (alpha {res.alphas[r]:.3g})" if base else "--"]
+            for h in sizes:
+                best = None
+                for (hh, rr, f), spec in esize.items():
+                    rec = res.records.get(spec["key"])
+                    if hh == h and rr == r and rec and "metrics" in rec:
+                        if best is None or rec["metrics"]["e"] < best[0]:
+                            best = (rec["metrics"]["e"], spec["alpha"])
+                cells.append(f"{best[0]:.1f}% (alpha {best[1]:.3g})" if best else "--")
+            rows.append(f"| {LABELS[r]} | " + " | ".join(cells) + " |")
+        h0s = f"{h0:g} mm (used)"
+        L += [f"**Registration mesh** ({d}, frames {s.pair[0] + 1} -> {s.pair[1] + 1}): total strain error on other "
+              f"element sizes, alpha = selected x {', '.join(f'{f:g}' for f in s.diagnose_alpha_factors)} "
+              "(best shown).", "",
+              f"| regulariser | {h0s} | " + " | ".join(f"{h:g} mm" for h in sizes) + " |",
+              "|---|---|" + "---|" * len(sizes)] + rows + [""]
     # true contrast vs the paper's
     lines = []
     for dd in s.single_datasets:

@@ -28,7 +28,8 @@ def _small_settings(**kw):
     base = dict(regularizers=("strain", "momentum-stress"), sweep_datasets=("plane-stress-HI",),
                 single_datasets=("plane-stress-HI",), track_datasets=("plane-stress-HI",), pair=(0, 3),
                 dual_pairs=((0, 2),), n_track_frames=3, alpha_decades=(-1.0, 3.0), alpha_step=2.0, refine_rounds=0,
-                diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False,
+                diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False, diagnose_element_sizes=(2.0,),
+                diagnose_alpha_factors=(1.0,),
                 n_frames=4, sequence_options=SEQ_OPTS, crop_mm=CROP, image_step=8, name="test")
     base.update(kw)
     return StudySettings(**base)
@@ -116,6 +117,7 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert "## Ranking of the regularisers" in report and "paper" in report
     assert "Mesh floor" in report and "## Accumulated displacement, frames 1 -> 3" in report
     assert "sub-pixel lateral sampling" in report and "| 12.0 | 0.01 |" in report
+    assert "**Registration mesh**" in report and "| 2 mm |" in report
     row = res.tables[("single", "plane-stress-HI")]["momentum-stress"]
     # The axial displacement is what the images measure best (paper: 0.1-0.3 %).
     assert np.isfinite(row["e"]) and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
@@ -142,7 +144,7 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
 
 def test_resume_after_interruption_recomputes_only_missing(tmp_path):
     s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=(),
-                        variant_prefilter_px=())
+                        variant_prefilter_px=(), diagnose_element_sizes=())
     out = tmp_path / "study"
     res = run_study(out, settings=s, jobs=1, progress=False, figures=False)
     assert res.n_computed == 2
