@@ -89,22 +89,19 @@ def timings():
               f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}")
 
 
-def study():
-    alphas = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0]
-    for name in ["strain", "strain-incompressible"]:
-        print(f"\n[{name}] element 1 mm: alpha sweep (total strain error %, exx %, uy %, nit, time)")
-        for a in alphas:
-            r = run_isolated(name, a, 1.0)
-            e = r["err"]
-            print(f"  alpha {a:8.0e}: e {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  uy {100*e['uy']:6.1f}  "
-                  f"nit {r['nit']:2d}  {r['total']:.2f} s")
-    for name in ["strain", "strain-incompressible"]:
-        print(f"\n[{name}] default alpha: element size study")
-        for h in [0.5, 1.0, 2.0]:
-            r = run_isolated(name, None, h)
-            e = r["err"]
-            print(f"  h {h:4.1f} mm: nodes {r['n_nodes']:6d}  e {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  "
-                  f"uy {100*e['uy']:6.1f}  nit {r['nit']:2d}  {r['total']:.2f} s  peak {r['peak_mb']:.0f} MB")
+def study(sizes=(1.0, 2.0), grids=None):
+    """Total strain error over (element size, alpha) for R_eps and R_eps_i (frames 1 -> 2 of the synthetic pair)."""
+    grids = grids or {"strain": [1.0, 10.0, 30.0, 100.0, 300.0, 1e3, 3e3, 1e4],
+                      "strain-incompressible": [0.1, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0]}
+    for name, alphas in grids.items():
+        for h in sizes:
+            print(f"\n[{name}] element {h} mm: alpha sweep (errors in %)", flush=True)
+            for a in alphas:
+                r = run_isolated(name, a, h)
+                e = r["err"]
+                print(f"  alpha {a:8.1e}: total strain {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  "
+                      f"eyy {100*e['eyy']:6.1f}  exy {100*e['exy']:6.1f}  ux {100*e['ux']:5.2f}  uy {100*e['uy']:6.1f}"
+                      f"  nit {r['nit']:2d}  {r['total']:.2f} s", flush=True)
 
 
 def solvers():

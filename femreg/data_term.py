@@ -43,10 +43,10 @@ class SSDTerm:
             gx, gy = reference.gradient_at_pixels()
             g = np.column_stack([gx.ravel()[quad.index], gy.ravel()[quad.index]])
             base = pts
-            # I_1 through the same interpolant as I_2 (equal to the pixel values up to round-off), so that
-            # identical frames give a residual of exactly zero
-            self.ref_values = reference(base)
+            self.ref_values = reference.data.ravel()[quad.index]
+            self._moving_at_pixels = moving.data.ravel()[quad.index]
         else:
+            self._moving_at_pixels = None
             base = pts + np.asarray(offset, float).reshape(pts.shape)
             g = reference.gradient(base)
             self.ref_values = reference(base)
@@ -75,6 +75,9 @@ class SSDTerm:
     # -------------------------------------------------------------------------------------------------------
     def warped_moving(self, u):
         """I_2(x + S + u(x)) at the quadrature pixels, (m,)."""
+        if self._moving_at_pixels is not None and not np.any(u):
+            # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
+            return self._moving_at_pixels.copy()
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
         np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
