@@ -28,8 +28,9 @@ class SPDSolver:
     """Solve H x = b for symmetric positive (semi-)definite sparse H; reuses the factorisation if H is the same
     object as last time (``reuse=True``)."""
 
-    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD"):
+    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD", B=None):
         self.permc_spec = permc_spec
+        self.B = B  # near-null-space (rigid-body modes) for pyamg
         if method not in ("splu", "spsolve", "amg-cg"):
             raise ValueError(f"unknown linear solver {method!r}; choose 'splu', 'spsolve' or 'amg-cg'")
         self.method = method
@@ -51,10 +52,10 @@ class SPDSolver:
             import pyamg
             A = sp.csr_matrix(self._shifted(H))
             if not (reuse and self._key is H and self._fact is not None):
-                self._fact = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
+                self._fact = pyamg.smoothed_aggregation_solver(A, B=self.B, symmetry="symmetric")
                 self._key = H
                 self.n_factorizations += 1
-            return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=500)
+            return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=200)
         if not (reuse and self._key is H and self._fact is not None):
             self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec,
                                    )

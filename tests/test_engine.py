@@ -214,7 +214,8 @@ def test_line_search_keeps_best_iterate_and_never_nan(speckle):
 @pytest.mark.parametrize("field,ux_tol,e_tol", [(affine_field, 0.1, 0.2), (smooth_field, 0.1, 0.25)])
 def test_synthetic_warp_recovered(field, ux_tol, e_tol):
     ref, mov = speckle_pair(field, SHAPE, SP, seed=5)
-    res = femreg.register(ref, mov, spacing=SP, regularizer="strain")
+    # noiseless pair: weak regularisation (the default alpha is tuned for 12 dB speckle noise)
+    res = femreg.register(ref, mov, spacing=SP, regularizer="strain", alpha=1.0, element_size=1.0)
     assert res.success, res.message
     nodes = res.mesh.p.T
     err = np.c_[res.ux, res.uy] - field(nodes)
