@@ -389,3 +389,16 @@ def test_cli_bad_input_exits_2(tmp_path, capsys, speckle):
         assert main(["register", *args, "-o", out]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "error:" in err[0], err
+
+
+def test_grid_sampling_agrees_with_point_sampling():
+    ref, mov = speckle_pair(smooth_field, (300, 50), SP, seed=12)
+    res = femreg.register(ref, mov, spacing=SP, maxiter=2, element_size=1.0)
+    g = res.on_grid()
+    pts = res.pixel_points()
+    d, e = res.displacement(pts), res.strain(pts)
+    ok = np.isfinite(d[:, 0])
+    assert 0 < ok.sum() < len(pts)
+    assert np.array_equal(np.isfinite(g["ux"].ravel()), ok)
+    for k, v in (("ux", d[:, 0]), ("uy", d[:, 1]), ("exx", e[:, 0]), ("eyy", e[:, 1]), ("exy", e[:, 2])):
+        assert np.allclose(g[k].ravel()[ok], v[ok], atol=1e-12), k
