@@ -43,6 +43,7 @@ class Location:
     nodes: np.ndarray
     N: np.ndarray
     dN: np.ndarray
+    grid: dict | None = None
 
     def operator(self, n_nodes: int) -> sp.csr_matrix:
         """Sparse (m, n_nodes) interpolation operator: row k = shape functions of point k."""
@@ -120,7 +121,10 @@ class PointLocator:
         dN[:, :, 0] = (dAX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
         dN[:, :, 1] = (AX[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
         nodes = self._canonical()[i[:, None], j[None, :]].reshape(-1, 4)
-        return Location(inside, cell[i[:, None], j[None, :]].ravel(), nodes, N, dN)
+        loc = Location(inside, cell[i[:, None], j[None, :]].ravel(), nodes, N, dN)
+        # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
+        loc.grid = dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size))
+        return loc
 
     # -- general ------------------------------------------------------------------------------------------
     def _newton(self, pts, e, iters: int = 12):
@@ -245,6 +249,7 @@ class PixelQuadrature:
         self.weights = np.full(self.index.size, self.spacing[0] * self.spacing[1])
         self.n_nodes = mesh.p.shape[1]
         self.P = loc.operator(self.n_nodes)
+        self.PT = self.P.T.tocsr()
 
     @property
     def n_pixels(self) -> int:
