@@ -43,24 +43,30 @@ def make_pair(seed=0, snr_db=12.0):
     return speckle_pair(paper_field, SHAPE, SPACING, seed=seed, snr_db=snr_db)
 
 
-def _run_one(name, alpha, element_size, q):
+def _run_one(name, alpha, element_size, q, repeat=1):
     import femreg
     from femreg.metrics import field_errors
     ref, mov = make_pair()
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    t = time.perf_counter()
-    res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha, element_size=element_size)
-    total = time.perf_counter() - t
+    best = None
+    for _ in range(repeat):   # the machine is shared: keep the fastest of `repeat` runs
+        t = time.perf_counter()
+        res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha,
+                              element_size=element_size)
+        total = time.perf_counter() - t
+        if best is None or total < best[0]:
+            best = (total, res)
+    total, res = best
     err = field_errors(res, paper_field)
     q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
                message=res.message, err=err, n_nodes=res.mesh.p.shape[1], ncc=(res.ncc_before, res.ncc_after),
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
-def run_isolated(name, alpha=None, element_size=None):
+def run_isolated(name, alpha=None, element_size=None, repeat=1):
     ctx = mp.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q))
+    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat))
     p.start()
     out = q.get()
     p.join()
@@ -69,9 +75,9 @@ def run_isolated(name, alpha=None, element_size=None):
 
 def timings():
     from femreg.regularizers import available_regularizers
-    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB")
+    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB; fastest of 5 runs per regulariser")
     for name in available_regularizers():
-        r = run_isolated(name)
+        r = run_isolated(name, repeat=5)
         t = r["timings"]
         it = t["per_iteration"]
         print(f"\n[{name}] alpha={r['alpha']:g}  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  "

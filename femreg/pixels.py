@@ -128,26 +128,32 @@ class PointLocator:
 
     # -- general ------------------------------------------------------------------------------------------
     def _newton(self, pts, e, iters: int = 12):
-        """Invert the bilinear map of elements e at pts; returns X, Y (reference) for each pair."""
-        P = self.mesh.p[:, self.mesh.t[:, e]]          # (2, 4, n)
+        """Invert the bilinear map of elements e at pts; returns X, Y (reference) and the residual (mm)."""
+        t = self.mesh.t[:, e]
+        px = self.mesh.p[0][t]                          # (4, n)
+        py = self.mesh.p[1][t]
+        # x(X, Y) = a0 + a1 X + a2 Y + a3 X Y  (skfem ElementQuad1 node order)
+        ax = (px[0], px[1] - px[0], px[3] - px[0], px[0] - px[1] + px[2] - px[3])
+        ay = (py[0], py[1] - py[0], py[3] - py[0], py[0] - py[1] + py[2] - py[3])
+        x, y = pts[:, 0], pts[:, 1]
         X = np.full(len(e), 0.5)
         Y = np.full(len(e), 0.5)
         for _ in range(iters):
-            phi, dphi = _phi(X, Y)
-            xm = np.einsum("dkn,nk->nd", P, phi)
-            J = np.einsum("dkn,nkr->ndr", P, dphi)     # dx_d / dX_r
-            r = pts - xm
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            det = np.where(np.abs(det) > 0, det, 1e-300)
-            dX = (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
-            dY = (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det
-            X = X + dX
-            Y = Y + dY
-            if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-14:
+            rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+            ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+            j00, j01 = ax[1] + ax[3] * Y, ax[2] + ax[3] * X
+            j10, j11 = ay[1] + ay[3] * Y, ay[2] + ay[3] * X
+            det = j00 * j11 - j01 * j10
+            det = np.where(det != 0, det, 1e-300)
+            dX = (j11 * rx - j01 * ry) / det
+            dY = (-j10 * rx + j00 * ry) / det
+            X += dX
+            Y += dY
+            if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-13:
                 break
-        phi, _ = _phi(X, Y)
-        res = np.linalg.norm(pts - np.einsum("dkn,nk->nd", P, phi), axis=1)
-        return X, Y, res
+        rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+        ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+        return X, Y, np.hypot(rx, ry)
 
     def _locate_general(self, pts, k: int = 8):
         from scipy.spatial import cKDTree
@@ -156,26 +162,30 @@ class PointLocator:
         if self._tree is None:
             self._tree = cKDTree(mesh.p[:, mesh.t].mean(axis=1).T)
             self._size = float(np.ptp(mesh.p, axis=1).max())
-        k = min(k, mesh.t.shape[1])
-        _, cand = self._tree.query(pts, k=k)
-        cand = cand.reshape(len(pts), k)
         n = len(pts)
         elem = np.full(n, -1, dtype=np.int64)
         X = np.zeros(n)
         Y = np.zeros(n)
-        todo = np.arange(n)
         tol = 1e-9
-        for c in range(k):
+        todo = np.arange(n)
+        k = min(k, mesh.t.shape[1])
+        # nearest centroid first (resolves almost every point), then up to k candidates for the rest
+        for kk in sorted({1, k}):
             if todo.size == 0:
                 break
-            e = cand[todo, c]
-            Xc, Yc, res = self._newton(pts[todo], e)
-            ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
-                  & (res <= 1e-9 * self._size))
-            elem[todo[ok]] = e[ok]
-            X[todo[ok]] = np.clip(Xc[ok], 0, 1)
-            Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
-            todo = todo[~ok]
+            _, cand = self._tree.query(pts[todo], k=kk)
+            cand = np.asarray(cand).reshape(todo.size, kk)
+            for c in range(kk if kk == 1 else 1, kk) if kk > 1 else range(1):
+                if todo.size == 0:
+                    break
+                e = cand[:, c]
+                Xc, Yc, res = self._newton(pts[todo], e)
+                ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+                      & (res <= 1e-9 * self._size))
+                elem[todo[ok]] = e[ok]
+                X[todo[ok]] = np.clip(Xc[ok], 0, 1)
+                Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
+                todo, cand = todo[~ok], cand[~ok]
         inside = elem >= 0
         return inside, elem[inside], X[inside], Y[inside]
 
