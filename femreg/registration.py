@@ -252,7 +252,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         "strain-incompressible" = R_eps_i, momentum ones when installed) or an instance.
     alpha : float, optional
         :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; None = the regulariser's
-        documented default.
+        documented default (R_eps 30, R_eps_i 3 with the default 2 mm mesh; see
+        :mod:`femreg.regularizers.strain`).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
         A user's quad mesh (mm, [x, y]); default: structured ROI mesh (:func:`femreg.mesh.roi_mesh`).
     element_size, margin : float or (2,) mm, optional
