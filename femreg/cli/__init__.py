@@ -1,5 +1,6 @@
 """The ``femreg`` command.  Each subcommand lives in its own module of this package exposing
-``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``.
+``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``;
+modules named ``*_cmd`` are found automatically.
 
 Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
 :class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).
@@ -10,10 +11,15 @@ import argparse
 import importlib
 import sys
 
-#: Subcommand modules, in --help order.  One line per module.
-COMMANDS = [
-    "register_cmd",
-]
+#: Subcommand modules are discovered (every ``*_cmd`` module of this package); this fixes the --help order.
+ORDER = ["register_cmd", "track_cmd", "study_cmd", "simulate_cmd", "forward_cmd", "info_cmd", "plot_cmd"]
+
+
+def _command_modules() -> list[str]:
+    import pkgutil
+
+    found = {m.name for m in pkgutil.iter_modules(__path__) if m.name.endswith("_cmd")}
+    return [n for n in ORDER if n in found] + sorted(found - set(ORDER))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     from femreg import __version__
     parser.add_argument("--version", action="version", version=f"femreg {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name in _command_modules():
         importlib.import_module(f"femreg.cli.{name}").add_parser(sub)
     return parser
 

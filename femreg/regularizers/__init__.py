@@ -7,3 +7,13 @@ __all__ = ["Regularizer", "QuadraticFormRegularizer", "register_regularizer", "m
 
 # Built-ins register themselves on import (one line per module; keep this list sorted).
 from . import strain  # noqa: E402,F401  R_eps, R_eps_i  (issue: registration engine)
+from . import momentum  # noqa: E402,F401  R_P_eps, R_P_sigma, generic TV  (issue: momentum regularisers)
+from . import custom  # noqa: E402,F401  user-defined regularisers from forms / operators
+from .custom import centre_gradient_operators, from_form, from_forms, from_operator  # noqa: E402
+from .momentum import (MomentumRegularizer, PlaneStrainMomentumRegularizer,  # noqa: E402
+                       PlaneStressMomentumRegularizer, TVRegularizer, lambda_bar_from_poisson,
+                       momentum_jump_operators)
+
+__all__ += ["from_form", "from_forms", "from_operator", "centre_gradient_operators", "TVRegularizer",
+            "MomentumRegularizer", "PlaneStrainMomentumRegularizer", "PlaneStressMomentumRegularizer",
+            "momentum_jump_operators", "lambda_bar_from_poisson"]

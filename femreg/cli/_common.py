@@ -1,0 +1,109 @@
+"""Flags shared by every command that reads RF frames (``info``, ``register``, ``track``, ``plot``).
+
+Use::
+
+    from femreg.cli._common import add_reader_args, frames_from_args
+    def add_parser(sub):
+        p = sub.add_parser("mycmd", ...)
+        p.add_argument("file")
+        add_reader_args(p)
+    def run(args):
+        fr = frames_from_args(args)          # reads args.file (or pass path=...)
+"""
+from __future__ import annotations
+
+import argparse
+
+from ..errors import InputError
+
+
+def _frame_selection(text: str):
+    """'3' -> 3, '0:10' / '0:10:2' -> slice, '1,3,5' -> [1, 3, 5]."""
+    text = text.strip()
+    try:
+        if ":" in text:
+            parts = [int(p) if p.strip() else None for p in text.split(":")]
+            if len(parts) > 3:
+                raise ValueError
+            return slice(*parts)
+        if "," in text:
+            return [int(p) for p in text.split(",") if p.strip()]
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+
+
+def _spacing_value(text: str):
+    if text.lower() in ("auto", "header", "-"):
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's)") from None
+    if not (v > 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"spacing must be positive, got {text!r}")
+    return v
+
+
+def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
+    """Add --variable, --shape, --dtype, --spacing, --byte-order, --frames, --sound-speed to ``parser``."""
+    g = parser.add_argument_group(group_title)
+    g.add_argument("--variable", metavar="NAME",
+                   help="array name in .npz/.mat files (default: rf or frames, else the only 2D/3D array)")
+    g.add_argument("--shape", metavar="N", type=int, nargs="+",
+                   help="raw files: AXIAL LATERAL (whole frames read) or FRAMES AXIAL LATERAL")
+    g.add_argument("--dtype", metavar="TYPE",
+                   help="raw files: sample type float32 (default), float64, int16, uint16, int8, uint8, ...")
+    g.add_argument("--spacing", metavar=("DX", "DY"), nargs=2, type=_spacing_value,
+                   help="axial and lateral pixel spacing in mm, overriding the file's ('auto' keeps the file's "
+                        "value for one of them); required for npy/raw and the lateral pitch of .rf")
+    g.add_argument("--byte-order", choices=("little", "big"), help="raw files: byte order (default little)")
+    g.add_argument("--frames", metavar="SEL", type=_frame_selection,
+                   help="frame selection: 3, 0:10, 0:10:2 or 1,3,5 (default all)")
+    g.add_argument("--sound-speed", metavar="C", type=float,
+                   help="speed of sound in m/s for the axial spacing of Ultrasonix .rf (default 1540)")
+
+
+def reader_kwargs(args) -> dict:
+    """The :func:`femreg.io.read_frames` keyword arguments from parsed reader flags."""
+    shape = getattr(args, "shape", None)
+    if shape is not None and len(shape) not in (2, 3):
+        raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
+    return dict(variable=getattr(args, "variable", None), shape=shape, dtype=getattr(args, "dtype", None),
+                spacing=getattr(args, "spacing", None), byte_order=getattr(args, "byte_order", None),
+                frames=getattr(args, "frames", None), sound_speed=getattr(args, "sound_speed", None))
+
+
+def frames_from_args(args, path=None):
+    """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`."""
+    from ..io import read_frames
+
+    path = path if path is not None else args.file
+    return read_frames(path, **reader_kwargs(args))
+
+
+def add_registration_args(parser: argparse.ArgumentParser) -> None:
+    """Flags shared by ``register`` and ``track``: regulariser, alpha, mesh and solver settings."""
+    from ..regularizers import available_regularizers
+
+    g = parser.add_argument_group("registration options")
+    g.add_argument("-r", "--regularizer", default="momentum-stress", choices=available_regularizers(),
+                   help="regulariser (default momentum-stress = R_P_sigma)")
+    g.add_argument("--alpha", type=float, help="regulariser weight (default: the regulariser's documented one)")
+    g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
+                   help="element size in mm (one value, or axial and lateral)")
+    g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
+    g.add_argument("--maxiter", type=int, default=20, help="Gauss-Newton iterations (default 20)")
+    g.add_argument("--tol", type=float, default=1e-3, help="stop when ||du||/||u|| < TOL (default 1e-3)")
+
+
+def registration_kwargs(args) -> dict:
+    """Keyword arguments of :func:`femreg.register` / :func:`femreg.track` from the registration flags."""
+    es = args.element_size
+    if es is not None and len(es) not in (1, 2):
+        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    if args.alpha is not None and not (args.alpha >= 0 and args.alpha < float("inf")):
+        raise InputError(f"--alpha must be a finite number >= 0, got {args.alpha}")
+    return dict(regularizer=args.regularizer, alpha=args.alpha,
+                element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
+                margin=args.margin, maxiter=args.maxiter, tol=args.tol)

@@ -1,0 +1,84 @@
+"""``femreg plot RESULT.npz``: summary PNG of a registration result and optional VTU/XDMF exports."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ._common import add_reader_args, frames_from_args
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "plot", help="figures (PNG) and ParaView files (VTU/XDMF) of a registration result",
+        description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
+                    "ux, uy, exx, eyy, exy with colour bars and mm axes.  Optionally export the mesh with nodal "
+                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 2 with a "
+                    "one-line reason on bad input.")
+    p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
+    p.add_argument("-o", "--output", metavar="OUT.png", help="figure path (default: RESULT with .png)")
+    p.add_argument("--vtu", metavar="OUT.vtu", help="also write the mesh, displacement and strains as VTU")
+    p.add_argument("--xdmf", metavar="OUT.xdmf", help="also write them as XDMF (+ .h5)")
+    p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
+    p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
+                   help="field for --render (default exx, element-centre values)")
+    p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
+    p.add_argument("--frame", type=int, default=0, help="frame of --reference to use (default 0)")
+    p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
+    p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
+    add_reader_args(p, group_title="--reference file options")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    try:
+        return _run(args)
+    except OSError as exc:  # unwritable output folder, full disk: a one-line reason, not a traceback
+        name = getattr(exc, "filename", None) or ""
+        raise InputError(f"cannot write {name}: {exc.strerror or exc}".replace("write :", "write:")) from None
+
+
+def _run(args) -> int:
+    import numpy as np
+
+    from ..io import export_result, load_result
+    from ..io.results import element_strains
+    from ..plot import plot_result, render_mesh
+
+    for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--xdmf", args.xdmf, ".xdmf"),
+                            ("--render", args.render, ".png")):
+        if path and Path(path).suffix.lower() != ext:
+            raise InputError(f"{flag} must name a {ext} file, got {path}")
+    res = load_result(args.result)
+    if args.dpi <= 0:
+        raise InputError(f"--dpi must be positive, got {args.dpi}")
+    reference = None
+    if args.reference:
+        fr = frames_from_args(args, path=args.reference)
+        if not -fr.n_frames <= args.frame < fr.n_frames:
+            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s)")
+        reference = fr.frames[args.frame]
+    elif args.overlay:
+        raise InputError("--overlay needs --reference FILE")
+    out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
+    if out.suffix.lower() != ".png":
+        raise InputError(f"-o must name a .png file, got {out}")
+    import matplotlib.pyplot as plt
+
+    fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi)
+    plt.close(fig)
+    print(f"wrote {out}")
+    for path in (args.vtu, args.xdmf):
+        if path:
+            export_result(res, path)
+            print(f"wrote {path}")
+    if args.render:
+        p, t = res["mesh_points"], res["mesh_cells"]
+        if args.field in ("ux", "uy"):
+            u = np.asarray(res["u"], dtype=float)
+            vals = u[0::2] if args.field == "ux" else u[1::2]
+        else:
+            vals = element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
+        render_mesh(p, t, vals, args.render, name=args.field)
+        print(f"wrote {args.render}")
+    return 0

@@ -1,0 +1,16 @@
+"""Reading users' RF data and writing results.
+
+Readers: :func:`read_frames` (npy, npz, MATLAB v5 / v7.3, MetaImage, raw, Ultrasonix .rf, directories of
+frames) -> :class:`Frames`.  Writers: :func:`save_frames` (every reader format), :func:`save_result` /
+:func:`load_result` (the result ``.npz`` contract), :func:`write_vtu`, :func:`write_xdmf`, :func:`export_result`
+(ParaView).  Every failure is a :class:`~femreg.errors.FileFormatError` or :class:`~femreg.errors.InputError`.
+"""
+from .frames import Frames
+from .readers import FORMATS, detect_format, read_frames
+from .results import (GRID_FIELDS, RESULT_KEYS, element_strains, export_result, load_result, mesh_fields,
+                      nodal_average, save_result, write_vtu, write_xdmf)
+from .writers import save_frames
+
+__all__ = ["Frames", "read_frames", "save_frames", "detect_format", "FORMATS", "RESULT_KEYS", "GRID_FIELDS",
+           "load_result", "save_result", "export_result", "write_vtu", "write_xdmf", "element_strains",
+           "nodal_average", "mesh_fields"]

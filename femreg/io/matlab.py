@@ -1,0 +1,250 @@
+"""MATLAB ``.mat`` files: v5/v7 by :mod:`femreg.io.mat5` (pure Python; scipy's compiled reader can crash on
+corrupt files), v4 by :func:`scipy.io.loadmat`, v7.3 (HDF5) by h5py.
+
+Layout: MATLAB users keep a sequence as ``rf(axial, lateral, frame)`` (frames on the *last* axis), which is
+how both readers return a 3D variable in MATLAB index order; it is moved to our ``(n, axial, lateral)``.
+A v7.3 file stores every array transposed (HDF5 is row-major, MATLAB column-major): the HDF5 dataset of
+``rf(axial, lateral, frame)`` has shape ``(frame, lateral, axial)``; we transpose it back.
+
+Variables: ``variable=`` picks one; otherwise ``rf`` or ``frames`` if present, else the only 2D/3D numeric
+variable.  ``spacing`` (two numbers, mm) and ``origin`` variables are used when present.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .frames import check_origin, fail, finalize, merge_spacing
+
+PREFERRED = ("rf", "frames")
+AUX = ("spacing", "origin")
+_HDF5_SIG = b"\x89HDF\r\n\x1a\n"
+_NUMERIC_CLASSES = {"double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+                    "uint64", "logical"}
+
+
+def mat_version(path) -> str:
+    """'7.3' (HDF5), '5' (v5/v6/v7 Level 5) or '4' from the file's first bytes; FileFormatError otherwise."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1024 + 8)
+    except OSError as exc:
+        raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+    if len(head) >= 128 and head[:6] == b"MATLAB":
+        ver = head[124:126]
+        endian = head[126:128]
+        if endian == b"IM":
+            ver = ver[::-1]
+        elif endian != b"MI":
+            raise fail(path, f"bad MAT-file header: endian indicator {endian!r}")
+        if ver == b"\x02\x00":
+            if head[512:520] != _HDF5_SIG:
+                raise fail(path, "MAT-file v7.3 header but no HDF5 data at byte 512 (truncated or corrupt)")
+            return "7.3"
+        if ver == b"\x01\x00":
+            return "5"
+        raise fail(path, f"bad MAT-file header: version bytes {ver!r}")
+    for off in (0, 512, 1024):
+        if head[off:off + 8] == _HDF5_SIG:
+            return "7.3"
+    if len(head) >= 20:
+        # v4 has no magic: its first int32 is a type code MOPT < 5000 with zero M and O digits
+        for order in ("<", ">"):
+            mopt, mrows, ncols, imagf, namlen = np.frombuffer(head[:20], dtype=order + "i4")
+            if (0 <= mopt < 5000 and (mopt // 100) % 10 == 0 and 0 < mrows and 0 < ncols and imagf in (0, 1)
+                    and 0 < namlen < 64):
+                return "4"
+    raise fail(path, "not a MATLAB MAT-file (no 'MATLAB' header, not HDF5)")
+
+
+def _choose(path, candidates: dict, variable):
+    """Pick the frames variable among ``{name: (shape, numeric)}``."""
+    if variable is not None:
+        if variable not in candidates:
+            raise fail(path, f"missing variable {variable!r}; available: {', '.join(sorted(candidates)) or 'none'}")
+        return variable
+    for name in PREFERRED:
+        if name in candidates:
+            return name
+    good = [k for k, (shape, numeric) in candidates.items()
+            if numeric and len(shape) in (2, 3) and k not in AUX and min(shape, default=0) > 1]
+    if len(good) == 1:
+        return good[0]
+    if not good:
+        raise fail(path, f"no 2D/3D numeric variable found (variables: {', '.join(sorted(candidates)) or 'none'})")
+    raise fail(path, f"several 2D/3D variables ({', '.join(sorted(good))}); choose one with variable= "
+                     "(CLI: --variable NAME)")
+
+
+def _mat_layout(arr):
+    """MATLAB index order (axial, lateral[, frame]) -> (frame, axial, lateral)."""
+    arr = np.asarray(arr)
+    if arr.ndim == 3:
+        arr = np.moveaxis(arr, -1, 0)
+    return arr
+
+
+def _aux(path, values: dict, spacing):
+    file_spacing = None
+    if "spacing" in values:
+        try:
+            if np.iscomplexobj(values["spacing"]):
+                raise TypeError
+            sp = np.asarray(values["spacing"], dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise fail(path, "variable 'spacing' is not numeric") from None
+        if sp.size != 2:
+            raise fail(path, f"variable 'spacing' has {sp.size} values, expected 2 (dx, dy) mm")
+        file_spacing = tuple(sp)
+    origin = check_origin(values["origin"], path) if "origin" in values else (0.0, 0.0)
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="no 'spacing' variable in the MAT-file")
+    return sp, origin
+
+
+def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    """Read a MATLAB file (any version) into :class:`~femreg.io.Frames` (see module docstring)."""
+    path = Path(path)
+    version = mat_version(path)
+    if version == "7.3":
+        return _read_mat73(path, variable, spacing, frames)
+    if version == "5":
+        from .mat5 import read_mat5
+
+        try:
+            blob = path.read_bytes()
+        except OSError as exc:
+            raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+        order, variables = read_mat5(path, blob)
+        byname = {v.name: v for v in variables}
+        cands = {v.name: (v.shape, v.numeric) for v in variables}
+        name = _choose(path, cands, variable)
+        var = byname[name]
+        if not var.numeric:
+            raise fail(path, f"variable {name!r} is a MATLAB {var.cls}, not a numeric array")
+        data = {name: var.array(order)}
+        for a in AUX:
+            if a in byname and a != name and byname[a].numeric:
+                data[a] = byname[a].array(order)
+    else:
+        data, cands, name = _read_mat4(path, variable)
+    sp, origin = _aux(path, data, spacing)
+    meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    return finalize(path, _mat_layout(data[name]), sp, origin, meta, frames)
+
+
+def _read_mat4(path, variable):
+    """Level-4 files (no header) through scipy.io's pure-Python v4 reader."""
+    import scipy.io
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            info = scipy.io.whosmat(str(path))
+            cands = {n: (tuple(shape), cls in _NUMERIC_CLASSES) for n, shape, cls in info}
+            name = _choose(path, cands, variable)
+            wanted = [name] + [a for a in AUX if a in cands and a != name]
+            data = scipy.io.loadmat(str(path), variable_names=wanted, squeeze_me=False)
+    except InputError:
+        raise
+    except Exception as exc:  # scipy raises MatReadError, ValueError, TypeError, struct errors, ...
+        raise fail(path, f"corrupt or truncated MAT-file v4 ({type(exc).__name__}: {exc})") from None
+    if name not in data:
+        raise fail(path, f"missing variable {name!r} (could not be read)")
+    return data, cands, name
+
+
+def _read_mat73(path, variable, spacing, frames):
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            cands, dsets = {}, {}
+            for key in f.keys():
+                if key.startswith("#"):
+                    continue
+                obj = f.get(key)
+                if not isinstance(obj, h5py.Dataset):
+                    cands[key] = ((), False)  # struct / cell / object
+                    continue
+                cls = obj.attrs.get("MATLAB_class", b"double")
+                cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
+                empty = "MATLAB_empty" in obj.attrs and bool(np.any(obj.attrs["MATLAB_empty"]))
+                numeric = (cls in _NUMERIC_CLASSES and obj.dtype.kind in "biuf" and not empty)
+                cands[key] = (tuple(obj.shape[::-1]), numeric)
+                dsets[key] = obj
+            name = _choose(path, cands, variable)
+            if name not in dsets or not cands[name][1]:
+                ds = dsets.get(name)
+                what = "a struct/cell" if ds is None else (f"compound {ds.dtype}" if ds.dtype.names
+                                                            else f"class {ds.attrs.get('MATLAB_class', '?')!r}")
+                raise fail(path, f"variable {name!r} is not a numeric array ({what})")
+            ds = dsets[name]
+            if ds.size * ds.dtype.itemsize > 1 << 34:
+                raise fail(path, f"variable {name!r} claims {ds.shape} {ds.dtype} (over 16 GiB)")
+            arr = ds[()].T  # HDF5 row-major copy of a column-major MATLAB array
+            aux = {}
+            for a in AUX:
+                if a in dsets and a != name and cands[a][1]:
+                    aux[a] = dsets[a][()]
+    except InputError:
+        raise
+    except Exception as exc:  # h5py raises OSError, KeyError, ValueError, RuntimeError on corrupt files
+        raise fail(path, f"corrupt or truncated MAT-file v7.3 / HDF5 ({type(exc).__name__}: {exc})") from None
+    sp, origin = _aux(path, aux, spacing)
+    meta = {"format": "mat-v7.3", "variable": name, "variables": sorted(cands)}
+    return finalize(path, _mat_layout(arr), sp, origin, meta, frames)
+
+
+# ------------------------------------------------------------------------------------------------- writers
+
+def _to_matlab(frames):
+    arr = np.asarray(frames)
+    if arr.ndim == 3:
+        arr = np.moveaxis(arr, 0, -1)  # (n, axial, lateral) -> rf(axial, lateral, frame)
+    return arr
+
+
+def write_mat(path, frames, spacing=None, origin=(0.0, 0.0), *, variable="rf", version="5"):
+    """Write frames as a MATLAB file holding ``variable`` (MATLAB order ``(axial, lateral, frame)``),
+    ``spacing`` and ``origin``.  ``version`` '5' uses scipy.io.savemat, '7.3' writes an HDF5 file with the
+    512-byte MATLAB header, transposed datasets and ``MATLAB_class`` attributes (what MATLAB's ``save -v7.3``
+    produces, so MATLAB's ``load`` reads it)."""
+    path = Path(path)
+    arr = _to_matlab(frames)
+    data = {variable: arr}
+    if spacing is not None:
+        data["spacing"] = np.asarray(spacing, dtype=float).reshape(1, 2)
+    if origin is not None:
+        data["origin"] = np.asarray(origin, dtype=float).reshape(1, 2)
+    if str(version) in ("5", "7"):
+        import scipy.io
+
+        scipy.io.savemat(str(path), data, do_compression=str(version) == "7")
+        return [path]
+    if str(version) != "7.3":
+        raise InputError(f"MAT-file version must be '5', '7' or '7.3', got {version!r}")
+    import h5py
+
+    classes = {"f8": "double", "f4": "single", "i1": "int8", "u1": "uint8", "i2": "int16", "u2": "uint16",
+               "i4": "int32", "u4": "uint32", "i8": "int64", "u8": "uint64"}
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for key, val in data.items():
+            val = np.asarray(val)
+            if val.ndim < 2:
+                val = val.reshape(1, -1)
+            cls = classes.get(val.dtype.str[1:])
+            if cls is None:
+                raise InputError(f"cannot store dtype {val.dtype} in a MAT-file")
+            ds = f.create_dataset(key, data=np.ascontiguousarray(val.T))
+            ds.attrs["MATLAB_class"] = np.bytes_(cls)
+    stamp = time.strftime("%a %b %d %H:%M:%S %Y", time.gmtime())
+    text = f"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: {stamp} HDF5 schema 1.00 .".encode("ascii")
+    head = text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
+    with open(path, "r+b") as fh:
+        fh.write(head.ljust(512, b"\x00"))
+    return [path]

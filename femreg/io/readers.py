@@ -1,0 +1,396 @@
+"""One entry point, :func:`read_frames`, for every RF frame format femreg reads.
+
+Formats (chosen by extension, verified by content):
+
+=====================  ============================================================================
+``.npy``               2D (axial, lateral) or 3D (n, axial, lateral) array; no spacing stored
+``.npz``               key ``rf`` or ``frames`` (or ``variable=``), optional ``spacing``, ``origin``
+``.mat``               MATLAB v4/v5/v7 (scipy.io) or v7.3 (HDF5, h5py); see :mod:`femreg.io.matlab`
+``.mhd`` / ``.mha``    MetaImage header + data; see :mod:`femreg.io.metaimage` for the axis mapping
+``.raw`` ``.bin``...   headerless samples: ``shape`` required, ``dtype`` (default float32), ``byte_order``
+``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
+directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
+=====================  ============================================================================
+
+Every failure is a :class:`~femreg.errors.FileFormatError` (bad file) or :class:`~femreg.errors.InputError`
+(bad arguments), both ``ValueError`` subclasses, with a one-line message naming the file and the problem.
+"""
+from __future__ import annotations
+
+import os
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FileFormatError, InputError
+from .frames import Frames, check_origin, fail, finalize, merge_spacing
+
+__all__ = ["read_frames", "FORMATS", "detect_format", "parse_dtype"]
+
+FORMATS = {
+    ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
+    ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
+}
+_MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
+          (b"\x89HDF\r\n\x1a\n", "mat")]
+PREFERRED_KEYS = ("rf", "frames")
+_MAX_BYTES = 1 << 34  # refuse arrays claiming more than 16 GiB (a corrupt header, not RF)
+
+_DTYPES = {"float32": "f4", "float": "f4", "single": "f4", "f4": "f4", "met_float": "f4",
+           "float64": "f8", "double": "f8", "f8": "f8", "met_double": "f8",
+           "int16": "i2", "short": "i2", "i2": "i2", "met_short": "i2",
+           "uint16": "u2", "ushort": "u2", "u2": "u2", "met_ushort": "u2",
+           "int8": "i1", "i1": "i1", "met_char": "i1", "uint8": "u1", "u1": "u1", "met_uchar": "u1",
+           "int32": "i4", "i4": "i4", "met_int": "i4", "uint32": "u4", "u4": "u4", "met_uint": "u4"}
+
+
+def parse_dtype(dtype, byte_order=None) -> np.dtype:
+    """On-disk sample type from a name (``float32``, ``int16``, ``<f4``, ``MET_SHORT``, ...) and byte order
+    (``little``/``big``, ``<``/``>``; default little, or the order given in the dtype string)."""
+    order = None
+    if dtype is None:
+        code = "f4"
+    elif isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
+        dt = np.dtype(dtype)
+        code = dt.str[1:]
+        order = dt.byteorder if dt.byteorder in "<>" else None
+    else:
+        s = str(dtype).strip().lower()
+        if s[:1] in "<>=|":
+            order = s[0] if s[0] in "<>" else None
+            s = s[1:]
+        code = _DTYPES.get(s)
+        if code is None:
+            raise InputError(f"unknown dtype {dtype!r}; use one of float32, float64, int16, uint16, int8, uint8, "
+                             "int32, uint32")
+    if code not in _DTYPES.values():
+        raise InputError(f"unsupported dtype {dtype!r} for RF samples")
+    if byte_order is not None:
+        bo = {"little": "<", "<": "<", "le": "<", "big": ">", ">": ">", "be": ">"}.get(str(byte_order).lower())
+        if bo is None:
+            raise InputError(f"byte_order must be 'little' or 'big', got {byte_order!r}")
+        if order is not None and order != bo and code[1] != "1":
+            raise InputError(f"dtype {dtype!r} and byte_order {byte_order!r} disagree")
+        order = bo
+    return np.dtype((order or "<") + code)
+
+
+def _check_shape(shape):
+    if shape is None:
+        return None
+    try:
+        vals = tuple(int(s) for s in np.asarray(shape).ravel())
+        if any(float(a) != b for a, b in zip(np.asarray(shape).ravel(), vals)):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise InputError(f"shape must be integers (axial, lateral) or (n, axial, lateral), got {shape!r}") from None
+    if len(vals) not in (2, 3) or min(vals) < 1:
+        raise InputError(f"shape must be 2 or 3 positive integers (axial, lateral) or (n, axial, lateral), "
+                         f"got {shape!r}")
+    return vals
+
+
+def detect_format(path) -> str:
+    """Format name from the extension, else from the first bytes; FileFormatError if neither tells."""
+    path = Path(path)
+    if path.is_dir():
+        return "directory"
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt:
+        return fmt
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1024)
+    except OSError as exc:
+        raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+    for magic, name in _MAGIC:
+        if head.startswith(magic) or (name == "mat" and head[512:520] == magic):
+            return name
+    if head[:80].lstrip().lower().startswith((b"objecttype", b"ndims")):
+        return "metaimage"
+    raise fail(path, f"unknown file type {path.suffix!r}; supported: " + ", ".join(sorted(FORMATS))
+               + ", or a directory of frame files")
+
+
+def _sniff_mislabel(path, head: bytes, fmt: str):
+    for magic, name in _MAGIC:
+        if name != fmt and head.startswith(magic) and not (fmt == "mat" and name == "mat"):
+            raise fail(path, f"content is a {name} file, not {fmt} as the extension says")
+
+
+# ----------------------------------------------------------------------------------------------- npy / npz
+
+def _parse_npy(fh, size: int, path, label: str):
+    """Read one .npy stream of ``size`` bytes with header validation before any allocation."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = fmt.read_array_header_1_0(fh, max_header_size=100_000)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = fmt.read_array_header_2_0(fh, max_header_size=100_000)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except MemoryError:
+        raise
+    except Exception as exc:  # ValueError, EOFError, SyntaxError, tokenize.TokenError, UnicodeDecodeError...
+        raise fail(path, f"{label}: bad .npy header ({type(exc).__name__}: {exc})") from None
+    if dtype.hasobject or dtype.names is not None or dtype.subdtype is not None:
+        raise fail(path, f"{label}: dtype {dtype} is not a plain numeric array (object arrays are never loaded)")
+    if dtype.kind not in "biufc":
+        raise fail(path, f"{label}: dtype {dtype} is not numeric")
+    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    nbytes = count * dtype.itemsize
+    if nbytes > _MAX_BYTES:
+        raise fail(path, f"{label}: header claims {shape} {dtype}, over 16 GiB")
+    pos = fh.tell()
+    avail = size - pos
+    if avail < nbytes:
+        raise fail(path, f"{label}: truncated, {avail} data bytes for {shape} {dtype} ({nbytes} bytes)")
+    blob = fh.read(nbytes)
+    if len(blob) != nbytes:
+        raise fail(path, f"{label}: truncated, {len(blob)} data bytes for {shape} {dtype} ({nbytes} bytes)")
+    arr = np.frombuffer(blob, dtype=dtype)
+    return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
+
+
+def read_npy(path, *, spacing=None, frames=None, **_ignored):
+    path = Path(path)
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            arr = _parse_npy(fh, size, path, "npy")
+    except OSError as exc:
+        raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing")
+    return finalize(path, arr, sp, (0.0, 0.0), {"format": "npy"}, frames)
+
+
+def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = {}
+            for info in zf.infolist():
+                name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+                members[name] = info
+            if variable is not None:
+                if variable not in members:
+                    raise fail(path, f"missing variable {variable!r}; keys: {', '.join(sorted(members)) or 'none'}")
+                key = variable
+            else:
+                key = next((k for k in PREFERRED_KEYS if k in members), None)
+                if key is None:
+                    raise fail(path, f"no 'rf' or 'frames' array; keys: {', '.join(sorted(members)) or 'none'} "
+                                     "(choose one with variable= / --variable)")
+
+            def load(k):
+                info = members[k]
+                with zf.open(info) as fh:
+                    return _parse_npy(fh, info.file_size, path, f"key {k!r}")
+
+            arr = load(key)
+            file_spacing = origin = None
+            if "spacing" in members and key != "spacing":
+                sp = np.asarray(load("spacing"))
+                if sp.dtype.kind not in "iuf" or sp.size != 2:
+                    raise fail(path, f"key 'spacing' must hold two numbers (dx, dy) mm, got {sp.dtype} {sp.shape}")
+                file_spacing = tuple(float(v) for v in sp.ravel())
+            if "origin" in members and key != "origin":
+                origin = check_origin(np.asarray(load("origin")), path)
+            other = sorted(members)
+    except (FileFormatError, InputError):
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, NotImplementedError,
+            RuntimeError, KeyError, UnicodeDecodeError) as exc:
+        raise fail(path, f"corrupt or truncated .npz ({type(exc).__name__}: {exc})") from None
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key")
+    return finalize(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
+
+
+# --------------------------------------------------------------------------------------------------- raw
+
+def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, frames=None, offset=0, **_ignored):
+    """Headerless samples.  ``shape`` (axial, lateral) reads as many whole frames as the file holds;
+    (n, axial, lateral) requires exactly n.  Layout C-order: lateral fastest (as ``np.fromfile(...).reshape``)."""
+    path = Path(path)
+    shp = _check_shape(shape)
+    if shp is None:
+        sibling = path.with_suffix(".mhd")
+        if sibling.exists():
+            from .metaimage import read_metaimage
+
+            return read_metaimage(sibling, spacing=spacing, frames=frames)
+        raise InputError(f"{path}: raw file needs shape=(axial, lateral) (CLI: --shape NAX NLAT); "
+                         "no header to read it from")
+    dt = parse_dtype(dtype, byte_order)
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+    _sniff_mislabel(path, head, "raw")
+    body = size - int(offset)
+    frame_bytes = shp[-2] * shp[-1] * dt.itemsize
+    if len(shp) == 3:
+        need = shp[0] * frame_bytes
+        if body != need:
+            kind = "truncated" if body < need else "size mismatch"
+            raise fail(path, f"{kind}: {body} bytes, shape {shp} {dt.name} needs {need}")
+        n = shp[0]
+    else:
+        if body <= 0 or body % frame_bytes:
+            hint = ""
+            for alt in ("i2", "f4", "f8"):
+                isz = np.dtype(alt).itemsize
+                if alt != dt.str[1:] and body > 0 and body % (shp[0] * shp[1] * isz) == 0:
+                    hint = f" (a whole number of {np.dtype(alt).name} frames: try dtype={np.dtype(alt).name})"
+                    break
+            raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
+                             f"frames ({frame_bytes} bytes each){hint}")
+        n = body // frame_bytes
+    if n * frame_bytes > _MAX_BYTES:
+        raise fail(path, "over 16 GiB of samples; select frames or split the file")
+    try:
+        arr = np.fromfile(path, dtype=dt, count=n * shp[-2] * shp[-1], offset=int(offset))
+    except (OSError, ValueError) as exc:
+        raise fail(path, f"cannot read samples ({exc})") from None
+    arr = arr.reshape(n, shp[-2], shp[-1])
+    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
+    meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
+    return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
+
+
+# ------------------------------------------------------------------------------------------- directories
+
+def natural_key(name: str):
+    """Sort key with embedded integers compared as numbers (frame2 < frame10)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def read_directory(path, *, frames=None, **options):
+    """One file per frame (or per sub-sequence), files of one format, natural order of their names."""
+    path = Path(path)
+    try:
+        entries = [p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")]
+    except OSError as exc:
+        raise fail(path, f"cannot list directory ({exc.strerror or exc})") from None
+    by_ext: dict[str, list[Path]] = {}
+    for p in entries:
+        if p.suffix.lower() in FORMATS:
+            by_ext.setdefault(FORMATS[p.suffix.lower()], []).append(p)
+    if "metaimage" in by_ext:  # the .raw files are the headers' data files
+        by_ext.pop("raw", None)
+    if not by_ext:
+        raise fail(path, "directory holds no frame files (" + ", ".join(sorted(FORMATS)) + ")")
+    if len(by_ext) > 1:
+        raise fail(path, f"directory mixes formats ({', '.join(sorted(by_ext))}); point at one file or clean it")
+    (fmt, files), = by_ext.items()
+    files.sort(key=lambda p: natural_key(p.name))
+    parts = [read_frames(f, **options) for f in files]
+    first = parts[0]
+    for f, part in zip(files[1:], parts[1:]):
+        if part.shape != first.shape:
+            raise fail(f, f"frame shape {part.shape} differs from {files[0].name}'s {first.shape}")
+        if not np.allclose(part.spacing, first.spacing, rtol=1e-9):
+            raise fail(f, f"spacing {part.spacing} differs from {files[0].name}'s {first.spacing}")
+    dt = np.result_type(*(p.frames.dtype for p in parts))
+    stack = np.concatenate([p.frames.astype(dt, copy=False) for p in parts], axis=0)
+    meta = {"format": f"directory of {fmt}", "files": [f.name for f in files],
+            "file_metadata": first.metadata}
+    return finalize(path, stack, first.spacing, first.origin, meta, frames)
+
+
+# ------------------------------------------------------------------------------------------- entry point
+
+def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, byte_order=None, frames=None,
+                sound_speed=None) -> Frames:
+    """Read RF frames from ``path`` (a file, or a directory of per-frame files).
+
+    Parameters
+    ----------
+    path : str or Path
+        File (format from its extension, checked against its content) or directory (see module docstring).
+    variable : str, optional
+        Array name in .npz / .mat files (default ``rf`` or ``frames``, else the only 2D/3D numeric array).
+    shape : (axial, lateral) or (n, axial, lateral), optional
+        Required for headerless raw files (ignored where a header gives the shape).
+    dtype : str, optional
+        On-disk sample type of raw files (default float32): float32, float64, int16, uint16, int8, ...
+    spacing : (dx, dy) mm, optional
+        Axial and lateral pixel spacing; overrides the file's (a None entry keeps the file's value).
+        Required where the file stores none (npy, raw, the lateral pitch of Ultrasonix .rf).
+    byte_order : {'little', 'big'}, optional
+        Raw files only (default little); headers say their own.
+    frames : int, slice or sequence of int, optional
+        Frame selection (default all).
+    sound_speed : float, m/s, optional
+        For the axial spacing of Ultrasonix files, ``c / (2 fs)`` (default 1540).
+
+    Returns
+    -------
+    Frames
+        ``frames`` (n, axial, lateral) float32/float64, finite; ``spacing`` (dx, dy) mm; ``origin``;
+        ``metadata`` (format, header fields); ``source``.
+
+    Raises
+    ------
+    FileFormatError
+        The file is missing, truncated, corrupt, mislabelled, or holds NaN/Inf.
+    InputError
+        A bad or missing argument (e.g. spacing needed but not given).
+    """
+    try:
+        path = Path(os.fspath(path))
+    except TypeError:
+        raise InputError(f"path must be a file name, got {path!r}") from None
+    if not path.exists():
+        raise fail(path, "no such file or directory")
+    options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
+                   sound_speed=sound_speed)
+    fmt = "unknown"
+    try:
+        fmt = detect_format(path)
+        if fmt == "directory":
+            return read_directory(path, frames=frames, **options)
+        if not path.is_file():
+            raise fail(path, "not a regular file")
+        if fmt != "raw":
+            with open(path, "rb") as fh:
+                head = fh.read(8)
+            if not head:
+                raise fail(path, f"empty file (expected {fmt})")
+            _sniff_mislabel(path, head, fmt)
+        reader = _READERS[fmt]
+        return reader(path, frames=frames, **options)
+    except (FileFormatError, InputError):
+        raise
+    except MemoryError:
+        raise fail(path, f"not enough memory to read this {fmt} file (corrupt header or too large)") from None
+    except Exception as exc:  # last line of defence: never let a library exception escape untyped
+        raise fail(path, f"cannot read {fmt} file ({type(exc).__name__}: {exc})") from None
+
+
+def _read_mat(path, **kw):
+    from .matlab import read_mat
+
+    return read_mat(path, **kw)
+
+
+def _read_mhd(path, **kw):
+    from .metaimage import read_metaimage
+
+    return read_metaimage(path, **kw)
+
+
+def _read_rf(path, **kw):
+    from .ultrasonix import read_ultrasonix
+
+    return read_ultrasonix(path, **kw)
+
+
+_READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
+            "ultrasonix": _read_rf}

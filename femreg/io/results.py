@@ -1,0 +1,261 @@
+"""Registration results on disk: the ``.npz`` contract, and VTU / XDMF exports through meshio for ParaView.
+
+The ``.npz`` contract (written by the engine's ``res.save(path)``; :func:`save_result` writes the same):
+
+=================  ==============================  ===================================================
+key                shape                           meaning
+=================  ==============================  ===================================================
+mesh_points        (2, n_nodes) mm                 node coordinates, row 0 axial x, row 1 lateral y
+mesh_cells         (4, n_el) int                   quad connectivity (counter-clockwise, as skfem)
+u                  (2*n_nodes,) mm                 nodal displacement, interleaved [ux0, uy0, ux1, ...]
+spacing, origin    (2,) mm                         reference pixel grid
+shape              (2,) int                        reference image shape (axial, lateral)
+ux uy exx eyy exy  (n_axial, n_lateral)            fields on the reference pixel grid, NaN outside mesh
+regularizer        str                             regulariser name
+alpha, success,    scalars                         optimiser outcome (scipy OptimizeResult-like)
+nit, message
+ncc_before/after   scalar                          NCC of reference and warped moving image
+energy_history     (nit+1,)                        objective per Gauss-Newton iterate
+=================  ==============================  ===================================================
+
+Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
+``exy = (dux/dy + duy/dx)/2`` (tensor shear, not engineering shear).
+"""
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .frames import fail
+
+__all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_strains", "nodal_average",
+           "mesh_fields", "write_vtu", "write_xdmf", "export_result"]
+
+RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
+               "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history")
+REQUIRED = ("mesh_points", "mesh_cells", "u")
+GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
+
+
+def _scalar(v):
+    v = np.asarray(v)
+    return v.item() if v.ndim == 0 else v
+
+
+def check_mesh(points, cells, u=None, where="mesh"):
+    """Validate (2, n_nodes) points, (4, n_el) cells and (2*n_nodes,) u; return float/int arrays."""
+    try:
+        p = np.asarray(points, dtype=float)
+        t = np.asarray(cells)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: mesh_points / mesh_cells are not numeric arrays") from None
+    if p.ndim != 2 or p.shape[0] != 2 or p.shape[1] < 4:
+        raise InputError(f"{where}: mesh_points must be (2, n_nodes) with n_nodes >= 4, got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{where}: mesh_points contain NaN/Inf")
+    if t.ndim != 2 or t.shape[0] != 4 or t.shape[1] < 1 or t.dtype.kind not in "iu":
+        raise InputError(f"{where}: mesh_cells must be (4, n_el) integers, got {t.shape} {t.dtype}")
+    if t.min() < 0 or t.max() >= p.shape[1]:
+        raise InputError(f"{where}: mesh_cells index nodes outside 0..{p.shape[1] - 1}")
+    t = t.astype(np.int64)
+    if u is None:
+        return p, t, None
+    uu = np.asarray(u, dtype=float)
+    n = p.shape[1]
+    if uu.shape == (n, 2):
+        uu = uu.ravel()
+    if uu.shape != (2 * n,):
+        raise InputError(f"{where}: u must be (2*n_nodes,) = ({2 * n},) interleaved [ux0, uy0, ...], got {uu.shape}")
+    if not np.all(np.isfinite(uu)):
+        raise InputError(f"{where}: u contains NaN/Inf")
+    return p, t, uu
+
+
+def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
+    """Small strains [exx, eyy, exy] at each bilinear quad's centre (reference point (1/2, 1/2)).
+
+    Returns (n_el, 3).  Exact for a displacement field affine in (x, y).
+    """
+    p, t, uu = check_mesh(mesh_points, mesh_cells, u)
+    # reference derivatives of the 4 bilinear shape functions at the centre (skfem's node order)
+    dxi = np.array([-0.5, 0.5, 0.5, -0.5])
+    deta = np.array([-0.5, -0.5, 0.5, 0.5])
+    X, Y = p[0][t], p[1][t]  # (4, n_el)
+    j11, j12 = dxi @ X, deta @ X
+    j21, j22 = dxi @ Y, deta @ Y
+    det = j11 * j22 - j12 * j21
+    if np.any(np.abs(det) < 1e-300):
+        raise InputError("mesh has degenerate (zero-area) quads")
+    # grad N = J^{-T} [dN/dxi, dN/deta]
+    dNdx = (j22[None] * dxi[:, None] - j21[None] * deta[:, None]) / det
+    dNdy = (-j12[None] * dxi[:, None] + j11[None] * deta[:, None]) / det
+    UX, UY = uu[0::2][t], uu[1::2][t]
+    exx = (UX * dNdx).sum(0)
+    eyy = (UY * dNdy).sum(0)
+    exy = 0.5 * ((UX * dNdy).sum(0) + (UY * dNdx).sum(0))
+    return np.stack([exx, eyy, exy], axis=1)
+
+
+def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
+    """Average of the values of the cells around each node: (n_el, k) -> (n_nodes, k)."""
+    t = np.asarray(mesh_cells)
+    v = np.asarray(cell_values, dtype=float)
+    v2 = v.reshape(v.shape[0], -1)
+    out = np.zeros((n_nodes, v2.shape[1]))
+    count = np.bincount(t.ravel(), minlength=n_nodes).astype(float)
+    for k in range(v2.shape[1]):
+        out[:, k] = np.bincount(t.ravel(), weights=np.tile(v2[:, k], 4), minlength=n_nodes)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out /= count[:, None]
+    return out.reshape((n_nodes,) + v.shape[1:])
+
+
+def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+    """meshio-ready (points (n, 3), cells, point_data, cell_data) for a registration result.
+
+    Point data ``displacement`` (n_nodes, 3) with z = 0; strains ``exx``, ``eyy``, ``exy`` as element-centre cell
+    data (``strains='cell'``), nodal averages as point data (``'point'``), or both (default).
+    """
+    p, t, uu = check_mesh(mesh_points, mesh_cells, u)
+    if strains not in ("cell", "point", "both", "none", None):
+        raise InputError(f"strains must be 'cell', 'point', 'both' or 'none', got {strains!r}")
+    n = p.shape[1]
+    pts = np.zeros((n, 3))
+    pts[:, :2] = p.T
+    disp = np.zeros((n, 3))
+    disp[:, 0], disp[:, 1] = uu[0::2], uu[1::2]
+    pdata = {"displacement": disp}
+    cdata = {}
+    if strains in ("cell", "point", "both"):
+        e = element_strains(p, t, uu)
+        if strains in ("cell", "both"):
+            cdata.update({name: [e[:, k]] for k, name in enumerate(("exx", "eyy", "exy"))})
+        if strains in ("point", "both"):
+            en = nodal_average(t.T, e, n)
+            pdata.update({name: en[:, k] for k, name in enumerate(("exx", "eyy", "exy"))})
+    for k, v in (point_data or {}).items():
+        v = np.asarray(v, dtype=float)
+        if v.shape[0] != n:
+            raise InputError(f"point_data[{k!r}] has {v.shape[0]} rows, mesh has {n} nodes")
+        pdata[k] = v
+    for k, v in (cell_data or {}).items():
+        v = np.asarray(v, dtype=float)
+        if v.shape[0] != t.shape[1]:
+            raise InputError(f"cell_data[{k!r}] has {v.shape[0]} rows, mesh has {t.shape[1]} cells")
+        cdata[k] = [v]
+    return pts, [("quad", t.T)], pdata, cdata
+
+
+def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+    """Write the mesh, nodal displacement (point data, z = 0) and strains to a VTU file (ParaView).
+
+    Parameters
+    ----------
+    mesh_points : (2, n_nodes) mm; mesh_cells : (4, n_el) int; u : (2*n_nodes,) mm interleaved.
+    strains : {'both', 'cell', 'point', 'none'}
+        Element-centre strains as cell data and/or their nodal averages as point data.
+    point_data, cell_data : dict of extra arrays, (n_nodes, ...) / (n_el, ...).
+    """
+    import meshio
+
+    pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
+                                           cell_data=cell_data)
+    meshio.Mesh(pts, cells, point_data=pdata, cell_data=cdata).write(str(path), file_format="vtu")
+    return Path(path)
+
+
+def write_xdmf(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+    """As :func:`write_vtu`, in XDMF (+ HDF5 heavy data next to it, ``<stem>.h5``)."""
+    import meshio
+
+    pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
+                                           cell_data=cell_data)
+    meshio.Mesh(pts, cells, point_data=pdata, cell_data=cdata).write(str(path), file_format="xdmf")
+    return Path(path)
+
+
+# ---------------------------------------------------------------------------------------------- npz results
+
+def _from_object(res) -> dict:
+    """Best effort for an engine result object with ``.mesh`` (skfem) and ``.u``."""
+    out = {}
+    mesh = getattr(res, "mesh", None)
+    if mesh is not None:
+        out["mesh_points"] = np.asarray(mesh.p)
+        out["mesh_cells"] = np.asarray(mesh.t)
+    for k in RESULT_KEYS:
+        if k not in out and hasattr(res, k):
+            v = getattr(res, k)
+            if not callable(v):
+                out[k] = v
+    return out
+
+
+def as_result_dict(result) -> dict:
+    """A result as a plain dict: from a path (.npz), a mapping, or an engine result object."""
+    if isinstance(result, (str, os.PathLike)):
+        return load_result(result)
+    if hasattr(result, "keys"):
+        return {k: _scalar(result[k]) for k in result.keys()}
+    return _from_object(result)
+
+
+def load_result(path) -> dict:
+    """Read a result ``.npz`` (see the module docstring) into a dict; scalars become Python scalars.
+
+    Raises FileFormatError when the file is not such a result (naming the missing key or bad shape).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise fail(path, "no such result file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: _scalar(z[k]) for k in z.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, RuntimeError, NotImplementedError) as exc:
+        raise fail(path, f"not a readable .npz result ({type(exc).__name__}: {exc})") from None
+    missing = [k for k in REQUIRED if k not in out]
+    if missing:
+        raise fail(path, f"not a femreg result: missing key(s) {', '.join(missing)}")
+    try:
+        check_mesh(out["mesh_points"], out["mesh_cells"], out["u"], where="result")
+    except InputError as exc:
+        raise fail(path, str(exc)) from None
+    for k in GRID_FIELDS:
+        if k in out and np.ndim(out[k]) != 2:
+            raise fail(path, f"key {k!r} must be a 2D pixel-grid field, got shape {np.shape(out[k])}")
+    return out
+
+
+def save_result(path, result) -> Path:
+    """Write a result (dict or engine result object) as ``.npz`` with the contract keys it has."""
+    d = as_result_dict(result)
+    missing = [k for k in REQUIRED if k not in d]
+    if missing:
+        raise InputError(f"result lacks {', '.join(missing)}")
+    check_mesh(d["mesh_points"], d["mesh_cells"], d["u"], where="result")
+    data = {}
+    for k, v in d.items():
+        a = np.asarray(v)
+        if a.dtype.kind == "O":
+            raise InputError(f"result key {k!r} is not an array/number/string")
+        data[k] = a
+    np.savez(path, **data)
+    return Path(path)
+
+
+def export_result(result, path, *, strains="both"):
+    """Write a result (path / dict / object) as .vtu, .xdmf or .npz, chosen by ``path``'s extension."""
+    d = as_result_dict(result)
+    ext = Path(path).suffix.lower()
+    if ext == ".npz":
+        return save_result(path, d)
+    writer = {".vtu": write_vtu, ".xdmf": write_xdmf}.get(ext)
+    if writer is None:
+        raise InputError(f"{path}: export format must be .vtu, .xdmf or .npz, not {ext!r}")
+    return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains)
+
+

@@ -1,0 +1,78 @@
+"""``save_frames``: write frames in every format :func:`~femreg.io.read_frames` reads (round trips, test data,
+conversion for other tools)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .frames import check_origin, check_spacing
+from .readers import FORMATS, parse_dtype
+
+__all__ = ["save_frames"]
+
+
+def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, dtype=None, byte_order="little",
+                variable="rf", mat_version="5", frame_tags=False, sampling_frequency=None, sound_speed=1540.0):
+    """Write ``frames`` ((axial, lateral) or (n, axial, lateral)) to ``path``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Format from the extension (or ``format=``): ``.npy`` (array only), ``.npz`` (``rf``/``variable``,
+        ``spacing``, ``origin``), ``.mat`` (``mat_version`` '5', '7' or '7.3'; MATLAB order
+        ``rf(axial, lateral, frame)``), ``.mhd`` (+ ``.raw``) / ``.mha``, ``.raw`` (headerless, C order),
+        ``.rf`` (Ultrasonix int16, with ``frame_tags`` optionally).
+    spacing : (dx, dy) mm
+        Stored where the format has room for it (npz, mat, MetaImage; the axial one in .rf as ``sf``).
+    dtype : on-disk sample type for raw / MetaImage (default: float32 unless the array is float64/integer).
+    byte_order : {'little', 'big'}
+        For raw and MetaImage.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    path = Path(path)
+    arr = np.asarray(frames)
+    if arr.ndim not in (2, 3):
+        raise InputError(f"frames must be (axial, lateral) or (n, axial, lateral), got shape {arr.shape}")
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"frames must be real numbers, got dtype {arr.dtype}")
+    sp = check_spacing(spacing) if spacing is not None else None
+    origin = check_origin(origin)
+    fmt = format or FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise InputError(f"{path}: unknown extension {path.suffix!r}; use one of {', '.join(sorted(FORMATS))}")
+    if fmt == "npy":
+        np.save(path, arr, allow_pickle=False)
+        return [path]
+    if fmt == "npz":
+        data = {variable: arr, "origin": np.asarray(origin)}
+        if sp is not None:
+            data["spacing"] = np.asarray(sp)
+        np.savez(path, **data)
+        return [path]
+    if fmt == "mat":
+        from .matlab import write_mat
+
+        return write_mat(path, arr, sp, origin, variable=variable, version=mat_version)
+    if fmt == "metaimage":
+        from .metaimage import write_metaimage
+
+        if sp is None:
+            raise InputError("MetaImage needs spacing=(dx, dy)")
+        return write_metaimage(path, arr, sp, origin, dtype=dtype, byte_order=byte_order)
+    if fmt == "raw":
+        dt = parse_dtype(dtype if dtype is not None else (arr.dtype if arr.dtype.kind in "iuf" else "float32"),
+                         byte_order)
+        np.ascontiguousarray(arr, dtype=dt).tofile(path)
+        return [path]
+    if fmt == "ultrasonix":
+        from .ultrasonix import write_ultrasonix
+
+        return write_ultrasonix(path, arr, sp, sampling_frequency=sampling_frequency, sound_speed=sound_speed,
+                                frame_tags=frame_tags)
+    raise InputError(f"unknown format {fmt!r}")

@@ -1,0 +1,258 @@
+"""Figures: B-mode images, pixel-grid fields (displacement, strain) with colour bars and mm axes, a summary
+figure of a registration result, and an off-screen pyvista render of the FE mesh coloured by a field.
+
+Axes: lateral y (mm) horizontal, axial x (mm) vertical and increasing downwards (depth), as on a scanner.
+Every ``plot_*`` function takes ``ax=`` (a new figure when None) and returns the Axes.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm"]
+
+
+def _mpl():
+    import matplotlib
+
+    if "MPLBACKEND" not in os.environ:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _image2d(a, name):
+    arr = np.asarray(a, dtype=float)
+    if arr.ndim != 2 or min(arr.shape) < 2:
+        raise InputError(f"{name} must be a 2D (axial, lateral) array, got shape {arr.shape}")
+    return arr
+
+
+def bmode(rf, dynamic_range=50.0, *, reference=None):
+    """Log-compressed envelope of RF (axial along axis 0) in dB, clipped to ``[-dynamic_range, 0]``.
+
+    Envelope = ``|hilbert(rf, axis=0)|``; 0 dB is its maximum (or ``reference`` if given, e.g. to put
+    several frames on one scale).  Returns float64 (axial, lateral).
+    """
+    from scipy.signal import hilbert
+
+    arr = _image2d(rf, "rf")
+    if not np.all(np.isfinite(arr)):
+        raise InputError("rf contains NaN/Inf")
+    if not (np.isfinite(dynamic_range) and dynamic_range > 0):
+        raise InputError(f"dynamic_range must be positive (dB), got {dynamic_range!r}")
+    env = np.abs(hilbert(arr, axis=0))
+    ref = float(reference) if reference is not None else float(env.max())
+    if ref <= 0:
+        return np.full(arr.shape, -float(dynamic_range))
+    with np.errstate(divide="ignore"):
+        db = 20.0 * np.log10(env / ref)
+    return np.clip(db, -float(dynamic_range), 0.0)
+
+
+def extent_mm(shape, spacing, origin=(0.0, 0.0)):
+    """imshow extent [left, right, bottom, top] in mm for pixel centres at origin + (i dx, j dy)."""
+    dx, dy = (float(s) for s in spacing)
+    x0, y0 = (float(o) for o in origin)
+    n_ax, n_lat = shape
+    return [y0 - dy / 2, y0 + (n_lat - 0.5) * dy, x0 + (n_ax - 0.5) * dx, x0 - dx / 2]
+
+
+def _ax(ax, figsize=(5, 6)):
+    if ax is None:
+        plt = _mpl()
+        _, ax = plt.subplots(figsize=figsize, constrained_layout=True)
+    return ax
+
+
+def _spacing(spacing):
+    from .io.frames import check_spacing
+
+    if spacing is None:
+        raise InputError("spacing (dx, dy) in mm is required for mm axes")
+    return check_spacing(spacing)
+
+
+def _label(ax, title):
+    ax.set_xlabel("lateral y (mm)")
+    ax.set_ylabel("axial x (mm)")
+    if title:
+        ax.set_title(title)
+
+
+def plot_bmode(rf, spacing, origin=(0.0, 0.0), ax=None, *, dynamic_range=50.0, title="B-mode", colorbar=True,
+               aspect="equal"):
+    """B-mode image of ``rf`` (see :func:`bmode`) with mm axes and a dB colour bar; returns the Axes."""
+    sp = _spacing(spacing)
+    img = bmode(rf, dynamic_range)
+    ax = _ax(ax)
+    im = ax.imshow(img, cmap="gray", vmin=-dynamic_range, vmax=0, extent=extent_mm(img.shape, sp, origin),
+                   aspect=aspect, interpolation="nearest")
+    _label(ax, title)
+    if colorbar:
+        ax.figure.colorbar(im, ax=ax, label="dB")
+    return ax
+
+
+def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap="RdBu_r", vmin=None, vmax=None,
+               overlay_bmode=None, alpha=0.7, label=None, dynamic_range=50.0, aspect="equal", symmetric=None):
+    """A pixel-grid field (NaN = outside the mesh, left transparent) with mm axes and a colour bar.
+
+    ``overlay_bmode``: RF of the same shape drawn as a grey B-mode beneath the field, which is then drawn with
+    opacity ``alpha``.  Colour limits default to robust percentiles (1, 99) of the finite values, symmetric
+    about 0 for diverging maps (``symmetric=None`` decides from ``cmap``).  Returns the Axes.
+    """
+    sp = _spacing(spacing)
+    f = _image2d(field, "field")
+    ax = _ax(ax)
+    ext = extent_mm(f.shape, sp, origin)
+    if overlay_bmode is not None:
+        b = _image2d(overlay_bmode, "overlay_bmode")
+        if b.shape != f.shape:
+            raise InputError(f"overlay_bmode shape {b.shape} differs from the field's {f.shape}")
+        ax.imshow(bmode(b, dynamic_range), cmap="gray", vmin=-dynamic_range, vmax=0, extent=ext, aspect=aspect,
+                  interpolation="nearest")
+    finite = f[np.isfinite(f)]
+    if symmetric is None:
+        symmetric = cmap in ("RdBu_r", "RdBu", "seismic", "bwr", "coolwarm", "PuOr", "PiYG")
+    if finite.size:
+        lo, hi = np.percentile(finite, [1, 99])
+        if symmetric:
+            m = max(abs(lo), abs(hi)) or 1.0
+            lo, hi = -m, m
+        elif hi <= lo:
+            lo, hi = lo - 1.0, hi + 1.0
+    else:
+        lo, hi = -1.0, 1.0
+    vmin = lo if vmin is None else vmin
+    vmax = hi if vmax is None else vmax
+    masked = np.ma.masked_invalid(f)
+    im = ax.imshow(masked, cmap=cmap, vmin=vmin, vmax=vmax, extent=ext, aspect=aspect, interpolation="nearest",
+                   alpha=alpha if overlay_bmode is not None else None)
+    _label(ax, title)
+    ax.figure.colorbar(im, ax=ax, label=label or "")
+    return ax
+
+
+_PANELS = (("ux", "axial displacement $u_x$", "mm"), ("uy", "lateral displacement $u_y$", "mm"),
+           ("exx", "axial strain $\\varepsilon_{xx}$", ""), ("eyy", "lateral strain $\\varepsilon_{yy}$", ""),
+           ("exy", "shear strain $\\varepsilon_{xy}$", ""))
+
+
+def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100, dynamic_range=50.0,
+                figsize=None):
+    """Summary figure of a registration result: B-mode (if ``reference`` RF, or a ``reference``/``rf`` key in
+    the result, is available; the mesh otherwise) and ux, uy, exx, eyy, exy on the pixel grid.
+
+    Parameters
+    ----------
+    result : path to a result .npz, a dict, or an engine result object (see :mod:`femreg.io.results`).
+    out_png : path, optional
+        Where to save the figure (PNG).  The figure is returned either way.
+    reference : (axial, lateral) RF of the reference image, optional.
+    overlay : draw each field over the B-mode.
+    """
+    from .io.results import as_result_dict, check_mesh
+
+    d = as_result_dict(result)
+    for k in ("spacing",) + tuple(p[0] for p in _PANELS):
+        if k not in d:
+            raise InputError(f"result lacks {k!r}: plot_result needs the pixel-grid fields ux, uy, exx, eyy, exy")
+    sp = _spacing(d["spacing"])
+    origin = tuple(np.asarray(d.get("origin", (0.0, 0.0)), dtype=float).ravel()[:2])
+    shape = np.shape(d["ux"])
+    if reference is None:
+        reference = d.get("reference", d.get("rf"))
+    if reference is not None:
+        reference = _image2d(reference, "reference")
+        if reference.shape != shape:
+            raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}")
+    plt = _mpl()
+    n_ax, n_lat = shape
+    aspect_ratio = (n_ax * sp[0]) / max(n_lat * sp[1], 1e-12)
+    if figsize is None:
+        w = 3.4
+        figsize = (3 * w, 2 * min(max(w * aspect_ratio, 2.5), 6.0) + 0.6)
+    fig, axes = plt.subplots(2, 3, figsize=figsize, constrained_layout=True)
+    axes = axes.ravel()
+    aspect = "equal" if 0.2 < aspect_ratio < 5 else "auto"  # very tall/flat grids fill the panel
+    if reference is not None:
+        plot_bmode(reference, sp, origin, ax=axes[0], dynamic_range=dynamic_range, aspect=aspect)
+    else:
+        p, t, _ = check_mesh(d["mesh_points"], d["mesh_cells"], d["u"])
+        ax = axes[0]
+        from matplotlib.collections import PolyCollection
+
+        polys = np.stack([p[1][t].T, p[0][t].T], axis=-1)  # (n_el, 4, [y, x])
+        ax.add_collection(PolyCollection(polys, facecolor="none", edgecolor="k", linewidth=0.3))
+        ext = extent_mm(shape, sp, origin)
+        ax.set_xlim(ext[0], ext[1])
+        ax.set_ylim(ext[2], ext[3])
+        ax.set_aspect(aspect)
+        _label(ax, f"mesh ({t.shape[1]} quads)")
+    for ax, (key, title, unit) in zip(axes[1:], _PANELS):
+        cmap = "RdBu_r"
+        plot_field(d[key], sp, origin, ax=ax, title=title, cmap=cmap, label=unit,
+                   overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range)
+    info = []
+    if "regularizer" in d:
+        info.append(f"regulariser {d['regularizer']}")
+    if "alpha" in d:
+        info.append(f"alpha {float(d['alpha']):.3g}")
+    for k in ("ncc_before", "ncc_after"):
+        if k in d:
+            info.append(f"{k} {float(d[k]):.3f}")
+    if info:
+        fig.suptitle(", ".join(info))
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig
+
+
+def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="value", cmap="viridis",
+                window_size=(800, 600), show_edges=True, clim=None):
+    """Off-screen pyvista render of the quad mesh coloured by ``values``.
+
+    ``values``: (n_nodes,) point data or (n_el,) cell data (None: plain mesh).  Viewed from +z with the
+    lateral axis horizontal and depth downwards.  Writes ``out_png`` (window_size pixels) and returns its Path.
+    Uses EGL (``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``) unless the environment chose otherwise.
+    """
+    from .io.results import check_mesh
+
+    p, t, _ = check_mesh(mesh_points, mesh_cells)
+    if out_png is None:
+        raise InputError("render_mesh needs out_png")
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    pts = np.zeros((p.shape[1], 3))
+    pts[:, 0] = p[1]  # lateral -> screen x
+    pts[:, 1] = -p[0]  # depth down
+    cells = np.hstack([np.full((t.shape[1], 1), 4), t.T]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(t.shape[1], pv.CellType.QUAD, dtype=np.uint8), pts)
+    kw = {}
+    if values is not None:
+        v = np.asarray(values, dtype=float).ravel()
+        if v.size == p.shape[1]:
+            grid.point_data[name] = v
+        elif v.size == t.shape[1]:
+            grid.cell_data[name] = v
+        else:
+            raise InputError(f"values has {v.size} entries; need n_nodes = {p.shape[1]} or n_el = {t.shape[1]}")
+        kw = dict(scalars=name, cmap=cmap, clim=clim, scalar_bar_args={"title": name, "vertical": True, "position_x": 0.85,
+                                                                 "position_y": 0.1, "height": 0.8})
+    plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
+    try:
+        plotter.add_mesh(grid, show_edges=show_edges, **kw)
+        plotter.view_xy()
+        plotter.camera.zoom(1.15)
+        plotter.screenshot(str(out_png))
+    finally:
+        plotter.close()
+    return Path(out_png)

@@ -1,0 +1,457 @@
+r"""Momentum (SPREME) regularisers R_P_eps and R_P_sigma and the total-variation machinery behind them.
+
+Paper section "Regularization Types" (eq:meq to eq:mreg) and appendix "Reduced Form of TV Momentum
+Regularization" (eq:Ae5 to eq:Ae7, eq:dmreg to eq:dmreg4).  For a piecewise-homogeneous solid the equilibrium
+equation :math:`\nabla\cdot(\mu A[u]) = 0` (eq:meq) with
+
+.. math::  A[u] = \bar\lambda\,(\nabla\cdot u)\,I + 2\,\nabla^s u
+
+reduces to :math:`\nabla\cdot A = 0` almost everywhere (eq:pwcmeq).  On bilinear quads A is taken as piecewise
+constant, so :math:`\int_\Omega \|\nabla\cdot A\|` becomes a sum of traction jumps over the interior edges
+(eq:Ae7), smoothed by :math:`\delta` (eq:dmreg):
+
+.. math::  \bar R = \alpha \sum_j l_j \sqrt{(K^x_j u)^2 + (K^y_j u)^2 + \delta}          \quad\text{(eq:dmreg2)}
+
+where :math:`K^x_j u, K^y_j u` are the two components of :math:`[\![A]\!]\cdot n` at the midpoint of interior
+edge j, each side's A evaluated from its own element.  Gradient eq:dmreg3; Hessian by lagged diffusivity
+eq:dmreg4, :math:`\alpha K^T W K` with :math:`W = \mathrm{diag}(l_j / \sqrt{|K_j u|^2 + \delta})`.
+
+Contents
+--------
+:func:`momentum_jump_operators`
+    K^x, K^y, edge lengths for a ``MeshQuad1`` (structured or not), built once per mesh with scikit-fem's
+    ``InteriorFacetBasis`` (1-point midpoint rule, both sides).
+:class:`TVRegularizer`
+    Generic :math:`\alpha\sum_j w_j\,\phi(|K_j u|^2)` for any grouped sparse operator (the momentum terms are two
+    instances; :func:`femreg.regularizers.from_operator` builds user ones).
+:class:`MomentumRegularizer`, :class:`PlaneStrainMomentumRegularizer` ("momentum-strain", R_P_eps,
+:math:`\bar\lambda = 9`, dilatation at the element centre), :class:`PlaneStressMomentumRegularizer`
+("momentum-stress", R_P_sigma, :math:`\bar\lambda = 2`).
+
+Default alphas (provisional; the paper's values do not transfer, see docs/paper-protocol.md)
+----------------------------------------------------------------------------------------------
+For femreg's normalisation (images divided by the reference RMS, pixel weights dx dy in mm^2, lengths in mm),
+measured on 1562 x 71 px speckle pairs (30 x 21 mm around the inclusion, 20 dB SNR, seeds 1-3) warped by
+forward/ 2D solutions (stiff inclusion E = 40 / 10 MPa, nu = 0.495, 1 mm compression), engine's default 1 mm
+mesh, lateral displacement error at alpha:
+
+* plane-stress field: R_P_sigma 0.01 / 0.03 / 0.1 / 0.3 -> 12.6 / 11.9 / 13.0 / 14.5 % (seed 1), best
+  11-14 % over seeds at 0.03-0.1 (0.01 failed once: 0.1 is the safer default); R_eps best 16-35 % at 3-10.
+* plane-strain field: R_P_eps 0.1 / 1 / 3 / 10 -> 59 / 41 / 10 / 15 % (seed 1), 16 / 6 / 10 / 18 % (seed 2):
+  default 1; R_eps best 21-22 % at 3.
+
+``momentum-stress`` 0.1, ``momentum-strain`` 1.0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from .base import Regularizer, register_regularizer
+
+#: 1-point midpoint rule on the reference facet [0, 1] (the edge centre).
+EDGE_MIDPOINT_RULE = (np.array([[0.5]]), np.array([1.0]))
+#: 1-point element-centre rule on the reference square [0, 1]^2.
+ELEMENT_CENTRE_RULE = (np.array([[0.5], [0.5]]), np.array([1.0]))
+
+#: :math:`\bar\lambda` of R_P_eps: plane strain, nu = 0.45 -> 2 nu / (1 - 2 nu) = 9 (paper, "Registration").
+LAMBDA_BAR_PLANE_STRAIN = 9.0
+#: :math:`\bar\lambda` of R_P_sigma: incompressible plane stress, nu = 1/2 -> 2 nu / (1 - nu) = 2.
+LAMBDA_BAR_PLANE_STRESS = 2.0
+#: Smoothing of the TV norm (eq:dmreg), as in the paper.
+DEFAULT_DELTA = 1e-8
+
+
+def lambda_bar_from_poisson(nu: float, model: str = "plane-strain") -> float:
+    r""":math:`\bar\lambda` of eq:cEq for Poisson's ratio ``nu``: ``2 nu / (1 - 2 nu)`` in plane strain,
+    ``2 nu / (1 - nu)`` in plane stress."""
+    nu = float(nu)
+    if model == "plane-strain":
+        if not -1.0 < nu < 0.5:
+            raise ValueError(f"plane-strain lambda_bar needs -1 < nu < 0.5, got nu={nu!r}")
+        return 2.0 * nu / (1.0 - 2.0 * nu)
+    if model == "plane-stress":
+        if not -1.0 < nu <= 0.5:
+            raise ValueError(f"plane-stress lambda_bar needs -1 < nu <= 0.5, got nu={nu!r}")
+        return 2.0 * nu / (1.0 - nu)
+    raise ValueError(f"model must be 'plane-strain' or 'plane-stress', got {model!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Jump operators (eq:Ae7 / eq:dmreg2)
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass
+class JumpOperators:
+    r"""Discrete traction-jump operators of one mesh (appendix eq:dmreg2).
+
+    Attributes
+    ----------
+    Kx, Ky : (n_edges, 2 n_nodes) csr_matrix
+        x and y components of :math:`[\![A]\!]\cdot n` (dimensionless, like strain) at each interior edge
+        midpoint, acting on the interleaved nodal displacement (mm; entries in 1/mm).  Jump = side 0 minus
+        side 1, n = side-0 outward unit normal.
+    lengths : (n_edges,) float
+        Edge lengths l_j (mm).
+    facets : (n_edges,) int
+        Mesh facet index of each row.
+    elements : (2, n_edges) int
+        Element on side 0 and side 1 of each edge.
+    midpoints, normals : (2, n_edges) float
+        Edge centres (mm) and side-0 unit normals.
+    """
+
+    Kx: sp.csr_matrix
+    Ky: sp.csr_matrix
+    lengths: np.ndarray
+    facets: np.ndarray
+    elements: np.ndarray
+    midpoints: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def n_edges(self) -> int:
+        return self.lengths.shape[0]
+
+    def stacked(self) -> sp.csr_matrix:
+        """``vstack([Kx, Ky])``, shape (2 n_edges, 2 n_nodes)."""
+        return sp.vstack([self.Kx, self.Ky], format="csr")
+
+
+def _check_quad_mesh(mesh) -> None:
+    from skfem import MeshQuad1
+
+    if not isinstance(mesh, MeshQuad1):
+        raise ValueError(f"momentum regularisers need a scikit-fem MeshQuad1 (bilinear quads), got "
+                         f"{type(mesh).__name__}")
+    if mesh.p.shape[0] != 2:
+        raise ValueError(f"momentum regularisers need a 2D mesh, got mesh.p of shape {mesh.p.shape}")
+
+
+def element_centre_divergence(mesh) -> sp.csr_matrix:
+    r"""Operator D, shape (n_elements, 2 n_nodes): :math:`(D u)_e = \nabla\cdot u` at the centre of element e.
+
+    The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2) and
+    for the divergence term of R_eps_i.
+    """
+    from skfem import Basis, ElementQuad1, ElementVector
+
+    _check_quad_mesh(mesh)
+    basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
+    # div(phi_i) at the centre, one value per (local dof, element)
+    div = np.stack([basis.basis[i][0].grad[0, 0, :, 0] + basis.basis[i][0].grad[1, 1, :, 0]
+                    for i in range(basis.Nbfun)])
+    dofs = basis.element_dofs
+    rows = np.broadcast_to(np.arange(mesh.t.shape[1]), dofs.shape)
+    return sp.csr_matrix((div.ravel(), (rows.ravel(), dofs.ravel())), shape=(mesh.t.shape[1], basis.N))
+
+
+def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge") -> JumpOperators:
+    r"""Build K^x, K^y of eq:dmreg2: the components of :math:`[\![A[u]]\!]\cdot n` at interior edge midpoints.
+
+    :math:`A[u] = \bar\lambda(\nabla\cdot u) I + 2\nabla^s u` (eq:meq); each side's A comes from its own element's
+    shape-function gradients at the edge midpoint (``InteriorFacetBasis`` with ``side=0`` / ``side=1`` and a
+    1-point rule; both sides report the side-0 normal).  Vectorised over edges; call once per mesh.
+
+    Parameters
+    ----------
+    mesh : skfem.MeshQuad1
+        Registration mesh, mm; structured or not.
+    lambda_bar : float
+        :math:`\bar\lambda` (9 for R_P_eps, 2 for R_P_sigma).
+    dilatation : {"edge", "centre"}
+        Where :math:`\nabla\cdot u` of the :math:`\bar\lambda` term is evaluated: at the edge midpoint like the
+        rest of A ("edge", R_P_sigma) or at each element's centre ("centre", reduced integration against
+        locking, R_P_eps).
+
+    Returns
+    -------
+    JumpOperators
+    """
+    from skfem import ElementQuad1, ElementVector, InteriorFacetBasis
+
+    _check_quad_mesh(mesh)
+    lambda_bar = float(lambda_bar)
+    if not np.isfinite(lambda_bar) or lambda_bar < 0:
+        raise ValueError(f"lambda_bar must be a finite number >= 0, got {lambda_bar!r}")
+    if dilatation not in ("edge", "centre", "center"):
+        raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
+    centre = dilatation in ("centre", "center")
+
+    elem = ElementVector(ElementQuad1())
+    sides = [InteriorFacetBasis(mesh, elem, side=s, quadrature=EDGE_MIDPOINT_RULE) for s in (0, 1)]
+    b0 = sides[0]
+    n = b0.normals.value[:, :, 0]                      # (2, ne) side-0 normal, same for both sides
+    n_edges = n.shape[1]
+    n_dofs = b0.N
+    lb_edge = 0.0 if centre else lambda_bar
+
+    rows, cols, vx, vy = [], [], [], []
+    edge_idx = np.arange(n_edges)
+    for s, basis in enumerate(sides):
+        sign = 1.0 if s == 0 else -1.0                 # jump = side 0 - side 1
+        # grad[i, k, e]: d(phi)_i / dx_k at the midpoint for every local dof -> (Nbfun, 2, 2, ne)
+        G = np.stack([basis.basis[i][0].grad[:, :, :, 0] for i in range(basis.Nbfun)])
+        div = G[:, 0, 0] + G[:, 1, 1]                                  # (Nbfun, ne)
+        sym_xy = 0.5 * (G[:, 0, 1] + G[:, 1, 0])
+        Axx = lb_edge * div + 2.0 * G[:, 0, 0]
+        Ayy = lb_edge * div + 2.0 * G[:, 1, 1]
+        Axy = 2.0 * sym_xy
+        rows.append(np.broadcast_to(edge_idx, div.shape))
+        cols.append(basis.element_dofs)
+        vx.append(sign * (Axx * n[0] + Axy * n[1]))
+        vy.append(sign * (Axy * n[0] + Ayy * n[1]))
+    if centre and lambda_bar != 0.0:
+        # lambda_bar [[div u(centre)]] n: the centre divergence of each side's element, mapped to its edges
+        D = element_centre_divergence(mesh)
+        D0 = D[sides[0].tind].tocoo()
+        D1 = D[sides[1].tind].tocoo()
+        for Ds, sign in ((D0, 1.0), (D1, -1.0)):
+            rows.append(Ds.row)
+            cols.append(Ds.col)
+            vx.append(sign * lambda_bar * Ds.data * n[0, Ds.row])
+            vy.append(sign * lambda_bar * Ds.data * n[1, Ds.row])
+    r = np.concatenate([np.ravel(a) for a in rows])
+    c = np.concatenate([np.ravel(a) for a in cols])
+    Kx = sp.csr_matrix((np.concatenate([np.ravel(a) for a in vx]), (r, c)), shape=(n_edges, n_dofs))
+    Ky = sp.csr_matrix((np.concatenate([np.ravel(a) for a in vy]), (r, c)), shape=(n_edges, n_dofs))
+    Kx.sum_duplicates()
+    Ky.sum_duplicates()
+    lengths = b0.dx[:, 0].copy()                        # |detDG| * weight 1 = edge length
+    return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=np.asarray(b0.find).copy(),
+                         elements=np.stack([sides[0].tind, sides[1].tind]),
+                         midpoints=b0.global_coordinates().value[:, :, 0].copy(), normals=n.copy())
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Generic total-variation-type regulariser (eq:dmreg2 to eq:dmreg4)
+# ----------------------------------------------------------------------------------------------------------
+
+def _penalty_functions(penalty, delta: float):
+    """Return (phi, dphi) of s = |K_j u|^2 for a named penalty or a user pair of callables."""
+    if isinstance(penalty, tuple):
+        if len(penalty) != 2 or not all(map(callable, penalty)):
+            raise ValueError("a custom penalty must be a pair (phi, dphi) of callables of s = |K_j u|^2 "
+                             "(dphi = d phi / d s >= 0)")
+        return penalty
+    if penalty == "tv":
+        # eq:dmreg: sqrt(s + delta); d/ds = 1 / (2 sqrt(s + delta))
+        return (lambda s: np.sqrt(s + delta)), (lambda s: 0.5 / np.sqrt(s + delta))
+    if penalty == "quadratic":
+        return (lambda s: 0.5 * s), (lambda s: np.full_like(s, 0.5))
+    if penalty == "huber":
+        # quadratic below sqrt(delta), linear above: a TV variant without the sqrt(delta) floor
+        eps = np.sqrt(delta)
+
+        def phi(s):
+            r = np.sqrt(s)
+            return np.where(r <= eps, 0.5 * s / eps, r - 0.5 * eps)
+
+        def dphi(s):
+            r = np.sqrt(s)
+            return np.where(r <= eps, 0.5 / eps, 0.5 / np.maximum(r, eps))
+        return phi, dphi
+    raise ValueError(f"penalty must be 'tv', 'huber', 'quadratic' or a pair (phi, dphi) of callables, "
+                     f"got {penalty!r}")
+
+
+class TVRegularizer(Regularizer):
+    r""":math:`R[u] = \alpha \sum_j w_j\, \phi(|K_j u|^2)`, with :math:`K_j u \in \mathbb{R}^m` one term.
+
+    With the default ``penalty="tv"``, :math:`\phi(s) = \sqrt{s + \delta}` and this is eq:dmreg2; the gradient is
+    eq:dmreg3, :math:`\alpha \sum_c K_c^T (2 w \phi'(s) \odot K_c u)`, and ``hessian`` is the lagged-diffusivity
+    approximation eq:dmreg4, :math:`\alpha \sum_c K_c^T \mathrm{diag}(2 w \phi'(s)) K_c` (symmetric PSD for
+    :math:`\phi' \ge 0`; the :math:`g\otimes g` term of the exact Hessian is dropped).
+
+    Parameters
+    ----------
+    operator : callable
+        ``operator(mesh) -> (components, weights)``: ``components`` a sequence of m sparse matrices
+        ``K_c`` of shape (n_terms, 2 n_nodes) (row j of every component belongs to term j; a single sparse
+        matrix means m = 1), ``weights`` (n_terms,) nonnegative (e.g. edge lengths l_j or element areas).
+        Called once per mesh in :meth:`setup`.
+    alpha : float
+        :math:`\alpha`.
+    delta : float
+        Smoothing :math:`\delta` > 0 of the TV norm (eq:dmreg), in the units of :math:`|K_j u|^2`.
+    penalty : "tv", "huber", "quadratic" or (phi, dphi)
+        :math:`\phi(s)` of the squared term norm s and its derivative :math:`d\phi/ds \ge 0`, both vectorised.
+    name : str
+        Label in results and reports.
+    """
+
+    quadratic = False
+
+    def __init__(self, operator: Callable | None = None, alpha: float | None = None, *,
+                 delta: float = DEFAULT_DELTA, penalty="tv", name: str = "custom-tv"):
+        super().__init__(alpha)
+        delta = float(delta)
+        if not np.isfinite(delta) or delta <= 0:
+            raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
+        self.delta = delta
+        self.penalty = penalty
+        self._phi, self._dphi = _penalty_functions(penalty, delta)
+        if operator is not None and not callable(operator):
+            raise ValueError(f"operator must be a callable mesh -> (components, weights), got {operator!r}")
+        self._operator = operator
+        self.name = name
+        self._K = None            # stacked (m * n_terms, ndof) csr
+        self._KT = None
+        self._weights = None
+        self._m = 0
+        self._cache = (None, None)
+
+    # -- construction ---------------------------------------------------------------------------------------
+    def build_operator(self, mesh):
+        """Return ``(components, weights)`` for ``mesh``; subclasses may override instead of passing ``operator``."""
+        if self._operator is None:
+            raise ValueError(f"{type(self).__name__} needs an operator(mesh) -> (components, weights)")
+        return self._operator(mesh)
+
+    def setup(self, mesh) -> None:
+        out = self.build_operator(mesh)
+        if not (isinstance(out, tuple) and len(out) == 2):
+            raise ValueError("operator(mesh) must return (components, weights)")
+        comps, weights = out
+        if sp.issparse(comps) or isinstance(comps, np.ndarray):
+            comps = [comps]
+        comps = [sp.csr_matrix(c) for c in comps]
+        if not comps:
+            raise ValueError("operator(mesh) returned no components")
+        n_terms, n_dofs = comps[0].shape
+        if any(c.shape != (n_terms, n_dofs) for c in comps):
+            raise ValueError(f"all operator components must have the same shape; got {[c.shape for c in comps]}")
+        expected = 2 * mesh.p.shape[1]
+        if n_dofs != expected:
+            raise ValueError(f"operator components must have 2 * n_nodes = {expected} columns, got {n_dofs}")
+        weights = np.asarray(weights, dtype=float).ravel()
+        if weights.shape != (n_terms,):
+            raise ValueError(f"weights must have shape ({n_terms},), got {weights.shape}")
+        if not np.all(np.isfinite(weights)) or np.any(weights < 0):
+            raise ValueError("weights must be finite and >= 0")
+        self._m = len(comps)
+        self._K = sp.vstack(comps, format="csr")
+        self._K.sort_indices()
+        self._KT = self._K.T.tocsr()
+        self._weights = weights
+        self._cache = (None, None)
+        self.mesh = mesh
+
+    # -- evaluation -----------------------------------------------------------------------------------------
+    @property
+    def operator(self) -> sp.csr_matrix:
+        """Stacked operator ``vstack(components)``, shape (m n_terms, 2 n_nodes)."""
+        if self._K is None:
+            raise RuntimeError("call setup(mesh) first")
+        return self._K
+
+    @property
+    def weights(self) -> np.ndarray:
+        if self._weights is None:
+            raise RuntimeError("call setup(mesh) first")
+        return self._weights
+
+    def term_values(self, u: np.ndarray) -> np.ndarray:
+        """K_j u for every term, shape (m, n_terms)."""
+        u = np.asarray(u, dtype=float)
+        if u.shape != (self.operator.shape[1],):
+            raise ValueError(f"u must have shape ({self.operator.shape[1]},), got {u.shape}")
+        key, val = self._cache
+        if key is not None and key.shape == u.shape and np.array_equal(key, u):
+            return val
+        val = (self._K @ u).reshape(self._m, -1)
+        self._cache = (u.copy(), val)
+        return val
+
+    def term_norms(self, u: np.ndarray) -> np.ndarray:
+        """|K_j u| per term (e.g. |[[A]]·n| per edge, dimensionless), shape (n_terms,)."""
+        return np.sqrt(np.sum(self.term_values(u) ** 2, axis=0))
+
+    def diffusivity(self, u: np.ndarray) -> np.ndarray:
+        r"""Lagged diffusivity :math:`2 w_j \phi'(s_j)` (eq:dmreg4: :math:`l_j/\sqrt{|K_j u|^2+\delta}`)."""
+        s = np.sum(self.term_values(u) ** 2, axis=0)
+        return 2.0 * self._weights * self._dphi(s)
+
+    def energy(self, u):
+        s = np.sum(self.term_values(u) ** 2, axis=0)
+        return self.alpha * float(self._weights @ self._phi(s))
+
+    def gradient(self, u):
+        Ku = self.term_values(u)
+        d = self.diffusivity(u)
+        return self.alpha * (self._KT @ (Ku * d).ravel())
+
+    def hessian(self, u):
+        # K^T diag(d) K with scipy's sparse product: ~15 ms for 25 k edges, no stored pattern needed
+        dd = np.tile(self.diffusivity(u), self._m)     # row weights of the stacked operator
+        H = self._KT @ (sp.diags(self.alpha * dd) @ self._K)
+        return sp.csr_matrix(H)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The momentum regularisers
+# ----------------------------------------------------------------------------------------------------------
+
+class MomentumRegularizer(TVRegularizer):
+    r"""SPREME momentum regulariser :math:`\alpha\sum_j l_j\sqrt{|[\![A]\!]\cdot n|_j^2 + \delta}` (eq:dmreg2).
+
+    Parameters
+    ----------
+    alpha : float or None
+        :math:`\alpha_{Pm}`; None takes ``default_alpha``.
+    lambda_bar : float
+        :math:`\bar\lambda` of A (eq:meq).
+    delta : float
+        :math:`\delta` of eq:dmreg (dimensionless, squared-strain units), 1e-8 as in the paper.
+    dilatation : {"edge", "centre"}
+        Where the :math:`\bar\lambda\nabla\cdot u` part of A is evaluated (see :func:`momentum_jump_operators`).
+    """
+
+    name = "momentum"
+    default_alpha = 0.1
+    default_lambda_bar = LAMBDA_BAR_PLANE_STRESS
+    default_dilatation = "edge"
+
+    def __init__(self, alpha: float | None = None, *, lambda_bar: float | None = None,
+                 delta: float = DEFAULT_DELTA, dilatation: str | None = None):
+        super().__init__(None, alpha, delta=delta, penalty="tv", name=self.name)
+        self.lambda_bar = float(self.default_lambda_bar if lambda_bar is None else lambda_bar)
+        if not np.isfinite(self.lambda_bar) or self.lambda_bar < 0:
+            raise ValueError(f"lambda_bar must be a finite number >= 0, got {lambda_bar!r}")
+        self.dilatation = self.default_dilatation if dilatation is None else dilatation
+        if self.dilatation not in ("edge", "centre", "center"):
+            raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
+        self.jumps: JumpOperators | None = None
+
+    def build_operator(self, mesh):
+        self.jumps = momentum_jump_operators(mesh, self.lambda_bar, dilatation=self.dilatation)
+        return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(alpha={self.alpha:g}, lambda_bar={self.lambda_bar:g}, "
+                f"delta={self.delta:g}, dilatation={self.dilatation!r})")
+
+
+class PlaneStrainMomentumRegularizer(MomentumRegularizer):
+    r"""R_P_eps: plane strain, :math:`\bar\lambda = 9` (nu = 0.45), dilatation at the element centre."""
+
+    name = "momentum-strain"
+    default_alpha = 1.0
+    default_lambda_bar = LAMBDA_BAR_PLANE_STRAIN
+    default_dilatation = "centre"
+
+
+class PlaneStressMomentumRegularizer(MomentumRegularizer):
+    r"""R_P_sigma: incompressible plane stress, :math:`\bar\lambda = 2`, all of A at the edge midpoint."""
+
+    name = "momentum-stress"
+    default_alpha = 0.1
+    default_lambda_bar = LAMBDA_BAR_PLANE_STRESS
+    default_dilatation = "edge"
+
+
+register_regularizer(PlaneStrainMomentumRegularizer.name, PlaneStrainMomentumRegularizer)
+register_regularizer(PlaneStressMomentumRegularizer.name, PlaneStressMomentumRegularizer)

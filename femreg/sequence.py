@@ -1,0 +1,239 @@
+"""Frame sequences: accumulated displacement by eq:IR, and direct frame-0 -> frame-k registration.
+
+Accumulation (paper eq:IR): the increment u_k registers I_k(x + S_k) to I_{k+1}(x + S_k + u_k), where
+S_k = u_0 + ... + u_{k-1} is the accumulated field in frame-0 coordinates; all increments live on the SAME mesh
+(over frame 0), so S_{k+1} = S_k + u_k is a sum of nodal vectors.  Frame k's result is S_k: the displacement from
+frame 0 to frame k at frame-0 positions, the quantity every metric of the paper compares with the truth.
+
+Checkpoints: with ``checkpoint_dir`` each frame's result is written (atomically) as soon as it is done; with
+``resume=True`` finished frames are loaded instead of recomputed.  A frame that fails (error, or a registration
+flagged by the quality check) is recorded and, in accumulation, the run stops there without losing the earlier
+frames.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .image import validate_image, validate_spacing
+from .mesh import as_quad_mesh, roi_mesh
+from .registration import RegistrationResult, load_result, register
+
+__all__ = ["track", "SequenceResult", "load_track"]
+
+#: Flag a pair as low quality when the NCC after registration is below this value.
+DEFAULT_MIN_NCC = 0.5
+
+
+class SequenceResult(list):
+    """A list of :class:`~femreg.registration.RegistrationResult`, one per frame 1..N-1 (entry k-1 = frame 0 ->
+    frame k), with per-frame bookkeeping.
+
+    Attributes
+    ----------
+    mode : "accumulate" | "direct"
+    increments : list of (2 n_nodes,) arrays
+        The increments u_k of eq:IR (accumulate mode; equal to the results themselves in direct mode).
+    flags : list of str
+        '' for a good frame, otherwise why it is flagged (NCC after registration below ``min_ncc``).
+    computed : list of bool
+        True where the frame was computed in this call, False where it was loaded from a checkpoint.
+    """
+
+    def __init__(self, results=(), *, mode="accumulate"):
+        super().__init__(results)
+        self.mode = mode
+        self.increments = []
+        self.flags = []
+        self.computed = []
+
+
+def _validate_frames(frames):
+    if isinstance(frames, np.ndarray):
+        if frames.ndim != 3:
+            raise InputError(f"frames must be a 3D array (n_frames, n_axial, n_lateral), got ndim={frames.ndim}")
+        seq = [frames[k] for k in range(frames.shape[0])]
+    else:
+        seq = list(frames)
+    if len(seq) < 2:
+        raise InputError(f"need at least 2 frames to track, got {len(seq)}")
+    seq = [validate_image(f, f"frame {k}") for k, f in enumerate(seq)]
+    shapes = {f.shape for f in seq}
+    if len(shapes) != 1:
+        raise InputError(f"all frames must have the same shape, got {sorted(shapes)}")
+    return seq
+
+
+def _atomic_save(result: RegistrationResult, path: Path, extra: dict) -> None:
+    """Write ``result`` plus ``extra`` arrays to ``path`` atomically (tmp file + rename)."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    result.save(tmp)
+    with np.load(tmp, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    data.update(extra)
+    np.savez_compressed(tmp, **data)
+    os.replace(tmp, path)
+
+
+def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, mesh, init):
+    reg_name = regularizer if isinstance(regularizer, str) else getattr(regularizer, "name", type(regularizer).__name__)
+    return {"n_frames": int(n_frames), "shape": [int(s) for s in shape], "spacing": [float(s) for s in spacing],
+            "origin": [float(s) for s in origin], "mode": mode, "regularizer": str(reg_name),
+            "alpha": None if alpha is None else float(alpha), "n_nodes": int(mesh.p.shape[1]),
+            "mesh_checksum": float(np.round(np.sum(mesh.p * np.arange(1, mesh.p.shape[1] + 1)), 6)),
+            "init": str(init)}
+
+
+def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=None, mode: str = "accumulate",
+          init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
+          resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
+          on_frame=None, **register_kwargs) -> SequenceResult:
+    """Displacement from frame 0 to every later frame of a sequence.
+
+    Parameters
+    ----------
+    frames : (n_frames, n_axial, n_lateral) array or sequence of 2D arrays
+        RF frames, all of one shape.
+    spacing, origin : (2,) mm
+        Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
+    regularizer, alpha
+        As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default).
+    mode : {"accumulate", "direct"}
+        "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
+        "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
+    init : {"previous", "blockmatch"}
+        Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
+        increments of a compression sequence are alike, and it avoids block-matching outliers), or NCC block
+        matching every time (paper).  The first increment, and any increment after a flagged one, always
+        block-matches; direct mode always block-matches.
+    mesh, element_size, margin
+        One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`).
+    checkpoint_dir : path, optional
+        Write ``frame_KKK.npz`` (frame 0 -> K result, plus the increment) as each frame finishes, and
+        ``track.json`` with the parameters.
+    resume : bool
+        Load finished frames from ``checkpoint_dir`` instead of recomputing them; the parameters must match.
+    progress : bool
+        Show a tqdm progress bar on stderr.
+    min_ncc : float
+        Frames whose registration NCC (after) is below this are flagged (the run continues).
+    on_frame : callable(k, result, flag), optional
+        Called after each frame (computed or loaded).
+    **register_kwargs
+        Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
+
+    Returns
+    -------
+    SequenceResult
+        Entry k-1 is frame 0 -> frame k, a RegistrationResult on the common mesh in frame-0 coordinates.
+    """
+    if mode not in ("accumulate", "direct"):
+        raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    if init not in ("blockmatch", "previous"):
+        raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
+    seq = _validate_frames(frames)
+    spacing, origin = validate_spacing(spacing, origin)
+    shape = seq[0].shape
+    fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
+        else as_quad_mesh(mesh)
+    n_dof = 2 * fe_mesh.p.shape[1]
+    params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
+
+    ckpt = None
+    if checkpoint_dir is not None:
+        ckpt = Path(checkpoint_dir)
+        ckpt.mkdir(parents=True, exist_ok=True)
+        pfile = ckpt / "track.json"
+        if pfile.exists() and resume:
+            old = json.loads(pfile.read_text())
+            diff = [k for k in params if old.get(k) != params[k]]
+            if diff:
+                raise InputError(f"cannot resume from {ckpt}: parameters differ ({', '.join(diff)})")
+        elif pfile.exists() and any(ckpt.glob("frame_*.npz")):
+            raise InputError(f"{ckpt} already holds a tracking run; use resume=True (--resume) or another folder")
+        tmp = pfile.with_name("track.json.tmp")
+        tmp.write_text(json.dumps(params, indent=1))
+        os.replace(tmp, pfile)
+    elif resume:
+        raise InputError("resume=True needs checkpoint_dir")
+
+    out = SequenceResult(mode=mode)
+    S = np.zeros(n_dof)
+    prev_inc = None
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(seq) - 1, desc=f"track ({mode})", unit="frame")
+    try:
+        for k in range(1, len(seq)):
+            path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
+            if resume and path is not None and path.exists():
+                res = load_result(path)
+                with np.load(path, allow_pickle=False) as z:
+                    inc = np.asarray(z["increment"], float)
+                    flag = str(z["flag"])
+                computed = False
+            else:
+                if mode == "direct":
+                    res = register(seq[0], seq[k], spacing=spacing, origin=origin, regularizer=regularizer,
+                                   alpha=alpha, mesh=fe_mesh, **register_kwargs)
+                    inc = res.u.copy()
+                else:
+                    fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
+                    initial = "blockmatch" if fresh else prev_inc
+                    r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
+                                     regularizer=regularizer, alpha=alpha, mesh=fe_mesh, initial=initial,
+                                     offset=S if k > 1 else None, **register_kwargs)
+                    inc = r_inc.u.copy()
+                    res = RegistrationResult(
+                        fe_mesh, S + inc, shape=shape, spacing=spacing, origin=origin,
+                        regularizer=r_inc.regularizer, alpha=r_inc.alpha, success=r_inc.success,
+                        status=r_inc.status, message=r_inc.message, nit=r_inc.nit,
+                        energy_history=r_inc.energy_history, ncc_before=r_inc.ncc_before,
+                        ncc_after=r_inc.ncc_after, timings=r_inc.timings, blockmatch=r_inc.blockmatch,
+                        solver_result=r_inc.solver_result)
+                # The solver's own message stays on the result; a pair is flagged by image evidence.
+                flag = "" if (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc) else \
+                    f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+                computed = True
+                if path is not None:
+                    _atomic_save(res, path, {"increment": inc, "flag": np.str_(flag), "frame": np.int64(k)})
+            S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
+            prev_inc = inc
+            out.append(res)
+            out.increments.append(inc)
+            out.flags.append(flag)
+            out.computed.append(computed)
+            if on_frame is not None:
+                on_frame(k, res, flag)
+            if bar is not None:
+                bar.set_postfix_str(f"ncc {res.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
+
+def load_track(checkpoint_dir) -> SequenceResult:
+    """Read every ``frame_KKK.npz`` of a tracking folder (written by :func:`track` / ``femreg track``)."""
+    ckpt = Path(checkpoint_dir)
+    pfile = ckpt / "track.json"
+    if not pfile.exists():
+        raise InputError(f"{ckpt}: not a femreg track folder (no track.json)")
+    params = json.loads(pfile.read_text())
+    out = SequenceResult(mode=params.get("mode", "accumulate"))
+    for k in range(1, int(params["n_frames"])):
+        path = ckpt / f"frame_{k:03d}.npz"
+        if not path.exists():
+            break
+        out.append(load_result(path))
+        with np.load(path, allow_pickle=False) as z:
+            out.increments.append(np.asarray(z["increment"], float))
+            out.flags.append(str(z["flag"]))
+        out.computed.append(False)
+    return out

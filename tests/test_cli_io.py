@@ -1,0 +1,179 @@
+"""`femreg info` and `femreg plot`: outputs, exit codes and one-line messages on bad input."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from femreg.cli import main
+from femreg.io import save_frames, save_result
+from test_io import INVIVO, _affine_u, _quad_mesh, _result
+
+
+def _err_line(capsys):
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+@pytest.mark.parametrize("cmd", ["info", "plot"])
+def test_help(cmd, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([cmd, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for flag in ("--variable", "--shape", "--dtype", "--spacing", "--byte-order", "--frames"):
+        assert flag in out, (cmd, flag)
+
+
+def test_info_text_and_json(tmp_path, capsys):
+    rf = np.random.default_rng(0).standard_normal((4, 30, 8)).astype(np.float32)
+    save_frames(tmp_path / "a.mhd", rf, (0.05, 0.3), byte_order="big")
+    assert main(["info", str(tmp_path / "a.mhd")]) == 0
+    out = capsys.readouterr().out
+    assert "metaimage" in out and "30 axial x 8 lateral" in out and "0.05 mm axial" in out, out
+    assert "ElementType" in out and "big" in out
+    assert main(["info", str(tmp_path / "a.mhd"), "--json", "--frames", "1:3", "--spacing", "auto", "0.25"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 2 and info["shape"] == [30, 8] and info["spacing_mm"] == [0.05, 0.25]
+    assert info["min"] == pytest.approx(float(rf[1:3].min()))
+
+
+def test_info_raw_with_reader_flags(tmp_path, capsys):
+    a = (np.arange(3 * 10 * 4) - 50).astype(">i2")
+    a.tofile(tmp_path / "x.bin")
+    argv = ["info", str(tmp_path / "x.bin"), "--shape", "10", "4", "--dtype", "int16", "--byte-order", "big",
+            "--spacing", "0.1", "0.2", "--json"]
+    assert main(argv) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 3 and info["min"] == -50 and info["max"] == 69, info
+
+
+@pytest.mark.parametrize("setup,argv,needle", [
+    (None, ["missing.npz"], "no such file"),
+    ("raw", ["x.raw"], "shape"),
+    ("raw", ["x.raw", "--shape", "7", "3"], "size mismatch"),
+    ("raw", ["x.raw", "--shape", "1", "2", "3", "4"], "--shape"),
+    ("raw", ["x.raw", "--shape", "10", "4"], "spacing"),
+    ("raw", ["x.raw", "--shape", "10", "4", "--dtype", "complex", "--spacing", "1", "1"], "dtype"),
+    ("rf", ["t.rf", "--spacing", "auto", "0.3"], "truncated"),
+    ("npz", ["k.npz", "--variable", "nope"], "missing variable 'nope'"),
+])
+def test_info_bad_input_exit_2_one_line(tmp_path, capsys, monkeypatch, setup, argv, needle):
+    monkeypatch.chdir(tmp_path)
+    if setup == "raw":
+        np.zeros((10, 4), np.float32).tofile("x.raw")
+    elif setup == "rf":
+        save_frames("t.rf", np.zeros((2, 8, 4)), (0.02, 0.3))
+        Path("t.rf").write_bytes(Path("t.rf").read_bytes()[:-5])
+    elif setup == "npz":
+        save_frames("k.npz", np.zeros((8, 4)), (0.02, 0.3))
+    assert main(["info"] + argv) == 2
+    err = _err_line(capsys)
+    assert err.startswith("femreg info: error:") and needle in err, err
+
+
+def test_argparse_errors_exit_2(capsys):
+    for argv in (["info"], ["info", "x", "--frames", "a:b"], ["info", "x", "--spacing", "0", "1"],
+                 ["plot", "r.npz", "--field", "nope"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2, argv
+        assert "error" in capsys.readouterr().err
+
+
+def test_info_invivo(capsys):
+    seq = INVIVO / "seq304"
+    if not seq.is_dir():
+        pytest.skip(f"in vivo data not found at {INVIVO}")
+    assert main(["info", str(seq), "--shape", "2000", "128", "--spacing", "0.02", "0.2", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 6 and info["shape"] == [2000, 128] and info["spacing_mm"] == [0.02, 0.2]
+
+
+def test_plot_writes_png_vtu_xdmf_render(tmp_path, capsys):
+    p, t = _quad_mesh(6, 4)
+    res = _result(p, t, _affine_u(p, np.eye(2) * 0.01), shape=(40, 30))
+    save_result(tmp_path / "r.npz", res)
+    ref = np.random.default_rng(2).standard_normal((2, 40, 30))
+    save_frames(tmp_path / "ref.npy", ref)
+    argv = ["plot", str(tmp_path / "r.npz"), "-o", str(tmp_path / "o.png"), "--vtu", str(tmp_path / "o.vtu"),
+            "--xdmf", str(tmp_path / "o.xdmf"), "--render", str(tmp_path / "m.png"), "--field", "ux",
+            "--reference", str(tmp_path / "ref.npy"), "--spacing", "0.05", "0.075", "--frame", "1", "--overlay",
+            "--dpi", "40"]
+    assert main(argv) == 0, capsys.readouterr().err
+    for name in ("o.png", "o.vtu", "o.xdmf", "o.h5", "m.png"):
+        assert (tmp_path / name).stat().st_size > 100, name
+    assert main(["plot", str(tmp_path / "r.npz"), "--dpi", "30"]) == 0  # default output next to the result
+    assert (tmp_path / "r.png").stat().st_size > 1000
+
+
+def test_plot_bad_input(tmp_path, capsys):
+    p, t = _quad_mesh()
+    res = _result(p, t, _affine_u(p, np.eye(2) * 0.01))
+    save_result(tmp_path / "r.npz", res)
+    bad = dict(res)
+    del bad["mesh_cells"]
+    np.savez(tmp_path / "bad.npz", **bad)
+    cases = [(["bad.npz"], "missing key"), (["nothere.npz"], "no such result"),
+             (["r.npz", "-o", "x.jpg"], ".png"), (["r.npz", "--overlay"], "--reference"),
+             (["r.npz", "--reference", "nothere.npy"], "no such file"),
+             (["r.npz", "--vtu", "x.vtu", "--xdmf", "x.obj"], "--xdmf must name a .xdmf")]
+    for argv, needle in cases:
+        argv = [str(tmp_path / a) if a.endswith((".npz", ".npy", ".vtu", ".obj")) else a for a in argv]
+        assert main(["plot"] + argv) == 2, argv
+        err = _err_line(capsys)
+        assert err.startswith("femreg plot: error:") and needle in err, (argv, err)
+    assert not (tmp_path / "x.vtu").exists()  # bad arguments are caught before anything is written
+
+
+def test_console_entry_point_exit_code(tmp_path):
+    (tmp_path / "z.npz").write_bytes(b"PK\x03\x04 this is not a zip")
+    proc = subprocess.run([sys.executable, "-m", "femreg.cli", "info", str(tmp_path / "z.npz")],
+                          capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "z.npz" in proc.stderr
+
+
+def test_engine_result_plots_and_exports(tmp_path, capsys):
+    """An engine result saved by ``res.save`` goes through `femreg plot` and VTU export; the VTU cell strains
+    (element centres, femreg.io) agree with the engine's own ``res.strain`` there."""
+    import meshio
+
+    import femreg
+    from femreg.synthetic import speckle_pair
+
+    spacing = (0.02, 0.1)
+    shape = (300, 60)
+    ref, mov = speckle_pair(lambda p: np.c_[0.005 * p[:, 0], -0.002 * p[:, 1]], shape=shape, spacing=spacing,
+                            seed=1)
+    res = femreg.register(ref, mov, spacing=spacing, regularizer="strain", element_size=(1.0, 1.0),
+                          initial="zero", maxiter=5)
+    res.save(tmp_path / "r.npz")
+    save_frames(tmp_path / "ref.npz", ref, spacing)
+    argv = ["plot", str(tmp_path / "r.npz"), "--reference", str(tmp_path / "ref.npz"), "-o", str(tmp_path / "o.png"),
+            "--vtu", str(tmp_path / "o.vtu"), "--dpi", "40"]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert (tmp_path / "o.png").stat().st_size > 1000
+    m = meshio.read(tmp_path / "o.vtu")
+    centres = m.points[m.cells[0].data].mean(axis=1)[:, :2]  # exact centres for the engine's rectangles
+    expect = res.strain(centres)
+    for k, name in enumerate(("exx", "eyy", "exy")):
+        err = np.abs(m.cell_data[name][0] - expect[:, k]).max()
+        assert err < 1e-10, (name, err)
+    np.testing.assert_allclose(m.point_data["displacement"][:, :2], res.u.reshape(-1, 2), atol=0)
+
+
+def test_engine_displacement_at_nodes_equals_nodal_u():
+    import femreg
+    from femreg.synthetic import speckle_pair
+
+    ref, mov = speckle_pair(lambda p: np.c_[0.005 * p[:, 0], -0.002 * p[:, 1]], shape=(300, 60),
+                            spacing=(0.02, 0.1), seed=1)
+    res = femreg.register(ref, mov, spacing=(0.02, 0.1), element_size=(1.0, 1.0), initial="zero", maxiter=2)
+    nodes = res.mesh.p.T
+    err = np.abs(res.displacement(nodes) - res.u.reshape(-1, 2)).max()
+    assert err < 1e-12, f"max |u(node) - u_node| = {err:.3g} mm"

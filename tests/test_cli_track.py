@@ -1,0 +1,65 @@
+"""`femreg track`: checkpoints, --resume after an interruption, exit code 2 on bad input."""
+import numpy as np
+import pytest
+
+from femreg.cli import main
+from femreg.synthetic import speckle_image, warp_image
+
+SPACING = (0.05, 0.2)
+
+
+@pytest.fixture(scope="module")
+def npy_sequence(tmp_path_factory):
+    rng = np.random.default_rng(5)
+    ref = speckle_image((200, 50), SPACING, rng)
+    frames = [ref] + [warp_image(ref, SPACING, (0, 0), lambda p, s=s: np.column_stack(
+        [-s * 0.004 * p[:, 0], s * 0.002 * (p[:, 1] - 5.0)])) for s in (1, 2, 3)]
+    path = tmp_path_factory.mktemp("seq") / "frames.npy"
+    np.save(path, np.stack(frames).astype(np.float32))
+    return path
+
+
+ARGS = ["-r", "strain", "--alpha", "3", "--element-size", "1", "--margin", "1", "--spacing", "0.05", "0.2",
+        "--no-progress"]
+
+
+def test_resume_recomputes_only_missing_frames(npy_sequence, tmp_path, capsys):
+    full, part = tmp_path / "full", tmp_path / "part"
+    assert main(["track", str(npy_sequence), "-o", str(full)] + ARGS) == 0
+    assert main(["track", str(npy_sequence), "-o", str(part)] + ARGS) == 0
+    # Simulate an interruption during frame 3: its file never got renamed into place.
+    (part / "frame_003.npz").rename(part / "frame_003.npz.tmp.npz")
+    mtimes = {p.name: p.stat().st_mtime_ns for p in part.glob("frame_00[12].npz")}
+    capsys.readouterr()
+    assert main(["track", str(npy_sequence), "-o", str(part), "--resume"] + ARGS) == 0
+    out = capsys.readouterr().out
+    assert "1 computed, 2 resumed" in out, out
+    assert {p.name: p.stat().st_mtime_ns for p in part.glob("frame_00[12].npz")} == mtimes
+    for k in (1, 2, 3):
+        a = np.load(full / f"frame_{k:03d}.npz")
+        b = np.load(part / f"frame_{k:03d}.npz")
+        assert np.array_equal(a["u"], b["u"]), f"frame {k} differs after resume"
+
+
+def test_existing_run_without_resume_is_refused(npy_sequence, tmp_path, capsys):
+    assert main(["track", str(npy_sequence), "-o", str(tmp_path), "--frames", "0:2"] + ARGS) == 0
+    capsys.readouterr()
+    assert main(["track", str(npy_sequence), "-o", str(tmp_path), "--frames", "0:2"] + ARGS) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("femreg track: error:") and "--resume" in err and "\n" not in err
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--alpha", "-1"], "alpha"),
+    (["--element-size", "1", "2", "3"], "element-size"),
+    (["--frames", "0"], "at least 2 frames"),
+])
+def test_bad_input_exit_2(npy_sequence, tmp_path, capsys, extra, needle):
+    assert main(["track", str(npy_sequence), "-o", str(tmp_path / "o")] + ARGS + extra) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err, err
+
+
+def test_missing_file_exit_2(tmp_path, capsys):
+    assert main(["track", str(tmp_path / "nope.npy"), "-o", str(tmp_path / "o")] + ARGS) == 2
+    assert "nope.npy" in capsys.readouterr().err

@@ -1,0 +1,201 @@
+"""User-defined regularisers: from a scikit-fem BilinearForm (a) and from a TV operator (b)."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from skfem import BilinearForm, MeshQuad1
+from skfem.helpers import ddot, sym_grad
+
+import femreg.regularizers as R
+from femreg.regularizers.strain import (CENTRE_RULE, StrainIncompressibleRegularizer, StrainRegularizer,
+                                        divergence_form, strain_energy_form)
+
+
+def mesh_jittered(seed=0, n=(7, 5)):
+    m = MeshQuad1.init_tensor(np.linspace(0, 3.5, n[0] + 1), np.linspace(0, 2.5, n[1] + 1))
+    p = m.p.copy()
+    inner = (p[0] > 1e-9) & (p[0] < 3.5 - 1e-9) & (p[1] > 1e-9) & (p[1] < 2.5 - 1e-9)
+    p[:, inner] += 0.1 * np.random.default_rng(seed).uniform(-1, 1, (2, inner.sum()))
+    return MeshQuad1(p, m.t)
+
+
+def nodal(mesh, fn):
+    ux, uy = fn(mesh.p[0], mesh.p[1])
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = ux, uy
+    return u
+
+
+def test_user_form_reproduces_R_eps_exactly():
+    """A user writing R_eps's weak form themselves gets R_eps, bit for bit."""
+    @BilinearForm
+    def my_strain(u, v, w):
+        return ddot(sym_grad(u), sym_grad(v))
+
+    mesh = mesh_jittered()
+    mine = R.from_form(my_strain, alpha=2.0e-3, quadrature="gauss3")
+    ref = StrainRegularizer(alpha=2.0e-3)
+    mine.setup(mesh)
+    ref.setup(mesh)
+    diff = abs(mine.hessian() - ref.hessian()).max()
+    assert diff == 0.0, f"Hessian differs from R_eps by {diff:.3e}"
+    u = np.random.default_rng(1).standard_normal(2 * mesh.p.shape[1])
+    assert mine.energy(u) == ref.energy(u)
+    np.testing.assert_array_equal(mine.gradient(u), ref.gradient(u))
+    # and through the registry, as femreg.register would resolve it
+    assert R.make_regularizer(mine) is mine
+
+
+def test_user_forms_reproduce_R_eps_i():
+    mesh = mesh_jittered(seed=2)
+    mine = R.from_forms([(strain_energy_form, 1.0, "gauss3"), (divergence_form, 100.0, "centre")], alpha=1e-3)
+    ref = StrainIncompressibleRegularizer(alpha=1e-3)
+    mine.setup(mesh)
+    ref.setup(mesh)
+    diff = abs(mine.hessian() - ref.hessian()).max() / abs(ref.hessian()).max()
+    assert diff < 1e-14, f"R_eps_i rebuilt from forms differs by {diff:.2e}"
+
+
+def test_form_quadrature_choice_matters_and_is_honoured():
+    """Centre rule on sym grad u : sym grad u integrates a bilinear field's strain at the centre only:
+    an hourglass mode (u_x = x y on one element) has zero energy there but not with 3x3 Gauss."""
+    mesh = MeshQuad1.init_tensor(np.array([0.0, 1.0]), np.array([0.0, 1.0]))
+    u = nodal(mesh, lambda x, y: ((x - 0.5) * (y - 0.5), 0 * x))
+    centre = R.from_form(strain_energy_form, alpha=1.0, quadrature="centre")
+    gauss = R.from_form(strain_energy_form, alpha=1.0, quadrature="gauss3")
+    explicit = R.from_form(strain_energy_form, alpha=1.0, quadrature=CENTRE_RULE)
+    for r in (centre, gauss, explicit):
+        r.setup(mesh)
+    assert abs(centre.energy(u)) < 1e-15 and abs(explicit.energy(u)) < 1e-15
+    # exact: 1/2 ∫ (y-1/2)^2 + 2 ((x-1/2)/2)^2 = 1/2 (1/12 + 1/24) = 1/16
+    assert abs(gauss.energy(u) - 1.0 / 16.0) < 1e-14, f"3x3 Gauss energy {gauss.energy(u)!r} vs 1/16"
+
+
+def test_tv_operator_energy_gradient_hessian():
+    """(b): TV of the shear strain built from centre_gradient_operators in three lines."""
+    def shear_tv(mesh):
+        G, area = R.centre_gradient_operators(mesh)
+        return [0.5 * (G["xy"] + G["yx"])], area
+
+    mesh = mesh_jittered(seed=3)
+    reg = R.from_operator(shear_tv, alpha=0.4, delta=1e-6)
+    reg.setup(mesh)
+    # affine field: exact energy alpha * area * sqrt(exy^2 + delta)
+    g = np.array([[0.01, 0.03], [-0.02, 0.005]])
+    u = nodal(mesh, lambda x, y: (g[0, 0] * x + g[0, 1] * y, g[1, 0] * x + g[1, 1] * y))
+    exy = 0.5 * (g[0, 1] + g[1, 0])
+    expected = 0.4 * 3.5 * 2.5 * np.sqrt(exy ** 2 + 1e-6)
+    assert abs(reg.energy(u) - expected) < 1e-13, f"energy {reg.energy(u)!r} vs exact {expected!r}"
+    # FD gradient and PSD Hessian at a random state
+    rng = np.random.default_rng(5)
+    u = 1e-2 * rng.standard_normal(u.size)
+    d = rng.standard_normal(u.size)
+    t = 1e-8
+    fd = (reg.energy(u + t * d) - reg.energy(u - t * d)) / (2 * t)
+    rel = abs(fd - reg.gradient(u) @ d) / abs(fd)
+    assert rel < 1e-7, f"FD gradient rel err {rel:.2e}"
+    H = reg.hessian(u).toarray()
+    assert np.abs(H - H.T).max() <= 1e-12 * np.abs(H).max()
+    ev = np.linalg.eigvalsh(H)
+    assert ev.min() >= -1e-10 * ev.max(), f"min eigenvalue {ev.min():.3e}"
+
+
+def test_quadratic_penalty_route_equals_form_route():
+    """Both routes agree: sum_e area_e * 1/2 |eps(centre)|^2 as a 'quadratic' operator penalty equals the
+    centre-rule strain BilinearForm."""
+    def strain_components(mesh):
+        G, area = R.centre_gradient_operators(mesh)
+        return [G["xx"], G["yy"], np.sqrt(2.0) * 0.5 * (G["xy"] + G["yx"])], area
+
+    mesh = mesh_jittered(seed=4)
+    op = R.from_operator(strain_components, alpha=0.8, penalty="quadratic")
+    form = R.from_form(strain_energy_form, alpha=0.8, quadrature="centre")
+    op.setup(mesh)
+    form.setup(mesh)
+    u = np.random.default_rng(6).standard_normal(2 * mesh.p.shape[1])
+    assert abs(op.energy(u) - form.energy(u)) < 1e-12 * form.energy(u)
+    np.testing.assert_allclose(op.gradient(u), form.gradient(u), rtol=1e-11, atol=1e-12)
+    diff = abs(op.hessian(u) - form.hessian()).max() / abs(form.hessian()).max()
+    assert diff < 1e-12, f"Hessians differ by {diff:.2e}"
+
+
+def test_custom_penalty_pair():
+    """A user penalty (phi, dphi): log(1 + s / c) (Cauchy-like), FD-checked."""
+    c = 1e-4
+    penalty = (lambda s: np.log1p(s / c), lambda s: 1.0 / (c + s))
+
+    def lateral_strain(mesh):
+        G, area = R.centre_gradient_operators(mesh)
+        return G["yy"], area
+
+    mesh = mesh_jittered(seed=7)
+    reg = R.from_operator(lateral_strain, alpha=1.0, penalty=penalty)
+    reg.setup(mesh)
+    rng = np.random.default_rng(8)
+    u, d = 1e-2 * rng.standard_normal(2 * mesh.p.shape[1]), rng.standard_normal(2 * mesh.p.shape[1])
+    t = 1e-8
+    fd = (reg.energy(u + t * d) - reg.energy(u - t * d)) / (2 * t)
+    rel = abs(fd - reg.gradient(u) @ d) / abs(fd)
+    assert rel < 1e-6, f"FD gradient rel err {rel:.2e}"
+
+
+def test_momentum_operator_through_the_public_route():
+    """R_P_sigma rebuilt by a user from momentum_jump_operators equals the built-in."""
+    def my_momentum(mesh):
+        J = R.momentum_jump_operators(mesh, 2.0)
+        return [J.Kx, J.Ky], J.lengths
+
+    mesh = mesh_jittered(seed=9)
+    mine = R.from_operator(my_momentum, alpha=1e-3)
+    ref = R.make_regularizer("momentum-stress", alpha=1e-3)
+    mine.setup(mesh)
+    ref.setup(mesh)
+    u = 1e-2 * np.random.default_rng(10).standard_normal(2 * mesh.p.shape[1])
+    assert mine.energy(u) == ref.energy(u)
+    assert abs(mine.hessian(u) - ref.hessian(u)).max() == 0.0
+
+
+def test_user_can_register_a_name():
+    @BilinearForm
+    def axial_only(u, v, w):
+        return sym_grad(u)[0, 0] * sym_grad(v)[0, 0]
+
+    R.register_regularizer("test-axial-only", lambda alpha=None: R.from_form(axial_only, alpha=alpha or 1.0,
+                                                                              name="test-axial-only"))
+    try:
+        reg = R.make_regularizer("test-axial-only", alpha=0.5)
+        assert reg.name == "test-axial-only" and reg.alpha == 0.5
+        mesh = mesh_jittered()
+        reg.setup(mesh)
+        u = nodal(mesh, lambda x, y: (0 * x, 0.01 * x + 0.02 * y))   # no axial strain
+        assert abs(reg.energy(u)) < 1e-18
+    finally:
+        R.base._REGISTRY.pop("test-axial-only", None)
+
+
+@pytest.mark.parametrize("bad", [
+    lambda: R.from_form(lambda u, v, w: 0, alpha=1.0),
+    lambda: R.from_form(strain_energy_form, alpha=1.0, quadrature="gauss7"),
+    lambda: R.from_form(strain_energy_form, alpha=-1.0),
+    lambda: R.from_forms([], alpha=1.0),
+    lambda: R.from_forms([(strain_energy_form, -2.0, "gauss3")]),
+    lambda: R.from_operator("not callable"),
+    lambda: R.from_operator(lambda m: None, penalty="l0"),
+    lambda: R.from_operator(lambda m: None, penalty=(np.sqrt,)),
+    lambda: R.from_operator(lambda m: None, delta=0.0),
+])
+def test_bad_construction_raises(bad):
+    with pytest.raises(ValueError):
+        bad()
+
+
+@pytest.mark.parametrize("operator", [
+    lambda m: sp.eye(3, 2 * m.p.shape[1]),                                   # not a (components, weights) pair
+    lambda m: ([sp.eye(3, 2 * m.p.shape[1])], np.ones(4)),                   # weights length
+    lambda m: ([sp.eye(3, 7)], np.ones(3)),                                  # wrong number of columns
+    lambda m: ([sp.eye(3, 2 * m.p.shape[1]), sp.eye(2, 2 * m.p.shape[1])], np.ones(3)),   # ragged
+    lambda m: ([sp.eye(3, 2 * m.p.shape[1])], -np.ones(3)),                  # negative weights
+])
+def test_bad_operator_output_raises(operator):
+    reg = R.from_operator(operator)
+    with pytest.raises(ValueError):
+        reg.setup(mesh_jittered())

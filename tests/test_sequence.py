@@ -1,0 +1,98 @@
+"""femreg.track: accumulation by eq:IR, direct mode, checkpoints and resume."""
+import numpy as np
+import pytest
+
+import femreg
+from femreg.errors import InputError
+from femreg.synthetic import speckle_image, warp_image
+
+SPACING = (0.05, 0.2)
+SHAPE = (400, 80)          # 20 mm x 16 mm
+# Block-matching windows scaled to the small image (the paper's 5 x 9 mm suit 72 x 44 mm images).
+KW = dict(spacing=SPACING, regularizer="strain", alpha=3.0, element_size=1.0, margin=1.0,
+          blockmatch_options=dict(window=(2.5, 4.5)))
+
+
+def _field(scale):
+    # Smooth non-affine compression with lateral expansion (mm); frame k = scale_k * field.
+    def u(p):
+        x, y = p[:, 0], p[:, 1]
+        ux = scale * (-0.01 * x + 0.02 * np.sin(2 * np.pi * x / 24.0))
+        uy = scale * (0.005 * (y - 8.0) + 0.004 * np.cos(2 * np.pi * y / 24.0))
+        return np.column_stack([ux, uy])
+    return u
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    rng = np.random.default_rng(3)
+    ref = speckle_image(SHAPE, SPACING, rng)
+    scales = [0.0, 0.4, 0.9, 1.3]
+    frames = np.stack([ref] + [warp_image(ref, SPACING, (0, 0), _field(s)) for s in scales[1:]])
+    return frames, scales
+
+
+def _err(res, scale):
+    pts = res.mesh.p.T
+    d = res.displacement(pts) - _field(scale)(pts)
+    return np.sqrt(np.mean(d[:, 0] ** 2)), np.sqrt(np.mean(d[:, 1] ** 2))
+
+
+def test_accumulated_matches_truth_and_direct(sequence):
+    frames, scales = sequence
+    acc = femreg.track(frames, **KW)
+    direct = femreg.track(frames, mode="direct", **KW)
+    assert len(acc) == len(direct) == 3
+    for k in range(3):
+        ex, ey = _err(acc[k], scales[k + 1])
+        assert ex < 0.2 * SPACING[0], f"frame {k + 1}: axial RMS error {ex:.4f} mm (accumulated)"
+        assert ey < 0.15 * SPACING[1], f"frame {k + 1}: lateral RMS error {ey:.4f} mm (accumulated)"
+        dx, dy = _err(direct[k], scales[k + 1])
+        assert dx < 0.2 * SPACING[0], f"frame {k + 1}: axial RMS error {dx:.4f} mm (direct)"
+        assert dy < 0.15 * SPACING[1], f"frame {k + 1}: lateral RMS error {dy:.4f} mm (direct)"
+    # Accumulation is the sum of its increments, all on one frame-0 mesh.
+    assert np.allclose(acc[-1].u, np.sum(acc.increments, axis=0))
+    assert all(r.mesh is acc[0].mesh for r in acc)
+    assert acc.flags == ["", "", ""], acc.flags
+
+
+def test_resume_after_interruption_gives_same_result(sequence, tmp_path):
+    frames, _ = sequence
+    kw = KW
+    full = femreg.track(frames, checkpoint_dir=tmp_path / "full", **kw)
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(k, res, flag):
+        if k == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        femreg.track(frames, checkpoint_dir=tmp_path / "run", on_frame=interrupt, **kw)
+    assert sorted(p.name for p in (tmp_path / "run").glob("frame_*.npz")) == ["frame_001.npz", "frame_002.npz"]
+    resumed = femreg.track(frames, checkpoint_dir=tmp_path / "run", resume=True, **kw)
+    assert resumed.computed == [False, False, True]
+    for a, b in zip(full, resumed):
+        assert np.array_equal(a.u, b.u)
+    loaded = femreg.load_track(tmp_path / "run")
+    assert len(loaded) == 3 and np.array_equal(loaded[-1].u, full[-1].u)
+
+
+def test_resume_refuses_other_parameters(sequence, tmp_path):
+    frames, _ = sequence
+    kw = dict(spacing=SPACING, element_size=1.0, margin=1.0, checkpoint_dir=tmp_path)
+    femreg.track(frames[:2], regularizer="strain", **kw)
+    with pytest.raises(InputError, match="regularizer"):
+        femreg.track(frames[:2], regularizer="strain-incompressible", resume=True, **kw)
+    with pytest.raises(InputError, match="resume"):
+        femreg.track(frames[:2], regularizer="strain", **kw)
+
+
+def test_bad_sequences():
+    with pytest.raises(InputError, match="at least 2 frames"):
+        femreg.track(np.zeros((1, 10, 10)), spacing=SPACING)
+    with pytest.raises(InputError, match="same shape"):
+        femreg.track([np.random.default_rng(0).random((10, 10)), np.random.default_rng(1).random((10, 11))], spacing=SPACING)
+    with pytest.raises(InputError, match="mode"):
+        femreg.track(np.random.default_rng(0).random((2, 10, 10)), spacing=SPACING, mode="sideways")
