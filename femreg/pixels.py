@@ -113,7 +113,9 @@ class PointLocator:
             Y = Y + dY
             if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-14:
                 break
-        return X, Y
+        phi, _ = _phi(X, Y)
+        res = np.linalg.norm(pts - np.einsum("dkn,nk->nd", P, phi), axis=1)
+        return X, Y, res
 
     def _locate_general(self, pts, k: int = 8):
         from scipy.spatial import cKDTree
@@ -121,6 +123,7 @@ class PointLocator:
         mesh = self.mesh
         if self._tree is None:
             self._tree = cKDTree(mesh.p[:, mesh.t].mean(axis=1).T)
+            self._size = float(np.ptp(mesh.p, axis=1).max())
         k = min(k, mesh.t.shape[1])
         _, cand = self._tree.query(pts, k=k)
         cand = cand.reshape(len(pts), k)
@@ -134,8 +137,9 @@ class PointLocator:
             if todo.size == 0:
                 break
             e = cand[todo, c]
-            Xc, Yc = self._newton(pts[todo], e)
-            ok = (Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+            Xc, Yc, res = self._newton(pts[todo], e)
+            ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+                  & (res <= 1e-9 * self._size))
             elem[todo[ok]] = e[ok]
             X[todo[ok]] = np.clip(Xc[ok], 0, 1)
             Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
