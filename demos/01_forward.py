@@ -25,7 +25,7 @@ import forward  # noqa: E402
 OUT = Path("out/01_forward")
 
 # Mesh sizes (element size in the imaged region, far-field size), mm.  --quick: coarse, seconds.
-MESHES = {"plane-strain": (0.75, 8.0), "plane-stress": (0.75, 8.0), "3d": (1.5, 16.0)}
+MESHES = {"plane-strain": (0.5, 8.0), "plane-stress": (0.5, 8.0), "3d": (1.0, 16.0)}
 QUICK = {"plane-strain": (2.0, 16.0), "plane-stress": (2.0, 16.0), "3d": (4.0, 16.0)}
 
 

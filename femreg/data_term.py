@@ -42,8 +42,10 @@ class SSDTerm:
         if offset is None:
             gx, gy = reference.gradient_at_pixels()
             g = np.column_stack([gx.ravel()[quad.index], gy.ravel()[quad.index]])
-            self.ref_values = reference.data.ravel()[quad.index]
             base = pts
+            # I_1 through the same interpolant as I_2 (equal to the pixel values up to round-off), so that
+            # identical frames give a residual of exactly zero
+            self.ref_values = reference(base)
         else:
             base = pts + np.asarray(offset, float).reshape(pts.shape)
             g = reference.gradient(base)

@@ -78,9 +78,21 @@ class PointLocator:
         i = np.clip(np.searchsorted(xs, x, side="right") - 1, 0, xs.size - 2)
         j = np.clip(np.searchsorted(ys, y, side="right") - 1, 0, ys.size - 2)
         e = cell[i, j]
-        X = (x - xs[i]) / (xs[i + 1] - xs[i])
-        Y = (y - ys[j]) / (ys[j + 1] - ys[j])
-        return inside, e, X, Y
+        nodes = self.mesh.t[:, e].T                   # (m, 4), in the element's own local order
+        hx = (xs[i + 1] - xs[i])[:, None]
+        hy = (ys[j + 1] - ys[j])[:, None]
+        # orientation-free bilinear weights: node k at the right (top) side gets X (Y), else 1 - X (1 - Y)
+        right = self.mesh.p[0][nodes] > (xs[i] + 0.5 * hx[:, 0])[:, None]
+        top = self.mesh.p[1][nodes] > (ys[j] + 0.5 * hy[:, 0])[:, None]
+        X = ((x - xs[i]) / hx[:, 0])[:, None]
+        Y = ((y - ys[j]) / hy[:, 0])[:, None]
+        wx = np.where(right, X, 1.0 - X)
+        wy = np.where(top, Y, 1.0 - Y)
+        N = wx * wy
+        dN = np.empty(N.shape + (2,))
+        dN[:, :, 0] = np.where(right, 1.0, -1.0) / hx * wy
+        dN[:, :, 1] = np.where(top, 1.0, -1.0) / hy * wx
+        return Location(inside, e, nodes, N, dN)
 
     # -- general ------------------------------------------------------------------------------------------
     def _newton(self, pts, e, iters: int = 12):
@@ -101,7 +113,9 @@ class PointLocator:
             Y = Y + dY
             if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-14:
                 break
-        return X, Y
+        phi, _ = _phi(X, Y)
+        res = np.linalg.norm(pts - np.einsum("dkn,nk->nd", P, phi), axis=1)
+        return X, Y, res
 
     def _locate_general(self, pts, k: int = 8):
         from scipy.spatial import cKDTree
@@ -109,6 +123,7 @@ class PointLocator:
         mesh = self.mesh
         if self._tree is None:
             self._tree = cKDTree(mesh.p[:, mesh.t].mean(axis=1).T)
+            self._size = float(np.ptp(mesh.p, axis=1).max())
         k = min(k, mesh.t.shape[1])
         _, cand = self._tree.query(pts, k=k)
         cand = cand.reshape(len(pts), k)
@@ -122,8 +137,9 @@ class PointLocator:
             if todo.size == 0:
                 break
             e = cand[todo, c]
-            Xc, Yc = self._newton(pts[todo], e)
-            ok = (Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+            Xc, Yc, res = self._newton(pts[todo], e)
+            ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+                  & (res <= 1e-9 * self._size))
             elem[todo[ok]] = e[ok]
             X[todo[ok]] = np.clip(Xc[ok], 0, 1)
             Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
@@ -135,21 +151,21 @@ class PointLocator:
         """Locate ``points`` (n, 2) mm; returns a :class:`Location`."""
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
         if self.tensor is not None:
-            inside, e, X, Y = self._locate_tensor(pts)
-        else:
-            inside, e, X, Y = self._locate_general(pts)
+            return self._locate_tensor(pts)
+        inside, e, X, Y = self._locate_general(pts)
         nodes = self.mesh.t[:, e].T
         phi, dphi = _phi(X, Y)
-        # physical gradients: dN/dx = J^{-T} dN/dX
-        P = self.mesh.p[:, self.mesh.t[:, e]]           # (2, 4, m)
-        J = np.einsum("dkn,nkr->ndr", P, dphi)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        inv = np.empty_like(J)
-        inv[:, 0, 0] = J[:, 1, 1] / det
-        inv[:, 1, 1] = J[:, 0, 0] / det
-        inv[:, 0, 1] = -J[:, 0, 1] / det
-        inv[:, 1, 0] = -J[:, 1, 0] / det
-        dN = np.einsum("nkr,nrd->nkd", dphi, inv)       # (dN/dX_r) (dX_r/dx_d)
+        # physical gradients: dN/dx = J^{-T} dN/dX, J_dr = sum_k p_d(node k) dphi_k/dX_r
+        px = self.mesh.p[0][nodes]                      # (m, 4)
+        py = self.mesh.p[1][nodes]
+        J00 = np.sum(px * dphi[:, :, 0], axis=1)
+        J01 = np.sum(px * dphi[:, :, 1], axis=1)
+        J10 = np.sum(py * dphi[:, :, 0], axis=1)
+        J11 = np.sum(py * dphi[:, :, 1], axis=1)
+        det = J00 * J11 - J01 * J10
+        dN = np.empty_like(dphi)
+        dN[:, :, 0] = (dphi[:, :, 0] * J11[:, None] - dphi[:, :, 1] * J10[:, None]) / det[:, None]
+        dN[:, :, 1] = (-dphi[:, :, 0] * J01[:, None] + dphi[:, :, 1] * J00[:, None]) / det[:, None]
         return Location(inside, e, nodes, phi, dN)
 
 

@@ -89,7 +89,7 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
 
 
 def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=None, mode: str = "accumulate",
-          init: str = "blockmatch", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
+          init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
           on_frame=None, **register_kwargs) -> SequenceResult:
     """Displacement from frame 0 to every later frame of a sequence.
@@ -105,9 +105,11 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=Non
     mode : {"accumulate", "direct"}
         "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
         "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
-    init : {"blockmatch", "previous"}
-        Initial guess of each increment: NCC block matching (paper), or the previous increment (faster on
-        smooth sequences; the first increment always block-matches).
+    init : {"previous", "blockmatch"}
+        Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
+        increments of a compression sequence are alike, and it avoids block-matching outliers), or NCC block
+        matching every time (paper).  The first increment, and any increment after a flagged one, always
+        block-matches; direct mode always block-matches.
     mesh, element_size, margin
         One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`).
     checkpoint_dir : path, optional
@@ -181,7 +183,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=Non
                                    alpha=alpha, mesh=fe_mesh, **register_kwargs)
                     inc = res.u.copy()
                 else:
-                    initial = "blockmatch" if (init == "blockmatch" or prev_inc is None) else prev_inc
+                    fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
+                    initial = "blockmatch" if fresh else prev_inc
                     r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
                                      regularizer=regularizer, alpha=alpha, mesh=fe_mesh, initial=initial,
                                      offset=S if k > 1 else None, **register_kwargs)

@@ -28,7 +28,8 @@ class SPDSolver:
     """Solve H x = b for symmetric positive (semi-)definite sparse H; reuses the factorisation if H is the same
     object as last time (``reuse=True``)."""
 
-    def __init__(self, method: str = "splu", shift: float = 1e-10):
+    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD"):
+        self.permc_spec = permc_spec
         if method not in ("splu", "spsolve", "amg-cg"):
             raise ValueError(f"unknown linear solver {method!r}; choose 'splu', 'spsolve' or 'amg-cg'")
         self.method = method
@@ -55,8 +56,8 @@ class SPDSolver:
                 self.n_factorizations += 1
             return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=500)
         if not (reuse and self._key is H and self._fact is not None):
-            self._fact = spla.splu(self._shifted(H), permc_spec="MMD_AT_PLUS_A",
-                                   options={"SymmetricMode": True})
+            self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec,
+                                   )
             self._key = H
             self.n_factorizations += 1
         return self._fact.solve(b)

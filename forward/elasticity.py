@@ -17,7 +17,15 @@ traction-free; on symmetry planes the normal component is zero.  Weak form: find
 Discretisation: P2 Lagrange elements on straight-sided triangles (2D) / tetrahedra (3D).  P2 is used because at
 :math:`\nu = 0.495` (:math:`\lambda/\mu \approx 99`) P1 triangles/tets lock; P2 is free of visible locking at that
 ratio and gives strains that are continuous inside each element, which point evaluation of the ground truth needs.
-The 3D model is by default a quarter model (two symmetry planes through the inclusion centre).
+Triangles rather than quads in 2D: the map of a straight triangle is affine, so point evaluation inverts it in
+closed form (no Newton iteration) and strains are exact FE values, and gmsh meshes the disk without recombination.
+The 3D model is by default a quarter model (two symmetry planes through the inclusion centre), solved with MKL
+PARDISO (``pypardiso``, from PyPI): about 240 k DOFs at the default 1 mm / 16 mm mesh.
+
+Point evaluation (:meth:`Solution.displacement`, :meth:`Solution.strain`): a KD-tree on element centroids gives a
+few candidate elements per point, a vectorised affine inverse gives barycentric coordinates, and the P2 shape
+functions are evaluated there -- exact FE values, about 1 s per 0.5 M points.  Points outside the domain give NaN
+(or ``ValueError`` with ``outside="raise"``).
 
 Public names: :func:`solve_elasticity`, :class:`Solution`, :func:`load_solution`, :func:`cached_solve`,
 :func:`lame_parameters`, :func:`elasticity_form`.
@@ -43,7 +51,7 @@ MODELS = ("plane-strain", "plane-stress", "3d")
 CACHE_VERSION = 1
 
 #: Default element sizes (mm) in the refined region / far away, per model.
-DEFAULT_MESH = {"plane-strain": (0.75, 8.0), "plane-stress": (0.75, 8.0), "3d": (1.5, 16.0)}
+DEFAULT_MESH = {"plane-strain": (0.5, 8.0), "plane-stress": (0.5, 8.0), "3d": (1.0, 16.0)}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -412,7 +420,7 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
         Axial displacement prescribed on the patch, mm (positive = into the block).
     mesh_size_mm : float, optional
         Element size in the refined region (imaged area, inclusion; in 3D a slab around the imaging plane), mm.
-        Default 0.75 (2D) / 1.5 (3D).
+        Default 0.5 (2D) / 1.0 (3D).
     coarse_size_mm : float, optional
         Element size far from the imaged area, mm.  Default 8 (2D) / 16 (3D).
     refine_region_mm : tuple, optional

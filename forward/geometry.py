@@ -15,7 +15,7 @@ top face), ``"top_free"`` (rest of the top face; absent when the patch is the wh
 symmetric 3D models, ``"sym_y"`` (y = 0) and ``"sym_z"`` (z = 0).
 
 gmsh is a process-global library: every function here initialises it, and finalises it in a ``finally`` block, so
-gmsh is never left initialised.  Off the main thread it is initialised with ``interruptible=False`` (gmsh installs a
+gmsh is never left initialised (a session the caller opened is reused and left open).  Off the main thread it is initialised with ``interruptible=False`` (gmsh installs a
 SIGINT handler, which Python only allows on the main thread).
 """
 from __future__ import annotations
@@ -32,22 +32,34 @@ _lock = threading.Lock()
 
 @contextlib.contextmanager
 def gmsh_session(verbose: bool = False):
-    """Initialise gmsh for the duration of a ``with`` block and always finalise it (thread-safe, serialised)."""
+    """Initialise gmsh for the duration of a ``with`` block and finalise it afterwards (serialised by a lock).
+
+    If the caller already has gmsh initialised, that session is reused: a fresh model is added and removed
+    again at the end, and gmsh is left initialised as it was found (never finalised under the caller's feet).
+    """
     import gmsh
 
     with _lock:
-        if gmsh.isInitialized():  # someone else's session: do not reuse or tear down silently
-            gmsh.finalize()
-        if threading.current_thread() is threading.main_thread():
-            gmsh.initialize()
-        else:
-            gmsh.initialize(interruptible=False)
+        owner = not gmsh.isInitialized()
+        if owner:
+            if threading.current_thread() is threading.main_thread():
+                gmsh.initialize()
+            else:  # gmsh's SIGINT handler can only be installed on the main thread
+                gmsh.initialize(interruptible=False)
         try:
+            old_terminal = gmsh.option.getNumber("General.Terminal")
             gmsh.option.setNumber("General.Terminal", 1 if verbose else 0)
             gmsh.option.setNumber("General.Verbosity", 2 if verbose else 0)
             yield gmsh
         finally:
-            gmsh.finalize()
+            if owner:
+                gmsh.finalize()
+            else:
+                try:
+                    gmsh.model.remove()
+                    gmsh.option.setNumber("General.Terminal", old_terminal)
+                except Exception:  # pragma: no cover - best effort on a caller's session
+                    pass
 
 
 def _check_geometry(block_mm, inclusion_diameter_mm, inclusion_depth_mm, patch_mm, coarse_size_mm, mesh_size_mm):

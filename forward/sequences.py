@@ -27,7 +27,6 @@ import json
 import math
 import os
 import time
-import warnings
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
@@ -185,24 +184,13 @@ def _fe_cache_key(model, **kw) -> str | None:
 
 def _fe_field(model: str, inclusion_modulus: float, background_modulus: float, inclusion_depth_mm: float,
               inclusion_diameter_mm: float, fe_options: dict):
-    """The one place that calls the FE forward model (issue 2): a solution at 1 mm patch compression.
-
-    Uses ``forward.cached_solve`` (disk cache) when available, else ``forward.solve_elasticity``.
-    Returns ``(field, source)``.
-    """
-    import forward
+    """The one place that calls the FE forward model (issue 2): a solution at 1 mm patch compression, through
+    ``forward.cached_solve`` (disk cache keyed by every solve parameter).  Returns ``(solution, source)``."""
+    from .elasticity import cached_solve
 
     kwargs = _fe_kwargs(model, inclusion_modulus, background_modulus, inclusion_depth_mm, inclusion_diameter_mm,
                         fe_options)
-    solver = getattr(forward, "cached_solve", None) or getattr(forward, "solve_elasticity", None)
-    if solver is None:
-        # Until the FE models land (issue 2): a labelled stand-in, never silently passed off as FE truth.
-        warnings.warn("forward.solve_elasticity is not available: using the analytic stand-in field "
-                      "(field_source='analytic-standin')", RuntimeWarning, stacklevel=3)
-        keep = {k: v for k, v in fe_options.items() if k == "block_mm"}
-        return AnalyticField(inclusion_modulus, background_modulus, inclusion_depth_mm=inclusion_depth_mm,
-                             inclusion_diameter_mm=inclusion_diameter_mm, **keep), "analytic-standin"
-    return solver(**kwargs), f"fe:{solver.__name__}"
+    return cached_solve(**kwargs), "fe:cached_solve"
 
 
 def _eval_field(field, points: np.ndarray, chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
@@ -265,6 +253,12 @@ class Sequence:
     inclusion_mask: np.ndarray
     params: dict = dc_field(default_factory=dict)
     path: Path | None = None
+
+    def __repr__(self) -> str:
+        p = self.params
+        return (f"Sequence({p.get('model')}/{p.get('inclusion')}, frames {tuple(self.frames.shape)}, spacing "
+                f"{self.spacing} mm, origin {self.origin} mm, seed {p.get('seed')}, snr_db {p.get('snr_db')}, "
+                f"field {p.get('field_source')})")
 
     @property
     def spacing(self) -> tuple[float, float]:

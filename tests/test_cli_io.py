@@ -167,9 +167,6 @@ def test_engine_result_plots_and_exports(tmp_path, capsys):
     np.testing.assert_allclose(m.point_data["displacement"][:, :2], res.u.reshape(-1, 2), atol=0)
 
 
-@pytest.mark.xfail(strict=True, reason="engine bug (femreg/pixels.py PointLocator._locate_tensor): skfem's "
-                   "init_tensor puts local node 1 at +y, the locator assumes +x, so res.displacement at nodes "
-                   "(X, Y) = (1, 0) / (0, 1) differs from the nodal u; remove this marker when fixed")
 def test_engine_displacement_at_nodes_equals_nodal_u():
     import femreg
     from femreg.synthetic import speckle_pair

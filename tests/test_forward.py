@@ -195,3 +195,34 @@ def test_cli_forward(tmp_path, capsys):
     assert sol.model == "plane-stress" and sol.params["mesh_size_mm"] == 5.0
     assert main(["forward", "plane-strain", "--poisson", "0.5", "-o", str(tmp_path / "x.npz")]) == 2
     assert "poisson" in capsys.readouterr().err
+
+
+def test_gmsh_session_of_caller_is_kept():
+    import gmsh
+
+    gmsh.initialize()
+    try:
+        gmsh.model.add("callers_model")
+        m = geometry.mesh_2d(mesh_size_mm=5.0, coarse_size_mm=20.0)
+        assert m.t.shape[1] > 100
+        assert gmsh.isInitialized() and "callers_model" in gmsh.model.list()
+    finally:
+        gmsh.finalize()
+
+
+def test_demo_01_forward_quick(tmp_path):
+    """The demo runs (coarse meshes) and writes its figures; its strain ratio is > 1 for the hard inclusion."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    demo = Path(__file__).resolve().parents[1] / "demos" / "01_forward.py"
+    r = subprocess.run([sys.executable, str(demo), "--quick"], cwd=tmp_path, capture_output=True, text=True,
+                       env={**__import__("os").environ, "MPLBACKEND": "Agg"}, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = tmp_path / "out" / "01_forward"
+    assert (out / "strains_hi.png").stat().st_size > 10000
+    rows = [ln.split() for ln in r.stdout.splitlines() if ln.split() and ln.split()[0] in forward.MODELS]
+    assert len(rows) == 3, r.stdout
+    sr = {row[0]: float(row[-1]) for row in rows}
+    assert all(v > 1.2 for v in sr.values()), sr

@@ -52,7 +52,7 @@ def test_circular_inclusion_matches_eshelby(model, E1):
     B, c, nu, E = 400.0, 1.0, 0.495, 10.0
     sol = forward.solve_elasticity(model, inclusion_modulus=E1, background_modulus=E, poisson=nu, block_mm=B,
                                    inclusion_diameter_mm=15.0, inclusion_depth_mm=B / 2, patch_mm=None,
-                                   compression_mm=c, bottom="slip", mesh_size_mm=0.5, coarse_size_mm=20.0,
+                                   compression_mm=c, bottom="slip", mesh_size_mm=0.5, coarse_size_mm=12.0,
                                    refine_region_mm=())
     rng = np.random.default_rng(0)
     r, th = 5.0 * np.sqrt(rng.uniform(size=200)), rng.uniform(0, 2 * np.pi, 200)

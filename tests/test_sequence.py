@@ -7,10 +7,10 @@ from femreg.errors import InputError
 from femreg.synthetic import speckle_image, warp_image
 
 SPACING = (0.05, 0.2)
-SHAPE = (240, 60)          # 12 mm x 12 mm
+SHAPE = (400, 80)          # 20 mm x 16 mm
 # Block-matching windows scaled to the small image (the paper's 5 x 9 mm suit 72 x 44 mm images).
 KW = dict(spacing=SPACING, regularizer="strain", alpha=3.0, element_size=1.0, margin=1.0,
-          blockmatch_options=dict(window=(2.0, 4.0)))
+          blockmatch_options=dict(window=(2.5, 4.5)))
 
 
 def _field(scale):
@@ -18,7 +18,7 @@ def _field(scale):
     def u(p):
         x, y = p[:, 0], p[:, 1]
         ux = scale * (-0.01 * x + 0.02 * np.sin(2 * np.pi * x / 24.0))
-        uy = scale * (0.005 * (y - 6.0) + 0.004 * np.cos(2 * np.pi * y / 24.0))
+        uy = scale * (0.005 * (y - 8.0) + 0.004 * np.cos(2 * np.pi * y / 24.0))
         return np.column_stack([ux, uy])
     return u
 

@@ -25,8 +25,8 @@ def add_parser(subparsers):
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
-    p.add_argument("--init", choices=("blockmatch", "previous"), default="blockmatch",
-                   help="initial guess of each increment (default blockmatch)")
+    p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
+                   help="initial guess of each increment: the previous increment (default) or block matching")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
