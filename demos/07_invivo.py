@@ -229,8 +229,10 @@ def analyse_sequence(frames, spacing, origin, window, *, regularizers=REGULARIZE
             direct, _ = analyse_pair(frames[0], frames[2], spacing, origin, reg, alpha, window, settings=settings)
         t0 = time.perf_counter()
         tk = {k: v for k, v in settings.items() if k not in ("margin", "element_size")}
+        # init="blockmatch": the 2 -> 3 increment starts from block matching, like the direct registration
+        # (track's default would start it from the 1 -> 2 increment)
         acc = femreg.track(frames[:3], spacing=spacing, origin=origin, regularizer=reg, alpha=alpha,
-                           mesh=direct.mesh, **tk)[1]
+                           mesh=direct.mesh, init="blockmatch", **tk)[1]
         results[(reg, "acc")] = acc
         c = consistency(acc, direct)
         cw = consistency(acc, direct, window=window)
