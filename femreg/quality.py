@@ -4,6 +4,8 @@
   result, at u = 0 and at the block-matching initial guess: how much of the image mismatch the registration
   explains.
 * :func:`strain_snr` -- elastographic SNR of the axial strain in a window, ``SNR_e = |mean| / std``.
+* :func:`hourglass` -- RMS amplitude of the element-wise checkerboard (hourglass) mode of the nodal
+  displacement, the spurious pattern a regulariser that does not see it leaves to the (weak) data term.
 * :func:`consistency` -- RMS difference of two displacement fields on the pixel grid (e.g. accumulated
   1 -> 2 -> 3 by eq:IR versus direct 1 -> 3) and of their axial strains.
 
@@ -23,7 +25,7 @@ from .image import SplineImage, normalize_pair, pixel_axes, validate_image
 from .pixels import PixelQuadrature
 from .registration import _nodal, ncc
 
-__all__ = ["image_energy", "window_mask", "strain_snr", "consistency"]
+__all__ = ["image_energy", "window_mask", "strain_snr", "consistency", "hourglass"]
 
 
 def image_energy(result, reference_image, moving_image, *, normalize: bool = True) -> dict:
@@ -136,3 +138,25 @@ def consistency(a, b, window=None) -> dict:
             "rms_dexx": float(np.sqrt(np.mean((ga["exx"] - gb["exx"])[ok] ** 2))),
             "rms_exx": float(np.sqrt(np.mean(gb["exx"][ok] ** 2))),
             "n": int(ok.sum())}
+
+
+def hourglass(result) -> dict:
+    """RMS amplitude of the hourglass (checkerboard) mode of a bilinear-quad displacement.
+
+    For each element with corners 0..3 in order around it, ``h = (u_0 - u_1 + u_2 - u_3) / 4`` is the
+    coefficient of the mode that alternates sign from corner to corner: it vanishes for an affine field and is of
+    order ``h_x h_y |d2u/dxdy| / 4`` for a smooth one, but equals the amplitude of a node-to-node checkerboard.
+
+    Returns
+    -------
+    dict
+        ``ux``, ``uy``: RMS of h over the elements (mm), for each displacement component.
+    """
+    t = np.asarray(result.mesh.t)
+    if t.shape[0] != 4:
+        raise InputError(f"hourglass needs quadrilateral elements, got {t.shape[0]} nodes per element")
+    out = {}
+    for name, comp in (("ux", result.u[0::2]), ("uy", result.u[1::2])):
+        h = (comp[t[0]] - comp[t[1]] + comp[t[2]] - comp[t[3]]) / 4.0
+        out[name] = float(np.sqrt(np.mean(h ** 2)))
+    return out

@@ -4,7 +4,7 @@ import pytest
 
 from femreg import InputError, RegistrationResult
 from femreg.mesh import roi_mesh
-from femreg.quality import consistency, image_energy, strain_snr, window_mask
+from femreg.quality import consistency, hourglass, image_energy, strain_snr, window_mask
 from femreg.synthetic import speckle_image, warp_image
 
 SHAPE, SPACING, ORIGIN = (300, 40), (0.05, 0.2), (1.0, -2.0)
@@ -69,3 +69,18 @@ def test_image_energy_drops_at_the_true_field_and_is_zero_for_identical_frames()
     assert e0["psi_zero"] == 0 and e0["psi_final"] == 0 and np.isnan(e0["reduction"]), e0
     with pytest.raises(InputError, match="grid"):
         image_energy(_result(field), ref[:-1], mov[:-1])
+
+
+def test_hourglass_sees_a_checkerboard_and_not_an_affine_field():
+    a = _result(linear(c=(0.01, 0.02)))
+    hg = hourglass(a)
+    assert hg["ux"] < 1e-15 and hg["uy"] < 1e-15, hg
+    # add a node-to-node checkerboard of 2 um to uy on the tensor mesh
+    xs, ys = np.unique(a.mesh.p[0]), np.unique(a.mesh.p[1])
+    i = np.searchsorted(xs, a.mesh.p[0])
+    j = np.searchsorted(ys, a.mesh.p[1])
+    u = a.u.copy()
+    u[1::2] += 0.002 * (-1.0) ** (i + j)
+    b = RegistrationResult(a.mesh, u, shape=SHAPE, spacing=SPACING, origin=ORIGIN)
+    hg = hourglass(b)
+    assert hg["ux"] < 1e-15 and abs(hg["uy"] - 0.002) < 1e-12, hg
