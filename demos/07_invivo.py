@@ -451,6 +451,28 @@ def write_summary(path, seqs, all_rows, all_crows, tracks, *, quick, seconds):
     Path(path).write_text("\n".join(L))
 
 
+# %% [markdown]
+# ## 7. What the full run shows (numbers in out/07_invivo/summary.md)
+#
+# * Registration works on both sequences with every regulariser: frame 1 -> 3 NCC rises from 0.29 (seq304) and
+#   0.02 (seq299) to 0.97 and 0.91, and the image term drops by 96 % and 91 %.  The FE solve adds much to block
+#   matching (NCC 0.90 -> 0.97 and 0.59 -> 0.91).  Consecutive pairs reach 0.98-0.99 (seq304) and 0.91-0.98
+#   (seq299): seq299 decorrelates (out-of-plane motion), which is why ``femreg track --min-ncc 0.95`` flags three of
+#   its five increments and none of seq304's.
+# * At matched image fit (the alpha rule) the regularisers are indistinguishable by NCC (differences <= 0.003 on
+#   1 -> 3) but not in their strain images: R_P_sigma has the highest axial-strain SNR_e on seq304 (2.6 against 1.2
+#   for R_eps), R_eps on seq299 (1.3 against 1.2); R_eps_i is lowest on both.
+# * Consistency of eq:IR accumulation with direct registration: R_eps is the most consistent (RMS difference 1.5 %
+#   of the displacement on seq304, 8.5 % on seq299), the momentum regularisers the least (7-10 % and 14-16 %).
+# * R_eps_i, R_P_eps and R_P_sigma leave a node-to-node checkerboard (hourglass mode) in the lateral displacement,
+#   3-8 um RMS against about 1 um for R_eps (``hourglass`` column), seen as a +-0.5-1 % checkerboard in their
+#   lateral-strain images.  The bilinear hourglass mode has zero gradient along each edge's normal direction at
+#   the edge midpoint, where the momentum jumps and the R_eps_i divergence are evaluated, so these terms barely
+#   penalise it (on this mesh a 1 um checkerboard costs R_P_sigma about 20 times less than a smooth lateral-strain
+#   pattern of the same amplitude), and 5 scan lines per element carry little lateral information to suppress it.
+#   Lateral strain of these regularisers should not be read at element scale on such data.
+
+# %%
 def alpha_study(folder, log=print) -> str:
     """Rerun the alpha sweep of ``ALPHA_STUDY`` (direct frame 1 -> 3, full frames); returns the markdown table."""
     rows = {}
