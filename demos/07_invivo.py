@@ -466,10 +466,11 @@ def write_summary(path, seqs, all_rows, all_crows, tracks, *, quick, seconds):
 #   of the displacement on seq304, 8.5 % on seq299), the momentum regularisers the least (7-10 % and 14-16 %).
 # * R_eps_i, R_P_eps and R_P_sigma leave a node-to-node checkerboard (hourglass mode) in the lateral displacement,
 #   3-8 um RMS against about 1 um for R_eps (``hourglass`` column), seen as a +-0.5-1 % checkerboard in their
-#   lateral-strain images.  The bilinear hourglass mode has zero gradient along each edge's normal direction at
-#   the edge midpoint, where the momentum jumps and the R_eps_i divergence are evaluated, so these terms barely
-#   penalise it (on this mesh a 1 um checkerboard costs R_P_sigma about 20 times less than a smooth lateral-strain
-#   pattern of the same amplitude), and 5 scan lines per element carry little lateral information to suppress it.
+#   lateral-strain images.  The bilinear hourglass mode has zero normal derivative at every edge midpoint and a
+#   continuous tangential one, so its traction jumps at the midpoints vanish: it is an exact zero-energy mode of
+#   R_P_eps and R_P_sigma (on the 1 mm mesh, R of a checkerboard equals R of zero to all digits), and the one-point
+#   divergence of R_eps_i does not see it either (only its strain part, weighted by alpha = 3 instead of R_eps's
+#   100).  Only the image term holds it down, and 5 scan lines per element carry little lateral information.
 #   Lateral strain of these regularisers should not be read at element scale on such data.
 
 # %%
