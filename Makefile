@@ -5,12 +5,15 @@ export MPLBACKEND := Agg
 export VTK_DEFAULT_OPENGL_WINDOW := vtkEGLRenderWindow
 export PYVISTA_OFF_SCREEN := true
 
-.PHONY: setup demo test slow clean
+.PHONY: setup demo test slow study clean
 setup:
 	@bash scripts/setup.sh $(VENV)
 
 demo: setup
 	$(PY) demos/run_all.py
+
+study: setup
+	$(PY) demos/06_study.py
 
 test: setup
 	$(PY) -m pytest -q

@@ -8,6 +8,13 @@ the peak memory (each regulariser runs in a fresh process so that ru_maxrss is i
     python benchmarks/bench_register.py                 # timings
     python benchmarks/bench_register.py --study         # alpha and element-size study (total strain error)
     python benchmarks/bench_register.py --solvers       # linear-solver comparison on the GN system
+
+Measured 2026-11-21 on the shared 2-core machine (load average 5-7, fastest of 5), default 2 mm mesh (792 nodes):
+total 1.0-1.7 s per pair for R_eps / R_eps_i, 1.9-2.2 s for the momentum regularisers (Hessian re-factorised
+each iteration), peak RSS ~400 MB (120 MB of it the Python process, imports and the pair).  Where the time goes:
+each Gauss-Newton iteration is ~0.1 s, dominated by the cubic-spline re-interpolation of I_2 at the 0.5 M pixels
+(scipy map_coordinates, ~50-80 ms); block matching 0.1-0.2 s; operator build 0.12-0.15 s; the data Hessian is
+assembled once by separable row/column sums (~0.03 s) and, for quadratic regularisers, factorised once.
 """
 from __future__ import annotations
 
@@ -43,24 +50,30 @@ def make_pair(seed=0, snr_db=12.0):
     return speckle_pair(paper_field, SHAPE, SPACING, seed=seed, snr_db=snr_db)
 
 
-def _run_one(name, alpha, element_size, q):
+def _run_one(name, alpha, element_size, q, repeat=1):
     import femreg
     from femreg.metrics import field_errors
     ref, mov = make_pair()
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    t = time.perf_counter()
-    res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha, element_size=element_size)
-    total = time.perf_counter() - t
+    best = None
+    for _ in range(repeat):   # the machine is shared: keep the fastest of `repeat` runs
+        t = time.perf_counter()
+        res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha,
+                              element_size=element_size)
+        total = time.perf_counter() - t
+        if best is None or total < best[0]:
+            best = (total, res)
+    total, res = best
     err = field_errors(res, paper_field)
     q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
                message=res.message, err=err, n_nodes=res.mesh.p.shape[1], ncc=(res.ncc_before, res.ncc_after),
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
-def run_isolated(name, alpha=None, element_size=None):
+def run_isolated(name, alpha=None, element_size=None, repeat=1):
     ctx = mp.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q))
+    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat))
     p.start()
     out = q.get()
     p.join()
@@ -69,9 +82,9 @@ def run_isolated(name, alpha=None, element_size=None):
 
 def timings():
     from femreg.regularizers import available_regularizers
-    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB")
+    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB; fastest of 5 runs per regulariser")
     for name in available_regularizers():
-        r = run_isolated(name)
+        r = run_isolated(name, repeat=5)
         t = r["timings"]
         it = t["per_iteration"]
         print(f"\n[{name}] alpha={r['alpha']:g}  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  "
@@ -89,22 +102,19 @@ def timings():
               f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}")
 
 
-def study():
-    alphas = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0]
-    for name in ["strain", "strain-incompressible"]:
-        print(f"\n[{name}] element 1 mm: alpha sweep (total strain error %, exx %, uy %, nit, time)")
-        for a in alphas:
-            r = run_isolated(name, a, 1.0)
-            e = r["err"]
-            print(f"  alpha {a:8.0e}: e {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  uy {100*e['uy']:6.1f}  "
-                  f"nit {r['nit']:2d}  {r['total']:.2f} s")
-    for name in ["strain", "strain-incompressible"]:
-        print(f"\n[{name}] default alpha: element size study")
-        for h in [0.5, 1.0, 2.0]:
-            r = run_isolated(name, None, h)
-            e = r["err"]
-            print(f"  h {h:4.1f} mm: nodes {r['n_nodes']:6d}  e {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  "
-                  f"uy {100*e['uy']:6.1f}  nit {r['nit']:2d}  {r['total']:.2f} s  peak {r['peak_mb']:.0f} MB")
+def study(sizes=(1.0, 2.0), grids=None):
+    """Total strain error over (element size, alpha) for R_eps and R_eps_i (frames 1 -> 2 of the synthetic pair)."""
+    grids = grids or {"strain": [1.0, 10.0, 30.0, 100.0, 300.0, 1e3, 3e3, 1e4],
+                      "strain-incompressible": [0.1, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0]}
+    for name, alphas in grids.items():
+        for h in sizes:
+            print(f"\n[{name}] element {h} mm: alpha sweep (errors in %)", flush=True)
+            for a in alphas:
+                r = run_isolated(name, a, h)
+                e = r["err"]
+                print(f"  alpha {a:8.1e}: total strain {100*e['e']:6.1f}  exx {100*e['exx']:6.1f}  "
+                      f"eyy {100*e['eyy']:6.1f}  exy {100*e['exy']:6.1f}  ux {100*e['ux']:5.2f}  uy {100*e['uy']:6.1f}"
+                      f"  nit {r['nit']:2d}  {r['total']:.2f} s", flush=True)
 
 
 def solvers():
@@ -126,8 +136,13 @@ def solvers():
         H = (data.hessian() + reg.hessian()).tocsc()
         b = np.random.default_rng(0).standard_normal(H.shape[0])
         print(f"\nh = {h} mm: {H.shape[0]} DOF, nnz {H.nnz}")
+        x_, y_ = mesh.p
+        B = np.zeros((H.shape[0], 3))
+        B[0::2, 0] = 1.0
+        B[1::2, 1] = 1.0
+        B[0::2, 2], B[1::2, 2] = -y_, x_
         for method in ["splu", "spsolve", "amg-cg"]:
-            s = SPDSolver(method)
+            s = SPDSolver(method, B=B if method == "amg-cg" else None)
             t = time.perf_counter()
             x = s.solve(H, b)
             t1 = time.perf_counter() - t
@@ -136,7 +151,7 @@ def solvers():
             t2 = time.perf_counter() - t
             print(f"  {method:8s}: first solve {t1:.3f} s, repeat (reuse) {t2:.4f} s, "
                   f"rel. residual {np.linalg.norm(H @ x - b) / np.linalg.norm(b):.1e}")
-        for spec in ["COLAMD", "NATURAL", "MMD_AT_PLUS_A"]:
+        for spec in ["COLAMD", "NATURAL"]:
             t = time.perf_counter()
             spla.splu(H, permc_spec=spec)
             print(f"  splu permc_spec={spec}: {time.perf_counter() - t:.3f} s")

@@ -1,8 +1,9 @@
 """femreg: finite-element variational image registration for quasi-static ultrasound elastography,
 regularised by the momentum equation of a nearly incompressible solid (SPREME).
 
-Public entry points (filled in by their modules): :func:`register`, :func:`track`,
-:mod:`femreg.regularizers`, :mod:`femreg.metrics`, :mod:`femreg.io`.
+Public entry points (filled in by their modules): :func:`register` (-> :class:`RegistrationResult`,
+saved/loaded with ``res.save`` / :func:`load_result`), :func:`track`, :mod:`femreg.regularizers`,
+:mod:`femreg.metrics`, :mod:`femreg.io`.
 """
 __version__ = "0.1.0"
 

@@ -43,10 +43,10 @@ class SSDTerm:
             gx, gy = reference.gradient_at_pixels()
             g = np.column_stack([gx.ravel()[quad.index], gy.ravel()[quad.index]])
             base = pts
-            # I_1 through the same interpolant as I_2 (equal to the pixel values up to round-off), so that
-            # identical frames give a residual of exactly zero
-            self.ref_values = reference(base)
+            self.ref_values = reference.data.ravel()[quad.index]
+            self._moving_at_pixels = moving.data.ravel()[quad.index]
         else:
+            self._moving_at_pixels = None
             base = pts + np.asarray(offset, float).reshape(pts.shape)
             g = reference.gradient(base)
             self.ref_values = reference(base)
@@ -56,25 +56,19 @@ class SSDTerm:
         self._inv_sp = 1.0 / moving.spacing
         w = quad.weights
         self.w = w
-        loc = quad.location
-        m = quad.n_pixels
-        nn = quad.n_nodes
-        cols = np.empty((m, 8), dtype=np.int64)
-        cols[:, 0::2] = 2 * loc.nodes
-        cols[:, 1::2] = 2 * loc.nodes + 1
-        vals = np.empty((m, 8))
-        vals[:, 0::2] = loc.N * g[:, [0]]
-        vals[:, 1::2] = loc.N * g[:, [1]]
-        self.J = sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, 8 * m + 1, 8)), shape=(m, 2 * nn))
+        self._J = None
         self._H = None
         self._cache_u = None
         self._cache_r = None
         self._idx = np.empty_like(self._base_idx)
-        self._buf = np.empty(m)
+        self._buf = np.empty(quad.n_pixels)
 
     # -------------------------------------------------------------------------------------------------------
     def warped_moving(self, u):
         """I_2(x + S + u(x)) at the quadrature pixels, (m,)."""
+        if self._moving_at_pixels is not None and not np.any(u):
+            # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
+            return self._moving_at_pixels.copy()
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
         np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
@@ -95,12 +89,75 @@ class SSDTerm:
         r = self.residual(u)
         return 0.5 * float(np.dot(self.w * r, r))
 
+    @property
+    def J(self):
+        """Sparse (m, 2 n_nodes) Jacobian of the residual with the fixed gradient: J[p, 2i+a] = N_i g_a."""
+        if self._J is None:
+            loc, g = self.quad.location, self.ref_gradient
+            m, nn = self.quad.n_pixels, self.quad.n_nodes
+            cols = np.empty((m, 8), dtype=np.int64)
+            cols[:, 0::2] = 2 * loc.nodes
+            cols[:, 1::2] = 2 * loc.nodes + 1
+            vals = np.empty((m, 8))
+            vals[:, 0::2] = loc.N * g[:, [0]]
+            vals[:, 1::2] = loc.N * g[:, [1]]
+            self._J = sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, 8 * m + 1, 8)), shape=(m, 2 * nn))
+        return self._J
+
     def gradient(self, u):
-        r = self.residual(u)
-        return self.J.T @ (self.w * r)
+        """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (2 n_nodes,)."""
+        wr = self.w * self.residual(u)
+        PT = self.quad.PT
+        out = np.empty(2 * self.quad.n_nodes)
+        out[0::2] = PT @ (wr * self.ref_gradient[:, 0])
+        out[1::2] = PT @ (wr * self.ref_gradient[:, 1])
+        return out
+
+    def _hessian_separable(self):
+        """H on a tensor mesh with a full pixel sub-grid: element sums of N_k N_l g_a g_b w factor into
+        row sums and column sums (the shape functions are products of 1D hats), so each element's 8 x 8 block
+        costs two segmented reductions of (rows x cols) arrays instead of a (pixels x 8)^T (pixels x 8) product."""
+        grid = self.quad.location.grid
+        nr, nc = grid["nr"], grid["nc"]
+        i, j, X, Y = grid["i"], grid["j"], grid["X"], grid["Y"]
+        rs = np.flatnonzero(np.diff(i, prepend=-1))           # first row of each element row
+        cs = np.flatnonzero(np.diff(j, prepend=-1))
+        ei, ej = i[rs], j[cs]
+        if not (np.all(np.diff(i) >= 0) and np.all(np.diff(j) >= 0)):
+            return None
+        g = self.ref_gradient.reshape(nr, nc, 2)
+        w = self.w.reshape(nr, nc)
+        G = [w * g[..., 0] ** 2, w * g[..., 0] * g[..., 1], w * g[..., 1] ** 2]   # xx, xy, yy
+        fx = [(1 - X) ** 2, X * (1 - X), X * X]
+        fy = [(1 - Y) ** 2, Y * (1 - Y), Y * Y]
+        U = np.empty((3, 3, 3, ei.size, ej.size))
+        for a in range(3):
+            for p in range(3):
+                T = np.add.reduceat(fx[p][:, None] * G[a], rs, axis=0)
+                for q in range(3):
+                    U[p, q, a] = np.add.reduceat(T * fy[q][None, :], cs, axis=1)
+        # corner k: x-side sx[k], y-side sy[k]; product index of two sides: 0 (both 0), 1 (mixed), 2 (both 1)
+        sx = np.array([0, 1, 1, 0])
+        sy = np.array([0, 0, 1, 1])
+        cn = self.quad.locator._canonical()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
+        comp = {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}
+        rows, cols, vals = [], [], []
+        for k in range(4):
+            for l in range(4):
+                blk = U[sx[k] + sx[l], sy[k] + sy[l]].reshape(3, -1)
+                for a in range(2):
+                    for b in range(2):
+                        rows.append(2 * cn[:, k] + a)
+                        cols.append(2 * cn[:, l] + b)
+                        vals.append(blk[comp[(a, b)]])
+        n = 2 * self.quad.n_nodes
+        H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+        return H.tocsr()
 
     def hessian(self, u=None):
         """Gauss-Newton Hessian with the fixed reference gradient (independent of u; assembled once)."""
+        if self._H is None and self.quad.location.grid is not None:
+            self._H = self._hessian_separable()
         if self._H is None:
             Jw = self.J.multiply(np.sqrt(self.w)[:, None]).tocsr() if not np.all(self.w == self.w[0]) else None
             if Jw is None:

@@ -34,7 +34,7 @@ def _measured(result_or_u, mesh, basis):
     """Measured u (2, n_el, n_qp) and grad u (2, 2, n_el, n_qp) at the basis' quadrature points."""
     u = getattr(result_or_u, "u", result_or_u)
     f = basis.interpolate(np.asarray(u, float))
-    return f.value, f.grad
+    return np.asarray(f), np.asarray(f.grad)
 
 
 def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = 4) -> dict:

@@ -43,6 +43,7 @@ class Location:
     nodes: np.ndarray
     N: np.ndarray
     dN: np.ndarray
+    grid: dict | None = None
 
     def operator(self, n_nodes: int) -> sp.csr_matrix:
         """Sparse (m, n_nodes) interpolation operator: row k = shape functions of point k."""
@@ -68,54 +69,91 @@ class PointLocator:
         self._tree = None
 
     # -- structured ---------------------------------------------------------------------------------------
+    def _canonical(self):
+        """Per tensor cell (i, j) its nodes in skfem reference order (x0,y0), (x1,y0), (x1,y1), (x0,y1), so that
+        the shape functions are :func:`_phi` of (X, Y) = ((x - x0)/hx, (y - y0)/hy) whatever the mesh's own
+        local node order (init_tensor, for one, numbers its quads clockwise)."""
+        if getattr(self, "_cn", None) is None:
+            xs, ys, _ = self.tensor
+            p = self.mesh.p
+            G = np.empty((xs.size, ys.size), dtype=np.int64)
+            G[np.searchsorted(xs, p[0]), np.searchsorted(ys, p[1])] = np.arange(p.shape[1])
+            self._cn = np.stack([G[:-1, :-1], G[1:, :-1], G[1:, 1:], G[:-1, 1:]], axis=-1)
+        return self._cn
+
+    def _axis(self, v, breaks):
+        span = breaks[-1] - breaks[0]
+        inside = (v >= breaks[0] - self.tol * span) & (v <= breaks[-1] + self.tol * span)
+        i = np.clip(np.searchsorted(breaks, v, side="right") - 1, 0, breaks.size - 2)
+        h = breaks[i + 1] - breaks[i]
+        return inside, i, (v - breaks[i]) / h, h
+
     def _locate_tensor(self, pts):
         xs, ys, cell = self.tensor
-        x, y = pts[:, 0], pts[:, 1]
-        hx, hy = xs[-1] - xs[0], ys[-1] - ys[0]
-        inside = ((x >= xs[0] - self.tol * hx) & (x <= xs[-1] + self.tol * hx)
-                  & (y >= ys[0] - self.tol * hy) & (y <= ys[-1] + self.tol * hy))
-        x, y = x[inside], y[inside]
-        i = np.clip(np.searchsorted(xs, x, side="right") - 1, 0, xs.size - 2)
-        j = np.clip(np.searchsorted(ys, y, side="right") - 1, 0, ys.size - 2)
-        e = cell[i, j]
-        nodes = self.mesh.t[:, e].T                   # (m, 4), in the element's own local order
-        hx = (xs[i + 1] - xs[i])[:, None]
-        hy = (ys[j + 1] - ys[j])[:, None]
-        # orientation-free bilinear weights: node k at the right (top) side gets X (Y), else 1 - X (1 - Y)
-        right = self.mesh.p[0][nodes] > (xs[i] + 0.5 * hx[:, 0])[:, None]
-        top = self.mesh.p[1][nodes] > (ys[j] + 0.5 * hy[:, 0])[:, None]
-        X = ((x - xs[i]) / hx[:, 0])[:, None]
-        Y = ((y - ys[j]) / hy[:, 0])[:, None]
-        wx = np.where(right, X, 1.0 - X)
-        wy = np.where(top, Y, 1.0 - Y)
-        N = wx * wy
+        inx, i, X, hx = self._axis(pts[:, 0], xs)
+        iny, j, Y, hy = self._axis(pts[:, 1], ys)
+        inside = inx & iny
+        i, j, X, Y, hx, hy = i[inside], j[inside], X[inside], Y[inside], hx[inside], hy[inside]
+        N, dphi = _phi(X, Y)
+        dphi[:, :, 0] /= hx[:, None]
+        dphi[:, :, 1] /= hy[:, None]
+        return Location(inside, cell[i, j], self._canonical()[i, j], N, dphi)
+
+    def locate_grid(self, xa, ya) -> Location:
+        """Locate the tensor grid of points (xa[i], ya[j]) (C order).  Separable and fast on tensor meshes."""
+        xa = np.asarray(xa, float)
+        ya = np.asarray(ya, float)
+        if self.tensor is None:
+            X, Y = np.meshgrid(xa, ya, indexing="ij")
+            return self.locate(np.column_stack([X.ravel(), Y.ravel()]))
+        xs, ys, cell = self.tensor
+        inx, i, X, hx = self._axis(xa, xs)
+        iny, j, Y, hy = self._axis(ya, ys)
+        inside = (inx[:, None] & iny[None, :]).ravel()
+        i, X, hx = i[inx], X[inx], hx[inx]
+        j, Y, hy = j[iny], Y[iny], hy[iny]
+        AX = np.stack([1 - X, X, X, 1 - X], axis=1)           # (nr, 4)
+        AY = np.stack([1 - Y, 1 - Y, Y, Y], axis=1)           # (nc, 4)
+        dAX = np.array([-1.0, 1.0, 1.0, -1.0])[None, :] / hx[:, None]
+        dAY = np.array([-1.0, -1.0, 1.0, 1.0])[None, :] / hy[:, None]
+        N = (AX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
         dN = np.empty(N.shape + (2,))
-        dN[:, :, 0] = np.where(right, 1.0, -1.0) / hx * wy
-        dN[:, :, 1] = np.where(top, 1.0, -1.0) / hy * wx
-        return Location(inside, e, nodes, N, dN)
+        dN[:, :, 0] = (dAX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
+        dN[:, :, 1] = (AX[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
+        nodes = self._canonical()[i[:, None], j[None, :]].reshape(-1, 4)
+        loc = Location(inside, cell[i[:, None], j[None, :]].ravel(), nodes, N, dN)
+        # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
+        loc.grid = dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size))
+        return loc
 
     # -- general ------------------------------------------------------------------------------------------
     def _newton(self, pts, e, iters: int = 12):
-        """Invert the bilinear map of elements e at pts; returns X, Y (reference) for each pair."""
-        P = self.mesh.p[:, self.mesh.t[:, e]]          # (2, 4, n)
+        """Invert the bilinear map of elements e at pts; returns X, Y (reference) and the residual (mm)."""
+        t = self.mesh.t[:, e]
+        px = self.mesh.p[0][t]                          # (4, n)
+        py = self.mesh.p[1][t]
+        # x(X, Y) = a0 + a1 X + a2 Y + a3 X Y  (skfem ElementQuad1 node order)
+        ax = (px[0], px[1] - px[0], px[3] - px[0], px[0] - px[1] + px[2] - px[3])
+        ay = (py[0], py[1] - py[0], py[3] - py[0], py[0] - py[1] + py[2] - py[3])
+        x, y = pts[:, 0], pts[:, 1]
         X = np.full(len(e), 0.5)
         Y = np.full(len(e), 0.5)
         for _ in range(iters):
-            phi, dphi = _phi(X, Y)
-            xm = np.einsum("dkn,nk->nd", P, phi)
-            J = np.einsum("dkn,nkr->ndr", P, dphi)     # dx_d / dX_r
-            r = pts - xm
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            det = np.where(np.abs(det) > 0, det, 1e-300)
-            dX = (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
-            dY = (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det
-            X = X + dX
-            Y = Y + dY
-            if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-14:
+            rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+            ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+            j00, j01 = ax[1] + ax[3] * Y, ax[2] + ax[3] * X
+            j10, j11 = ay[1] + ay[3] * Y, ay[2] + ay[3] * X
+            det = j00 * j11 - j01 * j10
+            det = np.where(det != 0, det, 1e-300)
+            dX = (j11 * rx - j01 * ry) / det
+            dY = (-j10 * rx + j00 * ry) / det
+            X += dX
+            Y += dY
+            if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-13:
                 break
-        phi, _ = _phi(X, Y)
-        res = np.linalg.norm(pts - np.einsum("dkn,nk->nd", P, phi), axis=1)
-        return X, Y, res
+        rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+        ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+        return X, Y, np.hypot(rx, ry)
 
     def _locate_general(self, pts, k: int = 8):
         from scipy.spatial import cKDTree
@@ -124,26 +162,30 @@ class PointLocator:
         if self._tree is None:
             self._tree = cKDTree(mesh.p[:, mesh.t].mean(axis=1).T)
             self._size = float(np.ptp(mesh.p, axis=1).max())
-        k = min(k, mesh.t.shape[1])
-        _, cand = self._tree.query(pts, k=k)
-        cand = cand.reshape(len(pts), k)
         n = len(pts)
         elem = np.full(n, -1, dtype=np.int64)
         X = np.zeros(n)
         Y = np.zeros(n)
-        todo = np.arange(n)
         tol = 1e-9
-        for c in range(k):
+        todo = np.arange(n)
+        k = min(k, mesh.t.shape[1])
+        # nearest centroid first (resolves almost every point), then up to k candidates for the rest
+        for kk in sorted({1, k}):
             if todo.size == 0:
                 break
-            e = cand[todo, c]
-            Xc, Yc, res = self._newton(pts[todo], e)
-            ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
-                  & (res <= 1e-9 * self._size))
-            elem[todo[ok]] = e[ok]
-            X[todo[ok]] = np.clip(Xc[ok], 0, 1)
-            Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
-            todo = todo[~ok]
+            _, cand = self._tree.query(pts[todo], k=kk)
+            cand = np.asarray(cand).reshape(todo.size, kk)
+            for c in range(kk if kk == 1 else 1, kk) if kk > 1 else range(1):
+                if todo.size == 0:
+                    break
+                e = cand[:, c]
+                Xc, Yc, res = self._newton(pts[todo], e)
+                ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+                      & (res <= 1e-9 * self._size))
+                elem[todo[ok]] = e[ok]
+                X[todo[ok]] = np.clip(Xc[ok], 0, 1)
+                Y[todo[ok]] = np.clip(Yc[ok], 0, 1)
+                todo, cand = todo[~ok], cand[~ok]
         inside = elem >= 0
         return inside, elem[inside], X[inside], Y[inside]
 
@@ -206,8 +248,10 @@ class PixelQuadrature:
         j1 = min(self.shape[1] - 1, int(np.ceil((hi[1] - self.origin[1]) / self.spacing[1])))
         ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
         ii, jj = ii.ravel(), jj.ravel()
-        pts = np.column_stack([self.origin[0] + ii * self.spacing[0], self.origin[1] + jj * self.spacing[1]])
-        loc = self.locator.locate(pts)
+        xa = self.origin[0] + np.arange(i0, i1 + 1) * self.spacing[0]
+        ya = self.origin[1] + np.arange(j0, j1 + 1) * self.spacing[1]
+        pts = np.column_stack([xa[ii - i0], ya[jj - j0]])
+        loc = self.locator.locate_grid(xa, ya)
         self.location = loc
         self.index = (ii * self.shape[1] + jj)[loc.inside]
         self.points = pts[loc.inside]
@@ -215,6 +259,7 @@ class PixelQuadrature:
         self.weights = np.full(self.index.size, self.spacing[0] * self.spacing[1])
         self.n_nodes = mesh.p.shape[1]
         self.P = loc.operator(self.n_nodes)
+        self.PT = self.P.T.tocsr()
 
     @property
     def n_pixels(self) -> int:

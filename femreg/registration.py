@@ -60,7 +60,8 @@ class RegistrationResult:
 
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
-                 ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None):
+                 ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
+                 locator=None):
         self.mesh = mesh
         self.u = np.asarray(u, float)
         self.shape = tuple(int(s) for s in shape)
@@ -78,7 +79,7 @@ class RegistrationResult:
         self.timings = dict(timings or {})
         self.blockmatch = blockmatch
         self.solver_result = solver_result
-        self._locator = None
+        self._locator = locator
         self._grid = grid
 
     # -- sampling -------------------------------------------------------------------------------------------
@@ -130,10 +131,15 @@ class RegistrationResult:
         """ux, uy, exx, eyy, exy on the reference pixel grid, each (n_axial, n_lateral) float64, NaN outside
         the mesh."""
         if self._grid is None:
-            pts = self.pixel_points()
-            d = self.displacement(pts)
-            e = self.strain(pts)
-            g = {"ux": d[:, 0], "uy": d[:, 1], "exx": e[:, 0], "eyy": e[:, 1], "exy": e[:, 2]}
+            x, y = pixel_axes(self.shape, self.spacing, self.origin)
+            loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
+            g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in ("ux", "uy", "exx", "eyy", "exy")}
+            ux, uy = self.ux[loc.nodes], self.uy[loc.nodes]
+            g["ux"][loc.inside] = np.sum(loc.N * ux, axis=1)
+            g["uy"][loc.inside] = np.sum(loc.N * uy, axis=1)
+            g["exx"][loc.inside] = np.sum(loc.dN[:, :, 0] * ux, axis=1)
+            g["eyy"][loc.inside] = np.sum(loc.dN[:, :, 1] * uy, axis=1)
+            g["exy"][loc.inside] = 0.5 * (np.sum(loc.dN[:, :, 1] * ux, axis=1) + np.sum(loc.dN[:, :, 0] * uy, axis=1))
             self._grid = {k: v.reshape(self.shape) for k, v in g.items()}
         return self._grid
 
@@ -246,7 +252,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         "strain-incompressible" = R_eps_i, momentum ones when installed) or an instance.
     alpha : float, optional
         :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; None = the regulariser's
-        documented default.
+        documented default (R_eps 30, R_eps_i 3 with the default 2 mm mesh; see
+        :mod:`femreg.regularizers.strain`).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
         A user's quad mesh (mm, [x, y]); default: structured ROI mesh (:func:`femreg.mesh.roi_mesh`).
     element_size, margin : float or (2,) mm, optional
@@ -347,7 +354,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     obj = Objective(data, reg)
     ncc0 = ncc(data.warped_moving(np.zeros(n_dof)), data.ref_values)
     gn = gauss_newton(obj, u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver, callback=callback)
-    ncc1 = ncc(data.warped_moving(gn.x), data.ref_values)
+    ncc1 = ncc(data.residual(gn.x) + data.ref_values, data.ref_values)   # cached residual at the best iterate
     timings["gauss_newton"] = time.perf_counter() - t
     timings["per_iteration"] = list(gn.timings)
     timings["total"] = time.perf_counter() - t_all
@@ -355,4 +362,4 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                               regularizer=reg.name, alpha=reg.alpha, success=gn.success, status=gn.status,
                               message=gn.message, nit=gn.nit, energy_history=gn.energy_history,
                               ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
-                              solver_result=gn)
+                              solver_result=gn, locator=locator)

@@ -5,11 +5,15 @@ symmetric positive (semi-)definite), then tries ``u + du``; if the energy rises 
 ``max_backtracks`` times).  Stop when ``||du|| / ||u|| < tol`` (the paper's rule, 1e-3) or after ``maxiter``
 (20) iterations.  The best iterate seen is returned, never NaN.
 
-Linear solver: the system is SPD and small (a few 10^4 DOF on the paper geometry).  Measured on the paper
-geometry (benchmarks/bench_register.py): SuperLU (``scipy.sparse.linalg.splu``) factorisation is a few ms to
-tens of ms and, when H is constant (fixed-gradient data term + a quadratic regulariser), it is factorised ONCE
-and reused by every iteration; pyamg + CG needs the rigid-body modes and was slower at this size.  A tiny
-diagonal shift (1e-10 of the mean diagonal) keeps H definite when the images do not constrain some direction
+Linear solver: the system is SPD and small.  Measured on the paper geometry (benchmarks/bench_register.py
+--solvers, 2-core shared machine): 6.1 k DOF (1 mm mesh) SuperLU ``splu`` factorise + solve 0.03 s, later solves
+with the stored factor 2 ms; ``spsolve`` 0.035 s every time; pyamg smoothed aggregation + CG (given the rigid-body
+modes) 0.10 s set-up, 14 ms per solve.  23.7 k DOF (0.5 mm): splu 0.35 s then 19 ms; spsolve 0.37 s each;
+pyamg 0.96 s then 0.23 s.  So ``splu`` (COLAMD ordering; MMD_AT_PLUS_A took 3.8 s) is the default, and when H
+is constant (fixed-gradient data term of eq:wfnew + a quadratic regulariser) it is factorised ONCE and reused by
+every iteration.  CHOLMOD (scikit-sparse) would need libsuitesparse-dev and a build; at these sizes the
+factorisation is not the bottleneck (the cubic re-interpolation of I_2 is).  A tiny diagonal shift (1e-10 of
+the mean diagonal) keeps H definite when the images do not constrain some direction
 (e.g. a linear-intensity image seen through R_eps, which leaves a translation free).
 """
 from __future__ import annotations
@@ -28,8 +32,9 @@ class SPDSolver:
     """Solve H x = b for symmetric positive (semi-)definite sparse H; reuses the factorisation if H is the same
     object as last time (``reuse=True``)."""
 
-    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD"):
+    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD", B=None):
         self.permc_spec = permc_spec
+        self.B = B  # near-null-space (rigid-body modes) for pyamg
         if method not in ("splu", "spsolve", "amg-cg"):
             raise ValueError(f"unknown linear solver {method!r}; choose 'splu', 'spsolve' or 'amg-cg'")
         self.method = method
@@ -51,10 +56,10 @@ class SPDSolver:
             import pyamg
             A = sp.csr_matrix(self._shifted(H))
             if not (reuse and self._key is H and self._fact is not None):
-                self._fact = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
+                self._fact = pyamg.smoothed_aggregation_solver(A, B=self.B, symmetry="symmetric")
                 self._key = H
                 self.n_factorizations += 1
-            return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=500)
+            return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=200)
         if not (reuse and self._key is H and self._fact is not None):
             self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec,
                                    )

@@ -189,6 +189,23 @@ def test_lagged_diffusivity_hessian_is_symmetric_psd(lambda_bar, dilatation):
     assert np.abs(H @ rigid).max() < 1e-8 * ev.max(), "rigid rotation not in the Hessian kernel"
 
 
+@pytest.mark.parametrize("lambda_bar,dilatation", VARIANTS)
+def test_kernel_is_affine_plus_four_mesh_modes(lambda_bar, dilatation):
+    """Characterisation: on a tensor mesh, ker K = 6 affine fields + 4 more, whatever the mesh size; two of the
+    extra ones are the checkerboard (hourglass) modes, which only the image term controls."""
+    dims = []
+    for nx, ny in ((4, 3), (8, 6)):
+        m = tensor_mesh(nx, ny, nx, ny)
+        K = R.momentum_jump_operators(m, lambda_bar, dilatation=dilatation).stacked().toarray()
+        dims.append(K.shape[1] - np.linalg.matrix_rank(K))
+        checker = (-1.0) ** np.rint(m.p[0] + m.p[1])
+        for comp in (0, 1):
+            u = np.zeros(K.shape[1])
+            u[comp::2] = checker
+            assert np.abs(K @ u).max() < 1e-12, "checkerboard mode is not in the kernel any more: update the docs"
+    assert dims == [10, 10], f"kernel dimensions {dims}"
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Piecewise-homogeneous FE solutions (stand-in for forward/: a stiff square inclusion, top compressed)
 # ----------------------------------------------------------------------------------------------------------

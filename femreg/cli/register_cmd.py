@@ -30,13 +30,14 @@ def add_parser(subparsers):
     from femreg.regularizers import available_regularizers
 
     p = subparsers.add_parser("register", help="register two frames (.npz with rf, spacing)",
-                              description=__doc__.splitlines()[0])
+                              description="Two-frame FE registration of .npz frames (rf, spacing[, origin]); writes mesh, nodal u and "
+                              "ux, uy, exx, eyy, exy on the reference pixel grid to OUT.npz.")
     p.add_argument("reference", help="reference frame .npz (rf, spacing[, origin])")
     p.add_argument("moving", help="moving frame .npz")
     p.add_argument("-r", "--regularizer", default="strain",
                    help=f"regulariser name (available: {', '.join(available_regularizers())})")
     p.add_argument("--alpha", type=float, default=None, help="regularisation weight (default: documented)")
-    p.add_argument("--element-size", type=float, default=None, help="element size in mm (default 1)")
+    p.add_argument("--element-size", type=float, default=None, help="element size in mm (default 2, see femreg.mesh)")
     p.add_argument("--maxiter", type=int, default=20)
     p.add_argument("--tol", type=float, default=1e-3)
     p.add_argument("-o", "--output", required=True, help="output .npz")

@@ -28,6 +28,13 @@ Contents
 :math:`\bar\lambda = 9`, dilatation at the element centre), :class:`PlaneStressMomentumRegularizer`
 ("momentum-stress", R_P_sigma, :math:`\bar\lambda = 2`).
 
+Kernel
+------
+On a tensor mesh ``K`` annihilates the 6 affine fields and 4 more fields whatever the mesh size, among them the
+two checkerboard (hourglass) modes of bilinear quads: the edge-midpoint jumps of the paper's reduced form cannot
+see them, so only the image term controls them (with noisy images a faint mesh-scale pattern can remain in u).
+``tests/test_momentum.py::test_kernel_is_affine_plus_four_mesh_modes`` pins this down.
+
 Default alphas (provisional; the paper's values do not transfer, see docs/paper-protocol.md)
 ----------------------------------------------------------------------------------------------
 For femreg's normalisation (images divided by the reference RMS, pixel weights dx dy in mm^2, lengths in mm),
