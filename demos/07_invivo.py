@@ -73,21 +73,23 @@ QUICK_REGULARIZERS = ("strain", "momentum-stress")
 # the initial guess (seq304 0.871 -> 0.902, seq299 0.571 -> 0.592), while Gauss-Newton reaches the same result
 # either way (NCC after equal to 4 digits): the FE solve, not the guess, sets the quality here.
 #
-# **Mesh.**  Elements of 1 mm x 1 mm (50 samples x 5 lines, about 5 RF wavelengths axially), the package
-# default.  Frame 1 -> 3 at the alphas below: 2 mm elements leave 13-21 % more image energy unexplained (NCC
-# 0.966 / 0.900 instead of 0.972 / 0.912 for seq304 / seq299) -- a coarser field fits the images less
-# well; 0.5 mm elements explain about 9 % more on seq304 (NCC 0.975) but make the momentum regularisers
-# about 20 times slower.  The ROI leaves out 2 mm at the top (the bright lens /
-# near-field band in the first ~1.5 mm of every frame moves with the probe, not the tissue) and 1 mm on the other
-# sides (more than the largest displacement, so x + u stays inside the image).
+# **Mesh.**  Elements of 1 mm x 1 mm (50 samples x 5 lines, about 5 RF wavelengths axially) instead of the
+# package default of 2 mm (chosen on smooth synthetic fields at 12 dB).  Frame 1 -> 3 at the alphas below:
+# 2 mm elements leave 13-21 % more image energy unexplained (NCC 0.966 / 0.900 instead of 0.972 / 0.912 for
+# seq304 / seq299) for a higher SNR_e (R_eps 1.9 / 1.4 instead of 1.2 / 1.3): the tissue layers here are a few mm
+# thick, and we prefer the field that fits the images.  0.5 mm elements explain about 9 % more on seq304 (NCC
+# 0.975) but make the momentum regularisers about 20 times slower.  The ROI leaves out 2 mm at the top (the
+# bright lens / near-field band in the first ~1.5 mm of every frame moves with the probe, not the tissue) and 1 mm
+# on the other sides (more than the largest displacement, so x + u stays inside the image).
 #
-# **alpha.**  The default weights of femreg's regularisers were tuned on simulated data; these real frames need
-# more regularisation (at its default 1e-3, R_eps gives axial-strain images that are mostly noise: SNR_e 0.3).
+# **alpha.**  femreg's default weights were chosen on synthetic speckle with 2 mm elements; on these frames and
+# 1 mm elements R_eps at small alpha gives axial-strain images that are mostly noise (SNR_e 0.3 at 1e-3).
 # Without ground truth we choose alpha by a discrepancy-type rule: *the largest alpha of a half-decade grid whose
 # unexplained image energy psi(u) of frame 1 -> 3 is at most 10 % above that of the least regularised run, in
 # both sequences* -- regularise as much as the images allow.  The sweep behind it (``ALPHA_STUDY``, printed in
-# summary.md; rerun with ``--alpha-study``) gives R_eps 100, R_eps_i 3, R_P_eps 0.1 and R_P_sigma 0.3 (its
-# default).  At equal image fit the regularisers differ in strain SNR: that comparison is the point of the demo.
+# summary.md; rerun with ``--alpha-study``) gives R_eps 100, R_eps_i 3, R_P_eps 0.1 and R_P_sigma 0.3 (package
+# defaults 30, 3, 1, 0.1).  At equal image fit the regularisers differ in strain SNR and consistency: that
+# comparison is the point of the demo.
 #
 # **SNR window.**  An 8 x 7 mm window in the upper half of each image (axial 10-18 mm in seq299, 12-20 mm in
 # seq304; lateral 2-9 mm), where the freehand compression gives a clear negative axial strain (-0.3 % in seq304,
@@ -378,7 +380,9 @@ def _fmt(v, f="{:.3f}"):
 
 def write_summary(path, seqs, all_rows, all_crows, tracks, *, quick, seconds):
     L = ["# Demo 07: in vivo RF sequences, quality without ground truth", ""]
-    L.append(f"{'Quick run (--quick): cropped pieces, regularisers ' + ', '.join(QUICK_REGULARIZERS) if quick else 'Full run'}; "
+    kind = "Quick run (--quick): cropped pieces, regularisers " + ", ".join(QUICK_REGULARIZERS) if quick \
+        else "Full run"
+    L.append(f"{kind}; "
              f"femreg {femreg.__version__}; total {seconds:.0f} s.")
     L += ["", "Settings: element size {} mm, margin {} mm, block matching {}, Gauss-Newton maxiter {}, tol {}; "
           "alpha {}.".format(SETTINGS["element_size"], quick and QUICK_MARGIN or SETTINGS["margin"],
@@ -427,7 +431,8 @@ def write_summary(path, seqs, all_rows, all_crows, tracks, *, quick, seconds):
         hg = max(crows.values(), key=lambda c: c["hourglass_uy"])
         L.append(f"- {name}: NCC after registration {min(nccs):.3f}-{max(nccs):.3f} over all pairs and "
                  f"regularisers (lowest: {worst['pair']}, {worst['regularizer']}), from between "
-                 f"{min(r['ncc_before'] for r in rows):.3f} and {max(r['ncc_before'] for r in rows):.3f} before; the regularisers differ by at most "
+                 f"{min(r['ncc_before'] for r in rows):.3f} and {max(r['ncc_before'] for r in rows):.3f} before; "
+                 f"the regularisers differ by at most "
                  f"{max(r['ncc_after'] for r in d13.values()) - min(r['ncc_after'] for r in d13.values()):.4f} in "
                  f"NCC on 1->3.  Strain SNR_e on 1->3: " + ", ".join(f"{r['regularizer']} {r['snr']:.2f}" for r in snr)
                  + ".  Consistency (RMS |u_acc - u_dir| / RMS |u|): " + ", ".join(
