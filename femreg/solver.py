@@ -32,7 +32,7 @@ class SPDSolver:
     """Solve H x = b for symmetric positive (semi-)definite sparse H; reuses the factorisation if H is the same
     object as last time (``reuse=True``)."""
 
-    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "COLAMD", B=None):
+    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "MMD_AT_PLUS_A", B=None):
         self.permc_spec = permc_spec
         self.B = B  # near-null-space (rigid-body modes) for pyamg
         if method not in ("splu", "spsolve", "amg-cg"):
@@ -61,8 +61,11 @@ class SPDSolver:
                 self.n_factorizations += 1
             return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=200)
         if not (reuse and self._key is H and self._fact is not None):
-            self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec,
-                                   )
+            # H is SPD: symmetric mode (no pivoting, ordering of A^T + A) keeps the factor sparse: 2-3x faster
+            # than the default LU for the per-iteration refactorisation of TV regularisers.  (MKL PARDISO was
+            # not faster here and is not bit-reproducible run to run.)
+            self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec, diag_pivot_thresh=0.0,
+                                   options=dict(SymmetricMode=True))
             self._key = H
             self.n_factorizations += 1
         return self._fact.solve(b)
