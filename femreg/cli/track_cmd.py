@@ -1,9 +1,14 @@
 """``femreg track FILE -o OUTDIR``: displacement from the first frame to every later frame (eq:IR), with a
-progress bar, one checkpoint file per frame as soon as it is done, and ``--resume``."""
+progress bar, one checkpoint file per frame as soon as it is done, and ``--resume``.
+
+Exit codes: 0 done (flagged low-quality pairs included), 2 bad input, 1 a frame failed (the message names it;
+the frames before it are kept on disk and ``--resume`` continues).
+"""
 from __future__ import annotations
 
 import sys
 
+from ..errors import InputError
 from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
 
 
@@ -14,7 +19,9 @@ def add_parser(subparsers):
                     "between consecutive frames in first-frame coordinates (eq:IR); 'direct' registers frame 0 "
                     "to frame k.  Each frame's result is written to OUTDIR/frame_KKK.npz when it finishes; "
                     "--resume continues an interrupted run without recomputing finished frames.  Pairs whose "
-                    "NCC after registration is below --min-ncc are flagged and the run continues.")
+                    "NCC after registration is below --min-ncc are flagged and the run continues.  If a frame "
+                    "fails, the frames before it stay saved, the command exits with code 1 naming the frame, and "
+                    "--resume continues from there.")
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
@@ -40,9 +47,25 @@ def run(args) -> int:
         print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
               + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
 
-    out = track(fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, init=args.init,
-                checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress,
-                min_ncc=args.min_ncc, on_frame=report, **kw)
+    done = []
+
+    def on_frame(k, res, flag):
+        done.append(k)
+        report(k, res, flag)
+
+    try:
+        out = track(fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, init=args.init,
+                    checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress,
+                    min_ncc=args.min_ncc, on_frame=on_frame, **kw)
+    except InputError:
+        raise  # bad input: one line and exit 2 from the dispatcher
+    except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
+        k = (done[-1] if done else 0) + 1
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
+        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
+              f"rerun with --resume to continue", file=sys.stderr)
+        return 1
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} frames in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "
