@@ -87,8 +87,8 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     from ..regularizers import available_regularizers
 
     g = parser.add_argument_group("registration options")
-    g.add_argument("-r", "--regularizer", default="momentum-stress", choices=available_regularizers(),
-                   help="regulariser (default momentum-stress = R_P_sigma)")
+    g.add_argument("-r", "--regularizer", default="momentum-stress", metavar="NAME",
+                   help="regulariser: " + ", ".join(available_regularizers()) + " (default momentum-stress = R_P_sigma)")
     g.add_argument("--alpha", type=float, help="regulariser weight (default: the regulariser's documented one)")
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
@@ -104,6 +104,10 @@ def registration_kwargs(args) -> dict:
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
     if args.alpha is not None and not (args.alpha >= 0 and args.alpha < float("inf")):
         raise InputError(f"--alpha must be a finite number >= 0, got {args.alpha}")
+    from ..regularizers import available_regularizers
+
+    if args.regularizer not in available_regularizers():
+        raise InputError(f"unknown regularizer {args.regularizer!r}; choose one of {available_regularizers()}")
     return dict(regularizer=args.regularizer, alpha=args.alpha,
                 element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                 margin=args.margin, maxiter=args.maxiter, tol=args.tol)

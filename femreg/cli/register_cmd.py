@@ -1,60 +1,65 @@
-"""``femreg register REF MOVING -r NAME [--alpha A] -o OUT.npz``: two-frame registration from .npz frames.
+"""``femreg register REF [MOVING] -o OUT.npz``: two-frame registration of RF frames from any supported file.
 
-Inputs are .npz files holding ``rf`` (2D, axial x lateral) and ``spacing`` (2,) mm, optionally ``origin``.
+REF and MOVING are read with :func:`femreg.io.read_frames` (npy/npz with ``rf`` and ``spacing``, mat, mhd, raw,
+Ultrasonix .rf, a folder of frame files).  With one file, ``--pair I J`` picks the two frames (default 0 1).
 OUT is written by :meth:`femreg.RegistrationResult.save` (mesh, nodal u, ux/uy/exx/eyy/exy on the pixel grid).
+A pair whose NCC after registration is below ``--min-ncc`` is flagged (message, result still written).
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-
-def _read_frame(path):
-    from femreg.errors import FileFormatError, InputError
-
-    if not os.path.exists(path):
-        raise InputError(f"file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except Exception as exc:  # noqa: BLE001
-        raise FileFormatError(f"{path}: not a readable .npz file ({type(exc).__name__})") from None
-    for key in ("rf", "spacing"):
-        if key not in d:
-            raise FileFormatError(f"{path}: missing key '{key}' (need 'rf' and 'spacing', optional 'origin')")
-    return d["rf"], d["spacing"], d.get("origin", np.zeros(2))
+from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
 
 
 def add_parser(subparsers):
-    from femreg.regularizers import available_regularizers
-
-    p = subparsers.add_parser("register", help="register two frames (.npz with rf, spacing)",
-                              description="Two-frame FE registration of .npz frames (rf, spacing[, origin]); writes mesh, nodal u and "
-                              "ux, uy, exx, eyy, exy on the reference pixel grid to OUT.npz.")
-    p.add_argument("reference", help="reference frame .npz (rf, spacing[, origin])")
-    p.add_argument("moving", help="moving frame .npz")
-    p.add_argument("-r", "--regularizer", default="strain",
-                   help=f"regulariser name (available: {', '.join(available_regularizers())})")
-    p.add_argument("--alpha", type=float, default=None, help="regularisation weight (default: documented)")
-    p.add_argument("--element-size", type=float, default=None, help="element size in mm (default 2, see femreg.mesh)")
-    p.add_argument("--maxiter", type=int, default=20)
-    p.add_argument("--tol", type=float, default=1e-3)
+    p = subparsers.add_parser(
+        "register", help="register two frames (any supported file format)",
+        description="Two-frame FE registration, reference(x) ~ moving(x + u(x)).  Writes mesh, nodal u and ux, uy, "
+                    "exx, eyy, exy on the reference pixel grid to OUT.npz (femreg plot OUT.npz draws it).")
+    p.add_argument("reference", help="reference frame file (or a multi-frame file with --pair)")
+    p.add_argument("moving", nargs="?", help="moving frame file (omit to take both frames from REFERENCE)")
+    p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
+                   help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
+                        "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    add_registration_args(p)
+    add_reader_args(p)
     p.set_defaults(func=run)
     return p
+
+
+def _frame(fr, index, path):
+    from femreg.errors import InputError
+
+    if not -fr.n_frames <= index < fr.n_frames:
+        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s)")
+    return fr.frames[index]
 
 
 def run(args) -> int:
     import femreg
     from femreg.errors import InputError
 
-    ref, sp_ref, org_ref = _read_frame(args.reference)
-    mov, sp_mov, _ = _read_frame(args.moving)
-    if not np.allclose(np.ravel(sp_ref), np.ravel(sp_mov)):
-        raise InputError(f"spacing differs between frames: {np.ravel(sp_ref)} vs {np.ravel(sp_mov)}")
-    res = femreg.register(ref, mov, spacing=sp_ref, origin=org_ref, regularizer=args.regularizer,
-                          alpha=args.alpha, element_size=args.element_size, maxiter=args.maxiter, tol=args.tol)
+    kw = registration_kwargs(args)
+    ref_fr = frames_from_args(args, args.reference)
+    if args.moving is None:
+        i, j = args.pair or (0, 1)
+        mov_fr = ref_fr
+    else:
+        i, j = args.pair or (0, 0)
+        mov_fr = frames_from_args(args, args.moving)
+        if not np.allclose(ref_fr.spacing, mov_fr.spacing):
+            raise InputError(f"spacing differs between frames: {tuple(ref_fr.spacing)} vs {tuple(mov_fr.spacing)}")
+    ref = _frame(ref_fr, i, args.reference)
+    mov = _frame(mov_fr, j, args.moving or args.reference)
+    if not str(args.output).endswith(".npz"):
+        raise InputError(f"output must be a .npz file, got {args.output}")
+    res = femreg.register(ref, mov, spacing=ref_fr.spacing, origin=ref_fr.origin, **kw)
     res.save(args.output)
-    print(f"{res}\nwrote {args.output}")
+    print(res)
+    if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
+        print(f"femreg register: warning: low-quality pair (NCC after {res.ncc_after:.3f} < {args.min_ncc})")
+    print(f"wrote {args.output}")
     return 0
