@@ -63,3 +63,15 @@ def test_bad_input_exit_2(npy_sequence, tmp_path, capsys, extra, needle):
 def test_missing_file_exit_2(tmp_path, capsys):
     assert main(["track", str(tmp_path / "nope.npy"), "-o", str(tmp_path / "o")] + ARGS) == 2
     assert "nope.npy" in capsys.readouterr().err
+
+
+def test_register_pair_from_one_multiframe_file(npy_sequence, tmp_path, capsys):
+    out = tmp_path / "pair.npz"
+    assert main(["register", str(npy_sequence), "--pair", "0", "2", "-o", str(out)] + ARGS[:-1]) == 0
+    z = np.load(out)
+    assert z["exx"].shape == (200, 50)
+    # frame 2 is a -0.8 % axial compression of frame 0 (moving(x + u) = reference(x), u_x = -0.008 x)
+    exx = z["exx"][np.isfinite(z["exx"])]
+    assert abs(np.median(exx) + 0.008) < 0.001, f"median exx {np.median(exx):.5f}, expected -0.008"
+    assert main(["register", str(npy_sequence), "--pair", "0", "9", "-o", str(out)] + ARGS[:-1]) == 2
+    assert "frame 9" in capsys.readouterr().err
