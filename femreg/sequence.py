@@ -142,6 +142,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=Non
         else as_quad_mesh(mesh)
     n_dof = 2 * fe_mesh.p.shape[1]
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
+    # every other registration setting too, so a resume with different settings is refused
+    params["register_kwargs"] = json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr))
 
     ckpt = None
     if checkpoint_dir is not None:

@@ -75,3 +75,11 @@ def test_register_pair_from_one_multiframe_file(npy_sequence, tmp_path, capsys):
     assert abs(np.median(exx) + 0.008) < 0.001, f"median exx {np.median(exx):.5f}, expected -0.008"
     assert main(["register", str(npy_sequence), "--pair", "0", "9", "-o", str(out)] + ARGS[:-1]) == 2
     assert "frame 9" in capsys.readouterr().err
+
+
+def test_hourglass_flag(npy_sequence, tmp_path, capsys):
+    base = ["register", str(npy_sequence), "--pair", "0", "1", "--spacing", "0.05", "0.2", "--element-size", "1",
+            "--margin", "1"]
+    assert main(base + ["-r", "momentum-stress", "--hourglass", "5", "-o", str(tmp_path / "a.npz")]) == 0
+    assert main(base + ["-r", "strain", "--hourglass", "5", "-o", str(tmp_path / "b.npz")]) == 2
+    assert "--hourglass applies to the momentum" in capsys.readouterr().err
