@@ -233,8 +233,8 @@ def _nodal(spec, mesh, what):
     return u
 
 
-def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=None,
-             mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None, maxiter: int = 20,
+def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
+             alpha=None, mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None, maxiter: int = 20,
              tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None, regularizer_options=None,
              normalize: bool = True, callback=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
@@ -248,8 +248,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     origin : (2,) mm
         Centre of pixel [0, 0].
     regularizer : str or Regularizer
-        A name from :func:`femreg.regularizers.available_regularizers` ("strain" = R_eps,
-        "strain-incompressible" = R_eps_i, momentum ones when installed) or an instance.
+        A name from :func:`femreg.regularizers.available_regularizers`: "momentum-stress" = R_P_sigma (default,
+        the most accurate laterally in the paper and here), "momentum-strain" = R_P_eps, "strain" = R_eps,
+        "strain-incompressible" = R_eps_i; or a Regularizer instance (e.g. from ``regularizers.from_form``).
     alpha : float, optional
         :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; None = the regulariser's
         documented default (R_eps 30, R_eps_i 3 with the default 2 mm mesh; see

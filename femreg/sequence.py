@@ -88,7 +88,8 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
             "init": str(init)}
 
 
-def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="strain", alpha=None, mode: str = "accumulate",
+def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
+          mode: str = "accumulate",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
           on_frame=None, **register_kwargs) -> SequenceResult:

@@ -177,7 +177,7 @@ def test_gauss_newton_hessian_symmetric_positive_definite(speckle):
 
 # ---------------------------------------------------------------- Gauss-Newton -------------------------------
 def test_zero_motion_gives_exactly_zero(speckle):
-    res = femreg.register(speckle, speckle.copy(), spacing=SP)
+    res = femreg.register(speckle, speckle.copy(), spacing=SP, regularizer="strain")
     assert res.success, res.message
     assert np.all(res.u == 0.0), f"max |u| = {np.abs(res.u).max():.1e}"
     assert res.ncc_after == pytest.approx(1.0)
@@ -191,7 +191,7 @@ def test_linear_intensity_pair_converges_in_one_step():
     y = np.arange(shape[1])[None, :] * spc[1]
     I1 = a[0] * x + a[1] * y
     I2 = a[0] * (x - d[0]) + a[1] * (y - d[1])
-    res = femreg.register(I1, I2, spacing=spc, initial="zero", alpha=1e-3, element_size=1.0, margin=1.0,
+    res = femreg.register(I1, I2, spacing=spc, regularizer="strain", initial="zero", alpha=1e-3, element_size=1.0, margin=1.0,
                           normalize=False)
     # a translation has zero strain energy; only a . u is seen by the data: a . u = a . d after one step
     au = a[0] * res.ux + a[1] * res.uy
@@ -203,7 +203,7 @@ def test_linear_intensity_pair_converges_in_one_step():
 
 def test_line_search_keeps_best_iterate_and_never_nan(speckle):
     # a hopeless initial guess (a quarter wavelength off everywhere): the energy must not rise, no NaN
-    res = femreg.register(speckle, np.roll(speckle, 2, axis=0), spacing=SP, alpha=1e-3,
+    res = femreg.register(speckle, np.roll(speckle, 2, axis=0), spacing=SP, regularizer="strain", alpha=1e-3,
                           initial=lambda p: np.tile([0.9, 4.0], (len(p), 1)), maxiter=5)
     hist = res.energy_history
     assert np.all(np.isfinite(res.u)) and np.all(np.diff(hist) <= 1e-12 * hist[0]), hist
@@ -230,8 +230,8 @@ def test_synthetic_warp_recovered(field, ux_tol, e_tol):
 
 def test_amplitude_scale_does_not_change_the_result(speckle):
     ref, mov = speckle_pair(affine_field, (400, 60), SP, seed=2)
-    a = femreg.register(ref, mov, spacing=SP, maxiter=3)
-    b = femreg.register(1e3 * ref, 1e3 * mov, spacing=SP, maxiter=3)
+    a = femreg.register(ref, mov, spacing=SP, regularizer="strain", maxiter=3)
+    b = femreg.register(1e3 * ref, 1e3 * mov, spacing=SP, regularizer="strain", maxiter=3)
     assert np.allclose(a.u, b.u, atol=1e-12, rtol=1e-9), np.abs(a.u - b.u).max()
 
 
@@ -240,13 +240,13 @@ def test_offset_field_sequence_form():
     # S + v(S) composition; registering I_1 -> I_2 directly and through the offset agree on the increment.
     S = lambda p: np.column_stack([-0.004 * p[:, 0], 0.0 * p[:, 1]])  # noqa: E731
     ref, mov = speckle_pair(affine_field, (500, 60), SP, seed=8)
-    plain = femreg.register(ref, mov, spacing=SP)
+    plain = femreg.register(ref, mov, spacing=SP, regularizer="strain")
     # With S = 0 given explicitly as a nodal vector the answer is unchanged
-    zero = femreg.register(ref, mov, spacing=SP, offset=np.zeros_like(plain.u))
+    zero = femreg.register(ref, mov, spacing=SP, regularizer="strain", offset=np.zeros_like(plain.u))
     assert np.allclose(plain.u, zero.u, atol=1e-10)
     # A non-zero S: the increment u found must satisfy ref(x + S) ~ mov(x + S + u) -> u(x) = field(x + S) + S
     # - S(x)... for an affine field and affine S: u(x) = A S(x) + field(x) with A the field's gradient
-    res = femreg.register(ref, mov, spacing=SP, offset=S)
+    res = femreg.register(ref, mov, spacing=SP, regularizer="strain", offset=S)
     pts = res.mesh.p.T
     expect = affine_field(pts + S(pts))
     err = np.abs(np.c_[res.ux, res.uy] - expect)
@@ -285,7 +285,7 @@ def test_mesh_convergence_rate_for_a_smooth_field():
     ref, mov = speckle_pair(field, SHAPE, SP, seed=6, lateral_fwhm=0.8)
     hs, errs = [2.0, 1.0, 0.5], []
     for h in hs:
-        res = femreg.register(ref, mov, spacing=SP, element_size=(h, 2 * h), alpha=1e-4, initial=field,
+        res = femreg.register(ref, mov, spacing=SP, regularizer="strain", element_size=(h, 2 * h), alpha=1e-4, initial=field,
                               margin=0.5)
         errs.append(field_errors(res, field)["ux"])
     rate = np.polyfit(np.log(hs), np.log(errs), 1)[0]
@@ -319,7 +319,7 @@ def test_strain_ratio_and_cnr():
 # ---------------------------------------------------------------- result object / files / CLI --------------
 def test_result_sampling_save_load_and_cli(tmp_path, speckle):
     ref, mov = speckle_pair(affine_field, (400, 60), SP, seed=4)
-    res = femreg.register(ref, mov, spacing=SP, maxiter=4)
+    res = femreg.register(ref, mov, spacing=SP, regularizer="strain", maxiter=4)
     far = np.array([[-5.0, 0.0], [3.0, 3.0]])
     d = res.displacement(far)
     assert np.isnan(d[0]).all() and np.isfinite(d[1]).all()
@@ -393,7 +393,7 @@ def test_cli_bad_input_exits_2(tmp_path, capsys, speckle):
 
 def test_grid_sampling_agrees_with_point_sampling():
     ref, mov = speckle_pair(smooth_field, (300, 50), SP, seed=12)
-    res = femreg.register(ref, mov, spacing=SP, maxiter=2, element_size=1.0)
+    res = femreg.register(ref, mov, spacing=SP, regularizer="strain", maxiter=2, element_size=1.0)
     g = res.on_grid()
     pts = res.pixel_points()
     d, e = res.displacement(pts), res.strain(pts)
@@ -414,7 +414,7 @@ def test_user_quad_mesh_from_file_and_unstructured(tmp_path):
     p[:, inner] += 0.15 * np.random.default_rng(0).uniform(-1, 1, (2, inner.sum()))
     path = tmp_path / "m.msh"
     MeshQuad1(p, base.t).save(str(path))
-    res = femreg.register(ref, mov, spacing=SP, mesh=path, alpha=1.0)
+    res = femreg.register(ref, mov, spacing=SP, regularizer="strain", mesh=path, alpha=1.0)
     assert tensor_structure(res.mesh) is None
     err = np.c_[res.ux, res.uy] - affine_field(res.mesh.p.T)
     rms_x = np.sqrt(np.mean(err[:, 0] ** 2)) / SP[0]
