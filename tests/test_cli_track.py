@@ -83,3 +83,11 @@ def test_hourglass_flag(npy_sequence, tmp_path, capsys):
     assert main(base + ["-r", "momentum-stress", "--hourglass", "5", "-o", str(tmp_path / "a.npz")]) == 0
     assert main(base + ["-r", "strain", "--hourglass", "5", "-o", str(tmp_path / "b.npz")]) == 2
     assert "--hourglass applies to the momentum" in capsys.readouterr().err
+
+
+def test_unwritable_output_exit_2(npy_sequence, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    rc = main(["track", str(npy_sequence), "-o", str(blocker / "sub")] + ARGS)
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and err.count("\n") == 1, err

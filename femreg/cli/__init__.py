@@ -44,7 +44,7 @@ def main(argv=None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (InputError, ValueError, FileNotFoundError) as exc:
+    except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
