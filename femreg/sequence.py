@@ -149,7 +149,10 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     ckpt = None
     if checkpoint_dir is not None:
         ckpt = Path(checkpoint_dir)
-        ckpt.mkdir(parents=True, exist_ok=True)
+        try:
+            ckpt.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot use {ckpt} as the output folder ({exc.strerror or exc})") from None
         pfile = ckpt / "track.json"
         if pfile.exists() and resume:
             old = json.loads(pfile.read_text())
