@@ -11,4 +11,7 @@ from .errors import FileFormatError, InputError  # noqa: F401
 from .registration import RegistrationResult, load_result, register  # noqa: E402,F401
 from .sequence import SequenceResult, load_track, track  # noqa: E402,F401
 
-__all__ = ["register", "RegistrationResult", "load_result", "track", "SequenceResult", "load_track", "InputError", "FileFormatError", "__version__"]
+from . import metrics, regularizers  # noqa: E402,F401
+
+__all__ = ["register", "RegistrationResult", "load_result", "track", "SequenceResult", "load_track", "metrics",
+           "regularizers", "InputError", "FileFormatError", "__version__"]
