@@ -236,7 +236,7 @@ def _nodal(spec, mesh, what):
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None, maxiter: int = 20,
              tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None, regularizer_options=None,
-             normalize: bool = True, callback=None) -> RegistrationResult:
+             normalize: bool = True, callback=None, allow_mesh_outside: bool = False) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Parameters
@@ -275,6 +275,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Divide both images by the reference RMS (default; makes alpha scale-free).
     callback : callable(u, info), optional
         Called after each Gauss-Newton iteration.
+    allow_mesh_outside : bool
+        Accept a mesh whose nodes partly leave the image (elements there are held by the regulariser alone);
+        :func:`femreg.track` uses it for meshes moved with the tissue.  At least one pixel must lie inside.
 
     Returns
     -------
@@ -312,7 +315,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=element_size, margin=margin)
     else:
         fe_mesh = as_quad_mesh(mesh)
-    check_mesh_in_image(fe_mesh, ref.shape, spacing, origin)
+    if not allow_mesh_outside:
+        check_mesh_in_image(fe_mesh, ref.shape, spacing, origin)
     locator = PointLocator(fe_mesh)
     quad = PixelQuadrature(fe_mesh, ref.shape, spacing, origin, locator=locator)
     if quad.n_pixels == 0:

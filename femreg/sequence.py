@@ -1,9 +1,20 @@
 """Frame sequences: accumulated displacement by eq:IR, and direct frame-0 -> frame-k registration.
 
 Accumulation (paper eq:IR): the increment u_k registers I_k(x + S_k) to I_{k+1}(x + S_k + u_k), where
-S_k = u_0 + ... + u_{k-1} is the accumulated field in frame-0 coordinates; all increments live on the SAME mesh
-(over frame 0), so S_{k+1} = S_k + u_k is a sum of nodal vectors.  Frame k's result is S_k: the displacement from
-frame 0 to frame k at frame-0 positions, the quantity every metric of the paper compares with the truth.
+S_k = u_0 + ... + u_{k-1} is the accumulated field in frame-0 coordinates; all increments share the nodes of ONE
+mesh (over frame 0), so S_{k+1} = S_k + u_k is a sum of nodal vectors.  Frame k's result is S_k: the displacement
+from frame 0 to frame k at frame-0 positions, the quantity every metric of the paper compares with the truth.
+
+Two ways to evaluate eq:IR (``grid``):
+
+* ``"current"`` (default): the change of variables y = x + S_k(x) turns eq:IR into a registration of I_k and
+  I_{k+1} on frame k's own pixel grid, over the frame-0 mesh moved by S_k (same nodes, same element
+  connectivity).  I_k is sampled exactly at its pixels, never interpolated.
+* ``"reference"``: the literal form, both frames interpolated at x + S_k on the frame-0 pixel grid.  Sampling
+  noisy frames between pixels changes the interpolated noise variance with the sub-pixel position, which biases
+  the tiny lateral increments; the bias accumulates.  Measured on the 3D HI sequence (12 dB, R_P_sigma,
+  frames 1 -> 20): total strain error 40.4 % (u_y 85 %) with "reference", 14.2 % (u_y 6.8 %) with "current",
+  at the same cost (~55 s).
 
 Checkpoints: with ``checkpoint_dir`` each frame's result is written (atomically) as soon as it is done; with
 ``resume=True`` finished frames are loaded instead of recomputed.  A frame that fails (error, or a registration
@@ -17,6 +28,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from skfem import MeshQuad1
 
 from .errors import InputError
 from .image import validate_image, validate_spacing
@@ -89,7 +101,7 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
 
 
 def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
-          mode: str = "accumulate",
+          mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
           on_frame=None, **register_kwargs) -> SequenceResult:
@@ -106,6 +118,10 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     mode : {"accumulate", "direct"}
         "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
         "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
+    grid : {"current", "reference"}
+        How accumulation evaluates eq:IR: on each frame's own pixel grid with the mesh moved by S_k (default),
+        or on the frame-0 grid with both frames interpolated at x + S_k (literal; biased laterally on noisy data,
+        see the module docstring).
     init : {"previous", "blockmatch"}
         Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
         increments of a compression sequence are alike, and it avoids block-matching outliers), or NCC block
@@ -134,6 +150,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     """
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    if grid not in ("current", "reference"):
+        raise InputError(f"grid must be 'current' or 'reference', got {grid!r}")
     if init not in ("blockmatch", "previous"):
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
@@ -144,6 +162,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     n_dof = 2 * fe_mesh.p.shape[1]
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
     # every other registration setting too, so a resume with different settings is refused
+    params["grid"] = grid
     params["register_kwargs"] = json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr))
 
     ckpt = None
@@ -191,9 +210,16 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 else:
                     fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
                     initial = "blockmatch" if fresh else prev_inc
-                    r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
-                                     regularizer=regularizer, alpha=alpha, mesh=fe_mesh, initial=initial,
-                                     offset=S if k > 1 else None, **register_kwargs)
+                    if grid == "current":
+                        # frame k's pixel grid, mesh moved with the tissue: I_k is never interpolated
+                        moved = fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t)
+                        r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
+                                         regularizer=regularizer, alpha=alpha, mesh=moved, initial=initial,
+                                         allow_mesh_outside=True, **register_kwargs)
+                    else:
+                        r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
+                                         regularizer=regularizer, alpha=alpha, mesh=fe_mesh, initial=initial,
+                                         offset=S if k > 1 else None, **register_kwargs)
                     inc = r_inc.u.copy()
                     res = RegistrationResult(
                         fe_mesh, S + inc, shape=shape, spacing=spacing, origin=origin,

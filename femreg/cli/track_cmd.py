@@ -25,6 +25,9 @@ def add_parser(subparsers):
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
+    p.add_argument("--grid", choices=("current", "reference"), default="current",
+                   help="accumulation: register on each frame's pixel grid with the mesh moved by the accumulated "
+                        "field (default), or on the first frame's grid as eq:IR is written (biased on noisy data)")
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
                    help="initial guess of each increment: the previous increment (default) or block matching")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
@@ -54,7 +57,8 @@ def run(args) -> int:
         report(k, res, flag)
 
     try:
-        out = track(fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, init=args.init,
+        out = track(fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, grid=args.grid,
+                    init=args.init,
                     checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress,
                     min_ncc=args.min_ncc, on_frame=on_frame, **kw)
     except InputError:
