@@ -651,6 +651,7 @@ class StudyResult:
     wall_s: float
     tables: dict = field(default_factory=dict)
     n_computed: int = 0
+    runs: list = field(default_factory=list)
 
 
 def _case_sets(s: StudySettings, alphas):
@@ -735,6 +736,12 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
     wall = time.perf_counter() - t0
     res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
                       report=outdir / "report.md", wall_s=wall, n_computed=stats.get("computed", 0))
+    runs_path = outdir / "runs.json"
+    runs = json.loads(runs_path.read_text()) if runs_path.exists() else []
+    runs.append({"finished_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "wall_s": round(wall, 1),
+                 "n_computed": res.n_computed, "jobs": int(jobs)})
+    _atomic_write_json(runs_path, runs)
+    res.runs = runs
     write_report(res, figures=figures)
     return res
 
@@ -844,6 +851,10 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
           f"({sum(1 for r in res.records.values() if 'error' in r)} failed).  Settings: `settings.json`; every "
           f"case's record: `cases/`.  Cells read **femreg (paper)**; errors are relative L2 errors over the FE mesh "
           f"in %, SR and CNR_e of the axial strain with the inclusion disk as ROI.", ""]
+    if len(res.runs) > 1:
+        L += ["Runs into this folder (each resumes the earlier ones): " + "; ".join(
+            f"{r['finished_utc']} UTC {r['wall_s'] / 60:.1f} min, {r['n_computed']} cases computed" for r in res.runs)
+            + ".", ""]
     errs = [r for r in res.records.values() if "error" in r]
     if errs:
         L += ["Failed cases:", ""] + [f"- `{r['key']}`: {r['error']}" for r in errs[:20]] + [""]
