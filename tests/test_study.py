@@ -122,6 +122,7 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert "Mesh floor" in report and "## Accumulated displacement, frames 1 -> 3" in report
     assert "sub-pixel lateral sampling" in report and "| 12.0 | 0.01 |" in report
     assert "**Registration mesh**" in report and "| 2 mm |" in report
+    assert "## Findings" in report and "**Mesh**" in report and "**Accumulation**" in report
     row = res.tables[("single", "plane-stress-HI")]["momentum-stress"]
     # The axial displacement is what the images measure best (paper: 0.1-0.3 %).
     assert np.isfinite(row["e"]) and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
