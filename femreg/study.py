@@ -135,7 +135,8 @@ class StudySettings:
     alpha_step : grid step in decades.
     refine_rounds : rounds of refinement, each at +-step/2^r decades around the current optimum.
     alphas : fixed alphas per regulariser (skip the sweep), or None.
-    element_size, margin : registration mesh (mm); None = femreg's defaults.
+    element_size, margin : registration mesh (mm); pinned (not femreg's defaults, which may change) so that the
+        case keys and results stay valid; None = femreg's defaults at run time.
     linear_solver, maxiter, tol : Gauss-Newton options of :func:`femreg.register`.
     seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
     sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
@@ -162,8 +163,8 @@ class StudySettings:
     alpha_step: float = 1.0
     refine_rounds: int = 3
     alphas: dict | None = None
-    element_size: float | None = None
-    margin: float | None = None
+    element_size: float | None = 2.0
+    margin: float | None = 1.0
     linear_solver: str = "splu"
     maxiter: int = 20
     tol: float = 1e-3
@@ -176,7 +177,7 @@ class StudySettings:
     diagnose_offsets: tuple = (0.0, 0.01, 0.03)
     diagnose_noise_free: bool = True
     variant_prefilter_px: tuple = (1.0,)
-    diagnose_element_sizes: tuple = (0.5, 2.0)
+    diagnose_element_sizes: tuple = (1.0, 3.0)
     diagnose_alpha_factors: tuple = (0.3, 1.0, 3.0)
     name: str = "full"
 
@@ -673,7 +674,12 @@ def _case_sets(s: StudySettings, alphas):
     esize = {}
     if s.single_datasets and s.diagnose_element_sizes:
         d = s.single_datasets[0]
+        from .mesh import DEFAULT_ELEMENT_SIZE
+
+        h_used = s.element_size if s.element_size is not None else DEFAULT_ELEMENT_SIZE[0]
         for h in s.diagnose_element_sizes:
+            if float(h) == float(h_used):
+                continue
             sh = replace(s, element_size=float(h))
             for r in ("strain", "momentum-stress"):
                 if r in s.regularizers:

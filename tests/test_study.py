@@ -28,7 +28,7 @@ def _small_settings(**kw):
     base = dict(regularizers=("strain", "momentum-stress"), sweep_datasets=("plane-stress-HI",),
                 single_datasets=("plane-stress-HI",), track_datasets=("plane-stress-HI",), pair=(0, 3),
                 dual_pairs=((0, 2),), n_track_frames=3, alpha_decades=(-1.0, 3.0), alpha_step=2.0, refine_rounds=0,
-                diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False, diagnose_element_sizes=(2.0,),
+                diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False, diagnose_element_sizes=(3.0,),
                 diagnose_alpha_factors=(1.0,),
                 n_frames=4, sequence_options=SEQ_OPTS, crop_mm=CROP, image_step=8, name="test")
     base.update(kw)
@@ -121,7 +121,7 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert "## Ranking of the regularisers" in report and "paper" in report
     assert "Mesh floor" in report and "## Accumulated displacement, frames 1 -> 3" in report
     assert "sub-pixel lateral sampling" in report and "| 12.0 | 0.01 |" in report
-    assert "**Registration mesh**" in report and "| 2 mm |" in report
+    assert "**Registration mesh**" in report and "| 3 mm |" in report
     assert "## Findings" in report and "**Mesh**" in report and "**Accumulation**" in report
     row = res.tables[("single", "plane-stress-HI")]["momentum-stress"]
     # The axial displacement is what the images measure best (paper: 0.1-0.3 %).
@@ -179,3 +179,9 @@ def test_quick_study_cli_under_five_minutes(tmp_path):
     report = (tmp_path / "q" / "report.md").read_text()
     assert "single frame 3d-HI" in report and "(10.3%)" in report
     assert wall < 300, f"quick study took {wall:.0f} s"
+
+
+def test_cli_study_rejects_bad_element_size(tmp_path):
+    from femreg.cli import main
+
+    assert main(["study", "-o", str(tmp_path / "x"), "--element-size", "-1", "--no-progress"]) == 2
