@@ -1146,6 +1146,25 @@ def _findings(res: StudyResult) -> list:
                 "far above the single-frame ones.  A fix belongs in the image term (e.g. interpolate with a "
                 "noise-neutral kernel, or low-pass the frames laterally beyond the PSF's band).")
         L.append(txt)
+    if s.track_datasets and s.dual_pairs:
+        big = max(s.dual_pairs, key=lambda p: p[1])
+        recs = [res.records.get(make_case(s, "pair", dd, r, res.alphas[r], big)["key"]) for dd in s.track_datasets
+                for r in s.regularizers]
+        ref = [res.records.get(make_case(s, "pair", dd, r, res.alphas[r], s.pair)["key"]) for dd in s.track_datasets
+               for r in s.regularizers]
+        recs = [r for r in recs if r and "metrics" in r]
+        ref = [r for r in ref if r and "metrics" in r]
+        if recs and ref and big != tuple(s.pair):
+            ux_b = np.median([r["metrics"]["ux"] for r in recs])
+            ux_r = np.median([r["metrics"]["ux"] for r in ref])
+            ncc_b = np.median([r["ncc_after"] for r in recs])
+            ncc_r = np.median([r["ncc_after"] for r in ref])
+            L.append(f"- **Direct {big[0] + 1} -> {big[1] + 1}** (larger strain): median u_x error {ux_b:.2f}% and NCC "
+                     f"after registration {ncc_b:.3f}, vs {ux_r:.2f}% and {ncc_r:.3f} for {s.pair[0] + 1} -> "
+                     f"{s.pair[1] + 1}." + (" An axial displacement error of several % with a still high NCC is the "
+                     "signature of RF phase wrapping (Gauss-Newton converging one RF period off in parts of the "
+                     "image, from an integer-pixel block-matching start): the strains of those cases are not "
+                     "meaningful; accumulation (small increments) avoids it." if ux_b > 5 * ux_r else ""))
     for pf in s.variant_prefilter_px:
         v1 = res.tables.get((f"variant{pf:g}-single", s.track_datasets[0] if s.track_datasets else d), {})
         v2 = res.tables.get((f"variant{pf:g}-accumulated", s.track_datasets[0] if s.track_datasets else d), {})
