@@ -24,6 +24,17 @@ Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_stra
 frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
 at frame k.  All metrics are computed by ONE function, :func:`case_metrics`.
 
+Measured (this 2-core machine, 2026-11-22; full report in docs/study_report.md):
+
+* 2 mm mesh (the default): selected alphas R_eps 17.8, R_eps_i 2.37, R_P_eps 0.100, R_P_sigma 0.133; total strain
+  error 3D HI frames 1 -> 7: 21.0 / 37.6 / 18.0 / 14.5 % (paper 26.2 / 43.8 / 14.3 / 10.3 %), the paper's ranking
+  in the 3D HI / mHI / HOM / SI and plane-stress tables; accumulated to frame 20: 41.2 / 33.2 / 36.5 / 40.4 %
+  (paper 21.3 / 39.8 / 10.8 / 8.6 %), the lateral component lost to a sub-pixel sampling bias of noisy frames
+  (report "Diagnostics"); with frames pre-smoothed laterally (sigma 1 px) 19.7 / 34.7 / 18.9 / 14.4 % and the
+  paper's ranking.  Wall time 8.9 min with the data sets cached, quick study 75 s.
+* 1 mm mesh: alphas 42.2 / 1.78e4 / 0.133 / 0.178; 3D HI single frame 29.8 / 41.6 / 17.9 / 15.0 %; wall time
+  25.2 min including generating the six data sets (about 5 min).
+
 Public names: :class:`StudySettings`, :func:`run_study`, :func:`select_alphas`, :func:`case_metrics`,
 :func:`write_report`, :func:`read_default_alphas`, :data:`PAPER`, :data:`PAPER_ALPHAS`, :data:`REGULARIZERS`.
 """
