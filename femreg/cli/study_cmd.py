@@ -17,6 +17,8 @@ def add_parser(subparsers):
     p.add_argument("--quick", action="store_true",
                    help="3D HI only, coarse alpha grid, 7 frames (a few minutes)")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--element-size", type=float, metavar="MM",
+                   help="registration element size in mm (default: the study's, 2 mm)")
     p.add_argument("--resume", action="store_true", help="keep finished cases already in OUTDIR")
     p.add_argument("--write-defaults", action="store_true",
                    help="also store the selected alphas as femreg's defaults (femreg/data/default_alphas.json)")
@@ -35,7 +37,16 @@ def run(args) -> int:
     if args.quick and out == "out/study":
         out = "out/study-quick"
     t0 = time.perf_counter()
-    res = run_study(out, quick=args.quick, jobs=args.jobs, resume=args.resume, progress=not args.no_progress,
+    from ..errors import InputError
+    from ..study import StudySettings
+
+    settings = StudySettings.quick() if args.quick else StudySettings.full()
+    if args.element_size is not None:
+        if not args.element_size > 0:
+            raise InputError(f"--element-size must be > 0 mm, got {args.element_size}")
+        settings = StudySettings.quick(element_size=args.element_size) if args.quick else \
+            StudySettings.full(element_size=args.element_size)
+    res = run_study(out, settings=settings, jobs=args.jobs, resume=args.resume, progress=not args.no_progress,
                     figures=not args.no_figures, write_defaults=args.write_defaults)
     print(f"femreg study ({res.settings.name}): report {res.report} in {time.perf_counter() - t0:.0f} s")
     print("alphas: " + ", ".join(f"{k} {v:.4g}" for k, v in res.alphas.items()))
