@@ -36,3 +36,15 @@ def test_strain_energy_of_affine_field(name):
     assert reg.energy(u) == pytest.approx(expected, rel=1e-12)
     H = reg.hessian(u)
     assert abs(H - H.T).max() < 1e-12
+
+
+def test_default_alphas_come_from_the_study_file():
+    import json
+    from pathlib import Path
+
+    import femreg
+
+    data = json.loads((Path(femreg.__file__).parent / "data" / "default_alphas.json").read_text())
+    assert set(data["alphas"]) == {"strain", "strain-incompressible", "momentum-strain", "momentum-stress"}
+    for name, value in data["alphas"].items():
+        assert make_regularizer(name).alpha == pytest.approx(value, rel=1e-12), name

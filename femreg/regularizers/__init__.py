@@ -17,3 +17,26 @@ from .momentum import (MomentumRegularizer, PlaneStrainMomentumRegularizer,  # n
 __all__ += ["from_form", "from_forms", "from_operator", "centre_gradient_operators", "TVRegularizer",
             "MomentumRegularizer", "PlaneStrainMomentumRegularizer", "PlaneStressMomentumRegularizer",
             "momentum_jump_operators", "lambda_bar_from_poisson"]
+
+
+def _apply_study_alphas() -> None:
+    """Default alphas of the built-ins = the values selected by the paper's procedure (``femreg study``), stored in
+    femreg/data/default_alphas.json with their provenance; the class attributes are the fallbacks."""
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "data" / "default_alphas.json"
+    try:
+        alphas = json.loads(path.read_text())["alphas"]
+    except (OSError, ValueError, KeyError):
+        return
+    from .momentum import PlaneStrainMomentumRegularizer as _PE, PlaneStressMomentumRegularizer as _PS
+    from .strain import StrainIncompressibleRegularizer as _EI, StrainRegularizer as _E
+
+    for cls in (_E, _EI, _PE, _PS):
+        value = alphas.get(cls.name)
+        if isinstance(value, (int, float)) and value >= 0:
+            cls.default_alpha = float(value)
+
+
+_apply_study_alphas()
