@@ -1153,10 +1153,11 @@ def _findings(res: StudyResult) -> list:
         if nf:
             b2 = max(nf, key=lambda r: r["offset_mm"])
             txt += f"; on noise-free frames the same offset gives {b2['bias_uy_mm']:+.5f} mm"
-        txt += (".  Sampling noisy frames between pixels (eq:IR samples I_k at x + S_k) biases the tiny lateral "
-                "increments, and the bias accumulates: this is why the accumulated u_y (and e_yy, e_xy) errors are "
-                "far above the single-frame ones.  A fix belongs in the image term (e.g. interpolate with a "
-                "noise-neutral kernel, or low-pass the frames laterally beyond the PSF's band).")
+        txt += (".  Sampling noisy frames between pixels (the literal eq:IR samples I_k at x + S_k) biases the tiny "
+                "lateral increments, and the bias accumulates (3d-HI, R_P_sigma, 1 -> 20: 40.4 % total strain "
+                "error, u_y 85 %, with the literal form).  femreg.track therefore evaluates eq:IR on each frame's "
+                "own pixel grid with the mesh moved by S_k (``grid='current'``, the default, used in the "
+                "accumulated tables above): I_k is never interpolated and the bias is gone.")
         L.append(txt)
     if s.track_datasets and s.dual_pairs:
         big = max(s.dual_pairs, key=lambda p: p[1])
