@@ -128,10 +128,11 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert np.isfinite(row["e"]) and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
     # Records: one JSON + npz per case, tracks with per-frame metrics.
     tracks = [r for r in res.records.values() if r["spec"]["kind"] == "track"]
-    # two regularisers x (paper method + the lateral pre-smoothing variant)
-    assert len(tracks) == 4 and all(len(t["frames"]) == 2 for t in tracks), [t["key"] for t in tracks]
+    # two regularisers x (current grid + the literal-eq:IR variant + the literal form on smoothed frames)
+    assert len(tracks) == 6 and all(len(t["frames"]) == 2 for t in tracks), [t["key"] for t in tracks]
+    assert sum(1 for t in tracks if t["spec"]["track_grid"] == "reference") == 4
     assert sum(1 for t in tracks if t["spec"].get("lateral_prefilter_px") == 1.0) == 2
-    assert "## Variant (not in the paper)" in report
+    assert "## Variant: literal eq:IR" in report and "literal vs current grid" in report
     for key in res.records:
         assert (out / "cases" / f"{key}.json").exists() and (out / "cases" / f"{key}.npz").exists()
     for png in ("alphachoice.png", "error_vs_frame_strain.png", "fields_single_plane-stress-HI.png"):
