@@ -83,6 +83,17 @@ def _entities_in_box(gmsh, dim, box, eps=1e-6):
                                                                x1 + eps, y1 + eps, z1 + eps, dim)]
 
 
+def _generate(gmsh, fields, dim: int, algorithm: dict, coarse_size_mm: float) -> None:
+    """Mesh with the minimum of the size ``fields`` as the only size source (boundary/point/curvature sizes off)."""
+    mn = gmsh.model.mesh.field.add("Min")
+    gmsh.model.mesh.field.setNumbers(mn, "FieldsList", fields)
+    gmsh.model.mesh.field.setAsBackgroundMesh(mn)
+    for k, v in {"Mesh.MeshSizeExtendFromBoundary": 0, "Mesh.MeshSizeFromPoints": 0,
+                 "Mesh.MeshSizeFromCurvature": 0, "Mesh.MeshSizeMax": coarse_size_mm, **algorithm}.items():
+        gmsh.option.setNumber(k, v)
+    gmsh.model.mesh.generate(dim)
+
+
 def _extract(gmsh, dim, elem_type, facet_type, groups_dom, groups_bnd):
     """Nodes, cells, per-name cell indices and per-name facet node lists from the current gmsh model."""
     tags, coords, _ = gmsh.model.mesh.getNodes()
@@ -218,14 +229,7 @@ def mesh_2d(*, block_mm: float = 160.0, inclusion_diameter_mm: float = 15.0, inc
                          DistMax=max(30.0, 10 * mesh_size_mm)).items():
             gmsh.model.mesh.field.setNumber(th, k, v)
         fields.append(th)
-        mn = gmsh.model.mesh.field.add("Min")
-        gmsh.model.mesh.field.setNumbers(mn, "FieldsList", fields)
-        gmsh.model.mesh.field.setAsBackgroundMesh(mn)
-        for k, v in {"Mesh.MeshSizeExtendFromBoundary": 0, "Mesh.MeshSizeFromPoints": 0,
-                     "Mesh.MeshSizeFromCurvature": 0, "Mesh.Algorithm": 6,
-                     "Mesh.MeshSizeMax": coarse_size_mm}.items():
-            gmsh.option.setNumber(k, v)
-        gmsh.model.mesh.generate(2)
+        _generate(gmsh, fields, 2, {"Mesh.Algorithm": 6}, coarse_size_mm)
         p, t, sub, fac = _extract(gmsh, 2, 2, 1, pg, pb)
     return _to_skfem(MeshTri1, p, t, sub, fac)
 
@@ -341,13 +345,6 @@ def mesh_3d(*, block_mm: float = 160.0, inclusion_diameter_mm: float = 15.0, inc
                              DistMax=max(20.0, 8 * mesh_size_mm)).items():
                 gmsh.model.mesh.field.setNumber(th2, k, v)
             fields.append(th2)
-        mn = gmsh.model.mesh.field.add("Min")
-        gmsh.model.mesh.field.setNumbers(mn, "FieldsList", fields)
-        gmsh.model.mesh.field.setAsBackgroundMesh(mn)
-        for k, v in {"Mesh.MeshSizeExtendFromBoundary": 0, "Mesh.MeshSizeFromPoints": 0,
-                     "Mesh.MeshSizeFromCurvature": 0, "Mesh.Algorithm3D": 10,
-                     "Mesh.MeshSizeMax": coarse_size_mm}.items():
-            gmsh.option.setNumber(k, v)
-        gmsh.model.mesh.generate(3)
+        _generate(gmsh, fields, 3, {"Mesh.Algorithm3D": 10}, coarse_size_mm)
         p, t, sub, fac = _extract(gmsh, 3, 4, 2, pg, pb)
     return _to_skfem(MeshTet1, p, t, sub, fac)
