@@ -8,6 +8,13 @@ e.g. the FE nodes.
 
 All windows are processed at once: one batched real FFT gives the correlation for every shift, box sums of an
 integral image give the moving-window norms.  ``subsample=True`` refines the peak by a 1D parabola per axis.
+
+Large strain (companding): at more than about 1 % axial strain the speckle inside a 5 mm window is compressed by a
+sizeable fraction of a wavelength, block matching fails locally, and Gauss-Newton then converges one RF period off.
+When the first pass's least-squares affine fit shows a mean strain above ``compand_strain`` and its windows are
+decorrelated (median peak NCC below ``compand_ncc``), the moving image is
+pre-warped by that affine field and matched again; the result is the affine field plus the residual match, kept only
+if it raised the median peak NCC.
 """
 from __future__ import annotations
 
@@ -45,6 +52,19 @@ class BlockMatchResult:
     displacement: np.ndarray
     ncc: np.ndarray
 
+    def affine_fit(self) -> np.ndarray:
+        """Least-squares affine fit of the filtered field: (3, 2) coefficients, u_c = c[0,c] + c[1,c] x + c[2,c] y."""
+        X, Y = np.meshgrid(self.x, self.y, indexing="ij")
+        G = np.column_stack([np.ones(X.size), X.ravel(), Y.ravel()])
+        return np.linalg.lstsq(G, self.displacement.reshape(-1, 2), rcond=None)[0]
+
+    def global_strain(self) -> float:
+        """max(|mean exx|, |mean eyy|) of the affine fit (0 with fewer than 2 windows along an axis)."""
+        if self.x.size < 2 or self.y.size < 2:
+            return 0.0
+        c = self.affine_fit()
+        return float(max(abs(c[1, 0]), abs(c[2, 1])))
+
     def __call__(self, points) -> np.ndarray:
         """Linear interpolation of the filtered field at ``points`` (n, 2) mm -> (n, 2) mm (clamped to the
         hull of window centres)."""
@@ -71,7 +91,43 @@ def _starts(n: int, w: int, step: int) -> np.ndarray:
 
 
 def block_match(reference, moving, spacing, origin=(0.0, 0.0), *, window=(5.0, 9.0), overlap=(0.25, 0.40),
-                search=(1.5, 1.5), median_size: int = 5, subsample: bool = False) -> BlockMatchResult:
+                search=(1.5, 1.5), median_size: int = 5, subsample: bool = False,
+                compand_strain: float | None = 0.01, compand_ncc: float = 0.6) -> BlockMatchResult:
+    """NCC block matching of ``moving`` against ``reference``, with companding at large strain (module doc).
+
+    Companding is tried when the first pass shows both a global strain above ``compand_strain`` (None disables
+    it) and decorrelated windows (median peak NCC below ``compand_ncc``).  Measured: 3D sequences frames 1 -> 10
+    (1.5 %) median NCC 0.48-0.51, frames 1 -> 7 (0.9 %) 0.75.  Other parameters: see :func:`_block_match_once`.
+    """
+    bm = _block_match_once(reference, moving, spacing, origin, window=window, overlap=overlap, search=search,
+                           median_size=median_size, subsample=subsample)
+    if compand_strain is None or bm.x.size < 2 or bm.y.size < 2:
+        return bm
+    if bm.global_strain() <= compand_strain or np.median(bm.ncc) >= compand_ncc:
+        return bm
+    coef = bm.affine_fit()
+    X, Y = np.meshgrid(bm.x, bm.y, indexing="ij")
+    spacing_a = np.asarray(spacing, float)
+    origin_a = np.asarray(origin, float)
+    mov = np.asarray(moving, float)
+    ii, jj = np.meshgrid(np.arange(mov.shape[0]), np.arange(mov.shape[1]), indexing="ij")
+    px = origin_a[0] + ii * spacing_a[0]
+    py = origin_a[1] + jj * spacing_a[1]
+    ax = coef[0, 0] + coef[1, 0] * px + coef[2, 0] * py
+    ay = coef[0, 1] + coef[1, 1] * px + coef[2, 1] * py
+    # mov_w(x) = mov(x + A(x)); then reference(x) ~ mov_w(x + v) ~ mov(x + A(x) + v)
+    warped = ndimage.map_coordinates(mov, [ii + ax / spacing_a[0], jj + ay / spacing_a[1]], order=3,
+                                     mode="constant", cval=0.0)
+    res = _block_match_once(reference, warped, spacing, origin, window=window, overlap=overlap, search=search,
+                            median_size=median_size, subsample=subsample)
+    if np.median(res.ncc) <= np.median(bm.ncc):
+        return bm          # the pre-warp did not make the windows more alike: keep the first pass
+    A = np.stack([coef[0, c] + coef[1, c] * X + coef[2, c] * Y for c in range(2)], axis=-1)
+    return BlockMatchResult(x=res.x, y=res.y, raw=res.raw + A, displacement=res.displacement + A, ncc=res.ncc)
+
+
+def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(5.0, 9.0), overlap=(0.25, 0.40),
+                      search=(1.5, 1.5), median_size: int = 5, subsample: bool = False) -> BlockMatchResult:
     """NCC block matching of ``moving`` against ``reference``.
 
     Parameters
