@@ -147,10 +147,10 @@ class RegistrationResult:
         return self._grid
 
     # -- files ----------------------------------------------------------------------------------------------
-    def save(self, path) -> None:
+    def save(self, path, **extra) -> None:
         """Write the result as .npz (keys: mesh_points (2, n_nodes), mesh_cells (4, n_el), u, spacing, origin,
         shape, ux, uy, exx, eyy, exy (n_axial, n_lateral), regularizer, alpha, success, nit, message,
-        ncc_before, ncc_after, energy_history)."""
+        ncc_before, ncc_after, energy_history), plus any ``extra`` arrays."""
         g = self.on_grid()
         np.savez_compressed(
             path, mesh_points=np.asarray(self.mesh.p, float), mesh_cells=np.asarray(self.mesh.t, np.int64),
@@ -158,7 +158,7 @@ class RegistrationResult:
             ux=g["ux"], uy=g["uy"], exx=g["exx"], eyy=g["eyy"], exy=g["exy"],
             regularizer=np.str_(self.regularizer), alpha=np.float64(self.alpha), success=np.bool_(self.success),
             nit=np.int64(self.nit), message=np.str_(self.message), ncc_before=np.float64(self.ncc_before),
-            ncc_after=np.float64(self.ncc_after), energy_history=self.energy_history)
+            ncc_after=np.float64(self.ncc_after), energy_history=self.energy_history, **extra)
 
     def __repr__(self) -> str:
         return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "

@@ -24,12 +24,12 @@ frames.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 from skfem import MeshQuad1
 
+from ._atomic import atomic_savez, atomic_write_text
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
@@ -78,17 +78,6 @@ def _validate_frames(frames):
     if len(shapes) != 1:
         raise InputError(f"all frames must have the same shape, got {sorted(shapes)}")
     return seq
-
-
-def _atomic_save(result: RegistrationResult, path: Path, extra: dict) -> None:
-    """Write ``result`` plus ``extra`` arrays to ``path`` atomically (tmp file + rename)."""
-    tmp = path.with_name(path.name + ".tmp.npz")
-    result.save(tmp)
-    with np.load(tmp, allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
-    data.update(extra)
-    np.savez_compressed(tmp, **data)
-    os.replace(tmp, path)
 
 
 def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, mesh, init):
@@ -180,9 +169,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 raise InputError(f"cannot resume from {ckpt}: parameters differ ({', '.join(diff)})")
         elif pfile.exists() and any(ckpt.glob("frame_*.npz")):
             raise InputError(f"{ckpt} already holds a tracking run; use resume=True (--resume) or another folder")
-        tmp = pfile.with_name("track.json.tmp")
-        tmp.write_text(json.dumps(params, indent=1))
-        os.replace(tmp, pfile)
+        atomic_write_text(pfile, json.dumps(params, indent=1))
     elif resume:
         raise InputError("resume=True needs checkpoint_dir")
 
@@ -233,7 +220,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                     f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
                 computed = True
                 if path is not None:
-                    _atomic_save(res, path, {"increment": inc, "flag": np.str_(flag), "frame": np.int64(k)})
+                    atomic_savez(path, writer=lambda tmp: res.save(tmp, increment=inc, flag=np.str_(flag),
+                                                                   frame=np.int64(k)))
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
             prev_inc = inc
             out.append(res)

@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._atomic import atomic_savez, atomic_write_text
 from .errors import InputError
 
 __all__ = ["StudySettings", "run_study", "select_alphas", "case_metrics", "write_report", "read_default_alphas",
@@ -433,15 +434,7 @@ def _crop(seq, crop_mm):
 
 
 def _atomic_write_json(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, default=float))
-    os.replace(tmp, path)
-
-
-def _atomic_write_npz(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(obj, indent=1, default=float))
 
 
 def _reg_kwargs(spec, seq, origin):
@@ -495,7 +488,7 @@ def run_case(spec: dict, outdir) -> dict:
                    ncc_after=last.ncc_after, time_s=time.perf_counter() - t0)
         arrays = dict(mesh_points=last.mesh.p, mesh_cells=last.mesh.t, u=last.u, u_frames=np.array(us),
                       frame=np.int64(n - 1))
-    _atomic_write_npz(casedir / f"{spec['key']}.npz", **arrays)
+    atomic_savez(casedir / f"{spec['key']}.npz", **arrays)
     _atomic_write_json(casedir / f"{spec['key']}.json", rec)
     return rec
 
@@ -1005,9 +998,7 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
         L += ["## Figures", ""] + [f"- `{name}`: {what}" for name, what in figs] + [""]
         L += [f"![{name}]({name})" for name, _ in figs] + [""]
     path = out / "report.md"
-    tmp = path.with_name(".report.md.tmp")
-    tmp.write_text("\n".join(L) + "\n")
-    os.replace(tmp, path)
+    atomic_write_text(path, "\n".join(L) + "\n")
     summary = {"wall_s": res.wall_s, "alphas": res.alphas, "settings": s.name,
                "tables": {f"{t}:{d}": rows for (t, d), rows in res.tables.items()},
                "verdicts": {f"{t}:{d}": v for (t, d), v in verdicts.items()}}
