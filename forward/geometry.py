@@ -83,6 +83,15 @@ def _entities_in_box(gmsh, dim, box, eps=1e-6):
                                                                x1 + eps, y1 + eps, z1 + eps, dim)]
 
 
+def _threshold(gmsh, in_field: int, size_min: float, size_max: float, dist_min: float, dist_max: float) -> int:
+    """A gmsh Threshold size field: ``size_min`` within ``dist_min`` of ``in_field``, ``size_max`` beyond
+    ``dist_max``."""
+    th = gmsh.model.mesh.field.add("Threshold")
+    for k, v in dict(InField=in_field, SizeMin=size_min, SizeMax=size_max, DistMin=dist_min, DistMax=dist_max).items():
+        gmsh.model.mesh.field.setNumber(th, k, v)
+    return th
+
+
 def _generate(gmsh, fields, dim: int, algorithm: dict, coarse_size_mm: float) -> None:
     """Mesh with the minimum of the size ``fields`` as the only size source (boundary/point/curvature sizes off)."""
     mn = gmsh.model.mesh.field.add("Min")
@@ -224,11 +233,8 @@ def mesh_2d(*, block_mm: float = 160.0, inclusion_diameter_mm: float = 15.0, inc
         if w < half:
             pts = _entities_in_box(gmsh, 0, (0, -w, 0, 0, -w, 0)) + _entities_in_box(gmsh, 0, (0, w, 0, 0, w, 0))
             gmsh.model.mesh.field.setNumbers(dist, "PointsList", pts)
-        th = gmsh.model.mesh.field.add("Threshold")
-        for k, v in dict(InField=dist, SizeMin=mesh_size_mm, SizeMax=coarse_size_mm, DistMin=2 * mesh_size_mm,
-                         DistMax=max(30.0, 10 * mesh_size_mm)).items():
-            gmsh.model.mesh.field.setNumber(th, k, v)
-        fields.append(th)
+        fields.append(_threshold(gmsh, dist, mesh_size_mm, coarse_size_mm, 2 * mesh_size_mm,
+                                 max(30.0, 10 * mesh_size_mm)))
         _generate(gmsh, fields, 2, {"Mesh.Algorithm": 6}, coarse_size_mm)
         p, t, sub, fac = _extract(gmsh, 2, 2, 1, pg, pb)
     return _to_skfem(MeshTri1, p, t, sub, fac)
@@ -330,21 +336,15 @@ def mesh_3d(*, block_mm: float = 160.0, inclusion_diameter_mm: float = 15.0, inc
                     if s not in sym_y + sym_z]
         gmsh.model.mesh.field.setNumbers(dist, "SurfacesList", sph_surf)
         gmsh.model.mesh.field.setNumber(dist, "Sampling", 40)
-        th = gmsh.model.mesh.field.add("Threshold")
-        for k, v in dict(InField=dist, SizeMin=mesh_size_mm, SizeMax=coarse_size_mm, DistMin=mesh_size_mm,
-                         DistMax=max(20.0, 8 * mesh_size_mm)).items():
-            gmsh.model.mesh.field.setNumber(th, k, v)
-        fields.append(th)
+        fields.append(_threshold(gmsh, dist, mesh_size_mm, coarse_size_mm, mesh_size_mm,
+                                 max(20.0, 8 * mesh_size_mm)))
         if w < half:  # patch edges: stress singularity
             dpe = gmsh.model.mesh.field.add("Distance")
             pc = [c for c in _entities_in_box(gmsh, 1, (0, max(-w, y0), max(-w, z0), 0, w, w))]
             gmsh.model.mesh.field.setNumbers(dpe, "CurvesList", pc)
             gmsh.model.mesh.field.setNumber(dpe, "Sampling", 50)
-            th2 = gmsh.model.mesh.field.add("Threshold")
-            for k, v in dict(InField=dpe, SizeMin=1.5 * mesh_size_mm, SizeMax=coarse_size_mm, DistMin=mesh_size_mm,
-                             DistMax=max(20.0, 8 * mesh_size_mm)).items():
-                gmsh.model.mesh.field.setNumber(th2, k, v)
-            fields.append(th2)
+            fields.append(_threshold(gmsh, dpe, 1.5 * mesh_size_mm, coarse_size_mm, mesh_size_mm,
+                                     max(20.0, 8 * mesh_size_mm)))
         _generate(gmsh, fields, 3, {"Mesh.Algorithm3D": 10}, coarse_size_mm)
         p, t, sub, fac = _extract(gmsh, 3, 4, 2, pg, pb)
     return _to_skfem(MeshTet1, p, t, sub, fac)
