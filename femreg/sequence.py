@@ -199,14 +199,12 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                     initial = "blockmatch" if fresh else prev_inc
                     if grid == "current":
                         # frame k's pixel grid, mesh moved with the tissue: I_k is never interpolated
-                        moved = fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t)
-                        r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
-                                         regularizer=regularizer, alpha=alpha, mesh=moved, initial=initial,
-                                         allow_mesh_outside=True, **register_kwargs)
+                        where = dict(mesh=fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t),
+                                     allow_mesh_outside=True)
                     else:
-                        r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin,
-                                         regularizer=regularizer, alpha=alpha, mesh=fe_mesh, initial=initial,
-                                         offset=S if k > 1 else None, **register_kwargs)
+                        where = dict(mesh=fe_mesh, offset=S if k > 1 else None)
+                    r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin, regularizer=regularizer,
+                                     alpha=alpha, initial=initial, **where, **register_kwargs)
                     inc = r_inc.u.copy()
                     res = RegistrationResult(
                         fe_mesh, S + inc, shape=shape, spacing=spacing, origin=origin,
