@@ -238,8 +238,8 @@ def _nodal(spec, mesh, what):
 
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None,
-             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None, regularizer_options=None,
-             normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
+             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None,
+             regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto") -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
