@@ -35,7 +35,7 @@ from femreg.plot import bmode  # noqa: E402
 ap = argparse.ArgumentParser(description="simulated RF sequences: B-mode, true strain, schedule")
 ap.add_argument("--quick", action="store_true", help="plane-strain model, coarse mesh, 7 frames")
 args = ap.parse_args()
-out = ROOT / "out" / "02_simulate"
+out = Path("out") / "02_simulate"  # relative to the working directory (run_all.py: the repository root)
 out.mkdir(parents=True, exist_ok=True)
 
 # ## The sequence

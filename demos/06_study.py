@@ -42,7 +42,7 @@ ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2
 args = ap.parse_args()
 
 # ## Run (resumes whatever an earlier run of this demo finished)
-out = ROOT / "out" / ("06_study_quick" if args.quick else "06_study")
+out = Path("out") / ("06_study_quick" if args.quick else "06_study")  # relative to the working directory
 t0 = time.perf_counter()
 res = run_study(out, quick=args.quick, jobs=args.jobs, resume=True)
 
