@@ -1,5 +1,8 @@
 r"""User-defined regularisers in a few lines (FEniCSx style: write the weak form, get a regulariser).
 
+The built-ins are instances of the same constructions (paper arXiv:2508.19086: R_eps / R_eps_i are route (a),
+the momentum regularisers R_P_eps / R_P_sigma route (b)).
+
 Two routes, both returning a :class:`~femreg.regularizers.base.Regularizer` that ``femreg.register(...,
 regularizer=...)`` accepts directly (or by name after :func:`~femreg.regularizers.register_regularizer`).
 
