@@ -238,7 +238,7 @@ def _nodal(spec, mesh, what):
 
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None,
-             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None,
+             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto") -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
@@ -270,7 +270,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         S of eq:IR: both images are sampled at x + S(x) (sequence tracking); None = 0.
     maxiter, tol
         Gauss-Newton stopping rule: ``maxiter`` iterations or ``||du|| / ||u|| < tol`` (paper 20, 1e-3).
-    linear_solver : {"splu", "spsolve", "amg-cg"}
+    linear_solver : {"auto", "cholesky", "splu", "spsolve", "amg-cg"} (see :mod:`femreg.solver`)
     blockmatch_options : dict, optional
         Keyword arguments of :func:`femreg.blockmatch.block_match` (window, overlap, search, subsample, ...).
     regularizer_options : dict, optional
