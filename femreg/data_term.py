@@ -24,110 +24,12 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import image as _image
-from .image import SplineImage, _jit, cubic_point
+from . import _kernels
+from ._kernels import element_blocks, gradient_grid, gradient_nodes, warp_grid, warp_nodes
+from .image import SplineImage
 from .pixels import PixelQuadrature
 
 __all__ = ["SSDTerm"]
-
-
-@_jit
-def _warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing over an (nr x nc) pixel grid of a tensor mesh; Ux, Uy nodal values on the node
-    grid; pixel row r in element row ei[r] at reference X[r], column q in ej[q] at Y[q]."""
-    nc = ej.shape[0]
-    for r in range(ei.shape[0]):
-        a = ei[r]
-        x = X[r]
-        for q in range(nc):
-            b = ej[q]
-            y = Y[q]
-            w00 = (1.0 - x) * (1.0 - y)
-            w10 = x * (1.0 - y)
-            w11 = x * y
-            w01 = (1.0 - x) * y
-            ux = w00 * Ux[a, b] + w10 * Ux[a + 1, b] + w11 * Ux[a + 1, b + 1] + w01 * Ux[a, b + 1]
-            uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
-            p = r * nc + q
-            out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
-    return out
-
-
-@_jit
-def _gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
-    """Gx[node grid] += sum_p N(p) v_p gx_p (and y): the transpose of the separable pixel interpolation."""
-    nc = ej.shape[0]
-    for r in range(ei.shape[0]):
-        a = ei[r]
-        x = X[r]
-        for q in range(nc):
-            b = ej[q]
-            y = Y[q]
-            p = r * nc + q
-            vx = v[p] * gx[p]
-            vy = v[p] * gy[p]
-            w00 = (1.0 - x) * (1.0 - y)
-            w10 = x * (1.0 - y)
-            w11 = x * y
-            w01 = (1.0 - x) * y
-            Gx[a, b] += w00 * vx
-            Gx[a + 1, b] += w10 * vx
-            Gx[a + 1, b + 1] += w11 * vx
-            Gx[a, b + 1] += w01 * vx
-            Gy[a, b] += w00 * vy
-            Gy[a + 1, b] += w10 * vy
-            Gy[a + 1, b + 1] += w11 * vy
-            Gy[a, b + 1] += w01 * vy
-
-
-@_jit
-def _warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing, u from the four shape functions N of each pixel (any quad mesh)."""
-    for p in range(bx.shape[0]):
-        ux = 0.0
-        uy = 0.0
-        for k in range(4):
-            ux += N[p, k] * ux_n[nodes[p, k]]
-            uy += N[p, k] * uy_n[nodes[p, k]]
-        out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
-    return out
-
-
-@_jit
-def _gradient_nodes(v, gx, gy, nodes, N, out):  # pragma: no cover - compiled
-    for p in range(v.shape[0]):
-        vx = v[p] * gx[p]
-        vy = v[p] * gy[p]
-        for k in range(4):
-            out[2 * nodes[p, k]] += N[p, k] * vx
-            out[2 * nodes[p, k] + 1] += N[p, k] * vy
-
-
-@_jit
-def _element_blocks(w, gx, gy, N, nodes, elem, t, n_el):  # pragma: no cover - compiled
-    """Per-element 8 x 8 blocks of sum_p w_p (N_p (x) g_p)(N_p (x) g_p)^T in the element's own node order
-    ``t[:, e]`` (a pixel's ``nodes`` may list the same corners in another order)."""
-    B = np.zeros((n_el, 8, 8))
-    loc = np.empty(4, dtype=np.int64)
-    for p in range(w.shape[0]):
-        e = elem[p]
-        for k in range(4):
-            for l in range(4):
-                if t[l, e] == nodes[p, k]:
-                    loc[k] = l
-        g0 = gx[p]
-        g1 = gy[p]
-        for k in range(4):
-            for l in range(4):
-                s = w[p] * N[p, k] * N[p, l]
-                i = 2 * loc[k]
-                j = 2 * loc[l]
-                B[e, i, j] += s * g0 * g0
-                B[e, i, j + 1] += s * g0 * g1
-                B[e, i + 1, j] += s * g1 * g0
-                B[e, i + 1, j + 1] += s * g1 * g1
-    return B
-
 
 
 class SSDTerm:
@@ -183,17 +85,17 @@ class SSDTerm:
         if self._moving_at_pixels is not None and not np.any(u):
             # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
             return self._moving_at_pixels.copy()
-        if _image.use_compiled():
+        if _kernels.use_compiled():
             m = self.moving
             hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
             ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
             out = np.empty(self.quad.n_pixels)
             if self._grid is not None:
                 G, gr = self._node_grid, self._grid
-                return _warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"],
+                return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"],
                                   gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], out)
             loc = self.quad.location
-            return _warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N,
+            return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N,
                                self._inv_sp[0], self._inv_sp[1], out)
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
@@ -233,17 +135,17 @@ class SSDTerm:
     def gradient(self, u):
         """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (2 n_nodes,)."""
         wr = self.w * self.residual(u)
-        if _image.use_compiled():
+        if _kernels.use_compiled():
             out = np.zeros(2 * self.quad.n_nodes)
             if self._grid is not None:
                 G, gr = self._node_grid, self._grid
                 Gx, Gy = np.zeros(G.shape), np.zeros(G.shape)
-                _gradient_grid(wr, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
+                gradient_grid(wr, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
                 out[2 * G.ravel()] = Gx.ravel()
                 out[2 * G.ravel() + 1] = Gy.ravel()
             else:
                 loc = self.quad.location
-                _gradient_nodes(wr, self._gx, self._gy, loc.nodes, loc.N, out)
+                gradient_nodes(wr, self._gx, self._gy, loc.nodes, loc.N, out)
             return out
         PT = self.quad.PT
         out = np.empty(2 * self.quad.n_nodes)
@@ -297,7 +199,7 @@ class SSDTerm:
         loc, mesh = self.quad.location, self.quad.mesh
         t = np.ascontiguousarray(mesh.t, dtype=np.int64)
         n_el = t.shape[1]
-        B = _element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        B = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
         dof = np.empty((n_el, 8), dtype=np.int64)
         dof[:, 0::2] = 2 * t.T
         dof[:, 1::2] = 2 * t.T + 1
@@ -310,7 +212,7 @@ class SSDTerm:
         """Gauss-Newton Hessian with the fixed reference gradient (independent of u; assembled once)."""
         if self._H is None and self.quad.location.grid is not None:
             self._H = self._hessian_separable()
-        if self._H is None and _image.use_compiled():
+        if self._H is None and _kernels.use_compiled():
             self._H = self._hessian_elements()
         if self._H is None:
             Jw = self.J.multiply(np.sqrt(self.w)[:, None]).tocsr() if not np.all(self.w == self.w[0]) else None

@@ -15,17 +15,15 @@ same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale
 Interpolation
 -------------
 ``I(x)`` between pixel centres is the cubic B-spline interpolant (scipy.ndimage): the spline coefficients are
-computed once (``spline_filter``, mirror boundary) and every evaluation is
-``map_coordinates(coeffs, order=3, prefilter=False)``; points outside the image (outside the pixel cells,
-i.e. more than half a pixel beyond the first/last pixel centre) read 0, as in the paper.  The reference gradient of eq:wfnew is the exact
+computed once (``spline_filter``, mirror boundary) and every evaluation sums the 4 x 4 coefficient stencil around
+the point (:func:`cubic_at_index`); points outside the image (outside the pixel cells, i.e. more than half a pixel
+beyond the first/last pixel centre) read 0, as in the paper.  The reference gradient of eq:wfnew is the exact
 gradient of the same interpolant; at pixel centres (spline knots) it is a closed-form stencil of the
 coefficients, :meth:`SplineImage.gradient_at_pixels`.
 
-Speed: the re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton (0.55 M points per iteration on
-a paper-size image).  When numba is installed, :func:`cubic_at_index` evaluates the 4 x 4 tensor B-spline stencil
-in a compiled loop (7 ms for 0.55 M points against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best
-vectorised numpy gather, measured on the shared 2-core machine); the two agree to round-off (~1e-13 of the image
-amplitude).  Without numba the same values come from ``map_coordinates``.
+Speed: the re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton.  When numba is installed,
+:func:`cubic_at_index` evaluates the 4 x 4 tensor B-spline stencil in a compiled loop (:mod:`femreg._kernels`),
+otherwise ``map_coordinates`` does; the two agree to round-off (~1e-12 of the image amplitude).
 """
 from __future__ import annotations
 
@@ -34,66 +32,9 @@ from scipy import ndimage
 
 from .errors import InputError
 
-__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index",
-           "HAVE_NUMBA", "use_compiled"]
+from . import _kernels
 
-try:  # optional compiled kernels (see the module docstring)
-    import numba as _numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    _numba = None
-
-#: True when the compiled kernels are in use; set it to False to force the scipy/numpy code paths.
-HAVE_NUMBA = _numba is not None
-
-
-def use_compiled() -> bool:
-    """Whether the compiled (numba) kernels are used now (numba importable and :data:`HAVE_NUMBA` True)."""
-    return _numba is not None and HAVE_NUMBA
-
-
-def _jit(fn):
-    """numba.njit with an on-disk cache (compiled once per machine, ~1 s); the plain function without numba."""
-    if _numba is None:
-        return fn
-    return _numba.njit(cache=True, nogil=True)(fn)
-
-
-@_jit
-def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
-    """One value of the interpolant at fractional pixel index (xp, yp); ``c`` the coefficients mirror-padded by 2
-    on every side; 0 outside the pixel cells [-1/2, hi] (and for NaN)."""
-    if not (xp >= -0.5 and xp <= hi0 and yp >= -0.5 and yp <= hi1):
-        return 0.0
-    fx = np.floor(xp)
-    fy = np.floor(yp)
-    i = int(fx) + 1
-    j = int(fy) + 1
-    t = xp - fx
-    t2 = t * t
-    t3 = t2 * t
-    a0 = (1.0 - t) ** 3 / 6.0
-    a3 = t3 / 6.0
-    a1 = 2.0 / 3.0 - t2 + 0.5 * t3
-    a2 = 1.0 - a0 - a1 - a3
-    t = yp - fy
-    t2 = t * t
-    t3 = t2 * t
-    b0 = (1.0 - t) ** 3 / 6.0
-    b3 = t3 / 6.0
-    b1 = 2.0 / 3.0 - t2 + 0.5 * t3
-    b2 = 1.0 - b0 - b1 - b3
-    return (a0 * (b0 * c[i, j] + b1 * c[i, j + 1] + b2 * c[i, j + 2] + b3 * c[i, j + 3])
-            + a1 * (b0 * c[i + 1, j] + b1 * c[i + 1, j + 1] + b2 * c[i + 1, j + 2] + b3 * c[i + 1, j + 3])
-            + a2 * (b0 * c[i + 2, j] + b1 * c[i + 2, j + 1] + b2 * c[i + 2, j + 2] + b3 * c[i + 2, j + 3])
-            + a3 * (b0 * c[i + 3, j] + b1 * c[i + 3, j + 1] + b2 * c[i + 3, j + 2] + b3 * c[i + 3, j + 3]))
-
-
-@_jit
-def _cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
-    for p in range(x.shape[0]):
-        out[p] = cubic_point(c, x[p], y[p], hi0, hi1)
-    return out
-
+__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
 
 def cubic_at_index(padded, idx, shape, out=None):
     """Cubic B-spline interpolant at fractional pixel indices ``idx`` (2, n), 0 outside the pixel cells.
@@ -105,8 +46,8 @@ def cubic_at_index(padded, idx, shape, out=None):
     hi0, hi1 = float(shape[0]) - 0.5, float(shape[1]) - 0.5
     if out is None:
         out = np.empty(idx.shape[1])
-    if use_compiled():
-        return _cubic_kernel(padded, np.ascontiguousarray(idx[0]), np.ascontiguousarray(idx[1]), hi0, hi1, out)
+    if _kernels.use_compiled():
+        return _kernels.cubic_kernel(padded, np.ascontiguousarray(idx[0]), np.ascontiguousarray(idx[1]), hi0, hi1, out)
     v = ndimage.map_coordinates(padded, idx + 2.0, order=3, mode="constant", cval=0.0, prefilter=False,
                                 output=out)
     outside = ~((idx[0] >= -0.5) & (idx[0] <= hi0) & (idx[1] >= -0.5) & (idx[1] <= hi1))

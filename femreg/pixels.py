@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
 from .mesh import tensor_structure
 
 __all__ = ["Location", "PointLocator", "PixelQuadrature"]
@@ -235,16 +236,21 @@ class PointLocator:
         if np.any(np.diff(rows) <= 0) or np.any(np.diff(cols) <= 0):
             n = len(pts)
             return np.full(n, -1), np.zeros(n), np.zeros(n), np.zeros((n, 4), np.int64)
-        a = np.clip(np.searchsorted(rows, pts[:, 0]) - 1, 0, nxe - 1)
-        b = np.clip(np.searchsorted(cols, pts[:, 1]) - 1, 0, nye - 1)
         n = len(pts)
         elem = np.full(n, -1, dtype=np.int64)
         X = np.zeros(n)
         Y = np.zeros(n)
         nodes = np.zeros((n, 4), dtype=np.int64)
-        todo = np.arange(n)
         tol = 1e-9
         size = float(np.ptp(p, axis=1).max())
+        if _kernels.use_compiled():
+            _kernels.walk_kernel(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                         np.ascontiguousarray(p[0]), np.ascontiguousarray(p[1]), cn, cell, rows, cols, steps, tol,
+                         1e-9 * size, elem, X, Y, nodes)
+            return elem, X, Y, nodes
+        a = np.clip(np.searchsorted(rows, pts[:, 0]) - 1, 0, nxe - 1)
+        b = np.clip(np.searchsorted(cols, pts[:, 1]) - 1, 0, nye - 1)
+        todo = np.arange(n)
         for _ in range(steps):
             if todo.size == 0:
                 break
