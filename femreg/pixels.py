@@ -291,13 +291,14 @@ class PointLocator:
         tol = 1e-9
         todo = np.arange(n)
         k = min(k, mesh.t.shape[1])
-        # nearest centroid first (resolves almost every point), then up to k candidates for the rest
+        # nearest centroid first (resolves almost every point), then all k nearest for the rest (from the first
+        # again: with two centroids at the same distance the k = 1 and k = 8 queries may rank them differently)
         for kk in sorted({1, k}):
             if todo.size == 0:
                 break
             _, cand = self._tree.query(pts[todo], k=kk)
             cand = np.asarray(cand).reshape(todo.size, kk)
-            for c in range(kk if kk == 1 else 1, kk) if kk > 1 else range(1):
+            for c in range(kk):
                 if todo.size == 0:
                     break
                 e = cand[:, c]
