@@ -297,7 +297,7 @@ def _fresh_regularizer(spec, alpha, options):
 
 
 def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,
-           tol=1e-3, linear_solver="splu", callback=None, mask_outside=False) -> _Solve:
+           tol=1e-3, linear_solver="auto", callback=None, mask_outside=False) -> _Solve:
     """Gauss-Newton stage: SSD term (eq:wfnew) on ``mesh`` + a fresh regulariser with alpha per 2 x 2 mm element.
 
     ``mask_outside``: pixels that the start ``u0`` maps outside the moving image (less than 2 pixels from its
@@ -327,7 +327,7 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
 
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
-             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None,
+             maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
@@ -365,7 +365,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         S of eq:IR: both images are sampled at x + S(x) (sequence tracking); None = 0.
     maxiter, tol
         Gauss-Newton stopping rule: ``maxiter`` iterations or ``||du|| / ||u|| < tol`` (paper 20, 1e-3).
-    linear_solver : {"splu", "spsolve", "amg-cg"}
+    linear_solver : {"auto", "cholesky", "splu", "spsolve", "amg-cg"} (see :mod:`femreg.solver`)
     blockmatch_options : dict, optional
         Keyword arguments of :func:`femreg.blockmatch.block_match` for ``initial="blockmatch"``.
     regularizer_options : dict, optional
