@@ -1,4 +1,4 @@
-"""The paper's study (femreg.study / `femreg study`): metrics, alpha selection, case records, resume, report.
+"""The paper's study (paperstudy / `femreg study`): metrics, alpha selection, case records, resume, report.
 
 The default test is a reduced quick study (a small plane-stress sequence cropped around the inclusion, two
 regularisers, a 3-point alpha grid, 4 frames) that goes through the same code path as `femreg study --quick`
@@ -17,7 +17,7 @@ import forward
 from femreg.errors import InputError
 from femreg.mesh import roi_mesh
 from femreg.registration import RegistrationResult
-from femreg.study import (PAPER, StudySettings, alpha_grid, case_metrics, make_case, mesh_floor,
+from paperstudy.study import (PAPER, StudySettings, alpha_grid, case_metrics, make_case, mesh_floor,
                           read_default_alphas, run_study, write_default_alphas)
 
 SEQ_OPTS = {"depth_mm": 42.0, "width_mm": 24.0}
