@@ -45,14 +45,16 @@ def data_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def client():
-    from distributed import Client, LocalCluster
-
     import cloudpickle
+    import dask
+    from distributed import Client, LocalCluster
 
     # The worker plugin below is defined here, in a module the workers do not import: ship it by value.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=40) as cluster, Client(cluster) as cl:
+    # allowed-failures 1: a task whose worker dies twice is given up (KilledWorker) after 2 restarts, not 4
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                         silence_logs=40) as cluster, Client(cluster) as cl:
         yield cl
 
 
@@ -105,14 +107,16 @@ def test_two_worker_cluster_matches_serial_bitwise(data_dir, serial, client, tmp
 
 
 class _KillOnce(distributed.WorkerPlugin):
-    """Kills the worker process the first time a task whose key contains ``match`` starts executing."""
+    """Kills the worker process the first time a task whose key contains ``match`` starts executing (every time
+    with ``always``)."""
 
-    def __init__(self, marker, match):
-        self.marker, self.match = str(marker), match
+    def __init__(self, marker, match, always=False):
+        self.marker, self.match, self.always = str(marker), match, always
 
     def transition(self, key, start, finish, **kw):
-        if finish == "executing" and self.match in str(key) and not os.path.exists(self.marker):
-            Path(self.marker).write_text(str(os.getpid()))
+        if finish == "executing" and self.match in str(key) and (self.always or not os.path.exists(self.marker)):
+            with open(self.marker, "a") as fh:
+                fh.write(f"{os.getpid()}\n")
             os._exit(1)
 
 
@@ -125,13 +129,29 @@ def test_killed_worker_loses_nothing_and_batch_completes(data_dir, serial, clien
     finally:
         client.unregister_worker_plugin("kill-once")
     assert marker.exists(), "the worker was not killed: the test tested nothing"
-    killed_pid = marker.read_text()
+    killed_pid = marker.read_text().strip()
     assert summary.ok, summary.failed
     rec5 = next(r for r in summary.records if r["key"] == "rec05/track")
     assert not rec5["worker"].endswith(f":{killed_pid}"), "the killed task must have been rerun elsewhere"
     _assert_same_outputs(serial, tmp_path / "out")
     # Each record is written once per computation; a task whose worker died after finishing it is not rerun.
     assert sum(r["computed"] for r in summary.records) + sum(not r["computed"] for r in summary.records) == N_REC
+    client.wait_for_workers(2, timeout=30)
+
+
+def test_task_that_keeps_killing_its_worker_is_recorded_as_failed(data_dir, client, tmp_path):
+    marker = tmp_path / "killed"
+    client.register_plugin(_KillOnce(marker, "rec01/track", always=True), name="kill-always")
+    try:
+        summary = run_batch(jobs_from_inputs([data_dir / "rec00.npz", data_dir / "rec01.npz"], SETTINGS),
+                            tmp_path / "out", client=client, progress=False)
+    finally:
+        client.unregister_worker_plugin("kill-always")
+    assert len(marker.read_text().split()) == 2, "allowed-failures 1: two deaths, then given up"
+    assert [r["status"] for r in summary.records] == ["ok", "failed"]
+    assert "KilledWorker" in summary.records[1]["error"], summary.records[1]
+    rec = json.loads((tmp_path / "out" / "rec01" / "track.record.json").read_text())
+    assert rec["status"] == "failed" and "KilledWorker" in rec["error"]
     client.wait_for_workers(2, timeout=30)
 
 
@@ -249,3 +269,23 @@ def test_run_tasks_reports_errors_and_keeps_order():
     assert list(got) == ["t0", "t1", "t2", "t3"]
     assert [o.value for o in got.values()] == [0, None, 20, None]
     assert got["t1"].error == "RuntimeError: odd 1"
+
+
+def test_study_cases_on_dask_match_serial(client, tmp_path):
+    """The study's runner (paperstudy.study.run_cases) on the cluster writes the serial run's records bitwise."""
+    study = pytest.importorskip("paperstudy.study")
+    s = study.StudySettings(n_frames=4, sequence_options={"depth_mm": 42.0, "width_mm": 24.0},
+                            crop_mm=(18.0, 42.0, -10.0, 10.0), element_size=3.0, name="test")
+    specs = [study.make_case(s, "pair", "plane-stress-HI", r, a, (0, 3))
+             for r, a in (("strain", 10.0), ("momentum-stress", 1.0))]
+    serial = study.run_cases(specs, tmp_path / "serial", jobs=1, progress=False)
+    dask_ = study.run_cases(specs, tmp_path / "dask", client=client, progress=False)
+    assert all("error" not in r for r in serial.values()), serial
+    for sp in specs:
+        a, b = serial[sp["key"]], dask_[sp["key"]]
+        assert a["metrics"] == b["metrics"] and a["nit"] == b["nit"]
+        za = _arrays(tmp_path / "serial" / "cases" / f"{sp['key']}.npz")
+        zb = _arrays(tmp_path / "dask" / "cases" / f"{sp['key']}.npz")
+        assert all(np.array_equal(za[k], zb[k]) for k in za)
+    again = study.run_cases(specs, tmp_path / "dask", client=client, progress=False, stats=(st := {}))
+    assert st["computed"] == 0 and again.keys() == dask_.keys()
