@@ -117,8 +117,15 @@ def open_client(workers: int = 2, scheduler: str | None = None, *, memory_limit=
         return
     # processes: the registration holds the GIL most of the time, threads would not run in parallel.
     # No dashboard: it needs bokeh, and a batch is watched through its progress bar.
-    with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
-                      memory_limit=memory_limit, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    try:
+        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
+                               memory_limit=memory_limit, silence_logs=logging.ERROR)
+    except RuntimeError as exc:
+        main = getattr(sys.modules.get("__main__"), "__file__", None)
+        hint = (f"; if {main} is a script, put its main code under 'if __name__ == \"__main__\":' (Dask starts "
+                f"workers by spawn, which imports the script)") if main else ""
+        raise RuntimeError(f"could not start {workers} local Dask workers ({exc}){hint}") from exc
+    with cluster, Client(cluster) as client:
         yield client
 
 
