@@ -167,7 +167,8 @@ def run_tasks(tasks, *, client=None, workers: int = 2, scheduler: str | None = N
     if not tasks:
         return outcomes
     if client is None:
-        with open_client(workers, scheduler, memory_limit=memory_limit) as cl:
+        # no more local workers than tasks: each costs a process start and the imports
+        with open_client(min(int(workers), len(tasks)), scheduler, memory_limit=memory_limit) as cl:
             if cl is None:
                 return _run_serial(tasks, progress, desc, on_result)
             return run_tasks(tasks, client=cl, progress=progress, desc=desc, on_result=on_result)
@@ -283,6 +284,20 @@ def _check_settings(settings: dict, where: str) -> dict:
     if unknown:
         raise InputError(f"{where}: unknown setting(s) {unknown}; known: {', '.join(SETTINGS_KEYS)}")
     s = dict(settings)
+    def real(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    types = {"alpha": real, "margin": real, "hourglass": real, "tol": real, "sound_speed": real, "min_ncc": real,
+             "maxiter": lambda v: isinstance(v, int) and not isinstance(v, bool),
+             "element_size": lambda v: real(v) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
+             "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),
+             "regularizer": lambda v: isinstance(v, str), "variable": lambda v: isinstance(v, str),
+             "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
+             "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
+                                                               and all(isinstance(x, int) for x in v))}
+    bad = [k for k, ok in types.items() if s.get(k) is not None and not ok(s[k])]
+    if bad:
+        raise InputError(f"{where}: bad value(s) " + ", ".join(f"{k}={s[k]!r}" for k in bad))
     try:
         if s.get("frames") is not None and isinstance(s["frames"], str):
             s["frames"] = _common._frame_selection(s["frames"])
@@ -290,7 +305,7 @@ def _check_settings(settings: dict, where: str) -> dict:
             sp = s["spacing"]
             if not (isinstance(sp, (list, tuple)) and len(sp) == 2):
                 raise InputError(f"{where}: spacing must be [dx, dy] in mm, got {sp!r}")
-            s["spacing"] = [_common._spacing_value(str(v)) for v in sp]
+            s["spacing"] = [None if v is None else _common._spacing_value(str(v)) for v in sp]
     except argparse.ArgumentTypeError as exc:
         raise InputError(f"{where}: {exc}") from None
     for key in ("shape", "element_size"):
@@ -314,8 +329,6 @@ def _check_settings(settings: dict, where: str) -> dict:
             isinstance(p, (list, tuple)) and len(p) == 2 and all(isinstance(i, int) and i >= 0 for i in p)
             for p in pairs)):
         raise InputError(f"{where}: pairs must be a list of [reference, moving] frame indices >= 0, got {pairs!r}")
-    if not isinstance(s["min_ncc"], (int, float)):
-        raise InputError(f"{where}: min_ncc must be a number, got {s['min_ncc']!r}")
     return reader, reg
 
 
@@ -780,7 +793,7 @@ def run_batch(jobs, out_dir, *, client=None, workers: int = 2, scheduler: str | 
     if client is not None:
         outcomes = _go(client)
     elif tasks:
-        with open_client(workers, scheduler, memory_limit=memory_limit) as cl:
+        with open_client(min(int(workers), len(tasks)), scheduler, memory_limit=memory_limit) as cl:
             outcomes = _go(cl)
     else:
         outcomes = {}
@@ -795,8 +808,8 @@ def run_batch(jobs, out_dir, *, client=None, workers: int = 2, scheduler: str | 
             _record_path(out_dir, sp).parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(_record_path(out_dir, sp), json.dumps(rec, indent=1, default=str))
             records[sp["key"]] = rec
-    summary = BatchSummary(out_dir=out_dir, records=[records[sp["key"]] for sp in sorted(specs, key=lambda s: s["key"])],
-                           wall_s=time.perf_counter() - t0, workers=workers_desc)
+    ordered = [records[sp["key"]] for sp in sorted(specs, key=lambda s: s["key"])]
+    summary = BatchSummary(out_dir=out_dir, records=ordered, wall_s=time.perf_counter() - t0, workers=workers_desc)
     summary.csv_path, summary.md_path = out_dir / "summary.csv", out_dir / "summary.md"
     atomic_write_text(summary.csv_path, summary.to_csv())
     atomic_write_text(summary.md_path, summary.to_markdown())

@@ -17,8 +17,9 @@ What it runs (the paper's "Results" and appendix "Algorithmic Parameter Justific
 Every registration is one *case* (an accumulated track is one case); each case's record (JSON: metrics, timings,
 solver status) and its nodal field (npz) are written atomically into ``OUTDIR/cases/`` as it finishes, so a run
 that is interrupted resumes without recomputing finished cases.  Cases run on :mod:`femreg.batch` (Dask): one case
-per task, on ``jobs`` local worker processes or on a running cluster (``scheduler``).  The key of a case hashes every setting that changes its result (data set and its simulation options,
-frames, regulariser, alpha, mesh, solver), so changed settings never reuse stale results.
+per task, on ``jobs`` local worker processes or on a running cluster (``scheduler``).  The key of a case hashes
+every setting that changes its result (data set and its simulation options, frames, regulariser, alpha, mesh,
+solver), so changed settings never reuse stale results.
 
 Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_strain(k, points)`` are frame 0 -> k in
 frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
