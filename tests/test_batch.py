@@ -47,14 +47,13 @@ def data_dir(tmp_path_factory):
 def client():
     import cloudpickle
     import dask
-    from distributed import Client, LocalCluster
+
+    from femreg.batch import open_client
 
     # The worker plugin below is defined here, in a module the workers do not import: ship it by value.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     # allowed-failures 1: a task whose worker dies twice is given up (KilledWorker) after 2 restarts, not 4
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
-            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                         silence_logs=40) as cluster, Client(cluster) as cl:
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), open_client(2) as cl:
         yield cl
 
 
