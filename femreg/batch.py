@@ -587,7 +587,7 @@ def run_recording_task(spec: dict, out_dir) -> dict:
     folder = out_dir / spec["name"]
     folder.mkdir(parents=True, exist_ok=True)
     _reset_peak_rss()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     rec = {k: spec[k] for k in ("key", "name", "task_id", "input", "task", "pair", "hash")}
     rec.update(worker=f"{socket.gethostname()}:{os.getpid()}",
                blas_threads=os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS"))
@@ -599,6 +599,7 @@ def run_recording_task(spec: dict, out_dir) -> dict:
     except Exception as exc:  # noqa: BLE001 - a failing recording is recorded; the batch goes on
         rec.update(status="failed", error=_describe_error(exc), traceback=traceback.format_exc(limit=20))
     rec["wall_s"] = round(time.perf_counter() - t0, 3)
+    rec["cpu_s"] = round(time.process_time() - c0, 3)  # the worker process's CPU time: wall on a busy machine lies
     rec["peak_rss_mb"] = _peak_rss_mb()
     atomic_write_text(rpath, json.dumps(rec, indent=1, default=str))
     return {**rec, "computed": True}
@@ -660,7 +661,7 @@ def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
 # ================================================================================================================
 
 _COLUMNS = ("key", "status", "computed", "task", "n_frames", "ncc_before", "ncc_after", "nit", "success", "flag",
-            "wall_s", "peak_rss_mb", "worker", "output", "input", "error")
+            "wall_s", "cpu_s", "peak_rss_mb", "worker", "output", "input", "error")
 
 
 @dataclass
@@ -669,7 +670,7 @@ class BatchSummary:
 
     ``records[i]`` keys: key (``name/pair_III-JJJ`` or ``name/track``), status ("ok" | "failed"), computed
     (False: kept from an earlier run), ncc_before/ncc_after/nit/success/flag (registration quality), wall_s,
-    peak_rss_mb (peak resident memory of the worker process during the task, MiB), worker ("host:pid"),
+    cpu_s (CPU time of the worker process during the task), peak_rss_mb (peak resident memory of the worker process during the task, MiB), worker ("host:pid"),
     output (relative to ``out_dir``), input, error.
     """
 
@@ -732,7 +733,7 @@ def _cell(v, col) -> str:
     if v is None:
         return ""
     if isinstance(v, float):
-        return f"{v:.4f}" if col.startswith("ncc") else f"{v:.4g}" if col != "wall_s" else f"{v:.2f}"
+        return f"{v:.4f}" if col.startswith("ncc") else f"{v:.2f}" if col.endswith("_s") else f"{v:.4g}"
     return " ".join(str(v).split())
 
 
