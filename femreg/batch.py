@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -50,7 +51,7 @@ from ._atomic import atomic_savez, atomic_write_text
 from .errors import InputError
 
 __all__ = ["Task", "TaskOutcome", "run_tasks", "open_client", "Job", "jobs_from_inputs", "run_batch",
-           "BatchSummary", "default_settings", "SETTINGS_KEYS", "MANIFEST"]
+           "BatchSummary", "default_settings", "settings_keys", "settings_file_for", "MANIFEST"]
 
 #: The manifest file of a batch folder.
 MANIFEST = "batch.json"
@@ -269,29 +270,38 @@ def _run_dask(tasks, client, progress, desc, on_result):
 # Recordings: jobs, settings, per-input settings files
 # ================================================================================================================
 
-#: Settings a job (and a per-recording settings file) may set: the reader and registration flags shared by
-#: ``femreg register`` / ``track`` (femreg/cli/_common.py), and the task.
-_READER_KEYS = ("variable", "shape", "dtype", "spacing", "byte_order", "frames", "sound_speed")
-_REG_KEYS = ("regularizer", "alpha", "element_size", "margin", "hourglass", "maxiter", "tol")
-_TASK_KEYS = ("task", "pairs", "mode", "grid", "init", "min_ncc")
-SETTINGS_KEYS = _TASK_KEYS + _REG_KEYS + _READER_KEYS
+_TASK_DEFAULTS = {"task": "track", "pairs": [[0, 1]], "mode": "accumulate", "grid": "current", "init": "previous",
+                  "min_ncc": 0.5}
+
+
+@functools.lru_cache(maxsize=1)
+def _flag_defaults() -> tuple:
+    """({registration flag: default}, {reader flag: default}) of the flags shared by ``femreg register`` /
+    ``track`` (femreg/cli/_common.py): a batch takes exactly those settings, with the same defaults."""
+    import argparse
+
+    from .cli._common import add_reader_args, add_registration_args
+
+    out = []
+    for add in (add_registration_args, add_reader_args):
+        p = argparse.ArgumentParser(add_help=False)
+        add(p)
+        out.append(vars(p.parse_args([])))
+    return tuple(out)
+
+
+def settings_keys() -> tuple:
+    """Names of the settings a job (and a per-recording settings file) may set: the task's, then the shared
+    registration and reader flags' (``--element-size`` -> ``element_size``)."""
+    reg, reader = _flag_defaults()
+    return tuple(_TASK_DEFAULTS) + tuple(reg) + tuple(reader)
 
 
 def default_settings() -> dict:
     """Every setting at its default: the defaults of the shared command-line flags, and ``task="track"``,
     ``pairs=[[0, 1]]``, ``mode="accumulate"``, ``grid="current"``, ``init="previous"``, ``min_ncc=0.5``."""
-    import argparse
-
-    from .cli._common import add_reader_args, add_registration_args
-
-    p = argparse.ArgumentParser(add_help=False)
-    add_registration_args(p)
-    add_reader_args(p)
-    ns = vars(p.parse_args([]))
-    out = {"task": "track", "pairs": [[0, 1]], "mode": "accumulate", "grid": "current", "init": "previous",
-           "min_ncc": 0.5}
-    out.update({k: ns.get(k) for k in _REG_KEYS + _READER_KEYS})
-    return out
+    reg, reader = _flag_defaults()
+    return json.loads(json.dumps({**_TASK_DEFAULTS, **reg, **reader}))  # a deep copy
 
 
 def _frames_text(sel):
@@ -310,9 +320,9 @@ def _check_settings(settings: dict, where: str) -> dict:
 
     from .cli import _common
 
-    unknown = sorted(set(settings) - set(SETTINGS_KEYS))
+    unknown = sorted(set(settings) - set(settings_keys()))
     if unknown:
-        raise InputError(f"{where}: unknown setting(s) {unknown}; known: {', '.join(SETTINGS_KEYS)}")
+        raise InputError(f"{where}: unknown setting(s) {unknown}; known: {', '.join(settings_keys())}")
     s = dict(settings)
     def real(v):
         return isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -322,6 +332,7 @@ def _check_settings(settings: dict, where: str) -> dict:
              "element_size": lambda v: real(v) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),
              "regularizer": lambda v: isinstance(v, str), "variable": lambda v: isinstance(v, str),
+             "strategy": lambda v: isinstance(v, str),
              "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
              "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
                                                                and all(isinstance(x, int) for x in v))}
@@ -365,8 +376,8 @@ def _check_settings(settings: dict, where: str) -> dict:
 @dataclass(frozen=True)
 class Job:
     """One recording: ``input`` (a frame file, or a folder of per-frame files, as :func:`femreg.io.read_frames`
-    reads them), its output ``name`` (a folder of the batch output) and its complete ``settings``
-    (:data:`SETTINGS_KEYS`; :func:`default_settings` fills the rest).  ``task="track"`` is one task;
+    reads them), its output ``name`` (a folder of the batch output) and its ``settings``
+    (:func:`settings_keys`; :func:`default_settings` fills the rest).  ``task="track"`` is one task;
     ``task="register"`` is one task per entry of ``settings["pairs"]``."""
 
     input: str
@@ -468,7 +479,7 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
 
     A file is one recording.  A folder is, with ``folders="contents"`` (default), a folder of recordings: each
     frame file in it and each sub-folder (a folder of per-frame files) is one; with ``folders="recording"`` the
-    folder itself is one recording (per-frame files).  ``settings`` (see :data:`SETTINGS_KEYS`) apply to all;
+    folder itself is one recording (per-frame files).  ``settings`` (see :func:`settings_keys`) apply to all;
     a recording's own settings file (:func:`settings_file_for`) overrides them for that recording.
     Raises :class:`InputError` for a missing input, an empty folder, an unknown or bad setting.
     """
@@ -626,6 +637,8 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
     flag = _quality(res, spec["settings"]["min_ncc"])
     out = folder / f"{spec['task_id']}.npz"
     atomic_savez(out, writer=lambda tmp: res.save(tmp, flag=np.str_(flag), pair=np.asarray([i, j], np.int64)))
+    if not res.success:  # as `femreg register`: the result is written, and the pair counts as failed
+        raise RuntimeError(f"registration failed: {res.message} (result kept in {out.name})")
     return {"output": str(out.relative_to(folder.parent)), "ncc_before": res.ncc_before,
             "ncc_after": res.ncc_after, "nit": int(res.nit), "success": bool(res.success), "flag": flag,
             "n_frames": 2}

@@ -11,12 +11,21 @@ with ``w_p = dx dy`` and ``N_p`` the bilinear shape functions at pixel p.  In ma
 ``I_2(x + S + u)`` is re-interpolated per evaluation (cubic spline, prefiltered once).
 
 S (``offset``) is the accumulated displacement of a sequence (eq:IR); with S = 0 this is the two-frame problem.
+
+Speed: one Gauss-Newton iteration evaluates the residual (u at every pixel, then I_2 there) and the gradient once.
+With numba (see :mod:`femreg.image`) both are single compiled passes over the pixels: on a tensor mesh u comes from
+the separable description of the pixel grid (element row/column and reference coordinate of every pixel row and
+column), elsewhere from the four shape functions of each pixel; without numba, from the sparse operator ``P`` and
+``map_coordinates``.  The data Hessian is assembled once: by separable row/column sums on tensor meshes, else
+element by element (compiled) or as ``J^T W J``.
 """
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
+from ._kernels import element_blocks, gradient_grid, gradient_nodes, warp_grid, warp_nodes
 from .image import SplineImage
 from .pixels import PixelQuadrature
 
@@ -61,7 +70,14 @@ class SSDTerm:
         self._cache_u = None
         self._cache_r = None
         self._idx = np.empty_like(self._base_idx)
-        self._buf = np.empty(quad.n_pixels)
+        self._bx = np.ascontiguousarray(self._base_idx[0])
+        self._by = np.ascontiguousarray(self._base_idx[1])
+        self._gx = np.ascontiguousarray(g[:, 0])
+        self._gy = np.ascontiguousarray(g[:, 1])
+        self._grid = quad.location.grid
+        if self._grid is not None:
+            quad.locator._canonical()
+            self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
 
     # -------------------------------------------------------------------------------------------------------
     def warped_moving(self, u):
@@ -69,6 +85,18 @@ class SSDTerm:
         if self._moving_at_pixels is not None and not np.any(u):
             # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
             return self._moving_at_pixels.copy()
+        if _kernels.use_compiled():
+            m = self.moving
+            hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
+            ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
+            out = np.empty(self.quad.n_pixels)
+            if self._grid is not None:
+                G, gr = self._node_grid, self._grid
+                return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"],
+                                  gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], out)
+            loc = self.quad.location
+            return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N,
+                               self._inv_sp[0], self._inv_sp[1], out)
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
         np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
@@ -107,6 +135,18 @@ class SSDTerm:
     def gradient(self, u):
         """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (2 n_nodes,)."""
         wr = self.w * self.residual(u)
+        if _kernels.use_compiled():
+            out = np.zeros(2 * self.quad.n_nodes)
+            if self._grid is not None:
+                G, gr = self._node_grid, self._grid
+                Gx, Gy = np.zeros(G.shape), np.zeros(G.shape)
+                gradient_grid(wr, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
+                out[2 * G.ravel()] = Gx.ravel()
+                out[2 * G.ravel() + 1] = Gy.ravel()
+            else:
+                loc = self.quad.location
+                gradient_nodes(wr, self._gx, self._gy, loc.nodes, loc.N, out)
+            return out
         PT = self.quad.PT
         out = np.empty(2 * self.quad.n_nodes)
         out[0::2] = PT @ (wr * self.ref_gradient[:, 0])
@@ -154,10 +194,26 @@ class SSDTerm:
         H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
         return H.tocsr()
 
+    def _hessian_elements(self):
+        """H assembled element by element (any mesh): per-element 8 x 8 sums over its pixels, then one COO."""
+        loc, mesh = self.quad.location, self.quad.mesh
+        t = np.ascontiguousarray(mesh.t, dtype=np.int64)
+        n_el = t.shape[1]
+        B = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        dof = np.empty((n_el, 8), dtype=np.int64)
+        dof[:, 0::2] = 2 * t.T
+        dof[:, 1::2] = 2 * t.T + 1
+        rows = np.broadcast_to(dof[:, :, None], B.shape).ravel()
+        cols = np.broadcast_to(dof[:, None, :], B.shape).ravel()
+        n = 2 * self.quad.n_nodes
+        return sp.coo_matrix((B.ravel(), (rows, cols)), shape=(n, n)).tocsr()
+
     def hessian(self, u=None):
         """Gauss-Newton Hessian with the fixed reference gradient (independent of u; assembled once)."""
         if self._H is None and self.quad.location.grid is not None:
             self._H = self._hessian_separable()
+        if self._H is None and _kernels.use_compiled():
+            self._H = self._hessian_elements()
         if self._H is None:
             Jw = self.J.multiply(np.sqrt(self.w)[:, None]).tocsr() if not np.all(self.w == self.w[0]) else None
             if Jw is None:

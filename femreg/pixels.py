@@ -6,16 +6,24 @@ appendix "Numerical Integration".  The pixel->node operator ``P`` (sparse, (n_pi
 bilinear shape-function values per row) interpolates nodal fields to pixels: ``ux_pix = P @ u[0::2]``.
 
 * Axis-aligned tensor meshes (the default ROI mesh): location is arithmetic (``searchsorted`` on each axis).
+* Logically structured meshes (the topology of ``MeshQuad1.init_tensor``, nodes anywhere, e.g. the ROI mesh
+  moved by the accumulated displacement S_k in :func:`femreg.track`): a first guess of each point's cell from
+  the mean node position of every grid row and column, then a vectorised Newton inversion of that cell's bilinear
+  map and a walk to the neighbouring cell the reference coordinates point to, a few steps; points not settled
+  that way go to the general search.  About 10 x faster than the general search on a paper-size image.
 * Any other quad mesh: a KD-tree on element centroids proposes candidates, a vectorised Newton iteration
   inverts the bilinear map of each candidate, the first candidate with reference coordinates in [0, 1]^2 wins.
+
+All three accept a point when its reference coordinates lie in [0, 1]^2 up to 1e-9 and the bilinear map reproduces
+it to 1e-9 of the mesh size; they differ only in which element a point on a shared edge is given to (the shape
+function values, hence the interpolated fields, agree to round-off).
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
+from . import _kernels
 from .mesh import tensor_structure
 
 __all__ = ["Location", "PointLocator", "PixelQuadrature"]
@@ -32,18 +40,34 @@ def _phi(X, Y):
     return phi, np.stack([dX, dY], axis=2)
 
 
-@dataclass
 class Location:
     """Where points lie in a mesh.  ``inside`` (n,) bool; for the inside points only (m = inside.sum()):
     ``element`` (m,), ``nodes`` (m, 4) global node indices, ``N`` (m, 4) shape-function values,
-    ``dN`` (m, 4, 2) physical gradients [d/dx, d/dy] per mm."""
+    ``dN`` (m, 4, 2) physical gradients [d/dx, d/dy] per mm.
 
-    inside: np.ndarray
-    element: np.ndarray
-    nodes: np.ndarray
-    N: np.ndarray
-    dN: np.ndarray
-    grid: dict | None = None
+    ``grid`` (tensor meshes and a tensor grid of points, :meth:`PointLocator.locate_grid`): the separable
+    description ``dict(i, j, X, Y, nr, nc)``, the inside points being the C-order grid of ``nr`` rows (element row
+    ``i``, reference coordinate ``X`` each) by ``nc`` columns (``j``, ``Y``).  The per-point arrays are then built
+    only when first used (``fill``); the image term needs only ``grid``.
+    """
+
+    def __init__(self, inside, element=None, nodes=None, N=None, dN=None, grid: dict | None = None, fill=None):
+        self.inside = inside
+        self._element, self._nodes, self._N, self._dN = element, nodes, N, dN
+        self.grid = grid
+        self._fill = fill
+
+    def _get(self, name):
+        if getattr(self, name) is None and self._fill is not None:
+            for k, v in self._fill().items():     # fill() returns the missing arrays by attribute name
+                setattr(self, k, v)
+            self._fill = None
+        return getattr(self, name)
+
+    element = property(lambda self: self._get("_element"))
+    nodes = property(lambda self: self._get("_nodes"))
+    N = property(lambda self: self._get("_N"))
+    dN = property(lambda self: self._get("_dN"))
 
     def operator(self, n_nodes: int) -> sp.csr_matrix:
         """Sparse (m, n_nodes) interpolation operator: row k = shape functions of point k."""
@@ -51,33 +75,102 @@ class Location:
         indptr = np.arange(0, 4 * m + 1, 4)
         return sp.csr_matrix((self.N.ravel(), self.nodes.ravel(), indptr), shape=(m, n_nodes))
 
-    def gradient_operators(self, n_nodes: int):
-        """Sparse (m, n_nodes) operators Dx, Dy: d/dx and d/dy of a nodal scalar field at the points."""
-        m = self.nodes.shape[0]
-        indptr = np.arange(0, 4 * m + 1, 4)
-        return tuple(sp.csr_matrix((self.dN[:, :, a].ravel(), self.nodes.ravel(), indptr), shape=(m, n_nodes))
-                     for a in range(2))
+
+def _physical_gradients(mesh, nodes, dphi):
+    """dN/dx = J^{-T} dN/dX with J_dr = sum_k p_d(node k) dphi_k/dX_r; ``nodes`` (m, 4), ``dphi`` (m, 4, 2)."""
+    px = mesh.p[0][nodes]                      # (m, 4)
+    py = mesh.p[1][nodes]
+    J00 = np.sum(px * dphi[:, :, 0], axis=1)
+    J01 = np.sum(px * dphi[:, :, 1], axis=1)
+    J10 = np.sum(py * dphi[:, :, 0], axis=1)
+    J11 = np.sum(py * dphi[:, :, 1], axis=1)
+    det = J00 * J11 - J01 * J10
+    dN = np.empty_like(dphi)
+    dN[:, :, 0] = (dphi[:, :, 0] * J11[:, None] - dphi[:, :, 1] * J10[:, None]) / det[:, None]
+    dN[:, :, 1] = (-dphi[:, :, 0] * J01[:, None] + dphi[:, :, 1] * J00[:, None]) / det[:, None]
+    return dN
+
+
+def _invert_bilinear(pts, px, py, iters: int = 12):
+    """Newton inversion of x(X, Y) = a0 + a1 X + a2 Y + a3 X Y for corners ``px, py`` (4, n) in skfem's
+    ElementQuad1 reference order (0,0), (1,0), (1,1), (0,1).  Returns X, Y and the residual |x(X, Y) - pts| (mm)."""
+    ax = (px[0], px[1] - px[0], px[3] - px[0], px[0] - px[1] + px[2] - px[3])
+    ay = (py[0], py[1] - py[0], py[3] - py[0], py[0] - py[1] + py[2] - py[3])
+    x, y = pts[:, 0], pts[:, 1]
+    X = np.full(x.shape, 0.5)
+    Y = np.full(x.shape, 0.5)
+    for _ in range(iters):
+        rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+        ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+        j00, j01 = ax[1] + ax[3] * Y, ax[2] + ax[3] * X
+        j10, j11 = ay[1] + ay[3] * Y, ay[2] + ay[3] * X
+        det = j00 * j11 - j01 * j10
+        det = np.where(det != 0, det, 1e-300)
+        dX = (j11 * rx - j01 * ry) / det
+        dY = (-j10 * rx + j00 * ry) / det
+        X += dX
+        Y += dY
+        if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-13:
+            break
+    rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
+    ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
+    return X, Y, np.hypot(rx, ry)
+
+
+def logical_grid(mesh):
+    """If ``mesh`` has the connectivity of ``MeshQuad1.init_tensor`` (whatever its node positions), return
+    ``(G, cell, cn)``: ``G[a, b]`` the node at grid position (a, b), ``cell[a, b]`` the element of grid cell
+    (a, b), ``cn[a, b]`` its 4 nodes in skfem reference order (a, b), (a+1, b), (a+1, b+1), (a, b+1); else None."""
+    from skfem import MeshQuad1
+
+    n, n_el = mesh.p.shape[1], mesh.t.shape[1]
+    s = n - n_el + 1                            # nx + ny, from nx ny = n and (nx - 1)(ny - 1) = n_el
+    disc = s * s - 4 * n
+    if n_el < 1 or disc < 0:
+        return None
+    r = int(round(np.sqrt(disc)))
+    if r * r != disc or (s + r) % 2:
+        return None
+    for nx in sorted({(s + r) // 2, (s - r) // 2}):
+        ny = s - nx
+        if nx < 2 or ny < 2:
+            continue
+        ref = MeshQuad1.init_tensor(np.arange(nx, dtype=float), np.arange(ny, dtype=float))
+        if ref.t.shape == mesh.t.shape and np.array_equal(ref.t, mesh.t):
+            a, b = ref.p.astype(np.int64)
+            G = np.empty((nx, ny), dtype=np.int64)
+            G[a, b] = np.arange(n)
+            corners = ref.p[:, ref.t].min(axis=1).astype(np.int64)      # (2, n_el) lower-left grid position
+            cell = np.empty((nx - 1, ny - 1), dtype=np.int64)
+            cell[corners[0], corners[1]] = np.arange(n_el)
+            cn = np.stack([G[:-1, :-1], G[1:, :-1], G[1:, 1:], G[:-1, 1:]], axis=-1)
+            return G, cell, cn
+    return None
 
 
 class PointLocator:
-    """Locate points of the plane in a ``MeshQuad1`` (arithmetic on tensor meshes, KD-tree + Newton otherwise)."""
+    """Locate points of the plane in a ``MeshQuad1``: arithmetic on tensor meshes, a Newton walk on logically
+    structured ones, KD-tree + Newton otherwise (see the module docstring)."""
 
     def __init__(self, mesh, tol: float = 1e-10):
         self.mesh = mesh
         self.tol = tol
         self.tensor = tensor_structure(mesh)
+        self._logical = False if self.tensor is not None else None   # computed on first use
         self._tree = None
+        self._cn = None
 
     # -- structured ---------------------------------------------------------------------------------------
     def _canonical(self):
         """Per tensor cell (i, j) its nodes in skfem reference order (x0,y0), (x1,y0), (x1,y1), (x0,y1), so that
         the shape functions are :func:`_phi` of (X, Y) = ((x - x0)/hx, (y - y0)/hy) whatever the mesh's own
         local node order (init_tensor, for one, numbers its quads clockwise)."""
-        if getattr(self, "_cn", None) is None:
+        if self._cn is None:
             xs, ys, _ = self.tensor
             p = self.mesh.p
             G = np.empty((xs.size, ys.size), dtype=np.int64)
             G[np.searchsorted(xs, p[0]), np.searchsorted(ys, p[1])] = np.arange(p.shape[1])
+            self.node_grid = G
             self._cn = np.stack([G[:-1, :-1], G[1:, :-1], G[1:, 1:], G[:-1, 1:]], axis=-1)
         return self._cn
 
@@ -100,7 +193,8 @@ class PointLocator:
         return Location(inside, cell[i, j], self._canonical()[i, j], N, dphi)
 
     def locate_grid(self, xa, ya) -> Location:
-        """Locate the tensor grid of points (xa[i], ya[j]) (C order).  Separable and fast on tensor meshes."""
+        """Locate the tensor grid of points (xa[i], ya[j]) (C order).  Separable and fast on tensor meshes: the
+        result carries ``grid`` and builds its per-point arrays only when they are used."""
         xa = np.asarray(xa, float)
         ya = np.asarray(ya, float)
         if self.tensor is None:
@@ -112,48 +206,76 @@ class PointLocator:
         inside = (inx[:, None] & iny[None, :]).ravel()
         i, X, hx = i[inx], X[inx], hx[inx]
         j, Y, hy = j[iny], Y[iny], hy[iny]
-        AX = np.stack([1 - X, X, X, 1 - X], axis=1)           # (nr, 4)
-        AY = np.stack([1 - Y, 1 - Y, Y, Y], axis=1)           # (nc, 4)
-        dAX = np.array([-1.0, 1.0, 1.0, -1.0])[None, :] / hx[:, None]
-        dAY = np.array([-1.0, -1.0, 1.0, 1.0])[None, :] / hy[:, None]
-        N = (AX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
-        dN = np.empty(N.shape + (2,))
-        dN[:, :, 0] = (dAX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
-        dN[:, :, 1] = (AX[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
-        nodes = self._canonical()[i[:, None], j[None, :]].reshape(-1, 4)
-        loc = Location(inside, cell[i[:, None], j[None, :]].ravel(), nodes, N, dN)
+        cn = self._canonical()
+
+        def fill():
+            AX = np.stack([1 - X, X, X, 1 - X], axis=1)           # (nr, 4)
+            AY = np.stack([1 - Y, 1 - Y, Y, Y], axis=1)           # (nc, 4)
+            dAX = np.array([-1.0, 1.0, 1.0, -1.0])[None, :] / hx[:, None]
+            dAY = np.array([-1.0, -1.0, 1.0, 1.0])[None, :] / hy[:, None]
+            N = (AX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
+            dN = np.empty(N.shape + (2,))
+            dN[:, :, 0] = (dAX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
+            dN[:, :, 1] = (AX[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
+            nodes = cn[i[:, None], j[None, :]].reshape(-1, 4)
+            return dict(_element=cell[i[:, None], j[None, :]].ravel(), _nodes=nodes, _N=N, _dN=dN)
+
         # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
-        loc.grid = dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size))
-        return loc
+        return Location(inside, grid=dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size)), fill=fill)
+
+    # -- logically structured (moved tensor mesh) -------------------------------------------------------
+    def _walk(self, pts, steps: int = 8):
+        """Newton walk on a logically structured mesh; returns (elem, X, Y, nodes) with elem = -1 where the walk
+        did not settle (those points go to the general search)."""
+        G, cell, cn = self._logical
+        p = self.mesh.p
+        rows = p[0][G].mean(axis=1)                  # mean axial position of each grid row, (nx,)
+        cols = p[1][G].mean(axis=0)
+        nxe, nye = cell.shape
+        # the mean rows/columns are increasing for an unfolded mesh moved by a smooth field; if not, no guess
+        if np.any(np.diff(rows) <= 0) or np.any(np.diff(cols) <= 0):
+            n = len(pts)
+            return np.full(n, -1), np.zeros(n), np.zeros(n), np.zeros((n, 4), np.int64)
+        n = len(pts)
+        elem = np.full(n, -1, dtype=np.int64)
+        X = np.zeros(n)
+        Y = np.zeros(n)
+        nodes = np.zeros((n, 4), dtype=np.int64)
+        tol = 1e-9
+        size = float(np.ptp(p, axis=1).max())
+        if _kernels.use_compiled():
+            _kernels.walk_kernel(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                         np.ascontiguousarray(p[0]), np.ascontiguousarray(p[1]), cn, cell, rows, cols, steps, tol,
+                         1e-9 * size, elem, X, Y, nodes)
+            return elem, X, Y, nodes
+        a = np.clip(np.searchsorted(rows, pts[:, 0]) - 1, 0, nxe - 1)
+        b = np.clip(np.searchsorted(cols, pts[:, 1]) - 1, 0, nye - 1)
+        todo = np.arange(n)
+        for _ in range(steps):
+            if todo.size == 0:
+                break
+            nd = cn[a, b]                                   # (k, 4)
+            Xc, Yc, res = _invert_bilinear(pts[todo], p[0][nd].T, p[1][nd].T)
+            ok = ((Xc >= -tol) & (Xc <= 1 + tol) & (Yc >= -tol) & (Yc <= 1 + tol) & np.isfinite(Xc + Yc)
+                  & (res <= 1e-9 * size))
+            hit = todo[ok]
+            elem[hit] = cell[a[ok], b[ok]]
+            X[hit] = np.clip(Xc[ok], 0, 1)
+            Y[hit] = np.clip(Yc[ok], 0, 1)
+            nodes[hit] = nd[ok]
+            # step towards the cell the reference coordinates point to; stuck at the grid's edge -> give up
+            da = np.where(Xc > 1 + tol, 1, np.where(Xc < -tol, -1, 0))
+            db = np.where(Yc > 1 + tol, 1, np.where(Yc < -tol, -1, 0))
+            na, nb = np.clip(a + da, 0, nxe - 1), np.clip(b + db, 0, nye - 1)
+            moving = ~ok & ((na != a) | (nb != b)) & np.isfinite(Xc + Yc)
+            todo, a, b = todo[moving], na[moving], nb[moving]
+        return elem, X, Y, nodes
 
     # -- general ------------------------------------------------------------------------------------------
     def _newton(self, pts, e, iters: int = 12):
         """Invert the bilinear map of elements e at pts; returns X, Y (reference) and the residual (mm)."""
         t = self.mesh.t[:, e]
-        px = self.mesh.p[0][t]                          # (4, n)
-        py = self.mesh.p[1][t]
-        # x(X, Y) = a0 + a1 X + a2 Y + a3 X Y  (skfem ElementQuad1 node order)
-        ax = (px[0], px[1] - px[0], px[3] - px[0], px[0] - px[1] + px[2] - px[3])
-        ay = (py[0], py[1] - py[0], py[3] - py[0], py[0] - py[1] + py[2] - py[3])
-        x, y = pts[:, 0], pts[:, 1]
-        X = np.full(len(e), 0.5)
-        Y = np.full(len(e), 0.5)
-        for _ in range(iters):
-            rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
-            ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
-            j00, j01 = ax[1] + ax[3] * Y, ax[2] + ax[3] * X
-            j10, j11 = ay[1] + ay[3] * Y, ay[2] + ay[3] * X
-            det = j00 * j11 - j01 * j10
-            det = np.where(det != 0, det, 1e-300)
-            dX = (j11 * rx - j01 * ry) / det
-            dY = (-j10 * rx + j00 * ry) / det
-            X += dX
-            Y += dY
-            if max(np.abs(dX).max(initial=0), np.abs(dY).max(initial=0)) < 1e-13:
-                break
-        rx = x - (ax[0] + ax[1] * X + ax[2] * Y + ax[3] * X * Y)
-        ry = y - (ay[0] + ay[1] * X + ay[2] * Y + ay[3] * X * Y)
-        return X, Y, np.hypot(rx, ry)
+        return _invert_bilinear(pts, self.mesh.p[0][t], self.mesh.p[1][t], iters)
 
     def _locate_general(self, pts, k: int = 8):
         from scipy.spatial import cKDTree
@@ -169,13 +291,14 @@ class PointLocator:
         tol = 1e-9
         todo = np.arange(n)
         k = min(k, mesh.t.shape[1])
-        # nearest centroid first (resolves almost every point), then up to k candidates for the rest
+        # nearest centroid first (resolves almost every point), then all k nearest for the rest (from the first
+        # again: with two centroids at the same distance the k = 1 and k = 8 queries may rank them differently)
         for kk in sorted({1, k}):
             if todo.size == 0:
                 break
             _, cand = self._tree.query(pts[todo], k=kk)
             cand = np.asarray(cand).reshape(todo.size, kk)
-            for c in range(kk if kk == 1 else 1, kk) if kk > 1 else range(1):
+            for c in range(kk):
                 if todo.size == 0:
                     break
                 e = cand[:, c]
@@ -194,21 +317,33 @@ class PointLocator:
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
         if self.tensor is not None:
             return self._locate_tensor(pts)
-        inside, e, X, Y = self._locate_general(pts)
-        nodes = self.mesh.t[:, e].T
-        phi, dphi = _phi(X, Y)
-        # physical gradients: dN/dx = J^{-T} dN/dX, J_dr = sum_k p_d(node k) dphi_k/dX_r
-        px = self.mesh.p[0][nodes]                      # (m, 4)
-        py = self.mesh.p[1][nodes]
-        J00 = np.sum(px * dphi[:, :, 0], axis=1)
-        J01 = np.sum(px * dphi[:, :, 1], axis=1)
-        J10 = np.sum(py * dphi[:, :, 0], axis=1)
-        J11 = np.sum(py * dphi[:, :, 1], axis=1)
-        det = J00 * J11 - J01 * J10
-        dN = np.empty_like(dphi)
-        dN[:, :, 0] = (dphi[:, :, 0] * J11[:, None] - dphi[:, :, 1] * J10[:, None]) / det[:, None]
-        dN[:, :, 1] = (-dphi[:, :, 0] * J01[:, None] + dphi[:, :, 1] * J00[:, None]) / det[:, None]
-        return Location(inside, e, nodes, phi, dN)
+        if self._logical is None:
+            self._logical = logical_grid(self.mesh) or False
+        n = len(pts)
+        if self._logical:
+            elem, X, Y, nodes = self._walk(pts)
+            rest = np.flatnonzero(elem < 0)
+        else:
+            elem, X, Y, nodes = np.full(n, -1, dtype=np.int64), np.zeros(n), np.zeros(n), None
+            rest = np.arange(n)
+        if rest.size:
+            ins, e, Xr, Yr = self._locate_general(pts[rest])
+            found = rest[ins]
+            elem[found], X[found], Y[found] = e, Xr, Yr
+            if nodes is not None:
+                nodes[found] = self.mesh.t[:, e].T
+        inside = elem >= 0
+        e, X, Y = elem[inside], X[inside], Y[inside]
+        nodes = self.mesh.t[:, e].T if nodes is None else nodes[inside]
+        nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+        N = np.empty((e.size, 4))
+        N[:, 0] = (1 - X) * (1 - Y)
+        N[:, 1] = X * (1 - Y)
+        N[:, 2] = X * Y
+        N[:, 3] = (1 - X) * Y
+        mesh = self.mesh
+        # physical gradients only when used (strain sampling; the image term needs N alone)
+        return Location(inside, e, nodes, N, fill=lambda: dict(_dN=_physical_gradients(mesh, nodes, _phi(X, Y)[1])))
 
 
 class PixelQuadrature:
@@ -250,21 +385,30 @@ class PixelQuadrature:
         ii, jj = ii.ravel(), jj.ravel()
         xa = self.origin[0] + np.arange(i0, i1 + 1) * self.spacing[0]
         ya = self.origin[1] + np.arange(j0, j1 + 1) * self.spacing[1]
-        pts = np.column_stack([xa[ii - i0], ya[jj - j0]])
         loc = self.locator.locate_grid(xa, ya)
         self.location = loc
-        self.index = (ii * self.shape[1] + jj)[loc.inside]
-        self.points = pts[loc.inside]
-        self.ij = (ii[loc.inside], jj[loc.inside])
+        ins = loc.inside
+        self.index = (ii * self.shape[1] + jj)[ins]
+        self.points = np.column_stack([xa[ii[ins] - i0], ya[jj[ins] - j0]])
         self.weights = np.full(self.index.size, self.spacing[0] * self.spacing[1])
         self.n_nodes = mesh.p.shape[1]
-        self.P = loc.operator(self.n_nodes)
-        self.PT = self.P.T.tocsr()
+        self._P = None
+        self._PT = None
+
+    @property
+    def P(self) -> sp.csr_matrix:
+        """Pixel->node interpolation operator (m, n_nodes), built on first use."""
+        if self._P is None:
+            self._P = self.location.operator(self.n_nodes)
+        return self._P
+
+    @property
+    def PT(self) -> sp.csr_matrix:
+        """``P.T`` in CSR (node <- pixel sums), built on first use."""
+        if self._PT is None:
+            self._PT = self.P.T.tocsr()
+        return self._PT
 
     @property
     def n_pixels(self) -> int:
         return int(self.index.size)
-
-    def interpolate(self, u: np.ndarray) -> np.ndarray:
-        """Nodal vector u (2 n_nodes,) (interleaved) -> pixel displacements (m, 2) mm."""
-        return np.column_stack([self.P @ u[0::2], self.P @ u[1::2]])

@@ -5,16 +5,23 @@ symmetric positive (semi-)definite), then tries ``u + du``; if the energy rises 
 ``max_backtracks`` times).  Stop when ``||du|| / ||u|| < tol`` (the paper's rule, 1e-3) or after ``maxiter``
 (20) iterations.  The best iterate seen is returned, never NaN.
 
-Linear solver: the system is SPD and small.  Measured on the paper geometry (benchmarks/bench_register.py
---solvers, 2-core shared machine): 6.1 k DOF (1 mm mesh) SuperLU ``splu`` factorise + solve 0.03 s, later solves
-with the stored factor 2 ms; ``spsolve`` 0.035 s every time; pyamg smoothed aggregation + CG (given the rigid-body
-modes) 0.10 s set-up, 14 ms per solve.  23.7 k DOF (0.5 mm): splu 0.35 s then 19 ms; spsolve 0.37 s each;
-pyamg 0.96 s then 0.23 s.  So ``splu`` (COLAMD ordering; MMD_AT_PLUS_A took 3.8 s) is the default, and when H
-is constant (fixed-gradient data term of eq:wfnew + a quadratic regulariser) it is factorised ONCE and reused by
-every iteration.  CHOLMOD (scikit-sparse) would need libsuitesparse-dev and a build; at these sizes the
-factorisation is not the bottleneck (the cubic re-interpolation of I_2 is).  A tiny diagonal shift (1e-10 of
-the mean diagonal) keeps H definite when the images do not constrain some direction
-(e.g. a linear-intensity image seen through R_eps, which leaves a translation free).
+Linear solver (``linear_solver``): the system is SPD, sparse and small.
+
+* ``"cholesky"``: LAPACK banded Cholesky (``scipy.linalg.cholesky_banded``, dpbtrf) after a reverse
+  Cuthill-McKee ordering (``scipy.sparse.csgraph``).  The ordering and the scatter of the matrix entries into
+  the band are computed once per sparsity pattern and reused by every later factorisation (the lagged-diffusivity
+  Hessian of the TV regularisers changes its values, not its pattern, each iteration).
+* ``"splu"``: SuperLU in symmetric mode (no pivoting, minimum-degree ordering of A^T + A, ``MMD_AT_PLUS_A``).
+* ``"auto"`` (default): ``"cholesky"`` when the band holds at most :data:`BAND_LIMIT` entries, else ``"splu"``.
+* ``"spsolve"``, ``"amg-cg"`` (pyamg smoothed aggregation + CG, given the rigid-body modes as ``B``).
+
+Measured on the paper geometry (3740 x 147 px, R_P_sigma Hessian, 2-core shared machine, one factorisation):
+2 mm mesh (1.6 k DOF) cholesky 2 ms, splu 12-17 ms (COLAMD 25-37 ms); 1 mm (6.1 k DOF) 43 ms vs 124 ms;
+0.5 mm (23.7 k DOF, band 586) 0.20 s vs 1.0 s; a stored factor solves in 0.2 / 2 / 13 ms.  Either way, when H is
+constant (fixed-gradient data term of eq:wfnew + a quadratic regulariser) it is factorised ONCE and reused by
+every iteration.  A tiny diagonal shift (1e-10 of the mean diagonal) keeps H definite when the images do not
+constrain some direction (e.g. a linear-intensity image seen through R_eps, which leaves a translation free); if
+the banded Cholesky still meets a non-positive pivot, that factorisation falls back to SuperLU.
 """
 from __future__ import annotations
 
@@ -22,32 +29,109 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-__all__ = ["GaussNewtonResult", "gauss_newton", "Objective", "SPDSolver"]
+__all__ = ["GaussNewtonResult", "gauss_newton", "Objective", "SPDSolver", "BAND_LIMIT"]
+
+#: Largest band (entries, (bandwidth + 1) * n) that ``linear_solver="auto"`` factorises with banded Cholesky:
+#: 2.5e7 entries = 200 MB (a 0.5 mm mesh of the paper geometry needs 1.4e7).
+BAND_LIMIT = 25_000_000
+
+LINEAR_SOLVERS = ("auto", "cholesky", "splu", "spsolve", "amg-cg")
+
+
+class _BandedPattern:
+    """RCM ordering of one sparsity pattern and the scatter of its lower triangle into LAPACK lower band storage
+    ``ab[i - j, j] = A_perm[i, j]`` (``A_perm = H[perm][:, perm]``)."""
+
+    def __init__(self, H: sp.csc_matrix):
+        n = H.shape[0]
+        self.indptr = H.indptr.copy()
+        self.indices = H.indices.copy()
+        self.perm = reverse_cuthill_mckee(sp.csr_matrix(H), symmetric_mode=True).astype(np.int64)
+        iperm = np.empty(n, dtype=np.int64)
+        iperm[self.perm] = np.arange(n)
+        col = np.repeat(np.arange(n), np.diff(H.indptr))
+        i, j = iperm[H.indices], iperm[col]
+        self.lower = i >= j
+        self.bandwidth = int(np.max(i - j, initial=0))
+        self.flat = ((i - j) * n + j)[self.lower]
+        self.n = n
+
+    def matches(self, H) -> bool:
+        return (H.shape[0] == self.n and np.array_equal(H.indptr, self.indptr)
+                and np.array_equal(H.indices, self.indices))
+
+    @property
+    def size(self) -> int:
+        return (self.bandwidth + 1) * self.n
+
+    def factor(self, H, shift: float):
+        ab = np.zeros((self.bandwidth + 1) * self.n)
+        ab[self.flat] = H.data[self.lower]
+        ab = ab.reshape(self.bandwidth + 1, self.n)
+        ab[0] += shift
+        return sla.cholesky_banded(ab, lower=True, overwrite_ab=True, check_finite=False)
+
+    def solve(self, cb, b):
+        y = sla.cho_solve_banded((cb, True), b[self.perm], check_finite=False)
+        x = np.empty_like(y)
+        x[self.perm] = y
+        return x
 
 
 class SPDSolver:
-    """Solve H x = b for symmetric positive (semi-)definite sparse H; reuses the factorisation if H is the same
-    object as last time (``reuse=True``)."""
+    """Solve H x = b for symmetric positive (semi-)definite sparse H (see the module docstring for ``method``);
+    with ``reuse=True`` the factorisation is reused if H is the same object as last time."""
 
-    def __init__(self, method: str = "splu", shift: float = 1e-10, permc_spec: str = "MMD_AT_PLUS_A", B=None):
+    def __init__(self, method: str = "auto", shift: float = 1e-10, permc_spec: str = "MMD_AT_PLUS_A", B=None,
+                 band_limit: int = BAND_LIMIT):
+        if method not in LINEAR_SOLVERS:
+            raise ValueError(f"unknown linear solver {method!r}; choose one of {', '.join(LINEAR_SOLVERS)}")
         self.permc_spec = permc_spec
         self.B = B  # near-null-space (rigid-body modes) for pyamg
-        if method not in ("splu", "spsolve", "amg-cg"):
-            raise ValueError(f"unknown linear solver {method!r}; choose 'splu', 'spsolve' or 'amg-cg'")
         self.method = method
         self.shift = shift
+        self.band_limit = int(band_limit)
         self._key = None
         self._fact = None
+        self._pattern = None
         self.n_factorizations = 0
+        #: method used by the last factorisation ("cholesky" or "splu" for auto/cholesky)
+        self.last_method = None
+
+    def _shift_value(self, H) -> float:
+        return self.shift * (float(np.mean(np.abs(H.diagonal()))) or 1.0)
 
     def _shifted(self, H):
         H = sp.csc_matrix(H)
-        d = H.diagonal()
-        s = self.shift * (float(np.mean(np.abs(d))) or 1.0)
-        return H + s * sp.identity(H.shape[0], format="csc")
+        return H + self._shift_value(H) * sp.identity(H.shape[0], format="csc")
+
+    def _splu(self, H):
+        # H is SPD: symmetric mode (no pivoting, ordering of A^T + A) keeps the factor sparse: 2-3x faster than
+        # the default LU.  (MKL PARDISO was not faster here and is not bit-reproducible run to run.)
+        return spla.splu(self._shifted(H), permc_spec=self.permc_spec, diag_pivot_thresh=0.0,
+                         options=dict(SymmetricMode=True))
+
+    def _factor_direct(self, H):
+        """("cholesky", (pattern, factor)) or ("splu", SuperLU) for the direct methods."""
+        if self.method in ("auto", "cholesky"):
+            H = sp.csc_matrix(H)
+            if not H.has_canonical_format:
+                H = H.copy()
+                H.sum_duplicates()
+            if self._pattern is None or not self._pattern.matches(H):
+                self._pattern = _BandedPattern(H)
+            pat = self._pattern
+            if self.method == "cholesky" or pat.size <= self.band_limit:
+                try:
+                    return "cholesky", (pat, pat.factor(H, self._shift_value(H)))
+                except np.linalg.LinAlgError:
+                    pass  # a non-positive pivot (semi-definite H): SuperLU without pivoting carries on
+        return "splu", self._splu(H)
 
     def solve(self, H, b, reuse: bool = False):
         if self.method == "spsolve":
@@ -61,13 +145,12 @@ class SPDSolver:
                 self.n_factorizations += 1
             return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=200)
         if not (reuse and self._key is H and self._fact is not None):
-            # H is SPD: symmetric mode (no pivoting, ordering of A^T + A) keeps the factor sparse: 2-3x faster
-            # than the default LU for the per-iteration refactorisation of TV regularisers.  (MKL PARDISO was
-            # not faster here and is not bit-reproducible run to run.)
-            self._fact = spla.splu(self._shifted(H), permc_spec=self.permc_spec, diag_pivot_thresh=0.0,
-                                   options=dict(SymmetricMode=True))
+            self.last_method, self._fact = self._factor_direct(H)
             self._key = H
             self.n_factorizations += 1
+        if self.last_method == "cholesky":
+            pat, cb = self._fact
+            return pat.solve(cb, np.asarray(b, float))
         return self._fact.solve(b)
 
 
@@ -85,9 +168,6 @@ class Objective:
 
     def energy(self, u):
         return self.data.energy(u) + self.reg.energy(u)
-
-    def parts(self, u):
-        return self.data.energy(u), self.reg.energy(u)
 
     def gradient(self, u):
         return self.data.gradient(u) + self.reg.gradient(u)
@@ -129,7 +209,7 @@ STATUS = {0: "converged: ||du|| / ||u|| < tol",
 
 
 def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_backtracks: int = 8,
-                 linear_solver: str = "splu", callback=None) -> GaussNewtonResult:
+                 linear_solver: str = "auto", callback=None) -> GaussNewtonResult:
     """Minimise ``objective`` (energy/gradient/hessian, see :class:`Objective`) from ``u0``.
 
     Parameters
@@ -140,7 +220,8 @@ def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_bac
         Stop when ``||du|| / ||u|| < tol`` (paper: 1e-3).
     max_backtracks : int
         Step halvings tried when the energy rises.
-    linear_solver : {'splu', 'spsolve', 'amg-cg'}
+    linear_solver : {'auto', 'cholesky', 'splu', 'spsolve', 'amg-cg'}
+        See the module docstring; ``"auto"`` is banded Cholesky unless the band is very large.
     callback : callable(u, info_dict), optional
         Called after every iteration.
     """

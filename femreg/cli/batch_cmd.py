@@ -63,10 +63,11 @@ def add_parser(subparsers):
 
 
 def settings_from_args(args) -> dict:
-    """The batch settings (femreg.batch.SETTINGS_KEYS) given on the command line."""
-    from ..batch import _READER_KEYS, _REG_KEYS, _frames_text
+    """The batch settings (femreg.batch.settings_keys()) given on the command line."""
+    from ..batch import _flag_defaults, _frames_text
 
-    s = {k: getattr(args, k) for k in _REG_KEYS + _READER_KEYS}
+    reg, reader = _flag_defaults()
+    s = {k: getattr(args, k) for k in list(reg) + list(reader)}
     s["frames"] = _frames_text(s["frames"])
     s.update(task=args.task, pairs=[list(p) for p in (args.pair or [[0, 1]])], mode=args.mode, grid=args.grid,
              init=args.init, min_ncc=args.min_ncc)
