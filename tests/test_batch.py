@@ -105,55 +105,6 @@ def test_two_worker_cluster_matches_serial_bitwise(data_dir, serial, client, tmp
     assert "| rec07/track | ok |" in (out / "summary.md").read_text()
 
 
-class _KillOnce(distributed.WorkerPlugin):
-    """Kills the worker process the first time a task whose key contains ``match`` starts executing (every time
-    with ``always``)."""
-
-    def __init__(self, marker, match, always=False):
-        self.marker, self.match, self.always = str(marker), match, always
-
-    def transition(self, key, start, finish, **kw):
-        if finish == "executing" and self.match in str(key) and (self.always or not os.path.exists(self.marker)):
-            with open(self.marker, "a") as fh:
-                fh.write(f"{os.getpid()}\n")
-            os._exit(1)
-
-
-def test_killed_worker_loses_nothing_and_batch_completes(data_dir, serial, client, tmp_path):
-    marker = tmp_path / "killed"
-    client.register_plugin(_KillOnce(marker, "rec05/track"), name="kill-once")
-    try:
-        summary = run_batch(jobs_from_inputs([data_dir], SETTINGS), tmp_path / "out", client=client,
-                            progress=False)
-    finally:
-        client.unregister_worker_plugin("kill-once")
-    assert marker.exists(), "the worker was not killed: the test tested nothing"
-    killed_pid = marker.read_text().strip()
-    assert summary.ok, summary.failed
-    rec5 = next(r for r in summary.records if r["key"] == "rec05/track")
-    assert not rec5["worker"].endswith(f":{killed_pid}"), "the killed task must have been rerun elsewhere"
-    _assert_same_outputs(serial, tmp_path / "out")
-    # Each record is written once per computation; a task whose worker died after finishing it is not rerun.
-    assert sum(r["computed"] for r in summary.records) + sum(not r["computed"] for r in summary.records) == N_REC
-    client.wait_for_workers(2, timeout=30)
-
-
-def test_task_that_keeps_killing_its_worker_is_recorded_as_failed(data_dir, client, tmp_path):
-    marker = tmp_path / "killed"
-    client.register_plugin(_KillOnce(marker, "rec01/track", always=True), name="kill-always")
-    try:
-        summary = run_batch(jobs_from_inputs([data_dir / "rec00.npz", data_dir / "rec01.npz"], SETTINGS),
-                            tmp_path / "out", client=client, progress=False)
-    finally:
-        client.unregister_worker_plugin("kill-always")
-    assert len(marker.read_text().split()) == 2, "allowed-failures 1: two deaths, then given up"
-    assert [r["status"] for r in summary.records] == ["ok", "failed"]
-    assert "KilledWorker" in summary.records[1]["error"], summary.records[1]
-    rec = json.loads((tmp_path / "out" / "rec01" / "track.record.json").read_text())
-    assert rec["status"] == "failed" and "KilledWorker" in rec["error"]
-    client.wait_for_workers(2, timeout=30)
-
-
 def test_resume_recomputes_nothing_and_refuses_changed_settings(data_dir, client, tmp_path):
     out = tmp_path / "out"
     jobs = jobs_from_inputs([data_dir], SETTINGS)
@@ -288,3 +239,53 @@ def test_study_cases_on_dask_match_serial(client, tmp_path):
         assert all(np.array_equal(za[k], zb[k]) for k in za)
     again = study.run_cases(specs, tmp_path / "dask", client=client, progress=False, stats=(st := {}))
     assert st["computed"] == 0 and again.keys() == dask_.keys()
+
+
+# The worker-killing tests last: the workers they restart re-import femreg (a few seconds each).
+class _KillOnce(distributed.WorkerPlugin):
+    """Kills the worker process the first time a task whose key contains ``match`` starts executing (every time
+    with ``always``)."""
+
+    def __init__(self, marker, match, always=False):
+        self.marker, self.match, self.always = str(marker), match, always
+
+    def transition(self, key, start, finish, **kw):
+        if finish == "executing" and self.match in str(key) and (self.always or not os.path.exists(self.marker)):
+            with open(self.marker, "a") as fh:
+                fh.write(f"{os.getpid()}\n")
+            os._exit(1)
+
+
+def test_killed_worker_loses_nothing_and_batch_completes(data_dir, serial, client, tmp_path):
+    marker = tmp_path / "killed"
+    client.register_plugin(_KillOnce(marker, "rec05/track"), name="kill-once")
+    try:
+        summary = run_batch(jobs_from_inputs([data_dir], SETTINGS), tmp_path / "out", client=client,
+                            progress=False)
+    finally:
+        client.unregister_worker_plugin("kill-once")
+    assert marker.exists(), "the worker was not killed: the test tested nothing"
+    killed_pid = marker.read_text().strip()
+    assert summary.ok, summary.failed
+    rec5 = next(r for r in summary.records if r["key"] == "rec05/track")
+    assert not rec5["worker"].endswith(f":{killed_pid}"), "the killed task must have been rerun elsewhere"
+    _assert_same_outputs(serial, tmp_path / "out")
+    # Each record is written once per computation; a task whose worker died after finishing it is not rerun.
+    assert sum(r["computed"] for r in summary.records) + sum(not r["computed"] for r in summary.records) == N_REC
+    client.wait_for_workers(2, timeout=30)
+
+
+def test_task_that_keeps_killing_its_worker_is_recorded_as_failed(data_dir, client, tmp_path):
+    marker = tmp_path / "killed"
+    client.register_plugin(_KillOnce(marker, "rec01/track", always=True), name="kill-always")
+    try:
+        summary = run_batch(jobs_from_inputs([data_dir / "rec00.npz", data_dir / "rec01.npz"], SETTINGS),
+                            tmp_path / "out", client=client, progress=False)
+    finally:
+        client.unregister_worker_plugin("kill-always")
+    assert len(marker.read_text().split()) == 2, "allowed-failures 1: two deaths, then given up"
+    assert [r["status"] for r in summary.records] == ["ok", "failed"]
+    assert "KilledWorker" in summary.records[1]["error"], summary.records[1]
+    rec = json.loads((tmp_path / "out" / "rec01" / "track.record.json").read_text())
+    assert rec["status"] == "failed" and "KilledWorker" in rec["error"]
+    client.wait_for_workers(2, timeout=30)
