@@ -14,8 +14,14 @@ machine the honest measure of cost; wall time shows the speed-up only where core
 
     python benchmarks/bench_batch.py [--only small|paper]
 
-Measured 2026-11-29 on the shared 2-core machine (load average 4-9 from other users, so pessimistic): see the
-README section "Many recordings" for the figures.
+Measured 2026-11-29 on the shared 2-core machine, load average 8-10 from other users (no free core for a second
+worker), wall / summed task CPU / peak RSS per worker:
+
+    small  in-process  2.0 s / 0.7 s / 267 MiB;  1 worker  5.3 s / 1.1 s / 300 MiB;  2 workers  6.4 s / 1.1 s / 299 MiB
+    paper  in-process  9.5 s / 4.4 s / 507 MiB;  1 worker 12.3 s / 5.1 s / 535 MiB;  2 workers 13.2 s / 6.1 s / 539 MiB
+
+(plus 1-2 s cluster start-up; the extra CPU on workers is the first task's imports and compiled-kernel loading,
+~0.4 s per worker); every output bitwise identical to the in-process run.
 """
 from __future__ import annotations
 
