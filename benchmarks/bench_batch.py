@@ -84,8 +84,8 @@ def run(name, make):
             cpu_s = sum(r["cpu_s"] for r in s.records)
             mem = ", ".join(f"{m:.0f}" for _, m in sorted(s.worker_memory().values()))
             print(f"{name:6s} workers={workers} ({'in-process' if workers == 0 else 'LocalCluster'}): "
-                  f"start-up {t_start:5.1f} s, batch {t_run:6.1f} s, task wall {task_s:6.1f} s, task CPU {cpu_s:6.1f} s, "
-                  f"{len(s.records)} tasks, peak RSS per worker {mem} MiB, identical to serial: {same}", flush=True)
+                  f"start-up {t_start:5.1f} s, batch {t_run:6.1f} s, task wall {task_s:6.1f} s, "
+                  f"task CPU {cpu_s:6.1f} s, {len(s.records)} tasks, peak RSS per worker {mem} MiB, identical to serial: {same}", flush=True)
 
 
 if __name__ == "__main__":
