@@ -114,6 +114,10 @@ def open_client(workers: int = 2, scheduler: str | None = None, *, memory_limit=
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot connect to the Dask scheduler {scheduler} ({exc})") from None
         with client:
+            try:  # tasks would wait forever on a scheduler without workers
+                client.wait_for_workers(1, timeout=60)
+            except TimeoutError:
+                raise InputError(f"the Dask scheduler {scheduler} has no workers (waited 60 s)") from None
             yield client
         return
     # processes: the registration holds the GIL most of the time, threads would not run in parallel.
