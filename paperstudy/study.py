@@ -703,6 +703,31 @@ def _case_sets(s: StudySettings, alphas):
     return single, dual, tracks, variant, esize
 
 
+class _LazyClient:
+    """A callable giving the study's Dask client, opened on the first call (:func:`femreg.batch.open_client`:
+    ``jobs`` local processes or ``scheduler``; None = serial for ``jobs`` 1) or the caller's ``client``; the
+    cluster it opened closes with :meth:`close`, or when the object is collected (an exception ended the run)."""
+
+    def __init__(self, client, jobs, scheduler):
+        import weakref
+
+        self.client, self.jobs, self.scheduler = client, int(jobs), scheduler
+        self.opened = False
+        self._stack = contextlib.ExitStack()
+        self._finalizer = weakref.finalize(self, self._stack.close)
+
+    def __call__(self):
+        if self.client is None and not self.opened and (self.scheduler is not None or self.jobs > 1):
+            from femreg.batch import open_client
+
+            self.client = self._stack.enter_context(open_client(self.jobs, self.scheduler))
+            self.opened = True
+        return self.client
+
+    def close(self):
+        self._finalizer()
+
+
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
               scheduler: str | None = None, client=None, resume: bool = False, progress: bool = True,
               figures: bool = True) -> StudyResult:
@@ -745,32 +770,24 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
         forward.get_sequence(m, i, seed=s.seed, snr_db=s.snr_db, n_frames=s.n_frames, **s.sequence_options)
 
     # One Dask cluster for every phase, started when the first case needs it (a finished study resumes without).
-    with contextlib.ExitStack() as stack:
-        held = {}
+    cases_client = _LazyClient(client, jobs, scheduler)
 
-        def get_client():
-            if "client" not in held:
-                from femreg.batch import open_client
+    # 1. alphas
+    stats = {"computed": 0}
+    if s.alphas is None:
+        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, client=cases_client, progress=progress,
+                                               stats=stats)
+    else:
+        alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
+    write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
 
-                held["client"] = client if client is not None or (scheduler is None and int(jobs) <= 1) else \
-                    stack.enter_context(open_client(int(jobs), scheduler))
-            return held["client"]
-
-        # 1. alphas
-        stats = {"computed": 0}
-        if s.alphas is None:
-            alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, client=get_client, progress=progress,
-                                                   stats=stats)
-        else:
-            alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
-        write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
-
-        # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
-        single, dual, tracks, variant, esize = _case_sets(s, alphas)
-        specs = (list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
-                 + list(esize.values()))
-        records.update(run_cases(specs, outdir, jobs=jobs, client=get_client, progress=progress,
-                                 desc="study cases", stats=stats))
+    # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
+    single, dual, tracks, variant, esize = _case_sets(s, alphas)
+    specs = (list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
+             + list(esize.values()))
+    records.update(run_cases(specs, outdir, jobs=jobs, client=cases_client, progress=progress, desc="study cases",
+                             stats=stats))
+    cases_client.close()
     wall = time.perf_counter() - t0
     res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
                       report=outdir / "report.md", wall_s=wall, n_computed=stats.get("computed", 0))
