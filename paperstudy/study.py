@@ -566,6 +566,32 @@ def run_cases(specs, outdir, *, jobs: int = 2, client=None, progress: bool = Tru
     return records
 
 
+class _LazyClient:
+    """A callable giving the study's Dask client, opened on the first call (:func:`femreg.batch.open_client`:
+    ``jobs`` local processes or ``scheduler``; None = serial for ``jobs`` 1) or the caller's ``client``; the
+    cluster it opened closes with :meth:`close`, or when the object is collected (an exception ended the run)."""
+
+    def __init__(self, client, jobs, scheduler):
+        import weakref
+
+        self.client, self.jobs, self.scheduler = client, int(jobs), scheduler
+        self.opened = False
+        self._stack = contextlib.ExitStack()
+        self._finalizer = weakref.finalize(self, self._stack.close)
+
+    def __call__(self):
+        if self.client is None and not self.opened and (self.scheduler is not None or self.jobs > 1):
+            from femreg.batch import open_client
+
+            self.client = self._stack.enter_context(open_client(self.jobs, self.scheduler))
+            self.opened = True
+        return self.client
+
+    def close(self):
+        self._finalizer()
+
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Alpha selection
 # ----------------------------------------------------------------------------------------------------------------
@@ -701,31 +727,6 @@ def _case_sets(s: StudySettings, alphas):
                     for f in s.diagnose_alpha_factors:
                         esize[(h, r, f)] = make_case(sh, "pair", d, r, alphas[r] * f, s.pair)
     return single, dual, tracks, variant, esize
-
-
-class _LazyClient:
-    """A callable giving the study's Dask client, opened on the first call (:func:`femreg.batch.open_client`:
-    ``jobs`` local processes or ``scheduler``; None = serial for ``jobs`` 1) or the caller's ``client``; the
-    cluster it opened closes with :meth:`close`, or when the object is collected (an exception ended the run)."""
-
-    def __init__(self, client, jobs, scheduler):
-        import weakref
-
-        self.client, self.jobs, self.scheduler = client, int(jobs), scheduler
-        self.opened = False
-        self._stack = contextlib.ExitStack()
-        self._finalizer = weakref.finalize(self, self._stack.close)
-
-    def __call__(self):
-        if self.client is None and not self.opened and (self.scheduler is not None or self.jobs > 1):
-            from femreg.batch import open_client
-
-            self.client = self._stack.enter_context(open_client(self.jobs, self.scheduler))
-            self.opened = True
-        return self.client
-
-    def close(self):
-        self._finalizer()
 
 
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
