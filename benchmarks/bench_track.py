@@ -37,13 +37,15 @@ def main(argv=None):
 
     import forward
     import femreg
+    from femreg import _kernels
     from femreg.metrics import field_errors
 
     seq = forward.get_sequence("3d", "HI", seed=0)
     frames = seq.frames[: a.frames]
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"3d-HI seed 0: {frames.shape[0]} frames of {frames.shape[1:]} px, spacing {seq.spacing} mm, "
-          f"regularizer {a.regularizer}; RSS after loading {rss0:.0f} MB", flush=True)
+          f"regularizer {a.regularizer}; compiled loops {'on' if _kernels.use_compiled() else 'off (no numba)'}; "
+          f"RSS after loading {rss0:.0f} MB", flush=True)
     t0 = time.perf_counter()
     out = femreg.track(frames, spacing=seq.spacing, origin=seq.origin, regularizer=a.regularizer)
     total = time.perf_counter() - t0

@@ -148,9 +148,10 @@ def gradient_nodes(v, gx, gy, nodes, N, out):  # pragma: no cover - compiled
 
 @_jit
 def element_blocks(w, gx, gy, N, nodes, elem, t, n_el):  # pragma: no cover - compiled
-    """Per-element 8 x 8 blocks of sum_p w_p (N_p (x) g_p)(N_p (x) g_p)^T in the element's own node order
-    ``t[:, e]`` (a pixel's ``nodes`` may list the same corners in another order)."""
-    B = np.zeros((n_el, 8, 8))
+    """Per-element sums ``S[e, k, l, c] = sum_p w_p N_k N_l G_c`` (k <= l in the element's own node order
+    ``t[:, e]``; G = (gx^2, gx gy, gy^2)) from which the 8 x 8 blocks of sum_p w_p (N_p (x) g_p)(N_p (x) g_p)^T
+    follow by symmetry (a pixel's ``nodes`` may list the element's corners in another order)."""
+    S = np.zeros((n_el, 4, 4, 3))
     loc = np.empty(4, dtype=np.int64)
     for p in range(w.shape[0]):
         e = elem[p]
@@ -161,15 +162,15 @@ def element_blocks(w, gx, gy, N, nodes, elem, t, n_el):  # pragma: no cover - co
         g0 = gx[p]
         g1 = gy[p]
         for k in range(4):
-            for l in range(4):
-                s = w[p] * N[p, k] * N[p, l]
-                i = 2 * loc[k]
-                j = 2 * loc[l]
-                B[e, i, j] += s * g0 * g0
-                B[e, i, j + 1] += s * g0 * g1
-                B[e, i + 1, j] += s * g1 * g0
-                B[e, i + 1, j + 1] += s * g1 * g1
-    return B
+            wk = w[p] * N[p, k]
+            for l in range(k, 4):
+                s = wk * N[p, l]
+                a = min(loc[k], loc[l])
+                b = max(loc[k], loc[l])
+                S[e, a, b, 0] += s * g0 * g0
+                S[e, a, b, 1] += s * g0 * g1
+                S[e, a, b, 2] += s * g1 * g1
+    return S
 
 
 @_jit
@@ -183,8 +184,9 @@ def walk_kernel(x, y, px, py, cn, cell, rows, cols, steps, tol, restol, elem, X,
             n0, n1, n2, n3 = cn[a, b, 0], cn[a, b, 1], cn[a, b, 2], cn[a, b, 3]
             ax0, ax1, ax2, ax3 = px[n0], px[n1] - px[n0], px[n3] - px[n0], px[n0] - px[n1] + px[n2] - px[n3]
             ay0, ay1, ay2, ay3 = py[n0], py[n1] - py[n0], py[n3] - py[n0], py[n0] - py[n1] + py[n2] - py[n3]
-            Xc = 0.5
-            Yc = 0.5
+            # start from the cell's place between the mean row / column positions (exact for a rectangle)
+            Xc = min(max((x[p] - rows[a]) / (rows[a + 1] - rows[a]), 0.0), 1.0)
+            Yc = min(max((y[p] - cols[b]) / (cols[b + 1] - cols[b]), 0.0), 1.0)
             for _it in range(12):
                 rx = x[p] - (ax0 + ax1 * Xc + ax2 * Yc + ax3 * Xc * Yc)
                 ry = y[p] - (ay0 + ay1 * Xc + ay2 * Yc + ay3 * Xc * Yc)

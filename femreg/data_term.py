@@ -76,7 +76,6 @@ class SSDTerm:
         self._gy = np.ascontiguousarray(g[:, 1])
         self._grid = quad.location.grid
         if self._grid is not None:
-            quad.locator._canonical()
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
 
     # -------------------------------------------------------------------------------------------------------
@@ -179,7 +178,7 @@ class SSDTerm:
         # corner k: x-side sx[k], y-side sy[k]; product index of two sides: 0 (both 0), 1 (mixed), 2 (both 1)
         sx = np.array([0, 1, 1, 0])
         sy = np.array([0, 0, 1, 1])
-        cn = self.quad.locator._canonical()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
+        cn = self.quad.locator.cell_nodes()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
         comp = {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}
         rows, cols, vals = [], [], []
         for k in range(4):
@@ -199,7 +198,15 @@ class SSDTerm:
         loc, mesh = self.quad.location, self.quad.mesh
         t = np.ascontiguousarray(mesh.t, dtype=np.int64)
         n_el = t.shape[1]
-        B = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        S = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        iu = np.triu_indices(4, 1)
+        S[:, iu[1], iu[0]] = S[:, iu[0], iu[1]]                  # (l, k) = (k, l): the sums are symmetric
+        B = np.empty((n_el, 4, 2, 4, 2))                          # [e, k, a, l, b] = sum w N_k N_l g_a g_b
+        B[:, :, 0, :, 0] = S[..., 0]
+        B[:, :, 0, :, 1] = S[..., 1]
+        B[:, :, 1, :, 0] = S[..., 1]
+        B[:, :, 1, :, 1] = S[..., 2]
+        B = B.reshape(n_el, 8, 8)
         dof = np.empty((n_el, 8), dtype=np.int64)
         dof[:, 0::2] = 2 * t.T
         dof[:, 1::2] = 2 * t.T + 1
