@@ -7,6 +7,7 @@ the peak memory (each regulariser runs in a fresh process so that ru_maxrss is i
 
     python benchmarks/bench_register.py                 # timings (paper-size pair, then 1200 x 125 pairs)
     python benchmarks/bench_register.py --save a.npz    # ... and keep every nodal u; --compare a.npz: max |du|
+    python benchmarks/bench_register.py --no-compiled   # without the numba loops (femreg._kernels)
     python benchmarks/bench_register.py --study         # alpha and element-size study (total strain error)
     python benchmarks/bench_register.py --solvers       # linear-solver comparison on the GN system
 
@@ -198,7 +199,11 @@ if __name__ == "__main__":
     ap.add_argument("--solvers", action="store_true")
     ap.add_argument("--save", help="write every registration's nodal u to this .npz")
     ap.add_argument("--compare", help="print max |u - u_saved| against a --save file")
+    ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args()
+    if a.no_compiled:
+        from femreg import _kernels
+        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
     if a.solvers:
         solvers()
     elif a.study:

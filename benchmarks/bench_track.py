@@ -8,6 +8,7 @@ peak RSS, and the accumulated errors of the last frame against the forward model
     python benchmarks/bench_track.py                      # 20 frames
     python benchmarks/bench_track.py --frames 6 --save a.npz
     python benchmarks/bench_track.py --compare a.npz      # max |u - u_saved| per frame (equality checks)
+    python benchmarks/bench_track.py --no-compiled        # without the numba loops (femreg._kernels)
 
 The sequence comes from ``forward.get_sequence("3d", "HI", seed=0)`` (cached under $FEMREG_CACHE; the first call
 simulates it, several minutes).  Wall times on a shared machine are pessimistic: compare runs made together.
@@ -33,6 +34,7 @@ def main(argv=None):
     ap.add_argument("--regularizer", default="momentum-stress")
     ap.add_argument("--save", help="write every frame's nodal u to this .npz")
     ap.add_argument("--compare", help="print max |u - u_saved| per frame against a --save file")
+    ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args(argv)
 
     import forward
@@ -40,6 +42,8 @@ def main(argv=None):
     from femreg import _kernels
     from femreg.metrics import field_errors
 
+    if a.no_compiled:
+        _kernels.HAVE_NUMBA = False
     seq = forward.get_sequence("3d", "HI", seed=0)
     frames = seq.frames[: a.frames]
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -75,9 +75,11 @@ def cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
 
 
 @_jit
-def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing over an (nr x nc) pixel grid of a tensor mesh; Ux, Uy nodal values on the node
-    grid; pixel row r in element row ei[r] at reference X[r], column q in ej[q] at Y[q]."""
+def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  # pragma: no cover - compiled
+    """I_2 at base + u/spacing minus ``sub`` (I_1, for the residual; empty for I_2 alone) over an (nr x nc) pixel
+    grid of a tensor mesh; Ux, Uy nodal values on the node grid; pixel row r in element row ei[r] at reference
+    X[r], column q in ej[q] at Y[q]."""
+    has_sub = sub.shape[0] > 0
     nc = ej.shape[0]
     for r in range(ei.shape[0]):
         a = ei[r]
@@ -93,12 +95,14 @@ def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, out):  # prag
             uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
             p = r * nc + q
             out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
+            if has_sub:
+                out[p] -= sub[p]
     return out
 
 
 @_jit
-def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
-    """Gx[node grid] += sum_p N(p) v_p gx_p (and y): the transpose of the separable pixel interpolation."""
+def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
+    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation."""
     nc = ej.shape[0]
     for r in range(ei.shape[0]):
         a = ei[r]
@@ -107,8 +111,9 @@ def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compil
             b = ej[q]
             y = Y[q]
             p = r * nc + q
-            vx = v[p] * gx[p]
-            vy = v[p] * gy[p]
+            v = w[p] * res[p]
+            vx = v * gx[p]
+            vy = v * gy[p]
             w00 = (1.0 - x) * (1.0 - y)
             w10 = x * (1.0 - y)
             w11 = x * y
@@ -124,8 +129,10 @@ def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compil
 
 
 @_jit
-def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing, u from the four shape functions N of each pixel (any quad mesh)."""
+def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
+    """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
+    pixel (any quad mesh)."""
+    has_sub = sub.shape[0] > 0
     for p in range(bx.shape[0]):
         ux = 0.0
         uy = 0.0
@@ -133,14 +140,18 @@ def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, out):  # pra
             ux += N[p, k] * ux_n[nodes[p, k]]
             uy += N[p, k] * uy_n[nodes[p, k]]
         out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
+        if has_sub:
+            out[p] -= sub[p]
     return out
 
 
 @_jit
-def gradient_nodes(v, gx, gy, nodes, N, out):  # pragma: no cover - compiled
-    for p in range(v.shape[0]):
-        vx = v[p] * gx[p]
-        vy = v[p] * gy[p]
+def gradient_nodes(w, res, gx, gy, nodes, N, out):  # pragma: no cover - compiled
+    """out[2 n + a] += sum_p N_n(p) w_p r_p g_a(p) (interleaved nodal vector)."""
+    for p in range(w.shape[0]):
+        v = w[p] * res[p]
+        vx = v * gx[p]
+        vy = v * gy[p]
         for k in range(4):
             out[2 * nodes[p, k]] += N[p, k] * vx
             out[2 * nodes[p, k] + 1] += N[p, k] * vy

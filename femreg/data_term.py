@@ -75,6 +75,8 @@ class SSDTerm:
         self._gx = np.ascontiguousarray(g[:, 0])
         self._gy = np.ascontiguousarray(g[:, 1])
         self._grid = quad.location.grid
+        self._empty = np.empty(0)
+        self._w_const = float(w[0]) if w.size and np.all(w == w[0]) else None
         if self._grid is not None:
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
 
@@ -85,35 +87,44 @@ class SSDTerm:
             # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
             return self._moving_at_pixels.copy()
         if _kernels.use_compiled():
-            m = self.moving
-            hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
-            ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
-            out = np.empty(self.quad.n_pixels)
-            if self._grid is not None:
-                G, gr = self._node_grid, self._grid
-                return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"],
-                                  gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], out)
-            loc = self.quad.location
-            return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N,
-                               self._inv_sp[0], self._inv_sp[1], out)
+            return self._warp_compiled(u, self._empty)
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
         np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
         self._idx += self._base_idx
         return self.moving.at_index(self._idx)
 
+    def _warp_compiled(self, u, sub):
+        """One compiled pass: u at the pixels, I_2 there, minus ``sub`` (``ref_values`` for the residual)."""
+        m = self.moving
+        hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
+        ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
+        out = np.empty(self.quad.n_pixels)
+        if self._grid is not None:
+            G, gr = self._node_grid, self._grid
+            return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"],
+                             gr["Y"], self._inv_sp[0], self._inv_sp[1], sub, out)
+        loc = self.quad.location
+        return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N, self._inv_sp[0],
+                          self._inv_sp[1], sub, out)
+
     def residual(self, u):
         """r(u) = I_2(x + S + u) - I_1(x + S), (m,); cached for the last u."""
         if self._cache_u is not None and np.array_equal(u, self._cache_u):
             return self._cache_r
-        r = self.warped_moving(u)
-        r -= self.ref_values
+        if _kernels.use_compiled() and (self._moving_at_pixels is None or np.any(u)):
+            r = self._warp_compiled(u, self.ref_values)
+        else:
+            r = self.warped_moving(u)
+            r -= self.ref_values
         self._cache_u = np.array(u, copy=True)
         self._cache_r = r
         return r
 
     def energy(self, u) -> float:
         r = self.residual(u)
+        if self._w_const is not None:           # equal pixel weights (always, on a pixel grid): one pass
+            return 0.5 * self._w_const * float(np.dot(r, r))
         return 0.5 * float(np.dot(self.w * r, r))
 
     @property
@@ -133,19 +144,20 @@ class SSDTerm:
 
     def gradient(self, u):
         """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (2 n_nodes,)."""
-        wr = self.w * self.residual(u)
         if _kernels.use_compiled():
+            r = self.residual(u)
             out = np.zeros(2 * self.quad.n_nodes)
             if self._grid is not None:
                 G, gr = self._node_grid, self._grid
                 Gx, Gy = np.zeros(G.shape), np.zeros(G.shape)
-                gradient_grid(wr, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
+                gradient_grid(self.w, r, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
                 out[2 * G.ravel()] = Gx.ravel()
                 out[2 * G.ravel() + 1] = Gy.ravel()
             else:
                 loc = self.quad.location
-                gradient_nodes(wr, self._gx, self._gy, loc.nodes, loc.N, out)
+                gradient_nodes(self.w, r, self._gx, self._gy, loc.nodes, loc.N, out)
             return out
+        wr = self.w * self.residual(u)
         PT = self.quad.PT
         out = np.empty(2 * self.quad.n_nodes)
         out[0::2] = PT @ (wr * self.ref_gradient[:, 0])
