@@ -8,7 +8,9 @@ walk); the two agree to round-off and tests compare them with independent refere
 re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton (0.55 M points per iteration on a
 paper-size image): 7 ms here against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best vectorised numpy
 gather (measured on the shared 2-core machine).  All loops live in this one file so that numba's on-disk cache
-(keyed on this file) is invalidated together when any of them changes.
+(keyed on this file) is invalidated together when any of them changes.  The first use on a machine compiles them
+(~4 s, once); later processes load the cache (~0.5 s with numba's import).  Single-threaded, no fastmath: the same
+input gives the same output bit for bit.
 """
 from __future__ import annotations
 
@@ -31,10 +33,13 @@ def use_compiled() -> bool:
 
 
 def _jit(fn):
-    """numba.njit with an on-disk cache (compiled once per machine, ~1 s); the plain function without numba."""
+    """numba.njit with an on-disk cache; the plain Python function (never called) without numba."""
     if _numba is None:
         return fn
-    return _numba.njit(cache=True, nogil=True)(fn)
+    try:
+        return _numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # pragma: no cover - no writable cache location: compile in every process instead
+        return _numba.njit(cache=False, nogil=True)(fn)
 
 
 @_jit

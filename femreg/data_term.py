@@ -13,7 +13,7 @@ with ``w_p = dx dy`` and ``N_p`` the bilinear shape functions at pixel p.  In ma
 S (``offset``) is the accumulated displacement of a sequence (eq:IR); with S = 0 this is the two-frame problem.
 
 Speed: one Gauss-Newton iteration evaluates the residual (u at every pixel, then I_2 there) and the gradient once.
-With numba (see :mod:`femreg.image`) both are single compiled passes over the pixels: on a tensor mesh u comes from
+With numba (:mod:`femreg._kernels`) both are single compiled passes over the pixels: on a tensor mesh u comes from
 the separable description of the pixel grid (element row/column and reference coordinate of every pixel row and
 column), elsewhere from the four shape functions of each pixel; without numba, from the sparse operator ``P`` and
 ``map_coordinates``.  The data Hessian is assembled once: by separable row/column sums on tensor meshes, else

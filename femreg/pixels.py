@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from . import _kernels
 from .mesh import tensor_structure
 
-__all__ = ["Location", "PointLocator", "PixelQuadrature"]
+__all__ = ["Location", "PointLocator", "PixelQuadrature", "logical_grid"]
 
 # Reference square [0, 1]^2 of skfem's ElementQuad1; local node k sits at _REF[k].
 _REF = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
