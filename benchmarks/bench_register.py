@@ -116,7 +116,8 @@ def timings(save=None, compare=None):
             print(f"  GN: first iteration {it[0]:.3f} s (incl. Hessian assembly + factorisation), "
                   f"later {np.mean(it[1:]) if len(it) > 1 else float('nan'):.3f} s/iter, "
                   f"GN total {t['gauss_newton']:.3f} s")
-        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB (after imports+pair {r['rss_before_mb']:.0f} MB)")
+        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB "
+              f"(after imports+pair {r['rss_before_mb']:.0f} MB)")
         e = r["err"]
         print(f"  errors: ux {100*e['ux']:.2f} %  uy {100*e['uy']:.1f} %  exx {100*e['exx']:.1f} %  "
               f"eyy {100*e['eyy']:.1f} %  exy {100*e['exy']:.1f} %  total strain {100*e['e']:.1f} %   "
