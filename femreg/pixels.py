@@ -49,21 +49,20 @@ class Location:
 
     ``grid`` (tensor meshes and a tensor grid of points, :meth:`PointLocator.locate_grid`): the separable
     description ``dict(i, j, X, Y, nr, nc)``, the inside points being the C-order grid of ``nr`` rows (element row
-    ``i``, reference coordinate ``X`` each) by ``nc`` columns (``j``, ``Y``).  The per-point arrays are then built
-    only when first used (``fill``); the image term needs only ``grid``.
+    ``i``, reference coordinate ``X`` each) by ``nc`` columns (``j``, ``Y``).  Per-point arrays given as None are
+    built by ``fill[name]()`` when first used (the image term needs only ``grid``).
     """
 
-    def __init__(self, inside, element=None, nodes=None, N=None, dN=None, grid: dict | None = None, fill=None):
+    def __init__(self, inside, element=None, nodes=None, N=None, dN=None, grid: dict | None = None,
+                 fill: dict | None = None):
         self.inside = inside
         self._element, self._nodes, self._N, self._dN = element, nodes, N, dN
         self.grid = grid
-        self._fill = fill
+        self._fill = dict(fill or {})
 
     def _get(self, name):
-        if getattr(self, name) is None and self._fill is not None:
-            for k, v in self._fill().items():     # fill() returns the missing arrays by attribute name
-                setattr(self, k, v)
-            self._fill = None
+        if getattr(self, name) is None and name in self._fill:
+            setattr(self, name, self._fill.pop(name)())
         return getattr(self, name)
 
     element = property(lambda self: self._get("_element"))
@@ -217,18 +216,26 @@ class PointLocator:
         j, Y, hy = j[iny], Y[iny], hy[iny]
         cn = self.cell_nodes()
 
-        def fill():
-            AX = np.stack([1 - X, X, X, 1 - X], axis=1)           # (nr, 4)
-            AY = np.stack([1 - Y, 1 - Y, Y, Y], axis=1)           # (nc, 4)
+        def AX():                                               # (nr, 4) axial factors of the 4 shape functions
+            return np.stack([1 - X, X, X, 1 - X], axis=1)
+
+        def AY():                                               # (nc, 4) lateral factors
+            return np.stack([1 - Y, 1 - Y, Y, Y], axis=1)
+
+        def dN():
             dAX = np.array([-1.0, 1.0, 1.0, -1.0])[None, :] / hx[:, None]
             dAY = np.array([-1.0, -1.0, 1.0, 1.0])[None, :] / hy[:, None]
-            N = (AX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
-            dN = np.empty(N.shape + (2,))
-            dN[:, :, 0] = (dAX[:, None, :] * AY[None, :, :]).reshape(-1, 4)
-            dN[:, :, 1] = (AX[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
-            nodes = cn[i[:, None], j[None, :]].reshape(-1, 4)
-            return dict(_element=cell[i[:, None], j[None, :]].ravel(), _nodes=nodes, _N=N, _dN=dN)
+            ax, ay = AX(), AY()
+            out = np.empty((i.size * j.size, 4, 2))
+            out[:, :, 0] = (dAX[:, None, :] * ay[None, :, :]).reshape(-1, 4)
+            out[:, :, 1] = (ax[:, None, :] * dAY[None, :, :]).reshape(-1, 4)
+            return out
 
+        # each per-point array is built on first use, on its own (e.g. the element index alone is cheap)
+        fill = {"_element": lambda: cell[i[:, None], j[None, :]].ravel(),
+                "_nodes": lambda: cn[i[:, None], j[None, :]].reshape(-1, 4),
+                "_N": lambda: (AX()[:, None, :] * AY()[None, :, :]).reshape(-1, 4),
+                "_dN": dN}
         # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
         return Location(inside, grid=dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size)), fill=fill)
 
@@ -352,7 +359,7 @@ class PointLocator:
         N[:, 3] = (1 - X) * Y
         mesh = self.mesh
         # physical gradients only when used (strain sampling; the image term needs N alone)
-        return Location(inside, e, nodes, N, fill=lambda: dict(_dN=_physical_gradients(mesh, nodes, _phi(X, Y)[1])))
+        return Location(inside, e, nodes, N, fill={"_dN": lambda: _physical_gradients(mesh, nodes, _phi(X, Y)[1])})
 
 
 class PixelQuadrature:
