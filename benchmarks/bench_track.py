@@ -32,7 +32,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-STAGES = ("prefilter", "operator", "regularizer_setup", "initial", "gauss_newton")
+#: Stages printed first when a result reports them; any other per-stage time it reports follows.
+STAGES = ("prefilter", "operator", "mesh", "regularizer_setup", "initial", "gauss_newton")
+
+
+def _stages(results):
+    """Names of the scalar stage times reported by the results, known ones first (``total`` excluded)."""
+    seen = []
+    for r in results:
+        seen += [k for k, v in r.timings.items() if isinstance(v, float) and k != "total" and k not in seen]
+    return [s for s in STAGES if s in seen] + [s for s in seen if s not in STAGES]
 
 
 def main(argv=None):
@@ -62,16 +71,17 @@ def main(argv=None):
     total = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    print(f"\n{'k':>3} {'total':>6} " + " ".join(f"{s[:10]:>10}" for s in STAGES) + f" {'nit':>4} {'s/iter':>7}")
-    sums = dict.fromkeys(STAGES, 0.0)
+    stages = _stages(out)
+    print(f"\n{'k':>3} {'total':>6} " + " ".join(f"{s[:10]:>10}" for s in stages) + f" {'nit':>4} {'s/iter':>7}")
+    sums = dict.fromkeys(stages, 0.0)
     iters = []
     for k, r in enumerate(out, start=1):
         t = r.timings
         it = t.get("per_iteration", [])
         iters += list(it)
-        for s in STAGES:
+        for s in stages:
             sums[s] += t.get(s, 0.0)
-        print(f"{k:3d} {t['total']:6.3f} " + " ".join(f"{t.get(s, 0.0):10.3f}" for s in STAGES)
+        print(f"{k:3d} {t['total']:6.3f} " + " ".join(f"{t.get(s, 0.0):10.3f}" for s in stages)
               + f" {r.nit:4d} {np.mean(it) if it else float('nan'):7.4f}")
     n = len(out)
     print(f"\nTOTAL {total:.2f} s for {n} increments ({total / n:.3f} s per increment); per stage (sum): "
