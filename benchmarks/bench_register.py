@@ -1,20 +1,24 @@
 """Benchmark of ``femreg.register`` on a paper-geometry pair (3750 x 147 pixels, dx 0.0192 mm, dy 0.3 mm).
 
 The pair is synthetic (femreg.synthetic: PSF-convolved speckle, SNR 12 dB, warped by a known smooth field with
-0.4-0.8 % axial compression); the real RF simulator lands later.  For every registered regulariser it prints the
+0.4-0.8 % axial compression).  For every registered regulariser it prints the
 time of each stage (block matching, operator build, regulariser set-up, each Gauss-Newton iteration, total) and
 the peak memory (each regulariser runs in a fresh process so that ru_maxrss is its own).
 
-    python benchmarks/bench_register.py                 # timings
+    python benchmarks/bench_register.py                 # timings (paper-size pair, then 1200 x 125 pairs)
+    python benchmarks/bench_register.py --save a.npz    # ... and keep every nodal u; --compare a.npz: max |du|
+    python benchmarks/bench_register.py --no-compiled   # without the numba loops (femreg._kernels)
     python benchmarks/bench_register.py --study         # alpha and element-size study (total strain error)
     python benchmarks/bench_register.py --solvers       # linear-solver comparison on the GN system
 
-Measured 2026-11-21 on the shared 2-core machine (load average 5-7, fastest of 5), default 2 mm mesh (792 nodes):
-total 1.0-1.7 s per pair for R_eps / R_eps_i, 1.9-2.2 s for the momentum regularisers (Hessian re-factorised
-each iteration), peak RSS ~400 MB (120 MB of it the Python process, imports and the pair).  Where the time goes:
-each Gauss-Newton iteration is ~0.1 s, dominated by the cubic-spline re-interpolation of I_2 at the 0.5 M pixels
-(scipy map_coordinates, ~50-80 ms); block matching 0.1-0.2 s; operator build 0.12-0.15 s; the data Hessian is
-assembled once by separable row/column sums (~0.03 s) and, for quadratic regularisers, factorised once.
+Measured 2026-11-29 on the shared 2-core machine under a load average of 10-12 (so pessimistic; fastest of 5),
+default 2 mm mesh (792 nodes), numba installed: total 0.39-0.52 s per pair (R_P_sigma 0.39 s), 0.72 s for R_P_eps
+(its block matching took longer); a Gauss-Newton iteration after the first 18-30 ms (was 107-151 ms in the same
+conditions before the compiled image-term loops and the banded Cholesky: total 1.4-1.75 s); operator build
+24-68 ms (was 190-230 ms); block matching 0.16-0.26 s is now the largest stage.  1200 x 125 pairs: 0.26 s at
+0.5 % strain (was 0.48 s), 0.9-1.1 s at 2-5 % (was 1.3-1.8 s; block matching and the coarse pass dominate).  Peak
+RSS ~400 MB (140 MB of it the Python process, imports and the pair).  Results equal to the earlier code's to
+2e-13 mm (``--save`` / ``--compare``).
 """
 from __future__ import annotations
 
@@ -50,10 +54,25 @@ def make_pair(seed=0, snr_db=12.0):
     return speckle_pair(paper_field, SHAPE, SPACING, seed=seed, snr_db=snr_db)
 
 
-def _run_one(name, alpha, element_size, q, repeat=1):
+def uniform_field(strain):
+    """Uniform axial compression ``strain`` with half as much lateral expansion, about the image centre."""
+    def f(p):
+        x, y = p[:, 0], p[:, 1]
+        return np.column_stack([-strain * (x - 0.5 * SMALL[0] * SPACING[0]),
+                                0.5 * strain * (y - 0.5 * SMALL[1] * SPACING[1])])
+    return f
+
+
+#: The small pair of the speed targets (23 x 37.5 mm at the paper's sampling).
+SMALL = (1200, 125)
+
+
+def _run_one(name, alpha, element_size, q, repeat=1, strain=None):
     import femreg
     from femreg.metrics import field_errors
-    ref, mov = make_pair()
+    from femreg.synthetic import speckle_pair
+    field = paper_field if strain is None else uniform_field(strain)
+    ref, mov = make_pair() if strain is None else speckle_pair(field, SMALL, SPACING, seed=1, snr_db=20.0)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     best = None
     for _ in range(repeat):   # the machine is shared: keep the fastest of `repeat` runs
@@ -64,42 +83,60 @@ def _run_one(name, alpha, element_size, q, repeat=1):
         if best is None or total < best[0]:
             best = (total, res)
     total, res = best
-    err = field_errors(res, paper_field)
-    q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
+    err = field_errors(res, field)
+    q.put(dict(name=name, u=res.u, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
                message=res.message, err=err, n_nodes=res.mesh.p.shape[1], ncc=(res.ncc_before, res.ncc_after),
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
-def run_isolated(name, alpha=None, element_size=None, repeat=1):
+def run_isolated(name, alpha=None, element_size=None, repeat=1, strain=None):
     ctx = mp.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat))
+    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat, strain))
     p.start()
     out = q.get()
     p.join()
     return out
 
 
-def timings():
+def timings(save=None, compare=None):
     from femreg.regularizers import available_regularizers
+    us = {}
     print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB; fastest of 5 runs per regulariser")
     for name in available_regularizers():
         r = run_isolated(name, repeat=5)
+        us[name] = r["u"]
         t = r["timings"]
         it = t["per_iteration"]
         print(f"\n[{name}] alpha={r['alpha']:g}  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  "
               f"({r['message']})")
-        print(f"  prefilter {t['prefilter']:.3f} s | operator build {t['operator']:.3f} s | regulariser set-up "
-              f"{t['regularizer_setup']:.3f} s | block matching {t['initial']:.3f} s")
+        print("  " + " | ".join(f"{k} {v:.3f} s" for k, v in t.items()
+                                 if isinstance(v, float) and k not in ("total", "gauss_newton")))
         if it:
             print(f"  GN: first iteration {it[0]:.3f} s (incl. Hessian assembly + factorisation), "
                   f"later {np.mean(it[1:]) if len(it) > 1 else float('nan'):.3f} s/iter, "
                   f"GN total {t['gauss_newton']:.3f} s")
-        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB (after imports+pair {r['rss_before_mb']:.0f} MB)")
+        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB "
+              f"(after imports+pair {r['rss_before_mb']:.0f} MB)")
         e = r["err"]
         print(f"  errors: ux {100*e['ux']:.2f} %  uy {100*e['uy']:.1f} %  exx {100*e['exx']:.1f} %  "
               f"eyy {100*e['eyy']:.1f} %  exy {100*e['exy']:.1f} %  total strain {100*e['e']:.1f} %   "
               f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}")
+    print(f"\n{SMALL[0]} x {SMALL[1]} pairs, uniform compression, SNR 20 dB, default register (R_P_sigma); "
+          "fastest of 3")
+    for strain in (0.005, 0.02, 0.05):
+        r = run_isolated("momentum-stress", repeat=3, strain=strain)
+        us[f"small-{strain}"] = r["u"]
+        t, e = r["timings"], r["err"]
+        print(f"  strain {100 * strain:3.1f} %: TOTAL {r['total']:.3f} s (initial guess {t.get('initial', 0.0):.3f} s, "
+              f"{r['nit']} GN iterations {t.get('gauss_newton', 0.0):.3f} s)  total strain error {100 * e['e']:.1f} %  "
+              f"ux {100 * e['ux']:.2f} %  success={r['success']}")
+    if save:
+        np.savez(save, **us)
+    if compare:
+        with np.load(compare) as z:
+            print("\nmax |u - u_saved| (mm): " + ", ".join(f"{k} {np.abs(v - z[k]).max():.1e}" for k, v in us.items()
+                                                       if k in z))
 
 
 def study(sizes=(1.0, 2.0), grids=None):
@@ -141,7 +178,7 @@ def solvers():
         B[0::2, 0] = 1.0
         B[1::2, 1] = 1.0
         B[0::2, 2], B[1::2, 2] = -y_, x_
-        for method in ["splu", "spsolve", "amg-cg"]:
+        for method in ["cholesky", "splu", "spsolve", "amg-cg"]:
             s = SPDSolver(method, B=B if method == "amg-cg" else None)
             t = time.perf_counter()
             x = s.solve(H, b)
@@ -161,10 +198,16 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study", action="store_true")
     ap.add_argument("--solvers", action="store_true")
+    ap.add_argument("--save", help="write every registration's nodal u to this .npz")
+    ap.add_argument("--compare", help="print max |u - u_saved| against a --save file")
+    ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args()
+    if a.no_compiled:
+        from femreg import _kernels
+        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
     if a.solvers:
         solvers()
     elif a.study:
         study()
     else:
-        timings()
+        timings(a.save, a.compare)
