@@ -509,7 +509,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="cropped pieces and two regularisers (< 1 min)")
     ap.add_argument("--data", help="folder with seq299/ and seq304/ (default ../shared/data/invivo_rf)")
-    ap.add_argument("--out", default=str(REPO / "out" / "07_invivo"), help="output folder")
+    ap.add_argument("--out", default=str(Path("out") / "07_invivo"), help="output folder (default out/07_invivo)")
     ap.add_argument("--alpha-study", action="store_true",
                     help="rerun the alpha sweep behind ALPHA (about 15 min) and write alpha_study.md")
     args = ap.parse_args(argv)
