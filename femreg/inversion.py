@@ -163,6 +163,38 @@ class _Model:
         self.I = np.setdiff1d(np.arange(N), self.D)
         if self.I.size == 0:
             raise InputError("the inversion mesh has no interior nodes; use smaller elements or a larger region")
+        # the interior-interior and interior-boundary blocks as fixed sparsity patterns whose data are CSR slots of
+        # K (slot + 1, so that no stored value is 0): K_II.data = (A @ mu)[slots], no sparse slicing per solve
+        tagged = pattern.copy()
+        tagged.data = np.arange(1, pattern.nnz + 1, dtype=float)
+        self._KII = tagged[self.I][:, self.I].tocsc()
+        self._KIB = tagged[self.I][:, self.D].tocsr()
+        self._sII = self._KII.data.astype(np.int64) - 1
+        self._sIB = self._KIB.data.astype(np.int64) - 1
+        # banded Cholesky (LAPACK pbtrf) in reverse Cuthill-McKee order: K_II is symmetric positive definite for
+        # mu > 0, and on these meshes its bandwidth (reverse Cuthill-McKee, or row by row on a
+        # structured mesh) is ~2 x (nodes across), so one factorisation costs
+        # n b^2 flops -- 5-10 times faster than SuperLU's general LU on the ~6000-DOF system of a 3000-node mesh.
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        coo = self._KII.tocoo()
+        xy = self.basis.doflocs[:, self.I]
+        comp = np.arange(N)[self.I] % 2
+        best = None
+        for perm in (np.asarray(reverse_cuthill_mckee(self._KII.tocsr(), symmetric_mode=True), np.int64),
+                     np.lexsort((comp, xy[1], xy[0])), np.lexsort((comp, xy[0], xy[1]))):
+            inv = np.empty_like(perm)       # RCM, or rows/columns of a structured mesh: keep the narrowest band
+            inv[perm] = np.arange(perm.size)
+            rp, cp = inv[coo.row], inv[coo.col]
+            band = int(np.max(np.abs(cp - rp)))
+            if best is None or band < best[0]:
+                best = (band, perm, rp, cp)
+        self._band, perm, rp, cp = best
+        upper = rp <= cp
+        self._perm = perm
+        # position of every stored entry of K_II (CSC data order = tocoo order) in the (band+1, n) upper band
+        self._band_sel = np.flatnonzero(upper)
+        self._band_pos = (self._band + rp[upper] - cp[upper]) * perm.size + cp[upper]
 
         @BilinearForm
         def weighted_mass(u, v, w):
@@ -180,18 +212,46 @@ class _Model:
         """u (N,) with u_B = d_B and the LU factor of K_II."""
         from scipy.sparse.linalg import splu
 
-        K = self.stiffness(mu)
-        I, D = self.I, self.D
-        KII = K[I][:, I].tocsc()
-        rhs = -(K[I][:, D] @ d[D])
-        lu = splu(KII)
+        k = self._A @ mu
+        KIB = self._KIB.copy()
+        KIB.data = k[self._sIB]
+        vals = k[self._sII]                      # CSC data order == the order of self._KII.tocoo()
+        lu = _BandedCholesky(self, vals)
+        if not lu.ok:                            # not positive definite (should not happen for mu > 0)
+            KII = self._KII.copy()
+            KII.data = vals
+            lu = splu(KII)
         u = d.copy()
-        u[I] = lu.solve(rhs)
+        u[self.I] = lu.solve(-(KIB @ d[self.D]))
         return u, lu
 
     def dJ_dtheta(self, mu, u, lam):
         """-mu_e lam^T K_e u for every element (lam zero on the boundary)."""
         return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
+
+
+class _BandedCholesky:
+    """Cholesky factor of K_II in the model's RCM band; ``solve(b)``; ``ok`` False if not positive definite."""
+
+    def __init__(self, model: "_Model", vals):
+        from scipy.linalg import LinAlgError, cholesky_banded
+
+        n = model._perm.size
+        ab = np.zeros((model._band + 1) * n)
+        ab[model._band_pos] = vals[model._band_sel]
+        self.perm = model._perm
+        try:
+            self.c = cholesky_banded(ab.reshape(model._band + 1, n), lower=False, check_finite=False)
+            self.ok = True
+        except LinAlgError:
+            self.ok = False
+
+    def solve(self, b):
+        from scipy.linalg import cho_solve_banded
+
+        x = np.empty_like(b)
+        x[self.perm] = cho_solve_banded((self.c, False), b[self.perm], check_finite=False)
+        return x
 
 
 class _Regularizer:
