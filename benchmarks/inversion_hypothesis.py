@@ -3,14 +3,17 @@
 For the simulated 3D sequences (forward.get_sequence("3d", HI / SI / mHI, seed=0)), each regulariser's
 displacement -- ``femreg.register`` frames 1 -> 7 (indices 0 -> 6) and ``femreg.track`` accumulated to frame 20
 (index 19, current-grid accumulation, block-matching start of every increment, as the study) -- is inverted with
-``femreg.invert(model="plane-stress")`` on the registration's own mesh (2 mm elements, default beta rule), and
-scored against the true shear-modulus contrast (Young's contrast 4 / 0.5 / 2 at equal Poisson ratio):
+``femreg.invert`` on the registration's own mesh (2 mm elements) with the plane-stress model (consistent with
+R_P_sigma) and the plane-strain model (consistent with R_P_eps), once with the default beta rule and once with one
+fixed beta for all (:data:`FIXED_BETA`), and scored against the true shear-modulus contrast (Young's contrast
+4 / 0.5 / 2 at equal Poisson ratio):
 
 * contrast error = |C / C_true - 1| in %, C = mean mu in the inclusion / mean mu in the background (elements
   fully inside / outside the 15 mm disk; :func:`femreg.inversion.modulus_contrast`);
 * modulus CNR = 2 (m_A - m_B)^2 / (s_A^2 + s_B^2) (the paper's CNR_e formula applied to mu).
 
-A row "true u" inverts the true displacement on the same mesh: the best any registration could give.
+A row "true u" inverts the true displacement on the same mesh: the best any registration could give with a 2D
+model of 3D data; "error vs true u" = |C / C_true-u - 1| is what the registration adds to that model error.
 
 Usage: ``python benchmarks/inversion_hypothesis.py [--out DIR] [--jobs 2] [--quick]``; writes ``DIR/table.md``,
 ``DIR/rows.json`` and one ``.npz`` per displacement (resumes: finished cases are reused).  ``--quick``: 3D HI only,

@@ -20,6 +20,13 @@ displacement, the usual choice when tractions are unknown (Doyley, Phys. Med. Bi
 doi:10.1088/0031-9155/57/3/R35).  With Dirichlet data everywhere, :math:`c\mu` gives the same u as :math:`\mu`:
 the modulus is **relative** and is returned normalised so that its area-weighted **median over the region is 1**.
 
+Measured on exact forward-model displacements (``forward.solve_elasticity``, P2 triangles; 30 x 30 mm around the
+15 mm inclusion; contrast = mean mu of the elements fully inside / fully outside): plane stress HI 4.09-4.10 (true
+4; 1 and 1.5 mm elements), SI 0.509 (0.5), mHI 2.01 (2); plane strain HI 4.14 with 1 mm elements but 4.31-4.37 with
+1.5 mm (the reduced-integration model converges more slowly in h), SI 0.521; a uniform block gives a coefficient
+of variation of 0.1-0.3 %.  On displacements of the 3D phantom a 2D model is itself an approximation: the
+plane-stress inversion of the *true* 3D displacement gives a contrast of 2.2 for the 4-times-stiffer sphere.
+
 Objective (minimised over :math:`\theta`, one value per element):
 
 .. math::
@@ -342,8 +349,6 @@ def _optimise(problem: _Problem, theta0, beta, *, maxiter, gtol, progress=None):
         return theta, {"success": False, "message": f"optimisation failed: {exc}", "nit": len(history),
                        "history": history}
     msg = res.message if isinstance(res.message, str) else res.message.decode()
-    # L-BFGS-B stops with "ABNORMAL" when the line search cannot decrease J further at round-off level: that is a
-    # converged solution when the projected gradient is already tiny relative to the start; report it as such.
     return res.x, {"success": bool(res.success), "message": msg, "nit": int(res.nit), "history": history,
                    "n_eval": int(res.nfev)}
 

@@ -7,7 +7,6 @@ from the inversion's bilinear quads, so nothing here starts from the answer.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
