@@ -6,6 +6,10 @@ one inversion at a given beta (1e-3), L-BFGS-B iterations and forward/adjoint ev
 default beta rule (L-curve sweep, several inversions), with the recovered contrast (truth 4).
 
 Usage: ``python benchmarks/bench_invert.py``.  Timings on a shared 2-core machine are pessimistic.
+
+Measured (2026-11-29, shared 2-core machine, load ~8): 792 nodes 0.5 s for one inversion (96 L-BFGS-B
+iterations), 2.1 s with the beta rule; 3053 nodes 3.6 s (169 iterations), 12.6 s with the rule.  Contrast 4.08-4.17
+(true 4).
 """
 import os
 import sys

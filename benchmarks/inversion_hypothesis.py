@@ -10,7 +10,8 @@ fixed beta for all (:data:`FIXED_BETA`), and scored against the true shear-modul
 
 * contrast error = |C / C_true - 1| in %, C = mean mu in the inclusion / mean mu in the background (elements
   fully inside / outside the 15 mm disk; :func:`femreg.inversion.modulus_contrast`);
-* modulus CNR = 2 (m_A - m_B)^2 / (s_A^2 + s_B^2) (the paper's CNR_e formula applied to mu).
+* modulus CNR = 2 (m_A - m_B)^2 / (s_A^2 + s_B^2) (the paper's CNR_e formula applied to mu);
+* CV bg = s_A / m_A, the spread of mu over the background (0 for a perfect image of this phantom).
 
 A row "true u" inverts the true displacement on the same mesh: the best any registration could give with a 2D
 model of 3D data; "error vs true u" = |C / C_true-u - 1| is what the registration adds to that model error.
@@ -109,7 +110,8 @@ def _case(args):
         inv.save(outdir / f"mu_{inc}_{reg}_{kind}_{model}_{tag}.npz")
         m = modulus_contrast(inv, _roi(seq))
         row[tag] = {"contrast": m["contrast"], "contrast_error": 100 * abs(m["contrast"] / truth - 1),
-                    "CNR": m["CNR"], "beta": inv.beta, "edge_error_mm": m["edge_error_mm"],
+                    "CNR": m["CNR"], "cv_background": m["cv_background"], "beta": inv.beta,
+                    "edge_error_mm": m["edge_error_mm"],
                     "success": inv.success, "invert_s": seconds}
     row["n_el"] = int(inv.mesh.t.shape[1])
     rec_path.write_text(json.dumps(row, indent=1, default=float))
@@ -151,27 +153,30 @@ def _displacement_worker(args):
     return str(_displacement(inc, reg, kind, Path(outdir)))
 
 
-def format_table(rows) -> str:
+def format_table(rows, models=MODELS) -> str:
     """Markdown: one row per (data set, displacement, model, regulariser); the contrast error against the true
     modulus contrast and against the inversion of the true displacement ("vs true u": what the registration adds
     to the model error), for the beta rule and for one fixed beta."""
     ref = {(r["dataset"], r["kind"], r["model"]): r for r in rows if r["regularizer"] == "truth"}
     L = [f"| data set | displacement | model | regulariser | contrast (true) | rule: beta | contrast | error % | "
-         f"error vs true u % | CNR | beta {FIXED_BETA:g}: contrast | error % | error vs true u % | CNR |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         f"error vs true u % | CNR | CV bg % | beta {FIXED_BETA:g}: contrast | error % | error vs true u % | CNR | "
+         "CV bg % |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        if r["model"] not in models:
+            continue
         c = ref.get((r["dataset"], r["kind"], r["model"]))
         cells = []
         for tag in ("rule", "fixed"):
             q = r[tag]
             vs = 100 * abs(q["contrast"] / c[tag]["contrast"] - 1) if c else float("nan")
             cells += ([f"{q['beta']:.2g}"] if tag == "rule" else []) + [
-                f"{q['contrast']:.2f}", f"{q['contrast_error']:.1f}", f"{vs:.1f}", f"{q['CNR']:.2f}"]
+                f"{q['contrast']:.2f}", f"{q['contrast_error']:.1f}", f"{vs:.1f}", f"{q['CNR']:.2f}",
+                f"{100 * q.get('cv_background', float('nan')):.1f}"]
         L.append(f"| {r['dataset']} | {dict(KINDS)[r['kind']]} | {r['model']} | {LABELS[r['regularizer']]} | "
                  f"{r['truth']:g} | " + " | ".join(cells) + " |")
     L += [""]
     for kind, kname in KINDS:
-        for model in MODELS:
+        for model in models:
             sel = {(r["dataset"], r["regularizer"]): r for r in rows if r["kind"] == kind and r["model"] == model}
             ds = sorted({d for d, _ in sel})
             if not ds:
@@ -205,6 +210,8 @@ def main(argv=None) -> int:
     kw = dict(datasets=("HI",), kinds=("pair",)) if args.quick else {}
     table = hypothesis_table(args.out, jobs=args.jobs, only_existing=args.only_existing, **kw)
     (Path(args.out) / "table.md").write_text(table + "\n")
+    rows = json.loads((Path(args.out) / "rows.json").read_text())
+    (Path(args.out) / "table_plane_stress.md").write_text(format_table(rows, models=("plane-stress",)) + "\n")
     print(table)
     print(f"\n{time.perf_counter() - t0:.0f} s; wrote {Path(args.out) / 'table.md'}")
     return 0
