@@ -58,7 +58,9 @@ regulariser R.  Along the L-curve (log R against log :math:`\phi`) the slope
 :math:`\beta` buys a large drop of the misfit; it exceeds :data:`LCURVE_SLOPE` = 1 at the corner, where the
 modulus starts to follow noise (R grows faster than the misfit falls, in relative terms).  The chosen
 :math:`\beta` is the last one before the first step with :math:`s >` :data:`LCURVE_SLOPE` (the sweep stops there),
-or the smallest of the grid if there is none.  Measured: exact 2D forward-model data keep the smallest
+or the smallest of the grid if there is none; the sweep also stops, keeping the previous :math:`\beta`, when a
+solve does not converge within ``maxiter`` or drives :math:`|\log\mu|` to :data:`THETA_BOUND` (the modulus
+has started to fit noise).  Measured: exact 2D forward-model data keep the smallest
 :math:`\beta` (1e-4; the slope stays below 0.3), registered 3D-phantom displacements stop at 0.03-0.1 (slope
 1.0-1.3 at the next step).  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1137/1034115.  Pass
 ``beta=`` to override.
@@ -549,10 +551,17 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         chosen = None
         for b in betas:
             theta_b, info = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol, progress=bar)
+            if np.any(np.abs(theta_b) >= THETA_BOUND - 1e-6):
+                info = dict(info, success=False, message=f"log-modulus reached its bound |log mu| = "
+                                                         f"{THETA_BOUND:g} ({info['message']})")
             phi, _ = problem.misfit(theta_b)
             R, _ = reg(theta_b)
             sweep.append({"beta": b, "misfit": phi, "regularizer": R, "nit": info["nit"],
                           "success": info["success"], "message": info["message"]})
+            if runs and beta is None and not info["success"]:
+                chosen = runs[-1]        # no convergence at this beta: the previous one is the last reliable
+                sweep[-1]["stop"] = "not converged"
+                break
             if runs and beta is None:
                 _, _, _, phi0, R0 = runs[-1]
                 slope = (np.log(max(R, 1e-300) / max(R0, 1e-300))
@@ -570,6 +579,9 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
             bar.close()
     if beta is not None:
         rule = "given"
+    elif chosen is not None and sweep[-1].get("stop"):
+        rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
+                f"(beta {sweep[-1]['beta']:.3g})")
     elif chosen is not None:
         rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before the slope d log R / -d log misfit "
                 f"exceeds {LCURVE_SLOPE:g}")
