@@ -146,7 +146,8 @@ def invivo(out: Path, lines: list, quick: bool):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="cropped in vivo pieces (about a minute)")
-    ap.add_argument("--out", default=str(REPO / "out" / "08_inversion"))
+    ap.add_argument("--out", default=str(Path("out") / "08_inversion"),
+                    help="output folder (default out/08_inversion, relative to the working directory)")
     args = ap.parse_args(argv)
     quick = args.quick or os.environ.get("FEMREG_QUICK", "") not in ("", "0")
     out = Path(args.out)
