@@ -41,14 +41,14 @@ the displacement change across one element), and the second term the total varia
 the two element centres), a discrete :math:`\int|\nabla\theta|^2`.
 
 Weights: :data:`DEFAULT_WEIGHTS` = (1, 0.1) (axial, lateral).  Ultrasound measures the lateral displacement far
-less accurately than the axial one (coarser lateral sampling and PSF): in the simulation study the registered
-lateral displacement error is 5-100 times the axial one (relative L2, R_P_sigma 9 % vs 0.1 %), so the axial
-data lead, and w_y = 0.1 (a lateral noise about 3 times the axial one) keeps the lateral information without
-letting its errors dominate.
+less accurately than the axial one (coarser lateral sampling and PSF; in the paper's 3D HI table the relative
+lateral error of R_P_sigma is 9 % against 0.1 % axially), so the axial data lead.  w_y = 0.1 is a round choice
+that keeps the lateral information (the lateral boundary data enter the model in any case); on the registered 3D
+phantom, w_y = 0.01 and 0.1 gave contrasts within 0.1 of each other for the momentum regularisers at beta 0.01.
 
 Gradient by the adjoint method: :math:`K_{II}(\theta)\,u_I = -K_{IB}\,d_B`, :math:`K_{II}\lambda = \partial J/\partial
 u_I`, :math:`\partial J/\partial\theta_e = -\mu_e\,\lambda^T K_e u` (:math:`K_e` the unit-modulus element
-matrix), one LU factorisation for both solves.  Optimiser: L-BFGS-B (SciPy) with :math:`|\theta| \le`
+matrix), one factorisation (banded Cholesky) for both solves.  Optimiser: L-BFGS-B (SciPy) with :math:`|\theta| \le`
 :data:`THETA_BOUND`.
 
 Choice of :math:`\beta` (``beta=None``): an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
@@ -61,8 +61,8 @@ modulus starts to follow noise (R grows faster than the misfit falls, in relativ
 or the smallest of the grid if there is none; the sweep also stops, keeping the previous :math:`\beta`, when a
 solve does not converge within ``maxiter`` or drives :math:`|\log\mu|` to :data:`THETA_BOUND` (the modulus
 has started to fit noise).  Measured: exact 2D forward-model data keep the smallest
-:math:`\beta` (1e-4; the slope stays below 0.3), registered 3D-phantom displacements stop at 0.03-0.1 (slope
-1.0-1.3 at the next step).  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1137/1034115.  Pass
+:math:`\beta` (1e-4; the slope stays below 0.3), registered 3D-phantom displacements stop at 0.003-0.1,
+mostly 0.01-0.03.  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1137/1034115.  Pass
 ``beta=`` to override.
 
 Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
