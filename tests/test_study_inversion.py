@@ -133,6 +133,7 @@ def test_torn_record_is_recomputed_and_failed_case_is_named(study):
     stats = {}
     lines = INV.hypothesis_section(study, stats=stats, **KW)
     assert stats["computed"] == 1
+    assert sum(ln.startswith("| 3d-HI | frames 1->7 |") for ln in lines) == 3
     assert json.loads(rec.read_text())["contrast"] == pytest.approx(before["contrast"], rel=1e-12)  # deterministic
     # a case the study recorded as failed: its rows are named missing, the others still shown
     bad = next(k for k, r in study.records.items() if r["spec"]["regularizer"] == "strain")
