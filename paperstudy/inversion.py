@@ -440,17 +440,21 @@ def hypothesis_section(res, *, models=MODELS, betas=BETAS, jobs: int | None = No
     inversions (:func:`run_inversions`, same arguments), then the table, the means, the computed conclusion, and
     which rows the study's case set lacks.  Also writes ``OUTDIR/inversions/summary.json``.  Never raises: a
     failure becomes a line of the section (the rest of the report must not be lost)."""
-    L = ["## Shear-modulus inversion: the paper's closing hypothesis", ""]
-    t0 = time.perf_counter()
-    stats = {} if stats is None else stats
-    n0 = stats.get("computed", 0)
+    head = ["## Shear-modulus inversion: the paper's closing hypothesis", ""]
     try:
-        records, missing = run_inversions(res, models=models, betas=betas, jobs=jobs, client=client,
-                                          scheduler=scheduler, progress=progress, truth=truth, stats=stats)
+        return head + _section(res, models, betas, jobs, client, scheduler, progress, truth,
+                               {} if stats is None else stats)
     except Exception as exc:  # noqa: BLE001 - the report goes on without this section
-        return L + [f"(not computed: {type(exc).__name__}: {exc})", ""]
+        return head + [f"(not computed: {type(exc).__name__}: {exc})", ""]
+
+
+def _section(res, models, betas, jobs, client, scheduler, progress, truth, stats) -> list:
+    t0 = time.perf_counter()
+    n0 = stats.get("computed", 0)
+    records, missing = run_inversions(res, models=models, betas=betas, jobs=jobs, client=client,
+                                      scheduler=scheduler, progress=progress, truth=truth, stats=stats)
     wall = time.perf_counter() - t0
-    L += ["Does a SPREME-regularised displacement, inverted with the matching 2D model, give a better modulus "
+    L = ["Does a SPREME-regularised displacement, inverted with the matching 2D model, give a better modulus "
           "image?  Each regulariser's displacement from the cases above is inverted with `femreg.invert` on its "
           f"own mesh ({' and '.join(models)} model{'s' if len(models) > 1 else ''}), "
           + " and ".join(("with femreg's beta rule (L-curve)" if b is None else f"at one beta {b:g} for all")
