@@ -21,6 +21,7 @@ from .errors import InputError
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
+from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton
 
@@ -337,6 +338,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     timings["operator"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    if reg is regularizer:             # never change the caller's instance
+        import copy
+        reg = copy.copy(reg)
+    user_alpha = reg.alpha
+    reg.alpha = effective_alpha(user_alpha, fe_mesh)   # alpha per 2 x 2 mm element (femreg.scaling)
     reg.setup(fe_mesh)
     timings["regularizer_setup"] = time.perf_counter() - t
 
@@ -391,7 +397,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     timings["per_iteration"] = list(gn.timings)
     timings["total"] = time.perf_counter() - t_all
     return RegistrationResult(fe_mesh, gn.x, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=reg.name, alpha=reg.alpha, success=gn.success, status=gn.status,
+                              regularizer=reg.name, alpha=user_alpha, success=gn.success, status=gn.status,
                               message=gn.message, nit=gn.nit, energy_history=gn.energy_history,
                               ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
                               solver_result=gn, locator=locator)
