@@ -256,8 +256,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         A name from :func:`femreg.regularizers.available_regularizers`: "momentum-stress" = R_P_sigma (default,
         the most accurate laterally in the paper and here), "momentum-strain" = R_P_eps, "strain" = R_eps,
         "strain-incompressible" = R_eps_i; or a Regularizer instance (e.g. from ``regularizers.from_form``).
-    alpha : float, optional
-        :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; None = the regulariser's
+    alpha : float or "auto", optional
+        :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; "auto" = chosen from the pair by
+        :func:`femreg.autoalpha.choose_alpha` (UPRE, several registrations); None = the regulariser's
         documented default (R_eps 30, R_eps_i 3 with the default 2 mm mesh; see
         :mod:`femreg.regularizers.strain`).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
@@ -295,6 +296,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     -------
     RegistrationResult
     """
+    if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
+        kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
+        from .autoalpha import register_auto
+        return register_auto(reference_image, moving_image, **kw)
     t_all = time.perf_counter()
     timings = {}
     ref = validate_image(reference_image, "reference image")
