@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 import forward  # noqa: E402
 from forward.sequences import schedule_figures  # noqa: E402
-from forward.ultrasound import bmode  # noqa: E402
+from femreg.plot import bmode  # noqa: E402
 
 ap = argparse.ArgumentParser(description="simulated RF sequences: B-mode, true strain, schedule")
 ap.add_argument("--quick", action="store_true", help="plane-strain model, coarse mesh, 7 frames")
@@ -64,7 +64,7 @@ dx, dy = seq.spacing
 x = seq.origin[0] + dx * np.arange(seq.shape[0])
 y = seq.origin[1] + dy * np.arange(seq.shape[1])
 extent = (y[0] - dy / 2, y[-1] + dy / 2, x[-1] + dx / 2, x[0] - dx / 2)
-b = bmode(seq.frames[0], dynamic_range_db=50.0)
+b = bmode(seq.frames[0], 50.0)
 f, ax = plt.subplots(figsize=(4.2, 6.2))
 im = ax.imshow(b, cmap="gray", extent=extent, aspect="equal", interpolation="none")
 ax.contour(y, x, seq.inclusion_mask.astype(float), levels=[0.5], colors="r", linewidths=1.0)

@@ -20,7 +20,9 @@ This demo shows how femreg reproduces the paper's results on simulated data:
 
 Each registration is written to ``out/06_study/cases/`` as it finishes; running the demo again resumes.
 ``--quick``: 3D HI only, coarse alpha grid, accumulation to frame 7 (a few minutes), into out/06_study_quick/.
-``--write-defaults`` stores the selected alphas as femreg's defaults (femreg/data/default_alphas.json).
+The selected alphas are written to ``alphas.json`` in the output folder (same format as femreg's shipped
+defaults, femreg/data/default_alphas.json).  The study is the ``paperstudy`` package (it needs both femreg and
+forward); ``femreg study`` runs the same code.
 """
 import argparse
 import os
@@ -32,18 +34,17 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from femreg.study import run_study  # noqa: E402
+from paperstudy import run_study  # noqa: E402
 
 ap = argparse.ArgumentParser(description="the paper's simulation study (report with femreg vs paper tables)")
 ap.add_argument("--quick", action="store_true", help="3D HI only, coarse alpha grid, 7 frames")
 ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-ap.add_argument("--write-defaults", action="store_true", help="store the selected alphas as femreg's defaults")
 args = ap.parse_args()
 
 # ## Run (resumes whatever an earlier run of this demo finished)
 out = ROOT / "out" / ("06_study_quick" if args.quick else "06_study")
 t0 = time.perf_counter()
-res = run_study(out, quick=args.quick, jobs=args.jobs, resume=True, write_defaults=args.write_defaults)
+res = run_study(out, quick=args.quick, jobs=args.jobs, resume=True)
 
 # ## Headline: R_P_sigma on the 3D hard inclusion, femreg vs paper
 print(f"\nreport: {res.report}  ({time.perf_counter() - t0:.0f} s, {res.n_computed} cases computed)")

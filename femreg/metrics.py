@@ -1,7 +1,7 @@
 """The paper's accuracy and contrast metrics ("Results": displacement / strain % errors, SR, CNR_e).
 
-Errors are integrated over the FE mesh domain with Gauss quadrature on the mesh (``intorder``, default 4 ->
-3 x 3 points per quad), comparing the measured FE field with a true field given as a callable:
+Errors are integrated over the FE mesh domain with Gauss quadrature on the mesh (``intorder``, default
+:data:`femreg.quadrature.GAUSS_3X3`, 3 x 3 points per quad), comparing the measured FE field with a true field given as a callable:
 
     Disp. error_i   = ||u^t_i - u^m_i|| / ||u^t_i||            (i = x, y), total with the vector norm,
     Strain error_ij = ||e^t_ij - e^m_ij|| / ||e^t_ij||         (ij = xx, yy, xy), total with e : e
@@ -16,11 +16,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from .fields import strain_components
+from .quadrature import GAUSS_3X3
+
 __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
            "field_errors_nodal", "field_errors_both"]
 
 
-def mesh_quadrature(mesh, intorder: int = 4):
+def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
     """Quadrature points (n, 2) mm and weights (n,) mm^2 over the mesh, plus a skfem vector basis."""
     from skfem import Basis, ElementQuad1, ElementVector
 
@@ -38,7 +41,7 @@ def _measured(result_or_u, mesh, basis):
     return np.asarray(f), np.asarray(f.grad)
 
 
-def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = 4) -> dict:
+def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
     """Relative L2 errors of a registration against a known field, integrated over the FE mesh.
 
     Parameters
@@ -58,7 +61,7 @@ def field_errors(result, true_displacement, true_strain=None, *, mesh=None, into
     pts, w, basis = mesh_quadrature(mesh, intorder)
     val, grad = _measured(result, mesh, basis)
     um = np.column_stack([val[0].ravel(), val[1].ravel()])
-    em = np.column_stack([grad[0, 0].ravel(), grad[1, 1].ravel(), 0.5 * (grad[0, 1] + grad[1, 0]).ravel()])
+    em = strain_components(grad).reshape(-1, 3)
     ut = np.asarray(true_displacement(pts), float)
     if true_strain is not None:
         et = np.asarray(true_strain(pts), float)
@@ -66,7 +69,7 @@ def field_errors(result, true_displacement, true_strain=None, *, mesh=None, into
         h = 1e-4
         ex = (np.asarray(true_displacement(pts + [h, 0])) - np.asarray(true_displacement(pts - [h, 0]))) / (2 * h)
         ey = (np.asarray(true_displacement(pts + [0, h])) - np.asarray(true_displacement(pts - [0, h]))) / (2 * h)
-        et = np.column_stack([ex[:, 0], ey[:, 1], 0.5 * (ey[:, 0] + ex[:, 1])])
+        et = strain_components(np.stack([np.stack([ex[:, 0], ey[:, 0]]), np.stack([ex[:, 1], ey[:, 1]])]))
 
     def rel(d, t, c=None):
         c = np.ones(d.shape[1]) if c is None else np.asarray(c)
@@ -107,7 +110,7 @@ def cnr_e(exx, inside, weights=None) -> float:
     return 2.0 * (ea - eb) ** 2 / (va + vb)
 
 
-def contrast_metrics(result, roi, *, intorder: int = 4) -> dict:
+def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3) -> dict:
     """SR and CNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
     (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid."""
     if callable(roi):
@@ -144,7 +147,7 @@ def interpolate_truth(mesh, true_displacement) -> np.ndarray:
     return out
 
 
-def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 4) -> dict:
+def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
     """Relative L2 errors against the truth *interpolated at the mesh nodes* (the paper's convention).
 
     Both the measured field u_h and the interpolated truth u^t_h = I_h u^t are bilinear on the same mesh; errors
@@ -192,7 +195,7 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
             "e": rel(de, et, [1.0, 1.0, 2.0])}
 
 
-def field_errors_both(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = 4) -> dict:
+def field_errors_both(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
     """Both conventions at once: ``{"exact": field_errors(...), "nodal": field_errors_nodal(...)}``."""
     return {"exact": field_errors(result, true_displacement, true_strain, mesh=mesh, intorder=intorder),
             "nodal": field_errors_nodal(result, true_displacement, mesh=mesh, intorder=intorder)}

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+from femreg.io import atomic_savez
 
 __all__ = ["solve_elasticity", "Solution", "load_solution", "cached_solve", "lame_parameters",
            "elasticity_form", "cache_dir", "MODELS"]
@@ -542,12 +543,9 @@ def solve_elasticity(model: str = "plane-strain", *, inclusion_modulus: float = 
 # cache
 # ----------------------------------------------------------------------------------------------------------------
 def cache_dir() -> Path:
-    """Cache folder: ``femreg._cache.cache_dir()`` if available, else ``$FEMREG_CACHE`` or ``~/.cache/femreg``."""
-    try:
-        from femreg._cache import cache_dir as _cd  # type: ignore
-        return Path(_cd())
-    except ImportError:
-        return Path(os.environ.get("FEMREG_CACHE") or Path.home() / ".cache" / "femreg")
+    """The one cache folder of the simulator (forward solutions under ``/forward``, RF sequences under
+    ``/sequences``): ``$FEMREG_CACHE`` if set, else ``~/.cache/femreg``."""
+    return Path(os.environ.get("FEMREG_CACHE") or Path.home() / ".cache" / "femreg")
 
 
 def cache_key(model: str, **kwargs) -> str:
@@ -589,8 +587,6 @@ def cached_solve(model: str = "plane-strain", **kwargs) -> Solution:
             path.unlink(missing_ok=True)
     sol = solve_elasticity(model, **kwargs)
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / f".{model}-{key}.{os.getpid()}.tmp.npz"
-    sol.save(tmp)
-    os.replace(tmp, path)  # atomic: concurrent callers never read a half-written file
+    atomic_savez(path, writer=sol.save)  # concurrent callers never read a half-written file
     sol.info["cache_path"] = str(path)
     return sol

@@ -25,13 +25,13 @@ import hashlib
 import inspect
 import json
 import math
-import os
 import time
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
 import numpy as np
 import scipy.ndimage
+from femreg.io import atomic_savez
 
 from .ultrasound import PSF, ImagingGrid, add_noise, make_scatterers, noise_sigma, render_rf
 
@@ -334,12 +334,11 @@ class Sequence:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = dict(self.params, format="femreg-rf-sequence", format_version=FORMAT_VERSION,
                     grid=self.grid.to_dict())
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, frames=self.frames, scales=self.scales, field_x=self.field_x, field_y=self.field_y,
-                     unit_displacement=self.unit_displacement, unit_strain=self.unit_strain,
-                     inclusion_mask=self.inclusion_mask, meta=np.array(json.dumps(meta, sort_keys=True)))
-        os.replace(tmp, path)
+        # uncompressed: RF speckle hardly compresses and reading stays fast
+        atomic_savez(path, writer=lambda tmp: np.savez(
+            tmp, frames=self.frames, scales=self.scales, field_x=self.field_x, field_y=self.field_y,
+            unit_displacement=self.unit_displacement, unit_strain=self.unit_strain,
+            inclusion_mask=self.inclusion_mask, meta=np.array(json.dumps(meta, sort_keys=True))))
         self.path = path
         return path
 
@@ -581,16 +580,13 @@ def simulate_sequence(model: str = "3d", inclusion: str = "HI", n_frames: int = 
 # --------------------------------------------------------------------------------------------------------------
 
 def sequence_cache_dir(cache_dir=None) -> Path:
-    """Directory of cached sequences: ``cache_dir`` if given, else ``<femreg cache>/sequences`` where the femreg
-    cache is ``femreg._cache.cache_dir()`` if that exists, else ``$FEMREG_CACHE`` or ``~/.cache/femreg``."""
+    """Directory of cached sequences: ``cache_dir`` if given, else :func:`forward.elasticity.cache_dir`
+    ``/sequences``."""
     if cache_dir is not None:
         return Path(cache_dir)
-    try:
-        from femreg._cache import cache_dir as _cd  # type: ignore
-        base = Path(_cd())
-    except ImportError:
-        base = Path(os.environ.get("FEMREG_CACHE") or Path.home() / ".cache" / "femreg")
-    return base / "sequences"
+    from .elasticity import cache_dir as _cache_root
+
+    return _cache_root() / "sequences"
 
 
 def _cache_key(model, inclusion, kwargs: dict) -> str:

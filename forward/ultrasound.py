@@ -45,6 +45,8 @@ import numpy as np
 import scipy.signal
 import scipy.sparse as sp
 
+from femreg.plot import bmode  # noqa: F401  (the one B-mode: log-compressed envelope, re-exported)
+
 __all__ = [
     "SPEED_OF_SOUND_MM_PER_S", "PSF", "ImagingGrid", "Scatterers", "make_scatterers", "render_rf",
     "noise_sigma", "add_noise", "envelope", "bmode", "measured_snr_db",
@@ -415,17 +417,3 @@ def envelope(rf, axis: int = 0) -> np.ndarray:
     """Envelope ``|hilbert(rf)|`` along the axial ``axis`` (analytic signal via scipy.signal.hilbert)."""
     return np.abs(scipy.signal.hilbert(np.asarray(rf, dtype=float), axis=axis))
 
-
-def bmode(rf, dynamic_range_db: float = 50.0, *, reference: float | None = None, axis: int = 0) -> np.ndarray:
-    """Log-compressed B-mode image in dB, ``20 log10(env / reference)`` clipped to ``[-dynamic_range_db, 0]``.
-
-    ``reference`` defaults to the maximum envelope of ``rf`` (0 dB at the brightest pixel).
-    """
-    dr = _positive("dynamic_range_db", dynamic_range_db)
-    env = envelope(rf, axis=axis)
-    ref = float(env.max()) if reference is None else _positive("reference", reference)
-    if ref <= 0:
-        return np.full(env.shape, -dr)
-    with np.errstate(divide="ignore"):
-        db = 20.0 * np.log10(env / ref)
-    return np.clip(db, -dr, 0.0)

@@ -1,4 +1,6 @@
 """`femreg track`: checkpoints, --resume after an interruption, exit code 2 on bad input."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -23,12 +25,26 @@ ARGS = ["-r", "strain", "--alpha", "3", "--element-size", "1", "--margin", "1", 
         "--no-progress"]
 
 
-def test_resume_recomputes_only_missing_frames(npy_sequence, tmp_path, capsys):
+def test_resume_recomputes_only_missing_frames(npy_sequence, tmp_path, capsys, monkeypatch):
+    import os
+
     full, part = tmp_path / "full", tmp_path / "part"
     assert main(["track", str(npy_sequence), "-o", str(full)] + ARGS) == 0
-    assert main(["track", str(npy_sequence), "-o", str(part)] + ARGS) == 0
-    # Simulate an interruption during frame 3: its file never got renamed into place.
-    (part / "frame_003.npz").rename(part / "frame_003.npz.tmp.npz")
+    # Interrupt the run while frame 3 is being written: the writer's own temporary file is left half written.
+    real, torn = os.replace, []
+
+    def replace(src, dst):
+        if Path(dst).name == "frame_003.npz" and not torn:
+            data = Path(src).read_bytes()
+            Path(src).write_bytes(data[: len(data) // 2])
+            torn.append(Path(src))
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    assert main(["track", str(npy_sequence), "-o", str(part)] + ARGS) == 130
+    monkeypatch.undo()
+    assert torn and torn[0].exists() and not (part / "frame_003.npz").exists(), torn
     mtimes = {p.name: p.stat().st_mtime_ns for p in part.glob("frame_00[12].npz")}
     capsys.readouterr()
     assert main(["track", str(npy_sequence), "-o", str(part), "--resume"] + ARGS) == 0

@@ -199,3 +199,62 @@ def test_bad_operator_output_raises(operator):
     reg = R.from_operator(operator)
     with pytest.raises(ValueError):
         reg.setup(mesh_jittered())
+
+
+def test_jump_form_tv_matches_side_by_side_interpolation_and_takes_data_through_w():
+    """A user's TV weak form (jump of eps_yy across interior edges) equals the jump computed directly from
+    scikit-fem's interpolation on both sides of every edge; a parameter in ``w`` scales it."""
+    from skfem import ElementQuad1, ElementVector, InteriorFacetBasis, LinearForm
+
+    from femreg.quadrature import EDGE_MIDPOINT_RULE
+
+    @LinearForm
+    def lateral_strain(v, w):
+        return w.scale * sym_grad(v)[1, 1]
+
+    mesh = mesh_jittered(seed=4)
+    u = np.random.default_rng(5).standard_normal(2 * mesh.p.shape[1])
+    reg = R.from_jump_forms([lateral_strain], alpha=1.0, scale=2.5)
+    reg.setup(mesh)
+    e = ElementVector(ElementQuad1())
+    sides = [InteriorFacetBasis(mesh, e, side=s, quadrature=EDGE_MIDPOINT_RULE) for s in (0, 1)]
+    expected = 2.5 * (sym_grad(sides[0].interpolate(u))[1, 1, :, 0] - sym_grad(sides[1].interpolate(u))[1, 1, :, 0])
+    got = reg.term_values(u)[0]
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(reg.weights, sides[0].dx[:, 0], rtol=1e-14)
+    affine = nodal(mesh, lambda x, y: (0.01 * x + 0.02 * y, -0.03 * x + 0.004 * y))
+    assert np.abs(reg.term_values(affine)).max() < 1e-14
+
+
+@pytest.mark.parametrize("cls", [R.PlaneStressMomentumRegularizer, R.PlaneStrainMomentumRegularizer])
+def test_momentum_regularizer_written_as_user_forms(cls):
+    """R_P_sigma written by a user from A[u] (eq:meq) as two jump forms is the built-in one; for R_P_eps (centre
+    dilatation) the edge form with lambda_bar = 0 is the built-in minus the centre-dilatation jump only."""
+    from skfem import LinearForm
+    from skfem.helpers import dot
+
+    @LinearForm
+    def tx(v, w):
+        return dot(R.momentum_tensor(v, w.lb), w.n)[0]
+
+    @LinearForm
+    def ty(v, w):
+        return dot(R.momentum_tensor(v, w.lb), w.n)[1]
+
+    mesh = mesh_jittered(seed=6)
+    u = 1e-2 * np.random.default_rng(1).standard_normal(2 * mesh.p.shape[1])
+    builtin = cls(alpha=0.7)
+    builtin.setup(mesh)
+    centre = builtin.dilatation == "centre"
+    user = R.from_jump_forms([tx, ty], alpha=0.7, lb=0.0 if centre else builtin.lambda_bar)
+    user.setup(mesh)
+    if not centre:
+        assert abs(user.energy(u) - builtin.energy(u)) <= 1e-13 * builtin.energy(u)
+        np.testing.assert_allclose(user.gradient(u), builtin.gradient(u), rtol=1e-10,
+                                   atol=1e-12 * np.abs(builtin.gradient(u)).max())
+    else:
+        D = R.momentum.element_centre_divergence(mesh)
+        j = builtin.jumps
+        dj = builtin.lambda_bar * (D[j.elements[0]] - D[j.elements[1]]) @ u
+        diff = builtin.term_values(u) - user.term_values(u)
+        np.testing.assert_allclose(diff, j.normals * dj, rtol=1e-10, atol=1e-13)

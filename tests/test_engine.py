@@ -211,21 +211,41 @@ def test_line_search_keeps_best_iterate_and_never_nan(speckle):
 
 
 # ---------------------------------------------------------------- synthetic warps -----------------------------
-@pytest.mark.parametrize("field,ux_tol,e_tol", [(affine_field, 0.1, 0.2), (smooth_field, 0.1, 0.25)])
-def test_synthetic_warp_recovered(field, ux_tol, e_tol):
+# Bounds = measured (seeds 5-7, the largest of the three, noted beside each) x ~1.7.  rms_x / rms_y: nodal RMS error in
+# axial / lateral samples (0.0192 / 0.3 mm); the others relative L2 errors over the mesh (metrics.field_errors).
+WARP_BOUNDS = {
+    "affine": dict(rms_x=0.002,   # measured 0.0011
+                   rms_y=0.006,   # 0.0032
+                   uy=0.065,      # 0.036
+                   exx=0.007,     # 0.0040
+                   eyy=0.37,      # 0.213
+                   e=0.17),       # 0.097
+    "smooth": dict(rms_x=0.012,   # 0.0067
+                   rms_y=0.006,   # 0.0036
+                   uy=0.07,       # 0.041
+                   exx=0.053,     # 0.031
+                   eyy=0.37,      # 0.218
+                   exy=0.23,      # 0.131
+                   e=0.17),       # 0.099
+}
+
+
+@pytest.mark.parametrize("name,field", [("affine", affine_field), ("smooth", smooth_field)])
+def test_synthetic_warp_recovered(name, field):
     ref, mov = speckle_pair(field, SHAPE, SP, seed=5)
     # noiseless pair: weak regularisation (the default alpha is tuned for 12 dB speckle noise)
     res = femreg.register(ref, mov, spacing=SP, regularizer="strain", alpha=1.0, element_size=1.0)
     assert res.success, res.message
-    nodes = res.mesh.p.T
-    err = np.c_[res.ux, res.uy] - field(nodes)
-    rms_x = np.sqrt(np.mean(err[:, 0] ** 2)) / SP[0]
-    e = field_errors(res, field)
-    assert rms_x < ux_tol, f"axial nodal RMS error {rms_x:.3f} samples (tol {ux_tol})"
-    assert e["exx"] < 0.1, f"axial strain error {100 * e['exx']:.1f} %"
-    assert e["e"] < e_tol, f"total strain error {100 * e['e']:.1f} % (exx {100*e['exx']:.1f}, eyy " \
-                           f"{100*e['eyy']:.1f}, exy {100*e['exy']:.1f})"
-    assert res.ncc_after > 0.99 > res.ncc_before, (res.ncc_before, res.ncc_after)
+    b = WARP_BOUNDS[name]
+    err = np.c_[res.ux, res.uy] - field(res.mesh.p.T)
+    rms = {"rms_x": np.sqrt(np.mean(err[:, 0] ** 2)) / SP[0], "rms_y": np.sqrt(np.mean(err[:, 1] ** 2)) / SP[1]}
+    got = dict(field_errors(res, field), **rms)
+    over = {k: f"{got[k]:.4f} > {v}" for k, v in b.items() if not got[k] <= v}
+    assert not over, f"{name} warp: errors above their bounds {over}"
+    if name == "affine":   # true shear strain is 0: bound its RMS at the element centres (measured 8.6e-5)
+        s = res.strain(res.mesh.p[:, res.mesh.t].mean(axis=1).T)
+        assert np.sqrt(np.mean(s[:, 2] ** 2)) < 1.5e-4, np.sqrt(np.mean(s[:, 2] ** 2))
+    assert res.ncc_after > 0.999 > res.ncc_before, (res.ncc_before, res.ncc_after)
 
 
 def test_amplitude_scale_does_not_change_the_result(speckle):
@@ -277,20 +297,32 @@ def test_block_matching_recovers_integer_shift_exactly(speckle, shift):
 
 # ---------------------------------------------------------------- mesh convergence ---------------------------
 def test_mesh_convergence_rate_for_a_smooth_field():
-    # noiseless pair, smooth field, weak regularisation: the FE (bilinear) error dominates -> O(h^2) in L2
+    """From block matching (not from the answer), Gauss-Newton converges at O(h^2) in L2 and does better than the
+    nodal interpolant of the true field on the same mesh (its L2 error is a bound an L2 fit must beat)."""
     def field(p):
         x, y = p[:, 0], p[:, 1]
         return np.column_stack([0.03 * np.sin(2 * np.pi * x / 13) * np.cos(2 * np.pi * y / 24),
                                 0.02 * np.cos(2 * np.pi * x / 13)])
     ref, mov = speckle_pair(field, SHAPE, SP, seed=6, lateral_fwhm=0.8)
-    hs, errs = [2.0, 1.0, 0.5], []
+    hs, errs, ratio = [2.0, 1.0, 0.5], [], []
     for h in hs:
-        res = femreg.register(ref, mov, spacing=SP, regularizer="strain", element_size=(h, 2 * h), alpha=1e-4, initial=field,
-                              margin=0.5)
-        errs.append(field_errors(res, field)["ux"])
+        res = femreg.register(ref, mov, spacing=SP, regularizer="strain", element_size=(h, 2 * h), alpha=1e-4,
+                              initial="blockmatch", margin=0.5)
+        assert res.success and res.nit >= 1, (h, res.message, res.nit)
+        e = field_errors(res, field)
+        t = field(res.mesh.p.T)
+        interp = np.empty(2 * t.shape[0])
+        interp[0::2], interp[1::2] = t[:, 0], t[:, 1]
+        ei = field_errors(interp, field, mesh=res.mesh)
+        errs.append(e["ux"])
+        ratio.append(e["ux"] / ei["ux"])
     rate = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+    # measured: axial L2 error 0.060 / 0.016 / 0.0042 (rate 1.92), 0.36-0.37 x the interpolant's
     assert 1.6 < rate < 2.6, f"axial L2 error {errs} for h {hs}: rate {rate:.2f}"
-    assert errs[-1] < 0.02, f"finest error {errs[-1]:.3f}"
+    assert errs[-1] < 0.007, f"finest axial error {errs[-1]:.4f} (measured 0.0042)"
+    assert max(ratio) < 0.6, f"Gauss-Newton / nodal-interpolant axial error {np.round(ratio, 3)} (measured 0.37)"
+    # lateral (0.3 mm lines, 0.5 mm elements): measured 0.040
+    assert e["uy"] < 0.065, f"finest lateral error {e['uy']:.4f}"
 
 
 # ---------------------------------------------------------------- metrics -------------------------------------

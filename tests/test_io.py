@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import femreg
 from femreg.errors import FileFormatError, InputError
 from femreg.io import (Frames, element_strains, export_result, load_result, nodal_average, read_frames,
                        save_frames, save_result, write_vtu, write_xdmf)
@@ -457,10 +458,17 @@ def test_result_npz_contract_round_trip_and_errors(tmp_path):
     u = _affine_u(p, np.eye(2) * 0.01)
     res = _result(p, t, u)
     save_result(tmp_path / "r.npz", res)
-    back = load_result(tmp_path / "r.npz")
-    assert back["regularizer"] == "strain" and back["success"] is True and back["nit"] == 4
-    np.testing.assert_array_equal(back["u"], u)
-    np.testing.assert_array_equal(back["ux"], res["ux"])
+    back = load_result(tmp_path / "r.npz")            # the one reader: a RegistrationResult
+    assert isinstance(back, femreg.RegistrationResult)
+    assert back.regularizer == "strain" and back.success is True and back.nit == 4 and back.shape == (30, 20)
+    np.testing.assert_array_equal(back.u, u)
+    np.testing.assert_array_equal(back.on_grid()["ux"], res["ux"])
+    np.testing.assert_array_equal(back.mesh.p, p)
+    # written again from the object, read again: the same file contents (one writer, one reader)
+    save_result(tmp_path / "r2", back)
+    again = load_result(tmp_path / "r2.npz")
+    np.testing.assert_array_equal(again.on_grid()["exx"], res["exx"])
+    assert again.alpha == 0.5 and again.message == "converged" and again.ncc_after == 0.9
     export_result(tmp_path / "r.npz", tmp_path / "r.vtu")
     assert (tmp_path / "r.vtu").stat().st_size > 0
     bad = dict(res)
@@ -472,6 +480,15 @@ def test_result_npz_contract_round_trip_and_errors(tmp_path):
     np.savez(tmp_path / "bad2.npz", **bad)
     with pytest.raises(FileFormatError, match="u must be"):
         load_result(tmp_path / "bad2.npz")
+    bad = dict(res, exx=res["exx"][:-1])
+    np.savez(tmp_path / "bad3.npz", **bad)
+    with pytest.raises(FileFormatError, match="exx.*shape"):
+        load_result(tmp_path / "bad3.npz")
+    bad = dict(res)
+    del bad["spacing"]
+    np.savez(tmp_path / "bad4.npz", **bad)
+    with pytest.raises(FileFormatError, match="missing key.*spacing"):
+        load_result(tmp_path / "bad4.npz")
     (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(FileFormatError, match="junk.npz"):
         load_result(tmp_path / "junk.npz")

@@ -1,4 +1,4 @@
-"""The paper's study (femreg.study / `femreg study`): metrics, alpha selection, case records, resume, report.
+"""The paper's study (paperstudy / `femreg study`): metrics, alpha selection, case records, resume, report.
 
 The default test is a reduced quick study (a small plane-stress sequence cropped around the inclusion, two
 regularisers, a 3-point alpha grid, 4 frames) that goes through the same code path as `femreg study --quick`
@@ -17,7 +17,7 @@ import forward
 from femreg.errors import InputError
 from femreg.mesh import roi_mesh
 from femreg.registration import RegistrationResult
-from femreg.study import (PAPER, StudySettings, alpha_grid, case_metrics, make_case, mesh_floor,
+from paperstudy.study import (PAPER, StudySettings, alpha_grid, case_metrics, make_case, mesh_floor,
                           read_default_alphas, run_study, write_default_alphas)
 
 SEQ_OPTS = {"depth_mm": 42.0, "width_mm": 24.0}
@@ -123,9 +123,17 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert "sub-pixel lateral sampling" in report and "| 12.0 | 0.01 |" in report
     assert "**Registration mesh**" in report and "| 3 mm |" in report
     assert "## Findings" in report and "**Mesh**" in report and "**Accumulation**" in report
-    row = res.tables[("single", "plane-stress-HI")]["momentum-stress"]
-    # The axial displacement is what the images measure best (paper: 0.1-0.3 %).
-    assert np.isfinite(row["e"]) and row["ux"] < 5, f"R_P_sigma plane-stress row {row}"
+    single = res.tables[("single", "plane-stress-HI")]
+    row, reps = single["momentum-stress"], single["strain"]
+    # End to end on simulated RF (forward/ sequence, 12 dB): bounds ~1.5x the measured values.
+    # The axial displacement is what the images measure best (paper: 0.1-0.3 %; measured 0.10 %).
+    assert row["ux"] < 0.2, f"R_P_sigma plane-stress axial displacement error {row['ux']:.2f} %"
+    # measured: R_P_sigma total strain 37.7 %, lateral displacement 32.4 %; R_eps 41.4 % and 38.7 %
+    assert row["e"] < 55.0, f"R_P_sigma total strain error {row['e']:.1f} % (measured 37.7 %)"
+    assert row["uy"] < 50.0, f"R_P_sigma lateral displacement error {row['uy']:.1f} % (measured 32.4 %)"
+    assert reps["e"] < 62.0 and reps["uy"] < 58.0, f"R_eps row {reps}"
+    # the paper's finding on plane stress: the momentum regulariser beats the strain one
+    assert row["e"] < reps["e"], f"R_P_sigma {row['e']:.1f} % vs R_eps {reps['e']:.1f} % total strain error"
     # Records: one JSON + npz per case, tracks with per-frame metrics.
     tracks = [r for r in res.records.values() if r["spec"]["kind"] == "track"]
     # two regularisers x (current grid + the literal-eq:IR variant + the literal form on smoothed frames)
@@ -148,20 +156,45 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert t_second < t_first, (t_second, t_first)
 
 
-def test_resume_after_interruption_recomputes_only_missing(tmp_path):
+def _tear_on(monkeypatch, match):
+    """Interrupt the real atomic writer while it writes a file whose final name satisfies ``match``: what is left
+    on disk is the writer's own temporary file, half written (as after a kill during the write)."""
+    import os
+
+    real = os.replace
+    torn = []
+
+    def replace(src, dst):
+        if match(Path(dst)) and not torn:
+            data = Path(src).read_bytes()
+            Path(src).write_bytes(data[: len(data) // 2])
+            torn.append(Path(src))
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    return torn
+
+
+def test_resume_after_interruption_recomputes_only_missing(tmp_path, monkeypatch):
     s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=(),
                         variant_prefilter_px=(), diagnose_element_sizes=())
     out = tmp_path / "study"
-    res = run_study(out, settings=s, jobs=1, progress=False, figures=False)
-    assert res.n_computed == 2
+    seen = []
+    torn = _tear_on(monkeypatch, lambda p: p.parent.name == "cases" and p.suffix == ".json"
+                    and (seen.append(p) or len(seen) == 2))
+    with pytest.raises(KeyboardInterrupt):
+        run_study(out, settings=s, jobs=1, progress=False, figures=False)
+    monkeypatch.undo()
     recs = sorted((out / "cases").glob("*.json"))
-    kept, lost = recs[0], recs[1]
+    assert len(recs) == 1 and len(torn) == 1 and torn[0].exists(), (recs, torn)
+    assert torn[0].parent == out / "cases" and torn[0].name.startswith("."), torn  # the writer's temporary name
+    kept = recs[0]
     before = kept.read_text()
-    lost.unlink()  # as if the run had been killed before this case finished (records are written last, atomically)
-    (out / "cases" / (lost.stem + ".json.tmp")).write_text("{partial")  # a torn temporary file is ignored
     res2 = run_study(out, settings=s, jobs=1, progress=False, figures=False, resume=True)
-    assert res2.n_computed == 1, f"expected only the lost case to be recomputed, got {res2.n_computed}"
-    assert kept.read_text() == before and lost.exists()
+    assert res2.n_computed == 1, f"expected only the torn case to be recomputed, got {res2.n_computed}"
+    assert kept.read_text() == before and len(list((out / "cases").glob("*.json"))) == 2
+    assert all("error" not in r for r in res2.records.values())
 
 
 def test_cli_study_rejects_bad_jobs(tmp_path):

@@ -157,7 +157,7 @@ def test_rendering_is_linear_and_exact_at_pixel_centres():
 
 def test_bmode_range_and_reference():
     _, _, rf = speckle(depth=5.0, width=5.0)
-    b = bmode(rf, dynamic_range_db=40.0)
+    b = bmode(rf, 40.0)
     assert b.max() == pytest.approx(0.0) and b.min() >= -40.0
     assert np.isclose(b, -40.0).mean() < 0.2, "log compression clips most of the image"
 

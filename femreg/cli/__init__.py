@@ -1,6 +1,10 @@
 """The ``femreg`` command.  Each subcommand lives in its own module of this package exposing
 ``add_parser(subparsers)`` (which calls ``parser.set_defaults(func=run)``) and ``run(args) -> int``;
-modules named ``*_cmd`` are found automatically.
+modules named ``*_cmd`` are found automatically.  Other packages add subcommands through the ``femreg.commands``
+entry-point group (``NAME = "package.module:add_parser"`` in their pyproject.toml; the object is an
+``add_parser(subparsers)`` as above); ``forward`` contributes ``simulate`` and ``forward``, ``paperstudy`` contributes
+``study``.  A contributed subcommand is imported only when it is run or when the help lists all commands, so
+femreg itself never imports those packages.
 
 Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
 :class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).
@@ -12,7 +16,9 @@ import importlib
 import sys
 
 #: Subcommand modules are discovered (every ``*_cmd`` module of this package); this fixes the --help order.
-ORDER = ["register_cmd", "track_cmd", "study_cmd", "simulate_cmd", "forward_cmd", "info_cmd", "plot_cmd"]
+ORDER = ["register_cmd", "track_cmd", "info_cmd", "plot_cmd"]
+#: Entry-point group through which other packages contribute subcommands.
+ENTRY_POINT_GROUP = "femreg.commands"
 
 
 def _command_modules() -> list[str]:
@@ -22,7 +28,16 @@ def _command_modules() -> list[str]:
     return [n for n in ORDER if n in found] + sorted(found - set(ORDER))
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _contributed() -> dict:
+    """{subcommand name: entry point} of the ``femreg.commands`` group (nothing is imported here)."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)}
+
+
+def build_parser(argv=None) -> argparse.ArgumentParser:
+    """The parser; when ``argv`` names a contributed subcommand only that one is imported, otherwise all are (the
+    help lists them)."""
     parser = argparse.ArgumentParser(
         prog="femreg",
         description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.")
@@ -31,13 +46,24 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _command_modules():
         importlib.import_module(f"femreg.cli.{name}").add_parser(sub)
+    plugins = _contributed()
+    first = next((a for a in (argv or []) if not a.startswith("-")), None)
+    wanted = [first] if first in plugins else ([] if first in sub.choices else sorted(plugins))
+    for name in wanted:
+        try:
+            add = plugins[name].load()
+        except ImportError as exc:  # a contributing package that is broken must not take the other commands down
+            print(f"femreg: subcommand {name!r} unavailable ({exc})", file=sys.stderr)
+            continue
+        add(sub)
     return parser
 
 
 def main(argv=None) -> int:
     from femreg.errors import InputError
 
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

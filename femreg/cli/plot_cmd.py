@@ -41,7 +41,8 @@ def run(args) -> int:
 def _run(args) -> int:
     import numpy as np
 
-    from ..io import export_result, load_result
+    from ..io import export_result
+    from ..io.results import as_result_dict
     from ..io.results import element_strains
     from ..plot import plot_result, render_mesh
 
@@ -49,7 +50,7 @@ def _run(args) -> int:
                             ("--render", args.render, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
-    res = load_result(args.result)
+    res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
     reference = None

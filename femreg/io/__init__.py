@@ -3,8 +3,10 @@
 Readers: :func:`read_frames` (npy, npz, MATLAB v5 / v7.3, MetaImage, raw, Ultrasonix .rf, directories of
 frames) -> :class:`Frames`.  Writers: :func:`save_frames` (every reader format), :func:`save_result` /
 :func:`load_result` (the result ``.npz`` contract), :func:`write_vtu`, :func:`write_xdmf`, :func:`export_result`
-(ParaView).  Every failure is a :class:`~femreg.errors.FileFormatError` or :class:`~femreg.errors.InputError`.
+(ParaView); :func:`atomic_savez` / :func:`atomic_write_text` (write to a temporary name, then rename, so a reader
+never sees a torn file).  Every failure is a :class:`~femreg.errors.FileFormatError` or :class:`~femreg.errors.InputError`.
 """
+from .._atomic import atomic_savez, atomic_write_text
 from .frames import Frames
 from .readers import FORMATS, detect_format, read_frames
 from .results import (GRID_FIELDS, RESULT_KEYS, element_strains, export_result, load_result, mesh_fields,
@@ -13,4 +15,4 @@ from .writers import save_frames
 
 __all__ = ["Frames", "read_frames", "save_frames", "detect_format", "FORMATS", "RESULT_KEYS", "GRID_FIELDS",
            "load_result", "save_result", "export_result", "write_vtu", "write_xdmf", "element_strains",
-           "nodal_average", "mesh_fields"]
+           "nodal_average", "mesh_fields", "atomic_savez", "atomic_write_text"]

@@ -1,6 +1,7 @@
 """Registration results on disk: the ``.npz`` contract, and VTU / XDMF exports through meshio for ParaView.
 
-The ``.npz`` contract (written by the engine's ``res.save(path)``; :func:`save_result` writes the same):
+The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`load_result` (a
+:class:`femreg.RegistrationResult`); the first six keys are required:
 
 =================  ==============================  ===================================================
 key                shape                           meaning
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..fields import element_strains  # noqa: F401  (part of this module's API; one implementation)
 from .frames import fail
 
 __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_strains", "nodal_average",
@@ -37,7 +39,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history")
-REQUIRED = ("mesh_points", "mesh_cells", "u")
+REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
 
@@ -73,31 +75,6 @@ def check_mesh(points, cells, u=None, where="mesh"):
     if not np.all(np.isfinite(uu)):
         raise InputError(f"{where}: u contains NaN/Inf")
     return p, t, uu
-
-
-def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
-    """Small strains [exx, eyy, exy] at each bilinear quad's centre (reference point (1/2, 1/2)).
-
-    Returns (n_el, 3).  Exact for a displacement field affine in (x, y).
-    """
-    p, t, uu = check_mesh(mesh_points, mesh_cells, u)
-    # reference derivatives of the 4 bilinear shape functions at the centre (skfem's node order)
-    dxi = np.array([-0.5, 0.5, 0.5, -0.5])
-    deta = np.array([-0.5, -0.5, 0.5, 0.5])
-    X, Y = p[0][t], p[1][t]  # (4, n_el)
-    j11, j12 = dxi @ X, deta @ X
-    j21, j22 = dxi @ Y, deta @ Y
-    det = j11 * j22 - j12 * j21
-    if np.any(np.abs(det) < 1e-300):
-        raise InputError("mesh has degenerate (zero-area) quads")
-    # grad N = J^{-T} [dN/dxi, dN/deta]
-    dNdx = (j22[None] * dxi[:, None] - j21[None] * deta[:, None]) / det
-    dNdy = (-j12[None] * dxi[:, None] + j11[None] * deta[:, None]) / det
-    UX, UY = uu[0::2][t], uu[1::2][t]
-    exx = (UX * dNdx).sum(0)
-    eyy = (UY * dNdy).sum(0)
-    exy = 0.5 * ((UX * dNdy).sum(0) + (UY * dNdx).sum(0))
-    return np.stack([exx, eyy, exy], axis=1)
 
 
 def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
@@ -181,12 +158,14 @@ def write_xdmf(path, mesh_points, mesh_cells, u, *, strains="both", point_data=N
 # ---------------------------------------------------------------------------------------------- npz results
 
 def _from_object(res) -> dict:
-    """Best effort for an engine result object with ``.mesh`` (skfem) and ``.u``."""
+    """Contract keys of an engine result object (``.mesh``, ``.u``, ``on_grid()``, scalars)."""
     out = {}
     mesh = getattr(res, "mesh", None)
     if mesh is not None:
         out["mesh_points"] = np.asarray(mesh.p)
         out["mesh_cells"] = np.asarray(mesh.t)
+    if callable(getattr(res, "on_grid", None)):
+        out.update(res.on_grid())                   # pixel-grid fields (the object's ux/uy are nodal)
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
@@ -196,19 +175,17 @@ def _from_object(res) -> dict:
 
 
 def as_result_dict(result) -> dict:
-    """A result as a plain dict: from a path (.npz), a mapping, or an engine result object."""
+    """A result as a plain dict of the contract's keys (and any extra arrays of a file): from a path (.npz), a
+    mapping, or an engine result object."""
     if isinstance(result, (str, os.PathLike)):
-        return load_result(result)
+        return _read(result)
     if hasattr(result, "keys"):
         return {k: _scalar(result[k]) for k in result.keys()}
     return _from_object(result)
 
 
-def load_result(path) -> dict:
-    """Read a result ``.npz`` (see the module docstring) into a dict; scalars become Python scalars.
-
-    Raises FileFormatError when the file is not such a result (naming the missing key or bad shape).
-    """
+def _read(path) -> dict:
+    """The validated contents of a result ``.npz``; scalars become Python scalars."""
     path = Path(path)
     if not path.is_file():
         raise fail(path, "no such result file")
@@ -224,15 +201,49 @@ def load_result(path) -> dict:
         check_mesh(out["mesh_points"], out["mesh_cells"], out["u"], where="result")
     except InputError as exc:
         raise fail(path, str(exc)) from None
+    shape = np.asarray(out["shape"])
+    if shape.shape != (2,) or shape.dtype.kind not in "iu" or shape.min() < 1:
+        raise fail(path, f"key 'shape' must be two positive integers, got {out['shape']!r}")
+    for k in ("spacing", "origin"):
+        v = np.asarray(out[k], dtype=float) if np.asarray(out[k]).dtype.kind in "iuf" else None
+        if v is None or v.shape != (2,) or not np.all(np.isfinite(v)) or (k == "spacing" and v.min() <= 0):
+            raise fail(path, f"key {k!r} must be two finite numbers{' > 0' if k == 'spacing' else ''}, "
+                             f"got {out[k]!r}")
     for k in GRID_FIELDS:
-        if k in out and np.ndim(out[k]) != 2:
-            raise fail(path, f"key {k!r} must be a 2D pixel-grid field, got shape {np.shape(out[k])}")
+        if k in out and np.shape(out[k]) != tuple(shape):
+            raise fail(path, f"key {k!r} must be a pixel-grid field of shape {tuple(shape)}, got {np.shape(out[k])}")
     return out
 
 
-def save_result(path, result) -> Path:
-    """Write a result (dict or engine result object) as ``.npz`` with the contract keys it has."""
-    d = as_result_dict(result)
+def load_result(path):
+    """Read a result ``.npz`` (see the module docstring) as a :class:`femreg.RegistrationResult`.
+
+    The one reader of the contract (``femreg.load_result`` is this function).  Raises
+    :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
+    """
+    from skfem import MeshQuad1
+
+    from ..registration import RegistrationResult
+
+    d = _read(path)
+    grid = {k: np.asarray(d[k], float) for k in GRID_FIELDS if k in d}
+    return RegistrationResult(
+        MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64)),
+        np.asarray(d["u"], float), shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
+        origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
+        success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
+        energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
+        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid if len(grid) == len(GRID_FIELDS) else None)
+
+
+def save_result(path, result, **extra) -> Path:
+    """Write a result (engine result object or dict) as compressed ``.npz`` with the contract keys it has plus
+    ``extra`` arrays, atomically (a reader never sees a torn file).  ``.npz`` is appended to a path without it.
+
+    The one writer of the contract (``RegistrationResult.save`` is this function)."""
+    from .._atomic import atomic_savez
+
+    d = dict(as_result_dict(result), **extra)
     missing = [k for k in REQUIRED if k not in d]
     if missing:
         raise InputError(f"result lacks {', '.join(missing)}")
@@ -243,8 +254,11 @@ def save_result(path, result) -> Path:
         if a.dtype.kind == "O":
             raise InputError(f"result key {k!r} is not an array/number/string")
         data[k] = a
-    np.savez(path, **data)
-    return Path(path)
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    atomic_savez(path, **data)
+    return path
 
 
 def export_result(result, path, *, strains="both"):

@@ -9,14 +9,15 @@ __all__ = ["Regularizer", "QuadraticFormRegularizer", "register_regularizer", "m
 from . import strain  # noqa: E402,F401  R_eps, R_eps_i  (issue: registration engine)
 from . import momentum  # noqa: E402,F401  R_P_eps, R_P_sigma, generic TV  (issue: momentum regularisers)
 from . import custom  # noqa: E402,F401  user-defined regularisers from forms / operators
-from .custom import centre_gradient_operators, from_form, from_forms, from_operator  # noqa: E402
+from .custom import centre_gradient_operators, from_form, from_forms, from_jump_forms, from_operator  # noqa: E402
 from .momentum import (MomentumRegularizer, PlaneStrainMomentumRegularizer,  # noqa: E402
-                       PlaneStressMomentumRegularizer, TVRegularizer, lambda_bar_from_poisson,
-                       momentum_jump_operators)
+                       PlaneStressMomentumRegularizer, TVRegularizer, facet_jump_operators, hourglass_operator,
+                       lambda_bar_from_poisson, momentum_jump_operators, momentum_tensor)
 
-__all__ += ["from_form", "from_forms", "from_operator", "centre_gradient_operators", "TVRegularizer",
-            "MomentumRegularizer", "PlaneStrainMomentumRegularizer", "PlaneStressMomentumRegularizer",
-            "momentum_jump_operators", "lambda_bar_from_poisson"]
+__all__ += ["from_form", "from_forms", "from_operator", "from_jump_forms", "centre_gradient_operators",
+            "TVRegularizer", "MomentumRegularizer", "PlaneStrainMomentumRegularizer", "PlaneStressMomentumRegularizer",
+            "momentum_jump_operators", "momentum_tensor", "facet_jump_operators", "hourglass_operator",
+            "lambda_bar_from_poisson"]
 
 
 def _apply_study_alphas() -> None:

@@ -22,10 +22,27 @@ regularizer=...)`` accepts directly (or by name after :func:`~femreg.regularizer
     Coordinates are available in the form as ``w.x`` (``w.x[0]`` axial, ``w.x[1]`` lateral, mm), so spatially
     varying weights need no extra plumbing.  Several forms with their own quadrature: :func:`from_forms`.
 
-(b) Total-variation-type regulariser from a linear operator: :math:`R[u] = \alpha\sum_j w_j \phi(|K_j u|^2)`,
-    :math:`\phi(s) = \sqrt{s+\delta}` by default (eq:dmreg2), gradient eq:dmreg3, lagged-diffusivity Hessian
-    eq:dmreg4.  The user supplies ``operator(mesh) -> (components, weights)``; :func:`centre_gradient_operators`
-    and :func:`~femreg.regularizers.momentum.momentum_jump_operators` give the usual building blocks::
+(b) Total-variation-type regulariser of jumps across interior edges, from weak forms:
+    :math:`R[u] = \alpha\sum_j l_j \sqrt{\sum_c [\![f_c(u)]\!]_j^2 + \delta}` (eq:dmreg2 with the user's
+    quantities in place of the traction [[A[u]]] n), gradient eq:dmreg3, lagged-diffusivity Hessian eq:dmreg4.
+    Each :math:`f_c` is a scikit-fem ``LinearForm`` in the test function; data reach it through ``w``::
+
+        from skfem import LinearForm
+        from skfem.helpers import sym_grad
+        from femreg.regularizers import from_jump_forms
+
+        @LinearForm
+        def lateral_strain(v, w):               # eps_yy, scaled by a user parameter
+            return w.scale * sym_grad(v)[1, 1]
+
+        reg = from_jump_forms([lateral_strain], alpha=0.1, scale=1.0)
+
+    The built-in momentum regularisers are exactly this with the two components of A[u] n
+    (:func:`~femreg.regularizers.momentum.momentum_jump_operators`).
+
+(c) Total-variation-type regulariser from any linear operator: :math:`R[u] = \alpha\sum_j w_j \phi(|K_j u|^2)`.
+    The user supplies ``operator(mesh) -> (components, weights)``; :func:`centre_gradient_operators`
+    and :func:`~femreg.regularizers.momentum.facet_jump_operators` give the usual building blocks::
 
         from femreg.regularizers import from_operator, centre_gradient_operators
 
@@ -42,16 +59,9 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE, QUADRATURES
 from .base import QuadraticFormRegularizer, Regularizer
-from .momentum import DEFAULT_DELTA, ELEMENT_CENTRE_RULE, TVRegularizer
-
-#: Named quadrature rules on quads for :func:`from_form` (intorder 5 gives 3x3 Gauss in scikit-fem).
-QUADRATURES = {
-    "gauss3": 5,            # 3x3 Gauss, as R_eps (paper appendix "Numerical Integration")
-    "gauss2": 2,            # 2x2 Gauss
-    "centre": ELEMENT_CENTRE_RULE,   # 1-point element centre (reduced integration)
-    "center": ELEMENT_CENTRE_RULE,
-}
+from .momentum import DEFAULT_DELTA, TVRegularizer, facet_jump_operators
 
 
 def _resolve_quadrature(quadrature):
@@ -160,6 +170,44 @@ def from_operator(operator: Callable, alpha: float = 1.0, *, delta: float = DEFA
     """
     if not callable(operator):
         raise ValueError(f"operator must be a callable mesh -> (components, weights), got {operator!r}")
+    return TVRegularizer(operator, alpha, delta=delta, penalty=penalty, name=name)
+
+
+def from_jump_forms(forms, alpha: float = 1.0, *, delta: float = DEFAULT_DELTA, penalty="tv",
+                    quadrature=EDGE_MIDPOINT_RULE, name: str = "custom-jump-tv", **w) -> Regularizer:
+    r"""TV regulariser of the jumps of weak-form quantities across interior edges (eq:dmreg2 with user terms).
+
+    :math:`R[u] = \alpha\sum_j l_j\,\phi\big(\sum_c [\![f_c(u)]\!]_j^2\big)`, :math:`\phi(s) = \sqrt{s+\delta}`
+    by default, where :math:`[\![f_c(u)]\!]_j` is the mean of :math:`f_c` over edge j on side 0 minus side 1
+    (:func:`~femreg.regularizers.momentum.facet_jump_operators`).
+
+    Parameters
+    ----------
+    forms : skfem.LinearForm or sequence of them
+        :math:`f_c(v, w)`, linear in the vector test function v (``ElementVector(ElementQuad1())``), written with
+        ``skfem.helpers``; ``w.n`` is the side-0 unit normal, ``w.x`` the coordinates (mm).
+    alpha, delta, penalty, name
+        As in :func:`from_operator`.
+    quadrature : (points, weights)
+        Rule on the reference edge [0, 1]; default the midpoint (as the momentum regularisers, eq:Ae7).
+    **w
+        User data passed to the forms as ``w.<name>`` (numbers as they are; nodal vectors of the vector basis
+        are interpolated by scikit-fem).
+
+    Returns
+    -------
+    TVRegularizer
+    """
+    from skfem import LinearForm
+
+    forms = [forms] if isinstance(forms, LinearForm) else list(forms)
+    if not forms or not all(isinstance(f, LinearForm) for f in forms):
+        raise ValueError("from_jump_forms needs skfem.LinearForm(s) (decorate your function with @LinearForm)")
+
+    def operator(mesh):
+        comps, lengths, _ = facet_jump_operators(mesh, forms, quadrature=quadrature, **w)
+        return comps, lengths
+
     return TVRegularizer(operator, alpha, delta=delta, penalty=penalty, name=name)
 
 

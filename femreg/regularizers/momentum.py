@@ -52,17 +52,13 @@ mesh, lateral displacement error at alpha:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
 
+from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE  # noqa: F401  (re-exported)
 from .base import Regularizer, register_regularizer
-
-#: 1-point midpoint rule on the reference facet [0, 1] (the edge centre).
-EDGE_MIDPOINT_RULE = (np.array([[0.5]]), np.array([1.0]))
-#: 1-point element-centre rule on the reference square [0, 1]^2.
-ELEMENT_CENTRE_RULE = (np.array([[0.5], [0.5]]), np.array([1.0]))
 
 #: :math:`\bar\lambda` of R_P_eps: plane strain, nu = 0.45 -> 2 nu / (1 - 2 nu) = 9 (paper, "Registration").
 LAMBDA_BAR_PLANE_STRAIN = 9.0
@@ -138,30 +134,106 @@ def _check_quad_mesh(mesh) -> None:
         raise ValueError(f"momentum regularisers need a 2D mesh, got mesh.p of shape {mesh.p.shape}")
 
 
+def momentum_tensor(u, lambda_bar):
+    r""":math:`A[u] = \bar\lambda\,(\nabla\cdot u)\,I + 2\,\nabla^s u` (eq:meq), written with ``skfem.helpers``
+    for a vector field or basis function ``u`` of a form; shape (2, 2, ...), dimensionless (strain units)."""
+    from skfem.helpers import div, eye, sym_grad
+
+    return lambda_bar * eye(div(u), 2) + 2.0 * sym_grad(u)
+
+
+def _traction_form(component: int):
+    from skfem import LinearForm
+    from skfem.helpers import dot
+
+    @LinearForm
+    def traction(v, w):
+        """Component ``component`` of A[v] n (eq:Ae7): w.lambda_bar, w.n the side-0 unit normal."""
+        return dot(momentum_tensor(v, w.lambda_bar), w.n)[component]
+
+    return traction
+
+
+def _div_form():
+    from skfem import LinearForm
+    from skfem.helpers import div
+
+    @LinearForm
+    def divergence(v, w):
+        return div(v)
+
+    return divergence
+
+
+def _facet_rows(forms, basis, sign, w) -> list:
+    """``sign`` x mean over each facet of every LinearForm in ``forms`` on one side's ``basis``: the facets'
+    rows as (rows, cols, values) triplets, one per form (scikit-fem elemental assembly)."""
+    out = []
+    length = basis.dx.sum(axis=1)                                       # (n_facets,) facet lengths
+    rows = np.broadcast_to(np.arange(basis.nelems), basis.element_dofs.shape)
+    for form in forms:
+        local = form.elemental(basis, **w).data.reshape(basis.Nbfun, basis.nelems)
+        out.append((rows, basis.element_dofs, sign * local / length))
+    return out
+
+
+def facet_jump_operators(mesh, forms, *, quadrature=EDGE_MIDPOINT_RULE, **w):
+    r"""Jump operators of linear weak-form quantities across the interior edges of a quad mesh.
+
+    For each scikit-fem ``LinearForm`` :math:`f_c(v, w)` in ``forms`` (linear in the vector test function v of
+    ``ElementVector(ElementQuad1())``), row j of component c maps a nodal displacement u to
+    :math:`[\![f_c(u)]\!]_j = \bar f_c(u)|_{\text{side 0}} - \bar f_c(u)|_{\text{side 1}}`, the bar the mean
+    over edge j (its value at the midpoint with the default 1-point rule).  ``w.n`` is the side-0 unit normal on
+    both sides; extra keyword arguments reach the forms as ``w.<name>`` (numbers as they are, nodal vectors
+    interpolated by scikit-fem).  This is how the momentum jumps [[A[u]]] n of eq:Ae7 are built, and how a
+    user writes a TV regulariser as a weak form (:func:`femreg.regularizers.from_jump_forms`).
+
+    Returns
+    -------
+    components : list of (n_edges, 2 n_nodes) csr_matrix
+        One per form; entries in the form's units per mm of displacement.
+    lengths : (n_edges,) float
+        Edge lengths (mm), the weights :math:`l_j` of eq:dmreg2.
+    sides : (InteriorFacetBasis, InteriorFacetBasis)
+        The two sides' bases (normals, midpoints, elements on each side).
+    """
+    from skfem import ElementQuad1, ElementVector, InteriorFacetBasis
+
+    _check_quad_mesh(mesh)
+    elem = ElementVector(ElementQuad1())
+    sides = tuple(InteriorFacetBasis(mesh, elem, side=s, quadrature=quadrature) for s in (0, 1))
+    n_edges, n_dofs = sides[0].nelems, sides[0].N
+    trip = [_facet_rows(forms, b, sign, w) for b, sign in zip(sides, (1.0, -1.0))]   # jump = side 0 - side 1
+    comps = []
+    for c in range(len(forms)):
+        r, cc, v = (np.concatenate([np.ravel(t[c][k]) for t in trip]) for k in range(3))
+        K = sp.csr_matrix((v, (r, cc)), shape=(n_edges, n_dofs))
+        K.sum_duplicates()
+        comps.append(K)
+    return comps, sides[0].dx.sum(axis=1), sides
+
+
 def element_centre_divergence(mesh) -> sp.csr_matrix:
     r"""Operator D, shape (n_elements, 2 n_nodes): :math:`(D u)_e = \nabla\cdot u` at the centre of element e.
 
-    The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2) and
-    for the divergence term of R_eps_i.
+    The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2).
     """
     from skfem import Basis, ElementQuad1, ElementVector
 
     _check_quad_mesh(mesh)
     basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
-    # div(phi_i) at the centre, one value per (local dof, element)
-    div = np.stack([basis.basis[i][0].grad[0, 0, :, 0] + basis.basis[i][0].grad[1, 1, :, 0]
-                    for i in range(basis.Nbfun)])
-    dofs = basis.element_dofs
-    rows = np.broadcast_to(np.arange(mesh.t.shape[1]), dofs.shape)
-    return sp.csr_matrix((div.ravel(), (rows.ravel(), dofs.ravel())), shape=(mesh.t.shape[1], basis.N))
+    local = _div_form().elemental(basis).data.reshape(basis.Nbfun, basis.nelems) / basis.dx[:, 0]
+    rows = np.broadcast_to(np.arange(basis.nelems), basis.element_dofs.shape)
+    return sp.csr_matrix((local.ravel(), (rows.ravel(), basis.element_dofs.ravel())),
+                         shape=(basis.nelems, basis.N))
 
 
 def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge") -> JumpOperators:
     r"""Build K^x, K^y of eq:dmreg2: the components of :math:`[\![A[u]]\!]\cdot n` at interior edge midpoints.
 
-    :math:`A[u] = \bar\lambda(\nabla\cdot u) I + 2\nabla^s u` (eq:meq); each side's A comes from its own element's
-    shape-function gradients at the edge midpoint (``InteriorFacetBasis`` with ``side=0`` / ``side=1`` and a
-    1-point rule; both sides report the side-0 normal).  Vectorised over edges; call once per mesh.
+    :math:`A[u]` is :func:`momentum_tensor` (eq:meq), assembled as two ``LinearForm`` s on scikit-fem's
+    ``InteriorFacetBasis`` (side 0 and side 1, 1-point midpoint rule, the side-0 normal on both) by
+    :func:`facet_jump_operators`; :math:`\bar\lambda` reaches the forms through ``w``.  Call once per mesh.
 
     Parameters
     ----------
@@ -172,14 +244,13 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
     dilatation : {"edge", "centre"}
         Where :math:`\nabla\cdot u` of the :math:`\bar\lambda` term is evaluated: at the edge midpoint like the
         rest of A ("edge", R_P_sigma) or at each element's centre ("centre", reduced integration against
-        locking, R_P_eps).
+        locking, R_P_eps): :math:`[\![A]\!] n = [\![2\nabla^s u]\!] n + \bar\lambda [\![\nabla\cdot
+        u(\text{centre})]\!] n`.
 
     Returns
     -------
     JumpOperators
     """
-    from skfem import ElementQuad1, ElementVector, InteriorFacetBasis
-
     _check_quad_mesh(mesh)
     lambda_bar = float(lambda_bar)
     if not np.isfinite(lambda_bar) or lambda_bar < 0:
@@ -187,50 +258,37 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
     if dilatation not in ("edge", "centre", "center"):
         raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
     centre = dilatation in ("centre", "center")
-
-    elem = ElementVector(ElementQuad1())
-    sides = [InteriorFacetBasis(mesh, elem, side=s, quadrature=EDGE_MIDPOINT_RULE) for s in (0, 1)]
+    (Kx, Ky), lengths, sides = facet_jump_operators(
+        mesh, [_traction_form(0), _traction_form(1)], lambda_bar=0.0 if centre else lambda_bar)
     b0 = sides[0]
-    n = b0.normals.value[:, :, 0]                      # (2, ne) side-0 normal, same for both sides
-    n_edges = n.shape[1]
-    n_dofs = b0.N
-    lb_edge = 0.0 if centre else lambda_bar
-
-    rows, cols, vx, vy = [], [], [], []
-    edge_idx = np.arange(n_edges)
-    for s, basis in enumerate(sides):
-        sign = 1.0 if s == 0 else -1.0                 # jump = side 0 - side 1
-        # grad[i, k, e]: d(phi)_i / dx_k at the midpoint for every local dof -> (Nbfun, 2, 2, ne)
-        G = np.stack([basis.basis[i][0].grad[:, :, :, 0] for i in range(basis.Nbfun)])
-        div = G[:, 0, 0] + G[:, 1, 1]                                  # (Nbfun, ne)
-        sym_xy = 0.5 * (G[:, 0, 1] + G[:, 1, 0])
-        Axx = lb_edge * div + 2.0 * G[:, 0, 0]
-        Ayy = lb_edge * div + 2.0 * G[:, 1, 1]
-        Axy = 2.0 * sym_xy
-        rows.append(np.broadcast_to(edge_idx, div.shape))
-        cols.append(basis.element_dofs)
-        vx.append(sign * (Axx * n[0] + Axy * n[1]))
-        vy.append(sign * (Axy * n[0] + Ayy * n[1]))
+    n = np.asarray(b0.normals)[:, :, 0]                 # (2, n_edges) side-0 unit normal
     if centre and lambda_bar != 0.0:
-        # lambda_bar [[div u(centre)]] n: the centre divergence of each side's element, mapped to its edges
+        # lambda_bar [[div u(centre)]] n: each side element's centre divergence, carried to its edges
         D = element_centre_divergence(mesh)
-        D0 = D[sides[0].tind].tocoo()
-        D1 = D[sides[1].tind].tocoo()
-        for Ds, sign in ((D0, 1.0), (D1, -1.0)):
-            rows.append(Ds.row)
-            cols.append(Ds.col)
-            vx.append(sign * lambda_bar * Ds.data * n[0, Ds.row])
-            vy.append(sign * lambda_bar * Ds.data * n[1, Ds.row])
-    r = np.concatenate([np.ravel(a) for a in rows])
-    c = np.concatenate([np.ravel(a) for a in cols])
-    Kx = sp.csr_matrix((np.concatenate([np.ravel(a) for a in vx]), (r, c)), shape=(n_edges, n_dofs))
-    Ky = sp.csr_matrix((np.concatenate([np.ravel(a) for a in vy]), (r, c)), shape=(n_edges, n_dofs))
-    Kx.sum_duplicates()
-    Ky.sum_duplicates()
-    lengths = b0.dx[:, 0].copy()                        # |detDG| * weight 1 = edge length
+        Dj = (D[sides[0].tind] - D[sides[1].tind]) * lambda_bar
+        Kx = (Kx + sp.diags(n[0]) @ Dj).tocsr()
+        Ky = (Ky + sp.diags(n[1]) @ Dj).tocsr()
     return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=np.asarray(b0.find).copy(),
                          elements=np.stack([sides[0].tind, sides[1].tind]),
-                         midpoints=b0.global_coordinates().value[:, :, 0].copy(), normals=n.copy())
+                         midpoints=np.asarray(b0.global_coordinates())[:, :, 0].copy(), normals=n.copy())
+
+
+def hourglass_operator(mesh) -> sp.csr_matrix:
+    r"""Hourglass operator G, shape (2 n_elements, 2 n_nodes): row e (row n_el + e) gives
+    :math:`u_0 - u_1 + u_2 - u_3` of the x (y) displacement over the corners of quad e, in order around it.
+
+    It vanishes for affine fields and picks out the node-to-node checkerboard mode of bilinear quads, which the
+    edge-midpoint jumps of eq:Ae7 cannot see.  Used by the optional hourglass control of
+    :class:`MomentumRegularizer` and by :func:`femreg.quality.hourglass`.
+    """
+    t = np.asarray(mesh.t)
+    if t.shape[0] != 4:
+        raise ValueError(f"hourglass operator needs quadrilateral elements, got {t.shape[0]} nodes per element")
+    n_el = t.shape[1]
+    rows = np.repeat(np.arange(2 * n_el), 4)
+    cols = np.concatenate([2 * t.T, 2 * t.T + 1]).ravel()
+    vals = np.tile([1.0, -1.0, 1.0, -1.0], 2 * n_el)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(2 * n_el, 2 * mesh.p.shape[1]))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -451,15 +509,7 @@ class MomentumRegularizer(TVRegularizer):
         super().setup(mesh)
         self._G = None
         if self.hourglass > 0:
-            t = np.asarray(mesh.t)
-            if t.shape[0] != 4:
-                raise ValueError("hourglass control needs quadrilateral elements")
-            # rows: one per element and component, (u_0 - u_1 + u_2 - u_3) of that component
-            n_el = t.shape[1]
-            rows = np.repeat(np.arange(2 * n_el), 4)
-            cols = np.concatenate([2 * t.T, 2 * t.T + 1]).ravel()
-            vals = np.tile([1.0, -1.0, 1.0, -1.0], 2 * n_el)
-            G = sp.csr_matrix((vals, (rows, cols)), shape=(2 * n_el, 2 * mesh.p.shape[1]))
+            G = hourglass_operator(mesh)
             self._G = (G.T @ G).tocsr() * (self.hourglass / 4.0)   # energy alpha/2 u^T G u
 
     def energy(self, u):

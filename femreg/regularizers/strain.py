@@ -6,12 +6,9 @@ import numpy as np
 from skfem import BilinearForm
 from skfem.helpers import ddot, div, sym_grad
 
+from ..quadrature import ELEMENT_CENTRE_RULE as CENTRE_RULE
+from ..quadrature import GAUSS_3X3
 from .base import QuadraticFormRegularizer, register_regularizer
-
-#: 3x3 Gauss rule on quads (scikit-fem's intorder 4 and 5 both give 3x3).
-GAUSS_3X3 = 5
-#: 1-point element-centre rule on the reference square [0, 1]^2 (reduced integration of the divergence term).
-CENTRE_RULE = (np.array([[0.5], [0.5]]), np.array([1.0]))
 
 
 @BilinearForm

@@ -50,8 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_savez, atomic_write_text
-from .errors import InputError
+from femreg._atomic import atomic_savez, atomic_write_text
+from femreg.errors import InputError
 
 __all__ = ["StudySettings", "run_study", "select_alphas", "case_metrics", "write_report", "read_default_alphas",
            "write_default_alphas", "PAPER", "PAPER_ALPHAS", "PAPER_TRUE", "REGULARIZERS", "LABELS",
@@ -117,8 +117,10 @@ PAPER_TRUE = {"3d-HI": (1.65, 3.77), "plane-strain-HI": (2.01, 9.20), "plane-str
 #: Targets of the issue: R_P_sigma total strain error at or below the paper's.
 TARGETS = {("single", "3d-HI"): 10.3, ("accumulated", "3d-HI"): 8.6}
 
-#: Where the selected alphas live (read by :func:`read_default_alphas`; the regularisers' defaults).
-DEFAULT_ALPHAS_PATH = Path(__file__).resolve().parent / "data" / "default_alphas.json"
+#: femreg's shipped defaults (read-only here: a run writes its selection to ``OUTDIR/alphas.json``; making it the
+#: library's default is a reviewed change of femreg/data/default_alphas.json in the source tree, never a run-time
+#: write into an installed package).
+DEFAULT_ALPHAS_PATH = Path(__import__("femreg").__file__).resolve().parent / "data" / "default_alphas.json"
 
 SWEEP_3D = ("3d-HI", "3d-mHI", "3d-HOM", "3d-SI")
 ALL_DATASETS = ("3d-HI", "plane-strain-HI", "plane-stress-HI", "3d-SI", "3d-HOM", "3d-mHI")
@@ -217,7 +219,7 @@ class StudySettings:
         return replace(base, **kw)
 
     def validate(self) -> "StudySettings":
-        from .regularizers import available_regularizers
+        from femreg.regularizers import available_regularizers
 
         bad = [r for r in self.regularizers if r not in available_regularizers()]
         if bad:
@@ -289,7 +291,7 @@ def case_metrics(result, seq, k: int) -> dict:
 
 
 def _metrics_impl(result, true_u, true_e, roi) -> dict:
-    from . import metrics as M
+    from femreg import metrics as M
 
     err = M.field_errors(result, true_u, true_e)
     pts, w, _ = M.mesh_quadrature(result.mesh)
@@ -308,8 +310,8 @@ def _metrics_impl(result, true_u, true_e, roi) -> dict:
 def mesh_floor(seq, k: int, *, element_size=None, margin=None, crop_mm=None) -> dict:
     """Best error a registration on this mesh could reach: the true field interpolated at the mesh nodes, scored
     by :func:`case_metrics` (the discretisation floor of the bilinear mesh; no images involved)."""
-    from .mesh import roi_mesh
-    from .registration import RegistrationResult
+    from femreg.mesh import roi_mesh
+    from femreg.registration import RegistrationResult
 
     frames, origin = _crop(seq, crop_mm)
     mesh = roi_mesh(frames.shape[1:], seq.spacing, origin, element_size=element_size, margin=margin)
@@ -335,7 +337,7 @@ def lateral_offset_bias(seq, *, frames=(1, 2), offsets=(0.0, 0.01, 0.03), regula
         kw = dict(spacing=seq.spacing, origin=origin, regularizer=regularizer, alpha=alpha,
                   element_size=element_size, margin=margin)
         if s_mm:
-            from .mesh import roi_mesh
+            from femreg.mesh import roi_mesh
 
             mesh = roi_mesh(fr.shape[1:], seq.spacing, origin, element_size=element_size, margin=margin)
             S = np.zeros(2 * mesh.p.shape[1])
@@ -629,9 +631,10 @@ def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True, stats=None
     return alphas, sweep, records
 
 
-def write_default_alphas(alphas: dict, path=None, *, sweep=None, settings=None) -> Path:
-    """Write the selected alphas as JSON (``{"alphas": {name: value}, "provenance": ...}``)."""
-    path = Path(path) if path is not None else DEFAULT_ALPHAS_PATH
+def write_default_alphas(alphas: dict, path, *, sweep=None, settings=None) -> Path:
+    """Write the selected alphas as JSON (``{"alphas": {name: value}, "provenance": ...}``) to ``path`` (the
+    study's ``OUTDIR/alphas.json``; the same format as femreg/data/default_alphas.json)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     prov = {"procedure": "paper appendix 'Algorithmic Parameter Justification': single-frame registration frames "
                          "1 -> 7 of the 3D sequences, log sweep of alpha with refinement, minimum of the total "
@@ -693,7 +696,7 @@ def _case_sets(s: StudySettings, alphas):
     esize = {}
     if s.single_datasets and s.diagnose_element_sizes:
         d = s.single_datasets[0]
-        from .mesh import DEFAULT_ELEMENT_SIZE
+        from femreg.mesh import DEFAULT_ELEMENT_SIZE
 
         h_used = s.element_size if s.element_size is not None else DEFAULT_ELEMENT_SIZE[0]
         for h in s.diagnose_element_sizes:
@@ -708,8 +711,7 @@ def _case_sets(s: StudySettings, alphas):
 
 
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
-              resume: bool = False, progress: bool = True, figures: bool = True,
-              write_defaults: bool = False) -> StudyResult:
+              resume: bool = False, progress: bool = True, figures: bool = True) -> StudyResult:
     """Run the study into ``outdir`` and write ``outdir/report.md`` with figures.
 
     Parameters
@@ -722,8 +724,8 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
         Worker processes (one case per task).
     resume : bool
         Keep the finished cases of an earlier run in ``outdir`` (required if ``outdir`` already holds one).
-    write_defaults : bool
-        Also write the selected alphas to :data:`DEFAULT_ALPHAS_PATH` (the package's defaults).
+
+    The selected alphas go to ``outdir/alphas.json`` (never into the installed femreg package).
     """
     t0 = time.perf_counter()
     s = settings if settings is not None else (StudySettings.quick() if quick else StudySettings.full())
@@ -751,8 +753,6 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
     else:
         alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
     write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
-    if write_defaults:
-        write_default_alphas(alphas, sweep=sweep or None, settings=s)
 
     # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
     single, dual, tracks, variant, esize = _case_sets(s, alphas)
@@ -1018,7 +1018,7 @@ def _diagnostics(res: StudyResult) -> list:
     except Exception as exc:  # noqa: BLE001
         return L + [f"(diagnostics skipped: {exc})", ""]
     k = s.pair[1] - s.pair[0]
-    from .mesh import DEFAULT_ELEMENT_SIZE
+    from femreg.mesh import DEFAULT_ELEMENT_SIZE
 
     h0 = s.element_size if s.element_size is not None else DEFAULT_ELEMENT_SIZE[0]
     L += [f"**Mesh floor** ({d}, frame {s.pair[0] + 1} -> {s.pair[1] + 1}): the error of the *true* displacement "
@@ -1294,7 +1294,7 @@ def _grid_fields(res: StudyResult, spec, k):
     """ux, uy, exx, eyy, exy of a case's stored field and of the truth on a decimated pixel grid."""
     from skfem import MeshQuad1
 
-    from .registration import RegistrationResult
+    from femreg.registration import RegistrationResult
 
     seq = _load_sequence(spec)
     frames, origin = _crop(seq, spec["crop_mm"])

@@ -1,6 +1,8 @@
 """``femreg study [--quick] [-o OUTDIR] [--jobs 2] [--resume]``: the paper's simulation study (alpha selection,
 single-frame, dual-frame and accumulated registrations of the six simulated data sets), written as a report
-folder (report.md with femreg-vs-paper tables, PNG figures, one record per case).  See :mod:`femreg.study`."""
+folder (report.md with femreg-vs-paper tables, PNG figures, one record per case).  See :mod:`paperstudy.study`.
+
+:func:`add_parser` is the ``study`` entry of the ``femreg.commands`` entry-point group (pyproject.toml)."""
 from __future__ import annotations
 
 
@@ -20,8 +22,6 @@ def add_parser(subparsers):
     p.add_argument("--element-size", type=float, metavar="MM",
                    help="registration element size in mm (default: the study's, 2 mm)")
     p.add_argument("--resume", action="store_true", help="keep finished cases already in OUTDIR")
-    p.add_argument("--write-defaults", action="store_true",
-                   help="also store the selected alphas as femreg's defaults (femreg/data/default_alphas.json)")
     p.add_argument("--no-figures", action="store_true", help="tables only")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
@@ -31,14 +31,14 @@ def add_parser(subparsers):
 def run(args) -> int:
     import time
 
-    from ..study import run_study
+    from .study import run_study
 
     out = args.output
     if args.quick and out == "out/study":
         out = "out/study-quick"
     t0 = time.perf_counter()
-    from ..errors import InputError
-    from ..study import StudySettings
+    from femreg.errors import InputError
+    from .study import StudySettings
 
     settings = StudySettings.quick() if args.quick else StudySettings.full()
     if args.element_size is not None:
@@ -47,7 +47,7 @@ def run(args) -> int:
         settings = StudySettings.quick(element_size=args.element_size) if args.quick else \
             StudySettings.full(element_size=args.element_size)
     res = run_study(out, settings=settings, jobs=args.jobs, resume=args.resume, progress=not args.no_progress,
-                    figures=not args.no_figures, write_defaults=args.write_defaults)
+                    figures=not args.no_figures)
     print(f"femreg study ({res.settings.name}): report {res.report} in {time.perf_counter() - t0:.0f} s")
     print("alphas: " + ", ".join(f"{k} {v:.4g}" for k, v in res.alphas.items()))
     row = res.tables.get(("single", "3d-HI"), {}).get("momentum-stress")
