@@ -121,7 +121,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     from .data_term import SSDTerm
     from .image import SplineImage, normalize_pair, validate_image, validate_spacing
     from .pixels import PixelQuadrature, PointLocator
-    from .registration import _field_at, register
+    from .registration import DEFAULT_HOURGLASS, _field_at, register
     from .regularizers import Regularizer, make_regularizer
     from .scaling import effective_alpha
 
@@ -157,10 +157,14 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     Hd = data.hessian().tocsr()
 
     psi, dof = np.empty(alphas.size), np.empty(alphas.size)
+    opts = dict(options)
+    if (register_kwargs.get("strategy", "auto") == "auto" and isinstance(regularizer, str)
+            and regularizer.startswith("momentum")):
+        opts.setdefault("hourglass", DEFAULT_HOURGLASS)      # as register builds it
     for i, (al, res) in enumerate(zip(alphas, results)):
-        reg = (copy.copy(regularizer) if isinstance(regularizer, Regularizer)
-               else make_regularizer(regularizer, **options))
-        reg.alpha = effective_alpha(al, mesh)
+        reg = copy.copy(regularizer) if isinstance(regularizer, Regularizer) else make_regularizer(regularizer, **opts)
+        a_eff = getattr(res, "alpha_effective", float("nan"))
+        reg.alpha = a_eff if np.isfinite(a_eff) else effective_alpha(al, mesh)
         reg.setup(mesh)
         psi[i] = data.energy(res.u)
         dof[i] = influence_trace(Hd, sp.csr_matrix(reg.hessian(res.u)))
