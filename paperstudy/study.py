@@ -1291,23 +1291,26 @@ def _fix_section(res: StudyResult) -> list:
 
 
 #: What the 2D investigation found (numbers measured on these data; the table above regenerates them).
-FINDINGS_2D = """- **Plane strain, e_xx 21-24 % for R_eps_i / R_P_eps (paper 3.8-5.9 %)**: not the forward data, not the
-  convention (paper's convention: 23.2 % vs 24.1 %), not the element-centre dilatation.  88-89 % of the squared e_xx
-  error sat in two elements at the bottom-left image corner: block matching started the corner node 0.07 mm off
-  axially and Gauss-Newton converged one half RF wavelength (0.14 mm) off there (u_x error 0.15 mm); a small alpha
-  cannot pull one corner node back.  Without those five worst elements e_xx was 7.0-7.8 %.  Registering first on
-  a 3x coarser mesh (``register(coarse_to_fine=True)``) removes the local minimum: R_P_eps 24.1 -> 11.8 %, R_eps_i
-  30.7 -> 18.7 % at the same alphas.  A larger alpha hides it too (R_P_eps alpha 1: 13.5 %), which is why the
-  alpha chosen on 3D data only looked wrong for plane strain.
+FINDINGS_2D = """- **Plane strain, e_xx 21-24 % for R_eps / R_eps_i / R_P_eps (paper 3.8-18.7 %)**, measured with the paper's
+  pipeline (``strategy='paper'``, alphas chosen on 3D data): not the forward data, not the error convention (paper's
+  convention 23.2 % vs exact 24.1 % for R_P_eps), not the element-centre dilatation.  88-89 % of the squared e_xx
+  error sat in two elements at the bottom-left image corner (worst-5 share in the table): block matching started
+  the corner node 0.07 mm off axially and Gauss-Newton converged half an RF wavelength (0.14 mm) away (u_x error
+  0.15 mm there); a small alpha cannot pull a corner node back.  Without the five worst elements e_xx was 7.0-7.8 %.
+  A coarse pass first (``coarse_to_fine=True``) removes the local minimum (R_P_eps 24.1 -> 11.8 %, R_eps_i 30.7 ->
+  18.7 % at the same alphas), so does femreg's default pipeline (``strategy='auto'``: envelope-pyramid start and
+  peak-hopping repair).  A larger alpha hides it too (R_P_eps alpha 1: 13.5 %), which is why the alpha chosen on
+  3D data looked wrong for plane strain; it was not the cause.
 - **Plane stress e_yy 36.8 % (paper 14.6 %) and the e_yy checkerboard of the momentum terms**: the edge-midpoint
-  jumps of eq:Ae7 do not see the node-to-node (hourglass) mode of the lateral displacement (A_yy is never tested
-  on an axial edge, and the hourglass e_yy vanishes at lateral-edge midpoints), so only the weak lateral image
-  information holds it.  Hourglass control (``regularizer_options={"hourglass": 10}``) removes the checkerboard:
-  R_P_sigma plane stress e_yy 35.6 -> 17.8 %, total 19.5 -> 11.8 % (paper's convention 18.5 -> 10.0 %); 3D HI
-  14.5 -> 14.2 %; plane strain R_P_eps 11.8 -> 10.4 %.
-- **True SR / CNR_e 2.17 / 16.6 vs the paper's 2.01 / 9.2** (plane strain) and 2.64 / 41.4 vs 2.45 / 24.0 (plane
-  stress): a difference of the forward models (the mesh of the inclusion boundary, the COMSOL model) that
-  changes contrast, not the registration errors above (the same data give 9-12 % with the fixes)."""
+  jumps of eq:Ae7 do not see the node-to-node (hourglass) mode of the lateral displacement (A_yy is never tested on
+  an axial edge, and the hourglass e_yy vanishes at lateral-edge midpoints), so only the weak lateral image
+  information holds it.  Hourglass control removes the checkerboard (pictures: e_yy of R_P_sigma, plane stress,
+  weights 0 / 10 / 100): R_P_sigma plane stress e_yy 35.6 -> 17.8 %, total 19.5 -> 11.8 % (paper's convention
+  18.5 -> 10.0 %) at weight 10; 3D HI 14.5 -> 14.2 %; plane strain R_P_eps 11.8 -> 10.4 %.  femreg's default
+  pipeline uses weight 100.
+- **True SR / CNR_e 2.17 / 16.6 vs the paper's 2.01 / 9.2** (plane strain; plane stress 2.64 / 41.4 vs 2.45 / 24.0):
+  a difference of the forward models (inclusion-boundary mesh, the paper's COMSOL model).  It changes the contrast
+  numbers, not the registration errors above."""
 
 
 def _diagnostics(res: StudyResult) -> list:
