@@ -24,16 +24,15 @@ Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_stra
 frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
 at frame k.  All metrics are computed by ONE function, :func:`case_metrics`.
 
-Measured (this 2-core machine, 2026-11-22; full report in docs/study_report.md):
+Measured (shared 2-core machine, 2026-11-29, ``register(strategy="auto")``; full report in docs/study_report.md):
 
-* 2 mm mesh (the default): selected alphas R_eps 17.8, R_eps_i 2.37, R_P_eps 0.100, R_P_sigma 0.133; total strain
-  error R_eps / R_eps_i / R_P_eps / R_P_sigma, 3D HI frames 1 -> 7: 21.0 / 37.6 / 18.0 / 14.5 % (paper 26.2 / 43.8 /
-  14.3 / 10.3 %); accumulated to frame 20 (``track(grid="current")``): 19.4 / 36.8 / 18.3 / 14.2 % (paper 21.3 /
-  39.8 / 10.8 / 8.6 %); the paper's ranking in every 3D table and in plane stress, not in plane strain.  The
-  literal eq:IR (``grid="reference"``) lost the lateral component (u_y 87 %; report "Diagnostics").  Wall time
-  8.9 min with the data sets cached (about 5 min more to generate them), quick study 75 s.
-* 1 mm mesh: alphas 42.2 / 1.78e4 / 0.133 / 0.178; 3D HI single frame 29.8 / 41.6 / 17.9 / 15.0 %; wall time
-  25.2 min including generating the six data sets.
+* 2 mm mesh: selected alphas R_eps 23.7, R_eps_i 1.33e6, R_P_eps 0.075, R_P_sigma 0.075; total strain error
+  R_eps / R_eps_i / R_P_eps / R_P_sigma, 3D HI frames 1 -> 7: 20.9 / 34.8 / 15.4 / 13.7 % (paper 26.2 / 43.8 / 14.3 /
+  10.3 %), in the paper's convention (truth interpolated at the mesh nodes) 19.5 / 34.0 / 13.3 / 11.4 %;
+  accumulated to frame 20: 20.1 / 57.3 / 16.3 / 13.3 % (paper 21.3 / 39.8 / 10.8 / 8.6 %); plane strain R_P_eps
+  10.5 % (paper's convention 8.1 %, paper 5.6 %), plane stress R_P_sigma 11.7 % (9.9 %, paper 8.2 %).
+  ``alpha="auto"`` within 15 % of the truth-best alpha's error in 16 of 24 cases (median ratio 1.09, max 2.07).
+  Wall time 42 min with the data sets cached (498 cases).
 
 Public names: :class:`StudySettings`, :func:`run_study`, :func:`select_alphas`, :func:`case_metrics`,
 :func:`write_report`, :func:`read_default_alphas`, :data:`PAPER`, :data:`PAPER_ALPHAS`, :data:`REGULARIZERS`.
