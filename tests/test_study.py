@@ -188,7 +188,8 @@ def _tear_on(monkeypatch, match):
 
 def test_resume_after_interruption_recomputes_only_missing(tmp_path, monkeypatch):
     s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=(),
-                        variant_prefilter_px=(), diagnose_element_sizes=())
+                        variant_prefilter_px=(), diagnose_element_sizes=(), auto_alpha=False, size_sweep=(),
+                        fix_datasets=())
     out = tmp_path / "study"
     seen = []
     torn = _tear_on(monkeypatch, lambda p: p.parent.name == "cases" and p.suffix == ".json"
