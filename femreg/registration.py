@@ -304,10 +304,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         A name from :func:`femreg.regularizers.available_regularizers`: "momentum-stress" = R_P_sigma (default),
         "momentum-strain" = R_P_eps, "strain" = R_eps, "strain-incompressible" = R_eps_i; or a Regularizer
         instance (copied, never changed).
-    alpha : float, optional
+    alpha : float or "auto", optional
         :math:`\\alpha` of eq:objf for RMS-normalised images and 2 x 2 mm elements; on other meshes the weight is
         scaled by 4 mm^2 / mean element area (:mod:`femreg.scaling`).  None = the regulariser's default
-        (femreg/data/default_alphas.json, selected by the paper's procedure).
+        (femreg/data/default_alphas.json, selected by the paper's procedure); "auto" = chosen from the pair
+        without ground truth by :func:`femreg.autoalpha.choose_alpha` (several registrations).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
         A user's quad mesh (mm, [x, y]); default: structured ROI mesh (:func:`femreg.mesh.roi_mesh`).
     element_size, margin : float or (2,) mm, optional
@@ -352,6 +353,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         start is returned then), when the images do not match (NCC after below :data:`femreg.repair.MIN_NCC`) or
         when peak hopping could not be repaired; ``quality`` holds the per-element NCC.
     """
+    if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
+        kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
+        from .autoalpha import register_auto
+        return register_auto(reference_image, moving_image, **kw)
     t_all = time.perf_counter()
     timings = {}
     ref = validate_image(reference_image, "reference image")

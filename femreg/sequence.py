@@ -104,7 +104,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     spacing, origin : (2,) mm
         Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
     regularizer, alpha
-        As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default).
+        As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default; "auto" =
+        chosen on the first pair by :func:`femreg.autoalpha.choose_alpha` and reused for every pair).
     mode : {"accumulate", "direct"}
         "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
         "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
@@ -155,6 +156,10 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
     n_dof = 2 * fe_mesh.p.shape[1]
+    if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
+        from .autoalpha import choose_alpha
+        alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
+                             mesh=fe_mesh, **register_kwargs).alpha
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid

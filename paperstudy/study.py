@@ -25,17 +25,15 @@ Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_stra
 frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
 at frame k.  All metrics are computed by ONE function, :func:`case_metrics`.
 
-Measured (this 2-core machine, 2026-11-22; full report in docs/study_report.md):
+Measured (shared 2-core machine, 2026-11-29, ``register(strategy="auto")``; full report in docs/study_report.md):
 
-* 2 mm mesh (the default): selected alphas R_eps 17.8, R_eps_i 2.37, R_P_eps 0.100, R_P_sigma 0.133; total strain
-  error R_eps / R_eps_i / R_P_eps / R_P_sigma, 3D HI frames 1 -> 7: 21.0 / 37.6 / 18.0 / 14.5 % (paper 26.2 / 43.8 /
-  14.3 / 10.3 %); accumulated to frame 20 (``track(grid="current")``): 19.4 / 36.8 / 18.3 / 14.2 % (paper 21.3 /
-  39.8 / 10.8 / 8.6 %); the paper's ranking in every 3D table and in plane stress, not in plane strain.  The
-  literal eq:IR (``grid="reference"``) lost the lateral component (u_y 87 %; report "Diagnostics").  Wall time:
-  the report's runs computed 420 cases in 8.6 + 10.1 + 0.4 = 19.1 min with the data sets cached (about 5 min
-  more to generate them); the quick study 157 s (2026-11-29, cached data, machine shared with other work).
-* 1 mm mesh: alphas 42.2 / 1.78e4 / 0.133 / 0.178; 3D HI single frame 29.8 / 41.6 / 17.9 / 15.0 %; wall time
-  25.2 min including generating the six data sets.
+* 2 mm mesh: selected alphas R_eps 23.7, R_eps_i 1.33e6, R_P_eps 0.075, R_P_sigma 0.075; total strain error
+  R_eps / R_eps_i / R_P_eps / R_P_sigma, 3D HI frames 1 -> 7: 20.9 / 34.8 / 15.4 / 13.7 % (paper 26.2 / 43.8 / 14.3 /
+  10.3 %), in the paper's convention (truth interpolated at the mesh nodes) 19.5 / 34.0 / 13.3 / 11.4 %;
+  accumulated to frame 20: 20.1 / 57.3 / 16.3 / 13.3 % (paper 21.3 / 39.8 / 10.8 / 8.6 %); plane strain R_P_eps
+  10.5 % (paper's convention 8.1 %, paper 5.6 %), plane stress R_P_sigma 11.7 % (9.9 %, paper 8.2 %).
+  ``alpha="auto"`` within 15 % of the truth-best alpha's error in 16 of 24 cases (median ratio 1.09, max 2.07).
+  Wall time 42 min with the data sets cached (498 cases).
 
 Public names: :class:`StudySettings`, :func:`run_study`, :func:`select_alphas`, :func:`case_metrics`,
 :func:`write_report`, :func:`read_default_alphas`, :data:`PAPER`, :data:`PAPER_ALPHAS`, :data:`REGULARIZERS`.
@@ -54,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from femreg._atomic import atomic_savez, atomic_write_text
+from femreg.autoalpha import DEFAULT_DECADES as DEFAULT_DECADES_AUTO
 from femreg.errors import InputError
 
 __all__ = ["StudySettings", "run_study", "select_alphas", "case_metrics", "write_report", "read_default_alphas",
@@ -117,8 +116,15 @@ PAPER = {
 #: SR and CNR_e of the paper's true strains (frames 1 -> 7 / accumulated; the paper states one value per model).
 PAPER_TRUE = {"3d-HI": (1.65, 3.77), "plane-strain-HI": (2.01, 9.20), "plane-stress-HI": (2.45, 24.0),
               "3d-SI": (0.60, 9.64), "3d-HOM": (0.76, 2.59), "3d-mHI": (1.07, 0.13)}
-#: Targets of the issue: R_P_sigma total strain error at or below the paper's.
+#: Targets: R_P_sigma total strain error at or below the paper's.
 TARGETS = {("single", "3d-HI"): 10.3, ("accumulated", "3d-HI"): 8.6}
+#: Targets in the paper's error convention (truth interpolated at the mesh nodes): (table, data set, regulariser,
+#: total strain error %), and against the exact truth.
+TARGETS_NODAL = (("single", "3d-HI", "momentum-stress", 7.0), ("accumulated", "3d-HI", "momentum-stress", 6.0),
+                 ("single", "plane-strain-HI", "momentum-strain", 5.6),
+                 ("single", "plane-stress-HI", "momentum-stress", 8.2))
+TARGETS_EXACT = (("single", "3d-HI", "momentum-stress", 10.0),)
+ERROR_COLUMNS = ("ux", "uy", "u", "exx", "eyy", "exy", "e")
 
 #: femreg's shipped defaults (read-only here: a run writes its selection to ``OUTDIR/alphas.json``; making it the
 #: library's default is a reviewed change of femreg/data/default_alphas.json in the source tree, never a run-time
@@ -171,6 +177,20 @@ class StudySettings:
     diagnose_element_sizes, diagnose_alpha_factors : element-size check of the report: the single-frame case of
         the first single-frame data set with R_eps and R_P_sigma on meshes of these sizes (mm), at the selected
         alpha times each factor (alpha depends on the mesh), best of them reported.
+    strategy : ``strategy`` of :func:`femreg.register` ("auto": femreg's default, with hourglass control of the
+        momentum terms, an envelope-pyramid start and peak-hopping repair; "paper": the paper's pipeline).
+    hourglass : hourglass-control weight of the momentum regularisers (relative to alpha; None = the strategy's
+        default, 0 = the paper's form).  Their edge-midpoint jumps (eq:Ae7) do not see the node-to-node
+        checkerboard of bilinear quads; without it the lateral strain carries that checkerboard ("Findings").
+    pair_coarse_to_fine : ``coarse_to_fine`` of :func:`femreg.register` (strategy "paper") for the pair cases, or
+        None for the default.
+    auto_alpha : also register every single-frame case with ``alpha="auto"`` (:mod:`femreg.autoalpha`, no ground
+        truth) and score every alpha of its grid against the truth (the "Automatic alpha" table).
+    size_sweep, size_sweep_regularizers, size_sweep_decades : element sizes (mm) of the mesh-size sweep of the
+        first single-frame data set, each with alpha re-selected on ``alpha * 10**decades`` (alpha means the same
+        at any element size, :mod:`femreg.scaling`).
+    fix_datasets : data sets of the "Findings" table: each regulariser in the paper's form (no hourglass control,
+        no forced coarse pass), with each fix alone, and with both (the main tables).
     """
 
     regularizers: tuple = REGULARIZERS
@@ -201,8 +221,16 @@ class StudySettings:
     variant_reference: bool = True
     track_grid: str = "current"
     track_init: str = "blockmatch"
-    diagnose_element_sizes: tuple = (1.0, 3.0)
+    diagnose_element_sizes: tuple = ()
     diagnose_alpha_factors: tuple = (0.3, 1.0, 3.0)
+    strategy: str = "auto"
+    hourglass: float | None = None
+    pair_coarse_to_fine: object = None
+    auto_alpha: bool = True
+    size_sweep: tuple = (0.5, 1.0, 1.5, 2.0, 3.0)
+    size_sweep_regularizers: tuple = ("strain", "momentum-strain", "momentum-stress")
+    size_sweep_decades: tuple = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    fix_datasets: tuple = ("3d-HI", "plane-strain-HI", "plane-stress-HI")
     name: str = "full"
 
     @classmethod
@@ -218,7 +246,8 @@ class StudySettings:
         base = cls(sweep_datasets=("3d-HI",), single_datasets=("3d-HI",), track_datasets=("3d-HI",),
                    dual_pairs=((0, 2), (0, 6)), n_track_frames=7, alpha_decades=(-3, 3), alpha_step=1.0,
                    refine_rounds=1, diagnose_offsets=(0.0, 0.01), diagnose_noise_free=False,
-                   variant_prefilter_px=(), variant_reference=False, diagnose_element_sizes=(), name="quick")
+                   variant_prefilter_px=(), variant_reference=False, diagnose_element_sizes=(), size_sweep=(),
+                   fix_datasets=("3d-HI",), name="quick")
         return replace(base, **kw)
 
     def validate(self) -> "StudySettings":
@@ -301,6 +330,9 @@ def _metrics_impl(result, true_u, true_e, roi) -> dict:
     inside = np.asarray(roi(pts), bool)
     et = np.asarray(true_e(pts), float)[:, 0]
     out = {k: 100.0 * float(v) for k, v in err.items()}
+    # the paper's convention: truth interpolated at the registration mesh nodes (femreg.metrics)
+    out.update({f"{k}_nodal": 100.0 * float(v) for k, v in M.field_errors_nodal(result, true_u).items()})
+    out["exx_worst5_share"] = _worst_element_share(result, true_e)
     try:
         con = M.contrast_metrics(result, roi)
         out.update(SR=float(con["SR"]), CNR_e=float(con["CNR_e"]))
@@ -308,6 +340,20 @@ def _metrics_impl(result, true_u, true_e, roi) -> dict:
         out.update(SR=float("nan"), CNR_e=float("nan"))
     out.update(SR_true=float(M.strain_ratio(et, inside, w)), CNR_e_true=float(M.cnr_e(et, inside, w)))
     return out
+
+
+def _worst_element_share(result, true_e, n_worst: int = 5) -> float:
+    """Share of the squared e_xx error (exact truth) held by the ``n_worst`` worst elements: near 1 means a few
+    elements (a local failure, e.g. a node one RF period off) carry the error, near n_worst / n_elements that it
+    is spread."""
+    from femreg import metrics as M
+
+    pts, w, basis = M.mesh_quadrature(result.mesh)
+    g = np.asarray(basis.interpolate(np.asarray(result.u, float)).grad)
+    d = (w * (g[0, 0].ravel() - np.asarray(true_e(pts), float)[:, 0]) ** 2).reshape(result.mesh.t.shape[1], -1)
+    per = d.sum(axis=1)
+    tot = per.sum()
+    return float(np.sort(per)[::-1][:n_worst].sum() / tot) if tot > 0 else 0.0
 
 
 def mesh_floor(seq, k: int, *, element_size=None, margin=None, crop_mm=None) -> dict:
@@ -381,23 +427,26 @@ def _dataset_key(s: StudySettings, dataset: str) -> dict:
 
 def _reg_key(s: StudySettings) -> dict:
     return {"element_size": s.element_size, "margin": s.margin, "linear_solver": s.linear_solver,
-            "maxiter": s.maxiter, "tol": s.tol, "crop_mm": s.crop_mm}
+            "maxiter": s.maxiter, "tol": s.tol, "crop_mm": s.crop_mm, "strategy": s.strategy,
+            "hourglass": s.hourglass, "pair_c2f": s.pair_coarse_to_fine}
 
 
 def make_case(s: StudySettings, kind: str, dataset: str, regularizer: str, alpha: float, frames,
-              prefilter_px: float = 0.0, track_grid: str | None = None) -> dict:
+              prefilter_px: float = 0.0, track_grid: str | None = None, options: dict | None = None) -> dict:
     """A case spec: ``kind`` "pair" (frames = (ref, mov)) or "track" (frames = number of frames tracked);
     ``prefilter_px`` > 0: frames smoothed laterally by a Gaussian of that width (pixels) first (variant)."""
     spec = {"kind": kind, "regularizer": regularizer, "alpha": float(alpha),
-            "frames": list(frames) if kind == "pair" else int(frames), **_dataset_key(s, dataset), **_reg_key(s)}
+            "frames": list(frames) if kind in ("pair", "auto") else int(frames), **_dataset_key(s, dataset), **_reg_key(s)}
     if prefilter_px:
         spec["lateral_prefilter_px"] = float(prefilter_px)
+    if options:
+        spec["options"] = dict(options)
     if kind == "track":
         spec["track_grid"] = track_grid or s.track_grid
         spec["track_init"] = s.track_init
     blob = json.dumps(spec, sort_keys=True, default=str)
     h = hashlib.sha256(blob.encode()).hexdigest()[:10]
-    fr = f"{frames[0]}-{frames[1]}" if kind == "pair" else f"acc{int(frames)}"
+    fr = f"{frames[0]}-{frames[1]}" if kind in ("pair", "auto") else f"acc{int(frames)}"
     pf = f"_pf{prefilter_px:g}" if prefilter_px else ""
     if kind == "track" and spec["track_grid"] != "current":
         pf += f"_{spec['track_grid']}"
@@ -443,9 +492,20 @@ def _atomic_write_json(path: Path, obj) -> None:
 
 
 def _reg_kwargs(spec, seq, origin):
-    return dict(spacing=seq.spacing, origin=origin, regularizer=spec["regularizer"], alpha=spec["alpha"],
-                element_size=spec["element_size"], margin=spec["margin"], linear_solver=spec["linear_solver"],
-                maxiter=spec["maxiter"], tol=spec["tol"])
+    kw = dict(spacing=seq.spacing, origin=origin, regularizer=spec["regularizer"], alpha=spec["alpha"],
+              element_size=spec["element_size"], margin=spec["margin"], linear_solver=spec["linear_solver"],
+              maxiter=spec["maxiter"], tol=spec["tol"])
+    opts = spec.get("options") or {}
+    strategy = opts.get("strategy", spec.get("strategy"))
+    if strategy:
+        kw["strategy"] = strategy
+    hg = opts.get("hourglass", spec.get("hourglass"))
+    if hg is not None and spec["regularizer"].startswith("momentum"):
+        kw["regularizer_options"] = {"hourglass": float(hg)}
+    c2f = opts.get("coarse_to_fine", spec.get("pair_c2f"))
+    if c2f is not None and spec["kind"] in ("pair", "auto"):
+        kw["coarse_to_fine"] = c2f
+    return kw
 
 
 def run_case(spec: dict, outdir) -> dict:
@@ -460,12 +520,28 @@ def run_case(spec: dict, outdir) -> dict:
     if spec.get("lateral_prefilter_px"):
         from scipy.ndimage import gaussian_filter1d
 
-        n = (max(spec["frames"]) + 1) if spec["kind"] == "pair" else int(spec["frames"])
+        n = (max(spec["frames"]) + 1) if spec["kind"] in ("pair", "auto") else int(spec["frames"])
         frames = gaussian_filter1d(np.asarray(frames[:n], np.float64), spec["lateral_prefilter_px"], axis=2)
     kw = _reg_kwargs(spec, seq, origin)
     t0 = time.perf_counter()
     rec = {"key": spec["key"], "spec": spec}
-    if spec["kind"] == "pair":
+    if spec["kind"] == "auto":
+        from femreg.autoalpha import choose_alpha
+
+        a, b = spec["frames"]
+        kw.pop("alpha")
+        ch = choose_alpha(frames[a], frames[b], keep_results=True, **kw)
+        k = b - a
+        curve = [case_metrics(r, seq, k) for r in ch.results]
+        i = int(np.argmin(np.abs(np.log(ch.alphas / ch.alpha))))
+        res = ch.results[i]
+        rec.update(metrics=curve[i], alpha_auto=ch.alpha, choice=ch.as_dict(), n_registrations=ch.n_registrations,
+                   curve=[{"alpha": float(al), **{c: m[c] for c in ("e", "e_nodal", "exx", "eyy")}}
+                          for al, m in zip(ch.alphas, curve)],
+                   nit=res.nit, success=res.success, message=res.message, ncc_after=res.ncc_after,
+                   time_s=time.perf_counter() - t0)
+        arrays = dict(mesh_points=res.mesh.p, mesh_cells=res.mesh.t, u=res.u, frame=np.int64(k))
+    elif spec["kind"] == "pair":
         a, b = spec["frames"]
         res = femreg.register(frames[a], frames[b], **kw)
         k = b - a
@@ -603,6 +679,8 @@ def _sweep_curves(s: StudySettings, records, reg):
         sp = rec["spec"]
         if sp["kind"] != "pair" or sp["regularizer"] != reg or tuple(sp["frames"]) != tuple(s.pair):
             continue
+        if sp.get("element_size") != s.element_size or sp.get("options") or sp.get("lateral_prefilter_px"):
+            continue
         if sp["dataset"] in curves and "metrics" in rec:
             curves[sp["dataset"]][sp["alpha"]] = rec["metrics"]["e"]
     return curves
@@ -729,6 +807,36 @@ def _case_sets(s: StudySettings, alphas):
     return single, dual, tracks, variant, esize
 
 
+def _fix_configs(s: StudySettings):
+    """The configurations of the "Findings" table: (label, options); the main tables use both fixes."""
+    return (("paper form", {"strategy": "paper", "hourglass": 0.0, "coarse_to_fine": "auto"}),
+            ("paper + coarse pass", {"strategy": "paper", "hourglass": 0.0, "coarse_to_fine": True}),
+            ("paper + hourglass control", {"strategy": "paper", "hourglass": 100.0, "coarse_to_fine": "auto"}))
+
+
+def _extra_case_sets(s: StudySettings, alphas):
+    """Cases of the automatic-alpha table, the element-size sweep and the findings table."""
+    auto = {(d, r): make_case(s, "auto", d, r, 0.0, s.pair) for d in s.single_datasets for r in s.regularizers} \
+        if s.auto_alpha else {}
+    sizes = {}
+    if s.size_sweep and s.single_datasets:
+        d = s.single_datasets[0]
+        for h in s.size_sweep:
+            sh = replace(s, element_size=float(h))
+            for r in s.size_sweep_regularizers:
+                if r in s.regularizers:
+                    for dec in s.size_sweep_decades:
+                        sizes[(float(h), r, float(dec))] = make_case(sh, "pair", d, r, alphas[r] * 10 ** dec, s.pair)
+    fixes = {}
+    for d in [d for d in s.fix_datasets if d in s.single_datasets]:
+        for r in s.regularizers:
+            for label, opts in _fix_configs(s):
+                if label == "paper + hourglass control" and not r.startswith("momentum"):
+                    continue
+                fixes[(d, r, label)] = make_case(s, "pair", d, r, alphas[r], s.pair, options=opts)
+    return auto, sizes, fixes
+
+
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
               scheduler: str | None = None, client=None, resume: bool = False, progress: bool = True,
               figures: bool = True) -> StudyResult:
@@ -784,8 +892,9 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
 
     # 2-4. single frame, dual frame, accumulated (tracks first: longest tasks)
     single, dual, tracks, variant, esize = _case_sets(s, alphas)
-    specs = (list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
-             + list(esize.values()))
+    auto, sizes, fixes = _extra_case_sets(s, alphas)
+    specs = (list(tracks.values()) + list(auto.values()) + list(single.values()) + list(dual.values())
+             + list(variant.values()) + list(esize.values()) + list(sizes.values()) + list(fixes.values()))
     records.update(run_cases(specs, outdir, jobs=jobs, client=cases_client, progress=progress, desc="study cases",
                              stats=stats))
     cases_client.close()
@@ -872,6 +981,12 @@ def _ranking_lines(name, rows_femreg, rows_paper, regs):
     return out, {"same_order": same, "same_best": best_same, "columns_agree": agree}
 
 
+def _nodal_rows(rows):
+    """The same rows with the error columns in the paper's convention (``<col>_nodal``)."""
+    return {r: {c: (m.get(f"{c}_nodal") if c in ERROR_COLUMNS else m.get(c)) for c in COLUMNS}
+            for r, m in rows.items()}
+
+
 def _single_rows(res: StudyResult, dataset):
     s = res.settings
     rows, truth = {}, None
@@ -937,12 +1052,21 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
 
     verdicts = {}
     # single frame
-    L += [f"## Single-frame registration, frames {s.pair[0] + 1} -> {s.pair[1] + 1}", ""]
+    L += [f"## Single-frame registration, frames {s.pair[0] + 1} -> {s.pair[1] + 1}", "",
+          "Two tables per data set: errors against the exact true field (femreg's headline), and in the paper's "
+          "convention, against the true displacement interpolated at the registration mesh nodes (paper Fig. 1: "
+          "'true displacement interpolated at nodal location'; errors 'integrated on the domain of the FE mesh'), "
+          "which leaves out the mesh's own discretisation error (`femreg.metrics.field_errors_nodal`).  "
+          f"Registration: `register(strategy={s.strategy!r})` on a {s.element_size:g} mm mesh"
+          + (f", hourglass control {s.hourglass:g}" if s.hourglass is not None else "")
+          + "; the paper's own pipeline is compared in 'Findings: the 2D anomalies'.",
+          ""]
     rank_lines = []
     for d in s.single_datasets:
         rows, truth = _single_rows(res, d)
         paper = PAPER["single"].get(d)
         L += _table_block(d, rows, paper, regs, truth, PAPER_TRUE.get(d)) + [""]
+        L += _table_block(f"{d}, paper's convention", _nodal_rows(rows), paper, regs) + [""]
         rl, v = _ranking_lines(f"single frame {d}", rows, paper, regs)
         rank_lines += rl
         verdicts[("single", d)] = v
@@ -955,6 +1079,7 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
         track_curves[d] = curves
         paper = PAPER["accumulated"].get(d) if s.n_track_frames == 20 else None
         L += _table_block(d, rows, paper, regs, truth, PAPER_TRUE.get(d) if paper else None) + [""]
+        L += _table_block(f"{d}, paper's convention", _nodal_rows(rows), paper, regs) + [""]
         rl, v = _ranking_lines(f"accumulated {d}", rows, paper, regs)
         rank_lines += rl
         verdicts[("accumulated", d)] = v
@@ -1016,7 +1141,11 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
             continue
         ok = row["e"] <= target
         L.append(f"- {table} {d}: R_P_sigma {row['e']:.1f}% vs paper {target}% -> **{'met' if ok else 'NOT met'}**")
+    L += _target_lines(res)
     L.append("")
+    L += _auto_section(res)
+    L += _size_section(res)
+    L += _fix_section(res)
 
     # diagnostics and what they say
     L += _diagnostics(res)
@@ -1037,6 +1166,180 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
                "verdicts": {f"{t}:{d}": v for (t, d), v in verdicts.items()}}
     _atomic_write_json(out / "summary.json", summary)
     return path
+
+
+def _target_lines(res: StudyResult) -> list:
+    """The targets in both conventions, and the momentum-regulariser cells at or below the paper's."""
+    s = res.settings
+    out = []
+    if s.n_track_frames != 20:
+        pass
+    for conv, targets, suffix in (("paper's convention", TARGETS_NODAL, "_nodal"), ("exact truth", TARGETS_EXACT, "")):
+        for table, d, r, target in targets:
+            row = res.tables.get((table, d), {}).get(r)
+            if row is None or (table == "accumulated" and s.n_track_frames != 20):
+                out.append(f"- {conv}, {table} {d}, {LABELS[r]}: not run in this configuration")
+                continue
+            v = row.get("e" + suffix)
+            ok = v is not None and v <= target
+            out.append(f"- {conv}, {table} {d}, {LABELS[r]}: {_fmt(v, 'e')} vs target {target}% -> "
+                       f"**{'met' if ok else 'NOT met'}**")
+    n = n_ok = 0
+    worse = []
+    for (table, d), rows in res.tables.items():
+        paper = PAPER.get(table, {}).get(d)
+        if not paper or (table == "accumulated" and s.n_track_frames != 20):
+            continue
+        for r in ("momentum-strain", "momentum-stress"):
+            if r not in rows:
+                continue
+            for c in ERROR_COLUMNS:
+                v = rows[r].get(f"{c}_nodal")
+                if v is None:
+                    continue
+                n += 1
+                if round(v, 1) <= paper[r][c]:
+                    n_ok += 1
+                else:
+                    worse.append(f"{table} {d} {LABELS[r]} {c} {v:.1f} ({paper[r][c]})")
+    if n:
+        out.append(f"- paper's convention, every momentum-regulariser error cell at or below the paper's: "
+                   f"{n_ok}/{n} -> **{'met' if n_ok == n else 'NOT met'}**"
+                   + (f"; above: {'; '.join(worse[:12])}" + (" ..." if len(worse) > 12 else "") if worse else ""))
+    return out
+
+
+def _auto_section(res: StudyResult) -> list:
+    """Automatic alpha (femreg.autoalpha, no ground truth) vs the ground-truth-best alpha of the same grid."""
+    s = res.settings
+    auto, _, _ = _extra_case_sets(s, res.alphas)
+    if not auto:
+        return []
+    L = ["## Automatic alpha (`alpha=\"auto\"`, no ground truth)", "",
+         "`femreg.autoalpha.choose_alpha`: Morozov's discrepancy principle with the noise level estimated from the "
+         "pair (the best fit's residual, corrected for the degrees of freedom it fitted and for the residual's "
+         "correlation in the image-gradient band); candidates: the regulariser's default alpha x 10^(-1.5 ... 1.5) "
+         "in half decades, one registration each.  'best' = the ground-truth-best alpha of the same grid.  Total "
+         "strain error, exact truth (paper's convention in brackets).", "",
+         "| data set | regulariser | auto alpha | e at auto | best alpha | e at best | auto / best | study alpha: e | "
+         "registrations | time (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    ratios = []
+    for (d, r), spec in auto.items():
+        rec = res.records.get(spec["key"])
+        if not rec or "curve" not in rec:
+            L.append(f"| {d} | {LABELS[r]} | -- | | | | | | | |")
+            continue
+        cur = rec["curve"]
+        b = min(cur, key=lambda c: c["e"])
+        m = rec["metrics"]
+        ratio = m["e"] / b["e"]
+        ratios.append(ratio)
+        srec = res.records.get(make_case(s, "pair", d, r, res.alphas[r], s.pair)["key"])
+        se = _fmt(srec["metrics"]["e"], "e") if srec and "metrics" in srec else "--"
+        L.append(f"| {d} | {LABELS[r]} | {rec['alpha_auto']:.3g} | {_fmt(m['e'], 'e')} ({_fmt(m['e_nodal'], 'e')}) | "
+                 f"{b['alpha']:.3g} | {_fmt(b['e'], 'e')} ({_fmt(b['e_nodal'], 'e')}) | {ratio:.2f} | {se} | "
+                 f"{rec['n_registrations']} | {rec['time_s']:.0f} |")
+    if ratios:
+        r = np.array(ratios)
+        L += ["", f"Error at the automatic alpha / error at the best alpha: median {np.median(r):.2f}, max "
+              f"{r.max():.2f}; within 15 %: {int(np.sum(r <= 1.15))}/{r.size} (target: all).  Cost: "
+              f"{len(DEFAULT_DECADES_AUTO)} registrations per pair ({len(DEFAULT_DECADES_AUTO) - 1} extra) plus one "
+              f"influence-matrix trace each."]
+    return L + [""]
+
+
+def _size_section(res: StudyResult) -> list:
+    """Element-size sweep with alpha re-selected at each size."""
+    s = res.settings
+    _, sizes, _ = _extra_case_sets(s, res.alphas)
+    if not sizes:
+        return []
+    d = s.single_datasets[0]
+    seq = _load_sequence(make_case(s, "pair", d, s.regularizers[0], 1.0, s.pair))
+    k = s.pair[1] - s.pair[0]
+    hs = sorted({h for h, _, _ in sizes})
+    regs = [r for r in s.size_sweep_regularizers if r in s.regularizers]
+    L = [f"## Element size ({d}, frames {s.pair[0] + 1} -> {s.pair[1] + 1})", "",
+         "alpha re-selected at each size on the selected alpha x 10^(" + ", ".join(f"{x:g}" for x in
+                                                                              s.size_sweep_decades)
+         + ") (alpha means the same at any element size: `femreg.scaling`); cells: total strain error at the "
+         "best alpha, exact truth / paper's convention, and the wall time of that registration (2 workers on a "
+         "shared 2-core machine: pessimistic).  Floor: the true field interpolated on the mesh.", "",
+         "| element size | floor | " + " | ".join(LABELS[r] for r in regs) + " |",
+         "|---|---|" + "---|" * len(regs)]
+    best_cells = {}
+    for h in hs:
+        fl = mesh_floor(seq, k, element_size=h, margin=s.margin, crop_mm=s.crop_mm)["e"]
+        cells = []
+        for r in regs:
+            recs = [res.records.get(sp["key"]) for (hh, rr, _), sp in sizes.items() if hh == h and rr == r]
+            recs = [x for x in recs if x and "metrics" in x]
+            if not recs:
+                cells.append("--")
+                continue
+            b = min(recs, key=lambda x: x["metrics"]["e"])
+            best_cells[(h, r)] = b
+            cells.append(f"{b['metrics']['e']:.1f} / {b['metrics']['e_nodal']:.1f}% (alpha {b['spec']['alpha']:.3g}, "
+                         f"{b['time_s']:.1f} s)")
+        L.append(f"| {h:g} mm | {fl:.1f}% | " + " | ".join(cells) + " |")
+    res.facts["size_sweep"] = {f"{h:g}:{r}": {"e": b["metrics"]["e"], "e_nodal": b["metrics"]["e_nodal"],
+                                              "alpha": b["spec"]["alpha"], "time_s": b["time_s"]}
+                               for (h, r), b in best_cells.items()}
+    return L + [""]
+
+
+def _fix_section(res: StudyResult) -> list:
+    """Findings on the 2D anomalies: each regulariser in the paper's form, with each fix, and with both."""
+    s = res.settings
+    _, _, fixes = _extra_case_sets(s, res.alphas)
+    if not fixes:
+        return []
+    L = ["## Findings: the 2D anomalies", "",
+         "Single frame at the selected alphas.  'paper form': `strategy='paper'` (block-matching start, coarse pass "
+         "only above 1 % strain, no hourglass control); '+ coarse pass': always register on a 3x coarser mesh "
+         "first; '+ hourglass control': the momentum terms' checkerboard penalty (weight 100); 'strategy auto': "
+         "femreg's default pipeline (envelope-pyramid start, peak-hopping repair, hourglass control 100), the main "
+         "tables.  Cells: total strain error "
+         "exact / paper's convention, e_xx, e_yy (exact), and the share of the squared e_xx error held by the 5 "
+         "worst elements (about 0.01 when the error is spread).", "",
+         "| data set | regulariser | configuration | **e** (exact / paper conv.) | e_xx | e_yy | e_xx worst-5 share |",
+         "|---|---|---|---|---|---|---|"]
+    for d in [d for d in s.fix_datasets if d in s.single_datasets]:
+        for r in s.regularizers:
+            cfgs = [(lab, fixes.get((d, r, lab))) for lab, _ in _fix_configs(s)]
+            cfgs.append((f"strategy {s.strategy} (main tables)", make_case(s, "pair", d, r, res.alphas[r], s.pair)))
+            for lab, spec in cfgs:
+                rec = None if spec is None else res.records.get(spec["key"])
+                if not rec or "metrics" not in rec:
+                    continue
+                m = rec["metrics"]
+                L.append(f"| {d} | {LABELS[r]} | {lab} | {_fmt(m['e'], 'e')} / {_fmt(m.get('e_nodal'), 'e')} | "
+                         f"{_fmt(m['exx'], 'exx')} | {_fmt(m['eyy'], 'eyy')} | {m.get('exx_worst5_share', float('nan')):.2f} |")
+    L += ["", FINDINGS_2D, ""]
+    return L
+
+
+#: What the 2D investigation found (numbers measured on these data; the table above regenerates them).
+FINDINGS_2D = """- **Plane strain, e_xx 21-24 % for R_eps / R_eps_i / R_P_eps (paper 3.8-18.7 %)**, measured with the paper's
+  pipeline (``strategy='paper'``, alphas chosen on 3D data): not the forward data, not the error convention (paper's
+  convention 23.2 % vs exact 24.1 % for R_P_eps), not the element-centre dilatation.  88-89 % of the squared e_xx
+  error sat in two elements at the bottom-left image corner (worst-5 share in the table): block matching started
+  the corner node 0.07 mm off axially and Gauss-Newton converged half an RF wavelength (0.14 mm) away (u_x error
+  0.15 mm there); a small alpha cannot pull a corner node back.  Without the five worst elements e_xx was 7.0-7.8 %.
+  A coarse pass first (``coarse_to_fine=True``) removes the local minimum (R_P_eps 24.1 -> 11.8 %, R_eps_i 30.7 ->
+  18.7 % at the same alphas), so does femreg's default pipeline (``strategy='auto'``: envelope-pyramid start and
+  peak-hopping repair).  A larger alpha hides it too (R_P_eps alpha 1: 13.5 %), which is why the alpha chosen on
+  3D data looked wrong for plane strain; it was not the cause.
+- **Plane stress e_yy 36.8 % (paper 14.6 %) and the e_yy checkerboard of the momentum terms**: the edge-midpoint
+  jumps of eq:Ae7 do not see the node-to-node (hourglass) mode of the lateral displacement (A_yy is never tested on
+  an axial edge, and the hourglass e_yy vanishes at lateral-edge midpoints), so only the weak lateral image
+  information holds it.  Hourglass control removes the checkerboard (pictures: e_yy of R_P_sigma, plane stress,
+  weights 0 / 10 / 100): R_P_sigma plane stress e_yy 35.6 -> 17.8 %, total 19.5 -> 11.8 % (paper's convention
+  18.5 -> 10.0 %) at weight 10; 3D HI 14.5 -> 14.2 %; plane strain R_P_eps 11.8 -> 10.4 %.  femreg's default
+  pipeline uses weight 100.
+- **True SR / CNR_e 2.17 / 16.6 vs the paper's 2.01 / 9.2** (plane strain; plane stress 2.64 / 41.4 vs 2.45 / 24.0):
+  a difference of the forward models (inclusion-boundary mesh, the paper's COMSOL model).  It changes the contrast
+  numbers, not the registration errors above."""
 
 
 def _diagnostics(res: StudyResult) -> list:

@@ -82,6 +82,15 @@ def frames_from_args(args, path=None):
     return read_frames(path, **reader_kwargs(args))
 
 
+def _alpha_arg(text):
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number or 'auto', got {text!r}") from None
+
+
 def add_registration_args(parser: argparse.ArgumentParser) -> None:
     """Flags shared by ``register`` and ``track``: regulariser, alpha, mesh and solver settings."""
     from ..regularizers import available_regularizers
@@ -89,7 +98,9 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("registration options")
     g.add_argument("-r", "--regularizer", default="momentum-stress", metavar="NAME",
                    help="regulariser: " + ", ".join(available_regularizers()) + " (default momentum-stress = R_P_sigma)")
-    g.add_argument("--alpha", type=float, help="regulariser weight (default: the regulariser's documented one)")
+    g.add_argument("--alpha", type=_alpha_arg, metavar="ALPHA|auto",
+                   help="regulariser weight (default: the regulariser's documented one); 'auto' chooses it from the "
+                        "first pair without ground truth (femreg.autoalpha, several registrations)")
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
@@ -109,7 +120,7 @@ def registration_kwargs(args) -> dict:
     es = args.element_size
     if es is not None and len(es) not in (1, 2):
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
-    if args.alpha is not None and not (args.alpha >= 0 and args.alpha < float("inf")):
+    if args.alpha is not None and args.alpha != "auto" and not (args.alpha >= 0 and args.alpha < float("inf")):
         raise InputError(f"--alpha must be a finite number >= 0, got {args.alpha}")
     from ..regularizers import available_regularizers
 
