@@ -36,7 +36,7 @@ from .pixels import PixelQuadrature, PointLocator
 from .scaling import effective_alpha
 from .solver import Objective, gauss_newton
 
-__all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "default_settings", "envelope",
+__all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
@@ -88,6 +88,24 @@ def envelope(image) -> np.ndarray:
     return _analytic(np.asarray(image, float))[1]
 
 
+def _centroid_period(power, n: int, dx: float) -> float:
+    """1 / spectral centroid (mm) of a line-averaged axial power spectrum (n samples, DC bin ignored)."""
+    P = np.array(power, float)
+    P[0] = 0.0                                        # the line means (DC) carry no period
+    f = np.fft.rfftfreq(n, dx)
+    fc = float(np.sum(f * P) / np.sum(P)) if np.sum(P) > 0 else 0.0
+    return 1.0 / fc if fc > 0 else float(n * dx)
+
+
+def rf_period(image, spacing) -> float:
+    """Axial RF period (mm) alone, as in :func:`speckle_statistics` (one real FFT, no envelope)."""
+    from scipy import fft as sfft
+
+    img = np.asarray(image, float)
+    P = np.mean(np.abs(sfft.rfft(img, axis=0)) ** 2, axis=1)
+    return _centroid_period(P, img.shape[0], float(spacing[0]))
+
+
 def speckle_statistics(image, spacing) -> SpeckleStats:
     """RF period from the axial power spectrum's centroid; speckle cell from the envelope autocorrelation
     (FFT, zero-padded, averaged over lines / rows), both in mm.  The line average is taken on the power
@@ -97,12 +115,7 @@ def speckle_statistics(image, spacing) -> SpeckleStats:
     img = np.asarray(image, float)
     dx, dy = float(spacing[0]), float(spacing[1])
     X, env = _analytic(img)
-    nf = img.shape[0] // 2 + 1
-    P = np.mean(np.abs(X[:nf]) ** 2, axis=1)
-    P[0] = 0.0                                        # the line means (DC) carry no period
-    f = np.fft.rfftfreq(img.shape[0], dx)
-    fc = float(np.sum(f * P) / np.sum(P)) if np.sum(P) > 0 else 0.0
-    period = 1.0 / fc if fc > 0 else float(img.shape[0] * dx)
+    period = _centroid_period(np.mean(np.abs(X[:img.shape[0] // 2 + 1]) ** 2, axis=1), img.shape[0], dx)
     e = env - env.mean()
     cell = []
     for ax, d in ((0, dx), (1, dy)):

@@ -26,7 +26,7 @@ from .errors import InputError
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
-from .pyramid import default_settings, field_at, pyramid_initial_guess, speckle_statistics
+from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_period, speckle_statistics
 from .repair import MIN_NCC, element_ncc, hop_nodes, pixel_values, reseed
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
@@ -439,7 +439,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     # -- mesh ----------------------------------------------------------------------------------------------
     t = time.perf_counter()
     stats = settings = None
-    if strategy == "auto":
+    need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
+    if strategy == "auto" and need_stats:
         stats = speckle_statistics(ref, spacing)
         settings = default_settings(ref.shape, spacing, stats, element_size)
     if mesh is None:
@@ -524,7 +525,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     n_el = fe_mesh.t.shape[1]
     hops = np.zeros(fe_mesh.p.shape[1], int)
     if repair and strategy == "auto" and ref.shape[0] > 1:
-        period = stats.period if stats is not None else speckle_statistics(ref, spacing).period
+        period = stats.period if stats is not None else rf_period(ref, spacing)
         reference = None if coarse_u0 is None else coarse_u0[0::2]
         for _ in range(2):
             hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)

@@ -71,8 +71,8 @@ def element_ncc(data, u, n_elements: int) -> np.ndarray:
 
 
 def _node_median(mesh, values, size: int = 5) -> np.ndarray:
-    """Median of a nodal scalar over a size x size node neighbourhood (tensor meshes) or over the 2-ring of
-    neighbours (other meshes)."""
+    """Median of a nodal scalar over a size x size node neighbourhood (tensor meshes and meshes with their
+    connectivity) or over the 2-ring of neighbours (other meshes)."""
     ts = tensor_structure(mesh)
     if ts is not None:
         xs, ys, _ = ts
@@ -81,6 +81,14 @@ def _node_median(mesh, values, size: int = 5) -> np.ndarray:
         G = np.empty((xs.size, ys.size))
         G[ix, iy] = values
         return ndimage.median_filter(G, size=size, mode="nearest")[ix, iy]
+    from .pixels import logical_grid
+
+    lg = logical_grid(mesh)              # a moved tensor mesh (femreg.track): the same filter on its node grid
+    if lg is not None:
+        G = lg[0]
+        out = np.empty(G.size)
+        out[G.ravel()] = ndimage.median_filter(np.asarray(values, float)[G], size=size, mode="nearest").ravel()
+        return out
     import scipy.sparse as sp
 
     t = np.asarray(mesh.t)
