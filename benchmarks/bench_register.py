@@ -1,20 +1,26 @@
-"""Benchmark of ``femreg.register`` on a paper-geometry pair (3750 x 147 pixels, dx 0.0192 mm, dy 0.3 mm).
+"""Benchmark of ``femreg.register``: both strategies ("auto", the default, and "paper") on three pairs.
 
-The pair is synthetic (femreg.synthetic: PSF-convolved speckle, SNR 12 dB, warped by a known smooth field with
-0.4-0.8 % axial compression); the real RF simulator lands later.  For every registered regulariser it prints the
-time of each stage (block matching, operator build, regulariser set-up, each Gauss-Newton iteration, total) and
-the peak memory (each regulariser runs in a fresh process so that ru_maxrss is its own).
+Pairs: ``synthetic`` -- paper geometry (3750 x 147 pixels, dx 0.0192 mm, dy 0.3 mm), femreg.synthetic speckle
+(SNR 12 dB) warped by a known smooth field with 0.4-0.8 % axial compression; ``3d-HI`` -- the paper's simulated
+sequence, frames 0 -> 6 (3740 x 147, forward.get_sequence("3d", "HI", seed=0), cached under $FEMREG_CACHE);
+``1200x125`` -- 5 % axial compression, 30 x 25 mm at dx 0.025 mm, dy 0.2 mm.  For every (pair, strategy,
+regulariser) it prints the wall time (fastest of ``--repeat``) and the CPU time of that run (single-threaded: on a
+shared machine the CPU time is what an idle machine's wall time would be), each stage (prefilter; mesh = speckle
+statistics and mesh; the pyramid's envelopes, global search, local block matching and envelope Gauss-Newton, or
+block matching; Gauss-Newton on the final mesh with its per-iteration times; check = peak-hopping check, never-worse
+rule and quality map), the peak memory (each run in a fresh process so that ru_maxrss is its own) and the errors
+against the known field.
 
-    python benchmarks/bench_register.py                 # timings
-    python benchmarks/bench_register.py --study         # alpha and element-size study (total strain error)
-    python benchmarks/bench_register.py --solvers       # linear-solver comparison on the GN system
+    python benchmarks/bench_register.py                          # R_P_sigma, both strategies, all pairs
+    python benchmarks/bench_register.py --pairs 3d-HI --all      # every regulariser
+    python benchmarks/bench_register.py --study                  # alpha and element-size study (R_eps, R_eps_i)
+    python benchmarks/bench_register.py --solvers                # linear-solver comparison on the GN system
 
-Measured 2026-11-21 on the shared 2-core machine (load average 5-7, fastest of 5), default 2 mm mesh (792 nodes):
-total 1.0-1.7 s per pair for R_eps / R_eps_i, 1.9-2.2 s for the momentum regularisers (Hessian re-factorised
-each iteration), peak RSS ~400 MB (120 MB of it the Python process, imports and the pair).  Where the time goes:
-each Gauss-Newton iteration is ~0.1 s, dominated by the cubic-spline re-interpolation of I_2 at the 0.5 M pixels
-(scipy map_coordinates, ~50-80 ms); block matching 0.1-0.2 s; operator build 0.12-0.15 s; the data Hessian is
-assembled once by separable row/column sums (~0.03 s) and, for quadratic regularisers, factorised once.
+Measured 2026-11-29 on the shared 2-core machine at load average 10-11 (wall times pessimistic), R_P_sigma:
+3d-HI 0 -> 6 "auto" 0.98 s wall (2.31 s before the pyramid and check stages were reworked), 1200 x 125 0.41 s.
+Where the time goes ("auto", 3d-HI): speckle statistics 0.08 s, pyramid 0.43 s (global search 0.16, local block
+matching 0.11, envelope Gauss-Newton 0.09), final Gauss-Newton 0.37 s (4 iterations of 35-75 ms, each mostly
+the cubic re-interpolation of I_2 at 0.55 M pixels), check 0.03 s.
 """
 from __future__ import annotations
 
@@ -50,56 +56,82 @@ def make_pair(seed=0, snr_db=12.0):
     return speckle_pair(paper_field, SHAPE, SPACING, seed=seed, snr_db=snr_db)
 
 
-def _run_one(name, alpha, element_size, q, repeat=1):
+PAIRS = ("synthetic", "3d-HI", "1200x125")
+
+
+def _pair(name):
+    """(reference, moving, spacing, origin, true displacement callable or None, true strain callable or None)."""
+    if name == "synthetic":
+        ref, mov = make_pair()
+        return ref, mov, SPACING, (0.0, 0.0), paper_field, None
+    if name == "3d-HI":
+        import forward
+        seq = forward.get_sequence("3d", "HI", seed=0)
+        return (seq.frames[0], seq.frames[6], seq.spacing, seq.origin, lambda p: seq.true_displacement(6, p),
+                lambda p: seq.true_strain(6, p))
+    if name == "1200x125":
+        from femreg.synthetic import speckle_pair
+        sp, shape = (0.025, 0.2), (1200, 125)
+        yc = 0.5 * (shape[1] - 1) * sp[1]
+
+        def f(p):
+            return np.column_stack([-0.05 * p[:, 0], 0.025 * (p[:, 1] - yc)])
+        ref, mov = speckle_pair(f, shape, sp, seed=1, snr_db=20)
+        return ref, mov, sp, (0.0, 0.0), f, None
+    raise SystemExit(f"unknown pair {name!r}; choose from {PAIRS}")
+
+
+def _run_one(name, alpha, element_size, q, repeat=1, pair="synthetic", strategy="auto"):
     import femreg
     from femreg.metrics import field_errors
-    ref, mov = make_pair()
+    ref, mov, sp, origin, true_u, true_e = _pair(pair)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     best = None
     for _ in range(repeat):   # the machine is shared: keep the fastest of `repeat` runs
-        t = time.perf_counter()
-        res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha,
-                              element_size=element_size)
-        total = time.perf_counter() - t
+        t, c = time.perf_counter(), time.process_time()
+        res = femreg.register(ref, mov, spacing=sp, origin=origin, regularizer=name, alpha=alpha,
+                              element_size=element_size, strategy=strategy)
+        total, cpu = time.perf_counter() - t, time.process_time() - c
         if best is None or total < best[0]:
-            best = (total, res)
-    total, res = best
-    err = field_errors(res, paper_field)
-    q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
-               message=res.message, err=err, n_nodes=res.mesh.p.shape[1], ncc=(res.ncc_before, res.ncc_after),
+            best = (total, cpu, res)
+    total, cpu, res = best
+    err = field_errors(res, true_u, true_e) if true_e is not None else field_errors(res, true_u)
+    q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, cpu=cpu, nit=res.nit,
+               success=res.success, message=res.message, err=err, n_nodes=res.mesh.p.shape[1],
+               ncc=(res.ncc_before, res.ncc_after), shape=ref.shape,
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
-def run_isolated(name, alpha=None, element_size=None, repeat=1):
+def run_isolated(name, alpha=None, element_size=None, repeat=1, pair="synthetic", strategy="auto"):
     ctx = mp.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat))
+    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat, pair, strategy))
     p.start()
     out = q.get()
     p.join()
     return out
 
 
-def timings():
-    from femreg.regularizers import available_regularizers
-    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB; fastest of 5 runs per regulariser")
-    for name in available_regularizers():
-        r = run_isolated(name, repeat=5)
-        t = r["timings"]
-        it = t["per_iteration"]
-        print(f"\n[{name}] alpha={r['alpha']:g}  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  "
-              f"({r['message']})")
-        print(f"  prefilter {t['prefilter']:.3f} s | operator build {t['operator']:.3f} s | regulariser set-up "
-              f"{t['regularizer_setup']:.3f} s | block matching {t['initial']:.3f} s")
-        if it:
-            print(f"  GN: first iteration {it[0]:.3f} s (incl. Hessian assembly + factorisation), "
-                  f"later {np.mean(it[1:]) if len(it) > 1 else float('nan'):.3f} s/iter, "
-                  f"GN total {t['gauss_newton']:.3f} s")
-        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB (after imports+pair {r['rss_before_mb']:.0f} MB)")
-        e = r["err"]
-        print(f"  errors: ux {100*e['ux']:.2f} %  uy {100*e['uy']:.1f} %  exx {100*e['exx']:.1f} %  "
-              f"eyy {100*e['eyy']:.1f} %  exy {100*e['exy']:.1f} %  total strain {100*e['e']:.1f} %   "
-              f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}")
+def timings(pairs=PAIRS, regularizers=("momentum-stress",), strategies=("auto", "paper"), repeat=3):
+    print(f"fastest of {repeat} runs per case; wall and CPU seconds (CPU = single-threaded process time)")
+    for pair in pairs:
+        for strategy in strategies:
+            for name in regularizers:
+                r = run_isolated(name, repeat=repeat, pair=pair, strategy=strategy)
+                t = r["timings"]
+                it = t.get("per_iteration", [])
+                print(f"\n[{pair} {r['shape'][0]}x{r['shape'][1]} | strategy={strategy} | {name}] alpha={r['alpha']:g}"
+                      f"  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  ({r['message']})")
+                print(f"  TOTAL {r['total']:.3f} s wall, {r['cpu']:.3f} s CPU   peak RSS {r['peak_mb']:.0f} MB "
+                      f"(after imports+pair {r['rss_before_mb']:.0f} MB)")
+                stages = [k for k in t if k not in ("per_iteration", "total")]
+                print("  " + " | ".join(f"{k} {t[k]:.3f}" for k in stages))
+                if it:
+                    print(f"  final GN iterations: " + " ".join(f"{v:.3f}" for v in it) + " s")
+                e = r["err"]
+                print(f"  errors: ux {100*e['ux']:.2f} %  uy {100*e['uy']:.1f} %  exx {100*e['exx']:.1f} %  "
+                      f"eyy {100*e['eyy']:.1f} %  exy {100*e['exy']:.1f} %  total strain {100*e['e']:.1f} %   "
+                      f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}", flush=True)
 
 
 def study(sizes=(1.0, 2.0), grids=None):
@@ -161,10 +193,16 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study", action="store_true")
     ap.add_argument("--solvers", action="store_true")
+    ap.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=PAIRS)
+    ap.add_argument("--strategies", nargs="+", default=["auto", "paper"], choices=("auto", "paper"))
+    ap.add_argument("--all", action="store_true", help="every regulariser (default R_P_sigma only)")
+    ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     if a.solvers:
         solvers()
     elif a.study:
         study()
     else:
-        timings()
+        from femreg.regularizers import available_regularizers
+        timings(a.pairs, tuple(available_regularizers()) if a.all else ("momentum-stress",), a.strategies,
+                a.repeat)

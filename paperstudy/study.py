@@ -152,6 +152,9 @@ class StudySettings:
     element_size, margin : registration mesh (mm); pinned (not femreg's defaults, which may change) so that the
         case keys and results stay valid; None = femreg's defaults at run time.
     linear_solver, maxiter, tol : Gauss-Newton options of :func:`femreg.register`.
+    strategy : ``strategy`` of :func:`femreg.register` / :func:`femreg.track`: "paper" (the paper's procedure:
+        block matching, the pinned mesh) or "auto" (femreg's default: pyramid start, peak-hopping repair,
+        hourglass control of the momentum regularisers); part of every case key.
     seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
     sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
     crop_mm : (x0, x1, y0, y1) mm, optional: register only this part of the images.
@@ -186,6 +189,7 @@ class StudySettings:
     linear_solver: str = "splu"
     maxiter: int = 20
     tol: float = 1e-3
+    strategy: str = "paper"
     seed: int = 0
     snr_db: float | None = 12.0
     n_frames: int = 20
@@ -237,6 +241,8 @@ class StudySettings:
         lo, hi = self.alpha_decades
         if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi and self.alpha_step > 0):
             raise InputError(f"bad alpha grid: decades {self.alpha_decades}, step {self.alpha_step}")
+        if self.strategy not in ("paper", "auto"):
+            raise InputError(f"strategy must be 'paper' or 'auto', got {self.strategy!r}")
         if self.alphas is None and not self.sweep_datasets:
             raise InputError("either give alphas or at least one sweep data set")
         if self.alphas is not None:
@@ -378,7 +384,7 @@ def _dataset_key(s: StudySettings, dataset: str) -> dict:
 
 def _reg_key(s: StudySettings) -> dict:
     return {"element_size": s.element_size, "margin": s.margin, "linear_solver": s.linear_solver,
-            "maxiter": s.maxiter, "tol": s.tol, "crop_mm": s.crop_mm}
+            "maxiter": s.maxiter, "tol": s.tol, "crop_mm": s.crop_mm, "strategy": s.strategy}
 
 
 def make_case(s: StudySettings, kind: str, dataset: str, regularizer: str, alpha: float, frames,
@@ -442,7 +448,7 @@ def _atomic_write_json(path: Path, obj) -> None:
 def _reg_kwargs(spec, seq, origin):
     return dict(spacing=seq.spacing, origin=origin, regularizer=spec["regularizer"], alpha=spec["alpha"],
                 element_size=spec["element_size"], margin=spec["margin"], linear_solver=spec["linear_solver"],
-                maxiter=spec["maxiter"], tol=spec["tol"])
+                maxiter=spec["maxiter"], tol=spec["tol"], strategy=spec.get("strategy", "paper"))
 
 
 def run_case(spec: dict, outdir) -> dict:
