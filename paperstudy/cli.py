@@ -22,7 +22,8 @@ def add_parser(subparsers):
     p.add_argument("--element-size", type=float, metavar="MM",
                    help="registration element size in mm (default: the study's, 2 mm)")
     p.add_argument("--strategy", choices=("paper", "auto"), default=None,
-                   help="femreg.register strategy of every case (default: the study's, 'paper')")
+                   help="femreg.register strategy of every case (default: the study's, 'auto'; 'paper' = the "
+                        "paper's procedure)")
     p.add_argument("--resume", action="store_true", help="keep finished cases already in OUTDIR")
     p.add_argument("--no-figures", action="store_true", help="tables only")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -154,10 +154,12 @@ class StudySettings:
     linear_solver, maxiter, tol : Gauss-Newton options of :func:`femreg.register`.
     strategy : ``strategy`` of :func:`femreg.register` / :func:`femreg.track`: "paper" (the paper's procedure:
         block matching, the pinned mesh) or "auto" (femreg's default: pyramid start, peak-hopping repair,
-        hourglass control of the momentum regularisers); part of every case key.  Default "paper": the study
-        reproduces the paper's protocol (its 3D single-frame 1 -> 7 cells equal docs/study_report.md to 0.1
-        point); "auto" at the same alphas and 2 mm mesh measured 0.1-2.8 points lower on all 16 of them
-        (R_P_sigma 3d-HI 14.1 vs 14.5 %, R_P_eps 3d-HOM 9.8 vs 12.2 %).
+        hourglass control of the momentum regularisers); part of every case key.  Default "auto", what femreg's
+        users get; it measured lower errors everywhere: the 16 3D single-frame 1 -> 7 cells at the report's
+        alphas 0.1-2.8 points lower than "paper" (R_P_sigma 3d-HI 14.1 vs 14.5 %, R_P_eps 3d-HOM 9.8 vs
+        12.2 %; "paper" reproduces docs/study_report.md to 0.1 point), and the quick study R_P_sigma 1 -> 3
+        19.1 vs 28.5 %, accumulated 1 -> 7 15.4 vs 23.0 %, without the e_yy checkerboard of the momentum
+        regularisers.  ``strategy="paper"`` is the paper's procedure as published.
     seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
     sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
     crop_mm : (x0, x1, y0, y1) mm, optional: register only this part of the images.
@@ -192,7 +194,7 @@ class StudySettings:
     linear_solver: str = "splu"
     maxiter: int = 20
     tol: float = 1e-3
-    strategy: str = "paper"
+    strategy: str = "auto"
     seed: int = 0
     snr_db: float | None = 12.0
     n_frames: int = 20
@@ -451,7 +453,7 @@ def _atomic_write_json(path: Path, obj) -> None:
 def _reg_kwargs(spec, seq, origin):
     return dict(spacing=seq.spacing, origin=origin, regularizer=spec["regularizer"], alpha=spec["alpha"],
                 element_size=spec["element_size"], margin=spec["margin"], linear_solver=spec["linear_solver"],
-                maxiter=spec["maxiter"], tol=spec["tol"], strategy=spec.get("strategy", "paper"))
+                maxiter=spec["maxiter"], tol=spec["tol"], strategy=spec.get("strategy", "auto"))
 
 
 def run_case(spec: dict, outdir) -> dict:
