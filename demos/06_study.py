@@ -19,7 +19,9 @@ This demo shows how femreg reproduces the paper's results on simulated data:
    frame, displacement and strain images beside the truth).
 
 Each registration is written to ``out/06_study/cases/`` as it finishes; running the demo again resumes.
-``--quick``: 3D HI only, coarse alpha grid, accumulation to frame 7 (a few minutes), into out/06_study_quick/.
+``--quick``: 3D HI only, coarse alpha grid, accumulation to frame 7 (about 3 min on 2 cores with the data
+cached), into out/06_study_quick/.  The full study: about 20 min of registrations plus about 5 min to simulate
+the data sets the first time.
 The selected alphas are written to ``alphas.json`` in the output folder (same format as femreg's shipped
 defaults, femreg/data/default_alphas.json).  The study is the ``paperstudy`` package (it needs both femreg and
 forward); ``femreg study`` runs the same code.

@@ -1,4 +1,6 @@
-"""The paper's accuracy and contrast metrics ("Results": displacement / strain % errors, SR, CNR_e).
+"""The paper's accuracy and contrast metrics (arXiv:2508.19086, "Results": displacement / strain % errors, SR,
+CNR_e; the elastographic contrast-to-noise ratio after T. Varghese, J. Ophir, Ultrasound Med. Biol. 24(6):915-924,
+1998).
 
 Errors are integrated over the FE mesh domain with Gauss quadrature on the mesh (``intorder``, default
 :data:`femreg.quadrature.GAUSS_3X3`, 3 x 3 points per quad), comparing the measured FE field with a true field given as a callable:

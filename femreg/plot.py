@@ -36,17 +36,17 @@ def _image2d(a, name):
 def bmode(rf, dynamic_range=50.0, *, reference=None):
     """Log-compressed envelope of RF (axial along axis 0) in dB, clipped to ``[-dynamic_range, 0]``.
 
-    Envelope = ``|hilbert(rf, axis=0)|``; 0 dB is its maximum (or ``reference`` if given, e.g. to put
-    several frames on one scale).  Returns float64 (axial, lateral).
+    Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.pyramid.envelope`); 0 dB is its maximum (or ``reference``
+    if given, e.g. to put several frames on one scale).  Returns float64 (axial, lateral).
     """
-    from scipy.signal import hilbert
+    from .pyramid import envelope
 
     arr = _image2d(rf, "rf")
     if not np.all(np.isfinite(arr)):
         raise InputError("rf contains NaN/Inf")
     if not (np.isfinite(dynamic_range) and dynamic_range > 0):
         raise InputError(f"dynamic_range must be positive (dB), got {dynamic_range!r}")
-    env = np.abs(hilbert(arr, axis=0))
+    env = envelope(arr)
     ref = float(reference) if reference is not None else float(env.max())
     if ref <= 0:
         return np.full(arr.shape, -float(dynamic_range))

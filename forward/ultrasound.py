@@ -42,10 +42,10 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import scipy.signal
 import scipy.sparse as sp
 
-from femreg.plot import bmode  # noqa: F401  (the one B-mode: log-compressed envelope, re-exported)
+from femreg.plot import bmode  # noqa: F401  (the one B-mode and the one envelope, re-exported)
+from femreg.pyramid import envelope  # noqa: F401
 
 __all__ = [
     "SPEED_OF_SOUND_MM_PER_S", "PSF", "ImagingGrid", "Scatterers", "make_scatterers", "render_rf",
@@ -411,9 +411,4 @@ def measured_snr_db(clean, noisy) -> float:
     clean = np.asarray(clean, dtype=float)
     noise = np.asarray(noisy, dtype=float) - clean
     return 10.0 * math.log10(float(np.mean(clean**2)) / float(np.mean(noise**2)))
-
-
-def envelope(rf, axis: int = 0) -> np.ndarray:
-    """Envelope ``|hilbert(rf)|`` along the axial ``axis`` (analytic signal via scipy.signal.hilbert)."""
-    return np.abs(scipy.signal.hilbert(np.asarray(rf, dtype=float), axis=axis))
 

@@ -17,7 +17,7 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", default="out/study", metavar="OUTDIR",
                    help="report folder (default out/study, or out/study-quick with --quick)")
     p.add_argument("--quick", action="store_true",
-                   help="3D HI only, coarse alpha grid, 7 frames (a few minutes)")
+                   help="3D HI only, coarse alpha grid, 7 frames (about 3 min with the data cached)")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--element-size", type=float, metavar="MM",
                    help="registration element size in mm (default: the study's, 2 mm)")

@@ -30,8 +30,9 @@ Measured (this 2-core machine, 2026-11-22; full report in docs/study_report.md):
   error R_eps / R_eps_i / R_P_eps / R_P_sigma, 3D HI frames 1 -> 7: 21.0 / 37.6 / 18.0 / 14.5 % (paper 26.2 / 43.8 /
   14.3 / 10.3 %); accumulated to frame 20 (``track(grid="current")``): 19.4 / 36.8 / 18.3 / 14.2 % (paper 21.3 /
   39.8 / 10.8 / 8.6 %); the paper's ranking in every 3D table and in plane stress, not in plane strain.  The
-  literal eq:IR (``grid="reference"``) lost the lateral component (u_y 87 %; report "Diagnostics").  Wall time
-  8.9 min with the data sets cached (about 5 min more to generate them), quick study 75 s.
+  literal eq:IR (``grid="reference"``) lost the lateral component (u_y 87 %; report "Diagnostics").  Wall time:
+  the report's runs computed 420 cases in 8.6 + 10.1 + 0.4 = 19.1 min with the data sets cached (about 5 min
+  more to generate them); the quick study 157 s (2026-11-29, cached data, machine shared with other work).
 * 1 mm mesh: alphas 42.2 / 1.78e4 / 0.133 / 0.178; 3D HI single frame 29.8 / 41.6 / 17.9 / 15.0 %; wall time
   25.2 min including generating the six data sets.
 

@@ -258,3 +258,24 @@ def test_momentum_regularizer_written_as_user_forms(cls):
         dj = builtin.lambda_bar * (D[j.elements[0]] - D[j.elements[1]]) @ u
         diff = builtin.term_values(u) - user.term_values(u)
         np.testing.assert_allclose(diff, j.normals * dj, rtol=1e-10, atol=1e-13)
+
+
+def test_user_data_reach_a_quadratic_form_through_w():
+    """A depth-dependent weight passed as data: w.k (a number) scales the form, w.stiff (a nodal field) weights it
+    pointwise; both equal the same weight written into the form."""
+    @BilinearForm
+    def weighted(u, v, w):
+        return w.k * w.stiff[0] * ddot(sym_grad(u), sym_grad(v))
+
+    @BilinearForm
+    def written_in(u, v, w):
+        return 3.0 * (1.0 + 0.1 * w.x[0]) * ddot(sym_grad(u), sym_grad(v))
+
+    mesh = mesh_jittered(seed=7)
+    stiff = nodal(mesh, lambda x, y: (1.0 + 0.1 * x, 0.0 * y))      # bilinear, so interpolation is exact
+    a = R.from_form(weighted, alpha=1.0, k=3.0, stiff=stiff)
+    b = R.from_form(written_in, alpha=1.0)
+    a.setup(mesh)
+    b.setup(mesh)
+    err = abs(a.matrix - b.matrix).max() / abs(b.matrix).max()
+    assert err < 1e-12, err

@@ -2,7 +2,8 @@
 
 Each demo runs in a subprocess in a temporary working directory (its figures go to ``out/<demo>/`` there) with
 the simulator's usual cache.  Measured here (2 shared cores, warm cache): 01 20 s, 02 20 s, 05 15 s, 07 14 s;
-06 (the quick paper study) 160 s, so it is marked slow.
+06 (the quick paper study) 160 s, so it is marked slow.  Demos whose quick run already has a test that checks
+its results (:data:`DEDICATED`) are run there, not twice.
 """
 import os
 import subprocess
@@ -15,14 +16,23 @@ ROOT = Path(__file__).resolve().parent.parent
 DEMOS = sorted((ROOT / "demos").glob("[0-9][0-9]_*.py"))
 #: Demos whose quick mode takes minutes.
 SLOW = {"06_study.py"}
+#: Demos run in quick mode by a test that also checks what they write: demo -> (test file, test function).
+DEDICATED = {"01_forward.py": ("test_forward.py", "test_demo_01_forward_quick"),
+             "07_invivo.py": ("test_invivo.py", "test_demo_quick_writes_summary")}
+RUN_HERE = [d for d in DEMOS if d.name not in DEDICATED]
 
 
-def test_demos_are_found():
+def test_every_demo_is_run_by_a_test():
     assert len(DEMOS) >= 5, DEMOS
+    here = Path(__file__).resolve().parent
+    for name, (fname, func) in DEDICATED.items():
+        assert (ROOT / "demos" / name).exists(), f"{name} is gone: drop it from DEDICATED"
+        text = (here / fname).read_text()
+        assert f"def {func}(" in text and name in text, f"{fname}::{func} must run demos/{name} --quick"
 
 
 @pytest.mark.parametrize("demo", [pytest.param(d, marks=pytest.mark.slow) if d.name in SLOW else d
-                                  for d in DEMOS], ids=[d.stem for d in DEMOS])
+                                  for d in RUN_HERE], ids=[d.stem for d in RUN_HERE])
 def test_demo_runs_in_quick_mode(demo, tmp_path):
     env = dict(os.environ, MPLBACKEND="Agg", PYVISTA_OFF_SCREEN="true", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",

@@ -532,3 +532,16 @@ def test_mat5_reader_handles_matlab_storage_tricks(tmp_path, order):
     (tmp_path / "t.mat").write_bytes(blob[:-9])
     with pytest.raises(FileFormatError, match="truncated"):
         read_frames(tmp_path / "t.mat")
+
+
+def test_ultrasonix_tagged_file_cut_to_the_untagged_size_is_truncated(tmp_path):
+    """A tagged .rf file short by exactly 4 bytes per frame has the size of an untagged one; its frame numbers
+    give it away (found by the randomised fuzzing run)."""
+    frames = np.rint(np.random.default_rng(3).standard_normal((2, 12, 6)) * 100).astype(np.float32)
+    save_frames(tmp_path / "a.rf", frames, (0.02, 0.2), origin=(0.0, 0.0), frame_tags=True)
+    blob = (tmp_path / "a.rf").read_bytes()
+    (tmp_path / "a.rf").write_bytes(blob[:-8])
+    with pytest.raises(FileFormatError, match="truncated: frame tags present"):
+        read_frames(tmp_path / "a.rf", spacing=(None, 0.2))
+    save_frames(tmp_path / "b.rf", frames, (0.02, 0.2), origin=(0.0, 0.0))   # untagged, same size: reads
+    np.testing.assert_array_equal(read_frames(tmp_path / "b.rf", spacing=(None, 0.2)).frames, frames)

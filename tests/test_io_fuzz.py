@@ -1,5 +1,8 @@
 """Property tests: truncated, random or corrupted bytes into every reader give a typed error (FileFormatError /
-InputError, both ValueError subclasses) -- never another exception, never non-finite data."""
+InputError, both ValueError subclasses) -- never another exception, never non-finite data.
+
+Each property runs twice: a fixed, derandomised set of 60 inputs (default suite, the same every run) and a
+randomised run of 1000 new inputs per property (``-m slow``; hypothesis prints the failing input to reproduce)."""
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -11,6 +14,8 @@ from femreg.io import Frames, read_frames, save_frames
 SP = (0.02, 0.2)
 FUZZ = settings(max_examples=60, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+RANDOM = settings(FUZZ, max_examples=1000, derandomize=False, database=None)
+MODES = [pytest.param(FUZZ, id="fixed60"), pytest.param(RANDOM, id="random", marks=pytest.mark.slow)]
 
 # name -> (file name, writer kwargs, reader kwargs); spacing is stored last where the format stores it, and the
 # raw reader is given a 3D shape, so that *every* truncation is detectable.
@@ -57,13 +62,14 @@ def _read_typed(path, rkw):
     return fr
 
 
+@pytest.mark.parametrize("fuzz", MODES)
 @pytest.mark.parametrize("name", sorted(FORMATS))
-def test_truncated_file_gives_typed_error(tmp_path_factory, name):
+def test_truncated_file_gives_typed_error(tmp_path_factory, name, fuzz):
     tmp = tmp_path_factory.mktemp(name)
     path, target, blob, rkw = _valid_bytes(tmp, name)
     assert isinstance(read_frames(path, **rkw), Frames)  # the intact file reads
 
-    @FUZZ
+    @fuzz
     @given(cut=st.integers(0, len(blob) - 1))
     def check(cut):
         target.write_bytes(blob[:cut])
@@ -73,12 +79,13 @@ def test_truncated_file_gives_typed_error(tmp_path_factory, name):
     check()
 
 
+@pytest.mark.parametrize("fuzz", MODES)
 @pytest.mark.parametrize("name", sorted(FORMATS))
-def test_random_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name):
+def test_random_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name, fuzz):
     tmp = tmp_path_factory.mktemp(name)
     path, target, blob, rkw = _valid_bytes(tmp, name)
 
-    @FUZZ
+    @fuzz
     @given(data=st.binary(min_size=0, max_size=3000))
     def check(data):
         target.write_bytes(data)
@@ -87,13 +94,14 @@ def test_random_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name):
     check()
 
 
+@pytest.mark.parametrize("fuzz", MODES)
 @pytest.mark.parametrize("name", sorted(FORMATS))
-def test_corrupted_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name):
+def test_corrupted_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name, fuzz):
     tmp = tmp_path_factory.mktemp(name)
     path, target, blob, rkw = _valid_bytes(tmp, name)
     n = len(blob)
 
-    @FUZZ
+    @fuzz
     @given(edits=st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 255)), min_size=1, max_size=8),
            head=st.booleans())
     def check(edits, head):
@@ -106,10 +114,15 @@ def test_corrupted_bytes_give_typed_error_or_valid_frames(tmp_path_factory, name
     check()
 
 
-@FUZZ
-@given(text=st.text(max_size=400))
-def test_random_metaimage_header_text(tmp_path_factory, text):
-    tmp = tmp_path_factory.mktemp("mhdtext", numbered=True)
+@pytest.mark.parametrize("fuzz", MODES)
+def test_random_metaimage_header_text(tmp_path_factory, fuzz):
+    tmp = tmp_path_factory.mktemp("mhdtext")
     (tmp / "a.raw").write_bytes(b"\0" * 288)
-    (tmp / "a.mhd").write_text("NDims = 2\n" + text, encoding="utf-8", errors="surrogateescape")
-    _read_typed(tmp / "a.mhd", {})
+
+    @fuzz
+    @given(text=st.text(max_size=400))
+    def check(text):
+        (tmp / "a.mhd").write_text("NDims = 2\n" + text, encoding="utf-8", errors="surrogateescape")
+        _read_typed(tmp / "a.mhd", {})
+
+    check()

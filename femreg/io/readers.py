@@ -5,7 +5,8 @@ Formats (chosen by extension, verified by content):
 =====================  ============================================================================
 ``.npy``               2D (axial, lateral) or 3D (n, axial, lateral) array; no spacing stored
 ``.npz``               key ``rf`` or ``frames`` (or ``variable=``), optional ``spacing``, ``origin``
-``.mat``               MATLAB v4/v5/v7 (scipy.io) or v7.3 (HDF5, h5py); see :mod:`femreg.io.matlab`
+``.mat``               MATLAB v5/v7 (femreg's pure-Python reader), v4 (scipy.io) or v7.3 (HDF5, h5py); see
+                       :mod:`femreg.io.matlab`
 ``.mhd`` / ``.mha``    MetaImage header + data; see :mod:`femreg.io.metaimage` for the axis mapping
 ``.raw`` ``.bin``...   headerless samples: ``shape`` required, ``dtype`` (default float32), ``byte_order``
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`

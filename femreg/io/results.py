@@ -17,6 +17,8 @@ alpha, success,    scalars                         optimiser outcome (scipy Opti
 nit, message
 ncc_before/after   scalar                          NCC of reference and warped moving image
 energy_history     (nit+1,)                        objective per Gauss-Newton iterate
+quality            (n_el,)                         per-element quality map (optional)
+strategy           str                             registration strategy (optional)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
@@ -38,7 +40,8 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
            "mesh_fields", "write_vtu", "write_xdmf", "export_result"]
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
-               "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history")
+               "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
+               "quality", "strategy")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -169,7 +172,7 @@ def _from_object(res) -> dict:
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
-            if not callable(v):
+            if v is not None and not callable(v):
                 out[k] = v
     return out
 
@@ -209,6 +212,9 @@ def _read(path) -> dict:
         if v is None or v.shape != (2,) or not np.all(np.isfinite(v)) or (k == "spacing" and v.min() <= 0):
             raise fail(path, f"key {k!r} must be two finite numbers{' > 0' if k == 'spacing' else ''}, "
                              f"got {out[k]!r}")
+    n_el = np.shape(out["mesh_cells"])[1]
+    if "quality" in out and np.shape(out["quality"]) != (n_el,):
+        raise fail(path, f"key 'quality' must have one value per element ({n_el},), got {np.shape(out['quality'])}")
     for k in GRID_FIELDS:
         if k in out and np.shape(out[k]) != tuple(shape):
             raise fail(path, f"key {k!r} must be a pixel-grid field of shape {tuple(shape)}, got {np.shape(out[k])}")
@@ -233,7 +239,9 @@ def load_result(path):
         origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
         success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
         energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid if len(grid) == len(GRID_FIELDS) else None)
+        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid if len(grid) == len(GRID_FIELDS) else None,
+        quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
+        strategy=str(d.get("strategy", "")))
 
 
 def save_result(path, result, **extra) -> Path:

@@ -70,10 +70,13 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
     frame_bytes = w * h * 2
     size = os.path.getsize(path)
     body = size - HEADER_SIZE
-    if body == n * frame_bytes:
+    if body == n * frame_bytes and not _tag_sequence(path, n, frame_bytes):
         tagged = False
     elif body == n * (frame_bytes + 4):
         tagged = True
+    elif body == n * frame_bytes:   # the frame numbers of a tagged file, with its end cut off
+        raise fail(path, f"truncated: frame tags present, so {n} frame(s) of {h} x {w} int16 need "
+                         f"{n * (frame_bytes + 4)} data bytes after the header, found {body}")
     else:
         full = body // frame_bytes
         kind = "truncated" if body < n * frame_bytes else "size mismatch"
@@ -111,6 +114,24 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
     if tagged:
         meta["frame_numbers"] = tags
     return finalize(path, out, sp, (0.0, 0.0), meta, None)
+
+
+def _tag_sequence(path, n: int, frame_bytes: int) -> bool:
+    """True when the int32 words where a tagged file keeps its frame numbers count up by one: the data of a
+    tagged file cut short by exactly ``4 n`` bytes, which by size alone would pass for an untagged file.  Real RF
+    samples essentially never form such a sequence (needs n >= 2)."""
+    if n < 2:
+        return False
+    stride = frame_bytes + 4
+    with open(path, "rb") as fh:
+        tags = []
+        for k in range(n):
+            fh.seek(HEADER_SIZE + k * stride)
+            word = fh.read(4)
+            if len(word) < 4:
+                break
+            tags.append(struct.unpack("<i", word)[0])
+    return len(tags) >= 2 and all(b == a + 1 for a, b in zip(tags, tags[1:]))
 
 
 def write_ultrasonix(path, frames, spacing=None, *, sampling_frequency=None, sound_speed=SOUND_SPEED,

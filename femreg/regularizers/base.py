@@ -70,16 +70,20 @@ class QuadraticFormRegularizer(Regularizer):
         Overall weight.
     name : str
         Label used in results and reports.
+    w : dict, optional
+        User data for the forms, available there as ``w.<name>`` (scikit-fem's assembly keywords).
     """
 
     quadratic = True
 
-    def __init__(self, terms: Sequence[tuple], alpha: float | None = None, name: str = "custom-quadratic"):
+    def __init__(self, terms: Sequence[tuple], alpha: float | None = None, name: str = "custom-quadratic",
+                 w: dict | None = None):
         super().__init__(alpha)
         if not terms:
             raise ValueError("QuadraticFormRegularizer needs at least one (form, weight, quadrature) term")
         self.terms = list(terms)
         self.name = name
+        self.w = dict(w or {})
         self._K = None
 
     def setup(self, mesh) -> None:
@@ -93,7 +97,7 @@ class QuadraticFormRegularizer(Regularizer):
             elif quad is not None:
                 kw["quadrature"] = quad
             basis = Basis(mesh, ElementVector(ElementQuad1()), **kw)
-            Ki = float(weight) * form.assemble(basis)
+            Ki = float(weight) * form.assemble(basis, **self.w)
             K = Ki if K is None else K + Ki
         self._K = sp.csr_matrix(K)
         self.mesh = mesh

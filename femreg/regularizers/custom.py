@@ -1,5 +1,8 @@
 r"""User-defined regularisers in a few lines (FEniCSx style: write the weak form, get a regulariser).
 
+The built-ins are instances of the same constructions (paper arXiv:2508.19086: R_eps / R_eps_i are route (a),
+the momentum regularisers R_P_eps / R_P_sigma route (b)).
+
 Two routes, both returning a :class:`~femreg.regularizers.base.Regularizer` that ``femreg.register(...,
 regularizer=...)`` accepts directly (or by name after :func:`~femreg.regularizers.register_regularizer`).
 
@@ -90,7 +93,7 @@ def _check_form(form) -> None:
                          f"{type(form).__name__}")
 
 
-def from_forms(terms: Sequence[tuple], alpha: float = 1.0, *, name: str = "custom-quadratic") -> Regularizer:
+def from_forms(terms: Sequence[tuple], alpha: float = 1.0, *, name: str = "custom-quadratic", **w) -> Regularizer:
     r"""Quadratic regulariser :math:`\tfrac{\alpha}{2}\sum_k c_k\, a_k(u, u)` from several BilinearForms.
 
     Parameters
@@ -102,6 +105,9 @@ def from_forms(terms: Sequence[tuple], alpha: float = 1.0, *, name: str = "custo
         Overall weight :math:`\alpha`.
     name : str
         Label in results.
+    **w
+        User data for the forms, available there as ``w.<name>`` (numbers as they are; nodal vectors of the
+        vector basis interpolated by scikit-fem).
     """
     if not terms:
         raise ValueError("from_forms needs at least one (form, weight, quadrature) term")
@@ -115,10 +121,11 @@ def from_forms(terms: Sequence[tuple], alpha: float = 1.0, *, name: str = "custo
         if not np.isfinite(weight) or weight < 0:
             raise ValueError(f"term weight must be finite and >= 0, got {weight!r}")
         resolved.append((form, weight, _resolve_quadrature(quad)))
-    return QuadraticFormRegularizer(resolved, alpha=alpha, name=name)
+    return QuadraticFormRegularizer(resolved, alpha=alpha, name=name, w=w)
 
 
-def from_form(form, alpha: float = 1.0, *, quadrature="gauss3", name: str = "custom-quadratic") -> Regularizer:
+def from_form(form, alpha: float = 1.0, *, quadrature="gauss3", name: str = "custom-quadratic",
+              **w) -> Regularizer:
     r"""Quadratic regulariser :math:`R[u] = \tfrac{\alpha}{2} a(u, u)` from one scikit-fem ``BilinearForm``.
 
     Parameters
@@ -133,6 +140,8 @@ def from_form(form, alpha: float = 1.0, *, quadrature="gauss3", name: str = "cus
         weights (q,).  "gauss3" (3x3 Gauss) is what R_eps uses.
     name : str
         Label in results.
+    **w
+        User data for the form (``w.<name>``), as in :func:`from_forms`.
 
     Returns
     -------
@@ -140,7 +149,7 @@ def from_form(form, alpha: float = 1.0, *, quadrature="gauss3", name: str = "cus
         Energy :math:`\tfrac{\alpha}{2}u^T A u`, gradient :math:`\alpha A u`, Hessian :math:`\alpha A`; A is
         assembled once per mesh.
     """
-    return from_forms([(form, 1.0, quadrature)], alpha=alpha, name=name)
+    return from_forms([(form, 1.0, quadrature)], alpha=alpha, name=name, **w)
 
 
 def from_operator(operator: Callable, alpha: float = 1.0, *, delta: float = DEFAULT_DELTA, penalty="tv",

@@ -1,6 +1,6 @@
 r"""Momentum (SPREME) regularisers R_P_eps and R_P_sigma and the total-variation machinery behind them.
 
-Paper section "Regularization Types" (eq:meq to eq:mreg) and appendix "Reduced Form of TV Momentum
+Paper (arXiv:2508.19086) section "Regularization Types" (eq:meq to eq:mreg) and appendix "Reduced Form of TV Momentum
 Regularization" (eq:Ae5 to eq:Ae7, eq:dmreg to eq:dmreg4).  For a piecewise-homogeneous solid the equilibrium
 equation :math:`\nabla\cdot(\mu A[u]) = 0` (eq:meq) with
 
@@ -35,19 +35,21 @@ two checkerboard (hourglass) modes of bilinear quads: the edge-midpoint jumps of
 see them, so only the image term controls them (with noisy images a faint mesh-scale pattern can remain in u).
 ``tests/test_momentum.py::test_kernel_is_affine_plus_four_mesh_modes`` pins this down.
 
-Default alphas (provisional; the paper's values do not transfer, see docs/paper-protocol.md)
-----------------------------------------------------------------------------------------------
-For femreg's normalisation (images divided by the reference RMS, pixel weights dx dy in mm^2, lengths in mm),
-measured on 1562 x 71 px speckle pairs (30 x 21 mm around the inclusion, 20 dB SNR, seeds 1-3) warped by
-forward/ 2D solutions (stiff inclusion E = 40 / 10 MPa, nu = 0.495, 1 mm compression), engine's default 1 mm
-mesh, lateral displacement error at alpha:
+Default alphas
+--------------
+The defaults are the values selected by the paper's procedure (appendix "Algorithmic Parameter Justification",
+``femreg study``) for femreg's normalisation (images divided by the reference RMS, pixel weights dx dy in mm^2,
+lengths in mm) on its default 2 mm mesh, shipped in femreg/data/default_alphas.json and applied by
+:mod:`femreg.regularizers`: ``momentum-stress`` 0.133, ``momentum-strain`` 0.1 (docs/study_report.md).  The
+class attributes ``default_alpha`` below are used only if that file is missing.  The paper's own alphas (2.33e-4,
+1.14e-4) belong to its image scaling and do not transfer.
 
-* plane-stress field: R_P_sigma 0.01 / 0.03 / 0.1 / 0.3 -> 12.6 / 11.9 / 13.0 / 14.5 % (seed 1), best
-  11-14 % over seeds at 0.03-0.1 (0.01 failed once: 0.1 is the safer default); R_eps best 16-35 % at 3-10.
-* plane-strain field: R_P_eps 0.1 / 1 / 3 / 10 -> 59 / 41 / 10 / 15 % (seed 1), 16 / 6 / 10 / 18 % (seed 2):
-  default 1; R_eps best 21-22 % at 3.
-
-``momentum-stress`` 0.1, ``momentum-strain`` 1.0.
+References
+----------
+* The method (SPREME): momentum-regularised registration, arXiv:2508.19086.
+* Total variation: L. I. Rudin, S. Osher, E. Fatemi, Physica D 60:259-268 (1992), doi:10.1016/0167-2789(92)90242-F.
+* Lagged diffusivity (eq:dmreg4): C. R. Vogel, M. E. Oman, SIAM J. Sci. Comput. 17(1):227-238 (1996),
+  doi:10.1137/0917016.
 """
 from __future__ import annotations
 
@@ -533,7 +535,7 @@ class PlaneStrainMomentumRegularizer(MomentumRegularizer):
     r"""R_P_eps: plane strain, :math:`\bar\lambda = 9` (nu = 0.45), dilatation at the element centre."""
 
     name = "momentum-strain"
-    default_alpha = 1.0
+    default_alpha = 0.1          # fallback; the shipped default comes from femreg/data/default_alphas.json
     default_lambda_bar = LAMBDA_BAR_PLANE_STRAIN
     default_dilatation = "centre"
 
@@ -542,7 +544,7 @@ class PlaneStressMomentumRegularizer(MomentumRegularizer):
     r"""R_P_sigma: incompressible plane stress, :math:`\bar\lambda = 2`, all of A at the edge midpoint."""
 
     name = "momentum-stress"
-    default_alpha = 0.1
+    default_alpha = 0.133        # fallback; the shipped default comes from femreg/data/default_alphas.json
     default_lambda_bar = LAMBDA_BAR_PLANE_STRESS
     default_dilatation = "edge"
 
