@@ -147,5 +147,6 @@ def test_default_track_on_real_data_beats_block_matching_without_checkerboard():
     tracked = ncc_at(last.u)
     bm = ncc_at(nodal_values(block_match(frames[0], frames[-1], sp, o), last.mesh))
     assert not any(out.flags), out.flags
-    assert tracked > 0.85 and tracked > bm + 0.1, (tracked, bm)        # measured 0.880 vs 0.674
-    assert hourglass(last)["uy"] < 0.0055, hourglass(last)    # measured 4.1 um; 6.5 um without hourglass control
+    assert tracked > 0.85 and tracked > bm + 0.1, (tracked, bm)        # measured 0.879 vs 0.674
+    # measured 2.2 um; 4.1 um with the single-pair weight (100) on the increments, 6.5 um without hourglass control
+    assert hourglass(last)["uy"] < 0.0033, hourglass(last)
