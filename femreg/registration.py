@@ -273,6 +273,21 @@ def nodal_values(spec, mesh, what="initial"):
 STRATEGIES = ("auto", "paper")
 
 
+def component_tol(tol: float, u0) -> float:
+    """Gauss-Newton tolerance of ``strategy="auto"``: ``tol`` for the smaller displacement component.
+
+    The stopping rule ``||du|| / ||u|| < tol`` is dominated by the larger (usually axial) component; from the
+    pyramid's close start it stopped while the lateral one, often ten times smaller, still moved (plane-stress
+    inclusion pair, R_P_sigma alpha 0.01: 2 iterations, lateral error 12.13 %; converged 12.34 %, and the
+    ranking of the alphas changed).  So the tolerance is scaled by ||u0_small|| / ||u0||, at most 10x tighter."""
+    u0 = np.asarray(u0, float)
+    n = float(np.linalg.norm(u0))
+    if not n > 0:
+        return tol
+    small = min(float(np.linalg.norm(u0[0::2])), float(np.linalg.norm(u0[1::2])))
+    return float(tol * min(1.0, max(0.1, small / n)))
+
+
 @dataclass
 class _Solve:
     """One Gauss-Newton solve on one mesh (plain data passed between the stages)."""
@@ -514,6 +529,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     t = time.perf_counter()
     if strategy == "auto":
         solve_kw["mask_outside"] = True
+        solve_kw["tol"] = component_tol(tol, u0)
     sol = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator,
                  callback=callback, **solve_kw)
     timings["gauss_newton"] = time.perf_counter() - t
