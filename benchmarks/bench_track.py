@@ -14,10 +14,10 @@ errors of the last frame against the forward model's truth (femreg.metrics).
 The sequence comes from ``forward.get_sequence("3d", "HI", seed=0)`` (cached under $FEMREG_CACHE; the first call
 simulates it, several minutes).  Wall times on a shared machine are pessimistic: compare runs made together.
 
-Measured 2026-11-29 at load average 13-15 on the shared 2-core machine, strategy "auto" (R_P_sigma, hourglass
-control, the first increment from the pyramid, later ones from the previous increment): 19 increments in 22.9 s
-wall, 5.9 s CPU (25.9 s wall before the increments skipped the speckle statistics and the per-node median loop);
-147 Gauss-Newton iterations, 61 ms mean; frame 0 -> 19 total strain error 14.2 %, no frame flagged.
+Measured 2026-11-29 on the shared 2-core machine, strategy "auto" (R_P_sigma, hourglass weight 1000 on the
+increments, the first increment from the pyramid, later ones from the previous increment): 19 increments in 12.1 s
+wall at load average 6 (22.9 s at load 13-15), 5.9 s CPU; 206 Gauss-Newton iterations, 29 ms mean; frame 0 -> 19
+total strain error 14.2 %, no frame flagged.
 """
 from __future__ import annotations
 

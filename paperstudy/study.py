@@ -156,10 +156,10 @@ class StudySettings:
     strategy : ``strategy`` of :func:`femreg.register` / :func:`femreg.track`: "paper" (the paper's procedure:
         block matching, the pinned mesh) or "auto" (femreg's default: pyramid start, peak-hopping repair,
         hourglass control of the momentum regularisers); part of every case key.  Default "auto", what femreg's
-        users get; it measured lower errors everywhere: the 16 3D single-frame 1 -> 7 cells at the report's
-        alphas 0.1-2.8 points lower than "paper" (R_P_sigma 3d-HI 14.1 vs 14.5 %, R_P_eps 3d-HOM 9.8 vs
+        users get; it measured no higher error anywhere: the 16 3D single-frame 1 -> 7 cells at the report's
+        alphas 0.0-2.1 points lower than "paper" (R_P_sigma 3d-HI 14.1 vs 14.5 %, R_P_eps 3d-HOM 10.1 vs
         12.2 %; "paper" reproduces docs/study_report.md to 0.1 point), and the quick study R_P_sigma 1 -> 3
-        19.1 vs 28.5 %, accumulated 1 -> 7 15.4 vs 23.0 %, without the e_yy checkerboard of the momentum
+        19.1 vs 28.5 %, accumulated 1 -> 7 15.3 vs 23.0 %, without the e_yy checkerboard of the momentum
         regularisers.  ``strategy="paper"`` is the paper's procedure as published.
     seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
     sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
