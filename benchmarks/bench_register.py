@@ -13,6 +13,8 @@ against the known field.
 
     python benchmarks/bench_register.py                          # R_P_sigma, both strategies, all pairs
     python benchmarks/bench_register.py --pairs 3d-HI --all      # every regulariser
+    python benchmarks/bench_register.py --save a.npz             # ... and keep every nodal u; --compare a.npz: max |du|
+    python benchmarks/bench_register.py --no-compiled            # without the numba loops (femreg._kernels)
     python benchmarks/bench_register.py --study                  # alpha and element-size study (R_eps, R_eps_i)
     python benchmarks/bench_register.py --solvers                # linear-solver comparison on the GN system
 
@@ -31,6 +33,12 @@ shape-function arrays no longer built.  Where the time goes now ("auto", 3d-HI, 
 mesh 0.06 s, pyramid 0.27 s (envelopes 0.05, global search 0.10, local block matching 0.07, envelope
 Gauss-Newton 0.05), final Gauss-Newton 0.36 s (8 iterations: the tolerance applies to the smaller displacement
 component; each iteration mostly the cubic re-interpolation of I_2 at 0.55 M pixels), check 0.02 s.
+
+Earlier, with the paper's procedure as the default (2026-11-29, load average 10-12, fastest of 5), default 2 mm
+mesh, numba installed: total 0.39-0.52 s per pair (R_P_sigma 0.39 s), 0.72 s for R_P_eps; a Gauss-Newton
+iteration after the first 18-30 ms (was 107-151 ms before the compiled image-term loops and the banded Cholesky:
+total 1.4-1.75 s); operator build 24-68 ms (was 190-230 ms).  Results equal to the earlier code's to 2e-13 mm
+(``--save`` / ``--compare``).
 """
 from __future__ import annotations
 
@@ -106,7 +114,7 @@ def _run_one(name, alpha, element_size, q, repeat=1, pair="synthetic", strategy=
             best = (total, cpu, res)
     total, cpu, res = best
     err = field_errors(res, true_u, true_e) if true_e is not None else field_errors(res, true_u)
-    q.put(dict(name=name, alpha=res.alpha, timings=res.timings, total=total, cpu=cpu, nit=res.nit,
+    q.put(dict(name=name, u=res.u, alpha=res.alpha, timings=res.timings, total=total, cpu=cpu, nit=res.nit,
                success=res.success, message=res.message, err=err, n_nodes=res.mesh.p.shape[1],
                ncc=(res.ncc_before, res.ncc_after), shape=ref.shape,
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
@@ -122,12 +130,15 @@ def run_isolated(name, alpha=None, element_size=None, repeat=1, pair="synthetic"
     return out
 
 
-def timings(pairs=PAIRS, regularizers=("momentum-stress",), strategies=("auto", "paper"), repeat=3):
+def timings(pairs=PAIRS, regularizers=("momentum-stress",), strategies=("auto", "paper"), repeat=3, save=None,
+            compare=None):
     print(f"fastest of {repeat} runs per case; wall and CPU seconds (CPU = single-threaded process time)")
+    us = {}
     for pair in pairs:
         for strategy in strategies:
             for name in regularizers:
                 r = run_isolated(name, repeat=repeat, pair=pair, strategy=strategy)
+                us[f"{pair}-{strategy}-{name}"] = r["u"]
                 t = r["timings"]
                 it = t.get("per_iteration", [])
                 print(f"\n[{pair} {r['shape'][0]}x{r['shape'][1]} | strategy={strategy} | {name}] alpha={r['alpha']:g}"
@@ -142,6 +153,12 @@ def timings(pairs=PAIRS, regularizers=("momentum-stress",), strategies=("auto", 
                 print(f"  errors: ux {e['ux']} %  uy {e['uy']} %  exx {e['exx']} %  eyy {e['eyy']} %  "
                       f"exy {e['exy']} %  total strain {e['e']} %   NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}",
                       flush=True)
+    if save:
+        np.savez(save, **us)
+    if compare:
+        with np.load(compare) as z:
+            print("\nmax |u - u_saved| (mm): " + ", ".join(f"{k} {np.abs(v - z[k]).max():.1e}" for k, v in us.items()
+                                                       if k in z and z[k].shape == v.shape))
 
 
 def study(sizes=(1.0, 2.0), grids=None):
@@ -183,7 +200,7 @@ def solvers():
         B[0::2, 0] = 1.0
         B[1::2, 1] = 1.0
         B[0::2, 2], B[1::2, 2] = -y_, x_
-        for method in ["splu", "spsolve", "amg-cg"]:
+        for method in ["cholesky", "splu", "spsolve", "amg-cg"]:
             s = SPDSolver(method, B=B if method == "amg-cg" else None)
             t = time.perf_counter()
             x = s.solve(H, b)
@@ -207,7 +224,16 @@ if __name__ == "__main__":
     ap.add_argument("--strategies", nargs="+", default=["auto", "paper"], choices=("auto", "paper"))
     ap.add_argument("--all", action="store_true", help="every regulariser (default R_P_sigma only)")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--save", help="write every registration's nodal u to this .npz")
+    ap.add_argument("--compare", help="print max |u - u_saved| against a --save file")
+    ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args()
+    if a.no_compiled:
+        from femreg import _kernels
+        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
+    if a.no_compiled:
+        from femreg import _kernels
+        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
     if a.solvers:
         solvers()
     elif a.study:
@@ -215,4 +241,4 @@ if __name__ == "__main__":
     else:
         from femreg.regularizers import available_regularizers
         timings(a.pairs, tuple(available_regularizers()) if a.all else ("momentum-stress",), a.strategies,
-                a.repeat)
+                a.repeat, a.save, a.compare)

@@ -10,9 +10,17 @@ errors of the last frame against the forward model's truth (femreg.metrics).
     python benchmarks/bench_track.py                      # 20 frames
     python benchmarks/bench_track.py --frames 6 --save a.npz
     python benchmarks/bench_track.py --compare a.npz      # max |u - u_saved| per frame (equality checks)
+    python benchmarks/bench_track.py --no-compiled        # without the numba loops (femreg._kernels)
 
 The sequence comes from ``forward.get_sequence("3d", "HI", seed=0)`` (cached under $FEMREG_CACHE; the first call
 simulates it, several minutes).  Wall times on a shared machine are pessimistic: compare runs made together.
+
+Measured 2026-11-29, shared 2-core machine at a load average of ~12 (so pessimistic), 20 frames, back to back:
+15.7 s (0.83 s per increment: operator 0.24 s, Gauss-Newton 0.44 s at 49 ms per iteration, 9 iterations), peak
+RSS 590 MB; the code before the compiled image-term loops, the moved-mesh point location and the banded Cholesky
+took 58.3 s in the same conditions (3.07 s per increment: operator 1.29 s, 193 ms per iteration, 730 MB).  Frame
+0 -> 19 errors unchanged (total strain 14.2 %); nodal u equal to 6e-15 mm.  Without numba (``--no-compiled``)
+1.67 s per increment.
 
 Measured 2026-11-29 on the shared 2-core machine, strategy "auto" (R_P_sigma, hourglass weight 1000 on the
 increments, the first increment from the pyramid, later ones from the previous increment): 19 increments in 12.1 s
@@ -31,7 +39,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-STAGES = ("prefilter", "mesh", "initial", "gauss_newton", "check")
+#: Stages printed first when a result reports them; any other per-stage time it reports follows.
+STAGES = ("prefilter", "operator", "mesh", "regularizer_setup", "initial", "gauss_newton", "check")
+
+
+def _stages(results):
+    """Names of the scalar stage times reported by the results, known ones first (``total`` excluded)."""
+    seen = []
+    for r in results:
+        seen += [k for k, v in r.timings.items() if isinstance(v, float) and k != "total" and k not in seen]
+    return [s for s in STAGES if s in seen] + [s for s in seen if s not in STAGES]
 
 
 def main(argv=None):
@@ -41,33 +58,39 @@ def main(argv=None):
     ap.add_argument("--strategy", default="auto", choices=("auto", "paper"))
     ap.add_argument("--save", help="write every frame's nodal u to this .npz")
     ap.add_argument("--compare", help="print max |u - u_saved| per frame against a --save file")
+    ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args(argv)
 
     import forward
     import femreg
+    from femreg import _kernels
     from femreg.metrics import field_errors
 
+    if a.no_compiled:
+        _kernels.HAVE_NUMBA = False
     seq = forward.get_sequence("3d", "HI", seed=0)
     frames = seq.frames[: a.frames]
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"3d-HI seed 0: {frames.shape[0]} frames of {frames.shape[1:]} px, spacing {seq.spacing} mm, "
-          f"regularizer {a.regularizer}; RSS after loading {rss0:.0f} MB", flush=True)
+          f"regularizer {a.regularizer}; compiled loops {'on' if _kernels.use_compiled() else 'off (no numba)'}; "
+          f"RSS after loading {rss0:.0f} MB", flush=True)
     t0, c0 = time.perf_counter(), time.process_time()
     out = femreg.track(frames, spacing=seq.spacing, origin=seq.origin, regularizer=a.regularizer,
                        strategy=a.strategy)
     total, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    print(f"\n{'k':>3} {'total':>6} " + " ".join(f"{s[:10]:>10}" for s in STAGES) + f" {'nit':>4} {'s/iter':>7}")
-    sums = dict.fromkeys(STAGES, 0.0)
+    stages = _stages(out)
+    print(f"\n{'k':>3} {'total':>6} " + " ".join(f"{s[:10]:>10}" for s in stages) + f" {'nit':>4} {'s/iter':>7}")
+    sums = dict.fromkeys(stages, 0.0)
     iters = []
     for k, r in enumerate(out, start=1):
         t = r.timings
         it = t.get("per_iteration", [])
         iters += list(it)
-        for s in STAGES:
+        for s in stages:
             sums[s] += t.get(s, 0.0)
-        print(f"{k:3d} {t['total']:6.3f} " + " ".join(f"{t.get(s, 0.0):10.3f}" for s in STAGES)
+        print(f"{k:3d} {t['total']:6.3f} " + " ".join(f"{t.get(s, 0.0):10.3f}" for s in stages)
               + f" {r.nit:4d} {np.mean(it) if it else float('nan'):7.4f}")
     n = len(out)
     print(f"\nTOTAL {total:.2f} s wall, {cpu:.2f} s CPU of this process (the wall time on an idle machine with one "

@@ -38,21 +38,24 @@ sys.path.insert(0, str(ROOT))
 
 from paperstudy import run_study  # noqa: E402
 
-ap = argparse.ArgumentParser(description="the paper's simulation study (report with femreg vs paper tables)")
-ap.add_argument("--quick", action="store_true", help="3D HI only, coarse alpha grid, 7 frames")
-ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-args = ap.parse_args()
+# The study runs on Dask worker processes, started by spawn, which import this script: keep the work
+# under the main guard.
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description="the paper's simulation study (report with femreg vs paper tables)")
+    ap.add_argument("--quick", action="store_true", help="3D HI only, coarse alpha grid, 7 frames")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    args = ap.parse_args()
 
-# ## Run (resumes whatever an earlier run of this demo finished)
-out = Path("out") / ("06_study_quick" if args.quick else "06_study")  # relative to the working directory
-t0 = time.perf_counter()
-res = run_study(out, quick=args.quick, jobs=args.jobs, resume=True)
+    # ## Run (resumes whatever an earlier run of this demo finished)
+    out = Path("out") / ("06_study_quick" if args.quick else "06_study")  # relative to the working directory
+    t0 = time.perf_counter()
+    res = run_study(out, quick=args.quick, jobs=args.jobs, resume=True)
 
-# ## Headline: R_P_sigma on the 3D hard inclusion, femreg vs paper
-print(f"\nreport: {res.report}  ({time.perf_counter() - t0:.0f} s, {res.n_computed} cases computed)")
-print("selected alphas: " + ", ".join(f"{r} {a:.4g}" for r, a in res.alphas.items()))
-for (table, dataset), rows in sorted(res.tables.items()):
-    if dataset != "3d-HI":
-        continue
-    line = ", ".join(f"{r} {row['e']:.1f}%" for r, row in rows.items())
-    print(f"{table:12s} {dataset}: total strain error {line}")
+    # ## Headline: R_P_sigma on the 3D hard inclusion, femreg vs paper
+    print(f"\nreport: {res.report}  ({time.perf_counter() - t0:.0f} s, {res.n_computed} cases computed)")
+    print("selected alphas: " + ", ".join(f"{r} {a:.4g}" for r, a in res.alphas.items()))
+    for (table, dataset), rows in sorted(res.tables.items()):
+        if dataset != "3d-HI":
+            continue
+        line = ", ".join(f"{r} {row['e']:.1f}%" for r, row in rows.items())
+        print(f"{table:12s} {dataset}: total strain error {line}")

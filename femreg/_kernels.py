@@ -8,7 +8,9 @@ walk); the two agree to round-off and tests compare them with independent refere
 re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton (0.55 M points per iteration on a
 paper-size image): 7 ms here against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best vectorised numpy
 gather (measured on the shared 2-core machine).  All loops live in this one file so that numba's on-disk cache
-(keyed on this file) is invalidated together when any of them changes.
+(keyed on this file) is invalidated together when any of them changes.  The first use on a machine compiles them
+(~4 s, once); later processes load the cache (~0.5 s with numba's import).  Single-threaded, no fastmath: the same
+input gives the same output bit for bit.
 """
 from __future__ import annotations
 
@@ -31,10 +33,13 @@ def use_compiled() -> bool:
 
 
 def _jit(fn):
-    """numba.njit with an on-disk cache (compiled once per machine, ~1 s); the plain function without numba."""
+    """numba.njit with an on-disk cache; the plain Python function (never called) without numba."""
     if _numba is None:
         return fn
-    return _numba.njit(cache=True, nogil=True)(fn)
+    try:
+        return _numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # pragma: no cover - no writable cache location: compile in every process instead
+        return _numba.njit(cache=False, nogil=True)(fn)
 
 
 @_jit
@@ -75,9 +80,11 @@ def cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
 
 
 @_jit
-def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing over an (nr x nc) pixel grid of a tensor mesh; Ux, Uy nodal values on the node
-    grid; pixel row r in element row ei[r] at reference X[r], column q in ej[q] at Y[q]."""
+def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  # pragma: no cover - compiled
+    """I_2 at base + u/spacing minus ``sub`` (I_1, for the residual; empty for I_2 alone) over an (nr x nc) pixel
+    grid of a tensor mesh; Ux, Uy nodal values on the node grid; pixel row r in element row ei[r] at reference
+    X[r], column q in ej[q] at Y[q]."""
+    has_sub = sub.shape[0] > 0
     nc = ej.shape[0]
     for r in range(ei.shape[0]):
         a = ei[r]
@@ -93,12 +100,14 @@ def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, out):  # prag
             uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
             p = r * nc + q
             out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
+            if has_sub:
+                out[p] -= sub[p]
     return out
 
 
 @_jit
-def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
-    """Gx[node grid] += sum_p N(p) v_p gx_p (and y): the transpose of the separable pixel interpolation."""
+def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
+    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation."""
     nc = ej.shape[0]
     for r in range(ei.shape[0]):
         a = ei[r]
@@ -107,8 +116,9 @@ def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compil
             b = ej[q]
             y = Y[q]
             p = r * nc + q
-            vx = v[p] * gx[p]
-            vy = v[p] * gy[p]
+            v = w[p] * res[p]
+            vx = v * gx[p]
+            vy = v * gy[p]
             w00 = (1.0 - x) * (1.0 - y)
             w10 = x * (1.0 - y)
             w11 = x * y
@@ -124,8 +134,10 @@ def gradient_grid(v, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compil
 
 
 @_jit
-def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, out):  # pragma: no cover - compiled
-    """I_2 at base + u/spacing, u from the four shape functions N of each pixel (any quad mesh)."""
+def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
+    """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
+    pixel (any quad mesh)."""
+    has_sub = sub.shape[0] > 0
     for p in range(bx.shape[0]):
         ux = 0.0
         uy = 0.0
@@ -133,14 +145,18 @@ def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, out):  # pra
             ux += N[p, k] * ux_n[nodes[p, k]]
             uy += N[p, k] * uy_n[nodes[p, k]]
         out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
+        if has_sub:
+            out[p] -= sub[p]
     return out
 
 
 @_jit
-def gradient_nodes(v, gx, gy, nodes, N, out):  # pragma: no cover - compiled
-    for p in range(v.shape[0]):
-        vx = v[p] * gx[p]
-        vy = v[p] * gy[p]
+def gradient_nodes(w, res, gx, gy, nodes, N, out):  # pragma: no cover - compiled
+    """out[2 n + a] += sum_p N_n(p) w_p r_p g_a(p) (interleaved nodal vector)."""
+    for p in range(w.shape[0]):
+        v = w[p] * res[p]
+        vx = v * gx[p]
+        vy = v * gy[p]
         for k in range(4):
             out[2 * nodes[p, k]] += N[p, k] * vx
             out[2 * nodes[p, k] + 1] += N[p, k] * vy
@@ -148,9 +164,10 @@ def gradient_nodes(v, gx, gy, nodes, N, out):  # pragma: no cover - compiled
 
 @_jit
 def element_blocks(w, gx, gy, N, nodes, elem, t, n_el):  # pragma: no cover - compiled
-    """Per-element 8 x 8 blocks of sum_p w_p (N_p (x) g_p)(N_p (x) g_p)^T in the element's own node order
-    ``t[:, e]`` (a pixel's ``nodes`` may list the same corners in another order)."""
-    B = np.zeros((n_el, 8, 8))
+    """Per-element sums ``S[e, k, l, c] = sum_p w_p N_k N_l G_c`` (k <= l in the element's own node order
+    ``t[:, e]``; G = (gx^2, gx gy, gy^2)) from which the 8 x 8 blocks of sum_p w_p (N_p (x) g_p)(N_p (x) g_p)^T
+    follow by symmetry (a pixel's ``nodes`` may list the element's corners in another order)."""
+    S = np.zeros((n_el, 4, 4, 3))
     loc = np.empty(4, dtype=np.int64)
     for p in range(w.shape[0]):
         e = elem[p]
@@ -161,15 +178,15 @@ def element_blocks(w, gx, gy, N, nodes, elem, t, n_el):  # pragma: no cover - co
         g0 = gx[p]
         g1 = gy[p]
         for k in range(4):
-            for l in range(4):
-                s = w[p] * N[p, k] * N[p, l]
-                i = 2 * loc[k]
-                j = 2 * loc[l]
-                B[e, i, j] += s * g0 * g0
-                B[e, i, j + 1] += s * g0 * g1
-                B[e, i + 1, j] += s * g1 * g0
-                B[e, i + 1, j + 1] += s * g1 * g1
-    return B
+            wk = w[p] * N[p, k]
+            for l in range(k, 4):
+                s = wk * N[p, l]
+                a = min(loc[k], loc[l])
+                b = max(loc[k], loc[l])
+                S[e, a, b, 0] += s * g0 * g0
+                S[e, a, b, 1] += s * g0 * g1
+                S[e, a, b, 2] += s * g1 * g1
+    return S
 
 
 @_jit
@@ -183,8 +200,9 @@ def walk_kernel(x, y, px, py, cn, cell, rows, cols, steps, tol, restol, elem, X,
             n0, n1, n2, n3 = cn[a, b, 0], cn[a, b, 1], cn[a, b, 2], cn[a, b, 3]
             ax0, ax1, ax2, ax3 = px[n0], px[n1] - px[n0], px[n3] - px[n0], px[n0] - px[n1] + px[n2] - px[n3]
             ay0, ay1, ay2, ay3 = py[n0], py[n1] - py[n0], py[n3] - py[n0], py[n0] - py[n1] + py[n2] - py[n3]
-            Xc = 0.5
-            Yc = 0.5
+            # start from the cell's place between the mean row / column positions (exact for a rectangle)
+            Xc = min(max((x[p] - rows[a]) / (rows[a + 1] - rows[a]), 0.0), 1.0)
+            Yc = min(max((y[p] - cols[b]) / (cols[b + 1] - cols[b]), 0.0), 1.0)
             for _it in range(12):
                 rx = x[p] - (ax0 + ax1 * Xc + ax2 * Yc + ax3 * Xc * Yc)
                 ry = y[p] - (ay0 + ay1 * Xc + ay2 * Yc + ay3 * Xc * Yc)

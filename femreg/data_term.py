@@ -13,7 +13,7 @@ with ``w_p = dx dy`` and ``N_p`` the bilinear shape functions at pixel p.  In ma
 S (``offset``) is the accumulated displacement of a sequence (eq:IR); with S = 0 this is the two-frame problem.
 
 Speed: one Gauss-Newton iteration evaluates the residual (u at every pixel, then I_2 there) and the gradient once.
-With numba (see :mod:`femreg.image`) both are single compiled passes over the pixels: on a tensor mesh u comes from
+With numba (:mod:`femreg._kernels`) both are single compiled passes over the pixels: on a tensor mesh u comes from
 the separable description of the pixel grid (element row/column and reference coordinate of every pixel row and
 column), elsewhere from the four shape functions of each pixel; without numba, from the sparse operator ``P`` and
 ``map_coordinates``.  The data Hessian is assembled once: by separable row/column sums on tensor meshes, else
@@ -75,8 +75,9 @@ class SSDTerm:
         self._gx = np.ascontiguousarray(g[:, 0])
         self._gy = np.ascontiguousarray(g[:, 1])
         self._grid = quad.location.grid
+        self._empty = np.empty(0)
+        self._w_const = float(w[0]) if w.size and np.all(w == w[0]) else None
         if self._grid is not None:
-            quad.locator._canonical()
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
 
     # -------------------------------------------------------------------------------------------------------
@@ -86,35 +87,44 @@ class SSDTerm:
             # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
             return self._moving_at_pixels.copy()
         if _kernels.use_compiled():
-            m = self.moving
-            hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
-            ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
-            out = np.empty(self.quad.n_pixels)
-            if self._grid is not None:
-                G, gr = self._node_grid, self._grid
-                return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"],
-                                  gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], out)
-            loc = self.quad.location
-            return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N,
-                               self._inv_sp[0], self._inv_sp[1], out)
+            return self._warp_compiled(u, self._empty)
         P = self.quad.P
         np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
         np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
         self._idx += self._base_idx
         return self.moving.at_index(self._idx)
 
+    def _warp_compiled(self, u, sub):
+        """One compiled pass: u at the pixels, I_2 there, minus ``sub`` (``ref_values`` for the residual)."""
+        m = self.moving
+        hi0, hi1 = m.shape[0] - 0.5, m.shape[1] - 0.5
+        ux, uy = np.ascontiguousarray(u[0::2]), np.ascontiguousarray(u[1::2])
+        out = np.empty(self.quad.n_pixels)
+        if self._grid is not None:
+            G, gr = self._node_grid, self._grid
+            return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"],
+                             gr["Y"], self._inv_sp[0], self._inv_sp[1], sub, out)
+        loc = self.quad.location
+        return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N, self._inv_sp[0],
+                          self._inv_sp[1], sub, out)
+
     def residual(self, u):
         """r(u) = I_2(x + S + u) - I_1(x + S), (m,); cached for the last u."""
         if self._cache_u is not None and np.array_equal(u, self._cache_u):
             return self._cache_r
-        r = self.warped_moving(u)
-        r -= self.ref_values
+        if _kernels.use_compiled() and (self._moving_at_pixels is None or np.any(u)):
+            r = self._warp_compiled(u, self.ref_values)
+        else:
+            r = self.warped_moving(u)
+            r -= self.ref_values
         self._cache_u = np.array(u, copy=True)
         self._cache_r = r
         return r
 
     def energy(self, u) -> float:
         r = self.residual(u)
+        if self._w_const is not None:           # equal pixel weights (always, on a pixel grid): one pass
+            return 0.5 * self._w_const * float(np.dot(r, r))
         return 0.5 * float(np.dot(self.w * r, r))
 
     @property
@@ -134,19 +144,20 @@ class SSDTerm:
 
     def gradient(self, u):
         """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (2 n_nodes,)."""
-        wr = self.w * self.residual(u)
         if _kernels.use_compiled():
+            r = self.residual(u)
             out = np.zeros(2 * self.quad.n_nodes)
             if self._grid is not None:
                 G, gr = self._node_grid, self._grid
                 Gx, Gy = np.zeros(G.shape), np.zeros(G.shape)
-                gradient_grid(wr, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
+                gradient_grid(self.w, r, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
                 out[2 * G.ravel()] = Gx.ravel()
                 out[2 * G.ravel() + 1] = Gy.ravel()
             else:
                 loc = self.quad.location
-                gradient_nodes(wr, self._gx, self._gy, loc.nodes, loc.N, out)
+                gradient_nodes(self.w, r, self._gx, self._gy, loc.nodes, loc.N, out)
             return out
+        wr = self.w * self.residual(u)
         PT = self.quad.PT
         out = np.empty(2 * self.quad.n_nodes)
         out[0::2] = PT @ (wr * self.ref_gradient[:, 0])
@@ -179,7 +190,7 @@ class SSDTerm:
         # corner k: x-side sx[k], y-side sy[k]; product index of two sides: 0 (both 0), 1 (mixed), 2 (both 1)
         sx = np.array([0, 1, 1, 0])
         sy = np.array([0, 0, 1, 1])
-        cn = self.quad.locator._canonical()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
+        cn = self.quad.locator.cell_nodes()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
         comp = {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}
         rows, cols, vals = [], [], []
         for k in range(4):
@@ -199,7 +210,15 @@ class SSDTerm:
         loc, mesh = self.quad.location, self.quad.mesh
         t = np.ascontiguousarray(mesh.t, dtype=np.int64)
         n_el = t.shape[1]
-        B = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        S = element_blocks(self.w, self._gx, self._gy, loc.N, loc.nodes, loc.element, t, n_el)
+        iu = np.triu_indices(4, 1)
+        S[:, iu[1], iu[0]] = S[:, iu[0], iu[1]]                  # (l, k) = (k, l): the sums are symmetric
+        B = np.empty((n_el, 4, 2, 4, 2))                          # [e, k, a, l, b] = sum w N_k N_l g_a g_b
+        B[:, :, 0, :, 0] = S[..., 0]
+        B[:, :, 0, :, 1] = S[..., 1]
+        B[:, :, 1, :, 0] = S[..., 1]
+        B[:, :, 1, :, 1] = S[..., 2]
+        B = B.reshape(n_el, 8, 8)
         dof = np.empty((n_el, 8), dtype=np.int64)
         dof[:, 0::2] = 2 * t.T
         dof[:, 1::2] = 2 * t.T + 1

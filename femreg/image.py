@@ -14,10 +14,11 @@ same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale
 
 Interpolation
 -------------
-``I(x)`` between pixel centres is the cubic B-spline interpolant (scipy.ndimage): the spline coefficients are
-computed once (``spline_filter``, mirror boundary) and every evaluation sums the 4 x 4 coefficient stencil around
-the point (:func:`cubic_at_index`); points outside the image (outside the pixel cells, i.e. more than half a pixel
-beyond the first/last pixel centre) read 0, as in the paper.  The reference gradient of eq:wfnew is the exact
+``I(x)`` between pixel centres is the cubic B-spline interpolant (Unser 1999, doi:10.1109/79.799930; scipy.ndimage
+conventions): the spline coefficients are computed once (``spline_filter``, mirror boundary) and every
+evaluation sums the 4 x 4 coefficient stencil around the point (:func:`cubic_at_index`); points outside the
+image (outside the pixel cells, i.e. more than half a pixel beyond the first/last pixel centre) read 0, as in
+the paper.  The reference gradient of eq:wfnew is the exact
 gradient of the same interpolant; at pixel centres (spline knots) it is a closed-form stencil of the
 coefficients, :meth:`SplineImage.gradient_at_pixels`.
 

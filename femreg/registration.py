@@ -23,6 +23,8 @@ from skfem import MeshQuad1
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .errors import InputError
+from .fields import FIELDS, sample
+from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
@@ -132,9 +134,9 @@ class RegistrationResult:
         """u at ``points`` (n, 2) [x, y] mm -> (n, 2) [ux, uy] mm; NaN outside the mesh."""
         pts = np.asarray(points, float).reshape(-1, 2)
         loc = self.locator.locate(pts)
+        f = sample(self.u, loc, ("ux", "uy"))
         out = np.full((len(pts), 2), np.nan)
-        out[loc.inside, 0] = np.sum(loc.N * self.ux[loc.nodes], axis=1)
-        out[loc.inside, 1] = np.sum(loc.N * self.uy[loc.nodes], axis=1)
+        out[loc.inside] = np.column_stack([f["ux"], f["uy"]])
         return out
 
     def strain(self, points) -> np.ndarray:
@@ -143,13 +145,9 @@ class RegistrationResult:
         an edge takes one of its elements)."""
         pts = np.asarray(points, float).reshape(-1, 2)
         loc = self.locator.locate(pts)
+        f = sample(self.u, loc, ("exx", "eyy", "exy"))
         out = np.full((len(pts), 3), np.nan)
-        ux, uy = self.ux[loc.nodes], self.uy[loc.nodes]
-        dux = np.einsum("nk,nkd->nd", ux, loc.dN)
-        duy = np.einsum("nk,nkd->nd", uy, loc.dN)
-        out[loc.inside, 0] = dux[:, 0]
-        out[loc.inside, 1] = duy[:, 1]
-        out[loc.inside, 2] = 0.5 * (dux[:, 1] + duy[:, 0])
+        out[loc.inside] = np.column_stack([f["exx"], f["eyy"], f["exy"]])
         return out
 
     def pixel_points(self) -> np.ndarray:
@@ -164,65 +162,24 @@ class RegistrationResult:
         if self._grid is None:
             x, y = pixel_axes(self.shape, self.spacing, self.origin)
             loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
-            g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in ("ux", "uy", "exx", "eyy", "exy")}
-            ux, uy = self.ux[loc.nodes], self.uy[loc.nodes]
-            g["ux"][loc.inside] = np.sum(loc.N * ux, axis=1)
-            g["uy"][loc.inside] = np.sum(loc.N * uy, axis=1)
-            g["exx"][loc.inside] = np.sum(loc.dN[:, :, 0] * ux, axis=1)
-            g["eyy"][loc.inside] = np.sum(loc.dN[:, :, 1] * uy, axis=1)
-            g["exy"][loc.inside] = 0.5 * (np.sum(loc.dN[:, :, 1] * ux, axis=1) + np.sum(loc.dN[:, :, 0] * uy, axis=1))
+            g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in FIELDS}
+            for k, v in sample(self.u, loc).items():
+                g[k][loc.inside] = v
             self._grid = {k: v.reshape(self.shape) for k, v in g.items()}
         return self._grid
 
     # -- files ----------------------------------------------------------------------------------------------
-    def save(self, path, **extra) -> None:
-        """Write the result as .npz (keys: mesh_points (2, n_nodes), mesh_cells (4, n_el), u, spacing, origin,
-        shape, ux, uy, exx, eyy, exy (n_axial, n_lateral), regularizer, alpha, success, nit, message,
-        ncc_before, ncc_after, energy_history, quality (n_elements,), strategy), plus any ``extra`` arrays."""
-        g = self.on_grid()
-        if self.quality is not None:
-            extra.setdefault("quality", self.quality)
-        extra.setdefault("strategy", np.str_(self.strategy))
-        np.savez_compressed(
-            path, mesh_points=np.asarray(self.mesh.p, float), mesh_cells=np.asarray(self.mesh.t, np.int64),
-            u=self.u, spacing=self.spacing, origin=self.origin, shape=np.asarray(self.shape, np.int64),
-            ux=g["ux"], uy=g["uy"], exx=g["exx"], eyy=g["eyy"], exy=g["exy"],
-            regularizer=np.str_(self.regularizer), alpha=np.float64(self.alpha), success=np.bool_(self.success),
-            nit=np.int64(self.nit), message=np.str_(self.message), ncc_before=np.float64(self.ncc_before),
-            ncc_after=np.float64(self.ncc_after), energy_history=self.energy_history, **extra)
+    def save(self, path, **extra):
+        """Write the result as .npz, atomically: the contract of :mod:`femreg.io.results` (mesh, u, grid, pixel-grid
+        fields, solver outcome, quality map, strategy), plus any ``extra`` arrays.  Returns the path."""
+        from .io.results import save_result
+
+        return save_result(path, self, **extra)
 
     def __repr__(self) -> str:
         return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "
                 f"success={self.success}, nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, "
                 f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
-
-
-def load_result(path) -> RegistrationResult:
-    """Read a file written by :meth:`RegistrationResult.save`."""
-    from .errors import FileFormatError
-
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise
-    except Exception as exc:  # noqa: BLE001
-        raise FileFormatError(f"{path}: not a femreg result file ({exc})") from None
-    need = ["mesh_points", "mesh_cells", "u", "spacing", "origin", "shape"]
-    missing = [k for k in need if k not in d]
-    if missing:
-        raise FileFormatError(f"{path}: not a femreg result file (missing {missing})")
-    mesh = MeshQuad1(d["mesh_points"], d["mesh_cells"])
-    grid = {k: d[k] for k in ("ux", "uy", "exx", "eyy", "exy") if k in d} or None
-    if grid is not None and len(grid) < 5:
-        grid = None
-    return RegistrationResult(
-        mesh, d["u"], shape=tuple(d["shape"]), spacing=d["spacing"], origin=d["origin"],
-        regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
-        success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
-        energy_history=d.get("energy_history", ()), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid, quality=d.get("quality"),
-        strategy=str(d.get("strategy", "")))
 
 
 def _field_at(spec, mesh, points, what: str):

@@ -35,7 +35,6 @@ def pixel_values(quad, v) -> np.ndarray:
     gr = loc.grid
     if gr is None:
         return quad.P @ v
-    quad.locator._canonical()
     Vg = np.asarray(v, float)[quad.locator.node_grid]                      # (nx, ny)
     i, X, j, Y = gr["i"], gr["X"], gr["j"], gr["Y"]
     A = (1.0 - X)[:, None] * Vg[i] + X[:, None] * Vg[i + 1]                  # (nr, ny)

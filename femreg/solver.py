@@ -8,16 +8,17 @@ symmetric positive (semi-)definite), then tries ``u + du``; if the energy rises 
 Linear solver (``linear_solver``): the system is SPD, sparse and small.
 
 * ``"cholesky"``: LAPACK banded Cholesky (``scipy.linalg.cholesky_banded``, dpbtrf) after a reverse
-  Cuthill-McKee ordering (``scipy.sparse.csgraph``).  The ordering and the scatter of the matrix entries into
-  the band are computed once per sparsity pattern and reused by every later factorisation (the lagged-diffusivity
-  Hessian of the TV regularisers changes its values, not its pattern, each iteration).
+  Cuthill-McKee ordering (``scipy.sparse.csgraph``; Cuthill & McKee 1969, doi:10.1145/800195.805928).  The
+  ordering and the scatter of the matrix entries into the band are computed once per sparsity pattern and reused
+  by every later factorisation (the lagged-diffusivity Hessian of the TV regularisers changes its values, not
+  its pattern, each iteration).
 * ``"splu"``: SuperLU in symmetric mode (no pivoting, minimum-degree ordering of A^T + A, ``MMD_AT_PLUS_A``).
 * ``"auto"`` (default): ``"cholesky"`` when the band holds at most :data:`BAND_LIMIT` entries, else ``"splu"``.
 * ``"spsolve"``, ``"amg-cg"`` (pyamg smoothed aggregation + CG, given the rigid-body modes as ``B``).
 
 Measured on the paper geometry (3740 x 147 px, R_P_sigma Hessian, 2-core shared machine, one factorisation):
 2 mm mesh (1.6 k DOF) cholesky 2 ms, splu 12-17 ms (COLAMD 25-37 ms); 1 mm (6.1 k DOF) 43 ms vs 124 ms;
-0.5 mm (23.7 k DOF, band 586) 0.20 s vs 1.0 s; a stored factor solves in 0.2 / 2 / 13 ms.  Either way, when H is
+0.5 mm (23.7 k DOF, band 586) 0.20 s vs 1.0 s (SuperLU's stored factor solves in 0.2 / 2 / 13 ms).  When H is
 constant (fixed-gradient data term of eq:wfnew + a quadratic regulariser) it is factorised ONCE and reused by
 every iteration.  A tiny diagonal shift (1e-10 of the mean diagonal) keeps H definite when the images do not
 constrain some direction (e.g. a linear-intensity image seen through R_eps, which leaves a translation free); if

@@ -18,7 +18,9 @@ def add_parser(subparsers):
                    help="report folder (default out/study, or out/study-quick with --quick)")
     p.add_argument("--quick", action="store_true",
                    help="3D HI only, coarse alpha grid, 7 frames (about 3 min with the data cached)")
-    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--jobs", type=int, default=2, help="local worker processes (default 2; 1 = in this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the cases on a running Dask scheduler (tcp://host:8786) instead of local processes")
     p.add_argument("--element-size", type=float, metavar="MM",
                    help="registration element size in mm (default: the study's, 2 mm)")
     p.add_argument("--strategy", choices=("paper", "auto"), default=None,
@@ -51,7 +53,8 @@ def run(args) -> int:
     if getattr(args, "strategy", None):
         kw["strategy"] = args.strategy
     settings = StudySettings.quick(**kw) if args.quick else StudySettings.full(**kw)
-    res = run_study(out, settings=settings, jobs=args.jobs, resume=args.resume, progress=not args.no_progress,
+    res = run_study(out, settings=settings, jobs=args.jobs, scheduler=args.scheduler, resume=args.resume,
+                    progress=not args.no_progress,
                     figures=not args.no_figures)
     print(f"femreg study ({res.settings.name}): report {res.report} in {time.perf_counter() - t0:.0f} s")
     print("alphas: " + ", ".join(f"{k} {v:.4g}" for k, v in res.alphas.items()))

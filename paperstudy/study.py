@@ -16,9 +16,10 @@ What it runs (the paper's "Results" and appendix "Algorithmic Parameter Justific
 
 Every registration is one *case* (an accumulated track is one case); each case's record (JSON: metrics, timings,
 solver status) and its nodal field (npz) are written atomically into ``OUTDIR/cases/`` as it finishes, so a run
-that is interrupted resumes without recomputing finished cases.  Cases run in a process pool (``jobs``), one case
-per task.  The key of a case hashes every setting that changes its result (data set and its simulation options,
-frames, regulariser, alpha, mesh, solver), so changed settings never reuse stale results.
+that is interrupted resumes without recomputing finished cases.  Cases run on :mod:`femreg.batch` (Dask): one case
+per task, on ``jobs`` local worker processes or on a running cluster (``scheduler``).  The key of a case hashes
+every setting that changes its result (data set and its simulation options, frames, regulariser, alpha, mesh,
+solver), so changed settings never reuse stale results.
 
 Conventions: ground truth ``seq.true_displacement(k, points)`` / ``seq.true_strain(k, points)`` are frame 0 -> k in
 frame-0 coordinates, directly comparable with a registration of frame 0 to frame k or with the accumulated track
@@ -41,6 +42,7 @@ Public names: :class:`StudySettings`, :func:`run_study`, :func:`select_alphas`, 
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -507,28 +509,27 @@ def run_case(spec: dict, outdir) -> dict:
     return rec
 
 
-def _case_worker(args):
-    spec, outdir = args
+def _case_task(spec, outdir):
+    """One case on a worker (:func:`femreg.batch.run_tasks`); a failed case is recorded, the study goes on.  A
+    case whose record is already written (a task rescheduled after its worker died) is not run again."""
+    import warnings
+
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+    rec = load_record(outdir, spec["key"])
+    if rec is not None and "error" not in rec:
+        return rec
     try:
         return run_case(spec, outdir)
     except Exception as exc:  # noqa: BLE001 - a failed case is recorded, the study goes on
-        rec = {"key": spec["key"], "spec": spec, "error": f"{type(exc).__name__}: {exc}"}
-        _atomic_write_json(Path(outdir) / "cases" / f"{spec['key']}.json", rec)
-        return rec
+        return _failed_case(spec, outdir, f"{type(exc).__name__}: {exc}")
 
 
-def _init_worker():
-    # One BLAS thread per worker: the pool already uses every core.
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)
-    except ImportError:
-        pass
-    import warnings
-    warnings.filterwarnings("ignore", category=RuntimeWarning)
+def _failed_case(spec, outdir, error):
+    rec = {"key": spec["key"], "spec": spec, "error": error}
+    casedir = Path(outdir) / "cases"
+    casedir.mkdir(parents=True, exist_ok=True)
+    _atomic_write_json(casedir / f"{spec['key']}.json", rec)
+    return rec
 
 
 def load_record(outdir, key):
@@ -541,10 +542,14 @@ def load_record(outdir, key):
     return None
 
 
-def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str = "cases", retry_failed=False,
-              stats: dict | None = None):
-    """Run every spec whose record is not already in ``outdir`` (resume), ``jobs`` processes, longest first.
-    Returns {key: record}; ``stats["computed"]`` (if given) is increased by the number of cases run."""
+def run_cases(specs, outdir, *, jobs: int = 2, client=None, progress: bool = True, desc: str = "cases",
+              retry_failed=False, stats: dict | None = None):
+    """Run every spec whose record is not already in ``outdir`` (resume) on :func:`femreg.batch.run_tasks`, one
+    case per task, longest first.  ``client``: a Dask client, or a callable returning one (or None: serial),
+    called only if there is something to run; otherwise ``jobs`` local worker processes (1: serially in this
+    process).  Returns {key: record}; ``stats["computed"]`` (if given) is increased by the number of cases run."""
+    from femreg.batch import Task, run_tasks
+
     records, todo = {}, []
     seen = set()
     for spec in specs:
@@ -556,35 +561,46 @@ def run_cases(specs, outdir, *, jobs: int = 2, progress: bool = True, desc: str 
             records[spec["key"]] = rec
         else:
             todo.append(spec)
-    todo.sort(key=lambda s: -(s["frames"] if s["kind"] == "track" else 1))
     if stats is not None:
         stats["computed"] = stats.get("computed", 0) + len(todo)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(todo), desc=desc, unit="case", smoothing=0.1)
-    try:
-        if jobs <= 1 or len(todo) <= 1:
-            for spec in todo:
-                rec = _case_worker((spec, outdir))
-                records[spec["key"]] = rec
-                if bar is not None:
-                    bar.update(1)
-        else:
-            import multiprocessing as mp
-
-            # fork: workers inherit the loaded modules and never re-run the caller's script (demos are scripts)
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ctx.Pool(processes=int(jobs), initializer=_init_worker, maxtasksperchild=40) as pool:
-                for rec in pool.imap_unordered(_case_worker, [(s, str(outdir)) for s in todo], chunksize=1):
-                    records[rec["key"]] = rec
-                    if bar is not None:
-                        bar.set_postfix_str(rec["key"][:40])
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
+    if not todo:
+        return records
+    tasks = [Task(sp["key"], _case_task, (sp, str(outdir)), priority=sp["frames"] if sp["kind"] == "track" else 1)
+             for sp in todo]
+    if callable(client):
+        client = client()
+    workers = 0 if client is None and int(jobs) <= 1 else int(jobs)
+    for sp, out in zip(todo, run_tasks(tasks, client=client, workers=workers, progress=progress,
+                                       desc=desc).values()):
+        # out.error: the task never returned (its worker died repeatedly): record it as a failed case
+        records[sp["key"]] = out.value if out.ok else _failed_case(sp, outdir, out.error)
     return records
+
+
+class _LazyClient:
+    """A callable giving the study's Dask client, opened on the first call (:func:`femreg.batch.open_client`:
+    ``jobs`` local processes or ``scheduler``; None = serial for ``jobs`` 1) or the caller's ``client``; the
+    cluster it opened closes with :meth:`close`, or when the object is collected (an exception ended the run)."""
+
+    def __init__(self, client, jobs, scheduler):
+        import weakref
+
+        self.client, self.jobs, self.scheduler = client, int(jobs), scheduler
+        self.opened = False
+        self._stack = contextlib.ExitStack()
+        self._finalizer = weakref.finalize(self, self._stack.close)
+
+    def __call__(self):
+        if self.client is None and not self.opened and (self.scheduler is not None or self.jobs > 1):
+            from femreg.batch import open_client
+
+            self.client = self._stack.enter_context(open_client(self.jobs, self.scheduler))
+            self.opened = True
+        return self.client
+
+    def close(self):
+        self._finalizer()
+
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -612,11 +628,12 @@ def _best_alpha(curves):
     return min(mean, key=mean.get), mean
 
 
-def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True, stats=None):
+def select_alphas(s: StudySettings, outdir, *, jobs=2, client=None, progress=True, stats=None):
     """The paper's alpha selection (module docstring, step 1).  Returns (alphas {reg: alpha}, sweep dict)."""
     grid = alpha_grid(s.alpha_decades[0], s.alpha_decades[1], s.alpha_step)
     specs = [make_case(s, "pair", d, r, a, s.pair) for r in s.regularizers for d in s.sweep_datasets for a in grid]
-    records = run_cases(specs, outdir, jobs=jobs, progress=progress, desc="alpha sweep", stats=stats)
+    records = run_cases(specs, outdir, jobs=jobs, client=client, progress=progress, desc="alpha sweep",
+                        stats=stats)
     alphas = {}
     for rnd in range(1, s.refine_rounds + 1):
         step = s.alpha_step / 2**rnd
@@ -628,7 +645,8 @@ def select_alphas(s: StudySettings, outdir, *, jobs=2, progress=True, stats=None
             for sgn in (-1, 1):
                 a = float(10 ** round(_log10(best) + sgn * step, 9))
                 new += [make_case(s, "pair", d, r, a, s.pair) for d in s.sweep_datasets]
-        records.update(run_cases(new, outdir, jobs=jobs, progress=progress, desc=f"alpha refine {rnd}",
+        records.update(run_cases(new, outdir, jobs=jobs, client=client, progress=progress,
+                                 desc=f"alpha refine {rnd}",
                                  stats=stats))
     sweep = {}
     for r in s.regularizers:
@@ -723,7 +741,8 @@ def _case_sets(s: StudySettings, alphas):
 
 
 def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = False, jobs: int = 2,
-              resume: bool = False, progress: bool = True, figures: bool = True) -> StudyResult:
+              scheduler: str | None = None, client=None, resume: bool = False, progress: bool = True,
+              figures: bool = True) -> StudyResult:
     """Run the study into ``outdir`` and write ``outdir/report.md`` with figures.
 
     Parameters
@@ -733,7 +752,11 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
     settings : StudySettings, optional
         Default :meth:`StudySettings.full` (``quick=False``) or :meth:`StudySettings.quick`.
     jobs : int
-        Worker processes (one case per task).
+        Local worker processes (one case per task, :mod:`femreg.batch` on Dask); 1 = serially in this process.
+    scheduler, client : optional
+        Run the cases on a running Dask cluster instead (scheduler address, or a Client); the workers need
+        femreg, forward and paperstudy installed, and ``outdir`` and the data-set cache ($FEMREG_CACHE) at the
+        same paths.
     resume : bool
         Keep the finished cases of an earlier run in ``outdir`` (required if ``outdir`` already holds one).
 
@@ -758,10 +781,14 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
         m, i = _parse_dataset(name)
         forward.get_sequence(m, i, seed=s.seed, snr_db=s.snr_db, n_frames=s.n_frames, **s.sequence_options)
 
+    # One Dask cluster for every phase, started when the first case needs it (a finished study resumes without).
+    cases_client = _LazyClient(client, jobs, scheduler)
+
     # 1. alphas
     stats = {"computed": 0}
     if s.alphas is None:
-        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, progress=progress, stats=stats)
+        alphas, sweep, records = select_alphas(s, outdir, jobs=jobs, client=cases_client, progress=progress,
+                                               stats=stats)
     else:
         alphas, sweep, records = {r: float(s.alphas[r]) for r in s.regularizers}, {}, {}
     write_default_alphas(alphas, outdir / "alphas.json", sweep=sweep or None, settings=s)
@@ -770,14 +797,16 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
     single, dual, tracks, variant, esize = _case_sets(s, alphas)
     specs = (list(tracks.values()) + list(single.values()) + list(dual.values()) + list(variant.values())
              + list(esize.values()))
-    records.update(run_cases(specs, outdir, jobs=jobs, progress=progress, desc="study cases", stats=stats))
+    records.update(run_cases(specs, outdir, jobs=jobs, client=cases_client, progress=progress, desc="study cases",
+                             stats=stats))
+    cases_client.close()
     wall = time.perf_counter() - t0
     res = StudyResult(settings=s, alphas=alphas, sweep=sweep, records=records, outdir=outdir,
                       report=outdir / "report.md", wall_s=wall, n_computed=stats.get("computed", 0))
     runs_path = outdir / "runs.json"
     runs = json.loads(runs_path.read_text()) if runs_path.exists() else []
     runs.append({"finished_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "wall_s": round(wall, 1),
-                 "n_computed": res.n_computed, "jobs": int(jobs)})
+                 "n_computed": res.n_computed, "jobs": int(jobs), "scheduler": scheduler})
     _atomic_write_json(runs_path, runs)
     res.runs = runs
     write_report(res, figures=figures)

@@ -205,3 +205,16 @@ def test_banded_cholesky_solves_like_superlu_and_reuses_its_ordering(big):
     Hs = sp.csc_matrix(reg.hessian(u))
     x = SPDSolver("auto").solve(Hs, reg.hessian(u) @ b)
     assert np.all(np.isfinite(x))
+
+
+def test_unstructured_numbering_is_not_taken_for_a_grid():
+    """A mesh whose elements are numbered otherwise than init_tensor's is located by the general search."""
+    base = moved(roi_mesh((200, 30), SP, element_size=(1.0, 2.0), margin=(0.5, 0.9)))
+    perm = np.random.default_rng(8).permutation(base.t.shape[1])
+    mesh = MeshQuad1(base.p, base.t[:, perm])
+    assert logical_grid(base) is not None and logical_grid(mesh) is None
+    pts = np.random.default_rng(9).uniform(mesh.p.min(1), mesh.p.max(1), (1000, 2))
+    a, b = PointLocator(mesh), PointLocator(base)
+    la, lb = a.locate(pts), b.locate(pts)
+    assert a._logical is False and b._logical
+    _compare_locations(la, lb, pts, mesh, np.random.default_rng(10))
