@@ -18,21 +18,21 @@ against the known field.
     python benchmarks/bench_register.py --study                  # alpha and element-size study (R_eps, R_eps_i)
     python benchmarks/bench_register.py --solvers                # linear-solver comparison on the GN system
 
-Measured 2026-11-29 on the shared 2-core machine at load average 6-7 (wall times pessimistic; CPU time in
-brackets), R_P_sigma, fastest of 3:
+Measured 2026-11-29 with the shared 2-core machine nearly idle (load average 1; wall = CPU), R_P_sigma, fastest
+of 3 (at load 6-7 the wall times were about twice these):
 
 | pair | "auto" | "paper" |
 |---|---|---|
-| 3d-HI 0 -> 6 (3740 x 147) | 0.75 s (0.37 s), total strain error 14.1 % | 0.46 s (0.22 s), 14.5 % |
-| synthetic paper geometry | 0.56 s (0.39 s), 6.0 % | 0.31 s (0.23 s), 6.1 % |
-| 1200 x 125, 5 % compression | 0.24 s (0.12 s), 0.2 % | 0.49 s, fails (NCC 0.24, 1465 %) |
+| 3d-HI 0 -> 6 (3740 x 147) | 0.36 s, total strain error 14.1 % | 0.21 s, 14.5 % |
+| synthetic paper geometry | 0.38 s, 6.0 % | 0.23 s, 6.1 % |
+| 1200 x 125, 5 % compression | 0.11 s, 0.2 % | 0.20 s, fails (NCC 0.24, 1465 %) |
 
-"auto" on 3d-HI took 2.31 s wall at load 10 before the pyramid and check stages were reworked (0.93 s after, same
-load): global search 0.58 -> 0.14 s, local block matching 0.21 -> 0.11 s, check 0.13 -> 0.03 s, the per-pixel
-shape-function arrays no longer built.  Where the time goes now ("auto", 3d-HI, load 6): speckle statistics and
-mesh 0.06 s, pyramid 0.27 s (envelopes 0.05, global search 0.10, local block matching 0.07, envelope
-Gauss-Newton 0.05), final Gauss-Newton 0.36 s (8 iterations: the tolerance applies to the smaller displacement
-component; each iteration mostly the cubic re-interpolation of I_2 at 0.55 M pixels), check 0.02 s.
+"auto" before the pyramid and check stages were reworked, same conditions: 3d-HI 0.48 s (global search 0.17 s,
+now 0.05 s), 1200 x 125 0.17 s; at load 10 it was 2.31 s against 0.93 s after (the per-pixel shape-function arrays
+built for the Gauss-Newton start and the quality map cost 0.4 s there).  Where the time goes now ("auto", 3d-HI):
+speckle statistics and mesh 0.02 s, pyramid 0.13 s (envelopes 0.02, global search 0.05, local block matching
+0.03, envelope Gauss-Newton 0.03), final Gauss-Newton 0.17 s (8 iterations: the tolerance applies to the smaller
+displacement component; each iteration mostly the cubic re-interpolation of I_2 at 0.55 M pixels), check 0.01 s.
 
 Earlier, with the paper's procedure as the default (2026-11-29, load average 10-12, fastest of 5), default 2 mm
 mesh, numba installed: total 0.39-0.52 s per pair (R_P_sigma 0.39 s), 0.72 s for R_P_eps; a Gauss-Newton

@@ -22,10 +22,10 @@ took 58.3 s in the same conditions (3.07 s per increment: operator 1.29 s, 193 m
 0 -> 19 errors unchanged (total strain 14.2 %); nodal u equal to 6e-15 mm.  Without numba (``--no-compiled``)
 1.67 s per increment.
 
-Measured 2026-11-29 on the shared 2-core machine, strategy "auto" (R_P_sigma, hourglass weight 1000 on the
-increments, the first increment from the pyramid, later ones from the previous increment): 19 increments in 12.1 s
-wall at load average 6 (22.9 s at load 13-15), 5.9 s CPU; 206 Gauss-Newton iterations, 29 ms mean; frame 0 -> 19
-total strain error 14.2 %, no frame flagged.
+Measured 2026-11-29, strategy "auto" (R_P_sigma, hourglass weight 1000 on the increments, the first increment
+from the pyramid, later ones from the previous increment): 19 increments in 6.05 s with the machine nearly idle
+(load average 1; 6.06 s CPU), 12.1 s at load 6, 22.9 s at load 13-15; 206 Gauss-Newton iterations, 14 ms mean
+when idle; frame 0 -> 19 total strain error 14.2 %, no frame flagged.
 """
 from __future__ import annotations
 
