@@ -258,6 +258,70 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
     return Path(out_png)
 
 
+# ----------------------------------------------------------------------------------------------------------------
+# shear-modulus images (femreg.invert)
+# ----------------------------------------------------------------------------------------------------------------
+def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
+                     vmin=None, vmax=None, label=None):
+    """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
+    lateral horizontal and depth downwards, with a colour bar; ``log=True`` uses a logarithmic colour scale.
+    Returns the Axes."""
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import LogNorm, Normalize
+
+    p = np.asarray(mesh_points, float)
+    t = np.asarray(mesh_cells, np.int64)
+    v = np.asarray(values, float).ravel()
+    if v.size != t.shape[1]:
+        raise InputError(f"values has {v.size} entries, the mesh {t.shape[1]} elements")
+    ax = _ax(ax)
+    finite = v[np.isfinite(v)]
+    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.1, 1.0))
+    if log:
+        lo, hi = (max(lo, 1e-12), max(hi, 1e-12))
+    lo = lo if vmin is None else vmin
+    hi = hi if vmax is None else vmax
+    if hi <= lo:
+        lo, hi = (lo / 1.1, hi * 1.1) if log else (lo - 1.0, hi + 1.0)
+    norm = LogNorm(lo, hi) if log else Normalize(lo, hi)
+    polys = np.stack([p[1][t].T, p[0][t].T], axis=-1)      # (n_el, 4, [y, x])
+    pc = PolyCollection(polys, array=np.ma.masked_invalid(v), cmap=cmap, norm=norm, edgecolors="face",
+                        linewidths=0.2)
+    ax.add_collection(pc)
+    ax.set_xlim(p[1].min(), p[1].max())
+    ax.set_ylim(p[0].max(), p[0].min())
+    ax.set_aspect("equal")
+    _label(ax, title)
+    ax.figure.colorbar(pc, ax=ax, label=label or "")
+    return ax
+
+
+def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
+    """The relative shear-modulus image of :func:`femreg.invert` beside the measured axial strain, on the
+    inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` or the path of its ``.npz``.
+    Writes ``out_png`` if given; returns the figure."""
+    from .inversion import InversionResult, load_inversion
+
+    res = result if isinstance(result, InversionResult) else load_inversion(result)
+    plt = _mpl()
+    p = res.mesh.p
+    ext = (p[0].max() - p[0].min()) / max(p[1].max() - p[1].min(), 1e-12)
+    if figsize is None:
+        figsize = (9.0, min(max(3.6 * ext, 2.5), 8.0) + 0.8)
+    fig, axes = plt.subplots(1, 2, figsize=figsize, constrained_layout=True)
+    plot_mesh_values(p, res.mesh.t, res.mu, ax=axes[0], log=True, cmap="viridis",
+                     title="shear modulus $\\mu$ (relative, median 1)", label="$\\mu / \\mathrm{median}$")
+    exx = res.strain_measured[:, 0]
+    m = float(np.nanpercentile(np.abs(exx), 99)) if np.isfinite(exx).any() else 1.0
+    plot_mesh_values(p, res.mesh.t, exx, ax=axes[1], cmap="RdBu_r", title="measured axial strain "
+                     "$\\varepsilon_{xx}$", vmin=-m or -1.0, vmax=m or 1.0)
+    fig.suptitle(title or f"{res.model}, beta {res.beta:.3g}, {res.regularization.upper()}"
+                 + ("" if res.success else f" -- NOT CONVERGED: {res.message}"))
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig
+
+
 def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100):
     """Per-element quality map of a registration (NCC of reference and warped moving image over each element,
     :attr:`femreg.RegistrationResult.quality`) drawn on the mesh, mm axes; elements below ``threshold`` are
@@ -270,20 +334,13 @@ def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, thr
     if p.ndim != 2 or p.shape[0] != 2 or t.ndim != 2 or t.shape[0] != 4 or q.size != t.shape[1]:
         raise InputError(f"quality map needs (2, n) points, (4, n_el) quads and n_el values; got {p.shape}, "
                          f"{t.shape}, {q.size}")
-    plt = _mpl()
-    ax = _ax(ax)
-    polys = np.stack([p[1, t].T, p[0, t].T], axis=-1)          # (n_el, 4, [lateral, axial])
-    pc = PolyCollection(polys, array=np.ma.masked_invalid(q), cmap="viridis", edgecolors="none")
-    pc.set_clim(0.0, 1.0)
-    ax.add_collection(pc)
+    qmin = np.nanmin(q) if np.isfinite(q).any() else float("nan")
+    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality (min {qmin:.2f})", vmin=0.0, vmax=1.0,
+                          label="element NCC")
     bad = np.isfinite(q) & (q < threshold)
     if bad.any():
+        polys = np.stack([p[1, t].T, p[0, t].T], axis=-1)          # (n_el, 4, [lateral, axial])
         ax.add_collection(PolyCollection(polys[bad], facecolors="none", edgecolors="k", linewidths=1.0))
-    ax.set_xlim(p[1].min(), p[1].max())
-    ax.set_ylim(p[0].max(), p[0].min())
-    ax.set_aspect("equal")
-    ax.figure.colorbar(pc, ax=ax, label="element NCC")
-    _label(ax, f"registration quality (min {np.nanmin(q) if np.isfinite(q).any() else float('nan'):.2f})")
     if out_png is not None:
         ax.figure.savefig(out_png, dpi=dpi)
     return ax.figure

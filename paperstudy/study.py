@@ -1032,6 +1032,9 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
     # diagnostics and what they say
     L += _diagnostics(res)
     L += _findings(res)
+    from .inversion import hypothesis_section  # the paper's closing hypothesis, from the cases above (cached)
+
+    L += hypothesis_section(res)
 
     # figures
     if figures:

@@ -93,3 +93,19 @@ def test_render_mesh_offscreen(tmp_path):
     assert plt.imread(tmp_path / "c.png").shape[:2] == (100, 200)
     with pytest.raises(InputError, match="n_nodes"):
         render_mesh(p, t, np.zeros(3), tmp_path / "x.png")
+
+
+def test_plot_quality_marks_poor_elements(tmp_path):
+    from matplotlib.collections import PolyCollection
+
+    from femreg.plot import plot_quality
+
+    p, t = _quad_mesh(8, 6)
+    q = np.linspace(0.0, 1.0, t.shape[1])
+    fig = plot_quality(p, t, q, tmp_path / "q.png", threshold=0.5)
+    assert (tmp_path / "q.png").stat().st_size > 0
+    outlines = [c for c in fig.axes[0].collections if isinstance(c, PolyCollection)][1]
+    assert len(outlines.get_paths()) == int(np.sum(q < 0.5))      # each element below the threshold outlined
+    plt.close(fig)
+    with pytest.raises(InputError, match="n_el values"):
+        plot_quality(p, t, q[:-1])

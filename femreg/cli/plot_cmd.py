@@ -51,6 +51,11 @@ def _run(args) -> int:
                             ("--render", args.render, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    # ---- a shear-modulus file of `femreg invert` has its own figure
+    from .invert_cmd import is_inversion_file, plot_inversion_file
+    if is_inversion_file(args.result):
+        return plot_inversion_file(args)
+    # ----
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")

@@ -1,0 +1,98 @@
+"""``femreg invert PAIR.npz -o MU.npz``: relative shear-modulus image from a registration result.
+
+PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`); the inversion
+(:func:`femreg.invert`) runs on its mesh, or on a structured mesh of ``--element-size``.  MU.npz is reloadable
+with :func:`femreg.inversion.load_inversion`; ``femreg plot MU.npz`` draws the modulus image beside the axial
+strain.  Exit 0 on success, 2 on bad input (one-line reason), 1 when the optimisation fails (the result is
+still written, with ``success = False`` and the reason).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "invert", help="shear-modulus image from a registration result (FE inversion)",
+        description="Relative shear modulus (median 1) per element from the displacement in PAIR.npz: "
+                    "plane-stress (lambda_bar = 2) or plane-strain model with the measured displacement on the "
+                    "boundary, total-variation regularisation of log mu, adjoint gradient, L-BFGS-B.")
+    p.add_argument("result", help="registration result .npz (femreg register -o ...)")
+    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--model", default="plane-stress", choices=("plane-stress", "plane-strain"),
+                   help="forward model (default plane-stress)")
+    p.add_argument("--beta", type=float, help="regularisation weight (default: chosen by the L-curve rule)")
+    p.add_argument("--element-size", metavar="MM", type=float, nargs="+",
+                   help="invert on a structured mesh of this element size (one value or axial and lateral; "
+                        "default: the registration mesh)")
+    p.add_argument("--region", metavar=("X0", "X1", "Y0", "Y1"), type=float, nargs=4,
+                   help="invert over this rectangle only (mm)")
+    p.add_argument("--regularization", default="tv", choices=("tv", "tikhonov"), help="default tv")
+    p.add_argument("--poisson", type=float, help="plane strain: Poisson ratio (default 0.495)")
+    p.add_argument("--maxiter", type=int, default=400, help="L-BFGS-B iterations per solve (default 400)")
+    p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
+    p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    import femreg
+    from femreg.errors import InputError
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".npz":
+        raise InputError(f"output must be a .npz file, got {out}")
+    for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
+        if path and Path(path).suffix.lower() != ext:
+            raise InputError(f"{flag} must name a {ext} file, got {path}")
+    es = args.element_size
+    if es is not None and len(es) not in (1, 2):
+        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    reg = femreg.load_result(args.result)
+    region = None if args.region is None else ((args.region[0], args.region[1]), (args.region[2], args.region[3]))
+    res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
+                        element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
+                        regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter)
+    res.save(out)
+    print(res)
+    print(f"wrote {out}")
+    if args.vtu:
+        res.to_vtu(args.vtu)
+        print(f"wrote {args.vtu}")
+    if args.png:
+        import matplotlib.pyplot as plt
+
+        plt.close(res.plot(args.png))
+        print(f"wrote {args.png}")
+    if not res.success:
+        print(f"femreg invert: error: the optimisation failed: {res.message}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def is_inversion_file(path) -> bool:
+    from femreg.inversion import is_inversion_file as _is
+
+    return _is(path)
+
+
+def plot_inversion_file(args) -> int:
+    """``femreg plot MU.npz`` for a file of ``femreg invert``: the modulus image beside the axial strain
+    (-o PNG) and, with --vtu, a ParaView file."""
+    import matplotlib.pyplot as plt
+
+    from femreg.errors import InputError
+    from femreg.inversion import load_inversion
+
+    out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
+    if out.suffix.lower() != ".png":
+        raise InputError(f"-o must name a .png file, got {out}")
+    res = load_inversion(args.result)
+    plt.close(res.plot(out, dpi=args.dpi))
+    print(f"wrote {out}")
+    if getattr(args, "vtu", None):
+        res.to_vtu(args.vtu)
+        print(f"wrote {args.vtu}")
+    return 0

@@ -1,0 +1,836 @@
+r"""Shear-modulus images from a measured displacement: a finite-element inverse problem (``femreg.invert``).
+
+The measured field is the registration's own FE field (or any callable), so the inversion runs on a quad mesh
+without resampling images.  Unknown: the shear modulus :math:`\mu(x) > 0`, one value per element, parametrised by
+:math:`\theta = \log\mu` (so :math:`\mu` stays positive without constraints).
+
+Forward model (eq:cEq and eq:meq of the method paper, arXiv 2508.19086): find u with u = u_meas on the boundary
+of the region and
+
+.. math::
+    \int_\Omega \mu\,\big(\bar\lambda\,\nabla\!\cdot u\,\nabla\!\cdot v + 2\,\nabla^s u : \nabla^s v\big)\,d\Omega = 0
+    \qquad \forall v,\ v = 0 \text{ on } \partial\Omega,
+
+i.e. :math:`\nabla\cdot(\mu A[u]) = 0` with :math:`A = \bar\lambda\,\nabla\!\cdot u\,I + 2\nabla^s u`.
+``model="plane-stress"``: incompressible plane stress, :math:`\bar\lambda = 2`.  ``model="plane-strain"``:
+nearly incompressible plane strain, :math:`\bar\lambda = 2\nu/(1-2\nu)` (99 at the default :math:`\nu = 0.495`),
+the volumetric term with a one-point (reduced) rule so that bilinear quads do not lock (selective reduced
+integration; Hughes, IJNME 15 (1980) 1413, doi:10.1002/nme.1620150914).  All boundary values are the measured
+displacement, the usual choice when tractions are unknown (Doyley, Phys. Med. Biol. 57 (2012) R35,
+doi:10.1088/0031-9155/57/3/R35).  With Dirichlet data everywhere, :math:`c\mu` gives the same u as :math:`\mu`:
+the modulus is **relative** and is returned normalised so that its area-weighted **median over the region is 1**.
+
+Measured on exact forward-model displacements (``forward.solve_elasticity``, P2 triangles; 30 x 30 mm around the
+15 mm inclusion; contrast = mean mu of the elements fully inside / fully outside): plane stress HI 4.09-4.10 (true
+4; 1 and 1.5 mm elements), SI 0.509 (0.5), mHI 2.01 (2); plane strain HI 4.14 with 1 mm elements but 4.31-4.37 with
+1.5 mm (the reduced-integration model converges more slowly in h), SI 0.521; a uniform block gives a coefficient
+of variation of 0.1-0.3 %.  On displacements of the 3D phantom a 2D model is itself an approximation: the
+plane-stress inversion of the *true* 3D displacement gives a contrast of 2.2 for the 4-times-stiffer sphere.
+
+Objective (minimised over :math:`\theta`, one value per element):
+
+.. math::
+    J(\theta) = \frac{1}{2 s^2} \int_\Omega w_x (u_x - d_x)^2 + w_y (u_y - d_y)^2\,d\Omega
+              + \beta\,\frac{h}{|\Omega|}\sum_{\text{interior edges } f} \ell_f \sqrt{[\theta]_f^2 + \delta^2}
+
+with d the measured displacement (nodal interpolant), u = u(θ) the model's, :math:`s^2 = |\Omega|\,(\bar\varepsilon
+h)^2` (:math:`\bar\varepsilon` the RMS strain of d, h the mean element size: the misfit is measured in units of
+the displacement change across one element), and the second term the total variation of the piecewise-constant
+:math:`\log\mu` (its exact TV for :math:`\delta = 0`), made dimensionless by :math:`h/|\Omega|`.  ``regularization=
+"tikhonov"`` uses :math:`\beta\,\frac{h^2}{2|\Omega|}\sum_f (\ell_f/d_f)[\theta]_f^2` (:math:`d_f` the distance of
+the two element centres), a discrete :math:`\int|\nabla\theta|^2`.
+
+Weights: :data:`DEFAULT_WEIGHTS` = (1, 0.1) (axial, lateral).  Ultrasound measures the lateral displacement far
+less accurately than the axial one (coarser lateral sampling and PSF; in the paper's 3D HI table the relative
+lateral error of R_P_sigma is 9 % against 0.1 % axially), so the axial data lead.  w_y = 0.1 is a round choice
+that keeps the lateral information (the lateral boundary data enter the model in any case); on the registered 3D
+phantom, w_y = 0.01 and 0.1 gave contrasts within 0.1 of each other for the momentum regularisers at beta 0.01.
+
+Gradient by the adjoint method: :math:`K_{II}(\theta)\,u_I = -K_{IB}\,d_B`, :math:`K_{II}\lambda = \partial J/\partial
+u_I`, :math:`\partial J/\partial\theta_e = -\mu_e\,\lambda^T K_e u` (:math:`K_e` the unit-modulus element
+matrix), one factorisation (banded Cholesky) for both solves.  Optimiser: L-BFGS-B (SciPy) with :math:`|\theta| \le`
+:data:`THETA_BOUND`.
+
+Choice of :math:`\beta` (``beta=None``): an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
+steps, largest first, each warm-started from the previous one) and record the misfit :math:`\phi` and the
+regulariser R.  Along the L-curve (log R against log :math:`\phi`) the slope
+:math:`s = \Delta\log R / (-\Delta\log\phi)` between neighbouring :math:`\beta` is small while lowering
+:math:`\beta` buys a large drop of the misfit; it exceeds :data:`LCURVE_SLOPE` = 1 at the corner, where the
+modulus starts to follow noise (R grows faster than the misfit falls, in relative terms).  The chosen
+:math:`\beta` is the last one before the first step with :math:`s >` :data:`LCURVE_SLOPE` (the sweep stops there),
+or the smallest of the grid if there is none; the sweep also stops, keeping the previous :math:`\beta`, when a
+solve does not converge within ``maxiter`` or drives :math:`|\log\mu|` to :data:`THETA_BOUND` (the modulus
+has started to fit noise).  Measured: exact 2D forward-model data keep the smallest
+:math:`\beta` (1e-4; the slope stays below 0.3), registered 3D-phantom displacements stop at 0.003-0.1,
+mostly 0.01-0.03.  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1137/1034115.  Pass
+``beta=`` to override.
+
+Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
+:func:`is_inversion_file`, :data:`MODELS`.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import FileFormatError, InputError
+
+__all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
+           "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE"]
+
+MODELS = ("plane-stress", "plane-strain")
+#: Misfit weights (axial w_x, lateral w_y); see the module docstring.
+DEFAULT_WEIGHTS = (1.0, 0.1)
+#: beta values tried by the default rule, largest first (half-decade steps).
+BETA_GRID = tuple(float(10.0 ** e) for e in np.arange(-1.0, -4.01, -0.5))
+#: L-curve slope at which the default rule stops (module docstring).
+LCURVE_SLOPE = 1.0
+#: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
+TV_DELTA = 1e-2
+#: Bound on |log mu| during the optimisation (mu within a factor e^7 ~ 1100 of the start).
+THETA_BOUND = 7.0
+#: Poisson ratio of the plane-strain model by default.
+DEFAULT_POISSON = 0.495
+_FORMAT = "femreg-inversion-1"
+
+
+def lambda_bar(model: str, poisson: float | None = None) -> float:
+    r""":math:`\bar\lambda` of eq:cEq: 2 for incompressible plane stress, :math:`2\nu/(1-2\nu)` for plane strain
+    (``poisson`` default :data:`DEFAULT_POISSON`)."""
+    if model == "plane-stress":
+        if poisson is not None:
+            raise InputError("poisson applies to model='plane-strain' only (plane stress is incompressible, "
+                             "lambda_bar = 2)")
+        return 2.0
+    if model == "plane-strain":
+        nu = DEFAULT_POISSON if poisson is None else float(poisson)
+        if not (np.isfinite(nu) and 0.0 <= nu < 0.5):
+            raise InputError(f"poisson must lie in [0, 0.5) for plane strain, got {poisson!r}")
+        return 2.0 * nu / (1.0 - 2.0 * nu)
+    raise InputError(f"unknown model {model!r}; choose one of {MODELS}")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# forward model (scikit-fem) and its adjoint
+# ----------------------------------------------------------------------------------------------------------------
+def _unit_forms():
+    """Deviatoric and volumetric parts of eq:cEq's bilinear form for mu = 1."""
+    from skfem import BilinearForm
+    from skfem.helpers import ddot, div, sym_grad
+
+    @BilinearForm
+    def shear(u, v, w):
+        return 2.0 * ddot(sym_grad(u), sym_grad(v))
+
+    @BilinearForm
+    def volumetric(u, v, w):
+        return div(u) * div(v)
+
+    return shear, volumetric
+
+
+class _Model:
+    """The discrete forward problem K(mu) u = 0, u_B = d_B on one mesh, with everything that does not depend on
+    mu precomputed: K(mu) = sum_e mu_e K_e, its CSR data = ``A @ mu``."""
+
+    def __init__(self, mesh, lam_bar: float, reduced_volumetric: bool, weights):
+        from skfem import Basis, BilinearForm, ElementQuad1, ElementVector, asm
+
+        self.mesh = mesh
+        self.n_el = mesh.t.shape[1]
+        e = ElementVector(ElementQuad1())
+        self.basis = Basis(mesh, e, intorder=2)
+        shear, volumetric = _unit_forms()
+        S = shear.elemental(self.basis)
+        if reduced_volumetric:   # one-point rule at the element centre (reference square [0, 1]^2)
+            vbasis = Basis(mesh, e, quadrature=(np.array([[0.5], [0.5]]), np.array([1.0])))
+        else:
+            vbasis = self.basis
+        V = volumetric.elemental(vbasis)
+        if not (np.array_equal(S.indices, V.indices)):
+            raise RuntimeError("element matrices of the two quadratures do not share DOF numbering")
+        data = S.data + lam_bar * V.data                    # (Nbfun^2 * n_el,), element index fastest
+        rows, cols = S.indices
+        elem = np.tile(np.arange(self.n_el), data.size // self.n_el)
+        N = self.basis.N
+        # CSR structure of K and the map (entries -> CSR slots) x (element -> entries)
+        probe = sp.csr_matrix((np.arange(1, data.size + 1, dtype=float), (rows, cols)), shape=(N, N))
+        probe.sum_duplicates()
+        pattern = sp.csr_matrix((np.ones(data.size), (rows, cols)), shape=(N, N))
+        pattern.sum_duplicates()
+        pattern.data = np.arange(pattern.nnz, dtype=float)
+        slot = np.asarray(pattern[rows, cols]).ravel().astype(np.int64)
+        self._A = sp.csr_matrix((data, (slot, elem)), shape=(pattern.nnz, self.n_el))
+        self._pattern = pattern
+        self._G = sp.csr_matrix((data, (elem, np.arange(data.size))), shape=(self.n_el, data.size))
+        self._rows, self._cols = rows, cols
+        self.D = self.basis.get_dofs().all()                # boundary DOFs (both components)
+        self.I = np.setdiff1d(np.arange(N), self.D)
+        if self.I.size == 0:
+            raise InputError("the inversion mesh has no interior nodes; use smaller elements or a larger region")
+        # the interior-interior and interior-boundary blocks as fixed sparsity patterns whose data are CSR slots of
+        # K (slot + 1, so that no stored value is 0): K_II.data = (A @ mu)[slots], no sparse slicing per solve
+        tagged = pattern.copy()
+        tagged.data = np.arange(1, pattern.nnz + 1, dtype=float)
+        self._KII = tagged[self.I][:, self.I].tocsc()
+        self._KIB = tagged[self.I][:, self.D].tocsr()
+        self._sII = self._KII.data.astype(np.int64) - 1
+        self._sIB = self._KIB.data.astype(np.int64) - 1
+        # banded Cholesky (LAPACK pbtrf) in reverse Cuthill-McKee order: K_II is symmetric positive definite for
+        # mu > 0, and on these meshes its bandwidth (reverse Cuthill-McKee, or row by row on a
+        # structured mesh) is ~2 x (nodes across), so one factorisation costs
+        # n b^2 flops -- 5-10 times faster than SuperLU's general LU on the ~6000-DOF system of a 3000-node mesh.
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        coo = self._KII.tocoo()
+        xy = self.basis.doflocs[:, self.I]
+        comp = np.arange(N)[self.I] % 2
+        best = None
+        for perm in (np.asarray(reverse_cuthill_mckee(self._KII.tocsr(), symmetric_mode=True), np.int64),
+                     np.lexsort((comp, xy[1], xy[0])), np.lexsort((comp, xy[0], xy[1]))):
+            inv = np.empty_like(perm)       # RCM, or rows/columns of a structured mesh: keep the narrowest band
+            inv[perm] = np.arange(perm.size)
+            rp, cp = inv[coo.row], inv[coo.col]
+            band = int(np.max(np.abs(cp - rp)))
+            if best is None or band < best[0]:
+                best = (band, perm, rp, cp)
+        self._band, perm, rp, cp = best
+        upper = rp <= cp
+        self._perm = perm
+        # position of every stored entry of K_II (CSC data order = tocoo order) in the (band+1, n) upper band
+        self._band_sel = np.flatnonzero(upper)
+        self._band_pos = (self._band + rp[upper] - cp[upper]) * perm.size + cp[upper]
+
+        @BilinearForm
+        def weighted_mass(u, v, w):
+            return weights[0] * u[0] * v[0] + weights[1] * u[1] * v[1]
+
+        self.M = asm(weighted_mass, self.basis).tocsr()
+        self.area = float(np.sum(self.basis.dx))
+
+    def stiffness(self, mu):
+        K = self._pattern.copy()
+        K.data = self._A @ mu
+        return K
+
+    def solve(self, mu, d):
+        """u (N,) with u_B = d_B and the LU factor of K_II."""
+        from scipy.sparse.linalg import splu
+
+        k = self._A @ mu
+        KIB = self._KIB.copy()
+        KIB.data = k[self._sIB]
+        vals = k[self._sII]                      # CSC data order == the order of self._KII.tocoo()
+        lu = _BandedCholesky(self, vals)
+        if not lu.ok:                            # not positive definite (should not happen for mu > 0)
+            KII = self._KII.copy()
+            KII.data = vals
+            lu = splu(KII)
+        u = d.copy()
+        u[self.I] = lu.solve(-(KIB @ d[self.D]))
+        return u, lu
+
+    def dJ_dtheta(self, mu, u, lam):
+        """-mu_e lam^T K_e u for every element (lam zero on the boundary)."""
+        return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
+
+
+class _BandedCholesky:
+    """Cholesky factor of K_II in the model's RCM band; ``solve(b)``; ``ok`` False if not positive definite."""
+
+    def __init__(self, model: "_Model", vals):
+        from scipy.linalg import LinAlgError, cholesky_banded
+
+        n = model._perm.size
+        ab = np.zeros((model._band + 1) * n)
+        ab[model._band_pos] = vals[model._band_sel]
+        self.perm = model._perm
+        try:
+            self.c = cholesky_banded(ab.reshape(model._band + 1, n), lower=False, check_finite=False)
+            self.ok = True
+        except LinAlgError:
+            self.ok = False
+
+    def solve(self, b):
+        from scipy.linalg import cho_solve_banded
+
+        x = np.empty_like(b)
+        x[self.perm] = cho_solve_banded((self.c, False), b[self.perm], check_finite=False)
+        return x
+
+
+class _Regularizer:
+    """TV (or Tikhonov) of the element-wise log-modulus over interior edges, dimensionless (module docstring)."""
+
+    def __init__(self, mesh, kind: str, h: float, area: float, delta: float = TV_DELTA):
+        from skfem import ElementQuad0, InteriorFacetBasis
+
+        sides = [InteriorFacetBasis(mesh, ElementQuad0(), side=s) for s in (0, 1)]
+        self.a, self.b = sides[0].tind, sides[1].tind
+        self.length = np.asarray(sides[0].dx.sum(axis=1), float)
+        c = mesh.p[:, mesh.t].mean(axis=1)
+        self.dist = np.linalg.norm(c[:, self.a] - c[:, self.b], axis=0)
+        self.kind = kind
+        self.delta = float(delta)
+        self.scale = h / area if kind == "tv" else 0.5 * h * h / area
+        self.n_el = mesh.t.shape[1]
+
+    def __call__(self, theta):
+        j = theta[self.a] - theta[self.b]
+        if self.kind == "tv":
+            s = np.sqrt(j * j + self.delta ** 2)
+            val = self.scale * float(np.sum(self.length * (s - self.delta)))
+            gj = self.scale * self.length * j / s
+        else:
+            c = self.length / self.dist
+            val = self.scale * float(np.sum(c * j * j))
+            gj = 2.0 * self.scale * c * j
+        g = np.bincount(self.a, gj, self.n_el) - np.bincount(self.b, gj, self.n_el)
+        return val, g
+
+
+class _Problem:
+    """J(theta) = misfit + beta R, with its adjoint gradient (module docstring)."""
+
+    def __init__(self, model: _Model, reg: _Regularizer, d, s2):
+        self.model, self.reg, self.d, self.s2 = model, reg, d, s2
+        self.n_eval = 0
+
+    def misfit(self, theta):
+        u, _ = self.model.solve(np.exp(theta), self.d)
+        r = u - self.d
+        return 0.5 * float(r @ (self.model.M @ r)) / self.s2, u
+
+    def evaluate(self, theta, beta):
+        """(J, dJ/dtheta, misfit, R, u)."""
+        self.n_eval += 1
+        mu = np.exp(theta)
+        u, lu = self.model.solve(mu, self.d)
+        r = u - self.d
+        Mr = self.model.M @ r
+        phi = 0.5 * float(r @ Mr) / self.s2
+        lam = np.zeros_like(u)
+        lam[self.model.I] = lu.solve(Mr[self.model.I] / self.s2)
+        g = self.model.dJ_dtheta(mu, u, lam)
+        R, gR = self.reg(theta)
+        return phi + beta * R, g + beta * gR, phi, R, u
+
+
+def _optimise(problem: _Problem, theta0, beta, *, maxiter, gtol, progress=None):
+    """L-BFGS-B on J(theta); returns (theta, info dict with history)."""
+    from scipy.optimize import minimize
+
+    cache = {}
+    history = []
+
+    def fun(theta):
+        J, g, phi, R, _ = problem.evaluate(theta, beta)
+        if not np.isfinite(J) or not np.all(np.isfinite(g)):
+            raise FloatingPointError("non-finite objective")
+        cache["last"] = (theta.copy(), J, phi, R)
+        return J, g
+
+    def callback(xk):
+        t, J, phi, R = cache["last"]
+        if not np.array_equal(t, xk):
+            J, _, phi, R, _ = problem.evaluate(xk, beta)
+        history.append((J, phi, R))
+        if progress is not None:
+            progress.update(1)
+
+    bounds = [(-THETA_BOUND, THETA_BOUND)] * theta0.size
+    try:
+        res = minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
+                       options={"maxiter": int(maxiter), "gtol": gtol, "ftol": 1e-12, "maxcor": 20})
+    except (FloatingPointError, RuntimeError, np.linalg.LinAlgError) as exc:
+        theta = cache["last"][0] if "last" in cache else theta0
+        return theta, {"success": False, "message": f"optimisation failed: {exc}", "nit": len(history),
+                       "history": history}
+    msg = res.message if isinstance(res.message, str) else res.message.decode()
+    return res.x, {"success": bool(res.success), "message": msg, "nit": int(res.nit), "history": history,
+                   "n_eval": int(res.nfev)}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# inputs
+# ----------------------------------------------------------------------------------------------------------------
+def _tensor_mesh(x0, x1, y0, y1, h):
+    from skfem import MeshQuad1
+
+    hx, hy = h
+    nx = max(2, int(round((x1 - x0) / hx)))
+    ny = max(2, int(round((y1 - y0) / hy)))
+    return MeshQuad1.init_tensor(np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1))
+
+
+def _check_region(region):
+    try:
+        (x0, x1), (y0, y1) = region
+        x0, x1, y0, y1 = (float(v) for v in (x0, x1, y0, y1))
+    except (TypeError, ValueError):
+        raise InputError(f"region must be ((x0, x1), (y0, y1)) in mm, got {region!r}") from None
+    if not all(np.isfinite(v) for v in (x0, x1, y0, y1)) or x1 <= x0 or y1 <= y0:
+        raise InputError(f"region must be ((x0, x1), (y0, y1)) mm with x0 < x1 and y0 < y1, got {region!r}")
+    return x0, x1, y0, y1
+
+
+def _check_element_size(element_size):
+    h = np.broadcast_to(np.asarray(element_size, float), (2,)).copy() if element_size is not None else None
+    if h is not None and (np.any(~np.isfinite(h)) or np.any(h <= 0)):
+        raise InputError(f"element_size must be > 0 mm, got {element_size!r}")
+    return h
+
+
+def _mesh_and_data(displacement, region, element_size):
+    """The inversion mesh and the measured displacement at its nodes, interleaved (2 n_nodes,)."""
+    from .mesh import DEFAULT_ELEMENT_SIZE
+    from .registration import RegistrationResult
+
+    h = _check_element_size(element_size)
+    if isinstance(displacement, RegistrationResult):
+        res = displacement
+        if region is None and h is None:
+            mesh = res.mesh
+            d = np.asarray(res.u, float).copy()
+        else:
+            p = res.mesh.p
+            x0, x1, y0, y1 = (_check_region(region) if region is not None
+                              else (p[0].min(), p[0].max(), p[1].min(), p[1].max()))
+            if h is None:
+                ext = p[:, res.mesh.t].max(axis=1) - p[:, res.mesh.t].min(axis=1)
+                h = np.median(ext, axis=1)
+            mesh = _tensor_mesh(x0, x1, y0, y1, h)
+            v = res.displacement(mesh.p.T)
+            if not np.all(np.isfinite(v)):
+                raise InputError(f"region {((x0, x1), (y0, y1))} mm reaches outside the registration mesh "
+                                 f"({int((~np.isfinite(v[:, 0])).sum())} nodes)")
+            d = np.empty(2 * mesh.p.shape[1])
+            d[0::2], d[1::2] = v[:, 0], v[:, 1]
+    elif callable(displacement):
+        if region is None:
+            raise InputError("a displacement callable needs region=((x0, x1), (y0, y1)) in mm")
+        x0, x1, y0, y1 = _check_region(region)
+        mesh = _tensor_mesh(x0, x1, y0, y1, np.asarray(DEFAULT_ELEMENT_SIZE, float) if h is None else h)
+        try:
+            v = np.asarray(displacement(mesh.p.T.copy()), float)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a user's callable: report what it raised
+            raise InputError(f"displacement callable failed on the mesh nodes: {type(exc).__name__}: {exc}") from None
+        if v.shape != (mesh.p.shape[1], 2):
+            raise InputError(f"displacement callable must return shape ({mesh.p.shape[1]}, 2) for "
+                             f"({mesh.p.shape[1]}, 2) points, got {v.shape}")
+        d = np.empty(2 * mesh.p.shape[1])
+        d[0::2], d[1::2] = v[:, 0], v[:, 1]
+    else:
+        raise InputError("displacement must be a femreg.RegistrationResult or a callable (n, 2) mm -> (n, 2) mm, "
+                         f"got {type(displacement).__name__}")
+    if not np.all(np.isfinite(d)):
+        raise InputError(f"the displacement has {int((~np.isfinite(d)).sum())} NaN/Inf values on the inversion "
+                         "mesh (region outside the measured field?)")
+    if mesh.t.shape[1] < 4:
+        raise InputError(f"the inversion mesh has {mesh.t.shape[1]} element(s); need at least 2 x 2")
+    return mesh, d
+
+
+def _element_strain(basis, d):
+    """Mean strain [exx, eyy, exy] per element (n_el, 3) and the RMS strain magnitude over the mesh."""
+    g = basis.interpolate(d).grad                       # (2, 2, n_el, nq)
+    w = basis.dx
+    exx, eyy, exy = g[0, 0], g[1, 1], 0.5 * (g[0, 1] + g[1, 0])
+    area = w.sum(axis=1)
+    el = np.stack([(exx * w).sum(1), (eyy * w).sum(1), (exy * w).sum(1)], axis=1) / area[:, None]
+    rms = float(np.sqrt(np.sum((exx ** 2 + eyy ** 2 + 2 * exy ** 2) * w) / np.sum(w)))
+    return el, rms
+
+
+def _weighted_median(v, w):
+    o = np.argsort(v)
+    c = np.cumsum(w[o])
+    return float(v[o][np.searchsorted(c, 0.5 * c[-1])])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# public API
+# ----------------------------------------------------------------------------------------------------------------
+def invert(displacement, *, model: str = "plane-stress", region=None, element_size=None, beta=None,
+           regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
+           maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False) -> "InversionResult":
+    r"""Relative shear-modulus image from a measured displacement (eq:cEq / eq:meq inverse problem).
+
+    Parameters
+    ----------
+    displacement : RegistrationResult or callable
+        The measured field: a :class:`femreg.RegistrationResult` (inverted on its own mesh, or on a structured
+        mesh of ``element_size`` over ``region`` / its mesh's bounding box), or a callable ``(n, 2) [x, y] mm ->
+        (n, 2) [ux, uy] mm`` together with ``region``.
+    model : {"plane-stress", "plane-strain"}
+        :math:`\bar\lambda = 2` (incompressible plane stress) or :math:`2\nu/(1-2\nu)` (plane strain, reduced
+        integration of the volumetric term).
+    region : ((x0, x1), (y0, y1)) mm, optional
+        Region to invert (a rectangle); required with a callable.
+    element_size : float or (2,) mm, optional
+        Element size of the structured inversion mesh (default: the registration mesh itself, or
+        :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` for a callable).
+    beta : float >= 0, optional
+        :math:`\beta`, weight of the regulariser; None = the rule of the module docstring (sweep of ``beta_grid``,
+        default :data:`BETA_GRID`).
+    regularization : {"tv", "tikhonov"}
+        Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
+    weights : (w_x, w_y)
+        Misfit weights of the axial and lateral components (default :data:`DEFAULT_WEIGHTS`).
+    poisson : float, optional
+        :math:`\nu` of the plane-strain model (default 0.495).
+    maxiter, gtol
+        L-BFGS-B iteration limit and projected-gradient tolerance per solve.
+    progress : bool
+        tqdm bar over the optimiser iterations.
+
+    Returns
+    -------
+    InversionResult
+        ``mu`` (n_el,) element values with median 1, ``shear_modulus(points)``, ``success``, ``message``,
+        convergence ``history``.  A failed optimisation returns ``success=False`` with the reason.
+
+    Raises
+    ------
+    InputError
+        Naming the bad argument (unknown model, bad region, NaN displacement, a field without deformation, ...).
+    """
+    t_all = time.perf_counter()
+    lb = lambda_bar(model, poisson)
+    if regularization not in ("tv", "tikhonov"):
+        raise InputError(f"regularization must be 'tv' or 'tikhonov', got {regularization!r}")
+    try:
+        w = np.asarray(weights, float).reshape(2)
+    except (TypeError, ValueError):
+        raise InputError(f"weights must be two numbers (axial, lateral), got {weights!r}") from None
+    if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise InputError(f"weights must be >= 0 and not both 0, got {weights!r}")
+    if beta is not None:
+        try:
+            beta = float(beta)
+        except (TypeError, ValueError):
+            raise InputError(f"beta must be a number >= 0 or None, got {beta!r}") from None
+        if not (np.isfinite(beta) and beta >= 0):
+            raise InputError(f"beta must be a finite number >= 0, got {beta!r}")
+    grid = BETA_GRID if beta_grid is None else tuple(sorted((float(b) for b in beta_grid), reverse=True))
+    if not grid or not all(np.isfinite(b) and b >= 0 for b in grid):
+        raise InputError(f"beta_grid must hold finite numbers >= 0, got {beta_grid!r}")
+    if int(maxiter) < 1 or not (np.isfinite(gtol) and gtol > 0):
+        raise InputError(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}")
+
+    mesh, d = _mesh_and_data(displacement, region, element_size)
+    t = time.perf_counter()
+    fem = _Model(mesh, lb, reduced_volumetric=(model == "plane-strain"), weights=w)
+    el_strain, eps_rms = _element_strain(fem.basis, d)
+    if not (eps_rms > 1e-12):
+        raise InputError("the displacement has no deformation over the region (RMS strain "
+                         f"{eps_rms:.3g}): the modulus cannot be identified")
+    ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
+    h = float(np.sqrt(np.mean(ext[0] * ext[1])))
+    s2 = fem.area * (eps_rms * h) ** 2
+    reg = _Regularizer(mesh, regularization, h, fem.area)
+    problem = _Problem(fem, reg, d, s2)
+    t_setup = time.perf_counter() - t
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(desc="invert", unit="it")
+    theta = np.zeros(fem.n_el)
+    sweep = []
+    t = time.perf_counter()
+    try:
+        betas = [beta] if beta is not None else list(grid)
+        runs = []
+        chosen = None
+        for b in betas:
+            theta_b, info = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol, progress=bar)
+            if np.any(np.abs(theta_b) >= THETA_BOUND - 1e-6):
+                info = dict(info, success=False, message=f"log-modulus reached its bound |log mu| = "
+                                                         f"{THETA_BOUND:g} ({info['message']})")
+            phi, _ = problem.misfit(theta_b)
+            R, _ = reg(theta_b)
+            sweep.append({"beta": b, "misfit": phi, "regularizer": R, "nit": info["nit"],
+                          "success": info["success"], "message": info["message"]})
+            if runs and beta is None and not info["success"]:
+                chosen = runs[-1]        # no convergence at this beta: the previous one is the last reliable
+                sweep[-1]["stop"] = "not converged"
+                break
+            if runs and beta is None:
+                _, _, _, phi0, R0 = runs[-1]
+                slope = (np.log(max(R, 1e-300) / max(R0, 1e-300))
+                         / max(np.log(max(phi0, 1e-300) / max(phi, 1e-300)), 1e-12))
+                sweep[-1]["slope"] = float(slope)
+                if slope > LCURVE_SLOPE:
+                    chosen = runs[-1]
+                    break
+            runs.append((b, theta_b.copy(), info, phi, R))
+            theta = theta_b
+            if not info["success"] and "failed" in info["message"]:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    if beta is not None:
+        rule = "given"
+    elif chosen is not None and sweep[-1].get("stop"):
+        rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
+                f"(beta {sweep[-1]['beta']:.3g})")
+    elif chosen is not None:
+        rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before the slope d log R / -d log misfit "
+                f"exceeds {LCURVE_SLOPE:g}")
+    else:
+        rule = f"L-curve: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
+    if chosen is None:
+        chosen = runs[-1]
+    b, theta, info, phi, R = chosen
+    t_opt = time.perf_counter() - t
+
+    mu = np.exp(theta)
+    area_el = fem.basis.dx.sum(axis=1)
+    med = _weighted_median(mu, area_el)
+    ok = bool(info["success"]) and np.all(np.isfinite(mu)) and med > 0
+    message = info["message"]
+    if np.any(np.abs(theta) >= THETA_BOUND - 1e-6):
+        ok = False
+        message = f"log-modulus reached its bound |log mu| = {THETA_BOUND:g} ({message})"
+    u_model, _ = fem.solve(mu, d)
+    hist = np.asarray(info["history"], float).reshape(-1, 3)
+    return InversionResult(
+        mesh=mesh, mu=mu / med, model=model, lambda_bar=lb, beta=b, beta_rule=rule, sweep=sweep,
+        regularization=regularization, weights=tuple(w), u_measured=d, u_model=u_model,
+        strain_measured=el_strain, misfit=phi, regularizer_value=R, history=hist, success=ok, message=message,
+        nit=int(info["nit"]), timings={"setup": t_setup, "optimise": t_opt, "total": time.perf_counter() - t_all,
+                                       "n_evaluations": problem.n_eval})
+
+
+class InversionResult:
+    """A relative shear-modulus image on a quad mesh (:func:`invert`).
+
+    Attributes
+    ----------
+    mesh : skfem.MeshQuad1
+        mm; ``p[0]`` axial x, ``p[1]`` lateral y.
+    mu : (n_el,) float
+        Element values of the shear modulus, normalised to an area-weighted median of 1 over the region.
+    model, lambda_bar : str, float
+        Forward model and its :math:`\\bar\\lambda` (eq:cEq).
+    beta, beta_rule, sweep
+        Regularisation weight, how it was chosen, and the (beta, misfit, regulariser) table of the rule.
+    u_measured, u_model : (2 n_nodes,) float, mm
+        Nodal displacement (interleaved ux, uy): the data, and the forward model's at the solution.
+    strain_measured : (n_el, 3)
+        Element-mean strain [exx, eyy, exy] of the data.
+    misfit, regularizer_value : float
+        The two terms of J at the solution (misfit without beta, dimensionless).
+    history : (nit, 3) float
+        J, misfit, regulariser per L-BFGS-B iteration of the chosen beta.
+    success, message, nit, timings
+    """
+
+    def __init__(self, *, mesh, mu, model, lambda_bar, beta, beta_rule="", sweep=(), regularization="tv",
+                 weights=DEFAULT_WEIGHTS, u_measured=None, u_model=None, strain_measured=None, misfit=np.nan,
+                 regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None):
+        self.mesh = mesh
+        self.mu = np.asarray(mu, float)
+        self.model = str(model)
+        self.lambda_bar = float(lambda_bar)
+        self.beta = float(beta)
+        self.beta_rule = str(beta_rule)
+        self.sweep = list(sweep)
+        self.regularization = str(regularization)
+        self.weights = tuple(float(x) for x in weights)
+        n2 = 2 * mesh.p.shape[1]
+        self.u_measured = np.zeros(n2) if u_measured is None else np.asarray(u_measured, float)
+        self.u_model = np.full(n2, np.nan) if u_model is None else np.asarray(u_model, float)
+        self.strain_measured = (np.full((mesh.t.shape[1], 3), np.nan) if strain_measured is None
+                                else np.asarray(strain_measured, float))
+        self.misfit = float(misfit)
+        self.regularizer_value = float(regularizer_value)
+        self.history = np.asarray(history, float).reshape(-1, 3)
+        self.success = bool(success)
+        self.message = str(message)
+        self.nit = int(nit)
+        self.timings = dict(timings or {})
+        self._locator = None
+
+    @property
+    def element_values(self) -> np.ndarray:
+        """Alias of :attr:`mu`: (n_el,) shear modulus per element (relative, median 1)."""
+        return self.mu
+
+    @property
+    def centroids(self) -> np.ndarray:
+        """Element centres (n_el, 2) mm."""
+        return self.mesh.p[:, self.mesh.t].mean(axis=1).T
+
+    def shear_modulus(self, points) -> np.ndarray:
+        """Relative shear modulus at ``points`` (n, 2) [x, y] mm -> (n,); NaN outside the mesh (a point on an
+        element edge takes one of its elements)."""
+        from .pixels import PointLocator
+
+        pts = np.asarray(points, float)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise InputError(f"points must have shape (n, 2) [x, y] mm, got {pts.shape}")
+        if self._locator is None:
+            self._locator = PointLocator(self.mesh)
+        out = np.full(len(pts), np.nan)
+        ok = np.all(np.isfinite(pts), axis=1)
+        if ok.any():
+            loc = self._locator.locate(pts[ok])
+            vals = np.full(int(ok.sum()), np.nan)
+            vals[loc.inside] = self.mu[loc.element]
+            out[ok] = vals
+        return out
+
+    # -- files ----------------------------------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write ``.npz`` (reloadable with :func:`load_inversion`; keys mesh_points (2, n_nodes), mesh_cells
+        (4, n_el), mu (n_el,), u_measured, u_model (2 n_nodes,), strain_measured (n_el, 3), history, ...)."""
+        from ._atomic import atomic_savez
+
+        path = Path(path)
+        if path.suffix.lower() != ".npz":
+            raise InputError(f"inversion results are saved as .npz, got {path}")
+        meta = {"model": self.model, "lambda_bar": self.lambda_bar, "beta": self.beta, "beta_rule": self.beta_rule,
+                "sweep": self.sweep, "regularization": self.regularization, "weights": self.weights,
+                "misfit": self.misfit, "regularizer_value": self.regularizer_value, "success": self.success,
+                "message": self.message, "nit": self.nit, "timings": self.timings}
+        atomic_savez(path, format=np.str_(_FORMAT), mesh_points=np.asarray(self.mesh.p, float),
+                     mesh_cells=np.asarray(self.mesh.t, np.int64), mu=self.mu, u_measured=self.u_measured,
+                     u_model=self.u_model, strain_measured=self.strain_measured, history=self.history,
+                     meta=np.str_(json.dumps(meta, default=float)))
+        return path
+
+    def to_vtu(self, path) -> Path:
+        """ParaView file (meshio): quads with cell data shear_modulus, log_shear_modulus, exx/eyy/exy (measured)
+        and point data displacement_measured / displacement_model (n_nodes, 3) mm."""
+        import meshio
+
+        path = Path(path)
+        p = self.mesh.p
+        pts = np.column_stack([p[0], p[1], np.zeros(p.shape[1])])
+        z = np.zeros(p.shape[1])
+        um = np.column_stack([self.u_measured[0::2], self.u_measured[1::2], z])
+        uf = np.column_stack([self.u_model[0::2], self.u_model[1::2], z])
+        cd = {"shear_modulus": [self.mu], "log_shear_modulus": [np.log(self.mu)],
+              "exx": [self.strain_measured[:, 0]], "eyy": [self.strain_measured[:, 1]],
+              "exy": [self.strain_measured[:, 2]]}
+        meshio.write(str(path), meshio.Mesh(pts, [("quad", self.mesh.t.T.astype(np.int64))],
+                                            point_data={"displacement_measured": um, "displacement_model": uf},
+                                            cell_data=cd))
+        return path
+
+    def plot(self, out_png=None, **kw):
+        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`)."""
+        from .plot import plot_inversion
+
+        return plot_inversion(self, out_png, **kw)
+
+    def __repr__(self) -> str:
+        q = np.percentile(self.mu, [5, 95])
+        return (f"InversionResult(model={self.model!r}, beta={self.beta:.3g}, n_el={self.mesh.t.shape[1]}, "
+                f"mu 5-95 % {q[0]:.3g}-{q[1]:.3g}, success={self.success}, nit={self.nit}, "
+                f"message={self.message!r})")
+
+
+def is_inversion_file(path) -> bool:
+    """True when ``path`` is an ``.npz`` written by :meth:`InversionResult.save`."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return "format" in z.files and str(z["format"]) == _FORMAT
+    except Exception:  # noqa: BLE001 - anything unreadable is not one
+        return False
+
+
+def load_inversion(path) -> InversionResult:
+    """Read a file written by :meth:`InversionResult.save`."""
+    from skfem import MeshQuad1
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no inversion file {str(path)!r}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "format" not in z.files or str(z["format"]) != _FORMAT:
+                raise FileFormatError(f"{path}: not a femreg inversion file")
+            d = {k: z[k] for k in z.files}
+        meta = json.loads(str(d["meta"]))
+    except FileFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise FileFormatError(f"{path}: unreadable femreg inversion file ({type(exc).__name__}: {exc})") from None
+    mesh = MeshQuad1(d["mesh_points"], d["mesh_cells"])
+    return InversionResult(mesh=mesh, mu=d["mu"], model=meta["model"], lambda_bar=meta["lambda_bar"],
+                           beta=meta["beta"], beta_rule=meta.get("beta_rule", ""), sweep=meta.get("sweep", ()),
+                           regularization=meta.get("regularization", "tv"),
+                           weights=meta.get("weights", DEFAULT_WEIGHTS), u_measured=d["u_measured"],
+                           u_model=d["u_model"], strain_measured=d["strain_measured"], misfit=meta["misfit"],
+                           regularizer_value=meta["regularizer_value"], history=d["history"],
+                           success=meta["success"], message=meta["message"], nit=meta["nit"],
+                           timings=meta.get("timings"))
+
+
+def modulus_contrast(result: InversionResult, inside) -> dict:
+    """Contrast and CNR of a modulus image against an inclusion ROI.
+
+    ``inside``: callable (n, 2) mm -> (n,) bool.  Elements whose four nodes are all inside form the inclusion
+    set B, all outside the background A; elements cut by the ROI boundary are left out (a structured mesh cannot
+    follow a curved edge).  Returns ``contrast`` = mean mu(B) / mean mu(A) (area-weighted), ``CNR`` =
+    2 (m_A - m_B)^2 / (s_A^2 + s_B^2) (the paper's CNR_e formula applied to mu), ``cv_background`` = s_A / m_A,
+    and ``edge_error_mm``: the largest distance to the ROI boundary of an element whose class, thresholded at
+    the geometric mean of the two means, disagrees with its centre's true class (0 if none), with
+    ``element_size_mm`` for comparison.
+    """
+    from skfem import Basis, ElementQuad0
+
+    mesh = result.mesh
+    node_in = np.asarray(inside(mesh.p.T), bool)
+    all_in = node_in[mesh.t].all(axis=0)
+    all_out = (~node_in[mesh.t]).all(axis=0)
+    if not all_in.any() or not all_out.any():
+        raise InputError("the ROI leaves no element fully inside or fully outside")
+    w = Basis(mesh, ElementQuad0()).dx.sum(axis=1)
+    mu = result.mu
+
+    def stats(s):
+        m = float(np.sum(w[s] * mu[s]) / np.sum(w[s]))
+        return m, float(np.sum(w[s] * (mu[s] - m) ** 2) / np.sum(w[s]))
+
+    mA, vA = stats(all_out)
+    mB, vB = stats(all_in)
+    c = result.centroids
+    c_in = np.asarray(inside(c), bool)
+    thr = np.sqrt(mA * mB)
+    cls = (mu > thr) if mB > mA else (mu < thr)
+    wrong = cls != c_in
+    ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
+    h = float(np.max(ext))
+    edge = 0.0
+    if wrong.any():
+        # distance of a wrong element's centre to the ROI boundary, by bisection along its segment to the
+        # nearest element centre of the other class
+        dists = []
+        for e in np.flatnonzero(wrong):
+            opp = np.flatnonzero(c_in != c_in[e])
+            if opp.size == 0:
+                continue
+            q = c[opp[np.argmin(np.sum((c[opp] - c[e]) ** 2, axis=1))]]
+            a, b = c[e].copy(), q.copy()
+            for _ in range(30):
+                m = 0.5 * (a + b)
+                if bool(inside(m[None])[0]) == bool(c_in[e]):
+                    a = m
+                else:
+                    b = m
+            dists.append(float(np.linalg.norm(c[e] - a)))
+        edge = max(dists) if dists else 0.0
+    return {"contrast": mB / mA, "CNR": 2.0 * (mA - mB) ** 2 / (vA + vB) if vA + vB > 0 else float("inf"),
+            "mean_background": mA, "mean_inclusion": mB, "cv_background": float(np.sqrt(vA) / mA),
+            "n_wrong": int(wrong.sum()), "edge_error_mm": edge, "element_size_mm": h}
