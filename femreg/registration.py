@@ -339,7 +339,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     offset : callable | (2 n_nodes,) array | RegistrationResult, optional
         S of eq:IR: both images are sampled at x + S(x) (sequence tracking); None = 0.
     maxiter, tol
-        Gauss-Newton stopping rule: ``maxiter`` iterations or ``||du|| / ||u|| < tol`` (paper 20, 1e-3).
+        Gauss-Newton stopping rule: ``maxiter`` iterations or ``||du|| / ||u|| < tol`` (paper 20, 1e-3); with
+        ``strategy="auto"`` the final solve scales ``tol`` to the smaller displacement component
+        (:func:`component_tol`).
     linear_solver : {"auto", "cholesky", "splu", "spsolve", "amg-cg"} (see :mod:`femreg.solver`)
     blockmatch_options : dict, optional
         Keyword arguments of :func:`femreg.blockmatch.block_match` for ``initial="blockmatch"``.
