@@ -1,24 +1,44 @@
-"""Benchmark of ``femreg.register`` on a paper-geometry pair (3750 x 147 pixels, dx 0.0192 mm, dy 0.3 mm).
+"""Benchmark of ``femreg.register``: both strategies ("auto", the default, and "paper") on three pairs.
 
-The pair is synthetic (femreg.synthetic: PSF-convolved speckle, SNR 12 dB, warped by a known smooth field with
-0.4-0.8 % axial compression).  For every registered regulariser it prints the
-time of each stage (block matching, operator build, regulariser set-up, each Gauss-Newton iteration, total) and
-the peak memory (each regulariser runs in a fresh process so that ru_maxrss is its own).
+Pairs: ``synthetic`` -- paper geometry (3750 x 147 pixels, dx 0.0192 mm, dy 0.3 mm), femreg.synthetic speckle
+(SNR 12 dB) warped by a known smooth field with 0.4-0.8 % axial compression; ``3d-HI`` -- the paper's simulated
+sequence, frames 0 -> 6 (3740 x 147, forward.get_sequence("3d", "HI", seed=0), cached under $FEMREG_CACHE);
+``1200x125`` -- 5 % axial compression, 30 x 25 mm at dx 0.025 mm, dy 0.2 mm.  For every (pair, strategy,
+regulariser) it prints the wall time (fastest of ``--repeat``) and the CPU time of that run (single-threaded: on a
+shared machine the CPU time is what an idle machine's wall time would be), each stage (prefilter; mesh = speckle
+statistics and mesh; the pyramid's envelopes, global search, local block matching and envelope Gauss-Newton, or
+block matching; Gauss-Newton on the final mesh with its per-iteration times; check = peak-hopping check, never-worse
+rule and quality map), the peak memory (each run in a fresh process so that ru_maxrss is its own) and the errors
+against the known field.
 
-    python benchmarks/bench_register.py                 # timings (paper-size pair, then 1200 x 125 pairs)
-    python benchmarks/bench_register.py --save a.npz    # ... and keep every nodal u; --compare a.npz: max |du|
-    python benchmarks/bench_register.py --no-compiled   # without the numba loops (femreg._kernels)
-    python benchmarks/bench_register.py --study         # alpha and element-size study (total strain error)
-    python benchmarks/bench_register.py --solvers       # linear-solver comparison on the GN system
+    python benchmarks/bench_register.py                          # R_P_sigma, both strategies, all pairs
+    python benchmarks/bench_register.py --pairs 3d-HI --all      # every regulariser
+    python benchmarks/bench_register.py --save a.npz             # ... and keep every nodal u; --compare a.npz: max |du|
+    python benchmarks/bench_register.py --no-compiled            # without the numba loops (femreg._kernels)
+    python benchmarks/bench_register.py --study                  # alpha and element-size study (R_eps, R_eps_i)
+    python benchmarks/bench_register.py --solvers                # linear-solver comparison on the GN system
 
-Measured 2026-11-29 on the shared 2-core machine under a load average of 10-12 (so pessimistic; fastest of 5),
-default 2 mm mesh (792 nodes), numba installed: total 0.39-0.52 s per pair (R_P_sigma 0.39 s), 0.72 s for R_P_eps
-(its block matching took longer); a Gauss-Newton iteration after the first 18-30 ms (was 107-151 ms in the same
-conditions before the compiled image-term loops and the banded Cholesky: total 1.4-1.75 s); operator build
-24-68 ms (was 190-230 ms); block matching 0.16-0.26 s is now the largest stage.  1200 x 125 pairs: 0.26 s at
-0.5 % strain (was 0.48 s), 0.9-1.1 s at 2-5 % (was 1.3-1.8 s; block matching and the coarse pass dominate).  Peak
-RSS ~400 MB (140 MB of it the Python process, imports and the pair).  Results equal to the earlier code's to
-2e-13 mm (``--save`` / ``--compare``).
+Measured 2026-11-29 with the shared 2-core machine nearly idle (load average 1; wall = CPU), R_P_sigma, fastest
+of 3 (at load 6-7 the wall times were about twice these):
+
+| pair | "auto" | "paper" |
+|---|---|---|
+| 3d-HI 0 -> 6 (3740 x 147) | 0.36 s, total strain error 14.1 % | 0.21 s, 14.5 % |
+| synthetic paper geometry | 0.38 s, 6.0 % | 0.23 s, 6.1 % |
+| 1200 x 125, 5 % compression | 0.11 s, 0.2 % | 0.20 s, fails (NCC 0.24, 1465 %) |
+
+"auto" before the pyramid and check stages were reworked, same conditions: 3d-HI 0.48 s (global search 0.17 s,
+now 0.05 s), 1200 x 125 0.17 s; at load 10 it was 2.31 s against 0.93 s after (the per-pixel shape-function arrays
+built for the Gauss-Newton start and the quality map cost 0.4 s there).  Where the time goes now ("auto", 3d-HI):
+speckle statistics and mesh 0.02 s, pyramid 0.13 s (envelopes 0.02, global search 0.05, local block matching
+0.03, envelope Gauss-Newton 0.03), final Gauss-Newton 0.17 s (8 iterations: the tolerance applies to the smaller
+displacement component; each iteration mostly the cubic re-interpolation of I_2 at 0.55 M pixels), check 0.01 s.
+
+Earlier, with the paper's procedure as the default (2026-11-29, load average 10-12, fastest of 5), default 2 mm
+mesh, numba installed: total 0.39-0.52 s per pair (R_P_sigma 0.39 s), 0.72 s for R_P_eps; a Gauss-Newton
+iteration after the first 18-30 ms (was 107-151 ms before the compiled image-term loops and the banded Cholesky:
+total 1.4-1.75 s); operator build 24-68 ms (was 190-230 ms).  Results equal to the earlier code's to 2e-13 mm
+(``--save`` / ``--compare``).
 """
 from __future__ import annotations
 
@@ -54,89 +74,91 @@ def make_pair(seed=0, snr_db=12.0):
     return speckle_pair(paper_field, SHAPE, SPACING, seed=seed, snr_db=snr_db)
 
 
-def uniform_field(strain):
-    """Uniform axial compression ``strain`` with half as much lateral expansion, about the image centre."""
-    def f(p):
-        x, y = p[:, 0], p[:, 1]
-        return np.column_stack([-strain * (x - 0.5 * SMALL[0] * SPACING[0]),
-                                0.5 * strain * (y - 0.5 * SMALL[1] * SPACING[1])])
-    return f
+PAIRS = ("synthetic", "3d-HI", "1200x125")
 
 
-#: The small pair of the speed targets (23 x 37.5 mm at the paper's sampling).
-SMALL = (1200, 125)
+def _pair(name):
+    """(reference, moving, spacing, origin, true displacement callable or None, true strain callable or None)."""
+    if name == "synthetic":
+        ref, mov = make_pair()
+        return ref, mov, SPACING, (0.0, 0.0), paper_field, None
+    if name == "3d-HI":
+        import forward
+        seq = forward.get_sequence("3d", "HI", seed=0)
+        return (seq.frames[0], seq.frames[6], seq.spacing, seq.origin, lambda p: seq.true_displacement(6, p),
+                lambda p: seq.true_strain(6, p))
+    if name == "1200x125":
+        from femreg.synthetic import speckle_pair
+        sp, shape = (0.025, 0.2), (1200, 125)
+        yc = 0.5 * (shape[1] - 1) * sp[1]
+
+        def f(p):
+            return np.column_stack([-0.05 * p[:, 0], 0.025 * (p[:, 1] - yc)])
+        ref, mov = speckle_pair(f, shape, sp, seed=1, snr_db=20)
+        return ref, mov, sp, (0.0, 0.0), f, None
+    raise SystemExit(f"unknown pair {name!r}; choose from {PAIRS}")
 
 
-def _run_one(name, alpha, element_size, q, repeat=1, strain=None):
+def _run_one(name, alpha, element_size, q, repeat=1, pair="synthetic", strategy="auto"):
     import femreg
     from femreg.metrics import field_errors
-    from femreg.synthetic import speckle_pair
-    field = paper_field if strain is None else uniform_field(strain)
-    ref, mov = make_pair() if strain is None else speckle_pair(field, SMALL, SPACING, seed=1, snr_db=20.0)
+    ref, mov, sp, origin, true_u, true_e = _pair(pair)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     best = None
     for _ in range(repeat):   # the machine is shared: keep the fastest of `repeat` runs
-        t = time.perf_counter()
-        res = femreg.register(ref, mov, spacing=SPACING, regularizer=name, alpha=alpha,
-                              element_size=element_size)
-        total = time.perf_counter() - t
+        t, c = time.perf_counter(), time.process_time()
+        res = femreg.register(ref, mov, spacing=sp, origin=origin, regularizer=name, alpha=alpha,
+                              element_size=element_size, strategy=strategy)
+        total, cpu = time.perf_counter() - t, time.process_time() - c
         if best is None or total < best[0]:
-            best = (total, res)
-    total, res = best
-    err = field_errors(res, field)
-    q.put(dict(name=name, u=res.u, alpha=res.alpha, timings=res.timings, total=total, nit=res.nit, success=res.success,
-               message=res.message, err=err, n_nodes=res.mesh.p.shape[1], ncc=(res.ncc_before, res.ncc_after),
+            best = (total, cpu, res)
+    total, cpu, res = best
+    err = field_errors(res, true_u, true_e) if true_e is not None else field_errors(res, true_u)
+    q.put(dict(name=name, u=res.u, alpha=res.alpha, timings=res.timings, total=total, cpu=cpu, nit=res.nit,
+               success=res.success, message=res.message, err=err, n_nodes=res.mesh.p.shape[1],
+               ncc=(res.ncc_before, res.ncc_after), shape=ref.shape,
                rss_before_mb=base / 1024, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
-def run_isolated(name, alpha=None, element_size=None, repeat=1, strain=None):
+def run_isolated(name, alpha=None, element_size=None, repeat=1, pair="synthetic", strategy="auto"):
     ctx = mp.get_context("fork")
     q = ctx.Queue()
-    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat, strain))
+    p = ctx.Process(target=_run_one, args=(name, alpha, element_size, q, repeat, pair, strategy))
     p.start()
     out = q.get()
     p.join()
     return out
 
 
-def timings(save=None, compare=None):
-    from femreg.regularizers import available_regularizers
+def timings(pairs=PAIRS, regularizers=("momentum-stress",), strategies=("auto", "paper"), repeat=3, save=None,
+            compare=None):
+    print(f"fastest of {repeat} runs per case; wall and CPU seconds (CPU = single-threaded process time)")
     us = {}
-    print(f"paper-geometry pair {SHAPE}, spacing {SPACING} mm, SNR 12 dB; fastest of 5 runs per regulariser")
-    for name in available_regularizers():
-        r = run_isolated(name, repeat=5)
-        us[name] = r["u"]
-        t = r["timings"]
-        it = t["per_iteration"]
-        print(f"\n[{name}] alpha={r['alpha']:g}  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  "
-              f"({r['message']})")
-        print("  " + " | ".join(f"{k} {v:.3f} s" for k, v in t.items()
-                                 if isinstance(v, float) and k not in ("total", "gauss_newton")))
-        if it:
-            print(f"  GN: first iteration {it[0]:.3f} s (incl. Hessian assembly + factorisation), "
-                  f"later {np.mean(it[1:]) if len(it) > 1 else float('nan'):.3f} s/iter, "
-                  f"GN total {t['gauss_newton']:.3f} s")
-        print(f"  TOTAL {r['total']:.3f} s   peak RSS {r['peak_mb']:.0f} MB "
-              f"(after imports+pair {r['rss_before_mb']:.0f} MB)")
-        e = r["err"]
-        print(f"  errors: ux {100*e['ux']:.2f} %  uy {100*e['uy']:.1f} %  exx {100*e['exx']:.1f} %  "
-              f"eyy {100*e['eyy']:.1f} %  exy {100*e['exy']:.1f} %  total strain {100*e['e']:.1f} %   "
-              f"NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}")
-    print(f"\n{SMALL[0]} x {SMALL[1]} pairs, uniform compression, SNR 20 dB, default register (R_P_sigma); "
-          "fastest of 3")
-    for strain in (0.005, 0.02, 0.05):
-        r = run_isolated("momentum-stress", repeat=3, strain=strain)
-        us[f"small-{strain}"] = r["u"]
-        t, e = r["timings"], r["err"]
-        print(f"  strain {100 * strain:3.1f} %: TOTAL {r['total']:.3f} s (initial guess {t.get('initial', 0.0):.3f} s, "
-              f"{r['nit']} GN iterations {t.get('gauss_newton', 0.0):.3f} s)  total strain error {100 * e['e']:.1f} %  "
-              f"ux {100 * e['ux']:.2f} %  success={r['success']}")
+    for pair in pairs:
+        for strategy in strategies:
+            for name in regularizers:
+                r = run_isolated(name, repeat=repeat, pair=pair, strategy=strategy)
+                us[f"{pair}-{strategy}-{name}"] = r["u"]
+                t = r["timings"]
+                it = t.get("per_iteration", [])
+                print(f"\n[{pair} {r['shape'][0]}x{r['shape'][1]} | strategy={strategy} | {name}] alpha={r['alpha']:g}"
+                      f"  nodes={r['n_nodes']}  nit={r['nit']}  success={r['success']}  ({r['message']})")
+                print(f"  TOTAL {r['total']:.3f} s wall, {r['cpu']:.3f} s CPU   peak RSS {r['peak_mb']:.0f} MB "
+                      f"(after imports+pair {r['rss_before_mb']:.0f} MB)")
+                stages = [k for k in t if k not in ("per_iteration", "total")]
+                print("  " + " | ".join(f"{k} {t[k]:.3f}" for k in stages))
+                if it:
+                    print(f"  final GN iterations: " + " ".join(f"{v:.3f}" for v in it) + " s")
+                e = {k: (f"{100 * v:.2f}" if np.isfinite(v) else "--") for k, v in r["err"].items()}   # -- : truth 0
+                print(f"  errors: ux {e['ux']} %  uy {e['uy']} %  exx {e['exx']} %  eyy {e['eyy']} %  "
+                      f"exy {e['exy']} %  total strain {e['e']} %   NCC {r['ncc'][0]:.3f} -> {r['ncc'][1]:.3f}",
+                      flush=True)
     if save:
         np.savez(save, **us)
     if compare:
         with np.load(compare) as z:
             print("\nmax |u - u_saved| (mm): " + ", ".join(f"{k} {np.abs(v - z[k]).max():.1e}" for k, v in us.items()
-                                                       if k in z))
+                                                       if k in z and z[k].shape == v.shape))
 
 
 def study(sizes=(1.0, 2.0), grids=None):
@@ -198,10 +220,17 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study", action="store_true")
     ap.add_argument("--solvers", action="store_true")
+    ap.add_argument("--pairs", nargs="+", default=list(PAIRS), choices=PAIRS)
+    ap.add_argument("--strategies", nargs="+", default=["auto", "paper"], choices=("auto", "paper"))
+    ap.add_argument("--all", action="store_true", help="every regulariser (default R_P_sigma only)")
+    ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--save", help="write every registration's nodal u to this .npz")
     ap.add_argument("--compare", help="print max |u - u_saved| against a --save file")
     ap.add_argument("--no-compiled", action="store_true", help="use the scipy/numpy paths instead of numba's")
     a = ap.parse_args()
+    if a.no_compiled:
+        from femreg import _kernels
+        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
     if a.no_compiled:
         from femreg import _kernels
         _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
@@ -210,4 +239,6 @@ if __name__ == "__main__":
     elif a.study:
         study()
     else:
-        timings(a.save, a.compare)
+        from femreg.regularizers import available_regularizers
+        timings(a.pairs, tuple(available_regularizers()) if a.all else ("momentum-stress",), a.strategies,
+                a.repeat, a.save, a.compare)

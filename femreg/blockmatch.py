@@ -173,13 +173,17 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
     shape = (sfft.next_fast_len(ra, real=True), sfft.next_fast_len(rl, real=True))
     C = sfft.irfft2(sfft.rfft2(R, s=shape, workers=-1) * np.conj(sfft.rfft2(T, s=shape, workers=-1)),
                     s=shape, workers=-1)[:, :2 * sa + 1, :2 * sl + 1]
-    # moving-window sums over every shift via an integral image
+    # moving-window sums over every shift from integral images of the whole padded moving image (windows
+    # overlap, so summing each search region separately would repeat most of the work)
+    pa_ = A[:, None, None] + np.arange(2 * sa + 1)[None, :, None]            # (nw, shifts_a, 1) top rows
+    pl_ = L[:, None, None] + np.arange(2 * sl + 1)[None, None, :]            # (nw, 1, shifts_l) left columns
+
     def box(X):
-        I = np.zeros((X.shape[0], ra + 1, rl + 1))
-        I[:, 1:, 1:] = X.cumsum(1).cumsum(2)
-        return I[:, wa:, wl:] - I[:, :-wa, wl:] - I[:, wa:, :-wl] + I[:, :-wa, :-wl]
-    S1 = box(R)
-    S2 = box(R * R)
+        I = np.zeros((X.shape[0] + 1, X.shape[1] + 1))
+        I[1:, 1:] = X.cumsum(0).cumsum(1)
+        return I[pa_ + wa, pl_ + wl] - I[pa_, pl_ + wl] - I[pa_ + wa, pl_] + I[pa_, pl_]
+    S1 = box(movp)
+    S2 = box(movp * movp)
     var = np.maximum(S2 - S1 * S1 / (wa * wl), 0.0)
     denom = tn[:, None, None] * np.sqrt(var)
     scale = np.max(denom) if denom.size else 1.0

@@ -23,7 +23,7 @@ Every level warps the moving image by the whole field of the level above (not on
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 from scipy import ndimage, signal
@@ -36,7 +36,7 @@ from .pixels import PixelQuadrature, PointLocator
 from .scaling import effective_alpha
 from .solver import Objective, gauss_newton
 
-__all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "default_settings", "envelope",
+__all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
@@ -48,10 +48,12 @@ GLOBAL_STRAINS = tuple(np.round(np.arange(-0.12, 0.0601, 0.01), 3))
 @dataclass
 class SpeckleStats:
     """What the image itself says about its scale (mm): ``period`` = axial RF period (1 / spectral centroid),
-    ``cell`` = (axial, lateral) full width at half maximum of the envelope autocorrelation."""
+    ``cell`` = (axial, lateral) full width at half maximum of the envelope autocorrelation.  ``envelope`` is the
+    image's envelope (:func:`envelope`), kept so that the pyramid does not compute it again."""
 
     period: float
     cell: np.ndarray
+    envelope: np.ndarray | None = dc_field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -65,33 +67,66 @@ class PyramidSettings:
     search: np.ndarray
 
 
+def _analytic(img):
+    """Axial FFT of ``img`` and its envelope |analytic signal| (the transform of scipy.signal.hilbert, shared)."""
+    from scipy import fft as sfft
+
+    m = img.shape[0]
+    X = sfft.fft(img, axis=0)
+    h = np.zeros(m)
+    h[0] = 1.0
+    if m % 2 == 0:
+        h[m // 2] = 1.0
+        h[1:m // 2] = 2.0
+    else:
+        h[1:(m + 1) // 2] = 2.0
+    return X, np.abs(sfft.ifft(X * h[:, None], axis=0))
+
+
 def envelope(image) -> np.ndarray:
-    """Envelope |analytic signal| along the axial direction (scipy.signal.hilbert)."""
-    return np.abs(signal.hilbert(np.asarray(image, float), axis=0))
+    """Envelope |analytic signal| along the axial direction (as scipy.signal.hilbert)."""
+    return _analytic(np.asarray(image, float))[1]
+
+
+def _centroid_period(power, n: int, dx: float) -> float:
+    """1 / spectral centroid (mm) of a line-averaged axial power spectrum (n samples, DC bin ignored)."""
+    P = np.array(power, float)
+    P[0] = 0.0                                        # the line means (DC) carry no period
+    f = np.fft.rfftfreq(n, dx)
+    fc = float(np.sum(f * P) / np.sum(P)) if np.sum(P) > 0 else 0.0
+    return 1.0 / fc if fc > 0 else float(n * dx)
+
+
+def rf_period(image, spacing) -> float:
+    """Axial RF period (mm) alone, as in :func:`speckle_statistics` (one real FFT, no envelope)."""
+    from scipy import fft as sfft
+
+    img = np.asarray(image, float)
+    P = np.mean(np.abs(sfft.rfft(img, axis=0)) ** 2, axis=1)
+    return _centroid_period(P, img.shape[0], float(spacing[0]))
 
 
 def speckle_statistics(image, spacing) -> SpeckleStats:
     """RF period from the axial power spectrum's centroid; speckle cell from the envelope autocorrelation
-    (FFT, zero-padded, averaged over lines / rows), both in mm."""
+    (FFT, zero-padded, averaged over lines / rows), both in mm.  The line average is taken on the power
+    spectra (one inverse transform; the same by linearity)."""
+    from scipy import fft as sfft
+
     img = np.asarray(image, float)
     dx, dy = float(spacing[0]), float(spacing[1])
-    P = np.mean(np.abs(np.fft.rfft(img - img.mean(axis=0), axis=0)) ** 2, axis=1)
-    f = np.fft.rfftfreq(img.shape[0], dx)
-    fc = float(np.sum(f * P) / np.sum(P)) if np.sum(P) > 0 else 0.0
-    period = 1.0 / fc if fc > 0 else float(img.shape[0] * dx)
-    e = envelope(img)
-    e = e - e.mean()
+    X, env = _analytic(img)
+    period = _centroid_period(np.mean(np.abs(X[:img.shape[0] // 2 + 1]) ** 2, axis=1), img.shape[0], dx)
+    e = env - env.mean()
     cell = []
     for ax, d in ((0, dx), (1, dy)):
         m = e.shape[ax]
-        F = np.fft.rfft(e, n=2 * m, axis=ax)
-        ac = np.fft.irfft(np.abs(F) ** 2, axis=ax)
-        ac = (ac[:m] if ax == 0 else ac[:, :m]).mean(axis=1 - ax)
+        F = sfft.rfft(e, n=2 * m, axis=ax)
+        ac = sfft.irfft(np.mean(np.abs(F) ** 2, axis=1 - ax), n=2 * m)[:m]
         ac = ac / ac[0] if ac[0] > 0 else ac
         below = np.flatnonzero(ac < 0.5)
         k = below[0] if below.size else m
         cell.append(2.0 * k * d)
-    return SpeckleStats(period=period, cell=np.array(cell))
+    return SpeckleStats(period=period, cell=np.array(cell), envelope=env)
 
 
 def default_settings(shape, spacing, stats: SpeckleStats, element_size=None) -> PyramidSettings:
@@ -119,11 +154,11 @@ def default_settings(shape, spacing, stats: SpeckleStats, element_size=None) -> 
     return PyramidSettings(element_size=h, decimation=q, window=window, search=search)
 
 
-def _decimated_envelopes(ref, mov, q):
+def _decimated_envelopes(ref, mov, q, ref_envelope=None):
     """Low-passed (Gaussian, sigma q/2 samples axially) and decimated envelopes, zero mean, unit RMS (ref)."""
     out = []
-    for img in (ref, mov):
-        e = envelope(img)
+    for img, env in ((ref, ref_envelope), (mov, None)):
+        e = envelope(img) if env is None else env
         if q > 1:
             e = ndimage.gaussian_filter1d(e, 0.5 * q, axis=0)[::q]
         out.append(e)
@@ -146,35 +181,87 @@ def _pixel_points(shape, spacing, origin):
     return np.column_stack([X.ravel(), Y.ravel()])
 
 
+def _axial_resample(image, pos) -> np.ndarray:
+    """``image`` sampled at fractional row positions ``pos`` (n_rows_out,), the same for every column: cubic
+    convolution (Keys, a = -0.5; 4 taps, no prefilter), zero outside.  Used for the axial-strain pre-warps of
+    the global search, where a full 2D spline warp per trial strain cost 10-15 ms on a paper-size envelope."""
+    img = np.asarray(image, float)
+    n = img.shape[0]
+    i0 = np.floor(pos).astype(np.int64)
+    t = pos - i0
+    # Keys kernel weights for taps i0-1 .. i0+2
+    w = np.stack([((-0.5 * t + 1.0) * t - 0.5) * t,
+                  (1.5 * t - 2.5) * t * t + 1.0,
+                  ((-1.5 * t + 2.0) * t + 0.5) * t,
+                  (0.5 * t - 0.5) * t * t])
+    out = np.zeros((pos.size, img.shape[1]))
+    for k in range(4):
+        idx = i0 - 1 + k
+        wk = np.where((idx >= 0) & (idx < n), w[k], 0.0)
+        out += wk[:, None] * img[np.clip(idx, 0, n - 1)]
+    return out
+
+
+def _peak_offset(cm, c0, cp) -> float:
+    """Sub-sample offset of a parabola through three samples around a maximum (0 if not concave)."""
+    den = cm - 2.0 * c0 + cp
+    return float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5)) if (np.isfinite(den) and den < 0) else 0.0
+
+
 def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, fraction=SEARCH_FRACTION):
     """Best (shift, axial strain) over translations up to ``fraction`` of the extent and the given axial strains.
 
-    For each strain e the moving envelope is pre-warped by u_x = e (x - x_mid) and one window covering the
-    central part of the reference is matched by NCC over every shift.  Returns ``(coef, ncc)``: the affine field
-    coefficients (3, 2) as in :meth:`BlockMatchResult.affine_fit` and the peak NCC."""
+    For each strain e the moving envelope is pre-warped by u_x = e (x - x_mid); the central part of the reference
+    (the image less ``fraction`` of its extent on every side) is matched by NCC over every shift, by one FFT
+    correlation (the template's transform is computed once) and box sums of the moving image for the norms.
+    The peak is refined by a parabola per axis.  Returns ``(coef, ncc)``: the affine field coefficients (3, 2)
+    as in :meth:`BlockMatchResult.affine_fit` and the peak NCC."""
+    from scipy import fft as sfft
+
     spacing = np.asarray(spacing, float)
     origin = np.asarray(origin, float)
-    shape = np.asarray(ref_env.shape)
-    extent = shape * spacing
-    search = np.asarray(fraction) * extent
-    window = np.maximum(extent - 2.0 * search, 2.0 * spacing)
-    xm = origin[0] + 0.5 * (shape[0] - 1) * spacing[0]
-    x = origin[0] + spacing[0] * np.arange(shape[0])
+    ref = np.asarray(ref_env, float)
+    mov = np.asarray(mov_env, float)
+    n = np.array(ref.shape)
+    s = np.minimum(np.ceil(np.asarray(fraction) * n - 1e-9).astype(int), (n - 2) // 2)
+    s = np.maximum(s, 0)
+    w = n - 2 * s                                      # template: the reference less s on every side
+    T = ref[s[0]:s[0] + w[0], s[1]:s[1] + w[1]]
+    T = T - T.mean()
+    tn = float(np.sqrt(np.sum(T * T)))
+    shape = (sfft.next_fast_len(int(n[0]), real=True), sfft.next_fast_len(int(n[1]), real=True))
+    FT = np.conj(sfft.rfft2(T, s=shape))
+    xm = origin[0] + 0.5 * (n[0] - 1) * spacing[0]
+    x = origin[0] + spacing[0] * np.arange(n[0])
+    na, nl = 2 * s[0] + 1, 2 * s[1] + 1
     best = (None, -np.inf)
     for e in strains:
-        ux = e * (x - xm)
-        grid = np.zeros(tuple(shape) + (2,))
-        grid[..., 0] = ux[:, None]
-        warped = _warp(mov_env, spacing, origin, grid) if e else mov_env
-        bm = block_match(ref_env, warped, spacing, origin, window=tuple(window), overlap=(0.0, 0.0),
-                         search=tuple(search), median_size=1, subsample=True, compand_strain=None)
-        c = float(np.max(bm.ncc))
+        R = _axial_resample(mov, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else mov
+        C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
+        I1 = np.zeros((n[0] + 1, n[1] + 1))
+        I2 = np.zeros((n[0] + 1, n[1] + 1))
+        I1[1:, 1:] = R.cumsum(0).cumsum(1)
+        I2[1:, 1:] = (R * R).cumsum(0).cumsum(1)
+
+        def box(I):
+            return I[w[0]:w[0] + na, w[1]:w[1] + nl] - I[:na, w[1]:w[1] + nl] - I[w[0]:w[0] + na, :nl] + I[:na, :nl]
+        S1, S2 = box(I1), box(I2)
+        var = np.maximum(S2 - S1 * S1 / (w[0] * w[1]), 0.0)
+        den = tn * np.sqrt(var)
+        ncc = np.where(den > 1e-12 * max(float(den.max()), 1e-300), C / np.where(den > 0, den, 1.0), -np.inf)
+        k = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
+        c = float(ncc[k])
         if c > best[1]:
-            k = np.unravel_index(np.argmax(bm.ncc), bm.ncc.shape)
-            s = bm.raw[k]
+            d = np.array(k, float)
+            if 0 < k[0] < na - 1:
+                d[0] += _peak_offset(ncc[k[0] - 1, k[1]], c, ncc[k[0] + 1, k[1]])
+            if 0 < k[1] < nl - 1:
+                d[1] += _peak_offset(ncc[k[0], k[1] - 1], c, ncc[k[0], k[1] + 1])
             coef = np.zeros((3, 2))
-            coef[0] = s
-            coef[0, 0] += -e * xm
+            sh = (d - s) * spacing
+            # reference(x) ~ moving_e(x + sh) = moving(x + sh + e (x + sh_x - x_mid))
+            coef[0] = sh
+            coef[0, 0] = sh[0] * (1.0 + e) - e * xm
             coef[1, 0] = e
             best = (coef, c)
     return best
@@ -236,11 +323,12 @@ class PyramidGuess:
 
 def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alpha, stats: SpeckleStats,
                           settings: PyramidSettings, margin=None, maxiter: int = 20, tol: float = 1e-3,
-                          linear_solver: str = "splu") -> PyramidGuess:
+                          linear_solver: str = "splu", ref_envelope=None) -> PyramidGuess:
     """Steps 2-3 of the module docstring on normalised RF images ``ref``, ``mov`` (n_a, n_l).
 
     ``regularizer_factory()`` returns a fresh regulariser (user alpha set); its weight on the coarse mesh is
-    scaled by :func:`femreg.scaling.effective_alpha`."""
+    scaled by :func:`femreg.scaling.effective_alpha`.  ``ref_envelope``: :func:`envelope` of ``ref`` if already
+    computed (e.g. ``stats.envelope`` when the statistics come from ``ref`` itself)."""
     import time
 
     timings = {}
@@ -248,7 +336,7 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     origin = np.asarray(origin, float)
     t = time.perf_counter()
     q = settings.decimation
-    er, em = _decimated_envelopes(ref, mov, q)
+    er, em = _decimated_envelopes(ref, mov, q, ref_envelope)
     sp_c = np.array([q * spacing[0], spacing[1]])
     timings["envelopes"] = time.perf_counter() - t
 

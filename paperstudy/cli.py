@@ -23,6 +23,9 @@ def add_parser(subparsers):
                    help="run the cases on a running Dask scheduler (tcp://host:8786) instead of local processes")
     p.add_argument("--element-size", type=float, metavar="MM",
                    help="registration element size in mm (default: the study's, 2 mm)")
+    p.add_argument("--strategy", choices=("paper", "auto"), default=None,
+                   help="femreg.register strategy of every case (default: the study's, 'auto'; 'paper' = the "
+                        "paper's procedure)")
     p.add_argument("--resume", action="store_true", help="keep finished cases already in OUTDIR")
     p.add_argument("--no-figures", action="store_true", help="tables only")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -42,12 +45,14 @@ def run(args) -> int:
     from femreg.errors import InputError
     from .study import StudySettings
 
-    settings = StudySettings.quick() if args.quick else StudySettings.full()
+    kw = {}
     if args.element_size is not None:
         if not args.element_size > 0:
             raise InputError(f"--element-size must be > 0 mm, got {args.element_size}")
-        settings = StudySettings.quick(element_size=args.element_size) if args.quick else \
-            StudySettings.full(element_size=args.element_size)
+        kw["element_size"] = args.element_size
+    if getattr(args, "strategy", None):
+        kw["strategy"] = args.strategy
+    settings = StudySettings.quick(**kw) if args.quick else StudySettings.full(**kw)
     res = run_study(out, settings=settings, jobs=args.jobs, scheduler=args.scheduler, resume=args.resume,
                     progress=not args.no_progress,
                     figures=not args.no_figures)

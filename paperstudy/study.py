@@ -161,6 +161,14 @@ class StudySettings:
     element_size, margin : registration mesh (mm); pinned (not femreg's defaults, which may change) so that the
         case keys and results stay valid; None = femreg's defaults at run time.
     linear_solver, maxiter, tol : Gauss-Newton options of :func:`femreg.register`.
+    strategy : ``strategy`` of :func:`femreg.register` / :func:`femreg.track`: "paper" (the paper's procedure:
+        block matching, the pinned mesh) or "auto" (femreg's default: pyramid start, peak-hopping repair,
+        hourglass control of the momentum regularisers); part of every case key.  Default "auto", what femreg's
+        users get; it measured no higher error anywhere: the 16 3D single-frame 1 -> 7 cells at the report's
+        alphas 0.0-2.1 points lower than "paper" (R_P_sigma 3d-HI 14.1 vs 14.5 %, R_P_eps 3d-HOM 10.1 vs
+        12.2 %; "paper" reproduces docs/study_report.md to 0.1 point), and the quick study R_P_sigma 1 -> 3
+        19.1 vs 28.5 %, accumulated 1 -> 7 15.3 vs 23.0 %, without the e_yy checkerboard of the momentum
+        regularisers.  ``strategy="paper"`` is the paper's procedure as published.
     seed, snr_db, n_frames : simulation of the data sets (:func:`forward.get_sequence`).
     sequence_options : extra keyword arguments of :func:`forward.get_sequence` (e.g. a smaller imaged area).
     crop_mm : (x0, x1, y0, y1) mm, optional: register only this part of the images.
@@ -177,8 +185,6 @@ class StudySettings:
     diagnose_element_sizes, diagnose_alpha_factors : element-size check of the report: the single-frame case of
         the first single-frame data set with R_eps and R_P_sigma on meshes of these sizes (mm), at the selected
         alpha times each factor (alpha depends on the mesh), best of them reported.
-    strategy : ``strategy`` of :func:`femreg.register` ("auto": femreg's default, with hourglass control of the
-        momentum terms, an envelope-pyramid start and peak-hopping repair; "paper": the paper's pipeline).
     hourglass : hourglass-control weight of the momentum regularisers (relative to alpha; None = the strategy's
         default, 0 = the paper's form).  Their edge-midpoint jumps (eq:Ae7) do not see the node-to-node
         checkerboard of bilinear quads; without it the lateral strain carries that checkerboard ("Findings").
@@ -209,6 +215,7 @@ class StudySettings:
     linear_solver: str = "splu"
     maxiter: int = 20
     tol: float = 1e-3
+    strategy: str = "auto"
     seed: int = 0
     snr_db: float | None = 12.0
     n_frames: int = 20
@@ -223,7 +230,6 @@ class StudySettings:
     track_init: str = "blockmatch"
     diagnose_element_sizes: tuple = ()
     diagnose_alpha_factors: tuple = (0.3, 1.0, 3.0)
-    strategy: str = "auto"
     hourglass: float | None = None
     pair_coarse_to_fine: object = None
     auto_alpha: bool = True
@@ -269,6 +275,8 @@ class StudySettings:
         lo, hi = self.alpha_decades
         if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi and self.alpha_step > 0):
             raise InputError(f"bad alpha grid: decades {self.alpha_decades}, step {self.alpha_step}")
+        if self.strategy not in ("paper", "auto"):
+            raise InputError(f"strategy must be 'paper' or 'auto', got {self.strategy!r}")
         if self.alphas is None and not self.sweep_datasets:
             raise InputError("either give alphas or at least one sweep data set")
         if self.alphas is not None:

@@ -105,9 +105,10 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
     g.add_argument("--hourglass", type=float, default=None, metavar="W",
-                   help="momentum regularisers only: hourglass control weight relative to alpha (default: "
-                        "femreg.registration.DEFAULT_HOURGLASS with --strategy auto, 0 = the paper's with --strategy "
-                        "paper)")
+                   help="momentum regularisers only: hourglass control weight relative to alpha (default with "
+                        "--strategy auto: femreg.registration.DEFAULT_HOURGLASS for a pair, "
+                        "femreg.sequence.TRACK_HOURGLASS for the increments of track; 0 = the paper's with "
+                        "--strategy paper)")
     g.add_argument("--strategy", choices=("auto", "paper"), default="auto",
                    help="auto (default): speckle-sized mesh, coarse-to-fine start, peak-hopping repair; paper: the "
                         "paper's procedure (5 x 9 mm block matching, 2 mm mesh)")
