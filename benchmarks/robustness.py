@@ -377,6 +377,11 @@ def tables(rows, cases, methods, strategy) -> str:
     lines = ["## Total strain error % (hop: pixels with |u_x error| > wavelength/4)\n", head]
     for n in names:
         lines.append(f"| {n} | " + " | ".join(_fmt(by[(n, m)]) if (n, m) in by else "" for m in methods) + " |\n")
+    lines += ["\n## Axial strain error % (e_xx only)\n", head]
+    for n in names:
+        lines.append(f"| {n} | " + " | ".join(
+            f"{100 * by[(n, m)]['exx']:.1f}" if (n, m) in by and np.isfinite(by[(n, m)]["exx"]) else ""
+            for m in methods) + " |\n")
     lines += ["\n## Axial / lateral displacement error % (u_x / u_y)\n", head]
     for n in names:
         lines.append(f"| {n} | " + " | ".join(
