@@ -160,13 +160,17 @@ def ncc_block_match(ref, mov, spacing, origin=(0.0, 0.0), *, window_mm=(2.0, 2.0
     C = np.array([(i, j) for i in ci for j in cj])
     sa = int(round(search_fraction * ne))
     sl = max(1, int(round(search_fraction * nl)))
-    d1, _ = _match(er, em, C, (ha, hl), sa, sl, np.zeros((len(C), 2)), subsample=True)
-    d1 = d1.reshape(len(ci), len(cj), 2)
+    d1, pk = _match(er, em, C, (ha, hl), sa, sl, np.zeros((len(C), 2)), subsample=True)
+    # outliers: weak peaks or peaks on the (possibly image-clipped) search border -> nearest good window
+    top = C[:, 0] - ha + d1[:, 0]                          # first row of the matched window in em
+    bad = ~np.all(np.isfinite(d1), axis=1) | (pk < 0.5) | (np.abs(d1[:, 0]) > sa - 1)
+    bad |= (top < 0.5) | (top + 2 * ha > ne - 1.5)
+    if bad.any() and (~bad).any():
+        d1[bad] = d1[~bad][np.argmin(((C[bad, None, :] - C[None, ~bad, :]) ** 2).sum(-1), axis=1)]
+    d1 = np.nan_to_num(d1.reshape(len(ci), len(cj), 2))
     d1[..., 0] *= k                                        # decimated -> RF axial pixels
     for c in range(2):
-        v = d1[..., c]
-        v[np.isnan(v)] = np.nanmedian(v) if np.isfinite(v).any() else 0.0
-        d1[..., c] = ndimage.median_filter(v, size=3, mode="nearest")
+        d1[..., c] = ndimage.median_filter(d1[..., c], size=3, mode="nearest")
     guide = RegularGridInterpolator((ci * k, cj), d1, bounds_error=False, fill_value=None,
                                     method="linear" if min(len(ci), len(cj)) > 1 else "nearest")
     I, J = np.meshgrid(np.arange(na), np.arange(nl), indexing="ij")
@@ -179,7 +183,9 @@ def ncc_block_match(ref, mov, spacing, origin=(0.0, 0.0), *, window_mm=(2.0, 2.0
     fi = _window_grid(na, ha + sa2, round(step_mm[0] / dx))
     fj = _window_grid(nl, hl + 1, max(1, round(step_mm[1] / dy)))
     F = np.array([(i, j) for i in fi for j in fj])
-    d2, _ = _peak(_ncc_shifts(ref, warped, F, (ha, hl), sa2, 1))
+    d2, pk = _peak(_ncc_shifts(ref, warped, F, (ha, hl), sa2, 1))
+    bad = pk < 0.3                                         # decorrelated window: keep the guide there
+    d2[bad] = 0.0
     d2 = (d2 + G[F[:, 0], F[:, 1]]).reshape(len(fi), len(fj), 2)
     for c in range(2):
         d2[..., c] = ndimage.median_filter(d2[..., c], size=3, mode="nearest")
@@ -190,9 +196,10 @@ def ncc_block_match(ref, mov, spacing, origin=(0.0, 0.0), *, window_mm=(2.0, 2.0
 
 
 def _to_pixels(fields: dict, ri, rj, shape) -> dict:
-    """Bilinear interpolation of fields sampled at pixel rows ``ri`` / columns ``rj`` onto every pixel; NaN
-    outside the sampled box."""
-    I, J = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    """Bilinear interpolation of fields sampled at pixel rows ``ri`` / columns ``rj`` onto every pixel; constant
+    (nearest sample) outside the sampled box."""
+    I, J = np.meshgrid(np.clip(np.arange(shape[0]), ri[0], ri[-1]), np.clip(np.arange(shape[1]), rj[0], rj[-1]),
+                       indexing="ij")
     pts = np.column_stack([I.ravel(), J.ravel()])
     out = {}
     for k, v in fields.items():
