@@ -23,20 +23,26 @@ Outputs (``--out``, default ``out/robustness/``): ``results.csv`` (one row per c
 (the Markdown tables printed at the end) and ``<case>.png`` per case: the axial strain of every method side by side,
 truth first, one colour scale, the ROI outlined.
 
-Run: ``python benchmarks/robustness.py`` (full matrix, about 15 min on 2 cores) or ``--quick`` (6 cases);
-``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise.
+Run: ``python benchmarks/robustness.py`` (full matrix, about 10 min on 2 shared cores) or ``--quick`` (6 cases);
+``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise.  The peers'
+results are cached in ``<out>/peer_cache`` (keyed by the case and the source of the simulator and of the peers),
+so a rerun after a change to femreg recomputes femreg only (``--no-cache`` recomputes everything); the times
+printed for cached peers are those of the run that computed them.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
+import hashlib
 import inspect
+import json
 import math
 import os
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -305,7 +311,40 @@ def _full_truth_exx(data, case):
     return np.repeat(100 * e[:, 0].reshape(X.shape), step, axis=0)[:shape[0]]
 
 
-def run(cases, methods, out: Path, progress=True):
+def _case_key(case, data, method) -> str:
+    """Hash of everything a peer's result depends on: the case, the rendered pair's parameters, and the source of
+    the simulator and of the peers."""
+    src = "".join((Path(__file__).parent / f).read_text() for f in ("peers.py",)) + "".join(
+        (ROOT / "forward" / f).read_text() for f in ("pairs.py", "fields.py", "ultrasound.py"))
+    desc = dict(name=case.name, probe=case.probe, size=list(case.size_mm), snr=case.snr_db, top=case.top_mm,
+                seed=case.seed, sequence=case.sequence, field=str(getattr(data, "name", "")),
+                params=getattr(data, "params", None), method=method)
+    return hashlib.sha256((json.dumps(desc, sort_keys=True, default=str) + src).encode()).hexdigest()[:16]
+
+
+def _cache_load(cache, case, data, method):
+    """(grids, message, seconds) of a peer from ``cache`` (a folder) or None.  femreg is never cached."""
+    if cache is None or method not in PEER_METHODS:
+        return None
+    path = cache / f"{case.name}__{method.split()[0]}__{_case_key(case, data, method)}.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return {k: z[k].astype(float) for k in _GRID_KEYS}, str(z["message"]), float(z["time_s"])
+
+
+def _cache_save(cache, case, data, method, g, msg, dt):
+    if cache is None or method not in PEER_METHODS:
+        return
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / f"{case.name}__{method.split()[0]}__{_case_key(case, data, method)}.npz"
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, message=np.str_(msg), time_s=np.float64(dt),
+             **{k: np.asarray(g[k], np.float32) for k in _GRID_KEYS})
+    os.replace(tmp, path)
+
+
+def run(cases, methods, out: Path, progress=True, cache: Path | None = None):
     from tqdm import tqdm
 
     out.mkdir(parents=True, exist_ok=True)
@@ -334,7 +373,12 @@ def run(cases, methods, out: Path, progress=True):
                     r = dict(results["R_P_sigma"], message="same run as R_P_sigma (its default is the paper's)")
                 else:
                     try:
-                        g, msg, dt = run_method(method, case, data)
+                        cached = _cache_load(cache, case, data, method)
+                        if cached is not None:
+                            g, msg, dt = cached
+                        else:
+                            g, msg, dt = run_method(method, case, data)
+                            _cache_save(cache, case, data, method, g, msg, dt)
                         r = errors(g, t, sl, lam)
                     except Exception as exc:  # noqa: BLE001 -- a failing method is a result of the benchmark
                         g, msg, dt = {k: np.full(shape, np.nan) for k in _GRID_KEYS}, \
@@ -410,7 +454,12 @@ def main(argv=None):
     ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one")
     ap.add_argument("--out", default="out/robustness", help="output folder (default out/robustness)")
     ap.add_argument("--list", action="store_true", help="list the cases and methods and exit")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="added to every case's seed: other speckle and noise realisations of the same matrix")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--no-cache", action="store_true",
+                    help="recompute the peers (by default their results are cached in <out>/peer_cache, keyed by "
+                         "the case and the source of the simulator and the peers; femreg always runs)")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
@@ -418,6 +467,8 @@ def main(argv=None):
     if a.cases:
         words = [w for w in a.cases.split(",") if w]
         cases = [c for c in cases if any(w in c.name for w in words)]
+    if a.seed:
+        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
     methods = list(ALL_METHODS)
     if a.methods:
         words = [w for w in a.methods.split(",") if w]
@@ -432,7 +483,8 @@ def main(argv=None):
         print("no case or method selected (see --list)", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    run(cases, methods, Path(a.out), progress=not a.no_progress)
+    out = Path(a.out)
+    run(cases, methods, out, progress=not a.no_progress, cache=None if a.no_cache else out / "peer_cache")
     print(f"\ntotal {time.perf_counter() - t0:.0f} s, {len(cases)} cases x {len(methods)} methods")
     return 0
 
