@@ -8,8 +8,8 @@ gives nothing.
 * :func:`ncc_block_match`: NCC block matching, a coarse envelope pass with a wide search
   (``skimage.feature.match_template``) guiding a fine RF pass (box-filtered NCC over a small search), 3-point
   parabolic sub-sample peak fit, 3 x 3 median filter, least-squares strain (linear fit over a few windows).
-  The standard time-delay estimator of strain elastography: Ophir et al., Ultrason. Imaging 13 (1991), doi:10.1177/016173469101300201; sub-sample fit
-  and least-squares strain: Kallel & Ophir, Ultrason. Imaging 19 (1997), doi:10.1177/016173469701900303.
+  The standard time-delay estimator of strain elastography: Ophir et al., Ultrason. Imaging 13 (1991),
+  doi:10.1177/016173469101300201; sub-sample fit and least-squares strain: Kallel & Ophir, Ultrason. Imaging 19 (1997), doi:10.1177/016173469701900303.
 * :func:`bspline_sitk`: SimpleITK multi-resolution B-spline registration (LBFGS-B, correlation metric), first on
   smoothed envelopes, then on RF (Klein et al., elastix, IEEE TMI 29 (2010), doi:10.1109/TMI.2009.2035616;
   SimpleITK: Lowekamp et al., Front. Neuroinform. 7 (2013), doi:10.3389/fninf.2013.00045).
