@@ -9,9 +9,10 @@ gives nothing.
   (``skimage.feature.match_template``) guiding a fine RF pass (box-filtered NCC over a small search), 3-point
   parabolic sub-sample peak fit, 3 x 3 median filter, least-squares strain (linear fit over a few windows).
   The standard time-delay estimator of strain elastography: Ophir et al., Ultrason. Imaging 13 (1991),
-  doi:10.1177/016173469101300201; sub-sample fit and least-squares strain: Kallel & Ophir, Ultrason. Imaging 19 (1997), doi:10.1177/016173469701900303.
-* :func:`bspline_sitk`: SimpleITK multi-resolution B-spline registration (LBFGS-B, correlation metric), first on
-  smoothed envelopes, then on RF (Klein et al., elastix, IEEE TMI 29 (2010), doi:10.1109/TMI.2009.2035616;
+  doi:10.1177/016173469101300201; sub-sample fit and least-squares strain: Kallel & Ophir, Ultrason. Imaging 19
+  (1997), doi:10.1177/016173469701900303.
+* :func:`bspline_sitk`: SimpleITK multi-resolution B-spline registration (LBFGS-B, correlation metric) after an
+  affine stage, on smoothed envelopes (Klein et al., elastix, IEEE TMI 29 (2010), doi:10.1109/TMI.2009.2035616;
   SimpleITK: Lowekamp et al., Front. Neuroinform. 7 (2013), doi:10.3389/fninf.2013.00045).
 * :func:`optical_flow_skimage`: scikit-image TV-L1 optical flow (Zach, Pock & Bischof, DAGM 2007,
   doi:10.1007/978-3-540-74936-3_22) on envelopes resampled to square pixels, least-squares strain.
