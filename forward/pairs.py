@@ -25,7 +25,7 @@ import numpy as np
 
 from .ultrasound import PSF, ImagingGrid, make_scatterers, noise_sigma, render_rf
 
-__all__ = ["Probe", "PROBES", "probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField"]
+__all__ = ["Probe", "PROBES", "as_probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField"]
 
 #: Scatterers per (sigma_x * sigma_y) mm^2 of the PSF: 30 per mm^2 x 0.1406 mm x 0.5945 mm, the paper's density.
 SCATTERERS_PER_CELL = 30.0 * 0.14060 * 0.59451
@@ -120,7 +120,7 @@ PROBES = {
 }
 
 
-def probe(spec) -> Probe:
+def as_probe(spec) -> Probe:
     """A :class:`Probe` from a preset name, a Probe, or a dict of its parameters."""
     if isinstance(spec, Probe):
         return spec
@@ -326,7 +326,7 @@ def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_
     return frames, grid, params
 
 
-def make_pair(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
+def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
               top_mm: float = 2.0, scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "") -> Pair:
     """Render a reference/moving RF pair related by ``field``.
 
@@ -334,7 +334,7 @@ def make_pair(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float | N
     ----------
     field : object with ``displacement(points)`` and ``strain(points)`` (:mod:`forward.fields`), or a callable
         ``u(points (n, 2) mm) -> (n, 2) mm`` (strain then by central differences).
-    probe_spec : Probe, preset name (:data:`PROBES`) or dict
+    probe : Probe, preset name (:data:`PROBES`) or dict
     size_mm : (depth, width) mm
         Imaged area, ``depth`` from ``top_mm`` down, ``width`` centred on ``y = 0``.
     snr_db : float or None
@@ -349,7 +349,7 @@ def make_pair(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float | N
     -------
     Pair
     """
-    pr = probe(probe_spec)
+    pr = as_probe(probe)
     f = _as_field(field)
     zero = _ZeroField()
     frames, grid, params = _render_frames([zero, f], pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell)
@@ -358,7 +358,7 @@ def make_pair(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float | N
                 snr_db=params["snr_db"], seed=int(seed), name=name or params["field"], params=params)
 
 
-def make_sequence(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
+def make_sequence(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
                   n_frames: int = 10, step: float = 0.01, top_mm: float = 2.0,
                   scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "") -> SequencePair:
     """``n_frames`` frames of the same scatterers under ``field.at(k * step)``, k = 0 .. n_frames - 1 (default
@@ -370,7 +370,7 @@ def make_sequence(field, probe_spec="paper", size_mm=(40.0, 30.0), snr_db: float
         raise ValueError(f"n_frames must be an integer >= 2, got {n_frames!r}")
     levels = float(step) * np.arange(int(n_frames))
     fields = [field.at(lv) for lv in levels]
-    pr = probe(probe_spec)
+    pr = as_probe(probe)
     frames, grid, params = _render_frames(fields, pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell)
     return SequencePair(frames=np.stack(frames), spacing=grid.spacing, origin=grid.origin, fields=fields,
                         levels=levels, probe=pr, snr_db=params["snr_db"], seed=int(seed),
