@@ -414,6 +414,33 @@ def _fmt(r):
     return s
 
 
+def compare(old_csv, new_csv) -> str:
+    """Markdown table: total strain error (%) of every femreg method in ``old_csv`` -> ``new_csv`` per case, with
+    the best peer of the new run (the peers do not depend on femreg)."""
+    def load(path):
+        with open(path, newline="") as fh:
+            return {(r["case"], r["method"]): r for r in csv.DictReader(fh)}
+
+    old, new = load(old_csv), load(new_csv)
+    cases = list(dict.fromkeys(c for c, _ in new))
+    fem = [m for m in list(FEMREG_METHODS) + [PAPER_METHOD] if any((c, m) in new for c in cases)]
+
+    def e(d, key):
+        try:
+            return 100 * float(d[key]["e"])
+        except (KeyError, ValueError):
+            return float("nan")
+
+    out = ["| case | " + " | ".join(fem) + " | best peer |\n", "|---|" + "---|" * (len(fem) + 1) + "\n"]
+    for c in cases:
+        cells = [f"{e(old, (c, m)):.1f} -> **{e(new, (c, m)):.1f}**" for m in fem]
+        peers_e = [(e(new, (c, m)), m) for m in PEER_METHODS if (c, m) in new]
+        peers_e = [p for p in peers_e if np.isfinite(p[0])]
+        best = min(peers_e) if peers_e else (float("nan"), "")
+        out.append(f"| {c} | " + " | ".join(cells) + f" | {best[0]:.1f} ({best[1]}) |\n")
+    return "## Total strain error %, before -> after\n\n" + "".join(out)
+
+
 def tables(rows, cases, methods, strategy) -> str:
     by = {(r["case"], r["method"]): r for r in rows}
     names = [c.name for c in cases]
@@ -454,6 +481,10 @@ def main(argv=None):
     ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one")
     ap.add_argument("--out", default="out/robustness", help="output folder (default out/robustness)")
     ap.add_argument("--list", action="store_true", help="list the cases and methods and exit")
+    ap.add_argument("--compare", metavar="OLD_CSV",
+                    help="after the run (or alone with --no-run), print femreg's total strain errors of OLD_CSV -> "
+                         "this run side by side with the best peer (written to <out>/compare.md)")
+    ap.add_argument("--no-run", action="store_true", help="with --compare: compare <out>/results.csv only")
     ap.add_argument("--seed", type=int, default=0,
                     help="added to every case's seed: other speckle and noise realisations of the same matrix")
     ap.add_argument("--no-progress", action="store_true")
@@ -482,10 +513,15 @@ def main(argv=None):
     if not cases or not methods:
         print("no case or method selected (see --list)", file=sys.stderr)
         return 2
-    t0 = time.perf_counter()
     out = Path(a.out)
-    run(cases, methods, out, progress=not a.no_progress, cache=None if a.no_cache else out / "peer_cache")
-    print(f"\ntotal {time.perf_counter() - t0:.0f} s, {len(cases)} cases x {len(methods)} methods")
+    if not a.no_run:
+        t0 = time.perf_counter()
+        run(cases, methods, out, progress=not a.no_progress, cache=None if a.no_cache else out / "peer_cache")
+        print(f"\ntotal {time.perf_counter() - t0:.0f} s, {len(cases)} cases x {len(methods)} methods")
+    if a.compare:
+        md = compare(a.compare, out / "results.csv")
+        (out / "compare.md").write_text(md)
+        print("\n" + md)
     return 0
 
 
