@@ -1,0 +1,228 @@
+"""Displacement fields with exact truth for simulated RF pairs: affine (compression, shear, rotation), bending,
+and FE inclusions (plane strain / plane stress).
+
+Every field is an object with
+
+* ``displacement(points)``: (n, 2) [x, y] mm -> (n, 2) [u_x, u_y] mm, the motion of the tissue point at ``points``
+  in the reference frame (registration convention ``reference(x) ~ moving(x + u(x))``);
+* ``strain(points)``: (n, 3) [e_xx, e_yy, e_xy] with ``e = (grad u + grad u^T) / 2`` of that same ``u`` (small
+  strain, ``e_xy = (du_x/dy + du_y/dx) / 2``), exact: closed form for the analytic fields, the FE solution's own
+  gradient for the inclusions;
+* ``level``: the nominal mean axial compressive strain (fraction, >= 0) and ``at(level)``, the same kind of field at
+  another level (sequences, :func:`forward.pairs.make_sequence`);
+* ``name``: short label.
+
+Coordinates: ``x`` depth below the probe face (axial), ``y`` lateral from the centre line (mm).  The probe face is the
+reference of the motion: tissue touching the probe (``x = 0``) does not move axially and deeper tissue moves
+towards the probe (``u_x = -s x`` for uniform compression ``s``), which is what a hand-held probe records.  So the
+largest axial motion grows with depth: ``s`` times the deepest imaged point.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["Affine", "translation", "compression", "shear_rotation", "Bending", "Inclusion", "as_points"]
+
+
+def as_points(points) -> np.ndarray:
+    """``points`` as a float (n, 2) array; ValueError naming the shape otherwise."""
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"points must be an (n, 2) array of [x, y] mm, got shape {p.shape}")
+    return p
+
+
+def _level(level) -> float:
+    try:
+        v = float(level)
+    except (TypeError, ValueError):
+        raise ValueError(f"strain level must be a number (fraction, e.g. 0.01 for 1 %), got {level!r}") from None
+    if not math.isfinite(v) or v < 0 or v >= 0.5:
+        raise ValueError(f"strain level must be a fraction in [0, 0.5), got {level!r}")
+    return v
+
+
+class Affine:
+    """``u(x) = t + G x`` (about the probe-face centre ``x = 0``): uniform strain ``sym G``, rotation ``skew G``
+    and a rigid shift ``t``.
+
+    Parameters
+    ----------
+    gradient : (2, 2) array
+        Displacement gradient ``G[i, j] = du_i / dx_j`` ([x, y] order).
+    shift : (2,) mm
+        Rigid translation ``t`` = [t_x, t_y].
+    level : float
+        Nominal compressive axial strain (fraction) of this field, for ``at``.
+    name : str
+    builder : callable(level) -> Affine, optional
+        How to make the same kind of field at another level (set by the factories below).
+    """
+
+    def __init__(self, gradient, *, shift=(0.0, 0.0), level: float = 0.0, name: str = "affine", builder=None):
+        G = np.asarray(gradient, dtype=float)
+        if G.shape != (2, 2) or not np.all(np.isfinite(G)):
+            raise ValueError(f"gradient must be a finite (2, 2) array, got {G!r}")
+        t = np.asarray(shift, dtype=float)
+        if t.shape != (2,) or not np.all(np.isfinite(t)):
+            raise ValueError(f"shift must be a finite (2,) [x, y] mm, got {shift!r}")
+        self.G = G
+        self.shift = t
+        self.level = float(level)
+        self.name = str(name)
+        self._builder = builder
+
+    def displacement(self, points) -> np.ndarray:
+        return as_points(points) @ self.G.T + self.shift
+
+    def strain(self, points) -> np.ndarray:
+        p = as_points(points)
+        G = self.G
+        e = np.array([G[0, 0], G[1, 1], 0.5 * (G[0, 1] + G[1, 0])])
+        return np.broadcast_to(e, (len(p), 3)).copy()
+
+    def at(self, level) -> "Affine":
+        if self._builder is None:
+            s = _level(level) / self.level if self.level > 0 else 0.0
+            return Affine(s * self.G, shift=s * self.shift, level=_level(level), name=self.name)
+        return self._builder(_level(level))
+
+    def __repr__(self) -> str:
+        return f"Affine({self.name}, G={self.G.tolist()}, shift={self.shift.tolist()})"
+
+
+def translation(tx_mm: float, ty_mm: float = 0.0) -> Affine:
+    """Rigid shift ``u = (t_x, t_y)`` mm everywhere (zero strain)."""
+    return Affine(np.zeros((2, 2)), shift=(tx_mm, ty_mm), name=f"shift ({tx_mm:g}, {ty_mm:g}) mm")
+
+
+def compression(level: float) -> Affine:
+    """Uniform axial compression ``s = level`` with the area-preserving (incompressible, plane strain) lateral
+    expansion: ``u_x = -s x``, ``u_y = s / (1 - s) y`` (``(1 - s)(1 + s / (1 - s)) = 1``)."""
+    s = _level(level)
+    return Affine(np.diag([-s, s / (1.0 - s)]), level=s, name=f"compression {100 * s:g}%", builder=compression)
+
+
+def shear_rotation(level: float = 0.01, *, shear: float | None = None, rotation_deg: float = 0.1) -> Affine:
+    """Compression ``level`` (as :func:`compression`) plus simple shear ``u_x += shear * y`` (default
+    ``0.6 * level``) and a rigid rotation by ``rotation_deg`` about the probe-face centre (exact rotation matrix,
+    ``u = (R (I + G_0) - I) x``).  ``at`` scales the shear and the rotation with the level."""
+    s = _level(level)
+    g = 0.6 * s if shear is None else float(shear)
+    th = math.radians(float(rotation_deg))
+    F0 = np.array([[1.0 - s, g], [0.0, 1.0 / (1.0 - s)]])
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    ratio = g / s if s > 0 else 0.6
+    rot_per_level = float(rotation_deg) / s if s > 0 else 0.0
+    return Affine(R @ F0 - np.eye(2), level=s,
+                  name=f"compression {100 * s:g}% + shear {100 * g:g}% + rotation {rotation_deg:g} deg",
+                  builder=lambda lv: shear_rotation(lv, shear=ratio * lv, rotation_deg=rot_per_level * lv))
+
+
+class Bending:
+    """Axial strain varying linearly across the image, as in a bent or obliquely pressed block.
+
+    ``e_xx(y) = -(e_0 + g (y - y_c))`` with ``e_0 = (s_1 + s_2) / 2``, ``g = (s_2 - s_1) / W``, so the compression is
+    ``s_1`` at ``y = y_c - W/2`` and ``s_2`` at ``y = y_c + W/2``; displacement
+
+    ``u_x = -(e_0 + g (y - y_c)) x``,  ``u_y = e_0 (y - y_c) + g (y - y_c)^2 / 2``,
+
+    divergence-free (``e_xx + e_yy = 0``), with shear strain ``e_xy = -g x / 2`` growing with depth.
+    ``level`` = mean compression ``e_0``; ``at`` scales ``s_1`` and ``s_2`` together.
+    """
+
+    def __init__(self, s1: float = 0.002, s2: float = 0.02, width_mm: float = 40.0, y_centre_mm: float = 0.0):
+        self.s1, self.s2 = float(s1), float(s2)
+        self.W = float(width_mm)
+        if not self.W > 0:
+            raise ValueError(f"width_mm must be positive, got {width_mm!r}")
+        self.yc = float(y_centre_mm)
+        self.e0 = 0.5 * (self.s1 + self.s2)
+        self.g = (self.s2 - self.s1) / self.W
+        self.level = self.e0
+        self.name = f"bending {100 * self.s1:g}-{100 * self.s2:g}%"
+
+    def displacement(self, points) -> np.ndarray:
+        p = as_points(points)
+        y = p[:, 1] - self.yc
+        return np.column_stack([-(self.e0 + self.g * y) * p[:, 0], self.e0 * y + 0.5 * self.g * y**2])
+
+    def strain(self, points) -> np.ndarray:
+        p = as_points(points)
+        y = p[:, 1] - self.yc
+        exx = -(self.e0 + self.g * y)
+        return np.column_stack([exx, -exx, -0.5 * self.g * p[:, 0]])
+
+    def at(self, level) -> "Bending":
+        f = _level(level) / self.e0 if self.e0 > 0 else 0.0
+        return Bending(f * self.s1, f * self.s2, self.W, self.yc)
+
+    def __repr__(self) -> str:
+        return f"Bending({self.name}, W={self.W:g} mm)"
+
+
+#: The small 2D inclusion model (mm, MPa) used by :class:`Inclusion`: a 80 mm block, bottom clamped, the whole top
+#: face pressed (slip), a 10 mm disk 20 mm deep, 0.4 mm P2 triangles over the imaged region.
+INCLUSION_MODEL = dict(block_mm=80.0, inclusion_diameter_mm=10.0, inclusion_depth_mm=20.0, patch_mm=None,
+                       mesh_size_mm=0.4, coarse_size_mm=4.0, refine_region_mm=(60.0, 30.0), bottom="fixed",
+                       background_modulus=10.0, poisson=0.495)
+
+
+class Inclusion:
+    """A stiff or soft disk in a compressed block, plane strain or plane stress, from the FE forward model.
+
+    One FE solve per (model, modulus) at 1 mm top-face compression (:func:`forward.elasticity.cached_solve`, disk
+    cache; about 12 s the first time), scaled linearly to the requested level.  In the probe's frame (the top face
+    is the probe), the top-face motion is subtracted: ``u = c (U_FE(x) - (1, 0))`` with ``c = level * block / 1 mm``
+    so the mean axial strain of the block is ``-level``; the strain is ``c E_FE(x)``, the P2 solution's own
+    gradient at the point (exact FE values).  Points outside the block give NaN.
+
+    Parameters
+    ----------
+    kind : {"stiff", "soft"}
+        Inclusion modulus 40 MPa (stiff, x4) or 2.5 MPa (soft, /4) in a 10 MPa background.
+    model : {"plane-strain", "plane-stress"}
+    level : float
+        Mean axial compression of the block (fraction).
+    """
+
+    MODULI = {"stiff": 40.0, "soft": 2.5}
+
+    def __init__(self, kind: str = "stiff", model: str = "plane-strain", level: float = 0.01, *, _solution=None):
+        if kind not in self.MODULI:
+            raise ValueError(f"inclusion kind must be one of {tuple(self.MODULI)}, got {kind!r}")
+        if model not in ("plane-strain", "plane-stress"):
+            raise ValueError(f"inclusion model must be 'plane-strain' or 'plane-stress', got {model!r}")
+        self.kind, self.model = kind, model
+        self.level = _level(level)
+        self.scale = self.level * INCLUSION_MODEL["block_mm"]
+        if _solution is None:
+            from .elasticity import cached_solve
+
+            _solution = cached_solve(model, inclusion_modulus=self.MODULI[kind], compression_mm=1.0,
+                                     **INCLUSION_MODEL)
+        self.solution = _solution
+        self.centre = (INCLUSION_MODEL["inclusion_depth_mm"], 0.0)
+        self.radius_mm = INCLUSION_MODEL["inclusion_diameter_mm"] / 2.0
+        self.name = f"{kind} inclusion {model} {100 * self.level:g}%"
+
+    def displacement(self, points) -> np.ndarray:
+        u = self.solution.displacement(as_points(points))
+        u[:, 0] -= 1.0
+        return self.scale * u
+
+    def strain(self, points) -> np.ndarray:
+        return self.scale * self.solution.strain(as_points(points))
+
+    def inside(self, points) -> np.ndarray:
+        """True for points inside the inclusion disk, (n,) bool."""
+        p = as_points(points)
+        return (p[:, 0] - self.centre[0]) ** 2 + (p[:, 1] - self.centre[1]) ** 2 < self.radius_mm**2
+
+    def at(self, level) -> "Inclusion":
+        return Inclusion(self.kind, self.model, level, _solution=self.solution)
+
+    def __repr__(self) -> str:
+        return f"Inclusion({self.name})"
