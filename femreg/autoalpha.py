@@ -121,7 +121,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     from .data_term import SSDTerm
     from .image import SplineImage, normalize_pair, validate_image, validate_spacing
     from .pixels import PixelQuadrature, PointLocator
-    from .registration import DEFAULT_HOURGLASS, _field_at, register
+    from .registration import DEFAULT_HOURGLASS, displacement_at, register
     from .regularizers import Regularizer, make_regularizer
     from .scaling import effective_alpha
 
@@ -152,7 +152,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
     quad = PixelQuadrature(mesh, ref.shape, spacing, origin, locator=PointLocator(mesh))
     offset = register_kwargs.get("offset")
-    S = None if offset is None else _field_at(offset, mesh, quad.points, "offset")
+    S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
     data = SSDTerm(quad, I1, I2, offset=S)
     Hd = data.hessian().tocsr()
 

@@ -279,7 +279,7 @@ _TASK_DEFAULTS = {"task": "track", "pairs": [[0, 1]], "mode": "accumulate", "gri
 
 
 @functools.lru_cache(maxsize=1)
-def _flag_defaults() -> tuple:
+def flag_defaults() -> tuple:
     """({registration flag: default}, {reader flag: default}) of the flags shared by ``femreg register`` /
     ``track`` (femreg/cli/_common.py): a batch takes exactly those settings, with the same defaults."""
     import argparse
@@ -297,18 +297,18 @@ def _flag_defaults() -> tuple:
 def settings_keys() -> tuple:
     """Names of the settings a job (and a per-recording settings file) may set: the task's, then the shared
     registration and reader flags' (``--element-size`` -> ``element_size``)."""
-    reg, reader = _flag_defaults()
+    reg, reader = flag_defaults()
     return tuple(_TASK_DEFAULTS) + tuple(reg) + tuple(reader)
 
 
 def default_settings() -> dict:
     """Every setting at its default: the defaults of the shared command-line flags, and ``task="track"``,
     ``pairs=[[0, 1]]``, ``mode="accumulate"``, ``grid="current"``, ``init="previous"``, ``min_ncc=0.5``."""
-    reg, reader = _flag_defaults()
+    reg, reader = flag_defaults()
     return json.loads(json.dumps({**_TASK_DEFAULTS, **reg, **reader}))  # a deep copy
 
 
-def _frames_text(sel):
+def frames_text(sel):
     """A parsed frame selection back to its JSON form (int, list, or the 'a:b:c' text)."""
     if isinstance(sel, slice):
         return ":".join("" if v is None else str(v) for v in (sel.start, sel.stop, sel.step))

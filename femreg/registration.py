@@ -34,7 +34,7 @@ from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton
 
-__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "COARSE_TO_FINE_STRAIN",
+__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at", "COARSE_TO_FINE_STRAIN",
            "STRATEGIES"]
 
 #: Global strain of the block-matching field above which ``register`` adds a coarse pass (``coarse_to_fine``,
@@ -182,7 +182,7 @@ class RegistrationResult:
                 f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
 
 
-def _field_at(spec, mesh, points, what: str):
+def displacement_at(spec, mesh, points, what: str):
     """A displacement given as callable(points)->(n,2), nodal vector (2 n_nodes,), or RegistrationResult."""
     n_nodes = mesh.p.shape[1]
     if isinstance(spec, RegistrationResult):
@@ -220,7 +220,7 @@ def nodal_values(spec, mesh, what="initial"):
             raise InputError(f"{what} contains NaN/Inf values")
         return arr.copy()
     else:
-        v = _field_at(spec, mesh, pts, what)
+        v = displacement_at(spec, mesh, pts, what)
     u = np.empty(2 * len(pts))
     u[0::2], u[1::2] = v[:, 0], v[:, 1]
     return u
@@ -281,7 +281,7 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator)
     if quad.n_pixels == 0:
         raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
-    S = None if offset is None else _field_at(offset, mesh, quad.points, "offset")
+    S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
     data = SSDTerm(quad, I1, I2, offset=S)
     if mask_outside:
         base = quad.points if S is None else quad.points + S
@@ -446,7 +446,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             x, y = pixel_axes(ref.shape, spacing, origin)
             X, Y = np.meshgrid(x, y, indexing="ij")
             pts = np.column_stack([X.ravel(), Y.ravel()])
-            Sg = _field_at(offset, fe_mesh, pts, "offset")
+            Sg = displacement_at(offset, fe_mesh, pts, "offset")
             a = I1(pts + Sg).reshape(ref.shape)
             b = I2(pts + Sg).reshape(ref.shape)
         if initial == "pyramid":

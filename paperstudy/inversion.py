@@ -101,9 +101,9 @@ class DatasetTruth:
 
 def sequence_truth(spec: dict) -> DatasetTruth:
     """:class:`DatasetTruth` of a study case's data set, from its simulated sequence (``forward``, cached)."""
-    from .study import _load_sequence
+    from .study import load_case_sequence
 
-    seq = _load_sequence(spec)
+    seq = load_case_sequence(spec)
     p = seq.params
     return DatasetTruth(contrast=float(p["inclusion_modulus"]) / float(p["background_modulus"]),
                         roi=Disk(float(p.get("inclusion_depth_mm", 30.0)), 0.0,

@@ -465,7 +465,7 @@ def make_case(s: StudySettings, kind: str, dataset: str, regularizer: str, alpha
 _SEQ_CACHE: dict = {}
 
 
-def _load_sequence(spec):
+def load_case_sequence(spec):
     import forward
 
     key = json.dumps({k: spec[k] for k in ("dataset", "seed", "snr_db", "n_frames", "sequence_options")},
@@ -523,7 +523,7 @@ def run_case(spec: dict, outdir) -> dict:
 
     casedir = Path(outdir) / "cases"
     casedir.mkdir(parents=True, exist_ok=True)
-    seq = _load_sequence(spec)
+    seq = load_case_sequence(spec)
     frames, origin = _crop(seq, spec["crop_mm"])
     if spec.get("lateral_prefilter_px"):
         from scipy.ndimage import gaussian_filter1d
@@ -1263,7 +1263,7 @@ def _size_section(res: StudyResult) -> list:
     if not sizes:
         return []
     d = s.single_datasets[0]
-    seq = _load_sequence(make_case(s, "pair", d, s.regularizers[0], 1.0, s.pair))
+    seq = load_case_sequence(make_case(s, "pair", d, s.regularizers[0], 1.0, s.pair))
     k = s.pair[1] - s.pair[0]
     hs = sorted({h for h, _, _ in sizes})
     regs = [r for r in s.size_sweep_regularizers if r in s.regularizers]
@@ -1358,7 +1358,7 @@ def _diagnostics(res: StudyResult) -> list:
     d = "3d-HI" if "3d-HI" in s.single_datasets else s.single_datasets[0]
     spec = make_case(s, "pair", d, s.regularizers[0], 1.0, s.pair)
     try:
-        seq = _load_sequence(spec)
+        seq = load_case_sequence(spec)
     except Exception as exc:  # noqa: BLE001
         return L + [f"(diagnostics skipped: {exc})", ""]
     k = s.pair[1] - s.pair[0]
@@ -1640,7 +1640,7 @@ def _grid_fields(res: StudyResult, spec, k):
 
     from femreg.registration import RegistrationResult
 
-    seq = _load_sequence(spec)
+    seq = load_case_sequence(spec)
     frames, origin = _crop(seq, spec["crop_mm"])
     shape = frames.shape[1:]
     z = np.load(Path(res.outdir) / "cases" / f"{spec['key']}.npz")

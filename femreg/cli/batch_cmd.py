@@ -64,11 +64,11 @@ def add_parser(subparsers):
 
 def settings_from_args(args) -> dict:
     """The batch settings (femreg.batch.settings_keys()) given on the command line."""
-    from ..batch import _flag_defaults, _frames_text
+    from ..batch import flag_defaults, frames_text
 
-    reg, reader = _flag_defaults()
+    reg, reader = flag_defaults()
     s = {k: getattr(args, k) for k in list(reg) + list(reader)}
-    s["frames"] = _frames_text(s["frames"])
+    s["frames"] = frames_text(s["frames"])
     s.update(task=args.task, pairs=[list(p) for p in (args.pair or [[0, 1]])], mode=args.mode, grid=args.grid,
              init=args.init, min_ncc=args.min_ncc)
     return s
