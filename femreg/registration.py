@@ -34,8 +34,8 @@ from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton
 
-__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at", "COARSE_TO_FINE_STRAIN",
-           "STRATEGIES"]
+__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at",
+           "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
 
 #: Global strain of the block-matching field above which ``register`` adds a coarse pass (``coarse_to_fine``,
 #: ``strategy="paper"``).
