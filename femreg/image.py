@@ -50,7 +50,9 @@ def validate_spacing(spacing, origin=(0.0, 0.0)):
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:
-    """Check a 2D finite, non-constant image; return it as float64.  Raises :class:`InputError`."""
+    """Check a 2D finite, non-constant real image; return it as float64.  Raises :class:`InputError`."""
+    if np.iscomplexobj(image):
+        raise InputError(f"{name} is complex: pass the real RF (or the envelope |IQ|), not IQ data")
     try:
         a = np.asarray(image, dtype=float)
     except (TypeError, ValueError) as exc:

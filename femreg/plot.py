@@ -256,3 +256,34 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
     finally:
         plotter.close()
     return Path(out_png)
+
+
+def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100):
+    """Per-element quality map of a registration (NCC of reference and warped moving image over each element,
+    :attr:`femreg.RegistrationResult.quality`) drawn on the mesh, mm axes; elements below ``threshold`` are
+    outlined in black.  Returns the Figure (saved to ``out_png`` when given)."""
+    from matplotlib.collections import PolyCollection
+
+    p = np.asarray(mesh_points, float)
+    t = np.asarray(mesh_cells, np.int64)
+    q = np.asarray(quality, float).ravel()
+    if p.ndim != 2 or p.shape[0] != 2 or t.ndim != 2 or t.shape[0] != 4 or q.size != t.shape[1]:
+        raise InputError(f"quality map needs (2, n) points, (4, n_el) quads and n_el values; got {p.shape}, "
+                         f"{t.shape}, {q.size}")
+    plt = _mpl()
+    ax = _ax(ax)
+    polys = np.stack([p[1, t].T, p[0, t].T], axis=-1)          # (n_el, 4, [lateral, axial])
+    pc = PolyCollection(polys, array=np.ma.masked_invalid(q), cmap="viridis", edgecolors="none")
+    pc.set_clim(0.0, 1.0)
+    ax.add_collection(pc)
+    bad = np.isfinite(q) & (q < threshold)
+    if bad.any():
+        ax.add_collection(PolyCollection(polys[bad], facecolors="none", edgecolors="k", linewidths=1.0))
+    ax.set_xlim(p[1].min(), p[1].max())
+    ax.set_ylim(p[0].max(), p[0].min())
+    ax.set_aspect("equal")
+    ax.figure.colorbar(pc, ax=ax, label="element NCC")
+    _label(ax, f"registration quality (min {np.nanmin(q) if np.isfinite(q).any() else float('nan'):.2f})")
+    if out_png is not None:
+        ax.figure.savefig(out_png, dpi=dpi)
+    return ax.figure

@@ -23,7 +23,7 @@ from .data_term import SSDTerm
 from .errors import InputError
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image
 from .pixels import PixelQuadrature
-from .registration import _nodal, ncc
+from .registration import ncc, nodal_values
 
 __all__ = ["image_energy", "window_mask", "strain_snr", "consistency", "hourglass"]
 
@@ -61,7 +61,7 @@ def image_energy(result, reference_image, moving_image, *, normalize: bool = Tru
     psi0 = term.energy(np.zeros(n_dof))
     psi1 = term.energy(np.asarray(result.u, float))
     if result.blockmatch is not None:
-        u_bm = _nodal(result.blockmatch, result.mesh, "initial")
+        u_bm = nodal_values(result.blockmatch, result.mesh, "initial")
         psi_bm = term.energy(u_bm)
         ncc_bm = ncc(term.warped_moving(u_bm), term.ref_values)
     else:

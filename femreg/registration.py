@@ -4,13 +4,18 @@ Convention: ``reference(x) ~ moving(x + u(x))``; images are (axial, lateral) = (
 at ``origin + (i dx, j dy)`` mm.  With ``offset=S`` the problem is eq:IR of a sequence:
 ``I_k(x + S(x)) ~ I_{k+1}(x + S(x) + u(x))`` (reference = I_k, moving = I_{k+1}).
 
-Pipeline: validate -> normalise by the reference RMS (:mod:`femreg.image`) -> spline coefficients (once) ->
-mesh (ROI or the user's) -> pixel quadrature -> SSD term (fixed reference gradient, eq:wfnew) + regulariser ->
-initial guess (NCC block matching) -> Gauss-Newton (:mod:`femreg.solver`) -> :class:`RegistrationResult`.
+Pipeline (named stages passing plain data): validate -> normalise by the reference RMS (:mod:`femreg.image`) ->
+spline coefficients (once) -> mesh (ROI sized from the speckle, or the user's) -> initial guess (coarse-to-fine
+pyramid, :mod:`femreg.pyramid`, or the paper's NCC block matching) -> Gauss-Newton on the final mesh (SSD term
+with the fixed reference gradient, eq:wfnew, + a fresh regulariser weighted per 2 x 2 mm element,
+:mod:`femreg.scaling`; :mod:`femreg.solver`) -> check and repair (:mod:`femreg.repair`: peak hopping, never
+worse than the start) -> :class:`RegistrationResult`.
 """
 from __future__ import annotations
 
+import copy
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from skfem import MeshQuad1
@@ -21,13 +26,27 @@ from .errors import InputError
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
+from .pyramid import default_settings, field_at, pyramid_initial_guess, speckle_statistics
+from .repair import MIN_NCC, element_ncc, hop_nodes, reseed
+from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton
 
-__all__ = ["register", "RegistrationResult", "load_result", "ncc", "COARSE_TO_FINE_STRAIN"]
+__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "COARSE_TO_FINE_STRAIN",
+           "STRATEGIES"]
 
-#: Global strain of the block-matching field above which ``register`` adds a coarse pass (``coarse_to_fine``).
+#: Global strain of the block-matching field above which ``register`` adds a coarse pass (``coarse_to_fine``,
+#: ``strategy="paper"``).
 COARSE_TO_FINE_STRAIN = 0.01
+#: Hourglass-control weight (relative to alpha) of the momentum regularisers with ``strategy="auto"``: the edge
+#: jumps of eq:Ae7 do not see the node-to-node checkerboard modes of bilinear quads (see
+#: :class:`femreg.regularizers.momentum.MomentumRegularizer`) and on real data they show as alternating element
+#: columns in e_yy.  Measured on the in vivo frames 1 -> 6 (R_P_sigma, default mesh; femreg.quality.hourglass,
+#: RMS of the u_y mode): seq299 weight 0 / 1 / 10 / 100 -> 40 / 36 / 26 / 12 um with NCC after 0.791 / 0.791 /
+#: 0.791 / 0.800 (stripes gone only at 100); seq304 9.3 / 9.2 / - / 5.7 um, NCC 0.883 at all weights.  On
+#: synthetic pairs (1-3 % compression, shear, 3-12 MHz) 100 also lowered the total strain error (e.g. shear
+#: 3.0 -> 1.3 %, 3 % compression 1.4 -> 0.4 %).  The mode is a mesh artefact, so the weight costs no accuracy.
+DEFAULT_HOURGLASS = 100.0
 
 
 def ncc(a, b) -> float:
@@ -59,12 +78,18 @@ class RegistrationResult:
         Seconds per stage.
     blockmatch : BlockMatchResult or None
         The initial-guess field, if block matching was used.
+    quality : (n_elements,) float or None
+        Per-element NCC of reference and warped moving image at the result (NaN where an element holds fewer
+        than 4 pixels): low values mark decorrelation, peak hopping or a failed region.
+    strategy : str
+        "auto" or "paper" (see :func:`register`); ``alpha_effective`` the weight used on this mesh
+        (:mod:`femreg.scaling`).
     """
 
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
-                 locator=None):
+                 locator=None, quality=None, strategy="", alpha_effective=float("nan")):
         self.mesh = mesh
         self.u = np.asarray(u, float)
         self.shape = tuple(int(s) for s in shape)
@@ -84,6 +109,9 @@ class RegistrationResult:
         self.solver_result = solver_result
         self._locator = locator
         self._grid = grid
+        self.quality = None if quality is None else np.asarray(quality, float)
+        self.strategy = str(strategy)
+        self.alpha_effective = float(alpha_effective)
 
     # -- sampling -------------------------------------------------------------------------------------------
     @property
@@ -150,8 +178,11 @@ class RegistrationResult:
     def save(self, path, **extra) -> None:
         """Write the result as .npz (keys: mesh_points (2, n_nodes), mesh_cells (4, n_el), u, spacing, origin,
         shape, ux, uy, exx, eyy, exy (n_axial, n_lateral), regularizer, alpha, success, nit, message,
-        ncc_before, ncc_after, energy_history), plus any ``extra`` arrays."""
+        ncc_before, ncc_after, energy_history, quality (n_elements,), strategy), plus any ``extra`` arrays."""
         g = self.on_grid()
+        if self.quality is not None:
+            extra.setdefault("quality", self.quality)
+        extra.setdefault("strategy", np.str_(self.strategy))
         np.savez_compressed(
             path, mesh_points=np.asarray(self.mesh.p, float), mesh_cells=np.asarray(self.mesh.t, np.int64),
             u=self.u, spacing=self.spacing, origin=self.origin, shape=np.asarray(self.shape, np.int64),
@@ -190,7 +221,8 @@ def load_result(path) -> RegistrationResult:
         regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
         success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
         energy_history=d.get("energy_history", ()), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid)
+        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid, quality=d.get("quality"),
+        strategy=str(d.get("strategy", "")))
 
 
 def _field_at(spec, mesh, points, what: str):
@@ -216,8 +248,9 @@ def _field_at(spec, mesh, points, what: str):
     return v
 
 
-def _nodal(spec, mesh, what):
-    """Nodal interleaved vector from a callable / nodal vector / result / BlockMatchResult."""
+def nodal_values(spec, mesh, what="initial"):
+    """Nodal interleaved vector (2 n_nodes,) of ``mesh`` from a callable(points) -> (n, 2), a nodal vector, a
+    RegistrationResult or a BlockMatchResult (``what`` names it in error messages)."""
     pts = mesh.p.T
     if isinstance(spec, BlockMatchResult):
         v = spec(pts)
@@ -236,63 +269,131 @@ def _nodal(spec, mesh, what):
     return u
 
 
+#: ``strategy`` values of :func:`register`.
+STRATEGIES = ("auto", "paper")
+
+
+@dataclass
+class _Solve:
+    """One Gauss-Newton solve on one mesh (plain data passed between the stages)."""
+
+    mesh: object
+    u: np.ndarray
+    gn: object
+    data: SSDTerm
+    locator: PointLocator
+    reg: Regularizer
+
+
+def _fresh_regularizer(spec, alpha, options):
+    """A new regulariser instance carrying the user's alpha (never the caller's own object)."""
+    try:
+        reg = make_regularizer(spec, alpha=alpha, **(options or {}))
+    except InputError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise InputError(str(exc)) from None
+    return copy.copy(reg) if reg is spec else reg
+
+
+def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,
+           tol=1e-3, linear_solver="splu", callback=None, mask_outside=False) -> _Solve:
+    """Gauss-Newton stage: SSD term (eq:wfnew) on ``mesh`` + a fresh regulariser with alpha per 2 x 2 mm element.
+
+    ``mask_outside``: pixels that the start ``u0`` maps outside the moving image (less than 2 pixels from its
+    edge) get weight 0 -- the moving image holds nothing to compare them with (large motion), and its zero
+    outside would pull their elements; the regulariser carries the field there."""
+    locator = locator or PointLocator(mesh)
+    quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator)
+    if quad.n_pixels == 0:
+        raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
+    S = None if offset is None else _field_at(offset, mesh, quad.points, "offset")
+    data = SSDTerm(quad, I1, I2, offset=S)
+    if mask_outside:
+        base = quad.points if S is None else quad.points + S
+        v = np.column_stack([quad.P @ u0[0::2], quad.P @ u0[1::2]])
+        idx = ((base + v - I2.origin) / I2.spacing).T
+        hi = np.asarray(I2.shape, float)[:, None] - 2.0
+        out = np.any((idx < 1.0) | (idx > hi), axis=0)
+        if out.any() and not out.all():
+            data.w = np.where(out, 0.0, data.w)
+    reg = reg_factory()
+    reg.alpha = effective_alpha(reg.alpha, mesh)
+    reg.setup(mesh)
+    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
+                      callback=callback)
+    return _Solve(mesh=mesh, u=gn.x, gn=gn, data=data, locator=locator, reg=reg)
+
+
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
-             alpha=None, mesh=None, element_size=None, margin=None, initial="blockmatch", offset=None,
+             alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "splu", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
-             coarse_to_fine="auto") -> RegistrationResult:
+             coarse_to_fine="auto", strategy: str = "auto", repair: bool = True) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
+
+    Stages (each passes plain data to the next): initial guess -> Gauss-Newton on the final mesh -> check and
+    repair (peak hopping, never worse than the start) -> :class:`RegistrationResult`.
 
     Parameters
     ----------
-    reference_image, moving_image : (n_axial, n_lateral) array
+    reference_image, moving_image : (n_axial, n_lateral) real array
         I_1 and I_2 (RF or any intensity), same shape.  Convention: reference(x) ~ moving(x + u(x)).
     spacing : (dx, dy) mm
         Pixel spacing (axial, lateral); a scalar means square pixels.
     origin : (2,) mm
         Centre of pixel [0, 0].
     regularizer : str or Regularizer
-        A name from :func:`femreg.regularizers.available_regularizers`: "momentum-stress" = R_P_sigma (default,
-        the most accurate laterally in the paper and here), "momentum-strain" = R_P_eps, "strain" = R_eps,
-        "strain-incompressible" = R_eps_i; or a Regularizer instance (e.g. from ``regularizers.from_form``).
+        A name from :func:`femreg.regularizers.available_regularizers`: "momentum-stress" = R_P_sigma (default),
+        "momentum-strain" = R_P_eps, "strain" = R_eps, "strain-incompressible" = R_eps_i; or a Regularizer
+        instance (copied, never changed).
     alpha : float, optional
-        :math:`\\alpha` of the regulariser (eq:objf) for RMS-normalised images; None = the regulariser's
-        documented default (R_eps 30, R_eps_i 3 with the default 2 mm mesh; see
-        :mod:`femreg.regularizers.strain`).
+        :math:`\\alpha` of eq:objf for RMS-normalised images and 2 x 2 mm elements; on other meshes the weight is
+        scaled by 4 mm^2 / mean element area (:mod:`femreg.scaling`).  None = the regulariser's default
+        (femreg/data/default_alphas.json, selected by the paper's procedure).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
         A user's quad mesh (mm, [x, y]); default: structured ROI mesh (:func:`femreg.mesh.roi_mesh`).
     element_size, margin : float or (2,) mm, optional
-        For the default ROI mesh (defaults :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` / ``DEFAULT_MARGIN``).
-    initial : "blockmatch" | "zero" | callable | (2 n_nodes,) array | RegistrationResult | BlockMatchResult
-        Initial guess u_1: NCC block matching (paper), zero, a field callable(points (n,2)) -> (n,2) mm, or
-        nodal values on the mesh (e.g. from an earlier increment).
+        For the default ROI mesh.  ``element_size`` None: from the speckle size (``strategy="auto"``,
+        :func:`femreg.pyramid.default_settings`) or :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` (``"paper"``).
+    initial : None | "pyramid" | "blockmatch" | "zero" | callable | (2 n_nodes,) array | RegistrationResult |
+              BlockMatchResult
+        Initial guess u_1.  None: the strategy's own ("pyramid" for "auto", "blockmatch" for "paper").
+        "pyramid": coarse-to-fine envelope search and envelope-level Gauss-Newton (:mod:`femreg.pyramid`);
+        "blockmatch": NCC block matching with ``blockmatch_options`` (paper: 5 x 9 mm windows).
     offset : callable | (2 n_nodes,) array | RegistrationResult, optional
         S of eq:IR: both images are sampled at x + S(x) (sequence tracking); None = 0.
     maxiter, tol
         Gauss-Newton stopping rule: ``maxiter`` iterations or ``||du|| / ||u|| < tol`` (paper 20, 1e-3).
     linear_solver : {"splu", "spsolve", "amg-cg"}
     blockmatch_options : dict, optional
-        Keyword arguments of :func:`femreg.blockmatch.block_match` (window, overlap, search, subsample, ...).
+        Keyword arguments of :func:`femreg.blockmatch.block_match` for ``initial="blockmatch"``.
     regularizer_options : dict, optional
         Extra keyword arguments of the regulariser factory.
     normalize : bool
         Divide both images by the reference RMS (default; makes alpha scale-free).
     callback : callable(u, info), optional
-        Called after each Gauss-Newton iteration.
+        Called after each Gauss-Newton iteration of the final solve.
     coarse_to_fine : "auto" | bool
-        Large strain: register first on a mesh 3x coarser (from the block-matching start), then use that field as
-        the initial guess.  At more than ~1 % strain the integer-pixel block matching is wrong in places and
-        Gauss-Newton converges one RF period off there; the coarse pass averages over many more pixels and is
-        not fooled (3D SI frames 1 -> 10, 1.4 % strain: total strain error 349 % -> 11 %).  "auto" (default) does it
-        when the block-matching field's global strain exceeds :data:`COARSE_TO_FINE_STRAIN` and there is no
-        ``offset``; True always (with block matching), False never.
+        ``strategy="paper"`` only: register first on a 3x coarser mesh from the block-matching start when its
+        global strain exceeds :data:`COARSE_TO_FINE_STRAIN` (3D SI frames 1 -> 10: total strain error 349 % ->
+        11 %); True always, False never.
     allow_mesh_outside : bool
         Accept a mesh whose nodes partly leave the image (elements there are held by the regulariser alone);
         :func:`femreg.track` uses it for meshes moved with the tissue.  At least one pixel must lie inside.
+    strategy : {"auto", "paper"}
+        "auto" (default): defaults from the image, pyramid start, peak-hopping repair.  "paper": the paper's
+        procedure (fixed 5 x 9 mm block matching, 2 mm mesh, companding and the coarse pass at large strain).
+        Both end with the check stage (never worse than the start, success=False with a message on failure).
+    repair : bool
+        Detect and repair peak hopping (default True).
 
     Returns
     -------
     RegistrationResult
+        ``success`` is False, with a message, when the result explains less of the image than its start (the
+        start is returned then), when the images do not match (NCC after below :data:`femreg.repair.MIN_NCC`) or
+        when peak hopping could not be repaired; ``quality`` holds the per-element NCC.
     """
     t_all = time.perf_counter()
     timings = {}
@@ -301,19 +402,30 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if ref.shape != mov.shape:
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing(spacing, origin)
+    if strategy not in STRATEGIES:
+        raise InputError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     if not isinstance(regularizer, (str, Regularizer)):
         raise InputError(f"regularizer must be a name or a Regularizer, got {type(regularizer).__name__}")
     if isinstance(regularizer, str) and regularizer not in available_regularizers():
         raise InputError(f"unknown regularizer {regularizer!r}; choose one of {available_regularizers()}")
-    try:
-        reg = make_regularizer(regularizer, alpha=alpha, **(regularizer_options or {}))
-    except InputError:
-        raise
-    except (ValueError, TypeError) as exc:
-        raise InputError(str(exc)) from None
     if int(maxiter) < 0 or not (np.isfinite(tol) and tol > 0):
         raise InputError(f"need maxiter >= 0 and tol > 0, got maxiter={maxiter}, tol={tol}")
+    reg_options = dict(regularizer_options or {})
+    if strategy == "auto" and isinstance(regularizer, str) and regularizer.startswith("momentum"):
+        reg_options.setdefault("hourglass", DEFAULT_HOURGLASS)
+    user_reg = _fresh_regularizer(regularizer, alpha, reg_options)
+    user_alpha = user_reg.alpha
 
+    def reg_factory():
+        return copy.copy(user_reg)
+
+    if initial is None:
+        initial = "pyramid" if strategy == "auto" else "blockmatch"
+    if isinstance(initial, str) and initial not in ("pyramid", "blockmatch", "zero"):
+        raise InputError(f"initial must be 'pyramid', 'blockmatch', 'zero', a callable or a nodal vector, "
+                         f"got {initial!r}")
+
+    # -- images --------------------------------------------------------------------------------------------
     t = time.perf_counter()
     if normalize:
         ref, mov, _ = normalize_pair(ref, mov)
@@ -321,77 +433,141 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     I2 = SplineImage(mov, spacing, origin)
     timings["prefilter"] = time.perf_counter() - t
 
+    # -- mesh ----------------------------------------------------------------------------------------------
     t = time.perf_counter()
+    stats = settings = None
+    if strategy == "auto":
+        stats = speckle_statistics(ref, spacing)
+        settings = default_settings(ref.shape, spacing, stats, element_size)
     if mesh is None:
-        fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=element_size, margin=margin)
+        h = settings.element_size if (settings is not None and element_size is None) else element_size
+        fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),
+                           margin=margin)
     else:
         fe_mesh = as_quad_mesh(mesh)
     if not allow_mesh_outside:
         check_mesh_in_image(fe_mesh, ref.shape, spacing, origin)
     locator = PointLocator(fe_mesh)
-    quad = PixelQuadrature(fe_mesh, ref.shape, spacing, origin, locator=locator)
-    if quad.n_pixels == 0:
-        raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
-    S = None if offset is None else _field_at(offset, fe_mesh, quad.points, "offset")
-    data = SSDTerm(quad, I1, I2, offset=S)
-    timings["operator"] = time.perf_counter() - t
+    timings["mesh"] = time.perf_counter() - t
 
+    # -- initial guess -------------------------------------------------------------------------------------
     t = time.perf_counter()
-    reg.setup(fe_mesh)
-    timings["regularizer_setup"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    bm = None
     n_dof = 2 * fe_mesh.p.shape[1]
-    if isinstance(initial, str):
-        if initial == "zero":
-            u0 = np.zeros(n_dof)
-        elif initial == "blockmatch":
-            if S is None:
-                a, b = ref, mov
-            else:  # match I_k(x + S) against I_{k+1}(x + S) on the pixel grid
-                pts = RegistrationResult(fe_mesh, np.zeros(n_dof), shape=ref.shape, spacing=spacing,
-                                         origin=origin).pixel_points()
-                Sg = _field_at(offset, fe_mesh, pts, "offset") if not callable(offset) else offset(pts)
-                Sg = np.nan_to_num(np.asarray(Sg, float))
-                a = I1(pts + Sg).reshape(ref.shape)
-                b = I2(pts + Sg).reshape(ref.shape)
-            bm = block_match(a, b, spacing, origin, **(blockmatch_options or {}))
-            u0 = _nodal(bm, fe_mesh, "initial")
-            if offset is None and (coarse_to_fine is True or (
-                    coarse_to_fine == "auto" and bm.global_strain() > COARSE_TO_FINE_STRAIN)):
-                h = np.broadcast_to(np.asarray(DEFAULT_ELEMENT_SIZE if element_size is None else element_size,
-                                               float), (2,))
-                coarse = register(ref, mov, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
-                                  element_size=tuple(3.0 * h), margin=margin, initial=bm, maxiter=maxiter,
-                                  tol=tol, linear_solver=linear_solver, regularizer_options=regularizer_options,
-                                  normalize=False, coarse_to_fine=False)
-                pts = fe_mesh.p.T
-                v = coarse.displacement(pts)
-                miss = ~np.isfinite(v[:, 0])
-                v[miss] = bm(pts[miss])          # nodes beyond the coarse mesh keep the block-matching value
-                u0 = np.empty(n_dof)
-                u0[0::2], u0[1::2] = v[:, 0], v[:, 1]
-                reg.setup(fe_mesh)               # the coarse pass set up a shared instance on its own mesh
-                timings["coarse_pass"] = coarse.timings.get("total", np.nan)
+    bm = guess = None
+    coarse_u0 = None
+    solve_kw = dict(offset=offset, maxiter=maxiter, tol=tol, linear_solver=linear_solver)
+    if isinstance(initial, str) and initial in ("pyramid", "blockmatch"):
+        if offset is None:
+            a, b = ref, mov
+        else:  # match I_k(x + S) against I_{k+1}(x + S) on the pixel grid
+            x, y = pixel_axes(ref.shape, spacing, origin)
+            X, Y = np.meshgrid(x, y, indexing="ij")
+            pts = np.column_stack([X.ravel(), Y.ravel()])
+            Sg = _field_at(offset, fe_mesh, pts, "offset")
+            a = I1(pts + Sg).reshape(ref.shape)
+            b = I2(pts + Sg).reshape(ref.shape)
+        if initial == "pyramid":
+            if stats is None:
+                stats = speckle_statistics(a, spacing)
+                settings = default_settings(a.shape, spacing, stats, element_size)
+            guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=user_alpha,
+                                          stats=stats, settings=settings, margin=margin, tol=tol,
+                                          linear_solver=linear_solver)
+            bm = guess.blockmatch
+            u0 = _interleave(guess(fe_mesh.p.T))
+            coarse_u0 = u0.copy()
+            timings.update({f"pyramid_{k}": v for k, v in guess.timings.items()})
         else:
-            raise InputError(f"initial must be 'blockmatch', 'zero', a callable or a nodal vector, got {initial!r}")
+            bm = block_match(a, b, spacing, origin, **(blockmatch_options or {}))
+            u0 = nodal_values(bm, fe_mesh, "initial")
+            if strategy == "paper" and offset is None and (coarse_to_fine is True or (
+                    coarse_to_fine == "auto" and bm.global_strain() > COARSE_TO_FINE_STRAIN)):
+                tc = time.perf_counter()
+                hc = np.broadcast_to(np.asarray(DEFAULT_ELEMENT_SIZE if element_size is None else element_size,
+                                                float), (2,))
+                cmesh = roi_mesh(ref.shape, spacing, origin, element_size=tuple(3.0 * hc), margin=margin)
+                coarse = _solve(I1, I2, cmesh, ref.shape, spacing, origin, reg_factory,
+                                nodal_values(bm, cmesh, "initial"), maxiter=maxiter, tol=tol,
+                                linear_solver=linear_solver)
+                pts = fe_mesh.p.T
+                v = field_at(cmesh, coarse.u, pts, coarse.locator)
+                inside = coarse.locator.locate(pts).inside
+                v[~inside] = bm(pts[~inside])    # nodes beyond the coarse mesh keep the block-matching value
+                u0 = _interleave(v)
+                timings["coarse_pass"] = time.perf_counter() - tc
+    elif isinstance(initial, str):
+        u0 = np.zeros(n_dof)
     else:
         if isinstance(initial, BlockMatchResult):
             bm = initial
-        u0 = _nodal(initial, fe_mesh, "initial")
+        u0 = nodal_values(initial, fe_mesh, "initial")
     timings["initial"] = time.perf_counter() - t
 
+    # -- Gauss-Newton on the final mesh --------------------------------------------------------------------
     t = time.perf_counter()
-    obj = Objective(data, reg)
-    ncc0 = ncc(data.warped_moving(np.zeros(n_dof)), data.ref_values)
-    gn = gauss_newton(obj, u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver, callback=callback)
-    ncc1 = ncc(data.residual(gn.x) + data.ref_values, data.ref_values)   # cached residual at the best iterate
+    if strategy == "auto":
+        solve_kw["mask_outside"] = True
+    sol = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator,
+                 callback=callback, **solve_kw)
     timings["gauss_newton"] = time.perf_counter() - t
-    timings["per_iteration"] = list(gn.timings)
+    timings["per_iteration"] = list(sol.gn.timings)
+
+    # -- check and repair ----------------------------------------------------------------------------------
+    t = time.perf_counter()
+    notes = []
+    n_el = fe_mesh.t.shape[1]
+    hops = np.zeros(fe_mesh.p.shape[1], int)
+    if repair and strategy == "auto" and ref.shape[0] > 1:
+        period = stats.period if stats is not None else speckle_statistics(ref, spacing).period
+        reference = None if coarse_u0 is None else coarse_u0[0::2]
+        for _ in range(2):
+            hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+            if not hops.any():
+                break
+            notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes reseeded")
+            again = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, reseed(sol.u, hops, period),
+                           locator=locator, **solve_kw)
+            if again.data.energy(again.u) + again.reg.energy(again.u) <= \
+                    sol.data.energy(sol.u) + sol.reg.energy(sol.u) or reference is not None:
+                sol = again
+        hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+    data = sol.data
+    ncc0 = ncc(data.warped_moving(np.zeros(n_dof)), data.ref_values)
+    psi_start, psi_final = data.energy(u0), data.energy(sol.u)
+    success, u_out = True, sol.u
+    if np.any(sol.u) and data.energy(np.zeros(n_dof)) <= psi_final:
+        u_out, psi_final = np.zeros(n_dof), data.energy(np.zeros(n_dof))   # no motion explains it as well
+    if not np.all(np.isfinite(sol.u)):
+        success, u_out = False, u0
+        notes.append("the solve produced non-finite values; returning the initial guess")
+    elif psi_final > psi_start * (1.0 + 1e-9) + 1e-300:
+        success, u_out = False, u0
+        notes.append(f"the result explains less of the image than its start (psi {psi_final:.4g} > "
+                     f"{psi_start:.4g}); returning the initial guess")
+    ncc1 = ncc(data.residual(u_out) + data.ref_values, data.ref_values)
+    if not (np.isfinite(ncc1) and ncc1 >= MIN_NCC):
+        success = False
+        notes.append(f"the images do not match: NCC after {ncc1:.3f} < {MIN_NCC}")
+    if np.count_nonzero(hops) > 0.1 * hops.size:
+        success = False
+        notes.append(f"peak hopping remains at {int(np.count_nonzero(hops))} of {hops.size} nodes")
+    elif hops.any():
+        notes.append(f"{int(np.count_nonzero(hops))} nodes still differ from the coarse level by whole RF periods")
+    quality = element_ncc(data, u_out, n_el)
+    timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
-    return RegistrationResult(fe_mesh, gn.x, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=reg.name, alpha=reg.alpha, success=gn.success, status=gn.status,
-                              message=gn.message, nit=gn.nit, energy_history=gn.energy_history,
+    message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
+    if not success:
+        message = "FAILED: " + message
+    return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
+                              regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
+                              message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
                               ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
-                              solver_result=gn, locator=locator)
+                              solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
+                              alpha_effective=sol.reg.alpha)
+
+
+def _interleave(v):
+    u = np.empty(2 * len(v))
+    u[0::2], u[1::2] = v[:, 0], v[:, 1]
+    return u

@@ -33,6 +33,7 @@ from ._atomic import atomic_savez, atomic_write_text
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
+from .pyramid import default_settings, speckle_statistics
 from .registration import RegistrationResult, load_result, register
 
 __all__ = ["track", "SequenceResult", "load_track"]
@@ -113,11 +114,12 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         see the module docstring).
     init : {"previous", "blockmatch"}
         Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
-        increments of a compression sequence are alike, and it avoids block-matching outliers), or NCC block
-        matching every time (paper).  The first increment, and any increment after a flagged one, always
-        block-matches; direct mode always block-matches.
+        increments of a compression sequence are alike), or NCC block matching every time (paper).  The first
+        increment, and any increment after a flagged one, starts afresh (the strategy's own initial guess: the
+        pyramid of ``strategy="auto"``, block matching with ``"paper"``); direct mode always starts afresh.
     mesh, element_size, margin
-        One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`).
+        One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`, elements sized
+        from frame 0's speckle as :func:`femreg.register` does with ``strategy="auto"``).
     checkpoint_dir : path, optional
         Write ``frame_KKK.npz`` (frame 0 -> K result, plus the increment) as each frame finishes, and
         ``track.json`` with the parameters.
@@ -126,7 +128,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     progress : bool
         Show a tqdm progress bar on stderr.
     min_ncc : float
-        Frames whose registration NCC (after) is below this are flagged (the run continues).
+        Frames whose registration NCC (after) is below this, or whose registration failed its own check
+        (``success=False``), are flagged (the run continues).
     on_frame : callable(k, result, flag), optional
         Called after each frame (computed or loaded).
     **register_kwargs
@@ -146,6 +149,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     seq = _validate_frames(frames)
     spacing, origin = validate_spacing(spacing, origin)
     shape = seq[0].shape
+    if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
+        # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
+        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing)).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
     n_dof = 2 * fe_mesh.p.shape[1]
@@ -196,7 +202,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                     inc = res.u.copy()
                 else:
                     fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
-                    initial = "blockmatch" if fresh else prev_inc
+                    # a fresh start is the strategy's own (pyramid with "auto"), or the paper's block matching
+                    initial = ("blockmatch" if init == "blockmatch" else None) if fresh else prev_inc
                     if grid == "current":
                         # frame k's pixel grid, mesh moved with the tissue: I_k is never interpolated
                         where = dict(mesh=fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t),
@@ -212,10 +219,15 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                         status=r_inc.status, message=r_inc.message, nit=r_inc.nit,
                         energy_history=r_inc.energy_history, ncc_before=r_inc.ncc_before,
                         ncc_after=r_inc.ncc_after, timings=r_inc.timings, blockmatch=r_inc.blockmatch,
-                        solver_result=r_inc.solver_result)
-                # The solver's own message stays on the result; a pair is flagged by image evidence.
-                flag = "" if (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc) else \
-                    f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+                        solver_result=r_inc.solver_result, quality=r_inc.quality, strategy=r_inc.strategy,
+                        alpha_effective=r_inc.alpha_effective)
+                # A pair is flagged by image evidence, or when the registration's own check failed.
+                if not res.success:
+                    flag = f"registration failed: {res.message}"
+                elif not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
+                    flag = f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+                else:
+                    flag = ""
                 computed = True
                 if path is not None:
                     atomic_savez(path, writer=lambda tmp: res.save(tmp, increment=inc, flag=np.str_(flag),

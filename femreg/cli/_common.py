@@ -93,9 +93,13 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
-    g.add_argument("--hourglass", type=float, default=0.0, metavar="W",
-                   help="momentum regularisers only: hourglass control weight relative to alpha (default 0 = paper; "
-                        "1-10 removes node-to-node checkerboards in the lateral field on real data)")
+    g.add_argument("--hourglass", type=float, default=None, metavar="W",
+                   help="momentum regularisers only: hourglass control weight relative to alpha (default: "
+                        "femreg.registration.DEFAULT_HOURGLASS with --strategy auto, 0 = the paper's with --strategy "
+                        "paper)")
+    g.add_argument("--strategy", choices=("auto", "paper"), default="auto",
+                   help="auto (default): speckle-sized mesh, coarse-to-fine start, peak-hopping repair; paper: the "
+                        "paper's procedure (5 x 9 mm block matching, 2 mm mesh)")
     g.add_argument("--maxiter", type=int, default=20, help="Gauss-Newton iterations (default 20)")
     g.add_argument("--tol", type=float, default=1e-3, help="stop when ||du||/||u|| < TOL (default 1e-3)")
 
@@ -112,12 +116,12 @@ def registration_kwargs(args) -> dict:
     if args.regularizer not in available_regularizers():
         raise InputError(f"unknown regularizer {args.regularizer!r}; choose one of {available_regularizers()}")
     opts = {}
-    if args.hourglass:
+    if args.hourglass is not None:
         if not args.regularizer.startswith("momentum"):
             raise InputError(f"--hourglass applies to the momentum regularisers, not {args.regularizer!r}")
-        if not (args.hourglass > 0 and args.hourglass < float("inf")):
+        if not (args.hourglass >= 0 and args.hourglass < float("inf")):
             raise InputError(f"--hourglass must be a finite number >= 0, got {args.hourglass}")
         opts["regularizer_options"] = {"hourglass": args.hourglass}
-    return dict(**opts, regularizer=args.regularizer, alpha=args.alpha,
+    return dict(**opts, regularizer=args.regularizer, alpha=args.alpha, strategy=getattr(args, "strategy", "auto"),
                 element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                 margin=args.margin, maxiter=args.maxiter, tol=args.tol)

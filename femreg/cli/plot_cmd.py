@@ -11,7 +11,8 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "plot", help="figures (PNG) and ParaView files (VTU/XDMF) of a registration result",
         description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
-                    "ux, uy, exx, eyy, exy with colour bars and mm axes.  Optionally export the mesh with nodal "
+                    "ux, uy, exx, eyy, exy with colour bars and mm axes, and the per-element quality map "
+                    "(OUT_quality.png) when the result holds one.  Optionally export the mesh with nodal "
                     "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 2 with a "
                     "one-line reason on bad input.")
     p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
@@ -68,6 +69,12 @@ def _run(args) -> int:
     fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi)
     plt.close(fig)
     print(f"wrote {out}")
+    if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:
+        from ..plot import plot_quality
+
+        qout = out.with_name(out.stem + "_quality.png")
+        plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi))
+        print(f"wrote {qout}")
     for path in (args.vtu, args.xdmf):
         if path:
             export_result(res, path)

@@ -4,6 +4,10 @@ REF and MOVING are read with :func:`femreg.io.read_frames` (npy/npz with ``rf`` 
 Ultrasonix .rf, a folder of frame files).  With one file, ``--pair I J`` picks the two frames (default 0 1).
 OUT is written by :meth:`femreg.RegistrationResult.save` (mesh, nodal u, ux/uy/exx/eyy/exy on the pixel grid).
 A pair whose NCC after registration is below ``--min-ncc`` is flagged (message, result still written).
+
+Exit codes: 0 registered; 1 the registration failed (``success=False``: the images do not match, the result
+would be worse than its start, peak hopping could not be repaired, or a numerical failure) -- the result file is
+still written when there is one, with ``success`` False and the message; 2 bad input.
 """
 from __future__ import annotations
 
@@ -56,10 +60,22 @@ def run(args) -> int:
     mov = _frame(mov_fr, j, args.moving or args.reference)
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
-    res = femreg.register(ref, mov, spacing=ref_fr.spacing, origin=ref_fr.origin, **kw)
+    import sys
+
+    try:
+        res = femreg.register(ref, mov, spacing=ref_fr.spacing, origin=ref_fr.origin, **kw)
+    except InputError:
+        raise                      # bad input: exit 2 from the dispatcher
+    except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"femreg register: error: registration failed ({type(exc).__name__}: {msg})", file=sys.stderr)
+        return 1
     res.save(args.output)
     print(res)
     if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
         print(f"femreg register: warning: low-quality pair (NCC after {res.ncc_after:.3f} < {args.min_ncc})")
     print(f"wrote {args.output}")
+    if not res.success:
+        print(f"femreg register: error: registration failed: {res.message}", file=sys.stderr)
+        return 1
     return 0

@@ -128,9 +128,15 @@ def available_regularizers() -> list[str]:
 
 
 def make_regularizer(spec, alpha: float | None = None, **kwargs) -> Regularizer:
-    """Resolve a name (see :func:`available_regularizers`) or pass a Regularizer instance through."""
+    """Resolve a name (see :func:`available_regularizers`) or pass a Regularizer instance through.
+
+    An instance is returned as it is when ``alpha`` is None, otherwise as a (shallow) copy carrying ``alpha``: the
+    caller's instance keeps its own weight."""
     if isinstance(spec, Regularizer):
         if alpha is not None:
+            import copy
+
+            spec = copy.copy(spec)
             spec.alpha = float(alpha)
         return spec
     if not isinstance(spec, str) or spec not in _REGISTRY:
