@@ -29,7 +29,7 @@ from .image import SplineImage, normalize_pair, pixel_axes, validate_image, vali
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_period, speckle_statistics
-from .repair import MIN_NCC, element_ncc, hop_nodes, pixel_values, reseed
+from .repair import MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_nodes, pixel_values, poor_fraction, reseed
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton
@@ -547,6 +547,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     elif hops.any():
         notes.append(f"{int(np.count_nonzero(hops))} nodes still differ from the coarse level by whole RF periods")
     quality = element_ncc(data, u_out, n_el)
+    poor = poor_fraction(quality)
+    if poor > MAX_POOR_FRACTION:
+        success = False
+        notes.append(f"{poor:.0%} of the elements do not match (element NCC < {MIN_NCC}; see the quality map)")
+    elif poor > 0.1:
+        notes.append(f"{poor:.0%} of the elements match poorly (element NCC < {MIN_NCC}; see the quality map)")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
