@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field as dc_field
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage
 
 from .blockmatch import block_match
 from .data_term import SSDTerm

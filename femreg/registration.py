@@ -18,7 +18,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from skfem import MeshQuad1
 
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm

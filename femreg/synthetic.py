@@ -9,7 +9,6 @@ the registration's cubic interpolant.
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft as sfft
 from scipy import ndimage
 
 __all__ = ["speckle_image", "warp_image", "speckle_pair", "PAPER_SPACING", "PAPER_SHAPE"]

@@ -1,11 +1,12 @@
 """`femreg track`: checkpoints, --resume after an interruption, exit code 2 on bad input."""
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from femreg.cli import main
 from femreg.synthetic import speckle_image, warp_image
+
+from _torn import tear_atomic_write
 
 SPACING = (0.05, 0.2)
 
@@ -26,22 +27,11 @@ ARGS = ["-r", "strain", "--alpha", "3", "--element-size", "1", "--margin", "1", 
 
 
 def test_resume_recomputes_only_missing_frames(npy_sequence, tmp_path, capsys, monkeypatch):
-    import os
 
     full, part = tmp_path / "full", tmp_path / "part"
     assert main(["track", str(npy_sequence), "-o", str(full)] + ARGS) == 0
     # Interrupt the run while frame 3 is being written: the writer's own temporary file is left half written.
-    real, torn = os.replace, []
-
-    def replace(src, dst):
-        if Path(dst).name == "frame_003.npz" and not torn:
-            data = Path(src).read_bytes()
-            Path(src).write_bytes(data[: len(data) // 2])
-            torn.append(Path(src))
-            raise KeyboardInterrupt
-        return real(src, dst)
-
-    monkeypatch.setattr(os, "replace", replace)
+    torn = tear_atomic_write(monkeypatch, lambda p: p.name == "frame_003.npz")
     assert main(["track", str(npy_sequence), "-o", str(part)] + ARGS) == 130
     monkeypatch.undo()
     assert torn and torn[0].exists() and not (part / "frame_003.npz").exists(), torn

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import forward
+from _torn import tear_atomic_write
 from femreg.errors import InputError
 from femreg.mesh import roi_mesh
 from femreg.registration import RegistrationResult
@@ -166,33 +167,13 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert t_second < t_first, (t_second, t_first)
 
 
-def _tear_on(monkeypatch, match):
-    """Interrupt the real atomic writer while it writes a file whose final name satisfies ``match``: what is left
-    on disk is the writer's own temporary file, half written (as after a kill during the write)."""
-    import os
-
-    real = os.replace
-    torn = []
-
-    def replace(src, dst):
-        if match(Path(dst)) and not torn:
-            data = Path(src).read_bytes()
-            Path(src).write_bytes(data[: len(data) // 2])
-            torn.append(Path(src))
-            raise KeyboardInterrupt
-        return real(src, dst)
-
-    monkeypatch.setattr(os, "replace", replace)
-    return torn
-
-
 def test_resume_after_interruption_recomputes_only_missing(tmp_path, monkeypatch):
     s = _small_settings(alphas={"strain": 10.0, "momentum-stress": 1.0}, track_datasets=(), dual_pairs=(),
                         variant_prefilter_px=(), diagnose_element_sizes=(), auto_alpha=False, size_sweep=(),
                         fix_datasets=())
     out = tmp_path / "study"
     seen = []
-    torn = _tear_on(monkeypatch, lambda p: p.parent.name == "cases" and p.suffix == ".json"
+    torn = tear_atomic_write(monkeypatch, lambda p: p.parent.name == "cases" and p.suffix == ".json"
                     and (seen.append(p) or len(seen) == 2))
     with pytest.raises(KeyboardInterrupt):
         run_study(out, settings=s, jobs=1, progress=False, figures=False)
