@@ -78,6 +78,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import FileFormatError, InputError
+from .solver import single_blas_thread
 
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE"]
@@ -457,6 +458,7 @@ def _weighted_median(v, w):
 # ----------------------------------------------------------------------------------------------------------------
 # public API
 # ----------------------------------------------------------------------------------------------------------------
+@single_blas_thread
 def invert(displacement, *, model: str = "plane-stress", region=None, element_size=None, beta=None,
            regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
            maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False) -> "InversionResult":

@@ -31,7 +31,7 @@ from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_perio
 from .repair import MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_nodes, pixel_values, poor_fraction, reseed
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
-from .solver import Objective, gauss_newton
+from .solver import Objective, gauss_newton, single_blas_thread
 
 __all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at",
            "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
@@ -299,6 +299,7 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     return _Solve(mesh=mesh, u=gn.x, gn=gn, data=data, locator=locator, reg=reg, start=u0, psi_start=psi_start)
 
 
+@single_blas_thread
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,

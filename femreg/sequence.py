@@ -35,6 +35,7 @@ from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, speckle_statistics
 from .registration import RegistrationResult, load_result, register
+from .solver import single_blas_thread
 
 __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
 
@@ -99,6 +100,7 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
             "init": str(init)}
 
 
+@single_blas_thread
 def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,

@@ -26,6 +26,8 @@ the banded Cholesky still meets a non-positive pivot, that factorisation falls b
 """
 from __future__ import annotations
 
+import contextlib
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -75,13 +77,47 @@ class _BandedPattern:
         ab[self.flat] = H.data[self.lower]
         ab = ab.reshape(self.bandwidth + 1, self.n)
         ab[0] += shift
-        return sla.cholesky_banded(ab, lower=True, overwrite_ab=True, check_finite=False)
+        with one_blas_thread():
+            return sla.cholesky_banded(ab, lower=True, overwrite_ab=True, check_finite=False)
 
     def solve(self, cb, b):
-        y = sla.cho_solve_banded((cb, True), b[self.perm], check_finite=False)
+        with one_blas_thread():
+            y = sla.cho_solve_banded((cb, True), b[self.perm], check_finite=False)
         x = np.empty_like(y)
         x[self.perm] = y
         return x
+
+
+_BLAS = None
+
+
+def one_blas_thread():
+    """Context in which BLAS/LAPACK run on one thread (threadpoolctl; a no-op without it).
+
+    The banded factorisations here are small (bandwidth ~50-200): extra BLAS threads only synchronise, and on a
+    busy machine OpenBLAS's waiting threads made them 5-20x slower (paper-size pair 0.38 s -> 2.4 s with one
+    other process running on 2 cores)."""
+    global _BLAS
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController()
+        except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+            _BLAS = False
+    if _BLAS is False:
+        return contextlib.nullcontext()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def single_blas_thread(fn):
+    """Decorator: run ``fn`` in :func:`one_blas_thread` (the registration's arrays are small or memory bound;
+    BLAS threads cost more than they give: a paper-size pair 0.35 s on one thread, 0.8-2.9 s with two threads
+    on a 2-core machine running one other process)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return fn(*args, **kwargs)
+    return wrapper
 
 
 class SPDSolver:
