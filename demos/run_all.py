@@ -2,7 +2,7 @@
 
 Usage: python demos/run_all.py [--quick] [--full-study]
 
-The study demo (06) runs its quick version unless --full-study is given (the full study takes about 25 min on
+The study demo (06) runs its quick version unless --full-study is given (the full study takes about 11 min on
 2 cores from an empty cache; `make study`).
 """
 import subprocess
