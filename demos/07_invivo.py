@@ -505,6 +505,33 @@ def alpha_study(folder, log=print) -> str:
     return "\n".join(L)
 
 
+# %% [markdown]
+# ## 6. femreg's defaults, no settings at all
+# Everything above passes the settings chosen for this data.  A user who passes none gets ``strategy="auto"``:
+# element size, windows and search from the measured speckle, coarse-to-fine start, peak-hopping check, hourglass
+# control.  First frame to last, direct and accumulated, with the image match and the checkerboard measure.
+
+# %%
+def defaults_section(name, frames, spacing, origin, out_dir) -> list:
+    """Register first -> last frame and track all frames with femreg's defaults; figures and summary lines."""
+    import matplotlib.pyplot as plt
+
+    from femreg.plot import plot_result
+
+    direct = femreg.register(frames[0], frames[-1], spacing=spacing, origin=origin)
+    tracked = femreg.track(frames, spacing=spacing, origin=origin)[-1]
+    lines = []
+    for label, res in (("register", direct), ("track", tracked)):
+        fig = plot_result(res)
+        fig.savefig(out_dir / f"defaults_{name}_{label}.png", dpi=80)
+        plt.close(fig)
+        hg = hourglass(res)
+        lines.append(f"| {name} | {label} 1 -> {len(frames)} | {res.mesh.t.shape[1]} | {res.ncc_before:.3f} | "
+                     f"{res.ncc_after:.3f} | {1e3 * hg['ux']:.1f} / {1e3 * hg['uy']:.1f} | "
+                     f"{'ok' if res.success else res.message} |")
+    return lines
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="cropped pieces and two regularisers (< 1 min)")
@@ -529,6 +556,7 @@ def main(argv=None) -> int:
     regs = QUICK_REGULARIZERS if args.quick else REGULARIZERS
     settings = dict(SETTINGS, margin=QUICK_MARGIN) if args.quick else SETTINGS
     seqs, all_rows, all_crows, tracks, results_all = {}, {}, {}, {}, {}
+    default_lines = []
     for name in SEQUENCES:
         crop = QUICK_CROP[name] if args.quick else None
         frames, spacing, origin = load_sequence(folder / name, crop)
@@ -548,9 +576,16 @@ def main(argv=None) -> int:
                                      settings=settings)
         print(f"  femreg track: exit {tracks[name]['rc']}, flagged frames "
               f"{[f['frame'] for f in tracks[name]['frames'] if f['flag']]}")
+        default_lines += defaults_section(name, frames, spacing, origin, out)
     figure_bmode(seqs, out / "bmode_windows.png")
     seconds = time.perf_counter() - t_all
     write_summary(out / "summary.md", seqs, all_rows, all_crows, tracks, quick=args.quick, seconds=seconds)
+    with open(out / "summary.md", "a") as f:
+        f.write("\n## femreg's defaults (no settings)\n\n`femreg.register(first, last, spacing=..., origin=...)` and "
+                "`femreg.track(frames, ...)`: pictures `defaults_<sequence>_<register|track>.png`; hourglass = "
+                "checkerboard amplitude of u_x / u_y in um (`femreg.quality.hourglass`).\n\n"
+                "| sequence | pair | elements | NCC before | NCC after | hourglass ux / uy (um) | status |\n"
+                "|---|---|---|---|---|---|---|\n" + "\n".join(default_lines) + "\n")
     (out / "results.json").write_text(json.dumps({"quick": args.quick, "pairs": all_rows,
                                                   "consistency": all_crows, "track": tracks, "seconds": seconds},
                                                  indent=1, default=float))
