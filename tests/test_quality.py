@@ -84,3 +84,13 @@ def test_hourglass_sees_a_checkerboard_and_not_an_affine_field():
     b = RegistrationResult(a.mesh, u, shape=SHAPE, spacing=SPACING, origin=ORIGIN)
     hg = hourglass(b)
     assert hg["ux"] < 1e-15 and abs(hg["uy"] - 0.002) < 1e-12, hg
+
+
+def test_hourglass_of_a_triangle_mesh_is_bad_input():
+    from types import SimpleNamespace
+
+    from skfem import MeshTri1
+
+    m = MeshTri1()
+    with pytest.raises(InputError, match="quadrilateral"):
+        hourglass(SimpleNamespace(mesh=m, u=np.zeros(2 * m.p.shape[1])))

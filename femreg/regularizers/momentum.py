@@ -59,6 +59,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE  # noqa: F401  (re-exported)
 from .base import Regularizer, register_regularizer
 
@@ -285,7 +286,7 @@ def hourglass_operator(mesh) -> sp.csr_matrix:
     """
     t = np.asarray(mesh.t)
     if t.shape[0] != 4:
-        raise ValueError(f"hourglass operator needs quadrilateral elements, got {t.shape[0]} nodes per element")
+        raise InputError(f"hourglass operator needs quadrilateral elements, got {t.shape[0]} nodes per element")
     n_el = t.shape[1]
     rows = np.repeat(np.arange(2 * n_el), 4)
     cols = np.concatenate([2 * t.T, 2 * t.T + 1]).ravel()
