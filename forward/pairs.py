@@ -23,7 +23,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from .ultrasound import PSF, ImagingGrid, make_scatterers, noise_sigma, render_rf
+from .ultrasound import PSF, ImagingGrid, make_scatterers, noise_sigma, positive, render_rf
 
 __all__ = ["Probe", "PROBES", "as_probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField"]
 
@@ -63,14 +63,7 @@ class Probe:
 
     def __post_init__(self):
         for k in ("f0_mhz", "fs_mhz", "pitch_mm", "beam_fwhm_mm", "cycles", "c_m_s"):
-            v = getattr(self, k)
-            try:
-                ok = math.isfinite(float(v)) and float(v) > 0
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError(f"probe {k} must be a positive finite number, got {v!r}")
-            object.__setattr__(self, k, float(v))
+            object.__setattr__(self, k, positive(f"probe {k}", getattr(self, k)))
         if self.fs_mhz <= 2.0 * self.f0_mhz:
             raise ValueError(f"probe sampling fs = {self.fs_mhz:g} MHz must exceed twice the centre frequency "
                              f"f0 = {self.f0_mhz:g} MHz")

@@ -57,7 +57,8 @@ SPEED_OF_SOUND_MM_PER_S = 1.54e6
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
-def _positive(name: str, value) -> float:
+def positive(name: str, value) -> float:
+    """``value`` as a float, or ValueError naming ``name`` unless it is a positive finite number."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -94,7 +95,7 @@ class PSF:
     def __post_init__(self):
         for name in ("center_frequency_hz", "pulse_length_s", "lateral_fwhm_mm", "speed_of_sound_mm_per_s",
                      "truncation"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
 
     @property
     def sigma_t_s(self) -> float:
@@ -157,14 +158,7 @@ class ImagingGrid:
 
     def __post_init__(self):
         for name in ("dx", "dy"):
-            v = getattr(self, name)
-            try:
-                ok = math.isfinite(float(v)) and float(v) > 0
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError(f"spacing {name} must be a positive finite number of mm, got {v!r}")
-            object.__setattr__(self, name, float(v))
+            object.__setattr__(self, name, positive(f"spacing {name} (mm)", getattr(self, name)))
         for name in ("n_axial", "n_lateral"):
             v = getattr(self, name)
             if int(v) != v or int(v) < 1:
@@ -186,11 +180,11 @@ class ImagingGrid:
         given.  ``n_axial = round(depth / dx)`` pixels from ``x = top_mm``; ``n_lateral = round(width / dy)``
         pixels (at least 1) centred on ``y = 0``.  Paper values: 3740 x 147 pixels.
         """
-        depth_mm = _positive("depth_mm", depth_mm)
-        width_mm = _positive("width_mm", width_mm)
+        depth_mm = positive("depth_mm", depth_mm)
+        width_mm = positive("width_mm", width_mm)
         if spacing is None:
-            fs = _positive("sampling_frequency_hz", sampling_frequency_hz)
-            c = _positive("speed_of_sound_mm_per_s", speed_of_sound_mm_per_s)
+            fs = positive("sampling_frequency_hz", sampling_frequency_hz)
+            c = positive("speed_of_sound_mm_per_s", speed_of_sound_mm_per_s)
             spacing = (c / (2.0 * fs), lateral_spacing_mm)
         try:
             dx, dy = (float(s) for s in spacing)
@@ -298,9 +292,9 @@ def make_scatterers(rng: np.random.Generator, box, *, density_per_mm2: float = 3
     x_min, x_max, y_min, y_max = (float(b) for b in box)
     if not (x_max > x_min and y_max > y_min):
         raise ValueError(f"scatterer box must have x_max > x_min and y_max > y_min, got {box!r}")
-    factor = _positive("inclusion_amplitude_factor", inclusion_amplitude_factor)
+    factor = positive("inclusion_amplitude_factor", inclusion_amplitude_factor)
     if placement == "stratified":
-        aspect = _positive("cell_aspect", cell_aspect)
+        aspect = positive("cell_aspect", cell_aspect)
         nx = max(1, int(round((x_max - x_min) / math.sqrt(aspect / density))))
         ny = max(1, int(round((y_max - y_min) * math.sqrt(aspect * density))))
         cx, cy = (x_max - x_min) / nx, (y_max - y_min) / ny
@@ -318,7 +312,7 @@ def make_scatterers(rng: np.random.Generator, box, *, density_per_mm2: float = 3
         raise ValueError(f"unknown scatterer placement {placement!r}: expected 'stratified' or 'poisson'")
     amp = rng.standard_normal(n)
     if inclusion_radius_mm is not None:
-        r = _positive("inclusion_radius_mm", inclusion_radius_mm)
+        r = positive("inclusion_radius_mm", inclusion_radius_mm)
         inside = ((pos[:, 0] - inclusion_center[0]) ** 2 + (pos[:, 1] - inclusion_center[1]) ** 2) < r * r
         amp[inside] *= factor
     return Scatterers(pos, amp)
