@@ -118,10 +118,8 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     -------
     AutoAlpha (``result`` is the registration at the chosen alpha; cost ``n_registrations`` registrations).
     """
-    from .data_term import SSDTerm
     from .image import SplineImage, normalize_pair, validate_image, validate_spacing
-    from .pixels import PixelQuadrature, PointLocator
-    from .registration import DEFAULT_HOURGLASS, displacement_at, register
+    from .registration import effective_regularizer_options, image_term, register
     from .regularizers import Regularizer, make_regularizer
     from .scaling import effective_alpha
 
@@ -150,17 +148,12 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         ref, mov, _ = normalize_pair(ref, mov)
     mesh = results[0].mesh
     I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
-    quad = PixelQuadrature(mesh, ref.shape, spacing, origin, locator=PointLocator(mesh))
-    offset = register_kwargs.get("offset")
-    S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
-    data = SSDTerm(quad, I1, I2, offset=S)
+    data = image_term(I1, I2, mesh, ref.shape, spacing, origin, offset=register_kwargs.get("offset"))
+    quad = data.quad
     Hd = data.hessian().tocsr()
 
     psi, dof = np.empty(alphas.size), np.empty(alphas.size)
-    opts = dict(options)
-    if (register_kwargs.get("strategy", "auto") == "auto" and isinstance(regularizer, str)
-            and regularizer.startswith("momentum")):
-        opts.setdefault("hourglass", DEFAULT_HOURGLASS)      # as register builds it
+    opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer, options)
     for i, (al, res) in enumerate(zip(alphas, results)):
         reg = copy.copy(regularizer) if isinstance(regularizer, Regularizer) else make_regularizer(regularizer, **opts)
         a_eff = getattr(res, "alpha_effective", float("nan"))
@@ -174,7 +167,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     sigma2 = 2.0 * psi[i0] / max(n - dof[i0], 1.0)
     r_img = np.zeros(ref.size)
     r_img[quad.index] = data.residual(results[i0].u)
-    if S is None:
+    if data.offset is None:
         gx, gy = I1.gradient_at_pixels()
     else:
         g = np.zeros((2, ref.size))

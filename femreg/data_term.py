@@ -48,6 +48,8 @@ class SSDTerm:
         self.quad = quad
         self.moving = moving
         pts = quad.points
+        #: S at the quadrature pixels (m, 2) mm, or None
+        self.offset = None if offset is None else np.asarray(offset, float).reshape(pts.shape)
         if offset is None:
             gx, gy = reference.gradient_at_pixels()
             g = np.column_stack([gx.ravel()[quad.index], gy.ravel()[quad.index]])
@@ -56,7 +58,7 @@ class SSDTerm:
             self._moving_at_pixels = moving.data.ravel()[quad.index]
         else:
             self._moving_at_pixels = None
-            base = pts + np.asarray(offset, float).reshape(pts.shape)
+            base = pts + self.offset
             g = reference.gradient(base)
             self.ref_values = reference(base)
         self.ref_gradient = g

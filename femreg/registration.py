@@ -269,6 +269,26 @@ def _fresh_regularizer(spec, alpha, options):
     return copy.copy(reg) if reg is spec else reg
 
 
+def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=None) -> SSDTerm:
+    """The SSD image term (eq:IR, fixed reference gradient eq:wfnew) of ``register`` on ``mesh``: pixel-centre
+    quadrature over the reference grid ``shape``/``spacing``/``origin`` (mm), both images sampled at x + S(x)
+    with ``offset`` S (callable, nodal vector or result; None = 0)."""
+    quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator or PointLocator(mesh))
+    if quad.n_pixels == 0:
+        raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
+    S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
+    return SSDTerm(quad, I1, I2, offset=S)
+
+
+def effective_regularizer_options(strategy, regularizer, options=None) -> dict:
+    """The regulariser options ``register`` uses: the user's, with hourglass control of the momentum
+    regularisers (:data:`DEFAULT_HOURGLASS`) added under ``strategy="auto"``."""
+    opts = dict(options or {})
+    if strategy == "auto" and isinstance(regularizer, str) and regularizer.startswith("momentum"):
+        opts.setdefault("hourglass", DEFAULT_HOURGLASS)
+    return opts
+
+
 def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,
            tol=1e-3, linear_solver="auto", callback=None, mask_outside=False) -> _Solve:
     """Gauss-Newton stage: SSD term (eq:wfnew) on ``mesh`` + a fresh regulariser with alpha per 2 x 2 mm element.
@@ -277,11 +297,8 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     edge) get weight 0 -- the moving image holds nothing to compare them with (large motion), and its zero
     outside would pull their elements; the regulariser carries the field there."""
     locator = locator or PointLocator(mesh)
-    quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator)
-    if quad.n_pixels == 0:
-        raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
-    S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
-    data = SSDTerm(quad, I1, I2, offset=S)
+    data = image_term(I1, I2, mesh, shape, spacing, origin, offset=offset, locator=locator)
+    quad, S = data.quad, data.offset
     if mask_outside:
         base = quad.points if S is None else quad.points + S
         v = np.column_stack([pixel_values(quad, u0[0::2]), pixel_values(quad, u0[1::2])])
@@ -393,9 +410,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         raise InputError(f"unknown regularizer {regularizer!r}; choose one of {available_regularizers()}")
     if int(maxiter) < 0 or not (np.isfinite(tol) and tol > 0):
         raise InputError(f"need maxiter >= 0 and tol > 0, got maxiter={maxiter}, tol={tol}")
-    reg_options = dict(regularizer_options or {})
-    if strategy == "auto" and isinstance(regularizer, str) and regularizer.startswith("momentum"):
-        reg_options.setdefault("hourglass", DEFAULT_HOURGLASS)
+    reg_options = effective_regularizer_options(strategy, regularizer, regularizer_options)
     user_reg = _fresh_regularizer(regularizer, alpha, reg_options)
     user_alpha = user_reg.alpha
 
