@@ -4,6 +4,13 @@ Small strains ``exx = dux/dx``, ``eyy = duy/dy``, ``exy = (dux/dy + duy/dx) / 2`
 of the paper's strain errors ("Results").  Every strain femreg reports comes from :func:`strain_components`:
 at located points (:func:`sample`, used for pixel grids and arbitrary points), at element centres
 (:func:`element_strains`, for meshes and ParaView) and at quadrature points (:mod:`femreg.metrics`).
+
+The gradient of a bilinear field is discontinuous across element edges (axial strain constant along x in each
+element: a blocky image, first-order accurate).  What femreg reports by default is the *recovered* strain
+(:func:`recovered_strains`): the element-centre strains -- the superconvergent points of bilinear quads -- averaged
+at each node and interpolated bilinearly, continuous and second-order accurate inside the mesh for smooth fields
+(O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; exact for affine
+fields).  ``strain="element"`` keeps the raw element gradient.
 Lengths in mm; ``u`` is the interleaved nodal vector ``[ux0, uy0, ux1, ...]`` (scikit-fem's vector DOF order).
 """
 from __future__ import annotations
@@ -13,10 +20,20 @@ import numpy as np
 from .errors import InputError
 from .quadrature import ELEMENT_CENTRE_RULE
 
-__all__ = ["FIELDS", "strain_components", "sample", "element_strains"]
+__all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
+           "recovered_strains", "check_strain_mode"]
 
 #: Names of the sampled fields, in order.
 FIELDS = ("ux", "uy", "exx", "eyy", "exy")
+#: How strains are evaluated: "recovered" (continuous, default) or "element" (the raw element gradient).
+STRAIN_MODES = ("recovered", "element")
+
+
+def check_strain_mode(strain: str) -> str:
+    """``strain`` if it is one of :data:`STRAIN_MODES`, else InputError."""
+    if strain not in STRAIN_MODES:
+        raise InputError(f"strain must be one of {STRAIN_MODES}, got {strain!r}")
+    return strain
 
 
 def strain_components(grad) -> np.ndarray:
@@ -26,7 +43,7 @@ def strain_components(grad) -> np.ndarray:
     return np.stack([g[0, 0], g[1, 1], 0.5 * (g[0, 1] + g[1, 0])], axis=-1)
 
 
-def sample(u, location, fields=FIELDS) -> dict:
+def sample(u, location, fields=FIELDS, nodal_strain=None) -> dict:
     """Fields of the nodal displacement ``u`` at located points.
 
     Parameters
@@ -36,6 +53,9 @@ def sample(u, location, fields=FIELDS) -> dict:
         Points inside the mesh with their element nodes ``nodes`` (m, 4), shape functions ``N`` (m, 4) and
         physical gradients ``dN`` (m, 4, 2) per mm.
     fields : names from :data:`FIELDS`
+    nodal_strain : (n_nodes, 3) or None
+        Nodal strains [exx, eyy, exy] (:func:`recovered_strains`) to interpolate bilinearly; None takes the
+        element gradient of ``u``.
 
     Returns
     -------
@@ -49,8 +69,13 @@ def sample(u, location, fields=FIELDS) -> dict:
     if "uy" in fields:
         out["uy"] = np.sum(location.N * uy, axis=1)
     if any(f in fields for f in ("exx", "eyy", "exy")):
-        grad = np.stack([np.einsum("nk,nkd->dn", ux, location.dN), np.einsum("nk,nkd->dn", uy, location.dN)])
-        e = strain_components(grad)
+        if nodal_strain is not None:
+            ns = np.asarray(nodal_strain, float)
+            e = np.stack([np.sum(location.N * ns[:, k][location.nodes], axis=1) for k in range(3)], axis=-1)
+        else:
+            grad = np.stack([np.einsum("nk,nkd->dn", ux, location.dN),
+                             np.einsum("nk,nkd->dn", uy, location.dN)])
+            e = strain_components(grad)
         for k, name in enumerate(("exx", "eyy", "exy")):
             if name in fields:
                 out[name] = e[:, k]
@@ -72,3 +97,33 @@ def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
     except Exception as exc:  # noqa: BLE001  scikit-fem raises a bare Exception for a zero Jacobian
         raise InputError(f"mesh has degenerate (zero-area) quads ({exc})") from None
     return strain_components(np.asarray(basis.interpolate(uu).grad)[:, :, :, 0])
+
+
+def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
+    """Average of the values of the cells around each node: (n_el, k) -> (n_nodes, k); ``mesh_cells`` (4, n_el)
+    as everywhere in femreg (scikit-fem's ``mesh.t``)."""
+    t = np.asarray(mesh_cells)
+    if t.ndim != 2 or t.shape[1] != np.shape(cell_values)[0]:
+        raise InputError(f"mesh_cells must be (4, n_el) with n_el = {np.shape(cell_values)[0]}, got {t.shape}")
+    v = np.asarray(cell_values, dtype=float)
+    v2 = v.reshape(v.shape[0], -1)
+    out = np.zeros((n_nodes, v2.shape[1]))
+    count = np.bincount(t.ravel(), minlength=n_nodes).astype(float)
+    for k in range(v2.shape[1]):
+        out[:, k] = np.bincount(t.ravel(), weights=np.tile(v2[:, k], t.shape[0]), minlength=n_nodes)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out /= count[:, None]
+    return out.reshape((n_nodes,) + v.shape[1:])
+
+
+def recovered_strains(mesh_points, mesh_cells, u) -> np.ndarray:
+    """Recovered nodal strains [exx, eyy, exy], shape (n_nodes, 3): the mean of the element-centre strains
+    (:func:`element_strains`) of the elements around each node (Zienkiewicz & Zhu 1987, simple averaging).
+
+    Exact for affine fields; for smooth fields second-order accurate at interior nodes of a uniform mesh, where the
+    raw element gradient is first-order.  Measured on the robustness benchmark's 16 pairs (R_P_sigma defaults):
+    total strain error lower on all 16 (by 0.1-2.0 points), e.g. bending 7.4 -> 6.5 %, stiff plane-stress
+    inclusion 13.6 -> 12.4 %.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    """
+    e = element_strains(mesh_points, mesh_cells, u)
+    return nodal_average(mesh_cells, e, np.asarray(mesh_points).shape[1])

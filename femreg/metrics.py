@@ -11,6 +11,9 @@ Errors are integrated over the FE mesh domain with Gauss quadrature on the mesh 
 
 All values are fractions (multiply by 100 for %).
 
+Strains are scored as femreg reports them: ``strain="recovered"`` (default; :func:`femreg.fields.recovered_strains`,
+continuous) or ``strain="element"`` (the raw gradient of the bilinear field, as a plain FE post-processing would).
+
 Contrast: SR = eps_A / eps_B, CNR_e = 2 (eps_A - eps_B)^2 / (eta_A^2 + eta_B^2), with eps the mean axial strain
 and eta^2 its variance outside (A) and inside (B) the inclusion ROI.
 """
@@ -18,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fields import strain_components
+from .fields import check_strain_mode, recovered_strains, strain_components
 from .quadrature import GAUSS_3X3
 
 __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
@@ -36,14 +39,24 @@ def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
     return pts, w, basis
 
 
-def _measured(result_or_u, mesh, basis):
-    """Measured u (2, n_el, n_qp) and grad u (2, 2, n_el, n_qp) at the basis' quadrature points."""
-    u = getattr(result_or_u, "u", result_or_u)
-    f = basis.interpolate(np.asarray(u, float))
-    return np.asarray(f), np.asarray(f.grad)
+def _fields_at_quadrature(nodal_u, mesh, basis, strain: str):
+    """u (n, 2) and strain (n, 3) [exx, eyy, exy] of a nodal field at the basis' quadrature points, the strain as
+    ``strain`` ("recovered" or "element", :mod:`femreg.fields`)."""
+    nodal_u = np.asarray(nodal_u, float)
+    f = basis.interpolate(nodal_u)
+    v = np.asarray(f)
+    u = np.column_stack([v[0].ravel(), v[1].ravel()])
+    if check_strain_mode(strain) == "element":
+        return u, strain_components(np.asarray(f.grad)).reshape(-1, 3)
+    from skfem import Basis, ElementQuad1
+
+    scalar = Basis(mesh, ElementQuad1(), quadrature=basis.quadrature)
+    ns = recovered_strains(mesh.p, mesh.t, nodal_u)
+    return u, np.column_stack([np.asarray(scalar.interpolate(ns[:, k])).ravel() for k in range(3)])
 
 
-def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
+def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3,
+                 strain: str = "recovered") -> dict:
     """Relative L2 errors of a registration against a known field, integrated over the FE mesh.
 
     Parameters
@@ -52,6 +65,8 @@ def field_errors(result, true_displacement, true_strain=None, *, mesh=None, into
     true_displacement : callable (n, 2) mm -> (n, 2) mm
     true_strain : callable (n, 2) -> (n, 3) [exx, eyy, exy], optional
         Default: central differences of ``true_displacement`` (step 1e-4 mm).
+    strain : {"recovered", "element"}
+        How the measured strain is evaluated (module docstring).
 
     Returns
     -------
@@ -61,9 +76,7 @@ def field_errors(result, true_displacement, true_strain=None, *, mesh=None, into
     if mesh is None:
         raise ValueError("field_errors needs result.mesh or mesh=")
     pts, w, basis = mesh_quadrature(mesh, intorder)
-    val, grad = _measured(result, mesh, basis)
-    um = np.column_stack([val[0].ravel(), val[1].ravel()])
-    em = strain_components(grad).reshape(-1, 3)
+    um, em = _fields_at_quadrature(getattr(result, "u", result), mesh, basis, strain)
     ut = np.asarray(true_displacement(pts), float)
     if true_strain is not None:
         et = np.asarray(true_strain(pts), float)
@@ -112,16 +125,16 @@ def cnr_e(exx, inside, weights=None) -> float:
     return 2.0 * (ea - eb) ** 2 / (va + vb)
 
 
-def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3) -> dict:
+def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3, strain: str = "recovered") -> dict:
     """SR and CNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
-    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid."""
+    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid;
+    ``strain`` as in :func:`field_errors`."""
     if callable(roi):
         pts, w, basis = mesh_quadrature(result.mesh, intorder)
-        _, grad = _measured(result, result.mesh, basis)
-        exx = grad[0, 0].ravel()
+        exx = _fields_at_quadrature(result.u, result.mesh, basis, strain)[1][:, 0]
         inside = np.asarray(roi(pts), bool)
     else:
-        exx = result.on_grid()["exx"]
+        exx = result.on_grid(strain)["exx"]
         inside = np.asarray(roi, bool)
         if inside.shape != exx.shape:
             raise ValueError(f"ROI mask shape {inside.shape} != image shape {exx.shape}")
@@ -149,7 +162,8 @@ def interpolate_truth(mesh, true_displacement) -> np.ndarray:
     return out
 
 
-def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
+def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = GAUSS_3X3,
+                       strain: str = "recovered") -> dict:
     """Relative L2 errors against the truth *interpolated at the mesh nodes* (the paper's convention).
 
     Both the measured field u_h and the interpolated truth u^t_h = I_h u^t are bilinear on the same mesh; errors
@@ -161,6 +175,8 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
     ----------
     result : RegistrationResult or (2 n_nodes,) nodal vector (then ``mesh`` is required)
     true_displacement : callable (n, 2) mm -> (n, 2) mm, evaluated at the mesh nodes only
+    strain : {"recovered", "element"}
+        How the strains of both u_h and u^t_h are evaluated (the same operator on both).
 
     Returns
     -------
@@ -176,15 +192,8 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
     um_nodal = np.asarray(getattr(result, "u", result), float)
     ut_nodal = interpolate_truth(mesh, true_displacement)
 
-    def fields(nodal):
-        f = basis.interpolate(nodal)
-        v, g = np.asarray(f), np.asarray(f.grad)
-        u = np.column_stack([v[0].ravel(), v[1].ravel()])
-        e = np.column_stack([g[0, 0].ravel(), g[1, 1].ravel(), 0.5 * (g[0, 1] + g[1, 0]).ravel()])
-        return u, e
-
-    um, em = fields(um_nodal)
-    ut, et = fields(ut_nodal)
+    um, em = _fields_at_quadrature(um_nodal, mesh, basis, strain)
+    ut, et = _fields_at_quadrature(ut_nodal, mesh, basis, strain)
 
     def rel(d, t, c=None):
         c = np.ones(d.shape[1]) if c is None else np.asarray(c)
@@ -197,7 +206,9 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
             "e": rel(de, et, [1.0, 1.0, 2.0])}
 
 
-def field_errors_both(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3) -> dict:
+def field_errors_both(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3,
+                      strain: str = "recovered") -> dict:
     """Both conventions at once: ``{"exact": field_errors(...), "nodal": field_errors_nodal(...)}``."""
-    return {"exact": field_errors(result, true_displacement, true_strain, mesh=mesh, intorder=intorder),
-            "nodal": field_errors_nodal(result, true_displacement, mesh=mesh, intorder=intorder)}
+    return {"exact": field_errors(result, true_displacement, true_strain, mesh=mesh, intorder=intorder,
+                                  strain=strain),
+            "nodal": field_errors_nodal(result, true_displacement, mesh=mesh, intorder=intorder, strain=strain)}

@@ -22,7 +22,7 @@ import numpy as np
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .errors import InputError
-from .fields import FIELDS, sample
+from .fields import FIELDS, check_strain_mode, recovered_strains, sample
 from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
@@ -110,6 +110,8 @@ class RegistrationResult:
         self.solver_result = solver_result
         self._locator = locator
         self._grid = grid
+        self._grid_element = None
+        self._nodal_strain = None
         self.quality = None if quality is None else np.asarray(quality, float)
         self.strategy = str(strategy)
         self.alpha_effective = float(alpha_effective)
@@ -138,13 +140,23 @@ class RegistrationResult:
         out[loc.inside] = np.column_stack([f["ux"], f["uy"]])
         return out
 
-    def strain(self, points) -> np.ndarray:
+    @property
+    def nodal_strain(self) -> np.ndarray:
+        """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy] (:func:`femreg.fields.recovered_strains`)."""
+        if getattr(self, "_nodal_strain", None) is None:
+            self._nodal_strain = recovered_strains(self.mesh.p, self.mesh.t, self.u)
+        return self._nodal_strain
+
+    def strain(self, points, strain: str = "recovered") -> np.ndarray:
         """Small strain at ``points`` (n, 2) mm -> (n, 3) [exx, eyy, exy], exy = (dux/dy + duy/dx) / 2;
-        NaN outside the mesh.  Bilinear elements: strain is discontinuous across element edges (a point on
-        an edge takes one of its elements)."""
+        NaN outside the mesh.  ``strain="recovered"`` (default): continuous, the nodal average of the
+        element-centre strains interpolated bilinearly (:mod:`femreg.fields`); ``"element"``: the gradient of
+        the bilinear field, discontinuous across element edges (a point on an edge takes one of its elements)."""
+        check_strain_mode(strain)
         pts = np.asarray(points, float).reshape(-1, 2)
         loc = self.locator.locate(pts)
-        f = sample(self.u, loc, ("exx", "eyy", "exy"))
+        f = sample(self.u, loc, ("exx", "eyy", "exy"),
+                   nodal_strain=self.nodal_strain if strain == "recovered" else None)
         out = np.full((len(pts), 3), np.nan)
         out[loc.inside] = np.column_stack([f["exx"], f["eyy"], f["exy"]])
         return out
@@ -155,17 +167,25 @@ class RegistrationResult:
         X, Y = np.meshgrid(x, y, indexing="ij")
         return np.column_stack([X.ravel(), Y.ravel()])
 
-    def on_grid(self) -> dict:
+    def on_grid(self, strain: str = "recovered") -> dict:
         """ux, uy, exx, eyy, exy on the reference pixel grid, each (n_axial, n_lateral) float64, NaN outside
-        the mesh."""
+        the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``)."""
+        check_strain_mode(strain)
+        if strain == "element":
+            if getattr(self, "_grid_element", None) is None:
+                self._grid_element = self._sample_grid(None)
+            return self._grid_element
         if self._grid is None:
-            x, y = pixel_axes(self.shape, self.spacing, self.origin)
-            loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
-            g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in FIELDS}
-            for k, v in sample(self.u, loc).items():
-                g[k][loc.inside] = v
-            self._grid = {k: v.reshape(self.shape) for k, v in g.items()}
+            self._grid = self._sample_grid(self.nodal_strain)
         return self._grid
+
+    def _sample_grid(self, nodal_strain) -> dict:
+        x, y = pixel_axes(self.shape, self.spacing, self.origin)
+        loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
+        g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in FIELDS}
+        for k, v in sample(self.u, loc, nodal_strain=nodal_strain).items():
+            g[k][loc.inside] = v
+        return {k: v.reshape(self.shape) for k, v in g.items()}
 
     # -- files ----------------------------------------------------------------------------------------------
     def save(self, path, **extra):

@@ -27,10 +27,16 @@ def test_auto_alpha_within_factor_3_of_the_best(pair):
     ref, mov = pair
     kw = dict(spacing=SPACING, origin=ORIGIN, regularizer="strain", element_size=1.0, margin=0.6)
     choice = choose_alpha(ref, mov, keep_results=True, **kw)
-    errs = np.array([field_errors(r, _disp)["e"] for r in choice.results])
+    # element strains (the gradient the discrepancy rule's calibration was measured with): auto 5.62 = best 5.62
+    # (grid 0.56 ... 562, total strain error 39 % at both, 66 % at the smallest)
+    errs = np.array([field_errors(r, _disp, strain="element")["e"] for r in choice.results])
     best = choice.alphas[int(np.argmin(errs))]
-    # measured: auto 5.62, best 5.62 (grid 0.56 ... 562, total strain error 39 % at both, 66 % at the smallest)
     assert 1 / 3 <= choice.alpha / best <= 3, (choice.alpha, best, errs)
+    # recovered strains (what femreg reports) favour one grid step less regularisation (best 1.78, 30.8 %); the
+    # automatic alpha's error is then 1.11 x the best (34.1 %): bound 1.2
+    errs = np.array([field_errors(r, _disp)["e"] for r in choice.results])
+    auto = errs[int(np.argmin(np.abs(choice.alphas - choice.alpha)))]
+    assert auto <= 1.2 * errs.min(), (choice.alpha, errs)
     assert choice.n_registrations == len(choice.alphas) == 7
     assert np.all(np.diff(choice.dof) < 0)             # more regularisation, fewer fitted degrees of freedom
     assert 1.0 <= choice.c < 10.0                      # measured 1.11 (the synthetic noise is white)

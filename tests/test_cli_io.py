@@ -140,7 +140,8 @@ def test_console_entry_point_exit_code(tmp_path):
 
 def test_engine_result_plots_and_exports(tmp_path, capsys):
     """An engine result saved by ``res.save`` goes through `femreg plot` and VTU export; the VTU cell strains
-    (element centres, femreg.io) agree with the engine's own ``res.strain`` there."""
+    (element centres, femreg.io) agree with the engine's element strain ``res.strain(..., "element")`` there and
+    the VTU point strains with its recovered nodal strains."""
     import meshio
 
     import femreg
@@ -160,9 +161,11 @@ def test_engine_result_plots_and_exports(tmp_path, capsys):
     assert (tmp_path / "o.png").stat().st_size > 1000
     m = meshio.read(tmp_path / "o.vtu")
     centres = m.points[m.cells[0].data].mean(axis=1)[:, :2]  # exact centres for the engine's rectangles
-    expect = res.strain(centres)
+    expect = res.strain(centres, "element")
     for k, name in enumerate(("exx", "eyy", "exy")):
         err = np.abs(m.cell_data[name][0] - expect[:, k]).max()
+        assert err < 1e-10, (name, err)
+        err = np.abs(m.point_data[name] - res.nodal_strain[:, k]).max()
         assert err < 1e-10, (name, err)
     np.testing.assert_allclose(m.point_data["displacement"][:, :2], res.u.reshape(-1, 2), atol=0)
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..fields import element_strains  # noqa: F401  (part of this module's API; one implementation)
+from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
 from .frames import fail
 
 __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_strains", "nodal_average",
@@ -80,20 +80,6 @@ def check_mesh(points, cells, u=None, where="mesh"):
     return p, t, uu
 
 
-def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
-    """Average of the values of the cells around each node: (n_el, k) -> (n_nodes, k)."""
-    t = np.asarray(mesh_cells)
-    v = np.asarray(cell_values, dtype=float)
-    v2 = v.reshape(v.shape[0], -1)
-    out = np.zeros((n_nodes, v2.shape[1]))
-    count = np.bincount(t.ravel(), minlength=n_nodes).astype(float)
-    for k in range(v2.shape[1]):
-        out[:, k] = np.bincount(t.ravel(), weights=np.tile(v2[:, k], 4), minlength=n_nodes)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out /= count[:, None]
-    return out.reshape((n_nodes,) + v.shape[1:])
-
-
 def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
     """meshio-ready (points (n, 3), cells, point_data, cell_data) for a registration result.
 
@@ -115,7 +101,7 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
         if strains in ("cell", "both"):
             cdata.update({name: [e[:, k]] for k, name in enumerate(("exx", "eyy", "exy"))})
         if strains in ("point", "both"):
-            en = nodal_average(t.T, e, n)
+            en = nodal_average(t, e, n)
             pdata.update({name: en[:, k] for k, name in enumerate(("exx", "eyy", "exy"))})
     for k, v in (point_data or {}).items():
         v = np.asarray(v, dtype=float)
