@@ -115,7 +115,7 @@ def _row_alternation(res):
     """Mean |second difference of e_xx across element rows| / mean |e_xx|, e_xx at the element centres of the
     structured ROI mesh: about 0 for a smooth field, about 2-3 when e_xx flips sign from row to row."""
     c = res.mesh.p[:, res.mesh.t].mean(axis=1).T
-    exx = res.strain(c)[:, 0]
+    exx = res.strain(c, "element")[:, 0]                 # the solution itself, before strain recovery
     xs, ix = np.unique(np.round(c[:, 0], 6), return_inverse=True)
     ys, iy = np.unique(np.round(c[:, 1], 6), return_inverse=True)
     G = np.full((len(xs), len(ys)), np.nan)
