@@ -125,10 +125,15 @@ def cnr_e(exx, inside, weights=None) -> float:
     return 2.0 * (ea - eb) ** 2 / (va + vb)
 
 
-def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3, strain: str = "recovered") -> dict:
+def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3, strain: str = "element") -> dict:
     """SR and CNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
-    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid;
-    ``strain`` as in :func:`field_errors`."""
+    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid.
+
+    ``strain="element"`` (default): region statistics of the solution's own strain, whose mean over any union of
+    elements is fixed by the displacement on its boundary (divergence theorem); the recovered strain (the images'
+    default) moves strain across the inclusion edge by about one element and lowers the contrast: 3D HI frames
+    1 -> 7, R_P_sigma, 2 mm elements: SR 1.62 element / 1.45 recovered (true 1.71), CNR_e 3.26 / 2.57.
+    """
     if callable(roi):
         pts, w, basis = mesh_quadrature(result.mesh, intorder)
         exx = _fields_at_quadrature(result.u, result.mesh, basis, strain)[1][:, 0]

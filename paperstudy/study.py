@@ -1067,7 +1067,11 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
           "which leaves out the mesh's own discretisation error (`femreg.metrics.field_errors_nodal`).  "
           f"Registration: `register(strategy={s.strategy!r})` on a {s.element_size:g} mm mesh"
           + (f", hourglass control {s.hourglass:g}" if s.hourglass is not None else "")
-          + "; the paper's own pipeline is compared in 'Findings: the 2D anomalies'.",
+          + "; the paper's own pipeline is compared in 'Findings: the 2D anomalies'.  Strain errors score femreg's "
+          "reported strain, the recovered (continuous) one of `femreg.fields.recovered_strains` (both fields of the "
+          "paper's convention recovered the same way); SR and CNR_e are region statistics of the element strain "
+          "(`femreg.metrics.contrast_metrics`: recovery moves strain across the inclusion edge by about one "
+          "element).",
           ""]
     rank_lines = []
     for d in s.single_datasets:
