@@ -28,7 +28,8 @@ from .image import SplineImage, normalize_pair, pixel_axes, validate_image, vali
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_period, speckle_statistics
-from .repair import MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_nodes, pixel_values, poor_fraction, reseed
+from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
+                     hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton, single_blas_thread
@@ -569,6 +570,15 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         notes.append(f"{poor:.0%} of the elements do not match (element NCC < {MIN_NCC}; see the quality map)")
     elif poor > 0.1:
         notes.append(f"{poor:.0%} of the elements match poorly (element NCC < {MIN_NCC}; see the quality map)")
+    # peak hopping seen in the images themselves (every strategy; the node test above needs a coarser level)
+    if ref.shape[0] > 1:
+        # the period from every k-th line (>= 32 lines): as precise, a quarter of the cost on a paper-size image
+        period = stats.period if stats is not None else rf_period(ref[:, ::max(1, ref.shape[1] // 32)], spacing)
+        hopped = hopped_fraction(hop_gain(data, u_out, n_el, period, ref.shape, spacing))
+        if hopped > MAX_HOPPED_FRACTION:
+            success = False
+            notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
+                         f"({period:.3g} mm) off")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
