@@ -86,7 +86,13 @@ class RegistrationResult:
     strategy : str
         "auto" or "paper" (see :func:`register`); ``alpha_effective`` the weight used on this mesh
         (:mod:`femreg.scaling`).
+    hop_gain : (n_elements,) float or None
+        Peak-hopping map of :func:`register`'s check (:func:`femreg.repair.hop_gain`, not saved): per element, how
+        much better the envelope matches one RF period off than at u (Fisher z); above
+        :data:`femreg.repair.HOP_GAIN` the element sits on a neighbouring correlation peak.
     """
+
+    hop_gain = None
 
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
@@ -571,10 +577,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     elif poor > 0.1:
         notes.append(f"{poor:.0%} of the elements match poorly (element NCC < {MIN_NCC}; see the quality map)")
     # peak hopping seen in the images themselves (every strategy; the node test above needs a coarser level)
+    gain = None
     if ref.shape[0] > 1:
         # the period from every k-th line (>= 32 lines): as precise, a quarter of the cost on a paper-size image
         period = stats.period if stats is not None else rf_period(ref[:, ::max(1, ref.shape[1] // 32)], spacing)
-        hopped = hopped_fraction(hop_gain(data, u_out, n_el, period, ref.shape, spacing))
+        gain = hop_gain(data, u_out, n_el, period, ref.shape, spacing)
+        hopped = hopped_fraction(gain)
         if hopped > MAX_HOPPED_FRACTION:
             success = False
             notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
@@ -584,12 +592,14 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not success:
         message = "FAILED: " + message
-    return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
-                              message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
-                              ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
-                              solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
-                              alpha_effective=sol.reg.alpha)
+    out = RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
+                             regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
+                             message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
+                             ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
+                             solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
+                             alpha_effective=sol.reg.alpha)
+    out.hop_gain = gain
+    return out
 
 
 def _interleave(v):
