@@ -395,8 +395,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     RegistrationResult
         ``success`` is False, with a message, when the result explains less of the image than its start (the
         start is returned then), when the images do not match (NCC after below :data:`femreg.repair.MIN_NCC`, or
-        more than :data:`femreg.repair.MAX_POOR_FRACTION` of the elements below it) or when peak hopping could not
-        be repaired; ``quality`` holds the per-element NCC.
+        more than :data:`femreg.repair.MAX_POOR_FRACTION` of the elements below it), when peak hopping could not
+        be repaired, or when more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements match the envelope
+        better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
+        per-element NCC, ``hop_gain`` the peak-hopping map.
     """
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
