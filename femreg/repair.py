@@ -184,8 +184,10 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
     w = np.add(data.residual(u), a)
     np.multiply(w, w, out=w)
     gr = quad.location.grid
+    row0 = 0
     if gr is not None:                  # tensor mesh: the quadrature pixels are an nr x nc block of the image
         nr = gr["nr"]
+        row0 = int(quad.index[0]) // n1 if quad.index.size else 0
         A2 = (a * a).reshape(nr, -1)
         W2 = w.reshape(nr, -1)
         cell = quad.locator.tensor[2][:, gr["j"]]
@@ -198,8 +200,9 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         E = np.full(n0 * n1, -1, dtype=np.int64)
         E[quad.index] = _pixel_elements(quad)
         cell, row_el = E.reshape(n0, n1), np.arange(n0)
-    edges = np.unique(np.round(np.arange(0.0, nr + 1e-9, 0.5 * L)).astype(np.int64))
-    edges = edges[edges < nr]
+    # half-period blocks on the image's rows (the same blocks whichever branch above)
+    edges = np.unique(np.round(np.arange(0.0, row0 + nr + 1e-9, 0.5 * L)).astype(np.int64)) - row0
+    edges = edges[(edges >= 0) & (edges < nr)]
     nb = edges.size - 1                 # whole half-period blocks [edges[k], edges[k + 1])
     if nb < 7:
         return nan

@@ -79,3 +79,23 @@ def test_track_flags_the_hopped_frame_and_cli_exits_1(bend_pair, tmp_path, capsy
     assert main(["register", *args, "--strategy", "paper", "-o", str(tmp_path / "p.npz")]) == 1
     assert "peak hopping" in capsys.readouterr().err
     assert main(["register", *args, "-o", str(tmp_path / "a.npz")]) == 0
+
+
+def test_any_mesh_branch_equals_the_tensor_mesh_branch(bend_pair):
+    # femreg.track registers on meshes moved with the tissue: hop_gain then scatters onto the image grid instead
+    # of using the tensor mesh's pixel block; both must give the same numbers
+    from femreg.image import SplineImage
+    from femreg.registration import image_term
+    from femreg.repair import envelope_lag_ncc
+
+    ref, mov = bend_pair
+    res = femreg.register(ref, mov, spacing=SP, strategy="paper")
+    data = image_term(SplineImage(ref, SP, (0.0, 0.0)), SplineImage(mov, SP, (0.0, 0.0)), res.mesh, ref.shape, SP,
+                      (0.0, 0.0))
+    n_el, T = res.mesh.t.shape[1], rf_period(ref, SP)
+    tensor = envelope_lag_ncc(data, res.u, n_el, T, ref.shape, SP)
+    data.quad.location.element                       # build the per-pixel element index, then drop the grid
+    data.quad.location.grid = None
+    anymesh = envelope_lag_ncc(data, res.u, n_el, T, ref.shape, SP)
+    assert np.mean(np.isfinite(tensor)) > 0.9
+    np.testing.assert_allclose(anymesh, tensor, rtol=0, atol=1e-12)
