@@ -28,7 +28,8 @@ from .image import SplineImage, normalize_pair, pixel_axes, validate_image, vali
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_period, speckle_statistics
-from .repair import MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_nodes, pixel_values, poor_fraction, reseed
+from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
+                     hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import Objective, gauss_newton, single_blas_thread
@@ -85,7 +86,13 @@ class RegistrationResult:
     strategy : str
         "auto" or "paper" (see :func:`register`); ``alpha_effective`` the weight used on this mesh
         (:mod:`femreg.scaling`).
+    hop_gain : (n_elements,) float or None
+        Peak-hopping map of :func:`register`'s check (:func:`femreg.repair.hop_gain`, not saved): per element, how
+        much better the envelope matches one RF period off than at u (Fisher z); above
+        :data:`femreg.repair.HOP_GAIN` the element sits on a neighbouring correlation peak.
     """
+
+    hop_gain = None
 
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
@@ -408,8 +415,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     RegistrationResult
         ``success`` is False, with a message, when the result explains less of the image than its start (the
         start is returned then), when the images do not match (NCC after below :data:`femreg.repair.MIN_NCC`, or
-        more than :data:`femreg.repair.MAX_POOR_FRACTION` of the elements below it) or when peak hopping could not
-        be repaired; ``quality`` holds the per-element NCC.
+        more than :data:`femreg.repair.MAX_POOR_FRACTION` of the elements below it), when peak hopping could not
+        be repaired, or when more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements match the envelope
+        better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
+        per-element NCC, ``hop_gain`` the peak-hopping map.
     """
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
@@ -589,17 +598,30 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         notes.append(f"{poor:.0%} of the elements do not match (element NCC < {MIN_NCC}; see the quality map)")
     elif poor > 0.1:
         notes.append(f"{poor:.0%} of the elements match poorly (element NCC < {MIN_NCC}; see the quality map)")
+    # peak hopping seen in the images themselves (every strategy; the node test above needs a coarser level)
+    gain = None
+    if ref.shape[0] > 1:
+        # the period from every k-th line (>= 32 lines): as precise, a quarter of the cost on a paper-size image
+        period = stats.period if stats is not None else rf_period(ref[:, ::max(1, ref.shape[1] // 32)], spacing)
+        gain = hop_gain(data, u_out, n_el, period, ref.shape, spacing)
+        hopped = hopped_fraction(gain)
+        if hopped > MAX_HOPPED_FRACTION:
+            success = False
+            notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
+                         f"({period:.3g} mm) off")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not success:
         message = "FAILED: " + message
-    return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
-                              message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
-                              ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
-                              solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
-                              alpha_effective=sol.reg.alpha)
+    out = RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
+                             regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
+                             message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
+                             ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
+                             solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
+                             alpha_effective=sol.reg.alpha)
+    out.hop_gain = gain
+    return out
 
 
 def _interleave(v):
