@@ -139,10 +139,12 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     # End to end on simulated RF (forward/ sequence, 12 dB): bounds ~1.5x the measured values.
     # The axial displacement is what the images measure best (paper: 0.1-0.3 %; measured 0.10 %).
     assert row["ux"] < 0.2, f"R_P_sigma plane-stress axial displacement error {row['ux']:.2f} %"
-    # measured: R_P_sigma total strain 37.7 %, lateral displacement 32.4 %; R_eps 41.4 % and 38.7 %
-    assert row["e"] < 55.0, f"R_P_sigma total strain error {row['e']:.1f} % (measured 37.7 %)"
-    assert row["uy"] < 50.0, f"R_P_sigma lateral displacement error {row['uy']:.1f} % (measured 32.4 %)"
-    assert reps["e"] < 62.0 and reps["uy"] < 58.0, f"R_eps row {reps}"
+    # measured: R_P_sigma total strain 28.5 %, lateral displacement 45.7 % (R_P_sigma's strategy-auto form,
+    # centre dilatation: 25.0 % and 32.5 % with the paper's edge form on this small, low-strain crop); R_eps 32.0 %
+    # and 38.5 %
+    assert row["e"] < 42.0, f"R_P_sigma total strain error {row['e']:.1f} % (measured 28.5 %)"
+    assert row["uy"] < 68.0, f"R_P_sigma lateral displacement error {row['uy']:.1f} % (measured 45.7 %)"
+    assert reps["e"] < 48.0 and reps["uy"] < 58.0, f"R_eps row {reps}"
     # the paper's finding on plane stress: the momentum regulariser beats the strain one
     assert row["e"] < reps["e"], f"R_P_sigma {row['e']:.1f} % vs R_eps {reps['e']:.1f} % total strain error"
     # Records: one JSON + npz per case, tracks with per-frame metrics.

@@ -106,7 +106,7 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
     g.add_argument("--hourglass", type=float, default=None, metavar="W",
                    help="momentum regularisers only: hourglass control weight relative to alpha (default with "
-                        "--strategy auto: femreg.registration.DEFAULT_HOURGLASS for a pair, "
+                        "--strategy auto: femreg.registration.DEFAULT_HOURGLASS for a pair, 1000 for R_P_sigma, "
                         "femreg.sequence.TRACK_HOURGLASS for the increments of track; 0 = the paper's with "
                         "--strategy paper)")
     g.add_argument("--strategy", choices=("auto", "paper"), default="auto",
