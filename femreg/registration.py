@@ -161,6 +161,16 @@ class RegistrationResult:
         if self._grid is None:
             x, y = pixel_axes(self.shape, self.spacing, self.origin)
             loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
+            if loc.grid is not None:     # the inside points are a block of rows x columns
+                ins = loc.inside.reshape(self.shape)
+                rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+                block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)) if rows.size else None
+                self._grid = {}
+                for k, v in _sample_grid(self.u, loc, self.locator).items():
+                    self._grid[k] = np.full(self.shape, np.nan)
+                    if block is not None:
+                        self._grid[k][block] = v.reshape(rows.size, cols.size)
+                return self._grid
             g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in FIELDS}
             for k, v in sample(self.u, loc).items():
                 g[k][loc.inside] = v
@@ -179,6 +189,33 @@ class RegistrationResult:
         return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "
                 f"success={self.success}, nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, "
                 f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
+
+
+def _sample_grid(u, loc, locator) -> dict:
+    """:func:`femreg.fields.sample` on a tensor grid of points in a tensor mesh (``loc.grid``), separably: the
+    nodal values on the node grid are interpolated along the lateral axis (1D hats, or their derivative), then
+    along the axial one.  The same shape functions and elements as ``sample`` (equal to round-off); ~10x faster
+    on a 0.5 M pixel grid, where the per-pixel (m, 4, 2) gradients dominated."""
+    xs, ys, _ = locator.tensor
+    G = locator.node_grid
+    gr = loc.grid
+    i, j, X, Y = gr["i"], gr["j"], gr["X"], gr["Y"]
+    hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
+    u = np.asarray(u, float)
+    Ux, Uy = u[0::2][G], u[1::2][G]
+
+    def lateral(U, d=False):       # (n_x nodes, nc): value (or d/dy) at every column
+        a, b = U[:, j], U[:, j + 1]
+        return (b - a) / hy if d else a + (b - a) * Y
+
+    def axial(V, d=False):         # (nr, nc): value (or d/dx) at every row
+        a, b = V[i], V[i + 1]
+        return (b - a) / hx[:, None] if d else a + (b - a) * X[:, None]
+
+    Lx, Ly = lateral(Ux), lateral(Uy)
+    exy = 0.5 * (axial(lateral(Ux, True)) + axial(Ly, True))
+    return {"ux": axial(Lx).ravel(), "uy": axial(Ly).ravel(), "exx": axial(Lx, True).ravel(),
+            "eyy": axial(lateral(Uy, True)).ravel(), "exy": exy.ravel()}
 
 
 def displacement_at(spec, mesh, points, what: str):
