@@ -70,6 +70,7 @@ class PyramidSettings:
     decimation: int
     window: np.ndarray
     search: np.ndarray
+    lateral_decimation: int = 1
 
 
 def _analytic(img, complex_signal: bool = False):
@@ -181,17 +182,21 @@ def default_settings(shape, spacing, stats: SpeckleStats, element_size=None) -> 
     else:
         h = np.broadcast_to(np.asarray(element_size, float), (2,)).copy()
     q = int(max(1, np.floor(stats.cell[0] / (3.0 * spacing[0]))))
+    ql = int(max(1, np.floor(stats.cell[1] / (3.0 * spacing[1]))))
     window = np.maximum([8.0 * stats.cell[0], 3.0 * stats.cell[1]], extent / np.array([12.0, 8.0]))
     window = np.minimum(window, extent / 2.0)
     search = np.array([3.0 * stats.cell[0], 2.0 * stats.cell[1]])
-    return PyramidSettings(element_size=h, decimation=q, window=window, search=search)
+    return PyramidSettings(element_size=h, decimation=q, window=window, search=search, lateral_decimation=ql)
 
 
-def _decimated_envelopes(ref, mov, q, ref_envelope=None):
-    """Low-passed (Gaussian, sigma q/2 samples axially) and decimated envelopes, zero mean, unit RMS (ref)."""
+def _decimated_envelopes(ref, mov, q, ref_envelope=None, ql: int = 1):
+    """Low-passed (Gaussian, sigma q/2 samples axially, ql/2 laterally) and decimated envelopes (by q axially,
+    ql laterally), zero mean, unit RMS (ref)."""
     out = []
     for img, env in ((ref, ref_envelope), (mov, None)):
         e = envelope(img) if env is None else env
+        if ql > 1:
+            e = ndimage.gaussian_filter1d(e, 0.5 * ql, axis=1)[:, ::ql]
         if q > 1:
             e = ndimage.gaussian_filter1d(e, 0.5 * q, axis=0)[::q]
         out.append(e)
@@ -369,8 +374,9 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     origin = np.asarray(origin, float)
     t = time.perf_counter()
     q = settings.decimation
-    er, em = _decimated_envelopes(ref, mov, q, ref_envelope)
-    sp_c = np.array([q * spacing[0], spacing[1]])
+    ql = settings.lateral_decimation
+    er, em = _decimated_envelopes(ref, mov, q, ref_envelope, ql)
+    sp_c = np.array([q * spacing[0], ql * spacing[1]])
     timings["envelopes"] = time.perf_counter() - t
 
     t = time.perf_counter()
