@@ -158,14 +158,19 @@ class SplineImage:
             g[:, a] = (self.at_index(idx + e) - self.at_index(idx - e)) / (2 * h * self.spacing[a])
         return g
 
-    def gradient_at_pixels(self):
-        """Exact gradient of the interpolant at every pixel centre: ``(gx, gy)``, each (n_axial, n_lateral).
+    def gradient_at_pixels(self, block=None):
+        """Exact gradient of the interpolant at every pixel centre: ``(gx, gy)``, each (n_axial, n_lateral);
+        with ``block`` = (row slice, column slice) (unit steps) at the pixels of that block only.
 
         At a knot the cubic B-spline has weights (1/6, 4/6, 1/6) and derivative weights (-1/2, 0, 1/2), so
         dI/dx[i, j] = ((S_y c)[i+1, j] - (S_y c)[i-1, j]) / (2 dx) with S_y the lateral (1, 4, 1)/6 smoother,
         and the coefficients mirror-extended exactly as scipy evaluates them.
         """
-        c = np.pad(self.coeffs, 1, mode="reflect")
+        if block is None:
+            c = np.pad(self.coeffs, 1, mode="reflect")
+        else:   # the coefficients mirror-extended by 1 around the block: a view of the 2-padded ones
+            (r0, r1, _), (c0, c1, _) = (b.indices(n) for b, n in zip(block, self.shape))
+            c = self._padded[r0 + 1:r1 + 3, c0 + 1:c1 + 3]
         sx = (c[:-2, :] + 4.0 * c[1:-1, :] + c[2:, :]) / 6.0   # smooth along axis 0
         sy = (c[:, :-2] + 4.0 * c[:, 1:-1] + c[:, 2:]) / 6.0   # smooth along axis 1
         gx = (sy[2:, :] - sy[:-2, :]) / (2.0 * self.spacing[0])

@@ -335,13 +335,16 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     outside would pull their elements; the regulariser carries the field there."""
     locator = locator or PointLocator(mesh)
     data = image_term(I1, I2, mesh, shape, spacing, origin, offset=offset, locator=locator)
-    quad, S = data.quad, data.offset
+    quad = data.quad
     if mask_outside:
-        base = quad.points if S is None else quad.points + S
-        v = np.column_stack([pixel_values(quad, u0[0::2]), pixel_values(quad, u0[1::2])])
-        idx = ((base + v - I2.origin) / I2.spacing).T
-        hi = np.asarray(I2.shape, float)[:, None] - 2.0
-        out = np.any((idx < 1.0) | (idx > hi), axis=0)
+        # I_2 index of every pixel at the start: the term's base index (x + S - origin) / spacing plus u0 / spacing
+        out = np.zeros(quad.n_pixels, bool)
+        for c, base in enumerate((data._bx, data._by)):
+            idx = pixel_values(quad, u0[c::2])
+            idx *= data._inv_sp[c]
+            idx += base
+            out |= idx < 1.0
+            out |= idx > I2.shape[c] - 2.0
         if out.any() and not out.all():
             data.w = np.where(out, 0.0, data.w)
     reg = reg_factory()
