@@ -162,6 +162,52 @@ def hessian_rows(w, gx, gy, fx, rseg, n_seg, nc):  # pragma: no cover - compiled
 
 
 @_jit
+def box_sums(R, w0, w1, na, nl):  # pragma: no cover - compiled
+    """Sums of ``R`` and ``R**2`` over every w0 x w1 window with top-left corner (d0, d1), d0 < na, d1 < nl:
+    (S1, S2), each (na, nl), from the two integral images (built in one pass)."""
+    n0, n1 = R.shape
+    I1 = np.zeros((n0 + 1, n1 + 1))
+    I2 = np.zeros((n0 + 1, n1 + 1))
+    for i in range(n0):
+        a = 0.0
+        b = 0.0
+        for j in range(n1):
+            v = R[i, j]
+            a += v
+            b += v * v
+            I1[i + 1, j + 1] = I1[i, j + 1] + a
+            I2[i + 1, j + 1] = I2[i, j + 1] + b
+    S1 = np.empty((na, nl))
+    S2 = np.empty((na, nl))
+    for i in range(na):
+        for j in range(nl):
+            S1[i, j] = I1[i + w0, j + w1] - I1[i, j + w1] - I1[i + w0, j] + I1[i, j]
+            S2[i, j] = I2[i + w0, j + w1] - I2[i, j + w1] - I2[i + w0, j] + I2[i, j]
+    return S1, S2
+
+
+@_jit
+def axial_resample(img, pos, out):  # pragma: no cover - compiled
+    """``img`` at fractional row positions ``pos`` (every column), cubic convolution (Keys, a = -0.5), zero
+    outside: the compiled twin of :func:`femreg.pyramid._axial_resample`."""
+    n, m = img.shape
+    for r in range(pos.shape[0]):
+        i0 = int(np.floor(pos[r]))
+        t = pos[r] - i0
+        w = (((-0.5 * t + 1.0) * t - 0.5) * t, (1.5 * t - 2.5) * t * t + 1.0, ((-1.5 * t + 2.0) * t + 0.5) * t,
+             (0.5 * t - 0.5) * t * t)
+        for c in range(m):
+            out[r, c] = 0.0
+        for k in range(4):
+            idx = i0 - 1 + k
+            if idx >= 0 and idx < n:
+                wk = w[k]
+                for c in range(m):
+                    out[r, c] += wk * img[idx, c]
+    return out
+
+
+@_jit
 def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
     pixel (any quad mesh)."""

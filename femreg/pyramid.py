@@ -28,6 +28,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 from scipy import ndimage
 
+from . import _kernels
 from .blockmatch import block_match
 from .data_term import SSDTerm
 from .image import SplineImage
@@ -229,6 +230,9 @@ def _axial_resample(image, pos) -> np.ndarray:
     convolution (Keys, a = -0.5; 4 taps, no prefilter), zero outside.  Used for the axial-strain pre-warps of
     the global search, where a full 2D spline warp per trial strain cost 10-15 ms on a paper-size envelope."""
     img = np.asarray(image, float)
+    if _kernels.use_compiled():
+        return _kernels.axial_resample(np.ascontiguousarray(img), np.asarray(pos, float),
+                                       np.empty((np.size(pos), img.shape[1])))
     n = img.shape[0]
     i0 = np.floor(pos).astype(np.int64)
     t = pos - i0
@@ -281,14 +285,18 @@ def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, 
     for e in strains:
         R = _axial_resample(mov, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else mov
         C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
-        I1 = np.zeros((n[0] + 1, n[1] + 1))
-        I2 = np.zeros((n[0] + 1, n[1] + 1))
-        I1[1:, 1:] = R.cumsum(0).cumsum(1)
-        I2[1:, 1:] = (R * R).cumsum(0).cumsum(1)
+        if _kernels.use_compiled():
+            S1, S2 = _kernels.box_sums(np.ascontiguousarray(R), int(w[0]), int(w[1]), int(na), int(nl))
+        else:
+            I1 = np.zeros((n[0] + 1, n[1] + 1))
+            I2 = np.zeros((n[0] + 1, n[1] + 1))
+            I1[1:, 1:] = R.cumsum(0).cumsum(1)
+            I2[1:, 1:] = (R * R).cumsum(0).cumsum(1)
 
-        def box(I):
-            return I[w[0]:w[0] + na, w[1]:w[1] + nl] - I[:na, w[1]:w[1] + nl] - I[w[0]:w[0] + na, :nl] + I[:na, :nl]
-        S1, S2 = box(I1), box(I2)
+            def box(I):
+                return (I[w[0]:w[0] + na, w[1]:w[1] + nl] - I[:na, w[1]:w[1] + nl] - I[w[0]:w[0] + na, :nl]
+                        + I[:na, :nl])
+            S1, S2 = box(I1), box(I2)
         var = np.maximum(S2 - S1 * S1 / (w[0] * w[1]), 0.0)
         den = tn * np.sqrt(var)
         ncc = np.where(den > 1e-12 * max(float(den.max()), 1e-300), C / np.where(den > 0, den, 1.0), -np.inf)
