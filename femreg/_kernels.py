@@ -208,6 +208,41 @@ def axial_resample(img, pos, out):  # pragma: no cover - compiled
 
 
 @_jit
+def block_ncc(a, b, rseg, cseg, n_rs, n_cs):  # pragma: no cover - compiled
+    """NCC of ``a`` and ``b`` (an nr x nc pixel grid, C order) over each block (rseg[r], cseg[c]) of pixels:
+    block means first, then the centred sums (the two-pass formula of :func:`femreg.repair.element_ncc`).
+    Returns (ncc, count), each (n_rs, n_cs); NaN where a block has no variance."""
+    nr, nc = rseg.shape[0], cseg.shape[0]
+    cnt = np.zeros((n_rs, n_cs))
+    sa = np.zeros((n_rs, n_cs))
+    sb = np.zeros((n_rs, n_cs))
+    for r in range(nr):
+        s = rseg[r]
+        for c in range(nc):
+            t = cseg[c]
+            p = r * nc + c
+            cnt[s, t] += 1.0
+            sa[s, t] += a[p]
+            sb[s, t] += b[p]
+    ma = sa / cnt
+    mb = sb / cnt
+    sab = np.zeros((n_rs, n_cs))
+    saa = np.zeros((n_rs, n_cs))
+    sbb = np.zeros((n_rs, n_cs))
+    for r in range(nr):
+        s = rseg[r]
+        for c in range(nc):
+            t = cseg[c]
+            p = r * nc + c
+            da = a[p] - ma[s, t]
+            db = b[p] - mb[s, t]
+            sab[s, t] += da * db
+            saa[s, t] += da * da
+            sbb[s, t] += db * db
+    return sab / np.sqrt(saa * sbb), cnt
+
+
+@_jit
 def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
     pixel (any quad mesh)."""
