@@ -106,6 +106,30 @@ def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  #
 
 
 @_jit
+def outside_grid(bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, hi0, hi1, out):  # pragma: no cover - compiled
+    """out[p] = True where base + u/spacing (as :func:`warp_grid`) lies less than 1 pixel inside the first
+    pixel centre or beyond ``hi`` (fractional index) on either axis."""
+    nc = ej.shape[0]
+    for r in range(ei.shape[0]):
+        a = ei[r]
+        x = X[r]
+        for q in range(nc):
+            b = ej[q]
+            y = Y[q]
+            w00 = (1.0 - x) * (1.0 - y)
+            w10 = x * (1.0 - y)
+            w11 = x * y
+            w01 = (1.0 - x) * y
+            ux = w00 * Ux[a, b] + w10 * Ux[a + 1, b] + w11 * Ux[a + 1, b + 1] + w01 * Ux[a, b + 1]
+            uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
+            p = r * nc + q
+            ix = bx[p] + ux * isx
+            iy = by[p] + uy * isy
+            out[p] = ix < 1.0 or ix > hi0 or iy < 1.0 or iy > hi1
+    return out
+
+
+@_jit
 def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
     """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation."""
     nc = ej.shape[0]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .errors import InputError
@@ -338,13 +339,22 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     quad = data.quad
     if mask_outside:
         # I_2 index of every pixel at the start: the term's base index (x + S - origin) / spacing plus u0 / spacing
-        out = np.zeros(quad.n_pixels, bool)
-        for c, base in enumerate((data._bx, data._by)):
-            idx = pixel_values(quad, u0[c::2])
-            idx *= data._inv_sp[c]
-            idx += base
-            out |= idx < 1.0
-            out |= idx > I2.shape[c] - 2.0
+        hi = (I2.shape[0] - 2.0, I2.shape[1] - 2.0)
+        gr = quad.location.grid
+        if gr is not None and _kernels.use_compiled():     # one compiled pass over the pixel grid
+            G = quad.locator.node_grid
+            ux, uy = np.asarray(u0, float)[0::2], np.asarray(u0, float)[1::2]
+            out = _kernels.outside_grid(data._bx, data._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"], gr["Y"],
+                                        data._inv_sp[0], data._inv_sp[1], hi[0], hi[1],
+                                        np.empty(quad.n_pixels, bool))
+        else:
+            out = np.zeros(quad.n_pixels, bool)
+            for c, base in enumerate((data._bx, data._by)):
+                idx = pixel_values(quad, u0[c::2])
+                idx *= data._inv_sp[c]
+                idx += base
+                out |= idx < 1.0
+                out |= idx > hi[c]
         if out.any() and not out.all():
             data.w = np.where(out, 0.0, data.w)
     reg = reg_factory()
