@@ -267,6 +267,67 @@ def block_ncc(a, b, rseg, cseg, n_rs, n_cs):  # pragma: no cover - compiled
 
 
 @_jit
+def spline_coefficients(data, z):  # pragma: no cover - compiled
+    """Cubic B-spline coefficients of an image (pole ``z`` = sqrt(3) - 2), mirror boundary, axis 0 then axis 1,
+    mirror-extended by 2 on every side: ``out[2:-2, 2:-2]`` is ``scipy.ndimage.spline_filter(data, 3,
+    mode="mirror")`` (the same recursions and initial values as scipy's ni_splines.c, each axis's lines run
+    side by side instead of one at a time), the border the ``np.pad(.., 2, mode="reflect")`` of it.  Both axes
+    at least 3 long."""
+    n0, n1 = data.shape
+    out = np.empty((n0 + 4, n1 + 4))
+    c = out[2:n0 + 2, 2:n1 + 2]
+    gain = (1.0 - z) * (1.0 - 1.0 / z)
+    # axis 0: the lines are the columns, processed a row at a time
+    for i in range(n0):
+        for j in range(n1):
+            c[i, j] = data[i, j] * gain
+    zn = np.power(z, n0 - 1)
+    for j in range(n1):
+        c[0, j] = c[0, j] + zn * c[n0 - 1, j]
+    zi = z
+    for i in range(1, n0 - 1):
+        for j in range(n1):
+            c[0, j] += zi * (c[i, j] + zn * c[n0 - 1 - i, j])
+        zi *= z
+    for j in range(n1):
+        c[0, j] /= 1 - zn * zn
+    for i in range(1, n0):
+        for j in range(n1):
+            c[i, j] += z * c[i - 1, j]
+    for j in range(n1):
+        c[n0 - 1, j] = (z * c[n0 - 2, j] + c[n0 - 1, j]) * z / (z * z - 1)
+    for i in range(n0 - 2, -1, -1):
+        for j in range(n1):
+            c[i, j] = z * (c[i + 1, j] - c[i, j])
+    # axis 1: the lines are the rows
+    zn = np.power(z, n1 - 1)
+    for i in range(n0):
+        for j in range(n1):
+            c[i, j] *= gain
+        c0 = c[i, 0] + zn * c[i, n1 - 1]
+        zi = z
+        for j in range(1, n1 - 1):
+            c0 += zi * (c[i, j] + zn * c[i, n1 - 1 - j])
+            zi *= z
+        c[i, 0] = c0 / (1 - zn * zn)
+        for j in range(1, n1):
+            c[i, j] += z * c[i, j - 1]
+        c[i, n1 - 1] = (z * c[i, n1 - 2] + c[i, n1 - 1]) * z / (z * z - 1)
+        for j in range(n1 - 2, -1, -1):
+            c[i, j] = z * (c[i, j + 1] - c[i, j])
+    # mirror (whole-sample) extension by 2: out[1] = c[1], out[0] = c[2], likewise at the other ends
+    for k in range(2):
+        for j in range(n1):
+            out[1 - k, j + 2] = c[k + 1, j]
+            out[n0 + 2 + k, j + 2] = c[n0 - 2 - k, j]
+    for i in range(n0 + 4):
+        for k in range(2):
+            out[i, 1 - k] = out[i, k + 3]
+            out[i, n1 + 2 + k] = out[i, n1 - k]
+    return out
+
+
+@_jit
 def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
     pixel (any quad mesh)."""

@@ -37,6 +37,10 @@ from . import _kernels
 
 __all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
 
+#: Pole of the cubic B-spline prefilter, sqrt(3) - 2 (the constant of scipy's ni_splines.c).
+_CUBIC_POLE = -0.267949192431122706472553658494127633
+
+
 def cubic_at_index(padded, idx, shape, out=None):
     """Cubic B-spline interpolant at fractional pixel indices ``idx`` (2, n), 0 outside the pixel cells.
 
@@ -124,11 +128,15 @@ class SplineImage:
         self.origin = np.asarray(origin, dtype=float)
         self.shape = self.data.shape
         # Prefilter once; every later evaluation uses prefilter=False.
-        self.coeffs = ndimage.spline_filter(self.data, order=3, mode="mirror")
         # Mirror-extend the coefficients by 2 (as scipy does internally) so that points within half a pixel of
         # the edge interpolate instead of dropping to zero through round-off; zero outside is applied
         # explicitly at the pixel-cell boundary [-1/2, n - 1/2].
-        self._padded = np.pad(self.coeffs, 2, mode="reflect")
+        if _kernels.use_compiled() and min(self.shape) >= 3:    # the same numbers, 2.5-3.5x faster
+            self._padded = _kernels.spline_coefficients(self.data, _CUBIC_POLE)
+            self.coeffs = self._padded[2:-2, 2:-2]
+        else:
+            self.coeffs = ndimage.spline_filter(self.data, order=3, mode="mirror")
+            self._padded = np.pad(self.coeffs, 2, mode="reflect")
         self._hi = np.array(self.shape, dtype=float) - 0.5
 
     def to_index(self, points):
