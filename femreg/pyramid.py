@@ -127,6 +127,26 @@ def _half_width(ac, d) -> float:
     return 2.0 * (below[0] if below.size else len(ac)) * d
 
 
+def _envelope_cell(e, axis: int, d: float, direct_lags: int = 48) -> float:
+    """:func:`_half_width` of the line-summed linear autocorrelation of ``e`` along ``axis``.
+
+    Lag by lag (one product per lag) while the half maximum has not been crossed, which on speckle takes a few
+    lags (a speckle cell is ~6-20 samples wide); past ``direct_lags`` lags, the whole autocorrelation by a
+    zero-padded FFT (Wiener-Khinchin), as before.  Both give the same sums."""
+    from scipy import fft as sfft
+
+    m = e.shape[axis]
+    ea = np.moveaxis(e, axis, 0)
+    a0 = float(np.vdot(ea, ea))
+    if a0 > 0:
+        for k in range(1, min(m, direct_lags)):
+            if float(np.einsum("ij,ij->", ea[:-k], ea[k:])) < 0.5 * a0:
+                return 2.0 * k * d
+    nf = sfft.next_fast_len(2 * m, real=True)           # >= 2m - 1: linear (not circular) correlation to lag m
+    F = sfft.rfft(e, n=nf, axis=axis)
+    return _half_width(sfft.irfft(np.mean(F.real ** 2 + F.imag ** 2, axis=1 - axis), n=nf)[:m], d)
+
+
 def speckle_statistics(image, spacing) -> SpeckleStats:
     """RF period from the axial power spectrum's centroid; speckle cell from the envelope autocorrelation and
     pulse cell from the analytic signal's, |rho|^2 (FFT, zero-padded, averaged over lines / rows), all in mm.
@@ -140,12 +160,7 @@ def speckle_statistics(image, spacing) -> SpeckleStats:
     power = np.mean(X.real ** 2 + X.imag ** 2, axis=1)            # line-averaged axial power spectrum (n bins)
     period = _centroid_period(power, n, dx)
     e = env - env.mean()
-    cell, pulse = [], []
-    for ax, d in ((0, dx), (1, dy)):
-        m = e.shape[ax]
-        nf = sfft.next_fast_len(2 * m, real=True)       # >= 2m - 1: linear (not circular) correlation to lag m
-        F = sfft.rfft(e, n=nf, axis=ax)
-        cell.append(_half_width(sfft.irfft(np.mean(F.real ** 2 + F.imag ** 2, axis=1 - ax), n=nf)[:m], d))
+    cell, pulse = [_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)], []
     # pulse cell: axially from the one-sided power spectrum (Wiener-Khinchin; circular, the pulse is short),
     # laterally lag by lag on every 4th row until |rho|^2 < 1/2 (a few lines; cheaper than a padded complex FFT)
     spec = np.zeros(n)
