@@ -42,6 +42,9 @@ def _jit(fn):
         return _numba.njit(cache=False, nogil=True)(fn)
 
 
+_SIXTH = 1.0 / 6.0
+
+
 @_jit
 def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     """One value of the interpolant at fractional pixel index (xp, yp); ``c`` the coefficients mirror-padded by 2
@@ -53,17 +56,19 @@ def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     i = int(fx) + 1
     j = int(fy) + 1
     t = xp - fx
+    s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    a0 = (1.0 - t) ** 3 / 6.0
-    a3 = t3 / 6.0
+    a0 = s * s * s * _SIXTH          # products, not divisions: the divide unit limited the loop
+    a3 = t3 * _SIXTH
     a1 = 2.0 / 3.0 - t2 + 0.5 * t3
     a2 = 1.0 - a0 - a1 - a3
     t = yp - fy
+    s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    b0 = (1.0 - t) ** 3 / 6.0
-    b3 = t3 / 6.0
+    b0 = s * s * s * _SIXTH
+    b3 = t3 * _SIXTH
     b1 = 2.0 / 3.0 - t2 + 0.5 * t3
     b2 = 1.0 - b0 - b1 - b3
     return (a0 * (b0 * c[i, j] + b1 * c[i, j + 1] + b2 * c[i, j + 2] + b3 * c[i, j + 3])
@@ -83,21 +88,24 @@ def cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
 def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (I_1, for the residual; empty for I_2 alone) over an (nr x nc) pixel
     grid of a tensor mesh; Ux, Uy nodal values on the node grid; pixel row r in element row ei[r] at reference
-    X[r], column q in ej[q] at Y[q]."""
+    X[r], column q in ej[q] at Y[q].  u is interpolated axially once per pixel row (to every node column), then
+    laterally per pixel."""
     has_sub = sub.shape[0] > 0
     nc = ej.shape[0]
+    ny = Ux.shape[1]
+    rx = np.empty(ny)
+    ry = np.empty(ny)
     for r in range(ei.shape[0]):
         a = ei[r]
         x = X[r]
+        for b in range(ny):
+            rx[b] = (1.0 - x) * Ux[a, b] + x * Ux[a + 1, b]
+            ry[b] = (1.0 - x) * Uy[a, b] + x * Uy[a + 1, b]
         for q in range(nc):
             b = ej[q]
             y = Y[q]
-            w00 = (1.0 - x) * (1.0 - y)
-            w10 = x * (1.0 - y)
-            w11 = x * y
-            w01 = (1.0 - x) * y
-            ux = w00 * Ux[a, b] + w10 * Ux[a + 1, b] + w11 * Ux[a + 1, b + 1] + w01 * Ux[a, b + 1]
-            uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
+            ux = (1.0 - y) * rx[b] + y * rx[b + 1]
+            uy = (1.0 - y) * ry[b] + y * ry[b + 1]
             p = r * nc + q
             out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
             if has_sub:
