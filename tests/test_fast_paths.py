@@ -118,3 +118,12 @@ def test_compiled_spline_prefilter_is_scipys(shape):
     want = np.pad(ndimage.spline_filter(x, order=3, mode="mirror"), 2, mode="reflect")
     got = _kernels.spline_coefficients(x, _CUBIC_POLE)
     assert np.abs(got - want).max() <= 1e-14 * np.abs(want).max()     # measured: bit for bit
+
+
+def test_lateral_envelope_decimation_follows_the_pulse_cell():
+    # simulated speckle: envelope and pulse cells agree, 1.8 mm at 0.3 mm pitch -> every other line; in vivo
+    # frames: envelope cell 2.4-3.2 mm (echo structure), pulse cell 0.4 mm at ~0.2 mm pitch -> every line
+    speckle = pyramid.SpeckleStats(period=0.14, cell=np.array([0.35, 1.8]), pulse_cell=np.array([0.35, 1.8]))
+    tissue = pyramid.SpeckleStats(period=0.2, cell=np.array([0.9, 2.8]), pulse_cell=np.array([0.22, 0.4]))
+    assert pyramid.default_settings((2000, 100), (0.019, 0.3), speckle).lateral_decimation == 2
+    assert pyramid.default_settings((2000, 128), (0.02, 0.2), tissue).lateral_decimation == 1
