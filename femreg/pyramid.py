@@ -231,10 +231,20 @@ def _decimated_envelopes(ref, mov, q, ref_envelope=None, ql: int = 1):
 
 
 def _warp(image, spacing, origin, field_grid):
-    """image(x + u(x)) on its own pixel grid, u given per pixel (n_a, n_l, 2) mm; cubic, zero outside."""
+    """image(x + u(x)) on its own pixel grid, u given per pixel (n_a, n_l, 2) mm; cubic, zero outside.
+
+    ``scipy.ndimage.map_coordinates(image, .., order=3, mode="constant")``: the cubic B-spline of the mirror-
+    extended image, 0 where a point lies outside [0, n - 1] on either axis; with numba the same interpolant from
+    :class:`femreg.image.SplineImage`'s compiled prefilter and evaluation (equal to round-off, 3-5x faster)."""
     ii, jj = np.meshgrid(np.arange(image.shape[0]), np.arange(image.shape[1]), indexing="ij")
-    return ndimage.map_coordinates(image, [ii + field_grid[..., 0] / spacing[0], jj + field_grid[..., 1] / spacing[1]],
-                                   order=3, mode="constant", cval=0.0)
+    idx = [ii + field_grid[..., 0] / spacing[0], jj + field_grid[..., 1] / spacing[1]]
+    if not (_kernels.use_compiled() and min(image.shape) >= 3):
+        return ndimage.map_coordinates(image, idx, order=3, mode="constant", cval=0.0)
+    img = SplineImage(image, spacing, origin)
+    flat = np.stack([idx[0].ravel(), idx[1].ravel()])
+    out = img.at_index(flat)
+    out[(flat[0] < 0) | (flat[0] > image.shape[0] - 1) | (flat[1] < 0) | (flat[1] > image.shape[1] - 1)] = 0.0
+    return out.reshape(image.shape)
 
 
 def _pixel_points(shape, spacing, origin):

@@ -127,3 +127,17 @@ def test_lateral_envelope_decimation_follows_the_pulse_cell():
     tissue = pyramid.SpeckleStats(period=0.2, cell=np.array([0.9, 2.8]), pulse_cell=np.array([0.22, 0.4]))
     assert pyramid.default_settings((2000, 100), (0.019, 0.3), speckle).lateral_decimation == 2
     assert pyramid.default_settings((2000, 128), (0.02, 0.2), tissue).lateral_decimation == 1
+
+
+@needs_numba
+def test_compiled_envelope_warp_matches_map_coordinates(monkeypatch):
+    rng = np.random.default_rng(4)
+    img = rng.standard_normal((90, 40))
+    g = np.stack(np.meshgrid(np.linspace(-0.5, 0.7, 90), np.linspace(-0.3, 0.4, 40), indexing="ij"), -1)
+    g[..., 0] += 0.01 * rng.standard_normal(g.shape[:2])            # points beyond every edge, and inside
+    out = {}
+    for flag in (True, False):
+        monkeypatch.setattr(_kernels, "HAVE_NUMBA", flag)
+        out[flag] = pyramid._warp(img, (0.05, 0.1), (0.0, 0.0), g)
+    assert np.array_equal(out[True] == 0, out[False] == 0) and (out[False] == 0).any()
+    assert np.abs(out[True] - out[False]).max() < 1e-12              # measured 3e-15
