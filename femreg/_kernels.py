@@ -336,6 +336,40 @@ def spline_coefficients(data, z):  # pragma: no cover - compiled
 
 
 @_jit
+def grid_fields(Ux, Uy, ei, X, hx, ej, Y, hy, r0, c0, out):  # pragma: no cover - compiled
+    """ux, uy, exx, eyy, exy of a bilinear field on a tensor mesh (node-grid values Ux, Uy) at an (nr x nc) grid
+    of points (row r in element row ei[r] at reference X[r], element height hx[r]; column q likewise), written
+    to ``out[k, r0 + r, c0 + q]`` (k in that order); the arithmetic of the separable numpy form in
+    :mod:`femreg.registration` (lateral interpolation first, then axial)."""
+    for r in range(ei.shape[0]):
+        a = ei[r]
+        x = X[r]
+        for q in range(ej.shape[0]):
+            b = ej[q]
+            y = Y[q]
+            # lateral: value and d/dy on node rows a and a + 1
+            xa0, xa1 = Ux[a, b], Ux[a, b + 1]
+            xb0, xb1 = Ux[a + 1, b], Ux[a + 1, b + 1]
+            ya0, ya1 = Uy[a, b], Uy[a, b + 1]
+            yb0, yb1 = Uy[a + 1, b], Uy[a + 1, b + 1]
+            lxa = xa0 + (xa1 - xa0) * y
+            lxb = xb0 + (xb1 - xb0) * y
+            lya = ya0 + (ya1 - ya0) * y
+            lyb = yb0 + (yb1 - yb0) * y
+            dxa = (xa1 - xa0) / hy[q]
+            dxb = (xb1 - xb0) / hy[q]
+            dya = (ya1 - ya0) / hy[q]
+            dyb = (yb1 - yb0) / hy[q]
+            i = r0 + r
+            j = c0 + q
+            out[0, i, j] = lxa + (lxb - lxa) * x
+            out[1, i, j] = lya + (lyb - lya) * x
+            out[2, i, j] = (lxb - lxa) / hx[r]
+            out[3, i, j] = dya + (dyb - dya) * x
+            out[4, i, j] = 0.5 * ((dxa + (dxb - dxa) * x) + (lyb - lya) / hx[r])
+
+
+@_jit
 def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
     pixel (any quad mesh)."""

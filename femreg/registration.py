@@ -166,6 +166,17 @@ class RegistrationResult:
                 ins = loc.inside.reshape(self.shape)
                 rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
                 block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)) if rows.size else None
+                if _kernels.use_compiled() and block is not None:     # one compiled pass, into the grids
+                    out = np.empty((len(FIELDS),) + self.shape)
+                    out[:, :block[0].start] = out[:, block[0].stop:] = np.nan        # NaN outside the block
+                    out[:, block[0], :block[1].start] = out[:, block[0], block[1].stop:] = np.nan
+                    xs, ys, _ = self.locator.tensor
+                    G, gr = self.locator.node_grid, loc.grid
+                    i, j = gr["i"], gr["j"]
+                    _kernels.grid_fields(self.u[0::2][G], self.u[1::2][G], i, gr["X"], xs[i + 1] - xs[i], j, gr["Y"],
+                                         ys[j + 1] - ys[j], int(rows[0]), int(cols[0]), out)
+                    self._grid = dict(zip(FIELDS, out))
+                    return self._grid
                 self._grid = {}
                 for k, v in _sample_grid(self.u, loc, self.locator).items():
                     self._grid[k] = np.full(self.shape, np.nan)

@@ -84,11 +84,14 @@ def test_compiled_outside_mask_matches_numpy(pair, monkeypatch):
     assert np.array_equal(w[True], w[False])
 
 
-def test_separable_grid_fields_match_point_sampling(result):
+@pytest.mark.parametrize("compiled", [pytest.param(True, marks=needs_numba), False])
+def test_separable_grid_fields_match_point_sampling(result, compiled, monkeypatch):
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", compiled)
     x, y = pixel_axes(result.shape, result.spacing, result.origin)
     loc = result.locator.locate_grid(x, y)
     assert loc.grid is not None
     ref = sample(result.u, loc)
+    result._grid = None
     g = result.on_grid()
     for k, v in ref.items():
         got = g[k].ravel()[loc.inside]
