@@ -1,7 +1,9 @@
-"""Compiled inner loops of the image term (numba, optional): cubic B-spline evaluation (:mod:`femreg.image`),
-the fused displacement -> pixel -> I_2 warp and its transpose, the element-by-element data Hessian
-(:mod:`femreg.data_term`) and the Newton walk of point location on logically structured meshes
-(:mod:`femreg.pixels`).
+"""Compiled inner loops of the image term (numba, optional): cubic B-spline prefilter and evaluation
+(:mod:`femreg.image`), the fused displacement -> pixel -> I_2 warp and its transpose, the element-by-element and
+the separable data Hessian (:mod:`femreg.data_term`), the Newton walk of point location on logically structured
+meshes (:mod:`femreg.pixels`); and of the stages around the solve: the global search's window sums and axial
+resampling (:mod:`femreg.pyramid`), the out-of-image mask and the result grids (:mod:`femreg.registration`), the
+element NCC of the quality map (:mod:`femreg.repair`).
 
 Each loop has a numpy/scipy twin in the module that uses it (``map_coordinates``, sparse products, a vectorised
 walk); the two agree to round-off and tests compare them with independent references.  Why compiled: the

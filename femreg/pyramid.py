@@ -9,8 +9,9 @@ Here the start comes from a pyramid, as in optical flow (Lucas-Kanade pyramids),
 1. :func:`speckle_statistics` -- RF period and speckle cell size (axial, lateral) from the spectrum and the
    envelope autocorrelation; :func:`default_settings` derives element size, decimation, windows and search
    ranges from them and from the image extent (instead of the paper's millimetres).
-2. Top level, envelopes low-passed and decimated to ~3 samples per speckle cell: a global search over
-   translations up to 10 % of the image depth (axial) and width (lateral) and axial strains from -12 % to +6 %
+2. Top level, envelopes low-passed and decimated to ~3 samples per speckle cell (axially; laterally per pulse
+   cell, see :func:`default_settings`): a global search over translations up to 10 % of the image depth (axial)
+   and width (lateral) and axial strains from -12 % to +6 %
    (:func:`global_search`), then NCC block matching of speckle-sized windows on the envelope of the moving image
    warped by that field, searching only around it (:func:`local_search`).
 3. Gauss-Newton on the envelopes with a mesh twice as coarse as the final one, from that field (the envelope has
