@@ -141,11 +141,17 @@ def outside_grid(bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, hi0, hi1, out):  # prag
 
 @_jit
 def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
-    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation."""
+    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation
+    (lateral hats summed along each pixel row, then spread to the row's two node rows)."""
     nc = ej.shape[0]
+    ny = Gx.shape[1]
+    lx = np.empty(ny)
+    ly = np.empty(ny)
     for r in range(ei.shape[0]):
         a = ei[r]
         x = X[r]
+        lx[:] = 0.0
+        ly[:] = 0.0
         for q in range(nc):
             b = ej[q]
             y = Y[q]
@@ -153,18 +159,15 @@ def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - c
             v = w[p] * res[p]
             vx = v * gx[p]
             vy = v * gy[p]
-            w00 = (1.0 - x) * (1.0 - y)
-            w10 = x * (1.0 - y)
-            w11 = x * y
-            w01 = (1.0 - x) * y
-            Gx[a, b] += w00 * vx
-            Gx[a + 1, b] += w10 * vx
-            Gx[a + 1, b + 1] += w11 * vx
-            Gx[a, b + 1] += w01 * vx
-            Gy[a, b] += w00 * vy
-            Gy[a + 1, b] += w10 * vy
-            Gy[a + 1, b + 1] += w11 * vy
-            Gy[a, b + 1] += w01 * vy
+            lx[b] += (1.0 - y) * vx
+            lx[b + 1] += y * vx
+            ly[b] += (1.0 - y) * vy
+            ly[b + 1] += y * vy
+        for b in range(ny):
+            Gx[a, b] += (1.0 - x) * lx[b]
+            Gx[a + 1, b] += x * lx[b]
+            Gy[a, b] += (1.0 - x) * ly[b]
+            Gy[a + 1, b] += x * ly[b]
 
 
 @_jit
