@@ -375,6 +375,31 @@ def grid_fields(Ux, Uy, ei, X, hx, ej, Y, hy, r0, c0, out):  # pragma: no cover 
 
 
 @_jit
+def decimating_filter(e, w, idx, axis):  # pragma: no cover - compiled
+    """``out[o] = sum_k w[k] e[idx[o, k]]`` along ``axis`` (0 or 1) of a 2D array: a 1D correlation evaluated
+    only at the kept output samples (``idx`` holds each one's input taps, boundary already folded in)."""
+    n0, n1 = e.shape
+    n_out, taps = idx.shape
+    if axis == 0:
+        out = np.zeros((n_out, n1))
+        for o in range(n_out):
+            for k in range(taps):
+                wk = w[k]
+                i = idx[o, k]
+                for j in range(n1):
+                    out[o, j] += wk * e[i, j]
+    else:
+        out = np.zeros((n0, n_out))
+        for i in range(n0):
+            for o in range(n_out):
+                acc = 0.0
+                for k in range(taps):
+                    acc += w[k] * e[i, idx[o, k]]
+                out[i, o] = acc
+    return out
+
+
+@_jit
 def warp_nodes(c, hi0, hi1, bx, by, ux_n, uy_n, nodes, N, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (as :func:`warp_grid`), u from the four shape functions N of each
     pixel (any quad mesh)."""
