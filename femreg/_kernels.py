@@ -1,7 +1,9 @@
-"""Compiled inner loops of the image term (numba, optional): cubic B-spline evaluation (:mod:`femreg.image`),
-the fused displacement -> pixel -> I_2 warp and its transpose, the element-by-element data Hessian
-(:mod:`femreg.data_term`) and the Newton walk of point location on logically structured meshes
-(:mod:`femreg.pixels`).
+"""Compiled inner loops of the image term (numba, optional): cubic B-spline prefilter and evaluation
+(:mod:`femreg.image`), the fused displacement -> pixel -> I_2 warp and its transpose, the element-by-element and
+the separable data Hessian (:mod:`femreg.data_term`), the Newton walk of point location on logically structured
+meshes (:mod:`femreg.pixels`); and of the stages around the solve: the global search's window sums and axial
+resampling (:mod:`femreg.pyramid`), the out-of-image mask and the result grids (:mod:`femreg.registration`), the
+element NCC of the quality map (:mod:`femreg.repair`).
 
 Each loop has a numpy/scipy twin in the module that uses it (``map_coordinates``, sparse products, a vectorised
 walk); the two agree to round-off and tests compare them with independent references.  Why compiled: the
@@ -42,6 +44,9 @@ def _jit(fn):
         return _numba.njit(cache=False, nogil=True)(fn)
 
 
+_SIXTH = 1.0 / 6.0
+
+
 @_jit
 def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     """One value of the interpolant at fractional pixel index (xp, yp); ``c`` the coefficients mirror-padded by 2
@@ -53,17 +58,19 @@ def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     i = int(fx) + 1
     j = int(fy) + 1
     t = xp - fx
+    s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    a0 = (1.0 - t) ** 3 / 6.0
-    a3 = t3 / 6.0
+    a0 = s * s * s * _SIXTH          # products, not divisions: the divide unit limited the loop
+    a3 = t3 * _SIXTH
     a1 = 2.0 / 3.0 - t2 + 0.5 * t3
     a2 = 1.0 - a0 - a1 - a3
     t = yp - fy
+    s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    b0 = (1.0 - t) ** 3 / 6.0
-    b3 = t3 / 6.0
+    b0 = s * s * s * _SIXTH
+    b3 = t3 * _SIXTH
     b1 = 2.0 / 3.0 - t2 + 0.5 * t3
     b2 = 1.0 - b0 - b1 - b3
     return (a0 * (b0 * c[i, j] + b1 * c[i, j + 1] + b2 * c[i, j + 2] + b3 * c[i, j + 3])
@@ -83,8 +90,35 @@ def cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
 def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  # pragma: no cover - compiled
     """I_2 at base + u/spacing minus ``sub`` (I_1, for the residual; empty for I_2 alone) over an (nr x nc) pixel
     grid of a tensor mesh; Ux, Uy nodal values on the node grid; pixel row r in element row ei[r] at reference
-    X[r], column q in ej[q] at Y[q]."""
+    X[r], column q in ej[q] at Y[q].  u is interpolated axially once per pixel row (to every node column), then
+    laterally per pixel."""
     has_sub = sub.shape[0] > 0
+    nc = ej.shape[0]
+    ny = Ux.shape[1]
+    rx = np.empty(ny)
+    ry = np.empty(ny)
+    for r in range(ei.shape[0]):
+        a = ei[r]
+        x = X[r]
+        for b in range(ny):
+            rx[b] = (1.0 - x) * Ux[a, b] + x * Ux[a + 1, b]
+            ry[b] = (1.0 - x) * Uy[a, b] + x * Uy[a + 1, b]
+        for q in range(nc):
+            b = ej[q]
+            y = Y[q]
+            ux = (1.0 - y) * rx[b] + y * rx[b + 1]
+            uy = (1.0 - y) * ry[b] + y * ry[b + 1]
+            p = r * nc + q
+            out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
+            if has_sub:
+                out[p] -= sub[p]
+    return out
+
+
+@_jit
+def outside_grid(bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, hi0, hi1, out):  # pragma: no cover - compiled
+    """out[p] = True where base + u/spacing (as :func:`warp_grid`) lies less than 1 pixel inside the first
+    pixel centre or beyond ``hi`` (fractional index) on either axis."""
     nc = ej.shape[0]
     for r in range(ei.shape[0]):
         a = ei[r]
@@ -99,19 +133,25 @@ def warp_grid(c, hi0, hi1, bx, by, Ux, Uy, ei, X, ej, Y, isx, isy, sub, out):  #
             ux = w00 * Ux[a, b] + w10 * Ux[a + 1, b] + w11 * Ux[a + 1, b + 1] + w01 * Ux[a, b + 1]
             uy = w00 * Uy[a, b] + w10 * Uy[a + 1, b] + w11 * Uy[a + 1, b + 1] + w01 * Uy[a, b + 1]
             p = r * nc + q
-            out[p] = cubic_point(c, bx[p] + ux * isx, by[p] + uy * isy, hi0, hi1)
-            if has_sub:
-                out[p] -= sub[p]
+            ix = bx[p] + ux * isx
+            iy = by[p] + uy * isy
+            out[p] = ix < 1.0 or ix > hi0 or iy < 1.0 or iy > hi1
     return out
 
 
 @_jit
 def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - compiled
-    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation."""
+    """Gx[node grid] += sum_p N(p) w_p r_p gx_p (and y): the transpose of the separable pixel interpolation
+    (lateral hats summed along each pixel row, then spread to the row's two node rows)."""
     nc = ej.shape[0]
+    ny = Gx.shape[1]
+    lx = np.empty(ny)
+    ly = np.empty(ny)
     for r in range(ei.shape[0]):
         a = ei[r]
         x = X[r]
+        lx[:] = 0.0
+        ly[:] = 0.0
         for q in range(nc):
             b = ej[q]
             y = Y[q]
@@ -119,18 +159,244 @@ def gradient_grid(w, res, gx, gy, ei, X, ej, Y, Gx, Gy):  # pragma: no cover - c
             v = w[p] * res[p]
             vx = v * gx[p]
             vy = v * gy[p]
-            w00 = (1.0 - x) * (1.0 - y)
-            w10 = x * (1.0 - y)
-            w11 = x * y
-            w01 = (1.0 - x) * y
-            Gx[a, b] += w00 * vx
-            Gx[a + 1, b] += w10 * vx
-            Gx[a + 1, b + 1] += w11 * vx
-            Gx[a, b + 1] += w01 * vx
-            Gy[a, b] += w00 * vy
-            Gy[a + 1, b] += w10 * vy
-            Gy[a + 1, b + 1] += w11 * vy
-            Gy[a, b + 1] += w01 * vy
+            lx[b] += (1.0 - y) * vx
+            lx[b + 1] += y * vx
+            ly[b] += (1.0 - y) * vy
+            ly[b + 1] += y * vy
+        for b in range(ny):
+            Gx[a, b] += (1.0 - x) * lx[b]
+            Gx[a + 1, b] += x * lx[b]
+            Gy[a, b] += (1.0 - x) * ly[b]
+            Gy[a + 1, b] += x * ly[b]
+
+
+@_jit
+def hessian_rows(w, gx, gy, fx, rseg, n_seg, nc):  # pragma: no cover - compiled
+    """Axial segment sums ``T[p, a, s, c] = sum_{r in segment s} fx[p, r] G_a[r, c]`` of the separable data
+    Hessian (G = (w gx^2, w gx gy, w gy^2) over an (nr x nc) pixel grid, ``rseg[r]`` the element row of pixel row
+    r, rows of a segment consecutive): one pass instead of nine (rows x cols) products and reductions."""
+    T = np.zeros((3, 3, n_seg, nc))
+    for r in range(rseg.shape[0]):
+        s = rseg[r]
+        f0 = fx[0, r]
+        f1 = fx[1, r]
+        f2 = fx[2, r]
+        for c in range(nc):
+            p = r * nc + c
+            g0 = w[p] * (gx[p] * gx[p])
+            g1 = (w[p] * gx[p]) * gy[p]
+            g2 = w[p] * (gy[p] * gy[p])
+            T[0, 0, s, c] += f0 * g0
+            T[1, 0, s, c] += f1 * g0
+            T[2, 0, s, c] += f2 * g0
+            T[0, 1, s, c] += f0 * g1
+            T[1, 1, s, c] += f1 * g1
+            T[2, 1, s, c] += f2 * g1
+            T[0, 2, s, c] += f0 * g2
+            T[1, 2, s, c] += f1 * g2
+            T[2, 2, s, c] += f2 * g2
+    return T
+
+
+@_jit
+def box_sums(R, w0, w1, na, nl):  # pragma: no cover - compiled
+    """Sums of ``R`` and ``R**2`` over every w0 x w1 window with top-left corner (d0, d1), d0 < na, d1 < nl:
+    (S1, S2), each (na, nl), from the two integral images (built in one pass)."""
+    n0, n1 = R.shape
+    I1 = np.zeros((n0 + 1, n1 + 1))
+    I2 = np.zeros((n0 + 1, n1 + 1))
+    for i in range(n0):
+        a = 0.0
+        b = 0.0
+        for j in range(n1):
+            v = R[i, j]
+            a += v
+            b += v * v
+            I1[i + 1, j + 1] = I1[i, j + 1] + a
+            I2[i + 1, j + 1] = I2[i, j + 1] + b
+    S1 = np.empty((na, nl))
+    S2 = np.empty((na, nl))
+    for i in range(na):
+        for j in range(nl):
+            S1[i, j] = I1[i + w0, j + w1] - I1[i, j + w1] - I1[i + w0, j] + I1[i, j]
+            S2[i, j] = I2[i + w0, j + w1] - I2[i, j + w1] - I2[i + w0, j] + I2[i, j]
+    return S1, S2
+
+
+@_jit
+def axial_resample(img, pos, out):  # pragma: no cover - compiled
+    """``img`` at fractional row positions ``pos`` (every column), cubic convolution (Keys, a = -0.5), zero
+    outside: the compiled twin of :func:`femreg.pyramid._axial_resample`."""
+    n, m = img.shape
+    for r in range(pos.shape[0]):
+        i0 = int(np.floor(pos[r]))
+        t = pos[r] - i0
+        w = (((-0.5 * t + 1.0) * t - 0.5) * t, (1.5 * t - 2.5) * t * t + 1.0, ((-1.5 * t + 2.0) * t + 0.5) * t,
+             (0.5 * t - 0.5) * t * t)
+        for c in range(m):
+            out[r, c] = 0.0
+        for k in range(4):
+            idx = i0 - 1 + k
+            if idx >= 0 and idx < n:
+                wk = w[k]
+                for c in range(m):
+                    out[r, c] += wk * img[idx, c]
+    return out
+
+
+@_jit
+def block_ncc(a, b, rseg, cseg, n_rs, n_cs):  # pragma: no cover - compiled
+    """NCC of ``a`` and ``b`` (an nr x nc pixel grid, C order) over each block (rseg[r], cseg[c]) of pixels:
+    block means first, then the centred sums (the two-pass formula of :func:`femreg.repair.element_ncc`).
+    Returns (ncc, count), each (n_rs, n_cs); NaN where a block has no variance."""
+    nr, nc = rseg.shape[0], cseg.shape[0]
+    cnt = np.zeros((n_rs, n_cs))
+    sa = np.zeros((n_rs, n_cs))
+    sb = np.zeros((n_rs, n_cs))
+    for r in range(nr):
+        s = rseg[r]
+        for c in range(nc):
+            t = cseg[c]
+            p = r * nc + c
+            cnt[s, t] += 1.0
+            sa[s, t] += a[p]
+            sb[s, t] += b[p]
+    ma = sa / cnt
+    mb = sb / cnt
+    sab = np.zeros((n_rs, n_cs))
+    saa = np.zeros((n_rs, n_cs))
+    sbb = np.zeros((n_rs, n_cs))
+    for r in range(nr):
+        s = rseg[r]
+        for c in range(nc):
+            t = cseg[c]
+            p = r * nc + c
+            da = a[p] - ma[s, t]
+            db = b[p] - mb[s, t]
+            sab[s, t] += da * db
+            saa[s, t] += da * da
+            sbb[s, t] += db * db
+    return sab / np.sqrt(saa * sbb), cnt
+
+
+@_jit
+def spline_coefficients(data, z):  # pragma: no cover - compiled
+    """Cubic B-spline coefficients of an image (pole ``z`` = sqrt(3) - 2), mirror boundary, axis 0 then axis 1,
+    mirror-extended by 2 on every side: ``out[2:-2, 2:-2]`` is ``scipy.ndimage.spline_filter(data, 3,
+    mode="mirror")`` (the same recursions and initial values as scipy's ni_splines.c, each axis's lines run
+    side by side instead of one at a time), the border the ``np.pad(.., 2, mode="reflect")`` of it.  Both axes
+    at least 3 long."""
+    n0, n1 = data.shape
+    out = np.empty((n0 + 4, n1 + 4))
+    c = out[2:n0 + 2, 2:n1 + 2]
+    gain = (1.0 - z) * (1.0 - 1.0 / z)
+    # axis 0: the lines are the columns, processed a row at a time
+    for i in range(n0):
+        for j in range(n1):
+            c[i, j] = data[i, j] * gain
+    zn = np.power(z, n0 - 1)
+    for j in range(n1):
+        c[0, j] = c[0, j] + zn * c[n0 - 1, j]
+    zi = z
+    for i in range(1, n0 - 1):
+        for j in range(n1):
+            c[0, j] += zi * (c[i, j] + zn * c[n0 - 1 - i, j])
+        zi *= z
+    for j in range(n1):
+        c[0, j] /= 1 - zn * zn
+    for i in range(1, n0):
+        for j in range(n1):
+            c[i, j] += z * c[i - 1, j]
+    for j in range(n1):
+        c[n0 - 1, j] = (z * c[n0 - 2, j] + c[n0 - 1, j]) * z / (z * z - 1)
+    for i in range(n0 - 2, -1, -1):
+        for j in range(n1):
+            c[i, j] = z * (c[i + 1, j] - c[i, j])
+    # axis 1: the lines are the rows
+    zn = np.power(z, n1 - 1)
+    for i in range(n0):
+        for j in range(n1):
+            c[i, j] *= gain
+        c0 = c[i, 0] + zn * c[i, n1 - 1]
+        zi = z
+        for j in range(1, n1 - 1):
+            c0 += zi * (c[i, j] + zn * c[i, n1 - 1 - j])
+            zi *= z
+        c[i, 0] = c0 / (1 - zn * zn)
+        for j in range(1, n1):
+            c[i, j] += z * c[i, j - 1]
+        c[i, n1 - 1] = (z * c[i, n1 - 2] + c[i, n1 - 1]) * z / (z * z - 1)
+        for j in range(n1 - 2, -1, -1):
+            c[i, j] = z * (c[i, j + 1] - c[i, j])
+    # mirror (whole-sample) extension by 2: out[1] = c[1], out[0] = c[2], likewise at the other ends
+    for k in range(2):
+        for j in range(n1):
+            out[1 - k, j + 2] = c[k + 1, j]
+            out[n0 + 2 + k, j + 2] = c[n0 - 2 - k, j]
+    for i in range(n0 + 4):
+        for k in range(2):
+            out[i, 1 - k] = out[i, k + 3]
+            out[i, n1 + 2 + k] = out[i, n1 - k]
+    return out
+
+
+@_jit
+def grid_fields(Ux, Uy, ei, X, hx, ej, Y, hy, r0, c0, out):  # pragma: no cover - compiled
+    """ux, uy, exx, eyy, exy of a bilinear field on a tensor mesh (node-grid values Ux, Uy) at an (nr x nc) grid
+    of points (row r in element row ei[r] at reference X[r], element height hx[r]; column q likewise), written
+    to ``out[k, r0 + r, c0 + q]`` (k in that order); the arithmetic of the separable numpy form in
+    :mod:`femreg.registration` (lateral interpolation first, then axial)."""
+    for r in range(ei.shape[0]):
+        a = ei[r]
+        x = X[r]
+        for q in range(ej.shape[0]):
+            b = ej[q]
+            y = Y[q]
+            # lateral: value and d/dy on node rows a and a + 1
+            xa0, xa1 = Ux[a, b], Ux[a, b + 1]
+            xb0, xb1 = Ux[a + 1, b], Ux[a + 1, b + 1]
+            ya0, ya1 = Uy[a, b], Uy[a, b + 1]
+            yb0, yb1 = Uy[a + 1, b], Uy[a + 1, b + 1]
+            lxa = xa0 + (xa1 - xa0) * y
+            lxb = xb0 + (xb1 - xb0) * y
+            lya = ya0 + (ya1 - ya0) * y
+            lyb = yb0 + (yb1 - yb0) * y
+            dxa = (xa1 - xa0) / hy[q]
+            dxb = (xb1 - xb0) / hy[q]
+            dya = (ya1 - ya0) / hy[q]
+            dyb = (yb1 - yb0) / hy[q]
+            i = r0 + r
+            j = c0 + q
+            out[0, i, j] = lxa + (lxb - lxa) * x
+            out[1, i, j] = lya + (lyb - lya) * x
+            out[2, i, j] = (lxb - lxa) / hx[r]
+            out[3, i, j] = dya + (dyb - dya) * x
+            out[4, i, j] = 0.5 * ((dxa + (dxb - dxa) * x) + (lyb - lya) / hx[r])
+
+
+@_jit
+def decimating_filter(e, w, idx, axis):  # pragma: no cover - compiled
+    """``out[o] = sum_k w[k] e[idx[o, k]]`` along ``axis`` (0 or 1) of a 2D array: a 1D correlation evaluated
+    only at the kept output samples (``idx`` holds each one's input taps, boundary already folded in)."""
+    n0, n1 = e.shape
+    n_out, taps = idx.shape
+    if axis == 0:
+        out = np.zeros((n_out, n1))
+        for o in range(n_out):
+            for k in range(taps):
+                wk = w[k]
+                i = idx[o, k]
+                for j in range(n1):
+                    out[o, j] += wk * e[i, j]
+    else:
+        out = np.zeros((n0, n_out))
+        for i in range(n0):
+            for o in range(n_out):
+                acc = 0.0
+                for k in range(taps):
+                    acc += w[k] * e[i, idx[o, k]]
+                out[i, o] = acc
+    return out
 
 
 @_jit

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _kernels
-from ._kernels import element_blocks, gradient_grid, gradient_nodes, warp_grid, warp_nodes
+from ._kernels import element_blocks, gradient_grid, gradient_nodes, hessian_rows, warp_grid, warp_nodes
 from .image import SplineImage
 from .pixels import PixelQuadrature
 
@@ -50,9 +50,18 @@ class SSDTerm:
         pts = quad.points
         #: S at the quadrature pixels (m, 2) mm, or None
         self.offset = None if offset is None else np.asarray(offset, float).reshape(pts.shape)
-        if offset is None:
+        block = getattr(quad, "block", None)
+        self._ref_gradient = None
+        if offset is None and block is not None:
+            # the pixels are a block of the image (tensor mesh): slices instead of gathers (same values)
+            gx, gy = reference.gradient_at_pixels(block)
+            self._gx, self._gy = gx.ravel(), gy.ravel()
+            self.ref_values = reference.data[block].ravel()
+            self._moving_at_pixels = moving.data[block].ravel()
+            base = pts
+        elif offset is None:
             gx, gy = reference.gradient_at_pixels()
-            g = np.column_stack([gx.ravel()[quad.index], gy.ravel()[quad.index]])
+            self._gx, self._gy = gx.ravel()[quad.index], gy.ravel()[quad.index]
             base = pts
             self.ref_values = reference.data.ravel()[quad.index]
             self._moving_at_pixels = moving.data.ravel()[quad.index]
@@ -60,27 +69,35 @@ class SSDTerm:
             self._moving_at_pixels = None
             base = pts + self.offset
             g = reference.gradient(base)
+            self._gx = np.ascontiguousarray(g[:, 0])
+            self._gy = np.ascontiguousarray(g[:, 1])
             self.ref_values = reference(base)
-        self.ref_gradient = g
         # Base sampling positions of I_2 in fractional pixel indices; u adds (u / spacing).
-        self._base_idx = ((base - moving.origin) / moving.spacing).T.copy()
         self._inv_sp = 1.0 / moving.spacing
+        self._bx = (base[:, 0] - moving.origin[0]) / moving.spacing[0]
+        self._by = (base[:, 1] - moving.origin[1]) / moving.spacing[1]
         w = quad.weights
         self.w = w
         self._J = None
         self._H = None
         self._cache_u = None
         self._cache_r = None
-        self._idx = np.empty_like(self._base_idx)
-        self._bx = np.ascontiguousarray(self._base_idx[0])
-        self._by = np.ascontiguousarray(self._base_idx[1])
-        self._gx = np.ascontiguousarray(g[:, 0])
-        self._gy = np.ascontiguousarray(g[:, 1])
         self._grid = quad.location.grid
         self._empty = np.empty(0)
         self._w_const = float(w[0]) if w.size and np.all(w == w[0]) else None
         if self._grid is not None:
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
+
+    @property
+    def ref_gradient(self):
+        """grad I_1 at the quadrature pixels (x + S), (m, 2) per mm (eq:wfnew)."""
+        if self._ref_gradient is None:
+            self._ref_gradient = np.column_stack([self._gx, self._gy])
+        return self._ref_gradient
+
+    @property
+    def _base_idx(self):
+        return np.stack([self._bx, self._by])
 
     # -------------------------------------------------------------------------------------------------------
     def warped_moving(self, u):
@@ -91,10 +108,11 @@ class SSDTerm:
         if _kernels.use_compiled():
             return self._warp_compiled(u, self._empty)
         P = self.quad.P
-        np.multiply(P @ u[0::2], self._inv_sp[0], out=self._idx[0])
-        np.multiply(P @ u[1::2], self._inv_sp[1], out=self._idx[1])
-        self._idx += self._base_idx
-        return self.moving.at_index(self._idx)
+        idx = np.empty((2, self.quad.n_pixels))
+        np.multiply(P @ u[0::2], self._inv_sp[0], out=idx[0])
+        np.multiply(P @ u[1::2], self._inv_sp[1], out=idx[1])
+        idx += self._base_idx
+        return self.moving.at_index(idx)
 
     def _warp_compiled(self, u, sub):
         """One compiled pass: u at the pixels, I_2 there, minus ``sub`` (``ref_values`` for the residual)."""
@@ -178,17 +196,25 @@ class SSDTerm:
         ei, ej = i[rs], j[cs]
         if not (np.all(np.diff(i) >= 0) and np.all(np.diff(j) >= 0)):
             return None
-        g = self.ref_gradient.reshape(nr, nc, 2)
-        w = self.w.reshape(nr, nc)
-        G = [w * g[..., 0] ** 2, w * g[..., 0] * g[..., 1], w * g[..., 1] ** 2]   # xx, xy, yy
         fx = [(1 - X) ** 2, X * (1 - X), X * X]
         fy = [(1 - Y) ** 2, Y * (1 - Y), Y * Y]
         U = np.empty((3, 3, 3, ei.size, ej.size))
-        for a in range(3):
-            for p in range(3):
-                T = np.add.reduceat(fx[p][:, None] * G[a], rs, axis=0)
-                for q in range(3):
-                    U[p, q, a] = np.add.reduceat(T * fy[q][None, :], cs, axis=1)
+        if _kernels.use_compiled():          # axial sums in one compiled pass, then the small lateral ones
+            seg = np.cumsum(np.diff(i, prepend=i[0]) > 0)
+            T = hessian_rows(np.ascontiguousarray(self.w, float), self._gx, self._gy, np.array(fx), seg, ei.size, nc)
+            for a in range(3):
+                for p in range(3):
+                    for q in range(3):
+                        U[p, q, a] = np.add.reduceat(T[p, a] * fy[q][None, :], cs, axis=1)
+        else:
+            gx, gy = self._gx.reshape(nr, nc), self._gy.reshape(nr, nc)
+            w = self.w.reshape(nr, nc)
+            G = [w * gx ** 2, w * gx * gy, w * gy ** 2]   # xx, xy, yy
+            for a in range(3):
+                for p in range(3):
+                    T = np.add.reduceat(fx[p][:, None] * G[a], rs, axis=0)
+                    for q in range(3):
+                        U[p, q, a] = np.add.reduceat(T * fy[q][None, :], cs, axis=1)
         # corner k: x-side sx[k], y-side sy[k]; product index of two sides: 0 (both 0), 1 (mixed), 2 (both 1)
         sx = np.array([0, 1, 1, 0])
         sy = np.array([0, 0, 1, 1])

@@ -237,7 +237,8 @@ class PointLocator:
                 "_N": lambda: (AX()[:, None, :] * AY()[None, :, :]).reshape(-1, 4),
                 "_dN": dN}
         # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
-        return Location(inside, grid=dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size)), fill=fill)
+        return Location(inside, grid=dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size), rows=np.flatnonzero(inx),
+                                          cols=np.flatnonzero(iny)), fill=fill)
 
     # -- logically structured (moved tensor mesh) -------------------------------------------------------
     def _walk(self, pts, steps: int = 8):
@@ -397,15 +398,28 @@ class PixelQuadrature:
         i1 = min(self.shape[0] - 1, int(np.ceil((hi[0] - self.origin[0]) / self.spacing[0])))
         j0 = max(0, int(np.floor((lo[1] - self.origin[1]) / self.spacing[1])))
         j1 = min(self.shape[1] - 1, int(np.ceil((hi[1] - self.origin[1]) / self.spacing[1])))
-        ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
-        ii, jj = ii.ravel(), jj.ravel()
         xa = self.origin[0] + np.arange(i0, i1 + 1) * self.spacing[0]
         ya = self.origin[1] + np.arange(j0, j1 + 1) * self.spacing[1]
         loc = self.locator.locate_grid(xa, ya)
         self.location = loc
-        ins = loc.inside
-        self.index = (ii * self.shape[1] + jj)[ins]
-        self.points = np.column_stack([xa[ii[ins] - i0], ya[jj[ins] - j0]])
+        #: (row slice, column slice) of the image holding the quadrature pixels in C order, when they are a
+        #: block (tensor meshes), else None: the image term then slices instead of gathering
+        self.block = None
+        if loc.grid is not None and "rows" in loc.grid:
+            rows, cols = loc.grid["rows"], loc.grid["cols"]
+            nr, nc = rows.size, cols.size
+            self.index = ((i0 + rows)[:, None] * self.shape[1] + (j0 + cols)[None, :]).ravel()
+            self.points = np.empty((nr * nc, 2))
+            self.points[:, 0] = np.repeat(xa[rows], nc)
+            self.points[:, 1] = np.tile(ya[cols], nr)
+            if nr and nc:
+                self.block = (slice(i0 + rows[0], i0 + rows[0] + nr), slice(j0 + cols[0], j0 + cols[0] + nc))
+        else:
+            ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
+            ii, jj = ii.ravel(), jj.ravel()
+            ins = loc.inside
+            self.index = (ii * self.shape[1] + jj)[ins]
+            self.points = np.column_stack([xa[ii[ins] - i0], ya[jj[ins] - j0]])
         self.weights = np.full(self.index.size, self.spacing[0] * self.spacing[1])
         self.n_nodes = mesh.p.shape[1]
         self._P = None

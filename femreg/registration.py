@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .errors import InputError
@@ -201,10 +202,42 @@ class RegistrationResult:
         return self._grid
 
     def _sample_grid(self, nodal_strain) -> dict:
+        """The :data:`FIELDS` on the pixel grid; strains interpolated from ``nodal_strain`` (n_nodes, 3), or the
+        element gradient where it is None."""
+        g = self._interpolate_grid(self.u)
+        if nodal_strain is None:
+            return g
+        ns = np.asarray(nodal_strain, float)
+        a = self._interpolate_grid(np.column_stack([ns[:, 0], ns[:, 1]]).ravel())   # bilinear, as u
+        b = self._interpolate_grid(np.column_stack([ns[:, 2], np.zeros(len(ns))]).ravel())
+        return {"ux": g["ux"], "uy": g["uy"], "exx": a["ux"], "eyy": a["uy"], "exy": b["ux"]}
+
+    def _interpolate_grid(self, u) -> dict:
+        """ux, uy and the element-gradient strains of the nodal vector ``u`` (2 n_nodes,) on the pixel grid."""
         x, y = pixel_axes(self.shape, self.spacing, self.origin)
         loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
+        if loc.grid is not None:     # the inside points are a block of rows x columns
+            ins = loc.inside.reshape(self.shape)
+            rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+            block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)) if rows.size else None
+            if _kernels.use_compiled() and block is not None:     # one compiled pass, into the grids
+                out = np.empty((len(FIELDS),) + self.shape)
+                out[:, :block[0].start] = out[:, block[0].stop:] = np.nan        # NaN outside the block
+                out[:, block[0], :block[1].start] = out[:, block[0], block[1].stop:] = np.nan
+                xs, ys, _ = self.locator.tensor
+                G, gr = self.locator.node_grid, loc.grid
+                i, j = gr["i"], gr["j"]
+                _kernels.grid_fields(u[0::2][G], u[1::2][G], i, gr["X"], xs[i + 1] - xs[i], j, gr["Y"],
+                                     ys[j + 1] - ys[j], int(rows[0]), int(cols[0]), out)
+                return dict(zip(FIELDS, out))
+            grid = {}
+            for k, v in _sample_grid(u, loc, self.locator).items():
+                grid[k] = np.full(self.shape, np.nan)
+                if block is not None:
+                    grid[k][block] = v.reshape(rows.size, cols.size)
+            return grid
         g = {k: np.full(self.shape[0] * self.shape[1], np.nan) for k in FIELDS}
-        for k, v in sample(self.u, loc, nodal_strain=nodal_strain).items():
+        for k, v in sample(u, loc).items():
             g[k][loc.inside] = v
         return {k: v.reshape(self.shape) for k, v in g.items()}
 
@@ -220,6 +253,33 @@ class RegistrationResult:
         return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "
                 f"success={self.success}, nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, "
                 f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
+
+
+def _sample_grid(u, loc, locator) -> dict:
+    """:func:`femreg.fields.sample` on a tensor grid of points in a tensor mesh (``loc.grid``), separably: the
+    nodal values on the node grid are interpolated along the lateral axis (1D hats, or their derivative), then
+    along the axial one.  The same shape functions and elements as ``sample`` (equal to round-off); ~10x faster
+    on a 0.5 M pixel grid, where the per-pixel (m, 4, 2) gradients dominated."""
+    xs, ys, _ = locator.tensor
+    G = locator.node_grid
+    gr = loc.grid
+    i, j, X, Y = gr["i"], gr["j"], gr["X"], gr["Y"]
+    hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
+    u = np.asarray(u, float)
+    Ux, Uy = u[0::2][G], u[1::2][G]
+
+    def lateral(U, d=False):       # (n_x nodes, nc): value (or d/dy) at every column
+        a, b = U[:, j], U[:, j + 1]
+        return (b - a) / hy if d else a + (b - a) * Y
+
+    def axial(V, d=False):         # (nr, nc): value (or d/dx) at every row
+        a, b = V[i], V[i + 1]
+        return (b - a) / hx[:, None] if d else a + (b - a) * X[:, None]
+
+    Lx, Ly = lateral(Ux), lateral(Uy)
+    exy = 0.5 * (axial(lateral(Ux, True)) + axial(Ly, True))
+    return {"ux": axial(Lx).ravel(), "uy": axial(Ly).ravel(), "exx": axial(Lx, True).ravel(),
+            "eyy": axial(lateral(Uy, True)).ravel(), "exy": exy.ravel()}
 
 
 def displacement_at(spec, mesh, points, what: str):
@@ -343,13 +403,25 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     outside would pull their elements; the regulariser carries the field there."""
     locator = locator or PointLocator(mesh)
     data = image_term(I1, I2, mesh, shape, spacing, origin, offset=offset, locator=locator)
-    quad, S = data.quad, data.offset
+    quad = data.quad
     if mask_outside:
-        base = quad.points if S is None else quad.points + S
-        v = np.column_stack([pixel_values(quad, u0[0::2]), pixel_values(quad, u0[1::2])])
-        idx = ((base + v - I2.origin) / I2.spacing).T
-        hi = np.asarray(I2.shape, float)[:, None] - 2.0
-        out = np.any((idx < 1.0) | (idx > hi), axis=0)
+        # I_2 index of every pixel at the start: the term's base index (x + S - origin) / spacing plus u0 / spacing
+        hi = (I2.shape[0] - 2.0, I2.shape[1] - 2.0)
+        gr = quad.location.grid
+        if gr is not None and _kernels.use_compiled():     # one compiled pass over the pixel grid
+            G = quad.locator.node_grid
+            ux, uy = np.asarray(u0, float)[0::2], np.asarray(u0, float)[1::2]
+            out = _kernels.outside_grid(data._bx, data._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"], gr["Y"],
+                                        data._inv_sp[0], data._inv_sp[1], hi[0], hi[1],
+                                        np.empty(quad.n_pixels, bool))
+        else:
+            out = np.zeros(quad.n_pixels, bool)
+            for c, base in enumerate((data._bx, data._by)):
+                idx = pixel_values(quad, u0[c::2])
+                idx *= data._inv_sp[c]
+                idx += base
+                out |= idx < 1.0
+                out |= idx > hi[c]
         if out.any() and not out.all():
             data.w = np.where(out, 0.0, data.w)
     reg = reg_factory()

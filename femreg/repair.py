@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from . import _kernels
 from .mesh import tensor_structure
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
@@ -79,6 +80,20 @@ def element_ncc(data, u, n_elements: int) -> np.ndarray:
     with fewer than 4 pixels.  ``data`` is the :class:`femreg.data_term.SSDTerm` of the solve."""
     a = data.ref_values
     b = data.residual(u) + a
+    gr = data.quad.location.grid
+    if gr is not None and _kernels.use_compiled() and np.all(np.diff(gr["i"]) >= 0) and np.all(np.diff(gr["j"]) >= 0):
+        # tensor mesh: pixel rows x columns of each element are consecutive; one compiled pass per moment
+        rseg = np.cumsum(np.diff(gr["i"], prepend=gr["i"][0]) > 0)
+        cseg = np.cumsum(np.diff(gr["j"], prepend=gr["j"][0]) > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            qb, cb = _kernels.block_ncc(np.ascontiguousarray(a), np.ascontiguousarray(b), rseg, cseg,
+                                        int(rseg[-1]) + 1, int(cseg[-1]) + 1)
+        cell = data.quad.locator.tensor[2][np.unique(gr["i"])[:, None], np.unique(gr["j"])[None, :]]
+        q = np.full(n_elements, np.nan)
+        cnt = np.zeros(n_elements)
+        q[cell.ravel()], cnt[cell.ravel()] = qb.ravel(), cb.ravel()
+        q[cnt < 4] = np.nan
+        return q
     e = _pixel_elements(data.quad)
     cnt = np.bincount(e, minlength=n_elements).astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
