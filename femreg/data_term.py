@@ -76,17 +76,29 @@ class SSDTerm:
         self._inv_sp = 1.0 / moving.spacing
         self._bx = (base[:, 0] - moving.origin[0]) / moving.spacing[0]
         self._by = (base[:, 1] - moving.origin[1]) / moving.spacing[1]
-        w = quad.weights
-        self.w = w
+        self.w = quad.weights
         self._J = None
         self._H = None
         self._cache_u = None
         self._cache_r = None
         self._grid = quad.location.grid
         self._empty = np.empty(0)
-        self._w_const = float(w[0]) if w.size and np.all(w == w[0]) else None
         if self._grid is not None:
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
+
+    @property
+    def w(self) -> np.ndarray:
+        """Pixel weights (m,) mm^2 of eq:IR (0 for pixels left out, e.g. mapped outside the moving image)."""
+        return self._w
+
+    @w.setter
+    def w(self, value):
+        # energy, gradient and Hessian all read these weights: a change (masking) reaches all three
+        self._w = np.asarray(value, float)
+        w = self._w
+        self._w_const = float(w[0]) if w.size and np.all(w == w[0]) else None
+        self._H = None
+        self._cache_u = self._cache_r = None
 
     @property
     def ref_gradient(self):
