@@ -28,7 +28,8 @@ from .io.results import load_result  # noqa: F401  (femreg.load_result: the one 
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
-from .pyramid import default_settings, field_at, pyramid_initial_guess, rf_period, speckle_statistics
+from .pyramid import (default_settings, field_at, max_element_size, pyramid_initial_guess, rf_period,
+                      speckle_statistics)
 from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
                      hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
@@ -558,7 +559,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
         stats = speckle_statistics(ref, spacing)
-        settings = default_settings(ref.shape, spacing, stats, element_size)
+        settings = default_settings(ref.shape, spacing, stats, element_size, max_element_size(regularizer))
     if mesh is None:
         h = settings.element_size if (settings is not None and element_size is None) else element_size
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),
@@ -590,7 +591,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
             if stats is None:
                 stats = speckle_statistics(a, spacing)
-                settings = default_settings(a.shape, spacing, stats, element_size)
+                settings = default_settings(a.shape, spacing, stats, element_size, max_element_size(regularizer))
                 env_a = stats.envelope
             guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=user_alpha,
                                           stats=stats, settings=settings, margin=margin, tol=tol,

@@ -220,3 +220,21 @@ def test_results_with_many_unmatched_elements_are_flagged():
     ref, mov = speckle_pair(compression(0.03), SHAPE, SP, seed=5, snr_db=20)
     noted = femreg.register(ref, mov, spacing=SP, strategy="paper")
     assert "match poorly" in noted.message, noted.message
+
+
+def test_default_element_size_is_capped_for_the_momentum_regularisers():
+    """Speckle rule max(6 axial cells, 1.1 lateral cells): 3.3 mm for a 3 MHz probe's cell (0.5 x 3.0 mm); the
+    momentum regularisers cap it at 1.5 mm (femreg.pyramid.MAX_ELEMENT_SIZE), the strain ones keep it."""
+    from femreg import pyramid
+
+    stats = pyramid.SpeckleStats(period=0.5, cell=np.array([0.5, 3.0]), pulse_cell=np.array([0.5, 3.0]))
+    shape, sp = (2600, 80), (0.0385, 0.5)                    # 100 x 40 mm
+    free = pyramid.default_settings(shape, sp, stats, max_size=pyramid.max_element_size("strain")).element_size
+    capped = pyramid.default_settings(shape, sp, stats,
+                                      max_size=pyramid.max_element_size("momentum-stress")).element_size
+    np.testing.assert_allclose(free, 3.3, atol=1e-9)
+    np.testing.assert_allclose(capped, 1.5, atol=1e-9)
+    ref, mov = speckle_pair(lambda p: np.c_[-0.01 * p[:, 0], 0.005 * p[:, 1]], (1200, 60), (0.0385, 0.5), seed=4)
+    h = lambda r: np.ptp(r.mesh.p[0, r.mesh.t[:, 0]])           # noqa: E731  first element's axial size
+    assert h(femreg.register(ref, mov, spacing=(0.0385, 0.5), maxiter=2)) <= 1.5 + 0.04
+    assert h(femreg.register(ref, mov, spacing=(0.0385, 0.5), regularizer="strain", maxiter=2)) > 1.5 + 0.04
