@@ -40,27 +40,36 @@ from .solver import Objective, gauss_newton
 
 __all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess",
-           "MAX_ELEMENT_SIZE", "max_element_size"]
+           "MAX_ELEMENT_SIZE", "element_rule"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
 SEARCH_FRACTION = (0.10, 0.10)
-#: Largest default element size (mm).  Strain features users look for are a few mm (the edge of a 5-10 mm
-#: inclusion); the mesh alone misses a 10 mm inclusion's axial strain by 9-10 % at 2 mm elements and 6-7 % at
-#: 1-1.5 mm.  Measured on the robustness benchmark (R_P_sigma defaults, total strain error) with the cap at 1.5 mm
-#: instead of the speckle rule's 2.1 mm (5.5 MHz) / 3.3 mm (3 MHz) / 1.6 mm (7.5 MHz): every inclusion case
-#: lower or equal (3 MHz stiff plane stress 12.9 -> 9.4, 5.5 MHz stiff plane stress 4 % 11.3 -> 10.1, stiff
-#: plane strain 1 % 14.3 -> 13.6, soft plane strain 4 % 12.9 -> 12.1), uniform compression 0.1-1.1 -> 0.1-0.7,
-#: bending 4.4 -> 5.8 (the one loss); 1.2 mm lowered the inclusions further but bending to 7.8.  For the momentum
-#: regularisers only: the strain regularisers got worse on finer meshes (R_eps, 8 % compression at 3 MHz 18.5 ->
-#: 37.6 %, R_eps_i stiff plane stress at 3 MHz 30.8 -> 44.3 %; their best alpha does not follow the 1 / area
-#: scaling of :mod:`femreg.scaling` below 2 mm).
+#: Largest default element size (mm) of the momentum regularisers.  Strain features users look for are a few mm
+#: (the edge of a 5-10 mm inclusion); the mesh alone misses a 10 mm inclusion's axial strain by 9-10 % at 2 mm
+#: elements and 6-7 % at 1-1.5 mm.  Measured on the robustness benchmark (R_P_sigma defaults, total strain error)
+#: with the cap at 1.5 mm instead of the speckle rule's 2.1 mm (5.5 MHz) / 3.3 mm (3 MHz) / 1.6 mm (7.5 MHz):
+#: every inclusion case lower or equal (3 MHz stiff plane stress 12.9 -> 9.4, 5.5 MHz stiff plane stress 4 %
+#: 11.3 -> 10.1, stiff plane strain 1 % 14.3 -> 13.6, soft plane strain 4 % 12.9 -> 12.1), uniform compression
+#: 0.1-1.1 -> 0.1-0.7, bending 4.4 -> 5.8 (the one loss); 1.2 mm lowered the inclusions further but bending to
+#: 7.8.  The strain regularisers got worse on finer meshes (R_eps, 8 % compression at 3 MHz 18.5 -> 37.6 %, R_eps_i
+#: stiff plane stress at 3 MHz 30.8 -> 44.3 %: their best alpha does not follow the 1 / area scaling of
+#: :mod:`femreg.scaling` below 2 mm) and keep the speckle rule.
 MAX_ELEMENT_SIZE = 1.5
+#: Axial speckle cells per element of the speckle rule (:func:`default_settings`): 6, and 4 for R_P_sigma.  With 4
+#: (R_P_sigma, robustness benchmark): 12 MHz soft plane stress 10.5 -> 9.5 %, 7.5 MHz soft plane stress 11.4 ->
+#: 9.7, 15 MHz soft plane strain 13.0 -> 12.4, other cases equal; in vivo frames 1 -> 6 (elements 1.44 / 1.2 ->
+#: 0.96 / 0.8 mm) NCC after 0.808 / 0.891 -> 0.813 / 0.897 and row alternation of e_xx 1.18 / 0.88 -> 0.59 / 0.55
+#: (seq299 / seq304).  R_P_eps lost with 4 (12 MHz soft plane stress 19.3 -> 22.9 %), R_eps on most cases.
+AXIAL_CELLS_PER_ELEMENT = {"momentum-stress": 4.0}
+DEFAULT_AXIAL_CELLS = 6.0
 
 
-def max_element_size(regularizer):
-    """The cap on the default element size for ``regularizer`` (mm, or None for no cap): :data:`MAX_ELEMENT_SIZE`
-    for the momentum regularisers (names ``"momentum..."``), none otherwise."""
-    return MAX_ELEMENT_SIZE if isinstance(regularizer, str) and regularizer.startswith("momentum") else None
+def element_rule(regularizer) -> tuple:
+    """(axial cells per element, largest element size mm or None) of the default mesh for ``regularizer``:
+    R_P_sigma (4, 1.5), R_P_eps (6, 1.5), other regularisers (6, None).  See :data:`MAX_ELEMENT_SIZE`."""
+    name = regularizer if isinstance(regularizer, str) else ""
+    cap = MAX_ELEMENT_SIZE if name.startswith("momentum") else None
+    return AXIAL_CELLS_PER_ELEMENT.get(name, DEFAULT_AXIAL_CELLS), cap
 #: Axial strains tried by the global search (fraction; negative = compression).
 GLOBAL_STRAINS = tuple(np.round(np.arange(-0.12, 0.0601, 0.01), 3))
 
@@ -196,13 +205,14 @@ def speckle_statistics(image, spacing) -> SpeckleStats:
     return SpeckleStats(period=period, cell=np.array(cell), envelope=env, pulse_cell=np.array(pulse))
 
 
-def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max_size=None) -> PyramidSettings:
+def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max_size=None,
+                     axial_cells: float = DEFAULT_AXIAL_CELLS) -> PyramidSettings:
     """Defaults from the image (all mm).
 
-    * Element size: square, ``max(6 axial cells, 1.1 lateral cells)`` -- about 2 mm for the paper's probe
-      (cell 0.35 x 1.8 mm), 3.3 mm at 3 MHz, 0.9 mm at 12 MHz -- at most ``max_size`` (mm; register passes
-      :func:`max_element_size`: 1.5 mm for the momentum regularisers) and 1/12 of the smaller image extent, at
-      least 2 lines and 8 samples.  The cell here is the smaller of the envelope's and the pulse's
+    * Element size: square, ``max(axial_cells axial cells, 1.1 lateral cells)`` -- with 6 cells about 2 mm for the
+      paper's probe (cell 0.35 x 1.8 mm), 3.3 mm at 3 MHz, 0.9 mm at 12 MHz -- at most ``max_size`` (mm) and 1/12
+      of the smaller image extent, at least 2 lines and 8 samples; register passes :func:`element_rule` of its
+      regulariser (R_P_sigma: 4 cells, at most 1.5 mm).  The cell here is the smaller of the envelope's and the pulse's
       (:class:`SpeckleStats`): on tissue the envelope cell measures the echo structure, and elements sized from
       it (capped at 2.13 mm on the 40 x 25.6 mm in vivo frames) are too coarse for the motion of that
       structure: in vivo frames 1 -> 6 (R_P_sigma) the solve then fits each node row to its own layer and e_xx
@@ -220,7 +230,7 @@ def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max
     extent = np.asarray(shape, float) * spacing
     if element_size is None:
         cell = stats.cell if stats.pulse_cell is None else np.minimum(stats.cell, stats.pulse_cell)
-        h = max(6.0 * cell[0], 1.1 * cell[1])
+        h = max(float(axial_cells) * cell[0], 1.1 * cell[1])
         h = min(h, extent.min() / 12.0, np.inf if max_size is None else float(max_size))
         h = np.maximum(np.array([h, h]), np.array([8 * spacing[0], 2 * spacing[1]]))
     else:

@@ -28,7 +28,7 @@ from .io.results import load_result  # noqa: F401  (femreg.load_result: the one 
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
-from .pyramid import (default_settings, field_at, max_element_size, pyramid_initial_guess, rf_period,
+from .pyramid import (default_settings, element_rule, field_at, pyramid_initial_guess, rf_period,
                       speckle_statistics)
 from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
                      hopped_fraction, pixel_values, poor_fraction, reseed)
@@ -382,6 +382,12 @@ def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=Non
     return SSDTerm(quad, I1, I2, offset=S)
 
 
+def _element_rule(regularizer) -> tuple:
+    """(max_size, axial_cells) of :func:`femreg.pyramid.default_settings` for ``regularizer``."""
+    cells, cap = element_rule(regularizer)
+    return cap, cells
+
+
 def effective_regularizer_options(strategy, regularizer, options=None) -> dict:
     """The regulariser options ``register`` uses: the user's, with hourglass control of the momentum
     regularisers (:data:`DEFAULT_HOURGLASS`; R_P_sigma: :data:`DEFAULT_MOMENTUM_STRESS_OPTIONS`) added under
@@ -559,7 +565,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
         stats = speckle_statistics(ref, spacing)
-        settings = default_settings(ref.shape, spacing, stats, element_size, max_element_size(regularizer))
+        settings = default_settings(ref.shape, spacing, stats, element_size, *_element_rule(regularizer))
     if mesh is None:
         h = settings.element_size if (settings is not None and element_size is None) else element_size
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),
@@ -591,7 +597,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
             if stats is None:
                 stats = speckle_statistics(a, spacing)
-                settings = default_settings(a.shape, spacing, stats, element_size, max_element_size(regularizer))
+                settings = default_settings(a.shape, spacing, stats, element_size, *_element_rule(regularizer))
                 env_a = stats.envelope
             guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=user_alpha,
                                           stats=stats, settings=settings, margin=margin, tol=tol,

@@ -33,7 +33,7 @@ from ._atomic import atomic_savez, atomic_write_text
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
-from .pyramid import default_settings, max_element_size, speckle_statistics
+from .pyramid import default_settings, element_rule, speckle_statistics
 from .registration import RegistrationResult, load_result, register
 from .solver import single_blas_thread
 
@@ -163,8 +163,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
-        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing),
-                                              max_size=max_element_size(regularizer)).element_size)
+        cells, cap = element_rule(regularizer)
+        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing), max_size=cap,
+                                              axial_cells=cells).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
     n_dof = 2 * fe_mesh.p.shape[1]
