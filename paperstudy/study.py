@@ -1310,7 +1310,8 @@ def _fix_section(res: StudyResult) -> list:
          "Single frame at the selected alphas.  'paper form': `strategy='paper'` (block-matching start, coarse pass "
          "only above 1 % strain, no hourglass control); '+ coarse pass': always register on a 3x coarser mesh "
          "first; '+ hourglass control': the momentum terms' checkerboard penalty (weight 100); 'strategy auto': "
-         "femreg's default pipeline (envelope-pyramid start, peak-hopping repair, hourglass control 100), the main "
+         "femreg's default pipeline (envelope-pyramid start, peak-hopping repair, hourglass control 100; R_P_sigma: "
+         "1000 and the dilatation at the element centre), the main "
          "tables.  Cells: total strain error "
          "exact / paper's convention, e_xx, e_yy (exact), and the share of the squared e_xx error held by the 5 "
          "worst elements (about 0.01 when the error is spread).", "",
