@@ -545,3 +545,28 @@ def test_ultrasonix_tagged_file_cut_to_the_untagged_size_is_truncated(tmp_path):
         read_frames(tmp_path / "a.rf", spacing=(None, 0.2))
     save_frames(tmp_path / "b.rf", frames, (0.02, 0.2), origin=(0.0, 0.0))   # untagged, same size: reads
     np.testing.assert_array_equal(read_frames(tmp_path / "b.rf", spacing=(None, 0.2)).frames, frames)
+
+
+def test_saved_grid_says_which_strain_it_holds(tmp_path):
+    """Files record ``strain="recovered"``; a file marked ``strain="element"`` keeps its grid as the element grid
+    and the default (recovered) grid is computed from the mesh and u."""
+    from femreg.synthetic import speckle_pair
+
+    spacing = (0.02, 0.1)
+    ref, mov = speckle_pair(lambda p: np.c_[-0.01 * p[:, 0] + 0.001 * p[:, 1] ** 2, 0.004 * p[:, 1]],
+                            shape=(300, 60), spacing=spacing, seed=5)
+    res = femreg.register(ref, mov, spacing=spacing, element_size=(1.0, 1.0), maxiter=3)
+    path = res.save(tmp_path / "new.npz")
+    with np.load(path) as z:
+        assert str(z["strain"]) == "recovered"
+        old = {k: z[k] for k in z.files if k != "strain"}
+    old["strain"] = "element"
+    for k in ("exx", "eyy", "exy"):
+        old[k] = res.on_grid("element")[k]
+    np.savez(tmp_path / "old.npz", **old)
+    new, older = load_result(path), load_result(tmp_path / "old.npz")
+    for k in ("exx", "eyy", "exy"):
+        np.testing.assert_array_equal(new.on_grid()[k], res.on_grid()[k])
+        np.testing.assert_array_equal(older.on_grid("element")[k], res.on_grid("element")[k])
+        np.testing.assert_allclose(older.on_grid()[k], res.on_grid()[k], atol=1e-14, equal_nan=True)
+    assert np.nanmax(np.abs(res.on_grid()["exx"] - res.on_grid("element")["exx"])) > 1e-5

@@ -19,10 +19,14 @@ ncc_before/after   scalar                          NCC of reference and warped m
 energy_history     (nit+1,)                        objective per Gauss-Newton iterate
 quality            (n_el,)                         per-element quality map (optional)
 strategy           str                             registration strategy (optional)
+strain             str                             how the grid strains were evaluated: "recovered" or
+                                                   "element" (optional; absent: served as written --
+                                                   files of earlier versions hold element strains)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
-``exy = (dux/dy + duy/dx)/2`` (tensor shear, not engineering shear).
+``exy = (dux/dy + duy/dx)/2`` (tensor shear, not engineering shear); the grid holds the recovered strain
+(:func:`femreg.fields.recovered_strains`) in files written by this version.
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy")
+               "quality", "strategy", "strain")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -155,6 +159,7 @@ def _from_object(res) -> dict:
         out["mesh_cells"] = np.asarray(mesh.t)
     if callable(getattr(res, "on_grid", None)):
         out.update(res.on_grid())                   # pixel-grid fields (the object's ux/uy are nodal)
+        out["strain"] = "recovered"                 # what on_grid() gives by default
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
@@ -219,15 +224,21 @@ def load_result(path):
 
     d = _read(path)
     grid = {k: np.asarray(d[k], float) for k in GRID_FIELDS if k in d}
-    return RegistrationResult(
+    grid = grid if len(grid) == len(GRID_FIELDS) else None
+    element_grid = None
+    if grid is not None and str(d.get("strain", "")) == "element":
+        grid, element_grid = None, grid             # element strains: the default (recovered) grid is recomputed
+    res = RegistrationResult(
         MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64)),
         np.asarray(d["u"], float), shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
         origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
         success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
         energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid if len(grid) == len(GRID_FIELDS) else None,
+        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid,
         quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
         strategy=str(d.get("strategy", "")))
+    res._grid_element = element_grid
+    return res
 
 
 def save_result(path, result, **extra) -> Path:
