@@ -1,6 +1,18 @@
 r"""``alpha="auto"``: the regularisation weight of eq:objf chosen from the image pair alone (no ground truth).
 
-Rule (default ``"discrepancy"``): Morozov's discrepancy principle (V. A. Morozov, Soviet Math. Dokl. 7 (1966)
+Rule (default ``"quasi-optimality"``): the quasi-optimality criterion (A. N. Tikhonov, V. B. Glasko, USSR Comput.
+Math. Math. Phys. 5 (1965) 93-107; F. Bauer, M. Reiss, Inverse Problems 24 (2008) 055009,
+doi:10.1088/0266-5611/24/5/055009): on the geometric grid of candidates take the alpha where the result changes
+least from one candidate to the next, ``min_k ||e(alpha_{k+1}) - e(alpha_k)||`` over the recovered nodal strains
+(:func:`femreg.fields.recovered_strains`, the quantity elastography reports), the smaller alpha of that pair,
+interior pairs only (the grid's end pairs are not candidates: a minimum there only says the grid is too short).
+It needs no noise level.  Measured on the paper's six data sets x four regularisers (frames 1 -> 7, 2 mm mesh,
+total strain error against the truth-best alpha of the same grid): within 15 % on 18 of 24 (R_P_sigma and R_eps 6
+of 6, R_P_eps 5, R_eps_i 1; median 1.00, max 1.94), where the discrepancy rule below reached 11 of 24 (median
+1.47, max 3.31) -- for the momentum terms the image term hardly changes with the lateral field, so a misfit-based
+rule allows 3-10x too much regularisation.
+
+Rule ``"discrepancy"``: Morozov's discrepancy principle (V. A. Morozov, Soviet Math. Dokl. 7 (1966)
 414-417; P. C. Hansen, *Discrete Inverse Problems*, SIAM 2010, ch. 5, doi:10.1137/1.9780898718836) with the noise
 level estimated from the images themselves: take the largest :math:`\alpha` of the grid whose image term is within
 what the best fit of the grid could have absorbed by fitting noise,
@@ -72,13 +84,16 @@ class AutoAlpha:
     sigma2: float
     n_registrations: int
     result: object = field(repr=False, default=None)
-    rule: str = "discrepancy"
+    rule: str = "quasi-optimality"
     results: list | None = field(repr=False, default=None)
+    #: ||e(alpha_{k+1}) - e(alpha_k)|| of the recovered nodal strains, k = 0 .. len(alphas) - 2
+    strain_change: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         return {"alpha": self.alpha, "alphas": self.alphas.tolist(), "psi": self.psi.tolist(),
                 "dof": self.dof.tolist(), "upre": self.upre.tolist(), "c": self.c, "sigma2": self.sigma2,
-                "n_registrations": self.n_registrations, "rule": self.rule}
+                "n_registrations": self.n_registrations, "rule": self.rule,
+                "strain_change": None if self.strain_change is None else self.strain_change.tolist()}
 
 
 def influence_trace(Hd, Hr, *, seed: int = 0) -> float:
@@ -100,16 +115,19 @@ def _correlation_factor(residual_image, gx, gy) -> float:
     return float(np.mean(Sr * Sg) / den) if den > 0 else 1.0
 
 
-def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base_alpha=None, rule="discrepancy",
-                 keep_results=False, **register_kwargs):
-    """Choose alpha for one pair by UPRE (module docstring).
+RULES = ("quasi-optimality", "discrepancy", "upre")
+
+
+def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base_alpha=None,
+                 rule="quasi-optimality", keep_results=False, **register_kwargs):
+    """Choose alpha for one pair (module docstring).
 
     Parameters
     ----------
     reference_image, moving_image : the pair, as for :func:`femreg.register`.
     decades : exponents of the candidate grid, ``base_alpha * 10**d``.
     base_alpha : centre of the grid; default the regulariser's default alpha.
-    rule : "discrepancy" (default) or "upre" (module docstring).
+    rule : "quasi-optimality" (default), "discrepancy" or "upre" (module docstring).
     keep_results : also return every grid registration (``AutoAlpha.results``).
     **register_kwargs : every other keyword argument of :func:`femreg.register` (spacing, regularizer, mesh, ...);
         ``alpha`` must be absent or "auto".
@@ -127,10 +145,12 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     if a not in (None, "auto"):
         raise InputError(f"choose_alpha chooses alpha itself; got alpha={a!r}")
     decades = np.asarray(decades, float)
-    if rule not in ("discrepancy", "upre"):
-        raise InputError(f"rule must be 'discrepancy' or 'upre', got {rule!r}")
+    if rule not in RULES:
+        raise InputError(f"rule must be one of {RULES}, got {rule!r}")
     if decades.ndim != 1 or decades.size < 3 or not np.all(np.isfinite(decades)):
         raise InputError("decades must hold at least 3 finite exponents")
+    if rule == "quasi-optimality" and decades.size < 4:
+        raise InputError("the quasi-optimality rule needs at least 4 candidates (decades)")
     regularizer = register_kwargs.get("regularizer", "momentum-stress")
     options = register_kwargs.get("regularizer_options") or {}
     if base_alpha is None:
@@ -175,14 +195,18 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         gx, gy = g[0].reshape(ref.shape), g[1].reshape(ref.shape)
     c = _correlation_factor(r_img.reshape(ref.shape), gx, gy)
     upre = 2.0 * psi + 2.0 * c * sigma2 * dof
+    strains = [res.nodal_strain.ravel() for res in results]
+    change = np.array([np.linalg.norm(strains[k + 1] - strains[k]) for k in range(len(strains) - 1)])
     if rule == "upre":
         k = int(np.argmin(upre))
+    elif rule == "quasi-optimality":   # interior pairs only; the smaller alpha of the steadiest pair
+        k = 1 + int(np.argmin(change[1:-1]))
     else:   # discrepancy: the largest alpha whose misfit stays within what the best fit could have absorbed
         ok = np.flatnonzero(2.0 * (psi - psi[i0]) <= c * sigma2 * dof[i0])
         k = int(ok.max())
     return AutoAlpha(alpha=float(alphas[k]), alphas=alphas, psi=psi, dof=dof, upre=upre, c=c, sigma2=float(sigma2),
                      n_registrations=int(alphas.size), result=results[k], rule=rule,
-                     results=results if keep_results else None)
+                     results=results if keep_results else None, strain_change=change)
 
 
 def register_auto(reference_image, moving_image, **register_kwargs):
