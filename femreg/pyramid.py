@@ -64,12 +64,13 @@ AXIAL_CELLS_PER_ELEMENT = {"momentum-stress": 4.0}
 DEFAULT_AXIAL_CELLS = 6.0
 
 
-def element_rule(regularizer) -> tuple:
-    """(axial cells per element, largest element size mm or None) of the default mesh for ``regularizer``:
-    R_P_sigma (4, 1.5), R_P_eps (6, 1.5), other regularisers (6, None).  See :data:`MAX_ELEMENT_SIZE`."""
+def element_rule(regularizer) -> dict:
+    """The element-size keywords of :func:`default_settings` for ``regularizer``: ``axial_cells`` per element and
+    the largest size ``max_size`` (mm, or None): R_P_sigma 4 and 1.5, R_P_eps 6 and 1.5, other regularisers 6 and
+    None.  See :data:`MAX_ELEMENT_SIZE`."""
     name = regularizer if isinstance(regularizer, str) else ""
-    cap = MAX_ELEMENT_SIZE if name.startswith("momentum") else None
-    return AXIAL_CELLS_PER_ELEMENT.get(name, DEFAULT_AXIAL_CELLS), cap
+    return {"axial_cells": AXIAL_CELLS_PER_ELEMENT.get(name, DEFAULT_AXIAL_CELLS),
+            "max_size": MAX_ELEMENT_SIZE if name.startswith("momentum") else None}
 #: Axial strains tried by the global search (fraction; negative = compression).
 GLOBAL_STRAINS = tuple(np.round(np.arange(-0.12, 0.0601, 0.01), 3))
 

@@ -108,12 +108,10 @@ class RegistrationResult:
         :data:`femreg.repair.HOP_GAIN` the element sits on a neighbouring correlation peak.
     """
 
-    hop_gain = None
-
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
-                 locator=None, quality=None, strategy="", alpha_effective=float("nan")):
+                 locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None):
         self.mesh = mesh
         self.u = np.asarray(u, float)
         self.shape = tuple(int(s) for s in shape)
@@ -136,6 +134,7 @@ class RegistrationResult:
         self._grid_element = None
         self._nodal_strain = None
         self.quality = None if quality is None else np.asarray(quality, float)
+        self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
         self.strategy = str(strategy)
         self.alpha_effective = float(alpha_effective)
 
@@ -166,7 +165,7 @@ class RegistrationResult:
     @property
     def nodal_strain(self) -> np.ndarray:
         """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy] (:func:`femreg.fields.recovered_strains`)."""
-        if getattr(self, "_nodal_strain", None) is None:
+        if self._nodal_strain is None:
             self._nodal_strain = recovered_strains(self.mesh.p, self.mesh.t, self.u)
         return self._nodal_strain
 
@@ -193,30 +192,27 @@ class RegistrationResult:
     def on_grid(self, strain: str = "recovered") -> dict:
         """ux, uy, exx, eyy, exy on the reference pixel grid, each (n_axial, n_lateral) float64, NaN outside
         the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``)."""
-        check_strain_mode(strain)
-        if strain == "element":
-            if getattr(self, "_grid_element", None) is None:
-                self._grid_element = self._sample_grid(None)
+        if check_strain_mode(strain) == "element":
+            if self._grid_element is None:
+                self._grid_element = self._interpolate_grid(self.u, self._grid_location())
             return self._grid_element
         if self._grid is None:
-            self._grid = self._sample_grid(self.nodal_strain)
+            # u, then the recovered nodal strains interpolated like u (two strain components per pass)
+            loc = self._grid_location()
+            ns = self.nodal_strain
+            g = self._interpolate_grid(self.u, loc)
+            a = self._interpolate_grid(ns[:, :2].ravel(), loc)
+            b = self._interpolate_grid(np.column_stack([ns[:, 2], np.zeros(len(ns))]).ravel(), loc)
+            self._grid = {"ux": g["ux"], "uy": g["uy"], "exx": a["ux"], "eyy": a["uy"], "exy": b["ux"]}
         return self._grid
 
-    def _sample_grid(self, nodal_strain) -> dict:
-        """The :data:`FIELDS` on the pixel grid; strains interpolated from ``nodal_strain`` (n_nodes, 3), or the
-        element gradient where it is None."""
-        g = self._interpolate_grid(self.u)
-        if nodal_strain is None:
-            return g
-        ns = np.asarray(nodal_strain, float)
-        a = self._interpolate_grid(np.column_stack([ns[:, 0], ns[:, 1]]).ravel())   # bilinear, as u
-        b = self._interpolate_grid(np.column_stack([ns[:, 2], np.zeros(len(ns))]).ravel())
-        return {"ux": g["ux"], "uy": g["uy"], "exx": a["ux"], "eyy": a["uy"], "exy": b["ux"]}
-
-    def _interpolate_grid(self, u) -> dict:
-        """ux, uy and the element-gradient strains of the nodal vector ``u`` (2 n_nodes,) on the pixel grid."""
+    def _grid_location(self):
         x, y = pixel_axes(self.shape, self.spacing, self.origin)
-        loc = self.locator.locate_grid(x, y)          # separable on tensor meshes
+        return self.locator.locate_grid(x, y)          # separable on tensor meshes
+
+    def _interpolate_grid(self, u, loc) -> dict:
+        """ux, uy and the element-gradient strains of the nodal vector ``u`` (2 n_nodes,) on the pixel grid
+        (``loc``: :meth:`_grid_location`)."""
         if loc.grid is not None:     # the inside points are a block of rows x columns
             ins = loc.inside.reshape(self.shape)
             rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
@@ -380,12 +376,6 @@ def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=Non
         raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
     S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
     return SSDTerm(quad, I1, I2, offset=S)
-
-
-def _element_rule(regularizer) -> tuple:
-    """(max_size, axial_cells) of :func:`femreg.pyramid.default_settings` for ``regularizer``."""
-    cells, cap = element_rule(regularizer)
-    return cap, cells
 
 
 def effective_regularizer_options(strategy, regularizer, options=None) -> dict:
@@ -565,7 +555,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
         stats = speckle_statistics(ref, spacing)
-        settings = default_settings(ref.shape, spacing, stats, element_size, *_element_rule(regularizer))
+        settings = default_settings(ref.shape, spacing, stats, element_size, **element_rule(regularizer))
     if mesh is None:
         h = settings.element_size if (settings is not None and element_size is None) else element_size
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),
@@ -597,7 +587,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
             if stats is None:
                 stats = speckle_statistics(a, spacing)
-                settings = default_settings(a.shape, spacing, stats, element_size, *_element_rule(regularizer))
+                settings = default_settings(a.shape, spacing, stats, element_size, **element_rule(regularizer))
                 env_a = stats.envelope
             guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=user_alpha,
                                           stats=stats, settings=settings, margin=margin, tol=tol,
@@ -713,14 +703,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not success:
         message = "FAILED: " + message
-    out = RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
-                             regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
-                             message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
-                             ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
-                             solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
-                             alpha_effective=sol.reg.alpha)
-    out.hop_gain = gain
-    return out
+    return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
+                              regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
+                              message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,
+                              ncc_before=ncc0, ncc_after=ncc1, timings=timings, blockmatch=bm,
+                              solver_result=sol.gn, locator=locator, quality=quality, strategy=strategy,
+                              alpha_effective=sol.reg.alpha, hop_gain=gain)
 
 
 def _interleave(v):

@@ -94,18 +94,21 @@ def element_ncc(data, u, n_elements: int) -> np.ndarray:
         q[cell.ravel()], cnt[cell.ravel()] = qb.ravel(), cb.ravel()
         q[cnt < 4] = np.nan
         return q
-    e = _pixel_elements(data.quad)
-    cnt = np.bincount(e, minlength=n_elements).astype(float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ma = np.bincount(e, a, n_elements) / cnt
-        mb = np.bincount(e, b, n_elements) / cnt
-        da, db = a - ma[e], b - mb[e]
-        sab = np.bincount(e, da * db, n_elements)
-        saa = np.bincount(e, da * da, n_elements)
-        sbb = np.bincount(e, db * db, n_elements)
-        q = sab / np.sqrt(saa * sbb)
+    q, cnt = _group_ncc(_pixel_elements(data.quad), a, b, n_elements)
     q[cnt < 4] = np.nan
     return q
+
+
+def _group_ncc(groups, x, y, n: int):
+    """NCC of ``x`` and ``y`` within each group (``groups`` (m,) in 0 .. n - 1): group means first, then the centred
+    sums (two passes, as :func:`femreg._kernels.block_ncc`).  Returns (ncc, count), each (n,); NaN where a group
+    has no variance."""
+    cnt = np.bincount(groups, minlength=n).astype(float)[:n]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx = x - (np.bincount(groups, x, n) / cnt)[groups]
+        dy = y - (np.bincount(groups, y, n) / cnt)[groups]
+        q = np.bincount(groups, dx * dy, n) / np.sqrt(np.bincount(groups, dx * dx, n) * np.bincount(groups, dy * dy, n))
+    return q, cnt
 
 
 def poor_fraction(quality) -> float:
@@ -235,17 +238,9 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         ok &= full[k] & full[k - 2] & full[k + 2]
     e = el[ok]
     x = ea[k][ok]
-    cnt = np.bincount(e, minlength=n_elements).astype(float)[:n_elements]
     c = np.empty((3, n_elements))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mx = np.bincount(e, x, n_elements) / cnt
-        dx = x - mx[e]
-        sxx = np.bincount(e, dx * dx, n_elements)
-        for i, s in enumerate((-2, 0, 2)):
-            y = ew[k + s][ok]
-            my = np.bincount(e, y, n_elements) / cnt
-            dy = y - my[e]
-            c[i] = np.bincount(e, dx * dy, n_elements) / np.sqrt(sxx * np.bincount(e, dy * dy, n_elements))
+    for i, s in enumerate((-2, 0, 2)):
+        c[i], cnt = _group_ncc(e, x, ew[k + s][ok], n_elements)
     c[:, cnt < 8] = np.nan
     return c
 

@@ -163,9 +163,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
-        cells, cap = element_rule(regularizer)
-        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing), max_size=cap,
-                                              axial_cells=cells).element_size)
+        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing),
+                                              **element_rule(regularizer)).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
     n_dof = 2 * fe_mesh.p.shape[1]

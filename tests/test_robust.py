@@ -230,9 +230,10 @@ def test_default_element_size_is_capped_for_the_momentum_regularisers():
     stats = pyramid.SpeckleStats(period=0.5, cell=np.array([0.5, 3.0]), pulse_cell=np.array([0.5, 3.0]))
     shape, sp = (2600, 80), (0.0385, 0.5)                    # 100 x 40 mm
     rule = {r: pyramid.element_rule(r) for r in ("strain", "momentum-stress")}
-    assert rule == {"strain": (6.0, None), "momentum-stress": (4.0, 1.5)}, rule
-    free = pyramid.default_settings(shape, sp, stats, max_size=None).element_size
-    capped = pyramid.default_settings(shape, sp, stats, max_size=1.5, axial_cells=4.0).element_size
+    assert rule == {"strain": {"axial_cells": 6.0, "max_size": None},
+                    "momentum-stress": {"axial_cells": 4.0, "max_size": 1.5}}, rule
+    free = pyramid.default_settings(shape, sp, stats, **rule["strain"]).element_size
+    capped = pyramid.default_settings(shape, sp, stats, **rule["momentum-stress"]).element_size
     np.testing.assert_allclose(free, 3.3, atol=1e-9)
     np.testing.assert_allclose(capped, 1.5, atol=1e-9)
     ref, mov = speckle_pair(lambda p: np.c_[-0.01 * p[:, 0], 0.005 * p[:, 1]], (1200, 60), (0.0385, 0.5), seed=4)
