@@ -40,7 +40,7 @@ from .solver import Objective, gauss_newton
 
 __all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess",
-           "MAX_ELEMENT_SIZE", "element_rule"]
+           "MAX_ELEMENT_SIZE", "element_rule", "refine_affine"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
 SEARCH_FRACTION = (0.10, 0.10)
@@ -73,6 +73,10 @@ def element_rule(regularizer) -> dict:
             "max_size": MAX_ELEMENT_SIZE if name.startswith("momentum") else None}
 #: Axial strains tried by the global search (fraction; negative = compression).
 GLOBAL_STRAINS = tuple(np.round(np.arange(-0.12, 0.0601, 0.01), 3))
+#: In-plane rotations (degrees) the global search also tries when shift and axial strain leave its NCC below
+#: :data:`ROTATION_SCAN_NCC`.
+GLOBAL_ROTATIONS_DEG = (-6.0, -5.0, -4.0, -3.0, -2.0, -1.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
+ROTATION_SCAN_NCC = 0.5
 
 
 @dataclass
@@ -332,14 +336,20 @@ def _peak_offset(cm, c0, cp) -> float:
     return float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5)) if (np.isfinite(den) and den < 0) else 0.0
 
 
-def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, fraction=SEARCH_FRACTION):
-    """Best (shift, axial strain) over translations up to ``fraction`` of the extent and the given axial strains.
+def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, fraction=SEARCH_FRACTION,
+                  rotations=GLOBAL_ROTATIONS_DEG, rotation_below: float = ROTATION_SCAN_NCC):
+    """Best (shift, axial strain, in-plane rotation) over translations up to ``fraction`` of the extent, the
+    given axial strains and, when that leaves the NCC below ``rotation_below``, the given rotations (degrees).
 
     For each strain e the moving envelope is pre-warped by u_x = e (x - x_mid); the central part of the reference
     (the image less ``fraction`` of its extent on every side) is matched by NCC over every shift, by one FFT
     correlation (the template's transform is computed once) and box sums of the moving image for the norms.
-    The peak is refined by a parabola per axis.  Returns ``(coef, ncc)``: the affine field coefficients (3, 2)
-    as in :meth:`BlockMatchResult.affine_fit` and the peak NCC."""
+    The peak is refined by a parabola per axis.  A rotation turns the axial displacement across the width (3
+    degrees: +-0.8 mm over 30 mm) and decorrelates the large template (global NCC 0.08-0.22 at 2-5 degrees,
+    0.36-0.99 for compression up to 10 %, bending and shear without it), so only then the moving envelope is
+    also pre-rotated about the image centre by each angle of ``rotations``, scanned over every other strain, and
+    the best strain refined on the full strain list at the best angle.  Returns ``(coef, ncc)``: the affine
+    field coefficients (3, 2) as in :meth:`BlockMatchResult.affine_fit` and the peak NCC."""
     from scipy import fft as sfft
 
     spacing = np.asarray(spacing, float)
@@ -356,43 +366,75 @@ def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, 
     shape = (sfft.next_fast_len(int(n[0]), real=True), sfft.next_fast_len(int(n[1]), real=True))
     FT = np.conj(sfft.rfft2(T, s=shape))
     xm = origin[0] + 0.5 * (n[0] - 1) * spacing[0]
+    centre = origin + 0.5 * (n - 1) * spacing
     x = origin[0] + spacing[0] * np.arange(n[0])
     na, nl = 2 * s[0] + 1, 2 * s[1] + 1
-    best = (None, -np.inf)
-    for e in strains:
-        R = _axial_resample(mov, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else mov
-        C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
-        if _kernels.use_compiled():
-            S1, S2 = _kernels.box_sums(np.ascontiguousarray(R), int(w[0]), int(w[1]), int(na), int(nl))
-        else:
-            I1 = np.zeros((n[0] + 1, n[1] + 1))
-            I2 = np.zeros((n[0] + 1, n[1] + 1))
-            I1[1:, 1:] = R.cumsum(0).cumsum(1)
-            I2[1:, 1:] = (R * R).cumsum(0).cumsum(1)
 
-            def box(I):
-                return (I[w[0]:w[0] + na, w[1]:w[1] + nl] - I[:na, w[1]:w[1] + nl] - I[w[0]:w[0] + na, :nl]
-                        + I[:na, :nl])
-            S1, S2 = box(I1), box(I2)
-        var = np.maximum(S2 - S1 * S1 / (w[0] * w[1]), 0.0)
-        den = tn * np.sqrt(var)
-        ncc = np.where(den > 1e-12 * max(float(den.max()), 1e-300), C / np.where(den > 0, den, 1.0), -np.inf)
-        k = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
-        c = float(ncc[k])
-        if c > best[1]:
-            d = np.array(k, float)
-            if 0 < k[0] < na - 1:
-                d[0] += _peak_offset(ncc[k[0] - 1, k[1]], c, ncc[k[0] + 1, k[1]])
-            if 0 < k[1] < nl - 1:
-                d[1] += _peak_offset(ncc[k[0], k[1] - 1], c, ncc[k[0], k[1] + 1])
-            coef = np.zeros((3, 2))
-            sh = (d - s) * spacing
-            # reference(x) ~ moving_e(x + sh) = moving(x + sh + e (x + sh_x - x_mid))
-            coef[0] = sh
-            coef[0, 0] = sh[0] * (1.0 + e) - e * xm
-            coef[1, 0] = e
-            best = (coef, c)
-    return best
+    def scan(image, strain_list, Q):
+        best = (None, -np.inf, 0.0)
+        for e in strain_list:
+            R = _axial_resample(image, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else image
+            C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
+            if _kernels.use_compiled():
+                S1, S2 = _kernels.box_sums(np.ascontiguousarray(R), int(w[0]), int(w[1]), int(na), int(nl))
+            else:
+                I1 = np.zeros((n[0] + 1, n[1] + 1))
+                I2 = np.zeros((n[0] + 1, n[1] + 1))
+                I1[1:, 1:] = R.cumsum(0).cumsum(1)
+                I2[1:, 1:] = (R * R).cumsum(0).cumsum(1)
+
+                def box(I):
+                    return (I[w[0]:w[0] + na, w[1]:w[1] + nl] - I[:na, w[1]:w[1] + nl] - I[w[0]:w[0] + na, :nl]
+                            + I[:na, :nl])
+                S1, S2 = box(I1), box(I2)
+            var = np.maximum(S2 - S1 * S1 / (w[0] * w[1]), 0.0)
+            den = tn * np.sqrt(var)
+            ncc = np.where(den > 1e-12 * max(float(den.max()), 1e-300), C / np.where(den > 0, den, 1.0), -np.inf)
+            k = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
+            c = float(ncc[k])
+            if c > best[1]:
+                d = np.array(k, float)
+                if 0 < k[0] < na - 1:
+                    d[0] += _peak_offset(ncc[k[0] - 1, k[1]], c, ncc[k[0] + 1, k[1]])
+                if 0 < k[1] < nl - 1:
+                    d[1] += _peak_offset(ncc[k[0], k[1] - 1], c, ncc[k[0], k[1] + 1])
+                sh = (d - s) * spacing
+                # reference(x) ~ image(z), z = A x + b with A = diag(1 + e, 1) (the strain pre-warp and shift),
+                # image(z) = moving(c + Q (z - c)) (the rotation pre-warp): u(x) = (Q A - I) x + Q (b - c) + c
+                A = np.diag([1.0 + e, 1.0])
+                b = np.array([sh[0] * (1.0 + e) - e * xm, sh[1]])
+                M = Q @ A - np.eye(2)
+                coef = np.zeros((3, 2))
+                coef[0] = Q @ (b - centre) + centre
+                coef[1] = M[:, 0]
+                coef[2] = M[:, 1]
+                best = (coef, c, e)
+        return best
+
+    coef, c, _ = scan(mov, strains, np.eye(2))
+    if c < rotation_below and len(rotations):
+        pts = _pixel_points(mov.shape, spacing, origin)
+        found = None
+        for deg in rotations:
+            th = np.deg2rad(float(deg))
+            Q = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+            rot = _warp(mov, spacing, origin, ((pts - centre) @ Q.T + centre - pts).reshape(mov.shape + (2,)))
+            cand = scan(rot, strains[::2], Q)
+            if cand[1] > c:
+                coef, c, found = cand[0], cand[1], (rot, Q, cand[2])
+        if found is not None:                   # the full strain list near the best strain, at the best angle
+            rot, Q, e0 = found
+            near = [e for e in strains if abs(e - e0) < 1.5 * _strain_step(strains)]
+            cand = scan(rot, near, Q)
+            if cand[1] > c:
+                coef, c = cand[0], cand[1]
+    return coef, c
+
+
+def _strain_step(strains) -> float:
+    d = np.diff(np.sort(np.asarray(strains, float)))
+    d = d[d > 0]
+    return float(d.min()) if d.size else 0.0
 
 
 def _affine(coef, pts):
@@ -412,6 +454,40 @@ def local_search(ref_env, mov_env, spacing, origin, prior, settings: PyramidSett
     def total(p):
         return prior(p) + bm(p)
     return total, bm
+
+
+#: Windows whose peak NCC reaches this enter the affine refit of :func:`refine_affine`.
+AFFINE_FIT_NCC = 0.5
+#: A refit affine field is searched around again when it moves some image corner by more than this fraction
+#: of the local search range (either component).
+AFFINE_REFIT_SHIFT = 0.5
+#: Most local-search passes around refit affine fields after the first.
+AFFINE_PASSES = 3
+
+
+def _window_points(bm):
+    X, Y = np.meshgrid(bm.x, bm.y, indexing="ij")
+    return np.column_stack([X.ravel(), Y.ravel()])
+
+
+def refine_affine(bm, prior_coef, *, min_ncc: float = AFFINE_FIT_NCC):
+    """Full affine fit (3, 2) of the total block-matching field ``prior + bm`` over the windows whose peak NCC
+    reaches ``min_ncc``; ``None`` with fewer than 3 such windows along either axis or a rank-deficient fit.
+
+    The global search models a shift and an axial strain only: an in-plane rotation or a simple shear makes the
+    axial displacement vary across the width (3 degrees: +-0.8 mm at the edges of a 30 mm image), beyond the
+    local search range at the edges, while the windows near the centre still match.  Their affine fit carries
+    the rotation out to the edges for the next pass."""
+    ok = (np.asarray(bm.ncc) >= min_ncc).ravel()
+    if not ok.any():
+        return None
+    pts = _window_points(bm)[ok]
+    if np.unique(pts[:, 0]).size < 3 or np.unique(pts[:, 1]).size < 3:
+        return None
+    tot = _affine(prior_coef, pts) + bm.displacement.reshape(-1, 2)[ok]
+    G = np.column_stack([np.ones(len(pts)), pts[:, 0], pts[:, 1]])
+    coef, _, rank, _ = np.linalg.lstsq(G, tot, rcond=None)
+    return coef if rank == 3 else None
 
 
 def field_at(mesh, u, points, locator: PointLocator | None = None) -> np.ndarray:
@@ -435,7 +511,8 @@ def field_at(mesh, u, points, locator: PointLocator | None = None) -> np.ndarray
 @dataclass
 class PyramidGuess:
     """Output of :func:`pyramid_initial_guess`: the envelope-level field on its coarse mesh (``mesh``, ``u``),
-    the speckle statistics and settings, the global search's NCC and the block matching of the top level."""
+    the speckle statistics and settings, the global search's NCC, the block matching of the top level and how many local-search passes around a
+    refit affine field followed the first (:func:`refine_affine`)."""
 
     mesh: object
     u: np.ndarray
@@ -444,6 +521,7 @@ class PyramidGuess:
     global_ncc: float
     blockmatch: object
     timings: dict
+    affine_passes: int = 0
 
     def __call__(self, points) -> np.ndarray:
         return field_at(self.mesh, self.u, points)
@@ -475,6 +553,23 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
 
     t = time.perf_counter()
     field, bm = local_search(er, em, sp_c, origin, lambda p: _affine(coef, p), settings)
+    # rotation / shear beyond the search range at the edges: search again around the affine fit of the windows
+    # that matched, while it moves the field and raises the mean window NCC (normal pairs: no second pass)
+    corners = np.array([[origin[0] + a * sp_c[0] * (er.shape[0] - 1), origin[1] + b * sp_c[1] * (er.shape[1] - 1)]
+                        for a in (0, 1) for b in (0, 1)])
+    passes = 0
+    for _ in range(AFFINE_PASSES):
+        new = refine_affine(bm, coef)
+        if new is None:
+            break
+        shift = np.abs(_affine(new, corners) - _affine(coef, corners)).max(axis=0)
+        if not np.any(shift > AFFINE_REFIT_SHIFT * np.asarray(settings.search)):
+            break
+        field2, bm2 = local_search(er, em, sp_c, origin, lambda p, c=new: _affine(c, p), settings)
+        if not float(np.mean(bm2.ncc)) > float(np.mean(bm.ncc)):
+            break
+        coef, field, bm = new, field2, bm2
+        passes += 1
     timings["local_search"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -492,4 +587,4 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     u = gn.x if data.energy(gn.x) <= data.energy(u0) else u0
     timings["envelope_gauss_newton"] = time.perf_counter() - t
     return PyramidGuess(mesh=mesh, u=u, stats=stats, settings=settings, global_ncc=gncc, blockmatch=bm,
-                        timings=timings)
+                        timings=timings, affine_passes=passes)

@@ -675,11 +675,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if not (np.isfinite(ncc1) and ncc1 >= MIN_NCC):
         success = False
         notes.append(f"the images do not match: NCC after {ncc1:.3f} < {MIN_NCC}")
-    if np.count_nonzero(hops) > 0.1 * hops.size:
+    if hops.any():
+        # the RF and envelope levels still disagree by whole periods after the repair: one of them sits in the
+        # wrong basin (in-plane rotation beyond what the speckle keeps correlated: 2 of 2 such results wrong by
+        # 185-210 % total strain error; no correct result of the benchmarks or the in vivo pairs has any)
         success = False
-        notes.append(f"peak hopping remains at {int(np.count_nonzero(hops))} of {hops.size} nodes")
-    elif hops.any():
-        notes.append(f"{int(np.count_nonzero(hops))} nodes still differ from the coarse level by whole RF periods")
+        notes.append(f"peak hopping remains at {int(np.count_nonzero(hops))} of {hops.size} nodes (they differ "
+                     f"from the coarse level by whole RF periods)")
     quality = element_ncc(data, u_out, n_el)
     poor = poor_fraction(quality)
     if poor > MAX_POOR_FRACTION:
