@@ -87,6 +87,8 @@ CASES = [
     Case("comp8_L3", lambda: F.compression(0.08), "L3", (50, 40), 30),
     Case("shear_L7", lambda: F.shear_rotation(0.01), "L7", (30, 30), 30, quick=True,
          notes="1 % compression + 0.6 % simple shear + 0.1 deg rotation"),
+    Case("rot2_L12", lambda: F.shear_rotation(0.01, shear=0.0, rotation_deg=2.0), "L12", (30, 30), 25,
+         notes="1 % compression + 2 deg in-plane rotation"),
     Case("bend_paper", lambda: F.Bending(0.002, 0.02, 40.0), "paper", (40, 40), 25, quick=True,
          notes="axial strain 0.2 -> 2 % across the width"),
     Case("stiff-pstrain1_paper", _inc("stiff", "plane-strain", 0.01), "paper", (35, 30), 20),
