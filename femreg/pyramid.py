@@ -11,9 +11,10 @@ Here the start comes from a pyramid, as in optical flow (Lucas-Kanade pyramids),
    ranges from them and from the image extent (instead of the paper's millimetres).
 2. Top level, envelopes low-passed and decimated to ~3 samples per speckle cell (axially; laterally per pulse
    cell, see :func:`default_settings`): a global search over translations up to 10 % of the image depth (axial)
-   and width (lateral) and axial strains from -12 % to +6 %
-   (:func:`global_search`), then NCC block matching of speckle-sized windows on the envelope of the moving image
-   warped by that field, searching only around it (:func:`local_search`).
+   and width (lateral), axial strains from -12 % to +6 % and, when these leave the match poor, in-plane
+   rotations up to 6 degrees (:func:`global_search`), then NCC block matching of speckle-sized windows on the
+   envelope of the moving image warped by that field, searching only around it (:func:`local_search`), again
+   around the affine fit of the windows that matched while that fit moves the field (:func:`refine_affine`).
 3. Gauss-Newton on the envelopes with a mesh twice as coarse as the final one, from that field (the envelope has
    no carrier, so its basin is a speckle cell wide, not a quarter period).
 4. The final level (RF, fine mesh) is solved by :func:`femreg.register` from the envelope-level field; the
