@@ -21,7 +21,7 @@ from .errors import InputError
 from .quadrature import ELEMENT_CENTRE_RULE
 
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
-           "recovered_strains", "check_strain_mode"]
+           "recovered_strains", "check_strain_mode", "element_strain_operator"]
 
 #: Names of the sampled fields, in order.
 FIELDS = ("ux", "uy", "exx", "eyy", "exy")
@@ -127,3 +127,13 @@ def recovered_strains(mesh_points, mesh_cells, u) -> np.ndarray:
     """
     e = element_strains(mesh_points, mesh_cells, u)
     return nodal_average(mesh_cells, e, np.asarray(mesh_points).shape[1])
+
+
+def element_strain_operator(mesh):
+    """(3 n_elements, 2 n_nodes) operator: [e_xx; e_yy; e_xy] at the element centres (1-point rule), per mm."""
+    import scipy.sparse as sp
+
+    from .regularizers.custom import centre_gradient_operators
+
+    G, _ = centre_gradient_operators(mesh)
+    return sp.vstack([G["xx"], G["yy"], 0.5 * (G["xy"] + G["yx"])]).tocsr()

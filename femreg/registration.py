@@ -23,7 +23,7 @@ from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .errors import InputError
-from .fields import FIELDS, check_strain_mode, recovered_strains, sample
+from .fields import FIELDS, check_strain_mode, element_strain_operator, recovered_strains, sample
 from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
@@ -34,7 +34,7 @@ from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_nc
                      hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
-from .solver import Objective, gauss_newton, single_blas_thread
+from .solver import GN_STRAIN_TOL, Objective, gauss_newton, single_blas_thread
 
 __all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at",
            "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
@@ -392,7 +392,7 @@ def effective_regularizer_options(strategy, regularizer, options=None) -> dict:
 
 
 def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,
-           tol=1e-3, linear_solver="auto", callback=None, mask_outside=False) -> _Solve:
+           tol=1e-3, linear_solver="auto", callback=None, mask_outside=False, strain_tol=None) -> _Solve:
     """Gauss-Newton stage: SSD term (eq:wfnew) on ``mesh`` + a fresh regulariser with alpha per 2 x 2 mm element.
 
     ``mask_outside``: pixels that the start ``u0`` maps outside the moving image (less than 2 pixels from its
@@ -426,7 +426,8 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
     reg.setup(mesh)
     psi_start = data.energy(u0)              # gauss_newton's first evaluation then comes from the cache
     gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
-                      callback=callback)
+                      callback=callback, strain_tol=strain_tol,
+                      strain_operator=None if strain_tol is None else element_strain_operator(mesh))
     return _Solve(mesh=mesh, u=gn.x, gn=gn, data=data, locator=locator, reg=reg, start=u0, psi_start=psi_start)
 
 
@@ -628,6 +629,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if strategy == "auto":
         solve_kw["mask_outside"] = True
         solve_kw["tol"] = component_tol(tol, u0)
+        solve_kw["strain_tol"] = GN_STRAIN_TOL
     sol = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator,
                  callback=callback, **solve_kw)
     timings["gauss_newton"] = time.perf_counter() - t

@@ -242,11 +242,20 @@ class GaussNewtonResult:
 STATUS = {0: "converged: ||du|| / ||u|| < tol",
           1: "maximum number of iterations reached",
           2: "line search could not decrease the energy; returning the best iterate",
-          3: "gradient is zero: the initial guess is already a stationary point"}
+          3: "gradient is zero: the initial guess is already a stationary point",
+          4: "converged: the last step changed the strains by less than the strain tolerance"}
+
+#: Second Gauss-Newton stopping rule of ``strategy="auto"`` (:func:`femreg.register`): stop once a step changes
+#: the element strains by less than this fraction of their RMS.  The strain is what elastography reports (its
+#: error is 0.1-14 % on the robustness benchmark); the lagged-diffusivity TV converges linearly (about 0.7 per
+#: iteration), and ``||du|| / ||u|| < tol`` on the lateral component took 6-9 iterations where the strain had
+#: stopped changing after 3-5 (15 MHz inclusion pair: total strain error 12.2 % after 4 iterations, 12.4 % after 9).
+GN_STRAIN_TOL = 0.005
 
 
 def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_backtracks: int = 8,
-                 linear_solver: str = "auto", callback=None) -> GaussNewtonResult:
+                 linear_solver: str = "auto", callback=None, strain_operator=None,
+                 strain_tol: float | None = None) -> GaussNewtonResult:
     """Minimise ``objective`` (energy/gradient/hessian, see :class:`Objective`) from ``u0``.
 
     Parameters
@@ -261,6 +270,9 @@ def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_bac
         See the module docstring; ``"auto"`` is banded Cholesky unless the band is very large.
     callback : callable(u, info_dict), optional
         Called after every iteration.
+    strain_operator, strain_tol : sparse (m, n) matrix and float, optional
+        A second stopping rule: stop when the step changes the strains ``strain_operator @ u`` by less than
+        ``strain_tol`` of their size (RMS over the m entries); see :func:`strain_change_stop`.
     """
     if int(maxiter) < 0:
         raise ValueError(f"maxiter must be >= 0, got {maxiter}")
@@ -317,7 +329,13 @@ def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_bac
         if rel < tol:
             status = 0
             break
-    success = status in (0, 3)
+        if strain_tol is not None and strain_operator is not None:
+            e = strain_operator @ u
+            de = strain_operator @ (step * du)
+            if float(np.sqrt(np.mean(de * de))) < strain_tol * float(np.sqrt(np.mean(e * e))):
+                status = 4
+                break
+    success = status in (0, 3, 4)
     msg = STATUS[status]
     if status == 1:
         msg = f"maximum number of iterations ({int(maxiter)}) reached"
