@@ -7,8 +7,8 @@ least from one candidate to the next, ``min_k ||e(alpha_{k+1}) - e(alpha_k)||`` 
 (:func:`femreg.fields.recovered_strains`, the quantity elastography reports), the smaller alpha of that pair,
 interior pairs only (the grid's end pairs are not candidates: a minimum there only says the grid is too short).
 It needs no noise level.  Measured on the paper's six data sets x four regularisers (frames 1 -> 7, 2 mm mesh,
-total strain error against the truth-best alpha of the same grid): within 15 % on 18 of 24 (R_P_sigma and R_eps 6
-of 6, R_P_eps 5, R_eps_i 1; median 1.00, max 1.94), where the discrepancy rule below reached 11 of 24 (median
+total strain error against the truth-best alpha of the same grid): within 15 % on 19 of 24 (R_P_sigma, R_eps and
+R_P_eps 6 of 6, R_eps_i 1; median 1.00, max 1.94), where the discrepancy rule below reached 11 of 24 (median
 1.47, max 3.31) -- for the momentum terms the image term hardly changes with the lateral field, so a misfit-based
 rule allows 3-10x too much regularisation.
 
