@@ -512,8 +512,8 @@ def field_at(mesh, u, points, locator: PointLocator | None = None) -> np.ndarray
 @dataclass
 class PyramidGuess:
     """Output of :func:`pyramid_initial_guess`: the envelope-level field on its coarse mesh (``mesh``, ``u``),
-    the speckle statistics and settings, the global search's NCC, the block matching of the top level and how many local-search passes around a
-    refit affine field followed the first (:func:`refine_affine`)."""
+    the speckle statistics and settings, the global search's NCC, the block matching of the top level and how
+    many local-search passes around a refit affine field followed the first (:func:`refine_affine`)."""
 
     mesh: object
     u: np.ndarray
