@@ -52,11 +52,21 @@ class BlockMatchResult:
     displacement: np.ndarray
     ncc: np.ndarray
 
-    def affine_fit(self) -> np.ndarray:
-        """Least-squares affine fit of the filtered field: (3, 2) coefficients, u_c = c[0,c] + c[1,c] x + c[2,c] y."""
+    def affine_fit(self, min_ncc: float | None = None) -> np.ndarray | None:
+        """Least-squares affine fit of the filtered field: (3, 2) coefficients, u_c = c[0,c] + c[1,c] x + c[2,c] y.
+
+        ``min_ncc``: fit only the windows whose peak NCC reaches it; None then when they do not determine an
+        affine field (fewer than 3 positions along either axis, or rank < 3)."""
         X, Y = np.meshgrid(self.x, self.y, indexing="ij")
         G = np.column_stack([np.ones(X.size), X.ravel(), Y.ravel()])
-        return np.linalg.lstsq(G, self.displacement.reshape(-1, 2), rcond=None)[0]
+        d = self.displacement.reshape(-1, 2)
+        if min_ncc is None:
+            return np.linalg.lstsq(G, d, rcond=None)[0]
+        ok = (np.asarray(self.ncc) >= min_ncc).ravel()
+        if np.unique(G[ok, 1]).size < 3 or np.unique(G[ok, 2]).size < 3:
+            return None
+        coef, _, rank, _ = np.linalg.lstsq(G[ok], d[ok], rcond=None)
+        return coef if rank == 3 else None
 
     def global_strain(self) -> float:
         """max(|mean exx|, |mean eyy|) of the affine fit (0 with fewer than 2 windows along an axis)."""

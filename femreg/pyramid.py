@@ -466,29 +466,17 @@ AFFINE_REFIT_SHIFT = 0.5
 AFFINE_PASSES = 3
 
 
-def _window_points(bm):
-    X, Y = np.meshgrid(bm.x, bm.y, indexing="ij")
-    return np.column_stack([X.ravel(), Y.ravel()])
-
-
 def refine_affine(bm, prior_coef, *, min_ncc: float = AFFINE_FIT_NCC):
     """Full affine fit (3, 2) of the total block-matching field ``prior + bm`` over the windows whose peak NCC
-    reaches ``min_ncc``; ``None`` with fewer than 3 such windows along either axis or a rank-deficient fit.
+    reaches ``min_ncc``; ``None`` when they do not determine one (:meth:`BlockMatchResult.affine_fit`).  The
+    prior is affine, so the fit of the sum is the prior plus the fit of ``bm``.
 
     The global search models a shift and an axial strain only: an in-plane rotation or a simple shear makes the
     axial displacement vary across the width (3 degrees: +-0.8 mm at the edges of a 30 mm image), beyond the
     local search range at the edges, while the windows near the centre still match.  Their affine fit carries
     the rotation out to the edges for the next pass."""
-    ok = (np.asarray(bm.ncc) >= min_ncc).ravel()
-    if not ok.any():
-        return None
-    pts = _window_points(bm)[ok]
-    if np.unique(pts[:, 0]).size < 3 or np.unique(pts[:, 1]).size < 3:
-        return None
-    tot = _affine(prior_coef, pts) + bm.displacement.reshape(-1, 2)[ok]
-    G = np.column_stack([np.ones(len(pts)), pts[:, 0], pts[:, 1]])
-    coef, _, rank, _ = np.linalg.lstsq(G, tot, rcond=None)
-    return coef if rank == 3 else None
+    coef = bm.affine_fit(min_ncc)
+    return None if coef is None else np.asarray(prior_coef, float) + coef
 
 
 def field_at(mesh, u, points, locator: PointLocator | None = None) -> np.ndarray:
@@ -512,8 +500,7 @@ def field_at(mesh, u, points, locator: PointLocator | None = None) -> np.ndarray
 @dataclass
 class PyramidGuess:
     """Output of :func:`pyramid_initial_guess`: the envelope-level field on its coarse mesh (``mesh``, ``u``),
-    the speckle statistics and settings, the global search's NCC, the block matching of the top level and how
-    many local-search passes around a refit affine field followed the first (:func:`refine_affine`)."""
+    the speckle statistics and settings, the global search's NCC and the block matching of the top level."""
 
     mesh: object
     u: np.ndarray
@@ -522,7 +509,6 @@ class PyramidGuess:
     global_ncc: float
     blockmatch: object
     timings: dict
-    affine_passes: int = 0
 
     def __call__(self, points) -> np.ndarray:
         return field_at(self.mesh, self.u, points)
@@ -558,7 +544,6 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     # that matched, while it moves the field and raises the mean window NCC (normal pairs: no second pass)
     corners = np.array([[origin[0] + a * sp_c[0] * (er.shape[0] - 1), origin[1] + b * sp_c[1] * (er.shape[1] - 1)]
                         for a in (0, 1) for b in (0, 1)])
-    passes = 0
     for _ in range(AFFINE_PASSES):
         new = refine_affine(bm, coef)
         if new is None:
@@ -570,7 +555,6 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
         if not float(np.mean(bm2.ncc)) > float(np.mean(bm.ncc)):
             break
         coef, field, bm = new, field2, bm2
-        passes += 1
     timings["local_search"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -588,4 +572,4 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     u = gn.x if data.energy(gn.x) <= data.energy(u0) else u0
     timings["envelope_gauss_newton"] = time.perf_counter() - t
     return PyramidGuess(mesh=mesh, u=u, stats=stats, settings=settings, global_ncc=gncc, blockmatch=bm,
-                        timings=timings, affine_passes=passes)
+                        timings=timings)
