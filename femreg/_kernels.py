@@ -375,6 +375,23 @@ def grid_fields(Ux, Uy, ei, X, hx, ej, Y, hy, r0, c0, out):  # pragma: no cover 
 
 
 @_jit
+def grid_values(F, ei, X, ej, Y, r0, c0, out):  # pragma: no cover - compiled
+    """Bilinear interpolation of nodal fields on a tensor mesh (``F`` (k, n_x nodes, n_y nodes)) at an (nr x nc)
+    grid of points (as :func:`grid_fields`), written to ``out[k, r0 + r, c0 + q]``; the same arithmetic as the
+    values of :func:`grid_fields` (lateral first, then axial), so both agree bit for bit."""
+    for r in range(ei.shape[0]):
+        a = ei[r]
+        x = X[r]
+        for q in range(ej.shape[0]):
+            b = ej[q]
+            y = Y[q]
+            for k in range(F.shape[0]):
+                la = F[k, a, b] + (F[k, a, b + 1] - F[k, a, b]) * y
+                lb = F[k, a + 1, b] + (F[k, a + 1, b + 1] - F[k, a + 1, b]) * y
+                out[k, r0 + r, c0 + q] = la + (lb - la) * x
+
+
+@_jit
 def decimating_filter(e, w, idx, axis):  # pragma: no cover - compiled
     """``out[o] = sum_k w[k] e[idx[o, k]]`` along ``axis`` (0 or 1) of a 2D array: a 1D correlation evaluated
     only at the kept output samples (``idx`` holds each one's input taps, boundary already folded in)."""

@@ -197,9 +197,13 @@ class RegistrationResult:
                 self._grid_element = self._interpolate_grid(self.u, self._grid_location())
             return self._grid_element
         if self._grid is None:
-            # u, then the recovered nodal strains interpolated like u (two strain components per pass)
             loc = self._grid_location()
             ns = self.nodal_strain
+            fast = self._interpolate_nodal_fields(np.column_stack([self.u[0::2], self.u[1::2], ns]), loc)
+            if fast is not None:       # one compiled pass over the pixels for all five fields
+                self._grid = dict(zip(("ux", "uy", "exx", "eyy", "exy"), fast))
+                return self._grid
+            # u, then the recovered nodal strains interpolated like u (two strain components per pass)
             g = self._interpolate_grid(self.u, loc)
             a = self._interpolate_grid(ns[:, :2].ravel(), loc)
             b = self._interpolate_grid(np.column_stack([ns[:, 2], np.zeros(len(ns))]).ravel(), loc)
@@ -209,6 +213,21 @@ class RegistrationResult:
     def _grid_location(self):
         x, y = pixel_axes(self.shape, self.spacing, self.origin)
         return self.locator.locate_grid(x, y)          # separable on tensor meshes
+
+    def _interpolate_nodal_fields(self, values, loc):
+        """(k, n_axial, n_lateral) bilinear interpolation of nodal ``values`` (n_nodes, k) on the pixel grid, NaN
+        outside the mesh; None where no compiled separable pass applies (then :meth:`_interpolate_grid`)."""
+        if loc.grid is None or not _kernels.use_compiled():
+            return None
+        ins = loc.inside.reshape(self.shape)
+        rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+        k = values.shape[1]
+        out = np.full((k,) + self.shape, np.nan)
+        if rows.size:
+            G, gr = self.locator.node_grid, loc.grid
+            F = np.ascontiguousarray(np.moveaxis(np.asarray(values, float)[G], -1, 0))
+            _kernels.grid_values(F, gr["i"], gr["X"], gr["j"], gr["Y"], int(rows[0]), int(cols[0]), out)
+        return out
 
     def _interpolate_grid(self, u, loc) -> dict:
         """ux, uy and the element-gradient strains of the nodal vector ``u`` (2 n_nodes,) on the pixel grid
@@ -643,8 +662,18 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if repair and strategy == "auto" and ref.shape[0] > 1:
         period = stats.period if stats is not None else rf_period(ref, spacing)
         reference = None if coarse_u0 is None else coarse_u0[0::2]
+
+        def find_hops(u):
+            # whole-period offsets from the coarse level, else from the node's own neighbourhood (islands where
+            # the coarse level went wrong too: strongly decorrelated pairs; none on a correct benchmark or in vivo
+            # result)
+            k = hop_nodes(fe_mesh, u[0::2], period, reference)
+            if reference is None:
+                return k
+            return np.where(k != 0, k, hop_nodes(fe_mesh, u[0::2], period, None))
+
         for _ in range(2):
-            hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+            hops = find_hops(sol.u)
             if not hops.any():
                 break
             notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes reseeded")
@@ -653,7 +682,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             if again.data.energy(again.u) + again.reg.energy(again.u) <= \
                     sol.data.energy(sol.u) + sol.reg.energy(sol.u) or reference is not None:
                 sol = again
-        hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+        hops = find_hops(sol.u)
     data = sol.data
     # each evaluation of the data term at a new u is a warp of I_2 (it caches the residual of the last u only):
     # I_2 at u = 0 without the cache, psi at the start from the solve, psi at the result (usually cached)
@@ -683,7 +712,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         # 185-210 % total strain error; no correct result of the benchmarks or the in vivo pairs has any)
         success = False
         notes.append(f"peak hopping remains at {int(np.count_nonzero(hops))} of {hops.size} nodes (they differ "
-                     f"from the coarse level by whole RF periods)")
+                     f"from the coarse level or their neighbours by whole RF periods)")
     quality = element_ncc(data, u_out, n_el)
     poor = poor_fraction(quality)
     if poor > MAX_POOR_FRACTION:
