@@ -154,10 +154,14 @@ def _node_median(mesh, values, size: int = 5) -> np.ndarray:
 def hop_nodes(mesh, ux, period: float, reference=None) -> np.ndarray:
     """Integer number of RF periods by which each node's u_x is off its robust reference (0 = fine).
 
-    ``reference`` (n_nodes,) is the coarser level's u_x at the nodes (None: the local median of ``ux``)."""
+    ``reference`` (n_nodes,) is the coarser level's u_x at the nodes (None: the local median of ``ux`` less its
+    least-squares affine part, so that the median's bias at the mesh edges, where the window is one-sided, does
+    not read a steep but smooth field -- a rotation -- as offsets)."""
     ux = np.asarray(ux, float)
     if reference is None:
-        d = ux - _node_median(mesh, ux)
+        A = np.column_stack([np.ones(ux.size), mesh.p[0], mesh.p[1]])
+        r = ux - A @ np.linalg.lstsq(A, ux, rcond=None)[0]
+        d = r - _node_median(mesh, r)
     else:
         d0 = ux - np.asarray(reference, float)
         d = d0 - _node_median(mesh, d0)
