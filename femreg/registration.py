@@ -663,22 +663,32 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         period = stats.period if stats is not None else rf_period(ref, spacing)
         reference = None if coarse_u0 is None else coarse_u0[0::2]
 
-        for _ in range(2):
-            k_ref = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
-            # islands whole periods off their own neighbourhood, where the coarse level went wrong too (strongly
-            # decorrelated pairs): reseeded like the others, kept only if the energy falls (near an inclusion at
-            # a few percent strain a smooth field can look like an offset)
-            k_self = hop_nodes(fe_mesh, sol.u[0::2], period, None) if reference is not None else 0 * k_ref
-            hops = np.where(k_ref != 0, k_ref, k_self)
+        def repaired(hops):
+            return _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, reseed(sol.u, hops, period),
+                          locator=locator, **solve_kw)
+
+        def total(s):
+            return s.data.energy(s.u) + s.reg.energy(s.u)
+
+        for _ in range(2):          # whole-period offsets from the coarse level: the coarse level is trusted
+            hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
             if not hops.any():
                 break
-            again = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, reseed(sol.u, hops, period),
-                           locator=locator, **solve_kw)
-            lower = again.data.energy(again.u) + again.reg.energy(again.u) <= \
-                sol.data.energy(sol.u) + sol.reg.energy(sol.u)
-            if not (lower or (reference is not None and k_ref.any())):
-                break                   # the reseeded start explains the pair worse: the offsets were right
             notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes reseeded")
+            again = repaired(hops)
+            if total(again) <= total(sol) or reference is not None:
+                sol = again
+        for _ in range(2 if reference is not None else 0):
+            # islands whole periods off their own neighbourhood, which the coarse level shares (decorrelated
+            # pairs): kept only if the energy falls -- near an inclusion at several percent strain a smooth field
+            # can look like such offsets, and there the reseeded solve explains the pair much worse
+            hops = hop_nodes(fe_mesh, sol.u[0::2], period, None)
+            if not hops.any():
+                break
+            again = repaired(hops)
+            if not total(again) <= total(sol):
+                break
+            notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes off their neighbours reseeded")
             sol = again
         hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
     data = sol.data

@@ -339,3 +339,20 @@ def test_islands_left_after_the_repair_fail_the_result():
     p = make_pair(f, "paper", (40, 30), 25, seed=3)
     res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
     assert not res.success and "peak hopping remains" in res.message, res.message
+
+
+@pytest.mark.slow
+def test_neighbourhood_offsets_near_an_inclusion_are_not_forced():
+    # 8 % compression of a stiff plane-strain inclusion under L7: about 20 nodes near the inclusion sit a
+    # period-sized step off their detrended neighbourhood although they are right; the reseeded solve explains
+    # the pair worse (energy 127 -> 204) and is dropped.  Measured 11.1 %, success=True; forcing the reseed gave
+    # 13.6 % and a failed result
+    import forward.fields as F
+    from forward.pairs import make_pair
+
+    f = F.Inclusion("stiff", "plane-strain", 0.08)
+    p = make_pair(f, "L7", (30, 30), 25, seed=4)
+    res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
+    err = field_errors(res, f.displacement, f.strain)
+    assert res.success, res.message
+    assert err["e"] < 0.125, err
