@@ -371,3 +371,22 @@ def test_plane_stress_pair_momentum_beats_strain_laterally():
     for name, e in errs.items():
         assert 0 < int(np.argmin(e)) < len(e) - 1, f"best alpha of {name} at the edge of the sweep: {report}"
     assert best["momentum-stress"] < 0.9 * best["strain"], f"lateral errors: {report}"
+
+
+@pytest.mark.parametrize("lb, dilatation", [(2.0, "edge"), (9.0, "centre"), (0.0, "edge")])
+def test_tensor_mesh_jumps_equal_the_interior_facet_basis(lb, dilatation, monkeypatch):
+    """The tensor-mesh assembly of the jump operators gives scikit-fem's InteriorFacetBasis rows, in its order."""
+    import femreg.mesh as fm
+    from skfem import MeshQuad1
+
+    meshes = [MeshQuad1.init_tensor(np.array([0.0, 0.3, 1.0, 1.2, 2.5]), np.array([-1.0, -0.2, 0.5, 0.9])),
+              MeshQuad1.init_tensor(np.linspace(0.0, 3.0, 7), np.linspace(0.0, 2.0, 5))]
+    fast = [R.momentum_jump_operators(m, lb, dilatation=dilatation) for m in meshes]
+    assert fm.tensor_structure(meshes[0]) is not None
+    monkeypatch.setattr(fm, "tensor_structure", lambda mesh: None)       # the general path
+    for m, F in zip(meshes, fast):
+        G = R.momentum_jump_operators(m, lb, dilatation=dilatation)
+        scale = abs(G.Kx).max()
+        assert abs(F.Kx - G.Kx).max() <= 1e-12 * scale and abs(F.Ky - G.Ky).max() <= 1e-12 * scale
+        for a in ("lengths", "facets", "elements", "midpoints", "normals"):
+            np.testing.assert_allclose(getattr(F, a), getattr(G, a), atol=1e-12)

@@ -53,6 +53,7 @@ References
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -261,19 +262,114 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
     if dilatation not in ("edge", "centre", "center"):
         raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
     centre = dilatation in ("centre", "center")
-    (Kx, Ky), lengths, sides = facet_jump_operators(
-        mesh, [_traction_form(0), _traction_form(1)], lambda_bar=0.0 if centre else lambda_bar)
-    b0 = sides[0]
-    n = np.asarray(b0.normals)[:, :, 0]                 # (2, n_edges) side-0 unit normal
+    lb_edge = 0.0 if centre else lambda_bar
+    from ..mesh import tensor_structure
+
+    ts = tensor_structure(mesh)
+    if ts is not None:
+        Kx, Ky, lengths, facets, tind, mid, n = _tensor_traction_jumps(mesh, ts, lb_edge)
+    else:
+        (Kx, Ky), lengths, sides = facet_jump_operators(mesh, [_traction_form(0), _traction_form(1)],
+                                                        lambda_bar=lb_edge)
+        b0 = sides[0]
+        n = np.asarray(b0.normals)[:, :, 0].copy()      # (2, n_edges) side-0 unit normal
+        facets, tind = np.asarray(b0.find).copy(), np.stack([sides[0].tind, sides[1].tind])
+        mid = np.asarray(b0.global_coordinates())[:, :, 0].copy()
     if centre and lambda_bar != 0.0:
         # lambda_bar [[div u(centre)]] n: each side element's centre divergence, carried to its edges
         D = element_centre_divergence(mesh)
-        Dj = (D[sides[0].tind] - D[sides[1].tind]) * lambda_bar
+        Dj = (D[tind[0]] - D[tind[1]]) * lambda_bar
         Kx = (Kx + sp.diags(n[0]) @ Dj).tocsr()
         Ky = (Ky + sp.diags(n[1]) @ Dj).tocsr()
-    return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=np.asarray(b0.find).copy(),
-                         elements=np.stack([sides[0].tind, sides[1].tind]),
-                         midpoints=np.asarray(b0.global_coordinates())[:, :, 0].copy(), normals=n.copy())
+    return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=facets, elements=tind, midpoints=mid, normals=n)
+
+
+def _edge_tractions(lambda_bar: float, hx: float, hy: float) -> np.ndarray:
+    """Outward traction A[N] n (:func:`_traction_form`) at the midpoint of each edge of one hx x hy rectangle,
+    from scikit-fem on a one-element mesh: (2 components, 4 edges x-, x+, y-, y+, 4 corners (0,0) (1,0) (1,1)
+    (0,1) in (x, y) steps, 2 displacement components), per mm."""
+    from skfem import ElementQuad1, ElementVector, FacetBasis, MeshQuad1
+
+    p = np.array([[0.0, hx, hx, 0.0], [0.0, 0.0, hy, hy]])
+    m = MeshQuad1(p, np.array([[0], [1], [2], [3]]))
+    b = FacetBasis(m, ElementVector(ElementQuad1()), quadrature=EDGE_MIDPOINT_RULE)
+    rows = _facet_rows([_traction_form(0), _traction_form(1)], b, 1.0, {"n": b.normals, "lambda_bar": lambda_bar})
+    mid = m.p[:, m.facets[:, b.find]].mean(axis=1)                     # (2, 4) edge midpoints
+    side = np.where(np.isclose(mid[0], 0.0), 0, np.where(np.isclose(mid[0], hx), 1,
+                                                          np.where(np.isclose(mid[1], 0.0), 2, 3)))
+    node_of_dof = np.empty(b.N, int)
+    comp_of_dof = np.empty(b.N, int)
+    for c in range(2):
+        node_of_dof[b.nodal_dofs[c]] = np.arange(m.p.shape[1])
+        comp_of_dof[b.nodal_dofs[c]] = c
+    out = np.zeros((2, 4, 4, 2))
+    for k, (_, cols, vals) in enumerate(rows):
+        for f in range(b.nelems):
+            out[k, side[f], node_of_dof[cols[:, f]], comp_of_dof[cols[:, f]]] = vals[:, f]
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _traction_parts(lambda_bar: float):
+    """(A, B) with :func:`_edge_tractions` (hx, hy) = A / hx + B / hy (read-only; constants of the form, so
+    computed once per lambda_bar and process)."""
+    T11, T12 = _edge_tractions(lambda_bar, 1.0, 1.0), _edge_tractions(lambda_bar, 1.0, 2.0)
+    B = 2.0 * (T11 - T12)                        # the 1/hy part
+    A = T11 - B                                  # the 1/hx part
+    A.flags.writeable = B.flags.writeable = False
+    return A, B
+
+
+def _tensor_traction_jumps(mesh, ts, lambda_bar: float):
+    """The jump operators of :func:`momentum_jump_operators` (edge part) on an axis-aligned tensor mesh, the same
+    rows in the same order as scikit-fem's ``InteriorFacetBasis`` gives them (interior facets in index order,
+    side 0 = ``mesh.f2t[0]``).  Each edge's row is the outward traction of both elements at the edge midpoint
+    (jump with the side-0 normal = side 0's outward traction + side 1's), taken from :func:`_edge_tractions`:
+    on a rectangle the traction is linear in 1/hx and 1/hy, so two one-element evaluations by scikit-fem give
+    it for every element size.  Why not ``InteriorFacetBasis`` here: its set-up costs 3-6 ms per mesh, and a
+    registration builds two meshes; this reuses the form's constants and assembles in about 1 ms."""
+    xs, ys, cell = ts
+    A, B = _traction_parts(float(lambda_bar))
+    n_el = mesh.t.shape[1]
+    ci, cj = np.empty(n_el, int), np.empty(n_el, int)
+    I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
+    ci[cell.ravel()], cj[cell.ravel()] = I.ravel(), J.ravel()
+    node = np.empty((xs.size, ys.size), int)
+    node[np.searchsorted(xs, mesh.p[0]), np.searchsorted(ys, mesh.p[1])] = np.arange(mesh.p.shape[1])
+    f2t = mesh.f2t
+    facets = np.nonzero(f2t[1] != -1)[0].astype(np.int32)
+    tind = np.stack([f2t[0, facets], f2t[1, facets]])
+    fp = mesh.p[:, mesh.facets[:, facets]]                          # (2, 2 ends, n_edges)
+    mid = fp.mean(axis=1)
+    lengths = np.hypot(*(fp[:, 1] - fp[:, 0]))
+    a_steps = np.array([0, 1, 1, 0])
+    b_steps = np.array([0, 0, 1, 1])
+    rows_all, cols_all, vals_all = [], [[], []], [[], []]
+    normals = None
+    for s in (0, 1):
+        e = tind[s]
+        i, j = ci[e], cj[e]
+        hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
+        side = np.where(np.isclose(mid[0], xs[i]), 0, np.where(np.isclose(mid[0], xs[i + 1]), 1,
+                                                                np.where(np.isclose(mid[1], ys[j]), 2, 3)))
+        if s == 0:   # side-0 outward unit normal
+            normals = np.stack([np.select([side == 0, side == 1], [-1.0, 1.0], 0.0),
+                                np.select([side == 2, side == 3], [-1.0, 1.0], 0.0)])
+        vals = A[:, side] / hx[None, :, None, None] + B[:, side] / hy[None, :, None, None]   # (2, n_e, 4, 2)
+        nodes = node[i[:, None] + a_steps[None, :], j[:, None] + b_steps[None, :]]          # (n_e, 4)
+        cols = (2 * nodes[:, :, None] + np.arange(2)[None, None, :])                        # (n_e, 4, 2)
+        rows_all.append(np.broadcast_to(np.arange(facets.size)[:, None, None], cols.shape).ravel())
+        for k in range(2):
+            cols_all[k].append(cols.ravel())
+            vals_all[k].append(vals[k].ravel())
+    shape = (facets.size, 2 * mesh.p.shape[1])
+    rows = np.concatenate(rows_all)
+    K = []
+    for k in range(2):
+        M = sp.csr_matrix((np.concatenate(vals_all[k]), (rows, np.concatenate(cols_all[k]))), shape=shape)
+        M.sum_duplicates()
+        K.append(M)
+    return K[0], K[1], lengths, facets, tind, mid, normals
 
 
 def hourglass_operator(mesh) -> sp.csr_matrix:
