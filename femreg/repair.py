@@ -4,8 +4,12 @@ and the rule that a result never explains less of the image than its start.
 Peak hopping: from a start more than about a quarter of the RF period off, Gauss-Newton on RF converges to the
 neighbouring correlation peak, one period T off in u_x (bands of +-T in u_x, stripes in e_xx).  It is detected
 node by node: u_x minus a robust reference (the coarser level's field plus the local median of the difference,
-or the local median of u_x itself when there is no coarser level) is more than :data:`HOP_FRACTION` of T away
-from zero.  Such nodes are reseeded by whole periods towards the reference and the solve is repeated.
+or the local median of u_x less its affine part when there is no coarser level) is more than :data:`HOP_FRACTION`
+of T away from zero.  Such nodes are reseeded by whole periods towards the reference and the solve is repeated.
+When the speckle decorrelates (rotation, large strain) the coarser level can hold the same wrong island; after the
+coarse-level repair, :func:`femreg.register` therefore also reseeds nodes whole periods off their own neighbourhood
+and keeps the result only if the energy falls (near an inclusion at several percent strain a smooth field can look
+like such an offset, and there the reseeded solve explains the pair worse).
 
 Quality map: the NCC of reference and warped moving image over the pixels of each element (1 = perfect match;
 speckle decorrelation lowers it smoothly, a hop or a failure drops it towards 0).
