@@ -28,7 +28,7 @@ from .io.results import load_result  # noqa: F401  (femreg.load_result: the one 
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image, validate_spacing
 from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_mesh
 from .pixels import PixelQuadrature, PointLocator
-from .pyramid import (default_settings, element_rule, field_at, pyramid_initial_guess, rf_period,
+from .pyramid import (ROTATION_SCAN_NCC, default_settings, element_rule, field_at, pyramid_initial_guess, rf_period,
                       speckle_statistics)
 from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
                      hopped_fraction, pixel_values, poor_fraction, reseed)
@@ -739,6 +739,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             success = False
             notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
                          f"({period:.3g} mm) off")
+    if guess is not None and guess.global_ncc < ROTATION_SCAN_NCC and (not success or poor > 0.1):
+        # the speckle decorrelated between the frames (rotation, strain of several percent): say what works
+        notes.append(f"the pair is strongly decorrelated (global envelope NCC {guess.global_ncc:.2f}); register "
+                     f"closer frames, or the whole sequence with track")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message

@@ -339,6 +339,9 @@ def test_islands_left_after_the_repair_fail_the_result():
     p = make_pair(f, "paper", (40, 30), 25, seed=3)
     res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
     assert not res.success and "peak hopping remains" in res.message, res.message
+    # and says what to do instead (global envelope NCC measured 0.37; 0.73-0.99 on the benchmark's other pairs
+    # and the in vivo pairs, which never get this note)
+    assert "strongly decorrelated" in res.message and "track" in res.message, res.message
 
 
 @pytest.mark.slow
