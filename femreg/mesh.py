@@ -124,6 +124,14 @@ def check_mesh_in_image(mesh: MeshQuad1, shape, spacing, origin) -> None:
                          f"{tuple(np.round(mesh.p[:, k], 6))})")
 
 
+def tensor_node_grid(mesh: MeshQuad1, xs, ys) -> np.ndarray:
+    """``(n_x, n_y)`` index of the node at every position of a tensor mesh's node grid (``xs``, ``ys`` from
+    :func:`tensor_structure`): axial i, lateral j."""
+    G = np.empty((np.size(xs), np.size(ys)), dtype=np.int64)
+    G[np.searchsorted(xs, mesh.p[0]), np.searchsorted(ys, mesh.p[1])] = np.arange(mesh.p.shape[1])
+    return G
+
+
 def tensor_structure(mesh: MeshQuad1):
     """If ``mesh`` is an axis-aligned tensor-product grid, return ``(xs, ys, cell)`` with the sorted axial and
     lateral node coordinates and ``cell[i, j]`` = element index of the cell [xs[i], xs[i+1]] x [ys[j], ys[j+1]];

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _kernels
-from .mesh import tensor_structure
+from .mesh import tensor_node_grid, tensor_structure
 
 __all__ = ["Location", "PointLocator", "PixelQuadrature", "logical_grid"]
 
@@ -169,9 +169,7 @@ class PointLocator:
         clockwise)."""
         if self._cn is None:
             xs, ys, _ = self.tensor
-            p = self.mesh.p
-            G = np.empty((xs.size, ys.size), dtype=np.int64)
-            G[np.searchsorted(xs, p[0]), np.searchsorted(ys, p[1])] = np.arange(p.shape[1])
+            G = tensor_node_grid(self.mesh, xs, ys)
             self._G = G
             self._cn = np.stack([G[:-1, :-1], G[1:, :-1], G[1:, 1:], G[:-1, 1:]], axis=-1)
         return self._cn

@@ -214,13 +214,17 @@ class RegistrationResult:
         x, y = pixel_axes(self.shape, self.spacing, self.origin)
         return self.locator.locate_grid(x, y)          # separable on tensor meshes
 
+    def _inside_rows_cols(self, loc):
+        """Pixel rows and columns with points inside the mesh (``loc.grid``: they form a block)."""
+        ins = loc.inside.reshape(self.shape)
+        return np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+
     def _interpolate_nodal_fields(self, values, loc):
         """(k, n_axial, n_lateral) bilinear interpolation of nodal ``values`` (n_nodes, k) on the pixel grid, NaN
         outside the mesh; None where no compiled separable pass applies (then :meth:`_interpolate_grid`)."""
         if loc.grid is None or not _kernels.use_compiled():
             return None
-        ins = loc.inside.reshape(self.shape)
-        rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+        rows, cols = self._inside_rows_cols(loc)
         k = values.shape[1]
         out = np.full((k,) + self.shape, np.nan)
         if rows.size:
@@ -233,8 +237,7 @@ class RegistrationResult:
         """ux, uy and the element-gradient strains of the nodal vector ``u`` (2 n_nodes,) on the pixel grid
         (``loc``: :meth:`_grid_location`)."""
         if loc.grid is not None:     # the inside points are a block of rows x columns
-            ins = loc.inside.reshape(self.shape)
-            rows, cols = np.flatnonzero(ins.any(axis=1)), np.flatnonzero(ins.any(axis=0))
+            rows, cols = self._inside_rows_cols(loc)
             block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)) if rows.size else None
             if _kernels.use_compiled() and block is not None:     # one compiled pass, into the grids
                 out = np.empty((len(FIELDS),) + self.shape)

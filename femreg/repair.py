@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import _kernels
-from .mesh import tensor_structure
+from .mesh import tensor_node_grid, tensor_structure
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION"]
@@ -127,17 +127,13 @@ def _node_median(mesh, values, size: int = 5) -> np.ndarray:
     connectivity) or over the 2-ring of neighbours (other meshes)."""
     ts = tensor_structure(mesh)
     if ts is not None:
-        xs, ys, _ = ts
-        ix = np.searchsorted(xs, mesh.p[0])
-        iy = np.searchsorted(ys, mesh.p[1])
-        G = np.empty((xs.size, ys.size))
-        G[ix, iy] = values
-        return ndimage.median_filter(G, size=size, mode="nearest")[ix, iy]
-    from .pixels import logical_grid
+        G = tensor_node_grid(mesh, ts[0], ts[1])
+    else:
+        from .pixels import logical_grid
 
-    lg = logical_grid(mesh)              # a moved tensor mesh (femreg.track): the same filter on its node grid
-    if lg is not None:
-        G = lg[0]
+        lg = logical_grid(mesh)          # a moved tensor mesh (femreg.track): the same filter on its node grid
+        G = None if lg is None else lg[0]
+    if G is not None:
         out = np.empty(G.size)
         out[G.ravel()] = ndimage.median_filter(np.asarray(values, float)[G], size=size, mode="nearest").ravel()
         return out

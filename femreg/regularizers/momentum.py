@@ -263,6 +263,7 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
         raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
     centre = dilatation in ("centre", "center")
     lb_edge = 0.0 if centre else lambda_bar
+
     from ..mesh import tensor_structure
 
     ts = tensor_structure(mesh)
@@ -284,6 +285,13 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
     return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=facets, elements=tind, midpoints=mid, normals=n)
 
 
+def _rectangle_side(mid, x0, x1, y0) -> np.ndarray:
+    """Which edge of an axis-aligned rectangle [x0, x1] x [y0, y1] each midpoint ``mid`` (2, n) lies on:
+    0 x = x0, 1 x = x1, 2 y = y0, 3 y = y1 (the order of :func:`_edge_tractions`)."""
+    return np.where(np.isclose(mid[0], x0), 0, np.where(np.isclose(mid[0], x1), 1,
+                                                        np.where(np.isclose(mid[1], y0), 2, 3)))
+
+
 def _edge_tractions(lambda_bar: float, hx: float, hy: float) -> np.ndarray:
     """Outward traction A[N] n (:func:`_traction_form`) at the midpoint of each edge of one hx x hy rectangle,
     from scikit-fem on a one-element mesh: (2 components, 4 edges x-, x+, y-, y+, 4 corners (0,0) (1,0) (1,1)
@@ -295,8 +303,7 @@ def _edge_tractions(lambda_bar: float, hx: float, hy: float) -> np.ndarray:
     b = FacetBasis(m, ElementVector(ElementQuad1()), quadrature=EDGE_MIDPOINT_RULE)
     rows = _facet_rows([_traction_form(0), _traction_form(1)], b, 1.0, {"n": b.normals, "lambda_bar": lambda_bar})
     mid = m.p[:, m.facets[:, b.find]].mean(axis=1)                     # (2, 4) edge midpoints
-    side = np.where(np.isclose(mid[0], 0.0), 0, np.where(np.isclose(mid[0], hx), 1,
-                                                          np.where(np.isclose(mid[1], 0.0), 2, 3)))
+    side = _rectangle_side(mid, 0.0, hx, 0.0)
     node_of_dof = np.empty(b.N, int)
     comp_of_dof = np.empty(b.N, int)
     for c in range(2):
@@ -328,14 +335,15 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float):
     on a rectangle the traction is linear in 1/hx and 1/hy, so two one-element evaluations by scikit-fem give
     it for every element size.  Why not ``InteriorFacetBasis`` here: its set-up costs 3-6 ms per mesh, and a
     registration builds two meshes; this reuses the form's constants and assembles in about 1 ms."""
+    from ..mesh import tensor_node_grid
+
     xs, ys, cell = ts
     A, B = _traction_parts(float(lambda_bar))
     n_el = mesh.t.shape[1]
     ci, cj = np.empty(n_el, int), np.empty(n_el, int)
     I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
     ci[cell.ravel()], cj[cell.ravel()] = I.ravel(), J.ravel()
-    node = np.empty((xs.size, ys.size), int)
-    node[np.searchsorted(xs, mesh.p[0]), np.searchsorted(ys, mesh.p[1])] = np.arange(mesh.p.shape[1])
+    node = tensor_node_grid(mesh, xs, ys)
     f2t = mesh.f2t
     facets = np.nonzero(f2t[1] != -1)[0].astype(np.int32)
     tind = np.stack([f2t[0, facets], f2t[1, facets]])
@@ -350,8 +358,7 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float):
         e = tind[s]
         i, j = ci[e], cj[e]
         hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
-        side = np.where(np.isclose(mid[0], xs[i]), 0, np.where(np.isclose(mid[0], xs[i + 1]), 1,
-                                                                np.where(np.isclose(mid[1], ys[j]), 2, 3)))
+        side = _rectangle_side(mid, xs[i], xs[i + 1], ys[j])
         if s == 0:   # side-0 outward unit normal
             normals = np.stack([np.select([side == 0, side == 1], [-1.0, 1.0], 0.0),
                                 np.select([side == 2, side == 3], [-1.0, 1.0], 0.0)])
