@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-__all__ = ["Affine", "translation", "compression", "shear_rotation", "Bending", "Inclusion", "as_points"]
+__all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "Inclusion", "as_points"]
 
 
 def as_points(points) -> np.ndarray:
@@ -119,6 +119,18 @@ def shear_rotation(level: float = 0.01, *, shear: float | None = None, rotation_
     return Affine(R @ F0 - np.eye(2), level=s,
                   name=f"compression {100 * s:g}% + shear {100 * g:g}% + rotation {rotation_deg:g} deg",
                   builder=lambda lv: shear_rotation(lv, shear=ratio * lv, rotation_deg=rot_per_level * lv))
+
+
+def compression_rotation(level: float = 0.01, rotation_deg: float = 2.0) -> Affine:
+    """Compression ``level`` (lateral expansion ``level / 2``) plus an in-plane rotation by ``rotation_deg`` about
+    the probe-face centre, added to it: ``u = (R - I) x + diag(-s, s / 2) x`` with the exact rotation matrix R.
+    Unlike :func:`shear_rotation` (``R F_0 - I``: the rotation turns the compressed block) the strain is
+    ``diag(cos - 1 - s, cos - 1 + s / 2)``, no shear.  The rotated pairs of ``benchmarks/rotation_sweep.py``."""
+    s = _level(level)
+    th = math.radians(float(rotation_deg))
+    c, sn = math.cos(th), math.sin(th)
+    return Affine(np.array([[c - 1.0 - s, -sn], [sn, c - 1.0 + 0.5 * s]]), level=s,
+                  name=f"compression {100 * s:g}% + rotation {rotation_deg:g} deg")
 
 
 class Bending:

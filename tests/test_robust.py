@@ -246,9 +246,7 @@ def _rotation(deg, e=0.01):
     """1 % compression and an in-plane rotation by ``deg`` about the probe-face centre (forward's convention)."""
     import forward.fields as F
 
-    th = np.deg2rad(deg)
-    c, s = np.cos(th), np.sin(th)
-    return F.Affine(np.array([[c - 1.0 - e, -s], [s, c - 1.0 + 0.5 * e]]), level=e, name=f"rotation {deg} deg")
+    return F.compression_rotation(e, deg)
 
 
 def test_global_search_finds_a_rotation():
