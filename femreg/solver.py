@@ -8,7 +8,8 @@ symmetric positive (semi-)definite), then tries ``u + du``; if the energy rises 
 Linear solver (``linear_solver``): the system is SPD, sparse and small.
 
 * ``"cholesky"``: LAPACK banded Cholesky (``scipy.linalg.cholesky_banded``, dpbtrf) after a reverse
-  Cuthill-McKee ordering (``scipy.sparse.csgraph``; Cuthill & McKee 1969, doi:10.1145/800195.805928).  The
+  Cuthill-McKee ordering (``scipy.sparse.csgraph``; Cuthill & McKee 1969, doi:10.1145/800195.805928) or the
+  given node order, whichever has the narrower band.  The
   ordering and the scatter of the matrix entries into the band are computed once per sparsity pattern and reused
   by every later factorisation (the lagged-diffusivity Hessian of the TV regularisers changes its values, not
   its pattern, each iteration).
@@ -54,11 +55,19 @@ class _BandedPattern:
         n = H.shape[0]
         self.indptr = H.indptr.copy()
         self.indices = H.indices.copy()
-        self.perm = reverse_cuthill_mckee(sp.csr_matrix(H), symmetric_mode=True).astype(np.int64)
-        iperm = np.empty(n, dtype=np.int64)
-        iperm[self.perm] = np.arange(n)
         col = np.repeat(np.arange(n), np.diff(H.indptr))
-        i, j = iperm[H.indices], iperm[col]
+        # RCM or the given order, whichever has the narrower band: on a structured mesh the node numbering is
+        # often narrower (momentum Hessian of a 25 x 25 node mesh: 103 vs 169, a 1.8x faster factorisation)
+        best = None
+        for perm in (reverse_cuthill_mckee(sp.csr_matrix(H), symmetric_mode=True).astype(np.int64),
+                     np.arange(n, dtype=np.int64)):
+            iperm = np.empty(n, dtype=np.int64)
+            iperm[perm] = np.arange(n)
+            i, j = iperm[H.indices], iperm[col]
+            bw = int(np.max(np.abs(i - j), initial=0))
+            if best is None or bw < best[0]:
+                best = (bw, perm, i, j)
+        _, self.perm, i, j = best
         self.lower = i >= j
         self.bandwidth = int(np.max(i - j, initial=0))
         self.flat = ((i - j) * n + j)[self.lower]
