@@ -199,6 +199,87 @@ def hessian_rows(w, gx, gy, fx, rseg, n_seg, nc):  # pragma: no cover - compiled
 
 
 @_jit
+def gram_into_pattern(Kp, Ki, Kd, KTp, KTi, KTd, d, Hp, Hi, base, marker, out):  # pragma: no cover - compiled
+    """out = base + K^T diag(d) K on the fixed CSR pattern (Hp, Hi) (Gustavson's row-by-row product, numeric
+    phase only: the pattern is known, so no symbolic pass and no new arrays); ``marker`` (n,) int scratch."""
+    for i in range(Hp.shape[0] - 1):
+        for p in range(Hp[i], Hp[i + 1]):
+            marker[Hi[p]] = p
+            out[p] = base[p]
+        for a in range(KTp[i], KTp[i + 1]):
+            k = KTi[a]
+            v = KTd[a] * d[k]
+            for b in range(Kp[k], Kp[k + 1]):
+                out[marker[Ki[b]]] += v * Kd[b]
+    return out
+
+
+@_jit
+def add_into_pattern(Ap, Ai, Ad, scale, Hp, Hi, marker, out):  # pragma: no cover - compiled
+    """out += scale * A for a CSR matrix A whose pattern lies inside the CSR pattern (Hp, Hi)."""
+    for i in range(Hp.shape[0] - 1):
+        for p in range(Hp[i], Hp[i + 1]):
+            marker[Hi[p]] = p
+        for a in range(Ap[i], Ap[i + 1]):
+            out[marker[Ai[a]]] += scale * Ad[a]
+    return out
+
+
+@_jit
+def knot_gradient(c, r0, nr, c0, nc, dx2, dy2, gx, gy):  # pragma: no cover - compiled
+    """Gradient of the cubic interpolant at the pixel centres of the block (r0:r0+nr, c0:c0+nc), raveled into
+    gx, gy; ``c`` the coefficients mirror-padded by 2.  The same operations in the same order as the numpy
+    form in :meth:`femreg.image.SplineImage.gradient_at_pixels` (bit-identical), in one pass instead of six."""
+    for i in range(nr):
+        a = r0 + 2 + i
+        for j in range(nc):
+            b = c0 + 2 + j
+            sp1 = (c[a + 1, b - 1] + 4.0 * c[a + 1, b] + c[a + 1, b + 1]) / 6.0
+            sm1 = (c[a - 1, b - 1] + 4.0 * c[a - 1, b] + c[a - 1, b + 1]) / 6.0
+            tp1 = (c[a - 1, b + 1] + 4.0 * c[a, b + 1] + c[a + 1, b + 1]) / 6.0
+            tm1 = (c[a - 1, b - 1] + 4.0 * c[a, b - 1] + c[a + 1, b - 1]) / 6.0
+            gx[i * nc + j] = (sp1 - sm1) / dx2
+            gy[i * nc + j] = (tp1 - tm1) / dy2
+
+
+@_jit
+def group_ncc(groups, x, Y, n):  # pragma: no cover - compiled
+    """NCC of ``x`` with each row of ``Y`` (k, m) within each group (``groups`` (m,) in 0 .. n - 1): group
+    means, then centred sums, accumulated in index order as ``np.bincount`` does (the same values as the numpy
+    form in :func:`femreg.repair._group_ncc`), one pass per moment for all k rows.  Returns (ncc (k, n), count
+    (n,)); NaN where a group has no variance."""
+    k, m = Y.shape
+    cnt = np.zeros(n)
+    sx = np.zeros(n)
+    sy = np.zeros((k, n))
+    for p in range(m):
+        g = groups[p]
+        cnt[g] += 1.0
+        sx[g] += x[p]
+        for i in range(k):
+            sy[i, g] += Y[i, p]
+    mx = sx / cnt
+    my = sy / cnt
+    sxx = np.zeros(n)
+    sxy = np.zeros((k, n))
+    syy = np.zeros((k, n))
+    for p in range(m):
+        g = groups[p]
+        dx = x[p] - mx[g]
+        sxx[g] += dx * dx
+        for i in range(k):
+            dy = Y[i, p] - my[i, g]
+            sxy[i, g] += dx * dy
+            syy[i, g] += dy * dy
+    q = np.empty((k, n))
+    for i in range(k):
+        for g in range(n):
+            d = np.sqrt(sxx[g] * syy[i, g])
+            q[i, g] = sxy[i, g] / d if d != 0.0 else np.nan     # 0 / 0 (no variance), as numpy gives
+    return q, cnt
+
+
+@_jit
 def box_sums(R, w0, w1, na, nl):  # pragma: no cover - compiled
     """Sums of ``R`` and ``R**2`` over every w0 x w1 window with top-left corner (d0, d1), d0 < na, d1 < nl:
     (S1, S2), each (na, nl), from the two integral images (built in one pass)."""

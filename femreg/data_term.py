@@ -44,6 +44,10 @@ class SSDTerm:
         S at the quadrature pixels (``quad.points``); None for 0.
     """
 
+    #: The Gauss-Newton Hessian does not depend on u (eq:wfnew): ``hessian`` returns the same matrix object until
+    #: the pixel weights change.
+    hessian_fixed = True
+
     def __init__(self, quad: PixelQuadrature, reference: SplineImage, moving: SplineImage, offset=None):
         self.quad = quad
         self.moving = moving

@@ -178,6 +178,12 @@ class SplineImage:
             c = np.pad(self.coeffs, 1, mode="reflect")
         else:   # the coefficients mirror-extended by 1 around the block: a view of the 2-padded ones
             (r0, r1, _), (c0, c1, _) = (b.indices(n) for b, n in zip(block, self.shape))
+            if _kernels.use_compiled() and self._padded.dtype == np.float64:
+                nr, nc = max(r1 - r0, 0), max(c1 - c0, 0)
+                gx, gy = np.empty(nr * nc), np.empty(nr * nc)
+                _kernels.knot_gradient(self._padded, r0, nr, c0, nc, 2.0 * self.spacing[0], 2.0 * self.spacing[1],
+                                       gx, gy)
+                return gx.reshape(nr, nc), gy.reshape(nr, nc)
             c = self._padded[r0 + 1:r1 + 3, c0 + 1:c1 + 3]
         sx = (c[:-2, :] + 4.0 * c[1:-1, :] + c[2:, :]) / 6.0   # smooth along axis 0
         sy = (c[:, :-2] + 4.0 * c[:, 1:-1] + c[:, 2:]) / 6.0   # smooth along axis 1

@@ -104,15 +104,22 @@ def element_ncc(data, u, n_elements: int) -> np.ndarray:
 
 
 def _group_ncc(groups, x, y, n: int):
-    """NCC of ``x`` and ``y`` within each group (``groups`` (m,) in 0 .. n - 1): group means first, then the centred
-    sums (two passes, as :func:`femreg._kernels.block_ncc`).  Returns (ncc, count), each (n,); NaN where a group
-    has no variance."""
-    cnt = np.bincount(groups, minlength=n).astype(float)[:n]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dx = x - (np.bincount(groups, x, n) / cnt)[groups]
-        dy = y - (np.bincount(groups, y, n) / cnt)[groups]
-        q = np.bincount(groups, dx * dy, n) / np.sqrt(np.bincount(groups, dx * dx, n) * np.bincount(groups, dy * dy, n))
-    return q, cnt
+    """NCC of ``x`` and ``y`` ((m,), or (k, m) for k at once) within each group (``groups`` (m,) in 0 .. n - 1):
+    group means first, then the centred sums (two passes, as :func:`femreg._kernels.block_ncc`).  Returns
+    (ncc (n,) or (k, n), count (n,)); NaN where a group has no variance."""
+    Y = np.asarray(y, float).reshape(-1, len(groups))
+    if _kernels.use_compiled():
+        q, cnt = _kernels.group_ncc(np.asarray(groups, np.int64), np.asarray(x, float), Y, int(n))
+    else:
+        cnt = np.bincount(groups, minlength=n).astype(float)[:n]
+        q = np.empty((Y.shape[0], n))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dx = x - (np.bincount(groups, x, n) / cnt)[groups]
+            sxx = np.bincount(groups, dx * dx, n)
+            for i, yi in enumerate(Y):
+                dy = yi - (np.bincount(groups, yi, n) / cnt)[groups]
+                q[i] = np.bincount(groups, dx * dy, n) / np.sqrt(sxx * np.bincount(groups, dy * dy, n))
+    return (q[0] if np.ndim(y) == 1 else q), cnt
 
 
 def poor_fraction(quality) -> float:
@@ -242,9 +249,7 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         ok &= full[k] & full[k - 2] & full[k + 2]
     e = el[ok]
     x = ea[k][ok]
-    c = np.empty((3, n_elements))
-    for i, s in enumerate((-2, 0, 2)):
-        c[i], cnt = _group_ncc(e, x, ew[k + s][ok], n_elements)
+    c, cnt = _group_ncc(e, x, np.stack([ew[k + s][ok] for s in (-2, 0, 2)]), n_elements)
     c[:, cnt < 8] = np.nan
     return c
 

@@ -221,6 +221,8 @@ class Objective:
     def hessian(self, u):
         if self.hessian_constant and self._H is not None:
             return self._H
+        if hasattr(self.reg, "hessian_plus") and getattr(self.data, "hessian_fixed", False):
+            return self.reg.hessian_plus(u, self.data.hessian(u))    # one pass into a fixed pattern
         H = (self.data.hessian(u) + self.reg.hessian(u)).tocsc()
         if self.hessian_constant:
             self._H = H
