@@ -280,6 +280,23 @@ def group_ncc(groups, x, Y, n):  # pragma: no cover - compiled
 
 
 @_jit
+def block_energies(a, res, nc, edges, nb):  # pragma: no cover - compiled
+    """Sums of a^2 and (res + a)^2 over the row blocks [edges[k], edges[k + 1]) (k < nb) of the (rows x nc)
+    pixel block that ``a``, ``res`` (raveled) cover: (Qa, Qw), each (nb, nc).  The sums of ``np.add.reduceat``
+    over the squared arrays (to round-off: reduceat groups the additions differently), without those arrays."""
+    Qa = np.zeros((nb, nc))
+    Qw = np.zeros((nb, nc))
+    for k in range(nb):
+        for r in range(edges[k], edges[k + 1]):
+            for q in range(nc):
+                p = r * nc + q
+                w = res[p] + a[p]
+                Qa[k, q] += a[p] * a[p]
+                Qw[k, q] += w * w
+    return Qa, Qw
+
+
+@_jit
 def box_sums(R, w0, w1, na, nl):  # pragma: no cover - compiled
     """Sums of ``R`` and ``R**2`` over every w0 x w1 window with top-left corner (d0, d1), d0 < na, d1 < nl:
     (S1, S2), each (na, nl), from the two integral images (built in one pass)."""

@@ -211,19 +211,18 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         return nan
     quad = data.quad
     a = data.ref_values
-    w = np.add(data.residual(u), a)
-    np.multiply(w, w, out=w)
+    res = data.residual(u)
     gr = quad.location.grid
     row0 = 0
     if gr is not None:                  # tensor mesh: the quadrature pixels are an nr x nc block of the image
         nr = gr["nr"]
         row0 = int(quad.index[0]) // n1 if quad.index.size else 0
-        A2 = (a * a).reshape(nr, -1)
-        W2 = w.reshape(nr, -1)
         cell = quad.locator.tensor[2][:, gr["j"]]
         row_el, M2 = gr["i"], None
     else:                               # any mesh: scatter onto the image grid, windows must lie inside the mesh
         nr = n0
+        w = np.add(res, a)
+        np.multiply(w, w, out=w)
         A2, W2, M2 = np.zeros(n0 * n1), np.zeros(n0 * n1), np.zeros(n0 * n1)
         A2[quad.index], W2[quad.index], M2[quad.index] = a * a, w, 1.0
         A2, W2, M2 = A2.reshape(n0, n1), W2.reshape(n0, n1), M2.reshape(n0, n1)
@@ -236,8 +235,14 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
     nb = edges.size - 1                 # whole half-period blocks [edges[k], edges[k + 1])
     if nb < 7:
         return nan
-    Qa = np.add.reduceat(A2, edges, axis=0)[:nb]
-    Qw = np.add.reduceat(W2, edges, axis=0)[:nb]
+    if M2 is None and _kernels.use_compiled():
+        Qa, Qw = _kernels.block_energies(a, res, a.size // nr, edges.astype(np.int64), nb)
+    else:
+        if M2 is None:
+            w = np.add(res, a)
+            A2, W2 = (a * a).reshape(nr, -1), np.multiply(w, w, out=w).reshape(nr, -1)
+        Qa = np.add.reduceat(A2, edges, axis=0)[:nb]
+        Qw = np.add.reduceat(W2, edges, axis=0)[:nb]
     ea = np.sqrt(Qa[:-1] + Qa[1:])      # window k = blocks k, k + 1 (one period)
     ew = np.sqrt(Qw[:-1] + Qw[1:])
     k = np.arange(2, nb - 3)            # windows with both partners one period (two blocks) away

@@ -156,3 +156,74 @@ def test_compiled_decimating_gaussian_matches_scipy(shape, q, axis):
     want = ndimage.gaussian_filter1d(e, 0.5 * q, axis=axis)[(slice(None),) * axis + (slice(None, None, q),)]
     got = pyramid._gaussian_decimate(e, q, axis)                   # short axes: the reflection folds twice
     assert got.shape == want.shape and np.abs(got - want).max() < 1e-14   # measured 4e-16
+
+
+@needs_numba
+def test_compiled_envelope_lags_match_numpy(result, pair, monkeypatch):
+    from femreg.repair import envelope_lag_ncc
+
+    ref, mov = normalize_pair(*pair)[:2]
+    term = femreg.registration.image_term(SplineImage(ref, SP), SplineImage(mov, SP), result.mesh, SHAPE,
+                                          np.asarray(SP), np.zeros(2))
+    period = femreg.pyramid.rf_period(ref, SP)
+    c = {}
+    for flag in (True, False):
+        monkeypatch.setattr(_kernels, "HAVE_NUMBA", flag)
+        c[flag] = envelope_lag_ncc(term, result.u, result.mesh.t.shape[1], period, SHAPE, SP)
+    assert np.isfinite(c[True]).mean() > 0.5                  # most elements hold enough envelope samples
+    assert np.array_equal(np.isnan(c[True]), np.isnan(c[False]))
+    assert np.nanmax(np.abs(c[True] - c[False])) < 1e-12
+
+
+@needs_numba
+def test_compiled_knot_gradient_is_the_numpy_one(monkeypatch):
+    rng = np.random.default_rng(5)
+    img = SplineImage(rng.standard_normal((90, 40)), (0.02, 0.3), (1.0, -2.0))
+    for block in [(slice(0, 90), slice(0, 40)), (slice(7, 61), slice(3, 38)), (slice(89, 90), slice(0, 1))]:
+        g = {}
+        for flag in (True, False):
+            monkeypatch.setattr(_kernels, "HAVE_NUMBA", flag)
+            g[flag] = img.gradient_at_pixels(block)
+        assert all(np.array_equal(a, b) for a, b in zip(g[True], g[False]))
+    # and the derivative of the interpolant itself (central difference of the spline, ~1e-7 relative)
+    x, y = pixel_axes((90, 40), (0.02, 0.3), (1.0, -2.0))
+    X, Y = np.meshgrid(x[7:61], y[3:38], indexing="ij")
+    fd = img.gradient(np.column_stack([X.ravel(), Y.ravel()]))
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", True)
+    gx, gy = img.gradient_at_pixels((slice(7, 61), slice(3, 38)))
+    scale = np.abs(fd).max(axis=0)
+    assert np.abs(gx.ravel() - fd[:, 0]).max() < 1e-5 * scale[0]
+    assert np.abs(gy.ravel() - fd[:, 1]).max() < 1e-5 * scale[1]
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["momentum-stress", "momentum-strain"])
+def test_fixed_pattern_hessian_is_the_sparse_product(name, result, monkeypatch):
+    import scipy.sparse as sp
+
+    from femreg.regularizers import make_regularizer
+
+    mesh = result.mesh
+    reg = make_regularizer(name, alpha=0.3, hourglass=1.0)
+    reg.setup(mesh)
+    rng = np.random.default_rng(2)
+    n = 2 * mesh.p.shape[1]
+    C = reg.hessian(rng.standard_normal(n) * 1e-3) * 0.0
+    C = C + sp.identity(n) * 5.0                 # a constant part (the data term's place) on the diagonal
+    K, G = reg.operator.toarray(), reg.constant_hessian()
+    for k, u in enumerate(rng.standard_normal((3, n)) * 1e-2):
+        monkeypatch.setattr(_kernels, "HAVE_NUMBA", True)
+        H = reg.hessian_plus(u, C)
+        if k == 0:
+            pattern = reg._gram
+        assert reg._gram is pattern                 # the pattern is built once for the mesh, alpha and C
+        d = np.tile(reg.diffusivity(u), 2)          # the x and y rows of each edge term
+        dense = reg.alpha * (K.T * d) @ K + C.toarray() + (0 if G is None else reg.alpha * G.toarray())
+        assert np.abs(H.toarray() - dense).max() < 1e-12 * np.abs(dense).max()
+        monkeypatch.setattr(_kernels, "HAVE_NUMBA", False)
+        assert np.abs(reg.hessian_plus(u, C).toarray() - dense).max() < 1e-12 * np.abs(dense).max()
+    monkeypatch.setattr(_kernels, "HAVE_NUMBA", True)
+    reg.alpha = 0.6                                  # a new alpha scales the constant part with it
+    H2 = reg.hessian_plus(u, C).toarray()
+    dense2 = 0.6 * (K.T * d) @ K + C.toarray() + (0 if G is None else 0.6 * G.toarray())
+    assert np.abs(H2 - dense2).max() < 1e-12 * np.abs(dense2).max()
