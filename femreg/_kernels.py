@@ -476,17 +476,27 @@ def grid_fields(Ux, Uy, ei, X, hx, ej, Y, hy, r0, c0, out):  # pragma: no cover 
 def grid_values(F, ei, X, ej, Y, r0, c0, out):  # pragma: no cover - compiled
     """Bilinear interpolation of nodal fields on a tensor mesh (``F`` (k, n_x nodes, n_y nodes)) at an (nr x nc)
     grid of points (as :func:`grid_fields`), written to ``out[k, r0 + r, c0 + q]``; the same arithmetic as the
-    values of :func:`grid_fields` (lateral first, then axial), so both agree bit for bit."""
+    values of :func:`grid_fields` (lateral first, then axial), so both agree bit for bit.  The lateral values
+    on the two node rows of an element row are computed once for all its pixel rows."""
+    nk, nc = F.shape[0], ej.shape[0]
+    LA = np.empty((nk, nc))
+    LB = np.empty((nk, nc))
+    last = -1
     for r in range(ei.shape[0]):
         a = ei[r]
         x = X[r]
-        for q in range(ej.shape[0]):
-            b = ej[q]
-            y = Y[q]
-            for k in range(F.shape[0]):
-                la = F[k, a, b] + (F[k, a, b + 1] - F[k, a, b]) * y
-                lb = F[k, a + 1, b] + (F[k, a + 1, b + 1] - F[k, a + 1, b]) * y
-                out[k, r0 + r, c0 + q] = la + (lb - la) * x
+        if a != last:
+            for k in range(nk):
+                for q in range(nc):
+                    b = ej[q]
+                    y = Y[q]
+                    LA[k, q] = F[k, a, b] + (F[k, a, b + 1] - F[k, a, b]) * y
+                    LB[k, q] = F[k, a + 1, b] + (F[k, a + 1, b + 1] - F[k, a + 1, b]) * y
+            last = a
+        for k in range(nk):
+            for q in range(nc):
+                la = LA[k, q]
+                out[k, r0 + r, c0 + q] = la + (LB[k, q] - la) * x
 
 
 @_jit

@@ -75,6 +75,17 @@ def ncc(a, b) -> float:
     return float(a @ b / d) if d > 0 else 0.0
 
 
+def _nan_outside(out, rows, cols):
+    """NaN in ``out`` (k, n_axial, n_lateral) outside the block of consecutive ``rows`` x ``cols`` (all of it when
+    they are empty); the block itself is left for the caller to fill."""
+    if not (len(rows) and len(cols)):
+        out[...] = np.nan
+        return
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    out[:, :r0] = out[:, r1:] = np.nan
+    out[:, r0:r1, :c0] = out[:, r0:r1, c1:] = np.nan
+
+
 class RegistrationResult:
     """A registered displacement field on a quad mesh.
 
@@ -226,7 +237,8 @@ class RegistrationResult:
             return None
         rows, cols = self._inside_rows_cols(loc)
         k = values.shape[1]
-        out = np.full((k,) + self.shape, np.nan)
+        out = np.empty((k,) + self.shape)
+        _nan_outside(out, rows, cols)
         if rows.size:
             G, gr = self.locator.node_grid, loc.grid
             F = np.ascontiguousarray(np.moveaxis(np.asarray(values, float)[G], -1, 0))
@@ -241,8 +253,7 @@ class RegistrationResult:
             block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)) if rows.size else None
             if _kernels.use_compiled() and block is not None:     # one compiled pass, into the grids
                 out = np.empty((len(FIELDS),) + self.shape)
-                out[:, :block[0].start] = out[:, block[0].stop:] = np.nan        # NaN outside the block
-                out[:, block[0], :block[1].start] = out[:, block[0], block[1].stop:] = np.nan
+                _nan_outside(out, rows, cols)
                 xs, ys, _ = self.locator.tensor
                 G, gr = self.locator.node_grid, loc.grid
                 i, j = gr["i"], gr["j"]
