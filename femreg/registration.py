@@ -684,8 +684,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         def total(s):
             return s.data.energy(s.u) + s.reg.energy(s.u)
 
+        checked = sol
         for _ in range(2):          # whole-period offsets from the coarse level: the coarse level is trusted
             hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+            checked = sol
             if not hops.any():
                 break
             notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes reseeded")
@@ -696,15 +698,16 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             # islands whole periods off their own neighbourhood, which the coarse level shares (decorrelated
             # pairs): kept only if the energy falls -- near an inclusion at several percent strain a smooth field
             # can look like such offsets, and there the reseeded solve explains the pair much worse
-            hops = hop_nodes(fe_mesh, sol.u[0::2], period, None)
-            if not hops.any():
+            islands = hop_nodes(fe_mesh, sol.u[0::2], period, None)
+            if not islands.any():
                 break
-            again = repaired(hops)
+            again = repaired(islands)
             if not total(again) <= total(sol):
                 break
-            notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes off their neighbours reseeded")
+            notes.append(f"peak hopping at {int(np.count_nonzero(islands))} nodes off their neighbours reseeded")
             sol = again
-        hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
+        if sol is not checked:      # a repair moved the result: test it again against the coarse level
+            hops = hop_nodes(fe_mesh, sol.u[0::2], period, reference)
     data = sol.data
     # each evaluation of the data term at a new u is a warp of I_2 (it caches the residual of the last u only):
     # I_2 at u = 0 without the cache, psi at the start from the solve, psi at the result (usually cached)
