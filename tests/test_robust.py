@@ -308,7 +308,8 @@ def test_strain_stopping_rule_stops_early_with_the_same_strain(monkeypatch):
     assert fast.status == 4 and full.status == 0 and fast.nit < full.nit, (fast.nit, full.nit)   # measured 2, 4
     e_fast, e_full = fast.nodal_strain, full.nodal_strain
     rel = np.sqrt(np.mean((e_fast - e_full) ** 2) / np.mean(e_full ** 2))
-    # measured 0.13 %; bound: steps below 0.5 % shrinking linearly by ~0.7 leave at most 0.5 x 0.7 / 0.3 = 1.2 %
+    # measured 0.13 %; bound 1.2 % (9x the measured; steps below the 1.5 % tolerance shrinking by ~0.7 could
+    # leave up to 1.5 x 0.7 / 0.3 = 3.5 %)
     assert rel < 0.012, rel
     assert abs(field_errors(fast, shear)["e"] - field_errors(full, shear)["e"]) < 0.005    # measured 0.1 point
 
