@@ -370,12 +370,17 @@ def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, 
     centre = origin + 0.5 * (n - 1) * spacing
     x = origin[0] + spacing[0] * np.arange(n[0])
     na, nl = 2 * s[0] + 1, 2 * s[1] + 1
+    fct = 1.0 / (shape[0] * shape[1])                 # irfft2's normalisation, applied after its last pass
 
     def scan(image, strain_list, Q):
         best = (None, -np.inf, 0.0)
         for e in strain_list:
             R = _axial_resample(image, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else image
-            C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
+            # C[d] = sum T * R[d:d+w]: irfft2 as its two passes (the same values), the second on the na rows of
+            # lags only
+            X = sfft.rfft2(R, s=shape)
+            X *= FT
+            C = sfft.irfft(sfft.ifft(X, axis=0, norm="forward")[:na], n=shape[1], norm="forward")[:, :nl] * fct
             if _kernels.use_compiled():
                 S1, S2 = _kernels.box_sums(np.ascontiguousarray(R), int(w[0]), int(w[1]), int(na), int(nl))
             else:
