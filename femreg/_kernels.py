@@ -626,3 +626,69 @@ def walk_kernel(x, y, px, py, cn, cell, rows, cols, steps, tol, restol, elem, X,
             if na == a and nb == b:
                 break
             a, b = na, nb
+
+
+# -- analytic signal of the pyramid's speckle statistics and envelopes (femreg.pyramid) -----------------------
+
+
+@_jit
+def hilbert_half_spectrum(X, n_pos, power):  # pragma: no cover - compiled
+    """Half spectrum of the Hilbert transform of the columns of ``X`` (axial rfft, rows = frequencies): ``-i X``
+    on rows 1 .. n_pos - 1, 0 elsewhere, and, when ``power`` has X's shape, ``|X|^2`` into it; one pass instead
+    of numpy's product with a sign array and separate squares of the real and imaginary parts."""
+    nr, nc = X.shape
+    out = np.zeros((nr, nc), np.complex128)
+    want_power = power.shape[0] == nr
+    for i in range(nr):
+        inside = i >= 1 and i < n_pos
+        for j in range(nc):
+            v = X[i, j]
+            if inside:
+                out[i, j] = complex(v.imag, -v.real)
+            if want_power:
+                power[i, j] = v.real * v.real + v.imag * v.imag
+    return out
+
+
+@_jit
+def modulus(a, b):  # pragma: no cover - compiled
+    """sqrt(a^2 + b^2) elementwise over a's shape (b may have more rows): one pass, no temporaries."""
+    nr, nc = a.shape
+    out = np.empty((nr, nc))
+    for i in range(nr):
+        for j in range(nc):
+            out[i, j] = np.sqrt(a[i, j] * a[i, j] + b[i, j] * b[i, j])
+    return out
+
+
+@_jit
+def to_complex(a, b):  # pragma: no cover - compiled
+    """a + i b over a's shape (b may have more rows), in one pass."""
+    nr, nc = a.shape
+    out = np.empty((nr, nc), np.complex128)
+    for i in range(nr):
+        for j in range(nc):
+            out[i, j] = complex(a[i, j], b[i, j])
+    return out
+
+
+@_jit
+def lag_products(a, k0, k1):  # pragma: no cover - compiled
+    """``out[k - k0] = sum a[i, j] a[i + k, j]`` over the pixel pairs of ``a`` k rows apart, k0 <= k < k1:
+    several lags per pass over the image (the rows stay in cache); per-column accumulators keep the inner loop
+    vectorisable."""
+    n0, n1 = a.shape
+    nk = k1 - k0
+    acc = np.zeros((nk, n1))
+    for i in range(n0):
+        for q in range(nk):
+            i2 = i + k0 + q
+            if i2 >= n0:
+                break
+            for j in range(n1):
+                acc[q, j] += a[i, j] * a[i2, j]
+    out = np.zeros(nk)
+    for q in range(nk):
+        for j in range(n1):
+            out[q] += acc[q, j]
+    return out

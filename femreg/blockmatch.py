@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sfft
 from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
@@ -173,25 +174,24 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
     wa, wl = int(w[0]), int(w[1])
     ra, rl = wa + 2 * sa, wl + 2 * sl
     movp = np.pad(mov, ((sa, sa), (sl, sl)))
-    # gather templates and search regions: (nw, wa, wl), (nw, ra, rl)
-    da = np.arange(wa)[:, None]
-    dl = np.arange(wl)[None, :]
-    T = ref[A[:, None, None] + da, L[:, None, None] + dl]
+    # gather templates and search regions, (nw, wa, wl) and (nw, ra, rl), as copies of strided window views
+    # (one gather per window instead of per pixel)
+    T = sliding_window_view(ref, (wa, wl))[A, L]
     T = T - T.mean(axis=(1, 2), keepdims=True)
     tn = np.sqrt(np.sum(T * T, axis=(1, 2)))
-    R = movp[A[:, None, None] + np.arange(ra)[:, None], L[:, None, None] + np.arange(rl)[None, :]]
+    R = sliding_window_view(movp, (ra, rl))[A, L]
     shape = (sfft.next_fast_len(ra, real=True), sfft.next_fast_len(rl, real=True))
-    C = sfft.irfft2(sfft.rfft2(R, s=shape, workers=-1) * np.conj(sfft.rfft2(T, s=shape, workers=-1)),
-                    s=shape, workers=-1)[:, :2 * sa + 1, :2 * sl + 1]
-    # moving-window sums over every shift from integral images of the whole padded moving image (windows
-    # overlap, so summing each search region separately would repeat most of the work)
-    pa_ = A[:, None, None] + np.arange(2 * sa + 1)[None, :, None]            # (nw, shifts_a, 1) top rows
-    pl_ = L[:, None, None] + np.arange(2 * sl + 1)[None, None, :]            # (nw, 1, shifts_l) left columns
-
+    X = sfft.rfft2(R, s=shape, workers=-1)
+    X *= np.conj(sfft.rfft2(T, s=shape, workers=-1))
+    C = sfft.irfft2(X, s=shape, workers=-1)[:, :2 * sa + 1, :2 * sl + 1]
+    # moving-window sums over every shift: the box sums of every window position of the whole padded moving
+    # image from its integral image (windows overlap, so summing each search region separately would repeat
+    # most of the work), then each window's (shifts_a, shifts_l) block of them
     def box(X):
         I = np.zeros((X.shape[0] + 1, X.shape[1] + 1))
         I[1:, 1:] = X.cumsum(0).cumsum(1)
-        return I[pa_ + wa, pl_ + wl] - I[pa_, pl_ + wl] - I[pa_ + wa, pl_] + I[pa_, pl_]
+        S = I[wa:, wl:] - I[:-wa, wl:] - I[wa:, :-wl] + I[:-wa, :-wl]
+        return sliding_window_view(S, (2 * sa + 1, 2 * sl + 1))[A, L]
     S1 = box(movp)
     S2 = box(movp * movp)
     var = np.maximum(S2 - S1 * S1 / (wa * wl), 0.0)

@@ -108,25 +108,32 @@ class PyramidSettings:
     lateral_decimation: int = 1
 
 
-def _analytic(img, complex_signal: bool = False):
+def _analytic(img, complex_signal: bool = False, power: bool = False):
     """Axial half spectrum of ``img`` zero-padded to ``nf`` samples (a fast FFT length >= n_axial), ``nf``, and
     the envelope |analytic signal| (the transform of scipy.signal.hilbert); with ``complex_signal`` the analytic
-    signal itself instead of its modulus.
+    signal itself instead of its modulus; with ``power`` the spectrum's |X|^2 instead of the spectrum.
 
     The analytic signal is ``img + i H[img]``; its imaginary part, the Hilbert transform, is one real inverse
     transform of ``-i sign(f) X`` (DC and Nyquist bins zero), which is what scipy.signal.hilbert's complex
     inverse FFT computes, at half the cost.  The zero padding replaces the circular wrap of the end samples by
     zeros (within a pulse length of the top and bottom rows) and avoids FFT lengths with large prime factors
-    (e.g. 1948 = 4 x 487 rows: 20 ms instead of 5 ms per frame)."""
+    (e.g. 1948 = 4 x 487 rows: 20 ms instead of 5 ms per frame).  Compiled, the spectrum product and the
+    modulus are single passes (the same values as numpy's)."""
     from scipy import fft as sfft
 
     m = img.shape[0]
     nf = sfft.next_fast_len(m, real=True)
     Xr = sfft.rfft(img, n=nf, axis=0)
+    if _kernels.use_compiled():
+        P = np.empty(Xr.shape) if power else np.empty((0, 0))
+        hil = sfft.irfft(_kernels.hilbert_half_spectrum(Xr, (nf + 1) // 2, P), n=nf, axis=0)
+        sig = _kernels.to_complex(img, hil) if complex_signal else _kernels.modulus(img, hil)
+        return (P if power else Xr), nf, sig
     s = np.zeros(Xr.shape[0], complex)
     s[1:(nf + 1) // 2] = -1j                      # positive frequencies, DC and Nyquist excluded
     hil = sfft.irfft(Xr * s[:, None], n=nf, axis=0)[:m]
-    return Xr, nf, (img + 1j * hil if complex_signal else np.sqrt(img * img + hil * hil))
+    sig = img + 1j * hil if complex_signal else np.sqrt(img * img + hil * hil)
+    return (Xr.real ** 2 + Xr.imag ** 2 if power else Xr), nf, sig
 
 
 def envelope(image) -> np.ndarray:
@@ -161,21 +168,29 @@ def _half_width(ac, d) -> float:
     return 2.0 * (below[0] if below.size else len(ac)) * d
 
 
-def _envelope_cell(e, axis: int, d: float, direct_lags: int = 48) -> float:
+def _envelope_cell(e, axis: int, d: float, direct_lags: int = 48, chunk: int = 4) -> float:
     """:func:`_half_width` of the line-summed linear autocorrelation of ``e`` along ``axis``.
 
-    Lag by lag (one product per lag) while the half maximum has not been crossed, which on speckle takes a few
-    lags (a speckle cell is ~6-20 samples wide); past ``direct_lags`` lags, the whole autocorrelation by a
-    zero-padded FFT (Wiener-Khinchin), as before.  Both give the same sums."""
+    Lag by lag (one product per lag; compiled, ``chunk`` lags per pass over the image) while the half maximum
+    has not been crossed, which on speckle takes a few lags (a speckle cell is ~6-20 samples wide); past
+    ``direct_lags`` lags, the whole autocorrelation by a zero-padded FFT (Wiener-Khinchin), as before.  Both
+    give the same sums (to round-off)."""
     from scipy import fft as sfft
 
     m = e.shape[axis]
     ea = np.moveaxis(e, axis, 0)
     a0 = float(np.vdot(ea, ea))
     if a0 > 0:
-        for k in range(1, min(m, direct_lags)):
-            if float(np.einsum("ij,ij->", ea[:-k], ea[k:])) < 0.5 * a0:
-                return 2.0 * k * d
+        if _kernels.use_compiled() and ea.flags.c_contiguous:
+            for k0 in range(1, min(m, direct_lags), chunk):
+                s = _kernels.lag_products(ea, k0, min(k0 + chunk, m, direct_lags))
+                below = np.flatnonzero(s < 0.5 * a0)
+                if below.size:
+                    return 2.0 * (k0 + below[0]) * d
+        else:
+            for k in range(1, min(m, direct_lags)):
+                if float(np.einsum("ij,ij->", ea[:-k], ea[k:])) < 0.5 * a0:
+                    return 2.0 * k * d
     nf = sfft.next_fast_len(2 * m, real=True)           # >= 2m - 1: linear (not circular) correlation to lag m
     F = sfft.rfft(e, n=nf, axis=axis)
     return _half_width(sfft.irfft(np.mean(F.real ** 2 + F.imag ** 2, axis=1 - axis), n=nf)[:m], d)
@@ -189,9 +204,9 @@ def speckle_statistics(image, spacing) -> SpeckleStats:
 
     img = np.asarray(image, float)
     dx, dy = float(spacing[0]), float(spacing[1])
-    X, n, a = _analytic(img, complex_signal=True)
+    P, n, a = _analytic(img, complex_signal=True, power=True)
     env = np.abs(a)
-    power = np.mean(X.real ** 2 + X.imag ** 2, axis=1)            # line-averaged axial power spectrum (n bins)
+    power = np.mean(P, axis=1)                                    # line-averaged axial power spectrum (n bins)
     period = _centroid_period(power, n, dx)
     e = env - env.mean()
     cell, pulse = [_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)], []
@@ -370,12 +385,17 @@ def global_search(ref_env, mov_env, spacing, origin, *, strains=GLOBAL_STRAINS, 
     centre = origin + 0.5 * (n - 1) * spacing
     x = origin[0] + spacing[0] * np.arange(n[0])
     na, nl = 2 * s[0] + 1, 2 * s[1] + 1
+    fct = 1.0 / (shape[0] * shape[1])                 # irfft2's normalisation, applied after its last pass
 
     def scan(image, strain_list, Q):
         best = (None, -np.inf, 0.0)
         for e in strain_list:
             R = _axial_resample(image, np.arange(n[0]) + e * (x - xm) / spacing[0]) if e else image
-            C = sfft.irfft2(sfft.rfft2(R, s=shape) * FT, s=shape)[:na, :nl]     # C[d] = sum T * R[d:d+w]
+            # C[d] = sum T * R[d:d+w]: irfft2 as its two passes (the same values), the second on the na rows of
+            # lags only
+            X = sfft.rfft2(R, s=shape)
+            X *= FT
+            C = sfft.irfft(sfft.ifft(X, axis=0, norm="forward")[:na], n=shape[1], norm="forward")[:, :nl] * fct
             if _kernels.use_compiled():
                 S1, S2 = _kernels.box_sums(np.ascontiguousarray(R), int(w[0]), int(w[1]), int(na), int(nl))
             else:
