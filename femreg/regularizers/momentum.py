@@ -218,6 +218,19 @@ def facet_jump_operators(mesh, forms, *, quadrature=EDGE_MIDPOINT_RULE, **w):
     return comps, sides[0].dx.sum(axis=1), sides
 
 
+@functools.lru_cache(maxsize=1)
+def _unit_centre_gradients() -> np.ndarray:
+    """d N_k / dx and d N_k / dy (4 corners (0,0) (1,0) (1,1) (0,1) in (x, y) steps, 2) at the centre of the unit
+    square, from scikit-fem (read-only)."""
+    from skfem import Basis, ElementQuad1, MeshQuad1
+
+    m = MeshQuad1(np.array([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
+    b = Basis(m, ElementQuad1(), quadrature=ELEMENT_CENTRE_RULE)
+    V = np.array([[b.basis[k][0].grad[c][0, 0] for c in range(2)] for k in range(4)])
+    V.flags.writeable = False
+    return V
+
+
 def element_centre_divergence(mesh) -> sp.csr_matrix:
     r"""Operator D, shape (n_elements, 2 n_nodes): :math:`(D u)_e = \nabla\cdot u` at the centre of element e.
 
@@ -225,7 +238,25 @@ def element_centre_divergence(mesh) -> sp.csr_matrix:
     """
     from skfem import Basis, ElementQuad1, ElementVector
 
+    from ..mesh import tensor_node_grid, tensor_structure
+
     _check_quad_mesh(mesh)
+    ts = tensor_structure(mesh)
+    if ts is not None:
+        # axis-aligned tensor mesh: the centre derivatives of one unit element from scikit-fem, scaled by 1/hx
+        # (x part) and 1/hy (y part) -- the same operator without a Basis over the whole mesh (1.6 ms)
+        xs, ys, cell = ts
+        I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
+        e, i, j = cell.ravel(), I.ravel(), J.ravel()
+        node = tensor_node_grid(mesh, xs, ys)
+        corners = node[i[:, None] + np.array([0, 1, 1, 0]), j[:, None] + np.array([0, 0, 1, 1])]   # (n_el, 4)
+        V = _unit_centre_gradients()                                                  # (4 corners, 2)
+        vals = np.stack([V[None, :, 0] / (xs[i + 1] - xs[i])[:, None],
+                         V[None, :, 1] / (ys[j + 1] - ys[j])[:, None]], axis=-1)       # (n_el, 4, 2)
+        cols = 2 * corners[:, :, None] + np.arange(2)
+        rows = np.broadcast_to(e[:, None, None], cols.shape)
+        n_el = mesh.t.shape[1]
+        return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n_el, 2 * mesh.p.shape[1]))
     basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
     local = _div_form().elemental(basis).data.reshape(basis.Nbfun, basis.nelems) / basis.dx[:, 0]
     rows = np.broadcast_to(np.arange(basis.nelems), basis.element_dofs.shape)
