@@ -279,3 +279,24 @@ def test_user_data_reach_a_quadratic_form_through_w():
     b.setup(mesh)
     err = abs(a.matrix - b.matrix).max() / abs(b.matrix).max()
     assert err < 1e-12, err
+
+
+def test_centre_gradients_of_a_tensor_mesh_equal_scikit_fems(monkeypatch):
+    """The tensor-mesh shortcut (one unit element, scaled per element) gives the Basis operators and areas."""
+    import femreg.mesh as fm
+
+    mesh = MeshQuad1.init_tensor(np.array([0.0, 0.3, 1.0, 1.2, 2.5]), np.array([-1.0, -0.2, 0.5, 0.9]))
+    assert fm.tensor_structure(mesh) is not None
+    G, area = R.centre_gradient_operators(mesh)
+    monkeypatch.setattr(fm, "tensor_structure", lambda m: None)          # scikit-fem's Basis
+    G0, area0 = R.centre_gradient_operators(mesh)
+    for k in ("xx", "xy", "yx", "yy"):
+        assert abs(G[k] - G0[k]).max() <= 1e-12 * abs(G0[k]).max(), k
+    np.testing.assert_allclose(area, area0, rtol=1e-14)
+    A = np.array([[0.3, -0.7], [0.2, 0.5]])                # an affine field: its gradient and divergence exactly
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = A @ mesh.p
+    monkeypatch.undo()
+    for k, (a, b) in {"xx": (0, 0), "xy": (0, 1), "yx": (1, 0), "yy": (1, 1)}.items():
+        np.testing.assert_allclose(G[k] @ u, A[a, b], atol=1e-13)
+    np.testing.assert_allclose(R.momentum.element_centre_divergence(mesh) @ u, 0.8, atol=1e-13)

@@ -159,17 +159,6 @@ def _traction_form(component: int):
     return traction
 
 
-def _div_form():
-    from skfem import LinearForm
-    from skfem.helpers import div
-
-    @LinearForm
-    def divergence(v, w):
-        return div(v)
-
-    return divergence
-
-
 def _facet_rows(forms, basis, sign, w) -> list:
     """``sign`` x mean over each facet of every LinearForm in ``forms`` on one side's ``basis``: the facets'
     rows as (rows, cols, values) triplets, one per form (scikit-fem elemental assembly)."""
@@ -218,50 +207,17 @@ def facet_jump_operators(mesh, forms, *, quadrature=EDGE_MIDPOINT_RULE, **w):
     return comps, sides[0].dx.sum(axis=1), sides
 
 
-@functools.lru_cache(maxsize=1)
-def _unit_centre_gradients() -> np.ndarray:
-    """d N_k / dx and d N_k / dy (4 corners (0,0) (1,0) (1,1) (0,1) in (x, y) steps, 2) at the centre of the unit
-    square, from scikit-fem (read-only)."""
-    from skfem import Basis, ElementQuad1, MeshQuad1
-
-    m = MeshQuad1(np.array([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
-    b = Basis(m, ElementQuad1(), quadrature=ELEMENT_CENTRE_RULE)
-    V = np.array([[b.basis[k][0].grad[c][0, 0] for c in range(2)] for k in range(4)])
-    V.flags.writeable = False
-    return V
-
-
 def element_centre_divergence(mesh) -> sp.csr_matrix:
     r"""Operator D, shape (n_elements, 2 n_nodes): :math:`(D u)_e = \nabla\cdot u` at the centre of element e.
 
-    The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2).
+    The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2):
+    the trace of :func:`femreg.regularizers.centre_gradient_operators`.
     """
-    from skfem import Basis, ElementQuad1, ElementVector
-
-    from ..mesh import tensor_node_grid, tensor_structure
+    from .custom import centre_gradient_operators
 
     _check_quad_mesh(mesh)
-    ts = tensor_structure(mesh)
-    if ts is not None:
-        # axis-aligned tensor mesh: the centre derivatives of one unit element from scikit-fem, scaled by 1/hx
-        # (x part) and 1/hy (y part) -- the same operator without a Basis over the whole mesh (1.6 ms)
-        xs, ys, cell = ts
-        I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
-        e, i, j = cell.ravel(), I.ravel(), J.ravel()
-        node = tensor_node_grid(mesh, xs, ys)
-        corners = node[i[:, None] + np.array([0, 1, 1, 0]), j[:, None] + np.array([0, 0, 1, 1])]   # (n_el, 4)
-        V = _unit_centre_gradients()                                                  # (4 corners, 2)
-        vals = np.stack([V[None, :, 0] / (xs[i + 1] - xs[i])[:, None],
-                         V[None, :, 1] / (ys[j + 1] - ys[j])[:, None]], axis=-1)       # (n_el, 4, 2)
-        cols = 2 * corners[:, :, None] + np.arange(2)
-        rows = np.broadcast_to(e[:, None, None], cols.shape)
-        n_el = mesh.t.shape[1]
-        return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n_el, 2 * mesh.p.shape[1]))
-    basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
-    local = _div_form().elemental(basis).data.reshape(basis.Nbfun, basis.nelems) / basis.dx[:, 0]
-    rows = np.broadcast_to(np.arange(basis.nelems), basis.element_dofs.shape)
-    return sp.csr_matrix((local.ravel(), (rows.ravel(), basis.element_dofs.ravel())),
-                         shape=(basis.nelems, basis.N))
+    G, _ = centre_gradient_operators(mesh)
+    return (G["xx"] + G["yy"]).tocsr()
 
 
 def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge") -> JumpOperators:
