@@ -462,22 +462,32 @@ def spline_coefficients(data, z):  # pragma: no cover - compiled
     for i in range(n0 - 2, -1, -1):
         for j in range(n1):
             c[i, j] = z * (c[i + 1, j] - c[i, j])
-    # axis 1: the lines are the rows
+    # axis 1: the lines are the rows, run in blocks of 8 side by side (each recursion is a chain of dependent
+    # steps: 8 independent chains keep the floating-point units busy; 2.1 -> 1.3 ms at 1558 x 300)
     zn = np.power(z, n1 - 1)
-    for i in range(n0):
-        for j in range(n1):
-            c[i, j] *= gain
-        c0 = c[i, 0] + zn * c[i, n1 - 1]
+    nb = 8
+    acc = np.empty(nb)
+    for i0 in range(0, n0, nb):
+        i1 = min(i0 + nb, n0)
+        for i in range(i0, i1):
+            for j in range(n1):
+                c[i, j] *= gain
+            acc[i - i0] = c[i, 0] + zn * c[i, n1 - 1]
         zi = z
         for j in range(1, n1 - 1):
-            c0 += zi * (c[i, j] + zn * c[i, n1 - 1 - j])
+            for i in range(i0, i1):
+                acc[i - i0] += zi * (c[i, j] + zn * c[i, n1 - 1 - j])
             zi *= z
-        c[i, 0] = c0 / (1 - zn * zn)
+        for i in range(i0, i1):
+            c[i, 0] = acc[i - i0] / (1 - zn * zn)
         for j in range(1, n1):
-            c[i, j] += z * c[i, j - 1]
-        c[i, n1 - 1] = (z * c[i, n1 - 2] + c[i, n1 - 1]) * z / (z * z - 1)
+            for i in range(i0, i1):
+                c[i, j] += z * c[i, j - 1]
+        for i in range(i0, i1):
+            c[i, n1 - 1] = (z * c[i, n1 - 2] + c[i, n1 - 1]) * z / (z * z - 1)
         for j in range(n1 - 2, -1, -1):
-            c[i, j] = z * (c[i, j + 1] - c[i, j])
+            for i in range(i0, i1):
+                c[i, j] = z * (c[i, j + 1] - c[i, j])
     # mirror (whole-sample) extension by 2: out[1] = c[1], out[0] = c[2], likewise at the other ends
     for k in range(2):
         for j in range(n1):
