@@ -469,7 +469,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
-             coarse_to_fine="auto", strategy: str = "auto", repair: bool = True) -> RegistrationResult:
+             coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
+             strain_tol: float | None = None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): initial guess -> Gauss-Newton on the final mesh -> check and
@@ -532,6 +533,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Both end with the check stage (never worse than the start, success=False with a message on failure).
     repair : bool
         Detect and repair peak hopping (default True).
+    strain_tol : float, optional
+        ``strategy="auto"``: the final solve also stops once a step changes the element strains by less than this
+        fraction of their RMS; None = :data:`femreg.solver.GN_STRAIN_TOL`, 0 = only the ``tol`` rule.
 
     Returns
     -------
@@ -562,6 +566,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         raise InputError(f"unknown regularizer {regularizer!r}; choose one of {available_regularizers()}")
     if int(maxiter) < 0 or not (np.isfinite(tol) and tol > 0):
         raise InputError(f"need maxiter >= 0 and tol > 0, got maxiter={maxiter}, tol={tol}")
+    if strain_tol is not None and not (isinstance(strain_tol, (int, float)) and np.isfinite(strain_tol)
+                                       and strain_tol >= 0):
+        raise InputError(f"strain_tol must be a finite number >= 0 or None, got {strain_tol!r}")
     reg_options = effective_regularizer_options(strategy, regularizer, regularizer_options)
     user_reg = _fresh_regularizer(regularizer, alpha, reg_options)
     user_alpha = user_reg.alpha
@@ -662,7 +669,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if strategy == "auto":
         solve_kw["mask_outside"] = True
         solve_kw["tol"] = component_tol(tol, u0)
-        solve_kw["strain_tol"] = GN_STRAIN_TOL
+        st = GN_STRAIN_TOL if strain_tol is None else float(strain_tol)
+        solve_kw["strain_tol"] = st if st > 0 else None
     sol = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator,
                  callback=callback, **solve_kw)
     timings["gauss_newton"] = time.perf_counter() - t
