@@ -256,7 +256,9 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
 
     ts = tensor_structure(mesh)
     if ts is not None:
-        Kx, Ky, lengths, facets, tind, mid, n = _tensor_traction_jumps(mesh, ts, lb_edge)
+        Kx, Ky, lengths, facets, tind, mid, n = _tensor_traction_jumps(mesh, ts, lb_edge,
+                                                                       lambda_bar if centre else 0.0)
+        centre = False                  # already in
     else:
         (Kx, Ky), lengths, sides = facet_jump_operators(mesh, [_traction_form(0), _traction_form(1)],
                                                         lambda_bar=lb_edge)
@@ -315,18 +317,24 @@ def _traction_parts(lambda_bar: float):
     return A, B
 
 
-def _tensor_traction_jumps(mesh, ts, lambda_bar: float):
-    """The jump operators of :func:`momentum_jump_operators` (edge part) on an axis-aligned tensor mesh, the same
+def _tensor_traction_jumps(mesh, ts, lambda_bar: float, centre_lambda: float = 0.0):
+    """The jump operators of :func:`momentum_jump_operators` on an axis-aligned tensor mesh, the same
     rows in the same order as scikit-fem's ``InteriorFacetBasis`` gives them (interior facets in index order,
     side 0 = ``mesh.f2t[0]``).  Each edge's row is the outward traction of both elements at the edge midpoint
     (jump with the side-0 normal = side 0's outward traction + side 1's), taken from :func:`_edge_tractions`:
     on a rectangle the traction is linear in 1/hx and 1/hy, so two one-element evaluations by scikit-fem give
     it for every element size.  Why not ``InteriorFacetBasis`` here: its set-up costs 3-6 ms per mesh, and a
-    registration builds two meshes; this reuses the form's constants and assembles in about 1 ms."""
+    registration builds two meshes; this reuses the form's constants and assembles in about 1 ms.
+    ``lambda_bar`` weighs the dilatation at the edge midpoint; ``centre_lambda`` the jump of the element-centre
+    dilatation times the side-0 normal (the centre form of :func:`momentum_jump_operators`), added to the same
+    entries (the centre gradients of :func:`femreg.regularizers.centre_gradient_operators`)."""
     from ..mesh import tensor_node_grid
+
+    from .custom import _unit_centre_gradients
 
     xs, ys, cell = ts
     A, B = _traction_parts(float(lambda_bar))
+    V = _unit_centre_gradients()
     n_el = mesh.t.shape[1]
     ci, cj = np.empty(n_el, int), np.empty(n_el, int)
     I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
@@ -351,6 +359,10 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float):
             normals = np.stack([np.select([side == 0, side == 1], [-1.0, 1.0], 0.0),
                                 np.select([side == 2, side == 3], [-1.0, 1.0], 0.0)])
         vals = A[:, side] / hx[None, :, None, None] + B[:, side] / hy[None, :, None, None]   # (2, n_e, 4, 2)
+        if centre_lambda != 0.0:      # +- lambda [div u(centre of this side's element)] n, side 0 minus side 1
+            div = np.stack([V[None, :, 0] / hx[:, None], V[None, :, 1] / hy[:, None]], axis=-1)   # (n_e, 4, 2)
+            sign = centre_lambda if s == 0 else -centre_lambda
+            vals = vals + sign * normals[:, :, None, None] * div[None]
         nodes = node[i[:, None] + a_steps[None, :], j[:, None] + b_steps[None, :]]          # (n_e, 4)
         cols = (2 * nodes[:, :, None] + np.arange(2)[None, None, :])                        # (n_e, 4, 2)
         rows_all.append(np.broadcast_to(np.arange(facets.size)[:, None, None], cols.shape).ravel())
