@@ -375,6 +375,7 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float, centre_lambda: float = 0
     for k in range(2):
         M = sp.csr_matrix((np.concatenate(vals_all[k]), (rows, np.concatenate(cols_all[k]))), shape=shape)
         M.sum_duplicates()
+        M.eliminate_zeros()          # structural zeros (a normal component or a traction term that is 0)
         K.append(M)
     return K[0], K[1], lengths, facets, tind, mid, normals
 
