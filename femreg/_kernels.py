@@ -281,17 +281,30 @@ def add_into_pattern(Ap, Ai, Ad, scale, Hp, Hi, marker, out):  # pragma: no cove
 def knot_gradient(c, r0, nr, c0, nc, dx2, dy2, gx, gy):  # pragma: no cover - compiled
     """Gradient of the cubic interpolant at the pixel centres of the block (r0:r0+nr, c0:c0+nc), raveled into
     gx, gy; ``c`` the coefficients mirror-padded by 2.  The same operations in the same order as the numpy
-    form in :meth:`femreg.image.SplineImage.gradient_at_pixels` (bit-identical), in one pass instead of six."""
-    for i in range(nr):
-        a = r0 + 2 + i
+    form in :meth:`femreg.image.SplineImage.gradient_at_pixels` (bit-identical), in one pass instead of six:
+    the lateral smoothing of each coefficient row is computed once and kept for the two output rows that use
+    it (a ring of three rows)."""
+    sy = np.empty((3, nc))             # lateral smoothing of coefficient rows a - 1, a, a + 1 (ring)
+    sx = np.empty(nc + 2)
+    for k in range(2):                 # rows r0 + 1, r0 + 2 of the padded array
+        a = r0 + 1 + k
         for j in range(nc):
             b = c0 + 2 + j
-            sp1 = (c[a + 1, b - 1] + 4.0 * c[a + 1, b] + c[a + 1, b + 1]) / 6.0
-            sm1 = (c[a - 1, b - 1] + 4.0 * c[a - 1, b] + c[a - 1, b + 1]) / 6.0
-            tp1 = (c[a - 1, b + 1] + 4.0 * c[a, b + 1] + c[a + 1, b + 1]) / 6.0
-            tm1 = (c[a - 1, b - 1] + 4.0 * c[a, b - 1] + c[a + 1, b - 1]) / 6.0
-            gx[i * nc + j] = (sp1 - sm1) / dx2
-            gy[i * nc + j] = (tp1 - tm1) / dy2
+            sy[k, j] = (c[a, b - 1] + 4.0 * c[a, b] + c[a, b + 1]) / 6.0
+    for i in range(nr):
+        a = r0 + 2 + i
+        nxt = (i + 2) % 3
+        for j in range(nc):
+            b = c0 + 2 + j
+            sy[nxt, j] = (c[a + 1, b - 1] + 4.0 * c[a + 1, b] + c[a + 1, b + 1]) / 6.0
+        prv = i % 3
+        for j in range(nc + 2):
+            b = c0 + 1 + j
+            sx[j] = (c[a - 1, b] + 4.0 * c[a, b] + c[a + 1, b]) / 6.0
+        o = i * nc
+        for j in range(nc):
+            gx[o + j] = (sy[nxt, j] - sy[prv, j]) / dx2
+            gy[o + j] = (sx[j + 2] - sx[j]) / dy2
 
 
 @_jit
