@@ -51,36 +51,42 @@ class SSDTerm:
     def __init__(self, quad: PixelQuadrature, reference: SplineImage, moving: SplineImage, offset=None):
         self.quad = quad
         self.moving = moving
-        pts = quad.points
         #: S at the quadrature pixels (m, 2) mm, or None
-        self.offset = None if offset is None else np.asarray(offset, float).reshape(pts.shape)
+        self.offset = None if offset is None else np.asarray(offset, float).reshape(quad.n_pixels, 2)
         block = getattr(quad, "block", None)
         self._ref_gradient = None
+        self._knots = offset is None        # I_2 at u = 0 is the pixel values (S = 0)
+        self._moving_values = None
+        self._inv_sp = 1.0 / moving.spacing
+        o, h = moving.origin, moving.spacing
+        self._bx = self._by = None
+        self._bxr = self._byc = np.empty(0)
         if offset is None and block is not None:
-            # the pixels are a block of the image (tensor mesh): slices instead of gathers (same values)
+            # the pixels are a block of the image (tensor mesh): slices instead of gathers (same values), and the
+            # base positions of I_2 per row and column (the warp reads two short vectors, not two images)
             gx, gy = reference.gradient_at_pixels(block)
             self._gx, self._gy = gx.ravel(), gy.ravel()
             self.ref_values = reference.data[block].ravel()
-            self._moving_at_pixels = moving.data[block].ravel()
-            base = pts
+            xr, yc = quad.axes
+            self._bxr, self._byc = (xr - o[0]) / h[0], (yc - o[1]) / h[1]
         elif offset is None:
             gx, gy = reference.gradient_at_pixels()
             self._gx, self._gy = gx.ravel()[quad.index], gy.ravel()[quad.index]
-            base = pts
             self.ref_values = reference.data.ravel()[quad.index]
-            self._moving_at_pixels = moving.data.ravel()[quad.index]
+            pts = quad.points
+            self._bx, self._by = (pts[:, 0] - o[0]) / h[0], (pts[:, 1] - o[1]) / h[1]
         else:
-            self._moving_at_pixels = None
-            base = pts + self.offset
+            base = quad.points + self.offset
             g = reference.gradient(base)
             self._gx = np.ascontiguousarray(g[:, 0])
             self._gy = np.ascontiguousarray(g[:, 1])
             self.ref_values = reference(base)
-        # Base sampling positions of I_2 in fractional pixel indices; u adds (u / spacing).
-        self._inv_sp = 1.0 / moving.spacing
-        self._bx = (base[:, 0] - moving.origin[0]) / moving.spacing[0]
-        self._by = (base[:, 1] - moving.origin[1]) / moving.spacing[1]
-        self.w = quad.weights
+            # Base sampling positions of I_2 in fractional pixel indices; u adds (u / spacing).
+            self._bx, self._by = (base[:, 0] - o[0]) / h[0], (base[:, 1] - o[1]) / h[1]
+        if getattr(quad, "weights_constant", False):     # equal pixel weights: no test of all m of them
+            self._w, self._w_const = quad.weights, float(quad.weights[0]) if quad.n_pixels else None
+        else:
+            self.w = quad.weights
         self._J = None
         self._H = None
         self._cache_u = None
@@ -89,6 +95,26 @@ class SSDTerm:
         self._empty = np.empty(0)
         if self._grid is not None:
             self._node_grid = quad.locator.node_grid          # (nx, ny) node index at each grid position
+
+    @property
+    def base_index(self):
+        """Base sampling positions of I_2 in fractional pixel indices, ``(bx, by)`` each (m,): x + S at the
+        quadrature pixels; the warp adds u / spacing."""
+        if self._bx is None:
+            nr, nc = self._bxr.size, self._byc.size
+            self._bx, self._by = np.repeat(self._bxr, nc), np.tile(self._byc, nr)
+        return self._bx, self._by
+
+    @property
+    def _moving_at_pixels(self):
+        """I_2 at the quadrature pixels (u = 0, S = 0: its knots), or None with an offset."""
+        if not self._knots:
+            return None
+        if self._moving_values is None:
+            block = getattr(self.quad, "block", None)
+            self._moving_values = (self.moving.data[block].ravel() if block is not None
+                                   else self.moving.data.ravel()[self.quad.index])
+        return self._moving_values
 
     @property
     def w(self) -> np.ndarray:
@@ -113,12 +139,12 @@ class SSDTerm:
 
     @property
     def _base_idx(self):
-        return np.stack([self._bx, self._by])
+        return np.stack(self.base_index)
 
     # -------------------------------------------------------------------------------------------------------
     def warped_moving(self, u):
         """I_2(x + S + u(x)) at the quadrature pixels, (m,)."""
-        if self._moving_at_pixels is not None and not np.any(u):
+        if self._knots and not np.any(u):
             # u = 0 and S = 0: the interpolant at its knots is the pixel value (exactly, not up to round-off)
             return self._moving_at_pixels.copy()
         if _kernels.use_compiled():
@@ -138,17 +164,19 @@ class SSDTerm:
         out = np.empty(self.quad.n_pixels)
         if self._grid is not None:
             G, gr = self._node_grid, self._grid
-            return warp_grid(m._padded, hi0, hi1, self._bx, self._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"],
-                             gr["Y"], self._inv_sp[0], self._inv_sp[1], sub, out)
+            bx, by = (self._empty, self._empty) if self._bx is None else (self._bx, self._by)
+            return warp_grid(m._padded, hi0, hi1, bx, by, self._bxr, self._byc, ux[G], uy[G], gr["i"], gr["X"],
+                             gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], sub, out)
         loc = self.quad.location
-        return warp_nodes(m._padded, hi0, hi1, self._bx, self._by, ux, uy, loc.nodes, loc.N, self._inv_sp[0],
+        bx, by = self.base_index
+        return warp_nodes(m._padded, hi0, hi1, bx, by, ux, uy, loc.nodes, loc.N, self._inv_sp[0],
                           self._inv_sp[1], sub, out)
 
     def residual(self, u):
         """r(u) = I_2(x + S + u) - I_1(x + S), (m,); cached for the last u."""
         if self._cache_u is not None and np.array_equal(u, self._cache_u):
             return self._cache_r
-        if _kernels.use_compiled() and (self._moving_at_pixels is None or np.any(u)):
+        if _kernels.use_compiled() and (not self._knots or np.any(u)):
             r = self._warp_compiled(u, self.ref_values)
         else:
             r = self.warped_moving(u)

@@ -376,12 +376,17 @@ class PixelQuadrature:
         Flat (C-order) indices of the pixels whose centres lie in the mesh.
     points : (m, 2) float, mm
         Their centres.
+    axes : ((nr,), (nc,)) float, mm, or None
+        When the pixels are a block (``block``): its row and column centres, ``points`` their outer product.
     weights : (m,) float, mm^2
         Midpoint-rule weights, dx * dy each.
     P : (m, n_nodes) csr
         Pixel->node interpolation operator.
     location : Location
     """
+
+    #: The midpoint rule's weights are all dx * dy.
+    weights_constant = True
 
     def __init__(self, mesh, shape, spacing, origin, locator: PointLocator | None = None):
         self.mesh = mesh
@@ -407,9 +412,8 @@ class PixelQuadrature:
             rows, cols = loc.grid["rows"], loc.grid["cols"]
             nr, nc = rows.size, cols.size
             self.index = ((i0 + rows)[:, None] * self.shape[1] + (j0 + cols)[None, :]).ravel()
-            self.points = np.empty((nr * nc, 2))
-            self.points[:, 0] = np.repeat(xa[rows], nc)
-            self.points[:, 1] = np.tile(ya[cols], nr)
+            self.axes = (xa[rows], ya[cols])
+            self._points = None             # built on first use from the axes
             if nr and nc:
                 self.block = (slice(i0 + rows[0], i0 + rows[0] + nr), slice(j0 + cols[0], j0 + cols[0] + nc))
         else:
@@ -417,11 +421,23 @@ class PixelQuadrature:
             ii, jj = ii.ravel(), jj.ravel()
             ins = loc.inside
             self.index = (ii * self.shape[1] + jj)[ins]
-            self.points = np.column_stack([xa[ii[ins] - i0], ya[jj[ins] - j0]])
+            self.axes = None
+            self._points = np.column_stack([xa[ii[ins] - i0], ya[jj[ins] - j0]])
         self.weights = np.full(self.index.size, self.spacing[0] * self.spacing[1])
         self.n_nodes = mesh.p.shape[1]
         self._P = None
         self._PT = None
+
+    @property
+    def points(self) -> np.ndarray:
+        """Centres of the quadrature pixels (m, 2) mm (on a block: built on first use from ``axes``)."""
+        if self._points is None:
+            xr, yc = self.axes
+            pts = np.empty((xr.size * yc.size, 2))
+            pts[:, 0] = np.repeat(xr, yc.size)
+            pts[:, 1] = np.tile(yc, xr.size)
+            self._points = pts
+        return self._points
 
     @property
     def P(self) -> sp.csr_matrix:

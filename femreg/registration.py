@@ -441,12 +441,14 @@ def _solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None
         if gr is not None and _kernels.use_compiled():     # one compiled pass over the pixel grid
             G = quad.locator.node_grid
             ux, uy = np.asarray(u0, float)[0::2], np.asarray(u0, float)[1::2]
-            out = _kernels.outside_grid(data._bx, data._by, ux[G], uy[G], gr["i"], gr["X"], gr["j"], gr["Y"],
-                                        data._inv_sp[0], data._inv_sp[1], hi[0], hi[1],
+            e = np.empty(0)
+            bx, by = (e, e) if data._bx is None else (data._bx, data._by)
+            out = _kernels.outside_grid(bx, by, data._bxr, data._byc, ux[G], uy[G], gr["i"], gr["X"], gr["j"],
+                                        gr["Y"], data._inv_sp[0], data._inv_sp[1], hi[0], hi[1],
                                         np.empty(quad.n_pixels, bool))
         else:
             out = np.zeros(quad.n_pixels, bool)
-            for c, base in enumerate((data._bx, data._by)):
+            for c, base in enumerate(data.base_index):
                 idx = pixel_values(quad, u0[c::2])
                 idx *= data._inv_sp[c]
                 idx += base
