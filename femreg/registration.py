@@ -34,7 +34,7 @@ from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_nc
                      hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
-from .solver import GN_STRAIN_TOL, Objective, gauss_newton, single_blas_thread
+from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_QUADRATIC, Objective, gauss_newton, single_blas_thread
 
 __all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at",
            "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
@@ -537,7 +537,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Detect and repair peak hopping (default True).
     strain_tol : float, optional
         ``strategy="auto"``: the final solve also stops once a step changes the element strains by less than this
-        fraction of their RMS; None = :data:`femreg.solver.GN_STRAIN_TOL`, 0 = only the ``tol`` rule.
+        fraction of their RMS (on two consecutive steps); None = :data:`femreg.solver.GN_STRAIN_TOL` (1.5 %, the
+        TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_QUADRATIC` (0.5 %, the quadratic ones), 0 = only
+        the ``tol`` rule.
 
     Returns
     -------
@@ -671,7 +673,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if strategy == "auto":
         solve_kw["mask_outside"] = True
         solve_kw["tol"] = component_tol(tol, u0)
-        st = GN_STRAIN_TOL if strain_tol is None else float(strain_tol)
+        st = float(strain_tol) if strain_tol is not None else (
+            GN_STRAIN_TOL_QUADRATIC if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
         solve_kw["strain_tol"] = st if st > 0 else None
     sol = _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator,
                  callback=callback, **solve_kw)
