@@ -1,15 +1,17 @@
 """Compiled inner loops of the image term (numba, optional): cubic B-spline prefilter and evaluation
 (:mod:`femreg.image`), the fused displacement -> pixel -> I_2 warp and its transpose, the element-by-element and
-the separable data Hessian (:mod:`femreg.data_term`), the Newton walk of point location on logically structured
-meshes (:mod:`femreg.pixels`); and of the stages around the solve: the global search's window sums and axial
-resampling (:mod:`femreg.pyramid`), the out-of-image mask and the result grids (:mod:`femreg.registration`), the
-element NCC of the quality map (:mod:`femreg.repair`).
+the separable data Hessian (:mod:`femreg.data_term`), the lagged-diffusivity Hessian on a fixed pattern
+(:mod:`femreg.regularizers.momentum`), the Newton walk of point location on logically structured meshes
+(:mod:`femreg.pixels`); and of the stages around the solve: the analytic signal, the global search's window sums
+and axial resampling (:mod:`femreg.pyramid`), the out-of-image mask and the result grids
+(:mod:`femreg.registration`), the element NCC of the quality map and the envelope lags of the peak-hopping check
+(:mod:`femreg.repair`).
 
 Each loop has a numpy/scipy twin in the module that uses it (``map_coordinates``, sparse products, a vectorised
 walk); the two agree to round-off and tests compare them with independent references.  Why compiled: the
 re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton (0.55 M points per iteration on a
-paper-size image): 7 ms here against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best vectorised numpy
-gather (measured on the shared 2-core machine).  All loops live in this one file so that numba's on-disk cache
+paper-size image): 4-5 ms here against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best vectorised
+numpy gather (measured on the shared 2-core machine).  All loops live in this one file so that numba's on-disk cache
 (keyed on this file) is invalidated together when any of them changes.  The first use on a machine compiles them
 (~4 s, once); later processes load the cache (~0.5 s with numba's import).  Single-threaded, no fastmath: the same
 input gives the same output bit for bit.
