@@ -691,8 +691,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         reference = None if coarse_u0 is None else coarse_u0[0::2]
 
         def repaired(hops):
+            # the reseeded start is far from converged around the moved nodes: solve it to the tight strain
+            # tolerance (bending 0.5 -> 5 % under the 5.5 MHz probe: 9.5 -> 7.2 % total strain error)
+            kw = dict(solve_kw)
+            if kw.get("strain_tol") is not None:
+                kw["strain_tol"] = min(kw["strain_tol"], GN_STRAIN_TOL_QUADRATIC)
             return _solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, reseed(sol.u, hops, period),
-                          locator=locator, **solve_kw)
+                          locator=locator, **kw)
 
         def total(s):
             return s.data.energy(s.u) + s.reg.energy(s.u)
