@@ -30,8 +30,8 @@ from .mesh import DEFAULT_ELEMENT_SIZE, as_quad_mesh, check_mesh_in_image, roi_m
 from .pixels import PixelQuadrature, PointLocator
 from .pyramid import (ROTATION_SCAN_NCC, default_settings, element_rule, field_at, pyramid_initial_guess, rf_period,
                       speckle_statistics)
-from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, element_ncc, hop_gain, hop_nodes,
-                     hopped_fraction, pixel_values, poor_fraction, reseed)
+from .repair import (MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MAX_POOR_FRACTION_DECORRELATED, MIN_NCC, element_ncc,
+                     hop_gain, hop_nodes, hopped_fraction, pixel_values, poor_fraction, reseed)
 from .scaling import effective_alpha
 from .regularizers import Regularizer, available_regularizers, make_regularizer
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_QUADRATIC, Objective, gauss_newton, single_blas_thread
@@ -774,7 +774,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             success = False
             notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
                          f"({period:.3g} mm) off")
-    if guess is not None and guess.global_ncc < ROTATION_SCAN_NCC and (not success or poor > 0.1):
+    decorrelated = guess is not None and guess.global_ncc < ROTATION_SCAN_NCC
+    if decorrelated and poor > MAX_POOR_FRACTION_DECORRELATED and success:
+        success = False
+        notes.append(f"on a decorrelated pair more than {MAX_POOR_FRACTION_DECORRELATED:.0%} of the elements not "
+                     f"matching mark a wrong result")
+    if decorrelated and (not success or poor > 0.1):
         # the speckle decorrelated between the frames (rotation, strain of several percent): say what works
         notes.append(f"the pair is strongly decorrelated (global envelope NCC {guess.global_ncc:.2f}); register "
                      f"closer frames, or the whole sequence with track")

@@ -356,6 +356,18 @@ def test_islands_left_after_the_repair_fail_the_result():
     assert "strongly decorrelated" in res.message and "track" in res.message, res.message
 
 
+def test_decorrelated_pair_with_a_tenth_of_its_elements_unmatched_fails():
+    # 5 % compression + 5 degrees under the 12 MHz probe: global envelope NCC 0.17, 20 % of the elements below
+    # NCC 0.3, 47.7 % total strain error -- returned with success=True before this rule
+    from forward.pairs import make_pair
+
+    f = _rotation(5.0, e=0.05)
+    p = make_pair(f, "L12", (25, 25), 25, seed=2)
+    res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
+    assert not res.success and "on a decorrelated pair" in res.message, res.message
+    assert field_errors(res, f.displacement, f.strain)["e"] > 0.15      # it is wrong (measured 47.7 %)
+
+
 @pytest.mark.slow
 def test_neighbourhood_offsets_near_an_inclusion_are_not_forced():
     # 8 % compression of a stiff plane-strain inclusion under L7: about 20 nodes near the inclusion sit a
