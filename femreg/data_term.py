@@ -263,18 +263,17 @@ class SSDTerm:
         sx = np.array([0, 1, 1, 0])
         sy = np.array([0, 0, 1, 1])
         cn = self.quad.locator.cell_nodes()[ei[:, None], ej[None, :]].reshape(-1, 4)   # (n_el, 4)
-        comp = {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}
-        rows, cols, vals = [], [], []
-        for k in range(4):
-            for l in range(4):
-                blk = U[sx[k] + sx[l], sy[k] + sy[l]].reshape(3, -1)
-                for a in range(2):
-                    for b in range(2):
-                        rows.append(2 * cn[:, k] + a)
-                        cols.append(2 * cn[:, l] + b)
-                        vals.append(blk[comp[(a, b)]])
+        # entry (corner k, corner l, component a, component b, element): the product sums of the two corners'
+        # sides and the (a, b) gradient product (xx, xy = yx, yy), in that order
+        SX, SY = sx[:, None] + sx[None, :], sy[:, None] + sy[None, :]
+        comp = np.array([[0, 1], [1, 2]])
+        vals = U.reshape(3, 3, 3, -1)[SX[:, :, None, None], SY[:, :, None, None], comp[None, None], :]
+        c = cn.T[:, None, None, None, :]
+        d = np.arange(2)
+        rows = np.broadcast_to(2 * c + d[None, None, :, None, None], vals.shape)
+        cols = np.broadcast_to(2 * np.swapaxes(c, 0, 1) + d[None, None, None, :, None], vals.shape)
         n = 2 * self.quad.n_nodes
-        H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+        H = sp.coo_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n))
         return H.tocsr()
 
     def _hessian_elements(self):
