@@ -10,7 +10,7 @@ total strain error, the success flag and the message.  "silent failure": total s
 
     python benchmarks/rotation_sweep.py [--out out/rotation_sweep]
 
-About 35 s on 2 cores.  Writes ``<out>/rotation_sweep.csv`` and ``<out>/rotation_sweep.md``.
+About 30 s on 2 cores.  Writes ``<out>/rotation_sweep.csv`` and ``<out>/rotation_sweep.md``.
 """
 from __future__ import annotations
 
