@@ -181,9 +181,12 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
     tn = np.sqrt(np.sum(T * T, axis=(1, 2)))
     R = sliding_window_view(movp, (ra, rl))[A, L]
     shape = (sfft.next_fast_len(ra, real=True), sfft.next_fast_len(rl, real=True))
-    X = sfft.rfft2(R, s=shape, workers=-1)
-    X *= np.conj(sfft.rfft2(T, s=shape, workers=-1))
-    C = sfft.irfft2(X, s=shape, workers=-1)[:, :2 * sa + 1, :2 * sl + 1]
+    # the correlations in single precision, on one thread like the rest of a registration (batches run one
+    # single-threaded process per core): 1.7x faster than double; their relative error (~1e-6) is far below
+    # the NCC differences between neighbouring shifts
+    X = sfft.rfft2(R.astype(np.float32), s=shape, workers=1)
+    X *= np.conj(sfft.rfft2(T.astype(np.float32), s=shape, workers=1))
+    C = sfft.irfft2(X, s=shape, workers=1)[:, :2 * sa + 1, :2 * sl + 1].astype(float)
     # moving-window sums over every shift: the box sums of every window position of the whole padded moving
     # image from its integral image (windows overlap, so summing each search region separately would repeat
     # most of the work), then each window's (shifts_a, shifts_l) block of them

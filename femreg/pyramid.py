@@ -588,8 +588,9 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     v = field(pts)
     u0 = np.empty(2 * len(pts))
     u0[0::2], u0[1::2] = v[:, 0], v[:, 1]
+    psi0 = data.energy(u0)          # before the solve: its first evaluation then comes from the cache
     gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver)
-    u = gn.x if data.energy(gn.x) <= data.energy(u0) else u0
+    u = gn.x if data.energy(gn.x) <= psi0 else u0
     timings["envelope_gauss_newton"] = time.perf_counter() - t
     return PyramidGuess(mesh=mesh, u=u, stats=stats, settings=settings, global_ncc=gncc, blockmatch=bm,
                         timings=timings)
