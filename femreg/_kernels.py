@@ -50,6 +50,18 @@ _SIXTH = 1.0 / 6.0
 
 
 @_jit
+def _cubic_weights(t):  # pragma: no cover - compiled
+    """The four cubic B-spline weights of the fractional offset t in [0, 1)."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    w0 = s * s * s * _SIXTH          # products, not divisions: the divide unit limited the loop
+    w3 = t3 * _SIXTH
+    w1 = 2.0 / 3.0 - t2 + 0.5 * t3
+    return w0, w1, 1.0 - w0 - w1 - w3, w3
+
+
+@_jit
 def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     """One value of the interpolant at fractional pixel index (xp, yp); ``c`` the coefficients mirror-padded by 2
     on every side; 0 outside the pixel cells [-1/2, hi] (and for NaN)."""
@@ -59,22 +71,8 @@ def cubic_point(c, xp, yp, hi0, hi1):  # pragma: no cover - compiled
     fy = np.floor(yp)
     i = int(fx) + 1
     j = int(fy) + 1
-    t = xp - fx
-    s = 1.0 - t
-    t2 = t * t
-    t3 = t2 * t
-    a0 = s * s * s * _SIXTH          # products, not divisions: the divide unit limited the loop
-    a3 = t3 * _SIXTH
-    a1 = 2.0 / 3.0 - t2 + 0.5 * t3
-    a2 = 1.0 - a0 - a1 - a3
-    t = yp - fy
-    s = 1.0 - t
-    t2 = t * t
-    t3 = t2 * t
-    b0 = s * s * s * _SIXTH
-    b3 = t3 * _SIXTH
-    b1 = 2.0 / 3.0 - t2 + 0.5 * t3
-    b2 = 1.0 - b0 - b1 - b3
+    a0, a1, a2, a3 = _cubic_weights(xp - fx)
+    b0, b1, b2, b3 = _cubic_weights(yp - fy)
     return (a0 * (b0 * c[i, j] + b1 * c[i, j + 1] + b2 * c[i, j + 2] + b3 * c[i, j + 3])
             + a1 * (b0 * c[i + 1, j] + b1 * c[i + 1, j + 1] + b2 * c[i + 1, j + 2] + b3 * c[i + 1, j + 3])
             + a2 * (b0 * c[i + 2, j] + b1 * c[i + 2, j + 1] + b2 * c[i + 2, j + 2] + b3 * c[i + 2, j + 3])
@@ -86,21 +84,6 @@ def cubic_kernel(c, x, y, hi0, hi1, out):  # pragma: no cover - compiled
     for p in range(x.shape[0]):
         out[p] = cubic_point(c, x[p], y[p], hi0, hi1)
     return out
-
-
-@_jit
-def _spline_weights(t, W, q):  # pragma: no cover - compiled
-    """The four cubic B-spline weights of fractional offset t in [0, 1) into W[:, q] (as :func:`cubic_point`)."""
-    s = 1.0 - t
-    t2 = t * t
-    t3 = t2 * t
-    w0 = s * s * s * _SIXTH
-    w3 = t3 * _SIXTH
-    w1 = 2.0 / 3.0 - t2 + 0.5 * t3
-    W[0, q] = w0
-    W[1, q] = w1
-    W[2, q] = 1.0 - w0 - w1 - w3
-    W[3, q] = w3
 
 
 @_jit
@@ -155,8 +138,8 @@ def warp_grid(c, hi0, hi1, bx, by, bxr, byc, Ux, Uy, ei, X, ej, Y, isx, isy, sub
             fy = np.floor(ys[q])
             II[q] = int(fx) + 1
             JJ[q] = int(fy) + 1
-            _spline_weights(xs[q] - fx, A, q)
-            _spline_weights(ys[q] - fy, B, q)
+            A[0, q], A[1, q], A[2, q], A[3, q] = _cubic_weights(xs[q] - fx)
+            B[0, q], B[1, q], B[2, q], B[3, q] = _cubic_weights(ys[q] - fy)
         for q in range(nc):
             k = II[q] * ncol + JJ[q]
             b0 = B[0, q]
@@ -490,7 +473,7 @@ def spline_coefficients(data, z):  # pragma: no cover - compiled
         for j in range(n1):
             c[i, j] = z * (c[i + 1, j] - c[i, j])
     # axis 1: the lines are the rows, run in blocks of 8 side by side (each recursion is a chain of dependent
-    # steps: 8 independent chains keep the floating-point units busy; 2.1 -> 1.3 ms at 1558 x 300)
+    # steps: 8 independent chains keep the floating-point units busy; 2.1 -> 1.1 ms at 1558 x 300)
     zn = np.power(z, n1 - 1)
     nb = 8
     acc = np.empty(nb)
