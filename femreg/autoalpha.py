@@ -62,16 +62,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import InputError
+from .solver import GN_STRAIN_TOL_TIGHT
 
 __all__ = ["AutoAlpha", "choose_alpha", "register_auto", "DEFAULT_DECADES", "influence_trace", "quasi_optimal_index",
            "successful_stretch"]
 
 #: Exponents (decades) of the candidate grid relative to the regulariser's default alpha: 10^-1.5 ... 10^1.5.
 DEFAULT_DECADES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)
-#: Strain stopping rule of the grid's registrations (``register(strain_tol=...)``, default 1.5 %): the rules
-#: compare the strains of neighbouring alphas, which differ by 1-2 % of their RMS, so each solve must settle well
-#: below that (at 1.5 % the synthetic test pair's choice moved from 0.013 to 0.13, 4x off the best alpha).
-STRAIN_TOL = 0.005
 #: Above this many unknowns the trace T is estimated (Hutchinson, seeded Rademacher probes) instead of exact.
 EXACT_TRACE_MAX_DOF = 3000
 TRACE_PROBES = 40
@@ -202,8 +199,8 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
                       else make_regularizer(regularizer, **options).alpha)
     alphas = float(base_alpha) * 10.0 ** np.sort(decades)
 
-    if register_kwargs.get("strain_tol") is None:
-        register_kwargs["strain_tol"] = STRAIN_TOL
+    if register_kwargs.get("strain_tol") is None:     # the rules compare strains 1-2 % apart: settle further
+        register_kwargs["strain_tol"] = GN_STRAIN_TOL_TIGHT
     results = [register(reference_image, moving_image, alpha=float(al), **register_kwargs) for al in alphas]
 
     # the image term and its Hessian on the registrations' mesh (same construction as register)
