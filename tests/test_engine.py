@@ -315,9 +315,11 @@ def test_block_matching_recovers_integer_shift_exactly(speckle, shift):
     sub = block_match(ref, mov, SP, search=(0.5, 1.5), subsample=True)
     off = np.abs(sub.raw - want) / np.asarray(SP)
     full = sub.ncc > 0.999999          # windows that stay inside the moving image: symmetric peak
-    # a parabola through a non-parabolic NCC peak has a known bias of a few hundredths of a sample
-    assert full.sum() >= 3 and off[full].max() < 0.1, \
-        f"sub-sample refinement moved an exact integer peak by {off[full].max():.3f} samples"
+    # a parabola through the peak and its two (unequal) neighbours is off an exact integer peak: measured at most
+    # 0.0015 samples axially and 0.067 laterally (shift (7, 0); 0.006-0.007 for the others); bounds 0.005 and 0.1
+    worst = off[full].max(axis=0)
+    assert full.sum() >= 3 and worst[0] < 0.005 and worst[1] < 0.1, \
+        f"sub-sample refinement moved an exact integer peak by {worst} samples (axial, lateral)"
 
 
 # ---------------------------------------------------------------- mesh convergence ---------------------------
