@@ -16,8 +16,9 @@ numba's on-disk cache (keyed on this file) is invalidated together when any of t
 machine compiles them (seconds, once); later processes load the cache.  Single-threaded, no fastmath: the same
 input gives the same output bit for bit.
 
-Switching them off: ``FEMREG_NUMBA=0`` in the environment (this process and those it starts, e.g. batch workers;
-numba is then not imported), or :func:`set_compiled` / ``with compiled(False):`` in a process.  Every branch that
+Switching them off: ``FEMREG_NUMBA=0`` in the environment (numba is then not even imported), or
+:func:`set_compiled` / ``with compiled(False):`` in a process (which also sets the variable for the processes it
+starts, e.g. batch workers).  Every branch that
 calls a loop of this file tests :func:`use_compiled` at the time of the call.
 
 How to add a kernel
@@ -68,24 +69,31 @@ def use_compiled() -> bool:
 
 
 def set_compiled(enabled: bool) -> bool:
-    """Turn the compiled loops on or off in this process (on only takes effect where numba is importable);
-    returns the previous setting.  Objects built before keep what they computed (e.g. the spline coefficients of
-    a :class:`femreg.image.SplineImage`, which are equal either way)."""
+    """Turn the compiled loops on or off in this process and in the processes it starts from now on (batch
+    workers, the CLI: :data:`ENV_SWITCH` is set too); on only takes effect where numba is importable.  Returns the
+    previous setting.  Objects built before keep what they computed (e.g. the spline coefficients of a
+    :class:`femreg.image.SplineImage`, which are equal either way)."""
     global HAVE_NUMBA
     previous = HAVE_NUMBA
     HAVE_NUMBA = bool(enabled)
+    os.environ[ENV_SWITCH] = "1" if enabled else "0"
     return previous
 
 
 @contextlib.contextmanager
 def compiled(enabled: bool = True):
     """``with compiled(False): ...`` runs the block on the numpy twins (``True``: on the compiled loops where
-    numba is importable) and restores the previous setting afterwards."""
+    numba is importable) and restores the previous setting (and environment) afterwards."""
+    env = os.environ.get(ENV_SWITCH)
     previous = set_compiled(enabled)
     try:
         yield use_compiled()
     finally:
         set_compiled(previous)
+        if env is None:
+            os.environ.pop(ENV_SWITCH, None)
+        else:
+            os.environ[ENV_SWITCH] = env
 
 
 def _jit(fn):

@@ -176,16 +176,23 @@ def test_track_is_the_same_with_and_without_the_compiled_loops(grid, calls):
     _close(np.asarray(s1.increments), np.asarray(s0.increments), "increments")
 
 
-def test_switch_restores_and_environment_turns_the_loops_off():
+def test_switch_restores_and_environment_turns_the_loops_off(monkeypatch):
+    monkeypatch.delenv(_kernels.ENV_SWITCH, raising=False)
     before = _kernels.use_compiled()
+    code = ("import sys; from femreg import _kernels; "
+            "print(_kernels.use_compiled(), 'numba' in sys.modules)")
+    root = str(Path(__file__).resolve().parents[1])
+
+    def child(**env):
+        env = dict(os.environ, PYTHONPATH=root, **env)
+        return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                              check=True).stdout.split()
+
     with _kernels.compiled(False) as on:
         assert on is False and not _kernels.use_compiled()
+        assert child() == ["False", "False"]          # started processes inherit the switch (numba not imported)
         with _kernels.compiled(True):
             assert _kernels.use_compiled()
         assert not _kernels.use_compiled()
-    assert _kernels.use_compiled() == before
-    code = ("import sys; from femreg import _kernels; "
-            "print(_kernels.use_compiled(), 'numba' in sys.modules)")
-    env = dict(os.environ, FEMREG_NUMBA="0", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["False", "False"], out      # off, and numba not even imported
+    assert _kernels.use_compiled() == before and _kernels.ENV_SWITCH not in os.environ
+    assert child(FEMREG_NUMBA="1") == ["True", "True"]
