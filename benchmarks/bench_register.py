@@ -235,10 +235,7 @@ if __name__ == "__main__":
     a = ap.parse_args()
     if a.no_compiled:
         from femreg import _kernels
-        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
-    if a.no_compiled:
-        from femreg import _kernels
-        _kernels.HAVE_NUMBA = False       # before the forks of run_isolated: they inherit it
+        _kernels.set_compiled(False)      # before the forks of run_isolated: they inherit it
     if a.solvers:
         solvers()
     elif a.study:

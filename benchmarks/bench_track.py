@@ -67,7 +67,7 @@ def main(argv=None):
     from femreg.metrics import field_errors
 
     if a.no_compiled:
-        _kernels.HAVE_NUMBA = False
+        _kernels.set_compiled(False)
     seq = forward.get_sequence("3d", "HI", seed=0)
     frames = seq.frames[: a.frames]
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -10,30 +10,90 @@ and axial resampling (:mod:`femreg.pyramid`), the out-of-image mask and the resu
 Each loop has a numpy/scipy twin in the module that uses it (``map_coordinates``, sparse products, a vectorised
 walk); the two agree to round-off and tests compare them with independent references.  Why compiled: the
 re-interpolation of I_2 at every pixel is the inner loop of Gauss-Newton (0.55 M points per iteration on a
-paper-size image): 4-5 ms here against 25-50 ms for ``map_coordinates`` and 70-100 ms for the best vectorised
-numpy gather (measured on the shared 2-core machine).  All loops live in this one file so that numba's on-disk cache
-(keyed on this file) is invalidated together when any of them changes.  The first use on a machine compiles them
-(~4 s, once); later processes load the cache (~0.5 s with numba's import).  Single-threaded, no fastmath: the same
+paper-size image), several times faster compiled than ``map_coordinates`` or any vectorised numpy gather (the
+measured figures of every stage: benchmarks/README.md, "Timings").  All loops live in this one file so that
+numba's on-disk cache (keyed on this file) is invalidated together when any of them changes.  The first use on a
+machine compiles them (seconds, once); later processes load the cache.  Single-threaded, no fastmath: the same
 input gives the same output bit for bit.
+
+Switching them off: ``FEMREG_NUMBA=0`` in the environment (numba is then not even imported), or
+:func:`set_compiled` / ``with compiled(False):`` in a process (which also sets the variable for the processes it
+starts, e.g. batch workers).  Every branch that
+calls a loop of this file tests :func:`use_compiled` at the time of the call.
+
+How to add a kernel
+-------------------
+1. Write the numpy/scipy form first, in the module that needs it; it stays as the twin (and is what runs without
+   numba), so keep it readable rather than fast.
+2. Add the loop here with ``@_jit`` (``# pragma: no cover - compiled``), plain loops over contiguous float64 /
+   int64 arrays, outputs passed in (``out``) where the caller owns the buffer; no fastmath, no parallel, no
+   globals other than constants, so that the same input gives the same output bit for bit.
+3. At the call site branch on ``_kernels.use_compiled()`` (never on ``HAVE_NUMBA`` or ``_numba`` directly), at the
+   time of the call, not once at import or in a cache that outlives the switch.
+4. Test it: the compiled loop against its twin (tests/test_fast_paths.py, both values of the switch), the twin
+   against an independent reference (an analytic value, scipy, finite differences), and nothing in
+   tests/test_compiled_switch.py may change (register and track stage by stage with the loops on and off).
+5. Measure the stage it speeds up with benchmarks/bench_register.py or bench_track.py (``--no-compiled`` for the
+   twin) and put the figures in benchmarks/README.md, "Timings", not in a comment; a kernel is worth its upkeep
+   only where its stage takes a noticeable share of a registration.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "use_compiled"]
+__all__ = ["HAVE_NUMBA", "use_compiled", "set_compiled", "compiled", "ENV_SWITCH"]
 
-try:  # optional compiled kernels (see the module docstring)
-    import numba as _numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    _numba = None
+#: Environment variable that turns the compiled loops off for a whole process and the processes it starts
+#: (batch workers, the CLI): ``FEMREG_NUMBA=0`` (also "false", "no", "off"); numba is then not even imported.
+ENV_SWITCH = "FEMREG_NUMBA"
+_OFF = ("0", "false", "no", "off")
 
-#: True when numba is importable; set it to False to force the scipy/numpy code paths.
+_numba = None
+if os.environ.get(ENV_SWITCH, "").strip().lower() not in _OFF:
+    try:  # optional compiled kernels (see the module docstring)
+        import numba as _numba
+    except ImportError:  # pragma: no cover - exercised where numba is absent
+        _numba = None
+
+#: True when numba is importable (and not switched off by :data:`ENV_SWITCH`); False forces the numpy twins.
+#: Set it with :func:`set_compiled` or :func:`compiled`.
 HAVE_NUMBA = _numba is not None
 
 
 def use_compiled() -> bool:
     """Whether the compiled (numba) kernels are used now (numba importable and :data:`HAVE_NUMBA` True)."""
     return _numba is not None and HAVE_NUMBA
+
+
+def set_compiled(enabled: bool) -> bool:
+    """Turn the compiled loops on or off in this process and in the processes it starts from now on (batch
+    workers, the CLI: :data:`ENV_SWITCH` is set too); on only takes effect where numba is importable.  Returns the
+    previous setting.  Objects built before keep what they computed (e.g. the spline coefficients of a
+    :class:`femreg.image.SplineImage`, which are equal either way)."""
+    global HAVE_NUMBA
+    previous = HAVE_NUMBA
+    HAVE_NUMBA = bool(enabled)
+    os.environ[ENV_SWITCH] = "1" if enabled else "0"
+    return previous
+
+
+@contextlib.contextmanager
+def compiled(enabled: bool = True):
+    """``with compiled(False): ...`` runs the block on the numpy twins (``True``: on the compiled loops where
+    numba is importable) and restores the previous setting (and environment) afterwards."""
+    env = os.environ.get(ENV_SWITCH)
+    previous = set_compiled(enabled)
+    try:
+        yield use_compiled()
+    finally:
+        set_compiled(previous)
+        if env is None:
+            os.environ.pop(ENV_SWITCH, None)
+        else:
+            os.environ[ENV_SWITCH] = env
 
 
 def _jit(fn):
@@ -93,8 +153,8 @@ def warp_grid(c, hi0, hi1, bx, by, bxr, byc, Ux, Uy, ei, X, ej, Y, isx, isy, sub
     column; Ux, Uy nodal values on the node grid; pixel row r in element row ei[r] at reference
     X[r], column q in ej[q] at Y[q].  u is interpolated axially once per pixel row (to every node column), then
     laterally per pixel.  The values of :func:`cubic_point` bit for bit, computed a pixel row at a time in three
-    branch-free passes (positions, weights, the 4 x 4 sums) that the compiler vectorises: 25 % faster than one
-    point at a time."""
+    branch-free passes (positions, weights, the 4 x 4 sums) that the compiler vectorises (faster than one point
+    at a time)."""
     has_sub = sub.shape[0] > 0
     full = bx.shape[0] > 0
     nc = ej.shape[0]
@@ -473,7 +533,7 @@ def spline_coefficients(data, z):  # pragma: no cover - compiled
         for j in range(n1):
             c[i, j] = z * (c[i + 1, j] - c[i, j])
     # axis 1: the lines are the rows, run in blocks of 8 side by side (each recursion is a chain of dependent
-    # steps: 8 independent chains keep the floating-point units busy; 2.1 -> 1.1 ms at 1558 x 300)
+    # steps: 8 independent chains keep the floating-point units busy)
     zn = np.power(z, n1 - 1)
     nb = 8
     acc = np.empty(nb)

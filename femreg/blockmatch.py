@@ -182,7 +182,7 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
     R = sliding_window_view(movp, (ra, rl))[A, L]
     shape = (sfft.next_fast_len(ra, real=True), sfft.next_fast_len(rl, real=True))
     # the correlations in single precision, on one thread like the rest of a registration (batches run one
-    # single-threaded process per core): 1.7x faster than double; their relative error (~1e-6) is far below
+    # single-threaded process per core): faster than double; their relative error (~1e-6) is far below
     # the NCC differences between neighbouring shifts
     X = sfft.rfft2(R.astype(np.float32), s=shape, workers=1)
     X *= np.conj(sfft.rfft2(T.astype(np.float32), s=shape, workers=1))

@@ -131,7 +131,7 @@ class SplineImage:
         # Mirror-extend the coefficients by 2 (as scipy does internally) so that points within half a pixel of
         # the edge interpolate instead of dropping to zero through round-off; zero outside is applied
         # explicitly at the pixel-cell boundary [-1/2, n - 1/2].
-        if _kernels.use_compiled() and min(self.shape) >= 3:    # the same numbers, 2.5-3.5x faster
+        if _kernels.use_compiled() and min(self.shape) >= 3:    # the same numbers, faster
             self._padded = _kernels.spline_coefficients(self.data, _CUBIC_POLE)
             self.coeffs = self._padded[2:-2, 2:-2]
         else:

@@ -10,9 +10,8 @@ bilinear shape-function values per row) interpolates nodal fields to pixels: ``u
   moved by the accumulated displacement S_k in :func:`femreg.track`): a first guess of each point's cell from
   the mean node position of every grid row and column, then a vectorised Newton inversion of that cell's bilinear
   map and a walk to the neighbouring cell the reference coordinates point to, a few steps; points not settled
-  that way go to the general search.  Paper-size image, 2-core shared machine: 0.13-0.19 s for the whole pixel
-  quadrature with the compiled walk (:mod:`femreg._kernels`), 0.45-0.65 s with its numpy twin, 0.6-0.9 s with
-  the general search alone.
+  that way go to the general search.  The compiled walk (:mod:`femreg._kernels`) is several times faster than
+  its numpy twin and the general search alone (benchmarks/README.md, "Timings").
 * Any other quad mesh: a KD-tree on element centroids proposes candidates, a vectorised Newton iteration
   inverts the bilinear map of each candidate, the first candidate with reference coordinates in [0, 1]^2 wins.
 

@@ -117,7 +117,7 @@ def _analytic(img, complex_signal: bool = False, power: bool = False):
     transform of ``-i sign(f) X`` (DC and Nyquist bins zero), which is what scipy.signal.hilbert's complex
     inverse FFT computes, at half the cost.  The zero padding replaces the circular wrap of the end samples by
     zeros (within a pulse length of the top and bottom rows) and avoids FFT lengths with large prime factors
-    (e.g. 1948 = 4 x 487 rows: 20 ms instead of 5 ms per frame).  Compiled, the spectrum product and the
+    (e.g. 1948 = 4 x 487 rows, several times slower).  Compiled, the spectrum product and the
     modulus are single passes (the same values as numpy's)."""
     from scipy import fft as sfft
 
@@ -303,7 +303,7 @@ def _warp(image, spacing, origin, field_grid):
 
     ``scipy.ndimage.map_coordinates(image, .., order=3, mode="constant")``: the cubic B-spline of the mirror-
     extended image, 0 where a point lies outside [0, n - 1] on either axis; with numba the same interpolant from
-    :class:`femreg.image.SplineImage`'s compiled prefilter and evaluation (equal to round-off, 3-5x faster)."""
+    :class:`femreg.image.SplineImage`'s compiled prefilter and evaluation (equal to round-off, faster)."""
     ii, jj = np.meshgrid(np.arange(image.shape[0]), np.arange(image.shape[1]), indexing="ij")
     idx = [ii + field_grid[..., 0] / spacing[0], jj + field_grid[..., 1] / spacing[1]]
     if not (_kernels.use_compiled() and min(image.shape) >= 3):
@@ -325,7 +325,7 @@ def _pixel_points(shape, spacing, origin):
 def _axial_resample(image, pos) -> np.ndarray:
     """``image`` sampled at fractional row positions ``pos`` (n_rows_out,), the same for every column: cubic
     convolution (Keys, a = -0.5; 4 taps, no prefilter), zero outside.  Used for the axial-strain pre-warps of
-    the global search, where a full 2D spline warp per trial strain cost 10-15 ms on a paper-size envelope."""
+    the global search, where a full 2D spline warp per trial strain dominated its cost."""
     img = np.asarray(image, float)
     if _kernels.use_compiled():
         return _kernels.axial_resample(np.ascontiguousarray(img), np.asarray(pos, float),

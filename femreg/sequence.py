@@ -14,7 +14,7 @@ Two ways to evaluate eq:IR (``grid``):
   noisy frames between pixels changes the interpolated noise variance with the sub-pixel position, which biases
   the tiny lateral increments; the bias accumulates.  Measured on the 3D HI sequence (12 dB, R_P_sigma,
   frames 1 -> 20): total strain error 40.4 % (u_y 85 %) with "reference", 14.2 % (u_y 6.8 %) with "current",
-  at the same cost (~55 s).
+  at the same cost.
 
 Checkpoints: with ``checkpoint_dir`` each frame's result is written (atomically) as soon as it is done; with
 ``resume=True`` finished frames are loaded instead of recomputed.  A frame that fails (error, or a registration

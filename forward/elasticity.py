@@ -24,7 +24,7 @@ PARDISO (``pypardiso``, from PyPI): about 240 k DOFs at the default 1 mm / 16 mm
 
 Point evaluation (:meth:`Solution.displacement`, :meth:`Solution.strain`): a KD-tree on element centroids gives a
 few candidate elements per point, a vectorised affine inverse gives barycentric coordinates, and the P2 shape
-functions are evaluated there -- exact FE values, about 1 s per 0.5 M points.  Points outside the domain give NaN
+functions are evaluated there -- exact FE values.  Points outside the domain give NaN
 (or ``ValueError`` with ``outside="raise"``).
 
 Public names: :func:`solve_elasticity`, :class:`Solution`, :func:`load_solution`, :func:`cached_solve`,

@@ -186,7 +186,7 @@ class Inclusion:
     """A stiff or soft disk in a compressed block, plane strain or plane stress, from the FE forward model.
 
     One FE solve per (model, modulus) at 1 mm top-face compression (:func:`forward.elasticity.cached_solve`, disk
-    cache; about 12 s the first time), scaled linearly to the requested level.  In the probe's frame (the top face
+    cache; seconds the first time), scaled linearly to the requested level.  In the probe's frame (the top face
     is the probe), the top-face motion is subtracted: ``u = c (U_FE(x) - (1, 0))`` with ``c = level * block / 1 mm``
     so the mean axial strain of the block is ``-level``; the strain is ``c E_FE(x)``, the P2 solution's own
     gradient at the point (exact FE values).  Points outside the block give NaN.

@@ -136,15 +136,15 @@ def test_reduced_quick_study_end_to_end_and_resume(tmp_path):
     assert all(single[r]["e_nodal"] <= single[r]["e"] + 0.5 for r in single), single
     autos = [r for r in res.records.values() if r["spec"]["kind"] == "auto"]
     assert len(autos) == 2 and all(a["n_registrations"] == 7 and len(a["curve"]) == 7 for a in autos)
-    # End to end on simulated RF (forward/ sequence, 12 dB): bounds ~1.5x the measured values.
-    # The axial displacement is what the images measure best (paper: 0.1-0.3 %; measured 0.10 %).
+    # End to end on simulated RF (forward/ sequence, 12 dB); the run is deterministic (seeded), so the bounds are
+    # the measured values plus 25 % (the axial one: twice the measured value, it is small).
+    # The axial displacement is what the images measure best (paper: 0.1-0.3 %; measured 0.097 %, bound 0.2 %).
     assert row["ux"] < 0.2, f"R_P_sigma plane-stress axial displacement error {row['ux']:.2f} %"
-    # measured: R_P_sigma total strain 28.5 %, lateral displacement 45.7 % (R_P_sigma's strategy-auto form,
-    # centre dilatation: 25.0 % and 32.5 % with the paper's edge form on this small, low-strain crop); R_eps 32.0 %
-    # and 38.5 %
-    assert row["e"] < 42.0, f"R_P_sigma total strain error {row['e']:.1f} % (measured 28.5 %)"
-    assert row["uy"] < 68.0, f"R_P_sigma lateral displacement error {row['uy']:.1f} % (measured 45.7 %)"
-    assert reps["e"] < 48.0 and reps["uy"] < 58.0, f"R_eps row {reps}"
+    # measured (R_P_sigma's strategy-auto form, centre dilatation): total strain 30.1 %, bound 38 %; lateral
+    # displacement 50.6 %, bound 63 %; R_eps: 31.9 % (bound 40 %) and 38.1 % (bound 48 %)
+    assert row["e"] < 38.0, f"R_P_sigma total strain error {row['e']:.1f} % (measured 30.1 %)"
+    assert row["uy"] < 63.0, f"R_P_sigma lateral displacement error {row['uy']:.1f} % (measured 50.6 %)"
+    assert reps["e"] < 40.0 and reps["uy"] < 48.0, f"R_eps row {reps}"
     # the paper's finding on plane stress: the momentum regulariser beats the strain one
     assert row["e"] < reps["e"], f"R_P_sigma {row['e']:.1f} % vs R_eps {reps['e']:.1f} % total strain error"
     # Records: one JSON + npz per case, tracks with per-frame metrics.
