@@ -184,7 +184,9 @@ class SPDSolver:
         if self.method == "spsolve":
             return spla.spsolve(self._shifted(H), b)
         if self.method == "amg-cg":
-            import pyamg
+            from .optional import require
+
+            pyamg = require("pyamg", feature="linear_solver='amg-cg'")
             A = sp.csr_matrix(self._shifted(H))
             if not (reuse and self._key is H and self._fact is not None):
                 self._fact = pyamg.smoothed_aggregation_solver(A, B=self.B, symmetry="symmetric")
