@@ -1,4 +1,5 @@
-r"""# Demo 07: real scanner data -- registration quality without ground truth
+r"""Demo 07: real scanner data -- registration quality without ground truth
+=======================================================================
 
 This demo shows how to
 

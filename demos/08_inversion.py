@@ -1,4 +1,5 @@
-r"""# Demo 08: shear-modulus images from the registered displacement (FE inversion)
+r"""Demo 08: shear-modulus images from the registered displacement (FE inversion)
+=============================================================================
 
 This demo shows how to
 
