@@ -24,7 +24,9 @@ def mark_start(gallery_conf, fname, when=None):
 
 
 def quick_argv(gallery_conf, script_vars):
-    """Command-line arguments of every executed demo: its quick mode."""
+    """Command-line arguments of every executed demo: its quick mode.  Also gives the demo its ``__file__``
+    (sphinx-gallery leaves it out), from which the demos find this checkout and the in vivo data."""
+    script_vars["example_globals"].setdefault("__file__", str(script_vars["src_file"]))
     return ["--quick"]
 
 
