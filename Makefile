@@ -25,7 +25,9 @@ slow: setup
 # The documentation site (docs/_build/html): warnings are errors; the quick demos run for the gallery.
 docs:
 	@bash scripts/setup.sh $(VENV) all,test,docs
+	@rm -f docs/_build/html/index.html
 	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
+	@test -f docs/_build/html/index.html || { echo "docs: sphinx stopped before writing index.html" >&2; exit 1; }
 
 clean:
 	rm -rf $(VENV) out .pytest_cache docs/_build docs/api/generated docs/gallery demos/out

@@ -4,6 +4,7 @@ The demos save their figures under ``out/<demo>/`` and close them, so the matplo
 :func:`out_png_scraper` copies the PNG files a code block wrote into the gallery instead.  Each demo runs with
 ``--quick``, in the folder sphinx-gallery runs it in (demos/), so its files land in demos/out/ (ignored by git).
 """
+import ast
 import re
 import shutil
 import time
@@ -24,9 +25,12 @@ def mark_start(gallery_conf, fname, when=None):
 
 
 def quick_argv(gallery_conf, script_vars):
-    """Command-line arguments of every executed demo: its quick mode.  Also gives the demo its ``__file__``
-    (sphinx-gallery leaves it out), from which the demos find this checkout and the in vivo data."""
-    script_vars["example_globals"].setdefault("__file__", str(script_vars["src_file"]))
+    """Command-line arguments of every executed demo: its quick mode.  Also gives the demo its ``__file__`` and
+    ``__doc__`` as when it runs as a script (sphinx-gallery leaves them out): the demos find this checkout and the
+    in vivo data from ``__file__`` and take their --help text from ``__doc__``."""
+    src = Path(script_vars["src_file"])
+    script_vars["example_globals"]["__file__"] = str(src)
+    script_vars["example_globals"]["__doc__"] = ast.get_docstring(ast.parse(src.read_text()), clean=False)
     return ["--quick"]
 
 
