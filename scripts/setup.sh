@@ -8,7 +8,8 @@ EXTRAS=${2:-all,test}
 PKGS="libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1 libegl1 libgl1-mesa-dri"
 missing=()
 for lib in libGLU.so.1 libGL.so.1 libXcursor.so.1 libXft.so.2 libXinerama.so.1 libgomp.so.1 libEGL.so.1; do
-    ldconfig -p 2>/dev/null | grep -q "$lib" || missing+=("$lib")
+    # grep reads the whole list: with -q it may exit first and ldconfig's SIGPIPE fails the pipe (pipefail)
+    ldconfig -p 2>/dev/null | grep "$lib" >/dev/null || missing+=("$lib")
 done
 if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
