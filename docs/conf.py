@@ -20,14 +20,12 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.autosummary",
     "sphinx.ext.mathjax",
-    "sphinx.ext.intersphinx",
     "numpydoc",
     "myst_parser",
     "sphinx_gallery.gen_gallery",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-exclude_patterns = ["_build", "gallery/*.ipynb", "gallery/*.py", "gallery/*.md5", "gallery/*.json",
-                    "gallery/*.zip"]
+exclude_patterns = ["_build"]
 templates_path = ["_templates"]
 
 # --- API reference
@@ -39,12 +37,9 @@ numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False
 
-intersphinx_mapping = {}  # offline builds: no inventories are fetched
-
 # --- MyST (the README's sections and the reports in docs/*.md)
 myst_enable_extensions = ["dollarmath", "amsmath"]
 myst_heading_anchors = 3
-
 
 
 def _drop_missing_figures(app, docname, source):
