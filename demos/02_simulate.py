@@ -1,4 +1,5 @@
-"""# Demo 02: simulated RF ultrasound sequences with known motion
+"""Demo 02: simulated RF ultrasound sequences with known motion
+============================================================
 
 This demo shows how the paper's simulated image sequences are made and what they look like:
 

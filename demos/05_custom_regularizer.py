@@ -1,4 +1,5 @@
-r"""# Demo 05: write your own regulariser in a few lines
+r"""Demo 05: write your own regulariser in a few lines
+==================================================
 
 This demo shows how to
 

@@ -1,4 +1,5 @@
-"""# Demo 06: the paper's simulation study, end to end
+"""Demo 06: the paper's simulation study, end to end
+=================================================
 
 This demo shows how femreg reproduces the paper's results on simulated data:
 

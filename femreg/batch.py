@@ -105,7 +105,10 @@ def open_client(workers: int = 2, scheduler: str | None = None, *, memory_limit=
         return
     import logging
 
-    from distributed import Client, LocalCluster
+    from .optional import require
+
+    distributed = require("distributed", feature="femreg batch")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if scheduler is not None:
         kw = {"scheduler_file": scheduler} if str(scheduler).endswith(".json") else {"address": scheduler}
@@ -788,6 +791,9 @@ def run_batch(jobs, out_dir, *, client=None, workers: int = 2, scheduler: str | 
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         raise InputError(f"job names must be unique; repeated: {sorted({n for n in names if names.count(n) > 1})[:5]}")
+    if client is None and (scheduler is not None or int(workers) > 0):  # before anything is written
+        from .optional import require
+        require("distributed", feature="femreg batch")
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

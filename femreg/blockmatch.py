@@ -70,7 +70,7 @@ class BlockMatchResult:
         return coef if rank == 3 else None
 
     def global_strain(self) -> float:
-        """max(|mean exx|, |mean eyy|) of the affine fit (0 with fewer than 2 windows along an axis)."""
+        """max(abs(mean exx), abs(mean eyy)) of the affine fit (0 with fewer than 2 windows along an axis)."""
         if self.x.size < 2 or self.y.size < 2:
             return 0.0
         c = self.affine_fit()

@@ -713,7 +713,9 @@ class InversionResult:
     def to_vtu(self, path) -> Path:
         """ParaView file (meshio): quads with cell data shear_modulus, log_shear_modulus, exx/eyy/exy (measured)
         and point data displacement_measured / displacement_model (n_nodes, 3) mm."""
-        import meshio
+        from .optional import require
+
+        meshio = require("meshio", feature="InversionResult.to_vtu")
 
         path = Path(path)
         p = self.mesh.p

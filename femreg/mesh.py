@@ -99,6 +99,9 @@ def as_quad_mesh(mesh) -> MeshQuad1:
         path = os.fspath(mesh)
         if not os.path.exists(path):
             raise InputError(f"mesh file not found: {path}")
+        if meshio is None:  # skfem reads mesh files with meshio
+            from .optional import require
+            require("meshio", feature="reading a mesh file")
         try:
             return MeshQuad1.load(path)
         except Exception as exc:  # noqa: BLE001 - report any reader failure as bad input

@@ -3,7 +3,7 @@ CNR_e; the elastographic contrast-to-noise ratio after T. Varghese, J. Ophir, Ul
 1998).
 
 Errors are integrated over the FE mesh domain with Gauss quadrature on the mesh (``intorder``, default
-:data:`femreg.quadrature.GAUSS_3X3`, 3 x 3 points per quad), comparing the measured FE field with a true field given as a callable:
+:data:`femreg.quadrature.GAUSS_3X3`, 3 x 3 points per quad), comparing the measured FE field with a true field given as a callable::
 
     Disp. error_i   = ||u^t_i - u^m_i|| / ||u^t_i||            (i = x, y), total with the vector norm,
     Strain error_ij = ||e^t_ij - e^m_ij|| / ||e^t_ij||         (ij = xx, yy, xy), total with e : e

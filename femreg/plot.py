@@ -228,7 +228,9 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
     if out_png is None:
         raise InputError("render_mesh needs out_png")
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
+    from .optional import require
+
+    pv = require("pyvista", feature="render_mesh")
 
     pv.OFF_SCREEN = True
     pts = np.zeros((p.shape[1], 3))

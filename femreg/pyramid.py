@@ -84,8 +84,8 @@ ROTATION_SCAN_NCC = 0.5
 class SpeckleStats:
     """What the image itself says about its scale (mm): ``period`` = axial RF period (1 / spectral centroid),
     ``cell`` = (axial, lateral) full width at half maximum of the envelope autocorrelation, ``pulse_cell`` the
-    same width computed from the RF (analytic-signal) autocorrelation, |rho|^2 (None: not measured).  On fully
-    developed speckle the two agree (the envelope's autocovariance is |rho|^2); on tissue the envelope also
+    same width computed from the RF (analytic-signal) autocorrelation, ``|rho|^2`` (None: not measured).  On fully
+    developed speckle the two agree (the envelope's autocovariance is ``|rho|^2``); on tissue the envelope also
     holds the echo structure (layers, fibres) and ``cell`` grows with it while ``pulse_cell`` stays the pulse's
     (in vivo 4 MHz frames: cell 0.76-1.0 x 2.4-3.2 mm, pulse_cell 0.20-0.24 x 0.4 mm).  ``envelope`` is the
     image's envelope (:func:`envelope`), kept so that the pyramid does not compute it again."""
@@ -137,7 +137,7 @@ def _analytic(img, complex_signal: bool = False, power: bool = False):
 
 
 def envelope(image) -> np.ndarray:
-    """Envelope |analytic signal| along the axial direction (as scipy.signal.hilbert, zero-padded to a fast FFT
+    """Envelope ``|analytic signal|`` along the axial direction (as scipy.signal.hilbert, zero-padded to a fast FFT
     length)."""
     return _analytic(np.asarray(image, float))[2]
 
@@ -198,7 +198,7 @@ def _envelope_cell(e, axis: int, d: float, direct_lags: int = 48, chunk: int = 4
 
 def speckle_statistics(image, spacing) -> SpeckleStats:
     """RF period from the axial power spectrum's centroid; speckle cell from the envelope autocorrelation and
-    pulse cell from the analytic signal's, |rho|^2 (FFT, zero-padded, averaged over lines / rows), all in mm.
+    pulse cell from the analytic signal's, ``|rho|^2`` (FFT, zero-padded, averaged over lines / rows), all in mm.
     The line average is taken on the power spectra (one inverse transform; the same by linearity)."""
     from scipy import fft as sfft
 
@@ -237,7 +237,7 @@ def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max
       (:class:`SpeckleStats`): on tissue the envelope cell measures the echo structure, and elements sized from
       it (capped at 2.13 mm on the 40 x 25.6 mm in vivo frames) are too coarse for the motion of that
       structure: in vivo frames 1 -> 6 (R_P_sigma) the solve then fits each node row to its own layer and e_xx
-      alternates from one element row to the next (mean |second difference across rows| / mean |e_xx| 2.0 on
+      alternates from one element row to the next (mean ``|second difference across rows|`` / mean ``|e_xx|`` 2.0 on
       seq299, 1.8 on seq304, the same from any seed and at 3x the iterations), with a lower NCC after.  The
       pulse cell gives 1.4 / 1.2 mm there; on simulated speckle both cells agree and nothing changes.
       Decimation, windows and search ranges keep the envelope cell (the envelope level matches envelopes).

@@ -120,7 +120,7 @@ def consistency(a, b, window=None) -> dict:
     Returns
     -------
     dict
-        ``rms_du`` (mm, RMS of |u_a - u_b|), ``rms_u`` (mm, RMS of |u_b|, the scale), ``rms_dexx``
+        ``rms_du`` (mm, RMS of ``|u_a - u_b|``), ``rms_u`` (mm, RMS of ``|u_b|``, the scale), ``rms_dexx``
         (RMS of the axial-strain difference), ``rms_exx`` (RMS of b's axial strain), ``n`` (pixels).
     """
     if tuple(a.shape) != tuple(b.shape) or not np.allclose(a.spacing, b.spacing) or \

@@ -500,8 +500,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     element_size, margin : float or (2,) mm, optional
         For the default ROI mesh.  ``element_size`` None: from the speckle size (``strategy="auto"``,
         :func:`femreg.pyramid.default_settings`) or :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` (``"paper"``).
-    initial : None | "pyramid" | "blockmatch" | "zero" | callable | (2 n_nodes,) array | RegistrationResult |
-              BlockMatchResult
+    initial : None, "pyramid", "blockmatch", "zero", callable, (2 n_nodes,) array, RegistrationResult or BlockMatchResult
         Initial guess u_1.  None: the strategy's own ("pyramid" for "auto", "blockmatch" for "paper").
         "pyramid": coarse-to-fine envelope search and envelope-level Gauss-Newton (:mod:`femreg.pyramid`);
         "blockmatch": NCC block matching with ``blockmatch_options`` (paper: 5 x 9 mm windows).

@@ -32,7 +32,7 @@ from .mesh import tensor_node_grid, tensor_structure
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION"]
 
-#: A node is hopping when |u_x - reference| exceeds this fraction of the RF period.
+#: A node is hopping when ``|u_x - reference|`` exceeds this fraction of the RF period.
 HOP_FRACTION = 0.35
 #: A registration whose NCC after is below this is reported as failed: unrelated speckle images reach
 #: 0.14-0.17 with the default mesh (measured, tests/test_robust.py), real pairs 0.5-0.99 (in vivo 1 -> 6:

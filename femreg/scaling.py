@@ -3,7 +3,7 @@
 The objective is eq:objf, ``pi = psi + alpha_eff R``.  Both terms are integrals over the region in mm^2 already:
 psi sums pixel residuals with weights ``dx dy`` (eq:IR by the pixel midpoint rule, :mod:`femreg.data_term`), so
 it does not change with the pixel spacing; the strain regularisers are area integrals and the momentum ones
-(eq:dmreg2, a sum of edge jumps times edge lengths) approximate the area integral of |div A|.  What does change
+(eq:dmreg2, a sum of edge jumps times edge lengths) approximate the area integral of ``|div A|``.  What does change
 with the mesh is the noise the data term leaves in each element: an element of area A holds A / (dx dy)
 pixels, its nodal displacements are fixed by fewer samples as A shrinks, and the regularisation needed to hold
 the same image quality grows like 1 / A.  Measured with the paper's procedure (docs/study_report.md, 3d-HI

@@ -43,7 +43,7 @@ __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
 DEFAULT_MIN_NCC = 0.5
 #: Hourglass-control weight (relative to alpha) of the momentum regularisers for the increments of an accumulated
 #: track with ``strategy="auto"`` (a single registration uses
-#: :data:`femreg.registration.DEFAULT_HOURGLASS` = 100).  The edge-jump TV term is re-weighted by 1 / |jump|
+#: :data:`femreg.registration.DEFAULT_HOURGLASS` = 100).  The edge-jump TV term is re-weighted by ``1 / |jump|``
 #: (lagged diffusivity), so on the small increments of a sequence it grows against the quadratic hourglass term,
 #: and the checkerboard left in each increment adds up over the frames.  Measured, in vivo frames 1 -> 6
 #: (R_P_sigma, femreg.quality.hourglass of u_y / NCC of frame 6 warped onto frame 1), weight 100 / 1000 / 10000:

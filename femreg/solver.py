@@ -184,7 +184,9 @@ class SPDSolver:
         if self.method == "spsolve":
             return spla.spsolve(self._shifted(H), b)
         if self.method == "amg-cg":
-            import pyamg
+            from .optional import require
+
+            pyamg = require("pyamg", feature="linear_solver='amg-cg'")
             A = sp.csr_matrix(self._shifted(H))
             if not (reuse and self._key is H and self._fact is not None):
                 self._fact = pyamg.smoothed_aggregation_solver(A, B=self.B, symmetry="symmetric")
@@ -266,6 +268,7 @@ STATUS = {0: "converged: ||du|| / ||u|| < tol",
 #: (0.23 -> 0.41 %, seed 0); inclusions 1-2 iterations fewer (15 MHz inclusion 12.35 % / 6 -> 12.25 % / 4).
 GN_STRAIN_TOL = 0.015
 #: The tight form of the same rule, for the solves that must settle further:
+#:
 #: - the quadratic regularisers (R_eps, R_eps_i): their Hessian is factorised once, so an iteration costs one warp,
 #:   and at 1.5 % the study's alpha sweep chose another alpha for R_eps_i (0.42 -> 0.56) and its accumulated 3D
 #:   total strain errors rose by 1.4-1.5 points;

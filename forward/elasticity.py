@@ -315,7 +315,9 @@ class Solution:
         region = np.zeros(self.mesh.t.shape[1], dtype=np.int8)
         region[self.mesh.subdomains["inclusion"]] = 1
         if path.suffix.lower() in (".vtu", ".xdmf", ".vtk"):
-            import meshio
+            from femreg.optional import require
+
+            meshio = require("meshio", extra="forward", feature="Solution.save to VTU/XDMF")
             ctype = "triangle" if self.dim == 2 else "tetra"
             u = self.nodal_displacement().T
             pts = self.mesh.p.T if self.dim == 3 else np.c_[self.mesh.p.T, np.zeros(self.mesh.p.shape[1])]
@@ -385,7 +387,9 @@ def _linear_solve(K, f, solver):
         except ImportError:
             solver = "superlu"
     if solver == "pardiso":
-        import pypardiso
+        from femreg.optional import require
+
+        pypardiso = require("pypardiso", feature="solver='pardiso'")
         x = pypardiso.spsolve(sp.csr_matrix(K), f)
         pypardiso.ps.free_memory(everything=True) if hasattr(pypardiso, "ps") else None
         return x, solver

@@ -37,7 +37,9 @@ def gmsh_session(verbose: bool = False):
     If the caller already has gmsh initialised, that session is reused: a fresh model is added and removed
     again at the end, and gmsh is left initialised as it was found (never finalised under the caller's feet).
     """
-    import gmsh
+    from femreg.optional import require
+
+    gmsh = require("gmsh", feature="forward (gmsh meshes)")
 
     with _lock:
         owner = not gmsh.isInitialized()

@@ -11,7 +11,7 @@ forward model on a regular 0.1 mm grid covering the imaged area plus 1 mm, store
 interpolated bilinearly (:meth:`Sequence.true_displacement`, :meth:`Sequence.true_strain`).  Live and reloaded
 sequences use that same stored grid, so the true fields are bit-identical after :func:`load_sequence`, and they
 need neither the FE mesh nor a re-solve.  (Bilinear interpolation of a 0.1 mm sampling differs from the FE field
-by O(h^2 |grad^2 u|) ~ 1e-6 mm in smooth parts and smears the strain jump at the inclusion interface over 0.1 mm.)
+by ``O(h^2 |grad^2 u|)`` ~ 1e-6 mm in smooth parts and smears the strain jump at the inclusion interface over 0.1 mm.)
 
 Imaging geometry: the probe is fixed in the forward model's coordinates (the paper's frame); tissue exists only
 below the top face ``x = 0``, so as the surface moves down, the top band ``0 <= x < u_x(0)`` of later frames is

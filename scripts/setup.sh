@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
-# One-time set-up: system libraries for gmsh / off-screen pyvista, then a virtual environment with femreg.
-# Idempotent: a second run only checks.  Usage: scripts/setup.sh [VENV_DIR]
+# One-time set-up: system libraries for gmsh / off-screen pyvista, then a virtual environment with femreg and the
+# extras the demos and tests use (all,test; `make docs` adds docs).
+# Idempotent: a second run only checks.  Usage: scripts/setup.sh [VENV_DIR] [EXTRAS]
 set -euo pipefail
 VENV=${1:-.venv}
+EXTRAS=${2:-all,test}
 PKGS="libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1 libegl1 libgl1-mesa-dri"
 missing=()
 for lib in libGLU.so.1 libGL.so.1 libXcursor.so.1 libXft.so.2 libXinerama.so.1 libgomp.so.1 libEGL.so.1; do
-    ldconfig -p 2>/dev/null | grep -q "$lib" || missing+=("$lib")
+    # grep reads the whole list: with -q it may exit first and ldconfig's SIGPIPE fails the pipe (pipefail)
+    ldconfig -p 2>/dev/null | grep "$lib" >/dev/null || missing+=("$lib")
 done
 if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
@@ -23,9 +26,9 @@ PY=${PYTHON:-python3}
 if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV" || { echo "setup: '$PY -m venv' failed; run: apt-get install -y python3-venv" >&2; exit 1; }
 fi
-stamp="$VENV/.femreg-installed"
+stamp="$VENV/.femreg-installed-${EXTRAS//,/-}"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e ".[test]"
+    "$VENV/bin/python" -m pip install -q -e ".[$EXTRAS]"
     touch "$stamp"
 fi

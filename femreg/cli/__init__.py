@@ -7,7 +7,8 @@ entry-point group (``NAME = "package.module:add_parser"`` in their pyproject.tom
 femreg itself never imports those packages.
 
 Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
-:class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).
+:class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).  A missing optional
+package (:class:`femreg.optional.MissingDependencyError`) -> one line naming the extra to install, exit code 1.
 """
 from __future__ import annotations
 
@@ -61,6 +62,7 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from femreg.errors import InputError
+    from femreg.optional import MissingDependencyError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
@@ -74,6 +76,9 @@ def main(argv=None) -> int:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
+    except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra
+        print(f"femreg {args.command}: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"femreg {args.command}: interrupted (finished work is kept)", file=sys.stderr)
         return 130

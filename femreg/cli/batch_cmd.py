@@ -1,4 +1,4 @@
-"""``femreg batch INPUTS... -o OUT/``: register or track many recordings in parallel on Dask.
+"""``femreg batch INPUT [INPUT ...] -o OUT/``: register or track many recordings in parallel on Dask.
 
 INPUTS are frame files and folders (a folder's frame files and sub-folders are its recordings; with
 ``--folders recording`` a folder is one recording of per-frame files).  One task per recording (``--task track``,

@@ -130,7 +130,9 @@ def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=No
         Element-centre strains as cell data and/or their nodal averages as point data.
     point_data, cell_data : dict of extra arrays, (n_nodes, ...) / (n_el, ...).
     """
-    import meshio
+    from ..optional import require
+
+    meshio = require("meshio", feature="VTU/XDMF export")
 
     pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
                                            cell_data=cell_data)
@@ -140,7 +142,9 @@ def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=No
 
 def write_xdmf(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
     """As :func:`write_vtu`, in XDMF (+ HDF5 heavy data next to it, ``<stem>.h5``)."""
-    import meshio
+    from ..optional import require
+
+    meshio = require("meshio", feature="VTU/XDMF export")
 
     pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
                                            cell_data=cell_data)

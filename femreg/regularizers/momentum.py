@@ -24,6 +24,7 @@ Contents
 :class:`TVRegularizer`
     Generic :math:`\alpha\sum_j w_j\,\phi(|K_j u|^2)` for any grouped sparse operator (the momentum terms are two
     instances; :func:`femreg.regularizers.from_operator` builds user ones).
+
 :class:`MomentumRegularizer`, :class:`PlaneStrainMomentumRegularizer` ("momentum-strain", R_P_eps,
 :math:`\bar\lambda = 9`, dilatation at the element centre), :class:`PlaneStressMomentumRegularizer`
 ("momentum-stress", R_P_sigma, :math:`\bar\lambda = 2`).
@@ -541,7 +542,7 @@ class TVRegularizer(Regularizer):
         return val
 
     def term_norms(self, u: np.ndarray) -> np.ndarray:
-        """|K_j u| per term (e.g. |[[A]]·n| per edge, dimensionless), shape (n_terms,)."""
+        """``|K_j u|`` per term (e.g. ``|[[A]]·n|`` per edge, dimensionless), shape (n_terms,)."""
         return np.sqrt(np.sum(self.term_values(u) ** 2, axis=0))
 
     def diffusivity(self, u: np.ndarray) -> np.ndarray:
