@@ -1,0 +1,432 @@
+"""Where the echo is: the rectangle of an RF frame pair that holds usable echo, and registration inside it.
+
+A recording as made has regions without usable echo: depth where the attenuated echo has sunk to the receiver's
+noise floor, lines outside the aperture, samples clipped by the converter.  Fully developed speckle and noise
+alone have the same envelope statistics (Rayleigh, envelope SNR 1.91; J. W. Goodman, *Speckle Phenomena in
+Optics*, 2007, ch. 3), so the statistics cannot tell them apart; the *level* can.  :func:`find_echo` works on the
+envelope power (|analytic signal|^2 along the beam, :func:`femreg.pyramid.envelope`):
+
+* a depth profile, the median over the lines of each row in dB (the median: an anechoic region in some lines
+  does not pull the row down), smoothed over :data:`SMOOTH_PERIODS` RF periods;
+* the noise floor: its quietest rows (the :data:`FLOOR_PERCENTILE`-th percentile of the profile), the echo level
+  its :data:`ECHO_PERCENTILE`-th percentile; a profile spanning less than :data:`MIN_RANGE_DB` has no floor to
+  tell apart and nothing is excluded;
+* the echo SNR of a row, ``10 log10(P / P_floor - 1)`` (echo power over noise power), with hysteresis: the echo
+  region spans every row reaching :data:`SEED_SNR_DB` and extends from there while the SNR stays at or above
+  :data:`MIN_SNR_DB` (0 dB: the echo as strong as the noise, the level 3 dB above the floor);
+* the same along the lines, on the rows kept;
+* a veto from the pair: electronic noise is independent from frame to frame while echo moves with the tissue,
+  so a strip whose envelope still matches the other frame (best NCC over small shifts at least
+  :data:`ECHO_NCC`) holds echo and is kept (a weak deep echo without noise floor, e.g. uncompensated attenuation);
+* saturation: a frame with more than :data:`CLIP_FRACTION` of its samples at its extreme magnitude is clipped;
+  rows and lines at the region's edges with more than :data:`CLIP_ROW_FRACTION` clipped samples are excluded.
+
+Only edge strips can be left out (the mesh is a rectangle); no usable rows or lines in the middle are reported.
+:func:`crop_for` turns the detection, or a user's ``roi`` / ``depth`` in mm, into the crop of the frames that
+:func:`femreg.register` and :func:`femreg.track` register (the mesh over the echo rectangle, the default margin
+kept at the image edges); their results keep the full frames' pixel grid and say what was left out.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+from .errors import InputError
+from .image import validate_image, validate_spacing
+from .mesh import DEFAULT_MARGIN
+from .pyramid import envelope, rf_period
+
+__all__ = ["EchoRegion", "find_echo", "crop_for", "Crop", "MIN_SNR_DB", "SEED_SNR_DB", "MIN_RANGE_DB", "ECHO_NCC",
+           "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
+
+#: Echo SNR (dB, echo power over noise power) below which a row or line holds no usable echo.
+MIN_SNR_DB = 0.0
+#: Echo SNR (dB) a row or line must reach to start the echo region (hysteresis above :data:`MIN_SNR_DB`).
+SEED_SNR_DB = 6.0
+#: A level profile spanning less than this (dB, echo percentile minus floor percentile) has no noise floor.
+MIN_RANGE_DB = 10.0
+#: Percentiles of the smoothed profile taken as the noise floor and as the echo level.
+FLOOR_PERCENTILE = 1.0
+ECHO_PERCENTILE = 90.0
+#: Smoothing of the depth profile, in RF periods (about five wavelengths, a few speckle lengths).
+SMOOTH_PERIODS = 10.0
+#: Smoothing of the line profile, in lines.
+SMOOTH_LINES = 3
+#: Best envelope NCC between the frames (over small shifts) at or above which a candidate strip holds echo.
+ECHO_NCC = 0.5
+#: Fraction of a frame's samples at its extreme magnitude above which it counts as clipped.
+CLIP_FRACTION = 1e-3
+#: Fraction of clipped samples above which a row or line is saturated.
+CLIP_ROW_FRACTION = 0.02
+
+
+@dataclass
+class EchoRegion:
+    """The rectangle of usable echo of a frame pair (:func:`find_echo`).
+
+    rows, cols : (start, stop) pixel index ranges (half-open) of the rectangle; ``shape``, ``spacing``,
+    ``origin`` the frames' grid (mm).  ``excluded``: what was left out and why (None: nothing).
+    ``floor_db`` / ``echo_db``: noise floor and echo level of the depth profile, dB of the envelope in the data's
+    units (NaN where not measured).
+    """
+
+    rows: tuple
+    cols: tuple
+    shape: tuple
+    spacing: tuple
+    origin: tuple
+    excluded: str | None = None
+    floor_db: float = float("nan")
+    echo_db: float = float("nan")
+
+    @property
+    def full(self) -> bool:
+        return tuple(self.rows) == (0, self.shape[0]) and tuple(self.cols) == (0, self.shape[1])
+
+    @property
+    def roi_mm(self) -> tuple:
+        """(x0, x1, y0, y1) mm: the rectangle's outer pixel-cell edges."""
+        dx, dy = self.spacing
+        ox, oy = self.origin
+        return (ox + (self.rows[0] - 0.5) * dx, ox + (self.rows[1] - 0.5) * dx,
+                oy + (self.cols[0] - 0.5) * dy, oy + (self.cols[1] - 0.5) * dy)
+
+
+def _db(p):
+    p = np.asarray(p, float)
+    tiny = 1e-30 * max(float(np.max(p)), 1e-300)
+    return 10.0 * np.log10(p + tiny)
+
+
+def _echo_run(level_db, floor_db, min_len):
+    """(a, b) half-open run of rows with echo (hysteresis rule of the module docstring; seeds are runs of at
+    least ``min_len`` rows, so that a few rows of edge effects do not count), and the SNR profile."""
+    snr = _db(np.maximum(10.0 ** ((level_db - floor_db) / 10.0) - 1.0, 1e-6))
+    seed = np.concatenate([[False], snr >= SEED_SNR_DB, [False]])
+    edges = np.flatnonzero(np.diff(seed.astype(np.int8)))
+    runs = [(int(s), int(e)) for s, e in zip(edges[0::2], edges[1::2]) if e - s >= min_len]
+    if not runs:
+        return (0, 0), snr
+    a, b = runs[0][0], runs[-1][1]
+    while a > 0 and snr[a - 1] >= MIN_SNR_DB:
+        a -= 1
+    while b < snr.size and snr[b] >= MIN_SNR_DB:
+        b += 1
+    return (a, b), snr
+
+
+def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, near="top", max_rows=256) -> float:
+    """Best NCC of the envelope ``ea[rows, cols]`` against ``eb`` shifted by up to ``max_shift`` rows (steps of
+    ``row_step``) and ``max_lat`` lines; both taken every ``row_step``-th row (the envelope is smooth over it),
+    at most ``max_rows`` of them, those ``near`` the kept region ("top": the strip's first rows, "bottom": its
+    last); stops at :data:`ECHO_NCC`."""
+    r0, r1 = rows
+    c0, c1 = cols
+    q = int(row_step)
+    if (r1 - r0) // q > max_rows:
+        r0, r1 = (r0, r0 + max_rows * q) if near == "top" else (r1 - max_rows * q, r1)
+    best = -1.0
+    n, m = eb.shape
+    for s in range(-max_shift, max_shift + 1, q):
+        lo, hi = max(r0, -s), min(r1, n - s)
+        if hi - lo < 2 * q:
+            continue
+        for t in range(-max_lat, max_lat + 1):
+            cl, ch = max(c0, -t), min(c1, m - t)
+            if ch - cl < 1:
+                continue
+            a = ea[lo:hi:q, cl:ch].ravel()
+            b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
+            a = a - a.mean()
+            b = b - b.mean()
+            d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+            if d > 0:
+                best = max(best, float(np.dot(a, b)) / d)
+                if best >= ECHO_NCC:
+                    return best
+    return best
+
+
+def _clipped(frames):
+    """Boolean map of clipped samples (any frame), or None when no frame is clipped."""
+    out = None
+    for f in frames:
+        c = float(np.max(np.abs(f)))
+        if not c > 0:
+            continue
+        m = np.abs(f) >= c * (1.0 - 1e-9)
+        if np.mean(m) > CLIP_FRACTION:
+            out = m if out is None else (out | m)
+    return out
+
+
+def _span(lo, hi, origin, step):
+    """'a-b mm' of pixel indices [lo, hi) (cell edges)."""
+    return f"{origin + (lo - 0.5) * step:.1f}-{origin + (hi - 0.5) * step:.1f} mm"
+
+
+def rf_like(image) -> bool:
+    """True for an RF frame: zero mean on every line within a fraction of its RMS (envelope, B-mode and other
+    one-signed intensity images are not; their level says nothing about echo against noise)."""
+    img = np.asarray(image, float)
+    if img.ndim != 2 or img.shape[0] < 64 or img.shape[1] < 4:
+        return False
+    rms = float(np.sqrt(np.mean(img ** 2)))
+    return rms > 0 and float(np.sqrt(np.mean(np.mean(img, axis=0) ** 2))) < 0.1 * rms
+
+
+def find_echo(reference, moving=None, *, spacing, origin=(0.0, 0.0)) -> EchoRegion:
+    """Detect the rectangle of usable echo of an RF frame (pair) (module docstring).
+
+    Parameters
+    ----------
+    reference, moving : (n_axial, n_lateral) RF frames; ``moving`` (optional) adds the frame-to-frame veto and
+        its own clipping.
+    spacing, origin : (2,) mm
+
+    Returns
+    -------
+    EchoRegion (``excluded`` None when the whole frame holds echo).
+    """
+    ref = validate_image(reference, "reference image")
+    mov = None if moving is None else validate_image(moving, "moving image")
+    spacing, origin = validate_spacing(spacing, origin)
+    n, m = ref.shape
+    dx, dy = float(spacing[0]), float(spacing[1])
+    ox, oy = float(origin[0]), float(origin[1])
+    full = EchoRegion((0, n), (0, m), (n, m), (dx, dy), (ox, oy))
+    if not rf_like(ref):
+        return full
+    env_r = envelope(ref)
+    env_m = []                       # the moving frame's envelope, for the veto only
+    power = env_r ** 2
+    period = rf_period(ref[:, ::max(1, m // 32)], spacing)
+    w = int(max(3, round(SMOOTH_PERIODS * period / dx)))
+    row_db = uniform_filter1d(_db(np.median(power, axis=1)), w, mode="nearest")
+    floor = float(np.percentile(row_db, FLOOR_PERCENTILE))
+    echo = float(np.percentile(row_db, ECHO_PERCENTILE))
+    reasons = []
+
+    def veto(rows, cols, near="top"):
+        """True when the strip still matches the other frame (echo moving with the tissue)."""
+        if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
+            return False
+        if not env_m:
+            env_m.append(envelope(mov))
+        depth = ox + rows[1] * dx
+        max_shift = int(np.ceil(max(3.0 * period, 0.05 * abs(depth)) / dx))
+        step = max(1, int(round(period / (2.0 * dx))))     # the envelope varies over a pulse length
+        return _strip_ncc(env_r, env_m[0], rows, cols, max_shift, step, near=near) >= ECHO_NCC
+
+    def floor_text(where, lvl, flr, echo_at):
+        return (f"{where} excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
+                f"(echo {lvl:.1f} dB{echo_at})")
+
+    a, b = 0, n
+    if echo - floor >= MIN_RANGE_DB:
+        (a, b), _ = _echo_run(row_db, floor, max(w, n // 20))
+        if b <= a:
+            a, b = 0, n
+        at = f" at {_echo_span(row_db, echo, ox, dx)}"
+        if a > 0 and veto((0, a), (0, m), "bottom"):
+            a = 0
+        elif a > 0:
+            reasons.append(floor_text(f"depth above {ox + (a - 0.5) * dx:.1f} mm", echo, floor, at))
+        if b < n and veto((b, n), (0, m)):
+            b = n
+        elif b < n:
+            reasons.append(floor_text(f"depth below {ox + (b - 0.5) * dx:.1f} mm", echo, floor, at))
+    # the lines, over the rows kept
+    c0, c1 = 0, m
+    col_db = uniform_filter1d(_db(np.median(power[a:b], axis=0)), SMOOTH_LINES, mode="nearest")
+    cfloor = floor if echo - floor >= MIN_RANGE_DB else float(np.percentile(col_db, FLOOR_PERCENTILE))
+    cecho = float(np.percentile(col_db, ECHO_PERCENTILE))
+    if cecho - cfloor >= MIN_RANGE_DB:
+        (c0, c1), _ = _echo_run(col_db, cfloor, max(SMOOTH_LINES, m // 20))
+        if c1 <= c0:
+            c0, c1 = 0, m
+        for lo, hi, side in ((0, c0, "left"), (c1, m, "right")):
+            if hi <= lo:
+                continue
+            if veto((a, b), (lo, hi)):
+                c0, c1 = (0, c1) if side == "left" else (c0, m)
+            else:
+                reasons.append(floor_text(f"lines at {_span(lo, hi, oy, dy)} ({side})", cecho, cfloor, ""))
+    # saturation at the edges of the rectangle
+    clip = _clipped([ref] if mov is None else [ref, mov])
+    if clip is not None:
+        rows_sat = np.mean(clip[:, c0:c1], axis=1) > CLIP_ROW_FRACTION
+        a0, b0 = a, b
+        while a < b and rows_sat[a]:
+            a += 1
+        while b > a and rows_sat[b - 1]:
+            b -= 1
+        cols_sat = np.mean(clip[a:b], axis=0) > CLIP_ROW_FRACTION
+        k0, k1 = c0, c1
+        while c0 < c1 and cols_sat[c0]:
+            c0 += 1
+        while c1 > c0 and cols_sat[c1 - 1]:
+            c1 -= 1
+        frac = float(np.mean(clip))
+        for lo, hi, what, o, st in ((a0, a, "depth", ox, dx), (b, b0, "depth", ox, dx), (k0, c0, "lines", oy, dy),
+                                    (c1, k1, "lines", oy, dy)):
+            if hi > lo:
+                reasons.append(f"{what} {_span(lo, hi, o, st)} excluded: saturated (more than "
+                               f"{CLIP_ROW_FRACTION:.0%} of the samples clipped; {frac:.1%} of the frame)")
+        inner = np.flatnonzero(np.mean(clip[a:b, c0:c1], axis=1) > CLIP_ROW_FRACTION)
+        if inner.size:
+            reasons.append(f"saturated rows at {_span(a + int(inner[0]), a + int(inner[-1]) + 1, ox, dx)} kept "
+                           f"(inside the echo region)")
+    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo)
+
+
+def _echo_span(row_db, echo, ox, dx) -> str:
+    """Where the depth profile is within 3 dB of the echo level."""
+    k = np.flatnonzero(row_db >= echo - 3.0)
+    return _span(int(k[0]), int(k[-1]) + 1, ox, dx) if k.size else "-"
+
+
+def _margin_pixels(margin, spacing) -> np.ndarray:
+    """Pixels of the mesh margin per axis, as :func:`femreg.mesh.roi_mesh` rounds it."""
+    m = np.broadcast_to(np.asarray(DEFAULT_MARGIN if margin is None else margin, float), (2,))
+    if np.any(~np.isfinite(m)) or np.any(m < 0):
+        raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
+    return np.ceil(m / np.asarray(spacing, float) - 1e-9).astype(int)
+
+
+def _extent_text(shape, spacing, origin) -> str:
+    lo = np.asarray(origin, float) - 0.5 * np.asarray(spacing, float)
+    hi = lo + np.asarray(shape, float) * np.asarray(spacing, float)
+    return f"x (axial) {lo[0]:.4g} to {hi[0]:.4g} mm, y (lateral) {lo[1]:.4g} to {hi[1]:.4g} mm"
+
+
+def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegion:
+    """The pixel rectangle of a user's ``roi`` (x0, x1, y0, y1) or ``depth`` (d0, d1) mm: the pixels whose centres
+    lie inside it.  :class:`InputError` naming the image extent when it leaves the image or holds no pixel."""
+    if roi is not None and depth is not None:
+        raise InputError("give roi or depth, not both (depth (d0, d1) is roi (d0, d1, y0, y1) over all lines)")
+    what = "roi" if roi is not None else "depth"
+    val = roi if roi is not None else depth
+    try:
+        v = np.asarray(val, float).ravel()
+    except (TypeError, ValueError):
+        v = np.array([np.nan])
+    need = 4 if roi is not None else 2
+    if v.size != need or not np.all(np.isfinite(v)) or v[0] >= v[1] or (need == 4 and v[2] >= v[3]):
+        form = "(x0, x1, y0, y1)" if need == 4 else "(d0, d1)"
+        raise InputError(f"{what} must be {form} mm with x0 < x1{' and y0 < y1' if need == 4 else ''}, got {val!r}")
+    sp, org = np.asarray(spacing, float), np.asarray(origin, float)
+    lo = org - 0.5 * sp
+    hi = lo + np.asarray(shape, float) * sp
+    tol = 1e-6 * sp
+    box = np.array([v[0], v[1], v[2], v[3]]) if need == 4 else np.array([v[0], v[1], lo[1], hi[1]])
+    if box[0] < lo[0] - tol[0] or box[1] > hi[0] + tol[0] or box[2] < lo[1] - tol[1] or box[3] > hi[1] + tol[1]:
+        raise InputError(f"{what} {tuple(float(x) for x in v)} mm leaves the image; the image extent is "
+                         f"{_extent_text(shape, spacing, origin)}")
+    idx = []
+    for k, axis in ((0, 0), (2, 1)):          # pixel centres c_i = origin + i * spacing inside [box_k, box_k+1]
+        i0 = int(np.ceil((box[k] - org[axis]) / sp[axis] - 1e-6))
+        i1 = int(np.floor((box[k + 1] - org[axis]) / sp[axis] + 1e-6)) + 1
+        idx.append((max(0, i0), min(int(shape[axis]), i1)))
+    if idx[0][1] - idx[0][0] < 2 or idx[1][1] - idx[1][0] < 2:
+        raise InputError(f"{what} {tuple(float(x) for x in v)} mm holds fewer than 2 x 2 pixels; the image extent "
+                         f"is {_extent_text(shape, spacing, origin)}")
+    region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
+                        tuple(float(s) for s in org))
+    x0, x1, y0, y1 = region.roi_mm
+    region.excluded = f"outside the given {what} x {x0:.1f}-{x1:.1f} mm, y {y0:.1f}-{y1:.1f} mm excluded"
+    return region
+
+
+class Crop:
+    """The frames cut to a rectangle, and how to put a result registered there back on the full frames' pixel grid.
+
+    A detected echo rectangle is cut as it is (the mesh margin lies inside it: no noise enters any stage); a given
+    one is widened by the mesh margin where the image has it, so that the mesh covers it.  ``slices``: (rows,
+    cols) of the frames kept; ``origin``: the crop's pixel [0, 0] centre (mm); ``region``: the
+    :class:`EchoRegion`; ``seconds``: the detection's time."""
+
+    def __init__(self, region: EchoRegion, margin_px, pad: bool, seconds=0.0):
+        self.region = region
+        n, m = region.shape
+        (a, b), (c, d) = region.rows, region.cols
+        mr, mc = (int(x) for x in margin_px)
+        pr, pc = (mr, mc) if pad else (0, 0)
+        self.slices = (slice(max(0, a - pr), min(n, b + pr)), slice(max(0, c - pc), min(m, d + pc)))
+        self.origin = (region.origin[0] + self.slices[0].start * region.spacing[0],
+                       region.origin[1] + self.slices[1].start * region.spacing[1])
+        self.seconds = float(seconds)
+        for k, (s, mp) in enumerate(zip(self.slices, (mr, mc))):
+            if s.stop - s.start - 2 * mp < 1:
+                raise InputError(f"the {'region' if pad else 'echo region'} {region.roi_mm[2 * k]:.2f} to "
+                                 f"{region.roi_mm[2 * k + 1]:.2f} mm is too small for a mesh inside the margin "
+                                 f"({mp} pixels) along axis {k}" + (f": {region.excluded}" if region.excluded else ""))
+
+    @property
+    def roi_mm(self) -> tuple:
+        return tuple(float(v) for v in self.region.roi_mm)
+
+    def frames(self, *images):
+        """The images cut to :attr:`slices` (views)."""
+        return [np.asarray(f)[self.slices] for f in images]
+
+    def widen(self, res):
+        """``res`` (a result on the crop) on the full frames' pixel grid, saying what was excluded (in place;
+        idempotent); returns it."""
+        res.shape = tuple(self.region.shape)
+        res.origin = np.asarray(self.region.origin, float)
+        res._grid = res._grid_element = None          # pixel-grid fields are recomputed on the full grid
+        res.roi = self.roi_mm
+        if self.region.excluded and getattr(res, "excluded", None) != self.region.excluded:
+            res.excluded = self.region.excluded
+            res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded
+        res.timings["echo"] = self.seconds
+        return res
+
+
+def _nodal(spec) -> bool:
+    """True for a nodal vector (an array over the default mesh's nodes, which a crop would change)."""
+    return isinstance(spec, (np.ndarray, list, tuple))
+
+
+def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
+             margin=None, initial=None, offset=None) -> Crop | None:
+    """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
+
+    ``roi``: "auto" (default) detects the echo rectangle (:func:`find_echo`), None keeps the whole frames,
+    (x0, x1, y0, y1) mm a given rectangle; ``depth`` (d0, d1) mm a given depth range over all lines (a given
+    rectangle or depth disables the detection).  With a user ``mesh`` there is no crop (a given roi or depth is
+    then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
+    The detection changes nothing (None) when what it excludes lies within the mesh margin."""
+    if roi is None and depth is None:
+        return None
+    given = depth is not None or not (isinstance(roi, str) and roi == "auto")
+    if isinstance(roi, str) and roi != "auto":
+        raise InputError(f"roi must be 'auto', None or (x0, x1, y0, y1) mm, got {roi!r}")
+    if mesh is not None:
+        if given:
+            raise InputError("roi / depth and a user mesh exclude each other: the mesh defines the region")
+        return None
+    if not given and (_nodal(initial) or _nodal(offset)):
+        return None
+    t = time.perf_counter()
+    ref = validate_image(reference, "reference image")
+    mov = validate_image(moving, "moving image")
+    if ref.shape != mov.shape:
+        raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
+    spacing, origin = validate_spacing(spacing, origin)
+    mp = _margin_pixels(margin, spacing)
+    if given:
+        region = region_from_mm(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi, depth=depth)
+        return Crop(region, mp, True, time.perf_counter() - t)
+    if not rf_like(ref):
+        return None
+    region = find_echo(ref, mov, spacing=spacing, origin=origin)
+    n, m = ref.shape
+    (a, b), (c, d) = region.rows, region.cols
+    if a <= mp[0] and b >= n - mp[0] and c <= mp[1] and d >= m - mp[1]:
+        return None                  # nothing beyond the margin the mesh leaves out anyway
+    return Crop(region, mp, False, time.perf_counter() - t)
