@@ -230,8 +230,8 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     n = quad.n_pixels
     # a registration that reports failure is no candidate: the rules run on the longest unbroken stretch of
     # successful ones (the change between two candidates either side of a failure means nothing)
-    ok = [bool(getattr(res, "success", True)) for res in results]
-    lo, hi = successful_stretch(ok)
+    succeeded = [bool(getattr(res, "success", True)) for res in results]
+    lo, hi = successful_stretch(succeeded)
     i0 = lo + int(np.argmin(psi[lo:hi]))             # the best image fit among them
     sigma2 = 2.0 * psi[i0] / max(n - dof[i0], 1.0)
     r_img = np.zeros(ref.size)
@@ -255,7 +255,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         k = lo + int(ok.max()) if ok.size else lo + int(np.argmin(psi[lo:hi]))
     return AutoAlpha(alpha=float(alphas[k]), alphas=alphas, psi=psi, dof=dof, upre=upre, c=c, sigma2=float(sigma2),
                      n_registrations=int(alphas.size), result=results[k], rule=rule,
-                     results=results if keep_results else None, strain_change=change, n_failed=ok.count(False))
+                     results=results if keep_results else None, strain_change=change, n_failed=succeeded.count(False))
 
 
 def register_auto(reference_image, moving_image, **register_kwargs):
