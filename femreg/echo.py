@@ -53,10 +53,18 @@ FLOOR_PERCENTILE = 1.0
 ECHO_PERCENTILE = 90.0
 #: Smoothing of the depth profile, in RF periods (about five wavelengths, a few speckle lengths).
 SMOOTH_PERIODS = 10.0
+#: Lines (about) the depth profile is measured on.
+PROFILE_LINES = 64
+#: Rows (at most) the line profile is measured on.
+PROFILE_ROWS = 1024
+#: Median envelope power over median RF power of Gaussian RF: 2 ln 2 / 0.4549 (median of chi-square, 1 dof).
+RF_TO_ENVELOPE_POWER = 2.0 * np.log(2.0) / 0.454936
 #: Smoothing of the line profile, in lines.
 SMOOTH_LINES = 3
 #: Best envelope NCC between the frames (over small shifts) at or above which a candidate strip holds echo.
 ECHO_NCC = 0.5
+#: RF magnitude, relative to the frame's largest, at or below which a whole row or line holds no signal.
+DEAD_LEVEL = 1e-12
 #: Fraction of a frame's samples at its extreme magnitude above which it counts as clipped.
 CLIP_FRACTION = 1e-3
 #: Fraction of clipped samples above which a row or line is saturated.
@@ -101,10 +109,29 @@ def _db(p):
     return 10.0 * np.log10(p + tiny)
 
 
-def _echo_run(level_db, floor_db, min_len):
+def _live_span(live):
+    """(first, last + 1) of the True entries of ``live`` ((0, 0) when none)."""
+    k = np.flatnonzero(live)
+    return (int(k[0]), int(k[-1]) + 1) if k.size else (0, 0)
+
+
+def _profile(power, live, w):
+    """Smoothed level profile (dB) of the medians ``power``, its floor and echo percentiles over the ``live``
+    entries; the dead ones take the floor before smoothing (no dip below it)."""
+    db = _db(np.where(live, power, 0.0))
+    if not live.any():
+        return db, 0.0, 0.0
+    fill = float(np.percentile(db[live], FLOOR_PERCENTILE))
+    sm = uniform_filter1d(np.where(live, db, fill), w, mode="nearest")
+    return sm, float(np.percentile(sm[live], FLOOR_PERCENTILE)), float(np.percentile(sm[live], ECHO_PERCENTILE))
+
+
+def _echo_run(level_db, floor_db, min_len, live):
     """(a, b) half-open run of rows with echo (hysteresis rule of the module docstring; seeds are runs of at
-    least ``min_len`` rows, so that a few rows of edge effects do not count), and the SNR profile."""
+    least ``min_len`` rows, so that a few rows of edge effects do not count; ``live``: False where the data
+    hold no signal at all), and the SNR profile."""
     snr = _db(np.maximum(10.0 ** ((level_db - floor_db) / 10.0) - 1.0, 1e-6))
+    snr[~live] = -np.inf
     seed = np.concatenate([[False], snr >= SEED_SNR_DB, [False]])
     edges = np.flatnonzero(np.diff(seed.astype(np.int8)))
     runs = [(int(s), int(e)) for s, e in zip(edges[0::2], edges[1::2]) if e - s >= min_len]
@@ -150,14 +177,14 @@ def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, near="top", m
     return best
 
 
-def _clipped(frames):
-    """Boolean map of clipped samples (any frame), or None when no frame is clipped."""
+def _clipped(mags):
+    """Boolean map of clipped samples (any frame; ``mags``: the frames' |RF|), or None when none is clipped."""
     out = None
-    for f in frames:
-        c = float(np.max(np.abs(f)))
+    for f in mags:
+        c = float(np.max(f))
         if not c > 0:
             continue
-        m = np.abs(f) >= c * (1.0 - 1e-9)
+        m = f >= c * (1.0 - 1e-9)
         if np.mean(m) > CLIP_FRACTION:
             out = m if out is None else (out | m)
     return out
@@ -194,69 +221,90 @@ def find_echo(reference, moving=None, *, spacing, origin=(0.0, 0.0)) -> EchoRegi
     ref = validate_image(reference, "reference image")
     mov = None if moving is None else validate_image(moving, "moving image")
     spacing, origin = validate_spacing(spacing, origin)
+    return _find_echo(ref, mov, spacing, origin)
+
+
+def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
+    """:func:`find_echo` on validated frames."""
     n, m = ref.shape
     dx, dy = float(spacing[0]), float(spacing[1])
     ox, oy = float(origin[0]), float(origin[1])
     full = EchoRegion((0, n), (0, m), (n, m), (dx, dy), (ox, oy))
     if not rf_like(ref):
         return full
-    env_r = envelope(ref)
-    env_m = []                       # the moving frame's envelope, for the veto only
-    power = env_r ** 2
+    envs = []                        # the frames' envelopes, for the veto only
+    # lines and rows without any signal (zero samples) are dead; the envelope leaks into them, the RF does not
+    mag = np.abs(ref)
+    top = float(np.max(mag))
+    live_c = np.max(mag, axis=0) > DEAD_LEVEL * top
+    live_r = np.max(mag[:, live_c], axis=1) > DEAD_LEVEL * top
+    lines = np.flatnonzero(live_c)
+    lines = lines[::max(1, lines.size // PROFILE_LINES)]     # the depth profile from about 64 lines: as good
+    row_med = np.median(envelope(ref[:, lines]) ** 2, axis=1)
     period = rf_period(ref[:, ::max(1, m // 32)], spacing)
     w = int(max(3, round(SMOOTH_PERIODS * period / dx)))
-    row_db = uniform_filter1d(_db(np.median(power, axis=1)), w, mode="nearest")
-    floor = float(np.percentile(row_db, FLOOR_PERCENTILE))
-    echo = float(np.percentile(row_db, ECHO_PERCENTILE))
+    row_db, floor, echo = _profile(row_med, live_r, w)
     reasons = []
 
     def veto(rows, cols, near="top"):
         """True when the strip still matches the other frame (echo moving with the tissue)."""
         if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
             return False
-        if not env_m:
-            env_m.append(envelope(mov))
+        if not envs:
+            envs.extend([envelope(ref), envelope(mov)])
         depth = ox + rows[1] * dx
         max_shift = int(np.ceil(max(3.0 * period, 0.05 * abs(depth)) / dx))
         step = max(1, int(round(period / (2.0 * dx))))     # the envelope varies over a pulse length
-        return _strip_ncc(env_r, env_m[0], rows, cols, max_shift, step, near=near) >= ECHO_NCC
+        return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, near=near) >= ECHO_NCC
 
-    def floor_text(where, lvl, flr, echo_at):
-        return (f"{where} excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
+    def why(has_floor, lvl, flr, echo_at=""):
+        if not has_floor:
+            return "excluded: no signal (zero samples)"
+        return (f"excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
                 f"(echo {lvl:.1f} dB{echo_at})")
 
-    a, b = 0, n
-    if echo - floor >= MIN_RANGE_DB:
-        (a, b), _ = _echo_run(row_db, floor, max(w, n // 20))
-        if b <= a:
-            a, b = 0, n
-        at = f" at {_echo_span(row_db, echo, ox, dx)}"
-        if a > 0 and veto((0, a), (0, m), "bottom"):
-            a = 0
-        elif a > 0:
-            reasons.append(floor_text(f"depth above {ox + (a - 0.5) * dx:.1f} mm", echo, floor, at))
-        if b < n and veto((b, n), (0, m)):
-            b = n
-        elif b < n:
-            reasons.append(floor_text(f"depth below {ox + (b - 0.5) * dx:.1f} mm", echo, floor, at))
+    has_floor = echo - floor >= MIN_RANGE_DB
+    (a, b) = _echo_run(row_db, floor, max(w, n // 20), live_r)[0] if has_floor else _live_span(live_r)
+    if b <= a:
+        a, b = _live_span(live_r)
+    at = f" at {_echo_span(row_db, echo, ox, dx)}"
+    if a > 0 and has_floor and veto((0, a), (0, m), "bottom"):
+        a = _live_span(live_r)[0]
+    if a > 0:
+        reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "
+                       + why(has_floor and live_r[:a].any(), echo, floor, at))
+    if b < n and has_floor and veto((b, n), (0, m)):
+        b = _live_span(live_r)[1]
+    if b < n:
+        reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
+                       + why(has_floor and live_r[b:].any(), echo, floor, at))
     # the lines, over the rows kept
-    c0, c1 = 0, m
-    col_db = uniform_filter1d(_db(np.median(power[a:b], axis=0)), SMOOTH_LINES, mode="nearest")
-    cfloor = floor if echo - floor >= MIN_RANGE_DB else float(np.percentile(col_db, FLOOR_PERCENTILE))
-    cecho = float(np.percentile(col_db, ECHO_PERCENTILE))
-    if cecho - cfloor >= MIN_RANGE_DB:
-        (c0, c1), _ = _echo_run(col_db, cfloor, max(SMOOTH_LINES, m // 20))
-        if c1 <= c0:
-            c0, c1 = 0, m
-        for lo, hi, side in ((0, c0, "left"), (c1, m, "right")):
+    # the line profile from the RF power: no envelope of every line needed; for Gaussian RF (speckle and noise
+    # alike) the median of RF^2 is the envelope's median power times a constant
+    q = max(1, (b - a) // PROFILE_ROWS)
+    col_med = np.median(ref[a:b:q] ** 2, axis=0) * RF_TO_ENVELOPE_POWER
+    live_c &= np.max(mag[a:b], axis=0) > DEAD_LEVEL * top
+    col_db, cfloor, cecho = _profile(col_med, live_c, SMOOTH_LINES)
+    if has_floor:
+        cfloor = floor
+    c_floor = cecho - cfloor >= MIN_RANGE_DB
+    (c0, c1) = _echo_run(col_db, cfloor, max(SMOOTH_LINES, m // 20), live_c)[0] if c_floor else _live_span(live_c)
+    if c1 <= c0:
+        c0, c1 = _live_span(live_c)
+    for lo, hi, side in ((0, c0, "left"), (c1, m, "right")):
+        if hi <= lo:
+            continue
+        if c_floor and veto((a, b), (lo, hi)):
+            c0, c1 = (_live_span(live_c)[0], c1) if side == "left" else (c0, _live_span(live_c)[1])
+            lo, hi = (0, c0) if side == "left" else (c1, m)
             if hi <= lo:
                 continue
-            if veto((a, b), (lo, hi)):
-                c0, c1 = (0, c1) if side == "left" else (c0, m)
-            else:
-                reasons.append(floor_text(f"lines at {_span(lo, hi, oy, dy)} ({side})", cecho, cfloor, ""))
+            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) " + why(False, 0, 0))
+        else:
+            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) "
+                           + why(c_floor and live_c[lo:hi].any(), cecho, cfloor))
     # saturation at the edges of the rectangle
-    clip = _clipped([ref] if mov is None else [ref, mov])
+    clip = _clipped([mag] if mov is None else [mag, np.abs(mov)])
     if clip is not None:
         rows_sat = np.mean(clip[:, c0:c1], axis=1) > CLIP_ROW_FRACTION
         a0, b0 = a, b
@@ -424,7 +472,7 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         return Crop(region, mp, True, time.perf_counter() - t)
     if not rf_like(ref):
         return None
-    region = find_echo(ref, mov, spacing=spacing, origin=origin)
+    region = _find_echo(ref, mov, spacing, origin)
     n, m = ref.shape
     (a, b), (c, d) = region.rows, region.cols
     if a <= mp[0] and b >= n - mp[0] and c <= mp[1] and d >= m - mp[1]:

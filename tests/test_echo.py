@@ -116,11 +116,15 @@ def test_robustness_pairs_lose_nothing(case):
 
 @pytest.mark.skipif(not INVIVO.is_dir(), reason="in vivo data folder ../shared/data/invivo_rf not present")
 @pytest.mark.parametrize("seq", ["seq299", "seq304"])
-def test_invivo_full_depth_loses_nothing(seq):
+def test_invivo_full_depth_loses_only_its_zero_rows(seq):
     f = [np.fromfile(INVIVO / seq / f"frame{k}.raw", "<f4").reshape(2000, 128) for k in (1, 2, 6)]
+    zero = int(np.flatnonzero(np.any(f[0] != 0, axis=1))[-1]) + 1      # the recording ends in zero samples
+    assert zero < 2000
     for mov in f[1:]:
-        # the last ~1.4 mm are 20-30 dB below the echo but follow the tissue (frame-to-frame NCC 0.83-0.99)
-        assert crop_for(f[0], mov, (0.02, 0.2)) is None
+        # the last echo rows are 20-30 dB below the rest but follow the tissue (frame-to-frame NCC 0.83-0.99)
+        region = find_echo(f[0], mov, spacing=(0.02, 0.2))
+        assert region.rows == (0, zero) and region.cols == (0, 128), region
+        assert region.excluded == f"depth below {(zero - 0.5) * 0.02:.1f} mm excluded: no signal (zero samples)"
 
 
 def test_saturated_rows_excluded():
@@ -232,3 +236,21 @@ def test_auto_alpha_says_when_nothing_succeeded():
         res = femreg.register(a, b, spacing=(0.02, 0.2), alpha="auto", maxiter=3)
     assert not res.success
     assert "alpha='auto' chose nothing" in res.message and res.auto_alpha.n_failed == res.auto_alpha.n_registrations
+
+
+def test_dead_and_noise_lines_excluded():
+    p = make_pair(F.compression(0.01), "L7", (20.0, 15.0), SNR, 0, top_mm=TOP)
+    rng = np.random.default_rng(5)
+    ref, mov = p.ref.copy(), p.mov.copy()
+    for f in (ref, mov):
+        f[:, :12] = p.params["noise_sigma"] * rng.standard_normal((f.shape[0], 12))   # noise-only lines
+        f[:, -5:] = 0.0                                                                # dead lines
+        f[-40:] = 0.0                                                                  # and dead rows
+    region = find_echo(ref, mov, spacing=p.spacing, origin=p.origin)
+    assert region.rows == (0, ref.shape[0] - 40)
+    assert abs(region.cols[0] - 12) <= 1 and region.cols[1] == ref.shape[1] - 5      # smoothed over 3 lines
+    assert "(left) excluded: level within 3 dB of the noise floor" in region.excluded
+    assert "(right) excluded: no signal" in region.excluded and "depth below" in region.excluded
+    res = femreg.register(ref, mov, spacing=p.spacing, origin=p.origin)
+    assert res.success and res.excluded == region.excluded
+    assert res.mesh.p[1].min() >= region.roi_mm[2] and res.mesh.p[1].max() <= region.roi_mm[3]
