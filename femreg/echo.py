@@ -45,8 +45,8 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .pyramid import envelope, rf_period
 
-__all__ = ["EchoRegion", "find_echo", "crop_for", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB", "MIN_RANGE_DB", "ECHO_NCC",
-           "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
+__all__ = ["EchoRegion", "find_echo", "crop_for", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+           "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: Echo SNR (dB, echo power over noise power) below which a row or line holds no usable echo.
 MIN_SNR_DB = 0.0
