@@ -16,12 +16,14 @@ Phenomena in Optics*, 2007, ch. 3), so the statistics cannot tell them apart; th
 * the echo SNR of a row, ``10 log10(P / P_floor - 1)`` (echo power over noise power), with hysteresis: the echo
   region spans every run of at least a smoothing length of rows reaching :data:`SEED_SNR_DB` and extends from
   there while the SNR stays at or above :data:`MIN_SNR_DB` (0 dB: the echo as strong as the noise, the level
-  3 dB above the floor);
+  3 dB above the floor).  Noise that a time-gain compensation lifts with depth above the floor counts as echo
+  (a limitation: the level cannot tell it; nothing is cut off then);
 * the same along the lines, on the rows kept (the median RF power of each line, which for Gaussian RF is the
   envelope's times :data:`RF_TO_ENVELOPE_POWER`), against the depth profile's floor;
 * a veto from the pair: electronic noise is independent from frame to frame while echo moves with the tissue,
-  so a strip whose envelope still matches the other frame (best NCC over small shifts at least
-  :data:`ECHO_NCC`) holds echo and is kept (a weak deep echo without noise floor, e.g. uncompensated attenuation);
+  so a strip whose envelope still matches the other frame anywhere (best NCC over small shifts at least
+  :data:`ECHO_NCC`) holds echo and is kept (a weak deep echo without noise floor, e.g. uncompensated attenuation,
+  or echo beyond an anechoic band);
 * saturation: a frame with more than :data:`CLIP_FRACTION` of its samples at its extreme magnitude is clipped;
   rows and lines at the region's edges with more than :data:`CLIP_ROW_FRACTION` clipped samples are excluded.
 
@@ -69,6 +71,13 @@ RF_TO_ENVELOPE_POWER = 2.0 * np.log(2.0) / 0.454936
 SMOOTH_LINES = 3
 #: Best envelope NCC between the frames (over small shifts) at or above which a candidate strip holds echo.
 ECHO_NCC = 0.5
+#: Height of the pieces of a strip matched one by one, in RF periods: short enough that the strain within one
+#: (up to 5 %) shifts its speckle by much less than a pulse length.
+VETO_PERIODS = 10.0
+#: Fewest samples of such a piece (taller pieces on narrow strips): unrelated frames then match with NCC at most
+#: 0.09 (white noise) and 0.31 (speckle, i.e. noise filtered like the echo) at the best of all shifts and pieces
+#: (measured, 3 / 7.5 / 12 MHz probes, strips of 4 lines to the full width).
+VETO_SAMPLES = 4096
 #: RF magnitude, relative to the frame's largest, at or below which a whole row or line holds no signal.
 DEAD_LEVEL = 1e-12
 #: Fraction of a frame's samples at its extreme magnitude above which it counts as clipped.
@@ -133,9 +142,10 @@ def _profile(power, live, w):
 
 
 def _echo_run(level_db, floor_db, min_len, live):
-    """(a, b) half-open run of rows with echo (hysteresis rule of the module docstring; seeds are runs of at
-    least ``min_len`` rows, so that a few rows of edge effects do not count; ``live``: False where the data
-    hold no signal at all), and the SNR profile."""
+    """(a, b) half-open run of rows with echo (hysteresis rule of the module docstring: from the first to the last
+    run of at least ``min_len`` rows reaching :data:`SEED_SNR_DB`, so that a few rows of edge effects do not
+    count, extended while the SNR stays at :data:`MIN_SNR_DB`; ``live``: False where the data hold no signal at
+    all), and the SNR profile."""
     snr = _db(np.maximum(10.0 ** ((level_db - floor_db) / 10.0) - 1.0, 1e-6))
     snr[~live] = -np.inf
     seed = np.concatenate([[False], snr >= SEED_SNR_DB, [False]])
@@ -143,7 +153,7 @@ def _echo_run(level_db, floor_db, min_len, live):
     runs = [(int(s), int(e)) for s, e in zip(edges[0::2], edges[1::2]) if e - s >= min_len]
     if not runs:
         return (0, 0), snr
-    a, b = runs[0][0], runs[-1][1]
+    a, b = runs[0][0], runs[-1][1]          # never less than every bright run: no echo is cut off
     while a > 0 and snr[a - 1] >= MIN_SNR_DB:
         a -= 1
     while b < snr.size and snr[b] >= MIN_SNR_DB:
@@ -151,35 +161,37 @@ def _echo_run(level_db, floor_db, min_len, live):
     return (a, b), snr
 
 
-def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, near="top", max_rows=256) -> float:
+def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, chunk=256) -> float:
     """Best NCC of the envelope ``ea[rows, cols]`` against ``eb`` shifted by up to ``max_shift`` rows (steps of
-    ``row_step``) and ``max_lat`` lines; both taken every ``row_step``-th row (the envelope is smooth over it),
-    at most ``max_rows`` of them, those ``near`` the kept region ("top": the strip's first rows, "bottom": its
-    last); stops at :data:`ECHO_NCC`."""
-    r0, r1 = rows
-    c0, c1 = cols
+    ``row_step``) and ``max_lat`` lines, in chunks of at most ``chunk`` rows taken every ``row_step``-th row (the
+    envelope is smooth over it): the best over the chunks, so that echo anywhere in the strip counts; stops at
+    :data:`ECHO_NCC`."""
     q = int(row_step)
-    if (r1 - r0) // q > max_rows:
-        r0, r1 = (r0, r0 + max_rows * q) if near == "top" else (r1 - max_rows * q, r1)
     best = -1.0
     n, m = eb.shape
-    for s in range(-max_shift, max_shift + 1, q):
-        lo, hi = max(r0, -s), min(r1, n - s)
-        if hi - lo < 2 * q:
-            continue
-        for t in range(-max_lat, max_lat + 1):
-            cl, ch = max(c0, -t), min(c1, m - t)
-            if ch - cl < 1:
+    c0, c1 = max(0, cols[0]), min(m, cols[1])
+    chunk = max(int(chunk), -(-VETO_SAMPLES // max(1, c1 - c0)))     # enough samples for a noise NCC near 0
+    top, bottom = rows[0], min(rows[1], n)
+    k = max(1, (bottom - top) // (chunk * q))          # pieces of equal height, none shorter than ``chunk``
+    cuts = np.linspace(top, bottom, k + 1).round().astype(int)
+    for r0, r1 in zip(cuts[:-1], cuts[1:]):
+        for s in range(-max_shift, max_shift + 1, q):
+            lo, hi = max(r0, -s), min(r1, n - s)
+            if hi - lo < 2 * q:
                 continue
-            a = ea[lo:hi:q, cl:ch].ravel()
-            b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
-            a = a - a.mean()
-            b = b - b.mean()
-            d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
-            if d > 0:
-                best = max(best, float(np.dot(a, b)) / d)
-                if best >= ECHO_NCC:
-                    return best
+            for t in range(-max_lat, max_lat + 1):
+                cl, ch = max(c0, -t), min(c1, m - t)
+                if ch - cl < 1:
+                    continue
+                a = ea[lo:hi:q, cl:ch].ravel()
+                b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
+                a = a - a.mean()
+                b = b - b.mean()
+                d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+                if d > 0:
+                    best = max(best, float(np.dot(a, b)) / d)
+                    if best >= ECHO_NCC:
+                        return best
     return best
 
 
@@ -252,7 +264,7 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     row_db, floor, echo = _profile(row_med, live_r, w)
     reasons = []
 
-    def veto(rows, cols, near="top"):
+    def veto(rows, cols):
         """True when the strip still matches the other frame (echo moving with the tissue)."""
         if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
             return False
@@ -261,7 +273,8 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         depth = ox + rows[1] * dx
         max_shift = int(np.ceil(max(3.0 * period, 0.05 * abs(depth)) / dx))
         step = max(1, int(round(period / (2.0 * dx))))     # the envelope varies over a pulse length
-        return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, near=near) >= ECHO_NCC
+        chunk = max(8, int(round(VETO_PERIODS * period / (step * dx))))
+        return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, chunk=chunk) >= ECHO_NCC
 
     def why(has_floor, lvl, flr, echo_at=""):
         if not has_floor:
@@ -274,7 +287,7 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     if b <= a:
         a, b = _live_span(live_r)
     at = f" at {_echo_span(row_db, echo, ox, dx)}"
-    if a > 0 and has_floor and veto((0, a), (0, m), "bottom"):
+    if a > 0 and has_floor and veto((0, a), (0, m)):
         a = _live_span(live_r)[0]
     if a > 0:
         reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "

@@ -298,9 +298,11 @@ class SequencePair:
         return np.asarray(self.fields[self._k(k)].strain(np.asarray(points, float)), float)
 
 
-def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_per_cell, echo_gain_db=None):
+def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_per_cell, echo_gain_db=None,
+                   tgc_db=None):
     grid = _grid(pr, size_mm, top_mm)
     gain = _echo_gain(echo_gain_db, grid)
+    tgc = _echo_gain(tgc_db, grid, "tgc_db")
     snr_db = _snr(snr_db)
     ss_scat, ss_noise = np.random.SeedSequence(_seed(seed)).spawn(2)
     scat, box = _scatterers(fields, grid, pr, np.random.default_rng(ss_scat), scatterers_per_cell)
@@ -317,33 +319,34 @@ def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_
         if gain is not None:        # after the noise level: snr_db stays the SNR at 0 dB gain
             clean *= gain[:, None]
         frames.append(clean + sigma * noise_rngs[k].standard_normal(clean.shape) if sigma > 0 else clean)
+        if tgc is not None:         # the receiver's gain: echo and noise alike
+            frames[-1] = frames[-1] * tgc[:, None]
     params = dict(probe=pr.to_dict(), size_mm=list(_check_size(size_mm)), top_mm=float(top_mm), snr_db=snr_db,
                   seed=int(seed), n_scatterers=len(scat), scatterer_box_mm=list(box), noise_sigma=sigma,
                   density_per_mm2=pr.density_per_mm2(scatterers_per_cell), shape=list(grid.shape))
-    if gain is not None:
-        params["echo_gain_db"] = [float(v) for v in 20.0 * np.log10(gain)]
+    for key, g in (("echo_gain_db", gain), ("tgc_db", tgc)):
+        if g is not None:
+            params[key] = [float(v) for v in 20.0 * np.log10(g)]
     return frames, grid, params
 
 
-def _echo_gain(echo_gain_db, grid: ImagingGrid):
-    """Amplitude factor per row (n_axial,) of a depth-dependent echo gain in dB (callable of depth in mm), or None."""
-    if echo_gain_db is None:
+def _echo_gain(gain_db, grid: ImagingGrid, name="echo_gain_db"):
+    """Amplitude factor per row (n_axial,) of a depth-dependent gain in dB (callable of depth in mm), or None."""
+    if gain_db is None:
         return None
-    if not callable(echo_gain_db):
-        raise ValueError(f"echo_gain_db must be a callable of depth (mm) returning dB, got {echo_gain_db!r}")
-    g = np.broadcast_to(np.asarray(echo_gain_db(grid.x), float), grid.x.shape)
+    if not callable(gain_db):
+        raise ValueError(f"{name} must be a callable of depth (mm) returning dB, got {gain_db!r}")
+    g = np.broadcast_to(np.asarray(gain_db(grid.x), float), grid.x.shape)
     if not np.all(np.isfinite(g)):
-        raise ValueError("echo_gain_db returned non-finite values")
+        raise ValueError(f"{name} returned non-finite values")
     return 10.0 ** (g / 20.0)
 
 
-def attenuation_gain_db(alpha_db_cm_mhz: float, f0_mhz: float, *, tgc_db_per_mm: float = 0.0):
-    """Echo gain of round-trip attenuation ``alpha`` (dB / (cm MHz)) at ``f0`` with a time-gain compensation of
-    ``tgc_db_per_mm`` (0: none), as a callable of depth x (mm): ``-(2 alpha f0 / 10 - tgc) x`` dB.  With the
-    noise added after it (:func:`make_pair`, ``echo_gain_db``), the echo sinks to the noise floor at
-    :func:`noise_floor_depth`."""
-    slope = 2.0 * positive("alpha_db_cm_mhz", alpha_db_cm_mhz) * positive("f0_mhz", f0_mhz) / 10.0 - float(
-        tgc_db_per_mm)
+def attenuation_gain_db(alpha_db_cm_mhz: float, f0_mhz: float):
+    """Echo gain of round-trip attenuation ``alpha`` (dB / (cm MHz)) at ``f0``, as a callable of depth x (mm):
+    ``-2 alpha f0 x / 10`` dB.  With the noise added after it (:func:`make_pair`, ``echo_gain_db``), the echo sinks
+    to the noise floor at :func:`noise_floor_depth`; a time-gain compensation (``tgc_db``) lifts both."""
+    slope = 2.0 * positive("alpha_db_cm_mhz", alpha_db_cm_mhz) * positive("f0_mhz", f0_mhz) / 10.0
     return lambda x: -slope * np.asarray(x, float)
 
 
@@ -363,7 +366,7 @@ def noise_floor_depth(snr_db: float, echo_gain_db, depths_mm) -> float:
 
 def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
               top_mm: float = 2.0, scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "",
-              echo_gain_db=None) -> Pair:
+              echo_gain_db=None, tgc_db=None) -> Pair:
     """Render a reference/moving RF pair related by ``field``.
 
     Parameters
@@ -384,6 +387,9 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
         Depth-dependent gain of the echo in every frame, applied before the noise (whose level ``snr_db`` sets at
         0 dB gain): e.g. :func:`attenuation_gain_db` without time-gain compensation, so that the echo sinks to a
         noise floor below :func:`noise_floor_depth`.
+    tgc_db : callable(depth mm) -> dB, optional
+        Time-gain compensation: a depth-dependent gain of the frames after the noise (echo and noise alike; the
+        SNR at each depth stays that of ``echo_gain_db``).
 
     Returns
     -------
@@ -393,7 +399,7 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
     f = _as_field(field)
     zero = _ZeroField()
     frames, grid, params = _render_frames([zero, f], pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell,
-                                          echo_gain_db)
+                                          echo_gain_db, tgc_db)
     params["field"] = getattr(f, "name", "custom")
     return Pair(ref=frames[0], mov=frames[1], spacing=grid.spacing, origin=grid.origin, field=f, probe=pr,
                 snr_db=params["snr_db"], seed=int(seed), name=name or params["field"], params=params)
@@ -402,10 +408,10 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
 def make_sequence(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
                   n_frames: int = 10, step: float = 0.01, top_mm: float = 2.0,
                   scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "",
-                  echo_gain_db=None) -> SequencePair:
+                  echo_gain_db=None, tgc_db=None) -> SequencePair:
     """``n_frames`` frames of the same scatterers under ``field.at(k * step)``, k = 0 .. n_frames - 1 (default
     10 frames at 1 % per frame: 9 % between the first and the last).  ``field`` needs an ``at(level)`` method
-    (all fields of :mod:`forward.fields`); ``echo_gain_db`` as in :func:`make_pair`."""
+    (all fields of :mod:`forward.fields`); ``echo_gain_db`` and ``tgc_db`` as in :func:`make_pair`."""
     if not callable(getattr(field, "at", None)):
         raise ValueError("make_sequence needs a field with an at(level) method (forward.fields)")
     if isinstance(n_frames, bool) or int(n_frames) != n_frames or int(n_frames) < 2:
@@ -414,7 +420,7 @@ def make_sequence(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | No
     fields = [field.at(lv) for lv in levels]
     pr = as_probe(probe)
     frames, grid, params = _render_frames(fields, pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell,
-                                          echo_gain_db)
+                                          echo_gain_db, tgc_db)
     return SequencePair(frames=np.stack(frames), spacing=grid.spacing, origin=grid.origin, fields=fields,
                         levels=levels, probe=pr, snr_db=params["snr_db"], seed=int(seed),
                         name=name or f"sequence {getattr(field, 'name', '')}")

@@ -103,6 +103,18 @@ def test_weak_echo_without_noise_is_kept():
     assert crop_for(p.ref, p.mov, p.spacing, p.origin) is None
 
 
+def test_noise_lifted_by_tgc_does_not_cut_off_the_echo():
+    # a time-gain compensation lifting echo and noise alike by the attenuation: the echo is flat, the noise rises
+    # with depth 30 dB above it; the level alone would call the echo the floor -- the frames say it is echo
+    pr = PROBES["L7"]
+    alpha = alpha_for_floor(14.0, SNR, pr.f0_mhz)
+    gain = attenuation_gain_db(alpha, pr.f0_mhz)
+    p = make_pair(F.compression(0.01), "L7", (30.0, 25.0), SNR, 0, top_mm=TOP, echo_gain_db=gain,
+                  tgc_db=lambda x: -gain(x))
+    region = find_echo(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
+    assert region.rows[0] == 0
+
+
 @pytest.mark.parametrize("case", ["comp1_paper", "shear_L7", "stiff-pstress1_L3", "soft-pstress4_L7"])
 def test_robustness_pairs_lose_nothing(case):
     import sys
