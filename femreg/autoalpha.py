@@ -97,6 +97,8 @@ class AutoAlpha:
     results: list | None = field(repr=False, default=None)
     #: ||e(alpha_{k+1}) - e(alpha_k)|| of the recovered nodal strains, k = 0 .. len(alphas) - 2
     strain_change: np.ndarray | None = None
+    #: candidates whose registration reported failure (all of them: ``alpha`` is the grid centre, not a choice)
+    n_failed: int = 0
 
     def as_dict(self) -> dict:
         return {"alpha": self.alpha, "alphas": self.alphas.tolist(), "psi": self.psi.tolist(),
@@ -228,7 +230,8 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     n = quad.n_pixels
     # a registration that reports failure is no candidate: the rules run on the longest unbroken stretch of
     # successful ones (the change between two candidates either side of a failure means nothing)
-    lo, hi = successful_stretch([bool(getattr(res, "success", True)) for res in results])
+    succeeded = [bool(getattr(res, "success", True)) for res in results]
+    lo, hi = successful_stretch(succeeded)
     i0 = lo + int(np.argmin(psi[lo:hi]))             # the best image fit among them
     sigma2 = 2.0 * psi[i0] / max(n - dof[i0], 1.0)
     r_img = np.zeros(ref.size)
@@ -252,17 +255,21 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         k = lo + int(ok.max()) if ok.size else lo + int(np.argmin(psi[lo:hi]))
     return AutoAlpha(alpha=float(alphas[k]), alphas=alphas, psi=psi, dof=dof, upre=upre, c=c, sigma2=float(sigma2),
                      n_registrations=int(alphas.size), result=results[k], rule=rule,
-                     results=results if keep_results else None, strain_change=change)
+                     results=results if keep_results else None, strain_change=change, n_failed=succeeded.count(False))
 
 
 def register_auto(reference_image, moving_image, **register_kwargs):
     """:func:`femreg.register` with ``alpha="auto"``: the registration at the alpha of :func:`choose_alpha`;
-    the choice is in ``result.auto_alpha`` (an :class:`AutoAlpha` without its result)."""
+    the choice is in ``result.auto_alpha`` (an :class:`AutoAlpha` without its result).  When every candidate
+    fails, the result (at the grid centre) fails and its message says that no alpha was chosen."""
     a = register_kwargs.get("alpha")
     if not (isinstance(a, str) and a == "auto"):
         raise InputError(f"alpha must be a number or 'auto', got {a!r}")
     choice = choose_alpha(reference_image, moving_image, **register_kwargs)
     res = choice.result
     choice.result = None
+    if choice.n_failed == choice.n_registrations:     # nothing to choose from: say so (res reports its failure)
+        res.message += (f"; alpha='auto' chose nothing: all {choice.n_registrations} candidate registrations "
+                        f"failed, this is the grid centre alpha={choice.alpha:.3g}")
     res.auto_alpha = choice
     return res

@@ -340,6 +340,8 @@ def _check_settings(settings: dict, where: str) -> dict:
              "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),
              "regularizer": lambda v: isinstance(v, str), "variable": lambda v: isinstance(v, str),
              "strategy": lambda v: isinstance(v, str),
+             "roi": lambda v: isinstance(v, str) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
+             "depth": lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(real(x) for x in v),
              "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
              "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
                                                                and all(isinstance(x, int) for x in v))}

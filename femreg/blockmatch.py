@@ -201,6 +201,8 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
     denom = tn[:, None, None] * np.sqrt(var)
     scale = np.max(denom) if denom.size else 1.0
     ncc = np.where(denom > 1e-12 * max(scale, 1e-300), C / np.where(denom > 0, denom, 1.0), -np.inf)
+    # an NCC above 1 is round-off of a near-empty window (zero padding, a deep attenuated echo): no match
+    ncc[ncc > 1.0 + 1e-3] = -np.inf
     flat = ncc.reshape(len(A), -1)
     k = np.argmax(flat, axis=1)
     pa, pl = np.unravel_index(k, (2 * sa + 1, 2 * sl + 1))

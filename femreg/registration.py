@@ -22,6 +22,7 @@ import numpy as np
 from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
+from .echo import crop_for
 from .errors import InputError
 from .fields import FIELDS, check_strain_mode, element_strain_operator, recovered_strains, sample
 from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
@@ -117,12 +118,18 @@ class RegistrationResult:
         Peak-hopping map of :func:`register`'s check (:func:`femreg.repair.hop_gain`, not saved): per element, how
         much better the envelope matches one RF period off than at u (Fisher z); above
         :data:`femreg.repair.HOP_GAIN` the element sits on a neighbouring correlation peak.
+    excluded : str or None
+        What of the frames was left out of the mesh and the image term, and why (:mod:`femreg.echo`: no usable
+        echo, saturation, or the user's ``roi`` / ``depth``); None when the whole frames were registered.
+    roi : (x0, x1, y0, y1) mm or None
+        The rectangle registered (the mesh covers it, less the margin at the image edges); None: the whole frames.
     """
 
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
-                 locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None):
+                 locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None,
+                 excluded=None, roi=None):
         self.mesh = mesh
         self.u = np.asarray(u, float)
         self.shape = tuple(int(s) for s in shape)
@@ -148,6 +155,8 @@ class RegistrationResult:
         self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
         self.strategy = str(strategy)
         self.alpha_effective = float(alpha_effective)
+        self.excluded = None if excluded is None else str(excluded)
+        self.roi = None if roi is None else tuple(float(v) for v in roi)
 
     # -- sampling -------------------------------------------------------------------------------------------
     @property
@@ -472,7 +481,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
-             strain_tol: float | None = None) -> RegistrationResult:
+             strain_tol: float | None = None, roi="auto", depth=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): initial guess -> Gauss-Newton on the final mesh -> check and
@@ -539,6 +548,15 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         fraction of their RMS (on two consecutive steps); None = :data:`femreg.solver.GN_STRAIN_TOL` (1.5 %, the
         TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_TIGHT` (0.5 %, the quadratic ones), 0 = only
         the ``tol`` rule.
+    roi : "auto" | None | (x0, x1, y0, y1) mm
+        The region registered.  "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`:
+        depth and lines at the noise floor, saturated samples), the rest left out of the mesh and the image term
+        and named in ``result.excluded`` and the message (nothing changes where the frames hold echo
+        everywhere); None: the whole frames; a rectangle: that one (no detection).  The mesh covers the
+        rectangle, less ``margin`` at the image edges; the result keeps the full frames' pixel grid.
+    depth : (d0, d1) mm, optional
+        A given depth range over all lines (instead of ``roi``; no detection).  Either outside the image is an
+        :class:`~femreg.errors.InputError` naming the image extent.  With a user ``mesh`` neither applies.
 
     Returns
     -------
@@ -550,8 +568,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
+    crop = crop_for(reference_image, moving_image, spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin,
+                    initial=initial, offset=offset)
+    kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image", "crop")}
+    kw.update(roi=None, depth=None)
+    if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
+        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
-        kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
         from .autoalpha import register_auto
         return register_auto(reference_image, moving_image, **kw)
     t_all = time.perf_counter()

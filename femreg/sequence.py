@@ -30,6 +30,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from ._atomic import atomic_savez, atomic_write_text
+from .echo import crop_for
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
@@ -105,7 +106,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
-          on_frame=None, **register_kwargs) -> SequenceResult:
+          on_frame=None, roi="auto", depth=None, **register_kwargs) -> SequenceResult:
     """Displacement from frame 0 to every later frame of a sequence.
 
     Parameters
@@ -144,6 +145,10 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         (``success=False``), are flagged (the run continues).
     on_frame : callable(k, result, flag), optional
         Called after each frame (computed or loaded).
+    roi, depth
+        As in :func:`femreg.register`: the region tracked, from frames 0 and 1 ("auto", default: the echo
+        rectangle of :func:`femreg.echo.find_echo`), the whole frames (None), or a given rectangle / depth range
+        (mm); every frame is registered inside it and the results say what was excluded.
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
@@ -160,6 +165,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
     spacing, origin = validate_spacing(spacing, origin)
+    crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin)
+    if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
+        seq, origin = crop.frames(*seq), np.asarray(crop.origin)
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
@@ -176,6 +184,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid
     params["register_kwargs"] = json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr))
+    if crop is not None:
+        params["roi"] = list(crop.roi_mm)
 
     ckpt = None
     if checkpoint_dir is not None:
@@ -243,6 +253,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                         ncc_after=r_inc.ncc_after, timings=r_inc.timings, blockmatch=r_inc.blockmatch,
                         solver_result=r_inc.solver_result, quality=r_inc.quality, strategy=r_inc.strategy,
                         alpha_effective=r_inc.alpha_effective)
+                if crop is not None:
+                    crop.widen(res)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 if not res.success:
                     flag = f"registration failed: {res.message}"

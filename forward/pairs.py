@@ -25,7 +25,8 @@ import numpy as np
 
 from .ultrasound import PSF, ImagingGrid, make_scatterers, noise_sigma, positive, render_rf
 
-__all__ = ["Probe", "PROBES", "as_probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField"]
+__all__ = ["Probe", "PROBES", "as_probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField",
+           "attenuation_gain_db", "alpha_for_floor", "noise_floor_depth"]
 
 #: Scatterers per (sigma_x * sigma_y) mm^2 of the PSF: 30 per mm^2 x 0.1406 mm x 0.5945 mm, the paper's density.
 SCATTERERS_PER_CELL = 30.0 * 0.14060 * 0.59451
@@ -297,8 +298,11 @@ class SequencePair:
         return np.asarray(self.fields[self._k(k)].strain(np.asarray(points, float)), float)
 
 
-def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_per_cell):
+def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_per_cell, echo_gain_db=None,
+                   tgc_db=None):
     grid = _grid(pr, size_mm, top_mm)
+    gain = _echo_gain(echo_gain_db, grid)
+    tgc = _echo_gain(tgc_db, grid, "tgc_db")
     snr_db = _snr(snr_db)
     ss_scat, ss_noise = np.random.SeedSequence(_seed(seed)).spawn(2)
     scat, box = _scatterers(fields, grid, pr, np.random.default_rng(ss_scat), scatterers_per_cell)
@@ -312,15 +316,57 @@ def _render_frames(fields, pr: Probe, size_mm, snr_db, seed, top_mm, scatterers_
         clean = render_rf(scat.positions + u, scat.amplitudes, grid, psf)
         if k == 0 and snr_db is not None:
             sigma = noise_sigma(float(np.mean(clean**2)), snr_db)   # same noise level in every frame
+        if gain is not None:        # after the noise level: snr_db stays the SNR at 0 dB gain
+            clean *= gain[:, None]
         frames.append(clean + sigma * noise_rngs[k].standard_normal(clean.shape) if sigma > 0 else clean)
+        if tgc is not None:         # the receiver's gain: echo and noise alike
+            frames[-1] = frames[-1] * tgc[:, None]
     params = dict(probe=pr.to_dict(), size_mm=list(_check_size(size_mm)), top_mm=float(top_mm), snr_db=snr_db,
                   seed=int(seed), n_scatterers=len(scat), scatterer_box_mm=list(box), noise_sigma=sigma,
                   density_per_mm2=pr.density_per_mm2(scatterers_per_cell), shape=list(grid.shape))
+    for key, g in (("echo_gain_db", gain), ("tgc_db", tgc)):
+        if g is not None:
+            params[key] = [float(v) for v in 20.0 * np.log10(g)]
     return frames, grid, params
 
 
+def _echo_gain(gain_db, grid: ImagingGrid, name="echo_gain_db"):
+    """Amplitude factor per row (n_axial,) of a depth-dependent gain in dB (callable of depth in mm), or None."""
+    if gain_db is None:
+        return None
+    if not callable(gain_db):
+        raise ValueError(f"{name} must be a callable of depth (mm) returning dB, got {gain_db!r}")
+    g = np.broadcast_to(np.asarray(gain_db(grid.x), float), grid.x.shape)
+    if not np.all(np.isfinite(g)):
+        raise ValueError(f"{name} returned non-finite values")
+    return 10.0 ** (g / 20.0)
+
+
+def attenuation_gain_db(alpha_db_cm_mhz: float, f0_mhz: float):
+    """Echo gain of round-trip attenuation ``alpha`` (dB / (cm MHz)) at ``f0``, as a callable of depth x (mm):
+    ``-2 alpha f0 x / 10`` dB.  With the noise added after it (:func:`make_pair`, ``echo_gain_db``), the echo sinks
+    to the noise floor at :func:`noise_floor_depth`; a time-gain compensation (``tgc_db``) lifts both."""
+    slope = 2.0 * positive("alpha_db_cm_mhz", alpha_db_cm_mhz) * positive("f0_mhz", f0_mhz) / 10.0
+    return lambda x: -slope * np.asarray(x, float)
+
+
+def alpha_for_floor(depth_mm: float, snr_db: float, f0_mhz: float) -> float:
+    """Attenuation (dB / (cm MHz), no TGC) that makes the echo of SNR ``snr_db`` at the probe face equal to the
+    noise at ``depth_mm`` (the inverse of :func:`noise_floor_depth`)."""
+    return float(snr_db) * 10.0 / (2.0 * positive("f0_mhz", f0_mhz) * positive("depth_mm", depth_mm))
+
+
+def noise_floor_depth(snr_db: float, echo_gain_db, depths_mm) -> float:
+    """First of ``depths_mm`` where the echo SNR ``snr_db + echo_gain_db(x)`` falls to 0 dB (echo power = noise
+    power), or inf where it never does."""
+    x = np.asarray(depths_mm, float)
+    k = np.flatnonzero(float(snr_db) + np.asarray(echo_gain_db(x), float) <= 0.0)
+    return float(x[k[0]]) if k.size else float("inf")
+
+
 def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
-              top_mm: float = 2.0, scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "") -> Pair:
+              top_mm: float = 2.0, scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "",
+              echo_gain_db=None, tgc_db=None) -> Pair:
     """Render a reference/moving RF pair related by ``field``.
 
     Parameters
@@ -337,6 +383,13 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
         Seeds scatterers and noise (``numpy.random.SeedSequence``): the same arguments give identical frames.
     top_mm : float
         Depth of the first sample below the probe face, mm.
+    echo_gain_db : callable(depth mm) -> dB, optional
+        Depth-dependent gain of the echo in every frame, applied before the noise (whose level ``snr_db`` sets at
+        0 dB gain): e.g. :func:`attenuation_gain_db` without time-gain compensation, so that the echo sinks to a
+        noise floor below :func:`noise_floor_depth`.
+    tgc_db : callable(depth mm) -> dB, optional
+        Time-gain compensation: a depth-dependent gain of the frames after the noise (echo and noise alike; the
+        SNR at each depth stays that of ``echo_gain_db``).
 
     Returns
     -------
@@ -345,7 +398,8 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
     pr = as_probe(probe)
     f = _as_field(field)
     zero = _ZeroField()
-    frames, grid, params = _render_frames([zero, f], pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell)
+    frames, grid, params = _render_frames([zero, f], pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell,
+                                          echo_gain_db, tgc_db)
     params["field"] = getattr(f, "name", "custom")
     return Pair(ref=frames[0], mov=frames[1], spacing=grid.spacing, origin=grid.origin, field=f, probe=pr,
                 snr_db=params["snr_db"], seed=int(seed), name=name or params["field"], params=params)
@@ -353,10 +407,11 @@ def make_pair(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None =
 
 def make_sequence(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | None = 30.0, seed: int = 0, *,
                   n_frames: int = 10, step: float = 0.01, top_mm: float = 2.0,
-                  scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "") -> SequencePair:
+                  scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "",
+                  echo_gain_db=None, tgc_db=None) -> SequencePair:
     """``n_frames`` frames of the same scatterers under ``field.at(k * step)``, k = 0 .. n_frames - 1 (default
     10 frames at 1 % per frame: 9 % between the first and the last).  ``field`` needs an ``at(level)`` method
-    (all fields of :mod:`forward.fields`)."""
+    (all fields of :mod:`forward.fields`); ``echo_gain_db`` and ``tgc_db`` as in :func:`make_pair`."""
     if not callable(getattr(field, "at", None)):
         raise ValueError("make_sequence needs a field with an at(level) method (forward.fields)")
     if isinstance(n_frames, bool) or int(n_frames) != n_frames or int(n_frames) < 2:
@@ -364,7 +419,8 @@ def make_sequence(field, probe="paper", size_mm=(40.0, 30.0), snr_db: float | No
     levels = float(step) * np.arange(int(n_frames))
     fields = [field.at(lv) for lv in levels]
     pr = as_probe(probe)
-    frames, grid, params = _render_frames(fields, pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell)
+    frames, grid, params = _render_frames(fields, pr, size_mm, snr_db, seed, top_mm, scatterers_per_cell,
+                                          echo_gain_db, tgc_db)
     return SequencePair(frames=np.stack(frames), spacing=grid.spacing, origin=grid.origin, fields=fields,
                         levels=levels, probe=pr, snr_db=params["snr_db"], seed=int(seed),
                         name=name or f"sequence {getattr(field, 'name', '')}")

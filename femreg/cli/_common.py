@@ -104,6 +104,12 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
+    g.add_argument("--roi", nargs="+", metavar="X0 X1 Y0 Y1|auto|full",
+                   help="region registered, mm (axial x0 x1, lateral y0 y1); default auto: where the frames hold "
+                        "usable echo (depth or lines at the noise floor and saturated samples left out, and said "
+                        "so); full: the whole frames")
+    g.add_argument("--depth", nargs=2, type=float, metavar=("D0", "D1"),
+                   help="depth range registered, mm, over all lines (instead of --roi)")
     g.add_argument("--hourglass", type=float, default=None, metavar="W",
                    help="momentum regularisers only: hourglass control weight relative to alpha (default with "
                         "--strategy auto: femreg.registration.DEFAULT_HOURGLASS for a pair, 1000 for R_P_sigma, "
@@ -136,4 +142,28 @@ def registration_kwargs(args) -> dict:
         opts["regularizer_options"] = {"hourglass": args.hourglass}
     return dict(**opts, regularizer=args.regularizer, alpha=args.alpha, strategy=getattr(args, "strategy", "auto"),
                 element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
-                margin=args.margin, maxiter=args.maxiter, tol=args.tol)
+                margin=args.margin, maxiter=args.maxiter, tol=args.tol, **region_kwargs(args))
+
+
+def region_kwargs(args) -> dict:
+    """``roi`` and ``depth`` of :func:`femreg.register` from ``--roi`` (4 numbers, auto or full) and ``--depth``."""
+    roi = getattr(args, "roi", None)
+    depth = getattr(args, "depth", None)
+    if isinstance(roi, str):
+        roi = [roi]
+    if roi is None or [str(v).lower() for v in roi] == ["auto"]:
+        out = "auto"
+    elif [str(v).lower() for v in roi] in (["full"], ["none"]):
+        out = None
+    else:
+        try:
+            out = tuple(float(v) for v in roi)
+        except (TypeError, ValueError):
+            out = ()
+        if len(out) != 4:
+            raise InputError(f"--roi takes X0 X1 Y0 Y1 (mm), auto or full, got {' '.join(map(str, roi))}")
+    if depth is not None:
+        if roi is not None and out != "auto":
+            raise InputError("give --roi or --depth, not both")
+        return dict(roi="auto", depth=tuple(float(v) for v in depth))
+    return dict(roi=out, depth=None)

@@ -72,6 +72,8 @@ def run(args) -> int:
         return 1
     res.save(args.output)
     print(res)
+    if res.excluded:
+        print(f"femreg register: not registered: {res.excluded}")
     if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
         print(f"femreg register: warning: low-quality pair (NCC after {res.ncc_after:.3f} < {args.min_ncc})")
     print(f"wrote {args.output}")

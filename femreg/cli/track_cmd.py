@@ -70,6 +70,8 @@ def run(args) -> int:
         print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
               f"rerun with --resume to continue", file=sys.stderr)
         return 1
+    if out and getattr(out[0], "excluded", None):
+        print(f"femreg track: not registered: {out[0].excluded}")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} frames in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "

@@ -22,6 +22,9 @@ strategy           str                             registration strategy (option
 strain             str                             how the grid strains were evaluated: "recovered" or
                                                    "element" (optional; absent: served as written --
                                                    files of earlier versions hold element strains)
+excluded           str                             what of the frames was not registered and why
+                                                   (optional; absent: the whole frames)
+roi                (4,) mm                         the rectangle registered, x0 x1 y0 y1 (optional)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
@@ -45,7 +48,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain")
+               "quality", "strategy", "strain", "excluded", "roi")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -207,6 +210,9 @@ def _read(path) -> dict:
         if v is None or v.shape != (2,) or not np.all(np.isfinite(v)) or (k == "spacing" and v.min() <= 0):
             raise fail(path, f"key {k!r} must be two finite numbers{' > 0' if k == 'spacing' else ''}, "
                              f"got {out[k]!r}")
+    if "roi" in out and (np.shape(out["roi"]) != (4,) or np.asarray(out["roi"]).dtype.kind not in "iuf"
+                         or not np.all(np.isfinite(np.asarray(out["roi"], float)))):
+        raise fail(path, f"key 'roi' must be four finite numbers x0 x1 y0 y1 (mm), got {out['roi']!r}")
     n_el = np.shape(out["mesh_cells"])[1]
     if "quality" in out and np.shape(out["quality"]) != (n_el,):
         raise fail(path, f"key 'quality' must have one value per element ({n_el},), got {np.shape(out['quality'])}")
@@ -240,7 +246,8 @@ def load_result(path):
         energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
         ncc_after=float(d.get("ncc_after", np.nan)), grid=grid,
         quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
-        strategy=str(d.get("strategy", "")))
+        strategy=str(d.get("strategy", "")),
+        excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
     res._grid_element = element_grid
     return res
 

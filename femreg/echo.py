@@ -1,0 +1,499 @@
+"""Where the echo is: the rectangle of an RF frame pair that holds usable echo, and registration inside it.
+
+A recording as made has regions without usable echo: depth where the attenuated echo has sunk to the receiver's
+noise floor, lines outside the aperture or zero-padded rows, samples clipped by the converter.  Fully developed
+speckle and noise alone have the same envelope statistics (Rayleigh, envelope SNR 1.91; J. W. Goodman, *Speckle
+Phenomena in Optics*, 2007, ch. 3), so the statistics cannot tell them apart; the *level* can.
+:func:`find_echo` works on the envelope power (|analytic signal|^2 along the beam, :func:`femreg.pyramid.envelope`):
+
+* rows and lines whose RF is zero throughout hold no signal (the envelope leaks into them, the RF does not);
+* a depth profile, the median over (about :data:`PROFILE_LINES`) lines of each row's envelope power in dB (the
+  median: an anechoic region in some lines does not pull the row down), smoothed over :data:`SMOOTH_PERIODS` RF
+  periods;
+* the noise floor: its quietest rows (the :data:`FLOOR_PERCENTILE`-th percentile of the profile), the echo level
+  its :data:`ECHO_PERCENTILE`-th percentile; a profile spanning less than :data:`MIN_RANGE_DB` has no floor to
+  tell apart and nothing is excluded for its level;
+* the echo SNR of a row, ``10 log10(P / P_floor - 1)`` (echo power over noise power), with hysteresis: the echo
+  region spans every run of at least a smoothing length of rows reaching :data:`SEED_SNR_DB` and extends from
+  there while the SNR stays at or above :data:`MIN_SNR_DB` (0 dB: the echo as strong as the noise, the level
+  3 dB above the floor).  Noise that a time-gain compensation lifts with depth above the floor counts as echo
+  (a limitation: the level cannot tell it; nothing is cut off then);
+* the same along the lines, on the rows kept (the median RF power of each line, which for Gaussian RF is the
+  envelope's times :data:`RF_TO_ENVELOPE_POWER`), against the depth profile's floor;
+* a veto from the pair: electronic noise is independent from frame to frame while echo moves with the tissue,
+  so a strip whose envelope still matches the other frame anywhere (best NCC over small shifts at least
+  :data:`ECHO_NCC`) holds echo and is kept (a weak deep echo without noise floor, e.g. uncompensated attenuation,
+  or echo beyond an anechoic band);
+* saturation: a frame with more than :data:`CLIP_FRACTION` of its samples at its extreme magnitude is clipped;
+  rows and lines at the region's edges with more than :data:`CLIP_ROW_FRACTION` clipped samples are excluded.
+
+Only edge strips can be left out (the mesh is a rectangle); saturated rows inside are reported.  Measured on
+simulated pairs with attenuation and no time-gain compensation (forward.pairs, 3 / 7.5 / 12 MHz, floor at 40-80 %
+of the depth): the detected depth within -0.8 .. +1.0 mm of where the echo power equals the noise power.
+:func:`crop_for` turns the detection, or a user's ``roi`` / ``depth`` in mm, into the crop of the frames that
+:func:`femreg.register` and :func:`femreg.track` register; their results keep the full frames' pixel grid and say
+what was left out.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+from .errors import InputError
+from .image import validate_image, validate_spacing
+from .mesh import DEFAULT_MARGIN
+from .pyramid import envelope, rf_period
+
+__all__ = ["EchoRegion", "find_echo", "crop_for", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+           "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
+
+#: Echo SNR (dB, echo power over noise power) below which a row or line holds no usable echo.
+MIN_SNR_DB = 0.0
+#: Echo SNR (dB) a row or line must reach to start the echo region (hysteresis above :data:`MIN_SNR_DB`).
+SEED_SNR_DB = 6.0
+#: A level profile spanning less than this (dB, echo percentile minus floor percentile) has no noise floor.
+MIN_RANGE_DB = 10.0
+#: Percentiles of the smoothed profile taken as the noise floor and as the echo level.
+FLOOR_PERCENTILE = 1.0
+ECHO_PERCENTILE = 90.0
+#: Smoothing of the depth profile, in RF periods (about five wavelengths, a few speckle lengths).
+SMOOTH_PERIODS = 10.0
+#: Lines (about) the depth profile is measured on.
+PROFILE_LINES = 64
+#: Rows (at most) the line profile is measured on.
+PROFILE_ROWS = 1024
+#: Median envelope power over median RF power of Gaussian RF: 2 ln 2 / 0.4549 (median of chi-square, 1 dof).
+RF_TO_ENVELOPE_POWER = 2.0 * np.log(2.0) / 0.454936
+#: Smoothing of the line profile, in lines.
+SMOOTH_LINES = 3
+#: Best envelope NCC between the frames (over small shifts) at or above which a candidate strip holds echo.
+ECHO_NCC = 0.5
+#: Height of the pieces of a strip matched one by one, in RF periods: short enough that the strain within one
+#: (up to 5 %) shifts its speckle by much less than a pulse length.
+VETO_PERIODS = 10.0
+#: Fewest samples of such a piece (taller pieces on narrow strips): unrelated frames then match with NCC at most
+#: 0.09 (white noise) and 0.31 (speckle, i.e. noise filtered like the echo) at the best of all shifts and pieces
+#: (measured, 3 / 7.5 / 12 MHz probes, strips of 4 lines to the full width).
+VETO_SAMPLES = 4096
+#: RF magnitude, relative to the frame's largest, at or below which a whole row or line holds no signal.
+DEAD_LEVEL = 1e-12
+#: Fraction of a frame's samples at its extreme magnitude above which it counts as clipped.
+CLIP_FRACTION = 1e-3
+#: Fraction of clipped samples above which a row or line is saturated.
+CLIP_ROW_FRACTION = 0.02
+
+
+@dataclass
+class EchoRegion:
+    """The rectangle of usable echo of a frame pair (:func:`find_echo`).
+
+    rows, cols : (start, stop) pixel index ranges (half-open) of the rectangle; ``shape``, ``spacing``,
+    ``origin`` the frames' grid (mm).  ``excluded``: what was left out and why (None: nothing).
+    ``floor_db`` / ``echo_db``: noise floor and echo level of the depth profile, dB of the envelope in the data's
+    units (NaN where not measured).
+    """
+
+    rows: tuple
+    cols: tuple
+    shape: tuple
+    spacing: tuple
+    origin: tuple
+    excluded: str | None = None
+    floor_db: float = float("nan")
+    echo_db: float = float("nan")
+
+    @property
+    def full(self) -> bool:
+        return tuple(self.rows) == (0, self.shape[0]) and tuple(self.cols) == (0, self.shape[1])
+
+    @property
+    def roi_mm(self) -> tuple:
+        """(x0, x1, y0, y1) mm: the rectangle's outer pixel-cell edges."""
+        dx, dy = self.spacing
+        ox, oy = self.origin
+        return (ox + (self.rows[0] - 0.5) * dx, ox + (self.rows[1] - 0.5) * dx,
+                oy + (self.cols[0] - 0.5) * dy, oy + (self.cols[1] - 0.5) * dy)
+
+
+def _db(p):
+    p = np.asarray(p, float)
+    tiny = 1e-30 * max(float(np.max(p)), 1e-300)
+    return 10.0 * np.log10(p + tiny)
+
+
+def _live_span(live):
+    """(first, last + 1) of the True entries of ``live`` ((0, 0) when none)."""
+    k = np.flatnonzero(live)
+    return (int(k[0]), int(k[-1]) + 1) if k.size else (0, 0)
+
+
+def _profile(power, live, w):
+    """Smoothed level profile (dB) of the medians ``power``, its floor and echo percentiles over the ``live``
+    entries; the dead ones take the floor before smoothing (no dip below it)."""
+    db = _db(np.where(live, power, 0.0))
+    if not live.any():
+        return db, 0.0, 0.0
+    fill = float(np.percentile(db[live], FLOOR_PERCENTILE))
+    sm = uniform_filter1d(np.where(live, db, fill), w, mode="nearest")
+    return sm, float(np.percentile(sm[live], FLOOR_PERCENTILE)), float(np.percentile(sm[live], ECHO_PERCENTILE))
+
+
+def _echo_run(level_db, floor_db, min_len, live):
+    """(a, b) half-open run of rows with echo (hysteresis rule of the module docstring: from the first to the last
+    run of at least ``min_len`` rows reaching :data:`SEED_SNR_DB`, so that a few rows of edge effects do not
+    count, extended while the SNR stays at :data:`MIN_SNR_DB`; ``live``: False where the data hold no signal at
+    all), and the SNR profile."""
+    snr = _db(np.maximum(10.0 ** ((level_db - floor_db) / 10.0) - 1.0, 1e-6))
+    snr[~live] = -np.inf
+    seed = np.concatenate([[False], snr >= SEED_SNR_DB, [False]])
+    edges = np.flatnonzero(np.diff(seed.astype(np.int8)))
+    runs = [(int(s), int(e)) for s, e in zip(edges[0::2], edges[1::2]) if e - s >= min_len]
+    if not runs:
+        return (0, 0), snr
+    a, b = runs[0][0], runs[-1][1]          # never less than every bright run: no echo is cut off
+    while a > 0 and snr[a - 1] >= MIN_SNR_DB:
+        a -= 1
+    while b < snr.size and snr[b] >= MIN_SNR_DB:
+        b += 1
+    return (a, b), snr
+
+
+def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, chunk=256) -> float:
+    """Best NCC of the envelope ``ea[rows, cols]`` against ``eb`` shifted by up to ``max_shift`` rows (steps of
+    ``row_step``) and ``max_lat`` lines, in chunks of at most ``chunk`` rows taken every ``row_step``-th row (the
+    envelope is smooth over it): the best over the chunks, so that echo anywhere in the strip counts; stops at
+    :data:`ECHO_NCC`."""
+    q = int(row_step)
+    best = -1.0
+    n, m = eb.shape
+    c0, c1 = max(0, cols[0]), min(m, cols[1])
+    chunk = max(int(chunk), -(-VETO_SAMPLES // max(1, c1 - c0)))     # enough samples for a noise NCC near 0
+    top, bottom = rows[0], min(rows[1], n)
+    k = max(1, (bottom - top) // (chunk * q))          # pieces of equal height, none shorter than ``chunk``
+    cuts = np.linspace(top, bottom, k + 1).round().astype(int)
+    for r0, r1 in zip(cuts[:-1], cuts[1:]):
+        for s in range(-max_shift, max_shift + 1, q):
+            lo, hi = max(r0, -s), min(r1, n - s)
+            if hi - lo < 2 * q:
+                continue
+            for t in range(-max_lat, max_lat + 1):
+                cl, ch = max(c0, -t), min(c1, m - t)
+                if ch - cl < 1:
+                    continue
+                a = ea[lo:hi:q, cl:ch].ravel()
+                b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
+                a = a - a.mean()
+                b = b - b.mean()
+                d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+                if d > 0:
+                    best = max(best, float(np.dot(a, b)) / d)
+                    if best >= ECHO_NCC:
+                        return best
+    return best
+
+
+def _clipped(mags):
+    """Boolean map of clipped samples (any frame; ``mags``: the frames' |RF|), or None when none is clipped."""
+    out = None
+    for f in mags:
+        c = float(np.max(f))
+        if not c > 0:
+            continue
+        m = f >= c * (1.0 - 1e-9)
+        if np.mean(m) > CLIP_FRACTION:
+            out = m if out is None else (out | m)
+    return out
+
+
+def _span(lo, hi, origin, step):
+    """'a-b mm' of pixel indices [lo, hi) (cell edges)."""
+    return f"{origin + (lo - 0.5) * step:.1f}-{origin + (hi - 0.5) * step:.1f} mm"
+
+
+def rf_like(image) -> bool:
+    """True for an RF frame: zero mean on every line within a fraction of its RMS (envelope, B-mode and other
+    one-signed intensity images are not; their level says nothing about echo against noise)."""
+    img = np.asarray(image, float)
+    if img.ndim != 2 or img.shape[0] < 64 or img.shape[1] < 4:
+        return False
+    rms = float(np.sqrt(np.mean(img ** 2)))
+    return rms > 0 and float(np.sqrt(np.mean(np.mean(img, axis=0) ** 2))) < 0.1 * rms
+
+
+def find_echo(reference, moving=None, *, spacing, origin=(0.0, 0.0)) -> EchoRegion:
+    """Detect the rectangle of usable echo of an RF frame (pair) (module docstring).
+
+    Parameters
+    ----------
+    reference, moving : (n_axial, n_lateral) RF frames; ``moving`` (optional) adds the frame-to-frame veto and
+        its own clipping.
+    spacing, origin : (2,) mm
+
+    Returns
+    -------
+    EchoRegion (``excluded`` None when the whole frame holds echo).
+    """
+    ref = validate_image(reference, "reference image")
+    mov = None if moving is None else validate_image(moving, "moving image")
+    spacing, origin = validate_spacing(spacing, origin)
+    return _find_echo(ref, mov, spacing, origin)
+
+
+def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
+    """:func:`find_echo` on validated frames."""
+    n, m = ref.shape
+    dx, dy = float(spacing[0]), float(spacing[1])
+    ox, oy = float(origin[0]), float(origin[1])
+    full = EchoRegion((0, n), (0, m), (n, m), (dx, dy), (ox, oy))
+    if not rf_like(ref):
+        return full
+    envs = []                        # the frames' envelopes, for the veto only
+    # lines and rows without any signal (zero samples) are dead; the envelope leaks into them, the RF does not
+    mag = np.abs(ref)
+    top = float(np.max(mag))
+    live_c = np.max(mag, axis=0) > DEAD_LEVEL * top
+    live_r = np.max(mag[:, live_c], axis=1) > DEAD_LEVEL * top
+    lines = np.flatnonzero(live_c)
+    lines = lines[::max(1, lines.size // PROFILE_LINES)]     # the depth profile from about 64 lines: as good
+    row_med = np.median(envelope(ref[:, lines]) ** 2, axis=1)
+    period = rf_period(ref[:, ::max(1, m // 32)], spacing)
+    w = int(max(3, round(SMOOTH_PERIODS * period / dx)))
+    row_db, floor, echo = _profile(row_med, live_r, w)
+    reasons = []
+
+    def veto(rows, cols):
+        """True when the strip still matches the other frame (echo moving with the tissue)."""
+        if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
+            return False
+        if not envs:
+            envs.extend([envelope(ref), envelope(mov)])
+        depth = ox + rows[1] * dx
+        max_shift = int(np.ceil(max(3.0 * period, 0.05 * abs(depth)) / dx))
+        step = max(1, int(round(period / (2.0 * dx))))     # the envelope varies over a pulse length
+        chunk = max(8, int(round(VETO_PERIODS * period / (step * dx))))
+        return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, chunk=chunk) >= ECHO_NCC
+
+    def why(has_floor, lvl, flr, echo_at=""):
+        if not has_floor:
+            return "excluded: no signal (zero samples)"
+        return (f"excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
+                f"(echo {lvl:.1f} dB{echo_at})")
+
+    has_floor = echo - floor >= MIN_RANGE_DB
+    (a, b) = _echo_run(row_db, floor, max(w, n // 20), live_r)[0] if has_floor else _live_span(live_r)
+    if b <= a:
+        a, b = _live_span(live_r)
+    at = f" at {_echo_span(row_db, echo, ox, dx)}"
+    if a > 0 and has_floor and veto((0, a), (0, m)):
+        a = _live_span(live_r)[0]
+    if a > 0:
+        reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "
+                       + why(has_floor and live_r[:a].any(), echo, floor, at))
+    if b < n and has_floor and veto((b, n), (0, m)):
+        b = _live_span(live_r)[1]
+    if b < n:
+        reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
+                       + why(has_floor and live_r[b:].any(), echo, floor, at))
+    # the lines, over the rows kept
+    # the line profile from the RF power: no envelope of every line needed; for Gaussian RF (speckle and noise
+    # alike) the median of RF^2 is the envelope's median power times a constant
+    q = max(1, (b - a) // PROFILE_ROWS)
+    col_med = np.median(ref[a:b:q] ** 2, axis=0) * RF_TO_ENVELOPE_POWER
+    live_c &= np.max(mag[a:b], axis=0) > DEAD_LEVEL * top
+    col_db, cfloor, cecho = _profile(col_med, live_c, SMOOTH_LINES)
+    if has_floor:
+        cfloor = floor
+    c_floor = cecho - cfloor >= MIN_RANGE_DB
+    (c0, c1) = _echo_run(col_db, cfloor, max(SMOOTH_LINES, m // 20), live_c)[0] if c_floor else _live_span(live_c)
+    if c1 <= c0:
+        c0, c1 = _live_span(live_c)
+    for lo, hi, side in ((0, c0, "left"), (c1, m, "right")):
+        if hi <= lo:
+            continue
+        if c_floor and veto((a, b), (lo, hi)):
+            c0, c1 = (_live_span(live_c)[0], c1) if side == "left" else (c0, _live_span(live_c)[1])
+            lo, hi = (0, c0) if side == "left" else (c1, m)
+            if hi <= lo:
+                continue
+            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) " + why(False, 0, 0))
+        else:
+            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) "
+                           + why(c_floor and live_c[lo:hi].any(), cecho, cfloor))
+    # saturation at the edges of the rectangle
+    clip = _clipped([mag] if mov is None else [mag, np.abs(mov)])
+    if clip is not None:
+        rows_sat = np.mean(clip[:, c0:c1], axis=1) > CLIP_ROW_FRACTION
+        a0, b0 = a, b
+        while a < b and rows_sat[a]:
+            a += 1
+        while b > a and rows_sat[b - 1]:
+            b -= 1
+        cols_sat = np.mean(clip[a:b], axis=0) > CLIP_ROW_FRACTION
+        k0, k1 = c0, c1
+        while c0 < c1 and cols_sat[c0]:
+            c0 += 1
+        while c1 > c0 and cols_sat[c1 - 1]:
+            c1 -= 1
+        frac = float(np.mean(clip))
+        for lo, hi, what, o, st in ((a0, a, "depth", ox, dx), (b, b0, "depth", ox, dx), (k0, c0, "lines", oy, dy),
+                                    (c1, k1, "lines", oy, dy)):
+            if hi > lo:
+                reasons.append(f"{what} {_span(lo, hi, o, st)} excluded: saturated (more than "
+                               f"{CLIP_ROW_FRACTION:.0%} of the samples clipped; {frac:.1%} of the frame)")
+        inner = np.flatnonzero(np.mean(clip[a:b, c0:c1], axis=1) > CLIP_ROW_FRACTION)
+        if inner.size:
+            reasons.append(f"saturated rows at {_span(a + int(inner[0]), a + int(inner[-1]) + 1, ox, dx)} kept "
+                           f"(inside the echo region)")
+    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo)
+
+
+def _echo_span(row_db, echo, ox, dx) -> str:
+    """Where the depth profile is within 3 dB of the echo level."""
+    k = np.flatnonzero(row_db >= echo - 3.0)
+    return _span(int(k[0]), int(k[-1]) + 1, ox, dx) if k.size else "-"
+
+
+def _margin_pixels(margin, spacing) -> np.ndarray:
+    """Pixels of the mesh margin per axis, as :func:`femreg.mesh.roi_mesh` rounds it."""
+    m = np.broadcast_to(np.asarray(DEFAULT_MARGIN if margin is None else margin, float), (2,))
+    if np.any(~np.isfinite(m)) or np.any(m < 0):
+        raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
+    return np.ceil(m / np.asarray(spacing, float) - 1e-9).astype(int)
+
+
+def _extent_text(shape, spacing, origin) -> str:
+    lo = np.asarray(origin, float) - 0.5 * np.asarray(spacing, float)
+    hi = lo + np.asarray(shape, float) * np.asarray(spacing, float)
+    return f"x (axial) {lo[0]:.4g} to {hi[0]:.4g} mm, y (lateral) {lo[1]:.4g} to {hi[1]:.4g} mm"
+
+
+def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegion:
+    """The pixel rectangle of a user's ``roi`` (x0, x1, y0, y1) or ``depth`` (d0, d1) mm: the pixels whose centres
+    lie inside it.  :class:`InputError` naming the image extent when it leaves the image or holds no pixel."""
+    if roi is not None and depth is not None:
+        raise InputError("give roi or depth, not both (depth (d0, d1) is roi (d0, d1, y0, y1) over all lines)")
+    what = "roi" if roi is not None else "depth"
+    val = roi if roi is not None else depth
+    try:
+        v = np.asarray(val, float).ravel()
+    except (TypeError, ValueError):
+        v = np.array([np.nan])
+    need = 4 if roi is not None else 2
+    if v.size != need or not np.all(np.isfinite(v)) or v[0] >= v[1] or (need == 4 and v[2] >= v[3]):
+        form = "(x0, x1, y0, y1)" if need == 4 else "(d0, d1)"
+        raise InputError(f"{what} must be {form} mm with x0 < x1{' and y0 < y1' if need == 4 else ''}, got {val!r}")
+    sp, org = np.asarray(spacing, float), np.asarray(origin, float)
+    lo = org - 0.5 * sp
+    hi = lo + np.asarray(shape, float) * sp
+    tol = 1e-6 * sp
+    box = np.array([v[0], v[1], v[2], v[3]]) if need == 4 else np.array([v[0], v[1], lo[1], hi[1]])
+    if box[0] < lo[0] - tol[0] or box[1] > hi[0] + tol[0] or box[2] < lo[1] - tol[1] or box[3] > hi[1] + tol[1]:
+        raise InputError(f"{what} {tuple(float(x) for x in v)} mm leaves the image; the image extent is "
+                         f"{_extent_text(shape, spacing, origin)}")
+    idx = []
+    for k, axis in ((0, 0), (2, 1)):          # pixel centres c_i = origin + i * spacing inside [box_k, box_k+1]
+        i0 = int(np.ceil((box[k] - org[axis]) / sp[axis] - 1e-6))
+        i1 = int(np.floor((box[k + 1] - org[axis]) / sp[axis] + 1e-6)) + 1
+        idx.append((max(0, i0), min(int(shape[axis]), i1)))
+    if idx[0][1] - idx[0][0] < 2 or idx[1][1] - idx[1][0] < 2:
+        raise InputError(f"{what} {tuple(float(x) for x in v)} mm holds fewer than 2 x 2 pixels; the image extent "
+                         f"is {_extent_text(shape, spacing, origin)}")
+    region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
+                        tuple(float(s) for s in org))
+    x0, x1, y0, y1 = region.roi_mm
+    region.excluded = f"outside the given {what} x {x0:.1f}-{x1:.1f} mm, y {y0:.1f}-{y1:.1f} mm excluded"
+    return region
+
+
+class Crop:
+    """The frames cut to a rectangle, and how to put a result registered there back on the full frames' pixel grid.
+
+    A detected echo rectangle is cut as it is (the mesh margin lies inside it: no noise enters any stage); a given
+    one is widened by the mesh margin where the image has it, so that the mesh covers it.  ``slices``: (rows,
+    cols) of the frames kept; ``origin``: the crop's pixel [0, 0] centre (mm); ``region``: the
+    :class:`EchoRegion`; ``seconds``: the detection's time."""
+
+    def __init__(self, region: EchoRegion, margin_px, pad: bool, seconds=0.0):
+        self.region = region
+        n, m = region.shape
+        (a, b), (c, d) = region.rows, region.cols
+        mr, mc = (int(x) for x in margin_px)
+        pr, pc = (mr, mc) if pad else (0, 0)
+        self.slices = (slice(max(0, a - pr), min(n, b + pr)), slice(max(0, c - pc), min(m, d + pc)))
+        self.origin = (region.origin[0] + self.slices[0].start * region.spacing[0],
+                       region.origin[1] + self.slices[1].start * region.spacing[1])
+        self.seconds = float(seconds)
+        for k, (s, mp) in enumerate(zip(self.slices, (mr, mc))):
+            if s.stop - s.start - 2 * mp < 1:
+                raise InputError(f"the {'region' if pad else 'echo region'} {region.roi_mm[2 * k]:.2f} to "
+                                 f"{region.roi_mm[2 * k + 1]:.2f} mm is too small for a mesh inside the margin "
+                                 f"({mp} pixels) along axis {k}" + (f": {region.excluded}" if region.excluded else ""))
+
+    @property
+    def roi_mm(self) -> tuple:
+        return tuple(float(v) for v in self.region.roi_mm)
+
+    def frames(self, *images):
+        """The images cut to :attr:`slices` (views)."""
+        return [np.asarray(f)[self.slices] for f in images]
+
+    def widen(self, res):
+        """``res`` (a result on the crop) on the full frames' pixel grid, saying what was excluded (in place;
+        idempotent); returns it."""
+        res.shape = tuple(self.region.shape)
+        res.origin = np.asarray(self.region.origin, float)
+        res._grid = res._grid_element = None          # pixel-grid fields are recomputed on the full grid
+        res.roi = self.roi_mm
+        if self.region.excluded and getattr(res, "excluded", None) != self.region.excluded:
+            res.excluded = self.region.excluded
+            res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded
+        res.timings["echo"] = self.seconds
+        return res
+
+
+def _nodal(spec) -> bool:
+    """True for a nodal vector (an array over the default mesh's nodes, which a crop would change)."""
+    return isinstance(spec, (np.ndarray, list, tuple))
+
+
+def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
+             margin=None, initial=None, offset=None) -> Crop | None:
+    """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
+
+    ``roi``: "auto" (default) detects the echo rectangle (:func:`find_echo`), None keeps the whole frames,
+    (x0, x1, y0, y1) mm a given rectangle; ``depth`` (d0, d1) mm a given depth range over all lines (a given
+    rectangle or depth disables the detection).  With a user ``mesh`` there is no crop (a given roi or depth is
+    then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
+    The detection changes nothing (None) when what it excludes lies within the mesh margin."""
+    if roi is None and depth is None:
+        return None
+    given = depth is not None or not (isinstance(roi, str) and roi == "auto")
+    if isinstance(roi, str) and roi != "auto":
+        raise InputError(f"roi must be 'auto', None or (x0, x1, y0, y1) mm, got {roi!r}")
+    if mesh is not None:
+        if given:
+            raise InputError("roi / depth and a user mesh exclude each other: the mesh defines the region")
+        return None
+    if not given and (_nodal(initial) or _nodal(offset)):
+        return None
+    t = time.perf_counter()
+    ref = validate_image(reference, "reference image")
+    mov = validate_image(moving, "moving image")
+    if ref.shape != mov.shape:
+        raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
+    spacing, origin = validate_spacing(spacing, origin)
+    mp = _margin_pixels(margin, spacing)
+    if given:
+        region = region_from_mm(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi, depth=depth)
+        return Crop(region, mp, True, time.perf_counter() - t)
+    if not rf_like(ref):
+        return None
+    region = _find_echo(ref, mov, spacing, origin)
+    n, m = ref.shape
+    (a, b), (c, d) = region.rows, region.cols
+    if a <= mp[0] and b >= n - mp[0] and c <= mp[1] and d >= m - mp[1]:
+        return None                  # nothing beyond the margin the mesh leaves out anyway
+    return Crop(region, mp, False, time.perf_counter() - t)
