@@ -336,7 +336,7 @@ def _check_settings(settings: dict, where: str) -> dict:
              "element_size": lambda v: real(v) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),
              "regularizer": lambda v: isinstance(v, str), "variable": lambda v: isinstance(v, str),
-             "strategy": lambda v: isinstance(v, str),
+             "strategy": lambda v: isinstance(v, str), "no_orientation_check": lambda v: isinstance(v, bool),
              "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
              "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
                                                                and all(isinstance(x, int) for x in v))}

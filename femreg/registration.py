@@ -22,6 +22,7 @@ import numpy as np
 from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
+from . import orientation
 from .errors import InputError
 from .fields import FIELDS, check_strain_mode, element_strain_operator, recovered_strains, sample
 from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
@@ -472,7 +473,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
-             strain_tol: float | None = None) -> RegistrationResult:
+             strain_tol: float | None = None, check_orientation: bool = True) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): initial guess -> Gauss-Newton on the final mesh -> check and
@@ -540,6 +541,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         fraction of their RMS (on two consecutive steps); None = :data:`femreg.solver.GN_STRAIN_TOL` (1.5 %, the
         TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_TIGHT` (0.5 %, the quadratic ones), 0 = only
         the ``tol`` rule.
+    check_orientation : bool
+        Refuse a reference frame that looks transposed or whose spacing looks swapped or implausible, from its RF
+        carrier (:mod:`femreg.orientation`; :class:`femreg.orientation.OrientationError`); data without a
+        carrier (envelope, B-mode) is never refused.  False skips the check.
 
     Returns
     -------
@@ -562,6 +567,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if ref.shape != mov.shape:
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing(spacing, origin)
+    if check_orientation:
+        orientation.check(ref, spacing)
     if strategy not in STRATEGIES:
         raise InputError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     if not isinstance(regularizer, (str, Regularizer)):

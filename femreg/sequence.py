@@ -30,6 +30,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from ._atomic import atomic_savez, atomic_write_text
+from . import orientation
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
@@ -105,7 +106,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
-          on_frame=None, **register_kwargs) -> SequenceResult:
+          on_frame=None, check_orientation: bool = True, **register_kwargs) -> SequenceResult:
     """Displacement from frame 0 to every later frame of a sequence.
 
     Parameters
@@ -144,6 +145,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         (``success=False``), are flagged (the run continues).
     on_frame : callable(k, result, flag), optional
         Called after each frame (computed or loaded).
+    check_orientation : bool
+        Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
+        registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
@@ -160,6 +164,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
     spacing, origin = validate_spacing(spacing, origin)
+    if check_orientation:
+        orientation.check(seq[0], spacing)
+    register_kwargs["check_orientation"] = False    # checked once, above
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
@@ -175,7 +182,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid
-    params["register_kwargs"] = json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr))
+    params["register_kwargs"] = json.loads(json.dumps({k: v for k, v in register_kwargs.items()
+                                                       if k != "check_orientation"}, sort_keys=True, default=repr))
 
     ckpt = None
     if checkpoint_dir is not None:
