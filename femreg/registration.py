@@ -792,8 +792,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
-    if not success:
-        message = "FAILED: " + message
+    if not success:     # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
+        message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
+                   f"{sol.gn.message.replace('converged: ', '')})")
     return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
                               regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
                               message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,

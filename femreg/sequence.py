@@ -253,7 +253,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                         alpha_effective=r_inc.alpha_effective)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 if not res.success:
-                    flag = f"registration failed: {res.message}"
+                    flag = f"registration failed: {res.message.removeprefix('FAILED: ')}"
                 elif not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
                     flag = f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
                 else:
