@@ -687,7 +687,7 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
     out = folder / f"{spec['task_id']}.npz"
     atomic_savez(out, writer=lambda tmp: res.save(tmp, flag=np.str_(flag), pair=np.asarray([i, j], np.int64)))
     if not res.success:  # as `femreg register`: the result is written, and the pair counts as failed
-        raise RuntimeError(f"registration failed: {res.message} (result kept in {out.name})")
+        raise RuntimeError(f"registration failed: {res.message.removeprefix('FAILED: ')} (result kept in {out.name})")
     return {"output": str(out.relative_to(folder.parent)), "ncc_before": res.ncc_before,
             "ncc_after": res.ncc_after, "nit": int(res.nit), "success": bool(res.success), "flag": flag,
             "n_frames": 2}

@@ -77,11 +77,11 @@ def test_info_bad_input_exit_2_one_line(tmp_path, capsys, monkeypatch, setup, ar
 def test_info_describes_a_file_without_spacing_and_says_what_it_needs(tmp_path, capsys):
     rf = (np.random.default_rng(1).standard_normal((2, 40, 6)) * 1000).astype(np.int16)
     np.save(tmp_path / "a.npy", rf)
-    assert main(["info", str(tmp_path / "a.npy")]) == 0
+    assert main(["info", str(tmp_path / "a.npy")]) == 1           # described; registering it needs a spacing
     out = capsys.readouterr().out
     assert "int16 as stored" in out and "40 axial x 6 lateral" in out and "--spacing DX DY" in out, out
     rf.tofile(tmp_path / "a.raw")
-    assert main(["info", str(tmp_path / "a.raw"), "--shape", "40", "6", "--dtype", "int16", "--json"]) == 0
+    assert main(["info", str(tmp_path / "a.raw"), "--shape", "40", "6", "--dtype", "int16", "--json"]) == 1
     info = json.loads(capsys.readouterr().out)
     assert info["dtype"] == "int16" and info["frames"] == 2 and info["spacing_mm"] is None
     assert any("--spacing" in n for n in info["needs"])

@@ -1,5 +1,8 @@
 """``femreg info FILE``: what is in an RF data file (format, frames, shape, dtype as stored, spacing, values,
-variables, header), with or without spacing, and what it would need to be registered."""
+variables, header), with or without spacing, and what it would need to be registered.
+
+Exit codes: 0 described, ready to register; 1 described, but it needs something first (no spacing in the file,
+frames that look transposed or a spacing that looks swapped: the ``needs`` lines); 2 the file cannot be read."""
 from __future__ import annotations
 
 import json
@@ -20,7 +23,9 @@ def add_parser(subparsers):
                     "per-frame files) and print its format, number of frames, frame shape (axial x lateral), "
                     "sample type as stored, spacing, value range, variables and header fields, and what is "
                     "missing to register it (spacing; frames that look transposed or a spacing that looks "
-                    "swapped, from the RF carrier: femreg.orientation).  Exit 0 when described, spacing or not; "
+                    "swapped, from the RF carrier: femreg.orientation).  Exit 0 when described and ready to "
+                    "register; 1 when described but something is needed first (no spacing, a transposed frame: "
+                    "printed); "
                     "2 with a one-line reason if the file cannot be read (a raw file without --shape, no such "
                     "variable, a corrupt file).")
     p.add_argument("file", help="data file or directory of frame files")
@@ -107,7 +112,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
         if fr.n_frames < 2:
-            out["needs"].append("one frame: register needs a second file (femreg register REF MOV), track 2 frames")
+            out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
         out["needs"] = []
     return out
@@ -133,9 +138,11 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
+    rc = 1 if info["needs"] else 0
     if args.json:
         print(json.dumps(info, indent=2))
-        return 0
+        return rc
     print(f"file      {info['file']}")
     print(f"format    {info['format']}")
     print(f"frames    {info['frames']}")
@@ -163,8 +170,10 @@ def run(args) -> int:
             print(f"{key:9s} {val[:6]} ... ({len(val)} items)")
         else:
             print(f"{key:9s} {val}")
+    if info.get("note"):
+        print(f"note      {info['note']}")
     for need in info["needs"]:
         print(f"needs     {need}")
     if not info["needs"]:
         print("needs     nothing: ready to register")
-    return 0
+    return rc
