@@ -699,8 +699,8 @@ def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
 
     fr = read_frames(spec["input"], **reader_kw)
     if fr.n_frames < 2:
-        raise InputError(f"{spec['input']}: holds {fr.n_frames} frame; tracking needs at least 2 (a folder of "
-                         f"per-frame files is one recording with --folders recording)")
+        raise InputError(f"{spec['input']}: holds {fr.n_frames} frame; tracking needs at least 2 frames (a "
+                         f"folder of per-frame files is one recording with --folders recording)")
     s = spec["settings"]
     kw = dict(spacing=fr.spacing, origin=fr.origin, mode=s["mode"], grid=s["grid"], init=s["init"],
               checkpoint_dir=folder, min_ncc=s["min_ncc"], **reg_kw)

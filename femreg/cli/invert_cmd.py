@@ -55,7 +55,7 @@ def run(args) -> int:
     if es is not None and len(es) not in (1, 2):
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
     reg = femreg.load_result(args.result)
-    failed_reg = not reg.success
+    failed_reg = not reg.success and bool(reg.message)     # a result made by hand has no verdict (no message)
     if failed_reg and not args.allow_failed:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")

@@ -102,7 +102,9 @@ def failed_notice(path, success, message, flag="") -> int:
     """After drawing: say when the result drawn is a failed or flagged computation (exit 1), else 0."""
     import sys
 
-    if success is False or (isinstance(success, (bool, int)) and not success):
+    import numpy as np
+
+    if isinstance(success, (bool, int, np.bool_)) and not success and message:   # no message: made by hand
         print(f"femreg plot: FAILED: {path} is a failed computation: {str(message).removeprefix('FAILED: ')}",
               file=sys.stderr)
         return 1
