@@ -7,16 +7,18 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
 * **carrier** -- along the axial direction RF is a band-pass signal: its line-averaged power spectrum (the one the
   RF period of :func:`femreg.pyramid.rf_period` is the centroid of) has almost no power below a third of its
   centroid frequency; across lines the speckle is low-pass (the beam profile), with most power near zero.
-  :func:`carrier_ratio` is that low-band to centre-band power ratio: 0.000-0.016 along the axial axis of simulated
-  3-15 MHz probes and of the in vivo 4 MHz frames, 1.2-2.0 across their lines and 1.2-10 along both axes of
-  their envelopes.  A carrier across the lines and none along them is a transposed frame.
+  :func:`carrier_ratio` is that low-band to centre-band power ratio: 0.000-0.027 along the axial axis of simulated
+  3-15 MHz probes (SNR 10-40 dB) and of the in vivo 4 MHz frames, 0.58-2.1 across their lines and 1.2-24 along
+  both axes of their envelopes (benchmarks/orientation_check.py).  A carrier across the lines and none along them
+  is a transposed frame.
 * **centre frequency** -- the RF period ``T`` (mm of depth) from :func:`femreg.pyramid.speckle_statistics` gives
   ``f = c / (2 T)`` (pulse-echo: a period in depth is half a wavelength).  Outside :data:`FREQUENCY_MHZ` the axial
   spacing is wrong (units, or swapped).
 * **lateral speckle against the period** -- the lateral speckle cell (FWHM of the envelope autocorrelation) is
   about the beam width, at least about half a wavelength (the diffraction limit), i.e. one axial RF period.
   Measured 5.8-19 periods on the data above; with the spacings exchanged the ratio falls by ``(dx / dy)^2`` to
-  0.02-0.22.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).
+  0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap is seen when
+  ``dx / dy`` is below 1 / sqrt(the ratio), 0.23-0.41 on these data.
 
 Only strong evidence refuses: no carrier along axis 0 (envelope, B-mode, smooth synthetic images) passes, and so
 does anything too small to measure.  ``register(..., check_orientation=False)``, ``track(...,
@@ -36,12 +38,12 @@ __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "diagnose",
 SOUND_SPEED_M_S = 1540.0
 #: Plausible RF centre frequencies of medical ultrasound (MHz): abdominal probes to preclinical high frequency.
 FREQUENCY_MHZ = (1.0, 60.0)
-#: :func:`carrier_ratio` below this: a carrier (measured <= 0.016 on RF, >= 1.2 without a carrier).
+#: :func:`carrier_ratio` below this: a carrier (measured <= 0.027 on RF, >= 0.58 without a carrier).
 CARRIER_RATIO = 0.1
 #: :func:`carrier_ratio` above this: no carrier (between the two thresholds nothing is concluded).
 NO_CARRIER_RATIO = 0.3
 #: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-19 on correct
-#: spacing, 0.02-0.22 with the spacings exchanged).
+#: spacing, 0.04-0.29 with the spacings exchanged).
 MIN_LATERAL_CELL_PERIODS = 1.0
 #: Fewer samples (or lines) than this along an axis: its spectrum is not measured.
 MIN_SAMPLES = 16

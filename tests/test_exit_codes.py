@@ -142,3 +142,16 @@ def test_info(data, capsys, tmp_path):
     (tmp_path / "x.raw").write_bytes(b"\0" * 64)
     rc, out, err = _run(["info", tmp_path / "x.raw"], capsys)
     assert rc == 2 and "--shape" in err and err.count("\n") == 1
+
+
+def test_auto_alpha_without_a_successful_candidate_says_so(data, capsys, tmp_path):
+    import femreg
+
+    z = np.load(data / "unrelated.npz")
+    with pytest.warns(RuntimeWarning, match="none of the 7 candidate"):
+        res = femreg.register(z["rf"][0], z["rf"][1], spacing=tuple(z["spacing"]), alpha="auto")
+    assert not res.success and res.auto_alpha.n_successful == 0
+    assert "found no successful candidate" in res.message and "converged" not in res.message, res.message
+    with pytest.warns(RuntimeWarning):
+        rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "a.npz", "--alpha", "auto"], capsys)
+    assert rc == 1 and "no successful candidate" in err
