@@ -547,7 +547,7 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
             probed.append((job, read_frames(job.input, **reader_kw)))
         except (InputError, OSError):
             continue
-        if len(probed) == 2:
+        if len(probed) == 2 or probed[0][1].n_frames > 1:
             break
     if not probed:
         return
