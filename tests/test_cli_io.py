@@ -88,6 +88,10 @@ def test_info_describes_a_file_without_spacing_and_says_what_it_needs(tmp_path, 
     assert main(["info", str(tmp_path / "a.npy"), "--spacing", "0.02", "0.2", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["spacing_mm"] == [0.02, 0.2] and info["dtype"] == "int16"
+    save_frames(tmp_path / "a.rf", rf, (0.02, 0.2))                  # Ultrasonix: int16 samples, no lateral pitch
+    main(["info", str(tmp_path / "a.rf"), "--json"])
+    info = json.loads(capsys.readouterr().out)
+    assert info["dtype"] == "int16" and any("--spacing" in n for n in info["needs"]), info
 
 
 def test_argparse_errors_exit_2(capsys):
