@@ -8,17 +8,18 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   RF period of :func:`femreg.pyramid.rf_period` is the centroid of) has almost no power below a third of its
   centroid frequency; across lines the speckle is low-pass (the beam profile), with most power near zero.
   :func:`carrier_ratio` is that low-band to centre-band power ratio: 0.000-0.027 along the axial axis of simulated
-  3-15 MHz probes (SNR 10-40 dB) and of the in vivo 4 MHz frames, 0.58-2.1 across their lines and 1.2-24 along
-  both axes of their envelopes (benchmarks/orientation_check.py).  A carrier across the lines and none along them
-  is a transposed frame.
+  3-15 MHz probes (SNR 10-40 dB) and of the in vivo 4 MHz frames, 0.58-2.1 across their lines, 1.2 or more along
+  both axes of their envelopes (benchmarks/orientation_check.py); across only 16-20 lines (narrow frames, coarse
+  pitch) it falls to 0.3-0.7, and below :data:`MIN_SAMPLES` it is not measured.  A carrier across the lines and
+  none along them is a transposed frame.
 * **centre frequency** -- the RF period ``T`` (mm of depth) from :func:`femreg.pyramid.speckle_statistics` gives
   ``f = c / (2 T)`` (pulse-echo: a period in depth is half a wavelength).  Outside :data:`FREQUENCY_MHZ` the axial
   spacing is wrong (units, or swapped).
 * **lateral speckle against the period** -- the lateral speckle cell (FWHM of the envelope autocorrelation) is
   about the beam width, at least about half a wavelength (the diffraction limit), i.e. one axial RF period.
-  Measured 5.8-19 periods on the data above; with the spacings exchanged the ratio falls by ``(dx / dy)^2`` to
+  Measured 5.8-13 periods on the data above; with the spacings exchanged the ratio falls by ``(dx / dy)^2`` to
   0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap is seen when
-  ``dx / dy`` is below 1 / sqrt(the ratio), 0.23-0.41 on these data.
+  ``dx / dy`` is below 1 / sqrt(the ratio), 0.27-0.41 on these data.
 
 Only strong evidence refuses: no carrier along axis 0 (envelope, B-mode, smooth synthetic images) passes, and so
 does anything too small to measure.  ``register(..., check_orientation=False)``, ``track(...,
@@ -41,8 +42,8 @@ FREQUENCY_MHZ = (1.0, 60.0)
 #: :func:`carrier_ratio` below this: a carrier (measured <= 0.027 on RF, >= 0.58 without a carrier).
 CARRIER_RATIO = 0.1
 #: :func:`carrier_ratio` above this: no carrier (between the two thresholds nothing is concluded).
-NO_CARRIER_RATIO = 0.3
-#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-19 on correct
+NO_CARRIER_RATIO = 0.2
+#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-13 on correct
 #: spacing, 0.04-0.29 with the spacings exchanged).
 MIN_LATERAL_CELL_PERIODS = 1.0
 #: Fewer samples (or lines) than this along an axis: its spectrum is not measured.
@@ -134,10 +135,10 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> Orienta
     dx, dy = (float(s) for s in np.broadcast_to(np.asarray(spacing, float).ravel(), (2,)))
     if img.ndim != 2 or not np.all(np.isfinite(img)):
         return OrientationReport((dx, dy), (float("nan"), float("nan")))
-    # spectra from a subset (at least 32 lines / 256 rows, as precise as all of them) and the speckle from the
-    # strongest block of rows: a few percent of a registration's time on a paper-size frame
-    c0 = carrier_ratio(img[:, ::max(1, img.shape[1] // 32)])
-    c1 = carrier_ratio(img[::max(1, img.shape[0] // 256)].T)
+    # spectra from a subset (at least 64 lines / 1024 rows) and the speckle from the strongest block of rows:
+    # a few percent of a registration's time on a paper-size frame
+    c0 = carrier_ratio(img[:, ::max(1, img.shape[1] // 64)])
+    c1 = carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
     rep = OrientationReport((dx, dy), (c0, c1))
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
         n1 = _centroid_samples(img.T)
