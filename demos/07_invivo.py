@@ -20,7 +20,7 @@ This demo shows how to
     of the axial strain;
 
 * run ``femreg track`` on a whole sequence: pairs whose NCC after registration is below ``--min-ncc`` are
-  flagged and the run carries on.
+  flagged and the run carries on (exit code 1 when any pair is flagged).
 
 Data: ``../shared/data/invivo_rf/`` (two sequences of 6 frames, 2000 x 128 samples, 0.02 mm axial x 0.2 mm
 lateral, about 4 MHz; README there).  The demo exits cleanly (message, exit code 0) when the folder is absent.
@@ -364,7 +364,7 @@ def run_track_cli(folder, outdir, *, crop=None, frames_sel=None, regularizer="mo
     t0 = time.perf_counter()
     rc = femreg_main(argv)
     seconds = time.perf_counter() - t0
-    seq = femreg.load_track(outdir / "run") if rc == 0 else []
+    seq = femreg.load_track(outdir / "run") if rc in (0, 1) else []     # 1: done, some frames flagged
     shown = ["femreg", "track", Path(argv[1]).name, "-o", f"{outdir.name}/run"] + argv[4:]
     return {"rc": rc, "seconds": seconds, "argv": " ".join(shown),
             "frames": [{"frame": k + 2, "ncc_before": r.ncc_before, "ncc_after": r.ncc_after, "flag": f}

@@ -97,14 +97,15 @@ class AutoAlpha:
     results: list | None = field(repr=False, default=None)
     #: ||e(alpha_{k+1}) - e(alpha_k)|| of the recovered nodal strains, k = 0 .. len(alphas) - 2
     strain_change: np.ndarray | None = None
-    #: candidates whose registration reported failure (all of them: ``alpha`` is the grid centre, not a choice)
-    n_failed: int = 0
+    #: candidates whose registration succeeded (0: none did, ``alpha`` is the grid centre's and no choice)
+    n_successful: int | None = None
 
     def as_dict(self) -> dict:
         return {"alpha": self.alpha, "alphas": self.alphas.tolist(), "psi": self.psi.tolist(),
                 "dof": self.dof.tolist(), "upre": self.upre.tolist(), "c": self.c, "sigma2": self.sigma2,
                 "n_registrations": self.n_registrations, "rule": self.rule,
-                "strain_change": None if self.strain_change is None else self.strain_change.tolist()}
+                "strain_change": None if self.strain_change is None else self.strain_change.tolist(),
+                "n_successful": self.n_successful}
 
 
 def influence_trace(Hd, Hr, *, seed: int = 0) -> float:
@@ -253,9 +254,15 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     else:   # discrepancy: the largest alpha whose misfit stays within what the best fit could have absorbed
         ok = np.flatnonzero(2.0 * (psi[lo:hi] - psi[i0]) <= c * sigma2 * dof[i0])
         k = lo + int(ok.max()) if ok.size else lo + int(np.argmin(psi[lo:hi]))
+    n_ok = sum(bool(getattr(res, "success", True)) for res in results)
+    if n_ok == 0:
+        import warnings
+
+        warnings.warn(f"alpha='auto': none of the {alphas.size} candidate registrations succeeded; no alpha was "
+                      f"chosen, the grid centre {alphas[k]:.4g} is used", RuntimeWarning, stacklevel=2)
     return AutoAlpha(alpha=float(alphas[k]), alphas=alphas, psi=psi, dof=dof, upre=upre, c=c, sigma2=float(sigma2),
                      n_registrations=int(alphas.size), result=results[k], rule=rule,
-                     results=results if keep_results else None, strain_change=change, n_failed=succeeded.count(False))
+                     results=results if keep_results else None, strain_change=change, n_successful=n_ok)
 
 
 def register_auto(reference_image, moving_image, **register_kwargs):
@@ -268,8 +275,10 @@ def register_auto(reference_image, moving_image, **register_kwargs):
     choice = choose_alpha(reference_image, moving_image, **register_kwargs)
     res = choice.result
     choice.result = None
-    if choice.n_failed == choice.n_registrations:     # nothing to choose from: say so (res reports its failure)
-        res.message += (f"; alpha='auto' chose nothing: all {choice.n_registrations} candidate registrations "
-                        f"failed, this is the grid centre alpha={choice.alpha:.3g}")
     res.auto_alpha = choice
+    if choice.n_successful == 0:    # the failure is the registration's; the message also says no alpha was chosen
+        res.success = False
+        res.message = (f"FAILED: alpha='auto' found no successful candidate ({choice.n_registrations} registrations "
+                       f"failed), the result at the grid centre alpha {choice.alpha:.4g} is returned: "
+                       + res.message.removeprefix("FAILED: "))
     return res

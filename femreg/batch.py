@@ -339,9 +339,9 @@ def _check_settings(settings: dict, where: str) -> dict:
              "element_size": lambda v: real(v) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),
              "regularizer": lambda v: isinstance(v, str), "variable": lambda v: isinstance(v, str),
-             "strategy": lambda v: isinstance(v, str),
              "roi": lambda v: isinstance(v, str) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "depth": lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(real(x) for x in v),
+             "strategy": lambda v: isinstance(v, str), "no_orientation_check": lambda v: isinstance(v, bool),
              "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
              "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
                                                                and all(isinstance(x, int) for x in v))}
@@ -496,6 +496,7 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
         raise InputError(f"folders must be 'contents' or 'recording', got {folders!r}")
     skip = Path(out_dir).resolve() if out_dir is not None else None
     paths: list[Path] = []
+    groups: list[tuple[Path, list[Path]]] = []      # (input, its recordings) for the checks before any task runs
     for item in inputs:
         p = Path(item)
         if not p.exists():
@@ -505,8 +506,10 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
             if not found:
                 raise InputError(f"{p}: no recordings in this folder (frame files or sub-folders)")
             paths += found
+            groups.append((p, found))
         else:
             paths.append(p)
+            groups.append((p, [p]))
     seen, unique = set(), []
     for p in paths:
         r = p.resolve()
@@ -524,7 +527,48 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
         job = Job(input=str(p.resolve()), name=name, settings=s)
         _check_settings(job.resolved(), str(sf or p))
         jobs.append(job)
+    by_input = {j.input: j for j in jobs}
+    for item, found in groups:
+        _check_first_recordings(item, [by_input[str(f.resolve())] for f in found if str(f.resolve()) in by_input])
     return jobs
+
+
+def _frames_needed(settings: dict) -> int:
+    return 2 if settings["task"] == "track" else 1 + max(max(p) for p in settings["pairs"])
+
+
+def _check_first_recordings(item: Path, jobs: list) -> None:
+    """Bad input a batch can see before it runs, from the first readable recordings of one input: a folder
+    whose files hold one frame each (the frames of one recording, read as recordings of their own), and
+    frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  Recordings that
+    cannot be read are left to their tasks, which record the error."""
+    from .io import read_frames
+    from .orientation import OrientationError, check
+
+    probed = []
+    for job in jobs[:3]:
+        try:
+            reader_kw, _ = _check_settings(job.resolved(), job.input)
+            probed.append((job, read_frames(job.input, **reader_kw)))
+        except (InputError, OSError):
+            continue
+        if len(probed) == 2 or probed[0][1].n_frames > 1:
+            break
+    if not probed:
+        return
+    job, fr = probed[0]
+    s = job.resolved()
+    need = _frames_needed(s)
+    if item.is_dir() and len(jobs) > 1 and all(f.n_frames == 1 for _, f in probed) and need > 1:
+        what = "tracking needs 2" if s["task"] == "track" else f"pair {s['pairs'][0]} needs {need}"
+        raise InputError(f"{item}: its {len(jobs)} files hold one frame each, and each file is a recording of its "
+                         f"own ({what}); if they are the frames of one recording, pass --folders recording "
+                         f"(folders='recording')")
+    if not s.get("no_orientation_check"):
+        try:
+            check(fr.frames[0], fr.spacing)
+        except OrientationError as exc:
+            raise OrientationError(f"{job.input}: {exc}") from None
 
 
 def _fingerprint(path: Path) -> list:
@@ -641,13 +685,14 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
     fr = read_frames(spec["input"], **reader_kw)
     i, j = spec["pair"]
     if max(i, j) >= fr.n_frames:
-        raise InputError(f"{spec['input']}: pair {i} {j} requested but it holds {fr.n_frames} frame(s)")
+        hint = " (a folder of per-frame files is one recording with --folders recording)" if fr.n_frames == 1 else ""
+        raise InputError(f"{spec['input']}: pair {i} {j} requested but it holds {fr.n_frames} frame(s){hint}")
     res = register(fr.frames[i], fr.frames[j], spacing=fr.spacing, origin=fr.origin, **reg_kw)
     flag = _quality(res, spec["settings"]["min_ncc"])
     out = folder / f"{spec['task_id']}.npz"
     atomic_savez(out, writer=lambda tmp: res.save(tmp, flag=np.str_(flag), pair=np.asarray([i, j], np.int64)))
     if not res.success:  # as `femreg register`: the result is written, and the pair counts as failed
-        raise RuntimeError(f"registration failed: {res.message} (result kept in {out.name})")
+        raise RuntimeError(f"registration failed: {res.message.removeprefix('FAILED: ')} (result kept in {out.name})")
     return {"output": str(out.relative_to(folder.parent)), "ncc_before": res.ncc_before,
             "ncc_after": res.ncc_after, "nit": int(res.nit), "success": bool(res.success), "flag": flag,
             "n_frames": 2}
@@ -658,6 +703,9 @@ def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
     from .sequence import track
 
     fr = read_frames(spec["input"], **reader_kw)
+    if fr.n_frames < 2:
+        raise InputError(f"{spec['input']}: holds {fr.n_frames} frame; tracking needs at least 2 frames (a "
+                         f"folder of per-frame files is one recording with --folders recording)")
     s = spec["settings"]
     kw = dict(spacing=fr.spacing, origin=fr.origin, mode=s["mode"], grid=s["grid"], init=s["init"],
               checkpoint_dir=folder, min_ncc=s["min_ncc"], **reg_kw)

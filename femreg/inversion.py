@@ -408,7 +408,8 @@ def _mesh_and_data(displacement, region, element_size):
             v = res.displacement(mesh.p.T)
             if not np.all(np.isfinite(v)):
                 raise InputError(f"region {((x0, x1), (y0, y1))} mm reaches outside the registration mesh "
-                                 f"({int((~np.isfinite(v[:, 0])).sum())} nodes)")
+                                 f"({int((~np.isfinite(v[:, 0])).sum())} nodes); the mesh spans x "
+                                 f"{p[0].min():.4g} to {p[0].max():.4g} mm, y {p[1].min():.4g} to {p[1].max():.4g} mm")
             d = np.empty(2 * mesh.p.shape[1])
             d[0::2], d[1::2] = v[:, 0], v[:, 1]
     elif callable(displacement):

@@ -23,6 +23,7 @@ from . import _kernels
 from .blockmatch import BlockMatchResult, block_match
 from .data_term import SSDTerm
 from .echo import crop_for
+from . import orientation
 from .errors import InputError
 from .fields import FIELDS, check_strain_mode, element_strain_operator, recovered_strains, sample
 from .io.results import load_result  # noqa: F401  (femreg.load_result: the one reader of result files)
@@ -481,7 +482,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
-             strain_tol: float | None = None, roi="auto", depth=None) -> RegistrationResult:
+             strain_tol: float | None = None, roi="auto", depth=None,
+             check_orientation: bool = True) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): initial guess -> Gauss-Newton on the final mesh -> check and
@@ -557,6 +559,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     depth : (d0, d1) mm, optional
         A given depth range over all lines (instead of ``roi``; no detection).  Either outside the image is an
         :class:`~femreg.errors.InputError` naming the image extent.  With a user ``mesh`` neither applies.
+    check_orientation : bool
+        Refuse a reference frame that looks transposed or whose spacing looks swapped or implausible, from its RF
+        carrier (:mod:`femreg.orientation`; :class:`femreg.orientation.OrientationError`); data without a
+        carrier (envelope, B-mode) is never refused.  False skips the check.
 
     Returns
     -------
@@ -584,6 +590,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if ref.shape != mov.shape:
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing(spacing, origin)
+    if check_orientation:
+        orientation.check(ref, spacing)
     if strategy not in STRATEGIES:
         raise InputError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     if not isinstance(regularizer, (str, Regularizer)):
@@ -807,8 +815,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
-    if not success:
-        message = "FAILED: " + message
+    if not success:     # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
+        message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
+                   f"{sol.gn.message.replace('converged: ', '')})")
     return RegistrationResult(fe_mesh, u_out, shape=ref.shape, spacing=spacing, origin=origin,
                               regularizer=sol.reg.name, alpha=user_alpha, success=success, status=sol.gn.status,
                               message=message, nit=sol.gn.nit, energy_history=sol.gn.energy_history,

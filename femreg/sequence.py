@@ -31,6 +31,7 @@ from skfem import MeshQuad1
 
 from ._atomic import atomic_savez, atomic_write_text
 from .echo import crop_for
+from . import orientation
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
@@ -106,7 +107,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
-          on_frame=None, roi="auto", depth=None, **register_kwargs) -> SequenceResult:
+          on_frame=None, roi="auto", depth=None, check_orientation: bool = True,
+          **register_kwargs) -> SequenceResult:
     """Displacement from frame 0 to every later frame of a sequence.
 
     Parameters
@@ -149,6 +151,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         As in :func:`femreg.register`: the region tracked, from frames 0 and 1 ("auto", default: the echo
         rectangle of :func:`femreg.echo.find_echo`), the whole frames (None), or a given rectangle / depth range
         (mm); every frame is registered inside it and the results say what was excluded.
+    check_orientation : bool
+        Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
+        registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
@@ -165,6 +170,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
     spacing, origin = validate_spacing(spacing, origin)
+    if check_orientation:
+        orientation.check(seq[0], spacing)
+    register_kwargs["check_orientation"] = False    # checked once, above
     crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin)
     if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
         seq, origin = crop.frames(*seq), np.asarray(crop.origin)
@@ -183,7 +191,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid
-    params["register_kwargs"] = json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr))
+    params["register_kwargs"] = json.loads(json.dumps({k: v for k, v in register_kwargs.items()
+                                                       if k != "check_orientation"}, sort_keys=True, default=repr))
     if crop is not None:
         params["roi"] = list(crop.roi_mm)
 
@@ -257,7 +266,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                     crop.widen(res)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 if not res.success:
-                    flag = f"registration failed: {res.message}"
+                    flag = f"registration failed: {res.message.removeprefix('FAILED: ')}"
                 elif not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
                     flag = f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
                 else:

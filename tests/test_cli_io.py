@@ -56,7 +56,6 @@ def test_info_raw_with_reader_flags(tmp_path, capsys):
     ("raw", ["x.raw"], "shape"),
     ("raw", ["x.raw", "--shape", "7", "3"], "size mismatch"),
     ("raw", ["x.raw", "--shape", "1", "2", "3", "4"], "--shape"),
-    ("raw", ["x.raw", "--shape", "10", "4"], "spacing"),
     ("raw", ["x.raw", "--shape", "10", "4", "--dtype", "complex", "--spacing", "1", "1"], "dtype"),
     ("rf", ["t.rf", "--spacing", "auto", "0.3"], "truncated"),
     ("npz", ["k.npz", "--variable", "nope"], "missing variable 'nope'"),
@@ -73,6 +72,26 @@ def test_info_bad_input_exit_2_one_line(tmp_path, capsys, monkeypatch, setup, ar
     assert main(["info"] + argv) == 2
     err = _err_line(capsys)
     assert err.startswith("femreg info: error:") and needle in err, err
+
+
+def test_info_describes_a_file_without_spacing_and_says_what_it_needs(tmp_path, capsys):
+    rf = (np.random.default_rng(1).standard_normal((2, 40, 6)) * 1000).astype(np.int16)
+    np.save(tmp_path / "a.npy", rf)
+    assert main(["info", str(tmp_path / "a.npy")]) == 1           # described; registering it needs a spacing
+    out = capsys.readouterr().out
+    assert "int16 as stored" in out and "40 axial x 6 lateral" in out and "--spacing DX DY" in out, out
+    rf.tofile(tmp_path / "a.raw")
+    assert main(["info", str(tmp_path / "a.raw"), "--shape", "40", "6", "--dtype", "int16", "--json"]) == 1
+    info = json.loads(capsys.readouterr().out)
+    assert info["dtype"] == "int16" and info["frames"] == 2 and info["spacing_mm"] is None
+    assert any("--spacing" in n for n in info["needs"])
+    assert main(["info", str(tmp_path / "a.npy"), "--spacing", "0.02", "0.2", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["spacing_mm"] == [0.02, 0.2] and info["dtype"] == "int16"
+    save_frames(tmp_path / "a.rf", rf, (0.02, 0.2))                  # Ultrasonix: int16 samples, no lateral pitch
+    main(["info", str(tmp_path / "a.rf"), "--json"])
+    info = json.loads(capsys.readouterr().out)
+    assert info["dtype"] == "int16" and any("--spacing" in n for n in info["needs"]), info
 
 
 def test_argparse_errors_exit_2(capsys):

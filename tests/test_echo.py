@@ -238,19 +238,6 @@ def test_cli_roi_depth_and_batch_settings(tmp_path, capsys):
         _check_settings(dict(s, roi=[4, 12]), "job")
 
 
-def test_auto_alpha_says_when_nothing_succeeded():
-    rng = np.random.default_rng(3)
-    from femreg.synthetic import speckle_image
-
-    a = speckle_image((300, 40), (0.02, 0.2), rng)
-    b = speckle_image((300, 40), (0.02, 0.2), rng)        # unrelated frames: every candidate fails
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        res = femreg.register(a, b, spacing=(0.02, 0.2), alpha="auto", maxiter=3)
-    assert not res.success
-    assert "alpha='auto' chose nothing" in res.message and res.auto_alpha.n_failed == res.auto_alpha.n_registrations
-
-
 def test_dead_and_noise_lines_excluded():
     p = make_pair(F.compression(0.01), "L7", (20.0, 15.0), SNR, 0, top_mm=TOP)
     rng = np.random.default_rng(5)

@@ -70,6 +70,12 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    import warnings
+
+    def one_line(message, category, *_args, **_kwargs):   # a warning is one line, as the errors are
+        return f"femreg {args.command}: warning: {' '.join(str(message).split())}\n"
+
+    saved, warnings.formatwarning = warnings.formatwarning, one_line
     try:
         return int(args.func(args) or 0)
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
@@ -82,6 +88,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"femreg {args.command}: interrupted (finished work is kept)", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = saved
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -120,6 +120,9 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
                         "paper's procedure (5 x 9 mm block matching, 2 mm mesh)")
     g.add_argument("--maxiter", type=int, default=20, help="Gauss-Newton iterations (default 20)")
     g.add_argument("--tol", type=float, default=1e-3, help="stop when ||du||/||u|| < TOL (default 1e-3)")
+    g.add_argument("--no-orientation-check", action="store_true",
+                   help="skip the check that refuses frames that look transposed (lines x samples) or a spacing "
+                        "that looks swapped, judged from the RF carrier (femreg.orientation)")
 
 
 def registration_kwargs(args) -> dict:
@@ -142,7 +145,8 @@ def registration_kwargs(args) -> dict:
         opts["regularizer_options"] = {"hourglass": args.hourglass}
     return dict(**opts, regularizer=args.regularizer, alpha=args.alpha, strategy=getattr(args, "strategy", "auto"),
                 element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
-                margin=args.margin, maxiter=args.maxiter, tol=args.tol, **region_kwargs(args))
+                margin=args.margin, maxiter=args.maxiter, tol=args.tol,
+                check_orientation=not getattr(args, "no_orientation_check", False), **region_kwargs(args))
 
 
 def region_kwargs(args) -> dict:

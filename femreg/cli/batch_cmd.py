@@ -11,8 +11,11 @@ Per-recording settings: ``NAME.femreg.toml`` (or ``.json``) beside the recording
 folder recording, with the flags' long names as keys (``regularizer = "strain"``, ``spacing = [0.02, 0.3]``,
 ``pair = [0, 3]``, ``frames = "0:10"``); they override the command line for that recording.
 
-Exit codes: 0 all tasks done (flagged low-quality pairs included), 1 some task failed (the others finished; the
-summary names the error; ``--resume`` reruns the failed ones only), 2 bad input (nothing run).
+Exit codes: 0 all tasks done and none flagged; 1 some task failed or was flagged (low NCC, a frame whose
+registration failed its check; the others finished; the summary names the error; ``--resume`` reruns the failed
+ones only); 2 bad input, found before anything runs (a missing input, bad settings, a folder of single-frame
+files without ``--folders recording``, frames that look transposed or a swapped spacing in the first
+recording of an input).
 """
 from __future__ import annotations
 
@@ -88,7 +91,10 @@ def run(args) -> int:
     n = len(summary.records)
     for r in summary.failed:
         print(f"femreg batch: FAILED {r['key']}: {r.get('error')}", file=sys.stderr)
-    n_flag = sum(1 for r in summary.records if r.get("flag"))
+    flagged = [r for r in summary.records if r.get("flag") and r.get("status") == "ok"]
+    for r in flagged:
+        print(f"femreg batch: FLAGGED {r['key']}: {r['flag']}", file=sys.stderr)
+    n_flag = len(flagged)
     mem = summary.worker_memory()
     peak = max((m for _, m in mem.values()), default=None)
     print(f"femreg batch: {n} task(s) in {args.output} ({summary.n_computed} computed, "
@@ -96,4 +102,4 @@ def run(args) -> int:
           f"{summary.wall_s:.1f} s on {summary.workers}"
           + (f"; peak worker memory {peak:.0f} MiB" if peak else ""))
     print(f"summary: {summary.md_path}")
-    return 0 if summary.ok else 1
+    return 0 if summary.ok and not n_flag else 1

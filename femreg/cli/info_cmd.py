@@ -1,10 +1,18 @@
-"""``femreg info FILE``: what is in an RF data file (format, frames, shape, dtype, spacing, values, header)."""
+"""``femreg info FILE``: what is in an RF data file (format, frames, shape, dtype as stored, spacing, values,
+variables, header), with or without spacing, and what it would need to be registered.
+
+Exit codes: 0 described, ready to register; 1 described, but it needs something first (no spacing in the file,
+frames that look transposed or a spacing that looks swapped: the ``needs`` lines); 2 the file cannot be read."""
 from __future__ import annotations
 
 import json
+import os
+import zipfile
+from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from ._common import add_reader_args, frames_from_args
 
 
@@ -13,8 +21,13 @@ def add_parser(subparsers):
         "info", help="describe an RF data file (format, frames, shape, spacing, header)",
         description="Read FILE (npy, npz, mat v5/v7.3, mhd/mha, raw, Ultrasonix .rf, or a directory of "
                     "per-frame files) and print its format, number of frames, frame shape (axial x lateral), "
-                    "sample type, spacing, value range and header fields.  Exit 2 with a one-line reason if "
-                    "the file cannot be read.")
+                    "sample type as stored, spacing, value range, variables and header fields, and what is "
+                    "missing to register it (spacing; frames that look transposed or a spacing that looks "
+                    "swapped, from the RF carrier: femreg.orientation).  Exit 0 when described and ready to "
+                    "register; 1 when described but something is needed first (no spacing, a transposed frame: "
+                    "printed); "
+                    "2 with a one-line reason if the file cannot be read (a raw file without --shape, no such "
+                    "variable, a corrupt file).")
     p.add_argument("file", help="data file or directory of frame files")
     add_reader_args(p)
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
@@ -34,35 +47,121 @@ def _plain(v):
     return v if isinstance(v, (int, float, str, bool, type(None))) else str(v)
 
 
-def describe(fr) -> dict:
+def _variables(path: Path) -> dict:
+    """{name: "shape dtype"} of the arrays in an .npz or .mat file, read from headers only ({} otherwise)."""
+    out = {}
+    try:
+        if path.suffix.lower() == ".npz":
+            with zipfile.ZipFile(path) as zf:
+                for info in zf.infolist():
+                    with zf.open(info) as fh:
+                        version = np.lib.format.read_magic(fh)
+                        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                else np.lib.format.read_array_header_2_0)
+                        shape, _, dtype = read(fh)
+                    out[info.filename.removesuffix(".npy")] = f"{'x'.join(map(str, shape)) or 'scalar'} {dtype}"
+        elif path.suffix.lower() == ".mat":
+            from ..io.matlab import mat_version
+
+            if mat_version(path) == "7.3":
+                import h5py
+
+                with h5py.File(path, "r") as h5:
+                    for k, v in h5.items():
+                        if hasattr(v, "shape"):
+                            out[k] = f"{'x'.join(map(str, v.shape[::-1]))} {v.dtype}"
+            else:
+                from scipy.io import whosmat
+
+                for name, shape, cls in whosmat(str(path)):
+                    out[name] = f"{'x'.join(map(str, shape))} {cls}"
+    except Exception:  # noqa: BLE001 - the listing is a courtesy; the reader's own error stays the verdict
+        return out
+    return out
+
+
+def _what_is_missing(exc: InputError, path: Path, args) -> tuple[str, dict]:
+    """(the need in words, reader kwargs to read the file for its description anyway) from a reader error."""
+    text = str(exc)
+    if "spacing unknown" in text:
+        given = list(getattr(args, "spacing", None) or [None, None])
+        return ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
+                "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)"), \
+            {"spacing": [v if v is not None else 1.0 for v in given]}
+    return text, {}
+
+
+def describe(fr, *, spacing_known: bool = True) -> dict:
     a = fr.frames
     meta = dict(fr.metadata)
-    return {
+    stored = meta.pop("stored_dtype", None) or dict(meta.get("file_metadata") or {}).get("stored_dtype")
+    if isinstance(meta.get("file_metadata"), dict):
+        meta["file_metadata"] = {k: v for k, v in meta["file_metadata"].items() if k != "stored_dtype"}
+    out = {
         "file": str(fr.source), "format": meta.pop("format", ""), "frames": fr.n_frames,
-        "shape": list(fr.shape), "dtype": str(a.dtype), "spacing_mm": list(fr.spacing),
-        "origin_mm": list(fr.origin),
-        "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]],
+        "shape": list(fr.shape), "dtype": stored or str(a.dtype), "dtype_in_memory": str(a.dtype),
+        "spacing_mm": list(fr.spacing) if spacing_known else None, "origin_mm": list(fr.origin),
+        "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]] if spacing_known else None,
         "min": float(a.min()), "max": float(a.max()), "mean": float(a.mean()), "std": float(a.std()),
         "metadata": _plain(meta),
     }
+    if spacing_known:
+        from ..orientation import diagnose
+
+        rep = diagnose(a[0], fr.spacing)
+        out["rf_check"] = "" if rep.problem else rep.summary()
+        out["needs"] = [rep.message] if rep.problem else []
+        if fr.n_frames < 2:
+            out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
+    else:
+        out["needs"] = []
+    return out
 
 
 def run(args) -> int:
-    info = describe(frames_from_args(args))
+    path = Path(os.fspath(args.file))
+    try:
+        info = describe(frames_from_args(args))
+    except InputError as exc:
+        need, retry = _what_is_missing(exc, path, args)
+        info = None
+        if retry:
+            saved = args.spacing
+            args.spacing = retry["spacing"]
+            try:
+                info = describe(frames_from_args(args), spacing_known=False)
+            finally:
+                args.spacing = saved
+        if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2
+            raise
+        info["needs"] = [need] + info.get("needs", [])
+    variables = _variables(path) if path.is_file() else {}
+    if variables:
+        info["variables"] = variables
+    # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
+    rc = 1 if info["needs"] else 0
     if args.json:
         print(json.dumps(info, indent=2))
-        return 0
+        return rc
     print(f"file      {info['file']}")
     print(f"format    {info['format']}")
     print(f"frames    {info['frames']}")
     print(f"shape     {info['shape'][0]} axial x {info['shape'][1]} lateral")
-    print(f"dtype     {info['dtype']}")
-    print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral")
-    print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm")
-    print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
+    print(f"dtype     {info['dtype']} as stored" + (f" (read as {info['dtype_in_memory']})"
+                                                    if info["dtype_in_memory"] != info["dtype"] else ""))
+    if info["spacing_mm"] is not None:
+        print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral")
+        print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm")
+        print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
+    else:
+        print("spacing   none in the file")
     print(f"values    min {info['min']:.6g}, max {info['max']:.6g}, mean {info['mean']:.6g}, "
           f"std {info['std']:.6g}")
-    for key, val in info["metadata"].items():
+    if info.get("rf_check"):
+        print(f"RF        {info['rf_check']}")
+    for name, desc in info.get("variables", {}).items():
+        print(f"array     {name:16s} {desc}")
+    for key, val in info.get("metadata", {}).items():
         if isinstance(val, dict):
             print(f"{key}:")
             for k, v in val.items():
@@ -71,4 +170,10 @@ def run(args) -> int:
             print(f"{key:9s} {val[:6]} ... ({len(val)} items)")
         else:
             print(f"{key:9s} {val}")
-    return 0
+    if info.get("note"):
+        print(f"note      {info['note']}")
+    for need in info["needs"]:
+        print(f"needs     {need}")
+    if not info["needs"]:
+        print("needs     nothing: ready to register")
+    return rc

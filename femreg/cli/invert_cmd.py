@@ -3,8 +3,10 @@
 PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`); the inversion
 (:func:`femreg.invert`) runs on its mesh, or on a structured mesh of ``--element-size``.  MU.npz is reloadable
 with :func:`femreg.inversion.load_inversion`; ``femreg plot MU.npz`` draws the modulus image beside the axial
-strain.  Exit 0 on success, 2 on bad input (one-line reason), 1 when the optimisation fails (the result is
-still written, with ``success = False`` and the reason).
+strain.  Exit 0 on success; 2 on bad input (one-line reason), among it a registration that failed its own
+check (``success`` False: its displacement is not trustworthy) unless ``--allow-failed``; 1 when the
+optimisation fails, or when it ran on a failed registration with ``--allow-failed`` (the result is still
+written, with ``success = False`` and the reason).
 """
 from __future__ import annotations
 
@@ -33,6 +35,8 @@ def add_parser(subparsers):
     p.add_argument("--maxiter", type=int, default=400, help="L-BFGS-B iterations per solve (default 400)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
+    p.add_argument("--allow-failed", action="store_true",
+                   help="invert a registration that failed its own check anyway (the result is flagged, exit 1)")
     p.set_defaults(func=run)
     return p
 
@@ -51,12 +55,25 @@ def run(args) -> int:
     if es is not None and len(es) not in (1, 2):
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
     reg = femreg.load_result(args.result)
+    failed_reg = not reg.success and bool(reg.message)     # a result made by hand has no verdict (no message)
+    if failed_reg and not args.allow_failed:
+        raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
+                         "displacement is not trustworthy: register the pair again, or pass --allow-failed")
     region = None if args.region is None else ((args.region[0], args.region[1]), (args.region[2], args.region[3]))
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                         regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter)
+    if failed_reg:
+        res.success = False
+        res.message = f"inverted from a failed registration ({args.result}); " + res.message
     res.save(out)
     print(res)
+    import numpy as np
+
+    q5, q95 = np.percentile(res.mu, [5, 95])
+    where = "over the region" if region is not None else "over the mesh"
+    print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
+          f"median 1)")
     print(f"wrote {out}")
     if args.vtu:
         res.to_vtu(args.vtu)
@@ -66,6 +83,9 @@ def run(args) -> int:
 
         plt.close(res.plot(args.png))
         print(f"wrote {args.png}")
+    if failed_reg:
+        print(f"femreg invert: FLAGGED: inverted from a failed registration ({args.result})", file=sys.stderr)
+        return 1
     if not res.success:
         print(f"femreg invert: error: the optimisation failed: {res.message}", file=sys.stderr)
         return 1
@@ -95,4 +115,6 @@ def plot_inversion_file(args) -> int:
     if getattr(args, "vtu", None):
         res.to_vtu(args.vtu)
         print(f"wrote {args.vtu}")
-    return 0
+    from .plot_cmd import failed_notice
+
+    return failed_notice(args.result, res.success, res.message)

@@ -13,8 +13,9 @@ def add_parser(subparsers):
         description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
                     "ux, uy, exx, eyy, exy with colour bars and mm axes, and the per-element quality map "
                     "(OUT_quality.png) when the result holds one.  Optionally export the mesh with nodal "
-                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 2 with a "
-                    "one-line reason on bad input.")
+                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 0 when drawn; "
+                    "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
+                    "printed; 2 with a one-line reason on bad input.")
     p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
     p.add_argument("-o", "--output", metavar="OUT.png", help="figure path (default: RESULT with .png)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write the mesh, displacement and strains as VTU")
@@ -94,4 +95,20 @@ def _run(args) -> int:
             vals = element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
         render_mesh(p, t, vals, args.render, name=args.field)
         print(f"wrote {args.render}")
+    return failed_notice(args.result, res.get("success", True), res.get("message", ""), res.get("flag", ""))
+
+
+def failed_notice(path, success, message, flag="") -> int:
+    """After drawing: say when the result drawn is a failed or flagged computation (exit 1), else 0."""
+    import sys
+
+    import numpy as np
+
+    if isinstance(success, (bool, int, np.bool_)) and not success and message:   # no message: made by hand
+        print(f"femreg plot: FAILED: {path} is a failed computation: {str(message).removeprefix('FAILED: ')}",
+              file=sys.stderr)
+        return 1
+    if flag:
+        print(f"femreg plot: FLAGGED: {path}: {flag}", file=sys.stderr)
+        return 1
     return 0

@@ -6,8 +6,10 @@ OUT is written by :meth:`femreg.RegistrationResult.save` (mesh, nodal u, ux/uy/e
 A pair whose NCC after registration is below ``--min-ncc`` is flagged (message, result still written).
 
 Exit codes: 0 registered; 1 the registration failed (``success=False``: the images do not match, the result
-would be worse than its start, peak hopping could not be repaired, or a numerical failure) -- the result file is
-still written when there is one, with ``success`` False and the message; 2 bad input.
+would be worse than its start, peak hopping could not be repaired, or a numerical failure) or was flagged (NCC
+after below ``--min-ncc``) -- the result file is still written when there is one, with ``success`` and the
+message; 2 bad input (unreadable file, frames that look transposed or a spacing that looks swapped, ...), found
+before any registration.
 """
 from __future__ import annotations
 
@@ -74,10 +76,13 @@ def run(args) -> int:
     print(res)
     if res.excluded:
         print(f"femreg register: not registered: {res.excluded}")
-    if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
-        print(f"femreg register: warning: low-quality pair (NCC after {res.ncc_after:.3f} < {args.min_ncc})")
     print(f"wrote {args.output}")
     if not res.success:
-        print(f"femreg register: error: registration failed: {res.message}", file=sys.stderr)
+        print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
+              file=sys.stderr)
+        return 1
+    if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
+        print(f"femreg register: FLAGGED: low-quality pair (NCC after {res.ncc_after:.3f} < --min-ncc "
+              f"{args.min_ncc})", file=sys.stderr)
         return 1
     return 0

@@ -1,8 +1,10 @@
 """``femreg track FILE -o OUTDIR``: displacement from the first frame to every later frame (eq:IR), with a
 progress bar, one checkpoint file per frame as soon as it is done, and ``--resume``.
 
-Exit codes: 0 done (flagged low-quality pairs included), 2 bad input, 1 a frame failed (the message names it;
-the frames before it are kept on disk and ``--resume`` continues).
+Exit codes: 0 every frame registered; 1 a frame was flagged (its registration failed its own check, or its NCC
+after is below ``--min-ncc``; every frame is still written and the flagged ones are listed) or a frame could not
+be computed (the message names it; the frames before it are kept on disk and ``--resume`` continues); 2 bad
+input, found before any frame is registered.
 """
 from __future__ import annotations
 
@@ -19,9 +21,10 @@ def add_parser(subparsers):
                     "between consecutive frames in first-frame coordinates (eq:IR); 'direct' registers frame 0 "
                     "to frame k.  Each frame's result is written to OUTDIR/frame_KKK.npz when it finishes; "
                     "--resume continues an interrupted run without recomputing finished frames.  Pairs whose "
-                    "NCC after registration is below --min-ncc are flagged and the run continues.  If a frame "
-                    "fails, the frames before it stay saved, the command exits with code 1 naming the frame, and "
-                    "--resume continues from there.")
+                    "NCC after registration is below --min-ncc are flagged, the run continues and the command "
+                    "exits with code 1 listing them.  If a frame cannot be computed, the frames before it stay "
+                    "saved, the command exits with code 1 naming the frame, and --resume continues from there.  "
+                    "Bad input: exit 2 before any frame is registered.")
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
@@ -76,4 +79,9 @@ def run(args) -> int:
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} frames in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "
           f"{n_flag} flagged)")
+    if n_flag:
+        first = next(k for k, f in enumerate(out.flags, start=1) if f)
+        print(f"femreg track: FLAGGED: {n_flag} of {len(out)} frame(s) (frame {first}: {out.flags[first - 1]})",
+              file=sys.stderr)
+        return 1
     return 0

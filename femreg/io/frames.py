@@ -176,6 +176,7 @@ def finalize(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) 
     if arr.shape[1] < 2 or arr.shape[2] < 2:
         raise fail(path, f"frame shape {arr.shape[1:]} is degenerate (need at least 2 x 2 samples)")
     arr = select_frames(path, arr, frames)
+    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
     out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
     # native byte order, C-contiguous, own memory
     arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))

@@ -110,7 +110,7 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
         raise fail(path, f"bad header field sf (sampling frequency) = {hdr['sf']}; give spacing=(dx, dy)")
     sp = merge_spacing(path, (dx, None), spacing,
                        required_msg="Ultrasonix .rf files do not store the lateral line pitch")
-    meta = {"format": "ultrasonix", "header": hdr, "frame_tags": tagged, "sound_speed": c}
+    meta = {"format": "ultrasonix", "header": hdr, "frame_tags": tagged, "sound_speed": c, "stored_dtype": "int16"}
     if tagged:
         meta["frame_numbers"] = tags
     return finalize(path, out, sp, (0.0, 0.0), meta, None)

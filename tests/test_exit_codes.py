@@ -1,0 +1,157 @@
+"""One meaning for every exit code of every command: 0 done; 1 computed but failed or flagged (the result is
+still written and the reason printed); 2 bad input, found before any work (one line on stderr).  The matrix
+commands x outcomes runs on small simulated L7 pairs: a compressed pair (registers), two unrelated speckle
+frames (do not match: the registration fails) and the pair transposed (refused by the orientation check)."""
+import json
+
+import numpy as np
+import pytest
+
+from femreg.cli import main
+from femreg.io import save_frames
+
+SIZE = (12.0, 8.0)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    d = tmp_path_factory.mktemp("exit")
+    good = make_pair(F.compression(0.01), "L7", SIZE, 30, seed=0)
+    other = make_pair(F.compression(0.01), "L7", SIZE, 30, seed=1)
+    sp = tuple(good.spacing)
+    save_frames(d / "good.npz", np.stack([good.ref, good.mov]), sp)
+    save_frames(d / "unrelated.npz", np.stack([good.ref, other.ref]), sp)
+    save_frames(d / "transposed.npz", np.stack([good.ref.T, good.mov.T]), sp[::-1])
+    for k, frame in enumerate((good.ref, good.mov)):
+        (d / "perframe").mkdir(exist_ok=True)
+        save_frames(d / "perframe" / f"frame{k + 1}.npz", frame[None], sp)
+    return d
+
+
+def _run(argv, capsys):
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture(scope="module")
+def results(data):
+    """A successful and a failed registration result file (made once; their own exit codes are tested below)."""
+    main(["register", str(data / "good.npz"), "-o", str(data / "ok.npz")])
+    main(["register", str(data / "unrelated.npz"), "-o", str(data / "failed.npz")])
+    return data / "ok.npz", data / "failed.npz"
+
+
+def test_register(data, results, capsys, tmp_path):
+    import femreg
+
+    assert femreg.load_result(results[0]).success
+    failed = femreg.load_result(results[1])
+    assert not failed.success                                   # written, and says so
+    assert "converged" not in failed.message, failed.message   # no "FAILED: converged: ..."
+    rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "f.npz"], capsys)
+    assert rc == 1 and (tmp_path / "f.npz").is_file() and "registration failed" in err and "FAILED" not in err
+    rc, out, err = _run(["register", data / "good.npz", "-o", tmp_path / "ok.npz"], capsys)
+    assert rc == 0 and err == "", err
+    rc, out, err = _run(["register", data / "transposed.npz", "-o", tmp_path / "t.npz"], capsys)
+    assert rc == 2 and "transposed" in err and err.count("\n") == 1 and not (tmp_path / "t.npz").exists()
+    rc, out, err = _run(["register", data / "transposed.npz", "-o", tmp_path / "t.npz", "--no-orientation-check",
+                         "--maxiter", "1"], capsys)
+    assert rc in (0, 1) and (tmp_path / "t.npz").is_file()      # the override runs it
+
+
+def test_track(data, capsys, tmp_path):
+    rc, out, err = _run(["track", data / "good.npz", "-o", tmp_path / "ok", "--no-progress"], capsys)
+    assert rc == 0 and "FLAGGED" not in out + err, out + err
+    rc, out, err = _run(["track", data / "unrelated.npz", "-o", tmp_path / "bad", "--no-progress"], capsys)
+    assert rc == 1 and "FLAGGED" in err and (tmp_path / "bad" / "frame_001.npz").is_file(), out + err
+    assert "FAILED: " not in out + err                          # "registration failed: <reason>", said once
+    rc, out, err = _run(["track", data / "transposed.npz", "-o", tmp_path / "t", "--no-progress"], capsys)
+    assert rc == 2 and "transposed" in err and not (tmp_path / "t").exists()
+
+
+def test_batch(data, capsys, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "good.npz").write_bytes((data / "good.npz").read_bytes())
+    base = ["batch", "--workers", "0", "--no-progress"]
+    rc, out, err = _run(base + [src, "-o", tmp_path / "ok"], capsys)
+    assert rc == 0, out + err
+    (src / "unrelated.npz").write_bytes((data / "unrelated.npz").read_bytes())
+    rc, out, err = _run(base + [src, "-o", tmp_path / "flag"], capsys)
+    assert rc == 1 and "FLAGGED unrelated/track" in err, out + err
+    rc, out, err = _run(base + [src, "-o", tmp_path / "pairs", "--task", "register"], capsys)
+    assert rc == 1 and "FAILED unrelated/pair_000-001" in err and "FAILED: " not in err, err
+    assert (tmp_path / "pairs" / "unrelated" / "pair_000-001.npz").is_file()   # the result is kept
+    # one file per frame: refused before anything runs, pointing to --folders recording
+    for task in ("track", "register"):
+        rc, out, err = _run(base + [data / "perframe", "-o", tmp_path / f"pf-{task}", "--task", task], capsys)
+        assert rc == 2 and "--folders recording" in err and not (tmp_path / f"pf-{task}").exists(), err
+    rc, out, err = _run(base + [data / "perframe", "-o", tmp_path / "pf", "--folders", "recording"], capsys)
+    assert rc == 0, out + err
+    rc, out, err = _run(base + [data / "transposed.npz", "-o", tmp_path / "t"], capsys)
+    assert rc == 2 and "transposed" in err and not (tmp_path / "t").exists()
+
+
+def test_invert(results, capsys, tmp_path):
+    ok, failed = results
+    rc, out, err = _run(["invert", ok, "-o", tmp_path / "mu.npz"], capsys)
+    assert rc == 0 and (tmp_path / "mu.npz").is_file() and err == "", err
+    assert "modulus contrast over the mesh" in out
+    rc, out, err = _run(["invert", failed, "-o", tmp_path / "f.npz"], capsys)
+    assert rc == 2 and "failed registration" in err and "--allow-failed" in err and not (tmp_path / "f.npz").exists()
+    rc, out, err = _run(["invert", failed, "-o", tmp_path / "f.npz", "--allow-failed"], capsys)
+    assert rc == 1 and "FLAGGED" in err and (tmp_path / "f.npz").is_file()
+    rc, out, err = _run(["invert", ok, "-o", tmp_path / "r.npz", "--region", "0", "500", "-4", "4"], capsys)
+    assert rc == 2 and "the mesh spans x" in err, err
+    import femreg
+
+    p = femreg.load_result(ok).mesh.p
+    lo, hi = p.min(axis=1), p.max(axis=1)
+    inner = np.column_stack([lo + 0.2 * (hi - lo), hi - 0.2 * (hi - lo)]).ravel()    # x0 x1 y0 y1 inside
+    rc, out, err = _run(["invert", ok, "-o", tmp_path / "r.npz", "--region", *inner], capsys)
+    assert rc == 0 and "modulus contrast over the region" in out, err
+
+
+def test_plot(results, capsys, tmp_path):
+    ok, failed = results
+    rc, out, err = _run(["plot", ok, "-o", tmp_path / "ok.png", "--dpi", "30"], capsys)
+    assert rc == 0 and (tmp_path / "ok.png").is_file() and err == "", err
+    rc, out, err = _run(["plot", failed, "-o", tmp_path / "f.png", "--dpi", "30"], capsys)
+    assert rc == 1 and (tmp_path / "f.png").is_file() and "failed" in err, err
+    main(["invert", str(failed), "-o", str(tmp_path / "mu.npz"), "--allow-failed"])
+    capsys.readouterr()
+    rc, out, err = _run(["plot", tmp_path / "mu.npz", "-o", tmp_path / "m.png", "--dpi", "30"], capsys)
+    assert rc == 1 and (tmp_path / "m.png").is_file() and "failed registration" in err, err   # drawn, said
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    rc, out, err = _run(["plot", tmp_path / "junk.npz", "-o", tmp_path / "j.png"], capsys)
+    assert rc == 2 and err.count("\n") == 1
+
+
+def test_info(data, capsys, tmp_path):
+    rc, out, err = _run(["info", data / "good.npz"], capsys)
+    assert rc == 0 and "ready to register" in out
+    rc, out, err = _run(["info", data / "transposed.npz", "--json"], capsys)
+    info = json.loads(out)
+    assert rc == 1 and info["shape"] == [int(np.load(data / "transposed.npz")["rf"].shape[1]),
+                                         int(np.load(data / "transposed.npz")["rf"].shape[2])]
+    assert any("transposed" in n for n in info["needs"])
+    (tmp_path / "x.raw").write_bytes(b"\0" * 64)
+    rc, out, err = _run(["info", tmp_path / "x.raw"], capsys)
+    assert rc == 2 and "--shape" in err and err.count("\n") == 1
+
+
+def test_auto_alpha_without_a_successful_candidate_says_so(data, capsys, tmp_path):
+    import femreg
+
+    z = np.load(data / "unrelated.npz")
+    with pytest.warns(RuntimeWarning, match="none of the 7 candidate"):
+        res = femreg.register(z["rf"][0], z["rf"][1], spacing=tuple(z["spacing"]), alpha="auto")
+    assert not res.success and res.auto_alpha.n_successful == 0
+    assert "found no successful candidate" in res.message and "converged" not in res.message, res.message
+    with pytest.warns(RuntimeWarning):
+        rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "a.npz", "--alpha", "auto"], capsys)
+    assert rc == 1 and "no successful candidate" in err

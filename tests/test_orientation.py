@@ -1,0 +1,90 @@
+"""Orientation and sampling check (femreg.orientation): transposed frames and swapped spacing are input errors
+named as such; correct RF, envelopes and smooth images pass.  The thresholds' margins are those measured in the
+module docstring (benchmarks/orientation_check.py runs the whole test set)."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import femreg
+from femreg.errors import InputError
+from femreg.orientation import (CARRIER_RATIO, MIN_LATERAL_CELL_PERIODS, NO_CARRIER_RATIO, OrientationError,
+                                carrier_ratio, check, diagnose)
+from femreg.pyramid import envelope
+
+INVIVO = Path(__file__).resolve().parents[2] / "shared" / "data" / "invivo_rf"
+
+
+@pytest.fixture(scope="module")
+def probes():
+    from forward import fields as F
+    from forward.pairs import PROBES, make_pair
+
+    return {name: make_pair(F.compression(0.01), PROBES[name], (15, 10), 20, seed=3) for name in ("L3", "L7", "L15")}
+
+
+def _invivo(seq):
+    path = INVIVO / seq / "frame1.raw"
+    if not path.is_file():
+        pytest.skip("in vivo data not available")
+    return np.fromfile(path, "<f4").reshape(2000, 128)
+
+
+def test_simulated_probes_pass_and_their_mistakes_are_refused(probes):
+    for name, p in probes.items():
+        sp = tuple(p.spacing)
+        ok = check(p.ref, sp)
+        f0 = p.probe.f0_mhz
+        assert abs(ok.frequency_mhz - f0) < 0.1 * f0, (name, ok)          # the carrier is the probe's
+        assert ok.cell_periods > 3 * MIN_LATERAL_CELL_PERIODS, (name, ok)
+        assert diagnose(envelope(p.ref), sp).problem == ""                 # no carrier: never refused
+        with pytest.raises(OrientationError, match="transposed") as e:
+            check(p.ref.T, sp[::-1])
+        assert "--no-orientation-check" in str(e.value) and "check_orientation=False" in str(e.value)
+        with pytest.raises(OrientationError, match="swapped") as e:
+            check(p.ref, sp[::-1])
+        assert f"({sp[0]:g}, {sp[1]:g})" in str(e.value)                  # names the spacing to pass
+
+
+@pytest.mark.parametrize("seq", ["seq299", "seq304"])
+def test_invivo_frames_pass_transposed_and_swapped_are_refused(seq):
+    rf = _invivo(seq)
+    rep = check(rf, (0.02, 0.2))
+    assert 3.5 < rep.frequency_mhz < 5.5            # README of the data: about 4 MHz dominant frequency
+    assert rep.carrier[0] < CARRIER_RATIO / 5 and rep.carrier[1] > NO_CARRIER_RATIO * 4
+    assert diagnose(rf.T, (0.2, 0.02)).problem == "transposed"
+    assert diagnose(rf, (0.2, 0.02)).problem == "swapped"
+    assert diagnose(envelope(rf), (0.02, 0.2)).problem == ""
+    assert diagnose(20 * np.log10(envelope(rf) + 1e-3), (0.02, 0.2)).problem == ""   # log-compressed B-mode
+
+
+def test_spacing_in_wrong_units_is_refused(probes):
+    p = probes["L7"]
+    sp = np.asarray(p.spacing) * 1000.0            # micrometres given as mm
+    rep = diagnose(p.ref, sp)
+    assert rep.problem == "spacing" and "units" in rep.message and rep.frequency_mhz < 0.01
+
+
+def test_images_without_carrier_pass():
+    rng = np.random.default_rng(0)
+    x, y = np.meshgrid(np.linspace(0, 1, 120), np.linspace(0, 1, 60), indexing="ij")
+    smooth = np.exp(-((x - 0.5) ** 2 + (y - 0.4) ** 2) / 0.05)
+    lateral_stripes = np.sin(2 * np.pi * 12 * y) + 0.0 * x       # constant along axis 0: nothing to measure there
+    noise = rng.standard_normal((120, 60))
+    for img in (smooth, lateral_stripes, noise, rng.standard_normal((8, 6))):
+        assert diagnose(img, (0.02, 0.2)).problem == ""
+    assert carrier_ratio(noise) > NO_CARRIER_RATIO                # white noise is no carrier
+
+
+def test_register_and_track_refuse_before_any_work(probes, tmp_path):
+    p = probes["L7"]
+    sp = tuple(p.spacing)
+    with pytest.raises(OrientationError, match="transposed"):
+        femreg.register(p.ref.T, p.mov.T, spacing=sp[::-1])
+    with pytest.raises(InputError, match="swapped"):
+        femreg.register(p.ref, p.mov, spacing=sp[::-1], alpha="auto")
+    with pytest.raises(OrientationError, match="swapped"):
+        femreg.track(np.stack([p.ref, p.mov]), spacing=sp[::-1], checkpoint_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()                        # refused before the folder was made
+    res = femreg.register(p.ref, p.mov, spacing=sp[::-1], check_orientation=False, maxiter=2, margin=0.1)
+    assert res.mesh.p.shape[1] > 0                                # the override runs the registration
