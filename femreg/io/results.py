@@ -22,6 +22,9 @@ strategy           str                             registration strategy (option
 strain             str                             how the grid strains were evaluated: "recovered" or
                                                    "element" (optional; absent: served as written --
                                                    files of earlier versions hold element strains)
+recovery           str                             recovered strains: the method of
+                                                   :func:`femreg.fields.recovered_strains` (optional;
+                                                   absent: files of earlier versions, nodal averages)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
@@ -45,7 +48,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain")
+               "quality", "strategy", "strain", "recovery")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -160,6 +163,9 @@ def _from_object(res) -> dict:
     if callable(getattr(res, "on_grid", None)):
         out.update(res.on_grid())                   # pixel-grid fields (the object's ux/uy are nodal)
         out["strain"] = "recovered"                 # what on_grid() gives by default
+        from ..fields import DEFAULT_RECOVERY
+
+        out["recovery"] = DEFAULT_RECOVERY
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
