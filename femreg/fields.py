@@ -138,7 +138,7 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
     strains (:func:`element_strains`) of the elements around each node (Zienkiewicz & Zhu 1987, simple averaging).
 
     Measured on the robustness benchmark's pairs (R_P_sigma defaults, 17 pairs, the sequence left out), total
-    strain error projection vs average: lower on the 8 inclusion pairs by 0.5-0.9 points (e.g. stiff plane-stress
+    strain error projection vs average: lower on the 8 inclusion pairs by 0.6-1.0 points (e.g. stiff plane-stress
     4 % 10.05 -> 9.15 %, soft plane-strain 1 % 12.25 -> 11.59 %; the element strain 10.6 and 11.6 %), within
     +0.16 points on the 9 others (bending 5.76 -> 5.92 %, uniform compression within +0.05).  The contour of
     the axial strain at half the inclusion contrast departs from the true contour by 0.043 R (RMS over 72 rays,

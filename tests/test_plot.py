@@ -45,7 +45,7 @@ def test_plot_bmode_and_field_axes_in_mm():
     assert bottom > top  # axial axis increases downwards
     assert right - left == pytest.approx(16 * 0.2) and bottom - top == pytest.approx(200 * 0.02)
     assert "mm" in ax.get_xlabel() and "mm" in ax.get_ylabel()
-    assert len(ax.figure.axes) == 2  # image + colour bar
+    assert len(ax.child_axes) == 1 and ax.child_axes[0].get_ylabel() == "echo level (dB)"  # its colour bar
     field = np.linspace(-1, 1, rf.size).reshape(rf.shape)
     field[:10] = np.nan
     fig, axes = plt.subplots(1, 2)

@@ -91,7 +91,8 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
     """meshio-ready (points (n, 3), cells, point_data, cell_data) for a registration result.
 
     Point data ``displacement`` (n_nodes, 3) with z = 0; strains ``exx``, ``eyy``, ``exy`` as element-centre cell
-    data (``strains='cell'``), nodal averages as point data (``'point'``), or both (default).
+    data (``strains='cell'``), the recovered nodal strains (:func:`femreg.fields.recovered_strains`, what the
+    pictures show) as point data (``'point'``), or both (default).
     """
     p, t, uu = check_mesh(mesh_points, mesh_cells, u)
     if strains not in ("cell", "point", "both", "none", None):
@@ -108,7 +109,9 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
         if strains in ("cell", "both"):
             cdata.update({name: [e[:, k]] for k, name in enumerate(("exx", "eyy", "exy"))})
         if strains in ("point", "both"):
-            en = nodal_average(t, e, n)
+            from ..fields import recovered_strains
+
+            en = recovered_strains(p, t, uu)
             pdata.update({name: en[:, k] for k, name in enumerate(("exx", "eyy", "exy"))})
     for k, v in (point_data or {}).items():
         v = np.asarray(v, dtype=float)
