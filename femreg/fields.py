@@ -11,7 +11,7 @@ element: a blocky image, first-order accurate).  What femreg reports by default 
 
 * ``"projection"`` (default): the L2 projection of the element gradient onto the bilinear space, its mass matrix
   blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480, 1974,
-  "global smoothing"; the lumped mass alone gives the area-weighted nodal average);
+  "global smoothing"; with the lumped mass alone it is a local weighted nodal mean, close to the average below);
 * ``"average"``: the element-centre strains -- the superconvergent points of bilinear quads -- averaged at each
   node (O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; on a
   uniform tensor mesh the same nodal values as their 1992 superconvergent patch recovery with a linear patch
@@ -160,9 +160,9 @@ def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | Non
 
     Solves ``M_w s_k = b_k`` with ``b_k,i = int N_i e_k dx`` (e_k the gradient strain of the bilinear ``u``, 2 x 2
     Gauss, exact) and ``M_w = w M + (1 - w) diag(M 1)``, ``M`` the consistent mass matrix of ``ElementQuad1``
-    (scikit-fem assembly), ``w = consistent_weight`` (default :data:`PROJECTION_CONSISTENT_WEIGHT`; ``w = 0`` is
-    the area-weighted nodal average, ``w = 1`` the plain L2 projection, Hinton & Campbell 1974).  Exact for affine
-    ``u``.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    (scikit-fem assembly), ``w = consistent_weight`` (default :data:`PROJECTION_CONSISTENT_WEIGHT`; ``w = 0``
+    the lumped projection, a local weighted nodal mean; ``w = 1`` the plain L2 projection, Hinton & Campbell
+    1974, sharpest and least smooth).  Exact for affine ``u``.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
     import scipy.sparse as sps
     from scipy.sparse.linalg import splu

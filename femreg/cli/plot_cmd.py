@@ -11,7 +11,8 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "plot", help="figures (PNG) and ParaView files (VTU/XDMF) of a registration result",
         description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
-                    "ux, uy, exx, eyy, exy with colour bars and mm axes, and the per-element quality map "
+                    "ux, uy (mm), exx, eyy, exy (%) with colour bars and mm axes (a red banner when the result "
+                    "failed; the image outside the mesh hatched), and the per-element quality map "
                     "(OUT_quality.png) when the result holds one.  Optionally export the mesh with nodal "
                     "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 2 with a "
                     "one-line reason on bad input.")
@@ -75,6 +76,11 @@ def _run(args) -> int:
     fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi)
     plt.close(fig)
     print(f"wrote {out}")
+    if "success" in res and not bool(res["success"]):
+        import sys
+
+        print(f"femreg plot: note: {args.result} is a failed registration ({res.get('message', '')}); the figure "
+              "says so in its title", file=sys.stderr)
     if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:
         from ..plot import plot_quality
 
