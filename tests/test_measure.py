@@ -127,3 +127,22 @@ def test_measure_inversion_modulus_contrast(tmp_path, field, capsys):
     reg = _save(tmp_path, m, u)
     assert main(["measure", str(reg), "--inclusion", "10", "0", "4", "-o", str(tmp_path / "r.json")]) == 0
     assert got["SR"] == pytest.approx(json.loads((tmp_path / "r.json").read_text())["SR"], rel=1e-12)
+
+
+def test_modulus_contrast_uncertainty_first_order(field):
+    """Uniform modulus in each region and equal element areas: each element's share of its region is 1/n, so
+    sd(log contrast) = sigma sqrt(1/n_in + 1/n_out) -- and the estimate grows with sigma."""
+    from femreg.cli.measure_cmd import _modulus, _regions
+    from femreg.inversion import InversionResult
+
+    m, u = field
+    inv = InversionResult(mesh=m, mu=np.ones(m.t.shape[1]), model="plane-stress", lambda_bar=2.0, beta=0.01,
+                          u_measured=u, success=True)
+    roi, _ = _regions((10.0, 0.0, 4.0), None)
+    node_in = roi(m.p.T)[m.t]
+    n_in, n_out = int(node_in.all(axis=0).sum()), int((~node_in).all(axis=0).sum())
+    assert "contrast_sd_log" not in _modulus(inv, roi, None)
+    inv.uncertainty = np.full(m.t.shape[1], 0.2)
+    got = _modulus(inv, roi, None)
+    assert got["contrast"] == pytest.approx(1.0)
+    assert got["contrast_sd_log"] == pytest.approx(0.2 * np.sqrt(1 / n_in + 1 / n_out), rel=1e-12)
