@@ -12,6 +12,7 @@ Run: ``python benchmarks/recovery.py [--cases WORDS]`` (about 1 min on 2 cores);
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -92,9 +93,11 @@ def _line(row):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="", help="comma-separated words; run cases whose name contains one")
+    ap.add_argument("--seed", type=int, default=0, help="scatterer and noise seed of every pair (default 0)")
     args = ap.parse_args(argv)
     words = [w for w in args.cases.split(",") if w]
-    cases = [c for c in CASES if not c.sequence and (not words or any(w in c.name for w in words))]
+    cases = [dataclasses.replace(c, seed=args.seed) for c in CASES
+             if not c.sequence and (not words or any(w in c.name for w in words))]
     print("| pair | e element % | e average % | e projection % | projection - average | contour RMS / R element "
           "| average | projection |\n|---|---|---|---|---|---|---|---|")
     rows = run(cases)

@@ -9,9 +9,9 @@ The gradient of a bilinear field is discontinuous across element edges (axial st
 element: a blocky image, first-order accurate).  What femreg reports by default is the *recovered* strain
 (:func:`recovered_strains`): a continuous bilinear nodal field, interpolated like the displacement.  Two recoveries:
 
-* ``"projection"`` (default): the L2 projection of the element gradient onto the bilinear space, its mass matrix
-  blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480, 1974,
-  "global smoothing"; with the lumped mass alone it is a local weighted nodal mean, close to the average below);
+* ``"projection"`` (default): the L2 projection of the element-centre strains onto the bilinear space, its mass
+  matrix blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480,
+  1974, "global smoothing"; with the lumped mass alone it is the nodal average below);
 * ``"average"``: the element-centre strains -- the superconvergent points of bilinear quads -- averaged at each
   node (O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; on a
   uniform tensor mesh the same nodal values as their 1992 superconvergent patch recovery with a linear patch
@@ -38,9 +38,10 @@ STRAIN_MODES = ("recovered", "element")
 #: How the recovered strain is computed (module docstring); the first is the default.
 RECOVERY_METHODS = ("projection", "average")
 DEFAULT_RECOVERY = RECOVERY_METHODS[0]
-#: Weight of the consistent mass in the projection's mass matrix (the rest lumped): 1 sharpens edges most but
-#: raised the total strain error of the smooth bending pair of the robustness benchmark by 0.38 points over the
-#: nodal average; 3/4 keeps that rise to 0.16 and most of the gain at inclusions (docs in recovered_strains).
+#: Weight of the consistent mass in the projection's mass matrix (the rest lumped; 0 is the nodal average).  More
+#: sharpens edges more and amplifies local defects more: on a pair whose peak-hopping islands were repaired the
+#: total strain error is 15.0 % (average), 18.5 % (3/4), 21.0 % (1); on the robustness benchmark's inclusions 1
+#: gains 0.2-0.3 points over 3/4 (recovered_strains).
 PROJECTION_CONSISTENT_WEIGHT = 0.75
 
 
@@ -137,12 +138,13 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
     ``method="projection"`` (default): :func:`projected_strains`.  ``"average"``: the mean of the element-centre
     strains (:func:`element_strains`) of the elements around each node (Zienkiewicz & Zhu 1987, simple averaging).
 
-    Measured on the robustness benchmark's pairs (R_P_sigma defaults, 17 pairs, the sequence left out), total
-    strain error projection vs average: lower on the 8 inclusion pairs by 0.6-1.0 points (e.g. stiff plane-stress
-    4 % 10.05 -> 9.15 %, soft plane-strain 1 % 12.25 -> 11.59 %; the element strain 10.6 and 11.6 %), within
-    +0.16 points on the 9 others (bending 5.76 -> 5.92 %, uniform compression within +0.05).  The contour of
-    the axial strain at half the inclusion contrast departs from the true contour by 0.043 R (RMS over 72 rays,
-    mean of the 8 pairs) against 0.052 R for the average and 0.063 R for the element strain.
+    Measured on the robustness benchmark's pairs (R_P_sigma defaults, 17 pairs, the sequence left out;
+    ``benchmarks/recovery.py``), total strain error projection vs average: lower on the 8 inclusion pairs by 0.5-0.7
+    points (e.g. stiff plane-stress 4 % 10.05 -> 9.34 %, stiff plane-strain 4 % 12.27 -> 11.55 %; the element
+    strain 10.57 and 11.82 %), within +0.07 points on the 9 others (bending 5.76 -> 5.83 %).  The contour of the
+    axial strain at half the inclusion contrast departs from the true contour by 0.047 R (RMS over 72 rays, mean
+    of the 8 pairs) against 0.052 R for the average and 0.063 R for the element strain.  The price: a sharper
+    recovery amplifies local defects, e.g. 15.0 -> 18.5 % on a pair with repaired peak-hopping islands.
     ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
     if method not in RECOVERY_METHODS:
@@ -156,35 +158,34 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
 
 
 def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | None = None) -> np.ndarray:
-    """L2 projection of the element strain onto the bilinear nodal space, shape (n_nodes, 3) [exx, eyy, exy].
+    """L2 projection of the element-centre strain onto the bilinear nodal space, shape (n_nodes, 3)
+    [exx, eyy, exy].
 
-    Solves ``M_w s_k = b_k`` with ``b_k,i = int N_i e_k dx`` (e_k the gradient strain of the bilinear ``u``, 2 x 2
-    Gauss, exact) and ``M_w = w M + (1 - w) diag(M 1)``, ``M`` the consistent mass matrix of ``ElementQuad1``
-    (scikit-fem assembly), ``w = consistent_weight`` (default :data:`PROJECTION_CONSISTENT_WEIGHT`; ``w = 0``
-    the lumped projection, a local weighted nodal mean; ``w = 1`` the plain L2 projection, Hinton & Campbell
-    1974, sharpest and least smooth).  Exact for affine ``u``.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    Solves ``M_w s_k = b_k`` with ``b_k,i = sum_e e_k,e int_e N_i dx`` (``e_k,e`` the strain at element e's centre,
+    :func:`element_strains`: the superconvergent value, without the element's hourglass variation) and
+    ``M_w = w M + (1 - w) diag(M 1)``, ``M`` the consistent mass matrix of ``ElementQuad1`` (scikit-fem assembly,
+    2 x 2 Gauss, exact), ``w = consistent_weight`` (default :data:`PROJECTION_CONSISTENT_WEIGHT`).  ``w = 0`` is
+    exactly the area-weighted nodal average (on a uniform mesh :func:`nodal_average`); ``w = 1`` the plain L2
+    projection (Hinton & Campbell 1974), sharpest and least smooth.  Exact for affine ``u``.
+    ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
     import scipy.sparse as sps
     from scipy.sparse.linalg import splu
-    from skfem import Basis, BilinearForm, ElementQuad1, ElementVector, LinearForm, MeshQuad1
-
-    from .io.results import check_mesh
+    from skfem import Basis, BilinearForm, ElementQuad1, LinearForm, MeshQuad1
 
     w = PROJECTION_CONSISTENT_WEIGHT if consistent_weight is None else float(consistent_weight)
     if not 0.0 <= w <= 1.0:
         raise InputError(f"consistent_weight must lie in [0, 1], got {consistent_weight!r}")
-    p, t, uu = check_mesh(mesh_points, mesh_cells, u)
-    try:
-        vb = Basis(MeshQuad1(p, t), ElementVector(ElementQuad1()), intorder=2)
-    except Exception as exc:  # noqa: BLE001  scikit-fem raises a bare Exception for a zero Jacobian
-        raise InputError(f"mesh has degenerate (zero-area) quads ({exc})") from None
-    sb = Basis(vb.mesh, ElementQuad1(), quadrature=vb.quadrature)
-    e = strain_components(np.asarray(vb.interpolate(uu).grad))          # (n_el, n_qp, 3)
-    M = BilinearForm(lambda a, b, _: a * b).assemble(sb)
+    e = element_strains(mesh_points, mesh_cells, u)                   # validates the mesh and u
+    basis = Basis(MeshQuad1(np.asarray(mesh_points, float), np.asarray(mesh_cells, np.int64)), ElementQuad1(),
+                  intorder=2)
+    M = BilinearForm(lambda a, b, _: a * b).assemble(basis)
     lumped = sps.diags(np.asarray(M.sum(axis=1)).ravel())
     lu = splu((w * M + (1.0 - w) * lumped).tocsc())
     rhs = LinearForm(lambda v, q: q["e"] * v)
-    return np.column_stack([lu.solve(rhs.assemble(sb, e=e[..., k])) for k in range(3)])
+    n_qp = basis.X.shape[1]
+    return np.column_stack([lu.solve(rhs.assemble(basis, e=np.repeat(e[:, k:k + 1], n_qp, axis=1)))
+                            for k in range(3)])
 
 
 def element_strain_operator(mesh):
