@@ -86,3 +86,26 @@ def test_projection_keeps_the_inclusion_rounder_than_the_average():
     # the default is what the result reports
     res._nodal_strain, res._grid = None, None
     np.testing.assert_allclose(res.nodal_strain, recovered_strains(res.mesh.p, res.mesh.t, res.u, "projection"))
+
+
+def test_result_files_without_the_recovery_key_still_load(tmp_path):
+    """Files written before the projection (strain "recovered", no "recovery" key: nodal averages on the grid)
+    load and serve their grid as written; new files record the method."""
+    import femreg
+    from femreg.io.results import as_result_dict, save_result
+
+    res = _inclusion_result(2.0)
+    d = as_result_dict(res)
+    assert d["recovery"] == "projection"
+    res._nodal_strain, res._grid = recovered_strains(res.mesh.p, res.mesh.t, res.u, "average"), None
+    old = dict(as_result_dict(res))
+    old.pop("recovery")
+    save_result(tmp_path / "old.npz", old)
+    back = femreg.load_result(tmp_path / "old.npz")
+    np.testing.assert_array_equal(back.on_grid()["exx"], old["exx"])
+    assert back.nodal_strain.shape == (res.mesh.p.shape[1], 3)
+    res._nodal_strain, res._grid = None, None
+    save_result(tmp_path / "new.npz", res)
+    np.testing.assert_allclose(femreg.load_result(tmp_path / "new.npz").nodal_strain, res.nodal_strain)
+    with np.load(tmp_path / "new.npz") as z:
+        assert str(z["recovery"]) == "projection"
