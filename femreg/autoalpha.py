@@ -4,7 +4,7 @@ Rule (default ``"quasi-optimality"``): the quasi-optimality criterion (A. N. Tik
 Math. Math. Phys. 5 (1965) 93-107; F. Bauer, M. Reiss, Inverse Problems 24 (2008) 055009,
 doi:10.1088/0266-5611/24/5/055009): on the geometric grid of candidates take the alpha where the result changes
 least from one candidate to the next, ``min_k ||e(alpha_{k+1}) - e(alpha_k)||`` over the recovered nodal strains
-(:func:`femreg.fields.recovered_strains`, ``method="average"``, the quantity elastography reports), the smaller alpha of that pair,
+(:func:`femreg.fields.recovered_strains`, the quantity elastography reports), the smaller alpha of that pair,
 interior pairs only (the grid's end pairs are not candidates: a minimum there only says the grid is too short),
 and below the last interior local maximum of the change (:func:`quasi_optimal_index`): past that maximum the
 change shrinks only because the result saturates towards the regulariser's null space, which the theory
@@ -62,7 +62,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import InputError
-from .fields import recovered_strains
 from .solver import GN_STRAIN_TOL_TIGHT
 
 __all__ = ["AutoAlpha", "choose_alpha", "register_auto", "DEFAULT_DECADES", "influence_trace", "quasi_optimal_index",
@@ -242,8 +241,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         gx, gy = g[0].reshape(ref.shape), g[1].reshape(ref.shape)
     c = _correlation_factor(r_img.reshape(ref.shape), gx, gy)
     upre = 2.0 * psi + 2.0 * c * sigma2 * dof
-    # the nodal average, with which the rule was calibrated (alpha choices stay as they were)
-    strains = [recovered_strains(res.mesh.p, res.mesh.t, res.u, "average").ravel() for res in results]
+    strains = [res.nodal_strain.ravel() for res in results]
     change = np.array([np.linalg.norm(strains[k + 1] - strains[k]) for k in range(len(strains) - 1)])
     if rule == "upre":
         k = lo + int(np.argmin(upre[lo:hi]))

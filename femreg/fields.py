@@ -9,13 +9,14 @@ The gradient of a bilinear field is discontinuous across element edges (axial st
 element: a blocky image, first-order accurate).  What femreg reports by default is the *recovered* strain
 (:func:`recovered_strains`): a continuous bilinear nodal field, interpolated like the displacement.  Two recoveries:
 
-* ``"projection"`` (default): the L2 projection of the element-centre strains onto the bilinear space, its mass
-  matrix blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480,
-  1974, "global smoothing"; with the lumped mass alone it is the nodal average below);
-* ``"average"``: the element-centre strains -- the superconvergent points of bilinear quads -- averaged at each
-  node (O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; on a
+* ``"average"`` (default): the element-centre strains -- the superconvergent points of bilinear quads -- averaged
+  at each node (O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; on a
   uniform tensor mesh the same nodal values as their 1992 superconvergent patch recovery with a linear patch
-  polynomial at interior nodes).  It spreads a sharp edge over two elements: a round inclusion loses its shape.
+  polynomial at interior nodes).  It blurs a sharp edge over about two elements.
+* ``"projection"``: the L2 projection of the element-centre strains onto the bilinear space, its mass matrix
+  blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480, 1974,
+  "global smoothing"; with the lumped mass alone it is the average).  Sharper edges, less smoothing of noise
+  and defects (numbers in :func:`recovered_strains`).
 
 Both are exact for affine fields.  ``strain="element"`` keeps the raw element gradient.
 Lengths in mm; ``u`` is the interleaved nodal vector ``[ux0, uy0, ux1, ...]`` (scikit-fem's vector DOF order).
@@ -36,12 +37,12 @@ FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 #: How strains are evaluated: "recovered" (continuous, default) or "element" (the raw element gradient).
 STRAIN_MODES = ("recovered", "element")
 #: How the recovered strain is computed (module docstring); the first is the default.
-RECOVERY_METHODS = ("projection", "average")
+RECOVERY_METHODS = ("average", "projection")
 DEFAULT_RECOVERY = RECOVERY_METHODS[0]
 #: Weight of the consistent mass in the projection's mass matrix (the rest lumped; 0 is the nodal average).  More
 #: sharpens edges more and amplifies local defects more: on a pair whose peak-hopping islands were repaired the
 #: total strain error is 15.0 % (average), 18.5 % (3/4), 21.0 % (1); on the robustness benchmark's inclusions 1
-#: gains 0.2-0.3 points over 3/4 (recovered_strains).
+#: gains another 0.2-0.3 points over 3/4 and raises the smooth bending pair by 0.15 over the average.
 PROJECTION_CONSISTENT_WEIGHT = 0.75
 
 
@@ -135,16 +136,23 @@ def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
 def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY) -> np.ndarray:
     """Recovered nodal strains [exx, eyy, exy], shape (n_nodes, 3), to be interpolated bilinearly.
 
-    ``method="projection"`` (default): :func:`projected_strains`.  ``"average"``: the mean of the element-centre
-    strains (:func:`element_strains`) of the elements around each node (Zienkiewicz & Zhu 1987, simple averaging).
+    ``method="average"`` (default): the mean of the element-centre strains (:func:`element_strains`) of the
+    elements around each node (Zienkiewicz & Zhu 1987, simple averaging).  ``"projection"``:
+    :func:`projected_strains`.
 
-    Measured on the robustness benchmark's pairs (R_P_sigma defaults, 17 pairs, the sequence left out;
-    ``benchmarks/recovery.py``), total strain error projection vs average: lower on the 8 inclusion pairs by 0.5-0.7
-    points (e.g. stiff plane-stress 4 % 10.05 -> 9.34 %, stiff plane-strain 4 % 12.27 -> 11.55 %; the element
-    strain 10.57 and 11.82 %), within +0.07 points on the 9 others (bending 5.76 -> 5.83 %).  The contour of the
-    axial strain at half the inclusion contrast departs from the true contour by 0.047 R (RMS over 72 rays, mean
-    of the 8 pairs) against 0.052 R for the average and 0.063 R for the element strain.  The price: a sharper
-    recovery amplifies local defects, e.g. 15.0 -> 18.5 % on a pair with repaired peak-hopping islands.
+    Measured, projection against average (R_P_sigma defaults; ``benchmarks/recovery.py``):
+
+    * robustness benchmark, 17 pairs (the sequence left out), total strain error: lower on the 8 inclusion pairs by
+      0.5-0.7 points (e.g. stiff plane-stress 4 % 10.05 -> 9.34 %; the element strain 10.57 %), within +0.07 on
+      the 9 others (bending 5.76 -> 5.83 %); the half-contrast contour of the inclusions' axial strain 0.047 R RMS
+      from the true contour against 0.052 R (element strain 0.063 R); on an exact FE inclusion interpolated on a
+      mesh of radius / element 2: 0.081 R against 0.110 R;
+    * the paper's study, single frame 1 -> 7 (2 mm mesh): exact truth 0.0-0.5 points lower on all six data sets,
+      but in the paper's convention (truth interpolated at the nodes, both recovered alike) 0.3-0.5 points higher;
+    * a pair whose peak-hopping islands were repaired (3 MHz, 1 degree): 15.0 -> 18.5 % (the sharper recovery
+      shows the residual defects more).
+
+    So the average stays the default; the projection is there for pictures of sharp-edged inclusions.
     ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
     if method not in RECOVERY_METHODS:

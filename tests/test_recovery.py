@@ -1,5 +1,5 @@
-"""Recovered strain: the projection (default) keeps a round inclusion rounder and its edge sharper than the nodal
-average, exact for affine fields either way; the contour measure itself."""
+"""Recovered strain: the projection keeps a round inclusion rounder and its edge sharper than the nodal average
+(the default), exact for affine fields either way; the contour measure itself; result files and the method."""
 import numpy as np
 import pytest
 from skfem import MeshQuad1
@@ -41,7 +41,7 @@ def test_projection_weight_ends_and_errors():
     u2[2 * corner:2 * corner + 2] += 1e-3
     assert np.abs(projected_strains(m.p, m.t, u2, 0.0)[far] - lumped[far]).max() == 0.0
     assert np.abs(projected_strains(m.p, m.t, u2, 1.0)[far] - full[far]).max() > 1e-6
-    assert DEFAULT_RECOVERY == "projection"
+    assert DEFAULT_RECOVERY == "average"
     with pytest.raises(InputError, match="recovery method"):
         recovered_strains(m.p, m.t, u, "spr")
     with pytest.raises(InputError, match="consistent_weight"):
@@ -85,27 +85,24 @@ def test_projection_keeps_the_inclusion_rounder_than_the_average():
     assert stats["projection"][1] < stats["average"][1] - 0.01, stats
     # the default is what the result reports
     res._nodal_strain, res._grid = None, None
-    np.testing.assert_allclose(res.nodal_strain, recovered_strains(res.mesh.p, res.mesh.t, res.u, "projection"))
+    np.testing.assert_allclose(res.nodal_strain, recovered_strains(res.mesh.p, res.mesh.t, res.u, DEFAULT_RECOVERY))
 
 
-def test_result_files_without_the_recovery_key_still_load(tmp_path):
-    """Files written before the projection (strain "recovered", no "recovery" key: nodal averages on the grid)
-    load and serve their grid as written; new files record the method."""
+def test_result_files_record_the_recovery_and_older_ones_load(tmp_path):
+    """New files say how their grid strains were recovered; files without the key (written before it) load and
+    serve their grid as written."""
     import femreg
     from femreg.io.results import as_result_dict, save_result
 
     res = _inclusion_result(2.0)
     d = as_result_dict(res)
-    assert d["recovery"] == "projection"
-    res._nodal_strain, res._grid = recovered_strains(res.mesh.p, res.mesh.t, res.u, "average"), None
-    old = dict(as_result_dict(res))
+    assert d["recovery"] == DEFAULT_RECOVERY and d["strain"] == "recovered"
+    old = dict(d)
     old.pop("recovery")
     save_result(tmp_path / "old.npz", old)
     back = femreg.load_result(tmp_path / "old.npz")
-    np.testing.assert_array_equal(back.on_grid()["exx"], old["exx"])
-    assert back.nodal_strain.shape == (res.mesh.p.shape[1], 3)
-    res._nodal_strain, res._grid = None, None
+    np.testing.assert_array_equal(back.on_grid()["exx"], d["exx"])
     save_result(tmp_path / "new.npz", res)
     np.testing.assert_allclose(femreg.load_result(tmp_path / "new.npz").nodal_strain, res.nodal_strain)
     with np.load(tmp_path / "new.npz") as z:
-        assert str(z["recovery"]) == "projection"
+        assert str(z["recovery"]) == DEFAULT_RECOVERY
