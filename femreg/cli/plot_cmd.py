@@ -22,7 +22,7 @@ def add_parser(subparsers):
     p.add_argument("--xdmf", metavar="OUT.xdmf", help="also write them as XDMF (+ .h5)")
     p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
     p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
-                   help="field for --render (default exx, element-centre values)")
+                   help="field for --render (default exx, element-centre values; strains in %%, displacement in mm)")
     p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
     p.add_argument("--frame", type=int, default=0, help="frame of --reference to use (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
@@ -95,9 +95,10 @@ def _run(args) -> int:
         p, t = res["mesh_points"], res["mesh_cells"]
         if args.field in ("ux", "uy"):
             u = np.asarray(res["u"], dtype=float)
-            vals = u[0::2] if args.field == "ux" else u[1::2]
+            vals, name = (u[0::2] if args.field == "ux" else u[1::2]), f"{args.field} (mm)"
         else:
-            vals = element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
-        render_mesh(p, t, vals, args.render, name=args.field)
+            vals = 100.0 * element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
+            name = f"{args.field} (%)"
+        render_mesh(p, t, vals, args.render, name=name)
         print(f"wrote {args.render}")
     return 0
