@@ -117,6 +117,29 @@ def _colorbar(ax, mappable, label):
     return ax.figure.colorbar(mappable, cax=cax, label=label or "")
 
 
+def _fit_colorbars(fig, rows, tries=6):
+    """Widen the gaps between panels until no colour bar (an inset of its panel, which the layout engine does not
+    reserve room for) reaches the next panel in its row.  ``rows``: lists of Axes left to right."""
+    engine = fig.get_layout_engine()
+    if engine is None or not hasattr(engine, "set"):
+        return
+    wspace = 0.02
+    for _ in range(tries):
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        need = 0.0
+        for row in rows:
+            for left, right in zip(row[:-1], row[1:]):
+                if not left.child_axes:
+                    continue
+                reach = max(c.get_tightbbox(r).x1 for c in left.child_axes)
+                need = max(need, reach + 6.0 - right.get_tightbbox(r).x0)      # 6 px clearance
+        if need <= 0:
+            return
+        wspace += 1.2 * need / fig.bbox.width * len(rows[0])
+        engine.set(wspace=wspace)
+
+
 def _label(ax, title):
     ax.set_xlabel("lateral y (mm)")
     ax.set_ylabel("axial x (mm)")
@@ -342,6 +365,8 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     for ax, (key, title, label, scale) in zip(axes[1:], _PANELS):
         plot_field(d[key], sp, origin, ax=ax, title=title, label=label, scale=scale,
                    overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range)
+    for ax in (axes[1], axes[2], axes[4], axes[5]):
+        ax.set_ylabel("")                                   # one depth label per row, at the left
     outside = ~np.isfinite(np.asarray(d["ux"], float))
     if outside.any():
         excluded = _attr(result, d, "excluded")
@@ -366,6 +391,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         draw_failure(fig, banner + ("  [" + ", ".join(info) + "]" if info else ""))
     elif info:
         fig.suptitle(", ".join(info))
+    _fit_colorbars(fig, [list(axes[:3]), list(axes[3:])])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
@@ -499,7 +525,6 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
     if figsize is None:
         figsize = (4.4 * n, min(max(3.0 * ext, 2.5), 8.0) + 1.2)
     fig, axes = plt.subplots(1, n, figsize=figsize, constrained_layout=True)
-    fig.get_layout_engine().set(w_pad=0.08, wspace=0.06)     # colour-bar labels clear of the next panel
     plot_mesh_values(p, t, res.mu, ax=axes[0], log=True, cmap="viridis",
                      title="shear modulus $\\mu$", label="$\\mu$ / median (relative, -)")
     if unc is not None:
@@ -523,6 +548,7 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
         fig.suptitle(head)
     else:
         draw_failure(fig, f"INVERSION FAILED: {res.message}  [{head}]")
+    _fit_colorbars(fig, [list(axes)])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig

@@ -234,3 +234,22 @@ def test_inversion_figure_recovered_strain_and_labels_apart(tmp_path):
     fig = plot_inversion(res, dpi=40)
     assert "FAILED" in fig.get_suptitle() and "beta at the edge" in fig.get_suptitle()
     plt.close(fig)
+
+
+@pytest.mark.parametrize("shape, spacing", [((40, 30), (0.05, 0.075)), ((200, 128), (0.2, 0.2))])
+def test_summary_colour_bars_clear_of_the_next_panel(shape, spacing):
+    """The colour bars are insets of their panels (as tall as the image), which the layout does not reserve room
+    for; on a 40 x 26 mm image (a scanner frame) they reached the next panel's labels until the gaps were fitted."""
+    fig = plot_result(_compression_result(shape, spacing=np.array(spacing)), dpi=50)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    panels = [a for a in fig.axes if a.get_title()]
+    rows = [panels[:3], panels[3:]]
+    for row in rows:
+        for left, right in zip(row[:-1], row[1:]):
+            if not left.child_axes:                                    # the mesh panel has no colour bar
+                continue
+            bar = left.child_axes[0].get_tightbbox(r)
+            assert bar.x1 < right.get_tightbbox(r).x0, (left.get_title(), shape)
+            assert abs(left.child_axes[0].get_window_extent(r).height - left.get_window_extent(r).height) < 2
+    plt.close(fig)
