@@ -133,7 +133,7 @@ def _fit_colorbars(fig, rows, tries=6):
                 if not left.child_axes:
                     continue
                 reach = max(c.get_tightbbox(r).x1 for c in left.child_axes)
-                need = max(need, reach + 6.0 - right.get_tightbbox(r).x0)      # 6 px clearance
+                need = max(need, reach + 0.15 * fig.dpi - right.get_tightbbox(r).x0)   # 0.15 in clear
         if need <= 0:
             return
         wspace += 1.2 * need / fig.bbox.width * len(rows[0])
