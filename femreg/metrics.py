@@ -24,8 +24,8 @@ import numpy as np
 from .fields import check_strain_mode, recovered_strains, strain_components
 from .quadrature import GAUSS_3X3
 
-__all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
-           "field_errors_nodal", "field_errors_both"]
+__all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature",
+           "interpolate_truth", "field_errors_nodal", "field_errors_both"]
 
 
 def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
@@ -130,9 +130,24 @@ def cnr_e(exx, inside, weights=None) -> float:
     return 2.0 * (ea - eb) ** 2 / (va + vb)
 
 
-def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3, strain: str = "element") -> dict:
-    """SR and CNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
+def _region(region, pts, shape, name):
+    """Boolean samples of ``region``: a callable (n, 2) mm -> (n,) bool at the quadrature points ``pts``, or a
+    boolean pixel mask of ``shape``."""
+    if callable(region):
+        return np.asarray(region(pts), bool).ravel()
+    m = np.asarray(region, bool)
+    if m.shape != shape:
+        raise ValueError(f"{name} mask shape {m.shape} != image shape {shape}")
+    return m.ravel()
+
+
+def contrast_metrics(result, roi, *, background=None, intorder: int = GAUSS_3X3, strain: str = "element") -> dict:
+    """SR, CNR_e and SNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
     (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid.
+
+    ``background`` (same kinds, optional): the region A the inclusion is compared with, less the ROI; default
+    everything outside the ROI.  SNR_e = |eps_A| / eta_A, the elastographic SNR of the background (T. Varghese,
+    J. Ophir, IEEE Trans. UFFC 44(1):164-172, 1997).  Returns ``{"SR", "CNR_e", "SNR_e"}`` (dimensionless).
 
     ``strain="element"`` (default): region statistics of the solution's own strain, whose mean over any union of
     elements is fixed by the displacement on its boundary (divergence theorem); the recovered strain (the images'
@@ -142,14 +157,19 @@ def contrast_metrics(result, roi, *, intorder: int = GAUSS_3X3, strain: str = "e
     if callable(roi):
         pts, w, basis = mesh_quadrature(result.mesh, intorder)
         exx = _fields_at_quadrature(result.u, result.mesh, basis, strain)[1][:, 0]
-        inside = np.asarray(roi(pts), bool)
+        shape = None
     else:
         exx = result.on_grid(strain)["exx"]
-        inside = np.asarray(roi, bool)
-        if inside.shape != exx.shape:
-            raise ValueError(f"ROI mask shape {inside.shape} != image shape {exx.shape}")
-        w = None
-    return {"SR": strain_ratio(exx, inside, w), "CNR_e": cnr_e(exx, inside, w)}
+        pts, w, shape = None, None, exx.shape
+        if callable(background):
+            raise ValueError("a pixel-mask roi needs a pixel-mask background (or none)")
+    inside = _region(roi, pts, shape, "ROI")
+    exx = np.asarray(exx, float).ravel()
+    if background is not None:
+        exx = np.where(inside | _region(background, pts, shape, "background"), exx, np.nan)
+    ea, eb, va, vb = _split(exx, inside, w)
+    return {"SR": ea / eb, "CNR_e": 2.0 * (ea - eb) ** 2 / (va + vb),
+            "SNR_e": abs(ea) / np.sqrt(va) if va > 0 else float("inf")}
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -3,6 +3,11 @@ figure of a registration result, and an off-screen pyvista render of the FE mesh
 
 Axes: lateral y (mm) horizontal, axial x (mm) vertical and increasing downwards (depth), as on a scanner.
 Every ``plot_*`` function takes ``ax=`` (a new figure when None) and returns the Axes.
+
+Conventions of the figures femreg writes: strain in % and displacement in mm, the unit on every colour bar; a
+sequential colour map (bright = large magnitude) for data of one sign and a diverging one centred at 0 only when
+the sign changes within the robust range (percentiles 1-99, :func:`colour_scale`); a failed registration says so
+in a red banner with its message; the part of the image outside the registered mesh is hatched and labelled.
 """
 from __future__ import annotations
 
@@ -13,7 +18,35 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm"]
+__all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
+           "plot_inversion", "plot_mesh_values", "plot_quality", "DIVERGING_CMAP", "SEQUENTIAL_CMAP"]
+
+#: Colour maps: diverging for signed data (centred at 0), sequential for one-signed data; for negative data the
+#: sequential map is reversed, so that a larger magnitude (e.g. more compression: softer tissue) is brighter.
+DIVERGING_CMAP = "RdBu_r"
+SEQUENTIAL_CMAP = "viridis"
+_DIVERGING = ("RdBu_r", "RdBu", "seismic", "bwr", "coolwarm", "PuOr", "PiYG")
+
+
+def colour_scale(values, percentiles=(1.0, 99.0)):
+    """Colour map and limits for ``values`` (any shape, NaN ignored): ``(cmap, vmin, vmax)``.
+
+    The robust range ``[lo, hi]`` is the given percentiles of the finite values.  When it straddles 0 the map is
+    :data:`DIVERGING_CMAP` with limits symmetric about 0; otherwise :data:`SEQUENTIAL_CMAP` over ``[lo, hi]``
+    (reversed, ``"_r"``, for negative data).  No finite value: the diverging map over [-1, 1].
+    """
+    v = np.asarray(values, float)
+    finite = v[np.isfinite(v)]
+    if not finite.size:
+        return DIVERGING_CMAP, -1.0, 1.0
+    lo, hi = (float(q) for q in np.percentile(finite, percentiles))
+    if lo < 0.0 < hi:
+        m = max(-lo, hi)
+        return DIVERGING_CMAP, -m, m
+    if hi <= lo:                                   # constant data
+        pad = abs(lo) * 0.05 or 1.0
+        lo, hi = lo - pad, hi + pad
+    return (SEQUENTIAL_CMAP + "_r" if hi <= 0.0 else SEQUENTIAL_CMAP), lo, hi
 
 
 def _mpl():
@@ -78,6 +111,35 @@ def _spacing(spacing):
     return check_spacing(spacing)
 
 
+def _colorbar(ax, mappable, label):
+    """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit."""
+    cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
+    return ax.figure.colorbar(mappable, cax=cax, label=label or "")
+
+
+def _fit_colorbars(fig, rows, tries=6):
+    """Widen the gaps between panels until no colour bar (an inset of its panel, which the layout engine does not
+    reserve room for) reaches the next panel in its row.  ``rows``: lists of Axes left to right."""
+    engine = fig.get_layout_engine()
+    if engine is None or not hasattr(engine, "set"):
+        return
+    wspace = 0.02
+    for _ in range(tries):
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        need = 0.0
+        for row in rows:
+            for left, right in zip(row[:-1], row[1:]):
+                if not left.child_axes:
+                    continue
+                reach = max(c.get_tightbbox(r).x1 for c in left.child_axes)
+                need = max(need, reach + 0.15 * fig.dpi - right.get_tightbbox(r).x0)   # 0.15 in clear
+        if need <= 0:
+            return
+        wspace += 1.2 * need / fig.bbox.width * len(rows[0])
+        engine.set(wspace=wspace)
+
+
 def _label(ax, title):
     ax.set_xlabel("lateral y (mm)")
     ax.set_ylabel("axial x (mm)")
@@ -95,20 +157,24 @@ def plot_bmode(rf, spacing, origin=(0.0, 0.0), ax=None, *, dynamic_range=50.0, t
                    aspect=aspect, interpolation="nearest")
     _label(ax, title)
     if colorbar:
-        ax.figure.colorbar(im, ax=ax, label="dB")
+        _colorbar(ax, im, "echo level (dB)")
     return ax
 
 
-def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap="RdBu_r", vmin=None, vmax=None,
-               overlay_bmode=None, alpha=0.7, label=None, dynamic_range=50.0, aspect="equal", symmetric=None):
+def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=None, vmin=None, vmax=None,
+               overlay_bmode=None, alpha=0.7, label=None, dynamic_range=50.0, aspect="equal", symmetric=None,
+               scale=1.0):
     """A pixel-grid field (NaN = outside the mesh, left transparent) with mm axes and a colour bar.
 
     ``overlay_bmode``: RF of the same shape drawn as a grey B-mode beneath the field, which is then drawn with
-    opacity ``alpha``.  Colour limits default to robust percentiles (1, 99) of the finite values, symmetric
-    about 0 for diverging maps (``symmetric=None`` decides from ``cmap``).  Returns the Axes.
+    opacity ``alpha``.  ``scale`` multiplies the field before drawing (100: a strain fraction drawn in %; ``label``
+    names the quantity and its unit for the colour bar).  ``cmap=None``: chosen from the data by
+    :func:`colour_scale` (sequential for one sign, diverging centred at 0 when the sign changes); an explicit
+    ``cmap`` has limits from the robust percentiles (1, 99), symmetric about 0 for diverging maps
+    (``symmetric=None`` decides from ``cmap``).  Returns the Axes.
     """
     sp = _spacing(spacing)
-    f = _image2d(field, "field")
+    f = _image2d(field, "field") * float(scale)
     ax = _ax(ax)
     ext = extent_mm(f.shape, sp, origin)
     if overlay_bmode is not None:
@@ -117,37 +183,138 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap="
             raise InputError(f"overlay_bmode shape {b.shape} differs from the field's {f.shape}")
         ax.imshow(bmode(b, dynamic_range), cmap="gray", vmin=-dynamic_range, vmax=0, extent=ext, aspect=aspect,
                   interpolation="nearest")
-    finite = f[np.isfinite(f)]
-    if symmetric is None:
-        symmetric = cmap in ("RdBu_r", "RdBu", "seismic", "bwr", "coolwarm", "PuOr", "PiYG")
-    if finite.size:
-        lo, hi = np.percentile(finite, [1, 99])
-        if symmetric:
-            m = max(abs(lo), abs(hi)) or 1.0
-            lo, hi = -m, m
-        elif hi <= lo:
-            lo, hi = lo - 1.0, hi + 1.0
+    if cmap is None and symmetric is None:
+        cmap, lo, hi = colour_scale(f)
     else:
-        lo, hi = -1.0, 1.0
+        cmap = cmap or DIVERGING_CMAP
+        finite = f[np.isfinite(f)]
+        if symmetric is None:
+            symmetric = cmap in _DIVERGING
+        if finite.size:
+            lo, hi = np.percentile(finite, [1, 99])
+            if symmetric:
+                m = max(abs(lo), abs(hi)) or 1.0
+                lo, hi = -m, m
+            elif hi <= lo:
+                lo, hi = lo - 1.0, hi + 1.0
+        else:
+            lo, hi = -1.0, 1.0
     vmin = lo if vmin is None else vmin
     vmax = hi if vmax is None else vmax
     masked = np.ma.masked_invalid(f)
     im = ax.imshow(masked, cmap=cmap, vmin=vmin, vmax=vmax, extent=ext, aspect=aspect, interpolation="nearest",
                    alpha=alpha if overlay_bmode is not None else None)
     _label(ax, title)
-    ax.figure.colorbar(im, ax=ax, label=label or "")
+    _colorbar(ax, im, label)
     return ax
 
 
-_PANELS = (("ux", "axial displacement $u_x$", "mm"), ("uy", "lateral displacement $u_y$", "mm"),
-           ("exx", "axial strain $\\varepsilon_{xx}$", ""), ("eyy", "lateral strain $\\varepsilon_{yy}$", ""),
-           ("exy", "shear strain $\\varepsilon_{xy}$", ""))
+#: (key, panel title, colour-bar label with unit, scale to that unit) of the summary figure's field panels.
+_PANELS = (("ux", "axial displacement $u_x$", "axial displacement $u_x$ (mm)", 1.0),
+           ("uy", "lateral displacement $u_y$", "lateral displacement $u_y$ (mm)", 1.0),
+           ("exx", "axial strain $\\varepsilon_{xx}$", "axial strain $\\varepsilon_{xx}$ (%)", 100.0),
+           ("eyy", "lateral strain $\\varepsilon_{yy}$", "lateral strain $\\varepsilon_{yy}$ (%)", 100.0),
+           ("exy", "shear strain $\\varepsilon_{xy}$", "shear strain $\\varepsilon_{xy}$ (%)", 100.0))
+#: Colour of the failure banner and frame.
+FAILED_COLOUR = "#c00000"
+
+
+def _attr(result, d, key):
+    """``result.key`` (an engine object) or ``d[key]`` (a file's dict), None when neither has it."""
+    v = getattr(result, key, None)
+    if v is None:
+        v = d.get(key)
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        v = v.item()
+    return None if (v is None or (isinstance(v, str) and not v.strip())) else v
+
+
+def _status(result, d):
+    """(failed, banner text) of a result: failed when ``success`` is present and false, or it is flagged."""
+    msg = str(_attr(result, d, "message") or "").strip()
+    success = _attr(result, d, "success")
+    flags = _attr(result, d, "flags")
+    flags = [str(f) for f in np.atleast_1d(flags) if str(f).strip()] if flags is not None else []
+    if success is not None and not bool(success):
+        return True, "REGISTRATION FAILED" + (f": {msg}" if msg else "")
+    if flags:
+        return True, "FLAGGED: " + "; ".join(flags[:2])
+    return False, ""
+
+
+def _wrap(text, width=110, max_lines=3):
+    import textwrap
+
+    lines = textwrap.wrap(text, width)
+    return "\n".join(lines[:max_lines]) + (" ..." if len(lines) > max_lines else "")
+
+
+def draw_failure(fig, text):
+    """Red banner (the figure's title) with ``text`` and a red frame around the figure: a failed result must not
+    pass for a good one when the PNG travels without its log."""
+    from matplotlib.patches import Rectangle
+
+    fig.suptitle(_wrap(text), color="white", fontweight="bold", fontsize="medium",
+                 bbox=dict(boxstyle="square,pad=0.4", facecolor=FAILED_COLOUR, edgecolor="none"))
+    fig.patches.append(Rectangle((0.0, 0.0), 1.0, 1.0, transform=fig.transFigure, fill=False,
+                                 edgecolor=FAILED_COLOUR, linewidth=6, zorder=100))
+
+
+def _roi_rectangle(result, d):
+    """(x0, x1, y0, y1) mm of the registered region: ``roi`` of the result when it has one, else the bounding box
+    of the mesh."""
+    roi = _attr(result, d, "roi")
+    if roi is not None:
+        r = np.asarray(roi, float).ravel()
+        if r.size == 4 and np.all(np.isfinite(r)):
+            return tuple(r)
+    p = np.asarray(d["mesh_points"], float)
+    return (p[0].min(), p[0].max(), p[1].min(), p[1].max())
+
+
+def _shade_outside(ax, outside, spacing, origin, roi, label=None):
+    """Hatch the pixels of ``outside`` (bool (n_axial, n_lateral)), outline ``roi`` (x0, x1, y0, y1) mm, and write
+    ``label`` in the widest outside strip when it has room."""
+    from matplotlib.patches import Rectangle
+
+    if not outside.any():
+        return
+    n_ax, n_lat = outside.shape
+    x = origin[0] + spacing[0] * np.arange(n_ax)
+    y = origin[1] + spacing[1] * np.arange(n_lat)
+    with np.errstate(all="ignore"):
+        ax.contourf(y, x, outside.astype(float), levels=[0.5, 1.5], colors=[(0.55, 0.55, 0.55, 0.55)],
+                    hatches=["///"], zorder=3)
+    x0, x1, y0, y1 = roi
+    ax.add_patch(Rectangle((y0, x0), y1 - y0, x1 - x0, fill=False, edgecolor="k", linestyle="--", linewidth=0.8,
+                           zorder=4))
+    if not label:
+        return
+    ext = extent_mm(outside.shape, spacing, origin)          # left, right, bottom (deep), top
+    strips = {"top": (x0 - ext[3], ((ext[0] + ext[1]) / 2, (ext[3] + x0) / 2), 0),
+              "bottom": (ext[2] - x1, ((ext[0] + ext[1]) / 2, (x1 + ext[2]) / 2), 0),
+              "left": (y0 - ext[0], ((ext[0] + y0) / 2, (ext[2] + ext[3]) / 2), 90),
+              "right": (ext[1] - y1, ((y1 + ext[1]) / 2, (ext[2] + ext[3]) / 2), 90)}
+    depth, width = ext[2] - ext[3], ext[1] - ext[0]
+    name, (size, (ty, tx), rot) = max(strips.items(), key=lambda kv: kv[1][0] / (depth if kv[1][2] == 0 else width))
+    if size < 0.08 * (depth if rot == 0 else width):
+        return
+    bb = ax.get_window_extent()                    # pixels; about 6 pixels per character at x-small
+    room = (bb.width if rot == 0 else bb.height) * 72.0 / ax.figure.dpi / 5.0
+    ax.text(ty, tx, _wrap(label, max(int(room), 12), 3), ha="center", va="center", rotation=rot,
+            fontsize="x-small", zorder=5,
+            bbox=dict(boxstyle="round,pad=0.2", facecolor="white", alpha=0.85, edgecolor="none"))
 
 
 def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100, dynamic_range=50.0,
                 figsize=None):
     """Summary figure of a registration result: B-mode (if ``reference`` RF, or a ``reference``/``rf`` key in
-    the result, is available; the mesh otherwise) and ux, uy, exx, eyy, exy on the pixel grid.
+    the result, is available; the mesh otherwise) and ux, uy (mm), exx, eyy, exy (%) on the pixel grid.
+
+    Colour maps by :func:`colour_scale`; a failed (``success`` false) or flagged result gets a red banner with its
+    message; pixels outside the registered mesh are hatched on every panel, the registered rectangle (the result's
+    ``roi`` (x0, x1, y0, y1) mm when it has one, else the mesh's bounding box) dashed, and the B-mode panel names
+    why (the result's ``excluded`` text when it has one).
 
     Parameters
     ----------
@@ -176,8 +343,8 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     n_ax, n_lat = shape
     aspect_ratio = (n_ax * sp[0]) / max(n_lat * sp[1], 1e-12)
     if figsize is None:
-        w = 3.4
-        figsize = (3 * w, 2 * min(max(w * aspect_ratio, 2.5), 6.0) + 0.6)
+        w = 3.6                      # per panel; about 1.4 in of it go to the colour bar and the labels
+        figsize = (3 * w, 2 * min(max((w - 1.4) * aspect_ratio + 1.0, 2.5), 6.5) + 0.5)
     fig, axes = plt.subplots(2, 3, figsize=figsize, constrained_layout=True)
     axes = axes.ravel()
     aspect = "equal" if 0.2 < aspect_ratio < 5 else "auto"  # very tall/flat grids fill the panel
@@ -195,10 +362,22 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         ax.set_ylim(ext[2], ext[3])
         ax.set_aspect(aspect)
         _label(ax, f"mesh ({t.shape[1]} quads)")
-    for ax, (key, title, unit) in zip(axes[1:], _PANELS):
-        cmap = "RdBu_r"
-        plot_field(d[key], sp, origin, ax=ax, title=title, cmap=cmap, label=unit,
+    for ax, (key, title, label, scale) in zip(axes[1:], _PANELS):
+        plot_field(d[key], sp, origin, ax=ax, title=title, label=label, scale=scale,
                    overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range)
+    for ax in (axes[1], axes[2], axes[4], axes[5]):
+        ax.set_ylabel("")                                   # one depth label per row, at the left
+    outside = ~np.isfinite(np.asarray(d["ux"], float))
+    if outside.any():
+        excluded = _attr(result, d, "excluded")
+        roi = _roi_rectangle(result, d)
+        for i, ax in enumerate(axes):
+            _shade_outside(ax, outside, sp, origin, roi,
+                           label=(str(excluded) if excluded else "not registered (outside the mesh)")
+                           if i == 0 else None)
+        fig.supxlabel("hatched: " + (f"excluded -- {excluded}" if excluded else
+                                     "outside the registered mesh (no displacement or strain there)"),
+                      fontsize="small")
     info = []
     if "regularizer" in d:
         info.append(f"regulariser {d['regularizer']}")
@@ -207,8 +386,12 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     for k in ("ncc_before", "ncc_after"):
         if k in d:
             info.append(f"{k} {float(d[k]):.3f}")
-    if info:
+    failed, banner = _status(result, d)
+    if failed:
+        draw_failure(fig, banner + ("  [" + ", ".join(info) + "]" if info else ""))
+    elif info:
         fig.suptitle(", ".join(info))
+    _fit_colorbars(fig, [list(axes[:3]), list(axes[3:])])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
@@ -294,31 +477,80 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
     ax.set_ylim(p[0].max(), p[0].min())
     ax.set_aspect("equal")
     _label(ax, title)
-    ax.figure.colorbar(pc, ax=ax, label=label or "")
+    cb = _colorbar(ax, pc, label)
+    if log:                                         # plain numbers (0.5, 2, 4), not powers of ten
+        from matplotlib.ticker import FuncFormatter
+
+        fmt = FuncFormatter(lambda v, _: f"{v:.2g}")
+        cb.ax.yaxis.set_major_formatter(fmt)
+        cb.ax.yaxis.set_minor_formatter(fmt)
     return ax
 
 
+def _nodal_on_grid(mesh, nodal, step_mm):
+    """Bilinear interpolation of nodal values (n_nodes, k) on a pixel grid of ``step_mm`` over the mesh's bounding
+    box: (k, n_axial, n_lateral) (NaN outside the mesh), spacing and origin."""
+    from .fields import sample
+    from .pixels import PointLocator
+
+    p = np.asarray(mesh.p, float)
+    x = np.arange(p[0].min(), p[0].max() + 1e-9, step_mm)
+    y = np.arange(p[1].min(), p[1].max() + 1e-9, step_mm)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    loc = PointLocator(mesh).locate(np.column_stack([X.ravel(), Y.ravel()]))
+    vals = np.asarray(nodal, float).reshape(p.shape[1], -1)
+    out = np.full((vals.shape[1], X.size), np.nan)
+    for k in range(vals.shape[1]):                 # a scalar field interpolated as the displacement is
+        u = np.zeros(2 * p.shape[1])
+        u[0::2] = vals[:, k]
+        out[k, loc.inside] = sample(u, loc, fields=("ux",))["ux"]
+    return out.reshape((vals.shape[1],) + X.shape), (step_mm, step_mm), (x[0], y[0])
+
+
 def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
-    """The relative shear-modulus image of :func:`femreg.invert` beside the measured axial strain, on the
-    inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` or the path of its ``.npz``.
-    Writes ``out_png`` if given; returns the figure."""
+    """The relative shear-modulus image of :func:`femreg.invert`, its uncertainty when the result has one
+    (``uncertainty``: per-element standard deviation of log mu), and the recovered axial strain (%) of the
+    displacement it was computed from (:func:`femreg.fields.recovered_strains`, as in every femreg strain
+    picture), on the inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` or the path of its
+    ``.npz``.  A result that did not converge gets the red failure banner.  Writes ``out_png`` if given; returns
+    the figure."""
+    from .fields import recovered_strains
     from .inversion import InversionResult, load_inversion
 
     res = result if isinstance(result, InversionResult) else load_inversion(result)
     plt = _mpl()
-    p = res.mesh.p
+    p, t = res.mesh.p, res.mesh.t
     ext = (p[0].max() - p[0].min()) / max(p[1].max() - p[1].min(), 1e-12)
+    unc = getattr(res, "uncertainty", None)
+    unc = None if unc is None or np.size(unc) != t.shape[1] else np.asarray(unc, float)
+    n = 3 if unc is not None else 2
     if figsize is None:
-        figsize = (9.0, min(max(3.6 * ext, 2.5), 8.0) + 0.8)
-    fig, axes = plt.subplots(1, 2, figsize=figsize, constrained_layout=True)
-    plot_mesh_values(p, res.mesh.t, res.mu, ax=axes[0], log=True, cmap="viridis",
-                     title="shear modulus $\\mu$ (relative, median 1)", label="$\\mu / \\mathrm{median}$")
-    exx = res.strain_measured[:, 0]
-    m = float(np.nanpercentile(np.abs(exx), 99)) if np.isfinite(exx).any() else 1.0
-    plot_mesh_values(p, res.mesh.t, exx, ax=axes[1], cmap="RdBu_r", title="measured axial strain "
-                     "$\\varepsilon_{xx}$", vmin=-m or -1.0, vmax=m or 1.0)
-    fig.suptitle(title or f"{res.model}, beta {res.beta:.3g}, {res.regularization.upper()}"
-                 + ("" if res.success else f" -- NOT CONVERGED: {res.message}"))
+        figsize = (4.4 * n, min(max(3.0 * ext, 2.5), 8.0) + 1.2)
+    fig, axes = plt.subplots(1, n, figsize=figsize, constrained_layout=True)
+    plot_mesh_values(p, t, res.mu, ax=axes[0], log=True, cmap="viridis",
+                     title="shear modulus $\\mu$", label="$\\mu$ / median (relative, -)")
+    if unc is not None:
+        plot_mesh_values(p, t, unc, ax=axes[1], cmap="magma", vmin=0.0,
+                         title="uncertainty of $\\log\\mu$", label="std of $\\log\\mu$ (-)")
+    h = float(np.min(np.ptp(p[:, t], axis=1)))                # smallest element extent, mm
+    um = np.asarray(res.u_measured, float)
+    if np.all(np.isfinite(um)) and np.any(um != 0):
+        ns = recovered_strains(p, t, um)
+        grid, sp, org = _nodal_on_grid(res.mesh, ns[:, 0], max(h / 8.0, 1e-3))
+        plot_field(grid[0], sp, org, ax=axes[-1], title="recovered axial strain $\\varepsilon_{xx}$",
+                   label="axial strain $\\varepsilon_{xx}$ (%)", scale=100.0)
+    else:                                                   # no displacement stored: the element-mean strain
+        cmap, lo, hi = colour_scale(100.0 * res.strain_measured[:, 0])
+        plot_mesh_values(p, t, 100.0 * res.strain_measured[:, 0], ax=axes[-1], cmap=cmap, vmin=lo, vmax=hi,
+                         title="element axial strain $\\varepsilon_{xx}$", label="axial strain $\\varepsilon_{xx}$ (%)")
+    for ax in axes[1:]:
+        ax.set_ylabel("")                                   # one depth axis label, at the left
+    head = title or f"{res.model}, beta {res.beta:.3g}, {res.regularization.upper()}"
+    if res.success:
+        fig.suptitle(head)
+    else:
+        draw_failure(fig, f"INVERSION FAILED: {res.message}  [{head}]")
+    _fit_colorbars(fig, [list(axes)])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig

@@ -45,7 +45,7 @@ def test_plot_bmode_and_field_axes_in_mm():
     assert bottom > top  # axial axis increases downwards
     assert right - left == pytest.approx(16 * 0.2) and bottom - top == pytest.approx(200 * 0.02)
     assert "mm" in ax.get_xlabel() and "mm" in ax.get_ylabel()
-    assert len(ax.figure.axes) == 2  # image + colour bar
+    assert len(ax.child_axes) == 1 and ax.child_axes[0].get_ylabel() == "echo level (dB)"  # its colour bar
     field = np.linspace(-1, 1, rf.size).reshape(rf.shape)
     field[:10] = np.nan
     fig, axes = plt.subplots(1, 2)
@@ -109,3 +109,147 @@ def test_plot_quality_marks_poor_elements(tmp_path):
     plt.close(fig)
     with pytest.raises(InputError, match="n_el values"):
         plot_quality(p, t, q[:-1])
+
+
+# ---------------------------------------------------------------------------------------------- conventions
+def test_colour_scale_follows_the_sign_of_the_data():
+    from femreg.plot import DIVERGING_CMAP, SEQUENTIAL_CMAP, colour_scale
+
+    rng = np.random.default_rng(0)
+    comp = -0.01 - 0.004 * rng.random((50, 40))                  # compression everywhere
+    cmap, lo, hi = colour_scale(comp)
+    assert cmap == SEQUENTIAL_CMAP + "_r" and comp.min() <= lo < hi <= comp.max() < 0
+    cmap, lo, hi = colour_scale(-comp)
+    assert cmap == SEQUENTIAL_CMAP and 0 < lo < hi
+    signed = np.linspace(-1.0, 2.0, 300)
+    cmap, lo, hi = colour_scale(signed)
+    assert cmap == DIVERGING_CMAP and lo == -hi and hi == pytest.approx(np.percentile(signed, 99))
+    # a few outliers of the other sign (< 1 %) do not make the map diverging
+    spiky = comp.copy()
+    spiky.flat[:5] = 0.05
+    assert colour_scale(spiky)[0] == SEQUENTIAL_CMAP + "_r"
+    assert colour_scale(np.full((3, 3), np.nan))[0] == DIVERGING_CMAP
+
+
+def _compression_result(shape=(40, 30), **kw):
+    p, t = _quad_mesh()
+    res = _result(p, t, _affine_u(p, np.diag([-0.02, 0.01])), shape=shape)
+    x = np.arange(shape[0])[:, None] * np.ones(shape[1])
+    res.update(ux=-0.02 * x * 0.05, uy=np.linspace(-1, 1, shape[1]) * np.ones((shape[0], 1)) * 0.01,
+               exx=np.full(shape, -0.02) + 1e-4 * x, eyy=np.full(shape, 0.01), exy=np.zeros(shape) + 1e-5 * (x - 20))
+    res.update(kw)
+    return res
+
+
+def test_summary_figure_units_maps_and_no_banner_on_success(tmp_path):
+    from femreg.plot import DIVERGING_CMAP, FAILED_COLOUR, SEQUENTIAL_CMAP
+
+    fig = plot_result(_compression_result(), tmp_path / "ok.png", dpi=40)
+    bars = {a.get_title(): a.child_axes[0] for a in fig.axes if a.child_axes}
+    labels = {k: v.get_ylabel() for k, v in bars.items()}
+    for k, lab in labels.items():
+        if "strain" in k:
+            assert lab.endswith("(%)"), (k, lab)
+        elif "displacement" in k:
+            assert lab.endswith("(mm)"), (k, lab)
+    exx_ax = next(a for a in fig.axes if a.get_title().startswith("axial strain"))
+    im = exx_ax.images[0]
+    assert im.get_cmap().name == SEQUENTIAL_CMAP + "_r"                 # all compression
+    lo, hi = im.get_clim()
+    assert -2.0 <= lo < hi <= -2.0 + 0.01 * 40 + 1e-9                   # in %, not a fraction
+    exy_ax = next(a for a in fig.axes if a.get_title().startswith("shear strain"))
+    assert exy_ax.images[0].get_cmap().name == DIVERGING_CMAP           # changes sign
+    assert "FAILED" not in fig.get_suptitle()
+    assert not any(getattr(p, "get_edgecolor", lambda: None)() is not None and
+                   matplotlib.colors.same_color(p.get_edgecolor(), FAILED_COLOUR) for p in fig.patches)
+    plt.close(fig)
+
+
+def test_failed_result_carries_a_banner_with_its_message(tmp_path):
+    from femreg.plot import FAILED_COLOUR
+
+    res = _compression_result(success=False, message="62 % of the elements do not match")
+    fig = plot_result(res, tmp_path / "f.png", dpi=40)
+    title = fig.get_suptitle()
+    assert title.startswith("REGISTRATION FAILED") and "62 % of the elements" in title.replace("\n", " ")
+    assert any(matplotlib.colors.same_color(p.get_edgecolor(), FAILED_COLOUR) for p in fig.patches)
+    img = plt.imread(tmp_path / "f.png")[..., :3]
+    red = (img[..., 0] > 0.6) & (img[..., 1] < 0.2) & (img[..., 2] < 0.2)
+    assert red[:10].mean() > 0.3                                        # the top rows of the PNG are red
+    plt.close(fig)
+
+
+def test_region_outside_the_mesh_is_hatched_and_labelled(tmp_path):
+    shape = (40, 30)
+    res = _compression_result(shape)
+    for k in ("ux", "uy", "exx", "eyy", "exy"):
+        res[k][25:] = np.nan                                             # no result below 1.25 mm
+    res["excluded"] = "no echo below 1.2 mm"
+    fig = plot_result(res, tmp_path / "x.png", dpi=40)
+    panels = [a for a in fig.axes if a.get_title()]
+    for a in panels:
+        hatched = [c for c in a.collections if any(getattr(c, "hatches", None) or [])]
+        assert hatched, a.get_title()
+    texts = [t.get_text() for t in panels[0].texts]
+    assert any("no echo below 1.2 mm" in t.replace("\n", " ") for t in texts), texts
+    assert "no echo below 1.2 mm" in fig._supxlabel.get_text()
+    plt.close(fig)
+    fig = plot_result(_compression_result(shape), dpi=40)               # everything registered: nothing hatched
+    assert not any(any(getattr(c, "hatches", None) or []) for a in fig.axes for c in a.collections)
+    plt.close(fig)
+
+
+def test_inversion_figure_recovered_strain_and_labels_apart(tmp_path):
+    from skfem import MeshQuad1
+
+    from femreg.fields import recovered_strains
+    from femreg.inversion import InversionResult
+    from femreg.plot import plot_inversion
+
+    m = MeshQuad1.init_tensor(np.linspace(0, 20, 11), np.linspace(-8, 8, 9))
+    u = np.zeros(2 * m.p.shape[1])
+    u[0::2] = -0.01 * m.p[0] - 2e-4 * m.p[0] ** 2 / 2                  # exx = -1 % - 0.02 % per mm of depth
+    res = InversionResult(mesh=m, mu=np.exp(0.3 * np.sin(m.p[:, m.t].mean(axis=1)[0])), model="plane-stress",
+                          lambda_bar=2.0, beta=0.01, u_measured=u, success=True, message="ok")
+    res.uncertainty = np.full(m.t.shape[1], 0.1)
+    fig = plot_inversion(res, tmp_path / "mu.png", dpi=60)
+    axes = [a for a in fig.axes if a.get_title()]
+    assert len(axes) == 3 and "uncertainty" in axes[1].get_title()
+    strain_ax = axes[2]
+    assert strain_ax.child_axes[0].get_ylabel().endswith("(%)")
+    img = strain_ax.images[0].get_array()
+    # the recovered (continuous) strain, not element-wise: values along depth match its nodal interpolation
+    ns = recovered_strains(m.p, m.t, u)
+    col = np.asarray(img[:, img.shape[1] // 2], float)
+    assert col.min() == pytest.approx(100 * ns[:, 0].min(), rel=1e-6)
+    assert len(np.unique(np.round(col, 9))) > 5 * 10                   # more levels than the 10 element rows
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    for left, right in zip(axes[:-1], axes[1:]):
+        bar_label = left.child_axes[0].yaxis.label.get_window_extent(r)
+        right_box = right.get_tightbbox(r)
+        assert bar_label.x1 < right_box.x0, (left.get_title(), bar_label, right_box)
+    plt.close(fig)
+    res.success, res.message = False, "beta at the edge of its grid"
+    fig = plot_inversion(res, dpi=40)
+    assert "FAILED" in fig.get_suptitle() and "beta at the edge" in fig.get_suptitle()
+    plt.close(fig)
+
+
+@pytest.mark.parametrize("shape, spacing", [((40, 30), (0.05, 0.075)), ((200, 128), (0.2, 0.2))])
+def test_summary_colour_bars_clear_of_the_next_panel(shape, spacing):
+    """The colour bars are insets of their panels (as tall as the image), which the layout does not reserve room
+    for; on a 40 x 26 mm image (a scanner frame) they reached the next panel's labels until the gaps were fitted."""
+    fig = plot_result(_compression_result(shape, spacing=np.array(spacing)), dpi=50)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    panels = [a for a in fig.axes if a.get_title()]
+    rows = [panels[:3], panels[3:]]
+    for row in rows:
+        for left, right in zip(row[:-1], row[1:]):
+            if not left.child_axes:                                    # the mesh panel has no colour bar
+                continue
+            bar = left.child_axes[0].get_tightbbox(r)
+            assert bar.x1 < right.get_tightbbox(r).x0, (left.get_title(), shape)
+            assert abs(left.child_axes[0].get_window_extent(r).height - left.get_window_extent(r).height) < 2
+    plt.close(fig)

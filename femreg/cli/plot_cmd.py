@@ -11,7 +11,8 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "plot", help="figures (PNG) and ParaView files (VTU/XDMF) of a registration result",
         description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
-                    "ux, uy, exx, eyy, exy with colour bars and mm axes, and the per-element quality map "
+                    "ux, uy (mm), exx, eyy, exy (%) with colour bars and mm axes (a red banner when the result "
+                    "failed; the image outside the mesh hatched), and the per-element quality map "
                     "(OUT_quality.png) when the result holds one.  Optionally export the mesh with nodal "
                     "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 0 when drawn; "
                     "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
@@ -22,7 +23,7 @@ def add_parser(subparsers):
     p.add_argument("--xdmf", metavar="OUT.xdmf", help="also write them as XDMF (+ .h5)")
     p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
     p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
-                   help="field for --render (default exx, element-centre values)")
+                   help="field for --render (default exx, element-centre values; strains in %%, displacement in mm)")
     p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
     p.add_argument("--frame", type=int, default=0, help="frame of --reference to use (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
@@ -76,6 +77,11 @@ def _run(args) -> int:
     fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi)
     plt.close(fig)
     print(f"wrote {out}")
+    if "success" in res and not bool(res["success"]):
+        import sys
+
+        print(f"femreg plot: note: {args.result} is a failed registration ({res.get('message', '')}); the figure "
+              "says so in its title", file=sys.stderr)
     if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:
         from ..plot import plot_quality
 
@@ -90,10 +96,11 @@ def _run(args) -> int:
         p, t = res["mesh_points"], res["mesh_cells"]
         if args.field in ("ux", "uy"):
             u = np.asarray(res["u"], dtype=float)
-            vals = u[0::2] if args.field == "ux" else u[1::2]
+            vals, name = (u[0::2] if args.field == "ux" else u[1::2]), f"{args.field} (mm)"
         else:
-            vals = element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
-        render_mesh(p, t, vals, args.render, name=args.field)
+            vals = 100.0 * element_strains(p, t, res["u"])[:, ("exx", "eyy", "exy").index(args.field)]
+            name = f"{args.field} (%)"
+        render_mesh(p, t, vals, args.render, name=name)
         print(f"wrote {args.render}")
     return failed_notice(args.result, res.get("success", True), res.get("message", ""), res.get("flag", ""))
 

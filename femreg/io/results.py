@@ -25,6 +25,9 @@ strain             str                             how the grid strains were eva
 excluded           str                             what of the frames was not registered and why
                                                    (optional; absent: the whole frames)
 roi                (4,) mm                         the rectangle registered, x0 x1 y0 y1 (optional)
+recovery           str                             recovered strains: the method of
+                                                   :func:`femreg.fields.recovered_strains` (optional;
+                                                   absent: files of earlier versions, nodal averages)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
@@ -48,7 +51,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -91,7 +94,8 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
     """meshio-ready (points (n, 3), cells, point_data, cell_data) for a registration result.
 
     Point data ``displacement`` (n_nodes, 3) with z = 0; strains ``exx``, ``eyy``, ``exy`` as element-centre cell
-    data (``strains='cell'``), nodal averages as point data (``'point'``), or both (default).
+    data (``strains='cell'``), the recovered nodal strains (:func:`femreg.fields.recovered_strains`, what the
+    pictures show) as point data (``'point'``), or both (default).
     """
     p, t, uu = check_mesh(mesh_points, mesh_cells, u)
     if strains not in ("cell", "point", "both", "none", None):
@@ -108,7 +112,9 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
         if strains in ("cell", "both"):
             cdata.update({name: [e[:, k]] for k, name in enumerate(("exx", "eyy", "exy"))})
         if strains in ("point", "both"):
-            en = nodal_average(t, e, n)
+            from ..fields import recovered_strains
+
+            en = recovered_strains(p, t, uu)
             pdata.update({name: en[:, k] for k, name in enumerate(("exx", "eyy", "exy"))})
     for k, v in (point_data or {}).items():
         v = np.asarray(v, dtype=float)
@@ -167,6 +173,9 @@ def _from_object(res) -> dict:
     if callable(getattr(res, "on_grid", None)):
         out.update(res.on_grid())                   # pixel-grid fields (the object's ux/uy are nodal)
         out["strain"] = "recovered"                 # what on_grid() gives by default
+        from ..fields import DEFAULT_RECOVERY
+
+        out["recovery"] = DEFAULT_RECOVERY
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
