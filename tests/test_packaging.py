@@ -29,6 +29,8 @@ OPTIONAL = ("numba", "llvmlite", "gmsh", "pyvista", "vtk", "pypardiso", "mkl", "
 def _run(cmd, **kw):
     env = dict(os.environ, PIP_DISABLE_PIP_VERSION_CHECK="1", PIP_NO_INPUT="1", MPLBACKEND="Agg")
     env.pop("PYTHONPATH", None)  # the venv must not see this checkout
+    if "cwd" in kw:   # an empty data cache: cached sequences would let `simulate` succeed without gmsh
+        env["FEMREG_CACHE"] = str(Path(kw["cwd"]) / "cache")
     return subprocess.run([str(c) for c in cmd], capture_output=True, text=True, env=env, **kw)
 
 
