@@ -12,6 +12,13 @@ subtraction: RF data is zero-mean already and a shift would not be "zero outside
 reference has unit RMS, psi is measured in mm^2 (unit-RMS intensity squared times area) and an alpha means the
 same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale so that callers can undo it.
 
+A gain change between the frames (the user turned the gain, or one frame is stored as integer counts) would
+leave the moving image ``g`` times brighter than the reference: psi is then dominated by ``(g - 1)**2 I**2``,
+which no motion explains.  When the RMS of the moving image differs from the reference's by more than
+:data:`GAIN_TOLERANCE` either way, the moving image is divided by its own RMS instead (per-frame
+normalisation); within the tolerance both are divided by the reference's, so matched frames give exactly the
+results they always did.
+
 Interpolation
 -------------
 ``I(x)`` between pixel centres is the cubic B-spline interpolant (Unser 1999, doi:10.1109/79.799930; scipy.ndimage
@@ -36,6 +43,13 @@ from .errors import InputError
 from . import _kernels
 
 __all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
+
+#: Largest RMS ratio of the moving to the reference image (either way) treated as matched gain.  Within it the
+#: frames of a freehand loop differ by the tissue moving in and out of the view (in vivo frames 1 -> 6: ratios
+#: 0.98-1.03); beyond it the moving image is normalised by its own RMS.
+GAIN_TOLERANCE = 1.1
+#: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
+SATURATED_FRACTION = 0.5
 
 #: Pole of the cubic B-spline prefilter, sqrt(3) - 2 (the constant of scipy's ni_splines.c).
 _CUBIC_POLE = -0.267949192431122706472553658494127633
@@ -96,7 +110,13 @@ def validate_image(image, name: str = "image") -> np.ndarray:
         i, j = np.argwhere(bad)[0]
         raise InputError(f"{name} has {int(bad.sum())} NaN/Inf pixels (first at [{i}, {j}])")
     if np.ptp(a) == 0:
-        raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register")
+        raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register"
+                         + (" (all zero: an empty or blanked frame)" if a.flat[0] == 0 else ""))
+    top = np.abs(a).max()
+    clipped = np.count_nonzero(np.abs(a) == top) / a.size
+    if clipped > SATURATED_FRACTION:
+        raise InputError(f"{name} is saturated: {clipped:.0%} of its samples sit at the clip level {top:g} "
+                         f"(lower the gain or store unclipped RF)")
     return a
 
 
@@ -106,10 +126,17 @@ def pixel_axes(shape, spacing, origin):
 
 
 def normalize_pair(reference, moving):
-    """Divide both images by the RMS of the reference (see module docstring).  Returns ``(ref, mov, scale)``."""
+    """Divide both images by the RMS of the reference, or, when their RMS ratio exceeds :data:`GAIN_TOLERANCE`
+    (a gain change), each by its own (see module docstring).  Returns ``(ref, mov, scale)``, ``scale`` the
+    reference's RMS."""
     scale = float(np.sqrt(np.mean(np.square(reference))))
     if not scale > 0:
         raise InputError("reference image has zero RMS: nothing to register")
+    s_mov = float(np.sqrt(np.mean(np.square(moving))))
+    if not s_mov > 0:
+        raise InputError("moving image has zero RMS: nothing to register")
+    if not 1.0 / GAIN_TOLERANCE <= s_mov / scale <= GAIN_TOLERANCE:
+        return reference / scale, moving / s_mov, scale
     return reference / scale, moving / scale, scale
 
 
