@@ -21,10 +21,10 @@ Stages (plain data between them):
 4. **Normalise** each strain image by its mean (normalised strain, sign-free: compression and release alike) and
    **combine** by quality-weighted persistence (Lindop et al. 2008, "An intelligent interface for freehand strain
    imaging", Ultrasound Med Biol 34:1117): ``D_k = (w_k s_k + rho W'_{k-1} D'_{k-1}) / (w_k + rho W'_{k-1})``,
-   ``W_k = w_k + rho W'_{k-1}``, where ``'`` moves the previous image to the new reference frame by the screened
-   motion, ``w_k = q_k^2 min(1, |e_k| / e_c)`` per pixel (``q_k`` the element NCC after registration, ``e_c``
-   the band centre: strain noise falls as the strain grows).  The best elastogram is the cine frame of largest
-   mean weight.
+   ``W_k = w_k + rho W'_{k-1}``, where ``'`` moves the previous image to the new reference frame (by the previous
+   pair's registered field, then the screened motion), ``w_k = (e_k / e_c)^2 q_k^2 / (1 - q_k^2)`` per pixel
+   (``q_k`` the element NCC after registration, ``e_c`` the band centre: the inverse strain-noise variance of
+   :func:`_weight`).  The best elastogram is the cine frame of largest mean weight.
 
 Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengths mm, images (axial, lateral).
 """
@@ -219,6 +219,14 @@ def _move(images, coef, spacing, origin, field=None):
             vy = ndimage.map_coordinates(uy, [fi, fj], order=1, mode="nearest")
             fi, fj = ii - vx / spacing[0], jj - vy / spacing[1]
     return [ndimage.map_coordinates(im, [fi, fj], order=1, mode="constant", cval=0.0) for im in images]
+
+
+def _weight(rho, strain_ratio):
+    """Inverse strain-noise variance (up to a constant): the Cramer-Rao bound of time-delay estimation (Walker and
+    Trahey 1995, IEEE UFFC 42:301) gives a delay variance proportional to ``1 / rho**2 - 1`` (``rho`` the
+    correlation after registration), and the strain noise scales with the delay noise over the strain."""
+    r = np.clip(np.asarray(rho, float), 0.0, 0.999)
+    return strain_ratio ** 2 * r ** 2 / (1.0 - r ** 2)
 
 
 def _pixel_quality(res):
@@ -488,7 +496,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         exx = rec["exx"]
         ok = np.isfinite(exx)
         s = np.where(ok, exx / np.mean(exx[ok]), 0.0)
-        w = np.where(ok, rec["quality"] ** 2 * (rec["mean_strain"] / centre) ** 2, 0.0)
+        w = np.where(ok, _weight(rec["quality"], rec["mean_strain"] / centre), 0.0)
         if D is not None and persistence > 0:
             # previous reference -> its moving frame by the registered field, then on by the screened motion
             i0, j0 = prev_pair
