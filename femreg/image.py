@@ -7,17 +7,20 @@ Normalisation (why alpha is scale-free)
 ---------------------------------------
 The image term psi of eq:IR is quadratic in the intensities, so multiplying both RF frames by a gain ``c``
 multiplies psi by ``c**2`` and would change the meaning of every regularisation weight alpha.  femreg therefore
-divides *both* images of a pair by the root-mean-square of the reference, ``s = sqrt(mean(I_1**2))`` (no mean
+divides each image of a pair by its root-mean-square, e.g. ``s = sqrt(mean(I_1**2))`` for the reference (no mean
 subtraction: RF data is zero-mean already and a shift would not be "zero outside the image").  After that the
 reference has unit RMS, psi is measured in mm^2 (unit-RMS intensity squared times area) and an alpha means the
 same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale so that callers can undo it.
 
 A gain change between the frames (the user turned the gain, or one frame is stored as integer counts) would
-leave the moving image ``g`` times brighter than the reference: psi is then dominated by ``(g - 1)**2 I**2``,
-which no motion explains.  When the RMS of the moving image differs from the reference's by more than
-:data:`GAIN_TOLERANCE` either way, the moving image is divided by its own RMS instead (per-frame
-normalisation); within the tolerance both are divided by the reference's, so matched frames give exactly the
-results they always did.
+leave the moving image ``g`` times brighter than the reference: psi then holds ``(g - 1)**2 I**2``, which no motion
+explains, and the data term's weight against alpha changes by ``g``.  So the moving image is divided by its *own*
+RMS (per-frame normalisation).  Measured (R_P_sigma, total strain error, a 1 % compression pair with a stiff
+inclusion, paper probe): with the reference's RMS for both, gains 0.9 / 0.95 / 1.1 gave 10.2 / 8.8 / 7.7 % against
+7.6 % at matched gain; per frame, 7.586 % for every gain from 0.3 to 3 and for int16 counts.  On frames of matched
+gain it moves results by round-off-sized amounts: robustness cases within 0.016 points (comp 1-8 %, inclusions,
+10-frame sequence), in vivo frames 1 -> 6 NCC after 0.8124 -> 0.8108 (seq299, RMS ratio 1.11) and 0.8970 ->
+0.8968 (seq304).
 
 Interpolation
 -------------
@@ -44,10 +47,6 @@ from . import _kernels
 
 __all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
 
-#: Largest RMS ratio of the moving to the reference image (either way) treated as matched gain.  Within it the
-#: frames of a freehand loop differ by the tissue moving in and out of the view (in vivo frames 1 -> 6: ratios
-#: 0.98-1.03); beyond it the moving image is normalised by its own RMS.
-GAIN_TOLERANCE = 1.1
 #: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
 SATURATED_FRACTION = 0.5
 
@@ -126,8 +125,7 @@ def pixel_axes(shape, spacing, origin):
 
 
 def normalize_pair(reference, moving):
-    """Divide both images by the RMS of the reference, or, when their RMS ratio exceeds :data:`GAIN_TOLERANCE`
-    (a gain change), each by its own (see module docstring).  Returns ``(ref, mov, scale)``, ``scale`` the
+    """Divide each image by its own RMS (see module docstring).  Returns ``(ref, mov, scale)``, ``scale`` the
     reference's RMS."""
     scale = float(np.sqrt(np.mean(np.square(reference))))
     if not scale > 0:
@@ -135,9 +133,7 @@ def normalize_pair(reference, moving):
     s_mov = float(np.sqrt(np.mean(np.square(moving))))
     if not s_mov > 0:
         raise InputError("moving image has zero RMS: nothing to register")
-    if not 1.0 / GAIN_TOLERANCE <= s_mov / scale <= GAIN_TOLERANCE:
-        return reference / scale, moving / s_mov, scale
-    return reference / scale, moving / scale, scale
+    return reference / scale, moving / s_mov, scale
 
 
 class SplineImage:
