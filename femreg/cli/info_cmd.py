@@ -48,7 +48,7 @@ def describe(fr) -> dict:
 
 
 def run(args) -> int:
-    info = describe(frames_from_args(args))
+    info = describe(frames_from_args(args, allow_sector=True))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
