@@ -67,8 +67,9 @@ class ElastogramResult:
     quality : (n_axial, n_lateral) float
         Its persistence weight ``W`` (0 where not covered).
     ref_frame : int; spacing, origin : (2,) mm
-    cine : (n_cine, n_axial, n_lateral) float32
-        Persistent normalised strain after each usable pair; ``cine_frames`` their reference frames.
+    cine : (n_cine, n_rows, n_lateral) float32
+        Persistent normalised strain after each usable pair on every ``q``-th pixel row (``cine_spacing`` (2,) mm;
+        ``q`` about a third of the axial speckle cell); ``cine_frames`` their reference frames.
     pairs : list of dict
         One row per candidate pair (keys :data:`PAIR_COLUMNS` plus ``registered``, ``usable``, ``message``).
     screen : dict
@@ -85,6 +86,7 @@ class ElastogramResult:
     cine_frames: list
     pairs: list
     screen: dict
+    cine_spacing: np.ndarray = None
     timings: dict = dc_field(default_factory=dict)
 
     @property
@@ -214,7 +216,7 @@ def _move(images, coef, spacing, origin, field=None):
     ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     fi, fj = ii - ux / spacing[0], jj - uy / spacing[1]
     if field is not None:
-        for _ in range(3):
+        for _ in range(1):         # u changes by |grad u| |u| ~ 1e-2 x 0.2 mm over one step: one is enough
             vx = ndimage.map_coordinates(ux, [fi, fj], order=1, mode="nearest")
             vy = ndimage.map_coordinates(uy, [fi, fj], order=1, mode="nearest")
             fi, fj = ii - vx / spacing[0], jj - vy / spacing[1]
@@ -229,17 +231,27 @@ def _weight(rho, strain_ratio):
     return strain_ratio ** 2 * r ** 2 / (1.0 - r ** 2)
 
 
-def _pixel_quality(res):
-    """Element NCC after registration (clipped to [0, 1]) averaged to the nodes and interpolated to the pixels."""
+def _pixel_quality(res, step):
+    """Element NCC after registration (clipped to [0, 1]) averaged to the nodes and interpolated bilinearly to the
+    pixels of every ``step``-th row (NaN outside the mesh)."""
+    from scipy.interpolate import RegularGridInterpolator
+
     q = np.clip(np.nan_to_num(np.asarray(res.quality, float), nan=0.0), 0.0, 1.0)
-    t = res.mesh.t
-    n_nodes = res.mesh.p.shape[1]
-    acc = np.bincount(t.ravel(), weights=np.tile(q, t.shape[0]), minlength=n_nodes)   # t: (4, n_elements)
-    cnt = np.bincount(t.ravel(), minlength=n_nodes)
-    qn = acc / np.maximum(cnt, 1)
-    vec = np.zeros(2 * n_nodes)
+    t, p = res.mesh.t, res.mesh.p
+    acc = np.bincount(t.ravel(), weights=np.tile(q, t.shape[0]), minlength=p.shape[1])   # t: (4, n_elements)
+    qn = acc / np.maximum(np.bincount(t.ravel(), minlength=p.shape[1]), 1)
+    x = res.origin[0] + res.spacing[0] * np.arange(0, res.shape[0], step)
+    y = res.origin[1] + res.spacing[1] * np.arange(res.shape[1])
+    xs, ys = np.unique(p[0]), np.unique(p[1])
+    if xs.size * ys.size == p.shape[1]:             # tensor-product mesh (the default ROI mesh)
+        V = np.full((xs.size, ys.size), np.nan)
+        V[np.searchsorted(xs, p[0]), np.searchsorted(ys, p[1])] = qn
+        X, Y = np.meshgrid(x, y, indexing="ij")
+        f = RegularGridInterpolator((xs, ys), V, bounds_error=False, fill_value=np.nan)
+        return f(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape)
+    vec = np.zeros(2 * p.shape[1])
     vec[0::2] = qn
-    return res._interpolate_grid(vec, res._grid_location())["ux"]
+    return res._interpolate_grid(vec, res._grid_location())["ux"][::step]
 
 
 # -- the entry point -----------------------------------------------------------------------------------------
@@ -367,6 +379,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     # -- 1. screening ------------------------------------------------------------------------------------------
     t = time.perf_counter()
     scr = _Screener(frame(0), spacing, origin, regularizer if isinstance(regularizer, str) else "momentum-stress")
+    # the strain images are combined on every qa-th row (about 3 per speckle cell: elements span several cells)
+    qa = scr.q
+    cshape = (len(range(0, shape[0], qa)), shape[1])
+    cspacing = np.array([qa * spacing[0], spacing[1]])
     sfile = None if out is None else out / "screen.npz"
     if resume and sfile is not None and sfile.exists():
         with np.load(sfile, allow_pickle=False) as z:
@@ -431,15 +447,15 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             if resume and path is not None and path.exists():
                 with np.load(path, allow_pickle=False) as z:
                     rec = {k: z[k] for k in z.files}
-                rec = dict(exx=np.asarray(rec["exx"], float), quality=np.asarray(rec["quality"], float),
+                rec = dict(exx=np.asarray(rec["exx"], float)[::qa], quality=np.asarray(rec["quality"], float),
                            ux=np.asarray(rec["ux"], float), uy=np.asarray(rec["uy"], float),
                            mean_strain=float(rec["mean_strain"]), success=bool(rec["success"]),
                            ncc_after=float(rec["ncc_after"]), message=str(rec["message"]), u=rec["u"])
             else:
                 coef = direct[(i, j)]
                 res = None
-                if prev is not None and np.sign(prev[1]) == np.sign(r["strain"]) and prev[1] != 0:
-                    s = r["strain"] / prev[1]
+                s = r["strain"] / prev[1] if prev is not None and prev[1] != 0 else 0.0
+                if 0.2 <= abs(s) <= 5.0:        # release mirrors compression: a negative scale is a start too
                     A_now = np.column_stack([coef[0, c] + nodes @ coef[1:, c] for c in range(2)])
                     A_prev = np.column_stack([prev[2][0, c] + nodes @ prev[2][1:, c] for c in range(2)])
                     u0 = s * prev[0] + (A_now - s * A_prev).ravel()
@@ -452,12 +468,13 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                                    alpha=alpha, mesh=mesh, **register_kwargs)
                 g = res.on_grid()
                 exx = g["exx"]
-                rec = dict(exx=exx, quality=_pixel_quality(res), mean_strain=float(np.nanmean(exx)), ux=g["ux"], uy=g["uy"],
+                rec = dict(exx=exx[::qa], quality=_pixel_quality(res, qa), mean_strain=float(np.nanmean(exx)),
+                           ux=g["ux"][::qa], uy=g["uy"][::qa],
                            success=bool(res.success), ncc_after=float(res.ncc_after), message=res.message,
                            u=res.u)
                 if path is not None:
                     atomic_savez(path, exx=exx.astype(np.float32), quality=rec["quality"].astype(np.float32),
-                                 ux=g["ux"].astype(np.float32), uy=g["uy"].astype(np.float32),
+                                 ux=rec["ux"].astype(np.float32), uy=rec["uy"].astype(np.float32), row_step=qa,
                                  mean_strain=rec["mean_strain"], success=rec["success"], ncc_after=rec["ncc_after"],
                                  message=np.str_(rec["message"]), u=res.u, ref=i, mov=j)
             r["registered"] = True
@@ -488,7 +505,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     cine, cine_frames = [], []
     D = W = None
     prev_pair = None
-    best_mean, best, qual, ref_frame = -1.0, np.full(shape, np.nan), np.zeros(shape), 0
+    best_mean, best, qual, ref_frame = -1.0, np.full(cshape, np.nan), np.zeros(cshape), 0
     for r in rows:
         if not r["usable"]:
             continue
@@ -501,7 +518,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             # previous reference -> its moving frame by the registered field, then on by the screened motion
             i0, j0 = prev_pair
             p_rec = per_pair[prev_pair]
-            WD, Wm = _move([W * D, W], cum[r["ref"]] - cum[j0], spacing, origin, field=(p_rec["ux"], p_rec["uy"]))
+            WD, Wm = _move([W * D, W], cum[r["ref"]] - cum[j0], cspacing, origin, field=(p_rec["ux"], p_rec["uy"]))
             W = w + persistence * Wm
             D = np.where(W > 0, (w * s + persistence * WD) / np.where(W > 0, W, 1.0), 0.0)
         else:
@@ -510,11 +527,15 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         cine.append(np.where(W > 0, D, np.nan).astype(np.float32))
         cine_frames.append(int(r["ref"]))
         if W.mean() > best_mean:
-            best_mean, best, qual, ref_frame = float(W.mean()), np.where(W > 0, D, np.nan), W.copy(), int(r["ref"])
+            best_mean, best, qual, ref_frame = float(W.mean()), D.copy(), W.copy(), int(r["ref"])
+    # back to every pixel row: weighted linear interpolation between the combined rows
+    ii, jj = np.meshgrid(np.arange(shape[0]) / qa, np.arange(shape[1]), indexing="ij")
+    WD, qual = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (qual * best, qual))
+    best = np.where(qual > 0, WD / np.where(qual > 0, qual, 1.0), np.nan)
     timings["combine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,
-                            cine=np.array(cine, dtype=np.float32).reshape((-1,) + tuple(shape)),
+                            cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
                             cine_frames=cine_frames, pairs=rows,
                             screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings)
 

@@ -70,7 +70,7 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
     pics = []
     for k, f in enumerate(res.cine_frames):
         b = _display(bmode(np.asarray(frames[f], float)), spacing)
-        s = _display(res.cine[k].astype(float), spacing)
+        s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
         pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "jet", 0.0, 2.0)], axis=1)
         h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
