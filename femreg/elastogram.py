@@ -51,6 +51,9 @@ __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "DEFAULT_BAND", "PA
 DEFAULT_BAND = (0.005, 0.02)
 #: Columns of ``pairs.csv``.
 PAIR_COLUMNS = ("ref", "mov", "axial_strain_percent", "ncc", "quality", "selected")
+#: Largest correlation the persistence weight believes: static near-field echoes (in vivo: NCC ~1 in the first
+#: 2-3 mm) would otherwise outweigh the tissue 20-fold.
+RHO_MAX = 0.98
 #: Default persistence factor rho (weight of the previous cine frame).
 DEFAULT_PERSISTENCE = 0.7
 
@@ -226,8 +229,9 @@ def _move(images, coef, spacing, origin, field=None):
 def _weight(rho, strain_ratio):
     """Inverse strain-noise variance (up to a constant): the Cramer-Rao bound of time-delay estimation (Walker and
     Trahey 1995, IEEE UFFC 42:301) gives a delay variance proportional to ``1 / rho**2 - 1`` (``rho`` the
-    correlation after registration), and the strain noise scales with the delay noise over the strain."""
-    r = np.clip(np.asarray(rho, float), 0.0, 0.999)
+    correlation after registration, at most :data:`RHO_MAX`), and the strain noise scales with the delay noise over
+    the strain."""
+    r = np.clip(np.asarray(rho, float), 0.0, RHO_MAX)
     return strain_ratio ** 2 * r ** 2 / (1.0 - r ** 2)
 
 

@@ -109,7 +109,7 @@ def write_picture(path, res, frame, spacing, origin) -> None:
     from ..plot import extent_mm, plot_bmode
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
-    plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame {res.ref_frame}")
+    plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
     ext = extent_mm(res.exx.shape, spacing, origin)
     im = axs[1].imshow(res.exx, extent=ext, cmap="jet", vmin=0.0, vmax=2.0, aspect="equal")
     axs[1].set_title(f"normalised axial strain ({res.n_usable} pairs)")
