@@ -84,6 +84,19 @@ def test_elastogram_at_least_as_accurate_as_the_best_single_pair(loop, run):
     assert abs(np.nanmean(res.exx) - 1.0) < 0.05          # normalised: mean 1, compression and release alike
 
 
+def test_freehand_schedule_pauses_and_gain_steps(loop):
+    t = loop.time
+    held = (t >= 0.5) & (t < 0.7)
+    assert held.sum() >= 5 and np.ptp(loop.compression[held]) == 0          # the hand holds still
+    assert loop.compression.max() <= 0.02 + 1e-12 and loop.compression.min() >= 0
+    assert np.all(loop.gain[:25] == 1.0) and np.all(loop.gain[25:] == 2.5)
+    rms = np.sqrt(np.mean(loop.frames ** 2, axis=(1, 2)))
+    assert 2.0 < rms[26] / rms[24] < 3.0
+    # out-of-plane drift decorrelates: frame 0 against frame 39 (1.3 mm apart in elevation) less alike than 0 vs 1
+    c = [np.corrcoef(loop.frames[0].ravel(), loop.frames[k].ravel())[0, 1] for k in (1, 39)]
+    assert c[1] < c[0]
+
+
 def test_screening_chooses_non_overlapping_pairs_in_band():
     # consecutive strains of a steady 0.3 %/frame compression: pairs of 3 frames (0.9 %), none overlapping
     e = np.full(12, -0.003)
