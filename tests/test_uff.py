@@ -24,7 +24,8 @@ def _put(group, name, value):
     return d
 
 
-def write_uff(path, frames_zx, *, x_axis=None, z_axis=None, sector=None, f_mod=None, name="b_data"):
+def write_uff(path, frames_zx, *, x_axis=None, z_axis=None, sector=None, f_mod=None, name="b_data",
+              pixel_first=False):
     """frames (n, n_z, n_x) -> USTB beamformed data [pixel x 1 x 1 x frame] (h5py: (frame, 1, 1, pixel)),
     pixels depth-fastest."""
     n, nz, nx = frames_zx.shape
@@ -41,7 +42,8 @@ def write_uff(path, frames_zx, *, x_axis=None, z_axis=None, sector=None, f_mod=N
             _put(s, "depth_axis", np.asarray(sector[0])[None, :])
             _put(s, "azimuth_axis", np.asarray(sector[1])[None, :])
         pix = frames_zx.transpose(0, 2, 1).reshape(n, nz * nx)          # depth fastest
-        _put(b, "data", pix[:, None, None, :])
+        # as MATLAB writes it (h5py sees (frame, wave, channel, pixel)) or in USTB's own axis order
+        _put(b, "data", pix.T[:, None, None, :] if pixel_first else pix[:, None, None, :])
         if f_mod is not None:
             _put(b, "modulation_frequency", np.array([[f_mod]]))
         _put(b, "sampling_frequency", np.array([[40e6]]))
@@ -53,11 +55,12 @@ def rf():
     return np.stack([speckle_image((120, 24), (0.02, 0.2), rng) for _ in range(2)])
 
 
-def test_linear_scan_frames_grid_and_origin(rf, tmp_path):
+@pytest.mark.parametrize("pixel_first", [False, True])
+def test_linear_scan_frames_grid_and_origin(rf, tmp_path, pixel_first):
     x = -2.3e-3 + 0.2e-3 * np.arange(rf.shape[2])
     z = 5e-3 + 0.02e-3 * np.arange(rf.shape[1])
     p = tmp_path / "lin.uff"
-    write_uff(p, rf, x_axis=x, z_axis=z)
+    write_uff(p, rf, x_axis=x, z_axis=z, pixel_first=pixel_first)
     fr = read_frames(p)
     assert fr.format == "uff" and fr.metadata["geometry"] == "linear"
     assert fr.frames.shape == rf.shape
