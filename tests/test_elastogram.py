@@ -63,7 +63,7 @@ def test_selected_pairs_lie_in_the_band_and_match_the_truth(loop, run):
         assert lo <= abs(ms) <= hi, (i, j, ms)
         exx = z["exx"].astype(float)
         true = loop.true_strain(i, j, P)[:, 0].reshape(exx.shape)[np.isfinite(exx)].mean()
-        # measured: within 1.3 % of the true mean strain (seeds 5-7); bound 3 %
+        # measured: within 1.7 % of the true mean strain (seeds 5-7); bound 3 %
         assert abs(ms - true) <= 0.03 * abs(true), (i, j, ms, true)
     # not selected: consecutive pairs in the band would have been taken; the chosen intervals do not overlap
     steps = np.zeros(len(loop.frames), int)
@@ -77,7 +77,7 @@ def test_elastogram_at_least_as_accurate_as_the_best_single_pair(loop, run):
     single = {k: _normalised_error(loop, z["exx"].astype(float), k[0]) for k, z in _pair_files(out).items()}
     best_single = min(single.values())
     err = _normalised_error(loop, res.exx, res.ref_frame)
-    # measured (seed 6): 4.03 % against the best pair's 4.88 % (seeds 5 / 7: 3.87 vs 3.90, 4.15 vs 4.52)
+    # measured (seed 6): 4.38 % against the best pair's 4.88 % (seeds 5 / 7: 3.86 vs 3.89, 4.14 vs 4.53)
     assert err <= best_single, (err, single)
     assert res.cine.shape[0] == res.n_usable and res.cine.shape[2] == loop.frames.shape[2]
     assert res.exx.shape == loop.frames.shape[1:]
