@@ -17,7 +17,7 @@ import importlib
 import sys
 
 #: Subcommand modules are discovered (every ``*_cmd`` module of this package); this fixes the --help order.
-ORDER = ["register_cmd", "track_cmd", "info_cmd", "plot_cmd", "measure_cmd"]
+ORDER = ["register_cmd", "track_cmd", "elastogram_cmd", "info_cmd", "plot_cmd", "measure_cmd"]
 #: Entry-point group through which other packages contribute subcommands.
 ENTRY_POINT_GROUP = "femreg.commands"
 

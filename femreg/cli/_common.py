@@ -74,12 +74,15 @@ def reader_kwargs(args) -> dict:
                 frames=getattr(args, "frames", None), sound_speed=getattr(args, "sound_speed", None))
 
 
-def frames_from_args(args, path=None):
-    """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`."""
+def frames_from_args(args, path=None, *, allow_sector: bool = False):
+    """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`.  Frames of
+    a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid)."""
     from ..io import read_frames
+    from ..io.uff import require_cartesian
 
     path = path if path is not None else args.file
-    return read_frames(path, **reader_kwargs(args))
+    fr = read_frames(path, **reader_kwargs(args))
+    return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
 def _alpha_arg(text):

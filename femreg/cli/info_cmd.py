@@ -121,7 +121,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
 def run(args) -> int:
     path = Path(os.fspath(args.file))
     try:
-        info = describe(frames_from_args(args))
+        info = describe(frames_from_args(args, allow_sector=True))
     except InputError as exc:
         need, retry = _what_is_missing(exc, path, args)
         info = None
@@ -129,7 +129,7 @@ def run(args) -> int:
             saved = args.spacing
             args.spacing = retry["spacing"]
             try:
-                info = describe(frames_from_args(args), spacing_known=False)
+                info = describe(frames_from_args(args, allow_sector=True), spacing_known=False)
             finally:
                 args.spacing = saved
         if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2

@@ -10,6 +10,8 @@ Formats (chosen by extension, verified by content):
 ``.mhd`` / ``.mha``    MetaImage header + data; see :mod:`femreg.io.metaimage` for the axis mapping
 ``.raw`` ``.bin``...   headerless samples: ``shape`` required, ``dtype`` (default float32), ``byte_order``
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
+``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
+                       to RF; see :mod:`femreg.io.uff`
 directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
 =====================  ============================================================================
 
@@ -33,6 +35,7 @@ __all__ = ["read_frames", "FORMATS", "detect_format", "parse_dtype"]
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
     ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
+    ".uff": "uff",
 }
 _MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
           (b"\x89HDF\r\n\x1a\n", "mat")]
@@ -117,7 +120,7 @@ def detect_format(path) -> str:
 
 def _sniff_mislabel(path, head: bytes, fmt: str):
     for magic, name in _MAGIC:
-        if name != fmt and head.startswith(magic) and not (fmt == "mat" and name == "mat"):
+        if name != fmt and head.startswith(magic) and not (fmt == "uff" and name == "mat"):   # both HDF5
             raise fail(path, f"content is a {name} file, not {fmt} as the extension says")
 
 
@@ -393,5 +396,11 @@ def _read_rf(path, **kw):
     return read_ultrasonix(path, **kw)
 
 
+def _read_uff(path, **kw):
+    from .uff import read_uff
+
+    return read_uff(path, **kw)
+
+
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
-            "ultrasonix": _read_rf}
+            "ultrasonix": _read_rf, "uff": _read_uff}

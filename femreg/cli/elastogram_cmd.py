@@ -1,0 +1,163 @@
+"""``femreg elastogram FRAMES -o OUT/``: a freehand cine loop -> the pairs worth registering -> a persistent strain
+cine and one best elastogram (:func:`femreg.elastogram.elastogram`).
+
+Writes ``OUT/pairs.csv`` (one row per candidate pair: ref, mov, axial_strain_percent, ncc, quality, selected),
+``OUT/elastogram.npz`` (``exx`` normalised axial strain on the grid of frame ``ref_frame``, NaN where not covered;
+``quality``, ``spacing``, ``origin``), ``OUT/elastogram.png`` (B-mode | elastogram | quality) and
+``OUT/strain_cine.mp4`` (imageio-ffmpeg; ``strain_cine.gif`` when it is not installed).  Per-pair results are in
+``OUT/pairs/`` as soon as they are computed; ``--resume`` keeps them.
+
+Exit codes: 0 done, 1 computed but no pair usable, 2 bad input (before any work).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "elastogram", help="freehand cine loop -> strain cine and best elastogram",
+        description="Screen every consecutive pair of FRAMES on decimated envelopes, choose pairs whose axial "
+                    "strain lies in the band with little lateral and out-of-plane motion, register them, "
+                    "normalise each strain image by its mean and combine them by quality-weighted persistence.")
+    p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, .uff/.h5 or a folder of per-frame files)")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
+    p.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"), default=(0.5, 2.0),
+                   help="axial strain magnitude of the pairs to register, percent (default 0.5 2)")
+    p.add_argument("--min-ncc", type=float, default=0.6, help="least envelope NCC of a pair (default 0.6)")
+    p.add_argument("--max-span", type=int, default=8, help="largest frame distance of a pair (default 8)")
+    p.add_argument("--max-lateral", type=float, metavar="MM",
+                   help="largest lateral motion within a pair, mm (default a tenth of the image width)")
+    p.add_argument("--persistence", type=float, default=0.7, help="persistence factor in [0, 1) (default 0.7)")
+    p.add_argument("--fps", type=float, default=10.0, help="frame rate of the strain cine (default 10)")
+    p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished pairs")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_registration_args(p)
+    add_reader_args(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def _display(img, spacing, height=320):
+    """Nearest-neighbour resampling to square display pixels, ``height`` rows."""
+    ext = np.asarray(img.shape) * np.asarray(spacing, float)
+    width = max(2, int(round(height * ext[1] / ext[0])))
+    ii = np.minimum((np.arange(height) + 0.5) * img.shape[0] / height, img.shape[0] - 1).astype(int)
+    jj = np.minimum((np.arange(width) + 0.5) * img.shape[1] / width, img.shape[1] - 1).astype(int)
+    return img[np.ix_(ii, jj)]
+
+
+def _rgb(values, cmap, vmin, vmax):
+    import matplotlib
+
+    cm = matplotlib.colormaps[cmap]
+    v = np.clip((np.nan_to_num(values, nan=vmin) - vmin) / (vmax - vmin), 0.0, 1.0)
+    rgb = (cm(v)[..., :3] * 255).astype(np.uint8)
+    rgb[~np.isfinite(values)] = 0
+    return rgb
+
+
+def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
+    """B-mode | normalised strain for every cine frame: ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
+    from ..plot import bmode
+
+    pics = []
+    for k, f in enumerate(res.cine_frames):
+        b = _display(bmode(np.asarray(frames[f], float)), spacing)
+        s = _display(res.cine[k].astype(float), res.cine_spacing)
+        bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
+        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "jet", 0.0, 2.0)], axis=1)
+        h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
+        pad = np.zeros((h, w, 3), np.uint8)
+        pad[:pic.shape[0], :pic.shape[1]] = pic
+        pics.append(pad)
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        imageio_ffmpeg = None
+    if imageio_ffmpeg is not None and pics:
+        path = Path(out_dir) / "strain_cine.mp4"
+        tmp = path.with_name(".strain_cine.tmp.mp4")
+        w = imageio_ffmpeg.write_frames(str(tmp), (pics[0].shape[1], pics[0].shape[0]), fps=fps,
+                                        macro_block_size=16, quality=7)
+        w.send(None)
+        for p in pics:
+            w.send(np.ascontiguousarray(p))
+        w.close()
+        tmp.replace(path)
+        return path
+    from PIL import Image
+
+    path = Path(out_dir) / "strain_cine.gif"
+    tmp = path.with_name(".strain_cine.tmp.gif")
+    ims = [Image.fromarray(p) for p in pics] or [Image.new("RGB", (16, 16))]
+    ims[0].save(tmp, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    tmp.replace(path)
+    return path
+
+
+def write_picture(path, res, frame, spacing, origin) -> None:
+    """B-mode of the reference frame | best elastogram | its persistence weight."""
+    import matplotlib.pyplot as plt
+
+    from ..plot import extent_mm, plot_bmode
+
+    fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
+    plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
+    ext = extent_mm(res.exx.shape, spacing, origin)
+    im = axs[1].imshow(res.exx, extent=ext, cmap="jet", vmin=0.0, vmax=2.0, aspect="equal")
+    axs[1].set_title(f"normalised axial strain ({res.n_usable} pairs)")
+    fig.colorbar(im, ax=axs[1], shrink=0.8)
+    q = np.where(res.quality > 0, res.quality, np.nan)
+    im = axs[2].imshow(q, extent=ext, cmap="viridis", vmin=0.0, aspect="equal")
+    axs[2].set_title("quality (persistence weight)")
+    fig.colorbar(im, ax=axs[2], shrink=0.8)
+    for ax in axs:
+        ax.set_xlabel("lateral y (mm)")
+        ax.set_ylabel("depth x (mm)")
+    tmp = Path(path).with_name(".elastogram.tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def run(args) -> int:
+    from .._atomic import atomic_savez
+    from ..elastogram import elastogram, write_pairs_csv
+
+    fr = frames_from_args(args)
+    kw = registration_kwargs(args)
+    lo, hi = args.band
+    out = Path(args.output)
+
+    def on_pair(r):
+        line = (f"pair {r['ref']:4d} -> {r['mov']:4d}: strain {100 * r['strain']:+.2f} %"
+                + ("" if r["usable"] else f"  REJECTED: {r['message']}"))
+        print(line, file=sys.stdout if args.no_progress else sys.stderr)
+
+    if fr.n_frames < 3:
+        raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
+    res = elastogram(fr.frames, spacing=fr.spacing, origin=fr.origin, band=(lo / 100.0, hi / 100.0),
+                     min_ncc=args.min_ncc, max_span=args.max_span, max_lateral_mm=args.max_lateral,
+                     persistence=args.persistence, output_dir=out, resume=args.resume,
+                     progress=not args.no_progress, on_pair=on_pair, **kw)
+    write_pairs_csv(out / "pairs.csv", res.pairs)
+    atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
+                 spacing=np.asarray(res.spacing), origin=np.asarray(res.origin))
+    write_picture(out / "elastogram.png", res, np.asarray(fr.frames[res.ref_frame], float), res.spacing, res.origin)
+    cine = write_cine(out, res, fr.frames, res.spacing, fps=args.fps)
+    n_sel = sum(1 for p in res.pairs if p["registered"])
+    print(f"femreg elastogram: {fr.n_frames} frames, {len(res.pairs)} candidate pairs, {n_sel} registered, "
+          f"{res.n_usable} usable; best elastogram on frame {res.ref_frame}; {out / 'elastogram.npz'}, "
+          f"{cine.name} ({res.timings['total']:.1f} s)")
+    if res.n_usable == 0:
+        print(f"femreg elastogram: error: no pair was usable (none with strain in {lo:g}-{hi:g} % that "
+              f"registered; see {out / 'pairs.csv'})", file=sys.stderr)
+        return 1
+    return 0

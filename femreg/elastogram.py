@@ -1,0 +1,550 @@
+"""``femreg.elastogram``: a freehand cine loop -> the pairs worth registering -> normalised strain images ->
+a persistent strain cine and one best elastogram.
+
+Stages (plain data between them):
+
+1. **Screen** every consecutive pair ``(k, k+1)`` fast: NCC block matching (:func:`femreg.blockmatch.block_match`,
+   sub-sample peaks) of low-passed, decimated envelopes (:mod:`femreg.pyramid`: ~3 samples per speckle cell),
+   each frame's envelope normalised to zero mean and unit variance, so a gain change does not matter.  The
+   least-squares affine fit of the window displacements gives the axial strain ``e_k = du_x/dx`` and the lateral
+   shift; the median window NCC measures what the fit cannot explain: out-of-plane motion, decorrelation.
+2. **Choose** pairs: for every frame ``i`` the later frame ``j`` (at most ``max_span`` frames on) whose accumulated
+   strain ``prod(1 + e_k) - 1`` lies in the band and closest to its geometric centre; a candidate's quality is its
+   worst consecutive NCC times a lateral factor (``1 - |shift| / max_lateral``) times a strain factor (1 at the
+   band centre, 0 at its edges).  Candidates passing ``min_ncc`` are taken greedily by quality with
+   non-overlapping frame intervals (each stretch of motion is used once), then screened directly (envelopes of
+   ``i`` and ``j``), which must confirm the band and ``min_ncc``.
+3. **Register** the chosen pairs with :func:`femreg.register` on one mesh (frame 0's default), each warm-started
+   from the previous pair's field scaled to the new strain (plus the difference of the two screening affine
+   fits); a failed warm start is redone from the pyramid.  A pair is usable when the registration succeeds and
+   its mean axial strain lies in the band.
+4. **Normalise** each strain image by its mean (normalised strain, sign-free: compression and release alike) and
+   **combine** by quality-weighted persistence (Lindop et al. 2008, "An intelligent interface for freehand strain
+   imaging", Ultrasound Med Biol 34:1117): ``D_k = (w_k s_k + rho W'_{k-1} D'_{k-1}) / (w_k + rho W'_{k-1})``,
+   ``W_k = w_k + rho W'_{k-1}``, where ``'`` moves the previous image to the new reference frame (by the previous
+   pair's registered field, then the screened motion), ``w_k = (e_k / e_c)^2 q_k^2 / (1 - q_k^2)`` per pixel
+   (``q_k`` the element NCC after registration, ``e_c`` the band centre: the inverse strain-noise variance of
+   :func:`_weight`).  The best elastogram is the cine frame of largest mean weight.
+
+Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengths mm, images (axial, lateral).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from ._atomic import atomic_savez, atomic_write_text
+from .blockmatch import block_match
+from .errors import InputError
+from .image import validate_image, validate_spacing
+from .mesh import roi_mesh
+from .pyramid import _gaussian_decimate, default_settings, element_rule, envelope, speckle_statistics
+
+__all__ = ["elastogram", "ElastogramResult", "screen_pairs", "DEFAULT_BAND", "PAIR_COLUMNS"]
+
+#: Default band of axial strain magnitude (fraction) of the pairs registered.
+DEFAULT_BAND = (0.005, 0.02)
+#: Columns of ``pairs.csv``.
+PAIR_COLUMNS = ("ref", "mov", "axial_strain_percent", "ncc", "quality", "selected")
+#: Largest correlation the persistence weight believes: static near-field echoes (in vivo: NCC ~1 in the first
+#: 2-3 mm) would otherwise outweigh the tissue 20-fold.
+RHO_MAX = 0.98
+#: Default persistence factor rho (weight of the previous cine frame).
+DEFAULT_PERSISTENCE = 0.7
+
+
+@dataclass
+class ElastogramResult:
+    """Outcome of :func:`elastogram`.
+
+    Attributes
+    ----------
+    exx : (n_axial, n_lateral) float
+        Best elastogram: normalised axial strain (mean 1, sign-free) on the pixel grid of frame ``ref_frame``,
+        NaN where no pair covers.
+    quality : (n_axial, n_lateral) float
+        Its persistence weight ``W`` (0 where not covered).
+    ref_frame : int; spacing, origin : (2,) mm
+    cine : (n_cine, n_rows, n_lateral) float32
+        Persistent normalised strain after each usable pair on every ``q``-th pixel row (``cine_spacing`` (2,) mm;
+        ``q`` about a third of the axial speckle cell); ``cine_frames`` their reference frames.
+    pairs : list of dict
+        One row per candidate pair (keys :data:`PAIR_COLUMNS` plus ``registered``, ``usable``, ``message``).
+    screen : dict
+        Consecutive-pair screening: ``strain``, ``lateral_mm``, ``ncc`` (each (n - 1,)).
+    timings : dict, seconds per stage.
+    """
+
+    exx: np.ndarray
+    quality: np.ndarray
+    ref_frame: int
+    spacing: np.ndarray
+    origin: np.ndarray
+    cine: np.ndarray
+    cine_frames: list
+    pairs: list
+    screen: dict
+    cine_spacing: np.ndarray = None
+    timings: dict = dc_field(default_factory=dict)
+
+    @property
+    def n_usable(self) -> int:
+        return sum(1 for p in self.pairs if p["usable"])
+
+
+# -- screening -----------------------------------------------------------------------------------------------
+
+class _Screener:
+    """Decimated, normalised envelopes of the frames (computed once each) and envelope block matching."""
+
+    def __init__(self, frame0, spacing, origin, regularizer):
+        stats = speckle_statistics(frame0, spacing)
+        st = default_settings(frame0.shape, spacing, stats, **element_rule(regularizer))
+        self.q, self.ql = int(st.decimation), int(st.lateral_decimation)
+        self.spacing = np.asarray(spacing, float) * (self.q, self.ql)
+        self.origin = np.asarray(origin, float)
+        self.extent = np.asarray(frame0.shape) * np.asarray(spacing, float)
+        cell = np.asarray(stats.cell, float)
+        # windows of ~8 x 3 speckle cells (as the pyramid's local search), search 3 x 2 cells plus the motion a
+        # 3 % strain makes at the bottom of the image
+        self.window = np.minimum(np.maximum([8.0 * cell[0], 3.0 * cell[1]], self.extent / [12.0, 8.0]),
+                                 self.extent / 2.0)
+        self.search = np.array([3.0 * cell[0] + 0.03 * self.extent[0], 2.0 * cell[1]])
+        self._cache = {}
+
+    def env(self, k, frame):
+        e = self._cache.get(k)
+        if e is None:
+            e = envelope(frame)
+            if self.ql > 1:
+                e = _gaussian_decimate(e, self.ql, 1)
+            if self.q > 1:
+                e = _gaussian_decimate(e, self.q, 0)
+            e = (e - e.mean()) / (e.std() or 1.0)
+            if len(self._cache) > 64:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[k] = e
+        return e
+
+    def match(self, ea, eb):
+        """Affine coefficients (3, 2), axial strain, lateral shift (mm, at the image centre), median NCC."""
+        bm = block_match(ea, eb, self.spacing, self.origin, window=self.window, overlap=(0.5, 0.5),
+                         search=self.search, median_size=3, subsample=True, compand_strain=None)
+        coef = bm.affine_fit()
+        centre = self.origin + 0.5 * self.extent
+        lateral = float(coef[0, 1] + coef[1, 1] * centre[0] + coef[2, 1] * centre[1])
+        return coef, float(coef[1, 0]), lateral, float(np.median(bm.ncc))
+
+
+def _band(band):
+    try:
+        lo, hi = (float(b) for b in band)
+    except (TypeError, ValueError):
+        raise InputError(f"band must be two strains (lo, hi) as fractions, got {band!r}") from None
+    if not (0 < lo < hi < 0.2):
+        raise InputError(f"band must satisfy 0 < lo < hi < 0.2 (fractions: 0.005 = 0.5 %), got {band!r}")
+    return lo, hi
+
+
+def _strain_factor(e, lo, hi):
+    c = np.sqrt(lo * hi)
+    return float(max(0.0, 1.0 - abs(np.log(abs(e) / c)) / np.log(hi / c))) if e != 0 else 0.0
+
+
+def screen_pairs(strain, lateral, ncc, *, band=DEFAULT_BAND, max_span=8, min_ncc=0.6, max_lateral_mm=1.0):
+    """Candidate pairs from the consecutive screening (stage 2 of the module docstring, before the direct check).
+
+    Parameters: ``strain``, ``lateral``, ``ncc`` (n - 1,) of the consecutive pairs.  Returns a list of dict rows
+    ``ref, mov, strain (fraction), lateral_mm, ncc, quality, selected`` (selected: bool, greedy by quality with
+    non-overlapping intervals)."""
+    lo, hi = _band(band)
+    c = np.sqrt(lo * hi)
+    n = len(strain) + 1
+    rows = []
+    for i in range(n - 1):
+        acc, lat, worst, best = 1.0, 0.0, 1.0, None
+        for j in range(i + 1, min(n, i + 1 + int(max_span))):
+            acc *= 1.0 + strain[j - 1]
+            lat += lateral[j - 1]
+            worst = min(worst, ncc[j - 1])
+            e = acc - 1.0
+            if lo <= abs(e) <= hi and (best is None or abs(np.log(abs(e) / c)) < abs(np.log(abs(best[1]) / c))):
+                best = (j, e, lat, worst)
+            if abs(e) > hi:
+                break
+        if best is None:
+            j = i + 1
+            best = (j, float(strain[i]), float(lateral[i]), float(ncc[i]))
+        j, e, lat, worst = best
+        lat_f = max(0.0, 1.0 - abs(lat) / max_lateral_mm)
+        q = float(max(worst, 0.0) * lat_f * _strain_factor(e, lo, hi))
+        rows.append(dict(ref=i, mov=int(j), strain=float(e), lateral_mm=float(lat), ncc=float(worst), quality=q,
+                         selected=False))
+    used = np.zeros(n, bool)              # frame steps (k, k+1) already in a chosen pair
+    for r in sorted(rows, key=lambda r: -r["quality"]):
+        if r["quality"] <= 0 or r["ncc"] < min_ncc or not lo <= abs(r["strain"]) <= hi:
+            continue
+        if used[r["ref"]:r["mov"]].any():   # a later pair may start where this one ends
+            continue
+        r["selected"] = True
+        used[r["ref"]:r["mov"]] = True
+    return rows
+
+
+# -- combination ---------------------------------------------------------------------------------------------
+
+def _affine_disp(coef, shape, spacing, origin):
+    x = origin[0] + spacing[0] * np.arange(shape[0])
+    y = origin[1] + spacing[1] * np.arange(shape[1])
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    return [coef[0, c] + coef[1, c] * X + coef[2, c] * Y for c in range(2)]
+
+
+def _move(images, coef, spacing, origin, field=None):
+    """Images on frame a's grid -> frame b's grid, ``x_b = x_a + u(x_a)``: the value at ``x_b`` is the image at
+    ``x_a``, found by fixed-point iteration ``x_a = x_b - u(x_a)``; bilinear, 0 outside.  ``u`` is the
+    registered field ``field`` = (ux, uy) on frame a's pixels (NaN outside its mesh) where given, plus the
+    affine ``coef``; the affine alone elsewhere."""
+    shape = images[0].shape
+    ax, ay = _affine_disp(coef, shape, spacing, origin)
+    if field is None:
+        ux, uy = ax, ay
+    else:
+        ux, uy = (np.where(np.isfinite(f), f, 0.0) + a for f, a in zip(field, (ax, ay)))
+    ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    fi, fj = ii - ux / spacing[0], jj - uy / spacing[1]
+    if field is not None:
+        for _ in range(1):         # u changes by |grad u| |u| ~ 1e-2 x 0.2 mm over one step: one is enough
+            vx = ndimage.map_coordinates(ux, [fi, fj], order=1, mode="nearest")
+            vy = ndimage.map_coordinates(uy, [fi, fj], order=1, mode="nearest")
+            fi, fj = ii - vx / spacing[0], jj - vy / spacing[1]
+    return [ndimage.map_coordinates(im, [fi, fj], order=1, mode="constant", cval=0.0) for im in images]
+
+
+def _weight(rho, strain_ratio):
+    """Inverse strain-noise variance (up to a constant): the Cramer-Rao bound of time-delay estimation (Walker and
+    Trahey 1995, IEEE UFFC 42:301) gives a delay variance proportional to ``1 / rho**2 - 1`` (``rho`` the
+    correlation after registration, at most :data:`RHO_MAX`), and the strain noise scales with the delay noise over
+    the strain."""
+    r = np.clip(np.asarray(rho, float), 0.0, RHO_MAX)
+    return strain_ratio ** 2 * r ** 2 / (1.0 - r ** 2)
+
+
+def _pixel_quality(res, step):
+    """Element NCC after registration (clipped to [0, 1]) averaged to the nodes and interpolated bilinearly to the
+    pixels of every ``step``-th row (NaN outside the mesh)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    q = np.clip(np.nan_to_num(np.asarray(res.quality, float), nan=0.0), 0.0, 1.0)
+    t, p = res.mesh.t, res.mesh.p
+    acc = np.bincount(t.ravel(), weights=np.tile(q, t.shape[0]), minlength=p.shape[1])   # t: (4, n_elements)
+    qn = acc / np.maximum(np.bincount(t.ravel(), minlength=p.shape[1]), 1)
+    x = res.origin[0] + res.spacing[0] * np.arange(0, res.shape[0], step)
+    y = res.origin[1] + res.spacing[1] * np.arange(res.shape[1])
+    xs, ys = np.unique(p[0]), np.unique(p[1])
+    if xs.size * ys.size == p.shape[1]:             # tensor-product mesh (the default ROI mesh)
+        V = np.full((xs.size, ys.size), np.nan)
+        V[np.searchsorted(xs, p[0]), np.searchsorted(ys, p[1])] = qn
+        X, Y = np.meshgrid(x, y, indexing="ij")
+        f = RegularGridInterpolator((xs, ys), V, bounds_error=False, fill_value=np.nan)
+        return f(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape)
+    vec = np.zeros(2 * p.shape[1])
+    vec[0::2] = qn
+    return res._interpolate_grid(vec, res._grid_location())["ux"][::step]
+
+
+# -- the entry point -----------------------------------------------------------------------------------------
+
+def _validate(frames):
+    if isinstance(frames, np.ndarray):
+        if frames.ndim != 3:
+            raise InputError(f"frames must be a 3D array (n_frames, n_axial, n_lateral), got ndim={frames.ndim}")
+        seq = frames
+    else:
+        seq = list(frames)
+        if not seq:
+            raise InputError("need at least 3 frames for an elastogram, got 0")
+    if len(seq) < 3:
+        raise InputError(f"need at least 3 frames for an elastogram, got {len(seq)}")
+    shape = np.shape(seq[0])
+    for k in range(len(seq)):
+        if np.shape(seq[k]) != shape:
+            raise InputError(f"all frames must have the same shape: frame 0 {shape}, frame {k} {np.shape(seq[k])}")
+        validate_image(seq[k], f"frame {k}")
+    return seq
+
+
+def _row_csv(rows):
+    lines = [",".join(PAIR_COLUMNS)]
+    for r in rows:
+        lines.append(f"{r['ref']},{r['mov']},{100 * r['strain']:.4f},{r['ncc']:.4f},{r['quality']:.4f},"
+                     f"{int(bool(r['usable']))}")
+    return "\n".join(lines) + "\n"
+
+
+def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc: float = 0.6,
+               max_lateral_mm: float | None = None, max_span: int = 8, persistence: float = DEFAULT_PERSISTENCE,
+               output_dir=None, resume: bool = False, progress: bool = False, regularizer="momentum-stress",
+               alpha=None, on_pair=None, **register_kwargs) -> ElastogramResult:
+    """Cine loop -> normalised-strain cine and best elastogram (module docstring).
+
+    Parameters
+    ----------
+    frames : (n, n_axial, n_lateral) array or sequence of 2D frames (n >= 3; any real dtype, any gain)
+    spacing, origin : (2,) mm
+    band : (lo, hi)
+        Axial strain magnitudes (fractions) of the pairs to register (default 0.5-2 %).
+    min_ncc : float
+        Least envelope NCC (screening) of a pair; lower means out-of-plane motion or decorrelation.
+    max_lateral_mm : float, optional
+        Largest lateral motion between the frames of a pair (default: a tenth of the image width).
+    max_span : int
+        Largest ``j - i`` of a pair.
+    persistence : float in [0, 1)
+        rho of the persistence (0: every cine frame is its own pair).
+    output_dir : path, optional
+        Per-pair results (``pairs/pair_IIIII_JJJJJ.npz``) and the screening (``screen.npz``), each written
+        atomically when computed; with ``resume=True`` what is there is kept, not recomputed.
+    progress : bool
+        tqdm progress bars.
+    regularizer, alpha, register_kwargs
+        Passed to :func:`femreg.register`.
+    on_pair : callable(row), optional
+        Called after each registered pair.
+
+    Returns
+    -------
+    ElastogramResult (``n_usable == 0``: nothing usable; ``exx`` is then all NaN)
+
+    Raises
+    ------
+    InputError
+        Bad frames (fewer than 3, shapes differ, NaN, constant / all-zero, saturated) or parameters.
+    """
+    from .registration import register
+
+    t_all = time.perf_counter()
+    timings = {}
+    seq = _validate(frames)
+    spacing, origin = validate_spacing(spacing, origin)
+    lo, hi = _band(band)
+    centre = float(np.sqrt(lo * hi))
+    if not (0.0 <= float(persistence) < 1.0):
+        raise InputError(f"persistence must be in [0, 1), got {persistence!r}")
+    if isinstance(max_span, bool) or int(max_span) != max_span or max_span < 1:
+        raise InputError(f"max_span must be an integer >= 1, got {max_span!r}")
+    if not (np.isfinite(min_ncc) and -1.0 <= min_ncc <= 1.0):
+        raise InputError(f"min_ncc must be in [-1, 1], got {min_ncc!r}")
+    n = len(seq)
+    shape = np.shape(seq[0])
+    extent = np.asarray(shape) * spacing
+    max_lat = 0.1 * extent[1] if max_lateral_mm is None else float(max_lateral_mm)
+    if not max_lat > 0:
+        raise InputError(f"max_lateral_mm must be > 0, got {max_lateral_mm!r}")
+    reg_name = regularizer if isinstance(regularizer, str) else getattr(regularizer, "name", "custom")
+
+    def frame(k):
+        return np.asarray(seq[k], dtype=float)
+
+    out = None
+    params = dict(n_frames=n, shape=[int(s) for s in shape], spacing=[float(s) for s in spacing],
+                  origin=[float(s) for s in origin], band=[lo, hi], min_ncc=float(min_ncc), max_lateral_mm=max_lat,
+                  max_span=int(max_span), regularizer=str(reg_name), alpha=None if alpha is None else float(alpha),
+                  register_kwargs=json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr)))
+    if output_dir is not None:
+        out = Path(output_dir)
+        try:
+            (out / "pairs").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot use {out} as the output folder ({exc.strerror or exc})") from None
+        pfile = out / "elastogram.json"
+        if pfile.exists() and resume:
+            old = json.loads(pfile.read_text())
+            diff = [k for k in params if old.get(k) != params[k]]
+            if diff:
+                raise InputError(f"cannot resume from {out}: parameters differ ({', '.join(diff)})")
+        elif (out / "screen.npz").exists() and not resume:
+            raise InputError(f"{out} already holds an elastogram run; use resume=True (--resume) or another folder")
+        atomic_write_text(pfile, json.dumps(params, indent=1))
+    elif resume:
+        raise InputError("resume=True needs output_dir")
+
+    def bar(total, desc):
+        if not progress:
+            return None
+        from tqdm.auto import tqdm
+        return tqdm(total=total, desc=desc, unit="pair")
+
+    # -- 1. screening ------------------------------------------------------------------------------------------
+    t = time.perf_counter()
+    scr = _Screener(frame(0), spacing, origin, regularizer if isinstance(regularizer, str) else "momentum-stress")
+    # the strain images are combined on every qa-th row (about 3 per speckle cell: elements span several cells)
+    qa = scr.q
+    cshape = (len(range(0, shape[0], qa)), shape[1])
+    cspacing = np.array([qa * spacing[0], spacing[1]])
+    sfile = None if out is None else out / "screen.npz"
+    if resume and sfile is not None and sfile.exists():
+        with np.load(sfile, allow_pickle=False) as z:
+            e_c, lat_c, ncc_c, coef_c = (np.array(z[k]) for k in ("strain", "lateral_mm", "ncc", "coef"))
+    else:
+        e_c, lat_c, ncc_c = np.zeros(n - 1), np.zeros(n - 1), np.zeros(n - 1)
+        coef_c = np.zeros((n - 1, 3, 2))
+        b = bar(n - 1, "screen")
+        try:
+            for k in range(n - 1):
+                coef_c[k], e_c[k], lat_c[k], ncc_c[k] = scr.match(scr.env(k, frame(k)), scr.env(k + 1, frame(k + 1)))
+                if b is not None:
+                    b.update(1)
+        finally:
+            if b is not None:
+                b.close()
+        if sfile is not None:
+            atomic_savez(sfile, strain=e_c, lateral_mm=lat_c, ncc=ncc_c, coef=coef_c)
+    timings["screen"] = time.perf_counter() - t
+
+    # -- 2. choose ---------------------------------------------------------------------------------------------
+    t = time.perf_counter()
+    rows = screen_pairs(e_c, lat_c, ncc_c, band=(lo, hi), max_span=max_span, min_ncc=min_ncc, max_lateral_mm=max_lat)
+    direct = {}
+    for r in rows:
+        r.update(registered=False, usable=False, message="")
+        if not r["selected"]:
+            continue
+        i, j = r["ref"], r["mov"]
+        if j == i + 1:
+            coef = coef_c[i]
+        else:
+            coef, e, lat, c = scr.match(scr.env(i, frame(i)), scr.env(j, frame(j)))
+            r.update(strain=e, lateral_mm=lat, ncc=min(r["ncc"], c))
+            if c < min_ncc or not lo <= abs(e) <= hi or abs(lat) > max_lat:
+                r["selected"] = False
+                r["message"] = (f"direct screening: strain {100 * e:.2f} %, NCC {c:.2f}, lateral {lat:.2f} mm")
+                continue
+        direct[(i, j)] = coef
+    timings["choose"] = time.perf_counter() - t
+
+    # -- 3. register -------------------------------------------------------------------------------------------
+    t = time.perf_counter()
+    chosen = [r for r in rows if r["selected"]]
+    mesh = register_kwargs.pop("mesh", None)
+    if mesh is None and register_kwargs.get("element_size") is None and \
+            register_kwargs.get("strategy", "auto") == "auto":
+        es = tuple(default_settings(shape, spacing, speckle_statistics(frame(0), spacing),
+                                    **element_rule(reg_name)).element_size)
+        mesh = roi_mesh(shape, spacing, origin, element_size=es, margin=register_kwargs.pop("margin", None))
+    elif mesh is None:
+        mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),
+                        margin=register_kwargs.pop("margin", None))
+    nodes = mesh.p.T
+    per_pair = {}
+    prev = None                      # (u, strain, coef) of the last good registration
+    b = bar(len(chosen), "register")
+    try:
+        for r in chosen:
+            i, j = r["ref"], r["mov"]
+            path = None if out is None else out / "pairs" / f"pair_{i:05d}_{j:05d}.npz"
+            if resume and path is not None and path.exists():
+                with np.load(path, allow_pickle=False) as z:
+                    rec = {k: z[k] for k in z.files}
+                rec = dict(exx=np.asarray(rec["exx"], float)[::qa], quality=np.asarray(rec["quality"], float),
+                           ux=np.asarray(rec["ux"], float), uy=np.asarray(rec["uy"], float),
+                           mean_strain=float(rec["mean_strain"]), success=bool(rec["success"]),
+                           ncc_after=float(rec["ncc_after"]), message=str(rec["message"]), u=rec["u"])
+            else:
+                coef = direct[(i, j)]
+                res = None
+                s = r["strain"] / prev[1] if prev is not None and prev[1] != 0 else 0.0
+                if 0.2 <= abs(s) <= 5.0:        # release mirrors compression: a negative scale is a start too
+                    A_now = np.column_stack([coef[0, c] + nodes @ coef[1:, c] for c in range(2)])
+                    A_prev = np.column_stack([prev[2][0, c] + nodes @ prev[2][1:, c] for c in range(2)])
+                    u0 = s * prev[0] + (A_now - s * A_prev).ravel()
+                    res = register(frame(i), frame(j), spacing=spacing, origin=origin, regularizer=regularizer,
+                                   alpha=alpha, mesh=mesh, initial=u0, **register_kwargs)
+                    if not res.success:
+                        res = None
+                if res is None:
+                    res = register(frame(i), frame(j), spacing=spacing, origin=origin, regularizer=regularizer,
+                                   alpha=alpha, mesh=mesh, **register_kwargs)
+                g = res.on_grid()
+                exx = g["exx"]
+                rec = dict(exx=exx[::qa], quality=_pixel_quality(res, qa), mean_strain=float(np.nanmean(exx)),
+                           ux=g["ux"][::qa], uy=g["uy"][::qa],
+                           success=bool(res.success), ncc_after=float(res.ncc_after), message=res.message,
+                           u=res.u)
+                if path is not None:
+                    atomic_savez(path, exx=exx.astype(np.float32), quality=rec["quality"].astype(np.float32),
+                                 ux=rec["ux"].astype(np.float32), uy=rec["uy"].astype(np.float32), row_step=qa,
+                                 mean_strain=rec["mean_strain"], success=rec["success"], ncc_after=rec["ncc_after"],
+                                 message=np.str_(rec["message"]), u=res.u, ref=i, mov=j)
+            r["registered"] = True
+            ms = rec["mean_strain"]
+            if not rec["success"]:
+                r["message"] = f"registration failed: {rec['message']}"
+            elif not (np.isfinite(ms) and lo <= abs(ms) <= hi):
+                r["message"] = f"registered mean axial strain {100 * ms:.2f} % outside the band"
+            else:
+                r["usable"] = True
+                r["strain"] = ms
+                prev = (np.asarray(rec["u"], float), ms, direct[(i, j)])
+            per_pair[(i, j)] = rec
+            if on_pair is not None:
+                on_pair(r)
+            if b is not None:
+                b.set_postfix_str(f"{i}->{j} {100 * ms:+.2f} %" + ("" if r["usable"] else " rejected"))
+                b.update(1)
+    finally:
+        if b is not None:
+            b.close()
+    timings["register"] = time.perf_counter() - t
+
+    # -- 4. normalise and combine ------------------------------------------------------------------------------
+    t = time.perf_counter()
+    cum = np.zeros((n, 3, 2))        # screened affine motion frame 0 -> frame k (summed: small strain)
+    cum[1:] = np.cumsum(coef_c, axis=0)
+    cine, cine_frames = [], []
+    D = W = None
+    prev_pair = None
+    best_mean, best, qual, ref_frame = -1.0, np.full(cshape, np.nan), np.zeros(cshape), 0
+    for r in rows:
+        if not r["usable"]:
+            continue
+        rec = per_pair[(r["ref"], r["mov"])]
+        exx = rec["exx"]
+        ok = np.isfinite(exx)
+        s = np.where(ok, exx / np.mean(exx[ok]), 0.0)
+        w = np.where(ok, _weight(rec["quality"], rec["mean_strain"] / centre), 0.0)
+        if D is not None and persistence > 0:
+            # previous reference -> its moving frame by the registered field, then on by the screened motion
+            i0, j0 = prev_pair
+            p_rec = per_pair[prev_pair]
+            WD, Wm = _move([W * D, W], cum[r["ref"]] - cum[j0], cspacing, origin, field=(p_rec["ux"], p_rec["uy"]))
+            W = w + persistence * Wm
+            D = np.where(W > 0, (w * s + persistence * WD) / np.where(W > 0, W, 1.0), 0.0)
+        else:
+            D, W = s, w
+        prev_pair = (r["ref"], r["mov"])
+        cine.append(np.where(W > 0, D, np.nan).astype(np.float32))
+        cine_frames.append(int(r["ref"]))
+        if W.mean() > best_mean:
+            best_mean, best, qual, ref_frame = float(W.mean()), D.copy(), W.copy(), int(r["ref"])
+    # back to every pixel row: weighted linear interpolation between the combined rows
+    ii, jj = np.meshgrid(np.arange(shape[0]) / qa, np.arange(shape[1]), indexing="ij")
+    WD, qual = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (qual * best, qual))
+    best = np.where(qual > 0, WD / np.where(qual > 0, qual, 1.0), np.nan)
+    timings["combine"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,
+                            cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
+                            cine_frames=cine_frames, pairs=rows,
+                            screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings)
+
+
+def write_pairs_csv(path, rows) -> None:
+    """``pairs.csv``: one row per candidate pair, columns :data:`PAIR_COLUMNS` (selected = registered and
+    usable)."""
+    atomic_write_text(path, _row_csv(rows))
