@@ -35,7 +35,7 @@ from .errors import InputError
 
 from . import _kernels
 
-__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
+__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
 
 #: Pole of the cubic B-spline prefilter, sqrt(3) - 2 (the constant of scipy's ni_splines.c).
 _CUBIC_POLE = -0.267949192431122706472553658494127633
@@ -190,3 +190,11 @@ class SplineImage:
         gx = (sy[2:, :] - sy[:-2, :]) / (2.0 * self.spacing[0])
         gy = (sx[:, 2:] - sx[:, :-2]) / (2.0 * self.spacing[1])
         return gx, gy
+
+
+def ncc(a, b) -> float:
+    """Normalised cross-correlation of two equally shaped sample arrays (zero-mean, unit-norm)."""
+    a = np.asarray(a, float).ravel() - np.mean(a)
+    b = np.asarray(b, float).ravel() - np.mean(b)
+    d = np.linalg.norm(a) * np.linalg.norm(b)
+    return float(a @ b / d) if d > 0 else 0.0

@@ -1,7 +1,7 @@
 """Registration results on disk: the ``.npz`` contract, and VTU / XDMF exports through meshio for ParaView.
 
 The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`load_result` (a
-:class:`femreg.RegistrationResult`); the first six keys are required:
+:class:`femreg.RegistrationResult`, :mod:`femreg.result`); the first six keys are required:
 
 =================  ==============================  ===================================================
 key                shape                           meaning
@@ -38,9 +38,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
+from .._atomic import atomic_savez
 from .frames import fail
 
-__all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_strains", "nodal_average",
+__all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "read_result", "save_result", "element_strains",
+           "nodal_average",
            "mesh_fields", "write_vtu", "write_xdmf", "export_result"]
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
@@ -212,15 +214,13 @@ def _read(path) -> dict:
     return out
 
 
-def load_result(path):
-    """Read a result ``.npz`` (see the module docstring) as a :class:`femreg.RegistrationResult`.
-
-    The one reader of the contract (``femreg.load_result`` is this function).  Raises
+def read_result(path):
+    """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
+    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` and the element-strain grid (or
+    None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
     from skfem import MeshQuad1
-
-    from ..registration import RegistrationResult
 
     d = _read(path)
     grid = {k: np.asarray(d[k], float) for k in GRID_FIELDS if k in d}
@@ -228,17 +228,15 @@ def load_result(path):
     element_grid = None
     if grid is not None and str(d.get("strain", "")) == "element":
         grid, element_grid = None, grid             # element strains: the default (recovered) grid is recomputed
-    res = RegistrationResult(
-        MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64)),
-        np.asarray(d["u"], float), shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
-        origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
-        success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
-        energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid,
-        quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
-        strategy=str(d.get("strategy", "")))
-    res._grid_element = element_grid
-    return res
+    mesh = MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64))
+    kw = dict(shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
+              origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
+              success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
+              energy_history=np.atleast_1d(d.get("energy_history", ())),
+              ncc_before=float(d.get("ncc_before", np.nan)), ncc_after=float(d.get("ncc_after", np.nan)),
+              grid=grid, quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
+              strategy=str(d.get("strategy", "")))
+    return mesh, np.asarray(d["u"], float), kw, element_grid
 
 
 def save_result(path, result, **extra) -> Path:
@@ -246,7 +244,6 @@ def save_result(path, result, **extra) -> Path:
     ``extra`` arrays, atomically (a reader never sees a torn file).  ``.npz`` is appended to a path without it.
 
     The one writer of the contract (``RegistrationResult.save`` is this function)."""
-    from .._atomic import atomic_savez
 
     d = dict(as_result_dict(result), **extra)
     missing = [k for k in REQUIRED if k not in d]
@@ -278,3 +275,10 @@ def export_result(result, path, *, strains="both"):
     return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains)
 
 
+def __getattr__(name):
+    # load_result builds a RegistrationResult (femreg.result, which writes through this module): served lazily
+    if name == "load_result":
+        from ..result import load_result
+
+        return load_result
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
