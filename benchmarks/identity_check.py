@@ -138,7 +138,12 @@ def main(argv=None):
     ap.add_argument("--compare", type=Path)
     ap.add_argument("--files", type=Path, help="folder for the result files written by this version")
     ap.add_argument("--load", type=Path, help="folder of result files of an earlier version: check they load")
+    ap.add_argument("--no-compiled", action="store_true", help="without the numba loops (femreg._kernels)")
     args = ap.parse_args(argv)
+    if args.no_compiled:
+        import femreg._kernels
+
+        femreg._kernels.HAVE_NUMBA = False
     arrays, times = run(args.files)
     for k, v in times.items():
         print(f"{k:18s} {v:7.3f} s")

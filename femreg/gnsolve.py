@@ -10,13 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _kernels
 from .data_term import SSDTerm
 from .errors import InputError
 from .fields import element_strain_operator
 from .pixels import PixelQuadrature, PointLocator
 from .regularizers import Regularizer
-from .repair import pixel_values
 from .result import displacement_at
 from .scaling import effective_alpha
 from .solver import Objective, gauss_newton
@@ -58,27 +56,8 @@ def solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None,
     outside would pull their elements; the regulariser carries the field there."""
     locator = locator or PointLocator(mesh)
     data = image_term(I1, I2, mesh, shape, spacing, origin, offset=offset, locator=locator)
-    quad = data.quad
     if mask_outside:
-        # I_2 index of every pixel at the start: the term's base index (x + S - origin) / spacing plus u0 / spacing
-        hi = (I2.shape[0] - 2.0, I2.shape[1] - 2.0)
-        gr = quad.location.grid
-        if gr is not None and _kernels.use_compiled():     # one compiled pass over the pixel grid
-            G = quad.locator.node_grid
-            ux, uy = np.asarray(u0, float)[0::2], np.asarray(u0, float)[1::2]
-            e = np.empty(0)
-            bx, by = (e, e) if data._bx is None else (data._bx, data._by)
-            out = _kernels.outside_grid(bx, by, data._bxr, data._byc, ux[G], uy[G], gr["i"], gr["X"], gr["j"],
-                                        gr["Y"], data._inv_sp[0], data._inv_sp[1], hi[0], hi[1],
-                                        np.empty(quad.n_pixels, bool))
-        else:
-            out = np.zeros(quad.n_pixels, bool)
-            for c, base in enumerate(data.base_index):
-                idx = pixel_values(quad, u0[c::2])
-                idx *= data._inv_sp[c]
-                idx += base
-                out |= idx < 1.0
-                out |= idx > hi[c]
+        out = data.outside_mask(u0)
         if out.any() and not out.all():
             data.w = np.where(out, 0.0, data.w)
     reg = reg_factory()

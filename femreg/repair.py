@@ -31,6 +31,7 @@ from scipy import ndimage
 from . import _kernels
 from .image import ncc
 from .mesh import tensor_node_grid, tensor_structure
+from .pixels import pixel_values  # noqa: F401  (also femreg.repair.pixel_values)
 from .pyramid import ROTATION_SCAN_NCC, rf_period
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
@@ -67,27 +68,13 @@ HOP_GAIN = 0.5
 MAX_HOPPED_FRACTION = 0.02
 
 
-def pixel_values(quad, v) -> np.ndarray:
-    """Nodal scalar ``v`` (n_nodes,) at the quadrature pixels of ``quad`` (:class:`femreg.pixels.PixelQuadrature`),
-    (n_pixels,).  On a tensor mesh by two 1D interpolations of the node grid (rows, then columns), without the
-    per-pixel shape-function arrays (0.4 s on a paper-size image)."""
-    loc = quad.location
-    gr = loc.grid
-    if gr is None:
-        return quad.P @ v
-    Vg = np.asarray(v, float)[quad.locator.node_grid]                      # (nx, ny)
-    i, X, j, Y = gr["i"], gr["X"], gr["j"], gr["Y"]
-    A = (1.0 - X)[:, None] * Vg[i] + X[:, None] * Vg[i + 1]                  # (nr, ny)
-    return ((1.0 - Y)[None, :] * A[:, j] + Y[None, :] * A[:, j + 1]).ravel()
-
-
 def _pixel_elements(quad) -> np.ndarray:
     """Element of each quadrature pixel (n_pixels,); on tensor meshes from the separable grid description."""
     gr = quad.location.grid
     if gr is None:
         return quad.location.element
     cell = quad.locator.tensor[2]
-    return cell[gr["i"][:, None], gr["j"][None, :]].ravel()
+    return cell[gr.i[:, None], gr.j[None, :]].ravel()
 
 
 def element_ncc(data, u, n_elements: int) -> np.ndarray:
@@ -96,14 +83,14 @@ def element_ncc(data, u, n_elements: int) -> np.ndarray:
     a = data.ref_values
     b = data.residual(u) + a
     gr = data.quad.location.grid
-    if gr is not None and _kernels.use_compiled() and np.all(np.diff(gr["i"]) >= 0) and np.all(np.diff(gr["j"]) >= 0):
+    if gr is not None and _kernels.use_compiled() and np.all(np.diff(gr.i) >= 0) and np.all(np.diff(gr.j) >= 0):
         # tensor mesh: pixel rows x columns of each element are consecutive; one compiled pass per moment
-        rseg = np.cumsum(np.diff(gr["i"], prepend=gr["i"][0]) > 0)
-        cseg = np.cumsum(np.diff(gr["j"], prepend=gr["j"][0]) > 0)
+        rseg = np.cumsum(np.diff(gr.i, prepend=gr.i[0]) > 0)
+        cseg = np.cumsum(np.diff(gr.j, prepend=gr.j[0]) > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             qb, cb = _kernels.block_ncc(np.ascontiguousarray(a), np.ascontiguousarray(b), rseg, cseg,
                                         int(rseg[-1]) + 1, int(cseg[-1]) + 1)
-        cell = data.quad.locator.tensor[2][np.unique(gr["i"])[:, None], np.unique(gr["j"])[None, :]]
+        cell = data.quad.locator.tensor[2][np.unique(gr.i)[:, None], np.unique(gr.j)[None, :]]
         q = np.full(n_elements, np.nan)
         cnt = np.zeros(n_elements)
         q[cell.ravel()], cnt[cell.ravel()] = qb.ravel(), cb.ravel()
@@ -226,10 +213,10 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
     gr = quad.location.grid
     row0 = 0
     if gr is not None:                  # tensor mesh: the quadrature pixels are an nr x nc block of the image
-        nr = gr["nr"]
+        nr = gr.nr
         row0 = int(quad.index[0]) // n1 if quad.index.size else 0
-        cell = quad.locator.tensor[2][:, gr["j"]]
-        row_el, M2 = gr["i"], None
+        cell = quad.locator.tensor[2][:, gr.j]
+        row_el, M2 = gr.i, None
     else:                               # any mesh: scatter onto the image grid, windows must lie inside the mesh
         nr = n0
         w = np.add(res, a)
