@@ -141,9 +141,9 @@ def main(argv=None):
     ap.add_argument("--no-compiled", action="store_true", help="without the numba loops (femreg._kernels)")
     args = ap.parse_args(argv)
     if args.no_compiled:
-        import femreg._kernels
+        from femreg import _kernels
 
-        femreg._kernels.HAVE_NUMBA = False
+        _kernels.HAVE_NUMBA = False
     arrays, times = run(args.files)
     for k, v in times.items():
         print(f"{k:18s} {v:7.3f} s")

@@ -26,7 +26,7 @@ from skfem import MeshQuad1
 from .errors import InputError
 
 __all__ = ["DEFAULT_ELEMENT_SIZE", "DEFAULT_MARGIN", "roi_mesh", "as_quad_mesh", "check_mesh_in_image",
-           "tensor_structure"]
+           "tensor_structure", "check_mesh"]
 
 #: Default element size (axial, lateral) in mm.
 DEFAULT_ELEMENT_SIZE = (2.0, 2.0)
@@ -184,3 +184,32 @@ def _tensor_structure(mesh: MeshQuad1):
     if (cell < 0).any():
         return None
     return xs, ys, cell
+
+
+def check_mesh(points, cells, u=None, where="mesh"):
+    """Validate (2, n_nodes) points, (4, n_el) cells and (2*n_nodes,) u; return float/int arrays."""
+    try:
+        p = np.asarray(points, dtype=float)
+        t = np.asarray(cells)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: mesh_points / mesh_cells are not numeric arrays") from None
+    if p.ndim != 2 or p.shape[0] != 2 or p.shape[1] < 4:
+        raise InputError(f"{where}: mesh_points must be (2, n_nodes) with n_nodes >= 4, got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{where}: mesh_points contain NaN/Inf")
+    if t.ndim != 2 or t.shape[0] != 4 or t.shape[1] < 1 or t.dtype.kind not in "iu":
+        raise InputError(f"{where}: mesh_cells must be (4, n_el) integers, got {t.shape} {t.dtype}")
+    if t.min() < 0 or t.max() >= p.shape[1]:
+        raise InputError(f"{where}: mesh_cells index nodes outside 0..{p.shape[1] - 1}")
+    t = t.astype(np.int64)
+    if u is None:
+        return p, t, None
+    uu = np.asarray(u, dtype=float)
+    n = p.shape[1]
+    if uu.shape == (n, 2):
+        uu = uu.ravel()
+    if uu.shape != (2 * n,):
+        raise InputError(f"{where}: u must be (2*n_nodes,) = ({2 * n},) interleaved [ux0, uy0, ...], got {uu.shape}")
+    if not np.all(np.isfinite(uu)):
+        raise InputError(f"{where}: u contains NaN/Inf")
+    return p, t, uu

@@ -36,10 +36,10 @@ def _image2d(a, name):
 def bmode(rf, dynamic_range=50.0, *, reference=None):
     """Log-compressed envelope of RF (axial along axis 0) in dB, clipped to ``[-dynamic_range, 0]``.
 
-    Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.pyramid.envelope`); 0 dB is its maximum (or ``reference``
+    Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.speckle.envelope`); 0 dB is its maximum (or ``reference``
     if given, e.g. to put several frames on one scale).  Returns float64 (axial, lateral).
     """
-    from .pyramid import envelope
+    from .speckle import envelope
 
     arr = _image2d(rf, "rf")
     if not np.all(np.isfinite(arr)):
@@ -298,11 +298,13 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
 
 def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
     """The relative shear-modulus image of :func:`femreg.invert` beside the measured axial strain, on the
-    inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` or the path of its ``.npz``.
-    Writes ``out_png`` if given; returns the figure."""
-    from .inversion import InversionResult, load_inversion
-
-    res = result if isinstance(result, InversionResult) else load_inversion(result)
+    inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` (a file: read it with
+    :func:`femreg.load_inversion`; ``InversionResult.plot`` is this function).  Writes ``out_png`` if given;
+    returns the figure."""
+    if not all(hasattr(result, k) for k in ("mesh", "mu", "strain_measured", "model", "beta")):
+        raise InputError(f"plot_inversion needs an InversionResult (femreg.load_inversion reads a file), got "
+                         f"{type(result).__name__}")
+    res = result
     plt = _mpl()
     p = res.mesh.p
     ext = (p[0].max() - p[0].min()) / max(p[1].max() - p[1].min(), 1e-12)

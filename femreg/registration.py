@@ -29,7 +29,8 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .pyramid import default_settings, element_rule, rf_period, speckle_statistics
+from .pyramid import default_settings, element_rule
+from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
 from .repair import check_period, check_result, repair_peak_hopping
 from .result import RegistrationResult, displacement_at, load_result, nodal_values  # noqa: F401

@@ -32,7 +32,8 @@ from . import _kernels
 from .image import ncc
 from .mesh import tensor_node_grid, tensor_structure
 from .pixels import pixel_values  # noqa: F401  (also femreg.repair.pixel_values)
-from .pyramid import ROTATION_SCAN_NCC, rf_period
+from .pyramid import ROTATION_SCAN_NCC
+from .speckle import rf_period
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "repair_peak_hopping", "check_result", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",

@@ -1,7 +1,7 @@
 """Registration results on disk: the ``.npz`` contract, and VTU / XDMF exports through meshio for ParaView.
 
-The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`load_result` (a
-:class:`femreg.RegistrationResult`, :mod:`femreg.result`); the first six keys are required:
+The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`read_result` (from
+which :func:`femreg.load_result` builds a :class:`femreg.RegistrationResult`); the first six keys are required:
 
 =================  ==============================  ===================================================
 key                shape                           meaning
@@ -38,10 +38,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
+from ..mesh import check_mesh  # noqa: F401  (also femreg.io.results.check_mesh)
 from .._atomic import atomic_savez
-from .frames import fail
+from .checks import fail
 
-__all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "read_result", "save_result", "element_strains",
+__all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_strains",
            "nodal_average",
            "mesh_fields", "write_vtu", "write_xdmf", "export_result"]
 
@@ -55,35 +56,6 @@ GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 def _scalar(v):
     v = np.asarray(v)
     return v.item() if v.ndim == 0 else v
-
-
-def check_mesh(points, cells, u=None, where="mesh"):
-    """Validate (2, n_nodes) points, (4, n_el) cells and (2*n_nodes,) u; return float/int arrays."""
-    try:
-        p = np.asarray(points, dtype=float)
-        t = np.asarray(cells)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: mesh_points / mesh_cells are not numeric arrays") from None
-    if p.ndim != 2 or p.shape[0] != 2 or p.shape[1] < 4:
-        raise InputError(f"{where}: mesh_points must be (2, n_nodes) with n_nodes >= 4, got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{where}: mesh_points contain NaN/Inf")
-    if t.ndim != 2 or t.shape[0] != 4 or t.shape[1] < 1 or t.dtype.kind not in "iu":
-        raise InputError(f"{where}: mesh_cells must be (4, n_el) integers, got {t.shape} {t.dtype}")
-    if t.min() < 0 or t.max() >= p.shape[1]:
-        raise InputError(f"{where}: mesh_cells index nodes outside 0..{p.shape[1] - 1}")
-    t = t.astype(np.int64)
-    if u is None:
-        return p, t, None
-    uu = np.asarray(u, dtype=float)
-    n = p.shape[1]
-    if uu.shape == (n, 2):
-        uu = uu.ravel()
-    if uu.shape != (2 * n,):
-        raise InputError(f"{where}: u must be (2*n_nodes,) = ({2 * n},) interleaved [ux0, uy0, ...], got {uu.shape}")
-    if not np.all(np.isfinite(uu)):
-        raise InputError(f"{where}: u contains NaN/Inf")
-    return p, t, uu
 
 
 def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
@@ -273,12 +245,3 @@ def export_result(result, path, *, strains="both"):
     if writer is None:
         raise InputError(f"{path}: export format must be .vtu, .xdmf or .npz, not {ext!r}")
     return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains)
-
-
-def __getattr__(name):
-    # load_result builds a RegistrationResult (femreg.result, which writes through this module): served lazily
-    if name == "load_result":
-        from ..result import load_result
-
-        return load_result
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

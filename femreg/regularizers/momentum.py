@@ -213,7 +213,7 @@ def element_centre_divergence(mesh) -> sp.csr_matrix:
     The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2):
     the trace of :func:`femreg.regularizers.centre_gradient_operators`.
     """
-    from .custom import centre_gradient_operators
+    from ..fields import centre_gradient_operators
 
     _check_quad_mesh(mesh)
     G, _ = centre_gradient_operators(mesh)
@@ -330,7 +330,7 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float, centre_lambda: float = 0
     entries (the centre gradients of :func:`femreg.regularizers.centre_gradient_operators`)."""
     from ..mesh import tensor_node_grid
 
-    from .custom import _unit_centre_gradients
+    from ..fields import _unit_centre_gradients
 
     xs, ys, cell = ts
     A, B = _traction_parts(float(lambda_bar))
