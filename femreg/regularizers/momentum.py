@@ -62,30 +62,17 @@ import scipy.sparse as sp
 
 from .. import _kernels
 from ..errors import InputError
+from ..material import LAMBDA_BAR_PLANE_STRAIN, LAMBDA_BAR_PLANE_STRESS, lambda_bar
 from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE  # noqa: F401  (re-exported)
 from .base import Regularizer, register_regularizer
 
-#: :math:`\bar\lambda` of R_P_eps: plane strain, nu = 0.45 -> 2 nu / (1 - 2 nu) = 9 (paper, "Registration").
-LAMBDA_BAR_PLANE_STRAIN = 9.0
-#: :math:`\bar\lambda` of R_P_sigma: incompressible plane stress, nu = 1/2 -> 2 nu / (1 - nu) = 2.
-LAMBDA_BAR_PLANE_STRESS = 2.0
 #: Smoothing of the TV norm (eq:dmreg), as in the paper.
 DEFAULT_DELTA = 1e-8
 
 
 def lambda_bar_from_poisson(nu: float, model: str = "plane-strain") -> float:
-    r""":math:`\bar\lambda` of eq:cEq for Poisson's ratio ``nu``: ``2 nu / (1 - 2 nu)`` in plane strain,
-    ``2 nu / (1 - nu)`` in plane stress."""
-    nu = float(nu)
-    if model == "plane-strain":
-        if not -1.0 < nu < 0.5:
-            raise ValueError(f"plane-strain lambda_bar needs -1 < nu < 0.5, got nu={nu!r}")
-        return 2.0 * nu / (1.0 - 2.0 * nu)
-    if model == "plane-stress":
-        if not -1.0 < nu <= 0.5:
-            raise ValueError(f"plane-stress lambda_bar needs -1 < nu <= 0.5, got nu={nu!r}")
-        return 2.0 * nu / (1.0 - nu)
-    raise ValueError(f"model must be 'plane-strain' or 'plane-stress', got {model!r}")
+    r""":math:`\bar\lambda` of eq:cEq for Poisson's ratio ``nu`` (:func:`femreg.material.lambda_bar`)."""
+    return lambda_bar(model, nu)
 
 
 # ----------------------------------------------------------------------------------------------------------
