@@ -220,3 +220,33 @@ def test_no_cache_keyed_by_object_id():
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "id":
                 raise AssertionError(f"{path.relative_to(ROOT)}:{node.lineno}: id() (objects' ids are reused)")
+
+
+def test_batch_is_split_by_job_and_keeps_its_public_names():
+    import femreg.batch as B
+
+    names = ["Task", "TaskOutcome", "run_tasks", "open_client", "Job", "jobs_from_inputs", "run_batch",
+             "BatchSummary", "default_settings", "settings_keys", "settings_file_for", "MANIFEST", "flag_defaults",
+             "frames_text", "run_recording_task"]
+    assert all(hasattr(B, n) for n in names), [n for n in names if not hasattr(B, n)]
+    homes = {B.run_tasks: "engine", B.default_settings: "settings", B.jobs_from_inputs: "inputs",
+             B.run_batch: "running", B.BatchSummary: "summary"}
+    for obj, mod in homes.items():
+        assert obj.__module__ == f"femreg.batch.{mod}", (obj, obj.__module__)
+    assert "femreg.cli._common" not in _import_graph()["femreg.batch.settings"]   # the library owns the schema
+
+
+def test_cli_defaults_are_the_librarys():
+    import argparse
+    import inspect
+
+    import femreg
+    from femreg.batch import default_settings
+    from femreg.cli._common import add_registration_args
+
+    p = argparse.ArgumentParser()
+    add_registration_args(p)
+    parsed = vars(p.parse_args([]))
+    sig = inspect.signature(femreg.register).parameters
+    for k in ("regularizer", "strategy", "maxiter", "tol"):
+        assert parsed[k] == sig[k].default == default_settings()[k], k

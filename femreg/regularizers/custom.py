@@ -60,7 +60,6 @@ from __future__ import annotations
 from typing import Callable, Sequence
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..fields import _unit_centre_gradients, centre_gradient_operators  # noqa: F401  (part of this API)
 from ..quadrature import EDGE_MIDPOINT_RULE, QUADRATURES
