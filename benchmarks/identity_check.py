@@ -2,13 +2,15 @@
 array, and compare a later run against the stored one with ``np.array_equal`` (NaN equal to NaN).
 
 Cases: simulated pairs from :mod:`forward.pairs` (robustness-benchmark fields: 1 % compression with R_P_sigma,
-shear with R_eps, bending with R_P_eps, 2 degree rotation; 1 and 3 degree rotations whose peak hopping is repaired / remains), 5 % compression with
-``strategy="paper"`` (block matching and the coarse pass), the in vivo pair seq304 frames 1 -> 3 on the demo's
-crop (skipped when the data are absent), a 4-frame ``track`` and an inversion of the first result.  Also writes
-each pair's result file (``--out``) so that a later version can be checked to load it.
+shear with R_eps, also with alpha="auto", bending with R_P_eps, 2 degree rotation; 1 and 3 degree rotations whose
+peak hopping is repaired / remains), 5 % compression with ``strategy="paper"`` (block matching and the coarse
+pass), the in vivo pair seq304 frames 1 -> 3 on the demo's crop, by default and with the paper's procedure
+(skipped when the data are absent), a 4-frame ``track`` and an inversion of the first result.  Also writes each
+pair's result file (``--files``) so that a later version can be checked to load it (``--load``).
 
     python benchmarks/identity_check.py --save out/identity/base.npz
     python benchmarks/identity_check.py --compare out/identity/base.npz
+    python benchmarks/identity_check.py --robustness ...   # also every robustness case x 5 femreg methods
 """
 from __future__ import annotations
 
@@ -53,8 +55,34 @@ def _result_arrays(prefix, res, out):
     out[prefix + "message"] = np.array(res.message)
 
 
-def run(outdir: Path | None):
+def run_robustness(arrays, times):
+    """Every case of the robustness benchmark (benchmarks/robustness.py) with femreg's five methods."""
+    from benchmarks.robustness import CASES, FEMREG_METHODS, make_data
+
+    for case in CASES:
+        data = make_data(case)
+        for method, reg in list(FEMREG_METHODS.items()) + [("R_P_sigma_paper", "momentum-stress")]:
+            kw = dict(spacing=data.spacing, origin=data.origin, regularizer=reg)
+            if method.endswith("paper"):
+                kw["strategy"] = "paper"
+            t = time.perf_counter()
+            if case.sequence:
+                res = femreg.track(data.frames, **kw)
+                res = res[-1]
+            else:
+                res = femreg.register(data.ref, data.mov, **kw)
+            key = f"robust/{case.name}/{method}/"
+            times[key] = time.perf_counter() - t
+            arrays[key + "u"] = res.u
+            arrays[key + "message"] = np.array(res.message)
+            for k, v in res.on_grid().items():
+                arrays[key + k] = v
+
+
+def run(outdir: Path | None, robustness: bool = False):
     arrays, times = {}, {}
+    if robustness:
+        run_robustness(arrays, times)
     pairs = {
         "comp1_Rps": (make_pair(F.compression(0.01), "paper", (40, 30), 20, seed=0), {}),
         "shear_Reps": (make_pair(F.shear_rotation(0.01), "L7", (30, 30), 30, seed=0), {"regularizer": "strain"}),
@@ -66,6 +94,7 @@ def run(outdir: Path | None):
         "rot3_paper_hops": (make_pair(F.compression_rotation(0.01, 3.0), "paper", (40, 30), 25, seed=3), {}),
         "comp5_paper": (make_pair(F.compression(0.05), "paper", (40, 30), 25, seed=0), {"strategy": "paper"}),
     }
+    pairs["shear_auto_alpha"] = (pairs["shear_Reps"][0], {"regularizer": "strain", "alpha": "auto"})
     results = {}
     for name, (pair, kw) in pairs.items():
         t = time.perf_counter()
@@ -138,15 +167,20 @@ def main(argv=None):
     ap.add_argument("--compare", type=Path)
     ap.add_argument("--files", type=Path, help="folder for the result files written by this version")
     ap.add_argument("--load", type=Path, help="folder of result files of an earlier version: check they load")
+    ap.add_argument("--robustness", action="store_true", help="also every robustness-benchmark case x femreg method")
     ap.add_argument("--no-compiled", action="store_true", help="without the numba loops (femreg._kernels)")
     args = ap.parse_args(argv)
     if args.no_compiled:
         from femreg import _kernels
 
         _kernels.HAVE_NUMBA = False
-    arrays, times = run(args.files)
+    arrays, times = run(args.files, args.robustness)
     for k, v in times.items():
-        print(f"{k:18s} {v:7.3f} s")
+        if not k.startswith("robust/"):
+            print(f"{k:18s} {v:7.3f} s")
+    robust = [v for k, v in times.items() if k.startswith("robust/")]
+    if robust:
+        print(f"robustness: {len(robust)} registrations / tracks in {sum(robust):.1f} s")
     if args.save:
         args.save.parent.mkdir(parents=True, exist_ok=True)
         np.savez(args.save, **{k: np.asarray(v) for k, v in arrays.items()})
