@@ -38,8 +38,8 @@ class Solve:
 
 def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=None) -> SSDTerm:
     """The SSD image term (eq:IR, fixed reference gradient eq:wfnew) of :func:`femreg.register` on ``mesh``:
-    pixel-centre quadrature over the reference grid ``shape``/``spacing``/``origin`` (mm), both images sampled at x + S(x)
-    with ``offset`` S (callable, nodal vector or result; None = 0)."""
+    pixel-centre quadrature over the reference grid ``shape``/``spacing``/``origin`` (mm), both images sampled at
+    x + S(x) with ``offset`` S (callable, nodal vector or result; None = 0)."""
     quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator or PointLocator(mesh))
     if quad.n_pixels == 0:
         raise InputError("mesh outside the image: no pixel centre lies inside the mesh")

@@ -30,7 +30,8 @@ import scipy.sparse as sp
 from . import _kernels
 from .mesh import tensor_node_grid, tensor_structure
 
-__all__ = ["Location", "AxisLocation", "GridLocation", "PointLocator", "PixelQuadrature", "logical_grid", "pixel_values"]
+__all__ = ["Location", "AxisLocation", "GridLocation", "PointLocator", "PixelQuadrature", "logical_grid",
+           "pixel_values"]
 
 # Reference square [0, 1]^2 of skfem's ElementQuad1; local node k sits at _REF[k].
 _REF = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])

@@ -187,7 +187,8 @@ def test_public_import_check_catches_private_names(tmp_path, monkeypatch):
     pkg = tmp_path / "pkg"
     pkg.mkdir()
     (pkg / "a.py").write_text("from femreg._atomic import atomic_savez\nfrom femreg.pyramid import envelope\n"
-                              "def f():\n    from femreg.io import _not_there\n    from femreg.speckle import envelope\n")
+                              "def f():\n    from femreg.io import _not_there\n"
+                              "    from femreg.speckle import envelope\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     bad = _public_violations("pkg")
     assert len(bad) == 3 and "femreg._atomic" in bad[0] and "femreg.pyramid" in bad[1] and "_not_there" in bad[2], bad
