@@ -10,7 +10,8 @@ pair's result file (``--files``) so that a later version can be checked to load 
 
     python benchmarks/identity_check.py --save out/identity/base.npz
     python benchmarks/identity_check.py --compare out/identity/base.npz
-    python benchmarks/identity_check.py --robustness ...   # also every robustness case x 5 femreg methods
+    python benchmarks/identity_check.py --robustness ...   # also every robustness case x 5 femreg methods and
+                                                           # the whole in vivo frames 1 -> 6 x 4 regularisers
 """
 from __future__ import annotations
 
@@ -79,10 +80,31 @@ def run_robustness(arrays, times):
                 arrays[key + k] = v
 
 
+def run_invivo_full(arrays, times):
+    """Both in vivo sequences, whole frames 1 -> 6, with the four regularisers (default settings)."""
+    from femreg.io import read_frames
+
+    for seq in ("seq299", "seq304"):
+        folder = INVIVO.parent / seq
+        if not folder.is_dir():
+            continue
+        fr = read_frames(folder, shape=(2000, 128), spacing=(0.02, 0.2))
+        frames = np.asarray(fr.frames, float)
+        for reg in ("strain", "strain-incompressible", "momentum-strain", "momentum-stress"):
+            t = time.perf_counter()
+            res = femreg.register(frames[0], frames[5], spacing=fr.spacing, origin=fr.origin, regularizer=reg)
+            key = f"invivo_full/{seq}/{reg}/"
+            times["robust/" + key] = time.perf_counter() - t
+            arrays[key + "u"] = res.u
+            arrays[key + "scalars"] = np.array([res.success, res.ncc_before, res.ncc_after, res.nit], float)
+            arrays[key + "exx"] = res.on_grid()["exx"]
+
+
 def run(outdir: Path | None, robustness: bool = False):
     arrays, times = {}, {}
     if robustness:
         run_robustness(arrays, times)
+        run_invivo_full(arrays, times)
     pairs = {
         "comp1_Rps": (make_pair(F.compression(0.01), "paper", (40, 30), 20, seed=0), {}),
         "shear_Reps": (make_pair(F.shear_rotation(0.01), "L7", (30, 30), 30, seed=0), {"regularizer": "strain"}),
