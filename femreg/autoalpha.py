@@ -62,10 +62,20 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import InputError
+from .gnsolve import image_term
+from .image import SplineImage, normalize_pair, validate_image, validate_spacing
+from .regularizers import Regularizer, make_regularizer
+from .scaling import effective_alpha
 from .solver import GN_STRAIN_TOL_TIGHT
+from .strategy import effective_regularizer_options
 
 __all__ = ["AutoAlpha", "choose_alpha", "register_auto", "DEFAULT_DECADES", "influence_trace", "quasi_optimal_index",
            "successful_stretch"]
+
+#: The registration function :func:`choose_alpha` calls (``register=`` overrides it): :func:`femreg.register`, set
+#: by :mod:`femreg.registration` when it is imported (it calls this module for ``alpha="auto"``; this module never
+#: imports it, so the two form no import cycle).
+ENGINE = None
 
 #: Exponents (decades) of the candidate grid relative to the regulariser's default alpha: 10^-1.5 ... 10^1.5.
 DEFAULT_DECADES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)
@@ -174,17 +184,14 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     rule : "quasi-optimality" (default), "discrepancy" or "upre" (module docstring).
     keep_results : also return every grid registration (``AutoAlpha.results``).
     **register_kwargs : every other keyword argument of :func:`femreg.register` (spacing, regularizer, mesh, ...);
-        ``alpha`` must be absent or "auto".
+        ``alpha`` must be absent or "auto"; ``register=`` another registration function of the same signature
+        (default :data:`ENGINE`, i.e. :func:`femreg.register`).
 
     Returns
     -------
     AutoAlpha (``result`` is the registration at the chosen alpha; cost ``n_registrations`` registrations).
     """
-    from .image import SplineImage, normalize_pair, validate_image, validate_spacing
-    from .registration import effective_regularizer_options, image_term, register
-    from .regularizers import Regularizer, make_regularizer
-    from .scaling import effective_alpha
-
+    register = register_kwargs.pop("register", None) or ENGINE
     a = register_kwargs.pop("alpha", "auto")
     if a not in (None, "auto"):
         raise InputError(f"choose_alpha chooses alpha itself; got alpha={a!r}")

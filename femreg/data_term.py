@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from . import _kernels
 from ._kernels import element_blocks, gradient_grid, gradient_nodes, hessian_rows, warp_grid, warp_nodes
 from .image import SplineImage
-from .pixels import PixelQuadrature
+from .pixels import PixelQuadrature, pixel_values
 
 __all__ = ["SSDTerm"]
 
@@ -105,6 +105,29 @@ class SSDTerm:
             self._bx, self._by = np.repeat(self._bxr, nc), np.tile(self._byc, nr)
         return self._bx, self._by
 
+    def outside_mask(self, u) -> np.ndarray:
+        """(m,) bool: the quadrature pixels that ``u`` (2 n_nodes,) mm maps outside the moving image -- their I_2
+        sampling position x + S + u lies less than 1 pixel from its first or 2 pixels from its last sample on
+        either axis (the cubic spline there reads the zero padding)."""
+        quad = self.quad
+        hi = (self.moving.shape[0] - 2.0, self.moving.shape[1] - 2.0)
+        gr = quad.location.grid
+        u = np.asarray(u, float)
+        if gr is not None and _kernels.use_compiled():     # one compiled pass over the pixel grid
+            G = self._node_grid
+            bx, by = (self._empty, self._empty) if self._bx is None else (self._bx, self._by)
+            return _kernels.outside_grid(bx, by, self._bxr, self._byc, u[0::2][G], u[1::2][G], gr.i, gr.X, gr.j,
+                                         gr.Y, self._inv_sp[0], self._inv_sp[1], hi[0], hi[1],
+                                         np.empty(quad.n_pixels, bool))
+        out = np.zeros(quad.n_pixels, bool)
+        for c, base in enumerate(self.base_index):
+            idx = pixel_values(quad, u[c::2])
+            idx *= self._inv_sp[c]
+            idx += base
+            out |= idx < 1.0
+            out |= idx > hi[c]
+        return out
+
     @property
     def _moving_at_pixels(self):
         """I_2 at the quadrature pixels (u = 0, S = 0: its knots), or None with an offset."""
@@ -165,8 +188,8 @@ class SSDTerm:
         if self._grid is not None:
             G, gr = self._node_grid, self._grid
             bx, by = (self._empty, self._empty) if self._bx is None else (self._bx, self._by)
-            return warp_grid(m._padded, hi0, hi1, bx, by, self._bxr, self._byc, ux[G], uy[G], gr["i"], gr["X"],
-                             gr["j"], gr["Y"], self._inv_sp[0], self._inv_sp[1], sub, out)
+            return warp_grid(m._padded, hi0, hi1, bx, by, self._bxr, self._byc, ux[G], uy[G], gr.i, gr.X,
+                             gr.j, gr.Y, self._inv_sp[0], self._inv_sp[1], sub, out)
         loc = self.quad.location
         bx, by = self.base_index
         return warp_nodes(m._padded, hi0, hi1, bx, by, ux, uy, loc.nodes, loc.N, self._inv_sp[0],
@@ -214,7 +237,7 @@ class SSDTerm:
             if self._grid is not None:
                 G, gr = self._node_grid, self._grid
                 Gx, Gy = np.zeros(G.shape), np.zeros(G.shape)
-                gradient_grid(self.w, r, self._gx, self._gy, gr["i"], gr["X"], gr["j"], gr["Y"], Gx, Gy)
+                gradient_grid(self.w, r, self._gx, self._gy, gr.i, gr.X, gr.j, gr.Y, Gx, Gy)
                 out[2 * G.ravel()] = Gx.ravel()
                 out[2 * G.ravel() + 1] = Gy.ravel()
             else:
@@ -233,8 +256,8 @@ class SSDTerm:
         row sums and column sums (the shape functions are products of 1D hats), so each element's 8 x 8 block
         costs two segmented reductions of (rows x cols) arrays instead of a (pixels x 8)^T (pixels x 8) product."""
         grid = self.quad.location.grid
-        nr, nc = grid["nr"], grid["nc"]
-        i, j, X, Y = grid["i"], grid["j"], grid["X"], grid["Y"]
+        nr, nc = grid.nr, grid.nc
+        i, j, X, Y = grid.i, grid.j, grid.X, grid.Y
         rs = np.flatnonzero(np.diff(i, prepend=-1))           # first row of each element row
         cs = np.flatnonzero(np.diff(j, prepend=-1))
         ei, ej = i[rs], j[cs]

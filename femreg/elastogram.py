@@ -43,7 +43,8 @@ from .blockmatch import block_match
 from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import roi_mesh
-from .pyramid import _gaussian_decimate, default_settings, element_rule, envelope, speckle_statistics
+from .pyramid import _gaussian_decimate, default_settings, element_rule
+from .speckle import envelope, speckle_statistics
 
 __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "DEFAULT_BAND", "PAIR_COLUMNS"]
 

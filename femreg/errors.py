@@ -1,5 +1,7 @@
 """Typed errors.  All are ValueError subclasses so generic callers can catch ValueError."""
 
+__all__ = ["InputError", "FileFormatError"]
+
 
 class InputError(ValueError):
     """Bad user input (image, parameter, file); the message names the problem."""

@@ -23,14 +23,19 @@ Lengths in mm; ``u`` is the interleaved nodal vector ``[ux0, uy0, ux1, ...]`` (s
 """
 from __future__ import annotations
 
-import numpy as np
+import functools
 
+import numpy as np
+import scipy.sparse as sp
+
+from . import mesh as _mesh
 from .errors import InputError
+from .mesh import check_mesh
 from .quadrature import ELEMENT_CENTRE_RULE
 
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
            "recovered_strains", "projected_strains", "check_strain_mode", "element_strain_operator",
-           "RECOVERY_METHODS", "DEFAULT_RECOVERY"]
+           "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators"]
 
 #: Names of the sampled fields, in order.
 FIELDS = ("ux", "uy", "exx", "eyy", "exy")
@@ -105,8 +110,6 @@ def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
     Exact for a displacement field affine in (x, y).  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el).
     """
     from skfem import Basis, ElementQuad1, ElementVector, MeshQuad1
-
-    from .io.results import check_mesh
 
     p, t, uu = check_mesh(mesh_points, mesh_cells, u)
     try:
@@ -198,9 +201,67 @@ def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | Non
 
 def element_strain_operator(mesh):
     """(3 n_elements, 2 n_nodes) operator: [e_xx; e_yy; e_xy] at the element centres (1-point rule), per mm."""
-    import scipy.sparse as sp
-
-    from .regularizers.custom import centre_gradient_operators
-
     G, _ = centre_gradient_operators(mesh)
     return sp.vstack([G["xx"], G["yy"], 0.5 * (G["xy"] + G["yx"])]).tocsr()
+
+
+@functools.lru_cache(maxsize=1)
+def _unit_centre_gradients() -> np.ndarray:
+    """d N_k / dx and d N_k / dy (4 corners (0,0) (1,0) (1,1) (0,1) in (x, y) steps, 2) at the centre of the unit
+    square, from scikit-fem (read-only)."""
+    from skfem import Basis, ElementQuad1, MeshQuad1
+
+    m = MeshQuad1(np.array([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
+    b = Basis(m, ElementQuad1(), quadrature=ELEMENT_CENTRE_RULE)
+    V = np.array([[b.basis[k][0].grad[c][0, 0] for c in range(2)] for k in range(4)])
+    V.flags.writeable = False
+    return V
+
+
+def centre_gradient_operators(mesh) -> tuple[dict[str, sp.csr_matrix], np.ndarray]:
+    r"""Displacement-gradient operators at element centres, the building block of element-wise TV terms.
+
+    Returns
+    -------
+    G : dict of (n_elements, 2 n_nodes) csr_matrix
+        ``G["ab"] @ u`` = :math:`\partial u_a / \partial x_b` (a, b in x, y; 1) at each element centre, e.g.
+        ``G["yy"]`` the lateral normal strain, ``0.5 * (G["xy"] + G["yx"])`` the shear strain.
+    areas : (n_elements,) float
+        Element areas (mm^2) for the centre rule, the natural weights of :math:`\int_\Omega`.
+    """
+    from skfem import Basis, ElementQuad1, ElementVector, MeshQuad1
+
+    if not isinstance(mesh, MeshQuad1):
+        raise ValueError(f"centre_gradient_operators needs a scikit-fem MeshQuad1, got {type(mesh).__name__}")
+    ts = _mesh.tensor_structure(mesh)      # looked up at call time (tests switch the shortcut off)
+    if ts is not None:
+        # axis-aligned tensor mesh: the centre gradients of the unit square from scikit-fem, scaled by 1/hx and
+        # 1/hy -- the same operators without a Basis over the whole mesh
+        xs, ys, cell = ts
+        I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
+        e, i, j = cell.ravel(), I.ravel(), J.ravel()
+        node = _mesh.tensor_node_grid(mesh, xs, ys)
+        corners = node[i[:, None] + np.array([0, 1, 1, 0]), j[:, None] + np.array([0, 0, 1, 1])]   # (n_el, 4)
+        hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
+        V = _unit_centre_gradients()                                               # (4 corners, 2)
+        n_el, n = mesh.t.shape[1], 2 * mesh.p.shape[1]
+        rows = np.broadcast_to(e[:, None], corners.shape).ravel()
+        G = {}
+        for a, an in enumerate("xy"):
+            for b, (bn, h) in enumerate(zip("xy", (hx, hy))):
+                G[an + bn] = sp.csr_matrix(((V[None, :, b] / h[:, None]).ravel(), (rows, (2 * corners + a).ravel())),
+                                           shape=(n_el, n))
+        areas = np.empty(n_el)
+        areas[e] = hx * hy
+        return G, areas
+    basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
+    n_el = mesh.t.shape[1]
+    dofs = basis.element_dofs
+    rows = np.broadcast_to(np.arange(n_el), dofs.shape).ravel()
+    grads = np.stack([basis.basis[i][0].grad[:, :, :, 0] for i in range(basis.Nbfun)])   # (Nb, 2, 2, n_el)
+    G = {}
+    for a, an in enumerate("xy"):
+        for b, bn in enumerate("xy"):
+            G[an + bn] = sp.csr_matrix((grads[:, a, b].ravel(), (rows, dofs.ravel())), shape=(n_el, basis.N))
+    areas = basis.dx[:, 0].copy()
+    return G, areas

@@ -45,7 +45,7 @@ from .errors import InputError
 
 from . import _kernels
 
-__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index"]
+__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
 
 #: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
 SATURATED_FRACTION = 0.5
@@ -213,3 +213,11 @@ class SplineImage:
         gx = (sy[2:, :] - sy[:-2, :]) / (2.0 * self.spacing[0])
         gy = (sx[:, 2:] - sx[:, :-2]) / (2.0 * self.spacing[1])
         return gx, gy
+
+
+def ncc(a, b) -> float:
+    """Normalised cross-correlation of two equally shaped sample arrays (zero-mean, unit-norm)."""
+    a = np.asarray(a, float).ravel() - np.mean(a)
+    b = np.asarray(b, float).ravel() - np.mean(b)
+    d = np.linalg.norm(a) * np.linalg.norm(b)
+    return float(a @ b / d) if d > 0 else 0.0

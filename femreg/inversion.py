@@ -78,12 +78,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import FileFormatError, InputError
-from .solver import single_blas_thread
+from .linsolve import SPDSolver, single_blas_thread
+from .material import MODELS
+from .material import lambda_bar as material_lambda_bar
 
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE"]
 
-MODELS = ("plane-stress", "plane-strain")
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
 #: beta values tried by the default rule, largest first (half-decade steps).
@@ -100,19 +101,11 @@ _FORMAT = "femreg-inversion-1"
 
 
 def lambda_bar(model: str, poisson: float | None = None) -> float:
-    r""":math:`\bar\lambda` of eq:cEq: 2 for incompressible plane stress, :math:`2\nu/(1-2\nu)` for plane strain
-    (``poisson`` default :data:`DEFAULT_POISSON`)."""
-    if model == "plane-stress":
-        if poisson is not None:
-            raise InputError("poisson applies to model='plane-strain' only (plane stress is incompressible, "
-                             "lambda_bar = 2)")
-        return 2.0
-    if model == "plane-strain":
-        nu = DEFAULT_POISSON if poisson is None else float(poisson)
-        if not (np.isfinite(nu) and 0.0 <= nu < 0.5):
-            raise InputError(f"poisson must lie in [0, 0.5) for plane strain, got {poisson!r}")
-        return 2.0 * nu / (1.0 - 2.0 * nu)
-    raise InputError(f"unknown model {model!r}; choose one of {MODELS}")
+    r""":math:`\bar\lambda` of eq:cEq (:func:`femreg.material.lambda_bar`): plane stress 2 (incompressible) unless
+    ``poisson`` is given, plane strain :math:`2\nu/(1-2\nu)` with ``poisson`` default :data:`DEFAULT_POISSON`."""
+    if poisson is None:
+        poisson = 0.5 if model == "plane-stress" else DEFAULT_POISSON
+    return material_lambda_bar(model, poisson)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -181,30 +174,14 @@ class _Model:
         self._KIB = tagged[self.I][:, self.D].tocsr()
         self._sII = self._KII.data.astype(np.int64) - 1
         self._sIB = self._KIB.data.astype(np.int64) - 1
-        # banded Cholesky (LAPACK pbtrf) in reverse Cuthill-McKee order: K_II is symmetric positive definite for
-        # mu > 0, and on these meshes its bandwidth (reverse Cuthill-McKee, or row by row on a
-        # structured mesh) is ~2 x (nodes across), so one factorisation costs
-        # n b^2 flops -- 5-10 times faster than SuperLU's general LU on the ~6000-DOF system of a 3000-node mesh.
-        from scipy.sparse.csgraph import reverse_cuthill_mckee
-
-        coo = self._KII.tocoo()
+        # banded Cholesky (LAPACK pbtrf, femreg.linsolve): K_II is symmetric positive definite for mu > 0, and on
+        # these meshes its bandwidth (reverse Cuthill-McKee, or row by row on a structured mesh) is ~2 x (nodes
+        # across), so one factorisation costs n b^2 flops, less than SuperLU's general LU.  Not positive definite
+        # (should not happen): SuperLU.
         xy = self.basis.doflocs[:, self.I]
         comp = np.arange(N)[self.I] % 2
-        best = None
-        for perm in (np.asarray(reverse_cuthill_mckee(self._KII.tocsr(), symmetric_mode=True), np.int64),
-                     np.lexsort((comp, xy[1], xy[0])), np.lexsort((comp, xy[0], xy[1]))):
-            inv = np.empty_like(perm)       # RCM, or rows/columns of a structured mesh: keep the narrowest band
-            inv[perm] = np.arange(perm.size)
-            rp, cp = inv[coo.row], inv[coo.col]
-            band = int(np.max(np.abs(cp - rp)))
-            if best is None or band < best[0]:
-                best = (band, perm, rp, cp)
-        self._band, perm, rp, cp = best
-        upper = rp <= cp
-        self._perm = perm
-        # position of every stored entry of K_II (CSC data order = tocoo order) in the (band+1, n) upper band
-        self._band_sel = np.flatnonzero(upper)
-        self._band_pos = (self._band + rp[upper] - cp[upper]) * perm.size + cp[upper]
+        self._solver = SPDSolver("cholesky", shift=0.0, upper=True, one_thread=False,
+                                 orderings=(np.lexsort((comp, xy[1], xy[0])), np.lexsort((comp, xy[0], xy[1]))))
 
         @BilinearForm
         def weighted_mass(u, v, w):
@@ -220,17 +197,11 @@ class _Model:
 
     def solve(self, mu, d):
         """u (N,) with u_B = d_B and the LU factor of K_II."""
-        from scipy.sparse.linalg import splu
-
         k = self._A @ mu
         KIB = self._KIB.copy()
         KIB.data = k[self._sIB]
-        vals = k[self._sII]                      # CSC data order == the order of self._KII.tocoo()
-        lu = _BandedCholesky(self, vals)
-        if not lu.ok:                            # not positive definite (should not happen for mu > 0)
-            KII = self._KII.copy()
-            KII.data = vals
-            lu = splu(KII)
+        KII = sp.csc_matrix((k[self._sII], self._KII.indices, self._KII.indptr), shape=self._KII.shape)
+        lu = self._solver.factor(KII)
         u = d.copy()
         u[self.I] = lu.solve(-(KIB @ d[self.D]))
         return u, lu
@@ -238,30 +209,6 @@ class _Model:
     def dJ_dtheta(self, mu, u, lam):
         """-mu_e lam^T K_e u for every element (lam zero on the boundary)."""
         return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
-
-
-class _BandedCholesky:
-    """Cholesky factor of K_II in the model's RCM band; ``solve(b)``; ``ok`` False if not positive definite."""
-
-    def __init__(self, model: "_Model", vals):
-        from scipy.linalg import LinAlgError, cholesky_banded
-
-        n = model._perm.size
-        ab = np.zeros((model._band + 1) * n)
-        ab[model._band_pos] = vals[model._band_sel]
-        self.perm = model._perm
-        try:
-            self.c = cholesky_banded(ab.reshape(model._band + 1, n), lower=False, check_finite=False)
-            self.ok = True
-        except LinAlgError:
-            self.ok = False
-
-    def solve(self, b):
-        from scipy.linalg import cho_solve_banded
-
-        x = np.empty_like(b)
-        x[self.perm] = cho_solve_banded((self.c, False), b[self.perm], check_finite=False)
-        return x
 
 
 class _Regularizer:
@@ -472,8 +419,8 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         mesh of ``element_size`` over ``region`` / its mesh's bounding box), or a callable ``(n, 2) [x, y] mm ->
         (n, 2) [ux, uy] mm`` together with ``region``.
     model : {"plane-stress", "plane-strain"}
-        :math:`\bar\lambda = 2` (incompressible plane stress) or :math:`2\nu/(1-2\nu)` (plane strain, reduced
-        integration of the volumetric term).
+        :math:`\bar\lambda = 2\nu/(1-\nu)` (plane stress; 2, incompressible, by default) or
+        :math:`2\nu/(1-2\nu)` (plane strain, reduced integration of the volumetric term); :func:`lambda_bar`.
     region : ((x0, x1), (y0, y1)) mm, optional
         Region to invert (a rectangle); required with a callable.
     element_size : float or (2,) mm, optional
@@ -487,7 +434,7 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
     weights : (w_x, w_y)
         Misfit weights of the axial and lateral components (default :data:`DEFAULT_WEIGHTS`).
     poisson : float, optional
-        :math:`\nu` of the plane-strain model (default 0.495).
+        :math:`\nu` (plane strain: in (-1, 0.5), default 0.495; plane stress: in (-1, 0.5], default 0.5).
     maxiter, gtol
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool

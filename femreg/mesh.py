@@ -19,7 +19,6 @@ elements across the paper's 15 mm inclusion (3 mm would leave 5).  Pass ``elemen
 """
 from __future__ import annotations
 
-import weakref
 
 import numpy as np
 from skfem import MeshQuad1
@@ -27,7 +26,7 @@ from skfem import MeshQuad1
 from .errors import InputError
 
 __all__ = ["DEFAULT_ELEMENT_SIZE", "DEFAULT_MARGIN", "roi_mesh", "as_quad_mesh", "check_mesh_in_image",
-           "tensor_structure"]
+           "tensor_structure", "check_mesh"]
 
 #: Default element size (axial, lateral) in mm.
 DEFAULT_ELEMENT_SIZE = (2.0, 2.0)
@@ -137,32 +136,31 @@ def tensor_node_grid(mesh: MeshQuad1, xs, ys) -> np.ndarray:
     return G
 
 
-_TENSOR_CACHE: dict = {}
-
-
 def tensor_structure(mesh: MeshQuad1):
     """If ``mesh`` is an axis-aligned tensor-product grid, return ``(xs, ys, cell)`` with the sorted axial and
     lateral node coordinates and ``cell[i, j]`` = element index of the cell [xs[i], xs[i+1]] x [ys[j], ys[j+1]];
     otherwise None.  Lets point location be arithmetic (searchsorted) instead of a search.
 
-    Remembered for the last few meshes (a registration asks about its two meshes about ten times), keyed by the
-    mesh object and checked against its node and element arrays, so a mesh changed in place is looked at again."""
-    key = id(mesh)
+    Built once per mesh object and kept on it (a registration asks about its two meshes about ten times, ~1 ms
+    each on 3000 nodes), with a stamp of its node and element arrays, so a mesh changed in place is looked at
+    again; the arrays are read-only (shared by every caller)."""
     stamp = (mesh.p.ctypes.data, mesh.p.shape, float(np.sum(mesh.p)), int(np.sum(mesh.t)))
-    hit = _TENSOR_CACHE.get(key)
-    if hit is not None and hit[0]() is mesh and hit[1] == stamp:
-        return hit[2]
+    hit = getattr(mesh, _TENSOR_ATTR, None)
+    if hit is not None and hit[0] == stamp:
+        return hit[1]
     out = _tensor_structure(mesh)
     if out is not None:
         for a in out:
             a.flags.writeable = False     # shared by every caller
-    if len(_TENSOR_CACHE) >= 8:
-        _TENSOR_CACHE.pop(next(iter(_TENSOR_CACHE)))
     try:
-        _TENSOR_CACHE[key] = (weakref.ref(mesh), stamp, out)
-    except TypeError:          # pragma: no cover - a mesh type without weak references: not remembered
+        setattr(mesh, _TENSOR_ATTR, (stamp, out))
+    except (AttributeError, TypeError):   # pragma: no cover - a mesh type that takes no attributes: not kept
         pass
     return out
+
+
+#: Attribute of a mesh holding its :func:`tensor_structure` (with the stamp it was built for).
+_TENSOR_ATTR = "_femreg_tensor_structure"
 
 
 def _tensor_structure(mesh: MeshQuad1):
@@ -189,3 +187,32 @@ def _tensor_structure(mesh: MeshQuad1):
     if (cell < 0).any():
         return None
     return xs, ys, cell
+
+
+def check_mesh(points, cells, u=None, where="mesh"):
+    """Validate (2, n_nodes) points, (4, n_el) cells and (2*n_nodes,) u; return float/int arrays."""
+    try:
+        p = np.asarray(points, dtype=float)
+        t = np.asarray(cells)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: mesh_points / mesh_cells are not numeric arrays") from None
+    if p.ndim != 2 or p.shape[0] != 2 or p.shape[1] < 4:
+        raise InputError(f"{where}: mesh_points must be (2, n_nodes) with n_nodes >= 4, got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{where}: mesh_points contain NaN/Inf")
+    if t.ndim != 2 or t.shape[0] != 4 or t.shape[1] < 1 or t.dtype.kind not in "iu":
+        raise InputError(f"{where}: mesh_cells must be (4, n_el) integers, got {t.shape} {t.dtype}")
+    if t.min() < 0 or t.max() >= p.shape[1]:
+        raise InputError(f"{where}: mesh_cells index nodes outside 0..{p.shape[1] - 1}")
+    t = t.astype(np.int64)
+    if u is None:
+        return p, t, None
+    uu = np.asarray(u, dtype=float)
+    n = p.shape[1]
+    if uu.shape == (n, 2):
+        uu = uu.ravel()
+    if uu.shape != (2 * n,):
+        raise InputError(f"{where}: u must be (2*n_nodes,) = ({2 * n},) interleaved [ux0, uy0, ...], got {uu.shape}")
+    if not np.all(np.isfinite(uu)):
+        raise InputError(f"{where}: u contains NaN/Inf")
+    return p, t, uu

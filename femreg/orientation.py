@@ -5,14 +5,14 @@ but wrong registration (the compression lands in the lateral strain, an inclusio
 lines x samples (transposed) and the two spacings exchanged.  The RF itself tells them apart:
 
 * **carrier** -- along the axial direction RF is a band-pass signal: its line-averaged power spectrum (the one the
-  RF period of :func:`femreg.pyramid.rf_period` is the centroid of) has almost no power below a third of its
+  RF period of :func:`femreg.speckle.rf_period` is the centroid of) has almost no power below a third of its
   centroid frequency; across lines the speckle is low-pass (the beam profile), with most power near zero.
   :func:`carrier_ratio` is that low-band to centre-band power ratio: 0.000-0.027 along the axial axis of simulated
   3-15 MHz probes (SNR 10-40 dB) and of the in vivo 4 MHz frames, 0.58-2.1 across their lines, 1.2 or more along
   both axes of their envelopes (benchmarks/orientation_check.py); across only 16-20 lines (narrow frames, coarse
   pitch) it falls to 0.3-0.7, and below :data:`MIN_SAMPLES` it is not measured.  A carrier across the lines and
   none along them is a transposed frame.
-* **centre frequency** -- the RF period ``T`` (mm of depth) from :func:`femreg.pyramid.speckle_statistics` gives
+* **centre frequency** -- the RF period ``T`` (mm of depth) from :func:`femreg.speckle.speckle_statistics` gives
   ``f = c / (2 T)`` (pulse-echo: a period in depth is half a wavelength).  Outside :data:`FREQUENCY_MHZ` the axial
   spacing is wrong (units, or swapped).
 * **lateral speckle against the period** -- the lateral speckle cell (FWHM of the envelope autocorrelation) is
@@ -50,7 +50,7 @@ MIN_LATERAL_CELL_PERIODS = 1.0
 MIN_SAMPLES = 16
 #: Spectra are zero-padded to at least this many bins, so that short axes still have a low band to measure.
 MIN_FFT = 256
-#: Rows of the block the speckle statistics are measured on (:func:`femreg.pyramid.speckle_statistics`).
+#: Rows of the block the speckle statistics are measured on (:func:`femreg.speckle.speckle_statistics`).
 SPECKLE_ROWS = 1024
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
@@ -63,7 +63,7 @@ class OrientationError(InputError):
 
 def _power_spectrum(img):
     """Line-averaged power spectrum along axis 0 (each line's mean removed) and its FFT length, zero-padded to a
-    fast length of at least :data:`MIN_FFT` -- the spectrum of :func:`femreg.pyramid.rf_period`."""
+    fast length of at least :data:`MIN_FFT` -- the spectrum of :func:`femreg.speckle.rf_period`."""
     from scipy import fft as sfft
 
     nf = sfft.next_fast_len(max(img.shape[0], MIN_FFT), real=True)
@@ -95,7 +95,7 @@ def carrier_ratio(image) -> float:
 @dataclass
 class OrientationReport:
     """What the RF says about its own layout.  ``carrier`` = :func:`carrier_ratio` along (axis 0, axis 1);
-    ``period_mm`` the axial RF period (:func:`femreg.pyramid.speckle_statistics`), ``samples_per_period``,
+    ``period_mm`` the axial RF period (:func:`femreg.speckle.speckle_statistics`), ``samples_per_period``,
     ``frequency_mhz`` = c / (2 period), ``lateral_cell_mm`` the lateral speckle cell and ``cell_periods`` its
     ratio to the period (NaN where no carrier was found); ``problem`` "" or "transposed", "swapped",
     "spacing"; ``message`` the reason (one line)."""
@@ -129,7 +129,7 @@ class OrientationReport:
 def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> OrientationReport:
     """Check one (axial, lateral) RF frame against ``spacing`` (dx, dy) mm (module docstring); never raises for
     the data (an image it cannot measure comes back without a problem)."""
-    from .pyramid import speckle_statistics
+    from .speckle import speckle_statistics
 
     img = np.asarray(image, float)
     dx, dy = (float(s) for s in np.broadcast_to(np.asarray(spacing, float).ravel(), (2,)))
@@ -196,8 +196,8 @@ def _strongest_rows(img, n: int = SPECKLE_ROWS):
 
 
 def _centroid_samples(img) -> float:
-    """1 / spectral centroid along axis 0 in samples (:func:`femreg.pyramid.rf_period` with unit spacing)."""
-    from .pyramid import rf_period
+    """1 / spectral centroid along axis 0 in samples (:func:`femreg.speckle.rf_period` with unit spacing)."""
+    from .speckle import rf_period
 
     return float(rf_period(img, (1.0, 1.0)))
 

@@ -21,13 +21,16 @@ function values, hence the interpolated fields, agree to round-off).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
 from . import _kernels
 from .mesh import tensor_node_grid, tensor_structure
 
-__all__ = ["Location", "PointLocator", "PixelQuadrature", "logical_grid"]
+__all__ = ["Location", "AxisLocation", "GridLocation", "PointLocator", "PixelQuadrature", "logical_grid",
+           "pixel_values"]
 
 # Reference square [0, 1]^2 of skfem's ElementQuad1; local node k sits at _REF[k].
 _REF = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
@@ -41,18 +44,64 @@ def _phi(X, Y):
     return phi, np.stack([dX, dY], axis=2)
 
 
+@dataclass(frozen=True)
+class AxisLocation:
+    """The samples of one axis of a tensor grid of points, located in the breaks (node coordinates) of a tensor
+    mesh along that axis: for the ``m`` samples inside, the interval ``cell`` (m,) int holding each, its reference
+    coordinate ``local`` (m,) in [0, 1] and the interval length ``h`` (m,) mm; ``index`` (m,) int: which of the
+    axis's samples they are (consecutive)."""
+
+    cell: np.ndarray
+    local: np.ndarray
+    h: np.ndarray
+    index: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.index.size)
+
+
+@dataclass(frozen=True)
+class GridLocation:
+    """Separable location of a tensor grid of points in a tensor mesh: one :class:`AxisLocation` per axis (axial
+    first).  The inside points are the C-order grid of the axes' inside samples; a cell of the mesh is the tuple
+    of the axes' intervals.  Two axes today (quads on a pixel grid); the same description holds for a third axis
+    (hexahedra on voxels), for refined tensor meshes (any breaks) and for samples along the rays of a convex probe
+    where the mesh is a tensor mesh in the probe's (depth, line) coordinates.
+
+    ``i``, ``X``, ``j``, ``Y``: the axial and lateral intervals and reference coordinates; ``rows``, ``cols``:
+    which point-grid rows and columns are inside; ``nr``, ``nc`` their numbers."""
+
+    axes: tuple
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(a.size for a in self.axes)
+
+    i = property(lambda self: self.axes[0].cell)
+    X = property(lambda self: self.axes[0].local)
+    hx = property(lambda self: self.axes[0].h)
+    rows = property(lambda self: self.axes[0].index)
+    nr = property(lambda self: self.axes[0].size)
+    j = property(lambda self: self.axes[1].cell)
+    Y = property(lambda self: self.axes[1].local)
+    hy = property(lambda self: self.axes[1].h)
+    cols = property(lambda self: self.axes[1].index)
+    nc = property(lambda self: self.axes[1].size)
+
+
 class Location:
     """Where points lie in a mesh.  ``inside`` (n,) bool; for the inside points only (m = inside.sum()):
     ``element`` (m,), ``nodes`` (m, 4) global node indices, ``N`` (m, 4) shape-function values,
     ``dN`` (m, 4, 2) physical gradients [d/dx, d/dy] per mm.
 
     ``grid`` (tensor meshes and a tensor grid of points, :meth:`PointLocator.locate_grid`): the separable
-    description ``dict(i, j, X, Y, nr, nc)``, the inside points being the C-order grid of ``nr`` rows (element row
-    ``i``, reference coordinate ``X`` each) by ``nc`` columns (``j``, ``Y``).  Per-point arrays given as None are
-    built by ``fill[name]()`` when first used (the image term needs only ``grid``).
+    description, a :class:`GridLocation` (the inside points are the C-order grid of ``nr`` rows, element row ``i``
+    and reference coordinate ``X`` each, by ``nc`` columns, ``j`` and ``Y``), else None.  Per-point arrays given
+    as None are built by ``fill[name]()`` when first used (the image term needs only ``grid``).
     """
 
-    def __init__(self, inside, element=None, nodes=None, N=None, dN=None, grid: dict | None = None,
+    def __init__(self, inside, element=None, nodes=None, N=None, dN=None, grid: GridLocation | None = None,
                  fill: dict | None = None):
         self.inside = inside
         self._element, self._nodes, self._N, self._dN = element, nodes, N, dN
@@ -234,8 +283,8 @@ class PointLocator:
                 "_N": lambda: (AX()[:, None, :] * AY()[None, :, :]).reshape(-1, 4),
                 "_dN": dN}
         # separable description (rows x cols of inside points), used for fast pixel-quadrature assembly
-        return Location(inside, grid=dict(i=i, j=j, X=X, Y=Y, nr=int(i.size), nc=int(j.size), rows=np.flatnonzero(inx),
-                                          cols=np.flatnonzero(iny)), fill=fill)
+        grid = GridLocation((AxisLocation(i, X, hx, np.flatnonzero(inx)), AxisLocation(j, Y, hy, np.flatnonzero(iny))))
+        return Location(inside, grid=grid, fill=fill)
 
     # -- logically structured (moved tensor mesh) -------------------------------------------------------
     def _walk(self, pts, steps: int = 8):
@@ -407,8 +456,8 @@ class PixelQuadrature:
         #: (row slice, column slice) of the image holding the quadrature pixels in C order, when they are a
         #: block (tensor meshes), else None: the image term then slices instead of gathering
         self.block = None
-        if loc.grid is not None and "rows" in loc.grid:
-            rows, cols = loc.grid["rows"], loc.grid["cols"]
+        if loc.grid is not None:
+            rows, cols = loc.grid.rows, loc.grid.cols
             nr, nc = rows.size, cols.size
             self.index = ((i0 + rows)[:, None] * self.shape[1] + (j0 + cols)[None, :]).ravel()
             self.axes = (xa[rows], ya[cols])
@@ -455,3 +504,17 @@ class PixelQuadrature:
     @property
     def n_pixels(self) -> int:
         return int(self.index.size)
+
+
+def pixel_values(quad, v) -> np.ndarray:
+    """Nodal scalar ``v`` (n_nodes,) at the quadrature pixels of ``quad`` (:class:`femreg.pixels.PixelQuadrature`),
+    (n_pixels,).  On a tensor mesh by two 1D interpolations of the node grid (rows, then columns), without the
+    per-pixel shape-function arrays."""
+    loc = quad.location
+    gr = loc.grid
+    if gr is None:
+        return quad.P @ v
+    Vg = np.asarray(v, float)[quad.locator.node_grid]                      # (nx, ny)
+    i, X, j, Y = gr.i, gr.X, gr.j, gr.Y
+    A = (1.0 - X)[:, None] * Vg[i] + X[:, None] * Vg[i + 1]                  # (nr, ny)
+    return ((1.0 - Y)[None, :] * A[:, j] + Y[None, :] * A[:, j + 1]).ravel()

@@ -69,10 +69,10 @@ def _image2d(a, name):
 def bmode(rf, dynamic_range=50.0, *, reference=None):
     """Log-compressed envelope of RF (axial along axis 0) in dB, clipped to ``[-dynamic_range, 0]``.
 
-    Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.pyramid.envelope`); 0 dB is its maximum (or ``reference``
+    Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.speckle.envelope`); 0 dB is its maximum (or ``reference``
     if given, e.g. to put several frames on one scale).  Returns float64 (axial, lateral).
     """
-    from .pyramid import envelope
+    from .speckle import envelope
 
     arr = _image2d(rf, "rf")
     if not np.all(np.isfinite(arr)):
@@ -511,13 +511,15 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
     """The relative shear-modulus image of :func:`femreg.invert`, its uncertainty when the result has one
     (``uncertainty``: per-element standard deviation of log mu), and the recovered axial strain (%) of the
     displacement it was computed from (:func:`femreg.fields.recovered_strains`, as in every femreg strain
-    picture), on the inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` or the path of its
-    ``.npz``.  A result that did not converge gets the red failure banner.  Writes ``out_png`` if given; returns
-    the figure."""
+    picture), on the inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` (a file: read it
+    with :func:`femreg.load_inversion`; ``InversionResult.plot`` is this function).  A result that did not
+    converge gets the red failure banner.  Writes ``out_png`` if given; returns the figure."""
     from .fields import recovered_strains
-    from .inversion import InversionResult, load_inversion
 
-    res = result if isinstance(result, InversionResult) else load_inversion(result)
+    if not all(hasattr(result, k) for k in ("mesh", "mu", "strain_measured", "model", "beta")):
+        raise InputError(f"plot_inversion needs an InversionResult (femreg.load_inversion reads a file), got "
+                         f"{type(result).__name__}")
+    res = result
     plt = _mpl()
     p, t = res.mesh.p, res.mesh.t
     ext = (p[0].max() - p[0].min()) / max(p[1].max() - p[1].min(), 1e-12)

@@ -25,7 +25,7 @@ Every level warps the moving image by the whole field of the level above (not on
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -38,6 +38,7 @@ from .mesh import roi_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .scaling import effective_alpha
 from .solver import Objective, gauss_newton
+from .speckle import SpeckleStats, envelope, rf_period, speckle_statistics  # noqa: F401  (also femreg.pyramid.*)
 
 __all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess",
@@ -81,22 +82,6 @@ ROTATION_SCAN_NCC = 0.5
 
 
 @dataclass
-class SpeckleStats:
-    """What the image itself says about its scale (mm): ``period`` = axial RF period (1 / spectral centroid),
-    ``cell`` = (axial, lateral) full width at half maximum of the envelope autocorrelation, ``pulse_cell`` the
-    same width computed from the RF (analytic-signal) autocorrelation, ``|rho|^2`` (None: not measured).  On fully
-    developed speckle the two agree (the envelope's autocovariance is ``|rho|^2``); on tissue the envelope also
-    holds the echo structure (layers, fibres) and ``cell`` grows with it while ``pulse_cell`` stays the pulse's
-    (in vivo 4 MHz frames: cell 0.76-1.0 x 2.4-3.2 mm, pulse_cell 0.20-0.24 x 0.4 mm).  ``envelope`` is the
-    image's envelope (:func:`envelope`), kept so that the pyramid does not compute it again."""
-
-    period: float
-    cell: np.ndarray
-    envelope: np.ndarray | None = dc_field(default=None, repr=False, compare=False)
-    pulse_cell: np.ndarray | None = None
-
-
-@dataclass
 class PyramidSettings:
     """Defaults derived from the image: ``element_size`` (2,) mm of the final mesh, ``decimation`` (axial factor
     of the envelope level), ``window`` / ``search`` (2,) mm of the local block matching."""
@@ -106,124 +91,6 @@ class PyramidSettings:
     window: np.ndarray
     search: np.ndarray
     lateral_decimation: int = 1
-
-
-def _analytic(img, complex_signal: bool = False, power: bool = False):
-    """Axial half spectrum of ``img`` zero-padded to ``nf`` samples (a fast FFT length >= n_axial), ``nf``, and
-    the envelope |analytic signal| (the transform of scipy.signal.hilbert); with ``complex_signal`` the analytic
-    signal itself instead of its modulus; with ``power`` the spectrum's |X|^2 instead of the spectrum.
-
-    The analytic signal is ``img + i H[img]``; its imaginary part, the Hilbert transform, is one real inverse
-    transform of ``-i sign(f) X`` (DC and Nyquist bins zero), which is what scipy.signal.hilbert's complex
-    inverse FFT computes, at half the cost.  The zero padding replaces the circular wrap of the end samples by
-    zeros (within a pulse length of the top and bottom rows) and avoids FFT lengths with large prime factors
-    (e.g. 1948 = 4 x 487 rows, several times slower).  Compiled, the spectrum product and the
-    modulus are single passes (the same values as numpy's)."""
-    from scipy import fft as sfft
-
-    m = img.shape[0]
-    nf = sfft.next_fast_len(m, real=True)
-    Xr = sfft.rfft(img, n=nf, axis=0)
-    if _kernels.use_compiled():
-        P = np.empty(Xr.shape) if power else np.empty((0, 0))
-        hil = sfft.irfft(_kernels.hilbert_half_spectrum(Xr, (nf + 1) // 2, P), n=nf, axis=0)
-        sig = _kernels.to_complex(img, hil) if complex_signal else _kernels.modulus(img, hil)
-        return (P if power else Xr), nf, sig
-    s = np.zeros(Xr.shape[0], complex)
-    s[1:(nf + 1) // 2] = -1j                      # positive frequencies, DC and Nyquist excluded
-    hil = sfft.irfft(Xr * s[:, None], n=nf, axis=0)[:m]
-    sig = img + 1j * hil if complex_signal else np.sqrt(img * img + hil * hil)
-    return (Xr.real ** 2 + Xr.imag ** 2 if power else Xr), nf, sig
-
-
-def envelope(image) -> np.ndarray:
-    """Envelope ``|analytic signal|`` along the axial direction (as scipy.signal.hilbert, zero-padded to a fast FFT
-    length)."""
-    return _analytic(np.asarray(image, float))[2]
-
-
-def _centroid_period(power, n: int, dx: float) -> float:
-    """1 / spectral centroid (mm) of a line-averaged axial power spectrum (n samples, DC bin ignored)."""
-    P = np.array(power, float)
-    P[0] = 0.0                                        # the line means (DC) carry no period
-    f = np.fft.rfftfreq(n, dx)
-    fc = float(np.sum(f * P) / np.sum(P)) if np.sum(P) > 0 else 0.0
-    return 1.0 / fc if fc > 0 else float(n * dx)
-
-
-def rf_period(image, spacing) -> float:
-    """Axial RF period (mm) alone, as in :func:`speckle_statistics` (one real FFT, no envelope)."""
-    from scipy import fft as sfft
-
-    img = np.asarray(image, float)
-    nf = sfft.next_fast_len(img.shape[0], real=True)     # zero-padded as in speckle_statistics
-    P = np.mean(np.abs(sfft.rfft(img, n=nf, axis=0)) ** 2, axis=1)
-    return _centroid_period(P, nf, float(spacing[0]))
-
-
-def _half_width(ac, d) -> float:
-    """Full width (mm) at half maximum of a one-sided autocorrelation ``ac`` (lag 0 first), lag step ``d``."""
-    ac = ac / ac[0] if ac[0] > 0 else ac
-    below = np.flatnonzero(ac < 0.5)
-    return 2.0 * (below[0] if below.size else len(ac)) * d
-
-
-def _envelope_cell(e, axis: int, d: float, direct_lags: int = 48, chunk: int = 4) -> float:
-    """:func:`_half_width` of the line-summed linear autocorrelation of ``e`` along ``axis``.
-
-    Lag by lag (one product per lag; compiled, ``chunk`` lags per pass over the image) while the half maximum
-    has not been crossed, which on speckle takes a few lags (a speckle cell is ~6-20 samples wide); past
-    ``direct_lags`` lags, the whole autocorrelation by a zero-padded FFT (Wiener-Khinchin), as before.  Both
-    give the same sums (to round-off)."""
-    from scipy import fft as sfft
-
-    m = e.shape[axis]
-    ea = np.moveaxis(e, axis, 0)
-    a0 = float(np.vdot(ea, ea))
-    if a0 > 0:
-        if _kernels.use_compiled() and ea.flags.c_contiguous:
-            for k0 in range(1, min(m, direct_lags), chunk):
-                s = _kernels.lag_products(ea, k0, min(k0 + chunk, m, direct_lags))
-                below = np.flatnonzero(s < 0.5 * a0)
-                if below.size:
-                    return 2.0 * (k0 + below[0]) * d
-        else:
-            for k in range(1, min(m, direct_lags)):
-                if float(np.einsum("ij,ij->", ea[:-k], ea[k:])) < 0.5 * a0:
-                    return 2.0 * k * d
-    nf = sfft.next_fast_len(2 * m, real=True)           # >= 2m - 1: linear (not circular) correlation to lag m
-    F = sfft.rfft(e, n=nf, axis=axis)
-    return _half_width(sfft.irfft(np.mean(F.real ** 2 + F.imag ** 2, axis=1 - axis), n=nf)[:m], d)
-
-
-def speckle_statistics(image, spacing) -> SpeckleStats:
-    """RF period from the axial power spectrum's centroid; speckle cell from the envelope autocorrelation and
-    pulse cell from the analytic signal's, ``|rho|^2`` (FFT, zero-padded, averaged over lines / rows), all in mm.
-    The line average is taken on the power spectra (one inverse transform; the same by linearity)."""
-    from scipy import fft as sfft
-
-    img = np.asarray(image, float)
-    dx, dy = float(spacing[0]), float(spacing[1])
-    P, n, a = _analytic(img, complex_signal=True, power=True)
-    env = np.abs(a)
-    power = np.mean(P, axis=1)                                    # line-averaged axial power spectrum (n bins)
-    period = _centroid_period(power, n, dx)
-    e = env - env.mean()
-    cell, pulse = [_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)], []
-    # pulse cell: axially from the one-sided power spectrum (Wiener-Khinchin; circular, the pulse is short),
-    # laterally lag by lag on every 4th row until |rho|^2 < 1/2 (a few lines; cheaper than a padded complex FFT)
-    spec = np.zeros(n)
-    spec[1:(n + 1) // 2] = power[1:(n + 1) // 2]
-    rho = sfft.ifft(spec)
-    pulse.append(_half_width(np.abs(rho[:n // 2]) ** 2, dx))
-    rows = a[::4]
-    r0 = float(np.sum(np.abs(rows) ** 2))
-    k = 1
-    while k < img.shape[1] and r0 > 0 and \
-            abs(np.vdot(rows[:, :-k], rows[:, k:])) ** 2 >= 0.5 * r0 ** 2:
-        k += 1
-    pulse.append(2.0 * k * dy)
-    return SpeckleStats(period=period, cell=np.array(cell), envelope=env, pulse_cell=np.array(pulse))
 
 
 def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max_size=None,

@@ -45,7 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from femreg.plot import bmode  # noqa: F401  (the one B-mode and the one envelope, re-exported)
-from femreg.pyramid import envelope  # noqa: F401
+from femreg.speckle import envelope  # noqa: F401
 
 __all__ = [
     "SPEED_OF_SOUND_MM_PER_S", "PSF", "ImagingGrid", "Scatterers", "make_scatterers", "render_rf",

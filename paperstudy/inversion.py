@@ -45,7 +45,7 @@ from typing import Callable
 
 import numpy as np
 
-from femreg._atomic import atomic_savez, atomic_write_text
+from femreg.io import atomic_savez, atomic_write_text
 
 __all__ = ["hypothesis_section", "run_inversions", "format_table", "conclusion", "sequence_truth", "DatasetTruth",
            "Disk", "load_study", "invert_task", "DATASETS", "MODELS", "FIXED_BETA", "BETAS", "CACHE_DIR"]
@@ -131,7 +131,7 @@ def invert_task(job: dict, cachedir) -> dict:
 
     import femreg
     from femreg.inversion import modulus_contrast
-    from femreg.registration import RegistrationResult
+    from femreg import RegistrationResult
     from skfem import MeshQuad1
 
     warnings.filterwarnings("ignore", category=RuntimeWarning)

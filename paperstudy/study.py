@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from femreg._atomic import atomic_savez, atomic_write_text
+from femreg.io import atomic_savez, atomic_write_text
 from femreg.autoalpha import DEFAULT_DECADES as DEFAULT_DECADES_AUTO
 from femreg.errors import InputError
 
@@ -371,7 +371,7 @@ def mesh_floor(seq, k: int, *, element_size=None, margin=None, crop_mm=None) -> 
     """Best error a registration on this mesh could reach: the true field interpolated at the mesh nodes, scored
     by :func:`case_metrics` (the discretisation floor of the bilinear mesh; no images involved)."""
     from femreg.mesh import roi_mesh
-    from femreg.registration import RegistrationResult
+    from femreg import RegistrationResult
 
     frames, origin = _crop(seq, crop_mm)
     mesh = roi_mesh(frames.shape[1:], seq.spacing, origin, element_size=element_size, margin=margin)
@@ -1650,7 +1650,7 @@ def _grid_fields(res: StudyResult, spec, k):
     """ux, uy, exx, eyy, exy of a case's stored field and of the truth on a decimated pixel grid."""
     from skfem import MeshQuad1
 
-    from femreg.registration import RegistrationResult
+    from femreg import RegistrationResult
 
     seq = load_case_sequence(spec)
     frames, origin = _crop(seq, spec["crop_mm"])

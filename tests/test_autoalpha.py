@@ -99,9 +99,9 @@ def test_failed_registrations_are_no_candidates():
 
 
 def test_choose_alpha_never_returns_a_failed_registration(pair, monkeypatch):
-    import femreg.registration as R
+    import femreg.autoalpha as A
 
-    real = R.register
+    real = A.ENGINE
 
     def flaky(*a, **kw):      # the two smallest alphas of the grid (0.0042, 0.0133) report failure
         res = real(*a, **kw)
@@ -109,7 +109,7 @@ def test_choose_alpha_never_returns_a_failed_registration(pair, monkeypatch):
             res.success = False
         return res
 
-    monkeypatch.setattr(R, "register", flaky)
+    monkeypatch.setattr(A, "ENGINE", flaky)
     ref, mov = pair
     choice = choose_alpha(ref, mov, regularizer="momentum-stress", spacing=SPACING, origin=ORIGIN,
                           element_size=1.0, margin=0.6)

@@ -76,7 +76,7 @@ def test_compiled_outside_mask_matches_numpy(pair, monkeypatch):
     w = {}
     for flag in (True, False):
         monkeypatch.setattr(_kernels, "HAVE_NUMBA", flag)
-        sol = femreg.registration._solve(I1, I2, mesh, SHAPE, np.asarray(SP), np.zeros(2),
+        sol = femreg.gnsolve.solve(I1, I2, mesh, SHAPE, np.asarray(SP), np.zeros(2),
                                          lambda: femreg.regularizers.make_regularizer("momentum-stress"), u0,
                                          maxiter=0, mask_outside=True)
         w[flag] = sol.data.w

@@ -14,35 +14,23 @@ from __future__ import annotations
 
 import argparse
 
+from .. import options
 from ..errors import InputError
 
 
 def _frame_selection(text: str):
-    """'3' -> 3, '0:10' / '0:10:2' -> slice, '1,3,5' -> [1, 3, 5]."""
-    text = text.strip()
+    """'3' -> 3, '0:10' / '0:10:2' -> slice, '1,3,5' -> [1, 3, 5] (:func:`femreg.options.frame_selection`)."""
     try:
-        if ":" in text:
-            parts = [int(p) if p.strip() else None for p in text.split(":")]
-            if len(parts) > 3:
-                raise ValueError
-            return slice(*parts)
-        if "," in text:
-            return [int(p) for p in text.split(",") if p.strip()]
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+        return options.frame_selection(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _spacing_value(text: str):
-    if text.lower() in ("auto", "header", "-"):
-        return None
     try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's)") from None
-    if not (v > 0 and v < float("inf")):
-        raise argparse.ArgumentTypeError(f"spacing must be positive, got {text!r}")
-    return v
+        return options.spacing_value(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
@@ -66,12 +54,7 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
 
 def reader_kwargs(args) -> dict:
     """The :func:`femreg.io.read_frames` keyword arguments from parsed reader flags."""
-    shape = getattr(args, "shape", None)
-    if shape is not None and len(shape) not in (2, 3):
-        raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
-    return dict(variable=getattr(args, "variable", None), shape=shape, dtype=getattr(args, "dtype", None),
-                spacing=getattr(args, "spacing", None), byte_order=getattr(args, "byte_order", None),
-                frames=getattr(args, "frames", None), sound_speed=getattr(args, "sound_speed", None))
+    return options.reader_kwargs(vars(args))
 
 
 def frames_from_args(args, path=None, *, allow_sector: bool = False):
@@ -99,8 +82,10 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     from ..regularizers import available_regularizers
 
     g = parser.add_argument_group("registration options")
-    g.add_argument("-r", "--regularizer", default="momentum-stress", metavar="NAME",
-                   help="regulariser: " + ", ".join(available_regularizers()) + " (default momentum-stress = R_P_sigma)")
+    defaults = options.REGISTRATION_DEFAULTS
+    g.add_argument("-r", "--regularizer", default=defaults["regularizer"], metavar="NAME",
+                   help="regulariser: " + ", ".join(available_regularizers())
+                        + f" (default {defaults['regularizer']})")
     g.add_argument("--alpha", type=_alpha_arg, metavar="ALPHA|auto",
                    help="regulariser weight (default: the regulariser's documented one); 'auto' chooses it from the "
                         "first pair without ground truth (femreg.autoalpha, several registrations)")
@@ -115,14 +100,16 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
                    help="depth range registered, mm, over all lines (instead of --roi)")
     g.add_argument("--hourglass", type=float, default=None, metavar="W",
                    help="momentum regularisers only: hourglass control weight relative to alpha (default with "
-                        "--strategy auto: femreg.registration.DEFAULT_HOURGLASS for a pair, 1000 for R_P_sigma, "
+                        "--strategy auto: femreg.strategy.DEFAULT_HOURGLASS for a pair, 1000 for R_P_sigma, "
                         "femreg.sequence.TRACK_HOURGLASS for the increments of track; 0 = the paper's with "
                         "--strategy paper)")
-    g.add_argument("--strategy", choices=("auto", "paper"), default="auto",
+    g.add_argument("--strategy", choices=("auto", "paper"), default=defaults["strategy"],
                    help="auto (default): speckle-sized mesh, coarse-to-fine start, peak-hopping repair; paper: the "
                         "paper's procedure (5 x 9 mm block matching, 2 mm mesh)")
-    g.add_argument("--maxiter", type=int, default=20, help="Gauss-Newton iterations (default 20)")
-    g.add_argument("--tol", type=float, default=1e-3, help="stop when ||du||/||u|| < TOL (default 1e-3)")
+    g.add_argument("--maxiter", type=int, default=defaults["maxiter"],
+                   help=f"Gauss-Newton iterations (default {defaults['maxiter']})")
+    g.add_argument("--tol", type=float, default=defaults["tol"],
+                   help=f"stop when ||du||/||u|| < TOL (default {defaults['tol']:g})")
     g.add_argument("--no-orientation-check", action="store_true",
                    help="skip the check that refuses frames that look transposed (lines x samples) or a spacing "
                         "that looks swapped, judged from the RF carrier (femreg.orientation)")
@@ -130,47 +117,26 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
 
 def registration_kwargs(args) -> dict:
     """Keyword arguments of :func:`femreg.register` / :func:`femreg.track` from the registration flags."""
-    es = args.element_size
-    if es is not None and len(es) not in (1, 2):
-        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
-    if args.alpha is not None and args.alpha != "auto" and not (args.alpha >= 0 and args.alpha < float("inf")):
-        raise InputError(f"--alpha must be a finite number >= 0, got {args.alpha}")
-    from ..regularizers import available_regularizers
-
-    if args.regularizer not in available_regularizers():
-        raise InputError(f"unknown regularizer {args.regularizer!r}; choose one of {available_regularizers()}")
-    opts = {}
-    if args.hourglass is not None:
-        if not args.regularizer.startswith("momentum"):
-            raise InputError(f"--hourglass applies to the momentum regularisers, not {args.regularizer!r}")
-        if not (args.hourglass >= 0 and args.hourglass < float("inf")):
-            raise InputError(f"--hourglass must be a finite number >= 0, got {args.hourglass}")
-        opts["regularizer_options"] = {"hourglass": args.hourglass}
-    return dict(**opts, regularizer=args.regularizer, alpha=args.alpha, strategy=getattr(args, "strategy", "auto"),
-                element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
-                margin=args.margin, maxiter=args.maxiter, tol=args.tol,
-                check_orientation=not getattr(args, "no_orientation_check", False), **region_kwargs(args))
+    return options.registration_kwargs(vars(args))
 
 
 def region_kwargs(args) -> dict:
-    """``roi`` and ``depth`` of :func:`femreg.register` from ``--roi`` (4 numbers, auto or full) and ``--depth``."""
-    roi = getattr(args, "roi", None)
-    depth = getattr(args, "depth", None)
-    if isinstance(roi, str):
-        roi = [roi]
-    if roi is None or [str(v).lower() for v in roi] == ["auto"]:
-        out = "auto"
-    elif [str(v).lower() for v in roi] in (["full"], ["none"]):
-        out = None
-    else:
-        try:
-            out = tuple(float(v) for v in roi)
-        except (TypeError, ValueError):
-            out = ()
-        if len(out) != 4:
-            raise InputError(f"--roi takes X0 X1 Y0 Y1 (mm), auto or full, got {' '.join(map(str, roi))}")
-    if depth is not None:
-        if roi is not None and out != "auto":
-            raise InputError("give --roi or --depth, not both")
-        return dict(roi="auto", depth=tuple(float(v) for v in depth))
-    return dict(roi=out, depth=None)
+    """``roi`` and ``depth`` of :func:`femreg.register` from ``--roi`` (4 numbers, auto or full) and ``--depth``
+    (:func:`femreg.options.region_kwargs`)."""
+    return options.region_kwargs(vars(args))
+
+
+def failed_notice(path, success, message, flag="") -> int:
+    """After drawing: say when the result drawn is a failed or flagged computation (exit 1), else 0."""
+    import sys
+
+    import numpy as np
+
+    if isinstance(success, (bool, int, np.bool_)) and not success and message:   # no message: made by hand
+        print(f"femreg plot: FAILED: {path} is a failed computation: {str(message).removeprefix('FAILED: ')}",
+              file=sys.stderr)
+        return 1
+    if flag:
+        print(f"femreg plot: FLAGGED: {path}: {flag}", file=sys.stderr)
+        return 1
+    return 0

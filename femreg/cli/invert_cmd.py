@@ -115,6 +115,6 @@ def plot_inversion_file(args) -> int:
     if getattr(args, "vtu", None):
         res.to_vtu(args.vtu)
         print(f"wrote {args.vtu}")
-    from .plot_cmd import failed_notice
+    from ._common import failed_notice
 
     return failed_notice(args.result, res.success, res.message)

@@ -136,7 +136,7 @@ def _modulus(res, roi, bg) -> dict:
 def measure(path, inclusion, background=None, strain="element") -> dict:
     """The numbers of ``femreg measure`` as a dict (JSON-ready); InputError on bad input."""
     from ..inversion import is_inversion_file, load_inversion
-    from ..io.results import load_result
+    from ..result import load_result
     from ..metrics import contrast_metrics
 
     inversion = is_inversion_file(path)

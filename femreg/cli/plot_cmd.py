@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import add_reader_args, frames_from_args
+from ._common import add_reader_args, failed_notice, frames_from_args  # noqa: F401  (failed_notice: also here)
 
 
 def add_parser(subparsers):
@@ -103,19 +103,3 @@ def _run(args) -> int:
         render_mesh(p, t, vals, args.render, name=name)
         print(f"wrote {args.render}")
     return failed_notice(args.result, res.get("success", True), res.get("message", ""), res.get("flag", ""))
-
-
-def failed_notice(path, success, message, flag="") -> int:
-    """After drawing: say when the result drawn is a failed or flagged computation (exit 1), else 0."""
-    import sys
-
-    import numpy as np
-
-    if isinstance(success, (bool, int, np.bool_)) and not success and message:   # no message: made by hand
-        print(f"femreg plot: FAILED: {path} is a failed computation: {str(message).removeprefix('FAILED: ')}",
-              file=sys.stderr)
-        return 1
-    if flag:
-        print(f"femreg plot: FLAGGED: {path}: {flag}", file=sys.stderr)
-        return 1
-    return 0

@@ -9,10 +9,19 @@ never sees a torn file).  Every failure is a :class:`~femreg.errors.FileFormatEr
 from .._atomic import atomic_savez, atomic_write_text
 from .frames import Frames
 from .readers import FORMATS, detect_format, read_frames
-from .results import (GRID_FIELDS, RESULT_KEYS, element_strains, export_result, load_result, mesh_fields,
-                      nodal_average, save_result, write_vtu, write_xdmf)
+from .results import (GRID_FIELDS, RESULT_KEYS, element_strains, export_result, mesh_fields, nodal_average,
+                      read_result, save_result, write_vtu, write_xdmf)
 from .writers import save_frames
 
 __all__ = ["Frames", "read_frames", "save_frames", "detect_format", "FORMATS", "RESULT_KEYS", "GRID_FIELDS",
-           "load_result", "save_result", "export_result", "write_vtu", "write_xdmf", "element_strains",
+           "load_result", "read_result", "save_result", "export_result", "write_vtu", "write_xdmf", "element_strains",
            "nodal_average", "mesh_fields", "atomic_savez", "atomic_write_text"]
+
+
+def __getattr__(name):
+    # femreg.io.load_result is femreg.load_result (femreg.result), which writes through femreg.io.results
+    if name == "load_result":
+        from ..result import load_result
+
+        return load_result
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

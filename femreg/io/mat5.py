@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .frames import fail
+from .checks import fail
 
 _MI = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 9: "f8", 12: "i8", 13: "u8"}
 MI_MATRIX, MI_COMPRESSED = 14, 15

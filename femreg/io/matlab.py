@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .frames import check_origin, fail, finalize, merge_spacing
+from .checks import check_origin, fail, merge_spacing, validate_frames
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
@@ -107,7 +107,7 @@ def _aux(path, values: dict, spacing):
 
 
 def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
-    """Read a MATLAB file (any version) into :class:`~femreg.io.Frames` (see module docstring)."""
+    """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
     path = Path(path)
     version = mat_version(path)
     if version == "7.3":
@@ -134,7 +134,7 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
         data, cands, name = _read_mat4(path, variable)
     sp, origin = _aux(path, data, spacing)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
-    return finalize(path, _mat_layout(data[name]), sp, origin, meta, frames)
+    return validate_frames(path, _mat_layout(data[name]), sp, origin, meta, frames)
 
 
 def _read_mat4(path, variable):
@@ -197,7 +197,7 @@ def _read_mat73(path, variable, spacing, frames):
         raise fail(path, f"corrupt or truncated MAT-file v7.3 / HDF5 ({type(exc).__name__}: {exc})") from None
     sp, origin = _aux(path, aux, spacing)
     meta = {"format": "mat-v7.3", "variable": name, "variables": sorted(cands)}
-    return finalize(path, _mat_layout(arr), sp, origin, meta, frames)
+    return validate_frames(path, _mat_layout(arr), sp, origin, meta, frames)
 
 
 # ------------------------------------------------------------------------------------------------- writers

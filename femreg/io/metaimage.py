@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .frames import fail, finalize, merge_spacing
+from .checks import fail, merge_spacing, validate_frames
 
 ELEMENT_TYPES = {
     "MET_CHAR": "i1", "MET_UCHAR": "u1", "MET_SHORT": "i2", "MET_USHORT": "u2",
@@ -147,7 +147,7 @@ def _data_files(path: Path, fields, value: str, header_end: int, ndims: int, dim
 
 
 def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
-    """Read a MetaImage ``.mhd``/``.mha`` file into :class:`~femreg.io.Frames` (see the module docstring)."""
+    """Read a MetaImage ``.mhd``/``.mha`` file: the fields of a :class:`~femreg.io.Frames` (module docstring)."""
     path = Path(path)
     fields, keys, header_end = _parse_header(path)
     for req in ("ndims", "dimsize", "elementtype"):
@@ -230,7 +230,7 @@ def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
     sp = merge_spacing(path, file_spacing, spacing, required_msg="the header has no ElementSpacing")
     meta = {"format": "metaimage", "header": {keys[k]: v for k, v in fields.items()},
             "element_type": etype, "byte_order": "big" if msb else "little", "dtype": str(dtype.newbyteorder("="))}
-    return finalize(path, arr, sp, origin, meta, frames)
+    return validate_frames(path, arr, sp, origin, meta, frames)
 
 
 def write_metaimage(path, frames: np.ndarray, spacing, origin=(0.0, 0.0), *, dtype=None, byte_order="little",

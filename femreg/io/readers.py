@@ -28,58 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .frames import Frames, check_origin, fail, finalize, merge_spacing
+from .checks import FORMATS, check_origin, fail, merge_spacing, parse_dtype  # noqa: F401  (FORMATS, parse_dtype: API)
+from .frames import Frames, finalize
 
 __all__ = ["read_frames", "FORMATS", "detect_format", "parse_dtype"]
 
-FORMATS = {
-    ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
-    ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
-    ".uff": "uff",
-}
 _MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
           (b"\x89HDF\r\n\x1a\n", "mat")]
 PREFERRED_KEYS = ("rf", "frames")
 _MAX_BYTES = 1 << 34  # refuse arrays claiming more than 16 GiB (a corrupt header, not RF)
-
-_DTYPES = {"float32": "f4", "float": "f4", "single": "f4", "f4": "f4", "met_float": "f4",
-           "float64": "f8", "double": "f8", "f8": "f8", "met_double": "f8",
-           "int16": "i2", "short": "i2", "i2": "i2", "met_short": "i2",
-           "uint16": "u2", "ushort": "u2", "u2": "u2", "met_ushort": "u2",
-           "int8": "i1", "i1": "i1", "met_char": "i1", "uint8": "u1", "u1": "u1", "met_uchar": "u1",
-           "int32": "i4", "i4": "i4", "met_int": "i4", "uint32": "u4", "u4": "u4", "met_uint": "u4"}
-
-
-def parse_dtype(dtype, byte_order=None) -> np.dtype:
-    """On-disk sample type from a name (``float32``, ``int16``, ``<f4``, ``MET_SHORT``, ...) and byte order
-    (``little``/``big``, ``<``/``>``; default little, or the order given in the dtype string)."""
-    order = None
-    if dtype is None:
-        code = "f4"
-    elif isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
-        dt = np.dtype(dtype)
-        code = dt.str[1:]
-        order = dt.byteorder if dt.byteorder in "<>" else None
-    else:
-        s = str(dtype).strip().lower()
-        if s[:1] in "<>=|":
-            order = s[0] if s[0] in "<>" else None
-            s = s[1:]
-        code = _DTYPES.get(s)
-        if code is None:
-            raise InputError(f"unknown dtype {dtype!r}; use one of float32, float64, int16, uint16, int8, uint8, "
-                             "int32, uint32")
-    if code not in _DTYPES.values():
-        raise InputError(f"unsupported dtype {dtype!r} for RF samples")
-    if byte_order is not None:
-        bo = {"little": "<", "<": "<", "le": "<", "big": ">", ">": ">", "be": ">"}.get(str(byte_order).lower())
-        if bo is None:
-            raise InputError(f"byte_order must be 'little' or 'big', got {byte_order!r}")
-        if order is not None and order != bo and code[1] != "1":
-            raise InputError(f"dtype {dtype!r} and byte_order {byte_order!r} disagree")
-        order = bo
-    return np.dtype((order or "<") + code)
-
 
 def _check_shape(shape):
     if shape is None:
@@ -226,7 +183,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
         if sibling.exists():
             from .metaimage import read_metaimage
 
-            return read_metaimage(sibling, spacing=spacing, frames=frames)
+            return Frames(**read_metaimage(sibling, spacing=spacing, frames=frames))
         raise InputError(f"{path}: raw file needs shape=(axial, lateral) (CLI: --shape NAX NLAT); "
                          "no header to read it from")
     dt = parse_dtype(dtype, byte_order)
@@ -381,25 +338,25 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
 def _read_mat(path, **kw):
     from .matlab import read_mat
 
-    return read_mat(path, **kw)
+    return Frames(**read_mat(path, **kw))
 
 
 def _read_mhd(path, **kw):
     from .metaimage import read_metaimage
 
-    return read_metaimage(path, **kw)
+    return Frames(**read_metaimage(path, **kw))
 
 
 def _read_rf(path, **kw):
     from .ultrasonix import read_ultrasonix
 
-    return read_ultrasonix(path, **kw)
+    return Frames(**read_ultrasonix(path, **kw))
 
 
 def _read_uff(path, **kw):
     from .uff import read_uff
 
-    return read_uff(path, **kw)
+    return Frames(**read_uff(path, **kw))
 
 
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,

@@ -1,7 +1,7 @@
 """Registration results on disk: the ``.npz`` contract, and VTU / XDMF exports through meshio for ParaView.
 
-The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`load_result` (a
-:class:`femreg.RegistrationResult`); the first six keys are required:
+The ``.npz`` contract, written by :func:`save_result` (``res.save(path)``) and read by :func:`read_result` (from
+which :func:`femreg.load_result` builds a :class:`femreg.RegistrationResult`); the first six keys are required:
 
 =================  ==============================  ===================================================
 key                shape                           meaning
@@ -44,9 +44,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
-from .frames import fail
+from ..mesh import check_mesh  # noqa: F401  (also femreg.io.results.check_mesh)
+from .._atomic import atomic_savez
+from .checks import fail
 
-__all__ = ["RESULT_KEYS", "GRID_FIELDS", "load_result", "save_result", "element_strains", "nodal_average",
+__all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_strains",
+           "nodal_average",
            "mesh_fields", "write_vtu", "write_xdmf", "export_result"]
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
@@ -59,35 +62,6 @@ GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 def _scalar(v):
     v = np.asarray(v)
     return v.item() if v.ndim == 0 else v
-
-
-def check_mesh(points, cells, u=None, where="mesh"):
-    """Validate (2, n_nodes) points, (4, n_el) cells and (2*n_nodes,) u; return float/int arrays."""
-    try:
-        p = np.asarray(points, dtype=float)
-        t = np.asarray(cells)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: mesh_points / mesh_cells are not numeric arrays") from None
-    if p.ndim != 2 or p.shape[0] != 2 or p.shape[1] < 4:
-        raise InputError(f"{where}: mesh_points must be (2, n_nodes) with n_nodes >= 4, got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{where}: mesh_points contain NaN/Inf")
-    if t.ndim != 2 or t.shape[0] != 4 or t.shape[1] < 1 or t.dtype.kind not in "iu":
-        raise InputError(f"{where}: mesh_cells must be (4, n_el) integers, got {t.shape} {t.dtype}")
-    if t.min() < 0 or t.max() >= p.shape[1]:
-        raise InputError(f"{where}: mesh_cells index nodes outside 0..{p.shape[1] - 1}")
-    t = t.astype(np.int64)
-    if u is None:
-        return p, t, None
-    uu = np.asarray(u, dtype=float)
-    n = p.shape[1]
-    if uu.shape == (n, 2):
-        uu = uu.ravel()
-    if uu.shape != (2 * n,):
-        raise InputError(f"{where}: u must be (2*n_nodes,) = ({2 * n},) interleaved [ux0, uy0, ...], got {uu.shape}")
-    if not np.all(np.isfinite(uu)):
-        raise InputError(f"{where}: u contains NaN/Inf")
-    return p, t, uu
 
 
 def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
@@ -231,15 +205,13 @@ def _read(path) -> dict:
     return out
 
 
-def load_result(path):
-    """Read a result ``.npz`` (see the module docstring) as a :class:`femreg.RegistrationResult`.
-
-    The one reader of the contract (``femreg.load_result`` is this function).  Raises
+def read_result(path):
+    """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
+    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` and the element-strain grid (or
+    None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
     from skfem import MeshQuad1
-
-    from ..registration import RegistrationResult
 
     d = _read(path)
     grid = {k: np.asarray(d[k], float) for k in GRID_FIELDS if k in d}
@@ -247,18 +219,16 @@ def load_result(path):
     element_grid = None
     if grid is not None and str(d.get("strain", "")) == "element":
         grid, element_grid = None, grid             # element strains: the default (recovered) grid is recomputed
-    res = RegistrationResult(
-        MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64)),
-        np.asarray(d["u"], float), shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
-        origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
-        success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
-        energy_history=np.atleast_1d(d.get("energy_history", ())), ncc_before=float(d.get("ncc_before", np.nan)),
-        ncc_after=float(d.get("ncc_after", np.nan)), grid=grid,
-        quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
-        strategy=str(d.get("strategy", "")),
-        excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
-    res._grid_element = element_grid
-    return res
+    mesh = MeshQuad1(np.asarray(d["mesh_points"], float), np.asarray(d["mesh_cells"], np.int64))
+    kw = dict(shape=tuple(int(n) for n in d["shape"]), spacing=d["spacing"],
+              origin=d["origin"], regularizer=str(d.get("regularizer", "")), alpha=float(d.get("alpha", np.nan)),
+              success=bool(d.get("success", False)), nit=int(d.get("nit", 0)), message=str(d.get("message", "")),
+              energy_history=np.atleast_1d(d.get("energy_history", ())),
+              ncc_before=float(d.get("ncc_before", np.nan)), ncc_after=float(d.get("ncc_after", np.nan)),
+              grid=grid, quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
+              strategy=str(d.get("strategy", "")),
+              excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
+    return mesh, np.asarray(d["u"], float), kw, element_grid
 
 
 def save_result(path, result, **extra) -> Path:
@@ -266,7 +236,6 @@ def save_result(path, result, **extra) -> Path:
     ``extra`` arrays, atomically (a reader never sees a torn file).  ``.npz`` is appended to a path without it.
 
     The one writer of the contract (``RegistrationResult.save`` is this function)."""
-    from .._atomic import atomic_savez
 
     d = dict(as_result_dict(result), **extra)
     missing = [k for k in REQUIRED if k not in d]
@@ -296,5 +265,3 @@ def export_result(result, path, *, strains="both"):
     if writer is None:
         raise InputError(f"{path}: export format must be .vtu, .xdmf or .npz, not {ext!r}")
     return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains)
-
-

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .frames import fail, finalize, merge_spacing
+from .checks import fail, merge_spacing, validate_frames
 
 __all__ = ["read_uff", "SOUND_SPEED"]
 
@@ -185,7 +185,7 @@ def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None
                         "azimuth_deg": [float(np.degrees(ax_l[0])), float(np.degrees(ax_l[-1])), int(ax_l.size)],
                         "axes": "samples (range from the apex, mm; azimuth, degrees); spacing and origin in those"}
     sp = merge_spacing(path, file_spacing, spacing)
-    return finalize(path, img, sp, origin, meta, frames)
+    return validate_frames(path, img, sp, origin, meta, frames)
 
 
 def require_cartesian(fr, what="registration"):

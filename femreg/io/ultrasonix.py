@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .frames import check_spacing, fail, finalize, merge_spacing, select_frames
+from .checks import check_spacing, fail, merge_spacing, select_frames, validate_frames
 
 HEADER_FIELDS = ("type", "frames", "w", "h", "ss", "ul_x", "ul_y", "ur_x", "ur_y", "br_x", "br_y",
                  "bl_x", "bl_y", "probe", "txf", "sf", "dr", "ld", "extra")
@@ -55,7 +55,7 @@ def read_header(path) -> dict:
 
 
 def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ignored):
-    """Read an Ultrasonix RF file into :class:`~femreg.io.Frames` ((n, h, w) float32, see module doc).
+    """Read an Ultrasonix RF file: the fields of a :class:`~femreg.io.Frames` ((n, h, w) float32, see module doc).
 
     Parameters
     ----------
@@ -113,7 +113,7 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
     meta = {"format": "ultrasonix", "header": hdr, "frame_tags": tagged, "sound_speed": c, "stored_dtype": "int16"}
     if tagged:
         meta["frame_numbers"] = tags
-    return finalize(path, out, sp, (0.0, 0.0), meta, None)
+    return validate_frames(path, out, sp, (0.0, 0.0), meta, None)
 
 
 def _tag_sequence(path, n: int, frame_bytes: int) -> bool:

@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .frames import check_origin, check_spacing
-from .readers import FORMATS, parse_dtype
+from .checks import FORMATS, check_origin, check_spacing, parse_dtype
 
 __all__ = ["save_frames"]
 

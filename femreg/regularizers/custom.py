@@ -57,14 +57,12 @@ regularizer=...)`` accepts directly (or by name after :func:`~femreg.regularizer
 """
 from __future__ import annotations
 
-import functools
-
 from typing import Callable, Sequence
 
 import numpy as np
-import scipy.sparse as sp
 
-from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE, QUADRATURES
+from ..fields import _unit_centre_gradients, centre_gradient_operators  # noqa: F401  (part of this API)
+from ..quadrature import EDGE_MIDPOINT_RULE, QUADRATURES
 from .base import QuadraticFormRegularizer, Regularizer
 from .momentum import DEFAULT_DELTA, TVRegularizer, facet_jump_operators
 
@@ -222,65 +220,3 @@ def from_jump_forms(forms, alpha: float = 1.0, *, delta: float = DEFAULT_DELTA, 
     return TVRegularizer(operator, alpha, delta=delta, penalty=penalty, name=name)
 
 
-@functools.lru_cache(maxsize=1)
-def _unit_centre_gradients() -> np.ndarray:
-    """d N_k / dx and d N_k / dy (4 corners (0,0) (1,0) (1,1) (0,1) in (x, y) steps, 2) at the centre of the unit
-    square, from scikit-fem (read-only)."""
-    from skfem import Basis, ElementQuad1, MeshQuad1
-
-    m = MeshQuad1(np.array([[0.0, 1.0, 1.0, 0.0], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
-    b = Basis(m, ElementQuad1(), quadrature=ELEMENT_CENTRE_RULE)
-    V = np.array([[b.basis[k][0].grad[c][0, 0] for c in range(2)] for k in range(4)])
-    V.flags.writeable = False
-    return V
-
-
-def centre_gradient_operators(mesh) -> tuple[dict[str, sp.csr_matrix], np.ndarray]:
-    r"""Displacement-gradient operators at element centres, the building block of element-wise TV terms.
-
-    Returns
-    -------
-    G : dict of (n_elements, 2 n_nodes) csr_matrix
-        ``G["ab"] @ u`` = :math:`\partial u_a / \partial x_b` (a, b in x, y; 1) at each element centre, e.g.
-        ``G["yy"]`` the lateral normal strain, ``0.5 * (G["xy"] + G["yx"])`` the shear strain.
-    areas : (n_elements,) float
-        Element areas (mm^2) for the centre rule, the natural weights of :math:`\int_\Omega`.
-    """
-    from skfem import Basis, ElementQuad1, ElementVector, MeshQuad1
-
-    from ..mesh import tensor_node_grid, tensor_structure
-
-    if not isinstance(mesh, MeshQuad1):
-        raise ValueError(f"centre_gradient_operators needs a scikit-fem MeshQuad1, got {type(mesh).__name__}")
-    ts = tensor_structure(mesh)
-    if ts is not None:
-        # axis-aligned tensor mesh: the centre gradients of the unit square from scikit-fem, scaled by 1/hx and
-        # 1/hy -- the same operators without a Basis over the whole mesh (0.25 ms instead of 1.6 on 576 elements)
-        xs, ys, cell = ts
-        I, J = np.meshgrid(np.arange(cell.shape[0]), np.arange(cell.shape[1]), indexing="ij")
-        e, i, j = cell.ravel(), I.ravel(), J.ravel()
-        node = tensor_node_grid(mesh, xs, ys)
-        corners = node[i[:, None] + np.array([0, 1, 1, 0]), j[:, None] + np.array([0, 0, 1, 1])]   # (n_el, 4)
-        hx, hy = xs[i + 1] - xs[i], ys[j + 1] - ys[j]
-        V = _unit_centre_gradients()                                               # (4 corners, 2)
-        n_el, n = mesh.t.shape[1], 2 * mesh.p.shape[1]
-        rows = np.broadcast_to(e[:, None], corners.shape).ravel()
-        G = {}
-        for a, an in enumerate("xy"):
-            for b, (bn, h) in enumerate(zip("xy", (hx, hy))):
-                G[an + bn] = sp.csr_matrix(((V[None, :, b] / h[:, None]).ravel(), (rows, (2 * corners + a).ravel())),
-                                           shape=(n_el, n))
-        areas = np.empty(n_el)
-        areas[e] = hx * hy
-        return G, areas
-    basis = Basis(mesh, ElementVector(ElementQuad1()), quadrature=ELEMENT_CENTRE_RULE)
-    n_el = mesh.t.shape[1]
-    dofs = basis.element_dofs
-    rows = np.broadcast_to(np.arange(n_el), dofs.shape).ravel()
-    grads = np.stack([basis.basis[i][0].grad[:, :, :, 0] for i in range(basis.Nbfun)])   # (Nb, 2, 2, n_el)
-    G = {}
-    for a, an in enumerate("xy"):
-        for b, bn in enumerate("xy"):
-            G[an + bn] = sp.csr_matrix((grads[:, a, b].ravel(), (rows, dofs.ravel())), shape=(n_el, basis.N))
-    areas = basis.dx[:, 0].copy()
-    return G, areas

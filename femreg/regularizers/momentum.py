@@ -63,30 +63,17 @@ import scipy.sparse as sp
 
 from .. import _kernels
 from ..errors import InputError
+from ..material import LAMBDA_BAR_PLANE_STRAIN, LAMBDA_BAR_PLANE_STRESS, lambda_bar
 from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE  # noqa: F401  (re-exported)
 from .base import Regularizer, register_regularizer
 
-#: :math:`\bar\lambda` of R_P_eps: plane strain, nu = 0.45 -> 2 nu / (1 - 2 nu) = 9 (paper, "Registration").
-LAMBDA_BAR_PLANE_STRAIN = 9.0
-#: :math:`\bar\lambda` of R_P_sigma: incompressible plane stress, nu = 1/2 -> 2 nu / (1 - nu) = 2.
-LAMBDA_BAR_PLANE_STRESS = 2.0
 #: Smoothing of the TV norm (eq:dmreg), as in the paper.
 DEFAULT_DELTA = 1e-8
 
 
 def lambda_bar_from_poisson(nu: float, model: str = "plane-strain") -> float:
-    r""":math:`\bar\lambda` of eq:cEq for Poisson's ratio ``nu``: ``2 nu / (1 - 2 nu)`` in plane strain,
-    ``2 nu / (1 - nu)`` in plane stress."""
-    nu = float(nu)
-    if model == "plane-strain":
-        if not -1.0 < nu < 0.5:
-            raise ValueError(f"plane-strain lambda_bar needs -1 < nu < 0.5, got nu={nu!r}")
-        return 2.0 * nu / (1.0 - 2.0 * nu)
-    if model == "plane-stress":
-        if not -1.0 < nu <= 0.5:
-            raise ValueError(f"plane-stress lambda_bar needs -1 < nu <= 0.5, got nu={nu!r}")
-        return 2.0 * nu / (1.0 - nu)
-    raise ValueError(f"model must be 'plane-strain' or 'plane-stress', got {model!r}")
+    r""":math:`\bar\lambda` of eq:cEq for Poisson's ratio ``nu`` (:func:`femreg.material.lambda_bar`)."""
+    return lambda_bar(model, nu)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -214,7 +201,7 @@ def element_centre_divergence(mesh) -> sp.csr_matrix:
     The 1-point reduced rule used for the dilatation of R_P_eps (appendix, last paragraph before eq:dmreg2):
     the trace of :func:`femreg.regularizers.centre_gradient_operators`.
     """
-    from .custom import centre_gradient_operators
+    from ..fields import centre_gradient_operators
 
     _check_quad_mesh(mesh)
     G, _ = centre_gradient_operators(mesh)
@@ -324,14 +311,14 @@ def _tensor_traction_jumps(mesh, ts, lambda_bar: float, centre_lambda: float = 0
     side 0 = ``mesh.f2t[0]``).  Each edge's row is the outward traction of both elements at the edge midpoint
     (jump with the side-0 normal = side 0's outward traction + side 1's), taken from :func:`_edge_tractions`:
     on a rectangle the traction is linear in 1/hx and 1/hy, so two one-element evaluations by scikit-fem give
-    it for every element size.  Why not ``InteriorFacetBasis`` here: its set-up costs 3-6 ms per mesh, and a
-    registration builds two meshes; this reuses the form's constants and assembles in about 1 ms.
+    it for every element size.  Why not ``InteriorFacetBasis`` here: its set-up per mesh costs more, and a
+    registration builds two meshes; this reuses the form's constants.
     ``lambda_bar`` weighs the dilatation at the edge midpoint; ``centre_lambda`` the jump of the element-centre
     dilatation times the side-0 normal (the centre form of :func:`momentum_jump_operators`), added to the same
     entries (the centre gradients of :func:`femreg.regularizers.centre_gradient_operators`)."""
     from ..mesh import tensor_node_grid
 
-    from .custom import _unit_centre_gradients
+    from ..fields import _unit_centre_gradients
 
     xs, ys, cell = ts
     A, B = _traction_parts(float(lambda_bar))
@@ -572,7 +559,7 @@ class TVRegularizer(Regularizer):
         data Hessian of eq:wfnew) as a symmetric CSC matrix.
 
         With the compiled kernels the sum lands in a pattern fixed per mesh, alpha and C (a Gustavson product
-        into it, 0.2 ms for 2.2 k edge terms against 0.9 ms for scipy's product plus the sums), so the linear
+        into it, cheaper than scipy's product plus the sums), so the linear
         solver also reuses its band layout."""
         dd = np.tile(self.diffusivity(u), self._m)     # row weights of the stacked operator
         Q = self.constant_hessian()

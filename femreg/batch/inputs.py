@@ -1,0 +1,204 @@
+"""Inputs of :mod:`femreg.batch`: the recordings (:class:`Job`: a frame file or a folder of frame files, its output
+name and settings) from files and folders, with their per-recording settings files.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+from .settings import _check_settings, default_settings
+
+__all__ = ["Job", "jobs_from_inputs", "settings_file_for"]
+
+
+@dataclass(frozen=True)
+class Job:
+    """One recording: ``input`` (a frame file, or a folder of per-frame files, as :func:`femreg.io.read_frames`
+    reads them), its output ``name`` (a folder of the batch output) and its ``settings``
+    (:func:`settings_keys`; :func:`default_settings` fills the rest).  ``task="track"`` is one task;
+    ``task="register"`` is one task per entry of ``settings["pairs"]``."""
+
+    input: str
+    name: str
+    settings: dict = field(default_factory=dict)
+
+    def resolved(self) -> dict:
+        s = default_settings()
+        s.update(self.settings)
+        return s
+
+
+def _read_settings_file(path: Path) -> dict:
+    try:
+        text = path.read_text()
+        if path.suffix == ".toml":
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                raise InputError(f"{path}: TOML settings need Python >= 3.11; use JSON") from None
+            data = tomllib.loads(text)
+        else:
+            data = json.loads(text)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read settings ({' '.join(str(exc).split())})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: settings must be a table/object of name = value")
+    out = {}
+    for k, v in data.items():
+        key = k.replace("-", "_")
+        if key == "pair":  # one pair, as the --pair flag
+            key, v = "pairs", [v]
+        out[key] = v
+    return out
+
+
+def settings_file_for(path) -> Path | None:
+    """The per-recording settings file of ``path``: ``<name>.femreg.toml`` or ``<name>.femreg.json`` beside it
+    (``<name>`` without the extension), or ``femreg.toml`` / ``femreg.json`` inside a folder recording."""
+    path = Path(path)
+    stem = path.name if path.is_dir() else path.stem
+    cands = [path.with_name(f"{stem}.femreg.toml"), path.with_name(f"{stem}.femreg.json")]
+    if path.is_dir():
+        cands += [path / "femreg.toml", path / "femreg.json"]
+    found = [c for c in cands if c.is_file()]
+    if len(found) > 1:
+        raise InputError(f"{path}: more than one settings file ({', '.join(str(f) for f in found)}); keep one")
+    return found[0] if found else None
+
+
+def _scan_folder(folder: Path, skip: Path | None) -> list[Path]:
+    """The recordings of a folder: every frame file (supported extension) and every sub-folder, in name
+    order; MetaImage data files (the .raw of a .mhd) and hidden entries are left out."""
+    from ..io.readers import FORMATS, natural_key
+
+    entries = sorted((p for p in folder.iterdir() if not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+    data_files = set()
+    for p in entries:
+        if p.is_file() and p.suffix.lower() in (".mhd",):
+            data_files.add(p.with_suffix(".raw").name)
+            with contextlib.suppress(OSError, UnicodeDecodeError):
+                for line in p.read_text(errors="strict").splitlines():
+                    if line.replace(" ", "").lower().startswith("elementdatafile="):
+                        data_files.add(line.split("=", 1)[1].strip())
+    out = []
+    for p in entries:
+        if skip is not None and p.resolve() == skip:
+            continue
+        if p.is_dir():
+            out.append(p)
+        elif p.is_file() and p.suffix.lower() in FORMATS and p.name not in data_files:
+            out.append(p)
+    return out
+
+
+def _names(paths: list[Path]) -> list[str]:
+    """Output names: the file name without extension (folder name), made unique by the path relative to the
+    inputs' common folder where two recordings share a name."""
+    base = [p.name if p.is_dir() else p.stem for p in paths]
+    if len(set(base)) == len(base):
+        return base
+    common = Path(os.path.commonpath([str(p.resolve()) for p in paths]))
+    out = []
+    for p, b in zip(paths, base):
+        if base.count(b) > 1:
+            rel = p.resolve().relative_to(common) if p.resolve() != common else Path(p.name)
+            out.append("__".join(rel.parts[:-1] + (b,)))
+        else:
+            out.append(b)
+    if len(set(out)) != len(out):
+        dup = sorted({n for n in out if out.count(n) > 1})
+        raise InputError(f"recordings with the same output name: {dup[:5]}; rename or run them separately")
+    return out
+
+
+def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "contents",
+                     out_dir=None) -> list[Job]:
+    """Jobs for ``inputs`` (files and folders), in a deterministic order.
+
+    A file is one recording.  A folder is, with ``folders="contents"`` (default), a folder of recordings: each
+    frame file in it and each sub-folder (a folder of per-frame files) is one; with ``folders="recording"`` the
+    folder itself is one recording (per-frame files).  ``settings`` (see :func:`settings_keys`) apply to all;
+    a recording's own settings file (:func:`settings_file_for`) overrides them for that recording.
+    Raises :class:`InputError` for a missing input, an empty folder, an unknown or bad setting.
+    """
+    if folders not in ("contents", "recording"):
+        raise InputError(f"folders must be 'contents' or 'recording', got {folders!r}")
+    skip = Path(out_dir).resolve() if out_dir is not None else None
+    paths: list[Path] = []
+    groups: list[tuple[Path, list[Path]]] = []      # (input, its recordings) for the checks before any task runs
+    for item in inputs:
+        p = Path(item)
+        if not p.exists():
+            raise InputError(f"{p}: no such file or directory")
+        if p.is_dir() and folders == "contents":
+            found = _scan_folder(p, skip)
+            if not found:
+                raise InputError(f"{p}: no recordings in this folder (frame files or sub-folders)")
+            paths += found
+            groups.append((p, found))
+        else:
+            paths.append(p)
+            groups.append((p, [p]))
+    seen, unique = set(), []
+    for p in paths:
+        r = p.resolve()
+        if r not in seen:
+            seen.add(r)
+            unique.append(p)
+    base = dict(settings or {})
+    _check_settings({**default_settings(), **base}, "settings")
+    jobs = []
+    for p, name in zip(unique, _names(unique)):
+        s = dict(base)
+        sf = settings_file_for(p)
+        if sf is not None:
+            s.update(_read_settings_file(sf))
+        job = Job(input=str(p.resolve()), name=name, settings=s)
+        _check_settings(job.resolved(), str(sf or p))
+        jobs.append(job)
+    by_input = {j.input: j for j in jobs}
+    for item, found in groups:
+        _check_first_recordings(item, [by_input[str(f.resolve())] for f in found if str(f.resolve()) in by_input])
+    return jobs
+
+
+def _frames_needed(settings: dict) -> int:
+    return 2 if settings["task"] == "track" else 1 + max(max(p) for p in settings["pairs"])
+
+
+def _check_first_recordings(item: Path, jobs: list) -> None:
+    """Bad input a batch can see before it runs, from the first readable recordings of one input: a folder
+    whose files hold one frame each (the frames of one recording, read as recordings of their own), and
+    frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  Recordings that
+    cannot be read are left to their tasks, which record the error."""
+    from ..io import read_frames
+    from ..orientation import OrientationError, check
+
+    probed = []
+    for job in jobs[:3]:
+        try:
+            reader_kw, _ = _check_settings(job.resolved(), job.input)
+            probed.append((job, read_frames(job.input, **reader_kw)))
+        except (InputError, OSError):
+            continue
+        if len(probed) == 2 or probed[0][1].n_frames > 1:
+            break
+    if not probed:
+        return
+    job, fr = probed[0]
+    s = job.resolved()
+    need = _frames_needed(s)
+    if item.is_dir() and len(jobs) > 1 and all(f.n_frames == 1 for _, f in probed) and need > 1:
+        what = "tracking needs 2" if s["task"] == "track" else f"pair {s['pairs'][0]} needs {need}"
+        raise InputError(f"{item}: its {len(jobs)} files hold one frame each, and each file is a recording of its "
+                         f"own ({what}); if they are the frames of one recording, pass --folders recording "
+                         f"(folders='recording')")
+    if not s.get("no_orientation_check"):
+        try:
+            check(fr.frames[0], fr.spacing)
+        except OrientationError as exc:
+            raise OrientationError(f"{job.input}: {exc}") from None

@@ -1,0 +1,85 @@
+"""The initial-guess stage of :func:`femreg.register`: the start u_1 on the final mesh, from the coarse-to-fine
+envelope pyramid (:mod:`femreg.pyramid`, ``strategy="auto"``), the paper's block matching with its coarse pass
+(:mod:`femreg.paperguess`, ``strategy="paper"``), zero, or the user's field.  On a sequence (``offset`` S) the
+pyramid and the block matching compare I_k(x + S) with I_{k+1}(x + S) on the pixel grid.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .blockmatch import BlockMatchResult
+from .image import pixel_axes
+from .paperguess import paper_initial_guess, wants_coarse_pass
+from .pyramid import PyramidGuess, default_settings, element_rule, pyramid_initial_guess, speckle_statistics
+from .result import displacement_at, nodal_values
+
+__all__ = ["InitialGuess", "initial_guess", "INITIAL_NAMES"]
+
+#: The named starts of ``register(initial=...)``.
+INITIAL_NAMES = ("pyramid", "blockmatch", "zero")
+
+
+@dataclass
+class InitialGuess:
+    """Output of :func:`initial_guess`: the nodal start ``u0`` (2 n_nodes,) mm; the block matching (or None); the
+    pyramid's guess (or None); ``coarse_u0``, the pyramid's field at the nodes (the coarse level the repair
+    trusts, or None); the speckle statistics and pyramid settings (computed here when the pyramid needed them);
+    seconds per sub-stage."""
+
+    u0: np.ndarray
+    blockmatch: BlockMatchResult | None = None
+    pyramid: PyramidGuess | None = None
+    coarse_u0: np.ndarray | None = None
+    stats: object = None
+    settings: object = None
+    timings: dict = field(default_factory=dict)
+
+
+def _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset):
+    """The two images the guess compares: the frames, or on a sequence both sampled at x + S(x)."""
+    if offset is None:
+        return ref, mov
+    x, y = pixel_axes(ref.shape, spacing, origin)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    Sg = displacement_at(offset, mesh, pts, "offset")
+    return I1(pts + Sg).reshape(ref.shape), I2(pts + Sg).reshape(ref.shape)
+
+
+def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory, *, alpha, regularizer,
+                  strategy="auto", offset=None, stats=None, settings=None, element_size=None, margin=None,
+                  maxiter=20, tol=1e-3, linear_solver="auto", blockmatch_options=None,
+                  coarse_to_fine="auto") -> InitialGuess:
+    """u_1 on ``mesh`` for ``initial`` (a name of :data:`INITIAL_NAMES`, a callable, a nodal vector, a
+    RegistrationResult or a BlockMatchResult; see :func:`femreg.register`).  ``ref``/``mov``: the normalised
+    frames, ``I1``/``I2`` their splines; ``stats``/``settings``: the speckle statistics and pyramid settings of
+    the mesh stage, if it computed them."""
+    if not isinstance(initial, str):
+        bm = initial if isinstance(initial, BlockMatchResult) else None
+        return InitialGuess(nodal_values(initial, mesh, "initial"), blockmatch=bm, stats=stats, settings=settings)
+    if initial == "zero":
+        return InitialGuess(np.zeros(2 * mesh.p.shape[1]), stats=stats, settings=settings)
+    a, b = _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset)
+    if initial == "blockmatch":
+        coarse = strategy == "paper" and offset is None
+        pg = paper_initial_guess(a, b, I1, I2, mesh, spacing, origin, reg_factory,
+                                 blockmatch_options=blockmatch_options,
+                                 coarse_pass=(lambda bm: wants_coarse_pass(coarse_to_fine, bm)) if coarse else False,
+                                 element_size=element_size, margin=margin, maxiter=maxiter, tol=tol,
+                                 linear_solver=linear_solver)
+        return InitialGuess(pg.u0, blockmatch=pg.blockmatch, stats=stats, settings=settings, timings=pg.timings)
+    env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
+    if stats is None:
+        stats = speckle_statistics(a, spacing)
+        settings = default_settings(a.shape, spacing, stats, element_size, **element_rule(regularizer))
+        env_a = stats.envelope
+    guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=alpha, stats=stats,
+                                  settings=settings, margin=margin, tol=tol, linear_solver=linear_solver,
+                                  ref_envelope=env_a)
+    v = guess(mesh.p.T)
+    u0 = np.empty(2 * len(v))
+    u0[0::2], u0[1::2] = v[:, 0], v[:, 1]
+    return InitialGuess(u0, blockmatch=guess.blockmatch, pyramid=guess, coarse_u0=u0.copy(), stats=stats,
+                        settings=settings, timings={f"pyramid_{k}": v for k, v in guess.timings.items()})

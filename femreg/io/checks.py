@@ -1,0 +1,174 @@
+"""Checks every reader and writer of RF frames shares: file-format errors naming the file, spacing, origin, frame
+selection, sample types, and the validated fields of a :class:`femreg.io.Frames` (:func:`validate_frames`).
+The lowest module of :mod:`femreg.io`: the format modules (MATLAB, MetaImage, Ultrasonix) build on it and return
+those fields; :mod:`femreg.io.readers` turns them into :class:`~femreg.io.Frames`.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FileFormatError, InputError
+
+__all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames", "FORMATS",
+           "parse_dtype"]
+
+FORMATS = {
+    ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
+    ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
+    ".uff": "uff",
+}
+_DTYPES = {"float32": "f4", "float": "f4", "single": "f4", "f4": "f4", "met_float": "f4",
+           "float64": "f8", "double": "f8", "f8": "f8", "met_double": "f8",
+           "int16": "i2", "short": "i2", "i2": "i2", "met_short": "i2",
+           "uint16": "u2", "ushort": "u2", "u2": "u2", "met_ushort": "u2",
+           "int8": "i1", "i1": "i1", "met_char": "i1", "uint8": "u1", "u1": "u1", "met_uchar": "u1",
+           "int32": "i4", "i4": "i4", "met_int": "i4", "uint32": "u4", "u4": "u4", "met_uint": "u4"}
+
+
+def parse_dtype(dtype, byte_order=None) -> np.dtype:
+    """On-disk sample type from a name (``float32``, ``int16``, ``<f4``, ``MET_SHORT``, ...) and byte order
+    (``little``/``big``, ``<``/``>``; default little, or the order given in the dtype string)."""
+    order = None
+    if dtype is None:
+        code = "f4"
+    elif isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
+        dt = np.dtype(dtype)
+        code = dt.str[1:]
+        order = dt.byteorder if dt.byteorder in "<>" else None
+    else:
+        s = str(dtype).strip().lower()
+        if s[:1] in "<>=|":
+            order = s[0] if s[0] in "<>" else None
+            s = s[1:]
+        code = _DTYPES.get(s)
+        if code is None:
+            raise InputError(f"unknown dtype {dtype!r}; use one of float32, float64, int16, uint16, int8, uint8, "
+                             "int32, uint32")
+    if code not in _DTYPES.values():
+        raise InputError(f"unsupported dtype {dtype!r} for RF samples")
+    if byte_order is not None:
+        bo = {"little": "<", "<": "<", "le": "<", "big": ">", ">": ">", "be": ">"}.get(str(byte_order).lower())
+        if bo is None:
+            raise InputError(f"byte_order must be 'little' or 'big', got {byte_order!r}")
+        if order is not None and order != bo and code[1] != "1":
+            raise InputError(f"dtype {dtype!r} and byte_order {byte_order!r} disagree")
+        order = bo
+    return np.dtype((order or "<") + code)
+
+
+def fail(path, problem: str) -> FileFormatError:
+    """A :class:`FileFormatError` whose one-line message names the file and the problem."""
+    problem = " ".join(str(problem).split())  # one line, whatever the wrapped library said
+    return FileFormatError(f"{path}: {problem}")
+
+
+def check_spacing(value, what: str = "spacing", allow_none: bool = False):
+    """Validate a ``(dx, dy)`` pair in mm: two positive finite numbers (or None entries if allowed)."""
+    if value is None:
+        return None
+    try:
+        vals = list(np.asarray(value, dtype=object).ravel())
+    except Exception as exc:  # pragma: no cover - np.asarray on odd objects
+        raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}") from exc
+    if len(vals) != 2:
+        raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}")
+    out = []
+    for v in vals:
+        if v is None and allow_none:
+            out.append(None)
+            continue
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}") from None
+        if not (math.isfinite(f) and f > 0):
+            raise InputError(f"{what} must be positive and finite (mm), got {value!r}")
+        out.append(f)
+    return tuple(out)
+
+
+def check_origin(value, path=None):
+    if value is None:
+        return (0.0, 0.0)
+    try:
+        arr = np.asarray(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise (fail(path, f"origin must be two numbers, got {value!r}") if path
+               else InputError(f"origin must be two numbers, got {value!r}")) from None
+    if arr.size != 2 or not np.all(np.isfinite(arr)):
+        msg = f"origin must be two finite numbers (x0, y0) in mm, got {value!r}"
+        raise fail(path, msg) if path else InputError(msg)
+    return (float(arr[0]), float(arr[1]))
+
+
+def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None):
+    """Spacing from the file, overridden component-wise by the user's (None entries keep the file's)."""
+    user = check_spacing(user_spacing, allow_none=True)
+    file_sp = list(file_spacing) if file_spacing is not None else [None, None]
+    if user is not None:
+        file_sp = [u if u is not None else f for u, f in zip(user, file_sp)]
+    if any(v is None for v in file_sp):
+        missing = " and ".join(n for n, v in zip(("axial dx", "lateral dy"), file_sp) if v is None)
+        msg = required_msg or "this format stores no pixel spacing"
+        raise InputError(f"{path}: {missing} spacing unknown ({msg}); give spacing=(dx, dy) in mm "
+                         "(CLI: --spacing DX DY)")
+    try:
+        return check_spacing(file_sp, what="spacing")
+    except InputError as exc:
+        raise fail(path, f"bad spacing {tuple(file_sp)} (must be positive, finite, mm)") from exc
+
+
+def select_frames(path, arr: np.ndarray, frames):
+    """Apply a frame selection (int, slice, sequence of ints, or None = all) to an (n, ...) stack."""
+    if frames is None:
+        return arr
+    n = arr.shape[0]
+    try:
+        if isinstance(frames, slice):
+            idx = np.arange(n)[frames]
+        else:
+            idx = np.atleast_1d(np.asarray(frames))
+            if idx.dtype.kind not in "iu" or idx.ndim != 1:
+                raise TypeError
+    except (TypeError, ValueError):
+        raise InputError(f"frames must be an int, a slice or a list of ints, got {frames!r}") from None
+    if idx.size == 0:
+        raise InputError(f"{path}: frame selection {frames!r} selects no frame (the file has {n})")
+    bad = idx[(idx < -n) | (idx >= n)]
+    if bad.size:
+        raise InputError(f"{path}: frame index {int(bad[0])} out of range (the file has {n} frame(s))")
+    return arr[idx]
+
+
+def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) -> dict:
+    """Shared tail of every reader: shape (n, axial, lateral), float dtype, finite values, selection; returns the
+    fields of a :class:`femreg.io.Frames` (``Frames(**fields)``)."""
+    arr = np.asarray(arr)
+    if arr.dtype.kind == "c":
+        raise fail(path, f"complex data ({arr.dtype}) is not RF; store the real RF samples")
+    if arr.dtype.kind not in "biuf":
+        raise fail(path, f"data of type {arr.dtype} is not numeric")
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise fail(path, f"data has {arr.ndim} dimension(s) {arr.shape}; expected 2 (axial, lateral) "
+                         "or 3 (frames, axial, lateral)")
+    if min(arr.shape) < 1:
+        raise fail(path, f"data is empty, shape {arr.shape}")
+    if arr.shape[1] < 2 or arr.shape[2] < 2:
+        raise fail(path, f"frame shape {arr.shape[1:]} is degenerate (need at least 2 x 2 samples)")
+    arr = select_frames(path, arr, frames)
+    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
+    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
+    # native byte order, C-contiguous, own memory
+    arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
+    finite = np.isfinite(arr)
+    if not finite.all():
+        n_bad = int(arr.size - np.count_nonzero(finite))
+        raise fail(path, f"data contains {n_bad} NaN/Inf value(s)")
+    meta = dict(metadata or {})
+    return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path),
+                metadata=meta, source=Path(path))

@@ -1,0 +1,239 @@
+"""Linear solvers for the symmetric positive (semi-)definite sparse systems of femreg: the Gauss-Newton step
+``H du = -g`` of a registration (:mod:`femreg.solver`) and the forward and adjoint solves with K_II of the
+modulus inversion (:mod:`femreg.inversion`).  One interface, :class:`SPDSolver`: ``factor(H)`` returns a factor
+with ``solve(b)``; ``solve(H, b, reuse)`` factorises (or reuses the last factor) and solves.  A new method (a
+sparse direct solver for 3D meshes, an iterative one) is one more branch of :meth:`SPDSolver.factor` returning
+an object with ``solve``.
+
+Methods (``method``):
+
+* ``"cholesky"``: LAPACK banded Cholesky (``scipy.linalg.cholesky_banded``, dpbtrf) after a reverse
+  Cuthill-McKee ordering (``scipy.sparse.csgraph``; Cuthill & McKee 1969, doi:10.1145/800195.805928) or another
+  candidate order (the given node order; the caller's ``orderings``), whichever has the narrower band
+  (:class:`BandedPattern`).  The ordering and the scatter of the matrix entries into the band are computed once
+  per sparsity pattern and reused by every later factorisation (the lagged-diffusivity Hessian of the TV
+  regularisers, and K(mu) of the inversion, change their values, not their pattern).
+* ``"splu"``: SuperLU in symmetric mode (no pivoting, minimum-degree ordering of A^T + A, ``MMD_AT_PLUS_A``).
+* ``"auto"`` (default): ``"cholesky"`` when the band holds at most :data:`BAND_LIMIT` entries, else ``"splu"``.
+* ``"spsolve"``, ``"amg-cg"`` (pyamg smoothed aggregation + CG, given the rigid-body modes as ``B``).
+
+The banded Cholesky factorises the paper geometry's Hessians faster than SuperLU at every mesh size tried
+(timings: benchmarks/README.md).  A tiny diagonal shift (``shift``, relative to the mean diagonal; 1e-10 for
+Gauss-Newton) keeps H definite when the images do not constrain some direction; if the banded Cholesky still meets
+a non-positive pivot, that factorisation falls back to SuperLU.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+__all__ = ["SPDSolver", "BandedPattern", "BAND_LIMIT", "LINEAR_SOLVERS", "one_blas_thread", "single_blas_thread"]
+
+#: Largest band (entries, (bandwidth + 1) * n) that ``method="auto"`` factorises with banded Cholesky:
+#: 2.5e7 entries = 200 MB (a 0.5 mm mesh of the paper geometry needs 1.4e7).
+BAND_LIMIT = 25_000_000
+
+LINEAR_SOLVERS = ("auto", "cholesky", "splu", "spsolve", "amg-cg")
+
+
+class BandedPattern:
+    """The band ordering of one sparsity pattern (CSC ``H``, symmetric) and the scatter of one triangle of its
+    entries into LAPACK band storage.  ``orderings``: candidate permutations besides reverse Cuthill-McKee (tried
+    first); the narrowest band wins (the first on ties).  ``upper``: store the upper triangle
+    (``ab[b + i - j, j] = A_perm[i, j]``, i <= j), else the lower one (``ab[i - j, j]``, i >= j)."""
+
+    def __init__(self, H: sp.csc_matrix, orderings=None, upper: bool = False):
+        n = H.shape[0]
+        self.indptr = H.indptr.copy()
+        self.indices = H.indices.copy()
+        col = np.repeat(np.arange(n), np.diff(H.indptr))
+        # on a structured mesh the node numbering (or its rows / columns) is often narrower than RCM
+        cands = [reverse_cuthill_mckee(sp.csr_matrix(H), symmetric_mode=True).astype(np.int64)]
+        cands += [np.asarray(p, np.int64) for p in (orderings if orderings is not None else [np.arange(n)])]
+        best = None
+        for perm in cands:
+            iperm = np.empty(n, dtype=np.int64)
+            iperm[perm] = np.arange(n)
+            i, j = iperm[H.indices], iperm[col]
+            bw = int(np.max(np.abs(i - j), initial=0))
+            if best is None or bw < best[0]:
+                best = (bw, perm, i, j)
+        bw, self.perm, i, j = best
+        self.upper = bool(upper)
+        self.n = n
+        if self.upper:
+            self.sel = i <= j
+            self.bandwidth = bw
+            self.flat = ((bw + i - j) * n + j)[self.sel]
+        else:
+            self.sel = i >= j
+            self.bandwidth = int(np.max(i - j, initial=0))
+            self.flat = ((i - j) * n + j)[self.sel]
+
+    def matches(self, H) -> bool:
+        return (H.shape[0] == self.n and np.array_equal(H.indptr, self.indptr)
+                and np.array_equal(H.indices, self.indices))
+
+    @property
+    def size(self) -> int:
+        return (self.bandwidth + 1) * self.n
+
+    def factor(self, data, shift: float = 0.0) -> "BandedFactor":
+        """Cholesky factor of the matrix with CSC values ``data`` (this pattern's order) plus ``shift`` on the
+        diagonal; raises ``numpy.linalg.LinAlgError`` when it is not positive definite."""
+        ab = np.zeros((self.bandwidth + 1) * self.n)
+        ab[self.flat] = data[self.sel]
+        ab = ab.reshape(self.bandwidth + 1, self.n)
+        if shift:
+            ab[self.bandwidth if self.upper else 0] += shift
+        cb = sla.cholesky_banded(ab, lower=not self.upper, overwrite_ab=True, check_finite=False)
+        return BandedFactor(self, cb)
+
+
+class BandedFactor:
+    """A banded Cholesky factor of :class:`BandedPattern`; ``solve(b)`` in the original order."""
+
+    method = "cholesky"
+
+    def __init__(self, pattern: BandedPattern, cb):
+        self.pattern, self.cb = pattern, cb
+
+    def solve(self, b):
+        perm = self.pattern.perm
+        y = sla.cho_solve_banded((self.cb, not self.pattern.upper), np.asarray(b, float)[perm], check_finite=False)
+        x = np.empty_like(y)
+        x[perm] = y
+        return x
+
+
+class _SuperLUFactor:
+    method = "splu"
+
+    def __init__(self, lu):
+        self.lu = lu
+
+    def solve(self, b):
+        return self.lu.solve(b)
+
+
+_BLAS = None
+
+
+def one_blas_thread():
+    """Context in which BLAS/LAPACK run on one thread (threadpoolctl; a no-op without it).
+
+    The banded factorisations here are small (bandwidth ~50-200): extra BLAS threads only synchronise, and on a
+    busy machine OpenBLAS's waiting threads made them several times slower."""
+    global _BLAS
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController()
+        except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+            _BLAS = False
+    if _BLAS is False:
+        return contextlib.nullcontext()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def single_blas_thread(fn):
+    """Decorator: run ``fn`` in :func:`one_blas_thread` (the registration's arrays are small or memory bound;
+    BLAS threads cost more than they give on a shared machine)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+class SPDSolver:
+    """Solve H x = b for symmetric positive (semi-)definite sparse H (see the module docstring for ``method``).
+
+    ``factor(H)`` returns a factor with ``solve(b)``; ``solve(H, b, reuse=True)`` reuses the last factorisation
+    if H is the same object as last time.  ``shift``: diagonal shift relative to the mean |diagonal|;
+    ``orderings``, ``upper``: candidate orders and storage of the banded Cholesky (:class:`BandedPattern`);
+    ``one_thread``: run the banded factorisation and solves on one BLAS thread (:func:`one_blas_thread`)."""
+
+    def __init__(self, method: str = "auto", shift: float = 1e-10, permc_spec: str = "MMD_AT_PLUS_A", B=None,
+                 band_limit: int = BAND_LIMIT, orderings=None, upper: bool = False, one_thread: bool = True):
+        if method not in LINEAR_SOLVERS:
+            raise ValueError(f"unknown linear solver {method!r}; choose one of {', '.join(LINEAR_SOLVERS)}")
+        self.permc_spec = permc_spec
+        self.B = B  # near-null-space (rigid-body modes) for pyamg
+        self.method = method
+        self.shift = shift
+        self.band_limit = int(band_limit)
+        self.orderings = orderings
+        self.upper = upper
+        self.one_thread = one_thread
+        self._key = None
+        self._fact = None
+        self._pattern = None
+        self.n_factorizations = 0
+        #: method used by the last factorisation ("cholesky" or "splu" for auto/cholesky)
+        self.last_method = None
+
+    def _shift_value(self, H) -> float:
+        if not self.shift:
+            return 0.0
+        return self.shift * (float(np.mean(np.abs(H.diagonal()))) or 1.0)
+
+    def _shifted(self, H):
+        H = sp.csc_matrix(H)
+        return H + self._shift_value(H) * sp.identity(H.shape[0], format="csc")
+
+    def _splu(self, H):
+        # H is SPD: symmetric mode (no pivoting, ordering of A^T + A) keeps the factor sparse, faster than
+        # the default LU.  (MKL PARDISO was not faster here and is not bit-reproducible run to run.)
+        return _SuperLUFactor(spla.splu(self._shifted(H), permc_spec=self.permc_spec, diag_pivot_thresh=0.0,
+                                        options=dict(SymmetricMode=True)))
+
+    def _threads(self):
+        return one_blas_thread() if self.one_thread else contextlib.nullcontext()
+
+    def factor(self, H):
+        """A factor of ``H`` (``solve(b)``, ``method``) for the direct methods ("auto", "cholesky", "splu")."""
+        if self.method in ("auto", "cholesky"):
+            H = sp.csc_matrix(H)
+            if not H.has_canonical_format:
+                H = H.copy()
+                H.sum_duplicates()
+            if self._pattern is None or not self._pattern.matches(H):
+                self._pattern = BandedPattern(H, self.orderings, self.upper)
+            pat = self._pattern
+            if self.method == "cholesky" or pat.size <= self.band_limit:
+                try:
+                    with self._threads():
+                        return pat.factor(H.data, self._shift_value(H))
+                except np.linalg.LinAlgError:
+                    pass  # a non-positive pivot (semi-definite H): SuperLU without pivoting carries on
+        return self._splu(H)
+
+    def solve(self, H, b, reuse: bool = False):
+        if self.method == "spsolve":
+            return spla.spsolve(self._shifted(H), b)
+        if self.method == "amg-cg":
+            from .optional import require
+
+            pyamg = require("pyamg", feature="linear_solver='amg-cg'")
+            A = sp.csr_matrix(self._shifted(H))
+            if not (reuse and self._key is H and self._fact is not None):
+                self._fact = pyamg.smoothed_aggregation_solver(A, B=self.B, symmetry="symmetric")
+                self._key = H
+                self.n_factorizations += 1
+            return self._fact.solve(b, tol=1e-10, accel="cg", maxiter=200)
+        if not (reuse and self._key is H and self._fact is not None):
+            self._fact = self.factor(H)
+            self.last_method = self._fact.method
+            self._key = H
+            self.n_factorizations += 1
+        if self._fact.method == "cholesky":
+            with self._threads():
+                return self._fact.solve(np.asarray(b, float))
+        return self._fact.solve(b)

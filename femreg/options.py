@@ -1,0 +1,115 @@
+"""The options of a registration given as text or JSON -- the command line's shared flags (``femreg register`` /
+``track`` / ``batch``) and the settings of :mod:`femreg.batch` -- in one place: their names, their defaults
+(those of :func:`femreg.register` and :func:`femreg.io.read_frames`), and how they become keyword arguments.
+The command line (:mod:`femreg.cli`) reads its defaults from here.
+"""
+from __future__ import annotations
+
+import inspect
+
+from .errors import InputError
+from .regularizers import available_regularizers
+from .registration import register
+
+__all__ = ["REGISTRATION_DEFAULTS", "READER_DEFAULTS", "frame_selection", "spacing_value", "reader_kwargs",
+           "registration_kwargs", "region_kwargs"]
+
+_SIGNATURE = inspect.signature(register)
+#: The registration options and their defaults (``femreg.register``'s; ``hourglass`` None = the strategy's,
+#: :mod:`femreg.strategy`; ``roi`` None = "auto", :func:`region_kwargs`), in the command line's order.
+REGISTRATION_DEFAULTS = {"regularizer": _SIGNATURE.parameters["regularizer"].default, "alpha": None,
+                         "element_size": None, "margin": None, "roi": None, "depth": None, "hourglass": None,
+                         "strategy": _SIGNATURE.parameters["strategy"].default,
+                         "maxiter": _SIGNATURE.parameters["maxiter"].default,
+                         "tol": _SIGNATURE.parameters["tol"].default, "no_orientation_check": False}
+#: The reader options of :func:`femreg.io.read_frames` (None: the file's own, or the reader's default).
+READER_DEFAULTS = {"variable": None, "shape": None, "dtype": None, "spacing": None, "byte_order": None,
+                   "frames": None, "sound_speed": None}
+
+
+def frame_selection(text: str):
+    """'3' -> 3, '0:10' / '0:10:2' -> slice, '1,3,5' -> [1, 3, 5]."""
+    text = text.strip()
+    try:
+        if ":" in text:
+            parts = [int(p) if p.strip() else None for p in text.split(":")]
+            if len(parts) > 3:
+                raise ValueError
+            return slice(*parts)
+        if "," in text:
+            return [int(p) for p in text.split(",") if p.strip()]
+        return int(text)
+    except ValueError:
+        raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+
+
+def spacing_value(text: str):
+    """One spacing in mm from text; 'auto' (or 'header', '-') = None, the file's value."""
+    if text.lower() in ("auto", "header", "-"):
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's)") from None
+    if not (v > 0 and v < float("inf")):
+        raise InputError(f"spacing must be positive, got {text!r}")
+    return v
+
+
+def reader_kwargs(options) -> dict:
+    """The :func:`femreg.io.read_frames` keyword arguments from a mapping of reader options (missing = None)."""
+    shape = options.get("shape")
+    if shape is not None and len(shape) not in (2, 3):
+        raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
+    return dict(variable=options.get("variable"), shape=shape, dtype=options.get("dtype"),
+                spacing=options.get("spacing"), byte_order=options.get("byte_order"), frames=options.get("frames"),
+                sound_speed=options.get("sound_speed"))
+
+
+def registration_kwargs(options) -> dict:
+    """Keyword arguments of :func:`femreg.register` / :func:`femreg.track` from a mapping of the registration
+    options (:data:`REGISTRATION_DEFAULTS`, missing = the default)."""
+    o = {**REGISTRATION_DEFAULTS, **{k: v for k, v in dict(options).items() if k in REGISTRATION_DEFAULTS}}
+    es, alpha, name, hourglass = o["element_size"], o["alpha"], o["regularizer"], o["hourglass"]
+    if es is not None and len(es) not in (1, 2):
+        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    if alpha is not None and alpha != "auto" and not (alpha >= 0 and alpha < float("inf")):
+        raise InputError(f"--alpha must be a finite number >= 0, got {alpha}")
+    if name not in available_regularizers():
+        raise InputError(f"unknown regularizer {name!r}; choose one of {available_regularizers()}")
+    opts = {}
+    if hourglass is not None:
+        if not name.startswith("momentum"):
+            raise InputError(f"--hourglass applies to the momentum regularisers, not {name!r}")
+        if not (hourglass >= 0 and hourglass < float("inf")):
+            raise InputError(f"--hourglass must be a finite number >= 0, got {hourglass}")
+        opts["regularizer_options"] = {"hourglass": hourglass}
+    return dict(**opts, regularizer=name, alpha=alpha, strategy=o["strategy"],
+                element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
+                margin=o["margin"], maxiter=o["maxiter"], tol=o["tol"],
+                check_orientation=not o["no_orientation_check"], **region_kwargs(o))
+
+
+def region_kwargs(options) -> dict:
+    """``roi`` and ``depth`` of :func:`femreg.register` from a mapping with ``roi`` (4 numbers, "auto" or
+    "full"; missing or None = "auto") and ``depth`` (2 numbers, mm)."""
+    roi = options.get("roi")
+    depth = options.get("depth")
+    if isinstance(roi, str):
+        roi = [roi]
+    if roi is None or [str(v).lower() for v in roi] == ["auto"]:
+        out = "auto"
+    elif [str(v).lower() for v in roi] in (["full"], ["none"]):
+        out = None
+    else:
+        try:
+            out = tuple(float(v) for v in roi)
+        except (TypeError, ValueError):
+            out = ()
+        if len(out) != 4:
+            raise InputError(f"--roi takes X0 X1 Y0 Y1 (mm), auto or full, got {' '.join(map(str, roi))}")
+    if depth is not None:
+        if roi is not None and out != "auto":
+            raise InputError("give --roi or --depth, not both")
+        return dict(roi="auto", depth=tuple(float(v) for v in depth))
+    return dict(roi=out, depth=None)

@@ -1,0 +1,212 @@
+"""The result of a registration: :class:`RegistrationResult` (a nodal displacement on a quad mesh, sampled on
+points and on the reference pixel grid through :mod:`femreg.sampling`, saved and loaded through the ``.npz``
+contract of :mod:`femreg.io.results`), and the conversions of a displacement given as a callable, a nodal vector,
+a result or a block-matching field (:func:`displacement_at`, :func:`nodal_values`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .blockmatch import BlockMatchResult
+from .errors import InputError
+from .fields import check_strain_mode, recovered_strains
+from .io.results import read_result, save_result
+from .pixels import PointLocator
+from .sampling import PixelGrid, sample_grid, sample_points
+
+__all__ = ["RegistrationResult", "load_result", "displacement_at", "nodal_values"]
+
+
+class RegistrationResult:
+    """A registered displacement field on a quad mesh.
+
+    Attributes
+    ----------
+    mesh : skfem.MeshQuad1
+        mm; ``mesh.p[0]`` axial x, ``mesh.p[1]`` lateral y.
+    u : (2 n_nodes,) float, mm
+        Nodal displacement, interleaved (u[0::2] = ux, u[1::2] = uy), scikit-fem DOF order.
+    success, status, message, nit, energy_history
+        From the Gauss-Newton solver (:class:`femreg.solver.GaussNewtonResult`).
+    regularizer : str
+        Name of the regulariser; ``alpha`` its weight (for the RMS-normalised images).
+    ncc_before, ncc_after : float
+        NCC of reference vs moving over the mesh pixels, at u = 0 and at the result: a quality measure.
+    shape, spacing, origin
+        Reference pixel grid.
+    timings : dict
+        Seconds per stage.
+    blockmatch : BlockMatchResult or None
+        The initial-guess field, if block matching was used.
+    quality : (n_elements,) float or None
+        Per-element NCC of reference and warped moving image at the result (NaN where an element holds fewer
+        than 4 pixels): low values mark decorrelation, peak hopping or a failed region.
+    strategy : str
+        "auto" or "paper" (see :func:`register`); ``alpha_effective`` the weight used on this mesh
+        (:mod:`femreg.scaling`).
+    hop_gain : (n_elements,) float or None
+        Peak-hopping map of :func:`register`'s check (:func:`femreg.repair.hop_gain`, not saved): per element, how
+        much better the envelope matches one RF period off than at u (Fisher z); above
+        :data:`femreg.repair.HOP_GAIN` the element sits on a neighbouring correlation peak.
+    excluded : str or None
+        What of the frames was left out of the mesh and the image term, and why (:mod:`femreg.echo`: no usable
+        echo, saturation, or the user's ``roi`` / ``depth``); None when the whole frames were registered.
+    roi : (x0, x1, y0, y1) mm or None
+        The rectangle registered (the mesh covers it, less the margin at the image edges); None: the whole frames.
+    """
+
+    def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
+                 status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
+                 ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
+                 locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None,
+                 excluded=None, roi=None):
+        self.mesh = mesh
+        self.u = np.asarray(u, float)
+        self.shape = tuple(int(s) for s in shape)
+        self.spacing = np.asarray(spacing, float)
+        self.origin = np.asarray(origin, float)
+        self.regularizer = str(regularizer)
+        self.alpha = float(alpha)
+        self.success = bool(success)
+        self.status = int(status)
+        self.message = str(message)
+        self.nit = int(nit)
+        self.energy_history = np.asarray(energy_history, float)
+        self.ncc_before = float(ncc_before)
+        self.ncc_after = float(ncc_after)
+        self.timings = dict(timings or {})
+        self.blockmatch = blockmatch
+        self.solver_result = solver_result
+        self._locator = locator
+        self._grid = grid
+        self._grid_element = None
+        self._nodal_strain = None
+        self.quality = None if quality is None else np.asarray(quality, float)
+        self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
+        self.strategy = str(strategy)
+        self.excluded = None if excluded is None else str(excluded)
+        self.roi = None if roi is None else tuple(float(v) for v in roi)
+        self.alpha_effective = float(alpha_effective)
+
+    # -- sampling -------------------------------------------------------------------------------------------
+    @property
+    def locator(self) -> PointLocator:
+        if self._locator is None:
+            self._locator = PointLocator(self.mesh)
+        return self._locator
+
+    @property
+    def ux(self):
+        return self.u[0::2]
+
+    @property
+    def uy(self):
+        return self.u[1::2]
+
+    @property
+    def pixel_grid(self) -> PixelGrid:
+        """The reference pixel grid (:class:`femreg.sampling.PixelGrid`)."""
+        return PixelGrid.of(self.shape, self.spacing, self.origin)
+
+    def displacement(self, points) -> np.ndarray:
+        """u at ``points`` (n, 2) [x, y] mm -> (n, 2) [ux, uy] mm; NaN outside the mesh."""
+        return sample_points(self.u, self.locator, points, ("ux", "uy"))
+
+    @property
+    def nodal_strain(self) -> np.ndarray:
+        """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy] (:func:`femreg.fields.recovered_strains`)."""
+        if self._nodal_strain is None:
+            self._nodal_strain = recovered_strains(self.mesh.p, self.mesh.t, self.u)
+        return self._nodal_strain
+
+    def strain(self, points, strain: str = "recovered") -> np.ndarray:
+        """Small strain at ``points`` (n, 2) mm -> (n, 3) [exx, eyy, exy], exy = (dux/dy + duy/dx) / 2;
+        NaN outside the mesh.  ``strain="recovered"`` (default): continuous, the nodal average of the
+        element-centre strains interpolated bilinearly (:mod:`femreg.fields`); ``"element"``: the gradient of
+        the bilinear field, discontinuous across element edges (a point on an edge takes one of its elements)."""
+        check_strain_mode(strain)
+        return sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),
+                             nodal_strain=self.nodal_strain if strain == "recovered" else None)
+
+    def pixel_points(self) -> np.ndarray:
+        """Centres of the reference pixels, (n_axial * n_lateral, 2) mm, C order."""
+        return self.pixel_grid.points()
+
+    def on_grid(self, strain: str = "recovered") -> dict:
+        """ux, uy, exx, eyy, exy on the reference pixel grid, each (n_axial, n_lateral) float64, NaN outside
+        the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``)."""
+        if check_strain_mode(strain) == "element":
+            if self._grid_element is None:
+                self._grid_element = sample_grid(self.u, self.locator, self.pixel_grid, "element")
+            return self._grid_element
+        if self._grid is None:
+            self._grid = sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
+                                     nodal_strain=self.nodal_strain)
+        return self._grid
+
+    # -- files ----------------------------------------------------------------------------------------------
+    def save(self, path, **extra):
+        """Write the result as .npz, atomically: the contract of :mod:`femreg.io.results` (mesh, u, grid, pixel-grid
+        fields, solver outcome, quality map, strategy), plus any ``extra`` arrays.  Returns the path."""
+        return save_result(path, self, **extra)
+
+    def __repr__(self) -> str:
+        return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "
+                f"success={self.success}, nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, "
+                f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
+
+
+def displacement_at(spec, mesh, points, what: str):
+    """A displacement given as callable(points)->(n,2), nodal vector (2 n_nodes,), or RegistrationResult."""
+    n_nodes = mesh.p.shape[1]
+    if isinstance(spec, RegistrationResult):
+        v = spec.displacement(points)
+        return np.nan_to_num(v, nan=0.0)
+    if callable(spec):
+        v = np.asarray(spec(np.asarray(points, float)), float)
+        if v.shape != (len(points), 2):
+            raise InputError(f"{what} callable must return shape ({len(points)}, 2), got {v.shape}")
+    else:
+        arr = np.asarray(spec, float).ravel()
+        if arr.size != 2 * n_nodes:
+            raise InputError(f"{what} nodal vector must have 2 * n_nodes = {2 * n_nodes} entries, got {arr.size}")
+        loc = PointLocator(mesh).locate(points)
+        v = np.zeros((len(points), 2))
+        v[loc.inside, 0] = np.sum(loc.N * arr[0::2][loc.nodes], axis=1)
+        v[loc.inside, 1] = np.sum(loc.N * arr[1::2][loc.nodes], axis=1)
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{what} contains NaN/Inf values")
+    return v
+
+
+def nodal_values(spec, mesh, what="initial"):
+    """Nodal interleaved vector (2 n_nodes,) of ``mesh`` from a callable(points) -> (n, 2), a nodal vector, a
+    RegistrationResult or a BlockMatchResult (``what`` names it in error messages)."""
+    pts = mesh.p.T
+    if isinstance(spec, BlockMatchResult):
+        v = spec(pts)
+    elif not callable(spec) and not isinstance(spec, RegistrationResult):
+        arr = np.asarray(spec, float).ravel()
+        if arr.size != 2 * mesh.p.shape[1]:
+            raise InputError(f"{what} nodal vector must have 2 * n_nodes = {2 * mesh.p.shape[1]} entries, "
+                             f"got {arr.size}")
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f"{what} contains NaN/Inf values")
+        return arr.copy()
+    else:
+        v = displacement_at(spec, mesh, pts, what)
+    u = np.empty(2 * len(pts))
+    u[0::2], u[1::2] = v[:, 0], v[:, 1]
+    return u
+
+
+def load_result(path) -> RegistrationResult:
+    """Read a result ``.npz`` (the contract of :mod:`femreg.io.results`) as a :class:`RegistrationResult`.
+
+    The one reader of the contract (``femreg.load_result`` and ``femreg.io.load_result`` are this function).
+    Raises :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a
+    result."""
+    mesh, u, kw, element_grid = read_result(path)
+    res = RegistrationResult(mesh, u, **kw)
+    res._grid_element = element_grid
+    return res

@@ -1,0 +1,74 @@
+"""The one linear-solver interface (femreg.linsolve) and the one lambda-bar (femreg.material), against dense
+solves and Lame constants computed from Young's modulus and Poisson's ratio."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from femreg.errors import InputError
+from femreg.inversion import lambda_bar as inversion_lambda_bar
+from femreg.linsolve import BandedPattern, SPDSolver
+from femreg.material import lambda_bar
+from femreg.regularizers import lambda_bar_from_poisson
+
+
+def _spd(n_side=9, seed=0):
+    """A 2D 5-point Laplacian plus a random positive diagonal, in a shuffled numbering (a band to find)."""
+    T = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n_side, n_side))
+    L = sp.kron(T, sp.identity(n_side)) + sp.kron(sp.identity(n_side), T)
+    rng = np.random.default_rng(seed)
+    A = (L + sp.diags(rng.uniform(0.1, 1.0, L.shape[0]))).tocsc()
+    p = rng.permutation(A.shape[0])
+    return sp.csc_matrix(A[p][:, p]), rng.standard_normal(A.shape[0])
+
+
+@pytest.mark.parametrize("upper", [False, True])
+def test_banded_pattern_solves_like_a_dense_solve(upper):
+    A, b = _spd()
+    pat = BandedPattern(A, upper=upper)
+    assert pat.bandwidth < A.shape[0] // 3          # the shuffled numbering's band (~n) is reordered away
+    x = pat.factor(A.data).solve(b)
+    ref = np.linalg.solve(A.toarray(), b)
+    assert np.abs(x - ref).max() < 1e-10 * np.abs(ref).max()
+
+
+def test_every_method_agrees_and_an_indefinite_matrix_falls_back_to_superlu():
+    A, b = _spd()
+    ref = np.linalg.solve(A.toarray(), b)
+    for method in ("auto", "cholesky", "splu", "spsolve"):
+        x = SPDSolver(method, shift=0.0).solve(A, b)
+        assert np.abs(x - ref).max() < 1e-10 * np.abs(ref).max(), method
+    s = SPDSolver("cholesky", shift=0.0)
+    f = s.factor(A)
+    assert f.method == "cholesky" and s.factor(A).method == "cholesky"
+    M = (A - 1.5 * sp.identity(A.shape[0])).tocsc()               # eigenvalues of both signs
+    g = SPDSolver("cholesky", shift=0.0).factor(M)
+    assert g.method == "splu"
+    assert np.abs(M @ g.solve(b) - b).max() < 1e-9
+    # a given ordering enters the competition: the identity on a banded matrix (RCM ties or loses)
+    B = sp.diags([1.0, 4.0, 1.0], [-1, 0, 1], shape=(30, 30)).tocsc()
+    assert BandedPattern(B, orderings=[np.arange(30)]).bandwidth == 1
+
+
+@pytest.mark.parametrize("nu", [-0.5, 0.0, 0.3, 0.45, 0.495])
+def test_lambda_bar_is_the_lame_ratio(nu):
+    E = 3.7
+    lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    assert lambda_bar("plane-strain", nu) == pytest.approx(lam / mu, rel=1e-13)
+    lam_star = 2 * lam * mu / (lam + 2 * mu)                        # plane stress: the effective lambda
+    assert lambda_bar("plane-stress", nu) == pytest.approx(lam_star / mu, rel=1e-13)
+    assert lambda_bar_from_poisson(nu, "plane-strain") == lambda_bar("plane-strain", nu)
+    assert inversion_lambda_bar("plane-strain", nu) == lambda_bar("plane-strain", nu)
+
+
+def test_lambda_bar_has_one_range_and_one_error():
+    assert lambda_bar("plane-stress", 0.5) == 2.0 and inversion_lambda_bar("plane-stress") == 2.0
+    assert inversion_lambda_bar("plane-strain") == pytest.approx(2 * 0.495 / (1 - 2 * 0.495))
+    for model, nu in (("plane-strain", 0.5), ("plane-strain", -1.0), ("plane-stress", 0.51), ("plane-stress", -1.0),
+                      ("plane-strain", float("nan")), ("plane-strain", "x")):
+        for fn in (lambda m, v: lambda_bar(m, v), lambda m, v: lambda_bar_from_poisson(v, m),
+                   lambda m, v: inversion_lambda_bar(m, v)):
+            with pytest.raises(InputError, match="poisson"):
+                fn(model, nu)
+    with pytest.raises(InputError, match="model"):
+        lambda_bar("3d", 0.3)
+    assert issubclass(InputError, ValueError)
