@@ -4,7 +4,7 @@ A recording as made has regions without usable echo: depth where the attenuated 
 noise floor, lines outside the aperture or zero-padded rows, samples clipped by the converter.  Fully developed
 speckle and noise alone have the same envelope statistics (Rayleigh, envelope SNR 1.91; J. W. Goodman, *Speckle
 Phenomena in Optics*, 2007, ch. 3), so the statistics cannot tell them apart; the *level* can.
-:func:`find_echo` works on the envelope power (|analytic signal|^2 along the beam, :func:`femreg.speckle.envelope`):
+:func:`find_echo` works on the envelope power (``|analytic signal|^2`` along the beam, :func:`femreg.speckle.envelope`):
 
 * rows and lines whose RF is zero throughout hold no signal (the envelope leaks into them, the RF does not);
 * a depth profile, the median over (about :data:`PROFILE_LINES`) lines of each row's envelope power in dB (the

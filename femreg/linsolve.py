@@ -156,7 +156,7 @@ class SPDSolver:
     """Solve H x = b for symmetric positive (semi-)definite sparse H (see the module docstring for ``method``).
 
     ``factor(H)`` returns a factor with ``solve(b)``; ``solve(H, b, reuse=True)`` reuses the last factorisation
-    if H is the same object as last time.  ``shift``: diagonal shift relative to the mean |diagonal|;
+    if H is the same object as last time.  ``shift``: diagonal shift relative to the mean ``|diagonal|``;
     ``orderings``, ``upper``: candidate orders and storage of the banded Cholesky (:class:`BandedPattern`);
     ``one_thread``: run the banded factorisation and solves on one BLAS thread (:func:`one_blas_thread`)."""
 

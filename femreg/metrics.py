@@ -146,7 +146,7 @@ def contrast_metrics(result, roi, *, background=None, intorder: int = GAUSS_3X3,
     (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid.
 
     ``background`` (same kinds, optional): the region A the inclusion is compared with, less the ROI; default
-    everything outside the ROI.  SNR_e = |eps_A| / eta_A, the elastographic SNR of the background (T. Varghese,
+    everything outside the ROI.  SNR_e = ``|eps_A| / eta_A``, the elastographic SNR of the background (T. Varghese,
     J. Ophir, IEEE Trans. UFFC 44(1):164-172, 1997).  Returns ``{"SR", "CNR_e", "SNR_e"}`` (dimensionless).
 
     ``strain="element"`` (default): region statistics of the solution's own strain, whose mean over any union of

@@ -39,7 +39,7 @@ from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, single_blas_thread
 from .strategy import (DEFAULT_HOURGLASS, DEFAULT_MOMENTUM_STRESS_OPTIONS, STRATEGIES,  # noqa: F401
                        component_tol, effective_regularizer_options, fresh_regularizer)
 
-__all__ = ["register", "RegistrationResult", "load_result", "ncc", "nodal_values", "displacement_at",
+__all__ = ["register", "load_result", "ncc", "nodal_values", "displacement_at",
            "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
 
 
