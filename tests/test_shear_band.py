@@ -84,3 +84,32 @@ def test_inclusion_radius_is_checked_before_any_solve():
         Inclusion("stiff", radius_mm=20.0)
     with pytest.raises(ValueError, match="radius_mm"):
         Inclusion("stiff", radius_mm=-1.0)
+
+
+def test_shear_strain_map_ranks_low_correlation_and_small_elements_lower():
+    from types import SimpleNamespace
+
+    from femreg.errors import InputError
+    from femreg.mesh import roi_mesh
+    from femreg.shear import shear_strain_map
+
+    mesh = roi_mesh((200, 60), (0.05, 0.2), (2.0, -6.0), element_size=(1.0, 1.0))
+    band = ShearBand(depth_mm=6.0, thickness_mm=2.0, slide_mm=0.2)
+    u = band.displacement(mesh.p.T).ravel()                 # interleaved [ux0, uy0, ...]
+    n_el = mesh.t.shape[1]
+    q = np.full(n_el, 0.99)
+    q[: n_el // 2] = 0.9
+    res = SimpleNamespace(mesh=mesh, u=u, quality=q, spacing=(0.05, 0.2))
+    m = shear_strain_map(res, cell=(0.3, 1.2))
+    cen = mesh.p[:, mesh.t].mean(axis=1).T
+    ins, far = band.inside(cen), np.abs(cen[:, 0] - 6.0) > 2.0       # elements cut by a face see part of it
+    assert np.all((m["exy"][ins] > 0.9 * band.peak_exy) & (m["exy"][ins] <= band.peak_exy + 1e-12))
+    assert np.allclose(m["exy"][far], 0.0, atol=1e-12)
+    assert np.all(m["sigma"][: n_el // 2] > m["sigma"][n_el // 2:])  # lower NCC, less precise
+    coarse = shear_strain_map(res, cell=(0.6, 2.4))                  # larger speckle: fewer cells per element
+    assert np.all(coarse["sigma"] > m["sigma"])
+    assert np.allclose(m["lateral_cells"], 1.0 / 1.2)
+    with pytest.raises(InputError, match="cell"):
+        shear_strain_map(res)
+    with pytest.raises(InputError, match="cell"):
+        shear_strain_map(res, cell=(0.3, -1.0))
