@@ -113,3 +113,40 @@ def test_shear_strain_map_ranks_low_correlation_and_small_elements_lower():
         shear_strain_map(res)
     with pytest.raises(InputError, match="cell"):
         shear_strain_map(res, cell=(0.3, -1.0))
+
+
+def _tensor(lx=4.0, ly=3.0, nx=8, ny=6):
+    from skfem import MeshQuad1
+
+    return MeshQuad1.init_tensor(np.linspace(0, lx, nx + 1), np.linspace(0, ly, ny + 1))
+
+
+def _nodal(mesh, ux, uy):
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = ux, uy
+    return u
+
+
+@pytest.mark.parametrize("dilatation", ["edge", "centre"])
+def test_shear_traction_weight_scales_the_sliding_jump_only(dilatation):
+    import femreg.regularizers as R
+
+    mesh = _tensor()
+    x = mesh.p[0]
+    slide = _nodal(mesh, 0 * x, 0.01 * np.maximum(x - 2.0, 0.0))            # e_xy kink at x = 2: tangential jump
+    squeeze = _nodal(mesh, -0.01 * np.maximum(x - 2.0, 0.0), 0 * x)          # e_xx kink at x = 2: normal jump
+
+    def energy(w, u):
+        reg = R.make_regularizer("momentum-stress", alpha=1.0, dilatation=dilatation, delta=1e-16,
+                                 shear_traction=w)
+        reg.setup(mesh)
+        return reg.energy(u) - reg.energy(0 * u)                      # minus the sqrt(delta) floor
+
+    e1, e03 = energy(1.0, slide), energy(0.3, slide)
+    # up to the sqrt(delta) floor on the interface (length 3 mm x 1e-8): 3e-8 against 9e-3
+    assert e1 > 0.02 and e03 == pytest.approx(0.3 * e1, abs=1e-7)
+    n1, n03 = energy(1.0, squeeze), energy(0.3, squeeze)
+    assert n1 > 0.02
+    assert n03 == pytest.approx(n1, abs=1e-7)
+    with pytest.raises(ValueError, match="shear_traction"):
+        R.make_regularizer("momentum-stress", shear_traction=0.0)
