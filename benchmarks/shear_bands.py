@@ -14,8 +14,9 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
 * ``e``: total strain error of the robustness benchmark (relative L2 with ``e:e``, shear counted twice).
 
 Methods: femreg R_P_sigma with defaults, the same with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
-(thin axial elements, 0.35 mm, at the default weight per area and ``regularizer_options={"shear_traction": 0.03}``,
-the momentum regulariser's tangential traction jump weighted down so that layers may slide), the peers
+(:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
+``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
+down so that layers may slide), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 
@@ -59,10 +60,6 @@ CASES = [
 ]
 
 FEMREG = ("R_P_sigma", "R_P_sigma alpha/10", "R_P_sigma slip")
-#: "R_P_sigma slip": axial element size SLIP_AXIAL_MM (the default lateral one), the same weight per area
-#: (alpha scaled by the element-area ratio, so alpha_eff is the default's) and shear_traction SLIP_TRACTION.
-SLIP_AXIAL_MM = 0.35
-SLIP_TRACTION = 0.03
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -80,11 +77,9 @@ def run_method(method, data):
                 # the default alpha of this pair: what register chose without one
                 kw["alpha"] = 0.1 * femreg.register(data.ref, data.mov, **kw).alpha
             elif method.endswith("slip"):
-                r0 = femreg.register(data.ref, data.mov, **kw)
-                p = r0.mesh.p[:, r0.mesh.t]
-                hx, hy = float(np.median(np.ptp(p[0], axis=0))), float(np.median(np.ptp(p[1], axis=0)))
-                kw.update(element_size=(SLIP_AXIAL_MM, hy), alpha=r0.alpha * SLIP_AXIAL_MM / hx,
-                          regularizer_options={"shear_traction": SLIP_TRACTION})
+                from femreg.shear import slip_settings
+
+                kw.update(slip_settings(femreg.register(data.ref, data.mov, **kw)))
             g = femreg.register(data.ref, data.mov, **kw).on_grid()
         else:
             g = PEER_METHODS[method](data.ref, data.mov, data.spacing, data.origin)

@@ -150,3 +150,22 @@ def test_shear_traction_weight_scales_the_sliding_jump_only(dilatation):
     assert n03 == pytest.approx(n1, abs=1e-7)
     with pytest.raises(ValueError, match="shear_traction"):
         R.make_regularizer("momentum-stress", shear_traction=0.0)
+
+
+def test_slip_settings_keep_the_weight_per_area():
+    from types import SimpleNamespace
+
+    from femreg.errors import InputError
+    from femreg.mesh import roi_mesh
+    from femreg.scaling import alpha_scale
+    from femreg.shear import slip_settings
+
+    mesh = roi_mesh((400, 100), (0.05, 0.2), (2.0, -10.0), element_size=(1.4, 1.4))
+    kw = slip_settings(SimpleNamespace(mesh=mesh, alpha=0.13), axial_mm=0.35, shear_traction=0.05)
+    fine = roi_mesh((400, 100), (0.05, 0.2), (2.0, -10.0), element_size=kw["element_size"])
+    assert kw["element_size"][0] == 0.35
+    # alpha_eff = alpha * 4 / area: the same on both meshes up to the pixel rounding of the element sizes
+    assert kw["alpha"] * alpha_scale(fine) == pytest.approx(0.13 * alpha_scale(mesh), rel=0.05)  # 0.98 measured
+    assert kw["regularizer_options"] == {"shear_traction": 0.05}
+    with pytest.raises(InputError, match="axial_mm"):
+        slip_settings(SimpleNamespace(mesh=mesh, alpha=0.13), axial_mm=0.0)
