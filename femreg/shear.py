@@ -33,7 +33,8 @@ __all__ = ["shear_strain_map", "slip_settings", "SLIP_AXIAL_MM", "SLIP_TRACTION"
 
 #: Axial element size (mm) and tangential-traction weight of :func:`slip_settings`: on 1 % compression with 1-2 mm
 #: bands sliding 0.1-0.3 mm (benchmarks/shear_bands.py, 7.5 and 5.5 MHz) they brought the band's peak e_xy from
-#: 11-59 % to 64-101 % of the truth and the total strain error from 55-75 % to 25-42 %.
+#: 11-59 % to 64-101 % of the truth and the total strain error from 55-75 % to 25-42 %; on smooth fields they cost
+#: accuracy (robustness benchmark: uniform compression 0.1-0.6 % -> 0.8-11 %, bending 5.8 -> 9.3 %).
 SLIP_AXIAL_MM = 0.35
 SLIP_TRACTION = 0.03
 
