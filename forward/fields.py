@@ -285,9 +285,9 @@ class Inclusion:
         params = dict(INCLUSION_MODEL)
         if radius_mm is not None:
             r = float(radius_mm)
-            if not (math.isfinite(r) and 0 < r < 0.25 * params["refine_region_mm"][1]):
-                raise ValueError(f"radius_mm must be in (0, {0.25 * params['refine_region_mm'][1]:g}) mm, "
-                                 f"got {radius_mm!r}")
+            r_max = 0.3 * params["refine_region_mm"][1]          # the disk well inside the refined region
+            if not (math.isfinite(r) and 0 < r <= r_max):
+                raise ValueError(f"radius_mm must be in (0, {r_max:g}] mm, got {radius_mm!r}")
             if r != 0.5 * params["inclusion_diameter_mm"]:
                 params["inclusion_diameter_mm"] = 2.0 * r
                 params["mesh_size_mm"] = min(params["mesh_size_mm"], 0.25 * r)
