@@ -68,7 +68,8 @@ def shear_strain_map(result, reference_image=None, *, cell=None) -> dict:
         raise InputError("shear_strain_map needs a RegistrationResult (mesh and u)")
     if cell is None:
         if reference_image is None:
-            raise InputError("shear_strain_map needs the reference image or the speckle cell (cell=(axial, lateral) mm)")
+            raise InputError("shear_strain_map needs the reference image or the speckle cell "
+                             "(cell=(axial, lateral) mm)")
         from .speckle import speckle_statistics
 
         cell = speckle_statistics(np.asarray(reference_image, float), result.spacing).cell

@@ -23,7 +23,8 @@ import math
 
 import numpy as np
 
-__all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand", "Inclusion", "as_points"]
+__all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
+           "Inclusion", "as_points"]
 
 
 def as_points(points) -> np.ndarray:
