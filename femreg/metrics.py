@@ -14,6 +14,10 @@ All values are fractions (multiply by 100 for %).
 Strains are scored as femreg reports them: ``strain="recovered"`` (default; :func:`femreg.fields.recovered_strains`,
 continuous) or ``strain="element"`` (the raw gradient of the bilinear field, as a plain FE post-processing would).
 
+Shear bands and edges (profiles along one axis, e.g. the lateral median of a strain image against depth):
+:func:`shear_band_metrics` (the slide = integral of 2 e_xy across the band, the band's depth, its peak e_xy) and
+:func:`edge_width` (10-90 % width of a strain step).
+
 Contrast: SR = eps_A / eps_B, CNR_e = 2 (eps_A - eps_B)^2 / (eta_A^2 + eta_B^2), with eps the mean axial strain
 and eta^2 its variance outside (A) and inside (B) the inclusion ROI.
 """
@@ -24,8 +28,8 @@ import numpy as np
 from .fields import check_strain_mode, recovered_strains, strain_components
 from .quadrature import GAUSS_3X3
 
-__all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature",
-           "interpolate_truth", "field_errors_nodal", "field_errors_both"]
+__all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
+           "field_errors_nodal", "field_errors_both", "depth_profile", "shear_band_metrics", "edge_width"]
 
 
 def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
@@ -233,3 +237,115 @@ def field_errors_both(result, true_displacement, true_strain=None, *, mesh=None,
     return {"exact": field_errors(result, true_displacement, true_strain, mesh=mesh, intorder=intorder,
                                   strain=strain),
             "nodal": field_errors_nodal(result, true_displacement, mesh=mesh, intorder=intorder, strain=strain)}
+
+
+def depth_profile(image, *, axis: int = 1, columns=None) -> np.ndarray:
+    """The median of a (n_axial, n_lateral) image across ``axis`` (default: across the lateral lines, giving a
+    profile against depth), NaNs ignored; ``columns`` a slice of the averaged axis to use (e.g. an ROI)."""
+    a = np.asarray(image, float)
+    if a.ndim != 2:
+        raise ValueError(f"image must be 2D (n_axial, n_lateral), got shape {a.shape}")
+    if columns is not None:
+        a = a[:, columns] if axis == 1 else a[columns, :]
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(a, axis=axis)
+
+
+def _profile(x, values):
+    x = np.asarray(x, float).ravel()
+    v = np.asarray(values, float).ravel()
+    if x.shape != v.shape or x.size < 3:
+        raise ValueError(f"x and values must be 1D of the same length >= 3, got {x.shape} and {v.shape}")
+    if not np.all(np.diff(x) > 0):
+        raise ValueError("x must be strictly increasing")
+    return x, np.where(np.isfinite(v), v, 0.0)
+
+
+def shear_band_metrics(x_mm, exy, window_mm) -> dict:
+    """Slide, depth and peak of a shear band from a shear-strain profile ``exy`` (fraction) at depths ``x_mm``
+    (mm, increasing), e.g. ``depth_profile(result.on_grid()["exy"])``.
+
+    Within ``window_mm = (x_lo, x_hi)`` (the band and a margin on both sides):
+
+    * ``slide`` (mm): the integral of ``2 e_xy`` over the window (trapezoids), the lateral motion of the deep side
+      relative to the shallow one carried by the band; the profile's median outside the window is subtracted
+      first (background shear of the whole image), unless no sample lies outside;
+    * ``peak``: the largest ``|e_xy|`` in the window, with its sign;
+    * ``depth`` (mm): the band's centre, the midpoint of the span around the peak where ``|e_xy|`` stays above half
+      of ``|peak|`` (for a flat-topped band the peak's own position is undefined, the half-maximum span is not),
+      crossings interpolated linearly;
+    * ``fwhm`` (mm): the length of that span.
+
+    NaN samples count as zero.  Returns a dict of floats.
+    """
+    x, v = _profile(x_mm, exy)
+    lo, hi = (float(w) for w in window_mm)
+    if not hi > lo:
+        raise ValueError(f"window_mm must be (x_lo, x_hi) with x_hi > x_lo, got {window_mm!r}")
+    inw = (x >= lo) & (x <= hi)
+    if inw.sum() < 3:
+        raise ValueError(f"window_mm {window_mm!r} holds fewer than 3 samples of the profile")
+    if (~inw).any():
+        v = v - float(np.median(v[~inw]))
+    xs, vs = x[inw], v[inw]
+    slide = float(np.trapezoid(2.0 * vs, xs)) if hasattr(np, "trapezoid") else float(np.trapz(2.0 * vs, xs))
+    k = int(np.argmax(np.abs(vs)))
+    peak = float(vs[k])
+    a = np.abs(vs)
+    half = 0.5 * a[k]
+    i = k
+    while i > 0 and a[i - 1] >= half:
+        i -= 1
+    j = k
+    while j < len(a) - 1 and a[j + 1] >= half:
+        j += 1
+
+    def cross(i0, i1):                                   # where |v| passes half between samples i0 and i1
+        if i0 == i1 or a[i0] == a[i1]:
+            return xs[i1]
+        return xs[i0] + (half - a[i0]) / (a[i1] - a[i0]) * (xs[i1] - xs[i0])
+
+    left = cross(i - 1, i) if i > 0 else xs[0]
+    right = cross(j + 1, j) if j < len(a) - 1 else xs[-1]
+    return {"slide": slide, "peak": peak, "depth": float(0.5 * (left + right)), "fwhm": float(right - left)}
+
+
+def edge_width(x_mm, values, levels=None, *, low: float = 0.1, high: float = 0.9) -> float:
+    """10-90 % width (mm) of a step in a profile ``values`` at positions ``x_mm`` (increasing): the distance
+    between the first crossings of ``lo + low (hi - lo)`` and ``lo + high (hi - lo)``, searched outwards from the
+    step's middle, crossings interpolated linearly.
+
+    ``levels = (lo, hi)``: the plateau values on the two sides (first / last sample's side), e.g. the true ones;
+    None: the medians of the first and last fifth of the profile.  A rising or falling step alike.  NaN if the
+    profile never leaves the 10-90 % band on one side (no step to measure).
+    """
+    x, v = _profile(x_mm, values)
+    if levels is None:
+        n5 = max(1, len(v) // 5)
+        lo, hi = float(np.median(v[:n5])), float(np.median(v[-n5:]))
+    else:
+        lo, hi = (float(t) for t in levels)
+    if lo == hi:
+        raise ValueError("the step's two levels are equal: no step to measure")
+    f = (v - lo) / (hi - lo)                             # 0 -> 1 across the step
+    m = int(np.argmin(np.abs(f - 0.5)))
+
+    def crossing(level, direction):
+        # from the middle outwards to the first sample on the far side of ``level``
+        idx = range(m, -1, -1) if direction < 0 else range(m, len(f))
+        prev = None
+        for i in idx:
+            if (f[i] - level) * (1 if level > 0.5 else -1) >= 0:
+                if prev is None:
+                    return x[i]
+                return x[prev] + (level - f[prev]) / (f[i] - f[prev]) * (x[i] - x[prev])
+            prev = i
+        return float("nan")
+
+    a = crossing(low, -1)
+    b = crossing(high, +1)
+    return float(abs(b - a))

@@ -1,5 +1,5 @@
 """Displacement fields with exact truth for simulated RF pairs: affine (compression, shear, rotation), bending,
-and FE inclusions (plane strain / plane stress).
+layers sliding across a shear band, and FE inclusions (plane strain / plane stress).
 
 Every field is an object with
 
@@ -23,7 +23,8 @@ import math
 
 import numpy as np
 
-__all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "Inclusion", "as_points"]
+__all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
+           "Inclusion", "as_points"]
 
 
 def as_points(points) -> np.ndarray:
@@ -175,6 +176,74 @@ class Bending:
         return f"Bending({self.name}, W={self.W:g} mm)"
 
 
+class ShearBand:
+    """Two layers sliding laterally past each other across a band parallel to the probe face, on top of uniform
+    axial compression (:func:`compression`).
+
+    Inside the band ``|x - d| < t / 2`` the tissue shears uniformly (a soft layer, e.g. fascia); above and below
+    it moves rigidly with its layer, the deep layer ``slide`` mm further along ``+y`` than the shallow one:
+
+    ``u_x = -s x``,  ``u_y = s / (1 - s) y + slide (r(x) - 1/2)``,  ``r = clip((x - d) / t + 1/2, 0, 1)``,
+
+    so ``e_xx = -s``, ``e_yy = s / (1 - s)`` everywhere and ``e_xy = slide / (2 t)`` inside the band, 0 outside
+    (the integral of ``2 e_xy`` across the band is ``slide``).  At the band's two faces the shear strain steps (the
+    band is bonded to its layers: ``u`` is continuous, its gradient is not).
+
+    Parameters
+    ----------
+    depth_mm : float
+        Depth ``d`` of the band's centre below the probe face, mm.
+    thickness_mm : float
+        Band thickness ``t``, mm (> 0).
+    slide_mm : float
+        Lateral slide of the deep layer relative to the shallow one, mm.
+    level : float
+        Axial compression (fraction); ``at(level)`` scales the slide with it (the slide per unit compression).
+    """
+
+    def __init__(self, depth_mm: float = 15.0, thickness_mm: float = 1.0, slide_mm: float = 0.15,
+                 level: float = 0.01):
+        self.depth_mm, self.thickness_mm, self.slide_mm = float(depth_mm), float(thickness_mm), float(slide_mm)
+        if not (math.isfinite(self.thickness_mm) and self.thickness_mm > 0):
+            raise ValueError(f"thickness_mm must be positive, got {thickness_mm!r}")
+        if not (math.isfinite(self.depth_mm) and math.isfinite(self.slide_mm)):
+            raise ValueError(f"depth_mm and slide_mm must be finite, got {depth_mm!r}, {slide_mm!r}")
+        self.level = _level(level)
+        self.name = (f"shear band {self.thickness_mm:g} mm at {self.depth_mm:g} mm sliding {self.slide_mm:g} mm"
+                     f" + compression {100 * self.level:g}%")
+
+    @property
+    def peak_exy(self) -> float:
+        """``e_xy`` inside the band, ``slide / (2 t)``."""
+        return 0.5 * self.slide_mm / self.thickness_mm
+
+    def _ramp(self, x):
+        return np.clip((x - self.depth_mm) / self.thickness_mm + 0.5, 0.0, 1.0)
+
+    def inside(self, points) -> np.ndarray:
+        """True for points inside the band, (n,) bool."""
+        return np.abs(as_points(points)[:, 0] - self.depth_mm) < 0.5 * self.thickness_mm
+
+    def displacement(self, points) -> np.ndarray:
+        p = as_points(points)
+        s = self.level
+        return np.column_stack([-s * p[:, 0], s / (1.0 - s) * p[:, 1] + self.slide_mm * (self._ramp(p[:, 0]) - 0.5)])
+
+    def strain(self, points) -> np.ndarray:
+        p = as_points(points)
+        s = self.level
+        exy = np.where(self.inside(p), self.peak_exy, 0.0)
+        return np.column_stack([np.full(len(p), -s), np.full(len(p), s / (1.0 - s)), exy])
+
+    def at(self, level) -> "ShearBand":
+        lv = _level(level)
+        f = lv / self.level if self.level > 0 else 0.0
+        return ShearBand(self.depth_mm, self.thickness_mm, f * self.slide_mm, lv)
+
+    def __repr__(self) -> str:
+        return f"ShearBand({self.name})"
+
+
 #: The small 2D inclusion model (mm, MPa) used by :class:`Inclusion`: a 80 mm block, bottom clamped, the whole top
 #: face pressed (slip), a 10 mm disk 20 mm deep, 0.4 mm P2 triangles over the imaged region.
 INCLUSION_MODEL = dict(block_mm=80.0, inclusion_diameter_mm=10.0, inclusion_depth_mm=20.0, patch_mm=None,
@@ -198,11 +267,15 @@ class Inclusion:
     model : {"plane-strain", "plane-stress"}
     level : float
         Mean axial compression of the block (fraction).
+    radius_mm : float, optional
+        Disk radius, mm (default: the model's 5 mm); the FE mesh over the imaged region is refined to at most a
+        quarter of the radius (bonded disk, 1-8 mm: :data:`INCLUSION_MODEL` otherwise).
     """
 
     MODULI = {"stiff": 40.0, "soft": 2.5}
 
-    def __init__(self, kind: str = "stiff", model: str = "plane-strain", level: float = 0.01, *, _solution=None):
+    def __init__(self, kind: str = "stiff", model: str = "plane-strain", level: float = 0.01, *,
+                 radius_mm: float | None = None, _solution=None):
         if kind not in self.MODULI:
             raise ValueError(f"inclusion kind must be one of {tuple(self.MODULI)}, got {kind!r}")
         if model not in ("plane-strain", "plane-stress"):
@@ -210,15 +283,24 @@ class Inclusion:
         self.kind, self.model = kind, model
         self.level = _level(level)
         self.scale = self.level * INCLUSION_MODEL["block_mm"]
+        params = dict(INCLUSION_MODEL)
+        if radius_mm is not None:
+            r = float(radius_mm)
+            r_max = 0.3 * params["refine_region_mm"][1]          # the disk well inside the refined region
+            if not (math.isfinite(r) and 0 < r <= r_max):
+                raise ValueError(f"radius_mm must be in (0, {r_max:g}] mm, got {radius_mm!r}")
+            if r != 0.5 * params["inclusion_diameter_mm"]:
+                params["inclusion_diameter_mm"] = 2.0 * r
+                params["mesh_size_mm"] = min(params["mesh_size_mm"], 0.25 * r)
         if _solution is None:
             from .elasticity import cached_solve
 
-            _solution = cached_solve(model, inclusion_modulus=self.MODULI[kind], compression_mm=1.0,
-                                     **INCLUSION_MODEL)
+            _solution = cached_solve(model, inclusion_modulus=self.MODULI[kind], compression_mm=1.0, **params)
         self.solution = _solution
-        self.centre = (INCLUSION_MODEL["inclusion_depth_mm"], 0.0)
-        self.radius_mm = INCLUSION_MODEL["inclusion_diameter_mm"] / 2.0
-        self.name = f"{kind} inclusion {model} {100 * self.level:g}%"
+        self.centre = (params["inclusion_depth_mm"], 0.0)
+        self.radius_mm = params["inclusion_diameter_mm"] / 2.0
+        r_txt = "" if radius_mm is None else f" r {self.radius_mm:g} mm"
+        self.name = f"{kind} inclusion{r_txt} {model} {100 * self.level:g}%"
 
     def displacement(self, points) -> np.ndarray:
         u = self.solution.displacement(as_points(points))
@@ -234,7 +316,8 @@ class Inclusion:
         return (p[:, 0] - self.centre[0]) ** 2 + (p[:, 1] - self.centre[1]) ** 2 < self.radius_mm**2
 
     def at(self, level) -> "Inclusion":
-        return Inclusion(self.kind, self.model, level, _solution=self.solution)
+        r = None if self.radius_mm == 0.5 * INCLUSION_MODEL["inclusion_diameter_mm"] else self.radius_mm
+        return Inclusion(self.kind, self.model, level, radius_mm=r, _solution=self.solution)
 
     def __repr__(self) -> str:
         return f"Inclusion({self.name})"

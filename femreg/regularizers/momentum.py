@@ -625,6 +625,12 @@ class MomentumRegularizer(TVRegularizer):
         The edge-midpoint jumps of eq:Ae7 do not see the node-to-node checkerboard ("hourglass") modes of bilinear
         quads, so on real data they can show up in the lateral field; a small weight (e.g. 1) removes them
         while leaving affine fields free.  0 (default) is the paper's regulariser.
+    shear_traction : float
+        Weight ``w`` of the tangential part of the traction jump, not in the paper: the penalty of edge j becomes
+        :math:`\sqrt{(n\cdot[\![A]\!]n)^2 + w^2 (t\cdot[\![A]\!]n)^2 + \delta}` (``t`` the edge tangent;
+        rotation invariant).  1 (default) is eq:dmreg2 (the same norm, the operators untouched).  Below 1 a layer
+        may slide over another (a jump of the shear traction across the band's faces) at a lower price, while the
+        normal traction (compression, inclusions) is held as before.
     """
 
     name = "momentum"
@@ -633,8 +639,12 @@ class MomentumRegularizer(TVRegularizer):
     default_dilatation = "edge"
 
     def __init__(self, alpha: float | None = None, *, lambda_bar: float | None = None,
-                 delta: float = DEFAULT_DELTA, dilatation: str | None = None, hourglass: float = 0.0):
+                 delta: float = DEFAULT_DELTA, dilatation: str | None = None, hourglass: float = 0.0,
+                 shear_traction: float = 1.0):
         super().__init__(None, alpha, delta=delta, penalty="tv", name=self.name)
+        self.shear_traction = float(shear_traction)
+        if not np.isfinite(self.shear_traction) or self.shear_traction <= 0:
+            raise ValueError(f"shear_traction must be a finite number > 0, got {shear_traction!r}")
         self.hourglass = float(hourglass)
         if not np.isfinite(self.hourglass) or self.hourglass < 0:
             raise ValueError(f"hourglass must be a finite number >= 0, got {hourglass!r}")
@@ -649,7 +659,13 @@ class MomentumRegularizer(TVRegularizer):
 
     def build_operator(self, mesh):
         self.jumps = momentum_jump_operators(mesh, self.lambda_bar, dilatation=self.dilatation)
-        return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
+        if self.shear_traction == 1.0:
+            return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
+        # normal and tangential components of the jump vector (a rotation of (Kx, Ky) per edge)
+        nx, ny = (sp.diags(c) for c in self.jumps.normals)
+        Kn = (nx @ self.jumps.Kx + ny @ self.jumps.Ky).tocsr()
+        Kt = (nx @ self.jumps.Ky - ny @ self.jumps.Kx).tocsr()
+        return [Kn, (self.shear_traction * Kt).tocsr()], self.jumps.lengths
 
     def setup(self, mesh) -> None:
         super().setup(mesh)
@@ -671,7 +687,8 @@ class MomentumRegularizer(TVRegularizer):
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(alpha={self.alpha:g}, lambda_bar={self.lambda_bar:g}, "
-                f"delta={self.delta:g}, dilatation={self.dilatation!r}, hourglass={self.hourglass:g})")
+                f"delta={self.delta:g}, dilatation={self.dilatation!r}, hourglass={self.hourglass:g}"
+                + ("" if self.shear_traction == 1.0 else f", shear_traction={self.shear_traction:g}") + ")")
 
 
 class PlaneStrainMomentumRegularizer(MomentumRegularizer):
