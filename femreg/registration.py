@@ -98,7 +98,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", blockmatch_options=None,
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
-             strain_tol: float | None = None) -> RegistrationResult:
+             strain_tol: float | None = None, geometry=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -168,6 +168,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         fraction of their RMS (on two consecutive steps); None = :data:`femreg.solver.GN_STRAIN_TOL` (1.5 %, the
         TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_TIGHT` (0.5 %, the quadratic ones), 0 = only
         the ``tol`` rule.
+    geometry : femreg.Convex | femreg.Sector, optional
+        Frames sampled along the rays of a convex or phased array, (n_samples, n_rays) with ``spacing`` = dr mm
+        (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
+        a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
+        :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
 
     Returns
     -------
@@ -179,6 +184,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
+    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
+        from .geometry import as_geometry, register_beam
+        if as_geometry(geometry) is not None:
+            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam")
+            kw = {k: v for k, v in locals().items() if k not in skip}
+            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image")}
         return autoalpha.register_auto(reference_image, moving_image, register=register, **kw)
