@@ -187,7 +187,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
         from .geometry import as_geometry, register_beam
         if as_geometry(geometry) is not None:
-            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam")
+            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam", "skip")
             kw = {k: v for k, v in locals().items() if k not in skip}
             return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
