@@ -377,7 +377,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     from .image import validate_image
     from .repair import check_period, check_result
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
-    from .strategy import effective_regularizer_options, fresh_regularizer
+    from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
 
     t_all = time.perf_counter()
     geometry = as_geometry(geometry)
@@ -420,7 +420,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     st = float(strain_tol) if strain_tol is not None else (
         GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
     sol = solve(I1, I2, mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), lambda: copy.copy(user_reg), u0,
-                locator=locator, maxiter=maxiter, tol=tol, linear_solver=linear_solver, callback=callback,
+                locator=locator, maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
+                linear_solver=linear_solver, callback=callback,
                 mask_outside=strategy == "auto", strain_tol=st if (strategy == "auto" and st > 0) else None,
                 term=term)
     check = check_result(sol, u0, np.zeros(mesh.p.shape[1], int), shape, (dr, dr),

@@ -14,7 +14,7 @@ Public API: :func:`make_beam_pair` -> :class:`BeamPair`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,12 +41,17 @@ class BeamPair(Pair):
 
 def make_beam_pair(field, geometry, probe="paper", depth_mm: float = 40.0, n_rays: int = 64,
                    snr_db: float | None = 30.0, seed: int = 0, *, top_mm: float = 3.0,
-                   scatterers_per_cell: float = SCATTERERS_PER_CELL, name: str = "") -> BeamPair:
+                   scatterers_per_cell: float = SCATTERERS_PER_CELL, lines_per_beam: float | None = 3.0,
+                   name: str = "") -> BeamPair:
     """Render a reference/moving pair of a convex or sector probe related by ``field`` (physical, mm).
 
     ``geometry``: :class:`femreg.geometry.Convex` or ``Sector``; ``probe``: its pulse and axial sampling (the
     lateral beam width is taken at ``rho_c``); ``depth_mm`` of range from ``top_mm``; ``n_rays`` rays centred on
-    angle 0.  Scatterers only at x >= 0 (the tissue under the face plane).  Noise, seeding: as
+    angle 0.  ``lines_per_beam``: the beam's -6 dB width at ``rho_c`` is at least this many line spacings
+    (``rho_c dtheta``; a scanner's line density samples its beam, as the paper probe's 1.4 mm beam and 0.3 mm
+    lines, 4.7 per beam; a linear pair with 1.6 lines per beam has 3.7 % total strain error under 1 %
+    compression, 0.2 % with 4.7); None: the probe's width as given.  Scatterers only at x >= 0 (the tissue
+    under the face plane).  Noise, seeding: as
     :func:`forward.pairs.make_pair`."""
     from femreg.geometry import as_geometry
 
@@ -64,6 +69,8 @@ def make_beam_pair(field, geometry, probe="paper", depth_mm: float = 40.0, n_ray
     rho_c = geo.radius_mm + top_mm + 0.5 * (n_s - 1) * dr
     ds = rho_c * geo.pitch_rad
     grid = ImagingGrid(n_s, n_rays, dr, ds, float(top_mm), -0.5 * (n_rays - 1) * ds)
+    if lines_per_beam is not None and pr.beam_fwhm_mm < float(lines_per_beam) * ds:
+        pr = replace(pr, beam_fwhm_mm=float(lines_per_beam) * ds)
     psf = pr.psf()
     hx, hy = psf.half_support_mm()
     # physical box of the imaged sector + the PSF support (scaled to the widest radius) + the motion
