@@ -116,8 +116,8 @@ def test_convex_uniform_compression():
     pair = make_beam_pair(F.compression(0.01), geo, depth_mm=20.0, n_rays=40, seed=3)
     res, err = _register(pair)
     assert isinstance(res, femreg.geometry.BeamResult) and res.success
-    # measured 2.26 % total strain error (the sample-space start alone: 17 %): bound 3 %
-    assert err["e"] < 0.03
+    # measured 2.60 % total strain error (seeds 3-5: 1.8-3.0 %; the sample-space start alone: 16 %): bound 3.5 %
+    assert err["e"] < 0.035
     # results in physical coordinates: the mesh is the annular sector, strains on the samples
     r, th = geo.to_beam(*res.mesh.p)
     nr, nt = np.unique(np.round(r, 9)).size, np.unique(np.round(th, 12)).size
@@ -140,7 +140,8 @@ def test_sector_uniform_compression():
     pair = make_beam_pair(F.compression(0.01), geo, depth_mm=20.0, n_rays=40, seed=3, top_mm=10.0)
     res, err = _register(pair)
     assert res.success
-    # measured 3.03 % (the sample-space start alone: 86 %, its lateral strain meaningless near the apex)
+    # measured 3.03 % (seeds 3-5: 1.6-3.0 %; the sample-space start alone: 86 %, its lateral strain meaningless
+    # near the apex): bound 4 %
     assert err["e"] < 0.04
     assert np.min(np.hypot(res.mesh.p[0], res.mesh.p[1])) > 9.0      # the mesh starts 10 mm from the apex
 
@@ -151,3 +152,22 @@ def test_beam_result_plot(tmp_path):
     res, _ = _register(pair)
     out = femreg.plot.plot_result(res, tmp_path / "convex.png", reference=pair.ref)
     assert (tmp_path / "convex.png").stat().st_size > 10_000 and out is not None
+
+
+def test_cli_convex(tmp_path):
+    from femreg.cli import main
+
+    geo = femreg.Convex(50.0, 0.6)
+    pair = make_beam_pair(F.compression(0.01), geo, depth_mm=12.0, n_rays=24, seed=1)
+    for name, rf in (("ref", pair.ref), ("mov", pair.mov)):
+        np.savez(tmp_path / f"{name}.npz", rf=rf, spacing=np.array([pair.spacing[0], 0.5]),
+                 origin=np.array([pair.origin[0], 0.0]))
+    out = tmp_path / "res.npz"
+    args = [str(tmp_path / "ref.npz"), str(tmp_path / "mov.npz"), "-o", str(out)]
+    assert main(["register", *args, "--geometry", "convex", "--angle-pitch", "0.6"]) == 2      # no --radius
+    assert main(["register", *args, "--geometry", "convex", "--radius", "50", "--angle-pitch", "0.6"]) == 0
+    res = femreg.load_result(out)
+    e = res.strain(pair.sample_points()[::7])[:, 0]           # physical points (NaN outside the mesh)
+    assert np.isfinite(e).mean() > 0.4 and abs(np.nanmedian(e) + 0.01) < 1e-3
+    with np.load(out) as z:
+        assert str(z["geometry_kind"]) == "convex" and float(z["geometry_radius_mm"]) == 50.0
