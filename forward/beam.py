@@ -53,11 +53,12 @@ def make_beam_pair(field, geometry, probe="paper", depth_mm: float = 40.0, n_ray
     compression, 0.2 % with 4.7); None: the probe's width as given.  Scatterers only at x >= 0 (the tissue
     under the face plane).  Noise, seeding: as
     :func:`forward.pairs.make_pair`."""
-    from femreg.geometry import as_geometry
+    from femreg import Convex
 
-    geo = as_geometry(geometry)
-    if geo is None:
-        raise ValueError("make_beam_pair needs a convex or sector geometry; use make_pair for a linear array")
+    if not isinstance(geometry, Convex):      # femreg.Sector is a Convex with its apex on the face
+        raise ValueError("make_beam_pair needs a femreg.Convex or femreg.Sector geometry; use make_pair for a "
+                         "linear array")
+    geo = geometry
     pr = as_probe(probe)
     f = _as_field(field)
     snr_db = _snr(snr_db)
