@@ -48,14 +48,16 @@ def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=Non
 
 
 def solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,
-          tol=1e-3, linear_solver="auto", callback=None, mask_outside=False, strain_tol=None) -> Solve:
+          tol=1e-3, linear_solver="auto", callback=None, mask_outside=False, strain_tol=None, term=None) -> Solve:
     """Gauss-Newton stage: SSD term (eq:wfnew) on ``mesh`` + a fresh regulariser with alpha per 2 x 2 mm element.
 
     ``mask_outside``: pixels that the start ``u0`` maps outside the moving image (less than 2 pixels from its
     edge) get weight 0 -- the moving image holds nothing to compare them with (large motion), and its zero
-    outside would pull their elements; the regulariser carries the field there."""
+    outside would pull their elements; the regulariser carries the field there.  ``term``: an image term built by
+    the caller instead (the samples of a beam frame, :class:`femreg.geometry.BeamSSDTerm`)."""
     locator = locator or PointLocator(mesh)
-    data = image_term(I1, I2, mesh, shape, spacing, origin, offset=offset, locator=locator)
+    data = term if term is not None else image_term(I1, I2, mesh, shape, spacing, origin, offset=offset,
+                                                    locator=locator)
     if mask_outside:
         out = data.outside_mask(u0)
         if out.any() and not out.all():

@@ -140,6 +140,20 @@ def _fit_colorbars(fig, rows, tries=6):
         engine.set(wspace=wspace)
 
 
+def _draw(ax, img, ext, positions, **kw):
+    """imshow of a pixel-grid image, or (``positions`` = physical (X, Y) of every sample of a convex / sector
+    frame, :mod:`femreg.geometry`) a scan-converted pcolormesh at the samples' physical positions."""
+    if positions is None:
+        return ax.imshow(img, extent=ext, interpolation="nearest", **kw)
+    X, Y = positions
+    aspect = kw.pop("aspect", "equal")
+    im = ax.pcolormesh(Y, X, img, shading="nearest", rasterized=True, **kw)
+    ax.set_aspect(aspect)
+    ax.set_xlim(np.min(Y), np.max(Y))
+    ax.set_ylim(np.max(X), min(np.min(X), 0.0))
+    return im
+
+
 def _label(ax, title):
     ax.set_xlabel("lateral y (mm)")
     ax.set_ylabel("axial x (mm)")
@@ -148,13 +162,14 @@ def _label(ax, title):
 
 
 def plot_bmode(rf, spacing, origin=(0.0, 0.0), ax=None, *, dynamic_range=50.0, title="B-mode", colorbar=True,
-               aspect="equal"):
-    """B-mode image of ``rf`` (see :func:`bmode`) with mm axes and a dB colour bar; returns the Axes."""
+               aspect="equal", positions=None):
+    """B-mode image of ``rf`` (see :func:`bmode`) with mm axes and a dB colour bar; returns the Axes.
+    ``positions``: physical (X, Y) of the samples of a convex / sector frame (scan-converted)."""
     sp = _spacing(spacing)
     img = bmode(rf, dynamic_range)
     ax = _ax(ax)
-    im = ax.imshow(img, cmap="gray", vmin=-dynamic_range, vmax=0, extent=extent_mm(img.shape, sp, origin),
-                   aspect=aspect, interpolation="nearest")
+    im = _draw(ax, img, extent_mm(img.shape, sp, origin), positions, cmap="gray", vmin=-dynamic_range, vmax=0,
+               aspect=aspect)
     _label(ax, title)
     if colorbar:
         _colorbar(ax, im, "echo level (dB)")
@@ -163,7 +178,7 @@ def plot_bmode(rf, spacing, origin=(0.0, 0.0), ax=None, *, dynamic_range=50.0, t
 
 def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=None, vmin=None, vmax=None,
                overlay_bmode=None, alpha=0.7, label=None, dynamic_range=50.0, aspect="equal", symmetric=None,
-               scale=1.0):
+               scale=1.0, positions=None):
     """A pixel-grid field (NaN = outside the mesh, left transparent) with mm axes and a colour bar.
 
     ``overlay_bmode``: RF of the same shape drawn as a grey B-mode beneath the field, which is then drawn with
@@ -171,7 +186,8 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=N
     names the quantity and its unit for the colour bar).  ``cmap=None``: chosen from the data by
     :func:`colour_scale` (sequential for one sign, diverging centred at 0 when the sign changes); an explicit
     ``cmap`` has limits from the robust percentiles (1, 99), symmetric about 0 for diverging maps
-    (``symmetric=None`` decides from ``cmap``).  Returns the Axes.
+    (``symmetric=None`` decides from ``cmap``).  ``positions``: physical (X, Y) of the samples of a convex /
+    sector frame (scan-converted, :mod:`femreg.geometry`).  Returns the Axes.
     """
     sp = _spacing(spacing)
     f = _image2d(field, "field") * float(scale)
@@ -181,8 +197,8 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=N
         b = _image2d(overlay_bmode, "overlay_bmode")
         if b.shape != f.shape:
             raise InputError(f"overlay_bmode shape {b.shape} differs from the field's {f.shape}")
-        ax.imshow(bmode(b, dynamic_range), cmap="gray", vmin=-dynamic_range, vmax=0, extent=ext, aspect=aspect,
-                  interpolation="nearest")
+        _draw(ax, bmode(b, dynamic_range), ext, positions, cmap="gray", vmin=-dynamic_range, vmax=0,
+              aspect=aspect)
     if cmap is None and symmetric is None:
         cmap, lo, hi = colour_scale(f)
     else:
@@ -202,8 +218,8 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=N
     vmin = lo if vmin is None else vmin
     vmax = hi if vmax is None else vmax
     masked = np.ma.masked_invalid(f)
-    im = ax.imshow(masked, cmap=cmap, vmin=vmin, vmax=vmax, extent=ext, aspect=aspect, interpolation="nearest",
-                   alpha=alpha if overlay_bmode is not None else None)
+    im = _draw(ax, masked, ext, positions, cmap=cmap, vmin=vmin, vmax=vmax, aspect=aspect,
+               alpha=alpha if overlay_bmode is not None else None)
     _label(ax, title)
     _colorbar(ax, im, label)
     return ax
@@ -339,9 +355,12 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         reference = _image2d(reference, "reference")
         if reference.shape != shape:
             raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}")
+    positions = _beam_positions(result, d, shape, sp, origin)
     plt = _mpl()
     n_ax, n_lat = shape
     aspect_ratio = (n_ax * sp[0]) / max(n_lat * sp[1], 1e-12)
+    if positions is not None:
+        aspect_ratio = float(np.ptp(positions[0]) / max(np.ptp(positions[1]), 1e-12))
     if figsize is None:
         w = 3.6                      # per panel; about 1.4 in of it go to the colour bar and the labels
         figsize = (3 * w, 2 * min(max((w - 1.4) * aspect_ratio + 1.0, 2.5), 6.5) + 0.5)
@@ -349,7 +368,8 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     axes = axes.ravel()
     aspect = "equal" if 0.2 < aspect_ratio < 5 else "auto"  # very tall/flat grids fill the panel
     if reference is not None:
-        plot_bmode(reference, sp, origin, ax=axes[0], dynamic_range=dynamic_range, aspect=aspect)
+        plot_bmode(reference, sp, origin, ax=axes[0], dynamic_range=dynamic_range, aspect=aspect,
+                   positions=positions)
     else:
         p, t, _ = check_mesh(d["mesh_points"], d["mesh_cells"], d["u"])
         ax = axes[0]
@@ -357,14 +377,16 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
 
         polys = np.stack([p[1][t].T, p[0][t].T], axis=-1)  # (n_el, 4, [y, x])
         ax.add_collection(PolyCollection(polys, facecolor="none", edgecolor="k", linewidth=0.3))
-        ext = extent_mm(shape, sp, origin)
+        ext = extent_mm(shape, sp, origin) if positions is None else (
+            p[1].min(), p[1].max(), p[0].max(), p[0].min())
         ax.set_xlim(ext[0], ext[1])
         ax.set_ylim(ext[2], ext[3])
         ax.set_aspect(aspect)
         _label(ax, f"mesh ({t.shape[1]} quads)")
     for ax, (key, title, label, scale) in zip(axes[1:], _PANELS):
         plot_field(d[key], sp, origin, ax=ax, title=title, label=label, scale=scale,
-                   overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range)
+                   overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range,
+                   positions=positions)
     for ax in (axes[1], axes[2], axes[4], axes[5]):
         ax.set_ylabel("")                                   # one depth label per row, at the left
     outside = ~np.isfinite(np.asarray(d["ux"], float))
@@ -395,6 +417,20 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
+
+
+def _beam_positions(result, d, shape, spacing, origin):
+    """Physical (X, Y) of the samples when ``result`` is a convex / sector result (its ``sample_positions``, or
+    the ``geometry_*`` keys of its file), else None."""
+    if hasattr(result, "sample_positions"):
+        return result.sample_positions()
+    if "geometry_kind" not in d:
+        return None
+    from .geometry import as_geometry
+
+    geo = as_geometry(dict(kind=str(d["geometry_kind"]), radius_mm=float(d["geometry_radius_mm"]),
+                           angle_pitch_deg=float(d["geometry_angle_pitch_deg"])))
+    return geo.sample_positions(shape, spacing, origin)
 
 
 def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="value", cmap="viridis",

@@ -103,7 +103,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -185,6 +185,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Refuse a reference frame that looks transposed or whose spacing looks swapped or implausible, from its RF
         carrier (:mod:`femreg.orientation`; :class:`femreg.orientation.OrientationError`); data without a
         carrier (envelope, B-mode) is never refused.  False skips the check.
+    geometry : femreg.Convex | femreg.Sector, optional
+        Frames sampled along the rays of a convex or phased array, (n_samples, n_rays) with ``spacing`` = dr mm
+        (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
+        a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
+        :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
 
     Returns
     -------
@@ -196,9 +201,16 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
+    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
+        from .geometry import as_geometry, register_beam
+        if as_geometry(geometry) is not None:
+            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam", "skip")
+            kw = {k: v for k, v in locals().items() if k not in skip}
+            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
     crop = crop_for(reference_image, moving_image, spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin,
                     initial=initial, offset=offset)
-    kw = {k: v for k, v in locals().items() if k not in ("reference_image", "moving_image", "crop")}
+    kw = {k: v for k, v in locals().items()
+          if k not in ("reference_image", "moving_image", "crop", "as_geometry", "register_beam")}
     kw.update(roi=None, depth=None)
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
         return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))

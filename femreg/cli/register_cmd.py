@@ -30,6 +30,12 @@ def add_parser(subparsers):
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    g = p.add_argument_group("probe geometry (femreg.geometry)")
+    g.add_argument("--geometry", choices=("linear", "convex", "sector"), default="linear",
+                   help="frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
+                        "axial spacing is the range step, registered in physical x, y (default linear)")
+    g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
+    g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -42,6 +48,21 @@ def _frame(fr, index, path):
     if not -fr.n_frames <= index < fr.n_frames:
         raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s)")
     return fr.frames[index]
+
+
+def _geometry(args):
+    import femreg
+    from femreg.errors import InputError
+
+    if args.angle_pitch is None:
+        raise InputError(f"--geometry {args.geometry} needs --angle-pitch (degrees between rays)")
+    if args.geometry == "convex":
+        if args.radius is None:
+            raise InputError("--geometry convex needs --radius (mm from the apex to the face)")
+        return femreg.Convex(radius_mm=args.radius, angle_pitch_deg=args.angle_pitch)
+    if args.radius not in (None, 0.0):
+        raise InputError("--geometry sector has its apex on the face: no --radius")
+    return femreg.Sector(angle_pitch_deg=args.angle_pitch)
 
 
 def run(args) -> int:
@@ -64,8 +85,12 @@ def run(args) -> int:
         raise InputError(f"output must be a .npz file, got {args.output}")
     import sys
 
+    spacing, origin = ref_fr.spacing, ref_fr.origin
+    if args.geometry != "linear":       # range step and first range from the file; rays centred on angle 0
+        kw["geometry"] = _geometry(args)
+        spacing, origin = float(spacing[0]), (float(origin[0]), 0.0)
     try:
-        res = femreg.register(ref, mov, spacing=ref_fr.spacing, origin=ref_fr.origin, **kw)
+        res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)
     except InputError:
         raise                      # bad input: exit 2 from the dispatcher
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)

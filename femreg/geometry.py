@@ -1,0 +1,447 @@
+"""Curved-array geometries (convex and phased/sector probes): RF frames sampled along diverging rays, registered
+in physical Cartesian coordinates.
+
+Conventions
+-----------
+A frame is an ``(n_samples, n_rays)`` array: sample ``[i, j]`` lies on ray ``j`` at range
+``r_i = r_0 + i dr`` mm, the range measured from the probe face along the ray (``r_0 = origin[0]``, ``dr =
+spacing[0]``).  Ray ``j`` has the angle ``theta_j = (j - (n_rays - 1) / 2) dtheta`` (rays centred on 0,
+``dtheta`` = the geometry's angle pitch); angle 0 is the probe axis (x, depth) and a positive angle turns
+towards +y.  The apex (centre of curvature) lies ``R = radius_mm`` behind the face at ``(x, y) = (-R, 0)``
+(:class:`Convex`); a phased array (:class:`Sector`) has its apex on the face (``R = 0``).  The physical position
+of a sample is ``x = (R + r) cos(theta) - R``, ``y = (R + r) sin(theta)`` (mm): the face point of the central
+ray is the origin, x depth, y lateral, as for a linear array.
+
+Registration (:func:`register_beam`, reached through ``femreg.register(..., geometry=...)``)
+--------------------------------------------------------------------------------------------
+The image stage keeps each frame on its (range, angle) sample grid with its cubic B-spline coefficients
+(:class:`femreg.image.SplineImage` with spacing ``(dr, dtheta)``); the geometry maps physical points to fractional
+sample indices, so the warp I_2(x + u) of eq:IR evaluates the spline at the mapped indices, and the fixed
+reference gradient of eq:wfnew is the knot gradient in (r, theta) rotated to (x, y) by the inverse Jacobian.
+The mesh is a quad mesh in physical space whose nodes are the physical positions of a (range, angle) lattice
+(an annular sector); every sample is a quadrature point at its physical position with the weight of the
+physical area it represents, ``(R + r) dr dtheta`` (the polar area element), and is located in the mesh by the
+general (non-tensor) path of :class:`femreg.pixels.PointLocator` (the mesh has the logical structure of a
+tensor mesh, so its Newton walk, falling back to the KD-tree search).
+
+Initial guess: the whole linear pipeline of :func:`femreg.register` (pyramid, Gauss-Newton, peak-hopping repair)
+run in sample space, where the frame is treated as a linear image of spacing ``(dr, rho_c dtheta)`` mm
+(``rho_c`` the apex distance of the middle sample), on a tensor mesh whose nodes are the same (range, angle)
+lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exactly through the mapping,
+``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
+eq:objf on the physical mesh, so the regulariser sees physical displacements and strains.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from skfem import MeshQuad1
+
+from .data_term import SSDTerm
+from .errors import InputError
+from .image import SplineImage, normalize_pair
+from .pixels import PixelQuadrature, PointLocator
+from .result import RegistrationResult
+from .sampling import sample_points
+
+__all__ = ["Convex", "Sector", "as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
+           "register_beam"]
+
+
+@dataclass(frozen=True)
+class Convex:
+    """A convex (curvilinear) array: rays from an apex ``radius_mm`` behind the face, ``angle_pitch_deg`` apart.
+
+    See the module docstring for the conventions (range from the face along the ray, angle 0 along x, positive
+    towards +y, rays centred on 0).  ``radius_mm`` > 0 mm (40-60 mm abdominal probes); ``angle_pitch_deg`` > 0."""
+
+    radius_mm: float = 50.0
+    angle_pitch_deg: float = 0.5
+
+    def __post_init__(self):
+        r, a = self.radius_mm, self.angle_pitch_deg
+        ok_r = isinstance(r, (int, float)) and np.isfinite(r) and r >= (0 if self.kind == "sector" else 1e-9)
+        if not ok_r:
+            raise InputError(f"{self.kind} radius_mm must be a finite number > 0 mm, got {r!r}")
+        if not (isinstance(a, (int, float)) and np.isfinite(a) and 0 < a < 10):
+            raise InputError(f"{self.kind} angle_pitch_deg must be a number in (0, 10) degrees, got {a!r}")
+
+    kind = "convex"
+
+    @property
+    def pitch_rad(self) -> float:
+        return float(np.deg2rad(self.angle_pitch_deg))
+
+    # -- the mapping ---------------------------------------------------------------------------------------
+    def angles(self, n_rays: int) -> np.ndarray:
+        """Ray angles (n_rays,) rad, centred on 0."""
+        return (np.arange(int(n_rays)) - 0.5 * (int(n_rays) - 1)) * self.pitch_rad
+
+    def to_physical(self, r, theta):
+        """(range mm from the face, angle rad) -> (x, y) mm; any broadcastable shapes."""
+        rho = self.radius_mm + np.asarray(r, float)
+        theta = np.asarray(theta, float)
+        return rho * np.cos(theta) - self.radius_mm, rho * np.sin(theta)
+
+    def to_beam(self, x, y):
+        """(x, y) mm -> (range mm from the face, angle rad); the inverse of :meth:`to_physical`."""
+        xa = np.asarray(x, float) + self.radius_mm
+        y = np.asarray(y, float)
+        return np.hypot(xa, y) - self.radius_mm, np.arctan2(y, xa)
+
+    def jacobian(self, r, theta) -> np.ndarray:
+        """d(x, y)/d(r, theta) at (r, theta), (..., 2, 2): [[cos, -rho sin], [sin, rho cos]]."""
+        rho = self.radius_mm + np.asarray(r, float)
+        c, s = np.cos(theta), np.sin(theta)
+        return np.stack([np.stack([c, -rho * s], -1), np.stack([s, rho * c], -1)], -2)
+
+    def index_to_physical(self, idx, shape, spacing, origin) -> np.ndarray:
+        """Fractional sample indices ``idx`` (2, n) -> physical points (n, 2) mm (``spacing[0]`` = dr,
+        ``origin[0]`` = r_0; the lateral entries are not used: the angles come from the pitch)."""
+        idx = np.asarray(idx, float)
+        r = origin[0] + idx[0] * spacing[0]
+        th = (idx[1] - 0.5 * (shape[1] - 1)) * self.pitch_rad
+        x, y = self.to_physical(r, th)
+        return np.column_stack([x, y])
+
+    def physical_to_index(self, points, shape, spacing, origin) -> np.ndarray:
+        """Physical points (n, 2) mm -> fractional sample indices (2, n) (the inverse of
+        :meth:`index_to_physical`)."""
+        p = np.asarray(points, float).reshape(-1, 2)
+        r, th = self.to_beam(p[:, 0], p[:, 1])
+        return np.stack([(r - origin[0]) / spacing[0], th / self.pitch_rad + 0.5 * (shape[1] - 1)])
+
+    def sample_positions(self, shape, spacing, origin) -> tuple:
+        """Physical positions of every sample: ``(X, Y)``, each ``shape`` (n_samples, n_rays), mm."""
+        i, j = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+        p = self.index_to_physical(np.stack([i.ravel(), j.ravel()]), shape, spacing, origin)
+        return p[:, 0].reshape(shape), p[:, 1].reshape(shape)
+
+    def ray_angle(self, points) -> np.ndarray:
+        """Angle (n,) rad of the ray through each physical point (n, 2) mm."""
+        p = np.asarray(points, float).reshape(-1, 2)
+        return np.arctan2(p[:, 1], p[:, 0] + self.radius_mm)
+
+    def to_dict(self) -> dict:
+        return dict(kind=self.kind, radius_mm=float(self.radius_mm), angle_pitch_deg=float(self.angle_pitch_deg))
+
+
+@dataclass(frozen=True)
+class Sector(Convex):
+    """A phased array (sector scan): the apex lies on the face (``radius_mm`` = 0), rays ``angle_pitch_deg``
+    apart.  Conventions as :class:`Convex` (range from the apex = the face)."""
+
+    radius_mm: float = 0.0
+    angle_pitch_deg: float = 0.5
+    kind = "sector"
+
+
+def as_geometry(spec):
+    """A :class:`Convex` / :class:`Sector` from itself, or from a dict ``{"kind": "convex"|"sector", ...}``; None
+    (and "linear") for a linear array."""
+    if spec is None or spec == "linear":
+        return None
+    if isinstance(spec, Convex):
+        return spec
+    if isinstance(spec, dict):
+        d = dict(spec)
+        kind = d.pop("kind", "convex")
+        if kind == "linear":
+            return None
+        cls = {"convex": Convex, "sector": Sector}.get(kind)
+        if cls is None:
+            raise InputError(f"geometry kind must be 'linear', 'convex' or 'sector', got {kind!r}")
+        try:
+            return cls(**d)
+        except TypeError as exc:
+            raise InputError(f"bad {kind} geometry: {exc}") from None
+    raise InputError(f"geometry must be femreg.Convex(...), femreg.Sector(...) or None, got {spec!r}")
+
+
+def beam_strain(strain, angle) -> np.ndarray:
+    """Rotate small strains (n, 3) [exx, eyy, exy] into the beam's frame at ray angles ``angle`` (n,) rad:
+    (n, 3) [e_rr (along the ray), e_tt (across), e_rt] with e' = R^T E R, R = [[c, -s], [s, c]]."""
+    e = np.asarray(strain, float).reshape(-1, 3)
+    c, s = np.cos(angle), np.sin(angle)
+    exx, eyy, exy = e[:, 0], e[:, 1], e[:, 2]
+    return np.column_stack([c * c * exx + 2 * c * s * exy + s * s * eyy,
+                            s * s * exx - 2 * c * s * exy + c * c * eyy,
+                            c * s * (eyy - exx) + (c * c - s * s) * exy])
+
+
+# -- the image term on samples along rays -----------------------------------------------------------------------
+class BeamQuadrature(PixelQuadrature):
+    """The samples of a beam frame as quadrature points of eq:IR: each at its physical position with the weight
+    of its polar area element ``(R + r) dr dtheta`` mm^2, located in a physical quad mesh by the general path of
+    :class:`~femreg.pixels.PointLocator` (never the tensor fast paths: ``location.grid`` is None, ``block``
+    None)."""
+
+    weights_constant = False
+
+    def __init__(self, mesh, shape, spacing, origin, geometry: Convex, locator: PointLocator | None = None):
+        self.mesh = mesh
+        self.shape = tuple(int(s) for s in shape)
+        self.spacing = np.asarray(spacing, float)
+        self.origin = np.asarray(origin, float)
+        self.geometry = geometry
+        self.locator = locator or PointLocator(mesh)
+        X, Y = geometry.sample_positions(self.shape, self.spacing, self.origin)
+        pts = np.column_stack([X.ravel(), Y.ravel()])
+        lo, hi = mesh.p.min(axis=1), mesh.p.max(axis=1)
+        cand = np.flatnonzero(np.all((pts >= lo - 1e-9) & (pts <= hi + 1e-9), axis=1))
+        loc = self.locator.locate(pts[cand])
+        self.location = loc
+        self.block = None
+        self.axes = None
+        self.index = cand[loc.inside]
+        self._points = pts[self.index]
+        rho = geometry.radius_mm + self.origin[0] + (self.index // self.shape[1]) * self.spacing[0]
+        self.weights = rho * self.spacing[0] * geometry.pitch_rad
+        self.n_nodes = mesh.p.shape[1]
+        self._P = None
+        self._PT = None
+
+
+class BeamSSDTerm(SSDTerm):
+    """:class:`femreg.data_term.SSDTerm` on a :class:`BeamQuadrature`: I_2 sampled at the sample indices of the
+    physical points x + u (the geometry's inverse mapping), the fixed reference gradient (eq:wfnew) the knot
+    gradient in (r, theta) times the inverse Jacobian, grad_x I = J^{-T} (dI/dr, dI/dtheta)."""
+
+    def __init__(self, quad: BeamQuadrature, reference: SplineImage, moving: SplineImage):
+        self.quad = quad
+        self.moving = moving
+        self.geometry = quad.geometry
+        self.offset = None
+        self._ref_gradient = None
+        self._knots = True
+        self._moving_values = moving.data.ravel()[quad.index]
+        self._inv_sp = 1.0 / moving.spacing
+        gr, gt = reference.gradient_at_pixels()          # dI/dr per mm, dI/dtheta per rad
+        gr, gt = gr.ravel()[quad.index], gt.ravel()[quad.index]
+        ir = quad.index // quad.shape[1]
+        th = self.geometry.angles(quad.shape[1])[quad.index % quad.shape[1]]
+        rho = self.geometry.radius_mm + quad.origin[0] + ir * quad.spacing[0]
+        c, s = np.cos(th), np.sin(th)
+        self._gx = np.ascontiguousarray(c * gr - s * gt / rho)
+        self._gy = np.ascontiguousarray(s * gr + c * gt / rho)
+        self.ref_values = reference.data.ravel()[quad.index]
+        self._bx = self._by = None
+        self._bxr = self._byc = np.empty(0)
+        self.w = quad.weights
+        self._J = None
+        self._H = None
+        self._cache_u = None
+        self._cache_r = None
+        self._grid = None
+        self._empty = np.empty(0)
+
+    def _index_at(self, u):
+        P = self.quad.P
+        pts = self.quad.points + np.column_stack([P @ u[0::2], P @ u[1::2]])
+        return self.geometry.physical_to_index(pts, self.quad.shape, self.quad.spacing, self.quad.origin)
+
+    @property
+    def base_index(self):
+        idx = self._index_at(np.zeros(2 * self.quad.n_nodes))
+        return idx[0], idx[1]
+
+    def outside_mask(self, u) -> np.ndarray:
+        """(m,) bool: samples that ``u`` maps less than 1 sample from the first or 2 from the last sample of
+        either axis of the moving frame."""
+        idx = self._index_at(np.asarray(u, float))
+        hi = (self.moving.shape[0] - 2.0, self.moving.shape[1] - 2.0)
+        return (idx[0] < 1.0) | (idx[0] > hi[0]) | (idx[1] < 1.0) | (idx[1] > hi[1])
+
+    def warped_moving(self, u):
+        """I_2(x + u(x)) at the quadrature samples, (m,)."""
+        if not np.any(u):
+            return self._moving_values.copy()
+        return self.moving.at_index(self._index_at(np.asarray(u, float)))
+
+    def _warp_compiled(self, u, sub):
+        v = self.warped_moving(u)
+        if sub.size:
+            v -= sub
+        return v
+
+
+# -- meshes and the result ---------------------------------------------------------------------------------------
+def _beam_coords(mesh_s, rho_c):
+    """Nodes of a sample-space mesh (r mm, s = rho_c theta mm) -> (r, theta)."""
+    return mesh_s.p[0], mesh_s.p[1] / rho_c
+
+
+def physical_mesh(mesh_s, geometry: Convex, rho_c: float) -> MeshQuad1:
+    """The physical annular-sector mesh with the nodes of ``mesh_s`` (a mesh in (r, rho_c theta) mm) mapped by
+    the geometry; same node numbering and connectivity."""
+    r, th = _beam_coords(mesh_s, rho_c)
+    x, y = geometry.to_physical(r, th)
+    return MeshQuad1(np.vstack([x, y]), mesh_s.t.copy())
+
+
+def to_physical_displacement(mesh_s, u_s, geometry: Convex, rho_c: float) -> np.ndarray:
+    """A sample-space nodal displacement (u_r, u_s) mm on ``mesh_s`` -> the physical nodal displacement of the
+    same nodes, exactly through the mapping: T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)."""
+    r, th = _beam_coords(mesh_s, rho_c)
+    x0, y0 = geometry.to_physical(r, th)
+    x1, y1 = geometry.to_physical(r + u_s[0::2], th + u_s[1::2] / rho_c)
+    u = np.empty_like(np.asarray(u_s, float))
+    u[0::2], u[1::2] = x1 - x0, y1 - y0
+    return u
+
+
+class BeamResult(RegistrationResult):
+    """A :class:`~femreg.result.RegistrationResult` of a beam (convex / sector) frame: mesh, u and strains in
+    physical Cartesian coordinates (x depth, y lateral, mm); ``shape``, ``spacing``, ``origin`` describe the
+    sample grid (``spacing[0]`` = dr mm, ``origin[0]`` = range of the first sample), ``geometry`` the mapping.
+    The "pixel grid" is the sample lattice: :meth:`pixel_points` are the samples' physical positions and
+    :meth:`on_grid` gives every field at them, (n_samples, n_rays) each.  ``sample_space`` holds the sample-space
+    registration of the initial guess."""
+
+    def __init__(self, *args, geometry: Convex, sample_space=None, **kw):
+        super().__init__(*args, **kw)
+        self.geometry = geometry
+        self.sample_space = sample_space
+
+    def pixel_points(self) -> np.ndarray:
+        X, Y = self.geometry.sample_positions(self.shape, self.spacing, self.origin)
+        return np.column_stack([X.ravel(), Y.ravel()])
+
+    def sample_positions(self) -> tuple:
+        """Physical positions ``(X, Y)`` of the samples, (n_samples, n_rays) mm each (for pcolormesh)."""
+        return self.geometry.sample_positions(self.shape, self.spacing, self.origin)
+
+    def strain(self, points, strain: str = "recovered", frame: str = "xy") -> np.ndarray:
+        """Small strain at physical ``points`` (n, 2) mm: ``frame="xy"`` (n, 3) [exx, eyy, exy] as
+        :meth:`RegistrationResult.strain`; ``frame="beam"`` [e_rr, e_tt, e_rt] along and across the local ray
+        (:func:`beam_strain`)."""
+        if frame not in ("xy", "beam"):
+            raise InputError(f"frame must be 'xy' or 'beam', got {frame!r}")
+        e = super().strain(points, strain)
+        return beam_strain(e, self.geometry.ray_angle(points)) if frame == "beam" else e
+
+    def on_grid(self, strain: str = "recovered", frame: str = "xy") -> dict:
+        """ux, uy (mm) and the strains at every sample, (n_samples, n_rays) each, NaN outside the mesh; with
+        ``frame="beam"`` also err, ett, ert (along / across the ray)."""
+        key = (strain, frame)
+        cache = self.__dict__.setdefault("_beam_grids", {})
+        if key not in cache:
+            pts = self.pixel_points()
+            u = self.displacement(pts)
+            e = RegistrationResult.strain(self, pts, strain)
+            out = dict(ux=u[:, 0], uy=u[:, 1], exx=e[:, 0], eyy=e[:, 1], exy=e[:, 2])
+            if frame == "beam":
+                b = beam_strain(e, self.geometry.ray_angle(pts))
+                out.update(err=b[:, 0], ett=b[:, 1], ert=b[:, 2])
+            cache[key] = {k: v.reshape(self.shape) for k, v in out.items()}
+        return cache[key]
+
+    def save(self, path, **extra):
+        extra.setdefault("geometry_kind", np.array(self.geometry.kind))
+        extra.setdefault("geometry_radius_mm", np.array(float(self.geometry.radius_mm)))
+        extra.setdefault("geometry_angle_pitch_deg", np.array(float(self.geometry.angle_pitch_deg)))
+        return super().save(path, **extra)
+
+
+# -- the registration ------------------------------------------------------------------------------------------
+def beam_spacing(spacing, geometry: Convex, origin):
+    """Validate ``spacing`` (dr mm, or (dr mm, dtheta deg) equal to the geometry's pitch) and ``origin``
+    ((r_0 mm, 0)); return ``(dr, r0)``."""
+    sp = np.atleast_1d(np.asarray(spacing, float)).ravel()
+    if sp.size not in (1, 2) or not np.all(np.isfinite(sp)) or sp[0] <= 0:
+        raise InputError(f"with a {geometry.kind} geometry, spacing is dr mm or (dr mm, dtheta deg), got {spacing!r}")
+    if sp.size == 2 and not np.isclose(sp[1], geometry.angle_pitch_deg, rtol=1e-6):
+        raise InputError(f"spacing[1] = {sp[1]:g} deg differs from the geometry's angle pitch "
+                         f"{geometry.angle_pitch_deg:g} deg")
+    org = np.asarray(origin, float).ravel()
+    if org.size != 2 or not np.all(np.isfinite(org)) or org[1] != 0:
+        raise InputError(f"with a {geometry.kind} geometry, origin is (range of the first sample mm, 0): rays "
+                         f"are centred on angle 0; got {origin!r}")
+    if geometry.radius_mm + org[0] <= 0:
+        raise InputError(f"the first sample lies at or behind the apex (range {org[0]:g} mm, radius "
+                         f"{geometry.radius_mm:g} mm)")
+    return float(sp[0]), float(org[0])
+
+
+def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
+                  regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
+                  normalize=True, callback=None, strain_tol=None, **kw) -> BeamResult:
+    """``femreg.register`` for a beam frame (module docstring): the sample-space registration as the initial
+    guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
+    :func:`femreg.register` (the sample-space stage); ``kw`` its other options (mesh, offset and
+    ``alpha="auto"`` are not supported here)."""
+    from .gnsolve import solve
+    from .image import validate_image
+    from .repair import check_period, check_result
+    from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
+    from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
+
+    t_all = time.perf_counter()
+    geometry = as_geometry(geometry)
+    for bad in ("mesh", "offset"):
+        if kw.get(bad) is not None:
+            raise InputError(f"{bad}= is not supported with a {geometry.kind} geometry")
+    if isinstance(alpha, str):
+        raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry")
+    ref = validate_image(reference_image, "reference image")
+    mov = validate_image(moving_image, "moving image")
+    if ref.shape != mov.shape:
+        raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
+    dr, r0 = beam_spacing(spacing, geometry, origin)
+    shape = ref.shape
+    rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
+    ds = rho_c * geometry.pitch_rad
+    s0 = -0.5 * (shape[1] - 1) * ds
+    # -- initial guess: the linear pipeline in sample space (r, s = rho_c theta) ------------------------------
+    t = time.perf_counter()
+    inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
+                     maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
+                     strain_tol=strain_tol, **kw)
+    t_inner = time.perf_counter() - t
+    mesh = physical_mesh(inner.mesh, geometry, rho_c)
+    u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
+    # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
+    t = time.perf_counter()
+    strategy = kw.get("strategy", "auto")
+    user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(
+        strategy, regularizer, kw.get("regularizer_options")))
+    if normalize:
+        ref, mov, _ = normalize_pair(ref, mov)
+    sp_idx = (dr, geometry.pitch_rad)
+    I1, I2 = SplineImage(ref, sp_idx, (r0, 0.0)), SplineImage(mov, sp_idx, (r0, 0.0))
+    locator = PointLocator(mesh)
+    quad = BeamQuadrature(mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), geometry, locator=locator)
+    if quad.n_pixels == 0:
+        raise InputError("no sample lies inside the mesh")
+    term = BeamSSDTerm(quad, I1, I2)
+    st = float(strain_tol) if strain_tol is not None else (
+        GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
+    sol = solve(I1, I2, mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), lambda: copy.copy(user_reg), u0,
+                locator=locator, maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
+                linear_solver=linear_solver, callback=callback,
+                mask_outside=strategy == "auto", strain_tol=st if (strategy == "auto" and st > 0) else None,
+                term=term)
+    # the start minimised the sample-space objective, not this one: the physical solve may trade a little of
+    # the image term for the physical regulariser, so "never worse than the start" is judged on eq:objf here
+    psi1 = sol.data.energy(sol.u)
+    if psi1 > sol.psi_start and psi1 + sol.reg.energy(sol.u) <= sol.psi_start + sol.reg.energy(u0):
+        sol = dataclasses.replace(sol, psi_start=psi1)
+    check = check_result(sol, u0, np.zeros(mesh.p.shape[1], int), shape, (dr, dr),
+                         check_period(ref, (dr, ds)) if shape[0] > 1 else None, None)
+    timings = dict(sample_space=t_inner, gauss_newton=time.perf_counter() - t, total=time.perf_counter() - t_all)
+    notes = list(check.notes)
+    if not inner.success:
+        notes.append("sample-space start: " + inner.message)
+    success = check.success and inner.success
+    message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
+    return BeamResult(mesh, check.u, shape=shape, spacing=(dr, geometry.angle_pitch_deg), origin=(r0, 0.0),
+                      regularizer=sol.reg.name, alpha=user_reg.alpha, success=success, status=sol.gn.status,
+                      message=message if success else "FAILED: " + message, nit=sol.gn.nit,
+                      energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
+                      ncc_after=check.ncc_after, timings=timings, solver_result=sol.gn, locator=locator,
+                      quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha,
+                      hop_gain=check.hop_gain, geometry=geometry, sample_space=inner)
