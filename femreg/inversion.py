@@ -51,7 +51,16 @@ u_I`, :math:`\partial J/\partial\theta_e = -\mu_e\,\lambda^T K_e u` (:math:`K_e`
 matrix), one factorisation (banded Cholesky) for both solves.  Optimiser: L-BFGS-B (SciPy) with :math:`|\theta| \le`
 :data:`THETA_BOUND`.
 
-Choice of :math:`\beta` (``beta=None``): an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
+Choice of :math:`\beta` (``beta=None``), default ``beta_method="growth"``: solves run over :data:`BETA_GRID`
+(largest first, each warm-started from the previous one); the chosen :math:`\beta` is the last one before the
+regulariser R starts to grow quickly as :math:`\beta` falls, :math:`-\Delta\log R/\Delta\log\beta >`
+:data:`GROWTH_RATE` (R up by more than 1.3 x per half decade): while the data still pin the modulus, a
+smaller :math:`\beta` changes it little; when it starts to follow the noise of the registered field, its total
+variation jumps.  The rule is a cousin of the quasi-optimality criterion (Bauer & Lukas, Math. Comput. Simul. 81
+(2011) 1795, doi:10.1016/j.matcom.2011.01.016), measured in :mod:`benchmarks.inversion` against the truth-best
+:math:`\beta` of its grid (docs/inversion.md).  A :math:`\beta` on the first or last grid value is flagged.
+
+``beta_method="l-curve"``: an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
 steps, largest first, each warm-started from the previous one) and record the misfit :math:`\phi` and the
 regulariser R.  Along the L-curve (log R against log :math:`\phi`) the slope
 :math:`s = \Delta\log R / (-\Delta\log\phi)` between neighbouring :math:`\beta` is small while lowering
@@ -82,21 +91,25 @@ from .solver import single_blas_thread
 
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "strain_ratio", "model_ratio", "AUTO_RATIO",
-           "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE"]
+           "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE"]
 
 MODELS = ("plane-stress", "plane-strain")   # plus "auto" for invert(); "effective" in a result
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
 #: beta values tried by the default rule, largest first (half-decade steps).
 BETA_GRID = tuple(float(10.0 ** e) for e in np.arange(-1.0, -4.01, -0.5))
-#: L-curve slope at which the default rule stops (module docstring).
+#: L-curve slope at which the ``beta_method="l-curve"`` rule stops (module docstring).
 LCURVE_SLOPE = 1.0
+#: Growth rate -d log R / d log beta at which the default rule stops: a factor 1.3 per half decade.
+GROWTH_RATE = float(np.log(1.3) / np.log(np.sqrt(10.0)))
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
 TV_DELTA = 1e-2
 #: Bound on |log mu| during the optimisation (mu within a factor e^7 ~ 1100 of the start).
 THETA_BOUND = 7.0
 #: Poisson ratio of the plane-strain model by default.
 DEFAULT_POISSON = 0.495
+#: Boundary conditions of the forward model (:func:`_dirichlet_dofs`).
+BOUNDARIES = ("measured", "axial-sides", "free-sides")
 #: Strain ratios at or below / at or above which ``model="auto"`` picks plane stress / plane strain.
 AUTO_RATIO = (0.55, 0.9)
 #: An explicit model is flagged when the data's strain ratio differs from the model's by more than this.
@@ -149,7 +162,7 @@ class _Model:
     """The discrete forward problem K(mu) u = 0, u_B = d_B on one mesh, with everything that does not depend on
     mu precomputed: K(mu) = sum_e mu_e K_e, its CSR data = ``A @ mu``."""
 
-    def __init__(self, mesh, lam_bar: float, reduced_volumetric: bool, weights):
+    def __init__(self, mesh, lam_bar: float, reduced_volumetric: bool, weights, boundary: str = "measured"):
         from skfem import Basis, BilinearForm, ElementQuad1, ElementVector, asm
 
         self.mesh = mesh
@@ -181,7 +194,7 @@ class _Model:
         self._G = sp.csr_matrix((data, (elem, np.arange(data.size))), shape=(self.n_el, data.size))
         self._rows, self._cols = rows, cols
         self._data, self._elem = data, elem              # unit element matrices, for the Jacobian du/dtheta
-        self.D = self.basis.get_dofs().all()                # boundary DOFs (both components)
+        self.D = _dirichlet_dofs(self.basis, mesh, boundary)  # boundary DOFs carrying the measured data
         self.I = np.setdiff1d(np.arange(N), self.D)
         if self.I.size == 0:
             raise InputError("the inversion mesh has no interior nodes; use smaller elements or a larger region")
@@ -250,6 +263,21 @@ class _Model:
     def dJ_dtheta(self, mu, u, lam):
         """-mu_e lam^T K_e u for every element (lam zero on the boundary)."""
         return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
+
+
+def _dirichlet_dofs(basis, mesh, boundary: str) -> np.ndarray:
+    """DOFs with the measured displacement imposed: all boundary DOFs (``"measured"``), or on the lateral sides
+    (y = min, max; corners excepted) only the axial component (``"axial-sides"``) or none (``"free-sides"``,
+    traction-free there)."""
+    D = basis.get_dofs().all()
+    if boundary == "measured":
+        return D
+    p = mesh.p
+    side = (np.isclose(p[1], p[1].min()) | np.isclose(p[1], p[1].max())) & \
+        ~(np.isclose(p[0], p[0].min()) | np.isclose(p[0], p[0].max()))
+    nodes = np.flatnonzero(side)
+    drop = basis.nodal_dofs[1, nodes] if boundary == "axial-sides" else basis.nodal_dofs[:, nodes].ravel()
+    return np.setdiff1d(D, drop)
 
 
 class _BandedCholesky:
@@ -606,7 +634,7 @@ def _check_reference(reference):
 def invert(displacement, *, model: str = "auto", region=None, element_size=None, beta=None,
            regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
            maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False, reference=None,
-           uncertainty: bool = True) -> "InversionResult":
+           uncertainty: bool = True, beta_method: str = "growth", boundary: str = "measured") -> "InversionResult":
     r"""Relative shear-modulus image from a measured displacement (eq:cEq / eq:meq inverse problem).
 
     Parameters
@@ -631,7 +659,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` for a callable).
     beta : float >= 0, optional
         :math:`\beta`, weight of the regulariser; None = the rule of the module docstring (sweep of ``beta_grid``,
-        default :data:`BETA_GRID`).
+        default :data:`BETA_GRID`; ``beta_method`` "growth" (default) or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
     weights : (w_x, w_y)
@@ -689,6 +717,10 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     grid = BETA_GRID if beta_grid is None else tuple(sorted((float(b) for b in beta_grid), reverse=True))
     if not grid or not all(np.isfinite(b) and b >= 0 for b in grid):
         raise InputError(f"beta_grid must hold finite numbers >= 0, got {beta_grid!r}")
+    if boundary not in BOUNDARIES:
+        raise InputError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}")
+    if beta_method not in ("growth", "l-curve"):
+        raise InputError(f"beta_method must be 'growth' or 'l-curve', got {beta_method!r}")
     if int(maxiter) < 1 or not (np.isfinite(gtol) and gtol > 0):
         raise InputError(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}")
 
@@ -710,7 +742,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         if np.isfinite(ratio) and abs(ratio - model_ratio(lb)) > RATIO_TOLERANCE:
             flags.append(f"the data's lateral/axial strain ratio {ratio:.2f} contradicts the {model} model "
                          f"({model_ratio(lb):.2f}); try model='auto'")
-    fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w)
+    fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w, boundary=boundary)
     ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
     h = float(np.sqrt(np.mean(ext[0] * ext[1])))
     s2 = fem.area * (eps_rms * h) ** 2
@@ -743,11 +775,14 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 sweep[-1]["stop"] = "not converged"
                 break
             if runs and beta is None:
-                _, _, _, phi0, R0 = runs[-1]
+                b0, _, _, phi0, R0 = runs[-1]
                 slope = (np.log(max(R, 1e-300) / max(R0, 1e-300))
                          / max(np.log(max(phi0, 1e-300) / max(phi, 1e-300)), 1e-12))
+                growth = np.log(max(R, 1e-300) / max(R0, 1e-300)) / max(np.log(max(b0, 1e-300) / max(b, 1e-300)),
+                                                                       1e-12)
                 sweep[-1]["slope"] = float(slope)
-                if slope > LCURVE_SLOPE:
+                sweep[-1]["growth"] = float(growth)
+                if (slope > LCURVE_SLOPE) if beta_method == "l-curve" else (growth > GROWTH_RATE):
                     chosen = runs[-1]
                     break
             runs.append((b, theta_b.copy(), info, phi, R))
@@ -757,16 +792,20 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     finally:
         if bar is not None:
             bar.close()
+    name = "L-curve" if beta_method == "l-curve" else "R-growth"
     if beta is not None:
         rule = "given"
     elif chosen is not None and sweep[-1].get("stop"):
-        rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
+        rule = (f"{name}: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
                 f"(beta {sweep[-1]['beta']:.3g})")
-    elif chosen is not None:
+    elif chosen is not None and beta_method == "l-curve":
         rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before the slope d log R / -d log misfit "
                 f"exceeds {LCURVE_SLOPE:g}")
+    elif chosen is not None:
+        rule = (f"R-growth: last beta of {[f'{x:.3g}' for x in grid]} before the regulariser grows as "
+                f"d log R / -d log beta > {GROWTH_RATE:g}")
     else:
-        rule = f"L-curve: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
+        rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
     if chosen is None:
         chosen = runs[-1]
     b, theta, info, phi, R = chosen
