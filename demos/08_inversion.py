@@ -97,9 +97,9 @@ def invivo(out: Path, lines: list, quick: bool):
         print("demo 08: in vivo data not found; skipping that part")
         return
     settings = dict(d7.SETTINGS, margin=d7.QUICK_MARGIN) if quick else dict(d7.SETTINGS)
-    lines += ["## In vivo (frame 1 -> 3, plane-stress inversion)", "",
-              "| sequence | regulariser | NCC after | beta | mu 5-95 % | inversion s | converged |",
-              "|---|---|---|---|---|---|---|"]
+    lines += ["## In vivo (frame 1 -> 3, model from the data)", "",
+              "| sequence | regulariser | NCC after | model | beta | mu 5-95 % | median std log mu | inversion s | "
+              "success | flags |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name in d7.SEQUENCES:
         frames, spacing, origin = d7.load_sequence(folder / name, d7.QUICK_CROP[name] if quick else None)
         fig, axes = plt.subplots(1, 4, figsize=(17, 6.5), constrained_layout=True)
@@ -111,17 +111,18 @@ def invivo(out: Path, lines: list, quick: bool):
             r = femreg.register(frames[0], frames[2], spacing=spacing, origin=origin, regularizer=reg,
                                 alpha=d7.ALPHA[reg], **settings, **opts)
             t0 = time.perf_counter()
-            inv = femreg.invert(r, model="plane-stress", element_size=2.0)
+            inv = femreg.invert(r, element_size=2.0)
             sec = time.perf_counter() - t0
             if j == 1:
                 plot_mesh_values(inv.mesh.p, inv.mesh.t, inv.strain_measured[:, 0], ax=axes[1], cmap="RdBu_r",
                                  title="axial strain (R_P_sigma, 2 mm)")
             plot_mesh_values(inv.mesh.p, inv.mesh.t, inv.mu, ax=axes[2 + j], log=True,
                              title=f"shear modulus from {LABELS[reg]}"
-                                   f"\nbeta {inv.beta:.2g}" + ("" if inv.success else " (NOT CONVERGED)"))
+                                   f"\nbeta {inv.beta:.2g}" + ("" if inv.success else " (FLAGGED)"))
             q = np.percentile(inv.mu, [5, 95])
-            lines.append(f"| {name} | {reg} | {r.ncc_after:.3f} | {inv.beta:.2g} | {q[0]:.2f}-{q[1]:.2f} | "
-                         f"{sec:.1f} | {inv.success} |")
+            lines.append(f"| {name} | {reg} | {r.ncc_after:.3f} | {inv.model} | {inv.beta:.2g} | "
+                         f"{q[0]:.2f}-{q[1]:.2f} | {np.nanmedian(inv.uncertainty):.2g} | {sec:.1f} | {inv.success} | "
+                         f"{'; '.join(inv.flags)[:120]} |")
             print(f"  {name} {reg}: NCC {r.ncc_after:.3f}, beta {inv.beta:.2g}, mu 5-95 % {q[0]:.2f}-{q[1]:.2f}, "
                   f"{sec:.1f} s")
         for ax in axes[1:]:
