@@ -58,7 +58,8 @@ regulariser R starts to grow quickly as :math:`\beta` falls, :math:`-\Delta\log 
 smaller :math:`\beta` changes it little; when it starts to follow the noise of the registered field, its total
 variation jumps.  The rule is a cousin of the quasi-optimality criterion (Bauer & Lukas, Math. Comput. Simul. 81
 (2011) 1795, doi:10.1016/j.matcom.2011.01.016), measured in :mod:`benchmarks.inversion` against the truth-best
-:math:`\beta` of its grid (docs/inversion.md).  A :math:`\beta` on the first or last grid value is flagged.
+:math:`\beta` of its grid (docs/inversion.md).  A :math:`\beta` on the last grid value, or on the first
+with a modulus image that is not flat, is flagged.
 
 ``beta_method="l-curve"``: an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
 steps, largest first, each warm-started from the previous one) and record the misfit :math:`\phi` and the
@@ -80,7 +81,8 @@ Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio 
 0.85 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths about 0.5.
 
 Never silently wrong: ``success`` is False, with the reasons in ``flags`` and ``message``, when the optimiser
-fails, :math:`\beta` lands on the first or last value of its grid, :math:`|\log\mu|` reaches
+fails, :math:`\beta` lands on the smallest value of its grid (or on the largest while the image is not flat:
+5-95 % spread of mu above :data:`CONTRAST_REGION`), :math:`|\log\mu|` reaches
 :data:`THETA_BOUND`, an explicit model's strain ratio differs from the data's by more than
 :data:`RATIO_TOLERANCE`, or a stiff (soft) region strains more (less) than the background
 (:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
@@ -629,6 +631,62 @@ def _laplace(fem, reg, problem, theta, beta, n_data):
     return std, constrained & np.isfinite(std)
 
 
+def _sensitivity(fem, mu, u, lu) -> np.ndarray:
+    """Dense (n_I, n_el) du_I/dtheta = -K_II^{-1} [mu_e K_e u]_I."""
+    B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
+                      shape=(fem.basis.N, fem.n_el))
+    return -lu.solve(B[fem.I].toarray())
+
+
+def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1e-5):
+    r"""One-step inversion: Gauss-Newton on :math:`\Psi(\theta) = \psi[u(\theta)]/c + \beta R(\theta)`, with
+    :math:`\psi` the image term of eq:IR (fixed reference gradient, eq:wfnew) and u(θ) the model's displacement
+    (boundary values d_B from the registration), started from ``theta0``.  Each step solves
+    :math:`(S^T H_\psi S/c + \beta\nabla^2 R)\,\Delta = -(S^T\nabla\psi/c + \beta\nabla R)` on the complement of
+    the constant mode (S = du/dθ) and backtracks on Ψ.  Returns (theta, info)."""
+    I = fem.I
+    Hpsi = term.hessian()
+    HII = Hpsi[I][:, I]
+    theta = theta0.copy()
+    n = theta.size
+
+    def value(th):
+        u, lu = fem.solve(np.exp(th), d)
+        return term.energy(u) / data_scale + beta * reg(th)[0], u, lu
+
+    J, u, lu = value(theta)
+    J0 = J
+    history = [J]
+    ok, msg, it = True, "converged", 0
+    for it in range(1, maxiter + 1):
+        mu = np.exp(theta)
+        S = _sensitivity(fem, mu, u, lu)
+        g = S.T @ term.gradient(u)[I] / data_scale + beta * reg(theta)[1]
+        H = S.T @ (HII @ S) / data_scale + beta * reg.hessian(theta)
+        rho = np.trace(H) / n
+        step = -np.linalg.solve(H + rho / n * np.ones((n, n)) + 1e-10 * rho * np.eye(n), g)
+        step -= step.mean()
+        t = 1.0
+        while t > 1e-3:
+            cand = np.clip(theta + t * step, -THETA_BOUND, THETA_BOUND)
+            Jc, uc, luc = value(cand)
+            if Jc < J:
+                break
+            t *= 0.5
+        else:
+            msg = "no descent along the Gauss-Newton step"
+            break
+        drop = (J - Jc) / max(abs(J), 1e-300)
+        theta, J, u, lu = cand, Jc, uc, luc
+        history.append(J)
+        if drop < rtol:
+            break
+    else:
+        ok, msg = False, f"not converged in {maxiter} Gauss-Newton iterations"
+    return theta, {"success": ok, "message": msg, "nit": it, "objective_start": J0, "objective": J,
+                   "history": history}
+
+
 def _check_reference(reference):
     try:
         region, value = reference
@@ -647,7 +705,8 @@ def _check_reference(reference):
 def invert(displacement, *, model: str = "auto", region=None, element_size=None, beta=None,
            regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
            maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False, reference=None,
-           uncertainty: bool = True, beta_method: str = "growth", boundary: str = "measured") -> "InversionResult":
+           uncertainty: bool = True, beta_method: str = "growth", boundary: str = "measured",
+           reference_image=None, moving_image=None) -> "InversionResult":
     r"""Relative shear-modulus image from a measured displacement (eq:cEq / eq:meq inverse problem).
 
     Parameters
@@ -687,6 +746,13 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         A region (mm) of known Young's modulus E (kPa), e.g. a phantom's documented background: the result
         then carries ``shear_modulus_kpa`` = mu scaled so that its area-weighted mean over the region's elements
         (centres inside) is E/3, and ``youngs_modulus_kpa`` = 3 ``shear_modulus_kpa`` (incompressible).
+    reference_image, moving_image : (n_axial, n_lateral) arrays, optional
+        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`): after the
+        two-step inversion, a one-step inversion minimises the image term of eq:IR over log mu with the model's
+        displacement (:func:`_one_step`; Gokhale et al., Inverse Probl. 20 (2004) 1531,
+        doi:10.1088/0266-5611/20/5/013), started from the two-step result, with the same beta; the image term is
+        scaled so that its Gauss-Newton information on log mu has the trace of the displacement misfit's.
+        ``one_step`` in the result records the image term before and after.
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
         ``constrained``); costs one dense Hessian of size n_el.
@@ -696,7 +762,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     InversionResult
         ``mu`` (n_el,) element values with median 1, ``shear_modulus(points)``, ``success``, ``message``,
         ``flags`` (list of reasons), convergence ``history``.  ``success=False`` with the reasons when the
-        optimisation fails, :math:`\beta` sits on the edge of its grid, :math:`|\log\mu|` reaches its bound,
+        optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
+        not flat), :math:`|\log\mu|` reaches its bound,
         the explicit model contradicts the data's strain ratio, or a stiff (soft) region strains more (less)
         than the background.
 
@@ -712,6 +779,19 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     else:
         lb = lambda_bar(model, poisson)
     ref = None if reference is None else _check_reference(reference)
+    images = None
+    if reference_image is not None or moving_image is not None:
+        from .image import validate_image
+        from .registration import RegistrationResult
+
+        if reference_image is None or moving_image is None:
+            raise InputError("the one-step inversion needs both reference_image and moving_image")
+        if not isinstance(displacement, RegistrationResult):
+            raise InputError("the one-step inversion needs the pair's RegistrationResult as displacement")
+        images = (validate_image(reference_image, "reference image"), validate_image(moving_image, "moving image"))
+        if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
+            raise InputError(f"images {images[0].shape} / {images[1].shape} do not match the registration grid "
+                             f"{tuple(displacement.shape)}")
     if regularization not in ("tv", "tikhonov"):
         raise InputError(f"regularization must be 'tv' or 'tikhonov', got {regularization!r}")
     try:
@@ -822,11 +902,38 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if chosen is None:
         chosen = runs[-1]
     b, theta, info, phi, R = chosen
-    if beta is None and len(grid) > 1 and b in (grid[0], grid[-1]):
+    q5, q95 = np.percentile(theta, [5, 95])
+    flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
+    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat)):
         flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
                      f"{[float(f'{x:.3g}') for x in grid]}: the rule found no corner inside it")
         rule += " [at the grid's edge]"
     t_opt = time.perf_counter() - t
+    one_step = None
+    if images is not None:
+        t = time.perf_counter()
+        from .image import SplineImage, normalize_pair
+        from .registration import image_term
+
+        src = displacement
+        r1, r2, _ = normalize_pair(*images)
+        term = image_term(SplineImage(r1, src.spacing, src.origin), SplineImage(r2, src.spacing, src.origin), mesh,
+                          src.shape, src.spacing, src.origin)
+        mu0 = np.exp(theta)
+        u0, lu0 = fem.solve(mu0, d)
+        S = _sensitivity(fem, mu0, u0, lu0)
+        HII = term.hessian()[fem.I][:, fem.I]
+        MII = fem.M[fem.I][:, fem.I]
+        scale = float(np.sum(S * (HII @ S)) * s2 / max(np.sum(S * (MII @ S)), 1e-300))
+        psi_two = term.energy(u0)
+        theta, info1 = _one_step(fem, reg, d, theta, b, term, scale)
+        u1, _ = fem.solve(np.exp(theta), d)
+        one_step = {"psi_two_step": psi_two, "psi_one_step": term.energy(u1), "nit": info1["nit"],
+                    "message": info1["message"], "seconds": time.perf_counter() - t}
+        if not info1["success"]:
+            flags.append(f"one-step inversion: {info1['message']}")
+        phi, _ = problem.misfit(theta)
+        R, _ = reg(theta)
 
     mu = np.exp(theta)
     area_el = fem.basis.dx.sum(axis=1)
@@ -836,7 +943,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if np.any(np.abs(theta) >= THETA_BOUND - 1e-6):
         ok = False
         message = f"log-modulus reached its bound |log mu| = {THETA_BOUND:g} ({message})"
-    if ok:
+    if ok and not flags:
         why = _contradiction(mu / med, el_strain, mesh, area_el)
         if why:
             flags.append(f"modulus contradicts strain: {why}")
@@ -866,7 +973,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         nit=int(info["nit"]), timings={"setup": t_setup, "optimise": t_opt, "uncertainty": t_unc,
                                        "total": time.perf_counter() - t_all, "n_evaluations": problem.n_eval},
         model_rule=model_rule, strain_ratio=ratio, flags=flags, uncertainty=std, constrained=constrained,
-        shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]])
+        shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step)
 
 
 class InversionResult:
@@ -902,13 +1009,15 @@ class InversionResult:
         Elements the data constrain.
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
         Absolute moduli, kPa, with ``reference`` (:func:`invert`).
+    one_step : dict or None
+        With images (:func:`invert`): image term before / after the one-step inversion, iterations, seconds.
     """
 
     def __init__(self, *, mesh, mu, model, lambda_bar, beta, beta_rule="", sweep=(), regularization="tv",
                  weights=DEFAULT_WEIGHTS, u_measured=None, u_model=None, strain_measured=None, misfit=np.nan,
                  regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None,
                  model_rule="", strain_ratio=np.nan, flags=(), uncertainty=None, constrained=None,
-                 shear_modulus_kpa=None, reference=None):
+                 shear_modulus_kpa=None, reference=None, one_step=None):
         self.mesh = mesh
         self.mu = np.asarray(mu, float)
         self.model = str(model)
@@ -938,6 +1047,7 @@ class InversionResult:
         self.constrained = None if constrained is None else np.asarray(constrained, bool).reshape(n_el)
         self.shear_modulus_kpa = None if shear_modulus_kpa is None else np.asarray(shear_modulus_kpa, float)
         self.reference = reference
+        self.one_step = one_step
         self._locator = None
 
     @property
@@ -987,7 +1097,8 @@ class InversionResult:
                 "sweep": self.sweep, "regularization": self.regularization, "weights": self.weights,
                 "misfit": self.misfit, "regularizer_value": self.regularizer_value, "success": self.success,
                 "message": self.message, "nit": self.nit, "timings": self.timings, "model_rule": self.model_rule,
-                "strain_ratio": self.strain_ratio, "flags": self.flags, "reference": self.reference}
+                "strain_ratio": self.strain_ratio, "flags": self.flags, "reference": self.reference,
+                "one_step": self.one_step}
         extra = {}
         if self.uncertainty is not None:
             extra["uncertainty"] = self.uncertainty
@@ -1073,7 +1184,8 @@ def load_inversion(path) -> InversionResult:
                            timings=meta.get("timings"), model_rule=meta.get("model_rule", ""),
                            strain_ratio=meta.get("strain_ratio", np.nan), flags=meta.get("flags", ()),
                            uncertainty=d.get("uncertainty"), constrained=d.get("constrained"),
-                           shear_modulus_kpa=d.get("shear_modulus_kpa"), reference=meta.get("reference"))
+                           shear_modulus_kpa=d.get("shear_modulus_kpa"), reference=meta.get("reference"),
+                           one_step=meta.get("one_step"))
 
 
 def modulus_contrast(result: InversionResult, inside) -> dict:

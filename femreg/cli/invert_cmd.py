@@ -37,13 +37,40 @@ def add_parser(subparsers):
     p.add_argument("--maxiter", type=int, default=400, help="L-BFGS-B iterations per solve (default 400)")
     p.add_argument("--reference", metavar=("X0", "X1", "Y0", "Y1", "KPA"), type=float, nargs=5,
                    help="a region (mm) of known Young's modulus (kPa): also write shear and Young's moduli in kPa")
+    p.add_argument("--images", metavar="FILE", nargs="+",
+                   help="the registered frames (reference and moving file, or one multi-frame file with --pair): "
+                        "also run the one-step inversion from the images")
+    p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
+                   help="with --images: frame indices of reference and moving (default 0 1 in one file, 0 0 in two)")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
     p.add_argument("--allow-failed", action="store_true",
                    help="invert a registration that failed its own check anyway (the result is flagged, exit 1)")
+    from ._common import add_reader_args
+
+    add_reader_args(p)
     p.set_defaults(func=run)
     return p
+
+
+def _images(args):
+    """(reference, moving) frames of --images, read like ``femreg register`` reads them."""
+    from femreg.errors import InputError
+
+    from ._common import frames_from_args
+    from .register_cmd import _frame
+
+    if len(args.images) > 2:
+        raise InputError(f"--images takes one or two files, got {len(args.images)}")
+    ref_fr = frames_from_args(args, args.images[0])
+    if len(args.images) == 1:
+        i, j = args.pair or (0, 1)
+        mov_fr = ref_fr
+    else:
+        i, j = args.pair or (0, 0)
+        mov_fr = frames_from_args(args, args.images[1])
+    return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
 
 
 def run(args) -> int:
@@ -69,10 +96,12 @@ def run(args) -> int:
     if args.reference is not None:
         x0, x1, y0, y1, kpa = args.reference
         reference = (((x0, x1), (y0, y1)), kpa)
+    ref_img, mov_img = _images(args) if args.images else (None, None)
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                         regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter,
-                        reference=reference, uncertainty=not args.no_uncertainty)
+                        reference=reference, uncertainty=not args.no_uncertainty, reference_image=ref_img,
+                        moving_image=mov_img)
     if failed_reg:
         res.success = False
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
@@ -85,6 +114,10 @@ def run(args) -> int:
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
           f"median 1)")
     print(f"model: {res.model} ({res.model_rule})")
+    if res.one_step is not None:
+        o = res.one_step
+        print(f"one-step inversion from the images: image term {o['psi_two_step']:.4g} -> {o['psi_one_step']:.4g} "
+              f"({o['nit']} Gauss-Newton iterations, {o['seconds']:.1f} s)")
     if res.uncertainty is not None:
         print(f"uncertainty: median std of log mu {np.nanmedian(res.uncertainty):.3g} over "
               f"{int(res.constrained.sum())}/{res.constrained.size} constrained elements")
@@ -104,8 +137,8 @@ def run(args) -> int:
         print(f"femreg invert: FLAGGED: inverted from a failed registration ({args.result})", file=sys.stderr)
         return 1
     if not res.success:
-        what = "FLAGGED" if res.flags else "error: the optimisation failed"
-        print(f"femreg invert: {what}: {res.message}", file=sys.stderr)
+        what = "" if res.flags else "error: the optimisation failed: "
+        print(f"femreg invert: {what}{res.message}", file=sys.stderr)
         return 1
     return 0
 
