@@ -137,12 +137,11 @@ def invivo(out: Path, lines: list, quick: bool):
 # ## 3. What the full run shows (out/08_inversion/summary.md)
 #
 # * Phantom: contrast 4.09 for a true 4, inclusion edge within 1.0 mm on 1.5 mm elements, 2 s.
-# * In vivo, frame 1 -> 3: the freehand strain is small (0.2-1 %) and changes sign within the image; the rule
-#   picks beta 0.1 for R_eps on both sequences and for R_P_sigma on seq299 (relative modulus, 5-95 % range,
-#   0.1-7).  On seq304 the R_P_sigma field gives no L-curve corner; the sweep stops at beta 0.01 because at 0.0032
-#   the log-modulus reaches its bound, and the modulus still spreads over two decades (0.3-78).  A quasi-static
-#   modulus image of a freehand in vivo pair is not a reliable quantity; there is no truth here, so the images
-#   are shown beside the strain, not scored.
+# * In vivo, frame 1 -> 3 (quick run, cropped pieces): the freehand strain is small (0.2-1 %) and changes sign
+#   within the image.  The model follows the data (plane stress on both sequences); three of the four inversions
+#   end on the largest beta of the grid with a non-flat image and are flagged (success False, the reason in the
+#   table); the one unflagged, seq304 with R_P_sigma, spans 0.97-1.38 (5-95 %) with a median std of log mu of
+#   0.04.  There is no truth here, so the images are shown beside the strain, not scored.
 
 # %%
 def main(argv=None) -> int:
