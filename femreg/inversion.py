@@ -600,8 +600,9 @@ def _laplace(fem, reg, problem, theta, beta, n_data):
 
     Gauss-Newton Hessian of J: :math:`H = S^T M S / s^2 + \beta \nabla^2 R` with :math:`S = \partial u/\partial\theta
     = -K_{II}^{-1} [\mu_e K_e u]_I`.  J is read as a negative log-posterior at a temperature
-    :math:`\tau = 2\phi/n` (the misfit at the optimum equals its expected value for n data), so
-    :math:`\mathrm{Cov} = \tau H^{-1}` (MacKay, Neural Comput. 4 (1992) 448).  An element is constrained when
+    :math:`\tau = 2\phi/(n - \gamma)` (the misfit at the optimum equals its expected value for n data and
+    :math:`\gamma = \mathrm{tr}(H_d H^{-1})` well-determined parameters), so :math:`\mathrm{Cov} = \tau H^{-1}`
+    (MacKay, Neural Comput. 4 (1992) 415, eq. 2.22).  An element is constrained when
     its data information (diagonal of :math:`S^T M S / s^2`) is at least :data:`CONSTRAINED_INFO` of the median."""
     mu = np.exp(theta)
     u, lu = fem.solve(mu, problem.d)
@@ -613,13 +614,14 @@ def _laplace(fem, reg, problem, theta, beta, n_data):
     Hd = S.T @ (MII @ S) / problem.s2
     H = Hd + beta * reg.hessian(theta)
     phi, _ = problem.misfit(theta)
-    tau = 2.0 * phi / max(n_data, 1)
     # J is blind to log mu + const (Dirichlet data everywhere): invert on the complement of the constant mode,
     # which the normalisation (median 1) fixes
     n = H.shape[0]
     rho = np.trace(H) / n
     try:
         C = np.linalg.inv(H + rho / n * np.ones((n, n)))
+        gamma = float(np.clip(np.sum(Hd * C), 0.0, n_data - 1.0))    # parameters the data determine
+        tau = 2.0 * phi / max(n_data - gamma, 1.0)
         Cm = C.mean(axis=0)
         var = tau * (np.diag(C) - 2.0 * Cm + Cm.mean())    # diag of P C P, P = I - 1 1^T / n
     except np.linalg.LinAlgError:

@@ -116,7 +116,7 @@ def test_uncertainty_matches_the_spread_over_noise_realisations():
     emp = np.std(logs, axis=0, ddof=1)
     pred = np.nanmean(sds, axis=0)
     ratio = np.median(emp) / np.nanmedian(pred)
-    # measured: empirical 0.122, predicted 0.126 (ratio 0.97); 8 realisations: the sample std is itself +-25 %
+    # measured: empirical 0.122, predicted 0.137 (ratio 0.89); 8 realisations: the sample std is itself +-25 %
     assert 0.7 < ratio < 1.4, (np.median(emp), np.nanmedian(pred))
     exact = invert(sol.displacement, region=REGION, element_size=3.0, beta=1e-2)
     assert np.nanmedian(exact.uncertainty) < 0.5 * np.nanmedian(pred)
