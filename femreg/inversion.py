@@ -51,7 +51,17 @@ u_I`, :math:`\partial J/\partial\theta_e = -\mu_e\,\lambda^T K_e u` (:math:`K_e`
 matrix), one factorisation (banded Cholesky) for both solves.  Optimiser: L-BFGS-B (SciPy) with :math:`|\theta| \le`
 :data:`THETA_BOUND`.
 
-Choice of :math:`\beta` (``beta=None``): an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
+Choice of :math:`\beta` (``beta=None``), default ``beta_method="growth"``: solves run over :data:`BETA_GRID`
+(largest first, each warm-started from the previous one); the chosen :math:`\beta` is the last one before the
+regulariser R starts to grow quickly as :math:`\beta` falls, :math:`-\Delta\log R/\Delta\log\beta >`
+:data:`GROWTH_RATE` (R up by more than 1.3 x per half decade): while the data still pin the modulus, a
+smaller :math:`\beta` changes it little; when it starts to follow the noise of the registered field, its total
+variation jumps.  The rule is a cousin of the quasi-optimality criterion (Bauer & Lukas, Math. Comput. Simul. 81
+(2011) 1795, doi:10.1016/j.matcom.2011.01.016), measured in :mod:`benchmarks.inversion` against the truth-best
+:math:`\beta` of its grid (docs/inversion.md).  A :math:`\beta` on the last grid value, or on the first
+with a modulus image that is not flat, is flagged.
+
+``beta_method="l-curve"``: an L-curve rule.  Solves run over :data:`BETA_GRID` (half-decade
 steps, largest first, each warm-started from the previous one) and record the misfit :math:`\phi` and the
 regulariser R.  Along the L-curve (log R against log :math:`\phi`) the slope
 :math:`s = \Delta\log R / (-\Delta\log\phi)` between neighbouring :math:`\beta` is small while lowering
@@ -65,8 +75,22 @@ has started to fit noise).  Measured: exact 2D forward-model data keep the small
 mostly 0.01-0.03.  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1137/1034115.  Pass
 ``beta=`` to override.
 
+Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio of the data,
+:func:`strain_ratio`, against the 2D model's :math:`\bar\lambda/(\bar\lambda+2)` (:func:`model_ratio`); see
+:func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.96-0.97 (R_P_sigma, R_P_eps) and
+0.85 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths about 0.5.
+
+Never silently wrong: ``success`` is False, with the reasons in ``flags`` and ``message``, when the optimiser
+fails, :math:`\beta` lands on the smallest value of its grid (or on the largest while the image is not flat:
+5-95 % spread of mu above :data:`CONTRAST_REGION`), :math:`|\log\mu|` reaches
+:data:`THETA_BOUND`, an explicit model's strain ratio differs from the data's by more than
+:data:`RATIO_TOLERANCE`, or a stiff (soft) region strains more (less) than the background
+(:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
+Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
+displacement on the whole boundary stays the default (benchmarks/inversion.py, docs/inversion.md).
+
 Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
-:func:`is_inversion_file`, :data:`MODELS`.
+:func:`is_inversion_file`, :func:`strain_ratio`, :func:`model_ratio`, :data:`MODELS`.
 """
 from __future__ import annotations
 
@@ -83,20 +107,35 @@ from .material import MODELS
 from .material import lambda_bar as material_lambda_bar
 
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
-           "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE"]
+           "strain_ratio", "model_ratio", "AUTO_RATIO",
+           "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
 #: beta values tried by the default rule, largest first (half-decade steps).
 BETA_GRID = tuple(float(10.0 ** e) for e in np.arange(-1.0, -4.01, -0.5))
-#: L-curve slope at which the default rule stops (module docstring).
+#: L-curve slope at which the ``beta_method="l-curve"`` rule stops (module docstring).
 LCURVE_SLOPE = 1.0
+#: Growth rate -d log R / d log beta at which the default rule stops: a factor 1.3 per half decade.
+GROWTH_RATE = float(np.log(1.3) / np.log(np.sqrt(10.0)))
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
 TV_DELTA = 1e-2
 #: Bound on |log mu| during the optimisation (mu within a factor e^7 ~ 1100 of the start).
 THETA_BOUND = 7.0
 #: Poisson ratio of the plane-strain model by default.
 DEFAULT_POISSON = 0.495
+#: Boundary conditions of the forward model (:func:`_dirichlet_dofs`).
+BOUNDARIES = ("measured", "axial-sides", "free-sides")
+#: Strain ratios at or below / at or above which ``model="auto"`` picks plane stress / plane strain.
+AUTO_RATIO = (0.55, 0.9)
+#: An explicit model is flagged when the data's strain ratio differs from the model's by more than this.
+RATIO_TOLERANCE = 0.2
+#: mu above this (or below its inverse) marks a stiff (soft) region for the strain-consistency check.
+CONTRAST_REGION = 1.5
+#: Relative strain difference beyond which a region's modulus contradicts its strain (the wrong side).
+CONTRADICTION_MARGIN = 0.1
+#: An element is constrained when its data information is at least this fraction of the median.
+CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
 
 
@@ -131,7 +170,7 @@ class _Model:
     """The discrete forward problem K(mu) u = 0, u_B = d_B on one mesh, with everything that does not depend on
     mu precomputed: K(mu) = sum_e mu_e K_e, its CSR data = ``A @ mu``."""
 
-    def __init__(self, mesh, lam_bar: float, reduced_volumetric: bool, weights):
+    def __init__(self, mesh, lam_bar: float, reduced_volumetric: bool, weights, boundary: str = "measured"):
         from skfem import Basis, BilinearForm, ElementQuad1, ElementVector, asm
 
         self.mesh = mesh
@@ -162,7 +201,8 @@ class _Model:
         self._pattern = pattern
         self._G = sp.csr_matrix((data, (elem, np.arange(data.size))), shape=(self.n_el, data.size))
         self._rows, self._cols = rows, cols
-        self.D = self.basis.get_dofs().all()                # boundary DOFs (both components)
+        self._data, self._elem = data, elem              # unit element matrices, for the Jacobian du/dtheta
+        self.D = _dirichlet_dofs(self.basis, mesh, boundary)  # boundary DOFs carrying the measured data
         self.I = np.setdiff1d(np.arange(N), self.D)
         if self.I.size == 0:
             raise InputError("the inversion mesh has no interior nodes; use smaller elements or a larger region")
@@ -211,6 +251,21 @@ class _Model:
         return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
 
 
+def _dirichlet_dofs(basis, mesh, boundary: str) -> np.ndarray:
+    """DOFs with the measured displacement imposed: all boundary DOFs (``"measured"``), or on the lateral sides
+    (y = min, max; corners excepted) only the axial component (``"axial-sides"``) or none (``"free-sides"``,
+    traction-free there)."""
+    D = basis.get_dofs().all()
+    if boundary == "measured":
+        return D
+    p = mesh.p
+    side = (np.isclose(p[1], p[1].min()) | np.isclose(p[1], p[1].max())) & \
+        ~(np.isclose(p[0], p[0].min()) | np.isclose(p[0], p[0].max()))
+    nodes = np.flatnonzero(side)
+    drop = basis.nodal_dofs[1, nodes] if boundary == "axial-sides" else basis.nodal_dofs[:, nodes].ravel()
+    return np.setdiff1d(D, drop)
+
+
 class _Regularizer:
     """TV (or Tikhonov) of the element-wise log-modulus over interior edges, dimensionless (module docstring)."""
 
@@ -239,6 +294,18 @@ class _Regularizer:
             gj = 2.0 * self.scale * c * j
         g = np.bincount(self.a, gj, self.n_el) - np.bincount(self.b, gj, self.n_el)
         return val, g
+
+    def hessian(self, theta) -> np.ndarray:
+        """Dense (n_el, n_el) Hessian of the (smoothed) regulariser at ``theta``."""
+        j = theta[self.a] - theta[self.b]
+        if self.kind == "tv":
+            hj = self.scale * self.length * self.delta ** 2 / (j * j + self.delta ** 2) ** 1.5
+        else:
+            hj = 2.0 * self.scale * self.length / self.dist
+        n = self.n_el
+        D = sp.csr_matrix((np.r_[np.ones(j.size), -np.ones(j.size)],
+                           (np.r_[np.arange(j.size), np.arange(j.size)], np.r_[self.a, self.b])), shape=(j.size, n))
+        return (D.T @ sp.diags(hj) @ D).toarray()
 
 
 class _Problem:
@@ -404,12 +471,191 @@ def _weighted_median(v, w):
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# model choice, checks, uncertainty, absolute scale
+# ----------------------------------------------------------------------------------------------------------------
+def _inner_elements(mesh) -> np.ndarray:
+    """(n_el,) bool: elements with no node on the mesh boundary."""
+    bnd = np.zeros(mesh.p.shape[1], bool)
+    bnd[mesh.boundary_nodes()] = True
+    return ~bnd[mesh.t].any(axis=0)
+
+
+def strain_ratio(el_strain, mesh) -> float:
+    r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of the data: the median over
+    the inner elements whose axial strain is at least half the median one (so that a near-zero
+    :math:`\varepsilon_{xx}` does not dominate).  NaN when fewer than 4 such elements."""
+    inner = _inner_elements(mesh)
+    if inner.sum() < 4:
+        inner = np.ones(mesh.t.shape[1], bool)
+    ex, ey = el_strain[inner, 0], el_strain[inner, 1]
+    big = np.abs(ex) >= 0.5 * np.median(np.abs(ex))
+    if big.sum() < 4 or not np.any(np.abs(ex) > 0):
+        return float("nan")
+    return float(np.median(-ey[big] / ex[big]))
+
+
+def model_ratio(lam_bar: float) -> float:
+    r"""The lateral-to-axial strain ratio :math:`\bar\lambda/(\bar\lambda + 2)` of uniaxial stress in the 2D model
+    (:math:`\sigma_{yy} = \mu(\bar\lambda\,\mathrm{tr}\,\varepsilon + 2\varepsilon_{yy}) = 0`)."""
+    return lam_bar / (lam_bar + 2.0)
+
+
+def _auto_model(ratio: float):
+    r"""(model, lambda_bar, reduced volumetric integration, rule text) from the data's strain ratio r.
+
+    Inverting :math:`r = \bar\lambda/(\bar\lambda+2)` gives :math:`\bar\lambda = 2r/(1-r)`: r = 1/2 is
+    incompressible plane stress (:math:`\bar\lambda = 2`), :math:`r = \nu/(1-\nu)` plane strain (0.98 at
+    :math:`\nu = 0.495`), 3D tissue under a finite probe lies between."""
+    if not np.isfinite(ratio):
+        return "plane-stress", 2.0, False, "auto: strain ratio undefined; plane stress assumed"
+    if ratio <= AUTO_RATIO[0]:
+        return "plane-stress", 2.0, False, f"auto: strain ratio {ratio:.3f} <= {AUTO_RATIO[0]:g}: plane stress"
+    if ratio >= AUTO_RATIO[1]:
+        return ("plane-strain", lambda_bar("plane-strain"), True,
+                f"auto: strain ratio {ratio:.3f} >= {AUTO_RATIO[1]:g}: plane strain (nu {DEFAULT_POISSON:g})")
+    lb = 2.0 * ratio / (1.0 - ratio)
+    return ("effective", lb, lb > 10.0,
+            f"auto: strain ratio {ratio:.3f}: effective lambda_bar = 2 r / (1 - r) = {lb:.3g}")
+
+
+def _contradiction(mu, el_strain, mesh, area_el):
+    """A reason string when a region's modulus contradicts its axial strain, else ''.
+
+    Stiff region: inner elements with mu > :data:`CONTRAST_REGION` (median 1); soft: mu < 1 /
+    :data:`CONTRAST_REGION`; background: within a factor 1.2 of 1.  A stiff region strains less than the
+    background (|e_xx| smaller), a soft one more; the reverse by more than :data:`CONTRADICTION_MARGIN` is
+    flagged."""
+    inner = _inner_elements(mesh)
+    ax = np.abs(el_strain[:, 0])
+    bg = inner & (np.abs(np.log(mu)) < np.log(1.2))
+    if bg.sum() < 2:
+        return ""
+    e_bg = float(np.sum(area_el[bg] * ax[bg]) / np.sum(area_el[bg]))
+    out = []
+    for name, sel, sign in (("stiff", inner & (mu > CONTRAST_REGION), 1), ("soft", inner & (mu < 1 / CONTRAST_REGION), -1)):
+        if sel.sum() < 2:
+            continue
+        e_r = float(np.sum(area_el[sel] * ax[sel]) / np.sum(area_el[sel]))
+        if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
+            out.append(f"the {name} region ({int(sel.sum())} elements) strains {'more' if sign > 0 else 'less'} "
+                       f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
+    return "; ".join(out)
+
+
+def _laplace(fem, reg, problem, theta, beta, n_data):
+    r"""Per-element std of :math:`\log\mu` and the constrained mask from a Laplace approximation.
+
+    Gauss-Newton Hessian of J: :math:`H = S^T M S / s^2 + \beta \nabla^2 R` with :math:`S = \partial u/\partial\theta
+    = -K_{II}^{-1} [\mu_e K_e u]_I`.  J is read as a negative log-posterior at a temperature
+    :math:`\tau = 2\phi/(n - \gamma)` (the misfit at the optimum equals its expected value for n data and
+    :math:`\gamma = \mathrm{tr}(H_d H^{-1})` well-determined parameters), so :math:`\mathrm{Cov} = \tau H^{-1}`
+    (MacKay, Neural Comput. 4 (1992) 415, eq. 2.22).  An element is constrained when
+    its data information (diagonal of :math:`S^T M S / s^2`) is at least :data:`CONSTRAINED_INFO` of the median."""
+    mu = np.exp(theta)
+    u, lu = fem.solve(mu, problem.d)
+    N = fem.basis.N
+    B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)), shape=(N, fem.n_el))
+    BI = B[fem.I].toarray()
+    S = -lu.solve(BI)
+    MII = fem.M[fem.I][:, fem.I]
+    Hd = S.T @ (MII @ S) / problem.s2
+    H = Hd + beta * reg.hessian(theta)
+    phi, _ = problem.misfit(theta)
+    # J is blind to log mu + const (Dirichlet data everywhere): invert on the complement of the constant mode,
+    # which the normalisation (median 1) fixes
+    n = H.shape[0]
+    rho = np.trace(H) / n
+    try:
+        C = np.linalg.inv(H + rho / n * np.ones((n, n)))
+        gamma = float(np.clip(np.sum(Hd * C), 0.0, n_data - 1.0))    # parameters the data determine
+        tau = 2.0 * phi / max(n_data - gamma, 1.0)
+        Cm = C.mean(axis=0)
+        var = tau * (np.diag(C) - 2.0 * Cm + Cm.mean())    # diag of P C P, P = I - 1 1^T / n
+    except np.linalg.LinAlgError:
+        var = np.full(fem.n_el, np.nan)
+    info = np.diag(Hd)
+    constrained = info >= CONSTRAINED_INFO * np.median(info)
+    std = np.sqrt(np.clip(var, 0, None))
+    std[~constrained | ~np.isfinite(std)] = np.nan
+    return std, constrained & np.isfinite(std)
+
+
+def _sensitivity(fem, mu, u, lu) -> np.ndarray:
+    """Dense (n_I, n_el) du_I/dtheta = -K_II^{-1} [mu_e K_e u]_I."""
+    B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
+                      shape=(fem.basis.N, fem.n_el))
+    return -lu.solve(B[fem.I].toarray())
+
+
+def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1e-5):
+    r"""One-step inversion: Gauss-Newton on :math:`\Psi(\theta) = \psi[u(\theta)]/c + \beta R(\theta)`, with
+    :math:`\psi` the image term of eq:IR (fixed reference gradient, eq:wfnew) and u(θ) the model's displacement
+    (boundary values d_B from the registration), started from ``theta0``.  Each step solves
+    :math:`(S^T H_\psi S/c + \beta\nabla^2 R)\,\Delta = -(S^T\nabla\psi/c + \beta\nabla R)` on the complement of
+    the constant mode (S = du/dθ) and backtracks on Ψ.  Returns (theta, info)."""
+    I = fem.I
+    Hpsi = term.hessian()
+    HII = Hpsi[I][:, I]
+    theta = theta0.copy()
+    n = theta.size
+
+    def value(th):
+        u, lu = fem.solve(np.exp(th), d)
+        return term.energy(u) / data_scale + beta * reg(th)[0], u, lu
+
+    J, u, lu = value(theta)
+    J0 = J
+    history = [J]
+    ok, msg, it = True, "converged", 0
+    for it in range(1, maxiter + 1):
+        mu = np.exp(theta)
+        S = _sensitivity(fem, mu, u, lu)
+        g = S.T @ term.gradient(u)[I] / data_scale + beta * reg(theta)[1]
+        H = S.T @ (HII @ S) / data_scale + beta * reg.hessian(theta)
+        rho = np.trace(H) / n
+        step = -np.linalg.solve(H + rho / n * np.ones((n, n)) + 1e-10 * rho * np.eye(n), g)
+        step -= step.mean()
+        t = 1.0
+        while t > 1e-3:
+            cand = np.clip(theta + t * step, -THETA_BOUND, THETA_BOUND)
+            Jc, uc, luc = value(cand)
+            if Jc < J:
+                break
+            t *= 0.5
+        else:
+            msg = "no descent along the Gauss-Newton step"
+            break
+        drop = (J - Jc) / max(abs(J), 1e-300)
+        theta, J, u, lu = cand, Jc, uc, luc
+        history.append(J)
+        if drop < rtol:
+            break
+    else:
+        ok, msg = False, f"not converged in {maxiter} Gauss-Newton iterations"
+    return theta, {"success": ok, "message": msg, "nit": it, "objective_start": J0, "objective": J,
+                   "history": history}
+
+
+def _check_reference(reference):
+    try:
+        region, value = reference
+        value = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"reference must be (((x0, x1), (y0, y1)), E_kPa), got {reference!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"the reference Young's modulus must be > 0 kPa, got {value!r}")
+    return _check_region(region), value
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # public API
 # ----------------------------------------------------------------------------------------------------------------
 @single_blas_thread
-def invert(displacement, *, model: str = "plane-stress", region=None, element_size=None, beta=None,
+def invert(displacement, *, model: str = "auto", region=None, element_size=None, beta=None,
            regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
-           maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False) -> "InversionResult":
+           maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False, reference=None,
+           uncertainty: bool = True, beta_method: str = "growth", boundary: str = "measured",
+           reference_image=None, moving_image=None) -> "InversionResult":
     r"""Relative shear-modulus image from a measured displacement (eq:cEq / eq:meq inverse problem).
 
     Parameters
@@ -418,9 +664,15 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         The measured field: a :class:`femreg.RegistrationResult` (inverted on its own mesh, or on a structured
         mesh of ``element_size`` over ``region`` / its mesh's bounding box), or a callable ``(n, 2) [x, y] mm ->
         (n, 2) [ux, uy] mm`` together with ``region``.
-    model : {"plane-stress", "plane-strain"}
-        :math:`\bar\lambda = 2\nu/(1-\nu)` (plane stress; 2, incompressible, by default) or
-        :math:`2\nu/(1-2\nu)` (plane strain, reduced integration of the volumetric term); :func:`lambda_bar`.
+    model : {"auto", "plane-stress", "plane-strain"}
+        :math:`\bar\lambda = 2\nu/(1-\nu)` (plane stress; 2, incompressible, by default) or :math:`2\nu/(1-2\nu)` (plane strain, reduced
+        integration of the volumetric term).  ``"auto"`` (default) follows the data: under uniaxial stress the
+        2D model strains laterally by :math:`r = \bar\lambda/(\bar\lambda+2)` of the axial strain (1/2 in
+        incompressible plane stress, :math:`\nu/(1-\nu) \approx 0.98` in plane strain; tissue imaged in a
+        3D body lies between); the measured median ratio :func:`strain_ratio` picks plane stress
+        (:math:`r \le` 0.55), plane strain (:math:`r \ge` 0.9) or the effective :math:`\bar\lambda = 2r/(1-r)`
+        between them (``model="effective"`` in the result; ``model_rule`` says why).  An explicit model whose
+        ratio differs from the data's by more than :data:`RATIO_TOLERANCE` is flagged (``success=False``).
     region : ((x0, x1), (y0, y1)) mm, optional
         Region to invert (a rectangle); required with a callable.
     element_size : float or (2,) mm, optional
@@ -428,7 +680,7 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` for a callable).
     beta : float >= 0, optional
         :math:`\beta`, weight of the regulariser; None = the rule of the module docstring (sweep of ``beta_grid``,
-        default :data:`BETA_GRID`).
+        default :data:`BETA_GRID`; ``beta_method`` "growth" (default) or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
     weights : (w_x, w_y)
@@ -439,12 +691,30 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool
         tqdm bar over the optimiser iterations.
+    reference : (((x0, x1), (y0, y1)), E_kPa), optional
+        A region (mm) of known Young's modulus E (kPa), e.g. a phantom's documented background: the result
+        then carries ``shear_modulus_kpa`` = mu scaled so that its area-weighted mean over the region's elements
+        (centres inside) is E/3, and ``youngs_modulus_kpa`` = 3 ``shear_modulus_kpa`` (incompressible).
+    reference_image, moving_image : (n_axial, n_lateral) arrays, optional
+        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`): after the
+        two-step inversion, a one-step inversion minimises the image term of eq:IR over log mu with the model's
+        displacement (:func:`_one_step`; Gokhale et al., Inverse Probl. 20 (2004) 1531,
+        doi:10.1088/0266-5611/20/5/013), started from the two-step result, with the same beta; the image term is
+        scaled so that its Gauss-Newton information on log mu has the trace of the displacement misfit's.
+        ``one_step`` in the result records the image term before and after.
+    uncertainty : bool
+        Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
+        ``constrained``); costs one dense Hessian of size n_el.
 
     Returns
     -------
     InversionResult
         ``mu`` (n_el,) element values with median 1, ``shear_modulus(points)``, ``success``, ``message``,
-        convergence ``history``.  A failed optimisation returns ``success=False`` with the reason.
+        ``flags`` (list of reasons), convergence ``history``.  ``success=False`` with the reasons when the
+        optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
+        not flat), :math:`|\log\mu|` reaches its bound,
+        the explicit model contradicts the data's strain ratio, or a stiff (soft) region strains more (less)
+        than the background.
 
     Raises
     ------
@@ -452,7 +722,25 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
         Naming the bad argument (unknown model, bad region, NaN displacement, a field without deformation, ...).
     """
     t_all = time.perf_counter()
-    lb = lambda_bar(model, poisson)
+    if model == "auto":
+        if poisson is not None:
+            raise InputError("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)")
+    else:
+        lb = lambda_bar(model, poisson)
+    ref = None if reference is None else _check_reference(reference)
+    images = None
+    if reference_image is not None or moving_image is not None:
+        from .image import validate_image
+        from .registration import RegistrationResult
+
+        if reference_image is None or moving_image is None:
+            raise InputError("the one-step inversion needs both reference_image and moving_image")
+        if not isinstance(displacement, RegistrationResult):
+            raise InputError("the one-step inversion needs the pair's RegistrationResult as displacement")
+        images = (validate_image(reference_image, "reference image"), validate_image(moving_image, "moving image"))
+        if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
+            raise InputError(f"images {images[0].shape} / {images[1].shape} do not match the registration grid "
+                             f"{tuple(displacement.shape)}")
     if regularization not in ("tv", "tikhonov"):
         raise InputError(f"regularization must be 'tv' or 'tikhonov', got {regularization!r}")
     try:
@@ -471,16 +759,32 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
     grid = BETA_GRID if beta_grid is None else tuple(sorted((float(b) for b in beta_grid), reverse=True))
     if not grid or not all(np.isfinite(b) and b >= 0 for b in grid):
         raise InputError(f"beta_grid must hold finite numbers >= 0, got {beta_grid!r}")
+    if boundary not in BOUNDARIES:
+        raise InputError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}")
+    if beta_method not in ("growth", "l-curve"):
+        raise InputError(f"beta_method must be 'growth' or 'l-curve', got {beta_method!r}")
     if int(maxiter) < 1 or not (np.isfinite(gtol) and gtol > 0):
         raise InputError(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}")
 
     mesh, d = _mesh_and_data(displacement, region, element_size)
     t = time.perf_counter()
-    fem = _Model(mesh, lb, reduced_volumetric=(model == "plane-strain"), weights=w)
-    el_strain, eps_rms = _element_strain(fem.basis, d)
+    from skfem import Basis, ElementQuad1, ElementVector
+
+    el_strain, eps_rms = _element_strain(Basis(mesh, ElementVector(ElementQuad1()), intorder=2), d)
     if not (eps_rms > 1e-12):
         raise InputError("the displacement has no deformation over the region (RMS strain "
                          f"{eps_rms:.3g}): the modulus cannot be identified")
+    ratio = strain_ratio(el_strain, mesh)
+    flags = []
+    if model == "auto":
+        model, lb, reduced, model_rule = _auto_model(ratio)
+    else:
+        reduced = model == "plane-strain"
+        model_rule = "given"
+        if np.isfinite(ratio) and abs(ratio - model_ratio(lb)) > RATIO_TOLERANCE:
+            flags.append(f"the data's lateral/axial strain ratio {ratio:.2f} contradicts the {model} model "
+                         f"({model_ratio(lb):.2f}); try model='auto'")
+    fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w, boundary=boundary)
     ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
     h = float(np.sqrt(np.mean(ext[0] * ext[1])))
     s2 = fem.area * (eps_rms * h) ** 2
@@ -513,11 +817,14 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
                 sweep[-1]["stop"] = "not converged"
                 break
             if runs and beta is None:
-                _, _, _, phi0, R0 = runs[-1]
+                b0, _, _, phi0, R0 = runs[-1]
                 slope = (np.log(max(R, 1e-300) / max(R0, 1e-300))
                          / max(np.log(max(phi0, 1e-300) / max(phi, 1e-300)), 1e-12))
+                growth = np.log(max(R, 1e-300) / max(R0, 1e-300)) / max(np.log(max(b0, 1e-300) / max(b, 1e-300)),
+                                                                       1e-12)
                 sweep[-1]["slope"] = float(slope)
-                if slope > LCURVE_SLOPE:
+                sweep[-1]["growth"] = float(growth)
+                if (slope > LCURVE_SLOPE) if beta_method == "l-curve" else (growth > GROWTH_RATE):
                     chosen = runs[-1]
                     break
             runs.append((b, theta_b.copy(), info, phi, R))
@@ -527,20 +834,55 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
     finally:
         if bar is not None:
             bar.close()
+    name = "L-curve" if beta_method == "l-curve" else "R-growth"
     if beta is not None:
         rule = "given"
     elif chosen is not None and sweep[-1].get("stop"):
-        rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
+        rule = (f"{name}: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
                 f"(beta {sweep[-1]['beta']:.3g})")
-    elif chosen is not None:
+    elif chosen is not None and beta_method == "l-curve":
         rule = (f"L-curve: last beta of {[f'{x:.3g}' for x in grid]} before the slope d log R / -d log misfit "
                 f"exceeds {LCURVE_SLOPE:g}")
+    elif chosen is not None:
+        rule = (f"R-growth: last beta of {[f'{x:.3g}' for x in grid]} before the regulariser grows as "
+                f"d log R / -d log beta > {GROWTH_RATE:g}")
     else:
-        rule = f"L-curve: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
+        rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
     if chosen is None:
         chosen = runs[-1]
     b, theta, info, phi, R = chosen
+    q5, q95 = np.percentile(theta, [5, 95])
+    flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
+    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat)):
+        flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
+                     f"{[float(f'{x:.3g}') for x in grid]}: the rule found no corner inside it")
+        rule += " [at the grid's edge]"
     t_opt = time.perf_counter() - t
+    one_step = None
+    if images is not None:
+        t = time.perf_counter()
+        from .image import SplineImage, normalize_pair
+        from .registration import image_term
+
+        src = displacement
+        r1, r2, _ = normalize_pair(*images)
+        term = image_term(SplineImage(r1, src.spacing, src.origin), SplineImage(r2, src.spacing, src.origin), mesh,
+                          src.shape, src.spacing, src.origin)
+        mu0 = np.exp(theta)
+        u0, lu0 = fem.solve(mu0, d)
+        S = _sensitivity(fem, mu0, u0, lu0)
+        HII = term.hessian()[fem.I][:, fem.I]
+        MII = fem.M[fem.I][:, fem.I]
+        scale = float(np.sum(S * (HII @ S)) * s2 / max(np.sum(S * (MII @ S)), 1e-300))
+        psi_two = term.energy(u0)
+        theta, info1 = _one_step(fem, reg, d, theta, b, term, scale)
+        u1, _ = fem.solve(np.exp(theta), d)
+        one_step = {"psi_two_step": psi_two, "psi_one_step": term.energy(u1), "nit": info1["nit"],
+                    "message": info1["message"], "seconds": time.perf_counter() - t}
+        if not info1["success"]:
+            flags.append(f"one-step inversion: {info1['message']}")
+        phi, _ = problem.misfit(theta)
+        R, _ = reg(theta)
 
     mu = np.exp(theta)
     area_el = fem.basis.dx.sum(axis=1)
@@ -550,14 +892,37 @@ def invert(displacement, *, model: str = "plane-stress", region=None, element_si
     if np.any(np.abs(theta) >= THETA_BOUND - 1e-6):
         ok = False
         message = f"log-modulus reached its bound |log mu| = {THETA_BOUND:g} ({message})"
+    if ok and not flags:
+        why = _contradiction(mu / med, el_strain, mesh, area_el)
+        if why:
+            flags.append(f"modulus contradicts strain: {why}")
+    if flags:
+        ok = False
+        message = "FLAGGED: " + "; ".join(flags) + f" (optimiser: {message})"
     u_model, _ = fem.solve(mu, d)
     hist = np.asarray(info["history"], float).reshape(-1, 3)
+    t = time.perf_counter()
+    std = constrained = None
+    if uncertainty:
+        std, constrained = _laplace(fem, reg, problem, theta, b, n_data=fem.I.size)
+    t_unc = time.perf_counter() - t
+    mu_kpa = None
+    if ref is not None:
+        (x0, x1, y0, y1), e_kpa = ref
+        c = mesh.p[:, mesh.t].mean(axis=1)
+        sel = (c[0] >= x0) & (c[0] <= x1) & (c[1] >= y0) & (c[1] <= y1)
+        if not sel.any():
+            raise InputError(f"the reference region {((x0, x1), (y0, y1))} mm holds no element centre")
+        m_ref = float(np.sum(area_el[sel] * mu[sel]) / np.sum(area_el[sel]))
+        mu_kpa = mu / m_ref * (e_kpa / 3.0)
     return InversionResult(
         mesh=mesh, mu=mu / med, model=model, lambda_bar=lb, beta=b, beta_rule=rule, sweep=sweep,
         regularization=regularization, weights=tuple(w), u_measured=d, u_model=u_model,
         strain_measured=el_strain, misfit=phi, regularizer_value=R, history=hist, success=ok, message=message,
-        nit=int(info["nit"]), timings={"setup": t_setup, "optimise": t_opt, "total": time.perf_counter() - t_all,
-                                       "n_evaluations": problem.n_eval})
+        nit=int(info["nit"]), timings={"setup": t_setup, "optimise": t_opt, "uncertainty": t_unc,
+                                       "total": time.perf_counter() - t_all, "n_evaluations": problem.n_eval},
+        model_rule=model_rule, strain_ratio=ratio, flags=flags, uncertainty=std, constrained=constrained,
+        shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step)
 
 
 class InversionResult:
@@ -582,11 +947,26 @@ class InversionResult:
     history : (nit, 3) float
         J, misfit, regulariser per L-BFGS-B iteration of the chosen beta.
     success, message, nit, timings
+    flags : list of str
+        Why ``success`` is False beyond the optimiser (beta at its grid's edge, model against the data's strain
+        ratio, modulus against strain).
+    model_rule, strain_ratio
+        How the model was chosen, and the data's lateral/axial strain ratio (:func:`strain_ratio`).
+    uncertainty : (n_el,) float or None
+        Standard deviation of log mu per element (Laplace approximation), NaN where not ``constrained``.
+    constrained : (n_el,) bool or None
+        Elements the data constrain.
+    shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
+        Absolute moduli, kPa, with ``reference`` (:func:`invert`).
+    one_step : dict or None
+        With images (:func:`invert`): image term before / after the one-step inversion, iterations, seconds.
     """
 
     def __init__(self, *, mesh, mu, model, lambda_bar, beta, beta_rule="", sweep=(), regularization="tv",
                  weights=DEFAULT_WEIGHTS, u_measured=None, u_model=None, strain_measured=None, misfit=np.nan,
-                 regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None):
+                 regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None,
+                 model_rule="", strain_ratio=np.nan, flags=(), uncertainty=None, constrained=None,
+                 shear_modulus_kpa=None, reference=None, one_step=None):
         self.mesh = mesh
         self.mu = np.asarray(mu, float)
         self.model = str(model)
@@ -608,7 +988,21 @@ class InversionResult:
         self.message = str(message)
         self.nit = int(nit)
         self.timings = dict(timings or {})
+        self.model_rule = str(model_rule)
+        self.strain_ratio = float(strain_ratio)
+        self.flags = list(flags)
+        n_el = mesh.t.shape[1]
+        self.uncertainty = None if uncertainty is None else np.asarray(uncertainty, float).reshape(n_el)
+        self.constrained = None if constrained is None else np.asarray(constrained, bool).reshape(n_el)
+        self.shear_modulus_kpa = None if shear_modulus_kpa is None else np.asarray(shear_modulus_kpa, float)
+        self.reference = reference
+        self.one_step = one_step
         self._locator = None
+
+    @property
+    def youngs_modulus_kpa(self):
+        """E = 3 mu in kPa (incompressible), (n_el,); None without ``reference``."""
+        return None if self.shear_modulus_kpa is None else 3.0 * self.shear_modulus_kpa
 
     @property
     def element_values(self) -> np.ndarray:
@@ -651,11 +1045,20 @@ class InversionResult:
         meta = {"model": self.model, "lambda_bar": self.lambda_bar, "beta": self.beta, "beta_rule": self.beta_rule,
                 "sweep": self.sweep, "regularization": self.regularization, "weights": self.weights,
                 "misfit": self.misfit, "regularizer_value": self.regularizer_value, "success": self.success,
-                "message": self.message, "nit": self.nit, "timings": self.timings}
+                "message": self.message, "nit": self.nit, "timings": self.timings, "model_rule": self.model_rule,
+                "strain_ratio": self.strain_ratio, "flags": self.flags, "reference": self.reference,
+                "one_step": self.one_step}
+        extra = {}
+        if self.uncertainty is not None:
+            extra["uncertainty"] = self.uncertainty
+        if self.constrained is not None:
+            extra["constrained"] = self.constrained
+        if self.shear_modulus_kpa is not None:
+            extra["shear_modulus_kpa"] = self.shear_modulus_kpa
         atomic_savez(path, format=np.str_(_FORMAT), mesh_points=np.asarray(self.mesh.p, float),
                      mesh_cells=np.asarray(self.mesh.t, np.int64), mu=self.mu, u_measured=self.u_measured,
                      u_model=self.u_model, strain_measured=self.strain_measured, history=self.history,
-                     meta=np.str_(json.dumps(meta, default=float)))
+                     meta=np.str_(json.dumps(meta, default=float)), **extra)
         return path
 
     def to_vtu(self, path) -> Path:
@@ -672,6 +1075,7 @@ class InversionResult:
         um = np.column_stack([self.u_measured[0::2], self.u_measured[1::2], z])
         uf = np.column_stack([self.u_model[0::2], self.u_model[1::2], z])
         cd = {"shear_modulus": [self.mu], "log_shear_modulus": [np.log(self.mu)],
+              **({} if self.uncertainty is None else {"std_log_shear_modulus": [self.uncertainty]}),
               "exx": [self.strain_measured[:, 0]], "eyy": [self.strain_measured[:, 1]],
               "exy": [self.strain_measured[:, 2]]}
         meshio.write(str(path), meshio.Mesh(pts, [("quad", self.mesh.t.T.astype(np.int64))],
@@ -726,7 +1130,11 @@ def load_inversion(path) -> InversionResult:
                            u_model=d["u_model"], strain_measured=d["strain_measured"], misfit=meta["misfit"],
                            regularizer_value=meta["regularizer_value"], history=d["history"],
                            success=meta["success"], message=meta["message"], nit=meta["nit"],
-                           timings=meta.get("timings"))
+                           timings=meta.get("timings"), model_rule=meta.get("model_rule", ""),
+                           strain_ratio=meta.get("strain_ratio", np.nan), flags=meta.get("flags", ()),
+                           uncertainty=d.get("uncertainty"), constrained=d.get("constrained"),
+                           shear_modulus_kpa=d.get("shear_modulus_kpa"), reference=meta.get("reference"),
+                           one_step=meta.get("one_step"))
 
 
 def modulus_contrast(result: InversionResult, inside) -> dict:

@@ -3,9 +3,11 @@
 PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`); the inversion
 (:func:`femreg.invert`) runs on its mesh, or on a structured mesh of ``--element-size``.  MU.npz is reloadable
 with :func:`femreg.inversion.load_inversion`; ``femreg plot MU.npz`` draws the modulus image beside the axial
-strain.  Exit 0 on success; 2 on bad input (one-line reason), among it a registration that failed its own
+strain.  ``--model auto`` (default) picks plane strain, plane stress or an effective model from the data;
+``--reference X0 X1 Y0 Y1 KPA`` adds moduli in kPa.  Exit 0 on success; 2 on bad input (one-line reason), among it a registration that failed its own
 check (``success`` False: its displacement is not trustworthy) unless ``--allow-failed``; 1 when the
-optimisation fails, or when it ran on a failed registration with ``--allow-failed`` (the result is still
+optimisation fails or the result is flagged (beta at its grid's edge, modulus at its bound, model against
+the data, modulus against strain), or when it ran on a failed registration with ``--allow-failed`` (the result is still
 written, with ``success = False`` and the reason).
 """
 from __future__ import annotations
@@ -18,12 +20,12 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "invert", help="shear-modulus image from a registration result (FE inversion)",
         description="Relative shear modulus (median 1) per element from the displacement in PAIR.npz: "
-                    "plane-stress (lambda_bar = 2) or plane-strain model with the measured displacement on the "
+                    "plane-stress (lambda_bar = 2), plane-strain or effective model (auto: from the data) with the measured displacement on the "
                     "boundary, total-variation regularisation of log mu, adjoint gradient, L-BFGS-B.")
     p.add_argument("result", help="registration result .npz (femreg register -o ...)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
-    p.add_argument("--model", default="plane-stress", choices=("plane-stress", "plane-strain"),
-                   help="forward model (default plane-stress)")
+    p.add_argument("--model", default="auto", choices=("auto", "plane-stress", "plane-strain"),
+                   help="forward model (default auto: from the data's lateral/axial strain ratio)")
     p.add_argument("--beta", type=float, help="regularisation weight (default: chosen by the L-curve rule)")
     p.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="invert on a structured mesh of this element size (one value or axial and lateral; "
@@ -33,12 +35,42 @@ def add_parser(subparsers):
     p.add_argument("--regularization", default="tv", choices=("tv", "tikhonov"), help="default tv")
     p.add_argument("--poisson", type=float, help="plane strain: Poisson ratio (default 0.495)")
     p.add_argument("--maxiter", type=int, default=400, help="L-BFGS-B iterations per solve (default 400)")
+    p.add_argument("--reference", metavar=("X0", "X1", "Y0", "Y1", "KPA"), type=float, nargs=5,
+                   help="a region (mm) of known Young's modulus (kPa): also write shear and Young's moduli in kPa")
+    p.add_argument("--images", metavar="FILE", nargs="+",
+                   help="the registered frames (reference and moving file, or one multi-frame file with --pair): "
+                        "also run the one-step inversion from the images")
+    p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
+                   help="with --images: frame indices of reference and moving (default 0 1 in one file, 0 0 in two)")
+    p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
     p.add_argument("--allow-failed", action="store_true",
                    help="invert a registration that failed its own check anyway (the result is flagged, exit 1)")
+    from ._common import add_reader_args
+
+    add_reader_args(p)
     p.set_defaults(func=run)
     return p
+
+
+def _images(args):
+    """(reference, moving) frames of --images, read like ``femreg register`` reads them."""
+    from femreg.errors import InputError
+
+    from ._common import frames_from_args
+    from .register_cmd import _frame
+
+    if len(args.images) > 2:
+        raise InputError(f"--images takes one or two files, got {len(args.images)}")
+    ref_fr = frames_from_args(args, args.images[0])
+    if len(args.images) == 1:
+        i, j = args.pair or (0, 1)
+        mov_fr = ref_fr
+    else:
+        i, j = args.pair or (0, 0)
+        mov_fr = frames_from_args(args, args.images[1])
+    return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
 
 
 def run(args) -> int:
@@ -60,9 +92,16 @@ def run(args) -> int:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")
     region = None if args.region is None else ((args.region[0], args.region[1]), (args.region[2], args.region[3]))
+    reference = None
+    if args.reference is not None:
+        x0, x1, y0, y1, kpa = args.reference
+        reference = (((x0, x1), (y0, y1)), kpa)
+    ref_img, mov_img = _images(args) if args.images else (None, None)
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
-                        regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter)
+                        regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter,
+                        reference=reference, uncertainty=not args.no_uncertainty, reference_image=ref_img,
+                        moving_image=mov_img)
     if failed_reg:
         res.success = False
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
@@ -74,6 +113,17 @@ def run(args) -> int:
     where = "over the region" if region is not None else "over the mesh"
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
           f"median 1)")
+    print(f"model: {res.model} ({res.model_rule})")
+    if res.one_step is not None:
+        o = res.one_step
+        print(f"one-step inversion from the images: image term {o['psi_two_step']:.4g} -> {o['psi_one_step']:.4g} "
+              f"({o['nit']} Gauss-Newton iterations, {o['seconds']:.1f} s)")
+    if res.uncertainty is not None:
+        print(f"uncertainty: median std of log mu {np.nanmedian(res.uncertainty):.3g} over "
+              f"{int(res.constrained.sum())}/{res.constrained.size} constrained elements")
+    if res.youngs_modulus_kpa is not None:
+        q5, q50, q95 = np.percentile(res.youngs_modulus_kpa, [5, 50, 95])
+        print(f"Young's modulus E = 3 mu: median {q50:.4g} kPa (5-95 %: {q5:.4g}-{q95:.4g} kPa)")
     print(f"wrote {out}")
     if args.vtu:
         res.to_vtu(args.vtu)
@@ -87,7 +137,8 @@ def run(args) -> int:
         print(f"femreg invert: FLAGGED: inverted from a failed registration ({args.result})", file=sys.stderr)
         return 1
     if not res.success:
-        print(f"femreg invert: error: the optimisation failed: {res.message}", file=sys.stderr)
+        what = "" if res.flags else "error: the optimisation failed: "
+        print(f"femreg invert: {what}{res.message}", file=sys.stderr)
         return 1
     return 0
 
