@@ -15,25 +15,7 @@ from femreg.errors import InputError
 from femreg.inversion import (_contradiction, _element_strain, _tensor_mesh, invert, load_inversion,
                               modulus_contrast)
 
-FE = dict(mesh_size_mm=1.0, refine_region_mm=(50.0, 20.0))
-REGION = ((15.0, 45.0), (-15.0, 15.0))
-
-
-def inclusion(points):
-    p = np.asarray(points, float)
-    return (p[:, 0] - 30.0) ** 2 + p[:, 1] ** 2 < 7.5 ** 2
-
-
-_SOLUTIONS = {}
-
-
-def solution(model, E_inc):
-    import forward
-
-    key = (model, E_inc)
-    if key not in _SOLUTIONS:
-        _SOLUTIONS[key] = forward.solve_elasticity(model, inclusion_modulus=E_inc, background_modulus=10.0, **FE)
-    return _SOLUTIONS[key]
+from test_inversion import FE, REGION, inclusion, solution  # noqa: E402  (shared FE solutions and their cache)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -162,6 +162,8 @@ def run(args) -> int:
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
     for key, val in info.get("metadata", {}).items():
+        if key == "dtype" and str(val) == info["dtype"]:
+            continue                          # the sample type is printed above already
         if isinstance(val, dict):
             print(f"{key}:")
             for k, v in val.items():
