@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     data = data_dir(a.data)
     if data is None:
-        print("demo 09: in vivo data not found (../shared/data/invivo_rf); nothing to do")
+        print("demo 09: in vivo data not found (../shared/data/invivo_rf); skipping")
         return 0
     out = Path(a.out)
     rows = [run_sequence(data / s, out / s, QUICK_CROP[s] if a.quick else None) for s in SEQUENCES]
