@@ -106,18 +106,18 @@ def write_picture(path, res, frame, spacing, origin) -> None:
     """B-mode of the reference frame | best elastogram | its persistence weight."""
     import matplotlib.pyplot as plt
 
-    from ..plot import extent_mm, plot_bmode
+    from ..plot import plot_bmode, plot_field
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
-    ext = extent_mm(res.exx.shape, spacing, origin)
-    im = axs[1].imshow(res.exx, extent=ext, cmap="jet", vmin=0.0, vmax=2.0, aspect="equal")
-    axs[1].set_title(f"normalised axial strain ({res.n_usable} pairs)")
-    fig.colorbar(im, ax=axs[1], shrink=0.8)
+    # fixed limits: 1 is the mean strain of every pair, so elastograms of different loops compare by eye
+    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({res.n_usable} pairs)",
+               cmap="viridis", vmin=0.0, vmax=2.0, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
-    im = axs[2].imshow(q, extent=ext, cmap="viridis", vmin=0.0, aspect="equal")
-    axs[2].set_title("quality (persistence weight)")
-    fig.colorbar(im, ax=axs[2], shrink=0.8)
+    med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
+    # relative to the median, saturated at 3x: static near-field echoes (NCC ~1) would take the whole range
+    plot_field(q / med, spacing, origin, ax=axs[2], title="quality (persistence weight)", cmap="magma", vmin=0.0,
+               vmax=3.0, label="persistence weight / its median")
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
