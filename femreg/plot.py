@@ -252,7 +252,7 @@ def _status(result, d):
     flags = _attr(result, d, "flags")
     flags = [str(f) for f in np.atleast_1d(flags) if str(f).strip()] if flags is not None else []
     if success is not None and not bool(success):
-        return True, "REGISTRATION FAILED" + (f": {msg}" if msg else "")
+        return True, "REGISTRATION FAILED" + (f": {msg.removeprefix('FAILED: ')}" if msg else "")
     if flags:
         return True, "FLAGGED: " + "; ".join(flags[:2])
     return False, ""
@@ -519,7 +519,12 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
 
         fmt = FuncFormatter(lambda v, _: f"{v:.2g}")
         cb.ax.yaxis.set_major_formatter(fmt)
-        cb.ax.yaxis.set_minor_formatter(fmt)
+        if hi / lo < 10:                            # within a decade the minor ticks are the only labels;
+            cb.ax.yaxis.set_minor_formatter(fmt)    # across decades labelling them would overprint
+        else:
+            from matplotlib.ticker import NullFormatter
+
+            cb.ax.yaxis.set_minor_formatter(NullFormatter())
     return ax
 
 
@@ -587,7 +592,9 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
     if res.success:
         fig.suptitle(head)
     else:
-        draw_failure(fig, f"INVERSION FAILED: {res.message}  [{head}]")
+        msg = str(res.message)
+        kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
+        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]")
     _fit_colorbars(fig, [list(axes)])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)

@@ -133,8 +133,10 @@ def failed_notice(path, success, message, flag="") -> int:
     import numpy as np
 
     if isinstance(success, (bool, int, np.bool_)) and not success and message:   # no message: made by hand
-        print(f"femreg plot: FAILED: {path} is a failed computation: {str(message).removeprefix('FAILED: ')}",
-              file=sys.stderr)
+        msg = str(message)
+        kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"     # say it once, as the result does
+        reason = msg.removeprefix("FAILED: ").removeprefix("FLAGGED: ")
+        print(f"femreg plot: {kind}: {path} holds a {kind.lower()} result, drawn as such: {reason}", file=sys.stderr)
         return 1
     if flag:
         print(f"femreg plot: FLAGGED: {path}: {flag}", file=sys.stderr)
