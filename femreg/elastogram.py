@@ -41,6 +41,7 @@ from scipy import ndimage
 from ._atomic import atomic_savez, atomic_write_text
 from .blockmatch import block_match
 from .errors import InputError
+from . import orientation
 from .image import validate_image, validate_spacing
 from .mesh import roi_mesh
 from .pyramid import _gaussian_decimate, default_settings, element_rule
@@ -333,6 +334,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     timings = {}
     seq = _validate(frames)
     spacing, origin = validate_spacing(spacing, origin)
+    if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register
+        orientation.check(np.asarray(seq[0], dtype=float), spacing)
     lo, hi = _band(band)
     centre = float(np.sqrt(lo * hi))
     if not (0.0 <= float(persistence) < 1.0):
@@ -357,6 +360,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                   origin=[float(s) for s in origin], band=[lo, hi], min_ncc=float(min_ncc), max_lateral_mm=max_lat,
                   max_span=int(max_span), regularizer=str(reg_name), alpha=None if alpha is None else float(alpha),
                   register_kwargs=json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr)))
+    register_kwargs["check_orientation"] = False           # checked above
     if output_dir is not None:
         out = Path(output_dir)
         try:

@@ -215,7 +215,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
         return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
-        return autoalpha.register_auto(reference_image, moving_image, register=register, **kw)
+        if check_orientation:           # once here, not in each candidate registration
+            orientation.check(validate_image(reference_image, "reference image"),
+                              validate_spacing(spacing, origin)[0])
+        return autoalpha.register_auto(reference_image, moving_image, register=register,
+                                       **dict(kw, check_orientation=False))
     t_all = time.perf_counter()
     timings = {}
     ref, mov, spacing, origin, initial = _validate(reference_image, moving_image, spacing, origin,
