@@ -17,31 +17,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.robustness import CASES, errors, make_data, roi_slices, truth  # noqa: E402
+from femreg.metrics import contour_radii  # noqa: E402
 
 STRAINS = ("element", "average", "projection")
-
-
-def contour_radii(img, spacing, origin, centre, R, level, n=72):
-    """Radius (mm) along ``n`` rays from ``centre`` where ``img`` (pixel grid, NaN = level) first crosses
-    ``level``, NaN where it does not within 2 R."""
-    rs = np.arange(0.2 * R, 2.0 * R, 0.01)
-    out = np.full(n, np.nan)
-    for k, th in enumerate(2 * np.pi * np.arange(n) / n):
-        X, Y = centre[0] + rs * np.cos(th), centre[1] + rs * np.sin(th)
-        v = ndimage.map_coordinates(np.nan_to_num(img, nan=level), [(X - origin[0]) / spacing[0],
-                                                                   (Y - origin[1]) / spacing[1]], order=1)
-        c = np.flatnonzero(np.sign(v[1:] - level) != np.sign(v[:-1] - level))
-        if c.size:
-            i = c[0]
-            out[k] = rs[i] + (level - v[i]) / (v[i + 1] - v[i]) * (rs[i + 1] - rs[i])
-    return out
 
 
 def grids(res):
@@ -75,9 +59,9 @@ def run(cases):
             et = f.strain(P)[:, 0].reshape(res.shape)
             r = np.hypot(P[:, 0] - C[0], P[:, 1] - C[1]).reshape(res.shape)
             level = 0.5 * (np.nanmean(et[(r > 1.6 * R) & (r < 2.2 * R)]) + np.nanmean(et[r < 0.7 * R]))
-            rt = contour_radii(et, res.spacing, res.origin, C, R, level)
+            rt = contour_radii(et, res.spacing, res.origin, C, R, level, step=0.01)
             for s in STRAINS:
-                rr = contour_radii(g[s]["exx"], res.spacing, res.origin, C, R, level)
+                rr = contour_radii(g[s]["exx"], res.spacing, res.origin, C, R, level, step=0.01)
                 row["shape_" + s] = float(np.sqrt(np.nanmean((rr - rt) ** 2)) / R)
         rows.append(row)
         print(_line(row), flush=True)

@@ -29,7 +29,8 @@ from .fields import check_strain_mode, recovered_strains, strain_components
 from .quadrature import GAUSS_3X3
 
 __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
-           "field_errors_nodal", "field_errors_both", "depth_profile", "shear_band_metrics", "edge_width"]
+           "field_errors_nodal", "field_errors_both", "depth_profile", "shear_band_metrics", "edge_width",
+           "contour_radii"]
 
 
 def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
@@ -349,3 +350,23 @@ def edge_width(x_mm, values, levels=None, *, low: float = 0.1, high: float = 0.9
     a = crossing(low, -1)
     b = crossing(high, +1)
     return float(abs(b - a))
+
+
+def contour_radii(img, spacing, origin, centre, R, level, n=72, step=0.005):
+    """Radius (mm) along ``n`` rays from ``centre`` (x, y mm) where ``img`` (pixel grid of ``spacing`` and
+    ``origin`` mm, NaN read as ``level``) first crosses ``level``, searched from 0.2 R to 2 R in ``step`` mm;
+    NaN where it does not: (n,) mm.  The shape of an inclusion's contour (a disk drawn as a diamond shows as a
+    4-fold ripple of the radius)."""
+    from scipy import ndimage
+
+    rs = np.arange(0.2 * R, 2.0 * R, step)
+    out = np.full(n, np.nan)
+    for k, th in enumerate(2 * np.pi * np.arange(n) / n):
+        X, Y = centre[0] + rs * np.cos(th), centre[1] + rs * np.sin(th)
+        v = ndimage.map_coordinates(np.nan_to_num(img, nan=level), [(X - origin[0]) / spacing[0],
+                                                                   (Y - origin[1]) / spacing[1]], order=1)
+        c = np.flatnonzero(np.sign(v[1:] - level) != np.sign(v[:-1] - level))
+        if c.size:
+            i = c[0]
+            out[k] = rs[i] + (level - v[i]) / (v[i + 1] - v[i]) * (rs[i + 1] - rs[i])
+    return out

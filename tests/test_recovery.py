@@ -6,9 +6,10 @@ from skfem import MeshQuad1
 
 from femreg.errors import InputError
 from femreg.fields import DEFAULT_RECOVERY, projected_strains, recovered_strains
+from femreg.metrics import contour_radii
 from femreg.registration import RegistrationResult
 
-from _round_inclusion import contour_radii, exx_true, nodal_u
+from _round_inclusion import exx_true, nodal_u
 
 C, R = (10.0, 0.0), 4.0
 LEVEL = -0.01 * (1 + 0.4) / 2            # half contrast between background (-1 %) and inclusion (-0.4 %)
