@@ -280,3 +280,22 @@ def test_exact_affine_field_3d_per_probe(f_mhz):
     res = femreg.register(ref, mov, spacing=spacing)
     assert res.success, res.message
     assert _total_error(res, G, margin=2.0) < 0.02
+
+
+def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
+    from femreg.cli import main
+
+    ref, mov, spacing, G = affine_pair
+    seq = tmp_path / "seq.npz"
+    np.savez(seq, rf=np.stack([ref, mov]), spacing=np.asarray(spacing))
+    out = tmp_path / "r.npz"
+    assert main(["register", str(seq), "-o", str(out), "--element-size", "2"]) == 0
+    res = load_volume_result(out)
+    e = res.strain(np.array([[3.0, 3.0, 3.0]]))[0]
+    assert abs(e[0] - _true_strain(G)[0]) < 0.1 * abs(_true_strain(G)[0])
+    assert main(["track", str(seq), "-o", str(tmp_path / "t"), "--element-size", "2"]) == 0
+    assert (tmp_path / "t" / "frame_001.npz").exists()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, rf=ref[:, :, 0], spacing=np.asarray(spacing))
+    assert main(["register", str(bad), "-o", str(out)]) == 2
+    assert "volume" in capsys.readouterr().err
