@@ -33,15 +33,23 @@ SPACING = (0.025, 0.2, 0.25)
 WEIGHTS = np.array([1, 1, 1, 2, 2, 2.0])
 
 
+def axial_spacing(f_mhz) -> float:
+    """dx (mm) of a probe: 0.025 mm (fs 30.8 MHz), finer where that leaves fewer than 4 samples per carrier
+    period (RF sampled at >= 4 f0, as scanners do; at 15 MHz 0.025 mm would alias the pulse)."""
+    return min(SPACING[0], 1.54 / (2 * 4 * f_mhz))
+
+
 def _pair(shape, f_mhz, seed, density, cache):
     from _volumes import affine_field, volume_pair
 
+    spacing = (axial_spacing(f_mhz),) + SPACING[1:]
+    shape = (int(round(shape[0] * SPACING[0] / spacing[0])),) + tuple(shape[1:])     # the same extent
     path = Path(cache) / f"volpair_{'x'.join(map(str, shape))}_{f_mhz:g}_{seed}_{density:g}.npz"
-    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * SPACING / 2)
+    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * spacing / 2)
     if not path.exists():
         t = time.perf_counter()
-        ref, mov, _, _ = volume_pair(field, shape=shape, spacing=SPACING, f_mhz=f_mhz, seed=seed, density=density)
-        np.savez(path, ref=ref.astype(np.float32), mov=mov.astype(np.float32))
+        ref, mov, _, _ = volume_pair(field, shape=shape, spacing=spacing, f_mhz=f_mhz, seed=seed, density=density)
+        np.savez(path, ref=ref.astype(np.float32), mov=mov.astype(np.float32), spacing=np.asarray(spacing))
         print(f"  simulated in {time.perf_counter() - t:.1f} s -> {path}", flush=True)
     return path, G
 
@@ -51,19 +59,19 @@ def _register_child(path, G, options):
     import femreg
 
     z = np.load(path)
-    ref, mov = z["ref"], z["mov"]
+    ref, mov, spacing = z["ref"], z["mov"], tuple(z["spacing"])
     t0, c0 = time.perf_counter(), time.process_time()
-    res = femreg.register(ref, mov, spacing=SPACING, **options)
+    res = femreg.register(ref, mov, spacing=spacing, **options)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     E = 0.5 * (G + G.T)
     truth = np.array([E[0, 0], E[1, 1], E[2, 2], E[0, 1], E[0, 2], E[1, 2]])
     pts = res.voxel_points()
-    ext = np.asarray(res.shape) * np.asarray(SPACING)
+    ext = np.asarray(res.shape) * np.asarray(spacing)
     m = np.all((pts > 2.0) & (pts < ext - 2.0), axis=1)
     e = res.strain(pts[m][::7])
     err = float(np.sqrt(np.nanmean(np.sum(WEIGHTS * (e - truth) ** 2, axis=1)) / np.sum(WEIGHTS * truth ** 2)))
     comp = np.sqrt(np.nanmean((e - truth) ** 2, axis=0))
-    print(json.dumps({"wall": wall, "cpu": cpu, "error": err, "rms_per_component": comp.tolist(),
+    print(json.dumps({"shape": list(res.shape), "wall": wall, "cpu": cpu, "error": err, "rms_per_component": comp.tolist(),
                       "success": res.success, "message": res.message, "nit": res.nit,
                       "n_nodes": int(res.mesh.p.shape[1]), "timings": {k: v for k, v in res.timings.items()},
                       "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
@@ -100,7 +108,7 @@ def main(argv=None):
             continue
         r = json.loads(out.stdout.strip().splitlines()[-1])
         st = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items() if isinstance(v, float))
-        print(f"{f:5.1f} MHz: wall {r['wall']:.1f} s, CPU {r['cpu']:.1f} s, peak {r['maxrss_mb']:.0f} MB, "
+        print(f"{f:5.1f} MHz (dx {axial_spacing(f):.4f} mm): wall {r['wall']:.1f} s, CPU {r['cpu']:.1f} s, peak {r['maxrss_mb']:.0f} MB, "
               f"total strain error {100 * r['error']:.2f} % (RMS per component "
               f"{', '.join(f'{v:.1e}' for v in r['rms_per_component'])}), {r['nit']} iterations, "
               f"{r['n_nodes']} nodes, success {r['success']}\n        stages: {st}", flush=True)

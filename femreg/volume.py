@@ -30,6 +30,7 @@ from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
 from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
 from .scaling import effective_alpha
+from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
 from .speckle import envelope, rf_period
 from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
@@ -221,7 +222,10 @@ def solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offse
     reg.alpha = effective_alpha(reg.alpha, mesh)
     reg.setup(mesh)
     psi_start = data.energy(u0)
-    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
+    # the band of a hexahedral mesh grows with its cross-section squared: large systems to PARDISO if installed
+    solver = SPDSolver(linear_solver, large_method="pardiso") if linear_solver in ("auto", "pardiso") else \
+        linear_solver
+    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=solver,
                       callback=callback, strain_tol=strain_tol,
                       strain_operator=None if strain_tol is None else element_strain_operator_3d(mesh))
     return VolumeSolve(mesh=mesh, u=gn.x, gn=gn, data=data, reg=reg, start=u0, psi_start=psi_start)

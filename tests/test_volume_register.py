@@ -274,9 +274,11 @@ def test_track_volumes_accumulates_increments(affine_pair):
 @pytest.mark.slow
 @pytest.mark.parametrize("f_mhz", [3.0, 7.5, 15.0])
 def test_exact_affine_field_3d_per_probe(f_mhz):
-    shape = (500, 40, 32)              # 10 x 8 x 8 mm
-    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * SPACING / 2)
-    ref, mov, spacing, _ = volume_pair(field, shape=shape, f_mhz=f_mhz, seed=11)
+    dx = min(0.02, 1.54 / (2 * 4 * f_mhz))                       # RF sampled at >= 4 f0
+    shape = (int(round(10.0 / dx)), 40, 32)                     # 10 x 8 x 8 mm
+    spacing = (dx,) + SPACING[1:]
+    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * spacing / 2)
+    ref, mov, spacing, _ = volume_pair(field, shape=shape, spacing=spacing, f_mhz=f_mhz, seed=11)
     res = femreg.register(ref, mov, spacing=spacing)
     assert res.success, res.message
     assert _total_error(res, G, margin=2.0) < 0.02
@@ -299,3 +301,23 @@ def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
     np.savez(bad, rf=ref[:, :, 0], spacing=np.asarray(spacing))
     assert main(["register", str(bad), "-o", str(out)]) == 2
     assert "volume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", ["auto", "splu", "pardiso"])
+def test_sparse_solver_branches_solve_a_3d_gauss_newton_system(method):
+    from femreg.linsolve import SPDSolver, have_pardiso
+
+    if method == "pardiso" and not have_pardiso():
+        pytest.skip("pypardiso not installed")
+    mesh = MeshHex1.init_tensor(np.linspace(0, 4, 6), np.linspace(0, 3, 5), np.linspace(0, 2, 4))
+    r = make_regularizer("momentum-stress", hourglass=1000.0)
+    r.setup(mesh)
+    rng = np.random.default_rng(8)
+    u = 1e-3 * rng.standard_normal(3 * mesh.p.shape[1])
+    H = (r.hessian(u) + sp.identity(u.size)).tocsc()
+    b = rng.standard_normal(u.size)
+    s = SPDSolver(method, shift=0.0, band_limit=10 if method == "auto" else 25_000_000, large_method="pardiso")
+    x = s.solve(H, b)
+    assert np.linalg.norm(H @ x - b) < 1e-8 * np.linalg.norm(b)
+    if method == "auto":     # band above the limit: the sparse branch (PARDISO when installed, else SuperLU)
+        assert s.last_method == ("pardiso" if have_pardiso() else "splu")
