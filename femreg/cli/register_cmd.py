@@ -100,7 +100,7 @@ def run(args) -> int:
     res.save(args.output)
     print(res)
     if res.excluded:
-        print(f"femreg register: not registered: {res.excluded}")
+        print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
     if not res.success:
         print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
