@@ -160,7 +160,7 @@ def test_plot_bad_input(tmp_path, capsys):
              (["r.npz", "-o", "x.jpg"], ".png"), (["r.npz", "--overlay"], "--reference"),
              (["r.npz", "--reference", "nothere.npy"], "no such file"),
              (["r.npz", "--vtu", "x.vtu", "--xdmf", "x.obj"], "--xdmf must name a .xdmf"),
-             (["run"], "is a folder, not a result file: plot one of its 1 result files, e.g. femreg plot")]
+             (["run"], "a folder, not a result file: name one of its 1 result files, e.g. ")]
     (tmp_path / "run").mkdir()
     save_result(tmp_path / "run" / "frame_001.npz", res)              # a track folder
     for argv, needle in cases:

@@ -58,10 +58,6 @@ def _run(args) -> int:
     if is_inversion_file(args.result):
         return plot_inversion_file(args)
     # ----
-    if Path(args.result).is_dir():   # e.g. a `femreg track` folder: one figure per result file
-        found = sorted(Path(args.result).glob("*.npz"))
-        hint = f": plot one of its {len(found)} result files, e.g. femreg plot {found[-1]}" if found else ""
-        raise InputError(f"{args.result} is a folder, not a result file{hint}")
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")

@@ -74,6 +74,9 @@ def run(args) -> int:
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr
+        if ref_fr.n_frames < 2:
+            raise InputError(f"{args.reference} holds one frame: give the moving frame's file too "
+                             f"(femreg register REF MOV), or a file of several frames (--pair I J picks two)")
     else:
         i, j = args.pair or (0, 0)
         mov_fr = frames_from_args(args, args.moving)
