@@ -111,11 +111,29 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         rep = diagnose(a[0], fr.spacing)
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
+        if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
+            out["needs"] += _raw_shape_hint(a[0])
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
-        out["needs"] = []
+        from ..orientation import CARRIER_RATIO, carrier_ratio
+
+        c0 = carrier_ratio(a[0][:, ::max(1, a.shape[2] // 64)])       # the carrier needs no spacing
+        out["needs"] = _raw_shape_hint(a[0]) if "raw" in str(out["format"]) and not c0 < CARRIER_RATIO else []
     return out
+
+
+def _raw_shape_hint(frame) -> list:
+    """A raw frame read with its two sizes exchanged is scrambled, not transposed: no carrier on either axis.
+    When the same samples read the other way round carry one along axis 0, say which --shape to pass."""
+    from ..orientation import CARRIER_RATIO, carrier_ratio
+
+    n0, n1 = frame.shape
+    alt = np.asarray(frame).reshape(n1, n0)        # the same bytes in file order, the sizes exchanged
+    if not carrier_ratio(alt[:, ::max(1, n0 // 64)]) < CARRIER_RATIO:
+        return []
+    return [f"no RF carrier when read as {n0} x {n1}, but one along axis 0 when read as {n1} x {n0}: the "
+            f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)"]
 
 
 def run(args) -> int:

@@ -74,6 +74,9 @@ def run(args) -> int:
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr
+        if ref_fr.n_frames < 2:
+            raise InputError(f"{args.reference} holds one frame: give the moving frame's file too "
+                             f"(femreg register REF MOV), or a file of several frames (--pair I J picks two)")
     else:
         i, j = args.pair or (0, 0)
         mov_fr = frames_from_args(args, args.moving)
@@ -100,7 +103,7 @@ def run(args) -> int:
     res.save(args.output)
     print(res)
     if res.excluded:
-        print(f"femreg register: not registered: {res.excluded}")
+        print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
     if not res.success:
         print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
