@@ -878,7 +878,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     """
     t_all = time.perf_counter()
     if model == "auto":
-        if poisson is not None:
+        if poisson is not None and not _is_3d(displacement, region):
             raise InputError("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)")
     else:
         lb = lambda_bar(model, poisson)
