@@ -581,7 +581,12 @@ class FEVolumeField:
         return _sym6(self.gradient(points))
 
     def inside(self, points) -> np.ndarray:
-        return self.solution.region(_points3(points)) == 1
+        """Points inside the spherical inclusion (centre on the axis at the solve's inclusion depth)."""
+        p = _points3(points)
+        prm = self.solution.params
+        r = 0.5 * float(prm.get("inclusion_diameter_mm", 15.0))
+        d = p - np.array([float(prm.get("inclusion_depth_mm", 30.0)), 0.0, 0.0])
+        return np.einsum("ij,ij->i", d, d) < r * r
 
     def __call__(self, points):
         return self.displacement(points)
