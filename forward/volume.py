@@ -407,15 +407,6 @@ def render_volume(positions, amplitudes, grid: ImagingVolume, psf: PSF3D | None 
     fz = (pos[:, 2] - z_lo) / dsub
     m0 = np.clip(np.floor(fz).astype(np.int64), 0, n_sub - 2)
     t = fz - m0
-    # axial factors (exact, amplitude folded in) and lateral factors at the scatterer's depth
-    ix, vx = _taps(fx, nx, kx)
-    ax = psf.axial((ix - fx[:, None]) * dx) * amp[:, None]
-    ax[~vx] = 0.0
-    ix[~vx] = 0
-    iy, vy = _taps(fy, ny, ky)
-    lat = psf.lateral((iy - fy[:, None]) * dy, pos[:, 0:1])
-    lat[~vy] = 0.0
-    iy[~vy] = 0
     # depth bands for the elevational beam (its width changes by < 1 % across a band)
     band = max(1, min(nx, int(round(1.0 / dx)) if psf.elevational_focus_mm is not None else nx))
     nb = -(-nx // band)
@@ -423,7 +414,7 @@ def render_volume(positions, amplitudes, grid: ImagingVolume, psf: PSF3D | None 
     zk = grid.z
     order = np.argsort(m0, kind="stable")
     m0s = m0[order]
-    per_sub = 8.0 * nx * ny
+    per_sub = 4.0 * nx * ny
     step = max(2, int(chunk_bytes // per_sub))
     for c0 in range(0, n_sub - 1, step):
         c1 = min(n_sub - 1, c0 + step)             # scatterers with m0 in [c0, c1) touch sub-planes c0..c1
@@ -433,19 +424,38 @@ def render_volume(positions, amplitudes, grid: ImagingVolume, psf: PSF3D | None 
         sel = order[a:b]
         n = len(sel)
         ncol = c1 - c0 + 1
-        A = sp.csc_matrix((ax[sel].ravel(), ix[sel].ravel(), np.arange(0, n * 2 * kx + 1, 2 * kx)), shape=(nx, n))
-        lo = (m0[sel] - c0)[:, None] * ny + iy[sel]
-        cols = np.concatenate([lo, lo + ny], axis=1)
-        vals = np.concatenate([lat[sel] * (1.0 - t[sel, None]), lat[sel] * t[sel, None]], axis=1)
-        L = sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, n * 4 * ky + 1, 4 * ky)), shape=(n, ncol * ny))
-        P = (A.tocsr() @ L).toarray().reshape(nx, ncol, ny)            # sub-plane images
-        Pz = np.ascontiguousarray(P.transpose(0, 2, 1))                 # (nx, ny, ncol)
-        dz_off = zk[None, :] - zs[c0:c1 + 1, None]                      # (ncol, nz)
+        # axial factors (exact, amplitude folded in) and lateral factors at the scatterer's depth
+        ix, vx = _taps(fx[sel], nx, kx)
+        ax = psf.axial((ix - fx[sel, None]) * dx) * amp[sel, None]
+        ax[~vx] = 0.0
+        ix[~vx] = 0
+        iy, vy = _taps(fy[sel], ny, ky)
+        lat = psf.lateral((iy - fy[sel, None]) * dy, pos[sel, 0:1])
+        lat[~vy] = 0.0
+        iy[~vy] = 0
+        A = sp.csr_matrix(sp.csc_matrix((ax.ravel(), ix.ravel(), np.arange(0, n * 2 * kx + 1, 2 * kx)),
+                                        shape=(nx, n)))
+        lo = (m0[sel] - c0)[:, None] * ny + iy
+        ts = t[sel, None]
+        L = sp.csr_matrix((np.concatenate([lat * (1.0 - ts), lat * ts], axis=1).ravel(),
+                           np.concatenate([lo, lo + ny], axis=1).ravel(), np.arange(0, n * 4 * ky + 1, 4 * ky)),
+                          shape=(n, ncol * ny))
+        del ax, ix, lat, iy
+        P = (A @ L).toarray().astype(np.float32).reshape(nx, ncol, ny)   # sub-plane images
+        Pz = np.ascontiguousarray(P.transpose(0, 2, 1))                   # (nx, ny, ncol)
+        del P
+        dz_off = zk[None, :] - zs[c0:c1 + 1, None]                        # (ncol, nz)
+        kk = np.flatnonzero(np.any(np.abs(dz_off) <= hz, axis=0))        # output planes this block reaches
+        if kk.size == 0:
+            continue
+        k0, k1 = kk[0], kk[-1] + 1
+        dz_off = dz_off[:, k0:k1]
         for bi in range(nb):
             r0, r1 = bi * band, min(nx, (bi + 1) * band)
             H = psf.elevational(dz_off, xb[bi])
             H[np.abs(dz_off) > hz] = 0.0
-            out[r0:r1] += (Pz[r0:r1].reshape(-1, ncol) @ H).reshape(r1 - r0, ny, nz)
+            out[r0:r1, :, k0:k1] += (Pz[r0:r1].reshape(-1, ncol) @ H.astype(np.float32)).reshape(
+                r1 - r0, ny, k1 - k0)
     return out.astype(dtype, copy=False)
 
 
