@@ -63,7 +63,7 @@ STRAIN_COMPONENTS_3D = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 #: (envelope mean/std within 2 % of the Rayleigh 1.91, measured in the tests).
 SCATTERERS_PER_CELL_3D = 1.0
 #: Bump when anything changes the rendered frames of :func:`paper_volume_sequence` (invalidates its cache).
-VOLUME_FORMAT_VERSION = 1
+VOLUME_FORMAT_VERSION = 2
 
 
 def _focus(value, name):
@@ -811,7 +811,8 @@ def paper_volume_sequence(inclusion: str = "HI", *, frames=(0, 6), probe="paper3
     """The paper's 3D phantom (HI, SI, mHI, HOM) imaged as RF volumes under its compression schedule.
 
     The volume covers the paper's imaged plane (``depth_mm`` 72 from the top face x = 0 by ``width_mm`` 44
-    lateral) and ``+- elevation_mm / 2`` (default +-10 mm) elevationally around it.  Frame ``k`` (index 0 =
+    lateral) and ``+- elevation_mm / 2`` (default +-10 mm) elevationally around it, with an odd number of
+    elevational planes so that one is the imaging plane z = 0 (the 2D sequences' plane).  Frame ``k`` (index 0 =
     the paper's frame 1) is the unit-compression 3D FE solution (``forward.cached_solve(model="3d")``) scaled so
     that the mean axial strain over the imaged *plane* follows :func:`forward.sequences.paper_schedule`, the same
     scales as the 2D :func:`forward.sequences.simulate_sequence` of the 3D model; ``frames`` selects which are
@@ -849,6 +850,9 @@ def paper_volume_sequence(inclusion: str = "HI", *, frames=(0, 6), probe="paper3
     t_start = time.perf_counter()
     # scales: the mean exx over the imaged plane (as the 2D sequence of the 3D model)
     grid = ImagingVolume.centred((depth_mm, width_mm, elevation_mm), pr.spacing, top_mm=0.0)
+    nz = 2 * int(round(0.5 * float(elevation_mm) / pr.spacing[2])) + 1     # odd: a plane at z = 0, the 2D plane
+    grid = ImagingVolume((grid.shape[0], grid.shape[1], nz), grid.spacing,
+                         (grid.origin[0], grid.origin[1], -0.5 * (nz - 1) * pr.spacing[2]))
     Xp, Yp = np.meshgrid(grid.x, grid.y, indexing="ij")
     plane = np.column_stack([Xp.ravel()[::5], Yp.ravel()[::5], np.zeros(Xp.size)[::5]])
     mean_exx = float(np.nanmean(unit.strain(plane)[:, 0]))
