@@ -824,3 +824,51 @@ def lag_products(a, k0, k1):  # pragma: no cover - compiled
         for j in range(n1):
             out[q] += acc[q, j]
     return out
+
+
+@_jit
+def tricubic_grid(c, hi0, hi1, hi2, bxr, byc, bzl, bx, by, bz, ux, uy, uz, isx, isy, isz, sub,
+                  out):  # pragma: no cover - compiled
+    """Tricubic B-spline interpolant (coefficients ``c`` mirror-padded by 2) at base + u / spacing over an
+    (nr, nc, nl) voxel block, minus ``sub`` (I_1 for the residual; empty for I_2 alone); 0 outside the voxel
+    cells [-1/2, n - 1/2].  The base index is bxr[r], byc[q], bzl[s] per axis, or with ``bx`` non-empty the full
+    (nr, nc, nl) arrays bx, by, bz (an offset S).  ``ux``, ``uy``, ``uz`` (nr, nc, nl) mm: u at the voxels.
+    The values of ``map_coordinates(order=3, prefilter=False)`` on the padded coefficients."""
+    nr, nc, nl = ux.shape
+    full = bx.shape[0] > 0
+    has_sub = sub.shape[0] > 0
+    wx = np.empty(4)
+    wy = np.empty(4)
+    wz = np.empty(4)
+    for r in range(nr):
+        for q in range(nc):
+            for s in range(nl):
+                if full:
+                    xp = bx[r, q, s] + ux[r, q, s] * isx
+                    yp = by[r, q, s] + uy[r, q, s] * isy
+                    zp = bz[r, q, s] + uz[r, q, s] * isz
+                else:
+                    xp = bxr[r] + ux[r, q, s] * isx
+                    yp = byc[q] + uy[r, q, s] * isy
+                    zp = bzl[s] + uz[r, q, s] * isz
+                k = (r * nc + q) * nl + s
+                v = 0.0
+                if xp >= -0.5 and xp <= hi0 and yp >= -0.5 and yp <= hi1 and zp >= -0.5 and zp <= hi2:
+                    fx = np.floor(xp)
+                    fy = np.floor(yp)
+                    fz = np.floor(zp)
+                    wx[0], wx[1], wx[2], wx[3] = _cubic_weights(xp - fx)
+                    wy[0], wy[1], wy[2], wy[3] = _cubic_weights(yp - fy)
+                    wz[0], wz[1], wz[2], wz[3] = _cubic_weights(zp - fz)
+                    i0 = int(fx) + 1
+                    j0 = int(fy) + 1
+                    l0 = int(fz) + 1
+                    for a in range(4):
+                        va = 0.0
+                        for b in range(4):
+                            row = c[i0 + a, j0 + b]
+                            va += wy[b] * (wz[0] * row[l0] + wz[1] * row[l0 + 1] + wz[2] * row[l0 + 2]
+                                           + wz[3] * row[l0 + 3])
+                        v += wx[a] * va
+                out[k] = v - sub[k] if has_sub else v
+    return out

@@ -36,6 +36,7 @@ from .regularizers import Regularizer, available_regularizers
 from .repair import check_period, check_result, repair_peak_hopping
 from .result import RegistrationResult, displacement_at, load_result, nodal_values  # noqa: F401
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, single_blas_thread
+from .volume import volumes_to
 from .strategy import (DEFAULT_HOURGLASS, DEFAULT_MOMENTUM_STRESS_OPTIONS, STRATEGIES,  # noqa: F401
                        component_tol, effective_regularizer_options, fresh_regularizer)
 
@@ -96,6 +97,7 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     return fe_mesh, stats, settings
 
 
+@volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
 @single_blas_thread
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
              alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,

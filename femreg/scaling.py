@@ -23,10 +23,27 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["REFERENCE_ELEMENT_AREA", "mean_element_area", "alpha_scale", "effective_alpha"]
+__all__ = ["REFERENCE_ELEMENT_AREA", "REFERENCE_ELEMENT_VOLUME", "mean_element_area", "mean_element_volume",
+           "alpha_scale", "effective_alpha"]
 
 #: Element area (mm^2) at which the user's alpha is the weight of eq:objf as written: 2 mm x 2 mm.
 REFERENCE_ELEMENT_AREA = 4.0
+
+
+#: Element volume (mm^3) at which the user's alpha is the weight of eq:objf on a volume (hexahedral mesh):
+#: 2 x 2 x 2 mm.  On volumes psi and R are integrals over mm^3 (voxel weights dx dy dz); an element of volume V
+#: holds V / (dx dy dz) voxels, so the same argument gives alpha_eff = alpha * REFERENCE_ELEMENT_VOLUME / V.
+#: A volume that is constant along z registers with the same in-plane weight as its 2D plane on 2 mm elements
+#: (psi and R both scale with the thickness).
+REFERENCE_ELEMENT_VOLUME = 8.0
+
+
+def mean_element_volume(mesh) -> float:
+    """Mean volume (mm^3) of the hexahedra of ``mesh`` (scikit-fem's 2 x 2 x 2 Gauss rule, exact for trilinear
+    maps)."""
+    from skfem import Basis, ElementHex1
+
+    return float(np.mean(Basis(mesh, ElementHex1(), intorder=2).dx.sum(axis=1)))
 
 
 def mean_element_area(mesh) -> float:
@@ -39,6 +56,11 @@ def mean_element_area(mesh) -> float:
 
 def alpha_scale(mesh) -> float:
     """Factor from the user's alpha to the weight used in eq:objf on ``mesh`` (module docstring)."""
+    if np.asarray(mesh.p).shape[0] == 3:
+        vol = mean_element_volume(mesh)
+        if not vol > 0:
+            raise ValueError("mesh has elements of zero volume")
+        return REFERENCE_ELEMENT_VOLUME / vol
     area = mean_element_area(mesh)
     if not area > 0:
         raise ValueError("mesh has elements of zero area")

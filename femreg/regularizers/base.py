@@ -6,7 +6,7 @@ Every regulariser, built-in or user-written, implements :class:`Regularizer`:
 * ``energy(u)``, ``gradient(u)``, ``hessian(u)`` at a nodal displacement ``u``.
 
 ``u`` is the nodal vector of a scikit-fem ``ElementVector(ElementQuad1())`` basis on that mesh, shape
-``(2 * n_nodes,)``, in millimetres, in scikit-fem's DOF order (any Basis built with that element on the same
+``(2 * n_nodes,)`` (on a hexahedral ``MeshHex1`` of a volume: ``ElementVector(ElementHex1())``, ``(3 * n_nodes,)``), in millimetres, in scikit-fem's DOF order (any Basis built with that element on the same
 mesh numbers DOFs identically).  ``hessian`` returns a symmetric positive semi-definite sparse matrix
 (exact for quadratic terms, lagged diffusivity for total-variation terms, eq:dmreg4).
 """
@@ -87,7 +87,9 @@ class QuadraticFormRegularizer(Regularizer):
         self._K = None
 
     def setup(self, mesh) -> None:
-        from skfem import Basis, ElementQuad1, ElementVector
+        from skfem import Basis, ElementVector
+
+        from ..quadrature import for_dimension
 
         K = None
         for form, weight, quad in self.terms:
@@ -95,8 +97,8 @@ class QuadraticFormRegularizer(Regularizer):
             if isinstance(quad, (int, np.integer)):
                 kw["intorder"] = int(quad)
             elif quad is not None:
-                kw["quadrature"] = quad
-            basis = Basis(mesh, ElementVector(ElementQuad1()), **kw)
+                kw["quadrature"] = for_dimension(quad, mesh.p.shape[0])
+            basis = Basis(mesh, ElementVector(nodal_element(mesh)), **kw)
             Ki = float(weight) * form.assemble(basis, **self.w)
             K = Ki if K is None else K + Ki
         self._K = sp.csr_matrix(K)
@@ -117,6 +119,14 @@ class QuadraticFormRegularizer(Regularizer):
 
     def hessian(self, u=None):
         return self.alpha * self.matrix
+
+
+def nodal_element(mesh):
+    """The scalar element of femreg's displacement on ``mesh``: bilinear quads (``ElementQuad1``) in 2D,
+    trilinear hexahedra (``ElementHex1``) in 3D; the vector field is ``ElementVector`` of it in either."""
+    from skfem import ElementHex1, ElementQuad1, MeshHex1
+
+    return ElementHex1() if isinstance(mesh, MeshHex1) else ElementQuad1()
 
 
 _REGISTRY: dict[str, Callable[..., Regularizer]] = {}

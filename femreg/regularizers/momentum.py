@@ -64,6 +64,10 @@ import scipy.sparse as sp
 from .. import _kernels
 from ..errors import InputError
 from ..material import LAMBDA_BAR_PLANE_STRAIN, LAMBDA_BAR_PLANE_STRESS, lambda_bar
+
+#: :math:`\bar\lambda = 2\nu / (1 - 2\nu)` of the momentum regularisers on volumes (hexahedral meshes), nu = 0.45
+#: (nearly incompressible tissue, as R_P_eps: in 3D there is no plane model to choose).
+LAMBDA_BAR_3D = 9.0
 from ..quadrature import EDGE_MIDPOINT_RULE, ELEMENT_CENTRE_RULE  # noqa: F401  (re-exported)
 from .base import Regularizer, register_regularizer
 
@@ -107,19 +111,28 @@ class JumpOperators:
     elements: np.ndarray
     midpoints: np.ndarray
     normals: np.ndarray
+    #: z component on a hexahedral mesh (faces instead of edges; ``lengths`` are then the face areas, mm^2)
+    Kz: sp.csr_matrix | None = None
 
     @property
     def n_edges(self) -> int:
         return self.lengths.shape[0]
 
+    @property
+    def components(self) -> list:
+        """[Kx, Ky] in 2D, [Kx, Ky, Kz] in 3D."""
+        return [self.Kx, self.Ky] + ([] if self.Kz is None else [self.Kz])
+
     def stacked(self) -> sp.csr_matrix:
-        """``vstack([Kx, Ky])``, shape (2 n_edges, 2 n_nodes)."""
-        return sp.vstack([self.Kx, self.Ky], format="csr")
+        """``vstack([Kx, Ky(, Kz)])``, shape (dim n_edges, dim n_nodes)."""
+        return sp.vstack(self.components, format="csr")
 
 
 def _check_quad_mesh(mesh) -> None:
-    from skfem import MeshQuad1
+    from skfem import MeshHex1, MeshQuad1
 
+    if isinstance(mesh, MeshHex1) and mesh.p.shape[0] == 3:     # a volume's trilinear hexahedra
+        return
     if not isinstance(mesh, MeshQuad1):
         raise ValueError(f"momentum regularisers need a scikit-fem MeshQuad1 (bilinear quads), got "
                          f"{type(mesh).__name__}")
@@ -132,7 +145,8 @@ def momentum_tensor(u, lambda_bar):
     for a vector field or basis function ``u`` of a form; shape (2, 2, ...), dimensionless (strain units)."""
     from skfem.helpers import div, eye, sym_grad
 
-    return lambda_bar * eye(div(u), 2) + 2.0 * sym_grad(u)
+    e = sym_grad(u)
+    return lambda_bar * eye(div(u), e.shape[0]) + 2.0 * e
 
 
 def _traction_form(component: int):
@@ -179,10 +193,14 @@ def facet_jump_operators(mesh, forms, *, quadrature=EDGE_MIDPOINT_RULE, **w):
     sides : (InteriorFacetBasis, InteriorFacetBasis)
         The two sides' bases (normals, midpoints, elements on each side).
     """
-    from skfem import ElementQuad1, ElementVector, InteriorFacetBasis
+    from skfem import ElementVector, InteriorFacetBasis
+
+    from ..quadrature import for_dimension
+    from .base import nodal_element
 
     _check_quad_mesh(mesh)
-    elem = ElementVector(ElementQuad1())
+    elem = ElementVector(nodal_element(mesh))
+    quadrature = for_dimension(quadrature, mesh.p.shape[0])
     sides = tuple(InteriorFacetBasis(mesh, elem, side=s, quadrature=quadrature) for s in (0, 1))
     n_edges, n_dofs = sides[0].nelems, sides[0].N
     trip = [_facet_rows(forms, b, sign, w) for b, sign in zip(sides, (1.0, -1.0))]   # jump = side 0 - side 1
@@ -204,6 +222,11 @@ def element_centre_divergence(mesh) -> sp.csr_matrix:
     from ..fields import centre_gradient_operators
 
     _check_quad_mesh(mesh)
+    if mesh.p.shape[0] == 3:
+        from ..volume_fields import centre_gradients
+
+        G, _ = centre_gradients(mesh)
+        return (G[0][0] + G[1][1] + G[2][2]).tocsr()
     G, _ = centre_gradient_operators(mesh)
     return (G["xx"] + G["yy"]).tocsr()
 
@@ -242,16 +265,20 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
 
     from ..mesh import tensor_structure
 
-    ts = tensor_structure(mesh)
+    dim = mesh.p.shape[0]
+    Kz = None
+    ts = tensor_structure(mesh) if dim == 2 else None
     if ts is not None:
         Kx, Ky, lengths, facets, tind, mid, n = _tensor_traction_jumps(mesh, ts, lb_edge,
                                                                        lambda_bar if centre else 0.0)
         centre = False                  # already in
     else:
-        (Kx, Ky), lengths, sides = facet_jump_operators(mesh, [_traction_form(0), _traction_form(1)],
-                                                        lambda_bar=lb_edge)
+        comps, lengths, sides = facet_jump_operators(mesh, [_traction_form(c) for c in range(dim)],
+                                                     lambda_bar=lb_edge)
+        Kx, Ky = comps[:2]
+        Kz = comps[2] if dim == 3 else None
         b0 = sides[0]
-        n = np.asarray(b0.normals)[:, :, 0].copy()      # (2, n_edges) side-0 unit normal
+        n = np.asarray(b0.normals)[:, :, 0].copy()      # (dim, n_edges) side-0 unit normal
         facets, tind = np.asarray(b0.find).copy(), np.stack([sides[0].tind, sides[1].tind])
         mid = np.asarray(b0.global_coordinates())[:, :, 0].copy()
     if centre and lambda_bar != 0.0:
@@ -260,7 +287,10 @@ def momentum_jump_operators(mesh, lambda_bar: float, *, dilatation: str = "edge"
         Dj = (D[tind[0]] - D[tind[1]]) * lambda_bar
         Kx = (Kx + sp.diags(n[0]) @ Dj).tocsr()
         Ky = (Ky + sp.diags(n[1]) @ Dj).tocsr()
-    return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=facets, elements=tind, midpoints=mid, normals=n)
+        if Kz is not None:
+            Kz = (Kz + sp.diags(n[2]) @ Dj).tocsr()
+    return JumpOperators(Kx=Kx, Ky=Ky, lengths=lengths, facets=facets, elements=tind, midpoints=mid, normals=n,
+                         Kz=Kz)
 
 
 def _rectangle_side(mid, x0, x1, y0) -> np.ndarray:
@@ -377,6 +407,8 @@ def hourglass_operator(mesh) -> sp.csr_matrix:
     :class:`MomentumRegularizer` and by :func:`femreg.quality.hourglass`.
     """
     t = np.asarray(mesh.t)
+    if t.shape[0] == 8 and mesh.p.shape[0] == 3:
+        return _hex_hourglass_operator(mesh)
     if t.shape[0] != 4:
         raise InputError(f"hourglass operator needs quadrilateral elements, got {t.shape[0]} nodes per element")
     n_el = t.shape[1]
@@ -384,6 +416,29 @@ def hourglass_operator(mesh) -> sp.csr_matrix:
     cols = np.concatenate([2 * t.T, 2 * t.T + 1]).ravel()
     vals = np.tile([1.0, -1.0, 1.0, -1.0], 2 * n_el)
     return sp.csr_matrix((vals, (rows, cols)), shape=(2 * n_el, 2 * mesh.p.shape[1]))
+
+
+def _hex_hourglass_operator(mesh) -> sp.csr_matrix:
+    r"""The hexahedral form of :func:`hourglass_operator`, shape (12 n_elements, 3 n_nodes): per element and
+    displacement component the four hourglass vectors :math:`s_x s_y, s_x s_z, s_y s_z, s_x s_y s_z` over its 8
+    corners (:math:`s = \pm 1` the corner's side along each reference axis, from ``ElementHex1``'s nodes).
+    On a box they are orthogonal to every affine field and span the trilinear modes the face-centre jumps cannot
+    see (Flanagan & Belytschko, Int. J. Numer. Meth. Eng. 17:679-706, 1981)."""
+    from skfem import ElementHex1
+
+    s = 2.0 * np.asarray(ElementHex1().doflocs, float).T - 1.0              # (3, 8) corner sides
+    modes = np.stack([s[0] * s[1], s[0] * s[2], s[1] * s[2], s[0] * s[1] * s[2]])   # (4, 8)
+    t = np.asarray(mesh.t)
+    n_el = t.shape[1]
+    rows, cols, vals = [], [], []
+    for c in range(3):
+        for k in range(4):
+            r = (c * 4 + k) * n_el + np.arange(n_el)
+            rows.append(np.repeat(r, 8))
+            cols.append((3 * t.T + c).ravel())
+            vals.append(np.tile(modes[k], n_el))
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(12 * n_el, 3 * mesh.p.shape[1]))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -485,9 +540,10 @@ class TVRegularizer(Regularizer):
         n_terms, n_dofs = comps[0].shape
         if any(c.shape != (n_terms, n_dofs) for c in comps):
             raise ValueError(f"all operator components must have the same shape; got {[c.shape for c in comps]}")
-        expected = 2 * mesh.p.shape[1]
+        dim = mesh.p.shape[0]
+        expected = dim * mesh.p.shape[1]
         if n_dofs != expected:
-            raise ValueError(f"operator components must have 2 * n_nodes = {expected} columns, got {n_dofs}")
+            raise ValueError(f"operator components must have {dim} * n_nodes = {expected} columns, got {n_dofs}")
         weights = np.asarray(weights, dtype=float).ravel()
         if weights.shape != (n_terms,):
             raise ValueError(f"weights must have shape ({n_terms},), got {weights.shape}")
@@ -656,9 +712,25 @@ class MomentumRegularizer(TVRegularizer):
         if self.dilatation not in ("edge", "centre", "center"):
             raise ValueError(f"dilatation must be 'edge' or 'centre', got {dilatation!r}")
         self.jumps: JumpOperators | None = None
+        self._lambda_given = lambda_bar is not None
+        self._dilatation_given = dilatation is not None
 
     def build_operator(self, mesh):
-        self.jumps = momentum_jump_operators(mesh, self.lambda_bar, dilatation=self.dilatation)
+        lb, dil = self.lambda_bar, self.dilatation
+        if mesh.p.shape[0] == 3:
+            # a volume: no plane model; the 3D nearly incompressible A (LAMBDA_BAR_3D) with the dilatation at the
+            # element centre (reduced integration of the volumetric part, against locking), unless given
+            lb = lb if self._lambda_given else LAMBDA_BAR_3D
+            dil = dil if self._dilatation_given else "centre"
+        self.jumps = momentum_jump_operators(mesh, lb, dilatation=dil)
+        if mesh.p.shape[0] == 3:
+            comps = self.jumps.components
+            if self.shear_traction == 1.0:
+                return comps, self.jumps.lengths
+            n = [sp.diags(c) for c in self.jumps.normals]
+            Kn = sum(n[c] @ comps[c] for c in range(3)).tocsr()
+            tang = [(self.shear_traction * (comps[c] - n[c] @ Kn)).tocsr() for c in range(3)]
+            return [Kn] + tang, self.jumps.lengths
         if self.shear_traction == 1.0:
             return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
         # normal and tangential components of the jump vector (a rotation of (Kx, Ky) per edge)
@@ -672,7 +744,8 @@ class MomentumRegularizer(TVRegularizer):
         self._G = None
         if self.hourglass > 0:
             G = hourglass_operator(mesh)
-            self._G = (G.T @ G).tocsr() * (self.hourglass / 4.0)   # energy alpha/2 u^T G u
+            # energy alpha/2 u^T G u; normalised by the corners per element (4 quads, 8 hexahedra)
+            self._G = (G.T @ G).tocsr() * (self.hourglass / float(mesh.t.shape[0]))
 
     def energy(self, u):
         e = super().energy(u)

@@ -1,0 +1,493 @@
+"""Registration of RF volumes (axial, lateral, elevational) = (x, y, z): :func:`register_volume` and
+:func:`track_volume`, which :func:`femreg.register` and :func:`femreg.track` call for 3D arrays.
+
+The same method as in 2D, one dimension up: eq:objf = psi (eq:IR) + R on trilinear hexahedra
+(:func:`femreg.voxels.roi_mesh_3d`), the image term integrated at voxel centres with tricubic B-spline warps of
+the moving volume and the fixed reference gradient of eq:wfnew (:class:`femreg.voxels.VoxelSSDTerm`); the
+regularisers are the 2D ones, whose weak forms are written for any dimension (R_eps, R_eps_i; the momentum TV
+with the jumps of A n across interior faces, A = lambda_bar div(u) I + 2 sym grad u, lambda_bar
+:data:`femreg.regularizers.momentum.LAMBDA_BAR_3D` with the dilatation at the element centre, and hourglass
+control of the hexahedra); alpha is rescaled by element volume (:mod:`femreg.scaling`); Gauss-Newton
+(:func:`femreg.solver.gauss_newton`, linear solver :class:`femreg.linsolve.SPDSolver`).
+
+Stages: validate -> normalise (each volume by its RMS) and prefilter -> mesh -> initial guess (coarse to fine:
+a global search over axial strain and translation on decimated envelope volumes, then Gauss-Newton on the
+envelopes with a mesh twice as coarse, :func:`coarse_to_fine`) -> Gauss-Newton on the RF -> peak-hopping check
+and repair (nodes whose u_x is a whole RF period off their neighbourhood's median are reseeded and the solve is
+repeated, kept only if the energy falls) -> check (never worse than the start; NCC floor) -> :class:`VolumeResult`.
+"""
+from __future__ import annotations
+
+import copy
+import functools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import InputError
+from .regularizers import Regularizer, available_regularizers
+from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
+from .scaling import effective_alpha
+from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
+from .speckle import envelope, rf_period
+from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
+from .volume_fields import HexLocator, element_strain_operator_3d
+from .volume_result import VolumeResult
+from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDTerm, roi_mesh_3d, tensor_axes_3d,
+                     validate_spacing_3d, validate_volume)
+
+__all__ = ["register_volume", "track_volume", "volumes_to", "coarse_to_fine", "global_search_3d", "VolumeTrack",
+           "GLOBAL_STRAINS_3D"]
+
+#: Axial strains tried by the global search (-8 % to +4 %, steps of 0.5 %).
+GLOBAL_STRAINS_3D = tuple(np.round(np.arange(-0.08, 0.04 + 1e-9, 0.005), 4))
+#: Largest translation the global search considers, as a fraction of the volume extent per axis.
+SEARCH_FRACTION_3D = 0.10
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Initial guess
+# ----------------------------------------------------------------------------------------------------------
+
+def _envelope_3d(volume) -> np.ndarray:
+    """Envelope |analytic signal| along the axial direction of a volume (each (y, z) line)."""
+    nx = volume.shape[0]
+    return envelope(volume.reshape(nx, -1)).reshape(volume.shape)
+
+
+def _decimate(env, q: int) -> np.ndarray:
+    """Axial Gaussian low-pass (sigma q / 2 samples) and every q-th sample."""
+    if q <= 1:
+        return env
+    return ndimage.gaussian_filter1d(env, q / 2.0, axis=0, mode="nearest")[::q]
+
+
+def global_search_3d(ref_env, mov_env, spacing, origin, strains=GLOBAL_STRAINS_3D,
+                     fraction: float = SEARCH_FRACTION_3D):
+    """Best axial strain s and translation t (3,) mm of ``u(x) = (s (x - x_c), 0, 0) + t`` between two envelope
+    volumes: for each s the moving envelope is resampled axially and cross-correlated with the reference by FFT
+    (translations up to ``fraction`` of the extent, sub-voxel by a parabola through the peak); the pair with the
+    largest normalised correlation wins.  Returns ``(s, t, x_c, ncc)``."""
+    a = ref_env - ref_env.mean()
+    shape = a.shape
+    x = origin[0] + spacing[0] * np.arange(shape[0])
+    xc = float(x.mean())
+    full = [2 * n for n in shape]
+    Fa = np.fft.rfftn(a, s=full, axes=(0, 1, 2))
+    na = float(np.linalg.norm(a))
+    lim = [max(1, int(fraction * n)) for n in shape]
+    best = (-np.inf, 0.0, np.zeros(3))
+    for s in strains:
+        pos = (xc + (1.0 + s) * (x - xc) - origin[0]) / spacing[0]          # where mov is read for x
+        m = ndimage.map_coordinates(mov_env, np.stack(np.meshgrid(pos, np.arange(shape[1]), np.arange(shape[2]),
+                                                                  indexing="ij")),
+                                    order=1, mode="nearest")
+        m = m - m.mean()
+        nm = float(np.linalg.norm(m))
+        if not (na > 0 and nm > 0):
+            continue
+        c = np.fft.irfftn(np.conj(Fa) * np.fft.rfftn(m, s=full, axes=(0, 1, 2)), s=full, axes=(0, 1, 2))
+        # c[k] = sum a(x) m(x + k): lags within the search range on every axis (negative lags wrap around)
+        for ax, L in enumerate(lim):
+            n2 = c.shape[ax]
+            keep = np.zeros(n2, bool)
+            keep[:L + 1] = True
+            keep[n2 - L:] = True
+            idx = [slice(None)] * 3
+            idx[ax] = ~keep
+            c[tuple(idx)] = -np.inf
+        k = np.unravel_index(int(np.argmax(c)), c.shape)
+        val = float(c[k]) / (na * nm)
+        if val > best[0]:
+            t = np.empty(3)
+            for ax in range(3):
+                n2 = c.shape[ax]
+                km, kp = list(k), list(k)
+                km[ax] = (k[ax] - 1) % n2
+                kp[ax] = (k[ax] + 1) % n2
+                c0, cm, cp = c[k], c[tuple(km)], c[tuple(kp)]
+                den = cm - 2 * c0 + cp
+                off = 0.5 * (cm - cp) / den if np.isfinite(den) and den < 0 else 0.0
+                lag = k[ax] if k[ax] <= n2 // 2 else k[ax] - n2
+                t[ax] = (lag + float(np.clip(off, -0.5, 0.5))) * spacing[ax]
+            best = (val, float(s), t)
+    return best[1], best[2], xc, best[0]
+
+
+def _nodal(fn, mesh) -> np.ndarray:
+    """Interleaved nodal vector of a field callable(points (n, 3)) -> (n, 3) on ``mesh``."""
+    return np.asarray(fn(mesh.p.T), float).reshape(-1)
+
+
+def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, tol=1e-3, linear_solver="auto",
+                   period=None):
+    """The initial guess on ``mesh``: global search (:func:`global_search_3d`) on envelope volumes decimated
+    axially to about half the lateral spacing, then Gauss-Newton on the (undecimated axially low-passed)
+    envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes.
+    Returns ``(u0, info)``."""
+    t0 = time.perf_counter()
+    env_r, env_m = _envelope_3d(ref), _envelope_3d(mov)
+    q = max(1, int(round(0.5 * min(spacing[1], spacing[2]) / spacing[0])))
+    dr, dm = _decimate(env_r, q), _decimate(env_m, q)
+    sp_d = np.array([spacing[0] * q, spacing[1], spacing[2]])
+    s, t, xc, g_ncc = global_search_3d(dr, dm, sp_d, origin)
+    t_global = time.perf_counter() - t0
+
+    def affine(pts):
+        out = np.tile(t, (len(pts), 1))
+        out[:, 0] += s * (pts[:, 0] - xc)
+        return out
+
+    # envelope level: Gauss-Newton on the envelopes (no carrier: its basin is a speckle cell, not a quarter
+    # period), decimated volumes on a mesh twice as coarse
+    t1 = time.perf_counter()
+    (ax, ay, az), _ = tensor_axes_3d(mesh)
+    h = np.array([np.mean(np.diff(a)) for a in (ax, ay, az)]) * 2.0
+    lo = np.array([ax[0], ay[0], az[0]])
+    hi = np.array([ax[-1], ay[-1], az[-1]])
+    from skfem import MeshHex1
+
+    n_fine = [a.size - 1 for a in (ax, ay, az)]
+    axes = [np.linspace(lo[a], hi[a], max(min(2, n_fine[a]), int(round((hi[a] - lo[a]) / h[a]))) + 1)
+            for a in range(3)]
+    coarse = MeshHex1.init_tensor(*axes)
+    er = dr / np.sqrt(np.mean(dr ** 2))
+    em = dm / np.sqrt(np.mean(dm ** 2))
+    orig_d = np.asarray(origin, float)
+    E1, E2 = SplineVolume(er, sp_d, orig_d), SplineVolume(em, sp_d, orig_d)
+    u_c = _nodal(affine, coarse)
+    info = {"global_strain": s, "global_translation": t, "global_ncc": g_ncc, "decimation": q}
+    try:
+        sol = solve_volume(E1, E2, coarse, er.shape, sp_d, orig_d, reg_factory, u_c, maxiter=maxiter, tol=tol,
+                           linear_solver=linear_solver, mask_outside=True)
+        u_c = sol.u
+        info["envelope_nit"] = sol.gn.nit
+    except InputError:
+        pass
+    loc = HexLocator(coarse)
+    u0 = np.column_stack([v for k, v in loc.sample(u_c, mesh.p.T).items() if k in ("ux", "uy", "uz")]).ravel()
+    u0 = np.nan_to_num(u0)
+    info["timings"] = {"global_search": t_global, "envelope_level": time.perf_counter() - t1}
+    return u0, info
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Solve, repair, check
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass
+class VolumeSolve:
+    mesh: object
+    u: np.ndarray
+    gn: object
+    data: VoxelSSDTerm
+    reg: Regularizer
+    start: np.ndarray
+    psi_start: float
+
+
+def solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, maxiter=20, tol=1e-3,
+                 linear_solver="auto", callback=None, mask_outside=False, strain_tol=None) -> VolumeSolve:
+    """One Gauss-Newton solve of eq:objf on a hexahedral ``mesh`` (the 3D form of :func:`femreg.gnsolve.solve`):
+    voxel SSD term with the fixed reference gradient + a fresh regulariser with alpha per 2 x 2 x 2 mm element.
+    ``offset``: S at the voxels of the mesh block (n, 3) mm or None.  ``mask_outside``: voxels that ``u0`` maps
+    out of the moving volume get weight 0."""
+    grid = VoxelGrid(mesh, shape, spacing, origin)
+    data = VoxelSSDTerm(grid, I1, I2, offset=offset)
+    if mask_outside:
+        out = data.outside_mask(u0)
+        if out.any() and not out.all():
+            data.w = np.where(out, 0.0, data.w0)
+    reg = reg_factory()
+    reg.alpha = effective_alpha(reg.alpha, mesh)
+    reg.setup(mesh)
+    psi_start = data.energy(u0)
+    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
+                      callback=callback, strain_tol=strain_tol,
+                      strain_operator=None if strain_tol is None else element_strain_operator_3d(mesh))
+    return VolumeSolve(mesh=mesh, u=gn.x, gn=gn, data=data, reg=reg, start=u0, psi_start=psi_start)
+
+
+def hop_nodes_3d(mesh, ux, period: float) -> np.ndarray:
+    """Whole RF periods (int per node) by which u_x differs from the median of its 3 x 3 x 3 node neighbourhood,
+    where that difference exceeds :data:`femreg.repair.HOP_FRACTION` of the period (else 0)."""
+    axes, node = tensor_axes_3d(mesh)
+    U = ux[node]
+    med = ndimage.median_filter(U, size=3, mode="nearest")
+    d = U - med
+    k = np.where(np.abs(d) > HOP_FRACTION * period, np.round(d / period), 0).astype(int)
+    out = np.zeros(mesh.p.shape[1], int)
+    out[node.ravel()] = k.ravel()
+    return out
+
+
+def _repair(sol, resolve, mesh, period):
+    """Reseed nodes whole periods off their neighbourhood (:func:`hop_nodes_3d`) and solve again; keep the new
+    solve if it lowers the energy.  Returns ``(sol, hops, notes)``."""
+    k = hop_nodes_3d(mesh, sol.u[0::3], period)
+    if not k.any():
+        return sol, k, []
+    u = sol.u.copy()
+    u[0::3] -= k * period
+    new = resolve(u)
+    if new.gn.fun < sol.gn.fun:
+        left = hop_nodes_3d(mesh, new.u[0::3], period)
+        note = f"peak hopping repaired at {int(np.count_nonzero(k))} nodes"
+        if left.any():
+            note += f" ({int(np.count_nonzero(left))} still off)"
+        return new, left, [note]
+    return sol, k, [f"{int(np.count_nonzero(k))} nodes look a period off their neighbourhood; reseeding them "
+                    f"did not lower the energy (kept)"]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# register / track
+# ----------------------------------------------------------------------------------------------------------
+
+def _validate(reference, moving, spacing, origin, regularizer, strategy, maxiter, tol):
+    ref = validate_volume(reference, "reference volume")
+    mov = validate_volume(moving, "moving volume")
+    if ref.shape != mov.shape:
+        raise InputError(f"volume shape mismatch: reference {ref.shape} vs moving {mov.shape}")
+    spacing, origin = validate_spacing_3d(spacing, origin)
+    if strategy not in ("auto", "paper"):
+        raise InputError(f"strategy must be 'auto' (or 'paper', treated as 'auto' on volumes), got {strategy!r}")
+    if not isinstance(regularizer, (str, Regularizer)):
+        raise InputError(f"regularizer must be a name or a Regularizer, got {type(regularizer).__name__}")
+    if isinstance(regularizer, str) and regularizer not in available_regularizers():
+        raise InputError(f"unknown regularizer {regularizer!r}; choose one of {available_regularizers()}")
+    if int(maxiter) < 0 or not (np.isfinite(tol) and tol > 0):
+        raise InputError(f"need maxiter >= 0 and tol > 0, got maxiter={maxiter}, tol={tol}")
+    return ref, mov, spacing, origin
+
+
+def _start(initial, mesh, what="initial"):
+    """Nodal start (3 n_nodes,) from a VolumeResult, a callable(points (n, 3)) -> (n, 3) or a nodal vector."""
+    n = mesh.p.shape[1]
+    if isinstance(initial, VolumeResult):
+        return np.nan_to_num(initial.displacement(mesh.p.T)).ravel()
+    if callable(initial):
+        v = np.asarray(initial(mesh.p.T.copy()), float)
+        if v.shape != (n, 3):
+            raise InputError(f"{what} callable must return shape ({n}, 3), got {v.shape}")
+        arr = v.ravel()
+    else:
+        arr = np.asarray(initial, float).ravel()
+        if arr.size != 3 * n:
+            raise InputError(f"{what} nodal vector must have 3 * n_nodes = {3 * n} entries, got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{what} contains NaN/Inf values")
+    return arr.copy()
+
+
+@single_blas_thread
+def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0, 0.0), regularizer="momentum-stress",
+                    alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
+                    maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", regularizer_options=None,
+                    normalize: bool = True, callback=None, strategy: str = "auto", repair: bool = True,
+                    strain_tol=None, **ignored) -> VolumeResult:
+    """Register ``moving`` to ``reference`` volumes: u minimising eq:objf = psi (eq:IR) + R on hexahedra.
+
+    Parameters
+    ----------
+    reference_image, moving_image : (n_x, n_y, n_z) real arrays
+        RF volumes (axial, lateral, elevational), same shape; ``reference(x) ~ moving(x + u(x))``.
+    spacing : (dx, dy, dz) mm; origin : (3,) mm, the centre of voxel [0, 0, 0]
+    regularizer, alpha, regularizer_options, maxiter, tol, linear_solver, callback, strain_tol, repair
+        As in :func:`femreg.register` (alpha for 2 x 2 x 2 mm elements, scaled by element volume).
+    mesh : skfem.MeshHex1, optional
+        An axis-aligned tensor hexahedral mesh (mm); default :func:`femreg.voxels.roi_mesh_3d` with
+        ``element_size`` (default :data:`femreg.voxels.DEFAULT_ELEMENT_SIZE_3D`) and ``margin``.
+    initial : None | "pyramid" | "zero" | VolumeResult | callable | (3 n_nodes,) array
+        The start; None / "pyramid": :func:`coarse_to_fine`.
+    offset : VolumeResult | callable | (3 n_nodes,) array, optional
+        S of eq:IR (both volumes sampled at x + S(x)).
+
+    Returns
+    -------
+    VolumeResult
+        ``success`` False with a message when the result explains less of the volumes than its start (the start
+        is returned), when the NCC after is below :data:`femreg.repair.MIN_NCC` or more than
+        :data:`femreg.repair.MAX_POOR_FRACTION` of the elements are below it, or when peak hopping remains.
+    """
+    unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
+    if unknown:
+        raise InputError(f"unknown option(s) for volume registration: {', '.join(sorted(unknown))}")
+    if isinstance(alpha, str):
+        raise InputError("alpha='auto' is not available for volumes; give a number or None (the default)")
+    if ignored.get("geometry") is not None or ignored.get("depth") is not None or \
+            ignored.get("roi", "auto") not in ("auto", None):
+        raise InputError("roi, depth and geometry are not available for volumes (the whole volume is registered)")
+    t_all = time.perf_counter()
+    timings = {}
+    ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
+    user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options("auto", regularizer,
+                                                                                   regularizer_options))
+
+    def reg_factory():
+        return copy.copy(user_reg)
+
+    t = time.perf_counter()
+    if normalize:
+        ref = ref / np.sqrt(np.mean(ref ** 2))
+        mov = mov / np.sqrt(np.mean(mov ** 2))
+    I1, I2 = SplineVolume(ref, spacing, origin), SplineVolume(mov, spacing, origin)
+    timings["prefilter"] = time.perf_counter() - t
+
+    if mesh is None:
+        mesh = roi_mesh_3d(ref.shape, spacing, origin,
+                           element_size=DEFAULT_ELEMENT_SIZE_3D if element_size is None else element_size,
+                           margin=margin)
+    elif tensor_axes_3d(mesh) is None:
+        raise InputError("a volume mesh must be an axis-aligned tensor skfem.MeshHex1 (femreg.voxels.roi_mesh_3d)")
+    S = None
+    if offset is not None:
+        grid = VoxelGrid(mesh, ref.shape, spacing, origin)
+        if isinstance(offset, VolumeResult):
+            S = np.nan_to_num(offset.displacement(grid.points()))
+        else:
+            s_nodes = _start(offset, mesh, "offset")
+            S = np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
+
+    t = time.perf_counter()
+    period = rf_period(ref.reshape(ref.shape[0], -1), spacing[:2])
+    info = {}
+    if initial is None or (isinstance(initial, str) and initial == "pyramid"):
+        if S is None:
+            u0, info = coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, maxiter=maxiter, tol=tol,
+                                      linear_solver=linear_solver, period=period)
+            timings.update(info.pop("timings"))
+        else:       # a sequence increment: start from zero motion relative to S
+            u0 = np.zeros(3 * mesh.p.shape[1])
+    elif isinstance(initial, str) and initial == "zero":
+        u0 = np.zeros(3 * mesh.p.shape[1])
+    elif isinstance(initial, str):
+        raise InputError(f"initial must be 'pyramid', 'zero', a callable, a nodal vector or a VolumeResult, "
+                         f"got {initial!r}")
+    else:
+        u0 = _start(initial, mesh)
+    timings["initial"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    st = float(strain_tol) if strain_tol is not None else (
+        GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
+    kw = dict(offset=S, maxiter=maxiter, tol=component_tol(tol, u0.reshape(-1, 3)[:, :2].ravel()),
+              linear_solver=linear_solver, mask_outside=True, strain_tol=st if st > 0 else None)
+    sol = solve_volume(I1, I2, mesh, ref.shape, spacing, origin, reg_factory, u0, callback=callback, **kw)
+    timings["gauss_newton"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    notes, hops = [], np.zeros(mesh.p.shape[1], int)
+    if repair:
+        rkw = dict(kw, strain_tol=None if kw["strain_tol"] is None else min(kw["strain_tol"], GN_STRAIN_TOL_TIGHT))
+        sol, hops, notes = _repair(sol, lambda u: solve_volume(I1, I2, mesh, ref.shape, spacing, origin,
+                                                              reg_factory, u, **rkw), mesh, period)
+    data = sol.data
+    ncc_before = data.ncc(None)
+    u = sol.u
+    success = bool(sol.gn.success)
+    E_start = sol.psi_start + sol.reg.energy(u0)
+    if not sol.gn.fun <= E_start:
+        u, success = u0, False
+        notes.append("the result explains the volumes less than its start (start returned)")
+    quality = data.element_ncc(u)
+    ncc_after = data.ncc(u)
+    poor = float(np.mean(quality[np.isfinite(quality)] < MIN_NCC)) if np.isfinite(quality).any() else 1.0
+    if ncc_after < MIN_NCC:
+        success = False
+        notes.append(f"the volumes do not match (NCC after {ncc_after:.2f} < {MIN_NCC})")
+    elif poor > MAX_POOR_FRACTION:
+        success = False
+        notes.append(f"{poor:.0%} of the elements match below NCC {MIN_NCC}")
+    if hops.any():
+        success = False
+        notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+    timings["check"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
+    if not success:
+        message = f"FAILED: {'; '.join(notes) or sol.gn.message} (Gauss-Newton stopped after {sol.gn.nit} iterations)"
+    res = VolumeResult(mesh, u, shape=ref.shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
+                       alpha=user_reg.alpha, success=success, status=sol.gn.status, message=message, nit=sol.gn.nit,
+                       energy_history=sol.gn.energy_history, ncc_before=ncc_before, ncc_after=ncc_after,
+                       timings=timings, quality=quality, strategy="auto", alpha_effective=sol.reg.alpha,
+                       solver_result=sol.gn)
+    res.initial_info = info
+    return res
+
+
+#: Options of the 2D :func:`femreg.register` that have no meaning on volumes and are accepted and ignored.
+_IGNORED_2D_OPTIONS = ("roi", "depth", "check_orientation", "geometry", "blockmatch_options", "coarse_to_fine",
+                       "allow_mesh_outside")
+
+
+@dataclass
+class VolumeTrack:
+    """Displacements from frame 0 of a volume sequence: ``results[k]`` the increment k -> k + 1 (a
+    :class:`VolumeResult` on the frame-0 mesh, eq:IR with S the accumulated field), ``accumulated[k]`` frame 0 ->
+    k + 1 (u = S + du on the same mesh); ``success`` all increments succeeded."""
+
+    results: list
+    accumulated: list
+
+    @property
+    def success(self) -> bool:
+        return all(r.success for r in self.results)
+
+    def __len__(self):
+        return len(self.accumulated)
+
+
+@single_blas_thread
+def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumulate", progress=False,
+                 **register_kwargs) -> VolumeTrack:
+    """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
+    the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
+    starts the next), ``"direct"`` frame 0 to every later frame independently."""
+    arr = [np.asarray(f) for f in frames]
+    if len(arr) < 2:
+        raise InputError(f"a sequence needs at least 2 volumes, got {len(arr)}")
+    if any(a.ndim != 3 for a in arr):
+        raise InputError("every frame of a volume sequence must be 3D (axial, lateral, elevational)")
+    if mode not in ("accumulate", "direct"):
+        raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    results, acc = [], []
+    S = None
+    prev = None
+    mesh = register_kwargs.pop("mesh", None)
+    for k in range(1, len(arr)):
+        if mode == "direct":
+            r = register_volume(arr[0], arr[k], spacing=spacing, origin=origin, mesh=mesh, **register_kwargs)
+            results.append(r)
+            acc.append(r)
+            continue
+        kw = dict(register_kwargs)
+        if S is not None:
+            kw.setdefault("initial", prev.u if prev is not None else "zero")
+        r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
+                            mesh=mesh if S is None else acc[-1].mesh, **kw)
+        results.append(r)
+        total = r.u if S is None else S + r.u
+        a = copy.copy(r)
+        a.u = total
+        a._nodal_strain = None
+        a._grids = {}
+        acc.append(a)
+        S = total
+        prev = r
+        if progress:
+            print(f"volume {k}/{len(arr) - 1}: {r.message}", flush=True)
+    return VolumeTrack(results=results, accumulated=acc)
+
+
+def volumes_to(register_2d):
+    """Decorator of :func:`femreg.register`: a pair of 3D arrays (volumes) is registered by
+    :func:`register_volume` with the same keywords, anything else by ``register_2d`` unchanged."""
+    @functools.wraps(register_2d)
+    def register(reference_image, moving_image, **kwargs):
+        if np.ndim(reference_image) == 3:
+            return register_volume(reference_image, moving_image, **kwargs)
+        return register_2d(reference_image, moving_image, **kwargs)
+    return register

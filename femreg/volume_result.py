@@ -1,0 +1,209 @@
+"""The result of a volume registration: :class:`VolumeResult`, a nodal displacement on a trilinear hexahedral mesh
+with the API of :class:`femreg.result.RegistrationResult` in 3D (``displacement`` (n, 3), ``strain`` (n, 6) in
+:data:`~femreg.volume_fields.STRAIN_COMPONENTS_3D` order, ``quality``, ``on_grid``, ``success`` and ``message``,
+``save`` / :func:`load_volume_result`, ``write_vtu``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FileFormatError, InputError
+from .fields import check_strain_mode
+from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, STRAIN_COMPONENTS_3D, HexLocator, element_strains_3d,
+                            recovered_strains_3d)
+
+__all__ = ["VolumeResult", "load_volume_result", "VOLUME_RESULT_KIND"]
+
+#: ``kind`` entry of a saved volume result (.npz).
+VOLUME_RESULT_KIND = "femreg-volume-result-1"
+
+
+class VolumeResult:
+    """A registered displacement field of a volume pair on a hexahedral mesh.
+
+    Attributes
+    ----------
+    mesh : skfem.MeshHex1
+        mm; ``mesh.p`` rows axial x, lateral y, elevational z.
+    u : (3 n_nodes,) float, mm
+        Nodal displacement, interleaved ``[ux0, uy0, uz0, ux1, ...]`` (scikit-fem DOF order).
+    strain_components, displacement_components : tuple of str
+        Names of the columns of :meth:`strain` and :meth:`displacement`.
+    shape, spacing, origin
+        Reference voxel grid (voxel [i, j, k] centre at ``origin + (i, j, k) * spacing``).
+    success, status, message, nit, energy_history, ncc_before, ncc_after, timings, regularizer, alpha,
+    alpha_effective, strategy
+        As in :class:`femreg.result.RegistrationResult`.
+    quality : (n_elements,) float or None
+        Per-element NCC of reference and warped moving volume at the result.
+    """
+
+    strain_components = STRAIN_COMPONENTS_3D
+    displacement_components = DISPLACEMENT_COMPONENTS_3D
+    ndim = 3
+
+    def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
+                 status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"), ncc_after=float("nan"),
+                 timings=None, quality=None, strategy="", alpha_effective=float("nan"), solver_result=None):
+        self.mesh = mesh
+        self.u = np.asarray(u, float)
+        self.shape = tuple(int(s) for s in shape)
+        self.spacing = np.asarray(spacing, float)
+        self.origin = np.asarray(origin, float)
+        self.regularizer = str(regularizer)
+        self.alpha = float(alpha)
+        self.success = bool(success)
+        self.status = int(status)
+        self.message = str(message)
+        self.nit = int(nit)
+        self.energy_history = np.asarray(energy_history, float)
+        self.ncc_before = float(ncc_before)
+        self.ncc_after = float(ncc_after)
+        self.timings = dict(timings or {})
+        self.quality = None if quality is None else np.asarray(quality, float)
+        self.strategy = str(strategy)
+        self.alpha_effective = float(alpha_effective)
+        self.solver_result = solver_result
+        self._locator = None
+        self._nodal_strain = None
+        self._grids = {}
+
+    @property
+    def locator(self) -> HexLocator:
+        if self._locator is None:
+            self._locator = HexLocator(self.mesh)
+        return self._locator
+
+    @property
+    def nodal_strain(self) -> np.ndarray:
+        """Recovered nodal strains (n_nodes, 6) (:func:`femreg.volume_fields.recovered_strains_3d`)."""
+        if self._nodal_strain is None:
+            self._nodal_strain = recovered_strains_3d(self.mesh, self.u)
+        return self._nodal_strain
+
+    @staticmethod
+    def _points(points) -> np.ndarray:
+        p = np.asarray(points, float)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise InputError(f"points of a volume result must be (n, 3) [x, y, z] mm, got shape {p.shape}")
+        return p
+
+    def displacement(self, points) -> np.ndarray:
+        """u at ``points`` (n, 3) mm -> (n, 3) [ux, uy, uz] mm; NaN outside the mesh."""
+        f = self.locator.sample(self.u, self._points(points))
+        return np.column_stack([f[k] for k in DISPLACEMENT_COMPONENTS_3D])
+
+    def strain(self, points, strain: str = "recovered") -> np.ndarray:
+        """Small strain at ``points`` (n, 3) mm -> (n, 6) in :attr:`strain_components` order (tensor shear);
+        NaN outside the mesh.  ``"recovered"`` (default): nodal average of the element-centre strains, trilinear
+        in between; ``"element"``: the gradient of the trilinear field at the point."""
+        check_strain_mode(strain)
+        f = self.locator.sample(self.u, self._points(points),
+                                nodal_strain=self.nodal_strain if strain == "recovered" else None)
+        return np.column_stack([f[k] for k in STRAIN_COMPONENTS_3D])
+
+    def voxel_axes(self):
+        return [self.origin[a] + self.spacing[a] * np.arange(self.shape[a]) for a in range(3)]
+
+    def voxel_points(self) -> np.ndarray:
+        """Centres of the reference voxels, (n_voxels, 3) mm, C order."""
+        X = np.meshgrid(*self.voxel_axes(), indexing="ij")
+        return np.column_stack([x.ravel() for x in X])
+
+    def on_grid(self, strain: str = "recovered") -> dict:
+        """``ux, uy, uz, exx, eyy, ezz, exy, exz, eyz, quality`` on the reference voxel grid, each
+        (n_x, n_y, n_z) float64 (NaN outside the mesh; ``quality`` the element NCC of each voxel's element), and
+        ``spacing``, ``origin`` (3,) mm."""
+        check_strain_mode(strain)
+        if strain not in self._grids:
+            f = self.locator.sample(self.u, self.voxel_points(),
+                                    nodal_strain=self.nodal_strain if strain == "recovered" else None)
+            out = {k: v.reshape(self.shape) for k, v in f.items()}
+            q = np.full(self.shape, np.nan)
+            if self.quality is not None:
+                inside, e, _, _ = self.locator.locate(self.voxel_points())
+                cell = self.locator.cell[e[0], e[1], e[2]]
+                q = np.where(inside, self.quality[cell], np.nan).reshape(self.shape)
+            out["quality"] = q
+            out["spacing"] = self.spacing.copy()
+            out["origin"] = self.origin.copy()
+            self._grids[strain] = out
+        return self._grids[strain]
+
+    # -- files ----------------------------------------------------------------------------------------------
+    def save(self, path):
+        """Write the result as .npz (mesh, u, voxel grid, solver outcome, quality); returns the path."""
+        path = Path(path)
+        np.savez(path, kind=np.array(VOLUME_RESULT_KIND), mesh_points=self.mesh.p, mesh_cells=self.mesh.t,
+                 u=self.u, shape=np.array(self.shape), spacing=self.spacing, origin=self.origin,
+                 regularizer=np.array(self.regularizer), alpha=self.alpha, success=self.success, status=self.status,
+                 message=np.array(self.message), nit=self.nit, energy_history=self.energy_history,
+                 ncc_before=self.ncc_before, ncc_after=self.ncc_after, strategy=np.array(self.strategy),
+                 alpha_effective=self.alpha_effective,
+                 quality=np.full(self.mesh.t.shape[1], np.nan) if self.quality is None else self.quality,
+                 strain_components=np.array(self.strain_components))
+        return path
+
+    def write_vtu(self, path):
+        """ParaView file (.vtu, meshio): hexahedra with point data ``u`` (n, 3) mm and the recovered strains,
+        cell data the element-centre strains and ``quality``.  Returns the path."""
+        from .optional import require
+
+        meshio = require("meshio", feature="writing VTU files")
+        from skfem import MeshHex1  # noqa: F401  (the mesh type written)
+
+        # VTK hexahedron order: the bottom face (z low) counter-clockwise, then the top face
+        p = self.mesh.p
+        t = self.mesh.t
+        c = p[:, t]                                                   # (3, 8, n_el)
+        lo, hi = c.min(axis=1), c.max(axis=1)
+        side = np.isclose(c, hi[:, None, :])                          # (3, 8, n_el) upper side per axis
+        order = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
+        cells = np.empty((t.shape[1], 8), np.int64)
+        for k, (i, j, l) in enumerate(order):
+            m = (side[0] == bool(i)) & (side[1] == bool(j)) & (side[2] == bool(l))
+            cells[:, k] = t[np.argmax(m, axis=0), np.arange(t.shape[1])]
+        del lo
+        ns = self.nodal_strain
+        es = element_strains_3d(self.mesh, self.u)
+        point_data = {"u": self.u.reshape(-1, 3)}
+        cell_data = {}
+        for k, name in enumerate(STRAIN_COMPONENTS_3D):
+            point_data[name] = ns[:, k]
+            cell_data[name + "_element"] = [es[:, k]]
+        if self.quality is not None:
+            cell_data["quality"] = [self.quality]
+        meshio.write(str(path), meshio.Mesh(p.T, [("hexahedron", cells)], point_data=point_data,
+                                            cell_data=cell_data))
+        return Path(path)
+
+    def __repr__(self) -> str:
+        return (f"VolumeResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, success={self.success}, "
+                f"nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, ncc {self.ncc_before:.3f} -> "
+                f"{self.ncc_after:.3f}, message={self.message!r})")
+
+
+def load_volume_result(path) -> VolumeResult:
+    """Read a volume result written by :meth:`VolumeResult.save`; FileFormatError naming what is missing."""
+    from skfem import MeshHex1
+
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(f"{path}: not a readable .npz ({exc})") from None
+    with z:
+        if "kind" not in z or str(z["kind"]) != VOLUME_RESULT_KIND:
+            raise FileFormatError(f"{path}: not a femreg volume result (no kind {VOLUME_RESULT_KIND!r})")
+        missing = [k for k in ("mesh_points", "mesh_cells", "u", "shape", "spacing", "origin") if k not in z]
+        if missing:
+            raise FileFormatError(f"{path}: volume result lacks {', '.join(missing)}")
+        mesh = MeshHex1(np.asarray(z["mesh_points"], float), np.asarray(z["mesh_cells"], np.int64))
+        q = np.asarray(z["quality"], float)
+        return VolumeResult(mesh, z["u"], shape=tuple(z["shape"]), spacing=z["spacing"], origin=z["origin"],
+                            regularizer=str(z["regularizer"]), alpha=float(z["alpha"]), success=bool(z["success"]),
+                            status=int(z["status"]), message=str(z["message"]), nit=int(z["nit"]),
+                            energy_history=z["energy_history"], ncc_before=float(z["ncc_before"]),
+                            ncc_after=float(z["ncc_after"]), strategy=str(z["strategy"]),
+                            alpha_effective=float(z["alpha_effective"]), quality=q)

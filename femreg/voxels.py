@@ -1,0 +1,499 @@
+"""Volumes on a voxel grid: the 3D image term of eq:IR on trilinear hexahedra, integrated at voxel centres.
+
+Convention: a volume is a 3D array ``[i, j, k]`` = (axial x, lateral y, elevational z); voxel ``[i, j, k]`` has
+its centre at ``origin + (i dx, j dy, k dz)`` mm.  This is the 3D form of :mod:`femreg.pixels` and
+:mod:`femreg.data_term`:
+
+* :func:`roi_mesh_3d`: a structured ``MeshHex1`` whose faces lie on voxel-cell boundaries, so every voxel centre
+  lies strictly inside one element and location is arithmetic (element index and reference coordinate per voxel
+  row, column and slice, :class:`VoxelGrid`).
+* :class:`SplineVolume`: the tricubic B-spline interpolant (Unser 1999, doi:10.1109/79.799930; scipy.ndimage
+  conventions: ``spline_filter`` with mirror boundary, 0 outside the voxel cells), its exact gradient at the
+  knots (voxel centres) for eq:wfnew.
+* :class:`VoxelSSDTerm`: psi = 1/2 sum_p w_p r_p^2, r_p = I_2(x_p + S + u(x_p)) - I_1(x_p + S), with the fixed
+  reference gradient Gauss-Newton Hessian of eq:wfnew, ``w_p = dx dy dz`` (mm^3).  Everything runs separably on
+  the tensor structure: u at the voxels is three small matrix products with the 1D hat functions, the gradient
+  their transpose, and the Hessian's element sums of N_k N_l g_a g_b w factor into 1D sums of (1 - X)^2,
+  X (1 - X), X^2 along each axis (the 3D form of :meth:`femreg.data_term.SSDTerm._hessian_separable`).  The warp
+  of I_2 (64 spline coefficients per voxel) is one compiled pass (:func:`femreg._kernels.tricubic_grid`) or
+  ``map_coordinates`` without numba.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy import ndimage
+
+from . import _kernels
+from .errors import InputError
+
+__all__ = ["SplineVolume", "VoxelGrid", "VoxelSSDTerm", "roi_mesh_3d", "validate_volume", "validate_spacing_3d",
+           "tensor_axes_3d", "hat_matrix", "DEFAULT_ELEMENT_SIZE_3D", "DEFAULT_MARGIN_3D"]
+
+#: Default element size (axial, lateral, elevational) mm of volume registration.
+DEFAULT_ELEMENT_SIZE_3D = (2.0, 2.0, 2.0)
+#: Default margin removed on every side of the volume (mm): keeps x + u inside for motions up to about it.
+DEFAULT_MARGIN_3D = (1.0, 1.0, 1.0)
+
+
+def validate_spacing_3d(spacing, origin=(0.0, 0.0, 0.0)):
+    """``(spacing, origin)`` as float arrays (3,) mm; :class:`InputError` naming the bad one."""
+    try:
+        s = np.asarray(spacing, dtype=float).reshape(-1)
+        o = np.asarray(origin, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"spacing/origin must be numbers: {exc}") from None
+    if s.size == 1:
+        s = np.repeat(s, 3)
+    if s.size != 3:
+        raise InputError(f"a volume needs spacing (dx, dy, dz) in mm, got {spacing!r}")
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise InputError(f"spacing must be finite and > 0 mm, got {tuple(s)}")
+    if o.size == 2 and np.all(o == 0):       # the 2D default origin
+        o = np.zeros(3)
+    if o.size != 3 or not np.all(np.isfinite(o)):
+        raise InputError(f"a volume needs origin (x0, y0, z0) as three finite numbers (mm), got {origin!r}")
+    return s, o
+
+
+def validate_volume(volume, name: str = "volume") -> np.ndarray:
+    """A real, finite, non-constant 3D array of at least 4 voxels per axis, as float64; else InputError."""
+    if np.iscomplexobj(volume):
+        raise InputError(f"{name} is complex: pass the real RF (or the envelope |IQ|), not IQ data")
+    try:
+        a = np.asarray(volume, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} is not a numeric array: {exc}") from None
+    if a.ndim != 3:
+        raise InputError(f"{name} must be 3D (axial, lateral, elevational), got ndim={a.ndim} shape={a.shape}")
+    if min(a.shape) < 4:
+        raise InputError(f"{name} is too small: shape {a.shape}, need at least 4 voxels along every axis")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf voxels (first at {tuple(np.argwhere(bad)[0])})")
+    if np.ptp(a) == 0:
+        raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register")
+    return a
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Mesh
+# ----------------------------------------------------------------------------------------------------------
+
+def roi_mesh_3d(shape, spacing, origin=(0.0, 0.0, 0.0), *, element_size=None, margin=None):
+    """Structured trilinear hexahedral mesh (``skfem.MeshHex1``) over the volume minus ``margin`` (mm, default
+    :data:`DEFAULT_MARGIN_3D`), elements of about ``element_size`` (mm, default :data:`DEFAULT_ELEMENT_SIZE_3D`)
+    rounded to whole voxels; faces on voxel-cell boundaries (the 3D form of :func:`femreg.mesh.roi_mesh`)."""
+    from skfem import MeshHex1
+
+    from .mesh import _breaks
+
+    spacing = np.asarray(spacing, float)
+    origin = np.asarray(origin, float)
+    h = np.broadcast_to(np.asarray(DEFAULT_ELEMENT_SIZE_3D if element_size is None else element_size, float), (3,))
+    m = np.broadcast_to(np.asarray(DEFAULT_MARGIN_3D if margin is None else margin, float), (3,))
+    if np.any(~np.isfinite(h)) or np.any(h <= 0):
+        raise InputError(f"element_size must be > 0 mm, got {tuple(h)}")
+    if np.any(~np.isfinite(m)) or np.any(m < 0):
+        raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
+    axes = []
+    for a in range(3):
+        n = int(shape[a])
+        lo = int(np.ceil(m[a] / spacing[a] - 1e-9))
+        hi = n - lo
+        if hi - lo < 1:
+            raise InputError(f"margin {m[a]} mm leaves no voxels along axis {a} (volume {n} voxels of "
+                             f"{spacing[a]} mm)")
+        b = _breaks(n, lo, hi, max(1.0, h[a] / spacing[a]))
+        axes.append(origin[a] + (b - 0.5) * spacing[a])
+    return MeshHex1.init_tensor(*axes)
+
+
+def tensor_axes_3d(mesh):
+    """``(axes, node)`` of an axis-aligned tensor hexahedral mesh: the three sorted node coordinate vectors and
+    ``node[i, j, k]`` the node index at each grid position; None when ``mesh`` is not such a grid."""
+    p = np.asarray(mesh.p)
+    if p.shape[0] != 3:
+        return None
+    axes = [np.unique(p[a]) for a in range(3)]
+    if np.prod([a.size for a in axes]) != p.shape[1] or np.prod([a.size - 1 for a in axes]) != mesh.t.shape[1]:
+        return None
+    idx = [np.searchsorted(axes[a], p[a]) for a in range(3)]
+    node = -np.ones([a.size for a in axes], dtype=np.int64)
+    node[idx[0], idx[1], idx[2]] = np.arange(p.shape[1])
+    if (node < 0).any():
+        return None
+    # every element must be one grid cell: its corners span exactly one step along each axis
+    ci = [idx[a][mesh.t] for a in range(3)]                     # (8, n_el) grid positions of the corners
+    if any(np.any(c.max(0) - c.min(0) != 1) for c in ci):
+        return None
+    return axes, node
+
+
+def hat_matrix(nodes, points) -> np.ndarray:
+    """Dense (n_points, n_nodes) matrix of the 1D linear hats on the sorted ``nodes`` at ``points``, with
+    ``(element, X)`` the cell and reference coordinate of every point (a point on an interior node takes the
+    cell above it).  Points outside [nodes[0], nodes[-1]] get a zero row and element -1."""
+    nodes = np.asarray(nodes, float)
+    pts = np.asarray(points, float)
+    e = np.clip(np.searchsorted(nodes, pts, side="right") - 1, 0, nodes.size - 2)
+    X = (pts - nodes[e]) / (nodes[e + 1] - nodes[e])
+    inside = (pts >= nodes[0] - 1e-12) & (pts <= nodes[-1] + 1e-12)
+    P = np.zeros((pts.size, nodes.size))
+    r = np.flatnonzero(inside)
+    P[r, e[r]] = 1.0 - X[r]
+    P[r, e[r] + 1] = X[r]
+    e = np.where(inside, e, -1)
+    return P, e, X
+
+
+class VoxelGrid:
+    """The voxel centres inside a tensor hexahedral mesh: a block ``[i0:i1, j0:j1, k0:k1]`` of the volume, and
+    per axis the element index ``e[a]`` and reference coordinate ``X[a]`` of every voxel row, column, slice, the
+    hat matrices ``P[a]`` (n_voxels_a, n_nodes_a) and the node grid ``node`` (n_x, n_y, n_z)."""
+
+    def __init__(self, mesh, shape, spacing, origin):
+        ta = tensor_axes_3d(mesh)
+        if ta is None:
+            raise InputError("volume registration needs an axis-aligned tensor hexahedral mesh (femreg.voxels."
+                             "roi_mesh_3d)")
+        self.mesh = mesh
+        self.axes_nodes, self.node = ta
+        self.shape = tuple(int(s) for s in shape)
+        self.spacing = np.asarray(spacing, float)
+        self.origin = np.asarray(origin, float)
+        sl, self.coords, self.P, self.e, self.X = [], [], [], [], []
+        for a in range(3):
+            nodes = self.axes_nodes[a]
+            c = self.origin[a] + self.spacing[a] * np.arange(self.shape[a])
+            tol = 1e-9 * self.spacing[a]
+            inside = np.flatnonzero((c > nodes[0] - tol) & (c < nodes[-1] + tol))
+            if inside.size == 0:
+                raise InputError("mesh outside the volume: no voxel centre lies inside the mesh")
+            i0, i1 = int(inside[0]), int(inside[-1]) + 1
+            sl.append(slice(i0, i1))
+            P, e, X = hat_matrix(nodes, c[i0:i1])
+            self.coords.append(c[i0:i1])
+            self.P.append(P)
+            self.e.append(e)
+            self.X.append(X)
+        self.block = tuple(sl)
+        self.block_shape = tuple(s.stop - s.start for s in self.block)
+        self.n_voxels = int(np.prod(self.block_shape))
+        self.n_nodes = mesh.p.shape[1]
+        self.node_shape = self.node.shape
+        #: element index of every grid cell (i, j, k) of the node grid
+        self.cell = _cell_index(mesh, self.node)
+
+    def points(self) -> np.ndarray:
+        """The voxel centres of the block, (n_voxels, 3) mm, C order."""
+        X, Y, Z = np.meshgrid(*self.coords, indexing="ij")
+        return np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+
+    def nodal_grid(self, u) -> list:
+        """The three components of an interleaved nodal vector (3 n_nodes,) on the node grid."""
+        u = np.asarray(u, float)
+        return [u[c::3][self.node] for c in range(3)]
+
+    def expand(self, U) -> np.ndarray:
+        """A nodal grid field (n_x, n_y, n_z) -> its trilinear interpolant at the voxels of the block."""
+        Px, Py, Pz = self.P
+        nx, ny, nz = U.shape
+        T = (U.reshape(-1, nz) @ Pz.T).reshape(nx, ny, -1)              # (nx, ny, nl)
+        T = np.einsum("jb,abk->ajk", Py, T)                              # (nx, nc, nl)
+        return (Px @ T.reshape(nx, -1)).reshape(self.block_shape)
+
+    def contract(self, R) -> np.ndarray:
+        """Transpose of :meth:`expand`: voxel values (nr, nc, nl) -> sums against every node's hat (n_x, n_y, n_z)."""
+        Px, Py, Pz = self.P
+        nr, nc, nl = self.block_shape
+        T = (Px.T @ R.reshape(nr, -1)).reshape(-1, nc, nl)               # (nx, nc, nl)
+        T = np.einsum("jb,ajk->abk", Py, T)                              # (nx, ny, nl)
+        return (T.reshape(-1, nl) @ Pz).reshape(self.node_shape)
+
+    def element_sums(self, V) -> np.ndarray:
+        """Sum of voxel values (nr, nc, nl) over each element's voxels, on the cell grid (E_x, E_y, E_z)."""
+        out = V
+        for a in range(3):
+            e = self.e[a]
+            starts = np.flatnonzero(np.diff(e, prepend=-2))
+            s = np.add.reduceat(out, starts, axis=a)
+            full = np.zeros(out.shape[:a] + (self.node_shape[a] - 1,) + out.shape[a + 1:])
+            idx = [slice(None)] * 3
+            idx[a] = e[starts]
+            full[tuple(idx)] = s
+            out = full
+        return out
+
+
+def _cell_index(mesh, node) -> np.ndarray:
+    """``cell[i, j, k]``: the element of the grid cell with lowest corner node[i, j, k]."""
+    first = node[:-1, :-1, :-1]
+    pos = np.full(mesh.p.shape[1], -1, dtype=np.int64)
+    # the lowest corner of each element (smallest x, y and z at once) identifies its cell
+    p = mesh.p[:, mesh.t]                                           # (3, 8, n_el)
+    mins = p.min(axis=1)                                             # (3, n_el)
+    is_low = np.all(np.isclose(p, mins[:, None, :]), axis=0)         # (8, n_el)
+    low = mesh.t[np.argmax(is_low, axis=0), np.arange(mesh.t.shape[1])]
+    pos[low] = np.arange(mesh.t.shape[1])
+    cell = pos[first]
+    if (cell < 0).any():
+        raise InputError("mesh is not a tensor hexahedral grid")
+    return cell
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The tricubic interpolant
+# ----------------------------------------------------------------------------------------------------------
+
+class SplineVolume:
+    """Tricubic B-spline interpolant of a volume on its voxel grid, zero outside the voxel cells."""
+
+    def __init__(self, data, spacing, origin=(0.0, 0.0, 0.0)):
+        self.data = np.ascontiguousarray(data, dtype=float)
+        self.spacing = np.asarray(spacing, float)
+        self.origin = np.asarray(origin, float)
+        self.shape = self.data.shape
+        self.coeffs = ndimage.spline_filter(self.data, order=3, mode="mirror")
+        # mirror-extended by 2 (as scipy does internally) so every stencil inside the voxel cells is in range
+        self._padded = np.pad(self.coeffs, 2, mode="reflect")
+        self._hi = np.array(self.shape, float) - 0.5
+
+    def at_index(self, idx) -> np.ndarray:
+        """Values at fractional voxel indices ``idx`` (3, n); 0 outside the voxel cells."""
+        idx = np.asarray(idx, float)
+        v = ndimage.map_coordinates(self._padded, idx + 2.0, order=3, mode="constant", cval=0.0, prefilter=False)
+        out = np.any((idx < -0.5) | (idx > self._hi[:, None]), axis=0)
+        v[out] = 0.0
+        return v
+
+    def __call__(self, points) -> np.ndarray:
+        """Values at ``points`` (n, 3) mm."""
+        return self.at_index(((np.asarray(points, float) - self.origin) / self.spacing).T)
+
+    def gradient(self, points, h: float = 1e-3) -> np.ndarray:
+        """Gradient (n, 3) per mm at arbitrary points (central difference of the spline, step ``h`` voxels)."""
+        idx = ((np.asarray(points, float) - self.origin) / self.spacing).T
+        g = np.empty((idx.shape[1], 3))
+        for a in range(3):
+            e = np.zeros((3, 1))
+            e[a] = h
+            g[:, a] = (self.at_index(idx + e) - self.at_index(idx - e)) / (2 * h * self.spacing[a])
+        return g
+
+    def gradient_at_voxels(self, block):
+        """Exact gradient of the interpolant at the voxel centres of ``block`` (three slices): at a knot the
+        B-spline weights are (1, 4, 1) / 6 and the derivative weights (-1, 0, 1) / 2, so dI/dx = the central
+        difference along x of the (1, 4, 1) / 6 smoothing along y and z of the coefficients."""
+        sl = tuple(slice(b.start + 1, b.stop + 3) for b in block)      # the block plus 1 coefficient around it
+        c = self._padded[sl]
+
+        def smooth(a, ax):
+            n = a.shape[ax]
+            lo, mid, hi = (np.take(a, range(k, n - 2 + k), axis=ax) for k in range(3))
+            return (lo + 4.0 * mid + hi) / 6.0
+
+        def diff(a, ax, h):
+            n = a.shape[ax]
+            return (np.take(a, range(2, n), axis=ax) - np.take(a, range(0, n - 2), axis=ax)) / (2.0 * h)
+
+        gx = diff(smooth(smooth(c, 1), 2), 0, self.spacing[0])
+        gy = diff(smooth(smooth(c, 0), 2), 1, self.spacing[1])
+        gz = diff(smooth(smooth(c, 0), 1), 2, self.spacing[2])
+        return gx, gy, gz
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The image term
+# ----------------------------------------------------------------------------------------------------------
+
+class VoxelSSDTerm:
+    """SSD image term (eq:IR, fixed reference gradient eq:wfnew) of a volume pair on a tensor hexahedral mesh.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+    reference, moving : SplineVolume
+        Normalised I_1 and I_2.
+    offset : (n_voxels, 3) mm, optional
+        S at the voxels of the block (C order); None for 0.
+    """
+
+    hessian_fixed = True
+
+    def __init__(self, grid: VoxelGrid, reference: SplineVolume, moving: SplineVolume, offset=None):
+        self.grid = grid
+        self.moving = moving
+        self.shape = grid.block_shape
+        self._isp = 1.0 / moving.spacing
+        o, h = moving.origin, moving.spacing
+        self._base1d = [(grid.coords[a] - o[a]) / h[a] for a in range(3)]
+        if offset is None:
+            self.offset = None
+            self._base3d = None
+            gx, gy, gz = reference.gradient_at_voxels(grid.block)
+            self.ref_values = np.ascontiguousarray(reference.data[grid.block])
+        else:
+            S = np.asarray(offset, float).reshape(self.shape + (3,))
+            self.offset = S
+            pts = grid.points() + S.reshape(-1, 3)
+            g = reference.gradient(pts)
+            gx, gy, gz = (np.ascontiguousarray(g[:, a].reshape(self.shape)) for a in range(3))
+            self.ref_values = reference(pts).reshape(self.shape)
+            X = np.meshgrid(*self._base1d, indexing="ij")
+            self._base3d = [np.ascontiguousarray(X[a] + S[..., a] * self._isp[a]) for a in range(3)]
+        self.g = (np.ascontiguousarray(gx), np.ascontiguousarray(gy), np.ascontiguousarray(gz))
+        self.w0 = float(np.prod(moving.spacing))        # voxel weight dx dy dz, mm^3
+        self._w = None                                  # per-voxel weights once some are masked
+        self._H = None
+        self._cache = (None, None)
+
+    # -- weights -------------------------------------------------------------------------------------------
+    @property
+    def w(self) -> np.ndarray:
+        """Voxel weights (nr, nc, nl) mm^3 (0 for voxels left out)."""
+        return np.full(self.shape, self.w0) if self._w is None else self._w
+
+    @w.setter
+    def w(self, value):
+        self._w = np.broadcast_to(np.asarray(value, float), self.shape).copy()
+        self._H = None
+        self._cache = (None, None)
+
+    @property
+    def n_voxels(self) -> int:
+        return self.grid.n_voxels
+
+    # -- warp ----------------------------------------------------------------------------------------------
+    def displacement_at_voxels(self, u):
+        """u at the voxels of the block: three (nr, nc, nl) arrays mm."""
+        return [self.grid.expand(U) for U in self.grid.nodal_grid(u)]
+
+    def _positions(self, U):
+        if self._base3d is not None:
+            return [self._base3d[a] + U[a] * self._isp[a] for a in range(3)]
+        b = self._base1d
+        return [b[0][:, None, None] + U[0] * self._isp[0], b[1][None, :, None] + U[1] * self._isp[1],
+                b[2][None, None, :] + U[2] * self._isp[2]]
+
+    def warped_moving(self, u, sub=None) -> np.ndarray:
+        """I_2(x + S + u(x)) at the voxels (nr, nc, nl), minus ``sub`` when given."""
+        U = self.displacement_at_voxels(u)
+        m = self.moving
+        if _kernels.use_compiled():
+            e3 = np.empty((0, 0, 0))
+            full = self._base3d is not None
+            bx, by, bz = self._base3d if full else (e3, e3, e3)
+            out = np.empty(self.n_voxels)
+            _kernels.tricubic_grid(m._padded, m._hi[0], m._hi[1], m._hi[2], self._base1d[0], self._base1d[1],
+                                   self._base1d[2], bx, by, bz, *(np.ascontiguousarray(a) for a in U),
+                                   self._isp[0], self._isp[1], self._isp[2],
+                                   np.empty(0) if sub is None else sub.ravel(), out)
+            return out.reshape(self.shape)
+        idx = np.stack([p.ravel() for p in np.broadcast_arrays(*self._positions(U))])
+        v = m.at_index(idx).reshape(self.shape)
+        return v if sub is None else v - sub
+
+    def outside_mask(self, u) -> np.ndarray:
+        """(nr, nc, nl) bool: voxels that ``u`` maps less than 1 voxel from the first or 2 from the last sample
+        of the moving volume on some axis (the spline there reads its mirror padding)."""
+        P = self._positions(self.displacement_at_voxels(u))
+        out = np.zeros(self.shape, bool)
+        for a in range(3):
+            out |= (P[a] < 1.0) | (P[a] > self.moving.shape[a] - 2.0)
+        return out
+
+    def residual(self, u) -> np.ndarray:
+        key, val = self._cache
+        if key is not None and np.array_equal(key, u):
+            return val
+        r = self.warped_moving(u, self.ref_values)
+        self._cache = (np.array(u, copy=True), r)
+        return r
+
+    def energy(self, u) -> float:
+        r = self.residual(u)
+        if self._w is None:
+            return 0.5 * self.w0 * float(np.vdot(r, r))
+        return 0.5 * float(np.vdot(self._w * r, r))
+
+    def gradient(self, u) -> np.ndarray:
+        """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (3 n_nodes,)."""
+        r = self.residual(u)
+        wr = self.w0 * r if self._w is None else self._w * r
+        out = np.empty(3 * self.grid.n_nodes)
+        node = self.grid.node.ravel()
+        for a in range(3):
+            out[3 * node + a] = self.grid.contract(wr * self.g[a]).ravel()
+        return out
+
+    def hessian(self, u=None) -> sp.csr_matrix:
+        """Gauss-Newton Hessian with the fixed reference gradient (eq:wfnew b), assembled once (separable sums)."""
+        if self._H is None:
+            self._H = self._hessian_separable()
+        return self._H
+
+    def _hessian_separable(self):
+        grid = self.grid
+        w = self.w
+        ex, ey, ez = (e for e in grid.e)
+        E = tuple(s - 1 for s in grid.node_shape)
+        # 1D products of two hats on each axis: (1 - X)^2, X (1 - X), X^2, as dense (E_a, n_a) matrices
+        F = []
+        for a in range(3):
+            X, e = grid.X[a], grid.e[a]
+            M = np.zeros((3, E[a], X.size))
+            cols = np.arange(X.size)
+            ok = e >= 0
+            for p, f in enumerate(((1 - X) ** 2, X * (1 - X), X * X)):
+                M[p, e[ok], cols[ok]] = f[ok]
+            F.append(M)
+        pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        nr, nc, nl = self.shape
+        U = np.empty((3, 3, 3, 6) + E)
+        for ab, (a, b) in enumerate(pairs):
+            T = w * self.g[a] * self.g[b]
+            for p in range(3):
+                A = (F[0][p] @ T.reshape(nr, -1)).reshape(E[0], nc, nl)
+                for q in range(3):
+                    B = np.einsum("jb,abk->ajk", F[1][q], A)              # (E_x, E_y, nl)
+                    for s in range(3):
+                        U[p, q, s, ab] = (B.reshape(-1, nl) @ F[2][s].T).reshape(E)
+        comp = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+        corners = np.array([(i, j, k) for i in range(2) for j in range(2) for k in range(2)])   # (8, 3)
+        node = grid.node
+        I, J, K = np.meshgrid(*(np.arange(n) for n in E), indexing="ij")
+        cn = np.stack([node[I + c[0], J + c[1], K + c[2]].ravel() for c in corners])          # (8, n_el)
+        S = corners[:, None, :] + corners[None, :, :]                                          # (8, 8, 3)
+        vals = U.reshape(3, 3, 3, 6, -1)[S[:, :, None, None, 0], S[:, :, None, None, 1], S[:, :, None, None, 2],
+                                         comp[None, None]]                                     # (8, 8, 3, 3, n_el)
+        d = np.arange(3)
+        rows = np.broadcast_to(3 * cn[:, None, None, None, :] + d[None, None, :, None, None], vals.shape)
+        cols = np.broadcast_to(3 * cn[None, :, None, None, :] + d[None, None, None, :, None], vals.shape)
+        n = 3 * grid.n_nodes
+        return sp.coo_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n)).tocsr()
+
+    # -- per element ---------------------------------------------------------------------------------------
+    def element_ncc(self, u, min_voxels: int = 8) -> np.ndarray:
+        """NCC of I_1 and the warped I_2 over each element's voxels, (n_el,) in ``mesh.t`` order (NaN where an
+        element holds fewer than ``min_voxels``)."""
+        a = self.ref_values
+        b = self.warped_moving(u)
+        s = self.grid.element_sums
+        n = s(np.ones(self.shape))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ma, mb = s(a) / n, s(b) / n
+            cov = s(a * b) / n - ma * mb
+            va, vb = s(a * a) / n - ma * ma, s(b * b) / n - mb * mb
+            q = cov / np.sqrt(va * vb)
+        q[n < min_voxels] = np.nan
+        out = np.full(self.grid.mesh.t.shape[1], np.nan)
+        out[self.grid.cell.ravel()] = q.ravel()
+        return out
+
+    def ncc(self, u=None) -> float:
+        """NCC of I_1 and I_2(x + S + u) over the voxels of the mesh (u = None: zero)."""
+        from .image import ncc as _ncc
+
+        b = self.warped_moving(np.zeros(3 * self.grid.n_nodes) if u is None else u)
+        return _ncc(self.ref_values, b)
