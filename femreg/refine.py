@@ -46,7 +46,7 @@ from .fields import element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
 
-__all__ = ["Refinement", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "slip_region", "slip_weights", "refine_passes", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -107,6 +107,11 @@ class Refinement:
         object.__setattr__(self, "min_size", (float(ms[0]), float(ms[1])))
         if self.axes not in ("both", "axial", "lateral"):
             raise InputError(f"refinement axes must be 'both', 'axial' or 'lateral', got {self.axes!r}")
+
+
+#: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.03
+#: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
+SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03)
 
 
 def as_refinement(spec) -> Refinement | None:
