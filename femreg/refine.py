@@ -74,6 +74,8 @@ class Refinement:
         Smallest element size (axial, lateral) a split may produce; also never below 2 pixels.
     axes : {"both", "axial", "lateral"}
         Split rows (along depth), columns (lateral), or both.
+    levels : int
+        Halvings of a marked row / column per pass (2: to a quarter before the next solve; fewer solves).
     slip : float, optional
         "jump" only: the momentum regulariser's ``shear_traction`` weight on the edges of the cells next to an
         edge whose shear-traction jump stands out (the region grows over the passes): layers sliding past each
@@ -88,8 +90,12 @@ class Refinement:
     min_size: tuple = (0.3, 0.6)
     axes: str = "both"
     slip: float | None = None
+    levels: int = 1
 
     def __post_init__(self):
+        if not (isinstance(self.levels, (int, np.integer)) and not isinstance(self.levels, bool)
+                and 1 <= self.levels <= 4):
+            raise InputError(f"refinement levels must be an integer 1-4, got {self.levels!r}")
         if self.slip is not None and not (np.isfinite(self.slip) and 0 < self.slip <= 1):
             raise InputError(f"refinement slip must be None or a weight in (0, 1], got {self.slip!r}")
         if not (isinstance(self.passes, (int, np.integer)) and not isinstance(self.passes, bool)
@@ -303,16 +309,35 @@ def _split(breaks, marked, origin, spacing, min_size):
     return origin + (kk - 0.5) * spacing, len(new)
 
 
-def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6)):
-    """The graded tensor mesh with the marked rows / columns of ``mesh`` split in two (breaks on pixel-cell
-    boundaries; see :func:`_split`).  Returns ``(mesh, n_rows_split, n_cols_split)``; the same mesh object when
-    nothing was split."""
+def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1):
+    """The graded tensor mesh with the marked rows / columns of ``mesh`` split in two, ``levels`` times (each
+    level halves every interval inside a marked one again; breaks on pixel-cell boundaries, see :func:`_split`).
+    Returns ``(mesh, n_rows_split, n_cols_split)`` (splits of all levels); the same mesh object when nothing was
+    split."""
     xs, ys, _ = _need_tensor(mesh)
-    nx, sx = _split(xs, rows, float(origin[0]), float(spacing[0]), float(min_size[0]))
-    ny, sy = _split(ys, cols, float(origin[1]), float(spacing[1]), float(min_size[1]))
-    if sx == 0 and sy == 0:
+    rows, cols = np.asarray(rows, bool), np.asarray(cols, bool)
+    if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
+        raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
+                         f"and {cols.shape}")
+    out, counts = [], []
+    for b, m, o, h, ms in ((xs, rows, origin[0], spacing[0], min_size[0]), (ys, cols, origin[1], spacing[1],
+                                                                         min_size[1])):
+        lo, hi = b[:-1][m], b[1:][m]
+        nb, total = np.asarray(b, float), 0
+        for _ in range(int(levels)):
+            mid = 0.5 * (nb[:-1] + nb[1:])
+            inside = np.zeros(mid.shape, bool)
+            for a, c in zip(lo, hi):
+                inside |= (mid > a) & (mid < c)
+            nb, k = _split(nb, inside, float(o), float(h), float(ms))
+            total += k
+            if k == 0:
+                break
+        out.append(nb)
+        counts.append(total)
+    if counts[0] == 0 and counts[1] == 0:
         return mesh, 0, 0
-    return MeshQuad1.init_tensor(nx, ny), sx, sy
+    return MeshQuad1.init_tensor(out[0], out[1]), counts[0], counts[1]
 
 
 def transfer(u, mesh, new_mesh) -> np.ndarray:
@@ -344,7 +369,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
         rows, cols, slip = mark(mesh, sol.u, opts, data=sol.data, quality=q)
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         if new is mesh:
@@ -352,6 +377,6 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         st = slip_weights(rects, opts.slip) if (opts.slip is not None and len(rects)) else None
         sol = solve_on(new, transfer(sol.u, mesh, new), st)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
-                           slip_cells=int(slip.sum()) if opts.slip is not None else 0,
+                           slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            seconds=time.perf_counter() - t))
     return sol, RefinementRecord(record)

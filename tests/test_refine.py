@@ -71,11 +71,22 @@ def test_split_respects_min_size_and_pixels():
     assert np.diff(fx).min() >= 0.1 and np.diff(fy).min() >= 0.8 - 1e-9
     # a lateral element is split exactly when it is at least 2 x 0.8 mm wide (0.2 mm pixels: halves exact)
     assert sy == int(np.sum(np.diff(ys) >= 1.6 - 1e-9)) and 0 < sy < ys.size - 1
-    fine2, _, _ = refine_tensor_mesh(fine, np.ones(len(tensor_structure(fine)[0]) - 1, bool), cols, SPACING,
+    fine2, _, _ = refine_tensor_mesh(fine, np.ones(fx.size - 1, bool), np.zeros(fy.size - 1, bool), SPACING,
                                      ORIGIN, min_size=(0.5, 0.8))
     assert fine2 is fine                          # 0.74 mm rows do not split into 0.37 mm ones
     nothing, a, b = refine_tensor_mesh(m, rows & False, cols & False, SPACING, ORIGIN)
     assert nothing is m and a == b == 0
+    # two levels at once: each marked row in quarters (1.42 mm -> 0.36 mm), the others untouched
+    one = np.zeros(xs.size - 1, bool)
+    one[2] = True
+    q, n, _ = refine_tensor_mesh(m, one, cols & False, SPACING, ORIGIN, min_size=(0.1, 0.8), levels=2)
+    qx = tensor_structure(q)[0]
+    assert n == 3 and qx.size == xs.size + 3
+    inner = qx[(qx > xs[2]) & (qx < xs[3])]
+    assert inner.size == 3 and np.allclose(np.diff(np.r_[xs[2], inner, xs[3]]), (xs[3] - xs[2]) / 4,
+                                              atol=SPACING[0])   # each level rounds to a pixel edge
+    with pytest.raises(InputError, match="rows"):
+        refine_tensor_mesh(m, one[:-1], cols, SPACING, ORIGIN)
 
 
 def test_transfer_is_exact_for_nested_meshes():
