@@ -30,6 +30,8 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
+from .refine import as_refinement, refine_passes, transfer
+from .scaling import refined_alpha
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -105,7 +107,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True, geometry=None) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None, refine=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -192,6 +194,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
         :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
+    refine : None | int | "auto" | femreg.refine.Refinement
+        Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
+        resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
+        again from the solution, ``N`` passes ("auto": 2); the weight of eq:objf stays the unrefined mesh's.
+        None (default): off.  The result's mesh, ``u`` and ``quality`` are those of the final mesh.
 
     Returns
     -------
@@ -224,6 +231,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                        **dict(kw, check_orientation=False))
     t_all = time.perf_counter()
     timings = {}
+    refinement = as_refinement(refine)
     ref, mov, spacing, origin, initial = _validate(reference_image, moving_image, spacing, origin,
                                                    regularizer=regularizer, strategy=strategy, initial=initial,
                                                    maxiter=maxiter, tol=tol, strain_tol=strain_tol,
@@ -284,6 +292,26 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
+    record = None
+    if refinement is not None and not hops.any():
+        t_r = time.perf_counter()
+        base_mesh = fe_mesh
+
+        def solve_on(m, u_start, shear_traction=None):
+            def reg_on():
+                r = reg_factory()
+                r.alpha = refined_alpha(r.alpha, base_mesh, m)
+                if shear_traction is not None and hasattr(r, "shear_traction"):
+                    r.shear_traction = shear_traction
+                return r
+            return solve(I1, I2, m, ref.shape, spacing, origin, reg_on, u_start, **solve_kw)
+
+        sol, record = refine_passes(sol, refinement, solve_on, spacing, origin)
+        if sol.mesh is not base_mesh:
+            u0, hops = transfer(u0, base_mesh, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
+            fe_mesh, locator = sol.mesh, sol.locator
+        notes.append(record.summary())
+        timings["refine"] = time.perf_counter() - t_r
     check = check_result(sol, u0, hops, ref.shape, spacing,
                          check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
                          None if start.pyramid is None else start.pyramid.global_ncc)
@@ -296,13 +324,16 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
                    f"{sol.gn.message.replace('converged: ', '')})")
-    return RegistrationResult(fe_mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
+    result = RegistrationResult(fe_mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
                               regularizer=sol.reg.name, alpha=user_reg.alpha, success=check.success,
                               status=sol.gn.status, message=message,
                               nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
                               ncc_after=check.ncc_after, timings=timings, blockmatch=start.blockmatch,
                               solver_result=sol.gn, locator=locator, quality=check.quality, strategy=strategy,
                               alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain)
+    if record is not None:
+        result.refinement = record
+    return result
 
 
 autoalpha.ENGINE = register      # choose_alpha registers through this function (autoalpha never imports it)

@@ -36,6 +36,11 @@ def add_parser(subparsers):
                         "axial spacing is the range step, registered in physical x, y (default linear)")
     g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
     g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
+    g = p.add_argument_group("adaptive refinement (femreg.refine)")
+    g.add_argument("--refine", metavar="N|auto|slip", default=None,
+                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (2), or "
+                        "slip (3 passes, and the shear-traction weight lowered where layers slide; "
+                        "femreg.refine.SLIP_REFINEMENT); default off")
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -70,6 +75,16 @@ def run(args) -> int:
     from femreg.errors import InputError
 
     kw = registration_kwargs(args)
+    if args.refine is not None:
+        from femreg.refine import SLIP_REFINEMENT
+
+        r = args.refine.strip().lower()
+        if r in ("auto", "slip"):
+            kw["refine"] = SLIP_REFINEMENT if r == "slip" else "auto"
+        elif r.isdigit():
+            kw["refine"] = int(r)
+        else:
+            raise InputError(f"--refine takes a number of passes, auto or slip, got {args.refine!r}")
     ref_fr = frames_from_args(args, args.reference)
     if args.moving is None:
         i, j = args.pair or (0, 1)
