@@ -380,3 +380,29 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            seconds=time.perf_counter() - t))
     return sol, RefinementRecord(record)
+
+
+def refine_stage(sol, opts: Refinement, u0, hops, locator, reg_factory, solve, problem, solve_kw):
+    """Refinement as a stage of :func:`femreg.register`: :func:`refine_passes` with each solve's regulariser a
+    fresh ``reg_factory()`` whose alpha is rescaled to the refined mesh (:func:`femreg.scaling.refined_alpha`:
+    the weight of eq:objf stays the unrefined mesh's) and, with ``opts.slip``, its per-edge shear traction.
+    ``problem`` = ``(I1, I2, shape, spacing, origin)`` of :func:`femreg.gnsolve.solve`.  Returns ``(sol, record,
+    u0, hops, locator)`` with the start ``u0`` and the hop counts carried to the final mesh."""
+    from .scaling import refined_alpha
+
+    I1, I2, shape, spacing, origin = problem
+    base_mesh = sol.mesh
+
+    def solve_on(m, u_start, shear_traction=None):
+        def reg_on():
+            r = reg_factory()
+            r.alpha = refined_alpha(r.alpha, base_mesh, m)
+            if shear_traction is not None and hasattr(r, "shear_traction"):
+                r.shear_traction = shear_traction
+            return r
+        return solve(I1, I2, m, shape, spacing, origin, reg_on, u_start, **solve_kw)
+
+    sol, record = refine_passes(sol, opts, solve_on, spacing, origin)
+    if sol.mesh is not base_mesh:
+        u0, hops, locator = transfer(u0, base_mesh, sol.mesh), np.zeros(sol.mesh.p.shape[1], int), sol.locator
+    return sol, record, u0, hops, locator

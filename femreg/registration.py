@@ -30,8 +30,7 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import as_refinement, refine_passes, transfer
-from .scaling import refined_alpha
+from .refine import as_refinement, refine_stage
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -97,6 +96,33 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     if not allow_mesh_outside:
         check_mesh_in_image(fe_mesh, ref.shape, spacing, origin)
     return fe_mesh, stats, settings
+
+
+def _route(reference_image, moving_image, args: dict):
+    """The calls :func:`register` hands on before its own stages, each calling :func:`register` back: convex /
+    sector frames (:func:`femreg.geometry.register_beam`), the echo rectangle (:func:`femreg.echo.crop_for`) and
+    ``alpha="auto"`` (:func:`femreg.autoalpha.register_auto`).  ``args``: register's keyword arguments.  Returns
+    the result, or None when the pair is registered as given."""
+    geometry = args["geometry"]
+    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
+        from .geometry import as_geometry, register_beam
+        if as_geometry(geometry) is not None:
+            kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "geometry")}
+            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
+    crop = crop_for(reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"],
+                    depth=args["depth"], mesh=args["mesh"], margin=args["margin"], initial=args["initial"],
+                    offset=args["offset"])
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
+    kw.update(roi=None, depth=None)
+    if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
+        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
+    if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
+        if args["check_orientation"]:   # once here, not in each candidate registration
+            orientation.check(validate_image(reference_image, "reference image"),
+                              validate_spacing(args["spacing"], args["origin"])[0])
+        return autoalpha.register_auto(reference_image, moving_image, register=register,
+                                       **dict(kw, check_orientation=False))
+    return None
 
 
 @volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
@@ -210,25 +236,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
-    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
-        from .geometry import as_geometry, register_beam
-        if as_geometry(geometry) is not None:
-            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam", "skip")
-            kw = {k: v for k, v in locals().items() if k not in skip}
-            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
-    crop = crop_for(reference_image, moving_image, spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin,
-                    initial=initial, offset=offset)
-    kw = {k: v for k, v in locals().items()
-          if k not in ("reference_image", "moving_image", "crop", "as_geometry", "register_beam")}
-    kw.update(roi=None, depth=None)
-    if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
-        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
-    if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
-        if check_orientation:           # once here, not in each candidate registration
-            orientation.check(validate_image(reference_image, "reference image"),
-                              validate_spacing(spacing, origin)[0])
-        return autoalpha.register_auto(reference_image, moving_image, register=register,
-                                       **dict(kw, check_orientation=False))
+    routed = _route(reference_image, moving_image, dict(locals()))
+    if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
+        return routed
     t_all = time.perf_counter()
     timings = {}
     refinement = as_refinement(refine)
@@ -295,21 +305,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     record = None
     if refinement is not None and not hops.any():
         t_r = time.perf_counter()
-        base_mesh = fe_mesh
-
-        def solve_on(m, u_start, shear_traction=None):
-            def reg_on():
-                r = reg_factory()
-                r.alpha = refined_alpha(r.alpha, base_mesh, m)
-                if shear_traction is not None and hasattr(r, "shear_traction"):
-                    r.shear_traction = shear_traction
-                return r
-            return solve(I1, I2, m, ref.shape, spacing, origin, reg_on, u_start, **solve_kw)
-
-        sol, record = refine_passes(sol, refinement, solve_on, spacing, origin)
-        if sol.mesh is not base_mesh:
-            u0, hops = transfer(u0, base_mesh, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
-            fe_mesh, locator = sol.mesh, sol.locator
+        sol, record, u0, hops, locator = refine_stage(sol, refinement, u0, hops, locator, reg_factory, solve,
+                                                      (I1, I2, ref.shape, spacing, origin), solve_kw)
+        fe_mesh = sol.mesh
         notes.append(record.summary())
         timings["refine"] = time.perf_counter() - t_r
     check = check_result(sol, u0, hops, ref.shape, spacing,
