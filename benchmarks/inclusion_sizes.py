@@ -1,5 +1,6 @@
 """Bonded inclusions of radius 1-8 mm at 1-4 % compression: femreg and the robustness benchmark's peers on the same
-pairs, with the strain-edge metric.
+pairs, with the strain-edge metric.  femreg: defaults, ``refine=Refinement()`` ("R_P_sigma refine") and
+:data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip"), adaptive refinement (:mod:`femreg.refine`).
 
 Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``) centred 20 mm deep, rendered as
 the robustness benchmark does (:func:`benchmarks.robustness.make_data`).  Per case x method:
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -48,7 +50,9 @@ CASES = [
     Case("r3_4pc_L7", _inc(3.0, 0.04), "L7", (30, 30), 30, top_mm=5.0),
     Case("r8_2pc_paper", _inc(8.0, 0.02), "paper", (35, 35), 25, top_mm=2.5),
 ]
-METHODS = ["R_P_sigma"] + list(PEER_METHODS)
+#: femreg variants: defaults, and adaptive refinement (:mod:`femreg.refine`)
+FEMREG = {"R_P_sigma": None, "R_P_sigma refine": "auto", "R_P_sigma refine+slip": "slip"}
+METHODS = list(FEMREG) + list(PEER_METHODS)
 
 
 def run_method(method, data):
@@ -56,8 +60,12 @@ def run_method(method, data):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        if method == "R_P_sigma":
-            return femreg.register(data.ref, data.mov, spacing=data.spacing, origin=data.origin).on_grid()
+        if method in FEMREG:
+            from femreg.refine import Refinement, SLIP_REFINEMENT
+
+            kw = {} if FEMREG[method] is None else {
+                "refine": SLIP_REFINEMENT if FEMREG[method] == "slip" else Refinement()}
+            return femreg.register(data.ref, data.mov, spacing=data.spacing, origin=data.origin, **kw).on_grid()
         return PEER_METHODS[method](data.ref, data.mov, data.spacing, data.origin)
 
 
@@ -101,26 +109,28 @@ def main(argv=None):
     mw = [w for w in a.methods.split(",") if w]
     cases = [c for c in CASES if not cw or any(w in c.name for w in cw)]
     methods = [m for m in METHODS if not mw or any(w in m for w in mw)]
-    lines = ["| case | method | total strain err % | edge axial mm | edge lateral mm | CNR_e |\n",
-             "|---|---|---|---|---|---|\n"]
+    lines = ["| case | method | total strain err % | edge axial mm | edge lateral mm | CNR_e | s |\n",
+             "|---|---|---|---|---|---|---|\n"]
     for case in cases:
         data = make_data(case)
         field = data.field
         sl = roi_slices(data.ref.shape, data.spacing)
         t = truth(data, case, (slice(0, data.ref.shape[0], 1), slice(0, data.ref.shape[1])))
         ts = scores(t["exx"], data, field, t["exx"])
-        lines.append(f"| {case.name} | truth | 0 | {ts['edge_ax']:.2f} | {ts['edge_lat']:.2f} | {ts['cnr']:.1f} |\n")
+        lines.append(f"| {case.name} | truth | 0 | {ts['edge_ax']:.2f} | {ts['edge_lat']:.2f} | {ts['cnr']:.1f} | |\n")
         troi = truth(data, case, sl)
         for method in methods:
             try:
+                t0 = time.perf_counter()
                 g = run_method(method, data)
+                dt = time.perf_counter() - t0
             except ImportError as exc:
                 print(f"{case.name} {method}: skipped ({exc})", file=sys.stderr)
                 continue
             s = scores(np.asarray(g["exx"], float), data, field, t["exx"])
             e = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)["e"]
             lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {s['edge_ax']:.2f} | {s['edge_lat']:.2f} | "
-                         f"{s['cnr']:.1f} |\n")
+                         f"{s['cnr']:.1f} | {dt:.1f} |\n")
             print(lines[-1], end="", flush=True)
     md = "".join(lines)
     out = Path(a.out)

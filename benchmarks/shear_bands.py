@@ -16,7 +16,10 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
 Methods: femreg R_P_sigma with defaults, the same with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
 (:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
-down so that layers may slide), the peers
+down so that layers may slide), "R_P_sigma refine" (``refine=Refinement()``, :mod:`femreg.refine`: two passes of
+refinement where the jumps of A[u] stand out), "R_P_sigma refine+slip"
+(:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
+shear-traction jump stands out), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 
@@ -59,7 +62,9 @@ CASES = [
     Case("band1_s0.15_d28_paper", _band(28.0, 1.0, 0.15), "paper", (35, 30), 20),
 ]
 
-FEMREG = ("R_P_sigma", "R_P_sigma alpha/10", "R_P_sigma slip")
+FEMREG = ("R_P_sigma", "R_P_sigma alpha/10", "R_P_sigma slip", "R_P_sigma refine", "R_P_sigma refine+slip")
+#: ``refine=`` of the refined variants (:mod:`femreg.refine`)
+REFINE = {"R_P_sigma refine": "auto", "R_P_sigma refine+slip": "slip"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -76,6 +81,10 @@ def run_method(method, data):
             if method.endswith("alpha/10"):
                 # the default alpha of this pair: what register chose without one
                 kw["alpha"] = 0.1 * femreg.register(data.ref, data.mov, **kw).alpha
+            elif method in REFINE:
+                from femreg.refine import Refinement, SLIP_REFINEMENT
+
+                kw["refine"] = SLIP_REFINEMENT if REFINE[method] == "slip" else Refinement()
             elif method.endswith("slip"):
                 from femreg.shear import slip_settings
 

@@ -16,12 +16,15 @@ Methods (``method``):
 * ``"splu"``: SuperLU in symmetric mode (no pivoting, minimum-degree ordering of A^T + A, ``MMD_AT_PLUS_A``).
 * ``"auto"`` (default): ``"cholesky"`` when the band holds at most :data:`BAND_LIMIT` entries, else ``"splu"``.
 * ``"spsolve"``, ``"amg-cg"`` (pyamg smoothed aggregation + CG, given the rigid-body modes as ``B``).
-* ``"pardiso"``: MKL PARDISO through pypardiso (optional; nested-dissection ordering), for the large 3D systems of
-  volume registration, where the band of a hexahedral mesh grows with the square of its cross-section.  With
-  ``large_method="pardiso"`` the ``"auto"`` rule sends systems whose band exceeds :data:`BAND_LIMIT` to PARDISO
-  when pypardiso is installed (else SuperLU).  The momentum Hessian of a 21 x 21 x 16 node hexahedral mesh
-  (21 k unknowns, bandwidth 2714) factorised in 31 s banded, 118 s SuperLU, 16 s PARDISO on the loaded 2-core
-  machine; 16 x 16 x 12 nodes: 5.8 / 16.3 / 6.1 s; 11 x 11 x 8: 0.5 / 1.3 / 1.4 s.
+* ``"sparse"``: a sparse direct factorisation for matrices that are not narrow-banded (3D meshes, whose band is
+  ~(nodes across)^2): CHOLMOD's supernodal Cholesky (scikit-sparse, when installed; Chen et al., ACM TOMS 35
+  (2008) 22, doi:10.1145/1391989.1391995), else SuperLU as ``"splu"``.  ``"pardiso"``: MKL PARDISO (pypardiso,
+  when installed; about twice as fast as SuperLU on a 27 k-DOF hexahedral elasticity matrix, but not
+  bit-reproducible run to run), else ``"sparse"``.  With ``large_method="pardiso"`` (volume registration) the
+  ``"auto"`` rule sends systems whose band exceeds :data:`BAND_LIMIT` there instead of to SuperLU: the momentum
+  Hessian of a 21 x 21 x 16 node hexahedral mesh (21 k unknowns, bandwidth 2714) factorised in 31 s banded,
+  118 s SuperLU, 16 s PARDISO on the loaded 2-core machine; 16 x 16 x 12 nodes 5.8 / 16.3 / 6.1 s; 11 x 11 x 8
+  0.5 / 1.3 / 1.4 s.
 
 The banded Cholesky factorises the paper geometry's Hessians faster than SuperLU at every mesh size tried
 (timings: benchmarks/README.md).  A tiny diagonal shift (``shift``, relative to the mean diagonal; 1e-10 for
@@ -39,14 +42,14 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-__all__ = ["SPDSolver", "BandedPattern", "BAND_LIMIT", "LINEAR_SOLVERS", "one_blas_thread", "single_blas_thread",
-           "have_pardiso"]
+__all__ = ["SPDSolver", "BandedPattern", "BAND_LIMIT", "LINEAR_SOLVERS", "have_pardiso", "one_blas_thread",
+           "single_blas_thread"]
 
 #: Largest band (entries, (bandwidth + 1) * n) that ``method="auto"`` factorises with banded Cholesky:
 #: 2.5e7 entries = 200 MB (a 0.5 mm mesh of the paper geometry needs 1.4e7).
 BAND_LIMIT = 25_000_000
 
-LINEAR_SOLVERS = ("auto", "cholesky", "splu", "spsolve", "amg-cg", "pardiso")
+LINEAR_SOLVERS = ("auto", "cholesky", "splu", "spsolve", "amg-cg", "sparse", "pardiso")
 
 
 class BandedPattern:
@@ -129,18 +132,51 @@ class _SuperLUFactor:
         return self.lu.solve(b)
 
 
+class _CholmodFactor:
+    method = "cholmod"
+
+    def __init__(self, f):
+        self.f = f
+
+    def solve(self, b):
+        return self.f(np.asarray(b, float))
+
+
 class _PardisoFactor:
+    """pypardiso's solver for one SPD matrix (type 2, upper triangle); solves reuse its factorisation."""
+
     method = "pardiso"
 
-    def __init__(self, A):
-        import pypardiso
-
-        self.A = sp.csr_matrix(A)
-        self.solver = pypardiso.PyPardisoSolver()
-        self.solver.factorize(self.A)
+    def __init__(self, solver, A):
+        self.solver, self.A = solver, A
 
     def solve(self, b):
         return self.solver.solve(self.A, np.asarray(b, float))
+
+
+def _sparse_direct(H, shift: float, splu, pardiso: bool = False):
+    """Factor of the sparse SPD ``H`` (CSC, canonical) plus ``shift`` on the diagonal: PARDISO (``pardiso``, when
+    pypardiso imports), CHOLMOD (scikit-sparse, when it imports), else ``splu(H)``."""
+    if pardiso:
+        try:
+            import pypardiso
+        except ImportError:
+            pypardiso = None
+        if pypardiso is not None:
+            A = sp.triu(H + shift * sp.identity(H.shape[0], format="csc") if shift else H, format="csr")
+            A.sort_indices()
+            solver = pypardiso.PyPardisoSolver()
+            solver.set_matrix_type(2)
+            solver.factorize(A)
+            return _PardisoFactor(solver, A)
+    try:
+        from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+    except ImportError:
+        return splu(H)
+    try:
+        return _CholmodFactor(cholesky(H, beta=shift))
+    except CholmodNotPositiveDefiniteError:
+        return splu(H)
 
 
 def have_pardiso() -> bool:
@@ -205,7 +241,8 @@ class SPDSolver:
         self.one_thread = one_thread
         if large_method not in ("splu", "pardiso"):
             raise ValueError(f"large_method must be 'splu' or 'pardiso', got {large_method!r}")
-        #: where ``"auto"`` sends systems whose band exceeds ``band_limit``: "splu", or "pardiso" (if installed)
+        #: where ``"auto"`` sends systems whose band exceeds ``band_limit``: "splu", or "pardiso" (when installed,
+        #: else the "sparse" branch)
         self.large_method = large_method
         self._key = None
         self._fact = None
@@ -234,12 +271,7 @@ class SPDSolver:
 
     def factor(self, H):
         """A factor of ``H`` (``solve(b)``, ``method``) for the direct methods ("auto", "cholesky", "splu",
-        "pardiso")."""
-        if self.method == "pardiso":
-            from .optional import require
-
-            require("pypardiso", feature="linear_solver='pardiso'")
-            return _PardisoFactor(self._shifted(H))
+        "sparse", "pardiso")."""
         if self.method in ("auto", "cholesky"):
             H = sp.csc_matrix(H)
             if not H.has_canonical_format:
@@ -254,8 +286,12 @@ class SPDSolver:
                         return pat.factor(H.data, self._shift_value(H))
                 except np.linalg.LinAlgError:
                     pass  # a non-positive pivot (semi-definite H): SuperLU without pivoting carries on
-            elif self.large_method == "pardiso" and have_pardiso():
-                return _PardisoFactor(self._shifted(H))
+            else:
+                if self.large_method == "pardiso":
+                    return _sparse_direct(H, self._shift_value(H), self._splu, pardiso=True)
+        if self.method in ("sparse", "pardiso"):
+            H = sp.csc_matrix(H)
+            return _sparse_direct(H, self._shift_value(H), self._splu, pardiso=self.method == "pardiso")
         return self._splu(H)
 
     def solve(self, H, b, reuse: bool = False):

@@ -167,7 +167,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> Orienta
     if rep.cell_periods < MIN_LATERAL_CELL_PERIODS:
         rep.problem = "swapped" if swap_fits else "spacing"
         why = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives an {found}, narrower than one axial RF period "
-               f"({rep.cell_periods:.2f}), below the diffraction limit")
+               f"({rep.cell_periods:.2f} of one), below the diffraction limit")
     elif not lo <= rep.frequency_mhz <= hi:
         rep.problem = "swapped" if swap_fits else "spacing"
         why = (f"axial spacing dx = {dx:g} mm gives an {found}: {rep.frequency_mhz:.3g} MHz is outside "
@@ -176,7 +176,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> Orienta
         return rep
     if rep.problem == "swapped":
         hint = (f"the axial and lateral spacings look swapped: pass spacing ({dy:g}, {dx:g}) (axial, lateral; "
-                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods)")
+                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {dy:g} {dx:g})")
     else:
         hint = "check the spacing's units (mm) and order (axial, lateral)"
     rep.message = f"{why}; {hint}, or {OVERRIDE}"

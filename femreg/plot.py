@@ -397,17 +397,15 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
             _shade_outside(ax, outside, sp, origin, roi,
                            label=(str(excluded) if excluded else "not registered (outside the mesh)")
                            if i == 0 else None)
-        fig.supxlabel("hatched: " + (f"excluded -- {excluded}" if excluded else
-                                     "outside the registered mesh (no displacement or strain there)"),
-                      fontsize="small")
+        fig.supxlabel("hatched: outside the registered mesh (no displacement or strain there)"
+                      + (f"; {excluded}" if excluded else ""), fontsize="small")
     info = []
     if "regularizer" in d:
         info.append(f"regulariser {d['regularizer']}")
     if "alpha" in d:
         info.append(f"alpha {float(d['alpha']):.3g}")
-    for k in ("ncc_before", "ncc_after"):
-        if k in d:
-            info.append(f"{k} {float(d[k]):.3f}")
+    if "ncc_before" in d and "ncc_after" in d:
+        info.append(f"NCC {float(d['ncc_before']):.3f} -> {float(d['ncc_after']):.3f} (before -> after)")
     failed, banner = _status(result, d)
     if failed:
         draw_failure(fig, banner + ("  [" + ", ".join(info) + "]" if info else ""))
@@ -573,8 +571,11 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
     plot_mesh_values(p, t, res.mu, ax=axes[0], log=True, cmap="viridis",
                      title="shear modulus $\\mu$", label="$\\mu$ / median (relative, -)")
     if unc is not None:
+        blank = int(np.sum(~np.isfinite(unc)))              # NaN: elements the data do not constrain
         plot_mesh_values(p, t, unc, ax=axes[1], cmap="magma", vmin=0.0,
-                         title="uncertainty of $\\log\\mu$", label="std of $\\log\\mu$ (-)")
+                         title="uncertainty of $\\log\\mu$" + (f"\n(blank: {blank} of {unc.size} elements the data "
+                                                               "do not constrain)" if blank else ""),
+                         label="std of $\\log\\mu$ (-)")
     h = float(np.min(np.ptp(p[:, t], axis=1)))                # smallest element extent, mm
     um = np.asarray(res.u_measured, float)
     if np.all(np.isfinite(um)) and np.any(um != 0):
@@ -614,9 +615,10 @@ def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, thr
         raise InputError(f"quality map needs (2, n) points, (4, n_el) quads and n_el values; got {p.shape}, "
                          f"{t.shape}, {q.size}")
     qmin = np.nanmin(q) if np.isfinite(q).any() else float("nan")
-    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality (min {qmin:.2f})", vmin=0.0, vmax=1.0,
-                          label="element NCC")
     bad = np.isfinite(q) & (q < threshold)
+    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality (min {qmin:.2f})\noutlined: "
+                          f"{int(bad.sum())} of {q.size} elements below {threshold:g}", vmin=0.0, vmax=1.0,
+                          label="element NCC (reference vs warped moving)")
     if bad.any():
         polys = np.stack([p[1, t].T, p[0, t].T], axis=-1)          # (n_el, 4, [lateral, axial])
         ax.add_collection(PolyCollection(polys[bad], facecolors="none", edgecolors="k", linewidths=1.0))

@@ -30,6 +30,7 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
+from .refine import as_refinement, refine_stage
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -97,6 +98,33 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     return fe_mesh, stats, settings
 
 
+def _route(reference_image, moving_image, args: dict):
+    """The calls :func:`register` hands on before its own stages, each calling :func:`register` back: convex /
+    sector frames (:func:`femreg.geometry.register_beam`), the echo rectangle (:func:`femreg.echo.crop_for`) and
+    ``alpha="auto"`` (:func:`femreg.autoalpha.register_auto`).  ``args``: register's keyword arguments.  Returns
+    the result, or None when the pair is registered as given."""
+    geometry = args["geometry"]
+    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
+        from .geometry import as_geometry, register_beam
+        if as_geometry(geometry) is not None:
+            kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "geometry")}
+            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
+    crop = crop_for(reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"],
+                    depth=args["depth"], mesh=args["mesh"], margin=args["margin"], initial=args["initial"],
+                    offset=args["offset"])
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
+    kw.update(roi=None, depth=None)
+    if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
+        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
+    if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
+        if args["check_orientation"]:   # once here, not in each candidate registration
+            orientation.check(validate_image(reference_image, "reference image"),
+                              validate_spacing(args["spacing"], args["origin"])[0])
+        return autoalpha.register_auto(reference_image, moving_image, register=register,
+                                       **dict(kw, check_orientation=False))
+    return None
+
+
 @volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
 @single_blas_thread
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
@@ -105,7 +133,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True, geometry=None) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None, refine=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -192,6 +220,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
         :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
+    refine : None | int | "auto" | femreg.refine.Refinement
+        Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
+        resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
+        again from the solution, ``N`` passes ("auto": 2); the weight of eq:objf stays the unrefined mesh's.
+        None (default): off.  The result's mesh, ``u`` and ``quality`` are those of the final mesh.
 
     Returns
     -------
@@ -203,27 +236,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
-    if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
-        from .geometry import as_geometry, register_beam
-        if as_geometry(geometry) is not None:
-            skip = ("reference_image", "moving_image", "geometry", "as_geometry", "register_beam", "skip")
-            kw = {k: v for k, v in locals().items() if k not in skip}
-            return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
-    crop = crop_for(reference_image, moving_image, spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin,
-                    initial=initial, offset=offset)
-    kw = {k: v for k, v in locals().items()
-          if k not in ("reference_image", "moving_image", "crop", "as_geometry", "register_beam")}
-    kw.update(roi=None, depth=None)
-    if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
-        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
-    if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
-        if check_orientation:           # once here, not in each candidate registration
-            orientation.check(validate_image(reference_image, "reference image"),
-                              validate_spacing(spacing, origin)[0])
-        return autoalpha.register_auto(reference_image, moving_image, register=register,
-                                       **dict(kw, check_orientation=False))
+    routed = _route(reference_image, moving_image, dict(locals()))
+    if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
+        return routed
     t_all = time.perf_counter()
     timings = {}
+    refinement = as_refinement(refine)
     ref, mov, spacing, origin, initial = _validate(reference_image, moving_image, spacing, origin,
                                                    regularizer=regularizer, strategy=strategy, initial=initial,
                                                    maxiter=maxiter, tol=tol, strain_tol=strain_tol,
@@ -284,6 +302,14 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
+    record = None
+    if refinement is not None and not hops.any():
+        t_r = time.perf_counter()
+        sol, record, u0, hops, locator = refine_stage(sol, refinement, u0, hops, locator, reg_factory, solve,
+                                                      (I1, I2, ref.shape, spacing, origin), solve_kw)
+        fe_mesh = sol.mesh
+        notes.append(record.summary())
+        timings["refine"] = time.perf_counter() - t_r
     check = check_result(sol, u0, hops, ref.shape, spacing,
                          check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
                          None if start.pyramid is None else start.pyramid.global_ncc)
@@ -296,13 +322,16 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
                    f"{sol.gn.message.replace('converged: ', '')})")
-    return RegistrationResult(fe_mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
+    result = RegistrationResult(fe_mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
                               regularizer=sol.reg.name, alpha=user_reg.alpha, success=check.success,
                               status=sol.gn.status, message=message,
                               nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
                               ncc_after=check.ncc_after, timings=timings, blockmatch=start.blockmatch,
                               solver_result=sol.gn, locator=locator, quality=check.quality, strategy=strategy,
                               alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain)
+    if record is not None:
+        result.refinement = record
+    return result
 
 
 autoalpha.ENGINE = register      # choose_alpha registers through this function (autoalpha never imports it)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["REFERENCE_ELEMENT_AREA", "REFERENCE_ELEMENT_VOLUME", "mean_element_area", "mean_element_volume",
-           "alpha_scale", "effective_alpha"]
+           "alpha_scale", "effective_alpha", "refined_alpha"]
 
 #: Element area (mm^2) at which the user's alpha is the weight of eq:objf as written: 2 mm x 2 mm.
 REFERENCE_ELEMENT_AREA = 4.0
@@ -70,3 +70,10 @@ def alpha_scale(mesh) -> float:
 def effective_alpha(alpha: float, mesh) -> float:
     """``alpha * alpha_scale(mesh)``."""
     return float(alpha) * alpha_scale(mesh)
+
+
+def refined_alpha(alpha: float, base_mesh, mesh) -> float:
+    """The alpha to give a solve on ``mesh``, a refinement of ``base_mesh`` (:mod:`femreg.refine`), so that its
+    weight in eq:objf is the base mesh's: ``effective_alpha(refined_alpha(a, base, mesh), mesh) ==
+    effective_alpha(a, base)``.  A strain step then costs the same total variation on both meshes."""
+    return float(alpha) * mean_element_area(mesh) / mean_element_area(base_mesh)

@@ -112,6 +112,26 @@ def test_info_invivo(capsys):
     assert info["frames"] == 6 and info["shape"] == [2000, 128] and info["spacing_mm"] == [0.02, 0.2]
 
 
+def test_info_raw_read_with_the_sizes_exchanged_names_the_shape(tmp_path, capsys):
+    """A raw RF frame read as lines x samples is scrambled (not transposed), so the orientation check sees no
+    carrier at all; info says which --shape reads it, and stays quiet on the right shape and on an envelope."""
+    from scipy.signal import hilbert
+
+    from femreg.synthetic import speckle_pair
+
+    rf, _ = speckle_pair(lambda q: 0.0 * q, shape=(600, 80), spacing=(0.02, 0.1), seed=4)
+    rf.astype("<f4").tofile(tmp_path / "rf.raw")
+    np.abs(hilbert(rf, axis=0)).astype("<f4").tofile(tmp_path / "env.raw")
+    for spacing in (["--spacing", "0.1", "0.02"], []):
+        assert main(["info", str(tmp_path / "rf.raw"), "--shape", "80", "600", *spacing]) == 1
+        assert "the --shape looks exchanged, pass --shape 600 80" in capsys.readouterr().out, spacing
+    assert main(["info", str(tmp_path / "rf.raw"), "--shape", "600", "80", "--spacing", "0.02", "0.1"]) == 0
+    assert "exchanged" not in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "env.raw"), "--shape", "600", "80", "--spacing", "0.02", "0.1"]) == 0
+    out = capsys.readouterr().out
+    assert "no RF carrier along axis 0" in out and "exchanged" not in out
+
+
 def test_plot_writes_png_vtu_xdmf_render(tmp_path, capsys):
     p, t = _quad_mesh(6, 4)
     res = _result(p, t, _affine_u(p, np.eye(2) * 0.01), shape=(40, 30))
@@ -139,9 +159,12 @@ def test_plot_bad_input(tmp_path, capsys):
     cases = [(["bad.npz"], "missing key"), (["nothere.npz"], "no such result"),
              (["r.npz", "-o", "x.jpg"], ".png"), (["r.npz", "--overlay"], "--reference"),
              (["r.npz", "--reference", "nothere.npy"], "no such file"),
-             (["r.npz", "--vtu", "x.vtu", "--xdmf", "x.obj"], "--xdmf must name a .xdmf")]
+             (["r.npz", "--vtu", "x.vtu", "--xdmf", "x.obj"], "--xdmf must name a .xdmf"),
+             (["run"], "a folder, not a result file: name one of its 1 result files, e.g. ")]
+    (tmp_path / "run").mkdir()
+    save_result(tmp_path / "run" / "frame_001.npz", res)              # a track folder
     for argv, needle in cases:
-        argv = [str(tmp_path / a) if a.endswith((".npz", ".npy", ".vtu", ".obj")) else a for a in argv]
+        argv = [str(tmp_path / a) if a.endswith((".npz", ".npy", ".vtu", ".obj", "run")) else a for a in argv]
         assert main(["plot"] + argv) == 2, argv
         err = _err_line(capsys)
         assert err.startswith("femreg plot: error:") and needle in err, (argv, err)
@@ -155,6 +178,14 @@ def test_console_entry_point_exit_code(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert "z.npz" in proc.stderr
+
+
+def test_python_m_femreg_is_the_femreg_command():
+    proc = subprocess.run([sys.executable, "-m", "femreg", "--version"], capture_output=True, text=True,
+                          cwd=Path(__file__).parents[1])
+    import femreg
+
+    assert proc.returncode == 0 and proc.stdout.strip() == f"femreg {femreg.__version__}", proc.stderr
 
 
 def test_engine_result_plots_and_exports(tmp_path, capsys):

@@ -220,7 +220,7 @@ def test_cli_roi_depth_and_batch_settings(tmp_path, capsys):
     out = tmp_path / "r.npz"
     assert main(["register", str(f), "-o", str(out), "--depth", "4", "12"]) == 0
     assert "given depth" in femreg.load_result(out).excluded
-    assert "not registered: outside the given depth" in capsys.readouterr().out
+    assert "left out of the mesh (the rest is registered): outside the given depth" in capsys.readouterr().out
     assert main(["register", str(f), "-o", str(out), "--roi", "1", "2"]) == 2
     assert main(["register", str(f), "-o", str(out), "--roi", "0", "50", "-2", "2"]) == 2
     assert "image extent" in capsys.readouterr().err

@@ -413,7 +413,8 @@ def _bad_cases(img):
     return [
         (dict(reference_image=nan, moving_image=img), "NaN/Inf"),
         (dict(reference_image=img, moving_image=inf), "NaN/Inf"),
-        (dict(reference_image=img[None], moving_image=img[None]), "2D"),
+        (dict(reference_image=img[None, None], moving_image=img[None, None]), "2D"),
+        (dict(reference_image=img[None], moving_image=img[None]), "too small"),      # a one-plane volume
         (dict(reference_image=img, moving_image=img[:-1]), "shape mismatch"),
         (dict(reference_image=img, moving_image=img, spacing=(0.0, 0.3)), "spacing"),
         (dict(reference_image=img, moving_image=img, spacing=(-1, 0.3)), "spacing"),

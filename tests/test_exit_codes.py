@@ -61,6 +61,8 @@ def test_register(data, results, capsys, tmp_path):
     rc, out, err = _run(["register", data / "transposed.npz", "-o", tmp_path / "t.npz", "--no-orientation-check",
                          "--maxiter", "1"], capsys)
     assert rc in (0, 1) and (tmp_path / "t.npz").is_file()      # the override runs it
+    rc, out, err = _run(["register", data / "perframe" / "frame1.npz", "-o", tmp_path / "one.npz"], capsys)
+    assert rc == 2 and "holds one frame: give the moving frame's file too" in err and err.count("\n") == 1
 
 
 def test_track(data, capsys, tmp_path):

@@ -146,3 +146,21 @@ def test_modulus_contrast_uncertainty_first_order(field):
     got = _modulus(inv, roi, None)
     assert got["contrast"] == pytest.approx(1.0)
     assert got["contrast_sd_log"] == pytest.approx(0.2 * np.sqrt(1 / n_in + 1 / n_out), rel=1e-12)
+
+
+def test_measure_flagged_inversion_said_once_and_unknown_spread_in_words(tmp_path, field, capsys):
+    from femreg.inversion import InversionResult
+
+    m, u = field
+    inv = InversionResult(mesh=m, mu=np.ones(m.t.shape[1]), model="plane-stress", lambda_bar=2.0, beta=0.1,
+                          u_measured=u, success=False, message="FLAGGED: beta 0.1 is at the large edge of its grid")
+    inv.uncertainty = np.full(m.t.shape[1], 0.2)
+    inv.uncertainty[0] = np.nan                                       # an element the data do not constrain
+    inv.save(tmp_path / "mu.npz")
+    assert main(["measure", str(tmp_path / "mu.npz"), "--inclusion", "10", "0", "4"]) == 1
+    cap = capsys.readouterr()
+    assert cap.out.count("FLAGGED") == 1 and "the inversion is flagged (beta 0.1 is at the large edge" in cap.out
+    assert "spread unknown: the data do not constrain some of the elements measured" in cap.out
+    assert "nan" not in cap.out.lower()
+    assert cap.err.strip() == ("femreg measure: the result is a flagged inversion: beta 0.1 is at the large edge "
+                               "of its grid")

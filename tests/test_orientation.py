@@ -44,6 +44,7 @@ def test_simulated_probes_pass_and_their_mistakes_are_refused(probes):
         with pytest.raises(OrientationError, match="swapped") as e:
             check(p.ref, sp[::-1])
         assert f"({sp[0]:g}, {sp[1]:g})" in str(e.value)                  # names the spacing to pass
+        assert f"CLI: --spacing {sp[0]:g} {sp[1]:g}" in str(e.value)        # and the flag that passes it
 
 
 @pytest.mark.parametrize("seq", ["seq299", "seq304"])

@@ -106,6 +106,8 @@ def test_plot_quality_marks_poor_elements(tmp_path):
     assert (tmp_path / "q.png").stat().st_size > 0
     outlines = [c for c in fig.axes[0].collections if isinstance(c, PolyCollection)][1]
     assert len(outlines.get_paths()) == int(np.sum(q < 0.5))      # each element below the threshold outlined
+    # the picture says what the outlines are
+    assert f"outlined: {int(np.sum(q < 0.5))} of {q.size} elements below 0.5" in fig.axes[0].get_title()
     plt.close(fig)
     with pytest.raises(InputError, match="n_el values"):
         plot_quality(p, t, q[:-1])
@@ -160,6 +162,9 @@ def test_summary_figure_units_maps_and_no_banner_on_success(tmp_path):
     exy_ax = next(a for a in fig.axes if a.get_title().startswith("shear strain"))
     assert exy_ax.images[0].get_cmap().name == DIVERGING_CMAP           # changes sign
     assert "FAILED" not in fig.get_suptitle()
+    plt.close(fig)
+    fig = plot_result(_compression_result(ncc_before=0.188, ncc_after=0.861), dpi=40)
+    assert "NCC 0.188 -> 0.861 (before -> after)" in fig.get_suptitle()
     assert not any(getattr(p, "get_edgecolor", lambda: None)() is not None and
                    matplotlib.colors.same_color(p.get_edgecolor(), FAILED_COLOUR) for p in fig.patches)
     plt.close(fig)
@@ -192,7 +197,8 @@ def test_region_outside_the_mesh_is_hatched_and_labelled(tmp_path):
         assert hatched, a.get_title()
     texts = [t.get_text() for t in panels[0].texts]
     assert any("no echo below 1.2 mm" in t.replace("\n", " ") for t in texts), texts
-    assert "no echo below 1.2 mm" in fig._supxlabel.get_text()
+    assert fig._supxlabel.get_text() == "hatched: outside the registered mesh (no displacement or strain there); "\
+        "no echo below 1.2 mm"                                          # the margin strips are hatched too
     plt.close(fig)
     fig = plot_result(_compression_result(shape), dpi=40)               # everything registered: nothing hatched
     assert not any(any(getattr(c, "hatches", None) or []) for a in fig.axes for c in a.collections)
@@ -229,6 +235,11 @@ def test_inversion_figure_recovered_strain_and_labels_apart(tmp_path):
         bar_label = left.child_axes[0].yaxis.label.get_window_extent(r)
         right_box = right.get_tightbbox(r)
         assert bar_label.x1 < right_box.x0, (left.get_title(), bar_label, right_box)
+    plt.close(fig)
+    res.uncertainty[:3] = np.nan                                        # elements the data do not constrain
+    fig = plot_inversion(res, dpi=40)
+    title = [a for a in fig.axes if a.get_title()][1].get_title()
+    assert f"blank: 3 of {m.t.shape[1]} elements the data do not constrain" in title, title
     plt.close(fig)
     res.success, res.message = False, "beta at the edge of its grid"
     fig = plot_inversion(res, dpi=40)

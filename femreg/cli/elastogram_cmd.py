@@ -64,7 +64,8 @@ def _rgb(values, cmap, vmin, vmax):
 
 
 def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
-    """B-mode | normalised strain for every cine frame: ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
+    """B-mode | normalised strain for every cine frame, in the colours of ``elastogram.png`` (viridis, 0-2 x the
+    mean): ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
     from ..plot import bmode
 
     pics = []
@@ -72,7 +73,7 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
         b = _display(bmode(np.asarray(frames[f], float)), spacing)
         s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
-        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "jet", 0.0, 2.0)], axis=1)
+        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", 0.0, 2.0)], axis=1)
         h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
         pad = np.zeros((h, w, 3), np.uint8)
         pad[:pic.shape[0], :pic.shape[1]] = pic
@@ -111,8 +112,9 @@ def write_picture(path, res, frame, spacing, origin) -> None:
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
     # fixed limits: 1 is the mean strain of every pair, so elastograms of different loops compare by eye
-    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({res.n_usable} pairs)",
-               cmap="viridis", vmin=0.0, vmax=2.0, label="axial strain / its mean (1 = mean; bright = soft)")
+    pairs = f"{res.n_usable} pair" + ("" if res.n_usable == 1 else "s")
+    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs})", cmap="viridis",
+               vmin=0.0, vmax=2.0, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
     # relative to the median, saturated at 3x: static near-field echoes (NCC ~1) would take the whole range
@@ -153,8 +155,11 @@ def run(args) -> int:
     write_picture(out / "elastogram.png", res, np.asarray(fr.frames[res.ref_frame], float), res.spacing, res.origin)
     cine = write_cine(out, res, fr.frames, res.spacing, fps=args.fps)
     n_sel = sum(1 for p in res.pairs if p["registered"])
+    files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
+    which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
     print(f"femreg elastogram: {fr.n_frames} frames, {len(res.pairs)} candidate pairs, {n_sel} registered, "
-          f"{res.n_usable} usable; best elastogram on frame {res.ref_frame}; {out / 'elastogram.npz'}, "
+          f"{res.n_usable} usable; best elastogram on frame index {res.ref_frame}{which}; "
+          f"{out / 'elastogram.npz'}, "
           f"{cine.name} ({res.timings['total']:.1f} s)")
     if res.n_usable == 0:
         print(f"femreg elastogram: error: no pair was usable (none with strain in {lo:g}-{hi:g} % that "

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import FileFormatError, InputError
 from ._common import add_reader_args, frames_from_args
 
 
@@ -31,6 +31,10 @@ def add_parser(subparsers):
     p.add_argument("file", help="data file or directory of frame files")
     add_reader_args(p)
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
+    p.add_argument("--volume", action="store_true",
+                   help="read FILE as RF volume(s): a 3D array is one volume (axial, lateral, elevational), a 4D "
+                        "one a sequence (frames first; MATLAB: last); spacing (dx, dy, dz) from the file.  Files "
+                        "that can only be volumes (4D data, three spacing values) are read so without it")
     p.set_defaults(func=run)
     return p
 
@@ -111,17 +115,123 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         rep = diagnose(a[0], fr.spacing)
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
+        if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
+            out["needs"] += _raw_shape_hint(a[0])
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
-        out["needs"] = []
+        from ..orientation import CARRIER_RATIO, carrier_ratio
+
+        c0 = carrier_ratio(a[0][:, ::max(1, a.shape[2] // 64)])       # the carrier needs no spacing
+        out["needs"] = _raw_shape_hint(a[0]) if "raw" in str(out["format"]) and not c0 < CARRIER_RATIO else []
     return out
+
+
+def _raw_shape_hint(frame) -> list:
+    """A raw frame read with its two sizes exchanged is scrambled, not transposed: no carrier on either axis.
+    When the same samples read the other way round carry one along axis 0, say which --shape to pass."""
+    from ..orientation import CARRIER_RATIO, carrier_ratio
+
+    n0, n1 = frame.shape
+    alt = np.asarray(frame).reshape(n1, n0)        # the same bytes in file order, the sizes exchanged
+    if not carrier_ratio(alt[:, ::max(1, n0 // 64)]) < CARRIER_RATIO:
+        return []
+    return [f"no RF carrier when read as {n0} x {n1}, but one along axis 0 when read as {n1} x {n0}: the "
+            f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)"]
+
+
+def describe_volumes(path: Path, args) -> dict:
+    """The description of a volume file (:func:`femreg.io.read_volumes`); spacing from the file."""
+    from ..io import read_volumes
+
+    kw = dict(variable=getattr(args, "variable", None), frames=getattr(args, "frames", None))
+    needs = []
+    try:
+        vol = read_volumes(path, **kw)
+        known = True
+    except InputError as exc:
+        if "spacing unknown" not in str(exc):
+            raise
+        vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), **kw)
+        known = False
+        needs.append("no spacing found: volumes need spacing (dx, dy, dz) in mm stored with them (npz key "
+                     "'spacing', MAT variable 'spacing', MetaImage ElementSpacing)")
+    a = vol.frames
+    meta = dict(vol.metadata)
+    stored = meta.pop("stored_dtype", None)
+    out = {
+        "file": str(vol.source), "format": meta.pop("format", ""), "kind": "volume", "frames": vol.n_frames,
+        "shape": list(vol.shape), "dtype": stored or str(a.dtype), "dtype_in_memory": str(a.dtype),
+        "spacing_mm": list(vol.spacing) if known else None, "origin_mm": list(vol.origin),
+        "extent_mm": [n * d for n, d in zip(vol.shape, vol.spacing)] if known else None,
+        "min": float(a.min()), "max": float(a.max()), "mean": float(a.mean()), "std": float(a.std()),
+        "metadata": _plain(meta), "needs": needs,
+    }
+    if known:
+        from ..orientation import diagnose
+
+        rep = diagnose(a[0][:, :, a.shape[3] // 2], vol.spacing[:2])     # the central axial-lateral plane
+        out["rf_check"] = "" if rep.problem else rep.summary()
+        out["needs"] += [rep.message] if rep.problem else []
+        if vol.n_frames < 2:
+            out["note"] = "one volume: register it against a second file"
+    return out
+
+
+def _print_volumes(info) -> None:
+    print(f"file      {info['file']}")
+    print(f"format    {info['format']} (volumes)")
+    print(f"volumes   {info['frames']}")
+    n = info["shape"]
+    print(f"shape     {n[0]} axial x {n[1]} lateral x {n[2]} elevational")
+    print(f"dtype     {info['dtype']} as stored" + (f" (read as {info['dtype_in_memory']})"
+                                                    if info["dtype_in_memory"] != info["dtype"] else ""))
+    if info["spacing_mm"] is not None:
+        s, o, e = info["spacing_mm"], info["origin_mm"], info["extent_mm"]
+        print(f"spacing   {s[0]:g} mm axial, {s[1]:g} mm lateral, {s[2]:g} mm elevational")
+        print(f"origin    {o[0]:g}, {o[1]:g}, {o[2]:g} mm")
+        print(f"extent    {e[0]:g} mm x {e[1]:g} mm x {e[2]:g} mm")
+    else:
+        print("spacing   none in the file")
+    print(f"values    min {info['min']:.6g}, max {info['max']:.6g}, mean {info['mean']:.6g}, "
+          f"std {info['std']:.6g}")
+    if info.get("rf_check"):
+        print(f"RF        {info['rf_check']} (central plane)")
+    for name, desc in info.get("variables", {}).items():
+        print(f"array     {name:16s} {desc}")
+    if info.get("note"):
+        print(f"note      {info['note']}")
+    for need in info["needs"]:
+        print(f"needs     {need}")
+    if not info["needs"]:
+        print("needs     nothing: ready to register")
+
+
+def _run_volumes(path: Path, args) -> int:
+    info = describe_volumes(path, args)
+    variables = _variables(path) if path.is_file() else {}
+    if variables:
+        info["variables"] = variables
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        _print_volumes(info)
+    return 1 if info["needs"] else 0
 
 
 def run(args) -> int:
     path = Path(os.fspath(args.file))
+    if getattr(args, "volume", False):
+        return _run_volumes(path, args)
     try:
         info = describe(frames_from_args(args, allow_sector=True))
+    except FileFormatError as exc:    # a file that can only hold volumes names the volume reader
+        if "read_volumes" not in str(exc):
+            raise
+        try:
+            return _run_volumes(path, args)
+        except ValueError:
+            raise exc from None
     except InputError as exc:
         need, retry = _what_is_missing(exc, path, args)
         info = None

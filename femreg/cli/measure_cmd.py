@@ -174,14 +174,19 @@ def _report(m) -> str:
         if "modulus_contrast_sd_log" in m:
             sd = m["modulus_contrast_sd_log"]
             s += (f" (x/ {math.exp(sd):.3g} at one standard deviation: "
-                  f"{m['modulus_contrast'] * math.exp(-sd):.3g}-{m['modulus_contrast'] * math.exp(sd):.3g})")
+                  f"{m['modulus_contrast'] * math.exp(-sd):.3g}-{m['modulus_contrast'] * math.exp(sd):.3g})"
+                  if math.isfinite(sd) else
+                  " (spread unknown: the data do not constrain some of the elements measured)")
         lines.append(s)
         if "modulus_cv_background" in m:
             lines.append(f"background modulus CV: {100 * m['modulus_cv_background']:.3g} %")
         lines.append(f"for comparison, the strain ratio read as a modulus contrast: {m['SR']:.4g}")
     lines += [f"note: {n}" for n in m["notes"]]
     if m["flagged"]:
-        lines.append(f"FLAGGED: the {m['kind']} failed ({m['message']}); these numbers describe a failed result")
+        state = "flagged" if str(m["message"]).startswith("FLAGGED") else "failed"   # say it once, as the result does
+        reason = str(m["message"]).removeprefix("FAILED: ").removeprefix("FLAGGED: ")
+        verb = "is flagged" if state == "flagged" else "failed"
+        lines.append(f"FLAGGED: the {m['kind']} {verb} ({reason}); these numbers describe a {state} result")
     return "\n".join(lines)
 
 
@@ -198,6 +203,8 @@ def run(args) -> int:
         atomic_write_text(out, json.dumps(m, indent=2, default=float) + "\n")
         print(f"wrote {out}")
     if m["flagged"]:
-        print(f"femreg measure: the result is a failed {m['kind']}: {m['message']}", file=sys.stderr)
+        state = "flagged" if str(m["message"]).startswith("FLAGGED") else "failed"
+        reason = str(m["message"]).removeprefix("FAILED: ").removeprefix("FLAGGED: ")
+        print(f"femreg measure: the result is a {state} {m['kind']}: {reason}", file=sys.stderr)
         return 1
     return 0

@@ -36,6 +36,11 @@ def add_parser(subparsers):
                         "axial spacing is the range step, registered in physical x, y (default linear)")
     g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
     g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
+    g = p.add_argument_group("adaptive refinement (femreg.refine)")
+    g.add_argument("--refine", metavar="N|auto|slip", default=None,
+                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (2), or "
+                        "slip (3 passes, and the shear-traction weight lowered where layers slide; "
+                        "femreg.refine.SLIP_REFINEMENT); default off")
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -74,10 +79,23 @@ def run(args) -> int:
     vol = read_volume_file(args.reference)
     if vol is not None:                 # RF volumes (spacing with 3 values)
         return register_volumes(args, vol, kw)
+    if args.refine is not None:
+        from femreg.refine import SLIP_REFINEMENT
+
+        r = args.refine.strip().lower()
+        if r in ("auto", "slip"):
+            kw["refine"] = SLIP_REFINEMENT if r == "slip" else "auto"
+        elif r.isdigit():
+            kw["refine"] = int(r)
+        else:
+            raise InputError(f"--refine takes a number of passes, auto or slip, got {args.refine!r}")
     ref_fr = frames_from_args(args, args.reference)
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr
+        if ref_fr.n_frames < 2:
+            raise InputError(f"{args.reference} holds one frame: give the moving frame's file too "
+                             f"(femreg register REF MOV), or a file of several frames (--pair I J picks two)")
     else:
         i, j = args.pair or (0, 0)
         mov_fr = frames_from_args(args, args.moving)
@@ -104,7 +122,7 @@ def run(args) -> int:
     res.save(args.output)
     print(res)
     if res.excluded:
-        print(f"femreg register: not registered: {res.excluded}")
+        print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
     if not res.success:
         print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",

@@ -78,7 +78,7 @@ def run(args) -> int:
               f"rerun with --resume to continue", file=sys.stderr)
         return 1
     if out and getattr(out[0], "excluded", None):
-        print(f"femreg track: not registered: {out[0].excluded}")
+        print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} frames in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "

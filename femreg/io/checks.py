@@ -12,8 +12,8 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 
-__all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames", "FORMATS",
-           "parse_dtype"]
+__all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
+           "validate_volumes", "FORMATS", "parse_dtype"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
@@ -65,16 +65,18 @@ def fail(path, problem: str) -> FileFormatError:
     return FileFormatError(f"{path}: {problem}")
 
 
-def check_spacing(value, what: str = "spacing", allow_none: bool = False):
-    """Validate a ``(dx, dy)`` pair in mm: two positive finite numbers (or None entries if allowed)."""
+def check_spacing(value, what: str = "spacing", allow_none: bool = False, n: int = 2):
+    """Validate ``n`` spacings in mm (``(dx, dy)``, or ``(dx, dy, dz)`` for volumes): positive finite numbers (or
+    None entries if allowed)."""
     if value is None:
         return None
+    names = "(dx, dy)" if n == 2 else "(dx, dy, dz)"
     try:
         vals = list(np.asarray(value, dtype=object).ravel())
     except Exception as exc:  # pragma: no cover - np.asarray on odd objects
-        raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}") from exc
-    if len(vals) != 2:
-        raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}")
+        raise InputError(f"{what} must be {_num(n)} numbers {names} in mm, got {value!r}") from exc
+    if len(vals) != n:
+        raise InputError(f"{what} must be {_num(n)} numbers {names} in mm, got {value!r}")
     out = []
     for v in vals:
         if v is None and allow_none:
@@ -83,40 +85,47 @@ def check_spacing(value, what: str = "spacing", allow_none: bool = False):
         try:
             f = float(v)
         except (TypeError, ValueError):
-            raise InputError(f"{what} must be two numbers (dx, dy) in mm, got {value!r}") from None
+            raise InputError(f"{what} must be {_num(n)} numbers {names} in mm, got {value!r}") from None
         if not (math.isfinite(f) and f > 0):
             raise InputError(f"{what} must be positive and finite (mm), got {value!r}")
         out.append(f)
     return tuple(out)
 
 
-def check_origin(value, path=None):
+def _num(n: int) -> str:
+    return {2: "two", 3: "three"}.get(n, str(n))
+
+
+def check_origin(value, path=None, n: int = 2):
     if value is None:
-        return (0.0, 0.0)
+        return (0.0,) * n
+    names = "(x0, y0)" if n == 2 else "(x0, y0, z0)"
     try:
         arr = np.asarray(value, dtype=float).ravel()
     except (TypeError, ValueError):
-        raise (fail(path, f"origin must be two numbers, got {value!r}") if path
-               else InputError(f"origin must be two numbers, got {value!r}")) from None
-    if arr.size != 2 or not np.all(np.isfinite(arr)):
-        msg = f"origin must be two finite numbers (x0, y0) in mm, got {value!r}"
+        raise (fail(path, f"origin must be {_num(n)} numbers, got {value!r}") if path
+               else InputError(f"origin must be {_num(n)} numbers, got {value!r}")) from None
+    if arr.size != n or not np.all(np.isfinite(arr)):
+        msg = f"origin must be {_num(n)} finite numbers {names} in mm, got {value!r}"
         raise fail(path, msg) if path else InputError(msg)
-    return (float(arr[0]), float(arr[1]))
+    return tuple(float(v) for v in arr)
 
 
-def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None):
+def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None, n: int = 2):
     """Spacing from the file, overridden component-wise by the user's (None entries keep the file's)."""
-    user = check_spacing(user_spacing, allow_none=True)
-    file_sp = list(file_spacing) if file_spacing is not None else [None, None]
+    user = check_spacing(user_spacing, allow_none=True, n=n)
+    file_sp = list(file_spacing) if file_spacing is not None else [None] * n
     if user is not None:
         file_sp = [u if u is not None else f for u, f in zip(user, file_sp)]
     if any(v is None for v in file_sp):
-        missing = " and ".join(n for n, v in zip(("axial dx", "lateral dy"), file_sp) if v is None)
+        axes = ("axial dx", "lateral dy", "elevational dz")
+        missing = " and ".join(a for a, v in zip(axes, file_sp) if v is None)
         msg = required_msg or "this format stores no pixel spacing"
-        raise InputError(f"{path}: {missing} spacing unknown ({msg}); give spacing=(dx, dy) in mm "
-                         "(CLI: --spacing DX DY)")
+        hint = "spacing=(dx, dy) in mm (CLI: --spacing DX DY)" if n == 2 else \
+            "spacing=(dx, dy, dz) in mm (CLI: --spacing DX DY DZ)"
+        raise InputError(f"{path}: {missing} spacing unknown ({msg}); give {hint}")
     try:
-        return check_spacing(file_sp, what="spacing")
+        return check_spacing(file_sp, what="spacing", n=n)
     except InputError as exc:
         raise fail(path, f"bad spacing {tuple(file_sp)} (must be positive, finite, mm)") from exc
 
@@ -154,8 +163,9 @@ def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3:
+        hint = "; a volume sequence is read by femreg.io.read_volumes" if arr.ndim == 4 else ""
         raise fail(path, f"data has {arr.ndim} dimension(s) {arr.shape}; expected 2 (axial, lateral) "
-                         "or 3 (frames, axial, lateral)")
+                         f"or 3 (frames, axial, lateral){hint}")
     if min(arr.shape) < 1:
         raise fail(path, f"data is empty, shape {arr.shape}")
     if arr.shape[1] < 2 or arr.shape[2] < 2:
@@ -172,3 +182,33 @@ def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames
     meta = dict(metadata or {})
     return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path),
                 metadata=meta, source=Path(path))
+
+
+def validate_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, frames=None) -> dict:
+    """Shared tail of the volume readers: shape (n, axial, lateral, elevational) (one volume of 3 dimensions gets a
+    leading frame axis), float dtype, finite values, selection; returns the fields of a
+    :class:`femreg.io.Volumes`."""
+    arr = np.asarray(arr)
+    if arr.dtype.kind == "c":
+        raise fail(path, f"complex data ({arr.dtype}) is not RF; store the real RF samples")
+    if arr.dtype.kind not in "biuf":
+        raise fail(path, f"data of type {arr.dtype} is not numeric")
+    if arr.ndim == 3:
+        arr = arr[None]
+    if arr.ndim != 4:
+        raise fail(path, f"data has {arr.ndim} dimension(s) {arr.shape}; a volume has 3 (axial, lateral, "
+                         "elevational) and a volume sequence 4 (frames, axial, lateral, elevational)")
+    if min(arr.shape) < 1:
+        raise fail(path, f"data is empty, shape {arr.shape}")
+    if min(arr.shape[1:]) < 2:
+        raise fail(path, f"volume shape {arr.shape[1:]} is degenerate (need at least 2 samples along each "
+                         "axis; a 2D frame or frame sequence is read by femreg.io.read_frames)")
+    arr = select_frames(path, arr, frames)
+    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
+    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
+    arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
+    finite = np.isfinite(arr)
+    if not finite.all():
+        raise fail(path, f"data contains {int(arr.size - np.count_nonzero(finite))} NaN/Inf value(s)")
+    return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path, n=3),
+                metadata=dict(metadata), source=Path(path))

@@ -15,7 +15,7 @@ import numpy as np
 from .checks import check_origin, check_spacing, fail, merge_spacing, select_frames, validate_frames  # noqa: F401
 from .writers import save_frames
 
-__all__ = ["Frames"]
+__all__ = ["Frames", "Volumes"]
 
 
 @dataclass
@@ -74,3 +74,63 @@ class Frames:
 def finalize(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) -> Frames:
     """Shared tail of every reader (:func:`femreg.io.checks.validate_frames`) as a :class:`Frames`."""
     return Frames(**validate_frames(path, arr, spacing, origin, metadata, frames))
+
+
+@dataclass
+class Volumes:
+    """RF volumes read from a file (:func:`femreg.io.read_volumes`).
+
+    Attributes
+    ----------
+    frames : (n, axial, lateral, elevational) float32 or float64
+        One volume per frame (a single volume: n = 1); finite.
+    spacing : (dx, dy, dz) float, mm
+        Axial sample, lateral line and elevational plane spacing.
+    origin : (x0, y0, z0) float, mm
+        Centre of voxel ``[0, 0, 0]``.
+    metadata : dict
+        Format name and header fields.
+    source : pathlib.Path or None
+    """
+
+    frames: np.ndarray
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    metadata: dict[str, Any] = field(default_factory=dict)
+    source: Path | None = None
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Shape of one volume, (axial, lateral, elevational)."""
+        return tuple(int(v) for v in self.frames.shape[1:])
+
+    @property
+    def format(self) -> str:
+        return str(self.metadata.get("format", ""))
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __getitem__(self, k) -> np.ndarray:
+        """Volume ``k`` as a 3D (axial, lateral, elevational) array."""
+        return self.frames[k]
+
+    def __iter__(self):
+        return iter(self.frames)
+
+    def save(self, path, **kwargs):
+        """Write these volumes with :func:`femreg.io.save_volumes` (format from the extension)."""
+        from .writers import save_volumes
+
+        return save_volumes(path, self.frames, self.spacing, origin=self.origin, **kwargs)
+
+
+def finalize_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, frames=None) -> Volumes:
+    """Shared tail of every volume reader (:func:`femreg.io.checks.validate_volumes`) as a :class:`Volumes`."""
+    from .checks import validate_volumes
+
+    return Volumes(**validate_volumes(path, arr, spacing, origin, metadata, frames))

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import check_origin, fail, merge_spacing, validate_frames
+from .checks import check_origin, fail, merge_spacing, validate_frames, validate_volumes
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
@@ -62,8 +62,8 @@ def mat_version(path) -> str:
     raise fail(path, "not a MATLAB MAT-file (no 'MATLAB' header, not HDF5)")
 
 
-def _choose(path, candidates: dict, variable):
-    """Pick the frames variable among ``{name: (shape, numeric)}``."""
+def _choose(path, candidates: dict, variable, ndims=(2, 3)):
+    """Pick the frames variable among ``{name: (shape, numeric)}`` (the only one with ``ndims`` dimensions)."""
     if variable is not None:
         if variable not in candidates:
             raise fail(path, f"missing variable {variable!r}; available: {', '.join(sorted(candidates)) or 'none'}")
@@ -72,12 +72,13 @@ def _choose(path, candidates: dict, variable):
         if name in candidates:
             return name
     good = [k for k, (shape, numeric) in candidates.items()
-            if numeric and len(shape) in (2, 3) and k not in AUX and min(shape, default=0) > 1]
+            if numeric and len(shape) in ndims and k not in AUX and min(shape, default=0) > 1]
     if len(good) == 1:
         return good[0]
+    dims = "/".join(f"{d}D" for d in ndims)
     if not good:
-        raise fail(path, f"no 2D/3D numeric variable found (variables: {', '.join(sorted(candidates)) or 'none'})")
-    raise fail(path, f"several 2D/3D variables ({', '.join(sorted(good))}); choose one with variable= "
+        raise fail(path, f"no {dims} numeric variable found (variables: {', '.join(sorted(candidates)) or 'none'})")
+    raise fail(path, f"several {dims} variables ({', '.join(sorted(good))}); choose one with variable= "
                      "(CLI: --variable NAME)")
 
 
@@ -89,7 +90,7 @@ def _mat_layout(arr):
     return arr
 
 
-def _aux(path, values: dict, spacing):
+def _aux(path, values: dict, spacing, n=2):
     file_spacing = None
     if "spacing" in values:
         try:
@@ -98,20 +99,24 @@ def _aux(path, values: dict, spacing):
             sp = np.asarray(values["spacing"], dtype=float).ravel()
         except (TypeError, ValueError):
             raise fail(path, "variable 'spacing' is not numeric") from None
-        if sp.size != 2:
-            raise fail(path, f"variable 'spacing' has {sp.size} values, expected 2 (dx, dy) mm")
+        if sp.size != n:
+            hint = {(2, 3): " (three values: a volume; read it with femreg.io.read_volumes)",
+                    (3, 2): " (two values: 2D frames; read them with femreg.io.read_frames)"}.get((n, sp.size), "")
+            raise fail(path, f"variable 'spacing' has {sp.size} values, expected {n} "
+                             f"{'(dx, dy)' if n == 2 else '(dx, dy, dz)'} mm{hint}")
         file_spacing = tuple(sp)
-    origin = check_origin(values["origin"], path) if "origin" in values else (0.0, 0.0)
-    sp = merge_spacing(path, file_spacing, spacing, required_msg="no 'spacing' variable in the MAT-file")
+    origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="no 'spacing' variable in the MAT-file", n=n)
     return sp, origin
 
 
-def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
-    """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
+def _load_mat(path, variable, ndims):
+    """(array in MATLAB index order, aux values, version, variable name, candidates) of any MAT-file version."""
     path = Path(path)
     version = mat_version(path)
     if version == "7.3":
-        return _read_mat73(path, variable, spacing, frames)
+        arr, aux, name, cands = _read_mat73(path, variable, ndims)
+        return arr, aux, version, name, cands
     if version == "5":
         from .mat5 import read_mat5
 
@@ -122,7 +127,7 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
         order, variables = read_mat5(path, blob)
         byname = {v.name: v for v in variables}
         cands = {v.name: (v.shape, v.numeric) for v in variables}
-        name = _choose(path, cands, variable)
+        name = _choose(path, cands, variable, ndims)
         var = byname[name]
         if not var.numeric:
             raise fail(path, f"variable {name!r} is a MATLAB {var.cls}, not a numeric array")
@@ -131,13 +136,35 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
             if a in byname and a != name and byname[a].numeric:
                 data[a] = byname[a].array(order)
     else:
-        data, cands, name = _read_mat4(path, variable)
-    sp, origin = _aux(path, data, spacing)
+        data, cands, name = _read_mat4(path, variable, ndims)
+    arr = data.pop(name)
+    return arr, {k: v for k, v in data.items() if k in AUX}, version, name, cands
+
+
+def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
+    path = Path(path)
+    arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
+    sp, origin = _aux(path, aux, spacing)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
-    return validate_frames(path, _mat_layout(data[name]), sp, origin, meta, frames)
+    return validate_frames(path, _mat_layout(arr), sp, origin, meta, frames)
 
 
-def _read_mat4(path, variable):
+def read_mat_volume(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    """Read a volume ``rf(axial, lateral, elevational)`` or a volume sequence ``rf(axial, lateral, elevational,
+    frame)`` (frames on the last axis, as the 2D layout) from a MAT-file: the fields of a
+    :class:`~femreg.io.Volumes`; ``spacing`` three numbers (dx, dy, dz) mm, ``origin`` three."""
+    path = Path(path)
+    arr, aux, version, name, cands = _load_mat(path, variable, (3, 4))
+    sp, origin = _aux(path, aux, spacing, n=3)
+    arr = np.asarray(arr)
+    if arr.ndim == 4:
+        arr = np.moveaxis(arr, -1, 0)
+    meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    return validate_volumes(path, arr, sp, origin, meta, frames)
+
+
+def _read_mat4(path, variable, ndims=(2, 3)):
     """Level-4 files (no header) through scipy.io's pure-Python v4 reader."""
     import scipy.io
 
@@ -146,7 +173,7 @@ def _read_mat4(path, variable):
             warnings.simplefilter("ignore")
             info = scipy.io.whosmat(str(path))
             cands = {n: (tuple(shape), cls in _NUMERIC_CLASSES) for n, shape, cls in info}
-            name = _choose(path, cands, variable)
+            name = _choose(path, cands, variable, ndims)
             wanted = [name] + [a for a in AUX if a in cands and a != name]
             data = scipy.io.loadmat(str(path), variable_names=wanted, squeeze_me=False)
     except InputError:
@@ -158,7 +185,7 @@ def _read_mat4(path, variable):
     return data, cands, name
 
 
-def _read_mat73(path, variable, spacing, frames):
+def _read_mat73(path, variable, ndims=(2, 3)):
     import h5py
 
     try:
@@ -177,7 +204,7 @@ def _read_mat73(path, variable, spacing, frames):
                 numeric = (cls in _NUMERIC_CLASSES and obj.dtype.kind in "biuf" and not empty)
                 cands[key] = (tuple(obj.shape[::-1]), numeric)
                 dsets[key] = obj
-            name = _choose(path, cands, variable)
+            name = _choose(path, cands, variable, ndims)
             if name not in dsets or not cands[name][1]:
                 ds = dsets.get(name)
                 what = "a struct/cell" if ds is None else (f"compound {ds.dtype}" if ds.dtype.names
@@ -195,9 +222,7 @@ def _read_mat73(path, variable, spacing, frames):
         raise
     except Exception as exc:  # h5py raises OSError, KeyError, ValueError, RuntimeError on corrupt files
         raise fail(path, f"corrupt or truncated MAT-file v7.3 / HDF5 ({type(exc).__name__}: {exc})") from None
-    sp, origin = _aux(path, aux, spacing)
-    meta = {"format": "mat-v7.3", "variable": name, "variables": sorted(cands)}
-    return validate_frames(path, _mat_layout(arr), sp, origin, meta, frames)
+    return arr, aux, name, cands
 
 
 # ------------------------------------------------------------------------------------------------- writers
@@ -214,13 +239,16 @@ def write_mat(path, frames, spacing=None, origin=(0.0, 0.0), *, variable="rf", v
     ``spacing`` and ``origin``.  ``version`` '5' uses scipy.io.savemat, '7.3' writes an HDF5 file with the
     512-byte MATLAB header, transposed datasets and ``MATLAB_class`` attributes (what MATLAB's ``save -v7.3``
     produces, so MATLAB's ``load`` reads it)."""
+    return _write_vars(path, _to_matlab(frames), variable, spacing, origin, 2, version)
+
+
+def _write_vars(path, arr, variable, spacing, origin, n, version):
     path = Path(path)
-    arr = _to_matlab(frames)
     data = {variable: arr}
     if spacing is not None:
-        data["spacing"] = np.asarray(spacing, dtype=float).reshape(1, 2)
+        data["spacing"] = np.asarray(spacing, dtype=float).reshape(1, n)
     if origin is not None:
-        data["origin"] = np.asarray(origin, dtype=float).reshape(1, 2)
+        data["origin"] = np.asarray(origin, dtype=float).reshape(1, n)
     if str(version) in ("5", "7"):
         import scipy.io
 
@@ -248,3 +276,14 @@ def write_mat(path, frames, spacing=None, origin=(0.0, 0.0), *, variable="rf", v
     with open(path, "r+b") as fh:
         fh.write(head.ljust(512, b"\x00"))
     return [path]
+
+
+def write_mat_volume(path, volumes, spacing=None, origin=(0.0, 0.0, 0.0), *, variable="rf", version="5"):
+    """Write a volume or volume sequence in the MATLAB order of :func:`read_mat_volume`
+    (``rf(axial, lateral, elevational[, frame])``) with 1 x 3 ``spacing`` and ``origin``."""
+    arr = np.asarray(volumes)
+    if arr.ndim not in (3, 4):
+        raise InputError(f"volumes must be 3D or 4D, got shape {arr.shape}")
+    if arr.ndim == 4:
+        arr = np.moveaxis(arr, 0, -1)
+    return _write_vars(path, arr, variable, spacing, origin, 3, version)

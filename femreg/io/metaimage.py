@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import fail, merge_spacing, validate_frames
+from .checks import fail, merge_spacing, validate_frames, validate_volumes
 
 ELEMENT_TYPES = {
     "MET_CHAR": "i1", "MET_UCHAR": "u1", "MET_SHORT": "i2", "MET_USHORT": "u2",
@@ -146,16 +146,18 @@ def _data_files(path: Path, fields, value: str, header_end: int, ndims: int, dim
     return [base / value]
 
 
-def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
-    """Read a MetaImage ``.mhd``/``.mha`` file: the fields of a :class:`~femreg.io.Frames` (module docstring)."""
-    path = Path(path)
+def _load(path, allowed=(2, 3)):
+    """(C-order array ``data.reshape(DimSize[::-1])``, NDims, header fields, original keys, msb, ElementType)."""
     fields, keys, header_end = _parse_header(path)
     for req in ("ndims", "dimsize", "elementtype"):
         if req not in fields:
             raise fail(path, f"MetaImage header lacks the {_name(req)} field")
     (ndims,) = _ints(path, fields, "ndims", 1)
-    if ndims not in (2, 3):
-        raise fail(path, f"bad header field NDims = {ndims} (need 2 or 3)")
+    if ndims not in allowed:
+        hint = ""
+        if ndims == 4 and 4 not in allowed:
+            hint = "; a 4D image is a volume sequence: read it with femreg.io.read_volumes"
+        raise fail(path, f"bad header field NDims = {ndims} (need {' or '.join(map(str, allowed))}){hint}")
     dims = _ints(path, fields, "dimsize", ndims)
     if min(dims) < 1:
         raise fail(path, f"bad header field DimSize = {dims} (must be positive)")
@@ -215,6 +217,13 @@ def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
         pieces.append(blob)
     arr = np.frombuffer(b"".join(pieces), dtype=dtype).reshape(dims[::-1])
 
+    return arr, ndims, fields, keys, msb, etype, dtype
+
+
+def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
+    """Read a MetaImage ``.mhd``/``.mha`` file: the fields of a :class:`~femreg.io.Frames` (module docstring)."""
+    path = Path(path)
+    arr, ndims, fields, keys, msb, etype, dtype = _load(path)
     file_spacing = None
     for key in ("elementspacing", "elementsize"):
         if key in fields:
@@ -233,6 +242,53 @@ def read_metaimage(path, *, spacing=None, frames=None, **_ignored):
     return validate_frames(path, arr, sp, origin, meta, frames)
 
 
+def read_metaimage_volume(path, *, spacing=None, frames=None, **_ignored):
+    """Read a MetaImage volume (NDims 3) or volume sequence (NDims 4): the fields of a
+    :class:`~femreg.io.Volumes`.
+
+    The 2D mapping extended by elevation: MetaImage x = lateral, y = axial, z = elevational, the fourth axis
+    (if any) the frame; so the C-order array ``(frames, elevational, axial, lateral)`` is transposed to
+    ``(frames, axial, lateral, elevational)``, ``spacing = (ElementSpacing[1], ElementSpacing[0],
+    ElementSpacing[2])`` and the origin likewise.
+    """
+    path = Path(path)
+    arr, ndims, fields, keys, msb, etype, dtype = _load(path, allowed=(3, 4))
+    arr = arr[None] if ndims == 3 else arr
+    arr = arr.transpose(0, 2, 3, 1)
+    file_spacing = None
+    for key in ("elementspacing", "elementsize"):
+        if key in fields:
+            sp = _floats(path, fields, key, 3)
+            file_spacing = (sp[1], sp[0], sp[2])
+            break
+    origin = (0.0, 0.0, 0.0)
+    for key in ("offset", "origin", "position"):
+        if key in fields:
+            o = _floats(path, fields, key, 3)
+            origin = (o[1], o[0], o[2])
+            break
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="the header has no ElementSpacing", n=3)
+    meta = {"format": "metaimage", "header": {keys[k]: v for k, v in fields.items()},
+            "element_type": etype, "byte_order": "big" if msb else "little", "dtype": str(dtype.newbyteorder("="))}
+    return validate_volumes(path, arr, sp, origin, meta, frames)
+
+
+def write_metaimage_volume(path, volumes: np.ndarray, spacing, origin=(0.0, 0.0, 0.0), *, dtype=None,
+                           byte_order="little"):
+    """Write a volume (axial, lateral, elevational) or volume sequence (n, axial, lateral, elevational) as
+    MetaImage NDims 3 / 4 with the axis mapping of :func:`read_metaimage_volume`; returns the files written."""
+    arr = np.asarray(volumes)
+    if arr.ndim not in (3, 4):
+        raise InputError(f"volumes must be 3D or 4D, got shape {arr.shape}")
+    one = arr.ndim == 3
+    a4 = arr[None] if one else arr
+    c_order = np.ascontiguousarray(a4.transpose(0, 3, 1, 2))        # (n, elevational, axial, lateral)
+    dx, dy, dz = (float(v) for v in spacing)
+    x0, y0, z0 = (float(v) for v in origin)
+    return _write(path, c_order[0] if one else c_order, [dy, dx, dz] + ([] if one else [1.0]),
+                  [y0, x0, z0] + ([] if one else [0.0]), dtype=dtype, byte_order=byte_order)
+
+
 def write_metaimage(path, frames: np.ndarray, spacing, origin=(0.0, 0.0), *, dtype=None, byte_order="little",
                     local=None, data_file=None):
     """Write ``frames`` ((axial, lateral) or (n, axial, lateral)) as MetaImage.
@@ -240,10 +296,17 @@ def write_metaimage(path, frames: np.ndarray, spacing, origin=(0.0, 0.0), *, dty
     ``path`` ending in ``.mha`` (or ``local=True``) writes one file with ``ElementDataFile = LOCAL``; otherwise a
     ``.mhd`` header and a data file (default: same stem, ``.raw``) next to it.  Returns the list of files written.
     """
-    path = Path(path)
     arr = np.asarray(frames)
     if arr.ndim not in (2, 3):
         raise InputError(f"frames must be 2D or 3D, got shape {arr.shape}")
+    sp = [float(spacing[1]), float(spacing[0])] + ([1.0] if arr.ndim == 3 else [])
+    off = [float(origin[1]), float(origin[0])] + ([0.0] if arr.ndim == 3 else [])
+    return _write(path, arr, sp, off, dtype=dtype, byte_order=byte_order, local=local, data_file=data_file)
+
+
+def _write(path, arr, sp, off, *, dtype=None, byte_order="little", local=None, data_file=None):
+    """Header + data of the C-order array ``arr`` (MetaImage x fastest), spacing/offset in MetaImage order."""
+    path = Path(path)
     dt = np.dtype(dtype if dtype is not None else (arr.dtype if arr.dtype.kind in "iuf" else np.float32))
     key = dt.newbyteorder("<").str[1:]
     if key not in _DTYPE_TO_MET:
@@ -253,8 +316,6 @@ def write_metaimage(path, frames: np.ndarray, spacing, origin=(0.0, 0.0), *, dty
     dt = dt.newbyteorder("<" if byte_order == "little" else ">")
     local = path.suffix.lower() == ".mha" if local is None else local
     dims = list(arr.shape[::-1])  # x (lateral) fastest
-    sp = [float(spacing[1]), float(spacing[0])] + ([1.0] if arr.ndim == 3 else [])
-    off = [float(origin[1]), float(origin[0])] + ([0.0] if arr.ndim == 3 else [])
     msb = "True" if byte_order == "big" else "False"
     data_path = None if local else (Path(data_file) if data_file else path.with_suffix(".raw"))
     header = [
@@ -277,5 +338,3 @@ def write_metaimage(path, frames: np.ndarray, spacing, origin=(0.0, 0.0), *, dty
     path.write_bytes(text)
     data_path.write_bytes(blob)
     return [path, data_path]
-
-

@@ -15,6 +15,14 @@ Formats (chosen by extension, verified by content):
 directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
 =====================  ============================================================================
 
+Volumes (:func:`read_volumes` -> :class:`~femreg.io.Volumes`, ``(n, axial, lateral, elevational)``): npy, npz
+(keys ``rf``, ``frames``, ``volume`` or ``volumes``; ``spacing`` of three values), mat (``rf(axial, lateral,
+elevational[, frame])``, frames last as MATLAB's 2D layout) and MetaImage (NDims 3 or 4).  A 3-dimensional
+array is one volume and a 4-dimensional one a sequence with the frames first (npy, npz) as the 2D
+``(n, axial, lateral)`` layout; :func:`read_frames` reads 3-dimensional arrays as 2D frame sequences, so the two
+readers never guess: a file whose stored spacing has the other reader's number of values is refused with a
+message naming the right one.
+
 Every failure is a :class:`~femreg.errors.FileFormatError` (bad file) or :class:`~femreg.errors.InputError`
 (bad arguments), both ``ValueError`` subclasses, with a one-line message naming the file and the problem.
 """
@@ -29,9 +37,9 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, check_origin, fail, merge_spacing, parse_dtype  # noqa: F401  (FORMATS, parse_dtype: API)
-from .frames import Frames, finalize
+from .frames import Frames, Volumes, finalize, finalize_volumes
 
-__all__ = ["read_frames", "FORMATS", "detect_format", "parse_dtype"]
+__all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
 
 _MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
           (b"\x89HDF\r\n\x1a\n", "mat")]
@@ -129,7 +137,8 @@ def read_npy(path, *, spacing=None, frames=None, **_ignored):
     return finalize(path, arr, sp, (0.0, 0.0), {"format": "npy"}, frames)
 
 
-def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
+def _load_npz(path, variable, preferred):
+    """(array, raw spacing or None, raw origin or None, key, sorted member names) of an .npz file."""
     path = Path(path)
     try:
         with zipfile.ZipFile(path) as zf:
@@ -142,10 +151,10 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
                     raise fail(path, f"missing variable {variable!r}; keys: {', '.join(sorted(members)) or 'none'}")
                 key = variable
             else:
-                key = next((k for k in PREFERRED_KEYS if k in members), None)
+                key = next((k for k in preferred if k in members), None)
                 if key is None:
-                    raise fail(path, f"no 'rf' or 'frames' array; keys: {', '.join(sorted(members)) or 'none'} "
-                                     "(choose one with variable= / --variable)")
+                    raise fail(path, f"no {' or '.join(repr(k) for k in preferred)} array; keys: "
+                                     f"{', '.join(sorted(members)) or 'none'} (choose one with variable= / --variable)")
 
             def load(k):
                 info = members[k]
@@ -153,20 +162,37 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
                     return _parse_npy(fh, info.file_size, path, f"key {k!r}")
 
             arr = load(key)
-            file_spacing = origin = None
-            if "spacing" in members and key != "spacing":
-                sp = np.asarray(load("spacing"))
-                if sp.dtype.kind not in "iuf" or sp.size != 2:
-                    raise fail(path, f"key 'spacing' must hold two numbers (dx, dy) mm, got {sp.dtype} {sp.shape}")
-                file_spacing = tuple(float(v) for v in sp.ravel())
-            if "origin" in members and key != "origin":
-                origin = check_origin(np.asarray(load("origin")), path)
+            raw_sp = np.asarray(load("spacing")) if "spacing" in members and key != "spacing" else None
+            raw_origin = np.asarray(load("origin")) if "origin" in members and key != "origin" else None
             other = sorted(members)
     except (FileFormatError, InputError):
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, NotImplementedError,
             RuntimeError, KeyError, UnicodeDecodeError) as exc:
         raise fail(path, f"corrupt or truncated .npz ({type(exc).__name__}: {exc})") from None
+    return arr, raw_sp, raw_origin, key, other
+
+
+def _npz_spacing(path, sp, n):
+    if sp is None:
+        return None
+    if sp.dtype.kind not in "iuf" or sp.size != n:
+        names = "(dx, dy)" if n == 2 else "(dx, dy, dz)"
+        hint = ""
+        if n == 2 and sp.dtype.kind in "iuf" and sp.size == 3:
+            hint = " (three values: a volume; read it with femreg.io.read_volumes)"
+        elif n == 3 and sp.dtype.kind in "iuf" and sp.size == 2:
+            hint = " (two values: 2D frames; read them with femreg.io.read_frames)"
+        raise fail(path, f"key 'spacing' must hold {('two', 'three')[n - 2]} numbers {names} mm, got "
+                         f"{sp.dtype} {sp.shape}{hint}")
+    return tuple(float(v) for v in sp.ravel())
+
+
+def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    path = Path(path)
+    arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, PREFERRED_KEYS)
+    file_spacing = _npz_spacing(path, raw_sp, 2)
+    origin = check_origin(raw_origin, path) if raw_origin is not None else None
     sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key")
     return finalize(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
 
@@ -361,3 +387,102 @@ def _read_uff(path, **kw):
 
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
             "ultrasonix": _read_rf, "uff": _read_uff}
+
+
+# ------------------------------------------------------------------------------------------------ volumes
+
+VOLUME_KEYS = ("rf", "frames", "volume", "volumes")
+
+
+def _npy_volume(path, *, spacing=None, frames=None, **_ignored):
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            arr = _parse_npy(fh, size, path, "npy")
+    except OSError as exc:
+        raise fail(path, f"cannot read ({exc.strerror or exc})") from None
+    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing", n=3)
+    return finalize_volumes(path, arr, sp, (0.0, 0.0, 0.0), {"format": "npy"}, frames)
+
+
+def _npz_volume(path, *, variable=None, spacing=None, frames=None, **_ignored):
+    arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, VOLUME_KEYS)
+    file_spacing = _npz_spacing(path, raw_sp, 3)
+    origin = check_origin(raw_origin, path, n=3) if raw_origin is not None else None
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key", n=3)
+    return finalize_volumes(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
+
+
+def _mat_volume(path, **kw):
+    from .matlab import read_mat_volume
+
+    return Volumes(**read_mat_volume(path, **kw))
+
+
+def _mhd_volume(path, **kw):
+    from .metaimage import read_metaimage_volume
+
+    return Volumes(**read_metaimage_volume(path, **kw))
+
+
+_VOLUME_READERS = {"npy": _npy_volume, "npz": _npz_volume, "mat": _mat_volume, "metaimage": _mhd_volume}
+
+
+def read_volumes(path, *, variable=None, spacing=None, frames=None) -> Volumes:
+    """Read one RF volume or a sequence of RF volumes from ``path``.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.npy``, ``.npz``, ``.mat`` or ``.mhd`` / ``.mha`` (module docstring for the layouts).
+    variable : str, optional
+        Array name in .npz / .mat files (default ``rf``, ``frames``, ``volume``, ``volumes``, else the only
+        3D/4D numeric array of a MAT-file).
+    spacing : (dx, dy, dz) mm, optional
+        Axial, lateral and elevational spacing; overrides the file's (None entries keep the file's); required
+        where the file stores none (npy).
+    frames : int, slice or sequence of int, optional
+        Volume selection (default all).
+
+    Returns
+    -------
+    Volumes
+        ``frames`` (n, axial, lateral, elevational) float32/float64, finite; ``spacing`` (dx, dy, dz) mm;
+        ``origin`` (x0, y0, z0) mm; ``metadata``; ``source``.
+
+    Raises
+    ------
+    FileFormatError
+        Missing, corrupt or truncated file; data that is not 3D/4D; NaN/Inf.
+    InputError
+        A bad or missing argument (spacing needed but not given, not three values).
+    """
+    try:
+        path = Path(os.fspath(path))
+    except TypeError:
+        raise InputError(f"path must be a file name, got {path!r}") from None
+    if not path.exists():
+        raise fail(path, "no such file or directory")
+    if spacing is not None:
+        from .checks import check_spacing
+
+        check_spacing(spacing, allow_none=True, n=3)
+    fmt = "unknown"
+    try:
+        fmt = detect_format(path)
+        if fmt not in _VOLUME_READERS:
+            raise InputError(f"{path}: volumes are read from npy, npz, mat and mhd/mha files, not {fmt}")
+        if not path.is_file():
+            raise fail(path, "not a regular file")
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+        if not head:
+            raise fail(path, f"empty file (expected {fmt})")
+        _sniff_mislabel(path, head, fmt)
+        return _VOLUME_READERS[fmt](path, variable=variable, spacing=spacing, frames=frames)
+    except (FileFormatError, InputError):
+        raise
+    except MemoryError:
+        raise fail(path, f"not enough memory to read this {fmt} file (corrupt header or too large)") from None
+    except Exception as exc:  # never let a library exception escape untyped
+        raise fail(path, f"cannot read {fmt} file ({type(exc).__name__}: {exc})") from None

@@ -171,6 +171,10 @@ def as_result_dict(result) -> dict:
 def _read(path) -> dict:
     """The validated contents of a result ``.npz``; scalars become Python scalars."""
     path = Path(path)
+    if path.is_dir():                    # e.g. a `femreg track` folder: one result file per frame
+        found = sorted(path.glob("*.npz"))
+        raise fail(path, "a folder, not a result file" + (f": name one of its {len(found)} result files, e.g. "
+                                                          f"{found[-1]}" if found else ""))
     if not path.is_file():
         raise fail(path, "no such result file")
     try:

@@ -9,7 +9,7 @@ import numpy as np
 from ..errors import InputError
 from .checks import FORMATS, check_origin, check_spacing, parse_dtype
 
-__all__ = ["save_frames"]
+__all__ = ["save_frames", "save_volumes"]
 
 
 def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, dtype=None, byte_order="little",
@@ -75,3 +75,41 @@ def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, d
         return write_ultrasonix(path, arr, sp, sampling_frequency=sampling_frequency, sound_speed=sound_speed,
                                 frame_tags=frame_tags)
     raise InputError(f"unknown format {fmt!r}")
+
+
+def save_volumes(path, volumes, spacing=None, *, origin=(0.0, 0.0, 0.0), format=None, dtype=None,
+                 byte_order="little", variable="rf", mat_version="5"):
+    """Write a volume (axial, lateral, elevational) or a volume sequence (n, axial, lateral, elevational) in a
+    layout :func:`~femreg.io.read_volumes` reads back: ``.npy`` (array only), ``.npz`` (``variable``,
+    ``spacing`` and ``origin`` of three values), ``.mat`` (``rf(axial, lateral, elevational[, frame])``),
+    ``.mhd`` + ``.raw`` / ``.mha`` (NDims 3 / 4).  Returns the files written."""
+    path = Path(path)
+    arr = np.asarray(volumes)
+    if arr.ndim not in (3, 4):
+        raise InputError(f"volumes must be (axial, lateral, elevational) or (n, axial, lateral, elevational), "
+                         f"got shape {arr.shape}")
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"volumes must be real numbers, got dtype {arr.dtype}")
+    sp = check_spacing(spacing, n=3) if spacing is not None else None
+    origin = check_origin(origin, n=3)
+    fmt = format or FORMATS.get(path.suffix.lower())
+    if fmt == "npy":
+        np.save(path, arr, allow_pickle=False)
+        return [path]
+    if fmt == "npz":
+        data = {variable: arr, "origin": np.asarray(origin)}
+        if sp is not None:
+            data["spacing"] = np.asarray(sp)
+        np.savez(path, **data)
+        return [path]
+    if fmt == "mat":
+        from .matlab import write_mat_volume
+
+        return write_mat_volume(path, arr, sp, origin, variable=variable, version=mat_version)
+    if fmt == "metaimage":
+        from .metaimage import write_metaimage_volume
+
+        if sp is None:
+            raise InputError("MetaImage needs spacing=(dx, dy, dz)")
+        return write_metaimage_volume(path, arr, sp, origin, dtype=dtype, byte_order=byte_order)
+    raise InputError(f"{path}: volumes are written as .npy, .npz, .mat or .mhd/.mha, not {path.suffix!r}")

@@ -686,7 +686,8 @@ class MomentumRegularizer(TVRegularizer):
         :math:`\sqrt{(n\cdot[\![A]\!]n)^2 + w^2 (t\cdot[\![A]\!]n)^2 + \delta}` (``t`` the edge tangent;
         rotation invariant).  1 (default) is eq:dmreg2 (the same norm, the operators untouched).  Below 1 a layer
         may slide over another (a jump of the shear traction across the band's faces) at a lower price, while the
-        normal traction (compression, inclusions) is held as before.
+        normal traction (compression, inclusions) is held as before.  A callable ``w(jumps)`` (the
+        :class:`JumpOperators`) gives one weight per edge (the slip region of :mod:`femreg.refine`).
     """
 
     name = "momentum"
@@ -698,8 +699,8 @@ class MomentumRegularizer(TVRegularizer):
                  delta: float = DEFAULT_DELTA, dilatation: str | None = None, hourglass: float = 0.0,
                  shear_traction: float = 1.0):
         super().__init__(None, alpha, delta=delta, penalty="tv", name=self.name)
-        self.shear_traction = float(shear_traction)
-        if not np.isfinite(self.shear_traction) or self.shear_traction <= 0:
+        self.shear_traction = shear_traction if callable(shear_traction) else float(shear_traction)
+        if not callable(shear_traction) and (not np.isfinite(self.shear_traction) or self.shear_traction <= 0):
             raise ValueError(f"shear_traction must be a finite number > 0, got {shear_traction!r}")
         self.hourglass = float(hourglass)
         if not np.isfinite(self.hourglass) or self.hourglass < 0:
@@ -723,21 +724,25 @@ class MomentumRegularizer(TVRegularizer):
             lb = lb if self._lambda_given else LAMBDA_BAR_3D
             dil = dil if self._dilatation_given else "centre"
         self.jumps = momentum_jump_operators(mesh, lb, dilatation=dil)
+        w = self.shear_traction
+        if callable(w):                 # one weight per edge: w(jumps) -> (n_edges,) (femreg.refine)
+            w = sp.diags(np.asarray(w(self.jumps), float))
+        elif w == 1.0:
+            if mesh.p.shape[0] == 3:
+                return self.jumps.components, self.jumps.lengths
+            return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
         if mesh.p.shape[0] == 3:
             comps = self.jumps.components
-            if self.shear_traction == 1.0:
-                return comps, self.jumps.lengths
             n = [sp.diags(c) for c in self.jumps.normals]
             Kn = sum(n[c] @ comps[c] for c in range(3)).tocsr()
-            tang = [(self.shear_traction * (comps[c] - n[c] @ Kn)).tocsr() for c in range(3)]
+            tang = [(w @ (comps[c] - n[c] @ Kn) if sp.issparse(w) else w * (comps[c] - n[c] @ Kn)).tocsr()
+                    for c in range(3)]
             return [Kn] + tang, self.jumps.lengths
-        if self.shear_traction == 1.0:
-            return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
         # normal and tangential components of the jump vector (a rotation of (Kx, Ky) per edge)
         nx, ny = (sp.diags(c) for c in self.jumps.normals)
         Kn = (nx @ self.jumps.Kx + ny @ self.jumps.Ky).tocsr()
         Kt = (nx @ self.jumps.Ky - ny @ self.jumps.Kx).tocsr()
-        return [Kn, (self.shear_traction * Kt).tocsr()], self.jumps.lengths
+        return [Kn, (w @ Kt if sp.issparse(w) else w * Kt).tocsr()], self.jumps.lengths
 
     def setup(self, mesh) -> None:
         super().setup(mesh)
@@ -761,7 +766,8 @@ class MomentumRegularizer(TVRegularizer):
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(alpha={self.alpha:g}, lambda_bar={self.lambda_bar:g}, "
                 f"delta={self.delta:g}, dilatation={self.dilatation!r}, hourglass={self.hourglass:g}"
-                + ("" if self.shear_traction == 1.0 else f", shear_traction={self.shear_traction:g}") + ")")
+                + ("" if callable(self.shear_traction) or self.shear_traction == 1.0
+                   else f", shear_traction={self.shear_traction:g}") + ")")
 
 
 class PlaneStrainMomentumRegularizer(MomentumRegularizer):

@@ -1,0 +1,408 @@
+"""Adaptive refinement driven by the data: an a-posteriori indicator per element after a solve, marking, a graded
+tensor mesh, and the solve again from the previous solution (a few passes).
+
+The mesh stays an axis-aligned tensor mesh whose rows and columns have their own sizes (a *graded* tensor mesh):
+a marked row of elements is split in two along depth, a marked column along the lateral axis, each new break on a
+pixel-cell boundary, so the pixel quadrature, the arithmetic pixel location (:mod:`femreg.pixels`), the tensor form
+of the momentum jumps and the banded solver work on it as on the uniform mesh.  The finer mesh holds the coarse
+field exactly (the meshes are nested), so each pass starts where the last one stopped.
+
+Indicators (per element, dimensionless; :func:`indicators`)
+-----------------------------------------------------------
+``"jump"`` (default)
+    The jump of the momentum tensor ``A[u] = lambda_bar div(u) I + 2 sym grad(u)`` (eq:meq, ``lambda_bar`` 2 as
+    R_P_sigma) across the element's edges, ``|[[A]] n|``, from the element-centre strains: what the momentum
+    regularisers of eq:dmreg2 penalise, so where a step in the strain (an inclusion's boundary, a band's faces)
+    is held back.  Axial edges mark rows, lateral edges mark columns (a band parallel to the probe face refines
+    rows only).
+``"gradient"``
+    The spread (max - min) of the recovered nodal strains over the element's corners (strain gradient x size).
+``"residual"``
+    The RMS image residual after the solve over the element's pixels, relative to the RMS of the reference there.
+``"ncc"``
+    ``1 - NCC`` of the element (the ``quality`` map).
+
+Marking: an element (an edge, for ``"jump"``) is marked when its indicator stands out of the indicator's own
+spread, ``eta > median + threshold * 1.4826 MAD`` (a robust z-score), and ("jump", "gradient") above
+``relative`` times the field's RMS ``|A[u]|``: the TV regulariser leaves most jumps near zero, so the spread alone
+is narrow and its noise would stand out; on a field without a sharp feature nothing is marked and nothing
+changes (uniform 1 % compression, 20 dB: the largest jump 0.9 % of the field's ``|A|``).  And, for a row or column to be split, it must stay at least ``min_size`` thick.
+
+Weights under refinement (:func:`femreg.scaling.refined_alpha`): the regulariser keeps the weight of the mesh the
+refinement started from (``alpha_eff`` of the unrefined mesh), the hourglass control keeps its weight per element,
+the TV weights stay the edge lengths.  The total variation of a strain step is then the same on the coarse and
+the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
+dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from skfem import MeshQuad1
+
+from .errors import InputError
+from .fields import element_strains, recovered_strains
+from .mesh import tensor_structure
+from .pixels import PointLocator
+
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+           "transfer", "slip_region", "slip_weights", "refine_passes", "RefinementRecord"]
+
+#: Names of the indicators of :func:`indicators`.
+INDICATORS = ("jump", "gradient", "residual", "ncc")
+#: lambda_bar of the "jump" indicator's A[u] (R_P_sigma's plane-stress value).
+JUMP_LAMBDA_BAR = 2.0
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Options of adaptive refinement (``femreg.register(..., refine=...)``).
+
+    Parameters
+    ----------
+    passes : int
+        Refine-and-solve passes after the first solve (each halves the marked rows / columns once).
+    indicator : str
+        One of :data:`INDICATORS`.
+    threshold : float
+        Robust z-score above which an element / edge is marked (module docstring).
+    relative : float
+        "jump" and "gradient": also at least this fraction of the field's RMS ``|A[u]|`` (strain), so that the
+        noise of a field without a sharp feature marks nothing (uniform compression: jumps below 1 % of it).
+    min_size : (2,) mm
+        Smallest element size (axial, lateral) a split may produce; also never below 2 pixels.
+    axes : {"both", "axial", "lateral"}
+        Split rows (along depth), columns (lateral), or both.
+    levels : int
+        Halvings of a marked row / column per pass (2: to a quarter before the next solve; fewer solves).
+    slip : float, optional
+        "jump" only: the momentum regulariser's ``shear_traction`` weight on the edges of the cells next to an
+        edge whose shear-traction jump stands out (the region grows over the passes): layers sliding past each
+        other then pay less for the two shear-traction jumps at a band's faces (:mod:`femreg.shear`).  None: 1
+        everywhere.
+    """
+
+    passes: int = 2
+    indicator: str = "jump"
+    threshold: float = 4.0
+    relative: float = 0.03
+    min_size: tuple = (0.3, 0.6)
+    axes: str = "both"
+    slip: float | None = None
+    levels: int = 1
+
+    def __post_init__(self):
+        if not (isinstance(self.levels, (int, np.integer)) and not isinstance(self.levels, bool)
+                and 1 <= self.levels <= 4):
+            raise InputError(f"refinement levels must be an integer 1-4, got {self.levels!r}")
+        if self.slip is not None and not (np.isfinite(self.slip) and 0 < self.slip <= 1):
+            raise InputError(f"refinement slip must be None or a weight in (0, 1], got {self.slip!r}")
+        if not (isinstance(self.passes, (int, np.integer)) and not isinstance(self.passes, bool)
+                and 0 <= self.passes <= 6):
+            raise InputError(f"refinement passes must be an integer 0-6, got {self.passes!r}")
+        if self.indicator not in INDICATORS:
+            raise InputError(f"refinement indicator must be one of {INDICATORS}, got {self.indicator!r}")
+        if not (np.isfinite(self.threshold) and self.threshold >= 0):
+            raise InputError(f"refinement threshold must be a finite number >= 0, got {self.threshold!r}")
+        ms = np.broadcast_to(np.asarray(self.min_size, float), (2,))
+        if not (np.all(np.isfinite(ms)) and np.all(ms > 0)):
+            raise InputError(f"refinement min_size must be positive lengths (mm), got {self.min_size!r}")
+        if not (np.isfinite(self.relative) and self.relative >= 0):
+            raise InputError(f"refinement relative must be a finite number >= 0, got {self.relative!r}")
+        object.__setattr__(self, "min_size", (float(ms[0]), float(ms[1])))
+        if self.axes not in ("both", "axial", "lateral"):
+            raise InputError(f"refinement axes must be 'both', 'axial' or 'lateral', got {self.axes!r}")
+
+
+#: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.03
+#: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
+SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03)
+
+
+def as_refinement(spec) -> Refinement | None:
+    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes; "auto" -> the
+    defaults of :class:`Refinement`; a :class:`Refinement` as it is."""
+    if spec is None or spec is False:
+        return None
+    if isinstance(spec, Refinement):
+        return spec if spec.passes > 0 else None
+    if isinstance(spec, str):
+        if spec != "auto":
+            raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+        return Refinement()
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        return Refinement(passes=int(spec)) if spec else None
+    raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+
+
+@dataclass
+class RefinementRecord:
+    """What each pass did: elements before, rows and columns split, indicator threshold, seconds."""
+
+    passes: list
+
+    def summary(self) -> str:
+        if not self.passes:
+            return "refinement: nothing marked"
+        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split)"
+                 for p in self.passes]
+        return "refinement: " + "; ".join(parts)
+
+
+def _need_tensor(mesh):
+    ts = tensor_structure(mesh)
+    if ts is None:
+        raise InputError("adaptive refinement needs an axis-aligned tensor mesh (the default ROI mesh); "
+                         "the given mesh is not one")
+    return ts
+
+
+def _momentum(e):
+    div = e[:, 0] + e[:, 1]
+    lb = JUMP_LAMBDA_BAR
+    return lb * div + 2 * e[:, 0], lb * div + 2 * e[:, 1], 2 * e[:, 2]
+
+
+def strain_scale(mesh, u) -> float:
+    """RMS over the elements of ``|A[u]|`` (Frobenius, element centres): the scale of the field's strain."""
+    Axx, Ayy, Axy = _momentum(element_strains(mesh.p, mesh.t, u))
+    return float(np.sqrt(np.mean(Axx ** 2 + Ayy ** 2 + 2 * Axy ** 2)))
+
+
+def edge_jumps(mesh, u, tangential: bool = False):
+    """``|[[A]] n|`` across the interior edges of a tensor mesh from the element-centre strains:
+    ``(ja, jl)`` with ``ja`` (n_rows - 1, n_cols) across axial edges (between rows i and i + 1) and ``jl``
+    (n_rows, n_cols - 1) across lateral edges; dimensionless (strain units).  ``tangential``: also the
+    tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``."""
+    _, _, cell = _need_tensor(mesh)
+    e = element_strains(mesh.p, mesh.t, u)
+    Axx, Ayy, Axy = (a[cell] for a in _momentum(e))
+    ta, tl = np.diff(Axy, axis=0), np.diff(Axy, axis=1)
+    ja = np.hypot(np.diff(Axx, axis=0), ta)                          # n = (1, 0): (A_xx, A_xy)
+    jl = np.hypot(tl, np.diff(Ayy, axis=1))                          # n = (0, 1): (A_xy, A_yy)
+    return (ja, jl, np.abs(ta), np.abs(tl)) if tangential else (ja, jl)
+
+
+def indicators(mesh, u, indicator: str = "jump", data=None, quality=None) -> np.ndarray:
+    """Indicator per element (n_el,) of a solve on a tensor ``mesh`` (module docstring).  ``data``: the solve's
+    :class:`femreg.data_term.SSDTerm` ("residual"); ``quality``: the per-element NCC ("ncc")."""
+    _, _, cell = _need_tensor(mesh)
+    n_el = mesh.t.shape[1]
+    if indicator == "jump":
+        ja, jl = edge_jumps(mesh, u)
+        g = np.zeros(cell.shape)
+        g[:-1] = np.maximum(g[:-1], ja)
+        g[1:] = np.maximum(g[1:], ja)
+        g[:, :-1] = np.maximum(g[:, :-1], jl)
+        g[:, 1:] = np.maximum(g[:, 1:], jl)
+        out = np.empty(n_el)
+        out[cell.ravel()] = g.ravel()
+        return out
+    if indicator == "gradient":
+        s = recovered_strains(mesh.p, mesh.t, u)[mesh.t]             # (4, n_el, 3)
+        return np.linalg.norm(s.max(axis=0) - s.min(axis=0), axis=1)
+    if indicator == "ncc":
+        if quality is None:
+            raise InputError("the 'ncc' indicator needs the per-element NCC (quality)")
+        return 1.0 - np.nan_to_num(np.asarray(quality, float), nan=1.0)
+    if indicator == "residual":
+        if data is None:
+            raise InputError("the 'residual' indicator needs the solve's image term")
+        from .repair import _pixel_elements
+
+        el = _pixel_elements(data.quad)
+        r = data.residual(u)
+        num = np.bincount(el, weights=r * r, minlength=n_el)
+        den = np.bincount(el, weights=data.ref_values ** 2, minlength=n_el)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.nan_to_num(np.sqrt(num / den), nan=0.0)
+    raise InputError(f"refinement indicator must be one of {INDICATORS}, got {indicator!r}")
+
+
+def robust_cut(values, threshold: float) -> float:
+    """``median + threshold * 1.4826 MAD`` of ``values`` (finite ones)."""
+    v = np.asarray(values, float).ravel()
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return np.inf
+    med = float(np.median(v))
+    mad = 1.4826 * float(np.median(np.abs(v - med)))
+    return med + threshold * mad
+
+
+def mark(mesh, u, opts: Refinement, data=None, quality=None):
+    """Rows and columns of a tensor mesh to split: two boolean arrays (n_rows,), (n_cols,).  "jump": a row is
+    marked where an axial edge next to it stands out, a column where a lateral edge does (module docstring);
+    the other indicators mark the rows and columns of the marked elements."""
+    _, _, cell = _need_tensor(mesh)
+    rows = np.zeros(cell.shape[0], bool)
+    cols = np.zeros(cell.shape[1], bool)
+    slip = np.zeros(cell.shape, bool)
+    if opts.indicator == "jump":
+        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True)
+        cut = max(robust_cut(np.concatenate([ja.ravel(), jl.ravel()]), opts.threshold),
+                  opts.relative * strain_scale(mesh, u))
+        ma, ml = ja > cut, jl > cut
+        # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
+        sa, sl = ta > cut, tl > cut
+        slip[:-1] |= sa
+        slip[1:] |= sa
+        slip[:, :-1] |= sl
+        slip[:, 1:] |= sl
+        ra = ma.any(axis=1)
+        rows[:-1] |= ra
+        rows[1:] |= ra
+        cl = ml.any(axis=0)
+        cols[:-1] |= cl
+        cols[1:] |= cl
+    else:
+        eta = indicators(mesh, u, opts.indicator, data=data, quality=quality)
+        cut = robust_cut(eta, opts.threshold)
+        if opts.indicator == "gradient":
+            cut = max(cut, opts.relative * strain_scale(mesh, u))
+        m = (eta > cut)[cell]
+        rows, cols = m.any(axis=1), m.any(axis=0)
+    if opts.axes == "axial":
+        cols[:] = False
+    elif opts.axes == "lateral":
+        rows[:] = False
+    return rows, cols, slip
+
+
+def slip_region(mesh, slip) -> np.ndarray:
+    """Rectangles (k, 4) [x0, x1, y0, y1] mm of the cells ``slip`` (n_rows, n_cols) of a tensor mesh."""
+    xs, ys, _ = _need_tensor(mesh)
+    i, j = np.nonzero(slip)
+    return np.column_stack([xs[i], xs[i + 1], ys[j], ys[j + 1]])
+
+
+def slip_weights(rects, weight: float):
+    """``shear_traction`` callable of the momentum regulariser (one weight per edge): ``weight`` on the edges whose
+    midpoint lies in one of ``rects`` (closed), 1 elsewhere."""
+    rects = np.asarray(rects, float).reshape(-1, 4)
+
+    def w(jumps):
+        x, y = jumps.midpoints
+        tol = 1e-9
+        inside = np.zeros(x.shape, bool)
+        for x0, x1, y0, y1 in rects:
+            inside |= (x >= x0 - tol) & (x <= x1 + tol) & (y >= y0 - tol) & (y <= y1 + tol)
+        return np.where(inside, float(weight), 1.0)
+
+    return w
+
+
+def _split(breaks, marked, origin, spacing, min_size):
+    """Breaks (mm, on pixel-cell boundaries) with each marked interval split at the pixel edge nearest its middle
+    when both halves stay >= ``min_size`` and >= 2 pixels."""
+    k = np.rint((np.asarray(breaks) - origin) / spacing + 0.5).astype(np.int64)     # pixel-edge indices
+    new = []
+    for i in np.flatnonzero(marked):
+        a, b = k[i], k[i + 1]
+        m = int(np.rint(0.5 * (a + b)))
+        if min(m - a, b - m) >= 2 and min(m - a, b - m) * spacing >= min_size * (1 - 1e-9):
+            new.append(m)
+    if not new:
+        return np.asarray(breaks, float), 0
+    kk = np.union1d(k, new)
+    return origin + (kk - 0.5) * spacing, len(new)
+
+
+def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1):
+    """The graded tensor mesh with the marked rows / columns of ``mesh`` split in two, ``levels`` times (each
+    level halves every interval inside a marked one again; breaks on pixel-cell boundaries, see :func:`_split`).
+    Returns ``(mesh, n_rows_split, n_cols_split)`` (splits of all levels); the same mesh object when nothing was
+    split."""
+    xs, ys, _ = _need_tensor(mesh)
+    rows, cols = np.asarray(rows, bool), np.asarray(cols, bool)
+    if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
+        raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
+                         f"and {cols.shape}")
+    out, counts = [], []
+    for b, m, o, h, ms in ((xs, rows, origin[0], spacing[0], min_size[0]), (ys, cols, origin[1], spacing[1],
+                                                                         min_size[1])):
+        lo, hi = b[:-1][m], b[1:][m]
+        nb, total = np.asarray(b, float), 0
+        for _ in range(int(levels)):
+            mid = 0.5 * (nb[:-1] + nb[1:])
+            inside = np.zeros(mid.shape, bool)
+            for a, c in zip(lo, hi):
+                inside |= (mid > a) & (mid < c)
+            nb, k = _split(nb, inside, float(o), float(h), float(ms))
+            total += k
+            if k == 0:
+                break
+        out.append(nb)
+        counts.append(total)
+    if counts[0] == 0 and counts[1] == 0:
+        return mesh, 0, 0
+    return MeshQuad1.init_tensor(out[0], out[1]), counts[0], counts[1]
+
+
+def transfer(u, mesh, new_mesh) -> np.ndarray:
+    """Nodal vector of ``new_mesh`` holding the bilinear field ``u`` of ``mesh`` (exact for nested tensor meshes)."""
+    loc = PointLocator(mesh).locate(new_mesh.p.T)
+    if not np.all(loc.inside):
+        raise InputError("refined mesh has nodes outside the mesh it refines")
+    u = np.asarray(u, float)
+    out = np.empty(2 * new_mesh.p.shape[1])
+    out[0::2] = np.sum(loc.N * u[0::2][loc.nodes], axis=1)
+    out[1::2] = np.sum(loc.N * u[1::2][loc.nodes], axis=1)
+    return out
+
+
+def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
+    """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
+    (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
+    per-edge weights of :func:`slip_weights` with ``opts.slip``) from the previous solution
+    carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  Stops early when
+    nothing is marked.  Returns ``(sol, RefinementRecord)``."""
+    import time
+
+    from .repair import element_ncc
+
+    record = []
+    rects = np.zeros((0, 4))
+    for _ in range(opts.passes):
+        t = time.perf_counter()
+        mesh = sol.mesh
+        q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
+        rows, cols, slip = mark(mesh, sol.u, opts, data=sol.data, quality=q)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+        if opts.slip is not None:
+            rects = np.vstack([rects, slip_region(mesh, slip)])
+        if new is mesh:
+            break
+        st = slip_weights(rects, opts.slip) if (opts.slip is not None and len(rects)) else None
+        sol = solve_on(new, transfer(sol.u, mesh, new), st)
+        record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
+                           slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
+                           seconds=time.perf_counter() - t))
+    return sol, RefinementRecord(record)
+
+
+def refine_stage(sol, opts: Refinement, u0, hops, locator, reg_factory, solve, problem, solve_kw):
+    """Refinement as a stage of :func:`femreg.register`: :func:`refine_passes` with each solve's regulariser a
+    fresh ``reg_factory()`` whose alpha is rescaled to the refined mesh (:func:`femreg.scaling.refined_alpha`:
+    the weight of eq:objf stays the unrefined mesh's) and, with ``opts.slip``, its per-edge shear traction.
+    ``problem`` = ``(I1, I2, shape, spacing, origin)`` of :func:`femreg.gnsolve.solve`.  Returns ``(sol, record,
+    u0, hops, locator)`` with the start ``u0`` and the hop counts carried to the final mesh."""
+    from .scaling import refined_alpha
+
+    I1, I2, shape, spacing, origin = problem
+    base_mesh = sol.mesh
+
+    def solve_on(m, u_start, shear_traction=None):
+        def reg_on():
+            r = reg_factory()
+            r.alpha = refined_alpha(r.alpha, base_mesh, m)
+            if shear_traction is not None and hasattr(r, "shear_traction"):
+                r.shear_traction = shear_traction
+            return r
+        return solve(I1, I2, m, shape, spacing, origin, reg_on, u_start, **solve_kw)
+
+    sol, record = refine_passes(sol, opts, solve_on, spacing, origin)
+    if sol.mesh is not base_mesh:
+        u0, hops, locator = transfer(u0, base_mesh, sol.mesh), np.zeros(sol.mesh.p.shape[1], int), sol.locator
+    return sol, record, u0, hops, locator

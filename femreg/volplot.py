@@ -1,0 +1,287 @@
+"""Pictures of volumes: three orthogonal slices of B-mode, displacement, strain, modulus and quality with mm axes,
+and an off-screen pyvista rendering (orthogonal slices or an iso-surface) written to png.
+
+Volumes are arrays ``(axial, lateral, elevational)`` = ``(x, y, z)``; voxel ``[i, j, k]`` has its centre at
+``origin + (i dx, j dy, k dz)`` mm.  Fields come as a dict of such arrays keyed ``ux, uy, uz`` (mm), ``exx, eyy,
+ezz, exy, exz, eyz`` (small strain, tensor shear; drawn in %), ``quality`` (NCC, 0-1) and ``modulus`` (any
+unit; log scale), as a 3D registration result's ``on_grid`` returns them.  NaN (outside the registered domain)
+is drawn as background.
+
+The three slices (:func:`plot_volume_slices`): axial-lateral at elevation ``z`` (the scanner's B-mode plane),
+axial-elevational at lateral ``y`` (depth down in both), lateral-elevational at depth ``x`` (a C-plane); dashed
+lines in each mark where the other two cut it.  One colour bar per row, sharing its limits across the row
+(:func:`femreg.plot.colour_scale` conventions: diverging about 0 only for data that changes sign).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .plot import DIVERGING_CMAP, _colorbar, _fit_colorbars, _mpl, colour_scale
+
+__all__ = ["plot_volume_slices", "render_volume", "volume_bmode", "FIELD_LABELS", "STRAIN_KEYS"]
+
+STRAIN_KEYS = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
+#: Colour-bar label (quantity and unit) of every field key drawn.
+FIELD_LABELS = {
+    "ux": "axial displacement u_x (mm)", "uy": "lateral displacement u_y (mm)",
+    "uz": "elevational displacement u_z (mm)",
+    "exx": "axial strain e_xx (%)", "eyy": "lateral strain e_yy (%)", "ezz": "elevational strain e_zz (%)",
+    "exy": "shear strain e_xy (%)", "exz": "shear strain e_xz (%)", "eyz": "shear strain e_yz (%)",
+    "quality": "quality (local NCC)", "modulus": "modulus (relative)",
+}
+_ORDER = ("ux", "uy", "uz") + STRAIN_KEYS + ("modulus", "quality")
+
+
+def _vec3(value, name, positive=False):
+    try:
+        v = tuple(float(s) for s in value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be three numbers (x, y, z) mm, got {value!r}") from None
+    if len(v) != 3 or not all(np.isfinite(v)) or (positive and min(v) <= 0):
+        raise InputError(f"{name} must be three {'positive ' if positive else ''}finite numbers (x, y, z) mm, "
+                         f"got {value!r}")
+    return v
+
+
+def _volume(a, name):
+    arr = np.asarray(a, dtype=float)
+    if arr.ndim != 3 or min(arr.shape) < 2:
+        raise InputError(f"{name} must be a 3D (axial, lateral, elevational) array, got shape {arr.shape}")
+    return arr
+
+
+def volume_bmode(rf, dynamic_range: float = 50.0) -> np.ndarray:
+    """Log-compressed envelope (dB, ``[-dynamic_range, 0]``, 0 at the maximum) of an RF volume, the envelope
+    taken along the axial axis of every line (:func:`femreg.speckle.envelope`)."""
+    from .speckle import envelope
+
+    arr = _volume(rf, "reference")
+    if not np.all(np.isfinite(arr)):
+        raise InputError("reference volume contains NaN/Inf")
+    env = envelope(arr.reshape(arr.shape[0], -1)).reshape(arr.shape)
+    ref = float(env.max())
+    if ref <= 0:
+        return np.full(arr.shape, -float(dynamic_range))
+    with np.errstate(divide="ignore"):
+        return np.clip(20.0 * np.log10(env / ref), -float(dynamic_range), 0.0)
+
+
+def _index(coord, origin, spacing, n, name):
+    k = int(round((float(coord) - origin) / spacing))
+    if not 0 <= k < n:
+        raise InputError(f"slice position {name} = {coord:g} mm lies outside the volume "
+                         f"[{origin:g}, {origin + (n - 1) * spacing:g}] mm")
+    return k
+
+
+def _check_fields(fields, keys):
+    fields = dict(fields or {})
+    if keys is None:
+        keys = [k for k in _ORDER if k in fields] + [k for k in fields if k not in _ORDER]
+    keys = list(keys)
+    missing = [k for k in keys if k not in fields]
+    if missing:
+        raise InputError(f"fields has no {', '.join(missing)} (keys: {', '.join(fields) or 'none'})")
+    arrs = {k: _volume(fields[k], k) for k in keys}
+    shapes = {a.shape for a in arrs.values()}
+    if len(shapes) > 1:
+        raise InputError(f"field arrays differ in shape: {sorted(shapes)}")
+    return keys, arrs
+
+
+def _style(key, values):
+    """(values to draw, cmap, vmin, vmax, norm, label)."""
+    label = FIELD_LABELS.get(key, key)
+    v = np.asarray(values, float)
+    if key in STRAIN_KEYS:
+        v = 100.0 * v
+    if key == "quality":
+        return v, "viridis", 0.0, 1.0, None, label
+    if key == "modulus":
+        from matplotlib.colors import LogNorm
+
+        pos = v[np.isfinite(v) & (v > 0)]
+        if pos.size:
+            lo, hi = np.percentile(pos, [1, 99])
+            hi = max(hi, lo * 1.01)
+            return np.where(v > 0, v, np.nan), "viridis", None, None, LogNorm(lo, hi), label
+        return v, "viridis", None, None, None, label
+    cmap, lo, hi = colour_scale(v)
+    return v, cmap, lo, hi, None, label
+
+
+def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, reference=None, keys=None, at=None,
+                       out_png=None, dynamic_range: float = 50.0, title=None, dpi: int = 100,
+                       reference_spacing=None, reference_origin=None, panel_inches: float = 2.6):
+    """Three orthogonal slices per quantity: B-mode of ``reference`` (if given) and each field in ``keys``.
+
+    Parameters
+    ----------
+    fields : dict of (nx, ny, nz) arrays, optional
+        Keys of :data:`FIELD_LABELS` (others are drawn with their name as label); strain keys are drawn in %.
+    spacing, origin : (dx, dy, dz), (x0, y0, z0) mm
+        Grid of the field arrays (and of ``reference`` unless ``reference_spacing`` / ``reference_origin``).
+    reference : (nx, ny, nz) RF volume, optional
+        Drawn as B-mode (log envelope, ``dynamic_range`` dB).
+    keys : list of str, optional
+        Which fields, in order (default: all present, displacement, strain, modulus, quality).
+    at : (x, y, z) mm, optional
+        Where the slices cut (default: the centre of the field grid, or of the reference).
+    out_png : path, optional
+        Written when given.
+
+    Returns
+    -------
+    matplotlib.figure.Figure, one row per quantity, columns axial-lateral (at z), axial-elevational (at y),
+    lateral-elevational (at x).
+    """
+    keys, arrs = _check_fields(fields, keys)
+    if reference is None and not keys:
+        raise InputError("nothing to draw: give fields and/or a reference volume")
+    if spacing is None:
+        raise InputError("spacing (dx, dy, dz) in mm is required for mm axes")
+    sp = _vec3(spacing, "spacing", positive=True)
+    org = _vec3(origin, "origin")
+    rows = []
+    if reference is not None:
+        rsp = _vec3(reference_spacing, "reference_spacing", True) if reference_spacing is not None else sp
+        rorg = _vec3(reference_origin, "reference_origin") if reference_origin is not None else org
+        b = volume_bmode(reference, dynamic_range)
+        rows.append(("B-mode", b, rsp, rorg, dict(cmap="gray", vmin=-float(dynamic_range), vmax=0.0, norm=None),
+                     "echo level (dB)"))
+    for k in keys:
+        v, cmap, lo, hi, norm, label = _style(k, arrs[k])
+        rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm), label))
+    # slice position: centre of the first row's grid unless given
+    shape0, sp0, org0 = rows[0][1].shape, rows[0][2], rows[0][3]
+    if at is None:
+        at = tuple(o + 0.5 * (n - 1) * d for o, n, d in zip(org0, shape0, sp0))
+    at = _vec3(at, "at")
+    plt = _mpl()
+    L = [n * d for n, d in zip(shape0, sp0)]
+    widths = [L[1], L[2], L[1]]
+    fig = plt.figure(figsize=(panel_inches * sum(widths) / max(L[1], 1e-9) + 1.6,
+                              panel_inches * len(rows) * max(L[0], L[2]) / max(L[1], 1e-9) + 0.8),
+                     constrained_layout=True)
+    gs = fig.add_gridspec(len(rows), 3, width_ratios=widths)
+    axes_rows = []
+    for r, (name, vol, s, o, style, label) in enumerate(rows):
+        i = _index(at[0], o[0], s[0], vol.shape[0], "x")
+        j = _index(at[1], o[1], s[1], vol.shape[1], "y")
+        k = _index(at[2], o[2], s[2], vol.shape[2], "z")
+        edge = [(o[a] - 0.5 * s[a], o[a] + (vol.shape[a] - 0.5) * s[a]) for a in range(3)]
+        cmap = plt.get_cmap(style["cmap"]).with_extremes(bad=(0, 0, 0, 0))   # NaN: the background shows through
+        kw = dict(cmap=cmap, interpolation="nearest", aspect="equal")
+        if style["norm"] is not None:
+            kw["norm"] = style["norm"]
+        else:
+            kw.update(vmin=style["vmin"], vmax=style["vmax"])
+        panels = [
+            (vol[:, :, k], [edge[1][0], edge[1][1], edge[0][1], edge[0][0]], "lateral y (mm)", "axial x (mm)",
+             f"z = {o[2] + k * s[2]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[0] + i * s[0])]),
+            (vol[:, j, :], [edge[2][0], edge[2][1], edge[0][1], edge[0][0]], "elevational z (mm)", "axial x (mm)",
+             f"y = {o[1] + j * s[1]:.1f} mm", [("v", o[2] + k * s[2]), ("h", o[0] + i * s[0])]),
+            (vol[i, :, :].T, [edge[1][0], edge[1][1], edge[2][0], edge[2][1]], "lateral y (mm)",
+             "elevational z (mm)", f"x = {o[0] + i * s[0]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[2] + k * s[2])]),
+        ]
+        row_axes = []
+        for c, (img, ext, xl, yl, where, lines) in enumerate(panels):
+            ax = fig.add_subplot(gs[r, c])
+            im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if c < 2 else "lower", **kw)
+            for kind, pos in lines:
+                (ax.axvline if kind == "v" else ax.axhline)(pos, color="w" if name == "B-mode" else "k",
+                                                            lw=0.6, ls="--", alpha=0.6)
+            ax.set_xlabel(xl, fontsize=8)
+            ax.set_ylabel(yl, fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.set_title(f"{name}, {where}", fontsize=8)
+            row_axes.append(ax)
+        cb = _colorbar(row_axes[-1], im, label)
+        if style["norm"] is not None:                 # log scale: plain numbers, not 4 x 10^0
+            from matplotlib.ticker import FuncFormatter
+
+            plain = FuncFormatter(lambda val, _: f"{val:g}")
+            cb.ax.yaxis.set_major_formatter(plain)
+            cb.ax.yaxis.set_minor_formatter(plain)
+        axes_rows.append(row_axes)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    _fit_colorbars(fig, axes_rows)
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig
+
+
+def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key="exx", mode="slices", at=None,
+                  iso=None, window_size=(900, 700), cmap=None):
+    """Off-screen pyvista rendering of one field of a volume, written to ``out_png``.
+
+    ``fields``: dict as :func:`plot_volume_slices` (or one 3D array, named ``key``).  ``mode="slices"``: the
+    three orthogonal slices through ``at`` (default centre) in 3D; ``mode="iso"``: the iso-surface(s) of the
+    field at ``iso`` (one value or a list, in the drawn unit: % for strain; default the middle of the robust
+    range) inside the volume's outline, with the axial-lateral slice at ``at`` for context.  Depth points down,
+    lateral to the right, elevation into the screen at an oblique view; NaN voxels are not drawn.  Returns the
+    Path.  Needs pyvista (``pip install femreg[vtk]``).
+    """
+    if out_png is None:
+        raise InputError("render_volume needs out_png")
+    if mode not in ("slices", "iso"):
+        raise InputError(f"mode must be 'slices' or 'iso', got {mode!r}")
+    arr = fields.get(key) if isinstance(fields, dict) else fields
+    if arr is None:
+        raise InputError(f"fields has no {key!r} (keys: {', '.join(fields) or 'none'})")
+    v, cm, lo, hi, norm, label = _style(key, _volume(arr, key))
+    sp = _vec3(spacing, "spacing", positive=True)
+    org = _vec3(origin, "origin")
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    from .optional import require
+
+    pv = require("pyvista", feature="render_volume")
+    pv.OFF_SCREEN = True
+    if norm is not None:
+        lo, hi = norm.vmin, norm.vmax
+    # screen axes: lateral -> X, depth -> -Y (down), elevation -> Z
+    nx, ny, nz = v.shape
+    grid = pv.ImageData(dimensions=(ny, nx, nz), spacing=(sp[1], sp[0], sp[2]),
+                        origin=(org[1], -(org[0] + (nx - 1) * sp[0]), org[2]))
+    data = v[::-1].transpose(1, 0, 2)                  # (y, -x, z), depth flipped so that -x increases
+    grid.point_data[label] = np.asfortranarray(data).ravel(order="F")
+    centre = [o + 0.5 * (n - 1) * d for o, n, d in zip(org, v.shape, sp)]
+    a = _vec3(at, "at") if at is not None else tuple(centre)
+    bar = {"title": label, "vertical": True, "position_x": 0.86, "position_y": 0.1, "height": 0.8,
+           "title_font_size": 14, "label_font_size": 12}
+    plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
+    try:
+        plotter.set_background("white")
+        plotter.add_mesh(grid.outline(), color="black")
+        kw = dict(scalars=label, cmap=cmap or cm, clim=(lo, hi), nan_opacity=0.0, scalar_bar_args=bar,
+                  log_scale=norm is not None)
+        if mode == "slices":
+            plotter.add_mesh(grid.slice_orthogonal(x=a[1], y=-a[0], z=a[2]), **kw)
+        else:
+            finite = data[np.isfinite(data)]
+            if iso is None:
+                iso = [0.5 * (np.percentile(finite, 5) + np.percentile(finite, 95))] if finite.size else []
+            levels = [float(t) for t in np.atleast_1d(iso)]
+            filled = grid.copy()
+            filled.point_data[label] = np.nan_to_num(grid.point_data[label],
+                                                     nan=float(np.median(finite)) if finite.size else 0.0)
+            surf = filled.contour(levels, scalars=label)
+            if surf.n_points:
+                plotter.add_mesh(surf, **dict(kw, scalar_bar_args=bar))
+            plotter.add_mesh(grid.slice(normal="z", origin=(a[1], -a[0], a[2])), opacity=0.5,
+                             **dict(kw, show_scalar_bar=not surf.n_points))
+        plotter.show_bounds(xtitle="lateral y (mm)", ytitle="-depth x (mm)", ztitle="elevation z (mm)",
+                            color="black", font_size=10)
+        plotter.view_xy()
+        plotter.camera.azimuth = -30
+        plotter.camera.elevation = 20
+        plotter.camera.zoom(0.9)
+        plotter.screenshot(str(out_png))
+    finally:
+        plotter.close()
+    return Path(out_png)

@@ -1,0 +1,289 @@
+"""Adaptive refinement (femreg.refine): graded tensor meshes, transfer, indicators and marking, the weight under
+refinement, and register(refine=...)."""
+import numpy as np
+import pytest
+from skfem import MeshQuad1
+
+import femreg
+from femreg.errors import InputError
+from femreg.fields import element_strains
+from femreg.mesh import roi_mesh, tensor_structure
+from femreg.pixels import PixelQuadrature, PointLocator
+from femreg.refine import (Refinement, as_refinement, edge_jumps, indicators, mark, refine_tensor_mesh,
+                           slip_weights, transfer)
+from femreg.regularizers import make_regularizer
+from femreg.scaling import effective_alpha, refined_alpha
+
+SHAPE, SPACING, ORIGIN = (600, 60), (0.02, 0.2), (0.0, 0.0)
+
+
+def _mesh():
+    return roi_mesh(SHAPE, SPACING, ORIGIN, element_size=(1.5, 1.5))
+
+
+def _graded():
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    rows = np.zeros(xs.size - 1, bool)
+    cols = np.zeros(ys.size - 1, bool)
+    rows[[1, 2, 5]] = True
+    cols[[0, 3]] = True
+    fine, sx, sy = refine_tensor_mesh(m, rows, cols, SPACING, ORIGIN, min_size=(0.1, 0.4))
+    return m, fine, sx, sy
+
+
+def _nodal(mesh, f):
+    v = f(mesh.p.T)
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = v[:, 0], v[:, 1]
+    return u
+
+
+def test_graded_mesh_pixel_quadrature_sums_to_the_mesh_area():
+    m, fine, sx, sy = _graded()
+    assert (sx, sy) == (3, 2)
+    xs, ys, _ = tensor_structure(fine)
+    assert xs.size == tensor_structure(m)[0].size + 3 and ys.size == tensor_structure(m)[1].size + 2
+    # every break on a pixel-cell boundary (half-way between pixel centres)
+    for b, o, h in ((xs, ORIGIN[0], SPACING[0]), (ys, ORIGIN[1], SPACING[1])):
+        k = (b - o) / h + 0.5
+        assert np.allclose(k, np.rint(k), atol=1e-9)
+    q = PixelQuadrature(fine, SHAPE, SPACING, ORIGIN)
+    area = (xs[-1] - xs[0]) * (ys[-1] - ys[0])
+    assert q.weights.sum() == pytest.approx(area, rel=1e-12)
+    # and element by element: pixels per element x dx dy = its area
+    cell_el = PointLocator(fine).locate(q.points).element
+    n_el = fine.t.shape[1]
+    counts = np.bincount(cell_el, minlength=n_el) * SPACING[0] * SPACING[1]
+    p = fine.p[:, fine.t]
+    areas = np.ptp(p[0], axis=0) * np.ptp(p[1], axis=0)
+    assert np.allclose(counts, areas, rtol=1e-9)
+
+
+def test_split_respects_min_size_and_pixels():
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    rows = np.ones(xs.size - 1, bool)
+    cols = np.ones(ys.size - 1, bool)
+    fine, sx, sy = refine_tensor_mesh(m, rows, cols, SPACING, ORIGIN, min_size=(0.1, 0.8))
+    assert sx == xs.size - 1                      # 1.4 mm rows: all split
+    fx, fy, _ = tensor_structure(fine)
+    assert np.diff(fx).min() >= 0.1 and np.diff(fy).min() >= 0.8 - 1e-9
+    # a lateral element is split exactly when it is at least 2 x 0.8 mm wide (0.2 mm pixels: halves exact)
+    assert sy == int(np.sum(np.diff(ys) >= 1.6 - 1e-9)) and 0 < sy < ys.size - 1
+    fine2, _, _ = refine_tensor_mesh(fine, np.ones(fx.size - 1, bool), np.zeros(fy.size - 1, bool), SPACING,
+                                     ORIGIN, min_size=(0.5, 0.8))
+    assert fine2 is fine                          # 0.74 mm rows do not split into 0.37 mm ones
+    nothing, a, b = refine_tensor_mesh(m, rows & False, cols & False, SPACING, ORIGIN)
+    assert nothing is m and a == b == 0
+    # two levels at once: each marked row in quarters (1.42 mm -> 0.36 mm), the others untouched
+    one = np.zeros(xs.size - 1, bool)
+    one[2] = True
+    q, n, _ = refine_tensor_mesh(m, one, cols & False, SPACING, ORIGIN, min_size=(0.1, 0.8), levels=2)
+    qx = tensor_structure(q)[0]
+    assert n == 3 and qx.size == xs.size + 3
+    inner = qx[(qx > xs[2]) & (qx < xs[3])]
+    assert inner.size == 3 and np.allclose(np.diff(np.r_[xs[2], inner, xs[3]]), (xs[3] - xs[2]) / 4,
+                                              atol=SPACING[0])   # each level rounds to a pixel edge
+    with pytest.raises(InputError, match="rows"):
+        refine_tensor_mesh(m, one[:-1], cols, SPACING, ORIGIN)
+
+
+def test_transfer_is_exact_for_nested_meshes():
+    m, fine, _, _ = _graded()
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=2 * m.p.shape[1])
+    uf = transfer(u, m, fine)
+    pts = np.column_stack([rng.uniform(m.p[0].min(), m.p[0].max(), 500), rng.uniform(m.p[1].min(), m.p[1].max(), 500)])
+    a, b = PointLocator(m).locate(pts), PointLocator(fine).locate(pts)
+    va = np.sum(a.N * u[0::2][a.nodes], axis=1)
+    vb = np.sum(b.N * uf[0::2][b.nodes], axis=1)
+    assert np.max(np.abs(va - vb)) < 1e-12
+
+
+def _step_field(x0, e1=-0.01, e2=-0.004):
+    """Axial strain e1 above depth x0, e2 below (continuous u_x), uniform lateral strain."""
+    def f(p):
+        x, y = p[:, 0], p[:, 1]
+        ux = np.where(x < x0, e1 * x, e1 * x0 + e2 * (x - x0))
+        return np.column_stack([ux, 0.005 * y])
+    return f
+
+
+def test_jump_indicator_marks_the_rows_across_a_strain_step():
+    m = _mesh()
+    xs, ys, cell = tensor_structure(m)
+    x0 = 0.5 * (xs[4] + xs[5])                  # in the middle of row 4
+    u = _nodal(m, _step_field(x0))
+    rows, cols, slip = mark(m, u, Refinement())
+    assert np.flatnonzero(rows).tolist() == [3, 4, 5]     # the row holding the step and its two neighbours
+    assert not cols.any() and not slip.any()             # no lateral step, no shear-traction jump
+    eta = indicators(m, u, "jump")[cell]
+    assert eta[4].min() > 0 and np.all(eta[[0, 1, 2, 6]] < 1e-12)    # affine on both sides: no jump
+    eta_g = indicators(m, u, "gradient")[cell]          # recovered strains spread the step over two rows more
+    assert eta_g[[3, 4, 5]].min() > 0 and np.all(eta_g[[0, 1, 2, 6]] < 1e-12)
+
+
+def test_shear_traction_jump_marks_the_slip_region():
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    x0, x1 = xs[4], xs[5]                       # a band exactly one row thick: u_y slides across it
+
+    def f(p):
+        x = p[:, 0]
+        uy = 0.2 * np.clip((x - x0) / (x1 - x0), 0.0, 1.0)
+        return np.column_stack([-0.01 * x, uy])
+    rows, cols, slip = mark(m, _nodal(m, f), Refinement())
+    assert np.flatnonzero(rows).tolist() == [3, 4, 5]
+    assert np.flatnonzero(slip.any(axis=1)).tolist() == [3, 4, 5] and slip[4].all()
+    from femreg.refine import slip_region
+    w = slip_weights(slip_region(m, slip), 0.05)
+    reg = make_regularizer("momentum-stress", alpha=1.0, shear_traction=w)
+    reg.setup(m)
+    mids = reg.jumps.midpoints
+    inside = (mids[0] >= xs[3] - 1e-9) & (mids[0] <= xs[6] + 1e-9)
+    weights = w(reg.jumps)
+    assert np.all(weights[inside] == 0.05) and np.all(weights[~inside] == 1.0)
+
+
+def test_nothing_marked_on_an_affine_field_with_noise():
+    m = _mesh()
+    rng = np.random.default_rng(1)
+    u = _nodal(m, lambda p: np.column_stack([-0.01 * p[:, 0], 0.005 * p[:, 1]]))
+    u = u + rng.normal(scale=2e-5, size=u.size)          # 20 nm nodal noise: jumps ~1e-4 against |A| ~ 3e-2
+    rows, cols, _ = mark(m, u, Refinement())
+    assert not rows.any() and not cols.any()
+    ja, jl = edge_jumps(m, u)
+    assert max(ja.max(), jl.max()) > 0                     # the noise is there, below the relative floor
+
+
+def test_weight_of_a_piecewise_affine_field_is_the_same_on_the_refined_mesh():
+    # A strain step on a coarse edge: the sub-elements are affine, so the only jumps are the coarse ones, now on
+    # two half edges each; with refined_alpha the momentum term (and its hourglass part, zero here) is unchanged
+    # (delta of the TV norm ~0: its sqrt(delta) per unit edge length would count the new edges),
+    # while the weight scaled by the mean element area alone would be 1.9-2x dearer.
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    u = _nodal(m, _step_field(xs[4]))
+    m_fine, _, _ = refine_tensor_mesh(m, np.ones(xs.size - 1, bool), np.ones(len(tensor_structure(m)[1]) - 1, bool),
+                                      SPACING, ORIGIN, min_size=(0.1, 0.4))
+    uf = transfer(u, m, m_fine)
+    r0 = make_regularizer("momentum-stress", alpha=effective_alpha(0.2, m), hourglass=1000.0, dilatation="centre",
+                          delta=1e-24)
+    r0.setup(m)
+    a_fine = refined_alpha(0.2, m, m_fine)
+    assert effective_alpha(a_fine, m_fine) == pytest.approx(effective_alpha(0.2, m), rel=1e-12)
+    r1 = make_regularizer("momentum-stress", alpha=effective_alpha(a_fine, m_fine), hourglass=1000.0,
+                          dilatation="centre", delta=1e-24)
+    r1.setup(m_fine)
+    assert r0.energy(u) > 0
+    assert r1.energy(uf) == pytest.approx(r0.energy(u), rel=1e-9)
+    r2 = make_regularizer("momentum-stress", alpha=effective_alpha(0.2, m_fine), hourglass=1000.0,
+                          dilatation="centre", delta=1e-24)
+    r2.setup(m_fine)
+    assert r2.energy(uf) / r0.energy(u) > 1.8
+    # and the strains themselves are the coarse ones, element by element
+    e0 = element_strains(m.p, m.t, u)
+    e1 = element_strains(m_fine.p, m_fine.t, uf)
+    assert {round(v, 12) for v in e1[:, 0]} == {round(v, 12) for v in e0[:, 0]}
+
+
+def test_refinement_options_and_bad_input():
+    assert as_refinement(None) is None and as_refinement(0) is None and as_refinement(False) is None
+    assert as_refinement("auto") == Refinement() and as_refinement(3).passes == 3
+    for bad in ("yes", 2.5, True, -1):
+        with pytest.raises(InputError):
+            as_refinement(bad)
+    with pytest.raises(InputError, match="indicator"):
+        Refinement(indicator="magic")
+    with pytest.raises(InputError, match="slip"):
+        Refinement(slip=0.0)
+    with pytest.raises(InputError, match="min_size"):
+        Refinement(min_size=(0.0, 1.0))
+    skew = MeshQuad1(np.array([[0.0, 1.0, 1.2, 0.1], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
+    with pytest.raises(InputError, match="tensor mesh"):
+        indicators(skew, np.zeros(8))
+
+
+@pytest.fixture(scope="module")
+def compression_pair():
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    return make_pair(F.compression(0.01), "L7", (20.0, 16.0), 30.0, 0)
+
+
+def test_refine_changes_nothing_on_uniform_compression(compression_pair):
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, **kw)
+    r1 = femreg.register(d.ref, d.mov, refine=2, **kw)
+    assert "refinement: nothing marked" in r1.message
+    assert r1.mesh.t.shape[1] == r0.mesh.t.shape[1]
+    assert np.array_equal(r1.u, r0.u)
+
+
+def test_forced_refinement_keeps_uniform_strain_and_one_quality_per_element(compression_pair):
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, **kw)
+    r1 = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
+    assert r1.success and r1.mesh.t.shape[1] > 1.5 * r0.mesh.t.shape[1]
+    assert r1.quality.shape == (r1.mesh.t.shape[1],)
+    assert r1.refinement.passes and r1.refinement.passes[0]["elements"] == r0.mesh.t.shape[1]
+    assert r1.alpha_effective == pytest.approx(r0.alpha_effective, rel=1e-12)
+    # the mean axial strain stays the true -1 % within what the coarse mesh achieves plus a margin
+    e0 = np.nanmean(r0.on_grid()["exx"])
+    e1 = np.nanmean(r1.on_grid()["exx"])
+    assert abs(e1 + 0.01) < abs(e0 + 0.01) + 2e-4
+
+
+@pytest.fixture(scope="module")
+def band_pair():
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    return make_pair(F.ShearBand(8.0, 1.0, 0.15, 0.01), "L7", (16.0, 12.0), 30.0, 0)
+
+
+def _peak_exy(res, band):
+    from femreg.metrics import depth_profile, shear_band_metrics
+
+    g = res.on_grid()
+    x = res.origin[0] + np.arange(res.shape[0]) * res.spacing[0]
+    prof = depth_profile(np.asarray(g["exy"], float))
+    return shear_band_metrics(x, prof, (band.depth_mm - 3.5, band.depth_mm + 3.5))
+
+
+def test_slip_refinement_lets_a_shear_band_through(band_pair):
+    from femreg.refine import SLIP_REFINEMENT
+
+    d, band = band_pair, band_pair.field
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, **kw)
+    r1 = femreg.register(d.ref, d.mov, refine=SLIP_REFINEMENT, **kw)
+    m0, m1 = _peak_exy(r0, band), _peak_exy(r1, band)
+    assert r1.success and r1.refinement.passes and r1.refinement.passes[0]["slip_cells"] > 0
+    # rows only: the band is parallel to the probe face
+    assert all(p["columns"] == 0 for p in r1.refinement.passes)
+    # default: the band spread (peak measured 0.2-0.3 of the truth); refined with slip: within 30 %
+    assert m0["peak"] < 0.5 * band.peak_exy
+    assert abs(m1["peak"] / band.peak_exy - 1) < 0.3, m1
+    assert abs(m1["slide"] / band.slide_mm - 1) < 0.2 and abs(m1["depth"] - band.depth_mm) < 0.3, m1
+
+
+def test_cli_refine_flag(band_pair, tmp_path, capsys):
+    from femreg.cli import main
+
+    d = band_pair
+    np.save(tmp_path / "a.npy", d.ref.astype(np.float32))
+    np.save(tmp_path / "b.npy", d.mov.astype(np.float32))
+    args = [str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--spacing", *map(str, d.spacing)]
+    assert main(["register", *args, "-o", str(tmp_path / "r0.npz")]) == 0
+    assert main(["register", *args, "--refine", "1", "-o", str(tmp_path / "r1.npz")]) == 0
+    r0, r1 = femreg.load_result(tmp_path / "r0.npz"), femreg.load_result(tmp_path / "r1.npz")
+    assert r1.mesh.t.shape[1] > r0.mesh.t.shape[1]
+    assert np.asarray(r1.quality).shape == (r1.mesh.t.shape[1],)
+    capsys.readouterr()
+    assert main(["register", *args, "--refine", "lots", "-o", str(tmp_path / "r2.npz")]) == 2
+    assert "--refine" in capsys.readouterr().err

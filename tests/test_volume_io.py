@@ -1,0 +1,129 @@
+"""Volume readers: round trips through every format, the axis layout of each format written by hand, ambiguous
+and bad input refused with a message naming the right reader, ``femreg info`` on volumes."""
+import json
+
+import numpy as np
+import pytest
+
+from femreg.errors import FileFormatError, InputError
+from femreg.io import read_frames, read_volumes, save_volumes
+
+SP = (0.025, 0.2, 0.3)
+OR = (2.0, -3.0, -1.5)
+
+
+def _vol(shape=(7, 5, 3)):
+    """Distinct values telling every axis apart: v[i, j, k] = 10000 i + 100 j + k."""
+    i, j, k = np.indices(shape)
+    return (10000 * i + 100 * j + k).astype(np.float32)
+
+
+@pytest.mark.parametrize("ext,kw", [(".npz", {}), (".mat", {"mat_version": "5"}), (".mat", {"mat_version": "7.3"}),
+                                    (".mhd", {}), (".mha", {})])
+def test_round_trip_volume_and_sequence(tmp_path, ext, kw):
+    one = _vol()
+    seq = np.stack([one, one + 0.5, one + 1.0])
+    for name, arr in (("one", one), ("seq", seq)):
+        path = tmp_path / f"{name}{ext}"
+        save_volumes(path, arr, SP, origin=OR, **kw)
+        v = read_volumes(path)
+        want = arr[None] if arr.ndim == 3 else arr
+        assert v.frames.shape == want.shape and np.array_equal(v.frames, want), (ext, name)
+        assert v.spacing == pytest.approx(SP) and v.origin == pytest.approx(OR)
+        assert v.shape == (7, 5, 3) and v.n_frames == len(want)
+    assert read_volumes(tmp_path / f"seq{ext}", frames=[2]).frames[0][1, 2, 1] == pytest.approx(10201 + 1.0)
+
+
+def test_npy_needs_spacing(tmp_path):
+    p = tmp_path / "v.npy"
+    np.save(p, _vol())
+    with pytest.raises(InputError, match=r"spacing unknown.*\(dx, dy, dz\)"):
+        read_volumes(p)
+    v = read_volumes(p, spacing=SP)
+    assert v.spacing == SP and np.array_equal(v[0], _vol())
+
+
+def test_metaimage_axis_mapping_written_by_hand(tmp_path):
+    """A header written here: MetaImage x = lateral (fastest), y = axial, z = elevational, the 4th axis the
+    frame; spacing listed (dy, dx, dz)."""
+    vol = np.stack([_vol(), _vol() + 1])                          # (2, 7, 5, 3)
+    raw = np.ascontiguousarray(vol.transpose(0, 3, 1, 2))          # frame, elevational, axial, lateral (x fastest)
+    raw.astype("<f4").tofile(tmp_path / "s.raw")
+    (tmp_path / "s.mhd").write_text("ObjectType = Image\nNDims = 4\nDimSize = 5 7 3 2\nElementType = MET_FLOAT\n"
+                                    "ElementSpacing = 0.2 0.025 0.3 1\nOffset = -3 2 -1.5 0\n"
+                                    "ElementDataFile = s.raw\n")
+    v = read_volumes(tmp_path / "s.mhd")
+    assert np.array_equal(v.frames, vol)
+    assert v.spacing == pytest.approx(SP) and v.origin == pytest.approx(OR)
+    with pytest.raises(FileFormatError, match="read_volumes"):
+        read_frames(tmp_path / "s.mhd")
+
+
+def test_matlab_layout_frames_last(tmp_path):
+    """MATLAB order rf(axial, lateral, elevational, frame), written by scipy directly."""
+    import scipy.io
+
+    vol = np.stack([_vol(), _vol() + 1])
+    scipy.io.savemat(tmp_path / "m.mat", {"rf": np.moveaxis(vol, 0, -1), "spacing": np.array([SP])})
+    v = read_volumes(tmp_path / "m.mat")
+    assert np.array_equal(v.frames, vol) and v.spacing == pytest.approx(SP)
+
+
+def test_ambiguous_and_bad_input(tmp_path):
+    vol = _vol()
+    # 2D frames (two spacing values) are not a volume, and a volume's three values are not 2D frames
+    np.savez(tmp_path / "f2.npz", rf=vol, spacing=np.array([0.025, 0.2]))
+    with pytest.raises(FileFormatError, match="read_frames"):
+        read_volumes(tmp_path / "f2.npz")
+    assert read_frames(tmp_path / "f2.npz").n_frames == 7          # the 2D reading is unchanged
+    np.savez(tmp_path / "v3.npz", rf=vol, spacing=np.array(SP))
+    with pytest.raises(FileFormatError, match="read_volumes"):
+        read_frames(tmp_path / "v3.npz")
+    np.savez(tmp_path / "s4.npz", rf=np.stack([vol, vol]), spacing=np.array([0.025, 0.2]))
+    with pytest.raises(FileFormatError, match="read_volumes"):
+        read_frames(tmp_path / "s4.npz", spacing=(0.025, 0.2))
+    with pytest.raises(InputError, match="three numbers"):
+        read_volumes(tmp_path / "v3.npz", spacing=(0.1, 0.2))
+    np.savez(tmp_path / "d5.npz", rf=np.zeros((2, 3, 4, 5, 6)), spacing=np.array(SP))
+    with pytest.raises(FileFormatError, match="5 dimension"):
+        read_volumes(tmp_path / "d5.npz")
+    np.savez(tmp_path / "flat.npz", rf=np.zeros((8, 6, 1)), spacing=np.array(SP))
+    with pytest.raises(FileFormatError, match="degenerate"):
+        read_volumes(tmp_path / "flat.npz")
+    bad = vol.copy()
+    bad[1, 1, 1] = np.nan
+    np.savez(tmp_path / "nan.npz", rf=bad, spacing=np.array(SP))
+    with pytest.raises(FileFormatError, match="NaN"):
+        read_volumes(tmp_path / "nan.npz")
+    (tmp_path / "x.rf").write_bytes(b"\0" * 100)
+    with pytest.raises(InputError, match="volumes are read from"):
+        read_volumes(tmp_path / "x.rf")
+
+
+def test_cli_info_describes_volumes(tmp_path, capsys):
+    from femreg.cli import main
+
+    def _info(*args):
+        rc = main(["info", *map(str, args)])
+        cap = capsys.readouterr()
+        return rc, cap.out, cap.err
+
+    from forward.volume import Affine3D, VolumeProbe, make_volume_pair
+
+    pair = make_volume_pair(Affine3D(0.01), VolumeProbe(7.0, 30.8, 0.2, 0.25, 0.9, 2.0), (3.0, 3.0, 2.0),
+                            seed=0, snr_db=None)
+    save_volumes(tmp_path / "pair.npz", pair.frames, pair.spacing, origin=pair.origin)
+    rc, out, err = _info(tmp_path / "pair.npz", "--json")        # three spacing values: read as volumes unasked
+    assert rc == 0, (out, err)
+    info = json.loads(out)
+    assert info["kind"] == "volume" and info["frames"] == 2 and info["shape"] == list(pair.ref.shape)
+    assert info["spacing_mm"] == pytest.approx(list(pair.spacing))
+    import re
+
+    f_mhz = float(re.search(r"([\d.]+) MHz", info["rf_check"]).group(1))  # the 7 MHz carrier found on axis 0
+    assert abs(f_mhz - 7.0) < 0.35, info["rf_check"]
+    rc, out, _ = _info(tmp_path / "pair.npz")
+    assert "elevational" in out and "volumes   2" in out
+    np.save(tmp_path / "v.npy", pair.ref)                         # 3D array: 2D frames unless --volume
+    rc, out, _ = _info(tmp_path / "v.npy", "--volume")
+    assert rc == 1 and "no spacing found" in out
