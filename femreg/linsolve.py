@@ -20,7 +20,11 @@ Methods (``method``):
   ~(nodes across)^2): CHOLMOD's supernodal Cholesky (scikit-sparse, when installed; Chen et al., ACM TOMS 35
   (2008) 22, doi:10.1145/1391989.1391995), else SuperLU as ``"splu"``.  ``"pardiso"``: MKL PARDISO (pypardiso,
   when installed; about twice as fast as SuperLU on a 27 k-DOF hexahedral elasticity matrix, but not
-  bit-reproducible run to run), else ``"sparse"``.
+  bit-reproducible run to run), else ``"sparse"``.  With ``large_method="pardiso"`` (volume registration) the
+  ``"auto"`` rule sends systems whose band exceeds :data:`BAND_LIMIT` there instead of to SuperLU: the momentum
+  Hessian of a 21 x 21 x 16 node hexahedral mesh (21 k unknowns, bandwidth 2714) factorised in 31 s banded,
+  118 s SuperLU, 16 s PARDISO on the loaded 2-core machine; 16 x 16 x 12 nodes 5.8 / 16.3 / 6.1 s; 11 x 11 x 8
+  0.5 / 1.3 / 1.4 s.
 
 The banded Cholesky factorises the paper geometry's Hessians faster than SuperLU at every mesh size tried
 (timings: benchmarks/README.md).  A tiny diagonal shift (``shift``, relative to the mean diagonal; 1e-10 for
@@ -38,7 +42,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-__all__ = ["SPDSolver", "BandedPattern", "BAND_LIMIT", "LINEAR_SOLVERS", "one_blas_thread", "single_blas_thread"]
+__all__ = ["SPDSolver", "BandedPattern", "BAND_LIMIT", "LINEAR_SOLVERS", "have_pardiso", "one_blas_thread",
+           "single_blas_thread"]
 
 #: Largest band (entries, (bandwidth + 1) * n) that ``method="auto"`` factorises with banded Cholesky:
 #: 2.5e7 entries = 200 MB (a 0.5 mm mesh of the paper geometry needs 1.4e7).
@@ -174,6 +179,15 @@ def _sparse_direct(H, shift: float, splu, pardiso: bool = False):
         return splu(H)
 
 
+def have_pardiso() -> bool:
+    """Whether pypardiso (MKL PARDISO) is importable."""
+    try:
+        import pypardiso  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 _BLAS = None
 
 
@@ -213,7 +227,8 @@ class SPDSolver:
     ``one_thread``: run the banded factorisation and solves on one BLAS thread (:func:`one_blas_thread`)."""
 
     def __init__(self, method: str = "auto", shift: float = 1e-10, permc_spec: str = "MMD_AT_PLUS_A", B=None,
-                 band_limit: int = BAND_LIMIT, orderings=None, upper: bool = False, one_thread: bool = True):
+                 band_limit: int = BAND_LIMIT, orderings=None, upper: bool = False, one_thread: bool = True,
+                 large_method: str = "splu"):
         if method not in LINEAR_SOLVERS:
             raise ValueError(f"unknown linear solver {method!r}; choose one of {', '.join(LINEAR_SOLVERS)}")
         self.permc_spec = permc_spec
@@ -224,6 +239,11 @@ class SPDSolver:
         self.orderings = orderings
         self.upper = upper
         self.one_thread = one_thread
+        if large_method not in ("splu", "pardiso"):
+            raise ValueError(f"large_method must be 'splu' or 'pardiso', got {large_method!r}")
+        #: where ``"auto"`` sends systems whose band exceeds ``band_limit``: "splu", or "pardiso" (when installed,
+        #: else the "sparse" branch)
+        self.large_method = large_method
         self._key = None
         self._fact = None
         self._pattern = None
@@ -266,6 +286,9 @@ class SPDSolver:
                         return pat.factor(H.data, self._shift_value(H))
                 except np.linalg.LinAlgError:
                     pass  # a non-positive pivot (semi-definite H): SuperLU without pivoting carries on
+            else:
+                if self.large_method == "pardiso":
+                    return _sparse_direct(H, self._shift_value(H), self._splu, pardiso=True)
         if self.method in ("sparse", "pardiso"):
             H = sp.csc_matrix(H)
             return _sparse_direct(H, self._shift_value(H), self._splu, pardiso=self.method == "pardiso")

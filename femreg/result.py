@@ -55,6 +55,12 @@ class RegistrationResult:
         The rectangle registered (the mesh covers it, less the margin at the image edges); None: the whole frames.
     """
 
+    #: Names of the columns of :meth:`strain` and :meth:`displacement` (a volume's result has six and three:
+    #: :class:`femreg.volume_result.VolumeResult`); consumers index strains by these names.
+    strain_components = ("exx", "eyy", "exy")
+    displacement_components = ("ux", "uy")
+    ndim = 2
+
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
@@ -206,6 +212,10 @@ def load_result(path) -> RegistrationResult:
     The one reader of the contract (``femreg.load_result`` and ``femreg.io.load_result`` are this function).
     Raises :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a
     result."""
+    from .volume_result import is_volume_result, load_volume_result
+
+    if is_volume_result(path):          # a volume's result (femreg.volume_result)
+        return load_volume_result(path)
     mesh, u, kw, element_grid = read_result(path)
     res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid

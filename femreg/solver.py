@@ -129,7 +129,8 @@ def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_bac
         raise ValueError(f"maxiter must be >= 0, got {maxiter}")
     if not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be > 0, got {tol}")
-    solver = SPDSolver(linear_solver)
+    # a string names the method; an SPDSolver (e.g. the volume path's, with large_method="pardiso") is used as is
+    solver = linear_solver if isinstance(linear_solver, SPDSolver) else SPDSolver(linear_solver)
     u = np.array(u0, dtype=float, copy=True)
     if not np.all(np.isfinite(u)):
         raise ValueError("initial displacement contains NaN/Inf")

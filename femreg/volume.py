@@ -30,6 +30,7 @@ from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
 from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
 from .scaling import effective_alpha
+from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
 from .speckle import envelope, rf_period
 from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
@@ -69,51 +70,68 @@ def global_search_3d(ref_env, mov_env, spacing, origin, strains=GLOBAL_STRAINS_3
     """Best axial strain s and translation t (3,) mm of ``u(x) = (s (x - x_c), 0, 0) + t`` between two envelope
     volumes: for each s the moving envelope is resampled axially and cross-correlated with the reference by FFT
     (translations up to ``fraction`` of the extent, sub-voxel by a parabola through the peak); the pair with the
-    largest normalised correlation wins.  Returns ``(s, t, x_c, ncc)``."""
+    largest normalised correlation wins.  The strains are scanned at twice their step first, then the two
+    neighbours of the best.  Returns ``(s, t, x_c, ncc)``."""
+    from scipy import fft as sfft
+
     a = ref_env - ref_env.mean()
     shape = a.shape
     x = origin[0] + spacing[0] * np.arange(shape[0])
     xc = float(x.mean())
-    full = [2 * n for n in shape]
-    Fa = np.fft.rfftn(a, s=full, axes=(0, 1, 2))
-    na = float(np.linalg.norm(a))
     lim = [max(1, int(fraction * n)) for n in shape]
-    best = (-np.inf, 0.0, np.zeros(3))
-    for s in strains:
+    full = [sfft.next_fast_len(n + L + 1, real=True) for n, L in zip(shape, lim)]
+    Fa = np.conj(sfft.rfftn(a, s=full, axes=(0, 1, 2)))
+    na = float(np.linalg.norm(a))
+    keep = []
+    for ax, L in enumerate(lim):        # lags within the search range (negative lags wrap around)
+        k = np.zeros(full[ax], bool)
+        k[:L + 1] = True
+        k[full[ax] - L:] = True
+        keep.append(k)
+    mask = keep[0][:, None, None] & keep[1][None, :, None] & keep[2][None, None, :]
+    grid_yz = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
+    cache = {}
+
+    def score(s):
+        if s in cache:
+            return cache[s]
         pos = (xc + (1.0 + s) * (x - xc) - origin[0]) / spacing[0]          # where mov is read for x
-        m = ndimage.map_coordinates(mov_env, np.stack(np.meshgrid(pos, np.arange(shape[1]), np.arange(shape[2]),
-                                                                  indexing="ij")),
-                                    order=1, mode="nearest")
+        # axial resampling only: linear interpolation along x of every (y, z) line
+        i0 = np.clip(np.floor(pos).astype(int), 0, shape[0] - 2)
+        f = np.clip(pos - i0, 0.0, 1.0)[:, None, None]
+        m = (1.0 - f) * mov_env[i0] + f * mov_env[i0 + 1]
         m = m - m.mean()
         nm = float(np.linalg.norm(m))
         if not (na > 0 and nm > 0):
-            continue
-        c = np.fft.irfftn(np.conj(Fa) * np.fft.rfftn(m, s=full, axes=(0, 1, 2)), s=full, axes=(0, 1, 2))
-        # c[k] = sum a(x) m(x + k): lags within the search range on every axis (negative lags wrap around)
-        for ax, L in enumerate(lim):
-            n2 = c.shape[ax]
-            keep = np.zeros(n2, bool)
-            keep[:L + 1] = True
-            keep[n2 - L:] = True
-            idx = [slice(None)] * 3
-            idx[ax] = ~keep
-            c[tuple(idx)] = -np.inf
+            cache[s] = (-np.inf, np.zeros(3))
+            return cache[s]
+        c = sfft.irfftn(Fa * sfft.rfftn(m, s=full, axes=(0, 1, 2)), s=full, axes=(0, 1, 2))
+        c[~mask] = -np.inf
         k = np.unravel_index(int(np.argmax(c)), c.shape)
-        val = float(c[k]) / (na * nm)
-        if val > best[0]:
-            t = np.empty(3)
-            for ax in range(3):
-                n2 = c.shape[ax]
-                km, kp = list(k), list(k)
-                km[ax] = (k[ax] - 1) % n2
-                kp[ax] = (k[ax] + 1) % n2
-                c0, cm, cp = c[k], c[tuple(km)], c[tuple(kp)]
-                den = cm - 2 * c0 + cp
-                off = 0.5 * (cm - cp) / den if np.isfinite(den) and den < 0 else 0.0
-                lag = k[ax] if k[ax] <= n2 // 2 else k[ax] - n2
-                t[ax] = (lag + float(np.clip(off, -0.5, 0.5))) * spacing[ax]
-            best = (val, float(s), t)
-    return best[1], best[2], xc, best[0]
+        t = np.empty(3)
+        for ax in range(3):
+            n2 = c.shape[ax]
+            km, kp = list(k), list(k)
+            km[ax] = (k[ax] - 1) % n2
+            kp[ax] = (k[ax] + 1) % n2
+            c0, cm, cp = c[k], c[tuple(km)], c[tuple(kp)]
+            den = cm - 2 * c0 + cp
+            off = 0.5 * (cm - cp) / den if np.isfinite(den) and den < 0 else 0.0
+            lag = k[ax] if k[ax] <= n2 // 2 else k[ax] - n2
+            t[ax] = (lag + float(np.clip(off, -0.5, 0.5))) * spacing[ax]
+        cache[s] = (float(c[k]) / (na * nm), t)
+        return cache[s]
+
+    del grid_yz
+    strains = list(strains)
+    coarse = strains[::2]
+    best = max(coarse, key=lambda s: score(s)[0])
+    i = strains.index(best)
+    for j in (i - 1, i + 1):
+        if 0 <= j < len(strains):
+            score(strains[j])
+    s = max(cache, key=lambda v: cache[v][0])
+    return float(s), cache[s][1], xc, cache[s][0]
 
 
 def _nodal(fn, mesh) -> np.ndarray:
@@ -204,7 +222,10 @@ def solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offse
     reg.alpha = effective_alpha(reg.alpha, mesh)
     reg.setup(mesh)
     psi_start = data.energy(u0)
-    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
+    # the band of a hexahedral mesh grows with its cross-section squared: large systems to PARDISO if installed
+    solver = SPDSolver(linear_solver, large_method="pardiso") if linear_solver in ("auto", "pardiso") else \
+        linear_solver
+    gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=solver,
                       callback=callback, strain_tol=strain_tol,
                       strain_operator=None if strain_tol is None else element_strain_operator_3d(mesh))
     return VolumeSolve(mesh=mesh, u=gn.x, gn=gn, data=data, reg=reg, start=u0, psi_start=psi_start)

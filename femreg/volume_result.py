@@ -14,7 +14,7 @@ from .fields import check_strain_mode
 from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, STRAIN_COMPONENTS_3D, HexLocator, element_strains_3d,
                             recovered_strains_3d)
 
-__all__ = ["VolumeResult", "load_volume_result", "VOLUME_RESULT_KIND"]
+__all__ = ["VolumeResult", "load_volume_result", "is_volume_result", "VOLUME_RESULT_KIND"]
 
 #: ``kind`` entry of a saved volume result (.npz).
 VOLUME_RESULT_KIND = "femreg-volume-result-1"
@@ -183,6 +183,15 @@ class VolumeResult:
         return (f"VolumeResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, success={self.success}, "
                 f"nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, ncc {self.ncc_before:.3f} -> "
                 f"{self.ncc_after:.3f}, message={self.message!r})")
+
+
+def is_volume_result(path) -> bool:
+    """Whether ``path`` is an .npz written by :meth:`VolumeResult.save` (False for anything unreadable)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return "kind" in z.files and str(z["kind"]) == VOLUME_RESULT_KIND
+    except (OSError, ValueError, TypeError):
+        return False
 
 
 def load_volume_result(path) -> VolumeResult:

@@ -233,7 +233,8 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     inside = np.isfinite(g["ux"])
     assert 0.25 < inside.mean() < 1.0 and np.all(np.isfinite(g["quality"][inside]))
     p = res.save(tmp_path / "v.npz")
-    back = load_volume_result(p)
+    back = femreg.load_result(p)           # the one reader dispatches on the file kind
+    assert isinstance(back, femreg.VolumeResult)
     pts = np.array([[2.0, 2.5, 3.0], [4.0, 3.0, 2.0]])
     assert np.array_equal(back.displacement(pts), res.displacement(pts))
     assert back.success == res.success and back.message == res.message
@@ -274,9 +275,72 @@ def test_track_volumes_accumulates_increments(affine_pair):
 @pytest.mark.slow
 @pytest.mark.parametrize("f_mhz", [3.0, 7.5, 15.0])
 def test_exact_affine_field_3d_per_probe(f_mhz):
-    shape = (500, 40, 32)              # 10 x 8 x 8 mm
-    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * SPACING / 2)
-    ref, mov, spacing, _ = volume_pair(field, shape=shape, f_mhz=f_mhz, seed=11)
+    dx = min(0.02, 1.54 / (2 * 4 * f_mhz))                       # RF sampled at >= 4 f0
+    shape = (int(round(10.0 / dx)), 40, 32)                     # 10 x 8 x 8 mm
+    spacing = (dx,) + SPACING[1:]
+    field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * spacing / 2)
+    ref, mov, spacing, _ = volume_pair(field, shape=shape, spacing=spacing, f_mhz=f_mhz, seed=11)
     res = femreg.register(ref, mov, spacing=spacing)
     assert res.success, res.message
     assert _total_error(res, G, margin=2.0) < 0.02
+
+
+def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
+    from femreg.cli import main
+
+    ref, mov, spacing, G = affine_pair
+    seq = tmp_path / "seq.npz"
+    np.savez(seq, rf=np.stack([ref, mov]), spacing=np.asarray(spacing))
+    out = tmp_path / "r.npz"
+    assert main(["register", str(seq), "-o", str(out), "--element-size", "2"]) == 0
+    res = load_volume_result(out)
+    e = res.strain(np.array([[3.0, 3.0, 3.0]]))[0]
+    assert abs(e[0] - _true_strain(G)[0]) < 0.1 * abs(_true_strain(G)[0])
+    assert main(["track", str(seq), "-o", str(tmp_path / "t"), "--element-size", "2"]) == 0
+    assert (tmp_path / "t" / "frame_001.npz").exists()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, rf=ref[:, :, 0], spacing=np.asarray(spacing))
+    assert main(["register", str(bad), "-o", str(out)]) == 2
+    assert "volume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", ["auto", "splu", "pardiso"])
+def test_sparse_solver_branches_solve_a_3d_gauss_newton_system(method):
+    from femreg.linsolve import SPDSolver, have_pardiso
+
+    if method == "pardiso" and not have_pardiso():
+        pytest.skip("pypardiso not installed")
+    mesh = MeshHex1.init_tensor(np.linspace(0, 4, 6), np.linspace(0, 3, 5), np.linspace(0, 2, 4))
+    r = make_regularizer("momentum-stress", hourglass=1000.0)
+    r.setup(mesh)
+    rng = np.random.default_rng(8)
+    u = 1e-3 * rng.standard_normal(3 * mesh.p.shape[1])
+    H = (r.hessian(u) + sp.identity(u.size)).tocsc()
+    b = rng.standard_normal(u.size)
+    s = SPDSolver(method, shift=0.0, band_limit=10 if method == "auto" else 25_000_000, large_method="pardiso")
+    x = s.solve(H, b)
+    assert np.linalg.norm(H @ x - b) < 1e-8 * np.linalg.norm(b)
+    if method == "auto":     # band above the limit: the sparse branch (PARDISO when installed, else SuperLU)
+        assert s.last_method == ("pardiso" if have_pardiso() else "splu")
+
+
+def test_user_forms_work_on_hexahedra():
+    from skfem import BilinearForm, LinearForm
+    from skfem.helpers import div, dot, grad
+
+    from femreg.regularizers import from_form, from_jump_forms
+
+    xs = np.linspace(0.0, 4.0, 5)                       # 4 elements of 1 mm along x
+    mesh = MeshHex1.init_tensor(xs, np.linspace(0, 3, 3), np.linspace(0, 2, 3))
+    G = np.array([[-0.01, 0.004, 0.0], [0.002, 0.005, -0.001], [0.0, 0.003, 0.005]])
+    r = from_form(BilinearForm(lambda u, v, w: div(u) * div(v)), alpha=2.0, quadrature="centre")
+    r.setup(mesh)
+    assert r.energy(_affine_nodal(mesh, G)) == pytest.approx(0.5 * 2.0 * np.trace(G) ** 2 * 24.0, rel=1e-12)
+    # jump of d u_x / dn across the faces: u_x = x^2 interpolated trilinearly has slope x_i + x_{i+1} in element
+    # i, so each of the 3 interior x planes (3 x 2 mm) jumps by 2; the y and z faces see d u_x / dy = dz = 0
+    tv = from_jump_forms(LinearForm(lambda v, w: dot(grad(v)[0], w.n)), alpha=1.0, delta=1e-30)
+    tv.setup(mesh)
+    u = np.zeros(3 * mesh.p.shape[1])
+    u[0::3] = mesh.p[0] ** 2
+    assert tv.energy(u) == pytest.approx(3 * 6.0 * 2.0, rel=1e-10)
+    assert tv.energy(_affine_nodal(mesh, G)) < 1e-12

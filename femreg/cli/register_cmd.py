@@ -75,6 +75,10 @@ def run(args) -> int:
     from femreg.errors import InputError
 
     kw = registration_kwargs(args)
+    from ._volume import read_volume_file, register_volumes
+    vol = read_volume_file(args.reference)
+    if vol is not None:                 # RF volumes (spacing with 3 values)
+        return register_volumes(args, vol, kw)
     if args.refine is not None:
         from femreg.refine import SLIP_REFINEMENT
 

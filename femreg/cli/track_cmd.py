@@ -45,6 +45,10 @@ def add_parser(subparsers):
 def run(args) -> int:
     from ..sequence import track
 
+    from ._volume import read_volume_file, track_volumes
+    vol = read_volume_file(args.file)
+    if vol is not None:                 # a volume sequence (spacing with 3 values)
+        return track_volumes(args, vol, registration_kwargs(args))
     fr = frames_from_args(args)
     kw = registration_kwargs(args)
 

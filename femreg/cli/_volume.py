@@ -1,0 +1,100 @@
+"""``femreg register`` / ``femreg track`` on volumes: an ``.npz`` whose ``spacing`` holds three values (dx, dy,
+dz mm) and whose ``rf`` (or only) array is a volume (n_x, n_y, n_z) or a volume sequence (n_frames, n_x, n_y,
+n_z)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["read_volume_file", "register_volumes", "track_volumes"]
+
+#: register/track options that mean nothing on volumes
+_NOT_FOR_VOLUMES = ("roi", "depth", "check_orientation", "geometry")
+
+
+def read_volume_file(path):
+    """``(array, spacing (3,), origin (3,))`` when ``path`` is an .npz volume (spacing of 3 values), else None."""
+    p = Path(path)
+    if p.suffix.lower() != ".npz" or not p.exists():
+        return None
+    try:
+        z = np.load(p, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    with z:
+        if "spacing" not in z or np.size(z["spacing"]) != 3:
+            return None
+        key = "rf" if "rf" in z else next((k for k in z.files if k not in ("spacing", "origin")), None)
+        if key is None:
+            raise InputError(f"{path}: no volume array in the file")
+        arr = np.asarray(z[key])
+        if arr.ndim not in (3, 4):
+            raise InputError(f"{path}: spacing has 3 values but {key!r} has shape {arr.shape}; a volume is "
+                             f"(n_x, n_y, n_z), a volume sequence (n_frames, n_x, n_y, n_z)")
+        origin = np.asarray(z["origin"], float).ravel() if "origin" in z else np.zeros(3)
+        if origin.size != 3:
+            origin = np.zeros(3)
+        return arr, np.asarray(z["spacing"], float).ravel(), origin
+
+
+def _kwargs(kw):
+    return {k: v for k, v in kw.items() if k not in _NOT_FOR_VOLUMES}
+
+
+def register_volumes(args, vol, kw) -> int:
+    """The register command on a volume file (``vol`` from :func:`read_volume_file`)."""
+    import femreg
+
+    arr, spacing, origin = vol
+    if args.moving is None:
+        if arr.ndim != 4:
+            raise InputError(f"{args.reference}: one volume; give MOVING, or a file holding a volume sequence")
+        i, j = args.pair or (0, 1)
+        ref, mov = arr[i], arr[j]
+    else:
+        other = read_volume_file(args.moving)
+        if other is None:
+            raise InputError(f"{args.moving}: not a volume .npz (spacing with 3 values)")
+        if not np.allclose(other[1], spacing):
+            raise InputError(f"spacing differs between volumes: {tuple(spacing)} vs {tuple(other[1])}")
+        ref = arr if arr.ndim == 3 else arr[(args.pair or (0, 0))[0]]
+        mov = other[0] if other[0].ndim == 3 else other[0][(args.pair or (0, 0))[1]]
+    if not str(args.output).endswith(".npz"):
+        raise InputError(f"output must be a .npz file, got {args.output}")
+    try:
+        res = femreg.register(ref, mov, spacing=spacing, origin=origin, **_kwargs(kw))
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1)
+        print(f"femreg register: error: registration failed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return 1
+    res.save(args.output)
+    print(res)
+    print(f"wrote {args.output}")
+    if not res.success:
+        print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def track_volumes(args, vol, kw) -> int:
+    """The track command on a volume-sequence file: ``frame_KKK.npz`` (frame 0 -> K) in the output folder."""
+    from ..volume import track_volume
+
+    arr, spacing, origin = vol
+    if arr.ndim != 4:
+        raise InputError(f"{args.file}: a single volume; track needs a volume sequence (n_frames, n_x, n_y, n_z)")
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    tr = track_volume(list(arr), spacing=spacing, origin=origin, **_kwargs(kw))
+    for k, res in enumerate(tr.accumulated, start=1):
+        res.save(out / f"frame_{k:03d}.npz")
+        print(f"frame {k:3d}: ncc {tr.results[k - 1].ncc_before:.3f} -> {tr.results[k - 1].ncc_after:.3f}, "
+              f"nit {tr.results[k - 1].nit}" + ("" if tr.results[k - 1].success else "  FAILED"))
+    print(f"femreg track: {len(tr)} volumes in {out}")
+    return 0 if tr.success else 1
