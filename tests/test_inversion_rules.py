@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import femreg
-from femreg.inversion import (DOF_FRACTION, MISFIT_LIMIT, _effective_parameters, _tensor_mesh, invert,
+from femreg.inversion import (DOF_AREA, MISFIT_LIMIT, _effective_parameters, _tensor_mesh, invert,
                               modulus_contrast)
 
 from test_inversion import REGION, inclusion, solution  # noqa: E402  (shared FE solutions)
@@ -52,7 +52,7 @@ def test_beta_rule_takes_the_gamma_nearest_its_target():
     res = invert(_noisy(sol, 2e-3), region=REGION, element_size=3.0, uncertainty=False)
     gam = [e["gamma"] for e in res.sweep]
     assert np.all(np.diff(gam) > 0), gam                 # fewer parameters determined at larger beta
-    target = DOF_FRACTION * res.mesh.t.shape[1]
+    target = min(900.0 / DOF_AREA, 0.5 * res.mesh.t.shape[1])     # a 30 x 30 mm region
     chosen = next(e["gamma"] for e in res.sweep if e["beta"] == res.beta)
     assert all(abs(np.log(chosen / target)) <= abs(np.log(g / target)) + 1e-12 for g in gam)
     assert res.success and res.beta_rule.startswith("effective parameters")
