@@ -388,8 +388,9 @@ def main(argv=None):
             rows += json.loads(Path(f).read_text())
         sets = list(dict.fromkeys(r["set"] for r in rows))
     else:
+        cost = {"L3": 0, "paper": 1, "L7": 2, "L12": 3, "L15": 4}      # cheap meshes first
         for name in sets:
-            for spec in SETS[name]:
+            for spec in sorted(SETS[name], key=lambda sp: cost.get(sp[2], 5)):
                 got = run_case(*spec, beta_study=not a.no_beta_study,
                                rows_wanted=None if not a.rows else a.rows.split(","))
                 for r in got:
@@ -399,8 +400,8 @@ def main(argv=None):
                 print(f"{r['case']}: " + ", ".join(f"{x['row']} {x['estimate']:.2f}" for x in got)
                       + f" (femreg ratio {r['ratio']:.2f}, {r['success']}, beta {r['beta']:.3g}, "
                         f"best {r.get('best_beta', np.nan):.3g}: {r.get('best_ratio', np.nan):.2f})", flush=True)
-        if a.json:
-            Path(a.json).write_text(json.dumps(rows, default=float))
+                if a.json:      # after every case: a long run can be summarised before it ends
+                    Path(a.json).write_text(json.dumps(rows, default=float))
     text = table([r for r in rows if r["set"] != "curves" or r["row"] in ("femreg", "1/SR")])
     for name in sets:
         sel = [r for r in rows if r["set"] == name]

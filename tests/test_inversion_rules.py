@@ -94,3 +94,20 @@ def test_misfit_above_the_noise_level_is_flagged(tmp_path):
     r = _cli("invert", pair, "-o", tmp_path / "mu.npz", "--beta", "0.01")
     assert r.returncode == 1 and "noise level" in r.stderr and (tmp_path / "mu.npz").exists()
     assert json.loads(str(np.load(tmp_path / "mu.npz")["meta"]))["success"] is False
+
+
+def test_lateral_strain_outside_every_model_is_flagged_under_auto():
+    """A lateral displacement that is lost (zero, as NCC block matching's sub-pitch estimate can give): no 2D
+    model strains laterally by 0 x the axial strain, and model='auto' says so instead of picking plane stress."""
+    sol = solution("plane-stress", 40.0)
+
+    def axial_only(p):
+        u = sol.displacement(p)
+        u[:, 1] = 0.0
+        return u
+
+    res = invert(axial_only, region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
+    assert abs(res.strain_ratio) < 0.05 and not res.success
+    assert any("outside what any model gives" in f for f in res.flags)
+    full = invert(sol.displacement, region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
+    assert full.success and not full.flags, full.flags
