@@ -322,6 +322,7 @@ def curves_figure(rows, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
 
     fem = [r for r in rows if r["row"] in ("femreg", "1/SR") and r["model"] == "plane-strain" and r["probe"] == "L7"
            and r["level"] == 0.01]
@@ -352,8 +353,16 @@ def curves_figure(rows, path):
         ax.axhline(1.0, color="0.5", lw=0.8)
         ax.set_xlabel(xlabel)
         ax.set_yscale("log")
+        ticks = [0.4, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0]
+        ax.yaxis.set_major_locator(matplotlib.ticker.FixedLocator(ticks))
+        ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FixedFormatter([f"{t:g}" for t in ticks]))
         if key == "contrast":
             ax.set_xscale("log")
+            xt = [0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0]
+            ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator(xt))
+            ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FixedFormatter([f"{t:g}" for t in xt]))
     axes[0].set_ylabel("estimate / truth (x: flagged)")
     axes[0].legend(fontsize=8, loc="best")
     fig.suptitle("Contrast recovery of femreg.invert's default path (plane strain, L7, 1 %); "
