@@ -49,13 +49,51 @@ CONTRASTS = (0.25, 0.5, 2.0, 4.0)
 SETTINGS = (("L7", 20.0), ("paper", 20.0))
 QUICK_SETTINGS = (("L7", 20.0),)
 MODELS = ("plane-strain", "plane-stress")
+#: Held out: cases no rule or constant was chosen on (other probes, seeds, radii, compressions and SNRs), inside the
+#: targets' range (2D truths, radius >= 4 mm, SNR >= 15 dB, contrast 0.25-4): (model, contrast, probe, snr, radius
+#: mm, compression, seed).
+HELD_OUT = tuple((m, c, pr, snr, r, lev, seed)
+                 for m in MODELS
+                 for c, pr, snr, r, lev, seed in ((0.25, "L3", 20.0, 5.0, 0.01, 1), (4.0, "L3", 20.0, 5.0, 0.01, 1),
+                                                  (0.5, "L12", 15.0, 4.0, 0.01, 2), (2.0, "L12", 15.0, 4.0, 0.01, 2),
+                                                  (0.25, "L7", 30.0, 6.0, 0.02, 3), (4.0, "L7", 30.0, 6.0, 0.02, 3),
+                                                  (0.5, "L15", 25.0, 5.0, 0.04, 4), (4.0, "paper", 15.0, 4.0, 0.02, 5)))
+#: Fresh: drawn after the beta rule's form and constant were fixed (on the main set, its form checked on HELD_OUT),
+#: new seeds and combinations, inside the targets' range.
+FRESH = tuple((m, c, pr, snr, r, lev, seed)
+              for m in MODELS
+              for c, pr, snr, r, lev, seed in ((0.5, "L3", 25.0, 6.0, 0.01, 11), (2.0, "L3", 15.0, 4.0, 0.02, 12),
+                                               (0.25, "L12", 20.0, 5.0, 0.01, 13), (4.0, "L12", 30.0, 6.0, 0.03, 14),
+                                               (2.0, "L7", 20.0, 4.0, 0.01, 15), (0.25, "paper", 25.0, 6.0, 0.01, 16),
+                                               (0.5, "L7", 15.0, 4.0, 0.04, 17), (2.0, "paper", 30.0, 5.0, 0.02, 18)))
+#: Outside the targets' range, for the contrast-recovery curves (plane strain, L7, 1 %, seed 6, one parameter
+#: varied from the 5 mm / 20 dB / contrast 4 or 0.25 case): radius, contrast, SNR.
+CURVES = (tuple(("plane-strain", c, "L7", 20.0, r, 0.01, 6) for c in (0.25, 4.0) for r in (1.5, 2.5, 3.5, 8.0))
+          + tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 6) for c in (0.125, 8.0))
+          + tuple(("plane-strain", c, "L7", snr, 5.0, 0.01, 6) for c in (0.25, 4.0) for snr in (10.0, 30.0)))
 SIZE, TOP = (30.0, 30.0), 5.0
+#: NCC block matching window (axial, lateral) mm
+NCC_WINDOW = (2.0, 3.0)
 
 
-def truth_field(model, contrast, level=0.01):
-    sol = cached_solve(model, **dict(F.INCLUSION_MODEL, inclusion_modulus=BACKGROUND_E * contrast,
-                                     compression_mm=1.0))
-    return F.Inclusion("stiff", model, level, _solution=sol)
+def truth_field(model, contrast, level=0.01, radius=5.0):
+    params = dict(F.INCLUSION_MODEL, inclusion_modulus=BACKGROUND_E * contrast, compression_mm=1.0)
+    if radius != 5.0:   # as forward.fields.Inclusion refines the FE mesh for its radius
+        params.update(inclusion_diameter_mm=2.0 * radius, mesh_size_mm=min(params["mesh_size_mm"], 0.25 * radius))
+    sol = cached_solve(model, **params)
+    return F.Inclusion("stiff", model, level, radius_mm=None if radius == 5.0 else radius, _solution=sol)
+
+
+def case_name(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0):
+    """Cache key and label: the original 16 cases keep their short names."""
+    name = f"{model}-{contrast:g}_{probe}_{snr:g}"
+    if radius != 5.0:
+        name += f"_r{radius:g}"
+    if level != 0.01:
+        name += f"_c{100 * level:g}"
+    if seed:
+        name += f"_s{seed}"
+    return name
 
 
 def sampled_contrast(fun, centre, R):
@@ -69,13 +107,13 @@ def sampled_contrast(fun, centre, R):
     return float(np.mean(v[inner]) / np.mean(v[ring])), float(np.std(v[ring]) / np.mean(v[ring]))
 
 
-def register(case, field):
+def register(case, field, probe, snr, seed=0):
     folder = cache_dir() / "bench_inversion"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{case}.npz"
     if path.exists():
         return femreg.load_result(path), float("nan")
-    pair = make_pair(field, case.split("_")[1], SIZE, float(case.split("_")[2]), 0, top_mm=TOP, name=case)
+    pair = make_pair(field, probe, SIZE, snr, seed, top_mm=TOP, name=case)
     t = time.perf_counter()
     res = femreg.register(pair.ref, pair.mov, spacing=pair.spacing, origin=pair.origin)
     dt = time.perf_counter() - t
@@ -84,10 +122,10 @@ def register(case, field):
 
 
 def calibration(inv, field, contrast, uncut=False):
-    """(fraction within +-1 sigma, elements); ``uncut``: only elements not cut by the disk's edge (whose true
-    value, a mix of two moduli, is not defined by the centre)."""
+    """(fraction within +-1 sigma, elements, |z| per element); ``uncut``: only elements not cut by the disk's edge
+    (whose true value, a mix of two moduli, is not defined by the centre)."""
     if inv.uncertainty is None:
-        return np.nan, 0
+        return np.nan, 0, []
     c = inv.centroids
     true = np.where(field.inside(c), np.log(contrast), 0.0)
     ok = inv.constrained & np.isfinite(inv.uncertainty)
@@ -95,35 +133,59 @@ def calibration(inv, field, contrast, uncut=False):
         node_in = field.inside(inv.mesh.p.T)[inv.mesh.t]
         ok &= node_in.all(axis=0) | (~node_in).all(axis=0)
     z = np.abs(np.log(inv.mu[ok]) - true[ok]) / inv.uncertainty[ok]
-    return float(np.mean(z <= 1.0)), int(ok.sum())
+    return float(np.mean(z <= 1.0)), int(ok.sum()), z.tolist()
 
 
-def run_case(model, contrast, probe, snr, beta_study=True):
-    case = f"{model}-{contrast:g}_{probe}_{snr:g}"
-    field = truth_field(model, contrast)
-    reg, t_reg = register(case, field)
+def _block_matching(pair, reg):
+    """NCC block matching's displacement (2 x 3 mm windows, 75 % overlap: a vector every 0.5 x 0.75 mm, finer than
+    femreg.blockmatch's default 5 x 9 mm windows, whose 7 x 4 vectors over these images cannot show a 5 mm disk) and
+    the region it covers inside the mesh."""
+    from femreg.blockmatch import block_match
+
+    bm = block_match(pair.ref, pair.mov, pair.spacing, pair.origin, window=NCC_WINDOW, overlap=(0.75, 0.75))
+    p = reg.mesh.p
+    region = ((max(p[0].min(), bm.x.min()), min(p[0].max(), bm.x.max())),
+              (max(p[1].min(), bm.y.min()), min(p[1].max(), bm.y.max())))
+    return bm, region
+
+
+def run_case(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0, beta_study=True, rows_wanted=None):
+    case = case_name(model, contrast, probe, snr, radius, level, seed)
+    field = truth_field(model, contrast, level, radius)
+    reg, t_reg = register(case, field, probe, snr, seed)
     centre, R = field.centre, field.radius_mm
     rows = []
     p = reg.mesh.p
     region = ((p[0].min(), p[0].max()), (p[1].min(), p[1].max()))
     ext = p[:, reg.mesh.t].max(axis=1) - p[:, reg.mesh.t].min(axis=1)
     h = tuple(np.median(ext, axis=1))
-    pair = make_pair(field, probe, SIZE, snr, 0, top_mm=TOP, name=case)
-    for name, inp, kw in (("exact", field.displacement, dict(region=region, element_size=h)),
-                          ("femreg", reg, {}), ("femreg L-curve", reg, dict(beta_method="l-curve")),
-                          ("femreg one-step", reg, dict(reference_image=pair.ref, moving_image=pair.mov))):
+    pair = make_pair(field, probe, SIZE, snr, seed, top_mm=TOP, name=case)
+    todo = [("exact", lambda: field.displacement, lambda: dict(region=region, element_size=h)),
+            ("femreg", lambda: reg, dict), ("femreg growth", lambda: reg, lambda: dict(beta_method="growth")),
+            ("femreg one-step", lambda: reg, lambda: dict(reference_image=pair.ref, moving_image=pair.mov))]
+    bm = []
+    todo.append(("NCC", lambda: bm[0][0], lambda: dict(region=bm[0][1], element_size=h)))
+    for name, inp_f, kw_f in todo:
+        if rows_wanted is not None and name not in rows_wanted:
+            continue
+        if name == "NCC":
+            bm.append(_block_matching(pair, reg))
+        inp, kw = inp_f(), kw_f()
         t = time.perf_counter()
         inv = femreg.invert(inp, **kw)
         dt = time.perf_counter() - t
         cest, cv = sampled_contrast(inv.shear_modulus, centre, R)
-        cal, ncal = calibration(inv, field, contrast)
-        calu, ncalu = calibration(inv, field, contrast, uncut=True)
-        row = dict(case=case, model=model, contrast=contrast, probe=probe, snr=snr, row=name, estimate=cest,
-                   ratio=cest / contrast, cv=cv, success=inv.success, flags="; ".join(inv.flags)[:90],
-                   chosen_model=inv.model, beta=inv.beta, cal=cal, ncal=ncal, calu=calu, ncalu=ncalu, seconds=dt)
+        cal, ncal, z = calibration(inv, field, contrast)
+        calu, ncalu, _ = calibration(inv, field, contrast, uncut=True)
+        row = dict(case=case, model=model, contrast=contrast, probe=probe, snr=snr, radius=radius, level=level,
+                   seed=seed, row=name, estimate=cest, ratio=cest / contrast, cv=cv, success=inv.success,
+                   flags="; ".join(inv.flags), chosen_model=inv.model, beta=inv.beta, cal=cal, ncal=ncal,
+                   calu=calu, ncalu=ncalu, z=z if name == "femreg" else [], seconds=dt, misfit=inv.misfit,
+                   n_el=int(inv.mesh.t.shape[1]), element_mm=float(np.sqrt(h[0] * h[1])))
         if beta_study and name == "femreg":
             best = None
-            for b in femreg.inversion.BETA_GRID:
+            up = femreg.inversion.BETA_GRID[0] * 10.0 ** (0.5 * np.arange(femreg.inversion.DOF_UP_STEPS, 0, -1))
+            for b in tuple(up) + femreg.inversion.BETA_GRID:
                 fi = femreg.invert(inp, beta=b, uncertainty=False, **kw)
                 rb = sampled_contrast(fi.shear_modulus, centre, R)[0] / contrast
                 if best is None or abs(np.log(rb)) < abs(np.log(best[1])):
@@ -133,9 +195,10 @@ def run_case(model, contrast, probe, snr, beta_study=True):
     strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
     s_in_over_ring = sampled_contrast(strain, centre, R)[0]
     sr = 1.0 / s_in_over_ring
-    rows.append(dict(case=case, model=model, contrast=contrast, probe=probe, snr=snr, row="1/SR", estimate=sr,
-                     ratio=sr / contrast, cv=np.nan, success=True, flags="", chosen_model="", beta=np.nan,
-                     cal=np.nan, ncal=0, calu=np.nan, ncalu=0, seconds=np.nan))
+    rows.append(dict(case=case, model=model, contrast=contrast, probe=probe, snr=snr, radius=radius, level=level,
+                     seed=seed, row="1/SR", estimate=sr, ratio=sr / contrast, cv=np.nan, success=True, flags="",
+                     chosen_model="", beta=np.nan, cal=np.nan, ncal=0, calu=np.nan, ncalu=0, z=[], seconds=np.nan,
+                     misfit=np.nan, n_el=0, element_mm=np.nan))
     return rows
 
 
@@ -193,73 +256,180 @@ def table(rows):
     for r in rows:
         bb = f"{r['best_beta']:.3g} ({r['best_ratio']:.2f})" if "best_beta" in r else ""
         out.append(f"| {r['case']} | {r['row']} | {r['chosen_model']} | {r['estimate']:.2f} | {r['ratio']:.2f} | "
-                   f"{_pct(r['cv'])} | {r['success']} | {_g(r['beta'])} | {bb} | {_pct(r['cal'])} | {r['flags']} |")
+                   f"{_pct(r['cv'])} | {r['success']} | {_g(r['beta'])} | {bb} | {_pct(r['cal'])} | "
+                   f"{r['flags'][:90]} |")
     return "\n".join(out)
 
 
-def summary(rows):
+def in_targets(r):
+    """The targets' range: 2D truth, radius >= 4 mm, SNR >= 15 dB, contrast 0.25-4."""
+    return r["radius"] >= 4.0 and r["snr"] >= 15.0 and 0.25 <= r["contrast"] <= 4.0
+
+
+def _band(r):
+    return bool(r["success"]) and 0.85 <= r["ratio"] <= 1.15
+
+
+def summary(rows, label=""):
     fem = [r for r in rows if r["row"] == "femreg"]
+    if not fem:
+        return ""
     sr = {r["case"]: r for r in rows if r["row"] == "1/SR"}
-    acc = [r for r in fem if r["success"] and 0.85 <= r["ratio"] <= 1.15]
+    by = {(r["case"], r["row"]): r for r in rows}
+    acc = [r for r in fem if _band(r)]
     wrong = [r for r in rows if r["row"] != "1/SR"
              if r["success"] and (r["estimate"] - 1) * (r["contrast"] - 1) < 0]
     stiff = [r for r in fem if r["contrast"] > 1]
     closer = [r for r in stiff if r["success"] and abs(np.log(r["ratio"])) < abs(np.log(sr[r["case"]]["ratio"]))]
-    lc = [r for r in rows if r["row"] == "femreg L-curve"]
-    lc_acc = [r for r in lc if r["success"] and 0.85 <= r["ratio"] <= 1.15]
-    os_ = [r for r in rows if r["row"] == "femreg one-step"]
-    os_acc = [r for r in os_ if r["success"] and 0.85 <= r["ratio"] <= 1.15]
-    os_better = [r for r, f in zip(os_, fem) if abs(np.log(r["ratio"])) < abs(np.log(f["ratio"]))]
-    os_sec = max((r["seconds"] for r in os_), default=np.nan)
+    lines = [f"**{label}** ({len(fem)} cases)", "",
+             f"- femreg rows: {len(acc)}/{len(fem)} unflagged with ratio 0.85-1.15 (flagged count as misses); "
+             f"{sum(not r['success'] for r in fem)} flagged"]
+    for other in ("femreg growth", "femreg one-step", "NCC", "exact"):
+        o = [by[(r["case"], other)] for r in fem if (r["case"], other) in by]
+        if o:
+            lines.append(f"- {other}: {sum(_band(x) for x in o)}/{len(o)} in the band "
+                         f"({sum(not x['success'] for x in o)} flagged)")
+    os_ = [(by[(r["case"], "femreg one-step")], r) for r in fem if (r["case"], "femreg one-step") in by]
+    if os_:
+        lines.append(f"- one-step closer to the truth than two-step on "
+                     f"{sum(abs(np.log(o['ratio'])) < abs(np.log(f['ratio'])) for o, f in os_)}/{len(os_)}; slowest "
+                     f"{max(o['seconds'] for o, _ in os_):.1f} s (two-step included)")
     beta = [r for r in fem if "best_ratio" in r]
     beta_ok = [r for r in beta if abs(r["ratio"] / r["best_ratio"] - 1) <= 0.15]
     cv_ok = [r for r in fem if r["cv"] <= 0.15]
-    cal_n = sum(r["ncal"] for r in fem)
-    cal = sum(r["cal"] * r["ncal"] for r in fem if r["ncal"]) / max(cal_n, 1)
+    z = np.concatenate([np.asarray(r["z"], float) for r in fem] + [np.zeros(0)])
+    cal_ex = [r for r in rows if r["row"] == "exact" and r["ncal"]]
+    cal_ex_v = sum(r["cal"] * r["ncal"] for r in cal_ex) / max(sum(r["ncal"] for r in cal_ex), 1)
     calu_n = sum(r["ncalu"] for r in fem)
     calu = sum(r["calu"] * r["ncalu"] for r in fem if r["ncalu"]) / max(calu_n, 1)
-    cal_ex_n = sum(r["ncal"] for r in rows if r["row"] == "exact")
-    cal_ex = sum(r["cal"] * r["ncal"] for r in rows if r["row"] == "exact" and r["ncal"]) / max(cal_ex_n, 1)
-    lines = [f"- femreg rows: {len(acc)}/{len(fem)} unflagged with ratio 0.85-1.15 (flagged count as misses); "
-             f"{sum(not r['success'] for r in fem)} flagged",
-             f"- same with the L-curve rule: {len(lc_acc)}/{len(lc)} ({sum(not r['success'] for r in lc)} flagged)",
-             f"- one-step from the images: {len(os_acc)}/{len(os_)} in the band "
-             f"({sum(not r['success'] for r in os_)} flagged); closer to the truth than two-step on "
-             f"{len(os_better)}/{len(os_)}; slowest {os_sec:.1f} s (two-step included)",
-             f"- wrong side of 1 with success=True (all inversion rows): {len(wrong)}",
-             f"- stiff cases closer than 1/SR (unflagged): {len(closer)}/{len(stiff)}",
-             f"- background CV <= 15 %: {len(cv_ok)}/{len(fem)}",
-             f"- beta rule within 15 % of the truth-best beta's contrast ratio: {len(beta_ok)}/{len(beta)}",
-             f"- calibration (true log mu within +-1 sigma): femreg {100 * cal:.0f} % of {cal_n} elements; "
-             f"exact {100 * cal_ex:.0f} % of {cal_ex_n}; femreg without the elements cut by the disk's edge "
-             f"{100 * calu:.0f} % of {calu_n}"]
+    lines += [f"- wrong side of 1 with success=True (all inversion rows): {len(wrong)}",
+              f"- stiff cases closer than 1/SR (unflagged): {len(closer)}/{len(stiff)}",
+              f"- background CV <= 15 %: {len(cv_ok)}/{len(fem)}",
+              f"- beta rule within 15 % of the truth-best beta's contrast ratio: {len(beta_ok)}/{len(beta)}",
+              f"- calibration (true log mu within +-1 sigma): femreg {100 * np.mean(z <= 1):.0f} % of {z.size} "
+              f"elements (68 % of them within +-{np.quantile(z, 0.68):.2f} sigma); exact "
+              f"{100 * cal_ex_v:.0f} %; femreg without the elements cut by the disk's edge {100 * calu:.0f} %",
+              f"- misfit at the chosen beta (units of (strain h)^2): {min(r['misfit'] for r in fem):.2g}-"
+              f"{max(r['misfit'] for r in fem):.2g}; slowest femreg inversion {max(r['seconds'] for r in fem):.1f} s "
+              f"({max(r['n_el'] for r in fem)} elements at most)", ""]
     return "\n".join(lines)
 
 
+def curves_figure(rows, path):
+    """Contrast ratio (estimate / truth) of the default path against radius, contrast and SNR (CURVES cases and
+    the main L7 plane-strain cases at their default parameters)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
+
+    fem = [r for r in rows if r["row"] in ("femreg", "1/SR") and r["model"] == "plane-strain" and r["probe"] == "L7"
+           and r["level"] == 0.01]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4), constrained_layout=True)
+    specs = (("radius", "inclusion radius (mm)", lambda r: r["snr"] == 20.0),
+             ("contrast", "true contrast", lambda r: r["snr"] == 20.0 and r["radius"] == 5.0),
+             ("snr", "SNR (dB)", lambda r: r["radius"] == 5.0))
+    for ax, (key, xlabel, keep) in zip(axes, specs):
+        for which, style in (("femreg", "o-"), ("1/SR", "s:")):
+            for c_sel, colour in ((lambda c: c < 1, "tab:blue"), (lambda c: c > 1, "tab:red")):
+                if key != "contrast":
+                    sel = sorted((r for r in fem if r["row"] == which and keep(r) and c_sel(r["contrast"])
+                                  and r["contrast"] in (0.25, 4.0)), key=lambda r: r[key])
+                else:
+                    sel = sorted((r for r in fem if r["row"] == which and keep(r) and c_sel(r["contrast"])),
+                                 key=lambda r: r[key])
+                if not sel:
+                    continue
+                x = [r[key] for r in sel]
+                y = [r["ratio"] for r in sel]
+                ax.plot(x, y, style, color=colour, mfc="none" if which == "1/SR" else colour,
+                        label=f"{which} {'soft' if c_sel(0.5) and colour == 'tab:blue' else 'stiff'}")
+                if which == "femreg":
+                    for xi, yi, r in zip(x, y, sel):
+                        if not r["success"]:
+                            ax.plot(xi, yi, "x", color="k", ms=9)
+        ax.axhspan(0.85, 1.15, color="0.9", zorder=0)
+        ax.axhline(1.0, color="0.5", lw=0.8)
+        ax.set_xlabel(xlabel)
+        ax.set_yscale("log")
+        ticks = [0.4, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0]
+        ax.yaxis.set_major_locator(matplotlib.ticker.FixedLocator(ticks))
+        ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FixedFormatter([f"{t:g}" for t in ticks]))
+        if key == "contrast":
+            ax.set_xscale("log")
+            xt = [0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0]
+            ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator(xt))
+            ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FixedFormatter([f"{t:g}" for t in xt]))
+    axes[0].set_ylabel("estimate / truth (x: flagged)")
+    axes[0].legend(fontsize=8, loc="best")
+    fig.suptitle("Contrast recovery of femreg.invert's default path (plane strain, L7, 1 %); "
+                 "grey band 0.85-1.15")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+SETS = {"main": tuple((m, c, pr, snr, 5.0, 0.01, 0) for pr, snr in SETTINGS for m in MODELS for c in CONTRASTS),
+        "held-out": HELD_OUT, "fresh": FRESH, "curves": CURVES,
+        "quick": tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 0) for c in CONTRASTS)}
+
+
 def main(argv=None):
+    import json
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="one probe (L7) only")
+    ap.add_argument("--set", action="append", choices=tuple(SETS), help="case set(s) (default: main)")
+    ap.add_argument("--quick", action="store_true", help="the quick set (4 L7 plane-strain cases), no extras")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--no-beta-study", action="store_true", help="skip the fixed-beta sweeps")
+    ap.add_argument("--json", help="write the rows (all metrics) to this JSON file")
+    ap.add_argument("--rows", help="comma-separated inversion rows to run (default: all; 1/SR always)")
+    ap.add_argument("--from-json", action="append", help="summarise rows of earlier runs instead of running")
+    ap.add_argument("--figure", help="contrast-recovery curves (PNG) from the rows")
     ap.add_argument("--out", help="write the table and summary to this markdown file")
     a = ap.parse_args(argv)
+    sets = ["quick"] if a.quick else (a.set or ["main"])
     rows = []
-    for probe, snr in (QUICK_SETTINGS if a.quick else SETTINGS):
-        for model in MODELS:
-            for c in CONTRASTS:
-                rows += run_case(model, c, probe, snr)
-                r = rows[-4]
-                print(f"{r['case']}: femreg {r['estimate']:.2f} (ratio {r['ratio']:.2f}, {r['success']}), "
-                      f"exact {rows[-5]['estimate']:.2f}, L-curve {rows[-3]['estimate']:.2f}, "
-                      f"one-step {rows[-2]['estimate']:.2f}, 1/SR {rows[-1]['estimate']:.2f}", flush=True)
-    text = table(rows) + "\n\n" + summary(rows)
-    if not a.quick:
+    if a.from_json:
+        for f in a.from_json:
+            rows += json.loads(Path(f).read_text())
+        sets = list(dict.fromkeys(r["set"] for r in rows))
+    else:
+        cost = {"L3": 0, "paper": 1, "L7": 2, "L12": 3, "L15": 4}      # cheap meshes first
+        for name in sets:
+            for spec in sorted(SETS[name], key=lambda sp: cost.get(sp[2], 5)):
+                got = run_case(*spec, beta_study=not a.no_beta_study,
+                               rows_wanted=None if not a.rows else a.rows.split(","))
+                for r in got:
+                    r["set"] = name
+                rows += got
+                r = next(x for x in got if x["row"] == "femreg")
+                print(f"{r['case']}: " + ", ".join(f"{x['row']} {x['estimate']:.2f}" for x in got)
+                      + f" (femreg ratio {r['ratio']:.2f}, {r['success']}, beta {r['beta']:.3g}, "
+                        f"best {r.get('best_beta', np.nan):.3g}: {r.get('best_ratio', np.nan):.2f})", flush=True)
+                if a.json:      # after every case: a long run can be summarised before it ends
+                    Path(a.json).write_text(json.dumps(rows, default=float))
+    text = table([r for r in rows if r["set"] != "curves" or r["row"] in ("femreg", "1/SR")])
+    for name in sets:
+        sel = [r for r in rows if r["set"] == name]
+        text += "\n\n" + summary(sel, name)
+        if name == "curves":
+            continue
+        out_range = [r for r in sel if not in_targets(r)]
+        if out_range:
+            text += "\n" + summary([r for r in sel if in_targets(r)], f"{name}, inside the targets' range")
+    if a.figure:
+        curves_figure(rows, a.figure)
+    if not a.quick and not a.from_json and "main" in sets:
         text += ("\n\nStiff plane-strain disk (x4), 1 %, L7, 30 dB, registered with each regulariser:\n\n"
                  "| regulariser | model asked | model used | contrast (truth 4) | success | flags |\n"
                  "|---|---|---|---|---|---|\n")
         text += "\n".join(f"| {r} | {m} | {mu} | {c:.2f} | {ok} | {fl} |"
                           for r, m, mu, c, ok, fl in regularizer_cases())
         text += "\n"
-    if not a.no_speed:
+    if not a.no_speed and not a.from_json:
         dt, n_el, inv = speed()
         text += (f"\n- speed: paper-probe 70 x 42 mm registered pair, {n_el} elements, invert() with the beta rule "
                  f"and the uncertainty: {dt:.1f} s (success {inv.success})")

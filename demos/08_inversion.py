@@ -138,10 +138,12 @@ def invivo(out: Path, lines: list, quick: bool):
 #
 # * Phantom: contrast 4.09 for a true 4, inclusion edge within 1.0 mm on 1.5 mm elements, 2 s.
 # * In vivo, frame 1 -> 3 (quick run, cropped pieces): the freehand strain is small (0.2-1 %) and changes sign
-#   within the image.  The model follows the data (plane stress on both sequences); three of the four inversions
-#   end on the largest beta of the grid with a non-flat image and are flagged (success False, the reason in the
-#   table); the one unflagged, seq304 with R_P_sigma, spans 0.97-1.38 (5-95 %) with a median std of log mu of
-#   0.04.  There is no truth here, so the images are shown beside the strain, not scored.
+#   within the image.  Every inversion is flagged, and rightly: the lateral strain has the sign of the axial one
+#   (lateral/axial ratio -0.65 to -0.11, where incompressible 2D models give 0.5 in plane stress to 0.98 in plane
+#   strain), i.e. the tissue moves out of the image plane or the lateral displacement is not trustworthy; no 2D
+#   model describes such data.  Images: mu 5-95 % from 0.71-2.12 (seq304, R_eps) to 0.96-1.66 (seq304,
+#   R_P_sigma), median std of log mu 0.04-0.37.  There is no truth here, so the images are shown beside the
+#   strain, not scored.
 
 # %%
 def main(argv=None) -> int:
