@@ -28,3 +28,36 @@ def atomic_savez(path, writer=None, **arrays) -> None:
     else:
         np.savez_compressed(tmp, **arrays)
     os.replace(tmp, path)
+
+
+def open_run_folder(folder, params: dict, *, resume: bool, record: str, started, kind: str,
+                    argument: str = "output_dir"):
+    """The output folder of a resumable run (``track``, ``elastogram``): create it, refuse a resume whose
+    parameters differ from those recorded in ``folder/record`` (JSON), refuse to start over a run already there
+    without ``resume`` (``started``: glob patterns of the files a run writes), then record ``params``.
+
+    Returns the folder as a Path, or None when ``folder`` is None (``resume`` then needs a folder: InputError
+    naming ``argument``)."""
+    import json
+
+    from .errors import InputError
+
+    if folder is None:
+        if resume:
+            raise InputError(f"resume=True needs {argument}")
+        return None
+    out = Path(folder)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot use {out} as the output folder ({exc.strerror or exc})") from None
+    pfile = out / record
+    if pfile.exists() and resume:
+        old = json.loads(pfile.read_text())
+        diff = [k for k in params if old.get(k) != params[k]]
+        if diff:
+            raise InputError(f"cannot resume from {out}: parameters differ ({', '.join(diff)})")
+    elif not resume and any(any(out.glob(p)) for p in started):
+        raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
+    atomic_write_text(pfile, json.dumps(params, indent=1))
+    return out

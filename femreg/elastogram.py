@@ -30,6 +30,7 @@ Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengt
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass, field as dc_field
@@ -38,13 +39,13 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ._atomic import atomic_savez, atomic_write_text
+from ._atomic import atomic_savez, atomic_write_text, open_run_folder
 from .blockmatch import block_match
 from .errors import InputError
 from . import orientation
 from .image import validate_image, validate_spacing
 from .mesh import roi_mesh
-from .pyramid import _gaussian_decimate, default_settings, element_rule
+from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
 
 __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "DEFAULT_BAND", "PAIR_COLUMNS"]
@@ -124,9 +125,9 @@ class _Screener:
         if e is None:
             e = envelope(frame)
             if self.ql > 1:
-                e = _gaussian_decimate(e, self.ql, 1)
+                e = gaussian_decimate(e, self.ql, 1)
             if self.q > 1:
-                e = _gaussian_decimate(e, self.q, 0)
+                e = gaussian_decimate(e, self.q, 0)
             e = (e - e.mean()) / (e.std() or 1.0)
             if len(self._cache) > 64:
                 self._cache.pop(next(iter(self._cache)))
@@ -260,6 +261,140 @@ def _pixel_quality(res, step):
     return res._interpolate_grid(vec, res._grid_location())["ux"][::step]
 
 
+# -- the work of stages 1 and 3, in this process or on Dask workers --------------------------------------------
+
+def _screen_run(scr, frame, k0, k1):
+    """Consecutive screening of the pairs (k, k + 1), k0 <= k < k1: affine coefficients (k1 - k0, 3, 2), axial
+    strain, lateral shift (mm) and NCC (each (k1 - k0,)); ``frame(k)`` gives frame k as float."""
+    m = k1 - k0
+    coef, e, lat, ncc = np.zeros((m, 3, 2)), np.zeros(m), np.zeros(m), np.zeros(m)
+    for k in range(k0, k1):
+        coef[k - k0], e[k - k0], lat[k - k0], ncc[k - k0] = scr.match(scr.env(k, frame(k)),
+                                                                      scr.env(k + 1, frame(k + 1)))
+    return coef, e, lat, ncc
+
+
+def _stored_frames(path):
+    """``frame(k)`` of the frames a worker reads from the .npy file of :func:`_pool` (memory-mapped)."""
+    arr = np.load(path, mmap_mode="r")
+    return lambda k: np.asarray(arr[k], dtype=float)
+
+
+def _screen_task(scr, path, k0, k1):
+    """:func:`_screen_run` on a worker, the frames read from ``path``."""
+    return _screen_run(scr, _stored_frames(path), k0, k1)
+
+
+def _direct_task(scr, path, pairs):
+    """The direct screening of ``pairs`` [(i, j)] on a worker: [(coef, strain, lateral, ncc)]."""
+    frame = _stored_frames(path)
+    return [scr.match(scr.env(i, frame(i)), scr.env(j, frame(j))) for i, j in pairs]
+
+
+def _verdict(rec, lo, hi):
+    """(usable, message) of a registered pair: it succeeded and its mean axial strain lies in the band."""
+    ms = rec["mean_strain"]
+    if not rec["success"]:
+        return False, f"registration failed: {rec['message']}"
+    if not (np.isfinite(ms) and lo <= abs(ms) <= hi):
+        return False, f"registered mean axial strain {100 * ms:.2f} % outside the band"
+    return True, ""
+
+
+def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=None):
+    """Register ``pairs`` [(i, j, screened strain, screened affine coef (3, 2))] in order, each warm-started from
+    the last usable one (module docstring, stage 3); ``frame(k)`` gives frame k as float.  Returns
+    ``{(i, j): rec}`` (rec: exx, ux, uy on every ``qa``-th row, quality, mean_strain, success, ncc_after,
+    message, u); ``on_rec(i, j, rec)`` after each.  ``out``: folder of the per-pair files (kept with
+    ``resume``)."""
+    from .registration import register
+
+    lo, hi = band
+    nodes = mesh.p.T
+    per_pair = {}
+    prev = None                      # (u, strain, coef) of the last good registration
+    for i, j, strain, coef in pairs:
+        path = None if out is None else Path(out) / "pairs" / f"pair_{i:05d}_{j:05d}.npz"
+        if resume and path is not None and path.exists():
+            with np.load(path, allow_pickle=False) as z:
+                rec = {k: z[k] for k in z.files}
+            rec = dict(exx=np.asarray(rec["exx"], float)[::qa], quality=np.asarray(rec["quality"], float),
+                       ux=np.asarray(rec["ux"], float), uy=np.asarray(rec["uy"], float),
+                       mean_strain=float(rec["mean_strain"]), success=bool(rec["success"]),
+                       ncc_after=float(rec["ncc_after"]), message=str(rec["message"]), u=rec["u"])
+        else:
+            res = None
+            s = strain / prev[1] if prev is not None and prev[1] != 0 else 0.0
+            if 0.2 <= abs(s) <= 5.0:        # release mirrors compression: a negative scale is a start too
+                A_now = np.column_stack([coef[0, c] + nodes @ coef[1:, c] for c in range(2)])
+                A_prev = np.column_stack([prev[2][0, c] + nodes @ prev[2][1:, c] for c in range(2)])
+                u0 = s * prev[0] + (A_now - s * A_prev).ravel()
+                res = register(frame(i), frame(j), mesh=mesh, initial=u0, **reg_args)
+                if not res.success:
+                    res = None
+            if res is None:
+                res = register(frame(i), frame(j), mesh=mesh, **reg_args)
+            g = res.on_grid()
+            exx = g["exx"]
+            rec = dict(exx=exx[::qa], quality=_pixel_quality(res, qa), mean_strain=float(np.nanmean(exx)),
+                       ux=g["ux"][::qa], uy=g["uy"][::qa],
+                       success=bool(res.success), ncc_after=float(res.ncc_after), message=res.message,
+                       u=res.u)
+            if path is not None:
+                atomic_savez(path, exx=exx.astype(np.float32), quality=rec["quality"].astype(np.float32),
+                             ux=rec["ux"].astype(np.float32), uy=rec["uy"].astype(np.float32), row_step=qa,
+                             mean_strain=rec["mean_strain"], success=rec["success"], ncc_after=rec["ncc_after"],
+                             message=np.str_(rec["message"]), u=res.u, ref=i, mov=j)
+        if _verdict(rec, lo, hi)[0]:
+            prev = (np.asarray(rec["u"], float), rec["mean_strain"], coef)
+        per_pair[(i, j)] = rec
+        if on_rec is not None:
+            on_rec(i, j, rec)
+    return per_pair
+
+
+def _register_task(path, pairs, mesh, qa, band, out, resume, reg_args):
+    """:func:`_register_run` on a worker, the frames read from ``path``."""
+    return _register_run(_stored_frames(path), pairs, mesh, qa, band, out, resume, reg_args)
+
+
+def _check_workers(workers, client):
+    """Number of parallel tasks: the client's workers, else ``workers`` (an integer >= 1)."""
+    if client is not None:
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    return int(workers)
+
+
+@contextlib.contextmanager
+def _pool(n_workers, client, seq):
+    """``(client, path)`` for the block: ``client`` itself, else a local Dask cluster of ``n_workers`` processes
+    (``(None, None)`` for 1), and the frames ``seq`` stacked in one temporary .npy file that the workers map
+    (sending them with every task costs more than the screening: 0.6 MB a frame)."""
+    if client is None and n_workers <= 1:
+        yield None, None
+        return
+    import tempfile
+
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            from .batch.engine import open_client
+
+            client = stack.enter_context(open_client(n_workers))
+        tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="femreg-elastogram-"))
+        path = str(Path(tmp) / "frames.npy")
+        np.save(path, np.stack([np.asarray(f) for f in seq]))
+        yield client, path
+
+
+def _chunks(n, parts):
+    """At most ``parts`` contiguous (start, stop) ranges covering range(n), sizes differing by at most one."""
+    parts = max(1, min(int(parts), n))
+    edges = np.linspace(0, n, parts + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
 # -- the entry point -----------------------------------------------------------------------------------------
 
 def _validate(frames):
@@ -292,7 +427,7 @@ def _row_csv(rows):
 def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc: float = 0.6,
                max_lateral_mm: float | None = None, max_span: int = 8, persistence: float = DEFAULT_PERSISTENCE,
                output_dir=None, resume: bool = False, progress: bool = False, regularizer="momentum-stress",
-               alpha=None, on_pair=None, **register_kwargs) -> ElastogramResult:
+               alpha=None, on_pair=None, workers: int = 1, client=None, **register_kwargs) -> ElastogramResult:
     """Cine loop -> normalised-strain cine and best elastogram (module docstring).
 
     Parameters
@@ -318,6 +453,13 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         Passed to :func:`femreg.register`.
     on_pair : callable(row), optional
         Called after each registered pair.
+    workers : int
+        Local Dask worker processes (:func:`femreg.batch.engine.open_client`, one thread each) for the screening
+        and the registrations; 1: all in this process.  With more, the chosen pairs are registered in
+        ``workers`` contiguous runs at once, each warm-started within itself: the first pair of each run starts
+        from the pyramid, so its field may differ from a one-process run within the registration's tolerance.
+    client : distributed.Client, optional
+        Use this client's workers instead (its cluster stays up: no start-up cost per loop).
 
     Returns
     -------
@@ -328,8 +470,6 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     InputError
         Bad frames (fewer than 3, shapes differ, NaN, constant / all-zero, saturated) or parameters.
     """
-    from .registration import register
-
     t_all = time.perf_counter()
     timings = {}
     seq = _validate(frames)
@@ -344,6 +484,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         raise InputError(f"max_span must be an integer >= 1, got {max_span!r}")
     if not (np.isfinite(min_ncc) and -1.0 <= min_ncc <= 1.0):
         raise InputError(f"min_ncc must be in [-1, 1], got {min_ncc!r}")
+    n_workers = _check_workers(workers, client)
     n = len(seq)
     shape = np.shape(seq[0])
     extent = np.asarray(shape) * spacing
@@ -355,29 +496,15 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     def frame(k):
         return np.asarray(seq[k], dtype=float)
 
-    out = None
     params = dict(n_frames=n, shape=[int(s) for s in shape], spacing=[float(s) for s in spacing],
                   origin=[float(s) for s in origin], band=[lo, hi], min_ncc=float(min_ncc), max_lateral_mm=max_lat,
                   max_span=int(max_span), regularizer=str(reg_name), alpha=None if alpha is None else float(alpha),
                   register_kwargs=json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr)))
     register_kwargs["check_orientation"] = False           # checked above
-    if output_dir is not None:
-        out = Path(output_dir)
-        try:
-            (out / "pairs").mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(f"cannot use {out} as the output folder ({exc.strerror or exc})") from None
-        pfile = out / "elastogram.json"
-        if pfile.exists() and resume:
-            old = json.loads(pfile.read_text())
-            diff = [k for k in params if old.get(k) != params[k]]
-            if diff:
-                raise InputError(f"cannot resume from {out}: parameters differ ({', '.join(diff)})")
-        elif (out / "screen.npz").exists() and not resume:
-            raise InputError(f"{out} already holds an elastogram run; use resume=True (--resume) or another folder")
-        atomic_write_text(pfile, json.dumps(params, indent=1))
-    elif resume:
-        raise InputError("resume=True needs output_dir")
+    out = open_run_folder(output_dir, params, resume=resume, record="elastogram.json", started=("screen.npz",),
+                          kind="an elastogram run")
+    if out is not None:
+        (out / "pairs").mkdir(exist_ok=True)
 
     def bar(total, desc):
         if not progress:
@@ -385,127 +512,120 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         from tqdm.auto import tqdm
         return tqdm(total=total, desc=desc, unit="pair")
 
-    # -- 1. screening ------------------------------------------------------------------------------------------
-    t = time.perf_counter()
-    scr = _Screener(frame(0), spacing, origin, regularizer if isinstance(regularizer, str) else "momentum-stress")
-    # the strain images are combined on every qa-th row (about 3 per speckle cell: elements span several cells)
-    qa = scr.q
-    cshape = (len(range(0, shape[0], qa)), shape[1])
-    cspacing = np.array([qa * spacing[0], spacing[1]])
-    sfile = None if out is None else out / "screen.npz"
-    if resume and sfile is not None and sfile.exists():
-        with np.load(sfile, allow_pickle=False) as z:
-            e_c, lat_c, ncc_c, coef_c = (np.array(z[k]) for k in ("strain", "lateral_mm", "ncc", "coef"))
-    else:
-        e_c, lat_c, ncc_c = np.zeros(n - 1), np.zeros(n - 1), np.zeros(n - 1)
-        coef_c = np.zeros((n - 1, 3, 2))
-        b = bar(n - 1, "screen")
-        try:
-            for k in range(n - 1):
-                coef_c[k], e_c[k], lat_c[k], ncc_c[k] = scr.match(scr.env(k, frame(k)), scr.env(k + 1, frame(k + 1)))
-                if b is not None:
-                    b.update(1)
-        finally:
-            if b is not None:
-                b.close()
-        if sfile is not None:
-            atomic_savez(sfile, strain=e_c, lateral_mm=lat_c, ncc=ncc_c, coef=coef_c)
-    timings["screen"] = time.perf_counter() - t
-
-    # -- 2. choose ---------------------------------------------------------------------------------------------
-    t = time.perf_counter()
-    rows = screen_pairs(e_c, lat_c, ncc_c, band=(lo, hi), max_span=max_span, min_ncc=min_ncc, max_lateral_mm=max_lat)
-    direct = {}
-    for r in rows:
-        r.update(registered=False, usable=False, message="")
-        if not r["selected"]:
-            continue
-        i, j = r["ref"], r["mov"]
-        if j == i + 1:
-            coef = coef_c[i]
+    with _pool(n_workers, client, seq) as (client, fpath):
+        # -- 1. screening ----------------------------------------------------------------------------------------------
+        t = time.perf_counter()
+        scr = _Screener(frame(0), spacing, origin, regularizer if isinstance(regularizer, str) else "momentum-stress")
+        # the strain images are combined on every qa-th row (about 3 per speckle cell: elements span several cells)
+        qa = scr.q
+        cshape = (len(range(0, shape[0], qa)), shape[1])
+        cspacing = np.array([qa * spacing[0], spacing[1]])
+        sfile = None if out is None else out / "screen.npz"
+        if resume and sfile is not None and sfile.exists():
+            with np.load(sfile, allow_pickle=False) as z:
+                e_c, lat_c, ncc_c, coef_c = (np.array(z[k]) for k in ("strain", "lateral_mm", "ncc", "coef"))
+        elif client is not None:
+            # contiguous runs of pairs, two tasks per worker (the envelopes of a run are computed once, as here)
+            futs = [client.submit(_screen_task, scr, fpath, k0, k1, pure=False)
+                    for k0, k1 in _chunks(n - 1, 2 * n_workers)]
+            parts = client.gather(futs)
+            coef_c, e_c, lat_c, ncc_c = (np.concatenate([p[m] for p in parts]) for m in range(4))
         else:
-            coef, e, lat, c = scr.match(scr.env(i, frame(i)), scr.env(j, frame(j)))
-            r.update(strain=e, lateral_mm=lat, ncc=min(r["ncc"], c))
-            if c < min_ncc or not lo <= abs(e) <= hi or abs(lat) > max_lat:
-                r["selected"] = False
-                r["message"] = (f"direct screening: strain {100 * e:.2f} %, NCC {c:.2f}, lateral {lat:.2f} mm")
-                continue
-        direct[(i, j)] = coef
-    timings["choose"] = time.perf_counter() - t
+            b = bar(n - 1, "screen")
+            parts = []
+            try:
+                for k0, k1 in _chunks(n - 1, 1 if b is None else n - 1):
+                    parts.append(_screen_run(scr, frame, k0, k1))
+                    if b is not None:
+                        b.update(1)
+            finally:
+                if b is not None:
+                    b.close()
+            coef_c, e_c, lat_c, ncc_c = (np.concatenate([p[m] for p in parts]) for m in range(4))
+            if sfile is not None:
+                atomic_savez(sfile, strain=e_c, lateral_mm=lat_c, ncc=ncc_c, coef=coef_c)
+        timings["screen"] = time.perf_counter() - t
 
-    # -- 3. register -------------------------------------------------------------------------------------------
-    t = time.perf_counter()
-    chosen = [r for r in rows if r["selected"]]
-    mesh = register_kwargs.pop("mesh", None)
-    if mesh is None and register_kwargs.get("element_size") is None and \
-            register_kwargs.get("strategy", "auto") == "auto":
-        es = tuple(default_settings(shape, spacing, speckle_statistics(frame(0), spacing),
-                                    **element_rule(reg_name)).element_size)
-        mesh = roi_mesh(shape, spacing, origin, element_size=es, margin=register_kwargs.pop("margin", None))
-    elif mesh is None:
-        mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),
-                        margin=register_kwargs.pop("margin", None))
-    nodes = mesh.p.T
-    per_pair = {}
-    prev = None                      # (u, strain, coef) of the last good registration
-    b = bar(len(chosen), "register")
-    try:
-        for r in chosen:
+        # -- 2. choose -------------------------------------------------------------------------------------------------
+        t = time.perf_counter()
+        rows = screen_pairs(e_c, lat_c, ncc_c, band=(lo, hi), max_span=max_span, min_ncc=min_ncc,
+                            max_lateral_mm=max_lat)
+        for r in rows:
+            r.update(registered=False, usable=False, message="")
+        # pairs over more than one frame step: screened directly (envelopes of i and j)
+        far = [(r["ref"], r["mov"]) for r in rows if r["selected"] and r["mov"] > r["ref"] + 1]
+        if client is not None and len(far) > 1:
+            futs = [client.submit(_direct_task, scr, fpath, far[a0:a1], pure=False)
+                    for a0, a1 in _chunks(len(far), n_workers)]
+            matched = dict(zip(far, [m for part in client.gather(futs) for m in part]))
+        else:
+            matched = {(i, j): scr.match(scr.env(i, frame(i)), scr.env(j, frame(j))) for i, j in far}
+        direct = {}
+        for r in rows:
+            if not r["selected"]:
+                continue
             i, j = r["ref"], r["mov"]
-            path = None if out is None else out / "pairs" / f"pair_{i:05d}_{j:05d}.npz"
-            if resume and path is not None and path.exists():
-                with np.load(path, allow_pickle=False) as z:
-                    rec = {k: z[k] for k in z.files}
-                rec = dict(exx=np.asarray(rec["exx"], float)[::qa], quality=np.asarray(rec["quality"], float),
-                           ux=np.asarray(rec["ux"], float), uy=np.asarray(rec["uy"], float),
-                           mean_strain=float(rec["mean_strain"]), success=bool(rec["success"]),
-                           ncc_after=float(rec["ncc_after"]), message=str(rec["message"]), u=rec["u"])
+            if j == i + 1:
+                coef = coef_c[i]
             else:
-                coef = direct[(i, j)]
-                res = None
-                s = r["strain"] / prev[1] if prev is not None and prev[1] != 0 else 0.0
-                if 0.2 <= abs(s) <= 5.0:        # release mirrors compression: a negative scale is a start too
-                    A_now = np.column_stack([coef[0, c] + nodes @ coef[1:, c] for c in range(2)])
-                    A_prev = np.column_stack([prev[2][0, c] + nodes @ prev[2][1:, c] for c in range(2)])
-                    u0 = s * prev[0] + (A_now - s * A_prev).ravel()
-                    res = register(frame(i), frame(j), spacing=spacing, origin=origin, regularizer=regularizer,
-                                   alpha=alpha, mesh=mesh, initial=u0, **register_kwargs)
-                    if not res.success:
-                        res = None
-                if res is None:
-                    res = register(frame(i), frame(j), spacing=spacing, origin=origin, regularizer=regularizer,
-                                   alpha=alpha, mesh=mesh, **register_kwargs)
-                g = res.on_grid()
-                exx = g["exx"]
-                rec = dict(exx=exx[::qa], quality=_pixel_quality(res, qa), mean_strain=float(np.nanmean(exx)),
-                           ux=g["ux"][::qa], uy=g["uy"][::qa],
-                           success=bool(res.success), ncc_after=float(res.ncc_after), message=res.message,
-                           u=res.u)
-                if path is not None:
-                    atomic_savez(path, exx=exx.astype(np.float32), quality=rec["quality"].astype(np.float32),
-                                 ux=rec["ux"].astype(np.float32), uy=rec["uy"].astype(np.float32), row_step=qa,
-                                 mean_strain=rec["mean_strain"], success=rec["success"], ncc_after=rec["ncc_after"],
-                                 message=np.str_(rec["message"]), u=res.u, ref=i, mov=j)
+                coef, e, lat, c = matched[(i, j)]
+                r.update(strain=e, lateral_mm=lat, ncc=min(r["ncc"], c))
+                if c < min_ncc or not lo <= abs(e) <= hi or abs(lat) > max_lat:
+                    r["selected"] = False
+                    r["message"] = (f"direct screening: strain {100 * e:.2f} %, NCC {c:.2f}, lateral {lat:.2f} mm")
+                    continue
+            direct[(i, j)] = coef
+        timings["choose"] = time.perf_counter() - t
+
+        # -- 3. register -----------------------------------------------------------------------------------------------
+        t = time.perf_counter()
+        chosen = [r for r in rows if r["selected"]]
+        mesh = register_kwargs.pop("mesh", None)
+        if mesh is None and register_kwargs.get("element_size") is None and \
+                register_kwargs.get("strategy", "auto") == "auto":
+            es = tuple(default_settings(shape, spacing, speckle_statistics(frame(0), spacing),
+                                        **element_rule(reg_name)).element_size)
+            mesh = roi_mesh(shape, spacing, origin, element_size=es, margin=register_kwargs.pop("margin", None))
+        elif mesh is None:
+            mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),
+                            margin=register_kwargs.pop("margin", None))
+        reg_args = dict(spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha, **register_kwargs)
+        todo = [(r["ref"], r["mov"], r["strain"], direct[(r["ref"], r["mov"])]) for r in chosen]
+        by_key = {(r["ref"], r["mov"]): r for r in chosen}
+        b = bar(len(chosen), "register")
+
+        def done(i, j, rec):
+            r = by_key[(i, j)]
             r["registered"] = True
-            ms = rec["mean_strain"]
-            if not rec["success"]:
-                r["message"] = f"registration failed: {rec['message']}"
-            elif not (np.isfinite(ms) and lo <= abs(ms) <= hi):
-                r["message"] = f"registered mean axial strain {100 * ms:.2f} % outside the band"
-            else:
-                r["usable"] = True
-                r["strain"] = ms
-                prev = (np.asarray(rec["u"], float), ms, direct[(i, j)])
-            per_pair[(i, j)] = rec
+            r["usable"], r["message"] = _verdict(rec, lo, hi)
+            if r["usable"]:
+                r["strain"] = rec["mean_strain"]
             if on_pair is not None:
                 on_pair(r)
             if b is not None:
-                b.set_postfix_str(f"{i}->{j} {100 * ms:+.2f} %" + ("" if r["usable"] else " rejected"))
+                b.set_postfix_str(f"{i}->{j} {100 * rec['mean_strain']:+.2f} %" + ("" if r["usable"] else " rejected"))
                 b.update(1)
-    finally:
-        if b is not None:
-            b.close()
-    timings["register"] = time.perf_counter() - t
+
+        try:
+            if client is not None and len(todo) > 1:
+                # contiguous runs of pairs, one task per worker: each run warm-starts within itself (its first pair
+                # starts from the pyramid)
+                futs = []
+                for a0, a1 in _chunks(len(todo), n_workers):
+                    part = todo[a0:a1]
+                    futs.append(client.submit(_register_task, fpath, part, mesh, qa, (lo, hi), out, resume, reg_args,
+                                              pure=False))
+                per_pair = {}
+                for got in client.gather(futs):
+                    per_pair.update(got)
+                for i, j, _, _ in todo:
+                    done(i, j, per_pair[(i, j)])
+            else:
+                per_pair = _register_run(frame, todo, mesh, qa, (lo, hi), out, resume, reg_args, on_rec=done)
+        finally:
+            if b is not None:
+                b.close()
+        timings["register"] = time.perf_counter() - t
 
     # -- 4. normalise and combine ------------------------------------------------------------------------------
     t = time.perf_counter()

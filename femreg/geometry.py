@@ -29,7 +29,8 @@ run in sample space, where the frame is treated as a linear image of spacing ``(
 (``rho_c`` the apex distance of the middle sample), on a tensor mesh whose nodes are the same (range, angle)
 lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exactly through the mapping,
 ``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
-eq:objf on the physical mesh, so the regulariser sees physical displacements and strains.
+eq:objf on the physical mesh, so the regulariser sees physical displacements and strains; with the default alpha,
+its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines).
 """
 from __future__ import annotations
 
@@ -367,6 +368,23 @@ def beam_spacing(spacing, geometry: Convex, origin):
     return float(sp[0]), float(org[0])
 
 
+#: Line spacing (mm) at which the default alphas hold: the paper probe's lines (femreg/data/default_alphas.json).
+REFERENCE_LINE_SPACING = 0.3
+#: Power of the line spacing in :func:`beam_alpha_factor` (measured, docs/geometry.md).
+BEAM_ALPHA_EXPONENT = 3.5
+
+
+def beam_alpha_factor(line_spacing_mm: float) -> float:
+    """Factor on the default alpha of the physical solve of a beam frame whose lines are ``line_spacing_mm`` apart
+    at the middle sample: ``max(1, s / 0.3 mm)**3.5``.  Coarse fans over-estimate the across-ray strain (the
+    speckle of a beam-aligned PSF several lines wide does not follow a uniform physical strain off axis, and the
+    images prefer the biased field: see docs/geometry.md); the weakly determined across-ray stretch needs the
+    stronger regulariser.  The power 3.5 (:data:`BEAM_ALPHA_EXPONENT`) is the measured balance: 3 leaves 2.2-2.5 %
+    error at 2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear array's error.
+    1 for lines at most 0.3 mm apart.  A user's alpha is used as given."""
+    return max(1.0, float(line_spacing_mm) / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
+
+
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
                   regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
                   normalize=True, callback=None, strain_tol=None, **kw) -> BeamResult:
@@ -407,8 +425,10 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()
     strategy = kw.get("strategy", "auto")
-    user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(
-        strategy, regularizer, kw.get("regularizer_options")))
+    opts = effective_regularizer_options(strategy, regularizer, kw.get("regularizer_options"))
+    user_reg = fresh_regularizer(regularizer, alpha, opts)
+    if alpha is None and isinstance(regularizer, str):
+        user_reg = fresh_regularizer(regularizer, user_reg.alpha * beam_alpha_factor(ds), opts)
     if normalize:
         ref, mov, _ = normalize_pair(ref, mov)
     sp_idx = (dr, geometry.pitch_rad)

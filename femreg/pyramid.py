@@ -42,7 +42,7 @@ from .speckle import SpeckleStats, envelope, rf_period, speckle_statistics  # no
 
 __all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess",
-           "MAX_ELEMENT_SIZE", "element_rule", "refine_affine"]
+           "MAX_ELEMENT_SIZE", "element_rule", "refine_affine", "gaussian_decimate"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
 SEARCH_FRACTION = (0.10, 0.10)
@@ -132,7 +132,7 @@ def default_settings(shape, spacing, stats: SpeckleStats, element_size=None, max
     return PyramidSettings(element_size=h, decimation=q, window=window, search=search, lateral_decimation=ql)
 
 
-def _gaussian_decimate(e, q: int, axis: int):
+def gaussian_decimate(e, q: int, axis: int):
     """``scipy.ndimage.gaussian_filter1d(e, q / 2, axis)`` (truncated at 4 sigma, "reflect" boundary) at every
     q-th sample only; compiled, the filter's own weights and boundary (equal to round-off), q times less work."""
     if not _kernels.use_compiled():
@@ -156,9 +156,9 @@ def _decimated_envelopes(ref, mov, q, ref_envelope=None, ql: int = 1):
     for img, env in ((ref, ref_envelope), (mov, None)):
         e = envelope(img) if env is None else env
         if ql > 1:
-            e = _gaussian_decimate(e, ql, 1)
+            e = gaussian_decimate(e, ql, 1)
         if q > 1:
-            e = _gaussian_decimate(e, q, 0)
+            e = gaussian_decimate(e, q, 0)
         out.append(e)
     m = out[0].mean()
     s = out[0].std() or 1.0

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from skfem import MeshQuad1
 
-from ._atomic import atomic_savez, atomic_write_text
+from ._atomic import atomic_savez, open_run_folder
 from .echo import crop_for
 from . import orientation
 from .errors import InputError
@@ -200,24 +200,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if crop is not None:
         params["roi"] = list(crop.roi_mm)
 
-    ckpt = None
-    if checkpoint_dir is not None:
-        ckpt = Path(checkpoint_dir)
-        try:
-            ckpt.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(f"cannot use {ckpt} as the output folder ({exc.strerror or exc})") from None
-        pfile = ckpt / "track.json"
-        if pfile.exists() and resume:
-            old = json.loads(pfile.read_text())
-            diff = [k for k in params if old.get(k) != params[k]]
-            if diff:
-                raise InputError(f"cannot resume from {ckpt}: parameters differ ({', '.join(diff)})")
-        elif pfile.exists() and any(ckpt.glob("frame_*.npz")):
-            raise InputError(f"{ckpt} already holds a tracking run; use resume=True (--resume) or another folder")
-        atomic_write_text(pfile, json.dumps(params, indent=1))
-    elif resume:
-        raise InputError("resume=True needs checkpoint_dir")
+    ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json", started=("frame_*.npz",),
+                           kind="a tracking run", argument="checkpoint_dir")
 
     inc_kwargs = dict(register_kwargs)
     if (mode == "accumulate" and register_kwargs.get("strategy", "auto") == "auto" and isinstance(regularizer, str)
