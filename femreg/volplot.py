@@ -200,7 +200,12 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
             ax.tick_params(labelsize=7)
             ax.set_title(f"{name}, {where}", fontsize=8)
             row_axes.append(ax)
+        parts = label.rsplit(" ", 2)
+        if len(parts) == 3 and "_" in parts[1]:         # two lines: the name, then symbol and unit
+            label = parts[0] + "\n" + " ".join(parts[1:])
         cb = _colorbar(row_axes[-1], im, label)
+        cb.ax.tick_params(labelsize=7)
+        cb.set_label(label, fontsize=8)
         if style["norm"] is not None:                 # log scale: plain numbers, not 4 x 10^0
             from matplotlib.ticker import FuncFormatter
 

@@ -49,7 +49,7 @@ def test_colour_bars_clear_of_the_panels_and_labelled(tmp_path):
     panels = _images(fig)
     bars = [c for a in panels for c in a.child_axes]
     assert len(bars) == 4                                     # B-mode, ux, exx, quality: one per row
-    labels = [b.get_ylabel() for b in bars]
+    labels = [b.get_ylabel().replace("\n", " ") for b in bars]
     assert labels == ["echo level (dB)", "axial displacement u_x (mm)", "axial strain e_xx (%)",
                       "quality (local NCC)"]
     for b in bars:
