@@ -1,6 +1,7 @@
 """Bonded inclusions of radius 1-8 mm at 1-4 % compression: femreg and the robustness benchmark's peers on the same
 pairs, with the strain-edge metric.  femreg: defaults, ``refine=Refinement()`` ("R_P_sigma refine") and
-:data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip"), adaptive refinement (:mod:`femreg.refine`).
+:data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip") and three passes down to 0.15 x 0.3 mm without
+the element budget ("R_P_sigma refine fine"), adaptive refinement (:mod:`femreg.refine`).
 
 Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``) centred 20 mm deep, rendered as
 the robustness benchmark does (:func:`benchmarks.robustness.make_data`).  Per case x method:
@@ -51,7 +52,8 @@ CASES = [
     Case("r8_2pc_paper", _inc(8.0, 0.02), "paper", (35, 35), 25, top_mm=2.5),
 ]
 #: femreg variants: defaults, and adaptive refinement (:mod:`femreg.refine`)
-FEMREG = {"R_P_sigma": None, "R_P_sigma refine": "auto", "R_P_sigma refine+slip": "slip"}
+FEMREG = {"R_P_sigma": None, "R_P_sigma refine": "auto", "R_P_sigma refine+slip": "slip",
+          "R_P_sigma refine fine": "fine"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 
 
@@ -63,8 +65,9 @@ def run_method(method, data):
         if method in FEMREG:
             from femreg.refine import Refinement, SLIP_REFINEMENT
 
-            kw = {} if FEMREG[method] is None else {
-                "refine": SLIP_REFINEMENT if FEMREG[method] == "slip" else Refinement()}
+            spec = {None: None, "auto": Refinement(), "slip": SLIP_REFINEMENT,
+                    "fine": Refinement(passes=3, min_size=(0.15, 0.3), max_growth=None)}[FEMREG[method]]
+            kw = {} if spec is None else {"refine": spec}
             return femreg.register(data.ref, data.mov, spacing=data.spacing, origin=data.origin, **kw).on_grid()
         return PEER_METHODS[method](data.ref, data.mov, data.spacing, data.origin)
 

@@ -287,3 +287,21 @@ def test_cli_refine_flag(band_pair, tmp_path, capsys):
     capsys.readouterr()
     assert main(["register", *args, "--refine", "lots", "-o", str(tmp_path / "r2.npz")]) == 2
     assert "--refine" in capsys.readouterr().err
+
+
+def test_element_budget_keeps_the_strongest_rows():
+    from femreg.refine import _within_budget
+
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    u = _nodal(m, _step_field(xs[4] + 0.3 * (xs[5] - xs[4])))     # jumps 0.7 : 0.3 of the step on row 4's edges
+    opts = Refinement(max_growth=None)
+    rows, cols, _, score = mark(m, u, opts, scores=True)
+    assert np.flatnonzero(rows).tolist() == [3, 4, 5]
+    n_el, per_row = m.t.shape[1], ys.size - 1
+    r2, c2 = _within_budget(m, rows, cols, score, SPACING, ORIGIN, opts, n_el + per_row)   # room for one row
+    assert r2.sum() == 1 and (r2[3] or r2[4]) and not c2.any()
+    r3, _ = _within_budget(m, rows, cols, score, SPACING, ORIGIN, opts, n_el + 3 * per_row)
+    assert np.array_equal(r3, rows)
+    with pytest.raises(InputError, match="max_growth"):
+        Refinement(max_growth=0.5)
