@@ -114,8 +114,8 @@ class VolumeResult:
 
     def on_grid(self, strain: str = "recovered") -> dict:
         """``ux, uy, uz, exx, eyy, ezz, exy, exz, eyz, quality`` on the reference voxel grid, each
-        (n_x, n_y, n_z) float64 (NaN outside the mesh; ``quality`` the element NCC of each voxel's element), and
-        ``spacing``, ``origin`` (3,) mm."""
+        (n_x, n_y, n_z) float64 (NaN outside the mesh; ``quality`` the element NCC of each voxel's element), on the
+        grid of :attr:`spacing` and :attr:`origin`: the input of :func:`femreg.volplot.plot_volume_slices`."""
         check_strain_mode(strain)
         if strain not in self._grids:
             f = self.locator.sample(self.u, self.voxel_points(),
@@ -127,8 +127,6 @@ class VolumeResult:
                 cell = self.locator.cell[e[0], e[1], e[2]]
                 q = np.where(inside, self.quality[cell], np.nan).reshape(self.shape)
             out["quality"] = q
-            out["spacing"] = self.spacing.copy()
-            out["origin"] = self.origin.copy()
             self._grids[strain] = out
         return self._grids[strain]
 

@@ -229,7 +229,8 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     g = res.on_grid()
     for k in ("ux", "uy", "uz", "exx", "eyy", "ezz", "exy", "exz", "eyz", "quality"):
         assert g[k].shape == ref.shape
-    assert np.allclose(g["spacing"], spacing) and g["origin"].shape == (3,)
+    assert set(g) == {"ux", "uy", "uz", "exx", "eyy", "ezz", "exy", "exz", "eyz", "quality"}
+    assert np.allclose(res.spacing, spacing) and res.origin.shape == (3,)
     inside = np.isfinite(g["ux"])
     assert 0.25 < inside.mean() < 1.0 and np.all(np.isfinite(g["quality"][inside]))
     p = res.save(tmp_path / "v.npz")
