@@ -246,6 +246,12 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     v = meshio.read(res.write_vtu(tmp_path / "v.vtu"))
     assert v.cells[0].type == "hexahedron" and v.point_data["u"].shape == (res.mesh.p.shape[1], 3)
     assert np.allclose(v.point_data["u"], res.u.reshape(-1, 3))
+    # VTK's hexahedron order: every cell has positive volume (the corners of its bottom face counter-clockwise)
+    c = v.points[v.cells[0].data]                                          # (n_el, 8, 3)
+    assert np.all(np.einsum("ij,ij->i", np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]), c[:, 4] - c[:, 0]) > 0)
+    pytest.importorskip("h5py")
+    x = meshio.read(res.write_xdmf(tmp_path / "v.xdmf"))
+    assert np.allclose(x.point_data["exx"], res.nodal_strain[:, 0])
 
 
 def test_bad_volume_input_is_a_clear_error(affine_pair):
