@@ -1,7 +1,7 @@
 """The result of a volume registration: :class:`VolumeResult`, a nodal displacement on a trilinear hexahedral mesh
 with the API of :class:`femreg.result.RegistrationResult` in 3D (``displacement`` (n, 3), ``strain`` (n, 6) in
 :data:`~femreg.volume_fields.STRAIN_COMPONENTS_3D` order, ``quality``, ``on_grid``, ``success`` and ``message``,
-``save`` / :func:`load_volume_result`, ``write_vtu``).
+``save`` / :func:`load_volume_result`, ``write_vtu``, ``write_xdmf``).
 """
 from __future__ import annotations
 
@@ -114,8 +114,8 @@ class VolumeResult:
 
     def on_grid(self, strain: str = "recovered") -> dict:
         """``ux, uy, uz, exx, eyy, ezz, exy, exz, eyz, quality`` on the reference voxel grid, each
-        (n_x, n_y, n_z) float64 (NaN outside the mesh; ``quality`` the element NCC of each voxel's element), and
-        ``spacing``, ``origin`` (3,) mm."""
+        (n_x, n_y, n_z) float64 (NaN outside the mesh; ``quality`` the element NCC of each voxel's element), on the
+        grid of :attr:`spacing` and :attr:`origin`: the input of :func:`femreg.volplot.plot_volume_slices`."""
         check_strain_mode(strain)
         if strain not in self._grids:
             f = self.locator.sample(self.u, self.voxel_points(),
@@ -127,8 +127,6 @@ class VolumeResult:
                 cell = self.locator.cell[e[0], e[1], e[2]]
                 q = np.where(inside, self.quality[cell], np.nan).reshape(self.shape)
             out["quality"] = q
-            out["spacing"] = self.spacing.copy()
-            out["origin"] = self.origin.copy()
             self._grids[strain] = out
         return self._grids[strain]
 
@@ -149,23 +147,28 @@ class VolumeResult:
     def write_vtu(self, path):
         """ParaView file (.vtu, meshio): hexahedra with point data ``u`` (n, 3) mm and the recovered strains,
         cell data the element-centre strains and ``quality``.  Returns the path."""
+        return self._write(path, "vtu")
+
+    def write_xdmf(self, path):
+        """As :meth:`write_vtu`, in XDMF (+ HDF5 heavy data next to it, ``<stem>.h5``).  Returns the path."""
+        return self._write(path, "xdmf")
+
+    def _write(self, path, file_format):
         from .optional import require
 
-        meshio = require("meshio", feature="writing VTU files")
-        from skfem import MeshHex1  # noqa: F401  (the mesh type written)
+        meshio = require("meshio", feature="VTU/XDMF export")
 
         # VTK hexahedron order: the bottom face (z low) counter-clockwise, then the top face
         p = self.mesh.p
         t = self.mesh.t
         c = p[:, t]                                                   # (3, 8, n_el)
-        lo, hi = c.min(axis=1), c.max(axis=1)
+        hi = c.max(axis=1)
         side = np.isclose(c, hi[:, None, :])                          # (3, 8, n_el) upper side per axis
         order = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
         cells = np.empty((t.shape[1], 8), np.int64)
         for k, (i, j, l) in enumerate(order):
             m = (side[0] == bool(i)) & (side[1] == bool(j)) & (side[2] == bool(l))
             cells[:, k] = t[np.argmax(m, axis=0), np.arange(t.shape[1])]
-        del lo
         ns = self.nodal_strain
         es = element_strains_3d(self.mesh, self.u)
         point_data = {"u": self.u.reshape(-1, 3)}
@@ -175,8 +178,8 @@ class VolumeResult:
             cell_data[name + "_element"] = [es[:, k]]
         if self.quality is not None:
             cell_data["quality"] = [self.quality]
-        meshio.write(str(path), meshio.Mesh(p.T, [("hexahedron", cells)], point_data=point_data,
-                                            cell_data=cell_data))
+        meshio.Mesh(p.T, [("hexahedron", cells)], point_data=point_data, cell_data=cell_data).write(
+            str(path), file_format=file_format)
         return Path(path)
 
     def __repr__(self) -> str:

@@ -229,7 +229,8 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     g = res.on_grid()
     for k in ("ux", "uy", "uz", "exx", "eyy", "ezz", "exy", "exz", "eyz", "quality"):
         assert g[k].shape == ref.shape
-    assert np.allclose(g["spacing"], spacing) and g["origin"].shape == (3,)
+    assert set(g) == {"ux", "uy", "uz", "exx", "eyy", "ezz", "exy", "exz", "eyz", "quality"}
+    assert np.allclose(res.spacing, spacing) and res.origin.shape == (3,)
     inside = np.isfinite(g["ux"])
     assert 0.25 < inside.mean() < 1.0 and np.all(np.isfinite(g["quality"][inside]))
     p = res.save(tmp_path / "v.npz")
@@ -245,6 +246,12 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     v = meshio.read(res.write_vtu(tmp_path / "v.vtu"))
     assert v.cells[0].type == "hexahedron" and v.point_data["u"].shape == (res.mesh.p.shape[1], 3)
     assert np.allclose(v.point_data["u"], res.u.reshape(-1, 3))
+    # VTK's hexahedron order: every cell has positive volume (the corners of its bottom face counter-clockwise)
+    c = v.points[v.cells[0].data]                                          # (n_el, 8, 3)
+    assert np.all(np.einsum("ij,ij->i", np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]), c[:, 4] - c[:, 0]) > 0)
+    pytest.importorskip("h5py")
+    x = meshio.read(res.write_xdmf(tmp_path / "v.xdmf"))
+    assert np.allclose(x.point_data["exx"], res.nodal_strain[:, 0])
 
 
 def test_bad_volume_input_is_a_clear_error(affine_pair):
