@@ -101,7 +101,8 @@ def validate_image(image, name: str = "image") -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name} is not a numeric array: {exc}") from None
     if a.ndim != 2:
-        raise InputError(f"{name} must be 2D (axial, lateral), got ndim={a.ndim} shape={a.shape}")
+        raise InputError(f"{name} must be 2D (axial, lateral), or for femreg.register / track a volume (axial, "
+                         f"lateral, elevational) with 3 spacing values; got ndim={a.ndim} shape={a.shape}")
     if min(a.shape) < 4:
         raise InputError(f"{name} is too small: shape {a.shape}, need at least 4 x 4 pixels")
     bad = ~np.isfinite(a)
