@@ -54,7 +54,8 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "slip_region", "slip_weights", "refine_passes", "RefinementRecord"]
+           "transfer", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
+           "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
 INDICATORS = ("jump", "gradient", "residual", "ncc")
@@ -416,3 +417,50 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            seconds=time.perf_counter() - t))
     return sol, RefinementRecord(record)
+
+
+def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):
+    """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
+    :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
+    :func:`femreg.gnsolve.solve` of the images ``I1``, ``I2`` on the pixel grid of ``sol``'s image term with
+    ``solve_kw``, the regulariser's alpha keeping the unrefined mesh's weight (:func:`femreg.scaling.refined_alpha`)
+    and, with ``slip``, the per-edge shear-traction weights.  Appends its summary to ``notes`` and its time to
+    ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
+    ``(sol, u0, hops)`` on the final mesh."""
+    import time
+
+    from .gnsolve import solve
+    from .scaling import refined_alpha
+
+    opts = as_refinement(refine)
+    if opts is None or np.any(hops):
+        return sol, u0, hops
+    t = time.perf_counter()
+    base = sol.mesh
+    quad = sol.data.quad
+
+    def solve_on(mesh, u_start, shear_traction=None):
+        def factory():
+            r = reg_factory()
+            r.alpha = refined_alpha(r.alpha, base, mesh)
+            if shear_traction is not None and hasattr(r, "shear_traction"):
+                r.shear_traction = shear_traction
+            return r
+        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **solve_kw)
+
+    sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
+    if sol.mesh is not base:
+        u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
+    sol.refinement = record
+    notes.append(record.summary())
+    timings["refine"] = time.perf_counter() - t
+    return sol, u0, hops
+
+
+def with_refinement(result, sol):
+    """``result`` with ``result.refinement``, the :class:`RefinementRecord` of ``sol``, when it went through the
+    refinement stage."""
+    record = getattr(sol, "refinement", None)
+    if record is not None:
+        result.refinement = record
+    return result
