@@ -37,7 +37,7 @@ the refined mesh (the step's length times its height), so refining a region does
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
 Measured (README, "Adaptive refinement"): on the robustness benchmark ``refine="auto"`` made no case worse and
-the inclusions 1-2.5 points better at 1.55x the time per pair (median; 2.3x at most), so it is not the default.
+the inclusions up to 2 points better at 1.55x the time per pair (median; 2.3x at most), so it is not the default.
 Without the slip region a shear band stays as wide as with the defaults (the total variation of its two faces
 does not depend on the mesh); with :data:`SLIP_REFINEMENT` its peak e_xy reaches 0.63-1.0 of the truth.
 """
