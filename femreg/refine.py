@@ -37,7 +37,7 @@ the refined mesh (the step's length times its height), so refining a region does
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
 Measured (README, "Adaptive refinement"): on the robustness benchmark ``refine="auto"`` made no case worse and
-the inclusions 1-2.5 points better at 1.55x the time per pair (median; 2.3x at most), so it is not the default.
+the inclusions up to 2 points better at 1.55x the time per pair (median; 2.3x at most), so it is not the default.
 Without the slip region a shear band stays as wide as with the defaults (the total variation of its two faces
 does not depend on the mesh); with :data:`SLIP_REFINEMENT` its peak e_xy reaches 0.63-1.0 of the truth.
 """
@@ -54,7 +54,8 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "slip_region", "slip_weights", "refine_passes", "RefinementRecord"]
+           "transfer", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
+           "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
 INDICATORS = ("jump", "gradient", "residual", "ncc")
@@ -418,27 +419,48 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     return sol, RefinementRecord(record)
 
 
-def refine_stage(sol, opts: Refinement, u0, hops, locator, reg_factory, solve, problem, solve_kw):
-    """Refinement as a stage of :func:`femreg.register`: :func:`refine_passes` with each solve's regulariser a
-    fresh ``reg_factory()`` whose alpha is rescaled to the refined mesh (:func:`femreg.scaling.refined_alpha`:
-    the weight of eq:objf stays the unrefined mesh's) and, with ``opts.slip``, its per-edge shear traction.
-    ``problem`` = ``(I1, I2, shape, spacing, origin)`` of :func:`femreg.gnsolve.solve`.  Returns ``(sol, record,
-    u0, hops, locator)`` with the start ``u0`` and the hop counts carried to the final mesh."""
+def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):
+    """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
+    :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
+    :func:`femreg.gnsolve.solve` of the images ``I1``, ``I2`` on the pixel grid of ``sol``'s image term with
+    ``solve_kw``, the regulariser's alpha keeping the unrefined mesh's weight (:func:`femreg.scaling.refined_alpha`)
+    and, with ``slip``, the per-edge shear-traction weights.  Appends its summary to ``notes`` and its time to
+    ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
+    ``(sol, u0, hops)`` on the final mesh."""
+    import time
+
+    from .gnsolve import solve
     from .scaling import refined_alpha
 
-    I1, I2, shape, spacing, origin = problem
-    base_mesh = sol.mesh
+    opts = as_refinement(refine)
+    if opts is None or np.any(hops):
+        return sol, u0, hops
+    t = time.perf_counter()
+    base = sol.mesh
+    quad = sol.data.quad
 
-    def solve_on(m, u_start, shear_traction=None):
-        def reg_on():
+    def solve_on(mesh, u_start, shear_traction=None):
+        def factory():
             r = reg_factory()
-            r.alpha = refined_alpha(r.alpha, base_mesh, m)
+            r.alpha = refined_alpha(r.alpha, base, mesh)
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             return r
-        return solve(I1, I2, m, shape, spacing, origin, reg_on, u_start, **solve_kw)
+        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **solve_kw)
 
-    sol, record = refine_passes(sol, opts, solve_on, spacing, origin)
-    if sol.mesh is not base_mesh:
-        u0, hops, locator = transfer(u0, base_mesh, sol.mesh), np.zeros(sol.mesh.p.shape[1], int), sol.locator
-    return sol, record, u0, hops, locator
+    sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
+    if sol.mesh is not base:
+        u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
+    sol.refinement = record
+    notes.append(record.summary())
+    timings["refine"] = time.perf_counter() - t
+    return sol, u0, hops
+
+
+def with_refinement(result, sol):
+    """``result`` with ``result.refinement``, the :class:`RefinementRecord` of ``sol``, when it went through the
+    refinement stage."""
+    record = getattr(sol, "refinement", None)
+    if record is not None:
+        result.refinement = record
+    return result

@@ -30,7 +30,7 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import as_refinement, refine_stage
+from .refine import as_refinement, refine_stage, with_refinement
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -46,7 +46,7 @@ __all__ = ["register", "load_result", "ncc", "nodal_values", "displacement_at",
 
 
 def _validate(reference_image, moving_image, spacing, origin, *, regularizer, strategy, initial, maxiter, tol,
-              strain_tol, check_orientation=True):
+              strain_tol, check_orientation=True, refine=None):
     """Validate stage: the two images (float64, same shape), spacing and origin (mm), and every option;
     :class:`~femreg.errors.InputError` naming the bad one (a reference frame that looks transposed:
     :class:`femreg.orientation.OrientationError`, unless ``check_orientation`` is False).  Returns ``(ref, mov, spacing, origin, initial)`` with
@@ -69,6 +69,7 @@ def _validate(reference_image, moving_image, spacing, origin, *, regularizer, st
     if strain_tol is not None and not (isinstance(strain_tol, (int, float)) and np.isfinite(strain_tol)
                                        and strain_tol >= 0):
         raise InputError(f"strain_tol must be a finite number >= 0 or None, got {strain_tol!r}")
+    as_refinement(refine)
     if initial is None:
         initial = "pyramid" if strategy == "auto" else "blockmatch"
     if isinstance(initial, str) and initial not in INITIAL_NAMES:
@@ -241,11 +242,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         return routed
     t_all = time.perf_counter()
     timings = {}
-    refinement = as_refinement(refine)
     ref, mov, spacing, origin, initial = _validate(reference_image, moving_image, spacing, origin,
                                                    regularizer=regularizer, strategy=strategy, initial=initial,
                                                    maxiter=maxiter, tol=tol, strain_tol=strain_tol,
-                                                   check_orientation=check_orientation)
+                                                   check_orientation=check_orientation, refine=refine)
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(strategy, regularizer,
                                                                                    regularizer_options))
 
@@ -302,36 +302,25 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
-    record = None
-    if refinement is not None and not hops.any():
-        t_r = time.perf_counter()
-        sol, record, u0, hops, locator = refine_stage(sol, refinement, u0, hops, locator, reg_factory, solve,
-                                                      (I1, I2, ref.shape, spacing, origin), solve_kw)
-        fe_mesh = sol.mesh
-        notes.append(record.summary())
-        timings["refine"] = time.perf_counter() - t_r
+    sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings)  # femreg.refine
     check = check_result(sol, u0, hops, ref.shape, spacing,
                          check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
                          None if start.pyramid is None else start.pyramid.global_ncc)
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
-
     # -- result ----------------------------------------------------------------------------------------------
     notes += check.notes
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
                    f"{sol.gn.message.replace('converged: ', '')})")
-    result = RegistrationResult(fe_mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
+    return with_refinement(RegistrationResult(sol.mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
                               regularizer=sol.reg.name, alpha=user_reg.alpha, success=check.success,
                               status=sol.gn.status, message=message,
                               nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
                               ncc_after=check.ncc_after, timings=timings, blockmatch=start.blockmatch,
-                              solver_result=sol.gn, locator=locator, quality=check.quality, strategy=strategy,
-                              alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain)
-    if record is not None:
-        result.refinement = record
-    return result
+                              solver_result=sol.gn, locator=sol.locator, quality=check.quality, strategy=strategy,
+                              alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol)
 
 
 autoalpha.ENGINE = register      # choose_alpha registers through this function (autoalpha never imports it)

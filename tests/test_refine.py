@@ -305,3 +305,17 @@ def test_element_budget_keeps_the_strongest_rows():
     assert np.array_equal(r3, rows)
     with pytest.raises(InputError, match="max_growth"):
         Refinement(max_growth=0.5)
+
+
+def test_register_refuses_refinement_of_a_mesh_that_is_not_a_tensor_mesh(compression_pair):
+    d = compression_pair
+    m = roi_mesh(d.ref.shape, d.spacing, d.origin, element_size=2.0)
+    p = m.p.copy()
+    inner = (p[0] > p[0].min()) & (p[0] < p[0].max()) & (p[1] > p[1].min()) & (p[1] < p[1].max())
+    p[1, inner] += 0.1 * np.sin(p[0, inner])                   # nodes moved laterally: no longer a tensor grid
+    skew = MeshQuad1(p, m.t)
+    assert tensor_structure(skew) is None
+    with pytest.raises(InputError, match="tensor mesh"):
+        femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, mesh=skew, refine=1)
+    with pytest.raises(InputError, match="refine"):
+        femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine="more")
