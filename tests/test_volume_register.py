@@ -239,7 +239,7 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     pts = np.array([[2.0, 2.5, 3.0], [4.0, 3.0, 2.0]])
     assert np.array_equal(back.displacement(pts), res.displacement(pts))
     assert back.success == res.success and back.message == res.message
-    (tmp_path / "x.npz").write_bytes(b"not a zip")
+    (tmp_path / "x.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(FileFormatError):
         load_volume_result(tmp_path / "x.npz")
     meshio = pytest.importorskip("meshio")
