@@ -5,6 +5,7 @@ with the API of :class:`femreg.result.RegistrationResult` in 3D (``displacement`
 """
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -193,7 +194,7 @@ def is_volume_result(path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as z:
             return "kind" in z.files and str(z["kind"]) == VOLUME_RESULT_KIND
-    except (OSError, ValueError, TypeError):
+    except Exception:  # noqa: BLE001 - anything unreadable is not a volume result (its own reader says why)
         return False
 
 
@@ -203,7 +204,7 @@ def load_volume_result(path) -> VolumeResult:
 
     try:
         z = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
         raise FileFormatError(f"{path}: not a readable .npz ({exc})") from None
     with z:
         if "kind" not in z or str(z["kind"]) != VOLUME_RESULT_KIND:

@@ -239,7 +239,7 @@ def test_volume_result_grid_save_load_and_vtu(affine_pair, tmp_path):
     pts = np.array([[2.0, 2.5, 3.0], [4.0, 3.0, 2.0]])
     assert np.array_equal(back.displacement(pts), res.displacement(pts))
     assert back.success == res.success and back.message == res.message
-    (tmp_path / "x.npz").write_bytes(b"not a zip")
+    (tmp_path / "x.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(FileFormatError):
         load_volume_result(tmp_path / "x.npz")
     meshio = pytest.importorskip("meshio")
@@ -289,6 +289,8 @@ def test_exact_affine_field_3d_per_probe(f_mhz):
     ref, mov, spacing, _ = volume_pair(field, shape=shape, spacing=spacing, f_mhz=f_mhz, seed=11)
     res = femreg.register(ref, mov, spacing=spacing)
     assert res.success, res.message
+    # the target (2 %); measured 1.89 / 0.83 / 1.22 % at 3 / 7.5 / 15 MHz (the 20 x 20 x 15 mm benchmark volume:
+    # 0.18 / 0.31 / 0.33 % at 3 / 7 / 15 MHz)
     assert _total_error(res, G, margin=2.0) < 0.02
 
 
