@@ -304,6 +304,12 @@ def _start(initial, mesh, what="initial"):
 
 
 @single_blas_thread
+def _single_element_axes(mesh) -> list:
+    """Names of the axes along which a tensor hexahedral mesh has a single element."""
+    names = ("axial", "lateral", "elevational")
+    return [names[a] for a in range(3) if len(np.unique(np.round(mesh.p[a], 9))) <= 2]
+
+
 def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0, 0.0), regularizer="momentum-stress",
                     alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
                     maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", regularizer_options=None,
@@ -425,6 +431,13 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     if hops.any():
         success = False
         notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+    thin = _single_element_axes(mesh)
+    if thin:
+        # one element across an axis: its normal strain is that element's alone, unchecked by any neighbour
+        # (measured: ezz 1.8 % for 0.5 % true on a 4 mm thick volume, 105 % total strain error)
+        success = False
+        notes.append(f"only one element across the {' and '.join(thin)} extent: the strains along it are not "
+                     "measured; give a thicker volume or a smaller element_size")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message

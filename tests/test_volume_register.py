@@ -353,3 +353,12 @@ def test_user_forms_work_on_hexahedra():
     u[0::3] = mesh.p[0] ** 2
     assert tv.energy(u) == pytest.approx(3 * 6.0 * 2.0, rel=1e-10)
     assert tv.energy(_affine_nodal(mesh, G)) < 1e-12
+
+
+def test_a_volume_one_element_thick_is_flagged_not_returned_as_measured():
+    # one 2 mm element across a 3 mm thick volume: its elevational strain rests on that element alone
+    field, _ = affine_field(centre=(2.5, 2.8, 1.5))
+    ref, mov, spacing, _ = volume_pair(field, shape=(250, 28, 12), f_mhz=7.0, seed=1)
+    res = femreg.register(ref, mov, spacing=spacing)
+    assert not res.success
+    assert "only one element across the elevational extent" in res.message
