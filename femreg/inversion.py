@@ -161,7 +161,7 @@ MISFIT_LIMIT = 0.02
 #: 2 phi / (n - gamma) takes the n nodal data as independent, but a registration's errors are correlated over
 #: neighbouring nodes and carry its regulariser's bias; measured on the main cases of benchmarks/inversion.py as
 #: the factor that puts 68 % of the true log mu within +-1 sigma (held-out cases reported in docs/inversion.md).
-REGISTERED_SIGMA = 2.0
+REGISTERED_SIGMA = 1.6
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
