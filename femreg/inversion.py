@@ -753,8 +753,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         ``flags`` (list of reasons), convergence ``history``.  ``success=False`` with the reasons when the
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
-        the explicit model contradicts the data's strain ratio, or a stiff (soft) region strains more (less)
-        than the background.
+        the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
+        of registered fields), or a stiff (soft) region strains more (less) than the background.
 
     Raises
     ------
