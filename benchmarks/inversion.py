@@ -1,29 +1,33 @@
 """Modulus inversion from *registered* RF pairs: accuracy, honesty (flags), calibration of the uncertainty, beta.
 
-Truths: a disk of radius 5 mm at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`), plane
-strain or plane stress, Young's-modulus contrast 0.25 / 0.5 / 2 / 4, 1 % compression; RF pairs of 30 x 30 mm from
-5 mm depth (:func:`forward.pairs.make_pair`, seed 0) for the probes and SNRs of :data:`CASES`.  Each pair is
-registered with femreg's defaults (``femreg.register``) and inverted with ``femreg.invert`` defaults
-(``model="auto"``, beta by the rule, uncertainty).
+Truths: a bonded disk at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`, radius from the case),
+plane strain or plane stress; RF pairs of 30 x 30 mm from 5 mm depth (:func:`forward.pairs.make_pair`).  Case sets
+(:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compression, seed)): ``main`` (radius 5 mm,
+contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it),
+``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``curves``
+(:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration).  Each pair is
+registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
+effective-parameter rule, uncertainty).
 
 Rows per case:
-- ``exact``: the forward model's own displacement on the same mesh (the floor of the method);
+- ``exact``: the forward model's own displacement on the same mesh;
 - ``femreg``: the registered displacement (the default path);
-- ``femreg L-curve``: the same with the former beta rule (``beta_method="l-curve"``);
+- ``femreg growth``: the same with the former beta rule (``beta_method="growth"``);
 - ``femreg one-step``: the default path followed by the one-step inversion from the images (same beta);
-- ``1/SR``: the strain ratio users read as stiffness, mean |e_xx| of the ring over that of the disk (registration's
-  recovered strain).
+- ``NCC``: NCC block matching's displacement (:data:`NCC_WINDOW`, 75 % overlap) on the same element size;
+- ``1/SR``: the strain ratio users read as stiffness, mean |e_xx| of the ring over that of the disk.
 
-Metrics (the contrast of the targets): mean modulus sampled inside 0.7 R of the centre over the mean in the ring
-1.6-2.5 R (points every 0.25 mm); its ratio to the truth; background CV (std / mean of the ring samples); flags
-(``success``); calibration: fraction of constrained elements whose true relative log mu (disk contrast or 1 at the
-element centre) lies within +-1 sigma of the estimate; beta: the contrast ratio of the rule's beta against that of
-the truth-best beta of the grid (fixed-beta inversions), "within 15 %" meaning |ratio_rule / ratio_best - 1| <= 0.15.
-Speed: one paper-probe pair of 70 x 42 mm (the paper's imaged area), registered, inverted with the rule and the
-uncertainty.
+Metrics: mean modulus sampled inside 0.7 R of the centre over the mean in the ring 1.6-2.5 R (points every
+0.25 mm); its ratio to the truth; background CV (std / mean of the ring samples); flags (``success``);
+calibration: fraction of constrained elements whose true relative log mu (disk contrast or 1 at the element
+centre) lies within +-1 sigma, with |z| per element kept in the JSON rows; beta: the contrast ratio of the rule's
+beta against that of the truth-best beta of the grid (fixed-beta inversions), "within 15 %" meaning
+|ratio_rule / ratio_best - 1| <= 0.15.  Speed: one paper-probe pair of 70 x 42 mm, registered, inverted with the
+rule and the uncertainty.
 
-Usage: ``python benchmarks/inversion.py [--quick] [--out docs/inversion_table.md]``.  Registrations are cached
-under ``$FEMREG_CACHE/bench_inversion`` (the first run registers every pair: ~20 s each on a shared core).
+Usage: ``python benchmarks/inversion.py [--quick] [--set main --set curves ...] [--rows exact,femreg]
+[--json rows.json] [--from-json rows.json] [--figure curves.png] [--out table.md]``.  Registrations are cached
+under ``$FEMREG_CACHE/bench_inversion``.
 """
 from __future__ import annotations
 

@@ -172,7 +172,7 @@ MISFIT_LIMIT = 0.02
 #: 2 phi / (n - gamma) takes the n nodal data as independent, but a registration's errors are correlated over
 #: neighbouring nodes and carry its regulariser's bias; measured on the main cases of benchmarks/inversion.py as
 #: the factor that puts 68 % of the true log mu within +-1 sigma (held-out cases reported in docs/inversion.md).
-REGISTERED_SIGMA = 2.0
+REGISTERED_SIGMA = 1.6
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -930,8 +930,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         ``flags`` (list of reasons), convergence ``history``.  ``success=False`` with the reasons when the
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
-        the explicit model contradicts the data's strain ratio, or a stiff (soft) region strains more (less)
-        than the background.
+        the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
+        of registered fields), or a stiff (soft) region strains more (less) than the background.
 
     Raises
     ------
