@@ -1045,7 +1045,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         bar = tqdm(desc="invert", unit="it")
     theta = np.zeros(fem.n_el)
     sweep = []
-    target_dof = min(fem.area / DOF_AREA, 0.5 * fem.n_el)
+    # one determined parameter per DOF_AREA in 2D, per the cube of its side (4.5^3 mm^3) in 3D (fem.area: volume)
+    target_dof = min(fem.area / (DOF_AREA if dim == 2 else DOF_AREA ** 1.5), 0.5 * fem.n_el)
     hd_cache = {}
     t = time.perf_counter()
     try:
