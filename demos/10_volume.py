@@ -17,7 +17,7 @@ expansion (0.5 % each), a 0.3 % e_xy shear and a 0.5 degree rotation about the e
 
 Output: ``out/10_volume/`` -- ``slices.png`` (reference B-mode and the fields), ``render.png`` (pyvista slices of
 e_xx, when pyvista is installed), ``summary.md``.
-Run: ``python demos/10_volume.py [--quick]`` (``--quick``: an 8 x 6 x 4 mm volume instead of 20 x 20 x 15 mm).
+Run: ``python demos/10_volume.py [--quick]`` (``--quick``: a 10 x 8 x 10 mm volume instead of 20 x 20 x 15 mm).
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from femreg.volplot import STRAIN_KEYS, plot_volume_slices, render_volume  # noq
 from forward.volume import VOLUME_PROBES, Affine3D, make_volume_pair  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[1] if __doc__ else "RF volumes")
-ap.add_argument("--quick", action="store_true", help="an 8 x 6 x 4 mm volume (seconds)")
+ap.add_argument("--quick", action="store_true", help="a 10 x 8 x 10 mm volume (seconds)")
 args = ap.parse_args()
 out = Path("out") / "10_volume"
 out.mkdir(parents=True, exist_ok=True)
@@ -47,7 +47,7 @@ lines = ["# Demo 10: RF volumes", ""]
 # ## The volume pair
 # The 7 MHz matrix-array preset: axial 0.025 mm (30.8 MHz), lateral lines 0.2 mm, elevational planes 0.25 mm,
 # beams 0.9 mm (lateral, dynamic focus) and 2 mm (elevational, lens focus at 20 mm), 30 dB SNR.
-size = (8.0, 6.0, 4.0) if args.quick else (20.0, 20.0, 15.0)
+size = (10.0, 8.0, 10.0) if args.quick else (20.0, 20.0, 15.0)
 field = Affine3D(0.01, shear={"xy": 0.003}, rotation_deg=(0.0, 0.0, 0.5), centre=(2.0 + size[0] / 2, 0.0, 0.0))
 t0 = time.perf_counter()
 pair = make_volume_pair(field, VOLUME_PROBES["matrix7"], size, top_mm=2.0, snr_db=30.0, seed=0)
