@@ -19,8 +19,8 @@ axis; other lines are the scatterers shifted by the line's offset (a translation
 SIMUS3 outputs are cached under ``forward.elasticity.cache_dir() / "pymust"`` (not in git).  Without pymust
 (``pip install femreg[bench]``) the script says so and exits 0.
 
-Run: ``python benchmarks/psf3d_crosscheck.py [--lines N]`` (N x N speckle lines, default 3; SIMUS3 takes about
-10 s of one core per line of 5 k scatterers, so the speckle part is small on 2 cores).
+Run: ``python benchmarks/psf3d_crosscheck.py [--lines N]`` (N x N speckle lines, default 2; SIMUS3 takes about
+1-2 min of one core per line of 4.5 k scatterers, so the speckle part is small on 2 cores).
 """
 from __future__ import annotations
 
@@ -178,7 +178,7 @@ def speckle(pymust, psf, n_lines):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--lines", type=int, default=3)
+    ap.add_argument("--lines", type=int, default=2)
     args = ap.parse_args(argv)
     try:
         import pymust
