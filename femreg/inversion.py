@@ -1278,8 +1278,9 @@ class InversionResult:
 
     # -- files ----------------------------------------------------------------------------------------------
     def save(self, path) -> Path:
-        """Write ``.npz`` (reloadable with :func:`load_inversion`; keys mesh_points (2, n_nodes) (3D: (3, n_nodes), hexahedra), mesh_cells
-        (4, n_el), mu (n_el,), u_measured, u_model (2 n_nodes,), strain_measured (n_el, 3), history, ...)."""
+        """Write ``.npz`` (reloadable with :func:`load_inversion`; keys mesh_points (2, n_nodes), mesh_cells
+        (4, n_el), mu (n_el,), u_measured, u_model (2 n_nodes,), strain_measured (n_el, 3), history, ...; a 3D
+        result: (3, n_nodes), (8, n_el) hexahedra, (3 n_nodes,), (n_el, 6))."""
         from ._atomic import atomic_savez
 
         path = Path(path)
