@@ -140,7 +140,7 @@ def test_files_point_evaluation_and_uncertainty_3d(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="n, 3"):
         res.shear_modulus(np.zeros((2, 2)))
     assert res.strain_measured.shape == (res.mu.size, 6) and res.strain_components[2] == "ezz"
-    # measured ezz of the layers field is 0, exy = 0.002 / mu-weighted
+    # the layers field has no elevational normal strain (u_z depends on x only)
     assert np.allclose(res.strain_measured[:, 2], 0.0, atol=1e-12)
     path = res.save(tmp_path / "mu3.npz")
     back = load_inversion(path)
