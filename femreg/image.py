@@ -45,7 +45,7 @@ from .errors import InputError
 
 from . import _kernels
 
-__all__ = ["validate_image", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
+__all__ = ["validate_image", "validate_samples", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
 
 #: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
 SATURATED_FRACTION = 0.5
@@ -94,21 +94,33 @@ def validate_spacing(spacing, origin=(0.0, 0.0)):
 
 def validate_image(image, name: str = "image") -> np.ndarray:
     """Check a 2D finite, non-constant real image; return it as float64.  Raises :class:`InputError`."""
+    return validate_samples(image, name, ndim=2)
+
+
+def validate_samples(image, name: str = "image", *, ndim: int = 2) -> np.ndarray:
+    """Check a real, finite, non-constant, unsaturated array of ``ndim`` = 2 (axial, lateral) or 3 (axial,
+    lateral, elevational) axes, at least 4 samples along each; return it as float64, else :class:`InputError`
+    naming the problem."""
     if np.iscomplexobj(image):
         raise InputError(f"{name} is complex: pass the real RF (or the envelope |IQ|), not IQ data")
     try:
         a = np.asarray(image, dtype=float)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name} is not a numeric array: {exc}") from None
-    if a.ndim != 2:
-        raise InputError(f"{name} must be 2D (axial, lateral), or for femreg.register / track a volume (axial, "
-                         f"lateral, elevational) with 3 spacing values; got ndim={a.ndim} shape={a.shape}")
+    if a.ndim != ndim:
+        if ndim == 2:
+            raise InputError(f"{name} must be 2D (axial, lateral), or for femreg.register / track a volume "
+                             f"(axial, lateral, elevational) with 3 spacing values; got ndim={a.ndim} "
+                             f"shape={a.shape}")
+        raise InputError(f"{name} must be 3D (axial, lateral, elevational), got ndim={a.ndim} shape={a.shape}")
+    unit = "pixels" if ndim == 2 else "voxels"
     if min(a.shape) < 4:
-        raise InputError(f"{name} is too small: shape {a.shape}, need at least 4 x 4 pixels")
+        raise InputError(f"{name} is too small: shape {a.shape}, need at least "
+                         + ("4 x 4 pixels" if ndim == 2 else "4 voxels along every axis"))
     bad = ~np.isfinite(a)
     if bad.any():
-        i, j = np.argwhere(bad)[0]
-        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf pixels (first at [{i}, {j}])")
+        first = ", ".join(str(int(i)) for i in np.argwhere(bad)[0])
+        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf {unit} (first at [{first}])")
     if np.ptp(a) == 0:
         raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register"
                          + (" (all zero: an empty or blanked frame)" if a.flat[0] == 0 else ""))

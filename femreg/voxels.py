@@ -57,23 +57,11 @@ def validate_spacing_3d(spacing, origin=(0.0, 0.0, 0.0)):
 
 
 def validate_volume(volume, name: str = "volume") -> np.ndarray:
-    """A real, finite, non-constant 3D array of at least 4 voxels per axis, as float64; else InputError."""
-    if np.iscomplexobj(volume):
-        raise InputError(f"{name} is complex: pass the real RF (or the envelope |IQ|), not IQ data")
-    try:
-        a = np.asarray(volume, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} is not a numeric array: {exc}") from None
-    if a.ndim != 3:
-        raise InputError(f"{name} must be 3D (axial, lateral, elevational), got ndim={a.ndim} shape={a.shape}")
-    if min(a.shape) < 4:
-        raise InputError(f"{name} is too small: shape {a.shape}, need at least 4 voxels along every axis")
-    bad = ~np.isfinite(a)
-    if bad.any():
-        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf voxels (first at {tuple(np.argwhere(bad)[0])})")
-    if np.ptp(a) == 0:
-        raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register")
-    return a
+    """A real, finite, non-constant, unsaturated 3D array of at least 4 voxels per axis, as float64; else
+    InputError (:func:`femreg.image.validate_samples`)."""
+    from .image import validate_samples
+
+    return validate_samples(volume, name, ndim=3)
 
 
 # ----------------------------------------------------------------------------------------------------------
