@@ -49,12 +49,16 @@ def test_section_from_records(tmp_path):
     """The report section is written from the JSON records and replaces its marked block on a rerun."""
     mod = _study()
     rec = {"crop_mm": None, "element_size_mm": None, "shape": [10, 5, 3], "spacing": [0.02, 0.3, 0.5],
-           "2d": {"ux": 0.1, "uy": 9.0, "e": 9.5, "time_s": 1.0, "cpu_s": 1.0, "peak_rss_mb": 10.0},
+           "2d": {"ux": 0.1, "uy": 9.0, "e": 9.5, "floor_e": 8.0, "time_s": 1.0, "cpu_s": 1.0, "peak_rss_mb": 10.0},
            "3d": {"ux": 0.1, "uy": 5.0, "uz": 20.0, "e": 7.0, "e6": 8.0, "time_s": 2.0, "cpu_s": 2.0,
                   "peak_rss_mb": 20.0},
            "inversion_region_mm": [15, 45, -15, 15, -8, 8],
            "inversion": {"3d_registered": {"contrast": 3.5, "ring_contrast": None, "cv_background": 0.1,
                                            "beta": 1e-3, "elements": 100, "success": True, "time_s": 1.0},
+                         "3d_exact": {"contrast": 4.1, "ring_contrast": None, "cv_background": 0.1, "beta": 1e-3,
+                                      "elements": 100, "success": True, "time_s": 1.0},
+                         "2d_exact": {"contrast": 2.2, "ring_contrast": 2.1, "cv_background": 0.2, "beta": 0.01,
+                                      "elements": 50, "success": True, "time_s": 1.0},
                          "2d_registered": {"contrast": 2.0, "ring_contrast": 2.1, "cv_background": 0.2,
                                            "beta": 0.01, "elements": 50, "success": False, "time_s": 1.0}}}
     report = tmp_path / "report.md"
