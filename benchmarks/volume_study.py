@@ -159,8 +159,9 @@ def inversion_region(seq, sl, margin_mm=2.0):
 
 def inversions(res2, res3, field, region) -> dict:
     """The 2D plane-stress inversion (femreg's beta rule) of the 2D registration and of the exact plane
-    displacement, and the 3D inversion (hexahedra, INV_H_3D, INV_BETA_3D) of the 3D registration and of the exact
-    3D displacement, all over ``region`` (its in-plane part for 2D)."""
+    displacement, and the 3D inversion (hexahedra, INV_H_3D, INV_BETA_3D) of the 3D registration, of the exact
+    3D displacement and of the registered in-plane components with the exact u_z (which component limits), all
+    over ``region`` (its in-plane part for 2D)."""
     out = {}
     tu, _ = plane_truth(field)
     reg2 = ((region[0], region[1]), (region[2], region[3]))
@@ -169,7 +170,11 @@ def inversions(res2, res3, field, region) -> dict:
         inv = femreg.invert(disp, model="plane-stress", region=reg2, uncertainty=False, **kw)
         out[name] = inversion_row(inv, 2, time.perf_counter() - t)
     if res3 is not None:
-        for name, disp in (("3d_registered", res3), ("3d_exact", field.displacement)):
+        def exact_uz(pts):  # the registered in-plane components with the exact elevational one
+            return np.column_stack([np.asarray(res3.displacement(pts), float)[:, :2], field.displacement(pts)[:, 2]])
+
+        for name, disp in (("3d_registered", res3), ("3d_exact", field.displacement),
+                           ("3d_registered_exact_uz", exact_uz)):
             t = time.perf_counter()
             inv = femreg.invert(disp, model="3d", region=region, element_size=INV_H_3D, beta=INV_BETA_3D,
                                 uncertainty=False)
@@ -192,7 +197,8 @@ def _extent(r) -> str:
     e = "full volume" if r["crop_mm"] is None else "crop"
     if b is not None:
         e += f" {b[0]:.0f}-{b[1]:.0f} x {b[2]:.0f}..{b[3]:.0f} x {b[4]:.0f}..{b[5]:.0f} mm"
-    return e + f", {2.0 if h is None else h:g} mm elements"
+    h = [2.0] if h is None else (h if isinstance(h, list) else [h])
+    return e + f", {' x '.join(f'{v:g}' for v in (h if len(set(h)) > 1 else h[:1]))} mm elements"
 
 
 def section(runs: list, notes=()) -> list:
@@ -235,6 +241,7 @@ def section(runs: list, notes=()) -> list:
           "| extent | inversion region mm | displacement | model | contrast (true 4) | ring contrast | CV bg % | "
           "beta | elements | s |", "|---|---|---|---|---|---|---|---|---|---|"]
     names = (("3d_registered", "3D registration", "3D"), ("3d_exact", "exact 3D", "3D"),
+             ("3d_registered_exact_uz", "3D registration, exact u_z", "3D"),
              ("2d_registered", "2D registration", "plane stress"), ("2d_exact", "exact in-plane", "plane stress"))
     for r in runs:
         inv = r.get("inversion") or {}
@@ -306,8 +313,9 @@ def main(argv=None) -> int:
     ap.add_argument("--crop", type=float, nargs=6, metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"))
     ap.add_argument("--quick", action="store_true", help="crop 20-42 x +-11 x +-5 mm around the inclusion")
     ap.add_argument("--regularizer", default="momentum-stress")
-    ap.add_argument("--element-size", type=float, help="element size mm of both registrations (default: "
-                    "femreg's, 2 mm)")
+    ap.add_argument("--element-size", type=float, nargs="+", metavar="H",
+                    help="element size mm of both registrations: one value, or axial lateral elevational (2D takes "
+                    "the first two; default: femreg's, 2 mm)")
     ap.add_argument("--no-3d", action="store_true", help="the 2D registration only")
     ap.add_argument("--no-inversion", action="store_true", help="skip the 2D and 3D modulus inversions")
     ap.add_argument("--json", type=Path, help="write the numbers here")
@@ -342,10 +350,13 @@ def main(argv=None) -> int:
 
     # 2D: the central plane, as the paper
     t0, c0 = time.perf_counter(), time.process_time()
-    h = {} if args.element_size is None else {"element_size": args.element_size}
-    out["element_size_mm"] = args.element_size
+    hs = args.element_size
+    if hs is not None and len(hs) not in (1, 3):
+        raise InputError(f"--element-size takes one or three values, got {len(hs)}")
+    hs = None if hs is None else (hs * 3 if len(hs) == 1 else list(hs))
+    out["element_size_mm"] = hs
     res2 = femreg.register(ref[:, :, k0], mov[:, :, k0], spacing=seq.spacing[:2], origin=origin[:2],
-                           regularizer=args.regularizer, **h)
+                           regularizer=args.regularizer, **({} if hs is None else {"element_size": tuple(hs[:2])}))
     t2 = time.perf_counter() - t0
     tu, te = plane_truth(field)
     e2 = {k: 100.0 * v for k, v in M.field_errors(res2, tu, te).items()}
@@ -361,7 +372,8 @@ def main(argv=None) -> int:
     if not args.no_3d:
         try:
             t0, c0 = time.perf_counter(), time.process_time()
-            res3 = femreg.register(ref, mov, spacing=seq.spacing, origin=origin, regularizer=args.regularizer, **h)
+            res3 = femreg.register(ref, mov, spacing=seq.spacing, origin=origin, regularizer=args.regularizer,
+                                   **({} if hs is None else {"element_size": tuple(hs)}))
             t3, c3 = time.perf_counter() - t0, time.process_time() - c0
         except InputError as exc:
             if "2D" not in str(exc):
