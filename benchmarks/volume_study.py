@@ -260,8 +260,11 @@ def section(runs: list, notes=()) -> list:
     for r in runs:
         e3 = (r.get("3d") or {}).get("e")
         if e3 is not None:
+            b = r.get("extent_mm") or [0, 0, 0, 0, 0, 0]
+            scope = "" if b[1] - b[0] > 70 and b[3] - b[2] > 43 else " (stated for the whole imaged plane)"
             L.append(f"- {_extent(r)}: in-plane total strain error on the central plane, 3D {e3:.1f} % (2D "
-                     f"{r['2d']['e']:.1f} %), target <= {TARGET_E:g} %: **{'met' if e3 <= TARGET_E else 'NOT met'}**")
+                     f"{r['2d']['e']:.1f} %), target <= {TARGET_E:g} %{scope}: "
+                     f"**{'met' if e3 <= TARGET_E else 'NOT met'}**")
         v = (r.get("inversion") or {}).get("3d_registered")
         if v is not None:
             ok = abs(v["contrast"] / 4.0 - 1.0) <= TARGET_CONTRAST
