@@ -210,8 +210,8 @@ def section(runs: list, notes=()) -> list:
          "lines, a 2 mm elevational beam on 0.5 mm planes, 12 dB SNR, seed 0) over the paper's imaged plane "
          "(72 mm deep x 44 mm lateral) and +-10 mm elevationally, frames 1 -> 7 (0.8 % mean axial strain).  2D: "
          "`femreg.register` on the central plane z = 0 of both volumes; 3D: `femreg.register` on the volumes "
-         "(trilinear hexahedra), both with `momentum-stress` (R_P_sigma) and femreg's defaults (2 mm elements unless the column says otherwise; alpha "
-         "rescaled with the element size by femreg).  "
+         "(trilinear hexahedra), both with `momentum-stress` (R_P_sigma) and femreg's defaults (2 mm elements unless "
+         "the column says otherwise; alpha rescaled with the element size by femreg).  "
          "Errors against the exact FE truth (relative L2, %, shear counted twice): the in-plane ones on the "
          "central plane at the 2D mesh's quadrature points (the same points and weights for both); u_z and the "
          "six-component strain over the volume's interior (2 mm margin), which 2D cannot give.  Times: the whole "
@@ -348,7 +348,8 @@ def main(argv=None) -> int:
     if abs(z0) > 1e-9:
         raise InputError(f"no elevational plane at z = 0 (nearest {z0:g} mm)")
     extent = [float(v) for a in range(3) for v in (seq.grid.axis(a)[sl[a]][[0, -1]])]
-    out = {"inclusion": args.inclusion, "crop_mm": box, "extent_mm": extent, "shape": list(ref.shape), "spacing": list(seq.spacing),
+    out = {"inclusion": args.inclusion, "crop_mm": box, "extent_mm": extent, "shape": list(ref.shape),
+           "spacing": list(seq.spacing),
            "regularizer": args.regularizer, "mean_axial_strain": seq.params["strain_schedule"][-1]}
 
     # 2D: the central plane, as the paper

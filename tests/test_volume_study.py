@@ -77,3 +77,15 @@ def test_section_from_records(tmp_path):
     text = report.read_text()
     assert text.count(mod.BEGIN) == 1 and text.count(mod.END) == 1 and "3D 5.0 %" in text
     assert frag.read_text().strip() == text[text.index(mod.BEGIN):].strip()
+
+
+def test_report_carries_the_generated_section():
+    """docs/study_report.md holds the block that volume_study.py wrote to paperstudy/volume_section.md, and the
+    study's report generator carries that file into every report it writes."""
+    from paperstudy.study import VOLUME_SECTION, _volume_section
+
+    mod = _study()
+    frag = VOLUME_SECTION.read_text()
+    assert frag.startswith(mod.BEGIN) and frag.rstrip().endswith(mod.END)
+    assert frag.strip() in (REPO / "docs" / "study_report.md").read_text()
+    assert _volume_section()[0] == mod.BEGIN
