@@ -1023,6 +1023,15 @@ def _track_rows(res: StudyResult, dataset):
     return rows, truth, curves
 
 
+#: The section "3D against 2D on the paper's 3D phantom", written by ``benchmarks/volume_study.py --section`` (its
+#: volumes and registrations are not part of this study); carried into every report this module writes.
+VOLUME_SECTION = Path(__file__).resolve().parent / "volume_section.md"
+
+
+def _volume_section() -> list:
+    return VOLUME_SECTION.read_text().splitlines() + [""] if VOLUME_SECTION.exists() else []
+
+
 def write_report(res: StudyResult, *, figures: bool = True) -> Path:
     """Write ``report.md`` (tables femreg (paper), rankings, targets, diagnostics) and the PNG figures."""
     s, out = res.settings, Path(res.outdir)
@@ -1168,6 +1177,7 @@ def write_report(res: StudyResult, *, figures: bool = True) -> Path:
     from .inversion import hypothesis_section  # the paper's closing hypothesis, from the cases above (cached)
 
     L += hypothesis_section(res)
+    L += _volume_section()
 
     # figures
     if figures:
