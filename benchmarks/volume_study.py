@@ -26,7 +26,8 @@ Run: ``python benchmarks/volume_study.py [--inclusion HI] [--crop X0 X1 Y0 Y1 Z0
 (the crop also applies to the 2D plane).  The first run renders and caches the volumes (minutes; about 1.8 M
 scatterers).  The report section: ``python benchmarks/volume_study.py --section paperstudy/volume_section.md
 RUN.json [RUN.json ...] --into docs/study_report.md`` (``femreg study`` carries paperstudy/volume_section.md into
-the report it writes).
+the report it writes); the records of the runs in the report: paperstudy/volume_runs/ (full, plane5 = +-5 mm,
+quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements), the findings lines: ``--note``.
 """
 from __future__ import annotations
 
