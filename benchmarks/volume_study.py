@@ -26,7 +26,8 @@ Run: ``python benchmarks/volume_study.py [--inclusion HI] [--crop X0 X1 Y0 Y1 Z0
 (the crop also applies to the 2D plane).  The first run renders and caches the volumes (minutes; about 1.8 M
 scatterers).  The report section: ``python benchmarks/volume_study.py --section paperstudy/volume_section.md
 RUN.json [RUN.json ...] --into docs/study_report.md`` (``femreg study`` carries paperstudy/volume_section.md into
-the report it writes).
+the report it writes); the records of the runs in the report: paperstudy/volume_runs/ (full, plane5 = +-5 mm,
+quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements), the findings lines: ``--notes paperstudy/volume_runs/notes.txt``.
 """
 from __future__ import annotations
 
@@ -326,12 +327,15 @@ def main(argv=None) -> int:
                     help="only write the report section OUT from the --json records RUN_JSON ... of earlier runs")
     ap.add_argument("--into", type=Path, help="with --section: also update the marked block of this report")
     ap.add_argument("--note", action="append", default=[], help="with --section: a line for its findings")
+    ap.add_argument("--notes", type=Path, help="with --section: a file of findings lines, one per line")
     args = ap.parse_args(argv)
     if args.section:
         if len(args.section) < 2:
             raise InputError("--section needs OUT and at least one RUN_JSON")
+        notes = list(args.note) + ([ln for ln in args.notes.read_text().splitlines() if ln.strip()]
+                                   if args.notes else [])
         write_section(args.section[0], [json.loads(Path(j).read_text()) for j in args.section[1:]], args.into,
-                      args.note)
+                      notes)
         print(f"wrote {args.section[0]}" + (f" and {args.into}" if args.into else ""))
         return 0
     box = args.crop or ((20.0, 42.0, -11.0, 11.0, -5.0, 5.0) if args.quick else None)
