@@ -414,7 +414,12 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     data = sol.data
     ncc_before = data.ncc(None)
     u = sol.u
-    success = bool(sol.gn.success)
+    # as in 2D (femreg.repair.check_result) the checks below decide, not the solver's own stop: a line search
+    # that cannot decrease the energy further returns the best iterate, a result like any other
+    success = bool(np.all(np.isfinite(u)))
+    if not success:
+        u = u0
+        notes.append("the solve produced non-finite values; returning the initial guess")
     E_start = sol.psi_start + sol.reg.energy(u0)
     if not sol.gn.fun <= E_start:
         u, success = u0, False
