@@ -12,12 +12,13 @@ from .errors import InputError
 from .fields import check_strain_mode, recovered_strains
 from .io.results import read_result, save_result
 from .pixels import PointLocator
+from .result_base import ResultRecord
 from .sampling import PixelGrid, sample_grid, sample_points
 
 __all__ = ["RegistrationResult", "load_result", "displacement_at", "nodal_values"]
 
 
-class RegistrationResult:
+class RegistrationResult(ResultRecord):
     """A registered displacement field on a quad mesh.
 
     Attributes
@@ -66,33 +67,18 @@ class RegistrationResult:
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
                  locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None,
                  excluded=None, roi=None):
-        self.mesh = mesh
-        self.u = np.asarray(u, float)
-        self.shape = tuple(int(s) for s in shape)
-        self.spacing = np.asarray(spacing, float)
-        self.origin = np.asarray(origin, float)
-        self.regularizer = str(regularizer)
-        self.alpha = float(alpha)
-        self.success = bool(success)
-        self.status = int(status)
-        self.message = str(message)
-        self.nit = int(nit)
-        self.energy_history = np.asarray(energy_history, float)
-        self.ncc_before = float(ncc_before)
-        self.ncc_after = float(ncc_after)
-        self.timings = dict(timings or {})
+        self._record(mesh, u, shape=shape, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
+                     success=success, status=status, message=message, nit=nit, energy_history=energy_history,
+                     ncc_before=ncc_before, ncc_after=ncc_after, timings=timings, quality=quality,
+                     strategy=strategy, alpha_effective=alpha_effective, solver_result=solver_result)
         self.blockmatch = blockmatch
-        self.solver_result = solver_result
         self._locator = locator
         self._grid = grid
         self._grid_element = None
         self._nodal_strain = None
-        self.quality = None if quality is None else np.asarray(quality, float)
         self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
-        self.strategy = str(strategy)
         self.excluded = None if excluded is None else str(excluded)
         self.roi = None if roi is None else tuple(float(v) for v in roi)
-        self.alpha_effective = float(alpha_effective)
 
     # -- sampling -------------------------------------------------------------------------------------------
     @property

@@ -12,6 +12,7 @@ import numpy as np
 
 from .errors import FileFormatError, InputError
 from .fields import check_strain_mode
+from .result_base import ResultRecord
 from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, STRAIN_COMPONENTS_3D, HexLocator, element_strains_3d,
                             recovered_strains_3d)
 
@@ -21,7 +22,7 @@ __all__ = ["VolumeResult", "load_volume_result", "is_volume_result", "VOLUME_RES
 VOLUME_RESULT_KIND = "femreg-volume-result-1"
 
 
-class VolumeResult:
+class VolumeResult(ResultRecord):
     """A registered displacement field of a volume pair on a hexahedral mesh.
 
     Attributes
@@ -48,25 +49,10 @@ class VolumeResult:
     def __init__(self, mesh, u, *, shape, spacing, origin, regularizer="", alpha=float("nan"), success=False,
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"), ncc_after=float("nan"),
                  timings=None, quality=None, strategy="", alpha_effective=float("nan"), solver_result=None):
-        self.mesh = mesh
-        self.u = np.asarray(u, float)
-        self.shape = tuple(int(s) for s in shape)
-        self.spacing = np.asarray(spacing, float)
-        self.origin = np.asarray(origin, float)
-        self.regularizer = str(regularizer)
-        self.alpha = float(alpha)
-        self.success = bool(success)
-        self.status = int(status)
-        self.message = str(message)
-        self.nit = int(nit)
-        self.energy_history = np.asarray(energy_history, float)
-        self.ncc_before = float(ncc_before)
-        self.ncc_after = float(ncc_after)
-        self.timings = dict(timings or {})
-        self.quality = None if quality is None else np.asarray(quality, float)
-        self.strategy = str(strategy)
-        self.alpha_effective = float(alpha_effective)
-        self.solver_result = solver_result
+        self._record(mesh, u, shape=shape, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
+                     success=success, status=status, message=message, nit=nit, energy_history=energy_history,
+                     ncc_before=ncc_before, ncc_after=ncc_after, timings=timings, quality=quality,
+                     strategy=strategy, alpha_effective=alpha_effective, solver_result=solver_result)
         self._locator = None
         self._nodal_strain = None
         self._grids = {}
