@@ -152,14 +152,36 @@ def select_frames(path, arr: np.ndarray, frames):
     return arr[idx]
 
 
-def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) -> dict:
-    """Shared tail of every reader: shape (n, axial, lateral), float dtype, finite values, selection; returns the
-    fields of a :class:`femreg.io.Frames` (``Frames(**fields)``)."""
+def _real_samples(path, arr) -> np.ndarray:
+    """``arr`` as an array of real numbers (bool, int, float), else FileFormatError naming the type."""
     arr = np.asarray(arr)
     if arr.dtype.kind == "c":
         raise fail(path, f"complex data ({arr.dtype}) is not RF; store the real RF samples")
     if arr.dtype.kind not in "biuf":
         raise fail(path, f"data of type {arr.dtype} is not numeric")
+    return arr
+
+
+def _selected_fields(path, arr, spacing, origin, metadata, frames, n: int) -> dict:
+    """Shared tail of the frame and volume readers (``arr`` with its frame axis first, ``n`` = 2 or 3 sample
+    axes): the frame selection, float32 (float64 kept) in native byte order, finite values; the fields of a
+    :class:`femreg.io.Frames` / :class:`femreg.io.Volumes`."""
+    arr = select_frames(path, arr, frames)
+    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
+    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
+    # native byte order, C-contiguous, own memory
+    arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
+    finite = np.isfinite(arr)
+    if not finite.all():
+        raise fail(path, f"data contains {int(arr.size - np.count_nonzero(finite))} NaN/Inf value(s)")
+    return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path, n=n),
+                metadata=metadata, source=Path(path))
+
+
+def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) -> dict:
+    """Shared tail of every reader: shape (n, axial, lateral), float dtype, finite values, selection; returns the
+    fields of a :class:`femreg.io.Frames` (``Frames(**fields)``)."""
+    arr = _real_samples(path, arr)
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3:
@@ -170,29 +192,14 @@ def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames
         raise fail(path, f"data is empty, shape {arr.shape}")
     if arr.shape[1] < 2 or arr.shape[2] < 2:
         raise fail(path, f"frame shape {arr.shape[1:]} is degenerate (need at least 2 x 2 samples)")
-    arr = select_frames(path, arr, frames)
-    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
-    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
-    # native byte order, C-contiguous, own memory
-    arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
-    finite = np.isfinite(arr)
-    if not finite.all():
-        n_bad = int(arr.size - np.count_nonzero(finite))
-        raise fail(path, f"data contains {n_bad} NaN/Inf value(s)")
-    meta = dict(metadata or {})
-    return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path),
-                metadata=meta, source=Path(path))
+    return _selected_fields(path, arr, spacing, origin, metadata, frames, n=2)
 
 
 def validate_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, frames=None) -> dict:
     """Shared tail of the volume readers: shape (n, axial, lateral, elevational) (one volume of 3 dimensions gets a
     leading frame axis), float dtype, finite values, selection; returns the fields of a
     :class:`femreg.io.Volumes`."""
-    arr = np.asarray(arr)
-    if arr.dtype.kind == "c":
-        raise fail(path, f"complex data ({arr.dtype}) is not RF; store the real RF samples")
-    if arr.dtype.kind not in "biuf":
-        raise fail(path, f"data of type {arr.dtype} is not numeric")
+    arr = _real_samples(path, arr)
     if arr.ndim == 3:
         arr = arr[None]
     if arr.ndim != 4:
@@ -203,12 +210,4 @@ def validate_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, 
     if min(arr.shape[1:]) < 2:
         raise fail(path, f"volume shape {arr.shape[1:]} is degenerate (need at least 2 samples along each "
                          "axis; a 2D frame or frame sequence is read by femreg.io.read_frames)")
-    arr = select_frames(path, arr, frames)
-    metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
-    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
-    arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
-    finite = np.isfinite(arr)
-    if not finite.all():
-        raise fail(path, f"data contains {int(arr.size - np.count_nonzero(finite))} NaN/Inf value(s)")
-    return dict(frames=arr, spacing=tuple(float(s) for s in spacing), origin=check_origin(origin, path, n=3),
-                metadata=dict(metadata), source=Path(path))
+    return _selected_fields(path, arr, spacing, origin, metadata, frames, n=3)

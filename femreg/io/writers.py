@@ -45,15 +45,8 @@ def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, d
     fmt = format or FORMATS.get(path.suffix.lower())
     if fmt is None:
         raise InputError(f"{path}: unknown extension {path.suffix!r}; use one of {', '.join(sorted(FORMATS))}")
-    if fmt == "npy":
-        np.save(path, arr, allow_pickle=False)
-        return [path]
-    if fmt == "npz":
-        data = {variable: arr, "origin": np.asarray(origin)}
-        if sp is not None:
-            data["spacing"] = np.asarray(sp)
-        np.savez(path, **data)
-        return [path]
+    if fmt in ("npy", "npz"):
+        return _write_numpy(path, fmt, arr, sp, origin, variable)
     if fmt == "mat":
         from .matlab import write_mat
 
@@ -77,6 +70,19 @@ def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, d
     raise InputError(f"unknown format {fmt!r}")
 
 
+def _write_numpy(path, fmt, arr, spacing, origin, variable) -> list:
+    """``.npy`` (the array only) or ``.npz`` (``variable``, ``origin`` and, when known, ``spacing``) of frames
+    or volumes; returns ``[path]``."""
+    if fmt == "npy":
+        np.save(path, arr, allow_pickle=False)
+        return [path]
+    data = {variable: arr, "origin": np.asarray(origin)}
+    if spacing is not None:
+        data["spacing"] = np.asarray(spacing)
+    np.savez(path, **data)
+    return [path]
+
+
 def save_volumes(path, volumes, spacing=None, *, origin=(0.0, 0.0, 0.0), format=None, dtype=None,
                  byte_order="little", variable="rf", mat_version="5"):
     """Write a volume (axial, lateral, elevational) or a volume sequence (n, axial, lateral, elevational) in a
@@ -93,15 +99,8 @@ def save_volumes(path, volumes, spacing=None, *, origin=(0.0, 0.0, 0.0), format=
     sp = check_spacing(spacing, n=3) if spacing is not None else None
     origin = check_origin(origin, n=3)
     fmt = format or FORMATS.get(path.suffix.lower())
-    if fmt == "npy":
-        np.save(path, arr, allow_pickle=False)
-        return [path]
-    if fmt == "npz":
-        data = {variable: arr, "origin": np.asarray(origin)}
-        if sp is not None:
-            data["spacing"] = np.asarray(sp)
-        np.savez(path, **data)
-        return [path]
+    if fmt in ("npy", "npz"):
+        return _write_numpy(path, fmt, arr, sp, origin, variable)
     if fmt == "mat":
         from .matlab import write_mat_volume
 
