@@ -74,21 +74,27 @@ def cubic_at_index(padded, idx, shape, out=None):
     return v
 
 
-def validate_spacing(spacing, origin=(0.0, 0.0)):
-    """Return ``(spacing, origin)`` as float arrays of shape (2,), raising :class:`InputError` if invalid."""
+def validate_spacing(spacing, origin=(0.0, 0.0), *, n: int = 2):
+    """Return ``(spacing, origin)`` as float arrays of shape (n,) mm, ``n`` = 2 (dx, dy) or 3 (dx, dy, dz),
+    raising :class:`InputError` if invalid.  One number is the spacing of every axis; for a volume the 2D
+    default origin (0, 0) means (0, 0, 0)."""
     try:
         sp = np.asarray(spacing, dtype=float).reshape(-1)
         org = np.asarray(origin, dtype=float).reshape(-1)
     except (TypeError, ValueError) as exc:
         raise InputError(f"spacing/origin must be numbers: {exc}") from None
     if sp.size == 1:
-        sp = np.repeat(sp, 2)
-    if sp.size != 2:
-        raise InputError(f"spacing must be (dx, dy) in mm, got {spacing!r}")
+        sp = np.repeat(sp, n)
+    if sp.size != n:
+        raise InputError(f"spacing must be (dx, dy) in mm, got {spacing!r}" if n == 2 else
+                         f"a volume needs spacing (dx, dy, dz) in mm, got {spacing!r}")
     if not np.all(np.isfinite(sp)) or np.any(sp <= 0):
         raise InputError(f"spacing must be finite and > 0 mm, got {tuple(sp)}")
-    if org.size != 2 or not np.all(np.isfinite(org)):
-        raise InputError(f"origin must be two finite numbers (mm), got {origin!r}")
+    if n == 3 and org.size == 2 and np.all(org == 0):       # the 2D default origin
+        org = np.zeros(3)
+    if org.size != n or not np.all(np.isfinite(org)):
+        raise InputError(f"origin must be two finite numbers (mm), got {origin!r}" if n == 2 else
+                         f"a volume needs origin (x0, y0, z0) as three finite numbers (mm), got {origin!r}")
     return sp, org
 
 

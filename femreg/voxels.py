@@ -37,23 +37,11 @@ DEFAULT_MARGIN_3D = (1.0, 1.0, 1.0)
 
 
 def validate_spacing_3d(spacing, origin=(0.0, 0.0, 0.0)):
-    """``(spacing, origin)`` as float arrays (3,) mm; :class:`InputError` naming the bad one."""
-    try:
-        s = np.asarray(spacing, dtype=float).reshape(-1)
-        o = np.asarray(origin, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"spacing/origin must be numbers: {exc}") from None
-    if s.size == 1:
-        s = np.repeat(s, 3)
-    if s.size != 3:
-        raise InputError(f"a volume needs spacing (dx, dy, dz) in mm, got {spacing!r}")
-    if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise InputError(f"spacing must be finite and > 0 mm, got {tuple(s)}")
-    if o.size == 2 and np.all(o == 0):       # the 2D default origin
-        o = np.zeros(3)
-    if o.size != 3 or not np.all(np.isfinite(o)):
-        raise InputError(f"a volume needs origin (x0, y0, z0) as three finite numbers (mm), got {origin!r}")
-    return s, o
+    """``(spacing, origin)`` as float arrays (3,) mm; :class:`InputError` naming the bad one
+    (:func:`femreg.image.validate_spacing` with ``n=3``)."""
+    from .image import validate_spacing
+
+    return validate_spacing(spacing, origin, n=3)
 
 
 def validate_volume(volume, name: str = "volume") -> np.ndarray:
