@@ -18,8 +18,31 @@ from .writers import save_frames
 __all__ = ["Frames", "Volumes"]
 
 
+class _Stack:
+    """What :class:`Frames` and :class:`Volumes` share: a stack ``frames`` with its frame axis first, read
+    from a file whose format name is ``metadata["format"]``; ``stack[k]`` is frame (or volume) ``k``, or a
+    sub-stack for a slice."""
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def format(self) -> str:
+        return str(self.metadata.get("format", ""))
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __getitem__(self, k) -> np.ndarray:
+        return self.frames[k]
+
+    def __iter__(self):
+        return iter(self.frames)
+
+
 @dataclass
-class Frames:
+class Frames(_Stack):
     """RF (or B-mode) frames read from a file.
 
     Attributes
@@ -44,27 +67,9 @@ class Frames:
     source: Path | None = None
 
     @property
-    def n_frames(self) -> int:
-        return int(self.frames.shape[0])
-
-    @property
     def shape(self) -> tuple[int, int]:
         """Shape of one frame, (axial, lateral)."""
         return (int(self.frames.shape[1]), int(self.frames.shape[2]))
-
-    @property
-    def format(self) -> str:
-        return str(self.metadata.get("format", ""))
-
-    def __len__(self) -> int:
-        return self.n_frames
-
-    def __getitem__(self, k) -> np.ndarray:
-        """Frame ``k`` as a 2D (axial, lateral) array (or a sub-stack for a slice)."""
-        return self.frames[k]
-
-    def __iter__(self):
-        return iter(self.frames)
 
     def save(self, path, **kwargs):
         """Write these frames with :func:`femreg.io.save_frames` (format from the extension)."""
@@ -77,7 +82,7 @@ def finalize(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) 
 
 
 @dataclass
-class Volumes:
+class Volumes(_Stack):
     """RF volumes read from a file (:func:`femreg.io.read_volumes`).
 
     Attributes
@@ -100,27 +105,9 @@ class Volumes:
     source: Path | None = None
 
     @property
-    def n_frames(self) -> int:
-        return int(self.frames.shape[0])
-
-    @property
     def shape(self) -> tuple[int, int, int]:
         """Shape of one volume, (axial, lateral, elevational)."""
         return tuple(int(v) for v in self.frames.shape[1:])
-
-    @property
-    def format(self) -> str:
-        return str(self.metadata.get("format", ""))
-
-    def __len__(self) -> int:
-        return self.n_frames
-
-    def __getitem__(self, k) -> np.ndarray:
-        """Volume ``k`` as a 3D (axial, lateral, elevational) array."""
-        return self.frames[k]
-
-    def __iter__(self):
-        return iter(self.frames)
 
     def save(self, path, **kwargs):
         """Write these volumes with :func:`femreg.io.save_volumes` (format from the extension)."""
