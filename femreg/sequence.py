@@ -165,7 +165,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
         from .volume import track_volume
         return track_volume(frames, spacing=spacing, origin=origin, mode=mode, regularizer=regularizer, alpha=alpha,
-                            mesh=mesh, element_size=element_size, margin=margin, **register_kwargs)
+                            mesh=mesh, element_size=element_size, margin=margin,
+                            check_orientation=check_orientation, **register_kwargs)
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if grid not in ("current", "reference"):

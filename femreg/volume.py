@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from . import orientation
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
 from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
@@ -314,7 +315,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
                     alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
                     maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", regularizer_options=None,
                     normalize: bool = True, callback=None, strategy: str = "auto", repair: bool = True,
-                    strain_tol=None, **ignored) -> VolumeResult:
+                    strain_tol=None, check_orientation: bool = True, **ignored) -> VolumeResult:
     """Register ``moving`` to ``reference`` volumes: u minimising eq:objf = psi (eq:IR) + R on hexahedra.
 
     Parameters
@@ -350,6 +351,8 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     t_all = time.perf_counter()
     timings = {}
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
+    if check_orientation:               # the central (axial, lateral) plane, as the 2D check reads a frame
+        orientation.check(ref[:, :, ref.shape[2] // 2], spacing[:2])
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options("auto", regularizer,
                                                                                    regularizer_options))
 
@@ -458,7 +461,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
 
 
 #: Options of the 2D :func:`femreg.register` that have no meaning on volumes and are accepted and ignored.
-_IGNORED_2D_OPTIONS = ("roi", "depth", "check_orientation", "geometry", "blockmatch_options", "coarse_to_fine",
+_IGNORED_2D_OPTIONS = ("roi", "depth", "geometry", "blockmatch_options", "coarse_to_fine",
                        "allow_mesh_outside")
 
 
@@ -492,6 +495,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError("every frame of a volume sequence must be 3D (axial, lateral, elevational)")
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    if register_kwargs.pop("check_orientation", True):
+        orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2],
+                          validate_spacing_3d(spacing, origin)[0][:2])
+    register_kwargs["check_orientation"] = False    # checked once, above
     results, acc = [], []
     S = None
     prev = None

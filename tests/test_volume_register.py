@@ -362,3 +362,19 @@ def test_a_volume_one_element_thick_is_flagged_not_returned_as_measured():
     res = femreg.register(ref, mov, spacing=spacing)
     assert not res.success
     assert "only one element across the elevational extent" in res.message
+
+
+def test_a_transposed_volume_is_refused_not_registered(affine_pair):
+    # lateral and axial axes exchanged (and their spacings with them): the carrier runs along axis 1
+    from femreg.orientation import OrientationError
+
+    ref, mov, spacing, _ = affine_pair
+    t = (np.swapaxes(ref, 0, 1).copy(), np.swapaxes(mov, 0, 1).copy())
+    swapped = (spacing[1], spacing[0], spacing[2])
+    with pytest.raises(OrientationError, match="transposed"):
+        femreg.register(*t, spacing=swapped)
+    with pytest.raises(OrientationError, match="transposed"):
+        femreg.track(np.stack(t), spacing=swapped)
+    # the check can be switched off, as in 2D: then the pair is registered (here, the wrong way round)
+    res = femreg.register(*t, spacing=swapped, check_orientation=False, maxiter=1)
+    assert res.u.shape == (3 * res.mesh.p.shape[1],)

@@ -13,7 +13,7 @@ from ..errors import InputError
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
 #: register/track options that mean nothing on volumes
-_NOT_FOR_VOLUMES = ("roi", "depth", "check_orientation", "geometry")
+_NOT_FOR_VOLUMES = ("roi", "depth", "geometry")
 
 
 def read_volume_file(path):
