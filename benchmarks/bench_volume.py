@@ -46,7 +46,10 @@ def _pair(shape, f_mhz, seed, density, cache):
     shape = (int(round(shape[0] * SPACING[0] / spacing[0])),) + tuple(shape[1:])     # the same extent
     path = Path(cache) / f"volpair_{'x'.join(map(str, shape))}_{f_mhz:g}_{seed}_{density:g}.npz"
     field, G = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * spacing / 2)
-    if not path.exists():
+    if path.exists():
+        with np.load(path) as z:
+            stale = not {"ref", "mov", "spacing"} <= set(z.files)     # written by an older version of this script
+    if not path.exists() or stale:
         t = time.perf_counter()
         ref, mov, _, _ = volume_pair(field, shape=shape, spacing=spacing, f_mhz=f_mhz, seed=seed, density=density)
         np.savez(path, ref=ref.astype(np.float32), mov=mov.astype(np.float32), spacing=np.asarray(spacing))
