@@ -126,9 +126,12 @@ class OrientationReport:
                 f"{self.cell_periods:.1f} periods wide")
 
 
-def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> OrientationReport:
+def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
+             elevational: float | None = None) -> OrientationReport:
     """Check one (axial, lateral) RF frame against ``spacing`` (dx, dy) mm (module docstring); never raises for
-    the data (an image it cannot measure comes back without a problem)."""
+    the data (an image it cannot measure comes back without a problem).  ``elevational``: the elevational spacing
+    dz (mm) when the frame is the central (axial, lateral) plane of a volume, so that the advice names the
+    volume's transpose and its three spacings."""
     from .speckle import speckle_statistics
 
     img = np.asarray(image, float)
@@ -143,10 +146,17 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> Orienta
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
         n1 = _centroid_samples(img.T)
         rep.problem = "transposed"
-        rep.message = (f"the frames look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
+        if elevational is None:
+            what, shape, how, sp = ("frames", "(axial samples, lateral lines)",
+                                    "frame.T, frames.transpose(0, 2, 1)", f"({dy:g}, {dx:g})")
+        else:
+            what, shape, how, sp = ("volumes", "(axial samples, lateral lines, elevational planes)",
+                                    "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)",
+                                    f"({dy:g}, {dx:g}, {elevational:g})")
+        rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
                        f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
-                       f"(axial samples, lateral lines): transpose them (frame.T, frames.transpose(0, 2, 1)) and "
-                       f"give the spacing in that order, ({dy:g}, {dx:g}) mm, or {OVERRIDE}")
+                       f"{shape}: transpose them ({how}) and give the spacing in that order, {sp} mm, or "
+                       f"{OVERRIDE}")
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         return rep                                   # no carrier along axis 0: envelope / B-mode, nothing to say
@@ -175,8 +185,10 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> Orienta
     else:
         return rep
     if rep.problem == "swapped":
-        hint = (f"the axial and lateral spacings look swapped: pass spacing ({dy:g}, {dx:g}) (axial, lateral; "
-                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {dy:g} {dx:g})")
+        ez = "" if elevational is None else f", {elevational:g}"
+        order = "axial, lateral" if elevational is None else "axial, lateral, elevational"
+        hint = (f"the axial and lateral spacings look swapped: pass spacing ({dy:g}, {dx:g}{ez}) ({order}; "
+                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {dy:g} {dx:g}{ez.replace(',', '')})")
     else:
         hint = "check the spacing's units (mm) and order (axial, lateral)"
     rep.message = f"{why}; {hint}, or {OVERRIDE}"
@@ -202,10 +214,11 @@ def _centroid_samples(img) -> float:
     return float(rf_period(img, (1.0, 1.0)))
 
 
-def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S) -> OrientationReport:
+def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
+          elevational: float | None = None) -> OrientationReport:
     """:func:`diagnose`, raising :class:`OrientationError` (an :class:`InputError`) with its message when the
     frame looks transposed or its spacing swapped or implausible."""
-    rep = diagnose(image, spacing, sound_speed=sound_speed)
+    rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational)
     if rep.problem:
         raise OrientationError(rep.message)
     return rep

@@ -352,7 +352,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     timings = {}
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
     if check_orientation:               # the central (axial, lateral) plane, as the 2D check reads a frame
-        orientation.check(ref[:, :, ref.shape[2] // 2], spacing[:2])
+        orientation.check(ref[:, :, ref.shape[2] // 2], spacing[:2], elevational=spacing[2])
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options("auto", regularizer,
                                                                                    regularizer_options))
 
@@ -496,8 +496,9 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if register_kwargs.pop("check_orientation", True):
-        orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2],
-                          validate_spacing_3d(spacing, origin)[0][:2])
+        sp3 = validate_spacing_3d(spacing, origin)[0]
+        orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
+                          elevational=sp3[2])
     register_kwargs["check_orientation"] = False    # checked once, above
     results, acc = [], []
     S = None

@@ -371,9 +371,13 @@ def test_a_transposed_volume_is_refused_not_registered(affine_pair):
     ref, mov, spacing, _ = affine_pair
     t = (np.swapaxes(ref, 0, 1).copy(), np.swapaxes(mov, 0, 1).copy())
     swapped = (spacing[1], spacing[0], spacing[2])
-    with pytest.raises(OrientationError, match="transposed"):
+    with pytest.raises(OrientationError, match="transposed") as err:
         femreg.register(*t, spacing=swapped)
-    with pytest.raises(OrientationError, match="transposed"):
+    # the advice is the volume's own: its transpose and its three spacings, not a frame's
+    msg = str(err.value)
+    assert "volume.transpose(1, 0, 2)" in msg and "frame.T" not in msg
+    assert f"({spacing[0]:g}, {spacing[1]:g}, {spacing[2]:g}) mm" in msg
+    with pytest.raises(OrientationError, match=r"volumes\.transpose\(0, 2, 1, 3\)"):
         femreg.track(np.stack(t), spacing=swapped)
     # the check can be switched off, as in 2D: then the pair is registered (here, the wrong way round)
     res = femreg.register(*t, spacing=swapped, check_orientation=False, maxiter=1)
