@@ -143,19 +143,21 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     c0 = carrier_ratio(img[:, ::max(1, img.shape[1] // 64)])
     c1 = carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
     rep = OrientationReport((dx, dy), (c0, c1))
+    # the advice's spacing, axial and lateral exchanged, with a volume's dz kept in third place
+    volume = elevational is not None
+    swapped = ", ".join(f"{v:g}" for v in (dy, dx) + ((float(elevational),) if volume else ()))
+    order = "axial, lateral, elevational" if volume else "axial, lateral"
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
         n1 = _centroid_samples(img.T)
         rep.problem = "transposed"
-        if elevational is None:
-            what, shape, how, sp = ("frames", "(axial samples, lateral lines)",
-                                    "frame.T, frames.transpose(0, 2, 1)", f"({dy:g}, {dx:g})")
+        if volume:
+            what, shape, how = ("volumes", "(axial samples, lateral lines, elevational planes)",
+                                "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
         else:
-            what, shape, how, sp = ("volumes", "(axial samples, lateral lines, elevational planes)",
-                                    "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)",
-                                    f"({dy:g}, {dx:g}, {elevational:g})")
+            what, shape, how = "frames", "(axial samples, lateral lines)", "frame.T, frames.transpose(0, 2, 1)"
         rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
                        f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
-                       f"{shape}: transpose them ({how}) and give the spacing in that order, {sp} mm, or "
+                       f"{shape}: transpose them ({how}) and give the spacing in that order, ({swapped}) mm, or "
                        f"{OVERRIDE}")
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
@@ -185,10 +187,8 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     else:
         return rep
     if rep.problem == "swapped":
-        ez = "" if elevational is None else f", {elevational:g}"
-        order = "axial, lateral" if elevational is None else "axial, lateral, elevational"
-        hint = (f"the axial and lateral spacings look swapped: pass spacing ({dy:g}, {dx:g}{ez}) ({order}; "
-                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {dy:g} {dx:g}{ez.replace(',', '')})")
+        hint = (f"the axial and lateral spacings look swapped: pass spacing ({swapped}) ({order}; "
+                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {swapped.replace(',', '')})")
     else:
         hint = "check the spacing's units (mm) and order (axial, lateral)"
     rep.message = f"{why}; {hint}, or {OVERRIDE}"

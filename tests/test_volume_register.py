@@ -382,3 +382,16 @@ def test_a_transposed_volume_is_refused_not_registered(affine_pair):
     # the check can be switched off, as in 2D: then the pair is registered (here, the wrong way round)
     res = femreg.register(*t, spacing=swapped, check_orientation=False, maxiter=1)
     assert res.u.shape == (3 * res.mesh.p.shape[1],)
+
+
+def test_swapped_spacing_on_a_volume_names_the_three_spacings_to_pass(affine_pair):
+    # axial and lateral spacings exchanged, the array itself right: the advice keeps dz in third place
+    from femreg.orientation import OrientationError
+
+    ref, mov, spacing, _ = affine_pair
+    wrong = (spacing[1], spacing[0], spacing[2])
+    with pytest.raises(OrientationError) as err:
+        femreg.register(ref, mov, spacing=wrong)
+    msg = str(err.value)
+    assert f"pass spacing ({spacing[0]:g}, {spacing[1]:g}, {spacing[2]:g}) (axial, lateral, elevational" in msg
+    assert f"--spacing {spacing[0]:g} {spacing[1]:g} {spacing[2]:g})" in msg
