@@ -33,7 +33,7 @@ from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
-from .speckle import envelope, rf_period
+from .speckle import envelope
 from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .volume_result import VolumeResult
@@ -53,10 +53,46 @@ SEARCH_FRACTION_3D = 0.10
 # Initial guess
 # ----------------------------------------------------------------------------------------------------------
 
-def _envelope_3d(volume) -> np.ndarray:
-    """Envelope |analytic signal| along the axial direction of a volume (each (y, z) line)."""
+#: Voxels per pass of the column-wise volume transforms (envelope, RF period): their complex spectra and
+#: filtered copies then take ~50 MB instead of several times the volume.
+COLUMN_CHUNK_3D = 1 << 22
+
+
+def _column_chunks(volume):
+    """``(flat, slices)``: the volume as (n_x, n_y n_z) columns and slices of about :data:`COLUMN_CHUNK_3D`
+    voxels over them."""
     nx = volume.shape[0]
-    return envelope(volume.reshape(nx, -1)).reshape(volume.shape)
+    flat = volume.reshape(nx, -1)
+    step = max(1, COLUMN_CHUNK_3D // nx)
+    return flat, [slice(a, a + step) for a in range(0, flat.shape[1], step)]
+
+
+def _envelope_3d(volume, q: int = 1) -> np.ndarray:
+    """Envelope |analytic signal| along the axial direction of a volume (each (y, z) line), decimated axially by
+    ``q`` (:func:`_decimate`); computed a block of lines at a time (each line is independent, so the values are
+    those of the whole volume at once)."""
+    flat, chunks = _column_chunks(volume)
+    out = None
+    for c in chunks:
+        e = _decimate(envelope(np.asarray(flat[:, c], float)), q)
+        if out is None:
+            out = np.empty((e.shape[0], flat.shape[1]))
+        out[:, c] = e
+    return out.reshape((out.shape[0],) + volume.shape[1:])
+
+
+def _rf_period_3d(volume, spacing) -> float:
+    """:func:`femreg.speckle.rf_period` of the volume's axial lines, a block of lines at a time."""
+    from scipy import fft as sfft
+
+    from .speckle import _centroid_period
+
+    flat, chunks = _column_chunks(volume)
+    nf = sfft.next_fast_len(flat.shape[0], real=True)
+    P = 0.0
+    for c in chunks:
+        P = P + np.sum(np.abs(sfft.rfft(np.asarray(flat[:, c], float), n=nf, axis=0)) ** 2, axis=1)
+    return _centroid_period(P / flat.shape[1], nf, float(spacing[0]))
 
 
 def _decimate(env, q: int) -> np.ndarray:
@@ -147,9 +183,8 @@ def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, 
     envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes.
     Returns ``(u0, info)``."""
     t0 = time.perf_counter()
-    env_r, env_m = _envelope_3d(ref), _envelope_3d(mov)
     q = max(1, int(round(0.5 * min(spacing[1], spacing[2]) / spacing[0])))
-    dr, dm = _decimate(env_r, q), _decimate(env_m, q)
+    dr, dm = _envelope_3d(ref, q), _envelope_3d(mov, q)
     sp_d = np.array([spacing[0] * q, spacing[1], spacing[2]])
     s, t, xc, g_ncc = global_search_3d(dr, dm, sp_d, origin)
     t_global = time.perf_counter() - t0
@@ -208,13 +243,16 @@ class VolumeSolve:
 
 
 def solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, maxiter=20, tol=1e-3,
-                 linear_solver="auto", callback=None, mask_outside=False, strain_tol=None) -> VolumeSolve:
+                 linear_solver="auto", callback=None, mask_outside=False, strain_tol=None, data=None) -> VolumeSolve:
     """One Gauss-Newton solve of eq:objf on a hexahedral ``mesh`` (the 3D form of :func:`femreg.gnsolve.solve`):
     voxel SSD term with the fixed reference gradient + a fresh regulariser with alpha per 2 x 2 x 2 mm element.
     ``offset``: S at the voxels of the mesh block (n, 3) mm or None.  ``mask_outside``: voxels that ``u0`` maps
-    out of the moving volume get weight 0."""
-    grid = VoxelGrid(mesh, shape, spacing, origin)
-    data = VoxelSSDTerm(grid, I1, I2, offset=offset)
+    out of the moving volume get weight 0.  ``data``: the :class:`VoxelSSDTerm` of an earlier solve on the same
+    mesh, volumes and offset, whose reference values and gradients are shared (not recomputed nor copied)."""
+    if data is None:
+        data = VoxelSSDTerm(VoxelGrid(mesh, shape, spacing, origin), I1, I2, offset=offset)
+    else:
+        data = data.fresh()
     if mask_outside:
         out = data.outside_mask(u0)
         if out.any() and not out.all():
@@ -359,12 +397,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     def reg_factory():
         return copy.copy(user_reg)
 
-    t = time.perf_counter()
     if normalize:
         ref = ref / np.sqrt(np.mean(ref ** 2))
         mov = mov / np.sqrt(np.mean(mov ** 2))
-    I1, I2 = SplineVolume(ref, spacing, origin), SplineVolume(mov, spacing, origin)
-    timings["prefilter"] = time.perf_counter() - t
 
     if mesh is None:
         mesh = roi_mesh_3d(ref.shape, spacing, origin,
@@ -382,7 +417,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
             S = np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
 
     t = time.perf_counter()
-    period = rf_period(ref.reshape(ref.shape[0], -1), spacing[:2])
+    period = _rf_period_3d(ref, spacing)
     info = {}
     if initial is None or (isinstance(initial, str) and initial == "pyramid"):
         if S is None:
@@ -400,20 +435,29 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         u0 = _start(initial, mesh)
     timings["initial"] = time.perf_counter() - t
 
+    # the splines after the initial guess, whose envelope volumes then do not sit beside them; the moving
+    # volume's samples are not needed once its coefficients exist
+    t = time.perf_counter()
+    shape = ref.shape
+    I1, I2 = SplineVolume(ref, spacing, origin), SplineVolume(mov, spacing, origin, keep_data=False)
+    del mov
+    timings["prefilter"] = time.perf_counter() - t
+
     t = time.perf_counter()
     st = float(strain_tol) if strain_tol is not None else (
         GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
     kw = dict(offset=S, maxiter=maxiter, tol=component_tol(tol, u0.reshape(-1, 3)[:, :2].ravel()),
               linear_solver=linear_solver, mask_outside=True, strain_tol=st if st > 0 else None)
-    sol = solve_volume(I1, I2, mesh, ref.shape, spacing, origin, reg_factory, u0, callback=callback, **kw)
+    sol = solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, callback=callback, **kw)
+    del I1, ref            # the data term holds the reference values and gradients it needs
     timings["gauss_newton"] = time.perf_counter() - t
 
     t = time.perf_counter()
     notes, hops = [], np.zeros(mesh.p.shape[1], int)
     if repair:
         rkw = dict(kw, strain_tol=None if kw["strain_tol"] is None else min(kw["strain_tol"], GN_STRAIN_TOL_TIGHT))
-        sol, hops, notes = _repair(sol, lambda u: solve_volume(I1, I2, mesh, ref.shape, spacing, origin,
-                                                              reg_factory, u, **rkw), mesh, period)
+        sol, hops, notes = _repair(sol, lambda u: solve_volume(None, I2, mesh, shape, spacing, origin,
+                                                              reg_factory, u, data=sol.data, **rkw), mesh, period)
     data = sol.data
     ncc_before = data.ncc(None)
     u = sol.u
@@ -451,7 +495,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not success:
         message = f"FAILED: {'; '.join(notes) or sol.gn.message} (Gauss-Newton stopped after {sol.gn.nit} iterations)"
-    res = VolumeResult(mesh, u, shape=ref.shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
+    res = VolumeResult(mesh, u, shape=shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
                        alpha=user_reg.alpha, success=success, status=sol.gn.status, message=message, nit=sol.gn.nit,
                        energy_history=sol.gn.energy_history, ncc_before=ncc_before, ncc_after=ncc_after,
                        timings=timings, quality=quality, strategy="auto", alpha_effective=sol.reg.alpha,

@@ -24,6 +24,8 @@ STRAIN_COMPONENTS_3D = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 DISPLACEMENT_COMPONENTS_3D = ("ux", "uy", "uz")
 #: Everything sampled on a volume's grid.
 FIELDS_3D = DISPLACEMENT_COMPONENTS_3D + STRAIN_COMPONENTS_3D
+#: Points per pass of :meth:`HexLocator.sample` (its temporaries: ~0.7 kB per point).
+SAMPLE_CHUNK = 1 << 18
 #: (a, b) of each strain component: e_ab = (du_a/dx_b + du_b/dx_a) / 2.
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
@@ -110,11 +112,22 @@ class HexLocator:
         nodes = np.stack([self.node[e[0] + i, e[1] + j, e[2] + k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         return inside, e, X, nodes
 
-    def sample(self, u, points, nodal_strain=None) -> dict:
+    def sample(self, u, points, nodal_strain=None, chunk: int = SAMPLE_CHUNK) -> dict:
         """``ux, uy, uz`` and the six strains at ``points`` (n, 3); NaN outside the mesh.  Strains: the recovered
-        ``nodal_strain`` (n_nodes, 6) interpolated, or with None the gradient of the trilinear field."""
-        inside, e, X, nodes = self.locate(points)
+        ``nodal_strain`` (n_nodes, 6) interpolated, or with None the gradient of the trilinear field.  Points are
+        taken ``chunk`` at a time (the weights of one point take ~0.7 kB; the values do not depend on it)."""
+        pts = np.asarray(points, float).reshape(-1, 3)
         u = np.asarray(u, float)
+        if len(pts) <= chunk:
+            return self._sample(u, pts, nodal_strain)
+        out = {name: np.empty(len(pts)) for name in FIELDS_3D}
+        for a in range(0, len(pts), chunk):
+            for name, v in self._sample(u, pts[a:a + chunk], nodal_strain).items():
+                out[name][a:a + chunk] = v
+        return out
+
+    def _sample(self, u, points, nodal_strain) -> dict:
+        inside, e, X, nodes = self.locate(points)
         h = np.stack([self.axes[a][e[a] + 1] - self.axes[a][e[a]] for a in range(3)])           # (3, n)
         W, dW = [], []
         for i in (0, 1):

@@ -13,8 +13,8 @@ import numpy as np
 from .errors import FileFormatError, InputError
 from .fields import check_strain_mode
 from .result_base import ResultRecord
-from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, STRAIN_COMPONENTS_3D, HexLocator, element_strains_3d,
-                            recovered_strains_3d)
+from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, FIELDS_3D, SAMPLE_CHUNK, STRAIN_COMPONENTS_3D, HexLocator,
+                            element_strains_3d, recovered_strains_3d)
 
 __all__ = ["VolumeResult", "load_volume_result", "is_volume_result", "VOLUME_RESULT_KIND"]
 
@@ -105,15 +105,24 @@ class VolumeResult(ResultRecord):
         grid of :attr:`spacing` and :attr:`origin`: the input of :func:`femreg.volplot.plot_volume_slices`."""
         check_strain_mode(strain)
         if strain not in self._grids:
-            f = self.locator.sample(self.u, self.voxel_points(),
-                                    nodal_strain=self.nodal_strain if strain == "recovered" else None)
-            out = {k: v.reshape(self.shape) for k, v in f.items()}
-            q = np.full(self.shape, np.nan)
-            if self.quality is not None:
-                inside, e, _, _ = self.locator.locate(self.voxel_points())
-                cell = self.locator.cell[e[0], e[1], e[2]]
-                q = np.where(inside, self.quality[cell], np.nan).reshape(self.shape)
-            out["quality"] = q
+            ns = self.nodal_strain if strain == "recovered" else None
+            x, y, z = self.voxel_axes()
+            out = {k: np.empty(self.shape) for k in FIELDS_3D + ("quality",)}
+            # axial slabs of about SAMPLE_CHUNK voxels: the sampling temporaries stay small whatever the volume
+            step = max(1, SAMPLE_CHUNK // (y.size * z.size))
+            for i0 in range(0, x.size, step):
+                X = np.meshgrid(x[i0:i0 + step], y, z, indexing="ij")
+                pts = np.column_stack([c.ravel() for c in X])
+                sl = (slice(i0, i0 + step), slice(None), slice(None))
+                n = (min(x.size, i0 + step) - i0, y.size, z.size)
+                for k, v in self.locator.sample(self.u, pts, nodal_strain=ns).items():
+                    out[k][sl] = v.reshape(n)
+                if self.quality is None:
+                    out["quality"][sl] = np.nan
+                else:
+                    inside, e, _, _ = self.locator.locate(pts)
+                    cell = self.locator.cell[e[0], e[1], e[2]]
+                    out["quality"][sl] = np.where(inside, self.quality[cell], np.nan).reshape(n)
             self._grids[strain] = out
         return self._grids[strain]
 

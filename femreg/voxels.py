@@ -20,6 +20,8 @@ its centre at ``origin + (i dx, j dy, k dz)`` mm.  This is the 3D form of :mod:`
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage
@@ -223,17 +225,22 @@ def _cell_index(mesh, node) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------
 
 class SplineVolume:
-    """Tricubic B-spline interpolant of a volume on its voxel grid, zero outside the voxel cells."""
+    """Tricubic B-spline interpolant of a volume on its voxel grid, zero outside the voxel cells.  ``keep_data``
+    False: :attr:`data` is None (the samples are not kept beside the coefficients; a moving volume needs only
+    these)."""
 
-    def __init__(self, data, spacing, origin=(0.0, 0.0, 0.0)):
+    def __init__(self, data, spacing, origin=(0.0, 0.0, 0.0), keep_data: bool = True):
         self.data = np.ascontiguousarray(data, dtype=float)
         self.spacing = np.asarray(spacing, float)
         self.origin = np.asarray(origin, float)
         self.shape = self.data.shape
-        self.coeffs = ndimage.spline_filter(self.data, order=3, mode="mirror")
-        # mirror-extended by 2 (as scipy does internally) so every stencil inside the voxel cells is in range
-        self._padded = np.pad(self.coeffs, 2, mode="reflect")
+        # the coefficients mirror-extended by 2 (as scipy does internally) so every stencil inside the voxel cells
+        # is in range: prefiltered straight into the padded array's interior (one volume-sized array, not two)
+        self._padded = _padded_spline_coefficients(self.data)
+        self.coeffs = self._padded[2:-2, 2:-2, 2:-2]
         self._hi = np.array(self.shape, float) - 0.5
+        if not keep_data:       # the interpolant needs only its coefficients (``data``: the samples, or None)
+            self.data = None
 
     def at_index(self, idx) -> np.ndarray:
         """Values at fractional voxel indices ``idx`` (3, n); 0 outside the voxel cells."""
@@ -261,9 +268,6 @@ class SplineVolume:
         """Exact gradient of the interpolant at the voxel centres of ``block`` (three slices): at a knot the
         B-spline weights are (1, 4, 1) / 6 and the derivative weights (-1, 0, 1) / 2, so dI/dx = the central
         difference along x of the (1, 4, 1) / 6 smoothing along y and z of the coefficients."""
-        sl = tuple(slice(b.start + 1, b.stop + 3) for b in block)      # the block plus 1 coefficient around it
-        c = self._padded[sl]
-
         def smooth(a, ax):
             n = a.shape[ax]
             lo, mid, hi = (np.take(a, range(k, n - 2 + k), axis=ax) for k in range(3))
@@ -273,10 +277,46 @@ class SplineVolume:
             n = a.shape[ax]
             return (np.take(a, range(2, n), axis=ax) - np.take(a, range(0, n - 2), axis=ax)) / (2.0 * h)
 
-        gx = diff(smooth(smooth(c, 1), 2), 0, self.spacing[0])
-        gy = diff(smooth(smooth(c, 0), 2), 1, self.spacing[1])
-        gz = diff(smooth(smooth(c, 0), 1), 2, self.spacing[2])
-        return gx, gy, gz
+        shape = tuple(b.stop - b.start for b in block)
+        g = [np.empty(shape) for _ in range(3)]
+        # axial slabs of about GRADIENT_CHUNK voxels (each value needs only its 3 x 3 x 3 coefficients, so the
+        # slabs give the values of the whole block at once with temporaries of the slab's size)
+        step = max(1, GRADIENT_CHUNK // max(1, shape[1] * shape[2]))
+        for r0 in range(0, shape[0], step):
+            r1 = min(shape[0], r0 + step)
+            # the slab plus 1 coefficient around it
+            c = self._padded[(slice(block[0].start + r0 + 1, block[0].start + r1 + 3),)
+                             + tuple(slice(b.start + 1, b.stop + 3) for b in block[1:])]
+            g[0][r0:r1] = diff(smooth(smooth(c, 1), 2), 0, self.spacing[0])
+            g[1][r0:r1] = diff(smooth(smooth(c, 0), 2), 1, self.spacing[1])
+            g[2][r0:r1] = diff(smooth(smooth(c, 0), 1), 2, self.spacing[2])
+        return tuple(g)
+
+
+#: Voxels per slab of :meth:`SplineVolume.gradient_at_voxels`.
+GRADIENT_CHUNK = 1 << 20
+
+
+def _padded_spline_coefficients(data) -> np.ndarray:
+    """``np.pad(ndimage.spline_filter(data, order=3, mode="mirror"), 2, mode="reflect")`` without the unpadded
+    copy: the prefilter writes into the interior, then the borders are reflected one axis after the other (as
+    ``np.pad`` does)."""
+    out = np.empty(tuple(n + 4 for n in data.shape))
+    inner = out[2:-2, 2:-2, 2:-2]
+    inner[...] = data
+    for ax in range(3):         # scipy's spline_filter: the 1D filter along each axis in turn, in place
+        ndimage.spline_filter1d(inner, order=3, axis=ax, output=inner, mode="mirror")
+    for ax in range(3):         # reflect (edge not repeated): out[1] = out[3], out[0] = out[4]; the same at the end
+        n = out.shape[ax]
+
+        def at(i):
+            idx = [slice(None)] * 3
+            idx[ax] = i
+            return tuple(idx)
+
+        out[at(1)], out[at(0)] = out[at(3)], out[at(4)]
+        out[at(n - 2)], out[at(n - 1)] = out[at(n - 4)], out[at(n - 5)]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -323,6 +363,13 @@ class VoxelSSDTerm:
         self._w = None                                  # per-voxel weights once some are masked
         self._H = None
         self._cache = (None, None)
+
+    def fresh(self) -> "VoxelSSDTerm":
+        """The same term with every voxel weighted again and no cached Hessian or residual; its reference values
+        and gradients are this term's arrays (shared, read only)."""
+        out = copy.copy(self)
+        out._w, out._H, out._cache = None, None, (None, None)
+        return out
 
     # -- weights -------------------------------------------------------------------------------------------
     @property
