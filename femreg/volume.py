@@ -441,15 +441,18 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     shape = ref.shape
     I1, I2 = SplineVolume(ref, spacing, origin), SplineVolume(mov, spacing, origin, keep_data=False)
     del mov
+    st = float(strain_tol) if strain_tol is not None else (
+        GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
+    kw = dict(maxiter=maxiter, tol=component_tol(tol, u0.reshape(-1, 3)[:, :2].ravel()),
+              linear_solver=linear_solver, mask_outside=True, strain_tol=st if st > 0 else None)
+    # the data term holds the reference values and gradients it needs: the reference volume and its spline go
+    data = VoxelSSDTerm(VoxelGrid(mesh, shape, spacing, origin), I1, I2, offset=S)
+    del I1, ref, S
     timings["prefilter"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    st = float(strain_tol) if strain_tol is not None else (
-        GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
-    kw = dict(offset=S, maxiter=maxiter, tol=component_tol(tol, u0.reshape(-1, 3)[:, :2].ravel()),
-              linear_solver=linear_solver, mask_outside=True, strain_tol=st if st > 0 else None)
-    sol = solve_volume(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, callback=callback, **kw)
-    del I1, ref            # the data term holds the reference values and gradients it needs
+    sol = solve_volume(None, I2, mesh, shape, spacing, origin, reg_factory, u0, callback=callback, data=data, **kw)
+    del data
     timings["gauss_newton"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -173,13 +173,22 @@ class VoxelGrid:
         u = np.asarray(u, float)
         return [u[c::3][self.node] for c in range(3)]
 
-    def expand(self, U) -> np.ndarray:
-        """A nodal grid field (n_x, n_y, n_z) -> its trilinear interpolant at the voxels of the block."""
-        Px, Py, Pz = self.P
+    def expand(self, U, rows=None) -> np.ndarray:
+        """A nodal grid field (n_x, n_y, n_z) -> its trilinear interpolant at the voxels of the block (or of its
+        axial ``rows``, a slice)."""
+        return self.expand_rows(self.expand_yz(U), rows)
+
+    def expand_yz(self, U) -> np.ndarray:
+        """The lateral and elevational half of :meth:`expand`: (n_x, n_y, n_z) nodes -> (n_x, nc, nl)."""
+        _, Py, Pz = self.P
         nx, ny, nz = U.shape
         T = (U.reshape(-1, nz) @ Pz.T).reshape(nx, ny, -1)              # (nx, ny, nl)
-        T = np.einsum("jb,abk->ajk", Py, T)                              # (nx, nc, nl)
-        return (Px @ T.reshape(nx, -1)).reshape(self.block_shape)
+        return np.einsum("jb,abk->ajk", Py, T)                           # (nx, nc, nl)
+
+    def expand_rows(self, T, rows=None) -> np.ndarray:
+        """The axial half of :meth:`expand`: ``expand_yz``'s (n_x, nc, nl) -> the voxels of ``rows``."""
+        Px = self.P[0] if rows is None else self.P[0][rows]
+        return (Px @ T.reshape(T.shape[0], -1)).reshape((Px.shape[0],) + self.block_shape[1:])
 
     def contract(self, R) -> np.ndarray:
         """Transpose of :meth:`expand`: voxel values (nr, nc, nl) -> sums against every node's hat (n_x, n_y, n_z)."""
@@ -189,19 +198,30 @@ class VoxelGrid:
         T = np.einsum("jb,ajk->abk", Py, T)                              # (nx, ny, nl)
         return (T.reshape(-1, nl) @ Pz).reshape(self.node_shape)
 
+    def element_counts(self) -> np.ndarray:
+        """Voxels in each element, on the cell grid (E_x, E_y, E_z): ``element_sums`` of ones, from the per-axis
+        counts."""
+        c = [_axis_counts(self.e[a], self.node_shape[a] - 1) for a in range(3)]
+        return c[0][:, None, None] * c[1][None, :, None] * c[2][None, None, :]
+
     def element_sums(self, V) -> np.ndarray:
         """Sum of voxel values (nr, nc, nl) over each element's voxels, on the cell grid (E_x, E_y, E_z)."""
         out = V
         for a in range(3):
             e = self.e[a]
             starts = np.flatnonzero(np.diff(e, prepend=-2))
-            s = np.add.reduceat(out, starts, axis=a)
+            s = np.add.reduceat(out, starts, axis=a, dtype=float)      # double sums of single-precision values
             full = np.zeros(out.shape[:a] + (self.node_shape[a] - 1,) + out.shape[a + 1:])
             idx = [slice(None)] * 3
             idx[a] = e[starts]
             full[tuple(idx)] = s
             out = full
         return out
+
+
+def _axis_counts(e, n_cells) -> np.ndarray:
+    """Voxels of each of ``n_cells`` cells along one axis (``e`` the cell of each voxel row, -1 outside)."""
+    return np.bincount(e[e >= 0], minlength=n_cells).astype(float)
 
 
 def _cell_index(mesh, node) -> np.ndarray:
@@ -293,8 +313,14 @@ class SplineVolume:
         return tuple(g)
 
 
+#: Storage type of the per-voxel reference values and gradients of :class:`VoxelSSDTerm` (4 of its arrays the
+#: size of the volume).  Single precision: its relative rounding, 6e-8, is far below the speckle noise of RF data
+#: (the residuals and every sum over voxels are formed in double precision).
+VOXEL_DTYPE = np.float32
 #: Voxels per slab of :meth:`SplineVolume.gradient_at_voxels`.
 GRADIENT_CHUNK = 1 << 20
+#: Voxels per slab of the warp (:meth:`VoxelSSDTerm.warped_moving`): u at them takes 24 bytes each.
+WARP_CHUNK = 1 << 20
 
 
 def _padded_spline_coefficients(data) -> np.ndarray:
@@ -348,17 +374,17 @@ class VoxelSSDTerm:
             self.offset = None
             self._base3d = None
             gx, gy, gz = reference.gradient_at_voxels(grid.block)
-            self.ref_values = np.ascontiguousarray(reference.data[grid.block])
+            self.ref_values = np.ascontiguousarray(reference.data[grid.block], dtype=VOXEL_DTYPE)
         else:
             S = np.asarray(offset, float).reshape(self.shape + (3,))
             self.offset = S
             pts = grid.points() + S.reshape(-1, 3)
             g = reference.gradient(pts)
             gx, gy, gz = (np.ascontiguousarray(g[:, a].reshape(self.shape)) for a in range(3))
-            self.ref_values = reference(pts).reshape(self.shape)
+            self.ref_values = reference(pts).reshape(self.shape).astype(VOXEL_DTYPE)
             X = np.meshgrid(*self._base1d, indexing="ij")
             self._base3d = [np.ascontiguousarray(X[a] + S[..., a] * self._isp[a]) for a in range(3)]
-        self.g = (np.ascontiguousarray(gx), np.ascontiguousarray(gy), np.ascontiguousarray(gz))
+        self.g = tuple(np.ascontiguousarray(a, dtype=VOXEL_DTYPE) for a in (gx, gy, gz))
         self.w0 = float(np.prod(moving.spacing))        # voxel weight dx dy dz, mm^3
         self._w = None                                  # per-voxel weights once some are masked
         self._H = None
@@ -392,38 +418,53 @@ class VoxelSSDTerm:
         """u at the voxels of the block: three (nr, nc, nl) arrays mm."""
         return [self.grid.expand(U) for U in self.grid.nodal_grid(u)]
 
-    def _positions(self, U):
+    def _slabs(self):
+        """Axial row slices of about :data:`WARP_CHUNK` voxels of the block."""
+        nr, nc, nl = self.shape
+        step = max(1, WARP_CHUNK // max(1, nc * nl))
+        return [slice(r0, min(nr, r0 + step)) for r0 in range(0, nr, step)]
+
+    def _positions(self, U, rows=slice(None)):
+        """Fractional moving-volume indices (three arrays broadcasting to the rows' shape) of x + S + u."""
         if self._base3d is not None:
-            return [self._base3d[a] + U[a] * self._isp[a] for a in range(3)]
+            return [self._base3d[a][rows] + U[a] * self._isp[a] for a in range(3)]
         b = self._base1d
-        return [b[0][:, None, None] + U[0] * self._isp[0], b[1][None, :, None] + U[1] * self._isp[1],
+        return [b[0][rows, None, None] + U[0] * self._isp[0], b[1][None, :, None] + U[1] * self._isp[1],
                 b[2][None, None, :] + U[2] * self._isp[2]]
 
     def warped_moving(self, u, sub=None) -> np.ndarray:
-        """I_2(x + S + u(x)) at the voxels (nr, nc, nl), minus ``sub`` when given."""
-        U = self.displacement_at_voxels(u)
+        """I_2(x + S + u(x)) at the voxels (nr, nc, nl), minus ``sub`` when given.  Slab by slab (u at a slab's
+        voxels, then its warp), so u at the voxels never exists for the whole block at once; each voxel's value
+        is the same either way."""
+        T = [self.grid.expand_yz(U) for U in self.grid.nodal_grid(u)]
         m = self.moving
-        if _kernels.use_compiled():
-            e3 = np.empty((0, 0, 0))
-            full = self._base3d is not None
-            bx, by, bz = self._base3d if full else (e3, e3, e3)
-            out = np.empty(self.n_voxels)
-            _kernels.tricubic_grid(m._padded, m._hi[0], m._hi[1], m._hi[2], self._base1d[0], self._base1d[1],
-                                   self._base1d[2], bx, by, bz, *(np.ascontiguousarray(a) for a in U),
-                                   self._isp[0], self._isp[1], self._isp[2],
-                                   np.empty(0) if sub is None else sub.ravel(), out)
-            return out.reshape(self.shape)
-        idx = np.stack([p.ravel() for p in np.broadcast_arrays(*self._positions(U))])
-        v = m.at_index(idx).reshape(self.shape)
-        return v if sub is None else v - sub
+        out = np.empty(self.shape)
+        compiled = _kernels.use_compiled()
+        e3 = np.empty((0, 0, 0))
+        for rows in self._slabs():
+            U = [self.grid.expand_rows(t, rows) for t in T]
+            if compiled:
+                bx, by, bz = (b[rows] for b in self._base3d) if self._base3d is not None else (e3, e3, e3)
+                _kernels.tricubic_grid(m._padded, m._hi[0], m._hi[1], m._hi[2], self._base1d[0][rows],
+                                       self._base1d[1], self._base1d[2], bx, by, bz, *U,
+                                       self._isp[0], self._isp[1], self._isp[2],
+                                       np.empty(0) if sub is None else sub[rows].reshape(-1),
+                                       out[rows].reshape(-1))
+                continue
+            idx = np.stack([p.ravel() for p in np.broadcast_arrays(*self._positions(U, rows))])
+            v = m.at_index(idx).reshape(out[rows].shape)
+            out[rows] = v if sub is None else v - sub[rows]
+        return out
 
     def outside_mask(self, u) -> np.ndarray:
         """(nr, nc, nl) bool: voxels that ``u`` maps less than 1 voxel from the first or 2 from the last sample
         of the moving volume on some axis (the spline there reads its mirror padding)."""
-        P = self._positions(self.displacement_at_voxels(u))
+        T = [self.grid.expand_yz(U) for U in self.grid.nodal_grid(u)]
         out = np.zeros(self.shape, bool)
-        for a in range(3):
-            out |= (P[a] < 1.0) | (P[a] > self.moving.shape[a] - 2.0)
+        for rows in self._slabs():
+            P = self._positions([self.grid.expand_rows(t, rows) for t in T], rows)
+            for a in range(3):
+                out[rows] |= (P[a] < 1.0) | (P[a] > self.moving.shape[a] - 2.0)
         return out
 
     def residual(self, u) -> np.ndarray:
@@ -503,11 +544,11 @@ class VoxelSSDTerm:
         a = self.ref_values
         b = self.warped_moving(u)
         s = self.grid.element_sums
-        n = s(np.ones(self.shape))
+        n = self.grid.element_counts()
         with np.errstate(invalid="ignore", divide="ignore"):
             ma, mb = s(a) / n, s(b) / n
-            cov = s(a * b) / n - ma * mb
-            va, vb = s(a * a) / n - ma * ma, s(b * b) / n - mb * mb
+            cov = s(np.multiply(a, b, dtype=float)) / n - ma * mb
+            va, vb = s(np.multiply(a, a, dtype=float)) / n - ma * ma, s(b * b) / n - mb * mb
             q = cov / np.sqrt(va * vb)
         q[n < min_voxels] = np.nan
         out = np.full(self.grid.mesh.t.shape[1], np.nan)
