@@ -22,7 +22,7 @@ contrast :func:`femreg.inversion.modulus_contrast` and the 0.7 R / 1.6-2.5 R rin
 benchmarks/inversion.py on the central plane (true 4).
 
 Run: ``python benchmarks/volume_study.py [--inclusion HI] [--crop X0 X1 Y0 Y1 Z0 Z1] [--quick] [--element-size H]
-[--json FILE]``.  ``--quick`` crops to 20-42 mm deep, +-11 mm lateral and +-5 mm elevational around the inclusion
+[--alpha-3d A] [--json FILE]``.  ``--quick`` crops to 20-42 mm deep, +-11 mm lateral and +-5 mm elevational around the inclusion
 (the crop also applies to the 2D plane).  The first run renders and caches the volumes (minutes; about 1.8 M
 scatterers).  The report section: ``python benchmarks/volume_study.py --section paperstudy/volume_section.md
 RUN.json [RUN.json ...] --into docs/study_report.md`` (``femreg study`` carries paperstudy/volume_section.md into
@@ -204,7 +204,8 @@ def _extent(r) -> str:
     if b is not None:
         e += f" {b[0]:.0f}-{b[1]:.0f} x {b[2]:.0f}..{b[3]:.0f} x {b[4]:.0f}..{b[5]:.0f} mm"
     h = [2.0] if h is None else (h if isinstance(h, list) else [h])
-    return e + f", {' x '.join(f'{v:g}' for v in (h if len(set(h)) > 1 else h[:1]))} mm elements"
+    e += f", {' x '.join(f'{v:g}' for v in (h if len(set(h)) > 1 else h[:1]))} mm elements"
+    return e + (f", 3D alpha {r['alpha_3d']:g}" if r.get("alpha_3d") is not None else "")
 
 
 def section(runs: list, notes=()) -> list:
@@ -325,6 +326,8 @@ def main(argv=None) -> int:
     ap.add_argument("--element-size", type=float, nargs="+", metavar="H",
                     help="element size mm of both registrations: one value, or axial lateral elevational (2D takes "
                     "the first two; default: femreg's, 2 mm)")
+    ap.add_argument("--alpha-3d", type=float, help="alpha of the 3D registration (for 2 x 2 x 2 mm elements, "
+                    "rescaled by femreg with the element volume; default: femreg's)")
     ap.add_argument("--no-3d", action="store_true", help="the 2D registration only")
     ap.add_argument("--no-inversion", action="store_true", help="skip the 2D and 3D modulus inversions")
     ap.add_argument("--json", type=Path, help="write the numbers here")
@@ -368,6 +371,8 @@ def main(argv=None) -> int:
         raise InputError(f"--element-size takes one or three values, got {len(hs)}")
     hs = None if hs is None else (hs * 3 if len(hs) == 1 else list(hs))
     out["element_size_mm"] = hs
+    if args.alpha_3d is not None:
+        out["alpha_3d"] = args.alpha_3d
     res2 = femreg.register(ref[:, :, k0], mov[:, :, k0], spacing=seq.spacing[:2], origin=origin[:2],
                            regularizer=args.regularizer, **({} if hs is None else {"element_size": tuple(hs[:2])}))
     t2 = time.perf_counter() - t0
@@ -386,7 +391,8 @@ def main(argv=None) -> int:
         try:
             t0, c0 = time.perf_counter(), time.process_time()
             res3 = femreg.register(ref, mov, spacing=seq.spacing, origin=origin, regularizer=args.regularizer,
-                                   **({} if hs is None else {"element_size": tuple(hs)}))
+                                   **({} if hs is None else {"element_size": tuple(hs)}),
+                                   **({} if args.alpha_3d is None else {"alpha": args.alpha_3d}))
             t3, c3 = time.perf_counter() - t0, time.process_time() - c0
             rss3 = peak_rss_mb()        # before the error evaluation (which runs in slabs)
         except InputError as exc:
