@@ -462,6 +462,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         sol, hops, notes = _repair(sol, lambda u: solve_volume(None, I2, mesh, shape, spacing, origin,
                                                               reg_factory, u, data=sol.data, **rkw), mesh, period)
     data = sol.data
+    data._cache = (None, None)          # the last residual (a volume-sized array) is not needed by the checks
     ncc_before = data.ncc(None)
     u = sol.u
     # as in 2D (femreg.repair.check_result) the checks below decide, not the solver's own stop: a line search

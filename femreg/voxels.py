@@ -219,6 +219,21 @@ class VoxelGrid:
         return out
 
 
+def _slab_ncc(a, b, slabs) -> float:
+    """:func:`femreg.image.ncc` of two equally shaped volumes, in double precision, summed slab by slab (no
+    zero-mean copies of the whole volumes)."""
+    n = a.size
+    ma = sum(float(np.sum(a[s], dtype=float)) for s in slabs) / n
+    mb = sum(float(np.sum(b[s], dtype=float)) for s in slabs) / n
+    ab = aa = bb = 0.0
+    for s in slabs:
+        x = np.asarray(a[s], float).ravel() - ma
+        y = np.asarray(b[s], float).ravel() - mb
+        ab, aa, bb = ab + float(x @ y), aa + float(x @ x), bb + float(y @ y)
+    d = np.sqrt(aa) * np.sqrt(bb)
+    return float(ab / d) if d > 0 else 0.0
+
+
 def _axis_counts(e, n_cells) -> np.ndarray:
     """Voxels of each of ``n_cells`` cells along one axis (``e`` the cell of each voxel row, -1 outside)."""
     return np.bincount(e[e >= 0], minlength=n_cells).astype(float)
@@ -557,7 +572,5 @@ class VoxelSSDTerm:
 
     def ncc(self, u=None) -> float:
         """NCC of I_1 and I_2(x + S + u) over the voxels of the mesh (u = None: zero)."""
-        from .image import ncc as _ncc
-
         b = self.warped_moving(np.zeros(3 * self.grid.n_nodes) if u is None else u)
-        return _ncc(self.ref_values, b)
+        return _slab_ncc(self.ref_values, b, self._slabs())

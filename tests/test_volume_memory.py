@@ -105,3 +105,13 @@ def test_result_sampling_in_chunks_and_on_grid_in_slabs_equal_one_pass(term, mon
     for k, v in whole.items():
         assert np.array_equal(grid[k], v.reshape(shape), equal_nan=True)
     assert np.isnan(grid["ux"]).any() and np.isfinite(grid["quality"]).any()   # both sides of the mesh edge
+
+
+def test_ncc_by_slabs_equals_the_whole_volume_formula(term):
+    from femreg.image import ncc
+
+    t, _, _, mesh, rng = term
+    u = 0.05 * rng.standard_normal(3 * mesh.p.shape[1])
+    want = ncc(np.asarray(t.ref_values, float), t.warped_moving(u))
+    assert t.ncc(u) == pytest.approx(want, rel=1e-12, abs=1e-14)
+    assert abs(want) > 1e-3             # not two uncorrelated zeros
