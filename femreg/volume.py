@@ -10,9 +10,10 @@ with the jumps of A n across interior faces, A = lambda_bar div(u) I + 2 sym gra
 control of the hexahedra); alpha is rescaled by element volume (:mod:`femreg.scaling`); Gauss-Newton
 (:func:`femreg.solver.gauss_newton`, linear solver :class:`femreg.linsolve.SPDSolver`).
 
-Stages: validate -> normalise (each volume by its RMS) and prefilter -> mesh -> initial guess (coarse to fine:
-a global search over axial strain and translation on decimated envelope volumes, then Gauss-Newton on the
-envelopes with a mesh twice as coarse, :func:`coarse_to_fine`) -> Gauss-Newton on the RF -> peak-hopping check
+Stages: validate -> normalise (each volume by its RMS) -> mesh -> initial guess (coarse to fine: a global search
+over axial strain and translation on decimated envelope volumes, then Gauss-Newton on the envelopes with a mesh
+twice as coarse, :func:`coarse_to_fine`) -> prefilter (the splines, and the image term's reference values and
+gradients, after which the reference volume is released) -> Gauss-Newton on the RF -> peak-hopping check
 and repair (nodes whose u_x is a whole RF period off their neighbourhood's median are reseeded and the solve is
 repeated, kept only if the energy falls) -> check (never worse than the start; NCC floor) -> :class:`VolumeResult`.
 """

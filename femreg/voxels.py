@@ -17,6 +17,11 @@ its centre at ``origin + (i dx, j dy, k dz)`` mm.  This is the 3D form of :mod:`
   X (1 - X), X^2 along each axis (the 3D form of :meth:`femreg.data_term.SSDTerm._hessian_separable`).  The warp
   of I_2 (64 spline coefficients per voxel) is one compiled pass (:func:`femreg._kernels.tricubic_grid`) or
   ``map_coordinates`` without numba.
+
+Memory (a volume of N voxels): the per-voxel reference values and gradients are stored in single precision
+(:data:`VOXEL_DTYPE`), the moving spline keeps only its padded coefficients, and the warp, u at the voxels, the
+reference gradients and the NCC run in axial slabs (:data:`WARP_CHUNK`, :data:`GRADIENT_CHUNK` voxels), so a
+registration holds about 40 bytes per voxel beside its temporaries (benchmarks/README.md).
 """
 from __future__ import annotations
 
