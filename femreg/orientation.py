@@ -192,6 +192,15 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                 f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {swapped.replace(',', '')})")
     else:
         hint = "check the spacing's units (mm) and order (axial, lateral)"
+        # a uniform change of units leaves the speckle-to-period ratio alone and scales the frequency by 1 / k
+        for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
+            if rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi \
+                    and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS:
+                mm = tuple(v * k for v in (dx, dy) + ((float(elevational),) if volume else ()))
+                text = ", ".join(f"{v:.6g}" for v in mm)
+                hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; "
+                        f"{rep.frequency_mhz / k:.2f} MHz; CLI: --spacing {text.replace(',', '')})")
+                break
     rep.message = f"{why}; {hint}, or {OVERRIDE}"
     return rep
 
