@@ -546,18 +546,28 @@ def _nodal_on_grid(mesh, nodal, step_mm):
     return out.reshape((vals.shape[1],) + X.shape), (step_mm, step_mm), (x[0], y[0])
 
 
-def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
+def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, at=None):
     """The relative shear-modulus image of :func:`femreg.invert`, its uncertainty when the result has one
     (``uncertainty``: per-element standard deviation of log mu), and the recovered axial strain (%) of the
     displacement it was computed from (:func:`femreg.fields.recovered_strains`, as in every femreg strain
     picture), on the inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` (a file: read it
     with :func:`femreg.load_inversion`; ``InversionResult.plot`` is this function).  A result that did not
-    converge gets the red failure banner.  Writes ``out_png`` if given; returns the figure."""
+    converge gets the red failure banner.  Writes ``out_png`` if given; returns the figure.
+
+    A 3D result (hexahedra) is drawn as three orthogonal slices through ``at`` (a point (x, y, z) mm, or
+    "centre" (default), "stiffest", "softest"): :func:`femreg.volplot.plot_inversion_volume`; ``figsize`` does
+    not apply there, and ``at`` does not apply to a 2D result."""
     from .fields import recovered_strains
 
     if not all(hasattr(result, k) for k in ("mesh", "mu", "strain_measured", "model", "beta")):
         raise InputError(f"plot_inversion needs an InversionResult (femreg.load_inversion reads a file), got "
                          f"{type(result).__name__}")
+    if np.shape(result.mesh.p)[0] == 3:
+        from .volplot import plot_inversion_volume
+
+        return plot_inversion_volume(result, out_png, at=at, dpi=dpi, title=title)
+    if at is not None:
+        raise InputError("a slice position (at) applies to a 3D inversion only; this result is 2D")
     res = result
     plt = _mpl()
     p, t = res.mesh.p, res.mesh.t
