@@ -15,6 +15,7 @@ lines in each mark where the other two cut it.  One colour bar per row, sharing 
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -221,8 +222,11 @@ def _slice_figure(rows, at, panel_inches):
             ax.set_xlabel(xl, fontsize=8)
             ax.set_ylabel(yl, fontsize=8)
             ax.tick_params(labelsize=7)
-            ax.set_title(f"{name}, {where}" + (f"\n{row['note']}" if c == 0 and row.get("note") else ""),
-                         fontsize=8)
+            note = ""
+            if c == 0 and row.get("note"):          # wrapped to the panel's width (about 5 pt a character)
+                note = "\n" + textwrap.fill(row["note"], max(20, int(panel_inches * widths[0] / max(L[1], 1e-9)
+                                                                      * 72 / 5.0)))
+            ax.set_title(f"{name}, {where}{note}", fontsize=8)
             row_axes.append(ax)
         if "\n" not in label:
             parts = label.rsplit(" ", 2)
@@ -404,7 +408,9 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     else:
         msg = str(res.message)
         kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
-        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]")
+        # lines that fit the figure (bold 10 pt: about 7.5 pt a character)
+        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]",
+                     width=max(40, int(fig.get_figwidth() * 72 / 7.5)))
     _fit_colorbars(fig, axes_rows)
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
