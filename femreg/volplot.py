@@ -169,6 +169,22 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
     return fig
 
 
+def _log_ticks(lo, hi, n=6):
+    """Round values in [lo, hi] for a log colour bar, at least about 1/n of the range apart on the log scale
+    (their labels cannot overlap): 1 when in range, then mantissas 2 and 5, 3 and 4, 1.5, 2.5 and 8, others."""
+    lo, hi = float(lo), float(hi)
+    rank = {1: 0, 2: 1, 5: 1, 3: 2, 4: 2, 1.5: 3, 2.5: 3, 8: 3, 6: 4, 1.25: 4}
+    cands = [(r, abs(k), m * 10.0 ** k) for k in range(int(np.floor(np.log10(lo))) - 1,
+                                                        int(np.ceil(np.log10(hi))) + 1) for m, r in rank.items()]
+    cands = sorted(c for c in cands if lo * (1 - 1e-9) <= c[2] <= hi * (1 + 1e-9))
+    gap = 0.95 * np.log10(hi / lo) / n
+    ticks = []
+    for _, _, v in cands:
+        if all(abs(np.log10(v / t)) >= gap for t in ticks):
+            ticks.append(v)
+    return sorted(ticks)
+
+
 def _slice_figure(rows, at, panel_inches):
     """The three orthogonal slices of every row through ``at`` (x, y, z) mm (None: the centre of the first
     row's grid); returns ``(figure, [[3 Axes] per row])``.
@@ -236,17 +252,20 @@ def _slice_figure(rows, at, panel_inches):
         cb.ax.tick_params(labelsize=7)
         cb.set_label(label, fontsize=8)
         if row["norm"] is not None and type(row["norm"]).__name__ == "LogNorm":   # plain numbers, not 4 x 10^0
-            from matplotlib.ticker import FuncFormatter
+            from matplotlib.ticker import FuncFormatter, NullLocator
 
             plain = FuncFormatter(lambda val, _: f"{val:g}")
+            cb.set_ticks(_log_ticks(row["norm"].vmin, row["norm"].vmax))
+            cb.ax.yaxis.set_minor_locator(NullLocator())
             cb.ax.yaxis.set_major_formatter(plain)
-            cb.ax.yaxis.set_minor_formatter(plain)
         axes_rows.append(row_axes)
     return fig, axes_rows
 
 
 #: Words that ``at`` of :func:`plot_inversion_volume` takes besides a point.
 SLICE_CHOICES = ("centre", "stiffest", "softest")
+#: The modulus colour scale of :func:`plot_inversion_volume` spans at least 1 / this to this (median 1).
+MIN_MODULUS_SPAN = 1.25
 #: Most samples of the picture grid of a 3D inversion (per-element values sampled exactly, a few per element).
 _MAX_SAMPLES = 1_500_000
 
@@ -334,8 +353,9 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     r"""Three orthogonal slices of a 3D modulus inversion (:func:`femreg.invert` with ``model="3d"``), drawn as
     :func:`plot_volume_slices` draws a registration: one row each for
 
-    - the relative shear modulus :math:`\mu` / median (log colour scale), one value per element (the slices show
-      the elements' boxes: the blocks are the inversion's resolution, not an artefact of the picture);
+    - the relative shear modulus :math:`\mu` / median (log colour scale over 1-99 % of the elements, at least
+      1 / :data:`MIN_MODULUS_SPAN` to :data:`MIN_MODULUS_SPAN`), one value per element (the slices show the
+      elements' boxes: the blocks are the inversion's resolution, not an artefact of the picture);
     - its uncertainty, the Laplace standard deviation of :math:`\log\mu` per element, with the elements the data
       do not constrain in grey (counted in the row's title); a result without it (a mesh too large for the dense
       Laplace step) gets no such row, and the unconstrained elements are greyed in the modulus row instead;
@@ -377,8 +397,10 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
         free = np.zeros(n_el, bool) if con is None else ~con
     grey = (0.75, 0.75, 0.75, 1.0)
     note = (f"grey: {int(free.sum())} of {n_el} elements the data do not constrain" if free.any() else None)
+    # 1-99 % of the elements, spanning at least 0.8-1.25 around the median (1): a few per cent of variation
+    # must not fill the whole colour scale and pass for a contrast
     lo, hi = np.percentile(mu, [1, 99])
-    lo, hi = min(lo, 1.0 / 1.05), max(hi, 1.05)            # the median (1) always inside the scale
+    lo, hi = min(lo, 1.0 / MIN_MODULUS_SPAN), max(hi, MIN_MODULUS_SPAN)
     mu_vol = mu[cell]
     rows = [dict(name=r"$\mu$", vol=np.where(free[cell], np.nan, mu_vol) if unc is None else mu_vol,
                  spacing=sp, origin=org, cmap="viridis", vmin=None, vmax=None, norm=LogNorm(lo, hi),

@@ -198,9 +198,16 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     # strain: -1 % everywhere (uniform compression)
     e = np.ma.filled(panels[6].images[0].get_array(), np.nan)
     assert np.allclose(e, -1.0)
-    # no text over another panel: titles and colour bars clear of the other panels
+    # modulus colour scale: 1-99 % of the elements (1 and 3 here), log, ticks at round values
+    norm = panels[0].images[0].norm
+    assert type(norm).__name__ == "LogNorm" and (norm.vmin, norm.vmax) == pytest.approx((0.8, 3.0))
+    assert list(panels[2].child_axes[0].get_yticks()) == [1.0, 1.5, 2.0, 3.0]
+    # no text over another panel: titles and colour bars clear of the other panels, tick labels apart
     fig.canvas.draw()
     r = fig.canvas.get_renderer()
+    for a in panels[2::3]:
+        tl = [t.get_window_extent(r) for t in a.child_axes[0].get_yticklabels() if t.get_text()]
+        assert len(tl) >= 2 and not any(x.overlaps(y) for i, x in enumerate(tl) for y in tl[i + 1:])
     boxes = [a.get_window_extent(r) for a in panels]
     for k, a in enumerate(panels):
         things = [a.title.get_window_extent(r)] + [b.get_tightbbox(r) for b in a.child_axes]
@@ -226,6 +233,12 @@ def test_volume_inversion_picture_slice_choices_and_flag():
     fig.canvas.draw()
     bb = banner.get_window_extent(fig.canvas.get_renderer())
     assert bb.x0 >= 0 and bb.x1 <= fig.bbox.x1                         # the banner fits the figure
+    plt.close(fig)
+    flat = InversionResult(mesh=res.mesh, mu=1.0 + 0.03 * np.sin(c[:, 0]), model="3d", lambda_bar=99.0,
+                           beta=0.01, u_measured=res.u_measured, success=True, message="ok")
+    fig = flat.plot()           # 3 % of variation does not fill the colour scale: it spans 0.8-1.25 at least
+    norm = _panels(fig)[0].images[0].norm
+    assert (norm.vmin, norm.vmax) == pytest.approx((0.8, 1.25))
     plt.close(fig)
     fig = res.plot()                                                    # default: the centre element
     assert _panels(fig)[0].get_title().startswith(r"$\mu$, z = 0.5 mm")
