@@ -201,7 +201,7 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     # modulus colour scale: 1-99 % of the elements (1 and 3 here), log, ticks at round values
     norm = panels[0].images[0].norm
     assert type(norm).__name__ == "LogNorm" and (norm.vmin, norm.vmax) == pytest.approx((0.8, 3.0))
-    assert list(panels[2].child_axes[0].get_yticks()) == [1.0, 1.5, 2.0, 3.0]
+    assert list(panels[2].child_axes[0].get_yticks()) == [0.8, 1.0, 1.5, 2.0, 3.0]
     # no text over another panel: titles and colour bars clear of the other panels, tick labels apart
     fig.canvas.draw()
     r = fig.canvas.get_renderer()
