@@ -1456,7 +1456,12 @@ class InversionResult:
 
     def plot(self, out_png=None, **kw):
         """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`); a 3D result:
-        three orthogonal slices through ``at=`` of the modulus, its uncertainty and the axial strain."""
+        three orthogonal slices through ``at=`` of the modulus, its uncertainty and the axial strain
+        (:func:`femreg.volplot.plot_inversion_volume`)."""
+        if self.dim == 3:
+            from .volplot import plot_inversion_volume
+
+            return plot_inversion_volume(self, out_png, **kw)
         from .plot import plot_inversion
 
         return plot_inversion(self, out_png, **kw)

@@ -562,10 +562,10 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
     if not all(hasattr(result, k) for k in ("mesh", "mu", "strain_measured", "model", "beta")):
         raise InputError(f"plot_inversion needs an InversionResult (femreg.load_inversion reads a file), got "
                          f"{type(result).__name__}")
-    if np.shape(result.mesh.p)[0] == 3:
-        from .volplot import plot_inversion_volume
-
-        return plot_inversion_volume(result, out_png, at=at, dpi=dpi, title=title)
+    if np.shape(result.mesh.p)[0] == 3:       # the result's own plot draws it with femreg.volplot (which
+        if not callable(getattr(result, "plot", None)):   # builds on this module: no import of it from here)
+            raise InputError("a 3D result is drawn by femreg.volplot.plot_inversion_volume")
+        return result.plot(out_png, at=at, dpi=dpi, title=title)
     if at is not None:
         raise InputError("a slice position (at) applies to a 3D inversion only; this result is 2D")
     res = result

@@ -305,5 +305,7 @@ def test_registered_volume_through_the_cli(tmp_path, capsys):
     assert res.dim == 3 and np.array_equal(res.mesh.t, reg.mesh.t)      # on the registration's own mesh
     rc, out, err = _run(["plot", tmp_path / "mu.npz", "--slice", "stiffest"], capsys)
     assert rc == 0 and (tmp_path / "mu.png").is_file()
+    rc, out, err = _run(["plot", tmp_path / "reg.npz"], capsys)       # the registration itself: not drawn here
+    assert rc == 2 and "is a volume's registration result" in err and "plot_volume_slices" in err
     rc, out, err = _run(["measure", tmp_path / "mu.npz", "--inclusion", 5.5, 2.9, 2.9, 1.6], capsys)
     assert rc == 0 and "modulus contrast" in out, err

@@ -65,6 +65,12 @@ def _run(args) -> int:
     # ----
     if getattr(args, "slice", None) is not None:
         raise InputError("--slice applies to the picture of a volume's inversion (a file of femreg invert)")
+    from ..volume_result import is_volume_result
+
+    if is_volume_result(args.result):
+        raise InputError(f"{args.result} is a volume's registration result: femreg plot draws 2D results and "
+                         "inversions (femreg invert it, or draw its slices with femreg.volplot.plot_volume_slices"
+                         "(result.on_grid(), result.spacing, result.origin))")
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
