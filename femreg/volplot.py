@@ -11,6 +11,11 @@ The three slices (:func:`plot_volume_slices`): axial-lateral at elevation ``z`` 
 axial-elevational at lateral ``y`` (depth down in both), lateral-elevational at depth ``x`` (a C-plane); dashed
 lines in each mark where the other two cut it.  One colour bar per row, sharing its limits across the row
 (:func:`femreg.plot.colour_scale` conventions: diverging about 0 only for data that changes sign).
+
+A 3D modulus inversion (:func:`femreg.invert` on a volume's result) is drawn the same way by
+:func:`plot_inversion_volume` (``InversionResult.plot``, ``femreg plot MU.npz --slice``): the relative modulus
+and its uncertainty one value per element, and the recovered axial strain, through a point, the centre or the
+stiffest / softest region.
 """
 from __future__ import annotations
 
