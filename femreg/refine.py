@@ -49,7 +49,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from .errors import InputError
-from .fields import element_strains, recovered_strains
+from .fields import element_strain_operator, element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
 
@@ -178,19 +178,28 @@ def _momentum(e):
     return lb * div + 2 * e[:, 0], lb * div + 2 * e[:, 1], 2 * e[:, 2]
 
 
-def strain_scale(mesh, u) -> float:
-    """RMS over the elements of ``|A[u]|`` (Frobenius, element centres): the scale of the field's strain."""
-    Axx, Ayy, Axy = _momentum(element_strains(mesh.p, mesh.t, u))
+def _centre_strains(mesh, u):
+    """Element-centre strains (n_el, 3) of a tensor mesh from its centre-gradient operator (no quadrature basis
+    over the whole mesh: :func:`femreg.fields.element_strain_operator`)."""
+    n_el = mesh.t.shape[1]
+    return (element_strain_operator(mesh) @ np.asarray(u, float)).reshape(3, n_el).T
+
+
+def strain_scale(mesh, u, e=None) -> float:
+    """RMS over the elements of ``|A[u]|`` (Frobenius, element centres): the scale of the field's strain.
+    ``e``: the element-centre strains (n_el, 3) when the caller has them."""
+    Axx, Ayy, Axy = _momentum(element_strains(mesh.p, mesh.t, u) if e is None else e)
     return float(np.sqrt(np.mean(Axx ** 2 + Ayy ** 2 + 2 * Axy ** 2)))
 
 
-def edge_jumps(mesh, u, tangential: bool = False):
+def edge_jumps(mesh, u, tangential: bool = False, e=None):
     """``|[[A]] n|`` across the interior edges of a tensor mesh from the element-centre strains:
     ``(ja, jl)`` with ``ja`` (n_rows - 1, n_cols) across axial edges (between rows i and i + 1) and ``jl``
     (n_rows, n_cols - 1) across lateral edges; dimensionless (strain units).  ``tangential``: also the
-    tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``."""
+    tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``.  ``e``: the element-centre
+    strains (n_el, 3) when the caller has them."""
     _, _, cell = _need_tensor(mesh)
-    e = element_strains(mesh.p, mesh.t, u)
+    e = element_strains(mesh.p, mesh.t, u) if e is None else e
     Axx, Ayy, Axy = (a[cell] for a in _momentum(e))
     ta, tl = np.diff(Axy, axis=0), np.diff(Axy, axis=1)
     ja = np.hypot(np.diff(Axx, axis=0), ta)                          # n = (1, 0): (A_xx, A_xy)
@@ -253,9 +262,10 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
     _, _, cell = _need_tensor(mesh)
     slip = np.zeros(cell.shape, bool)
     if opts.indicator == "jump":
-        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True)
+        e = _centre_strains(mesh, u)
+        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
         cut = max(robust_cut(np.concatenate([ja.ravel(), jl.ravel()]), opts.threshold),
-                  opts.relative * strain_scale(mesh, u))
+                  opts.relative * strain_scale(mesh, u, e=e))
         # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
         sa, sl = ta > cut, tl > cut
         slip[:-1] |= sa
@@ -286,16 +296,26 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
 
 
 def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
-    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements."""
+    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements.
+
+    The splits of a marked row (column) stay inside it (:func:`_refined_breaks` halves only the intervals whose
+    middle lies in a marked one), so each row and column adds a fixed number of rows / columns: counted once with
+    all of them marked, then the greedy choice is arithmetic."""
     rs, cs = score
+    xs, ys, _ = _need_tensor(mesh)
+    nx, ny, _, _ = _refined_breaks(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+    # new breaks strictly inside each old row / column (breaks are pixel edges: compare with half a pixel margin)
+    add_r = np.diff(np.searchsorted(nx, xs - 0.5 * spacing[0])) - 1
+    add_c = np.diff(np.searchsorted(ny, ys - 0.5 * spacing[1])) - 1
     cand = sorted([(rs[i], 0, i) for i in np.flatnonzero(rows)] + [(cs[j], 1, j) for j in np.flatnonzero(cols)],
                   reverse=True)
     r2, c2 = np.zeros_like(rows), np.zeros_like(cols)
+    n_r, n_c = xs.size - 1, ys.size - 1
     for _, ax, k in cand:
-        (r2 if ax == 0 else c2)[k] = True
-        nx, ny, _, _ = _refined_breaks(mesh, r2, c2, spacing, origin, opts.min_size, opts.levels)
-        if (nx.size - 1) * (ny.size - 1) > budget:
-            (r2 if ax == 0 else c2)[k] = False
+        a_r, a_c = (add_r[k], 0) if ax == 0 else (0, add_c[k])
+        if (n_r + a_r) * (n_c + a_c) <= budget:
+            (r2 if ax == 0 else c2)[k] = True
+            n_r, n_c = n_r + a_r, n_c + a_c
     return r2, c2
 
 
