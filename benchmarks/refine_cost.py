@@ -8,12 +8,14 @@ elements before -> after.  The summary line gives the largest error increase and
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
-Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto] [--out out/refine_cost]``.
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto] [--seed 0]
+[--out out/refine_cost]``.
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -105,11 +107,14 @@ def main(argv=None):
     ap.add_argument("--refine", default="auto", help="auto, slip or a number of passes")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="out/refine_cost")
+    ap.add_argument("--seed", type=int, default=0, help="added to every case's seed (other speckle and noise)")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
     words = [w for w in a.cases.split(",") if w]
     cases = [c for c in CASES if not words or any(w in c.name for w in words)]
+    if a.seed:
+        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
     warm_up()
     specs = {"off": None, "refine": _spec(a.refine)}
     lines = ["| case | e % off -> refine | points | CPU s off | CPU s refine | ratio | elements |\n",

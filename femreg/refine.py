@@ -43,6 +43,7 @@ does not depend on the mesh); with :data:`SLIP_REFINEMENT` its peak e_xy reaches
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +54,7 @@ from .fields import element_strain_operator, element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
            "RefinementRecord"]
 
@@ -92,6 +93,13 @@ class Refinement:
         edge whose shear-traction jump stands out (the region grows over the passes): layers sliding past each
         other then pay less for the two shear-traction jumps at a band's faces (:mod:`femreg.shear`).  None: 1
         everywhere.
+    maxiter : int, optional
+        Gauss-Newton iterations of each refined solve.  The solve starts from the previous pass's solution,
+        which the finer mesh holds exactly, so one step (the default) settles the split rows and columns; None:
+        the registration's own stopping rules (the slip region changes the problem itself and needs them).
+    min_added : float
+        A pass after the first runs only when it adds at least this fraction of the mesh's elements (a pass
+        costs a solve on the whole mesh, whatever it splits).
     """
 
     passes: int = 2
@@ -103,8 +111,15 @@ class Refinement:
     slip: float | None = None
     levels: int = 1
     max_growth: float | None = 2.0
+    maxiter: int | None = 1
+    min_added: float = 0.2
 
     def __post_init__(self):
+        if self.maxiter is not None and not (isinstance(self.maxiter, (int, np.integer))
+                                             and not isinstance(self.maxiter, bool) and self.maxiter >= 1):
+            raise InputError(f"refinement maxiter must be None or an integer >= 1, got {self.maxiter!r}")
+        if not (np.isfinite(self.min_added) and 0 <= self.min_added < 1):
+            raise InputError(f"refinement min_added must be a fraction in [0, 1), got {self.min_added!r}")
         if self.max_growth is not None and not (np.isfinite(self.max_growth) and self.max_growth >= 1):
             raise InputError(f"refinement max_growth must be None or a number >= 1, got {self.max_growth!r}")
         if not (isinstance(self.levels, (int, np.integer)) and not isinstance(self.levels, bool)
@@ -131,7 +146,26 @@ class Refinement:
 
 #: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.03
 #: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
-SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03)
+SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0)
+
+
+#: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
+DEFAULT = "default"
+
+
+def default_refine(spec, *, strategy, mesh=None, offset=None, geometry=None, alpha=None,
+                   allow_mesh_outside=False):
+    """``refine=`` of :func:`femreg.register` with its default (:data:`DEFAULT`) resolved: ``"auto"`` for a
+    ``strategy="auto"`` registration of a pair of frames on the default ROI mesh, None (off) where refinement was
+    not measured as a default -- ``strategy="paper"``, a user's mesh (also every increment of
+    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, a convex / sector
+    geometry, the candidates of ``alpha="auto"``; volumes never reach it.  Any other ``spec`` is returned as
+    given."""
+    if not (isinstance(spec, str) and spec == DEFAULT):
+        return spec
+    plain = (strategy == "auto" and mesh is None and offset is None and geometry is None
+             and not isinstance(alpha, str) and not allow_mesh_outside)
+    return "auto" if plain else None
 
 
 def as_refinement(spec) -> Refinement | None:
@@ -142,6 +176,8 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, Refinement):
         return spec if spec.passes > 0 else None
     if isinstance(spec, str):
+        if spec == DEFAULT:
+            raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
         return Refinement()
@@ -419,7 +455,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     record = []
     rects = np.zeros((0, 4))
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
-    for _ in range(opts.passes):
+    base_gn, nit = sol.gn, int(sol.gn.nit)
+    for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
@@ -429,13 +466,21 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
-        if new is mesh:
+        if new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1]):
             break
         st = slip_weights(rects, opts.slip) if (opts.slip is not None and len(rects)) else None
         sol = solve_on(new, transfer(sol.u, mesh, new), st)
+        nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            seconds=time.perf_counter() - t))
+    if record and opts.maxiter is not None and sol.gn.status == 1:
+        # the step count of a refined solve is the option, not a failure to converge: the solve's verdict is
+        # that of the unrefined one, and its iterations count all passes
+        sol.gn = dataclasses.replace(sol.gn, status=base_gn.status, success=base_gn.success,
+                                     message=base_gn.message, nit=nit)
+    elif record:
+        sol.gn = dataclasses.replace(sol.gn, nit=nit)
     return sol, RefinementRecord(record)
 
 
@@ -466,7 +511,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             return r
-        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **solve_kw)
+        kw = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=opts.maxiter)
+        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
     if sol.mesh is not base:

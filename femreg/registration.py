@@ -30,7 +30,7 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import as_refinement, refine_stage, with_refinement
+from .refine import DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, refine_stage, with_refinement
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -134,7 +134,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True, geometry=None, refine=None) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None, refine=DEFAULT_REFINE) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -221,11 +221,14 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
         :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
-    refine : None | int | "auto" | femreg.refine.Refinement
+    refine : "default" | None | int | "auto" | femreg.refine.Refinement
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
-        again from the solution, ``N`` passes ("auto": 2); the weight of eq:objf stays the unrefined mesh's.
-        None (default): off.  The result's mesh, ``u`` and ``quality`` are those of the final mesh.
+        again from the solution, ``N`` passes ("auto": up to 2, one Gauss-Newton step each); the weight of
+        eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` on the default ROI mesh,
+        off for ``strategy="paper"``, a user's mesh (so every increment of :func:`femreg.track`), an offset, a
+        convex / sector geometry and ``alpha="auto"`` (:func:`femreg.refine.default_refine`); volumes never
+        refine.  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final mesh.
 
     Returns
     -------
@@ -237,6 +240,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
+    refine = default_refine(refine, strategy=strategy, mesh=mesh, offset=offset, geometry=geometry, alpha=alpha,
+                            allow_mesh_outside=allow_mesh_outside)
     routed = _route(reference_image, moving_image, dict(locals()))
     if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
         return routed

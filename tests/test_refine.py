@@ -279,10 +279,13 @@ def test_cli_refine_flag(band_pair, tmp_path, capsys):
     np.save(tmp_path / "a.npy", d.ref.astype(np.float32))
     np.save(tmp_path / "b.npy", d.mov.astype(np.float32))
     args = [str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--spacing", *map(str, d.spacing)]
-    assert main(["register", *args, "-o", str(tmp_path / "r0.npz")]) == 0
+    assert main(["register", *args, "--refine", "none", "-o", str(tmp_path / "r0.npz")]) == 0
     assert main(["register", *args, "--refine", "1", "-o", str(tmp_path / "r1.npz")]) == 0
+    assert main(["register", *args, "-o", str(tmp_path / "rd.npz")]) == 0       # the default: "auto"
     r0, r1 = femreg.load_result(tmp_path / "r0.npz"), femreg.load_result(tmp_path / "r1.npz")
+    rd = femreg.load_result(tmp_path / "rd.npz")
     assert r1.mesh.t.shape[1] > r0.mesh.t.shape[1]
+    assert rd.mesh.t.shape[1] >= r1.mesh.t.shape[1]
     assert np.asarray(r1.quality).shape == (r1.mesh.t.shape[1],)
     capsys.readouterr()
     assert main(["register", *args, "--refine", "lots", "-o", str(tmp_path / "r2.npz")]) == 2
