@@ -216,19 +216,28 @@ def compression_pair():
 def test_refine_changes_nothing_on_uniform_compression(compression_pair):
     d = compression_pair
     kw = dict(spacing=d.spacing, origin=d.origin)
-    r0 = femreg.register(d.ref, d.mov, **kw)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
     r1 = femreg.register(d.ref, d.mov, refine=2, **kw)
-    assert "refinement: nothing marked" in r1.message
-    assert r1.mesh.t.shape[1] == r0.mesh.t.shape[1]
-    assert np.array_equal(r1.u, r0.u)
+    rd = femreg.register(d.ref, d.mov, **kw)                  # the default refines: here nothing is marked
+    assert "refinement: nothing marked" in r1.message and "refinement: nothing marked" in rd.message
+    assert "refinement" not in r0.message and not hasattr(r0, "refinement")
+    assert r1.mesh.t.shape[1] == r0.mesh.t.shape[1] == rd.mesh.t.shape[1]
+    assert np.array_equal(r1.u, r0.u) and np.array_equal(rd.u, r0.u)
+    # strategy="paper" and a user's mesh do not refine by default
+    rp = femreg.register(d.ref, d.mov, strategy="paper", **kw)
+    rm = femreg.register(d.ref, d.mov, mesh=r0.mesh, **kw)
+    assert "refinement" not in rp.message and "refinement" not in rm.message
 
 
 def test_forced_refinement_keeps_uniform_strain_and_one_quality_per_element(compression_pair):
     d = compression_pair
     kw = dict(spacing=d.spacing, origin=d.origin)
-    r0 = femreg.register(d.ref, d.mov, **kw)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
     r1 = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
     assert r1.success and r1.mesh.t.shape[1] > 1.5 * r0.mesh.t.shape[1]
+    # one Gauss-Newton step on the refined mesh; the solve's verdict and message stay the unrefined one's
+    assert r1.refinement.passes[0]["nit"] == 1 and r1.nit == r0.nit + 1
+    assert r1.status == r0.status and "maximum number of iterations" not in r1.message
     assert r1.quality.shape == (r1.mesh.t.shape[1],)
     assert r1.refinement.passes and r1.refinement.passes[0]["elements"] == r0.mesh.t.shape[1]
     assert r1.alpha_effective == pytest.approx(r0.alpha_effective, rel=1e-12)
@@ -322,3 +331,84 @@ def test_register_refuses_refinement_of_a_mesh_that_is_not_a_tensor_mesh(compres
         femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, mesh=skew, refine=1)
     with pytest.raises(InputError, match="refine"):
         femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine="more")
+
+
+def test_default_refinement_is_auto_only_for_plain_auto_registrations():
+    from femreg.refine import DEFAULT, default_refine
+
+    assert default_refine(DEFAULT, strategy="auto") == "auto"
+    off = [dict(strategy="paper"), dict(strategy="auto", mesh=_mesh()), dict(strategy="auto", offset=np.zeros(4)),
+           dict(strategy="auto", geometry="convex"), dict(strategy="auto", alpha="auto"),
+           dict(strategy="auto", allow_mesh_outside=True)]
+    for kw in off:
+        assert default_refine(DEFAULT, **kw) is None, kw
+    # what the caller gives is kept, whatever the rest
+    spec = Refinement(passes=1)
+    assert default_refine(spec, strategy="paper") is spec and default_refine(None, strategy="auto") is None
+    with pytest.raises(InputError, match="resolved"):
+        as_refinement(DEFAULT)
+
+
+def test_budget_count_matches_splitting_each_choice():
+    # the greedy choice of _within_budget counts each row's / column's splits once; the same choice made by
+    # refining the mesh for every candidate (the definition) on random marks and budgets
+    from femreg.refine import _refined_breaks, _within_budget
+
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    rng = np.random.default_rng(3)
+    opts = Refinement(min_size=(0.1, 0.4), levels=2)
+    for _ in range(5):
+        rows, cols = rng.random(xs.size - 1) < 0.5, rng.random(ys.size - 1) < 0.5
+        score = (rng.random(xs.size - 1) + 1, rng.random(ys.size - 1) + 1)
+        budget = m.t.shape[1] * rng.uniform(1.1, 2.5)
+        r2, c2 = _within_budget(m, rows, cols, score, SPACING, ORIGIN, opts, budget)
+        cand = sorted([(score[0][i], 0, i) for i in np.flatnonzero(rows)] +
+                      [(score[1][j], 1, j) for j in np.flatnonzero(cols)], reverse=True)
+        rb, cb = np.zeros_like(rows), np.zeros_like(cols)
+        for _, ax, k in cand:
+            (rb if ax == 0 else cb)[k] = True
+            nx, ny, _, _ = _refined_breaks(m, rb, cb, SPACING, ORIGIN, opts.min_size, opts.levels)
+            if (nx.size - 1) * (ny.size - 1) > budget:
+                (rb if ax == 0 else cb)[k] = False
+        assert np.array_equal(r2, rb) and np.array_equal(c2, cb)
+
+
+def _fake_solve(mesh, u):
+    from types import SimpleNamespace
+
+    gn = femreg.solver.GaussNewtonResult(x=u, fun=0.0, success=True, status=4, message="converged: strains",
+                                         nit=3)
+    return SimpleNamespace(mesh=mesh, u=u, gn=gn, data=None)
+
+
+def test_passes_one_step_each_and_a_small_second_pass_is_skipped():
+    from femreg.refine import refine_passes
+
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    f = _step_field(0.5 * (xs[4] + xs[5]))
+    seen = []
+
+    def solve_on(mesh, u_start, shear_traction=None):      # the exact field on the finer mesh, one step
+        seen.append(mesh.t.shape[1])
+        s = _fake_solve(mesh, _nodal(mesh, f))
+        s.gn = femreg.solver.GaussNewtonResult(x=s.u, fun=0.0, success=False, status=1,
+                                               message="maximum number of iterations (1) reached", nit=1)
+        return s
+
+    kw = dict(spacing=SPACING, origin=ORIGIN)
+    sol, rec = refine_passes(_fake_solve(m, _nodal(m, f)), Refinement(min_added=0.0, max_growth=None),
+                             solve_on, kw["spacing"], kw["origin"])
+    assert len(rec.passes) == 2 and len(seen) == 2
+    added = seen[1] / seen[0] - 1                            # what the second pass added
+    # the verdict stays the unrefined solve's (one step is the option, not a failure), iterations add up
+    assert sol.gn.status == 4 and sol.gn.success and sol.gn.nit == 3 + 1 + 1
+    seen.clear()
+    sol, rec = refine_passes(_fake_solve(m, _nodal(m, f)), Refinement(min_added=added + 0.01, max_growth=None),
+                             solve_on, kw["spacing"], kw["origin"])
+    assert len(rec.passes) == 1 and len(seen) == 1 and sol.gn.nit == 3 + 1
+    with pytest.raises(InputError, match="maxiter"):
+        Refinement(maxiter=0)
+    with pytest.raises(InputError, match="min_added"):
+        Refinement(min_added=1.0)
