@@ -153,17 +153,17 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=
 DEFAULT = "default"
 
 
-def default_refine(spec, *, strategy, mesh=None, offset=None, geometry=None, alpha=None,
+def default_refine(spec, *, strategy, mesh=None, element_size=None, offset=None, geometry=None, alpha=None,
                    allow_mesh_outside=False):
     """``refine=`` of :func:`femreg.register` with its default (:data:`DEFAULT`) resolved: ``"auto"`` for a
     ``strategy="auto"`` registration of a pair of frames on the default ROI mesh, None (off) where refinement was
-    not measured as a default -- ``strategy="paper"``, a user's mesh (also every increment of
+    not measured as a default -- ``strategy="paper"``, a user's mesh or element size (also every increment of
     :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, a convex / sector
     geometry, the candidates of ``alpha="auto"``; volumes never reach it.  Any other ``spec`` is returned as
     given."""
     if not (isinstance(spec, str) and spec == DEFAULT):
         return spec
-    plain = (strategy == "auto" and mesh is None and offset is None and geometry is None
+    plain = (strategy == "auto" and mesh is None and element_size is None and offset is None and geometry is None
              and not isinstance(alpha, str) and not allow_mesh_outside)
     return "auto" if plain else None
 
