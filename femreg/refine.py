@@ -188,9 +188,12 @@ def as_refinement(spec) -> Refinement | None:
 
 @dataclass
 class RefinementRecord:
-    """What each pass did: elements before, rows and columns split, indicator threshold, seconds."""
+    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
+    ``base_size``, the median element size (axial, lateral) mm of the mesh refinement started from (what a
+    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller)."""
 
     passes: list
+    base_size: tuple | None = None
 
     def summary(self) -> str:
         if not self.passes:
@@ -453,6 +456,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     from .repair import element_ncc
 
     record = []
+    xs, ys, _ = _need_tensor(sol.mesh)
+    base_size = (float(np.median(np.diff(xs))), float(np.median(np.diff(ys))))
     rects = np.zeros((0, 4))
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit = sol.gn, int(sol.gn.nit)
@@ -481,7 +486,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                                      message=base_gn.message, nit=nit)
     elif record:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
-    return sol, RefinementRecord(record)
+    return sol, RefinementRecord(record, base_size)
 
 
 def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):

@@ -413,3 +413,22 @@ def test_passes_one_step_each_and_a_small_second_pass_is_skipped():
         Refinement(maxiter=0)
     with pytest.raises(InputError, match="min_added"):
         Refinement(min_added=1.0)
+
+
+def test_slip_settings_of_a_refined_result_read_the_unrefined_size():
+    from types import SimpleNamespace
+
+    from femreg.refine import RefinementRecord
+    from femreg.shear import slip_settings
+
+    m, fine, _, _ = _graded()
+    xs, ys, _ = tensor_structure(fine)
+    m_all, _, _ = refine_tensor_mesh(m, np.ones(tensor_structure(m)[0].size - 1, bool),
+                                     np.zeros(tensor_structure(m)[1].size - 1, bool), SPACING, ORIGIN,
+                                     min_size=(0.1, 0.4))                      # every row split: median halves
+    hx0, hy0 = (float(np.median(np.diff(a))) for a in tensor_structure(m)[:2])
+    rec = RefinementRecord([dict(elements=m.t.shape[1], elements_after=m_all.t.shape[1])], (hx0, hy0))
+    s = slip_settings(SimpleNamespace(mesh=m_all, alpha=1.0, refinement=rec))
+    assert s["element_size"][1] == pytest.approx(hy0) and s["alpha"] == pytest.approx(0.35 / hx0)
+    s_plain = slip_settings(SimpleNamespace(mesh=m_all, alpha=1.0))           # without the record: the median
+    assert s_plain["alpha"] == pytest.approx(2 * s["alpha"], rel=0.05)
