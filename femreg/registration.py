@@ -225,8 +225,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
         again from the solution, ``N`` passes ("auto": up to 2, one Gauss-Newton step each); the weight of
-        eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` on the default ROI mesh,
-        off for ``strategy="paper"``, a user's mesh or ``element_size`` (so every increment of
+        eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
+        regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
+        or ``element_size`` (so every increment of
         :func:`femreg.track`), an offset, a convex / sector geometry and ``alpha="auto"``
         (:func:`femreg.refine.default_refine`); volumes never refine.  None or 0: off.  The result's mesh, ``u``
         and ``quality`` are those of the final mesh.
@@ -241,8 +242,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
-    refine = default_refine(refine, strategy=strategy, mesh=mesh, element_size=element_size, offset=offset,
-                            geometry=geometry, alpha=alpha, allow_mesh_outside=allow_mesh_outside)
+    refine = default_refine(refine, strategy=strategy, regularizer=regularizer, mesh=mesh, element_size=element_size,
+                            offset=offset, geometry=geometry, alpha=alpha, allow_mesh_outside=allow_mesh_outside)
     routed = _route(reference_image, moving_image, dict(locals()))
     if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
         return routed

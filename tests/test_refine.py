@@ -338,7 +338,8 @@ def test_default_refinement_is_auto_only_for_plain_auto_registrations():
 
     assert default_refine(DEFAULT, strategy="auto") == "auto"
     off = [dict(strategy="paper"), dict(strategy="auto", mesh=_mesh()), dict(strategy="auto", offset=np.zeros(4)),
-           dict(strategy="auto", element_size=1.0),
+           dict(strategy="auto", element_size=1.0), dict(strategy="auto", regularizer="strain-incompressible"),
+           dict(strategy="auto", regularizer=make_regularizer("momentum-stress", alpha=1.0)),
            dict(strategy="auto", geometry="convex"), dict(strategy="auto", alpha="auto"),
            dict(strategy="auto", allow_mesh_outside=True)]
     for kw in off:
