@@ -512,14 +512,14 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     ``solve_kw``, the regulariser's alpha keeping the unrefined mesh's weight (:func:`femreg.scaling.refined_alpha`)
     and, with ``slip``, the per-edge shear-traction weights.  Appends its summary to ``notes`` and its time to
     ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
-    ``(sol, u0, hops)`` on the final mesh."""
+    ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``."""
     import time
 
     from .gnsolve import solve
     from .scaling import refined_alpha
 
     opts = as_refinement(refine)
-    if opts is None or np.any(hops):
+    if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
         return sol, u0, hops
     t = time.perf_counter()
     base = sol.mesh
@@ -532,7 +532,7 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             return r
-        kw = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=opts.maxiter)
+        kw = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=min(opts.maxiter, solve_kw["maxiter"]))
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)

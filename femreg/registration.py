@@ -184,7 +184,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     normalize : bool
         Divide both images by the reference RMS (default; makes alpha scale-free).
     callback : callable(u, info), optional
-        Called after each Gauss-Newton iteration of the final solve.
+        Called after each Gauss-Newton iteration of the final solve and of each refinement pass (``u`` then on
+        the refined mesh, ``info["nit"]`` counted per solve).
     coarse_to_fine : "auto" | bool
         ``strategy="paper"`` only: register first on a 3x coarser mesh from the block-matching start when its
         global strain exceeds :data:`femreg.paperguess.COARSE_TO_FINE_STRAIN` (3D SI frames 1 -> 10: total strain
@@ -309,7 +310,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
-    sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings)  # femreg.refine
+    sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
+                                 notes, timings)                                          # femreg.refine
     check = check_result(sol, u0, hops, ref.shape, spacing,
                          check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
                          None if start.pyramid is None else start.pyramid.global_ncc)

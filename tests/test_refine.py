@@ -433,3 +433,15 @@ def test_slip_settings_of_a_refined_result_read_the_unrefined_size():
     assert s["element_size"][1] == pytest.approx(hy0) and s["alpha"] == pytest.approx(0.35 / hx0)
     s_plain = slip_settings(SimpleNamespace(mesh=m_all, alpha=1.0))           # without the record: the median
     assert s_plain["alpha"] == pytest.approx(2 * s["alpha"], rel=0.05)
+
+
+def test_no_refinement_without_iterations_and_the_callback_sees_every_step(compression_pair):
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
+    forced = Refinement(passes=1, threshold=0.0, relative=0.0)
+    r = femreg.register(d.ref, d.mov, initial=r0.u, maxiter=0, refine=forced, **kw)
+    assert "refinement" not in r.message and r.mesh.t.shape[1] == r0.mesh.t.shape[1]
+    sizes = []
+    r1 = femreg.register(d.ref, d.mov, refine=forced, callback=lambda u, info: sizes.append(u.size), **kw)
+    assert len(sizes) == r1.nit and sizes[-1] == r1.u.size > sizes[0]
