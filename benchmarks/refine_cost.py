@@ -3,8 +3,8 @@
 ``--repeats`` interleaved runs: the machine may be shared, wall time is not a measure there) and the total strain
 error of :func:`benchmarks.robustness.errors`.
 
-Per case: error (%) without -> with refinement, its difference (points), CPU seconds of both and their ratio, the
-elements before -> after.  The summary line gives the largest error increase and the median and largest time
+Per case: error (%) without -> with refinement (and the success flags where they differ), its difference (points),
+CPU seconds of both and their ratio, the elements before -> after.  The summary line gives the largest error increase and the median and largest time
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
@@ -126,7 +126,8 @@ def main(argv=None):
         d = 100 * (f["e"] - o["e"])
         ratio = f["cpu"] / o["cpu"]
         worst, ratios = max(worst, d), ratios + [ratio]
-        lines.append(f"| {case.name} | {100 * o['e']:.2f} -> {100 * f['e']:.2f} | {d:+.2f} | {o['cpu']:.2f} | "
+        flag = "" if o["success"] == f["success"] else f" (success {o['success']} -> {f['success']})"
+        lines.append(f"| {case.name} | {100 * o['e']:.2f} -> {100 * f['e']:.2f}{flag} | {d:+.2f} | {o['cpu']:.2f} | "
                      f"{f['cpu']:.2f} | {ratio:.2f} | {o['elements']} -> {f['elements']} |\n")
         print(lines[-1], end="", flush=True)
     summary = (f"\nlargest error increase {worst:+.2f} points; CPU time ratio median {np.median(ratios):.2f}, "

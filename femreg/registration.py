@@ -310,11 +310,22 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
+    unrefined = (sol, u0, hops, list(notes))
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
                                  notes, timings)                                          # femreg.refine
-    check = check_result(sol, u0, hops, ref.shape, spacing,
-                         check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
-                         None if start.pyramid is None else start.pyramid.global_ncc)
+
+    def checked(s, start_u, h):
+        return check_result(s, start_u, h, ref.shape, spacing,
+                            check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
+                            None if start.pyramid is None else start.pyramid.global_ncc)
+    check = checked(sol, u0, hops)
+    if not check.success and sol is not unrefined[0]:
+        # the refined result is judged on smaller elements (the peak-hopping and matching fractions count
+        # elements); a refinement that fails the check is dropped for the unrefined result and its own verdict
+        sol, u0, hops, notes = unrefined
+        why = "; ".join(n for n in check.notes if not n.startswith("the pair is strongly decorrelated"))
+        check = checked(sol, u0, hops)
+        notes.append(f"refinement dropped (the refined result failed its check: {why})")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     # -- result ----------------------------------------------------------------------------------------------

@@ -445,3 +445,24 @@ def test_no_refinement_without_iterations_and_the_callback_sees_every_step(compr
     sizes = []
     r1 = femreg.register(d.ref, d.mov, refine=forced, callback=lambda u, info: sizes.append(u.size), **kw)
     assert len(sizes) == r1.nit and sizes[-1] == r1.u.size > sizes[0]
+
+
+def test_a_refined_result_that_fails_its_check_is_dropped(compression_pair, monkeypatch):
+    # the check counts elements (peak-hopping and matching fractions); a refined result failing it gives way to the
+    # unrefined one and its own verdict (3 deg rotation under L7: 3 % of 391 refined elements one period off)
+    import femreg.registration as R
+
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
+    real = R.check_result
+
+    def strict(sol, *a, **k):
+        c = real(sol, *a, **k)
+        if sol.mesh.t.shape[1] > r0.mesh.t.shape[1]:
+            c.success, c.notes = False, c.notes + ["peak hopping: 3% of the elements (injected)"]
+        return c
+    monkeypatch.setattr(R, "check_result", strict)
+    r = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
+    assert r.success and r.mesh.t.shape[1] == r0.mesh.t.shape[1] and np.array_equal(r.u, r0.u)
+    assert "refinement dropped" in r.message and "injected" in r.message and not hasattr(r, "refinement")
