@@ -36,6 +36,9 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
+A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
+smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
+
 Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`), a
 second pass runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and the element budget
 is counted once per pass (:func:`_within_budget`).
