@@ -17,14 +17,15 @@ pixel grid (every ``~0.1 mm`` axially): relative L2 errors as :func:`femreg.metr
 ``e`` total strain ``||e_m - e_t|| / ||e_t||`` with ``e:e = e_xx^2 + e_yy^2 + 2 e_xy^2``; ``exx``, ``eyy``; ``ux``,
 ``uy`` displacement -- and ``hop``: the fraction of ROI pixels where ``|u_x - u_x^t|`` exceeds a quarter of the
 acoustic wavelength ``c / f0`` (half the RF period in depth; a peak hop is one RF period).  Pixels a method leaves
-undefined (NaN) count as zero displacement / strain.  Wall time per method.
+undefined (NaN) count as zero displacement / strain.  Wall and CPU time (``time.process_time``) per method.
 
 Outputs (``--out``, default ``out/robustness/``): ``results.csv`` (one row per case x method), ``results.md``
 (the Markdown tables printed at the end) and ``<case>.png`` per case: the axial strain of every method side by side,
 truth first, one colour scale, the ROI outlined.
 
 Run: ``python benchmarks/robustness.py`` (full matrix, about 10 min on 2 shared cores) or ``--quick`` (6 cases);
-``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise.  The peers'
+``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise (a method's full
+name selects that method alone); ``--refine none|auto|N`` sets femreg's ``refine=`` for the pairs.  The peers'
 results are cached in ``<out>/peer_cache`` (keyed by the case and the source of the simulator and of the peers),
 so a rerun after a change to femreg recomputes femreg only (``--no-cache`` recomputes everything); the times
 printed for cached peers are those of the run that computed them.
