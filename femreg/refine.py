@@ -47,7 +47,7 @@ Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time
 ``refine="auto"`` against off made no case worse (seeds 0 and 7), the inclusions 0.6-2.3 points better
 (9.4-13.6 % -> 8.4-12.2 %), bending 5.8 -> 4.3 %, at 1.16-1.26x the CPU time per pair (median; 1.76x at most),
 so it is the default of ``strategy="auto"`` R_P_sigma registrations on the default mesh
-(:func:`default_refine`).  With two full solves per pass it took 1.55x (median) and 2.08x on the 3 MHz inclusion.
+(:func:`default_refine`).  With two full solves per pass it took 1.33x (median) and 2.08x on the 3 MHz inclusion.
 Without the slip region a shear band stays as wide as with the defaults (the total variation of its two faces
 does not depend on the mesh); with :data:`SLIP_REFINEMENT` its peak e_xy reaches 0.63-1.0 of the truth.
 """
