@@ -588,6 +588,9 @@ def _mesh_and_data(displacement, region, element_size):
             if h is None:
                 ext = p[:, res.mesh.t].max(axis=1) - p[:, res.mesh.t].min(axis=1)
                 h = np.median(ext, axis=1)
+                base = getattr(getattr(res, "refinement", None), "base_size", None)
+                if base is not None:            # a refined registration: the size of the mesh it started from
+                    h = np.asarray(base, float)
             mesh = _tensor_mesh(x0, x1, y0, y1, h)
             v = res.displacement(mesh.p.T)
             if not np.all(np.isfinite(v)):
