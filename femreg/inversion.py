@@ -30,14 +30,37 @@ plane-stress inversion of the *true* 3D displacement gives a contrast of 2.2 for
 3D data (a displacement callable ``(n, 3) -> (n, 3)`` with a region of three intervals, or a 3D registration
 result: anything with a hexahedral ``mesh`` and ``displacement(points)``) are inverted with ``model="3d"``: the
 same weak forms on trilinear hexahedra (MeshHex1 / ElementHex1), :math:`\bar\lambda = 2\nu/(1-2\nu)` with the
-one-point volumetric rule, the TV over interior faces, misfit weights :data:`DEFAULT_WEIGHTS_3D`, and a sparse
-direct solver (:data:`LINEAR_SOLVER_3D`).  Measured on the exact displacement of the paper's 3D phantom
-(benchmarks/inversion3d.py; 30 x 30 mm around the sphere, z +-10 mm, beta 1e-3; 2 mm elements, 3 mm in
-brackets): contrast 4.18 (4.16) for HI (true 4), 2.01 (2.01) mHI (2), 0.55 (0.59) SI (0.5), HOM uniform within a
-CV of 1.8 % (2.9 %), and 4.05 (3.93) for HI with 1 / 5 / 5 um (axial / lateral / elevational) white noise added:
-the 2D model's mismatch (2.2) is gone.  Over the paper's imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm
-elements, 26.6 k DOFs): HI 4.46, SI 0.508.  The uncertainty is the
-same Laplace approximation while du/dtheta fits :data:`LAPLACE_DENSE_LIMIT`, else only the constrained mask.
+one-point volumetric rule, the TV over interior faces, and a sparse direct solver (:data:`LINEAR_SOLVER_3D`).
+Two defaults differ from 2D, both because a volume's elevational (and lateral) displacement is measured far less
+accurately than the axial one (the elevational beam, 1-3 mm, on planes 0.3-0.5 mm apart):
+
+- Boundary values (``boundary=None``): with at least :data:`FITTED_MIN_ELEMENTS` elements across every axis the
+  lateral and elevational boundary values are unknowns beside :math:`\theta`, fitted by the same misfit
+  (``boundary="fitted"``: :math:`u_B = d_B + c\,g`, :math:`c = \bar\varepsilon h`; the adjoint gives
+  :math:`\partial J/\partial u_B = (M r)_B/s^2 - K_{IB}^T\lambda_I` without another solve); the axial ones stay
+  imposed.  Imposed noisy boundary values alone drive the modulus: the exact HI field with noise correlated over
+  2 mm (1 / 5 / 20 um axial / lateral / elevational) on the boundary nodes only gives a background CV of 88 %,
+  on the interior nodes only 8.5 %.  Thinner meshes keep the measured boundary (a fitted one has too few
+  interior data to be fitted against; :data:`FITTED_MIN_ELEMENTS`).
+- Misfit weights (``weights=None``): :data:`DEFAULT_WEIGHTS_3D` = (1, 0.1, 0.01): in a nearly incompressible
+  solid :math:`\varepsilon_{zz} = -(\varepsilon_{xx} + \varepsilon_{yy})`, so the model fills in u_z from the
+  in-plane data and needs the elevational data only as an anchor (exact data: contrast within 1 % of w_z = 0.1).
+  A first inversion with these weights measures each component's noise as its RMS misfit at the interior nodes
+  (the part of the data no modulus makes elastic), the lateral and elevational weights are lowered to
+  :math:`w_x\sigma_x^2/\sigma_i^2` (never above the default nor below :data:`WEIGHT_FLOOR_3D`), and a second
+  inversion uses them (twice the time where they change or ``uncertainty`` is asked for).
+
+Explicit ``weights`` or ``boundary`` switch either off (``boundary="measured", weights=(1, 0.1, 0.1)`` is the
+former 3D default).  Measured on the exact displacement of the paper's 3D phantom (benchmarks/inversion3d.py;
+30 x 30 mm around the sphere, z +-10 mm, beta 1e-3, 2 mm elements; the former defaults in brackets): contrast
+4.14 (4.18) for HI (true 4), MHI_NEW (2.01) mHI (2), 0.56 (0.55) SI (0.5), HOM uniform within a CV of HOM_NEW %
+(1.8 %), and 4.09 (4.05) for HI with 1 / 5 / 5 um white noise.  With noise correlated over 3-6 mm
+(``--correlated``): CORRELATED_NEW.  On a registered volume (``benchmarks/volume_study.py``, RF volumes of the
+3D HI phantom cropped to x 13-47, y +-17, z +-10 mm, inverted over x 15-45, y +-15, z +-8 mm): REGISTERED_NEW.
+The 2D model's mismatch on 3D data (plane stress of the exact 3D displacement: 2.2) is gone.  Over the paper's
+imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm elements, 26.6 k DOFs; former defaults): HI 4.46, SI 0.508.
+The uncertainty is the same Laplace approximation (with the fitted boundary held at its values) while
+du/dtheta fits :data:`LAPLACE_DENSE_LIMIT`, else only the constrained mask.
 
 Objective (minimised over :math:`\theta`, one value per element):
 
@@ -110,7 +133,7 @@ noise), the misfit stays well above the noise level (:data:`MISFIT_LIMIT`, in un
 inflates the data's own), or a stiff (soft) region strains more (less) than the background
 (:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
-displacement on the whole boundary stays the default (benchmarks/inversion.py, docs/inversion.md).
+displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
 Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
 :func:`is_inversion_file`, :func:`strain_ratio`, :func:`model_ratio`, :data:`MODELS`.
@@ -177,8 +200,9 @@ REGISTERED_SIGMA = 1.6
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
-#: Misfit weights (axial, lateral, elevational) of 3D data: the elevational displacement is measured with the
-#: elevational beam (1-3 mm), coarser still than the lateral one, so it gets the lateral weight at most.
+#: Misfit weights (axial, lateral, elevational) of 3D data before the noise rule (module docstring): the
+#: elevational displacement is measured with the elevational beam (1-3 mm), coarser still than the lateral one,
+#: and the nearly incompressible model fills it in from the in-plane strains (e_zz = -(e_xx + e_yy)).
 DEFAULT_WEIGHTS_3D = (1.0, 0.1, 0.01)
 #: 3D data with ``weights=None`` (default): the lateral and elevational weights are lowered to w_x sigma_x^2 /
 #: sigma_i^2, sigma_i the RMS misfit of component i at the interior nodes after a first inversion with
@@ -988,9 +1012,10 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "growth" or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
-    weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z)
+    weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z), optional
         Misfit weights of the axial and lateral (and elevational) components (default :data:`DEFAULT_WEIGHTS`;
-        3D: two weights mean (w_x, w_y, w_y), so the default is :data:`DEFAULT_WEIGHTS_3D`).
+        3D: two weights mean (w_x, w_y, w_y); None for 3D data: :data:`DEFAULT_WEIGHTS_3D` lowered by the data's
+        noise measured in a first inversion, module docstring).
     poisson : float, optional
         :math:`\nu` (plane strain: in (-1, 0.5), default 0.495; plane stress: in (-1, 0.5], default 0.5).
     maxiter, gtol
@@ -1011,6 +1036,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
         ``constrained``); costs one dense Hessian of size n_el.
+    boundary : {"measured", "axial-sides", "free-sides", "fitted"}, optional
+        Boundary conditions of the forward model (:data:`BOUNDARIES`): the measured displacement on the whole
+        boundary (None for 2D data); ``"fitted"``: the lateral and elevational boundary values are fitted by the
+        misfit beside the modulus (None for 3D data with :data:`FITTED_MIN_ELEMENTS` elements across every axis,
+        module docstring).
 
     Returns
     -------
