@@ -293,6 +293,7 @@ def test_paper_sphere_with_registration_like_elevational_noise():
     old = invert(f, region=R, element_size=3.0, beta=1e-3, uncertainty=False, boundary="measured",
                  weights=(1.0, 0.1, 0.1))
     c_new, c_old = (modulus_contrast(r, sphere) for r in (new, old))
-    # measured: see the numbers in the assertion messages; bounds: new within 10 % of 4, old outside
-    assert abs(c_new["contrast"] / 4.0 - 1.0) < 0.1 and c_new["cv_background"] < 0.1, c_new
-    assert c_old["cv_background"] > 0.3, c_old
+    # measured (seeds 0, 1): default 3.98-4.00 with a background CV of 0.9-1.2 %, imposed 4.05-4.52 with 32-40 %;
+    # bounds: within 10 % of 4 and CV 5 %, imposed CV above 20 %
+    assert abs(c_new["contrast"] / 4.0 - 1.0) < 0.1 and c_new["cv_background"] < 0.05, c_new
+    assert c_old["cv_background"] > 0.2, c_old
