@@ -53,10 +53,13 @@ accurately than the axial one (the elevational beam, 1-3 mm, on planes 0.3-0.5 m
 Explicit ``weights`` or ``boundary`` switch either off (``boundary="measured", weights=(1, 0.1, 0.1)`` is the
 former 3D default).  Measured on the exact displacement of the paper's 3D phantom (benchmarks/inversion3d.py;
 30 x 30 mm around the sphere, z +-10 mm, beta 1e-3, 2 mm elements; the former defaults in brackets): contrast
-4.14 (4.18) for HI (true 4), MHI_NEW (2.01) mHI (2), 0.56 (0.55) SI (0.5), HOM uniform within a CV of HOM_NEW %
-(1.8 %), and 4.09 (4.05) for HI with 1 / 5 / 5 um white noise.  With noise correlated over 3-6 mm
-(``--correlated``): CORRELATED_NEW.  On a registered volume (``benchmarks/volume_study.py``, RF volumes of the
-3D HI phantom cropped to x 13-47, y +-17, z +-10 mm, inverted over x 15-45, y +-15, z +-8 mm): REGISTERED_NEW.
+4.14 (4.18) for HI (true 4), 1.99 (2.01) mHI (2), 0.56 (0.55) SI (0.5), HOM uniform within a CV of 0.03 %
+(1.8 %), and 4.09 (4.05) for HI with 1 / 5 / 5 um white noise.  With noise correlated over 3-12 mm
+(``--correlated``; 1-2 / 5-10 / 5-50 um): HI 3.82-4.08 with a background CV of 0.9-4.1 % (3.70-4.85 with
+21-633 %).  On a registered volume (``benchmarks/volume_study.py``, RF volumes of the 3D HI phantom cropped to
+x 13-47, y +-17, z +-10 mm, inverted over x 15-45, y +-15, z +-8 mm; docs/inversion.md): 3.49 with a background
+CV of 2.3 % (4.59 with 44 %), as the registered in-plane components with the exact u_z (3.49): u_z no longer
+limits it.
 The 2D model's mismatch on 3D data (plane stress of the exact 3D displacement: 2.2) is gone.  Over the paper's
 imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm elements, 26.6 k DOFs; former defaults): HI 4.46, SI 0.508.
 The uncertainty is the same Laplace approximation (with the fitted boundary held at its values) while
