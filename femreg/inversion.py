@@ -1606,11 +1606,15 @@ class InversionResult:
         return path
 
     def plot(self, out_png=None, **kw):
-        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`)."""
+        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`); a 3D result:
+        three orthogonal slices through ``at=`` of the modulus, its uncertainty and the axial strain
+        (:func:`femreg.volplot.plot_inversion_volume`)."""
+        if self.dim == 3:
+            from .volplot import plot_inversion_volume
+
+            return plot_inversion_volume(self, out_png, **kw)
         from .plot import plot_inversion
 
-        if self.dim == 3:
-            raise InputError("pictures of a 3D modulus volume are not available; write it with to_vtu (ParaView)")
         return plot_inversion(self, out_png, **kw)
 
     def __repr__(self) -> str:
