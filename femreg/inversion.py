@@ -56,10 +56,10 @@ former 3D default).  Measured on the exact displacement of the paper's 3D phanto
 4.14 (4.18) for HI (true 4), 1.99 (2.01) mHI (2), 0.56 (0.55) SI (0.5), HOM uniform within a CV of 0.03 %
 (1.8 %), and 4.09 (4.05) for HI with 1 / 5 / 5 um white noise.  With noise correlated over 3-12 mm
 (``--correlated``; 1-2 / 5-10 / 5-50 um): HI 3.82-4.08 with a background CV of 0.9-4.1 % (3.70-4.85 with
-21-633 %).  On a registered volume (``benchmarks/volume_study.py``, RF volumes of the 3D HI phantom cropped to
-x 13-47, y +-17, z +-10 mm, inverted over x 15-45, y +-15, z +-8 mm; docs/inversion.md): 3.49 with a background
-CV of 2.3 % (4.59 with 44 %), as the registered in-plane components with the exact u_z (3.49): u_z no longer
-limits it.
+21-633 %).  On the registered volume (``benchmarks/volume_study.py``: RF volumes of the 3D HI phantom, 0-72 x
++-22 x +-10 mm, inverted over x 15-45, y +-15, z +-8 mm; docs/inversion.md): 3.91 with a background CV of 1.5 %
+(2.43 with 98 %), as the registered in-plane components with the exact u_z (3.91): u_z no longer limits it
+(a crop x 13-47, y +-17 mm: 3.49 with 2.3 %, 4.59 with 44 %).
 The 2D model's mismatch on 3D data (plane stress of the exact 3D displacement: 2.2) is gone.  Over the paper's
 imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm elements, 26.6 k DOFs): HI 4.38 (4.46), SI 0.517 (0.508).
 The uncertainty is the same Laplace approximation (with the fitted boundary held at its values) while
