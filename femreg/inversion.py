@@ -1021,6 +1021,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         noise measured in a first inversion, module docstring).
     poisson : float, optional
         :math:`\nu` (plane strain: in (-1, 0.5), default 0.495; plane stress: in (-1, 0.5], default 0.5).
+    boundary : {"measured", "axial-sides", "free-sides", "fitted"}, optional
+        Boundary conditions of the forward model (:data:`BOUNDARIES`): the measured displacement on the whole
+        boundary (None for 2D data); ``"fitted"``: the lateral and elevational boundary values are fitted by the
+        misfit beside the modulus (None for 3D data with :data:`FITTED_MIN_ELEMENTS` elements across every axis,
+        module docstring).
     maxiter, gtol
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool
@@ -1039,11 +1044,6 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
         ``constrained``); costs one dense Hessian of size n_el.
-    boundary : {"measured", "axial-sides", "free-sides", "fitted"}, optional
-        Boundary conditions of the forward model (:data:`BOUNDARIES`): the measured displacement on the whole
-        boundary (None for 2D data); ``"fitted"``: the lateral and elevational boundary values are fitted by the
-        misfit beside the modulus (None for 3D data with :data:`FITTED_MIN_ELEMENTS` elements across every axis,
-        module docstring).
 
     Returns
     -------
