@@ -166,7 +166,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         from .volume import track_volume
         return track_volume(frames, spacing=spacing, origin=origin, mode=mode, regularizer=regularizer, alpha=alpha,
                             mesh=mesh, element_size=element_size, margin=margin,
-                            check_orientation=check_orientation, **register_kwargs)
+                            check_orientation=check_orientation, roi=roi, depth=depth, **register_kwargs)
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if grid not in ("current", "reference"):
