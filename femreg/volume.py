@@ -541,7 +541,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         if progress:
             print(f"volume {k}/{len(arr) - 1}: {r.message}", flush=True)
     if crop is not None:
-        for r in {id(r): r for r in results + acc}.values():
+        for r in results + acc:         # idempotent: direct mode holds each result in both lists
             crop.widen(r)
     return VolumeTrack(results=results, accumulated=acc)
 
