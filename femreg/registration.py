@@ -204,8 +204,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         fraction of their RMS (on two consecutive steps); None = :data:`femreg.solver.GN_STRAIN_TOL` (1.5 %, the
         TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_TIGHT` (0.5 %, the quadratic ones), 0 = only
         the ``tol`` rule.
-    roi : "auto" | None | (x0, x1, y0, y1) mm
-        The region registered.  "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`:
+    roi : "auto" | None | (x0, x1, y0, y1) mm, for volumes (x0, x1, y0, y1, z0, z1) mm
+        The region registered (volumes: :func:`femreg.echo_volume.find_echo_volume`, the full voxel grid kept).  "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`:
         depth and lines at the noise floor, saturated samples), the rest left out of the mesh and the image term
         and named in ``result.excluded`` and the message (nothing changes where the frames hold echo
         everywhere); None: the whole frames; a rectangle: that one (no detection).  The mesh covers the
