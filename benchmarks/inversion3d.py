@@ -18,8 +18,13 @@ memory: the process' peak RSS after the case (monotone over the run).
 ``--elevation``: the effect of the poorly measured elevational component, HI with sigma_z = 5 / 20 / 50 um and
 elevational misfit weight 0.1 / 0.01.
 
+``--correlated``: registration-like noise, correlated over a few mm (per component a sum of 24 plane waves of
+random direction, phase and wavelength in 3-6 mm, or 6-12 mm; seeded), at several levels, inverted with femreg's
+defaults (3D: lateral and elevational boundary values fitted, misfit weights from the data's noise) and with the
+former ones (all boundary values imposed, weights 1 / 0.1 / 0.1).
+
 Usage: ``python benchmarks/inversion3d.py [--quick] [--rule] [--h 2] [--cases HI,SI,mHI,HOM] [--regions
-sphere,imaged] [--elevation]``.
+sphere,imaged] [--elevation] [--correlated]``.
 """
 from __future__ import annotations
 
@@ -65,18 +70,37 @@ def noisy(fun, sigma, seed=0):
     return f
 
 
-def run(case, region, h, beta, noise=False, uncertainty=True, sigma=NOISE_MM, weights=None):
+def smooth_noise(sigma, seed=0, n_modes=24, wavelength_mm=(3.0, 6.0)):
+    """A registration-like error field (n, 3) -> (n, 3) mm: per component a sum of ``n_modes`` plane waves of
+    random direction, phase and wavelength, standard deviation ``sigma`` (3,) mm (tests/test_inversion3d.py)."""
+    rng = np.random.default_rng(seed)
+    k = rng.standard_normal((3, n_modes, 3))
+    k *= 2 * np.pi / rng.uniform(*wavelength_mm, (3, n_modes, 1)) / np.linalg.norm(k, axis=2, keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, (3, n_modes))
+    sig = np.asarray(sigma, float)
+    return lambda p: np.column_stack([sig[c] * np.sqrt(2.0 / n_modes) * np.cos(p @ k[c].T + phase[c]).sum(axis=1)
+                                      for c in range(3)])
+
+
+#: Former 3D defaults (all boundary values imposed, weights 1 / 0.1 / 0.1), the "before" rows of --correlated.
+FORMER = dict(boundary="measured", weights=(1.0, 0.1, 0.1))
+
+
+def run(case, region, h, beta, noise=False, uncertainty=True, sigma=NOISE_MM, weights=None, noise_fun=None,
+        **kw):
     sol = truth(case)
     fun = noisy(sol.displacement_3d, sigma) if noise else sol.displacement_3d
+    if noise_fun is not None:
+        fun = (lambda f, n: (lambda p: f(p) + n(p)))(sol.displacement_3d, noise_fun)
     t = time.perf_counter()
-    kw = {} if weights is None else dict(weights=weights)
+    kw = dict(kw) if weights is None else dict(kw, weights=weights)
     inv = femreg.invert(fun, region=REGIONS[region], element_size=h, beta=beta, uncertainty=uncertainty, **kw)
     dt = time.perf_counter() - t
     true = MODULI[case] / BACKGROUND
     row = dict(case=case, region=region, h=h, noise=noise, beta=inv.beta, n_el=inv.mu.size,
                dofs=3 * inv.mesh.p.shape[1], seconds=dt, nit=inv.nit, n_eval=inv.timings.get("n_evaluations"),
                t_unc=inv.timings.get("uncertainty"), rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-               success=inv.success, flags="; ".join(inv.flags)[:80], true=true)
+               success=inv.success, flags="; ".join(inv.flags)[:80], true=true, weights=inv.weights)
     if case == "HOM":
         row.update(contrast=float("nan"), cv=float(np.std(inv.mu) / np.mean(inv.mu)))
     else:
@@ -97,6 +121,8 @@ def main(argv=None):
     ap.add_argument("--regions", default="sphere")
     ap.add_argument("--noise", default="HI", help="cases also run with noise added (comma-separated)")
     ap.add_argument("--no-uncertainty", action="store_true")
+    ap.add_argument("--correlated", action="store_true",
+                    help="only the correlated-noise study: HI, defaults against the former 3D defaults")
     ap.add_argument("--elevation", action="store_true",
                     help="only the elevational-noise study: HI, sigma_z 5 / 20 / 50 um, w_z 0.1 and 0.01")
     a = ap.parse_args(argv)
@@ -104,6 +130,20 @@ def main(argv=None):
     h = 3.0 if a.quick else a.h
     beta = None if a.rule else a.beta
     rows = []
+    if a.correlated:
+        print("| sigma (axial / lateral / elevational) um | wavelength mm | inversion | contrast HI (4) | CV bg | "
+              "weights | seconds |")
+        print("|---|---|---|---|---|---|---|")
+        for sig, wl in (((1, 5, 5), (3, 6)), ((1, 5, 20), (3, 6)), ((1, 5, 50), (3, 6)), ((2, 10, 20), (3, 6)),
+                        ((1, 5, 20), (6, 12)), ((1, 5, 50), (6, 12))):
+            nf = smooth_noise(1e-3 * np.asarray(sig, float), seed=0, wavelength_mm=wl)
+            for name, kw in (("former", FORMER), ("default", {})):
+                r = run("HI", a.regions.split(",")[0], h, beta, uncertainty=False, noise_fun=nf, **kw)
+                print(f"| {' / '.join(map(str, sig))} | {wl[0]}-{wl[1]} | {name} | {r['contrast']:.3f} | "
+                      f"{100 * r['cv']:.1f} % | {' / '.join(f'{v:.3g}' for v in r['weights'])} | "
+                      f"{r['seconds']:.1f} |", flush=True)
+                rows.append(r)
+        return rows
     if a.elevation:
         print("| sigma (axial, lateral, elevational) um | weights | contrast HI (4) | CV bg | seconds |")
         print("|---|---|---|---|---|")

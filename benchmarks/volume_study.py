@@ -53,7 +53,7 @@ IN_PLANE = [0, 1, 3]          # exx, eyy, exy of the six 3D components
 CENTRE, RADIUS = (30.0, 0.0, 0.0), 7.5
 #: The inversion region of benchmarks/inversion3d.py (``sphere``), clipped to the registered volume's interior.
 INV_REGION = (15.0, 45.0, -15.0, 15.0, -10.0, 10.0)
-#: 3D inversion: element size mm and fixed beta of benchmarks/inversion3d.py (exact HI displacement: 4.18).
+#: 3D inversion: element size mm and fixed beta of benchmarks/inversion3d.py (exact HI displacement: 4.14).
 INV_H_3D, INV_BETA_3D = 2.0, 1e-3
 
 
@@ -150,6 +150,8 @@ def inversion_row(inv, dim, seconds) -> dict:
     m = modulus_contrast(inv, in_sphere)
     return {"contrast": m["contrast"], "cv_background": m["cv_background"], "ring_contrast": sampled_contrast(inv, dim),
             "beta": float(inv.beta), "elements": int(inv.mu.size), "success": bool(inv.success),
+            "weights": [float(x) for x in inv.weights],
+            "boundary": "fitted" if "boundary values fitted" in inv.model_rule else "measured",
             "model": str(inv.model), "time_s": seconds}
 
 
@@ -239,14 +241,15 @@ def section(runs: list, notes=()) -> list:
         f" {r['shape'][0]} x {r['shape'][1]} (plane) | {' x '.join(map(str, r['shape']))} |" for r in runs))
     L += ["", "Modulus inversion over the sphere's box of `benchmarks/inversion3d.py` (x 15-45, y +-15, z +-10 mm) "
           "clipped to the registered volume less 2 mm: 3D `femreg.invert` (hexahedra 2 mm, beta 1e-3 fixed, "
-          "nearly incompressible, misfit weights 1 / 0.1 / 0.1) of the registered and of the exact 3D "
-          "displacement; 2D plane-stress `femreg.invert` (beta by femreg's rule) of the 2D registration and of the "
+          "nearly incompressible, femreg's defaults at the time of the run: misfit weights and boundary in the "
+          "table; runs without them used 1 / 0.1 / 0.1 and the measured boundary) of the registered and of the "
+          "exact 3D displacement; 2D plane-stress `femreg.invert` (beta by femreg's rule) of the 2D registration and of the "
           "exact in-plane displacement on the central plane.  Contrast: `femreg.inversion.modulus_contrast` (mean "
           "mu of the elements fully inside the sphere over those fully outside; true 4); ring: mean mu inside 0.7 R "
           "over the ring 1.6-2.5 R on the central plane (`benchmarks/inversion.py`; '-' where the region does not "
           "hold the ring).", "",
           "| extent | inversion region mm | displacement | model | contrast (true 4) | ring contrast | CV bg % | "
-          "beta | elements | s |", "|---|---|---|---|---|---|---|---|---|---|"]
+          "beta | weights, boundary | elements | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     names = (("3d_registered", "3D registration", "3D"), ("3d_exact", "exact 3D", "3D"),
              ("3d_registered_exact_uz", "3D registration, exact u_z", "3D"),
              ("2d_registered", "2D registration", "plane stress"), ("2d_exact", "exact in-plane", "plane stress"))
@@ -258,10 +261,13 @@ def section(runs: list, notes=()) -> list:
             v = inv.get(key)
             if v is None:
                 continue
+            wts = v.get("weights") or ([1.0, 0.1, 0.1] if model == "3D" else [1.0, 0.1])
             L.append(f"| {_extent(r)} | {reg} | {what} | {model} | {v['contrast']:.2f}{'' if v['success'] else '*'}"
                      f" | {f(v['ring_contrast'])} | {100 * v['cv_background']:.1f} | {v['beta']:.3g} | "
+                     f"{' / '.join(f'{x:.3g}' for x in wts)}, {v.get('boundary', 'measured')} | "
                      f"{v['elements']} | {v['time_s']:.1f} |")
-    L += ["| (reference) | 15..45 x -15..15 x -10..10 | exact 3D | 3D | 4.18 | - | - | 0.001 | - | - |", "",
+    L += ["| (reference) | 15..45 x -15..15 x -10..10 | exact 3D | 3D | 4.14 | - | - | 0.001 | 1 / 0.1 / 0.01, "
+          "fitted | - | - |", "",
           "(* not flagged successful.  Reference row: `benchmarks/inversion3d.py`, the full sphere box.)", "",
           "Targets:", ""]
     for r in runs:
@@ -293,7 +299,7 @@ def section(runs: list, notes=()) -> list:
         inv = r.get("inversion") or {}
         if "3d_exact" in inv and "3d_registered" in inv:
             L.append(f"- {_extent(r)}: the 3D inversion of the *exact* displacement over this region gives "
-                     f"{inv['3d_exact']['contrast']:.2f} (the full sphere box: 4.18), of the registered one "
+                     f"{inv['3d_exact']['contrast']:.2f} (the full sphere box: 4.14), of the registered one "
                      f"{inv['3d_registered']['contrast']:.2f}; the plane-stress 2D inversion "
                      f"{inv['2d_registered']['contrast']:.2f} (registered) and {inv['2d_exact']['contrast']:.2f} "
                      f"(exact).")

@@ -30,14 +30,40 @@ plane-stress inversion of the *true* 3D displacement gives a contrast of 2.2 for
 3D data (a displacement callable ``(n, 3) -> (n, 3)`` with a region of three intervals, or a 3D registration
 result: anything with a hexahedral ``mesh`` and ``displacement(points)``) are inverted with ``model="3d"``: the
 same weak forms on trilinear hexahedra (MeshHex1 / ElementHex1), :math:`\bar\lambda = 2\nu/(1-2\nu)` with the
-one-point volumetric rule, the TV over interior faces, misfit weights :data:`DEFAULT_WEIGHTS_3D`, and a sparse
-direct solver (:data:`LINEAR_SOLVER_3D`).  Measured on the exact displacement of the paper's 3D phantom
-(benchmarks/inversion3d.py; 30 x 30 mm around the sphere, z +-10 mm, beta 1e-3; 2 mm elements, 3 mm in
-brackets): contrast 4.18 (4.16) for HI (true 4), 2.01 (2.01) mHI (2), 0.55 (0.59) SI (0.5), HOM uniform within a
-CV of 1.8 % (2.9 %), and 4.05 (3.93) for HI with 1 / 5 / 5 um (axial / lateral / elevational) white noise added:
-the 2D model's mismatch (2.2) is gone.  Over the paper's imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm
-elements, 26.6 k DOFs): HI 4.46, SI 0.508.  The uncertainty is the
-same Laplace approximation while du/dtheta fits :data:`LAPLACE_DENSE_LIMIT`, else only the constrained mask.
+one-point volumetric rule, the TV over interior faces, and a sparse direct solver (:data:`LINEAR_SOLVER_3D`).
+Two defaults differ from 2D, both because a volume's elevational (and lateral) displacement is measured far less
+accurately than the axial one (the elevational beam, 1-3 mm, on planes 0.3-0.5 mm apart):
+
+- Boundary values (``boundary=None``): with at least :data:`FITTED_MIN_ELEMENTS` elements across every axis the
+  lateral and elevational boundary values are unknowns beside :math:`\theta`, fitted by the same misfit
+  (``boundary="fitted"``: :math:`u_B = d_B + c\,g`, :math:`c = \bar\varepsilon h`; the adjoint gives
+  :math:`\partial J/\partial u_B = (M r)_B/s^2 - K_{IB}^T\lambda_I` without another solve); the axial ones stay
+  imposed.  Imposed noisy boundary values alone drive the modulus: the exact HI field with noise correlated over
+  2 mm (1 / 5 / 20 um axial / lateral / elevational) on the boundary nodes only gives a background CV of 88 %,
+  on the interior nodes only 8.5 %.  Thinner meshes keep the measured boundary (a fitted one has too few
+  interior data to be fitted against; :data:`FITTED_MIN_ELEMENTS`).
+- Misfit weights (``weights=None``): :data:`DEFAULT_WEIGHTS_3D` = (1, 0.1, 0.01): in a nearly incompressible
+  solid :math:`\varepsilon_{zz} = -(\varepsilon_{xx} + \varepsilon_{yy})`, so the model fills in u_z from the
+  in-plane data and needs the elevational data only as an anchor (exact data: contrast within 1 % of w_z = 0.1).
+  A first inversion with these weights measures each component's noise as its RMS misfit at the interior nodes
+  (the part of the data no modulus makes elastic), the lateral and elevational weights are lowered to
+  :math:`w_x\sigma_x^2/\sigma_i^2` (never above the default nor below :data:`WEIGHT_FLOOR_3D`), and a second
+  inversion uses them (twice the time where they change or ``uncertainty`` is asked for).
+
+Explicit ``weights`` or ``boundary`` switch either off (``boundary="measured", weights=(1, 0.1, 0.1)`` is the
+former 3D default).  Measured on the exact displacement of the paper's 3D phantom (benchmarks/inversion3d.py;
+30 x 30 mm around the sphere, z +-10 mm, beta 1e-3, 2 mm elements; the former defaults in brackets): contrast
+4.14 (4.18) for HI (true 4), 1.99 (2.01) mHI (2), 0.56 (0.55) SI (0.5), HOM uniform within a CV of 0.03 %
+(1.8 %), and 4.09 (4.05) for HI with 1 / 5 / 5 um white noise.  With noise correlated over 3-12 mm
+(``--correlated``; 1-2 / 5-10 / 5-50 um): HI 3.82-4.08 with a background CV of 0.9-4.1 % (3.70-4.85 with
+21-633 %).  On the registered volume (``benchmarks/volume_study.py``: RF volumes of the 3D HI phantom, 0-72 x
++-22 x +-10 mm, inverted over x 15-45, y +-15, z +-8 mm; docs/inversion.md): 3.91 with a background CV of 1.5 %
+(2.43 with 98 %), as the registered in-plane components with the exact u_z (3.91): u_z no longer limits it
+(a crop x 13-47, y +-17 mm: 3.49 with 2.3 %, 4.59 with 44 %).
+The 2D model's mismatch on 3D data (plane stress of the exact 3D displacement: 2.2) is gone.  Over the paper's
+imaged area (x 2-70 mm, y +-22 mm, z +-10 mm, 2 mm elements, 26.6 k DOFs): HI 4.38 (4.46), SI 0.517 (0.508).
+The uncertainty is the same Laplace approximation (with the fitted boundary held at its values) while
+du/dtheta fits :data:`LAPLACE_DENSE_LIMIT`, else only the constrained mask.
 
 Objective (minimised over :math:`\theta`, one value per element):
 
@@ -110,7 +136,7 @@ noise), the misfit stays well above the noise level (:data:`MISFIT_LIMIT`, in un
 inflates the data's own), or a stiff (soft) region strains more (less) than the background
 (:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
-displacement on the whole boundary stays the default (benchmarks/inversion.py, docs/inversion.md).
+displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
 Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
 :func:`is_inversion_file`, :func:`strain_ratio`, :func:`model_ratio`, :data:`MODELS`.
@@ -156,7 +182,7 @@ THETA_BOUND = 7.0
 #: Poisson ratio of the plane-strain model by default.
 DEFAULT_POISSON = 0.495
 #: Boundary conditions of the forward model (:func:`_dirichlet_dofs`).
-BOUNDARIES = ("measured", "axial-sides", "free-sides")
+BOUNDARIES = ("measured", "axial-sides", "free-sides", "fitted")
 #: Strain ratios at or below / at or above which ``model="auto"`` picks plane stress / plane strain.
 AUTO_RATIO = (0.55, 0.9)
 #: An explicit model is flagged when the data's strain ratio differs from the model's by more than this.
@@ -177,9 +203,26 @@ REGISTERED_SIGMA = 1.6
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
-#: Misfit weights (axial, lateral, elevational) of 3D data: the elevational displacement is measured with the
-#: elevational beam (1-3 mm), coarser still than the lateral one, so it gets the lateral weight at most.
-DEFAULT_WEIGHTS_3D = (1.0, 0.1, 0.1)
+#: Misfit weights (axial, lateral, elevational) of 3D data before the noise rule (module docstring): the
+#: elevational displacement is measured with the elevational beam (1-3 mm), coarser still than the lateral one,
+#: and the nearly incompressible model fills it in from the in-plane strains (e_zz = -(e_xx + e_yy)).
+DEFAULT_WEIGHTS_3D = (1.0, 0.1, 0.01)
+#: 3D data with ``weights=None`` (default): the lateral and elevational weights are lowered to w_x sigma_x^2 /
+#: sigma_i^2, sigma_i the RMS misfit of component i at the interior nodes after a first inversion with
+#: DEFAULT_WEIGHTS_3D (the part of the data that no modulus makes elastic: its noise), never above the default
+#: weight nor below this floor (a component must still anchor the model's field; 0.001 lets u_z drift by 3 x its
+#: noise on exact-plus-noise data).
+WEIGHT_FLOOR_3D = 0.003
+#: Boundary values of 3D data by default (``boundary=None``): "fitted", unknowns fitted by the misfit beside the
+#: modulus, because noise in imposed boundary values of u_z alone drives the modulus (module docstring).
+BOUNDARY_3D = "fitted"
+#: ``boundary=None`` fits the boundary of 3D data only with at least this many elements across every axis: a
+#: fitted boundary needs interior data to be fitted against (exact HI displacement, 30 x 30 mm box, 2 mm
+#: elements, 3 / 4 / 6 elements across z: contrast 3.60 / 3.89 / 4.04 fitted against 3.97 / 4.05 / 4.08 measured).
+FITTED_MIN_ELEMENTS = 6
+#: ``boundary="fitted"``: the components fitted (index >= this; 1 = lateral and elevational), the axial one
+#: imposed (it is measured best and carries the load).
+FITTED_FROM = 1
 #: Names of the 3D strain components (``strain_measured`` columns) and their (i, j) index pairs.
 STRAIN_COMPONENTS_3D = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 STRAIN_COMPONENTS_3D_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -323,6 +366,12 @@ class _Model:
         u[self.I] = lu.solve(-(KIB @ d[self.D]))
         return u, lu
 
+    def boundary_coupling(self, mu):
+        """K_IB(mu), sparse (n_I, n_D)."""
+        KIB = self._KIB.copy()
+        KIB.data = (self._A @ mu)[self._sIB]
+        return KIB
+
     def dJ_dtheta(self, mu, u, lam):
         """-mu_e lam^T K_e u for every element (lam zero on the boundary)."""
         return -mu * (self._G @ (lam[self._rows] * u[self._cols]))
@@ -333,7 +382,7 @@ def _dirichlet_dofs(basis, mesh, boundary: str) -> np.ndarray:
     (y = min, max; in 3D also the elevational sides z = min, max; their edges on x = min, max excepted) only the
     axial component (``"axial-sides"``) or none (``"free-sides"``, traction-free there)."""
     D = basis.get_dofs().all()
-    if boundary == "measured":
+    if boundary in ("measured", "fitted"):      # "fitted": the values are unknowns (_Problem), the DOFs the same
         return D
     p = mesh.p
     side = (np.isclose(p[1], p[1].min()) | np.isclose(p[1], p[1].max())) & \
@@ -390,30 +439,60 @@ class _Regularizer:
 
 
 class _Problem:
-    """J(theta) = misfit + beta R, with its adjoint gradient (module docstring)."""
+    """J(theta) = misfit + beta R, with its adjoint gradient (module docstring).
 
-    def __init__(self, model: _Model, reg: _Regularizer, d, s2):
+    ``fit_boundary``: the boundary values are unknowns too, u_B = d_B + c g (``c`` the displacement scale
+    sqrt(s^2 / |Omega|), g dimensionless), fitted by the same weighted misfit (:data:`BOUNDARY_3D`); the
+    optimiser then runs over (theta, g), and :attr:`g` keeps the latest fitted values, so that ``misfit``,
+    :attr:`dirichlet` and everything evaluated at a theta use the boundary fitted with it."""
+
+    def __init__(self, model: _Model, reg: _Regularizer, d, s2, fit_boundary: bool = False):
         self.model, self.reg, self.d, self.s2 = model, reg, d, s2
         self.n_eval = 0
+        # the fitted boundary DOFs (positions in model.D): the components other than the axial one
+        comp = np.empty(model.basis.N, int)
+        for c in range(model.dim):
+            comp[model.basis.nodal_dofs[c]] = c
+        self.fit = np.flatnonzero(comp[model.D] >= FITTED_FROM) if fit_boundary else np.zeros(0, int)
+        self.n_b = self.fit.size
+        self.scale = float(np.sqrt(s2 / model.area))
+        self.g = np.zeros(self.n_b)
+
+    @property
+    def dirichlet(self):
+        """The displacement whose boundary values the model takes: the data, or the fitted boundary."""
+        if not self.n_b:
+            return self.d
+        b = self.d.copy()
+        b[self.model.D[self.fit]] += self.scale * self.g
+        return b
 
     def misfit(self, theta):
-        u, _ = self.model.solve(np.exp(theta), self.d)
+        u, _ = self.model.solve(np.exp(theta), self.dirichlet)
         r = u - self.d
         return 0.5 * float(r @ (self.model.M @ r)) / self.s2, u
 
-    def evaluate(self, theta, beta):
-        """(J, dJ/dtheta, misfit, R, u)."""
+    def evaluate(self, theta, beta, g=None):
+        """(J, dJ/dtheta, misfit, R, u); with a fitted boundary and ``g`` given, at that boundary, and the
+        gradient is dJ/d(theta, g)."""
         self.n_eval += 1
         mu = np.exp(theta)
-        u, lu = self.model.solve(mu, self.d)
+        if g is not None:
+            self.g = np.asarray(g, float)
+        u, lu = self.model.solve(mu, self.dirichlet)
         r = u - self.d
         Mr = self.model.M @ r
         phi = 0.5 * float(r @ Mr) / self.s2
         lam = np.zeros_like(u)
         lam[self.model.I] = lu.solve(Mr[self.model.I] / self.s2)
-        g = self.model.dJ_dtheta(mu, u, lam)
+        grad = self.model.dJ_dtheta(mu, u, lam)
         R, gR = self.reg(theta)
-        return phi + beta * R, g + beta * gR, phi, R, u
+        grad = grad + beta * gR
+        if g is not None and self.n_b:
+            # u_I = -K_II^-1 K_IB u_B: dJ/du_B = (M r)_B / s^2 - K_IB^T lam_I (lam the adjoint above)
+            gb = Mr[self.model.D] / self.s2 - self.model.boundary_coupling(mu).T @ lam[self.model.I]
+            grad = np.r_[grad, self.scale * gb[self.fit]]
+        return phi + beta * R, grad, phi, R, u
 
 
 def _optimise(problem: _Problem, theta0, beta, *, maxiter, gtol, progress=None):
@@ -422,33 +501,49 @@ def _optimise(problem: _Problem, theta0, beta, *, maxiter, gtol, progress=None):
 
     cache = {}
     history = []
+    n = theta0.size
+    fit = problem.n_b > 0     # a fitted boundary: x = (theta, g), from the problem's current g
 
-    def fun(theta):
-        J, g, phi, R, _ = problem.evaluate(theta, beta)
+    def split(x):
+        return (x[:n], x[n:]) if fit else (x, None)
+
+    def evaluate(x):
+        theta, g = split(x)
+        return problem.evaluate(theta, beta, g)
+
+    def fun(x):
+        J, g, phi, R, _ = evaluate(x)
         if not np.isfinite(J) or not np.all(np.isfinite(g)):
             raise FloatingPointError("non-finite objective")
-        cache["last"] = (theta.copy(), J, phi, R)
+        cache["last"] = (x.copy(), J, phi, R)
         return J, g
 
     def callback(xk):
         t, J, phi, R = cache["last"]
         if not np.array_equal(t, xk):
-            J, _, phi, R, _ = problem.evaluate(xk, beta)
+            J, _, phi, R, _ = evaluate(xk)
         history.append((J, phi, R))
         if progress is not None:
             progress.update(1)
 
-    bounds = [(-THETA_BOUND, THETA_BOUND)] * theta0.size
+    bounds = [(-THETA_BOUND, THETA_BOUND)] * n + [(None, None)] * problem.n_b
+    x0 = np.r_[theta0, problem.g] if fit else theta0
     try:
-        res = minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
+        res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
                        options={"maxiter": int(maxiter), "gtol": gtol, "ftol": 1e-12, "maxcor": 20})
     except (FloatingPointError, RuntimeError, np.linalg.LinAlgError) as exc:
-        theta = cache["last"][0] if "last" in cache else theta0
+        x = cache["last"][0] if "last" in cache else x0
+        theta, g = split(x)
+        if fit:
+            problem.g = g.copy()
         return theta, {"success": False, "message": f"optimisation failed: {exc}", "nit": len(history),
-                       "history": history}
+                       "history": history, "boundary": None if g is None else g.copy()}
     msg = res.message if isinstance(res.message, str) else res.message.decode()
-    return res.x, {"success": bool(res.success), "message": msg, "nit": int(res.nit), "history": history,
-                   "n_eval": int(res.nfev)}
+    theta, g = split(res.x)
+    if fit:
+        problem.g = g.copy()
+    return theta, {"success": bool(res.success), "message": msg, "nit": int(res.nit), "history": history,
+                   "n_eval": int(res.nfev), "boundary": None if g is None else g.copy()}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -588,6 +683,9 @@ def _mesh_and_data(displacement, region, element_size):
             if h is None:
                 ext = p[:, res.mesh.t].max(axis=1) - p[:, res.mesh.t].min(axis=1)
                 h = np.median(ext, axis=1)
+                base = getattr(getattr(res, "refinement", None), "base_size", None)
+                if base is not None:            # a refined registration: the size of the mesh it started from
+                    h = np.asarray(base, float)
             mesh = _tensor_mesh(x0, x1, y0, y1, h)
             v = res.displacement(mesh.p.T)
             if not np.all(np.isfinite(v)):
@@ -640,6 +738,26 @@ def _element_strain(basis, d):
     el = np.stack([(exx * w).sum(1), (eyy * w).sum(1), (exy * w).sum(1)], axis=1) / area[:, None]
     rms = float(np.sqrt(np.sum((exx ** 2 + eyy ** 2 + 2 * exy ** 2) * w) / np.sum(w)))
     return el, rms
+
+
+def _noise_weights(first) -> tuple:
+    """(w_x, w_y, w_z) and a sentence: :data:`DEFAULT_WEIGHTS_3D` lowered by the misfit noise of ``first``, an
+    inversion with those weights (:data:`WEIGHT_FLOOR_3D`)."""
+    w0 = tuple(float(v) for v in DEFAULT_WEIGHTS_3D)
+    r = (first.u_model - first.u_measured).reshape(-1, 3)
+    inner = np.ones(len(r), bool)
+    inner[first.mesh.boundary_nodes()] = False      # a fitted boundary absorbs part of its noise: interior only
+    if inner.sum() < 1 or not np.all(np.isfinite(r[inner])):
+        return w0, "misfit weights: the defaults (no interior nodes to measure the noise on)"
+    sig2 = np.mean(r[inner] ** 2, axis=0)
+    w = [w0[0]]
+    for i in (1, 2):
+        w.append(w0[i] if not sig2[i] > 0 else float(min(w0[i], max(WEIGHT_FLOOR_3D, w0[0] * sig2[0] / sig2[i]))))
+    sig = ", ".join(f"{1e3 * np.sqrt(v):.3g}" for v in sig2)
+    return tuple(w), (f"misfit weights {w[0]:g} / {w[1]:.3g} / {w[2]:.3g} (axial / lateral / elevational): the "
+                      f"defaults {w0[0]:g} / {w0[1]:g} / {w0[2]:g}, lowered to w_x sigma_x^2 / sigma_i^2 (floor "
+                      f"{WEIGHT_FLOOR_3D:g}), with the RMS misfit per component at the interior nodes of a first "
+                      f"pass sigma = {sig} um")
 
 
 def _weighted_median(v, w):
@@ -723,7 +841,7 @@ def _contradiction(mu, el_strain, mesh, area_el):
 def _data_hessian(fem, problem, theta):
     """Gauss-Newton Hessian of the misfit, H_d = S^T M S / s^2 (n_el, n_el), S = du/dtheta (:func:`_sensitivity`)."""
     mu = np.exp(theta)
-    u, lu = fem.solve(mu, problem.d)
+    u, lu = fem.solve(mu, problem.dirichlet)
     S = _sensitivity(fem, mu, u, lu)
     return S.T @ (fem.M[fem.I][:, fem.I] @ S) / problem.s2
 
@@ -775,7 +893,7 @@ def _constrained_blocks(fem, problem, theta, block: int = 256) -> np.ndarray:
     :math:`\mathrm{diag}(S^T M S)/s^2` from column blocks of :math:`S = \partial u/\partial\theta` (one solve per
     element, ``block`` at a time)."""
     mu = np.exp(theta)
-    u, lu = fem.solve(mu, problem.d)
+    u, lu = fem.solve(mu, problem.dirichlet)
     B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
                       shape=(fem.basis.N, fem.n_el))
     BI = B[fem.I].tocsc()
@@ -865,9 +983,9 @@ def _check_reference(reference):
 # ----------------------------------------------------------------------------------------------------------------
 @single_blas_thread
 def invert(displacement, *, model: str = "auto", region=None, element_size=None, beta=None,
-           regularization: str = "tv", weights=DEFAULT_WEIGHTS, poisson: float | None = None,
+           regularization: str = "tv", weights=None, poisson: float | None = None,
            maxiter: int = 400, gtol: float = 1e-7, beta_grid=None, progress: bool = False, reference=None,
-           uncertainty: bool = True, beta_method: str = "dof", boundary: str = "measured",
+           uncertainty: bool = True, beta_method: str = "dof", boundary: str | None = None,
            reference_image=None, moving_image=None) -> "InversionResult":
     r"""Relative shear-modulus image from a measured displacement (eq:cEq / eq:meq inverse problem).
 
@@ -900,11 +1018,17 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "growth" or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
-    weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z)
+    weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z), optional
         Misfit weights of the axial and lateral (and elevational) components (default :data:`DEFAULT_WEIGHTS`;
-        3D: two weights mean (w_x, w_y, w_y), so the default is :data:`DEFAULT_WEIGHTS_3D`).
+        3D: two weights mean (w_x, w_y, w_y); None for 3D data: :data:`DEFAULT_WEIGHTS_3D` lowered by the data's
+        noise measured in a first inversion, module docstring).
     poisson : float, optional
         :math:`\nu` (plane strain: in (-1, 0.5), default 0.495; plane stress: in (-1, 0.5], default 0.5).
+    boundary : {"measured", "axial-sides", "free-sides", "fitted"}, optional
+        Boundary conditions of the forward model (:data:`BOUNDARIES`): the measured displacement on the whole
+        boundary (None for 2D data); ``"fitted"``: the lateral and elevational boundary values are fitted by the
+        misfit beside the modulus (None for 3D data with :data:`FITTED_MIN_ELEMENTS` elements across every axis,
+        module docstring).
     maxiter, gtol
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool
@@ -940,6 +1064,29 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         Naming the bad argument (unknown model, bad region, NaN displacement, a field without deformation, ...).
     """
     t_all = time.perf_counter()
+    three = _is_3d(displacement, region)
+    auto_boundary = boundary is None and three       # resolved on the mesh (FITTED_MIN_ELEMENTS)
+    if boundary is None:
+        boundary = "measured"
+    if weights is None and not three:
+        weights = DEFAULT_WEIGHTS
+    if weights is None:
+        # 3D: the component weights from the noise of a first pass (WEIGHT_FLOOR_3D, module docstring)
+        common = dict(model=model, region=region, element_size=element_size, beta=beta,
+                      regularization=regularization, poisson=poisson, maxiter=maxiter, gtol=gtol,
+                      beta_grid=beta_grid, progress=progress, beta_method=beta_method,
+                      boundary=None if auto_boundary else boundary,
+                      reference_image=reference_image, moving_image=moving_image)
+        first = invert(displacement, weights=DEFAULT_WEIGHTS_3D, uncertainty=False, **common)
+        w, why = _noise_weights(first)
+        if w == tuple(DEFAULT_WEIGHTS_3D) and not uncertainty and reference is None:
+            res = first
+        else:
+            res = invert(displacement, weights=w, uncertainty=uncertainty, reference=reference, **common)
+        res.model_rule += "; " + why
+        res.timings["first_pass"] = first.timings["total"]
+        res.timings["total"] = time.perf_counter() - t_all
+        return res
     if model == "auto":
         if poisson is not None and not _is_3d(displacement, region):
             raise InputError("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)")
@@ -1014,6 +1161,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         model_rule = ("auto: 3D data: 3D" if model == "auto" else "given: 3D") + \
             f" nearly incompressible elasticity (nu {DEFAULT_POISSON if poisson is None else poisson:g})"
         model = "3d"
+        if auto_boundary:
+            n_across = min(np.unique(np.round(mesh.p[a], 9)).size - 1 for a in range(3))
+            boundary = BOUNDARY_3D if n_across >= FITTED_MIN_ELEMENTS else "measured"
+            model_rule += (f"; boundary values {'fitted' if boundary == 'fitted' else 'measured'} ("
+                           f"{n_across} elements across the thinnest axis, fitted from {FITTED_MIN_ELEMENTS})")
     elif model == "auto":
         model, lb, reduced, model_rule = _auto_model(ratio)
         # below plane stress (or above plane strain) no incompressible 2D model fits the lateral strain, e.g. a
@@ -1037,7 +1189,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         h = float(np.cbrt(np.mean(ext[0] * ext[1] * ext[2])))
     s2 = fem.area * (eps_rms * h) ** 2
     reg = _Regularizer(mesh, regularization, h, fem.area)
-    problem = _Problem(fem, reg, d, s2)
+    problem = _Problem(fem, reg, d, s2, fit_boundary=boundary == "fitted")
     t_setup = time.perf_counter() - t
 
     bar = None
@@ -1146,6 +1298,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if chosen is None:
         chosen = runs[-1]
     b, theta, info, phi, R = chosen
+    if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
+        problem.g = info["boundary"]
     q5, q95 = np.percentile(theta, [5, 95])
     flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
     if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat)):
@@ -1187,7 +1341,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if np.any(np.abs(theta) >= THETA_BOUND - 1e-6):
         ok = False
         message = f"log-modulus reached its bound |log mu| = {THETA_BOUND:g} ({message})"
-    u_model, _ = fem.solve(mu, d)
+    u_model, _ = fem.solve(mu, problem.dirichlet)
     # the misfit in units of the *model's* strain: noise inflates the data's own RMS strain (and with it s^2),
     # the model's smooth field does not
     eps_model = _element_strain(fem.basis, u_model)[1]
@@ -1455,11 +1609,15 @@ class InversionResult:
         return path
 
     def plot(self, out_png=None, **kw):
-        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`)."""
+        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`); a 3D result:
+        three orthogonal slices through ``at=`` of the modulus, its uncertainty and the axial strain
+        (:func:`femreg.volplot.plot_inversion_volume`)."""
+        if self.dim == 3:
+            from .volplot import plot_inversion_volume
+
+            return plot_inversion_volume(self, out_png, **kw)
         from .plot import plot_inversion
 
-        if self.dim == 3:
-            raise InputError("pictures of a 3D modulus volume are not available; write it with to_vtu (ParaView)")
         return plot_inversion(self, out_png, **kw)
 
     def __repr__(self) -> str:

@@ -91,8 +91,8 @@ def registration_kwargs(options) -> dict:
 
 
 def region_kwargs(options) -> dict:
-    """``roi`` and ``depth`` of :func:`femreg.register` from a mapping with ``roi`` (4 numbers, "auto" or
-    "full"; missing or None = "auto") and ``depth`` (2 numbers, mm)."""
+    """``roi`` and ``depth`` of :func:`femreg.register` from a mapping with ``roi`` (4 numbers, 6 for a volume,
+    "auto" or "full"; missing or None = "auto") and ``depth`` (2 numbers, mm)."""
     roi = options.get("roi")
     depth = options.get("depth")
     if isinstance(roi, str):
@@ -106,8 +106,9 @@ def region_kwargs(options) -> dict:
             out = tuple(float(v) for v in roi)
         except (TypeError, ValueError):
             out = ()
-        if len(out) != 4:
-            raise InputError(f"--roi takes X0 X1 Y0 Y1 (mm), auto or full, got {' '.join(map(str, roi))}")
+        if len(out) not in (4, 6):
+            raise InputError(f"--roi takes X0 X1 Y0 Y1 (mm; a volume X0 X1 Y0 Y1 Z0 Z1), auto or full, got "
+                             f"{' '.join(map(str, roi))}")
     if depth is not None:
         if roi is not None and out != "auto":
             raise InputError("give --roi or --depth, not both")

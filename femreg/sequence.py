@@ -150,7 +150,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     roi, depth
         As in :func:`femreg.register`: the region tracked, from frames 0 and 1 ("auto", default: the echo
         rectangle of :func:`femreg.echo.find_echo`), the whole frames (None), or a given rectangle / depth range
-        (mm); every frame is registered inside it and the results say what was excluded.
+        (mm); every frame is registered inside it and the results say what was excluded.  Volumes: the box of
+        :mod:`femreg.echo_volume`, a given (x0, x1, y0, y1, z0, z1) or depth range.
     check_orientation : bool
         Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
         registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
@@ -166,7 +167,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         from .volume import track_volume
         return track_volume(frames, spacing=spacing, origin=origin, mode=mode, regularizer=regularizer, alpha=alpha,
                             mesh=mesh, element_size=element_size, margin=margin,
-                            check_orientation=check_orientation, **register_kwargs)
+                            check_orientation=check_orientation, roi=roi, depth=depth, **register_kwargs)
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if grid not in ("current", "reference"):

@@ -28,6 +28,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import orientation
+from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
 from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
@@ -371,6 +372,10 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         The start; None / "pyramid": :func:`coarse_to_fine`.
     offset : VolumeResult | callable | (3 n_nodes,) array, optional
         S of eq:IR (both volumes sampled at x + S(x)).
+    roi, depth : "auto" | None | (x0, x1, y0, y1, z0, z1) mm; (d0, d1) mm, optional
+        The region registered (:mod:`femreg.echo_volume`): "auto" (default) the box of usable echo, None the
+        whole volume, a box or a depth range as given; the result keeps the full voxel grid and says what was
+        left out (``excluded``, ``roi``).
 
     Returns
     -------
@@ -379,14 +384,16 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         is returned), when the NCC after is below :data:`femreg.repair.MIN_NCC` or more than
         :data:`femreg.repair.MAX_POOR_FRACTION` of the elements are below it, or when peak hopping remains.
     """
+    routed = route_volume(register_volume, dict(locals()))
+    if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
+        return routed
     unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
     if unknown:
         raise InputError(f"unknown option(s) for volume registration: {', '.join(sorted(unknown))}")
     if isinstance(alpha, str):
         raise InputError("alpha='auto' is not available for volumes; give a number or None (the default)")
-    if ignored.get("geometry") is not None or ignored.get("depth") is not None or \
-            ignored.get("roi", "auto") not in ("auto", None):
-        raise InputError("roi, depth and geometry are not available for volumes (the whole volume is registered)")
+    if ignored.get("geometry") is not None:
+        raise InputError("geometry is not available for volumes (a volume is sampled on a Cartesian grid)")
     t_all = time.perf_counter()
     timings = {}
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
@@ -536,7 +543,8 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                  **register_kwargs) -> VolumeTrack:
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
-    starts the next), ``"direct"`` frame 0 to every later frame independently."""
+    starts the next), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
+    :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box."""
     arr = [np.asarray(f) for f in frames]
     if len(arr) < 2:
         raise InputError(f"a sequence needs at least 2 volumes, got {len(arr)}")
@@ -549,6 +557,12 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
                           elevational=sp3[2])
     register_kwargs["check_orientation"] = False    # checked once, above
+    crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=register_kwargs.pop("roi", "auto"),
+                           depth=register_kwargs.pop("depth", None), mesh=register_kwargs.get("mesh"),
+                           margin=register_kwargs.get("margin"))
+    if crop is not None:                # every frame inside the box of frames 0 and 1 (femreg.echo_volume)
+        arr, origin = crop.frames(*arr), crop.origin
+    register_kwargs.update(roi=None, depth=None)
     results, acc = [], []
     S = None
     prev = None
@@ -575,6 +589,9 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         prev = r
         if progress:
             print(f"volume {k}/{len(arr) - 1}: {r.message}", flush=True)
+    if crop is not None:
+        for r in results + acc:         # idempotent: direct mode holds each result in both lists
+            crop.widen(r)
     return VolumeTrack(results=results, accumulated=acc)
 
 

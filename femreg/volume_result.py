@@ -40,9 +40,15 @@ class VolumeResult(ResultRecord):
         As in :class:`femreg.result.RegistrationResult`.
     quality : (n_elements,) float or None
         Per-element NCC of reference and warped moving volume at the result.
+    excluded : str or None
+        What of the volume was left out of the mesh and why (:mod:`femreg.echo_volume`); None: nothing.
+    roi : (x0, x1, y0, y1, z0, z1) mm or None
+        The box registered when not the whole volume.
     """
 
     strain_components = STRAIN_COMPONENTS_3D
+    excluded = None
+    roi = None
     displacement_components = DISPLACEMENT_COMPONENTS_3D
     ndim = 3
 
@@ -137,8 +143,13 @@ class VolumeResult(ResultRecord):
                  ncc_before=self.ncc_before, ncc_after=self.ncc_after, strategy=np.array(self.strategy),
                  alpha_effective=self.alpha_effective,
                  quality=np.full(self.mesh.t.shape[1], np.nan) if self.quality is None else self.quality,
-                 strain_components=np.array(self.strain_components))
+                 strain_components=np.array(self.strain_components), **self._region_record())
         return path
+
+    def _region_record(self) -> dict:
+        """``excluded`` / ``roi`` entries of the saved file (only when the result has them)."""
+        out = {} if self.excluded is None else {"excluded": np.array(str(self.excluded))}
+        return out if self.roi is None else dict(out, roi=np.asarray(self.roi, float))
 
     def write_vtu(self, path):
         """ParaView file (.vtu, meshio): hexahedra with point data ``u`` (n, 3) mm and the recovered strains,
@@ -209,9 +220,17 @@ def load_volume_result(path) -> VolumeResult:
             raise FileFormatError(f"{path}: volume result lacks {', '.join(missing)}")
         mesh = MeshHex1(np.asarray(z["mesh_points"], float), np.asarray(z["mesh_cells"], np.int64))
         q = np.asarray(z["quality"], float)
-        return VolumeResult(mesh, z["u"], shape=tuple(z["shape"]), spacing=z["spacing"], origin=z["origin"],
+        res = VolumeResult(mesh, z["u"], shape=tuple(z["shape"]), spacing=z["spacing"], origin=z["origin"],
                             regularizer=str(z["regularizer"]), alpha=float(z["alpha"]), success=bool(z["success"]),
                             status=int(z["status"]), message=str(z["message"]), nit=int(z["nit"]),
                             energy_history=z["energy_history"], ncc_before=float(z["ncc_before"]),
                             ncc_after=float(z["ncc_after"]), strategy=str(z["strategy"]),
                             alpha_effective=float(z["alpha_effective"]), quality=q)
+        if "excluded" in z:
+            res.excluded = str(z["excluded"])
+        if "roi" in z:
+            roi = np.asarray(z["roi"], float).ravel()
+            if roi.size != 6 or not np.all(np.isfinite(roi)):
+                raise FileFormatError(f"{path}: 'roi' must be six finite numbers x0 x1 y0 y1 z0 z1 (mm)")
+            res.roi = tuple(float(v) for v in roi)
+        return res

@@ -692,7 +692,23 @@ def _snr(snr_db):
     return v
 
 
-def _render_frames(fields, grid, psf, scat, snr_db, rng_noise, log, u_cache=None):
+def _depth_gain(gain_db, grid, name):
+    """Amplitude factor per axial sample (n_x,) of a depth gain in dB (callable of depth mm), or None
+    (:func:`forward.pairs.make_pair`'s ``echo_gain_db`` / ``tgc_db``)."""
+    if gain_db is None:
+        return None
+    if not callable(gain_db):
+        raise ValueError(f"{name} must be a callable of depth (mm) returning dB, got {gain_db!r}")
+    g = np.broadcast_to(np.asarray(gain_db(grid.x), float), grid.x.shape)
+    if not np.all(np.isfinite(g)):
+        raise ValueError(f"{name} returned non-finite values")
+    return 10.0 ** (g / 20.0)
+
+
+def _render_frames(fields, grid, psf, scat, snr_db, rng_noise, log, u_cache=None, echo_gain_db=None,
+                   tgc_db=None):
+    gain = _depth_gain(echo_gain_db, grid, "echo_gain_db")
+    tgc = _depth_gain(tgc_db, grid, "tgc_db")
     frames = np.empty((len(fields),) + grid.shape, np.float32)
     sigma, t_render = 0.0, 0.0
     noise_rngs = [np.random.default_rng(s) for s in rng_noise.spawn(len(fields))]
@@ -705,8 +721,12 @@ def _render_frames(fields, grid, psf, scat, snr_db, rng_noise, log, u_cache=None
         t_render += time.perf_counter() - t0
         if k == 0 and snr_db is not None:
             sigma = noise_sigma(float(np.mean(clean ** 2)), snr_db)
+        if gain is not None:        # after the noise level: snr_db stays the SNR at 0 dB gain
+            clean *= gain[:, None, None]
         if sigma > 0:
             clean += sigma * noise_rngs[k].standard_normal(clean.shape)
+        if tgc is not None:         # the receiver's gain: echo and noise alike
+            clean *= tgc[:, None, None]
         frames[k] = clean
         log(f"  volume {k + 1}/{len(fields)} rendered")
     return frames, sigma, t_render
@@ -714,7 +734,8 @@ def _render_frames(fields, grid, psf, scat, snr_db, rng_noise, log, u_cache=None
 
 def make_volume_sequence(fields, probe="matrix7", size_mm=(20.0, 20.0, 15.0), *, top_mm: float = 2.0,
                          snr_db: float | None = 30.0, seed: int = 0, density_per_mm3: float | None = None,
-                         amplitude_factor_inside: float = 2.0, verbose: bool = False) -> VolumeSequence:
+                         amplitude_factor_inside: float = 2.0, verbose: bool = False, echo_gain_db=None,
+                         tgc_db=None) -> VolumeSequence:
     """Render frame 0 (undeformed) and one volume per field in ``fields`` (each a callable (n, 3) -> (n, 3) mm
     or an object with ``displacement``; frame-0 -> frame-k fields).
 
@@ -723,7 +744,10 @@ def make_volume_sequence(fields, probe="matrix7", size_mm=(20.0, 20.0, 15.0), *,
     0.5 mm (tissue only at x >= 0), density ``density_per_mm3`` (default: :data:`SCATTERERS_PER_CELL_3D` per
     ``sigma_x sigma_y sigma_z``), amplitudes doubled where a field's ``inside(points)`` is true.  Noise: white
     Gaussian, ``SNR = 10 log10(mean(clean frame 0 ^2) / sigma^2)``, the same sigma in every frame (None: none).
-    Seeded (``numpy.random.SeedSequence(seed)``: scatterers, then noise per frame).
+    Seeded (``numpy.random.SeedSequence(seed)``: scatterers, then noise per frame).  ``echo_gain_db`` and
+    ``tgc_db`` (callables of depth mm -> dB) as in :func:`forward.pairs.make_pair`: a depth gain of the echo before
+    the noise (e.g. :func:`forward.pairs.attenuation_gain_db`, whose echo sinks to the noise floor at
+    :func:`forward.pairs.noise_floor_depth`), and of echo and noise alike after it.
     """
     t_start = time.perf_counter()
     log = print if verbose else (lambda *a, **k: None)
@@ -755,12 +779,16 @@ def make_volume_sequence(fields, probe="matrix7", size_mm=(20.0, 20.0, 15.0), *,
         if callable(inside):
             scat.amplitudes[np.asarray(inside(scat.positions), bool)] *= float(amplitude_factor_inside)
             break
-    frames, sigma, t_render = _render_frames([_Zero()] + fields, grid, psf, scat, snr_db, ss_noise, log)
+    frames, sigma, t_render = _render_frames([_Zero()] + fields, grid, psf, scat, snr_db, ss_noise, log,
+                                             echo_gain_db=echo_gain_db, tgc_db=tgc_db)
     params = dict(probe=pr.to_dict(), psf=psf.to_dict(), size_mm=[float(s) for s in size_mm],
                   top_mm=float(top_mm), snr_db=snr_db, seed=seed, density_per_mm3=dens, n_scatterers=len(scat),
                   scatterer_box_mm=[float(b) for b in box], noise_sigma=sigma, grid=grid.to_dict(),
                   fields=[getattr(f, "name", "custom") for f in fields],
                   timings_s=dict(render=t_render, total=time.perf_counter() - t_start))
+    for key, fn in (("echo_gain_db", echo_gain_db), ("tgc_db", tgc_db)):
+        if fn is not None:
+            params[key] = [float(v) for v in 20.0 * np.log10(_depth_gain(fn, grid, key))]
     return VolumeSequence(frames=frames, grid=grid, fields=[_Zero()] + fields, params=params)
 
 

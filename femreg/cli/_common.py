@@ -57,14 +57,24 @@ def reader_kwargs(args) -> dict:
     return options.reader_kwargs(vars(args))
 
 
-def frames_from_args(args, path=None, *, allow_sector: bool = False):
+def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape: bool | None = None):
     """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`.  Frames of
-    a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid)."""
+    a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid); raw frames read
+    with their two sizes exchanged are refused (:func:`femreg.orientation.check_raw_shape`) unless
+    ``check_shape`` is False (default: unless ``--no-orientation-check``)."""
     from ..io import read_frames
     from ..io.uff import require_cartesian
+    from ..orientation import OrientationError, check_raw_shape
 
     path = path if path is not None else args.file
     fr = read_frames(path, **reader_kwargs(args))
+    if check_shape is None:
+        check_shape = not getattr(args, "no_orientation_check", False)
+    if check_shape:
+        try:
+            check_raw_shape(fr)
+        except OrientationError as exc:
+            raise OrientationError(f"{path}: {exc}") from None
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
@@ -92,12 +102,13 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
-    g.add_argument("--roi", nargs="+", metavar="X0 X1 Y0 Y1|auto|full",
-                   help="region registered, mm (axial x0 x1, lateral y0 y1); default auto: where the frames hold "
+    g.add_argument("--roi", nargs="+", metavar="X0 X1 Y0 Y1 [Z0 Z1]|auto|full",
+                   help="region registered, mm (axial x0 x1, lateral y0 y1; a volume also elevational z0 z1); "
+                        "default auto: where the frames hold "
                         "usable echo (depth or lines at the noise floor and saturated samples left out, and said "
                         "so); full: the whole frames")
     g.add_argument("--depth", nargs=2, type=float, metavar=("D0", "D1"),
-                   help="depth range registered, mm, over all lines (instead of --roi)")
+                   help="depth range registered, mm, over all lines (instead of --roi; volumes too)")
     g.add_argument("--hourglass", type=float, default=None, metavar="W",
                    help="momentum regularisers only: hourglass control weight relative to alpha (default with "
                         "--strategy auto: femreg.strategy.DEFAULT_HOURGLASS for a pair, 1000 for R_P_sigma, "

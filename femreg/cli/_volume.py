@@ -13,7 +13,7 @@ from ..errors import InputError
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
 #: register/track options that mean nothing on volumes
-_NOT_FOR_VOLUMES = ("roi", "depth", "geometry")
+_NOT_FOR_VOLUMES = ("geometry",)
 
 
 def read_volume_file(path):
@@ -74,6 +74,8 @@ def register_volumes(args, vol, kw) -> int:
         return 1
     res.save(args.output)
     print(res)
+    if res.excluded:
+        print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
     if not res.success:
         print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
@@ -96,5 +98,7 @@ def track_volumes(args, vol, kw) -> int:
         res.save(out / f"frame_{k:03d}.npz")
         print(f"frame {k:3d}: ncc {tr.results[k - 1].ncc_before:.3f} -> {tr.results[k - 1].ncc_after:.3f}, "
               f"nit {tr.results[k - 1].nit}" + ("" if tr.results[k - 1].success else "  FAILED"))
+    if tr.accumulated and tr.accumulated[0].excluded:
+        print(f"femreg track: left out of the mesh (the rest is registered): {tr.accumulated[0].excluded}")
     print(f"femreg track: {len(tr)} volumes in {out}")
     return 0 if tr.success else 1
