@@ -4,7 +4,7 @@ For every case of a :mod:`benchmarks.inversion` set: the pair is registered (cac
 beta of the extended grid (1 ... 1e-4, half decades) with ``uncertainty=True``.  Per beta the JSON keeps the
 contrast ratio (estimate / truth), the number of parameters the data determine gamma = tr(H_d H^-1), the misfit,
 and |z| = |log mu - true log mu| / sigma per constrained element with sigma *without* the registered-field factor
-(``REGISTERED_SIGMA``), so that a rule (a gamma target) and a calibration factor can be evaluated offline.  Per case
+(``_registered_sigma``), so that a rule (a gamma target) and a calibration factor can be evaluated offline.  Per case
 it keeps the element count, element size, area, and the registration's NCC.
 
 Usage: ``python benchmarks/inversion_beta_sweep.py --set main --json sweeps_main.json`` (``--register-only``:
@@ -46,7 +46,8 @@ def sweep_case(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0):
         c = inv.centroids
         true = np.where(field.inside(c), np.log(contrast), 0.0)
         ok = inv.constrained & np.isfinite(inv.uncertainty)
-        z = np.abs(np.log(inv.mu[ok]) - true[ok]) / (inv.uncertainty[ok] / femreg.inversion.REGISTERED_SIGMA)
+        z = np.abs(np.log(inv.mu[ok]) - true[ok]) / (inv.uncertainty[ok] / femreg.inversion._registered_sigma(
+            float(np.sqrt(np.mean(np.prod(np.ptp(inv.mesh.p[:, inv.mesh.t], axis=1), axis=0))))))
         out["area"] = float(np.ptp(inv.mesh.p[0]) * np.ptp(inv.mesh.p[1]))
         out["sweep"].append(dict(beta=b, ratio=cest / contrast, cv=cv, gamma=inv.sweep[0]["gamma"],
                                  misfit=inv.misfit, misfit_model=inv.misfit_model_strain, ok=bool(inv.success),

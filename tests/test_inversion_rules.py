@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import femreg
-from femreg.inversion import (DOF_AREA, MISFIT_LIMIT, _effective_parameters, _tensor_mesh, invert,
+from femreg.inversion import (DOF_AREA, MISFIT_LIMIT, _dof_target, _effective_parameters, _tensor_mesh, invert,
                               modulus_contrast)
 
 from test_inversion import REGION, inclusion, solution  # noqa: E402  (shared FE solutions)
@@ -52,13 +52,30 @@ def test_beta_rule_takes_the_gamma_nearest_its_target():
     res = invert(_noisy(sol, 2e-3), region=REGION, element_size=3.0, uncertainty=False)
     gam = [e["gamma"] for e in res.sweep]
     assert np.all(np.diff(gam) > 0), gam                 # fewer parameters determined at larger beta
-    target = min(900.0 / DOF_AREA, 0.5 * res.mesh.t.shape[1])     # a 30 x 30 mm region
+    target = _dof_target(900.0, res.mesh.t.shape[1], 3.0, 2)     # a 30 x 30 mm region of 3 mm elements
+    assert target < 900.0 / DOF_AREA          # coarser elements than the rule's reference size: fewer parameters
     chosen = next(e["gamma"] for e in res.sweep if e["beta"] == res.beta)
     assert all(abs(np.log(chosen / target)) <= abs(np.log(g / target)) + 1e-12 for g in gam)
     assert res.success and res.beta_rule.startswith("effective parameters")
     c = modulus_contrast(res, inclusion)["contrast"]
     # measured 3.18 (true 4) at beta 0.0316 on these 3 mm elements (2.5 per disk radius; 3.58 at beta 0.01)
     assert 2.9 < c < 4.4, c
+
+
+def test_beta_rule_on_a_fine_mesh_stays_inside_its_grid():
+    """0.75 mm elements (1600 over 30 x 30 mm, as the 12-15 MHz probes' registrations): the target per area alone
+    ("dof-area", the former default) goes up to the large edge of the extended grid (beta 0.316, flagged), the
+    default target, which grows as the elements shrink, stays inside it and recovers the contrast."""
+    sol = solution("plane-stress", 40.0)
+    f = _noisy(sol, 1e-3, h=0.75)
+    res = invert(f, region=REGION, element_size=0.75, uncertainty=False)
+    assert res.success and not res.flags, res.flags
+    assert 0.01 <= res.beta <= 0.0317, res.sweep                # measured 0.0316 (gamma 119, target 84)
+    c = modulus_contrast(res, inclusion)["contrast"]
+    assert 3.6 < c < 4.4, c                                       # measured 3.85 (true 4)
+    old = invert(f, region=REGION, element_size=0.75, uncertainty=False, beta_method="dof-area")
+    # measured: beta 0.316 (gamma 36 against the target 45), at the edge, flagged
+    assert old.beta > 0.3 and not old.success and any("large edge" in x for x in old.flags), old.sweep
 
 
 def test_beta_rule_on_its_grid_edges_is_flagged():
