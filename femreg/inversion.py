@@ -67,14 +67,25 @@ Choice of :math:`\beta` (``beta=None``), default ``beta_method="dof"``: solves r
 (largest first, each warm-started from the previous one); at each :math:`\beta` the number of parameters the data
 determine, :math:`\gamma = \mathrm{tr}(H_d H^{-1})` (:math:`H_d` the Gauss-Newton Hessian of the misfit, H that of
 J; MacKay, Neural Comput. 4 (1992) 415), is computed, and the chosen :math:`\beta` is the grid value whose
-:math:`\gamma` is nearest :math:`|\Omega|/` :data:`DOF_AREA` (one determined parameter per 20 mm^2, at most half
-the elements; on the default grid, when the largest :math:`\beta` already gives more, up to
-:data:`DOF_UP_STEPS` half decades above it are tried).  :math:`\gamma` grows as :math:`\beta` falls; fixing it per area fixes the resolution of the
-modulus image whatever the element size.  The rule does not read the noise: on the registered pairs of
-:mod:`benchmarks.inversion` the misfit of the true field against the registered one sits near the misfit at this
-:math:`\beta` (the discrepancy principle with the true noise level picks the same or the neighbouring grid value
-on 16 of 16 main cases), but exact or much noisier data than a registration's deserve another :math:`\beta`
-(pass ``beta=``).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
+:math:`\gamma` is nearest
+
+.. math::
+    \gamma^* = \frac{|\Omega|}{A}\,\Big(\frac{h_0}{h}\Big)^p
+
+with A = :data:`DOF_AREA` = 20 mm^2, :math:`h_0` = :data:`DOF_ELEMENT_SIZE` = 1.4 mm, p = :data:`DOF_EXPONENT` = 1
+and h the mean element size (at most half the elements; on the default grid, when the largest :math:`\beta` already
+gives more, up to :data:`DOF_UP_STEPS` half decades above it are tried).  :math:`\gamma` grows as :math:`\beta`
+falls.  The target is the geometric mean of one parameter per 20 mm^2 and one per ten elements (the two coincide at
+:math:`h = \sqrt 2` mm): a registration's element size follows the speckle size, so finer elements carry
+displacement data of finer resolution, but each node's error is correlated with its neighbours' over a length, so
+the information grows more slowly than the element count.  Measured on the fixed-beta sweeps of
+benchmarks/inversion.py (main and held-out sets, benchmarks/inversion_beta_sweep.py): area / :math:`\gamma` at the
+truth-best :math:`\beta` falls as :math:`h^{1.0-1.2}` (median 16-17 mm^2 on 1.4-1.5 mm elements, 7 mm^2 on
+0.68 mm ones).  The per-area target alone (``beta_method="dof-area"``, the former default) put the fine 12 / 15 MHz
+meshes at :math:`\beta` 0.3-1 (truth-best 0.03), flagged at the grid's top; one per ten elements went too small.
+The rule does not read the noise: exact or much noisier data than a registration's deserve another :math:`\beta`
+(pass ``beta=``); in 3D the target stays one parameter per :math:`(4.5\ \mathrm{mm})^3` (not re-measured against
+the element size).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
 is flagged.
 
 ``beta_method="growth"``: the last :math:`\beta` before the regulariser R starts to grow quickly as
@@ -100,6 +111,10 @@ Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio 
 :func:`strain_ratio`, against the 2D model's :math:`\bar\lambda/(\bar\lambda+2)` (:func:`model_ratio`); see
 :func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.96-0.97 (R_P_sigma, R_P_eps) and
 0.85 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths about 0.5.
+
+Uncertainty: the Laplace std of a registered displacement is multiplied by :data:`REGISTERED_SIGMA` x
+:data:`DOF_ELEMENT_SIZE` / h (:func:`_registered_sigma`; the registration's errors are correlated over about 2.4 mm,
+whatever its element size).
 
 Never silently wrong: ``success`` is False, with the reasons in ``flags`` and ``message``, when the optimiser
 fails, :math:`\beta` lands on the smallest value of its grid (or on the largest while the image is not flat:
@@ -927,7 +942,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         :data:`DEFAULT_ELEMENT_SIZE_3D`).
     beta : float >= 0, optional
         :math:`\beta`, weight of the regulariser; None = the rule of the module docstring (sweep of ``beta_grid``,
-        default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "growth" or "l-curve").
+        default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "dof-area" (the former
+        default: the target per area alone), "growth" or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
     weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z)
