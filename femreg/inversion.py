@@ -968,7 +968,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         ``one_step`` in the result records the image term before and after.
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
-        ``constrained``); costs one dense Hessian of size n_el.
+        ``constrained``; for a registered displacement times :func:`_registered_sigma`, :data:`REGISTERED_SIGMA` x
+        :data:`DOF_ELEMENT_SIZE` / h); costs one dense Hessian of size n_el.
 
     Returns
     -------
