@@ -1197,7 +1197,12 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     b, theta, info, phi, R = chosen
     q5, q95 = np.percentile(theta, [5, 95])
     flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
-    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat)):
+    # the dof rules at the largest beta tried: an edge only when even that beta leaves gamma above the target; with
+    # gamma below it there and above it at the next beta, the target lies inside the grid and the largest is nearer
+    g_b = next((e.get("gamma") for e in sweep if e["beta"] == b), None)
+    bracketed = (beta_method in ("dof", "dof-area") and g_b is not None and g_b <= target_dof
+                 and any(e.get("gamma", -1.0) >= target_dof for e in sweep))
+    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat and not bracketed)):
         flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
                      f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
         rule += " [at the grid's edge]"
