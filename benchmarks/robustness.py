@@ -17,14 +17,15 @@ pixel grid (every ``~0.1 mm`` axially): relative L2 errors as :func:`femreg.metr
 ``e`` total strain ``||e_m - e_t|| / ||e_t||`` with ``e:e = e_xx^2 + e_yy^2 + 2 e_xy^2``; ``exx``, ``eyy``; ``ux``,
 ``uy`` displacement -- and ``hop``: the fraction of ROI pixels where ``|u_x - u_x^t|`` exceeds a quarter of the
 acoustic wavelength ``c / f0`` (half the RF period in depth; a peak hop is one RF period).  Pixels a method leaves
-undefined (NaN) count as zero displacement / strain.  Wall time per method.
+undefined (NaN) count as zero displacement / strain.  Wall and CPU time (``time.process_time``) per method.
 
 Outputs (``--out``, default ``out/robustness/``): ``results.csv`` (one row per case x method), ``results.md``
 (the Markdown tables printed at the end) and ``<case>.png`` per case: the axial strain of every method side by side,
 truth first, one colour scale, the ROI outlined.
 
 Run: ``python benchmarks/robustness.py`` (full matrix, about 10 min on 2 shared cores) or ``--quick`` (6 cases);
-``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise.  The peers'
+``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise (a method's full
+name selects that method alone); ``--refine none|auto|N`` sets femreg's ``refine=`` for the pairs.  The peers'
 results are cached in ``<out>/peer_cache`` (keyed by the case and the source of the simulator and of the peers),
 so a rerun after a change to femreg recomputes femreg only (``--no-cache`` recomputes everything); the times
 printed for cached peers are those of the run that computed them.
@@ -126,12 +127,23 @@ def _has_strategy() -> bool:
 _GRID_KEYS = ("ux", "uy", "exx", "eyy", "exy")
 
 
+#: ``refine=`` given to femreg's pair registrations (``--refine``); ``_UNSET``: register's own default.
+_UNSET = object()
+REFINE = _UNSET
+
+
+def _refine_kw() -> dict:
+    return {} if REFINE is _UNSET else {"refine": REFINE}
+
+
 def _femreg_pair(ref, mov, spacing, origin, regularizer, paper):
     import femreg
 
     kw = dict(spacing=spacing, origin=origin, regularizer=regularizer)
     if paper:
         kw["strategy"] = "paper"
+    else:
+        kw.update(_refine_kw())
     res = femreg.register(ref, mov, **kw)
     g = res.on_grid()
     msg = "" if res.success else f"success=False: {res.message}"
@@ -168,9 +180,9 @@ def _accumulate(frames, spacing, origin, fn):
 
 
 def run_method(method, case, data):
-    """(grids, message, seconds) of ``method`` on ``data`` (a Pair or a SequencePair)."""
+    """(grids, message, seconds, CPU seconds) of ``method`` on ``data`` (a Pair or a SequencePair)."""
     paper = method == PAPER_METHOD
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     msg = ""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -186,7 +198,7 @@ def run_method(method, case, data):
                 g = _accumulate(data.frames, data.spacing, data.origin, fn)
             else:
                 g = fn(data.ref, data.mov, data.spacing, data.origin)
-    return g, msg, time.perf_counter() - t0
+    return g, msg, time.perf_counter() - t0, time.process_time() - c0
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -354,7 +366,7 @@ def run(cases, methods, out: Path, progress=True, cache: Path | None = None):
     strategy = _has_strategy()
     csv_path = out / "results.csv"
     fields = ["case", "probe", "field", "size_mm", "snr_db", "method", "e", "exx", "eyy", "ux", "uy", "hop",
-              "coverage", "time_s", "message"]
+              "coverage", "time_s", "cpu_s", "message"]
     with open(csv_path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
@@ -377,17 +389,17 @@ def run(cases, methods, out: Path, progress=True, cache: Path | None = None):
                     try:
                         cached = _cache_load(cache, case, data, method)
                         if cached is not None:
-                            g, msg, dt = cached
+                            (g, msg, dt), cpu = cached, float("nan")
                         else:
-                            g, msg, dt = run_method(method, case, data)
+                            g, msg, dt, cpu = run_method(method, case, data)
                             _cache_save(cache, case, data, method, g, msg, dt)
                         r = errors(g, t, sl, lam)
                     except Exception as exc:  # noqa: BLE001 -- a failing method is a result of the benchmark
-                        g, msg, dt = {k: np.full(shape, np.nan) for k in _GRID_KEYS}, \
-                            f"error: {type(exc).__name__}: {exc}"[:200], float("nan")
+                        g, msg, dt, cpu = {k: np.full(shape, np.nan) for k in _GRID_KEYS}, \
+                            f"error: {type(exc).__name__}: {exc}"[:200], float("nan"), float("nan")
                         r = dict(e=float("nan"), exx=float("nan"), eyy=float("nan"), ux=float("nan"),
                                  uy=float("nan"), hop=float("nan"), coverage=0.0)
-                    r.update(time_s=dt, message=msg)
+                    r.update(time_s=dt, cpu_s=cpu, message=msg)
                 grids[method], results[method] = g, r
                 row = dict(case=case.name, probe=case.probe, field=case.notes or getattr(data, "name", ""),
                            size_mm=f"{case.size_mm[0]}x{case.size_mm[1]}", snr_db=case.snr_db, method=method,
@@ -465,6 +477,11 @@ def tables(rows, cases, methods, strategy) -> str:
         lines.append(f"| {n} | " + " | ".join(
             f"{by[(n, m)]['time_s']:.2f}" if (n, m) in by and np.isfinite(by[(n, m)]["time_s"]) else ""
             for m in methods) + " |\n")
+    lines += ["\n## CPU time s (of this process; empty: cached peer)\n", head]
+    for n in names:
+        lines.append(f"| {n} | " + " | ".join(
+            f"{by[(n, m)]['cpu_s']:.2f}" if (n, m) in by and np.isfinite(by[(n, m)].get("cpu_s", np.nan)) else ""
+            for m in methods) + " |\n")
     notes = [f"- {r['case']} / {r['method']}: {r['message']}" for r in rows
              if r.get("message") and not r["message"].startswith("same run")]
     if notes:
@@ -480,7 +497,8 @@ def main(argv=None):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="the quick subset (6 cases)")
     ap.add_argument("--cases", default="", help="comma-separated words; run cases whose name contains one")
-    ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one")
+    ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one "
+                                                   "(a method's full name: that method only)")
     ap.add_argument("--out", default="out/robustness", help="output folder (default out/robustness)")
     ap.add_argument("--list", action="store_true", help="list the cases and methods and exit")
     ap.add_argument("--compare", metavar="OLD_CSV",
@@ -489,6 +507,9 @@ def main(argv=None):
     ap.add_argument("--no-run", action="store_true", help="with --compare: compare <out>/results.csv only")
     ap.add_argument("--seed", type=int, default=0,
                     help="added to every case's seed: other speckle and noise realisations of the same matrix")
+    ap.add_argument("--refine", default=None,
+                    help="refine= of femreg's pair registrations (not the paper's procedure): none, auto or a number "
+                         "of passes; default: register's own default")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--no-cache", action="store_true",
                     help="recompute the peers (by default their results are cached in <out>/peer_cache, keyed by "
@@ -496,6 +517,9 @@ def main(argv=None):
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
+    if a.refine is not None:
+        global REFINE
+        REFINE = None if a.refine in ("none", "0") else (a.refine if a.refine == "auto" else int(a.refine))
     cases = [c for c in CASES if c.quick] if a.quick else list(CASES)
     if a.cases:
         words = [w for w in a.cases.split(",") if w]
@@ -505,7 +529,7 @@ def main(argv=None):
     methods = list(ALL_METHODS)
     if a.methods:
         words = [w for w in a.methods.split(",") if w]
-        methods = [m for m in methods if any(w in m for w in words)]
+        methods = [m for m in methods if any(w == m or (w not in ALL_METHODS and w in m) for w in words)]
     if a.list:
         for c in CASES:
             print(f"{c.name:24s} probe {c.probe:5s} {c.size_mm[0]}x{c.size_mm[1]} mm SNR {c.snr_db} dB"

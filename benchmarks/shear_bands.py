@@ -13,11 +13,11 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
   (mm; true: 0, the band's faces are steps);
 * ``e``: total strain error of the robustness benchmark (relative L2 with ``e:e``, shear counted twice).
 
-Methods: femreg R_P_sigma with defaults, the same with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
+Methods: femreg R_P_sigma with defaults (adaptive refinement included, :mod:`femreg.refine`), the same without
+refinement ("R_P_sigma no refine", ``refine=None``) and with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
 (:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
-down so that layers may slide), "R_P_sigma refine" (``refine=Refinement()``, :mod:`femreg.refine`: two passes of
-refinement where the jumps of A[u] stand out), "R_P_sigma refine+slip"
+down so that layers may slide), "R_P_sigma refine+slip"
 (:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
 shear-traction jump stands out), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
@@ -62,9 +62,9 @@ CASES = [
     Case("band1_s0.15_d28_paper", _band(28.0, 1.0, 0.15), "paper", (35, 30), 20),
 ]
 
-FEMREG = ("R_P_sigma", "R_P_sigma alpha/10", "R_P_sigma slip", "R_P_sigma refine", "R_P_sigma refine+slip")
-#: ``refine=`` of the refined variants (:mod:`femreg.refine`)
-REFINE = {"R_P_sigma refine": "auto", "R_P_sigma refine+slip": "slip"}
+FEMREG = ("R_P_sigma", "R_P_sigma no refine", "R_P_sigma alpha/10", "R_P_sigma slip", "R_P_sigma refine+slip")
+#: ``refine=`` of the variants that set it (:mod:`femreg.refine`; the others: register's default)
+REFINE = {"R_P_sigma no refine": None, "R_P_sigma refine+slip": "slip"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -82,9 +82,9 @@ def run_method(method, data):
                 # the default alpha of this pair: what register chose without one
                 kw["alpha"] = 0.1 * femreg.register(data.ref, data.mov, **kw).alpha
             elif method in REFINE:
-                from femreg.refine import Refinement, SLIP_REFINEMENT
+                from femreg.refine import SLIP_REFINEMENT
 
-                kw["refine"] = SLIP_REFINEMENT if REFINE[method] == "slip" else Refinement()
+                kw["refine"] = SLIP_REFINEMENT if REFINE[method] == "slip" else REFINE[method]
             elif method.endswith("slip"):
                 from femreg.shear import slip_settings
 

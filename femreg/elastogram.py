@@ -48,7 +48,7 @@ from .mesh import roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
 
-__all__ = ["elastogram", "ElastogramResult", "screen_pairs", "DEFAULT_BAND", "PAIR_COLUMNS"]
+__all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "DEFAULT_BAND", "PAIR_COLUMNS"]
 
 #: Default band of axial strain magnitude (fraction) of the pairs registered.
 DEFAULT_BAND = (0.005, 0.02)
@@ -152,6 +152,36 @@ def _band(band):
     if not (0 < lo < hi < 0.2):
         raise InputError(f"band must satisfy 0 < lo < hi < 0.2 (fractions: 0.005 = 0.5 %), got {band!r}")
     return lo, hi
+
+
+def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
+    """Why no pair of a loop fell in the strain band, from the consecutive screening (``ElastogramResult.screen``),
+    and what to pass instead: the largest strain any pair at most ``max_span`` frames apart reaches (accumulated as
+    :func:`screen_pairs` does), or the smallest consecutive strain when every step overshoots; "" when the band
+    was reachable (the pairs in it then failed their NCC or registration)."""
+    lo, hi = _band(band)
+    e = np.asarray(screen.get("strain", ()), float)
+    if e.size == 0 or not np.all(np.isfinite(e)):
+        return ""
+    best, where = 0.0, (0, 1)
+    for i in range(e.size):
+        acc = np.cumprod(1.0 + e[i:i + int(max_span)]) - 1.0
+        k = int(np.argmax(np.abs(acc)))
+        if abs(acc[k]) > abs(best):
+            best, where = float(acc[k]), (i, i + k + 1)
+    if abs(best) < lo:
+        lo_new = max(0.05, np.floor(abs(best) * 0.8 * 2000) / 20)        # percent, 0.05 % steps, below the largest
+        return (f"the loop compresses less than the band: the largest axial strain between frames at most "
+                f"{int(max_span)} apart is {100 * best:+.2f} % (frames {where[0]} -> {where[1]}); lower the band, "
+                f"e.g. band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g})"
+                + (", or allow longer spans (max_span, --max-span)" if e.size > int(max_span) else ""))
+    small = float(np.min(np.abs(e)))
+    if small > hi:
+        hi_new = min(19.0, np.ceil(small * 1.25 * 200) / 2)                # percent, 0.5 % steps, above the smallest
+        return (f"every consecutive pair strains more than the band: the smallest axial strain is "
+                f"{100 * small:.2f} %; raise the band, e.g. band=({lo:g}, {hi_new / 100:g}) (CLI: --band "
+                f"{100 * lo:g} {hi_new:g}), or record at a higher frame rate")
+    return ""
 
 
 def _strain_factor(e, lo, hi):

@@ -611,6 +611,9 @@ def _mesh_and_data(displacement, region, element_size):
             if h is None:
                 ext = p[:, res.mesh.t].max(axis=1) - p[:, res.mesh.t].min(axis=1)
                 h = np.median(ext, axis=1)
+                base = getattr(getattr(res, "refinement", None), "base_size", None)
+                if base is not None:            # a refined registration: the size of the mesh it started from
+                    h = np.asarray(base, float)
             mesh = _tensor_mesh(x0, x1, y0, y1, h)
             v = res.displacement(mesh.p.T)
             if not np.all(np.isfinite(v)):
@@ -1509,11 +1512,15 @@ class InversionResult:
         return path
 
     def plot(self, out_png=None, **kw):
-        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`)."""
+        """The modulus image beside the measured axial strain (:func:`femreg.plot.plot_inversion`); a 3D result:
+        three orthogonal slices through ``at=`` of the modulus, its uncertainty and the axial strain
+        (:func:`femreg.volplot.plot_inversion_volume`)."""
+        if self.dim == 3:
+            from .volplot import plot_inversion_volume
+
+            return plot_inversion_volume(self, out_png, **kw)
         from .plot import plot_inversion
 
-        if self.dim == 3:
-            raise InputError("pictures of a 3D modulus volume are not available; write it with to_vtu (ParaView)")
         return plot_inversion(self, out_png, **kw)
 
     def __repr__(self) -> str:

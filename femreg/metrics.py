@@ -33,31 +33,49 @@ __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_qu
            "contour_radii"]
 
 
-def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
-    """Quadrature points (n, 2) mm and weights (n,) mm^2 over the mesh, plus a skfem vector basis."""
-    from skfem import Basis, ElementQuad1, ElementVector
+def _nodal_element(mesh):
+    from skfem import ElementHex1, ElementQuad1
 
-    basis = Basis(mesh, ElementVector(ElementQuad1()), intorder=intorder)
-    X = basis.mapping.F(basis.X)                      # (2, n_el, n_qp)
-    pts = np.column_stack([X[0].ravel(), X[1].ravel()])
+    return ElementHex1() if np.shape(mesh.p)[0] == 3 else ElementQuad1()
+
+
+def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
+    """Quadrature points (n, 2) mm and weights (n,) mm^2 over the mesh, plus a skfem vector basis (a hexahedral
+    mesh: (n, 3) mm and mm^3)."""
+    from skfem import Basis, ElementVector
+
+    basis = Basis(mesh, ElementVector(_nodal_element(mesh)), intorder=intorder)
+    X = basis.mapping.F(basis.X)                      # (dim, n_el, n_qp)
+    pts = np.column_stack([X[a].ravel() for a in range(X.shape[0])])
     w = basis.dx.ravel()
     return pts, w, basis
 
 
 def _fields_at_quadrature(nodal_u, mesh, basis, strain: str):
     """u (n, 2) and strain (n, 3) [exx, eyy, exy] of a nodal field at the basis' quadrature points, the strain as
-    ``strain`` ("recovered" or "element", :mod:`femreg.fields`)."""
+    ``strain`` ("recovered" or "element", :mod:`femreg.fields`); a hexahedral mesh: u (n, 3) and strain (n, 6)
+    in :data:`femreg.volume_fields.STRAIN_COMPONENTS_3D` order."""
+    from skfem import Basis
+
     nodal_u = np.asarray(nodal_u, float)
     f = basis.interpolate(nodal_u)
     v = np.asarray(f)
-    u = np.column_stack([v[0].ravel(), v[1].ravel()])
+    dim = v.shape[0]
+    u = np.column_stack([v[a].ravel() for a in range(dim)])
     if check_strain_mode(strain) == "element":
-        return u, strain_components(np.asarray(f.grad)).reshape(-1, 3)
-    from skfem import Basis, ElementQuad1
+        G = np.asarray(f.grad)
+        if dim == 2:
+            return u, strain_components(G).reshape(-1, 3)
+        pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))       # STRAIN_COMPONENTS_3D order
+        return u, np.column_stack([0.5 * (G[i, j] + G[j, i]).ravel() for i, j in pairs])
+    scalar = Basis(mesh, _nodal_element(mesh), quadrature=basis.quadrature)
+    if dim == 2:
+        ns = recovered_strains(mesh.p, mesh.t, nodal_u)
+    else:
+        from .volume_fields import recovered_strains_3d
 
-    scalar = Basis(mesh, ElementQuad1(), quadrature=basis.quadrature)
-    ns = recovered_strains(mesh.p, mesh.t, nodal_u)
-    return u, np.column_stack([np.asarray(scalar.interpolate(ns[:, k])).ravel() for k in range(3)])
+        ns = recovered_strains_3d(mesh, nodal_u)
+    return u, np.column_stack([np.asarray(scalar.interpolate(ns[:, k])).ravel() for k in range(ns.shape[1])])
 
 
 def field_errors(result, true_displacement, true_strain=None, *, mesh=None, intorder: int = GAUSS_3X3,
@@ -148,7 +166,8 @@ def _region(region, pts, shape, name):
 
 def contrast_metrics(result, roi, *, background=None, intorder: int = GAUSS_3X3, strain: str = "element") -> dict:
     """SR, CNR_e and SNR_e of a registration, integrated over the mesh; ``roi`` callable (n, 2) mm -> (n,) bool
-    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid.
+    (True inside the inclusion ROI), or a boolean (n_axial, n_lateral) mask on the reference pixel grid (a
+    volume's result: (n, 3) points, or an (n_x, n_y, n_z) voxel mask; volumes instead of areas).
 
     ``background`` (same kinds, optional): the region A the inclusion is compared with, less the ROI; default
     everything outside the ROI.  SNR_e = ``|eps_A| / eta_A``, the elastographic SNR of the background (T. Varghese,

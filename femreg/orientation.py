@@ -33,7 +33,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "diagnose", "check", "FREQUENCY_MHZ",
+__all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "diagnose", "check", "exchanged_shape",
+           "check_raw_shape", "FREQUENCY_MHZ",
            "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S"]
 
 SOUND_SPEED_M_S = 1540.0
@@ -191,6 +192,15 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                 f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {swapped.replace(',', '')})")
     else:
         hint = "check the spacing's units (mm) and order (axial, lateral)"
+        # a uniform change of units leaves the speckle-to-period ratio alone and scales the frequency by 1 / k
+        for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
+            if rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi \
+                    and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS:
+                mm = tuple(v * k for v in (dx, dy) + ((float(elevational),) if volume else ()))
+                text = ", ".join(f"{v:.6g}" for v in mm)
+                hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; "
+                        f"{rep.frequency_mhz / k:.2f} MHz; CLI: --spacing {text.replace(',', '')})")
+                break
     rep.message = f"{why}; {hint}, or {OVERRIDE}"
     return rep
 
@@ -222,3 +232,30 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     if rep.problem:
         raise OrientationError(rep.message)
     return rep
+
+
+def exchanged_shape(frame) -> str:
+    """Advice when a raw (headerless) frame was read with its two sizes exchanged, else "".
+
+    Read with its sizes exchanged a raw frame is scrambled, not transposed: no carrier on either axis, so
+    :func:`diagnose` takes it for envelope data.  When the same samples in file order, read the other way round,
+    carry one along axis 0, the ``--shape`` (``shape=``) given was the wrong way round."""
+    n0, n1 = np.shape(frame)
+    if carrier_ratio(np.asarray(frame)[:, ::max(1, n1 // 64)]) < CARRIER_RATIO:
+        return ""                                   # a carrier as read: not scrambled
+    alt = np.asarray(frame).reshape(n1, n0)        # the same samples in file order, the sizes exchanged
+    if not carrier_ratio(alt[:, ::max(1, n0 // 64)]) < CARRIER_RATIO:
+        return ""
+    return (f"no RF carrier when read as {n0} x {n1}, but one along axis 0 when read as {n1} x {n0}: the "
+            f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)")
+
+
+def check_raw_shape(frames) -> None:
+    """Refuse :class:`femreg.io.Frames` read from a raw file (or a folder of them) with their two sizes exchanged
+    (:func:`exchanged_shape`): :class:`OrientationError` naming the shape to pass.  Other formats carry their
+    shape in the file and pass."""
+    if "raw" not in str(dict(frames.metadata).get("format", "")):
+        return
+    msg = exchanged_shape(frames.frames[0])
+    if msg:
+        raise OrientationError(f"{msg}; or check_orientation=False (CLI: --no-orientation-check)")

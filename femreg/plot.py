@@ -265,12 +265,12 @@ def _wrap(text, width=110, max_lines=3):
     return "\n".join(lines[:max_lines]) + (" ..." if len(lines) > max_lines else "")
 
 
-def draw_failure(fig, text):
-    """Red banner (the figure's title) with ``text`` and a red frame around the figure: a failed result must not
-    pass for a good one when the PNG travels without its log."""
+def draw_failure(fig, text, width=110):
+    """Red banner (the figure's title) with ``text`` (lines of at most ``width`` characters) and a red frame
+    around the figure: a failed result must not pass for a good one when the PNG travels without its log."""
     from matplotlib.patches import Rectangle
 
-    fig.suptitle(_wrap(text), color="white", fontweight="bold", fontsize="medium",
+    fig.suptitle(_wrap(text, width), color="white", fontweight="bold", fontsize="medium",
                  bbox=dict(boxstyle="square,pad=0.4", facecolor=FAILED_COLOUR, edgecolor="none"))
     fig.patches.append(Rectangle((0.0, 0.0), 1.0, 1.0, transform=fig.transFigure, fill=False,
                                  edgecolor=FAILED_COLOUR, linewidth=6, zorder=100))
@@ -546,18 +546,28 @@ def _nodal_on_grid(mesh, nodal, step_mm):
     return out.reshape((vals.shape[1],) + X.shape), (step_mm, step_mm), (x[0], y[0])
 
 
-def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None):
+def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, at=None):
     """The relative shear-modulus image of :func:`femreg.invert`, its uncertainty when the result has one
     (``uncertainty``: per-element standard deviation of log mu), and the recovered axial strain (%) of the
     displacement it was computed from (:func:`femreg.fields.recovered_strains`, as in every femreg strain
     picture), on the inversion mesh.  ``result``: an :class:`femreg.inversion.InversionResult` (a file: read it
     with :func:`femreg.load_inversion`; ``InversionResult.plot`` is this function).  A result that did not
-    converge gets the red failure banner.  Writes ``out_png`` if given; returns the figure."""
+    converge gets the red failure banner.  Writes ``out_png`` if given; returns the figure.
+
+    A 3D result (hexahedra) is drawn as three orthogonal slices through ``at`` (a point (x, y, z) mm, or
+    "centre" (default), "stiffest", "softest"): :func:`femreg.volplot.plot_inversion_volume`; ``figsize`` does
+    not apply there, and ``at`` does not apply to a 2D result."""
     from .fields import recovered_strains
 
     if not all(hasattr(result, k) for k in ("mesh", "mu", "strain_measured", "model", "beta")):
         raise InputError(f"plot_inversion needs an InversionResult (femreg.load_inversion reads a file), got "
                          f"{type(result).__name__}")
+    if np.shape(result.mesh.p)[0] == 3:       # the result's own plot draws it with femreg.volplot (which
+        if not callable(getattr(result, "plot", None)):   # builds on this module: no import of it from here)
+            raise InputError("a 3D result is drawn by femreg.volplot.plot_inversion_volume")
+        return result.plot(out_png, at=at, dpi=dpi, title=title)
+    if at is not None:
+        raise InputError("a slice position (at) applies to a 3D inversion only; this result is 2D")
     res = result
     plt = _mpl()
     p, t = res.mesh.p, res.mesh.t

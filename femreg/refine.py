@@ -36,24 +36,35 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
-Measured (README, "Adaptive refinement"): on the robustness benchmark ``refine="auto"`` made no case worse and
-the inclusions up to 2 points better at 1.55x the time per pair (median; 2.3x at most), so it is not the default.
+A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
+smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
+
+Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`), a
+second pass runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and the element budget
+is counted once per pass (:func:`_within_budget`).
+
+Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time): on the robustness benchmark
+``refine="auto"`` against off made no case worse (seeds 0 and 7), the inclusions 0.6-2.3 points better
+(9.4-13.6 % -> 8.4-12.2 %), bending 5.8 -> 4.3 %, at 1.16-1.26x the CPU time per pair (median; 1.76x at most),
+so it is the default of ``strategy="auto"`` R_P_sigma registrations on the default mesh
+(:func:`default_refine`).  With two full solves per pass it took 1.33x (median) and 2.08x on the 3 MHz inclusion.
 Without the slip region a shear band stays as wide as with the defaults (the total variation of its two faces
 does not depend on the mesh); with :data:`SLIP_REFINEMENT` its peak e_xy reaches 0.63-1.0 of the truth.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 from skfem import MeshQuad1
 
 from .errors import InputError
-from .fields import element_strains, recovered_strains
+from .fields import element_strain_operator, element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
            "RefinementRecord"]
 
@@ -92,6 +103,13 @@ class Refinement:
         edge whose shear-traction jump stands out (the region grows over the passes): layers sliding past each
         other then pay less for the two shear-traction jumps at a band's faces (:mod:`femreg.shear`).  None: 1
         everywhere.
+    maxiter : int, optional
+        Gauss-Newton iterations of each refined solve.  The solve starts from the previous pass's solution,
+        which the finer mesh holds exactly, so one step (the default) settles the split rows and columns; None:
+        the registration's own stopping rules (the slip region changes the problem itself and needs them).
+    min_added : float
+        A pass after the first runs only when it adds at least this fraction of the mesh's elements (a pass
+        costs a solve on the whole mesh, whatever it splits).
     """
 
     passes: int = 2
@@ -103,8 +121,15 @@ class Refinement:
     slip: float | None = None
     levels: int = 1
     max_growth: float | None = 2.0
+    maxiter: int | None = 1
+    min_added: float = 0.2
 
     def __post_init__(self):
+        if self.maxiter is not None and not (isinstance(self.maxiter, (int, np.integer))
+                                             and not isinstance(self.maxiter, bool) and self.maxiter >= 1):
+            raise InputError(f"refinement maxiter must be None or an integer >= 1, got {self.maxiter!r}")
+        if not (np.isfinite(self.min_added) and 0 <= self.min_added < 1):
+            raise InputError(f"refinement min_added must be a fraction in [0, 1), got {self.min_added!r}")
         if self.max_growth is not None and not (np.isfinite(self.max_growth) and self.max_growth >= 1):
             raise InputError(f"refinement max_growth must be None or a number >= 1, got {self.max_growth!r}")
         if not (isinstance(self.levels, (int, np.integer)) and not isinstance(self.levels, bool)
@@ -131,7 +156,35 @@ class Refinement:
 
 #: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.03
 #: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
-SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03)
+SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0)
+
+
+#: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
+DEFAULT = "default"
+
+
+#: Regularisers whose registrations refine by default (:func:`default_refine`): R_P_sigma, whose ``lambda_bar``
+#: the "jump" indicator uses.  Robustness benchmark (seed 0) with ``refine="auto"`` against off: R_eps and R_P_eps
+#: at most 0.09 / 0.25 points worse (inclusions 1-2.5 points better), R_eps_i up to 3.8 points worse (3 MHz
+#: plane-stress inclusion) and 2.3-2.7 on 0.2-1 % compression and bending.
+DEFAULT_REGULARIZERS = ("momentum-stress",)
+
+
+def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, element_size=None, offset=None,
+                   geometry=None, alpha=None, allow_mesh_outside=False):
+    """``refine=`` of :func:`femreg.register` with its default (:data:`DEFAULT`) resolved: ``"auto"`` for a
+    ``strategy="auto"`` R_P_sigma registration (:data:`DEFAULT_REGULARIZERS`) of a pair of frames on the default
+    ROI mesh, None (off) where refinement was not measured as a default -- ``strategy="paper"``, the other
+    regularisers (and a Regularizer instance), a user's mesh or element size (also every increment of
+    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, a convex / sector
+    geometry, the candidates of ``alpha="auto"``; volumes never reach it.  Any other ``spec`` is returned as
+    given."""
+    if not (isinstance(spec, str) and spec == DEFAULT):
+        return spec
+    plain = (strategy == "auto" and isinstance(regularizer, str) and regularizer in DEFAULT_REGULARIZERS
+             and mesh is None and element_size is None and offset is None and geometry is None
+             and not isinstance(alpha, str) and not allow_mesh_outside)
+    return "auto" if plain else None
 
 
 def as_refinement(spec) -> Refinement | None:
@@ -142,6 +195,8 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, Refinement):
         return spec if spec.passes > 0 else None
     if isinstance(spec, str):
+        if spec == DEFAULT:
+            raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
         return Refinement()
@@ -152,9 +207,12 @@ def as_refinement(spec) -> Refinement | None:
 
 @dataclass
 class RefinementRecord:
-    """What each pass did: elements before, rows and columns split, indicator threshold, seconds."""
+    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
+    ``base_size``, the median element size (axial, lateral) mm of the mesh refinement started from (what a
+    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller)."""
 
     passes: list
+    base_size: tuple | None = None
 
     def summary(self) -> str:
         if not self.passes:
@@ -178,19 +236,28 @@ def _momentum(e):
     return lb * div + 2 * e[:, 0], lb * div + 2 * e[:, 1], 2 * e[:, 2]
 
 
-def strain_scale(mesh, u) -> float:
-    """RMS over the elements of ``|A[u]|`` (Frobenius, element centres): the scale of the field's strain."""
-    Axx, Ayy, Axy = _momentum(element_strains(mesh.p, mesh.t, u))
+def _centre_strains(mesh, u):
+    """Element-centre strains (n_el, 3) of a tensor mesh from its centre-gradient operator (no quadrature basis
+    over the whole mesh: :func:`femreg.fields.element_strain_operator`)."""
+    n_el = mesh.t.shape[1]
+    return (element_strain_operator(mesh) @ np.asarray(u, float)).reshape(3, n_el).T
+
+
+def strain_scale(mesh, u, e=None) -> float:
+    """RMS over the elements of ``|A[u]|`` (Frobenius, element centres): the scale of the field's strain.
+    ``e``: the element-centre strains (n_el, 3) when the caller has them."""
+    Axx, Ayy, Axy = _momentum(element_strains(mesh.p, mesh.t, u) if e is None else e)
     return float(np.sqrt(np.mean(Axx ** 2 + Ayy ** 2 + 2 * Axy ** 2)))
 
 
-def edge_jumps(mesh, u, tangential: bool = False):
+def edge_jumps(mesh, u, tangential: bool = False, e=None):
     """``|[[A]] n|`` across the interior edges of a tensor mesh from the element-centre strains:
     ``(ja, jl)`` with ``ja`` (n_rows - 1, n_cols) across axial edges (between rows i and i + 1) and ``jl``
     (n_rows, n_cols - 1) across lateral edges; dimensionless (strain units).  ``tangential``: also the
-    tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``."""
+    tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``.  ``e``: the element-centre
+    strains (n_el, 3) when the caller has them."""
     _, _, cell = _need_tensor(mesh)
-    e = element_strains(mesh.p, mesh.t, u)
+    e = element_strains(mesh.p, mesh.t, u) if e is None else e
     Axx, Ayy, Axy = (a[cell] for a in _momentum(e))
     ta, tl = np.diff(Axy, axis=0), np.diff(Axy, axis=1)
     ja = np.hypot(np.diff(Axx, axis=0), ta)                          # n = (1, 0): (A_xx, A_xy)
@@ -253,9 +320,10 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
     _, _, cell = _need_tensor(mesh)
     slip = np.zeros(cell.shape, bool)
     if opts.indicator == "jump":
-        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True)
+        e = _centre_strains(mesh, u)
+        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
         cut = max(robust_cut(np.concatenate([ja.ravel(), jl.ravel()]), opts.threshold),
-                  opts.relative * strain_scale(mesh, u))
+                  opts.relative * strain_scale(mesh, u, e=e))
         # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
         sa, sl = ta > cut, tl > cut
         slip[:-1] |= sa
@@ -286,16 +354,26 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
 
 
 def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
-    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements."""
+    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements.
+
+    The splits of a marked row (column) stay inside it (:func:`_refined_breaks` halves only the intervals whose
+    middle lies in a marked one), so each row and column adds a fixed number of rows / columns: counted once with
+    all of them marked, then the greedy choice is arithmetic."""
     rs, cs = score
+    xs, ys, _ = _need_tensor(mesh)
+    nx, ny, _, _ = _refined_breaks(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+    # new breaks strictly inside each old row / column (breaks are pixel edges: compare with half a pixel margin)
+    add_r = np.diff(np.searchsorted(nx, xs - 0.5 * spacing[0])) - 1
+    add_c = np.diff(np.searchsorted(ny, ys - 0.5 * spacing[1])) - 1
     cand = sorted([(rs[i], 0, i) for i in np.flatnonzero(rows)] + [(cs[j], 1, j) for j in np.flatnonzero(cols)],
                   reverse=True)
     r2, c2 = np.zeros_like(rows), np.zeros_like(cols)
+    n_r, n_c = xs.size - 1, ys.size - 1
     for _, ax, k in cand:
-        (r2 if ax == 0 else c2)[k] = True
-        nx, ny, _, _ = _refined_breaks(mesh, r2, c2, spacing, origin, opts.min_size, opts.levels)
-        if (nx.size - 1) * (ny.size - 1) > budget:
-            (r2 if ax == 0 else c2)[k] = False
+        a_r, a_c = (add_r[k], 0) if ax == 0 else (0, add_c[k])
+        if (n_r + a_r) * (n_c + a_c) <= budget:
+            (r2 if ax == 0 else c2)[k] = True
+            n_r, n_c = n_r + a_r, n_c + a_c
     return r2, c2
 
 
@@ -397,9 +475,12 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     from .repair import element_ncc
 
     record = []
+    xs, ys, _ = _need_tensor(sol.mesh)
+    base_size = (float(np.median(np.diff(xs))), float(np.median(np.diff(ys))))
     rects = np.zeros((0, 4))
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
-    for _ in range(opts.passes):
+    base_gn, nit = sol.gn, int(sol.gn.nit)
+    for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
@@ -409,14 +490,22 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
-        if new is mesh:
+        if new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1]):
             break
         st = slip_weights(rects, opts.slip) if (opts.slip is not None and len(rects)) else None
         sol = solve_on(new, transfer(sol.u, mesh, new), st)
+        nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            seconds=time.perf_counter() - t))
-    return sol, RefinementRecord(record)
+    if record and opts.maxiter is not None and sol.gn.status == 1:
+        # the step count of a refined solve is the option, not a failure to converge: the solve's verdict is
+        # that of the unrefined one, and its iterations count all passes
+        sol.gn = dataclasses.replace(sol.gn, status=base_gn.status, success=base_gn.success,
+                                     message=base_gn.message, nit=nit)
+    elif record:
+        sol.gn = dataclasses.replace(sol.gn, nit=nit)
+    return sol, RefinementRecord(record, base_size)
 
 
 def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):
@@ -426,14 +515,14 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     ``solve_kw``, the regulariser's alpha keeping the unrefined mesh's weight (:func:`femreg.scaling.refined_alpha`)
     and, with ``slip``, the per-edge shear-traction weights.  Appends its summary to ``notes`` and its time to
     ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
-    ``(sol, u0, hops)`` on the final mesh."""
+    ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``."""
     import time
 
     from .gnsolve import solve
     from .scaling import refined_alpha
 
     opts = as_refinement(refine)
-    if opts is None or np.any(hops):
+    if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
         return sol, u0, hops
     t = time.perf_counter()
     base = sol.mesh
@@ -446,7 +535,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             return r
-        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **solve_kw)
+        kw = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=min(opts.maxiter, solve_kw["maxiter"]))
+        return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
     if sol.mesh is not base:

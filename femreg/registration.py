@@ -30,7 +30,7 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import as_refinement, refine_stage, with_refinement
+from .refine import DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, refine_stage, with_refinement
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -134,7 +134,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True, geometry=None, refine=None) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None, refine=DEFAULT_REFINE) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -184,7 +184,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     normalize : bool
         Divide both images by the reference RMS (default; makes alpha scale-free).
     callback : callable(u, info), optional
-        Called after each Gauss-Newton iteration of the final solve.
+        Called after each Gauss-Newton iteration of the final solve and of each refinement pass (``u`` then on
+        the refined mesh, ``info["nit"]`` counted per solve).
     coarse_to_fine : "auto" | bool
         ``strategy="paper"`` only: register first on a 3x coarser mesh from the block-matching start when its
         global strain exceeds :data:`femreg.paperguess.COARSE_TO_FINE_STRAIN` (3D SI frames 1 -> 10: total strain
@@ -221,11 +222,16 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
         :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
-    refine : None | int | "auto" | femreg.refine.Refinement
+    refine : "default" | None | int | "auto" | femreg.refine.Refinement
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
-        again from the solution, ``N`` passes ("auto": 2); the weight of eq:objf stays the unrefined mesh's.
-        None (default): off.  The result's mesh, ``u`` and ``quality`` are those of the final mesh.
+        again from the solution, ``N`` passes ("auto": up to 2, one Gauss-Newton step each); the weight of
+        eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
+        regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
+        or ``element_size`` (so every increment of
+        :func:`femreg.track`), an offset, a convex / sector geometry and ``alpha="auto"``
+        (:func:`femreg.refine.default_refine`); volumes never refine.  None or 0: off.  The result's mesh, ``u``
+        and ``quality`` are those of the final mesh.
 
     Returns
     -------
@@ -237,6 +243,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         better one RF period off (:func:`femreg.repair.hop_gain`; every strategy); ``quality`` holds the
         per-element NCC, ``hop_gain`` the peak-hopping map.
     """
+    refine = default_refine(refine, strategy=strategy, regularizer=regularizer, mesh=mesh, element_size=element_size,
+                            offset=offset, geometry=geometry, alpha=alpha, allow_mesh_outside=allow_mesh_outside)
     routed = _route(reference_image, moving_image, dict(locals()))
     if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
         return routed
@@ -302,10 +310,22 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
             fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
-    sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings)  # femreg.refine
-    check = check_result(sol, u0, hops, ref.shape, spacing,
-                         check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
-                         None if start.pyramid is None else start.pyramid.global_ncc)
+    unrefined = (sol, u0, hops, list(notes))
+    sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
+                                 notes, timings)                                          # femreg.refine
+
+    def checked(s, start_u, h):
+        return check_result(s, start_u, h, ref.shape, spacing,
+                            check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
+                            None if start.pyramid is None else start.pyramid.global_ncc)
+    check = checked(sol, u0, hops)
+    if not check.success and sol is not unrefined[0]:
+        # the refined result is judged on smaller elements (the peak-hopping and matching fractions count
+        # elements); a refinement that fails the check is dropped for the unrefined result and its own verdict
+        sol, u0, hops, notes = unrefined
+        why = "; ".join(n for n in check.notes if not n.startswith("the pair is strongly decorrelated"))
+        check = checked(sol, u0, hops)
+        notes.append(f"refinement dropped (the refined result failed its check: {why})")
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     # -- result ----------------------------------------------------------------------------------------------

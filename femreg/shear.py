@@ -104,5 +104,8 @@ def slip_settings(result, *, axial_mm: float = SLIP_AXIAL_MM, shear_traction: fl
     if not (np.isfinite(a) and a > 0):
         raise InputError(f"axial_mm must be a positive length (mm), got {axial_mm!r}")
     hx, hy = (float(np.median(h)) for h in _element_sizes(mesh))
+    base = getattr(getattr(result, "refinement", None), "base_size", None)
+    if base is not None:
+        hx, hy = base                  # refined: the mesh it started from sets the size and the weight
     return {"element_size": (a, hy), "alpha": float(result.alpha) * a / hx,
             "regularizer_options": {"shear_traction": float(shear_traction)}}

@@ -11,10 +11,16 @@ The three slices (:func:`plot_volume_slices`): axial-lateral at elevation ``z`` 
 axial-elevational at lateral ``y`` (depth down in both), lateral-elevational at depth ``x`` (a C-plane); dashed
 lines in each mark where the other two cut it.  One colour bar per row, sharing its limits across the row
 (:func:`femreg.plot.colour_scale` conventions: diverging about 0 only for data that changes sign).
+
+A 3D modulus inversion (:func:`femreg.invert` on a volume's result) is drawn the same way by
+:func:`plot_inversion_volume` (``InversionResult.plot``, ``femreg plot MU.npz --slice``): the relative modulus
+and its uncertainty one value per element, and the recovered axial strain, through a point, the centre or the
+stiffest / softest region.
 """
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +28,8 @@ import numpy as np
 from .errors import InputError
 from .plot import DIVERGING_CMAP, _colorbar, _fit_colorbars, _mpl, colour_scale
 
-__all__ = ["plot_volume_slices", "render_volume", "volume_bmode", "FIELD_LABELS", "STRAIN_KEYS"]
+__all__ = ["plot_volume_slices", "plot_inversion_volume", "render_volume", "volume_bmode", "FIELD_LABELS",
+           "STRAIN_KEYS", "SLICE_CHOICES"]
 
 STRAIN_KEYS = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 #: Colour-bar label (quantity and unit) of every field key drawn.
@@ -156,30 +163,68 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
     for k in keys:
         v, cmap, lo, hi, norm, label = _style(k, arrs[k])
         rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm), label))
-    # slice position: centre of the first row's grid unless given
-    shape0, sp0, org0 = rows[0][1].shape, rows[0][2], rows[0][3]
+    rows = [dict(name=name, vol=vol, spacing=s, origin=o, label=label, **style)
+            for name, vol, s, o, style, label in rows]
+    fig, axes_rows = _slice_figure(rows, at, panel_inches)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    _fit_colorbars(fig, axes_rows)
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig
+
+
+def _log_ticks(lo, hi, n=6):
+    """Round values in [lo, hi] for a log colour bar, at least about 1/n of the range apart on the log scale
+    (their labels cannot overlap): 1 when in range, then mantissas 2 and 5, 3 and 4, 1.5, 2.5 and 8, others."""
+    lo, hi = float(lo), float(hi)
+    rank = {1: 0, 2: 1, 5: 1, 3: 2, 4: 2, 1.5: 3, 2.5: 3, 8: 3, 6: 4, 1.25: 4}
+    cands = [(r, abs(k), m * 10.0 ** k) for k in range(int(np.floor(np.log10(lo))) - 1,
+                                                        int(np.ceil(np.log10(hi))) + 1) for m, r in rank.items()]
+    cands = sorted(c for c in cands if lo * (1 - 1e-9) <= c[2] <= hi * (1 + 1e-9))
+    gap = 0.95 * np.log10(hi / lo) / n
+    ticks = []
+    for _, _, v in cands:
+        if all(abs(np.log10(v / t)) >= gap for t in ticks):
+            ticks.append(v)
+    return sorted(ticks)
+
+
+def _slice_figure(rows, at, panel_inches):
+    """The three orthogonal slices of every row through ``at`` (x, y, z) mm (None: the centre of the first
+    row's grid); returns ``(figure, [[3 Axes] per row])``.
+
+    ``rows``: dicts with ``name`` (panel titles), ``vol`` (nx, ny, nz), ``spacing``, ``origin`` (voxel centres),
+    ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or None), ``label`` (colour bar: quantity and unit; a
+    label of the form "name symbol (unit)" is broken before the symbol), and optionally ``bad`` (colour of NaN
+    voxels, default transparent: the background shows through), ``line`` (colour of the dashed lines where the
+    other slices cut), ``note`` (a second title line over the first panel of the row) and ``interpolation``
+    (imshow's, default "nearest": every voxel drawn as its own value)."""
+    shape0, sp0, org0 = rows[0]["vol"].shape, rows[0]["spacing"], rows[0]["origin"]
     if at is None:
         at = tuple(o + 0.5 * (n - 1) * d for o, n, d in zip(org0, shape0, sp0))
     at = _vec3(at, "at")
     plt = _mpl()
     L = [n * d for n, d in zip(shape0, sp0)]
     widths = [L[1], L[2], L[1]]
+    n_notes = sum(1 for r in rows if r.get("note"))
     fig = plt.figure(figsize=(panel_inches * sum(widths) / max(L[1], 1e-9) + 1.6,
-                              panel_inches * len(rows) * max(L[0], L[2]) / max(L[1], 1e-9) + 0.8),
-                     constrained_layout=True)
+                              panel_inches * len(rows) * max(L[0], L[2]) / max(L[1], 1e-9) + 0.8
+                              + 0.15 * n_notes), constrained_layout=True)
     gs = fig.add_gridspec(len(rows), 3, width_ratios=widths)
     axes_rows = []
-    for r, (name, vol, s, o, style, label) in enumerate(rows):
+    for r, row in enumerate(rows):
+        name, vol, s, o, label = row["name"], row["vol"], row["spacing"], row["origin"], row["label"]
         i = _index(at[0], o[0], s[0], vol.shape[0], "x")
         j = _index(at[1], o[1], s[1], vol.shape[1], "y")
         k = _index(at[2], o[2], s[2], vol.shape[2], "z")
         edge = [(o[a] - 0.5 * s[a], o[a] + (vol.shape[a] - 0.5) * s[a]) for a in range(3)]
-        cmap = plt.get_cmap(style["cmap"]).with_extremes(bad=(0, 0, 0, 0))   # NaN: the background shows through
-        kw = dict(cmap=cmap, interpolation="nearest", aspect="equal")
-        if style["norm"] is not None:
-            kw["norm"] = style["norm"]
+        cmap = plt.get_cmap(row["cmap"]).with_extremes(bad=row.get("bad", (0, 0, 0, 0)))
+        kw = dict(cmap=cmap, interpolation=row.get("interpolation", "nearest"), aspect="equal")
+        if row["norm"] is not None:
+            kw["norm"] = row["norm"]
         else:
-            kw.update(vmin=style["vmin"], vmax=style["vmax"])
+            kw.update(vmin=row["vmin"], vmax=row["vmax"])
         panels = [
             (vol[:, :, k], [edge[1][0], edge[1][1], edge[0][1], edge[0][0]], "lateral y (mm)", "axial x (mm)",
              f"z = {o[2] + k * s[2]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[0] + i * s[0])]),
@@ -188,33 +233,211 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
             (vol[i, :, :].T, [edge[1][0], edge[1][1], edge[2][0], edge[2][1]], "lateral y (mm)",
              "elevational z (mm)", f"x = {o[0] + i * s[0]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[2] + k * s[2])]),
         ]
+        line = row.get("line", "w" if name == "B-mode" else "k")
         row_axes = []
         for c, (img, ext, xl, yl, where, lines) in enumerate(panels):
             ax = fig.add_subplot(gs[r, c])
             im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if c < 2 else "lower", **kw)
             for kind, pos in lines:
-                (ax.axvline if kind == "v" else ax.axhline)(pos, color="w" if name == "B-mode" else "k",
-                                                            lw=0.6, ls="--", alpha=0.6)
+                (ax.axvline if kind == "v" else ax.axhline)(pos, color=line, lw=0.6, ls="--", alpha=0.6)
             ax.set_xlabel(xl, fontsize=8)
             ax.set_ylabel(yl, fontsize=8)
             ax.tick_params(labelsize=7)
-            ax.set_title(f"{name}, {where}", fontsize=8)
+            note = ""
+            if c == 0 and row.get("note"):          # wrapped to the panel's width (about 5 pt a character)
+                note = "\n" + textwrap.fill(row["note"], max(20, int(panel_inches * widths[0] / max(L[1], 1e-9)
+                                                                      * 72 / 5.0)))
+            ax.set_title(f"{name}, {where}{note}", fontsize=8)
             row_axes.append(ax)
-        parts = label.rsplit(" ", 2)
-        if len(parts) == 3 and "_" in parts[1]:         # two lines: the name, then symbol and unit
-            label = parts[0] + "\n" + " ".join(parts[1:])
+        if "\n" not in label:
+            parts = label.rsplit(" ", 2)
+            if len(parts) == 3 and "_" in parts[1]:         # two lines: the name, then symbol and unit
+                label = parts[0] + "\n" + " ".join(parts[1:])
         cb = _colorbar(row_axes[-1], im, label)
         cb.ax.tick_params(labelsize=7)
         cb.set_label(label, fontsize=8)
-        if style["norm"] is not None:                 # log scale: plain numbers, not 4 x 10^0
-            from matplotlib.ticker import FuncFormatter
+        if row["norm"] is not None and type(row["norm"]).__name__ == "LogNorm":   # plain numbers, not 4 x 10^0
+            from matplotlib.ticker import FuncFormatter, NullLocator
 
             plain = FuncFormatter(lambda val, _: f"{val:g}")
+            cb.set_ticks(_log_ticks(row["norm"].vmin, row["norm"].vmax))
+            cb.ax.yaxis.set_minor_locator(NullLocator())
             cb.ax.yaxis.set_major_formatter(plain)
-            cb.ax.yaxis.set_minor_formatter(plain)
         axes_rows.append(row_axes)
-    if title:
-        fig.suptitle(title, fontsize=10)
+    return fig, axes_rows
+
+
+#: Words that ``at`` of :func:`plot_inversion_volume` takes besides a point.
+SLICE_CHOICES = ("centre", "stiffest", "softest")
+#: The modulus colour scale of :func:`plot_inversion_volume` spans at least 1 / this to this (median 1).
+MIN_MODULUS_SPAN = 1.25
+#: Most samples of the picture grid of a 3D inversion (per-element values sampled exactly, a few per element).
+_MAX_SAMPLES = 1_500_000
+
+
+def _element_grid(mesh, per_element):
+    """Sampling grid of a tensor hexahedral mesh: ``(locator, points (n, 3), shape, spacing, origin)`` with
+    ``per_element`` samples across the thinnest element of each axis (fewer when the grid would exceed
+    :data:`_MAX_SAMPLES`); on a uniform axis every sample lies inside one element, so element values are drawn
+    with their exact element boundaries."""
+    from .volume_fields import HexLocator
+
+    try:
+        loc = HexLocator(mesh)
+    except InputError:
+        raise InputError("pictures of a 3D inversion need an axis-aligned tensor hexahedral mesh (femreg's "
+                         "registration and inversion meshes are); write others with to_vtu (ParaView)") from None
+    L = np.array([ax[-1] - ax[0] for ax in loc.axes])
+    h = np.array([np.diff(ax).min() for ax in loc.axes])
+    k = max(1, int(per_element))
+    while True:
+        n = np.maximum(1, np.round(L / (h / k))).astype(int)
+        if np.prod(n) <= _MAX_SAMPLES or k == 1:
+            break
+        k = max(1, k - 2)                     # an odd count stays odd: element centres remain samples
+    spacing = L / n
+    origin = np.array([ax[0] for ax in loc.axes]) + 0.5 * spacing
+    axes = [origin[a] + spacing[a] * np.arange(n[a]) for a in range(3)]
+    X = np.meshgrid(*axes, indexing="ij")
+    return loc, np.column_stack([x.ravel() for x in X]), tuple(n), tuple(spacing), tuple(origin)
+
+
+def _slice_point(result, at, loc):
+    """(x, y, z) mm of ``at``: a point, or one of :data:`SLICE_CHOICES`."""
+    if at is None or (isinstance(at, str) and at == "centre"):
+        # the centre of the element that holds the mesh's centre: a slice through the middle of a layer of
+        # elements, not along the faces between two
+        out = []
+        for ax in loc.axes:
+            e = min(int(np.searchsorted(ax, 0.5 * (ax[0] + ax[-1]), side="right")) - 1, ax.size - 2)
+            out.append(0.5 * (ax[e] + ax[e + 1]))
+        return tuple(out)
+    if isinstance(at, str):
+        if at not in SLICE_CHOICES:
+            raise InputError(f"slice position must be (x, y, z) mm or one of {', '.join(SLICE_CHOICES)}, "
+                             f"got {at!r}")
+        from scipy.ndimage import label, uniform_filter
+
+        # the region: elements whose mean log mu over their 3 x 3 x 3 neighbourhood (no lone extreme element)
+        # reaches half of the extreme, connected to the extreme; the point: the element centre nearest to the
+        # region's centroid (weighted by that mean), so that the slices cut the middle of a stiff inclusion.
+        # Elements the data do not constrain count as the median (log mu = 0).
+        theta = np.log(np.asarray(result.mu, float))
+        con = getattr(result, "constrained", None)
+        if con is not None and np.size(con) == theta.size:
+            theta = np.where(np.asarray(con, bool), theta, 0.0)
+        sign = 1.0 if at == "stiffest" else -1.0
+        smooth = sign * uniform_filter(theta[loc.cell], size=3, mode="nearest")
+        peak = np.unravel_index(np.argmax(smooth), smooth.shape)
+        top = smooth[peak]
+        if top > 0:
+            lab, _ = label(smooth >= 0.5 * top)
+            region = lab == lab[peak]
+        else:                                   # nothing above the median: the extreme element itself
+            region = np.zeros(smooth.shape, bool)
+            region[peak] = True
+        w = np.where(region, np.maximum(smooth, 0.0), 0.0)
+        w = w if w.sum() > 0 else region.astype(float)
+        out = []
+        for a in range(3):
+            centres = 0.5 * (loc.axes[a][1:] + loc.axes[a][:-1])
+            c = float(np.sum(w.sum(axis=tuple(b for b in range(3) if b != a)) * centres) / w.sum())
+            out.append(float(centres[np.argmin(np.abs(centres - c))]))
+        return tuple(out)
+    point = _vec3(at, "slice position")
+    for a, name in enumerate("xyz"):
+        lo, hi = loc.axes[a][0], loc.axes[a][-1]
+        if not lo <= point[a] <= hi:
+            raise InputError(f"slice position {name} = {point[a]:g} mm lies outside the inversion mesh "
+                             f"[{lo:g}, {hi:g}] mm")
+    return point
+
+
+def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, title=None,
+                          samples_per_element: int = 5, panel_inches: float = 2.6):
+    r"""Three orthogonal slices of a 3D modulus inversion (:func:`femreg.invert` with ``model="3d"``), drawn as
+    :func:`plot_volume_slices` draws a registration: one row each for
+
+    - the relative shear modulus :math:`\mu` / median (log colour scale over 1-99 % of the elements, at least
+      1 / :data:`MIN_MODULUS_SPAN` to :data:`MIN_MODULUS_SPAN`), one value per element (the slices show the
+      elements' boxes: the blocks are the inversion's resolution, not an artefact of the picture);
+    - its uncertainty, the Laplace standard deviation of :math:`\log\mu` per element, with the elements the data
+      do not constrain in grey (counted in the row's title); a result without it (a mesh too large for the dense
+      Laplace step) gets no such row, and the unconstrained elements are greyed in the modulus row instead;
+    - the recovered axial strain :math:`\varepsilon_{xx}` (%) of the displacement the modulus was computed from
+      (trilinear between the nodal averages of the element strains, :func:`femreg.volume_fields.
+      recovered_strains_3d`).
+
+    Columns: axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at depth x (mm
+    axes, equal aspect, depth down); dashed lines mark where the other two slices cut.  ``at``: the point (x, y,
+    z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` / ``"softest"``
+    (the element centre nearest to the centroid of the stiffest / softest region: the elements connected to
+    the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
+    ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result
+    that failed or is flagged gets the red banner of :func:`femreg.plot.draw_failure`.  Writes ``out_png`` when
+    given; returns the figure.
+    """
+    from matplotlib.colors import LogNorm
+
+    from .plot import draw_failure
+    from .volume_fields import recovered_strains_3d
+
+    res = result
+    if not all(hasattr(res, k) for k in ("mesh", "mu", "u_measured", "model", "beta")) or res.mesh.p.shape[0] != 3:
+        raise InputError(f"plot_inversion_volume needs a 3D InversionResult (femreg.load_inversion reads a file), "
+                         f"got {type(res).__name__}")
+    loc, pts, shape, sp, org = _element_grid(res.mesh, samples_per_element)
+    point = _slice_point(res, at, loc)
+    _, e, _, _ = loc.locate(pts)
+    cell = loc.cell[e[0], e[1], e[2]].reshape(shape)
+    n_el = res.mu.size
+    mu = np.asarray(res.mu, float)
+    unc = getattr(res, "uncertainty", None)
+    unc = None if unc is None or np.size(unc) != n_el else np.asarray(unc, float)
+    con = getattr(res, "constrained", None)
+    con = None if con is None or np.size(con) != n_el else np.asarray(con, bool)
+    if unc is not None:
+        free = ~np.isfinite(unc) if con is None else (~con | ~np.isfinite(unc))
+    else:
+        free = np.zeros(n_el, bool) if con is None else ~con
+    grey = (0.75, 0.75, 0.75, 1.0)
+    note = (f"grey: {int(free.sum())} of {n_el} elements the data do not constrain" if free.any() else None)
+    # 1-99 % of the elements, spanning at least 0.8-1.25 around the median (1): a few per cent of variation
+    # must not fill the whole colour scale and pass for a contrast
+    lo, hi = np.percentile(mu, [1, 99])
+    lo, hi = min(lo, 1.0 / MIN_MODULUS_SPAN), max(hi, MIN_MODULUS_SPAN)
+    mu_vol = mu[cell]
+    rows = [dict(name=r"$\mu$", vol=np.where(free[cell], np.nan, mu_vol) if unc is None else mu_vol,
+                 spacing=sp, origin=org, cmap="viridis", vmin=None, vmax=None, norm=LogNorm(lo, hi),
+                 label="shear modulus $\\mu$ / median\n(relative, one value per element)", bad=grey,
+                 note=note if unc is None else None)]
+    if unc is not None:
+        u = np.where(free, np.nan, unc)
+        top = float(np.nanmax(u)) if np.isfinite(u).any() else 1.0
+        rows.append(dict(name=r"std of $\log\mu$", vol=u[cell], spacing=sp, origin=org, cmap="magma", vmin=0.0,
+                         vmax=top if top > 0 else 1.0, norm=None, bad=grey, line="w", note=note,
+                         label="uncertainty: std of $\\log\\mu$\n(-, one value per element)"))
+    um = np.asarray(res.u_measured, float)
+    if np.all(np.isfinite(um)) and np.any(um != 0):
+        exx = loc.sample(um, pts, nodal_strain=recovered_strains_3d(res.mesh, um))["exx"].reshape(shape)
+        label, name = "recovered axial strain\n$\\varepsilon_{xx}$ (%)", r"$\varepsilon_{xx}$"
+    else:                                   # no displacement stored: the element-mean strain
+        exx = np.asarray(res.strain_measured, float)[:, 0][cell]
+        label, name = "axial strain $\\varepsilon_{xx}$ (%)\n(element mean)", r"$\varepsilon_{xx}$"
+    cmap, slo, shi = colour_scale(100.0 * exx)
+    # the recovered strain is trilinear: drawn bilinearly between the samples, not as blocks it does not have
+    rows.append(dict(name=name, vol=100.0 * exx, spacing=sp, origin=org, cmap=cmap, vmin=slo, vmax=shi, norm=None,
+                     label=label, interpolation="bilinear" if "recovered" in label else "nearest"))
+    fig, axes_rows = _slice_figure(rows, point, panel_inches)
+    head = title or f"{res.model}, beta {res.beta:.3g}, {res.regularization.upper()}"
+    if res.success:
+        fig.suptitle(head, fontsize=10)
+    else:
+        msg = str(res.message)
+        kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
+        # lines that fit the figure (bold 10 pt: about 7.5 pt a character)
+        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]",
+                     width=max(40, int(fig.get_figwidth() * 72 / 7.5)))
     _fit_colorbars(fig, axes_rows)
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)

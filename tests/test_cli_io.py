@@ -132,6 +132,32 @@ def test_info_raw_read_with_the_sizes_exchanged_names_the_shape(tmp_path, capsys
     assert "no RF carrier along axis 0" in out and "exchanged" not in out
 
 
+def test_register_and_track_refuse_raw_read_with_the_sizes_exchanged(tmp_path, capsys):
+    """register, track and elastogram refuse (exit 2, nothing written) the raw frames that info says were read
+    with their sizes exchanged: as read they carry no carrier and would register as envelope data (a scrambled
+    pair ran to NCC 0.21 with a result written, a scrambled folder tracked 4 of 5 frames unflagged)."""
+    from femreg.synthetic import speckle_pair
+
+    rf0, rf1 = speckle_pair(lambda q: np.column_stack([-0.01 * q[:, 0], 0.0 * q[:, 1]]), shape=(600, 80),
+                            spacing=(0.02, 0.1), seed=4)
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    for k, rf in enumerate((rf0, rf1, rf0)):
+        rf.astype("<f4").tofile(rec / f"frame{k + 1}.raw")
+    wrong = ["--shape", "80", "600", "--spacing", "0.1", "0.02"]
+    cases = (["register", str(rec / "frame1.raw"), str(rec / "frame2.raw"), "-o", str(tmp_path / "p.npz")],
+             ["track", str(rec), "-o", str(tmp_path / "run")],
+             ["elastogram", str(rec), "-o", str(tmp_path / "loop")])
+    for argv in cases:
+        assert main([*argv, *wrong]) == 2, argv
+        assert "the --shape looks exchanged, pass --shape 600 80" in capsys.readouterr().err, argv
+    assert not (tmp_path / "p.npz").exists() and not (tmp_path / "run").exists()
+    # the override reads them as given (the user knows better)
+    assert main([*cases[0], *wrong, "--no-orientation-check"]) in (0, 1)
+    capsys.readouterr()
+    assert main([*cases[0], "--shape", "600", "80", "--spacing", "0.02", "0.1"]) == 0
+
+
 def test_plot_writes_png_vtu_xdmf_render(tmp_path, capsys):
     p, t = _quad_mesh(6, 4)
     res = _result(p, t, _affine_u(p, np.eye(2) * 0.01), shape=(40, 30))

@@ -175,3 +175,18 @@ def test_two_worker_processes_screen_identically_and_register_alike(loop, run):
     assert par.ref_frame == serial.ref_frame and abs(e_p - e_s) <= 0.1, (e_s, e_p)
     with pytest.raises(InputError, match="workers"):
         elastogram(loop.frames[:6], spacing=loop.spacing, workers=0)
+
+
+def test_band_advice_names_the_band_the_loop_reaches():
+    """No pair in the band: the advice names the largest strain the loop reaches (accumulated over at most
+    max_span frames) and a band that holds it, or the smallest step when every step overshoots; nothing to say
+    when the band was reachable."""
+    from femreg.elastogram import band_advice
+
+    slow = band_advice({"strain": np.full(5, -0.0007)})                # 6 frames, -0.35 % from first to last
+    assert "-0.35 % (frames 0 -> 5)" in slow and "--band 0.25 2" in slow and "max-span" not in slow, slow
+    long = band_advice({"strain": np.full(20, -0.0004)}, max_span=8)    # spans cap the strain: longer ones help
+    assert "-0.32 %" in long and "--max-span" in long, long
+    fast = band_advice({"strain": np.full(4, 0.03)})
+    assert "smallest axial strain is 3.00 %" in fast and "--band 0.5 4" in fast, fast
+    assert band_advice({"strain": np.full(5, -0.003)}) == ""            # 0.6 % over two frames: reachable

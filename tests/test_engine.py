@@ -187,7 +187,9 @@ def test_zero_motion_solver_returns_zero_from_a_moved_start(speckle):
                           callback=lambda u, info: iterates.append(u.copy()))
     assert res.success, res.message
     gn = res.solver_result
-    assert gn.nit >= 2 and len(iterates) == gn.nit
+    # one callback per accepted step; a last full step that round-off keeps from lowering the energy (at u ~ 0)
+    # counts as an iteration without a callback
+    assert gn.nit >= 2 and len(iterates) == len(gn.energy_history) - 1 and gn.nit - len(iterates) in (0, 1)
     for u in (gn.x, iterates[-1]):
         px = max(np.abs(u[0::2]).max() / SP[0], np.abs(u[1::2]).max() / SP[1])
         assert px < 1e-9, f"the solver's zero-motion result is {px:.1e} pixels off"     # measured 3e-14 px

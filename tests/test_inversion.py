@@ -284,7 +284,12 @@ def test_cli_invert_and_plot(tmp_path):
     assert (tmp_path / "mu.png").stat().st_size > 10_000
     # bad input: exit 2 and a one-line reason
     r = _cli("invert", tmp_path / "pair.npz", "-o", tmp_path / "x.npz", "--model", "3d", cwd=tmp_path)
+    assert r.returncode == 2 and "--model 3d needs a volume's result" in r.stderr
+    r = _cli("invert", tmp_path / "pair.npz", "-o", tmp_path / "x.npz", "--model", "2d", cwd=tmp_path)
     assert r.returncode == 2 and "invalid choice" in r.stderr
+    r = _cli("invert", tmp_path / "pair.npz", "-o", tmp_path / "x.npz", "--region", 15, 45, -15, 15, -5, 5,
+             cwd=tmp_path)
+    assert r.returncode == 2 and "--region takes 4 numbers (X0 X1 Y0 Y1, mm) for a 2D result, got 6" in r.stderr
     r = _cli("invert", tmp_path / "pair.npz", "-o", tmp_path / "x.npz", "--beta", "-2", cwd=tmp_path)
     assert r.returncode == 2 and "beta" in r.stderr and "Traceback" not in r.stderr
     # a failed optimisation: exit 1, the result is still written

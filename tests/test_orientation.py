@@ -64,6 +64,14 @@ def test_spacing_in_wrong_units_is_refused(probes):
     sp = np.asarray(p.spacing) * 1000.0            # micrometres given as mm
     rep = diagnose(p.ref, sp)
     assert rep.problem == "spacing" and "units" in rep.message and rep.frequency_mhz < 0.01
+    # the advice names the unit and the spacing in mm, for micrometres and for metres (the common slips)
+    mm = ", ".join(f"{v:.6g}" for v in p.spacing)
+    assert "units look like micrometres" in rep.message and f"({mm})" in rep.message, rep.message
+    rep = diagnose(p.ref, np.asarray(p.spacing) / 1000.0)
+    assert rep.problem == "spacing" and "units look like metres" in rep.message and f"({mm})" in rep.message
+    # a volume's advice scales its elevational spacing too
+    rep = diagnose(p.ref, np.asarray(p.spacing) / 1000.0, elevational=0.5e-3)
+    assert f"({mm}, 0.5)" in rep.message, rep.message
 
 
 def test_images_without_carrier_pass():

@@ -216,19 +216,28 @@ def compression_pair():
 def test_refine_changes_nothing_on_uniform_compression(compression_pair):
     d = compression_pair
     kw = dict(spacing=d.spacing, origin=d.origin)
-    r0 = femreg.register(d.ref, d.mov, **kw)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
     r1 = femreg.register(d.ref, d.mov, refine=2, **kw)
-    assert "refinement: nothing marked" in r1.message
-    assert r1.mesh.t.shape[1] == r0.mesh.t.shape[1]
-    assert np.array_equal(r1.u, r0.u)
+    rd = femreg.register(d.ref, d.mov, **kw)                  # the default refines: here nothing is marked
+    assert "refinement: nothing marked" in r1.message and "refinement: nothing marked" in rd.message
+    assert "refinement" not in r0.message and not hasattr(r0, "refinement")
+    assert r1.mesh.t.shape[1] == r0.mesh.t.shape[1] == rd.mesh.t.shape[1]
+    assert np.array_equal(r1.u, r0.u) and np.array_equal(rd.u, r0.u)
+    # strategy="paper" and a user's mesh do not refine by default
+    rp = femreg.register(d.ref, d.mov, strategy="paper", **kw)
+    rm = femreg.register(d.ref, d.mov, mesh=r0.mesh, **kw)
+    assert "refinement" not in rp.message and "refinement" not in rm.message
 
 
 def test_forced_refinement_keeps_uniform_strain_and_one_quality_per_element(compression_pair):
     d = compression_pair
     kw = dict(spacing=d.spacing, origin=d.origin)
-    r0 = femreg.register(d.ref, d.mov, **kw)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
     r1 = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
     assert r1.success and r1.mesh.t.shape[1] > 1.5 * r0.mesh.t.shape[1]
+    # one Gauss-Newton step on the refined mesh; the solve's verdict and message stay the unrefined one's
+    assert r1.refinement.passes[0]["nit"] == 1 and r1.nit == r0.nit + 1
+    assert r1.status == r0.status and "maximum number of iterations" not in r1.message
     assert r1.quality.shape == (r1.mesh.t.shape[1],)
     assert r1.refinement.passes and r1.refinement.passes[0]["elements"] == r0.mesh.t.shape[1]
     assert r1.alpha_effective == pytest.approx(r0.alpha_effective, rel=1e-12)
@@ -279,10 +288,13 @@ def test_cli_refine_flag(band_pair, tmp_path, capsys):
     np.save(tmp_path / "a.npy", d.ref.astype(np.float32))
     np.save(tmp_path / "b.npy", d.mov.astype(np.float32))
     args = [str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--spacing", *map(str, d.spacing)]
-    assert main(["register", *args, "-o", str(tmp_path / "r0.npz")]) == 0
+    assert main(["register", *args, "--refine", "none", "-o", str(tmp_path / "r0.npz")]) == 0
     assert main(["register", *args, "--refine", "1", "-o", str(tmp_path / "r1.npz")]) == 0
+    assert main(["register", *args, "-o", str(tmp_path / "rd.npz")]) == 0       # the default: "auto"
     r0, r1 = femreg.load_result(tmp_path / "r0.npz"), femreg.load_result(tmp_path / "r1.npz")
+    rd = femreg.load_result(tmp_path / "rd.npz")
     assert r1.mesh.t.shape[1] > r0.mesh.t.shape[1]
+    assert rd.mesh.t.shape[1] >= r1.mesh.t.shape[1]
     assert np.asarray(r1.quality).shape == (r1.mesh.t.shape[1],)
     capsys.readouterr()
     assert main(["register", *args, "--refine", "lots", "-o", str(tmp_path / "r2.npz")]) == 2
@@ -319,3 +331,138 @@ def test_register_refuses_refinement_of_a_mesh_that_is_not_a_tensor_mesh(compres
         femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, mesh=skew, refine=1)
     with pytest.raises(InputError, match="refine"):
         femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine="more")
+
+
+def test_default_refinement_is_auto_only_for_plain_auto_registrations():
+    from femreg.refine import DEFAULT, default_refine
+
+    assert default_refine(DEFAULT, strategy="auto") == "auto"
+    off = [dict(strategy="paper"), dict(strategy="auto", mesh=_mesh()), dict(strategy="auto", offset=np.zeros(4)),
+           dict(strategy="auto", element_size=1.0), dict(strategy="auto", regularizer="strain-incompressible"),
+           dict(strategy="auto", regularizer=make_regularizer("momentum-stress", alpha=1.0)),
+           dict(strategy="auto", geometry="convex"), dict(strategy="auto", alpha="auto"),
+           dict(strategy="auto", allow_mesh_outside=True)]
+    for kw in off:
+        assert default_refine(DEFAULT, **kw) is None, kw
+    # what the caller gives is kept, whatever the rest
+    spec = Refinement(passes=1)
+    assert default_refine(spec, strategy="paper") is spec and default_refine(None, strategy="auto") is None
+    with pytest.raises(InputError, match="resolved"):
+        as_refinement(DEFAULT)
+
+
+def test_budget_count_matches_splitting_each_choice():
+    # the greedy choice of _within_budget counts each row's / column's splits once; the same choice made by
+    # refining the mesh for every candidate (the definition) on random marks and budgets
+    from femreg.refine import _refined_breaks, _within_budget
+
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    rng = np.random.default_rng(3)
+    opts = Refinement(min_size=(0.1, 0.4), levels=2)
+    for _ in range(5):
+        rows, cols = rng.random(xs.size - 1) < 0.5, rng.random(ys.size - 1) < 0.5
+        score = (rng.random(xs.size - 1) + 1, rng.random(ys.size - 1) + 1)
+        budget = m.t.shape[1] * rng.uniform(1.1, 2.5)
+        r2, c2 = _within_budget(m, rows, cols, score, SPACING, ORIGIN, opts, budget)
+        cand = sorted([(score[0][i], 0, i) for i in np.flatnonzero(rows)] +
+                      [(score[1][j], 1, j) for j in np.flatnonzero(cols)], reverse=True)
+        rb, cb = np.zeros_like(rows), np.zeros_like(cols)
+        for _, ax, k in cand:
+            (rb if ax == 0 else cb)[k] = True
+            nx, ny, _, _ = _refined_breaks(m, rb, cb, SPACING, ORIGIN, opts.min_size, opts.levels)
+            if (nx.size - 1) * (ny.size - 1) > budget:
+                (rb if ax == 0 else cb)[k] = False
+        assert np.array_equal(r2, rb) and np.array_equal(c2, cb)
+
+
+def _fake_solve(mesh, u):
+    from types import SimpleNamespace
+
+    gn = femreg.solver.GaussNewtonResult(x=u, fun=0.0, success=True, status=4, message="converged: strains",
+                                         nit=3)
+    return SimpleNamespace(mesh=mesh, u=u, gn=gn, data=None)
+
+
+def test_passes_one_step_each_and_a_small_second_pass_is_skipped():
+    from femreg.refine import refine_passes
+
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    f = _step_field(0.5 * (xs[4] + xs[5]))
+    seen = []
+
+    def solve_on(mesh, u_start, shear_traction=None):      # the exact field on the finer mesh, one step
+        seen.append(mesh.t.shape[1])
+        s = _fake_solve(mesh, _nodal(mesh, f))
+        s.gn = femreg.solver.GaussNewtonResult(x=s.u, fun=0.0, success=False, status=1,
+                                               message="maximum number of iterations (1) reached", nit=1)
+        return s
+
+    kw = dict(spacing=SPACING, origin=ORIGIN)
+    sol, rec = refine_passes(_fake_solve(m, _nodal(m, f)), Refinement(min_added=0.0, max_growth=None),
+                             solve_on, kw["spacing"], kw["origin"])
+    assert len(rec.passes) == 2 and len(seen) == 2
+    added = seen[1] / seen[0] - 1                            # what the second pass added
+    # the verdict stays the unrefined solve's (one step is the option, not a failure), iterations add up
+    assert sol.gn.status == 4 and sol.gn.success and sol.gn.nit == 3 + 1 + 1
+    seen.clear()
+    sol, rec = refine_passes(_fake_solve(m, _nodal(m, f)), Refinement(min_added=added + 0.01, max_growth=None),
+                             solve_on, kw["spacing"], kw["origin"])
+    assert len(rec.passes) == 1 and len(seen) == 1 and sol.gn.nit == 3 + 1
+    with pytest.raises(InputError, match="maxiter"):
+        Refinement(maxiter=0)
+    with pytest.raises(InputError, match="min_added"):
+        Refinement(min_added=1.0)
+
+
+def test_slip_settings_of_a_refined_result_read_the_unrefined_size():
+    from types import SimpleNamespace
+
+    from femreg.refine import RefinementRecord
+    from femreg.shear import slip_settings
+
+    m, fine, _, _ = _graded()
+    xs, ys, _ = tensor_structure(fine)
+    m_all, _, _ = refine_tensor_mesh(m, np.ones(tensor_structure(m)[0].size - 1, bool),
+                                     np.zeros(tensor_structure(m)[1].size - 1, bool), SPACING, ORIGIN,
+                                     min_size=(0.1, 0.4))                      # every row split: median halves
+    hx0, hy0 = (float(np.median(np.diff(a))) for a in tensor_structure(m)[:2])
+    rec = RefinementRecord([dict(elements=m.t.shape[1], elements_after=m_all.t.shape[1])], (hx0, hy0))
+    s = slip_settings(SimpleNamespace(mesh=m_all, alpha=1.0, refinement=rec))
+    assert s["element_size"][1] == pytest.approx(hy0) and s["alpha"] == pytest.approx(0.35 / hx0)
+    s_plain = slip_settings(SimpleNamespace(mesh=m_all, alpha=1.0))           # without the record: the median
+    assert s_plain["alpha"] == pytest.approx(2 * s["alpha"], rel=0.05)
+
+
+def test_no_refinement_without_iterations_and_the_callback_sees_every_step(compression_pair):
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
+    forced = Refinement(passes=1, threshold=0.0, relative=0.0)
+    r = femreg.register(d.ref, d.mov, initial=r0.u, maxiter=0, refine=forced, **kw)
+    assert "refinement" not in r.message and r.mesh.t.shape[1] == r0.mesh.t.shape[1]
+    sizes = []
+    r1 = femreg.register(d.ref, d.mov, refine=forced, callback=lambda u, info: sizes.append(u.size), **kw)
+    assert len(sizes) == r1.nit and sizes[-1] == r1.u.size > sizes[0]
+
+
+def test_a_refined_result_that_fails_its_check_is_dropped(compression_pair, monkeypatch):
+    # the check counts elements (peak-hopping and matching fractions); a refined result failing it gives way to the
+    # unrefined one and its own verdict (3 deg rotation under L7: 3 % of 391 refined elements one period off)
+    import femreg.registration as R
+
+    d = compression_pair
+    kw = dict(spacing=d.spacing, origin=d.origin)
+    r0 = femreg.register(d.ref, d.mov, refine=None, **kw)
+    real = R.check_result
+
+    def strict(sol, *a, **k):
+        c = real(sol, *a, **k)
+        if sol.mesh.t.shape[1] > r0.mesh.t.shape[1]:
+            c.success, c.notes = False, c.notes + ["peak hopping: 3% of the elements (injected)"]
+        return c
+    monkeypatch.setattr(R, "check_result", strict)
+    r = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
+    assert r.success and r.mesh.t.shape[1] == r0.mesh.t.shape[1] and np.array_equal(r.u, r0.u)
+    assert "refinement dropped" in r.message and "injected" in r.message and not hasattr(r, "refinement")

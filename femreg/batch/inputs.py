@@ -176,7 +176,7 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
     frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  Recordings that
     cannot be read are left to their tasks, which record the error."""
     from ..io import read_frames
-    from ..orientation import OrientationError, check
+    from ..orientation import OrientationError, check, check_raw_shape
 
     probed = []
     for job in jobs[:3]:
@@ -199,6 +199,7 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
                          f"(folders='recording')")
     if not s.get("no_orientation_check"):
         try:
+            check_raw_shape(fr)
             check(fr.frames[0], fr.spacing)
         except OrientationError as exc:
             raise OrientationError(f"{job.input}: {exc}") from None

@@ -57,14 +57,24 @@ def reader_kwargs(args) -> dict:
     return options.reader_kwargs(vars(args))
 
 
-def frames_from_args(args, path=None, *, allow_sector: bool = False):
+def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape: bool | None = None):
     """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`.  Frames of
-    a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid)."""
+    a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid); raw frames read
+    with their two sizes exchanged are refused (:func:`femreg.orientation.check_raw_shape`) unless
+    ``check_shape`` is False (default: unless ``--no-orientation-check``)."""
     from ..io import read_frames
     from ..io.uff import require_cartesian
+    from ..orientation import OrientationError, check_raw_shape
 
     path = path if path is not None else args.file
     fr = read_frames(path, **reader_kwargs(args))
+    if check_shape is None:
+        check_shape = not getattr(args, "no_orientation_check", False)
+    if check_shape:
+        try:
+            check_raw_shape(fr)
+        except OrientationError as exc:
+            raise OrientationError(f"{path}: {exc}") from None
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 

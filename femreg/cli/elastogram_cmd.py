@@ -135,7 +135,7 @@ def write_picture(path, res, frame, spacing, origin) -> None:
 
 def run(args) -> int:
     from .._atomic import atomic_savez
-    from ..elastogram import elastogram, write_pairs_csv
+    from ..elastogram import band_advice, elastogram, write_pairs_csv
 
     fr = frames_from_args(args)
     kw = registration_kwargs(args)
@@ -166,7 +166,8 @@ def run(args) -> int:
           f"{out / 'elastogram.npz'}, "
           f"{cine.name} ({res.timings['total']:.1f} s)")
     if res.n_usable == 0:
+        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
         print(f"femreg elastogram: error: no pair was usable (none with strain in {lo:g}-{hi:g} % that "
-              f"registered; see {out / 'pairs.csv'})", file=sys.stderr)
+              f"registered; see {out / 'pairs.csv'})" + (f": {why}" if why else ""), file=sys.stderr)
         return 1
     return 0

@@ -128,16 +128,11 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
 
 
 def _raw_shape_hint(frame) -> list:
-    """A raw frame read with its two sizes exchanged is scrambled, not transposed: no carrier on either axis.
-    When the same samples read the other way round carry one along axis 0, say which --shape to pass."""
-    from ..orientation import CARRIER_RATIO, carrier_ratio
+    """The ``--shape`` advice of :func:`femreg.orientation.exchanged_shape` as a list of needs."""
+    from ..orientation import exchanged_shape
 
-    n0, n1 = frame.shape
-    alt = np.asarray(frame).reshape(n1, n0)        # the same bytes in file order, the sizes exchanged
-    if not carrier_ratio(alt[:, ::max(1, n0 // 64)]) < CARRIER_RATIO:
-        return []
-    return [f"no RF carrier when read as {n0} x {n1}, but one along axis 0 when read as {n1} x {n0}: the "
-            f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)"]
+    msg = exchanged_shape(frame)
+    return [msg] if msg else []
 
 
 def describe_volumes(path: Path, args) -> dict:
@@ -224,7 +219,7 @@ def run(args) -> int:
     if getattr(args, "volume", False):
         return _run_volumes(path, args)
     try:
-        info = describe(frames_from_args(args, allow_sector=True))
+        info = describe(frames_from_args(args, allow_sector=True, check_shape=False))
     except FileFormatError as exc:    # a file that can only hold volumes names the volume reader
         if "read_volumes" not in str(exc):
             raise
@@ -239,7 +234,7 @@ def run(args) -> int:
             saved = args.spacing
             args.spacing = retry["spacing"]
             try:
-                info = describe(frames_from_args(args, allow_sector=True), spacing_known=False)
+                info = describe(frames_from_args(args, allow_sector=True, check_shape=False), spacing_known=False)
             finally:
                 args.spacing = saved
         if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2

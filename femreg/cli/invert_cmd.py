@@ -1,10 +1,13 @@
 """``femreg invert PAIR.npz -o MU.npz``: relative shear-modulus image from a registration result.
 
-PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`); the inversion
-(:func:`femreg.invert`) runs on its mesh, or on a structured mesh of ``--element-size``.  MU.npz is reloadable
-with :func:`femreg.inversion.load_inversion`; ``femreg plot MU.npz`` draws the modulus image beside the axial
-strain.  ``--model auto`` (default) picks plane strain, plane stress or an effective model from the data;
-``--reference X0 X1 Y0 Y1 KPA`` adds moduli in kPa.  Exit 0 on success; 2 on bad input (one-line reason), among it a registration that failed its own
+PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`, or a volume's
+:meth:`femreg.volume_result.VolumeResult.save`); the inversion (:func:`femreg.invert`) runs on its mesh, or on a
+structured mesh of ``--element-size``.  MU.npz is reloadable with :func:`femreg.inversion.load_inversion`;
+``femreg plot MU.npz`` draws the modulus image beside the axial strain (a volume: three orthogonal slices of the
+modulus, its uncertainty and the axial strain through ``--slice``).  ``--model auto`` (default) picks plane
+strain, plane stress or an effective model from the data (a volume: the 3D model); ``--reference X0 X1 Y0 Y1
+KPA`` (a volume: ``X0 X1 Y0 Y1 Z0 Z1 KPA``) adds moduli in kPa, and ``--region`` takes four numbers (a volume:
+six).  Exit 0 on success; 2 on bad input (one-line reason), among it a registration that failed its own
 check (``success`` False: its displacement is not trustworthy) unless ``--allow-failed``; 1 when the
 optimisation fails or the result is flagged (beta at its grid's edge, modulus at its bound, model against
 the data, modulus against strain), or when it ran on a failed registration with ``--allow-failed`` (the result is still
@@ -15,28 +18,34 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "invert", help="shear-modulus image from a registration result (FE inversion)",
         description="Relative shear modulus (median 1) per element from the displacement in PAIR.npz: "
                     "plane-stress (lambda_bar = 2), plane-strain or effective model (auto: from the data) with the measured displacement on the "
-                    "boundary, total-variation regularisation of log mu, adjoint gradient, L-BFGS-B.")
+                    "boundary, total-variation regularisation of log mu, adjoint gradient, L-BFGS-B.  A volume's "
+                    "result (femreg register on RF volumes) is inverted on hexahedra with the 3D model; its "
+                    "--region and --reference boxes take a z interval too.")
     p.add_argument("result", help="registration result .npz (femreg register -o ...)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
-    p.add_argument("--model", default="auto", choices=("auto", "plane-stress", "plane-strain"),
-                   help="forward model (default auto: from the data's lateral/axial strain ratio)")
+    p.add_argument("--model", default="auto", choices=("auto", "plane-stress", "plane-strain", "3d"),
+                   help="forward model (default auto: from the data's lateral/axial strain ratio; 3d for a "
+                        "volume's result)")
     p.add_argument("--beta", type=float, help="regularisation weight (default: chosen by the L-curve rule)")
     p.add_argument("--element-size", metavar="MM", type=float, nargs="+",
-                   help="invert on a structured mesh of this element size (one value or axial and lateral; "
-                        "default: the registration mesh)")
-    p.add_argument("--region", metavar=("X0", "X1", "Y0", "Y1"), type=float, nargs=4,
-                   help="invert over this rectangle only (mm)")
+                   help="invert on a structured mesh of this element size (one value, or axial and lateral; a "
+                        "volume: one value or axial, lateral and elevational; default: the registration mesh)")
+    p.add_argument("--region", metavar="MM", type=float, nargs="+",
+                   help="invert over this box only: X0 X1 Y0 Y1 (a volume: X0 X1 Y0 Y1 Z0 Z1), mm")
     p.add_argument("--regularization", default="tv", choices=("tv", "tikhonov"), help="default tv")
     p.add_argument("--poisson", type=float, help="plane strain: Poisson ratio (default 0.495)")
     p.add_argument("--maxiter", type=int, default=400, help="L-BFGS-B iterations per solve (default 400)")
-    p.add_argument("--reference", metavar=("X0", "X1", "Y0", "Y1", "KPA"), type=float, nargs=5,
-                   help="a region (mm) of known Young's modulus (kPa): also write shear and Young's moduli in kPa")
+    p.add_argument("--reference", metavar="V", type=float, nargs="+",
+                   help="X0 X1 Y0 Y1 KPA (a volume: X0 X1 Y0 Y1 Z0 Z1 KPA): a box (mm) of known Young's modulus "
+                        "(kPa); also write shear and Young's moduli in kPa")
     p.add_argument("--images", metavar="FILE", nargs="+",
                    help="the registered frames (reference and moving file, or one multi-frame file with --pair): "
                         "also run the one-step inversion from the images")
@@ -45,6 +54,7 @@ def add_parser(subparsers):
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
+    add_slice_arg(p)
     p.add_argument("--allow-failed", action="store_true",
                    help="invert a registration that failed its own check anyway (the result is flagged, exit 1)")
     from ._common import add_reader_args
@@ -73,6 +83,58 @@ def _images(args):
     return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
 
 
+def _boxes(args, volume):
+    """(region, reference) for :func:`femreg.invert` from --region / --reference, their counts checked against
+    the result's dimension."""
+    from femreg.errors import InputError
+
+    n = 6 if volume else 4
+    names = "X0 X1 Y0 Y1 Z0 Z1" if volume else "X0 X1 Y0 Y1"
+    kind = "a volume's result" if volume else "a 2D result"
+
+    def box(v):
+        return tuple(float(a) for a in v) if volume else ((v[0], v[1]), (v[2], v[3]))
+
+    region = reference = None
+    if args.region is not None:
+        if len(args.region) != n:
+            raise InputError(f"--region takes {n} numbers ({names}, mm) for {kind}, got {len(args.region)}: "
+                             f"{' '.join(f'{v:g}' for v in args.region)}")
+        region = box(args.region)
+    if args.reference is not None:
+        if len(args.reference) != n + 1:
+            raise InputError(f"--reference takes {n + 1} numbers ({names} mm, then KPA) for {kind}, got "
+                             f"{len(args.reference)}: {' '.join(f'{v:g}' for v in args.reference)}")
+        reference = (box(args.reference[:n]), float(args.reference[n]))
+    return region, reference
+
+
+def add_slice_arg(p):
+    """``--slice``: where the three slices of a volume's modulus picture cut."""
+    p.add_argument("--slice", nargs="+", metavar="WHERE",
+                   help="a volume's picture: the point X Y Z (mm) its three orthogonal slices pass through, or "
+                        "centre (default), stiffest, softest (the core of the stiffest / softest region)")
+
+
+def slice_position(args):
+    """None, a word of :data:`femreg.volplot.SLICE_CHOICES` or an (x, y, z) point from ``--slice``."""
+    from femreg.errors import InputError
+    from femreg.volplot import SLICE_CHOICES
+
+    v = getattr(args, "slice", None)
+    if v is None:
+        return None
+    if len(v) == 1 and v[0] in SLICE_CHOICES:
+        return v[0]
+    try:
+        point = tuple(float(a) for a in v)
+    except ValueError:
+        point = ()
+    if len(point) != 3 or not all(np.isfinite(point)):
+        raise InputError(f"--slice takes X Y Z (mm) or one of {', '.join(SLICE_CHOICES)}, got {' '.join(v)}")
+    return point
+
+
 def run(args) -> int:
     import femreg
     from femreg.errors import InputError
@@ -83,19 +145,29 @@ def run(args) -> int:
     for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
-    es = args.element_size
-    if es is not None and len(es) not in (1, 2):
-        raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
     reg = femreg.load_result(args.result)
+    volume = np.shape(reg.mesh.p)[0] == 3
+    kind = "a volume's result" if volume else "a 2D result"
+    es = args.element_size
+    if es is not None and len(es) not in ((1, 3) if volume else (1, 2)):
+        counts = "1 or 3 values (mm: axial, lateral, elevational)" if volume else "1 or 2 values (mm)"
+        raise InputError(f"--element-size takes {counts} for {kind}, got {len(es)}: "
+                         f"{' '.join(f'{v:g}' for v in es)}")
+    region, reference = _boxes(args, volume)
+    if volume and args.model in ("plane-stress", "plane-strain"):
+        raise InputError(f"--model {args.model} is a 2D model; {args.result} is a volume's result: use --model 3d "
+                         "(or auto)")
+    if not volume and args.model == "3d":
+        raise InputError(f"--model 3d needs a volume's result; {args.result} is 2D")
+    if volume and args.images:
+        raise InputError("--images (the one-step inversion from the images) is for 2D results only")
+    slice_at = slice_position(args)
+    if slice_at is not None and not volume:
+        raise InputError("--slice applies to a volume's inversion only; this result is 2D")
     failed_reg = not reg.success and bool(reg.message)     # a result made by hand has no verdict (no message)
     if failed_reg and not args.allow_failed:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")
-    region = None if args.region is None else ((args.region[0], args.region[1]), (args.region[2], args.region[3]))
-    reference = None
-    if args.reference is not None:
-        x0, x1, y0, y1, kpa = args.reference
-        reference = (((x0, x1), (y0, y1)), kpa)
     ref_img, mov_img = _images(args) if args.images else (None, None)
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
@@ -107,8 +179,6 @@ def run(args) -> int:
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
     res.save(out)
     print(res)
-    import numpy as np
-
     q5, q95 = np.percentile(res.mu, [5, 95])
     where = "over the region" if region is not None else "over the mesh"
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
@@ -131,7 +201,7 @@ def run(args) -> int:
     if args.png:
         import matplotlib.pyplot as plt
 
-        plt.close(res.plot(args.png))
+        plt.close(res.plot(args.png, **({} if slice_at is None else {"at": slice_at})))
         print(f"wrote {args.png}")
     if failed_reg:
         print(f"femreg invert: FLAGGED: inverted from a failed registration ({args.result})", file=sys.stderr)
@@ -151,7 +221,7 @@ def is_inversion_file(path) -> bool:
 
 def plot_inversion_file(args) -> int:
     """``femreg plot MU.npz`` for a file of ``femreg invert``: the modulus image beside the axial strain
-    (-o PNG) and, with --vtu, a ParaView file."""
+    (-o PNG; a volume's: three orthogonal slices through --slice) and, with --vtu, a ParaView file."""
     import matplotlib.pyplot as plt
 
     from femreg.errors import InputError
@@ -161,7 +231,10 @@ def plot_inversion_file(args) -> int:
     if out.suffix.lower() != ".png":
         raise InputError(f"-o must name a .png file, got {out}")
     res = load_inversion(args.result)
-    plt.close(res.plot(out, dpi=args.dpi))
+    at = slice_position(args)
+    if at is not None and res.dim != 3:
+        raise InputError(f"--slice applies to a volume's inversion only; {args.result} is 2D")
+    plt.close(res.plot(out, dpi=args.dpi, **({} if at is None else {"at": at})))
     print(f"wrote {out}")
     if getattr(args, "vtu", None):
         res.to_vtu(args.vtu)

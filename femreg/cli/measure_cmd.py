@@ -1,5 +1,8 @@
 """``femreg measure RESULT --inclusion X Y R``: contrast numbers of a registration or inversion result.
 
+A volume's result (``femreg register`` on RF volumes, or its ``femreg invert``): ``--inclusion X Y Z R`` is a
+sphere and ``--background X0 X1 Y0 Y1 Z0 Z1`` a box; the same numbers over volumes instead of areas.
+
 Registration result (``femreg register``): strain ratio SR, CNR_e and SNR_e of the axial strain
 (:func:`femreg.metrics.contrast_metrics`) between the disk of radius R at (X, Y) and the background (the rest of
 the mesh, or ``--background X0 X1 Y0 Y1`` less the disk).  Inversion result (``femreg invert``): the same strain
@@ -27,13 +30,15 @@ def add_parser(subparsers):
         description="Contrast numbers of a circular inclusion in a result .npz of `femreg register` (strain ratio "
                     "SR = background / inclusion mean axial strain, CNR_e, SNR_e of the background) or of "
                     "`femreg invert` (the same, and the modulus contrast inclusion / background).  Coordinates in "
-                    "mm: x axial (depth), y lateral.  Exit 0; 1 for a failed result (numbers flagged); 2 on bad "
-                    "input.")
+                    "mm: x axial (depth), y lateral (a volume's result: z elevational, a spherical inclusion).  "
+                    "Exit 0; 1 for a failed result (numbers flagged); 2 on bad input.")
     p.add_argument("result", help="result .npz of `femreg register` or `femreg invert`")
-    p.add_argument("--inclusion", required=True, type=float, nargs=3, metavar=("X", "Y", "R"),
-                   help="inclusion centre (axial X, lateral Y) and radius R, mm")
-    p.add_argument("--background", type=float, nargs=4, metavar=("X0", "X1", "Y0", "Y1"),
-                   help="background rectangle, mm (the disk left out); default: the rest of the mesh")
+    p.add_argument("--inclusion", required=True, type=float, nargs="+", metavar="MM",
+                   help="X Y R: inclusion centre (axial X, lateral Y) and radius R, mm (a volume's result: "
+                        "X Y Z R, a sphere)")
+    p.add_argument("--background", type=float, nargs="+", metavar="MM",
+                   help="X0 X1 Y0 Y1: background rectangle, mm (a volume's: X0 X1 Y0 Y1 Z0 Z1, a box), the "
+                        "inclusion left out; default: the rest of the mesh")
     p.add_argument("--strain", choices=("element", "recovered"), default="element",
                    help="strain the region statistics use (default element: its region means follow from the "
                         "displacement on the region's boundary; recovered: the pictures' strain)")
@@ -43,49 +48,76 @@ def add_parser(subparsers):
 
 
 def _bounds(mesh):
+    """(x0, x1, y0, y1[, z0, z1]) mm of the mesh."""
     p = np.asarray(mesh.p, float)
-    return float(p[0].min()), float(p[0].max()), float(p[1].min()), float(p[1].max())
+    return tuple(float(f(p[a])) for a in range(p.shape[0]) for f in (np.min, np.max))
 
 
 def _bounds_text(b):
-    return f"x {b[0]:.2f} to {b[1]:.2f} mm, y {b[2]:.2f} to {b[3]:.2f} mm"
+    return ", ".join(f"{a} {b[2 * k]:.2f} to {b[2 * k + 1]:.2f} mm" for k, a in enumerate("xyz"[:len(b) // 2]))
+
+
+def _check_counts(dim, inclusion, background):
+    """InputError unless --inclusion / --background have the counts of a ``dim``-D result."""
+    kind = "a volume's result" if dim == 3 else "a 2D result"
+    want = ("X Y Z R", 4, "X0 X1 Y0 Y1 Z0 Z1", 6) if dim == 3 else ("X Y R", 3, "X0 X1 Y0 Y1", 4)
+    if len(inclusion) != want[1]:
+        raise InputError(f"--inclusion takes {want[1]} numbers ({want[0]}, mm) for {kind}, got {len(inclusion)}: "
+                         f"{' '.join(f'{v:g}' for v in inclusion)}")
+    if background is not None and len(background) != want[3]:
+        raise InputError(f"--background takes {want[3]} numbers ({want[2]}, mm) for {kind}, got "
+                         f"{len(background)}: {' '.join(f'{v:g}' for v in background)}")
 
 
 def _check_regions(mesh, inclusion, background):
     """InputError unless the inclusion's centre lies in the mesh and the background (if given) overlaps it."""
-    from ..pixels import PointLocator
-
-    x, y, r = inclusion
+    dim = np.shape(mesh.p)[0]
+    _check_counts(dim, inclusion, background)
+    c, r = np.asarray(inclusion[:-1], float), float(inclusion[-1])
     b = _bounds(mesh)
+    shape = "sphere" if dim == 3 else "disk"
+    centre = ", ".join(f"{v:g}" for v in c)
     if not all(math.isfinite(v) for v in inclusion) or r <= 0:
-        raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got {x:g} {y:g} {r:g}")
-    if not PointLocator(mesh).locate(np.array([[x, y]])).inside[0]:
-        raise InputError(f"inclusion centre ({x:g}, {y:g}) mm lies outside the mesh ({_bounds_text(b)})")
+        raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got "
+                         f"{' '.join(f'{v:g}' for v in inclusion)}")
+    if dim == 3:
+        from ..volume_fields import HexLocator
+
+        inside = bool(HexLocator(mesh).locate(c[None])[0][0])
+    else:
+        from ..pixels import PointLocator
+
+        inside = bool(PointLocator(mesh).locate(c[None]).inside[0])
+    if not inside:
+        raise InputError(f"inclusion centre ({centre}) mm lies outside the mesh ({_bounds_text(b)})")
     notes = []
-    if x - r < b[0] or x + r > b[1] or y - r < b[2] or y + r > b[3]:
-        notes.append("the inclusion disk extends beyond the mesh; its part inside is measured")
+    if any(c[a] - r < b[2 * a] or c[a] + r > b[2 * a + 1] for a in range(dim)):
+        notes.append(f"the inclusion {shape} extends beyond the mesh; its part inside is measured")
     if background is not None:
-        x0, x1, y0, y1 = background
-        if not (x0 < x1 and y0 < y1) or not all(math.isfinite(v) for v in background):
-            raise InputError(f"--background needs X0 < X1 and Y0 < Y1 (mm), got {x0:g} {x1:g} {y0:g} {y1:g}")
-        if x1 <= b[0] or x0 >= b[1] or y1 <= b[2] or y0 >= b[3]:
-            raise InputError(f"--background {x0:g} {x1:g} {y0:g} {y1:g} does not overlap the mesh "
-                             f"({_bounds_text(b)})")
+        lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
+        text = " ".join(f"{v:g}" for v in background)
+        if not all(math.isfinite(v) for v in background) or not np.all(lo < hi):
+            names = " and ".join(f"{a.upper()}0 < {a.upper()}1" for a in "xyz"[:dim])
+            raise InputError(f"--background needs {names} (mm), got {text}")
+        if any(hi[a] <= b[2 * a] or lo[a] >= b[2 * a + 1] for a in range(dim)):
+            raise InputError(f"--background {text} does not overlap the mesh ({_bounds_text(b)})")
     return notes
 
 
 def _regions(inclusion, background):
-    x, y, r = inclusion
+    """(roi, background) callables on points (n, dim) mm: the disk / sphere and the box (None: everything)."""
+    c, r = np.asarray(inclusion[:-1], float), float(inclusion[-1])
 
     def roi(p):
-        return (p[:, 0] - x) ** 2 + (p[:, 1] - y) ** 2 < r * r
+        return np.sum((np.asarray(p, float)[:, :c.size] - c) ** 2, axis=1) < r * r
 
     bg = None
     if background is not None:
-        x0, x1, y0, y1 = background
+        lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
 
         def bg(p):
-            return (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
+            q = np.asarray(p, float)[:, :lo.size]
+            return np.all((q >= lo) & (q <= hi), axis=1)
     return roi, bg
 
 
@@ -101,9 +133,10 @@ class _Elements:
     :func:`femreg.inversion.modulus_contrast` reads them."""
 
     def __init__(self, res, keep):
-        from skfem import MeshQuad1
+        from skfem import MeshHex1, MeshQuad1
 
-        self.mesh = MeshQuad1(np.asarray(res.mesh.p, float), np.asarray(res.mesh.t)[:, keep])
+        mesh_type = MeshHex1 if np.shape(res.mesh.p)[0] == 3 else MeshQuad1
+        self.mesh = mesh_type(np.asarray(res.mesh.p, float), np.ascontiguousarray(np.asarray(res.mesh.t)[:, keep]))
         self.mu = np.asarray(res.mu, float)[keep]
         self.centroids = self.mesh.p[:, self.mesh.t].mean(axis=1).T
 
@@ -123,9 +156,10 @@ def _modulus(res, roi, bg) -> dict:
     out = {k: float(v) for k, v in modulus_contrast(sub, roi).items() if np.ndim(v) == 0}
     unc = getattr(res, "uncertainty", None)
     if unc is not None and np.size(unc) == res.mu.size:
-        from skfem import Basis, ElementQuad0
+        from skfem import Basis, ElementHex0, ElementQuad0
 
-        wmu = Basis(res.mesh, ElementQuad0()).dx.sum(axis=1) * np.asarray(res.mu, float)
+        e0 = ElementHex0() if np.shape(res.mesh.p)[0] == 3 else ElementQuad0()
+        wmu = Basis(res.mesh, e0).dx.sum(axis=1) * np.asarray(res.mu, float)
         sig = np.asarray(unc, float).ravel()
         # d log(region mean) / d log mu_e = element e's share of the region's sum of area x mu
         var = sum(float(np.sum((wmu[s] / wmu[s].sum()) ** 2 * sig[s] ** 2)) for s in (cin, cout))
@@ -143,12 +177,14 @@ def measure(path, inclusion, background=None, strain="element") -> dict:
     res = load_inversion(path) if inversion else load_result(path)
     notes = _check_regions(res.mesh, inclusion, background)
     roi, bg = _regions(inclusion, background)
+    dim = np.shape(res.mesh.p)[0]
+    box_keys = ("x0", "x1", "y0", "y1", "z0", "z1")[:2 * dim]
     out = {"result": str(path), "kind": "inversion" if inversion else "registration",
            "success": bool(res.success), "message": str(res.message), "flagged": not bool(res.success),
-           "inclusion_mm": dict(zip(("x", "y", "r"), (float(v) for v in inclusion))),
-           "background_mm": None if background is None else dict(zip(("x0", "x1", "y0", "y1"),
-                                                                     (float(v) for v in background))),
-           "strain": strain, "mesh_bounds_mm": dict(zip(("x0", "x1", "y0", "y1"), _bounds(res.mesh)))}
+           "inclusion_mm": dict(zip(("x", "y", "z", "r") if dim == 3 else ("x", "y", "r"),
+                                    (float(v) for v in inclusion))),
+           "background_mm": None if background is None else dict(zip(box_keys, (float(v) for v in background))),
+           "strain": strain, "mesh_bounds_mm": dict(zip(box_keys, _bounds(res.mesh)))}
     source = _Displacement(res.mesh, res.u_measured) if inversion else res
     try:
         out.update({k: float(v) for k, v in contrast_metrics(source, roi, background=bg, strain=strain).items()})
@@ -162,10 +198,13 @@ def measure(path, inclusion, background=None, strain="element") -> dict:
 
 def _report(m) -> str:
     inc = m["inclusion_mm"]
+    centre = ", ".join(f"{inc[a]:g}" for a in "xyz" if a in inc)
+    bg = m["background_mm"]
     lines = [f"{m['kind']} result {m['result']}",
-             f"inclusion: centre ({inc['x']:g}, {inc['y']:g}) mm, radius {inc['r']:g} mm; background: "
-             + ("rest of the mesh" if m["background_mm"] is None else
-                "x {x0:g}-{x1:g}, y {y0:g}-{y1:g} mm".format(**m["background_mm"])),
+             f"inclusion: {'sphere' if 'z' in inc else 'disk'}, centre ({centre}) mm, radius {inc['r']:g} mm; "
+             "background: " + ("rest of the mesh" if bg is None else
+                               ", ".join(f"{a} {bg[a + '0']:g}-{bg[a + '1']:g}" for a in "xyz" if a + "0" in bg)
+                               + " mm"),
              f"strain ratio SR (background / inclusion, {m['strain']} strain): {m['SR']:.4g}",
              f"CNR_e: {m['CNR_e']:.4g} ({10 * math.log10(m['CNR_e']) if m['CNR_e'] > 0 else float('-inf'):.1f} dB)",
              f"SNR_e (background): {m['SNR_e']:.4g}"]

@@ -13,7 +13,9 @@ def add_parser(subparsers):
         description="Plot a result .npz written by `femreg register`: B-mode (with --reference) or mesh, "
                     "ux, uy (mm), exx, eyy, exy (%) with colour bars and mm axes (a red banner when the result "
                     "failed; the image outside the mesh hatched), and the per-element quality map "
-                    "(OUT_quality.png) when the result holds one.  Optionally export the mesh with nodal "
+                    "(OUT_quality.png) when the result holds one.  A file of `femreg invert` gets the modulus "
+                    "image, its uncertainty and the axial strain (a volume's: three orthogonal slices of each "
+                    "through --slice).  Optionally export the mesh with nodal "
                     "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 0 when drawn; "
                     "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
                     "printed; 2 with a one-line reason on bad input.")
@@ -28,6 +30,9 @@ def add_parser(subparsers):
     p.add_argument("--frame", type=int, default=0, help="frame of --reference to use (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
+    from .invert_cmd import add_slice_arg
+
+    add_slice_arg(p)
     add_reader_args(p, group_title="--reference file options")
     p.set_defaults(func=run)
     return p
@@ -58,6 +63,14 @@ def _run(args) -> int:
     if is_inversion_file(args.result):
         return plot_inversion_file(args)
     # ----
+    if getattr(args, "slice", None) is not None:
+        raise InputError("--slice applies to the picture of a volume's inversion (a file of femreg invert)")
+    from ..volume_result import is_volume_result
+
+    if is_volume_result(args.result):
+        raise InputError(f"{args.result} is a volume's registration result: femreg plot draws 2D results and "
+                         "inversions (femreg invert it, or draw its slices with femreg.volplot.plot_volume_slices"
+                         "(result.on_grid(), result.spacing, result.origin))")
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")

@@ -37,10 +37,11 @@ def add_parser(subparsers):
     g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
     g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
-    g.add_argument("--refine", metavar="N|auto|slip", default=None,
-                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (2), or "
-                        "slip (3 passes, and the shear-traction weight lowered where layers slide; "
-                        "femreg.refine.SLIP_REFINEMENT); default off")
+    g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
+                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (up to "
+                        "2), slip (3 passes, and the shear-traction weight lowered where layers slide; "
+                        "femreg.refine.SLIP_REFINEMENT), none (or 0) off; default auto with --strategy auto and "
+                        "R_P_sigma on the default mesh, off otherwise")
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -85,10 +86,12 @@ def run(args) -> int:
         r = args.refine.strip().lower()
         if r in ("auto", "slip"):
             kw["refine"] = SLIP_REFINEMENT if r == "slip" else "auto"
+        elif r in ("none", "off"):
+            kw["refine"] = None
         elif r.isdigit():
             kw["refine"] = int(r)
         else:
-            raise InputError(f"--refine takes a number of passes, auto or slip, got {args.refine!r}")
+            raise InputError(f"--refine takes a number of passes, auto, slip or none, got {args.refine!r}")
     ref_fr = frames_from_args(args, args.reference)
     if args.moving is None:
         i, j = args.pair or (0, 1)

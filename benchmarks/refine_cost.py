@@ -1,0 +1,144 @@
+"""Cost and effect of adaptive refinement (:mod:`femreg.refine`) on the robustness benchmark's pairs: R_P_sigma with
+``refine=None`` and with ``refine=<spec>``, the same pairs, CPU time (``time.process_time``, the minimum over
+``--repeats`` interleaved runs: the machine may be shared, wall time is not a measure there) and the total strain
+error of :func:`benchmarks.robustness.errors`.
+
+Per case: error (%) without -> with refinement (and the success flags where they differ), its difference (points),
+CPU seconds of both and their ratio, the elements before -> after.  The summary line gives the largest error increase and the median and largest time
+ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
+The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
+
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto] [--seed 0]
+[--out out/refine_cost]``.
+A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.robustness import CASES, errors, make_data, roi_slices, truth  # noqa: E402
+from forward.pairs import PROBES  # noqa: E402
+
+
+def _spec(name):
+    from femreg.refine import SLIP_REFINEMENT
+
+    if name in ("none", "0"):
+        return None
+    if name == "slip":
+        return SLIP_REFINEMENT
+    return name if name == "auto" else int(name)
+
+
+def _pair(case, data):
+    if case.sequence:       # frame 0 -> 1 as a pair
+        return data.frames[0], data.frames[1]
+    return data.ref, data.mov
+
+
+def _truth(case, data, sl):
+    if not case.sequence:
+        return truth(data, case, sl)
+    x0, y0 = data.origin
+    dx, dy = data.spacing
+    ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
+    jj = np.arange(sl[1].start, sl[1].stop)
+    X, Y = np.meshgrid(x0 + ii * dx, y0 + jj * dy, indexing="ij")
+    P = np.column_stack([X.ravel(), Y.ravel()])
+    u, e = data.true_displacement(1, P), data.true_strain(1, P)
+    sh = X.shape
+    return dict(ux=u[:, 0].reshape(sh), uy=u[:, 1].reshape(sh), exx=e[:, 0].reshape(sh),
+                eyy=e[:, 1].reshape(sh), exy=e[:, 2].reshape(sh))
+
+
+def measure(case, specs, repeats):
+    """{label: dict(e, cpu, elements, message)} of R_P_sigma with each ``refine=`` spec of ``specs`` (label ->
+    spec) on the case's pair; CPU seconds the minimum over ``repeats`` interleaved runs."""
+    import femreg
+
+    data = make_data(case)
+    ref, mov = _pair(case, data)
+    sl = roi_slices(ref.shape, data.spacing)
+    t = _truth(case, data, sl)
+    lam = PROBES[case.probe].wavelength_mm
+    out = {k: dict(cpu=np.inf) for k in specs}
+    for _ in range(repeats):
+        for label, spec in specs.items():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c0 = time.process_time()
+                res = femreg.register(ref, mov, spacing=data.spacing, origin=data.origin, refine=spec)
+                dt = time.process_time() - c0
+            o = out[label]
+            o["cpu"] = min(o["cpu"], dt)
+            if "e" not in o:
+                o.update(e=errors(res.on_grid(), t, sl, lam)["e"], elements=int(res.mesh.t.shape[1]),
+                         success=bool(res.success), passes=getattr(getattr(res, "refinement", None), "passes", []))
+    return out
+
+
+def warm_up():
+    import femreg
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    d = make_pair(F.compression(0.01), "L7", (12.0, 10.0), 30.0, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=None)
+        femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine="auto")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", default="")
+    ap.add_argument("--refine", default="auto", help="auto, slip or a number of passes")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default="out/refine_cost")
+    ap.add_argument("--seed", type=int, default=0, help="added to every case's seed (other speckle and noise)")
+    a = ap.parse_args(argv)
+    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(v, "1")
+    words = [w for w in a.cases.split(",") if w]
+    cases = [c for c in CASES if not words or any(w in c.name for w in words)]
+    if a.seed:
+        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
+    warm_up()
+    specs = {"off": None, "refine": _spec(a.refine)}
+    lines = ["| case | e % off -> refine | points | CPU s off | CPU s refine | ratio | elements |\n",
+             "|---|---|---|---|---|---|---|\n"]
+    worst, ratios = -np.inf, []
+    for case in cases:
+        r = measure(case, specs, a.repeats)
+        o, f = r["off"], r["refine"]
+        d = 100 * (f["e"] - o["e"])
+        ratio = f["cpu"] / o["cpu"]
+        worst, ratios = max(worst, d), ratios + [ratio]
+        flag = "" if o["success"] == f["success"] else f" (success {o['success']} -> {f['success']})"
+        lines.append(f"| {case.name} | {100 * o['e']:.2f} -> {100 * f['e']:.2f}{flag} | {d:+.2f} | {o['cpu']:.2f} | "
+                     f"{f['cpu']:.2f} | {ratio:.2f} | {o['elements']} -> {f['elements']} |\n")
+        print(lines[-1], end="", flush=True)
+    summary = (f"\nlargest error increase {worst:+.2f} points; CPU time ratio median {np.median(ratios):.2f}, "
+               f"max {np.max(ratios):.2f} ({len(ratios)} pairs)\n")
+    md = "".join(lines) + summary
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.md").write_text(md)
+    print(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
