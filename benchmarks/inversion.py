@@ -1,12 +1,13 @@
 """Modulus inversion from *registered* RF pairs: accuracy, honesty (flags), calibration of the uncertainty, beta.
 
-Truths: a bonded disk at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`, radius from the case),
-plane strain or plane stress; RF pairs of 30 x 30 mm from 5 mm depth (:func:`forward.pairs.make_pair`).  Case sets
-(:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compression, seed)): ``main`` (radius 5 mm,
-contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it),
-``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2`` (:data:`FRESH2`, drawn before the rule's
-second revision and not looked at until it was fixed), ``curves``
-(:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration).  Each pair is
+Truths: a bonded disk at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`, radius from the
+case), plane strain or plane stress; RF pairs of 30 x 30 mm from 5 mm depth (:func:`forward.pairs.make_pair`). Case
+sets (:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compression, seed)): ``main`` (radius 5 mm,
+contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it; the element-size exponent of the beta target and the
+calibration's 1/h on it and held-out),
+``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2``
+(:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``curves``
+(:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration). Each pair is
 registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
 effective-parameter rule, uncertainty).
 
@@ -28,7 +29,8 @@ rule and the uncertainty.
 
 Usage: ``python benchmarks/inversion.py [--quick] [--set main --set curves ...] [--rows exact,femreg]
 [--json rows.json] [--from-json rows.json] [--figure curves.png] [--out table.md]``.  Registrations are cached
-under ``$FEMREG_CACHE/bench_inversion``.
+under ``$FEMREG_CACHE/bench_inversion``, by case name only: empty that folder after a change of
+``femreg.register``'s defaults (e.g. its adaptive refinement), or the old registrations are reused.
 """
 from __future__ import annotations
 

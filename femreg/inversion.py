@@ -1143,7 +1143,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             theta = theta_b
             if not info["success"] and "failed" in info["message"]:
                 break
-        if (beta is None and beta_grid is None and beta_method in ("dof", "dof-area") and chosen is not None and chosen[0] == grid[0]
+        if (beta is None and beta_grid is None and beta_method in ("dof", "dof-area") and chosen is not None
+                and chosen[0] == grid[0]
                 and len(sweep) == 1 and sweep[0]["gamma"] > target_dof):
             # more parameters than the target already at the largest beta of the default grid (fine meshes, in
             # vivo noise): go up by half decades, DOF_UP_STEPS at most; the grid's edge is then the largest of these
