@@ -1,11 +1,13 @@
 """Modulus inversion from *registered* RF pairs: accuracy, honesty (flags), calibration of the uncertainty, beta.
 
-Truths: a bonded disk at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`, radius from the case),
-plane strain or plane stress; RF pairs of 30 x 30 mm from 5 mm depth (:func:`forward.pairs.make_pair`).  Case sets
-(:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compression, seed)): ``main`` (radius 5 mm,
-contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it),
-``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``curves``
-(:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration).  Each pair is
+Truths: a bonded disk at 20 mm depth in an 80 mm block (:data:`forward.fields.INCLUSION_MODEL`, radius from the
+case), plane strain or plane stress; RF pairs of 30 x 30 mm from 5 mm depth (:func:`forward.pairs.make_pair`). Case
+sets (:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compression, seed)): ``main`` (radius 5 mm,
+contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it; the element-size exponent of the beta target and the
+calibration's 1/h on it and held-out),
+``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2``
+(:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``curves``
+(:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration). Each pair is
 registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
 effective-parameter rule, uncertainty).
 
@@ -27,7 +29,8 @@ rule and the uncertainty.
 
 Usage: ``python benchmarks/inversion.py [--quick] [--set main --set curves ...] [--rows exact,femreg]
 [--json rows.json] [--from-json rows.json] [--figure curves.png] [--out table.md]``.  Registrations are cached
-under ``$FEMREG_CACHE/bench_inversion``.
+under ``$FEMREG_CACHE/bench_inversion``, by case name only: empty that folder after a change of
+``femreg.register``'s defaults (e.g. its adaptive refinement), or the old registrations are reused.
 """
 from __future__ import annotations
 
@@ -70,6 +73,14 @@ FRESH = tuple((m, c, pr, snr, r, lev, seed)
                                                (0.25, "L12", 20.0, 5.0, 0.01, 13), (4.0, "L12", 30.0, 6.0, 0.03, 14),
                                                (2.0, "L7", 20.0, 4.0, 0.01, 15), (0.25, "paper", 25.0, 6.0, 0.01, 16),
                                                (0.5, "L7", 15.0, 4.0, 0.04, 17), (2.0, "paper", 30.0, 5.0, 0.02, 18)))
+#: Fresh2: drawn before the beta rule's second revision (the target between per-area and per-element) and not looked
+#: at until that rule was fixed; new seeds 21-28, contrasts off the main set's grid (0.35, 3) among them, every probe.
+FRESH2 = tuple((m, c, pr, snr, r, lev, seed)
+               for m in MODELS
+               for c, pr, snr, r, lev, seed in ((0.25, "L15", 20.0, 5.0, 0.02, 21), (3.0, "L12", 25.0, 4.0, 0.01, 22),
+                                                (0.5, "L3", 30.0, 5.0, 0.03, 23), (4.0, "L15", 15.0, 6.0, 0.01, 24),
+                                                (0.35, "paper", 20.0, 4.0, 0.04, 25), (4.0, "L7", 25.0, 5.0, 0.03, 26),
+                                                (2.0, "L12", 30.0, 6.0, 0.02, 27), (0.25, "L7", 15.0, 4.0, 0.02, 28)))
 #: Outside the targets' range, for the contrast-recovery curves (plane strain, L7, 1 %, seed 6, one parameter
 #: varied from the 5 mm / 20 dB / contrast 4 or 0.25 case): radius, contrast, SNR.
 CURVES = (tuple(("plane-strain", c, "L7", 20.0, r, 0.01, 6) for c in (0.25, 4.0) for r in (1.5, 2.5, 3.5, 8.0))
@@ -376,7 +387,7 @@ def curves_figure(rows, path):
 
 
 SETS = {"main": tuple((m, c, pr, snr, 5.0, 0.01, 0) for pr, snr in SETTINGS for m in MODELS for c in CONTRASTS),
-        "held-out": HELD_OUT, "fresh": FRESH, "curves": CURVES,
+        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "curves": CURVES,
         "quick": tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 0) for c in CONTRASTS)}
 
 

@@ -93,14 +93,25 @@ Choice of :math:`\beta` (``beta=None``), default ``beta_method="dof"``: solves r
 (largest first, each warm-started from the previous one); at each :math:`\beta` the number of parameters the data
 determine, :math:`\gamma = \mathrm{tr}(H_d H^{-1})` (:math:`H_d` the Gauss-Newton Hessian of the misfit, H that of
 J; MacKay, Neural Comput. 4 (1992) 415), is computed, and the chosen :math:`\beta` is the grid value whose
-:math:`\gamma` is nearest :math:`|\Omega|/` :data:`DOF_AREA` (one determined parameter per 20 mm^2, at most half
-the elements; on the default grid, when the largest :math:`\beta` already gives more, up to
-:data:`DOF_UP_STEPS` half decades above it are tried).  :math:`\gamma` grows as :math:`\beta` falls; fixing it per area fixes the resolution of the
-modulus image whatever the element size.  The rule does not read the noise: on the registered pairs of
-:mod:`benchmarks.inversion` the misfit of the true field against the registered one sits near the misfit at this
-:math:`\beta` (the discrepancy principle with the true noise level picks the same or the neighbouring grid value
-on 16 of 16 main cases), but exact or much noisier data than a registration's deserve another :math:`\beta`
-(pass ``beta=``).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
+:math:`\gamma` is nearest
+
+.. math::
+    \gamma^* = \frac{|\Omega|}{A}\,\Big(\frac{h_0}{h}\Big)^p
+
+with A = :data:`DOF_AREA` = 20 mm^2, :math:`h_0` = :data:`DOF_ELEMENT_SIZE` = 1.4 mm, p = :data:`DOF_EXPONENT` = 1
+and h the mean element size (at most half the elements; on the default grid, when the largest :math:`\beta` already
+gives more, up to :data:`DOF_UP_STEPS` half decades above it are tried).  :math:`\gamma` grows as :math:`\beta`
+falls.  The target is the geometric mean of one parameter per 20 mm^2 and one per ten elements (the two coincide at
+:math:`h = \sqrt 2` mm): a registration's element size follows the speckle size, so finer elements carry
+displacement data of finer resolution, but each node's error is correlated with its neighbours' over a length, so
+the information grows more slowly than the element count.  Measured on the fixed-beta sweeps of
+benchmarks/inversion.py (main and held-out sets, benchmarks/inversion_beta_sweep.py): area / :math:`\gamma` at the
+truth-best :math:`\beta` falls as :math:`h^{1.0-1.2}` (median 16-17 mm^2 on 1.4-1.5 mm elements, 7 mm^2 on
+0.68 mm ones).  The per-area target alone (``beta_method="dof-area"``, the former default) put the fine 12 / 15 MHz
+meshes at :math:`\beta` 0.3-1 (truth-best 0.03), flagged at the grid's top; one per ten elements went too small.
+The rule does not read the noise: exact or much noisier data than a registration's deserve another :math:`\beta`
+(pass ``beta=``); in 3D the target stays one parameter per :math:`(4.5\ \mathrm{mm})^3` (not re-measured against
+the element size).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
 is flagged.
 
 ``beta_method="growth"``: the last :math:`\beta` before the regulariser R starts to grow quickly as
@@ -126,6 +137,10 @@ Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio 
 :func:`strain_ratio`, against the 2D model's :math:`\bar\lambda/(\bar\lambda+2)` (:func:`model_ratio`); see
 :func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.96-0.97 (R_P_sigma, R_P_eps) and
 0.85 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths about 0.5.
+
+Uncertainty: the Laplace std of a registered displacement is multiplied by :data:`REGISTERED_SIGMA` x
+:data:`DOF_ELEMENT_SIZE` / h (:func:`_registered_sigma`; the registration's errors are correlated over about 2.4 mm,
+whatever its element size).
 
 Never silently wrong: ``success`` is False, with the reasons in ``flags`` and ``message``, when the optimiser
 fails, :math:`\beta` lands on the smallest value of its grid (or on the largest while the image is not flat:
@@ -158,7 +173,7 @@ from .material import lambda_bar as material_lambda_bar
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "strain_ratio", "model_ratio", "AUTO_RATIO",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE", "DOF_AREA", "BETA_METHODS",
-           "MISFIT_LIMIT"]
+           "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -168,11 +183,16 @@ BETA_GRID = tuple(float(10.0 ** e) for e in np.arange(-1.0, -4.01, -0.5))
 LCURVE_SLOPE = 1.0
 #: Growth rate -d log R / d log beta at which the default rule stops: a factor 1.3 per half decade.
 GROWTH_RATE = float(np.log(1.3) / np.log(np.sqrt(10.0)))
-#: Rules for beta (``beta_method``); the first is the default.
-BETA_METHODS = ("dof", "growth", "l-curve")
-#: Default rule: beta at which the data determine one parameter per this area (mm^2), gamma = tr(H_d H^-1) =
-#: area / DOF_AREA (module docstring): one per 4.5 x 4.5 mm, whatever the element size.
+#: Rules for beta (``beta_method``); the first is the default.  "dof-area" is the former default (the target per
+#: area alone).
+BETA_METHODS = ("dof", "dof-area", "growth", "l-curve")
+#: Default rule: beta at which the data determine gamma = tr(H_d H^-1) = area / DOF_AREA * (DOF_ELEMENT_SIZE /
+#: h)^DOF_EXPONENT parameters (module docstring); "dof-area": area / DOF_AREA whatever the element size.
 DOF_AREA = 20.0
+#: Element size (mm) at which the default rule's target is one parameter per DOF_AREA.
+DOF_ELEMENT_SIZE = 1.4
+#: Power of DOF_ELEMENT_SIZE / h in the default rule's target (0: per area, 2: per element).
+DOF_EXPONENT = 1.0
 #: Half-decade steps the default rule may take above the largest beta of the grid.
 DOF_UP_STEPS = 2
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
@@ -195,11 +215,14 @@ CONTRADICTION_MARGIN = 0.1
 #: which the model is said not to explain the data: 4 x the largest misfit of the true field against a registered
 #: one on benchmarks/inversion.py (5.4e-3: 3 MHz probe, 20 dB; 1.3e-4 to 1.9e-3 at 5.5-7.5 MHz).
 MISFIT_LIMIT = 0.02
-#: Factor on the Laplace standard deviation of a registered displacement (not of a callable's): the temperature
-#: 2 phi / (n - gamma) takes the n nodal data as independent, but a registration's errors are correlated over
-#: neighbouring nodes and carry its regulariser's bias; measured on the main cases of benchmarks/inversion.py as
-#: the factor that puts 68 % of the true log mu within +-1 sigma (held-out cases reported in docs/inversion.md).
-REGISTERED_SIGMA = 1.6
+#: Factor on the Laplace standard deviation of a registered displacement (not of a callable's) on elements of
+#: DOF_ELEMENT_SIZE, scaled by DOF_ELEMENT_SIZE / h (:func:`_registered_sigma`): the temperature 2 phi / (n - gamma)
+#: takes the n nodal data as independent, but a registration's errors are correlated over neighbouring nodes (over
+#: a length, about 1.7 x 1.4 = 2.4 mm here, not a number of elements: the fewer independent data per node, the
+#: finer the mesh) and carry its regulariser's bias.  Measured on the main and held-out cases of
+#: benchmarks/inversion.py (fixed-beta sweeps, benchmarks/inversion_beta_sweep.py) as the factor that puts 68 % of
+#: the true log mu within +-1 sigma at the rule's beta (without the 1/h: 1.6 on the 1.4-1.5 mm meshes, 4.2 on 0.68 mm).
+REGISTERED_SIGMA = 1.7
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -838,6 +861,28 @@ def _contradiction(mu, el_strain, mesh, area_el):
     return "; ".join(out)
 
 
+def _dof_target(area: float, n_el: int, h: float, dim: int, beta_method: str = "dof") -> float:
+    r"""Number of parameters :math:`\gamma` the ``"dof"`` rules aim at (module docstring), at most half the elements.
+
+    2D ``"dof"``: ``area / DOF_AREA * (DOF_ELEMENT_SIZE / h) ** DOF_EXPONENT`` (area mm^2, h the mean element size
+    mm); ``"dof-area"``: ``area / DOF_AREA``.  3D (volume mm^3): ``area / DOF_AREA ** 1.5`` for both (one per the
+    cube of 4.5 mm; not re-measured against the element size)."""
+    if dim == 3:
+        target = area / DOF_AREA ** 1.5
+    elif beta_method == "dof-area":
+        target = area / DOF_AREA
+    else:
+        target = area / DOF_AREA * (DOF_ELEMENT_SIZE / h) ** DOF_EXPONENT
+    return float(min(target, 0.5 * n_el))
+
+
+def _registered_sigma(h: float) -> float:
+    """Factor on the Laplace std of a registered displacement inverted on elements of mean size h mm:
+    REGISTERED_SIGMA x DOF_ELEMENT_SIZE / h, at least 1 (errors correlated over a fixed length, not a fixed
+    number of elements)."""
+    return float(max(REGISTERED_SIGMA * DOF_ELEMENT_SIZE / h, 1.0))
+
+
 def _data_hessian(fem, problem, theta):
     """Gauss-Newton Hessian of the misfit, H_d = S^T M S / s^2 (n_el, n_el), S = du/dtheta (:func:`_sensitivity`)."""
     mu = np.exp(theta)
@@ -1015,7 +1060,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         :data:`DEFAULT_ELEMENT_SIZE_3D`).
     beta : float >= 0, optional
         :math:`\beta`, weight of the regulariser; None = the rule of the module docstring (sweep of ``beta_grid``,
-        default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "growth" or "l-curve").
+        default :data:`BETA_GRID`; ``beta_method`` "dof" (default), "dof-area" (the former
+        default: the target per area alone), "growth" or "l-curve").
     regularization : {"tv", "tikhonov"}
         Total variation (default: sharp inclusion edges) or Tikhonov (smooth) of :math:`\log\mu`.
     weights : (w_x, w_y) or, for 3D data, (w_x, w_y, w_z), optional
@@ -1046,7 +1092,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         ``one_step`` in the result records the image term before and after.
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
-        ``constrained``); costs one dense Hessian of size n_el.
+        ``constrained``; for a registered displacement times :func:`_registered_sigma`, :data:`REGISTERED_SIGMA` x
+        :data:`DOF_ELEMENT_SIZE` / h); costs one dense Hessian of size n_el.
 
     Returns
     -------
@@ -1198,8 +1245,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         bar = tqdm(desc="invert", unit="it")
     theta = np.zeros(fem.n_el)
     sweep = []
-    # one determined parameter per DOF_AREA in 2D, per the cube of its side (4.5^3 mm^3) in 3D (fem.area: volume)
-    target_dof = min(fem.area / (DOF_AREA if dim == 2 else DOF_AREA ** 1.5), 0.5 * fem.n_el)
+    target_dof = _dof_target(fem.area, fem.n_el, h, dim, beta_method)
     hd_cache = {}
     t = time.perf_counter()
     try:
@@ -1219,7 +1265,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 chosen = runs[-1]        # no convergence at this beta: the previous one is the last reliable
                 sweep[-1]["stop"] = "not converged"
                 break
-            if beta is None and beta_method == "dof":
+            if beta is None and beta_method in ("dof", "dof-area"):
                 Hd_b = _data_hessian(fem, problem, theta_b)
                 hd_cache[b] = Hd_b
                 gam, _ = _effective_parameters(Hd_b, Hd_b + b * reg.hessian(theta_b))
@@ -1246,7 +1292,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             theta = theta_b
             if not info["success"] and "failed" in info["message"]:
                 break
-        if (beta is None and beta_grid is None and beta_method == "dof" and chosen is not None and chosen[0] == grid[0]
+        if (beta is None and beta_grid is None and beta_method in ("dof", "dof-area") and chosen is not None
+                and chosen[0] == grid[0]
                 and len(sweep) == 1 and sweep[0]["gamma"] > target_dof):
             # more parameters than the target already at the largest beta of the default grid (fine meshes, in
             # vivo noise): go up by half decades, DOF_UP_STEPS at most; the grid's edge is then the largest of these
@@ -1274,13 +1321,16 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     finally:
         if bar is not None:
             bar.close()
-    name = {"l-curve": "L-curve", "growth": "R-growth", "dof": "effective parameters"}[beta_method]
+    name = {"l-curve": "L-curve", "growth": "R-growth", "dof": "effective parameters",
+            "dof-area": "effective parameters per area"}[beta_method]
+    target_text = (f"area / {DOF_AREA:g} mm^2" if beta_method == "dof-area" or dim == 3 else
+                   f"area / {DOF_AREA:g} mm^2 x ({DOF_ELEMENT_SIZE:g} mm / h {h:.2g} mm)^{DOF_EXPONENT:g}")
     if beta is not None:
         rule = "given"
-    elif chosen is not None and beta_method == "dof" and not sweep[-1].get("stop"):
+    elif chosen is not None and beta_method in ("dof", "dof-area") and not sweep[-1].get("stop"):
         g_chosen = next(e["gamma"] for e in sweep if e["beta"] == chosen[0])
-        rule = (f"effective parameters: the beta of {[f'{x:.3g}' for x in grid]} whose gamma = tr(H_d H^-1) is "
-                f"nearest area / {DOF_AREA:g} mm^2 = {target_dof:.3g} (gamma {g_chosen:.3g})")
+        rule = (f"{name}: the beta of {[f'{x:.3g}' for x in grid]} whose gamma = tr(H_d H^-1) is "
+                f"nearest {target_text} = {target_dof:.3g} (gamma {g_chosen:.3g})")
     elif chosen is not None and sweep[-1].get("stop"):
         rule = (f"{name}: last beta of {[f'{x:.3g}' for x in grid]} before a solve that did not converge "
                 f"(beta {sweep[-1]['beta']:.3g})")
@@ -1290,8 +1340,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     elif chosen is not None:
         rule = (f"R-growth: last beta of {[f'{x:.3g}' for x in grid]} before the regulariser grows as "
                 f"d log R / -d log beta > {GROWTH_RATE:g}")
-    elif beta_method == "dof":
-        rule = (f"{name}: gamma stays below area / {DOF_AREA:g} mm^2 = {target_dof:.3g} on "
+    elif beta_method in ("dof", "dof-area"):
+        rule = (f"{name}: gamma stays below {target_text} = {target_dof:.3g} on "
                 f"{[f'{x:.3g}' for x in grid]}; smallest beta reached")
     else:
         rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
@@ -1302,7 +1352,12 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         problem.g = info["boundary"]
     q5, q95 = np.percentile(theta, [5, 95])
     flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
-    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat)):
+    # the dof rules at the largest beta tried: an edge only when even that beta leaves gamma above the target; with
+    # gamma below it there and above it at the next beta, the target lies inside the grid and the largest is nearer
+    g_b = next((e.get("gamma") for e in sweep if e["beta"] == b), None)
+    bracketed = (beta_method in ("dof", "dof-area") and g_b is not None and g_b <= target_dof
+                 and any(e.get("gamma", -1.0) >= target_dof for e in sweep))
+    if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat and not bracketed)):
         flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
                      f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
         rule += " [at the grid's edge]"
@@ -1368,7 +1423,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         std, constrained = _laplace(fem, reg, problem, theta, b, n_data=fem.I.size,
                                     Hd=hd_cache.get(b) if images is None else None)
         if isinstance(displacement, RegistrationResult):
-            std = std * REGISTERED_SIGMA      # module docstring: the registered field's correlated errors
+            std = std * _registered_sigma(h)      # module docstring: the registered field's correlated errors
     t_unc = time.perf_counter() - t
     mu_kpa = None
     if ref is not None:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import femreg
-from femreg.inversion import (DOF_AREA, MISFIT_LIMIT, _effective_parameters, _tensor_mesh, invert,
+from femreg.inversion import (DOF_AREA, MISFIT_LIMIT, _dof_target, _effective_parameters, _tensor_mesh, invert,
                               modulus_contrast)
 
 from test_inversion import REGION, inclusion, solution  # noqa: E402  (shared FE solutions)
@@ -52,13 +52,33 @@ def test_beta_rule_takes_the_gamma_nearest_its_target():
     res = invert(_noisy(sol, 2e-3), region=REGION, element_size=3.0, uncertainty=False)
     gam = [e["gamma"] for e in res.sweep]
     assert np.all(np.diff(gam) > 0), gam                 # fewer parameters determined at larger beta
-    target = min(900.0 / DOF_AREA, 0.5 * res.mesh.t.shape[1])     # a 30 x 30 mm region
+    target = _dof_target(900.0, res.mesh.t.shape[1], 3.0, 2)     # a 30 x 30 mm region of 3 mm elements
+    assert target < 900.0 / DOF_AREA          # coarser elements than the rule's reference size: fewer parameters
     chosen = next(e["gamma"] for e in res.sweep if e["beta"] == res.beta)
     assert all(abs(np.log(chosen / target)) <= abs(np.log(g / target)) + 1e-12 for g in gam)
     assert res.success and res.beta_rule.startswith("effective parameters")
     c = modulus_contrast(res, inclusion)["contrast"]
-    # measured 3.18 (true 4) at beta 0.0316 on these 3 mm elements (2.5 per disk radius; 3.58 at beta 0.01)
-    assert 2.9 < c < 4.4, c
+    # measured 3.58 (true 4) at beta 0.01 (gamma 20.5, target 21) on these 3 mm elements (2.5 per disk radius)
+    assert 3.2 < c < 4.4, c
+
+
+def test_beta_rule_on_a_fine_mesh_takes_a_smaller_beta_than_per_area():
+    """0.75 mm elements (1024 over 24 x 24 mm, as the 12-15 MHz probes' registrations): the target per area alone
+    ("dof-area", the former default) goes up by half a decade above the grid to beta 0.316 and loses contrast; the
+    default target, which grows as the elements shrink, stays on the grid and recovers more of it."""
+    sol = solution("plane-stress", 40.0)
+    f = _noisy(sol, 1e-3, h=0.75)
+    region = ((18.0, 42.0), (-12.0, 12.0))
+    res = invert(f, region=region, element_size=0.75, uncertainty=False)
+    assert res.success and not res.flags, res.flags
+    # measured 0.1: gamma 44 there and 85 at 0.0316 around the target 59 (per area alone: 29)
+    assert res.beta <= 0.1 + 1e-12, res.sweep
+    c = modulus_contrast(res, inclusion)["contrast"]
+    assert 3.55 < c < 4.4, c                                      # measured 3.70 (true 4)
+    old = invert(f, region=region, element_size=0.75, uncertainty=False, beta_method="dof-area")
+    c_old = modulus_contrast(old, inclusion)["contrast"]
+    # measured: beta 0.316 (gamma 28 against the target 29), contrast 3.41
+    assert old.beta > 0.3 and c_old < c - 0.15, (old.sweep, c_old)
 
 
 def test_beta_rule_on_its_grid_edges_is_flagged():
