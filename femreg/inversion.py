@@ -1423,7 +1423,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         std, constrained = _laplace(fem, reg, problem, theta, b, n_data=fem.I.size,
                                     Hd=hd_cache.get(b) if images is None else None)
         if isinstance(displacement, RegistrationResult):
-            std = std * _registered_sigma(h)      # module docstring: the registered field's correlated errors
+            # module docstring: the registered field's correlated errors, whose length is the registration's
+            # element size before adaptive refinement (a refined mesh's smaller elements do not shorten it)
+            base = getattr(getattr(displacement, "refinement", None), "base_size", None)
+            h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None and dim == 2 else h
+            std = std * _registered_sigma(h_reg)
     t_unc = time.perf_counter() - t
     mu_kpa = None
     if ref is not None:

@@ -466,3 +466,31 @@ def test_a_refined_result_that_fails_its_check_is_dropped(compression_pair, monk
     r = femreg.register(d.ref, d.mov, refine=Refinement(passes=1, threshold=0.0, relative=0.0), **kw)
     assert r.success and r.mesh.t.shape[1] == r0.mesh.t.shape[1] and np.array_equal(r.u, r0.u)
     assert "refinement dropped" in r.message and "injected" in r.message and not hasattr(r, "refinement")
+
+
+def test_a_refined_result_file_keeps_the_starting_element_size_for_the_inversion(compression_pair, tmp_path):
+    """A refined result keeps, through its file, the element size refinement started from; the inversion's
+    uncertainty scales with it (the registration's errors are correlated over its unrefined elements), not with
+    the refined mesh's smaller elements."""
+    from femreg.inversion import _registered_sigma
+
+    d = compression_pair
+    r1 = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin,
+                         refine=Refinement(passes=1, threshold=0.0, relative=0.0))
+    base = r1.refinement.base_size
+    back = femreg.load_result(r1.save(tmp_path / "r1.npz"))
+    assert back.refinement.base_size == pytest.approx(base, rel=1e-12)
+    assert back.refinement.passes is None and "refined from" in back.refinement.summary()
+    assert not hasattr(femreg.load_result(femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin,
+                                                          refine=None).save(tmp_path / "r0.npz")), "refinement")
+    m1 = femreg.invert(r1, beta=0.01)
+    mb = femreg.invert(back, beta=0.01)
+    assert np.allclose(mb.uncertainty, m1.uncertainty, rtol=1e-9, equal_nan=True)
+    del back.refinement                                       # the refined mesh's own size instead
+    mr = femreg.invert(back, beta=0.01)
+    ext = r1.mesh.p[:, r1.mesh.t].max(axis=1) - r1.mesh.p[:, r1.mesh.t].min(axis=1)
+    h_refined = float(np.sqrt(np.mean(ext[0] * ext[1])))
+    assert h_refined < 0.8 * float(np.sqrt(np.prod(base)))   # the refined mesh is finer
+    ratio = np.nanmedian(mr.uncertainty / m1.uncertainty)
+    expect = _registered_sigma(h_refined) / _registered_sigma(float(np.sqrt(np.prod(base))))
+    assert ratio == pytest.approx(expect, rel=1e-6) and ratio > 1.2

@@ -25,6 +25,8 @@ strain             str                             how the grid strains were eva
 excluded           str                             what of the frames was not registered and why
                                                    (optional; absent: the whole frames)
 roi                (4,) mm                         the rectangle registered, x0 x1 y0 y1 (optional)
+refined_from       (2,) mm                         median element size (axial, lateral) of the mesh adaptive
+                                                   refinement started from (optional; absent: not refined)
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
@@ -54,7 +56,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi", "recovery")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -150,6 +152,9 @@ def _from_object(res) -> dict:
         from ..fields import DEFAULT_RECOVERY
 
         out["recovery"] = DEFAULT_RECOVERY
+    base = getattr(getattr(res, "refinement", None), "base_size", None)
+    if base is not None:
+        out["refined_from"] = np.asarray(base, float)
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
@@ -200,6 +205,10 @@ def _read(path) -> dict:
     if "roi" in out and (np.shape(out["roi"]) != (4,) or np.asarray(out["roi"]).dtype.kind not in "iuf"
                          or not np.all(np.isfinite(np.asarray(out["roi"], float)))):
         raise fail(path, f"key 'roi' must be four finite numbers x0 x1 y0 y1 (mm), got {out['roi']!r}")
+    if "refined_from" in out and (np.shape(out["refined_from"]) != (2,)
+                                  or np.asarray(out["refined_from"]).dtype.kind not in "iuf"
+                                  or not np.all(np.asarray(out["refined_from"], float) > 0)):
+        raise fail(path, f"key 'refined_from' must be two element sizes > 0 (mm), got {out['refined_from']!r}")
     n_el = np.shape(out["mesh_cells"])[1]
     if "quality" in out and np.shape(out["quality"]) != (n_el,):
         raise fail(path, f"key 'quality' must have one value per element ({n_el},), got {np.shape(out['quality'])}")
