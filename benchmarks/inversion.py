@@ -29,8 +29,8 @@ rule and the uncertainty.
 
 Usage: ``python benchmarks/inversion.py [--quick] [--set main --set curves ...] [--rows exact,femreg]
 [--json rows.json] [--from-json rows.json] [--figure curves.png] [--out table.md]``.  Registrations are cached
-under ``$FEMREG_CACHE/bench_inversion``, by case name only: empty that folder after a change of
-``femreg.register``'s defaults (e.g. its adaptive refinement), or the old registrations are reused.
+under ``$FEMREG_CACHE/bench_inversion/defaults-KEY`` (:func:`cache_folder`: by case name, within a folder keyed
+by register's defaults and its default refinement; after other changes of the registration code, empty it).
 """
 from __future__ import annotations
 
@@ -122,9 +122,23 @@ def sampled_contrast(fun, centre, R):
     return float(np.mean(v[inner]) / np.mean(v[ring])), float(np.std(v[ring]) / np.mean(v[ring]))
 
 
-def register(case, field, probe, snr, seed=0):
-    folder = cache_dir() / "bench_inversion"
+def cache_folder():
+    """The registrations' cache: ``$FEMREG_CACHE/bench_inversion/<key>``, the key a hash of ``femreg.register``'s
+    signature (its defaults) and the default refinement, so a change of the registration defaults registers
+    again instead of reusing results of the former defaults."""
+    import hashlib
+    import inspect
+
+    from femreg.refine import DEFAULT as default_refine
+
+    key = hashlib.sha1((str(inspect.signature(femreg.register)) + repr(default_refine)).encode()).hexdigest()[:10]
+    folder = cache_dir() / "bench_inversion" / f"defaults-{key}"
     folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def register(case, field, probe, snr, seed=0):
+    folder = cache_folder()
     path = folder / f"{case}.npz"
     if path.exists():
         return femreg.load_result(path), float("nan")
@@ -221,8 +235,7 @@ def regularizer_cases():
     """The stiff plane-strain disk (x4, 1 %, L7, 30 dB) registered with R_P_sigma, R_P_eps and R_eps, inverted
     with each model: (regulariser, model asked, model used, contrast, success, flags) rows."""
     field = truth_field("plane-strain", 4.0)
-    folder = cache_dir() / "bench_inversion"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = cache_folder()
     out = []
     pair = None
     for regname in ("momentum-stress", "momentum-strain", "strain"):
@@ -243,8 +256,7 @@ def regularizer_cases():
 
 def speed():
     field = truth_field("plane-strain", 4.0)
-    folder = cache_dir() / "bench_inversion"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = cache_folder()
     path = folder / "speed_paper_70x42.npz"
     if path.exists():
         reg = femreg.load_result(path)
