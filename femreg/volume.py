@@ -31,7 +31,8 @@ from . import orientation
 from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
-from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
+from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
+                     hop_note, hopped_fraction, lag_gain)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -483,8 +484,16 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     if not sol.gn.fun <= E_start:
         u, success = u0, False
         notes.append("the result explains the volumes less than its start (start returned)")
-    quality = data.element_ncc(u)
-    ncc_after = data.ncc(u)
+    b = data.warped_moving(u)           # one warp for the element NCCs, the NCC and the hop check
+    quality = data.element_ncc(u, warped=b)
+    ncc_after = data.ncc(u, warped=b)
+    # peak hopping seen in the volumes themselves, as in 2D (femreg.repair.hop_gain): elements whose envelope
+    # matches better one RF period off
+    t_hop = time.process_time()
+    hop_gain = lag_gain(envelope_lag_ncc_3d(data, b, period))
+    timings["hop_check_cpu"] = time.process_time() - t_hop
+    del b
+    hopped = hopped_fraction(hop_gain)
     poor = float(np.mean(quality[np.isfinite(quality)] < MIN_NCC)) if np.isfinite(quality).any() else 1.0
     if ncc_after < MIN_NCC:
         success = False
@@ -495,6 +504,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     if hops.any():
         success = False
         notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+    if hopped > MAX_HOPPED_FRACTION:
+        success = False
+        notes.append(hop_note(hopped, period))
     thin = _single_element_axes(mesh)
     if thin:
         # one element across an axis: its normal strain is that element's alone, unchecked by any neighbour
@@ -513,6 +525,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
                        timings=timings, quality=quality, strategy="auto", alpha_effective=sol.reg.alpha,
                        solver_result=sol.gn)
     res.initial_info = info
+    res.hop_gain = hop_gain             # per element (mesh.t order), femreg.repair.hop_gain's measure
     return res
 
 
