@@ -277,8 +277,8 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
     return c
 
 
-#: Voxels per slab of :func:`envelope_lag_ncc_3d` (its temporaries take about 80 bytes each).
-LAG_CHUNK_3D = 1 << 19
+#: Voxels per slab of :func:`envelope_lag_ncc_3d` (its temporaries take about 200 bytes each).
+LAG_CHUNK_3D = 1 << 17
 
 
 def envelope_lag_ncc_3d(data, warped, period: float) -> np.ndarray:
