@@ -36,7 +36,8 @@ from .pyramid import ROTATION_SCAN_NCC
 from .speckle import rf_period
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
-           "repair_peak_hopping", "check_result", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
+           "repair_peak_hopping", "envelope_lag_ncc", "envelope_lag_ncc_3d",
+           "lag_gain", "hop_note", "check_result", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
            "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION"]
 
 #: A node is hopping when ``|u_x - reference|`` exceeds this fraction of the RF period.
@@ -189,8 +190,30 @@ def hop_gain(data, u, n_elements: int, period: float, shape, spacing) -> np.ndar
     ``atanh(max(c(-T), c(+T))) - atanh(c(0))`` (Fisher z of the NCCs of :func:`envelope_lag_ncc`, so that a gain
     between well-matched envelopes weighs more than the same difference between noisy ones).  Negative on a
     correct result (the envelope correlation peaks at lag 0), positive where the element sits a period off."""
-    c = np.clip(envelope_lag_ncc(data, u, n_elements, period, shape, spacing), -0.999, 0.999)
+    return lag_gain(envelope_lag_ncc(data, u, n_elements, period, shape, spacing))
+
+
+def lag_gain(c) -> np.ndarray:
+    """The hop gain ``atanh(max(c(-T), c(+T))) - atanh(c(0))`` of envelope lag NCCs ``c`` (3, n_elements) (the
+    lags -T, 0, +T; :func:`envelope_lag_ncc`, :func:`envelope_lag_ncc_3d`)."""
+    c = np.clip(c, -0.999, 0.999)
     return np.arctanh(np.fmax(c[0], c[2])) - np.arctanh(c[1])
+
+
+def _half_period_edges(row0: int, nr: int, L: float) -> np.ndarray:
+    """Row edges (relative to ``row0``, inside [0, nr)) of half-period blocks laid on the image's (volume's) rows
+    from row 0 (``L`` rows per RF period), so that the blocks are the same whatever part of the image is used."""
+    edges = np.unique(np.round(np.arange(0.0, row0 + nr + 1e-9, 0.5 * L)).astype(np.int64)) - row0
+    return edges[(edges >= 0) & (edges < nr)]
+
+
+def _window_envelopes(Qa, Qw, k):
+    """Envelopes of the one-period windows ``k`` (window k = half-period blocks k, k + 1) from block energies
+    ``Qa``, ``Qw`` (n_blocks, ...): the reference's at k and the warped moving image's at k - 2, k, k + 2 (one
+    period up, here, one period down).  Returns ``(x (len(k), ...), y (3, len(k), ...))``."""
+    x = np.sqrt(np.add(Qa[k], Qa[k + 1], dtype=float))
+    y = np.stack([np.sqrt(np.add(Qw[k + s], Qw[k + s + 1], dtype=float)) for s in (-2, 0, 2)])
+    return x, y
 
 
 def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) -> np.ndarray:
@@ -229,8 +252,7 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         E[quad.index] = _pixel_elements(quad)
         cell, row_el = E.reshape(n0, n1), np.arange(n0)
     # half-period blocks on the image's rows (the same blocks whichever branch above)
-    edges = np.unique(np.round(np.arange(0.0, row0 + nr + 1e-9, 0.5 * L)).astype(np.int64)) - row0
-    edges = edges[(edges >= 0) & (edges < nr)]
+    edges = _half_period_edges(row0, nr, L)
     nb = edges.size - 1                 # whole half-period blocks [edges[k], edges[k + 1])
     if nb < 7:
         return nan
@@ -242,8 +264,6 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
             A2, W2 = (a * a).reshape(nr, -1), np.multiply(w, w, out=w).reshape(nr, -1)
         Qa = np.add.reduceat(A2, edges, axis=0)[:nb]
         Qw = np.add.reduceat(W2, edges, axis=0)[:nb]
-    ea = np.sqrt(Qa[:-1] + Qa[1:])      # window k = blocks k, k + 1 (one period)
-    ew = np.sqrt(Qw[:-1] + Qw[1:])
     k = np.arange(2, nb - 3)            # windows with both partners one period (two blocks) away
     el = cell[row_el[edges[k + 1]]]
     ok = el >= 0
@@ -251,11 +271,87 @@ def envelope_lag_ncc(data, u, n_elements: int, period: float, shape, spacing) ->
         full = np.add.reduceat(M2, edges, axis=0)[:nb]
         full = (full[:-1] + full[1:]) >= (edges[2:] - edges[:-2])[:, None] - 0.5
         ok &= full[k] & full[k - 2] & full[k + 2]
-    e = el[ok]
-    x = ea[k][ok]
-    c, cnt = _group_ncc(e, x, np.stack([ew[k + s][ok] for s in (-2, 0, 2)]), n_elements)
+    x, y = _window_envelopes(Qa, Qw, k)
+    c, cnt = _group_ncc(el[ok], x[ok], y[:, ok], n_elements)
     c[:, cnt < 8] = np.nan
     return c
+
+
+#: Voxels per slab of :func:`envelope_lag_ncc_3d` (its temporaries take about 200 bytes each).
+LAG_CHUNK_3D = 1 << 17
+
+
+def envelope_lag_ncc_3d(data, warped, period: float) -> np.ndarray:
+    """The volume form of :func:`envelope_lag_ncc`: NCC over each hexahedron of the reference envelope at x and
+    the warped moving envelope at x - T, x, x + T (T = ``period`` mm, axial), (3, n_elements) in ``mesh.t``
+    order; NaN where an element has fewer than 8 envelope samples or ``period`` is under 2 voxels.
+
+    ``data``: the :class:`femreg.voxels.VoxelSSDTerm` of the solve (its voxel grid and reference values);
+    ``warped``: I_2(x + S + u) at its voxels (nr, nc, nl).  The same half-period blocks and one-period windows
+    as in 2D (:func:`_half_period_edges`, :func:`_window_envelopes`); the element NCCs from element sums of the
+    window moments (separable, as :meth:`femreg.voxels.VoxelGrid.element_sums`) accumulated slab by slab, so no
+    temporary is the size of the volume: the block energies take 8 bytes per half period and (y, z) line."""
+    grid = data.grid
+    nr, nc, nl = data.shape
+    n_el = grid.mesh.t.shape[1]
+    nan = np.full((3, n_el), np.nan)
+    L = float(period) / float(grid.spacing[0])
+    if not (np.isfinite(L) and L >= 2.0):
+        return nan
+    edges = _half_period_edges(grid.block[0].start, nr, L)
+    nb = edges.size - 1
+    if nb < 7:
+        return nan
+    a, w = data.ref_values, warped
+    Qa = np.empty((nb, nc, nl), np.float32)
+    Qw = np.empty((nb, nc, nl), np.float32)
+    per = max(1, int(LAG_CHUNK_3D // max(1, nc * nl) / (0.5 * L)))         # blocks per slab
+    for b0 in range(0, nb, per):
+        b1 = min(nb, b0 + per)
+        r0, r1 = int(edges[b0]), int(edges[b1])
+        loc = edges[b0:b1] - r0
+        Qa[b0:b1] = np.add.reduceat(np.square(a[r0:r1], dtype=float), loc, axis=0)
+        Qw[b0:b1] = np.add.reduceat(np.square(w[r0:r1], dtype=float), loc, axis=0)
+    # element sums of the window moments: along y and z by blocks of columns, along x by each window's element row
+    E = tuple(s - 1 for s in grid.node_shape)
+    yz = []
+    for ax in (1, 2):
+        e = grid.e[ax]
+        st = np.flatnonzero(np.diff(e, prepend=-2))
+        yz.append((st, e[st]))
+
+    def sum_yz(V):
+        out = np.add.reduceat(np.add.reduceat(V, yz[0][0], axis=1), yz[1][0], axis=2)
+        full = np.zeros((V.shape[0],) + E[1:])
+        full[:, yz[0][1][:, None], yz[1][1][None, :]] = out
+        return full
+
+    k_all = np.arange(2, nb - 3)        # windows with both partners one period (two blocks) away
+    ex_all = grid.e[0][edges[k_all + 1]]
+    M = np.zeros((12,) + E)             # n, Sx, Sxx, Sy (3), Syy (3), Sxy (3)
+    per = max(1, int(LAG_CHUNK_3D // max(1, nc * nl)))
+    for k0 in range(0, k_all.size, per):
+        k, ex = k_all[k0:k0 + per], ex_all[k0:k0 + per]
+        x, y = _window_envelopes(Qa, Qw, k)
+        st = np.flatnonzero(np.diff(ex, prepend=-2))        # windows are in depth order: runs of one element row
+        parts = (np.ones_like(x), x, x * x, *y, *(y * y), *(x[None] * y))
+        for i, V in enumerate(parts):
+            M[i][ex[st]] += sum_yz(np.add.reduceat(V, st, axis=0))
+    n = M[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = M[1] / n
+        vx = M[2] / n - mx * mx
+        my = M[3:6] / n
+        c = (M[9:12] / n - mx * my) / np.sqrt(vx * (M[6:9] / n - my * my))
+    c[:, n < 8] = np.nan
+    out = np.full((3, n_el), np.nan)
+    out[:, grid.cell.ravel()] = c.reshape(3, -1)
+    return out
+
+
+def hop_note(hopped: float, period: float) -> str:
+    """The failure note of a result with ``hopped`` (fraction) of its elements one RF period off."""
+    return f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period ({period:.3g} mm) off"
 
 
 def hopped_fraction(gain) -> float:
@@ -386,8 +482,7 @@ def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None) ->
         hopped = hopped_fraction(gain)
         if hopped > MAX_HOPPED_FRACTION:
             success = False
-            notes.append(f"peak hopping: {hopped:.0%} of the elements match the envelope better one RF period "
-                         f"({period:.3g} mm) off")
+            notes.append(hop_note(hopped, period))
     decorrelated = global_ncc is not None and global_ncc < ROTATION_SCAN_NCC
     if decorrelated and poor > MAX_POOR_FRACTION_DECORRELATED and success:
         success = False

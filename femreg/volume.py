@@ -15,7 +15,8 @@ over axial strain and translation on decimated envelope volumes, then Gauss-Newt
 twice as coarse, :func:`coarse_to_fine`) -> prefilter (the splines, and the image term's reference values and
 gradients, after which the reference volume is released) -> Gauss-Newton on the RF -> peak-hopping check
 and repair (nodes whose u_x is a whole RF period off their neighbourhood's median are reseeded and the solve is
-repeated, kept only if the energy falls) -> check (never worse than the start; NCC floor) -> :class:`VolumeResult`.
+repeated, kept only if the energy falls) -> check (never worse than the start; NCC floor; elements whose envelope
+matches better one RF period off, :func:`hop_check`) -> :class:`VolumeResult`.
 """
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ from . import orientation
 from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
-from .repair import MAX_POOR_FRACTION, MIN_NCC, HOP_FRACTION
+from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
+                     hop_note, hopped_fraction, lag_gain)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -43,7 +45,7 @@ from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDT
                      validate_spacing_3d, validate_volume)
 
 __all__ = ["register_volume", "track_volume", "volumes_to", "coarse_to_fine", "global_search_3d", "VolumeTrack",
-           "GLOBAL_STRAINS_3D"]
+           "GLOBAL_STRAINS_3D", "hop_check"]
 
 #: Axial strains tried by the global search (-8 % to +4 %, steps of 0.5 %).
 GLOBAL_STRAINS_3D = tuple(np.round(np.arange(-0.08, 0.04 + 1e-9, 0.005), 4))
@@ -285,6 +287,18 @@ def hop_nodes_3d(mesh, ux, period: float) -> np.ndarray:
     return out
 
 
+def hop_check(data, warped, period: float):
+    """Peak hopping seen in the volumes themselves, as in 2D (:func:`femreg.repair.hop_gain`): per element the
+    gain in envelope match of u_x shifted by one RF period (:func:`femreg.repair.envelope_lag_ncc_3d`,
+    :func:`femreg.repair.lag_gain`); more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements above
+    :data:`femreg.repair.HOP_GAIN` fail the result.  ``data``: the :class:`femreg.voxels.VoxelSSDTerm`;
+    ``warped``: I_2(x + S + u) at its voxels; ``period``: RF period, mm.  Returns ``(gain (n_elements,), notes)``,
+    ``notes`` empty when the result passes."""
+    gain = lag_gain(envelope_lag_ncc_3d(data, warped, period))
+    hopped = hopped_fraction(gain)
+    return gain, ([hop_note(hopped, period)] if hopped > MAX_HOPPED_FRACTION else [])
+
+
 def _repair(sol, resolve, mesh, period):
     """Reseed nodes whole periods off their neighbourhood (:func:`hop_nodes_3d`) and solve again; keep the new
     solve if it lowers the energy.  Returns ``(sol, hops, notes)``."""
@@ -382,7 +396,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     VolumeResult
         ``success`` False with a message when the result explains less of the volumes than its start (the start
         is returned), when the NCC after is below :data:`femreg.repair.MIN_NCC` or more than
-        :data:`femreg.repair.MAX_POOR_FRACTION` of the elements are below it, or when peak hopping remains.
+        :data:`femreg.repair.MAX_POOR_FRACTION` of the elements are below it, when peak hopping remains, or when
+        more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements match the envelope better one RF
+        period off (:func:`hop_check`; the per-element gain is ``result.hop_gain``).
     """
     routed = route_volume(register_volume, dict(locals()))
     if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
@@ -483,8 +499,13 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     if not sol.gn.fun <= E_start:
         u, success = u0, False
         notes.append("the result explains the volumes less than its start (start returned)")
-    quality = data.element_ncc(u)
-    ncc_after = data.ncc(u)
+    b = data.warped_moving(u)           # one warp for the element NCCs, the NCC and the hop check
+    quality = data.element_ncc(u, warped=b)
+    ncc_after = data.ncc(u, warped=b)
+    t_hop = time.process_time()
+    hop_gain, hop_notes = hop_check(data, b, period)
+    timings["hop_check_cpu"] = time.process_time() - t_hop
+    del b
     poor = float(np.mean(quality[np.isfinite(quality)] < MIN_NCC)) if np.isfinite(quality).any() else 1.0
     if ncc_after < MIN_NCC:
         success = False
@@ -495,6 +516,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     if hops.any():
         success = False
         notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+    if hop_notes:
+        success = False
+        notes += hop_notes
     thin = _single_element_axes(mesh)
     if thin:
         # one element across an axis: its normal strain is that element's alone, unchecked by any neighbour
@@ -513,6 +537,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
                        timings=timings, quality=quality, strategy="auto", alpha_effective=sol.reg.alpha,
                        solver_result=sol.gn)
     res.initial_info = info
+    res.hop_gain = hop_gain             # per element (mesh.t order), femreg.repair.hop_gain's measure
     return res
 
 

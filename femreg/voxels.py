@@ -558,11 +558,11 @@ class VoxelSSDTerm:
         return sp.coo_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n, n)).tocsr()
 
     # -- per element ---------------------------------------------------------------------------------------
-    def element_ncc(self, u, min_voxels: int = 8) -> np.ndarray:
+    def element_ncc(self, u, min_voxels: int = 8, warped=None) -> np.ndarray:
         """NCC of I_1 and the warped I_2 over each element's voxels, (n_el,) in ``mesh.t`` order (NaN where an
-        element holds fewer than ``min_voxels``)."""
+        element holds fewer than ``min_voxels``).  ``warped``: :meth:`warped_moving` of ``u`` if already at hand."""
         a = self.ref_values
-        b = self.warped_moving(u)
+        b = self.warped_moving(u) if warped is None else warped
         s = self.grid.element_sums
         n = self.grid.element_counts()
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -575,7 +575,8 @@ class VoxelSSDTerm:
         out[self.grid.cell.ravel()] = q.ravel()
         return out
 
-    def ncc(self, u=None) -> float:
-        """NCC of I_1 and I_2(x + S + u) over the voxels of the mesh (u = None: zero)."""
-        b = self.warped_moving(np.zeros(3 * self.grid.n_nodes) if u is None else u)
+    def ncc(self, u=None, warped=None) -> float:
+        """NCC of I_1 and I_2(x + S + u) over the voxels of the mesh (u = None: zero; ``warped``: that warp if
+        already at hand)."""
+        b = warped if warped is not None else self.warped_moving(np.zeros(3 * self.grid.n_nodes) if u is None else u)
         return _slab_ncc(self.ref_values, b, self._slabs())

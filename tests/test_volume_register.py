@@ -292,6 +292,7 @@ def test_exact_affine_field_3d_per_probe(f_mhz):
     # the target (2 %); measured 1.89 / 0.83 / 1.22 % at 3 / 7.5 / 15 MHz (the 20 x 20 x 15 mm benchmark volume:
     # 0.18 / 0.31 / 0.33 % at 3 / 7 / 15 MHz)
     assert _total_error(res, G, margin=2.0) < 0.02
+    assert femreg.repair.hopped_fraction(res.hop_gain) == 0.0     # no element one RF period off
 
 
 def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
