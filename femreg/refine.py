@@ -63,6 +63,7 @@ from .errors import InputError
 from .fields import element_strain_operator, element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
+from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
@@ -203,26 +204,6 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         return Refinement(passes=int(spec)) if spec else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-
-
-@dataclass
-class RefinementRecord:
-    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
-    ``base_size``, the median element size (axial, lateral) mm of the mesh refinement started from (what a
-    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller).  ``passes``
-    is None for a result read from a file (:func:`femreg.load_result` keeps ``base_size`` only)."""
-
-    passes: list
-    base_size: tuple | None = None
-
-    def summary(self) -> str:
-        if self.passes is None:         # read back from a result file, which keeps the starting size only
-            return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
-        if not self.passes:
-            return "refinement: nothing marked"
-        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split)"
-                 for p in self.passes]
-        return "refinement: " + "; ".join(parts)
 
 
 def _need_tensor(mesh):

@@ -207,7 +207,7 @@ def load_result(path) -> RegistrationResult:
     res._grid_element = element_grid
     base = _refined_from(path)
     if base is not None:            # what the inversion and new meshes read: the size refinement started from
-        from .refine import RefinementRecord
+        from .result_base import RefinementRecord
 
         res.refinement = RefinementRecord(passes=None, base_size=base)
     return res

@@ -2,9 +2,11 @@
 (:class:`femreg.volume_result.VolumeResult`): the mesh, the nodal displacement and the run's record."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["ResultRecord"]
+__all__ = ["ResultRecord", "RefinementRecord"]
 
 
 class ResultRecord:
@@ -35,3 +37,23 @@ class ResultRecord:
         self.strategy = str(strategy)
         self.alpha_effective = float(alpha_effective)
         self.solver_result = solver_result
+
+
+@dataclass
+class RefinementRecord:
+    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
+    ``base_size``, the median element size (axial, lateral) mm of the mesh refinement started from (what a
+    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller).  ``passes``
+    is None for a result read from a file (:func:`femreg.load_result` keeps ``base_size`` only)."""
+
+    passes: list
+    base_size: tuple | None = None
+
+    def summary(self) -> str:
+        if self.passes is None:         # read back from a result file, which keeps the starting size only
+            return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
+        if not self.passes:
+            return "refinement: nothing marked"
+        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split)"
+                 for p in self.passes]
+        return "refinement: " + "; ".join(parts)
