@@ -295,7 +295,9 @@ def section(runs: list, notes=()) -> list:
                  f"{a['floor_e']:.1f} % in 2D" + (f" and {b['floor_e']:.1f} % in 3D" if "floor_e" in b else "")
                  + " (the floor of elements of that size on this field)"
                  + (f", above the {TARGET_E:g} % target: at this element size no model reaches it."
-                    if a["floor_e"] > TARGET_E else "."))
+                    if a["floor_e"] > TARGET_E else
+                    f"; the 3D floor is above the {TARGET_E:g} % target: these hexahedra cannot reach it."
+                    if b.get("floor_e", 0.0) > TARGET_E else "."))
         inv = r.get("inversion") or {}
         if "3d_exact" in inv and "3d_registered" in inv:
             L.append(f"- {_extent(r)}: the 3D inversion of the *exact* displacement over this region gives "
