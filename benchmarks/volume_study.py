@@ -219,8 +219,10 @@ def section(runs: list, notes=()) -> list:
          "lines, a 2 mm elevational beam on 0.5 mm planes, 12 dB SNR, seed 0) over the paper's imaged plane "
          "(72 mm deep x 44 mm lateral) and +-10 mm elevationally, frames 1 -> 7 (0.8 % mean axial strain).  2D: "
          "`femreg.register` on the central plane z = 0 of both volumes; 3D: `femreg.register` on the volumes "
-         "(trilinear hexahedra), both with `momentum-stress` (R_P_sigma) and femreg's defaults (2 mm elements unless "
-         "the column says otherwise; alpha rescaled with the element size by femreg).  "
+         "(trilinear hexahedra), both with `momentum-stress` (R_P_sigma) and femreg's defaults (2 mm hexahedra unless "
+         "the column says otherwise; alpha rescaled with the element size by femreg; in 2D, where no element size was "
+         "given (the 2 mm columns), femreg's default mesh of the plane, at most 1.5 mm for R_P_sigma, refined by "
+         "default).  "
          "Errors against the exact FE truth (relative L2, %, shear counted twice): the in-plane ones on the "
          "central plane at the 2D mesh's quadrature points (the same points and weights for both); u_z and the "
          "six-component strain over the volume's interior (2 mm margin), which 2D cannot give.  Times: the whole "
@@ -295,7 +297,9 @@ def section(runs: list, notes=()) -> list:
                  f"{a['floor_e']:.1f} % in 2D" + (f" and {b['floor_e']:.1f} % in 3D" if "floor_e" in b else "")
                  + " (the floor of elements of that size on this field)"
                  + (f", above the {TARGET_E:g} % target: at this element size no model reaches it."
-                    if a["floor_e"] > TARGET_E else "."))
+                    if a["floor_e"] > TARGET_E else
+                    f"; the 3D floor is above the {TARGET_E:g} % target: these hexahedra cannot reach it."
+                    if b.get("floor_e", 0.0) > TARGET_E else "."))
         inv = r.get("inversion") or {}
         if "3d_exact" in inv and "3d_registered" in inv:
             L.append(f"- {_extent(r)}: the 3D inversion of the *exact* displacement over this region gives "
