@@ -47,7 +47,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "find_echo", "crop_for", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "find_echo", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: Echo SNR (dB, echo power over noise power) below which a row or line holds no usable echo.
@@ -459,6 +459,26 @@ def _nodal(spec) -> bool:
     return isinstance(spec, (np.ndarray, list, tuple))
 
 
+def crop_request(roi, depth, mesh, initial, offset, *, volume: bool = False):
+    """What :func:`crop_for` (and the volumes' :func:`femreg.echo_volume.crop_for_volume`) are asked: None when
+    nothing is cropped (``roi`` and ``depth`` None, a user ``mesh``, or the detection with a nodal ``initial`` /
+    ``offset`` of the default mesh), True for a given box or depth, False for the detection; the errors of a
+    bad ``roi`` or of a box given with a user mesh."""
+    if roi is None and depth is None:
+        return None
+    if isinstance(roi, str) and roi != "auto":
+        box = "(x0, x1, y0, y1, z0, z1) mm for a volume" if volume else "(x0, x1, y0, y1) mm"
+        raise InputError(f"roi must be 'auto', None or {box}, got {roi!r}")
+    given = depth is not None or not isinstance(roi, str)
+    if mesh is not None:
+        if given:
+            raise InputError("roi / depth and a user mesh exclude each other: the mesh defines the region")
+        return None
+    if not given and (_nodal(initial) or _nodal(offset)):
+        return None
+    return given
+
+
 def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
              margin=None, initial=None, offset=None) -> Crop | None:
     """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
@@ -468,16 +488,8 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
     rectangle or depth disables the detection).  With a user ``mesh`` there is no crop (a given roi or depth is
     then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
     The detection changes nothing (None) when what it excludes lies within the mesh margin."""
-    if roi is None and depth is None:
-        return None
-    given = depth is not None or not (isinstance(roi, str) and roi == "auto")
-    if isinstance(roi, str) and roi != "auto":
-        raise InputError(f"roi must be 'auto', None or (x0, x1, y0, y1) mm, got {roi!r}")
-    if mesh is not None:
-        if given:
-            raise InputError("roi / depth and a user mesh exclude each other: the mesh defines the region")
-        return None
-    if not given and (_nodal(initial) or _nodal(offset)):
+    given = crop_request(roi, depth, mesh, initial, offset)
+    if given is None:
         return None
     t = time.perf_counter()
     ref = validate_image(reference, "reference image")

@@ -32,7 +32,7 @@ import numpy as np
 
 from .echo import (CLIP_ROW_FRACTION, DEAD_LEVEL, ECHO_NCC, MIN_RANGE_DB, MIN_SNR_DB, PROFILE_LINES, PROFILE_ROWS,
                    RF_TO_ENVELOPE_POWER, SMOOTH_LINES, SMOOTH_PERIODS, VETO_PERIODS, _clipped, _echo_run,
-                   _echo_span, _live_span, _nodal, _profile, _span, _strip_ncc, rf_like)
+                   _echo_span, _live_span, _profile, _span, _strip_ncc, crop_request, rf_like)
 from .errors import InputError
 from .speckle import envelope, rf_period
 
@@ -338,16 +338,8 @@ def crop_for_volume(reference, moving, spacing, origin=(0.0, 0.0, 0.0), *, roi="
     The detection changes nothing (None) when what it excludes lies within the mesh margin."""
     from .voxels import validate_spacing_3d, validate_volume
 
-    if roi is None and depth is None:
-        return None
-    if isinstance(roi, str) and roi != "auto":
-        raise InputError(f"roi must be 'auto', None or (x0, x1, y0, y1, z0, z1) mm for a volume, got {roi!r}")
-    given = depth is not None or not isinstance(roi, str)
-    if mesh is not None:
-        if given:
-            raise InputError("roi / depth and a user mesh exclude each other: the mesh defines the region")
-        return None
-    if not given and (_nodal(initial) or _nodal(offset)):
+    given = crop_request(roi, depth, mesh, initial, offset, volume=True)
+    if given is None:
         return None
     t = time.perf_counter()
     ref = validate_volume(reference, "reference volume")

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from .pairs import _echo_gain as _depth_gain  # one home for the depth gains of frames and volumes (grid.x: depth)
 from .ultrasound import PSF, SPEED_OF_SOUND_MM_PER_S, noise_sigma, positive
 
 __all__ = ["PSF3D", "VolumeProbe", "VOLUME_PROBES", "as_volume_probe", "ImagingVolume", "Scatterers3D",
@@ -690,19 +691,6 @@ def _snr(snr_db):
     if not math.isfinite(v):
         raise ValueError(f"snr_db must be finite (or None for no noise), got {snr_db!r}")
     return v
-
-
-def _depth_gain(gain_db, grid, name):
-    """Amplitude factor per axial sample (n_x,) of a depth gain in dB (callable of depth mm), or None
-    (:func:`forward.pairs.make_pair`'s ``echo_gain_db`` / ``tgc_db``)."""
-    if gain_db is None:
-        return None
-    if not callable(gain_db):
-        raise ValueError(f"{name} must be a callable of depth (mm) returning dB, got {gain_db!r}")
-    g = np.broadcast_to(np.asarray(gain_db(grid.x), float), grid.x.shape)
-    if not np.all(np.isfinite(g)):
-        raise ValueError(f"{name} returned non-finite values")
-    return 10.0 ** (g / 20.0)
 
 
 def _render_frames(fields, grid, psf, scat, snr_db, rng_noise, log, u_cache=None, echo_gain_db=None,
