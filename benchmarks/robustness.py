@@ -23,7 +23,7 @@ Outputs (``--out``, default ``out/robustness/``): ``results.csv`` (one row per c
 (the Markdown tables printed at the end) and ``<case>.png`` per case: the axial strain of every method side by side,
 truth first, one colour scale, the ROI outlined.
 
-Run: ``python benchmarks/robustness.py`` (full matrix, about 10 min on 2 shared cores) or ``--quick`` (6 cases);
+Run: ``python benchmarks/robustness.py`` (full matrix, 151 s on 2 cores) or ``--quick`` (6 cases);
 ``--cases comp,shear`` selects cases whose name contains any of the words; ``--methods`` likewise (a method's full
 name selects that method alone); ``--refine none|auto|N`` sets femreg's ``refine=`` for the pairs.  The peers'
 results are cached in ``<out>/peer_cache`` (keyed by the case and the source of the simulator and of the peers),
