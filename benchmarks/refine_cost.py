@@ -48,21 +48,6 @@ def _pair(case, data):
     return data.ref, data.mov
 
 
-def _truth(case, data, sl):
-    if not case.sequence:
-        return truth(data, case, sl)
-    x0, y0 = data.origin
-    dx, dy = data.spacing
-    ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
-    jj = np.arange(sl[1].start, sl[1].stop)
-    X, Y = np.meshgrid(x0 + ii * dx, y0 + jj * dy, indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
-    u, e = data.true_displacement(1, P), data.true_strain(1, P)
-    sh = X.shape
-    return dict(ux=u[:, 0].reshape(sh), uy=u[:, 1].reshape(sh), exx=e[:, 0].reshape(sh),
-                eyy=e[:, 1].reshape(sh), exy=e[:, 2].reshape(sh))
-
-
 def measure(case, specs, repeats):
     """{label: dict(e, cpu, elements, message)} of R_P_sigma with each ``refine=`` spec of ``specs`` (label ->
     spec) on the case's pair; CPU seconds the minimum over ``repeats`` interleaved runs."""
@@ -71,7 +56,7 @@ def measure(case, specs, repeats):
     data = make_data(case)
     ref, mov = _pair(case, data)
     sl = roi_slices(ref.shape, data.spacing)
-    t = _truth(case, data, sl)
+    t = truth(data, case, sl, frame=1)   # a sequence registers frame 0 -> 1 here
     lam = PROBES[case.probe].wavelength_mm
     out = {k: dict(cpu=np.inf) for k in specs}
     for _ in range(repeats):

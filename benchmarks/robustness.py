@@ -215,8 +215,8 @@ def roi_slices(shape, spacing):
     return slice(sl[0][0], sl[0][1], step), slice(sl[1][0], sl[1][1])
 
 
-def truth(data, case, sl):
-    """True fields on the ROI samples: dict of 2D arrays."""
+def truth(data, case, sl, frame=None):
+    """True fields on the ROI samples: dict of 2D arrays.  Sequences: frame 0 -> ``frame`` (default the last)."""
     x0, y0 = data.origin
     dx, dy = data.spacing
     ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
@@ -224,7 +224,7 @@ def truth(data, case, sl):
     X, Y = np.meshgrid(x0 + ii * dx, y0 + jj * dy, indexing="ij")
     P = np.column_stack([X.ravel(), Y.ravel()])
     if case.sequence:
-        k = len(data.frames) - 1
+        k = len(data.frames) - 1 if frame is None else int(frame)
         u, e = data.true_displacement(k, P), data.true_strain(k, P)
     else:
         u, e = data.true_displacement(P), data.true_strain(P)

@@ -276,12 +276,6 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         chunk = max(8, int(round(VETO_PERIODS * period / (step * dx))))
         return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, chunk=chunk) >= ECHO_NCC
 
-    def why(has_floor, lvl, flr, echo_at=""):
-        if not has_floor:
-            return "excluded: no signal (zero samples)"
-        return (f"excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
-                f"(echo {lvl:.1f} dB{echo_at})")
-
     has_floor = echo - floor >= MIN_RANGE_DB
     (a, b) = _echo_run(row_db, floor, max(w, n // 20), live_r)[0] if has_floor else _live_span(live_r)
     if b <= a:
@@ -291,12 +285,12 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         a = _live_span(live_r)[0]
     if a > 0:
         reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "
-                       + why(has_floor and live_r[:a].any(), echo, floor, at))
+                       + _why(has_floor and live_r[:a].any(), echo, floor, at))
     if b < n and has_floor and veto((b, n), (0, m)):
         b = _live_span(live_r)[1]
     if b < n:
         reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
-                       + why(has_floor and live_r[b:].any(), echo, floor, at))
+                       + _why(has_floor and live_r[b:].any(), echo, floor, at))
     # the lines, over the rows kept
     # the line profile from the RF power: no envelope of every line needed; for Gaussian RF (speckle and noise
     # alike) the median of RF^2 is the envelope's median power times a constant
@@ -318,10 +312,10 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
             lo, hi = (0, c0) if side == "left" else (c1, m)
             if hi <= lo:
                 continue
-            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) " + why(False, 0, 0))
+            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) " + _why(False, 0, 0))
         else:
             reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) "
-                           + why(c_floor and live_c[lo:hi].any(), cecho, cfloor))
+                           + _why(c_floor and live_c[lo:hi].any(), cecho, cfloor))
     # saturation at the edges of the rectangle
     clip = _clipped([mag] if mov is None else [mag, np.abs(mov)])
     if clip is not None:
@@ -350,24 +344,37 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo)
 
 
+def _why(has_floor, lvl, flr, echo_at=""):
+    """Why a strip of frames or volumes is left out: no signal, or echo too close to the noise floor."""
+    if not has_floor:
+        return "excluded: no signal (zero samples)"
+    return (f"excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
+            f"(echo {lvl:.1f} dB{echo_at})")
+
+
 def _echo_span(row_db, echo, ox, dx) -> str:
     """Where the depth profile is within 3 dB of the echo level."""
     k = np.flatnonzero(row_db >= echo - 3.0)
     return _span(int(k[0]), int(k[-1]) + 1, ox, dx) if k.size else "-"
 
 
-def _margin_pixels(margin, spacing) -> np.ndarray:
-    """Pixels of the mesh margin per axis, as :func:`femreg.mesh.roi_mesh` rounds it."""
-    m = np.broadcast_to(np.asarray(DEFAULT_MARGIN if margin is None else margin, float), (2,))
+def _margin_pixels(margin, spacing, default=DEFAULT_MARGIN) -> np.ndarray:
+    """Pixels (voxels) of the mesh margin per axis, as :func:`femreg.mesh.roi_mesh` (:func:`femreg.voxels.roi_mesh_3d`
+    with its ``default``) rounds it."""
+    m = np.broadcast_to(np.asarray(default if margin is None else margin, float), (len(spacing),))
     if np.any(~np.isfinite(m)) or np.any(m < 0):
         raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
     return np.ceil(m / np.asarray(spacing, float) - 1e-9).astype(int)
 
 
+#: Axis names of the messages, frames (2) and volumes (3).
+_AXES = ("x (axial)", "y (lateral)", "z (elevational)")
+
+
 def _extent_text(shape, spacing, origin) -> str:
     lo = np.asarray(origin, float) - 0.5 * np.asarray(spacing, float)
     hi = lo + np.asarray(shape, float) * np.asarray(spacing, float)
-    return f"x (axial) {lo[0]:.4g} to {hi[0]:.4g} mm, y (lateral) {lo[1]:.4g} to {hi[1]:.4g} mm"
+    return ", ".join(f"{name} {lo[k]:.4g} to {hi[k]:.4g} mm" for k, name in enumerate(_AXES[:len(shape)]))
 
 
 def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegion:
@@ -437,15 +444,19 @@ class Crop:
         return tuple(float(v) for v in self.region.roi_mm)
 
     def frames(self, *images):
-        """The images cut to :attr:`slices` (views)."""
+        """The images (volumes) cut to :attr:`slices` (views)."""
         return [np.asarray(f)[self.slices] for f in images]
+
+    @staticmethod
+    def _clear_grids(res):
+        res._grid = res._grid_element = None
 
     def widen(self, res):
         """``res`` (a result on the crop) on the full frames' pixel grid, saying what was excluded (in place;
         idempotent); returns it."""
         res.shape = tuple(self.region.shape)
         res.origin = np.asarray(self.region.origin, float)
-        res._grid = res._grid_element = None          # pixel-grid fields are recomputed on the full grid
+        self._clear_grids(res)                         # grid fields are recomputed on the full grid
         res.roi = self.roi_mm
         if self.region.excluded and getattr(res, "excluded", None) != self.region.excluded:
             res.excluded = self.region.excluded

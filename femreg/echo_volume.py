@@ -32,7 +32,8 @@ import numpy as np
 
 from .echo import (CLIP_ROW_FRACTION, DEAD_LEVEL, ECHO_NCC, MIN_RANGE_DB, MIN_SNR_DB, PROFILE_LINES, PROFILE_ROWS,
                    RF_TO_ENVELOPE_POWER, SMOOTH_LINES, SMOOTH_PERIODS, VETO_PERIODS, _clipped, _echo_run,
-                   _echo_span, _live_span, _profile, _span, _strip_ncc, crop_request, rf_like)
+                   _AXES, _echo_span, _extent_text, _live_span, _margin_pixels, _profile, _span, _strip_ncc, _why,
+                   Crop, crop_request, rf_like)
 from .errors import InputError
 from .speckle import envelope, rf_period
 
@@ -41,7 +42,6 @@ __all__ = ["EchoBox", "find_echo_volume", "crop_for_volume", "region_from_mm_vol
 
 #: Elevational planes (at most) a strip's frame-to-frame veto is measured on.
 VETO_PLANES = 8
-_AXES = ("x (axial)", "y (lateral)", "z (elevational)")
 
 
 @dataclass
@@ -94,13 +94,6 @@ def find_echo_volume(reference, moving=None, *, spacing, origin=(0.0, 0.0, 0.0))
         raise InputError(f"volume shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing_3d(spacing, origin)
     return _find_echo_volume(ref, mov, spacing, origin)
-
-
-def _why(has_floor, lvl, flr, echo_at=""):
-    if not has_floor:
-        return "excluded: no signal (zero samples)"
-    return (f"excluded: level within {MIN_SNR_DB + 3.0:.0f} dB of the noise floor {flr:.1f} dB "
-            f"(echo {lvl:.1f} dB{echo_at})")
 
 
 def _find_echo_volume(ref, mov, spacing, origin) -> EchoBox:
@@ -224,12 +217,6 @@ def _find_echo_volume(ref, mov, spacing, origin) -> EchoBox:
                    floor, echo)
 
 
-def _extent_text(shape, spacing, origin) -> str:
-    lo = np.asarray(origin, float) - 0.5 * np.asarray(spacing, float)
-    hi = lo + np.asarray(shape, float) * np.asarray(spacing, float)
-    return ", ".join(f"{name} {lo[k]:.4g} to {hi[k]:.4g} mm" for k, name in enumerate(_AXES))
-
-
 def region_from_mm_volume(shape, spacing, origin, *, roi=None, depth=None) -> EchoBox:
     """The voxel box of a user's ``roi`` (x0, x1, y0, y1, z0, z1) or ``depth`` (d0, d1) mm: the voxels whose centres
     lie inside it.  :class:`InputError` naming the volume's extent when it leaves the volume or holds fewer than
@@ -272,7 +259,7 @@ def region_from_mm_volume(shape, spacing, origin, *, roi=None, depth=None) -> Ec
     return region
 
 
-class VolumeCrop:
+class VolumeCrop(Crop):
     """The volumes cut to a box, and how to put a result registered there back on the full voxel grid (the 3D
     :class:`femreg.echo.Crop`: a detected box is cut as it is, the mesh margin inside it; a given one is widened by
     the margin where the volume has it, so that the mesh covers it).  ``slices`` (3,), ``origin`` the crop's voxel
@@ -294,36 +281,9 @@ class VolumeCrop:
         self.slices = tuple(sl)
         self.origin = tuple(region.origin[k] + sl[k].start * region.spacing[k] for k in range(3))
 
-    @property
-    def roi_mm(self) -> tuple:
-        return tuple(float(v) for v in self.region.roi_mm)
-
-    def frames(self, *volumes):
-        """The volumes cut to :attr:`slices` (views)."""
-        return [np.asarray(v)[self.slices] for v in volumes]
-
-    def widen(self, res):
-        """``res`` (a :class:`femreg.volume_result.VolumeResult` on the crop) on the full volume's voxel grid,
-        saying what was excluded (in place; idempotent); returns it."""
-        res.shape = tuple(self.region.shape)
-        res.origin = np.asarray(self.region.origin, float)
-        res._grids = {}                      # voxel-grid fields are recomputed on the full grid
-        res.roi = self.roi_mm
-        if self.region.excluded and getattr(res, "excluded", None) != self.region.excluded:
-            res.excluded = self.region.excluded
-            res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded
-        res.timings["echo"] = self.seconds
-        return res
-
-
-def _margin_voxels(margin, spacing) -> np.ndarray:
-    """Voxels of the mesh margin per axis, as :func:`femreg.voxels.roi_mesh_3d` rounds it."""
-    from .voxels import DEFAULT_MARGIN_3D
-
-    m = np.broadcast_to(np.asarray(DEFAULT_MARGIN_3D if margin is None else margin, float), (3,))
-    if np.any(~np.isfinite(m)) or np.any(m < 0):
-        raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
-    return np.ceil(m / np.asarray(spacing, float) - 1e-9).astype(int)
+    @staticmethod
+    def _clear_grids(res):
+        res._grids = {}
 
 
 def crop_for_volume(reference, moving, spacing, origin=(0.0, 0.0, 0.0), *, roi="auto", depth=None, mesh=None,
@@ -336,7 +296,7 @@ def crop_for_volume(reference, moving, spacing, origin=(0.0, 0.0, 0.0), *, roi="
     given box or depth disables the detection).  With a user ``mesh`` there is no crop (a given roi or depth is
     then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
     The detection changes nothing (None) when what it excludes lies within the mesh margin."""
-    from .voxels import validate_spacing_3d, validate_volume
+    from .voxels import DEFAULT_MARGIN_3D, validate_spacing_3d, validate_volume
 
     given = crop_request(roi, depth, mesh, initial, offset, volume=True)
     if given is None:
@@ -347,7 +307,7 @@ def crop_for_volume(reference, moving, spacing, origin=(0.0, 0.0, 0.0), *, roi="
     if ref.shape != mov.shape:
         raise InputError(f"volume shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing_3d(spacing, origin)
-    mp = _margin_voxels(margin, spacing)
+    mp = _margin_pixels(margin, spacing, DEFAULT_MARGIN_3D)
     if given:
         region = region_from_mm_volume(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi,
                                        depth=depth)
