@@ -205,11 +205,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         TV regularisers) or :data:`femreg.solver.GN_STRAIN_TOL_TIGHT` (0.5 %, the quadratic ones), 0 = only
         the ``tol`` rule.
     roi : "auto" | None | (x0, x1, y0, y1) mm, for volumes (x0, x1, y0, y1, z0, z1) mm
-        The region registered (volumes: :func:`femreg.echo_volume.find_echo_volume`, the full voxel grid kept).  "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`:
-        depth and lines at the noise floor, saturated samples), the rest left out of the mesh and the image term
-        and named in ``result.excluded`` and the message (nothing changes where the frames hold echo
-        everywhere); None: the whole frames; a rectangle: that one (no detection).  The mesh covers the
-        rectangle, less ``margin`` at the image edges; the result keeps the full frames' pixel grid.
+        The region registered (volumes: :func:`femreg.echo_volume.find_echo_volume`, the full voxel grid kept).
+        "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`: depth and lines at the
+        noise floor, saturated samples), the rest left out of the mesh and the image term and named in
+        ``result.excluded`` and the message (nothing changes where the frames hold echo everywhere); None: the
+        whole frames; a rectangle: that one (no detection).  The mesh covers the rectangle, less ``margin`` at
+        the image edges; the result keeps the full frames' pixel grid.
     depth : (d0, d1) mm, optional
         A given depth range over all lines (instead of ``roi``; no detection).  Either outside the image is an
         :class:`~femreg.errors.InputError` naming the image extent.  With a user ``mesh`` neither applies.
@@ -314,10 +315,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
                                  notes, timings)                                          # femreg.refine
 
+    period = check_period(ref, spacing, stats) if ref.shape[0] > 1 else None
+    global_ncc = None if start.pyramid is None else start.pyramid.global_ncc
+
     def checked(s, start_u, h):
-        return check_result(s, start_u, h, ref.shape, spacing,
-                            check_period(ref, spacing, stats) if ref.shape[0] > 1 else None,
-                            None if start.pyramid is None else start.pyramid.global_ncc)
+        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc)
     check = checked(sol, u0, hops)
     if not check.success and sol is not unrefined[0]:
         # the refined result is judged on smaller elements (the peak-hopping and matching fractions count

@@ -203,17 +203,11 @@ def load_result(path) -> RegistrationResult:
     if is_volume_result(path):          # a volume's result (femreg.volume_result)
         return load_volume_result(path)
     mesh, u, kw, element_grid = read_result(path)
+    base = kw.pop("refined_from", None)
     res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
-    base = _refined_from(path)
     if base is not None:            # what the inversion and new meshes read: the size refinement started from
         from .result_base import RefinementRecord
 
         res.refinement = RefinementRecord(passes=None, base_size=base)
     return res
-
-
-def _refined_from(path):
-    """The ``refined_from`` element size (axial, lateral) mm of a result file, or None."""
-    with np.load(path, allow_pickle=False) as z:
-        return tuple(float(v) for v in z["refined_from"]) if "refined_from" in z.files else None

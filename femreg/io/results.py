@@ -220,8 +220,8 @@ def _read(path) -> dict:
 
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
-    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` and the element-strain grid (or
-    None); :func:`femreg.load_result` builds the result from them.  Raises
+    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, when the
+    file has it) and the element-strain grid (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
     from skfem import MeshQuad1
@@ -241,6 +241,8 @@ def read_result(path):
               grid=grid, quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
               strategy=str(d.get("strategy", "")),
               excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
+    if d.get("refined_from") is not None:
+        kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     return mesh, np.asarray(d["u"], float), kw, element_grid
 
 
