@@ -156,10 +156,23 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                                 "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
         else:
             what, shape, how = "frames", "(axial samples, lateral lines)", "frame.T, frames.transpose(0, 2, 1)"
+        # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
+        # spacing as (axial, lateral) already while the array is stored lines-first)
+        c_mm_us = sound_speed * 1e-3
+        lo, hi = FREQUENCY_MHZ
+        f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
+        keep = ", ".join(f"{v:g}" for v in (dx, dy) + ((float(elevational),) if volume else ()))
+        if lo <= f_keep <= hi and not lo <= f_swap <= hi:
+            spacing_text = (f"keep the spacing ({keep}) mm ({order}; {f_keep:.2f} MHz; CLI: --spacing "
+                            f"{keep.replace(',', '')})")
+        elif lo <= f_swap <= hi and not lo <= f_keep <= hi:
+            spacing_text = (f"give the spacing in that order, ({swapped}) mm ({order}; {f_swap:.2f} MHz; CLI: "
+                            f"--spacing {swapped.replace(',', '')})")
+        else:
+            spacing_text = f"give the spacing in that order, ({swapped}) mm"
         rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
                        f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
-                       f"{shape}: transpose them ({how}) and give the spacing in that order, ({swapped}) mm, or "
-                       f"{OVERRIDE}")
+                       f"{shape}: transpose them ({how}) and {spacing_text}, or {OVERRIDE}")
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         return rep                                   # no carrier along axis 0: envelope / B-mode, nothing to say

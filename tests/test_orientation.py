@@ -54,6 +54,11 @@ def test_invivo_frames_pass_transposed_and_swapped_are_refused(seq):
     assert 3.5 < rep.frequency_mhz < 5.5            # README of the data: about 4 MHz dominant frequency
     assert rep.carrier[0] < CARRIER_RATIO / 5 and rep.carrier[1] > NO_CARRIER_RATIO * 4
     assert diagnose(rf.T, (0.2, 0.02)).problem == "transposed"
+    # the advice names the spacing to pass after transposing, whichever order the user gave it in
+    for given in ((0.02, 0.2), (0.2, 0.02)):
+        msg = diagnose(rf.T, given).message
+        assert "CLI: --spacing 0.02 0.2" in msg and "4." in msg, msg
+    assert "keep the spacing (0.02, 0.2)" in diagnose(rf.T, (0.02, 0.2)).message
     assert diagnose(rf, (0.2, 0.02)).problem == "swapped"
     assert diagnose(envelope(rf), (0.02, 0.2)).problem == ""
     assert diagnose(20 * np.log10(envelope(rf) + 1e-3), (0.02, 0.2)).problem == ""   # log-compressed B-mode
