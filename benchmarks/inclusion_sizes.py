@@ -41,8 +41,8 @@ from forward import fields as F  # noqa: E402
 from forward.pairs import PROBES  # noqa: E402
 
 
-def _inc(radius, level):
-    return lambda: F.Inclusion("stiff", "plane-strain", level, radius_mm=radius)
+def _inc(radius, level, kind="stiff"):
+    return lambda: F.Inclusion(kind, "plane-strain", level, radius_mm=radius)
 
 
 CASES = [
@@ -51,6 +51,10 @@ CASES = [
     Case("r3_1pc_paper", _inc(3.0, 0.01), "paper", (30, 30), 20, top_mm=5.0),
     Case("r3_4pc_L7", _inc(3.0, 0.04), "L7", (30, 30), 30, top_mm=5.0),
     Case("r8_2pc_paper", _inc(8.0, 0.02), "paper", (35, 35), 25, top_mm=2.5),
+    # held out from the choice of the relaxation's constants (femreg.refine.Refinement.relax): drawn before it
+    Case("held_r4_3pc_L12", _inc(4.0, 0.03), "L12", (30, 30), 25, top_mm=5.0),
+    Case("held_r5soft_1pc_L7", _inc(5.0, 0.01, "soft"), "L7", (30, 30), 20, top_mm=5.0),
+    Case("held_r2_2pc_L3", _inc(2.0, 0.02), "L3", (40, 40), 25, top_mm=5.0),
 ]
 #: femreg variants: defaults, and adaptive refinement (:mod:`femreg.refine`)
 FEMREG = {"R_P_sigma": "default", "R_P_sigma no refine": None, "R_P_sigma refine+slip": "slip",
