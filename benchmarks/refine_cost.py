@@ -8,8 +8,8 @@ CPU seconds of both and their ratio, the elements before -> after.  The summary 
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
-Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|relax|N]
-[--against auto] [--seed 0] [--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|norelax|N]
+[--against norelax] [--seed 0] [--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change
 of ``--refine`` against it: the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
@@ -34,14 +34,14 @@ from forward.pairs import PROBES  # noqa: E402
 
 
 def _spec(name):
-    from femreg.refine import RELAX_REFINEMENT, SLIP_REFINEMENT
+    from femreg.refine import SLIP_REFINEMENT, Refinement
 
     if name in ("none", "0"):
         return None
     if name == "slip":
         return SLIP_REFINEMENT
-    if name == "relax":
-        return RELAX_REFINEMENT
+    if name == "norelax":           # the default refinement without its local relaxation
+        return Refinement(relax=None)
     return name if name == "auto" else int(name)
 
 
@@ -92,9 +92,9 @@ def warm_up():
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="")
-    ap.add_argument("--refine", default="auto", help="auto, slip, relax or a number of passes")
+    ap.add_argument("--refine", default="auto", help="auto, slip, norelax (auto without the local relaxation) or a number of passes")
     ap.add_argument("--against", default=None,
-                    help="also this refine= (auto, slip, relax, a number): the error change of --refine against it")
+                    help="also this refine= (as --refine): the error change of --refine against it")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="out/refine_cost")
     ap.add_argument("--seed", type=int, default=0, help="added to every case's seed (other speckle and noise)")

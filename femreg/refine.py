@@ -65,7 +65,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "RELAX_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "relaxed_edges", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
            "RefinementRecord"]
 
@@ -145,11 +145,11 @@ class Refinement:
     max_growth: float | None = 2.0
     maxiter: int | None = 1
     min_added: float = 0.2
-    relax: float | None = None
-    relax_parts: str = "both"
+    relax: float | None = 0.03
+    relax_parts: str = "tangential"
     relax_min_length: float = 4.0
     relax_max_fraction: float = 0.05
-    relax_cells: bool = False
+    relax_cells: bool = True
     relax_solve: bool = False
 
     def __post_init__(self):
@@ -194,13 +194,7 @@ class Refinement:
 
 #: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.03
 #: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
-SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0)
-
-
-#: The default refinement plus the local relaxation (:attr:`Refinement.relax`): the shear-traction weight 0.03 on
-#: the cells beside edges whose traction jump stands out before and after a split (benchmarks/shear_bands.py,
-#: benchmarks/inclusion_sizes.py; README, "Adaptive refinement").
-RELAX_REFINEMENT = Refinement(relax=0.03, relax_parts="tangential", relax_cells=True)
+SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0, relax=None)
 
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
@@ -404,13 +398,14 @@ def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
     return r2, c2
 
 
-def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool = False) -> np.ndarray:
+def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None) -> np.ndarray:
     """Segments (k, 4) [x0, x1, y0, y1] mm (an axial edge has x0 = x1, a lateral one y0 = y1) of the interior
     edges of a tensor mesh to relax (:attr:`Refinement.relax`): the part ``opts.relax_parts`` of the jump
     ``[[A]] n`` above the cut of :func:`mark` (the full jump's), on a connected run (edges sharing a node) at least ``opts.relax_min_length`` mm long, and,
     with ``previous`` (segments of the pass before, on the coarser mesh the refined one nests in), only the
     edges whose midpoint lies on one of them (the jump stands out before and after the split: persistent, not
-    one solve's noise).  At most ``opts.relax_max_fraction`` of the interior edges, the largest jumps first."""
+    one solve's noise).  At most ``opts.relax_max_fraction`` of the interior edges, the largest jumps first.
+    ``cells`` (default ``opts.relax_cells``): rectangles (k, 4) of the two cells beside each edge instead."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -454,7 +449,7 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool = False)
         order = np.argsort(-np.where(keep, val, -np.inf), kind="stable")
         keep = np.zeros(m, bool)
         keep[order[:cap]] = True
-    if cells:            # the rectangle of the two cells on either side of each edge
+    if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
         na = ia.size
         cell_rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
                                 np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
@@ -584,12 +579,12 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         more = False           # edges to relax that the last solve did not have
         if opts.relax is not None and opts.indicator == "jump":
             if standing is not None:
-                r = relaxed_edges(mesh, sol.u, opts, previous=standing, cells=opts.relax_cells)
+                r = relaxed_edges(mesh, sol.u, opts, previous=standing)
                 if len(r):
                     mid = np.stack([0.5 * (r[:, 0] + r[:, 1]), 0.5 * (r[:, 2] + r[:, 3])])
                     more = not np.all(_on_segments(mid, relaxed))
                     relaxed = np.vstack([relaxed, r])
-            standing = relaxed_edges(mesh, sol.u, opts)
+            standing = relaxed_edges(mesh, sol.u, opts, cells=False)
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break
