@@ -92,7 +92,8 @@ def warm_up():
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="")
-    ap.add_argument("--refine", default="auto", help="auto, slip, norelax (auto without the local relaxation) or a number of passes")
+    ap.add_argument("--refine", default="auto",
+                    help="auto, slip, norelax (auto without the local relaxation) or a number of passes")
     ap.add_argument("--against", default=None,
                     help="also this refine= (as --refine): the error change of --refine against it")
     ap.add_argument("--repeats", type=int, default=3)

@@ -15,7 +15,8 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
 
 Methods: femreg R_P_sigma with defaults (adaptive refinement and its local relaxation included,
 :mod:`femreg.refine`), the same without refinement ("R_P_sigma no refine", ``refine=None``), the default refinement
-without the relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
+without the relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and with alpha / 10
+(``alpha=0.1 * default``), "R_P_sigma slip"
 (:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
 down so that layers may slide), "R_P_sigma refine+slip"
