@@ -45,7 +45,7 @@ on a pass that splits anyway).  Measured (README, "Adaptive refinement"): a 2 mm
 0.88 of the truth (7.5 MHz), 0.45 -> 0.81 (5.5 MHz); nothing relaxed on any pair of the robustness benchmark
 (seeds 0 and 7), the inclusions' errors unchanged.  Relaxing the normal part at an inclusion's interface too
 (``relax_parts="both"``, with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total
-strain error and -0.13 to +0.08 mm of the axial edge width on six inclusions (``benchmarks/inclusion_sizes.py``).
+strain error and -0.16 to +0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``).
 
 A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
 smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
@@ -78,8 +78,8 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "relaxed_edges", "slip_region", "slip_weights", "refine_passes", "refine_stage", "with_refinement",
-           "RefinementRecord"]
+           "transfer", "relaxed_edges", "slip_region", "slip_weights", "refine_passes", "refine_stage",
+           "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
 INDICATORS = ("jump", "gradient", "residual", "ncc")
@@ -132,7 +132,8 @@ class Refinement:
         no relaxation.  The relaxation rides on a pass that splits anyway (:attr:`min_added`) unless
         ``relax_solve``.
     relax_parts : {"both", "normal", "tangential"}
-        Which parts of the traction jump ``relax`` weighs (``"tangential"``: as ``slip``, but on edges only).
+        Which parts of the traction jump ``relax`` weighs (``"tangential"``: the part ``slip`` weighs); the
+        relaxed part itself must stand out (the whole jump for ``"both"``).
     relax_min_length : float
         mm: a connected run of standing-out edges (sharing a node) shorter than this is left alone (noise).
     relax_max_fraction : float
@@ -413,11 +414,12 @@ def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
 def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None) -> np.ndarray:
     """Segments (k, 4) [x0, x1, y0, y1] mm (an axial edge has x0 = x1, a lateral one y0 = y1) of the interior
     edges of a tensor mesh to relax (:attr:`Refinement.relax`): the part ``opts.relax_parts`` of the jump
-    ``[[A]] n`` above the cut of :func:`mark` (the full jump's), on a connected run (edges sharing a node) at least ``opts.relax_min_length`` mm long, and,
-    with ``previous`` (segments of the pass before, on the coarser mesh the refined one nests in), only the
-    edges whose midpoint lies on one of them (the jump stands out before and after the split: persistent, not
-    one solve's noise).  At most ``opts.relax_max_fraction`` of the interior edges, the largest jumps first.
-    ``cells`` (default ``opts.relax_cells``): rectangles (k, 4) of the two cells beside each edge instead."""
+    ``[[A]] n`` above the cut of :func:`mark` (the full jump's), on a connected run (edges sharing a node) at least
+    ``opts.relax_min_length`` mm long, and, with ``previous`` (segments of the pass before, on the coarser mesh the
+    refined one nests in), only the edges whose midpoint lies on one of them (the jump stands out before and after
+    the split: persistent, not one solve's noise).  At most ``opts.relax_max_fraction`` of the interior edges, the
+    largest jumps first.  ``cells`` (default ``opts.relax_cells``): rectangles (k, 4) of the two cells beside each
+    edge instead."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
