@@ -1,11 +1,16 @@
 """Bonded inclusions of radius 1-8 mm at 1-4 % compression: femreg and the robustness benchmark's peers on the same
 pairs, with the strain-edge metric.  femreg: defaults ("R_P_sigma": adaptive refinement ``refine="auto"``, the
-default of :func:`femreg.register`), ``refine=None`` ("R_P_sigma no refine"),
+default of :func:`femreg.register`), ``refine=None`` ("R_P_sigma no refine"), the default refinement without its
+local relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``), the relaxation of both parts of the traction
+jump (weight 0.3) with a solve of its own ("R_P_sigma relax both"), the default relaxation with a solve of its own
+("R_P_sigma relax tangential+solve"), that extra solve with nothing relaxed ("R_P_sigma extra solve",
+``relax=1.0``),
 :data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip") and three passes down to 0.15 x 0.3 mm without
 the element budget ("R_P_sigma refine fine"), adaptive refinement (:mod:`femreg.refine`).
 
-Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``) centred 20 mm deep, rendered as
-the robustness benchmark does (:func:`benchmarks.robustness.make_data`).  Per case x method:
+Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``; one soft, / 4) centred 20 mm
+deep, rendered as the robustness benchmark does (:func:`benchmarks.robustness.make_data`); the ``held_`` cases
+were drawn before the relaxation's constants were chosen and were not used for them.  Per case x method:
 
 * ``e``: total strain error over the robustness ROI (:func:`benchmarks.robustness.errors`);
 * ``edge_ax`` / ``edge_lat``: 10-90 % width (mm) of the axial strain's step at the inclusion's deep edge
@@ -41,8 +46,8 @@ from forward import fields as F  # noqa: E402
 from forward.pairs import PROBES  # noqa: E402
 
 
-def _inc(radius, level):
-    return lambda: F.Inclusion("stiff", "plane-strain", level, radius_mm=radius)
+def _inc(radius, level, kind="stiff"):
+    return lambda: F.Inclusion(kind, "plane-strain", level, radius_mm=radius)
 
 
 CASES = [
@@ -51,10 +56,15 @@ CASES = [
     Case("r3_1pc_paper", _inc(3.0, 0.01), "paper", (30, 30), 20, top_mm=5.0),
     Case("r3_4pc_L7", _inc(3.0, 0.04), "L7", (30, 30), 30, top_mm=5.0),
     Case("r8_2pc_paper", _inc(8.0, 0.02), "paper", (35, 35), 25, top_mm=2.5),
+    # held out from the choice of the relaxation's constants (femreg.refine.Refinement.relax): drawn before it
+    Case("held_r4_3pc_L12", _inc(4.0, 0.03), "L12", (30, 30), 25, top_mm=5.0),
+    Case("held_r5soft_1pc_L7", _inc(5.0, 0.01, "soft"), "L7", (30, 30), 20, top_mm=5.0),
+    Case("held_r2_2pc_L3", _inc(2.0, 0.02), "L3", (40, 40), 25, top_mm=5.0),
 ]
 #: femreg variants: defaults, and adaptive refinement (:mod:`femreg.refine`)
-FEMREG = {"R_P_sigma": "default", "R_P_sigma no refine": None, "R_P_sigma refine+slip": "slip",
-          "R_P_sigma refine fine": "fine"}
+FEMREG = {"R_P_sigma": "default", "R_P_sigma no refine": None, "R_P_sigma no relax": "norelax",
+          "R_P_sigma relax both": "both", "R_P_sigma relax tangential+solve": "tsolve",
+          "R_P_sigma extra solve": "solve", "R_P_sigma refine+slip": "slip", "R_P_sigma refine fine": "fine"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 
 
@@ -67,7 +77,13 @@ def run_method(method, data):
             from femreg.refine import Refinement, SLIP_REFINEMENT
 
             spec = {None: None, "slip": SLIP_REFINEMENT,
-                    "fine": Refinement(passes=3, min_size=(0.15, 0.3), max_growth=None)}.get(FEMREG[method])
+                    "fine": Refinement(passes=3, min_size=(0.15, 0.3), max_growth=None),
+                    "norelax": Refinement(relax=None),
+                    # the relaxation on both parts of the jump (weight 0.3), solving again for it
+                    "both": Refinement(relax=0.3, relax_parts="both", relax_solve=True),
+                    "tsolve": Refinement(relax_solve=True),
+                    # the same extra solve with nothing relaxed (weight 1): what the solve alone does
+                    "solve": Refinement(relax=1.0, relax_solve=True)}.get(FEMREG[method])
             kw = {} if FEMREG[method] == "default" else {"refine": spec}
             return femreg.register(data.ref, data.mov, spacing=data.spacing, origin=data.origin, **kw).on_grid()
         return PEER_METHODS[method](data.ref, data.mov, data.spacing, data.origin)

@@ -8,8 +8,9 @@ CPU seconds of both and their ratio, the elements before -> after.  The summary 
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
-Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto] [--seed 0]
-[--out out/refine_cost]``.
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|norelax|N]
+[--against norelax] [--seed 0] [--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change
+of ``--refine`` against it: the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
 from __future__ import annotations
@@ -33,12 +34,14 @@ from forward.pairs import PROBES  # noqa: E402
 
 
 def _spec(name):
-    from femreg.refine import SLIP_REFINEMENT
+    from femreg.refine import SLIP_REFINEMENT, Refinement
 
     if name in ("none", "0"):
         return None
     if name == "slip":
         return SLIP_REFINEMENT
+    if name == "norelax":           # the default refinement without its local relaxation
+        return Refinement(relax=None)
     return name if name == "auto" else int(name)
 
 
@@ -89,7 +92,10 @@ def warm_up():
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="")
-    ap.add_argument("--refine", default="auto", help="auto, slip or a number of passes")
+    ap.add_argument("--refine", default="auto",
+                    help="auto, slip, norelax (auto without the local relaxation) or a number of passes")
+    ap.add_argument("--against", default=None,
+                    help="also this refine= (as --refine): the error change of --refine against it")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="out/refine_cost")
     ap.add_argument("--seed", type=int, default=0, help="added to every case's seed (other speckle and noise)")
@@ -102,9 +108,12 @@ def main(argv=None):
         cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
     warm_up()
     specs = {"off": None, "refine": _spec(a.refine)}
-    lines = ["| case | e % off -> refine | points | CPU s off | CPU s refine | ratio | elements |\n",
-             "|---|---|---|---|---|---|---|\n"]
-    worst, ratios = -np.inf, []
+    if a.against is not None:
+        specs["against"] = _spec(a.against)
+    vs = f" | e % {a.against} | points vs {a.against}" if a.against is not None else ""
+    lines = [f"| case | e % off -> refine | points | CPU s off | CPU s refine | ratio | elements{vs} |\n",
+             "|---|---|---|---|---|---|---|" + ("---|---|" if vs else "") + "\n"]
+    worst, ratios, worst_vs = -np.inf, [], -np.inf
     for case in cases:
         r = measure(case, specs, a.repeats)
         o, f = r["off"], r["refine"]
@@ -112,11 +121,18 @@ def main(argv=None):
         ratio = f["cpu"] / o["cpu"]
         worst, ratios = max(worst, d), ratios + [ratio]
         flag = "" if o["success"] == f["success"] else f" (success {o['success']} -> {f['success']})"
+        extra = ""
+        if a.against is not None:
+            g = r["against"]
+            dv = 100 * (f["e"] - g["e"])
+            worst_vs = max(worst_vs, dv)
+            extra = f" {100 * g['e']:.2f} | {dv:+.2f} |"
         lines.append(f"| {case.name} | {100 * o['e']:.2f} -> {100 * f['e']:.2f}{flag} | {d:+.2f} | {o['cpu']:.2f} | "
-                     f"{f['cpu']:.2f} | {ratio:.2f} | {o['elements']} -> {f['elements']} |\n")
+                     f"{f['cpu']:.2f} | {ratio:.2f} | {o['elements']} -> {f['elements']} |{extra}\n")
         print(lines[-1], end="", flush=True)
     summary = (f"\nlargest error increase {worst:+.2f} points; CPU time ratio median {np.median(ratios):.2f}, "
-               f"max {np.max(ratios):.2f} ({len(ratios)} pairs)\n")
+               f"max {np.max(ratios):.2f} ({len(ratios)} pairs)"
+               + (f"; largest error increase against {a.against} {worst_vs:+.2f} points" if a.against else "") + "\n")
     md = "".join(lines) + summary
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,8 +13,10 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
   (mm; true: 0, the band's faces are steps);
 * ``e``: total strain error of the robustness benchmark (relative L2 with ``e:e``, shear counted twice).
 
-Methods: femreg R_P_sigma with defaults (adaptive refinement included, :mod:`femreg.refine`), the same without
-refinement ("R_P_sigma no refine", ``refine=None``) and with alpha / 10 (``alpha=0.1 * default``), "R_P_sigma slip"
+Methods: femreg R_P_sigma with defaults (adaptive refinement and its local relaxation included,
+:mod:`femreg.refine`), the same without refinement ("R_P_sigma no refine", ``refine=None``), the default refinement
+without the relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and with alpha / 10
+(``alpha=0.1 * default``), "R_P_sigma slip"
 (:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
 down so that layers may slide), "R_P_sigma refine+slip"
@@ -22,6 +24,8 @@ down so that layers may slide), "R_P_sigma refine+slip"
 shear-traction jump stands out), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
+
+The ``held_`` cases were drawn before the relaxation's constants were chosen and were not used for them.
 
 Run: ``python benchmarks/shear_bands.py`` (``--cases L7`` selects cases whose name contains a word; ``--methods``
 likewise; ``--out`` default ``out/shear_bands``: ``results.csv``, ``results.md``).
@@ -60,11 +64,16 @@ CASES = [
     Case("band1_s0.1_d12_paper", _band(12.0, 1.0, 0.1), "paper", (35, 30), 20),
     Case("band2_s0.3_d20_paper", _band(20.0, 2.0, 0.3), "paper", (35, 30), 20),
     Case("band1_s0.15_d28_paper", _band(28.0, 1.0, 0.15), "paper", (35, 30), 20),
+    # held out from the choice of the relaxation's constants (femreg.refine.Refinement.relax): drawn before it
+    Case("held_band1.5_s0.2_d18_L12", _band(18.0, 1.5, 0.2), "L12", (30, 30), 25),
+    Case("held_band3_s0.4_d12_L3", _band(12.0, 3.0, 0.4), "L3", (40, 40), 25),
+    Case("held_band2_s0.2_d25_L7", _band(25.0, 2.0, 0.2), "L7", (30, 30), 20),
 ]
 
-FEMREG = ("R_P_sigma", "R_P_sigma no refine", "R_P_sigma alpha/10", "R_P_sigma slip", "R_P_sigma refine+slip")
+FEMREG = ("R_P_sigma", "R_P_sigma no refine", "R_P_sigma no relax", "R_P_sigma alpha/10", "R_P_sigma slip",
+          "R_P_sigma refine+slip")
 #: ``refine=`` of the variants that set it (:mod:`femreg.refine`; the others: register's default)
-REFINE = {"R_P_sigma no refine": None, "R_P_sigma refine+slip": "slip"}
+REFINE = {"R_P_sigma no refine": None, "R_P_sigma no relax": "norelax", "R_P_sigma refine+slip": "slip"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -82,9 +91,10 @@ def run_method(method, data):
                 # the default alpha of this pair: what register chose without one
                 kw["alpha"] = 0.1 * femreg.register(data.ref, data.mov, **kw).alpha
             elif method in REFINE:
-                from femreg.refine import SLIP_REFINEMENT
+                from femreg.refine import SLIP_REFINEMENT, Refinement
 
-                kw["refine"] = SLIP_REFINEMENT if REFINE[method] == "slip" else REFINE[method]
+                kw["refine"] = {"slip": SLIP_REFINEMENT, "norelax": Refinement(relax=None)}.get(REFINE[method],
+                                                                                               REFINE[method])
             elif method.endswith("slip"):
                 from femreg.shear import slip_settings
 

@@ -54,6 +54,7 @@ class RefinementRecord:
             return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
         if not self.passes:
             return "refinement: nothing marked"
-        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split)"
+        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split"
+                 + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "") + ")"
                  for p in self.passes]
         return "refinement: " + "; ".join(parts)

@@ -688,6 +688,10 @@ class MomentumRegularizer(TVRegularizer):
         may slide over another (a jump of the shear traction across the band's faces) at a lower price, while the
         normal traction (compression, inclusions) is held as before.  A callable ``w(jumps)`` (the
         :class:`JumpOperators`) gives one weight per edge (the slip region of :mod:`femreg.refine`).
+    normal_traction : float or callable
+        Weight of the normal part ``n . [[A]] n`` in the same norm, not in the paper (1: eq:dmreg2); a callable
+        ``w(jumps)`` gives one weight per edge (the relaxed edges of :mod:`femreg.refine`: where a bonded
+        interface makes ``A n`` jump by the modulus ratio).
     """
 
     name = "momentum"
@@ -697,11 +701,14 @@ class MomentumRegularizer(TVRegularizer):
 
     def __init__(self, alpha: float | None = None, *, lambda_bar: float | None = None,
                  delta: float = DEFAULT_DELTA, dilatation: str | None = None, hourglass: float = 0.0,
-                 shear_traction: float = 1.0):
+                 shear_traction: float = 1.0, normal_traction: float = 1.0):
         super().__init__(None, alpha, delta=delta, penalty="tv", name=self.name)
         self.shear_traction = shear_traction if callable(shear_traction) else float(shear_traction)
         if not callable(shear_traction) and (not np.isfinite(self.shear_traction) or self.shear_traction <= 0):
             raise ValueError(f"shear_traction must be a finite number > 0, got {shear_traction!r}")
+        self.normal_traction = normal_traction if callable(normal_traction) else float(normal_traction)
+        if not callable(normal_traction) and (not np.isfinite(self.normal_traction) or self.normal_traction <= 0):
+            raise ValueError(f"normal_traction must be a finite number > 0, got {normal_traction!r}")
         self.hourglass = float(hourglass)
         if not np.isfinite(self.hourglass) or self.hourglass < 0:
             raise ValueError(f"hourglass must be a finite number >= 0, got {hourglass!r}")
@@ -724,25 +731,30 @@ class MomentumRegularizer(TVRegularizer):
             lb = lb if self._lambda_given else LAMBDA_BAR_3D
             dil = dil if self._dilatation_given else "centre"
         self.jumps = momentum_jump_operators(mesh, lb, dilatation=dil)
-        w = self.shear_traction
-        if callable(w):                 # one weight per edge: w(jumps) -> (n_edges,) (femreg.refine)
-            w = sp.diags(np.asarray(w(self.jumps), float))
-        elif w == 1.0:
+
+        def per_edge(w):                # a callable: one weight per edge, w(jumps) -> (n_edges,) (femreg.refine)
+            return sp.diags(np.asarray(w(self.jumps), float)) if callable(w) else w
+
+        w, wn = per_edge(self.shear_traction), per_edge(self.normal_traction)
+        if not sp.issparse(w) and not sp.issparse(wn) and w == 1.0 and wn == 1.0:
             if mesh.p.shape[0] == 3:
                 return self.jumps.components, self.jumps.lengths
             return [self.jumps.Kx, self.jumps.Ky], self.jumps.lengths
+
+        def scaled(w, K):
+            return (w @ K if sp.issparse(w) else w * K).tocsr()
+
         if mesh.p.shape[0] == 3:
             comps = self.jumps.components
             n = [sp.diags(c) for c in self.jumps.normals]
             Kn = sum(n[c] @ comps[c] for c in range(3)).tocsr()
-            tang = [(w @ (comps[c] - n[c] @ Kn) if sp.issparse(w) else w * (comps[c] - n[c] @ Kn)).tocsr()
-                    for c in range(3)]
-            return [Kn] + tang, self.jumps.lengths
+            tang = [scaled(w, comps[c] - n[c] @ Kn) for c in range(3)]
+            return [scaled(wn, Kn)] + tang, self.jumps.lengths
         # normal and tangential components of the jump vector (a rotation of (Kx, Ky) per edge)
         nx, ny = (sp.diags(c) for c in self.jumps.normals)
         Kn = (nx @ self.jumps.Kx + ny @ self.jumps.Ky).tocsr()
         Kt = (nx @ self.jumps.Ky - ny @ self.jumps.Kx).tocsr()
-        return [Kn, (w @ Kt if sp.issparse(w) else w * Kt).tocsr()], self.jumps.lengths
+        return [scaled(wn, Kn), scaled(w, Kt)], self.jumps.lengths
 
     def setup(self, mesh) -> None:
         super().setup(mesh)
@@ -767,7 +779,9 @@ class MomentumRegularizer(TVRegularizer):
         return (f"{type(self).__name__}(alpha={self.alpha:g}, lambda_bar={self.lambda_bar:g}, "
                 f"delta={self.delta:g}, dilatation={self.dilatation!r}, hourglass={self.hourglass:g}"
                 + ("" if callable(self.shear_traction) or self.shear_traction == 1.0
-                   else f", shear_traction={self.shear_traction:g}") + ")")
+                   else f", shear_traction={self.shear_traction:g}")
+                + ("" if callable(self.normal_traction) or self.normal_traction == 1.0
+                   else f", normal_traction={self.normal_traction:g}") + ")")
 
 
 class PlaneStrainMomentumRegularizer(MomentumRegularizer):
