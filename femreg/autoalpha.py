@@ -49,6 +49,11 @@ U is evaluated on a half-decade grid around the regulariser's default alpha (``d
 :func:`femreg.register` call; the grid minimum is returned together with the registration at it (so
 ``register(alpha="auto")`` costs ``n_registrations`` registrations, i.e. ``n_registrations - 1`` extra).
 
+Volumes: the same rules on the same grid, the candidates registered by :func:`femreg.volume.register_volume` and
+the image term read by :func:`femreg.volume.voxel_image_term` (``image_term=``; frames: :func:`pixel_image_term`);
+the strain change runs over the six recovered nodal strain components.  ``femreg.register`` and ``femreg.track``
+pass both for 3D arrays.  Measured on small simulated volumes: benchmarks/autoalpha_volume.py (docs/autoalpha.md).
+
 Measured on the paper's six simulated pairs (frames 1 -> 7, 2 mm mesh) against the ground-truth-best alpha of the
 same grid: see docs/study_report.md ("Automatic alpha").
 """
