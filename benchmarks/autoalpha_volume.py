@@ -165,8 +165,9 @@ def _within(e, best):
 
 def summary(rows) -> str:
     L = ["| probe | cases | auto: within 15 % / 0.5 pt / either | median / max ratio | default: within 15 % / "
-         "0.5 pt / either | median / max ratio | auto better than default | CPU auto / default |",
-         "|---|---|---|---|---|---|---|---|"]
+         "0.5 pt / either | median / max ratio | auto better / worse than default | auto - default: median, "
+         "range (points) | CPU auto / default |",
+         "|---|---|---|---|---|---|---|---|---|"]
     groups = [(p, [r for r in rows if r["probe"] == p]) for p in dict.fromkeys(r["probe"] for r in rows)]
     for lab, rs in groups + [("all", rows)]:
         best = np.array([r["e_best"] for r in rs])
@@ -176,8 +177,9 @@ def summary(rows) -> str:
         cpu = np.median([r["cpu_auto"] / r["cpu_default"] for r in rs])
         L.append(f"| {lab} | {n} | {wa[0].sum()} / {wa[1].sum()} / {wa[2].sum()} | {np.median(ea / best):.2f} / "
                  f"{np.max(ea / best):.2f} | {wd[0].sum()} / {wd[1].sum()} / {wd[2].sum()} | "
-                 f"{np.median(ed / best):.2f} / {np.max(ed / best):.2f} | {int(np.sum(ea < ed))} (worse "
-                 f"{int(np.sum(ea > ed))}) | {np.median([r['cpu_auto'] for r in rs]):.1f} s / "
+                 f"{np.median(ed / best):.2f} / {np.max(ed / best):.2f} | {int(np.sum(ea < ed))} / "
+                 f"{int(np.sum(ea > ed))} | {100 * np.median(ea - ed):+.2f}, {100 * np.min(ea - ed):+.2f} .. "
+                 f"{100 * np.max(ea - ed):+.2f} | {np.median([r['cpu_auto'] for r in rs]):.1f} s / "
                  f"{np.median([r['cpu_default'] for r in rs]):.1f} s (x{cpu:.1f}) |")
     L += ["", "| case | probe | auto alpha | e at auto | best alpha | e at best | ratio | default: e | "
           "CPU auto / default |", "|---|---|---|---|---|---|---|---|---|"]
