@@ -46,7 +46,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 WITHIN, POINTS = 1.15, 0.5
 SIZE_MM = (10.0, 8.0, 6.0)
-TOP_MM = 18.0                 # the volume spans x 18-28 mm: the sphere (centre 30 mm, radius 7.5 mm) fills its lower part
+#: Depth of the volume's top, mm: it spans x 18-28 mm, the sphere (centre 30 mm, radius 7.5 mm) fills its lower part.
+TOP_MM = 18.0
 SEED_BASE = {"A": 0, "B": 1000}
 
 
@@ -149,11 +150,12 @@ def run_case(case: Case, probe_name: str, probe, seed: int, regularizer: str = "
     good = np.where(ok, e, np.inf)
     best = int(np.argmin(good)) if np.isfinite(good).any() else int(np.argmin(e))
     e_def = err(plain)
-    return dict(case=case.name, probe=probe_name, regularizer=regularizer, seed=seed, shape=list(ref.shape), snr_db=case.snr_db,
-                element_size=case.element_size or 2.0, auto_alpha=float(ch.alpha), best_alpha=float(ch.alphas[best]),
-                default_alpha=float(plain.alpha), e_auto=float(e[k]), e_best=float(e[best]), e_default=float(e_def),
-                e_grid_centre=float(e[len(e) // 2]), ratio=float(e[k] / e[best]), ratio_default=float(e_def / e[best]),
-                success=ok, default_success=bool(plain.success), curve=[float(x) for x in e],
+    return dict(case=case.name, probe=probe_name, regularizer=regularizer, seed=seed, shape=list(ref.shape),
+                snr_db=case.snr_db, element_size=case.element_size or 2.0, auto_alpha=float(ch.alpha),
+                best_alpha=float(ch.alphas[best]), default_alpha=float(plain.alpha), e_auto=float(e[k]),
+                e_best=float(e[best]), e_default=float(e_def), e_grid_centre=float(e[len(e) // 2]),
+                ratio=float(e[k] / e[best]), ratio_default=float(e_def / e[best]), success=ok,
+                default_success=bool(plain.success), curve=[float(x) for x in e],
                 alphas=[float(a) for a in ch.alphas], strain_change=[float(x) for x in ch.strain_change],
                 cpu_auto=cpu_auto, cpu_default=cpu_default)
 
@@ -190,6 +192,15 @@ def summary(rows) -> str:
     return "\n".join(L) + "\n"
 
 
+def _cell(key, text):
+    """A value of the .csv back as the row held it."""
+    if key in ("curve", "alphas", "strain_change", "success", "shape"):
+        return json.loads(text)
+    if key in ("case", "probe", "regularizer"):
+        return text
+    return text == "True" if text in ("True", "False") else float(text)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--set", choices=tuple(SEED_BASE), default="A", help="seed set (B: held out)")
@@ -207,9 +218,7 @@ def main(argv=None) -> int:
     path = out / f"{stem}.csv"
     if a.summarise:
         with open(path) as fh:
-            rows = [{k: (json.loads(v) if k in ("curve", "alphas", "strain_change", "success", "shape") else
-                         v if k in ("case", "probe", "regularizer") else float(v) if v not in ("True", "False") else v == "True")
-                     for k, v in r.items()} for r in csv.DictReader(fh)]
+            rows = [{k: _cell(k, v) for k, v in r.items()} for r in csv.DictReader(fh)]
     else:
         P = probes()
         words = [w for w in a.cases.split(",") if w]

@@ -228,7 +228,8 @@ def _read(path) -> dict:
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
     nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, and
-    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, when the file has them) and the element-strain grid (or None); :func:`femreg.load_result` builds the result from them.  Raises
+    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, when the file has them) and the element-strain grid
+    (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
     from skfem import MeshQuad1
