@@ -102,6 +102,9 @@ def test_cli_register_alpha_auto_on_volumes(pairs, tmp_path, capsys):
     assert main(["register", str(seq), "-o", str(out), "--alpha", "auto", "--element-size", "1"]) == 0
     res = load_volume_result(out)
     assert res.auto_alpha is not None and res.alpha == pytest.approx(res.auto_alpha.alpha)
+    assert main(["track", str(seq), "-o", str(tmp_path / "t"), "--alpha", "auto", "--element-size", "1"]) == 0
+    tracked = load_volume_result(tmp_path / "t" / "frame_001.npz")
+    assert tracked.auto_alpha is not None and tracked.alpha == pytest.approx(tracked.auto_alpha.alpha)
     capsys.readouterr()
     # bad input: exit 2 with the reason, before any candidate is registered
     other = tmp_path / "other.npz"
