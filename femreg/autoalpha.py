@@ -49,6 +49,11 @@ U is evaluated on a half-decade grid around the regulariser's default alpha (``d
 :func:`femreg.register` call; the grid minimum is returned together with the registration at it (so
 ``register(alpha="auto")`` costs ``n_registrations`` registrations, i.e. ``n_registrations - 1`` extra).
 
+Volumes: the same rules on the same grid, the candidates registered by :func:`femreg.volume.register_volume` and
+the image term read by :func:`femreg.volume.voxel_image_term` (``image_term=``; frames: :func:`pixel_image_term`);
+the strain change runs over the six recovered nodal strain components.  ``femreg.register`` and ``femreg.track``
+pass both for 3D arrays.  Measured on small simulated volumes: benchmarks/autoalpha_volume.py (docs/autoalpha.md).
+
 Measured on the paper's six simulated pairs (frames 1 -> 7, 2 mm mesh) against the ground-truth-best alpha of the
 same grid: see docs/study_report.md ("Automatic alpha").
 """
@@ -62,15 +67,16 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import InputError
-from .gnsolve import image_term
+from .gnsolve import image_term as ssd_term
 from .image import SplineImage, normalize_pair, validate_image, validate_spacing
 from .regularizers import Regularizer, make_regularizer
+from .result_base import AutoAlpha
 from .scaling import effective_alpha
 from .solver import GN_STRAIN_TOL_TIGHT
 from .strategy import effective_regularizer_options
 
 __all__ = ["AutoAlpha", "choose_alpha", "register_auto", "DEFAULT_DECADES", "influence_trace", "quasi_optimal_index",
-           "successful_stretch"]
+           "successful_stretch", "ImageTerm", "pixel_image_term"]
 
 #: The registration function :func:`choose_alpha` calls (``register=`` overrides it): :func:`femreg.register`, set
 #: by :mod:`femreg.registration` when it is imported (it calls this module for ``alpha="auto"``; this module never
@@ -82,40 +88,6 @@ DEFAULT_DECADES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)
 #: Above this many unknowns the trace T is estimated (Hutchinson, seeded Rademacher probes) instead of exact.
 EXACT_TRACE_MAX_DOF = 3000
 TRACE_PROBES = 40
-
-
-@dataclass
-class AutoAlpha:
-    """The choice and its curve (arrays over the candidate grid, in grid order).
-
-    alpha : chosen alpha (the user-level alpha of :func:`femreg.register`)
-    alphas, psi, dof, upre : candidates, image term psi (mm^2), trace T, U(alpha)
-    c, sigma2 : the correlation factor and the weighted residual variance of the rule
-    n_registrations : registrations run (the grid size); result : the registration at ``alpha``
-    """
-
-    alpha: float
-    alphas: np.ndarray
-    psi: np.ndarray
-    dof: np.ndarray
-    upre: np.ndarray
-    c: float
-    sigma2: float
-    n_registrations: int
-    result: object = field(repr=False, default=None)
-    rule: str = "quasi-optimality"
-    results: list | None = field(repr=False, default=None)
-    #: ||e(alpha_{k+1}) - e(alpha_k)|| of the recovered nodal strains, k = 0 .. len(alphas) - 2
-    strain_change: np.ndarray | None = None
-    #: candidates whose registration succeeded (0: none did, ``alpha`` is the grid centre's and no choice)
-    n_successful: int | None = None
-
-    def as_dict(self) -> dict:
-        return {"alpha": self.alpha, "alphas": self.alphas.tolist(), "psi": self.psi.tolist(),
-                "dof": self.dof.tolist(), "upre": self.upre.tolist(), "c": self.c, "sigma2": self.sigma2,
-                "n_registrations": self.n_registrations, "rule": self.rule,
-                "strain_change": None if self.strain_change is None else self.strain_change.tolist(),
-                "n_successful": self.n_successful}
 
 
 def influence_trace(Hd, Hr, *, seed: int = 0) -> float:
@@ -130,11 +102,51 @@ def influence_trace(Hd, Hr, *, seed: int = 0) -> float:
     return float(np.mean(np.sum(Z * lu.solve(np.asarray(Hd @ Z)), axis=0)))
 
 
-def _correlation_factor(residual_image, gx, gy) -> float:
-    Sr = np.abs(np.fft.rfft2(residual_image)) ** 2
-    Sg = np.abs(np.fft.rfft2(gx)) ** 2 + np.abs(np.fft.rfft2(gy)) ** 2
+def _correlation_factor(residual, gradients) -> float:
+    """c of the module docstring from the residual and the reference gradient components (arrays of one shape,
+    2D frames or 3D voxel blocks): their power spectra over every axis."""
+    Sr = np.abs(np.fft.rfftn(residual)) ** 2
+    Sg = sum(np.abs(np.fft.rfftn(g)) ** 2 for g in gradients)
     den = np.mean(Sr) * np.mean(Sg)
     return float(np.mean(Sr * Sg) / den) if den > 0 else 1.0
+
+
+@dataclass
+class ImageTerm:
+    """What the rules read of the image term psi (eq:IR) on the registrations' mesh: ``data`` (``energy(u)``,
+    ``hessian()``), ``n_samples`` (pixels or voxels it sums over), ``residual_image(u)`` the residual as an array
+    and ``gradients`` the reference gradient components on the same samples (for :func:`_correlation_factor`)."""
+
+    data: object
+    n_samples: int
+    residual_image: object
+    gradients: tuple
+
+
+def pixel_image_term(reference_image, moving_image, mesh, register_kwargs) -> ImageTerm:
+    """The :class:`ImageTerm` of a frame pair, built as :func:`femreg.register` builds its image term (the
+    ``image_term`` of :func:`choose_alpha` for 2D frames; :func:`femreg.volume.voxel_image_term` for volumes)."""
+    spacing, origin = validate_spacing(register_kwargs["spacing"], register_kwargs.get("origin", (0.0, 0.0)))
+    ref = validate_image(reference_image, "reference image")
+    mov = validate_image(moving_image, "moving image")
+    if register_kwargs.get("normalize", True):
+        ref, mov, _ = normalize_pair(ref, mov)
+    I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
+    data = ssd_term(I1, I2, mesh, ref.shape, spacing, origin, offset=register_kwargs.get("offset"))
+    quad = data.quad
+    if data.offset is None:
+        grads = I1.gradient_at_pixels()
+    else:
+        g = np.zeros((2, ref.size))
+        g[:, quad.index] = data.ref_gradient.T
+        grads = (g[0].reshape(ref.shape), g[1].reshape(ref.shape))
+
+    def residual_image(u):
+        r = np.zeros(ref.size)
+        r[quad.index] = data.residual(u)
+        return r.reshape(ref.shape)
+
+    return ImageTerm(data=data, n_samples=quad.n_pixels, residual_image=residual_image, gradients=tuple(grads))
 
 
 RULES = ("quasi-optimality", "discrepancy", "upre")
@@ -173,16 +185,20 @@ def successful_stretch(success) -> tuple[int, int]:
 
 
 def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base_alpha=None,
-                 rule="quasi-optimality", keep_results=False, **register_kwargs):
+                 rule="quasi-optimality", keep_results=False, image_term=None, **register_kwargs):
     """Choose alpha for one pair (module docstring).
 
     Parameters
     ----------
-    reference_image, moving_image : the pair, as for :func:`femreg.register`.
+    reference_image, moving_image : the pair, as for :func:`femreg.register` (frames or volumes; a volume pair
+        needs ``register=femreg.volume.register_volume`` and ``image_term=femreg.volume.voxel_image_term``,
+        which :func:`femreg.register` passes for ``alpha="auto"``).
     decades : exponents of the candidate grid, ``base_alpha * 10**d``.
     base_alpha : centre of the grid; default the regulariser's default alpha.
     rule : "quasi-optimality" (default), "discrepancy" or "upre" (module docstring).
     keep_results : also return every grid registration (``AutoAlpha.results``).
+    image_term : callable ``(reference, moving, mesh, register_kwargs) -> ImageTerm``; default
+        :func:`pixel_image_term` (frames); volumes: :func:`femreg.volume.voxel_image_term`.
     **register_kwargs : every other keyword argument of :func:`femreg.register` (spacing, regularizer, mesh, ...);
         ``alpha`` must be absent or "auto"; ``register=`` another registration function of the same signature
         (default :data:`ENGINE`, i.e. :func:`femreg.register`).
@@ -213,16 +229,10 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         register_kwargs["strain_tol"] = GN_STRAIN_TOL_TIGHT
     results = [register(reference_image, moving_image, alpha=float(al), **register_kwargs) for al in alphas]
 
-    # the image term and its Hessian on the registrations' mesh (same construction as register)
-    spacing, origin = validate_spacing(register_kwargs["spacing"], register_kwargs.get("origin", (0.0, 0.0)))
-    ref = validate_image(reference_image, "reference image")
-    mov = validate_image(moving_image, "moving image")
-    if register_kwargs.get("normalize", True):
-        ref, mov, _ = normalize_pair(ref, mov)
+    # the image term and its Hessian on the registrations' mesh (same construction as register / register_volume)
     mesh = results[0].mesh
-    I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
-    data = image_term(I1, I2, mesh, ref.shape, spacing, origin, offset=register_kwargs.get("offset"))
-    quad = data.quad
+    term = (image_term or pixel_image_term)(reference_image, moving_image, mesh, register_kwargs)
+    data = term.data
     Hd = data.hessian().tocsr()
 
     psi, dof = np.empty(alphas.size), np.empty(alphas.size)
@@ -235,22 +245,14 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         psi[i] = data.energy(res.u)
         dof[i] = influence_trace(Hd, sp.csr_matrix(reg.hessian(res.u)))
 
-    n = quad.n_pixels
+    n = term.n_samples
     # a registration that reports failure is no candidate: the rules run on the longest unbroken stretch of
     # successful ones (the change between two candidates either side of a failure means nothing)
     succeeded = [bool(getattr(res, "success", True)) for res in results]
     lo, hi = successful_stretch(succeeded)
     i0 = lo + int(np.argmin(psi[lo:hi]))             # the best image fit among them
     sigma2 = 2.0 * psi[i0] / max(n - dof[i0], 1.0)
-    r_img = np.zeros(ref.size)
-    r_img[quad.index] = data.residual(results[i0].u)
-    if data.offset is None:
-        gx, gy = I1.gradient_at_pixels()
-    else:
-        g = np.zeros((2, ref.size))
-        g[:, quad.index] = data.ref_gradient.T
-        gx, gy = g[0].reshape(ref.shape), g[1].reshape(ref.shape)
-    c = _correlation_factor(r_img.reshape(ref.shape), gx, gy)
+    c = _correlation_factor(term.residual_image(results[i0].u), term.gradients)
     upre = 2.0 * psi + 2.0 * c * sigma2 * dof
     strains = [res.nodal_strain.ravel() for res in results]
     change = np.array([np.linalg.norm(strains[k + 1] - strains[k]) for k in range(len(strains) - 1)])

@@ -204,8 +204,10 @@ def load_result(path) -> RegistrationResult:
         return load_volume_result(path)
     mesh, u, kw, element_grid = read_result(path)
     base = kw.pop("refined_from", None)
+    auto = kw.pop("auto_alpha", None)
     res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
+    res.auto_alpha = auto
     if base is not None:            # what the inversion and new meshes read: the size refinement started from
         from .result_base import RefinementRecord
 

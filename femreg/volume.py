@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import orientation
+from .autoalpha import ImageTerm, choose_alpha, register_auto
 from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
@@ -45,7 +46,7 @@ from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDT
                      validate_spacing_3d, validate_volume)
 
 __all__ = ["register_volume", "track_volume", "volumes_to", "coarse_to_fine", "global_search_3d", "VolumeTrack",
-           "GLOBAL_STRAINS_3D", "hop_check"]
+           "GLOBAL_STRAINS_3D", "hop_check", "voxel_image_term"]
 
 #: Axial strains tried by the global search (-8 % to +4 %, steps of 0.5 %).
 GLOBAL_STRAINS_3D = tuple(np.round(np.arange(-0.08, 0.04 + 1e-9, 0.005), 4))
@@ -339,6 +340,33 @@ def _validate(reference, moving, spacing, origin, regularizer, strategy, maxiter
     return ref, mov, spacing, origin
 
 
+def _voxel_offset(offset, grid: VoxelGrid) -> np.ndarray:
+    """S of eq:IR at the voxels of ``grid``'s block, (n_voxels, 3) mm, from a VolumeResult, a callable or a
+    nodal vector on ``grid.mesh``."""
+    if isinstance(offset, VolumeResult):
+        return np.nan_to_num(offset.displacement(grid.points()))
+    s_nodes = _start(offset, grid.mesh, "offset")
+    return np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
+
+
+def voxel_image_term(reference_image, moving_image, mesh, register_kwargs) -> ImageTerm:
+    """The :class:`femreg.autoalpha.ImageTerm` of a volume pair on ``mesh``, built as :func:`register_volume`
+    builds its image term (RMS-normalised volumes, tricubic splines, the offset S at the voxels): what
+    ``alpha="auto"`` reads on volumes (the ``image_term`` of :func:`femreg.autoalpha.choose_alpha`)."""
+    spacing, origin = validate_spacing_3d(register_kwargs["spacing"], register_kwargs.get("origin", (0.0, 0.0, 0.0)))
+    ref = validate_volume(reference_image, "reference volume")
+    mov = validate_volume(moving_image, "moving volume")
+    if register_kwargs.get("normalize", True):
+        ref = ref / np.sqrt(np.mean(ref ** 2))
+        mov = mov / np.sqrt(np.mean(mov ** 2))
+    grid = VoxelGrid(mesh, ref.shape, spacing, origin)
+    offset = register_kwargs.get("offset")
+    S = None if offset is None else _voxel_offset(offset, grid)
+    data = VoxelSSDTerm(grid, SplineVolume(ref, spacing, origin), SplineVolume(mov, spacing, origin), offset=S)
+    return ImageTerm(data=data, n_samples=grid.n_voxels, residual_image=data.residual,
+                     gradients=tuple(np.asarray(g, float) for g in data.g))
+
+
 def _start(initial, mesh, what="initial"):
     """Nodal start (3 n_nodes,) from a VolumeResult, a callable(points (n, 3)) -> (n, 3) or a nodal vector."""
     n = mesh.p.shape[1]
@@ -378,7 +406,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         RF volumes (axial, lateral, elevational), same shape; ``reference(x) ~ moving(x + u(x))``.
     spacing : (dx, dy, dz) mm; origin : (3,) mm, the centre of voxel [0, 0, 0]
     regularizer, alpha, regularizer_options, maxiter, tol, linear_solver, callback, strain_tol, repair
-        As in :func:`femreg.register` (alpha for 2 x 2 x 2 mm elements, scaled by element volume).
+        As in :func:`femreg.register` (alpha for 2 x 2 x 2 mm elements, scaled by element volume; "auto":
+        chosen from the pair by :func:`femreg.autoalpha.choose_alpha`, 7 registrations, the choice in
+        ``result.auto_alpha``).
     mesh : skfem.MeshHex1, optional
         An axis-aligned tensor hexahedral mesh (mm); default :func:`femreg.voxels.roi_mesh_3d` with
         ``element_size`` (default :data:`femreg.voxels.DEFAULT_ELEMENT_SIZE_3D`) and ``margin``.
@@ -400,16 +430,17 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements match the envelope better one RF
         period off (:func:`hop_check`; the per-element gain is ``result.hop_gain``).
     """
-    routed = route_volume(register_volume, dict(locals()))
+    args = dict(locals())
+    routed = route_volume(register_volume, args)
     if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
         return routed
     unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
     if unknown:
         raise InputError(f"unknown option(s) for volume registration: {', '.join(sorted(unknown))}")
-    if isinstance(alpha, str):
-        raise InputError("alpha='auto' is not available for volumes; give a number or None (the default)")
     if ignored.get("geometry") is not None:
         raise InputError("geometry is not available for volumes (a volume is sampled on a Cartesian grid)")
+    if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
+        return _register_auto(args)
     t_all = time.perf_counter()
     timings = {}
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
@@ -431,14 +462,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
                            margin=margin)
     elif tensor_axes_3d(mesh) is None:
         raise InputError("a volume mesh must be an axis-aligned tensor skfem.MeshHex1 (femreg.voxels.roi_mesh_3d)")
-    S = None
-    if offset is not None:
-        grid = VoxelGrid(mesh, ref.shape, spacing, origin)
-        if isinstance(offset, VolumeResult):
-            S = np.nan_to_num(offset.displacement(grid.points()))
-        else:
-            s_nodes = _start(offset, mesh, "offset")
-            S = np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
+    S = None if offset is None else _voxel_offset(offset, VoxelGrid(mesh, ref.shape, spacing, origin))
 
     t = time.perf_counter()
     period = _rf_period_3d(ref, spacing)
@@ -541,6 +565,23 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     return res
 
 
+def _register_auto(args: dict) -> VolumeResult:
+    """``register_volume(..., alpha="auto")`` (``args``: its arguments, the region already routed):
+    :func:`femreg.autoalpha.register_auto` with this module's registration and image term; the pair is
+    validated and its orientation checked once, before the candidates."""
+    if args["alpha"] != "auto":
+        raise InputError(f"alpha must be a number or 'auto', got {args['alpha']!r}")
+    ref, mov = args["reference_image"], args["moving_image"]
+    vol, _, spacing, _ = _validate(ref, mov, args["spacing"], args["origin"], args["regularizer"],
+                                   args["strategy"], args["maxiter"], args["tol"])
+    if args["check_orientation"]:
+        orientation.check(vol[:, :, vol.shape[2] // 2], spacing[:2], elevational=spacing[2])
+    del vol
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
+    kw.update(args["ignored"], roi=None, depth=None, check_orientation=False)
+    return register_auto(ref, mov, register=register_volume, image_term=voxel_image_term, **kw)
+
+
 #: Options of the 2D :func:`femreg.register` that have no meaning on volumes and are accepted and ignored.
 _IGNORED_2D_OPTIONS = ("roi", "depth", "geometry", "blockmatch_options", "coarse_to_fine",
                        "allow_mesh_outside")
@@ -569,7 +610,9 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
     starts the next), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
-    :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box."""
+    :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
+    ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
+    registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice."""
     arr = [np.asarray(f) for f in frames]
     if len(arr) < 2:
         raise InputError(f"a sequence needs at least 2 volumes, got {len(arr)}")
@@ -592,6 +635,14 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     S = None
     prev = None
     mesh = register_kwargs.pop("mesh", None)
+    auto = None
+    if isinstance(register_kwargs.get("alpha"), str):   # "auto": chosen on the first pair, reused (as femreg.track)
+        if register_kwargs["alpha"] != "auto":
+            raise InputError(f"alpha must be a number or 'auto', got {register_kwargs['alpha']!r}")
+        auto = choose_alpha(arr[0], arr[1], register=register_volume, image_term=voxel_image_term, spacing=spacing,
+                            origin=origin, mesh=mesh, **register_kwargs)
+        auto.result = None
+        register_kwargs["alpha"] = auto.alpha
     for k in range(1, len(arr)):
         if mode == "direct":
             r = register_volume(arr[0], arr[k], spacing=spacing, origin=origin, mesh=mesh, **register_kwargs)
@@ -614,9 +665,11 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         prev = r
         if progress:
             print(f"volume {k}/{len(arr) - 1}: {r.message}", flush=True)
-    if crop is not None:
-        for r in results + acc:         # idempotent: direct mode holds each result in both lists
+    for r in results + acc:             # idempotent: direct mode holds each result in both lists
+        if crop is not None:
             crop.widen(r)
+        if auto is not None:
+            r.auto_alpha = auto
     return VolumeTrack(results=results, accumulated=acc)
 
 

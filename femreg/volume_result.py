@@ -12,7 +12,7 @@ import numpy as np
 
 from .errors import FileFormatError, InputError
 from .fields import check_strain_mode
-from .result_base import ResultRecord
+from .result_base import ResultRecord, read_auto_alpha
 from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, FIELDS_3D, SAMPLE_CHUNK, STRAIN_COMPONENTS_3D, HexLocator,
                             element_strains_3d, recovered_strains_3d)
 
@@ -44,6 +44,8 @@ class VolumeResult(ResultRecord):
         What of the volume was left out of the mesh and why (:mod:`femreg.echo_volume`); None: nothing.
     roi : (x0, x1, y0, y1, z0, z1) mm or None
         The box registered when not the whole volume.
+    auto_alpha : femreg.autoalpha.AutoAlpha or None
+        With ``alpha="auto"``: the choice and the rule's data over the candidate grid (saved with the result).
     """
 
     strain_components = STRAIN_COMPONENTS_3D
@@ -143,7 +145,8 @@ class VolumeResult(ResultRecord):
                  ncc_before=self.ncc_before, ncc_after=self.ncc_after, strategy=np.array(self.strategy),
                  alpha_effective=self.alpha_effective,
                  quality=np.full(self.mesh.t.shape[1], np.nan) if self.quality is None else self.quality,
-                 strain_components=np.array(self.strain_components), **self._region_record())
+                 strain_components=np.array(self.strain_components), **self._region_record(),
+                 **self._auto_alpha_record())
         return path
 
     def _region_record(self) -> dict:
@@ -233,4 +236,6 @@ def load_volume_result(path) -> VolumeResult:
             if roi.size != 6 or not np.all(np.isfinite(roi)):
                 raise FileFormatError(f"{path}: 'roi' must be six finite numbers x0 x1 y0 y1 z0 z1 (mm)")
             res.roi = tuple(float(v) for v in roi)
+        if "auto_alpha" in z:
+            res.auto_alpha = read_auto_alpha(z["auto_alpha"], path)
         return res

@@ -30,6 +30,9 @@ refined_from       (2,) mm                         median element size (axial, l
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
+auto_alpha         str (JSON)                      ``alpha="auto"``: the choice and the rule's data over
+                                                   the candidate grid (optional;
+                                                   :class:`femreg.result_base.AutoAlpha`)
 =================  ==============================  ===================================================
 
 Strains are the small-strain tensor components ``exx = dux/dx``, ``eyy = duy/dy``,
@@ -48,6 +51,7 @@ from ..errors import InputError
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
 from ..mesh import check_mesh  # noqa: F401  (also femreg.io.results.check_mesh)
 from .._atomic import atomic_savez
+from ..result_base import read_auto_alpha
 from .checks import fail
 
 __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_strains",
@@ -56,7 +60,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "auto_alpha")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -155,6 +159,9 @@ def _from_object(res) -> dict:
     base = getattr(getattr(res, "refinement", None), "base_size", None)
     if base is not None:
         out["refined_from"] = np.asarray(base, float)
+    record = getattr(res, "_auto_alpha_record", None)
+    if callable(record):
+        out.update(record())
     for k in RESULT_KEYS:
         if k not in out and hasattr(res, k):
             v = getattr(res, k)
@@ -220,8 +227,9 @@ def _read(path) -> dict:
 
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
-    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, when the
-    file has it) and the element-strain grid (or None); :func:`femreg.load_result` builds the result from them.  Raises
+    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, and
+    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, when the file has them) and the element-strain grid
+    (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
     from skfem import MeshQuad1
@@ -243,6 +251,8 @@ def read_result(path):
               excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
     if d.get("refined_from") is not None:
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
+    if d.get("auto_alpha") is not None:
+        kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
     return mesh, np.asarray(d["u"], float), kw, element_grid
 
 
