@@ -149,7 +149,8 @@ fails, :math:`\beta` lands on the smallest value of its grid (or on the largest 
 :data:`RATIO_TOLERANCE` (under ``model="auto"``: a ratio no model reaches, e.g. a lateral displacement that is
 noise), the misfit stays well above the noise level (:data:`MISFIT_LIMIT`, in units of the model's strain: noise
 inflates the data's own), or a stiff (soft) region strains more (less) than the background
-(:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
+(:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least :data:`RANKED_CONTRAST`, the stiffer part of the
+image strains more than its softer part (:data:`RANKED_MARGIN`; :func:`_contradiction`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
 displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
@@ -1217,13 +1218,15 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         A region (mm) of known Young's modulus E (kPa), e.g. a phantom's documented background: the result
         then carries ``shear_modulus_kpa`` = mu scaled so that its area-weighted mean over the region's elements
         (centres inside) is E/3, and ``youngs_modulus_kpa`` = 3 ``shear_modulus_kpa`` (incompressible).
-    reference_image, moving_image : (n_axial, n_lateral) arrays, optional
-        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`): after the
-        two-step inversion, a one-step inversion minimises the image term of eq:IR over log mu with the model's
-        displacement (:func:`_one_step`; Gokhale et al., Inverse Probl. 20 (2004) 1531,
-        doi:10.1088/0266-5611/20/5/013), started from the two-step result, with the same beta; the image term is
-        scaled so that its Gauss-Newton information on log mu has the trace of the displacement misfit's.
-        ``one_step`` in the result records the image term before and after.
+    reference_image, moving_image : (n_axial, n_lateral) arrays, or (n_x, n_y, n_z) volumes, optional
+        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`, or for volumes
+        its :class:`femreg.VolumeResult`): after the two-step inversion, a one-step inversion minimises the image
+        term of eq:IR (pixels, or voxels) over log mu with the model's displacement (:func:`_one_step`; Gokhale et
+        al., Inverse Probl. 20 (2004) 1531, doi:10.1088/0266-5611/20/5/013), started from the two-step result, with
+        the same beta and boundary values (3D: the fitted ones); the image term is scaled so that its Gauss-Newton
+        information on log mu has the trace of the displacement misfit's.  ``one_step`` in the result records the
+        image term and the objective before and after, the iterations and the seconds.  3D with
+        ``weights=None``: the noise-measuring first pass runs without the images.
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
         ``constrained``; for a registered displacement times :func:`_registered_sigma`, :data:`REGISTERED_SIGMA` x
@@ -1237,7 +1240,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
         the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
-        of registered fields), or a stiff (soft) region strains more (less) than the background.
+        of registered fields), or a stiff (soft) region, or the stiffer (softer) part of an image of any contrast
+        (:func:`_contradiction`), strains more (less) than the rest.
 
     Raises
     ------
@@ -1615,7 +1619,8 @@ class InversionResult:
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
         Absolute moduli, kPa, with ``reference`` (:func:`invert`).
     one_step : dict or None
-        With images (:func:`invert`): image term before / after the one-step inversion, iterations, seconds.
+        With images or volumes (:func:`invert`): image term and objective before / after the one-step inversion,
+        Gauss-Newton (and conjugate-gradient) iterations, seconds and CPU seconds.
     """
 
     def __init__(self, *, mesh, mu, model, lambda_bar, beta, beta_rule="", sweep=(), regularization="tv",
