@@ -212,8 +212,10 @@ RATIO_TOLERANCE = 0.2
 CONTRAST_REGION = 1.5
 #: Relative strain difference beyond which a region's modulus contradicts its strain (the wrong side).
 CONTRADICTION_MARGIN = 0.1
-#: The two-part test of :func:`_contradiction` (the image split at the middle of its 5-95 % range of log mu) runs on
-#: images whose 5-95 % range of mu spans at least this factor (below it the image is flat for this purpose) ...
+#: The two-part test of :func:`_contradiction` splits the image at the middle of this (area-weighted) percentile
+#: range of log mu ...
+RANKED_RANGE = (0.01, 0.99)
+#: ... runs on images whose range of mu spans at least this factor (below it the image is flat for this purpose) ...
 RANKED_CONTRAST = 1.05
 #: ... and flags when the stiffer part's mean |e_xx| exceeds the softer part's by more than this fraction.
 RANKED_MARGIN = 0.25
@@ -876,17 +878,19 @@ def _contradiction(mu, el_strain, mesh, area_el):
 
 
 def _ranked_contradiction(mu, ax, sel, area_el) -> str:
-    """The image's elements ``sel`` split in two at the middle of the 5-95 % range of log mu (area-weighted): with
+    """The image's elements ``sel`` split in two at the middle of the 1-99 % range of log mu (area-weighted): with
     that range at least log :data:`RANKED_CONTRAST`, the stiffer part, whose mean mu is the larger, is flagged
     ('...') when its mean |e_xx| ``ax`` exceeds the softer part's by more than :data:`RANKED_MARGIN` (it should strain
-    less); else ''.  Unlike the regions beyond :data:`CONTRAST_REGION`, this sees a contrast of a few percent."""
+    less); else ''.  Unlike the regions beyond :data:`CONTRAST_REGION`, this sees a contrast of a few percent.  The
+    split sits between the image's extremes, so that where an inclusion stands out it is the inclusion that is
+    tested, not the background's mild trends (the strain of a uniform body falls with depth under a probe)."""
     th, w = np.log(mu[sel]), area_el[sel]
     o = np.argsort(th)
     c = np.cumsum(w[o]) / np.sum(w)
-    q5, q95 = th[o][np.searchsorted(c, 0.05)], th[o][min(np.searchsorted(c, 0.95), th.size - 1)]
-    stiff = th > 0.5 * (q5 + q95)
+    lo, hi = th[o][np.searchsorted(c, RANKED_RANGE[0])], th[o][min(np.searchsorted(c, RANKED_RANGE[1]), th.size - 1)]
+    stiff = th > 0.5 * (lo + hi)
     soft = ~stiff
-    if q95 - q5 < np.log(RANKED_CONTRAST) or stiff.sum() < 2 or soft.sum() < 2:
+    if hi - lo < np.log(RANKED_CONTRAST) or stiff.sum() < 2 or soft.sum() < 2:
         return ""
 
     def mean(v, s):
