@@ -254,19 +254,30 @@ def regularizer_cases():
     return out
 
 
-def speed():
+def speed(one_step=False):
+    """Seconds of ``femreg.invert`` (beta rule, uncertainty) on the paper-probe 70 x 42 mm registered pair, the
+    element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of the two-step and of
+    the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
     field = truth_field("plane-strain", 4.0)
     folder = cache_folder()
     path = folder / "speed_paper_70x42.npz"
+    pair = make_pair(field, "paper", (70.0, 42.0), 20.0, 0, top_mm=2.0)
     if path.exists():
         reg = femreg.load_result(path)
     else:
-        pair = make_pair(field, "paper", (70.0, 42.0), 20.0, 0, top_mm=2.0)
         reg = femreg.register(pair.ref, pair.mov, spacing=pair.spacing, origin=pair.origin)
         reg.save(path)
     t = time.perf_counter()
     inv = femreg.invert(reg)
-    return time.perf_counter() - t, reg.mesh.t.shape[1], inv
+    out = (time.perf_counter() - t, reg.mesh.t.shape[1], inv)
+    if not one_step:
+        return out
+    rows = []
+    for kw in ({}, dict(reference_image=pair.ref, moving_image=pair.mov)):
+        c0 = time.process_time()
+        r = femreg.invert(reg, uncertainty=False, **kw)
+        rows.append((time.process_time() - c0, r, sampled_contrast(r.shear_modulus, field.centre, field.radius_mm)))
+    return out + (rows,)
 
 
 def _pct(v):
@@ -410,6 +421,7 @@ def main(argv=None):
     ap.add_argument("--set", action="append", choices=tuple(SETS), help="case set(s) (default: main)")
     ap.add_argument("--quick", action="store_true", help="the quick set (4 L7 plane-strain cases), no extras")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--speed-only", action="store_true", help="only the speed rows (two-step and one-step)")
     ap.add_argument("--no-beta-study", action="store_true", help="skip the fixed-beta sweeps")
     ap.add_argument("--json", help="write the rows (all metrics) to this JSON file")
     ap.add_argument("--rows", help="comma-separated inversion rows to run (default: all; 1/SR always)")
@@ -417,6 +429,13 @@ def main(argv=None):
     ap.add_argument("--figure", help="contrast-recovery curves (PNG) from the rows")
     ap.add_argument("--out", help="write the table and summary to this markdown file")
     a = ap.parse_args(argv)
+    if a.speed_only:
+        dt, n_el, inv, rows = speed(one_step=True)
+        print(f"paper-probe 70 x 42 mm, {n_el} elements: invert() with the uncertainty {dt:.1f} s wall")
+        for (cpu, r, (c, cv)), name in zip(rows, ("two-step", "one-step")):
+            print(f"{name}: {cpu:.1f} CPU s, contrast {c:.2f} (true 4), CV {100 * cv:.1f} %, beta {r.beta:.3g}, "
+                  f"success {r.success}, one_step {r.one_step}")
+        return rows
     sets = ["quick"] if a.quick else (a.set or ["main"])
     rows = []
     if a.from_json:
@@ -457,9 +476,14 @@ def main(argv=None):
                           for r, m, mu, c, ok, fl in regularizer_cases())
         text += "\n"
     if not a.no_speed and not a.from_json:
-        dt, n_el, inv = speed()
+        dt, n_el, inv, rows = speed(one_step=True)
         text += (f"\n- speed: paper-probe 70 x 42 mm registered pair, {n_el} elements, invert() with the beta rule "
                  f"and the uncertainty: {dt:.1f} s (success {inv.success})")
+        for (cpu, r, (c, cv)), name in zip(rows, ("two-step", "one-step")):
+            extra = (f", of it the one-step stage {r.one_step['cpu_seconds']:.1f} CPU s ({r.one_step['nit']} "
+                     "Gauss-Newton iterations)" if r.one_step else "")
+            text += (f"\n- {name}, no uncertainty: {cpu:.1f} CPU s{extra}; contrast {c:.2f} (true 4), background CV "
+                     f"{100 * cv:.1f} %, success {r.success}")
     print(text)
     if a.out:
         Path(a.out).write_text(text + "\n")

@@ -23,8 +23,16 @@ random direction, phase and wavelength in 3-6 mm, or 6-12 mm; seeded), at severa
 defaults (3D: lateral and elevational boundary values fitted, misfit weights from the data's noise) and with the
 former ones (all boundary values imposed, weights 1 / 0.1 / 0.1).
 
+``--one-step``: two-step against one-step inversion (``femreg.invert(result, reference_image=, moving_image=)``)
+on *registered* RF volumes of the phantom (``forward.volume.paper_volume_sequence``, frames 1 -> 7, cached; the
+volumes and crops of benchmarks/volume_study.py), registered with femreg's defaults (2 mm elements) and inverted
+on the registration's own mesh and over the sphere's box (clipped to the crop less 2 mm) with 2 mm elements, beta
+``--beta`` (or the rule with ``--rule``); contrast and background CV as above, CPU seconds (``time.process_time``)
+of each ``invert`` call, of the one-step stage alone, and the peak RSS.  ``--crops quick,full`` (quick: x 20-42,
+y +-11, z +-5 mm; full: the whole volume), ``--cases HI`` (other inclusions render their volumes first).
+
 Usage: ``python benchmarks/inversion3d.py [--quick] [--rule] [--h 2] [--cases HI,SI,mHI,HOM] [--regions
-sphere,imaged] [--elevation] [--correlated]``.
+sphere,imaged] [--elevation] [--correlated] [--one-step [--crops quick,full]]``.
 """
 from __future__ import annotations
 
@@ -111,6 +119,49 @@ def run(case, region, h, beta, noise=False, uncertainty=True, sigma=NOISE_MM, we
     return row
 
 
+CROPS = {"quick": (20.0, 42.0, -11.0, 11.0, -5.0, 5.0), "full": None}
+
+
+def one_step_rows(case, crop_name, beta):
+    """Registered volumes of ``case`` cropped to ``crop_name``: two-step and one-step inversions (rows)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from volume_study import crop, in_sphere, inversion_region  # noqa: E402
+    from forward.volume import paper_volume_sequence  # noqa: E402
+
+    seq = paper_volume_sequence(case, frames=(0, 6))
+    sl, origin = crop(seq, CROPS[crop_name])
+    ref, mov = (np.asarray(seq.frames[i][sl], np.float64) for i in (0, 1))
+    c0 = time.process_time()
+    reg = femreg.register(ref, mov, spacing=seq.spacing, origin=origin)
+    t_reg = time.process_time() - c0
+    region = inversion_region(seq, sl)
+    true = MODULI[case] / BACKGROUND
+    rows = []
+    for where, kw in (("mesh", {}), ("sphere box", dict(region=region, element_size=2.0))):
+        for name, img in (("two-step", {}), ("one-step", dict(reference_image=ref, moving_image=mov))):
+            c0 = time.process_time()
+            inv = femreg.invert(reg, beta=beta, uncertainty=False, **kw, **img)
+            cpu = time.process_time() - c0
+            m = modulus_contrast(inv, in_sphere) if case != "HOM" else None
+            rows.append(dict(case=case, crop=crop_name, shape=ref.shape, where=where, inversion=name,
+                             n_el=inv.mu.size, dofs=3 * inv.mesh.p.shape[1], beta=inv.beta,
+                             contrast=m["contrast"] if m else float("nan"), true=true,
+                             cv=m["cv_background"] if m else float(np.std(inv.mu) / np.mean(inv.mu)),
+                             cpu=cpu, cpu_one_step=(inv.one_step or {}).get("cpu_seconds", float("nan")),
+                             nit=(inv.one_step or {}).get("nit", 0), cg=(inv.one_step or {}).get("cg_iterations", 0),
+                             psi=(inv.one_step or {}).get("psi_two_step", float("nan")),
+                             psi1=(inv.one_step or {}).get("psi_one_step", float("nan")), success=inv.success,
+                             flags="; ".join(inv.flags)[:80], t_reg=t_reg,
+                             rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+            r = rows[-1]
+            print(f"| {case} | {crop_name} {'x'.join(map(str, r['shape']))} | {where} | {name} | {r['n_el']} / "
+                  f"{r['dofs']} | {r['beta']:.3g} | {r['contrast']:.3f} ({true:g}) | "
+                  f"{abs(r['contrast'] / true - 1) * 100:.1f} % | {100 * r['cv']:.1f} % | {r['cpu']:.1f} | "
+                  f"{r['cpu_one_step']:.1f} | {r['nit']} / {r['cg']} | {r['psi']:.4g} -> {r['psi1']:.4g} | "
+                  f"{r['rss_mb']:.0f} | {r['success']} | {r['flags']} |", flush=True)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="HI only, sphere region, 3 mm elements")
@@ -125,7 +176,19 @@ def main(argv=None):
                     help="only the correlated-noise study: HI, defaults against the former 3D defaults")
     ap.add_argument("--elevation", action="store_true",
                     help="only the elevational-noise study: HI, sigma_z 5 / 20 / 50 um, w_z 0.1 and 0.01")
+    ap.add_argument("--one-step", action="store_true",
+                    help="only two-step against one-step inversion of registered RF volumes (--crops, --cases)")
+    ap.add_argument("--crops", default="quick", help="with --one-step: quick,full")
     a = ap.parse_args(argv)
+    if a.one_step:
+        print("| case | crop (voxels) | inverted on | inversion | elements / DOFs | beta | contrast (true) | "
+              "error | CV bg | CPU s | one-step CPU s | GN it / CG it | image term | peak RSS MB | success | flags |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        rows = []
+        for case in a.cases.split(","):
+            for crop_name in a.crops.split(","):
+                rows += one_step_rows(case, crop_name, None if a.rule else a.beta)
+        return rows
     cases = ["HI"] if a.quick else a.cases.split(",")
     h = 3.0 if a.quick else a.h
     beta = None if a.rule else a.beta

@@ -149,7 +149,9 @@ fails, :math:`\beta` lands on the smallest value of its grid (or on the largest 
 :data:`RATIO_TOLERANCE` (under ``model="auto"``: a ratio no model reaches, e.g. a lateral displacement that is
 noise), the misfit stays well above the noise level (:data:`MISFIT_LIMIT`, in units of the model's strain: noise
 inflates the data's own), or a stiff (soft) region strains more (less) than the background
-(:data:`CONTRADICTION_MARGIN`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
+(:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least :data:`RANKED_CONTRAST`, the stiffer part of the
+image strains more than its softer part (:data:`RANKED_MARGIN`; :func:`_contradiction`).  Uncertainty: a Laplace
+approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
 displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
@@ -211,6 +213,13 @@ RATIO_TOLERANCE = 0.2
 CONTRAST_REGION = 1.5
 #: Relative strain difference beyond which a region's modulus contradicts its strain (the wrong side).
 CONTRADICTION_MARGIN = 0.1
+#: The two-part test of :func:`_contradiction` splits the image at the middle of this (area-weighted) percentile
+#: range of log mu ...
+RANKED_RANGE = (0.01, 0.99)
+#: ... runs on images whose range of mu spans at least this factor (below it the image is flat for this purpose) ...
+RANKED_CONTRAST = 1.05
+#: ... and flags when the stiffer part's mean |e_xx| exceeds the softer part's by more than this fraction.
+RANKED_MARGIN = 0.25
 #: Misfit (dimensionless, module docstring: units of the squared displacement change across one element) above
 #: which the model is said not to explain the data: 4 x the largest misfit of the true field against a registered
 #: one on benchmarks/inversion.py (5.4e-3: 3 MHz probe, 20 dB; 1.3e-4 to 1.9e-3 at 5.5-7.5 MHz).
@@ -448,8 +457,8 @@ class _Regularizer:
         g = np.bincount(self.a, gj, self.n_el) - np.bincount(self.b, gj, self.n_el)
         return val, g
 
-    def hessian(self, theta) -> np.ndarray:
-        """Dense (n_el, n_el) Hessian of the (smoothed) regulariser at ``theta``."""
+    def hessian(self, theta, sparse: bool = False):
+        """(n_el, n_el) Hessian of the (smoothed) regulariser at ``theta``: dense, or a sparse matrix."""
         j = theta[self.a] - theta[self.b]
         if self.kind == "tv":
             hj = self.scale * self.length * self.delta ** 2 / (j * j + self.delta ** 2) ** 1.5
@@ -458,7 +467,8 @@ class _Regularizer:
         n = self.n_el
         D = sp.csr_matrix((np.r_[np.ones(j.size), -np.ones(j.size)],
                            (np.r_[np.arange(j.size), np.arange(j.size)], np.r_[self.a, self.b])), shape=(j.size, n))
-        return (D.T @ sp.diags(hj) @ D).toarray()
+        out = (D.T @ sp.diags(hj) @ D).tocsr()
+        return out if sparse else out.toarray()
 
 
 class _Problem:
@@ -840,25 +850,60 @@ def _auto_model(ratio: float):
 def _contradiction(mu, el_strain, mesh, area_el):
     """A reason string when a region's modulus contradicts its axial strain, else ''.
 
-    Stiff region: inner elements with mu > :data:`CONTRAST_REGION` (median 1); soft: mu < 1 /
-    :data:`CONTRAST_REGION`; background: within a factor 1.2 of 1.  A stiff region strains less than the
-    background (|e_xx| smaller), a soft one more; the reverse by more than :data:`CONTRADICTION_MARGIN` is
-    flagged."""
+    Two tests on the inner elements (all elements when fewer than 8 are inner):
+
+    - regions beyond a contrast: stiff = mu > :data:`CONTRAST_REGION` (median 1), soft = mu < 1 /
+      :data:`CONTRAST_REGION`, background = within a factor 1.2 of 1.  A stiff region strains less than the
+      background (|e_xx| smaller), a soft one more; the reverse by more than :data:`CONTRADICTION_MARGIN` is
+      flagged.
+    - any contrast (:func:`_ranked_contradiction`): the stiffer against the softer part of the image, which sees a
+      small contrast on the wrong side of 1 that no element of it takes beyond :data:`CONTRAST_REGION`."""
     inner = _inner_elements(mesh)
     ax = np.abs(el_strain[:, 0])
     bg = inner & (np.abs(np.log(mu)) < np.log(1.2))
-    if bg.sum() < 2:
-        return ""
-    e_bg = float(np.sum(area_el[bg] * ax[bg]) / np.sum(area_el[bg]))
     out = []
-    for name, sel, sign in (("stiff", inner & (mu > CONTRAST_REGION), 1), ("soft", inner & (mu < 1 / CONTRAST_REGION), -1)):
-        if sel.sum() < 2:
-            continue
-        e_r = float(np.sum(area_el[sel] * ax[sel]) / np.sum(area_el[sel]))
-        if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
-            out.append(f"the {name} region ({int(sel.sum())} elements) strains {'more' if sign > 0 else 'less'} "
-                       f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
+    if bg.sum() >= 2:
+        e_bg = float(np.sum(area_el[bg] * ax[bg]) / np.sum(area_el[bg]))
+        for name, sel, sign in (("stiff", inner & (mu > CONTRAST_REGION), 1),
+                                ("soft", inner & (mu < 1 / CONTRAST_REGION), -1)):
+            if sel.sum() < 2:
+                continue
+            e_r = float(np.sum(area_el[sel] * ax[sel]) / np.sum(area_el[sel]))
+            if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
+                out.append(f"the {name} region ({int(sel.sum())} elements) strains {'more' if sign > 0 else 'less'} "
+                           f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
+    ranked = _ranked_contradiction(mu, ax, inner if inner.sum() >= 8 else np.ones(mu.size, bool), area_el)
+    if ranked:
+        out.append(ranked)
     return "; ".join(out)
+
+
+def _ranked_contradiction(mu, ax, sel, area_el) -> str:
+    """The image's elements ``sel`` split in two at the middle of the 1-99 % range of log mu (area-weighted): with
+    that range at least log :data:`RANKED_CONTRAST`, the stiffer part, whose mean mu is the larger, is flagged
+    ('...') when its mean |e_xx| ``ax`` exceeds the softer part's by more than :data:`RANKED_MARGIN` (it should strain
+    less); else ''.  Unlike the regions beyond :data:`CONTRAST_REGION`, this sees a contrast of a few percent.  The
+    split sits between the image's extremes, so that where an inclusion stands out it is the inclusion that is
+    tested, not the background's mild trends (the strain of a uniform body falls with depth under a probe)."""
+    th, w = np.log(mu[sel]), area_el[sel]
+    o = np.argsort(th)
+    c = np.cumsum(w[o]) / np.sum(w)
+    lo, hi = th[o][np.searchsorted(c, RANKED_RANGE[0])], th[o][min(np.searchsorted(c, RANKED_RANGE[1]), th.size - 1)]
+    stiff = th > 0.5 * (lo + hi)
+    soft = ~stiff
+    if hi - lo < np.log(RANKED_CONTRAST) or stiff.sum() < 2 or soft.sum() < 2:
+        return ""
+
+    def mean(v, s):
+        return float(np.sum(w[s] * v[s]) / np.sum(w[s]))
+
+    contrast = mean(mu[sel], stiff) / mean(mu[sel], soft)
+    e_stiff, e_soft = mean(ax[sel], stiff), mean(ax[sel], soft)
+    if not e_stiff > (1.0 + RANKED_MARGIN) * e_soft:
+        return ""
+    return (f"its stiffer part ({int(stiff.sum())} of {stiff.size} elements, mean mu {contrast:.3g} x the softer "
+            f"part's) strains {e_stiff / e_soft:.3g} x as much as the softer (|e_xx| {e_stiff:.3g} vs {e_soft:.3g}): "
+            f"the strain puts the contrast on the other side of 1")
 
 
 def _dof_target(area: float, n_el: int, h: float, dim: int, beta_method: str = "dof") -> float:
@@ -952,19 +997,57 @@ def _constrained_blocks(fem, problem, theta, block: int = 256) -> np.ndarray:
 
 def _sensitivity(fem, mu, u, lu) -> np.ndarray:
     """Dense (n_I, n_el) du_I/dtheta = -K_II^{-1} [mu_e K_e u]_I."""
-    B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
-                      shape=(fem.basis.N, fem.n_el))
-    return -lu.solve(B[fem.I].toarray())
+    return _Jacobian(fem, mu, u, lu, dense_limit=np.inf).dense
 
 
-def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1e-5):
+class _Jacobian:
+    r""":math:`S = \partial u_I/\partial\theta = -K_{II}^{-1} B`, :math:`B = [\mu_e K_e u]_I` (sparse, n_I x n_el):
+    dense while it has at most ``dense_limit`` entries, else as products (one solve with the factor ``lu`` each),
+    never stored whole."""
+
+    def __init__(self, fem, mu, u, lu, dense_limit):
+        B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
+                          shape=(fem.basis.N, fem.n_el))
+        self.B = B[fem.I].tocsc()
+        self.lu = lu
+        self.dense = -lu.solve(self.B.toarray()) if fem.I.size * fem.n_el <= dense_limit else None
+
+    def matvec(self, v):
+        return self.dense @ v if self.dense is not None else -self.lu.solve(self.B @ v)
+
+    def rmatvec(self, w):
+        return self.dense.T @ w if self.dense is not None else -(self.B.T @ self.lu.solve(w))
+
+    def gram_trace(self, A, block: int = 256) -> float:
+        """tr(S^T A S) for a sparse symmetric (n_I, n_I) A; without the dense S, ``block`` columns at a time."""
+        if self.dense is not None:
+            return float(np.sum(self.dense * (A @ self.dense)))
+        out = 0.0
+        for j in range(0, self.B.shape[1], block):
+            S = -self.lu.solve(self.B[:, j:j + block].toarray())
+            out += float(np.sum(S * (A @ S)))
+        return out
+
+
+#: The one-step inversion keeps du/dtheta dense while it has at most this many entries (n_I x n_el, 8 bytes each);
+#: beyond, each Gauss-Newton system is solved by conjugate gradients with du/dtheta as products (two solves each).
+ONE_STEP_DENSE_LIMIT = LAPLACE_DENSE_LIMIT
+#: Conjugate-gradient iterations and relative residual of one Gauss-Newton step without the dense du/dtheta.
+ONE_STEP_CG = (200, 1e-4)
+
+
+def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1e-5, trace=None):
     r"""One-step inversion: Gauss-Newton on :math:`\Psi(\theta) = \psi[u(\theta)]/c + \beta R(\theta)`, with
-    :math:`\psi` the image term of eq:IR (fixed reference gradient, eq:wfnew) and u(θ) the model's displacement
-    (boundary values d_B from the registration), started from ``theta0``.  Each step solves
-    :math:`(S^T H_\psi S/c + \beta\nabla^2 R)\,\Delta = -(S^T\nabla\psi/c + \beta\nabla R)` on the complement of
-    the constant mode (S = du/dθ) and backtracks on Ψ.  Returns (theta, info)."""
+    :math:`\psi` the image term of eq:IR (fixed reference gradient, eq:wfnew; pixels in 2D, voxels in 3D) and
+    u(θ) the model's displacement (boundary values d_B, the two-step inversion's), started from ``theta0``.  Each
+    step solves :math:`(S^T H_\psi S/c + \beta\nabla^2 R)\,\Delta = -(S^T\nabla\psi/c + \beta\nabla R)` on the
+    complement of the constant mode (S = du/dθ: dense up to :data:`ONE_STEP_DENSE_LIMIT` entries, else conjugate
+    gradients, :data:`ONE_STEP_CG`) and backtracks on Ψ.  ``trace``: tr(S^T H_psi S) at ``theta0`` (scales the
+    constant mode's term without a dense S).  Returns (theta, info)."""
+    from scipy.sparse.linalg import LinearOperator, cg
+
     I = fem.I
-    Hpsi = term.hessian()
+    Hpsi = sp.csr_matrix(term.hessian())
     HII = Hpsi[I][:, I]
     theta = theta0.copy()
     n = theta.size
@@ -976,14 +1059,27 @@ def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1
     J, u, lu = value(theta)
     J0 = J
     history = [J]
-    ok, msg, it = True, "converged", 0
+    ok, msg, it, n_cg = True, "converged", 0, 0
     for it in range(1, maxiter + 1):
         mu = np.exp(theta)
-        S = _sensitivity(fem, mu, u, lu)
-        g = S.T @ term.gradient(u)[I] / data_scale + beta * reg(theta)[1]
-        H = S.T @ (HII @ S) / data_scale + beta * reg.hessian(theta)
-        rho = np.trace(H) / n
-        step = -np.linalg.solve(H + rho / n * np.ones((n, n)) + 1e-10 * rho * np.eye(n), g)
+        S = _Jacobian(fem, mu, u, lu, ONE_STEP_DENSE_LIMIT)
+        g = S.rmatvec(term.gradient(u)[I]) / data_scale + beta * reg(theta)[1]
+        if S.dense is not None:
+            H = S.dense.T @ (HII @ S.dense) / data_scale + beta * reg.hessian(theta)
+            rho = np.trace(H) / n
+            step = -np.linalg.solve(H + rho / n * np.ones((n, n)) + 1e-10 * rho * np.eye(n), g)
+        else:
+            HR = reg.hessian(theta, sparse=True)
+            rho = ((S.gram_trace(HII) if trace is None else trace) / data_scale + beta * HR.diagonal().sum()) / n
+
+            def apply(v, S=S, HR=HR, rho=rho):
+                return (S.rmatvec(HII @ S.matvec(v)) / data_scale + beta * (HR @ v) + rho / n * v.sum()
+                        + 1e-10 * rho * v)
+
+            count = []
+            step, _ = cg(LinearOperator((n, n), matvec=apply, dtype=float), -g, rtol=ONE_STEP_CG[1],
+                         maxiter=ONE_STEP_CG[0], callback=lambda xk: count.append(1))
+            n_cg += len(count)
         step -= step.mean()
         t = 1.0
         while t > 1e-3:
@@ -1003,7 +1099,51 @@ def _one_step(fem, reg, d, theta0, beta, term, data_scale, *, maxiter=30, rtol=1
     else:
         ok, msg = False, f"not converged in {maxiter} Gauss-Newton iterations"
     return theta, {"success": ok, "message": msg, "nit": it, "objective_start": J0, "objective": J,
-                   "history": history}
+                   "history": history, "cg_iterations": n_cg}
+
+
+def _check_images(displacement, region, reference_image, moving_image):
+    """The registered pair of the one-step inversion as float64 arrays, checked against ``displacement``: a 2D
+    :class:`femreg.RegistrationResult` and two images of its grid, or a :class:`femreg.VolumeResult` and two
+    volumes of its grid."""
+    from .image import validate_image
+    from .registration import RegistrationResult
+    from .volume_result import VolumeResult
+    from .voxels import validate_volume
+
+    if reference_image is None or moving_image is None:
+        raise InputError("the one-step inversion needs both reference_image and moving_image")
+    three = _is_3d(displacement, region)
+    kind = VolumeResult if three else RegistrationResult
+    if not isinstance(displacement, kind):
+        raise InputError(f"the one-step inversion needs the pair's {kind.__name__} as displacement, got "
+                         f"{type(displacement).__name__}")
+    check = validate_volume if three else validate_image
+    images = (check(reference_image, "reference image" if not three else "reference volume"),
+              check(moving_image, "moving image" if not three else "moving volume"))
+    if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
+        raise InputError(f"{'volumes' if three else 'images'} {images[0].shape} / {images[1].shape} do not match "
+                         f"the registration grid {tuple(displacement.shape)}")
+    return images
+
+
+def _image_term(src, mesh, images):
+    """The image term of eq:IR (fixed reference gradient, eq:wfnew) of the registered pair ``images`` on the
+    inversion mesh, each image divided by its RMS as the registration does: pixel quadrature
+    (:func:`femreg.registration.image_term`) in 2D, voxels (:class:`femreg.voxels.VoxelSSDTerm`) in 3D."""
+    from .image import SplineImage, normalize_pair
+
+    r1, r2, _ = normalize_pair(*images)
+    if mesh.p.shape[0] == 3:
+        from .voxels import SplineVolume, VoxelGrid, VoxelSSDTerm
+
+        return VoxelSSDTerm(VoxelGrid(mesh, src.shape, src.spacing, src.origin),
+                            SplineVolume(r1, src.spacing, src.origin),
+                            SplineVolume(r2, src.spacing, src.origin, keep_data=False))
+    from .registration import image_term
+
+    return image_term(SplineImage(r1, src.spacing, src.origin), SplineImage(r2, src.spacing, src.origin), mesh,
+                      src.shape, src.spacing, src.origin)
 
 
 def _check_reference(reference):
@@ -1083,13 +1223,15 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         A region (mm) of known Young's modulus E (kPa), e.g. a phantom's documented background: the result
         then carries ``shear_modulus_kpa`` = mu scaled so that its area-weighted mean over the region's elements
         (centres inside) is E/3, and ``youngs_modulus_kpa`` = 3 ``shear_modulus_kpa`` (incompressible).
-    reference_image, moving_image : (n_axial, n_lateral) arrays, optional
-        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`): after the
-        two-step inversion, a one-step inversion minimises the image term of eq:IR over log mu with the model's
-        displacement (:func:`_one_step`; Gokhale et al., Inverse Probl. 20 (2004) 1531,
-        doi:10.1088/0266-5611/20/5/013), started from the two-step result, with the same beta; the image term is
-        scaled so that its Gauss-Newton information on log mu has the trace of the displacement misfit's.
-        ``one_step`` in the result records the image term before and after.
+    reference_image, moving_image : (n_axial, n_lateral) arrays, or (n_x, n_y, n_z) volumes, optional
+        The registered pair (``displacement`` must then be its :class:`femreg.RegistrationResult`, or for volumes
+        its :class:`femreg.VolumeResult`): after the two-step inversion, a one-step inversion minimises the image
+        term of eq:IR (pixels, or voxels) over log mu with the model's displacement (:func:`_one_step`; Gokhale et
+        al., Inverse Probl. 20 (2004) 1531, doi:10.1088/0266-5611/20/5/013), started from the two-step result, with
+        the same beta and boundary values (3D: the fitted ones); the image term is scaled so that its Gauss-Newton
+        information on log mu has the trace of the displacement misfit's.  ``one_step`` in the result records the
+        image term and the objective before and after, the iterations and the seconds.  3D with
+        ``weights=None``: the noise-measuring first pass runs without the images.
     uncertainty : bool
         Compute ``uncertainty`` (per-element std of log mu, Laplace approximation, NaN where not
         ``constrained``; for a registered displacement times :func:`_registered_sigma`, :data:`REGISTERED_SIGMA` x
@@ -1103,7 +1245,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
         the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
-        of registered fields), or a stiff (soft) region strains more (less) than the background.
+        of registered fields), or a stiff (soft) region, or the stiffer (softer) part of an image of any contrast
+        (:func:`_contradiction`), strains more (less) than the rest.
 
     Raises
     ------
@@ -1122,14 +1265,18 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         common = dict(model=model, region=region, element_size=element_size, beta=beta,
                       regularization=regularization, poisson=poisson, maxiter=maxiter, gtol=gtol,
                       beta_grid=beta_grid, progress=progress, beta_method=beta_method,
-                      boundary=None if auto_boundary else boundary,
-                      reference_image=reference_image, moving_image=moving_image)
+                      boundary=None if auto_boundary else boundary)
+        images = dict(reference_image=reference_image, moving_image=moving_image)
+        if reference_image is not None or moving_image is not None:
+            _check_images(displacement, region, reference_image, moving_image)     # before the first pass
+        # the first pass only measures the noise: the one-step inversion (images) runs in the second
         first = invert(displacement, weights=DEFAULT_WEIGHTS_3D, uncertainty=False, **common)
         w, why = _noise_weights(first)
-        if w == tuple(DEFAULT_WEIGHTS_3D) and not uncertainty and reference is None:
+        if (w == tuple(DEFAULT_WEIGHTS_3D) and not uncertainty and reference is None
+                and reference_image is None):
             res = first
         else:
-            res = invert(displacement, weights=w, uncertainty=uncertainty, reference=reference, **common)
+            res = invert(displacement, weights=w, uncertainty=uncertainty, reference=reference, **common, **images)
         res.model_rule += "; " + why
         res.timings["first_pass"] = first.timings["total"]
         res.timings["total"] = time.perf_counter() - t_all
@@ -1142,19 +1289,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     ref = None if reference is None else _check_reference(reference)
     images = None
     if reference_image is not None or moving_image is not None:
-        from .image import validate_image
-        from .registration import RegistrationResult
-
-        if reference_image is None or moving_image is None:
-            raise InputError("the one-step inversion needs both reference_image and moving_image")
-        if _is_3d(displacement, region):
-            raise InputError("the one-step inversion (reference_image, moving_image) is 2D only")
-        if not isinstance(displacement, RegistrationResult):
-            raise InputError("the one-step inversion needs the pair's RegistrationResult as displacement")
-        images = (validate_image(reference_image, "reference image"), validate_image(moving_image, "moving image"))
-        if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
-            raise InputError(f"images {images[0].shape} / {images[1].shape} do not match the registration grid "
-                             f"{tuple(displacement.shape)}")
+        images = _check_images(displacement, region, reference_image, moving_image)
     if regularization not in ("tv", "tikhonov"):
         raise InputError(f"regularization must be 'tv' or 'tikhonov', got {regularization!r}")
     try:
@@ -1365,24 +1500,24 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     one_step = None
     if images is not None:
         t = time.perf_counter()
-        from .image import SplineImage, normalize_pair
-        from .registration import image_term
-
-        src = displacement
-        r1, r2, _ = normalize_pair(*images)
-        term = image_term(SplineImage(r1, src.spacing, src.origin), SplineImage(r2, src.spacing, src.origin), mesh,
-                          src.shape, src.spacing, src.origin)
+        c0 = time.process_time()
+        term = _image_term(displacement, mesh, images)
+        # the boundary values of the two-step result (the data, or the fitted boundary of 3D data)
+        bnd = problem.dirichlet
         mu0 = np.exp(theta)
-        u0, lu0 = fem.solve(mu0, d)
-        S = _sensitivity(fem, mu0, u0, lu0)
-        HII = term.hessian()[fem.I][:, fem.I]
-        MII = fem.M[fem.I][:, fem.I]
-        scale = float(np.sum(S * (HII @ S)) * s2 / max(np.sum(S * (MII @ S)), 1e-300))
+        u0, lu0 = fem.solve(mu0, bnd)
+        S = _Jacobian(fem, mu0, u0, lu0, ONE_STEP_DENSE_LIMIT)
+        HII = sp.csr_matrix(term.hessian())[fem.I][:, fem.I]
+        tr_psi = S.gram_trace(HII)
+        scale = float(tr_psi * s2 / max(S.gram_trace(fem.M[fem.I][:, fem.I]), 1e-300))
+        del S
         psi_two = term.energy(u0)
-        theta, info1 = _one_step(fem, reg, d, theta, b, term, scale)
-        u1, _ = fem.solve(np.exp(theta), d)
+        theta, info1 = _one_step(fem, reg, bnd, theta, b, term, scale, trace=tr_psi)
+        u1, _ = fem.solve(np.exp(theta), bnd)
         one_step = {"psi_two_step": psi_two, "psi_one_step": term.energy(u1), "nit": info1["nit"],
-                    "message": info1["message"], "seconds": time.perf_counter() - t}
+                    "objective_two_step": info1["objective_start"], "objective_one_step": info1["objective"],
+                    "message": info1["message"], "seconds": time.perf_counter() - t,
+                    "cpu_seconds": time.process_time() - c0, "cg_iterations": info1["cg_iterations"]}
         if not info1["success"]:
             flags.append(f"one-step inversion: {info1['message']}")
         phi, _ = problem.misfit(theta)
@@ -1489,7 +1624,8 @@ class InversionResult:
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
         Absolute moduli, kPa, with ``reference`` (:func:`invert`).
     one_step : dict or None
-        With images (:func:`invert`): image term before / after the one-step inversion, iterations, seconds.
+        With images or volumes (:func:`invert`): image term and objective before / after the one-step inversion,
+        Gauss-Newton (and conjugate-gradient) iterations, seconds and CPU seconds.
     """
 
     def __init__(self, *, mesh, mu, model, lambda_bar, beta, beta_rule="", sweep=(), regularization="tv",

@@ -183,7 +183,8 @@ def test_bad_3d_input_raises_input_error():
         (dict(displacement=lambda p: np.zeros((len(p), 2)), region=R), "shape"),
         (dict(displacement=lambda p: np.full((len(p), 3), np.nan), region=R), "NaN"),
         (dict(displacement=lambda p: np.zeros((len(p), 3)), region=R), "no deformation"),
-        (dict(displacement=f, region=R, reference_image=np.zeros((4, 4)), moving_image=np.zeros((4, 4))), "2D"),
+        (dict(displacement=f, region=R, reference_image=np.zeros((4, 4)), moving_image=np.zeros((4, 4))),
+         "VolumeResult"),
     ]
     for kw, word in cases:
         with pytest.raises(InputError, match=word):
@@ -294,3 +295,66 @@ def test_paper_sphere_with_registration_like_elevational_noise():
     # bounds: within 10 % of 4 and CV 5 %, imposed CV above 20 %
     assert abs(c_new["contrast"] / 4.0 - 1.0) < 0.1 and c_new["cv_background"] < 0.05, c_new
     assert c_old["cv_background"] > 0.2, c_old
+
+
+# ------------------------------------------------------------------------------------------------------------
+# one-step inversion from the volumes; a small contrast on the wrong side
+# ------------------------------------------------------------------------------------------------------------
+def _layer_volumes():
+    """RF volumes of the two layers (ratio 2 at x = 6 mm; tests/_volumes.py) and a VolumeResult holding their exact
+    displacement on 1 mm hexahedra inside them."""
+    from _volumes import volume_pair
+
+    from femreg.volume_result import VolumeResult
+
+    f = _layers(2.0)
+    ref, mov, sp, org = volume_pair(f, shape=(600, 30, 24), seed=0)
+    mesh = _tensor_mesh_3d((1.0, 11.0, 1.0, 5.0, 1.0, 5.0), (1.0, 1.0, 1.0))
+    vr = VolumeResult(mesh, f(mesh.p.T).ravel(), shape=ref.shape, spacing=sp, origin=org, success=True, status=0,
+                      message="converged")
+    return ref, mov, vr
+
+
+def _layer_ratio(res):
+    c = res.centroids[:, 0]
+    return np.mean(res.mu[c > 6.0]) / np.mean(res.mu[c < 6.0])
+
+
+def test_one_step_inversion_of_volumes_keeps_the_contrast_and_lowers_its_objective(monkeypatch):
+    import femreg.inversion as FI
+
+    ref, mov, vr = _layer_volumes()
+    two = invert(vr, beta=1e-3, uncertainty=False)
+    one = invert(vr, beta=1e-3, uncertainty=False, reference_image=ref, moving_image=mov)
+    # measured 1.998 (two-step) and 1.997 (one-step) from the exact displacement; bound 3 %
+    for r in (two, one):
+        assert abs(_layer_ratio(r) / 2.0 - 1.0) < 0.03, _layer_ratio(r)
+    s = one.one_step
+    assert s["objective_one_step"] < s["objective_two_step"] and s["nit"] >= 1 and s["cg_iterations"] == 0
+    assert two.one_step is None and one.success, one.message
+    # du/dtheta as products (conjugate gradients, as on large volumes) takes the dense path's steps
+    monkeypatch.setattr(FI, "ONE_STEP_DENSE_LIMIT", 0)
+    cg = invert(vr, beta=1e-3, uncertainty=False, reference_image=ref, moving_image=mov)
+    assert cg.one_step["cg_iterations"] > 0 and cg.one_step["nit"] == s["nit"]
+    assert np.abs(np.log(cg.mu / one.mu)).max() < 1e-6
+    with pytest.raises(InputError, match="do not match"):
+        invert(vr, reference_image=ref, moving_image=mov[:-1])
+    with pytest.raises(InputError, match="3D"):
+        invert(vr, reference_image=ref[:, :, 0], moving_image=mov[:, :, 0])
+
+
+def test_a_small_wrong_side_contrast_of_a_registered_volume_is_flagged():
+    """Registered volumes of 6 x 4 x 4 mm (1 mm elements) across two layers of ratio 2: the registered lateral and
+    elevational boundary values drive the nearly incompressible model to a ratio below 1, a contrast of a few
+    percent that the regions beyond CONTRAST_REGION never see; the strain says otherwise, and it is flagged."""
+    from _volumes import volume_pair
+
+    ref, mov, sp, _ = volume_pair(_layers(2.0, 4.0), shape=(400, 30, 24), seed=0)
+    reg = femreg.register(ref, mov, spacing=sp, element_size=1.0)
+    res = invert(reg, uncertainty=False)
+    c = res.centroids[:, 0]
+    ratio = np.mean(res.mu[c > 4.0]) / np.mean(res.mu[c < 4.0])
+    e = np.abs(res.strain_measured[:, 0])
+    # measured: ratio 0.94, |e_xx| 0.011 in the first element layer and 0.004 in the last
+    assert ratio < 1.0 and np.mean(e[c < 2.0]) > 2 * np.mean(e[c > 6.0]), ratio
+    assert not res.success and "stiffer part" in res.message and "other side of 1" in res.message, res.message

@@ -76,6 +76,30 @@ def test_modulus_against_strain_is_flagged():
     assert "soft region" in why and "strains less" in why
 
 
+def test_a_small_contrast_on_the_wrong_side_is_flagged():
+    """The exact field of the 4x disk: a disk shown 25 % softer (no element beyond CONTRAST_REGION, which the regions'
+    test needs) contradicts the strain and is flagged; shown 25 % stiffer it is not, nor is seeded noise of 1-3 %."""
+    from skfem import Basis, ElementQuad1, ElementVector
+
+    from femreg.inversion import CONTRAST_REGION
+
+    sol = solution("plane-stress", 40.0)
+    mesh = _tensor_mesh(15.0, 45.0, -15.0, 15.0, (1.5, 1.5))
+    v = sol.displacement(mesh.p.T)
+    d = np.column_stack([v[:, 0], v[:, 1]]).ravel()
+    el, _ = _element_strain(Basis(mesh, ElementVector(ElementQuad1()), intorder=2), d)
+    area = np.full(mesh.t.shape[1], 2.25)
+    inside = inclusion(mesh.p[:, mesh.t].mean(axis=1).T)
+    wrong = np.where(inside, 0.8, 1.0)
+    assert np.all((wrong < CONTRAST_REGION) & (wrong > 1 / CONTRAST_REGION))
+    why = _contradiction(wrong, el, mesh, area)
+    assert "stiffer part" in why and "other side of 1" in why, why
+    assert _contradiction(np.where(inside, 1.25, 1.0), el, mesh, area) == ""
+    rng = np.random.default_rng(0)
+    for s in (0.01, 0.03):
+        assert _contradiction(np.exp(s * rng.standard_normal(mesh.t.shape[1])), el, mesh, area) == ""
+
+
 # ------------------------------------------------------------------------------------------------------------
 # uncertainty
 # ------------------------------------------------------------------------------------------------------------

@@ -47,8 +47,8 @@ def add_parser(subparsers):
                    help="X0 X1 Y0 Y1 KPA (a volume: X0 X1 Y0 Y1 Z0 Z1 KPA): a box (mm) of known Young's modulus "
                         "(kPa); also write shear and Young's moduli in kPa")
     p.add_argument("--images", metavar="FILE", nargs="+",
-                   help="the registered frames (reference and moving file, or one multi-frame file with --pair): "
-                        "also run the one-step inversion from the images")
+                   help="the registered frames (reference and moving file, or one multi-frame file with --pair; a "
+                        "volume's result: its .npz volume file(s)): also run the one-step inversion from the images")
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
                    help="with --images: frame indices of reference and moving (default 0 1 in one file, 0 0 in two)")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
@@ -81,6 +81,40 @@ def _images(args):
         i, j = args.pair or (0, 0)
         mov_fr = frames_from_args(args, args.images[1])
     return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
+
+
+def _volumes(args):
+    """(reference, moving) volumes of --images for a volume's result: one ``.npz`` of a volume sequence (frames
+    ``--pair I J``, default 0 1) or two ``.npz`` volume files (``--pair``, default 0 0 of each), read as
+    ``femreg register`` reads volumes (an ``rf`` array, ``spacing`` of 3 values)."""
+    from femreg.errors import InputError
+
+    from ._volume import read_volume_file
+
+    if len(args.images) > 2:
+        raise InputError(f"--images takes one or two files, got {len(args.images)}")
+    arrays = []
+    for path in args.images:
+        got = read_volume_file(path)
+        if got is None:
+            raise InputError(f"{path}: not a volume file (an .npz with an rf array (n_x, n_y, n_z) or (n_frames, "
+                             "n_x, n_y, n_z) and spacing of 3 values); a volume's result needs its volumes")
+        arrays.append(np.asarray(got[0]))
+    i, j = args.pair or ((0, 1) if len(arrays) == 1 else (0, 0))
+    out = []
+    for arr, k, path in ((arrays[0], i, args.images[0]), (arrays[-1], j, args.images[-1])):
+        if arr.ndim == 3:
+            if k != 0:
+                raise InputError(f"{path} holds one volume; --pair index {k} does not exist")
+            out.append(arr)
+        elif not 0 <= k < arr.shape[0]:
+            raise InputError(f"{path} holds {arr.shape[0]} volumes; --pair index {k} does not exist")
+        else:
+            out.append(arr[k])
+    if len(arrays) == 1 and arrays[0].ndim == 3:
+        raise InputError(f"{args.images[0]} holds one volume; the one-step inversion needs the reference and the "
+                         "moving volume (a sequence file, or two files)")
+    return out[0], out[1]
 
 
 def _boxes(args, volume):
@@ -159,8 +193,6 @@ def run(args) -> int:
                          "(or auto)")
     if not volume and args.model == "3d":
         raise InputError(f"--model 3d needs a volume's result; {args.result} is 2D")
-    if volume and args.images:
-        raise InputError("--images (the one-step inversion from the images) is for 2D results only")
     slice_at = slice_position(args)
     if slice_at is not None and not volume:
         raise InputError("--slice applies to a volume's inversion only; this result is 2D")
@@ -168,7 +200,7 @@ def run(args) -> int:
     if failed_reg and not args.allow_failed:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")
-    ref_img, mov_img = _images(args) if args.images else (None, None)
+    ref_img, mov_img = (_volumes(args) if volume else _images(args)) if args.images else (None, None)
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                         regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter,
