@@ -176,7 +176,7 @@ from .material import lambda_bar as material_lambda_bar
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "strain_ratio", "model_ratio", "AUTO_RATIO",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE", "DOF_AREA", "BETA_METHODS",
-           "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA"]
+           "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA", "TV_REWEIGHT"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -1377,7 +1377,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
         # data, a modulus that differs mostly in the inclusions' contrast)
         reg.reweight(theta, TV_REWEIGHT)
-        theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol, progress=bar)
+        theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)   # the bar is closed here
         if np.all(np.isfinite(theta_r)):
             theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
             if info.get("boundary") is not None:
