@@ -6,7 +6,8 @@ sets (:data:`SETS`, tuples (model, contrast, probe, SNR dB, radius mm, compressi
 contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the rules was chosen on it; the element-size exponent of the beta target and the
 calibration's 1/h on it and held-out),
 ``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2``
-(:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``curves``
+(:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``fresh3``
+(:data:`FRESH3`, drawn before the soft-disk work, radii 4-8 mm, and not looked at until it was fixed), ``curves``
 (:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration). Each pair is
 registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
 effective-parameter rule, uncertainty).
@@ -81,6 +82,15 @@ FRESH2 = tuple((m, c, pr, snr, r, lev, seed)
                                                 (0.5, "L3", 30.0, 5.0, 0.03, 23), (4.0, "L15", 15.0, 6.0, 0.01, 24),
                                                 (0.35, "paper", 20.0, 4.0, 0.04, 25), (4.0, "L7", 25.0, 5.0, 0.03, 26),
                                                 (2.0, "L12", 30.0, 6.0, 0.02, 27), (0.25, "L7", 15.0, 4.0, 0.02, 28)))
+#: Fresh3: drawn before the soft-disk work (the inversion's forward model and mesh) and not looked at until it was
+#: fixed; new seeds 41-48, every probe, radii 4-8 mm, contrasts 0.25-4 off the former grids (0.3, 0.4, 2.5), five
+#: of eight soft.
+FRESH3 = tuple((m, c, pr, snr, r, lev, seed)
+               for m in MODELS
+               for c, pr, snr, r, lev, seed in ((0.25, "L3", 25.0, 6.0, 0.02, 41), (0.3, "paper", 20.0, 7.0, 0.01, 42),
+                                                (0.5, "L7", 20.0, 8.0, 0.02, 43), (0.4, "L12", 15.0, 5.0, 0.03, 44),
+                                                (0.25, "L15", 30.0, 4.0, 0.01, 45), (3.0, "L3", 20.0, 4.0, 0.03, 46),
+                                                (2.5, "paper", 30.0, 6.0, 0.02, 47), (4.0, "L12", 25.0, 7.0, 0.01, 48)))
 #: Outside the targets' range, for the contrast-recovery curves (plane strain, L7, 1 %, seed 6, one parameter
 #: varied from the 5 mm / 20 dB / contrast 4 or 0.25 case): radius, contrast, SNR.
 CURVES = (tuple(("plane-strain", c, "L7", 20.0, r, 0.01, 6) for c in (0.25, 4.0) for r in (1.5, 2.5, 3.5, 8.0))
@@ -410,7 +420,7 @@ def curves_figure(rows, path):
 
 
 SETS = {"main": tuple((m, c, pr, snr, 5.0, 0.01, 0) for pr, snr in SETTINGS for m in MODELS for c in CONTRASTS),
-        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "curves": CURVES,
+        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3, "curves": CURVES,
         "quick": tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 0) for c in CONTRASTS)}
 
 

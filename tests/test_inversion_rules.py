@@ -62,10 +62,14 @@ def test_beta_rule_takes_the_gamma_nearest_its_target():
     assert 3.2 < c < 4.4, c
 
 
-def test_beta_rule_on_a_fine_mesh_takes_a_smaller_beta_than_per_area():
+def test_beta_rule_on_a_fine_mesh_takes_a_smaller_beta_than_per_area(monkeypatch):
     """0.75 mm elements (1024 over 24 x 24 mm, as the 12-15 MHz probes' registrations): the target per area alone
     ("dof-area", the former default) goes up by half a decade above the grid to beta 0.316 and loses contrast; the
-    default target, which grows as the elements shrink, stays on the grid and recovers more of it."""
+    default target, which grows as the elements shrink, stays on the grid and recovers more of it.  Plain TV: the
+    debiasing solve (TV_REWEIGHT) after the rule narrows the gap the rule makes (3.93 against 3.79)."""
+    from femreg import inversion
+
+    monkeypatch.setattr(inversion, "TV_REWEIGHT", None)
     sol = solution("plane-stress", 40.0)
     f = _noisy(sol, 1e-3, h=0.75)
     region = ((18.0, 42.0), (-12.0, 12.0))
