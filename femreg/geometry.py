@@ -290,6 +290,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
 
     t_all = time.perf_counter()
     geometry = as_geometry(geometry)
+    if isinstance(geometry, Swept):
+        raise InputError("a femreg.Swept geometry is a swept probe's: it needs volumes (n_samples, n_lines, "
+                         "n_frames), not a frame")
     for bad in ("mesh", "offset"):
         if kw.get(bad) is not None:
             raise InputError(f"{bad}= is not supported with a {geometry.kind} geometry")

@@ -400,7 +400,21 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         more than :data:`femreg.repair.MAX_HOPPED_FRACTION` of the elements match the envelope better one RF
         period off (:func:`hop_check`; the per-element gain is ``result.hop_gain``).
     """
-    routed = route_volume(register_volume, dict(locals()))
+    args = dict(locals())
+    geometry = ignored.pop("geometry", None)
+    if geometry is not None:            # a swept probe's volumes: scan-converted, then registered here (femreg.swept)
+        from .probes import Swept, as_geometry
+        from .swept import register_swept
+        geo = as_geometry(geometry)
+        if geo is not None and not isinstance(geo, Swept):
+            raise InputError(f"a volume's geometry is femreg.Swept(...) (a swept probe) or None (a Cartesian "
+                             f"grid), got {geo!r}")
+        if geo is not None:
+            kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "spacing", "origin",
+                                                             "ignored")}
+            return register_swept(reference_image, moving_image, geometry=geo, spacing=spacing, origin=origin,
+                                  register=register_volume, **kw, **ignored)
+    routed = route_volume(register_volume, args)
     if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
         return routed
     unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
@@ -408,8 +422,6 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         raise InputError(f"unknown option(s) for volume registration: {', '.join(sorted(unknown))}")
     if isinstance(alpha, str):
         raise InputError("alpha='auto' is not available for volumes; give a number or None (the default)")
-    if ignored.get("geometry") is not None:
-        raise InputError("geometry is not available for volumes (a volume is sampled on a Cartesian grid)")
     t_all = time.perf_counter()
     timings = {}
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
