@@ -100,8 +100,8 @@ def inscribed_box(geometry: Swept, shape, spacing, origin, n: int = 48):
     lo = np.array([axes[a][b[2 * a]] for a in range(3)])
     hi = np.array([axes[a][b[2 * a + 1]] for a in range(3)])
 
-    def inside(lo_, hi_):   # the box's faces sampled on a 24 x 24 lattice each
-        t = np.linspace(0.0, 1.0, 24)
+    def inside(lo_, hi_):   # the box's faces sampled on a 48 x 48 lattice each
+        t = np.linspace(0.0, 1.0, 48)
         pts = []
         for a in range(3):
             o = [q for q in range(3) if q != a]
