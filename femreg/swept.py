@@ -246,3 +246,4 @@ def register_swept(reference_image, moving_image, *, geometry, spacing, origin=(
     note = f"the fan outside the Cartesian box inside it ({box} mm; {100 * outside:.0f} % of the samples)"
     out.excluded = note if not res.excluded else f"{note}; {res.excluded}"
     return out
+
