@@ -238,7 +238,8 @@ def run(case, seed, grid_spacing=None):
     en = total_strain_error(rn, field, lo + m, hi - m)[0]
     es, fs = total_strain_error(rs, field, lo + m, hi - m)
     ec, fc = total_strain_error(rc, field, lo + m, hi - m)
-    row = dict(case=case, seed=seed, samples_error=en, samples_cpu_s=tn, samples_nit=gn.nit, swept_error=es, swept_cover=fs, swept_cpu_s=ts, swept_success=rs.success,
+    row = dict(case=case, seed=seed, samples_error=en, samples_cpu_s=tn, samples_nit=gn.nit, swept_error=es,
+               swept_cover=fs, swept_cpu_s=ts, swept_success=rs.success,
                cartesian_error=ec, cartesian_cover=fc, cartesian_cpu_s=tc, cartesian_success=rc.success,
                swept_shape=list(p.ref.shape), scan_converted=list(rs.cartesian[0]),
                grid_spacing=[float(v) for v in rs.cartesian[1]], cartesian_shape=list(c.ref.shape),

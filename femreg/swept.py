@@ -24,8 +24,8 @@ from .speckle import rf_period
 from .volume_result import SweptResult
 from .voxels import SplineVolume, validate_volume
 
-__all__ = ["swept_spacing", "inscribed_box", "grid_spacing_for", "scan_convert", "register_swept",
-           "VOXELS_PER_PHASE_PERIOD"]
+__all__ = ["swept_spacing", "inscribed_box", "grid_spacing_for", "cartesian_grid", "scan_convert",
+           "register_swept", "VOXELS_PER_PHASE_PERIOD"]
 
 #: Voxels interpolated per block of :func:`scan_convert` (bounds its temporaries to ~100 MB).
 SCAN_CHUNK = 1 << 21
@@ -160,8 +160,15 @@ def grid_spacing_for(geometry: Swept, spacing, lo, hi, period: float) -> np.ndar
     return np.array([spacing[0], lat, cap((geometry.sweep_radius_mm + a_mid) * geometry.step_rad, phi)])
 
 
-def _cartesian_grid(geometry, volume, spacing, origin, grid_spacing):
-    """``(n (3,), spacing (3,), origin (3,))`` of the Cartesian voxel grid inside the fan of ``volume``."""
+def cartesian_grid(geometry, volume, spacing, origin, grid_spacing=None):
+    """``(n (3,), spacing (3,), origin (3,))`` of the Cartesian voxel grid inside the fan of ``volume`` (module
+    docstring; ``spacing``, ``origin`` validated by :func:`swept_spacing`): the ``grid`` of :func:`scan_convert`,
+    one grid for every volume of a sequence."""
+    geometry = as_geometry(geometry)
+    if not isinstance(geometry, Swept):
+        raise InputError(f"a swept volume's grid needs a femreg.Swept geometry, got {geometry!r}")
+    spacing, origin = swept_spacing(spacing, geometry, origin)
+    volume = np.asarray(volume)
     shape = volume.shape
     lo, hi = inscribed_box(geometry, shape, spacing, origin)
     nx = shape[0]
@@ -194,7 +201,7 @@ def scan_convert(volume, geometry, spacing, origin=(0.0, 0.0, 0.0), *, grid_spac
         raise InputError(f"scan_convert needs a femreg.Swept geometry, got {geometry!r}")
     vol = validate_volume(volume, "swept volume")
     sp, org = swept_spacing(spacing, geometry, origin)
-    n, h, o = grid if grid is not None else _cartesian_grid(geometry, vol, sp, org, grid_spacing)
+    n, h, o = grid if grid is not None else cartesian_grid(geometry, vol, sp, org, grid_spacing)
     n = tuple(int(v) for v in n)
     spline = SplineVolume(vol, (1.0, 1.0, 1.0), keep_data=False)
     del vol
@@ -229,7 +236,7 @@ def register_swept(reference_image, moving_image, *, geometry, spacing, origin=(
     sp, org = swept_spacing(spacing, geometry, origin)
     shape = ref.shape
     t = time.perf_counter()
-    grid = _cartesian_grid(geometry, ref, sp, org, grid_spacing)
+    grid = cartesian_grid(geometry, ref, sp, org, grid_spacing)
     A, h, o = scan_convert(ref, geometry, sp, org, grid=grid)
     del ref
     B = scan_convert(mov, geometry, sp, org, grid=grid)[0]

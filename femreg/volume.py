@@ -589,6 +589,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError("every frame of a volume sequence must be 3D (axial, lateral, elevational)")
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    if register_kwargs.get("geometry") is not None:
+        raise InputError("tracking a swept probe's volumes is not supported: scan-convert them onto one grid "
+                         "(femreg.swept.cartesian_grid, then femreg.swept.scan_convert with grid=) and track the "
+                         "Cartesian volumes")
     if register_kwargs.pop("check_orientation", True):
         sp3 = validate_spacing_3d(spacing, origin)[0]
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
