@@ -152,12 +152,18 @@ def test_swept_pair_registers_an_affine_field():
     assert "fan outside the Cartesian box" in res.excluded
 
 
-def test_swept_result_save_load_keeps_the_geometry(tmp_path):
+@pytest.fixture(scope="module")
+def still_pair():
+    """A swept convex pair without motion (9 mm of range, 24 rays, 21 frames)."""
     from forward.swept import make_swept_pair
 
     geo = femreg.Swept(30.0, 1.0, femreg.Convex(40.0, 0.5))
-    p = make_swept_pair(lambda q: np.zeros_like(q), geo, "matrix7", depth_mm=9.0, n_lines=24, n_frames=21,
-                        top_mm=3.0, snr_db=None)
+    return geo, make_swept_pair(lambda q: np.zeros_like(q), geo, "matrix7", depth_mm=9.0, n_lines=24, n_frames=21,
+                                top_mm=3.0, snr_db=None)
+
+
+def test_swept_result_save_load_keeps_the_geometry(tmp_path, still_pair):
+    geo, p = still_pair
     assert np.array_equal(p.ref, p.mov)            # no motion renders the same volume
     res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin, geometry=geo, element_size=1.5)
     path = res.save(tmp_path / "swept.npz")
@@ -170,6 +176,23 @@ def test_swept_result_save_load_keeps_the_geometry(tmp_path):
     assert np.nanmax(np.abs(a["ux"])) < 2e-3     # identical volumes: no motion (measured 1e-5 mm)
     c = res.cartesian_grid()
     assert c["exx"].shape == res.cartesian[0]
+
+
+def test_cli_registers_swept_volumes(tmp_path, still_pair, capsys):
+    from femreg.cli import main
+
+    geo, p = still_pair
+    np.savez(tmp_path / "ref.npz", rf=p.ref, spacing=np.array(p.spacing), origin=np.array(p.origin))
+    np.savez(tmp_path / "mov.npz", rf=p.mov, spacing=np.array(p.spacing), origin=np.array(p.origin))
+    out = tmp_path / "out.npz"
+    args = ["register", str(tmp_path / "ref.npz"), str(tmp_path / "mov.npz"), "-o", str(out), "--geometry", "swept",
+            "--sweep-radius", "30", "--angle-step", "1", "--radius", "40", "--angle-pitch", "0.5"]
+    assert main(args) == 0, capsys.readouterr()
+    res = femreg.load_result(out)
+    assert isinstance(res, femreg.SweptResult) and res.geometry == geo
+    assert main(args[:-8] + ["--geometry", "swept", "--sweep-radius", "30"]) == 2       # no --angle-step
+    assert main(args[:-8] + ["--geometry", "convex", "--radius", "40", "--angle-pitch", "0.5"]) == 2
+    assert "angle-step" in capsys.readouterr().err
 
 
 def test_swept_bad_input():
