@@ -200,6 +200,7 @@ CASES = {
     "affine-convex": (dict(sweep_radius_mm=30.0, angle_step_deg=1.0, array=dict(kind="convex", radius_mm=40.0,
                                                                                  angle_pitch_deg=0.4)),
                       "matrix7", 14.0, 3.0, 41, 25),
+    "affine-large": (dict(sweep_radius_mm=20.0, angle_step_deg=1.0), "matrix7", 20.0, 3.0, 100, 41),
     "sphere-linear": (dict(sweep_radius_mm=20.0, angle_step_deg=1.0), "paper3d", 24.0, 18.0, 84, 31),
 }
 

@@ -390,6 +390,11 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         The region registered (:mod:`femreg.echo_volume`): "auto" (default) the box of usable echo, None the
         whole volume, a box or a depth range as given; the result keeps the full voxel grid and says what was
         left out (``excluded``, ``roi``).
+    geometry : femreg.Swept, optional
+        The volumes are a swept probe's (n_samples, n_lines, n_frames) with ``spacing`` = (dr mm, line pitch mm or
+        deg, frame step deg): scan-converted inside the fan and registered here
+        (:func:`femreg.swept.register_swept`; ``grid_spacing`` its option), returned as a
+        :class:`femreg.volume_result.SweptResult`.
 
     Returns
     -------
