@@ -109,7 +109,7 @@ def test_scan_conversion_inside_the_fan(geo):
                 hi2[a] += 0.3
             assert not valid(faces(lo2, hi2)).all(), (a, side)
     # a smooth field sampled on the fan and scan-converted matches the field at the voxel centres (the cubic
-    # B-spline in the sample indices); measured max error 1.9e-3 (linear) / 2.4e-3 (convex) of the peak
+    # B-spline in the sample indices); measured max error 9.0e-4 (linear) / 5.8e-4 (convex) of the peak 1
     X, Y, Z = geo.sample_positions(shape, spacing, origin)
 
     def f(x, y, z):
@@ -118,7 +118,7 @@ def test_scan_conversion_inside_the_fan(geo):
     V, h, o = scan_convert(f(X, Y, Z), geo, spacing, origin)
     G = np.meshgrid(*[o[a] + h[a] * np.arange(V.shape[a]) for a in range(3)], indexing="ij")
     assert np.all(o >= lo - 1e-9) and np.all(o + (np.array(V.shape) - 1) * h <= hi + 1e-9)
-    assert np.max(np.abs(V - f(*G))) < 5e-3
+    assert np.max(np.abs(V - f(*G))) < 2e-3          # bound: about twice the larger
 
 
 def test_swept_pair_registers_an_affine_field():
@@ -131,8 +131,8 @@ def test_swept_pair_registers_an_affine_field():
     assert p.ref.shape == (480, 48, 25) and tuple(p.spacing) == (0.025, 0.2, 1.0)
     res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin, geometry=geo)
     assert isinstance(res, femreg.SweptResult) and res.success, res.message
-    # total strain error over the mesh box less 1 mm (shears counted twice): measured 7.4 % (seed 0; the Cartesian
-    # volume of the same field and probe 4.7 %); bound 10 %
+    # total strain error over the mesh box less 1 mm (shears counted twice): measured 7.2 % (seed 0; seeds 1-3:
+    # 6.2, 2.6, 7.8 %); bound 10 %
     lo, hi = res.mesh.p.min(axis=1) + 1.0, res.mesh.p.max(axis=1) - 1.0
     P = np.column_stack([g.ravel() for g in np.meshgrid(*[np.linspace(lo[a], hi[a], 10) for a in range(3)],
                                                         indexing="ij")])
@@ -140,11 +140,13 @@ def test_swept_pair_registers_an_affine_field():
     d, t = res.strain(P) - field.strain(P), field.strain(P)
     err = np.sqrt(np.sum(w * d ** 2) / np.sum(w * t ** 2))
     assert err < 0.10, err
-    # the fields at the samples: NaN outside the registered box, the axial strain right inside it
+    # the fields at the samples: NaN outside the registered box (measured 34 % finite), the axial strain right
+    # inside it (measured mean -1.0025 %)
     g = res.on_grid(frame="beam")
     assert g["exx"].shape == p.ref.shape and 0.2 < np.mean(np.isfinite(g["exx"])) < 0.6
     assert abs(np.nanmean(g["exx"]) + 0.01) < 5e-4
-    # the beam frame: the along-ray strain is the truth rotated into the local axes
+    # the beam frame: the along-ray strain is the truth rotated into the local axes (measured -0.9949 against
+    # -0.9922 %)
     pts = res.voxel_points()
     ok = np.isfinite(g["err"].ravel())
     true_b = beam_strain_3d(field.strain(pts[ok]), geo.beam_axes(pts[ok]))
@@ -173,7 +175,7 @@ def test_swept_result_save_load_keeps_the_geometry(tmp_path, still_pair):
     a, b = res.on_grid(), back.on_grid()
     assert np.array_equal(np.isnan(a["ux"]), np.isnan(b["ux"]))
     assert np.nanmax(np.abs(a["exx"] - b["exx"])) == 0.0
-    assert np.nanmax(np.abs(a["ux"])) < 2e-3     # identical volumes: no motion (measured 1e-5 mm)
+    assert np.nanmax(np.abs(a["ux"])) < 1e-6     # identical volumes: no motion (measured 2.5e-11 mm)
     c = res.cartesian_grid()
     assert c["exx"].shape == res.cartesian[0]
 
@@ -223,3 +225,5 @@ def test_swept_bad_input():
                         grid_spacing=(0.1,))
     with pytest.raises(InputError, match="volumes"):
         femreg.register(vol[:, :, 0], vol[:, :, 0], spacing=0.025, geometry=geo)
+    with pytest.raises(InputError, match="tracking a swept"):
+        femreg.track(np.stack([vol, vol, vol]), spacing=(0.025, 0.2, 1.0), origin=(3.0, 0.0, 0.0), geometry=geo)
