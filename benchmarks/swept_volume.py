@@ -201,6 +201,7 @@ CASES = {
                                                                                  angle_pitch_deg=0.4)),
                       "matrix7", 14.0, 3.0, 41, 25),
     "affine-large": (dict(sweep_radius_mm=20.0, angle_step_deg=1.0), "matrix7", 20.0, 3.0, 100, 41),
+    "affine-large-0.5deg": (dict(sweep_radius_mm=20.0, angle_step_deg=0.5), "matrix7", 20.0, 3.0, 100, 81),
     "sphere-linear": (dict(sweep_radius_mm=20.0, angle_step_deg=1.0), "paper3d", 24.0, 18.0, 84, 31),
 }
 
