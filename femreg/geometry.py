@@ -1,5 +1,6 @@
 """Curved-array geometries (convex and phased/sector probes): RF frames sampled along diverging rays, registered
-in physical Cartesian coordinates.
+in physical Cartesian coordinates.  The mappings (:class:`Convex`, :class:`Sector`, and :class:`Swept` for the
+volumes of swept probes, :mod:`femreg.swept`) live in :mod:`femreg.probes` and are re-exported here.
 
 Conventions
 -----------
