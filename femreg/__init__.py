@@ -12,10 +12,10 @@ from .registration import RegistrationResult, load_result, register  # noqa: E40
 from .sequence import SequenceResult, load_track, track  # noqa: E402,F401
 from .inversion import InversionResult, invert, load_inversion  # noqa: E402,F401
 
-from .geometry import Convex, Sector  # noqa: E402,F401
-from .volume_result import VolumeResult, load_volume_result  # noqa: E402,F401
+from .geometry import Convex, Sector, Swept  # noqa: E402,F401
+from .volume_result import SweptResult, VolumeResult, load_volume_result  # noqa: E402,F401
 from . import metrics, regularizers  # noqa: E402,F401
 
-__all__ = ["register", "Convex", "Sector", "RegistrationResult", "load_result", "VolumeResult", "load_volume_result", "track", "SequenceResult", "load_track", "metrics",
+__all__ = ["register", "Convex", "Sector", "Swept", "RegistrationResult", "load_result", "VolumeResult", "SweptResult", "load_volume_result", "track", "SequenceResult", "load_track", "metrics",
            "regularizers", "InputError", "FileFormatError", "__version__", "invert", "InversionResult",
            "load_inversion"]

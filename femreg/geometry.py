@@ -1,5 +1,6 @@
 """Curved-array geometries (convex and phased/sector probes): RF frames sampled along diverging rays, registered
-in physical Cartesian coordinates.
+in physical Cartesian coordinates.  The mappings (:class:`Convex`, :class:`Sector`, and :class:`Swept` for the
+volumes of swept probes, :mod:`femreg.swept`) live in :mod:`femreg.probes` and are re-exported here.
 
 Conventions
 -----------
@@ -37,7 +38,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from dataclasses import dataclass
 
 import numpy as np
 from skfem import MeshQuad1
@@ -46,121 +46,12 @@ from .data_term import SSDTerm
 from .errors import InputError
 from .image import SplineImage, normalize_pair
 from .pixels import PixelQuadrature, PointLocator
+from .probes import Convex, Sector, Swept, as_geometry
 from .result import RegistrationResult
 from .sampling import sample_points
 
-__all__ = ["Convex", "Sector", "as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
+__all__ = ["Convex", "Sector", "Swept", "as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
            "register_beam"]
-
-
-@dataclass(frozen=True)
-class Convex:
-    """A convex (curvilinear) array: rays from an apex ``radius_mm`` behind the face, ``angle_pitch_deg`` apart.
-
-    See the module docstring for the conventions (range from the face along the ray, angle 0 along x, positive
-    towards +y, rays centred on 0).  ``radius_mm`` > 0 mm (40-60 mm abdominal probes); ``angle_pitch_deg`` > 0."""
-
-    radius_mm: float = 50.0
-    angle_pitch_deg: float = 0.5
-
-    def __post_init__(self):
-        r, a = self.radius_mm, self.angle_pitch_deg
-        ok_r = isinstance(r, (int, float)) and np.isfinite(r) and r >= (0 if self.kind == "sector" else 1e-9)
-        if not ok_r:
-            raise InputError(f"{self.kind} radius_mm must be a finite number > 0 mm, got {r!r}")
-        if not (isinstance(a, (int, float)) and np.isfinite(a) and 0 < a < 10):
-            raise InputError(f"{self.kind} angle_pitch_deg must be a number in (0, 10) degrees, got {a!r}")
-
-    kind = "convex"
-
-    @property
-    def pitch_rad(self) -> float:
-        return float(np.deg2rad(self.angle_pitch_deg))
-
-    # -- the mapping ---------------------------------------------------------------------------------------
-    def angles(self, n_rays: int) -> np.ndarray:
-        """Ray angles (n_rays,) rad, centred on 0."""
-        return (np.arange(int(n_rays)) - 0.5 * (int(n_rays) - 1)) * self.pitch_rad
-
-    def to_physical(self, r, theta):
-        """(range mm from the face, angle rad) -> (x, y) mm; any broadcastable shapes."""
-        rho = self.radius_mm + np.asarray(r, float)
-        theta = np.asarray(theta, float)
-        return rho * np.cos(theta) - self.radius_mm, rho * np.sin(theta)
-
-    def to_beam(self, x, y):
-        """(x, y) mm -> (range mm from the face, angle rad); the inverse of :meth:`to_physical`."""
-        xa = np.asarray(x, float) + self.radius_mm
-        y = np.asarray(y, float)
-        return np.hypot(xa, y) - self.radius_mm, np.arctan2(y, xa)
-
-    def jacobian(self, r, theta) -> np.ndarray:
-        """d(x, y)/d(r, theta) at (r, theta), (..., 2, 2): [[cos, -rho sin], [sin, rho cos]]."""
-        rho = self.radius_mm + np.asarray(r, float)
-        c, s = np.cos(theta), np.sin(theta)
-        return np.stack([np.stack([c, -rho * s], -1), np.stack([s, rho * c], -1)], -2)
-
-    def index_to_physical(self, idx, shape, spacing, origin) -> np.ndarray:
-        """Fractional sample indices ``idx`` (2, n) -> physical points (n, 2) mm (``spacing[0]`` = dr,
-        ``origin[0]`` = r_0; the lateral entries are not used: the angles come from the pitch)."""
-        idx = np.asarray(idx, float)
-        r = origin[0] + idx[0] * spacing[0]
-        th = (idx[1] - 0.5 * (shape[1] - 1)) * self.pitch_rad
-        x, y = self.to_physical(r, th)
-        return np.column_stack([x, y])
-
-    def physical_to_index(self, points, shape, spacing, origin) -> np.ndarray:
-        """Physical points (n, 2) mm -> fractional sample indices (2, n) (the inverse of
-        :meth:`index_to_physical`)."""
-        p = np.asarray(points, float).reshape(-1, 2)
-        r, th = self.to_beam(p[:, 0], p[:, 1])
-        return np.stack([(r - origin[0]) / spacing[0], th / self.pitch_rad + 0.5 * (shape[1] - 1)])
-
-    def sample_positions(self, shape, spacing, origin) -> tuple:
-        """Physical positions of every sample: ``(X, Y)``, each ``shape`` (n_samples, n_rays), mm."""
-        i, j = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
-        p = self.index_to_physical(np.stack([i.ravel(), j.ravel()]), shape, spacing, origin)
-        return p[:, 0].reshape(shape), p[:, 1].reshape(shape)
-
-    def ray_angle(self, points) -> np.ndarray:
-        """Angle (n,) rad of the ray through each physical point (n, 2) mm."""
-        p = np.asarray(points, float).reshape(-1, 2)
-        return np.arctan2(p[:, 1], p[:, 0] + self.radius_mm)
-
-    def to_dict(self) -> dict:
-        return dict(kind=self.kind, radius_mm=float(self.radius_mm), angle_pitch_deg=float(self.angle_pitch_deg))
-
-
-@dataclass(frozen=True)
-class Sector(Convex):
-    """A phased array (sector scan): the apex lies on the face (``radius_mm`` = 0), rays ``angle_pitch_deg``
-    apart.  Conventions as :class:`Convex` (range from the apex = the face)."""
-
-    radius_mm: float = 0.0
-    angle_pitch_deg: float = 0.5
-    kind = "sector"
-
-
-def as_geometry(spec):
-    """A :class:`Convex` / :class:`Sector` from itself, or from a dict ``{"kind": "convex"|"sector", ...}``; None
-    (and "linear") for a linear array."""
-    if spec is None or spec == "linear":
-        return None
-    if isinstance(spec, Convex):
-        return spec
-    if isinstance(spec, dict):
-        d = dict(spec)
-        kind = d.pop("kind", "convex")
-        if kind == "linear":
-            return None
-        cls = {"convex": Convex, "sector": Sector}.get(kind)
-        if cls is None:
-            raise InputError(f"geometry kind must be 'linear', 'convex' or 'sector', got {kind!r}")
-        try:
-            return cls(**d)
-        except TypeError as exc:
-            raise InputError(f"bad {kind} geometry: {exc}") from None
-    raise InputError(f"geometry must be femreg.Convex(...), femreg.Sector(...) or None, got {spec!r}")
 
 
 def beam_strain(strain, angle) -> np.ndarray:
@@ -400,6 +291,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
 
     t_all = time.perf_counter()
     geometry = as_geometry(geometry)
+    if isinstance(geometry, Swept):
+        raise InputError("a femreg.Swept geometry is a swept probe's: it needs volumes (n_samples, n_lines, "
+                         "n_frames), not a frame")
     for bad in ("mesh", "offset"):
         if kw.get(bad) is not None:
             raise InputError(f"{bad}= is not supported with a {geometry.kind} geometry")

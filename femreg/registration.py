@@ -222,7 +222,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Frames sampled along the rays of a convex or phased array, (n_samples, n_rays) with ``spacing`` = dr mm
         (or (dr mm, dtheta deg)) and ``origin`` = (range of the first sample mm, 0); registered, and returned as
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
-        :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).
+        :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).  Volumes take a
+        :class:`femreg.Swept` (a swept probe's fan of frames, :mod:`femreg.swept`).
     refine : "default" | None | int | "auto" | femreg.refine.Refinement
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve

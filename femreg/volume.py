@@ -420,6 +420,11 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         The region registered (:mod:`femreg.echo_volume`): "auto" (default) the box of usable echo, None the
         whole volume, a box or a depth range as given; the result keeps the full voxel grid and says what was
         left out (``excluded``, ``roi``).
+    geometry : femreg.Swept, optional
+        The volumes are a swept probe's (n_samples, n_lines, n_frames) with ``spacing`` = (dr mm, line pitch mm or
+        deg, frame step deg): scan-converted inside the fan and registered here
+        (:func:`femreg.swept.register_swept`; ``grid_spacing`` its option), returned as a
+        :class:`femreg.volume_result.SweptResult`.
 
     Returns
     -------
@@ -431,14 +436,25 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         period off (:func:`hop_check`; the per-element gain is ``result.hop_gain``).
     """
     args = dict(locals())
+    geometry = ignored.pop("geometry", None)
+    if geometry is not None:            # a swept probe's volumes: scan-converted, then registered here (femreg.swept)
+        from .probes import Swept, as_geometry
+        from .swept import register_swept
+        geo = as_geometry(geometry)
+        if geo is not None and not isinstance(geo, Swept):
+            raise InputError(f"a volume's geometry is femreg.Swept(...) (a swept probe) or None (a Cartesian "
+                             f"grid), got {geo!r}")
+        if geo is not None:
+            kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "spacing", "origin",
+                                                             "ignored")}
+            return register_swept(reference_image, moving_image, geometry=geo, spacing=spacing, origin=origin,
+                                  register=register_volume, **kw, **ignored)
     routed = route_volume(register_volume, args)
     if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
         return routed
     unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
     if unknown:
         raise InputError(f"unknown option(s) for volume registration: {', '.join(sorted(unknown))}")
-    if ignored.get("geometry") is not None:
-        raise InputError("geometry is not available for volumes (a volume is sampled on a Cartesian grid)")
     if isinstance(alpha, str):          # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         return _register_auto(args)
     t_all = time.perf_counter()
@@ -620,6 +636,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError("every frame of a volume sequence must be 3D (axial, lateral, elevational)")
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
+    if register_kwargs.get("geometry") is not None:
+        raise InputError("tracking a swept probe's volumes is not supported: scan-convert them onto one grid "
+                         "(femreg.swept.cartesian_grid, then femreg.swept.scan_convert with grid=) and track the "
+                         "Cartesian volumes")
     if register_kwargs.pop("check_orientation", True):
         sp3 = validate_spacing_3d(spacing, origin)[0]
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],

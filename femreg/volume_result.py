@@ -1,10 +1,12 @@
 """The result of a volume registration: :class:`VolumeResult`, a nodal displacement on a trilinear hexahedral mesh
 with the API of :class:`femreg.result.RegistrationResult` in 3D (``displacement`` (n, 3), ``strain`` (n, 6) in
 :data:`~femreg.volume_fields.STRAIN_COMPONENTS_3D` order, ``quality``, ``on_grid``, ``success`` and ``message``,
-``save`` / :func:`load_volume_result`, ``write_vtu``, ``write_xdmf``).
+``save`` / :func:`load_volume_result`, ``write_vtu``, ``write_xdmf``); :class:`SweptResult`, the same for the
+volumes of a swept probe (:mod:`femreg.swept`), read at the samples' physical positions.
 """
 from __future__ import annotations
 
+import json
 import zipfile
 from pathlib import Path
 
@@ -12,11 +14,13 @@ import numpy as np
 
 from .errors import FileFormatError, InputError
 from .fields import check_strain_mode
+from .probes import as_geometry
 from .result_base import ResultRecord, read_auto_alpha
 from .volume_fields import (DISPLACEMENT_COMPONENTS_3D, FIELDS_3D, SAMPLE_CHUNK, STRAIN_COMPONENTS_3D, HexLocator,
                             element_strains_3d, recovered_strains_3d)
 
-__all__ = ["VolumeResult", "load_volume_result", "is_volume_result", "VOLUME_RESULT_KIND"]
+__all__ = ["VolumeResult", "SweptResult", "load_volume_result", "is_volume_result", "beam_strain_3d",
+           "VOLUME_RESULT_KIND", "BEAM_STRAIN_COMPONENTS_3D"]
 
 #: ``kind`` entry of a saved volume result (.npz).
 VOLUME_RESULT_KIND = "femreg-volume-result-1"
@@ -113,30 +117,39 @@ class VolumeResult(ResultRecord):
         grid of :attr:`spacing` and :attr:`origin`: the input of :func:`femreg.volplot.plot_volume_slices`."""
         check_strain_mode(strain)
         if strain not in self._grids:
-            ns = self.nodal_strain if strain == "recovered" else None
-            x, y, z = self.voxel_axes()
-            out = {k: np.empty(self.shape) for k in FIELDS_3D + ("quality",)}
-            # axial slabs of about SAMPLE_CHUNK voxels: the sampling temporaries stay small whatever the volume
-            step = max(1, SAMPLE_CHUNK // (y.size * z.size))
-            for i0 in range(0, x.size, step):
-                X = np.meshgrid(x[i0:i0 + step], y, z, indexing="ij")
-                pts = np.column_stack([c.ravel() for c in X])
-                sl = (slice(i0, i0 + step), slice(None), slice(None))
-                n = (min(x.size, i0 + step) - i0, y.size, z.size)
-                for k, v in self.locator.sample(self.u, pts, nodal_strain=ns).items():
-                    out[k][sl] = v.reshape(n)
-                if self.quality is None:
-                    out["quality"][sl] = np.nan
-                else:
-                    inside, e, _, _ = self.locator.locate(pts)
-                    cell = self.locator.cell[e[0], e[1], e[2]]
-                    out["quality"][sl] = np.where(inside, self.quality[cell], np.nan).reshape(n)
-            self._grids[strain] = out
+            self._grids[strain] = self._sample_slabs(strain)
         return self._grids[strain]
 
+    def _slab_points(self, i0: int, i1: int) -> np.ndarray:
+        """Physical points (n, 3) mm of the grid's axial slab ``i0:i1``, C order."""
+        x, y, z = self.voxel_axes()
+        X = np.meshgrid(x[i0:i1], y, z, indexing="ij")
+        return np.column_stack([c.ravel() for c in X])
+
+    def _sample_slabs(self, strain: str) -> dict:
+        """Every field at the points of :meth:`_slab_points`, ``shape`` each."""
+        ns = self.nodal_strain if strain == "recovered" else None
+        out = {k: np.empty(self.shape) for k in FIELDS_3D + ("quality",)}
+        # axial slabs of about SAMPLE_CHUNK points: the sampling temporaries stay small whatever the volume
+        step = max(1, SAMPLE_CHUNK // (self.shape[1] * self.shape[2]))
+        for i0 in range(0, self.shape[0], step):
+            pts = self._slab_points(i0, min(self.shape[0], i0 + step))
+            sl = (slice(i0, i0 + step), slice(None), slice(None))
+            n = (min(self.shape[0], i0 + step) - i0,) + self.shape[1:]
+            for k, v in self.locator.sample(self.u, pts, nodal_strain=ns).items():
+                out[k][sl] = v.reshape(n)
+            if self.quality is None:
+                out["quality"][sl] = np.nan
+            else:
+                inside, e, _, _ = self.locator.locate(pts)
+                cell = self.locator.cell[e[0], e[1], e[2]]
+                out["quality"][sl] = np.where(inside, self.quality[cell], np.nan).reshape(n)
+        return out
+
     # -- files ----------------------------------------------------------------------------------------------
-    def save(self, path):
-        """Write the result as .npz (mesh, u, voxel grid, solver outcome, quality); returns the path."""
+    def save(self, path, **extra):
+        """Write the result as .npz (mesh, u, voxel grid, solver outcome, quality, and ``extra`` arrays);
+        returns the path."""
         path = Path(path)
         np.savez(path, kind=np.array(VOLUME_RESULT_KIND), mesh_points=self.mesh.p, mesh_cells=self.mesh.t,
                  u=self.u, shape=np.array(self.shape), spacing=self.spacing, origin=self.origin,
@@ -146,7 +159,7 @@ class VolumeResult(ResultRecord):
                  alpha_effective=self.alpha_effective,
                  quality=np.full(self.mesh.t.shape[1], np.nan) if self.quality is None else self.quality,
                  strain_components=np.array(self.strain_components), **self._region_record(),
-                 **self._auto_alpha_record())
+                 **self._auto_alpha_record(), **extra)
         return path
 
     def _region_record(self) -> dict:
@@ -198,6 +211,103 @@ class VolumeResult(ResultRecord):
                 f"{self.ncc_after:.3f}, message={self.message!r})")
 
 
+#: Strain components in a swept probe's beam frame: along the ray (r), across the lines (l), across the frames (p).
+BEAM_STRAIN_COMPONENTS_3D = ("err", "ell", "epp", "erl", "erp", "elp")
+
+
+class SweptResult(VolumeResult):
+    """A :class:`VolumeResult` of a swept probe's volumes (:mod:`femreg.swept`): mesh, ``u``, ``displacement`` and
+    ``strain`` in physical Cartesian coordinates (x depth, y lateral, z elevational, mm); ``shape``, ``spacing``,
+    ``origin`` describe the sample grid (``spacing`` = (dr mm, line pitch mm or deg, frame step deg), as given to
+    ``femreg.register``), ``geometry`` the :class:`femreg.probes.Swept` mapping, ``cartesian`` the
+    ``(shape, spacing, origin)`` of the scan-converted voxel grid that was registered.  :meth:`on_grid` gives
+    every field at the samples' physical positions, (n_samples, n_lines, n_frames) each (NaN outside the mesh)."""
+
+    def __init__(self, *args, geometry, cartesian, **kw):
+        super().__init__(*args, **kw)
+        self.geometry = geometry
+        self.cartesian = (tuple(int(v) for v in cartesian[0]), np.asarray(cartesian[1], float),
+                          np.asarray(cartesian[2], float))
+
+    @classmethod
+    def of(cls, res: VolumeResult, *, geometry, shape, spacing, origin, cartesian) -> "SweptResult":
+        """The registration ``res`` of the scan-converted volumes as the result of the swept pair."""
+        out = cls(res.mesh, res.u, shape=shape, spacing=spacing, origin=origin, regularizer=res.regularizer,
+                  alpha=res.alpha, success=res.success, status=res.status, message=res.message, nit=res.nit,
+                  energy_history=res.energy_history, ncc_before=res.ncc_before, ncc_after=res.ncc_after,
+                  timings=res.timings, quality=res.quality, strategy=res.strategy,
+                  alpha_effective=res.alpha_effective, solver_result=res.solver_result, geometry=geometry,
+                  cartesian=cartesian)
+        out.excluded, out.roi = res.excluded, res.roi
+        for k in ("initial_info", "hop_gain"):
+            if hasattr(res, k):
+                setattr(out, k, getattr(res, k))
+        return out
+
+    def _slab_points(self, i0: int, i1: int) -> np.ndarray:
+        i, j, k = np.meshgrid(np.arange(i0, i1), np.arange(self.shape[1]), np.arange(self.shape[2]), indexing="ij")
+        return self.geometry.index_to_physical(np.stack([i.ravel(), j.ravel(), k.ravel()]), self.shape,
+                                               self.spacing, self.origin)
+
+    def voxel_points(self) -> np.ndarray:
+        """Physical positions of the samples, (n_samples n_lines n_frames, 3) mm, C order."""
+        return self._slab_points(0, self.shape[0])
+
+    def sample_positions(self) -> tuple:
+        """``(X, Y, Z)`` physical positions of the samples, ``shape`` each, mm."""
+        return self.geometry.sample_positions(self.shape, self.spacing, self.origin)
+
+    def cartesian_grid(self, strain: str = "recovered") -> dict:
+        """Every field (:meth:`VolumeResult.on_grid`) on the scan-converted Cartesian voxel grid
+        (:attr:`cartesian`): the input of :func:`femreg.volplot.plot_volume_slices` with its spacing and origin."""
+        n, h, o = self.cartesian
+        grid = VolumeResult(self.mesh, self.u, shape=n, spacing=h, origin=o, quality=self.quality)
+        grid._nodal_strain, grid._locator = self._nodal_strain, self._locator
+        return grid.on_grid(strain)
+
+    def strain(self, points, strain: str = "recovered", frame: str = "xyz") -> np.ndarray:
+        """Small strain at physical ``points`` (n, 3) mm: ``frame="xyz"`` (n, 6) as :meth:`VolumeResult.strain`;
+        ``"beam"`` the same tensor in the local beam axes (along the ray, across the lines, across the frames:
+        :meth:`femreg.probes.Swept.beam_axes`), :data:`BEAM_STRAIN_COMPONENTS_3D` order."""
+        if frame not in ("xyz", "beam"):
+            raise InputError(f"frame must be 'xyz' or 'beam', got {frame!r}")
+        e = super().strain(points, strain)
+        return beam_strain_3d(e, self.geometry.beam_axes(self._points(points))) if frame == "beam" else e
+
+    def on_grid(self, strain: str = "recovered", frame: str = "xyz") -> dict:
+        """``ux, uy, uz`` (mm), the six strains and ``quality`` at every sample, ``shape`` each, NaN outside the
+        mesh; with ``frame="beam"`` also :data:`BEAM_STRAIN_COMPONENTS_3D` (the strain in the beam axes)."""
+        if frame not in ("xyz", "beam"):
+            raise InputError(f"frame must be 'xyz' or 'beam', got {frame!r}")
+        out = super().on_grid(strain)
+        if frame == "beam" and "err" not in out:
+            E = np.column_stack([out[k].ravel() for k in STRAIN_COMPONENTS_3D])
+            b = beam_strain_3d(E, self.geometry.beam_axes(self.voxel_points()))
+            out.update({k: b[:, c].reshape(self.shape) for c, k in enumerate(BEAM_STRAIN_COMPONENTS_3D)})
+        return out
+
+    def save(self, path, **extra):
+        n, h, o = self.cartesian
+        return super().save(path, geometry=np.array(json.dumps(self.geometry.to_dict())),
+                            cartesian_shape=np.array(n), cartesian_spacing=h, cartesian_origin=o, **extra)
+
+    def __repr__(self) -> str:
+        return "Swept" + super().__repr__()
+
+
+def beam_strain_3d(strain, axes) -> np.ndarray:
+    """Small strains (n, 6) in :data:`STRAIN_COMPONENTS_3D` order rotated into local axes ``axes`` (n, 3, 3)
+    (columns orthonormal): E' = Q^T E Q, (n, 6) in :data:`BEAM_STRAIN_COMPONENTS_3D` order."""
+    e = np.asarray(strain, float).reshape(-1, 6)
+    E = np.empty((len(e), 3, 3))
+    E[:, 0, 0], E[:, 1, 1], E[:, 2, 2] = e[:, 0], e[:, 1], e[:, 2]
+    E[:, 0, 1] = E[:, 1, 0] = e[:, 3]
+    E[:, 0, 2] = E[:, 2, 0] = e[:, 4]
+    E[:, 1, 2] = E[:, 2, 1] = e[:, 5]
+    B = np.einsum("nij,njk,nkl->nil", np.swapaxes(axes, 1, 2), E, axes)
+    return np.column_stack([B[:, 0, 0], B[:, 1, 1], B[:, 2, 2], B[:, 0, 1], B[:, 0, 2], B[:, 1, 2]])
+
+
 def is_volume_result(path) -> bool:
     """Whether ``path`` is an .npz written by :meth:`VolumeResult.save` (False for anything unreadable)."""
     try:
@@ -223,12 +333,22 @@ def load_volume_result(path) -> VolumeResult:
             raise FileFormatError(f"{path}: volume result lacks {', '.join(missing)}")
         mesh = MeshHex1(np.asarray(z["mesh_points"], float), np.asarray(z["mesh_cells"], np.int64))
         q = np.asarray(z["quality"], float)
-        res = VolumeResult(mesh, z["u"], shape=tuple(z["shape"]), spacing=z["spacing"], origin=z["origin"],
-                            regularizer=str(z["regularizer"]), alpha=float(z["alpha"]), success=bool(z["success"]),
-                            status=int(z["status"]), message=str(z["message"]), nit=int(z["nit"]),
-                            energy_history=z["energy_history"], ncc_before=float(z["ncc_before"]),
-                            ncc_after=float(z["ncc_after"]), strategy=str(z["strategy"]),
-                            alpha_effective=float(z["alpha_effective"]), quality=q)
+        kw = {}
+        cls = VolumeResult
+        if "geometry" in z:             # a swept probe's result (femreg.swept): the mapping and the registered grid
+            try:
+                geo = as_geometry(json.loads(str(z["geometry"])))
+                kw = dict(geometry=geo, cartesian=(tuple(int(v) for v in z["cartesian_shape"]),
+                                                   z["cartesian_spacing"], z["cartesian_origin"]))
+            except (ValueError, KeyError, InputError) as exc:
+                raise FileFormatError(f"{path}: unreadable swept geometry ({exc})") from None
+            cls = SweptResult
+        res = cls(mesh, z["u"], shape=tuple(z["shape"]), spacing=z["spacing"], origin=z["origin"],
+                  regularizer=str(z["regularizer"]), alpha=float(z["alpha"]), success=bool(z["success"]),
+                  status=int(z["status"]), message=str(z["message"]), nit=int(z["nit"]),
+                  energy_history=z["energy_history"], ncc_before=float(z["ncc_before"]),
+                  ncc_after=float(z["ncc_after"]), strategy=str(z["strategy"]),
+                  alpha_effective=float(z["alpha_effective"]), quality=q, **kw)
         if "excluded" in z:
             res.excluded = str(z["excluded"])
         if "roi" in z:

@@ -12,7 +12,7 @@ from ..errors import InputError
 
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
-#: register/track options that mean nothing on volumes
+#: register/track options passed on to volumes separately (register: a swept probe's geometry) or not at all
 _NOT_FOR_VOLUMES = ("geometry",)
 
 
@@ -66,7 +66,8 @@ def register_volumes(args, vol, kw) -> int:
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
     try:
-        res = femreg.register(ref, mov, spacing=spacing, origin=origin, **_kwargs(kw))
+        res = femreg.register(ref, mov, spacing=spacing, origin=origin, geometry=kw.get("geometry"),
+                              **_kwargs(kw))
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1)

@@ -70,7 +70,8 @@ def _run(args) -> int:
     if is_volume_result(args.result):
         raise InputError(f"{args.result} is a volume's registration result: femreg plot draws 2D results and "
                          "inversions (femreg invert it, or draw its slices with femreg.volplot.plot_volume_slices"
-                         "(result.on_grid(), result.spacing, result.origin))")
+                         "(result.on_grid(), result.spacing, result.origin); a swept probe's result: "
+                         "(result.cartesian_grid(), *result.cartesian[1:]))")
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")

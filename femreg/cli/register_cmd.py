@@ -31,11 +31,18 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, help="output .npz")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     g = p.add_argument_group("probe geometry (femreg.geometry)")
-    g.add_argument("--geometry", choices=("linear", "convex", "sector"), default="linear",
+    g.add_argument("--geometry", choices=("linear", "convex", "sector", "swept"), default="linear",
                    help="frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
-                        "axial spacing is the range step, registered in physical x, y (default linear)")
+                        "axial spacing is the range step, registered in physical x, y (default linear); swept: "
+                        "volumes (samples, lines, frames) of a mechanically swept probe, the file's spacing (range "
+                        "step mm, line pitch mm or deg, frame step deg), registered in physical x, y, z "
+                        "(femreg.swept)")
     g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
     g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
+    g.add_argument("--sweep-radius", type=float, metavar="MM",
+                   help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
+                        "linear, or convex / sector with --radius / --angle-pitch")
+    g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
                    help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (up to "
@@ -54,6 +61,22 @@ def _frame(fr, index, path):
     if not -fr.n_frames <= index < fr.n_frames:
         raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s)")
     return fr.frames[index]
+
+
+def _swept(args):
+    import femreg
+    from femreg.errors import InputError
+
+    if args.sweep_radius is None or args.angle_step is None:
+        raise InputError("--geometry swept needs --sweep-radius (mm from the sweep axis to the face) and "
+                         "--angle-step (degrees between frames)")
+    array = None
+    if args.angle_pitch is not None:
+        array = femreg.Convex(args.radius, args.angle_pitch) if args.radius else femreg.Sector(
+            angle_pitch_deg=args.angle_pitch)
+    elif args.radius is not None:
+        raise InputError("a swept convex array needs --angle-pitch with --radius")
+    return femreg.Swept(sweep_radius_mm=args.sweep_radius, angle_step_deg=args.angle_step, array=array)
 
 
 def _geometry(args):
@@ -79,7 +102,15 @@ def run(args) -> int:
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference)
     if vol is not None:                 # RF volumes (spacing with 3 values)
+        if args.geometry in ("convex", "sector"):
+            raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
+                             "swept")
+        if args.geometry == "swept":
+            kw["geometry"] = _swept(args)
         return register_volumes(args, vol, kw)
+    if args.geometry == "swept":
+        raise InputError(f"--geometry swept needs a volume file (.npz with spacing of 3 values), got "
+                         f"{args.reference}")
     if args.refine is not None:
         from femreg.refine import SLIP_REFINEMENT
 
