@@ -394,7 +394,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     ``alpha="auto"`` are not supported here)."""
     from .gnsolve import solve
     from .image import validate_image
-    from .refine import as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
+    from .refine import BEAM_REFINEMENT, as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
     from .repair import check_period, check_result
     from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
@@ -423,8 +423,11 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                      strain_tol=strain_tol, refine=None, **kw)
     t_inner = time.perf_counter() - t
     # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
+    def to_logical(p):
+        r, th = geometry.to_beam(p[:, 0], p[:, 1])
+        return np.stack([r, rho_c * th])
     mesh = with_logical_grid(inner.mesh, lambda q: np.asarray(q)[1] / rho_c,
-                             lambda m: physical_mesh(m, geometry, rho_c))
+                             lambda m: physical_mesh(m, geometry, rho_c), to_logical)
     u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()
@@ -456,7 +459,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         return check_result(_judged_on_objf(s, start), start, np.zeros(s.mesh.p.shape[1], int), shape, (dr, dr),
                             period, None)
     # -- adaptive refinement (femreg.refine) on the (r, s) lattice, the physical solve on each refined mesh -----
-    opts = as_refinement(refine)
+    opts = as_refinement(refine, BEAM_REFINEMENT)
     refined, notes = None, []
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()

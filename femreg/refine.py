@@ -77,7 +77,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "BEAM_REFINEMENT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage",
            "with_refinement", "RefinementRecord"]
 
@@ -210,6 +210,14 @@ class Refinement:
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0, relax=None)
 
 
+#: ``refine="auto"`` (or N passes) on a convex / sector frame (:mod:`femreg.geometry`): a jump is marked only
+#: above 15 % of the field's RMS ``|A[u]|`` (3 % on a linear array).  A fan's strain field carries jumps of 5-54 %
+#: of it under uniform compression (the deep, diverging lines; sector frames most), which the linear arrays' cut
+#: refines and fits (up to +1.6 points of total strain error); an inclusion's edges stand at 50-73 %
+#: (``benchmarks/convex_refine.py``, the pairs of bench_convex.py).
+BEAM_REFINEMENT = Refinement(relative=0.15)
+
+
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
 
@@ -238,9 +246,11 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     return "auto" if plain else None
 
 
-def as_refinement(spec) -> Refinement | None:
+def as_refinement(spec, base: Refinement | None = None) -> Refinement | None:
     """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes; "auto" -> the
-    defaults of :class:`Refinement`; a :class:`Refinement` as it is."""
+    defaults of :class:`Refinement` (``base`` when given: :data:`BEAM_REFINEMENT` for a convex / sector frame); a
+    :class:`Refinement` as it is."""
+    base = Refinement() if base is None else base
     if spec is None or spec is False:
         return None
     if isinstance(spec, Refinement):
@@ -250,9 +260,9 @@ def as_refinement(spec) -> Refinement | None:
             raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-        return Refinement()
+        return base
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
-        return Refinement(passes=int(spec)) if spec else None
+        return dataclasses.replace(base, passes=int(spec)) if spec else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
 
 
@@ -264,11 +274,13 @@ class LogicalGrid:
     ``mesh`` (the logical tensor mesh, same node numbering and connectivity); the jumps of A[u] are taken from the
     physical strains across each physical edge's normal, whose direction is ``angle`` (rad, from x towards y) of
     the logical points (2, n) (the ray angle: 0 on a linear array's tensor mesh); ``to_physical`` maps a logical
-    tensor mesh to the physical mesh with the same numbering."""
+    tensor mesh to the physical mesh with the same numbering; ``to_logical`` physical points (n, 2) to logical
+    (2, n) (None: not known)."""
 
     mesh: MeshQuad1
     angle: object
     to_physical: object
+    to_logical: object = None
 
 
 #: Attribute of a physical mesh holding its :class:`LogicalGrid`.
@@ -280,10 +292,10 @@ def logical_grid(mesh) -> LogicalGrid | None:
     return getattr(mesh, _LOGICAL_ATTR, None)
 
 
-def with_logical_grid(logical_mesh, angle, to_physical):
+def with_logical_grid(logical_mesh, angle, to_physical, to_logical=None):
     """The physical mesh ``to_physical(logical_mesh)`` carrying its :class:`LogicalGrid`."""
     mesh = to_physical(logical_mesh)
-    setattr(mesh, _LOGICAL_ATTR, LogicalGrid(logical_mesh, angle, to_physical))
+    setattr(mesh, _LOGICAL_ATTR, LogicalGrid(logical_mesh, angle, to_physical, to_logical))
     return mesh
 
 
@@ -608,7 +620,7 @@ def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), l
         return mesh, 0, 0
     lg = logical_grid(mesh)
     if lg is not None:          # split in the logical coordinates, the physical mesh mapped from them
-        return with_logical_grid(MeshQuad1.init_tensor(nx, ny), lg.angle, lg.to_physical), sx, sy
+        return with_logical_grid(MeshQuad1.init_tensor(nx, ny), lg.angle, lg.to_physical, lg.to_logical), sx, sy
     return MeshQuad1.init_tensor(nx, ny), sx, sy
 
 
