@@ -77,7 +77,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "BEAM_REFINEMENT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage",
            "with_refinement", "RefinementRecord"]
 
@@ -210,14 +210,6 @@ class Refinement:
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0, relax=None)
 
 
-#: ``refine="auto"`` (or N passes) on a convex / sector frame (:mod:`femreg.geometry`): a jump is marked only
-#: above 15 % of the field's RMS ``|A[u]|`` (3 % on a linear array).  A fan's strain field carries jumps of 5-54 %
-#: of it under uniform compression (the deep, diverging lines; sector frames most), which the linear arrays' cut
-#: refines and fits (up to +1.6 points of total strain error); an inclusion's edges stand at 50-73 %
-#: (``benchmarks/convex_refine.py``, the pairs of bench_convex.py).
-BEAM_REFINEMENT = Refinement(relative=0.15)
-
-
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
 
@@ -246,11 +238,9 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     return "auto" if plain else None
 
 
-def as_refinement(spec, base: Refinement | None = None) -> Refinement | None:
+def as_refinement(spec) -> Refinement | None:
     """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes; "auto" -> the
-    defaults of :class:`Refinement` (``base`` when given: :data:`BEAM_REFINEMENT` for a convex / sector frame); a
-    :class:`Refinement` as it is."""
-    base = Refinement() if base is None else base
+    defaults of :class:`Refinement`; a :class:`Refinement` as it is."""
     if spec is None or spec is False:
         return None
     if isinstance(spec, Refinement):
@@ -260,9 +250,9 @@ def as_refinement(spec, base: Refinement | None = None) -> Refinement | None:
             raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-        return base
+        return Refinement()
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
-        return dataclasses.replace(base, passes=int(spec)) if spec else None
+        return Refinement(passes=int(spec)) if spec else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
 
 
