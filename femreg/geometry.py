@@ -31,6 +31,12 @@ lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exac
 ``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
 eq:objf on the physical mesh, so the regulariser sees physical displacements and strains; with the default alpha,
 its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines).
+
+Adaptive refinement (``refine="auto" | N | Refinement(...)``, off by default here: docs/geometry.md): the physical
+mesh carries its (range, angle) lattice (:class:`femreg.refine.LogicalGrid`), so :func:`femreg.refine.refine_passes`
+marks the jumps of A[u] across the physical edges, splits rows (range) and columns (between rays) of the lattice
+and maps the refined lattice; each pass is a physical solve with the unrefined mesh's weight of eq:objf
+(:func:`femreg.scaling.refined_alpha`), and a refined result that fails its check gives way to the unrefined one.
 """
 from __future__ import annotations
 
@@ -390,8 +396,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                   normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
     """``femreg.register`` for a beam frame (module docstring): the sample-space registration as the initial
     guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
-    :func:`femreg.register` (the sample-space stage); ``kw`` its other options (mesh, offset and
-    ``alpha="auto"`` are not supported here)."""
+    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (mesh, offset and
+    ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
     from .refine import as_refinement, refine_passes, transfer, with_logical_grid, with_refinement

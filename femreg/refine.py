@@ -47,6 +47,11 @@ on a pass that splits anyway).  Measured (README, "Adaptive refinement"): a 2 mm
 (``relax_parts="both"``, with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total
 strain error and -0.16 to +0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``).
 
+Convex / sector frames (:mod:`femreg.geometry`): their physical mesh carries the tensor mesh of its (range,
+``rho_c`` angle) lattice (:class:`LogicalGrid`); marking, splitting and the transfer of the solution work there
+(rows split in range, columns between rays), the jumps of A[u] across each physical edge's own normal (along the
+ray, or across it), and each pass solves on the mapped mesh.  Opt-in there (:func:`default_refine`).
+
 A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
 smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
 
@@ -227,9 +232,11 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     ``strategy="auto"`` R_P_sigma registration (:data:`DEFAULT_REGULARIZERS`) of a pair of frames on the default
     ROI mesh, None (off) where refinement was not measured as a default -- ``strategy="paper"``, the other
     regularisers (and a Regularizer instance), a user's mesh or element size (also every increment of
-    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, a convex / sector
-    geometry, the candidates of ``alpha="auto"``; volumes never reach it.  Any other ``spec`` is returned as
-    given."""
+    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, the candidates of
+    ``alpha="auto"``; volumes never reach it.  Off also for a convex / sector geometry, where it was measured and
+    fails the gate (``benchmarks/convex_refine.py``, docs/geometry.md): inclusions 0.5-1.7 points better, but
+    uniform compression of sector frames 0.8-1.6 points worse and of convex frames at 0.3 deg per line up to 0.9,
+    and up to 2.3x the CPU time; ``refine="auto"`` there is opt-in.  Any other ``spec`` is returned as given."""
     if not (isinstance(spec, str) and spec == DEFAULT):
         return spec
     plain = (strategy == "auto" and isinstance(regularizer, str) and regularizer in DEFAULT_REGULARIZERS
