@@ -301,6 +301,26 @@ def to_physical_displacement(mesh_s, u_s, geometry: Convex, rho_c: float) -> np.
     return u
 
 
+@dataclass(frozen=True)
+class _Lattice:
+    """The (r, s = rho_c theta) lattice of a beam frame's physical mesh, as :class:`femreg.refine.LogicalGrid`
+    wants it (methods of a plain object, so that a result's mesh pickles)."""
+
+    geometry: Convex
+    rho_c: float
+
+    def angle(self, q):
+        """Ray angle (rad) of logical points (2, n)."""
+        return np.asarray(q)[1] / self.rho_c
+
+    def to_physical(self, mesh_s):
+        return physical_mesh(mesh_s, self.geometry, self.rho_c)
+
+    def to_logical(self, p):
+        r, th = self.geometry.to_beam(p[:, 0], p[:, 1])
+        return np.stack([r, self.rho_c * th])
+
+
 class BeamResult(RegistrationResult):
     """A :class:`~femreg.result.RegistrationResult` of a beam (convex / sector) frame: mesh, u and strains in
     physical Cartesian coordinates (x depth, y lateral, mm); ``shape``, ``spacing``, ``origin`` describe the
@@ -429,11 +449,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                      strain_tol=strain_tol, refine=None, **kw)
     t_inner = time.perf_counter() - t
     # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
-    def to_logical(p):
-        r, th = geometry.to_beam(p[:, 0], p[:, 1])
-        return np.stack([r, rho_c * th])
-    mesh = with_logical_grid(inner.mesh, lambda q: np.asarray(q)[1] / rho_c,
-                             lambda m: physical_mesh(m, geometry, rho_c), to_logical)
+    lat = _Lattice(geometry, rho_c)
+    mesh = with_logical_grid(inner.mesh, lat.angle, lat.to_physical, lat.to_logical)
     u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()

@@ -1,6 +1,8 @@
 """Adaptive refinement of convex / sector frames (femreg.geometry + femreg.refine): the (range, angle) lattice
 the physical mesh carries, the jumps of A[u] across the physical edges, the split and transfer there, and a
 refined convex registration of a stiff inclusion."""
+import pickle
+
 import numpy as np
 import pytest
 
@@ -93,6 +95,8 @@ def test_convex_inclusion_refines_and_the_default_stays_off():
     rec = ref.refinement
     assert len(rec.passes) >= 1 and sum(p["rows"] + p["columns"] for p in rec.passes) > 0
     assert ref.mesh.t.shape[1] > off.mesh.t.shape[1] and logical_grid(ref.mesh) is not None
+    back = pickle.loads(pickle.dumps(ref.mesh))          # the lattice the mesh carries pickles with it
+    assert np.array_equal(logical_grid(back).mesh.p, logical_grid(ref.mesh).mesh.p)
     # the physical solve on the refined mesh keeps the unrefined mesh's weight of eq:objf
     assert ref.alpha_effective == pytest.approx(off.alpha_effective, rel=1e-9) and ref.alpha == off.alpha
     e_off = field_errors(off, pair.true_displacement, pair.true_strain)["e"]
