@@ -32,6 +32,12 @@ lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exac
 ``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
 eq:objf on the physical mesh, so the regulariser sees physical displacements and strains; with the default alpha,
 its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines).
+
+Adaptive refinement (``refine="auto" | N | Refinement(...)``, off by default here: docs/geometry.md): the physical
+mesh carries its (range, angle) lattice (:class:`femreg.refine.LogicalGrid`), so :func:`femreg.refine.refine_passes`
+marks the jumps of A[u] across the physical edges, splits rows (range) and columns (between rays) of the lattice
+and maps the refined lattice; each pass is a physical solve with the unrefined mesh's weight of eq:objf
+(:func:`femreg.scaling.refined_alpha`), and a refined result that fails its check gives way to the unrefined one.
 """
 from __future__ import annotations
 
@@ -186,6 +192,26 @@ def to_physical_displacement(mesh_s, u_s, geometry: Convex, rho_c: float) -> np.
     return u
 
 
+@dataclass(frozen=True)
+class _Lattice:
+    """The (r, s = rho_c theta) lattice of a beam frame's physical mesh, as :class:`femreg.refine.LogicalGrid`
+    wants it (methods of a plain object, so that a result's mesh pickles)."""
+
+    geometry: Convex
+    rho_c: float
+
+    def angle(self, q):
+        """Ray angle (rad) of logical points (2, n)."""
+        return np.asarray(q)[1] / self.rho_c
+
+    def to_physical(self, mesh_s):
+        return physical_mesh(mesh_s, self.geometry, self.rho_c)
+
+    def to_logical(self, p):
+        r, th = self.geometry.to_beam(p[:, 0], p[:, 1])
+        return np.stack([r, self.rho_c * th])
+
+
 class BeamResult(RegistrationResult):
     """A :class:`~femreg.result.RegistrationResult` of a beam (convex / sector) frame: mesh, u and strains in
     physical Cartesian coordinates (x depth, y lateral, mm); ``shape``, ``spacing``, ``origin`` describe the
@@ -278,14 +304,16 @@ def beam_alpha_factor(line_spacing_mm: float) -> float:
 
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
                   regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
-                  normalize=True, callback=None, strain_tol=None, **kw) -> BeamResult:
+                  normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
     """``femreg.register`` for a beam frame (module docstring): the sample-space registration as the initial
     guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
-    :func:`femreg.register` (the sample-space stage); ``kw`` its other options (mesh, offset and
-    ``alpha="auto"`` are not supported here)."""
+    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (mesh, offset and
+    ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
+    from .refine import as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
     from .repair import check_period, check_result
+    from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
     from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
 
@@ -312,9 +340,11 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     t = time.perf_counter()
     inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
                      maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
-                     strain_tol=strain_tol, **kw)
+                     strain_tol=strain_tol, refine=None, **kw)
     t_inner = time.perf_counter() - t
-    mesh = physical_mesh(inner.mesh, geometry, rho_c)
+    # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
+    lat = _Lattice(geometry, rho_c)
+    mesh = with_logical_grid(inner.mesh, lat.angle, lat.to_physical, lat.to_logical)
     u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()
@@ -334,28 +364,76 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     term = BeamSSDTerm(quad, I1, I2)
     st = float(strain_tol) if strain_tol is not None else (
         GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
-    sol = solve(I1, I2, mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), lambda: copy.copy(user_reg), u0,
-                locator=locator, maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
-                linear_solver=linear_solver, callback=callback,
-                mask_outside=strategy == "auto", strain_tol=st if (strategy == "auto" and st > 0) else None,
-                term=term)
-    # the start minimised the sample-space objective, not this one: the physical solve may trade a little of
-    # the image term for the physical regulariser, so "never worse than the start" is judged on eq:objf here
-    psi1 = sol.data.energy(sol.u)
-    if psi1 > sol.psi_start and psi1 + sol.reg.energy(sol.u) <= sol.psi_start + sol.reg.energy(u0):
-        sol = dataclasses.replace(sol, psi_start=psi1)
-    check = check_result(sol, u0, np.zeros(mesh.p.shape[1], int), shape, (dr, dr),
-                         check_period(ref, (dr, ds)) if shape[0] > 1 else None, None)
-    timings = dict(sample_space=t_inner, gauss_newton=time.perf_counter() - t, total=time.perf_counter() - t_all)
-    notes = list(check.notes)
+    solve_kw = dict(maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
+                    linear_solver=linear_solver, callback=callback, mask_outside=strategy == "auto",
+                    strain_tol=st if (strategy == "auto" and st > 0) else None)
+    sol = solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u0, locator=locator,
+                term=term, **solve_kw)
+    timings = dict(sample_space=t_inner, gauss_newton=time.perf_counter() - t)
+    period = check_period(ref, (dr, ds)) if shape[0] > 1 else None
+
+    def checked(s, start):
+        return check_result(_judged_on_objf(s, start), start, np.zeros(s.mesh.p.shape[1], int), shape, (dr, dr),
+                            period, None)
+    # -- adaptive refinement (femreg.refine) on the (r, s) lattice, the physical solve on each refined mesh -----
+    opts = as_refinement(refine)
+    refined, notes = None, []
+    if opts is not None and int(maxiter) > 0:
+        t = time.perf_counter()
+
+        def solve_on(m, u_start, shear_traction=None, normal_traction=None):
+            def factory():
+                r = copy.copy(user_reg)
+                r.alpha = refined_alpha(r.alpha, mesh, m)        # the unrefined mesh's weight of eq:objf
+                if shear_traction is not None and hasattr(r, "shear_traction"):
+                    r.shear_traction = shear_traction
+                if normal_traction is not None and hasattr(r, "normal_traction"):
+                    r.normal_traction = normal_traction
+                return r
+            loc = PointLocator(m)
+            tm = BeamSSDTerm(BeamQuadrature(m, shape, sp_idx, (r0, 0.0), geometry, locator=loc), I1, I2)
+            kw_m = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
+            return solve(I1, I2, m, shape, sp_idx, (r0, 0.0), factory, u_start, locator=loc, term=tm, **kw_m)
+
+        refined, record = refine_passes(sol, opts, solve_on, (dr, ds), (r0, s0))
+        timings["refine"] = time.perf_counter() - t
+        notes.append(record.summary())
+    if refined is not None and refined.mesh is not mesh:
+        check = checked(refined, transfer(u0, mesh, refined.mesh))
+        if check.success:
+            sol = refined
+        else:
+            # as femreg.register: a refined result judged on smaller elements that fails its check is dropped
+            why = "; ".join(n for n in check.notes if not n.startswith("the pair is strongly decorrelated"))
+            notes.append(f"refinement dropped (the refined result failed its check: {why})")
+            check = checked(sol, u0)
+    else:
+        check = checked(sol, u0)
+    if refined is not None:
+        sol.refinement = record
+    timings["total"] = time.perf_counter() - t_all
+    notes += list(check.notes)
     if not inner.success:
         notes.append("sample-space start: " + inner.message)
     success = check.success and inner.success
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
-    return BeamResult(mesh, check.u, shape=shape, spacing=(dr, geometry.angle_pitch_deg), origin=(r0, 0.0),
+    res = BeamResult(sol.mesh, check.u, shape=shape, spacing=(dr, geometry.angle_pitch_deg), origin=(r0, 0.0),
                       regularizer=sol.reg.name, alpha=user_reg.alpha, success=success, status=sol.gn.status,
                       message=message if success else "FAILED: " + message, nit=sol.gn.nit,
                       energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
-                      ncc_after=check.ncc_after, timings=timings, solver_result=sol.gn, locator=locator,
+                      ncc_after=check.ncc_after, timings=timings, solver_result=sol.gn, locator=sol.locator,
                       quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha,
                       hop_gain=check.hop_gain, geometry=geometry, sample_space=inner)
+    return with_refinement(res, sol)
+
+
+def _judged_on_objf(sol, u0):
+    """``sol`` with its start ``u0`` and the psi the check's never-worse rule compares with: the start minimised
+    the sample-space objective, not this one, so the physical solve may trade a little of the image term for the
+    physical regulariser; "never worse than the start" is judged on eq:objf here (psi of the result when eq:objf
+    fell)."""
+    psi0 = sol.psi_start if sol.start is u0 else sol.data.energy(u0)
+    psi1 = sol.data.energy(sol.u)
+    if psi1 > psi0 and psi1 + sol.reg.energy(sol.u) <= psi0 + sol.reg.energy(u0):
+        psi0 = psi1
+    return dataclasses.replace(sol, start=u0, psi_start=psi0)

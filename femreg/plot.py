@@ -288,12 +288,18 @@ def _roi_rectangle(result, d):
     return (p[0].min(), p[0].max(), p[1].min(), p[1].max())
 
 
-def _shade_outside(ax, outside, spacing, origin, roi, label=None):
+def _shade_outside(ax, outside, spacing, origin, roi, label=None, positions=None):
     """Hatch the pixels of ``outside`` (bool (n_axial, n_lateral)), outline ``roi`` (x0, x1, y0, y1) mm, and write
-    ``label`` in the widest outside strip when it has room."""
+    ``label`` in the widest outside strip when it has room.  ``positions``: the samples' physical (X, Y) of a
+    convex / sector frame: the samples are hatched there (no rectangle: the mesh is an annular sector)."""
     from matplotlib.patches import Rectangle
 
     if not outside.any():
+        return
+    if positions is not None:
+        with np.errstate(all="ignore"):
+            ax.contourf(positions[1], positions[0], outside.astype(float), levels=[0.5, 1.5],
+                        colors=[(0.55, 0.55, 0.55, 0.55)], hatches=["///"], zorder=3)
         return
     n_ax, n_lat = outside.shape
     x = origin[0] + spacing[0] * np.arange(n_ax)
@@ -396,7 +402,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         for i, ax in enumerate(axes):
             _shade_outside(ax, outside, sp, origin, roi,
                            label=(str(excluded) if excluded else "not registered (outside the mesh)")
-                           if i == 0 else None)
+                           if i == 0 else None, positions=positions)
         fig.supxlabel("hatched: outside the registered mesh (no displacement or strain there)"
                       + (f"; {excluded}" if excluded else ""), fontsize="small")
     info = []

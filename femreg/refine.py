@@ -47,6 +47,11 @@ on a pass that splits anyway).  Measured (README, "Adaptive refinement"): a 2 mm
 (``relax_parts="both"``, with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total
 strain error and -0.16 to +0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``).
 
+Convex / sector frames (:mod:`femreg.geometry`): their physical mesh carries the tensor mesh of its (range,
+``rho_c`` angle) lattice (:class:`LogicalGrid`); marking, splitting and the transfer of the solution work there
+(rows split in range, columns between rays), the jumps of A[u] across each physical edge's own normal (along the
+ray, or across it), and each pass solves on the mapped mesh.  Opt-in there (:func:`default_refine`).
+
 A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
 smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
 
@@ -78,7 +83,7 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "relaxed_edges", "slip_region", "slip_weights", "refine_passes", "refine_stage",
+           "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -227,9 +232,11 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     ``strategy="auto"`` R_P_sigma registration (:data:`DEFAULT_REGULARIZERS`) of a pair of frames on the default
     ROI mesh, None (off) where refinement was not measured as a default -- ``strategy="paper"``, the other
     regularisers (and a Regularizer instance), a user's mesh or element size (also every increment of
-    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, a convex / sector
-    geometry, the candidates of ``alpha="auto"``; volumes never reach it.  Any other ``spec`` is returned as
-    given."""
+    :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, the candidates of
+    ``alpha="auto"``; volumes never reach it.  Off also for a convex / sector geometry, where it was measured and
+    fails the gate (``benchmarks/convex_refine.py``, docs/geometry.md): inclusions 0.4-1.7 points better, but
+    uniform compression of sector frames 0.8-1.6 points worse and of convex frames at 0.3 deg per line up to 0.9,
+    and up to 2.3x the CPU time; ``refine="auto"`` there is opt-in.  Any other ``spec`` is returned as given."""
     if not (isinstance(spec, str) and spec == DEFAULT):
         return spec
     plain = (strategy == "auto" and isinstance(regularizer, str) and regularizer in DEFAULT_REGULARIZERS
@@ -256,8 +263,42 @@ def as_refinement(spec) -> Refinement | None:
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
 
 
+@dataclass(frozen=True)
+class LogicalGrid:
+    """A mesh whose elements form a tensor grid in other (logical) coordinates, carried by the mesh object
+    (:func:`logical_grid`): the physical mesh of a convex / sector frame (:mod:`femreg.geometry`) is the tensor
+    mesh of its (range r, s = rho_c theta) lattice mapped to (x, y).  Refinement marks, splits and transfers on
+    ``mesh`` (the logical tensor mesh, same node numbering and connectivity); the jumps of A[u] are taken from the
+    physical strains across each physical edge's normal, whose direction is ``angle`` (rad, from x towards y) of
+    the logical points (2, n) (the ray angle: 0 on a linear array's tensor mesh); ``to_physical`` maps a logical
+    tensor mesh to the physical mesh with the same numbering; ``to_logical`` physical points (n, 2) to logical
+    (2, n) (None: not known)."""
+
+    mesh: MeshQuad1
+    angle: object
+    to_physical: object
+    to_logical: object = None
+
+
+#: Attribute of a physical mesh holding its :class:`LogicalGrid`.
+_LOGICAL_ATTR = "_femreg_logical_grid"
+
+
+def logical_grid(mesh) -> LogicalGrid | None:
+    """The :class:`LogicalGrid` ``mesh`` carries (:func:`with_logical_grid`), or None (its own coordinates)."""
+    return getattr(mesh, _LOGICAL_ATTR, None)
+
+
+def with_logical_grid(logical_mesh, angle, to_physical, to_logical=None):
+    """The physical mesh ``to_physical(logical_mesh)`` carrying its :class:`LogicalGrid`."""
+    mesh = to_physical(logical_mesh)
+    setattr(mesh, _LOGICAL_ATTR, LogicalGrid(logical_mesh, angle, to_physical, to_logical))
+    return mesh
+
+
 def _need_tensor(mesh):
-    ts = tensor_structure(mesh)
+    lg = logical_grid(mesh)
+    ts = tensor_structure(mesh if lg is None else lg.mesh)
     if ts is None:
         raise InputError("adaptive refinement needs an axis-aligned tensor mesh (the default ROI mesh); "
                          "the given mesh is not one")
@@ -290,13 +331,31 @@ def edge_jumps(mesh, u, tangential: bool = False, e=None):
     (n_rows, n_cols - 1) across lateral edges; dimensionless (strain units).  ``tangential``: also the
     tangential parts ``|t . [[A]] n|`` (both ``|[[A_xy]]|``), ``(ja, jl, ta, tl)``.  ``e``: the element-centre
     strains (n_el, 3) when the caller has them."""
-    _, _, cell = _need_tensor(mesh)
+    xs, ys, cell = _need_tensor(mesh)
     e = element_strains(mesh.p, mesh.t, u) if e is None else e
     Axx, Ayy, Axy = (a[cell] for a in _momentum(e))
-    ta, tl = np.diff(Axy, axis=0), np.diff(Axy, axis=1)
-    ja = np.hypot(np.diff(Axx, axis=0), ta)                          # n = (1, 0): (A_xx, A_xy)
-    jl = np.hypot(tl, np.diff(Ayy, axis=1))                          # n = (0, 1): (A_xy, A_yy)
-    return (ja, jl, np.abs(ta), np.abs(tl)) if tangential else (ja, jl)
+    lg = logical_grid(mesh)
+    if lg is None:
+        ta, tl = np.diff(Axy, axis=0), np.diff(Axy, axis=1)
+        ja = np.hypot(np.diff(Axx, axis=0), ta)                      # n = (1, 0): (A_xx, A_xy)
+        jl = np.hypot(tl, np.diff(Ayy, axis=1))                      # n = (0, 1): (A_xy, A_yy)
+        return (ja, jl, np.abs(ta), np.abs(tl)) if tangential else (ja, jl)
+    # a logical grid (a beam frame): the physical edge between rows i, i + 1 has the normal along the ray of its
+    # column, n = (cos, sin) of the angle; the edge between columns k, k + 1 lies along the ray at that break,
+    # n = (-sin, cos); [[A]] n from the jumps of the physical A (the tangent t = (-n_y, n_x))
+    xc, yc = 0.5 * (xs[:-1] + xs[1:]), 0.5 * (ys[:-1] + ys[1:])
+    X, Y = np.meshgrid(xs[1:-1], yc, indexing="ij")
+    pa = np.asarray(lg.angle(np.stack([X.ravel(), Y.ravel()])), float).reshape(X.shape)
+    X, Y = np.meshgrid(xc, ys[1:-1], indexing="ij")
+    pl = np.asarray(lg.angle(np.stack([X.ravel(), Y.ravel()])), float).reshape(X.shape)
+
+    def jump(ax, nx, ny):
+        dxx, dyy, dxy = (np.diff(a, axis=ax) for a in (Axx, Ayy, Axy))
+        jx, jy = dxx * nx + dxy * ny, dxy * nx + dyy * ny
+        return np.hypot(jx, jy), np.abs(nx * jy - ny * jx)
+    ja, ta = jump(0, np.cos(pa), np.sin(pa))
+    jl, tl = jump(1, -np.sin(pl), np.cos(pl))
+    return (ja, jl, ta, tl) if tangential else (ja, jl)
 
 
 def indicators(mesh, u, indicator: str = "jump", data=None, quality=None) -> np.ndarray:
@@ -488,13 +547,21 @@ def slip_region(mesh, slip) -> np.ndarray:
     return np.column_stack([xs[i], xs[i + 1], ys[j], ys[j + 1]])
 
 
-def slip_weights(rects, weight: float):
+def slip_weights(rects, weight: float, mesh=None):
     """``shear_traction`` callable of the momentum regulariser (one weight per edge): ``weight`` on the edges whose
-    midpoint lies in one of ``rects`` (closed), 1 elsewhere."""
+    midpoint lies in one of ``rects`` (closed), 1 elsewhere.  ``mesh``: the mesh of the solve, when it carries a
+    :class:`LogicalGrid` (``rects`` then in its logical coordinates; an edge's midpoint is that of its two
+    nodes' logical positions)."""
     rects = np.asarray(rects, float).reshape(-1, 4)
+    lg = None if mesh is None else logical_grid(mesh)
 
     def w(jumps):
-        return np.where(_on_segments(jumps.midpoints, rects), float(weight), 1.0)
+        if lg is None:
+            mid = jumps.midpoints
+        else:
+            f = mesh.facets[:, jumps.facets]
+            mid = 0.5 * (lg.mesh.p[:, f[0]] + lg.mesh.p[:, f[1]])
+        return np.where(_on_segments(mid, rects), float(weight), 1.0)
 
     return w
 
@@ -548,11 +615,19 @@ def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), l
     nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels)
     if sx == 0 and sy == 0:
         return mesh, 0, 0
+    lg = logical_grid(mesh)
+    if lg is not None:          # split in the logical coordinates, the physical mesh mapped from them
+        return with_logical_grid(MeshQuad1.init_tensor(nx, ny), lg.angle, lg.to_physical, lg.to_logical), sx, sy
     return MeshQuad1.init_tensor(nx, ny), sx, sy
 
 
 def transfer(u, mesh, new_mesh) -> np.ndarray:
-    """Nodal vector of ``new_mesh`` holding the bilinear field ``u`` of ``mesh`` (exact for nested tensor meshes)."""
+    """Nodal vector of ``new_mesh`` holding the bilinear field ``u`` of ``mesh`` (exact for nested tensor meshes).
+    Meshes with a :class:`LogicalGrid` interpolate in the logical coordinates (bilinear in the element's own
+    (r, s) map: a node on a split chord of a convex mesh lies on the arc, outside the coarse chord)."""
+    lm, ln = logical_grid(mesh), logical_grid(new_mesh)
+    if lm is not None and ln is not None:
+        mesh, new_mesh = lm.mesh, ln.mesh
     loc = PointLocator(mesh).locate(new_mesh.p.T)
     if not np.all(loc.inside):
         raise InputError("refined mesh has nodes outside the mesh it refines")
@@ -602,10 +677,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break
-        st = slip_weights(rects, opts.slip) if (opts.slip is not None and len(rects)) else None
+        st = slip_weights(rects, opts.slip, new) if (opts.slip is not None and len(rects)) else None
         kw = {}
         if len(relaxed):
-            rw = slip_weights(relaxed, opts.relax)
+            rw = slip_weights(relaxed, opts.relax, new)
             if opts.relax_parts in ("both", "normal"):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):

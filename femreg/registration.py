@@ -231,9 +231,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
         regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
         or ``element_size`` (so every increment of
-        :func:`femreg.track`), an offset, a convex / sector geometry and ``alpha="auto"``
-        (:func:`femreg.refine.default_refine`); volumes never refine.  None or 0: off.  The result's mesh, ``u``
-        and ``quality`` are those of the final mesh.
+        :func:`femreg.track`), an offset, a convex / sector geometry (where ``"auto"`` / N refines the (range,
+        angle) lattice: opt-in, docs/geometry.md) and ``alpha="auto"`` (:func:`femreg.refine.default_refine`);
+        volumes never refine.  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final
+        mesh.
 
     Returns
     -------

@@ -154,6 +154,17 @@ def test_beam_result_plot(tmp_path):
     res, _ = _register(pair)
     out = femreg.plot.plot_result(res, tmp_path / "convex.png", reference=pair.ref)
     assert (tmp_path / "convex.png").stat().st_size > 10_000 and out is not None
+    # the samples outside the mesh are hatched at their physical positions (both sides of the fan), not on the
+    # sample grid's index extents
+    g = res.on_grid()
+    outside = ~np.isfinite(g["ux"])
+    assert outside.any()
+    X, Y = res.sample_positions()
+    hatched = [c for c in out.axes[1].collections if getattr(c, "hatches", None)]
+    assert hatched
+    v = np.vstack([p.vertices for c in hatched for p in c.get_paths() if len(p.vertices)])
+    assert v[:, 0].min() < 0.5 * Y[outside].min() < 0 < 0.5 * Y[outside].max() < v[:, 0].max()
+    assert v[:, 0].min() >= Y.min() - 1e-6 and v[:, 0].max() <= Y.max() + 1e-6
 
 
 def test_cli_convex(tmp_path):
