@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from dataclasses import dataclass
 import time
 
 import numpy as np
