@@ -57,7 +57,7 @@ from .probes import Convex, Sector, Swept, as_geometry
 from .result import RegistrationResult
 from .sampling import sample_points
 
-__all__ = ["Convex", "Sector", "Swept", "as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
+__all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
            "register_beam"]
 
 

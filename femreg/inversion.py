@@ -236,10 +236,10 @@ MISFIT_LIMIT = 0.02
 #: the true log mu within +-1 sigma at the rule's beta (without the 1/h: 1.6 on the 1.4-1.5 mm meshes, 4.2 on 0.68 mm).
 REGISTERED_SIGMA = 1.7
 #: 2D total variation, debiased: after the beta rule, one more solve at the chosen beta with each edge's weight
-#: divided by 1 + |[log mu]| / TV_REWEIGHT (log-modulus units; None: plain TV).  The weights linearise the log
-#: penalty kappa log(1 + |[log mu]| / kappa), one step of iteratively reweighted l1 (Candes, Wakin & Boyd,
+#: divided by ``1 + |[log mu]| / TV_REWEIGHT`` (log-modulus units; None: plain TV).  The weights linearise the log
+#: penalty ``kappa log(1 + |[log mu]| / kappa)``, one step of iteratively reweighted l1 (Candes, Wakin & Boyd,
 #: J. Fourier Anal. Appl. 14 (2008) 877, doi:10.1007/s00041-008-9045-x): jumps much smaller than kappa (noise)
-#: keep the TV weight, an inclusion's edge (|log 4| = 1.39) costs 2.4 x less.  Plain TV shrinks every contrast by
+#: keep the TV weight, an inclusion's edge (``|log 4|`` = 1.39) costs 2.4 x less.  Plain TV shrinks every contrast by
 #: a bias that scales as beta over the data's information on the inclusion's modulus, and a soft disk in plane
 #: strain carries 3 x less of it than a stiff one (6 x less than a soft one in plane stress; docs/inversion.md):
 #: its estimate came out 1.3-1.6 x the truth even from the exact displacement.

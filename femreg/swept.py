@@ -66,7 +66,7 @@ def _valid(geometry, points, shape, spacing, origin):
 
 def inscribed_box(geometry: Swept, shape, spacing, origin, n: int = 48):
     """``(lo, hi)`` (3,) mm: an axis-aligned box inside the fan of a swept volume (every point at least one sample
-    in from the first and two from the last sample of every axis).  Found on an ``n``^3 lattice over the fan's
+    in from the first and two from the last sample of every axis).  Found on an ``n**3`` lattice over the fan's
     bounding box by peeling, one face at a time, the face with the largest fraction of points outside, until
     none is left (a convex region: the box is the largest such lattice box up to one lattice step); then each
     face pushed out by bisection to the fan's edge."""
