@@ -38,6 +38,18 @@ LABEL = {"strain": "R_eps", "strain-incompressible": "R_eps_i", "momentum-strain
 WITHIN = 1.15
 
 
+def write_row(fh, writer, row: dict):
+    """Append ``row`` to the open CSV ``fh`` (lists as JSON) and flush it, so that an interrupted run keeps its
+    rows; ``writer`` None writes the header first.  Returns the writer to pass next time."""
+    flat = {k: (json.dumps(v) if isinstance(v, list) else v) for k, v in row.items()}
+    if writer is None:
+        writer = csv.DictWriter(fh, fieldnames=list(flat))
+        writer.writeheader()
+    writer.writerow(flat)
+    fh.flush()
+    return writer
+
+
 def run_case(case):
     """Rows (one per regulariser) of one benchmark case."""
     import robustness as RB
@@ -157,12 +169,7 @@ def main(argv=None) -> int:
         for job, _name in tqdm(jobs, desc="cases", file=sys.stderr):
             for r in job():
                 rows.append(r)
-                flat = {k: (json.dumps(v) if isinstance(v, list) else v) for k, v in r.items()}
-                if w is None:
-                    w = csv.DictWriter(fh, fieldnames=list(flat))
-                    w.writeheader()
-                w.writerow(flat)
-                fh.flush()
+                w = write_row(fh, w, r)
     md = summary(rows) + f"\n{label} x {len(REGULARIZERS)} regularisers, {time.perf_counter() - t0:.0f} s\n"
     (out / "autoalpha.md").write_text(md)
     print(md)

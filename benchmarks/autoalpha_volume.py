@@ -44,6 +44,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from autoalpha import write_row  # noqa: E402
+
 WITHIN, POINTS = 1.15, 0.5
 SIZE_MM = (10.0, 8.0, 6.0)
 #: Depth of the volume's top, mm: it spans x 18-28 mm, the sphere (centre 30 mm, radius 7.5 mm) fills its lower part.
@@ -235,12 +237,7 @@ def main(argv=None) -> int:
                 print(f"{c.name} {pn}: auto {r['auto_alpha']:.3g} e {100 * r['e_auto']:.2f} %, best "
                       f"{r['best_alpha']:.3g} {100 * r['e_best']:.2f} %, default {100 * r['e_default']:.2f} %, "
                       f"CPU {r['cpu_auto']:.1f} / {r['cpu_default']:.1f} s", file=sys.stderr, flush=True)
-                flat = {k: (json.dumps(v) if isinstance(v, list) else v) for k, v in r.items()}
-                if w is None:
-                    w = csv.DictWriter(fh, fieldnames=list(flat))
-                    w.writeheader()
-                w.writerow(flat)
-                fh.flush()
+                w = write_row(fh, w, r)
     md = summary(rows) + f"\nseed set {a.set}, {a.regularizer}, {len(rows)} cases\n"
     (out / f"{stem}.md").write_text(md)
     print(md)
