@@ -144,10 +144,13 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     c0 = carrier_ratio(img[:, ::max(1, img.shape[1] // 64)])
     c1 = carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
     rep = OrientationReport((dx, dy), (c0, c1))
-    # the advice's spacing, axial and lateral exchanged, with a volume's dz kept in third place
+    # the advice's spacings, as given and with axial and lateral exchanged, a volume's dz kept in third place
     volume = elevational is not None
-    swapped = ", ".join(f"{v:g}" for v in (dy, dx) + ((float(elevational),) if volume else ()))
+    dz = (float(elevational),) if volume else ()
+    keep, swapped = (", ".join(f"{v:g}" for v in pair + dz) for pair in ((dx, dy), (dy, dx)))
     order = "axial, lateral, elevational" if volume else "axial, lateral"
+    c_mm_us = sound_speed * 1e-3                     # m/s -> mm/us
+    lo, hi = FREQUENCY_MHZ
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
         n1 = _centroid_samples(img.T)
         rep.problem = "transposed"
@@ -158,10 +161,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
             what, shape, how = "frames", "(axial samples, lateral lines)", "frame.T, frames.transpose(0, 2, 1)"
         # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
         # spacing as (axial, lateral) already while the array is stored lines-first)
-        c_mm_us = sound_speed * 1e-3
-        lo, hi = FREQUENCY_MHZ
         f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
-        keep = ", ".join(f"{v:g}" for v in (dx, dy) + ((float(elevational),) if volume else ()))
         if lo <= f_keep <= hi and not lo <= f_swap <= hi:
             spacing_text = (f"keep the spacing ({keep}) mm ({order}; {f_keep:.2f} MHz; CLI: --spacing "
                             f"{keep.replace(',', '')})")
@@ -177,13 +177,11 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         return rep                                   # no carrier along axis 0: envelope / B-mode, nothing to say
     st = speckle_statistics(_strongest_rows(img), (dx, dy))
-    c_mm_us = sound_speed * 1e-3                     # m/s -> mm/us
     rep.period_mm = float(st.period)
     rep.samples_per_period = rep.period_mm / dx
     rep.frequency_mhz = c_mm_us / (2.0 * rep.period_mm)
     rep.lateral_cell_mm = float(st.cell[1])
     rep.cell_periods = rep.lateral_cell_mm / rep.period_mm
-    lo, hi = FREQUENCY_MHZ
     # with the spacings exchanged: the period scales by dy/dx, the lateral cell by dx/dy
     f_sw = rep.frequency_mhz * dx / dy
     cells_sw = rep.cell_periods * (dx / dy) ** 2
@@ -209,7 +207,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
         for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
             if rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi \
                     and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS:
-                mm = tuple(v * k for v in (dx, dy) + ((float(elevational),) if volume else ()))
+                mm = tuple(v * k for v in (dx, dy) + dz)
                 text = ", ".join(f"{v:.6g}" for v in mm)
                 hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; "
                         f"{rep.frequency_mhz / k:.2f} MHz; CLI: --spacing {text.replace(',', '')})")
