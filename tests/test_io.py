@@ -322,11 +322,23 @@ def test_directory_of_frames_natural_order(tmp_path, rf3):
     np.zeros((5, 4), np.float32).tofile(d / "frame13.raw")
     with pytest.raises(FileFormatError, match="frame13"):
         read_frames(d, shape=(6, 4), spacing=SP)
+    (d / "frame13.raw").unlink()
+    # femreg's own results written beside the frames (the README's first-recording steps) are set aside
+    np.savez(d / "pair.npz", mesh_points=np.zeros((2, 4)), mesh_cells=np.zeros((4, 1), np.int64), u=np.zeros(8))
+    fr = read_frames(d, shape=(6, 4), spacing=SP)
+    assert fr.frames.shape[0] == 12 and fr.metadata["set_aside"] == ["pair.npz"]
     np.save(d / "x.npy", frames[0])
+    with pytest.raises(FileFormatError, match=r"mixes formats \(npy: x.npy; raw: frame1.raw, frame2.raw"):
+        read_frames(d, shape=(6, 4), spacing=SP)
+    (d / "x.npy").unlink()
+    np.savez(d / "frames.npz", rf=frames)  # an npz of frames is data, not a result: still a mix
     with pytest.raises(FileFormatError, match="mixes formats"):
         read_frames(d, shape=(6, 4), spacing=SP)
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileFormatError, match="no frame files"):
+        read_frames(tmp_path / "empty")
+    os.replace(d / "pair.npz", tmp_path / "empty" / "pair.npz")  # a folder of results only: says so
+    with pytest.raises(FileFormatError, match=r"1 femreg result file\(s\) set aside \(pair.npz\)"):
         read_frames(tmp_path / "empty")
 
 

@@ -258,23 +258,49 @@ def natural_key(name: str):
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
+def is_result_file(path) -> bool:
+    """True for an ``.npz`` that femreg wrote as a result (registration, volume or inversion: it holds
+    ``mesh_points`` and ``mesh_cells``), read from the archive's index only."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz":
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {"mesh_points", "mesh_cells"} <= set(z.files)
+    except Exception:  # not a readable npz: read_frames says why if it is ever read as frames
+        return False
+
+
 def read_directory(path, *, frames=None, **options):
-    """One file per frame (or per sub-sequence), files of one format, natural order of their names."""
+    """One file per frame (or per sub-sequence), files of one format, natural order of their names.
+
+    femreg's own result files in the folder (``femreg register ... -o pair.npz`` written beside the frames) are
+    set aside, not read as frames; their names are in ``metadata["set_aside"]``.
+    """
     path = Path(path)
     try:
         entries = [p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")]
     except OSError as exc:
         raise fail(path, f"cannot list directory ({exc.strerror or exc})") from None
     by_ext: dict[str, list[Path]] = {}
+    set_aside = []
     for p in entries:
         if p.suffix.lower() in FORMATS:
+            if is_result_file(p):
+                set_aside.append(p.name)
+                continue
             by_ext.setdefault(FORMATS[p.suffix.lower()], []).append(p)
+    set_aside.sort(key=natural_key)
     if "metaimage" in by_ext:  # the .raw files are the headers' data files
         by_ext.pop("raw", None)
     if not by_ext:
-        raise fail(path, "directory holds no frame files (" + ", ".join(sorted(FORMATS)) + ")")
+        aside = f"; {len(set_aside)} femreg result file(s) set aside ({', '.join(set_aside[:3])}" + (
+            ", ...)" if len(set_aside) > 3 else ")") if set_aside else ""
+        raise fail(path, "directory holds no frame files (" + ", ".join(sorted(FORMATS)) + ")" + aside)
     if len(by_ext) > 1:
-        raise fail(path, f"directory mixes formats ({', '.join(sorted(by_ext))}); point at one file or clean it")
+        listing = "; ".join(f"{fmt}: {', '.join(sorted((q.name for q in fs), key=natural_key)[:3])}"
+                            + (", ..." if len(fs) > 3 else "") for fmt, fs in sorted(by_ext.items()))
+        raise fail(path, f"directory mixes formats ({listing}); point at one file or move the others out")
     (fmt, files), = by_ext.items()
     files.sort(key=lambda p: natural_key(p.name))
     parts = [read_frames(f, **options) for f in files]
@@ -287,7 +313,7 @@ def read_directory(path, *, frames=None, **options):
     dt = np.result_type(*(p.frames.dtype for p in parts))
     stack = np.concatenate([p.frames.astype(dt, copy=False) for p in parts], axis=0)
     meta = {"format": f"directory of {fmt}", "files": [f.name for f in files],
-            "file_metadata": first.metadata}
+            "file_metadata": first.metadata, "set_aside": set_aside}
     return finalize(path, stack, first.spacing, first.origin, meta, frames)
 
 
