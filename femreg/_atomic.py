@@ -31,10 +31,14 @@ def atomic_savez(path, writer=None, **arrays) -> None:
 
 
 def open_run_folder(folder, params: dict, *, resume: bool, record: str, started, kind: str,
-                    argument: str = "output_dir"):
+                    argument: str = "output_dir", reselect=(), on_reselect=None):
     """The output folder of a resumable run (``track``, ``elastogram``): create it, refuse a resume whose
     parameters differ from those recorded in ``folder/record`` (JSON), refuse to start over a run already there
     without ``resume`` (``started``: glob patterns of the files a run writes), then record ``params``.
+
+    ``reselect``: names of parameters that only select among what the run computes first (an elastogram's band):
+    a resume may change them; ``on_reselect(names)`` is then called with those that changed, so that the caller
+    drops what depended on them.
 
     Returns the folder as a Path, or None when ``folder`` is None (``resume`` then needs a folder: InputError
     naming ``argument``)."""
@@ -55,8 +59,13 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
     if pfile.exists() and resume:
         old = json.loads(pfile.read_text())
         diff = [k for k in params if old.get(k) != params[k]]
-        if diff:
-            raise InputError(f"cannot resume from {out}: parameters differ ({', '.join(diff)})")
+        fixed = [k for k in diff if k not in reselect]
+        if fixed:
+            was = "; ".join(f"{k}: {old.get(k)!r} recorded, {params[k]!r} now" for k in fixed)
+            raise InputError(f"cannot resume from {out}: parameters differ ({was}); pass the recorded ones, or "
+                             f"start over in another folder")
+        if diff and on_reselect is not None:
+            on_reselect(diff)
     elif not resume and any(any(out.glob(p)) for p in started):
         raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
     atomic_write_text(pfile, json.dumps(params, indent=1))

@@ -173,7 +173,8 @@ def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
         lo_new = max(0.05, np.floor(abs(best) * 0.8 * 2000) / 20)        # percent, 0.05 % steps, below the largest
         return (f"the loop compresses less than the band: the largest axial strain between frames at most "
                 f"{int(max_span)} apart is {100 * best:+.2f} % (frames {where[0]} -> {where[1]}); lower the band, "
-                f"e.g. band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g})"
+                f"e.g. band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g}; with resume=True, "
+                f"--resume, the screening is kept)"
                 + (", or allow longer spans (max_span, --max-span)" if e.size > int(max_span) else ""))
     small = float(np.min(np.abs(e)))
     if small > hi:
@@ -476,7 +477,9 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         rho of the persistence (0: every cine frame is its own pair).
     output_dir : path, optional
         Per-pair results (``pairs/pair_IIIII_JJJJJ.npz``) and the screening (``screen.npz``), each written
-        atomically when computed; with ``resume=True`` what is there is kept, not recomputed.
+        atomically when computed; with ``resume=True`` what is there is kept, not recomputed.  A resume that
+        changes only how pairs are chosen (``band``, ``min_ncc``, ``max_lateral_mm``, ``max_span``) keeps the
+        screening and registers the pairs again.
     progress : bool
         tqdm progress bars.
     regularizer, alpha, register_kwargs
@@ -531,8 +534,15 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                   max_span=int(max_span), regularizer=str(reg_name), alpha=None if alpha is None else float(alpha),
                   register_kwargs=json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr)))
     register_kwargs["check_orientation"] = False           # checked above
+    reselected = []
+    # the screen does not depend on how pairs are chosen from it: a resume with another band keeps the screen and
+    # registers the newly chosen pairs afresh (their warm starts follow the band)
     out = open_run_folder(output_dir, params, resume=resume, record="elastogram.json", started=("screen.npz",),
-                          kind="an elastogram run")
+                          kind="an elastogram run", reselect=("band", "min_ncc", "max_lateral_mm", "max_span"),
+                          on_reselect=reselected.extend)
+    if reselected and out is not None:
+        for f in (out / "pairs").glob("pair_*.npz"):
+            f.unlink()
     if out is not None:
         (out / "pairs").mkdir(exist_ok=True)
 

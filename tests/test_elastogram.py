@@ -136,6 +136,19 @@ def test_cli_files_exit_codes_and_resume(loop, tmp_path, capsys, monkeypatch):
     capsys.readouterr()
     assert main(["elastogram", str(path), "-o", str(out), "--no-progress"]) == 2
     assert "already holds" in capsys.readouterr().err
+    # a resume with another band keeps the screening and chooses (and registers) the pairs again
+    screen_t = (out / "screen.npz").stat().st_mtime_ns
+    rc = main(["elastogram", str(path), "-o", str(out), "--no-progress", "--resume", "--band", "0.3", "3"])
+    assert rc in (0, 1)
+    assert (out / "screen.npz").stat().st_mtime_ns == screen_t
+    again = {p.name: p.stat().st_mtime_ns for p in (out / "pairs").glob("pair_*.npz")}
+    assert again and not any(kept.get(k) == v for k, v in again.items())          # none kept from the old band
+    with open(out / "pairs.csv") as fh:
+        assert sum(int(r["selected"]) for r in csv.DictReader(fh)) >= 1
+    # what the screening depends on cannot change on a resume: the message says what was recorded
+    capsys.readouterr()
+    assert main(["elastogram", str(path), "-o", str(out), "--no-progress", "--resume", "-r", "strain"]) == 2
+    assert "regularizer: 'momentum-stress' recorded" in capsys.readouterr().err
 
 
 def test_bad_input_and_nothing_usable(loop, tmp_path, capsys):
