@@ -582,3 +582,18 @@ def test_saved_grid_says_which_strain_it_holds(tmp_path):
         np.testing.assert_array_equal(older.on_grid("element")[k], res.on_grid("element")[k])
         np.testing.assert_allclose(older.on_grid()[k], res.on_grid()[k], atol=1e-14, equal_nan=True)
     assert np.nanmax(np.abs(res.on_grid()["exx"] - res.on_grid("element")["exx"])) > 1e-5
+
+
+def test_mat_stack_written_frames_first_is_read_as_such(tmp_path):
+    # scipy.io.savemat of an (n, axial, lateral) stack: MATLAB order would give 40 frames of 3 x 24 samples
+    import scipy.io
+
+    stack = np.random.default_rng(0).standard_normal((3, 24, 40)).astype(np.float32)
+    scipy.io.savemat(tmp_path / "s.mat", {"rf": stack, "spacing": np.array([0.02, 0.2])})
+    fr = read_frames(tmp_path / "s.mat")
+    np.testing.assert_array_equal(fr.frames, stack)
+    assert "frames first" in fr.metadata["layout"]
+    scipy.io.savemat(tmp_path / "m.mat", {"rf": np.moveaxis(stack, 0, -1), "spacing": np.array([0.02, 0.2])})
+    fr = read_frames(tmp_path / "m.mat")                       # the MATLAB order itself is unchanged
+    np.testing.assert_array_equal(fr.frames, stack)
+    assert "layout" not in fr.metadata

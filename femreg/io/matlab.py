@@ -82,10 +82,25 @@ def _choose(path, candidates: dict, variable, ndims=(2, 3)):
                      "(CLI: --variable NAME)")
 
 
-def _mat_layout(arr):
-    """MATLAB index order (axial, lateral[, frame]) -> (frame, axial, lateral)."""
+#: Fewest samples along an axis of an RF frame: an array whose MATLAB-order frame would be thinner, while its
+#: first axis read as the frame axis leaves frames at least this size, was written frames first (numpy's order,
+#: e.g. ``scipy.io.savemat`` of an ``(n, axial, lateral)`` stack).
+MIN_FRAME_SAMPLES = 16
+
+
+def _mat_layout(arr, meta=None):
+    """MATLAB index order (axial, lateral[, frame]) -> (frame, axial, lateral); a stack stored frames first
+    (``(frame, axial, lateral)``, as numpy writes it) is recognised by the size of the frames each reading gives
+    (:data:`MIN_FRAME_SAMPLES`) and read as such, ``meta["layout"]`` saying so."""
     arr = np.asarray(arr)
     if arr.ndim == 3:
+        matlab_frame, first_frame = arr.shape[:2], arr.shape[1:]
+        if min(matlab_frame) < MIN_FRAME_SAMPLES <= min(first_frame):
+            if meta is not None:
+                meta["layout"] = (f"frames first ({arr.shape[0]} frames of {arr.shape[1]} x {arr.shape[2]}): the "
+                                  f"MATLAB order (axial, lateral, frame) would give {arr.shape[2]} frames of "
+                                  f"{arr.shape[0]} x {arr.shape[1]} samples")
+            return arr
         arr = np.moveaxis(arr, -1, 0)
     return arr
 
@@ -147,7 +162,7 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
     sp, origin = _aux(path, aux, spacing)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
-    return validate_frames(path, _mat_layout(arr), sp, origin, meta, frames)
+    return validate_frames(path, _mat_layout(arr, meta), sp, origin, meta, frames)
 
 
 def read_mat_volume(path, *, variable=None, spacing=None, frames=None, **_ignored):
