@@ -21,7 +21,9 @@ Rows per case:
 - ``1/SR``: the strain ratio users read as stiffness, mean |e_xx| of the ring over that of the disk.
 
 Metrics: mean modulus sampled inside 0.7 R of the centre over the mean in the ring 1.6-2.5 R (points every
-0.25 mm); its ratio to the truth; background CV (std / mean of the ring samples); flags (``success``);
+0.25 mm); its ratio to the truth; background CV (std / mean of the ring samples); the ring's fraction inside the
+mesh (``ring``: below :data:`RING_MEASURABLE` the case is reported as "ring not measurable" and left out of the
+band count); flags (``success``);
 calibration: fraction of constrained elements whose true relative log mu (disk contrast or 1 at the element
 centre) lies within +-1 sigma, with |z| per element kept in the JSON rows; beta: the contrast ratio of the rule's
 beta against that of the truth-best beta of the grid (fixed-beta inversions), "within 15 %" meaning
