@@ -6,7 +6,8 @@ jump (weight 0.3) with a solve of its own ("R_P_sigma relax both"), the default 
 ("R_P_sigma relax tangential+solve"), that extra solve with nothing relaxed ("R_P_sigma extra solve",
 ``relax=1.0``),
 :data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip") and three passes down to 0.15 x 0.3 mm without
-the element budget ("R_P_sigma refine fine"), adaptive refinement (:mod:`femreg.refine`).
+the element budget ("R_P_sigma refine fine"), one pass quartering the marked rows / columns down to 0.15 mm axially
+without the budget ("R_P_sigma refine deep", :func:`benchmarks.refine_cost.deep_refinement`), adaptive refinement (:mod:`femreg.refine`).
 
 Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``; one soft, / 4) centred 20 mm
 deep, rendered as the robustness benchmark does (:func:`benchmarks.robustness.make_data`); the ``held_`` cases
@@ -64,7 +65,8 @@ CASES = [
 #: femreg variants: defaults, and adaptive refinement (:mod:`femreg.refine`)
 FEMREG = {"R_P_sigma": "default", "R_P_sigma no refine": None, "R_P_sigma no relax": "norelax",
           "R_P_sigma relax both": "both", "R_P_sigma relax tangential+solve": "tsolve",
-          "R_P_sigma extra solve": "solve", "R_P_sigma refine+slip": "slip", "R_P_sigma refine fine": "fine"}
+          "R_P_sigma extra solve": "solve", "R_P_sigma refine+slip": "slip", "R_P_sigma refine fine": "fine",
+          "R_P_sigma refine deep": "deep"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 
 
@@ -76,7 +78,9 @@ def run_method(method, data):
         if method in FEMREG:
             from femreg.refine import Refinement, SLIP_REFINEMENT
 
-            spec = {None: None, "slip": SLIP_REFINEMENT,
+            from benchmarks.refine_cost import deep_refinement
+
+            spec = {None: None, "slip": SLIP_REFINEMENT, "deep": deep_refinement(),
                     "fine": Refinement(passes=3, min_size=(0.15, 0.3), max_growth=None),
                     "norelax": Refinement(relax=None),
                     # the relaxation on both parts of the jump (weight 0.3), solving again for it

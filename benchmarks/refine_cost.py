@@ -8,7 +8,7 @@ CPU seconds of both and their ratio, the elements before -> after.  The summary 
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
-Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|norelax|N]
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|norelax|deep|N]
 [--against norelax] [--seed 0] [--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change
 of ``--refine`` against it: the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
@@ -33,6 +33,15 @@ from benchmarks.robustness import CASES, errors, make_data, roi_slices, truth  #
 from forward.pairs import PROBES  # noqa: E402
 
 
+def deep_refinement():
+    """One pass splitting each marked row / column twice (to a quarter) down to 0.15 mm axially, with no element
+    budget: the finer boundary elements in the one solve the default spends, but no second pass (so no local
+    relaxation, which rides on a second pass)."""
+    from femreg.refine import Refinement
+
+    return Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None)
+
+
 def _spec(name):
     from femreg.refine import SLIP_REFINEMENT, Refinement
 
@@ -42,6 +51,8 @@ def _spec(name):
         return SLIP_REFINEMENT
     if name == "norelax":           # the default refinement without its local relaxation
         return Refinement(relax=None)
+    if name == "deep":
+        return deep_refinement()
     return name if name == "auto" else int(name)
 
 
@@ -93,7 +104,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="")
     ap.add_argument("--refine", default="auto",
-                    help="auto, slip, norelax (auto without the local relaxation) or a number of passes")
+                    help="auto, slip, norelax (auto without the local relaxation), deep (deep_refinement) or a number "
+                         "of passes")
     ap.add_argument("--against", default=None,
                     help="also this refine= (as --refine): the error change of --refine against it")
     ap.add_argument("--repeats", type=int, default=3)

@@ -21,7 +21,7 @@ without the relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and wi
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
 down so that layers may slide), "R_P_sigma refine+slip"
 (:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
-shear-traction jump stands out), the peers
+shear-traction jump stands out), "R_P_sigma refine deep" (:func:`benchmarks.refine_cost.deep_refinement`), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 
@@ -71,9 +71,10 @@ CASES = [
 ]
 
 FEMREG = ("R_P_sigma", "R_P_sigma no refine", "R_P_sigma no relax", "R_P_sigma alpha/10", "R_P_sigma slip",
-          "R_P_sigma refine+slip")
+          "R_P_sigma refine+slip", "R_P_sigma refine deep")
 #: ``refine=`` of the variants that set it (:mod:`femreg.refine`; the others: register's default)
-REFINE = {"R_P_sigma no refine": None, "R_P_sigma no relax": "norelax", "R_P_sigma refine+slip": "slip"}
+REFINE = {"R_P_sigma no refine": None, "R_P_sigma no relax": "norelax", "R_P_sigma refine+slip": "slip",
+          "R_P_sigma refine deep": "deep"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -91,10 +92,11 @@ def run_method(method, data):
                 # the default alpha of this pair: what register chose without one
                 kw["alpha"] = 0.1 * femreg.register(data.ref, data.mov, **kw).alpha
             elif method in REFINE:
+                from benchmarks.refine_cost import deep_refinement
                 from femreg.refine import SLIP_REFINEMENT, Refinement
 
-                kw["refine"] = {"slip": SLIP_REFINEMENT, "norelax": Refinement(relax=None)}.get(REFINE[method],
-                                                                                               REFINE[method])
+                kw["refine"] = {"slip": SLIP_REFINEMENT, "norelax": Refinement(relax=None),
+                                "deep": deep_refinement()}.get(REFINE[method], REFINE[method])
             elif method.endswith("slip"):
                 from femreg.shear import slip_settings
 
