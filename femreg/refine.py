@@ -451,7 +451,8 @@ def slab_scores(jumps) -> list:
     counts for both slabs beside it.  Any dimension (rows and columns of quads, x / y / z slabs of hexahedra)."""
     out = []
     for a, j in enumerate(jumps):
-        line = np.max(np.moveaxis(np.asarray(j, float), a, 0).reshape(j.shape[a], -1), axis=1, initial=0.0)
+        m = np.moveaxis(np.asarray(j, float), a, 0)
+        line = m.reshape(m.shape[0], -1).max(axis=1) if m.size else np.zeros(m.shape[0])     # one slab: no face
         s = np.zeros(line.size + 1)
         s[:-1] = line
         s[1:] = np.maximum(s[1:], line)

@@ -41,6 +41,7 @@ from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton,
 from .speckle import envelope
 from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
 from .volume_fields import HexLocator, element_strain_operator_3d
+from .refine import DEFAULT as DEFAULT_REFINE, default_refine
 from .volume_refine import as_volume_refinement, refine_volume_passes, transfer_3d
 from .volume_result import VolumeResult
 from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDTerm, roi_mesh_3d, tensor_axes_3d,
@@ -394,6 +395,16 @@ def _single_element_axes(mesh) -> list:
     return [names[a] for a in range(3) if len(np.unique(np.round(mesh.p[a], 9))) <= 2]
 
 
+def _default_refine(refine, args, geometry=None):
+    """``refine=`` of :func:`register_volume` with its default resolved by :func:`femreg.refine.default_refine`
+    (the 2D rule: "auto" for ``strategy="auto"`` R_P_sigma on the default mesh, with no offset, a numeric alpha and
+    no geometry; off otherwise).  ``args``: the registration's keywords (missing ones count as their defaults)."""
+    return default_refine(refine, strategy=args.get("strategy", "auto"),
+                          regularizer=args.get("regularizer", "momentum-stress"), mesh=args.get("mesh"),
+                          element_size=args.get("element_size"), offset=args.get("offset"), geometry=geometry,
+                          alpha=args.get("alpha"))
+
+
 def _refine(sol, opts, u0, I2, shape, spacing, origin, reg_factory, kw):
     """The refinement stage of :func:`register_volume` (:func:`femreg.volume_refine.refine_volume_passes`):
     each pass one :func:`solve_volume` on the refined mesh, its image term the unrefined one's on the same voxels
@@ -479,7 +490,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
                     alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
                     maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", regularizer_options=None,
                     normalize: bool = True, callback=None, strategy: str = "auto", repair: bool = True,
-                    strain_tol=None, check_orientation: bool = True, refine=None, **ignored) -> VolumeResult:
+                    strain_tol=None, check_orientation: bool = True, refine=DEFAULT_REFINE, **ignored) -> VolumeResult:
     """Register ``moving`` to ``reference`` volumes: u minimising eq:objf = psi (eq:IR) + R on hexahedra.
 
     Parameters
@@ -529,6 +540,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         if geo is not None:
             kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "spacing", "origin",
                                                              "ignored")}
+            kw["refine"] = _default_refine(refine, args, geometry=geo)     # not measured on swept volumes: off
             return register_swept(reference_image, moving_image, geometry=geo, spacing=spacing, origin=origin,
                                   register=register_volume, **kw, **ignored)
     routed = route_volume(register_volume, args)
@@ -541,7 +553,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         return _register_auto(args)
     t_all = time.perf_counter()
     timings = {}
-    opts = as_volume_refinement(refine)
+    opts = as_volume_refinement(_default_refine(refine, args))
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
     if check_orientation:               # the central (axial, lateral) plane, as the 2D check reads a frame
         orientation.check(ref[:, :, ref.shape[2] // 2], spacing[:2], elevational=spacing[2])
@@ -653,6 +665,7 @@ def _register_auto(args: dict) -> VolumeResult:
     del vol
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
     kw.update(args["ignored"], roi=None, depth=None, check_orientation=False)
+    kw["refine"] = _default_refine(args["refine"], args)       # the default is off for alpha="auto" (as in 2D)
     return register_auto(ref, mov, register=register_volume, image_term=voxel_image_term, **kw)
 
 
@@ -703,6 +716,8 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
                           elevational=sp3[2])
     register_kwargs["check_orientation"] = False    # checked once, above
+    # refinement is opt-in for a sequence, as in 2D (femreg.track): its meshes are the frame-0 one
+    register_kwargs["refine"] = _default_refine(register_kwargs.get("refine", DEFAULT_REFINE), {"mesh": True})
     crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=register_kwargs.pop("roi", "auto"),
                            depth=register_kwargs.pop("depth", None), mesh=register_kwargs.get("mesh"),
                            margin=register_kwargs.get("margin"))
