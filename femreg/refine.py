@@ -238,7 +238,7 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     ROI mesh, None (off) where refinement was not measured as a default -- ``strategy="paper"``, the other
     regularisers (and a Regularizer instance), a user's mesh or element size (also every increment of
     :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, the candidates of
-    ``alpha="auto"``; volumes never reach it.  Off also for a convex / sector geometry, where it was measured and
+    ``alpha="auto"``; volumes use the same rule (:func:`femreg.volume.register_volume`, swept volumes off).  Off also for a convex / sector geometry, where it was measured and
     fails the gate (``benchmarks/convex_refine.py``, docs/geometry.md): inclusions 0.4-1.7 points better, but
     uniform compression of sector frames 0.8-1.6 points worse and of convex frames at 0.3 deg per line up to 0.9,
     and up to 2.3x the CPU time; ``refine="auto"`` there is opt-in.  Any other ``spec`` is returned as given."""

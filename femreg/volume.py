@@ -509,6 +509,13 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         The start; None / "pyramid": :func:`coarse_to_fine`.
     offset : VolumeResult | callable | (3 n_nodes,) array, optional
         S of eq:IR (both volumes sampled at x + S(x)).
+    refine : "default" | None | int | "auto" | femreg.refine.Refinement
+        Adaptive refinement after the solve (:mod:`femreg.volume_refine`): x-, y-, z-slabs of the tensor mesh where
+        the jumps of A[u] n across the faces stand out are halved and the pair solved again from the solution.
+        "default": "auto" (:data:`femreg.volume_refine.VOLUME_REFINEMENT`) under the 2D rule
+        (:func:`femreg.refine.default_refine`: ``strategy="auto"``, R_P_sigma, the default mesh, no offset, a
+        numeric alpha), else off; None or 0: off.  The result's mesh, ``u`` and ``quality`` are the final mesh's,
+        ``result.refinement`` what each pass split.
     roi, depth : "auto" | None | (x0, x1, y0, y1, z0, z1) mm; (d0, d1) mm, optional
         The region registered (:mod:`femreg.echo_volume`): "auto" (default) the box of usable echo, None the
         whole volume, a box or a depth range as given; the result keeps the full voxel grid and says what was
