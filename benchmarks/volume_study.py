@@ -27,7 +27,8 @@ Run: ``python benchmarks/volume_study.py [--inclusion HI] [--crop X0 X1 Y0 Y1 Z0
 scatterers).  The report section: ``python benchmarks/volume_study.py --section paperstudy/volume_section.md
 RUN.json [RUN.json ...] --into docs/study_report.md`` (``femreg study`` carries paperstudy/volume_section.md into
 the report it writes); the records of the runs in the report: paperstudy/volume_runs/ (full, plane5 = +-5 mm,
-quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements), the findings lines: ``--notes paperstudy/volume_runs/notes.txt``.
+quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements, full_refine / quick_refine = ``--refine auto``; the
+others predate the volume refinement and are unrefined), the findings lines: ``--notes paperstudy/volume_runs/notes.txt``.
 """
 from __future__ import annotations
 
