@@ -331,7 +331,7 @@ def write_section(path: Path, runs: list, into: Path | None = None, notes=()) ->
 
 def _refine_arg(text):
     """``--refine``: 'off' -> None, an integer -> that many passes, 'key=value,...' -> femreg's volume refinement
-    with those options changed (numbers), else the text ('auto')."""
+    with those options changed (numbers or names), else the text ('auto')."""
     if text == "off":
         return None
     if "=" in text:
@@ -339,9 +339,14 @@ def _refine_arg(text):
 
         from femreg.volume_refine import VOLUME_REFINEMENT
 
+        def value(v):
+            try:
+                return int(v) if v.isdigit() else float(v)
+            except ValueError:
+                return v            # a name ("axes=lateral")
+
         kw = dict(kv.split("=", 1) for kv in text.split(","))
-        return dataclasses.replace(VOLUME_REFINEMENT, **{k: (int(v) if v.isdigit() else float(v))
-                                                         for k, v in kw.items()})
+        return dataclasses.replace(VOLUME_REFINEMENT, **{k: value(v) for k, v in kw.items()})
     return int(text) if text.isdigit() else text
 
 
