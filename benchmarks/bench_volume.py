@@ -11,6 +11,7 @@ peak-hopping check (:func:`femreg.repair.envelope_lag_ncc_3d`) flags, per probe 
     python benchmarks/bench_volume.py                       # 7 MHz, default settings
     python benchmarks/bench_volume.py --probes 3 7.5 15     # accuracy per probe
     python benchmarks/bench_volume.py --shape 400 50 30     # a smaller volume
+    python benchmarks/bench_volume.py --refine auto         # with adaptive refinement (femreg.volume_refine)
 """
 from __future__ import annotations
 
@@ -91,6 +92,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--element-size", type=float, default=None)
     ap.add_argument("--regularizer", default="momentum-stress")
+    ap.add_argument("--refine", default=None, help="refine= of the registration: 'auto' or a number of passes")
     ap.add_argument("--cache", default=os.environ.get("FEMREG_CACHE", tempfile.gettempdir()))
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -100,6 +102,8 @@ def main(argv=None):
     opts = {"regularizer": a.regularizer}
     if a.element_size is not None:
         opts["element_size"] = a.element_size
+    if a.refine is not None:
+        opts["refine"] = int(a.refine) if a.refine.isdigit() else a.refine
     shape = tuple(a.shape)
     ext = np.array(shape) * SPACING
     print(f"volume {shape[0]} x {shape[1]} x {shape[2]} voxels = {ext[0]:g} x {ext[1]:g} x {ext[2]:g} mm, "

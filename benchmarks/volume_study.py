@@ -27,7 +27,8 @@ Run: ``python benchmarks/volume_study.py [--inclusion HI] [--crop X0 X1 Y0 Y1 Z0
 scatterers).  The report section: ``python benchmarks/volume_study.py --section paperstudy/volume_section.md
 RUN.json [RUN.json ...] --into docs/study_report.md`` (``femreg study`` carries paperstudy/volume_section.md into
 the report it writes); the records of the runs in the report: paperstudy/volume_runs/ (full, plane5 = +-5 mm,
-quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements), the findings lines: ``--notes paperstudy/volume_runs/notes.txt``.
+quick, quick_h1 = 1 mm, quick_h112 = 1 x 1 x 2 mm elements, full_refine / quick_refine = ``--refine auto``; the
+others predate the volume refinement and are unrefined), the findings lines: ``--notes paperstudy/volume_runs/notes.txt``.
 """
 from __future__ import annotations
 
@@ -207,7 +208,8 @@ def _extent(r) -> str:
         e += f" {b[0]:.0f}-{b[1]:.0f} x {b[2]:.0f}..{b[3]:.0f} x {b[4]:.0f}..{b[5]:.0f} mm"
     h = [2.0] if h is None else (h if isinstance(h, list) else [h])
     e += f", {' x '.join(f'{v:g}' for v in (h if len(set(h)) > 1 else h[:1]))} mm elements"
-    return e + (f", 3D alpha {r['alpha_3d']:g}" if r.get("alpha_3d") is not None else "")
+    e += f", 3D alpha {r['alpha_3d']:g}" if r.get("alpha_3d") is not None else ""
+    return e + (f", 3D refine={r['refine']}" if r.get("refine") not in (None, "off") else "")
 
 
 def section(runs: list, notes=()) -> list:
@@ -327,6 +329,27 @@ def write_section(path: Path, runs: list, into: Path | None = None, notes=()) ->
         into.write_text(text)
 
 
+def _refine_arg(text):
+    """``--refine``: 'off' -> None, an integer -> that many passes, 'key=value,...' -> femreg's volume refinement
+    with those options changed (numbers or names), else the text ('auto')."""
+    if text == "off":
+        return None
+    if "=" in text:
+        import dataclasses
+
+        from femreg.volume_refine import VOLUME_REFINEMENT
+
+        def value(v):
+            try:
+                return int(v) if v.isdigit() else float(v)
+            except ValueError:
+                return v            # a name ("axes=lateral")
+
+        kw = dict(kv.split("=", 1) for kv in text.split(","))
+        return dataclasses.replace(VOLUME_REFINEMENT, **{k: value(v) for k, v in kw.items()})
+    return int(text) if text.isdigit() else text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--inclusion", default="HI", choices=("HI", "mHI", "HOM", "SI"))
@@ -338,6 +361,8 @@ def main(argv=None) -> int:
                     "the first two; default: femreg's, 2 mm)")
     ap.add_argument("--alpha-3d", type=float, help="alpha of the 3D registration (for 2 x 2 x 2 mm elements, "
                     "rescaled by femreg with the element volume; default: femreg's)")
+    ap.add_argument("--refine", help="refine= of the 3D registration (femreg.volume_refine): 'auto', a number of "
+                    "passes, or 'off' (default: femreg's)")
     ap.add_argument("--no-3d", action="store_true", help="the 2D registration only")
     ap.add_argument("--no-inversion", action="store_true", help="skip the 2D and 3D modulus inversions")
     ap.add_argument("--json", type=Path, help="write the numbers here")
@@ -402,7 +427,8 @@ def main(argv=None) -> int:
             t0, c0 = time.perf_counter(), time.process_time()
             res3 = femreg.register(ref, mov, spacing=seq.spacing, origin=origin, regularizer=args.regularizer,
                                    **({} if hs is None else {"element_size": tuple(hs)}),
-                                   **({} if args.alpha_3d is None else {"alpha": args.alpha_3d}))
+                                   **({} if args.alpha_3d is None else {"alpha": args.alpha_3d}),
+                                   **({} if args.refine is None else {"refine": _refine_arg(args.refine)}))
             t3, c3 = time.perf_counter() - t0, time.process_time() - c0
             rss3 = peak_rss_mb()        # before the error evaluation (which runs in slabs)
         except InputError as exc:
@@ -418,7 +444,10 @@ def main(argv=None) -> int:
                                          spacing=seq.spacing, origin=origin)
             e3["floor_e"] = plane_errors_3d(floor3, res2, field)["e"]
             out["3d"] = dict(e3, time_s=t3, cpu_s=c3, peak_rss_mb=rss3, peak_rss_errors_mb=peak_rss_mb(),
-                             success=bool(res3.success), message=res3.message, nit=int(res3.nit))
+                             success=bool(res3.success), message=res3.message, nit=int(res3.nit),
+                             elements=int(res3.mesh.t.shape[1]), timings=res3.timings)
+            if args.refine is not None:
+                out["refine"] = args.refine
             print(f"3D volumes ({args.regularizer}): {t3:.1f} s, success {res3.success}")
 
     if not args.no_inversion:

@@ -83,7 +83,8 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage",
+           "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -107,8 +108,9 @@ class Refinement:
     relative : float
         "jump" and "gradient": also at least this fraction of the field's RMS ``|A[u]|`` (strain), so that the
         noise of a field without a sharp feature marks nothing (uniform compression: jumps below 1 % of it).
-    min_size : (2,) mm
-        Smallest element size (axial, lateral) a split may produce; also never below 2 pixels.
+    min_size : (2,) or (3,) mm
+        Smallest element size (axial, lateral[, elevational]) a split may produce; also never below 2 pixels.
+        Volumes without the third value take the lateral one elevationally.
     axes : {"both", "axial", "lateral"}
         Split rows (along depth), columns (lateral), or both.
     levels : int
@@ -200,12 +202,15 @@ class Refinement:
             raise InputError(f"refinement indicator must be one of {INDICATORS}, got {self.indicator!r}")
         if not (np.isfinite(self.threshold) and self.threshold >= 0):
             raise InputError(f"refinement threshold must be a finite number >= 0, got {self.threshold!r}")
-        ms = np.broadcast_to(np.asarray(self.min_size, float), (2,))
-        if not (np.all(np.isfinite(ms)) and np.all(ms > 0)):
-            raise InputError(f"refinement min_size must be positive lengths (mm), got {self.min_size!r}")
+        ms = np.atleast_1d(np.asarray(self.min_size, float))
+        if ms.ndim != 1 or ms.size not in (1, 2, 3) or not (np.all(np.isfinite(ms)) and np.all(ms > 0)):
+            raise InputError(f"refinement min_size must be one, two or three positive lengths (mm), "
+                             f"got {self.min_size!r}")
+        if ms.size == 1:
+            ms = np.repeat(ms, 2)
         if not (np.isfinite(self.relative) and self.relative >= 0):
             raise InputError(f"refinement relative must be a finite number >= 0, got {self.relative!r}")
-        object.__setattr__(self, "min_size", (float(ms[0]), float(ms[1])))
+        object.__setattr__(self, "min_size", tuple(float(v) for v in ms))
         if self.axes not in ("both", "axial", "lateral"):
             raise InputError(f"refinement axes must be 'both', 'axial' or 'lateral', got {self.axes!r}")
 
@@ -233,7 +238,7 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     ROI mesh, None (off) where refinement was not measured as a default -- ``strategy="paper"``, the other
     regularisers (and a Regularizer instance), a user's mesh or element size (also every increment of
     :func:`femreg.track` and every pair of :func:`femreg.elastogram.elastogram`), an offset, the candidates of
-    ``alpha="auto"``; volumes never reach it.  Off also for a convex / sector geometry, where it was measured and
+    ``alpha="auto"``; volumes use the same rule (:func:`femreg.volume.register_volume`, swept volumes off).  Off also for a convex / sector geometry, where it was measured and
     fails the gate (``benchmarks/convex_refine.py``, docs/geometry.md): inclusions 0.4-1.7 points better, but
     uniform compression of sector frames 0.8-1.6 points worse and of convex frames at 0.3 deg per line up to 0.9,
     and up to 2.3x the CPU time; ``refine="auto"`` there is opt-in.  Any other ``spec`` is returned as given."""
@@ -415,20 +420,14 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
     if opts.indicator == "jump":
         e = _centre_strains(mesh, u)
         ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
-        cut = max(robust_cut(np.concatenate([ja.ravel(), jl.ravel()]), opts.threshold),
-                  opts.relative * strain_scale(mesh, u, e=e))
+        cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
         # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
         sa, sl = ta > cut, tl > cut
         slip[:-1] |= sa
         slip[1:] |= sa
         slip[:, :-1] |= sl
         slip[:, 1:] |= sl
-        ea, el = ja.max(axis=1), jl.max(axis=0)          # per axial-edge line / lateral-edge line
-        rs, cs = np.zeros(cell.shape[0]), np.zeros(cell.shape[1])
-        rs[:-1] = ea
-        rs[1:] = np.maximum(rs[1:], ea)
-        cs[:-1] = el
-        cs[1:] = np.maximum(cs[1:], el)
+        rs, cs = slab_scores([ja, jl])
     else:
         eta = indicators(mesh, u, opts.indicator, data=data, quality=quality)
         cut = robust_cut(eta, opts.threshold)
@@ -436,38 +435,71 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
             cut = max(cut, opts.relative * strain_scale(mesh, u))
         g = eta[cell]
         rs, cs = g.max(axis=1), g.max(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rs, cs = rs / cut, cs / cut
-    if opts.axes == "axial":
-        cs = np.zeros_like(cs)
-    elif opts.axes == "lateral":
-        rs = np.zeros_like(rs)
-    rows, cols = rs > 1, cs > 1
+    (rows, cols), (rs, cs) = marked_slabs([rs, cs], cut, opts)
     return (rows, cols, slip, (rs, cs)) if scores else (rows, cols, slip)
 
 
-def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
-    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements.
+def jump_cut(jumps, opts: Refinement, scale: float) -> float:
+    """The cut of the "jump" marking: the robust z-score cut of all face / edge jumps ``jumps`` (a list of arrays)
+    or ``opts.relative`` times the field's ``scale`` (:func:`strain_scale`), the larger."""
+    return max(robust_cut(np.concatenate([np.ravel(j) for j in jumps]), opts.threshold), opts.relative * scale)
 
-    The splits of a marked row (column) stay inside it (:func:`_refined_breaks` halves only the intervals whose
-    middle lies in a marked one), so each row and column adds a fixed number of rows / columns: counted once with
-    all of them marked, then the greedy choice is arithmetic."""
-    rs, cs = score
+
+def slab_scores(jumps) -> list:
+    """Per axis a, the largest jump across the faces (edges) normal to axis a next to each slab of a tensor mesh:
+    ``jumps[a]`` is over the cell grid with axis a one shorter (the faces between slabs i and i + 1), and a face
+    counts for both slabs beside it.  Any dimension (rows and columns of quads, x / y / z slabs of hexahedra)."""
+    out = []
+    for a, j in enumerate(jumps):
+        m = np.moveaxis(np.asarray(j, float), a, 0)
+        line = m.reshape(m.shape[0], -1).max(axis=1) if m.size else np.zeros(m.shape[0])     # one slab: no face
+        s = np.zeros(line.size + 1)
+        s[:-1] = line
+        s[1:] = np.maximum(s[1:], line)
+        out.append(s)
+    return out
+
+
+def marked_slabs(scores, cut: float, opts: Refinement):
+    """``(marked, scores)``: the per-axis slab scores over ``cut`` (marked where > 1), only on the axes
+    ``opts.axes`` lets split ("axial": axis 0 only, "lateral": axis 1 only, "both": every axis)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sc = [np.asarray(s, float) / cut for s in scores]
+    keep = {"axial": (0,), "lateral": (1,)}.get(opts.axes)
+    if keep is not None:
+        sc = [s if a in keep else np.zeros_like(s) for a, s in enumerate(sc)]
+    return [s > 1 for s in sc], sc
+
+
+def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
+    """The marked rows / columns, strongest first, as many as keep the refined mesh within ``budget`` elements
+    (:func:`slabs_within_budget` on the tensor mesh's rows and columns)."""
     xs, ys, _ = _need_tensor(mesh)
-    nx, ny, _, _ = _refined_breaks(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
-    # new breaks strictly inside each old row / column (breaks are pixel edges: compare with half a pixel margin)
-    add_r = np.diff(np.searchsorted(nx, xs - 0.5 * spacing[0])) - 1
-    add_c = np.diff(np.searchsorted(ny, ys - 0.5 * spacing[1])) - 1
-    cand = sorted([(rs[i], 0, i) for i in np.flatnonzero(rows)] + [(cs[j], 1, j) for j in np.flatnonzero(cols)],
+    return tuple(slabs_within_budget([xs, ys], [rows, cols], score, spacing, origin, opts.min_size, opts.levels,
+                                     budget))
+
+
+def slabs_within_budget(breaks, marked, scores, spacing, origin, min_size, levels, budget) -> list:
+    """The marked slabs (per axis, boolean over each axis' slabs), strongest ``scores`` first, as many as keep the
+    refined tensor mesh within ``budget`` elements.  Any dimension.
+
+    The splits of a marked slab stay inside it (:func:`refined_axes` halves only the intervals whose middle lies
+    in a marked one), so each slab adds a fixed number of slabs along its axis: counted once with all of them
+    marked, then the greedy choice is arithmetic."""
+    new, _ = refined_axes(breaks, marked, spacing, origin, min_size, levels)
+    # new breaks strictly inside each old slab (breaks are voxel edges: compare with half a voxel margin)
+    add = [np.diff(np.searchsorted(nb, b - 0.5 * h)) - 1 for nb, b, h in zip(new, breaks, spacing)]
+    cand = sorted([(float(scores[a][i]), a, int(i)) for a in range(len(breaks)) for i in np.flatnonzero(marked[a])],
                   reverse=True)
-    r2, c2 = np.zeros_like(rows), np.zeros_like(cols)
-    n_r, n_c = xs.size - 1, ys.size - 1
-    for _, ax, k in cand:
-        a_r, a_c = (add_r[k], 0) if ax == 0 else (0, add_c[k])
-        if (n_r + a_r) * (n_c + a_c) <= budget:
-            (r2 if ax == 0 else c2)[k] = True
-            n_r, n_c = n_r + a_r, n_c + a_c
-    return r2, c2
+    out = [np.zeros(np.shape(m), bool) for m in marked]
+    n = [np.size(b) - 1 for b in breaks]
+    for _, a, i in cand:
+        trial = list(n)
+        trial[a] += int(add[a][i])
+        if np.prod(trial, dtype=float) <= budget:
+            out[a][i] = True
+            n = trial
+    return out
 
 
 def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None) -> np.ndarray:
@@ -485,8 +517,7 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     xs, ys, cell = _need_tensor(mesh)
     e = _centre_strains(mesh, u)
     ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
-    cut = max(robust_cut(np.concatenate([ja.ravel(), jl.ravel()]), opts.threshold),
-              opts.relative * strain_scale(mesh, u, e=e))
+    cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
     # the part of the jump that is relaxed must stand out itself (as the slip region of mark())
     if opts.relax_parts == "tangential":
         ja, jl = ta, tl
@@ -588,10 +619,18 @@ def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels):
     if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
         raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
                          f"and {cols.shape}")
+    (nx, ny), (sx, sy) = refined_axes([xs, ys], [rows, cols], spacing, origin, min_size, levels)
+    return nx, ny, sx, sy
+
+
+def refined_axes(breaks, marked, spacing, origin, min_size, levels):
+    """``(new_breaks, splits)`` per axis of a tensor mesh (any dimension): each axis' ``breaks`` with the
+    intervals inside its ``marked`` slabs halved ``levels`` times (:func:`_split`: on pixel / voxel-cell
+    boundaries, both halves at least ``min_size[a]`` and 2 pixels), and the number of new breaks."""
     out, counts = [], []
-    for b, m, o, h, ms in ((xs, rows, origin[0], spacing[0], min_size[0]), (ys, cols, origin[1], spacing[1],
-                                                                         min_size[1])):
-        lo, hi = b[:-1][m], b[1:][m]
+    for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
+        m = np.asarray(m, bool)
+        lo, hi = np.asarray(b)[:-1][m], np.asarray(b)[1:][m]
         nb, total = np.asarray(b, float), 0
         for _ in range(int(levels)):
             mid = 0.5 * (nb[:-1] + nb[1:])
@@ -604,7 +643,7 @@ def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels):
                 break
         out.append(nb)
         counts.append(total)
-    return out[0], out[1], counts[0], counts[1]
+    return out, counts
 
 
 def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1):
@@ -690,14 +729,19 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            relaxed_edges=int(len(relaxed)), seconds=time.perf_counter() - t))
+    finish_passes(sol, record, opts, base_gn, nit)
+    return sol, RefinementRecord(record, base_size)
+
+
+def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
+    """After the passes ``record`` (none: nothing changes): ``sol.gn`` counts the iterations ``nit`` of all solves
+    and, when the refined solves stopped at their step count (``opts.maxiter``), carries the unrefined solve's
+    (``base_gn``) verdict: that count is the option, not a failure to converge."""
     if record and opts.maxiter is not None and sol.gn.status == 1:
-        # the step count of a refined solve is the option, not a failure to converge: the solve's verdict is
-        # that of the unrefined one, and its iterations count all passes
         sol.gn = dataclasses.replace(sol.gn, status=base_gn.status, success=base_gn.success,
                                      message=base_gn.message, nit=nit)
     elif record:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
-    return sol, RefinementRecord(record, base_size)
 
 
 def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):

@@ -233,7 +233,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         or ``element_size`` (so every increment of
         :func:`femreg.track`), an offset, a convex / sector geometry (where ``"auto"`` / N refines the (range,
         angle) lattice: opt-in, docs/geometry.md) and ``alpha="auto"`` (:func:`femreg.refine.default_refine`);
-        volumes never refine.  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final
+        volumes follow the same rule with their own refinement (:mod:`femreg.volume_refine`; off for
+        :func:`femreg.track` and swept volumes).  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final
         mesh.
 
     Returns

@@ -120,7 +120,7 @@ class AutoAlpha:
 @dataclass
 class RefinementRecord:
     """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
-    ``base_size``, the median element size (axial, lateral) mm of the mesh refinement started from (what a
+    ``base_size``, the median element size (axial, lateral[, elevational]) mm of the mesh refinement started from (what a
     caller sizing a new mesh from the result's should read: the refined mesh's median is smaller).  ``passes``
     is None for a result read from a file (:func:`femreg.load_result` keeps ``base_size`` only)."""
 
@@ -132,7 +132,9 @@ class RefinementRecord:
             return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
         if not self.passes:
             return "refinement: nothing marked"
-        parts = [f"{p['elements']} -> {p['elements_after']} elements ({p['rows']} rows, {p['columns']} columns split"
+        parts = [f"{p['elements']} -> {p['elements_after']} elements ("
+                 + (f"{p['rows']} x-, {p['columns']} y-, {p['slices']} z-slabs split" if "slices" in p else
+                    f"{p['rows']} rows, {p['columns']} columns split")
                  + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "") + ")"
                  for p in self.passes]
         return "refinement: " + "; ".join(parts)

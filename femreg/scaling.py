@@ -75,5 +75,6 @@ def effective_alpha(alpha: float, mesh) -> float:
 def refined_alpha(alpha: float, base_mesh, mesh) -> float:
     """The alpha to give a solve on ``mesh``, a refinement of ``base_mesh`` (:mod:`femreg.refine`), so that its
     weight in eq:objf is the base mesh's: ``effective_alpha(refined_alpha(a, base, mesh), mesh) ==
-    effective_alpha(a, base)``.  A strain step then costs the same total variation on both meshes."""
-    return float(alpha) * mean_element_area(mesh) / mean_element_area(base_mesh)
+    effective_alpha(a, base)``.  A strain step then costs the same total variation on both meshes.  Quadrilaterals
+    or hexahedra (the ratio of mean element areas or volumes)."""
+    return float(alpha) * alpha_scale(base_mesh) / alpha_scale(mesh)

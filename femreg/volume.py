@@ -41,6 +41,8 @@ from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton,
 from .speckle import envelope
 from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
 from .volume_fields import HexLocator, element_strain_operator_3d
+from .refine import DEFAULT as DEFAULT_REFINE, default_refine
+from .volume_refine import as_volume_refinement, refine_volume_passes, transfer_3d
 from .volume_result import VolumeResult
 from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDTerm, roi_mesh_3d, tensor_axes_3d,
                      validate_spacing_3d, validate_volume)
@@ -393,11 +395,102 @@ def _single_element_axes(mesh) -> list:
     return [names[a] for a in range(3) if len(np.unique(np.round(mesh.p[a], 9))) <= 2]
 
 
+def _default_refine(refine, args, geometry=None):
+    """``refine=`` of :func:`register_volume` with its default resolved by :func:`femreg.refine.default_refine`
+    (the 2D rule: "auto" for ``strategy="auto"`` R_P_sigma on the default mesh, with no offset, a numeric alpha and
+    no geometry; off otherwise).  ``args``: the registration's keywords (missing ones count as their defaults)."""
+    return default_refine(refine, strategy=args.get("strategy", "auto"),
+                          regularizer=args.get("regularizer", "momentum-stress"), mesh=args.get("mesh"),
+                          element_size=args.get("element_size"), offset=args.get("offset"), geometry=geometry,
+                          alpha=args.get("alpha"))
+
+
+def _refine(sol, opts, u0, I2, shape, spacing, origin, reg_factory, kw):
+    """The refinement stage of :func:`register_volume` (:func:`femreg.volume_refine.refine_volume_passes`):
+    each pass one :func:`solve_volume` on the refined mesh, its image term the unrefined one's on the same voxels
+    (:meth:`femreg.voxels.VoxelSSDTerm.on_mesh`), the regulariser's weight of eq:objf the unrefined mesh's
+    (:func:`femreg.scaling.refined_alpha`).  Returns ``(sol, u0, hops)`` on the final mesh, ``sol.refinement``
+    the record."""
+    from .scaling import refined_alpha
+
+    base, base_data = sol.mesh, sol.data
+
+    def solve_on(m, u_start):
+        def factory():
+            r = reg_factory()
+            r.alpha = refined_alpha(r.alpha, base, m)
+            return r
+        rkw = kw if opts.maxiter is None else dict(kw, maxiter=min(opts.maxiter, kw["maxiter"]))
+        return solve_volume(None, I2, m, shape, spacing, origin, factory, u_start, data=base_data.on_mesh(m), **rkw)
+
+    sol, record = refine_volume_passes(sol, opts, solve_on, spacing, origin)
+    hops = np.zeros(sol.mesh.p.shape[1], int)
+    if sol.mesh is not base:            # the start on the refined mesh, for the check "never worse than the start"
+        u0 = transfer_3d(u0, base, sol.mesh)
+        sol.psi_start = sol.data.energy(u0)
+    sol.refinement = record
+    return sol, u0, hops
+
+
+def _check(sol, u0, hops, notes, period) -> dict:
+    """The check stage of :func:`register_volume` on the solve ``sol`` (its mesh, from the start ``u0``, with the
+    nodes ``hops`` still off after the repair and the ``notes`` so far): the result's ``u``, ``success``,
+    ``message``, ``notes``, ``quality``, ``ncc_before``, ``ncc_after``, ``hop_gain``."""
+    notes = list(notes)
+    mesh = sol.mesh
+    data = sol.data
+    data._cache = (None, None)          # the last residual (a volume-sized array) is not needed by the checks
+    ncc_before = data.ncc(None)
+    u = sol.u
+    # as in 2D (femreg.repair.check_result) the checks below decide, not the solver's own stop: a line search
+    # that cannot decrease the energy further returns the best iterate, a result like any other
+    success = bool(np.all(np.isfinite(u)))
+    if not success:
+        u = u0
+        notes.append("the solve produced non-finite values; returning the initial guess")
+    E_start = sol.psi_start + sol.reg.energy(u0)
+    if not sol.gn.fun <= E_start:
+        u, success = u0, False
+        notes.append("the result explains the volumes less than its start (start returned)")
+    b = data.warped_moving(u)           # one warp for the element NCCs, the NCC and the hop check
+    quality = data.element_ncc(u, warped=b)
+    ncc_after = data.ncc(u, warped=b)
+    t_hop = time.process_time()
+    hop_gain, hop_notes = hop_check(data, b, period)
+    hop_cpu = time.process_time() - t_hop
+    del b
+    poor = float(np.mean(quality[np.isfinite(quality)] < MIN_NCC)) if np.isfinite(quality).any() else 1.0
+    if ncc_after < MIN_NCC:
+        success = False
+        notes.append(f"the volumes do not match (NCC after {ncc_after:.2f} < {MIN_NCC})")
+    elif poor > MAX_POOR_FRACTION:
+        success = False
+        notes.append(f"{poor:.0%} of the elements match below NCC {MIN_NCC}")
+    if hops.any():
+        success = False
+        notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+    if hop_notes:
+        success = False
+        notes += hop_notes
+    thin = _single_element_axes(mesh)
+    if thin:
+        # one element across an axis: its normal strain is that element's alone, unchecked by any neighbour
+        # (measured: ezz 1.8 % for 0.5 % true on a 4 mm thick volume, 105 % total strain error)
+        success = False
+        notes.append(f"only one element across the {' and '.join(thin)} extent: the strains along it are not "
+                     "measured; give a thicker volume or a smaller element_size")
+    message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
+    if not success:
+        message = f"FAILED: {'; '.join(notes) or sol.gn.message} (Gauss-Newton stopped after {sol.gn.nit} iterations)"
+    return dict(u=u, success=success, message=message, notes=notes, quality=quality, ncc_before=ncc_before,
+                ncc_after=ncc_after, hop_gain=hop_gain, hop_check_cpu=hop_cpu)
+
+
 def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0, 0.0), regularizer="momentum-stress",
                     alpha=None, mesh=None, element_size=None, margin=None, initial=None, offset=None,
                     maxiter: int = 20, tol: float = 1e-3, linear_solver: str = "auto", regularizer_options=None,
                     normalize: bool = True, callback=None, strategy: str = "auto", repair: bool = True,
-                    strain_tol=None, check_orientation: bool = True, **ignored) -> VolumeResult:
+                    strain_tol=None, check_orientation: bool = True, refine=DEFAULT_REFINE, **ignored) -> VolumeResult:
     """Register ``moving`` to ``reference`` volumes: u minimising eq:objf = psi (eq:IR) + R on hexahedra.
 
     Parameters
@@ -416,6 +509,13 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         The start; None / "pyramid": :func:`coarse_to_fine`.
     offset : VolumeResult | callable | (3 n_nodes,) array, optional
         S of eq:IR (both volumes sampled at x + S(x)).
+    refine : "default" | None | int | "auto" | femreg.refine.Refinement
+        Adaptive refinement after the solve (:mod:`femreg.volume_refine`): x-, y-, z-slabs of the tensor mesh where
+        the jumps of A[u] n across the faces stand out are halved and the pair solved again from the solution.
+        "default": "auto" (:data:`femreg.volume_refine.VOLUME_REFINEMENT`) under the 2D rule
+        (:func:`femreg.refine.default_refine`: ``strategy="auto"``, R_P_sigma, the default mesh, no offset, a
+        numeric alpha), else off; None or 0: off.  The result's mesh, ``u`` and ``quality`` are the final mesh's,
+        ``result.refinement`` what each pass split.
     roi, depth : "auto" | None | (x0, x1, y0, y1, z0, z1) mm; (d0, d1) mm, optional
         The region registered (:mod:`femreg.echo_volume`): "auto" (default) the box of usable echo, None the
         whole volume, a box or a depth range as given; the result keeps the full voxel grid and says what was
@@ -447,6 +547,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         if geo is not None:
             kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "spacing", "origin",
                                                              "ignored")}
+            kw["refine"] = _default_refine(refine, args, geometry=geo)     # not measured on swept volumes: off
             return register_swept(reference_image, moving_image, geometry=geo, spacing=spacing, origin=origin,
                                   register=register_volume, **kw, **ignored)
     routed = route_volume(register_volume, args)
@@ -459,6 +560,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         return _register_auto(args)
     t_all = time.perf_counter()
     timings = {}
+    opts = as_volume_refinement(_default_refine(refine, args))
     ref, mov, spacing, origin = _validate(reference_image, moving_image, spacing, origin, regularizer, strategy, maxiter, tol)
     if check_orientation:               # the central (axial, lateral) plane, as the 2D check reads a frame
         orientation.check(ref[:, :, ref.shape[2] // 2], spacing[:2], elevational=spacing[2])
@@ -525,59 +627,34 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         rkw = dict(kw, strain_tol=None if kw["strain_tol"] is None else min(kw["strain_tol"], GN_STRAIN_TOL_TIGHT))
         sol, hops, notes = _repair(sol, lambda u: solve_volume(None, I2, mesh, shape, spacing, origin,
                                                               reg_factory, u, data=sol.data, **rkw), mesh, period)
-    data = sol.data
-    data._cache = (None, None)          # the last residual (a volume-sized array) is not needed by the checks
-    ncc_before = data.ncc(None)
-    u = sol.u
-    # as in 2D (femreg.repair.check_result) the checks below decide, not the solver's own stop: a line search
-    # that cannot decrease the energy further returns the best iterate, a result like any other
-    success = bool(np.all(np.isfinite(u)))
-    if not success:
-        u = u0
-        notes.append("the solve produced non-finite values; returning the initial guess")
-    E_start = sol.psi_start + sol.reg.energy(u0)
-    if not sol.gn.fun <= E_start:
-        u, success = u0, False
-        notes.append("the result explains the volumes less than its start (start returned)")
-    b = data.warped_moving(u)           # one warp for the element NCCs, the NCC and the hop check
-    quality = data.element_ncc(u, warped=b)
-    ncc_after = data.ncc(u, warped=b)
-    t_hop = time.process_time()
-    hop_gain, hop_notes = hop_check(data, b, period)
-    timings["hop_check_cpu"] = time.process_time() - t_hop
-    del b
-    poor = float(np.mean(quality[np.isfinite(quality)] < MIN_NCC)) if np.isfinite(quality).any() else 1.0
-    if ncc_after < MIN_NCC:
-        success = False
-        notes.append(f"the volumes do not match (NCC after {ncc_after:.2f} < {MIN_NCC})")
-    elif poor > MAX_POOR_FRACTION:
-        success = False
-        notes.append(f"{poor:.0%} of the elements match below NCC {MIN_NCC}")
-    if hops.any():
-        success = False
-        notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
-    if hop_notes:
-        success = False
-        notes += hop_notes
-    thin = _single_element_axes(mesh)
-    if thin:
-        # one element across an axis: its normal strain is that element's alone, unchecked by any neighbour
-        # (measured: ezz 1.8 % for 0.5 % true on a 4 mm thick volume, 105 % total strain error)
-        success = False
-        notes.append(f"only one element across the {' and '.join(thin)} extent: the strains along it are not "
-                     "measured; give a thicker volume or a smaller element_size")
+    unrefined = None
+    if opts is not None and not hops.any() and int(maxiter) > 0:        # femreg.volume_refine
+        unrefined = (sol, u0, hops, list(notes))
+        t_ref = time.perf_counter()
+        sol, u0, hops = _refine(sol, opts, u0, I2, shape, spacing, origin, reg_factory, kw)
+        notes.append(sol.refinement.summary())
+        timings["refine"] = time.perf_counter() - t_ref
+    check = _check(sol, u0, hops, notes, period)
+    if not check["success"] and unrefined is not None and sol is not unrefined[0]:
+        # the refined result is judged on smaller elements (the poor and hopped fractions count elements): one
+        # that fails its check gives way to the unrefined result and its own verdict (as in 2D)
+        why = "; ".join(check["notes"][len(notes):]) or check["message"]
+        sol, u0, hops, notes = unrefined
+        check = _check(sol, u0, hops, notes + [f"refinement dropped (the refined result failed its check: {why})"],
+                       period)
+    mesh = sol.mesh
+    timings["hop_check_cpu"] = check["hop_check_cpu"]
     timings["check"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
-    message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
-    if not success:
-        message = f"FAILED: {'; '.join(notes) or sol.gn.message} (Gauss-Newton stopped after {sol.gn.nit} iterations)"
-    res = VolumeResult(mesh, u, shape=shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
-                       alpha=user_reg.alpha, success=success, status=sol.gn.status, message=message, nit=sol.gn.nit,
-                       energy_history=sol.gn.energy_history, ncc_before=ncc_before, ncc_after=ncc_after,
-                       timings=timings, quality=quality, strategy="auto", alpha_effective=sol.reg.alpha,
-                       solver_result=sol.gn)
+    res = VolumeResult(mesh, check["u"], shape=shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
+                       alpha=user_reg.alpha, success=check["success"], status=sol.gn.status, message=check["message"],
+                       nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check["ncc_before"],
+                       ncc_after=check["ncc_after"], timings=timings, quality=check["quality"], strategy="auto",
+                       alpha_effective=sol.reg.alpha, solver_result=sol.gn)
+    if getattr(sol, "refinement", None) is not None:
+        res.refinement = sol.refinement
+    res.hop_gain = check["hop_gain"]    # per element (mesh.t order), femreg.repair.hop_gain's measure
     res.initial_info = info
-    res.hop_gain = hop_gain             # per element (mesh.t order), femreg.repair.hop_gain's measure
     return res
 
 
@@ -595,6 +672,7 @@ def _register_auto(args: dict) -> VolumeResult:
     del vol
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
     kw.update(args["ignored"], roi=None, depth=None, check_orientation=False)
+    kw["refine"] = _default_refine(args["refine"], args)       # the default is off for alpha="auto" (as in 2D)
     return register_auto(ref, mov, register=register_volume, image_term=voxel_image_term, **kw)
 
 
@@ -645,6 +723,8 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
                           elevational=sp3[2])
     register_kwargs["check_orientation"] = False    # checked once, above
+    # refinement is opt-in for a sequence, as in 2D (femreg.track): its meshes are the frame-0 one
+    register_kwargs["refine"] = _default_refine(register_kwargs.get("refine", DEFAULT_REFINE), {"mesh": True})
     crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=register_kwargs.pop("roi", "auto"),
                            depth=register_kwargs.pop("depth", None), mesh=register_kwargs.get("mesh"),
                            margin=register_kwargs.get("margin"))

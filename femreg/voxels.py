@@ -417,6 +417,16 @@ class VoxelSSDTerm:
         out._w, out._H, out._cache = None, None, (None, None)
         return out
 
+    def on_mesh(self, mesh) -> "VoxelSSDTerm":
+        """:meth:`fresh` on another tensor ``mesh`` over the same voxel block (a refinement of this term's mesh,
+        :mod:`femreg.volume_refine`): the reference values, gradients and offset are shared."""
+        grid = VoxelGrid(mesh, self.grid.shape, self.grid.spacing, self.grid.origin)
+        if grid.block != self.grid.block:
+            raise InputError("the refined mesh covers other voxels than the mesh it refines")
+        out = self.fresh()
+        out.grid = grid
+        return out
+
     # -- weights -------------------------------------------------------------------------------------------
     @property
     def w(self) -> np.ndarray:

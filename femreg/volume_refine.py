@@ -1,0 +1,171 @@
+"""Adaptive refinement of volume registration (``register_volume(..., refine=...)``): the 3D form of
+:mod:`femreg.refine`, whose marking, budget and splitting code it uses.
+
+After the solve on the hexahedral tensor mesh, the jump of the momentum tensor
+``A[u] = lambda_bar div(u) I + 2 sym grad(u)`` (eq:meq, ``lambda_bar`` :data:`JUMP_LAMBDA_BAR_3D`, the momentum
+regularisers' value on volumes) across every interior face, ``|[[A]] n|`` from the element-centre strains
+(:func:`face_jumps`): what the momentum TV of eq:dmreg2 penalises on hexahedra.  A face normal to the axial axis
+marks the two x-slabs (element layers) beside it, a lateral face the y-slabs, an elevational face the z-slabs;
+the cut and the budget are :mod:`femreg.refine`'s (:func:`femreg.refine.jump_cut`,
+:func:`femreg.refine.slabs_within_budget`: the slabs that stand out most first, at most ``max_growth`` times
+the unrefined mesh's elements).  The marked slabs are halved (``levels`` times) on voxel-cell boundaries
+(:func:`femreg.refine.refined_axes`), so the refined mesh is again a tensor mesh whose faces lie on voxel-cell
+boundaries: the voxel grid, the separable Hessian and the face jumps of the regulariser work on it unchanged,
+and it holds the coarse trilinear field exactly (nested meshes, :func:`transfer_3d`).  One Gauss-Newton step on
+the refined mesh from the transferred solution follows (:attr:`femreg.refine.Refinement.maxiter`), with the
+regulariser's weight of eq:objf that of the unrefined mesh (:func:`femreg.scaling.refined_alpha`).  The image
+term's reference values and gradients at the voxels are shared with the unrefined solve (the voxel block is the
+same, :meth:`femreg.voxels.VoxelSSDTerm.on_mesh`).  The slip region and the local relaxation of 2D are not
+used on volumes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from .errors import InputError
+from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
+                     slab_scores, slabs_within_budget)
+from .regularizers.momentum import LAMBDA_BAR_3D
+from .volume_fields import HexLocator, element_strain_operator_3d
+from .voxels import tensor_axes_3d
+
+__all__ = ["VOLUME_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps", "mark_volume",
+           "refine_hex_mesh", "transfer_3d", "refine_volume_passes"]
+
+#: lambda_bar of the 3D "jump" indicator's A[u]: the momentum regularisers' value on volumes.
+JUMP_LAMBDA_BAR_3D = LAMBDA_BAR_3D
+
+#: ``refine="auto"`` on volumes: one pass, marked slabs halved twice (2 mm -> 0.5 mm where the jumps stand out,
+#: one solve), at most 3x the unrefined mesh's elements; the smallest slabs 0.5 mm axially, 0.6 mm laterally,
+#: 1 mm elevationally (and never below 2 voxels).
+VOLUME_REFINEMENT = Refinement(passes=1, levels=2, max_growth=3.0, min_size=(0.5, 0.6, 1.0), relax=None)
+
+
+def as_volume_refinement(spec) -> Refinement | None:
+    """``refine=`` of :func:`femreg.volume.register_volume`: None / False / 0 / "default" -> None (off); "auto" ->
+    :data:`VOLUME_REFINEMENT`; an int N -> it with N passes; a :class:`femreg.refine.Refinement` as it is (the
+    "jump" indicator only; ``slip`` and ``relax`` are not used on volumes; a two-value ``min_size`` takes the
+    lateral one elevationally)."""
+    if spec is None or spec is False or (isinstance(spec, str) and spec == DEFAULT):
+        return None
+    if isinstance(spec, str):
+        if spec != "auto":
+            raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+        return VOLUME_REFINEMENT
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        return dataclasses.replace(VOLUME_REFINEMENT, passes=int(spec)) if spec else None
+    if isinstance(spec, Refinement):
+        if spec.indicator != "jump":
+            raise InputError(f"volumes refine with the 'jump' indicator only, got {spec.indicator!r}")
+        if spec.slip is not None:
+            raise InputError("the slip region of refinement is not available on volumes (slip=None)")
+        return spec if spec.passes > 0 else None
+    raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+
+
+def _min_size_3d(opts: Refinement) -> tuple:
+    ms = tuple(opts.min_size)
+    return ms if len(ms) == 3 else (ms[0], ms[1], ms[1])
+
+
+def _need_hex_tensor(mesh):
+    ta = tensor_axes_3d(mesh)
+    if ta is None:
+        raise InputError("volume refinement needs an axis-aligned tensor hexahedral mesh (femreg.voxels.roi_mesh_3d)")
+    return ta
+
+
+def _momentum_3d(e, lambda_bar: float) -> np.ndarray:
+    """A[u] (n_el, 3, 3) from element-centre strains (n_el, 6) in (exx, eyy, ezz, exy, exz, eyz) order."""
+    A = np.empty((e.shape[0], 3, 3))
+    div = e[:, 0] + e[:, 1] + e[:, 2]
+    for a, b, c in ((0, 0, 0), (1, 1, 1), (2, 2, 2), (0, 1, 3), (0, 2, 4), (1, 2, 5)):
+        A[:, a, b] = A[:, b, a] = 2.0 * e[:, c]
+    for a in range(3):
+        A[:, a, a] += lambda_bar * div
+    return A
+
+
+def face_jumps(mesh, u, lambda_bar: float = JUMP_LAMBDA_BAR_3D):
+    """``(jumps, scale)``: ``jumps[a]`` the ``|[[A]] n|`` across the interior faces normal to axis a of a tensor
+    hexahedral mesh, on the cell grid with axis a one shorter (between slabs i and i + 1), from the element-centre
+    strains; ``scale`` the RMS over the elements of ``|A[u]|`` (Frobenius).  Dimensionless (strain units)."""
+    _, node = _need_hex_tensor(mesh)
+    cell = HexLocator(mesh).cell
+    e = (element_strain_operator_3d(mesh) @ np.asarray(u, float)).reshape(6, -1).T
+    A = _momentum_3d(e, lambda_bar)
+    scale = float(np.sqrt(np.mean(np.sum(A ** 2, axis=(1, 2)))))
+    G = A[cell]                                     # (E_x, E_y, E_z, 3, 3)
+    jumps = [np.linalg.norm(np.diff(G[..., :, a], axis=a), axis=-1) for a in range(3)]     # [[A]] e_a
+    return jumps, scale
+
+
+def mark_volume(mesh, u, opts: Refinement):
+    """``(marked, scores)``: per axis the slabs of a tensor hexahedral mesh to split (boolean) and each slab's
+    largest face jump over the cut (marked where > 1), :mod:`femreg.refine`'s rule on :func:`face_jumps`."""
+    jumps, scale = face_jumps(mesh, u)
+    return marked_slabs(slab_scores(jumps), jump_cut(jumps, opts, scale), opts)
+
+
+def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1):
+    """The tensor hexahedral mesh with the ``marked`` slabs (per axis) of ``mesh`` halved ``levels`` times, breaks
+    on voxel-cell boundaries.  Returns ``(mesh, splits per axis)``; the same mesh object when nothing was split."""
+    from skfem import MeshHex1
+
+    axes, _ = _need_hex_tensor(mesh)
+    for a in range(3):
+        if np.shape(marked[a]) != (axes[a].size - 1,):
+            raise InputError(f"marked slabs along axis {a} must be ({axes[a].size - 1},), got {np.shape(marked[a])}")
+    new, counts = refined_axes(axes, marked, spacing, origin, min_size, levels)
+    if not any(counts):
+        return mesh, counts
+    return MeshHex1.init_tensor(*new), counts
+
+
+def transfer_3d(u, mesh, new_mesh) -> np.ndarray:
+    """Nodal vector of ``new_mesh`` holding the trilinear field ``u`` of ``mesh`` (exact for nested tensor
+    meshes)."""
+    loc = HexLocator(mesh)
+    inside, _, X, nodes = loc.locate(new_mesh.p.T)
+    if not np.all(inside):
+        raise InputError("refined mesh has nodes outside the mesh it refines")
+    W = np.stack([(X[0] if i else 1 - X[0]) * (X[1] if j else 1 - X[1]) * (X[2] if k else 1 - X[2])
+                  for i in (0, 1) for j in (0, 1) for k in (0, 1)])          # (8, n), the order of locate's nodes
+    u = np.asarray(u, float)
+    out = np.empty(3 * new_mesh.p.shape[1])
+    for c in range(3):
+        out[c::3] = np.sum(W * u[c::3][nodes], axis=0)
+    return out
+
+
+def refine_volume_passes(sol, opts: Refinement, solve_on, spacing, origin):
+    """Up to ``opts.passes`` times: mark (:func:`mark_volume`), keep within the budget, refine
+    (:func:`refine_hex_mesh`) and solve again with ``solve_on(mesh, u_start)`` from the previous solution carried
+    over (:func:`transfer_3d`).  ``sol``: the first solve (:class:`femreg.volume.VolumeSolve`).  Stops when nothing
+    is split (or a later pass adds fewer than ``opts.min_added`` of the elements).  Returns
+    ``(sol, RefinementRecord)``; a pass's ``rows``, ``columns``, ``slices`` are the x-, y-, z-slabs added."""
+    axes, _ = _need_hex_tensor(sol.mesh)
+    base_size = tuple(float(np.median(np.diff(a))) for a in axes)
+    ms = _min_size_3d(opts)
+    budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
+    base_gn, nit, record = sol.gn, int(sol.gn.nit), []
+    for k in range(opts.passes):
+        t = time.perf_counter()
+        mesh = sol.mesh
+        axes, _ = tensor_axes_3d(mesh)
+        marked, score = mark_volume(mesh, sol.u, opts)
+        if np.isfinite(budget):
+            marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels, budget)
+        new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels)
+        if new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1]):
+            break
+        sol = solve_on(new, transfer_3d(sol.u, mesh, new))
+        nit += int(sol.gn.nit)
+        record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=int(counts[0]),
+                           columns=int(counts[1]), slices=int(counts[2]), nit=int(sol.gn.nit),
+                           seconds=time.perf_counter() - t))
+    finish_passes(sol, record, opts, base_gn, nit)
+    return sol, RefinementRecord(record, base_size)
