@@ -149,7 +149,11 @@ def gauss_newton(objective, u0, *, maxiter: int = 20, tol: float = 1e-3, max_bac
             status = 3
             break
         H = objective.hessian(u)
-        du = -solver.solve(H, g, reuse=getattr(objective, "hessian_constant", False))
+        reuse = getattr(objective, "hessian_constant", False)
+        du = -solver.solve(H, g, reuse=reuse)
+        if not reuse:           # the next iteration factorises anew: the matrix and its factor go before the warps
+            del H
+            solver.release()
         if not np.all(np.isfinite(du)):
             status = 2
             break
