@@ -414,6 +414,7 @@ def _refine(sol, opts, u0, I2, shape, spacing, origin, reg_factory, kw):
     from .scaling import refined_alpha
 
     base, base_data = sol.mesh, sol.data
+    base_data._cache = (None, None)     # its last residual (a volume-sized array) is not needed beside the refined one
 
     def solve_on(m, u_start):
         def factory():

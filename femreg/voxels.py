@@ -407,6 +407,7 @@ class VoxelSSDTerm:
         self.g = tuple(np.ascontiguousarray(a, dtype=VOXEL_DTYPE) for a in (gx, gy, gz))
         self.w0 = float(np.prod(moving.spacing))        # voxel weight dx dy dz, mm^3
         self._w = None                                  # per-voxel weights once some are masked
+        self._keep = None                               # or the voxels kept (weight w0; the others 0)
         self._H = None
         self._cache = (None, None)
 
@@ -414,7 +415,7 @@ class VoxelSSDTerm:
         """The same term with every voxel weighted again and no cached Hessian or residual; its reference values
         and gradients are this term's arrays (shared, read only)."""
         out = copy.copy(self)
-        out._w, out._H, out._cache = None, None, (None, None)
+        out._w, out._keep, out._H, out._cache = None, None, None, (None, None)
         return out
 
     def on_mesh(self, mesh) -> "VoxelSSDTerm":
@@ -431,13 +432,28 @@ class VoxelSSDTerm:
     @property
     def w(self) -> np.ndarray:
         """Voxel weights (nr, nc, nl) mm^3 (0 for voxels left out)."""
+        if self._keep is not None:
+            return np.where(self._keep, self.w0, 0.0)
         return np.full(self.shape, self.w0) if self._w is None else self._w
 
     @w.setter
     def w(self, value):
-        self._w = np.broadcast_to(np.asarray(value, float), self.shape).copy()
+        w = np.broadcast_to(np.asarray(value, float), self.shape)
+        keep = w == self.w0
+        # weights that only leave voxels out (w0 or 0, what mask_outside sets) are kept as a boolean mask: 1
+        # byte per voxel instead of 8; w * r is then w0 * r or 0, the same values
+        if np.all(keep | (w == 0.0)):
+            self._w, self._keep = None, keep
+        else:
+            self._w, self._keep = w.copy(), None
         self._H = None
         self._cache = (None, None)
+
+    def _weighted(self, r) -> np.ndarray:
+        """w * r (per voxel)."""
+        if self._keep is not None:
+            return np.where(self._keep, self.w0 * r, 0.0)
+        return self.w0 * r if self._w is None else self._w * r
 
     @property
     def n_voxels(self) -> int:
@@ -507,14 +523,14 @@ class VoxelSSDTerm:
 
     def energy(self, u) -> float:
         r = self.residual(u)
-        if self._w is None:
+        if self._w is None and self._keep is None:
             return 0.5 * self.w0 * float(np.vdot(r, r))
-        return 0.5 * float(np.vdot(self._w * r, r))
+        return 0.5 * float(np.vdot(self._weighted(r), r))
 
     def gradient(self, u) -> np.ndarray:
         """eq:wfnew (a): sum_p w_p r_p N_i(x_p) grad I_1(x_p), interleaved (3 n_nodes,)."""
         r = self.residual(u)
-        wr = self.w0 * r if self._w is None else self._w * r
+        wr = self._weighted(r)
         out = np.empty(3 * self.grid.n_nodes)
         node = self.grid.node.ravel()
         for a in range(3):

@@ -115,3 +115,23 @@ def test_ncc_by_slabs_equals_the_whole_volume_formula(term):
     want = ncc(np.asarray(t.ref_values, float), t.warped_moving(u))
     assert t.ncc(u) == pytest.approx(want, rel=1e-12, abs=1e-14)
     assert abs(want) > 1e-3             # not two uncorrelated zeros
+
+
+def test_mask_weights_are_stored_as_a_mask_and_give_the_values_of_the_float_weights(term):
+    """mask_outside's weights (w0 or 0) are kept as one byte per voxel; energy, gradient and Hessian are those of
+    the same weights as a float array, exactly."""
+    t, _, _, mesh, _ = term
+    u = 0.15 * np.random.default_rng(11).standard_normal(3 * mesh.p.shape[1])
+    out = t.outside_mask(u)
+    a = t.fresh()
+    a.w = np.where(out, 0.0, a.w0)
+    assert a._w is None and a._keep.dtype == bool and out.any() and not out.all()
+    b = t.fresh()
+    b._w, b._keep = np.where(out, 0.0, b.w0), None                 # the float representation
+    assert np.array_equal(a.w, b.w)
+    assert a.energy(u) == b.energy(u)
+    assert np.array_equal(a.gradient(u), b.gradient(u))
+    assert (a.hessian() != b.hessian()).nnz == 0
+    c = t.fresh()
+    c.w = np.where(out, 0.5 * c.w0, c.w0)                          # other weights stay floats
+    assert c._keep is None and c._w.dtype == float
