@@ -26,6 +26,11 @@ Methods (``method``):
   118 s SuperLU, 16 s PARDISO on the loaded 2-core machine; 16 x 16 x 12 nodes 5.8 / 16.3 / 6.1 s; 11 x 11 x 8
   0.5 / 1.3 / 1.4 s.
 
+Memory: ``SPDSolver.release()`` drops the last factor; a PARDISO factor lives in MKL's memory and is freed there
+(on release, when the next factorisation replaces it, or when it is collected), so a Gauss-Newton solve holds one
+factor at a time.  A band ordering computes its bandwidth a block of columns at a time and builds the scatter
+into the band only when it factorises (a pattern sent to a sparse direct solver never needs it).
+
 The banded Cholesky factorises the paper geometry's Hessians faster than SuperLU at every mesh size tried
 (timings: benchmarks/README.md).  A tiny diagonal shift (``shift``, relative to the mean diagonal; 1e-10 for
 Gauss-Newton) keeps H definite when the images do not constrain some direction; if the banded Cholesky still meets

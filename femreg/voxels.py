@@ -20,8 +20,9 @@ its centre at ``origin + (i dx, j dy, k dz)`` mm.  This is the 3D form of :mod:`
 
 Memory (a volume of N voxels): the per-voxel reference values and gradients are stored in single precision
 (:data:`VOXEL_DTYPE`), the moving spline keeps only its padded coefficients, and the warp, u at the voxels, the
-reference gradients and the NCC run in axial slabs (:data:`WARP_CHUNK`, :data:`GRADIENT_CHUNK` voxels), so a
-registration holds about 40 bytes per voxel beside its temporaries (benchmarks/README.md).
+reference gradients and the NCC run in axial slabs (:data:`WARP_CHUNK`, :data:`GRADIENT_CHUNK` voxels), and weights
+that only leave voxels out are a boolean mask, so a registration holds about 40 bytes per voxel beside its
+temporaries (benchmarks/README.md).
 """
 from __future__ import annotations
 
