@@ -123,3 +123,30 @@ def test_pardiso_factors_are_freed_before_the_next_and_by_release(monkeypatch):
     assert freed == [True] * 3 and s._fact is None
     s.release()                     # idempotent
     assert len(freed) == 3
+
+
+@pytest.mark.parametrize("constant", [False, True])
+def test_gauss_newton_keeps_a_factor_only_when_it_reuses_it(constant):
+    """A Gauss-Newton step that factorises anew drops the matrix's factor before its line search (a volume's
+    PARDISO factor is ~1 GB); a constant Hessian keeps its one factor for every step."""
+    from femreg.solver import gauss_newton
+
+    A, b = _spd()
+
+    class Quadratic:
+        hessian_constant = constant
+
+        def energy(self, x):
+            return 0.5 * x @ (A @ x) - b @ x + 0.1 * np.sum(x ** 4)
+
+        def gradient(self, x):
+            return A @ x - b + 0.4 * x ** 3
+
+        def hessian(self, x):
+            return sp.csc_matrix(A + sp.diags(1.2 * x ** 2)) if not constant else A
+
+    s = SPDSolver("auto", shift=0.0)
+    res = gauss_newton(Quadratic(), np.zeros(A.shape[0]), maxiter=6, tol=1e-12, linear_solver=s)
+    assert res.nit >= 2
+    assert (s._fact is not None) == constant
+    assert s.n_factorizations == (1 if constant else res.nit)
