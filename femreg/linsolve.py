@@ -70,6 +70,25 @@ class BandedPattern:
         # on a structured mesh the node numbering (or its rows / columns) is often narrower than RCM
         cands = [reverse_cuthill_mckee(sp.csr_matrix(H), symmetric_mode=True).astype(np.int64)]
         cands += [np.asarray(p, np.int64) for p in (orderings if orderings is not None else [np.arange(n)])]
+        self.upper = bool(upper)
+        self.n = n
+        self._scatter = None
+        if H.nnz <= BAND_CHUNK:         # small (2D) patterns: every candidate's indices at once, the scatter now
+            col = np.repeat(np.arange(n), np.diff(H.indptr))
+            best = None
+            for perm in cands:
+                iperm = np.empty(n, dtype=np.int64)
+                iperm[perm] = np.arange(n)
+                i, j = iperm[H.indices], iperm[col]
+                bw = int(np.max(np.abs(i - j), initial=0))
+                if best is None or bw < best[0]:
+                    best = (bw, perm, i, j)
+            bw, self.perm, i, j = best
+            self.bandwidth = bw if self.upper else int(np.max(i - j, initial=0))
+            self._scatter = self._scatter_of(i, j)
+            return
+        # large (3D) patterns: the band widths a block of columns at a time; the scatter into the band is made on
+        # the first factorisation, which a pattern too wide for "auto" (sent to a sparse direct solver) never has
         best = None
         for perm in cands:
             iperm = np.empty(n, dtype=np.int64)
@@ -78,24 +97,22 @@ class BandedPattern:
             if best is None or bw < best[0]:
                 best = (bw, lower_bw, perm)
         bw, lower_bw, self.perm = best
-        self.upper = bool(upper)
-        self.n = n
         self.bandwidth = bw if self.upper else lower_bw
-        # the scatter into the band is made on the first factorisation: a pattern whose band is too wide for
-        # "auto" (sent to a sparse direct solver) never needs it
-        self._scatter = None
+
+    def _scatter_of(self, i, j):
+        """``(sel, flat)`` from the permuted row and column indices of every stored entry."""
+        n, bw = self.n, self.bandwidth
+        sel = i <= j if self.upper else i >= j
+        flat = ((bw + i - j) * n + j)[sel] if self.upper else ((i - j) * n + j)[sel]
+        return sel, flat
 
     def _band_scatter(self):
         """``(sel, flat)``: the entries of the stored triangle and their flat positions in the band array."""
         if self._scatter is None:
-            n, bw = self.n, self.bandwidth
+            n = self.n
             iperm = np.empty(n, dtype=np.int64)
             iperm[self.perm] = np.arange(n)
-            i = iperm[self.indices]
-            j = iperm[np.repeat(np.arange(n), np.diff(self.indptr))]
-            sel = i <= j if self.upper else i >= j
-            flat = ((bw + i - j) * n + j)[sel] if self.upper else ((i - j) * n + j)[sel]
-            self._scatter = (sel, flat)
+            self._scatter = self._scatter_of(iperm[self.indices], iperm[np.repeat(np.arange(n), np.diff(self.indptr))])
         return self._scatter
 
     @property
