@@ -52,8 +52,10 @@ Convex / sector frames (:mod:`femreg.geometry`): their physical mesh carries the
 (rows split in range, columns between rays), the jumps of A[u] across each physical edge's own normal (along the
 ray, or across it), and each pass solves on the mapped mesh.  Opt-in there (:func:`default_refine`).
 
-A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
-smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
+The check stage (:func:`femreg.repair.check_result`) judges a refined result on the unrefined mesh's cells
+(:func:`parent_cells`: the fractions of elements that do not match or sit one RF period off count those cells,
+each over its pixels at the refined u), since smaller elements are noisier; a refined result that still fails it
+is dropped for the unrefined one (:func:`femreg.register`).
 
 Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`), a
 second pass runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and the element budget
@@ -83,7 +85,7 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
+           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
            "with_refinement", "RefinementRecord"]
 
@@ -171,6 +173,7 @@ class Refinement:
     relax_max_fraction: float = 0.05
     relax_cells: bool = True
     relax_solve: bool = False
+    relax_width: float | None = None
 
     def __post_init__(self):
         if self.relax is not None and not (np.isfinite(self.relax) and 0 < self.relax <= 1):
@@ -557,6 +560,12 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         na = ia.size
         cell_rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
                                 np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
+        if opts.relax_width is not None:     # at least relax_width mm to either side of the edge
+            w, na = float(opts.relax_width), ia.size
+            cell_rects[:na, 0] = np.minimum(cell_rects[:na, 0], xs[ia + 1] - w)
+            cell_rects[:na, 1] = np.maximum(cell_rects[:na, 1], xs[ia + 1] + w)
+            cell_rects[na:, 2] = np.minimum(cell_rects[na:, 2], ys[kl + 1] - w)
+            cell_rects[na:, 3] = np.maximum(cell_rects[na:, 3], ys[kl + 1] + w)
         return cell_rects[keep]
     return segs[keep]
 
@@ -660,6 +669,20 @@ def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), l
     return MeshQuad1.init_tensor(nx, ny), sx, sy
 
 
+def parent_cells(base, mesh) -> np.ndarray:
+    """Element of the tensor mesh ``base`` holding each element of ``mesh``, a refinement of it (nested: every
+    element of ``mesh`` lies in one of ``base``), (n_el of mesh,) int; in the logical coordinates of meshes with
+    a :class:`LogicalGrid`.  The check stage counts its fractions on these cells
+    (:func:`femreg.repair.check_result`)."""
+    xs, ys, cell = _need_tensor(base)
+    fx, fy, fcell = _need_tensor(mesh)
+    i = np.clip(np.searchsorted(xs, 0.5 * (fx[:-1] + fx[1:])) - 1, 0, xs.size - 2)
+    j = np.clip(np.searchsorted(ys, 0.5 * (fy[:-1] + fy[1:])) - 1, 0, ys.size - 2)
+    out = np.empty(mesh.t.shape[1], np.int64)
+    out[fcell.ravel()] = cell[i[:, None], j[None, :]].ravel()
+    return out
+
+
 def transfer(u, mesh, new_mesh) -> np.ndarray:
     """Nodal vector of ``new_mesh`` holding the bilinear field ``u`` of ``mesh`` (exact for nested tensor meshes).
     Meshes with a :class:`LogicalGrid` interpolate in the logical coordinates (bilinear in the element's own
@@ -694,18 +717,22 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     relaxed, standing = np.zeros((0, 4)), None     # relaxed segments (all passes); standing out the pass before
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit = sol.gn, int(sol.gn.nit)
-    for k in range(opts.passes):
+    relaxing = opts.relax is not None and opts.indicator == "jump"
+    for k in range(opts.passes + int(relaxing and opts.relax_solve)):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+        if k < opts.passes:
+            new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+        else:               # after the last pass: relaxation only (relax_solve), no split
+            new, sx, sy = mesh, 0, 0
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
-        if opts.relax is not None and opts.indicator == "jump":
+        if relaxing:
             if standing is not None:
                 r = relaxed_edges(mesh, sol.u, opts, previous=standing)
                 if len(r):
