@@ -84,7 +84,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
            "with_refinement", "RefinementRecord"]
@@ -173,7 +173,7 @@ class Refinement:
     relax_max_fraction: float = 0.05
     relax_cells: bool = True
     relax_solve: bool = False
-    relax_width: float | None = None
+    relax_persist: bool = True
 
     def __post_init__(self):
         if self.relax is not None and not (np.isfinite(self.relax) and 0 < self.relax <= 1):
@@ -222,6 +222,13 @@ class Refinement:
 #: in the slip region (:class:`Refinement`; benchmarks/shear_bands.py).
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0, relax=None)
 
+
+#: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
+#: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
+#: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
+#: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
+DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
+                             relax_persist=False, relax_min_length=20.0)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -557,16 +564,9 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         keep = np.zeros(m, bool)
         keep[order[:cap]] = True
     if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
-        na = ia.size
-        cell_rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
-                                np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
-        if opts.relax_width is not None:     # at least relax_width mm to either side of the edge
-            w, na = float(opts.relax_width), ia.size
-            cell_rects[:na, 0] = np.minimum(cell_rects[:na, 0], xs[ia + 1] - w)
-            cell_rects[:na, 1] = np.maximum(cell_rects[:na, 1], xs[ia + 1] + w)
-            cell_rects[na:, 2] = np.minimum(cell_rects[na:, 2], ys[kl + 1] - w)
-            cell_rects[na:, 3] = np.maximum(cell_rects[na:, 3], ys[kl + 1] + w)
-        return cell_rects[keep]
+        rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
+                           np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
+        return rects[keep]
     return segs[keep]
 
 
@@ -718,17 +718,14 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
-    for k in range(opts.passes + int(relaxing and opts.relax_solve)):
+    for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
-        if k < opts.passes:
-            new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
-        else:               # after the last pass: relaxation only (relax_solve), no split
-            new, sx, sy = mesh, 0, 0
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -740,6 +737,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     more = not np.all(_on_segments(mid, relaxed))
                     relaxed = np.vstack([relaxed, r])
             standing = relaxed_edges(mesh, sol.u, opts, cells=False)
+            if not opts.relax_persist and new is not mesh:
+                # relaxed on the split's own solve, found on the solve before it (no second pass needed)
+                r = relaxed_edges(mesh, sol.u, opts)
+                if len(r):
+                    relaxed = np.vstack([relaxed, r])
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break
