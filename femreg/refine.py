@@ -261,8 +261,8 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
 
 
 def as_refinement(spec) -> Refinement | None:
-    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes; "auto" -> the
-    defaults of :class:`Refinement`; a :class:`Refinement` as it is."""
+    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes of the
+    defaults of :class:`Refinement`; "auto" -> :data:`DEEP_REFINEMENT`; a :class:`Refinement` as it is."""
     if spec is None or spec is False:
         return None
     if isinstance(spec, Refinement):
@@ -272,7 +272,7 @@ def as_refinement(spec) -> Refinement | None:
             raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-        return Refinement()
+        return DEEP_REFINEMENT
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         return Refinement(passes=int(spec)) if spec else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
