@@ -36,16 +36,20 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
-Local relaxation (:attr:`Refinement.relax`, on by default: the tangential part, weight 0.03): on a pass after the
-first, the edges whose shear-traction jump ``|t . [[A]] n|`` stands out (the cut of the marking) on the solve
-before the split *and* after it, on a connected run of at least 4 mm, at most 5 % of the interior edges, are
-relaxed: the momentum regulariser weighs the tangential part of the jump 0.03 on the cells beside them (as
-:data:`SLIP_REFINEMENT`'s slip region, but found by persistence and runs, and with no solve of its own: it rides
-on a pass that splits anyway).  Measured (README, "Adaptive refinement"): a 2 mm shear band's peak e_xy 0.60 ->
-0.88 of the truth (7.5 MHz), 0.45 -> 0.81 (5.5 MHz); nothing relaxed on any pair of the robustness benchmark
-(seeds 0 and 7), the inclusions' errors unchanged.  Relaxing the normal part at an inclusion's interface too
-(``relax_parts="both"``, with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total
-strain error and -0.16 to +0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``).
+The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that splits each marked row / column twice
+(to a quarter of the 2 mm element, down to 0.15 mm axially) with no element budget, one Gauss-Newton step on the
+refined mesh.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
+on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
+split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
+bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
+regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region).
+
+:class:`Refinement` itself (``refine=N``, ``Refinement()``) is the earlier two-pass refinement: at most twice the
+elements, each pass halving the marked rows / columns, its relaxation (weight 0.03) found by persistence: on a
+pass after the first, the edges whose shear-traction jump stands out on the solve before the split *and* after
+it, on a run of at least 4 mm.  Relaxing the normal part at an inclusion's interface too (``relax_parts="both"``,
+with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total strain error and -0.16 to
++0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``, two-pass refinement).
 
 Convex / sector frames (:mod:`femreg.geometry`): their physical mesh carries the tensor mesh of its (range,
 ``rho_c`` angle) lattice (:class:`LogicalGrid`); marking, splitting and the transfer of the solution work there
@@ -54,21 +58,29 @@ ray, or across it), and each pass solves on the mapped mesh.  Opt-in there (:fun
 
 The check stage (:func:`femreg.repair.check_result`) judges a refined result on the unrefined mesh's cells
 (:func:`parent_cells`: the fractions of elements that do not match or sit one RF period off count those cells,
-each over its pixels at the refined u), since smaller elements are noisier; a refined result that still fails it
-is dropped for the unrefined one (:func:`femreg.register`).
+each over its pixels at the refined u): per element, 3 % of the quarter-size elements of a correct result read
+one period off (soft inclusion at 4 %, paper probe), so the refined result was dropped.  A refined result that
+still fails it is dropped for the unrefined one (:func:`femreg.register`).
 
-Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`), a
-second pass runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and the element budget
-is counted once per pass (:func:`_within_budget`).
+Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`); with
+more passes a later one runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and an
+element budget is counted once per pass (:func:`_within_budget`).
 
-Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time): on the robustness benchmark
-``refine="auto"`` against off made no case worse (seeds 0 and 7), the inclusions 0.6-2.3 points better
-(9.4-13.6 % -> 8.4-12.2 %), bending 5.8 -> 4.3 %, at 1.16-1.26x the CPU time per pair (median; 1.76x at most),
-so it is the default of ``strategy="auto"`` R_P_sigma registrations on the default mesh
-(:func:`default_refine`).  With two full solves per pass it took 1.33x (median) and 2.08x on the 3 MHz inclusion.
+Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time, against ``refine=None`` and the
+two-pass refinement that was the default before): on the robustness benchmark (18 pairs, seeds 0 and 7) no case
+more than 0.22 points worse than the two-pass default (bending 4.35 -> 4.57 %, seed 0; 8 % compression under L3
+0.57 -> 0.70 %, seed 7, which the two-pass default dropped), the inclusions 0.04-1.32 points better (seed 0:
+8.1-12.0 % against 8.4-12.3 %, 9.4-13.6 % unrefined), CPU time 1.45x / 1.37x median and 1.93x / 1.85x at most
+per pair (refined inclusions 1.4-1.9x); ``benchmarks/inclusion_sizes.py``: r 3 mm 8.8 -> 8.5 % (5.5 MHz, 1 %),
+7.3 -> 6.8 % (7.5 MHz, 4 %), r 8 mm 13.6 -> 12.3 %, axial edge width 2.01 / 1.38 / 2.86 -> 1.69 / 1.28 / 2.78
+mm; ``benchmarks/shear_bands.py``: every band's total strain error lower (2 mm bands 32.7 -> 30.9 %,
+41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95 of the truth);
+in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined results
+were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
+the default mesh (:func:`default_refine`).
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
-on the mesh); the local relaxation lifts a 2 mm band's peak e_xy to 0.81-0.88 of the truth, :data:`SLIP_REFINEMENT`
-any 1-2 mm band's to 0.63-1.0.
+on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
+0.63-1.0.
 """
 from __future__ import annotations
 
@@ -139,7 +151,7 @@ class Refinement:
         edges (the strongest first).  At a bonded interface between moduli mu1, mu2 the traction ``mu A n`` is
         continuous, so ``A n`` itself jumps by the modulus ratio: the momentum TV holds that step back.  None:
         no relaxation.  The relaxation rides on a pass that splits anyway (:attr:`min_added`) unless
-        ``relax_solve``.
+        ``relax_solve``; ``relax_persist`` False: on the first pass too, without the persistence test.
     relax_parts : {"both", "normal", "tangential"}
         Which parts of the traction jump ``relax`` weighs (``"tangential"``: the part ``slip`` weighs); the
         relaxed part itself must stand out (the whole jump for ``"both"``).
@@ -154,6 +166,11 @@ class Refinement:
         Solve once more when edges are to be relaxed but no further split is due.  Off by default: that extra
         Gauss-Newton step on the refined mesh alone (with nothing relaxed) raised bending's total strain error
         4.35 -> 4.95 % on the robustness benchmark.
+    relax_persist : bool
+        True: relax only the edges that stand out before and after a split (a pass after the first, above).
+        False: relax, on each split's own solve, the edges that stand out on the solve before it (cells of that
+        coarser mesh), with no second pass (:data:`DEEP_REFINEMENT`; a long ``relax_min_length`` then keeps
+        the relaxation to layers across the image).
     """
 
     passes: int = 2

@@ -454,8 +454,9 @@ def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None, gr
     ``groups`` (n_elements,) int: a refined mesh's unrefined parent cells (:func:`femreg.refine.parent_cells`).
     The fractions then count those cells (the NCC and the hop gain over each cell's pixels at the refined u), so
     that the same limits hold on the refined result as on the unrefined one: an element of a quarter of the
-    pixels is noisier, and per element 3 % of a deeply refined mesh's elements read one period off on a
-    correct result (robustness benchmark, soft inclusion at 4 % under the paper's probe), none of its parents.
+    pixels is noisier (per element, 3 % of the elements of a correct result refined to a quarter read one
+    period off: robustness benchmark, soft inclusion at 4 % under the paper's probe; on the parent cells it
+    passes).
     The maps (``quality``, ``hop_gain``) stay per element."""
     notes = []
     data = sol.data
