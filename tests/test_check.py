@@ -46,7 +46,8 @@ def test_paper_strategy_bending_result_fails_on_peak_hopping(bend_pair):
     auto = femreg.register(ref, mov, spacing=SP)
     assert auto.success, auto.message
     assert hopped_fraction(auto.hop_gain) == 0.0
-    assert np.nanmax(auto.hop_gain) < HOP_GAIN - 1.0                   # measured -1.17
+    # measured -0.36 on the default refined mesh (quarter-size elements; -1.17 unrefined): below 0 everywhere
+    assert np.nanmax(auto.hop_gain) < 0.0
 
 
 def test_injected_one_period_patch_is_flagged_and_the_correct_result_is_not():
