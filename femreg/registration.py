@@ -30,7 +30,8 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage, with_refinement
+from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage,
+                     with_refinement)
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
