@@ -22,7 +22,8 @@ without its relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and wi
 down so that layers may slide), "R_P_sigma refine+slip"
 (:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
 shear-traction jump stands out), "R_P_sigma refine deep"
-(:func:`benchmarks.refine_cost.deep_refinement`: :data:`femreg.refine.DEEP_REFINEMENT`, which the defaults use too), the peers
+(:func:`benchmarks.refine_cost.deep_refinement`: :data:`femreg.refine.DEEP_REFINEMENT`, which the defaults use too),
+the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 
