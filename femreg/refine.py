@@ -73,10 +73,10 @@ more than 0.22 points worse than the two-pass default (bending 4.35 -> 4.57 %, s
 8.1-12.0 % against 8.4-12.3 %, 9.4-13.6 % unrefined), CPU time 1.52x / 1.47x median and 1.70x / 1.79x at most
 per pair (seeds 0 / 7; another run 1.45x / 1.37x and 1.93x / 1.85x); ``benchmarks/inclusion_sizes.py``: r 3 mm
 8.8 -> 8.5 % (5.5 MHz, 1 %), 7.3 -> 6.8 % (7.5 MHz, 4 %), r 8 mm 13.6 -> 12.3 %, axial edge width
-2.01 / 1.38 / 2.86 -> 1.69 / 1.28 / 2.78 mm; ``benchmarks/shear_bands.py``: every band's total strain error lower (2 mm bands 32.7 -> 30.9 %,
-41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95 of the truth);
-in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined results
-were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
+2.01 / 1.38 / 2.86 -> 1.69 / 1.28 / 2.78 mm; ``benchmarks/shear_bands.py``: every band's total strain error lower (2
+mm bands 32.7 -> 30.9 %, 41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95
+of the truth); in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined
+results were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
 the default mesh (:func:`default_refine`).
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
 on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
