@@ -15,14 +15,16 @@ median of the method's e_xy against depth (:func:`femreg.metrics.depth_profile`)
   ``uy``: relative L2 error of the lateral displacement (defined for a displacement jump too).
 
 Methods: femreg R_P_sigma with defaults (adaptive refinement and its local relaxation included,
-:mod:`femreg.refine`), the same without refinement ("R_P_sigma no refine", ``refine=None``), the default refinement
-without the relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and with alpha / 10
+:mod:`femreg.refine`), the same without refinement ("R_P_sigma no refine", ``refine=None``), the two-pass refinement
+without its relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``) and with alpha / 10
 (``alpha=0.1 * default``), "R_P_sigma slip"
 (:func:`femreg.shear.slip_settings`: thin axial elements, 0.35 mm, at the default weight per area and
 ``regularizer_options={"shear_traction": 0.03}``, the momentum regulariser's tangential traction jump weighted
 down so that layers may slide), "R_P_sigma refine+slip"
 (:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
-shear-traction jump stands out), "R_P_sigma refine deep" (:func:`benchmarks.refine_cost.deep_refinement`), the peers
+shear-traction jump stands out), "R_P_sigma refine deep"
+(:func:`benchmarks.refine_cost.deep_refinement`: :data:`femreg.refine.DEEP_REFINEMENT`, which the defaults use too),
+the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 

@@ -52,8 +52,9 @@ def add_parser(subparsers):
     g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
-                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (up to "
-                        "2), slip (3 passes, and the shear-traction weight lowered where layers slide; "
+                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (one "
+                        "pass quartering the marked rows / columns: femreg.refine.DEEP_REFINEMENT), slip (3 "
+                        "passes, and the shear-traction weight lowered where layers slide; "
                         "femreg.refine.SLIP_REFINEMENT), none (or 0) off; default auto with --strategy auto and "
                         "R_P_sigma on the default mesh, off otherwise")
     add_registration_args(p)
