@@ -12,6 +12,7 @@ import sys
 
 from ..errors import InputError
 from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from .register_cmd import _swept, add_geometry_args
 
 
 def add_parser(subparsers):
@@ -24,7 +25,9 @@ def add_parser(subparsers):
                     "NCC after registration is below --min-ncc are flagged, the run continues and the command "
                     "exits with code 1 listing them.  If a frame cannot be computed, the frames before it stay "
                     "saved, the command exits with code 1 naming the frame, and --resume continues from there.  "
-                    "Bad input: exit 2 before any frame is registered.")
+                    "Bad input: exit 2 before any frame is registered.  Volumes (.npz with a spacing of 3 values) "
+                    "are tracked the same way; --geometry swept for a swept probe's volumes, all scan-converted "
+                    "onto one Cartesian grid.")
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
@@ -36,6 +39,7 @@ def add_parser(subparsers):
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_geometry_args(p, choices=("linear", "swept"))
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -47,10 +51,15 @@ def run(args) -> int:
 
     from ._volume import read_volume_file, track_volumes
     vol = read_volume_file(args.file)
-    if vol is not None:                 # a volume sequence (spacing with 3 values)
-        return track_volumes(args, vol, registration_kwargs(args))
-    fr = frames_from_args(args)
     kw = registration_kwargs(args)
+    if vol is not None:                 # a volume sequence (spacing with 3 values)
+        if args.geometry == "swept":    # a swept probe's volumes (femreg.swept)
+            kw["geometry"] = _swept(args)
+        return track_volumes(args, vol, kw)
+    if args.geometry == "swept":
+        raise InputError(f"--geometry swept needs a volume-sequence file (.npz with spacing of 3 values), got "
+                         f"{args.file}")
+    fr = frames_from_args(args)
 
     def report(k, res, flag):
         # Per-frame line; with the progress bar on it goes to stderr beside the bar.
