@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .volume import (ImagingVolume, VolumePair, VolumeSequence, _as_field3, _seed, _snr, _Zero, as_volume_probe, make_scatterers_3d,
-                     render_volume)
+from .volume import (ImagingVolume, VolumePair, VolumeSequence, _as_field3, _seed, _snr, _Zero, as_volume_probe,
+                     make_scatterers_3d, render_volume)
 from .ultrasound import noise_sigma
 
 __all__ = ["SweptPair", "SweptSequence", "make_swept_pair", "make_swept_sequence"]

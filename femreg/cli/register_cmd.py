@@ -56,7 +56,9 @@ def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
     g.add_argument("--radius", type=float, metavar="MM",
                    help="convex: apex distance behind the face, mm" if "convex" in choices
                    else "swept convex array: apex distance behind the face, mm")
-    g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
+    g.add_argument("--angle-pitch", type=float, metavar="DEG",
+                   help="convex / sector: angle between rays, deg" if "convex" in choices
+                   else "swept convex / sector array: angle between rays, deg")
     g.add_argument("--sweep-radius", type=float, metavar="MM",
                    help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
                         "linear, or convex / sector with --radius / --angle-pitch")
