@@ -46,14 +46,15 @@ def test_swept_sequence_accumulates_like_the_scan_converted_volumes(sequence, tm
                       checkpoint_dir=run)
     assert tr.success and tr.flags == ["", ""] and tr.computed == [True, True]
     assert all(isinstance(a, femreg.SweptResult) for a in tr.accumulated + tr.results)
-    # accumulated strain error against the exact frame-0 -> k field: measured 10.1 / 14.3 % (frames 1 / 2);
+    # accumulated strain error against the exact frame-0 -> k field: measured 7.5 / 8.5 % (frames 1 / 2);
     # bound 1.3 x the larger
     errs = [_strain_error(a, f) for a, f in zip(tr.accumulated, seq.fields[1:])]
-    assert max(errs) < 0.19, errs
-    # at the samples: the axial strain of frame 2 inside the box (measured mean -1.4948 % against -1.4944 %)
+    assert max(errs) < 0.11, errs
+    # at the samples: the axial strain of frame 2 inside the box (measured mean -1.4976 % against -1.4944 %, 24 %
+    # of the samples finite); bound about 5 x the difference
     g = tr.accumulated[-1].on_grid()
-    assert g["exx"].shape == seq.frames.shape[1:]
-    assert abs(np.nanmean(g["exx"]) - seq.fields[2].strain(np.zeros((1, 3)))[0, 0]) < 3e-4
+    assert g["exx"].shape == seq.frames.shape[1:] and 0.1 < np.mean(np.isfinite(g["exx"])) < 0.5
+    assert abs(np.nanmean(g["exx"]) - seq.fields[2].strain(np.zeros((1, 3)))[0, 0]) < 1.5e-4
     # the same sequence scan-converted by hand and tracked as Cartesian volumes: the same field (measured 0.0)
     sp, org = swept_spacing(seq.spacing, GEO, seq.origin)
     grid = cartesian_grid(GEO, seq.frames[0], sp, org)
@@ -111,5 +112,5 @@ def test_cli_tracks_swept_volumes_with_resume_and_exit_codes(still_file, tmp_pat
     assert "2 volumes in" in (o := capsys.readouterr().out) and "1 computed, 1 resumed" in o
     res = femreg.load_result(out / "frame_002.npz")
     assert isinstance(res, femreg.SweptResult) and res.geometry == geo
-    assert np.nanmax(np.abs(res.on_grid()["ux"])) < 1e-6        # identical volumes (measured 1.6e-11 mm)
+    assert np.nanmax(np.abs(res.on_grid()["ux"])) < 1e-6        # identical volumes (measured 5.2e-11 mm)
     assert main(args) == 2 and "already holds" in capsys.readouterr().err          # a run there, no --resume
