@@ -269,7 +269,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 computed = True
                 if path is not None:
                     atomic_savez(path, writer=lambda tmp: res.save(tmp, increment=inc, flag=np.str_(flag),
-                                                                   frame=np.int64(k)))
+                                                                   frame=np.int64(k), mode=np.str_(mode)))
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
             prev_inc = inc
             out.append(res)

@@ -846,7 +846,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                 if path is not None:
                     from ._atomic import atomic_savez
                     atomic_savez(path, writer=lambda tmp: a.save(tmp, increment=r.u, flag=np.str_(flag),
-                                                                 frame=np.int64(k)))
+                                                                 frame=np.int64(k), mode=np.str_(mode)))
             out.results.append(r)
             out.accumulated.append(a)
             out.flags.append(flag)

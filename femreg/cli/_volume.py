@@ -1,6 +1,7 @@
 """``femreg register`` / ``femreg track`` on volumes: an ``.npz`` whose ``spacing`` holds three values (dx, dy,
 dz mm) and whose ``rf`` (or only) array is a volume (n_x, n_y, n_z) or a volume sequence (n_frames, n_x, n_y,
-n_z)."""
+n_z); a MetaImage of NDims 4 or a MAT-file whose spacing has three values; with ``--volume`` any file
+:func:`femreg.io.read_volumes` reads (a MetaImage of NDims 3 as one volume)."""
 from __future__ import annotations
 
 import sys
@@ -16,9 +17,18 @@ __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 _NOT_FOR_VOLUMES = ("geometry",)
 
 
-def read_volume_file(path):
-    """``(array, spacing (3,), origin (3,))`` when ``path`` is an .npz volume (spacing of 3 values), else None."""
+def read_volume_file(path, *, volume: bool = False):
+    """``(array, spacing (3,), origin (3,))`` when ``path`` holds RF volumes, else None: an .npz whose spacing has 3
+    values; a file that can only hold volumes (a MetaImage of NDims 4, a MAT-file whose spacing has 3 values);
+    with ``volume`` (CLI ``--volume``) any file :func:`femreg.io.read_volumes` reads, a 3D array one volume
+    (axial, lateral, elevational), e.g. a MetaImage of NDims 3, which is otherwise read as a stack of frames."""
     p = Path(path)
+    if volume or _volumes_only(p):
+        from ..io import read_volumes
+
+        v = read_volumes(p)
+        arr = v.frames[0] if v.n_frames == 1 else v.frames
+        return arr, np.asarray(v.spacing, float).ravel(), np.asarray(v.origin, float).ravel()
     if p.suffix.lower() != ".npz" or not p.exists():
         return None
     try:
@@ -41,6 +51,30 @@ def read_volume_file(path):
         return arr, np.asarray(z["spacing"], float).ravel(), origin
 
 
+def _volumes_only(p: Path) -> bool:
+    """Whether ``p`` is a MetaImage of NDims 4 or a MAT-file the frame reader refuses for its 3 spacing values."""
+    suffix = p.suffix.lower()
+    if not p.is_file() or suffix not in (".mhd", ".mha", ".mat"):
+        return False
+    from ..errors import FileFormatError
+
+    if suffix in (".mhd", ".mha"):
+        from ..io.metaimage import _parse_header
+
+        try:
+            fields = _parse_header(p)[0]
+        except FileFormatError:
+            return False            # the frame reader says what is wrong with it
+        return fields.get("ndims", "").strip() == "4"
+    from ..io import read_frames
+
+    try:
+        read_frames(p)
+    except (FileFormatError, InputError) as exc:
+        return "read_volumes" in str(exc)
+    return False
+
+
 def _kwargs(kw):
     return {k: v for k, v in kw.items() if k not in _NOT_FOR_VOLUMES}
 
@@ -56,9 +90,7 @@ def register_volumes(args, vol, kw) -> int:
         i, j = args.pair or (0, 1)
         ref, mov = arr[i], arr[j]
     else:
-        other = read_volume_file(args.moving)
-        if other is None:
-            raise InputError(f"{args.moving}: not a volume .npz (spacing with 3 values)")
+        other = read_volume_file(args.moving, volume=True)
         if not np.allclose(other[1], spacing):
             raise InputError(f"spacing differs between volumes: {tuple(spacing)} vs {tuple(other[1])}")
         ref = arr if arr.ndim == 3 else arr[(args.pair or (0, 0))[0]]

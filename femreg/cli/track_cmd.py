@@ -39,6 +39,11 @@ def add_parser(subparsers):
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--volume", action="store_true",
+                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
+                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
+                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
+                        "spacing values) are read so without it")
     add_geometry_args(p, choices=("linear", "swept"))
     add_registration_args(p)
     add_reader_args(p)
@@ -50,14 +55,14 @@ def run(args) -> int:
     from ..sequence import track
 
     from ._volume import read_volume_file, track_volumes
-    vol = read_volume_file(args.file)
+    vol = read_volume_file(args.file, volume=args.volume)
     kw = registration_kwargs(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
         if args.geometry == "swept":    # a swept probe's volumes (femreg.swept)
             kw["geometry"] = _swept(args)
         return track_volumes(args, vol, kw)
     if args.geometry == "swept":
-        raise InputError(f"--geometry swept needs a volume-sequence file (.npz with spacing of 3 values), got "
+        raise InputError(f"--geometry swept needs a volume-sequence file (spacing of 3 values, or --volume), got "
                          f"{args.file}")
     fr = frames_from_args(args)
 
