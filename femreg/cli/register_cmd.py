@@ -37,19 +37,7 @@ def add_parser(subparsers):
                         "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
                         "spacing values) are read so without it")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
-    g = p.add_argument_group("probe geometry (femreg.geometry)")
-    g.add_argument("--geometry", choices=("linear", "convex", "sector", "swept"), default="linear",
-                   help="frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
-                        "axial spacing is the range step, registered in physical x, y (default linear); swept: "
-                        "volumes (samples, lines, frames) of a mechanically swept probe, the file's spacing (range "
-                        "step mm, line pitch mm or deg, frame step deg), registered in physical x, y, z "
-                        "(femreg.swept)")
-    g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
-    g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
-    g.add_argument("--sweep-radius", type=float, metavar="MM",
-                   help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
-                        "linear, or convex / sector with --radius / --angle-pitch")
-    g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
+    add_geometry_args(p)
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
                    help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (one "
@@ -61,6 +49,28 @@ def add_parser(subparsers):
     add_reader_args(p)
     p.set_defaults(func=run)
     return p
+
+
+def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
+    """The probe geometry options (``--geometry`` of ``choices``, and each geometry's parameters)."""
+    g = p.add_argument_group("probe geometry (femreg.geometry)")
+    g.add_argument("--geometry", choices=choices, default="linear",
+                   help=("frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
+                         "axial spacing is the range step, registered in physical x, y (default linear); "
+                         if "convex" in choices else "default linear; ")
+                   + "swept: volumes (samples, lines, frames) of a mechanically swept probe, the file's spacing "
+                     "(range step mm, line pitch mm or deg, frame step deg), registered in physical x, y, z "
+                     "(femreg.swept)")
+    g.add_argument("--radius", type=float, metavar="MM",
+                   help="convex: apex distance behind the face, mm" if "convex" in choices
+                   else "swept convex array: apex distance behind the face, mm")
+    g.add_argument("--angle-pitch", type=float, metavar="DEG",
+                   help="convex / sector: angle between rays, deg" if "convex" in choices
+                   else "swept convex / sector array: angle between rays, deg")
+    g.add_argument("--sweep-radius", type=float, metavar="MM",
+                   help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
+                        "linear, or convex / sector with --radius / --angle-pitch")
+    g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
 
 
 def _frame(fr, index, path):
