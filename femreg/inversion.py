@@ -1555,9 +1555,17 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     g_b = next((e.get("gamma") for e in sweep if e["beta"] == b), None)
     bracketed = (beta_method in ("dof", "dof-area") and g_b is not None and g_b <= target_dof
                  and any(e.get("gamma", -1.0) >= target_dof for e in sweep))
+    stopped = sweep[-1] if beta is None and sweep and sweep[-1].get("stop") else None
     if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat and not bracketed)):
-        flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
-                     f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
+        if stopped is not None and b == grid[0]:
+            # the rule did not run out of grid: it stopped because the next solve did not converge, so its target
+            # is not bracketed (say so: a larger maxiter may let the rule go on)
+            flags.append(f"beta {b:.3g} is the largest of its grid {[float(f'{x:.3g}') for x in grid]} and the "
+                         f"solve at the next beta {stopped['beta']:.3g} did not converge ({stopped['message']}): "
+                         "the rule could not bracket its target")
+        else:
+            flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
+                         f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
         rule += " [at the grid's edge]"
     t_opt = time.perf_counter() - t
     one_step = None
