@@ -115,7 +115,10 @@ meshes at :math:`\beta` 0.3-1 (truth-best 0.03), flagged at the grid's top; one 
 The rule does not read the noise: exact or much noisier data than a registration's deserve another :math:`\beta`
 (pass ``beta=``); in 3D the target stays one parameter per :math:`(4.5\ \mathrm{mm})^3` (not re-measured against
 the element size).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
-is flagged.
+is flagged.  A solve that does not converge (L-BFGS-B's ``maxiter``) ends the sweep at the beta before it; on the
+grid's first beta (an image that is not flat) that is flagged as a target the rule could not bracket (soft
+plane-strain disks the data hardly determine: converged, the next beta gave 0.3 x the true contrast on the L3
+cases of benchmarks/inversion.py).
 
 ``beta_method="growth"``: the last :math:`\beta` before the regulariser R starts to grow quickly as
 :math:`\beta` falls, :math:`-\Delta\log R/\Delta\log\beta >` :data:`GROWTH_RATE` (R up by more than 1.3 x per half
