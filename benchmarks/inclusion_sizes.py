@@ -1,13 +1,15 @@
 """Bonded inclusions of radius 1-8 mm at 1-4 % compression: femreg and the robustness benchmark's peers on the same
 pairs, with the strain-edge metric.  femreg: defaults ("R_P_sigma": adaptive refinement ``refine="auto"``, the
-default of :func:`femreg.register`), ``refine=None`` ("R_P_sigma no refine"), the default refinement without its
+default of :func:`femreg.register`; the other refinement variants below are the two-pass
+:class:`femreg.refine.Refinement`), ``refine=None`` ("R_P_sigma no refine"), the default refinement without its
 local relaxation ("R_P_sigma no relax", ``Refinement(relax=None)``), the relaxation of both parts of the traction
 jump (weight 0.3) with a solve of its own ("R_P_sigma relax both"), the default relaxation with a solve of its own
 ("R_P_sigma relax tangential+solve"), that extra solve with nothing relaxed ("R_P_sigma extra solve",
 ``relax=1.0``),
 :data:`femreg.refine.SLIP_REFINEMENT` ("R_P_sigma refine+slip") and three passes down to 0.15 x 0.3 mm without
 the element budget ("R_P_sigma refine fine"), one pass quartering the marked rows / columns down to 0.15 mm axially
-without the budget ("R_P_sigma refine deep", :func:`benchmarks.refine_cost.deep_refinement`), adaptive refinement (:mod:`femreg.refine`).
+without the budget ("R_P_sigma refine deep", :func:`benchmarks.refine_cost.deep_refinement`:
+:data:`femreg.refine.DEEP_REFINEMENT`, which the defaults use too), adaptive refinement (:mod:`femreg.refine`).
 
 Pairs: :class:`forward.fields.Inclusion` (stiff, x4, plane strain, ``radius_mm``; one soft, / 4) centred 20 mm
 deep, rendered as the robustness benchmark does (:func:`benchmarks.robustness.make_data`); the ``held_`` cases

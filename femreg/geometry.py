@@ -312,7 +312,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
-    from .refine import as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
+    from .refine import Refinement, as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
     from .repair import check_period, check_result
     from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
@@ -377,7 +377,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         return check_result(_judged_on_objf(s, start), start, np.zeros(s.mesh.p.shape[1], int), shape, (dr, dr),
                             period, None)
     # -- adaptive refinement (femreg.refine) on the (r, s) lattice, the physical solve on each refined mesh -----
-    opts = as_refinement(refine)
+    # "auto" here: the two-pass refinement measured on these frames (benchmarks/convex_refine.py)
+    opts = as_refinement(Refinement() if isinstance(refine, str) and refine == "auto" else refine)
     refined, notes = None, []
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()

@@ -115,7 +115,10 @@ meshes at :math:`\beta` 0.3-1 (truth-best 0.03), flagged at the grid's top; one 
 The rule does not read the noise: exact or much noisier data than a registration's deserve another :math:`\beta`
 (pass ``beta=``); in 3D the target stays one parameter per :math:`(4.5\ \mathrm{mm})^3` (not re-measured against
 the element size).  A :math:`\beta` on the last grid value, or on the first with a modulus image that is not flat,
-is flagged.
+is flagged.  A solve that does not converge (L-BFGS-B's ``maxiter``) ends the sweep at the beta before it; on the
+grid's first beta (an image that is not flat) that is flagged as a target the rule could not bracket (soft
+plane-strain disks the data hardly determine: converged, the next beta gave 0.3 x the true contrast on the L3
+cases of benchmarks/inversion.py).
 
 ``beta_method="growth"``: the last :math:`\beta` before the regulariser R starts to grow quickly as
 :math:`\beta` falls, :math:`-\Delta\log R/\Delta\log\beta >` :data:`GROWTH_RATE` (R up by more than 1.3 x per half
@@ -1555,9 +1558,17 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     g_b = next((e.get("gamma") for e in sweep if e["beta"] == b), None)
     bracketed = (beta_method in ("dof", "dof-area") and g_b is not None and g_b <= target_dof
                  and any(e.get("gamma", -1.0) >= target_dof for e in sweep))
+    stopped = sweep[-1] if beta is None and sweep and sweep[-1].get("stop") else None
     if beta is None and len(grid) > 1 and (b == grid[-1] or (b == grid[0] and not flat and not bracketed)):
-        flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
-                     f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
+        if stopped is not None and b == grid[0]:
+            # the rule did not run out of grid: it stopped because the next solve did not converge, so its target
+            # is not bracketed (say so: a larger maxiter may let the rule go on)
+            flags.append(f"beta {b:.3g} is the largest of its grid {[float(f'{x:.3g}') for x in grid]} and the "
+                         f"solve at the next beta {stopped['beta']:.3g} did not converge ({stopped['message']}): "
+                         "the rule could not bracket its target")
+        else:
+            flags.append(f"beta {b:.3g} is at the {'small' if b == grid[-1] else 'large'} edge of its grid "
+                         f"{[float(f'{x:.3g}') for x in grid]}: the rule found no beta inside it")
         rule += " [at the grid's edge]"
     t_opt = time.perf_counter() - t
     one_step = None

@@ -59,7 +59,13 @@ OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
 
 class OrientationError(InputError):
     """The frames look transposed, or their spacing swapped or implausible; the message says which and how to
-    override the check."""
+    override the check.  ``problem``: "transposed", "swapped" or "spacing" (:class:`OrientationReport`), "shape" (a raw file read
+    with its sizes exchanged), or ""
+    when not known."""
+
+    def __init__(self, message: str = "", problem: str = ""):
+        super().__init__(message)
+        self.problem = problem
 
 
 def _power_spectrum(img):
@@ -241,7 +247,7 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     frame looks transposed or its spacing swapped or implausible."""
     rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational)
     if rep.problem:
-        raise OrientationError(rep.message)
+        raise OrientationError(rep.message, problem=rep.problem)
     return rep
 
 
@@ -269,4 +275,4 @@ def check_raw_shape(frames) -> None:
         return
     msg = exchanged_shape(frames.frames[0])
     if msg:
-        raise OrientationError(f"{msg}; or check_orientation=False (CLI: --no-orientation-check)")
+        raise OrientationError(f"{msg}; or check_orientation=False (CLI: --no-orientation-check)", problem="shape")

@@ -410,8 +410,14 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         info.append(f"regulariser {d['regularizer']}")
     if "alpha" in d:
         info.append(f"alpha {float(d['alpha']):.3g}")
+    step = ""
+    if "frame" in d and "increment" in d:          # a frame of `femreg track`: say what the picture accumulates
+        k = int(d["frame"])
+        accumulated = str(d["mode"]) != "direct" if "mode" in d else True
+        info.insert(0, f"frame 0 -> {k}" + (" (accumulated)" if accumulated and k > 1 else ""))
+        step = f"frame {k - 1} -> {k}, " if accumulated and k > 1 else ""
     if "ncc_before" in d and "ncc_after" in d:
-        info.append(f"NCC {float(d['ncc_before']):.3f} -> {float(d['ncc_after']):.3f} (before -> after)")
+        info.append(f"NCC {float(d['ncc_before']):.3f} -> {float(d['ncc_after']):.3f} ({step}before -> after)")
     failed, banner = _status(result, d)
     if failed:
         draw_failure(fig, banner + ("  [" + ", ".join(info) + "]" if info else ""))

@@ -36,37 +36,51 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
-Local relaxation (:attr:`Refinement.relax`, on by default: the tangential part, weight 0.03): on a pass after the
-first, the edges whose shear-traction jump ``|t . [[A]] n|`` stands out (the cut of the marking) on the solve
-before the split *and* after it, on a connected run of at least 4 mm, at most 5 % of the interior edges, are
-relaxed: the momentum regulariser weighs the tangential part of the jump 0.03 on the cells beside them (as
-:data:`SLIP_REFINEMENT`'s slip region, but found by persistence and runs, and with no solve of its own: it rides
-on a pass that splits anyway).  Measured (README, "Adaptive refinement"): a 2 mm shear band's peak e_xy 0.60 ->
-0.88 of the truth (7.5 MHz), 0.45 -> 0.81 (5.5 MHz); nothing relaxed on any pair of the robustness benchmark
-(seeds 0 and 7), the inclusions' errors unchanged.  Relaxing the normal part at an inclusion's interface too
-(``relax_parts="both"``, with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total
-strain error and -0.16 to +0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``).
+The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that splits each marked row / column twice
+(to a quarter of the 2 mm element, down to 0.15 mm axially) with no element budget, one Gauss-Newton step on the
+refined mesh.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
+on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
+split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
+bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
+regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region).
+
+:class:`Refinement` itself (``refine=N``, ``Refinement()``) is the earlier two-pass refinement: at most twice the
+elements, each pass halving the marked rows / columns, its relaxation (weight 0.03) found by persistence: on a
+pass after the first, the edges whose shear-traction jump stands out on the solve before the split *and* after
+it, on a run of at least 4 mm.  Relaxing the normal part at an inclusion's interface too (``relax_parts="both"``,
+with a solve of its own) does not sharpen the step: -0.4 to +0.3 points of the total strain error and -0.16 to
++0.08 mm of the axial edge width on eight inclusions (``benchmarks/inclusion_sizes.py``, two-pass refinement).
 
 Convex / sector frames (:mod:`femreg.geometry`): their physical mesh carries the tensor mesh of its (range,
 ``rho_c`` angle) lattice (:class:`LogicalGrid`); marking, splitting and the transfer of the solution work there
 (rows split in range, columns between rays), the jumps of A[u] across each physical edge's own normal (along the
 ray, or across it), and each pass solves on the mapped mesh.  Opt-in there (:func:`default_refine`).
 
-A refined result that fails the check stage (:func:`femreg.repair.check_result`: its fractions count elements, and
-smaller elements are noisier) is dropped for the unrefined one (:func:`femreg.register`).
+The check stage (:func:`femreg.repair.check_result`) judges a refined result on the unrefined mesh's cells
+(:func:`parent_cells`: the fractions of elements that do not match or sit one RF period off count those cells,
+each over its pixels at the refined u): per element, 3 % of the quarter-size elements of a correct result read
+one period off (soft inclusion at 4 %, paper probe), so the refined result was dropped.  A refined result that
+still fails it is dropped for the unrefined one (:func:`femreg.register`).
 
-Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`), a
-second pass runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and the element budget
-is counted once per pass (:func:`_within_budget`).
+Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`); with
+more passes a later one runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and an
+element budget is counted once per pass (:func:`_within_budget`).
 
-Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time): on the robustness benchmark
-``refine="auto"`` against off made no case worse (seeds 0 and 7), the inclusions 0.6-2.3 points better
-(9.4-13.6 % -> 8.4-12.2 %), bending 5.8 -> 4.3 %, at 1.16-1.26x the CPU time per pair (median; 1.76x at most),
-so it is the default of ``strategy="auto"`` R_P_sigma registrations on the default mesh
-(:func:`default_refine`).  With two full solves per pass it took 1.33x (median) and 2.08x on the 3 MHz inclusion.
+Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time, against ``refine=None`` and the
+two-pass refinement that was the default before): on the robustness benchmark (18 pairs, seeds 0 and 7) no case
+more than 0.22 points worse than the two-pass default (bending 4.35 -> 4.57 %, seed 0; 8 % compression under L3
+0.57 -> 0.70 %, seed 7, which the two-pass default dropped), the inclusions 0.04-1.32 points better (seed 0:
+8.1-12.0 % against 8.4-12.3 %, 9.4-13.6 % unrefined), CPU time 1.52x / 1.47x median and 1.70x / 1.79x at most
+per pair (seeds 0 / 7; another run 1.45x / 1.37x and 1.93x / 1.85x); ``benchmarks/inclusion_sizes.py``: r 3 mm
+8.8 -> 8.5 % (5.5 MHz, 1 %), 7.3 -> 6.8 % (7.5 MHz, 4 %), r 8 mm 13.6 -> 12.3 %, axial edge width
+2.01 / 1.38 / 2.86 -> 1.69 / 1.28 / 2.78 mm; ``benchmarks/shear_bands.py``: every band's total strain error lower (2
+mm bands 32.7 -> 30.9 %, 41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95
+of the truth); in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined
+results were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
+the default mesh (:func:`default_refine`).
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
-on the mesh); the local relaxation lifts a 2 mm band's peak e_xy to 0.81-0.88 of the truth, :data:`SLIP_REFINEMENT`
-any 1-2 mm band's to 0.63-1.0.
+on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
+0.63-1.0.
 """
 from __future__ import annotations
 
@@ -82,8 +96,8 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
            "with_refinement", "RefinementRecord"]
 
@@ -137,7 +151,7 @@ class Refinement:
         edges (the strongest first).  At a bonded interface between moduli mu1, mu2 the traction ``mu A n`` is
         continuous, so ``A n`` itself jumps by the modulus ratio: the momentum TV holds that step back.  None:
         no relaxation.  The relaxation rides on a pass that splits anyway (:attr:`min_added`) unless
-        ``relax_solve``.
+        ``relax_solve``; ``relax_persist`` False: on the first pass too, without the persistence test.
     relax_parts : {"both", "normal", "tangential"}
         Which parts of the traction jump ``relax`` weighs (``"tangential"``: the part ``slip`` weighs); the
         relaxed part itself must stand out (the whole jump for ``"both"``).
@@ -152,6 +166,11 @@ class Refinement:
         Solve once more when edges are to be relaxed but no further split is due.  Off by default: that extra
         Gauss-Newton step on the refined mesh alone (with nothing relaxed) raised bending's total strain error
         4.35 -> 4.95 % on the robustness benchmark.
+    relax_persist : bool
+        True: relax only the edges that stand out before and after a split (a pass after the first, above).
+        False: relax, on each split's own solve, the edges that stand out on the solve before it (cells of that
+        coarser mesh), with no second pass (:data:`DEEP_REFINEMENT`; a long ``relax_min_length`` then keeps
+        the relaxation to layers across the image).
     """
 
     passes: int = 2
@@ -171,6 +190,7 @@ class Refinement:
     relax_max_fraction: float = 0.05
     relax_cells: bool = True
     relax_solve: bool = False
+    relax_persist: bool = True
 
     def __post_init__(self):
         if self.relax is not None and not (np.isfinite(self.relax) and 0 < self.relax <= 1):
@@ -220,6 +240,13 @@ class Refinement:
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=None, min_added=0.0, relax=None)
 
 
+#: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
+#: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
+#: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
+#: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
+DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
+                             relax_persist=False, relax_min_length=20.0)
+
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
 
@@ -251,8 +278,8 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
 
 
 def as_refinement(spec) -> Refinement | None:
-    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes; "auto" -> the
-    defaults of :class:`Refinement`; a :class:`Refinement` as it is."""
+    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes of the
+    defaults of :class:`Refinement`; "auto" -> :data:`DEEP_REFINEMENT`; a :class:`Refinement` as it is."""
     if spec is None or spec is False:
         return None
     if isinstance(spec, Refinement):
@@ -262,7 +289,7 @@ def as_refinement(spec) -> Refinement | None:
             raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
         if spec != "auto":
             raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-        return Refinement()
+        return DEEP_REFINEMENT
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         return Refinement(passes=int(spec)) if spec else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
@@ -554,10 +581,9 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         keep = np.zeros(m, bool)
         keep[order[:cap]] = True
     if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
-        na = ia.size
-        cell_rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
-                                np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
-        return cell_rects[keep]
+        rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
+                           np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
+        return rects[keep]
     return segs[keep]
 
 
@@ -660,6 +686,20 @@ def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), l
     return MeshQuad1.init_tensor(nx, ny), sx, sy
 
 
+def parent_cells(base, mesh) -> np.ndarray:
+    """Element of the tensor mesh ``base`` holding each element of ``mesh``, a refinement of it (nested: every
+    element of ``mesh`` lies in one of ``base``), (n_el of mesh,) int; in the logical coordinates of meshes with
+    a :class:`LogicalGrid`.  The check stage counts its fractions on these cells
+    (:func:`femreg.repair.check_result`)."""
+    xs, ys, cell = _need_tensor(base)
+    fx, fy, fcell = _need_tensor(mesh)
+    i = np.clip(np.searchsorted(xs, 0.5 * (fx[:-1] + fx[1:])) - 1, 0, xs.size - 2)
+    j = np.clip(np.searchsorted(ys, 0.5 * (fy[:-1] + fy[1:])) - 1, 0, ys.size - 2)
+    out = np.empty(mesh.t.shape[1], np.int64)
+    out[fcell.ravel()] = cell[i[:, None], j[None, :]].ravel()
+    return out
+
+
 def transfer(u, mesh, new_mesh) -> np.ndarray:
     """Nodal vector of ``new_mesh`` holding the bilinear field ``u`` of ``mesh`` (exact for nested tensor meshes).
     Meshes with a :class:`LogicalGrid` interpolate in the logical coordinates (bilinear in the element's own
@@ -694,6 +734,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     relaxed, standing = np.zeros((0, 4)), None     # relaxed segments (all passes); standing out the pass before
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit = sol.gn, int(sol.gn.nit)
+    relaxing = opts.relax is not None and opts.indicator == "jump"
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
@@ -705,7 +746,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
-        if opts.relax is not None and opts.indicator == "jump":
+        if relaxing:
             if standing is not None:
                 r = relaxed_edges(mesh, sol.u, opts, previous=standing)
                 if len(r):
@@ -713,6 +754,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     more = not np.all(_on_segments(mid, relaxed))
                     relaxed = np.vstack([relaxed, r])
             standing = relaxed_edges(mesh, sol.u, opts, cells=False)
+            if not opts.relax_persist and new is not mesh:
+                # relaxed on the split's own solve, found on the solve before it (no second pass needed)
+                r = relaxed_edges(mesh, sol.u, opts)
+                if len(r):
+                    relaxed = np.vstack([relaxed, r])
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break

@@ -30,7 +30,8 @@ from .initial import INITIAL_NAMES, initial_guess
 from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
-from .refine import DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, refine_stage, with_refinement
+from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage,
+                     with_refinement)
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
@@ -227,8 +228,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     refine : "default" | None | int | "auto" | femreg.refine.Refinement
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
-        again from the solution, ``N`` passes ("auto": up to 2, one Gauss-Newton step each); the weight of
-        eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
+        again from the solution, one Gauss-Newton step each: ``N`` passes of :class:`femreg.refine.Refinement`
+        (each halving the marked rows / columns), "auto": :data:`femreg.refine.DEEP_REFINEMENT` (one pass
+        quartering them, with the local relaxation of layers across the image); the weight of eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
         regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
         or ``element_size`` (so every increment of
         :func:`femreg.track`), an offset, a convex / sector geometry (where ``"auto"`` / N refines the (range,
@@ -322,11 +324,12 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     global_ncc = None if start.pyramid is None else start.pyramid.global_ncc
 
     def checked(s, start_u, h):
-        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc)
+        # a refined result is judged on the unrefined cells (femreg.refine.parent_cells): the same limits hold
+        groups = None if s.mesh is unrefined[0].mesh else parent_cells(unrefined[0].mesh, s.mesh)
+        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc, groups=groups)
     check = checked(sol, u0, hops)
     if not check.success and sol is not unrefined[0]:
-        # the refined result is judged on smaller elements (the peak-hopping and matching fractions count
-        # elements); a refinement that fails the check is dropped for the unrefined result and its own verdict
+        # a refinement that fails the check is dropped for the unrefined result and its own verdict
         sol, u0, hops, notes = unrefined
         why = "; ".join(n for n in check.notes if not n.startswith("the pair is strongly decorrelated"))
         check = checked(sol, u0, hops)

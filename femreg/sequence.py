@@ -114,7 +114,11 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     Parameters
     ----------
     frames : (n_frames, n_axial, n_lateral) array or sequence of 2D arrays
-        RF frames, all of one shape.
+        RF frames, all of one shape.  A 4D array or a sequence of 3D arrays is a volume sequence, tracked by
+        :func:`femreg.volume.track_volume` (a :class:`femreg.volume.VolumeTrack` is returned); with
+        ``geometry=femreg.Swept(...)`` a swept probe's volumes (n_samples, n_lines, n_frames), all scan-converted
+        onto one Cartesian grid and tracked there (results :class:`femreg.SweptResult`; ``grid_spacing`` as in
+        :func:`femreg.register`).
     spacing, origin : (2,) mm
         Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
     regularizer, alpha
@@ -167,7 +171,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         from .volume import track_volume
         return track_volume(frames, spacing=spacing, origin=origin, mode=mode, regularizer=regularizer, alpha=alpha,
                             mesh=mesh, element_size=element_size, margin=margin,
-                            check_orientation=check_orientation, roi=roi, depth=depth, **register_kwargs)
+                            check_orientation=check_orientation, roi=roi, depth=depth, checkpoint_dir=checkpoint_dir,
+                            resume=resume, progress=progress, min_ncc=min_ncc, on_frame=on_frame, **register_kwargs)
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if grid not in ("current", "reference"):
@@ -264,7 +269,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 computed = True
                 if path is not None:
                     atomic_savez(path, writer=lambda tmp: res.save(tmp, increment=inc, flag=np.str_(flag),
-                                                                   frame=np.int64(k)))
+                                                                   frame=np.int64(k), mode=np.str_(mode)))
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
             prev_inc = inc
             out.append(res)

@@ -25,7 +25,7 @@ from .volume_result import SweptResult
 from .voxels import SplineVolume, validate_volume
 
 __all__ = ["swept_spacing", "inscribed_box", "grid_spacing_for", "cartesian_grid", "scan_convert",
-           "register_swept", "VOXELS_PER_PHASE_PERIOD"]
+           "register_swept", "scan_convert_sequence", "SweptConversion", "VOXELS_PER_PHASE_PERIOD"]
 
 #: Voxels interpolated per block of :func:`scan_convert` (bounds its temporaries to ~100 MB).
 SCAN_CHUNK = 1 << 21
@@ -243,14 +243,71 @@ def register_swept(reference_image, moving_image, *, geometry, spacing, origin=(
     del mov
     t_scan = time.perf_counter() - t
     res = register(A, B, spacing=h, origin=o, **kw)
-    out = SweptResult.of(res, geometry=geometry, shape=shape, spacing=sp, origin=org, cartesian=(A.shape, h, o))
+    out = SweptConversion(geometry, shape, sp, org, (A.shape, h, o)).result(res)
     out.timings = dict(res.timings, scan_convert=t_scan, total=res.timings.get("total", 0.0) + t_scan)
-    lo, hi = o, o + (np.array(A.shape) - 1) * h
-    P = np.column_stack([c.ravel() for c in geometry.sample_positions(shape, sp, org)])
-    outside = float(np.mean(np.any((P < lo - 1e-9) | (P > hi + 1e-9), axis=1)))
-    del P
-    box = ", ".join(f"{a} {lo[k]:.1f}..{hi[k]:.1f}" for k, a in enumerate("xyz"))
-    note = f"the fan outside the Cartesian box inside it ({box} mm; {100 * outside:.0f} % of the samples)"
-    out.excluded = note if not res.excluded else f"{note}; {res.excluded}"
     return out
+
+
+class SweptConversion:
+    """How the volumes of a swept probe were scan-converted (``geometry``, the sample grid ``shape``, ``spacing``,
+    ``origin``, and ``cartesian`` = (shape, spacing, origin) of the common Cartesian grid), and how a result
+    registered on that grid becomes a :class:`~femreg.volume_result.SweptResult` (:meth:`result`)."""
+
+    def __init__(self, geometry, shape, spacing, origin, cartesian):
+        self.geometry = geometry
+        self.shape = tuple(int(v) for v in shape)
+        self.spacing, self.origin = np.asarray(spacing, float), np.asarray(origin, float)
+        self.cartesian = (tuple(int(v) for v in cartesian[0]), np.asarray(cartesian[1], float),
+                          np.asarray(cartesian[2], float))
+        n, h, o = self.cartesian
+        lo, hi = o, o + (np.array(n) - 1) * h
+        P = np.column_stack([c.ravel() for c in geometry.sample_positions(self.shape, self.spacing, self.origin)])
+        outside = float(np.mean(np.any((P < lo - 1e-9) | (P > hi + 1e-9), axis=1)))
+        box = ", ".join(f"{a} {lo[k]:.1f}..{hi[k]:.1f}" for k, a in enumerate("xyz"))
+        #: what of the fan is not registered (the result's ``excluded`` starts with it)
+        self.note = f"the fan outside the Cartesian box inside it ({box} mm; {100 * outside:.0f} % of the samples)"
+
+    def result(self, res) -> SweptResult:
+        """``res`` (a :class:`~femreg.volume_result.VolumeResult` on the Cartesian grid, already a
+        :class:`~femreg.volume_result.SweptResult`: returned as it is) as the result of the swept volumes."""
+        if isinstance(res, SweptResult):
+            return res
+        out = SweptResult.of(res, geometry=self.geometry, shape=self.shape, spacing=self.spacing,
+                             origin=self.origin, cartesian=self.cartesian)
+        out.excluded = self.note if not res.excluded else f"{self.note}; {res.excluded}"
+        for k in ("auto_alpha", "refinement"):
+            if hasattr(res, k):
+                setattr(out, k, getattr(res, k))
+        return out
+
+    def params(self) -> dict:
+        """The conversion as JSON-able values (recorded with a tracking run, so a resume must match it)."""
+        n, h, o = self.cartesian
+        return {"geometry": self.geometry.to_dict(), "sample_shape": list(self.shape),
+                "sample_spacing": [float(v) for v in self.spacing], "sample_origin": [float(v) for v in self.origin],
+                "cartesian_shape": list(n), "cartesian_spacing": [float(v) for v in h],
+                "cartesian_origin": [float(v) for v in o]}
+
+
+def scan_convert_sequence(volumes, geometry, spacing, origin=(0.0, 0.0, 0.0), *, grid_spacing=None):
+    """A sequence of swept volumes (each (n_samples, n_lines, n_frames), one shape) -> ``(voxels, conversion)``:
+    every volume scan-converted once (:func:`scan_convert`) onto ONE Cartesian grid, the grid of volume 0
+    (:func:`cartesian_grid`), ``voxels`` a list of (n_x, n_y, n_z) arrays on it, ``conversion`` the
+    :class:`SweptConversion` (grid spacing and origin in ``conversion.cartesian``).  What
+    :func:`femreg.volume.track_volume` tracks for ``geometry=femreg.Swept(...)``."""
+    geometry = as_geometry(geometry)
+    if not isinstance(geometry, Swept):
+        raise InputError(f"a swept volume sequence needs a femreg.Swept geometry, got {geometry!r}")
+    vols = [validate_volume(v, f"volume {k}") for k, v in enumerate(volumes)]
+    shapes = {v.shape for v in vols}
+    if len(shapes) != 1:
+        raise InputError(f"every volume of a swept sequence must have one shape, got {sorted(shapes)}")
+    sp, org = swept_spacing(spacing, geometry, origin)
+    grid = cartesian_grid(geometry, vols[0], sp, org, grid_spacing)
+    out, h, o = [], None, None
+    for k in range(len(vols)):
+        A, h, o = scan_convert(vols[k], geometry, sp, org, grid=grid)
+        vols[k] = None          # the samples are not needed once converted
+        out.append(A)
+    return out, SweptConversion(geometry, shapes.pop(), sp, org, (out[0].shape, h, o))
 

@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
@@ -686,10 +687,16 @@ _IGNORED_2D_OPTIONS = ("roi", "depth", "geometry", "blockmatch_options", "coarse
 class VolumeTrack:
     """Displacements from frame 0 of a volume sequence: ``results[k]`` the increment k -> k + 1 (a
     :class:`VolumeResult` on the frame-0 mesh, eq:IR with S the accumulated field), ``accumulated[k]`` frame 0 ->
-    k + 1 (u = S + du on the same mesh); ``success`` all increments succeeded."""
+    k + 1 (u = S + du on the same mesh); ``success`` all increments succeeded.  ``flags[k]``: '' or why frame
+    k + 1 is flagged (its registration failed its own check, or its NCC after is below ``min_ncc``);
+    ``computed[k]``: False where the frame was loaded from a checkpoint.  A swept probe's sequence holds
+    :class:`~femreg.volume_result.SweptResult` entries and ``swept`` its :class:`femreg.swept.SweptConversion`."""
 
     results: list
     accumulated: list
+    flags: list = field(default_factory=list)
+    computed: list = field(default_factory=list)
+    swept: object = None
 
     @property
     def success(self) -> bool:
@@ -699,15 +706,35 @@ class VolumeTrack:
         return len(self.accumulated)
 
 
+def _frame_flag(res, min_ncc) -> str:
+    """'' for a good frame, else why it is flagged (as :func:`femreg.track` flags a frame)."""
+    if not res.success:
+        return f"registration failed: {res.message.removeprefix('FAILED: ')}"
+    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
+        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+    return ""
+
+
 @single_blas_thread
 def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumulate", progress=False,
-                 **register_kwargs) -> VolumeTrack:
+                 checkpoint_dir=None, resume: bool = False, min_ncc=None, on_frame=None, geometry=None,
+                 grid_spacing=None, **register_kwargs) -> VolumeTrack:
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
     starts the next), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
     :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
     ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
-    registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice."""
+    registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice.
+
+    ``geometry=femreg.Swept(...)``: the volumes are a swept probe's (n_samples, n_lines, n_frames), ``spacing``
+    and ``origin`` as for :func:`register_volume`; every volume is scan-converted once onto the Cartesian grid of
+    frame 0 (:func:`femreg.swept.scan_convert_sequence`, ``grid_spacing`` its option) and that sequence tracked
+    here; the results are :class:`~femreg.volume_result.SweptResult` (physical Cartesian mm; ``on_grid`` at the
+    samples).
+
+    ``checkpoint_dir``, ``resume``, ``progress``, ``min_ncc``, ``on_frame(k, result, flag)``: as in
+    :func:`femreg.track` (``frame_KKK.npz`` = frame 0 -> K with its ``increment`` and ``flag``, ``track.json`` the
+    parameters; :func:`femreg.load_track` reads the folder)."""
     arr = [np.asarray(f) for f in frames]
     if len(arr) < 2:
         raise InputError(f"a sequence needs at least 2 volumes, got {len(arr)}")
@@ -715,10 +742,24 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError("every frame of a volume sequence must be 3D (axial, lateral, elevational)")
     if mode not in ("accumulate", "direct"):
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
-    if register_kwargs.get("geometry") is not None:
-        raise InputError("tracking a swept probe's volumes is not supported: scan-convert them onto one grid "
-                         "(femreg.swept.cartesian_grid, then femreg.swept.scan_convert with grid=) and track the "
-                         "Cartesian volumes")
+    if min_ncc is not None and not np.isfinite(float(min_ncc)):
+        raise InputError(f"min_ncc must be a finite number or None, got {min_ncc!r}")
+    swept = None
+    if geometry is not None:            # a swept probe's volumes: one Cartesian grid for all (femreg.swept)
+        from .probes import Swept, as_geometry
+        from .swept import scan_convert_sequence
+        geo = as_geometry(geometry)
+        if not isinstance(geo, Swept):
+            raise InputError(f"a volume's geometry is femreg.Swept(...) (a swept probe) or None (a Cartesian "
+                             f"grid), got {geo!r}")
+        for bad in ("mesh", "offset"):
+            if register_kwargs.get(bad) is not None:
+                raise InputError(f"{bad}= is not supported with a swept geometry (the mesh is built on the "
+                                 "scan-converted grid)")
+        arr, swept = scan_convert_sequence(arr, geo, spacing, origin, grid_spacing=grid_spacing)
+        _, spacing, origin = swept.cartesian
+    elif grid_spacing is not None:
+        raise InputError("grid_spacing is an option of a swept probe's volumes (geometry=femreg.Swept(...))")
     if register_kwargs.pop("check_orientation", True):
         sp3 = validate_spacing_3d(spacing, origin)[0]
         orientation.check(validate_volume(arr[0], "frame 0")[:, :, arr[0].shape[2] // 2], sp3[:2],
@@ -729,12 +770,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=register_kwargs.pop("roi", "auto"),
                            depth=register_kwargs.pop("depth", None), mesh=register_kwargs.get("mesh"),
                            margin=register_kwargs.get("margin"))
+    shape = tuple(int(v) for v in arr[0].shape)
     if crop is not None:                # every frame inside the box of frames 0 and 1 (femreg.echo_volume)
         arr, origin = crop.frames(*arr), crop.origin
     register_kwargs.update(roi=None, depth=None)
-    results, acc = [], []
-    S = None
-    prev = None
     mesh = register_kwargs.pop("mesh", None)
     auto = None
     if isinstance(register_kwargs.get("alpha"), str):   # "auto": chosen on the first pair, reused (as femreg.track)
@@ -744,34 +783,86 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                             origin=origin, mesh=mesh, **register_kwargs)
         auto.result = None
         register_kwargs["alpha"] = auto.alpha
-    for k in range(1, len(arr)):
-        if mode == "direct":
-            r = register_volume(arr[0], arr[k], spacing=spacing, origin=origin, mesh=mesh, **register_kwargs)
-            results.append(r)
-            acc.append(r)
-            continue
-        kw = dict(register_kwargs)
-        if S is not None:
-            kw.setdefault("initial", prev.u if prev is not None else "zero")
-        r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
-                            mesh=mesh if S is None else acc[-1].mesh, **kw)
-        results.append(r)
-        total = r.u if S is None else S + r.u
-        a = copy.copy(r)
-        a.u = total
-        a._nodal_strain = None
-        a._grids = {}
-        acc.append(a)
-        S = total
-        prev = r
-        if progress:
-            print(f"volume {k}/{len(arr) - 1}: {r.message}", flush=True)
-    for r in results + acc:             # idempotent: direct mode holds each result in both lists
+    ckpt = None
+    if checkpoint_dir is not None or resume:
+        from ._atomic import open_run_folder
+        params = {"n_frames": len(arr), "shape": list(shape), "spacing": [float(v) for v in np.ravel(spacing)],
+                  "origin": [float(v) for v in np.ravel(origin)], "mode": mode, "volume": True,
+                  "register_kwargs": json.loads(json.dumps({k: v for k, v in register_kwargs.items()
+                                                            if k != "check_orientation"}, sort_keys=True,
+                                                           default=repr)),
+                  "roi": None if crop is None else [float(v) for v in crop.region.roi_mm],
+                  "user_mesh": mesh is not None}
+        if swept is not None:
+            params["swept"] = swept.params()
+        ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json",
+                               started=("frame_*.npz",), kind="a tracking run", argument="checkpoint_dir")
+
+    def finish(r):
+        """A result on the crop as the sequence's result: the full grid, the alpha choice, a swept probe's."""
         if crop is not None:
             crop.widen(r)
         if auto is not None:
             r.auto_alpha = auto
-    return VolumeTrack(results=results, accumulated=acc)
+        return r if swept is None else swept.result(r)
+
+    out = VolumeTrack(results=[], accumulated=[], swept=swept)
+    S = None
+    prev = None
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(arr) - 1, desc=f"track volumes ({mode})", unit="volume")
+    try:
+        for k in range(1, len(arr)):
+            path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
+            if resume and path is not None and path.exists():
+                from .volume_result import load_volume_result
+                a = load_volume_result(path)
+                with np.load(path, allow_pickle=False) as z:
+                    inc = np.asarray(z["increment"], float)
+                    flag = str(z["flag"])
+                r = a if mode == "direct" else copy.copy(a)
+                if r is not a:
+                    r.u, r._nodal_strain, r._grids = inc, None, {}
+                computed = False
+            else:
+                if mode == "direct":
+                    r = finish(register_volume(arr[0], arr[k], spacing=spacing, origin=origin, mesh=mesh,
+                                               **register_kwargs))
+                    a = r
+                else:
+                    kw = dict(register_kwargs)
+                    if S is not None:
+                        kw.setdefault("initial", prev.u if prev is not None else "zero")
+                    r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
+                                        mesh=mesh if S is None else out.accumulated[-1].mesh, **kw)
+                    a = copy.copy(r)
+                    a.u = r.u if S is None else S + r.u
+                    a._nodal_strain = None
+                    a._grids = {}
+                    r, a = finish(r), finish(a)
+                flag = _frame_flag(r, min_ncc)
+                computed = True
+                if path is not None:
+                    from ._atomic import atomic_savez
+                    atomic_savez(path, writer=lambda tmp: a.save(tmp, increment=r.u, flag=np.str_(flag),
+                                                                 frame=np.int64(k), mode=np.str_(mode)))
+            out.results.append(r)
+            out.accumulated.append(a)
+            out.flags.append(flag)
+            out.computed.append(computed)
+            if mode == "accumulate":
+                S, prev = np.asarray(a.u, float), r
+            if on_frame is not None:
+                on_frame(k, a, flag)
+            if bar is not None:
+                bar.set_postfix_str(f"ncc {r.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
 
 
 def volumes_to(register_2d):

@@ -256,3 +256,39 @@ def test_engine_displacement_at_nodes_equals_nodal_u():
     nodes = res.mesh.p.T
     err = np.abs(res.displacement(nodes) - res.u.reshape(-1, 2)).max()
     assert err < 1e-12, f"max |u(node) - u_node| = {err:.3g} mm"
+
+
+def test_swapped_spacing_from_a_metaimage_header_says_where_it_came_from(tmp_path, capsys):
+    """A MetaImage header's ElementSpacing lists the lateral spacing first; written in (axial, lateral) order it
+    is refused (exit 2), and the message says the spacing came from the file and that --spacing overrides it."""
+    from forward import fields as F
+    from forward.pairs import PROBES, make_pair
+
+    p = make_pair(F.compression(0.01), PROBES["L7"], (15, 10), 20, seed=3)
+    dx, dy = (float(v) for v in p.spacing)
+    save_frames(tmp_path / "s.mhd", np.stack([p.ref, p.mov]), (dy, dx))         # the mistake: lateral first
+    out = tmp_path / "pair.npz"
+    assert main(["register", str(tmp_path / "s.mhd"), "-o", str(out)]) == 2
+    err = _err_line(capsys)
+    assert "look swapped" in err and "read from the file" in err and "ElementSpacing" in err, err
+    assert not out.exists()
+    # the override it names works (exit 0), and a spacing given on the command line gets no header note
+    assert main(["register", str(tmp_path / "s.mhd"), "-o", str(out), "--spacing", f"{dx:g}", f"{dy:g}"]) == 0
+    capsys.readouterr()
+    assert main(["register", str(tmp_path / "s.mhd"), "-o", str(out), "--spacing", f"{dy:g}", f"{dx:g}"]) == 2
+    assert "read from the file" not in _err_line(capsys)
+
+
+def test_output_closed_early_is_not_an_error(tmp_path, monkeypatch, capsys):
+    """`femreg info FILE | head`: the pipe closes early; femreg stops quietly with 141 (128 + SIGPIPE), no error
+    line on stderr."""
+    rf = np.random.default_rng(0).standard_normal((2, 30, 8)).astype(np.float32)
+    save_frames(tmp_path / "a.npz", rf, (0.05, 0.3))
+    import femreg.cli.info_cmd as info_cmd
+
+    def closed(*args, **kwargs):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(info_cmd, "print", closed, raising=False)
+    assert main(["info", str(tmp_path / "a.npz")]) == 141
+    assert capsys.readouterr().err == ""

@@ -97,3 +97,20 @@ def test_unwritable_output_exit_2(npy_sequence, tmp_path, capsys):
     rc = main(["track", str(npy_sequence), "-o", str(blocker / "sub")] + ARGS)
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err and err.count("\n") == 1, err
+
+
+def test_plot_of_a_tracked_frame_says_what_it_accumulates(npy_sequence, tmp_path):
+    """A frame of an accumulated run is frame 0 -> k; its NCC is that of the last increment, and the picture's
+    title says both (a direct run's frame is a plain pair 0 -> k)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from femreg.plot import plot_result
+
+    acc, direct = tmp_path / "acc", tmp_path / "direct"
+    assert main(["track", str(npy_sequence), "-o", str(acc)] + ARGS) == 0
+    assert main(["track", str(npy_sequence), "-o", str(direct), "--mode", "direct"] + ARGS) == 0
+    title = plot_result(str(acc / "frame_003.npz"))._suptitle.get_text()
+    assert title.startswith("frame 0 -> 3 (accumulated)") and "(frame 2 -> 3, before -> after)" in title, title
+    title = plot_result(str(direct / "frame_003.npz"))._suptitle.get_text()
+    assert title.startswith("frame 0 -> 3,") and "accumulated" not in title and "frame 2 -> 3" not in title, title

@@ -135,3 +135,15 @@ def test_lateral_strain_outside_every_model_is_flagged_under_auto():
     assert any("outside what any model gives" in f for f in res.flags)
     full = invert(sol.displacement, region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
     assert full.success and not full.flags, full.flags
+
+
+def test_beta_rule_stopped_by_a_solve_that_does_not_converge_says_so():
+    """The rule stops at the last converged beta when the next solve hits the iteration limit: at the grid's top
+    the flag names that solve, not a target outside the grid (the grid holds it)."""
+    sol = solution("plane-stress", 40.0)
+    # with 400 iterations: 113 at beta 0.1 (gamma 5.6), 85 at 0.01 (20.5), 97 at 0.001 (57); here 60
+    res = invert(_noisy(sol, 2e-3), region=REGION, element_size=3.0, beta_grid=(0.1, 0.01, 1e-3), maxiter=60,
+                 uncertainty=False)
+    assert res.sweep[-1].get("stop") == "not converged" and res.beta == 0.1, res.sweep
+    assert not res.success and any("did not converge" in x and "beta 0.01 " in x for x in res.flags), res.flags
+    assert not any("edge of its grid" in x for x in res.flags), res.flags

@@ -9,7 +9,7 @@ from femreg.errors import InputError
 from femreg.fields import element_strains
 from femreg.mesh import roi_mesh, tensor_structure
 from femreg.pixels import PixelQuadrature, PointLocator
-from femreg.refine import (Refinement, as_refinement, edge_jumps, indicators, mark, refine_tensor_mesh,
+from femreg.refine import (DEEP_REFINEMENT, Refinement, as_refinement, edge_jumps, indicators, mark, refine_tensor_mesh,
                            slip_weights, transfer)
 from femreg.regularizers import make_regularizer
 from femreg.scaling import effective_alpha, refined_alpha
@@ -190,7 +190,7 @@ def test_weight_of_a_piecewise_affine_field_is_the_same_on_the_refined_mesh():
 
 def test_refinement_options_and_bad_input():
     assert as_refinement(None) is None and as_refinement(0) is None and as_refinement(False) is None
-    assert as_refinement("auto") == Refinement() and as_refinement(3).passes == 3
+    assert as_refinement("auto") is DEEP_REFINEMENT and as_refinement(3) == Refinement(passes=3)
     for bad in ("yes", 2.5, True, -1):
         with pytest.raises(InputError):
             as_refinement(bad)

@@ -314,6 +314,32 @@ def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
     assert "volume" in capsys.readouterr().err
 
 
+def test_cli_reads_metaimage_and_mat_volumes(affine_pair, tmp_path, capsys):
+    """Volumes as scanners and MATLAB write them: a MetaImage of NDims 4 and a MAT-file with three spacing values
+    are volumes without a flag; two NDims-3 MetaImage files are volumes with --volume, and without it their first
+    frames are registered with a note that says so."""
+    from femreg.cli import main
+    from femreg.io import save_volumes
+
+    ref, mov, spacing, G = affine_pair
+    truth = _true_strain(G)[0]
+    out = tmp_path / "r.npz"
+    for name in ("seq.mhd", "seq.mat"):
+        save_volumes(tmp_path / name, np.stack([ref, mov]), spacing)
+        assert main(["register", str(tmp_path / name), "-o", str(out), "--element-size", "2"]) == 0, name
+        e = load_volume_result(out).strain(np.array([[3.0, 3.0, 3.0]]))[0]
+        assert abs(e[0] - truth) < 0.1 * abs(truth), (name, e[0], truth)
+    save_volumes(tmp_path / "ref.mhd", ref, spacing)
+    save_volumes(tmp_path / "mov.mhd", mov, spacing)
+    argv = ["register", str(tmp_path / "ref.mhd"), str(tmp_path / "mov.mhd"), "-o", str(out), "--element-size", "2"]
+    capsys.readouterr()
+    assert main(argv + ["--volume"]) == 0
+    assert load_volume_result(out).strain(np.array([[3.0, 3.0, 3.0]])).shape == (1, 6)
+    main(argv + ["--no-orientation-check"])          # read as frames: frame 0 of each, and a note says so
+    err = capsys.readouterr().err
+    assert f"holds {ref.shape[2]} and" in err and "--volume" in err, err
+
+
 @pytest.mark.parametrize("method", ["auto", "splu", "pardiso"])
 def test_sparse_solver_branches_solve_a_3d_gauss_newton_system(method):
     from femreg.linsolve import SPDSolver, have_pardiso

@@ -202,4 +202,4 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
             check_raw_shape(fr)
             check(fr.frames[0], fr.spacing)
         except OrientationError as exc:
-            raise OrientationError(f"{job.input}: {exc}") from None
+            raise OrientationError(f"{job.input}: {exc}", problem=exc.problem) from None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 #: Subcommand modules are discovered (every ``*_cmd`` module of this package); this fixes the --help order.
@@ -60,6 +61,22 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     return parser
 
 
+def _header_spacing_note(args, exc) -> str:
+    """For a spacing judged swapped or implausible that the user did not give (read from the file's header): where
+    it came from and how to override it; MetaImage headers list the fastest (lateral) axis first, a common
+    source of a swapped spacing."""
+    from femreg.orientation import OrientationError
+
+    if not isinstance(exc, OrientationError) or exc.problem not in ("swapped", "spacing") \
+            or not hasattr(args, "spacing") or args.spacing is not None:
+        return ""
+    paths = [str(v).lower() for v in vars(args).values() if isinstance(v, (str, os.PathLike))]
+    meta = any(p.endswith((".mhd", ".mha")) for p in paths)
+    return ("; this spacing was read from the file" + (" (a MetaImage header's ElementSpacing lists the lateral "
+                                                       "spacing first: lateral, axial)" if meta else "")
+            + "; --spacing DX DY (axial, lateral) overrides it")
+
+
 def main(argv=None) -> int:
     from femreg.errors import InputError
     from femreg.optional import MissingDependencyError
@@ -78,8 +95,15 @@ def main(argv=None) -> int:
     saved, warnings.formatwarning = warnings.formatwarning, one_line
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:         # output piped into e.g. `head`, which closed early: not an error of femreg's
+        try:                        # no second error when Python flushes stdout at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):   # stdout without a file descriptor (captured): nothing will flush it
+            pass
+        return 141                  # 128 + SIGPIPE, as for other Unix tools
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        msg += _header_spacing_note(args, exc)
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra

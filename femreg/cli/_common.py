@@ -74,7 +74,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
         try:
             check_raw_shape(fr)
         except OrientationError as exc:
-            raise OrientationError(f"{path}: {exc}") from None
+            raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 

@@ -1,6 +1,7 @@
 """``femreg register`` / ``femreg track`` on volumes: an ``.npz`` whose ``spacing`` holds three values (dx, dy,
 dz mm) and whose ``rf`` (or only) array is a volume (n_x, n_y, n_z) or a volume sequence (n_frames, n_x, n_y,
-n_z)."""
+n_z); a MetaImage of NDims 4 or a MAT-file whose spacing has three values; with ``--volume`` any file
+:func:`femreg.io.read_volumes` reads (a MetaImage of NDims 3 as one volume)."""
 from __future__ import annotations
 
 import sys
@@ -12,13 +13,22 @@ from ..errors import InputError
 
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
-#: register/track options passed on to volumes separately (register: a swept probe's geometry) or not at all
+#: register options passed on to volumes separately (a swept probe's geometry)
 _NOT_FOR_VOLUMES = ("geometry",)
 
 
-def read_volume_file(path):
-    """``(array, spacing (3,), origin (3,))`` when ``path`` is an .npz volume (spacing of 3 values), else None."""
+def read_volume_file(path, *, volume: bool = False):
+    """``(array, spacing (3,), origin (3,))`` when ``path`` holds RF volumes, else None: an .npz whose spacing has 3
+    values; a file that can only hold volumes (a MetaImage of NDims 4, a MAT-file whose spacing has 3 values);
+    with ``volume`` (CLI ``--volume``) any file :func:`femreg.io.read_volumes` reads, a 3D array one volume
+    (axial, lateral, elevational), e.g. a MetaImage of NDims 3, which is otherwise read as a stack of frames."""
     p = Path(path)
+    if volume or _volumes_only(p):
+        from ..io import read_volumes
+
+        v = read_volumes(p)
+        arr = v.frames[0] if v.n_frames == 1 else v.frames
+        return arr, np.asarray(v.spacing, float).ravel(), np.asarray(v.origin, float).ravel()
     if p.suffix.lower() != ".npz" or not p.exists():
         return None
     try:
@@ -41,6 +51,30 @@ def read_volume_file(path):
         return arr, np.asarray(z["spacing"], float).ravel(), origin
 
 
+def _volumes_only(p: Path) -> bool:
+    """Whether ``p`` is a MetaImage of NDims 4 or a MAT-file the frame reader refuses for its 3 spacing values."""
+    suffix = p.suffix.lower()
+    if not p.is_file() or suffix not in (".mhd", ".mha", ".mat"):
+        return False
+    from ..errors import FileFormatError
+
+    if suffix in (".mhd", ".mha"):
+        from ..io.metaimage import _parse_header
+
+        try:
+            fields = _parse_header(p)[0]
+        except FileFormatError:
+            return False            # the frame reader says what is wrong with it
+        return fields.get("ndims", "").strip() == "4"
+    from ..io import read_frames
+
+    try:
+        read_frames(p)
+    except (FileFormatError, InputError) as exc:
+        return "read_volumes" in str(exc)
+    return False
+
+
 def _kwargs(kw):
     return {k: v for k, v in kw.items() if k not in _NOT_FOR_VOLUMES}
 
@@ -56,9 +90,7 @@ def register_volumes(args, vol, kw) -> int:
         i, j = args.pair or (0, 1)
         ref, mov = arr[i], arr[j]
     else:
-        other = read_volume_file(args.moving)
-        if other is None:
-            raise InputError(f"{args.moving}: not a volume .npz (spacing with 3 values)")
+        other = read_volume_file(args.moving, volume=True)
         if not np.allclose(other[1], spacing):
             raise InputError(f"spacing differs between volumes: {tuple(spacing)} vs {tuple(other[1])}")
         ref = arr if arr.ndim == 3 else arr[(args.pair or (0, 0))[0]]
@@ -86,20 +118,43 @@ def register_volumes(args, vol, kw) -> int:
 
 
 def track_volumes(args, vol, kw) -> int:
-    """The track command on a volume-sequence file: ``frame_KKK.npz`` (frame 0 -> K) in the output folder."""
+    """The track command on a volume-sequence file (``vol`` from :func:`read_volume_file`; ``kw["geometry"]`` a
+    swept probe's, else absent): ``frame_KKK.npz`` (frame 0 -> K) in the output folder as each frame finishes,
+    ``--resume``, the progress bar and the exit codes of the frame track (:mod:`femreg.cli.track_cmd`)."""
     from ..volume import track_volume
 
     arr, spacing, origin = vol
     if arr.ndim != 4:
         raise InputError(f"{args.file}: a single volume; track needs a volume sequence (n_frames, n_x, n_y, n_z)")
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    tr = track_volume(list(arr), spacing=spacing, origin=origin, **_kwargs(kw))
-    for k, res in enumerate(tr.accumulated, start=1):
-        res.save(out / f"frame_{k:03d}.npz")
-        print(f"frame {k:3d}: ncc {tr.results[k - 1].ncc_before:.3f} -> {tr.results[k - 1].ncc_after:.3f}, "
-              f"nit {tr.results[k - 1].nit}" + ("" if tr.results[k - 1].success else "  FAILED"))
+    done = []
+
+    def on_frame(k, res, flag):
+        done.append(k)
+        print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
+              + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
+
+    try:
+        tr = track_volume(list(arr), spacing=spacing, origin=origin, mode=args.mode, checkpoint_dir=args.output,
+                          resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,
+                          on_frame=on_frame, **kw)
+    except InputError:
+        raise  # bad input: one line and exit 2 from the dispatcher
+    except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
+        k = (done[-1] if done else 0) + 1
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
+        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
+              f"rerun with --resume to continue", file=sys.stderr)
+        return 1
     if tr.accumulated and tr.accumulated[0].excluded:
         print(f"femreg track: left out of the mesh (the rest is registered): {tr.accumulated[0].excluded}")
-    print(f"femreg track: {len(tr)} volumes in {out}")
-    return 0 if tr.success else 1
+    n_new = sum(tr.computed)
+    n_flag = sum(1 for f in tr.flags if f)
+    print(f"femreg track: {len(tr)} volumes in {args.output} ({n_new} computed, {len(tr) - n_new} resumed, "
+          f"{n_flag} flagged)")
+    if n_flag:
+        first = next(k for k, f in enumerate(tr.flags, start=1) if f)
+        print(f"femreg track: FLAGGED: {n_flag} of {len(tr)} volume(s) (frame {first}: {tr.flags[first - 1]})",
+              file=sys.stderr)
+        return 1
+    return 0

@@ -13,6 +13,8 @@ before any registration.
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
@@ -29,30 +31,46 @@ def add_parser(subparsers):
                    help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--volume", action="store_true",
+                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
+                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
+                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
+                        "spacing values) are read so without it")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
-    g = p.add_argument_group("probe geometry (femreg.geometry)")
-    g.add_argument("--geometry", choices=("linear", "convex", "sector", "swept"), default="linear",
-                   help="frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
-                        "axial spacing is the range step, registered in physical x, y (default linear); swept: "
-                        "volumes (samples, lines, frames) of a mechanically swept probe, the file's spacing (range "
-                        "step mm, line pitch mm or deg, frame step deg), registered in physical x, y, z "
-                        "(femreg.swept)")
-    g.add_argument("--radius", type=float, metavar="MM", help="convex: apex distance behind the face, mm")
-    g.add_argument("--angle-pitch", type=float, metavar="DEG", help="convex / sector: angle between rays, deg")
-    g.add_argument("--sweep-radius", type=float, metavar="MM",
-                   help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
-                        "linear, or convex / sector with --radius / --angle-pitch")
-    g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
+    add_geometry_args(p)
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
-                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (up to "
-                        "2), slip (3 passes, and the shear-traction weight lowered where layers slide; "
+                   help="refine the mesh where the jumps of A[u] stand out and solve again: N passes, auto (one "
+                        "pass quartering the marked rows / columns: femreg.refine.DEEP_REFINEMENT), slip (3 "
+                        "passes, and the shear-traction weight lowered where layers slide; "
                         "femreg.refine.SLIP_REFINEMENT), none (or 0) off; default auto with --strategy auto and "
                         "R_P_sigma on the default mesh, off otherwise")
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
     return p
+
+
+def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
+    """The probe geometry options (``--geometry`` of ``choices``, and each geometry's parameters)."""
+    g = p.add_argument_group("probe geometry (femreg.geometry)")
+    g.add_argument("--geometry", choices=choices, default="linear",
+                   help=("frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
+                         "axial spacing is the range step, registered in physical x, y (default linear); "
+                         if "convex" in choices else "default linear; ")
+                   + "swept: volumes (samples, lines, frames) of a mechanically swept probe, the file's spacing "
+                     "(range step mm, line pitch mm or deg, frame step deg), registered in physical x, y, z "
+                     "(femreg.swept)")
+    g.add_argument("--radius", type=float, metavar="MM",
+                   help="convex: apex distance behind the face, mm" if "convex" in choices
+                   else "swept convex array: apex distance behind the face, mm")
+    g.add_argument("--angle-pitch", type=float, metavar="DEG",
+                   help="convex / sector: angle between rays, deg" if "convex" in choices
+                   else "swept convex / sector array: angle between rays, deg")
+    g.add_argument("--sweep-radius", type=float, metavar="MM",
+                   help="swept: distance of the sweep axis behind the face, mm (0: on the face); the array is "
+                        "linear, or convex / sector with --radius / --angle-pitch")
+    g.add_argument("--angle-step", type=float, metavar="DEG", help="swept: angle between frames, deg")
 
 
 def _frame(fr, index, path):
@@ -100,7 +118,7 @@ def run(args) -> int:
 
     kw = registration_kwargs(args)
     from ._volume import read_volume_file, register_volumes
-    vol = read_volume_file(args.reference)
+    vol = read_volume_file(args.reference, volume=args.volume)
     if vol is not None:                 # RF volumes (spacing with 3 values)
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
@@ -135,11 +153,15 @@ def run(args) -> int:
         mov_fr = frames_from_args(args, args.moving)
         if not np.allclose(ref_fr.spacing, mov_fr.spacing):
             raise InputError(f"spacing differs between frames: {tuple(ref_fr.spacing)} vs {tuple(mov_fr.spacing)}")
+        if args.pair is None and max(ref_fr.n_frames, mov_fr.n_frames) > 1:
+            # two multi-frame files: say which frames are registered; a 3D file may be meant as one volume
+            print(f"femreg register: note: {args.reference} holds {ref_fr.n_frames} and {args.moving} "
+                  f"{mov_fr.n_frames} frames: registering frame 0 of each (--pair I J picks others; --volume "
+                  "reads each file as one RF volume)", file=sys.stderr)
     ref = _frame(ref_fr, i, args.reference)
     mov = _frame(mov_fr, j, args.moving or args.reference)
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
-    import sys
 
     spacing, origin = ref_fr.spacing, ref_fr.origin
     if args.geometry != "linear":       # range step and first range from the file; rays centred on angle 0

@@ -12,6 +12,7 @@ import sys
 
 from ..errors import InputError
 from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from .register_cmd import _swept, add_geometry_args
 
 
 def add_parser(subparsers):
@@ -24,7 +25,9 @@ def add_parser(subparsers):
                     "NCC after registration is below --min-ncc are flagged, the run continues and the command "
                     "exits with code 1 listing them.  If a frame cannot be computed, the frames before it stay "
                     "saved, the command exits with code 1 naming the frame, and --resume continues from there.  "
-                    "Bad input: exit 2 before any frame is registered.")
+                    "Bad input: exit 2 before any frame is registered.  Volumes (.npz with a spacing of 3 values) "
+                    "are tracked the same way; --geometry swept for a swept probe's volumes, all scan-converted "
+                    "onto one Cartesian grid.")
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
@@ -36,6 +39,12 @@ def add_parser(subparsers):
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--volume", action="store_true",
+                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
+                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
+                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
+                        "spacing values) are read so without it")
+    add_geometry_args(p, choices=("linear", "swept"))
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -46,11 +55,16 @@ def run(args) -> int:
     from ..sequence import track
 
     from ._volume import read_volume_file, track_volumes
-    vol = read_volume_file(args.file)
-    if vol is not None:                 # a volume sequence (spacing with 3 values)
-        return track_volumes(args, vol, registration_kwargs(args))
-    fr = frames_from_args(args)
+    vol = read_volume_file(args.file, volume=args.volume)
     kw = registration_kwargs(args)
+    if vol is not None:                 # a volume sequence (spacing with 3 values)
+        if args.geometry == "swept":    # a swept probe's volumes (femreg.swept)
+            kw["geometry"] = _swept(args)
+        return track_volumes(args, vol, kw)
+    if args.geometry == "swept":
+        raise InputError(f"--geometry swept needs a volume-sequence file (spacing of 3 values, or --volume), got "
+                         f"{args.file}")
+    fr = frames_from_args(args)
 
     def report(k, res, flag):
         # Per-frame line; with the progress bar on it goes to stderr beside the bar.
