@@ -37,8 +37,12 @@ the refined mesh (the step's length times its height), so refining a region does
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
 The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that splits each marked row / column twice
-(to a quarter of the 2 mm element, down to 0.15 mm axially) with no element budget, one Gauss-Newton step on the
-refined mesh.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
+where its largest jump is at least 3x the marking's cut, once where it is less (to a quarter / half of the 2 mm
+element, down to 0.15 mm axially), with no element budget, one Gauss-Newton step on the refined mesh; only when
+some row / column reaches 2.2x the cut (:attr:`Refinement.feature`): decorrelation noise of a rotated pair puts
+jumps just over the cut on most rows (largest 1.1-2.4x), features stand out further (inclusions 5.9-25.8x, shear
+bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
+mesh (:attr:`Refinement.settle`).  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
@@ -171,6 +175,17 @@ class Refinement:
         False: relax, on each split's own solve, the edges that stand out on the solve before it (cells of that
         coarser mesh), with no second pass (:data:`DEEP_REFINEMENT`; a long ``relax_min_length`` then keeps
         the relaxation to layers across the image).
+    strong : float, optional
+        With ``levels`` > 1: only the rows / columns whose score (largest jump over the cut) is at least this
+        split ``levels`` times, the others marked once.  None: every marked one ``levels`` times.
+    feature : float
+        A pass splits only when some row / column scores at least this (its largest jump this many times the
+        cut): decorrelation noise (a rotated pair) scatters jumps just over the cut over most rows, a feature
+        (an inclusion's rim, a band's faces) stands out further.  0: no such test.
+    settle : bool
+        When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
+        (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
+        pass of a rotated pair gained.
     """
 
     passes: int = 2
@@ -191,8 +206,15 @@ class Refinement:
     relax_cells: bool = True
     relax_solve: bool = False
     relax_persist: bool = True
+    strong: float | None = None
+    feature: float = 0.0
+    settle: bool = False
 
     def __post_init__(self):
+        if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
+            raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
+        if not (np.isfinite(self.feature) and self.feature >= 0):
+            raise InputError(f"refinement feature must be a finite number >= 0, got {self.feature!r}")
         if self.relax is not None and not (np.isfinite(self.relax) and 0 < self.relax <= 1):
             raise InputError(f"refinement relax must be None or a weight in (0, 1], got {self.relax!r}")
         if self.relax_parts not in ("both", "normal", "tangential"):
@@ -245,7 +267,7 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.03, maxiter=
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0)
+                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -641,7 +663,7 @@ def _split(breaks, marked, origin, spacing, min_size):
 
 def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels):
     xs, ys, _ = _need_tensor(mesh)
-    rows, cols = np.asarray(rows, bool), np.asarray(cols, bool)
+    rows, cols = np.asarray(rows), np.asarray(cols)
     if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
         raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
                          f"and {cols.shape}")
@@ -655,10 +677,12 @@ def refined_axes(breaks, marked, spacing, origin, min_size, levels):
     boundaries, both halves at least ``min_size[a]`` and 2 pixels), and the number of new breaks."""
     out, counts = [], []
     for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
-        m = np.asarray(m, bool)
-        lo, hi = np.asarray(b)[:-1][m], np.asarray(b)[1:][m]
+        m = np.asarray(m)
+        lev = m.astype(np.int64) * int(levels) if m.dtype == bool else np.asarray(m, np.int64)
         nb, total = np.asarray(b, float), 0
-        for _ in range(int(levels)):
+        for level in range(int(lev.max(initial=0))):
+            sel = lev > level
+            lo, hi = np.asarray(b)[:-1][sel], np.asarray(b)[1:][sel]
             mid = 0.5 * (nb[:-1] + nb[1:])
             inside = np.zeros(mid.shape, bool)
             for a, c in zip(lo, hi):
@@ -735,6 +759,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
+    note = None
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
@@ -742,6 +767,20 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
+        top = max(float(np.max(s, initial=0.0)) for s in score)
+        if top < opts.feature:
+            # no row / column stands out that far: decorrelation noise, not a feature; split nothing
+            if np.any(rows) or np.any(cols):
+                note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, none standing out "
+                        f"(largest jump {top:.2g}x the cut, below {opts.feature:g}): not split")
+                if opts.settle and k == 0:
+                    sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
+                    note += "; one more step on the unrefined mesh"
+            break
+        if opts.strong is not None and opts.levels > 1:
+            # the full depth only where the jump stands out strongly; rows / columns just over the cut once
+            rows, cols = (np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
+                          for m, s in zip((rows, cols), score))
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
@@ -776,7 +815,14 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            relaxed_edges=int(len(relaxed)), seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
-    return sol, RefinementRecord(record, base_size)
+    return sol, RefinementRecord(record, base_size, note)
+
+
+def _settled(sol, base_gn, nit: int):
+    """``sol`` after :attr:`Refinement.settle`'s one step on the unrefined mesh, carrying the unrefined solve's
+    verdict (``base_gn``) and all iterations: the step count is the option, not a failure to converge."""
+    sol.gn = dataclasses.replace(base_gn, nit=nit + int(sol.gn.nit))
+    return sol
 
 
 def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:

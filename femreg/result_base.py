@@ -126,12 +126,13 @@ class RefinementRecord:
 
     passes: list
     base_size: tuple | None = None
+    note: str | None = None         # why nothing was split although something was marked
 
     def summary(self) -> str:
         if self.passes is None:         # read back from a result file, which keeps the starting size only
             return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
         if not self.passes:
-            return "refinement: nothing marked"
+            return f"refinement: {self.note}" if self.note else "refinement: nothing marked"
         parts = [f"{p['elements']} -> {p['elements_after']} elements ("
                  + (f"{p['rows']} x-, {p['columns']} y-, {p['slices']} z-slabs split" if "slices" in p else
                     f"{p['rows']} rows, {p['columns']} columns split")

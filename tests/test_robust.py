@@ -330,8 +330,8 @@ def test_strain_stopping_rule_waits_for_two_small_steps():
 def test_peak_hopping_island_shared_by_the_coarse_level_is_repaired():
     # 1 % compression + 1 degree under the 3 MHz, 0.5 mm pitch probe: the envelope level and the RF level both
     # held a corner island whole periods off its neighbours (measured 43.6 % total strain error with
-    # success=True); the neighbourhood test reseeds it: measured 20.2 % with the default refinement (18.1 % with
-    # the two-pass refinement, 14.8 % unrefined)
+    # success=True); the neighbourhood test reseeds it: measured 18.05 % with the default refinement (its
+    # marked rows do not stand out: not split, one more step on the unrefined mesh; 14.8 % unrefined)
     from forward.pairs import make_pair
 
     f = _rotation(1.0)
@@ -339,7 +339,7 @@ def test_peak_hopping_island_shared_by_the_coarse_level_is_repaired():
     res = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
     err = field_errors(res, f.displacement, f.strain)
     assert res.success and "peak hopping at" in res.message, res.message
-    assert err["e"] < 0.25, err
+    assert err["e"] < 0.2, err
 
 
 def test_islands_left_after_the_repair_fail_the_result():
