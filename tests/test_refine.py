@@ -494,3 +494,32 @@ def test_a_refined_result_file_keeps_the_starting_element_size_for_the_inversion
     ratio = np.nanmedian(mr.uncertainty / m1.uncertainty)
     expect = _registered_sigma(h_refined) / _registered_sigma(float(np.sqrt(np.prod(base))))
     assert ratio == pytest.approx(expect, rel=1e-6) and ratio > 1.2
+
+
+def test_marked_rows_that_do_not_stand_out_are_not_split(band_pair):
+    """A rotated pair's decorrelation noise marks rows just over the cut; the default splits nothing there and
+    takes its one step on the unrefined mesh, while a shear band's faces stand out and are split."""
+    import dataclasses
+
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    from femreg.refine import DEEP_REFINEMENT
+
+    p = make_pair(F.compression_rotation(0.01, 2.0), "paper", (40.0, 30.0), 30.0, 3)
+    kw = dict(spacing=p.spacing, origin=p.origin)
+    r0 = femreg.register(p.ref, p.mov, refine=None, **kw)
+    rd = femreg.register(p.ref, p.mov, **kw)
+    assert "none standing out" in rd.message and "one more step on the unrefined mesh" in rd.message, rd.message
+    assert rd.mesh.t.shape[1] == r0.mesh.t.shape[1] and rd.nit == r0.nit + 1
+    # without the feature test the same pass splits the noise rows
+    rn = femreg.register(p.ref, p.mov, refine=dataclasses.replace(DEEP_REFINEMENT, feature=0.0), **kw)
+    assert rn.mesh.t.shape[1] > 1.5 * r0.mesh.t.shape[1], rn.message
+    b = band_pair
+    kb = dict(spacing=b.spacing, origin=b.origin)
+    rb0 = femreg.register(b.ref, b.mov, refine=None, **kb)
+    rb = femreg.register(b.ref, b.mov, **kb)
+    assert rb.refinement.passes and rb.mesh.t.shape[1] > rb0.mesh.t.shape[1], rb.message
+    # the faces stand out more than 3x the cut: split twice, to a quarter of the unrefined axial size
+    h0 = np.median(np.diff(np.unique(rb0.mesh.p[0])))
+    assert np.diff(np.unique(rb.mesh.p[0])).min() < 0.3 * h0
