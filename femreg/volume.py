@@ -705,6 +705,10 @@ class VolumeTrack:
     def __len__(self):
         return len(self.accumulated)
 
+    def __getitem__(self, k):
+        """Frame 0 -> k + 1, as a 2D :func:`femreg.track` result is indexed."""
+        return self.accumulated[k]
+
 
 def _frame_flag(res, min_ncc) -> str:
     """'' for a good frame, else why it is flagged (as :func:`femreg.track` flags a frame)."""

@@ -13,6 +13,7 @@ Use::
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .. import options
 from ..errors import InputError
@@ -151,5 +152,43 @@ def failed_notice(path, success, message, flag="") -> int:
         return 1
     if flag:
         print(f"femreg plot: FLAGGED: {path}: {flag}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_tracking(args, call, noun: str) -> int:
+    """Run ``call(on_frame)`` (a tracking run writing one file per frame into ``args.output``), print a line per
+    frame and the run's summary; the exit code: 0 done, 1 a frame flagged or failed (finished frames kept, the
+    message says how to resume); bad input (:class:`InputError`) propagates (exit 2).  ``noun``: "frame" or
+    "volume", for the summary."""
+    done = []
+
+    def on_frame(k, res, flag):
+        done.append(k)
+        # with the progress bar on, the per-frame line goes to stderr beside the bar
+        print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
+              + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
+
+    try:
+        out = call(on_frame)
+    except InputError:
+        raise  # bad input: one line and exit 2 from the dispatcher
+    except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
+        k = (done[-1] if done else 0) + 1
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
+        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
+              f"rerun with --resume to continue", file=sys.stderr)
+        return 1
+    if len(out) and getattr(out[0], "excluded", None):
+        print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
+    n_new = sum(out.computed)
+    n_flag = sum(1 for f in out.flags if f)
+    print(f"femreg track: {len(out)} {noun}s in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "
+          f"{n_flag} flagged)")
+    if n_flag:
+        first = next(k for k, f in enumerate(out.flags, start=1) if f)
+        print(f"femreg track: FLAGGED: {n_flag} of {len(out)} {noun}(s) (frame {first}: {out.flags[first - 1]})",
+              file=sys.stderr)
         return 1
     return 0

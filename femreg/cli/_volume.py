@@ -126,35 +126,8 @@ def track_volumes(args, vol, kw) -> int:
     arr, spacing, origin = vol
     if arr.ndim != 4:
         raise InputError(f"{args.file}: a single volume; track needs a volume sequence (n_frames, n_x, n_y, n_z)")
-    done = []
+    from ._common import run_tracking
 
-    def on_frame(k, res, flag):
-        done.append(k)
-        print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
-              + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
-
-    try:
-        tr = track_volume(list(arr), spacing=spacing, origin=origin, mode=args.mode, checkpoint_dir=args.output,
-                          resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,
-                          on_frame=on_frame, **kw)
-    except InputError:
-        raise  # bad input: one line and exit 2 from the dispatcher
-    except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
-        k = (done[-1] if done else 0) + 1
-        msg = " ".join(str(exc).split()) or type(exc).__name__
-        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
-        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
-              f"rerun with --resume to continue", file=sys.stderr)
-        return 1
-    if tr.accumulated and tr.accumulated[0].excluded:
-        print(f"femreg track: left out of the mesh (the rest is registered): {tr.accumulated[0].excluded}")
-    n_new = sum(tr.computed)
-    n_flag = sum(1 for f in tr.flags if f)
-    print(f"femreg track: {len(tr)} volumes in {args.output} ({n_new} computed, {len(tr) - n_new} resumed, "
-          f"{n_flag} flagged)")
-    if n_flag:
-        first = next(k for k, f in enumerate(tr.flags, start=1) if f)
-        print(f"femreg track: FLAGGED: {n_flag} of {len(tr)} volume(s) (frame {first}: {tr.flags[first - 1]})",
-              file=sys.stderr)
-        return 1
-    return 0
+    return run_tracking(args, lambda on_frame: track_volume(
+        list(arr), spacing=spacing, origin=origin, mode=args.mode, checkpoint_dir=args.output, resume=args.resume,
+        progress=not args.no_progress, min_ncc=args.min_ncc, on_frame=on_frame, **kw), "volume")

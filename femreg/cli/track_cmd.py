@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import InputError
-from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs, run_tracking
 from .register_cmd import _swept, add_geometry_args
 
 
@@ -65,41 +65,7 @@ def run(args) -> int:
         raise InputError(f"--geometry swept needs a volume-sequence file (spacing of 3 values, or --volume), got "
                          f"{args.file}")
     fr = frames_from_args(args)
-
-    def report(k, res, flag):
-        # Per-frame line; with the progress bar on it goes to stderr beside the bar.
-        print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
-              + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
-
-    done = []
-
-    def on_frame(k, res, flag):
-        done.append(k)
-        report(k, res, flag)
-
-    try:
-        out = track(fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, grid=args.grid,
-                    init=args.init,
-                    checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress,
-                    min_ncc=args.min_ncc, on_frame=on_frame, **kw)
-    except InputError:
-        raise  # bad input: one line and exit 2 from the dispatcher
-    except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
-        k = (done[-1] if done else 0) + 1
-        msg = " ".join(str(exc).split()) or type(exc).__name__
-        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
-        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
-              f"rerun with --resume to continue", file=sys.stderr)
-        return 1
-    if out and getattr(out[0], "excluded", None):
-        print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
-    n_new = sum(out.computed)
-    n_flag = sum(1 for f in out.flags if f)
-    print(f"femreg track: {len(out)} frames in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "
-          f"{n_flag} flagged)")
-    if n_flag:
-        first = next(k for k, f in enumerate(out.flags, start=1) if f)
-        print(f"femreg track: FLAGGED: {n_flag} of {len(out)} frame(s) (frame {first}: {out.flags[first - 1]})",
-              file=sys.stderr)
-        return 1
-    return 0
+    return run_tracking(args, lambda on_frame: track(
+        fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, grid=args.grid, init=args.init,
+        checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,
+        on_frame=on_frame, **kw), "frame")
