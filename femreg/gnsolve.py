@@ -17,7 +17,7 @@ from .pixels import PixelQuadrature, PointLocator
 from .regularizers import Regularizer
 from .result import displacement_at
 from .scaling import effective_alpha
-from .solver import Objective, gauss_newton
+from .solver import GN_ENERGY_TOL, Objective, gauss_newton
 
 __all__ = ["Solve", "image_term", "solve"]
 
@@ -68,5 +68,6 @@ def solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None,
     psi_start = data.energy(u0)              # gauss_newton's first evaluation then comes from the cache
     gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver,
                       callback=callback, strain_tol=strain_tol,
+                      energy_tol=None if strain_tol is None else GN_ENERGY_TOL,
                       strain_operator=None if strain_tol is None else element_strain_operator(mesh))
     return Solve(mesh=mesh, u=gn.x, gn=gn, data=data, locator=locator, reg=reg, start=u0, psi_start=psi_start)
