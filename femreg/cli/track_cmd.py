@@ -8,7 +8,6 @@ input, found before any frame is registered.
 """
 from __future__ import annotations
 
-import sys
 
 from ..errors import InputError
 from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs, run_tracking
