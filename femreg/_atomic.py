@@ -70,3 +70,25 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
         raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
     atomic_write_text(pfile, json.dumps(params, indent=1))
     return out
+
+
+def save_frame(path, result, increment, flag: str, k: int, mode: str) -> None:
+    """Write a tracking run's frame ``k`` (frame 0 -> k) atomically: ``result.save`` with the increment of eq:IR,
+    the flag ('' or why it is flagged), the frame index and the run's mode."""
+    atomic_savez(path, writer=lambda tmp: result.save(tmp, increment=increment, flag=np.str_(flag),
+                                                      frame=np.int64(k), mode=np.str_(mode)))
+
+
+def load_frame_record(path) -> tuple:
+    """``(increment, flag)`` of a frame file written by :func:`save_frame`."""
+    with np.load(path, allow_pickle=False) as z:
+        return np.asarray(z["increment"], float), str(z["flag"])
+
+
+def progress_bar(progress: bool, total: int, desc: str, unit: str):
+    """A tqdm bar for a tracking run, or None without ``progress``."""
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from skfem import MeshQuad1
 
-from ._atomic import atomic_savez, open_run_folder
+from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
 from .echo import crop_for
 from . import orientation
 from .errors import InputError
@@ -218,18 +218,13 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     out = SequenceResult(mode=mode)
     S = np.zeros(n_dof)
     prev_inc = None
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(seq) - 1, desc=f"track ({mode})", unit="frame")
+    bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame")
     try:
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
             if resume and path is not None and path.exists():
                 res = load_result(path)
-                with np.load(path, allow_pickle=False) as z:
-                    inc = np.asarray(z["increment"], float)
-                    flag = str(z["flag"])
+                inc, flag = load_frame_record(path)
                 computed = False
             else:
                 if mode == "direct":
@@ -268,8 +263,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                     flag = ""
                 computed = True
                 if path is not None:
-                    atomic_savez(path, writer=lambda tmp: res.save(tmp, increment=inc, flag=np.str_(flag),
-                                                                   frame=np.int64(k), mode=np.str_(mode)))
+                    save_frame(path, res, inc, flag, k, mode)
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
             prev_inc = inc
             out.append(res)

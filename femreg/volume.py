@@ -813,19 +813,15 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     out = VolumeTrack(results=[], accumulated=[], swept=swept)
     S = None
     prev = None
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(arr) - 1, desc=f"track volumes ({mode})", unit="volume")
+    from ._atomic import load_frame_record, progress_bar, save_frame
+    bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume")
     try:
         for k in range(1, len(arr)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
             if resume and path is not None and path.exists():
                 from .volume_result import load_volume_result
                 a = load_volume_result(path)
-                with np.load(path, allow_pickle=False) as z:
-                    inc = np.asarray(z["increment"], float)
-                    flag = str(z["flag"])
+                inc, flag = load_frame_record(path)
                 r = a if mode == "direct" else copy.copy(a)
                 if r is not a:
                     r.u, r._nodal_strain, r._grids = inc, None, {}
@@ -849,9 +845,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                 flag = _frame_flag(r, min_ncc)
                 computed = True
                 if path is not None:
-                    from ._atomic import atomic_savez
-                    atomic_savez(path, writer=lambda tmp: a.save(tmp, increment=r.u, flag=np.str_(flag),
-                                                                 frame=np.int64(k), mode=np.str_(mode)))
+                    save_frame(path, a, r.u, flag, k, mode)
             out.results.append(r)
             out.accumulated.append(a)
             out.flags.append(flag)
