@@ -306,8 +306,10 @@ def test_cli_registers_and_tracks_volume_files(affine_pair, tmp_path, capsys):
     res = load_volume_result(out)
     e = res.strain(np.array([[3.0, 3.0, 3.0]]))[0]
     assert abs(e[0] - _true_strain(G)[0]) < 0.1 * abs(_true_strain(G)[0])
+    capsys.readouterr()
     assert main(["track", str(seq), "-o", str(tmp_path / "t"), "--element-size", "2"]) == 0
     assert (tmp_path / "t" / "frame_001.npz").exists()
+    assert "femreg track: 1 volume in" in capsys.readouterr().out          # one volume tracked: singular
     bad = tmp_path / "bad.npz"
     np.savez(bad, rf=ref[:, :, 0], spacing=np.asarray(spacing))
     assert main(["register", str(bad), "-o", str(out)]) == 2

@@ -184,8 +184,8 @@ def run_tracking(args, call, noun: str) -> int:
         print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
-    print(f"femreg track: {len(out)} {noun}s in {args.output} ({n_new} computed, {len(out) - n_new} resumed, "
-          f"{n_flag} flagged)")
+    print(f"femreg track: {len(out)} {noun}{'' if len(out) == 1 else 's'} in {args.output} ({n_new} computed, "
+          f"{len(out) - n_new} resumed, {n_flag} flagged)")
     if n_flag:
         first = next(k for k, f in enumerate(out.flags, start=1) if f)
         print(f"femreg track: FLAGGED: {n_flag} of {len(out)} {noun}(s) (frame {first}: {out.flags[first - 1]})",
