@@ -192,3 +192,42 @@ def run_tracking(args, call, noun: str) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def array_headers(path) -> dict:
+    """{name: (shape, dtype)} of the arrays in an .npz or .mat file (MATLAB order for .mat), read from headers
+    only, without loading the data ({} for other files, or when the headers cannot be read)."""
+    import zipfile
+    from pathlib import Path
+
+    import numpy as np
+
+    path, out = Path(path), {}
+    try:
+        if path.suffix.lower() == ".npz":
+            with zipfile.ZipFile(path) as zf:
+                for info in zf.infolist():
+                    with zf.open(info) as fh:
+                        version = np.lib.format.read_magic(fh)
+                        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                else np.lib.format.read_array_header_2_0)
+                        shape, _, dtype = read(fh)
+                    out[info.filename.removesuffix(".npy")] = (tuple(shape), str(dtype))
+        elif path.suffix.lower() == ".mat":
+            from ..io.matlab import mat_version
+
+            if mat_version(path) == "7.3":
+                import h5py
+
+                with h5py.File(path, "r") as h5:
+                    for k, v in h5.items():
+                        if hasattr(v, "shape"):
+                            out[k] = (tuple(v.shape[::-1]), str(v.dtype))
+            else:
+                from scipy.io import whosmat
+
+                for name, shape, cls in whosmat(str(path)):
+                    out[name] = (tuple(shape), str(cls))
+    except Exception:  # noqa: BLE001 - the listing is a courtesy; the reader's own error stays the verdict
+        return out
+    return out

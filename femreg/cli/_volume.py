@@ -52,13 +52,13 @@ def read_volume_file(path, *, volume: bool = False):
 
 
 def _volumes_only(p: Path) -> bool:
-    """Whether ``p`` is a MetaImage of NDims 4 or a MAT-file the frame reader refuses for its 3 spacing values."""
+    """Whether ``p`` can only hold volumes, judged from its header without reading the data: a MetaImage of NDims
+    4, or a MAT-file whose ``spacing`` has 3 values or that holds a 4D array (the frame reader refuses both)."""
     suffix = p.suffix.lower()
     if not p.is_file() or suffix not in (".mhd", ".mha", ".mat"):
         return False
-    from ..errors import FileFormatError
-
     if suffix in (".mhd", ".mha"):
+        from ..errors import FileFormatError
         from ..io.metaimage import _parse_header
 
         try:
@@ -66,13 +66,10 @@ def _volumes_only(p: Path) -> bool:
         except FileFormatError:
             return False            # the frame reader says what is wrong with it
         return fields.get("ndims", "").strip() == "4"
-    from ..io import read_frames
+    from ._common import array_headers
 
-    try:
-        read_frames(p)
-    except (FileFormatError, InputError) as exc:
-        return "read_volumes" in str(exc)
-    return False
+    shapes = {k: shape for k, (shape, _) in array_headers(p).items()}
+    return int(np.prod(shapes.get("spacing", (0,)))) == 3 or any(len(s) == 4 for s in shapes.values())
 
 
 def _kwargs(kw):

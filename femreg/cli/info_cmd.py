@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ._common import add_reader_args, frames_from_args
+from ._common import add_reader_args, array_headers, frames_from_args
 
 
 def add_parser(subparsers):
@@ -53,35 +52,7 @@ def _plain(v):
 
 def _variables(path: Path) -> dict:
     """{name: "shape dtype"} of the arrays in an .npz or .mat file, read from headers only ({} otherwise)."""
-    out = {}
-    try:
-        if path.suffix.lower() == ".npz":
-            with zipfile.ZipFile(path) as zf:
-                for info in zf.infolist():
-                    with zf.open(info) as fh:
-                        version = np.lib.format.read_magic(fh)
-                        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                                else np.lib.format.read_array_header_2_0)
-                        shape, _, dtype = read(fh)
-                    out[info.filename.removesuffix(".npy")] = f"{'x'.join(map(str, shape)) or 'scalar'} {dtype}"
-        elif path.suffix.lower() == ".mat":
-            from ..io.matlab import mat_version
-
-            if mat_version(path) == "7.3":
-                import h5py
-
-                with h5py.File(path, "r") as h5:
-                    for k, v in h5.items():
-                        if hasattr(v, "shape"):
-                            out[k] = f"{'x'.join(map(str, v.shape[::-1]))} {v.dtype}"
-            else:
-                from scipy.io import whosmat
-
-                for name, shape, cls in whosmat(str(path)):
-                    out[name] = f"{'x'.join(map(str, shape))} {cls}"
-    except Exception:  # noqa: BLE001 - the listing is a courtesy; the reader's own error stays the verdict
-        return out
-    return out
+    return {k: f"{'x'.join(map(str, shape)) or 'scalar'} {dtype}" for k, (shape, dtype) in array_headers(path).items()}
 
 
 def _what_is_missing(exc: InputError, path: Path, args) -> tuple[str, dict]:
