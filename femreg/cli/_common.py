@@ -231,3 +231,12 @@ def array_headers(path) -> dict:
     except Exception:  # noqa: BLE001 - the listing is a courtesy; the reader's own error stays the verdict
         return out
     return out
+
+
+def add_volume_arg(p) -> None:
+    """``--volume`` of ``register`` and ``track``: read the file(s) as RF volumes."""
+    p.add_argument("--volume", action="store_true",
+                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
+                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
+                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
+                        "spacing values) are read so without it")

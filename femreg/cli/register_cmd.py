@@ -17,7 +17,8 @@ import sys
 
 import numpy as np
 
-from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from ._common import (add_reader_args, add_registration_args, add_volume_arg, frames_from_args,
+                      registration_kwargs)
 
 
 def add_parser(subparsers):
@@ -31,11 +32,7 @@ def add_parser(subparsers):
                    help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
-    p.add_argument("--volume", action="store_true",
-                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
-                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
-                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
-                        "spacing values) are read so without it")
+    add_volume_arg(p)
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     add_geometry_args(p)
     g = p.add_argument_group("adaptive refinement (femreg.refine)")

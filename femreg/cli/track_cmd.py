@@ -8,9 +8,9 @@ input, found before any frame is registered.
 """
 from __future__ import annotations
 
-
 from ..errors import InputError
-from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs, run_tracking
+from ._common import (add_reader_args, add_registration_args, add_volume_arg, frames_from_args,
+                      registration_kwargs, run_tracking)
 from .register_cmd import _swept, add_geometry_args
 
 
@@ -38,11 +38,7 @@ def add_parser(subparsers):
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--volume", action="store_true",
-                   help="read the file(s) as RF volume(s): a 3D array is one volume (axial, lateral, elevational), "
-                        "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
-                        "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
-                        "spacing values) are read so without it")
+    add_volume_arg(p)
     add_geometry_args(p, choices=("linear", "swept"))
     add_registration_args(p)
     add_reader_args(p)
