@@ -37,7 +37,7 @@ from .speckle import rf_period
 
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "repair_peak_hopping", "envelope_lag_ncc", "envelope_lag_ncc_3d",
-           "lag_gain", "hop_note", "check_result", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
+           "lag_gain", "hop_note", "check_result", "frame_flag", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
            "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION"]
 
 #: A node is hopping when ``|u_x - reference|`` exceeds this fraction of the RF period.
@@ -517,3 +517,13 @@ def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None, gr
                      f"closer frames, or the whole sequence with track")
     return Check(success=success, u=u_out, notes=notes, ncc_before=ncc0, ncc_after=ncc1, quality=quality,
                  hop_gain=gain)
+
+
+def frame_flag(res, min_ncc) -> str:
+    """Why a tracked frame is flagged (:func:`femreg.track`, frames and volumes alike), '' for a good one: its
+    registration failed its own check, or its NCC after is below ``min_ncc`` (None: no NCC limit)."""
+    if not res.success:
+        return f"registration failed: {res.message.removeprefix('FAILED: ')}"
+    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
+        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+    return ""

@@ -37,6 +37,7 @@ from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .registration import RegistrationResult, load_result, register
+from .repair import frame_flag
 from .solver import single_blas_thread
 
 __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
@@ -255,12 +256,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 if crop is not None:
                     crop.widen(res)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
-                if not res.success:
-                    flag = f"registration failed: {res.message.removeprefix('FAILED: ')}"
-                elif not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
-                    flag = f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
-                else:
-                    flag = ""
+                flag = frame_flag(res, min_ncc)
                 computed = True
                 if path is not None:
                     save_frame(path, res, inc, flag, k, mode)

@@ -35,7 +35,7 @@ from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
-                     hop_note, hopped_fraction, lag_gain)
+                     frame_flag, hop_note, hopped_fraction, lag_gain)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -710,15 +710,6 @@ class VolumeTrack:
         return self.accumulated[k]
 
 
-def _frame_flag(res, min_ncc) -> str:
-    """'' for a good frame, else why it is flagged (as :func:`femreg.track` flags a frame)."""
-    if not res.success:
-        return f"registration failed: {res.message.removeprefix('FAILED: ')}"
-    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
-        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
-    return ""
-
-
 @single_blas_thread
 def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumulate", progress=False,
                  checkpoint_dir=None, resume: bool = False, min_ncc=None, on_frame=None, geometry=None,
@@ -842,7 +833,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                     a._nodal_strain = None
                     a._grids = {}
                     r, a = finish(r), finish(a)
-                flag = _frame_flag(r, min_ncc)
+                flag = frame_flag(r, min_ncc)
                 computed = True
                 if path is not None:
                     save_frame(path, a, r.u, flag, k, mode)
