@@ -220,8 +220,8 @@ def test_mat_variable_choice(tmp_path, rf3):
     scipy.io.savemat(p, {"note": "hi"})
     with pytest.raises(FileFormatError, match="no 2D/3D numeric"):
         read_frames(p, spacing=SP)
-    scipy.io.savemat(p, {"rf": rf3[0] + 1j})
-    with pytest.raises(FileFormatError, match="complex"):
+    scipy.io.savemat(p, {"rf": rf3[0] + 1j})          # complex: IQ, which needs its modulation frequency
+    with pytest.raises(InputError, match="complex samples .* IQ data"):
         read_frames(p, spacing=SP)
 
 

@@ -50,7 +50,11 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--frames", metavar="SEL", type=_frame_selection,
                    help="frame selection: 3, 0:10, 0:10:2 or 1,3,5 (default all)")
     g.add_argument("--sound-speed", metavar="C", type=float,
-                   help="speed of sound in m/s for the axial spacing of Ultrasonix .rf (default 1540)")
+                   help="speed of sound in m/s for the axial spacing of Ultrasonix .rf and the remodulation of IQ "
+                        "data (default 1540)")
+    g.add_argument("--iq-frequency", metavar="MHZ", type=float, dest="modulation_frequency",
+                   help="IQ data (complex samples): the demodulation frequency in MHz; the frames are remodulated "
+                        "to RF (UFF files store their own, which this overrides)")
 
 
 def reader_kwargs(args) -> dict:
@@ -61,16 +65,17 @@ def reader_kwargs(args) -> dict:
 def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape: bool | None = None):
     """Read ``path`` (default ``args.file``) with the reader flags of ``args``; returns :class:`Frames`.  Frames of
     a sector scan (UFF) are refused unless ``allow_sector`` (they are not on a Cartesian grid); raw frames read
-    with their two sizes exchanged are refused (:func:`femreg.orientation.check_raw_shape`) unless
+    with their two sizes exchanged (:func:`femreg.orientation.check_raw_shape`) and IQ data with their spacings
+    exchanged (:func:`femreg.orientation.check_remodulated`) are refused unless
     ``check_shape`` is False (default: unless ``--no-orientation-check``)."""
     from ..io import read_frames
     from ..io.uff import require_cartesian
     from ..orientation import OrientationError, check_raw_shape
 
     path = path if path is not None else args.file
-    fr = read_frames(path, **reader_kwargs(args))
     if check_shape is None:
         check_shape = not getattr(args, "no_orientation_check", False)
+    fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     if check_shape:
         try:
             check_raw_shape(fr)

@@ -79,7 +79,16 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]] if spacing_known else None,
         "min": float(a.min()), "max": float(a.max()), "mean": float(a.mean()), "std": float(a.std()),
         "metadata": _plain(meta),
+    } if not np.iscomplexobj(a) else {
+        "file": str(fr.source), "format": meta.pop("format", ""), "frames": fr.n_frames,
+        "shape": list(fr.shape), "dtype": stored or str(a.dtype), "dtype_in_memory": str(a.dtype),
+        "spacing_mm": list(fr.spacing) if spacing_known else None, "origin_mm": list(fr.origin),
+        "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]] if spacing_known else None,
+        "min": float(np.abs(a).min()), "max": float(np.abs(a).max()), "mean": float(np.abs(a).mean()),
+        "std": float(np.abs(a).std()), "values_of": "|IQ|", "metadata": _plain(meta), "needs": [],
     }
+    if np.iscomplexobj(a):      # IQ: the RF checks need the carrier, which needs the modulation frequency
+        return out
     if spacing_known:
         from ..orientation import diagnose
 
@@ -159,7 +168,8 @@ def _print_volumes(info) -> None:
         print(f"extent    {e[0]:g} mm x {e[1]:g} mm x {e[2]:g} mm")
     else:
         print("spacing   none in the file")
-    print(f"values    min {info['min']:.6g}, max {info['max']:.6g}, mean {info['mean']:.6g}, "
+    print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "
+          f"max {info['max']:.6g}, mean {info['mean']:.6g}, "
           f"std {info['std']:.6g}")
     if info.get("rf_check"):
         print(f"RF        {info['rf_check']} (central plane)")
@@ -201,15 +211,30 @@ def run(args) -> int:
     except InputError as exc:
         need, retry = _what_is_missing(exc, path, args)
         info = None
-        if retry:
-            saved = args.spacing
-            args.spacing = retry["spacing"]
+        iq = getattr(exc, "iq_frames", None)
+        if iq is None and retry:
+            # described with a stand-in spacing; IQ data are described as stored (a remodulation needs the spacing)
+            saved = args.spacing, getattr(args, "modulation_frequency", None)
+            args.spacing, args.modulation_frequency = retry["spacing"], None
             try:
                 info = describe(frames_from_args(args, allow_sector=True, check_shape=False), spacing_known=False)
+            except InputError as again:
+                iq = getattr(again, "iq_frames", None)
+                if iq is None:
+                    raise
             finally:
-                args.spacing = saved
+                args.spacing, args.modulation_frequency = saved
+        if iq is not None:
+            info = describe(iq, spacing_known=not retry)
+            if getattr(args, "modulation_frequency", None) is None:
+                info["needs"].append("IQ data (complex samples): pass --iq-frequency MHZ, the demodulation frequency, "
+                                     "to remodulate them to RF")
+            if not retry:
+                need = None
         if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2
             raise
+        if need is None:
+            need = info["needs"].pop(0)
         info["needs"] = [need] + info.get("needs", [])
     variables = _variables(path) if path.is_file() else {}
     if variables:
@@ -231,7 +256,8 @@ def run(args) -> int:
         print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
     else:
         print("spacing   none in the file")
-    print(f"values    min {info['min']:.6g}, max {info['max']:.6g}, mean {info['mean']:.6g}, "
+    print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "
+          f"max {info['max']:.6g}, mean {info['mean']:.6g}, "
           f"std {info['std']:.6g}")
     if info.get("rf_check"):
         print(f"RF        {info['rf_check']}")

@@ -152,12 +152,14 @@ def select_frames(path, arr: np.ndarray, frames):
     return arr[idx]
 
 
-def _real_samples(path, arr) -> np.ndarray:
-    """``arr`` as an array of real numbers (bool, int, float), else FileFormatError naming the type."""
+def _real_samples(path, arr, allow_complex: bool = False) -> np.ndarray:
+    """``arr`` as an array of real numbers (bool, int, float; complex IQ samples where ``allow_complex``), else
+    FileFormatError naming the type."""
     arr = np.asarray(arr)
-    if arr.dtype.kind == "c":
-        raise fail(path, f"complex data ({arr.dtype}) is not RF; store the real RF samples")
-    if arr.dtype.kind not in "biuf":
+    if arr.dtype.kind == "c" and not allow_complex:
+        raise fail(path, f"complex data ({arr.dtype}) is IQ, not RF; remodulate it to RF first "
+                         "(femreg.io.iq.remodulate)")
+    if arr.dtype.kind not in "biufc":
         raise fail(path, f"data of type {arr.dtype} is not numeric")
     return arr
 
@@ -168,7 +170,10 @@ def _selected_fields(path, arr, spacing, origin, metadata, frames, n: int) -> di
     :class:`femreg.io.Frames` / :class:`femreg.io.Volumes`."""
     arr = select_frames(path, arr, frames)
     metadata = {**(metadata or {}), "stored_dtype": (metadata or {}).get("stored_dtype", arr.dtype.name)}
-    out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
+    if arr.dtype.kind == "c":   # IQ samples, remodulated to RF by read_frames
+        out_dtype = np.complex128 if arr.dtype.itemsize == 16 else np.complex64
+    else:
+        out_dtype = np.float64 if (arr.dtype.kind == "f" and arr.dtype.itemsize == 8) else np.float32
     # native byte order, C-contiguous, own memory
     arr = np.ascontiguousarray(arr, dtype=np.dtype(out_dtype).newbyteorder("="))
     finite = np.isfinite(arr)
@@ -180,8 +185,9 @@ def _selected_fields(path, arr, spacing, origin, metadata, frames, n: int) -> di
 
 def validate_frames(path, arr, spacing, origin=(0.0, 0.0), metadata=None, frames=None) -> dict:
     """Shared tail of every reader: shape (n, axial, lateral), float dtype, finite values, selection; returns the
-    fields of a :class:`femreg.io.Frames` (``Frames(**fields)``)."""
-    arr = _real_samples(path, arr)
+    fields of a :class:`femreg.io.Frames` (``Frames(**fields)``).  Complex (IQ) samples are kept complex:
+    :func:`femreg.io.read_frames` remodulates them to RF or refuses them."""
+    arr = _real_samples(path, arr, allow_complex=True)
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3:

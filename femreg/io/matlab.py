@@ -200,6 +200,12 @@ def _read_mat4(path, variable, ndims=(2, 3)):
     return data, cands, name
 
 
+def _complex_compound(dtype) -> bool:
+    """MATLAB v7.3's layout of a complex array: a compound of numeric 'real' and 'imag' fields."""
+    names = dtype.names or ()
+    return set(names) == {"real", "imag"} and all(dtype[k].kind in "iuf" for k in names)
+
+
 def _read_mat73(path, variable, ndims=(2, 3)):
     import h5py
 
@@ -216,7 +222,8 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 cls = obj.attrs.get("MATLAB_class", b"double")
                 cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
                 empty = "MATLAB_empty" in obj.attrs and bool(np.any(obj.attrs["MATLAB_empty"]))
-                numeric = (cls in _NUMERIC_CLASSES and obj.dtype.kind in "biuf" and not empty)
+                numeric = (cls in _NUMERIC_CLASSES and (obj.dtype.kind in "biuf" or _complex_compound(obj.dtype))
+                           and not empty)
                 cands[key] = (tuple(obj.shape[::-1]), numeric)
                 dsets[key] = obj
             name = _choose(path, cands, variable, ndims)
@@ -229,6 +236,9 @@ def _read_mat73(path, variable, ndims=(2, 3)):
             if ds.size * ds.dtype.itemsize > 1 << 34:
                 raise fail(path, f"variable {name!r} claims {ds.shape} {ds.dtype} (over 16 GiB)")
             arr = ds[()].T  # HDF5 row-major copy of a column-major MATLAB array
+            if arr.dtype.names:   # MATLAB's complex arrays: a compound of 'real' and 'imag'
+                ctype = np.complex128 if arr.dtype["real"].itemsize == 8 else np.complex64
+                arr = arr["real"].astype(ctype) + 1j * arr["imag"].astype(ctype)
             aux = {}
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:

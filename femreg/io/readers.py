@@ -320,7 +320,7 @@ def read_directory(path, *, frames=None, **options):
 # ------------------------------------------------------------------------------------------- entry point
 
 def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, byte_order=None, frames=None,
-                sound_speed=None) -> Frames:
+                sound_speed=None, modulation_frequency=None, check_orientation=True) -> Frames:
     """Read RF frames from ``path`` (a file, or a directory of per-frame files).
 
     Parameters
@@ -341,7 +341,15 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     frames : int, slice or sequence of int, optional
         Frame selection (default all).
     sound_speed : float, m/s, optional
-        For the axial spacing of Ultrasonix files, ``c / (2 fs)`` (default 1540).
+        For the axial spacing of Ultrasonix files, ``c / (2 fs)`` (default 1540), and the remodulation of IQ data.
+    modulation_frequency : float, MHz, optional
+        IQ data (complex samples, in any format that stores complex arrays: npy, npz, mat, uff) are remodulated to
+        RF with this demodulation frequency (:func:`femreg.io.iq.remodulate`; the axial spacing becomes the RF
+        grid's, ``metadata["iq"]`` records how).  Required for complex data, except UFF files that store their
+        own (this value overrides it); refused for real (RF) data.
+    check_orientation : bool
+        IQ data: refuse spacings that look exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks
+        of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency).
 
     Returns
     -------
@@ -363,12 +371,12 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     if not path.exists():
         raise fail(path, "no such file or directory")
     options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
-                   sound_speed=sound_speed)
+                   sound_speed=sound_speed, modulation_frequency=modulation_frequency)
     fmt = "unknown"
     try:
         fmt = detect_format(path)
         if fmt == "directory":
-            return read_directory(path, frames=frames, **options)
+            return read_directory(path, frames=frames, check_orientation=check_orientation, **options)
         if not path.is_file():
             raise fail(path, "not a regular file")
         if fmt != "raw":
@@ -378,13 +386,44 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
                 raise fail(path, f"empty file (expected {fmt})")
             _sniff_mislabel(path, head, fmt)
         reader = _READERS[fmt]
-        return reader(path, frames=frames, **options)
+        fr = _rf_from_iq(reader(path, frames=frames, **options), modulation_frequency, sound_speed)
+        if check_orientation and "iq" in fr.metadata:
+            from ..orientation import check_remodulated
+
+            check_remodulated(fr)
+        return fr
     except (FileFormatError, InputError):
         raise
     except MemoryError:
         raise fail(path, f"not enough memory to read this {fmt} file (corrupt header or too large)") from None
     except Exception as exc:  # last line of defence: never let a library exception escape untyped
         raise fail(path, f"cannot read {fmt} file ({type(exc).__name__}: {exc})") from None
+
+
+def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed) -> Frames:
+    """``fr`` with complex (IQ) samples remodulated to RF (:func:`femreg.io.iq.remodulate`); a clear error for IQ
+    without its modulation frequency, or a modulation frequency given for RF."""
+    if not np.iscomplexobj(fr.frames):
+        if modulation_frequency is not None and not fr.metadata.get("remodulated"):
+            raise InputError(f"{fr.source}: a modulation frequency was given but the samples are real "
+                             f"({fr.metadata.get('stored_dtype', fr.frames.dtype)}): RF, not IQ; leave it out")
+        return fr
+    if modulation_frequency is None:
+        exc = InputError(f"{fr.source}: complex samples ({fr.metadata.get('stored_dtype', fr.frames.dtype)}): IQ "
+                         "data, not RF. Give the demodulation frequency (the scanner's IQ export records it) to "
+                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)")
+        exc.iq_frames = fr          # what was read, for a description of the file (femreg info)
+        raise exc
+    from .iq import SOUND_SPEED, remodulate
+
+    c = SOUND_SPEED if sound_speed is None else float(sound_speed)
+    rf, dx, up = remodulate(fr.frames, fr.spacing[0], modulation_frequency, axial_origin=fr.origin[0],
+                            sound_speed=c, axis=1)
+    meta = {**fr.metadata, "remodulated": True,
+            "iq": {"modulation_frequency_mhz": float(modulation_frequency), "sound_speed": c, "upsampled": up,
+                   "iq_spacing_mm": fr.spacing[0], "iq_samples": int(fr.frames.shape[1])}}
+    return Frames(frames=np.ascontiguousarray(rf), spacing=(dx, fr.spacing[1]), origin=fr.origin, metadata=meta,
+                  source=fr.source)
 
 
 def _read_mat(path, **kw):

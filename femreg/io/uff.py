@@ -8,9 +8,8 @@ pixels of a linear scan run down the depth axis first (``z_axis``), then across 
 has ``depth_axis`` (m) and ``azimuth_axis`` (rad) with the pixels of each ray consecutive, and an ``apex``/``origin``.
 
 * Linear scans: frames (n, axial = z, lateral = x), spacing and origin in mm.
-* IQ data (complex) are remodulated to RF, ``rf = Re{iq exp(2 pi i f_mod 2 z / c)}`` with the stored
-  ``modulation_frequency`` and ``c`` (``sound_speed``, default 1540 m/s), after band-limited upsampling along the
-  depth when the grid has fewer than 4 samples per RF period.
+* IQ data (complex) are remodulated to RF (:func:`femreg.io.iq.remodulate`) with the stored
+  ``modulation_frequency`` and ``c`` (``sound_speed``, default 1540 m/s).
 * Sector scans are read (samples (range, angle), ``metadata["geometry"] = "sector"`` with the scan in
   ``metadata["scan"]``) but cannot be registered on a Cartesian pixel grid: the commands that register refuse them.
 
@@ -22,13 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from .checks import fail, merge_spacing, validate_frames
+from .iq import SOUND_SPEED  # default speed of sound of the remodulation, m/s
 
 __all__ = ["read_uff", "SOUND_SPEED"]
-
-#: Default speed of sound for the remodulation of IQ data, m/s.
-SOUND_SPEED = 1540.0
-#: Least RF samples per period (in depth) of remodulated IQ data.
-MIN_SAMPLES_PER_PERIOD = 4
 
 
 def _cls(node) -> str:
@@ -122,8 +117,10 @@ def _frames_from_data(path, data, n_pix):
     return np.asarray(d).reshape(n_frames, n_pix)
 
 
-def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None, **_ignored):
-    """Read beamformed frames from a UFF file (module docstring) -> :class:`~femreg.io.frames.Frames`."""
+def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None, modulation_frequency=None,
+             **_ignored):
+    """Read beamformed frames from a UFF file (module docstring) -> :class:`~femreg.io.frames.Frames`;
+    ``modulation_frequency`` (MHz) overrides the file's for IQ data."""
     import h5py
 
     c = SOUND_SPEED if sound_speed is None else float(sound_speed)
@@ -151,6 +148,8 @@ def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None
             raise fail(path, f"{name} has no data")
         data = _array(path, bf["data"], "data")
         f_mod = _scalar(path, bf, "modulation_frequency", 0.0)
+        if modulation_frequency is not None:
+            f_mod = 1e6 * float(modulation_frequency)
         fs = _scalar(path, bf, "sampling_frequency")
         fr_rate = _scalar(path, bf, "frame_rate")
     na, nl = ax_a.size, ax_l.size
@@ -165,15 +164,11 @@ def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None
     if np.iscomplexobj(img):
         if not f_mod > 0:
             raise fail(path, "IQ (complex) data without a modulation_frequency: cannot remodulate to RF")
-        dz = float(np.mean(np.diff(ax_a)))                       # m (range for a sector scan)
-        period = c / (2.0 * f_mod)
-        up = int(np.ceil(MIN_SAMPLES_PER_PERIOD * dz / period))
-        if up > 1:
-            from scipy.signal import resample_poly
+        from .iq import remodulate
 
-            img = resample_poly(img, up, 1, axis=1)[:, :(na - 1) * up + 1]
-            ax_a = ax_a[0] + dz / up * np.arange(img.shape[1])
-        img = np.real(img * np.exp(2j * np.pi * f_mod * 2.0 * ax_a / c)[None, :, None])
+        img, dz_mm, up = remodulate(img, 1e3 * float(np.mean(np.diff(ax_a))), f_mod / 1e6, axial_origin=1e3 * ax_a[0],
+                                    sound_speed=c, axis=1)
+        ax_a = ax_a[0] + 1e-3 * dz_mm * np.arange(img.shape[1])
         meta.update(remodulated=True, modulation_frequency=f_mod, sound_speed=c, upsampled=up)
     if geometry == "linear":
         file_spacing = (1e3 * float(np.mean(np.diff(ax_a))), 1e3 * float(np.mean(np.diff(ax_l))))
