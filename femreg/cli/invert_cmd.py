@@ -52,6 +52,7 @@ def add_parser(subparsers):
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
                    help="with --images: frame indices of reference and moving (default 0 1 in one file, 0 0 in two)")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (optimiser iterations)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
     add_slice_arg(p)
@@ -205,7 +206,7 @@ def run(args) -> int:
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                         regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter,
                         reference=reference, uncertainty=not args.no_uncertainty, reference_image=ref_img,
-                        moving_image=mov_img)
+                        moving_image=mov_img, progress=not args.no_progress)
     if failed_reg:
         res.success = False
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
