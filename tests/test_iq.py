@@ -143,7 +143,7 @@ def test_cli_info_and_register_on_iq(pair, tmp_path):
     _write_mat73(path, _iq(np.stack([pair.ref, pair.mov]), dx, f, 3), (3 * dx, dy))
     run = [sys.executable, "-m", "femreg"]
     info = subprocess.run(run + ["info", str(path)], capture_output=True, text=True)
-    assert info.returncode == 1 and "--iq-frequency" in info.stdout and "complex64" in info.stdout, info
+    assert info.returncode == 1 and "--iq-frequency" in info.stdout and "complex int16" in info.stdout, info
     bad = subprocess.run(run + ["register", str(path), "--iq-frequency", f"{f}", "--spacing", f"{dy}", f"{3 * dx}",
                                 "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
     assert bad.returncode == 2 and "look swapped" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr

@@ -162,6 +162,8 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
     sp, origin = _aux(path, aux, spacing)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    if "stored_dtype" in aux:
+        meta["stored_dtype"] = aux["stored_dtype"]
     return validate_frames(path, _mat_layout(arr, meta), sp, origin, meta, frames)
 
 
@@ -236,13 +238,17 @@ def _read_mat73(path, variable, ndims=(2, 3)):
             if ds.size * ds.dtype.itemsize > 1 << 34:
                 raise fail(path, f"variable {name!r} claims {ds.shape} {ds.dtype} (over 16 GiB)")
             arr = ds[()].T  # HDF5 row-major copy of a column-major MATLAB array
+            stored = None
             if arr.dtype.names:   # MATLAB's complex arrays: a compound of 'real' and 'imag'
+                stored = f"complex {arr.dtype['real'].name}"
                 ctype = np.complex128 if arr.dtype["real"].itemsize == 8 else np.complex64
                 arr = arr["real"].astype(ctype) + 1j * arr["imag"].astype(ctype)
             aux = {}
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:
                     aux[a] = dsets[a][()]
+            if stored:
+                aux["stored_dtype"] = stored
     except InputError:
         raise
     except Exception as exc:  # h5py raises OSError, KeyError, ValueError, RuntimeError on corrupt files
