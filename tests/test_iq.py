@@ -147,3 +147,16 @@ def test_cli_info_and_register_on_iq(pair, tmp_path):
     bad = subprocess.run(run + ["register", str(path), "--iq-frequency", f"{f}", "--spacing", f"{dy}", f"{3 * dx}",
                                 "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
     assert bad.returncode == 2 and "look swapped" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+
+
+def test_directory_of_iq_frames_is_one_stack(pair, tmp_path):
+    dx, dy = pair.spacing
+    f = pair.probe.f0_mhz
+    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    for k in range(2):
+        np.save(tmp_path / f"frame{k + 1}.npy", iq[k])
+    fr = read_frames(tmp_path, spacing=(3 * dx, dy), modulation_frequency=f)
+    assert fr.n_frames == 2 and fr.metadata["format"] == "directory of npy" and fr.metadata["iq"]["upsampled"] > 1
+    with pytest.raises(InputError, match="IQ data") as err:
+        read_frames(tmp_path, spacing=(3 * dx, dy))
+    assert err.value.iq_frames.n_frames == 2        # femreg info describes the whole folder

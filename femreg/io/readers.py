@@ -303,7 +303,7 @@ def read_directory(path, *, frames=None, **options):
         raise fail(path, f"directory mixes formats ({listing}); point at one file or move the others out")
     (fmt, files), = by_ext.items()
     files.sort(key=lambda p: natural_key(p.name))
-    parts = [read_frames(f, **options) for f in files]
+    parts = [_read_stored(f, **options) for f in files]        # IQ stays complex: read_frames remodulates the stack
     first = parts[0]
     for f, part in zip(files[1:], parts[1:]):
         if part.shape != first.shape:
@@ -364,19 +364,29 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     InputError
         A bad or missing argument (e.g. spacing needed but not given).
     """
+    options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
+                   sound_speed=sound_speed, modulation_frequency=modulation_frequency)
+    fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed)
+    if check_orientation and "iq" in fr.metadata:
+        from ..orientation import check_remodulated
+
+        check_remodulated(fr)
+    return fr
+
+
+def _read_stored(path, *, frames=None, **options) -> Frames:
+    """The frames of ``path`` as stored (IQ data still complex): format detection, the reader, typed errors."""
     try:
         path = Path(os.fspath(path))
     except TypeError:
         raise InputError(f"path must be a file name, got {path!r}") from None
     if not path.exists():
         raise fail(path, "no such file or directory")
-    options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
-                   sound_speed=sound_speed, modulation_frequency=modulation_frequency)
     fmt = "unknown"
     try:
         fmt = detect_format(path)
         if fmt == "directory":
-            return read_directory(path, frames=frames, check_orientation=check_orientation, **options)
+            return read_directory(path, frames=frames, **options)
         if not path.is_file():
             raise fail(path, "not a regular file")
         if fmt != "raw":
@@ -385,13 +395,7 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
             if not head:
                 raise fail(path, f"empty file (expected {fmt})")
             _sniff_mislabel(path, head, fmt)
-        reader = _READERS[fmt]
-        fr = _rf_from_iq(reader(path, frames=frames, **options), modulation_frequency, sound_speed)
-        if check_orientation and "iq" in fr.metadata:
-            from ..orientation import check_remodulated
-
-            check_remodulated(fr)
-        return fr
+        return _READERS[fmt](path, frames=frames, **options)
     except (FileFormatError, InputError):
         raise
     except MemoryError:
@@ -404,7 +408,8 @@ def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed) -> Frames:
     """``fr`` with complex (IQ) samples remodulated to RF (:func:`femreg.io.iq.remodulate`); a clear error for IQ
     without its modulation frequency, or a modulation frequency given for RF."""
     if not np.iscomplexobj(fr.frames):
-        if modulation_frequency is not None and not fr.metadata.get("remodulated"):
+        remodulated = fr.metadata.get("remodulated") or dict(fr.metadata.get("file_metadata") or {}).get("remodulated")
+        if modulation_frequency is not None and not remodulated:
             raise InputError(f"{fr.source}: a modulation frequency was given but the samples are real "
                              f"({fr.metadata.get('stored_dtype', fr.frames.dtype)}): RF, not IQ; leave it out")
         return fr
