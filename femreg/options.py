@@ -63,7 +63,8 @@ def reader_kwargs(options) -> dict:
         raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
     return dict(variable=options.get("variable"), shape=shape, dtype=options.get("dtype"),
                 spacing=options.get("spacing"), byte_order=options.get("byte_order"), frames=options.get("frames"),
-                sound_speed=options.get("sound_speed"), modulation_frequency=options.get("modulation_frequency"))
+                sound_speed=options.get("sound_speed"), modulation_frequency=options.get("modulation_frequency"),
+                iq_conjugate=bool(options.get("iq_conjugate")))
 
 
 def registration_kwargs(options) -> dict:

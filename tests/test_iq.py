@@ -160,3 +160,34 @@ def test_directory_of_iq_frames_is_one_stack(pair, tmp_path):
     with pytest.raises(InputError, match="IQ data") as err:
         read_frames(tmp_path, spacing=(3 * dx, dy))
     assert err.value.iq_frames.n_frames == 2        # femreg info describes the whole folder
+
+
+def test_sign_convention_is_checked(pair, tmp_path):
+    from femreg.io.iq import iq_convention
+
+    dx, dy = pair.spacing
+    f = pair.probe.f0_mhz
+    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    std = iq_convention(iq[0], iq[1], 3 * dx, f)
+    conj = iq_convention(np.conj(iq[0]), np.conj(iq[1]), 3 * dx, f)
+    assert std[0] == "standard" and conj[0] == "conjugate", (std, conj)
+    assert std[1] > 10 and conj[1] < 0.1            # measured 72 and 0.014 (the other sign's misfit ratio)
+    assert iq_convention(iq[0], iq[0], 3 * dx, f)[0] == "unknown"        # no motion: nothing to tell
+    path = tmp_path / "conj.npz"
+    np.savez(path, rf=np.conj(iq), spacing=(3 * dx, dy))
+    with pytest.raises(OrientationError, match="--iq-conjugate") as err:
+        read_frames(path, modulation_frequency=f)
+    assert err.value.problem == "iq-sign"
+    fr = read_frames(path, modulation_frequency=f, iq_conjugate=True)
+    assert fr.metadata["iq"]["conjugate"] and fr.metadata["iq"]["convention_check"][0] == "standard"
+    r = femreg.register(fr.frames[0], fr.frames[1], spacing=fr.spacing, origin=pair.origin)
+    e = r.strain(r.pixel_points()[::7])[:, 0]
+    # measured: axial strain RMS error 0.0007 of the 1 % with the sign put right (0.47 % mean strain without)
+    assert np.sqrt(np.nanmean((e + 0.01) ** 2)) / 0.01 < 0.02
+    # two single-frame files: the CLI checks the pair
+    for k in range(2):
+        np.save(tmp_path / f"c{k}.npy", np.conj(iq[k]))
+    run = subprocess.run([sys.executable, "-m", "femreg", "register", str(tmp_path / "c0.npy"),
+                          str(tmp_path / "c1.npy"), "--spacing", f"{3 * dx}", f"{dy}", "--iq-frequency", f"{f}",
+                          "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
+    assert run.returncode == 2 and "--iq-conjugate" in run.stderr and "Traceback" not in run.stderr, run.stderr

@@ -55,6 +55,9 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--iq-frequency", metavar="MHZ", type=float, dest="modulation_frequency",
                    help="IQ data (complex samples): the demodulation frequency in MHz; the frames are remodulated "
                         "to RF (UFF files store their own, which this overrides)")
+    g.add_argument("--iq-conjugate", action="store_true",
+                   help="IQ data demodulated with exp(+2 pi i f t), the opposite of the usual sign (the frames say "
+                        "so when they need it)")
 
 
 def reader_kwargs(args) -> dict:

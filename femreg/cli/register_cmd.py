@@ -157,6 +157,11 @@ def run(args) -> int:
                   "reads each file as one RF volume)", file=sys.stderr)
     ref = _frame(ref_fr, i, args.reference)
     mov = _frame(mov_fr, j, args.moving or args.reference)
+    if args.moving is not None and "iq" in ref_fr.metadata and not args.no_orientation_check:
+        # two IQ files: their sign convention is checked on the pair (one file of several frames is checked as read)
+        from ..orientation import check_iq_sign
+
+        check_iq_sign(ref, mov, ref_fr.spacing, ref_fr.metadata["iq"], where=f"{args.reference}, {args.moving}: ")
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
 

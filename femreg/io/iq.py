@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["remodulate", "SOUND_SPEED", "SAMPLES_PER_PERIOD"]
+__all__ = ["remodulate", "baseband", "iq_convention", "SOUND_SPEED", "SAMPLES_PER_PERIOD"]
 
 #: Default speed of sound, m/s.
 SOUND_SPEED = 1540.0
@@ -82,3 +82,91 @@ def remodulate(iq, axial_spacing, modulation_frequency, *, axial_origin=0.0, sou
     carrier = np.exp(2j * np.pi * f * 2e3 * z / c).reshape(shape)
     rf = np.real(iq * carrier)
     return rf.astype(np.float32 if iq.dtype == np.complex64 else np.float64, copy=False), dz / up, up
+
+
+def baseband(rf, axial_spacing, modulation_frequency, *, axial_origin=0.0, sound_speed=SOUND_SPEED, axis=-2):
+    """The IQ samples of RF (the inverse of :func:`remodulate` without the decimation): analytic signal along
+    ``axis`` shifted down by ``modulation_frequency`` (MHz); spacing mm, ``c`` m/s."""
+    from scipy.signal import hilbert
+
+    rf = np.asarray(rf, float)
+    z = float(axial_origin) + float(axial_spacing) * np.arange(rf.shape[axis])
+    shape = [1] * rf.ndim
+    shape[axis] = z.size
+    return hilbert(rf, axis=axis) * np.exp(-2j * np.pi * float(modulation_frequency) * 2e3 * z
+                                           / float(sound_speed)).reshape(shape)
+
+
+#: Axial window of the sign-convention check, in IQ samples, and its step.
+CONVENTION_WINDOW = 32
+#: Windows whose envelope correlation peak is below this are left out of the convention check.
+CONVENTION_MIN_NCC = 0.6
+#: The convention is decided when one sign explains the windows' phases this much better (mean squared
+#: disagreement ratio) and enough windows (:data:`CONVENTION_MIN_WINDOWS`) moved by a measurable fraction of a sample.
+CONVENTION_RATIO = 2.0
+CONVENTION_MIN_WINDOWS = 20
+#: Windows looked at, at most (spread over the depth and the groups of lines).
+CONVENTION_WINDOWS = 400
+
+
+def iq_convention(iq_a, iq_b, axial_spacing, modulation_frequency, *, sound_speed=SOUND_SPEED):
+    """Which sign the IQ data were demodulated with, from two frames ``(axial, lateral)`` of tissue in motion.
+
+    Between frames, tissue that moves by ``u`` along depth shifts the envelope by ``u`` and, after that shift, turns
+    the IQ phase by ``-4 pi f u / c`` (standard convention) or ``+4 pi f u / c`` (conjugate).  In windows of
+    :data:`CONVENTION_WINDOW` samples (summed over groups of lines, the lag followed down the depth) the envelope
+    correlation's peak ``L`` (parabolic sub-sample) gives ``u``, and the phase of the complex cross-correlation at
+    ``L`` is compared, modulo 2 pi, with what each sign predicts from it.  The sign that predicts the phases is the
+    convention.
+
+    Returns ``("standard" | "conjugate" | "unknown", ratio, n)``: ``ratio`` the mean squared disagreement of the
+    conjugate sign over the standard one (large: standard), ``n`` the windows used.  "unknown" when fewer than
+    :data:`CONVENTION_MIN_WINDOWS` windows correlate, or neither sign explains them :data:`CONVENTION_RATIO` times
+    better (e.g. no motion between the frames).
+    """
+    a, b = np.asarray(iq_a), np.asarray(iq_b)
+    w = CONVENTION_WINDOW
+    # phase turned by a one-sample shift: 4 pi f dz / c (f MHz, dz mm, c m/s -> rad)
+    per_sample = 4.0 * np.pi * float(modulation_frequency) * float(axial_spacing) * 1e3 / float(sound_speed)
+    reach = w // 2                      # lags searched around the window above's (displacement is continuous)
+    group = max(4, a.shape[1] // 8)     # lines summed per window
+    per_group = CONVENTION_WINDOWS // max(1, a.shape[1] // group)
+    step = max(w // 2, (a.shape[0] - w) // max(1, per_group))
+    shifts, phases = [], []
+    for j0 in range(0, a.shape[1] - group + 1, group):
+        la = a[:, j0:j0 + group]
+        lb = np.lib.stride_tricks.sliding_window_view(b[:, j0:j0 + group], w, axis=0)   # (n - w + 1, group, w)
+        centre = 0
+        for z0 in range(0, a.shape[0] - w + 1, step):
+            lags = np.arange(max(centre - reach, -z0), min(centre + reach, lb.shape[0] - 1 - z0) + 1)
+            if lags.size < 3:
+                continue
+            wa = la[z0:z0 + w].T                                   # (group, w)
+            wb = lb[z0 + lags]                                     # (lags, group, w)
+            R = np.einsum("lgw,gw->l", wb, np.conj(wa))
+            ea = np.abs(wa)
+            ea = ea - ea.mean(axis=1, keepdims=True)
+            eb = np.abs(wb)
+            eb = eb - eb.mean(axis=2, keepdims=True)
+            E = np.einsum("lgw,gw->l", eb, ea) / (np.sqrt(np.sum(ea ** 2) * np.sum(eb ** 2, axis=(1, 2))) + 1e-30)
+            i = int(np.argmax(E))
+            if not (0 < i < E.size - 1) or E[i] < CONVENTION_MIN_NCC:
+                continue
+            centre = int(lags[i])
+            den = E[i - 1] - 2 * E[i] + E[i + 1]
+            frac = 0.5 * (E[i - 1] - E[i + 1]) / den if den < 0 else 0.0
+            shifts.append(lags[i] + frac)                          # envelope shift, samples
+            phases.append(float(np.angle(R[i])))                   # standard: -per_sample * shift (mod 2 pi)
+    u_env = shifts
+    n = len(u_env)
+    if n < CONVENTION_MIN_WINDOWS:
+        return "unknown", float("nan"), n
+    u, ph = np.asarray(u_env), np.asarray(phases)
+    d_std = float(np.mean(1.0 - np.cos(ph + per_sample * u)))
+    d_conj = float(np.mean(1.0 - np.cos(ph - per_sample * u)))
+    ratio = d_conj / max(d_std, 1e-12)
+    if ratio >= CONVENTION_RATIO:
+        return "standard", ratio, n
+    if ratio <= 1.0 / CONVENTION_RATIO:
+        return "conjugate", ratio, n
+    return "unknown", ratio, n

@@ -320,7 +320,7 @@ def read_directory(path, *, frames=None, **options):
 # ------------------------------------------------------------------------------------------- entry point
 
 def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, byte_order=None, frames=None,
-                sound_speed=None, modulation_frequency=None, check_orientation=True) -> Frames:
+                sound_speed=None, modulation_frequency=None, iq_conjugate=False, check_orientation=True) -> Frames:
     """Read RF frames from ``path`` (a file, or a directory of per-frame files).
 
     Parameters
@@ -347,9 +347,12 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         RF with this demodulation frequency (:func:`femreg.io.iq.remodulate`; the axial spacing becomes the RF
         grid's, ``metadata["iq"]`` records how).  Required for complex data, except UFF files that store their
         own (this value overrides it); refused for real (RF) data.
+    iq_conjugate : bool
+        IQ data demodulated with ``exp(+2 pi i f t)`` (the opposite of the usual convention): conjugated first.
     check_orientation : bool
         IQ data: refuse spacings that look exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks
-        of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency).
+        of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency) and, from
+        frames 0 and 1, the other sign convention (:func:`femreg.orientation.check_iq_sign`).
 
     Returns
     -------
@@ -365,12 +368,15 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         A bad or missing argument (e.g. spacing needed but not given).
     """
     options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
-                   sound_speed=sound_speed, modulation_frequency=modulation_frequency)
-    fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed)
+                   sound_speed=sound_speed, modulation_frequency=modulation_frequency, iq_conjugate=iq_conjugate)
+    fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed, iq_conjugate)
     if check_orientation and "iq" in fr.metadata:
-        from ..orientation import check_remodulated
+        from ..orientation import check_iq_sign, check_remodulated
 
         check_remodulated(fr)
+        if fr.n_frames >= 2:
+            fr.metadata["iq"]["convention_check"] = list(check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing,
+                                                                       fr.metadata["iq"], where=f"{fr.source}: "))
     return fr
 
 
@@ -404,7 +410,7 @@ def _read_stored(path, *, frames=None, **options) -> Frames:
         raise fail(path, f"cannot read {fmt} file ({type(exc).__name__}: {exc})") from None
 
 
-def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed) -> Frames:
+def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed, conjugate=False) -> Frames:
     """``fr`` with complex (IQ) samples remodulated to RF (:func:`femreg.io.iq.remodulate`); a clear error for IQ
     without its modulation frequency, or a modulation frequency given for RF."""
     if not np.iscomplexobj(fr.frames):
@@ -423,9 +429,10 @@ def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed) -> Frames:
 
     c = SOUND_SPEED if sound_speed is None else float(sound_speed)
     rf, dx, up = remodulate(fr.frames, fr.spacing[0], modulation_frequency, axial_origin=fr.origin[0],
-                            sound_speed=c, axis=1)
+                            sound_speed=c, axis=1, conjugate=bool(conjugate))
     meta = {**fr.metadata, "remodulated": True,
             "iq": {"modulation_frequency_mhz": float(modulation_frequency), "sound_speed": c, "upsampled": up,
+                   "conjugate": bool(conjugate),
                    "iq_spacing_mm": fr.spacing[0], "iq_samples": int(fr.frames.shape[1])}}
     return Frames(frames=np.ascontiguousarray(rf), spacing=(dx, fr.spacing[1]), origin=fr.origin, metadata=meta,
                   source=fr.source)

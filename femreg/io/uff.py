@@ -118,7 +118,7 @@ def _frames_from_data(path, data, n_pix):
 
 
 def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None, modulation_frequency=None,
-             **_ignored):
+             iq_conjugate=False, **_ignored):
     """Read beamformed frames from a UFF file (module docstring) -> :class:`~femreg.io.frames.Frames`;
     ``modulation_frequency`` (MHz) overrides the file's for IQ data."""
     import h5py
@@ -167,9 +167,12 @@ def read_uff(path, *, variable=None, spacing=None, frames=None, sound_speed=None
         from .iq import remodulate
 
         img, dz_mm, up = remodulate(img, 1e3 * float(np.mean(np.diff(ax_a))), f_mod / 1e6, axial_origin=1e3 * ax_a[0],
-                                    sound_speed=c, axis=1)
+                                    sound_speed=c, axis=1, conjugate=bool(iq_conjugate))
         ax_a = ax_a[0] + 1e-3 * dz_mm * np.arange(img.shape[1])
         meta.update(remodulated=True, modulation_frequency=f_mod, sound_speed=c, upsampled=up)
+        if geometry == "linear":    # the record read_frames' IQ checks read (femreg.orientation)
+            meta["iq"] = {"modulation_frequency_mhz": f_mod / 1e6, "sound_speed": c, "upsampled": up,
+                          "conjugate": bool(iq_conjugate), "iq_spacing_mm": dz_mm * up, "iq_samples": int(na)}
     if geometry == "linear":
         file_spacing = (1e3 * float(np.mean(np.diff(ax_a))), 1e3 * float(np.mean(np.diff(ax_l))))
         origin = (1e3 * ax_a[0], 1e3 * ax_l[0])
