@@ -35,7 +35,7 @@ from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, p
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
-from .repair import check_period, check_result, repair_peak_hopping
+from .repair import ENVELOPE_PSI_SLACK, check_period, check_result, repair_peak_hopping
 from .result import RegistrationResult, displacement_at, load_result, nodal_values  # noqa: F401
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, single_blas_thread
 from .volume import volumes_to
@@ -125,6 +125,17 @@ def _route(reference_image, moving_image, args: dict):
         return autoalpha.register_auto(reference_image, moving_image, register=register,
                                        **dict(kw, check_orientation=False))
     return None
+
+
+def _envelope_data(ref) -> bool:
+    """True for frames without an RF carrier along the depth (envelope, B-mode: :func:`femreg.orientation.
+    carrier_ratio` above :data:`~femreg.orientation.NO_CARRIER_RATIO`), where a whole RF period is no ambiguity."""
+    from .orientation import MIN_SAMPLES, NO_CARRIER_RATIO, carrier_ratio
+
+    ref = np.asarray(ref)
+    if ref.ndim != 2 or ref.shape[0] < MIN_SAMPLES:
+        return False
+    return bool(carrier_ratio(ref[:, ::max(1, ref.shape[1] // 64)]) > NO_CARRIER_RATIO)
 
 
 @volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
@@ -307,7 +318,11 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
     notes, hops = [], np.zeros(fe_mesh.p.shape[1], int)
-    if repair and strategy == "auto" and ref.shape[0] > 1:
+    envelope = _envelope_data(ref)
+    if envelope:
+        notes.append("envelope / B-mode data (no RF carrier along the depth): no peak-hopping check or repair, "
+                     "which need the carrier; displacements are those of the envelope (less precise than RF)")
+    if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         kw = dict(solve_kw)
         if kw.get("strain_tol") is not None:
@@ -320,13 +335,14 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
                                  notes, timings)                                          # femreg.refine
 
-    period = check_period(ref, spacing, stats) if ref.shape[0] > 1 else None
+    period = check_period(ref, spacing, stats) if ref.shape[0] > 1 and not envelope else None
     global_ncc = None if start.pyramid is None else start.pyramid.global_ncc
 
     def checked(s, start_u, h):
         # a refined result is judged on the unrefined cells (femreg.refine.parent_cells): the same limits hold
         groups = None if s.mesh is unrefined[0].mesh else parent_cells(unrefined[0].mesh, s.mesh)
-        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc, groups=groups)
+        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc, groups=groups,
+                            psi_slack=ENVELOPE_PSI_SLACK if envelope else 0.0)
     check = checked(sol, u0, hops)
     if not check.success and sol is not unrefined[0]:
         # a refinement that fails the check is dropped for the unrefined result and its own verdict
