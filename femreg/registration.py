@@ -35,7 +35,7 @@ from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, p
 from .pyramid import default_settings, element_rule
 from .speckle import rf_period, speckle_statistics
 from .regularizers import Regularizer, available_regularizers
-from .repair import ENVELOPE_PSI_SLACK, check_period, check_result, repair_peak_hopping
+from .repair import ENVELOPE_NOTE, check_period, check_result, repair_peak_hopping
 from .result import RegistrationResult, displacement_at, load_result, nodal_values  # noqa: F401
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, single_blas_thread
 from .volume import volumes_to
@@ -317,11 +317,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
-    notes, hops = [], np.zeros(fe_mesh.p.shape[1], int)
-    envelope = _envelope_data(ref)
-    if envelope:
-        notes.append("envelope / B-mode data (no RF carrier along the depth): no peak-hopping check or repair, "
-                     "which need the carrier; displacements are those of the envelope (less precise than RF)")
+    notes, hops = [ENVELOPE_NOTE] * (envelope := _envelope_data(ref)), np.zeros(fe_mesh.p.shape[1], int)
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         kw = dict(solve_kw)
@@ -341,8 +337,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     def checked(s, start_u, h):
         # a refined result is judged on the unrefined cells (femreg.refine.parent_cells): the same limits hold
         groups = None if s.mesh is unrefined[0].mesh else parent_cells(unrefined[0].mesh, s.mesh)
-        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc, groups=groups,
-                            psi_slack=ENVELOPE_PSI_SLACK if envelope else 0.0)
+        return check_result(s, start_u, h, ref.shape, spacing, period, global_ncc, groups=groups, envelope=envelope)
     check = checked(sol, u0, hops)
     if not check.success and sol is not unrefined[0]:
         # a refinement that fails the check is dropped for the unrefined result and its own verdict

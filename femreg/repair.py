@@ -443,10 +443,13 @@ def check_period(ref, spacing, stats=None) -> float:
 #: never-worse rule refuses it.  The start is then a fit of the same image without the regulariser (for RF it is
 #: an envelope fit, which the RF solve always improves on); measured +0.26 % on the paper probe's 1 % pair.
 ENVELOPE_PSI_SLACK = 0.02
+#: The note of a result registered on envelope / B-mode frames.
+ENVELOPE_NOTE = ("envelope / B-mode data (no RF carrier along the depth): no peak-hopping check or repair, which need "
+                 "the carrier; displacements are those of the envelope (less precise than RF)")
 
 
 def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None, groups=None,
-                 psi_slack: float = 0.0) -> Check:
+                 envelope: bool = False) -> Check:
     """Check stage of :func:`femreg.register`: the failure rules, the never-worse rule and the quality maps.
 
     ``sol``: the final solve; ``u0``: its initial guess (returned when the solve made things worse or is not
@@ -458,7 +461,7 @@ def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None, gr
     them match the envelope better one period off, or a decorrelated pair has more than
     :data:`MAX_POOR_FRACTION_DECORRELATED` of its elements not matching.
 
-    ``psi_slack``: the never-worse rule's tolerance (:data:`ENVELOPE_PSI_SLACK` for envelope data).
+    ``envelope``: envelope / B-mode frames, whose start may explain up to :data:`ENVELOPE_PSI_SLACK` more.
 
     ``groups`` (n_elements,) int: a refined mesh's unrefined parent cells (:func:`femreg.refine.parent_cells`).
     The fractions then count those cells (the NCC and the hop gain over each cell's pixels at the refined u), so
@@ -484,7 +487,7 @@ def check_result(sol, u0, hops, shape, spacing, period=None, global_ncc=None, gr
     if not np.all(np.isfinite(sol.u)):
         success, u_out = False, u0
         notes.append("the solve produced non-finite values; returning the initial guess")
-    elif psi_final > psi_start * (1.0 + max(1e-9, float(psi_slack))) + 1e-300:
+    elif psi_final > psi_start * (1.0 + (ENVELOPE_PSI_SLACK if envelope else 1e-9)) + 1e-300:
         success, u_out = False, u0
         notes.append(f"the result explains less of the image than its start (psi {psi_final:.4g} > "
                      f"{psi_start:.4g}); returning the initial guess")

@@ -100,7 +100,7 @@ def test_batch(data, capsys, tmp_path):
 
 def test_invert(results, capsys, tmp_path):
     ok, failed = results
-    rc, out, err = _run(["invert", ok, "-o", tmp_path / "mu.npz"], capsys)
+    rc, out, err = _run(["invert", ok, "-o", tmp_path / "mu.npz", "--no-progress"], capsys)
     assert rc == 0 and (tmp_path / "mu.npz").is_file() and err == "", err
     assert "modulus contrast over the mesh" in out
     rc, out, err = _run(["invert", failed, "-o", tmp_path / "f.npz"], capsys)
