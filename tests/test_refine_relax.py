@@ -199,11 +199,25 @@ def test_without_persistence_the_one_pass_relaxes_on_its_own_solve():
     assert len(calls) == 1 and calls[0][1] is None
 
 
+def test_the_relaxation_can_keep_a_cut_of_its_own():
+    # Refinement.relax_threshold: a marking cut lowered (DEEP_REFINEMENT's 2) leaves the relaxation's at its own
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    rng = np.random.default_rng(3)
+    u = _nodal(m, _band(xs[4], xs[5])) + rng.normal(scale=2e-5, size=2 * m.p.shape[1])   # noise: MAD > 0
+    base = relaxed_edges(m, u, Refinement(**ALL))
+    assert len(base) > 0
+    assert len(relaxed_edges(m, u, Refinement(threshold=1e6, **ALL))) == 0          # the cut above every jump
+    assert np.array_equal(relaxed_edges(m, u, Refinement(threshold=1e6, relax_threshold=4.0, **ALL)), base)
+    assert len(relaxed_edges(m, u, Refinement(relax_threshold=1e6, **ALL))) == 0
+
+
 def test_relax_options_are_checked_and_the_slip_preset_does_not_relax():
     assert SLIP_REFINEMENT.relax is None
     for kw, word in ((dict(relax=0.0), "relax"), (dict(relax=1.5), "relax"), (dict(relax_parts="shear"),
                      "relax_parts"), (dict(relax_min_length=-1.0), "relax_min_length"),
-                     (dict(relax_max_fraction=0.0), "relax_max_fraction")):
+                     (dict(relax_max_fraction=0.0), "relax_max_fraction"),
+                     (dict(relax_threshold=-1.0), "relax_threshold"), (dict(relax_threshold=np.inf), "relax_threshold")):
         with pytest.raises(InputError, match=word):
             Refinement(**kw)
 
