@@ -36,17 +36,18 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
-The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that splits each marked row / column twice
-where its largest jump is at least 3x the marking's cut, once where it is less (to a quarter / half of the 2 mm
-element, down to 0.15 mm axially), with no element budget, one Gauss-Newton step on the refined mesh; only when
+The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that marks at a robust z-score of 2 and splits
+each marked row / column twice where its largest jump is at least 3x the marking's cut, once where it is less (to
+a quarter / half of the 2 mm element, down to 0.15 mm axially and 0.3 mm laterally), with no element budget, one Gauss-Newton step on the refined mesh; only when
 some row / column reaches 2.2x the cut (:attr:`Refinement.feature`): decorrelation noise of a rotated pair puts
 jumps just over the cut on most rows (largest 1.1-2.4x), features stand out further (inclusions 5.9-25.8x, shear
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
-split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
+split (a cut of its own, below), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
-regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region).
+regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region);
+that relaxation keeps a cut of its own at a z-score of 4 (:attr:`Refinement.relax_threshold`).
 
 :class:`Refinement` itself (``refine=N``, ``Refinement()``) is the earlier two-pass refinement: at most twice the
 elements, each pass halving the marked rows / columns, its relaxation (weight 0.03) found by persistence: on a
@@ -81,7 +82,11 @@ per pair (seeds 0 / 7; another run 1.45x / 1.37x and 1.93x / 1.85x); ``benchmark
 mm bands 32.7 -> 30.9 %, 41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95
 of the truth); in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined
 results were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
-the default mesh (:func:`default_refine`).
+the default mesh (:func:`default_refine`).  Its marking cut lowered from a z-score of 4 to 2 and its columns from
+0.6 to 0.3 mm (the relaxation's cut kept at 4): no pair of the robustness benchmark more than 0.01 point worse
+(seeds 0 and 7), CPU time 1.39x / 1.33x median, 1.81x / 1.69x at most; inclusions 0.04-1.83 points better
+(``inclusion_sizes.py``: r 3 mm 8.60 -> 8.56 % and 6.80 -> 6.50 %, r 8 mm 12.39 -> 12.07 %, r 4 mm under 12 MHz
+8.26 -> 6.43 %); in vivo NCC 0.8142 -> 0.8176 / 0.8996 -> 0.9020.
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
 on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
 0.76-1.07 (weight 0.003; 0.63-1.0 with 0.03).
@@ -271,7 +276,8 @@ class Refinement:
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter=None, min_added=0.0, relax=None)
 
 
-#: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
+#: One refinement pass marking at a robust z-score of 2 (the relaxation's own cut: 4), quartering the marked rows /
+#: columns down to 0.15 mm axially and 0.3 mm laterally, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
