@@ -36,18 +36,17 @@ the TV weights stay the edge lengths.  The total variation of a strain step is t
 the refined mesh (the step's length times its height), so refining a region does not make a sharp feature there
 dearer, which a weight scaled with the mean element area would (:mod:`femreg.scaling`).
 
-The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that marks at a robust z-score of 2 and splits
-each marked row / column twice where its largest jump is at least 3x the marking's cut, once where it is less (to
-a quarter / half of the 2 mm element, down to 0.15 mm axially and 0.3 mm laterally), with no element budget, one Gauss-Newton step on the refined mesh; only when
+The default (``refine="auto"``, :data:`DEEP_REFINEMENT`): one pass that splits each marked row / column twice
+where its largest jump is at least 3x the marking's cut, once where it is less (to a quarter / half of the 2 mm
+element, down to 0.15 mm axially), with no element budget, one Gauss-Newton step on the refined mesh; only when
 some row / column reaches 2.2x the cut (:attr:`Refinement.feature`): decorrelation noise of a rotated pair puts
 jumps just over the cut on most rows (largest 1.1-2.4x), features stand out further (inclusions 5.9-25.8x, shear
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
-split (a cut of its own, below), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
+split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
-regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region);
-that relaxation keeps a cut of its own at a z-score of 4 (:attr:`Refinement.relax_threshold`).
+regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region).
 
 :class:`Refinement` itself (``refine=N``, ``Refinement()``) is the earlier two-pass refinement: at most twice the
 elements, each pass halving the marked rows / columns, its relaxation (weight 0.03) found by persistence: on a
@@ -82,11 +81,11 @@ per pair (seeds 0 / 7; another run 1.45x / 1.37x and 1.93x / 1.85x); ``benchmark
 mm bands 32.7 -> 30.9 %, 41.8 -> 32.8 %; 3 mm 55.8 -> 32.5 %) and peak e_xy higher (2 mm: 0.88 -> 0.97, 0.81 -> 0.95
 of the truth); in vivo frames 1 -> 6: NCC 0.897 -> 0.900 (seq304), 0.809 -> 0.814 (seq299; the two-pass refined
 results were dropped by the per-element check).  So it is the default of ``strategy="auto"`` R_P_sigma registrations on
-the default mesh (:func:`default_refine`).  Its marking cut lowered from a z-score of 4 to 2 and its columns from
-0.6 to 0.3 mm (the relaxation's cut kept at 4): no pair of the robustness benchmark more than 0.01 point worse
-(seeds 0 and 7), CPU time 1.39x / 1.33x median, 1.81x / 1.69x at most; inclusions 0.04-1.83 points better
-(``inclusion_sizes.py``: r 3 mm 8.60 -> 8.56 % and 6.80 -> 6.50 %, r 8 mm 12.39 -> 12.07 %, r 4 mm under 12 MHz
-8.26 -> 6.43 %); in vivo NCC 0.8142 -> 0.8176 / 0.8996 -> 0.9020.
+the default mesh (:func:`default_refine`).  Measured, not the default: the marking cut at a
+z-score of 2 with columns down to 0.3 mm (the relaxation and the feature test on cuts of their own at 4:
+:attr:`Refinement.relax_threshold`, :attr:`Refinement.feature_threshold`) lowers the inclusions' error (r 4 mm
+under 12 MHz 8.26 -> 6.43 %, r 3 mm 6.80 -> 6.50 / 8.60 -> 8.56 %) but makes rotated pairs up to 1.4 points worse
+(``benchmarks/rotation_sweep.py``; README "Adaptive refinement").
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
 on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
 0.76-1.07 (weight 0.003; 0.63-1.0 with 0.03).
@@ -191,6 +190,10 @@ class Refinement:
         A pass splits only when some row / column scores at least this (its largest jump this many times the
         cut): decorrelation noise (a rotated pair) scatters jumps just over the cut over most rows, a feature
         (an inclusion's rim, a band's faces) stands out further.  0: no such test.
+    feature_threshold : float, optional
+        Robust z-score of the cut ``feature`` is measured against.  None: ``threshold``, the marking's.  A marking
+        cut lowered to split more of a feature leaves the noise of a rotated pair further over its own cut: the
+        test keeps the cut it was measured on.
     settle : bool
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
@@ -218,6 +221,7 @@ class Refinement:
     relax_threshold: float | None = None
     strong: float | None = None
     feature: float = 0.0
+    feature_threshold: float | None = None
     settle: bool = False
 
     def __post_init__(self):
@@ -230,6 +234,10 @@ class Refinement:
         if self.relax_parts not in ("both", "normal", "tangential"):
             raise InputError(f"refinement relax_parts must be 'both', 'normal' or 'tangential', "
                              f"got {self.relax_parts!r}")
+        if self.feature_threshold is not None and not (np.isfinite(self.feature_threshold)
+                                                       and self.feature_threshold >= 0):
+            raise InputError(f"refinement feature_threshold must be None or a finite number >= 0, "
+                             f"got {self.feature_threshold!r}")
         if self.relax_threshold is not None and not (np.isfinite(self.relax_threshold) and self.relax_threshold >= 0):
             raise InputError(f"refinement relax_threshold must be None or a finite number >= 0, "
                              f"got {self.relax_threshold!r}")
@@ -276,14 +284,12 @@ class Refinement:
 SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter=None, min_added=0.0, relax=None)
 
 
-#: One refinement pass marking at a robust z-score of 2 (the relaxation's own cut: 4), quartering the marked rows /
-#: columns down to 0.15 mm axially and 0.3 mm laterally, with no element budget, and
+#: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
-DEEP_REFINEMENT = Refinement(passes=1, levels=2, threshold=2.0, min_size=(0.15, 0.3), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0, relax_threshold=4.0, strong=3.0,
-                             feature=2.2, settle=True)
+DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
+                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -786,6 +792,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
         top = max(float(np.max(s, initial=0.0)) for s in score)
+        if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
+            # the feature test against a cut of its own (the scores of a marking at that z-score)
+            fs = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.feature_threshold), data=sol.data,
+                      quality=q, scores=True)[3]
+            top = max(float(np.max(s, initial=0.0)) for s in fs)
         if top < opts.feature:
             # no row / column stands out that far: decorrelation noise, not a feature; split nothing
             if np.any(rows) or np.any(cols):

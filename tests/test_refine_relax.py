@@ -217,7 +217,8 @@ def test_relax_options_are_checked_and_the_slip_preset_does_not_relax():
     for kw, word in ((dict(relax=0.0), "relax"), (dict(relax=1.5), "relax"), (dict(relax_parts="shear"),
                      "relax_parts"), (dict(relax_min_length=-1.0), "relax_min_length"),
                      (dict(relax_max_fraction=0.0), "relax_max_fraction"),
-                     (dict(relax_threshold=-1.0), "relax_threshold"), (dict(relax_threshold=np.inf), "relax_threshold")):
+                     (dict(relax_threshold=-1.0), "relax_threshold"), (dict(relax_threshold=np.inf), "relax_threshold"),
+                     (dict(feature_threshold=-1.0), "feature_threshold")):
         with pytest.raises(InputError, match=word):
             Refinement(**kw)
 
