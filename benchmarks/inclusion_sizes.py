@@ -160,7 +160,8 @@ def main(argv=None):
         sl = roi_slices(data.ref.shape, data.spacing)
         t = truth(data, case, (slice(0, data.ref.shape[0], 1), slice(0, data.ref.shape[1])))
         ts = scores(t["exx"], data, field, t["exx"])
-        lines.append(f"| {case.name} | truth | 0 | {ts['edge_ax']:.2f} | 0 | {ts['edge_lat']:.2f} | {ts['cnr']:.1f} | |\n")
+        lines.append(f"| {case.name} | truth | 0 | {ts['edge_ax']:.2f} | 0 | {ts['edge_lat']:.2f} | "
+                     f"{ts['cnr']:.1f} | |\n")
         troi = truth(data, case, sl)
         for method in methods:
             try:

@@ -842,7 +842,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
-                           relaxed_edges=int(len(relaxed)), seconds=time.perf_counter() - t))
+                           relaxed_edges=int(len(relaxed)), top=float(top), seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
 
