@@ -54,6 +54,11 @@ def _spec(name):
         return Refinement(relax=None)
     if name == "deep":
         return deep_refinement()
+    if name == "lowcut":            # measured, not the default: DEEP_REFINEMENT marking at a z-score of 2
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), threshold=2.0, min_size=(0.15, 0.3), relax_threshold=4.0,
+                          feature_threshold=4.0)
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)

@@ -119,7 +119,9 @@ class AutoAlpha:
 
 @dataclass
 class RefinementRecord:
-    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds; and
+    """What each pass did: elements before, rows and columns split, Gauss-Newton iterations, seconds (2D passes:
+    also ``top``, the largest row / column jump over the feature test's cut, :attr:`femreg.refine.Refinement.feature`);
+    and
     ``base_size``, the median element size (axial, lateral[, elevational]) mm of the mesh refinement started from (what a
     caller sizing a new mesh from the result's should read: the refined mesh's median is smaller).  ``passes``
     is None for a result read from a file (:func:`femreg.load_result` keeps ``base_size`` only)."""

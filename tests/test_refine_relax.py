@@ -199,11 +199,44 @@ def test_without_persistence_the_one_pass_relaxes_on_its_own_solve():
     assert len(calls) == 1 and calls[0][1] is None
 
 
+def test_the_relaxation_can_keep_a_cut_of_its_own():
+    # Refinement.relax_threshold: a marking cut lowered (DEEP_REFINEMENT's 2) leaves the relaxation's at its own
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    rng = np.random.default_rng(3)
+    u = _nodal(m, _band(xs[4], xs[5])) + rng.normal(scale=2e-5, size=2 * m.p.shape[1])   # noise: MAD > 0
+    base = relaxed_edges(m, u, Refinement(**ALL))
+    assert len(base) > 0
+    assert len(relaxed_edges(m, u, Refinement(threshold=1e6, **ALL))) == 0          # the cut above every jump
+    assert np.array_equal(relaxed_edges(m, u, Refinement(threshold=1e6, relax_threshold=4.0, **ALL)), base)
+    assert len(relaxed_edges(m, u, Refinement(relax_threshold=1e6, **ALL))) == 0
+
+
+def test_the_feature_test_can_keep_a_cut_of_its_own():
+    # Refinement.feature_threshold: the feature test against the cut of another z-score (the noise makes the MAD,
+    # and so the cut, depend on it)
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    band = _band(xs[4], xs[5])
+
+    def f(p):
+        return band(p) + 2e-5 * np.sin(37.1 * p[:, [0]] + 53.7 * p[:, [1]])
+    one = dict(passes=1, max_growth=None, feature=2.2, **ALL)
+    calls, _ = _run(Refinement(**one), f)
+    assert len(calls) == 1 and calls[0][0].t.shape[1] > m.t.shape[1]          # the band's rows split
+    calls, rec = _run(Refinement(feature_threshold=1e6, **one), f)             # its cut above every jump
+    assert len(calls) == 0 and "not split" in rec.note
+    calls, _ = _run(Refinement(feature_threshold=4.0, **one), f)               # the marking's own: as without
+    assert len(calls) == 1 and calls[0][0].t.shape[1] > m.t.shape[1]
+
+
 def test_relax_options_are_checked_and_the_slip_preset_does_not_relax():
     assert SLIP_REFINEMENT.relax is None
     for kw, word in ((dict(relax=0.0), "relax"), (dict(relax=1.5), "relax"), (dict(relax_parts="shear"),
                      "relax_parts"), (dict(relax_min_length=-1.0), "relax_min_length"),
-                     (dict(relax_max_fraction=0.0), "relax_max_fraction")):
+                     (dict(relax_max_fraction=0.0), "relax_max_fraction"),
+                     (dict(relax_threshold=-1.0), "relax_threshold"), (dict(relax_threshold=np.inf), "relax_threshold"),
+                     (dict(feature_threshold=-1.0), "feature_threshold")):
         with pytest.raises(InputError, match=word):
             Refinement(**kw)
 
