@@ -78,9 +78,8 @@ the displacement change across one element), and the second term the total varia
 "tikhonov"`` uses :math:`\beta\,\frac{h^2}{2|\Omega|}\sum_f (\ell_f/d_f)[\theta]_f^2` (:math:`d_f` the distance of
 the two element centres), a discrete :math:`\int|\nabla\theta|^2`.  2D TV is debiased (:data:`TV_REWEIGHT`): after the
 :math:`\beta` rule one more solve at the chosen :math:`\beta` divides each edge's :math:`\ell_f` by
-:math:`1 + |[\theta]_f|/\kappa` (:math:`\kappa` = 1; 0.5 on registered data with the fitted boundary), the log
-penalty :math:`\kappa\log(1+|[\theta]|/\kappa)` linearised at the plain-TV solution: plain TV shrank soft
-plane-strain disks to 1.3-1.6 x their modulus (docs/inversion.md).
+:math:`1 + |[\theta]_f|/\kappa` (:math:`\kappa` = 1), the log penalty :math:`\kappa\log(1+|[\theta]|/\kappa)` linearised
+at the plain-TV solution: plain TV shrank soft plane-strain disks to 1.3-1.6 x their modulus (docs/inversion.md).
 
 Weights: :data:`DEFAULT_WEIGHTS` = (1, 0.1) (axial, lateral).  Ultrasound measures the lateral displacement far
 less accurately than the axial one (coarser lateral sampling and PSF; in the paper's 3D HI table the relative
@@ -160,10 +159,7 @@ inflates the data's own), or a stiff (soft) region strains more (less) than the 
 image strains more than its softer part (:data:`RANKED_MARGIN`; :func:`_contradiction`).  Uncertainty: a Laplace
 approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
-displacement on the whole boundary stays the default of 2D callables (exact fields); 2D registered data
-(a :class:`femreg.RegistrationResult`) fit their lateral boundary values, as 3D data do, and debias the TV with
-:math:`\kappa` = 0.5 (:data:`BOUNDARY_REGISTERED`, :data:`TV_REWEIGHT_REGISTERED`; benchmarks/inversion.py,
-docs/inversion.md).
+displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
 Public names: :func:`invert`, :class:`InversionResult`, :func:`load_inversion`, :func:`modulus_contrast`,
 :func:`is_inversion_file`, :func:`strain_ratio`, :func:`model_ratio`, :data:`MODELS`.
@@ -185,8 +181,7 @@ from .material import lambda_bar as material_lambda_bar
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "strain_ratio", "model_ratio", "AUTO_RATIO",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE", "DOF_AREA", "BETA_METHODS",
-           "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA", "TV_REWEIGHT",
-           "BOUNDARY_REGISTERED", "TV_REWEIGHT_REGISTERED"]
+           "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA", "TV_REWEIGHT"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -252,16 +247,6 @@ REGISTERED_SIGMA = 1.7
 #: strain carries 3 x less of it than a stiff one (6 x less than a soft one in plane stress; docs/inversion.md):
 #: its estimate came out 1.3-1.6 x the truth even from the exact displacement.
 TV_REWEIGHT = 1.0
-#: 2D registered data with ``boundary=None``: the lateral boundary values fitted beside the modulus (the axial ones
-#: imposed; :data:`FITTED_MIN_ELEMENTS` elements across at least), and the debiasing's kappa
-#: :data:`TV_REWEIGHT_REGISTERED`.  A registration's lateral displacement is its least accurate component (the
-#: lateral beam, 0.3-2.5 mm) and, imposed on the boundary, its errors drive the modulus: stiff plane-strain disks of
-#: radius 7 mm came out 0.83-0.84 x the truth (exact field 0.99), 0.93-0.97 fitted.  Fitted, the soft plane-strain
-#: disks lose contrast (0.96 -> 1.15-1.17 x the truth on two of them), which the stronger debiasing restores
-#: (docs/inversion.md, benchmarks/inversion.py).  Callables (exact fields) keep the measured boundary and TV_REWEIGHT.
-BOUNDARY_REGISTERED = "fitted"
-#: kappa of the debiased TV (:data:`TV_REWEIGHT`) on 2D registered data with the fitted boundary.
-TV_REWEIGHT_REGISTERED = 0.5
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1280,9 +1265,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         :math:`\nu` (plane strain: in (-1, 0.5), default 0.495; plane stress: in (-1, 0.5], default 0.5).
     boundary : {"measured", "axial-sides", "free-sides", "fitted"}, optional
         Boundary conditions of the forward model (:data:`BOUNDARIES`): the measured displacement on the whole
-        boundary (None for a 2D callable); ``"fitted"``: the lateral and elevational boundary values are fitted by
-        the misfit beside the modulus (None for 3D data and for a 2D registration result with
-        :data:`FITTED_MIN_ELEMENTS` elements across every axis, module docstring; :data:`BOUNDARY_REGISTERED`).
+        boundary (None for 2D data); ``"fitted"``: the lateral and elevational boundary values are fitted by the
+        misfit beside the modulus (None for 3D data with :data:`FITTED_MIN_ELEMENTS` elements across every axis,
+        module docstring).
     maxiter, gtol
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool
@@ -1323,11 +1308,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     """
     t_all = time.perf_counter()
     three = _is_3d(displacement, region)
-    from .result import RegistrationResult
-
-    registered = isinstance(displacement, RegistrationResult)
-    # resolved on the mesh (FITTED_MIN_ELEMENTS): 3D data, and 2D registered data (BOUNDARY_REGISTERED)
-    auto_boundary = boundary is None and (three or registered)
+    auto_boundary = boundary is None and three       # resolved on the mesh (FITTED_MIN_ELEMENTS)
     if boundary is None:
         boundary = "measured"
     if weights is None and not three:
@@ -1420,7 +1401,6 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             boundary = BOUNDARY_3D if n_across >= FITTED_MIN_ELEMENTS else "measured"
             model_rule += (f"; boundary values {'fitted' if boundary == 'fitted' else 'measured'} ("
                            f"{n_across} elements across the thinnest axis, fitted from {FITTED_MIN_ELEMENTS})")
-            auto_boundary = False
     elif model == "auto":
         model, lb, reduced, model_rule = _auto_model(ratio)
         # below plane stress (or above plane strain) no incompressible 2D model fits the lateral strain, e.g. a
@@ -1436,13 +1416,6 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         if np.isfinite(ratio) and abs(ratio - model_ratio(lb)) > RATIO_TOLERANCE:
             flags.append(f"the data's lateral/axial strain ratio {ratio:.2f} contradicts the {model} model "
                          f"({model_ratio(lb):.2f}); try model='auto'")
-    if auto_boundary:
-        # 2D registered data: the lateral boundary values fitted (BOUNDARY_REGISTERED) where the mesh has the
-        # elements to fit them against
-        n_across = min(np.unique(np.round(mesh.p[a], 9)).size - 1 for a in range(2))
-        boundary = BOUNDARY_REGISTERED if n_across >= FITTED_MIN_ELEMENTS else "measured"
-        model_rule += (f"; lateral boundary values {'fitted' if boundary == 'fitted' else 'measured'} ({n_across} "
-                       f"elements across the narrower axis, fitted from {FITTED_MIN_ELEMENTS})")
     fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w, boundary=boundary)
     ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
     if dim == 2:
@@ -1565,12 +1538,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     b, theta, info, phi, R = chosen
     if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
         problem.g = info["boundary"]
-    kappa = TV_REWEIGHT_REGISTERED if registered and boundary == "fitted" else TV_REWEIGHT
-    if kappa is not None and dim == 2 and regularization == "tv":
+    if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
         # data, a modulus that differs mostly in the inclusions' contrast)
-        reg.reweight(theta, kappa)
+        reg.reweight(theta, TV_REWEIGHT)
         theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)   # the bar is closed here
         if np.all(np.isfinite(theta_r)):
             theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
@@ -1578,7 +1550,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 problem.g = info["boundary"]
         phi, _ = problem.misfit(theta)
         R, _ = reg(theta)
-        rule += f"; TV reweighted once (1 / (1 + |jump| / {kappa:g}))"
+        rule += f"; TV reweighted once (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
     q5, q95 = np.percentile(theta, [5, 95])
     flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
     # the dof rules at the largest beta tried: an edge only when even that beta leaves gamma above the target; with
