@@ -7,7 +7,8 @@ contrasts 0.25-4, 1 %, 20 dB, L7 and paper probes, seed 0: every constant of the
 calibration's 1/h on it and held-out),
 ``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2``
 (:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``fresh3``
-(:data:`FRESH3`, drawn before the soft-disk work, radii 4-8 mm, and not looked at until it was fixed), ``curves``
+(:data:`FRESH3`, drawn before the soft-disk work, radii 4-8 mm, and not looked at until it was fixed), ``fresh4``
+(:data:`FRESH4`, 14 cases drawn after fresh3's misses were diagnosed, first run with the code of that time), ``curves``
 (:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration). Each pair is
 registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
 effective-parameter rule, uncertainty).
@@ -93,6 +94,15 @@ FRESH3 = tuple((m, c, pr, snr, r, lev, seed)
                                                 (0.5, "L7", 20.0, 8.0, 0.02, 43), (0.4, "L12", 15.0, 5.0, 0.03, 44),
                                                 (0.25, "L15", 30.0, 4.0, 0.01, 45), (3.0, "L3", 20.0, 4.0, 0.03, 46),
                                                 (2.5, "paper", 30.0, 6.0, 0.02, 47), (4.0, "L12", 25.0, 7.0, 0.01, 48)))
+#: Fresh4: drawn before the work after fresh3 and run once with the code of that time before any change; new seeds
+#: 51-57, every probe, radii 4-7 mm off the former grids (4.5, 5.5, 6.5), contrasts 0.25-4 (0.35, 0.6, 1.5, 3.5 new),
+#: 1-4 %, 15-30 dB, both models: 14 cases.
+FRESH4 = tuple((m, c, pr, snr, r, lev, seed)
+               for m in MODELS
+               for c, pr, snr, r, lev, seed in ((0.35, "L3", 20.0, 5.0, 0.02, 51), (2.0, "L15", 25.0, 4.5, 0.02, 52),
+                                                (0.6, "paper", 25.0, 5.5, 0.03, 53), (3.5, "L7", 15.0, 6.0, 0.01, 54),
+                                                (0.25, "L12", 30.0, 4.0, 0.04, 55), (1.5, "L3", 30.0, 6.5, 0.01, 56),
+                                                (4.0, "paper", 20.0, 7.0, 0.02, 57)))
 #: Outside the targets' range, for the contrast-recovery curves (plane strain, L7, 1 %, seed 6, one parameter
 #: varied from the 5 mm / 20 dB / contrast 4 or 0.25 case): radius, contrast, SNR.
 CURVES = (tuple(("plane-strain", c, "L7", 20.0, r, 0.01, 6) for c in (0.25, 4.0) for r in (1.5, 2.5, 3.5, 8.0))
@@ -456,7 +466,7 @@ def curves_figure(rows, path):
 
 
 SETS = {"main": tuple((m, c, pr, snr, 5.0, 0.01, 0) for pr, snr in SETTINGS for m in MODELS for c in CONTRASTS),
-        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3, "curves": CURVES,
+        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3, "fresh4": FRESH4, "curves": CURVES,
         "quick": tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 0) for c in CONTRASTS)}
 
 
