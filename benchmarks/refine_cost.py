@@ -8,9 +8,10 @@ CPU seconds of both and their ratio, the elements before -> after.  The summary 
 ratio: the gate for refinement as a default is no case worse by more than 0.3 points and no pair over 2x.
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
-Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3] [--refine auto|slip|norelax|deep|twopass|N]
-[--against norelax] [--seed 0] [--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change
-of ``--refine`` against it: the gate of a change to the default refinement).
+Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
+[--refine auto|slip|norelax|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
+[--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change of ``--refine`` against it:
+the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
 from __future__ import annotations
@@ -54,11 +55,13 @@ def _spec(name):
         return Refinement(relax=None)
     if name == "deep":
         return deep_refinement()
-    if name == "lowcut":            # measured, not the default: DEEP_REFINEMENT marking at a z-score of 2
+    if name.split(":")[0] == "lowcut":   # measured, not the default: DEEP_REFINEMENT marking at a z-score of 2
         import dataclasses as dc
 
-        return dc.replace(deep_refinement(), threshold=2.0, min_size=(0.15, 0.3), relax_threshold=4.0,
+        spec = dc.replace(deep_refinement(), threshold=2.0, min_size=(0.15, 0.3), relax_threshold=4.0,
                           feature_threshold=4.0)
+        # "lowcut:F": its feature test at F x the (z-score 4) cut instead of 2.2
+        return dc.replace(spec, feature=float(name.split(":")[1])) if ":" in name else spec
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)
@@ -113,8 +116,8 @@ def main(argv=None):
     ap.add_argument("--cases", default="")
     ap.add_argument("--refine", default="auto",
                     help="auto (= deep), slip, norelax (the two-pass refinement without the local relaxation), "
-                         "twopass (Refinement(): the default before deep), deep (deep_refinement) or a number of "
-                         "passes")
+                         "twopass (Refinement(): the default before deep), deep (deep_refinement), lowcut "
+                         "(marking at a z-score of 2), lowcut:F (its feature test at F x the cut) or a number of passes")
     ap.add_argument("--against", default=None,
                     help="also this refine= (as --refine): the error change of --refine against it")
     ap.add_argument("--repeats", type=int, default=3)

@@ -85,7 +85,8 @@ the default mesh (:func:`default_refine`).  Measured, not the default: the marki
 z-score of 2 with columns down to 0.3 mm (the relaxation and the feature test on cuts of their own at 4:
 :attr:`Refinement.relax_threshold`, :attr:`Refinement.feature_threshold`) lowers the inclusions' error (r 4 mm
 under 12 MHz 8.26 -> 6.43 %, r 3 mm 6.80 -> 6.50 / 8.60 -> 8.56 %) but makes rotated pairs up to 1.4 points worse
-(``benchmarks/rotation_sweep.py``; README "Adaptive refinement").
+(``benchmarks/rotation_sweep.py``; README "Adaptive refinement"); its feature test at 4.3x the cut keeps the
+rotated pairs unsplit but also bending (2.5-3.1x the cut): 1.1-1.4 points worse there, not the default either.
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
 on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
 0.76-1.07 (weight 0.003; 0.63-1.0 with 0.03).
