@@ -35,7 +35,7 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   strain (a 1 % compression came out as 0.47 %, ``success=True``).  Two frames of moving tissue tell the conventions
   apart (:func:`femreg.io.iq.iq_convention`): on 30 simulated pairs (5 probes, 0.1-4 % compression, IQ decimated
   1x and 3x) and 8 in vivo pairs, each with both signs, every verdict was right (the wrong sign explained the
-  phases 2.95-539 times worse), :func:`check_iq_sign`.
+  phases at least 2.95 times worse), :func:`check_iq_sign`.
 
 Only strong evidence refuses: no carrier along axis 0 (envelope, B-mode, smooth synthetic images) passes, and so
 does anything too small to measure.  ``register(..., check_orientation=False)``, ``track(...,

@@ -101,10 +101,13 @@ def baseband(rf, axial_spacing, modulation_frequency, *, axial_origin=0.0, sound
 CONVENTION_WINDOW = 32
 #: Windows whose envelope correlation peak is below this are left out of the convention check.
 CONVENTION_MIN_NCC = 0.6
-#: The convention is decided when one sign explains the windows' phases this much better (mean squared
-#: disagreement ratio) and enough windows (:data:`CONVENTION_MIN_WINDOWS`) moved by a measurable fraction of a sample.
+#: The convention is decided when one sign explains the windows' phases this much better (ratio of the phase
+#: misfits) and enough windows (:data:`CONVENTION_MIN_WINDOWS`) moved by a measurable fraction of a sample.
 CONVENTION_RATIO = 2.0
 CONVENTION_MIN_WINDOWS = 20
+#: Phase misfit (mean of 1 - cos) added to both signs' before their ratio, so that frames without motion (both
+#: near zero) give no verdict.
+CONVENTION_FLOOR = 1e-4
 #: Windows looked at, at most (spread over the depth and the groups of lines).
 CONVENTION_WINDOWS = 400
 
@@ -119,8 +122,9 @@ def iq_convention(iq_a, iq_b, axial_spacing, modulation_frequency, *, sound_spee
     ``L`` is compared, modulo 2 pi, with what each sign predicts from it.  The sign that predicts the phases is the
     convention.
 
-    Returns ``("standard" | "conjugate" | "unknown", ratio, n)``: ``ratio`` the mean squared disagreement of the
-    conjugate sign over the standard one (large: standard), ``n`` the windows used.  "unknown" when fewer than
+    Returns ``("standard" | "conjugate" | "unknown", ratio, n)``: ``ratio`` the phase misfit (mean of
+    ``1 - cos`` of the difference, plus :data:`CONVENTION_FLOOR`) of the conjugate sign over the standard one
+    (large: standard), ``n`` the windows used.  "unknown" when fewer than
     :data:`CONVENTION_MIN_WINDOWS` windows correlate, or neither sign explains them :data:`CONVENTION_RATIO` times
     better (e.g. no motion between the frames).
     """
@@ -157,14 +161,14 @@ def iq_convention(iq_a, iq_b, axial_spacing, modulation_frequency, *, sound_spee
             frac = 0.5 * (E[i - 1] - E[i + 1]) / den if den < 0 else 0.0
             shifts.append(lags[i] + frac)                          # envelope shift, samples
             phases.append(float(np.angle(R[i])))                   # standard: -per_sample * shift (mod 2 pi)
-    u_env = shifts
-    n = len(u_env)
+    n = len(shifts)
     if n < CONVENTION_MIN_WINDOWS:
         return "unknown", float("nan"), n
-    u, ph = np.asarray(u_env), np.asarray(phases)
+    u, ph = np.asarray(shifts), np.asarray(phases)
     d_std = float(np.mean(1.0 - np.cos(ph + per_sample * u)))
     d_conj = float(np.mean(1.0 - np.cos(ph - per_sample * u)))
-    ratio = d_conj / max(d_std, 1e-12)
+    # both near zero: no motion, nothing to tell (the floor is a phase misfit of about 0.014 rad RMS)
+    ratio = (d_conj + CONVENTION_FLOOR) / (d_std + CONVENTION_FLOOR)
     if ratio >= CONVENTION_RATIO:
         return "standard", ratio, n
     if ratio <= 1.0 / CONVENTION_RATIO:
