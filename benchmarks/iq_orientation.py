@@ -9,7 +9,8 @@ exchanged order a miss.
 
 Second table: the sign-convention check (:func:`femreg.io.iq.iq_convention`) on pairs of moving tissue (every probe,
 0.1 / 1 / 4 % compression, IQ decimated 1x and 3x; in vivo frames 1 -> 2 and 1 -> 4, decimated 1x and 4x), each with
-the usual sign and conjugated: a verdict of the wrong sign is an error, "unknown" a miss.
+the usual sign and conjugated: a verdict of the wrong sign is an error, "unknown" a miss; and each with its
+frequency given 0.5, 0.8, 1.2 and 2 times too high: "frequency" is the verdict wanted.
 
 Usage: ``python benchmarks/iq_orientation.py``.
 """
@@ -99,15 +100,23 @@ def sign_table():
                     iq = [iq_of(x, 0.02, 4.158, q) for x in (fr[0], fr[k])]
                     pairs.append((f"in vivo {seq} 1->{(2, 4)[k - 1]} q={q}", iq, 0.02 * q, 4.158))
     wrong, unknown, worst = 0, 0, np.inf
-    print(f"\n{'pair':30s} {'usual sign':>22s} {'conjugated':>22s}")
+    factors = (0.5, 0.8, 1.2, 2.0)
+    caught, refused_right = {k: 0 for k in factors}, 0
+    print(f"\n{'pair':30s} {'usual sign':>22s} {'conjugated':>22s}  frequency x{factors}: verdicts (best MHz)")
     for label, (a, b), dz, f in pairs:
         s, c = iq_convention(a, b, dz, f), iq_convention(np.conj(a), np.conj(b), dz, f)
-        wrong += (s[0] == "conjugate") + (c[0] == "standard")
+        wrong += (s[0] != "standard" and s[0] != "unknown") + (c[0] != "conjugate" and c[0] != "unknown")
+        refused_right += s[0] not in ("standard", "unknown")
         unknown += (s[0] == "unknown") + (c[0] == "unknown")
         worst = min(worst, s[1], 1 / c[1])
-        print(f"{label:30s} {s[0]:>10s} {s[1]:9.3g} {c[0]:>12s} {c[1]:9.3g}  ({s[2]} windows)")
-    print(f"{2 * len(pairs)} verdicts: wrong {wrong}, unknown {unknown}; the wrong sign explained the phases at "
-          f"least {worst:.3g} times worse")
+        off = [iq_convention(a, b, dz, f * k) for k in factors]
+        for k, v in zip(factors, off):
+            caught[k] += v[0] == "frequency"
+        print(f"{label:30s} {s[0]:>10s} {s[1]:9.3g} {c[0]:>12s} {c[1]:9.3g}  "
+              + " ".join(f"{v[0][:4]}({v[3]:.3g})" for v in off) + f"  [{s[2]} windows, best {s[3]:.3g} MHz]")
+    print(f"{2 * len(pairs)} sign verdicts: wrong {wrong} (right frequency and sign refused: {refused_right}), "
+          f"unknown {unknown}; the wrong sign explained the phases at least {worst:.3g} times worse")
+    print("wrong frequency refused: " + ", ".join(f"x{k}: {caught[k]} / {len(pairs)}" for k in factors))
 
 
 if __name__ == "__main__":

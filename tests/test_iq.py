@@ -191,3 +191,21 @@ def test_sign_convention_is_checked(pair, tmp_path):
                           str(tmp_path / "c1.npy"), "--spacing", f"{3 * dx}", f"{dy}", "--iq-frequency", f"{f}",
                           "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
     assert run.returncode == 2 and "--iq-conjugate" in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+def test_wrong_demodulation_frequency_is_refused(pair, tmp_path):
+    from femreg.io.iq import iq_convention
+
+    dx, dy = pair.spacing
+    f = pair.probe.f0_mhz
+    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    v = iq_convention(iq[0], iq[1], 3 * dx, 1.2 * f)
+    # a 20 % wrong frequency scaled the registered strain by 0.835 (success=True); the phases show the right one
+    assert v[0] == "frequency" and abs(v[3] / f - 1) < 0.02, v          # measured 7.5 MHz for 7.5
+    path = tmp_path / "iq.npz"
+    np.savez(path, rf=iq, spacing=(3 * dx, dy))
+    with pytest.raises(OrientationError, match="MHz demodulation") as err:
+        read_frames(path, modulation_frequency=1.2 * f)
+    assert err.value.problem == "iq-frequency"
+    read_frames(path, modulation_frequency=1.2 * f, check_orientation=False)
+    assert read_frames(path, modulation_frequency=f).metadata["iq"]["convention_check"][0] == "standard"
