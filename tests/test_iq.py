@@ -25,6 +25,13 @@ def _iq(rf, dx, f_mhz, q):
     return resample_poly(iq, 1, q, axis=-2).astype(np.complex64)
 
 
+def _pair_iq(pair, q=3):
+    """(IQ of the pair's two frames decimated q times, dx, dy, f MHz)."""
+    dx, dy = pair.spacing
+    f = pair.probe.f0_mhz
+    return _iq(np.stack([pair.ref, pair.mov]), dx, f, q), dx, dy, f
+
+
 @pytest.fixture(scope="module")
 def pair():
     from forward import fields as F
@@ -73,9 +80,7 @@ def test_remodulate_restores_the_rf(pair):
 def test_readers_remodulate_complex_frames(pair, tmp_path, fmt):
     import scipy.io
 
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
-    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    iq, dx, dy, f = _pair_iq(pair)
     sp = (3 * dx, dy)
     path = tmp_path / f"iq.{'npz' if fmt == 'npz' else 'mat'}"
     if fmt == "npz":
@@ -119,9 +124,7 @@ def test_swapped_iq_spacing_is_refused(pair, tmp_path):
 
 
 def test_iq_pair_registers_like_its_rf(pair):
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
-    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    iq, dx, dy, f = _pair_iq(pair)
     rf, step, _ = remodulate(iq, 3 * dx, f, axis=1)
     kw = dict(regularizer="momentum-stress")
     r_iq = femreg.register(rf[0], rf[1], spacing=(step, dy), origin=pair.origin, **kw)
@@ -137,10 +140,9 @@ def test_iq_pair_registers_like_its_rf(pair):
 
 
 def test_cli_info_and_register_on_iq(pair, tmp_path):
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
+    iq, dx, dy, f = _pair_iq(pair)
     path = tmp_path / "scan.mat"
-    _write_mat73(path, _iq(np.stack([pair.ref, pair.mov]), dx, f, 3), (3 * dx, dy))
+    _write_mat73(path, iq, (3 * dx, dy))
     run = [sys.executable, "-m", "femreg"]
     info = subprocess.run(run + ["info", str(path)], capture_output=True, text=True)
     assert info.returncode == 1 and "--iq-frequency" in info.stdout and "complex int16" in info.stdout, info
@@ -150,9 +152,7 @@ def test_cli_info_and_register_on_iq(pair, tmp_path):
 
 
 def test_directory_of_iq_frames_is_one_stack(pair, tmp_path):
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
-    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    iq, dx, dy, f = _pair_iq(pair)
     for k in range(2):
         np.save(tmp_path / f"frame{k + 1}.npy", iq[k])
     fr = read_frames(tmp_path, spacing=(3 * dx, dy), modulation_frequency=f)
@@ -165,9 +165,7 @@ def test_directory_of_iq_frames_is_one_stack(pair, tmp_path):
 def test_sign_convention_is_checked(pair, tmp_path):
     from femreg.io.iq import iq_convention
 
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
-    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    iq, dx, dy, f = _pair_iq(pair)
     std = iq_convention(iq[0], iq[1], 3 * dx, f)
     conj = iq_convention(np.conj(iq[0]), np.conj(iq[1]), 3 * dx, f)
     assert std[0] == "standard" and conj[0] == "conjugate", (std, conj)
@@ -196,9 +194,7 @@ def test_sign_convention_is_checked(pair, tmp_path):
 def test_wrong_demodulation_frequency_is_refused(pair, tmp_path):
     from femreg.io.iq import iq_convention
 
-    dx, dy = pair.spacing
-    f = pair.probe.f0_mhz
-    iq = _iq(np.stack([pair.ref, pair.mov]), dx, f, 3)
+    iq, dx, dy, f = _pair_iq(pair)
     v = iq_convention(iq[0], iq[1], 3 * dx, 1.2 * f)
     # a 20 % wrong frequency scaled the registered strain by 0.835 (success=True); the phases show the right one
     assert v[0] == "frequency" and abs(v[3] / f - 1) < 0.02, v          # measured 7.5 MHz for 7.5
