@@ -195,6 +195,13 @@ class Refinement:
         Robust z-score of the cut ``feature`` is measured against.  None: ``threshold``, the marking's.  A marking
         cut lowered to split more of a feature leaves the noise of a rotated pair further over its own cut: the
         test keeps the cut it was measured on.
+    interior : bool
+        Volumes only (:func:`femreg.volume_refine.mark_volume`): a slab is also marked by the variation of the
+        field inside it, not only by the jumps at its faces: the whole tensor's jump ``|[[A]]|`` across each face
+        (not only ``[[A]] n``) and the second difference of the element-centre ``A[u]`` along the slab's axis, each
+        against its own cut (the robust z-score ``threshold`` or ``relative`` times the field's RMS, the larger).
+        A slab on a plane of symmetry, where the field is extremal, shows no face jump ``[[A]] n`` but the largest
+        second difference.  False on the plane (2D marking rejects it).
     settle : bool
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
@@ -224,6 +231,7 @@ class Refinement:
     feature: float = 0.0
     feature_threshold: float | None = None
     settle: bool = False
+    interior: bool = False
 
     def __post_init__(self):
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
@@ -328,6 +336,8 @@ def as_refinement(spec) -> Refinement | None:
     if spec is None or spec is False:
         return None
     if isinstance(spec, Refinement):
+        if spec.interior:
+            raise InputError("refinement interior=True marks volumes only (femreg.volume_refine)")
         return spec if spec.passes > 0 else None
     if isinstance(spec, str):
         if spec == DEFAULT:

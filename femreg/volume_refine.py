@@ -32,7 +32,8 @@ from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
 
-__all__ = ["VOLUME_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps", "mark_volume",
+__all__ = ["VOLUME_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps", "interior_variation",
+           "mark_volume",
            "refine_hex_mesh", "transfer_3d", "refine_volume_passes"]
 
 #: lambda_bar of the 3D "jump" indicator's A[u]: the momentum regularisers' value on volumes.
@@ -89,25 +90,58 @@ def _momentum_3d(e, lambda_bar: float) -> np.ndarray:
     return A
 
 
-def face_jumps(mesh, u, lambda_bar: float = JUMP_LAMBDA_BAR_3D):
-    """``(jumps, scale)``: ``jumps[a]`` the ``|[[A]] n|`` across the interior faces normal to axis a of a tensor
-    hexahedral mesh, on the cell grid with axis a one shorter (between slabs i and i + 1), from the element-centre
-    strains; ``scale`` the RMS over the elements of ``|A[u]|`` (Frobenius).  Dimensionless (strain units)."""
-    _, node = _need_hex_tensor(mesh)
+def _centre_momentum(mesh, u, lambda_bar):
+    """A[u] of the element centres on the cell grid (E_x, E_y, E_z, 3, 3) and its RMS Frobenius norm."""
+    _need_hex_tensor(mesh)
     cell = HexLocator(mesh).cell
     e = (element_strain_operator_3d(mesh) @ np.asarray(u, float)).reshape(6, -1).T
     A = _momentum_3d(e, lambda_bar)
-    scale = float(np.sqrt(np.mean(np.sum(A ** 2, axis=(1, 2)))))
-    G = A[cell]                                     # (E_x, E_y, E_z, 3, 3)
-    jumps = [np.linalg.norm(np.diff(G[..., :, a], axis=a), axis=-1) for a in range(3)]     # [[A]] e_a
-    return jumps, scale
+    return A[cell], float(np.sqrt(np.mean(np.sum(A ** 2, axis=(1, 2)))))
+
+
+def face_jumps(mesh, u, lambda_bar: float = JUMP_LAMBDA_BAR_3D, whole: bool = False):
+    """``(jumps, scale)``: ``jumps[a]`` the ``|[[A]] n|`` across the interior faces normal to axis a of a tensor
+    hexahedral mesh, on the cell grid with axis a one shorter (between slabs i and i + 1), from the element-centre
+    strains (``whole``: the whole tensor's jump ``|[[A]]|``, Frobenius); ``scale`` the RMS over the elements of
+    ``|A[u]|`` (Frobenius).  Dimensionless (strain units)."""
+    G, scale = _centre_momentum(mesh, u, lambda_bar)          # (E_x, E_y, E_z, 3, 3)
+    if whole:
+        return [np.linalg.norm(np.diff(G, axis=a), axis=(-2, -1)) for a in range(3)], scale
+    return [np.linalg.norm(np.diff(G[..., :, a], axis=a), axis=-1) for a in range(3)], scale     # [[A]] e_a
+
+
+def interior_variation(mesh, u, lambda_bar: float = JUMP_LAMBDA_BAR_3D):
+    """``(second, scale)``: ``second[a]`` the second difference of the element-centre A[u] along axis a,
+    ``|A_{i-1} - 2 A_i + A_{i+1}|`` (Frobenius), on the cell grid (0 on the first and last slab of each axis);
+    ``scale`` as :func:`face_jumps`.  Dimensionless.  A slab on a plane of symmetry of the field, where the
+    strain is extremal along that axis, has equal centre values on both sides (the jumps ``[[A]] n`` of its two
+    faces are small by symmetry) and the largest second difference."""
+    G, scale = _centre_momentum(mesh, u, lambda_bar)
+    out = []
+    for a in range(3):
+        g = np.moveaxis(G, a, 0)
+        d = np.zeros(g.shape[:-2])
+        d[1:-1] = np.linalg.norm(g[2:] - 2.0 * g[1:-1] + g[:-2], axis=(-2, -1))
+        out.append(np.moveaxis(d, 0, a))
+    return out, scale
 
 
 def mark_volume(mesh, u, opts: Refinement):
     """``(marked, scores)``: per axis the slabs of a tensor hexahedral mesh to split (boolean) and each slab's
-    largest face jump over the cut (marked where > 1), :mod:`femreg.refine`'s rule on :func:`face_jumps`."""
-    jumps, scale = face_jumps(mesh, u)
-    return marked_slabs(slab_scores(jumps), jump_cut(jumps, opts, scale), opts)
+    largest face jump over the cut (marked where > 1), :mod:`femreg.refine`'s rule on :func:`face_jumps`.
+    With ``opts.interior`` the score is the larger of the whole tensor's face jump (:func:`face_jumps`,
+    ``whole=True``) and the slab's largest second difference (:func:`interior_variation`), each over its own cut
+    (:func:`femreg.refine.jump_cut`)."""
+    if not opts.interior:
+        jumps, scale = face_jumps(mesh, u)
+        return marked_slabs(slab_scores(jumps), jump_cut(jumps, opts, scale), opts)
+    jumps, scale = face_jumps(mesh, u, whole=True)
+    second, _ = interior_variation(mesh, u)
+    cut_j, cut_s = jump_cut(jumps, opts, scale), jump_cut(second, opts, scale)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sc = [np.maximum(j / cut_j, np.moveaxis(d, a, 0).reshape(d.shape[a], -1).max(axis=1) / cut_s)
+              for a, (j, d) in enumerate(zip(slab_scores(jumps), second))]
+    return marked_slabs(sc, 1.0, opts)
 
 
 def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1):

@@ -8,8 +8,8 @@ from _volumes import affine_field, volume_pair
 from femreg.errors import InputError
 from femreg.refine import Refinement, refined_axes, slab_scores, slabs_within_budget
 from femreg.volume import register_volume
-from femreg.volume_refine import (VOLUME_REFINEMENT, as_volume_refinement, face_jumps, refine_hex_mesh,
-                                  transfer_3d)
+from femreg.volume_refine import (VOLUME_REFINEMENT, as_volume_refinement, face_jumps, mark_volume,
+                                  refine_hex_mesh, transfer_3d)
 
 SPACING = (0.02, 0.2, 0.25)
 WEIGHTS = np.array([1, 1, 1, 2, 2, 2.0])
@@ -123,3 +123,30 @@ def test_refinement_leaves_an_affine_field_alone():
     # nothing stands out of the noise: the mesh and the field are the unrefined ones
     assert res.refinement.passes == [] and res.mesh.t.shape[1] == base.mesh.t.shape[1]
     assert np.array_equal(res.u, base.u)
+
+
+def test_interior_marking_catches_a_slab_without_face_jump():
+    # 1 % uniform compression plus an in-plane strain bump e_xx = -e_yy = 0.002 exp(-(z / 3 mm)^2) peaking inside
+    # the central z-slab, its shear cancelled by u_z: the z-faces' jumps [[A]] n stay small (the traction rule
+    # leaves every z-slab, the central one at 0.42 of its cut), the second difference of the centre strains
+    # peaks there (5.31 of its cut, its neighbours 2.60)
+    import dataclasses
+
+    m = _mesh(np.linspace(-0.5, 0.5, 5), np.linspace(-0.5, 0.5, 5), np.linspace(-8.75, 8.75, 8))
+    x, y, z = m.p
+    f = 0.002 * np.exp(-(z / 3.0) ** 2)
+    fp = -2.0 * z / 9.0 * f
+    u = np.empty(3 * x.size)
+    u[0::3], u[1::3] = x * (f - 0.01), y * (0.005 - f)
+    u[2::3] = -(x ** 2 - y ** 2) * fp / 2 + 0.005 * z
+    plain, score = mark_volume(m, u, VOLUME_REFINEMENT)
+    assert not plain[2].any() and score[2][3] < 0.6
+    marked, score = mark_volume(m, u, dataclasses.replace(VOLUME_REFINEMENT, interior=True))
+    assert marked[2][3] and int(np.argmax(score[2])) == 3 and score[2][3] > 3.0
+
+
+def test_interior_marking_is_volumes_only():
+    from femreg.refine import as_refinement
+
+    with pytest.raises(InputError):
+        as_refinement(Refinement(interior=True))
