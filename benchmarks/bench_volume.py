@@ -12,6 +12,7 @@ peak-hopping check (:func:`femreg.repair.envelope_lag_ncc_3d`) flags, per probe 
     python benchmarks/bench_volume.py --probes 3 7.5 15     # accuracy per probe
     python benchmarks/bench_volume.py --shape 400 50 30     # a smaller volume
     python benchmarks/bench_volume.py --refine auto         # with adaptive refinement (femreg.volume_refine)
+    python benchmarks/bench_volume.py --refine interior=1,max_growth=8   # VOLUME_REFINEMENT with these fields
 """
 from __future__ import annotations
 
@@ -66,6 +67,13 @@ def _register_child(path, G, options):
 
     z = np.load(path)
     ref, mov, spacing = z["ref"], z["mov"], tuple(z["spacing"])
+    if isinstance(options.get("refine"), str) and "=" in options["refine"]:
+        import dataclasses
+
+        from femreg.volume_refine import VOLUME_REFINEMENT
+        kw = dict(kv.split("=", 1) for kv in options["refine"].split(","))
+        options["refine"] = dataclasses.replace(VOLUME_REFINEMENT, **{k: float(v) if "." in v else int(v)
+                                                                      for k, v in kw.items()})
     t0, c0 = time.perf_counter(), time.process_time()
     res = femreg.register(ref, mov, spacing=spacing, **options)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -92,7 +100,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--element-size", type=float, default=None)
     ap.add_argument("--regularizer", default="momentum-stress")
-    ap.add_argument("--refine", default=None, help="refine= of the registration: 'auto' or a number of passes")
+    ap.add_argument("--refine", default=None, help="refine= of the registration: 'auto', a number of passes or "
+                    "'key=value,...' (femreg.volume_refine.VOLUME_REFINEMENT with those numeric fields)")
     ap.add_argument("--cache", default=os.environ.get("FEMREG_CACHE", tempfile.gettempdir()))
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)

@@ -17,6 +17,11 @@ regulariser's weight of eq:objf that of the unrefined mesh (:func:`femreg.scalin
 term's reference values and gradients at the voxels are shared with the unrefined solve (the voxel block is the
 same, :meth:`femreg.voxels.VoxelSSDTerm.on_mesh`).  The slip region and the local relaxation of 2D are not
 used on volumes.
+
+``Refinement(interior=True)`` (:func:`mark_volume`) also marks a slab by the variation inside it: the whole
+tensor's face jump ``|[[A]]|`` and the second difference of the element-centre A[u] along the slab's axis
+(:func:`interior_variation`).  A slab on a plane of symmetry of the field (the elevational slab across an
+inclusion's central plane) shows no jump ``[[A]] n`` at its faces, the largest second difference.
 """
 from __future__ import annotations
 
