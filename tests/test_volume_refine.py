@@ -123,6 +123,11 @@ def test_refinement_leaves_an_affine_field_alone():
     # nothing stands out of the noise: the mesh and the field are the unrefined ones
     assert res.refinement.passes == [] and res.mesh.t.shape[1] == base.mesh.t.shape[1]
     assert np.array_equal(res.u, base.u)
+    # nor inside the slabs: the interior marking's largest score is 0.125 of its cut (the traction rule's 0.05)
+    import dataclasses
+
+    marked, score = mark_volume(base.mesh, base.u, dataclasses.replace(VOLUME_REFINEMENT, interior=True))
+    assert not any(m.any() for m in marked) and max(float(s.max()) for s in score) < 0.3
 
 
 def test_interior_marking_catches_a_slab_without_face_jump():
