@@ -127,17 +127,6 @@ def _route(reference_image, moving_image, args: dict):
     return None
 
 
-def _envelope_data(ref) -> bool:
-    """True for frames without an RF carrier along the depth (envelope, B-mode: :func:`femreg.orientation.
-    carrier_ratio` above :data:`~femreg.orientation.NO_CARRIER_RATIO`), where a whole RF period is no ambiguity."""
-    from .orientation import MIN_SAMPLES, NO_CARRIER_RATIO, carrier_ratio
-
-    ref = np.asarray(ref)
-    if ref.ndim != 2 or ref.shape[0] < MIN_SAMPLES:
-        return False
-    return bool(carrier_ratio(ref[:, ::max(1, ref.shape[1] // 64)]) > NO_CARRIER_RATIO)
-
-
 @volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
 @single_blas_thread
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
@@ -317,7 +306,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
-    notes, hops = [ENVELOPE_NOTE] * (envelope := _envelope_data(ref)), np.zeros(fe_mesh.p.shape[1], int)
+    notes, hops = [ENVELOPE_NOTE] * (envelope := orientation.is_envelope(ref)), np.zeros(fe_mesh.p.shape[1], int)
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         kw = dict(solve_kw)
