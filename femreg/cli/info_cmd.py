@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -60,8 +61,10 @@ def _what_is_missing(exc: InputError, path: Path, args) -> tuple[str, dict]:
     text = str(exc)
     if "spacing unknown" in text:
         given = list(getattr(args, "spacing", None) or [None, None])
-        return ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
-                "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)"), \
+        hint = re.search(r"its fields suggest .*? against the scanner's settings", text)
+        need = ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
+                "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)")
+        return need + (f"; {hint.group(0)}" if hint else ""), \
             {"spacing": [v if v is not None else 1.0 for v in given]}
     return text, {}
 

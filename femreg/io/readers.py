@@ -12,6 +12,7 @@ Formats (chosen by extension, verified by content):
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
 ``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
                        to RF; see :mod:`femreg.io.uff`
+``.h5`` ``.hdf5``      plain HDF5: a dataset of frames, its layout told by the RF carrier; see :mod:`femreg.io.hdf5`
 directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
 =====================  ============================================================================
 
@@ -42,7 +43,9 @@ from .frames import Frames, Volumes, finalize, finalize_volumes
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
 
 _MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
-          (b"\x89HDF\r\n\x1a\n", "mat")]
+          (b"\x89HDF\r\n\x1a\n", "hdf5")]
+#: Formats stored as HDF5 (a file of one may be read by another's reader).
+_HDF5_FORMATS = ("mat", "uff", "hdf5")
 PREFERRED_KEYS = ("rf", "frames")
 _MAX_BYTES = 1 << 34  # refuse arrays claiming more than 16 GiB (a corrupt header, not RF)
 
@@ -75,7 +78,7 @@ def detect_format(path) -> str:
     except OSError as exc:
         raise fail(path, f"cannot read ({exc.strerror or exc})") from None
     for magic, name in _MAGIC:
-        if head.startswith(magic) or (name == "mat" and head[512:520] == magic):
+        if head.startswith(magic) or (name == "hdf5" and head[512:520] == magic):
             return name
     if head[:80].lstrip().lower().startswith((b"objecttype", b"ndims")):
         return "metaimage"
@@ -85,7 +88,7 @@ def detect_format(path) -> str:
 
 def _sniff_mislabel(path, head: bytes, fmt: str):
     for magic, name in _MAGIC:
-        if name != fmt and head.startswith(magic) and not (fmt == "uff" and name == "mat"):   # both HDF5
+        if name != fmt and head.startswith(magic) and not (fmt in _HDF5_FORMATS and name in _HDF5_FORMATS):
             raise fail(path, f"content is a {name} file, not {fmt} as the extension says")
 
 
@@ -462,8 +465,18 @@ def _read_uff(path, **kw):
     return Frames(**read_uff(path, **kw))
 
 
+def _read_hdf5(path, **kw):
+    from .hdf5 import read_hdf5
+    from .matlab import mat_version
+
+    with open(path, "rb") as fh:
+        if fh.read(6) == b"MATLAB" and mat_version(path) == "7.3":     # MATLAB's -v7.3 under another name
+            return _read_mat(path, **kw)
+    return Frames(**read_hdf5(path, **kw))
+
+
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
-            "ultrasonix": _read_rf, "uff": _read_uff}
+            "ultrasonix": _read_rf, "uff": _read_uff, "hdf5": _read_hdf5}
 
 
 # ------------------------------------------------------------------------------------------------ volumes
