@@ -80,6 +80,14 @@ def test_spacing_hint_from_header_fields(pair, tmp_path):
         read_frames(path)
     assert f"--spacing {dx:.4g} {dy:.4g}" in str(err.value), str(err.value)
     assert read_frames(path, spacing=pair.spacing).metadata["attributes"]["pitch"] == pytest.approx(dy * 1e-3)
+    # npz and MATLAB files: their scalar variables
+    np.savez(tmp_path / "scan.npz", rf=rf, fs_MHz=fs / 1e6, pitch_mm=dy)
+    import scipy.io
+
+    scipy.io.savemat(tmp_path / "scan.mat", {"rf": np.moveaxis(rf, 0, -1), "fs": fs, "pitch": dy * 1e-3})
+    for name in ("scan.npz", "scan.mat"):
+        with pytest.raises(InputError, match=f"--spacing {dx:.4g} {dy:.4g}"):
+            read_frames(tmp_path / name)
     # units from the names, else from the magnitude; nothing without both a sampling frequency and a pitch
     assert "--spacing 0.02 0.3" in spacing_hint({"fs_MHz": 38.5, "pitch_mm": 0.3})
     assert "--spacing 0.025 0.2" in spacing_hint({"SamplingFrequency": 30.8e6, "Pitch": 2e-4, "c": 1540})

@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .checks import FORMATS, check_origin, fail, merge_spacing, parse_dtype  # noqa: F401  (FORMATS, parse_dtype: API)
+from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
+from .checks import check_origin, fail, merge_spacing, spacing_hint
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -196,8 +197,20 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, PREFERRED_KEYS)
     file_spacing = _npz_spacing(path, raw_sp, 2)
     origin = check_origin(raw_origin, path) if raw_origin is not None else None
-    sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key")
+    hint = _npz_hint(path, key) if file_spacing is None else ""
+    sp = merge_spacing(path, file_spacing, spacing,
+                       required_msg="the .npz has no 'spacing' key" + (f"; {hint}" if hint else ""))
     return finalize(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
+
+
+def _npz_hint(path, key) -> str:
+    """:func:`femreg.io.checks.spacing_hint` from the scalar arrays of an .npz ("" if none tell)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            scalars = {k: z[k] for k in z.files if k != key and z[k].size == 1 and z[k].dtype.kind in "iuf"}
+    except Exception:  # a hint only: the frames were read already
+        return ""
+    return spacing_hint(scalars)
 
 
 # --------------------------------------------------------------------------------------------------- raw
