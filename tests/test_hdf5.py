@@ -10,7 +10,7 @@ import pytest
 
 from femreg.errors import FileFormatError, InputError
 from femreg.io import read_frames
-from femreg.io.checks import spacing_hint
+from femreg.io.checks import iq_frequency_hint, spacing_hint
 
 h5py = pytest.importorskip("h5py")
 
@@ -79,7 +79,7 @@ def test_spacing_hint_from_header_fields(pair, tmp_path):
     with pytest.raises(InputError, match="spacing unknown") as err:
         read_frames(path)
     assert f"--spacing {dx:.4g} {dy:.4g}" in str(err.value), str(err.value)
-    assert read_frames(path, spacing=pair.spacing).metadata["attributes"]["pitch"] == pytest.approx(dy * 1e-3)
+    assert read_frames(path, spacing=pair.spacing).metadata["fields"]["pitch"] == pytest.approx(dy * 1e-3)
     # npz and MATLAB files: their scalar variables
     np.savez(tmp_path / "scan.npz", rf=rf, fs_MHz=fs / 1e6, pitch_mm=dy)
     import scipy.io
@@ -92,6 +92,8 @@ def test_spacing_hint_from_header_fields(pair, tmp_path):
     assert "--spacing 0.02 0.3" in spacing_hint({"fs_MHz": 38.5, "pitch_mm": 0.3})
     assert "--spacing 0.025 0.2" in spacing_hint({"SamplingFrequency": 30.8e6, "Pitch": 2e-4, "c": 1540})
     assert spacing_hint({"fs": 40e6}) == "" and spacing_hint({"pitch": 0.3, "name": "x"}) == ""
+    assert "--iq-frequency 5.2 " in iq_frequency_hint({"demodulation_frequency": 5.2e6})
+    assert iq_frequency_hint({"fc": 5.2, "fs": 20.0}) == ""              # a centre frequency is not the demodulation's
 
 
 def test_iq_dataset_needs_its_frequency(pair, tmp_path):
@@ -102,8 +104,8 @@ def test_iq_dataset_needs_its_frequency(pair, tmp_path):
     z = dx * np.arange(pair.ref.shape[0])
     iq = (hilbert(_stack(pair), axis=1) * np.exp(-2j * np.pi * f0 * 2e3 * z / 1540.0)[:, None]).astype(np.complex64)
     path = tmp_path / "iq.h5"
-    _write(path, iq, spacing=np.asarray(pair.spacing))
-    with pytest.raises(InputError, match="--iq-frequency"):
+    _write(path, iq, spacing=np.asarray(pair.spacing), f_demod_MHz=f0)
+    with pytest.raises(InputError, match=f"its fields suggest --iq-frequency {f0:g} "):
         read_frames(path)
     fr = read_frames(path, modulation_frequency=f0)
     up = fr.metadata["iq"]["upsampled"]

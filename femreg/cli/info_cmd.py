@@ -242,8 +242,11 @@ def run(args) -> int:
         if iq is not None:
             info = describe(iq, spacing_known=not retry)
             if getattr(args, "modulation_frequency", None) is None:
+                from ..io.checks import iq_frequency_hint
+
+                hint = iq_frequency_hint(dict(iq.metadata).get("fields") or {})
                 info["needs"].append("IQ data (complex samples): pass --iq-frequency MHZ, the demodulation frequency, "
-                                     "to remodulate them to RF")
+                                     "to remodulate them to RF" + (f"; {hint}" if hint else ""))
             if not retry:
                 need = None
         if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2

@@ -13,7 +13,8 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
-           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint"]
+           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint",
+           "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
@@ -223,6 +224,8 @@ _FS_NAMES = ("fs", "samplingfrequency", "samplingrate", "samplerate", "samplefre
              "fsample", "fsampling")
 _PITCH_NAMES = ("pitch", "elementpitch", "linespacing", "linepitch", "lateralspacing", "linedensity")
 _C_NAMES = ("c", "c0", "soundspeed", "speedofsound", "sos")
+_DEMOD_NAMES = ("fdemod", "demodfrequency", "demodulationfrequency", "modulationfrequency", "demodfreq", "fmod",
+                "iqfrequency", "fdemodulation", "demodulationfreq")
 _UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
 
 
@@ -230,7 +233,7 @@ def _key(name: str) -> tuple:
     """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
     k = "".join(ch for ch in str(name).lower() if ch.isalnum())
     for u in _UNITS:
-        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES:
+        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES:
             return k[:-len(u)], u
     return k, ""
 
@@ -262,3 +265,36 @@ def spacing_hint(fields: dict) -> str:
     return (f"its fields suggest --spacing {dx:.4g} {p_mm:.4g} (axial c / (2 fs) with {fs_name} = {fs:g} read as "
             f"{fs_hz / 1e6:g} MHz and c = {c:g} m/s{'' if c_name else ' assumed'}; lateral {p_name} = {p:g} read as "
             f"{p_mm:g} mm): check them against the scanner's settings")
+
+
+def _positive(value):
+    """A field's value as one positive finite float, else None."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if a.size != 1 or not (math.isfinite(float(a.ravel()[0])) and float(a.ravel()[0]) > 0):
+        return None
+    return float(a.ravel()[0])
+
+
+def iq_frequency_hint(fields: dict) -> str:
+    """The ``--iq-frequency MHZ`` a file's header fields imply (a field named like ``f_demod_MHz``,
+    ``demodulation_frequency``, ``modulation_frequency``), in words, or "".  A hint only: never applied."""
+    for name, value in fields.items():
+        v = _positive(value)
+        base, unit = _key(name)
+        if v is not None and base in _DEMOD_NAMES:
+            mhz = v * {"mhz": 1.0, "khz": 1e-3, "hz": 1e-6}.get(unit, 1e-6 if v > 1e4 else 1.0)
+            return f"its fields suggest --iq-frequency {mhz:.6g} ({name} = {v:g} read as {mhz:g} MHz)"
+    return ""
+
+
+def scalar_fields(items) -> dict:
+    """{name: value} of the numeric scalars among ``(name, array)`` pairs (a file's header fields), as floats."""
+    out = {}
+    for name, value in items:
+        v = np.asarray(value)
+        if v.dtype.kind in "iuf" and v.size == 1:
+            out[str(name)] = v.ravel()[0].item()
+    return out

@@ -16,7 +16,7 @@ layout or naming.  What femreg reads:
   frequency and a pitch (:func:`femreg.io.checks.spacing_hint`), but never applies it: units in attributes are
   a guess.
 
-Scalar attributes of the file and of the dataset are kept in ``metadata["attributes"]``.
+Scalar attributes of the file and of the dataset are kept in ``metadata["fields"]``.
 """
 from __future__ import annotations
 
@@ -138,7 +138,7 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
         raise fail(path, f"corrupt or truncated HDF5 file ({type(exc).__name__}: {exc})") from None
     meta = {"format": "hdf5", "variable": name, "variables": sorted(dsets), "stored_dtype": stored}
     if attrs:
-        meta["attributes"] = attrs
+        meta["fields"] = attrs
     arr = _layout(np.asarray(arr), meta)
     if file_spacing is not None:
         try:

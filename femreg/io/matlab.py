@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import check_origin, fail, merge_spacing, spacing_hint, validate_frames, validate_volumes
+from .checks import (check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
+                     validate_volumes)
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
@@ -168,6 +169,9 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]
+    fields = scalar_fields((aux.get("scalars") or {}).items())
+    if fields:
+        meta["fields"] = fields
     return validate_frames(path, _mat_layout(arr, meta), sp, origin, meta, frames)
 
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
-from .checks import check_origin, fail, merge_spacing, spacing_hint
+from .checks import check_origin, fail, merge_spacing, scalar_fields, spacing_hint
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -197,20 +197,29 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, PREFERRED_KEYS)
     file_spacing = _npz_spacing(path, raw_sp, 2)
     origin = check_origin(raw_origin, path) if raw_origin is not None else None
-    hint = _npz_hint(path, key) if file_spacing is None else ""
+    fields = _npz_fields(path, key)
+    hint = spacing_hint(fields) if file_spacing is None else ""
     sp = merge_spacing(path, file_spacing, spacing,
                        required_msg="the .npz has no 'spacing' key" + (f"; {hint}" if hint else ""))
-    return finalize(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
+    meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {})}
+    return finalize(path, arr, sp, origin, meta, frames)
 
 
-def _npz_hint(path, key) -> str:
-    """:func:`femreg.io.checks.spacing_hint` from the scalar arrays of an .npz ("" if none tell)."""
+def _npz_fields(path, key) -> dict:
+    """The numeric scalars of an .npz besides ``key`` (header fields such as ``fs``, ``pitch``); small members
+    only, so the frames are not read twice.  {} if they cannot be read: they only inform."""
     try:
-        with np.load(path, allow_pickle=False) as z:
-            scalars = {k: z[k] for k in z.files if k != key and z[k].size == 1 and z[k].dtype.kind in "iuf"}
-    except Exception:  # a hint only: the frames were read already
-        return ""
-    return spacing_hint(scalars)
+        with zipfile.ZipFile(path) as zf:
+            small = [i for i in zf.infolist() if i.file_size < 4096 and i.filename[:-4] not in (key, "spacing",
+                                                                                                 "origin")]
+            items = []
+            for info in small:
+                with zf.open(info) as fh:
+                    items.append((info.filename[:-4] if info.filename.endswith(".npy") else info.filename,
+                                  np.lib.format.read_array(fh, allow_pickle=False)))
+    except Exception:  # header fields only inform: the frames were read already
+        return {}
+    return scalar_fields(items)
 
 
 # --------------------------------------------------------------------------------------------------- raw
@@ -436,9 +445,13 @@ def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed, conjugate=False) 
                              f"({fr.metadata.get('stored_dtype', fr.frames.dtype)}): RF, not IQ; leave it out")
         return fr
     if modulation_frequency is None:
+        from .checks import iq_frequency_hint
+
+        hint = iq_frequency_hint(fr.metadata.get("fields") or {})
         exc = InputError(f"{fr.source}: complex samples ({fr.metadata.get('stored_dtype', fr.frames.dtype)}): IQ "
                          "data, not RF. Give the demodulation frequency (the scanner's IQ export records it) to "
-                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)")
+                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)"
+                         + (f"; {hint}" if hint else ""))
         exc.iq_frames = fr          # what was read, for a description of the file (femreg info)
         raise exc
     from .iq import SOUND_SPEED, remodulate
