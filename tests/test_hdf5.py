@@ -64,6 +64,13 @@ def test_dataset_choice_and_errors(pair, tmp_path):
     other = tmp_path / "scan.dat5"
     other.write_bytes(path.read_bytes())
     assert read_frames(other, variable="/acq/beamformed").metadata["format"] == "hdf5"
+    # MATLAB's -v7.3 under an HDF5 name keeps MATLAB's axis order
+    from femreg.io.matlab import write_mat
+
+    write_mat(tmp_path / "m.h5", rf, pair.spacing, version="7.3")
+    fr = read_frames(tmp_path / "m.h5")
+    assert fr.metadata["format"] == "mat-v7.3"
+    np.testing.assert_array_equal(fr.frames, rf)
     bad = tmp_path / "cut.h5"
     bad.write_bytes(path.read_bytes()[:600])
     with pytest.raises(FileFormatError, match="cut.h5"):
