@@ -62,6 +62,14 @@ def _spec(name):
                           feature_threshold=4.0)
         # "lowcut:F": its feature test at F x the (z-score 4) cut instead of 2.2
         return dc.replace(spec, feature=float(name.split(":")[1])) if ":" in name else spec
+    if name == "nofine":            # the default refinement without its finer marking (Refinement.fine)
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine=None)
+    if name.split(":")[0] == "fine":    # "fine:G": the default refinement with its finer marking gated at G x the cut
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine=float(name.split(":")[1]))
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)

@@ -199,6 +199,17 @@ class Refinement:
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
         pass of a rotated pair gained.
+    fine : float, optional
+        A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
+        cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
+        an inclusion's rim and its near field) and splits down to ``fine_min_size``.  A gate on the pass, above
+        what decorrelation noise and bending reach (rotated pairs 2.3-4.2x, bending 2.5-3.1x the cut; inclusions
+        5.1-26.9x): those keep the marking at ``threshold``.  None: no such step.
+    fine_threshold : float
+        Robust z-score of the marking on a pass that passes the ``fine`` gate (the relaxation keeps its own cut,
+        :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
+    fine_min_size : (2,) or (3,) mm
+        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
     """
 
     passes: int = 2
@@ -224,8 +235,20 @@ class Refinement:
     feature: float = 0.0
     feature_threshold: float | None = None
     settle: bool = False
+    fine: float | None = None
+    fine_threshold: float = 2.0
+    fine_min_size: tuple = (0.15, 0.3)
 
     def __post_init__(self):
+        if self.fine is not None and not (np.isfinite(self.fine) and self.fine >= 1):
+            raise InputError(f"refinement fine must be None or a number >= 1, got {self.fine!r}")
+        if not (np.isfinite(self.fine_threshold) and self.fine_threshold >= 0):
+            raise InputError(f"refinement fine_threshold must be a finite number >= 0, got {self.fine_threshold!r}")
+        fm = np.atleast_1d(np.asarray(self.fine_min_size, float))
+        if fm.ndim != 1 or fm.size not in (1, 2, 3) or not (np.all(np.isfinite(fm)) and np.all(fm > 0)):
+            raise InputError(f"refinement fine_min_size must be one, two or three positive lengths (mm), "
+                             f"got {self.fine_min_size!r}")
+        object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1 else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
             raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
         if not (np.isfinite(self.feature) and self.feature >= 0):
@@ -290,7 +313,8 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True)
+                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
+                             fine=4.6)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -807,11 +831,20 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
+        min_size = opts.min_size
+        if opts.fine is not None and top >= opts.fine:
+            # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
+            rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
+                                           data=sol.data, quality=q, scores=True)
+            if np.isfinite(budget):
+                rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
+                                            dataclasses.replace(opts, min_size=opts.fine_min_size), budget)
+            min_size = opts.fine_min_size
         if opts.strong is not None and opts.levels > 1:
             # the full depth only where the jump stands out strongly; rows / columns just over the cut once
             rows, cols = (np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
                           for m, s in zip((rows, cols), score))
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, opts.levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -843,7 +876,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
-                           relaxed_edges=int(len(relaxed)), top=float(top), seconds=time.perf_counter() - t))
+                           relaxed_edges=int(len(relaxed)), top=float(top), fine=min_size != opts.min_size,
+                           seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
 
