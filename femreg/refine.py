@@ -238,6 +238,7 @@ class Refinement:
     fine: float | None = None
     fine_threshold: float = 2.0
     fine_min_size: tuple = (0.15, 0.3)
+    fine_levels: int | None = None
 
     def __post_init__(self):
         if self.fine is not None and not (np.isfinite(self.fine) and self.fine >= 1):
@@ -314,7 +315,7 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6)
+                             fine=4.6, fine_min_size=(0.15, 0.4))
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -831,7 +832,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
-        min_size = opts.min_size
+        min_size, levels = opts.min_size, opts.levels
         if opts.fine is not None and top >= opts.fine:
             # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
             rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
@@ -839,12 +840,12 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
                                             dataclasses.replace(opts, min_size=opts.fine_min_size), budget)
-            min_size = opts.fine_min_size
-        if opts.strong is not None and opts.levels > 1:
+            min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
+        if opts.strong is not None and levels > 1:
             # the full depth only where the jump stands out strongly; rows / columns just over the cut once
-            rows, cols = (np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
+            rows, cols = (np.where(np.asarray(s) >= opts.strong, levels, 1) * np.asarray(m, bool)
                           for m, s in zip((rows, cols), score))
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, opts.levels)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
