@@ -210,6 +210,8 @@ class Refinement:
         :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
     fine_min_size : (2,) or (3,) mm
         ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
+    fine_levels : int, optional
+        ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
     """
 
     passes: int = 2
@@ -249,6 +251,9 @@ class Refinement:
         if fm.ndim != 1 or fm.size not in (1, 2, 3) or not (np.all(np.isfinite(fm)) and np.all(fm > 0)):
             raise InputError(f"refinement fine_min_size must be one, two or three positive lengths (mm), "
                              f"got {self.fine_min_size!r}")
+        if self.fine_levels is not None and not (isinstance(self.fine_levels, (int, np.integer))
+                                                 and not isinstance(self.fine_levels, bool) and 1 <= self.fine_levels <= 4):
+            raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
         object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1 else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
             raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
