@@ -42,7 +42,14 @@ element, down to 0.15 mm axially), with no element budget, one Gauss-Newton step
 some row / column reaches 2.2x the cut (:attr:`Refinement.feature`): decorrelation noise of a rotated pair puts
 jumps just over the cut on most rows (largest 1.1-2.4x), features stand out further (inclusions 5.9-25.8x, shear
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
-mesh (:attr:`Refinement.settle`).  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
+mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
+the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
+2 instead of 4 and splits columns down to 0.4 mm (2 pixels under 7.5 MHz; the 0.7 mm columns of a 12 MHz image
+stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.56 / 6.50 /
+12.07 %, held out r 4 mm (12 MHz) 8.26 -> 8.23 %, soft r 5 mm 8.62 -> 8.44 %; columns down to 0.3 mm would give
+the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
+(``benchmarks/rotation_sweep.py``), and a third axial level (to 0.075 mm) 0.1-0.3 points on the inclusions but
++0.20 there.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
@@ -317,7 +324,8 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
-#: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
+#: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 2 and columns
+#: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
                              fine=4.6, fine_min_size=(0.15, 0.4))
