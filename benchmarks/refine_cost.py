@@ -10,9 +10,9 @@ The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here
 
 Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
 [--refine auto|slip|norelax|nofine|fine:G|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
-[--out out/refine_cost]`` (``nofine``: the default without its finer marking, :attr:`femreg.refine.Refinement.fine`;
-``fine:G``: with its gate at G x the cut) (``--against``: also that ``refine=``, and the error change of ``--refine`` against it:
-the gate of a change to the default refinement).
+[--out out/refine_cost]`` (``nofine``: the default without its finer marking,
+:attr:`femreg.refine.Refinement.fine`; ``fine:G``: with its gate at G x the cut; ``--against``: also that
+``refine=``, and the error change of ``--refine`` against it: the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
 from __future__ import annotations

@@ -211,7 +211,8 @@ class Refinement:
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
         an inclusion's rim and its near field) and splits down to ``fine_min_size``.  A gate on the pass, above
         what decorrelation noise and bending reach (rotated pairs 2.3-4.2x, bending 2.5-3.1x the cut; inclusions
-        5.1-26.9x): those keep the marking at ``threshold``.  None: no such step.
+        5.1-26.9x): those keep the marking at ``threshold``.  None: no such step.  2D passes only
+        (:func:`refine_passes`; volumes do not read it).
     fine_threshold : float
         Robust z-score of the marking on a pass that passes the ``fine`` gate (the relaxation keeps its own cut,
         :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
@@ -259,9 +260,11 @@ class Refinement:
             raise InputError(f"refinement fine_min_size must be one, two or three positive lengths (mm), "
                              f"got {self.fine_min_size!r}")
         if self.fine_levels is not None and not (isinstance(self.fine_levels, (int, np.integer))
-                                                 and not isinstance(self.fine_levels, bool) and 1 <= self.fine_levels <= 4):
+                                                 and not isinstance(self.fine_levels, bool)
+                                                 and 1 <= self.fine_levels <= 4):
             raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
-        object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1 else fm)))
+        object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1
+                                                                            else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
             raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
         if not (np.isfinite(self.feature) and self.feature >= 0):
@@ -846,14 +849,15 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     note += "; one more step on the unrefined mesh"
             break
         min_size, levels = opts.min_size, opts.levels
-        if opts.fine is not None and top >= opts.fine:
+        finer = opts.fine is not None and top >= opts.fine
+        if finer:
             # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
             rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
                                            data=sol.data, quality=q, scores=True)
+            min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
-                                            dataclasses.replace(opts, min_size=opts.fine_min_size), budget)
-            min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
+                                            dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
         if opts.strong is not None and levels > 1:
             # the full depth only where the jump stands out strongly; rows / columns just over the cut once
             rows, cols = (np.where(np.asarray(s) >= opts.strong, levels, 1) * np.asarray(m, bool)
@@ -890,7 +894,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
-                           relaxed_edges=int(len(relaxed)), top=float(top), fine=min_size != opts.min_size,
+                           relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
