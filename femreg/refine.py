@@ -44,9 +44,10 @@ jumps just over the cut on most rows (largest 1.1-2.4x), features stand out furt
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
 the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
-2 instead of 4 and splits columns down to 0.4 mm (2 pixels under 7.5 MHz; the 0.7 mm columns of a 12 MHz image
-stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.56 / 6.50 /
-12.07 %, held out r 4 mm (12 MHz) 8.26 -> 8.23 %, soft r 5 mm 8.62 -> 8.44 %; columns down to 0.3 mm would give
+1 instead of 4 and splits columns down to 0.4 mm (2 pixels under 7.5 MHz; the 0.7 mm columns of a 12 MHz image
+stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.50 / 6.48 /
+11.86 %, held out r 4 mm (12 MHz) 8.26 -> 8.23 %, soft r 5 mm 8.62 -> 8.24 % (at a z-score of 2: 8.56 / 6.50 /
+12.07 %, 8.23 / 8.44 %); columns down to 0.3 mm would give
 the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
 (``benchmarks/rotation_sweep.py``), and a third axial level (to 0.075 mm) 0.1-0.3 points on the inclusions but
 +0.20 there.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
@@ -246,8 +247,8 @@ class Refinement:
     feature_threshold: float | None = None
     settle: bool = False
     fine: float | None = None
-    fine_threshold: float = 2.0
-    fine_min_size: tuple = (0.15, 0.3)
+    fine_threshold: float = 1.0
+    fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
 
     def __post_init__(self):
@@ -327,11 +328,11 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
-#: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 2 and columns
+#: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
 #: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6, fine_min_size=(0.15, 0.4))
+                             fine=4.6)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"

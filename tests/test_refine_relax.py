@@ -277,7 +277,7 @@ def _corner(x0, y0):
 
 def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
     # Refinement.fine (DEEP_REFINEMENT: 4.6x the cut, columns down to 0.4 mm): the gate on the largest jump over
-    # the cut (30x here, measured), the marking then at a z-score of 2 and down to fine_min_size
+    # the cut (30x here, measured), the marking then at a z-score of 1 and down to fine_min_size
     from femreg.refine import DEEP_REFINEMENT
     from femreg.scaling import effective_alpha, refined_alpha
 
