@@ -9,9 +9,10 @@ ratio: the gate for refinement as a default is no case worse by more than 0.3 po
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
 Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
-[--refine auto|slip|norelax|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
-[--out out/refine_cost]`` (``--against``: also that ``refine=``, and the error change of ``--refine`` against it:
-the gate of a change to the default refinement).
+[--refine auto|slip|norelax|nofine|fine:G|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
+[--out out/refine_cost]`` (``nofine``: the default without its finer marking,
+:attr:`femreg.refine.Refinement.fine`; ``fine:G``: with its gate at G x the cut; ``--against``: also that
+``refine=``, and the error change of ``--refine`` against it: the gate of a change to the default refinement).
 A first registration of a small pair is run (and not timed) before the cases so that compiled kernels are ready.
 """
 from __future__ import annotations
@@ -38,7 +39,8 @@ def deep_refinement():
     """:data:`femreg.refine.DEEP_REFINEMENT` (what ``refine="auto"`` means): one pass splitting each marked row /
     column twice (to a quarter) down to 0.15 mm axially, with no element budget, and the local relaxation on that
     one solve (weight 0.02 on the unrefined cells beside the edges whose shear-traction jump stands out on the
-    solve before the split, on a run of at least 20 mm)."""
+    solve before the split, on a run of at least 20 mm); where a row / column stands out 4.6x the cut, the marking
+    at a z-score of 1 and columns down to 0.4 mm (:attr:`femreg.refine.Refinement.fine`)."""
     from femreg.refine import DEEP_REFINEMENT
 
     return DEEP_REFINEMENT
@@ -62,6 +64,14 @@ def _spec(name):
                           feature_threshold=4.0)
         # "lowcut:F": its feature test at F x the (z-score 4) cut instead of 2.2
         return dc.replace(spec, feature=float(name.split(":")[1])) if ":" in name else spec
+    if name == "nofine":            # the default refinement without its finer marking (Refinement.fine)
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine=None)
+    if name.split(":")[0] == "fine":    # "fine:G": the default refinement with its finer marking gated at G x the cut
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine=float(name.split(":")[1]))
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)
@@ -116,6 +126,7 @@ def main(argv=None):
     ap.add_argument("--cases", default="")
     ap.add_argument("--refine", default="auto",
                     help="auto (= deep), slip, norelax (the two-pass refinement without the local relaxation), "
+                         "nofine (the default without its finer marking), fine:G (its gate at G x the cut), "
                          "twopass (Refinement(): the default before deep), deep (deep_refinement), lowcut "
                          "(marking at a z-score of 2), lowcut:F (its feature test at F x the cut) or a number of passes")
     ap.add_argument("--against", default=None,

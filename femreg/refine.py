@@ -42,7 +42,15 @@ element, down to 0.15 mm axially), with no element budget, one Gauss-Newton step
 some row / column reaches 2.2x the cut (:attr:`Refinement.feature`): decorrelation noise of a rotated pair puts
 jumps just over the cut on most rows (largest 1.1-2.4x), features stand out further (inclusions 5.9-25.8x, shear
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
-mesh (:attr:`Refinement.settle`).  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
+mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
+the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
+1 instead of 4 and splits columns down to 0.4 mm (2 pixels under 7.5 MHz; the 0.7 mm columns of a 12 MHz image
+stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.50 / 6.48 /
+11.86 %, held out r 4 mm (12 MHz) 8.26 -> 8.23 %, soft r 5 mm 8.62 -> 8.24 % (at a z-score of 2: 8.56 / 6.50 /
+12.07 %, 8.23 / 8.44 %); columns down to 0.3 mm would give
+the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
+(``benchmarks/rotation_sweep.py``), and a third axial level (to 0.075 mm) 0.1-0.3 points on the inclusions but
++0.20 there.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
@@ -206,6 +214,20 @@ class Refinement:
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
         pass of a rotated pair gained.
+    fine : float, optional
+        A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
+        cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
+        an inclusion's rim and its near field) and splits down to ``fine_min_size``.  A gate on the pass, above
+        what decorrelation noise and bending reach (rotated pairs 2.3-4.2x, bending 2.5-3.1x the cut; inclusions
+        5.1-26.9x): those keep the marking at ``threshold``.  None: no such step.  2D passes only
+        (:func:`refine_passes`; volumes do not read it).
+    fine_threshold : float
+        Robust z-score of the marking on a pass that passes the ``fine`` gate (the relaxation keeps its own cut,
+        :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
+    fine_min_size : (2,) or (3,) mm
+        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
+    fine_levels : int, optional
+        ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
     """
 
     passes: int = 2
@@ -231,9 +253,27 @@ class Refinement:
     feature: float = 0.0
     feature_threshold: float | None = None
     settle: bool = False
+    fine: float | None = None
+    fine_threshold: float = 1.0
+    fine_min_size: tuple = (0.15, 0.4)
+    fine_levels: int | None = None
     interior: bool = False
 
     def __post_init__(self):
+        if self.fine is not None and not (np.isfinite(self.fine) and self.fine >= 1):
+            raise InputError(f"refinement fine must be None or a number >= 1, got {self.fine!r}")
+        if not (np.isfinite(self.fine_threshold) and self.fine_threshold >= 0):
+            raise InputError(f"refinement fine_threshold must be a finite number >= 0, got {self.fine_threshold!r}")
+        fm = np.atleast_1d(np.asarray(self.fine_min_size, float))
+        if fm.ndim != 1 or fm.size not in (1, 2, 3) or not (np.all(np.isfinite(fm)) and np.all(fm > 0)):
+            raise InputError(f"refinement fine_min_size must be one, two or three positive lengths (mm), "
+                             f"got {self.fine_min_size!r}")
+        if self.fine_levels is not None and not (isinstance(self.fine_levels, (int, np.integer))
+                                                 and not isinstance(self.fine_levels, bool)
+                                                 and 1 <= self.fine_levels <= 4):
+            raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
+        object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1
+                                                                            else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
             raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
         if not (np.isfinite(self.feature) and self.feature >= 0):
@@ -296,9 +336,11 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
-#: of at least 20 mm).  Measured: module docstring and README ("Adaptive refinement").
+#: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
+#: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True)
+                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
+                             fine=4.6)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -817,11 +859,21 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
-        if opts.strong is not None and opts.levels > 1:
+        min_size, levels = opts.min_size, opts.levels
+        finer = opts.fine is not None and top >= opts.fine
+        if finer:
+            # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
+            rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
+                                           data=sol.data, quality=q, scores=True)
+            min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
+            if np.isfinite(budget):
+                rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
+                                            dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
+        if opts.strong is not None and levels > 1:
             # the full depth only where the jump stands out strongly; rows / columns just over the cut once
-            rows, cols = (np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
+            rows, cols = (np.where(np.asarray(s) >= opts.strong, levels, 1) * np.asarray(m, bool)
                           for m, s in zip((rows, cols), score))
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, opts.min_size, opts.levels)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -853,7 +905,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
-                           relaxed_edges=int(len(relaxed)), top=float(top), seconds=time.perf_counter() - t))
+                           relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
+                           seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
 

@@ -127,17 +127,6 @@ def _route(reference_image, moving_image, args: dict):
     return None
 
 
-def _envelope_data(ref) -> bool:
-    """True for frames without an RF carrier along the depth (envelope, B-mode: :func:`femreg.orientation.
-    carrier_ratio` above :data:`~femreg.orientation.NO_CARRIER_RATIO`), where a whole RF period is no ambiguity."""
-    from .orientation import MIN_SAMPLES, NO_CARRIER_RATIO, carrier_ratio
-
-    ref = np.asarray(ref)
-    if ref.ndim != 2 or ref.shape[0] < MIN_SAMPLES:
-        return False
-    return bool(carrier_ratio(ref[:, ::max(1, ref.shape[1] // 64)]) > NO_CARRIER_RATIO)
-
-
 @volumes_to          # RF volumes (3D arrays) go to femreg.volume.register_volume
 @single_blas_thread
 def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress",
@@ -241,8 +230,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
         again from the solution, one Gauss-Newton step each: ``N`` passes of :class:`femreg.refine.Refinement`
         (each halving the marked rows / columns), "auto": :data:`femreg.refine.DEEP_REFINEMENT` (one pass
-        quartering them, with the local relaxation of layers across the image); the weight of eq:objf stays the unrefined mesh's.  "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default
-        regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
+        quartering them, with the local relaxation of layers across the image, and a lower marking cut with
+        columns down to 0.4 mm where a feature stands out far); the weight of eq:objf stays the unrefined mesh's.
+        "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
         or ``element_size`` (so every increment of
         :func:`femreg.track`), an offset, a convex / sector geometry (where ``"auto"`` / N refines the (range,
         angle) lattice: opt-in, docs/geometry.md) and ``alpha="auto"`` (:func:`femreg.refine.default_refine`);
@@ -317,7 +307,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
-    notes, hops = [ENVELOPE_NOTE] * (envelope := _envelope_data(ref)), np.zeros(fe_mesh.p.shape[1], int)
+    notes, hops = [ENVELOPE_NOTE] * (envelope := orientation.is_envelope(ref)), np.zeros(fe_mesh.p.shape[1], int)
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         kw = dict(solve_kw)

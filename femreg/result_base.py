@@ -138,6 +138,7 @@ class RefinementRecord:
         parts = [f"{p['elements']} -> {p['elements_after']} elements ("
                  + (f"{p['rows']} x-, {p['columns']} y-, {p['slices']} z-slabs split" if "slices" in p else
                     f"{p['rows']} rows, {p['columns']} columns split")
+                 + (", finer marking" if p.get("fine") else "")
                  + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "") + ")"
                  for p in self.passes]
         return "refinement: " + "; ".join(parts)

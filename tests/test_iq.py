@@ -146,6 +146,13 @@ def test_cli_info_and_register_on_iq(pair, tmp_path):
     run = [sys.executable, "-m", "femreg"]
     info = subprocess.run(run + ["info", str(path)], capture_output=True, text=True)
     assert info.returncode == 1 and "--iq-frequency" in info.stdout and "complex int16" in info.stdout, info
+    # femreg info names what register would refuse (exit 1): exchanged spacings, another frequency; else ready
+    for extra, said, rc in (([f"{dy}", f"{3 * dx}"], "look swapped", 1), ([f"{3 * dx}", f"{dy}"], "ready", 0)):
+        got = subprocess.run(run + ["info", str(path), "--iq-frequency", f"{f}", "--spacing"] + extra,
+                             capture_output=True, text=True)
+        assert got.returncode == rc and said in got.stdout, got
+    got = subprocess.run(run + ["info", str(path), "--iq-frequency", f"{1.2 * f}"], capture_output=True, text=True)
+    assert got.returncode == 1 and "MHz demodulation" in got.stdout, got
     bad = subprocess.run(run + ["register", str(path), "--iq-frequency", f"{f}", "--spacing", f"{dy}", f"{3 * dx}",
                                 "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
     assert bad.returncode == 2 and "look swapped" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr

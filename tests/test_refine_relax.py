@@ -262,3 +262,53 @@ def test_a_2mm_band_keeps_more_of_its_peak_with_the_default_relaxation():
             assert abs(m["slide"] / band.slide_mm - 1) < 0.1                   # measured -0.1 %
     assert peak["default"] > 0.75 and peak["off"] < 0.7
     assert peak["default"] > peak["off"] + 0.15
+
+
+def _corner(x0, y0):
+    """Axial strain -1 % above depth x0, -0.4 % below; lateral 0.5 % left of y0, 0.2 % right of it: a step of the
+    normal traction across one row edge and one column edge, with a little ripple (the cut's MAD > 0)."""
+    def f(p):
+        x, y = p[:, 0], p[:, 1]
+        ux = np.where(x < x0, -0.01 * x, -0.01 * x0 - 0.004 * (x - x0))
+        uy = np.where(y < y0, 0.005 * y, 0.005 * y0 + 0.002 * (y - y0))
+        return np.column_stack([ux, uy]) + 2e-5 * np.sin(37.1 * p[:, [0]] + 53.7 * p[:, [1]])
+    return f
+
+
+def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
+    # Refinement.fine (DEEP_REFINEMENT: 4.6x the cut, columns down to 0.4 mm): the gate on the largest jump over
+    # the cut (30x here, measured), the marking then at a z-score of 1 and down to fine_min_size
+    from femreg.refine import DEEP_REFINEMENT
+    from femreg.scaling import effective_alpha, refined_alpha
+
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    f = _corner(xs[4], ys[4])
+    plain = dataclasses.replace(DEEP_REFINEMENT, relax=None, fine=None)
+    calls0, rec0 = _run(plain, f)
+    top = rec0.passes[0]["top"]
+    assert top > DEEP_REFINEMENT.fine
+    coarse = calls0[0][0]
+    calls, rec = _run(dataclasses.replace(plain, fine=1.01 * top), f)          # gate just above: as without
+    assert np.array_equal(calls[0][0].p, coarse.p) and not rec.passes[0]["fine"]
+    assert "finer" not in rec.summary()
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None), f)
+    fine = calls[0][0]
+    assert rec.passes[0]["fine"] and "finer marking" in rec.summary()
+    assert fine.t.shape[1] > coarse.t.shape[1]                                # 156 against 117 elements
+    w0 = np.diff(tensor_structure(coarse)[1]).min()
+    w = np.diff(tensor_structure(fine)[1]).min()
+    # columns: 0.6 mm (the default's min_size) -> 0.4 mm (fine_min_size; 2 pixels of 0.2 mm)
+    assert w0 >= DEEP_REFINEMENT.min_size[1] - 1e-9 and w == pytest.approx(DEEP_REFINEMENT.fine_min_size[1])
+    # the weight of eq:objf stays the unrefined mesh's on the finer mesh too
+    assert effective_alpha(refined_alpha(0.3, m, fine), fine) == pytest.approx(effective_alpha(0.3, m), rel=1e-12)
+    # fine_levels 1: each marked row / column split once
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_levels=1), f)
+    assert calls[0][0].t.shape[1] < fine.t.shape[1]
+
+
+@pytest.mark.parametrize("kw", [dict(fine=0.5), dict(fine=float("nan")), dict(fine_threshold=-1.0),
+                                dict(fine_min_size=(0.1, -0.3)), dict(fine_levels=0), dict(fine_levels=True)])
+def test_bad_fine_options_are_refused(kw):
+    with pytest.raises(InputError):
+        Refinement(**kw)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -60,8 +61,10 @@ def _what_is_missing(exc: InputError, path: Path, args) -> tuple[str, dict]:
     text = str(exc)
     if "spacing unknown" in text:
         given = list(getattr(args, "spacing", None) or [None, None])
-        return ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
-                "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)"), \
+        hint = re.search(r"its fields suggest .*? against the scanner's settings", text)
+        need = ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
+                "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)")
+        return need + (f"; {hint.group(0)}" if hint else ""), \
             {"spacing": [v if v is not None else 1.0 for v in given]}
     return text, {}
 
@@ -72,22 +75,18 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
     stored = meta.pop("stored_dtype", None) or dict(meta.get("file_metadata") or {}).get("stored_dtype")
     if isinstance(meta.get("file_metadata"), dict):
         meta["file_metadata"] = {k: v for k, v in meta["file_metadata"].items() if k != "stored_dtype"}
+    iq = np.iscomplexobj(a)
+    v = np.abs(a) if iq else a               # IQ: the values described are |IQ|
     out = {
         "file": str(fr.source), "format": meta.pop("format", ""), "frames": fr.n_frames,
         "shape": list(fr.shape), "dtype": stored or str(a.dtype), "dtype_in_memory": str(a.dtype),
         "spacing_mm": list(fr.spacing) if spacing_known else None, "origin_mm": list(fr.origin),
         "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]] if spacing_known else None,
-        "min": float(a.min()), "max": float(a.max()), "mean": float(a.mean()), "std": float(a.std()),
+        "min": float(v.min()), "max": float(v.max()), "mean": float(v.mean()), "std": float(v.std()),
         "metadata": _plain(meta),
-    } if not np.iscomplexobj(a) else {
-        "file": str(fr.source), "format": meta.pop("format", ""), "frames": fr.n_frames,
-        "shape": list(fr.shape), "dtype": stored or str(a.dtype), "dtype_in_memory": str(a.dtype),
-        "spacing_mm": list(fr.spacing) if spacing_known else None, "origin_mm": list(fr.origin),
-        "extent_mm": [fr.shape[0] * fr.spacing[0], fr.shape[1] * fr.spacing[1]] if spacing_known else None,
-        "min": float(np.abs(a).min()), "max": float(np.abs(a).max()), "mean": float(np.abs(a).mean()),
-        "std": float(np.abs(a).std()), "values_of": "|IQ|", "metadata": _plain(meta), "needs": [],
     }
-    if np.iscomplexobj(a):      # IQ: the RF checks need the carrier, which needs the modulation frequency
+    if iq:      # the RF checks need the carrier, which needs the modulation frequency
+        out.update(values_of="|IQ|", needs=[])
         return out
     if spacing_known:
         from ..orientation import diagnose
@@ -95,16 +94,32 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         rep = diagnose(a[0], fr.spacing)
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
+        if "iq" in fr.metadata:      # remodulated IQ: what read_frames checks when registering (spacing, sign, f)
+            out["needs"] += _iq_needs(fr)
         if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
             out["needs"] += _raw_shape_hint(a[0])
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
-        from ..orientation import CARRIER_RATIO, carrier_ratio
+        from ..orientation import CARRIER_RATIO, axial_carrier_ratio
 
-        c0 = carrier_ratio(a[0][:, ::max(1, a.shape[2] // 64)])       # the carrier needs no spacing
+        c0 = axial_carrier_ratio(a[0])       # the carrier needs no spacing
         out["needs"] = _raw_shape_hint(a[0]) if "raw" in str(out["format"]) and not c0 < CARRIER_RATIO else []
     return out
+
+
+def _iq_needs(fr) -> list:
+    """The problems :func:`femreg.io.read_frames` refuses remodulated IQ frames for (exchanged spacings, the
+    other sign convention, another demodulation frequency), as a list of needs ([] when they pass)."""
+    from ..orientation import OrientationError, check_iq_sign, check_remodulated
+
+    try:
+        check_remodulated(fr)
+        if fr.n_frames >= 2:
+            check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing, fr.metadata["iq"])
+    except OrientationError as exc:
+        return [str(exc)]
+    return []
 
 
 def _raw_shape_hint(frame) -> list:
@@ -227,8 +242,11 @@ def run(args) -> int:
         if iq is not None:
             info = describe(iq, spacing_known=not retry)
             if getattr(args, "modulation_frequency", None) is None:
+                from ..io.checks import iq_frequency_hint
+
+                hint = iq_frequency_hint(dict(iq.metadata).get("fields") or {})
                 info["needs"].append("IQ data (complex samples): pass --iq-frequency MHZ, the demodulation frequency, "
-                                     "to remodulate them to RF")
+                                     "to remodulate them to RF" + (f"; {hint}" if hint else ""))
             if not retry:
                 need = None
         if info is None:            # unreadable as given (raw without --shape, no such variable, ...): exit 2

@@ -13,12 +13,13 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
-           "validate_volumes", "FORMATS", "parse_dtype"]
+           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint",
+           "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
     ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
-    ".uff": "uff",
+    ".uff": "uff", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".he5": "hdf5",
 }
 _DTYPES = {"float32": "f4", "float": "f4", "single": "f4", "f4": "f4", "met_float": "f4",
            "float64": "f8", "double": "f8", "f8": "f8", "met_double": "f8",
@@ -217,3 +218,83 @@ def validate_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, 
         raise fail(path, f"volume shape {arr.shape[1:]} is degenerate (need at least 2 samples along each "
                          "axis; a 2D frame or frame sequence is read by femreg.io.read_frames)")
     return _selected_fields(path, arr, spacing, origin, metadata, frames, n=3)
+
+
+_FS_NAMES = ("fs", "samplingfrequency", "samplingrate", "samplerate", "samplefrequency", "rfsamplingfrequency",
+             "fsample", "fsampling")
+_PITCH_NAMES = ("pitch", "elementpitch", "linespacing", "linepitch", "lateralspacing", "linedensity")
+_C_NAMES = ("c", "c0", "soundspeed", "speedofsound", "sos")
+_DEMOD_NAMES = ("fdemod", "demodfrequency", "demodulationfrequency", "modulationfrequency", "demodfreq", "fmod",
+                "iqfrequency", "fdemodulation", "demodulationfreq")
+_UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
+
+
+def _key(name: str) -> tuple:
+    """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
+    k = "".join(ch for ch in str(name).lower() if ch.isalnum())
+    for u in _UNITS:
+        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES:
+            return k[:-len(u)], u
+    return k, ""
+
+
+def spacing_hint(fields: dict) -> str:
+    """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold no sampling frequency
+    and pitch.  ``dx = c / (2 fs)`` (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's
+    suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
+    below 0.005 in metres).  A hint only: readers never apply it."""
+    found = {}
+    for name, value in fields.items():
+        try:
+            v = float(np.asarray(value).ravel()[0]) if np.asarray(value).size == 1 else None
+        except (TypeError, ValueError):
+            v = None
+        if v is None or not (math.isfinite(v) and v > 0):
+            continue
+        base, unit = _key(name)
+        for kind, names in (("fs", _FS_NAMES), ("pitch", _PITCH_NAMES), ("c", _C_NAMES)):
+            if base in names and kind not in found:
+                found[kind] = (name, v, unit)
+    if "fs" not in found or "pitch" not in found:
+        return ""
+    (fs_name, fs, fu), (p_name, p, pu) = found["fs"], found["pitch"]
+    fs_hz = fs * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(fu, 1.0 if fs > 1e4 else 1e6)
+    p_mm = p * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(pu, 1e3 if p < 0.005 else 1.0)
+    c_name, c, _ = found.get("c", ("", 1540.0, ""))
+    dx = c * 1e3 / (2.0 * fs_hz)
+    return (f"its fields suggest --spacing {dx:.4g} {p_mm:.4g} (axial c / (2 fs) with {fs_name} = {fs:g} read as "
+            f"{fs_hz / 1e6:g} MHz and c = {c:g} m/s{'' if c_name else ' assumed'}; lateral {p_name} = {p:g} read as "
+            f"{p_mm:g} mm): check them against the scanner's settings")
+
+
+def _positive(value):
+    """A field's value as one positive finite float, else None."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if a.size != 1 or not (math.isfinite(float(a.ravel()[0])) and float(a.ravel()[0]) > 0):
+        return None
+    return float(a.ravel()[0])
+
+
+def iq_frequency_hint(fields: dict) -> str:
+    """The ``--iq-frequency MHZ`` a file's header fields imply (a field named like ``f_demod_MHz``,
+    ``demodulation_frequency``, ``modulation_frequency``), in words, or "".  A hint only: never applied."""
+    for name, value in fields.items():
+        v = _positive(value)
+        base, unit = _key(name)
+        if v is not None and base in _DEMOD_NAMES:
+            mhz = v * {"mhz": 1.0, "khz": 1e-3, "hz": 1e-6}.get(unit, 1e-6 if v > 1e4 else 1.0)
+            return f"its fields suggest --iq-frequency {mhz:.6g} ({name} = {v:g} read as {mhz:g} MHz)"
+    return ""
+
+
+def scalar_fields(items) -> dict:
+    """{name: value} of the numeric scalars among ``(name, array)`` pairs (a file's header fields), as floats."""
+    out = {}
+    for name, value in items:
+        v = np.asarray(value)
+        if v.dtype.kind in "iuf" and v.size == 1:
+            out[str(name)] = v.ravel()[0].item()
+    return out

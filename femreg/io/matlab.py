@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import check_origin, fail, merge_spacing, validate_frames, validate_volumes
+from .checks import (check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
+                     validate_volumes)
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
@@ -121,7 +122,9 @@ def _aux(path, values: dict, spacing, n=2):
                              f"{'(dx, dy)' if n == 2 else '(dx, dy, dz)'} mm{hint}")
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
-    sp = merge_spacing(path, file_spacing, spacing, required_msg="no 'spacing' variable in the MAT-file", n=n)
+    hint = spacing_hint(values.get("scalars") or {}) if n == 2 else ""
+    sp = merge_spacing(path, file_spacing, spacing, n=n,
+                       required_msg="no 'spacing' variable in the MAT-file" + (f"; {hint}" if hint else ""))
     return sp, origin
 
 
@@ -150,10 +153,12 @@ def _load_mat(path, variable, ndims):
         for a in AUX:
             if a in byname and a != name and byname[a].numeric:
                 data[a] = byname[a].array(order)
+        data["scalars"] = {v.name: v.array(order) for v in variables
+                           if v.numeric and v.name != name and int(np.prod(v.shape)) == 1}
     else:
         data, cands, name = _read_mat4(path, variable, ndims)
     arr = data.pop(name)
-    return arr, {k: v for k, v in data.items() if k in AUX}, version, name, cands
+    return arr, {k: v for k, v in data.items() if k in AUX + ("scalars",)}, version, name, cands
 
 
 def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
@@ -164,6 +169,9 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]
+    fields = scalar_fields((aux.get("scalars") or {}).items())
+    if fields:
+        meta["fields"] = fields
     return validate_frames(path, _mat_layout(arr, meta), sp, origin, meta, frames)
 
 
@@ -243,7 +251,8 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 stored = f"complex {arr.dtype['real'].name}"
                 ctype = np.complex128 if arr.dtype["real"].itemsize == 8 else np.complex64
                 arr = arr["real"].astype(ctype) + 1j * arr["imag"].astype(ctype)
-            aux = {}
+            aux = {"scalars": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1] and d.size == 1
+                               and not d.dtype.names}}
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:
                     aux[a] = dsets[a][()]

@@ -12,6 +12,7 @@ Formats (chosen by extension, verified by content):
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
 ``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
                        to RF; see :mod:`femreg.io.uff`
+``.h5`` ``.hdf5``      plain HDF5: a dataset of frames, its layout told by the RF carrier; see :mod:`femreg.io.hdf5`
 directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
 =====================  ============================================================================
 
@@ -36,13 +37,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .checks import FORMATS, check_origin, fail, merge_spacing, parse_dtype  # noqa: F401  (FORMATS, parse_dtype: API)
+from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
+from .checks import check_origin, fail, merge_spacing, scalar_fields, spacing_hint
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
 
 _MAGIC = [(b"\x93NUMPY", "npy"), (b"PK\x03\x04", "npz"), (b"PK\x05\x06", "npz"), (b"MATLAB", "mat"),
-          (b"\x89HDF\r\n\x1a\n", "mat")]
+          (b"\x89HDF\r\n\x1a\n", "hdf5")]
+#: Formats stored as HDF5 (a file of one may be read by another's reader).
+_HDF5_FORMATS = ("mat", "uff", "hdf5")
 PREFERRED_KEYS = ("rf", "frames")
 _MAX_BYTES = 1 << 34  # refuse arrays claiming more than 16 GiB (a corrupt header, not RF)
 
@@ -75,7 +79,7 @@ def detect_format(path) -> str:
     except OSError as exc:
         raise fail(path, f"cannot read ({exc.strerror or exc})") from None
     for magic, name in _MAGIC:
-        if head.startswith(magic) or (name == "mat" and head[512:520] == magic):
+        if head.startswith(magic) or (name == "hdf5" and head[512:520] == magic):
             return name
     if head[:80].lstrip().lower().startswith((b"objecttype", b"ndims")):
         return "metaimage"
@@ -85,7 +89,7 @@ def detect_format(path) -> str:
 
 def _sniff_mislabel(path, head: bytes, fmt: str):
     for magic, name in _MAGIC:
-        if name != fmt and head.startswith(magic) and not (fmt == "uff" and name == "mat"):   # both HDF5
+        if name != fmt and head.startswith(magic) and not (fmt in _HDF5_FORMATS and name in _HDF5_FORMATS):
             raise fail(path, f"content is a {name} file, not {fmt} as the extension says")
 
 
@@ -193,8 +197,29 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, PREFERRED_KEYS)
     file_spacing = _npz_spacing(path, raw_sp, 2)
     origin = check_origin(raw_origin, path) if raw_origin is not None else None
-    sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key")
-    return finalize(path, arr, sp, origin, {"format": "npz", "variable": key, "keys": other}, frames)
+    fields = _npz_fields(path, key)
+    hint = spacing_hint(fields) if file_spacing is None else ""
+    sp = merge_spacing(path, file_spacing, spacing,
+                       required_msg="the .npz has no 'spacing' key" + (f"; {hint}" if hint else ""))
+    meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {})}
+    return finalize(path, arr, sp, origin, meta, frames)
+
+
+def _npz_fields(path, key) -> dict:
+    """The numeric scalars of an .npz besides ``key`` (header fields such as ``fs``, ``pitch``); small members
+    only, so the frames are not read twice.  {} if they cannot be read: they only inform."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            small = [i for i in zf.infolist() if i.file_size < 4096 and i.filename[:-4] not in (key, "spacing",
+                                                                                                 "origin")]
+            items = []
+            for info in small:
+                with zf.open(info) as fh:
+                    items.append((info.filename[:-4] if info.filename.endswith(".npy") else info.filename,
+                                  np.lib.format.read_array(fh, allow_pickle=False)))
+    except Exception:  # header fields only inform: the frames were read already
+        return {}
+    return scalar_fields(items)
 
 
 # --------------------------------------------------------------------------------------------------- raw
@@ -420,9 +445,13 @@ def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed, conjugate=False) 
                              f"({fr.metadata.get('stored_dtype', fr.frames.dtype)}): RF, not IQ; leave it out")
         return fr
     if modulation_frequency is None:
+        from .checks import iq_frequency_hint
+
+        hint = iq_frequency_hint(fr.metadata.get("fields") or {})
         exc = InputError(f"{fr.source}: complex samples ({fr.metadata.get('stored_dtype', fr.frames.dtype)}): IQ "
                          "data, not RF. Give the demodulation frequency (the scanner's IQ export records it) to "
-                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)")
+                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)"
+                         + (f"; {hint}" if hint else ""))
         exc.iq_frames = fr          # what was read, for a description of the file (femreg info)
         raise exc
     from .iq import SOUND_SPEED, remodulate
@@ -462,8 +491,18 @@ def _read_uff(path, **kw):
     return Frames(**read_uff(path, **kw))
 
 
+def _read_hdf5(path, **kw):
+    from .hdf5 import read_hdf5
+    from .matlab import mat_version
+
+    with open(path, "rb") as fh:
+        if fh.read(6) == b"MATLAB" and mat_version(path) == "7.3":     # MATLAB's -v7.3 under another name
+            return _read_mat(path, **kw)
+    return Frames(**read_hdf5(path, **kw))
+
+
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
-            "ultrasonix": _read_rf, "uff": _read_uff}
+            "ultrasonix": _read_rf, "uff": _read_uff, "hdf5": _read_hdf5}
 
 
 # ------------------------------------------------------------------------------------------------ volumes
