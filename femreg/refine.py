@@ -260,71 +260,78 @@ class Refinement:
     interior: bool = False
 
     def __post_init__(self):
-        if self.fine is not None and not (np.isfinite(self.fine) and self.fine >= 1):
-            raise InputError(f"refinement fine must be None or a number >= 1, got {self.fine!r}")
-        if not (np.isfinite(self.fine_threshold) and self.fine_threshold >= 0):
-            raise InputError(f"refinement fine_threshold must be a finite number >= 0, got {self.fine_threshold!r}")
-        fm = np.atleast_1d(np.asarray(self.fine_min_size, float))
-        if fm.ndim != 1 or fm.size not in (1, 2, 3) or not (np.all(np.isfinite(fm)) and np.all(fm > 0)):
-            raise InputError(f"refinement fine_min_size must be one, two or three positive lengths (mm), "
-                             f"got {self.fine_min_size!r}")
-        if self.fine_levels is not None and not (isinstance(self.fine_levels, (int, np.integer))
-                                                 and not isinstance(self.fine_levels, bool)
-                                                 and 1 <= self.fine_levels <= 4):
-            raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
-        object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1
-                                                                            else fm)))
-        if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
-            raise InputError(f"refinement strong must be None or a number >= 1, got {self.strong!r}")
-        if not (np.isfinite(self.feature) and self.feature >= 0):
-            raise InputError(f"refinement feature must be a finite number >= 0, got {self.feature!r}")
-        if self.relax is not None and not (np.isfinite(self.relax) and 0 < self.relax <= 1):
-            raise InputError(f"refinement relax must be None or a weight in (0, 1], got {self.relax!r}")
-        if self.relax_parts not in ("both", "normal", "tangential"):
-            raise InputError(f"refinement relax_parts must be 'both', 'normal' or 'tangential', "
-                             f"got {self.relax_parts!r}")
-        if self.feature_threshold is not None and not (np.isfinite(self.feature_threshold)
-                                                       and self.feature_threshold >= 0):
-            raise InputError(f"refinement feature_threshold must be None or a finite number >= 0, "
-                             f"got {self.feature_threshold!r}")
-        if self.relax_threshold is not None and not (np.isfinite(self.relax_threshold) and self.relax_threshold >= 0):
-            raise InputError(f"refinement relax_threshold must be None or a finite number >= 0, "
-                             f"got {self.relax_threshold!r}")
-        if not (np.isfinite(self.relax_min_length) and self.relax_min_length >= 0):
-            raise InputError(f"refinement relax_min_length must be a length >= 0 (mm), got {self.relax_min_length!r}")
-        if not (np.isfinite(self.relax_max_fraction) and 0 < self.relax_max_fraction <= 1):
-            raise InputError(f"refinement relax_max_fraction must be a fraction in (0, 1], "
-                             f"got {self.relax_max_fraction!r}")
-        if self.maxiter is not None and not (isinstance(self.maxiter, (int, np.integer))
-                                             and not isinstance(self.maxiter, bool) and self.maxiter >= 1):
-            raise InputError(f"refinement maxiter must be None or an integer >= 1, got {self.maxiter!r}")
-        if not (np.isfinite(self.min_added) and 0 <= self.min_added < 1):
-            raise InputError(f"refinement min_added must be a fraction in [0, 1), got {self.min_added!r}")
-        if self.max_growth is not None and not (np.isfinite(self.max_growth) and self.max_growth >= 1):
-            raise InputError(f"refinement max_growth must be None or a number >= 1, got {self.max_growth!r}")
-        if not (isinstance(self.levels, (int, np.integer)) and not isinstance(self.levels, bool)
-                and 1 <= self.levels <= 4):
-            raise InputError(f"refinement levels must be an integer 1-4, got {self.levels!r}")
-        if self.slip is not None and not (np.isfinite(self.slip) and 0 < self.slip <= 1):
-            raise InputError(f"refinement slip must be None or a weight in (0, 1], got {self.slip!r}")
-        if not (isinstance(self.passes, (int, np.integer)) and not isinstance(self.passes, bool)
-                and 0 <= self.passes <= 6):
-            raise InputError(f"refinement passes must be an integer 0-6, got {self.passes!r}")
-        if self.indicator not in INDICATORS:
-            raise InputError(f"refinement indicator must be one of {INDICATORS}, got {self.indicator!r}")
-        if not (np.isfinite(self.threshold) and self.threshold >= 0):
-            raise InputError(f"refinement threshold must be a finite number >= 0, got {self.threshold!r}")
-        ms = np.atleast_1d(np.asarray(self.min_size, float))
-        if ms.ndim != 1 or ms.size not in (1, 2, 3) or not (np.all(np.isfinite(ms)) and np.all(ms > 0)):
-            raise InputError(f"refinement min_size must be one, two or three positive lengths (mm), "
-                             f"got {self.min_size!r}")
-        if ms.size == 1:
-            ms = np.repeat(ms, 2)
-        if not (np.isfinite(self.relative) and self.relative >= 0):
-            raise InputError(f"refinement relative must be a finite number >= 0, got {self.relative!r}")
-        object.__setattr__(self, "min_size", tuple(float(v) for v in ms))
-        if self.axes not in ("both", "axial", "lateral"):
-            raise InputError(f"refinement axes must be 'both', 'axial' or 'lateral', got {self.axes!r}")
+        _number(self, "fine", 1, optional=True)
+        _number(self, "fine_threshold", 0)
+        _lengths(self, "fine_min_size")
+        _integer(self, "fine_levels", 1, 4, optional=True)
+        _number(self, "strong", 1, optional=True)
+        _number(self, "feature", 0)
+        _number(self, "relax", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
+        _choice(self, "relax_parts", ("both", "normal", "tangential"))
+        _number(self, "feature_threshold", 0, optional=True)
+        _number(self, "relax_threshold", 0, optional=True)
+        _number(self, "relax_min_length", 0, what="a length >= 0 (mm)")
+        _number(self, "relax_max_fraction", 0, 1, open_low=True, what="a fraction in (0, 1]")
+        _integer(self, "maxiter", 1, None, optional=True)
+        _number(self, "min_added", 0, 1, open_high=True, what="a fraction in [0, 1)")
+        _number(self, "max_growth", 1, optional=True)
+        _integer(self, "levels", 1, 4)
+        _number(self, "slip", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
+        _integer(self, "passes", 0, 6)
+        _choice(self, "indicator", INDICATORS)
+        _number(self, "threshold", 0)
+        _lengths(self, "min_size")
+        _number(self, "relative", 0)
+        _choice(self, "axes", ("both", "axial", "lateral"))
+
+
+def _fail(name, what, value):
+    raise InputError(f"refinement {name} must be {what}, got {value!r}")
+
+
+def _number(obj, name, low, high=None, *, optional=False, open_low=False, open_high=False, what=None):
+    """Check the float field ``name`` of a :class:`Refinement` against [low, high] (ends open as flagged)."""
+    v = getattr(obj, name)
+    if optional and v is None:
+        return
+    what = what or ("a number >= %g" % low if low == 1 else "a finite number >= %g" % low)
+    if optional:
+        what = "None or " + what
+    ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+    ok = ok and (v > low if open_low else v >= low)
+    if ok and high is not None:
+        ok = v < high if open_high else v <= high
+    if not ok:
+        _fail(name, what, v)
+
+
+def _integer(obj, name, low, high, *, optional=False):
+    """Check the integer field ``name`` of a :class:`Refinement` (bool is not an integer here)."""
+    v = getattr(obj, name)
+    if optional and v is None:
+        return
+    ok = isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= low and (high is None or v <= high)
+    if not ok:
+        what = f"an integer {low}-{high}" if high is not None else f"an integer >= {low}"
+        _fail(name, ("None or " if optional else "") + what, v)
+
+
+def _choice(obj, name, options):
+    v = getattr(obj, name)
+    if v not in options:
+        _fail(name, "one of " + ", ".join(repr(o) for o in options), v)
+
+
+def _lengths(obj, name):
+    """One, two or three positive lengths (mm); one length is stored as (axial, lateral) alike."""
+    v = getattr(obj, name)
+    try:
+        a = np.atleast_1d(np.asarray(v, float))
+    except (TypeError, ValueError):
+        a = np.empty((0,))
+    if a.ndim != 1 or a.size not in (1, 2, 3) or not (np.all(np.isfinite(a)) and np.all(a > 0)):
+        _fail(name, "one, two or three positive lengths (mm)", v)
+    object.__setattr__(obj, name, tuple(float(x) for x in (np.repeat(a, 2) if a.size == 1 else a)))
 
 
 #: Refinement for layers that may slide: three passes down to 0.15 mm axially and the shear-traction weight 0.003

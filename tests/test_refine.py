@@ -200,6 +200,20 @@ def test_refinement_options_and_bad_input():
         Refinement(slip=0.0)
     with pytest.raises(InputError, match="min_size"):
         Refinement(min_size=(0.0, 1.0))
+    # every field refuses a value outside its range, a NaN and a wrong type, naming itself
+    bad = {"fine": (0.5, np.nan, "x"), "fine_threshold": (-1.0, np.inf), "fine_min_size": ((1, 2, 3, 4), "a"),
+           "fine_levels": (0, 5, 2.0, True), "strong": (0.9,), "feature": (-0.1,), "relax": (0.0, 1.5),
+           "relax_parts": ("all",), "feature_threshold": (-1,), "relax_threshold": (np.nan,),
+           "relax_min_length": (-1.0,), "relax_max_fraction": (0.0, 1.1), "maxiter": (0, 1.5, False),
+           "min_added": (1.0, -0.1), "max_growth": (0.99,), "levels": (0, 5), "passes": (-1, 7, 1.0),
+           "threshold": (-1.0, None), "relative": (np.nan,), "axes": ("diagonal",)}
+    for name, values in bad.items():
+        for v in values:
+            with pytest.raises(InputError, match=f"refinement {name} must be"):
+                Refinement(**{name: v})
+    ok = Refinement(fine=None, fine_levels=None, relax=1.0, maxiter=None, min_added=0.0, min_size=0.2,
+                    fine_min_size=(0.1, 0.2, 0.3))
+    assert ok.min_size == (0.2, 0.2) and ok.fine_min_size == (0.1, 0.2, 0.3)
     skew = MeshQuad1(np.array([[0.0, 1.0, 1.2, 0.1], [0.0, 0.0, 1.0, 1.0]]), np.array([[0], [1], [2], [3]]))
     with pytest.raises(InputError, match="tensor mesh"):
         indicators(skew, np.zeros(8))
