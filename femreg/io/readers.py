@@ -235,8 +235,11 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
             from .metaimage import read_metaimage
 
             return Frames(**read_metaimage(sibling, spacing=spacing, frames=frames))
+        from .rawlayout import guess_shape
+
+        hint = guess_shape(path, offset=offset, dtype=dtype, byte_order=byte_order)
         raise InputError(f"{path}: raw file needs shape=(axial, lateral) (CLI: --shape NAX NLAT); "
-                         "no header to read it from")
+                         "no header to read it from" + (f"; {hint}" if hint else ""))
     dt = parse_dtype(dtype, byte_order)
     try:
         size = os.path.getsize(path)
@@ -259,7 +262,8 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
             for alt in ("i2", "f4", "f8"):
                 isz = np.dtype(alt).itemsize
                 if alt != dt.str[1:] and body > 0 and body % (shp[0] * shp[1] * isz) == 0:
-                    hint = f" (a whole number of {np.dtype(alt).name} frames: try dtype={np.dtype(alt).name})"
+                    name = np.dtype(alt).name
+                    hint = f" (a whole number of {name} frames: try dtype={name}, CLI: --dtype {name})"
                     break
             raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
                              f"frames ({frame_bytes} bytes each){hint}")
@@ -271,8 +275,16 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     except (OSError, ValueError) as exc:
         raise fail(path, f"cannot read samples ({exc})") from None
     arr = arr.reshape(n, shp[-2], shp[-1])
+    from .rawlayout import byte_order_hint, resolve_layout
+
+    swap = byte_order_hint(arr[0], dt)
+    if swap:
+        raise fail(path, swap)
+    arr, layout = resolve_layout(arr, path)
     sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
+    if layout:
+        meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
 
 
