@@ -17,7 +17,7 @@ study: setup
 	$(PY) demos/06_study.py
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=25
 
 slow: setup
 	$(PY) -m pytest -q -m slow
