@@ -141,8 +141,9 @@ mostly 0.01-0.03.  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1
 
 Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio of the data,
 :func:`strain_ratio`, against the 2D model's :math:`\bar\lambda/(\bar\lambda+2)` (:func:`model_ratio`); see
-:func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.96-0.97 (R_P_sigma, R_P_eps) and
-0.85 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths about 0.5.  A given
+:func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.94-1.01 (R_P_sigma, the 47 of benchmarks/inversion.py;
+R_P_eps 0.97) and 0.78-0.88 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths
+0.45-0.52.  A given
 model (``model="plane-strain"`` on an R_eps field) that the data's ratio contradicts is flagged.
 
 Uncertainty: the Laplace std of a registered displacement is multiplied by :data:`REGISTERED_SIGMA` x
