@@ -141,10 +141,10 @@ mostly 0.01-0.03.  The L-curve method: Hansen, SIAM Rev. 34 (1992) 561, doi:10.1
 
 Model choice (``model="auto"``, the default): the lateral-to-axial strain ratio of the data,
 :func:`strain_ratio`, against the 2D model's :math:`\bar\lambda/(\bar\lambda+2)` (:func:`model_ratio`); see
-:func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.94-1.01 (R_P_sigma, the 47 of benchmarks/inversion.py;
-R_P_eps 0.97) and 0.78-0.88 (R_eps, whose isotropic smoothing shrinks the lateral strain); on plane-stress truths
-0.45-0.52.  A given
-model (``model="plane-strain"`` on an R_eps field) that the data's ratio contradicts is flagged.
+:func:`invert`.  On registered RF pairs of plane-strain truths it measures 0.94-1.01 (R_P_sigma, the 47 of
+benchmarks/inversion.py; R_P_eps 0.97) and 0.78-0.88 (R_eps, whose isotropic smoothing shrinks the lateral strain);
+on plane-stress truths 0.45-0.52.  A given model that the data's ratio contradicts (``model="plane-strain"`` on an
+R_eps field) is flagged.
 
 Uncertainty: the Laplace std of a registered displacement is multiplied by :data:`REGISTERED_SIGMA` x
 :data:`DOF_ELEMENT_SIZE` / h (:func:`_registered_sigma`; the registration's errors are correlated over about 2.4 mm,
@@ -155,8 +155,8 @@ fails, :math:`\beta` lands on the smallest value of its grid (or on the largest 
 5-95 % spread of mu above :data:`CONTRAST_REGION`), :math:`|\log\mu|` reaches
 :data:`THETA_BOUND`, the chosen model's strain ratio differs from the data's by more than
 :data:`RATIO_TOLERANCE` (under ``model="auto"``: a ratio farther than :data:`AUTO_RATIO_TOLERANCE` from every
-model, e.g. a lateral displacement that is noise), the misfit stays well above the noise level (:data:`MISFIT_LIMIT`, in units of the model's strain: noise
-inflates the data's own), or a stiff (soft) region strains more (less) than the background
+model, e.g. a lateral displacement that is noise), the misfit stays well above the noise level
+(:data:`MISFIT_LIMIT`, in units of the model's strain: noise inflates the data's own), or a stiff (soft) region strains more (less) than the background
 (:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least :data:`RANKED_CONTRAST`, the stiffer part of the
 image strains more than its softer part (:data:`RANKED_MARGIN`; :func:`_contradiction`).  Uncertainty: a Laplace
 approximation (``uncertainty``, ``constrained``).
