@@ -158,8 +158,8 @@ fails, :math:`\beta` lands on the smallest value of its grid (or on the largest 
 model, e.g. a lateral displacement that is noise), the misfit stays well above the noise level
 (:data:`MISFIT_LIMIT`, in units of the model's strain: noise inflates the data's own), or a stiff (soft) region
 strains more (less) than the background (:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least
-:data:`RANKED_CONTRAST`, the stiffer part of the image strains more than its softer part (:data:`RANKED_MARGIN`; :func:`_contradiction`).  Uncertainty: a Laplace
-approximation (``uncertainty``, ``constrained``).
+:data:`RANKED_CONTRAST`, the stiffer part of the image strains more than its softer part (:data:`RANKED_MARGIN`;
+:func:`_contradiction`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
 displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
