@@ -26,22 +26,24 @@ Marking, the same for all three (an oracle, not femreg's data-driven marking): t
 ``eta_K^2 = int_K |e_h - e_t|^2`` (recovered strain, shear counted twice; 3 x 3 Gauss points on quads, the
 degree-4 rule on triangles), Doerfler / bulk marking with fraction ``theta`` (the fewest elements holding
 ``theta`` of the total ``sum eta_K^2``).  An element is split only if its halves stay at least ``min_size``
-(axial, lateral) mm; default 0.15 mm axially (femreg's :data:`femreg.refine.DEEP_REFINEMENT`) and 2 lateral pixels
-laterally (the finest column femreg's tensor split allows); ``--free`` lifts it (midpoint splits, no pixel grid,
-no size limit).
+(axial, lateral) mm: in the ``pixel`` regime 0.15 mm axially (femreg's :data:`femreg.refine.DEEP_REFINEMENT`) and
+2 lateral pixels laterally (the finest column femreg's tensor split allows); the ``free`` regime lifts it
+(midpoint splits, no pixel grid, no size limit).  The tensor mesh is refined ``--steps`` times; the quadtree and
+the triangles go on (at most 3 x ``--steps``) until they reach the tensor mesh's last floor or stall.
 
 Per case x mesh type x step: free nodes, elements, smallest element (axial x lateral mm), the floor total strain
 error % over the ROI (recovered strain, and the raw element gradient as a plain FE post-processing would), and
 the error inside the ring ``0.8 R < |x - c| < 1.2 R`` around an inclusion (for the shear band: within one band
 thickness of its centre).
 
-Run: ``python benchmarks/mesh_types.py [--cases word,...] [--steps 5] [--theta 0.5] [--free]
-[--out out/mesh_types] [--plot docs/mesh_types.png]``; 1-3 min on one core (the FE inclusions are cached on disk
+Run: ``python benchmarks/mesh_types.py [--cases word,...] [--steps 5] [--theta 0.5] [--regimes pixel,free]
+[--out out/mesh_types] [--plot docs/mesh_types.png]``; about 3 min on one core (the FE inclusions are cached on disk
 by :func:`forward.elasticity.cached_solve`).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -348,9 +350,12 @@ class MeshState:
             s = _rect_bilinear(self.p, self.t, self.s, el, X, Y)
             ee = _rect_grad(self.p, self.t, self.u, el, X, Y)
         else:
-            from skfem import MeshTri1
+            from matplotlib.tri import Triangulation
 
-            el = MeshTri1(self.p, self.t).element_finder()(X, Y)
+            # matplotlib's trapezoid map: scikit-fem's element_finder allocates (n_points, n_el) on big meshes
+            el = Triangulation(self.p[0], self.p[1], self.t.T).get_trifinder()(X, Y)
+            if np.any(el < 0):
+                raise ValueError("ROI samples outside the mesh")
             lam = _tri_bary(self.p, self.t, el, X, Y)
             u = sum(lam[:, k:k + 1] * self.u[self.t[k, el]] for k in range(3))
             s = sum(lam[:, k:k + 1] * self.s[self.t[k, el]] for k in range(3))
@@ -402,8 +407,22 @@ def _scores(state, field, xg, yg, t_roi, zone):
     return e_rec, e_el, float(np.sqrt(num / den))
 
 
-def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=True):
-    """Rows (dict) per mesh type x refinement step for one case (module docstring)."""
+def _done(kind, own, step, steps, max_steps, rows):
+    """The tensor mesh stops after ``steps``; the others go on (up to ``max_steps``) until they reach the tensor
+    mesh's last floor, or stall (the last two steps together less than 2 % lower)."""
+    if kind == "tensor" or step >= max_steps:
+        return kind == "tensor" and step >= steps or step >= max_steps
+    tensor = [r for r in rows if r["type"] == "tensor" and r["case"] == own[-1]["case"]]
+    if step >= steps and (not tensor or own[-1]["e"] <= tensor[-1]["e"]):
+        return True
+    return step >= 2 and own[-1]["e"] > 0.98 * own[-3]["e"]
+
+
+def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=True, max_steps=None):
+    """Rows (dict) per mesh type x refinement step for one case (module docstring); the tensor mesh refined
+    ``steps`` times, the others until they reach its last floor (:func:`_done`, at most ``max_steps``, default
+    ``3 steps``)."""
+    max_steps = 3 * steps if max_steps is None else int(max_steps)
     from skfem import MeshTri1
 
     from femreg.mesh import roi_mesh, tensor_structure
@@ -436,7 +455,8 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
             qt = QuadTree(xs, ys)
         else:
             tri = MeshTri1.init_tensor(xs, ys)
-        for step in range(steps + 1):
+        own = [r for r in rows if r["type"] == kind]
+        for step in range(max_steps + 1):
             if kind == "tensor":
                 st = MeshState("rect", mesh.p, mesh.t, field)
             elif kind == "quadtree":
@@ -445,14 +465,15 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
                 st = MeshState("tri", tri.p, tri.t, field)
             e_rec, e_el, e_zone = _scores(st, field, xg, yg, t_roi, zone)
             mn = st.min_size()
-            rows.append(dict(case=case.name, type=kind, step=step, nodes=st.n_free, elements=st.t.shape[1],
+            rows.append(dict(case=case.name, regime="free" if free else "pixel", type=kind, step=step, nodes=st.n_free, elements=st.t.shape[1],
                              min_ax=mn[0], min_lat=mn[1], e=100 * e_rec, e_element=100 * e_el, e_zone=100 * e_zone))
             if progress:
                 r = rows[-1]
                 print(f"{case.name:20s} {kind:8s} step {step}: {r['nodes']:6d} nodes {r['elements']:6d} el, "
                       f"min {mn[0]:.3f} x {mn[1]:.3f} mm, e {r['e']:.2f} % (element {r['e_element']:.2f}), "
                       f"zone {r['e_zone']:.2f} %  [{time.process_time() - t0:.1f} s]", flush=True)
-            if step == steps:
+            own.append(rows[-1])
+            if _done(kind, own, step, steps, max_steps, rows):
                 break
             eta2 = st.eta2()
             x, y = st.p[0, st.t], st.p[1, st.t]
@@ -464,7 +485,7 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
                 eligible = np.all(0.5 * ext >= np.asarray(min_size) * (1 - 1e-9), axis=1)
             marked = doerfler(eta2, theta, eligible)
             if not marked.any():
-                continue
+                break
             if kind == "tensor":
                 mesh = _refine_tensor(mesh, marked, spacing, origin, min_size, free)
             elif kind == "quadtree":
@@ -494,67 +515,89 @@ def _refine_tensor(mesh, marked, spacing, origin, min_size, free):
     return refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=min_size, levels=1)[0]
 
 
+def _loglog(x, y, at):
+    """``y`` at ``at`` by log-log interpolation along the (increasing) ``x``; NaN outside ``x``'s range."""
+    x, y = np.log(np.asarray(x, float)), np.log(np.asarray(y, float))
+    a = np.log(float(at))
+    if not x[0] - 1e-12 <= a <= x[-1] + 1e-12:
+        return float("nan")
+    return float(np.exp(np.interp(a, x, y)))
+
+
 def nodes_to_reach(rows, target):
-    """Free nodes at which the error (log-log interpolation between steps) first drops to ``target`` %; NaN when
-    it never does."""
+    """Free nodes at which the floor error (log-log interpolation between steps) first drops to ``target`` %;
+    NaN when it never does."""
     n = np.array([r["nodes"] for r in rows], float)
     e = np.array([r["e"] for r in rows], float)
     for k in range(len(e)):
         if e[k] <= target:
             if k == 0:
-                return n[0]
+                return float(n[0])
             a = (np.log(target) - np.log(e[k - 1])) / (np.log(e[k]) - np.log(e[k - 1]))
             return float(np.exp(np.log(n[k - 1]) + a * (np.log(n[k]) - np.log(n[k - 1]))))
     return float("nan")
 
 
 def table(rows) -> str:
-    lines = ["| case | mesh | step | nodes | elements | smallest mm (ax x lat) | floor e % | element-strain e % "
-             "| ring / band e % |\n", "|---|---|---|---|---|---|---|---|---|\n"]
+    lines = ["| regime | case | mesh | step | nodes | elements | smallest mm (ax x lat) | floor e % | element-strain e % "
+             "| ring / band e % |\n", "|---|---|---|---|---|---|---|---|---|---|\n"]
     for r in rows:
-        lines.append(f"| {r['case']} | {r['type']} | {r['step']} | {r['nodes']} | {r['elements']} | "
+        lines.append(f"| {r['regime']} | {r['case']} | {r['type']} | {r['step']} | {r['nodes']} | {r['elements']} | "
                      f"{r['min_ax']:.2f} x {r['min_lat']:.2f} | {r['e']:.2f} | {r['e_element']:.2f} | "
                      f"{r['e_zone']:.2f} |\n")
     return "".join(lines)
 
 
 def summary(rows) -> str:
-    """Per case: the tensor mesh's last floor, and the nodes each type needs to reach it."""
-    lines = ["| case | tensor: last step nodes / floor e % | nodes to reach it: tensor | quadtree | tri |\n",
-             "|---|---|---|---|---|\n"]
-    for case in dict.fromkeys(r["case"] for r in rows):
-        by = {k: [r for r in rows if r["case"] == case and r["type"] == k] for k in MESH_TYPES}
-        if not by["tensor"]:
+    """Per case: each type's last step (nodes / floor %), the tensor mesh's floor at the other types' last node
+    counts, and the nodes each type needs to reach the tensor mesh's last floor."""
+    lines = ["| regime | case | last step, nodes / e %: tensor | quadtree | tri | tensor e % at the quadtree's / tri's "
+             "nodes | nodes to reach the tensor's last e: quadtree | tri |\n", "|---|---|---|---|---|---|---|---|\n"]
+
+    def f(v, fmt):
+        return "n/a" if not np.isfinite(v) else format(v, fmt)
+
+    for regime, case in dict.fromkeys((r["regime"], r["case"]) for r in rows):
+        by = {k: [r for r in rows if r["case"] == case and r["type"] == k and r["regime"] == regime]
+              for k in MESH_TYPES}
+        if not all(by.values()):
             continue
-        last = by["tensor"][-1]
-        need = [nodes_to_reach(by[k], last["e"]) if by[k] else float("nan") for k in MESH_TYPES]
-        lines.append(f"| {case} | {last['nodes']} / {last['e']:.2f} | "
-                     + " | ".join("not reached" if not np.isfinite(v) else f"{v:.0f}" for v in need) + " |\n")
+        last = {k: v[-1] for k, v in by.items()}
+        tn, te = [r["nodes"] for r in by["tensor"]], [r["e"] for r in by["tensor"]]
+        at = [f(_loglog(tn, te, last[k]["nodes"]), ".2f") for k in ("quadtree", "tri")]
+        need = [f(nodes_to_reach(by[k], last["tensor"]["e"]), ".0f") for k in ("quadtree", "tri")]
+        lines.append(f"| {regime} | {case} | " + " | ".join(f"{last[k]['nodes']} / {last[k]['e']:.2f}" for k in MESH_TYPES)
+                     + f" | {at[0]} / {at[1]} | {need[0]} | {need[1]} |\n")
     return "".join(lines)
 
 
 def plot(rows, path):
+    """Floor error against free nodes (log-log), one panel per case, one row per regime."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     cases = list(dict.fromkeys(r["case"] for r in rows))
-    fig, axes = plt.subplots(1, len(cases), figsize=(2.3 * len(cases), 2.4), constrained_layout=True, squeeze=False)
+    regimes = list(dict.fromkeys(r["regime"] for r in rows))
+    fig, axes = plt.subplots(len(regimes), len(cases), figsize=(2.1 * len(cases), 2.0 * len(regimes) + 0.3),
+                             constrained_layout=True, squeeze=False)
     style = {"tensor": ("o-", "C0"), "quadtree": ("s-", "C1"), "tri": ("^-", "C2")}
-    for ax, case in zip(axes[0], cases):
-        for k in MESH_TYPES:
-            rr = [r for r in rows if r["case"] == case and r["type"] == k]
-            if rr:
-                ax.loglog([r["nodes"] for r in rr], [r["e"] for r in rr], style[k][0], color=style[k][1], ms=3,
-                          lw=1, label=k)
-        ax.set_title(case, fontsize=7)
-        ax.set_xlabel("nodes", fontsize=7)
-        ax.tick_params(labelsize=6, which="both")
-        ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    axes[0, 0].set_ylabel("floor total strain error %", fontsize=7)
-    axes[0, 0].legend(fontsize=6)
-    fig.savefig(path, dpi=90)
+    for i, regime in enumerate(regimes):
+        for ax, case in zip(axes[i], cases):
+            for k in MESH_TYPES:
+                rr = [r for r in rows if r["case"] == case and r["type"] == k and r["regime"] == regime]
+                if rr:
+                    ax.loglog([r["nodes"] for r in rr], [r["e"] for r in rr], style[k][0], color=style[k][1],
+                              ms=2.5, lw=0.9, label=k)
+            ax.set_title(f"{case}\n{regime}", fontsize=6)
+            ax.tick_params(labelsize=5, which="both")
+            ax.grid(True, which="both", lw=0.3, alpha=0.5)
+            if i == len(regimes) - 1:
+                ax.set_xlabel("free nodes", fontsize=6)
+        axes[i, 0].set_ylabel("floor strain error %", fontsize=6)
+    axes[0, 0].legend(fontsize=5)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
@@ -562,9 +605,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="")
     ap.add_argument("--types", default=",".join(MESH_TYPES))
-    ap.add_argument("--steps", type=int, default=5)
-    ap.add_argument("--theta", type=float, default=0.5)
-    ap.add_argument("--free", action="store_true", help="midpoint splits, no pixel grid, no size limit")
+    ap.add_argument("--steps", type=int, default=5, help="refinement steps of the tensor mesh")
+    ap.add_argument("--theta", type=float, default=0.5, help="Doerfler fraction")
+    ap.add_argument("--regimes", default="pixel,free",
+                    help="pixel: femreg's size limits; free: midpoint splits, no pixel grid, no size limit")
     ap.add_argument("--out", default="out/mesh_types")
     ap.add_argument("--plot", default="")
     a = ap.parse_args(argv)
@@ -573,13 +617,17 @@ def main(argv=None):
     words = [w for w in a.cases.split(",") if w]
     types = [t for t in a.types.split(",") if t]
     rows = []
-    for case in CASES:
-        if not words or any(w in case.name for w in words):
-            rows += run_case(case, a.steps, a.theta, a.free, types)
+    for regime in [w for w in a.regimes.split(",") if w]:
+        if regime not in ("pixel", "free"):
+            raise SystemExit(f"unknown regime {regime!r} (pixel, free)")
+        for case in CASES:
+            if not words or any(w in case.name for w in words):
+                rows += run_case(case, a.steps, a.theta, regime == "free", types)
     md = table(rows) + "\n" + summary(rows)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.md").write_text(md)
+    (out / "results.json").write_text(json.dumps(rows, indent=0))
     if a.plot:
         plot(rows, a.plot)
     print("\n" + md)

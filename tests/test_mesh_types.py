@@ -1,0 +1,98 @@
+"""The mesh-type benchmark's helpers: the quadtree's constrained hanging-node interpolant (continuous across
+coarse-fine edges, exact for affine fields, 2:1 balanced) and the P1 triangle strain.  No image, no FE solve."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks import mesh_types as M  # noqa: E402
+
+
+class _Field:
+    """u = A x + b (affine) plus ``curv`` times a smooth non-polynomial part; strain of the affine part only."""
+
+    A = np.array([[0.01, -0.02], [0.03, 0.005]])
+
+    def __init__(self, curv=0.0):
+        self.curv = curv
+
+    def displacement(self, P):
+        P = np.asarray(P, float)
+        u = P @ self.A.T + np.array([1.0, -0.5])
+        return u + self.curv * np.column_stack([np.sin(P[:, 0]) * P[:, 1] ** 2, np.cos(P[:, 1] * P[:, 0])])
+
+    def strain(self, P):
+        e = 0.5 * (self.A + self.A.T)
+        return np.tile([e[0, 0], e[1, 1], e[0, 1]], (len(P), 1))
+
+
+def _corner_tree():
+    """4 x 3 base cells (one of them 2 mm wide); three times, the smallest leaf at the edge x = 1 (bottom) split:
+    its children touch the coarse base cell beyond that edge, which the 2:1 balance must then split."""
+    qt = M.QuadTree([0.0, 1.0, 2.0, 4.0, 5.0], [0.0, 1.0, 2.0, 3.0])
+    for _ in range(3):
+        c = qt.p[:, qt.t]
+        at = np.flatnonzero((c[0].max(0) == 1.0) & (c[1].min(0) == 0.0))
+        qt.refine(at[np.argmin(np.ptp(c[0][:, at], axis=0))])
+    return qt
+
+
+def test_quadtree_balanced_with_hanging_nodes():
+    qt = _corner_tree()
+    # the balance split neighbours: more than the 12 + 3 x 3 leaves of the three splits alone
+    assert qt.t.shape[1] > 21
+    assert len(qt.hanging) > 0 and np.count_nonzero(~qt.free) == len(qt.hanging)
+    # 2:1: no leaf edge carries a node at its quarter points
+    keys = set(qt.keys.tolist())
+    B = qt.boxes
+    for X0, X1, Y0, Y1 in B:
+        for q in (1, 3):
+            for x, y in (((X0 * (4 - q) + X1 * q) // 4, Y0), ((X0 * (4 - q) + X1 * q) // 4, Y1),
+                         (X0, (Y0 * (4 - q) + Y1 * q) // 4), (X1, (Y0 * (4 - q) + Y1 * q) // 4)):
+                assert int(qt._key(x, y)) not in keys
+
+
+def test_hanging_interpolant_exact_for_affine_and_continuous():
+    qt = _corner_tree()
+    aff = M.MeshState("rect", qt.p, qt.t, _Field(), qt.hanging, qt.free)
+    assert np.abs(aff.u - _Field().displacement(qt.p.T)).max() < 1e-12
+    assert np.abs(aff.s - _Field().strain(qt.p.T)).max() < 1e-12          # recovered strain exact too
+    assert aff.eta2().max() < 1e-25
+    # a curved field: on every leaf edge, the values from both sides agree (no gap at a hanging node)
+    st = M.MeshState("rect", qt.p, qt.t, _Field(curv=0.2), qt.hanging, qt.free)
+    p, t = st.p, st.t
+    lo, hi = p[:, t].min(1), p[:, t].max(1)          # (2, n_el) boxes
+    s = np.linspace(0.0, 1.0, 7)
+    gap, checked = 0.0, 0
+    for k in range(t.shape[1]):
+        for X, Y in ((lo[0, k] + 0 * s, lo[1, k] + s * (hi[1, k] - lo[1, k])),
+                     (hi[0, k] + 0 * s, lo[1, k] + s * (hi[1, k] - lo[1, k])),
+                     (lo[0, k] + s * (hi[0, k] - lo[0, k]), lo[1, k] + 0 * s),
+                     (lo[0, k] + s * (hi[0, k] - lo[0, k]), hi[1, k] + 0 * s)):
+            mine = M._rect_bilinear(p, t, st.u, np.full(s.size, k), X, Y)
+            for j in range(t.shape[1]):
+                inside = ((X >= lo[0, j] - 1e-12) & (X <= hi[0, j] + 1e-12) & (Y >= lo[1, j] - 1e-12)
+                          & (Y <= hi[1, j] + 1e-12))
+                if j != k and inside.any():
+                    other = M._rect_bilinear(p, t, st.u, np.full(inside.sum(), j), X[inside], Y[inside])
+                    gap = max(gap, float(np.abs(other - mine[inside]).max()))
+                    checked += 1
+    assert checked > 50 and gap < 1e-12
+    # without the constraint the hanging nodes' exact values open a gap of the curvature's size
+    raw = np.asarray(_Field(curv=0.2).displacement(p.T))
+    h, a, b = qt.hanging.T
+    assert np.abs(raw[h] - 0.5 * (raw[a] + raw[b])).max() > 1e-3
+
+
+def test_triangle_strain_and_doerfler():
+    from skfem import MeshTri1
+
+    m = MeshTri1.init_tensor([0.0, 1.0, 2.5], [0.0, 0.5, 2.0]).refined(np.array([0, 3]))
+    e = M.tri_strains(m.p, m.t, _Field().displacement(m.p.T))
+    assert np.abs(e - _Field().strain(m.p.T[:1])).max() < 1e-14
+    eta = np.array([4.0, 1.0, 3.0, 2.0])
+    assert M.doerfler(eta, 0.5, np.ones(4, bool)).tolist() == [True, False, True, False]   # 7 >= 5, 4 < 5
+    assert M.doerfler(eta, 0.5, np.array([False, True, True, True])).tolist() == [False, False, True, False]  # 3 of 6
