@@ -15,6 +15,10 @@ the default 1 mm margin):
 
 * ``tensor``: femreg's graded tensor mesh; a marked element splits its whole row and whole column in two
   (:func:`femreg.refine.refine_tensor_mesh`, breaks on pixel-cell boundaries, at least 2 pixels and ``min_size``);
+* ``tensor-dir``: the same mesh, marked by direction as femreg's jump indicator does (axial variation marks rows,
+  lateral variation columns): the Doerfler marking runs on row and column scores, each the sum over the row
+  (column) of what halving its elements along depth (laterally) takes off their floor error
+  (:func:`directional_scores`; the raw element gradient, so that the score of an element is its own);
 * ``quadtree``: marked elements split into 4, 2:1 balanced across edges; a hanging node (the midpoint of a coarse
   element's edge) is constrained to the mean of that edge's end nodes, so the bilinear field stays continuous
   (:class:`QuadTree`); nodes counted are the free ones;
@@ -22,9 +26,9 @@ the default 1 mm margin):
   scikit-fem's conforming red-green-blue refinement (``MeshTri1.refined(marked)``), P1 elements, strain recovered
   the same way (mean of the constant element strains around each node, interpolated linearly).
 
-Marking, the same for all three (an oracle, not femreg's data-driven marking): the per-element floor error
-``eta_K^2 = int_K |e_h - e_t|^2`` (recovered strain, shear counted twice; 3 x 3 Gauss points on quads, the
-degree-4 rule on triangles), Doerfler / bulk marking with fraction ``theta`` (the fewest elements holding
+Marking, the same for ``tensor``, ``quadtree`` and ``tri`` (an oracle, not femreg's data-driven marking): the per-element floor error
+``eta_K^2 = int_K |e_h - e_t|^2`` (recovered strain, shear counted twice; 3-point Gauss on 3 x 3 sub-boxes of a
+quad, scikit-fem's degree-13 rule on a triangle: the true strain steps inside an element), Doerfler / bulk marking with fraction ``theta`` (the fewest elements holding
 ``theta`` of the total ``sum eta_K^2``).  An element is split only if its halves stay at least ``min_size``
 (axial, lateral) mm: in the ``pixel`` regime 0.15 mm axially (femreg's :data:`femreg.refine.DEEP_REFINEMENT`) and
 2 lateral pixels laterally (the finest column femreg's tensor split allows); the ``free`` regime lifts it
@@ -63,7 +67,24 @@ from forward.pairs import PROBES  # noqa: E402
 BASE_ELEMENT_MM = 1.4
 #: smallest axial element (mm) a split may leave (femreg.refine.DEEP_REFINEMENT's min_size[0])
 MIN_AXIAL_MM = 0.15
-MESH_TYPES = ("tensor", "quadtree", "tri")
+MESH_TYPES = ("tensor", "tensor-dir", "quadtree", "tri")
+_G3 = np.array([0.5 - np.sqrt(0.15), 0.5, 0.5 + np.sqrt(0.15)])
+_W3 = np.array([5.0, 8.0, 5.0]) / 18.0
+#: sub-intervals per direction of the oracle's composite Gauss rule on quads: the true strain steps inside an
+#: element (an inclusion's rim, a band's faces), which 3 x 3 points alone sample too coarsely to rank elements
+ORACLE_SUB = 3
+#: degree of the oracle's rule on triangles (scikit-fem's, 37 points at 13), about as many points per area as
+#: the quads' composite rule on their two triangles
+TRI_ORACLE_DEGREE = 13
+
+
+def composite_rule(m=None):
+    """Points (k,) in [0, 1] and weights (k,) (sum 1): 3-point Gauss on ``m`` (default :data:`ORACLE_SUB`) equal
+    sub-intervals."""
+    m = ORACLE_SUB if m is None else int(m)
+    x = ((np.arange(m)[:, None] + _G3[None, :]) / m).ravel()
+    return x, np.tile(_W3, m) / m
+
 
 
 def _inc(kind, radius):
@@ -310,14 +331,13 @@ class MeshState:
     def eta2(self):
         """Per-element ``int_K |e_h - e_t|^2`` (n_el,), recovered strain (the oracle of the marking)."""
         if self.kind == "rect":
-            g = np.array([0.5 - np.sqrt(0.15), 0.5, 0.5 + np.sqrt(0.15)])
-            w = np.array([5.0, 8.0, 5.0]) / 18.0
+            g, w = composite_rule()
             c = self.t
             x0, x1 = self.p[0, c[0]], self.p[0, c[2]]
             y0, y1 = self.p[1, c[0]], self.p[1, c[2]]
             out = np.zeros(c.shape[1])
-            for a in range(3):
-                for b in range(3):
+            for a in range(g.size):
+                for b in range(g.size):
                     X, Y = x0 + g[a] * (x1 - x0), y0 + g[b] * (y1 - y0)
                     el = np.arange(c.shape[1])
                     sh = _rect_bilinear(self.p, self.t, self.s, el, X, Y)
@@ -327,7 +347,7 @@ class MeshState:
         from skfem.quadrature import get_quadrature
         from skfem.refdom import RefTri
 
-        Xr, W = get_quadrature(RefTri, 4)
+        Xr, W = get_quadrature(RefTri, TRI_ORACLE_DEGREE)
         x, y = self.p[0, self.t], self.p[1, self.t]
         area = 0.5 * np.abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))
         out = np.zeros(self.t.shape[1])
@@ -407,11 +427,48 @@ def _scores(state, field, xg, yg, t_roi, zone):
     return e_rec, e_el, float(np.sqrt(num / den))
 
 
+
+
+def box_error(field, x0, x1, y0, y1):
+    """``int_K |e(I_K u) - e_t|^2`` (n,) of the bilinear interpolant of the exact ``u`` on each box
+    ``[x0, x1] x [y0, y1]`` (mm, arrays (n,)), raw element gradient, 3 x 3 Gauss points, shear counted twice."""
+    c = [np.column_stack(q) for q in ((x0, y0), (x0, y1), (x1, y1), (x1, y0))]
+    u = [np.asarray(field.displacement(q), float) for q in c]
+    hx, hy = (x1 - x0)[:, None], (y1 - y0)[:, None]
+    out = np.zeros(x0.size)
+    g, w = composite_rule()
+    for a in range(g.size):
+        for b in range(g.size):
+            r, s = g[a], g[b]
+            dx = ((1 - s) * (u[3] - u[0]) + s * (u[2] - u[1])) / hx
+            dy = ((1 - r) * (u[1] - u[0]) + r * (u[2] - u[3])) / hy
+            e = np.column_stack([dx[:, 0], dy[:, 1], 0.5 * (dy[:, 0] + dx[:, 1])])
+            et = field.strain(np.column_stack([x0 + r * (x1 - x0), y0 + s * (y1 - y0)]))
+            out += w[a] * w[b] * _frob2(e - et)
+    return out * (hx * hy).ravel()
+
+
+def directional_scores(mesh, field):
+    """Row and column scores of a tensor mesh: the sum over a row (column) of the elements' drop of
+    :func:`box_error` when each is halved along depth (laterally) -- what splitting that row (column) alone buys.
+    Returns ``(rows (n_x - 1,), cols (n_y - 1,))``."""
+    from femreg.mesh import tensor_structure
+
+    xs, ys, cell = tensor_structure(mesh)
+    I, J = np.meshgrid(np.arange(xs.size - 1), np.arange(ys.size - 1), indexing="ij")
+    x0, x1, y0, y1 = xs[I].ravel(), xs[I + 1].ravel(), ys[J].ravel(), ys[J + 1].ravel()
+    xm, ym = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    e0 = box_error(field, x0, x1, y0, y1)
+    gx = e0 - box_error(field, x0, xm, y0, y1) - box_error(field, xm, x1, y0, y1)
+    gy = e0 - box_error(field, x0, x1, y0, ym) - box_error(field, x0, x1, ym, y1)
+    return gx.reshape(I.shape).sum(1), gy.reshape(I.shape).sum(0)
+
+
 def _done(kind, own, step, steps, max_steps, rows):
     """The tensor mesh stops after ``steps``; the others go on (up to ``max_steps``) until they reach the tensor
     mesh's last floor, or stall (the last two steps together less than 2 % lower)."""
-    if kind == "tensor" or step >= max_steps:
-        return kind == "tensor" and step >= steps or step >= max_steps
+    if kind.startswith("tensor") or step >= max_steps:
+        return kind.startswith("tensor") and step >= steps or step >= max_steps
     tensor = [r for r in rows if r["type"] == "tensor" and r["case"] == own[-1]["case"]]
     if step >= steps and (not tensor or own[-1]["e"] <= tensor[-1]["e"]):
         return True
@@ -449,7 +506,7 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
     rows = []
     for kind in types:
         t0 = time.process_time()
-        if kind == "tensor":
+        if kind.startswith("tensor"):
             mesh = base
         elif kind == "quadtree":
             qt = QuadTree(xs, ys)
@@ -457,7 +514,7 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
             tri = MeshTri1.init_tensor(xs, ys)
         own = [r for r in rows if r["type"] == kind]
         for step in range(max_steps + 1):
-            if kind == "tensor":
+            if kind.startswith("tensor"):
                 st = MeshState("rect", mesh.p, mesh.t, field)
             elif kind == "quadtree":
                 st = MeshState("rect", qt.p, qt.t, field, qt.hanging, qt.free)
@@ -475,6 +532,11 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
             own.append(rows[-1])
             if _done(kind, own, step, steps, max_steps, rows):
                 break
+            if kind == "tensor-dir":
+                mesh = _refine_tensor_dir(mesh, field, theta, spacing, origin, min_size, free)
+                if mesh is None:
+                    break
+                continue
             eta2 = st.eta2()
             x, y = st.p[0, st.t], st.p[1, st.t]
             ext = np.column_stack([x.max(0) - x.min(0), y.max(0) - y.min(0)])
@@ -515,6 +577,29 @@ def _refine_tensor(mesh, marked, spacing, origin, min_size, free):
     return refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=min_size, levels=1)[0]
 
 
+def _refine_tensor_dir(mesh, field, theta, spacing, origin, min_size, free):
+    """Split the rows / columns chosen by Doerfler marking on :func:`directional_scores` (rows and columns in one
+    list, those that may not be split left out); None when none may be split."""
+    from femreg.mesh import tensor_structure
+
+    xs, ys, _ = tensor_structure(mesh)
+    gr, gc = directional_scores(mesh, field)
+    ok = np.concatenate([0.5 * np.diff(xs) >= min_size[0] * (1 - 1e-9), 0.5 * np.diff(ys) >= min_size[1] * (1 - 1e-9)])
+    marked = doerfler(np.maximum(np.concatenate([gr, gc]), 0.0), theta, ok)
+    if not marked.any():
+        return None
+    rows, cols = marked[:gr.size], marked[gr.size:]
+    if free:
+        from skfem import MeshQuad1
+
+        return MeshQuad1.init_tensor(np.union1d(xs, 0.5 * (xs[:-1] + xs[1:])[rows]),
+                                     np.union1d(ys, 0.5 * (ys[:-1] + ys[1:])[cols]))
+    from femreg.refine import refine_tensor_mesh
+
+    new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=min_size, levels=1)
+    return new if sx + sy else None
+
+
 def _loglog(x, y, at):
     """``y`` at ``at`` by log-log interpolation along the (increasing) ``x``; NaN outside ``x``'s range."""
     x, y = np.log(np.asarray(x, float)), np.log(np.asarray(y, float))
@@ -549,25 +634,27 @@ def table(rows) -> str:
 
 
 def summary(rows) -> str:
-    """Per case: each type's last step (nodes / floor %), the tensor mesh's floor at the other types' last node
-    counts, and the nodes each type needs to reach the tensor mesh's last floor."""
-    lines = ["| regime | case | last step, nodes / e %: tensor | quadtree | tri | tensor e % at the quadtree's / tri's "
-             "nodes | nodes to reach the tensor's last e: quadtree | tri |\n", "|---|---|---|---|---|---|---|---|\n"]
+    """Per regime x case: every type's floor at a common node count ``N`` (the smallest of the types' last node
+    counts, log-log interpolation), and the nodes each type needs to reach the ``tensor`` mesh's last floor."""
+    others = [k for k in MESH_TYPES if k != "tensor"]
+    lines = ["| regime | case | N | " + " | ".join(f"e % at N: {k}" for k in MESH_TYPES)
+             + " | tensor's last: nodes / e % | " + " | ".join(f"nodes to reach it: {k}" for k in others) + " |\n",
+             "|" + "---|" * (4 + len(MESH_TYPES) + len(others)) + "\n"]
 
     def f(v, fmt):
-        return "n/a" if not np.isfinite(v) else format(v, fmt)
+        return "not reached" if not np.isfinite(v) else format(v, fmt)
 
     for regime, case in dict.fromkeys((r["regime"], r["case"]) for r in rows):
         by = {k: [r for r in rows if r["case"] == case and r["type"] == k and r["regime"] == regime]
               for k in MESH_TYPES}
         if not all(by.values()):
             continue
-        last = {k: v[-1] for k, v in by.items()}
-        tn, te = [r["nodes"] for r in by["tensor"]], [r["e"] for r in by["tensor"]]
-        at = [f(_loglog(tn, te, last[k]["nodes"]), ".2f") for k in ("quadtree", "tri")]
-        need = [f(nodes_to_reach(by[k], last["tensor"]["e"]), ".0f") for k in ("quadtree", "tri")]
-        lines.append(f"| {regime} | {case} | " + " | ".join(f"{last[k]['nodes']} / {last[k]['e']:.2f}" for k in MESH_TYPES)
-                     + f" | {at[0]} / {at[1]} | {need[0]} | {need[1]} |\n")
+        n = min(v[-1]["nodes"] for v in by.values())
+        at = [_loglog([r["nodes"] for r in by[k]], [r["e"] for r in by[k]], n) for k in MESH_TYPES]
+        last = by["tensor"][-1]
+        need = [nodes_to_reach(by[k], last["e"]) for k in others]
+        lines.append(f"| {regime} | {case} | {n} | " + " | ".join(f(v, ".2f") for v in at)
+                     + f" | {last['nodes']} / {last['e']:.2f} | " + " | ".join(f(v, ".0f") for v in need) + " |\n")
     return "".join(lines)
 
 
@@ -582,7 +669,7 @@ def plot(rows, path):
     regimes = list(dict.fromkeys(r["regime"] for r in rows))
     fig, axes = plt.subplots(len(regimes), len(cases), figsize=(2.1 * len(cases), 2.0 * len(regimes) + 0.3),
                              constrained_layout=True, squeeze=False)
-    style = {"tensor": ("o-", "C0"), "quadtree": ("s-", "C1"), "tri": ("^-", "C2")}
+    style = {"tensor": ("o-", "C0"), "tensor-dir": ("o--", "C3"), "quadtree": ("s-", "C1"), "tri": ("^-", "C2")}
     for i, regime in enumerate(regimes):
         for ax, case in zip(axes[i], cases):
             for k in MESH_TYPES:
