@@ -32,8 +32,8 @@ quad, scikit-fem's degree-13 rule on a triangle: the true strain steps inside an
 ``theta`` of the total ``sum eta_K^2``).  An element is split only if its halves stay at least ``min_size``
 (axial, lateral) mm: in the ``pixel`` regime 0.15 mm axially (femreg's :data:`femreg.refine.DEEP_REFINEMENT`) and
 2 lateral pixels laterally (the finest column femreg's tensor split allows); the ``free`` regime lifts it
-(midpoint splits, no pixel grid, no size limit).  The tensor mesh is refined ``--steps`` times; the quadtree and
-the triangles go on (at most 3 x ``--steps``) until they reach the tensor mesh's last floor or stall.
+(midpoint splits, no pixel grid, no size limit).  The ``tensor`` mesh is refined ``--steps`` times; the other
+types go on (at most 3 x ``--steps``) until they reach the tensor mesh's last floor or stall.
 
 Per case x mesh type x step: free nodes, elements, smallest element (axial x lateral mm), the floor total strain
 error % over the ROI (recovered strain, and the raw element gradient as a plain FE post-processing would), and
@@ -429,28 +429,66 @@ def _scores(state, field, xg, yg, t_roi, zone):
 
 
 
-def box_error(field, x0, x1, y0, y1):
-    """``int_K |e(I_K u) - e_t|^2`` (n,) of the bilinear interpolant of the exact ``u`` on each box
-    ``[x0, x1] x [y0, y1]`` (mm, arrays (n,)), raw element gradient, 3 x 3 Gauss points, shear counted twice."""
-    c = [np.column_stack(q) for q in ((x0, y0), (x0, y1), (x1, y1), (x1, y0))]
-    u = [np.asarray(field.displacement(q), float) for q in c]
-    hx, hy = (x1 - x0)[:, None], (y1 - y0)[:, None]
-    out = np.zeros(x0.size)
-    g, w = composite_rule()
-    for a in range(g.size):
-        for b in range(g.size):
-            r, s = g[a], g[b]
-            dx = ((1 - s) * (u[3] - u[0]) + s * (u[2] - u[1])) / hx
-            dy = ((1 - r) * (u[1] - u[0]) + r * (u[2] - u[3])) / hy
-            e = np.column_stack([dx[:, 0], dy[:, 1], 0.5 * (dy[:, 0] + dx[:, 1])])
-            et = field.strain(np.column_stack([x0 + r * (x1 - x0), y0 + s * (y1 - y0)]))
-            out += w[a] * w[b] * _frob2(e - et)
-    return out * (hx * hy).ravel()
+#: sub-cells per direction of :func:`box_energy`'s cross term
+BOX_SUB = 4
+
+
+def box_energy(field, x0, x1, y0, y1):
+    """``int_K |e_h|^2 - 2 e_h : e_t`` (n,) for the bilinear interpolant ``u_h`` of the exact ``u`` on each box
+    ``K = [x0, x1] x [y0, y1]`` (mm, arrays (n,)), ``e_h`` its raw gradient's symmetric part, ``e_t`` the true
+    strain, shear counted twice: ``int_K |e_h - e_t|^2`` less ``int_K |e_t|^2``, which is the same for a box and
+    its halves, so differences of it are differences of the floor error.
+
+    ``int_K |e_h|^2``: 3 x 3 Gauss (exact).  The cross term ``int_K sym(G_h) : grad u_t``: over :data:`BOX_SUB`
+    sub-cells per direction, ``int_cell S d_x u = int_y S(x_mid, y) (u(x_b, y) - u(x_a, y)) dy`` (3-point Gauss
+    in y), likewise in y: it needs the displacement only, so a step of the true strain inside the box (an
+    inclusion's rim, a band's face) costs no quadrature error beyond the variation of ``S`` across one sub-cell
+    (none for ``S`` constant along the derivative's axis); point samples of ``e_t`` would err by the step's size.
+    """
+    x0, x1, y0, y1 = (np.asarray(v, float) for v in (x0, x1, y0, y1))
+    hx, hy = x1 - x0, y1 - y0
+    U = {(i, j): np.asarray(field.displacement(np.column_stack([x0 + i * hx, y0 + j * hy])), float)
+         for i in (0, 1) for j in (0, 1)}
+
+    def grad_h(r, s):
+        """(n, 2, 2) gradient of u_h at reference (r, s): [i, j] = d u_i / d x_j."""
+        r, s = np.asarray(r, float)[..., None], np.asarray(s, float)[..., None]
+        dx = ((1 - s) * (U[1, 0] - U[0, 0]) + s * (U[1, 1] - U[0, 1])) / hx[:, None]
+        dy = ((1 - r) * (U[0, 1] - U[0, 0]) + r * (U[1, 1] - U[1, 0])) / hy[:, None]
+        return np.stack([dx, dy], axis=-1)
+
+    def sym(G):
+        return 0.5 * (G + np.swapaxes(G, -1, -2))
+
+    energy = np.zeros(x0.size)
+    for a in range(3):
+        for b in range(3):
+            S = sym(grad_h(np.full(x0.size, _G3[a]), np.full(x0.size, _G3[b])))
+            energy += _W3[a] * _W3[b] * np.sum(S * S, axis=(1, 2))
+    energy *= hx * hy
+    m = BOX_SUB
+    edges = np.arange(m + 1) / m
+    mids = 0.5 * (edges[:-1] + edges[1:])
+    gq = ((np.arange(m)[:, None] + _G3[None, :]) / m).ravel()       # composite Gauss along the other axis
+    wq = np.tile(_W3, m) / m
+    cross = np.zeros(x0.size)
+    for q, w in zip(gq, wq):
+        # d/dx terms: sub-cells along x at y = y0 + q hy
+        ux = [np.asarray(field.displacement(np.column_stack([x0 + e * hx, y0 + q * hy])), float) for e in edges]
+        for k in range(m):
+            S = sym(grad_h(np.full(x0.size, mids[k]), np.full(x0.size, q)))
+            cross += w * hy * np.sum(S[:, :, 0] * (ux[k + 1] - ux[k]), axis=1)
+        # d/dy terms: sub-cells along y at x = x0 + q hx
+        uy = [np.asarray(field.displacement(np.column_stack([x0 + q * hx, y0 + e * hy])), float) for e in edges]
+        for k in range(m):
+            S = sym(grad_h(np.full(x0.size, q), np.full(x0.size, mids[k])))
+            cross += w * hx * np.sum(S[:, :, 1] * (uy[k + 1] - uy[k]), axis=1)
+    return energy - 2.0 * cross
 
 
 def directional_scores(mesh, field):
     """Row and column scores of a tensor mesh: the sum over a row (column) of the elements' drop of
-    :func:`box_error` when each is halved along depth (laterally) -- what splitting that row (column) alone buys.
+    :func:`box_energy` when each is halved along depth (laterally) -- what splitting that row (column) alone buys.
     Returns ``(rows (n_x - 1,), cols (n_y - 1,))``."""
     from femreg.mesh import tensor_structure
 
@@ -458,17 +496,17 @@ def directional_scores(mesh, field):
     I, J = np.meshgrid(np.arange(xs.size - 1), np.arange(ys.size - 1), indexing="ij")
     x0, x1, y0, y1 = xs[I].ravel(), xs[I + 1].ravel(), ys[J].ravel(), ys[J + 1].ravel()
     xm, ym = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
-    e0 = box_error(field, x0, x1, y0, y1)
-    gx = e0 - box_error(field, x0, xm, y0, y1) - box_error(field, xm, x1, y0, y1)
-    gy = e0 - box_error(field, x0, x1, y0, ym) - box_error(field, x0, x1, ym, y1)
+    e0 = box_energy(field, x0, x1, y0, y1)
+    gx = e0 - box_energy(field, x0, xm, y0, y1) - box_energy(field, xm, x1, y0, y1)
+    gy = e0 - box_energy(field, x0, x1, y0, ym) - box_energy(field, x0, x1, ym, y1)
     return gx.reshape(I.shape).sum(1), gy.reshape(I.shape).sum(0)
 
 
 def _done(kind, own, step, steps, max_steps, rows):
-    """The tensor mesh stops after ``steps``; the others go on (up to ``max_steps``) until they reach the tensor
+    """The ``tensor`` mesh stops after ``steps``; the others go on (up to ``max_steps``) until they reach the tensor
     mesh's last floor, or stall (the last two steps together less than 2 % lower)."""
-    if kind.startswith("tensor") or step >= max_steps:
-        return kind.startswith("tensor") and step >= steps or step >= max_steps
+    if kind == "tensor" or step >= max_steps:
+        return kind == "tensor" and step >= steps or step >= max_steps
     tensor = [r for r in rows if r["type"] == "tensor" and r["case"] == own[-1]["case"]]
     if step >= steps and (not tensor or own[-1]["e"] <= tensor[-1]["e"]):
         return True

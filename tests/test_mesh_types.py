@@ -96,3 +96,26 @@ def test_triangle_strain_and_doerfler():
     eta = np.array([4.0, 1.0, 3.0, 2.0])
     assert M.doerfler(eta, 0.5, np.ones(4, bool)).tolist() == [True, False, True, False]   # 7 >= 5, 4 < 5
     assert M.doerfler(eta, 0.5, np.array([False, True, True, True])).tolist() == [False, False, True, False]  # 3 of 6
+
+
+class _Layer:
+    """A smooth shear layer at depth 2 mm: u_y = 0.05 tanh((x - 2) / 0.3), depth only."""
+
+    def displacement(self, P):
+        P = np.asarray(P, float)
+        return np.column_stack([0 * P[:, 0], 0.05 * np.tanh((P[:, 0] - 2.0) / 0.3)])
+
+    def strain(self, P):
+        P = np.asarray(P, float)
+        g = 0.05 / 0.3 / np.cosh((P[:, 0] - 2.0) / 0.3) ** 2
+        return np.column_stack([0 * g, 0 * g, 0.5 * g])
+
+
+def test_directional_scores_pick_rows_for_a_layer():
+    from skfem import MeshQuad1
+
+    mesh = MeshQuad1.init_tensor(np.linspace(0.0, 4.0, 5), np.linspace(-2.0, 2.0, 5))
+    rows, cols = M.directional_scores(mesh, _Layer())
+    assert np.abs(cols).max() < 1e-15                       # nothing varies laterally
+    assert rows.min() >= 0 and np.argmax(rows) in (1, 2)    # the rows at the layer (x 1-3 mm) gain most
+    assert rows[[1, 2]].min() > 10 * rows[[0, 3]].max()
