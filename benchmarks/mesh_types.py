@@ -671,13 +671,16 @@ def table(rows) -> str:
     return "".join(lines)
 
 
-def summary(rows) -> str:
-    """Per regime x case: every type's floor at a common node count ``N`` (the smallest of the types' last node
-    counts, log-log interpolation), and the nodes each type needs to reach the ``tensor`` mesh's last floor."""
+def summary(rows, key="e") -> str:
+    """Per regime x case: every type's floor (``key``: ``"e"`` the ROI, ``"e_zone"`` the ring / band zone) at a
+    common node count ``N`` (the smallest of the types' last node counts, log-log interpolation), and the nodes
+    each type needs to reach the ``tensor`` mesh's last ROI floor."""
     others = [k for k in MESH_TYPES if k != "tensor"]
-    lines = ["| regime | case | N | " + " | ".join(f"e % at N: {k}" for k in MESH_TYPES)
-             + " | tensor's last: nodes / e % | " + " | ".join(f"nodes to reach it: {k}" for k in others) + " |\n",
-             "|" + "---|" * (4 + len(MESH_TYPES) + len(others)) + "\n"]
+    what = "ROI" if key == "e" else "ring / band"
+    head = "| regime | case | N | " + " | ".join(f"{what} e % at N: {k}" for k in MESH_TYPES)
+    if key == "e":
+        head += " | tensor's last: nodes / e % | " + " | ".join(f"nodes to reach it: {k}" for k in others)
+    lines = [head + " |\n", "|" + "---|" * head.count("|") + "\n"]
 
     def f(v, fmt):
         return "not reached" if not np.isfinite(v) else format(v, fmt)
@@ -688,12 +691,24 @@ def summary(rows) -> str:
         if not all(by.values()):
             continue
         n = min(v[-1]["nodes"] for v in by.values())
-        at = [_loglog([r["nodes"] for r in by[k]], [r["e"] for r in by[k]], n) for k in MESH_TYPES]
-        last = by["tensor"][-1]
-        need = [nodes_to_reach(by[k], last["e"]) for k in others]
-        lines.append(f"| {regime} | {case} | {n} | " + " | ".join(f(v, ".2f") for v in at)
-                     + f" | {last['nodes']} / {last['e']:.2f} | " + " | ".join(f(v, ".0f") for v in need) + " |\n")
+        at = [_loglog([r["nodes"] for r in by[k]], [r[key] for r in by[k]], n) for k in MESH_TYPES]
+        line = f"| {regime} | {case} | {n} | " + " | ".join(f(v, ".2f") for v in at)
+        if key == "e":
+            last = by["tensor"][-1]
+            need = [nodes_to_reach(by[k], last["e"]) for k in others]
+            line += f" | {last['nodes']} / {last['e']:.2f} | " + " | ".join(f(v, ".0f") for v in need)
+        lines.append(line + " |\n")
     return "".join(lines)
+
+
+def last_steps(rows) -> str:
+    """:func:`table` of each regime x case x type's first and last step."""
+    keep = []
+    for i, r in enumerate(rows):
+        nxt = rows[i + 1] if i + 1 < len(rows) else None
+        if r["step"] == 0 or nxt is None or nxt["type"] != r["type"] or nxt["case"] != r["case"]:
+            keep.append(r)
+    return table(keep)
 
 
 def plot(rows, path):
@@ -702,6 +717,7 @@ def plot(rows, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     cases = list(dict.fromkeys(r["case"] for r in rows))
     regimes = list(dict.fromkeys(r["regime"] for r in rows))
@@ -717,6 +733,8 @@ def plot(rows, path):
                               ms=2.5, lw=0.9, label=k)
             ax.set_title(f"{case}\n{regime}", fontsize=6)
             ax.tick_params(labelsize=5, which="both")
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:g}"[0] in "2357" else ""))
             ax.grid(True, which="both", lw=0.3, alpha=0.5)
             if i == len(regimes) - 1:
                 ax.set_xlabel("free nodes", fontsize=6)
@@ -736,19 +754,21 @@ def main(argv=None):
                     help="pixel: femreg's size limits; free: midpoint splits, no pixel grid, no size limit")
     ap.add_argument("--out", default="out/mesh_types")
     ap.add_argument("--plot", default="")
+    ap.add_argument("--from-json", default="", help="tables and plot from a previous run's results.json")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
     words = [w for w in a.cases.split(",") if w]
     types = [t for t in a.types.split(",") if t]
-    rows = []
-    for regime in [w for w in a.regimes.split(",") if w]:
+    rows = json.loads(Path(a.from_json).read_text()) if a.from_json else []
+    for regime in [] if a.from_json else [w for w in a.regimes.split(",") if w]:
         if regime not in ("pixel", "free"):
             raise SystemExit(f"unknown regime {regime!r} (pixel, free)")
         for case in CASES:
             if not words or any(w in case.name for w in words):
                 rows += run_case(case, a.steps, a.theta, regime == "free", types)
-    md = table(rows) + "\n" + summary(rows)
+    md = (summary(rows) + "\n" + summary(rows, "e_zone") + "\n" + last_steps(rows) + "\n## Every step\n\n"
+          + table(rows))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.md").write_text(md)
