@@ -1,4 +1,4 @@
-"""Mesh floor of three adaptive mesh types: graded tensor quads (femreg's), quadtree quads with constrained hanging
+"""Mesh floor of adaptive mesh types: graded tensor quads (femreg's), quadtree quads with constrained hanging
 nodes, and conforming triangles refined by scikit-fem -- error against nodes at equal marking.
 
 The *mesh floor* is the strain error a mesh keeps even when the registration is perfect: the exact displacement
@@ -18,7 +18,8 @@ the default 1 mm margin):
 * ``tensor-dir``: the same mesh, marked by direction as femreg's jump indicator does (axial variation marks rows,
   lateral variation columns): the Doerfler marking runs on row and column scores, each the sum over the row
   (column) of what halving its elements along depth (laterally) takes off their floor error
-  (:func:`directional_scores`; the raw element gradient, so that the score of an element is its own);
+  (:func:`directional_scores`, :func:`box_energy`: the raw element gradient, so that an element's score is its
+  own, integrated from the displacement, exact for a band's step);
 * ``quadtree``: marked elements split into 4, 2:1 balanced across edges; a hanging node (the midpoint of a coarse
   element's edge) is constrained to the mean of that edge's end nodes, so the bilinear field stays continuous
   (:class:`QuadTree`); nodes counted are the free ones;
@@ -26,9 +27,10 @@ the default 1 mm margin):
   scikit-fem's conforming red-green-blue refinement (``MeshTri1.refined(marked)``), P1 elements, strain recovered
   the same way (mean of the constant element strains around each node, interpolated linearly).
 
-Marking, the same for ``tensor``, ``quadtree`` and ``tri`` (an oracle, not femreg's data-driven marking): the per-element floor error
-``eta_K^2 = int_K |e_h - e_t|^2`` (recovered strain, shear counted twice; 3-point Gauss on 3 x 3 sub-boxes of a
-quad, scikit-fem's degree-13 rule on a triangle: the true strain steps inside an element), Doerfler / bulk marking with fraction ``theta`` (the fewest elements holding
+Marking, the same for ``tensor``, ``quadtree`` and ``tri`` (an oracle, not femreg's data-driven marking): the
+per-element floor error ``eta_K^2 = int_K |e_h - e_t|^2`` (recovered strain, shear counted twice; 3-point Gauss on
+3 x 3 sub-boxes of a quad, scikit-fem's degree-13 rule on a triangle: the true strain steps inside an element),
+Doerfler / bulk marking with fraction ``theta`` (the fewest elements holding
 ``theta`` of the total ``sum eta_K^2``).  An element is split only if its halves stay at least ``min_size``
 (axial, lateral) mm: in the ``pixel`` regime 0.15 mm axially (femreg's :data:`femreg.refine.DEEP_REFINEMENT`) and
 2 lateral pixels laterally (the finest column femreg's tensor split allows); the ``free`` regime lifts it
@@ -41,8 +43,9 @@ the error inside the ring ``0.8 R < |x - c| < 1.2 R`` around an inclusion (for t
 thickness of its centre).
 
 Run: ``python benchmarks/mesh_types.py [--cases word,...] [--steps 5] [--theta 0.5] [--regimes pixel,free]
-[--out out/mesh_types] [--plot docs/mesh_types.png]``; about 3 min on one core (the FE inclusions are cached on disk
-by :func:`forward.elasticity.cached_solve`).
+[--out out/mesh_types] [--plot docs/mesh_types.png] [--from-json out/mesh_types/results.json]``; 9 min 20 s
+on one thread of a shared 2-core machine, 0.34 GB (the FE inclusions are cached on disk by
+:func:`forward.elasticity.cached_solve`).
 """
 from __future__ import annotations
 
@@ -177,8 +180,10 @@ class QuadTree:
         B = self.boxes
         keep, S = B[~sel], B[sel]
         mx, my = (S[:, 0] + S[:, 1]) // 2, (S[:, 2] + S[:, 3]) // 2
-        kids = np.concatenate([np.column_stack([S[:, 0], mx, S[:, 2], my]), np.column_stack([mx, S[:, 1], S[:, 2], my]),
-                               np.column_stack([S[:, 0], mx, my, S[:, 3]]), np.column_stack([mx, S[:, 1], my, S[:, 3]])])
+        kids = np.concatenate([np.column_stack([S[:, 0], mx, S[:, 2], my]),
+                               np.column_stack([mx, S[:, 1], S[:, 2], my]),
+                               np.column_stack([S[:, 0], mx, my, S[:, 3]]),
+                               np.column_stack([mx, S[:, 1], my, S[:, 3]])])
         self.boxes = np.concatenate([keep, kids])
 
     def refine(self, marked):
@@ -219,11 +224,6 @@ class QuadTree:
         exact at the free nodes, each hanging node the mean of its coarse edge's ends."""
         u = np.asarray(displacement(self.p.T), float)
         return self.constrain(u)
-
-
-def tensor_mesh_quadtree(xs, ys):
-    """A :class:`QuadTree` that is the tensor mesh (xs, ys) itself (no refinement, no hanging node)."""
-    return QuadTree(xs, ys)
 
 
 def rect_recovered(p, t, u, hanging=None):
@@ -417,7 +417,9 @@ def case_geometry(case):
     return g.shape, g.spacing, g.origin
 
 
-def _scores(state, field, xg, yg, t_roi, zone):
+def _scores(state, xg, yg, t_roi, zone):
+    """Floor total strain error (fractions) over the ROI samples xg x yg: recovered strain, raw element strain (the
+    robustness metric, :func:`benchmarks.robustness.errors`), and recovered strain inside ``zone`` (bool)."""
     g = state.on_samples(xg, yg)
     ident = (slice(None), slice(None))
     e_rec = errors(g, t_roi, ident, 1.0)["e"]
@@ -517,12 +519,11 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
     """Rows (dict) per mesh type x refinement step for one case (module docstring); the tensor mesh refined
     ``steps`` times, the others until they reach its last floor (:func:`_done`, at most ``max_steps``, default
     ``3 steps``)."""
-    max_steps = 3 * steps if max_steps is None else int(max_steps)
     from skfem import MeshTri1
 
     from femreg.mesh import roi_mesh, tensor_structure
-    from femreg.refine import refine_tensor_mesh
 
+    max_steps = 3 * steps if max_steps is None else int(max_steps)
     field = case.field()
     shape, spacing, origin = case_geometry(case)
     base = roi_mesh(shape, spacing, origin, element_size=BASE_ELEMENT_MM)
@@ -558,10 +559,11 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
                 st = MeshState("rect", qt.p, qt.t, field, qt.hanging, qt.free)
             else:
                 st = MeshState("tri", tri.p, tri.t, field)
-            e_rec, e_el, e_zone = _scores(st, field, xg, yg, t_roi, zone)
+            e_rec, e_el, e_zone = _scores(st, xg, yg, t_roi, zone)
             mn = st.min_size()
-            rows.append(dict(case=case.name, regime="free" if free else "pixel", type=kind, step=step, nodes=st.n_free, elements=st.t.shape[1],
-                             min_ax=mn[0], min_lat=mn[1], e=100 * e_rec, e_element=100 * e_el, e_zone=100 * e_zone))
+            rows.append(dict(case=case.name, regime="free" if free else "pixel", type=kind, step=step,
+                             nodes=st.n_free, elements=st.t.shape[1], min_ax=mn[0], min_lat=mn[1], e=100 * e_rec,
+                             e_element=100 * e_el, e_zone=100 * e_zone))
             if progress:
                 r = rows[-1]
                 print(f"{case.name:20s} {kind:8s} step {step}: {r['nodes']:6d} nodes {r['elements']:6d} el, "
@@ -662,8 +664,8 @@ def nodes_to_reach(rows, target):
 
 
 def table(rows) -> str:
-    lines = ["| regime | case | mesh | step | nodes | elements | smallest mm (ax x lat) | floor e % | element-strain e % "
-             "| ring / band e % |\n", "|---|---|---|---|---|---|---|---|---|---|\n"]
+    lines = ["| regime | case | mesh | step | nodes | elements | smallest mm (ax x lat) | floor e % "
+             "| element-strain e % | ring / band e % |\n", "|---|---|---|---|---|---|---|---|---|---|\n"]
     for r in rows:
         lines.append(f"| {r['regime']} | {r['case']} | {r['type']} | {r['step']} | {r['nodes']} | {r['elements']} | "
                      f"{r['min_ax']:.2f} x {r['min_lat']:.2f} | {r['e']:.2f} | {r['e_element']:.2f} | "
