@@ -119,3 +119,26 @@ def test_directional_scores_pick_rows_for_a_layer():
     assert np.abs(cols).max() < 1e-15                       # nothing varies laterally
     assert rows.min() >= 0 and np.argmax(rows) in (1, 2)    # the rows at the layer (x 1-3 mm) gain most
     assert rows[[1, 2]].min() > 10 * rows[[0, 3]].max()
+
+
+def test_box_energy_affine_and_step():
+    # affine u: e_h = e_t, so |e_h|^2 - 2 e_h : e_t = -|e_t|^2 (shear twice) times the area
+    f = _Field()
+    e = f.strain(np.zeros((1, 2)))[0]
+    x0, x1, y0, y1 = np.array([0.0, 1.0]), np.array([0.5, 3.0]), np.array([-1.0, 2.0]), np.array([0.0, 2.2])
+    want = -(e[0] ** 2 + e[1] ** 2 + 2 * e[2] ** 2) * (x1 - x0) * (y1 - y0)
+    assert np.allclose(M.box_energy(f, x0, x1, y0, y1), want, rtol=1e-12, atol=0)
+    # a band's step (e_xy = g inside |x - 15| < 0.5): the element's e_xy is the mean of the true one over its
+    # depth, so halving [14.887, 15.58] x [0, 0.7] takes off 2 * 0.7 * g^2 (sum over cells of h mean^2 / g^2):
+    # children [14.887, 15.2335] (all band) and [15.2335, 15.58] (0.2665 mm of band), parent 0.613 mm of band
+    from forward.fields import ShearBand
+
+    band = ShearBand(15.0, 1.0, 0.15, 0.01)
+    a, b, m = 14.887, 15.58, 0.5 * (14.887 + 15.58)
+    def energy(lo, hi):
+        return M.box_energy(band, np.array([lo]), np.array([hi]), np.array([0.0]), np.array([0.7]))[0]
+
+    gain = energy(a, b) - energy(a, m) - energy(m, b)
+    g = band.peak_exy
+    exact = 0.7 * 2 * g ** 2 * (-(0.613 ** 2) / 0.693 + (m - a) + (15.5 - m) ** 2 / (b - m))
+    assert exact > 0 and abs(gain - exact) < 1e-6 * exact
