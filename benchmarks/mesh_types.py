@@ -515,19 +515,10 @@ def _done(kind, own, step, steps, max_steps, rows):
     return step >= 2 and own[-1]["e"] > 0.98 * own[-3]["e"]
 
 
-def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=True, max_steps=None):
-    """Rows (dict) per mesh type x refinement step for one case (module docstring); the tensor mesh refined
-    ``steps`` times, the others until they reach its last floor (:func:`_done`, at most ``max_steps``, default
-    ``3 steps``)."""
-    from skfem import MeshTri1
-
-    from femreg.mesh import roi_mesh, tensor_structure
-
-    max_steps = 3 * steps if max_steps is None else int(max_steps)
-    field = case.field()
+def roi_truth(case, field):
+    """ROI sample axes ``xg``, ``yg`` (mm), the true fields on them (dict of (nx, ny) arrays, as
+    :func:`benchmarks.robustness.truth`) and the ring / band zone (bool (nx, ny))."""
     shape, spacing, origin = case_geometry(case)
-    base = roi_mesh(shape, spacing, origin, element_size=BASE_ELEMENT_MM)
-    xs, ys = tensor_structure(base)[:2]
     sl = roi_slices(shape, spacing)
     xg = origin[0] + np.arange(sl[0].start, sl[0].stop, sl[0].step) * spacing[0]
     yg = origin[1] + np.arange(sl[1].start, sl[1].stop) * spacing[1]
@@ -541,6 +532,49 @@ def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=Tr
         zone = (d > 0.8) & (d < 1.2)
     else:
         zone = np.abs(X - field.depth_mm) < field.thickness_mm
+    return xg, yg, t_roi, zone
+
+
+def femreg_row(case, progress=True):
+    """The floor of the mesh femreg's defaults refine to on the case's rendered pair (its own base element size
+    from the speckle, its data-driven marking, :data:`femreg.refine.DEEP_REFINEMENT`): one row, type
+    ``"femreg default"``, regime ``"pixel"``."""
+    import warnings
+
+    import femreg
+    from benchmarks.robustness import make_data
+
+    data = make_data(case)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = femreg.register(data.ref, data.mov, spacing=data.spacing, origin=data.origin)
+    xg, yg, t_roi, zone = roi_truth(case, data.field)
+    st = MeshState("rect", res.mesh.p, res.mesh.t, data.field)
+    e_rec, e_el, e_zone = _scores(st, xg, yg, t_roi, zone)
+    mn = st.min_size()
+    row = dict(case=case.name, regime="pixel", type="femreg default", step=0, nodes=st.n_free,
+               elements=st.t.shape[1], min_ax=mn[0], min_lat=mn[1], e=100 * e_rec, e_element=100 * e_el,
+               e_zone=100 * e_zone)
+    if progress:
+        print(f"{case.name:20s} femreg default: {row['nodes']} nodes, e {row['e']:.2f} %, zone {row['e_zone']:.2f} %",
+              flush=True)
+    return row
+
+
+def run_case(case, steps=5, theta=0.5, free=False, types=MESH_TYPES, progress=True, max_steps=None):
+    """Rows (dict) per mesh type x refinement step for one case (module docstring); the tensor mesh refined
+    ``steps`` times, the others until they reach its last floor (:func:`_done`, at most ``max_steps``, default
+    ``3 steps``)."""
+    from skfem import MeshTri1
+
+    from femreg.mesh import roi_mesh, tensor_structure
+
+    max_steps = 3 * steps if max_steps is None else int(max_steps)
+    field = case.field()
+    shape, spacing, origin = case_geometry(case)
+    base = roi_mesh(shape, spacing, origin, element_size=BASE_ELEMENT_MM)
+    xs, ys = tensor_structure(base)[:2]
+    xg, yg, t_roi, zone = roi_truth(case, field)
     min_size = (0.0, 0.0) if free else (MIN_AXIAL_MM, 2 * spacing[1])
     rows = []
     for kind in types:
@@ -680,8 +714,11 @@ def summary(rows, key="e") -> str:
     others = [k for k in MESH_TYPES if k != "tensor"]
     what = "ROI" if key == "e" else "ring / band"
     head = "| regime | case | N | " + " | ".join(f"{what} e % at N: {k}" for k in MESH_TYPES)
+    fem = {(r["regime"], r["case"]): r for r in rows if r["type"] == "femreg default"}
     if key == "e":
         head += " | tensor's last: nodes / e % | " + " | ".join(f"nodes to reach it: {k}" for k in others)
+    if fem:
+        head += " | femreg default mesh: nodes / e %"
     lines = [head + " |\n", "|" + "---|" * head.count("|") + "\n"]
 
     def f(v, fmt):
@@ -699,6 +736,9 @@ def summary(rows, key="e") -> str:
             last = by["tensor"][-1]
             need = [nodes_to_reach(by[k], last["e"]) for k in others]
             line += f" | {last['nodes']} / {last['e']:.2f} | " + " | ".join(f(v, ".0f") for v in need)
+        if fem:
+            r = fem.get((regime, case))
+            line += " | n/a" if r is None else f" | {r['nodes']} / {r[key]:.2f}"
         lines.append(line + " |\n")
     return "".join(lines)
 
@@ -733,6 +773,9 @@ def plot(rows, path):
                 if rr:
                     ax.loglog([r["nodes"] for r in rr], [r["e"] for r in rr], style[k][0], color=style[k][1],
                               ms=2.5, lw=0.9, label=k)
+            fr = [r for r in rows if r["case"] == case and r["type"] == "femreg default" and r["regime"] == regime]
+            if fr:
+                ax.loglog([r["nodes"] for r in fr], [r["e"] for r in fr], "k*", ms=5, label="femreg default")
             ax.set_title(f"{case}\n{regime}", fontsize=6)
             ax.tick_params(labelsize=5, which="both")
             ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
@@ -757,6 +800,8 @@ def main(argv=None):
     ap.add_argument("--out", default="out/mesh_types")
     ap.add_argument("--plot", default="")
     ap.add_argument("--from-json", default="", help="tables and plot from a previous run's results.json")
+    ap.add_argument("--femreg", action="store_true",
+                    help="also the floor of the mesh femreg's defaults refine to on each case's rendered pair")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
@@ -769,6 +814,8 @@ def main(argv=None):
         for case in CASES:
             if not words or any(w in case.name for w in words):
                 rows += run_case(case, a.steps, a.theta, regime == "free", types)
+                if a.femreg and regime == "pixel":
+                    rows.append(femreg_row(case))
     md = (summary(rows) + "\n" + summary(rows, "e_zone") + "\n" + last_steps(rows) + "\n## Every step\n\n"
           + table(rows))
     out = Path(a.out)
