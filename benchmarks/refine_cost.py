@@ -9,7 +9,7 @@ ratio: the gate for refinement as a default is no case worse by more than 0.3 po
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
 Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
-[--refine auto|slip|norelax|nofine|fine:G|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
+[--refine auto|slip|norelax|nofine|fine:G|finealpha:F|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
 [--out out/refine_cost]`` (``nofine``: the default without its finer marking,
 :attr:`femreg.refine.Refinement.fine`; ``fine:G``: with its gate at G x the cut; ``--against``: also that
 ``refine=``, and the error change of ``--refine`` against it: the gate of a change to the default refinement).
@@ -72,6 +72,10 @@ def _spec(name):
         import dataclasses as dc
 
         return dc.replace(deep_refinement(), fine=float(name.split(":")[1]))
+    if name.split(":")[0] == "finealpha":   # "finealpha:F": the default with fine_alpha=F on its finer passes
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine_alpha=float(name.split(":")[1]))
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)
@@ -127,7 +131,8 @@ def main(argv=None):
     ap.add_argument("--refine", default="auto",
                     help="auto (= deep), slip, norelax (the two-pass refinement without the local relaxation), "
                          "nofine (the default without its finer marking), fine:G (its gate at G x the cut), "
-                         "twopass (Refinement(): the default before deep), deep (deep_refinement), lowcut "
+                         "twopass (Refinement(): the default before deep), finealpha:F (the default with "
+                         "Refinement.fine_alpha=F), deep (deep_refinement), lowcut "
                          "(marking at a z-score of 2), lowcut:F (its feature test at F x the cut) or a number of passes")
     ap.add_argument("--against", default=None,
                     help="also this refine= (as --refine): the error change of --refine against it")

@@ -228,6 +228,11 @@ class Refinement:
         ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
     fine_levels : int, optional
         ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
+    fine_alpha : float, optional
+        Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
+        :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
+        is one Gauss-Newton step (:attr:`maxiter`) from the unrefined solution; at the unrefined weight the new
+        rows and columns at a feature's rim stay near the coarse field the step starts from.  None: 1.
     """
 
     passes: int = 2
@@ -257,6 +262,7 @@ class Refinement:
     fine_threshold: float = 1.0
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
+    fine_alpha: float | None = None
     interior: bool = False
 
     def __post_init__(self):
@@ -272,6 +278,8 @@ class Refinement:
                                                  and not isinstance(self.fine_levels, bool)
                                                  and 1 <= self.fine_levels <= 4):
             raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
+        if self.fine_alpha is not None and not (np.isfinite(self.fine_alpha) and 0 < self.fine_alpha <= 1):
+            raise InputError(f"refinement fine_alpha must be None or a factor in (0, 1], got {self.fine_alpha!r}")
         object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1
                                                                             else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
@@ -901,11 +909,14 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
+        if finer and opts.fine_alpha is not None and opts.fine_alpha != 1.0:
+            kw["alpha_factor"] = float(opts.fine_alpha)
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
+                           alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
@@ -949,10 +960,10 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     base = sol.mesh
     quad = sol.data.quad
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
         def factory():
             r = reg_factory()
-            r.alpha = refined_alpha(r.alpha, base, mesh)
+            r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             if normal_traction is not None and hasattr(r, "normal_traction"):
