@@ -114,7 +114,7 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
+           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes", "fine_alpha_factor",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
            "with_refinement", "RefinementRecord"]
 
@@ -232,7 +232,13 @@ class Refinement:
         Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
         :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
         is one Gauss-Newton step (:attr:`maxiter`) from the unrefined solution; at the unrefined weight the new
-        rows and columns at a feature's rim stay near the coarse field the step starts from.  None: 1.
+        rows and columns at a feature's rim stay near the coarse field the step starts from.  None: 1.  With
+        :attr:`fine_alpha_ncc` the smallest factor.
+    fine_alpha_ncc : float, optional
+        The factor :attr:`fine_alpha` follows the noise the unrefined solve leaves: ``clip((1 - q) /
+        fine_alpha_ncc, fine_alpha, 1)`` with ``q`` the median element NCC of that solve (the quality map).
+        ``1 - q`` is about the noise-to-signal power left in an element, and eq:objf's best weight grows with the
+        noise variance: a noisy or decorrelated pair keeps the unrefined weight.  None: ``fine_alpha`` as given.
     """
 
     passes: int = 2
@@ -263,6 +269,7 @@ class Refinement:
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
     fine_alpha: float | None = None
+    fine_alpha_ncc: float | None = None
     interior: bool = False
 
     def __post_init__(self):
@@ -280,6 +287,9 @@ class Refinement:
             raise InputError(f"refinement fine_levels must be None or an integer 1-4, got {self.fine_levels!r}")
         if self.fine_alpha is not None and not (np.isfinite(self.fine_alpha) and 0 < self.fine_alpha <= 1):
             raise InputError(f"refinement fine_alpha must be None or a factor in (0, 1], got {self.fine_alpha!r}")
+        if self.fine_alpha_ncc is not None and not (np.isfinite(self.fine_alpha_ncc) and 0 < self.fine_alpha_ncc < 1):
+            raise InputError(f"refinement fine_alpha_ncc must be None or a number in (0, 1), "
+                             f"got {self.fine_alpha_ncc!r}")
         object.__setattr__(self, "fine_min_size", tuple(float(v) for v in (np.repeat(fm, 2) if fm.size == 1
                                                                             else fm)))
         if self.strong is not None and not (np.isfinite(self.strong) and self.strong >= 1):
@@ -348,7 +358,7 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6)
+                             fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -909,8 +919,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
-        if finer and opts.fine_alpha is not None and opts.fine_alpha != 1.0:
-            kw["alpha_factor"] = float(opts.fine_alpha)
+        if finer and opts.fine_alpha is not None:
+            f = fine_alpha_factor(opts, sol, mesh)
+            if f != 1.0:
+                kw["alpha_factor"] = f
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
@@ -920,6 +932,22 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
+
+
+def fine_alpha_factor(opts: Refinement, sol, mesh) -> float:
+    """The factor on eq:objf's weight of a pass that passes the fine gate (:attr:`Refinement.fine_alpha`,
+    :attr:`Refinement.fine_alpha_ncc`): ``sol`` the solve on ``mesh`` before the split."""
+    if opts.fine_alpha is None:
+        return 1.0
+    if opts.fine_alpha_ncc is None:
+        return float(opts.fine_alpha)
+    from .repair import element_ncc
+
+    q = element_ncc(sol.data, sol.u, mesh.t.shape[1])
+    q = q[np.isfinite(q)]
+    if not q.size:
+        return 1.0
+    return float(np.clip((1.0 - np.median(q)) / opts.fine_alpha_ncc, opts.fine_alpha, 1.0))
 
 
 def _settled(sol, base_gn, nit: int):
