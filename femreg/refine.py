@@ -50,7 +50,12 @@ stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 
 12.07 %, 8.23 / 8.44 %); columns down to 0.3 mm would give
 the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
 (``benchmarks/rotation_sweep.py``), and a third axial level (to 0.075 mm) 0.1-0.3 points on the inclusions but
-+0.20 there.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
++0.20 there.  That finer pass's one Gauss-Newton step weighs the regulariser by the noise the unrefined solve
+left (:attr:`Refinement.fine_alpha` 0.1, :attr:`Refinement.fine_alpha_ncc` 0.04: eq:objf's weight times
+``clip((1 - q) / 0.04, 0.1, 1)``, ``q`` the median element NCC): the same inclusions 8.50 / 6.48 / 11.86 ->
+7.58 / 6.21 / 10.74 %, 8.23 -> 7.57 %, 8.24 -> 7.39 %; a fixed factor (0.25) made the noisier plane-stress
+inclusions of the robustness benchmark up to 0.86 points worse, the factor that follows the noise at most 0.03.
+Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
@@ -355,7 +360,9 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
-#: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
+#: down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
+#: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`).  Measured: module docstring and README
+#: ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
                              fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04)
