@@ -244,6 +244,7 @@ class Refinement:
         fine_alpha_ncc, fine_alpha, 1)`` with ``q`` the median element NCC of that solve (the quality map).
         ``1 - q`` is about the noise-to-signal power left in an element, and eq:objf's best weight grows with the
         noise variance: a noisy or decorrelated pair keeps the unrefined weight.  None: ``fine_alpha`` as given.
+        Both 2D passes only, as :attr:`fine` (volumes do not read them).
     """
 
     passes: int = 2
