@@ -119,8 +119,8 @@ from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
-           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes", "fine_alpha_factor",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
+           "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "fine_alpha_factor",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
