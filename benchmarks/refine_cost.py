@@ -9,7 +9,7 @@ ratio: the gate for refinement as a default is no case worse by more than 0.3 po
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
 Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
-[--refine auto|slip|norelax|nofine|fine:G|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
+[--refine auto|slip|norelax|nofine|fine:G|finealpha:F|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
 [--out out/refine_cost]`` (``nofine``: the default without its finer marking,
 :attr:`femreg.refine.Refinement.fine`; ``fine:G``: with its gate at G x the cut; ``--against``: also that
 ``refine=``, and the error change of ``--refine`` against it: the gate of a change to the default refinement).
@@ -64,6 +64,10 @@ def _spec(name):
                           feature_threshold=4.0)
         # "lowcut:F": its feature test at F x the (z-score 4) cut instead of 2.2
         return dc.replace(spec, feature=float(name.split(":")[1])) if ":" in name else spec
+    if name == "nofinealpha":       # the default refinement at the unrefined weight on its finer passes too
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine_alpha=None, fine_alpha_ncc=None)
     if name == "nofine":            # the default refinement without its finer marking (Refinement.fine)
         import dataclasses as dc
 
@@ -72,6 +76,12 @@ def _spec(name):
         import dataclasses as dc
 
         return dc.replace(deep_refinement(), fine=float(name.split(":")[1]))
+    if name.split(":")[0] == "finealpha":   # "finealpha:F": the default with fine_alpha=F on its finer passes
+        import dataclasses as dc
+
+        # "finealpha:F:N": F the smallest factor, reached at 1 - median element NCC = F * N (fine_alpha_ncc N)
+        v = [float(x) for x in name.split(":")[1:]]
+        return dc.replace(deep_refinement(), fine_alpha=v[0], fine_alpha_ncc=v[1] if len(v) > 1 else None)
     if name == "twopass":           # the two-pass refinement (the default before DEEP_REFINEMENT)
         return Refinement()
     return name if name == "auto" else int(name)
@@ -126,8 +136,10 @@ def main(argv=None):
     ap.add_argument("--cases", default="")
     ap.add_argument("--refine", default="auto",
                     help="auto (= deep), slip, norelax (the two-pass refinement without the local relaxation), "
-                         "nofine (the default without its finer marking), fine:G (its gate at G x the cut), "
-                         "twopass (Refinement(): the default before deep), deep (deep_refinement), lowcut "
+                         "nofine (the default without its finer marking), nofinealpha (the default without "
+                         "Refinement.fine_alpha), fine:G (its gate at G x the cut), "
+                         "twopass (Refinement(): the default before deep), finealpha:F[:N] (the default with "
+                         "Refinement.fine_alpha=F[, fine_alpha_ncc=N]), deep (deep_refinement), lowcut "
                          "(marking at a z-score of 2), lowcut:F (its feature test at F x the cut) or a number of passes")
     ap.add_argument("--against", default=None,
                     help="also this refine= (as --refine): the error change of --refine against it")

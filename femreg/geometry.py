@@ -383,10 +383,10 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()
 
-        def solve_on(m, u_start, shear_traction=None, normal_traction=None):
+        def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
             def factory():
                 r = copy.copy(user_reg)
-                r.alpha = refined_alpha(r.alpha, mesh, m)        # the unrefined mesh's weight of eq:objf
+                r.alpha = refined_alpha(r.alpha, mesh, m) * alpha_factor   # the unrefined mesh's weight of eq:objf
                 if shear_traction is not None and hasattr(r, "shear_traction"):
                     r.shear_traction = shear_traction
                 if normal_traction is not None and hasattr(r, "normal_traction"):

@@ -50,7 +50,12 @@ stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 
 12.07 %, 8.23 / 8.44 %); columns down to 0.3 mm would give
 the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
 (``benchmarks/rotation_sweep.py``), and a third axial level (to 0.075 mm) 0.1-0.3 points on the inclusions but
-+0.20 there.  Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
++0.20 there.  That finer pass's one Gauss-Newton step weighs the regulariser by the noise the unrefined solve
+left (:attr:`Refinement.fine_alpha` 0.1, :attr:`Refinement.fine_alpha_ncc` 0.04: eq:objf's weight times
+``clip((1 - q) / 0.04, 0.1, 1)``, ``q`` the median element NCC): the same inclusions 8.50 / 6.48 / 11.86 ->
+7.58 / 6.21 / 10.74 %, 8.23 -> 7.57 %, 8.24 -> 7.39 %; a fixed factor (0.25) made the noisier plane-stress
+inclusions of the robustness benchmark up to 0.86 points worse, the factor that follows the noise at most 0.03.
+Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
 bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
@@ -115,7 +120,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "fine_alpha_factor",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -228,6 +233,18 @@ class Refinement:
         ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
     fine_levels : int, optional
         ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
+    fine_alpha : float, optional
+        Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
+        :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
+        is one Gauss-Newton step (:attr:`maxiter`) from the unrefined solution; at the unrefined weight the new
+        rows and columns at a feature's rim stay near the coarse field the step starts from.  None: 1.  With
+        :attr:`fine_alpha_ncc` the smallest factor.
+    fine_alpha_ncc : float, optional
+        The factor :attr:`fine_alpha` follows the noise the unrefined solve leaves: ``clip((1 - q) /
+        fine_alpha_ncc, fine_alpha, 1)`` with ``q`` the median element NCC of that solve (the quality map).
+        ``1 - q`` is about the noise-to-signal power left in an element, and eq:objf's best weight grows with the
+        noise variance: a noisy or decorrelated pair keeps the unrefined weight.  None: ``fine_alpha`` as given.
+        Both 2D passes only, as :attr:`fine` (volumes do not read them).
     """
 
     passes: int = 2
@@ -257,6 +274,8 @@ class Refinement:
     fine_threshold: float = 1.0
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
+    fine_alpha: float | None = None
+    fine_alpha_ncc: float | None = None
     interior: bool = False
 
     def __post_init__(self):
@@ -264,6 +283,9 @@ class Refinement:
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
+        _number(self, "fine_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
+        _number(self, "fine_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
+                what="a number in (0, 1)")
         _number(self, "strong", 1, optional=True)
         _number(self, "feature", 0)
         _number(self, "relax", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
@@ -344,10 +366,12 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
-#: down to 0.4 mm (:attr:`Refinement.fine`).  Measured: module docstring and README ("Adaptive refinement").
+#: down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
+#: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`).  Measured: module docstring and README
+#: ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6)
+                             fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -908,14 +932,35 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
+        if finer and opts.fine_alpha is not None:
+            f = fine_alpha_factor(opts, sol, mesh)
+            if f != 1.0:
+                kw["alpha_factor"] = f
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
+                           alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
+
+
+def fine_alpha_factor(opts: Refinement, sol, mesh) -> float:
+    """The factor on eq:objf's weight of a pass that passes the fine gate (:attr:`Refinement.fine_alpha`,
+    :attr:`Refinement.fine_alpha_ncc`): ``sol`` the solve on ``mesh`` before the split."""
+    if opts.fine_alpha is None:
+        return 1.0
+    if opts.fine_alpha_ncc is None:
+        return float(opts.fine_alpha)
+    from .repair import element_ncc
+
+    q = element_ncc(sol.data, sol.u, mesh.t.shape[1])
+    q = q[np.isfinite(q)]
+    if not q.size:
+        return 1.0
+    return float(np.clip((1.0 - np.median(q)) / opts.fine_alpha_ncc, opts.fine_alpha, 1.0))
 
 
 def _settled(sol, base_gn, nit: int):
@@ -956,10 +1001,10 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     base = sol.mesh
     quad = sol.data.quad
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
         def factory():
             r = reg_factory()
-            r.alpha = refined_alpha(r.alpha, base, mesh)
+            r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             if normal_traction is not None and hasattr(r, "normal_traction"):

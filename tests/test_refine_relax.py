@@ -128,8 +128,8 @@ def _run(opts, f):
     m = _mesh()
     calls = []
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None):
-        calls.append((mesh, shear_traction, normal_traction))
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
+        calls.append((mesh, shear_traction, normal_traction, alpha_factor))
         return _fake_solve(mesh, _nodal(mesh, f))
 
     sol, rec = refine_passes(_fake_solve(m, _nodal(m, f)), opts, solve_on, SPACING, ORIGIN)
@@ -143,7 +143,7 @@ def test_the_relaxation_starts_on_the_second_pass_where_the_jump_persists():
     calls, rec = _run(Refinement(min_added=0.0, max_growth=None, **ALL), f)
     assert len(calls) == 2
     assert calls[0][1] is None and calls[0][2] is None              # one solve: nothing persistent yet
-    mesh, st, nt = calls[1]
+    mesh, st, nt, _ = calls[1]
     assert callable(st) and nt is None                               # the tangential part only
     reg = make_regularizer("momentum-stress", alpha=1.0)
     reg.setup(mesh)
@@ -195,7 +195,7 @@ def test_without_persistence_the_one_pass_relaxes_on_its_own_solve():
     calls, _ = _run(Refinement(**one), f)
     assert len(calls) == 1 and calls[0][1] is None
     # the default's run length (20 mm) is longer than this 12 mm mesh's faces: nothing relaxed
-    calls, _ = _run(dataclasses.replace(DEEP_REFINEMENT, relax_max_fraction=1.0), f)
+    calls, _ = _run(dataclasses.replace(DEEP_REFINEMENT, relax_max_fraction=1.0, fine_alpha=None), f)
     assert len(calls) == 1 and calls[0][1] is None
 
 
@@ -284,7 +284,7 @@ def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
     m = _mesh()
     xs, ys, _ = tensor_structure(m)
     f = _corner(xs[4], ys[4])
-    plain = dataclasses.replace(DEEP_REFINEMENT, relax=None, fine=None)
+    plain = dataclasses.replace(DEEP_REFINEMENT, relax=None, fine=None, fine_alpha=None)
     calls0, rec0 = _run(plain, f)
     top = rec0.passes[0]["top"]
     assert top > DEEP_REFINEMENT.fine
@@ -292,7 +292,7 @@ def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
     calls, rec = _run(dataclasses.replace(plain, fine=1.01 * top), f)          # gate just above: as without
     assert np.array_equal(calls[0][0].p, coarse.p) and not rec.passes[0]["fine"]
     assert "finer" not in rec.summary()
-    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None), f)
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None), f)
     fine = calls[0][0]
     assert rec.passes[0]["fine"] and "finer marking" in rec.summary()
     assert fine.t.shape[1] > coarse.t.shape[1]                                # 156 against 117 elements
@@ -303,12 +303,38 @@ def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
     # the weight of eq:objf stays the unrefined mesh's on the finer mesh too
     assert effective_alpha(refined_alpha(0.3, m, fine), fine) == pytest.approx(effective_alpha(0.3, m), rel=1e-12)
     # fine_levels 1: each marked row / column split once
-    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_levels=1), f)
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_levels=1, fine_alpha=None), f)
     assert calls[0][0].t.shape[1] < fine.t.shape[1]
 
 
+@pytest.mark.parametrize("q, factor", [(0.99, 0.25), (0.995, 0.125), (0.9999, 0.1), (0.9, None)])
+def test_a_finer_pass_weighs_the_regulariser_by_the_noise_left(monkeypatch, q, factor):
+    # Refinement.fine_alpha / fine_alpha_ncc (DEEP_REFINEMENT: 0.1, 0.04): the factor on eq:objf's weight of the
+    # finer pass's solve is clip((1 - median element NCC) / 0.04, 0.1, 1); 1 (no factor passed) on a noisy pair
+    # and on a pass under the fine gate
+    from femreg import repair
+    from femreg.refine import DEEP_REFINEMENT
+
+    assert (DEEP_REFINEMENT.fine_alpha, DEEP_REFINEMENT.fine_alpha_ncc) == (0.1, 0.04)
+    monkeypatch.setattr(repair, "element_ncc", lambda data, u, n, groups=None: np.r_[np.full(n, q), np.nan])
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    f = _corner(xs[4], ys[4])
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None), f)
+    assert rec.passes[0]["fine"] and len(calls) == 1
+    assert calls[0][3] == pytest.approx(1.0 if factor is None else factor, rel=1e-9)
+    assert rec.passes[0]["alpha_factor"] == pytest.approx(1.0 if factor is None else factor, rel=1e-9)
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha_ncc=None), f)   # a fixed factor
+    assert calls[0][3] == pytest.approx(0.1)
+    top = rec.passes[0]["top"]
+    calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine=1.01 * top), f)     # under the gate
+    assert not rec.passes[0]["fine"] and calls[0][3] == 1.0
+
+
 @pytest.mark.parametrize("kw", [dict(fine=0.5), dict(fine=float("nan")), dict(fine_threshold=-1.0),
-                                dict(fine_min_size=(0.1, -0.3)), dict(fine_levels=0), dict(fine_levels=True)])
+                                dict(fine_min_size=(0.1, -0.3)), dict(fine_levels=0), dict(fine_levels=True),
+                                dict(fine_alpha=0.0), dict(fine_alpha=1.5), dict(fine_alpha=float("nan")),
+                                dict(fine_alpha_ncc=1.0), dict(fine_alpha_ncc=0.0)])
 def test_bad_fine_options_are_refused(kw):
     with pytest.raises(InputError):
         Refinement(**kw)
