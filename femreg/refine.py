@@ -210,6 +210,14 @@ class Refinement:
         against its own cut (the robust z-score ``threshold`` or ``relative`` times the field's RMS, the larger).
         A slab on a plane of symmetry, where the field is extremal, shows no face jump ``[[A]] n`` but the largest
         second difference.  False on the plane (2D marking rejects it).
+    plane : float, optional
+        Volumes only (:func:`femreg.volume_refine.refine_volume_passes`): the elevational coordinate (mm) of a
+        plane of interest (the imaging plane, where the in-plane strain is read).  The elevational slabs are then
+        not marked by the field; the slab holding the plane is cut to a one-voxel-cell slab around the voxel plane
+        nearest it (:func:`femreg.volume_refine.plane_breaks`), and the element budget goes to the x- and y-slabs.
+        The marking's elevational scores are large on every z-slab of a smooth 3D field, while the in-plane
+        strain at the plane is set by the slab across it, which the face jumps do not mark (symmetry).  None: the
+        elevational axis is marked as the others.
     settle : bool
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
@@ -258,8 +266,13 @@ class Refinement:
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
     interior: bool = False
+    plane: float | None = None
 
     def __post_init__(self):
+        if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
+                                           and not isinstance(self.plane, bool) and np.isfinite(self.plane)):
+            raise InputError(f"refinement plane must be None or a finite elevational coordinate (mm), "
+                             f"got {self.plane!r}")
         if self.fine is not None and not (np.isfinite(self.fine) and self.fine >= 1):
             raise InputError(f"refinement fine must be None or a number >= 1, got {self.fine!r}")
         if not (np.isfinite(self.fine_threshold) and self.fine_threshold >= 0):
@@ -380,6 +393,8 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, Refinement):
         if spec.interior:
             raise InputError("refinement interior=True marks volumes only (femreg.volume_refine)")
+        if spec.plane is not None:
+            raise InputError("refinement plane= is the elevational plane of volumes only (femreg.volume_refine)")
         return spec if spec.passes > 0 else None
     if isinstance(spec, str):
         if spec == DEFAULT:

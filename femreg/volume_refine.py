@@ -22,6 +22,11 @@ used on volumes.
 tensor's face jump ``|[[A]]|`` and the second difference of the element-centre A[u] along the slab's axis
 (:func:`interior_variation`).  A slab on a plane of symmetry of the field (the elevational slab across an
 inclusion's central plane) shows no jump ``[[A]] n`` at its faces, the largest second difference.
+
+``Refinement(plane=z0)`` leaves the elevational slabs to the plane of interest z = z0 mm: none is marked by the
+field, the slab across the plane is cut to the one voxel cell around it (:func:`plane_breaks`), and the budget
+goes to the x- and y-slabs.  :data:`PLANE_REFINEMENT` is that with the interior marking and 6x the elements (the
+paper's 3D phantom's imaging plane: docs/study_report.md).
 """
 from __future__ import annotations
 
@@ -30,6 +35,8 @@ import time
 
 import numpy as np
 
+from skfem import MeshHex1
+
 from .errors import InputError
 from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
                      slab_scores, slabs_within_budget)
@@ -37,7 +44,7 @@ from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
 
-__all__ = ["VOLUME_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps", "interior_variation",
+__all__ = ["VOLUME_REFINEMENT", "PLANE_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "plane_breaks", "as_volume_refinement", "face_jumps", "interior_variation",
            "mark_volume",
            "refine_hex_mesh", "transfer_3d", "refine_volume_passes"]
 
@@ -48,6 +55,12 @@ JUMP_LAMBDA_BAR_3D = LAMBDA_BAR_3D
 #: one solve), at most 3x the unrefined mesh's elements; the smallest slabs 0.5 mm axially, 0.6 mm laterally,
 #: 1 mm elevationally (and never below 2 voxels).
 VOLUME_REFINEMENT = Refinement(passes=1, levels=2, max_growth=3.0, min_size=(0.5, 0.6, 1.0), relax=None)
+
+#: The in-plane strain of the imaging plane z = 0: :data:`VOLUME_REFINEMENT` with the interior marking
+#: (:attr:`femreg.refine.Refinement.interior`), the elevational slab across z = 0 cut to one voxel cell and the
+#: other z-slabs left (:attr:`femreg.refine.Refinement.plane`), at most 6x the unrefined mesh's elements.
+#: Measured on the paper's 3D phantom: docs/study_report.md (volume study), CHANGELOG.md.
+PLANE_REFINEMENT = dataclasses.replace(VOLUME_REFINEMENT, interior=True, max_growth=6.0, plane=0.0)
 
 
 def as_volume_refinement(spec) -> Refinement | None:
@@ -149,10 +162,24 @@ def mark_volume(mesh, u, opts: Refinement):
     return marked_slabs(sc, 1.0, opts)
 
 
+def plane_breaks(breaks, plane: float, spacing: float, origin: float) -> np.ndarray:
+    """Elevational breaks (mm, on voxel-cell boundaries ``origin + (k - 1/2) spacing``) with the slab holding
+    ``plane`` (mm) cut at the two boundaries of the voxel cell around the voxel plane nearest it: a slab one
+    voxel cell thick centred on that voxel plane (the recovered strain there then comes from element centres
+    ``spacing`` apart across it).  Breaks already there are kept; ``breaks`` unchanged when both are.  A plane
+    outside ``breaks``' span is an :class:`~femreg.errors.InputError`."""
+    b = np.asarray(breaks, float)
+    if not (b[0] <= plane <= b[-1]):
+        raise InputError(f"refinement plane {plane} mm is outside the mesh's elevational span {b[0]:.3f}..{b[-1]:.3f} mm")
+    k = np.rint((plane - origin) / spacing)
+    new = [c for c in (origin + (k - 0.5) * spacing, origin + (k + 0.5) * spacing)
+           if b[0] + 0.5 * spacing < c < b[-1] - 0.5 * spacing and np.min(np.abs(b - c)) > 0.5 * spacing]
+    return np.sort(np.concatenate([b, new])) if new else b
+
+
 def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1):
     """The tensor hexahedral mesh with the ``marked`` slabs (per axis) of ``mesh`` halved ``levels`` times, breaks
     on voxel-cell boundaries.  Returns ``(mesh, splits per axis)``; the same mesh object when nothing was split."""
-    from skfem import MeshHex1
 
     axes, _ = _need_hex_tensor(mesh)
     for a in range(3):
@@ -196,9 +223,18 @@ def refine_volume_passes(sol, opts: Refinement, solve_on, spacing, origin):
         mesh = sol.mesh
         axes, _ = tensor_axes_3d(mesh)
         marked, score = mark_volume(mesh, sol.u, opts)
-        if np.isfinite(budget):
-            marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels, budget)
+        zb = axes[2]
+        if opts.plane is not None:          # the elevational axis goes to the plane of interest alone
+            marked[2] = np.zeros_like(marked[2])
+            zb = plane_breaks(axes[2], float(opts.plane), float(spacing[2]), float(origin[2]))
+        if np.isfinite(budget):             # the budget of the x- and y-slabs after the plane's cut
+            marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels,
+                                         budget * (axes[2].size - 1) / (zb.size - 1))
         new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels)
+        if zb.size > axes[2].size:
+            new_axes = tensor_axes_3d(new)[0]
+            new = MeshHex1.init_tensor(new_axes[0], new_axes[1], zb)
+            counts = [counts[0], counts[1], int(zb.size - axes[2].size)]
         if new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1]):
             break
         sol = solve_on(new, transfer_3d(sol.u, mesh, new))
