@@ -44,9 +44,9 @@ from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
 
-__all__ = ["VOLUME_REFINEMENT", "PLANE_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "plane_breaks", "as_volume_refinement", "face_jumps", "interior_variation",
-           "mark_volume",
-           "refine_hex_mesh", "transfer_3d", "refine_volume_passes"]
+__all__ = ["VOLUME_REFINEMENT", "PLANE_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps",
+           "interior_variation", "mark_volume", "plane_breaks", "even_axes", "refine_hex_mesh", "transfer_3d",
+           "refine_volume_passes"]
 
 #: lambda_bar of the 3D "jump" indicator's A[u]: the momentum regularisers' value on volumes.
 JUMP_LAMBDA_BAR_3D = LAMBDA_BAR_3D
@@ -177,7 +177,33 @@ def plane_breaks(breaks, plane: float, spacing: float, origin: float) -> np.ndar
     return np.sort(np.concatenate([b, new])) if new else b
 
 
-def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1):
+def even_axes(breaks, marked, spacing, origin, min_size, levels):
+    """``(new_breaks, splits)`` per axis, as :func:`femreg.refine.refined_axes` takes its arguments: each marked
+    slab cut into the most pieces of (nearly) equal voxel-cell counts, none below ``min_size[a]`` mm or 2 voxel
+    cells, at most ``2 ** levels`` pieces (an integer array ``marked``: ``2 ** marked[i]``).  Where halving
+    leaves an odd count of cells it stops above the smallest size (a 6-cell slab of 0.3 mm cells halves into two
+    0.9 mm slabs, which halving cannot cut again); this cuts it into three 0.6 mm slabs.  Breaks on voxel-cell
+    boundaries, so the refined mesh is nested in the coarse one."""
+    out, counts = [], []
+    for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
+        b = np.asarray(b, float)
+        m = np.asarray(m)
+        lev = m.astype(np.int64) * int(levels) if m.dtype == bool else np.asarray(m, np.int64)
+        k = np.rint((b - o) / h + 0.5).astype(np.int64)              # voxel-cell boundary indices
+        min_cells = max(2, int(np.ceil(ms / h * (1 - 1e-9))))
+        new = []
+        for i in np.flatnonzero(lev > 0):
+            n = int(k[i + 1] - k[i])
+            pieces = min(2 ** int(lev[i]), n // min_cells)
+            if pieces >= 2:
+                new.extend(k[i] + np.rint(np.arange(1, pieces) * n / pieces).astype(np.int64))
+        kk = np.union1d(k, new)
+        out.append(o + (kk - 0.5) * h if new else b)
+        counts.append(int(kk.size - k.size))
+    return out, counts
+
+
+def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1, split=None):
     """The tensor hexahedral mesh with the ``marked`` slabs (per axis) of ``mesh`` halved ``levels`` times, breaks
     on voxel-cell boundaries.  Returns ``(mesh, splits per axis)``; the same mesh object when nothing was split."""
 
@@ -185,7 +211,7 @@ def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), lev
     for a in range(3):
         if np.shape(marked[a]) != (axes[a].size - 1,):
             raise InputError(f"marked slabs along axis {a} must be ({axes[a].size - 1},), got {np.shape(marked[a])}")
-    new, counts = refined_axes(axes, marked, spacing, origin, min_size, levels)
+    new, counts = (split or refined_axes)(axes, marked, spacing, origin, min_size, levels)
     if not any(counts):
         return mesh, counts
     return MeshHex1.init_tensor(*new), counts
@@ -218,19 +244,24 @@ def refine_volume_passes(sol, opts: Refinement, solve_on, spacing, origin):
     ms = _min_size_3d(opts)
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit, record = sol.gn, int(sol.gn.nit), []
+    split = even_axes if opts.even else None
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
         axes, _ = tensor_axes_3d(mesh)
         marked, score = mark_volume(mesh, sol.u, opts)
+        if opts.strong is not None and opts.levels > 1:
+            # the full depth only where the slab stands out strongly; slabs just over the cut halved once
+            marked = [np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
+                      for m, s in zip(marked, score)]
         zb = axes[2]
         if opts.plane is not None:          # the elevational axis goes to the plane of interest alone
             marked[2] = np.zeros_like(marked[2])
             zb = plane_breaks(axes[2], float(opts.plane), float(spacing[2]), float(origin[2]))
         if np.isfinite(budget):             # the budget of the x- and y-slabs after the plane's cut
             marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels,
-                                         budget * (axes[2].size - 1) / (zb.size - 1))
-        new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels)
+                                         budget * (axes[2].size - 1) / (zb.size - 1), split=split)
+        new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels, split=split)
         if zb.size > axes[2].size:
             new_axes = tensor_axes_3d(new)[0]
             new = MeshHex1.init_tensor(new_axes[0], new_axes[1], zb)

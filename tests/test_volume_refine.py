@@ -228,3 +228,24 @@ def test_plane_refinement_leaves_the_other_z_slabs_and_keeps_the_budget():
     # 1.7x the elements (190): with the plane's 9 z-slabs, one x-slab fits (5 x 4 x 9 = 180), two would not (216)
     tight, _ = run(dataclasses.replace(opts, plane=0.0, max_growth=1.7))
     assert tight.mesh.t.shape[1] <= 1.7 * m.t.shape[1] and n_axis(tight, 0) == 5 and n_axis(tight, 2) == 9
+
+
+def test_even_split_reaches_the_smallest_size_where_halving_stops():
+    from femreg.volume_refine import even_axes
+
+    # 0.3 mm voxel cells from 0 mm: a 6-cell and a 7-cell slab, 0.6 mm (2 cells) the smallest size
+    breaks, marked = [np.array([0.0, 1.8, 3.9])], [np.array([True, True])]
+    args = ((0.3,), (0.15,), (0.6,), 2)
+    halved, n_h = refined_axes(breaks, marked, *args)
+    even, n_e = even_axes(breaks, marked, *args)
+    assert np.allclose(halved[0], [0, 0.9, 1.8, 2.4, 3.0, 3.9]) and n_h == [3]      # 0.9 mm halves stay
+    assert np.allclose(even[0], [0, 0.6, 1.2, 1.8, 2.4, 3.3, 3.9]) and n_e == [4]
+    # one level: two pieces at most; unmarked slabs and slabs below two smallest sizes untouched
+    one, _ = even_axes(breaks, [np.array([1, 0])], *args)
+    assert np.allclose(one[0], [0, 0.9, 1.8, 3.9])
+    same, n0 = even_axes([np.array([0.0, 0.9])], [np.array([True])], *args)
+    assert np.allclose(same[0], [0, 0.9]) and n0 == [0]
+    from femreg.refine import as_refinement
+
+    with pytest.raises(InputError):
+        as_refinement(Refinement(even=True))
