@@ -249,3 +249,38 @@ def test_even_split_reaches_the_smallest_size_where_halving_stops():
 
     with pytest.raises(InputError):
         as_refinement(Refinement(even=True))
+
+
+def test_strong_halves_the_slabs_just_over_the_cut_once_on_volumes():
+    # an axial strain step at x = 0 marks the two 0.4 mm x-slabs beside it (8 voxel cells of 0.05 mm each)
+    import dataclasses
+
+    from femreg.volume_refine import refine_volume_passes
+
+    @dataclasses.dataclass
+    class GN:
+        nit: int = 1
+        status: int = 0
+        message: str = ""
+
+    @dataclasses.dataclass
+    class Sol:
+        mesh: object
+        u: np.ndarray
+        gn: GN = dataclasses.field(default_factory=GN)
+
+    m = _mesh(np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5))
+    x = m.p[0]
+    u = np.zeros(3 * x.size)
+    u[0::3] = np.where(x < 0, -0.02 * x, -0.005 * x)
+    spacing, origin = (0.05, 0.05, 0.05), (-0.775, -0.775, -0.775)
+    opts = dataclasses.replace(VOLUME_REFINEMENT, max_growth=None, min_size=(0.1, 0.1, 0.1))
+
+    def n_x(o):
+        sol, _ = refine_volume_passes(Sol(m, u), o, lambda mesh, u0: Sol(mesh, u0), spacing, origin)
+        return np.unique(sol.mesh.p[0]).size - 1, np.unique(sol.mesh.p[1]).size - 1
+
+    # twice (0.1 mm) without strong; once (0.2 mm) where the score is under strong; y- and z-slabs left alone
+    assert n_x(opts) == (10, 4)
+    assert n_x(dataclasses.replace(opts, strong=1e6)) == (6, 4)
+    assert n_x(dataclasses.replace(opts, strong=1.0)) == (10, 4)
