@@ -166,6 +166,11 @@ def test_plane_option_is_validated_and_volumes_only():
     with pytest.raises(InputError):
         as_refinement(Refinement(plane=0.0))
     assert as_volume_refinement(Refinement(plane=0.0, relax=None)).plane == 0.0
+    from femreg.volume_refine import PLANE_REFINEMENT
+
+    assert as_volume_refinement(PLANE_REFINEMENT) is PLANE_REFINEMENT
+    with pytest.raises(InputError):
+        as_refinement(PLANE_REFINEMENT)
 
 
 def test_plane_breaks_cut_one_voxel_cell_around_the_plane():
