@@ -172,11 +172,13 @@ def plane_breaks(breaks, plane: float, spacing: float, origin: float) -> np.ndar
     """Elevational breaks (mm, on voxel-cell boundaries ``origin + (k - 1/2) spacing``) with the slab holding
     ``plane`` (mm) cut at the two boundaries of the voxel cell around the voxel plane nearest it: a slab one
     voxel cell thick centred on that voxel plane (the recovered strain there then comes from element centres
-    ``spacing`` apart across it).  Breaks already there are kept; ``breaks`` unchanged when both are.  A plane
+    ``spacing`` apart across it; the one slab allowed below ``min_size`` and two voxel cells).  Breaks already
+    there are kept; ``breaks`` unchanged when both are.  A plane
     outside ``breaks``' span is an :class:`~femreg.errors.InputError`."""
     b = np.asarray(breaks, float)
     if not (b[0] <= plane <= b[-1]):
-        raise InputError(f"refinement plane {plane} mm is outside the mesh's elevational span {b[0]:.3f}..{b[-1]:.3f} mm")
+        raise InputError(f"refinement plane {plane} mm is outside the mesh's elevational span "
+                         f"{b[0]:.3f}..{b[-1]:.3f} mm")
     k = np.rint((plane - origin) / spacing)
     new = [c for c in (origin + (k - 0.5) * spacing, origin + (k + 0.5) * spacing)
            if b[0] + 0.5 * spacing < c < b[-1] - 0.5 * spacing and np.min(np.abs(b - c)) > 0.5 * spacing]
@@ -186,10 +188,10 @@ def plane_breaks(breaks, plane: float, spacing: float, origin: float) -> np.ndar
 def even_axes(breaks, marked, spacing, origin, min_size, levels):
     """``(new_breaks, splits)`` per axis, as :func:`femreg.refine.refined_axes` takes its arguments: each marked
     slab cut into the most pieces of (nearly) equal voxel-cell counts, none below ``min_size[a]`` mm or 2 voxel
-    cells, at most ``2 ** levels`` pieces (an integer array ``marked``: ``2 ** marked[i]``).  Where halving
-    leaves an odd count of cells it stops above the smallest size (a 6-cell slab of 0.3 mm cells halves into two
-    0.9 mm slabs, which halving cannot cut again); this cuts it into three 0.6 mm slabs.  Breaks on voxel-cell
-    boundaries, so the refined mesh is nested in the coarse one."""
+    cells, at most ``2 ** levels`` pieces (an integer array ``marked``: ``2 ** marked[i]``).  Halving stops
+    above the smallest size where a half has an odd count of cells (a 6-cell slab of 0.3 mm cells: two 0.9 mm
+    halves, which cannot be halved into 2-cell pieces); this cuts it into three 0.6 mm slabs.  Breaks on
+    voxel-cell boundaries, so the refined mesh is nested in the coarse one."""
     out, counts = [], []
     for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
         b = np.asarray(b, float)
