@@ -13,6 +13,7 @@ peak-hopping check (:func:`femreg.repair.envelope_lag_ncc_3d`) flags, per probe 
     python benchmarks/bench_volume.py --shape 400 50 30     # a smaller volume
     python benchmarks/bench_volume.py --refine auto         # with adaptive refinement (femreg.volume_refine)
     python benchmarks/bench_volume.py --refine interior=1,max_growth=8   # VOLUME_REFINEMENT with these fields
+    python benchmarks/bench_volume.py --element-size 2 2.4 2 --refine plane   # PLANE_REFINEMENT at the central plane
 """
 from __future__ import annotations
 
@@ -67,6 +68,12 @@ def _register_child(path, G, options):
 
     z = np.load(path)
     ref, mov, spacing = z["ref"], z["mov"], tuple(z["spacing"])
+    if options.get("refine") == "plane":
+        # femreg.volume_refine.PLANE_REFINEMENT at the voxel plane nearest the volume's elevational centre
+        import dataclasses
+
+        from femreg.volume_refine import PLANE_REFINEMENT
+        options["refine"] = dataclasses.replace(PLANE_REFINEMENT, plane=0.5 * (ref.shape[2] - 1) * spacing[2])
     if isinstance(options.get("refine"), str) and "=" in options["refine"]:
         import dataclasses
 
@@ -98,10 +105,12 @@ def main(argv=None):
     ap.add_argument("--shape", type=int, nargs=3, default=[800, 100, 60])
     ap.add_argument("--density", type=float, default=40.0, help="scatterers per mm^3")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--element-size", type=float, default=None)
+    ap.add_argument("--element-size", type=float, nargs="+", default=None, help="mm: one size, or axial, "
+                    "lateral, elevational")
     ap.add_argument("--regularizer", default="momentum-stress")
-    ap.add_argument("--refine", default=None, help="refine= of the registration: 'auto', a number of passes or "
-                    "'key=value,...' (femreg.volume_refine.VOLUME_REFINEMENT with those numeric fields)")
+    ap.add_argument("--refine", default=None, help="refine= of the registration: 'auto', a number of passes, "
+                    "'key=value,...' (femreg.volume_refine.VOLUME_REFINEMENT with those numeric fields) or 'plane' "
+                    "(femreg.volume_refine.PLANE_REFINEMENT at the central plane)")
     ap.add_argument("--cache", default=os.environ.get("FEMREG_CACHE", tempfile.gettempdir()))
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -110,7 +119,7 @@ def main(argv=None):
         return
     opts = {"regularizer": a.regularizer}
     if a.element_size is not None:
-        opts["element_size"] = a.element_size
+        opts["element_size"] = a.element_size[0] if len(a.element_size) == 1 else a.element_size
     if a.refine is not None:
         opts["refine"] = int(a.refine) if a.refine.isdigit() else a.refine
     shape = tuple(a.shape)

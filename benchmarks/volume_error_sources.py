@@ -10,12 +10,13 @@ strain recovered the same way) and for the registered field minus that floor (wh
 
 Run: ``python benchmarks/volume_error_sources.py [--element-size H ...] [--refine auto|off|key=value,...]
 [--alpha-3d A] [--linear-solver S] [--axes-npz AXES.npz [--alpha-factor F]] [--save U.npz | --load U.npz]
-[--floor-only] [--strain recovered|element|linear] [--quadrature Q.npz]``.  ``--floor-only`` scores the truth on
+[--floor-only] [--strain recovered|element|linear] [--quadrature Q.npz] [--refined-weight F]``.  ``--floor-only`` scores the truth on
 the mesh the options give (no images; seconds); ``--axes-npz`` registers on (or scores) the tensor mesh of the
 node axes ``ax``, ``ay``, ``az`` in that file, with the default 2 mm mesh's weight of eq:objf kept
 (:func:`femreg.scaling.refined_alpha`); ``--save`` keeps the registered nodal field and its mesh axes, ``--load``
 scores a saved one; ``--strain linear`` recovers the nodal strains by linear interpolation of the element-centre
-ones along each axis instead of femreg's plain average.
+ones along each axis instead of femreg's plain average; ``--refined-weight F`` multiplies the weight of eq:objf
+of the refinement's solves by F (femreg keeps the unrefined mesh's, :func:`femreg.scaling.refined_alpha`).
 """
 from __future__ import annotations
 
@@ -120,7 +121,18 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--alpha-factor", type=float, default=1.0, help="with --axes-npz: times the kept 2 mm weight")
     ap.add_argument("--quadrature", type=Path, help="cache of the 2D scoring points (written when missing)")
+    ap.add_argument("--refined-weight", type=float, default=1.0,
+                    help="times the weight of eq:objf of the refined solves (femreg keeps the unrefined mesh's)")
     args = ap.parse_args(argv)
+    if args.refined_weight != 1.0:
+        # the refinement stage asks femreg.scaling.refined_alpha for the refined mesh's alpha (femreg.volume)
+        import femreg.scaling as scaling
+
+        kept = scaling.refined_alpha
+
+        def refined_alpha(alpha, base, mesh, _kept=kept, _f=args.refined_weight):
+            return _kept(alpha, base, mesh) * (_f if mesh is not base else 1.0)
+        scaling.refined_alpha = refined_alpha
 
     from forward.volume import paper_volume_sequence
     from femreg.voxels import roi_mesh_3d

@@ -329,24 +329,32 @@ def write_section(path: Path, runs: list, into: Path | None = None, notes=()) ->
         into.write_text(text)
 
 
+def _refine_value(v):
+    try:
+        return int(v) if v.isdigit() else float(v)
+    except ValueError:
+        return v            # a name ("axes=lateral")
+
+
 def _refine_arg(text):
     """``--refine``: 'off' -> None, an integer -> that many passes, 'key=value,...' -> femreg's volume refinement
-    with those options changed (numbers or names), else the text ('auto')."""
+    (:data:`femreg.volume_refine.VOLUME_REFINEMENT`) with those options changed (numbers or names), 'plane' ->
+    :data:`femreg.volume_refine.PLANE_REFINEMENT` ('plane,key=value,...': it with those changed), else the text
+    ('auto')."""
+    import dataclasses
+
+    from femreg.volume_refine import PLANE_REFINEMENT, VOLUME_REFINEMENT
+
     if text == "off":
         return None
+    base = VOLUME_REFINEMENT
+    if text == "plane" or text.startswith("plane,"):
+        base, text = PLANE_REFINEMENT, text[6:]
+        if not text:
+            return base
     if "=" in text:
-        import dataclasses
-
-        from femreg.volume_refine import VOLUME_REFINEMENT
-
-        def value(v):
-            try:
-                return int(v) if v.isdigit() else float(v)
-            except ValueError:
-                return v            # a name ("axes=lateral")
-
         kw = dict(kv.split("=", 1) for kv in text.split(","))
-        return dataclasses.replace(VOLUME_REFINEMENT, **{k: value(v) for k, v in kw.items()})
+        return dataclasses.replace(base, **{k: _refine_value(v) for k, v in kw.items()})
     return int(text) if text.isdigit() else text
 
 

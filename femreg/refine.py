@@ -215,6 +215,19 @@ class Refinement:
         against its own cut (the robust z-score ``threshold`` or ``relative`` times the field's RMS, the larger).
         A slab on a plane of symmetry, where the field is extremal, shows no face jump ``[[A]] n`` but the largest
         second difference.  False on the plane (2D marking rejects it).
+    plane : float, optional
+        Volumes only (:func:`femreg.volume_refine.refine_volume_passes`): the elevational coordinate (mm) of a
+        plane of interest (the imaging plane, where the in-plane strain is read).  The elevational slabs are then
+        not marked by the field; the slab holding the plane is cut to a one-voxel-cell slab around the voxel plane
+        nearest it (:func:`femreg.volume_refine.plane_breaks`), and the element budget goes to the x- and y-slabs.
+        The marking's elevational scores are large on every z-slab of a smooth 3D field, while the in-plane
+        strain at the plane is set by the slab across it, which the face jumps do not mark (symmetry).  None: the
+        elevational axis is marked as the others.
+    even : bool
+        Volumes only (:func:`femreg.volume_refine.even_axes`): a marked slab is cut into the most pieces of equal
+        voxel counts no smaller than ``min_size`` (at most ``2 ** levels``), not halved ``levels`` times: a slab
+        of an even count of cells that halving leaves above ``min_size`` (six 0.3 mm cells: two 0.9 mm halves)
+        reaches it (three 0.6 mm slabs).  False: halving (:func:`refined_axes`).
     settle : bool
         When the first pass marks rows / columns but splits nothing for ``feature``, still take its solve
         (``maxiter`` steps) on the unrefined mesh (nothing marked: nothing changes): the unrefined solve stops on its strain tolerance, and that step is what a refinement
@@ -277,8 +290,14 @@ class Refinement:
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     interior: bool = False
+    plane: float | None = None
+    even: bool = False
 
     def __post_init__(self):
+        if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
+                                           and not isinstance(self.plane, bool) and np.isfinite(self.plane)):
+            raise InputError(f"refinement plane must be None or a finite elevational coordinate (mm), "
+                             f"got {self.plane!r}")
         _number(self, "fine", 1, optional=True)
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
@@ -411,6 +430,10 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, Refinement):
         if spec.interior:
             raise InputError("refinement interior=True marks volumes only (femreg.volume_refine)")
+        if spec.plane is not None:
+            raise InputError("refinement plane= is the elevational plane of volumes only (femreg.volume_refine)")
+        if spec.even:
+            raise InputError("refinement even=True splits volumes only (femreg.volume_refine)")
         return spec if spec.passes > 0 else None
     if isinstance(spec, str):
         if spec == DEFAULT:
@@ -634,25 +657,28 @@ def _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget):
                                      budget))
 
 
-def slabs_within_budget(breaks, marked, scores, spacing, origin, min_size, levels, budget) -> list:
-    """The marked slabs (per axis, boolean over each axis' slabs), strongest ``scores`` first, as many as keep the
-    refined tensor mesh within ``budget`` elements.  Any dimension.
+def slabs_within_budget(breaks, marked, scores, spacing, origin, min_size, levels, budget, split=None) -> list:
+    """The marked slabs (per axis, boolean over each axis' slabs, or each slab's number of halvings as
+    :func:`refined_axes` takes them), strongest ``scores`` first, as many as keep the refined tensor mesh within
+    ``budget`` elements.  Any dimension.
 
     The splits of a marked slab stay inside it (:func:`refined_axes` halves only the intervals whose middle lies
     in a marked one), so each slab adds a fixed number of slabs along its axis: counted once with all of them
-    marked, then the greedy choice is arithmetic."""
-    new, _ = refined_axes(breaks, marked, spacing, origin, min_size, levels)
+    marked, then the greedy choice is arithmetic.  ``split``: the splitting rule, a function of the arguments of
+    :func:`refined_axes` returning ``(new_breaks, splits)`` with its splits inside the marked slabs (None:
+    :func:`refined_axes`)."""
+    new, _ = (split or refined_axes)(breaks, marked, spacing, origin, min_size, levels)
     # new breaks strictly inside each old slab (breaks are voxel edges: compare with half a voxel margin)
     add = [np.diff(np.searchsorted(nb, b - 0.5 * h)) - 1 for nb, b, h in zip(new, breaks, spacing)]
     cand = sorted([(float(scores[a][i]), a, int(i)) for a in range(len(breaks)) for i in np.flatnonzero(marked[a])],
                   reverse=True)
-    out = [np.zeros(np.shape(m), bool) for m in marked]
+    out = [np.zeros(np.shape(m), np.asarray(m).dtype) for m in marked]     # bool, or levels per slab (int)
     n = [np.size(b) - 1 for b in breaks]
     for _, a, i in cand:
         trial = list(n)
         trial[a] += int(add[a][i])
         if np.prod(trial, dtype=float) <= budget:
-            out[a][i] = True
+            out[a][i] = marked[a][i]
             n = trial
     return out
 

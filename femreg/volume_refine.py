@@ -22,6 +22,12 @@ used on volumes.
 tensor's face jump ``|[[A]]|`` and the second difference of the element-centre A[u] along the slab's axis
 (:func:`interior_variation`).  A slab on a plane of symmetry of the field (the elevational slab across an
 inclusion's central plane) shows no jump ``[[A]] n`` at its faces, the largest second difference.
+
+``Refinement(plane=z0)`` leaves the elevational slabs to the plane of interest z = z0 mm: none is marked by the
+field, the slab across the plane is cut to the one voxel cell around it (:func:`plane_breaks`), and the budget
+goes to the x- and y-slabs.  ``Refinement(even=True)`` cuts a marked slab into equal pieces down to ``min_size``
+(:func:`even_axes`) where halving stops above it.  :data:`PLANE_REFINEMENT` combines them with the interior
+marking for the in-plane strain of the imaging plane z = 0 (the paper's 3D phantom: docs/study_report.md).
 """
 from __future__ import annotations
 
@@ -30,6 +36,8 @@ import time
 
 import numpy as np
 
+from skfem import MeshHex1
+
 from .errors import InputError
 from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
                      slab_scores, slabs_within_budget)
@@ -37,9 +45,9 @@ from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
 
-__all__ = ["VOLUME_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps", "interior_variation",
-           "mark_volume",
-           "refine_hex_mesh", "transfer_3d", "refine_volume_passes"]
+__all__ = ["VOLUME_REFINEMENT", "PLANE_REFINEMENT", "JUMP_LAMBDA_BAR_3D", "as_volume_refinement", "face_jumps",
+           "interior_variation", "mark_volume", "plane_breaks", "even_axes", "refine_hex_mesh", "transfer_3d",
+           "refine_volume_passes"]
 
 #: lambda_bar of the 3D "jump" indicator's A[u]: the momentum regularisers' value on volumes.
 JUMP_LAMBDA_BAR_3D = LAMBDA_BAR_3D
@@ -48,6 +56,18 @@ JUMP_LAMBDA_BAR_3D = LAMBDA_BAR_3D
 #: one solve), at most 3x the unrefined mesh's elements; the smallest slabs 0.5 mm axially, 0.6 mm laterally,
 #: 1 mm elevationally (and never below 2 voxels).
 VOLUME_REFINEMENT = Refinement(passes=1, levels=2, max_growth=3.0, min_size=(0.5, 0.6, 1.0), relax=None)
+
+#: The in-plane strain of the imaging plane z = 0: :data:`VOLUME_REFINEMENT` with the interior marking
+#: (:attr:`femreg.refine.Refinement.interior`), the elevational slab across z = 0 cut to one voxel cell and the
+#: other z-slabs left (:attr:`femreg.refine.Refinement.plane`), marked slabs cut into equal pieces down to
+#: 0.5 x 0.6 mm (:attr:`femreg.refine.Refinement.even`; those under 3.5x the cut once,
+#: :attr:`femreg.refine.Refinement.strong`), at most 8x the unrefined mesh's elements.  Measured on the paper's
+#: 3D phantom with ``element_size=(2, 2.4, 2)`` (lateral slabs of 8 voxel cells of 0.3 mm, which cut into four
+#: 0.6 mm ones; femreg's default 2.1 / 1.8 mm slabs leave 0.9 mm pieces): in-plane total strain error on the
+#: central plane 5.99 % (floor 4.41 %), 39072 hexahedra, 6.0 GB (on the default 2 mm base mesh 6.09 %);
+#: docs/study_report.md (volume study).
+PLANE_REFINEMENT = dataclasses.replace(VOLUME_REFINEMENT, interior=True, even=True, strong=3.5, max_growth=8.0,
+                                       plane=0.0)
 
 
 def as_volume_refinement(spec) -> Refinement | None:
@@ -149,16 +169,58 @@ def mark_volume(mesh, u, opts: Refinement):
     return marked_slabs(sc, 1.0, opts)
 
 
-def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1):
+def plane_breaks(breaks, plane: float, spacing: float, origin: float) -> np.ndarray:
+    """Elevational breaks (mm, on voxel-cell boundaries ``origin + (k - 1/2) spacing``) with the slab holding
+    ``plane`` (mm) cut at the two boundaries of the voxel cell around the voxel plane nearest it: a slab one
+    voxel cell thick centred on that voxel plane (the recovered strain there then comes from element centres
+    ``spacing`` apart across it; the one slab allowed below ``min_size`` and two voxel cells).  Breaks already
+    there are kept; ``breaks`` unchanged when both are.  A plane
+    outside ``breaks``' span is an :class:`~femreg.errors.InputError`."""
+    b = np.asarray(breaks, float)
+    if not (b[0] <= plane <= b[-1]):
+        raise InputError(f"refinement plane {plane} mm is outside the mesh's elevational span "
+                         f"{b[0]:.3f}..{b[-1]:.3f} mm")
+    k = np.rint((plane - origin) / spacing)
+    new = [c for c in (origin + (k - 0.5) * spacing, origin + (k + 0.5) * spacing)
+           if b[0] + 0.5 * spacing < c < b[-1] - 0.5 * spacing and np.min(np.abs(b - c)) > 0.5 * spacing]
+    return np.sort(np.concatenate([b, new])) if new else b
+
+
+def even_axes(breaks, marked, spacing, origin, min_size, levels):
+    """``(new_breaks, splits)`` per axis, as :func:`femreg.refine.refined_axes` takes its arguments: each marked
+    slab cut into the most pieces of (nearly) equal voxel-cell counts, none below ``min_size[a]`` mm or 2 voxel
+    cells, at most ``2 ** levels`` pieces (an integer array ``marked``: ``2 ** marked[i]``).  Halving stops
+    above the smallest size where a half has an odd count of cells (a 6-cell slab of 0.3 mm cells: two 0.9 mm
+    halves, which cannot be halved into 2-cell pieces); this cuts it into three 0.6 mm slabs.  Breaks on
+    voxel-cell boundaries, so the refined mesh is nested in the coarse one."""
+    out, counts = [], []
+    for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
+        b = np.asarray(b, float)
+        m = np.asarray(m)
+        lev = m.astype(np.int64) * int(levels) if m.dtype == bool else np.asarray(m, np.int64)
+        k = np.rint((b - o) / h + 0.5).astype(np.int64)              # voxel-cell boundary indices
+        min_cells = max(2, int(np.ceil(ms / h * (1 - 1e-9))))
+        new = []
+        for i in np.flatnonzero(lev > 0):
+            n = int(k[i + 1] - k[i])
+            pieces = min(2 ** int(lev[i]), n // min_cells)
+            if pieces >= 2:
+                new.extend(k[i] + np.rint(np.arange(1, pieces) * n / pieces).astype(np.int64))
+        kk = np.union1d(k, new)
+        out.append(o + (kk - 0.5) * h if new else b)
+        counts.append(int(kk.size - k.size))
+    return out, counts
+
+
+def refine_hex_mesh(mesh, marked, spacing, origin, min_size=(0.5, 0.6, 1.0), levels: int = 1, split=None):
     """The tensor hexahedral mesh with the ``marked`` slabs (per axis) of ``mesh`` halved ``levels`` times, breaks
     on voxel-cell boundaries.  Returns ``(mesh, splits per axis)``; the same mesh object when nothing was split."""
-    from skfem import MeshHex1
 
     axes, _ = _need_hex_tensor(mesh)
     for a in range(3):
         if np.shape(marked[a]) != (axes[a].size - 1,):
             raise InputError(f"marked slabs along axis {a} must be ({axes[a].size - 1},), got {np.shape(marked[a])}")
-    new, counts = refined_axes(axes, marked, spacing, origin, min_size, levels)
+    new, counts = (split or refined_axes)(axes, marked, spacing, origin, min_size, levels)
     if not any(counts):
         return mesh, counts
     return MeshHex1.init_tensor(*new), counts
@@ -191,14 +253,28 @@ def refine_volume_passes(sol, opts: Refinement, solve_on, spacing, origin):
     ms = _min_size_3d(opts)
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
     base_gn, nit, record = sol.gn, int(sol.gn.nit), []
+    split = even_axes if opts.even else None
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
         axes, _ = tensor_axes_3d(mesh)
         marked, score = mark_volume(mesh, sol.u, opts)
-        if np.isfinite(budget):
-            marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels, budget)
-        new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels)
+        if opts.strong is not None and opts.levels > 1:
+            # the full depth only where the slab stands out strongly; slabs just over the cut halved once
+            marked = [np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
+                      for m, s in zip(marked, score)]
+        zb = axes[2]
+        if opts.plane is not None:          # the elevational axis goes to the plane of interest alone
+            marked[2] = np.zeros_like(marked[2])
+            zb = plane_breaks(axes[2], float(opts.plane), float(spacing[2]), float(origin[2]))
+        if np.isfinite(budget):             # the budget of the x- and y-slabs after the plane's cut
+            marked = slabs_within_budget(axes, marked, score, spacing, origin, ms, opts.levels,
+                                         budget * (axes[2].size - 1) / (zb.size - 1), split=split)
+        new, counts = refine_hex_mesh(mesh, marked, spacing, origin, ms, opts.levels, split=split)
+        if zb.size > axes[2].size:
+            new_axes = tensor_axes_3d(new)[0]
+            new = MeshHex1.init_tensor(new_axes[0], new_axes[1], zb)
+            counts = [counts[0], counts[1], int(zb.size - axes[2].size)]
         if new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1]):
             break
         sol = solve_on(new, transfer_3d(sol.u, mesh, new))

@@ -155,3 +155,137 @@ def test_interior_marking_is_volumes_only():
 
     with pytest.raises(InputError):
         as_refinement(Refinement(interior=True))
+
+
+def test_plane_option_is_validated_and_volumes_only():
+    from femreg.refine import as_refinement
+
+    for bad in (np.nan, np.inf, True, "0"):
+        with pytest.raises(InputError):
+            Refinement(plane=bad)
+    with pytest.raises(InputError):
+        as_refinement(Refinement(plane=0.0))
+    assert as_volume_refinement(Refinement(plane=0.0, relax=None)).plane == 0.0
+    from femreg.volume_refine import PLANE_REFINEMENT
+
+    assert as_volume_refinement(PLANE_REFINEMENT) is PLANE_REFINEMENT
+    with pytest.raises(InputError):
+        as_refinement(PLANE_REFINEMENT)
+
+
+def test_plane_breaks_cut_one_voxel_cell_around_the_plane():
+    from femreg.volume_refine import plane_breaks
+
+    zb = np.linspace(-8.75, 8.75, 8)                # voxel planes every 0.5 mm from -8.5 mm: cells end at +-0.25
+    new = plane_breaks(zb, 0.0, 0.5, -8.5)
+    assert np.allclose(np.setdiff1d(new, zb), [-0.25, 0.25]) and new.size == zb.size + 2
+    assert np.array_equal(plane_breaks(new, 0.1, 0.5, -8.5), new)          # already cut: unchanged
+    # the nearest voxel plane to 1.9 mm is 2.0 mm: its cell 1.75..2.25 inside the slab 1.25..3.75
+    assert np.allclose(np.setdiff1d(plane_breaks(zb, 1.9, 0.5, -8.5), zb), [1.75, 2.25])
+    with pytest.raises(InputError):
+        plane_breaks(zb, 9.5, 0.5, -8.5)
+
+
+def test_plane_refinement_leaves_the_other_z_slabs_and_keeps_the_budget():
+    # the field of test_interior_marking_catches_a_slab_without_face_jump plus an axial strain step at x = 0
+    # (e_xx 0.2 % higher for x < 0): the interior marking splits the two x-slabs beside the step and several
+    # z-slabs; with plane=0 only the voxel cell around z = 0 is cut out of the z-slabs, and the element budget
+    # counts that cut
+    import dataclasses
+
+    from femreg.volume_refine import refine_volume_passes
+
+    @dataclasses.dataclass
+    class GN:
+        nit: int = 1
+        status: int = 0
+        message: str = ""
+
+    @dataclasses.dataclass
+    class Sol:
+        mesh: object
+        u: np.ndarray
+        gn: GN = dataclasses.field(default_factory=GN)
+
+    zs = np.linspace(-8.75, 8.75, 8)
+    m = _mesh(np.linspace(-0.5, 0.5, 5), np.linspace(-0.5, 0.5, 5), zs)           # 4 x 4 x 7 = 112 elements
+    x, y, z = m.p
+    f = 0.002 * np.exp(-(z / 3.0) ** 2)
+    u = np.empty(3 * x.size)
+    u[0::3], u[1::3] = x * (f - 0.01) + np.where(x < 0, -0.002 * x, 0.0), y * (0.005 - f)
+    u[2::3] = (x ** 2 - y ** 2) * z / 9.0 * f + 0.005 * z
+    spacing, origin = (0.05, 0.05, 0.5), (-0.475, -0.475, -8.5)
+    opts = dataclasses.replace(VOLUME_REFINEMENT, interior=True, max_growth=None, min_size=(0.1, 0.1, 1.0))
+
+    def run(o):
+        return refine_volume_passes(Sol(m, u), o, lambda mesh, u0: Sol(mesh, u0), spacing, origin)
+
+    def n_axis(sol, a):
+        return np.unique(sol.mesh.p[a]).size - 1
+
+    free, _ = run(opts)
+    # measured: x 4 -> 6 slabs (each slab beside the step halved once: 0.25 mm = 5 voxel cells -> 2 + 3),
+    # z 7 -> 10 slabs
+    assert n_axis(free, 0) == 6 and n_axis(free, 2) > 9
+    sol, rec = run(dataclasses.replace(opts, plane=0.0))
+    assert np.allclose(np.setdiff1d(np.unique(sol.mesh.p[2]), zs), [-0.25, 0.25])
+    assert rec.passes[0]["slices"] == 2 and n_axis(sol, 0) == 6
+    # 1.7x the elements (190): with the plane's 9 z-slabs, one x-slab fits (5 x 4 x 9 = 180), two would not (216)
+    tight, _ = run(dataclasses.replace(opts, plane=0.0, max_growth=1.7))
+    assert tight.mesh.t.shape[1] <= 1.7 * m.t.shape[1] and n_axis(tight, 0) == 5 and n_axis(tight, 2) == 9
+
+
+def test_even_split_reaches_the_smallest_size_where_halving_stops():
+    from femreg.volume_refine import even_axes
+
+    # 0.3 mm voxel cells from 0 mm: a 6-cell and a 7-cell slab, 0.6 mm (2 cells) the smallest size
+    breaks, marked = [np.array([0.0, 1.8, 3.9])], [np.array([True, True])]
+    args = ((0.3,), (0.15,), (0.6,), 2)
+    halved, n_h = refined_axes(breaks, marked, *args)
+    even, n_e = even_axes(breaks, marked, *args)
+    assert np.allclose(halved[0], [0, 0.9, 1.8, 2.4, 3.0, 3.9]) and n_h == [3]      # 0.9 mm halves stay
+    assert np.allclose(even[0], [0, 0.6, 1.2, 1.8, 2.4, 3.3, 3.9]) and n_e == [4]
+    # one level: two pieces at most; unmarked slabs and slabs below two smallest sizes untouched
+    one, _ = even_axes(breaks, [np.array([1, 0])], *args)
+    assert np.allclose(one[0], [0, 0.9, 1.8, 3.9])
+    same, n0 = even_axes([np.array([0.0, 0.9])], [np.array([True])], *args)
+    assert np.allclose(same[0], [0, 0.9]) and n0 == [0]
+    from femreg.refine import as_refinement
+
+    with pytest.raises(InputError):
+        as_refinement(Refinement(even=True))
+
+
+def test_strong_halves_the_slabs_just_over_the_cut_once_on_volumes():
+    # an axial strain step at x = 0 marks the two 0.4 mm x-slabs beside it (8 voxel cells of 0.05 mm each)
+    import dataclasses
+
+    from femreg.volume_refine import refine_volume_passes
+
+    @dataclasses.dataclass
+    class GN:
+        nit: int = 1
+        status: int = 0
+        message: str = ""
+
+    @dataclasses.dataclass
+    class Sol:
+        mesh: object
+        u: np.ndarray
+        gn: GN = dataclasses.field(default_factory=GN)
+
+    m = _mesh(np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5))
+    x = m.p[0]
+    u = np.zeros(3 * x.size)
+    u[0::3] = np.where(x < 0, -0.02 * x, -0.005 * x)
+    spacing, origin = (0.05, 0.05, 0.05), (-0.775, -0.775, -0.775)
+    opts = dataclasses.replace(VOLUME_REFINEMENT, max_growth=None, min_size=(0.1, 0.1, 0.1))
+
+    def n_x(o):
+        sol, _ = refine_volume_passes(Sol(m, u), o, lambda mesh, u0: Sol(mesh, u0), spacing, origin)
+        return np.unique(sol.mesh.p[0]).size - 1, np.unique(sol.mesh.p[1]).size - 1
+
+    # twice (0.1 mm) without strong; once (0.2 mm) where the score is under strong; y- and z-slabs left alone
+    assert n_x(opts) == (10, 4)
+    assert n_x(dataclasses.replace(opts, strong=1e6)) == (6, 4)
+    assert n_x(dataclasses.replace(opts, strong=1.0)) == (10, 4)

@@ -89,3 +89,15 @@ def test_report_carries_the_generated_section():
     assert frag.startswith(mod.BEGIN) and frag.rstrip().endswith(mod.END)
     assert frag.strip() in (REPO / "docs" / "study_report.md").read_text()
     assert _volume_section()[0] == mod.BEGIN
+
+
+def test_refine_argument_names_the_presets():
+    from femreg.volume_refine import PLANE_REFINEMENT, VOLUME_REFINEMENT
+
+    arg = _study()._refine_arg
+    assert arg("off") is None and arg("auto") == "auto" and arg("2") == 2
+    assert arg("plane") is PLANE_REFINEMENT
+    r = arg("plane,max_growth=6,threshold=3")
+    assert (r.max_growth, r.threshold, r.plane, r.even) == (6, 3, 0.0, True)
+    r = arg("interior=1,max_growth=8")
+    assert r.interior and r.max_growth == 8 and r.plane is None and r.min_size == VOLUME_REFINEMENT.min_size
