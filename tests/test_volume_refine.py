@@ -1,5 +1,7 @@
 """Adaptive refinement of volume registration (femreg.volume_refine): the marking of femreg.refine on the face
 jumps of hexahedra, nested tensor meshes on voxel-cell boundaries, and a refined solve near a strain step."""
+import dataclasses
+
 import numpy as np
 import pytest
 from skfem import MeshHex1
@@ -14,6 +16,22 @@ from femreg.volume_refine import (VOLUME_REFINEMENT, as_volume_refinement, face_
 SPACING = (0.02, 0.2, 0.25)
 WEIGHTS = np.array([1, 1, 1, 2, 2, 2.0])
 X0, S_ABOVE, S_BELOW = 3.5, -0.02, -0.005       # the step: axial strain S_ABOVE for x < X0, S_BELOW beyond
+
+
+@dataclasses.dataclass
+class GN:
+    """A stand-in for a Gauss-Newton report: one step, converged."""
+    nit: int = 1
+    status: int = 0
+    message: str = ""
+
+
+@dataclasses.dataclass
+class Sol:
+    """A stand-in for a solve on a volume mesh: the mesh, its nodal displacement, the report."""
+    mesh: object
+    u: np.ndarray
+    gn: GN = dataclasses.field(default_factory=GN)
 
 
 def _step(X):
@@ -191,21 +209,7 @@ def test_plane_refinement_leaves_the_other_z_slabs_and_keeps_the_budget():
     # (e_xx 0.2 % higher for x < 0): the interior marking splits the two x-slabs beside the step and several
     # z-slabs; with plane=0 only the voxel cell around z = 0 is cut out of the z-slabs, and the element budget
     # counts that cut
-    import dataclasses
-
     from femreg.volume_refine import refine_volume_passes
-
-    @dataclasses.dataclass
-    class GN:
-        nit: int = 1
-        status: int = 0
-        message: str = ""
-
-    @dataclasses.dataclass
-    class Sol:
-        mesh: object
-        u: np.ndarray
-        gn: GN = dataclasses.field(default_factory=GN)
 
     zs = np.linspace(-8.75, 8.75, 8)
     m = _mesh(np.linspace(-0.5, 0.5, 5), np.linspace(-0.5, 0.5, 5), zs)           # 4 x 4 x 7 = 112 elements
@@ -258,21 +262,7 @@ def test_even_split_reaches_the_smallest_size_where_halving_stops():
 
 def test_strong_halves_the_slabs_just_over_the_cut_once_on_volumes():
     # an axial strain step at x = 0 marks the two 0.4 mm x-slabs beside it (8 voxel cells of 0.05 mm each)
-    import dataclasses
-
     from femreg.volume_refine import refine_volume_passes
-
-    @dataclasses.dataclass
-    class GN:
-        nit: int = 1
-        status: int = 0
-        message: str = ""
-
-    @dataclasses.dataclass
-    class Sol:
-        mesh: object
-        u: np.ndarray
-        gn: GN = dataclasses.field(default_factory=GN)
 
     m = _mesh(np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5), np.linspace(-0.8, 0.8, 5))
     x = m.p[0]
