@@ -120,7 +120,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "fine_alpha_factor",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fine_alpha_factor",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -324,6 +324,15 @@ class Refinement:
         _lengths(self, "min_size")
         _number(self, "relative", 0)
         _choice(self, "axes", ("both", "axial", "lateral"))
+
+
+def strong_levels(marked, scores, strong, levels):
+    """Per-axis split levels: ``levels`` where the score (largest jump over the cut) is at least ``strong``, 1
+    where the axis' slab / row / column is marked just over the cut, 0 where unmarked.  ``marked`` returned as
+    given when ``strong`` is None or ``levels`` is 1 (every marked one split ``levels`` times)."""
+    if strong is None or levels <= 1:
+        return marked
+    return [np.where(np.asarray(s) >= strong, levels, 1) * np.asarray(m, bool) for m, s in zip(marked, scores)]
 
 
 def _fail(name, what, value):
@@ -926,10 +935,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
                                             dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
-        if opts.strong is not None and levels > 1:
-            # the full depth only where the jump stands out strongly; rows / columns just over the cut once
-            rows, cols = (np.where(np.asarray(s) >= opts.strong, levels, 1) * np.asarray(m, bool)
-                          for m, s in zip((rows, cols), score))
+        rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])

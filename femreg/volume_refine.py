@@ -40,7 +40,7 @@ from skfem import MeshHex1
 
 from .errors import InputError
 from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
-                     slab_scores, slabs_within_budget)
+                     slab_scores, slabs_within_budget, strong_levels)
 from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
@@ -259,10 +259,7 @@ def refine_volume_passes(sol, opts: Refinement, solve_on, spacing, origin):
         mesh = sol.mesh
         axes, _ = tensor_axes_3d(mesh)
         marked, score = mark_volume(mesh, sol.u, opts)
-        if opts.strong is not None and opts.levels > 1:
-            # the full depth only where the slab stands out strongly; slabs just over the cut halved once
-            marked = [np.where(np.asarray(s) >= opts.strong, opts.levels, 1) * np.asarray(m, bool)
-                      for m, s in zip(marked, score)]
+        marked = list(strong_levels(marked, score, opts.strong, opts.levels))
         zb = axes[2]
         if opts.plane is not None:          # the elevational axis goes to the plane of interest alone
             marked[2] = np.zeros_like(marked[2])
