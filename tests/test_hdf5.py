@@ -95,10 +95,13 @@ def test_spacing_hint_from_header_fields(pair, tmp_path):
     for name in ("scan.npz", "scan.mat"):
         with pytest.raises(InputError, match=f"--spacing {dx:.4g} {dy:.4g}"):
             read_frames(tmp_path / name)
-    # units from the names, else from the magnitude; nothing without both a sampling frequency and a pitch
+    # units from the names, else from the magnitude; with one of the two the other is named as missing
     assert "--spacing 0.02 0.3" in spacing_hint({"fs_MHz": 38.5, "pitch_mm": 0.3})
     assert "--spacing 0.025 0.2" in spacing_hint({"SamplingFrequency": 30.8e6, "Pitch": 2e-4, "c": 1540})
-    assert spacing_hint({"fs": 40e6}) == "" and spacing_hint({"pitch": 0.3, "name": "x"}) == ""
+    only_fs = spacing_hint({"fs": 40e6, "c": 1540.0})
+    assert "--spacing 0.01925 DY" in only_fs and "line pitch" in only_fs, only_fs
+    assert "--spacing DX 0.3 " in spacing_hint({"pitch": 0.3, "name": "x"})
+    assert spacing_hint({"fc": 5.0, "name": "x"}) == ""
     assert "--iq-frequency 5.2 " in iq_frequency_hint({"demodulation_frequency": 5.2e6})
     assert iq_frequency_hint({"fc": 5.2, "fs": 20.0}) == ""              # a centre frequency is not the demodulation's
 

@@ -239,8 +239,8 @@ def _key(name: str) -> tuple:
 
 
 def spacing_hint(fields: dict) -> str:
-    """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold no sampling frequency
-    and pitch.  ``dx = c / (2 fs)`` (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's
+    """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold neither a sampling
+    frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)`` (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's
     suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
     below 0.005 in metres).  A hint only: readers never apply it."""
     found = {}
@@ -255,16 +255,25 @@ def spacing_hint(fields: dict) -> str:
         for kind, names in (("fs", _FS_NAMES), ("pitch", _PITCH_NAMES), ("c", _C_NAMES)):
             if base in names and kind not in found:
                 found[kind] = (name, v, unit)
-    if "fs" not in found or "pitch" not in found:
+    if "fs" not in found and "pitch" not in found:
         return ""
-    (fs_name, fs, fu), (p_name, p, pu) = found["fs"], found["pitch"]
-    fs_hz = fs * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(fu, 1.0 if fs > 1e4 else 1e6)
-    p_mm = p * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(pu, 1e3 if p < 0.005 else 1.0)
     c_name, c, _ = found.get("c", ("", 1540.0, ""))
-    dx = c * 1e3 / (2.0 * fs_hz)
-    return (f"its fields suggest --spacing {dx:.4g} {p_mm:.4g} (axial c / (2 fs) with {fs_name} = {fs:g} read as "
-            f"{fs_hz / 1e6:g} MHz and c = {c:g} m/s{'' if c_name else ' assumed'}; lateral {p_name} = {p:g} read as "
-            f"{p_mm:g} mm): check them against the scanner's settings")
+    if "fs" in found:
+        fs_name, fs, fu = found["fs"]
+        fs_hz = fs * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(fu, 1.0 if fs > 1e4 else 1e6)
+        dx = f"{c * 1e3 / (2.0 * fs_hz):.4g}"
+        why_x = (f"axial c / (2 fs) with {fs_name} = {fs:g} read as {fs_hz / 1e6:g} MHz and c = {c:g} m/s"
+                 f"{'' if c_name else ' assumed'}")
+    else:
+        dx, why_x = "DX", "DX, the axial sample step c / (2 fs) in mm, is not in the file (no sampling frequency)"
+    if "pitch" in found:
+        p_name, p, pu = found["pitch"]
+        p_mm = p * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(pu, 1e3 if p < 0.005 else 1.0)
+        dy, why_y = f"{p_mm:.4g}", f"lateral {p_name} = {p:g} read as {p_mm:g} mm"
+    else:
+        dy, why_y = "DY", ("DY, the lateral line pitch in mm, is not in the file (for a linear array usually the "
+                           "probe's element pitch)")
+    return f"its fields suggest --spacing {dx} {dy} ({why_x}; {why_y}): check them against the scanner's settings"
 
 
 def _positive(value):
