@@ -31,7 +31,7 @@ missing is reported as such).
 The ``held_`` cases were drawn before the relaxation's constants were chosen and were not used for them.
 
 Run: ``python benchmarks/shear_bands.py`` (``--cases L7`` selects cases whose name contains a word; ``--methods``
-likewise; ``--out`` default ``out/shear_bands``: ``results.csv``, ``results.md``).
+likewise, a method's full name selects that method alone; ``--out`` default ``out/shear_bands``: ``results.csv``, ``results.md``).
 """
 from __future__ import annotations
 
@@ -214,7 +214,8 @@ def tables(rows) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="", help="comma-separated words; run cases whose name contains one")
-    ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one")
+    ap.add_argument("--methods", default="", help="comma-separated words; run methods whose name contains one "
+                                                   "(a method's full name: that method only)")
     ap.add_argument("--out", default="out/shear_bands")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -222,7 +223,7 @@ def main(argv=None):
     words = [w for w in a.cases.split(",") if w]
     cases = [c for c in CASES if not words or any(w in c.name for w in words)]
     mw = [w for w in a.methods.split(",") if w]
-    methods = [m for m in METHODS if not mw or any(w in m for w in mw)]
+    methods = [m for m in METHODS if not mw or any(w == m or (w not in METHODS and w in m) for w in mw)]
     if not cases or not methods:
         print("no case or method selected", file=sys.stderr)
         return 2

@@ -258,6 +258,10 @@ class Refinement:
         ``1 - q`` is about the noise-to-signal power left in an element, and eq:objf's best weight grows with the
         noise variance: a noisy or decorrelated pair keeps the unrefined weight.  None: ``fine_alpha`` as given.
         Both 2D passes only, as :attr:`fine` (volumes do not read them).
+    fine_alpha_relaxed : bool
+        True: the edges of the relaxed cells (:attr:`relax`) keep the unrefined weight when :attr:`fine_alpha`
+        lowers it elsewhere (their per-edge traction weights divided by the factor).  False: the factor on every
+        edge.
     """
 
     passes: int = 2
@@ -289,6 +293,7 @@ class Refinement:
     fine_levels: int | None = None
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
+    fine_alpha_relaxed: bool = False
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -965,9 +970,26 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
         if finer and opts.fine_alpha is not None:
+            xs_m, ys_m, _ = _need_tensor(mesh)
             f = fine_alpha_factor(opts, sol, mesh)
             if f != 1.0:
                 kw["alpha_factor"] = f
+                if opts.fine_alpha_relaxed == "unsplit":
+                    un = ~(np.asarray(rows, bool)[:, None] | np.asarray(cols, bool)[None, :])
+                    ii, jj = np.nonzero(un)
+                    if ii.size:
+                        rect = np.column_stack([xs_m[ii], xs_m[ii + 1], ys_m[jj], ys_m[jj + 1]])
+                        keep = slip_weights(rect, 1.0 / f, new)
+                        st = keep if st is None else (lambda j, a=st, b=keep: a(j) * b(j))
+                        nt = kw.get("normal_traction")
+                        kw["normal_traction"] = keep if nt is None else (lambda j, a=nt, b=keep: a(j) * b(j))
+                elif opts.fine_alpha_relaxed and len(relaxed):
+                    # the relaxed cells keep the unrefined weight: both traction parts there divided by f
+                    keep = slip_weights(relaxed, 1.0 / f, new)
+                    st = keep if st is None else (lambda j, a=st, b=keep: a(j) * b(j))
+                    if opts.fine_alpha_relaxed != "tangential":
+                        nt = kw.get("normal_traction")
+                        kw["normal_traction"] = keep if nt is None else (lambda j, a=nt, b=keep: a(j) * b(j))
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
