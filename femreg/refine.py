@@ -120,7 +120,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fine_alpha_factor",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -258,10 +258,10 @@ class Refinement:
         ``1 - q`` is about the noise-to-signal power left in an element, and eq:objf's best weight grows with the
         noise variance: a noisy or decorrelated pair keeps the unrefined weight.  None: ``fine_alpha`` as given.
         Both 2D passes only, as :attr:`fine` (volumes do not read them).
-    fine_alpha_relaxed : bool
-        True: the edges of the relaxed cells (:attr:`relax`) keep the unrefined weight when :attr:`fine_alpha`
-        lowers it elsewhere (their per-edge traction weights divided by the factor).  False: the factor on every
-        edge.
+    fine_fill : int
+        On a pass that passes the ``fine`` gate, a run of at most this many unmarked rows (columns) between two
+        marked ones is split once too: the core of a 1-1.5 mm shear band that the unrefined solve spreads over a
+        plateau of coarse rows, whose faces stand out and whose inner edges do not.  0: no such split.
     """
 
     passes: int = 2
@@ -293,7 +293,7 @@ class Refinement:
     fine_levels: int | None = None
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
-    fine_alpha_relaxed: bool = False
+    fine_fill: int = 0
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -307,6 +307,7 @@ class Refinement:
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
+        _integer(self, "fine_fill", 0, None)
         _number(self, "fine_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "fine_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="a number in (0, 1)")
@@ -329,6 +330,18 @@ class Refinement:
         _lengths(self, "min_size")
         _number(self, "relative", 0)
         _choice(self, "axes", ("both", "axial", "lateral"))
+
+
+def fill_gaps(marked, n: int):
+    """``marked`` (per slab: bool, or split levels as :func:`strong_levels` gives them) with each unmarked run of at
+    most ``n`` slabs between two marked ones split once (level 1; True for a boolean ``marked``)."""
+    m = np.asarray(marked)
+    out = m.astype(np.int64)
+    on = np.flatnonzero(out > 0)
+    for a, b in zip(on[:-1], on[1:]):
+        if 1 < b - a <= n + 1:
+            out[a + 1:b] = 1
+    return out.astype(bool) if m.dtype == bool else out
 
 
 def strong_levels(marked, scores, strong, levels):
@@ -404,7 +417,7 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04)
+                             fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -941,6 +954,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
                                             dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
         rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
+        if finer and opts.fine_fill:
+            rows, cols = (fill_gaps(m, opts.fine_fill) for m in (rows, cols))
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
@@ -970,26 +985,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
         if finer and opts.fine_alpha is not None:
-            xs_m, ys_m, _ = _need_tensor(mesh)
             f = fine_alpha_factor(opts, sol, mesh)
             if f != 1.0:
                 kw["alpha_factor"] = f
-                if opts.fine_alpha_relaxed == "unsplit":
-                    un = ~(np.asarray(rows, bool)[:, None] | np.asarray(cols, bool)[None, :])
-                    ii, jj = np.nonzero(un)
-                    if ii.size:
-                        rect = np.column_stack([xs_m[ii], xs_m[ii + 1], ys_m[jj], ys_m[jj + 1]])
-                        keep = slip_weights(rect, 1.0 / f, new)
-                        st = keep if st is None else (lambda j, a=st, b=keep: a(j) * b(j))
-                        nt = kw.get("normal_traction")
-                        kw["normal_traction"] = keep if nt is None else (lambda j, a=nt, b=keep: a(j) * b(j))
-                elif opts.fine_alpha_relaxed and len(relaxed):
-                    # the relaxed cells keep the unrefined weight: both traction parts there divided by f
-                    keep = slip_weights(relaxed, 1.0 / f, new)
-                    st = keep if st is None else (lambda j, a=st, b=keep: a(j) * b(j))
-                    if opts.fine_alpha_relaxed != "tangential":
-                        nt = kw.get("normal_traction")
-                        kw["normal_traction"] = keep if nt is None else (lambda j, a=nt, b=keep: a(j) * b(j))
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,

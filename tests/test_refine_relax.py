@@ -338,3 +338,39 @@ def test_a_finer_pass_weighs_the_regulariser_by_the_noise_left(monkeypatch, q, f
 def test_bad_fine_options_are_refused(kw):
     with pytest.raises(InputError):
         Refinement(**kw)
+
+
+def test_fill_gaps_splits_short_unmarked_runs_between_marked_slabs_once():
+    from femreg.refine import fill_gaps
+
+    lv = np.array([0, 2, 0, 0, 2, 0, 0, 0, 1, 0])
+    assert fill_gaps(lv, 2).tolist() == [0, 2, 1, 1, 2, 0, 0, 0, 1, 0]    # the run of 3 and the ends stay
+    assert fill_gaps(lv, 3).tolist() == [0, 2, 1, 1, 2, 1, 1, 1, 1, 0]
+    assert fill_gaps(lv, 1).tolist() == lv.tolist()
+    b = np.array([False, True, False, True, False])
+    assert fill_gaps(b, 1).tolist() == [False, True, True, True, False]
+
+
+def test_a_finer_pass_splits_a_band_core_between_its_two_faces_once():
+    # Refinement.fine_fill (DEEP_REFINEMENT: 2): a slide spread over four coarse rows (the plateau of the unrefined
+    # solve) makes its two faces stand out and leaves the two rows inside unmarked; they are halved
+    from femreg.refine import DEEP_REFINEMENT
+
+    assert DEEP_REFINEMENT.fine_fill == 2
+    m = _mesh()
+    xs, _, _ = tensor_structure(m)
+    f = _band(xs[2], xs[6])
+    plain = dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None)
+    new = {}
+    for n in (0, 1, 2):
+        calls, rec = _run(dataclasses.replace(plain, fine_fill=n), f)
+        assert rec.passes[0]["fine"] and len(calls) == 1
+        new[n] = tensor_structure(calls[0][0])[0]
+    inside = [np.sum((x > xs[3] + 1e-9) & (x < xs[4] - 1e-9)) + np.sum((x > xs[4] + 1e-9) & (x < xs[5] - 1e-9))
+              for x in (new[0], new[1], new[2])]
+    assert inside == [0, 0, 2]                  # one break in each of the two core rows, with fine_fill=2 only
+    # the faces' rows are split as before (quartered: they stand out over `strong`)
+    face = (xs[1] < new[0]) & (new[0] < xs[3])
+    assert np.sum(face) == np.sum((xs[1] < new[2]) & (new[2] < xs[3])) >= 3
+    with pytest.raises(InputError, match="fine_fill"):
+        Refinement(fine_fill=-1)
