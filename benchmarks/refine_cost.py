@@ -9,7 +9,7 @@ ratio: the gate for refinement as a default is no case worse by more than 0.3 po
 The sequence case is registered pair by pair as a plain pair (frame 0 -> 1) here: ``femreg.track`` does not refine.
 
 Run: ``python benchmarks/refine_cost.py [--cases words] [--repeats 3]
-[--refine auto|slip|norelax|nofine|fine:G|finealpha:F|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
+[--refine auto|slip|norelax|nofine|nofill|fine:G|finealpha:F|deep|lowcut|lowcut:F|twopass|N] [--against norelax] [--seed 0]
 [--out out/refine_cost]`` (``nofine``: the default without its finer marking,
 :attr:`femreg.refine.Refinement.fine`; ``fine:G``: with its gate at G x the cut; ``--against``: also that
 ``refine=``, and the error change of ``--refine`` against it: the gate of a change to the default refinement).
@@ -68,6 +68,10 @@ def _spec(name):
         import dataclasses as dc
 
         return dc.replace(deep_refinement(), fine_alpha=None, fine_alpha_ncc=None)
+    if name == "nofill":            # the default refinement without its core split (Refinement.fine_fill)
+        import dataclasses as dc
+
+        return dc.replace(deep_refinement(), fine_fill=0)
     if name == "nofine":            # the default refinement without its finer marking (Refinement.fine)
         import dataclasses as dc
 
@@ -136,7 +140,7 @@ def main(argv=None):
     ap.add_argument("--cases", default="")
     ap.add_argument("--refine", default="auto",
                     help="auto (= deep), slip, norelax (the two-pass refinement without the local relaxation), "
-                         "nofine (the default without its finer marking), nofinealpha (the default without "
+                         "nofine (the default without its finer marking), nofill (without Refinement.fine_fill), nofinealpha (the default without "
                          "Refinement.fine_alpha), fine:G (its gate at G x the cut), "
                          "twopass (Refinement(): the default before deep), finealpha:F[:N] (the default with "
                          "Refinement.fine_alpha=F[, fine_alpha_ncc=N]), deep (deep_refinement), lowcut "
