@@ -55,6 +55,12 @@ left (:attr:`Refinement.fine_alpha` 0.1, :attr:`Refinement.fine_alpha_ncc` 0.04:
 ``clip((1 - q) / 0.04, 0.1, 1)``, ``q`` the median element NCC): the same inclusions 8.50 / 6.48 / 11.86 ->
 7.58 / 6.21 / 10.74 %, 8.23 -> 7.57 %, 8.24 -> 7.39 %; a fixed factor (0.25) made the noisier plane-stress
 inclusions of the robustness benchmark up to 0.86 points worse, the factor that follows the noise at most 0.03.
+On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
+(:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
+spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
+the rows split beside them undershot at the lowered weight and the band lost 20.6 % of its slide
+(``benchmarks/shear_bands.py``; -9.0 % at the unrefined weight), halved -8.7 %, every inclusion and robustness
+pair unchanged (README "Adaptive refinement").
 Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
@@ -413,8 +419,9 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
 #: down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
-#: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`).  Measured: module docstring and README
-#: ("Adaptive refinement").
+#: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
+#: between two marked ones (at most 2, :attr:`Refinement.fine_fill`: a shear band's core).  Measured: module
+#: docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
                              fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2)
