@@ -185,6 +185,10 @@ class Refinement:
         relaxed part itself must stand out (the whole jump for ``"both"``).
     relax_min_length : float
         mm: a connected run of standing-out edges (sharing a node) shorter than this is left alone (noise).
+    relax_run : {"length", "extent"}
+        How a run is measured against ``relax_min_length``: the summed length of its edges, or its extent (the
+        larger side of its bounding box), which a layer across the image has and a staircase of short edges
+        around small features has not.
     relax_max_fraction : float
         At most this fraction of the mesh's interior edges is relaxed (the edges that stand out most).
     relax_cells : bool
@@ -284,6 +288,7 @@ class Refinement:
     relax: float | None = 0.03
     relax_parts: str = "tangential"
     relax_min_length: float = 4.0
+    relax_run: str = "length"
     relax_max_fraction: float = 0.05
     relax_cells: bool = True
     relax_solve: bool = False
@@ -324,6 +329,7 @@ class Refinement:
         _number(self, "feature_threshold", 0, optional=True)
         _number(self, "relax_threshold", 0, optional=True)
         _number(self, "relax_min_length", 0, what="a length >= 0 (mm)")
+        _choice(self, "relax_run", ("length", "extent"))
         _number(self, "relax_max_fraction", 0, 1, open_low=True, what="a fraction in (0, 1]")
         _integer(self, "maxiter", 1, None, optional=True)
         _number(self, "min_added", 0, 1, open_high=True, what="a fraction in [0, 1)")
@@ -417,14 +423,14 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
-#: of at least 20 mm); where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns
-#: down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
+#: whose extent is at least 20 mm: a layer across the image, not a staircase around speckle-scale features);
+#: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
 #: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
 #: between two marked ones (at most 2, :attr:`Refinement.fine_fill`: a shear band's core).  Measured: module
 #: docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0, strong=3.0, feature=2.2, settle=True,
-                             fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2)
+                             relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
+                             settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -761,8 +767,18 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     inc = coo_matrix((np.ones(2 * m), (np.repeat(np.arange(m), 2), ends.ravel())),
                      shape=(m, xs.size * n_y)).tocsr()
     _, lab = connected_components(inc @ inc.T, directed=False)
-    length = (segs[:, 1] - segs[:, 0]) + (segs[:, 3] - segs[:, 2])
-    run = np.bincount(lab, weights=length)
+    if opts.relax_run == "extent":
+        # the larger side of the run's bounding box: a layer crosses the image, a staircase of short edges
+        # around speckle-scale features (length summed) does not
+        nl = lab.max() + 1
+        lo_x, lo_y = np.full(nl, np.inf), np.full(nl, np.inf)
+        hi_x, hi_y = np.full(nl, -np.inf), np.full(nl, -np.inf)
+        np.minimum.at(lo_x, lab, segs[:, 0]), np.minimum.at(lo_y, lab, segs[:, 2])
+        np.maximum.at(hi_x, lab, segs[:, 1]), np.maximum.at(hi_y, lab, segs[:, 3])
+        run = np.maximum(hi_x - lo_x, hi_y - lo_y)
+    else:
+        length = (segs[:, 1] - segs[:, 0]) + (segs[:, 3] - segs[:, 2])
+        run = np.bincount(lab, weights=length)
     keep = run[lab] >= opts.relax_min_length - 1e-9
     n_int = ja.size + jl.size
     cap = int(np.floor(opts.relax_max_fraction * n_int))

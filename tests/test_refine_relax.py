@@ -73,6 +73,33 @@ def test_the_faces_of_a_sliding_band_are_relaxed_and_nothing_else():
     assert len(capped) == 4
 
 
+def test_a_staircase_run_is_measured_by_its_extent_when_asked():
+    """An inclined slip layer crosses the tensor mesh as a staircase of axial and lateral edges: one run whose
+    summed length (54 mm here) is far above its extent (the larger side of its bounding box, 10 mm)."""
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+
+    def inclined(p):
+        x, y = p[:, 0], p[:, 1]
+        return np.column_stack([-0.01 * x, 0.2 * np.clip(x - 2.0 - 0.6 * y, 0.0, 1.0)])
+
+    u = _nodal(m, inclined)
+    segs = relaxed_edges(m, u, Refinement(relax_cells=False, relax_min_length=0.0, **ALL))
+    assert len(segs) > 0
+    extent = max(segs[:, 1].max() - segs[:, 0].min(), segs[:, 3].max() - segs[:, 2].min())
+    length = np.sum(segs[:, 1] - segs[:, 0] + segs[:, 3] - segs[:, 2])
+    assert length > 2 * extent
+    for L, by_length, by_extent in ((extent - 0.1, len(segs), len(segs)), (extent + 0.1, len(segs), 0)):
+        assert len(relaxed_edges(m, u, Refinement(relax_cells=False, relax_min_length=L, **ALL))) == by_length
+        assert len(relaxed_edges(m, u, Refinement(relax_cells=False, relax_min_length=L, relax_run="extent",
+                                                  **ALL))) == by_extent
+    # a layer across the image: its extent is its length, both rules relax it
+    band = _nodal(m, _band(xs[4], xs[5]))
+    width = ys[-1] - ys[0]
+    for run in ("length", "extent"):
+        assert len(relaxed_edges(m, band, Refinement(relax_min_length=width - 0.1, relax_run=run, **ALL))) > 0
+
+
 def test_a_normal_traction_step_is_relaxed_only_when_its_part_is():
     m = _mesh()
     xs, _, _ = tensor_structure(m)
@@ -234,7 +261,7 @@ def test_relax_options_are_checked_and_the_slip_preset_does_not_relax():
     assert SLIP_REFINEMENT.relax is None
     for kw, word in ((dict(relax=0.0), "relax"), (dict(relax=1.5), "relax"), (dict(relax_parts="shear"),
                      "relax_parts"), (dict(relax_min_length=-1.0), "relax_min_length"),
-                     (dict(relax_max_fraction=0.0), "relax_max_fraction"),
+                     (dict(relax_run="area"), "relax_run"), (dict(relax_max_fraction=0.0), "relax_max_fraction"),
                      (dict(relax_threshold=-1.0), "relax_threshold"), (dict(relax_threshold=np.inf), "relax_threshold"),
                      (dict(feature_threshold=-1.0), "feature_threshold")):
         with pytest.raises(InputError, match=word):
