@@ -424,8 +424,9 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: whose extent is at least 20 mm: a layer across the image, not a staircase around speckle-scale features);
-#: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.4 mm (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve
-#: left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
+#: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.4 mm
+#: (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve left
+#: (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
 #: between two marked ones (at most 2, :attr:`Refinement.fine_fill`: a shear band's core).  Measured: module
 #: docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
