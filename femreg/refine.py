@@ -63,8 +63,9 @@ the rows split beside them undershot at the lowered weight and the band lost 20.
 pair unchanged (README "Adaptive refinement").
 Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
-split (the cut of the marking), on a connected run of at least 20 mm (a layer across the image; an inclusion's or
-bending's runs are shorter), at most 5 % of the interior edges, have the tangential part of the momentum
+split (the cut of the marking), on a connected run whose extent is at least 20 mm (a layer across the image; an
+inclusion's or bending's runs are shorter, and so is a staircase of short edges around speckle-scale features,
+whose summed length may not be), at most 5 % of the interior edges, have the tangential part of the momentum
 regulariser's jump weighed 0.02 on the two unrefined cells beside them (as :data:`SLIP_REFINEMENT`'s slip region).
 
 :class:`Refinement` itself (``refine=N``, ``Refinement()``) is the earlier two-pass refinement: at most twice the

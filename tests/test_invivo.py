@@ -132,21 +132,33 @@ def _row_alternation(res):
 #: R_P_sigma's strategy-auto form (centre dilatation, hourglass 1000) 1.18 / 0.88 and 0.808 / 0.891, and with its
 #: elements of 4 axial pulse cells (0.96 / 0.8 mm, femreg.pyramid.element_rule) 0.59 / 0.55 and 0.813 / 0.897.
 #: Bounds: the measured values + 15 % (alternation) and - 0.01 (NCC); block matching reaches NCC 0.256 / 0.674.
-INVIVO_DEFAULT_BOUNDS = {"seq299": (0.68, 0.803), "seq304": (0.63, 0.887)}
+#: Third: shear stripes (:func:`_shear_stripes`), 0.536 / 0.503 per mm measured with the refinement's relaxation on
+#: layers across the image only, 0.737 / 1.411 when it also relaxed staircases around small features (stacked
+#: e_xy streaks of alternating sign), 0.329 / 0.368 unrefined; bound + 15 %.
+INVIVO_DEFAULT_BOUNDS = {"seq299": (0.68, 0.803, 0.62), "seq304": (0.63, 0.887, 0.58)}
+
+
+def _shear_stripes(res):
+    """Mean |change of the recovered e_xy from one pixel row to the next| / mean |e_xy|, per mm of depth: large
+    when e_xy is cut into thin streaks along depth."""
+    exy = res.on_grid()["exy"]
+    return float(np.nanmean(np.abs(np.diff(exy, axis=0))) / np.nanmean(np.abs(exy)) / res.spacing[0])
 
 
 @needs_data
 @pytest.mark.parametrize("seq", sorted(INVIVO_DEFAULT_BOUNDS))
 def test_default_register_strain_has_no_row_alternation(seq):
     """Default register on a real pair: e_xx must not alternate from one element row to the next (the defect of
-    elements sized from the tissue-inflated envelope cell), and the match must stay as good as measured."""
+    elements sized from the tissue-inflated envelope cell), e_xy must not come in thin streaks, and the match must
+    stay as good as measured."""
     frames, spacing, origin = demo.load_sequence(DATA / seq)
     res = femreg.register(frames[0], frames[5], spacing=spacing, origin=origin)
-    alt_bound, ncc_bound = INVIVO_DEFAULT_BOUNDS[seq]
+    alt_bound, ncc_bound, stripe_bound = INVIVO_DEFAULT_BOUNDS[seq]
     h = np.ptp(res.mesh.p[0, res.mesh.t[:, 0]])
     assert h < 1.1, h                                   # pulse-cell elements (0.96 / 0.8 mm), not 2.13 mm
     assert _row_alternation(res) < alt_bound, _row_alternation(res)
     assert res.ncc_after > ncc_bound, res.ncc_after
+    assert _shear_stripes(res) < stripe_bound, _shear_stripes(res)
 
 
 @needs_data
