@@ -170,7 +170,9 @@ def test_bad_input_and_nothing_usable(loop, tmp_path, capsys):
     p = tmp_path / "still.npy"
     np.save(p, still)
     assert main(["elastogram", str(p), "-o", str(tmp_path / "o2")] + sp) == 1
-    assert "no pair was usable" in capsys.readouterr().err
+    cap = capsys.readouterr()
+    assert "no pair was usable" in cap.err
+    assert "no elastogram" in cap.out and "best elastogram" not in cap.out, cap.out
 
 
 def test_two_worker_processes_screen_identically_and_register_alike(loop, run):

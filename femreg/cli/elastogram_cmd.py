@@ -162,8 +162,10 @@ def run(args) -> int:
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
     which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
     print(f"femreg elastogram: {fr.n_frames} frames, {len(res.pairs)} candidate pairs, {n_sel} registered, "
-          f"{res.n_usable} usable; best elastogram on frame index {res.ref_frame}{which}; "
-          f"{out / 'elastogram.npz'}, "
+          f"{res.n_usable} usable; "
+          + (f"best elastogram on frame index {res.ref_frame}{which}; " if res.n_usable else
+             "no elastogram (empty strain panels); ")
+          + f"{out / 'elastogram.npz'}, "
           f"{cine.name} ({res.timings['total']:.1f} s)")
     if res.n_usable == 0:
         why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
