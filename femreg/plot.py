@@ -125,7 +125,7 @@ def _fit_colorbars(fig, rows, tries=6):
         return
     wspace = 0.02
     for _ in range(tries):
-        fig.canvas.draw()
+        fig.draw_without_rendering()   # the layout and every extent as a draw makes them, no pixels
         r = fig.canvas.get_renderer()
         need = 0.0
         for row in rows:

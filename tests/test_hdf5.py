@@ -3,7 +3,6 @@ or a hint from its header fields, IQ, and the CLI's answers."""
 from __future__ import annotations
 
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -124,15 +123,20 @@ def test_iq_dataset_needs_its_frequency(pair, tmp_path):
     assert fr.metadata["stored_dtype"] == "complex complex64" and c > 0.98, (c, up)
 
 
-def test_cli_info_hint_and_swapped_spacing(pair, tmp_path):
+def test_cli_info_hint_and_swapped_spacing(pair, tmp_path, capsys):
+    from femreg.cli import main
+
+    def cli(argv):   # in this process: `python -m femreg` itself is tests/test_cli_io.py's
+        rc = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(argv, rc, out, err)
+
     rf = _stack(pair)
     dx, dy = pair.spacing
     path = tmp_path / "scan.h5"
     _write(path, np.round(rf.transpose(0, 2, 1) * 1000).astype(np.int16), fs_MHz=1.54 / (2 * dx), pitch_mm=dy)
-    run = [sys.executable, "-m", "femreg"]
-    info = subprocess.run(run + ["info", str(path)], capture_output=True, text=True)
+    info = cli(["info", path])
     assert info.returncode == 1 and f"--spacing {dx:.4g} {dy:.4g}" in info.stdout, info
     assert "format    hdf5" in info.stdout and "transposed" in info.stdout and "int16" in info.stdout
-    bad = subprocess.run(run + ["register", str(path), "--spacing", f"{dy}", f"{dx}", "-o", str(tmp_path / "r.npz")],
-                         capture_output=True, text=True)
+    bad = cli(["register", path, "--spacing", f"{dy}", f"{dx}", "-o", tmp_path / "r.npz"])
     assert bad.returncode == 2 and "swapped" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr

@@ -3,19 +3,26 @@ their modulation frequency, swapped spacings caught by the speckle aspect, regis
 from __future__ import annotations
 
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 from scipy.signal import hilbert, resample_poly
 
 import femreg
+from femreg.cli import main
 from femreg.errors import InputError
 from femreg.io import read_frames
 from femreg.io.iq import remodulate
 from femreg.orientation import OrientationError
 
 C = 1540.0
+
+
+def _cli(argv, capsys):
+    """``femreg ARGV`` in this process: exit code, stdout and stderr as a finished process has them."""
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(argv, rc, out, err)
 
 
 def _iq(rf, dx, f_mhz, q):
@@ -139,22 +146,20 @@ def test_iq_pair_registers_like_its_rf(pair):
     assert err_iq < 2.0 * err_rf + 0.005, (err_iq, err_rf)
 
 
-def test_cli_info_and_register_on_iq(pair, tmp_path):
+def test_cli_info_and_register_on_iq(pair, tmp_path, capsys):
     iq, dx, dy, f = _pair_iq(pair)
     path = tmp_path / "scan.mat"
     _write_mat73(path, iq, (3 * dx, dy))
-    run = [sys.executable, "-m", "femreg"]
-    info = subprocess.run(run + ["info", str(path)], capture_output=True, text=True)
+    info = _cli(["info", path], capsys)          # in this process: `python -m femreg` is tests/test_cli_io.py's
     assert info.returncode == 1 and "--iq-frequency" in info.stdout and "complex int16" in info.stdout, info
     # femreg info names what register would refuse (exit 1): exchanged spacings, another frequency; else ready
     for extra, said, rc in (([f"{dy}", f"{3 * dx}"], "look swapped", 1), ([f"{3 * dx}", f"{dy}"], "ready", 0)):
-        got = subprocess.run(run + ["info", str(path), "--iq-frequency", f"{f}", "--spacing"] + extra,
-                             capture_output=True, text=True)
+        got = _cli(["info", path, "--iq-frequency", f"{f}", "--spacing"] + extra, capsys)
         assert got.returncode == rc and said in got.stdout, got
-    got = subprocess.run(run + ["info", str(path), "--iq-frequency", f"{1.2 * f}"], capture_output=True, text=True)
+    got = _cli(["info", path, "--iq-frequency", f"{1.2 * f}"], capsys)
     assert got.returncode == 1 and "MHz demodulation" in got.stdout, got
-    bad = subprocess.run(run + ["register", str(path), "--iq-frequency", f"{f}", "--spacing", f"{dy}", f"{3 * dx}",
-                                "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
+    bad = _cli(["register", path, "--iq-frequency", f"{f}", "--spacing", f"{dy}", f"{3 * dx}",
+                "-o", tmp_path / "r.npz"], capsys)
     assert bad.returncode == 2 and "look swapped" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
 
 
@@ -169,7 +174,7 @@ def test_directory_of_iq_frames_is_one_stack(pair, tmp_path):
     assert err.value.iq_frames.n_frames == 2        # femreg info describes the whole folder
 
 
-def test_sign_convention_is_checked(pair, tmp_path):
+def test_sign_convention_is_checked(pair, tmp_path, capsys):
     from femreg.io.iq import iq_convention
 
     iq, dx, dy, f = _pair_iq(pair)
@@ -192,9 +197,8 @@ def test_sign_convention_is_checked(pair, tmp_path):
     # two single-frame files: the CLI checks the pair
     for k in range(2):
         np.save(tmp_path / f"c{k}.npy", np.conj(iq[k]))
-    run = subprocess.run([sys.executable, "-m", "femreg", "register", str(tmp_path / "c0.npy"),
-                          str(tmp_path / "c1.npy"), "--spacing", f"{3 * dx}", f"{dy}", "--iq-frequency", f"{f}",
-                          "-o", str(tmp_path / "r.npz")], capture_output=True, text=True)
+    run = _cli(["register", tmp_path / "c0.npy", tmp_path / "c1.npy", "--spacing", f"{3 * dx}", f"{dy}",
+                "--iq-frequency", f"{f}", "-o", tmp_path / "r.npz"], capsys)
     assert run.returncode == 2 and "--iq-conjugate" in run.stderr and "Traceback" not in run.stderr, run.stderr
 
 

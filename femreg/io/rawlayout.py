@@ -66,9 +66,15 @@ def line_correlation(lines) -> float:
     return float(np.median(c))
 
 
-def resolve_layout(arr, path=""):
+#: Marks ``axis`` not given to :func:`resolve_layout` / :func:`byte_order_hint` (None is a result of
+#: :func:`carrier_axis`).
+_UNKNOWN = object()
+
+
+def resolve_layout(arr, path="", *, axis=_UNKNOWN):
     """``arr`` (n, a, b) read in file order as the ``shape`` (a, b) given: returns (frames (n, axial, lateral),
-    note) with note "" when the reading stands.
+    note) with note "" when the reading stands.  ``axis``: :func:`carrier_axis` of ``arr[0]`` when the caller
+    has it already (the test is the costly part of a read).
 
     A carrier along axis 1 means the file holds whole A-lines.  The file order cut into rows of ``a`` samples
     (line-major, the shape as given) and into rows of ``b`` samples (the sizes given the other way round): the
@@ -76,7 +82,9 @@ def resolve_layout(arr, path=""):
     neither does clearly (both shapes named)."""
     n, a, b = arr.shape
     first = arr[0]
-    if carrier_axis(first) != 1:
+    if axis is _UNKNOWN:
+        axis = carrier_axis(first)
+    if axis != 1:
         return arr, ""
     rows_b = line_correlation(first)                  # rows of b samples: the sizes given the other way round
     rows_a = line_correlation(first.reshape(b, a))    # rows of a samples: line-major with the shape as given
@@ -96,9 +104,10 @@ def resolve_layout(arr, path=""):
     return np.ascontiguousarray(arr.transpose(0, 2, 1)), note
 
 
-def byte_order_hint(first, dtype) -> str:
+def byte_order_hint(first, dtype, *, axis=_UNKNOWN) -> str:
     """A ``--byte-order`` to pass when the first frame (a, b) as read in ``dtype`` (the stored type) shows no
-    carrier or non-finite samples but shows a carrier byte-swapped; "" otherwise (one-byte types: "")."""
+    carrier or non-finite samples but shows a carrier byte-swapped; "" otherwise (one-byte types: "").
+    ``axis``: :func:`carrier_axis` of ``first`` as read, when the caller has it already."""
     dt = np.dtype(dtype)
     if dt.itemsize < 2:
         return ""
@@ -106,7 +115,9 @@ def byte_order_hint(first, dtype) -> str:
     with np.errstate(all="ignore"):
         swapped = raw.view(dt.newbyteorder())            # the same bytes read in the other order
         finite = bool(np.all(np.isfinite(raw))) if dt.kind == "f" else True
-        if finite and carrier_axis(raw) is not None:
+        if axis is _UNKNOWN:
+            axis = carrier_axis(raw)
+        if finite and axis is not None:
             return ""
         if carrier_axis(swapped) is None:
             return ""

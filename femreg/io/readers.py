@@ -275,12 +275,14 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     except (OSError, ValueError) as exc:
         raise fail(path, f"cannot read samples ({exc})") from None
     arr = arr.reshape(n, shp[-2], shp[-1])
-    from .rawlayout import byte_order_hint, resolve_layout
+    from .rawlayout import byte_order_hint, carrier_axis, resolve_layout
 
-    swap = byte_order_hint(arr[0], dt)
+    with np.errstate(all="ignore"):                   # swapped bytes read as huge values: no warnings
+        axis = carrier_axis(arr[0])                   # the carrier test, once for both checks
+    swap = byte_order_hint(arr[0], dt, axis=axis)
     if swap:
         raise fail(path, swap)
-    arr, layout = resolve_layout(arr, path)
+    arr, layout = resolve_layout(arr, path, axis=axis)
     sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
     if layout:
