@@ -306,6 +306,8 @@ class Refinement:
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     fine_fill: int = 0
+    relax_full: bool = False
+    relax_alpha: float | None = None
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -320,6 +322,9 @@ class Refinement:
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
         _integer(self, "fine_fill", 0, None)
+        if not isinstance(self.relax_full, (bool, np.bool_)):
+            _fail("relax_full", "True or False", self.relax_full)
+        _number(self, "relax_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "fine_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "fine_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="a number in (0, 1)")
@@ -432,7 +437,8 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
-                             settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2)
+                             settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2,
+                             relax_full=True, relax_alpha=0.1)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -1013,6 +1019,12 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             f = fine_alpha_factor(opts, sol, mesh)
             if f != 1.0:
                 kw["alpha_factor"] = f
+        if len(relaxed):
+            # a layer across the image relaxed: the problem itself changed, so solve it (not one step)
+            if opts.relax_alpha is not None:
+                kw["alpha_factor"] = min(kw.get("alpha_factor", 1.0), opts.relax_alpha)
+            if opts.relax_full:
+                kw["full"] = True
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
@@ -1078,7 +1090,7 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     base = sol.mesh
     quad = sol.data.quad
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
         def factory():
             r = reg_factory()
             r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
@@ -1087,7 +1099,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if normal_traction is not None and hasattr(r, "normal_traction"):
                 r.normal_traction = normal_traction
             return r
-        kw = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=min(opts.maxiter, solve_kw["maxiter"]))
+        kw = solve_kw if (opts.maxiter is None or full) else dict(solve_kw, maxiter=min(opts.maxiter,
+                                                                                         solve_kw["maxiter"]))
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
