@@ -438,7 +438,7 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.04, fine_fill=2,
-                             relax_full=True, relax_alpha=0.1)
+                             relax_full=True, relax_alpha=0.4)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -1020,9 +1020,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if f != 1.0:
                 kw["alpha_factor"] = f
         if len(relaxed):
-            # a layer across the image relaxed: the problem itself changed, so solve it (not one step)
+            # a layer relaxed: the problem itself changed, so solve it (not one step), and at a lower weight,
+            # which the fine pass's noise factor scales (a noisier pair keeps more of it)
             if opts.relax_alpha is not None:
-                kw["alpha_factor"] = min(kw.get("alpha_factor", 1.0), opts.relax_alpha)
+                kw["alpha_factor"] = kw.get("alpha_factor", 1.0) * opts.relax_alpha
             if opts.relax_full:
                 kw["full"] = True
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
