@@ -40,7 +40,8 @@ def deep_refinement():
     column twice (to a quarter) down to 0.15 mm axially, with no element budget, and the local relaxation on that
     one solve (weight 0.02 on the unrefined cells beside the edges whose shear-traction jump stands out on the
     solve before the split, on a run of at least 20 mm); where a row / column stands out 4.6x the cut, the marking
-    at a z-score of 1 and columns down to 0.4 mm (:attr:`femreg.refine.Refinement.fine`)."""
+    at a z-score of 1 and columns down to 0.4 mm (:attr:`femreg.refine.Refinement.fine`); a pass that relaxes
+    solves to the registration's stopping rules at 0.4x its weight (:attr:`femreg.refine.Refinement.relax_full`)."""
     from femreg.refine import DEEP_REFINEMENT
 
     return DEEP_REFINEMENT

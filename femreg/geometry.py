@@ -383,7 +383,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()
 
-        def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
+        def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
             def factory():
                 r = copy.copy(user_reg)
                 r.alpha = refined_alpha(r.alpha, mesh, m) * alpha_factor   # the unrefined mesh's weight of eq:objf
@@ -394,7 +394,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                 return r
             loc = PointLocator(m)
             tm = BeamSSDTerm(BeamQuadrature(m, shape, sp_idx, (r0, 0.0), geometry, locator=loc), I1, I2)
-            kw_m = solve_kw if opts.maxiter is None else dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
+            kw_m = solve_kw if (opts.maxiter is None or full) else dict(solve_kw, maxiter=min(opts.maxiter,
+                                                                                             int(maxiter)))
             return solve(I1, I2, m, shape, sp_idx, (r0, 0.0), factory, u_start, locator=loc, term=tm, **kw_m)
 
         refined, record = refine_passes(sol, opts, solve_on, (dr, ds), (r0, s0))
