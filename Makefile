@@ -16,8 +16,9 @@ demo: setup
 study: setup
 	$(PY) demos/06_study.py
 
+# two worker processes (pytest-xdist): the suite is many independent single-threaded tests
 test: setup
-	$(PY) -m pytest -q --durations=25
+	$(PY) -m pytest -q -n 2 --durations=25
 
 slow: setup
 	$(PY) -m pytest -q -m slow
