@@ -92,14 +92,77 @@ def collect(set_name):
     return rows
 
 
+def shortfall(row):
+    """1 - (model's strain ratio) / (data's) of a saved result (:func:`femreg.inversion._lateral_shortfall`'s
+    quantity), recomputed from its ``u_model`` so that rows saved before the check have it too."""
+    from skfem import Basis, ElementVector
+
+    from femreg.inversion import _element_strain, _elements, load_inversion, strain_ratio
+
+    inv = load_inversion(out_folder() / row["file"])
+    el, _ = _element_strain(Basis(inv.mesh, ElementVector(_elements(inv.mesh)[0]), intorder=2), inv.u_model)
+    return 1.0 - strain_ratio(el, inv.mesh) / inv.strain_ratio
+
+
+def _band(r):
+    return 0.85 <= r["ratio"] <= 1.15
+
+
+def summary(sets, tol):
+    """Per set and row kind: results, flagged before, in the band unflagged before, and what the shortfall flag
+    (above ``tol``) adds: false flags (unflagged results in the band it flags) and flagged misses (unflagged results
+    outside the band it flags); the benchmark's measurable-ring rule applies to the in-band count."""
+    rows = []
+    for s in sets:
+        path = out_folder() / f"rows_{s}.json"
+        if path.exists():
+            rows += json.loads(path.read_text())
+    lines = ["| set | rows | results | flagged before | in band before | in band after | false flags | flagged misses "
+             "| misses left unflagged | largest shortfall of unflagged in-band results |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    detail = []
+    for s in dict.fromkeys(r["set"] for r in rows):
+        for kind in ("default auto", "strain auto", "strain plane-stress", "strain plane-strain"):
+            reg, asked = kind.split()
+            sel = [r for r in rows if r["set"] == s and r["regularizer"] == reg and r["asked"] == asked
+                   and r.get("ring", 1.0) >= B.RING_MEASURABLE]
+            if not sel:
+                continue
+            for r in sel:
+                r["short"] = shortfall(r)
+                r["new"] = r["short"] > tol
+            ok = [r for r in sel if r["success"]]
+            band = [r for r in ok if _band(r)]
+            false = [r for r in band if r["new"]]
+            caught = [r for r in ok if not _band(r) and r["new"]]
+            left = [r for r in ok if not _band(r) and not r["new"]]
+            big = max((r["short"] for r in band), default=np.nan)
+            lines.append(f"| {s} | {kind} | {len(sel)} | {len(sel) - len(ok)} | {len(band)} | "
+                         f"{len(band) - len(false)} | {len(false)} | {len(caught)} | {len(left)} | {big:+.3f} |")
+            for r in sel:
+                detail.append(f"{s} {kind} {r['case']}: ratio {r['ratio']:.2f}, success before {r['success']}, "
+                              f"shortfall {r['short']:+.3f}{' FLAG' if r['new'] else ''}")
+    return "\n".join(lines), "\n".join(detail)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--collect", action="store_true")
     ap.add_argument("--set", action="append", help="reps or a set of benchmarks/inversion.py")
+    ap.add_argument("--tolerance", type=float, default=None, help="shortfall flagged (default the package's)")
+    ap.add_argument("--detail", action="store_true", help="one line per result")
     a = ap.parse_args(argv)
-    for s in a.set or []:
-        if a.collect:
+    sets = a.set or ["reps", "main", "held-out", "fresh", "fresh2", "fresh3", "fresh4", "curves"]
+    if a.collect:
+        for s in sets:
             collect(s)
+        return
+    from femreg.inversion import MODEL_RATIO_TOLERANCE
+
+    table, detail = summary(sets, MODEL_RATIO_TOLERANCE if a.tolerance is None else a.tolerance)
+    print(table)
+    if a.detail:
+        print(detail)
 
 
 if __name__ == "__main__":
