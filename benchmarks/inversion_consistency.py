@@ -93,15 +93,17 @@ def collect(set_name):
 
 
 def shortfall(row):
-    """1 - (model's strain ratio) / (data's) of a saved result (:func:`femreg.inversion._lateral_shortfall`'s
-    quantity), recomputed from its ``u_model`` so that rows saved before the check have it too."""
+    """:func:`femreg.inversion._lateral_shortfall` of a saved result (the smallest quadrant shortfall of the model's
+    lateral expansion against the data's), recomputed from its ``u_model`` so that rows saved before the check have
+    it too."""
     from skfem import Basis, ElementVector
 
-    from femreg.inversion import _element_strain, _elements, load_inversion, strain_ratio
+    from femreg.inversion import _element_strain, _elements, _lateral_shortfall, load_inversion
 
     inv = load_inversion(out_folder() / row["file"])
-    el, _ = _element_strain(Basis(inv.mesh, ElementVector(_elements(inv.mesh)[0]), intorder=2), inv.u_model)
-    return 1.0 - strain_ratio(el, inv.mesh) / inv.strain_ratio
+    basis = Basis(inv.mesh, ElementVector(_elements(inv.mesh)[0]), intorder=2)
+    el, _ = _element_strain(basis, inv.u_model)
+    return _lateral_shortfall(inv.strain_measured, el, inv.mesh, basis.dx.sum(axis=1), inv.model)[0]
 
 
 def _band(r):
