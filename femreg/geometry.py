@@ -312,7 +312,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
-    from .refine import Refinement, as_refinement, refine_passes, transfer, with_logical_grid, with_refinement
+    from .refine import (Refinement, as_refinement, pass_solve_kw, refine_passes, transfer, with_logical_grid,
+                         with_refinement)
     from .repair import check_period, check_result
     from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
@@ -394,8 +395,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                 return r
             loc = PointLocator(m)
             tm = BeamSSDTerm(BeamQuadrature(m, shape, sp_idx, (r0, 0.0), geometry, locator=loc), I1, I2)
-            kw_m = solve_kw if (opts.maxiter is None or full) else dict(solve_kw, maxiter=min(opts.maxiter,
-                                                                                             int(maxiter)))
+            kw_m = pass_solve_kw(opts, solve_kw, maxiter, full)
             return solve(I1, I2, m, shape, sp_idx, (r0, 0.0), factory, u_start, locator=loc, term=tm, **kw_m)
 
         refined, record = refine_passes(sol, opts, solve_on, (dr, ds), (r0, s0))

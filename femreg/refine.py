@@ -133,7 +133,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "pass_solve_kw",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -947,6 +947,15 @@ def transfer(u, mesh, new_mesh) -> np.ndarray:
     return out
 
 
+def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = False) -> dict:
+    """Gauss-Newton keywords of one refinement pass's solve: ``solve_kw`` with ``maxiter`` capped at
+    ``opts.maxiter``, unless the options leave it free or the pass solves in full (``full``:
+    :attr:`Refinement.relax_full` on a pass that relaxes)."""
+    if opts.maxiter is None or full:
+        return solve_kw
+    return dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
+
+
 def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
@@ -1115,8 +1124,7 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if normal_traction is not None and hasattr(r, "normal_traction"):
                 r.normal_traction = normal_traction
             return r
-        kw = solve_kw if (opts.maxiter is None or full) else dict(solve_kw, maxiter=min(opts.maxiter,
-                                                                                         solve_kw["maxiter"]))
+        kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full)
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)

@@ -240,8 +240,8 @@ def _key(name: str) -> tuple:
 
 def spacing_hint(fields: dict) -> str:
     """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold neither a sampling
-    frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)`` (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's
-    suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
+    frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
+    (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
     below 0.005 in metres).  A hint only: readers never apply it."""
     found = {}
     for name, value in fields.items():
