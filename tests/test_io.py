@@ -264,8 +264,10 @@ def test_ultrasonix_layout_header_and_tags(tmp_path, tags):
 def test_ultrasonix_errors(tmp_path):
     lines = [np.zeros((4, 8))] * 2
     _rf_file(tmp_path / "a.rf", lines)
-    with pytest.raises(InputError, match="lateral"):
+    with pytest.raises(InputError, match="lateral") as err:
         read_frames(tmp_path / "a.rf")
+    # the header's half of the spacing is named: dx = c / (2 sf) = 1540 m/s / 80 MHz
+    assert "its fields suggest --spacing 0.01925 DY" in str(err.value), err.value
     blob = (tmp_path / "a.rf").read_bytes()
     (tmp_path / "t.rf").write_bytes(blob[:-10])
     with pytest.raises(FileFormatError, match="truncated"):

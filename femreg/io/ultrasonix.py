@@ -108,8 +108,13 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
         dx = c * 1e3 / (2.0 * hdr["sf"])  # m/s -> mm/s, over the two-way sampling rate
     elif user is None or user[0] is None:
         raise fail(path, f"bad header field sf (sampling frequency) = {hdr['sf']}; give spacing=(dx, dy)")
-    sp = merge_spacing(path, (dx, None), spacing,
-                       required_msg="Ultrasonix .rf files do not store the lateral line pitch")
+    need = "Ultrasonix .rf files do not store the lateral line pitch"
+    if dx is not None:      # the half of the spacing the header gives, as the other readers' hint words it
+        need += (f"; its fields suggest --spacing {dx:.4g} DY (axial c / (2 sf) with sf = {hdr['sf']} Hz and "
+                 f"c = {c:g} m/s{' assumed' if sound_speed is None else ''}; DY, the lateral line pitch in mm, is not "
+                 "in the file (for a linear array usually the probe's element pitch)): check them against the "
+                 "scanner's settings")
+    sp = merge_spacing(path, (dx, None), spacing, required_msg=need)
     meta = {"format": "ultrasonix", "header": hdr, "frame_tags": tagged, "sound_speed": c, "stored_dtype": "int16"}
     if tagged:
         meta["frame_numbers"] = tags
