@@ -757,15 +757,20 @@ def _mesh_and_data(displacement, region, element_size):
     from .registration import RegistrationResult
 
     if _is_3d(displacement, region):
+        if isinstance(element_size, str) and element_size == "registration" and region is None:
+            element_size = None             # a 3D result is inverted on its own mesh anyway
         mesh, d = _mesh_and_data_3d(displacement, region, element_size)
         return mesh, d, ("the registration's mesh" if region is None and element_size is None
                          else "a tensor mesh over the region")
-    h = _check_element_size(element_size)
+    own = isinstance(element_size, str) and element_size == "registration"
+    if own and (region is not None or not isinstance(displacement, RegistrationResult)):
+        raise InputError('element_size="registration" takes a registration result and no region')
+    h = None if own else _check_element_size(element_size)
     rule = None
     if isinstance(displacement, RegistrationResult):
         res = displacement
         base = getattr(getattr(res, "refinement", None), "base_size", None)
-        if region is None and h is None and base is None:
+        if region is None and h is None and (base is None or own):
             rule = "the registration's mesh"
             mesh = res.mesh
             d = np.asarray(res.u, float).copy()
@@ -1330,7 +1335,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     element_size : float or (2,) mm, optional
         Element size of the structured inversion mesh (default: the registration mesh itself, or, for a
         registration whose mesh adaptive refinement made, the tensor mesh of its unrefined element size
-        ``refinement.base_size`` over the mesh's bounding box (``mesh_rule`` in the result says which); or
+        ``refinement.base_size`` over the mesh's bounding box (``mesh_rule`` in the result says which;
+        ``"registration"``: the registration's own mesh, refined or not); or
         :data:`femreg.mesh.DEFAULT_ELEMENT_SIZE` for a callable; 3D: (3,), default
         :data:`DEFAULT_ELEMENT_SIZE_3D`).
     beta : float >= 0, optional
