@@ -300,7 +300,7 @@ def regularizer_cases():
 
 def speed(one_step=False):
     """Seconds of ``femreg.invert`` (beta rule, uncertainty) on the paper-probe 70 x 42 mm registered pair, the
-    element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of the two-step and of
+    inversion mesh's element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of the two-step and of
     the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
     field = truth_field("plane-strain", 4.0)
     folder = cache_folder()
@@ -313,7 +313,7 @@ def speed(one_step=False):
         reg.save(path)
     t = time.perf_counter()
     inv = femreg.invert(reg)
-    out = (time.perf_counter() - t, reg.mesh.t.shape[1], inv)
+    out = (time.perf_counter() - t, inv.mesh.t.shape[1], inv)      # the inversion mesh's elements
     if not one_step:
         return out
     rows = []
@@ -495,7 +495,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.speed_only:
         dt, n_el, inv, rows = speed(one_step=True)
-        print(f"paper-probe 70 x 42 mm, {n_el} elements: invert() with the uncertainty {dt:.1f} s wall")
+        print(f"paper-probe 70 x 42 mm, {n_el} elements ({inv.mesh_rule}): invert() with the uncertainty "
+              f"{dt:.1f} s wall")
         for (cpu, r, (c, cv)), name in zip(rows, ("two-step", "one-step")):
             print(f"{name}: {cpu:.1f} CPU s, contrast {c:.2f} (true 4), CV {100 * cv:.1f} %, beta {r.beta:.3g}, "
                   f"success {r.success}, one_step {r.one_step}")
