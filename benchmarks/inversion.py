@@ -300,8 +300,8 @@ def regularizer_cases():
 
 def speed(one_step=False):
     """Seconds of ``femreg.invert`` (beta rule, uncertainty) on the paper-probe 70 x 42 mm registered pair, the
-    inversion mesh's element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of the two-step and of
-    the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
+    inversion mesh's element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of
+    the two-step and of the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
     field = truth_field("plane-strain", 4.0)
     folder = cache_folder()
     path = folder / "speed_paper_70x42.npz"

@@ -1750,7 +1750,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         strain_measured=el_strain, misfit=phi, regularizer_value=R, history=hist, success=ok, message=message,
         nit=int(info["nit"]), timings={"setup": t_setup, "optimise": t_opt, "uncertainty": t_unc,
                                        "total": time.perf_counter() - t_all, "n_evaluations": problem.n_eval},
-        model_rule=model_rule, mesh_rule=mesh_rule, strain_ratio=ratio, flags=flags, uncertainty=std, constrained=constrained,
+        model_rule=model_rule, mesh_rule=mesh_rule, strain_ratio=ratio, flags=flags, uncertainty=std,
+        constrained=constrained,
         shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step,
         misfit_model_strain=phi_model, lateral_shortfall=short)
 
@@ -1927,9 +1928,9 @@ class InversionResult:
                 "sweep": self.sweep, "regularization": self.regularization, "weights": self.weights,
                 "misfit": self.misfit, "regularizer_value": self.regularizer_value, "success": self.success,
                 "message": self.message, "nit": self.nit, "timings": self.timings, "model_rule": self.model_rule,
-                "mesh_rule": self.mesh_rule, "strain_ratio": self.strain_ratio, "flags": self.flags, "reference": self.reference,
-                "one_step": self.one_step, "misfit_model_strain": self.misfit_model_strain,
-                "lateral_shortfall": self.lateral_shortfall}
+                "mesh_rule": self.mesh_rule, "strain_ratio": self.strain_ratio, "flags": self.flags,
+                "reference": self.reference, "one_step": self.one_step,
+                "misfit_model_strain": self.misfit_model_strain, "lateral_shortfall": self.lateral_shortfall}
         extra = {}
         if self.uncertainty is not None:
             extra["uncertainty"] = self.uncertainty
@@ -2033,8 +2034,9 @@ def load_inversion(path) -> InversionResult:
                            u_model=d["u_model"], strain_measured=d["strain_measured"], misfit=meta["misfit"],
                            regularizer_value=meta["regularizer_value"], history=d["history"],
                            success=meta["success"], message=meta["message"], nit=meta["nit"],
-                           timings=meta.get("timings"), model_rule=meta.get("model_rule", ""), mesh_rule=meta.get("mesh_rule", ""),
-                           strain_ratio=meta.get("strain_ratio", np.nan), flags=meta.get("flags", ()),
+                           timings=meta.get("timings"), model_rule=meta.get("model_rule", ""),
+                           mesh_rule=meta.get("mesh_rule", ""), strain_ratio=meta.get("strain_ratio", np.nan),
+                           flags=meta.get("flags", ()),
                            uncertainty=d.get("uncertainty"), constrained=d.get("constrained"),
                            shear_modulus_kpa=d.get("shear_modulus_kpa"), reference=meta.get("reference"),
                            one_step=meta.get("one_step"),

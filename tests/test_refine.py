@@ -558,7 +558,7 @@ def test_slip_refinement_keeps_a_1mm_band_under_the_paper_probe():
     assert abs(m["slide"] / band.slide_mm - 1) < 0.15 and abs(m["depth"] - band.depth_mm) < 0.2, m
 
 
-def test_a_refined_registration_is_inverted_on_its_unrefined_element_size(compression_pair):
+def test_a_refined_registration_is_inverted_on_its_unrefined_element_size(compression_pair, tmp_path):
     """invert() of a refined result defaults to the tensor mesh of the refinement's base size over the mesh's
     bounding box (fewer elements, as accurate on the benchmark's 92 pairs), says so in ``mesh_rule``, and gives
     the same result as that region asked for explicitly; an explicit element size still wins."""
@@ -570,6 +570,7 @@ def test_a_refined_registration_is_inverted_on_its_unrefined_element_size(compre
     default = femreg.invert(r1, beta=0.01, uncertainty=False)
     assert default.mesh is not r1.mesh and default.mesh.t.shape[1] < r1.mesh.t.shape[1]
     assert "unrefined element size" in default.mesh_rule
+    assert femreg.load_inversion(default.save(tmp_path / "mu.npz")).mesh_rule == default.mesh_rule
     ext = default.mesh.p[:, default.mesh.t].max(axis=1) - default.mesh.p[:, default.mesh.t].min(axis=1)
     assert np.allclose(np.median(ext, axis=1), base, rtol=0.1)
     assert np.allclose(default.mesh.p.min(axis=1), p.min(axis=1)) and np.allclose(default.mesh.p.max(axis=1),
