@@ -16,6 +16,8 @@ effective-parameter rule, uncertainty).
 Rows per case:
 - ``exact``: the forward model's own displacement on the same mesh;
 - ``femreg``: the registered displacement (the default path);
+- ``femreg base mesh``: the same registration inverted on the tensor mesh of the registration's unrefined element
+  size (``refinement.base_size``) over its mesh's bounding box (``region`` given, no ``element_size``);
 - ``femreg growth``: the same with the former beta rule (``beta_method="growth"``);
 - ``femreg one-step``: the default path followed by the one-step inversion from the images (same beta);
 - ``NCC``: NCC block matching's displacement (:data:`NCC_WINDOW`, 75 % overlap) on the same element size;
@@ -229,7 +231,9 @@ def run_case(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0, beta_s
     h = tuple(np.median(ext, axis=1))
     pair = make_pair(field, probe, SIZE, snr, seed, top_mm=TOP, name=case)
     todo = [("exact", lambda: field.displacement, lambda: dict(region=region, element_size=h)),
-            ("femreg", lambda: reg, dict), ("femreg growth", lambda: reg, lambda: dict(beta_method="growth")),
+            ("femreg", lambda: reg, dict),
+            ("femreg base mesh", lambda: reg, lambda: dict(region=region)),
+            ("femreg growth", lambda: reg, lambda: dict(beta_method="growth")),
             ("femreg one-step", lambda: reg, lambda: dict(reference_image=pair.ref, moving_image=pair.mov))]
     bm = []
     todo.append(("NCC", lambda: bm[0][0], lambda: dict(region=bm[0][1], element_size=h)))
@@ -249,8 +253,8 @@ def run_case(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0, beta_s
         row = dict(case=case, model=model, contrast=contrast, probe=probe, snr=snr, radius=radius, level=level,
                    seed=seed, row=name, estimate=cest, ratio=cest / contrast, cv=cv, ring=ring, success=inv.success,
                    flags="; ".join(inv.flags), chosen_model=inv.model, beta=inv.beta, cal=cal, ncal=ncal,
-                   calu=calu, ncalu=ncalu, z=z if name == "femreg" else [], seconds=dt, misfit=inv.misfit,
-                   n_el=int(inv.mesh.t.shape[1]), element_mm=float(np.sqrt(h[0] * h[1])))
+                   calu=calu, ncalu=ncalu, z=z if name in ("femreg", "femreg base mesh") else [], seconds=dt,
+                   misfit=inv.misfit, n_el=int(inv.mesh.t.shape[1]), element_mm=float(np.sqrt(h[0] * h[1])))
         if beta_study and name == "femreg":
             best = None
             up = femreg.inversion.BETA_GRID[0] * 10.0 ** (0.5 * np.arange(femreg.inversion.DOF_UP_STEPS, 0, -1))
@@ -296,8 +300,8 @@ def regularizer_cases():
 
 def speed(one_step=False):
     """Seconds of ``femreg.invert`` (beta rule, uncertainty) on the paper-probe 70 x 42 mm registered pair, the
-    element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of the two-step and of
-    the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
+    inversion mesh's element count and the result; ``one_step``: also the CPU seconds (``time.process_time``) of
+    the two-step and of the one-step inversion from the images (same beta rule, no uncertainty) and their results."""
     field = truth_field("plane-strain", 4.0)
     folder = cache_folder()
     path = folder / "speed_paper_70x42.npz"
@@ -309,7 +313,7 @@ def speed(one_step=False):
         reg.save(path)
     t = time.perf_counter()
     inv = femreg.invert(reg)
-    out = (time.perf_counter() - t, reg.mesh.t.shape[1], inv)
+    out = (time.perf_counter() - t, inv.mesh.t.shape[1], inv)      # the inversion mesh's elements
     if not one_step:
         return out
     rows = []
@@ -355,8 +359,9 @@ def measurable(r):
     return r.get("ring", 1.0) >= RING_MEASURABLE
 
 
-def summary(rows, label=""):
-    fem = [r for r in rows if r["row"] == "femreg"]
+def summary(rows, label="", row="femreg"):
+    """The metrics of ``row`` (the default path, or another row of the same pairs such as ``femreg base mesh``)."""
+    fem = [r for r in rows if r["row"] == row]
     if not fem:
         return ""
     sr = {r["case"]: r for r in rows if r["row"] == "1/SR"}
@@ -369,7 +374,7 @@ def summary(rows, label=""):
     stiff = [r for r in fem if r["contrast"] > 1]
     closer = [r for r in stiff if r["success"] and abs(np.log(r["ratio"])) < abs(np.log(sr[r["case"]]["ratio"]))]
     lines = [f"**{label}** ({len(fem)} cases)", "",
-             f"- femreg rows: {len(acc)}/{len(fem)} unflagged with ratio 0.85-1.15 (flagged count as misses); "
+             f"- {row} rows: {len(acc)}/{len(fem)} unflagged with ratio 0.85-1.15 (flagged count as misses); "
              f"{sum(not r['success'] for r in fem)} flagged"]
     if unmeasurable:
         lines[0] = f"**{label}** ({len(fem_all)} cases, {len(fem)} with a measurable ring)"
@@ -377,8 +382,10 @@ def summary(rows, label=""):
                      "the image), reported and not counted: " + ", ".join(
                          f"{r['case']} (ring {100 * r['ring']:.0f} % inside, ratio {r['ratio']:.2f}"
                          f"{'' if r['success'] else ', flagged'})" for r in unmeasurable))
-        lines.append(f"- femreg rows counting every case: {sum(_band(r) for r in fem_all)}/{len(fem_all)}")
-    for other in ("femreg growth", "femreg one-step", "NCC", "exact"):
+        lines.append(f"- {row} rows counting every case: {sum(_band(r) for r in fem_all)}/{len(fem_all)}")
+    for other in ("femreg", "femreg base mesh", "femreg growth", "femreg one-step", "NCC", "exact"):
+        if other == row:
+            continue
         o = [by[(r["case"], other)] for r in fem if (r["case"], other) in by]
         if o:
             lines.append(f"- {other}: {sum(_band(x) for x in o)}/{len(o)} in the band "
@@ -479,6 +486,7 @@ def main(argv=None):
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--speed-only", action="store_true", help="only the speed rows (two-step and one-step)")
     ap.add_argument("--no-beta-study", action="store_true", help="skip the fixed-beta sweeps")
+    ap.add_argument("--no-regularizers", action="store_true", help="skip the regulariser table of the main set")
     ap.add_argument("--json", help="write the rows (all metrics) to this JSON file")
     ap.add_argument("--rows", help="comma-separated inversion rows to run (default: all; 1/SR always)")
     ap.add_argument("--from-json", action="append", help="summarise rows of earlier runs instead of running")
@@ -487,7 +495,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.speed_only:
         dt, n_el, inv, rows = speed(one_step=True)
-        print(f"paper-probe 70 x 42 mm, {n_el} elements: invert() with the uncertainty {dt:.1f} s wall")
+        print(f"paper-probe 70 x 42 mm, {n_el} elements ({inv.mesh_rule}): invert() with the uncertainty "
+              f"{dt:.1f} s wall")
         for (cpu, r, (c, cv)), name in zip(rows, ("two-step", "one-step")):
             print(f"{name}: {cpu:.1f} CPU s, contrast {c:.2f} (true 4), CV {100 * cv:.1f} %, beta {r.beta:.3g}, "
                   f"success {r.success}, one_step {r.one_step}")
@@ -517,6 +526,8 @@ def main(argv=None):
     for name in sets:
         sel = [r for r in rows if r["set"] == name]
         text += "\n\n" + summary(sel, name)
+        if any(r["row"] == "femreg base mesh" for r in sel):
+            text += "\n" + summary(sel, f"{name}, base mesh", row="femreg base mesh")
         if name == "curves":
             continue
         out_range = [r for r in sel if not in_targets(r)]
@@ -524,7 +535,7 @@ def main(argv=None):
             text += "\n" + summary([r for r in sel if in_targets(r)], f"{name}, inside the targets' range")
     if a.figure:
         curves_figure(rows, a.figure)
-    if not a.quick and not a.from_json and "main" in sets:
+    if not a.quick and not a.from_json and "main" in sets and not a.no_regularizers:
         text += ("\n\nStiff plane-strain disk (x4), 1 %, L7, 30 dB, registered with each regulariser:\n\n"
                  "| regulariser | model asked | model used | contrast (truth 4) | success | flags |\n"
                  "|---|---|---|---|---|---|\n")

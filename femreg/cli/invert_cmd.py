@@ -1,8 +1,9 @@
 """``femreg invert PAIR.npz -o MU.npz``: relative shear-modulus image from a registration result.
 
 PAIR.npz is a file written by ``femreg register`` (or :meth:`femreg.RegistrationResult.save`, or a volume's
-:meth:`femreg.volume_result.VolumeResult.save`); the inversion (:func:`femreg.invert`) runs on its mesh, or on a
-structured mesh of ``--element-size``.  MU.npz is reloadable with :func:`femreg.inversion.load_inversion`;
+:meth:`femreg.volume_result.VolumeResult.save`); the inversion (:func:`femreg.invert`) runs on its mesh (a
+refined registration: on the tensor mesh of its unrefined element size), or on a structured mesh of
+``--element-size``.  MU.npz is reloadable with :func:`femreg.inversion.load_inversion`;
 ``femreg plot MU.npz`` draws the modulus image beside the axial strain (a volume: three orthogonal slices of the
 modulus, its uncertainty and the axial strain through ``--slice``).  ``--model auto`` (default) picks plane
 strain, plane stress or an effective model from the data (a volume: the 3D model); ``--reference X0 X1 Y0 Y1
@@ -37,7 +38,8 @@ def add_parser(subparsers):
     p.add_argument("--beta", type=float, help="regularisation weight (default: chosen by the L-curve rule)")
     p.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="invert on a structured mesh of this element size (one value, or axial and lateral; a "
-                        "volume: one value or axial, lateral and elevational; default: the registration mesh)")
+                        "volume: one value or axial, lateral and elevational; default: the registration mesh, or for a "
+                        "refined registration its unrefined element size)")
     p.add_argument("--region", metavar="MM", type=float, nargs="+",
                    help="invert over this box only: X0 X1 Y0 Y1 (a volume: X0 X1 Y0 Y1 Z0 Z1), mm")
     p.add_argument("--regularization", default="tv", choices=("tv", "tikhonov"), help="default tv")
