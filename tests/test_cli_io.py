@@ -92,6 +92,10 @@ def test_info_describes_a_file_without_spacing_and_says_what_it_needs(tmp_path, 
     main(["info", str(tmp_path / "a.rf"), "--json"])
     info = json.loads(capsys.readouterr().out)
     assert info["dtype"] == "int16" and any("--spacing" in n for n in info["needs"]), info
+    # the header's sampling frequency gives the axial half: named in the text, not "none in the file"
+    assert main(["info", str(tmp_path / "a.rf")]) == 1
+    out = capsys.readouterr().out
+    assert "suggest --spacing 0.02 DY" in out and "none in the file" not in out, out
 
 
 def test_argparse_errors_exit_2(capsys):
