@@ -756,13 +756,13 @@ def _mesh_and_data(displacement, region, element_size):
     from .mesh import DEFAULT_ELEMENT_SIZE
     from .registration import RegistrationResult
 
+    own = isinstance(element_size, str) and element_size == "registration"
     if _is_3d(displacement, region):
-        if isinstance(element_size, str) and element_size == "registration" and region is None:
+        if own and region is None:
             element_size = None             # a 3D result is inverted on its own mesh anyway
         mesh, d = _mesh_and_data_3d(displacement, region, element_size)
         return mesh, d, ("the registration's mesh" if region is None and element_size is None
                          else "a tensor mesh over the region")
-    own = isinstance(element_size, str) and element_size == "registration"
     if own and (region is not None or not isinstance(displacement, RegistrationResult)):
         raise InputError('element_size="registration" takes a registration result and no region')
     h = None if own else _check_element_size(element_size)

@@ -168,6 +168,13 @@ def describe_volumes(path: Path, args) -> dict:
     return out
 
 
+def _no_spacing_line(needs) -> str:
+    """The ``spacing`` line of a file read without one: whether its header fields suggest one (needs lines)."""
+    if any("its fields suggest" in n for n in needs):
+        return "spacing   not stored as such; the header fields suggest one (needs, below)"
+    return "spacing   none in the file"
+
+
 def _print_volumes(info) -> None:
     print(f"file      {info['file']}")
     print(f"format    {info['format']} (volumes)")
@@ -181,10 +188,8 @@ def _print_volumes(info) -> None:
         print(f"spacing   {s[0]:g} mm axial, {s[1]:g} mm lateral, {s[2]:g} mm elevational")
         print(f"origin    {o[0]:g}, {o[1]:g}, {o[2]:g} mm")
         print(f"extent    {e[0]:g} mm x {e[1]:g} mm x {e[2]:g} mm")
-    elif any("its fields suggest" in n for n in info["needs"]):
-        print("spacing   not stored as such; the header fields suggest one (needs, below)")
     else:
-        print("spacing   none in the file")
+        print(_no_spacing_line(info["needs"]))
     print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "
           f"max {info['max']:.6g}, mean {info['mean']:.6g}, "
           f"std {info['std']:.6g}")
@@ -274,10 +279,8 @@ def run(args) -> int:
         print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral")
         print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm")
         print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
-    elif any("its fields suggest" in n for n in info["needs"]):
-        print("spacing   not stored as such; the header fields suggest one (needs, below)")
     else:
-        print("spacing   none in the file")
+        print(_no_spacing_line(info["needs"]))
     print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "
           f"max {info['max']:.6g}, mean {info['mean']:.6g}, "
           f"std {info['std']:.6g}")
