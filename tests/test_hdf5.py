@@ -102,7 +102,11 @@ def test_spacing_hint_from_header_fields(pair, tmp_path):
     assert "--spacing DX 0.3 " in spacing_hint({"pitch": 0.3, "name": "x"})
     assert spacing_hint({"fc": 5.0, "name": "x"}) == ""
     assert "--iq-frequency 5.2 " in iq_frequency_hint({"demodulation_frequency": 5.2e6})
-    assert iq_frequency_hint({"fc": 5.2, "fs": 20.0}) == ""              # a centre frequency is not the demodulation's
+    # a centre frequency is only the usual demodulation frequency: named as such, and a demodulation field wins
+    centre = iq_frequency_hint({"fc": 5.2, "fs": 20.0})
+    assert "--iq-frequency 5.2 " in centre and "centre frequency" in centre and "check it" in centre, centre
+    assert "--iq-frequency 6 " in iq_frequency_hint({"f0": 5.2e6, "fDemod_MHz": 6.0})
+    assert iq_frequency_hint({"f0": 2e9}) == ""                          # no ultrasound carrier
 
 
 def test_iq_dataset_needs_its_frequency(pair, tmp_path):

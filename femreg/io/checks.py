@@ -226,6 +226,9 @@ _PITCH_NAMES = ("pitch", "elementpitch", "linespacing", "linepitch", "lateralspa
 _C_NAMES = ("c", "c0", "soundspeed", "speedofsound", "sos")
 _DEMOD_NAMES = ("fdemod", "demodfrequency", "demodulationfrequency", "modulationfrequency", "demodfreq", "fmod",
                 "iqfrequency", "fdemodulation", "demodulationfreq")
+# the probe's centre / transmit frequency: most IQ exports demodulate at it, so it is a weaker hint
+_CENTRE_NAMES = ("f0", "fc", "fcentre", "fcenter", "centrefrequency", "centerfrequency", "centralfrequency",
+                 "transmitfrequency", "txfrequency", "probefrequency", "carrierfrequency", "ftx")
 _UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
 
 
@@ -233,7 +236,7 @@ def _key(name: str) -> tuple:
     """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
     k = "".join(ch for ch in str(name).lower() if ch.isalnum())
     for u in _UNITS:
-        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES:
+        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES:
             return k[:-len(u)], u
     return k, ""
 
@@ -288,14 +291,25 @@ def _positive(value):
 
 
 def iq_frequency_hint(fields: dict) -> str:
-    """The ``--iq-frequency MHZ`` a file's header fields imply (a field named like ``f_demod_MHz``,
-    ``demodulation_frequency``, ``modulation_frequency``), in words, or "".  A hint only: never applied."""
-    for name, value in fields.items():
-        v = _positive(value)
-        base, unit = _key(name)
-        if v is not None and base in _DEMOD_NAMES:
-            mhz = v * {"mhz": 1.0, "khz": 1e-3, "hz": 1e-6}.get(unit, 1e-6 if v > 1e4 else 1.0)
-            return f"its fields suggest --iq-frequency {mhz:.6g} ({name} = {v:g} read as {mhz:g} MHz)"
+    """The ``--iq-frequency MHZ`` a file's header fields imply, in words, or "".  A field named like a
+    demodulation frequency (``f_demod_MHz``, ``demodulation_frequency``, ``modulation_frequency``) first; else the
+    probe's centre / transmit frequency (``f0``, ``fc``, ``center_frequency``), at which most IQ exports
+    demodulate, named as such.  Units from the name's suffix or else the magnitude (above 1e4: Hz).  A hint
+    only: never applied."""
+    def mhz(name, v):
+        unit = _key(name)[1]
+        return v * {"mhz": 1.0, "khz": 1e-3, "hz": 1e-6}.get(unit, 1e-6 if v > 1e4 else 1.0)
+
+    for names, why in ((_DEMOD_NAMES, ""), (_CENTRE_NAMES, "the probe's centre frequency, at which IQ data are "
+                                                           "usually demodulated: check it")):
+        for name, value in fields.items():
+            v = _positive(value)
+            if v is not None and _key(name)[0] in names:
+                f = mhz(name, v)
+                if not 0.1 <= f <= 100.0:  # no ultrasound carrier: not this field
+                    continue
+                return (f"its fields suggest --iq-frequency {f:.3g} ({name} = {v:g} read as {f:.6g} MHz"
+                        f"{'; ' + why if why else ''})")
     return ""
 
 
