@@ -330,6 +330,9 @@ class Refinement:
     fine_fill: int = 0
     relax_full: bool = False
     relax_alpha: float | None = None
+    relax_passes: int = 1
+    relax_keep: bool = True
+    relax_again: float | None = None
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -344,6 +347,10 @@ class Refinement:
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
         _integer(self, "fine_fill", 0, None)
+        _integer(self, "relax_passes", 1, 4)
+        if not isinstance(self.relax_keep, (bool, np.bool_)):
+            _fail("relax_keep", "True or False", self.relax_keep)
+        _number(self, "relax_again", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
         if not isinstance(self.relax_full, (bool, np.bool_)):
             _fail("relax_full", "True or False", self.relax_full)
         _number(self, "relax_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
@@ -1063,6 +1070,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["full"] = True
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
         nit += int(sol.gn.nit)
+        if len(relaxed) and not opts.relax_persist and opts.relax_passes > 1:
+            sol, relaxed, n_again = _relax_again(sol, relaxed, opts, solve_on, kw)
+            nit += n_again
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
                            relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
@@ -1070,6 +1080,30 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     return sol, RefinementRecord(record, base_size, note)
+
+
+def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):
+    """Further relaxing solves on the mesh of ``sol`` (:attr:`Refinement.relax_passes`): each relaxes the edges
+    whose shear-traction jump stands out on the solve before it (cells of this mesh), with the keywords ``kw`` of
+    the relaxing pass.  Returns ``(sol, relaxed, iterations)``."""
+    nit = 0
+    weight = opts.relax if opts.relax_again is None else opts.relax_again
+    rects_old = relaxed if opts.relax_keep else np.zeros((0, 4))
+    for _ in range(opts.relax_passes - 1):
+        r = relaxed_edges(sol.mesh, sol.u, opts)
+        if not len(r):
+            break
+        mid = np.stack([0.5 * (r[:, 0] + r[:, 1]), 0.5 * (r[:, 2] + r[:, 3])])
+        if len(relaxed) and np.all(_on_segments(mid, relaxed)):
+            break
+        relaxed = np.vstack([relaxed, r])
+        w_old = slip_weights(rects_old, opts.relax, sol.mesh) if len(rects_old) else None
+        w_new = slip_weights(r, weight, sol.mesh)
+        st = w_new if w_old is None else (lambda j, a=w_old, b=w_new: np.minimum(a(j), b(j)))
+        sol = solve_on(sol.mesh, sol.u, st, **kw)
+        nit += int(sol.gn.nit)
+        rects_old = np.vstack([rects_old, r])
+    return sol, relaxed, nit
 
 
 def fine_alpha_factor(opts: Refinement, sol, mesh, relaxed: bool = False) -> float:
