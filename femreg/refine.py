@@ -333,6 +333,8 @@ class Refinement:
     relax_passes: int = 1
     relax_keep: bool = True
     relax_again: float | None = None
+    relax_fill: int = 0
+    relax_split: str = "none"
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -348,6 +350,8 @@ class Refinement:
         _integer(self, "fine_levels", 1, 4, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
+        _integer(self, "relax_fill", 0, None)
+        _choice(self, "relax_split", ("none", "fill", "all"))
         if not isinstance(self.relax_keep, (bool, np.bool_)):
             _fail("relax_keep", "True or False", self.relax_keep)
         _number(self, "relax_again", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
@@ -826,11 +830,53 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         order = np.argsort(-np.where(keep, val, -np.inf), kind="stable")
         keep = np.zeros(m, bool)
         keep[order[:cap]] = True
+    if (opts.relax_cells if cells is None else cells) and opts.relax_fill:
+        return _filled_cells(xs, ys, ia[keep[:ia.size]], ka[keep[:ia.size]], il[keep[ia.size:]],
+                             kl[keep[ia.size:]], opts.relax_fill)
     if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
         rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
                            np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
         return rects[keep]
     return segs[keep]
+
+
+def _split_relaxed(mesh, u, opts: Refinement, rows, levels: int):
+    """Split levels of the rows (``rows``: bool or levels per row) with the rows of the relaxed cells
+    (:func:`relaxed_edges`, :attr:`Refinement.relax_split` "all") or of the cells that the fill added to them
+    ("fill") split ``levels`` times."""
+    xs = _need_tensor(mesh)[0]
+    lev = np.asarray(rows).astype(np.int64)
+    if np.asarray(rows).dtype == bool:
+        lev = lev * int(levels)
+
+    def covered(rects):
+        c = np.zeros(xs.size - 1, bool)
+        for x0, x1, *_ in np.asarray(rects).reshape(-1, 4):
+            c |= (xs[:-1] >= x0 - 1e-9) & (xs[1:] <= x1 + 1e-9)
+        return c
+
+    sel = covered(relaxed_edges(mesh, u, opts))
+    if opts.relax_split == "fill":
+        sel &= ~covered(relaxed_edges(mesh, u, dataclasses.replace(opts, relax_fill=0)))
+    lev[sel] = np.maximum(lev[sel], int(levels))
+    return lev
+
+
+def _filled_cells(xs, ys, ia, ka, il, kl, n: int) -> np.ndarray:
+    """Rectangles (k, 4) of the cells beside the relaxed axial edges (rows ``ia``, ``ia + 1`` of column ``ka``)
+    and lateral edges (columns ``kl``, ``kl + 1`` of row ``il``), with each run of at most ``n`` cells between two
+    of them along the edge's normal filled (:func:`fill_gaps`; :attr:`Refinement.relax_fill`)."""
+    cell = np.zeros((xs.size - 1, ys.size - 1), bool)
+    rows = np.zeros_like(cell)
+    rows[ia, ka] = rows[ia + 1, ka] = True
+    cols = np.zeros_like(cell)
+    cols[il, kl] = cols[il, kl + 1] = True
+    for k in np.unique(ka):
+        rows[:, k] = fill_gaps(rows[:, k], n)
+    for i in np.unique(il):
+        cols[i] = fill_gaps(cols[i], n)
+    i, j = np.nonzero(rows | cols)
+    return np.column_stack([xs[i], xs[i + 1], ys[j], ys[j + 1]])
 
 
 def _on_segments(mid, segs) -> np.ndarray:
@@ -1029,6 +1075,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
         if finer and opts.fine_fill:
             rows, cols = (fill_gaps(m, opts.fine_fill) for m in (rows, cols))
+        if relaxing and not opts.relax_persist and opts.relax_split != "none":
+            rows = _split_relaxed(mesh, sol.u, opts, rows, levels)
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
