@@ -335,6 +335,7 @@ class Refinement:
     relax_again: float | None = None
     relax_fill: int = 0
     relax_split: str = "none"
+    relax_fill_weak: bool = False
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -767,7 +768,7 @@ def slabs_within_budget(breaks, marked, scores, spacing, origin, min_size, level
     return out
 
 
-def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None) -> np.ndarray:
+def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None, fill_rows=None) -> np.ndarray:
     """Segments (k, 4) [x0, x1, y0, y1] mm (an axial edge has x0 = x1, a lateral one y0 = y1) of the interior
     edges of a tensor mesh to relax (:attr:`Refinement.relax`): the part ``opts.relax_parts`` of the jump
     ``[[A]] n`` above the cut of :func:`mark` (the full jump's), on a connected run (edges sharing a node) at least
@@ -832,7 +833,7 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         keep[order[:cap]] = True
     if (opts.relax_cells if cells is None else cells) and opts.relax_fill:
         return _filled_cells(xs, ys, ia[keep[:ia.size]], ka[keep[:ia.size]], il[keep[ia.size:]],
-                             kl[keep[ia.size:]], opts.relax_fill)
+                             kl[keep[ia.size:]], opts.relax_fill, fill_rows)
     if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
         rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
                            np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
@@ -840,29 +841,15 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     return segs[keep]
 
 
-def _split_relaxed(mesh, u, opts: Refinement, rows, levels: int):
-    """Split levels of the rows (``rows``: bool or levels per row) with the rows of the relaxed cells
-    (:func:`relaxed_edges`, :attr:`Refinement.relax_split` "all") or of the cells that the fill added to them
-    ("fill") split ``levels`` times."""
-    xs = _need_tensor(mesh)[0]
-    lev = np.asarray(rows).astype(np.int64)
-    if np.asarray(rows).dtype == bool:
-        lev = lev * int(levels)
-
-    def covered(rects):
-        c = np.zeros(xs.size - 1, bool)
-        for x0, x1, *_ in np.asarray(rects).reshape(-1, 4):
-            c |= (xs[:-1] >= x0 - 1e-9) & (xs[1:] <= x1 + 1e-9)
-        return c
-
-    sel = covered(relaxed_edges(mesh, u, opts))
-    if opts.relax_split == "fill":
-        sel &= ~covered(relaxed_edges(mesh, u, dataclasses.replace(opts, relax_fill=0)))
-    lev[sel] = np.maximum(lev[sel], int(levels))
-    return lev
+def _covered_rows(xs, rects) -> np.ndarray:
+    """Which rows of the tensor-mesh breaks ``xs`` lie inside one of the rectangles ``rects`` (k, 4)."""
+    c = np.zeros(xs.size - 1, bool)
+    for x0, x1, *_ in np.asarray(rects).reshape(-1, 4):
+        c |= (xs[:-1] >= x0 - 1e-9) & (xs[1:] <= x1 + 1e-9)
+    return c
 
 
-def _filled_cells(xs, ys, ia, ka, il, kl, n: int) -> np.ndarray:
+def _filled_cells(xs, ys, ia, ka, il, kl, n: int, fill_rows=None) -> np.ndarray:
     """Rectangles (k, 4) of the cells beside the relaxed axial edges (rows ``ia``, ``ia + 1`` of column ``ka``)
     and lateral edges (columns ``kl``, ``kl + 1`` of row ``il``), with each run of at most ``n`` cells between two
     of them along the edge's normal filled (:func:`fill_gaps`; :attr:`Refinement.relax_fill`)."""
@@ -872,7 +859,8 @@ def _filled_cells(xs, ys, ia, ka, il, kl, n: int) -> np.ndarray:
     cols = np.zeros_like(cell)
     cols[il, kl] = cols[il, kl + 1] = True
     for k in np.unique(ka):
-        rows[:, k] = fill_gaps(rows[:, k], n)
+        f = fill_gaps(rows[:, k], n)
+        rows[:, k] = f if fill_rows is None else (rows[:, k] | (f & np.asarray(fill_rows, bool)))
     for i in np.unique(il):
         cols[i] = fill_gaps(cols[i], n)
     i, j = np.nonzero(rows | cols)
@@ -1075,8 +1063,18 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
         if finer and opts.fine_fill:
             rows, cols = (fill_gaps(m, opts.fine_fill) for m in (rows, cols))
-        if relaxing and not opts.relax_persist and opts.relax_split != "none":
-            rows = _split_relaxed(mesh, sol.u, opts, rows, levels)
+        pre = None      # the relaxation of this pass's own solve, found before the split (relax_fill)
+        if relaxing and not opts.relax_persist and opts.relax_fill:
+            lev = np.asarray(rows).astype(np.int64) * (int(levels) if np.asarray(rows).dtype == bool else 1)
+            weak = lev < int(levels) if opts.relax_fill_weak else None
+            pre = relaxed_edges(mesh, sol.u, opts, fill_rows=weak)
+            if len(pre) and opts.relax_split != "none":
+                xs_ = _need_tensor(mesh)[0]
+                sel = _covered_rows(xs_, pre)
+                if opts.relax_split == "fill":
+                    sel &= ~_covered_rows(xs_, relaxed_edges(mesh, sol.u, dataclasses.replace(opts, relax_fill=0)))
+                lev[sel] = np.maximum(lev[sel], int(levels))
+                rows = lev
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
@@ -1091,7 +1089,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             standing = relaxed_edges(mesh, sol.u, opts, cells=False)
             if not opts.relax_persist and new is not mesh:
                 # relaxed on the split's own solve, found on the solve before it (no second pass needed)
-                r = relaxed_edges(mesh, sol.u, opts)
+                r = relaxed_edges(mesh, sol.u, opts) if pre is None else pre
                 if len(r):
                     relaxed = np.vstack([relaxed, r])
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
