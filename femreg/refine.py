@@ -336,6 +336,7 @@ class Refinement:
     relax_fill: int = 0
     relax_split: str = "none"
     relax_fill_weak: bool = False
+    relax_fill_weight: float | None = None
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -1063,6 +1064,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
         if finer and opts.fine_fill:
             rows, cols = (fill_gaps(m, opts.fine_fill) for m in (rows, cols))
+        sol_before = sol
         pre = None      # the relaxation of this pass's own solve, found before the split (relax_fill)
         if relaxing and not opts.relax_persist and opts.relax_fill:
             lev = np.asarray(rows).astype(np.int64) * (int(levels) if np.asarray(rows).dtype == bool else 1)
@@ -1099,6 +1101,12 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         kw = {}
         if len(relaxed):
             rw = slip_weights(relaxed, opts.relax, new)
+            if pre is not None and opts.relax_fill_weight is not None:
+                # the cells the fill added at a weight of their own, the edges' cells at relax
+                own = relaxed_edges(mesh, sol_before.u, dataclasses.replace(opts, relax_fill=0))
+                a = slip_weights(own, opts.relax, new)
+                b = slip_weights(relaxed, opts.relax_fill_weight, new)
+                rw = (lambda j, a=a, b=b: np.minimum(a(j), b(j)))
             if opts.relax_parts in ("both", "normal"):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):
@@ -1140,7 +1148,7 @@ def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):
         if not len(r):
             break
         mid = np.stack([0.5 * (r[:, 0] + r[:, 1]), 0.5 * (r[:, 2] + r[:, 3])])
-        if len(relaxed) and np.all(_on_segments(mid, relaxed)):
+        if opts.relax_keep and len(relaxed) and np.all(_on_segments(mid, relaxed)):
             break
         relaxed = np.vstack([relaxed, r])
         w_old = slip_weights(rects_old, opts.relax, sol.mesh) if len(rects_old) else None
