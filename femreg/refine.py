@@ -476,7 +476,8 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
-                             fine_fill=2, relax_full=True, relax_alpha=0.4)
+                             fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_split="fill",
+                             relax_fill_weight=0.1, relax_passes=2, relax_keep=False)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
