@@ -330,13 +330,11 @@ class Refinement:
     fine_fill: int = 0
     relax_full: bool = False
     relax_alpha: float | None = None
+    relax_fill: int = 0
+    relax_fill_weight: float | None = None
+    relax_fill_split: bool = False
     relax_passes: int = 1
     relax_keep: bool = True
-    relax_again: float | None = None
-    relax_fill: int = 0
-    relax_split: str = "none"
-    relax_fill_weak: bool = False
-    relax_fill_weight: float | None = None
     interior: bool = False
     plane: float | None = None
     even: bool = False
@@ -353,10 +351,10 @@ class Refinement:
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
         _integer(self, "relax_fill", 0, None)
-        _choice(self, "relax_split", ("none", "fill", "all"))
-        if not isinstance(self.relax_keep, (bool, np.bool_)):
-            _fail("relax_keep", "True or False", self.relax_keep)
-        _number(self, "relax_again", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
+        _number(self, "relax_fill_weight", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
+        for name in ("relax_keep", "relax_fill_split"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                _fail(name, "True or False", getattr(self, name))
         if not isinstance(self.relax_full, (bool, np.bool_)):
             _fail("relax_full", "True or False", self.relax_full)
         _number(self, "relax_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
@@ -476,8 +474,8 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
-                             fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_split="fill",
-                             relax_fill_weight=0.1, relax_passes=2, relax_keep=False)
+                             fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
+                             relax_fill_split=True, relax_passes=2, relax_keep=False)
 
 #: ``refine=`` default of :func:`femreg.register`: resolved by :func:`default_refine`.
 DEFAULT = "default"
@@ -770,7 +768,7 @@ def slabs_within_budget(breaks, marked, scores, spacing, origin, min_size, level
     return out
 
 
-def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None, fill_rows=None) -> np.ndarray:
+def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None = None) -> np.ndarray:
     """Segments (k, 4) [x0, x1, y0, y1] mm (an axial edge has x0 = x1, a lateral one y0 = y1) of the interior
     edges of a tensor mesh to relax (:attr:`Refinement.relax`): the part ``opts.relax_parts`` of the jump
     ``[[A]] n`` above the cut of :func:`mark` (the full jump's), on a connected run (edges sharing a node) at least
@@ -835,7 +833,7 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         keep[order[:cap]] = True
     if (opts.relax_cells if cells is None else cells) and opts.relax_fill:
         return _filled_cells(xs, ys, ia[keep[:ia.size]], ka[keep[:ia.size]], il[keep[ia.size:]],
-                             kl[keep[ia.size:]], opts.relax_fill, fill_rows)
+                             kl[keep[ia.size:]], opts.relax_fill)
     if opts.relax_cells if cells is None else cells:     # the two cells on either side of each edge
         rects = np.vstack([np.column_stack([xs[ia], xs[ia + 2], ys[ka], ys[ka + 1]]),
                            np.column_stack([xs[il], xs[il + 1], ys[kl], ys[kl + 2]])]).reshape(-1, 4)
@@ -851,7 +849,7 @@ def _covered_rows(xs, rects) -> np.ndarray:
     return c
 
 
-def _filled_cells(xs, ys, ia, ka, il, kl, n: int, fill_rows=None) -> np.ndarray:
+def _filled_cells(xs, ys, ia, ka, il, kl, n: int) -> np.ndarray:
     """Rectangles (k, 4) of the cells beside the relaxed axial edges (rows ``ia``, ``ia + 1`` of column ``ka``)
     and lateral edges (columns ``kl``, ``kl + 1`` of row ``il``), with each run of at most ``n`` cells between two
     of them along the edge's normal filled (:func:`fill_gaps`; :attr:`Refinement.relax_fill`)."""
@@ -861,8 +859,7 @@ def _filled_cells(xs, ys, ia, ka, il, kl, n: int, fill_rows=None) -> np.ndarray:
     cols = np.zeros_like(cell)
     cols[il, kl] = cols[il, kl + 1] = True
     for k in np.unique(ka):
-        f = fill_gaps(rows[:, k], n)
-        rows[:, k] = f if fill_rows is None else (rows[:, k] | (f & np.asarray(fill_rows, bool)))
+        rows[:, k] = fill_gaps(rows[:, k], n)
     for i in np.unique(il):
         cols[i] = fill_gaps(cols[i], n)
     i, j = np.nonzero(rows | cols)
@@ -1065,17 +1062,16 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         rows, cols = strong_levels((rows, cols), score, opts.strong, levels)
         if finer and opts.fine_fill:
             rows, cols = (fill_gaps(m, opts.fine_fill) for m in (rows, cols))
-        sol_before = sol
-        pre = None      # the relaxation of this pass's own solve, found before the split (relax_fill)
+        pre, own = None, None       # this pass's relaxation with the fill, and without it
         if relaxing and not opts.relax_persist and opts.relax_fill:
-            lev = np.asarray(rows).astype(np.int64) * (int(levels) if np.asarray(rows).dtype == bool else 1)
-            weak = lev < int(levels) if opts.relax_fill_weak else None
-            pre = relaxed_edges(mesh, sol.u, opts, fill_rows=weak)
-            if len(pre) and opts.relax_split != "none":
+            # a thin band the unrefined solve spread over a plateau of rows: the faces of the plateau stand out,
+            # the band's own faces lie in the rows between them, which the fill relaxes (and splits)
+            pre = relaxed_edges(mesh, sol.u, opts)
+            own = relaxed_edges(mesh, sol.u, dataclasses.replace(opts, relax_fill=0))
+            if len(pre) and opts.relax_fill_split:
                 xs_ = _need_tensor(mesh)[0]
-                sel = _covered_rows(xs_, pre)
-                if opts.relax_split == "fill":
-                    sel &= ~_covered_rows(xs_, relaxed_edges(mesh, sol.u, dataclasses.replace(opts, relax_fill=0)))
+                lev = np.asarray(rows).astype(np.int64) * (int(levels) if np.asarray(rows).dtype == bool else 1)
+                sel = _covered_rows(xs_, pre) & ~_covered_rows(xs_, own)
                 lev[sel] = np.maximum(lev[sel], int(levels))
                 rows = lev
         new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
@@ -1102,11 +1098,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         kw = {}
         if len(relaxed):
             rw = slip_weights(relaxed, opts.relax, new)
-            if pre is not None and opts.relax_fill_weight is not None:
-                # the cells the fill added at a weight of their own, the edges' cells at relax
-                own = relaxed_edges(mesh, sol_before.u, dataclasses.replace(opts, relax_fill=0))
-                a = slip_weights(own, opts.relax, new)
-                b = slip_weights(relaxed, opts.relax_fill_weight, new)
+            if pre is not None and len(pre) and opts.relax_fill_weight is not None:
+                # the cells the fill added at a weight of their own, the edges' own cells at relax
+                a, b = slip_weights(own, opts.relax, new), slip_weights(pre, opts.relax_fill_weight, new)
                 rw = (lambda j, a=a, b=b: np.minimum(a(j), b(j)))
             if opts.relax_parts in ("both", "normal"):
                 kw["normal_traction"] = rw
@@ -1142,7 +1136,6 @@ def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):
     whose shear-traction jump stands out on the solve before it (cells of this mesh), with the keywords ``kw`` of
     the relaxing pass.  Returns ``(sol, relaxed, iterations)``."""
     nit = 0
-    weight = opts.relax if opts.relax_again is None else opts.relax_again
     rects_old = relaxed if opts.relax_keep else np.zeros((0, 4))
     for _ in range(opts.relax_passes - 1):
         r = relaxed_edges(sol.mesh, sol.u, opts)
@@ -1153,7 +1146,7 @@ def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):
             break
         relaxed = np.vstack([relaxed, r])
         w_old = slip_weights(rects_old, opts.relax, sol.mesh) if len(rects_old) else None
-        w_new = slip_weights(r, weight, sol.mesh)
+        w_new = slip_weights(r, opts.relax, sol.mesh)
         st = w_new if w_old is None else (lambda j, a=w_old, b=w_new: np.minimum(a(j), b(j)))
         sol = solve_on(sol.mesh, sol.u, st, **kw)
         nit += int(sol.gn.nit)
