@@ -1118,12 +1118,13 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             if opts.relax_full:
                 kw["full"] = True
         sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
-        nit += int(sol.gn.nit)
+        n_pass = int(sol.gn.nit)
         if len(relaxed) and not opts.relax_persist and opts.relax_passes > 1:
             sol, relaxed, n_again = _relax_again(sol, relaxed, opts, solve_on, kw)
-            nit += n_again
+            n_pass += n_again
+        nit += n_pass
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
-                           slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=int(sol.gn.nit),
+                           slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=n_pass,
                            relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
