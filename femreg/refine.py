@@ -78,8 +78,8 @@ total strain error 51.6-69.9 -> 37.3-57.3 %, peak e_xy 0.31-0.72 -> 0.47-0.83 of
 bands at 8 / 28 mm +0.47 / -0.42 -> -0.02 / -0.04 mm; but band1_s0.1_d12_paper's slide -8.7 -> -16.5 %); no
 inclusion, robustness, rotated or in vivo pair relaxes, so they are unchanged.
 The unrefined solve spreads a 1 mm band over a plateau of coarse rows whose faces, outside the band, are what
-stands out; so such a pass also relaxes the rows between the cells of those faces, at most 2 (:attr:`Refinement.relax_fill`,
-weight 0.1 there, :attr:`Refinement.relax_fill_weight`), splits them to a quarter
+stands out; so such a pass also relaxes the rows between the cells of those faces, at most 2
+(:attr:`Refinement.relax_fill`, weight 0.1 there, :attr:`Refinement.relax_fill_weight`), splits them to a quarter
 (:attr:`Refinement.relax_fill_split`), and solves once more on the refined mesh relaxing (0.02) only the edges
 that stand out on its first solve (:attr:`Refinement.relax_passes` 2, :attr:`Refinement.relax_keep` off): the 1 mm
 bands' peak e_xy 0.82 / 0.66 / 0.83 / 0.47 / 0.54 -> 0.78 / 0.98 / 1.03 / 0.97 / 0.90 of the truth, total strain
