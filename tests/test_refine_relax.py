@@ -465,7 +465,8 @@ def test_a_1mm_band_on_a_coarse_node_keeps_its_slide_under_the_finer_pass_weight
     slide = {}
     # the finer pass's one step as it was measured (a relaxing pass solves further at a lower weight by default:
     # test_a_relaxed_1mm_band_is_placed_and_kept_higher_by_the_full_solve)
-    one = dataclasses.replace(DEEP_REFINEMENT, relax_full=False, relax_alpha=None)
+    one = dataclasses.replace(DEEP_REFINEMENT, relax_full=False, relax_alpha=None, relax_fill=0,
+                              relax_fill_weight=None, relax_fill_split=False, relax_passes=1, relax_keep=True)
     for name, spec in (("default", one), ("nofill", dataclasses.replace(one, fine_fill=0))):
         r = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=spec)
         assert r.refinement.passes[0]["fine"] and r.refinement.passes[0]["alpha_factor"] < 0.5
@@ -513,7 +514,7 @@ def test_a_relaxed_1mm_band_is_placed_and_kept_higher_by_the_full_solve():
     # the shear-band benchmark's band1_s0.15_d28_paper (benchmarks/shear_bands.py, its metrics): with the finer
     # pass's one step the band's centre came out 0.42 mm shallow, its peak e_xy 0.31 of the truth, the total
     # strain error 69.9 % (TV-L1 63.8 %); the relaxing pass solved to the stopping rules at 0.4x the weight:
-    # -0.04 mm, 0.54, 57.3 %
+    # -0.04 mm, 0.54, 57.3 %; with the fill and the second relaxing solve of the default now -0.00 mm, 0.90, 32.8 %
     from benchmarks.robustness import errors, make_data, roi_slices, truth
     from benchmarks.shear_bands import CASES, band_scores
     from femreg.refine import DEEP_REFINEMENT
@@ -524,7 +525,8 @@ def test_a_relaxed_1mm_band_is_placed_and_kept_higher_by_the_full_solve():
     sl = roi_slices(d.ref.shape, d.spacing)
     t = truth(d, case, sl)
     got = {}
-    one = dataclasses.replace(DEEP_REFINEMENT, relax_full=False, relax_alpha=None)
+    one = dataclasses.replace(DEEP_REFINEMENT, relax_full=False, relax_alpha=None, relax_fill=0,
+                              relax_fill_weight=None, relax_fill_split=False, relax_passes=1, relax_keep=True)
     for name, spec in (("default", "auto"), ("one step", one)):
         r = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=spec)
         assert r.refinement.passes[0]["relaxed_edges"] > 0
@@ -534,4 +536,126 @@ def test_a_relaxed_1mm_band_is_placed_and_kept_higher_by_the_full_solve():
     assert abs(new["depth_err"]) < 0.2 and abs(old["depth_err"]) > 0.3
     assert new["peak_ratio"] > 0.45 and old["peak_ratio"] < 0.4
     assert new["e"] < 0.62 and old["e"] > 0.66
-    assert abs(new["slide_err"]) < 0.1                                       # measured +1.4 %
+    assert abs(new["slide_err"]) < 0.1                                       # measured +2.3 %
+
+
+def _weights(st, points):
+    """The per-edge weights of a ``shear_traction`` callable at edge midpoints ``points`` (n, 2) mm."""
+    from types import SimpleNamespace
+
+    return st(SimpleNamespace(midpoints=np.asarray(points, float).T))
+
+
+def test_the_fill_relaxes_the_rows_between_a_layers_two_faces():
+    # Refinement.relax_fill (DEEP_REFINEMENT: 2): a slide spread over a plateau of coarse rows makes the plateau's
+    # faces stand out; the rows between the cells beside them (where a thin band's own faces lie) are relaxed too
+    # when there are at most relax_fill of them
+    from femreg.refine import DEEP_REFINEMENT
+
+    assert DEEP_REFINEMENT.relax_fill == 2
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+
+    def rows(rects):
+        return sorted({int(np.searchsorted(xs, x0 + 1e-9)) - 1 for x0 in rects[:, 0]} |
+                      {int(np.searchsorted(xs, x1 - 1e-9)) - 1 for x1 in rects[:, 1]})
+
+    u = _nodal(m, _band(xs[2], xs[5]))          # faces on xs[2], xs[5]: cells in rows 1, 2 and 4, 5
+    assert rows(relaxed_edges(m, u, Refinement(**ALL))) == [1, 2, 4, 5]
+    for n in (1, 2):
+        filled = relaxed_edges(m, u, Refinement(relax_fill=n, **ALL))
+        assert rows(filled) == [1, 2, 3, 4, 5]
+        # every column of the filled row, and nothing beyond the cells the faces had
+        assert np.sum((filled[:, 0] == xs[3]) & (filled[:, 1] == xs[4])) == ys.size - 1
+    u = _nodal(m, _band(xs[2], xs[6]))          # two rows between the faces' cells: filled by 2, not by 1
+    assert rows(relaxed_edges(m, u, Refinement(relax_fill=1, **ALL))) == [1, 2, 5, 6]
+    assert rows(relaxed_edges(m, u, Refinement(relax_fill=2, **ALL))) == list(range(1, 7))
+    assert len(relaxed_edges(m, _nodal(m, _step(xs[4])), Refinement(relax_fill=2, **ALL))) == 0
+
+
+def test_a_relaxing_pass_splits_and_weighs_the_filled_rows_and_solves_again():
+    # DEEP_REFINEMENT: the filled rows split to a quarter (relax_fill_split), their edges weighed 0.1
+    # (relax_fill_weight) against the 0.02 of the faces' own cells, and a second full solve on the refined mesh
+    # relaxing only what stands out on the first (relax_passes 2, relax_keep False), at the same weight factor
+    from femreg.refine import DEEP_REFINEMENT
+
+    d = DEEP_REFINEMENT
+    assert (d.relax_fill_weight, d.relax_fill_split, d.relax_passes, d.relax_keep) == (0.1, True, 2, False)
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    f = _band(xs[2], xs[5])
+    base = dict(passes=1, levels=2, max_growth=None, relax=0.02, relax_persist=False, relax_full=True, relax_alpha=0.4,
+                **ALL)
+
+    def run(**kw):
+        calls = []
+
+        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+            calls.append((mesh, shear_traction, alpha_factor, full))
+            return _fake_solve(mesh, _nodal(mesh, f))
+
+        _, rec = refine_passes(_fake_solve(m, _nodal(m, f)), Refinement(**base, **kw), solve_on, SPACING, ORIGIN)
+        return calls, rec
+
+    calls, _ = run()
+    assert len(calls) == 1
+    plain = tensor_structure(calls[0][0])[0]
+    calls, rec = run(relax_fill=2, relax_fill_weight=0.1, relax_fill_split=True, relax_passes=2, relax_keep=False)
+    assert len(calls) == 2
+    new = tensor_structure(calls[0][0])[0]
+    core = (new > xs[3] + 1e-9) & (new < xs[4] - 1e-9)
+    assert np.sum(core) == 3 and np.sum((plain > xs[3] + 1e-9) & (plain < xs[4] - 1e-9)) < 3
+    y = 0.5 * (ys[3] + ys[4])
+    w = _weights(calls[0][1], [[xs[2], y], [0.5 * (xs[3] + xs[4]), y], [xs[-1] - 0.1, y]])
+    assert w.tolist() == pytest.approx([0.02, 0.1, 1.0])
+    # the second solve: the same mesh, full, the same factor, its weights from the faces it finds on that mesh
+    assert calls[1][0] is calls[0][0] and calls[1][3] is True and calls[1][2] == pytest.approx(calls[0][2])
+    w = _weights(calls[1][1], [[xs[2], y], [0.5 * (xs[3] + xs[4]), y], [xs[-1] - 0.1, y]])
+    assert w[0] == pytest.approx(0.02) and w[2] == 1.0
+    assert rec.passes[0]["nit"] == 6                                          # both solves' iterations
+    # a pass that relaxes nothing solves once, whatever the fill and the further passes
+    m_calls = []
+
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+        m_calls.append(shear_traction)
+        return _fake_solve(mesh, _nodal(mesh, _step(xs[4])))
+
+    refine_passes(_fake_solve(m, _nodal(m, _step(xs[4]))), Refinement(**base, relax_fill=2, relax_passes=2),
+                  solve_on, SPACING, ORIGIN)
+    assert m_calls == [None]
+
+
+@pytest.mark.parametrize("kw", [dict(relax_fill=-1), dict(relax_fill=1.5), dict(relax_fill_weight=0.0),
+                                dict(relax_fill_weight=2.0), dict(relax_fill_split=1), dict(relax_passes=0),
+                                dict(relax_passes=5), dict(relax_keep="no")])
+def test_bad_fill_and_further_pass_options_are_refused(kw):
+    with pytest.raises(InputError, match="relax_"):
+        Refinement(**kw)
+
+
+@pytest.mark.slow
+def test_the_1mm_bands_under_the_paper_probe_reach_their_peak_with_the_fill():
+    # benchmarks/shear_bands.py, band1_s0.1_d12_paper and band1_s0.15_d28_paper: the unrefined solve spreads each
+    # over a plateau of 1.5 mm rows whose faces, outside the band, were all the relaxation freed; peak e_xy 0.47 /
+    # 0.54 of the truth, total strain error 51.3 / 57.3 % (TV-L1 57.9 / 63.8 %).  With the fill, its split and the
+    # second relaxing solve: 0.97 / 0.90, 26.9 / 32.8 %, slide +2.8 / +2.3 %, depth -0.01 / -0.00 mm
+    from benchmarks.robustness import errors, make_data, roi_slices, truth
+    from benchmarks.shear_bands import CASES, band_scores
+    from femreg.refine import DEEP_REFINEMENT
+    from forward.pairs import PROBES
+
+    before = dataclasses.replace(DEEP_REFINEMENT, relax_fill=0, relax_fill_weight=None, relax_fill_split=False,
+                                 relax_passes=1, relax_keep=True)
+    for name in ("band1_s0.1_d12_paper", "band1_s0.15_d28_paper"):
+        case = next(c for c in CASES if c.name == name)
+        d = make_data(case)
+        sl = roi_slices(d.ref.shape, d.spacing)
+        t = truth(d, case, sl)
+        got = {}
+        for key, spec in (("default", "auto"), ("before", before)):
+            g = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=spec).on_grid()
+            got[key] = dict(band_scores(g, d, d.field, sl), e=errors(g, t, sl, PROBES[case.probe].wavelength_mm)["e"])
+        new, old = got["default"], got["before"]
+        assert new["peak_ratio"] > 0.8 and old["peak_ratio"] < 0.6, name       # 0.97 / 0.90 against 0.47 / 0.54
+        assert new["e"] < 0.4 and old["e"] > 0.5, name                          # 26.9 / 32.8 against 51.3 / 57.3 %
+        assert abs(new["slide_err"]) < 0.1 and abs(new["depth_err"]) < 0.1, name
