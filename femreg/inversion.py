@@ -269,6 +269,12 @@ REGISTERED_SIGMA = 1.7
 #: strain carries 3 x less of it than a stiff one (6 x less than a soft one in plane stress; docs/inversion.md):
 #: its estimate came out 1.3-1.6 x the truth even from the exact displacement.
 TV_REWEIGHT = 1.0
+TV_REWEIGHT_STEPS = 1
+TV_BREGMAN = 0
+TV_BREGMAN_FRACTION = 1.0
+TV_CERTAINTY = 0.0
+TV_CERTAINTY_MIN = 0.1
+TV_CERTAINTY_LAPLACE = "same"
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -483,6 +489,8 @@ class _Regularizer:
         self.scale = h / area if kind == "tv" else 0.5 * h * h / area
         self.n_el = mesh.t.shape[1]
         self.base_length = self.length.copy()
+        self.edge_factor = None     # per-edge factor on the TV weight (certainty weights), None: 1
+        self.linear = None          # Bregman: the subgradient p of R at the previous iterate, R(theta) - p.theta
 
     def reweight(self, theta, kappa):
         """Edge weights 1 / (1 + |[theta]| / kappa) (:data:`TV_REWEIGHT`): the log penalty kappa log(1 + |[theta]| /
@@ -492,6 +500,8 @@ class _Regularizer:
         else:
             j = np.abs(theta[self.a] - theta[self.b])
             self.length = self.base_length / (1.0 + j / kappa)
+        if self.edge_factor is not None:
+            self.length = self.length * self.edge_factor
 
     def __call__(self, theta):
         j = theta[self.a] - theta[self.b]
@@ -504,6 +514,9 @@ class _Regularizer:
             val = self.scale * float(np.sum(c * j * j))
             gj = 2.0 * self.scale * c * j
         g = np.bincount(self.a, gj, self.n_el) - np.bincount(self.b, gj, self.n_el)
+        if self.linear is not None:
+            val -= float(self.linear @ theta)
+            g = g - self.linear
         return val, g
 
     def hessian(self, theta, sparse: bool = False):
@@ -1630,12 +1643,32 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
         # data, a modulus that differs mostly in the inclusions' contrast)
-        reg.reweight(theta, TV_REWEIGHT)
-        theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)   # the bar is closed here
-        if np.all(np.isfinite(theta_r)):
-            theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
-            if info.get("boundary") is not None:
-                problem.g = info["boundary"]
+        if TV_CERTAINTY:
+            Hd_c = hd_cache.get(b)
+            if Hd_c is None:
+                Hd_c = _data_hessian(fem, problem, theta)
+            kap = np.clip(np.diag(Hd_c), 1e-300, None) / np.median(np.diag(Hd_c))
+            kap = np.clip(kap, TV_CERTAINTY_MIN, 1.0) ** TV_CERTAINTY
+            reg.edge_factor = kap[reg.a] * kap[reg.b]
+        for _ in range(TV_REWEIGHT_STEPS):
+            reg.reweight(theta, TV_REWEIGHT)
+            theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)   # the bar is closed here
+            if np.all(np.isfinite(theta_r)):
+                theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
+                if info.get("boundary") is not None:
+                    problem.g = info["boundary"]
+        for _ in range(TV_BREGMAN):
+            reg.linear = None
+            reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
+            theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)
+            reg.linear = None
+            if np.all(np.isfinite(theta_r)):
+                theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
+                if info.get("boundary") is not None:
+                    problem.g = info["boundary"]
+        if TV_CERTAINTY and TV_CERTAINTY_LAPLACE == "plain":
+            reg.edge_factor = None
+            reg.reweight(chosen[1], TV_REWEIGHT)
         phi, _ = problem.misfit(theta)
         R, _ = reg(theta)
         rule += f"; TV reweighted once (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
