@@ -272,9 +272,12 @@ TV_REWEIGHT = 1.0
 TV_REWEIGHT_STEPS = 1
 TV_BREGMAN = 0
 TV_BREGMAN_FRACTION = 1.0
+TV_BREGMAN_START = 1.0
+TV_BREGMAN_TARGET = 1.0
 TV_CERTAINTY = 0.0
 TV_CERTAINTY_MIN = 0.1
 TV_CERTAINTY_LAPLACE = "same"
+_TRACE = None
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1643,6 +1646,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
         # data, a modulus that differs mostly in the inclusions' contrast)
+        if _TRACE is not None:
+            _TRACE.append(dict(stage="rule", theta=theta.copy(), phi=problem.misfit(theta)[0], beta=b,
+                               Hd=hd_cache.get(b), RH=reg.hessian(theta), mesh=mesh, s2=s2))
         if TV_CERTAINTY:
             Hd_c = hd_cache.get(b)
             if Hd_c is None:
@@ -1657,15 +1663,30 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
                 if info.get("boundary") is not None:
                     problem.g = info["boundary"]
+            if _TRACE is not None:
+                _TRACE.append(dict(stage="reweight", theta=theta.copy(), phi=problem.misfit(theta)[0]))
+        b_breg = b * TV_BREGMAN_START
+        phi_target = TV_BREGMAN_TARGET * problem.misfit(chosen[1])[0]
+        if TV_BREGMAN_START != 1.0 and TV_BREGMAN:
+            reg.linear = None
+            theta_r, info_r = _optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol)
+            if np.all(np.isfinite(theta_r)):
+                theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
+            if _TRACE is not None:
+                _TRACE.append(dict(stage="bregman0", theta=theta.copy(), phi=problem.misfit(theta)[0]))
         for _ in range(TV_BREGMAN):
+            if TV_BREGMAN_START != 1.0 and problem.misfit(theta)[0] <= phi_target:
+                break
             reg.linear = None
             reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
-            theta_r, info_r = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol)
+            theta_r, info_r = _optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol)
             reg.linear = None
             if np.all(np.isfinite(theta_r)):
                 theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
                 if info.get("boundary") is not None:
                     problem.g = info["boundary"]
+            if _TRACE is not None:
+                _TRACE.append(dict(stage="bregman", theta=theta.copy(), phi=problem.misfit(theta)[0]))
         if TV_CERTAINTY and TV_CERTAINTY_LAPLACE == "plain":
             reg.edge_factor = None
             reg.reweight(chosen[1], TV_REWEIGHT)
