@@ -272,7 +272,7 @@ REGISTERED_SIGMA = 1.7
 TV_REWEIGHT = 1.0
 #: Passes of the reweighting (:data:`TV_REWEIGHT`), each from the last one's solution.  Measured on the six sets of
 #: benchmarks/inversion.py (docs/inversion.md, "Contrast-preserving TV"): 2 passes gave 81/92 in the band against
-#: 80/92 (held-out +1, the others unchanged; background CV and calibration unchanged): not adopted, the one case
+#: 80/92 (held-out +1, the others unchanged; background CV unchanged, calibration within 1 point): not adopted, the one case
 #: gained has a background CV of 52 %.
 TV_REWEIGHT_STEPS = 1
 #: Bregman iteration after the reweighted solve (Osher, Burger, Goldfarb, Xu & Yin, Multiscale Model. Simul. 4 (2005)
