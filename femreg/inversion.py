@@ -272,8 +272,8 @@ REGISTERED_SIGMA = 1.7
 TV_REWEIGHT = 1.0
 #: Passes of the reweighting (:data:`TV_REWEIGHT`), each from the last one's solution.  Measured on the six sets of
 #: benchmarks/inversion.py (docs/inversion.md, "Contrast-preserving TV"): 2 passes gave 81/92 in the band against
-#: 80/92 (held-out +1, the others unchanged; background CV unchanged, calibration within 1 point): not adopted, the one case
-#: gained has a background CV of 52 %.
+#: 80/92 (held-out +1, the others unchanged; background CV unchanged, calibration within 1 point): not adopted,
+#: the one case gained has a background CV of 52 %.
 TV_REWEIGHT_STEPS = 1
 #: Bregman iteration after the reweighted solve (Osher, Burger, Goldfarb, Xu & Yin, Multiscale Model. Simul. 4 (2005)
 #: 460, doi:10.1137/040605412, their eq. 3.7-3.8): ``TV_BREGMAN`` further solves of misfit + beta_B (R(theta) -
