@@ -18,7 +18,7 @@ displacement on the same mesh: the floor) and ``1/strain`` (the axial strain's i
 stiffness, from the same registration).
 
 Run: ``python benchmarks/heterogeneous.py [--out DIR] [--cases WORDS] [--methods WORDS] [--refine none]
-[--invert]`` (registration rows about 5 min on 2 cores; ``--invert`` about 2 min).
+[--invert [--regularization tikhonov]]`` (registration rows about 5 min on 2 cores; ``--invert`` about 2 min).
 """
 from __future__ import annotations
 
@@ -158,6 +158,8 @@ def main(argv=None):
     ap.add_argument("--methods", default="", help="comma-separated words selecting the registration methods")
     ap.add_argument("--refine", default=None, help="refine= of femreg's pairs: none, auto or a number")
     ap.add_argument("--invert", action="store_true", help="the inversion rows instead of the registration rows")
+    ap.add_argument("--regularization", default=None, choices=("tv", "tikhonov"),
+                    help="--invert: regularization= of femreg.invert (default: invert's own)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
     cases = _select(CASES, a.cases)
@@ -167,7 +169,7 @@ def main(argv=None):
     if a.invert:
         rows = []
         for case in cases:
-            rows += invert_case(case)
+            rows += invert_case(case, {"regularization": a.regularization} if a.regularization else None)
             r = rows[-3]
             print(f"# {case.name}: femreg corr {r['corr']:.2f} RMS log {r['rms_log']:.2f} "
                   f"success {r['success']}", file=sys.stderr, flush=True)

@@ -1836,6 +1836,9 @@ class InversionResult:
         Which inversion mesh was used (the registration's own, or a tensor mesh and its element size).
     uncertainty : (n_el,) float or None
         Standard deviation of log mu per element (Laplace approximation), NaN where not ``constrained``.
+        It is the noise's spread at the chosen beta, not the regulariser's bias: calibrated on inclusions
+        (55-80 % of the true log mu within +-1 sigma), over-confident on tissue whose stiffness varies within
+        two elements (25 %, docs/inversion.md "Heterogeneous tissue").
     constrained : (n_el,) bool or None
         Elements the data constrain.
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None

@@ -22,10 +22,6 @@ import numpy as np
 __all__ = ["RandomTissue"]
 
 
-def h_mm_eff(length: float, n: int) -> float:
-    return length / n
-
-
 class RandomTissue:
     """A compressed block of smoothly heterogeneous tissue (FE ground truth; module docstring).
 
@@ -121,7 +117,7 @@ class RandomTissue:
 
         # the FE solution and its own gradient on the 0.1 mm grid: the grid points are reference points of the
         # tensor mesh's elements (a quadrature rule of them), so no point search is needed
-        k = max(1, int(round(h_mm_eff(depth, nx) / self.GRID_MM)))
+        k = max(1, int(round(depth / nx / self.GRID_MM)))
         r = np.linspace(0.0, 1.0, k + 1)
         R = np.array(np.meshgrid(r, r, indexing="ij")).reshape(2, -1)
         pb = Basis(mesh, ElementVector(ElementQuad2()), quadrature=(R, np.full(R.shape[1], 1.0 / R.shape[1])))
