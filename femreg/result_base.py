@@ -141,4 +141,4 @@ class RefinementRecord:
                  + (", finer marking" if p.get("fine") else "")
                  + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "") + ")"
                  for p in self.passes]
-        return "refinement: " + "; ".join(parts)
+        return "refinement: " + "; ".join(parts) + (f"; {self.note}" if self.note else "")
