@@ -10,8 +10,8 @@ from forward.tissue import RandomTissue
 @pytest.mark.parametrize("seed, bound", [(21, 0.16), (23, 0.17)])
 def test_defaults_follow_heterogeneous_tissue(seed, bound):
     # measured: total strain error 0.130 (seed 21) / 0.139 (seed 23), NCC block matching 0.726 / 0.716;
-    # bounds about 1.2x the measured value
-    from benchmarks import peers
+    # bounds about 1.2x the measured value; the uniform field of the true mean strain (all a homogeneous
+    # model can give: 0.328 / 0.417) must be at least twice as far
     from benchmarks.robustness import errors, roi_slices
 
     f = RandomTissue(seed, 0.01, "plane-stress", sigma=0.7, corr_mm=2.0, size_mm=(30.0, 30.0))
@@ -27,9 +27,12 @@ def test_defaults_follow_heterogeneous_tissue(seed, bound):
     r = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
     assert r.success, r.message
     err = errors(r.on_grid(), t, sl, 0.2)["e"]
-    ncc = errors(peers.ncc_block_match(p.ref, p.mov, p.spacing, p.origin), t, sl, 0.2)["e"]
+    full = {k: np.full(p.ref.shape, np.nan) for k in t}
+    for k in t:
+        full[k][sl] = np.mean(t[k])
+    uniform = errors(full, t, sl, 0.2)["e"]
     assert err < bound
-    assert err < 0.3 * ncc
+    assert err < 0.5 * uniform
 
 
 def test_refined_result_says_when_the_speckle_decorrelates():
