@@ -35,7 +35,7 @@ def test_defaults_follow_heterogeneous_tissue(seed, bound):
     assert err < 0.5 * uniform
 
 
-def test_refined_result_says_when_the_speckle_decorrelates():
+def test_refined_result_says_when_the_speckle_decorrelates(tmp_path, capsys):
     # an independent speckle frame mixed into the moving one (out-of-plane motion): median element NCC 0.87
     # (measured on this L7 pair at rho 0.5), below femreg.refine.DECORRELATED_NCC; the clean pair 0.99
     from forward import fields as F
@@ -50,3 +50,11 @@ def test_refined_result_says_when_the_speckle_decorrelates():
     assert clean.refinement.passes and noisy.refinement.passes        # both refined
     assert "decorrelated" not in clean.message
     assert "speckle is decorrelated (median element NCC 0.8" in noisy.message, noisy.message
+    # the command line says it on a line of its own, in its own words
+    from femreg.cli import main
+
+    np.savez(tmp_path / "pair.npz", frames=np.stack([p.ref, mov]).astype(np.float32), spacing=np.array(p.spacing))
+    assert main(["register", str(tmp_path / "pair.npz"), "-o", str(tmp_path / "r.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "femreg register: note: refined although the speckle is decorrelated" in out
+    assert "against --refine none" in out

@@ -181,6 +181,9 @@ def run(args) -> int:
     print(res)
     if res.excluded:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
+    note = getattr(getattr(res, "refinement", None), "note", None)
+    if note and "decorrelated" in note:
+        print(f"femreg register: note: {note.replace('refine=None', '--refine none')}")
     print(f"wrote {args.output}")
     if not res.success:
         print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
