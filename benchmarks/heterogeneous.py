@@ -60,13 +60,6 @@ CASES = [
 METHODS = ["R_P_sigma", "R_eps", "NCC BM", "B-spline (SimpleITK)", "TV-L1 (skimage)"]
 
 
-def _select(cases, words):
-    if not words:
-        return list(cases)
-    ws = [w.strip() for w in words.split(",") if w.strip()]
-    return [c for c in cases if any(w in c.name for w in ws)]
-
-
 def invert_case(case, inv_kw=None):
     """Rows (femreg, exact, 1/strain) of the inversion metrics of one case (module docstring)."""
     import femreg
@@ -162,7 +155,7 @@ def main(argv=None):
                     help="--invert: regularization= of femreg.invert (default: invert's own)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
-    cases = _select(CASES, a.cases)
+    cases = R.select_cases(CASES, a.cases)
     if not cases:
         ap.error(f"no case matches {a.cases!r}; cases: {', '.join(c.name for c in CASES)}")
     a.out.mkdir(parents=True, exist_ok=True)
@@ -178,11 +171,8 @@ def main(argv=None):
         print(md)
         return 0
     if a.refine is not None:
-        R.REFINE = None if a.refine in ("none", "0") else (a.refine if a.refine == "auto" else int(a.refine))
-    methods = METHODS
-    if a.methods:
-        ws = [w.strip() for w in a.methods.split(",") if w.strip()]
-        methods = [m for m in R.ALL_METHODS if any(w == m or (w not in R.ALL_METHODS and w in m) for w in ws)]
+        R.REFINE = R.parse_refine(a.refine)
+    methods = R.select_methods(a.methods) if a.methods else METHODS
     R.run(cases, methods, a.out, progress=not a.no_progress)
     return 0
 

@@ -492,6 +492,25 @@ def tables(rows, cases, methods, strategy) -> str:
     return "".join(lines)
 
 
+def parse_refine(text):
+    """``--refine`` text -> ``refine=`` of femreg's pairs (:data:`REFINE`): none / 0, auto or a number of passes."""
+    return None if text in ("none", "0") else (text if text == "auto" else int(text))
+
+
+def select_cases(cases, words: str) -> list:
+    """The cases whose name contains one of the comma-separated ``words`` (all for "")."""
+    ws = [w for w in words.split(",") if w]
+    return [c for c in cases if not ws or any(w in c.name for w in ws)]
+
+
+def select_methods(words: str, methods=None) -> list:
+    """The methods (default :data:`ALL_METHODS`) named by the comma-separated ``words``: a method's full name
+    selects it alone, any other word every method whose name contains it ("": all)."""
+    methods = list(ALL_METHODS if methods is None else methods)
+    ws = [w for w in words.split(",") if w]
+    return [m for m in methods if not ws or any(w == m or (w not in ALL_METHODS and w in m) for w in ws)]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -519,17 +538,11 @@ def main(argv=None):
         os.environ.setdefault(v, "1")
     if a.refine is not None:
         global REFINE
-        REFINE = None if a.refine in ("none", "0") else (a.refine if a.refine == "auto" else int(a.refine))
-    cases = [c for c in CASES if c.quick] if a.quick else list(CASES)
-    if a.cases:
-        words = [w for w in a.cases.split(",") if w]
-        cases = [c for c in cases if any(w in c.name for w in words)]
+        REFINE = parse_refine(a.refine)
+    cases = select_cases([c for c in CASES if c.quick] if a.quick else CASES, a.cases)
     if a.seed:
         cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
-    methods = list(ALL_METHODS)
-    if a.methods:
-        words = [w for w in a.methods.split(",") if w]
-        methods = [m for m in methods if any(w == m or (w not in ALL_METHODS and w in m) for w in words)]
+    methods = select_methods(a.methods)
     if a.list:
         for c in CASES:
             print(f"{c.name:24s} probe {c.probe:5s} {c.size_mm[0]}x{c.size_mm[1]} mm SNR {c.snr_db} dB"

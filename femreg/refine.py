@@ -1062,11 +1062,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
-    q_med = float("nan")            # the unrefined solve's median element NCC (DECORRELATED_NCC)
-    if getattr(sol, "data", None) is not None:
-        with np.errstate(invalid="ignore"):
-            q0 = element_ncc(sol.data, sol.u, sol.mesh.t.shape[1])
-        q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else q_med
+    unrefined = sol                 # its element NCC, only when a pass splits (DECORRELATED_NCC)
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
@@ -1169,9 +1165,13 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
-    if record and note is None and q_med < DECORRELATED_NCC:
-        note = (f"refined although the speckle is decorrelated (median element NCC {q_med:.2f} < "
-                f"{DECORRELATED_NCC:g}): check the strain image for rectangular patches against refine=None")
+    if record and note is None and getattr(unrefined, "data", None) is not None:
+        with np.errstate(invalid="ignore"):
+            q0 = element_ncc(unrefined.data, unrefined.u, unrefined.mesh.t.shape[1])
+        q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else float("nan")
+        if q_med < DECORRELATED_NCC:
+            note = (f"refined although the speckle is decorrelated (median element NCC {q_med:.2f} < "
+                    f"{DECORRELATED_NCC:g}): check the strain image for rectangular patches against refine=None")
     return sol, RefinementRecord(record, base_size, note)
 
 

@@ -57,7 +57,8 @@ def test_heterogeneous_benchmark_scores():
     # the benchmark's score: the truth itself scores corr 1, RMS 0, all within 15 %; a flat image corr NaN-free 0
     from types import SimpleNamespace
 
-    from benchmarks.heterogeneous import _score, _select, CASES
+    from benchmarks.heterogeneous import _score, CASES
+    from benchmarks.robustness import select_cases
     from skfem import MeshQuad
 
     t = RandomTissue(2, 0.01, sigma=0.5, **SMALL)
@@ -68,4 +69,4 @@ def test_heterogeneous_benchmark_scores():
     assert s["corr"] > 0.999 and s["rms_log"] < 1e-9 and s["in_band"] == 1.0 and s["calibrated"] == 1.0
     off = _score(SimpleNamespace(p=m.p, t=m.t), t.modulus(c) ** -1.0, None, t, roi)
     assert off["corr"] < -0.999 and off["in_band"] < 0.5
-    assert [c.name for c in _select(CASES, "L15")] == ["tissue0.7-pstrain1_L15"]
+    assert [c.name for c in select_cases(CASES, "L15")] == ["tissue0.7-pstrain1_L15"]

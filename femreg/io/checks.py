@@ -241,6 +241,12 @@ def _key(name: str) -> tuple:
     return k, ""
 
 
+def _hz(value: float, unit: str) -> float:
+    """A header frequency in Hz: unit from the name's suffix ("mhz", "khz", "hz"), else from the magnitude (a value
+    above 1e4 is in Hz, else in MHz)."""
+    return value * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(unit, 1.0 if value > 1e4 else 1e6)
+
+
 def spacing_hint(fields: dict) -> str:
     """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold neither a sampling
     frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
@@ -263,7 +269,7 @@ def spacing_hint(fields: dict) -> str:
     c_name, c, _ = found.get("c", ("", 1540.0, ""))
     if "fs" in found:
         fs_name, fs, fu = found["fs"]
-        fs_hz = fs * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(fu, 1.0 if fs > 1e4 else 1e6)
+        fs_hz = _hz(fs, fu)
         dx = f"{c * 1e3 / (2.0 * fs_hz):.4g}"
         why_x = (f"axial c / (2 fs) with {fs_name} = {fs:g} read as {fs_hz / 1e6:g} MHz and c = {c:g} m/s"
                  f"{'' if c_name else ' assumed'}")
@@ -296,16 +302,13 @@ def iq_frequency_hint(fields: dict) -> str:
     probe's centre / transmit frequency (``f0``, ``fc``, ``center_frequency``), at which most IQ exports
     demodulate, named as such.  Units from the name's suffix or else the magnitude (above 1e4: Hz).  A hint
     only: never applied."""
-    def mhz(name, v):
-        unit = _key(name)[1]
-        return v * {"mhz": 1.0, "khz": 1e-3, "hz": 1e-6}.get(unit, 1e-6 if v > 1e4 else 1.0)
-
     for names, why in ((_DEMOD_NAMES, ""), (_CENTRE_NAMES, "the probe's centre frequency, at which IQ data are "
                                                            "usually demodulated: check it")):
         for name, value in fields.items():
             v = _positive(value)
-            if v is not None and _key(name)[0] in names:
-                f = mhz(name, v)
+            base, unit = _key(name)
+            if v is not None and base in names:
+                f = _hz(v, unit) / 1e6
                 if not 0.1 <= f <= 100.0:  # no ultrasound carrier: not this field
                     continue
                 return (f"its fields suggest --iq-frequency {f:.3g} ({name} = {v:g} read as {f:.6g} MHz"
