@@ -108,6 +108,17 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
     return out
 
 
+def _probe_need(info) -> str:
+    """The ``--geometry`` a convex or phased array's frames need, from the header fields ("" for none)."""
+    from ..io.checks import geometry_hint
+
+    meta = info.get("metadata") or {}
+    fields = dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {})
+    hint = geometry_hint(fields)
+    return (f"frames along the rays of a curved or phased array: register with the probe geometry; {hint} "
+            "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
+
+
 def _iq_needs(fr) -> list:
     """The problems :func:`femreg.io.read_frames` refuses remodulated IQ frames for (exchanged spacings, the
     other sign convention, another demodulation frequency), as a list of needs ([] when they pass)."""
@@ -264,6 +275,9 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    probe = _probe_need(info)
+    if probe:
+        info["needs"].append(probe)
     # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
     rc = 1 if info["needs"] else 0
     if args.json:

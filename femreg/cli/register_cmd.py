@@ -13,6 +13,7 @@ before any registration.
 """
 from __future__ import annotations
 
+import argparse
 import sys
 
 import numpy as np
@@ -48,10 +49,19 @@ def add_parser(subparsers):
     return p
 
 
+class _Given(argparse.Action):
+    """Store the value and record that the flag was given (``geometry_given``): a file whose header states a
+    curved array is refused only when no geometry was chosen."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.geometry_given = True
+
+
 def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
     """The probe geometry options (``--geometry`` of ``choices``, and each geometry's parameters)."""
     g = p.add_argument_group("probe geometry (femreg.geometry)")
-    g.add_argument("--geometry", choices=choices, default="linear",
+    g.add_argument("--geometry", choices=choices, default="linear", action=_Given,
                    help=("frames sampled along the rays of a convex or phased (sector) array: (samples, rays), the "
                          "axial spacing is the range step, registered in physical x, y (default linear); "
                          if "convex" in choices else "default linear; ")
@@ -109,6 +119,30 @@ def _geometry(args):
     return femreg.Sector(angle_pitch_deg=args.angle_pitch)
 
 
+def _beam_spacing(args) -> None:
+    """Convex / sector frames use the axial spacing (the range step) alone: the rays are ``--angle-pitch`` apart.
+    A lateral value is not needed (a stand-in keeps the readers from asking for it), and one given is said to be
+    unused."""
+    sp = list(args.spacing) if args.spacing else [None, None]
+    if sp[1] is not None:
+        print(f"femreg register: note: --geometry {args.geometry}: the lateral spacing {sp[1]:g} is not used "
+              f"(the rays are --angle-pitch {args.angle_pitch} deg apart)", file=sys.stderr)
+    args.spacing = [sp[0], 1.0]
+
+
+def _refuse_curved(fr, path) -> None:
+    """Frames whose header states a convex or phased array are not registered as a linear array's (their rays
+    would be taken for parallel lines) unless ``--geometry`` is given."""
+    from femreg.errors import InputError
+    from femreg.io.checks import geometry_hint
+
+    meta = dict(fr.metadata)
+    hint = geometry_hint(dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {}))
+    if hint:
+        raise InputError(f"{path}: {hint}; pass those flags (or --geometry linear if the frames are on a "
+                         "Cartesian grid already)")
+
+
 def run(args) -> int:
     import femreg
     from femreg.errors import InputError
@@ -138,7 +172,11 @@ def run(args) -> int:
             kw["refine"] = int(r)
         else:
             raise InputError(f"--refine takes a number of passes, auto, slip or none, got {args.refine!r}")
+    if args.geometry in ("convex", "sector"):
+        _beam_spacing(args)
     ref_fr = frames_from_args(args, args.reference)
+    if args.geometry == "linear" and not getattr(args, "geometry_given", False):
+        _refuse_curved(ref_fr, args.reference)
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
-           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint",
+           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
            "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
@@ -279,10 +279,67 @@ def spacing_hint(fields: dict) -> str:
         p_name, p, pu = found["pitch"]
         p_mm = p * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(pu, 1e3 if p < 0.005 else 1.0)
         dy, why_y = f"{p_mm:.4g}", f"lateral {p_name} = {p:g} read as {p_mm:g} mm"
+    elif geometry_fields(fields):
+        dy, why_y = "auto", ("auto: the lateral value is not used for a convex or phased array, whose rays are "
+                             "--angle-pitch apart")
     else:
         dy, why_y = "DY", ("DY, the lateral line pitch in mm, is not in the file (for a linear array usually the "
-                           "probe's element pitch)")
+                           "probe's element pitch; a convex or phased array takes --geometry convex / sector "
+                           "and --spacing DX auto)")
     return f"its fields suggest --spacing {dx} {dy} ({why_x}; {why_y}): check them against the scanner's settings"
+
+
+# convex / phased-array header fields (last path component, lower-case alphanumerics, unit suffix removed)
+_RADIUS_NAMES = ("radius", "convexradius", "proberadius", "arrayradius", "curvatureradius", "radiusofcurvature",
+                 "roc", "apexdistance", "transducerradius")
+_ANGLE_PITCH_NAMES = ("anglepitch", "angularpitch", "dtheta", "rayangle", "raypitch", "lineangle",
+                      "angleincrement", "angularstep", "beamangle", "beamanglepitch", "lineanglepitch")
+
+
+def _geometry_key(name: str) -> tuple:
+    """(base, unit) of a header field for the probe geometry: ``probe/angle_pitch_deg`` -> ("anglepitch", "deg")."""
+    k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
+    for u in ("deg", "rad", "mm", "m"):
+        if k.endswith(u) and k[:-len(u)] in _RADIUS_NAMES + _ANGLE_PITCH_NAMES:
+            return k[:-len(u)], u
+    return k, ""
+
+
+def geometry_fields(fields: dict) -> dict:
+    """The probe geometry a file's header fields state: ``{"radius_mm": R, "angle_pitch_deg": A, "names": (...)}``
+    with the entries found (a convex radius in mm, the angle between rays in degrees), or {}.  Units from the
+    name's suffix (``_mm``, ``_m``, ``_deg``, ``_rad``) or else the magnitude (a radius below 0.5 in metres, an
+    angle pitch below 0.05 in radians).  A hint only: never applied."""
+    out, names = {}, []
+    for name, value in fields.items():
+        v = _positive(value)
+        if v is None:
+            continue
+        base, unit = _geometry_key(name)
+        if base in _RADIUS_NAMES and "radius_mm" not in out:
+            out["radius_mm"] = v * {"mm": 1.0, "m": 1e3}.get(unit, 1e3 if v < 0.5 else 1.0)
+            names.append(f"{name} = {v:g}")
+        elif base in _ANGLE_PITCH_NAMES and "angle_pitch_deg" not in out:
+            a = v * {"deg": 1.0, "rad": 180.0 / math.pi}.get(unit, 180.0 / math.pi if v < 0.05 else 1.0)
+            if 0.0 < a < 10.0:        # degrees between neighbouring rays, not a field of view
+                out["angle_pitch_deg"] = a
+                names.append(f"{name} = {v:g}")
+    if "angle_pitch_deg" not in out:
+        return {}
+    return {**out, "names": tuple(names)}
+
+
+def geometry_hint(fields: dict) -> str:
+    """The ``--geometry`` flags a file's header fields imply, in words, or "" (:func:`geometry_fields`)."""
+    g = geometry_fields(fields)
+    if not g:
+        return ""
+    r = g.get("radius_mm")
+    flags = (f"--geometry convex --radius {r:.4g} --angle-pitch {g['angle_pitch_deg']:.4g}" if r else
+             f"--geometry sector --angle-pitch {g['angle_pitch_deg']:.4g}")
+    kind = "a convex array" if r else "a phased (sector) array, apex on the face"
+    return (f"its fields suggest {kind}: {flags} ({', '.join(g['names'])}; radius in mm, angle in degrees): "
+            "check them against the probe's specification")
 
 
 def _positive(value):

@@ -16,7 +16,8 @@ layout or naming.  What femreg reads:
   frequency and a pitch (:func:`femreg.io.checks.spacing_hint`), but never applies it: units in attributes are
   a guess.
 
-Scalar attributes of the file and of the dataset are kept in ``metadata["fields"]``.
+Scalar attributes of the file and of the dataset, and scalar datasets (by their path, e.g. ``probe/fs``), are kept
+in ``metadata["fields"]``.
 """
 from __future__ import annotations
 
@@ -131,7 +132,10 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
             arr = ds[()]
             stored = str(ds.dtype) if ds.dtype.kind != "c" else f"complex {np.dtype(ds.dtype).name}"
             file_spacing, origin = _named(f, ds, "spacing"), _named(f, ds, "origin")
-            attrs = {**_scalars(f.attrs), **_scalars(ds.attrs)}
+            # scalar datasets are header fields too (an export's probe/fs, as MATLAB's scalar variables)
+            scalars = {k: d[()] for k, d in dsets.items() if k != name and d.size == 1
+                       and d.dtype.kind in "iuf"}
+            attrs = {**_scalars(scalars), **_scalars(f.attrs), **_scalars(ds.attrs)}
     except (FileFormatError, InputError):
         raise
     except Exception as exc:  # h5py raises OSError, KeyError, RuntimeError on corrupt files

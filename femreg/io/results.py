@@ -227,8 +227,9 @@ def _read(path) -> dict:
 
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
-    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, and
-    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, when the file has them) and the element-strain grid
+    nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm,
+    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, and ``geometry``, the convex / sector mapping as a
+    dict, when the file has them) and the element-strain grid
     (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
@@ -253,6 +254,9 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
+    if d.get("geometry_kind") is not None:          # a convex / sector frame's result (femreg.geometry.BeamResult)
+        kw["geometry"] = dict(kind=str(d["geometry_kind"]), radius_mm=float(d["geometry_radius_mm"]),
+                              angle_pitch_deg=float(d["geometry_angle_pitch_deg"]))
     return mesh, np.asarray(d["u"], float), kw, element_grid
 
 

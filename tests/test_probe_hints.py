@@ -1,0 +1,105 @@
+"""Files from convex and phased arrays: header fields that state the probe geometry, the hint femreg info and the
+readers' errors give from them, and the CLI's refusal to register such frames as a linear array's."""
+from __future__ import annotations
+
+import subprocess
+
+import numpy as np
+import pytest
+
+from femreg.io import read_frames
+from femreg.io.checks import geometry_fields, geometry_hint, spacing_hint
+
+h5py = pytest.importorskip("h5py")
+
+
+def test_geometry_fields_units_and_names():
+    g = geometry_fields({"probe/radius_mm": 50.0, "probe/angle_pitch_deg": 0.5})
+    assert g["radius_mm"] == pytest.approx(50.0) and g["angle_pitch_deg"] == pytest.approx(0.5)
+    # SI units told by magnitude: a radius of 0.06 (m) and 0.00873 (rad) between rays
+    g = geometry_fields({"ROC": 0.06, "dtheta": np.deg2rad(0.5)})
+    assert g["radius_mm"] == pytest.approx(60.0) and g["angle_pitch_deg"] == pytest.approx(0.5)
+    assert geometry_fields({"angle_pitch": 60.0}) == {}        # a field of view, not the angle between rays
+    assert geometry_fields({"radius_mm": 50.0}) == {}           # no angle between rays: nothing to register with
+    assert "--geometry sector --angle-pitch 0.35" in geometry_hint({"line_angle_deg": 0.35})
+    assert geometry_hint({"fs": 40e6, "pitch": 0.3}) == ""      # a linear array's header
+    # with the rays' angle known, the lateral spacing is not asked for
+    assert "--spacing 0.0385 auto" in spacing_hint({"fs": 20e6, "c": 1540.0, "angle_pitch_deg": 0.5})
+
+
+@pytest.fixture(scope="module")
+def convex_file(tmp_path_factory):
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_pair
+
+    p = make_beam_pair(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                       depth_mm=12.0, n_rays=40, snr_db=30.0, seed=1)
+    path = tmp_path_factory.mktemp("convex") / "acq.h5"
+    with h5py.File(path, "w") as f:        # as a MATLAB h5write export: (frames, rays, samples), int16
+        f["RData"] = np.round(np.stack([p.ref, p.mov]).transpose(0, 2, 1) * 1000).astype(np.int16)
+        f.attrs["fs"] = 1540.0 / (2.0 * p.spacing[0] * 1e-3)
+        f["probe/radius_mm"] = 40.0                       # scalar datasets, not attributes
+        f["probe/angle_pitch_deg"] = 0.6
+    return path, p
+
+
+def test_scalar_datasets_are_fields(convex_file):
+    path, p = convex_file
+    fr = read_frames(path, spacing=(p.spacing[0], 0.4))
+    fields = fr.metadata["fields"]
+    assert fields["probe/radius_mm"] == 40.0 and fields["probe/angle_pitch_deg"] == pytest.approx(0.6)
+    assert fr.frames.shape[1:] == p.ref.shape                   # transposed back to (samples, rays)
+
+
+def test_cli_convex_file(convex_file, tmp_path, capsys):
+    from femreg import load_result
+    from femreg.cli import main
+
+    def cli(argv):
+        rc = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(argv, rc, out, err)
+
+    path, p = convex_file
+    dr = p.spacing[0]
+    info = cli(["info", path])
+    assert info.returncode == 1, info
+    assert "--geometry convex --radius 40 --angle-pitch 0.6" in info.stdout
+    assert f"--spacing {dr:.4g} auto" in info.stdout
+    # registered as a linear array's lines: refused, naming the flags (exit 2, nothing computed)
+    bad = cli(["register", path, "--spacing", dr, 0.3, "-o", tmp_path / "lin.npz"])
+    assert bad.returncode == 2 and "--geometry convex --radius 40" in bad.stderr, bad.stderr
+    assert not (tmp_path / "lin.npz").exists()
+    # the geometry given: no lateral spacing needed; a given one is said to be unused
+    ok = cli(["register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
+              "--spacing", dr, "auto", "-o", tmp_path / "convex.npz"])
+    assert ok.returncode == 0, ok.stderr
+    res = load_result(tmp_path / "convex.npz")
+    assert type(res).__name__ == "BeamResult"
+    g = res.on_grid()
+    e = np.nanmedian(g["exx"])
+    assert -0.0125 < e < -0.0075, e                             # 1 % compression, within 25 %
+    noted = cli(["register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
+                 "--spacing", dr, 0.3, "--maxiter", 1, "-o", tmp_path / "c2.npz"])
+    assert "lateral spacing 0.3 is not used" in noted.stderr
+    # --geometry linear given explicitly: the user's word wins over the header
+    lin = cli(["register", path, "--geometry", "linear", "--spacing", dr, 0.4, "--maxiter", 1,
+               "-o", tmp_path / "lin2.npz"])
+    assert lin.returncode in (0, 1) and "suggest a convex array" not in lin.stderr, lin.stderr
+
+
+def test_convex_result_loads_with_its_geometry(convex_file, tmp_path):
+    """A saved convex result reads back as a BeamResult: its samples at their physical positions, not on a
+    Cartesian grid of (range step, lateral spacing)."""
+    import femreg
+
+    path, p = convex_file
+    res = femreg.register(p.ref, p.mov, spacing=p.spacing[0], origin=p.origin, geometry=p.geometry, maxiter=2)
+    res.save(tmp_path / "c.npz")
+    back = femreg.load_result(tmp_path / "c.npz")
+    assert isinstance(back, femreg.geometry.BeamResult)
+    assert back.geometry.radius_mm == pytest.approx(40.0)
+    np.testing.assert_allclose(back.pixel_points(), res.pixel_points())
+    a, b = res.on_grid("element"), back.on_grid("element")      # recomputed from the mesh, not the stored grid
+    np.testing.assert_allclose(b["exx"], a["exx"], equal_nan=True, atol=1e-12)
