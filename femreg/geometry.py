@@ -52,6 +52,7 @@ from skfem import MeshQuad1
 from .data_term import SSDTerm
 from .errors import InputError
 from .image import SplineImage, normalize_pair
+from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .probes import Convex, Sector, Swept, as_geometry
 from .result import RegistrationResult
@@ -266,6 +267,30 @@ class BeamResult(RegistrationResult):
         return super().save(path, **extra)
 
 
+def to_sample_displacement(mesh, u, lattice: "_Lattice") -> np.ndarray:
+    """Inverse of :func:`to_physical_displacement`: a physical nodal displacement ``u`` (2 n_nodes,) mm on the
+    physical ``mesh`` -> the (u_r, u_s) mm of the same nodes in sample space, L(x + u) - L(x) with L the
+    (r, s = rho_c theta) coordinates of ``lattice``."""
+    u = np.asarray(u, float).ravel()
+    if u.size != 2 * mesh.p.shape[1] or not np.all(np.isfinite(u)):
+        raise InputError(f"initial nodal vector must hold 2 * n_nodes = {2 * mesh.p.shape[1]} finite values, got "
+                         f"{u.size}")
+    p = mesh.p.T
+    d = lattice.to_logical(p + u.reshape(-1, 2)) - lattice.to_logical(p)
+    out = np.empty_like(u)
+    out[0::2], out[1::2] = d[0], d[1]
+    return out
+
+
+def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
+    """The sample-space frame of a beam frame of ``shape`` (n_samples, n_rays): ``(rho_c, spacing, origin)`` with
+    ``rho_c`` mm the apex distance of the middle sample, spacing ``(dr, rho_c dtheta)`` mm and origin ``(r0,
+    s0)`` mm (rays centred on s = 0): where the frame is a linear image (module docstring)."""
+    rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
+    ds = rho_c * geometry.pitch_rad
+    return rho_c, (dr, ds), (r0, -0.5 * (shape[1] - 1) * ds)
+
+
 # -- the registration ------------------------------------------------------------------------------------------
 def beam_spacing(spacing, geometry: Convex, origin):
     """Validate ``spacing`` (dr mm, or (dr mm, dtheta deg) equal to the geometry's pitch) and ``origin``
@@ -308,8 +333,11 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                   normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
     """``femreg.register`` for a beam frame (module docstring): the sample-space registration as the initial
     guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
-    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (mesh, offset and
-    ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
+    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (offset and
+    ``alpha="auto"`` are not supported here; a ``mesh`` is a physical quad mesh, e.g. a tracking run's frame-0
+    mesh moved with the tissue, whose nodes are mapped to (r, s) for the sample-space stage, and a nodal
+    ``initial`` a physical displacement of its nodes, :func:`to_sample_displacement`); ``refine`` refines the
+    physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
     from .refine import (Refinement, as_refinement, pass_solve_kw, refine_passes, transfer, with_logical_grid,
@@ -324,9 +352,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if isinstance(geometry, Swept):
         raise InputError("a femreg.Swept geometry is a swept probe's: it needs volumes (n_samples, n_lines, "
                          "n_frames), not a frame")
-    for bad in ("mesh", "offset"):
-        if kw.get(bad) is not None:
-            raise InputError(f"{bad}= is not supported with a {geometry.kind} geometry")
+    if kw.get("offset") is not None:
+        raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
     if isinstance(alpha, str):
         raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry")
     ref = validate_image(reference_image, "reference image")
@@ -335,9 +362,14 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     dr, r0 = beam_spacing(spacing, geometry, origin)
     shape = ref.shape
-    rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
-    ds = rho_c * geometry.pitch_rad
-    s0 = -0.5 * (shape[1] - 1) * ds
+    rho_c, (_, ds), (_, s0) = sample_space(geometry, shape, dr, r0)
+    lat = _Lattice(geometry, rho_c)
+    if kw.get("mesh") is not None:
+        # a physical mesh (a tracking run's frame-0 mesh, possibly moved with the tissue): its nodes in (r, s)
+        mesh_p = as_quad_mesh(kw["mesh"])
+        kw["mesh"] = MeshQuad1(lat.to_logical(mesh_p.p.T), mesh_p.t)
+        if not isinstance(kw.get("initial"), (str, type(None))) and not callable(kw["initial"]):
+            kw["initial"] = to_sample_displacement(mesh_p, kw["initial"], lat)
     # -- initial guess: the linear pipeline in sample space (r, s = rho_c theta) ------------------------------
     t = time.perf_counter()
     inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
@@ -345,7 +377,6 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                      strain_tol=strain_tol, refine=None, **kw)
     t_inner = time.perf_counter() - t
     # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
-    lat = _Lattice(geometry, rho_c)
     mesh = with_logical_grid(inner.mesh, lat.angle, lat.to_physical, lat.to_logical)
     u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
