@@ -291,6 +291,24 @@ def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
     return rho_c, (dr, ds), (r0, -0.5 * (shape[1] - 1) * ds)
 
 
+def load_beam_result(path) -> RegistrationResult:
+    """:func:`femreg.load_result` of a frame's result file, as a :class:`BeamResult` when the file is a convex /
+    sector frame's (its ``geometry_*`` keys, :meth:`BeamResult.save`), so that its fields are read at the
+    samples' physical positions; other files as :func:`femreg.load_result` reads them."""
+    from .io.results import beam_geometry
+    from .result import load_result
+
+    res = load_result(path)
+    with np.load(path, allow_pickle=False) as z:
+        geometry = beam_geometry(z)
+    if geometry is None or isinstance(res, BeamResult):
+        return res
+    out = BeamResult.__new__(BeamResult)
+    out.__dict__.update(res.__dict__)
+    out.geometry, out.sample_space = geometry, None
+    return out
+
+
 # -- the registration ------------------------------------------------------------------------------------------
 def beam_spacing(spacing, geometry: Convex, origin):
     """Validate ``spacing`` (dr mm, or (dr mm, dtheta deg) equal to the geometry's pitch) and ``origin``

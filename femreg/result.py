@@ -193,8 +193,7 @@ def nodal_values(spec, mesh, what="initial"):
 
 
 def load_result(path) -> RegistrationResult:
-    """Read a result ``.npz`` (the contract of :mod:`femreg.io.results`) as a :class:`RegistrationResult` (a
-    :class:`femreg.geometry.BeamResult` for a convex / sector frame's result).
+    """Read a result ``.npz`` (the contract of :mod:`femreg.io.results`) as a :class:`RegistrationResult`.
 
     The one reader of the contract (``femreg.load_result`` and ``femreg.io.load_result`` are this function).
     Raises :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a
@@ -206,13 +205,7 @@ def load_result(path) -> RegistrationResult:
     mesh, u, kw, element_grid = read_result(path)
     base = kw.pop("refined_from", None)
     auto = kw.pop("auto_alpha", None)
-    geometry = kw.pop("geometry", None)
-    if geometry is not None:        # a convex / sector frame's result, in physical coordinates
-        from .geometry import BeamResult
-
-        res = BeamResult(mesh, u, geometry=geometry, **kw)
-    else:
-        res = RegistrationResult(mesh, u, **kw)
+    res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
     res.auto_alpha = auto
     if base is not None:            # what the inversion and new meshes read: the size refinement started from

@@ -36,9 +36,9 @@ from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
-from .geometry import BeamResult, beam_spacing, sample_space
+from .geometry import BeamResult, beam_spacing, load_beam_result, sample_space
 from .probes import Convex, as_geometry
-from .registration import RegistrationResult, load_result, register
+from .registration import RegistrationResult, register
 from .repair import frame_flag
 from .solver import single_blas_thread
 
@@ -293,7 +293,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
             if resume and path is not None and path.exists():
-                res = load_result(path)
+                res = load_beam_result(path)
                 inc, flag = load_frame_record(path)
                 computed = False
             else:
@@ -357,7 +357,7 @@ def load_track(checkpoint_dir) -> SequenceResult:
         path = ckpt / f"frame_{k:03d}.npz"
         if not path.exists():
             break
-        out.append(load_result(path))
+        out.append(load_beam_result(path))
         with np.load(path, allow_pickle=False) as z:
             out.increments.append(np.asarray(z["increment"], float))
             out.flags.append(str(z["flag"]))

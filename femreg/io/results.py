@@ -228,8 +228,7 @@ def _read(path) -> dict:
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
     nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm, and
-    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, and ``geometry``, a convex / sector geometry
-    (:func:`beam_geometry`), when the file has them) and the element-strain grid
+    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, when the file has them) and the element-strain grid
     (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
@@ -254,15 +253,13 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
-    if beam_geometry(d) is not None:
-        kw["geometry"] = beam_geometry(d)
     return mesh, np.asarray(d["u"], float), kw, element_grid
 
 
 def beam_geometry(d):
     """The convex / sector geometry of a result file's arrays ``d`` (the ``geometry_*`` keys a
     :class:`femreg.geometry.BeamResult` writes), or None for a linear array's result."""
-    if d.get("geometry_kind") is None:
+    if "geometry_kind" not in d:
         return None
     from ..probes import as_geometry
 
