@@ -55,7 +55,7 @@ from .image import SplineImage, normalize_pair
 from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .probes import Convex, Sector, Swept, as_geometry
-from .result import RegistrationResult
+from .result import RegistrationResult, nodal_values
 from .sampling import sample_points
 
 __all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
@@ -267,21 +267,6 @@ class BeamResult(RegistrationResult):
         return super().save(path, **extra)
 
 
-def to_sample_displacement(mesh, u, lattice: "_Lattice") -> np.ndarray:
-    """Inverse of :func:`to_physical_displacement`: a physical nodal displacement ``u`` (2 n_nodes,) mm on the
-    physical ``mesh`` -> the (u_r, u_s) mm of the same nodes in sample space, L(x + u) - L(x) with L the
-    (r, s = rho_c theta) coordinates of ``lattice``."""
-    u = np.asarray(u, float).ravel()
-    if u.size != 2 * mesh.p.shape[1] or not np.all(np.isfinite(u)):
-        raise InputError(f"initial nodal vector must hold 2 * n_nodes = {2 * mesh.p.shape[1]} finite values, got "
-                         f"{u.size}")
-    p = mesh.p.T
-    d = lattice.to_logical(p + u.reshape(-1, 2)) - lattice.to_logical(p)
-    out = np.empty_like(u)
-    out[0::2], out[1::2] = d[0], d[1]
-    return out
-
-
 def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
     """The sample-space frame of a beam frame of ``shape`` (n_samples, n_rays): ``(rho_c, spacing, origin)`` with
     ``rho_c`` mm the apex distance of the middle sample, spacing ``(dr, rho_c dtheta)`` mm and origin ``(r0,
@@ -353,9 +338,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
     :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (offset and
     ``alpha="auto"`` are not supported here; a ``mesh`` is a physical quad mesh, e.g. a tracking run's frame-0
-    mesh moved with the tissue, whose nodes are mapped to (r, s) for the sample-space stage, and a nodal
-    ``initial`` a physical displacement of its nodes, :func:`to_sample_displacement`); ``refine`` refines the
-    physical mesh (module docstring)."""
+    mesh moved with the tissue, whose nodes are mapped to (r, s) for the sample-space stage; with it a nodal
+    ``initial`` (a physical displacement of its nodes) starts the physical solve directly, without the
+    sample-space stage); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
     from .refine import (Refinement, as_refinement, pass_solve_kw, refine_passes, transfer, with_logical_grid,
@@ -382,21 +367,28 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     shape = ref.shape
     rho_c, (_, ds), (_, s0) = sample_space(geometry, shape, dr, r0)
     lat = _Lattice(geometry, rho_c)
+    start = None
     if kw.get("mesh") is not None:
         # a physical mesh (a tracking run's frame-0 mesh, possibly moved with the tissue): its nodes in (r, s)
         mesh_p = as_quad_mesh(kw["mesh"])
         kw["mesh"] = MeshQuad1(lat.to_logical(mesh_p.p.T), mesh_p.t)
         if not isinstance(kw.get("initial"), (str, type(None))) and not callable(kw["initial"]):
-            kw["initial"] = to_sample_displacement(mesh_p, kw["initial"], lat)
+            # a nodal start (the previous increment of a track): the physical solve starts from it directly.
+            # Through the sample-space stage it failed spuriously: that start minimised the physical objective,
+            # and the sample-space one, judged never worse than its start, rejected it (docs/geometry.md)
+            start = nodal_values(kw["initial"], mesh_p)
     # -- initial guess: the linear pipeline in sample space (r, s = rho_c theta) ------------------------------
     t = time.perf_counter()
-    inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
-                     maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
-                     strain_tol=strain_tol, refine=None, **kw)
+    if start is None:
+        inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
+                         maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
+                         strain_tol=strain_tol, refine=None, **kw)
+        mesh_s, u0 = inner.mesh, to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
+    else:
+        inner, mesh_s, u0 = None, kw["mesh"], start
     t_inner = time.perf_counter() - t
     # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
-    mesh = with_logical_grid(inner.mesh, lat.angle, lat.to_physical, lat.to_logical)
-    u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
+    mesh = with_logical_grid(mesh_s, lat.angle, lat.to_physical, lat.to_logical)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()
     strategy = kw.get("strategy", "auto")
@@ -465,9 +457,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         sol.refinement = record
     timings["total"] = time.perf_counter() - t_all
     notes += list(check.notes)
-    if not inner.success:
+    if inner is not None and not inner.success:
         notes.append("sample-space start: " + inner.message)
-    success = check.success and inner.success
+    success = check.success and (inner is None or inner.success)
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     res = BeamResult(sol.mesh, check.u, shape=shape, spacing=(dr, geometry.angle_pitch_deg), origin=(r0, 0.0),
                       regularizer=sol.reg.name, alpha=user_reg.alpha, success=success, status=sol.gn.status,
