@@ -16,6 +16,12 @@ Two ways to evaluate eq:IR (``grid``):
   frames 1 -> 20): total strain error 40.4 % (u_y 85 %) with "reference", 14.2 % (u_y 6.8 %) with "current",
   at the same cost.
 
+Convex / sector frames (``geometry=femreg.Convex(...)`` or ``femreg.Sector(...)``, frames (n_samples, n_rays),
+``spacing=dr``, ``origin=(r0, 0)``): every pair is registered by :func:`femreg.geometry.register_beam`; the mesh is
+the physical mesh of the first pair's registration, and each increment is registered on frame k's own samples over
+that mesh moved by S_k (the ``"current"`` form above, in physical coordinates), so S_{k+1} = S_k + u_k is still a
+nodal sum.  The results are :class:`femreg.geometry.BeamResult` (measured: docs/geometry.md, "Sequences").
+
 Checkpoints: with ``checkpoint_dir`` each frame's result is written (atomically) as soon as it is done; with
 ``resume=True`` finished frames are loaded instead of recomputed.  A frame that fails (error, or a registration
 flagged by the quality check) is recorded and, in accumulation, the run stops there without losing the earlier
@@ -165,13 +171,19 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     check_orientation : bool
         Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
         registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
+    geometry : femreg.Convex | femreg.Sector | femreg.Swept, optional (keyword)
+        Convex / sector frames (n_samples, n_rays) along rays: ``spacing`` is the range step dr mm (or (dr mm,
+        dtheta deg)), ``origin`` (r0 mm, 0); the first pair's registration makes the physical mesh (``roi``,
+        ``depth``, ``element_size``, ``margin`` apply to it); entries are :class:`femreg.geometry.BeamResult`;
+        ``grid="reference"`` and ``alpha="auto"`` are not supported.  Swept: volumes (above).
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
     Returns
     -------
     SequenceResult
-        Entry k-1 is frame 0 -> frame k, a RegistrationResult on the common mesh in frame-0 coordinates.
+        Entry k-1 is frame 0 -> frame k, a RegistrationResult (BeamResult with a convex / sector geometry) on the
+        common mesh in frame-0 coordinates.
     """
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
         from .volume import track_volume
