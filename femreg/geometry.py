@@ -331,6 +331,42 @@ def beam_alpha_factor(line_spacing_mm: float) -> float:
     return max(1.0, float(line_spacing_mm) / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
 
 
+def _image_term(ref, mov, mesh, geometry, dr, r0, normalize=True):
+    """``(I1, I2, term)``: the splines of a beam pair on their (range, angle) grids and the image term of eq:IR
+    over the samples inside the physical ``mesh`` (:class:`BeamSSDTerm`)."""
+    if normalize:
+        ref, mov, _ = normalize_pair(ref, mov)
+    sp_idx = (dr, geometry.pitch_rad)
+    I1, I2 = SplineImage(ref, sp_idx, (r0, 0.0)), SplineImage(mov, sp_idx, (r0, 0.0))
+    quad = BeamQuadrature(mesh, ref.shape, sp_idx, (r0, 0.0), geometry, locator=PointLocator(mesh))
+    if quad.n_pixels == 0:
+        raise InputError("no sample lies inside the mesh")
+    return I1, I2, BeamSSDTerm(quad, I1, I2)
+
+
+def beam_image_term(reference_image, moving_image, mesh, register_kwargs):
+    """The :class:`femreg.autoalpha.ImageTerm` of a convex / sector pair on the physical ``mesh`` (the
+    ``image_term`` of :func:`femreg.autoalpha.choose_alpha` for beam frames), built as :func:`register_beam`
+    builds its image term; ``register_kwargs`` hold ``geometry``, ``spacing``, ``origin`` (and ``normalize``)."""
+    from .autoalpha import ImageTerm
+    from .image import validate_image
+
+    geometry = as_geometry(register_kwargs["geometry"])
+    dr, r0 = beam_spacing(register_kwargs["spacing"], geometry, register_kwargs.get("origin", (0.0, 0.0)))
+    ref = validate_image(reference_image, "reference image")
+    _, _, term = _image_term(ref, validate_image(moving_image, "moving image"), mesh, geometry, dr, r0,
+                             register_kwargs.get("normalize", True))
+    idx = term.quad.index
+
+    def on_samples(values):
+        out = np.zeros(ref.size)
+        out[idx] = values
+        return out.reshape(ref.shape)
+
+    return ImageTerm(data=term, n_samples=term.quad.n_pixels, residual_image=lambda u: on_samples(term.residual(u)),
+                     gradients=(on_samples(term._gx), on_samples(term._gy)))
+
+
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
                   regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
                   normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
@@ -396,15 +432,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     user_reg = fresh_regularizer(regularizer, alpha, opts)
     if alpha is None and isinstance(regularizer, str):
         user_reg = fresh_regularizer(regularizer, user_reg.alpha * beam_alpha_factor(ds), opts)
-    if normalize:
-        ref, mov, _ = normalize_pair(ref, mov)
     sp_idx = (dr, geometry.pitch_rad)
-    I1, I2 = SplineImage(ref, sp_idx, (r0, 0.0)), SplineImage(mov, sp_idx, (r0, 0.0))
-    locator = PointLocator(mesh)
-    quad = BeamQuadrature(mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), geometry, locator=locator)
-    if quad.n_pixels == 0:
-        raise InputError("no sample lies inside the mesh")
-    term = BeamSSDTerm(quad, I1, I2)
+    I1, I2, term = _image_term(ref, mov, mesh, geometry, dr, r0, normalize)
+    locator = term.quad.locator
     st = float(strain_tol) if strain_tol is not None else (
         GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
     solve_kw = dict(maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,

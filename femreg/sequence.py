@@ -42,7 +42,8 @@ from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
-from .geometry import BeamResult, beam_spacing, load_beam_result, sample_space
+from .geometry import (BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, load_beam_result,
+                       sample_space)
 from .probes import Convex, as_geometry
 from .registration import RegistrationResult, register
 from .repair import frame_flag
@@ -175,7 +176,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         Convex / sector frames (n_samples, n_rays) along rays: ``spacing`` is the range step dr mm (or (dr mm,
         dtheta deg)), ``origin`` (r0 mm, 0); the first pair's registration makes the physical mesh (``roi``,
         ``depth``, ``element_size``, ``margin`` apply to it); entries are :class:`femreg.geometry.BeamResult`;
-        ``grid="reference"`` and ``alpha="auto"`` are not supported.  Swept: volumes (above).
+        ``alpha="auto"`` is chosen on the first pair on a grid centred on the beam's default alpha (times
+        :func:`femreg.geometry.beam_alpha_factor`); ``grid="reference"`` is not supported.  Swept: volumes (above).
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
@@ -242,16 +244,26 @@ def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, gri
     if grid != "current":
         raise InputError(f"grid='reference' is not supported with a {geometry.kind} geometry (the increments are "
                          "registered on each frame's own samples, grid='current')")
-    if isinstance(alpha, str):
-        raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry: give a number, or None "
-                         "for the default (times femreg.geometry.beam_alpha_factor)")
     dr, r0 = beam_spacing(spacing, geometry, origin)
+    _, sp_s, _ = sample_space(geometry, seq[0].shape, dr, r0)
     if check_orientation:           # in sample space, where the frame is a linear image (femreg.geometry)
-        orientation.check(seq[0], sample_space(geometry, seq[0].shape, dr, r0)[1])
+        orientation.check(seq[0], sp_s)
     register_kwargs["check_orientation"] = False    # checked once, above
     # the first pair's registration makes the mesh (element size, echo region); later ones reuse it
     first = dict(roi=roi, depth=depth, element_size=element_size, margin=margin)
     frame_kwargs = dict(spacing=dr, origin=(r0, 0.0), geometry=geometry)
+    if isinstance(alpha, str):      # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
+        from .autoalpha import choose_alpha
+        from .strategy import effective_regularizer_options, fresh_regularizer
+
+        # the grid is centred on the default alpha of the beam's physical solve (times beam_alpha_factor)
+        opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer,
+                                             register_kwargs.get("regularizer_options"))
+        base = fresh_regularizer(regularizer, None, opts).alpha * (
+            beam_alpha_factor(sp_s[1]) if isinstance(regularizer, str) else 1.0)
+        alpha = choose_alpha(seq[0], seq[1], regularizer=regularizer, alpha=alpha, base_alpha=base,
+                             image_term=beam_image_term, mesh=None if mesh is None else as_quad_mesh(mesh),
+                             **frame_kwargs, **first, **register_kwargs).alpha
     return _run(seq, frame_kwargs, None if mesh is None else as_quad_mesh(mesh), None, regularizer=regularizer,
                 alpha=alpha, mode=mode, grid=grid, init=init, checkpoint_dir=checkpoint_dir, resume=resume,
                 progress=progress, min_ncc=min_ncc, on_frame=on_frame, register_kwargs=register_kwargs, first=first,
