@@ -8,6 +8,7 @@ exy over the physical mesh) at every frame against the exact frame-0 -> k field;
 (``time.process_time``, one warm-up registration discarded; run with OMP_NUM_THREADS=1).
 
     python benchmarks/convex_track.py [--frames 6] [--step 0.005] [--cases convex-compression ...] [--seeds 0]
+                                      [--alpha auto]
 """
 from __future__ import annotations
 
@@ -41,7 +42,8 @@ def run(name, seed, args):
     rows = {}
     for mode in ("accumulate", "direct"):
         t = time.process_time()
-        out = femreg.track(seq.frames, spacing=seq.spacing[0], origin=seq.origin, geometry=geo, mode=mode)
+        out = femreg.track(seq.frames, spacing=seq.spacing[0], origin=seq.origin, geometry=geo, mode=mode,
+                           alpha=args.alpha)
         dt = (time.process_time() - t) / len(out)
         errs = [field_errors(r, lambda p, k=k: seq.true_displacement(k, p),
                              lambda p, k=k: seq.true_strain(k, p))["e"] for k, r in enumerate(out, start=1)]
@@ -55,7 +57,11 @@ def main(argv=None):
     ap.add_argument("--step", type=float, default=0.005, help="level per frame (fraction)")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--alpha", default=None, help="'auto' (chosen once on the first pair) or a number; default: "
+                                                   "the beam's default alpha")
     args = ap.parse_args(argv)
+    if args.alpha not in (None, "auto"):
+        args.alpha = float(args.alpha)
     # warm-up (compilation), not timed
     w = make_beam_sequence(F.compression(0.01), femreg.Convex(50, 0.5), depth_mm=8.0, n_rays=32, n_frames=2,
                            step=0.005)

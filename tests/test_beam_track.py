@@ -67,11 +67,25 @@ def test_resume_gives_identical_results(sequence, tmp_path):
     assert np.array_equal(loaded[1].on_grid()["exx"], full[1].on_grid()["exx"], equal_nan=True)
 
 
-def test_beam_track_refuses_what_it_does_not_support(sequence):
+def test_beam_track_refuses_grid_reference(sequence):
     with pytest.raises(femreg.InputError, match="grid='reference'"):
         _track(sequence, grid="reference")
-    with pytest.raises(femreg.InputError, match="alpha='auto'"):
-        _track(sequence, alpha="auto")
+
+
+def test_auto_alpha_is_chosen_once_on_the_beam_grid(sequence):
+    from femreg.autoalpha import DEFAULT_DECADES
+    from femreg.geometry import beam_alpha_factor, sample_space
+    from femreg.strategy import fresh_regularizer
+
+    out = _track(sequence, alpha="auto")
+    alphas = {r.alpha for r in out}
+    assert len(alphas) == 1, alphas                       # chosen on the first pair, reused for every increment
+    # the candidates are centred on the beam's default alpha (the linear default times beam_alpha_factor)
+    ds = sample_space(GEO, sequence.frames.shape[1:], sequence.spacing[0], sequence.origin[0])[1][1]
+    base = fresh_regularizer("momentum-stress", None, {}).alpha * beam_alpha_factor(ds)
+    assert beam_alpha_factor(ds) > 1
+    assert np.any(np.isclose(alphas.pop(), base * 10.0 ** np.asarray(DEFAULT_DECADES), rtol=1e-9))
+    assert out.flags == ["", ""]
 
 
 @pytest.fixture(scope="module")
