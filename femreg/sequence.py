@@ -106,12 +106,12 @@ def _validate_frames(frames):
 def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, mesh, init):
     reg_name = regularizer if isinstance(regularizer, str) else getattr(regularizer, "name", type(regularizer).__name__)
     # mesh None: made by the first pair's registration (convex / sector frames), from the frames and settings
+    n = None if mesh is None else mesh.p.shape[1]
     return {"n_frames": int(n_frames), "shape": [int(s) for s in shape],
             "spacing": [float(s) for s in np.atleast_1d(spacing)], "origin": [float(s) for s in origin],
             "mode": mode, "regularizer": str(reg_name), "alpha": None if alpha is None else float(alpha),
-            "n_nodes": None if mesh is None else int(mesh.p.shape[1]),
-            "mesh_checksum": None if mesh is None else float(np.round(np.sum(mesh.p * np.arange(1, mesh.p.shape[1]
-                                                                                                + 1)), 6)),
+            "n_nodes": None if n is None else int(n),
+            "mesh_checksum": None if n is None else float(np.round(np.sum(mesh.p * np.arange(1, n + 1)), 6)),
             "init": str(init)}
 
 
