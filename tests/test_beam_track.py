@@ -106,6 +106,12 @@ def test_cli_track_convex(sequence, npy_file, tmp_path, capsys):
                  "--radius", "50", "--angle-pitch", "0.5", "--no-progress"]) == 0
     res = femreg.load_track(tmp_path / "b")
     assert isinstance(res[1], BeamResult) and np.allclose(res[1].origin, (3.0, 0.0))
+    # flagged frames (NCC after 0.998 here, below the asked 0.9999): written, listed, exit 1
+    capsys.readouterr()
+    assert main(["track", str(npy_file / "frames.npz"), "-o", str(tmp_path / "f"), "--geometry", "convex",
+                 "--radius", "50", "--angle-pitch", "0.5", "--min-ncc", "0.9999", "--no-progress"]) == 1
+    assert "FLAGGED: 2 of 2 frame(s)" in capsys.readouterr().err
+    assert (tmp_path / "f" / "frame_002.npz").exists()
 
 
 @pytest.mark.parametrize("extra, needle", [
