@@ -52,9 +52,10 @@ from skfem import MeshQuad1
 from .data_term import SSDTerm
 from .errors import InputError
 from .image import SplineImage, normalize_pair
+from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .probes import Convex, Sector, Swept, as_geometry
-from .result import RegistrationResult
+from .result import RegistrationResult, nodal_values
 from .sampling import sample_points
 
 __all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
@@ -266,6 +267,15 @@ class BeamResult(RegistrationResult):
         return super().save(path, **extra)
 
 
+def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
+    """The sample-space frame of a beam frame of ``shape`` (n_samples, n_rays): ``(rho_c, spacing, origin)`` with
+    ``rho_c`` mm the apex distance of the middle sample, spacing ``(dr, rho_c dtheta)`` mm and origin ``(r0,
+    s0)`` mm (rays centred on s = 0): where the frame is a linear image (module docstring)."""
+    rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
+    ds = rho_c * geometry.pitch_rad
+    return rho_c, (dr, ds), (r0, -0.5 * (shape[1] - 1) * ds)
+
+
 # -- the registration ------------------------------------------------------------------------------------------
 def beam_spacing(spacing, geometry: Convex, origin):
     """Validate ``spacing`` (dr mm, or (dr mm, dtheta deg) equal to the geometry's pitch) and ``origin``
@@ -303,13 +313,52 @@ def beam_alpha_factor(line_spacing_mm: float) -> float:
     return max(1.0, float(line_spacing_mm) / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
 
 
+def _image_term(ref, mov, mesh, geometry, dr, r0, normalize=True):
+    """``(I1, I2, term)``: the splines of a beam pair on their (range, angle) grids and the image term of eq:IR
+    over the samples inside the physical ``mesh`` (:class:`BeamSSDTerm`)."""
+    if normalize:
+        ref, mov, _ = normalize_pair(ref, mov)
+    sp_idx = (dr, geometry.pitch_rad)
+    I1, I2 = SplineImage(ref, sp_idx, (r0, 0.0)), SplineImage(mov, sp_idx, (r0, 0.0))
+    quad = BeamQuadrature(mesh, ref.shape, sp_idx, (r0, 0.0), geometry, locator=PointLocator(mesh))
+    if quad.n_pixels == 0:
+        raise InputError("no sample lies inside the mesh")
+    return I1, I2, BeamSSDTerm(quad, I1, I2)
+
+
+def beam_image_term(reference_image, moving_image, mesh, register_kwargs):
+    """The :class:`femreg.autoalpha.ImageTerm` of a convex / sector pair on the physical ``mesh`` (the
+    ``image_term`` of :func:`femreg.autoalpha.choose_alpha` for beam frames), built as :func:`register_beam`
+    builds its image term; ``register_kwargs`` hold ``geometry``, ``spacing``, ``origin`` (and ``normalize``)."""
+    from .autoalpha import ImageTerm
+    from .image import validate_image
+
+    geometry = as_geometry(register_kwargs["geometry"])
+    dr, r0 = beam_spacing(register_kwargs["spacing"], geometry, register_kwargs.get("origin", (0.0, 0.0)))
+    ref = validate_image(reference_image, "reference image")
+    _, _, term = _image_term(ref, validate_image(moving_image, "moving image"), mesh, geometry, dr, r0,
+                             register_kwargs.get("normalize", True))
+    idx = term.quad.index
+
+    def on_samples(values):
+        out = np.zeros(ref.size)
+        out[idx] = values
+        return out.reshape(ref.shape)
+
+    return ImageTerm(data=term, n_samples=term.quad.n_pixels, residual_image=lambda u: on_samples(term.residual(u)),
+                     gradients=(on_samples(term._gx), on_samples(term._gy)))
+
+
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
                   regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
                   normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
     """``femreg.register`` for a beam frame (module docstring): the sample-space registration as the initial
     guess, then Gauss-Newton of eq:objf on the physical annular-sector mesh.  ``register`` is
-    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (mesh, offset and
-    ``alpha="auto"`` are not supported here); ``refine`` refines the physical mesh (module docstring)."""
+    :func:`femreg.register` (the sample-space stage, never refined); ``kw`` its other options (offset and
+    ``alpha="auto"`` are not supported here; a ``mesh`` is a physical quad mesh, e.g. a tracking run's frame-0
+    mesh moved with the tissue, whose nodes are mapped to (r, s) for the sample-space stage; with it a nodal
+    ``initial`` (a physical displacement of its nodes) starts the physical solve directly, without the
+    sample-space stage); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
     from .refine import (Refinement, as_refinement, pass_solve_kw, refine_passes, transfer, with_logical_grid,
@@ -324,9 +373,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if isinstance(geometry, Swept):
         raise InputError("a femreg.Swept geometry is a swept probe's: it needs volumes (n_samples, n_lines, "
                          "n_frames), not a frame")
-    for bad in ("mesh", "offset"):
-        if kw.get(bad) is not None:
-            raise InputError(f"{bad}= is not supported with a {geometry.kind} geometry")
+    if kw.get("offset") is not None:
+        raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
     if isinstance(alpha, str):
         raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry")
     ref = validate_image(reference_image, "reference image")
@@ -335,19 +383,30 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     dr, r0 = beam_spacing(spacing, geometry, origin)
     shape = ref.shape
-    rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
-    ds = rho_c * geometry.pitch_rad
-    s0 = -0.5 * (shape[1] - 1) * ds
+    rho_c, (_, ds), (_, s0) = sample_space(geometry, shape, dr, r0)
+    lat = _Lattice(geometry, rho_c)
+    start = None
+    if kw.get("mesh") is not None:
+        # a physical mesh (a tracking run's frame-0 mesh, possibly moved with the tissue): its nodes in (r, s)
+        mesh_p = as_quad_mesh(kw["mesh"])
+        kw["mesh"] = MeshQuad1(lat.to_logical(mesh_p.p.T), mesh_p.t)
+        if not isinstance(kw.get("initial"), (str, type(None))) and not callable(kw["initial"]):
+            # a nodal start (the previous increment of a track): the physical solve starts from it directly.
+            # Through the sample-space stage it failed spuriously: that start minimised the physical objective,
+            # and the sample-space one, judged never worse than its start, rejected it (docs/geometry.md)
+            start = nodal_values(kw["initial"], mesh_p)
     # -- initial guess: the linear pipeline in sample space (r, s = rho_c theta) ------------------------------
     t = time.perf_counter()
-    inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
-                     maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
-                     strain_tol=strain_tol, refine=None, **kw)
+    if start is None:
+        inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
+                         maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
+                         strain_tol=strain_tol, refine=None, **kw)
+        mesh_s, u0 = inner.mesh, to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
+    else:
+        inner, mesh_s, u0 = None, kw["mesh"], start
     t_inner = time.perf_counter() - t
     # the physical mesh carries its (r, s) lattice: refinement splits there (femreg.refine.LogicalGrid)
-    lat = _Lattice(geometry, rho_c)
-    mesh = with_logical_grid(inner.mesh, lat.angle, lat.to_physical, lat.to_logical)
-    u0 = to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
+    mesh = with_logical_grid(mesh_s, lat.angle, lat.to_physical, lat.to_logical)
     # -- Gauss-Newton on the physical mesh --------------------------------------------------------------------
     t = time.perf_counter()
     strategy = kw.get("strategy", "auto")
@@ -355,15 +414,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     user_reg = fresh_regularizer(regularizer, alpha, opts)
     if alpha is None and isinstance(regularizer, str):
         user_reg = fresh_regularizer(regularizer, user_reg.alpha * beam_alpha_factor(ds), opts)
-    if normalize:
-        ref, mov, _ = normalize_pair(ref, mov)
     sp_idx = (dr, geometry.pitch_rad)
-    I1, I2 = SplineImage(ref, sp_idx, (r0, 0.0)), SplineImage(mov, sp_idx, (r0, 0.0))
-    locator = PointLocator(mesh)
-    quad = BeamQuadrature(mesh, shape, (dr, geometry.pitch_rad), (r0, 0.0), geometry, locator=locator)
-    if quad.n_pixels == 0:
-        raise InputError("no sample lies inside the mesh")
-    term = BeamSSDTerm(quad, I1, I2)
+    I1, I2, term = _image_term(ref, mov, mesh, geometry, dr, r0, normalize)
+    locator = term.quad.locator
     st = float(strain_tol) if strain_tol is not None else (
         GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
     solve_kw = dict(maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
@@ -416,9 +469,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         sol.refinement = record
     timings["total"] = time.perf_counter() - t_all
     notes += list(check.notes)
-    if not inner.success:
+    if inner is not None and not inner.success:
         notes.append("sample-space start: " + inner.message)
-    success = check.success and inner.success
+    success = check.success and (inner is None or inner.success)
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     res = BeamResult(sol.mesh, check.u, shape=shape, spacing=(dr, geometry.angle_pitch_deg), origin=(r0, 0.0),
                       regularizer=sol.reg.name, alpha=user_reg.alpha, success=success, status=sol.gn.status,

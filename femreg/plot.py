@@ -434,13 +434,10 @@ def _beam_positions(result, d, shape, spacing, origin):
     the ``geometry_*`` keys of its file), else None."""
     if hasattr(result, "sample_positions"):
         return result.sample_positions()
-    if "geometry_kind" not in d:
-        return None
-    from .geometry import as_geometry
+    from .io.results import beam_geometry
 
-    geo = as_geometry(dict(kind=str(d["geometry_kind"]), radius_mm=float(d["geometry_radius_mm"]),
-                           angle_pitch_deg=float(d["geometry_angle_pitch_deg"])))
-    return geo.sample_positions(shape, spacing, origin)
+    geo = beam_geometry(d)
+    return None if geo is None else geo.sample_positions(shape, spacing, origin)
 
 
 def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="value", cmap="viridis",

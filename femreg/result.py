@@ -208,9 +208,9 @@ def load_result(path) -> RegistrationResult:
     auto = kw.pop("auto_alpha", None)
     geometry = kw.pop("geometry", None)
     if geometry is not None:            # convex / sector frames: samples at their physical positions
-        from .geometry import BeamResult, as_geometry
+        from .geometry import BeamResult
 
-        res = BeamResult(mesh, u, geometry=as_geometry(geometry), **kw)
+        res = BeamResult(mesh, u, geometry=geometry, **kw)
     else:
         res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid

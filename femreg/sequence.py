@@ -16,6 +16,12 @@ Two ways to evaluate eq:IR (``grid``):
   frames 1 -> 20): total strain error 40.4 % (u_y 85 %) with "reference", 14.2 % (u_y 6.8 %) with "current",
   at the same cost.
 
+Convex / sector frames (``geometry=femreg.Convex(...)`` or ``femreg.Sector(...)``, frames (n_samples, n_rays),
+``spacing=dr``, ``origin=(r0, 0)``): every pair is registered by :func:`femreg.geometry.register_beam`; the mesh is
+the physical mesh of the first pair's registration, and each increment is registered on frame k's own samples over
+that mesh moved by S_k (the ``"current"`` form above, in physical coordinates), so S_{k+1} = S_k + u_k is still a
+nodal sum.  The results are :class:`femreg.geometry.BeamResult` (measured: docs/geometry.md, "Sequences").
+
 Checkpoints: with ``checkpoint_dir`` each frame's result is written (atomically) as soon as it is done; with
 ``resume=True`` finished frames are loaded instead of recomputed.  A frame that fails (error, or a registration
 flagged by the quality check) is recorded and, in accumulation, the run stops there without losing the earlier
@@ -36,7 +42,10 @@ from .errors import InputError
 from .image import validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
-from .registration import RegistrationResult, load_result, register
+from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
+from .probes import Convex, as_geometry
+from .registration import RegistrationResult, register
+from .result import load_result
 from .repair import frame_flag
 from .solver import single_blas_thread
 
@@ -96,10 +105,13 @@ def _validate_frames(frames):
 
 def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, mesh, init):
     reg_name = regularizer if isinstance(regularizer, str) else getattr(regularizer, "name", type(regularizer).__name__)
-    return {"n_frames": int(n_frames), "shape": [int(s) for s in shape], "spacing": [float(s) for s in spacing],
-            "origin": [float(s) for s in origin], "mode": mode, "regularizer": str(reg_name),
-            "alpha": None if alpha is None else float(alpha), "n_nodes": int(mesh.p.shape[1]),
-            "mesh_checksum": float(np.round(np.sum(mesh.p * np.arange(1, mesh.p.shape[1] + 1)), 6)),
+    # mesh None: made by the first pair's registration (convex / sector frames), from the frames and settings
+    n = None if mesh is None else mesh.p.shape[1]
+    return {"n_frames": int(n_frames), "shape": [int(s) for s in shape],
+            "spacing": [float(s) for s in np.atleast_1d(spacing)], "origin": [float(s) for s in origin],
+            "mode": mode, "regularizer": str(reg_name), "alpha": None if alpha is None else float(alpha),
+            "n_nodes": None if n is None else int(n),
+            "mesh_checksum": None if n is None else float(np.round(np.sum(mesh.p * np.arange(1, n + 1)), 6)),
             "init": str(init)}
 
 
@@ -160,13 +172,20 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     check_orientation : bool
         Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
         registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
+    geometry : femreg.Convex | femreg.Sector | femreg.Swept, optional (keyword)
+        Convex / sector frames (n_samples, n_rays) along rays: ``spacing`` is the range step dr mm (or (dr mm,
+        dtheta deg)), ``origin`` (r0 mm, 0); the first pair's registration makes the physical mesh (``roi``,
+        ``depth``, ``element_size``, ``margin`` apply to it); entries are :class:`femreg.geometry.BeamResult`;
+        ``alpha="auto"`` is chosen on the first pair on a grid centred on the beam's default alpha (times
+        :func:`femreg.geometry.beam_alpha_factor`); ``grid="reference"`` is not supported.  Swept: volumes (above).
     **register_kwargs
         Passed to :func:`femreg.register` (maxiter, tol, linear_solver, blockmatch_options, ...).
 
     Returns
     -------
     SequenceResult
-        Entry k-1 is frame 0 -> frame k, a RegistrationResult on the common mesh in frame-0 coordinates.
+        Entry k-1 is frame 0 -> frame k, a RegistrationResult (BeamResult with a convex / sector geometry) on the
+        common mesh in frame-0 coordinates.
     """
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
         from .volume import track_volume
@@ -181,6 +200,16 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if init not in ("blockmatch", "previous"):
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
+    beam = as_geometry(register_kwargs.pop("geometry", None))
+    if isinstance(beam, Convex):        # convex / sector frames: femreg.geometry, results in physical x, y
+        return _track_beam(seq, beam, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
+                           mode=mode, grid=grid, init=init, mesh=mesh, element_size=element_size, margin=margin,
+                           checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
+                           on_frame=on_frame, roi=roi, depth=depth, check_orientation=check_orientation,
+                           register_kwargs=register_kwargs)
+    if beam is not None:
+        raise InputError("a femreg.Swept geometry is a swept probe's: track its volumes (n_samples, n_lines, "
+                         "n_frames), not frames")
     spacing, origin = validate_spacing(spacing, origin)
     if check_orientation:
         orientation.check(seq[0], spacing)
@@ -195,11 +224,74 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                                               **element_rule(regularizer)).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
-    n_dof = 2 * fe_mesh.p.shape[1]
     if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
         from .autoalpha import choose_alpha
         alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
                              mesh=fe_mesh, **register_kwargs).alpha
+    frame_kwargs = dict(spacing=spacing, origin=origin)
+    return _run(seq, frame_kwargs, fe_mesh, crop, regularizer=regularizer, alpha=alpha, mode=mode, grid=grid,
+                init=init, checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
+                on_frame=on_frame, register_kwargs=register_kwargs)
+
+
+def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, grid, init, mesh, element_size, margin,
+                checkpoint_dir, resume, progress, min_ncc, on_frame, roi, depth, check_orientation,
+                register_kwargs) -> SequenceResult:
+    """:func:`track` of convex / sector frames (n_samples, n_rays): each pair registered by
+    :func:`femreg.geometry.register_beam`, the frame-0 mesh that of the first pair (physical, over the echo region
+    of frames 0 and 1), every later increment on that mesh moved by S_k (eq:IR on frame k's samples, as
+    ``grid="current"``), the results :class:`femreg.geometry.BeamResult` in physical coordinates."""
+    if grid != "current":
+        raise InputError(f"grid='reference' is not supported with a {geometry.kind} geometry (the increments are "
+                         "registered on each frame's own samples, grid='current')")
+    dr, r0 = beam_spacing(spacing, geometry, origin)
+    _, sp_s, _ = sample_space(geometry, seq[0].shape, dr, r0)
+    if check_orientation:           # in sample space, where the frame is a linear image (femreg.geometry)
+        orientation.check(seq[0], sp_s)
+    register_kwargs["check_orientation"] = False    # checked once, above
+    # the first pair's registration makes the mesh (element size, echo region); later ones reuse it
+    first = dict(roi=roi, depth=depth, element_size=element_size, margin=margin)
+    frame_kwargs = dict(spacing=dr, origin=(r0, 0.0), geometry=geometry)
+    if isinstance(alpha, str):      # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
+        from .autoalpha import choose_alpha
+        from .strategy import effective_regularizer_options, fresh_regularizer
+
+        # the grid is centred on the default alpha of the beam's physical solve (times beam_alpha_factor)
+        opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer,
+                                             register_kwargs.get("regularizer_options"))
+        base = fresh_regularizer(regularizer, None, opts).alpha * (
+            beam_alpha_factor(sp_s[1]) if isinstance(regularizer, str) else 1.0)
+        alpha = choose_alpha(seq[0], seq[1], regularizer=regularizer, alpha=alpha, base_alpha=base,
+                             image_term=beam_image_term, mesh=None if mesh is None else as_quad_mesh(mesh),
+                             **frame_kwargs, **first, **register_kwargs).alpha
+    return _run(seq, frame_kwargs, None if mesh is None else as_quad_mesh(mesh), None, regularizer=regularizer,
+                alpha=alpha, mode=mode, grid=grid, init=init, checkpoint_dir=checkpoint_dir, resume=resume,
+                progress=progress, min_ncc=min_ncc, on_frame=on_frame, register_kwargs=register_kwargs, first=first,
+                record=dict(geometry=geometry.to_dict(), region=[first[k] for k in ("roi", "depth", "element_size",
+                                                                                       "margin")]))
+
+
+def _frame_result(r, mesh, u):
+    """Frame 0 -> k: the increment's registration ``r`` (its verdict, timings, ...) with the accumulated nodal
+    field ``u`` on the frame-0 ``mesh``."""
+    kw = dict(shape=r.shape, spacing=r.spacing, origin=r.origin, regularizer=r.regularizer, alpha=r.alpha,
+              success=r.success, status=r.status, message=r.message, nit=r.nit, energy_history=r.energy_history,
+              ncc_before=r.ncc_before, ncc_after=r.ncc_after, timings=r.timings, blockmatch=r.blockmatch,
+              solver_result=r.solver_result, quality=r.quality, strategy=r.strategy,
+              alpha_effective=r.alpha_effective)
+    if isinstance(r, BeamResult):
+        return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, **kw)
+    return RegistrationResult(mesh, u, **kw)
+
+
+def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
+         min_ncc, on_frame, register_kwargs, first=None, record=None) -> SequenceResult:
+    """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
+    the frame-0 mesh (None: the first pair's registration makes it, with the options ``first``), ``crop`` the
+    echo rectangle the frames were cut to (or None); ``record`` more parameters for ``track.json``."""
+    shape = seq[0].shape
+    first = first or {}
+    spacing, origin = frame_kwargs["spacing"], frame_kwargs["origin"]
     params = _params_record(len(seq), shape, spacing, origin, mode, regularizer, alpha, fe_mesh, init)
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid
@@ -207,6 +299,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                                                        if k != "check_orientation"}, sort_keys=True, default=repr))
     if crop is not None:
         params["roi"] = list(crop.roi_mm)
+    params.update(json.loads(json.dumps(record or {}, default=repr)))
 
     ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json", started=("frame_*.npz",),
                            kind="a tracking run", argument="checkpoint_dir")
@@ -217,7 +310,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         inc_kwargs["regularizer_options"] = dict(register_kwargs.get("regularizer_options") or {})
         inc_kwargs["regularizer_options"].setdefault("hourglass", TRACK_HOURGLASS)
     out = SequenceResult(mode=mode)
-    S = np.zeros(n_dof)
+    S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame")
     try:
@@ -228,31 +321,28 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 inc, flag = load_frame_record(path)
                 computed = False
             else:
+                # the first pair makes the mesh when there is none yet (convex / sector frames), later ones reuse it
+                where = dict(first) if fe_mesh is None else dict(roi=None, depth=None) if first else {}
                 if mode == "direct":
-                    res = register(seq[0], seq[k], spacing=spacing, origin=origin, regularizer=regularizer,
-                                   alpha=alpha, mesh=fe_mesh, **register_kwargs)
+                    res = register(seq[0], seq[k], regularizer=regularizer, alpha=alpha, mesh=fe_mesh,
+                                   **frame_kwargs, **where, **register_kwargs)
                     inc = res.u.copy()
                 else:
                     fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
                     # a fresh start is the strategy's own (pyramid with "auto"), or the paper's block matching
                     initial = ("blockmatch" if init == "blockmatch" else None) if fresh else prev_inc
-                    if grid == "current":
+                    if fe_mesh is None:
+                        where.update(mesh=None)
+                    elif grid == "current":
                         # frame k's pixel grid, mesh moved with the tissue: I_k is never interpolated
-                        where = dict(mesh=fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t),
+                        where.update(mesh=fe_mesh if k == 1 else MeshQuad1(fe_mesh.p + S.reshape(-1, 2).T, fe_mesh.t),
                                      allow_mesh_outside=True)
                     else:
-                        where = dict(mesh=fe_mesh, offset=S if k > 1 else None)
-                    r_inc = register(seq[k - 1], seq[k], spacing=spacing, origin=origin, regularizer=regularizer,
-                                     alpha=alpha, initial=initial, **where, **inc_kwargs)
+                        where.update(mesh=fe_mesh, offset=S if k > 1 else None)
+                    r_inc = register(seq[k - 1], seq[k], regularizer=regularizer, alpha=alpha, initial=initial,
+                                     **frame_kwargs, **where, **inc_kwargs)
                     inc = r_inc.u.copy()
-                    res = RegistrationResult(
-                        fe_mesh, S + inc, shape=shape, spacing=spacing, origin=origin,
-                        regularizer=r_inc.regularizer, alpha=r_inc.alpha, success=r_inc.success,
-                        status=r_inc.status, message=r_inc.message, nit=r_inc.nit,
-                        energy_history=r_inc.energy_history, ncc_before=r_inc.ncc_before,
-                        ncc_after=r_inc.ncc_after, timings=r_inc.timings, blockmatch=r_inc.blockmatch,
-                        solver_result=r_inc.solver_result, quality=r_inc.quality, strategy=r_inc.strategy,
-                        alpha_effective=r_inc.alpha_effective)
+                    res = _frame_result(r_inc, r_inc.mesh if fe_mesh is None else fe_mesh, S + inc)
                 if crop is not None:
                     crop.widen(res)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
@@ -260,6 +350,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
                 computed = True
                 if path is not None:
                     save_frame(path, res, inc, flag, k, mode)
+            if fe_mesh is None:         # the first pair's mesh: every later frame's
+                fe_mesh = res.mesh
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
             prev_inc = inc
             out.append(res)

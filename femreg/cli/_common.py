@@ -87,6 +87,29 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
+def beam_frames_from_args(args, geometry, path=None):
+    """Frames of a convex / sector file (``--geometry convex|sector``): ``(Frames, dr, (r0, 0))`` with the range
+    step ``dr`` mm and the first sample's range ``r0`` mm of the file (or ``--spacing``).  The rays lie
+    ``geometry.angle_pitch_deg`` apart, so no lateral spacing is needed: with ``--spacing DX auto``, or a file that
+    stores none, the frames carry the angle pitch (deg) as their lateral spacing (the convention of
+    :class:`femreg.geometry.BeamResult`)."""
+    sp = beam_spacing_args(args, geometry)
+    fr = frames_from_args(argparse.Namespace(**dict(vars(args), spacing=sp)), path)
+    return fr, float(fr.spacing[0]), (float(fr.origin[0]), 0.0)
+
+
+def beam_spacing_args(args, geometry) -> list:
+    """``--spacing`` for convex / sector frames: ``[DX or None, angle pitch]`` (the lateral value is not used; one
+    given is reported so on stderr)."""
+    sp = list(args.spacing) if getattr(args, "spacing", None) else [None, None]
+    pitch = float(geometry.angle_pitch_deg)
+    if sp[1] is not None and abs(sp[1] - pitch) > 1e-6 * pitch:
+        print(f"femreg {getattr(args, 'command', '')}: note: --geometry {geometry.kind}: the lateral spacing "
+              f"{sp[1]:g} is not used (the rays are --angle-pitch {pitch:g} deg apart)".replace("femreg :", "femreg:"),
+              file=sys.stderr)
+    return [sp[0], pitch]
+
+
 def _alpha_arg(text):
     if text.strip().lower() == "auto":
         return "auto"

@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from ._common import (add_reader_args, add_registration_args, add_volume_arg, frames_from_args,
+from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_spacing_args, frames_from_args,
                       registration_kwargs)
 
 
@@ -119,17 +119,6 @@ def _geometry(args):
     return femreg.Sector(angle_pitch_deg=args.angle_pitch)
 
 
-def _beam_spacing(args) -> None:
-    """Convex / sector frames use the axial spacing (the range step) alone: the rays are ``--angle-pitch`` apart.
-    A lateral value is not needed (a stand-in keeps the readers from asking for it), and one given is said to be
-    unused."""
-    sp = list(args.spacing) if args.spacing else [None, None]
-    if sp[1] is not None:
-        print(f"femreg register: note: --geometry {args.geometry}: the lateral spacing {sp[1]:g} is not used "
-              f"(the rays are --angle-pitch {args.angle_pitch} deg apart)", file=sys.stderr)
-    args.spacing = [sp[0], 1.0]
-
-
 def _refuse_curved(fr, path) -> None:
     """Frames whose header states a convex or phased array are not registered as a linear array's (their rays
     would be taken for parallel lines) unless ``--geometry`` is given."""
@@ -172,8 +161,8 @@ def run(args) -> int:
             kw["refine"] = int(r)
         else:
             raise InputError(f"--refine takes a number of passes, auto, slip or none, got {args.refine!r}")
-    if args.geometry in ("convex", "sector"):
-        _beam_spacing(args)
+    if args.geometry in ("convex", "sector"):       # the range step alone: the rays are --angle-pitch apart
+        args.spacing = beam_spacing_args(args, _geometry(args))
     ref_fr = frames_from_args(args, args.reference)
     if args.geometry == "linear" and not getattr(args, "geometry_given", False):
         _refuse_curved(ref_fr, args.reference)

@@ -1,5 +1,7 @@
 """``femreg track FILE -o OUTDIR``: displacement from the first frame to every later frame (eq:IR), with a
-progress bar, one checkpoint file per frame as soon as it is done, and ``--resume``.
+progress bar, one checkpoint file per frame as soon as it is done, and ``--resume``.  ``--geometry convex|sector``
+(``--radius``, ``--angle-pitch``): frames along the rays of a convex / phased array, results in physical x, y
+(:mod:`femreg.geometry`); only the range step of the spacing is read (``--spacing DX auto``).
 
 Exit codes: 0 every frame registered; 1 a frame was flagged (its registration failed its own check, or its NCC
 after is below ``--min-ncc``; every frame is still written and the flagged ones are listed) or a frame could not
@@ -9,9 +11,9 @@ input, found before any frame is registered.
 from __future__ import annotations
 
 from ..errors import InputError
-from ._common import (add_reader_args, add_registration_args, add_volume_arg, frames_from_args,
-                      registration_kwargs, run_tracking)
-from .register_cmd import _swept, add_geometry_args
+from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
+                      frames_from_args, registration_kwargs, run_tracking)
+from .register_cmd import _geometry, _swept, add_geometry_args
 
 
 def add_parser(subparsers):
@@ -26,7 +28,9 @@ def add_parser(subparsers):
                     "saved, the command exits with code 1 naming the frame, and --resume continues from there.  "
                     "Bad input: exit 2 before any frame is registered.  Volumes (.npz with a spacing of 3 values) "
                     "are tracked the same way; --geometry swept for a swept probe's volumes, all scan-converted "
-                    "onto one Cartesian grid.")
+                    "onto one Cartesian grid.  --geometry convex / sector: frames (samples, rays) of a convex or "
+                    "phased array, tracked in physical x, y (--radius, --angle-pitch; only the range step of "
+                    "--spacing is read: --spacing DX auto).")
     p.add_argument("file", help="RF frames (npy, npz, mat, mhd, raw, .rf, or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
@@ -39,7 +43,7 @@ def add_parser(subparsers):
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_volume_arg(p)
-    add_geometry_args(p, choices=("linear", "swept"))
+    add_geometry_args(p)
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -53,14 +57,22 @@ def run(args) -> int:
     vol = read_volume_file(args.file, volume=args.volume)
     kw = registration_kwargs(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
+        if args.geometry in ("convex", "sector"):
+            raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
+                             "swept")
         if args.geometry == "swept":    # a swept probe's volumes (femreg.swept)
             kw["geometry"] = _swept(args)
         return track_volumes(args, vol, kw)
     if args.geometry == "swept":
         raise InputError(f"--geometry swept needs a volume-sequence file (spacing of 3 values, or --volume), got "
                          f"{args.file}")
-    fr = frames_from_args(args)
+    if args.geometry in ("convex", "sector"):   # frames along rays: range step and first range from the file
+        kw["geometry"] = _geometry(args)
+        fr, spacing, origin = beam_frames_from_args(args, kw["geometry"])
+    else:
+        fr = frames_from_args(args)
+        spacing, origin = fr.spacing, fr.origin
     return run_tracking(args, lambda on_frame: track(
-        fr.frames, spacing=fr.spacing, origin=fr.origin, mode=args.mode, grid=args.grid, init=args.init,
+        fr.frames, spacing=spacing, origin=origin, mode=args.mode, grid=args.grid, init=args.init,
         checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,
         on_frame=on_frame, **kw), "frame")

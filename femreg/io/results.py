@@ -228,8 +228,8 @@ def _read(path) -> dict:
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
     nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm,
-    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, and ``geometry``, the convex / sector mapping as a
-    dict, when the file has them) and the element-strain grid
+    ``auto_alpha``, a :class:`femreg.result_base.AutoAlpha`, and ``geometry``, the convex / sector mapping
+    (:func:`beam_geometry`), when the file has them) and the element-strain grid
     (or None); :func:`femreg.load_result` builds the result from them.  Raises
     :class:`~femreg.errors.FileFormatError` naming the missing key or bad shape when the file is not a result.
     """
@@ -254,10 +254,21 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
-    if d.get("geometry_kind") is not None:          # a convex / sector frame's result (femreg.geometry.BeamResult)
-        kw["geometry"] = dict(kind=str(d["geometry_kind"]), radius_mm=float(d["geometry_radius_mm"]),
-                              angle_pitch_deg=float(d["geometry_angle_pitch_deg"]))
+    geometry = beam_geometry(d)
+    if geometry is not None:            # a convex / sector frame's result (femreg.geometry.BeamResult)
+        kw["geometry"] = geometry
     return mesh, np.asarray(d["u"], float), kw, element_grid
+
+
+def beam_geometry(d):
+    """The convex / sector geometry of a result file's arrays ``d`` (the ``geometry_*`` keys a
+    :class:`femreg.geometry.BeamResult` writes), or None for a linear array's result."""
+    if "geometry_kind" not in d:
+        return None
+    from ..probes import as_geometry
+
+    return as_geometry(dict(kind=str(d["geometry_kind"]), radius_mm=float(d["geometry_radius_mm"]),
+                            angle_pitch_deg=float(d["geometry_angle_pitch_deg"])))
 
 
 def save_result(path, result, **extra) -> Path:
