@@ -71,6 +71,10 @@ def test_cli_convex_file(convex_file, tmp_path, capsys):
     bad = cli(["register", path, "--spacing", dr, 0.3, "-o", tmp_path / "lin.npz"])
     assert bad.returncode == 2 and "--geometry convex --radius 40" in bad.stderr, bad.stderr
     assert not (tmp_path / "lin.npz").exists()
+    bad = cli(["track", path, "--spacing", dr, 0.3, "-o", tmp_path / "run"])       # a cine loop alike
+    assert bad.returncode == 2 and "--geometry convex --radius 40" in bad.stderr, bad.stderr
+    bad = cli(["elastogram", path, "--spacing", dr, 0.3, "-o", tmp_path / "el"])
+    assert bad.returncode == 2 and "femreg track" in bad.stderr, bad.stderr
     # the geometry given: no lateral spacing needed; a given one is said to be unused
     ok = cli(["register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
               "--spacing", dr, "auto", "-o", tmp_path / "convex.npz"])

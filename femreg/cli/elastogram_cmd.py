@@ -138,6 +138,12 @@ def run(args) -> int:
     from ..elastogram import band_advice, elastogram, write_pairs_csv
 
     fr = frames_from_args(args)
+    if not args.no_orientation_check:
+        from .register_cmd import _refuse_curved
+
+        _refuse_curved(fr, args.file, "femreg elastogram reads a linear array's frames: track them with femreg "
+                                      "track and those flags (or --no-orientation-check if the frames are on a "
+                                      "Cartesian grid already)")
     kw = registration_kwargs(args)
     lo, hi = args.band
     out = Path(args.output)

@@ -119,17 +119,18 @@ def _geometry(args):
     return femreg.Sector(angle_pitch_deg=args.angle_pitch)
 
 
-def _refuse_curved(fr, path) -> None:
+def _refuse_curved(fr, path, advice: str = "") -> None:
     """Frames whose header states a convex or phased array are not registered as a linear array's (their rays
-    would be taken for parallel lines) unless ``--geometry`` is given."""
+    would be taken for parallel lines) unless ``--geometry`` is given (``advice``: what to do instead, for a
+    command without ``--geometry``)."""
     from femreg.errors import InputError
     from femreg.io.checks import geometry_hint
 
     meta = dict(fr.metadata)
     hint = geometry_hint(dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {}))
     if hint:
-        raise InputError(f"{path}: {hint}; pass those flags (or --geometry linear if the frames are on a "
-                         "Cartesian grid already)")
+        raise InputError(f"{path}: {hint}; " + (advice or "pass those flags (or --geometry linear if the frames "
+                                                           "are on a Cartesian grid already)"))
 
 
 def run(args) -> int:

@@ -13,7 +13,7 @@ from __future__ import annotations
 from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
                       frames_from_args, registration_kwargs, run_tracking)
-from .register_cmd import _geometry, _swept, add_geometry_args
+from .register_cmd import _geometry, _refuse_curved, _swept, add_geometry_args
 
 
 def add_parser(subparsers):
@@ -71,6 +71,8 @@ def run(args) -> int:
         fr, spacing, origin = beam_frames_from_args(args, kw["geometry"])
     else:
         fr = frames_from_args(args)
+        if not getattr(args, "geometry_given", False):
+            _refuse_curved(fr, args.file)
         spacing, origin = fr.spacing, fr.origin
     return run_tracking(args, lambda on_frame: track(
         fr.frames, spacing=spacing, origin=origin, mode=args.mode, grid=args.grid, init=args.init,
