@@ -55,7 +55,7 @@ from .image import SplineImage, normalize_pair
 from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
 from .probes import Convex, Sector, Swept, as_geometry
-from .result import RegistrationResult, nodal_values
+from .result import RegistrationResult, nodal_values, register_beam_result
 from .sampling import sample_points
 
 __all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
@@ -274,6 +274,9 @@ def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
     rho_c = geometry.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr
     ds = rho_c * geometry.pitch_rad
     return rho_c, (dr, ds), (r0, -0.5 * (shape[1] - 1) * ds)
+
+
+register_beam_result(BeamResult)
 
 
 # -- the registration ------------------------------------------------------------------------------------------

@@ -192,6 +192,16 @@ def nodal_values(spec, mesh, what="initial"):
     return u
 
 
+#: The result class of convex / sector frames (:class:`femreg.geometry.BeamResult`, which registers itself on
+#: import through :func:`register_beam_result`): this module cannot import femreg.geometry, which builds on it.
+_BEAM_RESULT: list = []
+
+
+def register_beam_result(cls) -> None:
+    """Make :func:`load_result` build ``cls(mesh, u, geometry=..., **kw)`` for files with a probe geometry."""
+    _BEAM_RESULT[:] = [cls]
+
+
 def load_result(path) -> RegistrationResult:
     """Read a result ``.npz`` (the contract of :mod:`femreg.io.results`) as a :class:`RegistrationResult` (a
     :class:`femreg.geometry.BeamResult` for convex / sector frames).
@@ -207,10 +217,8 @@ def load_result(path) -> RegistrationResult:
     base = kw.pop("refined_from", None)
     auto = kw.pop("auto_alpha", None)
     geometry = kw.pop("geometry", None)
-    if geometry is not None:            # convex / sector frames: samples at their physical positions
-        from .geometry import BeamResult
-
-        res = BeamResult(mesh, u, geometry=geometry, **kw)
+    if geometry is not None and _BEAM_RESULT:     # convex / sector frames: samples at their physical positions
+        res = _BEAM_RESULT[0](mesh, u, geometry=geometry, **kw)
     else:
         res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
