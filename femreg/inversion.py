@@ -186,7 +186,8 @@ __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "i
            "strain_ratio", "model_ratio", "AUTO_RATIO",
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE", "DOF_AREA", "BETA_METHODS",
            "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA", "TV_REWEIGHT",
-           "TV_REWEIGHT_STEPS", "TV_BREGMAN", "TV_BREGMAN_FRACTION", "TV_BREGMAN_START"]
+           "TV_REWEIGHT_STEPS", "TV_BREGMAN", "TV_BREGMAN_FRACTION", "TV_BREGMAN_START", "TV_REFIT",
+           "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -285,6 +286,26 @@ TV_REWEIGHT_STEPS = 1
 TV_BREGMAN = 0
 TV_BREGMAN_FRACTION = 1.0
 TV_BREGMAN_START = 1.0
+#: Region debias refit after the debiased-TV solve (None: off).  The TV solution is cut into regions of nearly
+#: constant log mu (log mu quantised to multiples of ``TV_REFIT`` (log-modulus units), edge-connected elements of
+#: the same level; regions of fewer than :data:`TV_REFIT_MIN_ELEMENTS` elements and the largest region, the
+#: reference for the constant mode J is blind to, are held), and one shift of log mu per region is refitted to the
+#: misfit alone by Gauss-Newton (the TV shape inside each region kept): the debiasing step of compressed sensing
+#: (Figueiredo, Nowak & Wright, IEEE J. Sel. Top. Signal Process. 1 (2007) 586, sec. IV-B), whose support is here
+#: the TV solution's piecewise-constant partition.  A region is refitted only where the data constrain its shift
+#: (marginal std, Laplace temperature and registered-field factor as in :func:`_laplace`, at most
+#: :data:`TV_REFIT_SIGMA`) and the refitted shift stays within :data:`TV_REFIT_MAX_SHIFT`; other regions keep the
+#: TV value.
+TV_REFIT = None
+TV_REFIT_MIN_ELEMENTS = 4
+TV_REFIT_SIGMA = 0.1
+TV_REFIT_MAX_SHIFT = 0.5
+#: Shifts larger than TV_REFIT_MAX_SHIFT: "reject" (keep the TV value) or "clip" (move by TV_REFIT_MAX_SHIFT).
+TV_REFIT_CAP = "reject"
+#: "shift" (one log-mu shift per region, the TV shape inside kept), "constant" (refitted regions piecewise
+#: constant), "constant-all" (the reference region constant too) or "constant-fit" (fitted against a constant
+#: reference region, which keeps its TV values in the result).
+TV_REFIT_MODE = "shift"
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1136,6 +1157,134 @@ def _laplace(fem, reg, problem, theta, beta, n_data, Hd=None):
     return std, constrained & np.isfinite(std)
 
 
+def _regions(theta, reg, level: float, min_elements: int):
+    """(labels (n_el,) int, candidates list of int): edge-connected components of equal quantised log mu
+    (``round((theta - median) / level)``); a component of fewer than ``min_elements`` elements joins the
+    neighbouring component of nearest mean log mu; candidates are all components but the largest (the reference)."""
+    from scipy.sparse.csgraph import connected_components
+
+    n = theta.size
+    q = np.floor((theta - np.median(theta)) / level + 0.5)
+    same = q[reg.a] == q[reg.b]
+    graph = sp.coo_matrix((np.ones(int(same.sum())), (reg.a[same], reg.b[same])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    while True:
+        sizes = np.bincount(labels)
+        small = np.flatnonzero((sizes > 0) & (sizes < min_elements))
+        if small.size == 0 or np.count_nonzero(sizes) <= 1:
+            break
+        means = np.bincount(labels, theta) / np.maximum(sizes, 1)
+        k = small[np.argmin(sizes[small])]
+        la, lb = labels[reg.a], labels[reg.b]
+        nb = np.unique(np.r_[lb[la == k], la[lb == k]])
+        nb = nb[nb != k]
+        if nb.size == 0:
+            break
+        labels[labels == k] = nb[np.argmin(np.abs(means[nb] - means[k]))]
+    _, labels = np.unique(labels, return_inverse=True)
+    sizes = np.bincount(labels)
+    ref = int(np.argmax(sizes))
+    return labels, [k for k in range(sizes.size) if k != ref]
+
+
+def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_elements, sigma_max, max_shift,
+                  cap="reject", mode="shift", maxiter=20):
+    """Region debias refit (:data:`TV_REFIT`): theta + P c, P the (n_el, k) indicators of the regions of
+    :func:`_regions`, c minimising the misfit alone by Gauss-Newton with a backtracking line search.
+
+    The marginal std of each shift, sqrt(tau [(P^T H_d P)^-1]_kk) x ``sigma_factor`` (H_d the Gauss-Newton Hessian
+    of the misfit at ``theta``, tau = 2 phi / (n_data - k); :func:`_laplace`), selects the regions fitted (std <=
+    ``sigma_max``); the fit is repeated without any region whose shift leaves +-``max_shift`` (``cap="reject"``),
+    or such shifts are clipped (``"clip"``).  Returns (theta (n_el,), diagnostics dict: per candidate region
+    its size, TV mean log mu, std, fitted shift and whether it was applied)."""
+    labels, cand = _regions(theta, reg, level, min_elements)
+    diag = {"regions": int(labels.max()) + 1, "candidates": []}
+    if not cand:
+        return theta, diag
+    n = theta.size
+    theta_tv = theta
+    if mode != "shift":
+        # piecewise constant on the refitted regions ("constant-all": the reference region too)
+        means = np.bincount(labels, theta) / np.bincount(labels)
+        flat = np.isin(labels, cand) if mode == "constant" else np.ones(n, bool)     # constant-all, -fit
+        theta = np.where(flat, means[labels], theta)
+    P = sp.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, int(labels.max()) + 1))[:, cand].tocsc()
+    MII = fem.M[fem.I][:, fem.I]
+
+    def linearise(th):
+        mu = np.exp(th)
+        u, lu = fem.solve(mu, problem.dirichlet)
+        B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
+                          shape=(fem.basis.N, fem.n_el))[fem.I]
+        SP = -lu.solve(np.asarray((B @ P).todense()))            # (n_I, k) du_I / dc
+        r = (u - problem.d)[fem.I]
+        Hr = SP.T @ (MII @ SP) / problem.s2
+        g = SP.T @ (MII @ r) / problem.s2                       # d misfit / dc (interior residual only: u_B fixed)
+        phi = 0.5 * float((u - problem.d) @ (fem.M @ (u - problem.d))) / problem.s2
+        return phi, g, 0.5 * (Hr + Hr.T)
+
+    phi0, _, H0 = linearise(theta)
+    k = len(cand)
+    tau = 2.0 * phi0 / max(n_data - k, 1.0)
+    try:
+        C = np.linalg.inv(H0)
+        std = np.sqrt(np.clip(tau * np.diag(C), 0.0, None)) * sigma_factor
+    except np.linalg.LinAlgError:
+        std = np.full(k, np.inf)
+    std[~np.isfinite(std)] = np.inf
+    active = std <= sigma_max
+    c, first = np.zeros(k), None
+    for _ in range(k + 1):
+        c = np.zeros(k)
+        if not active.any():
+            break
+        idx = np.flatnonzero(active)
+        phi = phi0
+        for _ in range(maxiter):
+            th = theta + P[:, idx] @ c[idx]
+            phi, g, H = linearise(th)
+            Ha = H[np.ix_(idx, idx)]
+            try:
+                step = -np.linalg.solve(Ha + 1e-12 * np.trace(Ha) * np.eye(idx.size), g[idx])
+            except np.linalg.LinAlgError:
+                break
+            t = 1.0
+            while t > 1e-3:
+                trial = c.copy()
+                trial[idx] += t * step
+                trial = np.clip(trial, -2.0 * THETA_BOUND, 2.0 * THETA_BOUND)
+                phi_t, _ = problem.misfit(np.clip(theta + P @ trial, -THETA_BOUND, THETA_BOUND))
+                if phi_t < phi:
+                    break
+                t *= 0.5
+            if t <= 1e-3:
+                break
+            c = trial
+            if np.max(np.abs(t * step)) < 1e-4:
+                break
+        if first is None:
+            first = c.copy()
+        out = np.abs(c) > max_shift
+        if cap == "clip" or not out.any():
+            break
+        active &= ~out
+    fitted = c.copy() if first is None else first
+    if cap == "clip":
+        c = np.clip(c, -max_shift, max_shift)
+    for j, lab in enumerate(cand):
+        sel = labels == lab
+        diag["candidates"].append({"elements": int(sel.sum()), "log_mu": float(np.mean(theta[sel])),
+                                   "std": float(std[j]), "shift": float(fitted[j]), "applied": bool(active[j])})
+    c[~active] = 0.0
+    out = theta + P @ c
+    if mode != "shift":     # regions not refitted keep the TV values
+        keep = np.isin(labels, np.asarray(cand)[~active])
+        if mode in ("constant", "constant-fit"):
+            keep |= ~np.isin(labels, cand)      # the reference region too
+        out = np.where(keep, theta_tv, out)
+    return np.clip(out, -THETA_BOUND, THETA_BOUND), diag
+
+
 def _constrained_blocks(fem, problem, theta, block: int = 256) -> np.ndarray:
     r"""(n_el,) bool, the constrained mask of :func:`_laplace` without its dense matrices: the data information
     :math:`\mathrm{diag}(S^T M S)/s^2` from column blocks of :math:`S = \partial u/\partial\theta` (one solve per
@@ -1675,10 +1824,26 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                     accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
                 finally:
                     reg.linear = None
-        phi, _ = problem.misfit(theta)
-        R, _ = reg(theta)
         passes = "once" if TV_REWEIGHT_STEPS == 1 else f"{TV_REWEIGHT_STEPS} times"
         rule += f"; TV reweighted {passes} (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
+        if TV_REFIT:
+            # region debias refit (TV_REFIT, option): one log-mu shift per region of the TV solution, fitted to the
+            # misfit alone where the data constrain it
+            from .result import RegistrationResult
+
+            base = getattr(getattr(displacement, "refinement", None), "base_size", None)
+            h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None else h
+            factor = _registered_sigma(h_reg) if isinstance(displacement, RegistrationResult) else 1.0
+            theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
+                                         min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
+                                         max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
+                                         mode=TV_REFIT_MODE)
+            done = [e for e in refit["candidates"] if e["applied"]]
+            rule += (f"; region refit: {len(done)} of {len(refit['candidates'])} regions shifted by "
+                     f"{[round(e['shift'], 3) for e in done]} (candidates, elements / log mu / std / shift: "
+                     f"{[(e['elements'], round(e['log_mu'], 3), round(e['std'], 3), round(e['shift'], 3)) for e in refit['candidates']]})")
+        phi, _ = problem.misfit(theta)
+        R, _ = reg(theta)
         if TV_BREGMAN:
             rule += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
                      f"fraction {TV_BREGMAN_FRACTION:g}")
