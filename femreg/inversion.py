@@ -1276,6 +1276,8 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
         diag["candidates"].append({"elements": int(sel.sum()), "log_mu": float(np.mean(theta[sel])),
                                    "std": float(std[j]), "shift": float(fitted[j]), "applied": bool(active[j])})
     c[~active] = 0.0
+    if not active.any():
+        return theta_tv, diag
     out = theta + P @ c
     if mode != "shift":     # regions not refitted keep the TV values
         keep = np.isin(labels, np.asarray(cand)[~active])
