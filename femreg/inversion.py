@@ -187,7 +187,8 @@ __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "i
            "MODELS", "DEFAULT_WEIGHTS", "BETA_GRID", "LCURVE_SLOPE", "GROWTH_RATE", "DOF_AREA", "BETA_METHODS",
            "MISFIT_LIMIT", "DOF_ELEMENT_SIZE", "DOF_EXPONENT", "REGISTERED_SIGMA", "TV_REWEIGHT",
            "TV_REWEIGHT_STEPS", "TV_BREGMAN", "TV_BREGMAN_FRACTION", "TV_BREGMAN_START", "TV_REFIT",
-           "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE"]
+           "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE",
+           "TV_REFIT_STD"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -306,6 +307,10 @@ TV_REFIT_CAP = "reject"
 #: constant), "constant-all" (the reference region constant too) or "constant-fit" (fitted against a constant
 #: reference region, which keeps its TV values in the result).
 TV_REFIT_MODE = "shift"
+#: True: the refitted regions' uncertainty is the region model's (one std per region, :func:`_region_refit`), the
+#: others' the Laplace std at the TV solution (whose misfit sets the temperature); False: the Laplace std of the
+#: element model at the refitted solution everywhere.
+TV_REFIT_STD = True
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1276,9 +1281,21 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
         diag["candidates"].append({"elements": int(sel.sum()), "log_mu": float(np.mean(theta[sel])),
                                    "std": float(std[j]), "shift": float(fitted[j]), "applied": bool(active[j])})
     c[~active] = 0.0
+    diag["std_elements"] = np.full(n, np.nan)
     if not active.any():
         return theta_tv, diag
     out = theta + P @ c
+    # the refitted regions' std: the Laplace approximation of the region model at its optimum (tau and the
+    # registered-field factor as above), one value per region
+    idx = np.flatnonzero(active)
+    phi1, _, H1 = linearise(np.clip(out, -THETA_BOUND, THETA_BOUND))
+    try:
+        s1 = np.sqrt(np.clip(2.0 * phi1 / max(n_data - idx.size, 1.0)
+                             * np.diag(np.linalg.inv(H1[np.ix_(idx, idx)])), 0.0, None)) * sigma_factor
+    except np.linalg.LinAlgError:
+        s1 = np.full(idx.size, np.nan)
+    for j, sj in zip(idx, s1):
+        diag["std_elements"][labels == cand[j]] = sj
     if mode != "shift":     # regions not refitted keep the TV values
         keep = np.isin(labels, np.asarray(cand)[~active])
         if mode in ("constant", "constant-fit"):
@@ -1797,6 +1814,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     b, theta, info, phi, R = chosen
     if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
         problem.g = info["boundary"]
+    refit_std = theta_tv = None
     if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
@@ -1836,10 +1854,12 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             base = getattr(getattr(displacement, "refinement", None), "base_size", None)
             h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None else h
             factor = _registered_sigma(h_reg) if isinstance(displacement, RegistrationResult) else 1.0
+            theta_tv = theta if TV_REFIT_STD else None
             theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
                                          min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
                                          max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
                                          mode=TV_REFIT_MODE)
+            refit_std = refit["std_elements"]
             done = [e for e in refit["candidates"] if e["applied"]]
             rule += (f"; region refit: {len(done)} of {len(refit['candidates'])} regions shifted by "
                      f"{[round(e['shift'], 3) for e in done]} (candidates, elements / log mu / std / shift: "
@@ -1933,7 +1953,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     elif uncertainty:
         from .result import RegistrationResult
 
-        std, constrained = _laplace(fem, reg, problem, theta, b, n_data=fem.I.size,
+        std, constrained = _laplace(fem, reg, problem, theta if theta_tv is None else theta_tv, b,
+                                    n_data=fem.I.size,
                                     Hd=hd_cache.get(b) if images is None else None)
         if isinstance(displacement, RegistrationResult):
             # module docstring: the registered field's correlated errors, whose length is the registration's
@@ -1941,6 +1962,10 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             base = getattr(getattr(displacement, "refinement", None), "base_size", None)
             h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None and dim == 2 else h
             std = std * _registered_sigma(h_reg)
+        if TV_REFIT_STD and refit_std is not None and std is not None:
+            # refitted regions (TV_REFIT): the region model's std, one value per region (_region_refit)
+            use = np.isfinite(refit_std) & np.isfinite(std)
+            std = np.where(use, refit_std, std)
     t_unc = time.perf_counter() - t
     mu_kpa = None
     if ref is not None:
