@@ -64,7 +64,7 @@ def test_refit_lifts_the_tv_shrinkage_of_a_soft_plane_strain_disk(monkeypatch):
     refit_on(monkeypatch)
     res = invert(sol.displacement, **KW)
     refit = modulus_contrast(res, inclusion)["contrast"]
-    assert "region refit: 1 of 1" in res.beta_rule, res.beta_rule
+    assert "region refit (level 0.5): 1 of 1 regions" in res.beta_rule, res.beta_rule
     # measured: debiased TV 0.321 (1.28 x the truth 0.25), refitted 0.260 (1.04 x); 1.5 mm elements, beta 0.01
     assert 0.235 <= refit <= 0.275, f"refitted contrast {refit:.3f} (true 0.25)"
     assert tv - refit >= 0.04, f"TV {tv:.3f}, refitted {refit:.3f}"
@@ -78,14 +78,14 @@ def test_refit_keeps_the_tv_value_of_an_unconstrained_or_implausible_region(monk
     # marks the region unconstrained, and it keeps its TV values (the whole image, the only candidate)
     refit_on(monkeypatch, TV_REFIT_SIGMA=0.005)
     res = invert(sol.displacement, **KW)
-    assert "region refit: 0 of 1" in res.beta_rule, res.beta_rule
+    assert "region refit (level 0.5): 0 of 1 regions" in res.beta_rule, res.beta_rule
     np.testing.assert_allclose(res.mu, tv.mu, rtol=1e-12)
     # the fitted shift is -0.26: a cap below it rejects the refit, above it accepts it
     refit_on(monkeypatch, TV_REFIT_MAX_SHIFT=0.2)
     res = invert(sol.displacement, **KW)
-    assert "region refit: 0 of 1" in res.beta_rule, res.beta_rule
+    assert "region refit (level 0.5): 0 of 1 regions" in res.beta_rule, res.beta_rule
     np.testing.assert_allclose(res.mu, tv.mu, rtol=1e-12)
     refit_on(monkeypatch, TV_REFIT_MAX_SHIFT=0.3)
     res = invert(sol.displacement, **KW)
-    assert "region refit: 1 of 1" in res.beta_rule
+    assert "region refit (level 0.5): 1 of 1 regions" in res.beta_rule
     assert np.max(np.abs(np.log(res.mu / tv.mu))) > 0.1
