@@ -1170,9 +1170,11 @@ def _laplace(fem, reg, problem, theta, beta, n_data, Hd=None):
 
 
 def _regions(theta, reg, level: float, min_elements: int):
-    """(labels (n_el,) int, candidates list of int): edge-connected components of equal quantised log mu
-    (``round((theta - median) / level)``); a component of fewer than ``min_elements`` elements joins the
-    neighbouring component of nearest mean log mu; candidates are all components but the largest (the reference)."""
+    """(labels (n_el,) int, candidates list of int, core (n_el,) bool): edge-connected components of equal quantised
+    log mu (``round((theta - median) / level)``); a component of fewer than ``min_elements`` elements joins the
+    neighbouring component of nearest mean log mu; candidates are all components but the largest (the reference);
+    core marks the elements on their region's most common level (a merged speck, e.g. an element the disk's edge
+    cuts, is not core and keeps its TV value in the refit)."""
     from scipy.sparse.csgraph import connected_components
 
     n = theta.size
@@ -1196,7 +1198,10 @@ def _regions(theta, reg, level: float, min_elements: int):
     _, labels = np.unique(labels, return_inverse=True)
     sizes = np.bincount(labels)
     ref = int(np.argmax(sizes))
-    return labels, [k for k in range(sizes.size) if k != ref]
+    # a region's core: its elements on its most common level (not the specks merged into it)
+    dominant = np.array([np.bincount((q[labels == k] - q.min()).astype(int)).argmax() + q.min()
+                         for k in range(sizes.size)])
+    return labels, [k for k in range(sizes.size) if k != ref], q == dominant[labels]
 
 
 def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_elements, sigma_max, max_shift,
@@ -1209,18 +1214,19 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
     ``sigma_max``); the fit is repeated without any region whose shift leaves +-``max_shift`` (``cap="reject"``),
     or such shifts are clipped (``"clip"``).  Returns (theta (n_el,), diagnostics dict: per candidate region
     its size, TV mean log mu, std, fitted shift and whether it was applied)."""
-    labels, cand = _regions(theta, reg, level, min_elements)
-    diag = {"regions": int(labels.max()) + 1, "candidates": []}
+    labels, cand, core = _regions(theta, reg, level, min_elements)
+    n = theta.size
+    diag = {"regions": int(labels.max()) + 1, "candidates": [], "std_elements": np.full(n, np.nan)}
     if not cand:
         return theta, diag
-    n = theta.size
     theta_tv = theta
     if mode != "shift":
-        # piecewise constant on the refitted regions ("constant-all": the reference region too)
-        means = np.bincount(labels, theta) / np.bincount(labels)
-        flat = np.isin(labels, cand) if mode == "constant" else np.ones(n, bool)     # constant-all, -fit
+        # piecewise constant on the cores of the refitted regions ("constant-all", "-fit": the reference's too)
+        means = np.bincount(labels, theta * core) / np.maximum(np.bincount(labels, core.astype(float)), 1.0)
+        flat = core & (np.isin(labels, cand) if mode == "constant" else True)
         theta = np.where(flat, means[labels], theta)
-    P = sp.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, int(labels.max()) + 1))[:, cand].tocsc()
+    P = sp.csr_matrix((core.astype(float), (np.arange(n), labels)),
+                      shape=(n, int(labels.max()) + 1))[:, cand].tocsc()
     MII = fem.M[fem.I][:, fem.I]
 
     def linearise(th):
@@ -1284,11 +1290,10 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
     if cap == "clip":
         c = np.clip(c, -max_shift, max_shift)
     for j, lab in enumerate(cand):
-        sel = labels == lab
+        sel = (labels == lab) & core
         diag["candidates"].append({"elements": int(sel.sum()), "log_mu": float(np.mean(theta[sel])),
                                    "std": float(std[j]), "shift": float(fitted[j]), "applied": bool(active[j])})
     c[~active] = 0.0
-    diag["std_elements"] = np.full(n, np.nan)
     if not active.any():
         return theta_tv, diag
     out = theta + P @ c
@@ -1302,9 +1307,9 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
     except np.linalg.LinAlgError:
         s1 = np.full(idx.size, np.nan)
     for j, sj in zip(idx, s1):
-        diag["std_elements"][labels == cand[j]] = sj
-    if mode != "shift":     # regions not refitted keep the TV values
-        keep = np.isin(labels, np.asarray(cand)[~active])
+        diag["std_elements"][(labels == cand[j]) & core] = sj
+    if mode != "shift":     # regions not refitted, and the specks, keep the TV values
+        keep = np.isin(labels, np.asarray(cand)[~active]) | ~core
         if mode in ("constant", "constant-fit"):
             keep |= ~np.isin(labels, cand)      # the reference region too
         out = np.where(keep, theta_tv, out)

@@ -49,12 +49,13 @@ def test_regions_quantise_connect_and_merge_specks():
     theta[blob] = np.log(0.25) + 0.05 * np.sin(np.arange(blob.sum()))   # noise below the level
     speck = (c[0] > 6.0) & (c[0] < 7.0) & (c[1] > 6.0) & (c[1] < 8.0)   # 2 elements at log 1.6
     theta[speck] = np.log(1.6)
-    labels, cand = _regions(theta, reg, 0.5, 4)
+    labels, cand, core = _regions(theta, reg, 0.5, 4)
     assert len(cand) == 1                              # the blob; the speck joined the background (reference)
     assert np.all(labels[blob] == cand[0]) and np.all(labels[~blob] != cand[0])
     assert np.unique(labels[~blob]).size == 1
-    labels, cand = _regions(theta, reg, 0.5, 2)        # a speck of 2 elements is kept with min_elements 2
-    assert len(cand) == 2
+    assert np.array_equal(core, ~speck)                # the merged speck is not its region's core
+    labels, cand, core = _regions(theta, reg, 0.5, 2)  # a speck of 2 elements is kept with min_elements 2
+    assert len(cand) == 2 and core.all()
 
 
 def test_refit_lifts_the_tv_shrinkage_of_a_soft_plane_strain_disk(monkeypatch):
