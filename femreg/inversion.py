@@ -312,7 +312,7 @@ TV_REFIT_CAP = "reject"
 #: made constant too, which keeps its TV values in the result), "constant" (fitted against the reference's TV
 #: values), "constant-all" (the reference constant in the result as well: background CV 0 and, with the element
 #: model's std, 95 % within +-1 sigma on main) or "shift" (one shift per region, the TV shape inside kept: on the
-#: exact soft disk of tests/test_inversion_refit.py 1.26 x the truth against 1.04 x).
+#: exact soft disk of tests/test_inversion_refit.py 1.26 x the truth against 1.07 x).
 TV_REFIT_MODE = "constant-fit"
 #: True: a refitted region's uncertainty is the region model's (one std per region, :func:`_region_refit`), the
 #: other elements' the Laplace std at the TV solution (whose misfit sets the temperature); False: the Laplace std of
