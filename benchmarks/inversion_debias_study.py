@@ -1,6 +1,7 @@
 """The femreg rows of benchmarks/inversion.py (the default path: cached registration -> ``femreg.invert`` defaults)
 with module constants of :mod:`femreg.inversion` set, for studies of the debiasing options (TV_REWEIGHT_STEPS,
-TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; docs/inversion.md, "Contrast-preserving TV").
+TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; TV_REFIT and its TV_REFIT_* constants; docs/inversion.md,
+"Contrast-preserving TV" and "Region debias refit").
 
 Same registrations (``$FEMREG_CACHE/bench_inversion/<key>``, which must hold every case: nothing is registered here),
 the same contrast, ring, background CV and calibration as benchmarks/inversion.py; no exact, NCC or 1/SR rows.
@@ -47,7 +48,8 @@ def run(out, settings, sets):
             ring = bench.ring_coverage(inv.shear_modulus, field.centre, field.radius_mm)
             _, _, z = bench.calibration(inv, field, c)
             rows.append(dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
-                             success=bool(inv.success), beta=inv.beta, z=z, seconds=dt))
+                             success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
+                             rule=inv.beta_rule))
             print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
                   f"{'' if inv.success else ', flagged'}", flush=True)
     Path(out).write_text(json.dumps(rows))
@@ -58,6 +60,7 @@ def summary(paths):
     for p in paths:
         rows = json.loads(Path(p).read_text())
         print(f"**{p}**")
+        tot = [0, 0, 0, 0]
         for name in dict.fromkeys(r["set"] for r in rows):
             rs = [r for r in rows if r["set"] == name and r["ring"] >= 0.5]
             band = sum(r["success"] and 0.85 <= r["ratio"] <= 1.15 for r in rs)
@@ -67,6 +70,9 @@ def summary(paths):
             z = np.concatenate([np.asarray(r["z"], float) for r in rs] + [np.zeros(0)])
             print(f"- {name}: {band}/{len(rs)} in the band, CV <= 15 % {cv}/{len(rs)}, wrong side {wrong}, "
                   f"within +-1 sigma {100 * np.mean(z <= 1):.0f} %")
+            tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong]
+        print(f"- total: {tot[0]}/{tot[1]} in the band, CV <= 15 % {tot[2]}/{tot[1]}, wrong side {tot[3]}, "
+              f"{sum(r['seconds'] for r in rows):.0f} s")
 
 
 if __name__ == "__main__":

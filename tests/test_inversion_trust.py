@@ -53,13 +53,16 @@ def test_explicit_wrong_model_is_flagged():
 
 
 @pytest.mark.parametrize("lateral, flagged", [(0.95, False), (0.87, True)])
-def test_explicit_model_against_a_shrunk_lateral_strain(lateral, flagged):
+def test_explicit_model_against_a_shrunk_lateral_strain(lateral, flagged, monkeypatch):
     """The exact plane-strain field with its lateral displacement scaled (as a registration that smooths the lateral
     strain, R_eps: ratio 0.85 against the truth's 0.98) and model='plane-strain' given: 0.95 (ratio 0.93, the size of
     the largest registered deviation on benchmarks/inversion.py, 0.047) stays unflagged and in the band; 0.87 (ratio
     0.85) contradicts the model by more than RATIO_TOLERANCE and is flagged, its contrast wrong."""
+    from femreg import inversion
     from femreg.inversion import RATIO_TOLERANCE
 
+    # the model check, without the region refit (which reads the flagged 0.87 case at 4.20, closer to the truth)
+    monkeypatch.setattr(inversion, "TV_REFIT", None)
     sol = solution("plane-strain", 40.0)
     res = invert(lambda p: sol.displacement(p) * np.array([1.0, lateral]), model="plane-strain", region=REGION,
                  element_size=1.5, beta=3e-4, uncertainty=False)
@@ -242,9 +245,14 @@ def test_registered_stiff_plane_strain_disk_is_right_or_flagged(regularizer):
 
 
 @pytest.mark.parametrize("boundary", ["axial-sides", "free-sides"])
-def test_alternative_boundary_conditions_are_worse_on_exact_data(boundary):
+def test_alternative_boundary_conditions_are_worse_on_exact_data(boundary, monkeypatch):
     """The image's lateral sides lie inside tissue: treating them as traction-free (in y, or in both components)
     is a model error, which the exact plane-stress field exposes; the measured-displacement default is closer."""
+    from femreg import inversion
+
+    # the boundary conditions, without the region refit (exact data at a small beta: 4.22 with the refit,
+    # test_inversion_refit.py bounds it)
+    monkeypatch.setattr(inversion, "TV_REFIT", None)
     sol = solution("plane-stress", 40.0)
     kw = dict(region=REGION, element_size=1.5, beta=3e-4, uncertainty=False)
     alt = modulus_contrast(invert(sol.displacement, boundary=boundary, **kw), inclusion)["contrast"]
