@@ -42,7 +42,7 @@ FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 #: How strains are evaluated: "recovered" (continuous, default) or "element" (the raw element gradient).
 STRAIN_MODES = ("recovered", "element")
 #: How the recovered strain is computed (module docstring); the first is the default.
-RECOVERY_METHODS = ("average", "projection")
+RECOVERY_METHODS = ("average", "projection", "edge")
 DEFAULT_RECOVERY = RECOVERY_METHODS[0]
 #: Weight of the consistent mass in the projection's mass matrix (the rest lumped; 0 is the nodal average).  More
 #: sharpens edges more and amplifies local defects more: on a pair whose peak-hopping islands were repaired the
@@ -65,7 +65,7 @@ def strain_components(grad) -> np.ndarray:
     return np.stack([g[0, 0], g[1, 1], 0.5 * (g[0, 1] + g[1, 0])], axis=-1)
 
 
-def sample(u, location, fields=FIELDS, nodal_strain=None) -> dict:
+def sample(u, location, fields=FIELDS, nodal_strain=None, mesh_cells=None) -> dict:
     """Fields of the nodal displacement ``u`` at located points.
 
     Parameters
@@ -75,8 +75,9 @@ def sample(u, location, fields=FIELDS, nodal_strain=None) -> dict:
         Points inside the mesh with their element nodes ``nodes`` (m, 4), shape functions ``N`` (m, 4) and
         physical gradients ``dN`` (m, 4, 2) per mm.
     fields : names from :data:`FIELDS`
-    nodal_strain : (n_nodes, 3) or None
-        Nodal strains [exx, eyy, exy] (:func:`recovered_strains`) to interpolate bilinearly; None takes the
+    nodal_strain : (n_nodes, 3), (4, n_el, 3) or None
+        Recovered strains [exx, eyy, exy] (:func:`recovered_strains`) to interpolate bilinearly: nodal values, or
+        per-element corner values in ``mesh_cells`` (4, n_el) order (the ``"edge"`` recovery); None takes the
         element gradient of ``u``.
 
     Returns
@@ -91,7 +92,11 @@ def sample(u, location, fields=FIELDS, nodal_strain=None) -> dict:
     if "uy" in fields:
         out["uy"] = np.sum(location.N * uy, axis=1)
     if any(f in fields for f in ("exx", "eyy", "exy")):
-        if nodal_strain is not None:
+        if nodal_strain is not None and np.ndim(nodal_strain) == 3:
+            if mesh_cells is None:
+                raise InputError("per-element corner strains (4, n_el, 3) need the mesh cells")
+            e = np.einsum("mc,mck->mk", location.N, location_corners(location, nodal_strain, mesh_cells))
+        elif nodal_strain is not None:
             ns = np.asarray(nodal_strain, float)
             e = np.stack([np.sum(location.N * ns[:, k][location.nodes], axis=1) for k in range(3)], axis=-1)
         else:
@@ -102,6 +107,16 @@ def sample(u, location, fields=FIELDS, nodal_strain=None) -> dict:
             if name in fields:
                 out[name] = e[:, k]
     return out
+
+
+def location_corners(location, corner_values, mesh_cells) -> np.ndarray:
+    """Per-element corner values (4, n_el, k) in ``mesh_cells`` (4, n_el) order, at each located point's element
+    and in the order of its ``location.nodes`` (which need not be the cell order): shape (m, 4, k)."""
+    cv = np.asarray(corner_values, float)
+    el, nodes = location.element, location.nodes
+    cells = np.asarray(mesh_cells)
+    pos = np.argmax(nodes[:, :, None] == cells[:, el].T[:, None, :], axis=2)       # (m, 4) cell-order corner
+    return cv[pos, el[:, None]]
 
 
 def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
@@ -163,6 +178,8 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
     uu = np.asarray(u, float)
     if method == "projection" and np.all(np.isfinite(uu)):
         return projected_strains(mesh_points, mesh_cells, uu)
+    if method == "edge":
+        return edge_aware_strains(mesh_points, mesh_cells, uu)
     # the average is local: a non-finite displacement spoils only its own neighbourhood
     e = element_strains(mesh_points, mesh_cells, uu)
     return nodal_average(mesh_cells, e, np.asarray(mesh_points).shape[1])
@@ -197,6 +214,136 @@ def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | Non
     n_qp = basis.X.shape[1]
     return np.column_stack([lu.solve(rhs.assemble(basis, e=np.repeat(e[:, k:k + 1], n_qp, axis=1)))
                             for k in range(3)])
+
+
+#: Edge-aware recovery ("edge", :func:`edge_aware_strains`): a neighbour's strain is taken at a corner while its
+#: misfit to the element's own linear trend is under ``EDGE_LOW`` x the tolerance, left out above ``EDGE_HIGH`` x
+#: it (linear in between); the tolerance is ``EDGE_SLOPE`` x the trend's own change over that distance plus
+#: ``EDGE_NOISE`` x the misfit's median over the mesh (a robust scale of noise and curvature, per component).
+EDGE_LOW, EDGE_HIGH, EDGE_SLOPE, EDGE_NOISE = 1.0, 2.0, 2.0, 3.0
+
+
+def _edge_neighbours(t):
+    """Across-edge neighbours of a conforming quad mesh ``t`` (4, n_el): ``nb[k, e]`` the element across element
+    e's edge k (nodes t[k], t[k+1 mod 4]), -1 on the boundary, and ``kn[k, e]`` that edge's index in it."""
+    n_el = t.shape[1]
+    a, b = t, np.roll(t, -1, axis=0)
+    key = np.minimum(a, b).astype(np.int64) * (int(t.max()) + 1) + np.maximum(a, b)
+    flat = key.ravel()                                   # half-edge h = k * n_el + e
+    order = np.argsort(flat, kind="stable")
+    s = flat[order]
+    same = s[1:] == s[:-1]
+    nb_h = np.full(flat.size, -1, np.int64)
+    nb_h[order[1:][same]] = order[:-1][same]
+    nb_h[order[:-1][same]] = order[1:][same]
+    nb = np.where(nb_h >= 0, nb_h % n_el, -1).reshape(4, n_el)
+    kn = np.where(nb_h >= 0, nb_h // n_el, -1).reshape(4, n_el)
+    return nb, kn
+
+
+def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: float = EDGE_HIGH,
+                       slope: float = EDGE_SLOPE, noise: float = EDGE_NOISE) -> np.ndarray:
+    """Edge-aware recovered strains: per element, its four corner values [exx, eyy, exy], shape (4, n_el, 3) in
+    ``mesh_cells`` order, to be interpolated bilinearly within the element (:func:`sample`).
+
+    Each corner's value is the weighted mean of the element-centre strains (:func:`element_strains`) of the
+    elements around that node that continue this element's own trend, per component (an essentially
+    non-oscillatory choice of stencil: A. Harten, B. Engquist, S. Osher, S. Chakravarthy, J. Comput. Phys.
+    71:231-303, 1987, applied to the nodal average of Zienkiewicz & Zhu 1987):
+
+    1. element E's view of its neighbour F across an edge: the misfit ``m = |e_F - (e_E + s d)|`` of F to the line
+       through E's neighbour behind it (across E's opposite edge) and E, ``s`` that line's slope, ``d`` the centre
+       distance E-F (without a neighbour behind E: ``|e_F - e_E|``, the trend taken from F's side);
+    2. tolerance ``slope |s d| + noise median(m)``: a steep trend allows a larger misfit, the median over the mesh
+       is a robust scale of noise and curvature; E's weight of F is 1 below ``low`` x the tolerance, 0 above
+       ``high`` x it, linear between.  The weights need not be symmetric: the flat side of a step leaves out the
+       element cut by the step, the cut element (on a trend through both sides) keeps both;
+    3. an element left out by more than two of its neighbours is an outlier (noise, not one side of a step): its
+       neighbours and it take each other in again, by ``clip(n_left_out - 2, 0, 1)``, so noise draws no squares;
+    4. weight of an element around the node: 1 for E, its weight for an edge neighbour, the product along the path
+       for the diagonal one (the larger of its two paths).
+
+    Where every weight is 1 (smooth fields) this is the nodal average (:func:`nodal_average`) exactly; it is exact
+    for affine fields and, on both sides, for a strain step along element edges (piecewise-affine displacement).
+    Deterministic, vectorised; ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    """
+    p = np.asarray(mesh_points, float)
+    t = np.asarray(mesh_cells, np.int64)
+    e = element_strains(p, t, u)                                          # (n_el, 3), validates the mesh
+    n_el = t.shape[1]
+    nb, kn = _edge_neighbours(t)
+    cen = p[:, t].mean(axis=1)                                            # (2, n_el)
+    opp = (np.arange(4)[:, None] + 2) % 4                                 # opposite local edge
+    E = np.broadcast_to(np.arange(n_el), (4, n_el))
+    has = nb >= 0
+    F = np.where(has, nb, 0)
+    Eb = nb[opp, E]                                                       # behind E
+    Fb = np.where(has, nb[(np.where(has, kn, 0) + 2) % 4, F], -1)         # behind F
+
+    def dist(A, B):
+        return np.linalg.norm(cen[:, A] - cen[:, np.where(B >= 0, B, 0)], axis=0)
+
+    d = dist(E, F)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        trend = (e[E] - e[np.where(Eb >= 0, Eb, 0)]) * (d / dist(E, Eb))[..., None]       # s d, (4, n_el, 3)
+        back = (e[np.where(Fb >= 0, Fb, 0)] - e[F]) * (d / dist(F, Fb))[..., None]
+    own = (Eb >= 0)[..., None]
+    m = np.where(own, np.abs(e[F] - e[E] - trend), np.abs(e[F] - e[E]))
+    step = np.where(own, np.abs(trend), np.where((Fb >= 0)[..., None], np.abs(back), np.inf))
+    m = np.where(has[..., None], m, np.nan)
+    with np.errstate(invalid="ignore"):
+        scale = np.nanmedian(m[has], axis=0) if has.any() else np.zeros(3)
+    scale = np.maximum(np.nan_to_num(scale), 1e-9 * np.nanmax(np.abs(e), axis=0, initial=0.0) + 1e-300)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = m / (slope * step + noise * scale)
+    c = np.clip((high - rho) / (high - low), 0.0, 1.0)
+    c = np.where(np.isnan(c), 1.0, c)                                     # no trend to judge by, or NaN strains
+    c = np.where(has[..., None], c, 0.0)                                  # no element there: no weight
+    # 3. outliers: E's neighbours' weights of E (their edge kn towards E)
+    rev = np.where(has[..., None], c[np.where(has, kn, 0), F], 1.0)
+    iso = np.clip((1.0 - rev).sum(axis=0) - 2.0, 0.0, 1.0)                # (n_el, 3)
+    c = np.where(has[..., None], np.maximum(c, np.maximum(iso[None], iso[F])), 0.0)
+
+    # 4. per corner j of E: edges j and j-1 meet there; their neighbours F1, F2 and the diagonals behind them
+    def other_edge(Fn, k_shared, node):
+        """Index of Fn's other edge at ``node`` (its shared edge with E is k_shared)."""
+        start = t[k_shared, Fn] == node
+        return np.where(start, (k_shared - 1) % 4, (k_shared + 1) % 4)
+
+    node = t                                                              # (4 corners, n_el)
+    out = np.empty((4, n_el, 3))
+    for j in range(4):
+        k1, k2 = j, (j - 1) % 4
+        acc = e.copy()
+        wsum = np.ones((n_el, 3))
+        paths = []
+        for k in (k1, k2):
+            Fk = nb[k]
+            ok = Fk >= 0
+            Fks = np.where(ok, Fk, 0)
+            wF = c[k]                                                      # (n_el, 3), 0 where no neighbour
+            acc += wF * np.nan_to_num(e[Fks])
+            wsum += wF
+            ko = other_edge(Fks, np.where(ok, kn[k], 0), node[j])
+            D = np.where(ok, nb[ko, Fks], -1)
+            Ds = np.where(D >= 0, D, 0)
+            wD = wF * np.where((D >= 0)[:, None], c[ko, Fks], 0.0)
+            paths.append((D, Ds, wD))
+        (D1, D1s, w1), (D2, D2s, w2) = paths
+        same = D1 == D2
+        bad2 = (D2 < 0) | (D2 == nb[k1]) | same                           # valence 3 or the same diagonal
+        bad1 = (D1 < 0) | (D1 == nb[k2])
+        w1 = np.where(bad1[:, None], 0.0, np.where(same[:, None], np.maximum(w1, w2), w1))
+        w2 = np.where(bad2[:, None], 0.0, w2)
+        acc += w1 * np.nan_to_num(e[D1s]) + w2 * np.nan_to_num(e[D2s])
+        wsum += w1 + w2
+        out[j] = acc / wsum
+    # a non-finite strain spoils its own neighbourhood only, as in the average
+    bad = ~np.isfinite(e)
+    if bad.any():
+        nbad = nodal_average(t, bad.astype(float), p.shape[1]) > 0
+        out[nbad[t]] = np.nan
+    return out
 
 
 def element_strain_operator(mesh):
