@@ -7,7 +7,7 @@ at located points (:func:`sample`, used for pixel grids and arbitrary points), a
 
 The gradient of a bilinear field is discontinuous across element edges (axial strain constant along x in each
 element: a blocky image, first-order accurate).  What femreg reports by default is the *recovered* strain
-(:func:`recovered_strains`): a continuous bilinear nodal field, interpolated like the displacement.  Two recoveries:
+(:func:`recovered_strains`): a bilinear field interpolated like the displacement.  Three recoveries:
 
 * ``"average"`` (default): the element-centre strains -- the superconvergent points of bilinear quads -- averaged
   at each node (O. C. Zienkiewicz, J. Z. Zhu, Int. J. Numer. Meth. Eng. 24:337-357, 1987, "simple averaging"; on a
@@ -17,8 +17,13 @@ element: a blocky image, first-order accurate).  What femreg reports by default 
   blended 3/4 consistent + 1/4 lumped (E. Hinton, J. S. Campbell, Int. J. Numer. Meth. Eng. 8:461-480, 1974,
   "global smoothing"; with the lumped mass alone it is the average).  Sharper edges, less smoothing of noise
   and defects (numbers in :func:`recovered_strains`).
+* ``"edge"``: edge-aware (:func:`edge_aware_strains`): per element, each corner averages only the elements around
+  the node that continue this element's trend, so a strain step stays a step; per-element corner values (4, n_el,
+  3), bilinear within each element, continuous (the average) wherever no step stands out.  Opt-in: sharper
+  inclusion edges, but it also keeps the element-scale defects of a registration (numbers in
+  :func:`recovered_strains`).
 
-Both are exact for affine fields.  ``strain="element"`` keeps the raw element gradient.
+All are exact for affine fields.  ``strain="element"`` keeps the raw element gradient.
 Lengths in mm; ``u`` is the interleaved nodal vector ``[ux0, uy0, ux1, ...]`` (scikit-fem's vector DOF order).
 """
 from __future__ import annotations
@@ -34,6 +39,7 @@ from .mesh import check_mesh
 from .quadrature import ELEMENT_CENTRE_RULE
 
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
+           "edge_aware_strains", "edge_aware_corners", "location_corners",
            "recovered_strains", "projected_strains", "check_strain_mode", "element_strain_operator",
            "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators"]
 
@@ -152,7 +158,7 @@ def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
 
 
 def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY) -> np.ndarray:
-    """Recovered nodal strains [exx, eyy, exy], shape (n_nodes, 3), to be interpolated bilinearly.
+    """Recovered strains [exx, eyy, exy], shape (n_nodes, 3) (``"edge"``: (4, n_el, 3)), interpolated bilinearly.
 
     ``method="average"`` (default): the mean of the element-centre strains (:func:`element_strains`) of the
     elements around each node (Zienkiewicz & Zhu 1987, simple averaging).  ``"projection"``:
@@ -171,7 +177,25 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
       shows the residual defects more).
 
     So the average stays the default; the projection is there for pictures of sharp-edged inclusions.
-    ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+
+    ``"edge"``: :func:`edge_aware_strains`, returned as per-element corner values (4, n_el, 3) in ``mesh_cells``
+    order (every sampler here takes either shape).  Measured against the average on the same registrations
+    (defaults; ``benchmarks/recovery.py``, seeds 0 and 7 for the robustness pairs):
+
+    * inclusions (``--suite inclusions``): the exact displacement on the refined mesh (the floor) 0.16-0.42 points
+      lower on all 8 pairs (r 8 mm 8.33 -> 8.03 %), its axial edge at r 3 mm 1.39 / 1.27 -> 1.15 / 1.08 mm
+      (1 % / 4 %); the registrations -0.01 to -0.22 points on 7, +0.09 on r 8 mm (10.52 -> 10.61 %), the r 3 mm
+      axial edge 1.41 / 1.25 -> 1.07 / 1.21 mm;
+    * robustness pairs: within 0.01 on the uniform ones, -0.39 to +0.05 on bending, the plane-strain inclusions and
+      the 1 % plane-stress ones, but +0.25 to +0.38 on the 4 % plane-stress ones (stiff 8.20 -> 8.58 %, soft
+      7.92 -> 8.26 %, seed 0 / 7): the sharper recovery keeps element-scale blocks of their shear strain;
+    * shear bands: 9 of 11 lower by 0.8-8.4 points (band 2 mm, 0.3 mm slide 22.0 -> 13.6 %), but +1.1 on the
+      0.5 mm band the registration does not resolve and +2.5 on the 3 mm band under L3 (rows of unequal e_xy
+      inside the band stay as steps); the slide (integral of e_xy across the band) is off by more on 10 of 11
+      (band 1 mm at 8 mm depth -4.7 -> -12.9 %): the one-sided corners do not keep the integral.
+
+    So it is an option, for pictures of sharp-edged inclusions.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells``
+    (4, n_el), ``u`` (2 n_nodes,) mm.
     """
     if method not in RECOVERY_METHODS:
         raise InputError(f"recovery method must be one of {RECOVERY_METHODS}, got {method!r}")
@@ -267,10 +291,21 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
     for affine fields and, on both sides, for a strain step along element edges (piecewise-affine displacement).
     Deterministic, vectorised; ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
+    return edge_aware_corners(mesh_points, mesh_cells, element_strains(mesh_points, mesh_cells, u), low=low,
+                              high=high, slope=slope, noise=noise)
+
+
+def edge_aware_corners(mesh_points, mesh_cells, values, low: float = EDGE_LOW, high: float = EDGE_HIGH,
+                       slope: float = EDGE_SLOPE, noise: float = EDGE_NOISE) -> np.ndarray:
+    """The corner values of :func:`edge_aware_strains` from element-centre values ``values`` (n_el, k) (each column
+    on its own): shape (4, n_el, k) in ``mesh_cells`` (4, n_el) order; ``mesh_points`` (2, n_nodes) mm."""
     p = np.asarray(mesh_points, float)
     t = np.asarray(mesh_cells, np.int64)
-    e = element_strains(p, t, u)                                          # (n_el, 3), validates the mesh
-    n_el = t.shape[1]
+    e = np.asarray(values, float)
+    if t.ndim != 2 or t.shape[0] != 4 or e.ndim != 2 or e.shape[0] != t.shape[1]:
+        raise InputError(f"values must be (n_el, k) with n_el = {t.shape[-1]} and mesh_cells (4, n_el), got "
+                         f"{e.shape} and {t.shape}")
+    n_el, nk = t.shape[1], e.shape[1]
     nb, kn = _edge_neighbours(t)
     cen = p[:, t].mean(axis=1)                                            # (2, n_el)
     opp = (np.arange(4)[:, None] + 2) % 4                                 # opposite local edge
@@ -285,14 +320,14 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
 
     d = dist(E, F)
     with np.errstate(invalid="ignore", divide="ignore"):
-        trend = (e[E] - e[np.where(Eb >= 0, Eb, 0)]) * (d / dist(E, Eb))[..., None]       # s d, (4, n_el, 3)
+        trend = (e[E] - e[np.where(Eb >= 0, Eb, 0)]) * (d / dist(E, Eb))[..., None]       # s d, (4, n_el, k)
         back = (e[np.where(Fb >= 0, Fb, 0)] - e[F]) * (d / dist(F, Fb))[..., None]
     own = (Eb >= 0)[..., None]
     m = np.where(own, np.abs(e[F] - e[E] - trend), np.abs(e[F] - e[E]))
     step = np.where(own, np.abs(trend), np.where((Fb >= 0)[..., None], np.abs(back), np.inf))
     m = np.where(has[..., None], m, np.nan)
     with np.errstate(invalid="ignore"):
-        scale = np.nanmedian(m[has], axis=0) if has.any() else np.zeros(3)
+        scale = np.nanmedian(m[has], axis=0) if has.any() else np.zeros(nk)
     scale = np.maximum(np.nan_to_num(scale), 1e-9 * np.nanmax(np.abs(e), axis=0, initial=0.0) + 1e-300)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = m / (slope * step + noise * scale)
@@ -301,7 +336,7 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
     c = np.where(has[..., None], c, 0.0)                                  # no element there: no weight
     # 3. outliers: E's neighbours' weights of E (their edge kn towards E)
     rev = np.where(has[..., None], c[np.where(has, kn, 0), F], 1.0)
-    iso = np.clip((1.0 - rev).sum(axis=0) - 2.0, 0.0, 1.0)                # (n_el, 3)
+    iso = np.clip((1.0 - rev).sum(axis=0) - 2.0, 0.0, 1.0)                # (n_el, k)
     c = np.where(has[..., None], np.maximum(c, np.maximum(iso[None], iso[F])), 0.0)
 
     # 4. per corner j of E: edges j and j-1 meet there; their neighbours F1, F2 and the diagonals behind them
@@ -311,17 +346,17 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
         return np.where(start, (k_shared - 1) % 4, (k_shared + 1) % 4)
 
     node = t                                                              # (4 corners, n_el)
-    out = np.empty((4, n_el, 3))
+    out = np.empty((4, n_el, nk))
     for j in range(4):
         k1, k2 = j, (j - 1) % 4
         acc = e.copy()
-        wsum = np.ones((n_el, 3))
+        wsum = np.ones((n_el, nk))
         paths = []
         for k in (k1, k2):
             Fk = nb[k]
             ok = Fk >= 0
             Fks = np.where(ok, Fk, 0)
-            wF = c[k]                                                      # (n_el, 3), 0 where no neighbour
+            wF = c[k]                                                      # (n_el, k), 0 where no neighbour
             acc += wF * np.nan_to_num(e[Fks])
             wsum += wF
             ko = other_edge(Fks, np.where(ok, kn[k], 0), node[j])
@@ -338,11 +373,10 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
         acc += w1 * np.nan_to_num(e[D1s]) + w2 * np.nan_to_num(e[D2s])
         wsum += w1 + w2
         out[j] = acc / wsum
-    # a non-finite strain spoils its own neighbourhood only, as in the average
+    # a non-finite value spoils its own neighbourhood only, as in the average
     bad = ~np.isfinite(e)
     if bad.any():
-        nbad = nodal_average(t, bad.astype(float), p.shape[1]) > 0
-        out[nbad[t]] = np.nan
+        out[(nodal_average(t, bad.astype(float), p.shape[1]) > 0)[t]] = np.nan
     return out
 
 
