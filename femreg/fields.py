@@ -29,6 +29,7 @@ Lengths in mm; ``u`` is the interleaved nodal vector ``[ux0, uy0, ux1, ...]`` (s
 from __future__ import annotations
 
 import functools
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -338,13 +339,20 @@ def edge_aware_corners(mesh_points, mesh_cells, values, low: float = EDGE_LOW, h
     with np.errstate(invalid="ignore"):
         # each element's largest misfit, its median over the elements: a field varying along one axis only has
         # zero misfits across half the edges, which would make the median of all misfits zero
-        scale = np.nanmedian(np.nanmax(m, axis=0), axis=0) if has.any() else np.zeros(nk)
+        with warnings.catch_warnings():     # all-NaN columns (NaN strains) give NaN, handled below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            scale = np.nanmedian(np.nanmax(m, axis=0), axis=0) if has.any() else np.zeros(nk)
     scale = np.maximum(np.nan_to_num(scale), 1e-9 * np.nanmax(np.abs(e), axis=0, initial=0.0) + 1e-300)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = m / (slope * step + noise * scale)
     c = np.clip((high - rho) / (high - low), 0.0, 1.0)
     c = np.where(np.isnan(c), 1.0, c)                                     # no trend to judge by, or NaN strains
     c = np.where(has[..., None], c, 0.0)                                  # no element there: no weight
+    # 3. outliers: E's neighbours' weights of E (their edge kn towards E), taken in again before the averaging
+    # along edges spreads their exclusion
+    rev = np.where(has[..., None], c[np.where(has, kn, 0), F], 1.0)
+    iso = np.clip((1.0 - rev).sum(axis=0) - 2.0, 0.0, 1.0)                # (n_el, k)
+    c = np.where(has[..., None], np.maximum(c, np.maximum(iso[None], iso[F])), 0.0)
     for _ in range(int(tangential)):
         # mean with the parallel edges of the two neighbours along the edge: a step along a line is judged along
         # the line, not edge by edge (which leaves teeth where the judgement flips)
@@ -359,10 +367,6 @@ def edge_aware_corners(mesh_points, mesh_cells, values, low: float = EDGE_LOW, h
             acc += np.where(ok[..., None], c[kp, Gs], 0.0)
             cnt += ok
         c = np.where(has[..., None], acc / cnt[..., None], 0.0)
-    # 3. outliers: E's neighbours' weights of E (their edge kn towards E)
-    rev = np.where(has[..., None], c[np.where(has, kn, 0), F], 1.0)
-    iso = np.clip((1.0 - rev).sum(axis=0) - 2.0, 0.0, 1.0)                # (n_el, k)
-    c = np.where(has[..., None], np.maximum(c, np.maximum(iso[None], iso[F])), 0.0)
 
     # 4. per corner j of E: edges j and j-1 meet there; their neighbours F1, F2 and the diagonals behind them
     def other_edge(Fn, k_shared, node):
