@@ -183,18 +183,21 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
     order (every sampler here takes either shape).  Measured against the average on the same registrations
     (defaults; ``benchmarks/recovery.py``, seeds 0 and 7 for the robustness pairs):
 
-    * inclusions (``--suite inclusions``): the exact displacement on the refined mesh (the floor) 0.19-0.62 points
-      lower on all 8 pairs (r 8 mm 8.33 -> 7.71 %, the element-centre strain's 7.68 %), its axial edge at r 3 mm
-      1.39 / 1.27 -> 1.20 / 1.15 mm (1 % / 4 %); the registrations 0.04-0.25 points lower on all 8 (r 8 mm
-      10.52 -> 10.49 %), the r 3 mm axial edge 1.41 / 1.25 -> 1.34 / 1.23 mm; CNR_e within -0.2 / +2.4 except
-      r 1 mm (52.1 -> 45.7) and r 2 mm under L3 (47.2 -> 40.9);
-    * robustness pairs (seeds 0 / 7): within 0.02 on the uniform ones and bending, 0.05-0.29 lower on the
+    * inclusions (``--suite inclusions``): the exact displacement on the refined mesh (the floor) 0.16-0.44 points
+      lower on all 8 pairs (r 8 mm 8.33 -> 7.97 %; the element-centre strain 7.68 %), its axial edge at r 3 mm
+      1.39 / 1.27 -> 1.23 / 1.15 mm (1 % / 4 %); the registrations 0.03-0.22 points lower on all 8 (r 8 mm
+      10.52 -> 10.50 %), the r 3 mm axial edge 1.41 / 1.25 -> 1.34 / 1.23 mm; CNR_e within -0.9 / +2.5 except
+      r 2 mm under L3 (47.2 -> 40.7);
+    * robustness pairs (seeds 0 / 7): within 0.02 on the uniform ones and bending, 0.05-0.28 lower on the
       plane-strain inclusions and the 1 % plane-stress ones, +0.08 to +0.25 on the 4 % plane-stress ones (soft
       7.92 -> 8.17 %): the sharper recovery keeps element-scale blocks of their shear strain;
-    * shear bands: 9 of 11 lower by 0.8-10.5 points (band 2 mm, 0.3 mm slide 22.0 -> 11.5 %), but +1.1 on the
+    * shear bands: 9 of 11 lower by 0.8-9.5 points (band 2 mm, 0.3 mm slide 22.0 -> 12.5 %), but +1.1 on the
       0.5 mm band the registration does not resolve and +2.4 on the 3 mm band under L3 (rows of unequal e_xy
       inside the band stay as steps); the slide (integral of e_xy across the band) is off by more on 9 of 11
-      (band 1 mm at 8 mm depth -4.7 -> -13.1 %): the one-sided corners do not keep the integral.
+      (band 1 mm at 8 mm depth -4.7 -> -13.1 %): the one-sided corners do not keep the integral;
+    * pictures: on the in vivo pair (seq299 frames 1 -> 2) the mean |second difference| of e_xx at 0.3 mm axial
+      steps is 0.029 / 0.0048 % (axial / lateral) against 0.021 / 0.0041 % (average) and 0.042 / 0.0082 %
+      (element strain): rougher than the average, about 40 % of the way to the element strain.
 
     So it is an option, for pictures of sharp-edged inclusions.  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells``
     (4, n_el), ``u`` (2 n_nodes,) mm.
@@ -249,8 +252,8 @@ def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | Non
 #: curvature, per component).
 EDGE_LOW, EDGE_HIGH, EDGE_SLOPE, EDGE_NOISE = 1.0, 2.0, 2.0, 2.0
 #: Passes of averaging each edge's weight with the parallel edges of its two neighbours along it (0: none, sharper
-#: registered inclusion edges -- r 3 mm at 1 %: 1.07 against 1.34 mm -- but teeth along steps and +0.07 points on
-#: the worst robustness pair).
+#: registered inclusion edges -- r 3 mm at 1 %: 1.07 against 1.34 mm -- but teeth along steps, the inclusions'
+#: floor 0.1-0.3 points higher and +0.32 points on the worst robustness pair).
 EDGE_TANGENTIAL = 1
 
 
