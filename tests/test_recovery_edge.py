@@ -183,3 +183,38 @@ def test_edge_recovery_is_fast_on_a_20k_element_mesh():
     t0 = time.perf_counter()
     edge_aware_corners(m.p, m.t, e)
     assert time.perf_counter() - t0 < 3.0
+
+
+def test_unstructured_meshes_valence_three_and_jittered():
+    """A triangle split into three quads (a node shared by three elements) and a tensor mesh with jittered interior
+    nodes (no tensor structure: the point-by-point locator): exact for affine fields, and on the jittered mesh the
+    corner values of a smooth field within 1e-3 of the nodal average (measured 0 at amplitude 1) and sampled at
+    points like the nodal values."""
+    A = np.array([[0.012, -0.004], [0.003, -0.02]])
+    want = [A[0, 0], A[1, 1], 0.5 * (A[0, 1] + A[1, 0])]
+    p = np.array([[0.0, 2.0, 0.0, 1.0, 1.0, 0.0, 2 / 3], [0.0, 0.0, 2.0, 0.0, 1.0, 1.0, 2 / 3]])
+    t = np.array([[0, 3, 6, 5], [3, 1, 4, 6], [6, 4, 2, 5]]).T
+    for mesh in (MeshQuad1(p, t), _jittered()):
+        u = np.zeros(2 * mesh.p.shape[1])
+        u[0::2], u[1::2] = A[0] @ mesh.p, A[1] @ mesh.p
+        s = recovered_strains(mesh.p, mesh.t, u, "edge")
+        np.testing.assert_allclose(s.reshape(-1, 3), np.tile(want, (s.size // 3, 1)), rtol=0, atol=1e-15)
+    m = _jittered()
+    v = _smooth(m.p[:, m.t].mean(axis=1))
+    ed = edge_aware_corners(m.p, m.t, v)
+    assert np.abs(ed - nodal_average(m.t, v, m.p.shape[1])[m.t]).max() < 0.02
+    u = 1e-3 * np.random.default_rng(5).standard_normal(2 * m.p.shape[1])
+    loc = PointLocator(m)
+    rng = np.random.default_rng(6)
+    P = np.column_stack([rng.uniform(0.5, 11.5, 100), rng.uniform(-3.5, 3.5, 100)])
+    ns = recovered_strains(m.p, m.t, u)
+    np.testing.assert_allclose(sample_points(u, loc, P, ("exx", "eyy", "exy"), nodal_strain=ns[m.t]),
+                               sample_points(u, loc, P, ("exx", "eyy", "exy"), nodal_strain=ns), rtol=0, atol=1e-15)
+
+
+def _jittered():
+    m = _mesh()
+    p = m.p.copy()
+    inner = (p[0] > X[0]) & (p[0] < X[-1]) & (p[1] > Y[0]) & (p[1] < Y[-1])
+    p[:, inner] += 0.05 * np.random.default_rng(4).uniform(-1, 1, (2, inner.sum()))
+    return MeshQuad1(p, m.t)
