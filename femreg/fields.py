@@ -297,8 +297,13 @@ def edge_aware_strains(mesh_points, mesh_cells, u, low: float = EDGE_LOW, high: 
        sides) keeps both;
     3. an element left out by more than two of its neighbours is an outlier (noise, not one side of a step): its
        neighbours and it take each other in again, by ``clip(n_left_out - 2, 0, 1)``, so noise draws no squares;
+       then each weight is averaged with those of the parallel edges of the two neighbours along its edge
+       (``tangential`` passes): a step along a line is judged along the line, and a judgement that flips from edge
+       to edge leaves no teeth;
     4. weight of an element around the node: 1 for E, its weight for an edge neighbour, the product along the path
        for the diagonal one (the larger of its two paths).
+
+    ``low``, ``high``, ``slope``, ``noise``, ``tangential``: :data:`EDGE_LOW` ... :data:`EDGE_TANGENTIAL`.
 
     Where every weight is 1 (smooth fields) this is the nodal average (:func:`nodal_average`) exactly; it is exact
     for affine fields and, on both sides, for a strain step along element edges (piecewise-affine displacement).
