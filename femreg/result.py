@@ -9,7 +9,7 @@ import numpy as np
 
 from .blockmatch import BlockMatchResult
 from .errors import InputError
-from .fields import check_strain_mode, recovered_strains
+from .fields import DEFAULT_RECOVERY, check_strain_mode, recovered_strains
 from .io.results import read_result, save_result
 from .pixels import PointLocator
 from .result_base import ResultRecord
@@ -111,23 +111,38 @@ class RegistrationResult(ResultRecord):
             self._nodal_strain = recovered_strains(self.mesh.p, self.mesh.t, self.u)
         return self._nodal_strain
 
-    def strain(self, points, strain: str = "recovered") -> np.ndarray:
+    def recovered(self, recovery: str | None = None) -> np.ndarray:
+        """Recovered strains of method ``recovery`` (:data:`femreg.fields.RECOVERY_METHODS`; None: the default,
+        :attr:`nodal_strain`): (n_nodes, 3), or per-element corner values (4, n_el, 3) for ``"edge"``."""
+        if recovery is None or recovery == DEFAULT_RECOVERY:
+            return self.nodal_strain
+        cache = self.__dict__.setdefault("_recovered", {})
+        if recovery not in cache:
+            cache[recovery] = recovered_strains(self.mesh.p, self.mesh.t, self.u, recovery)
+        return cache[recovery]
+
+    def strain(self, points, strain: str = "recovered", recovery: str | None = None) -> np.ndarray:
         """Small strain at ``points`` (n, 2) mm -> (n, 3) [exx, eyy, exy], exy = (dux/dy + duy/dx) / 2;
-        NaN outside the mesh.  ``strain="recovered"`` (default): continuous, the nodal average of the
-        element-centre strains interpolated bilinearly (:mod:`femreg.fields`); ``"element"``: the gradient of
-        the bilinear field, discontinuous across element edges (a point on an edge takes one of its elements)."""
+        NaN outside the mesh.  ``strain="recovered"`` (default): the recovered strain interpolated bilinearly
+        (:mod:`femreg.fields`; ``recovery`` its method, default the nodal average of the element-centre strains,
+        continuous; ``"edge"`` keeps strain steps); ``"element"``: the gradient of the bilinear field,
+        discontinuous across element edges (a point on an edge takes one of its elements)."""
         check_strain_mode(strain)
         return sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),
-                             nodal_strain=self.nodal_strain if strain == "recovered" else None)
+                             nodal_strain=self.recovered(recovery) if strain == "recovered" else None)
 
     def pixel_points(self) -> np.ndarray:
         """Centres of the reference pixels, (n_axial * n_lateral, 2) mm, C order."""
         return self.pixel_grid.points()
 
-    def on_grid(self, strain: str = "recovered") -> dict:
+    def on_grid(self, strain: str = "recovered", recovery: str | None = None) -> dict:
         """ux, uy, exx, eyy, exy on the reference pixel grid, each (n_axial, n_lateral) float64, NaN outside
-        the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``)."""
-        if check_strain_mode(strain) == "element":
+        the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``; ``recovery`` the method of the
+        recovered strain, None the default)."""
+        if check_strain_mode(strain) == "recovered" and recovery is not None and recovery != DEFAULT_RECOVERY:
+            return sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
+                               nodal_strain=self.recovered(recovery))
+        if strain == "element":
             if self._grid_element is None:
                 self._grid_element = sample_grid(self.u, self.locator, self.pixel_grid, "element")
             return self._grid_element

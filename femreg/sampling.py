@@ -50,11 +50,12 @@ class PixelGrid:
 
 def sample_points(u, locator, points, names, nodal_strain=None) -> np.ndarray:
     """Fields ``names`` (of ``ux, uy, exx, eyy, exy``) of the nodal vector ``u`` (2 n_nodes,) at ``points`` (n, 2)
-    mm -> (n, len(names)), NaN outside the mesh; ``nodal_strain`` (n_nodes, 3): recovered strains, else element
+    mm -> (n, len(names)), NaN outside the mesh; ``nodal_strain`` (n_nodes, 3) or per-element corners (4, n_el, 3):
+    recovered strains (:func:`femreg.fields.sample`), else element
     strains.  ``locator``: the mesh's :class:`femreg.pixels.PointLocator`."""
     pts = np.asarray(points, float).reshape(-1, 2)
     loc = locator.locate(pts)
-    f = sample(u, loc, tuple(names), nodal_strain=nodal_strain)
+    f = sample(u, loc, tuple(names), nodal_strain=nodal_strain, mesh_cells=locator.mesh.t)
     out = np.full((len(pts), len(names)), np.nan)
     out[loc.inside] = np.column_stack([f[k] for k in names])
     return out
@@ -62,11 +63,21 @@ def sample_points(u, locator, points, names, nodal_strain=None) -> np.ndarray:
 
 def sample_grid(u, locator, grid: PixelGrid, strain: str = "element", nodal_strain=None) -> dict:
     """ux, uy, exx, eyy, exy of the nodal vector ``u`` on ``grid``, each ``grid.shape`` float64, NaN outside the
-    mesh.  ``strain="recovered"`` needs ``nodal_strain`` (n_nodes, 3) [exx, eyy, exy]."""
+    mesh.  ``strain="recovered"`` needs ``nodal_strain`` (n_nodes, 3) [exx, eyy, exy] or per-element corner values
+    (4, n_el, 3) (:func:`femreg.fields.edge_aware_strains`)."""
     loc = locator.locate_grid(*grid.axes())           # separable on tensor meshes
     if check_strain_mode(strain) == "element":
         return _element_fields(u, locator, loc, grid.shape)
     ns = nodal_strain
+    if np.ndim(ns) == 3:       # per-element corner values (edge-aware recovery): discontinuous, per point
+        g = _element_fields(u, locator, loc, grid.shape)
+        n = grid.shape[0] * grid.shape[1]
+        f = sample(u, loc, ("exx", "eyy", "exy"), nodal_strain=ns, mesh_cells=locator.mesh.t)
+        for k in ("exx", "eyy", "exy"):
+            g[k] = np.full(n, np.nan)
+            g[k][loc.inside] = f[k]
+            g[k] = g[k].reshape(grid.shape)
+        return g
     fast = _nodal_fields(np.column_stack([u[0::2], u[1::2], ns]), locator, loc, grid.shape)
     if fast is not None:       # one compiled pass over the samples for all five fields
         return dict(zip(("ux", "uy", "exx", "eyy", "exy"), fast))
