@@ -196,7 +196,7 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
       inside the band stay as steps); the slide (integral of e_xy across the band) is off by more on 9 of 11
       (band 1 mm at 8 mm depth -4.7 -> -13.1 %): the one-sided corners do not keep the integral; the band's
       upper face (10-90 %) sharper on all 11 (band 2 mm 0.59 -> 0.25 mm, ``shear_bands.py``);
-    * pictures: on the in vivo pair (seq299 frames 1 -> 2) the mean |second difference| of e_xx at 0.3 mm axial
+    * pictures: on the in vivo pair (seq299 frames 1 -> 2) the mean absolute second difference of e_xx at 0.3 mm axial
       steps is 0.029 / 0.0048 % (axial / lateral) against 0.021 / 0.0041 % (average) and 0.042 / 0.0082 %
       (element strain): rougher than the average, about 40 % of the way to the element strain.
 
