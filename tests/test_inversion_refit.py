@@ -108,3 +108,24 @@ def test_refit_of_a_stiff_disk_from_exact_data_at_a_small_beta(model, tv_ratio, 
     # measured (TV -> refit): plane stress 1.023 -> 1.055, plane strain 1.075 -> 1.015; bounds 0.01 around them
     assert abs(tv - tv_ratio) <= 0.01, tv
     assert abs(refit - refit_ratio) <= 0.01, refit
+
+
+def test_many_regions_are_not_refitted():
+    """A TV solution split into more regions than TV_REFIT_MAX_REGIONS (smoothly varying tissue, not a few
+    lesions) keeps its TV values; with at most that many the refit goes on to fit them."""
+    from femreg.inversion import _region_refit
+
+    mesh = _tensor_mesh(0.0, 12.0, 0.0, 12.0, (1.0, 1.0))
+    reg = _Regularizer(mesh, "tv", 1.0, 144.0)
+    c = mesh.p[:, mesh.t].mean(axis=1)
+    theta = np.zeros(mesh.t.shape[1])
+    blobs = [(i, j) for i in (1.0, 5.0, 9.0) for j in (1.0, 5.0, 9.0)][:8]
+    for k, (i, j) in enumerate(blobs):                # 8 blobs of 4 elements at alternating levels
+        inside = (c[0] > i) & (c[0] < i + 2.0) & (c[1] > j) & (c[1] < j + 2.0)
+        theta[inside] = 0.8 if k % 2 else -0.8
+    out, diag = _region_refit(None, None, reg, theta, 100, 1.0, level=0.5, min_elements=4, sigma_max=0.1,
+                              max_shift=0.5, max_regions=5)
+    assert diag["too_many"] and diag["regions"] == 9 and out is theta
+    with pytest.raises(AttributeError):          # at most 8 allowed: it goes on to the fit (fem needed)
+        _region_refit(None, None, reg, theta, 100, 1.0, level=0.5, min_elements=4, sigma_max=0.1,
+                      max_shift=0.5, max_regions=8)
