@@ -1097,6 +1097,19 @@ def _registered_sigma(h: float) -> float:
     return float(max(REGISTERED_SIGMA * DOF_ELEMENT_SIZE / h, 1.0))
 
 
+def _registered_factor(displacement, h: float, dim: int) -> float:
+    """:func:`_registered_sigma` for the data ``displacement`` inverted on elements of mean size ``h`` mm: 1 unless
+    it is a registration (module docstring: the registered field's errors are correlated over the registration's
+    element size before adaptive refinement, which a refined mesh's smaller elements do not shorten)."""
+    from .result import RegistrationResult
+
+    if not isinstance(displacement, RegistrationResult):
+        return 1.0
+    base = getattr(getattr(displacement, "refinement", None), "base_size", None)
+    h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None and dim == 2 else h
+    return _registered_sigma(h_reg)
+
+
 def _data_hessian(fem, problem, theta):
     """Gauss-Newton Hessian of the misfit, H_d = S^T M S / s^2 (n_el, n_el), S = du/dtheta (:func:`_sensitivity`).
 
@@ -1241,8 +1254,7 @@ def _region_refit(fem, problem, reg, theta, n_data, sigma_factor, *, level, min_
     def linearise(th):
         mu = np.exp(th)
         u, lu = fem.solve(mu, problem.dirichlet)
-        B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
-                          shape=(fem.basis.N, fem.n_el))[fem.I]
+        B = _Jacobian(fem, mu, u, lu, dense_limit=0).B
         SP = -lu.solve(np.asarray((B @ P).todense()))            # (n_I, k) du_I / dc
         r = (u - problem.d)[fem.I]
         Hr = SP.T @ (MII @ SP) / problem.s2
@@ -1331,9 +1343,7 @@ def _constrained_blocks(fem, problem, theta, block: int = 256) -> np.ndarray:
     element, ``block`` at a time)."""
     mu = np.exp(theta)
     u, lu = fem.solve(mu, problem.dirichlet)
-    B = sp.csr_matrix((fem._data * u[fem._cols] * mu[fem._elem], (fem._rows, fem._elem)),
-                      shape=(fem.basis.N, fem.n_el))
-    BI = B[fem.I].tocsc()
+    BI = _Jacobian(fem, mu, u, lu, dense_limit=0).B
     MII = fem.M[fem.I][:, fem.I]
     info = np.empty(fem.n_el)
     for j in range(0, fem.n_el, block):
@@ -1870,11 +1880,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         if TV_REFIT:
             # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit alone
             # where the data constrain it
-            from .result import RegistrationResult
-
-            base = getattr(getattr(displacement, "refinement", None), "base_size", None)
-            h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None else h
-            factor = _registered_sigma(h_reg) if isinstance(displacement, RegistrationResult) else 1.0
+            factor = _registered_factor(displacement, h, dim)
             theta_tv = theta if TV_REFIT_STD else None
             theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
                                          min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
@@ -1974,17 +1980,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if uncertainty and dim == 3 and fem.I.size * fem.n_el > LAPLACE_DENSE_LIMIT:
         constrained = _constrained_blocks(fem, problem, theta)      # too large for the dense Laplace step
     elif uncertainty:
-        from .result import RegistrationResult
-
         std, constrained = _laplace(fem, reg, problem, theta if theta_tv is None else theta_tv, b,
                                     n_data=fem.I.size,
                                     Hd=hd_cache.get(b) if images is None else None)
-        if isinstance(displacement, RegistrationResult):
-            # module docstring: the registered field's correlated errors, whose length is the registration's
-            # element size before adaptive refinement (a refined mesh's smaller elements do not shorten it)
-            base = getattr(getattr(displacement, "refinement", None), "base_size", None)
-            h_reg = float(np.sqrt(np.prod(np.asarray(base, float)))) if base is not None and dim == 2 else h
-            std = std * _registered_sigma(h_reg)
+        if std is not None:
+            std = std * _registered_factor(displacement, h, dim)
         if TV_REFIT_STD and refit_std is not None and std is not None:
             # refitted regions (TV_REFIT): the region model's std, one value per region (_region_refit)
             use = np.isfinite(refit_std) & np.isfinite(std)

@@ -70,11 +70,10 @@ def sample_grid(u, locator, grid: PixelGrid, strain: str = "element", nodal_stra
         return _element_fields(u, locator, loc, grid.shape)
     ns = nodal_strain
     if np.ndim(ns) == 3:       # per-element corner values (edge-aware recovery): discontinuous, per point
-        g = _element_fields(u, locator, loc, grid.shape)
-        n = grid.shape[0] * grid.shape[1]
-        f = sample(u, loc, ("exx", "eyy", "exy"), nodal_strain=ns, mesh_cells=locator.mesh.t)
-        for k in ("exx", "eyy", "exy"):
-            g[k] = np.full(n, np.nan)
+        f = sample(u, loc, FIELDS, nodal_strain=ns, mesh_cells=locator.mesh.t)
+        g = {}
+        for k in FIELDS:
+            g[k] = np.full(grid.shape[0] * grid.shape[1], np.nan)
             g[k][loc.inside] = f[k]
             g[k] = g[k].reshape(grid.shape)
         return g

@@ -104,9 +104,9 @@ def beam_spacing_args(args, geometry) -> list:
     sp = list(args.spacing) if getattr(args, "spacing", None) else [None, None]
     pitch = float(geometry.angle_pitch_deg)
     if sp[1] is not None and abs(sp[1] - pitch) > 1e-6 * pitch:
-        print(f"femreg {getattr(args, 'command', '')}: note: --geometry {geometry.kind}: the lateral spacing "
-              f"{sp[1]:g} is not used (the rays are --angle-pitch {pitch:g} deg apart)".replace("femreg :", "femreg:"),
-              file=sys.stderr)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: --geometry {geometry.kind}: the lateral spacing {sp[1]:g} is not used (the rays are "
+              f"--angle-pitch {pitch:g} deg apart)", file=sys.stderr)
     return [sp[0], pitch]
 
 

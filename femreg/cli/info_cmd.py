@@ -110,11 +110,9 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
 
 def _probe_need(info) -> str:
     """The ``--geometry`` a convex or phased array's frames need, from the header fields ("" for none)."""
-    from ..io.checks import geometry_hint
+    from ..io.checks import geometry_hint, header_fields
 
-    meta = info.get("metadata") or {}
-    fields = dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {})
-    hint = geometry_hint(fields)
+    hint = geometry_hint(header_fields(info.get("metadata")))
     return (f"frames along the rays of a curved or phased array: register with the probe geometry; {hint} "
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
 

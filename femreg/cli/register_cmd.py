@@ -124,10 +124,9 @@ def _refuse_curved(fr, path, advice: str = "") -> None:
     would be taken for parallel lines) unless ``--geometry`` is given (``advice``: what to do instead, for a
     command without ``--geometry``)."""
     from femreg.errors import InputError
-    from femreg.io.checks import geometry_hint
+    from femreg.io.checks import geometry_hint, header_fields
 
-    meta = dict(fr.metadata)
-    hint = geometry_hint(dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {}))
+    hint = geometry_hint(header_fields(fr.metadata))
     if hint:
         raise InputError(f"{path}: {hint}; " + (advice or "pass those flags (or --geometry linear if the frames "
                                                            "are on a Cartesian grid already)"))
@@ -162,8 +161,9 @@ def run(args) -> int:
             kw["refine"] = int(r)
         else:
             raise InputError(f"--refine takes a number of passes, auto, slip or none, got {args.refine!r}")
-    if args.geometry in ("convex", "sector"):       # the range step alone: the rays are --angle-pitch apart
-        args.spacing = beam_spacing_args(args, _geometry(args))
+    beam = _geometry(args) if args.geometry in ("convex", "sector") else None
+    if beam is not None:                # the range step alone: the rays are --angle-pitch apart
+        args.spacing = beam_spacing_args(args, beam)
     ref_fr = frames_from_args(args, args.reference)
     if args.geometry == "linear" and not getattr(args, "geometry_given", False):
         _refuse_curved(ref_fr, args.reference)
@@ -194,8 +194,8 @@ def run(args) -> int:
         raise InputError(f"output must be a .npz file, got {args.output}")
 
     spacing, origin = ref_fr.spacing, ref_fr.origin
-    if args.geometry != "linear":       # range step and first range from the file; rays centred on angle 0
-        kw["geometry"] = _geometry(args)
+    if beam is not None:                # range step and first range from the file; rays centred on angle 0
+        kw["geometry"] = beam
         spacing, origin = float(spacing[0]), (float(origin[0]), 0.0)
     try:
         res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)

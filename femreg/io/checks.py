@@ -14,6 +14,7 @@ from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
+           "header_fields",
            "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
@@ -327,6 +328,13 @@ def geometry_fields(fields: dict) -> dict:
     if "angle_pitch_deg" not in out:
         return {}
     return {**out, "names": tuple(names)}
+
+
+def header_fields(metadata) -> dict:
+    """The header fields of a :class:`femreg.io.Frames`' ``metadata`` (its own, or those of the file it was read
+    from), {} when there are none."""
+    meta = dict(metadata or {})
+    return dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {})
 
 
 def geometry_hint(fields: dict) -> str:
