@@ -205,3 +205,23 @@ def test_band_advice_names_the_band_the_loop_reaches():
     fast = band_advice({"strain": np.full(4, 0.03)})
     assert "smallest axial strain is 3.00 %" in fast and "--band 0.5 4" in fast, fast
     assert band_advice({"strain": np.full(5, -0.003)}) == ""            # 0.6 % over two frames: reachable
+
+
+def test_picture_colour_bars_clear_of_the_next_panel(loop, run):
+    # elastogram.png: each colour bar with its label ends left of the next panel's depth label (they collided)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import elastogram_figure
+
+    res = run[0]
+    fig = elastogram_figure(res, np.asarray(loop.frames[res.ref_frame], float), loop.spacing, loop.origin)
+    r = fig.canvas.get_renderer()
+    panels = [a for a in fig.axes if a.child_axes]
+    assert len(panels) == 3
+    for left, right in zip(panels[:-1], panels[1:]):
+        reach = max(c.get_tightbbox(r).x1 for c in left.child_axes)
+        assert reach < right.get_tightbbox(r).x0, "colour bar label over the next panel"
+    plt.close(fig)

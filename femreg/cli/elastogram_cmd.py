@@ -107,11 +107,12 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
     return path
 
 
-def write_picture(path, res, frame, spacing, origin) -> None:
-    """B-mode of the reference frame | best elastogram | its persistence weight."""
+def elastogram_figure(res, frame, spacing, origin):
+    """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram | its persistence weight,
+    each colour bar clear of the next panel's axis label."""
     import matplotlib.pyplot as plt
 
-    from ..plot import plot_bmode, plot_field
+    from ..plot import _fit_colorbars, plot_bmode, plot_field
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
@@ -127,6 +128,15 @@ def write_picture(path, res, frame, spacing, origin) -> None:
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
+    _fit_colorbars(fig, [list(axs)])
+    return fig
+
+
+def write_picture(path, res, frame, spacing, origin) -> None:
+    """Write :func:`elastogram_figure` to ``path`` (PNG, written under a temporary name and renamed)."""
+    import matplotlib.pyplot as plt
+
+    fig = elastogram_figure(res, frame, spacing, origin)
     tmp = Path(path).with_name(".elastogram.tmp.png")
     fig.savefig(tmp, dpi=90)
     plt.close(fig)
