@@ -79,8 +79,13 @@ def test_register_pair_from_one_multiframe_file(npy_sequence, tmp_path, capsys):
     # frame 2 is a -0.8 % axial compression of frame 0 (moving(x + u) = reference(x), u_x = -0.008 x)
     exx = z["exx"][np.isfinite(z["exx"])]
     assert abs(np.median(exx) + 0.008) < 0.001, f"median exx {np.median(exx):.5f}, expected -0.008"
+    assert "note" not in capsys.readouterr().err          # the pair was named: nothing to say
     assert main(["register", str(npy_sequence), "--pair", "0", "9", "-o", str(out)] + ARGS[:-1]) == 2
     assert "frame 9" in capsys.readouterr().err
+    # a loop of 4 frames without --pair: frames 0 -> 1, and the command says so
+    assert main(["register", str(npy_sequence), "-o", str(out)] + ARGS[:-1]) == 0
+    err = capsys.readouterr().err
+    assert "holds 4 frames: registering frames 0 -> 1" in err and "--pair" in err, err
 
 
 def test_hourglass_flag(npy_sequence, tmp_path, capsys):

@@ -173,6 +173,11 @@ def run(args) -> int:
         if ref_fr.n_frames < 2:
             raise InputError(f"{args.reference} holds one frame: give the moving frame's file too "
                              f"(femreg register REF MOV), or a file of several frames (--pair I J picks two)")
+        if args.pair is None and ref_fr.n_frames > 2:
+            # a cine loop: frames 0 -> 1 are rarely the pair meant; say so (femreg track / elastogram take all)
+            print(f"femreg register: note: {args.reference} holds {ref_fr.n_frames} frames: registering frames "
+                  "0 -> 1 (--pair I J picks others; femreg track follows every frame, femreg elastogram picks "
+                  "the pairs of a freehand loop)", file=sys.stderr)
     else:
         i, j = args.pair or (0, 0)
         mov_fr = frames_from_args(args, args.moving)
