@@ -4,8 +4,11 @@ r"""Demo 08: shear-modulus images from the registered displacement (FE inversion
 This demo shows how to
 
 * turn a registration result into a relative shear-modulus image with ``femreg.invert`` -- the inverse problem of
-  the momentum equation eq:meq with the stress of eq:cEq (incompressible plane stress, :math:`\bar\lambda = 2`),
-  the measured displacement as boundary data, total variation of :math:`\log\mu`, adjoint gradient and L-BFGS-B;
+  the momentum equation eq:meq with the stress of eq:cEq (plane strain, plane stress or an effective
+  :math:`\bar\lambda` between them, chosen from the data's lateral-to-axial strain ratio), the measured
+  displacement as boundary data, total variation of :math:`\log\mu`, adjoint gradient and L-BFGS-B;
+* read how sure it is (``uncertainty``: the standard deviation of :math:`\log\mu` per element) and when it is
+  not to be read at all (``success=False`` with the reasons in ``flags``);
 * check it where the answer is known (a simulated phantom, hard inclusion of contrast 4), and
 * apply it to the two in vivo sequences, where there is no truth, beside the axial strain images.
 
@@ -16,7 +19,8 @@ Data: ``../shared/data/invivo_rf/`` (read as in demo 07; skipped with a message 
 uses ``forward.solve_elasticity`` (plane stress, seconds).
 
 Output: ``out/08_inversion/`` -- ``phantom.png``, ``invivo_<seq>.png`` (B-mode, axial strain, modulus from R_eps
-and from R_P_sigma), ``summary.md``.
+and from R_P_sigma), ``invivo_<seq>_<regulariser>.png`` (modulus | uncertainty | recovered strain, flags in a
+banner), ``summary.md``.
 Run: ``python demos/08_inversion.py [--quick]`` (or ``FEMREG_QUICK=1``); ``--quick`` crops the in vivo frames to
 the 12 x 12.8 mm pieces of demo 07's quick mode.
 """
@@ -88,7 +92,7 @@ def phantom(out: Path, lines: list, quick: bool = False):
 def invivo(out: Path, lines: list, quick: bool):
     import matplotlib.pyplot as plt
 
-    from femreg.plot import plot_bmode, plot_mesh_values
+    from femreg.plot import fit_colorbars, plot_bmode, plot_mesh_values
 
     d7 = _demo07()
     folder = d7.data_dir(None)
@@ -114,11 +118,17 @@ def invivo(out: Path, lines: list, quick: bool):
             inv = femreg.invert(r, element_size=2.0)
             sec = time.perf_counter() - t0
             if j == 1:
-                plot_mesh_values(inv.mesh.p, inv.mesh.t, inv.strain_measured[:, 0], ax=axes[1], cmap="RdBu_r",
-                                 title="axial strain (R_P_sigma, 2 mm)")
+                e = 100.0 * inv.strain_measured[:, 0]
+                lim = float(np.max(np.abs(e)))
+                plot_mesh_values(inv.mesh.p, inv.mesh.t, e, ax=axes[1], cmap="RdBu_r", vmin=-lim, vmax=lim,
+                                 title="axial strain (R_P_sigma, 2 mm)", label="axial strain $\\varepsilon_{xx}$ (%)")
             plot_mesh_values(inv.mesh.p, inv.mesh.t, inv.mu, ax=axes[2 + j], log=True,
                              title=f"shear modulus from {LABELS[reg]}"
-                                   f"\nbeta {inv.beta:.2g}" + ("" if inv.success else " (FLAGGED)"))
+                                   f"\nbeta {inv.beta:.2g}" + ("" if inv.success else " (FLAGGED)"),
+                             label="$\\mu$ / median (relative, -)")
+            # modulus | uncertainty of log mu | recovered strain, with the flag banner of a flagged result
+            plt.close(inv.plot(out / f"invivo_{name}_{LABELS[reg]}.png",
+                               title=f"{name}, {LABELS[reg]}: {inv.model}, beta {inv.beta:.2g}"))
             q = np.percentile(inv.mu, [5, 95])
             lines.append(f"| {name} | {reg} | {r.ncc_after:.3f} | {inv.model} | {inv.beta:.2g} | "
                          f"{q[0]:.2f}-{q[1]:.2f} | {np.nanmedian(inv.uncertainty):.2g} | {sec:.1f} | {inv.success} | "
@@ -128,6 +138,7 @@ def invivo(out: Path, lines: list, quick: bool):
         for ax in axes[1:]:
             ax.set_aspect("auto")
         fig.suptitle(f"{name}: B-mode, axial strain and relative shear modulus (frame 1 -> 3)")
+        fit_colorbars(fig, [list(axes)])
         fig.savefig(out / f"invivo_{name}.png", dpi=80)
         plt.close(fig)
     lines.append("")
@@ -136,14 +147,16 @@ def invivo(out: Path, lines: list, quick: bool):
 # %% [markdown]
 # ## 3. What the full run shows (out/08_inversion/summary.md)
 #
-# * Phantom: contrast 4.09 for a true 4, inclusion edge within 1.0 mm on 1.5 mm elements, 2 s.
-# * In vivo, frame 1 -> 3 (quick run, cropped pieces): the freehand strain is small (0.2-1 %) and changes sign
-#   within the image.  Every inversion is flagged, and rightly: the lateral strain has the sign of the axial one
-#   (lateral/axial ratio -0.65 to -0.11, where incompressible 2D models give 0.5 in plane stress to 0.98 in plane
-#   strain), i.e. the tissue moves out of the image plane or the lateral displacement is not trustworthy; no 2D
-#   model describes such data.  Images: mu 5-95 % from 0.71-2.12 (seq304, R_eps) to 0.96-1.66 (seq304,
-#   R_P_sigma), median std of log mu 0.04-0.37.  There is no truth here, so the images are shown beside the
-#   strain, not scored.
+# * Phantom: contrast 4.1 for a true 4, inclusion edge within 0.11 mm on 1.5 mm elements, about 1 s.
+# * In vivo, frame 1 -> 3 (full frames, 2 mm elements): the freehand strain is small (0.2-2 %) and changes sign
+#   within the image.  Every inversion is flagged, and rightly.  Three by the strain ratio: the lateral strain has
+#   the sign of the axial one or nearly none (lateral/axial ratio -0.47 to 0.08, where incompressible 2D models
+#   give 0.5 in plane stress to 0.98 in plane strain), i.e. the tissue moves out of the image plane or the lateral
+#   displacement is not trustworthy; no 2D model describes such data.  The fourth (seq304, R_P_sigma, ratio 0.34, close
+#   enough to plane stress's 0.5 for that model) by its misfit, 0.035 against the limit 0.02: the plane-stress model does not explain the
+#   displacement.  Images: mu 5-95 % from 0.09-1.07 (seq299, R_P_sigma) to 0.59-9.58 (seq304, R_P_sigma), median
+#   std of log mu 0.12-0.19.  There is no truth here, so the images are shown beside the strain, not scored, and
+#   each flagged picture carries its reason in a red banner.
 
 # %%
 def main(argv=None) -> int:

@@ -19,7 +19,8 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
-           "plot_inversion", "plot_mesh_values", "plot_quality", "DIVERGING_CMAP", "SEQUENTIAL_CMAP"]
+           "plot_inversion", "plot_mesh_values", "plot_quality", "fit_colorbars", "DIVERGING_CMAP",
+           "SEQUENTIAL_CMAP"]
 
 #: Colour maps: diverging for signed data (centred at 0), sequential for one-signed data; for negative data the
 #: sequential map is reversed, so that a larger magnitude (e.g. more compression: softer tissue) is brighter.
@@ -117,9 +118,10 @@ def _colorbar(ax, mappable, label):
     return ax.figure.colorbar(mappable, cax=cax, label=label or "")
 
 
-def _fit_colorbars(fig, rows, tries=6):
+def fit_colorbars(fig, rows, tries=6):
     """Widen the gaps between panels until no colour bar (an inset of its panel, which the layout engine does not
-    reserve room for) reaches the next panel in its row.  ``rows``: lists of Axes left to right."""
+    reserve room for) with its label reaches the next panel's axis label in its row.  ``fig``: a figure with
+    constrained layout; ``rows``: lists of Axes left to right.  Call it last, before saving."""
     engine = fig.get_layout_engine()
     if engine is None or not hasattr(engine, "set"):
         return
@@ -423,7 +425,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         draw_failure(fig, banner + ("  [" + ", ".join(info) + "]" if info else ""))
     elif info:
         fig.suptitle(", ".join(info))
-    _fit_colorbars(fig, [list(axes[:3]), list(axes[3:])])
+    fit_colorbars(fig, [list(axes[:3]), list(axes[3:])])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
@@ -615,7 +617,7 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
         msg = str(res.message)
         kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
         draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]")
-    _fit_colorbars(fig, [list(axes)])
+    fit_colorbars(fig, [list(axes)])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .plot import DIVERGING_CMAP, _colorbar, _fit_colorbars, _mpl, colour_scale
+from .plot import DIVERGING_CMAP, _colorbar, _mpl, colour_scale, fit_colorbars
 
 __all__ = ["plot_volume_slices", "plot_inversion_volume", "render_volume", "volume_bmode", "FIELD_LABELS",
            "STRAIN_KEYS", "SLICE_CHOICES"]
@@ -168,7 +168,7 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
     fig, axes_rows = _slice_figure(rows, at, panel_inches)
     if title:
         fig.suptitle(title, fontsize=10)
-    _fit_colorbars(fig, axes_rows)
+    fit_colorbars(fig, axes_rows)
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
@@ -438,7 +438,7 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
         # lines that fit the figure (bold 10 pt: about 7.5 pt a character)
         draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]",
                      width=max(40, int(fig.get_figwidth() * 72 / 7.5)))
-    _fit_colorbars(fig, axes_rows)
+    fit_colorbars(fig, axes_rows)
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig

@@ -112,7 +112,7 @@ def elastogram_figure(res, frame, spacing, origin):
     each colour bar clear of the next panel's axis label."""
     import matplotlib.pyplot as plt
 
-    from ..plot import _fit_colorbars, plot_bmode, plot_field
+    from ..plot import fit_colorbars, plot_bmode, plot_field
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
@@ -128,7 +128,7 @@ def elastogram_figure(res, frame, spacing, origin):
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
-    _fit_colorbars(fig, [list(axs)])
+    fit_colorbars(fig, [list(axs)])
     return fig
 
 
