@@ -365,6 +365,9 @@ class Refinement:
     interior: bool = False
     plane: float | None = None
     even: bool = False
+    local_ncc: float | None = None
+    local_excess: float | None = None
+    spread: float | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -372,6 +375,9 @@ class Refinement:
             raise InputError(f"refinement plane must be None or a finite elevational coordinate (mm), "
                              f"got {self.plane!r}")
         _number(self, "fine", 1, optional=True)
+        _number(self, "local_ncc", -1, 1, optional=True, what="an NCC in [-1, 1]")
+        _number(self, "local_excess", 1, optional=True, what="a factor >= 1")
+        _number(self, "spread", 0, 2, optional=True, open_low=True, what="an NCC difference in (0, 2]")
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
@@ -504,7 +510,7 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
-                             relax_fill_split=True, relax_passes=2, relax_keep=False)
+                             relax_fill_split=True, relax_passes=2, relax_keep=False, local_ncc=None)
 
 #: Median element NCC of the unrefined solve below which a refined result says that its speckle is decorrelated:
 #: there refinement can turn the decorrelation noise into rectangular strain patches (heterogeneous tissue with an
@@ -725,6 +731,8 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
         slip[1:] |= sa
         slip[:, :-1] |= sl
         slip[:, 1:] |= sl
+        if (opts.local_ncc is not None or opts.local_excess is not None) and data is not None:
+            ja, jl = correlated_jumps(mesh, u, data, (ja, jl), opts, quality=quality)
         rs, cs = slab_scores([ja, jl])
     else:
         eta = indicators(mesh, u, opts.indicator, data=data, quality=quality)
@@ -735,6 +743,51 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
         rs, cs = g.max(axis=1), g.max(axis=0)
     (rows, cols), (rs, cs) = marked_slabs([rs, cs], cut, opts)
     return (rows, cols, slip, (rs, cs)) if scores else (rows, cols, slip)
+
+
+#: Percentiles of the element NCC whose difference is :attr:`Refinement.spread`'s measure.
+SPREAD_PERCENTILES = (10.0, 90.0)
+
+
+def ncc_spread(data, u, n_el: int) -> float:
+    """Spread of the element NCC (:func:`femreg.repair.element_ncc` of the image term ``data`` at ``u``, ``n_el``
+    elements): its 90th minus its 10th percentile (:data:`SPREAD_PERCENTILES`); 0 when no element has one.
+    Large where the speckle decorrelates in parts of the image and correlates well elsewhere (out-of-plane
+    motion), small under uniform noise."""
+    from .repair import element_ncc
+
+    q = np.asarray(element_ncc(data, u, n_el), float)
+    q = q[np.isfinite(q)]
+    if not q.size:
+        return 0.0
+    lo, hi = np.percentile(q, SPREAD_PERCENTILES)
+    return float(hi - lo)
+
+
+def local_floor(q, opts: Refinement) -> float:
+    """The element NCC below which an element counts as locally decorrelated (:attr:`Refinement.local_ncc`,
+    :attr:`Refinement.local_excess`; the higher of the two floors that are set): ``q`` (n_el,) the element NCC."""
+    floor = -np.inf
+    if opts.local_ncc is not None:
+        floor = float(opts.local_ncc)
+    fin = np.asarray(q, float)
+    fin = fin[np.isfinite(fin)]
+    if opts.local_excess is not None and fin.size:
+        floor = max(floor, 1.0 - float(opts.local_excess) * (1.0 - float(np.median(fin))))
+    return floor
+
+
+def correlated_jumps(mesh, u, data, jumps, opts: Refinement, quality=None):
+    """The edge jumps ``(ja, jl)`` of :func:`edge_jumps` with those across an edge beside a locally decorrelated
+    element (NCC, :func:`femreg.repair.element_ncc` of the image term ``data`` at ``u`` or ``quality`` (n_el,),
+    below :func:`local_floor`) set to 0: there the jump is decorrelation noise, and splitting it makes patches."""
+    from .repair import element_ncc
+
+    _, _, cell = _need_tensor(mesh)
+    q = element_ncc(data, u, mesh.t.shape[1]) if quality is None else np.asarray(quality, float)
+    ok = np.nan_to_num(q, nan=-1.0)[cell] >= local_floor(q, opts)
+    ja, jl = jumps
+    return np.where(ok[:-1] & ok[1:], ja, 0.0), np.where(ok[:, :-1] & ok[:, 1:], jl, 0.0)
 
 
 def jump_cut(jumps, opts: Refinement, scale: float) -> float:
@@ -1071,6 +1124,17 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
         top = max(float(np.max(s, initial=0.0)) for s in score)
+        if k == 0 and opts.spread is not None and (np.any(rows) or np.any(cols)):
+            d = ncc_spread(sol.data, sol.u, mesh.t.shape[1])
+            if d > opts.spread:
+                # the speckle decorrelates in parts of the image only: rows and columns of a tensor mesh cross
+                # those parts, whose jumps are noise, so a split there turns the noise into patches
+                note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: the speckle "
+                        f"decorrelates in parts of the image (element NCC spread {d:.2f} > {opts.spread:g})")
+                if opts.settle:
+                    sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
+                    note += "; one more step on the unrefined mesh"
+                break
         if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
             # the feature test against a cut of its own (the scores of a marking at that z-score)
             fs = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.feature_threshold), data=sol.data,
