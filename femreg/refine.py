@@ -510,7 +510,7 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
-                             relax_fill_split=True, relax_passes=2, relax_keep=False, local_ncc=None)
+                             relax_fill_split=True, relax_passes=2, relax_keep=False, spread=0.2)
 
 #: Median element NCC of the unrefined solve below which a refined result says that its speckle is decorrelated:
 #: there refinement can turn the decorrelation noise into rectangular strain patches (heterogeneous tissue with an
