@@ -280,7 +280,7 @@ class Refinement:
         unrefined mesh) and say so in the message: the speckle decorrelates in parts of the image only (out-of-plane
         motion), where the jumps of A[u] are noise, and the rows and columns of a tensor mesh run through those
         parts.  In vivo (seq304 frames 1 -> 3) every row and column was split and e_xx / e_yy showed rectangular
-        patches: their mean |gradient| at 5-10 mm depth 1.37 / 1.66x the unrefined result's.  Uniform noise (a
+        patches: their mean absolute gradient at 5-10 mm depth 1.37 / 1.66x the unrefined result's.  Uniform noise (a
         10 dB pair) lowers every element's NCC alike and keeps the spread small.  None: no such test
         (:data:`DECORRELATED_SPREAD` in :data:`DEEP_REFINEMENT`).
     fine : float, optional
