@@ -595,7 +595,7 @@ def _roughness(res, rows, cols):
                  + np.nanmean(np.abs(np.diff(e, axis=1))) / h[1])
 
 
-def test_no_split_where_the_speckle_decorrelates_in_part_of_the_image(band_pair):
+def test_no_split_where_the_speckle_decorrelates_in_part_of_the_image(band_pair, tmp_path, capsys):
     """A shear band (a feature the refinement splits) whose lower right quarter decorrelates (the moving frame
     there 0.3 x itself + 0.95 x an independent speckle, as out-of-plane motion does in vivo): the default splits
     nothing and its e_xx there is as smooth as the unrefined one.  Measured: roughness unrefined 0.00387, default
@@ -626,6 +626,13 @@ def test_no_split_where_the_speckle_decorrelates_in_part_of_the_image(band_pair)
     # the clean pair still refines (the band's rows), with no such note
     r_clean = femreg.register(d.ref, d.mov, **kw)
     assert r_clean.refinement.passes and "decorrelates" not in r_clean.message
+    # the command line prints it as a note
+    from femreg.cli import main
+
+    np.savez(tmp_path / "pair.npz", frames=np.stack([d.ref, mov]).astype(np.float32), spacing=np.array(d.spacing))
+    assert main(["register", str(tmp_path / "pair.npz"), "-o", str(tmp_path / "r.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "femreg register: note:" in out and "decorrelates in parts of the image" in out, out
     assert DECORRELATED_SPREAD == DEEP_REFINEMENT.spread
     with pytest.raises(InputError, match="spread"):
         Refinement(spread=0.0)
