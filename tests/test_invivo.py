@@ -144,7 +144,9 @@ def _row_alternation(res):
 #: Bounds: the measured values + 15 % (alternation) and - 0.01 (NCC); block matching reaches NCC 0.256 / 0.674.
 #: Third: shear stripes (:func:`_shear_stripes`), 0.536 / 0.503 per mm measured with the refinement's relaxation on
 #: layers across the image only, 0.737 / 1.411 when it also relaxed staircases around small features (stacked
-#: e_xy streaks of alternating sign), 0.329 / 0.368 unrefined; bound + 15 %.
+#: e_xy streaks of alternating sign), 0.329 / 0.368 unrefined; bound + 15 %.  Since the refinement splits nothing
+#: where the element NCC's spread is above femreg.refine.DECORRELATED_SPREAD (these pairs 0.83 / 0.75) the default
+#: is the unrefined solve and one more step: alternation 0.508 / 0.557, NCC 0.8095 / 0.8967, stripes 0.329 / 0.368.
 INVIVO_DEFAULT_BOUNDS = {"seq299": (0.68, 0.803, 0.62), "seq304": (0.63, 0.887, 0.58)}
 
 
@@ -169,6 +171,8 @@ def test_default_register_strain_has_no_row_alternation(seq):
     assert _row_alternation(res) < alt_bound, _row_alternation(res)
     assert res.ncc_after > ncc_bound, res.ncc_after
     assert _shear_stripes(res) < stripe_bound, _shear_stripes(res)
+    # partly decorrelated speckle: the default refinement splits nothing (its patches, README "Adaptive refinement")
+    assert not res.refinement.passes and "decorrelates in parts of the image" in res.message, res.message
 
 
 @needs_data

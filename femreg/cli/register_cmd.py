@@ -215,7 +215,7 @@ def run(args) -> int:
     if res.excluded:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     note = getattr(getattr(res, "refinement", None), "note", None)
-    if note and "decorrelated" in note:
+    if note and "decorrel" in note:        # decorrelated speckle (refined anyway, or not split for it)
         print(f"femreg register: note: {note.replace('refine=None', '--refine none')}")
     print(f"wrote {args.output}")
     if not res.success:
