@@ -782,7 +782,12 @@ def ncc_spread(data, u, n_el: int) -> float:
 
     if data is None:
         return 0.0
-    q = np.asarray(element_ncc(data, u, n_el), float)
+    return _spread(element_ncc(data, u, n_el))
+
+
+def _spread(q) -> float:
+    """90th minus 10th percentile of the finite element NCCs ``q`` (0 when none is finite)."""
+    q = np.asarray(q, float)
     q = q[np.isfinite(q)]
     if not q.size:
         return 0.0
@@ -1233,14 +1238,13 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         with np.errstate(invalid="ignore"):
             q0 = element_ncc(unrefined.data, unrefined.u, unrefined.mesh.t.shape[1])
         q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else float("nan")
-        fin = q0[np.isfinite(q0)]
-        lo, hi = np.percentile(fin, SPREAD_PERCENTILES) if fin.size else (0.0, 0.0)
+        spread = _spread(q0)
         if q_med < DECORRELATED_NCC:
             note = (f"refined although the speckle is decorrelated (median element NCC {q_med:.2f} < "
                     f"{DECORRELATED_NCC:g}): check the strain image for rectangular patches against refine=None")
-        elif hi - lo > DECORRELATED_SPREAD:
+        elif spread > DECORRELATED_SPREAD:
             note = (f"refined although the speckle decorrelates in parts of the image (element NCC spread "
-                    f"{hi - lo:.2f} > {DECORRELATED_SPREAD:g}): check the strain image for rectangular patches "
+                    f"{spread:.2f} > {DECORRELATED_SPREAD:g}): check the strain image for rectangular patches "
                     f"against refine=None")
     return sol, RefinementRecord(record, base_size, note)
 
