@@ -3,6 +3,9 @@
 A volume's result (``femreg register`` on RF volumes, or its ``femreg invert``): ``--inclusion X Y Z R`` is a
 sphere and ``--background X0 X1 Y0 Y1 Z0 Z1`` a box; the same numbers over volumes instead of areas.
 
+Elastogram (``OUT/elastogram.npz`` of ``femreg elastogram``): the same strain numbers over the pixels of its
+normalised axial strain (the disk against the covered pixels outside it).
+
 Registration result (``femreg register``): strain ratio SR, CNR_e and SNR_e of the axial strain
 (:func:`femreg.metrics.contrast_metrics`) between the disk of radius R at (X, Y) and the background (the rest of
 the mesh, or ``--background X0 X1 Y0 Y1`` less the disk).  Inversion result (``femreg invert``): the same strain
@@ -32,7 +35,8 @@ def add_parser(subparsers):
                     "`femreg invert` (the same, and the modulus contrast inclusion / background).  Coordinates in "
                     "mm: x axial (depth), y lateral (a volume's result: z elevational, a spherical inclusion).  "
                     "Exit 0; 1 for a failed result (numbers flagged); 2 on bad input.")
-    p.add_argument("result", help="result .npz of `femreg register` or `femreg invert`")
+    p.add_argument("result", help="result .npz of `femreg register`, `femreg track` or `femreg invert`, or the "
+                                  "elastogram.npz of `femreg elastogram`")
     p.add_argument("--inclusion", required=True, type=float, nargs="+", metavar="MM",
                    help="X Y R: inclusion centre (axial X, lateral Y) and radius R, mm (a volume's result: "
                         "X Y Z R, a sphere)")
@@ -167,12 +171,92 @@ def _modulus(res, roi, bg) -> dict:
     return out
 
 
+#: Keys of the elastogram file that `femreg elastogram` writes (OUT/elastogram.npz).
+ELASTOGRAM_KEYS = ("exx", "ref_frame", "quality", "spacing", "origin")
+
+
+def is_elastogram_file(path) -> bool:
+    """True for the ``elastogram.npz`` of ``femreg elastogram`` (a normalised strain image, no displacement)."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return all(k in z.files for k in ELASTOGRAM_KEYS) and "mesh_points" not in z.files
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False
+
+
+class _Grid:
+    """A strain image on the pixel grid, as :func:`contrast_metrics` reads a pixel-mask measurement."""
+
+    def __init__(self, exx):
+        self.exx = exx
+
+    def on_grid(self, strain=None):
+        return {"exx": self.exx}
+
+
+def _measure_elastogram(path, inclusion, background) -> dict:
+    """SR, CNR_e and SNR_e of an elastogram's normalised axial strain (pixels inside the disk against the covered
+    pixels outside it, or inside ``background`` less the disk); strain ratios are scale-free, so the
+    normalisation of each pair's strain by its mean leaves them as they are."""
+    from ..metrics import contrast_metrics
+
+    _check_counts(2, inclusion, background)
+    if not all(math.isfinite(v) for v in inclusion) or inclusion[-1] <= 0:
+        raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got "
+                         f"{' '.join(f'{v:g}' for v in inclusion)}")
+    with np.load(path, allow_pickle=False) as z:
+        exx = np.asarray(z["exx"], float)
+        sp, org = np.asarray(z["spacing"], float), np.asarray(z["origin"], float)
+    x = org[0] + sp[0] * np.arange(exx.shape[0])
+    y = org[1] + sp[1] * np.arange(exx.shape[1])
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    cov = np.isfinite(exx)
+    if not cov.any():
+        raise InputError(f"{path}: the elastogram covers no pixel")
+    b = (float(X[cov].min()), float(X[cov].max()), float(Y[cov].min()), float(Y[cov].max()))
+    (cx, cy), r = inclusion[:2], float(inclusion[2])
+    i, j = int(np.argmin(np.abs(x - cx))), int(np.argmin(np.abs(y - cy)))
+    if not (x[0] - sp[0] / 2 <= cx <= x[-1] + sp[0] / 2 and y[0] - sp[1] / 2 <= cy <= y[-1] + sp[1] / 2
+            and cov[i, j]):
+        raise InputError(f"inclusion centre ({cx:g}, {cy:g}) mm lies outside the elastogram's covered area "
+                         f"({_bounds_text(b)})")
+    notes = []
+    if cx - r < b[0] or cx + r > b[1] or cy - r < b[2] or cy + r > b[3]:
+        notes.append("the inclusion disk extends beyond the covered area; its part inside is measured")
+    roi = (X - cx) ** 2 + (Y - cy) ** 2 < r * r
+    bg = None
+    if background is not None:
+        lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
+        if not all(math.isfinite(v) for v in background) or not np.all(lo < hi):
+            raise InputError(f"--background needs X0 < X1 and Y0 < Y1 (mm), got "
+                             f"{' '.join(f'{v:g}' for v in background)}")
+        bg = (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1])
+    try:
+        vals = contrast_metrics(_Grid(exx), roi, background=bg)
+    except ValueError as exc:
+        raise InputError(f"{exc} (inclusion {inclusion}, covered area {_bounds_text(b)})") from None
+    out = {"result": str(path), "kind": "elastogram", "success": True, "message": "", "flagged": False,
+           "inclusion_mm": dict(zip(("x", "y", "r"), (float(v) for v in inclusion))),
+           "background_mm": None if background is None else dict(zip(("x0", "x1", "y0", "y1"),
+                                                                     (float(v) for v in background))),
+           "strain": "normalised elastogram", "mesh_bounds_mm": dict(zip(("x0", "x1", "y0", "y1"), b))}
+    out.update({k: float(v) for k, v in vals.items()})
+    out["notes"] = notes
+    return out
+
+
 def measure(path, inclusion, background=None, strain="element") -> dict:
-    """The numbers of ``femreg measure`` as a dict (JSON-ready); InputError on bad input."""
+    """The numbers of ``femreg measure`` as a dict (JSON-ready); InputError on bad input.  ``path``: a result of
+    ``femreg register`` / ``track`` / ``invert``, or the ``elastogram.npz`` of ``femreg elastogram`` (pixel
+    statistics of its normalised strain; ``strain`` does not apply)."""
     from ..inversion import is_inversion_file, load_inversion
     from ..result import load_result
     from ..metrics import contrast_metrics
 
+    if Path(path).is_file() and is_elastogram_file(path):
+        return _measure_elastogram(path, inclusion, background)
     inversion = is_inversion_file(path)
     res = load_inversion(path) if inversion else load_result(path)
     notes = _check_regions(res.mesh, inclusion, background)

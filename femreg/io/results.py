@@ -180,6 +180,10 @@ def as_result_dict(result) -> dict:
     return _from_object(result)
 
 
+#: Where results come from, for messages about files that are not one.
+_RESULT_FILES = ("femreg register -o FILE.npz; femreg track: OUT/frame_KKK.npz; femreg invert -o FILE.npz")
+
+
 def _read(path) -> dict:
     """The validated contents of a result ``.npz``; scalars become Python scalars."""
     path = Path(path)
@@ -193,8 +197,17 @@ def _read(path) -> dict:
         with np.load(path, allow_pickle=False) as z:
             out = {k: _scalar(z[k]) for k in z.files}
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, RuntimeError, NotImplementedError) as exc:
+        if path.suffix.lower() != ".npz":
+            raise fail(path, f"not a result file: a result is a .npz ({_RESULT_FILES})") from None
         raise fail(path, f"not a readable .npz result ({type(exc).__name__}: {exc})") from None
     missing = [k for k in REQUIRED if k not in out]
+    if missing and all(k in out for k in ("exx", "ref_frame", "quality")):
+        raise fail(path, "an elastogram of `femreg elastogram` (a normalised strain image, no displacement): its "
+                         "picture is elastogram.png beside it and `femreg measure` reads it; plotting, inverting or "
+                         "exporting need a registration result (`femreg register LOOP --pair I J`)")
+    if missing and all(k in out for k in ("ref", "mov", "exx", "u")):
+        raise fail(path, "a pair checkpoint of `femreg elastogram` (no mesh): register the pair with `femreg "
+                         f"register LOOP --pair {out['ref']} {out['mov']}` for a result to plot or invert")
     if missing:
         raise fail(path, f"not a femreg result: missing key(s) {', '.join(missing)}")
     try:
