@@ -141,7 +141,8 @@ def write_ultrasonix(path, frames, spacing=None, *, sampling_frequency=None, sou
     """Write int16 RF ``frames`` ((axial, lateral) or (n, axial, lateral)) as an Ultrasonix ``.rf`` file.
 
     ``sampling_frequency`` (Hz) defaults to ``c / (2 dx)`` from ``spacing`` so that reading back gives the same
-    axial spacing.  Values are rounded to int16 (an error if out of range).  ``header`` overrides header fields.
+    axial spacing.  Values are rounded to int16 (an error if out of range).  ``header`` overrides header fields
+(``txf``, the transmit frequency in Hz, is written as 0, unknown, unless given there).
     """
     path = Path(path)
     arr = np.asarray(frames)
@@ -161,7 +162,8 @@ def write_ultrasonix(path, frames, spacing=None, *, sampling_frequency=None, sou
         sampling_frequency = sound_speed * 1e3 / (2.0 * float(spacing[0]))
     hdr = dict.fromkeys(HEADER_FIELDS, 0)
     hdr.update(type=RF_TYPE, frames=n, w=w, h=h, ss=16, ur_x=w - 1, br_x=w - 1, br_y=h - 1, bl_y=h - 1,
-               sf=int(round(sampling_frequency)), txf=5_000_000, dr=20, ld=w)
+               sf=int(round(sampling_frequency)), txf=0, dr=20, ld=w)
+    # txf 0: the transmit frequency is not known here (header={"txf": Hz} gives it); a made-up one would mislead
     hdr.update(header or {})
     with open(path, "wb") as fh:
         fh.write(_STRUCT.pack(*(int(hdr[k]) for k in HEADER_FIELDS)))
