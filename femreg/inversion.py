@@ -192,7 +192,7 @@ __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "i
            "TV_REWEIGHT_STEPS", "TV_BREGMAN", "TV_BREGMAN_FRACTION", "TV_BREGMAN_START", "TV_REFIT",
            "TV_REFIT_MAX_REGIONS",
            "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE",
-           "TV_REFIT_STD"]
+           "TV_REFIT_STD", "CALIBRATION_MAX_REGIONS", "CALIBRATION_LEVEL", "UNCALIBRATED_SPREAD"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -325,6 +325,21 @@ TV_REFIT_MODE = "constant-fit"
 #: other elements' the Laplace std at the TV solution (whose misfit sets the temperature); False: the Laplace std of
 #: the element model at the refitted solution everywhere (held-out: 86 % within +-1 sigma against 72 %).
 TV_REFIT_STD = True
+#: The Laplace std (``uncertainty``) is the noise's spread at the chosen beta, not the regulariser's bias; its
+#: calibration (:data:`REGISTERED_SIGMA`) was measured on a few inclusions in a uniform background.  A TV solution
+#: (before the refit) split into more than this many regions besides the largest (:func:`_regions` at
+#: :data:`CALIBRATION_LEVEL` and :data:`TV_REFIT_MIN_ELEMENTS`, the refit's partition, with the same bound as
+#: :data:`TV_REFIT_MAX_REGIONS`) is not piecewise uniform: the result's ``uncertainty_calibrated`` is False, a note
+#: says so, and the std gets the bias term of :data:`UNCALIBRATED_SPREAD` (docs/inversion.md, "Heterogeneous
+#: tissue").
+CALIBRATION_MAX_REGIONS = 5
+#: Quantisation level (log-modulus units) of the region count of :data:`CALIBRATION_MAX_REGIONS` (the refit's).
+CALIBRATION_LEVEL = 0.5
+#: Where ``uncertainty_calibrated`` is False the std becomes sqrt(std^2 + (UNCALIBRATED_SPREAD x s)^2), s the
+#: robust spread (1.4826 x median absolute deviation) of log mu over the constrained elements: the bias of a
+#: disk-tuned TV solution on a field that varies everywhere grows with the field's own variation, which the image's
+#: (shrunk) spread estimates.  None: no bias term (the note only).
+UNCALIBRATED_SPREAD = None
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1846,6 +1861,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
         problem.g = info["boundary"]
     refit_std = theta_tv = None
+    theta_part = None       # the TV solution the calibration check partitions (before the refit)
     if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
         # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
@@ -1882,6 +1898,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             # where the data constrain it
             factor = _registered_factor(displacement, h, dim)
             theta_tv = theta if TV_REFIT_STD else None
+            theta_part = theta
             theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
                                          min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
                                          max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
@@ -1898,6 +1915,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         if TV_BREGMAN:
             rule += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
                      f"fraction {TV_BREGMAN_FRACTION:g}")
+    if theta_part is None:
+        theta_part = theta
     q5, q95 = np.percentile(theta, [5, 95])
     flat = q95 - q5 < np.log(CONTRAST_REGION)     # at the large edge a flat image hides nothing it shows
     # the dof rules at the largest beta tried: an edge only when even that beta leaves gamma above the target; with
@@ -1989,6 +2008,23 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             # refitted regions (TV_REFIT): the region model's std, one value per region (_region_refit)
             use = np.isfinite(refit_std) & np.isfinite(std)
             std = np.where(use, refit_std, std)
+    calibrated, notes = True, []
+    n_regions = _calibration_regions(theta_part, reg)
+    if n_regions > CALIBRATION_MAX_REGIONS and std is not None:
+        # not a few inclusions in a background: the std misses the regulariser's bias (CALIBRATION_MAX_REGIONS)
+        calibrated = False
+        if UNCALIBRATED_SPREAD:
+            ok_s = np.isfinite(std)
+            spread = _robust_spread(theta[ok_s]) if ok_s.any() else 0.0
+            std = np.sqrt(std ** 2 + (UNCALIBRATED_SPREAD * spread) ** 2)
+            bias = (f"; a bias term {UNCALIBRATED_SPREAD:g} x the spread of log mu ({spread:.3g}) is added in "
+                    "quadrature, measured to bring such tissue back near the calibration of inclusions")
+        else:
+            bias = "; read it as a lower bound"
+        notes.append(f"uncertainty not calibrated: the modulus image has {n_regions} regions besides the largest "
+                     f"(more than {CALIBRATION_MAX_REGIONS} at level {CALIBRATION_LEVEL:g}): not a few inclusions "
+                     "in a uniform background, where the Laplace std was calibrated; on tissue whose stiffness "
+                     "varies everywhere it misses the regulariser's bias" + bias)
     t_unc = time.perf_counter() - t
     mu_kpa = None
     if ref is not None:
@@ -2011,7 +2047,21 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         model_rule=model_rule, mesh_rule=mesh_rule, strain_ratio=ratio, flags=flags, uncertainty=std,
         constrained=constrained,
         shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step,
-        misfit_model_strain=phi_model, lateral_shortfall=short)
+        misfit_model_strain=phi_model, lateral_shortfall=short, uncertainty_calibrated=calibrated, notes=notes)
+
+
+def _calibration_regions(theta, reg) -> int:
+    """Regions of the log-modulus image ``theta`` (n_el,) besides the largest (:func:`_regions` at
+    :data:`CALIBRATION_LEVEL`, specks of fewer than :data:`TV_REFIT_MIN_ELEMENTS` merged): the count of
+    :data:`CALIBRATION_MAX_REGIONS`."""
+    labels, cand, _ = _regions(np.asarray(theta, float), reg, CALIBRATION_LEVEL, TV_REFIT_MIN_ELEMENTS)
+    return len(cand)
+
+
+def _robust_spread(v) -> float:
+    """1.4826 x the median absolute deviation of ``v`` (the std of a normal sample, robust to a few outliers)."""
+    v = np.asarray(v, float)
+    return float(1.4826 * np.median(np.abs(v - np.median(v)))) if v.size else 0.0
 
 
 class InversionResult:
@@ -2056,6 +2106,13 @@ class InversionResult:
         two elements (25 %, docs/inversion.md "Heterogeneous tissue").
     constrained : (n_el,) bool or None
         Elements the data constrain.
+    uncertainty_calibrated : bool or None
+        False when the modulus image is not a few inclusions in a uniform background (more than
+        :data:`CALIBRATION_MAX_REGIONS` regions), where ``uncertainty`` misses the regulariser's bias (``notes``
+        says so); True otherwise or without ``uncertainty``; None for a file written before the check.  Not a flag:
+        ``success`` is about the modulus, this about its error bars.
+    notes : list of str
+        Remarks that do not make the result fail (the uncalibrated uncertainty).
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
         Absolute moduli, kPa, with ``reference`` (:func:`invert`).
     one_step : dict or None
@@ -2068,7 +2125,7 @@ class InversionResult:
                  regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None,
                  model_rule="", mesh_rule="", strain_ratio=np.nan, flags=(), uncertainty=None, constrained=None,
                  shear_modulus_kpa=None, reference=None, one_step=None, misfit_model_strain=np.nan,
-                 lateral_shortfall=np.nan):
+                 lateral_shortfall=np.nan, uncertainty_calibrated=True, notes=()):
         self.mesh = mesh
         self.mu = np.asarray(mu, float)
         self.model = str(model)
@@ -2102,6 +2159,8 @@ class InversionResult:
         self.one_step = one_step
         self.misfit_model_strain = float(misfit_model_strain)
         self.lateral_shortfall = float(lateral_shortfall)
+        self.uncertainty_calibrated = None if uncertainty_calibrated is None else bool(uncertainty_calibrated)
+        self.notes = list(notes)
         self._locator = None
 
     @property
@@ -2191,7 +2250,8 @@ class InversionResult:
                 "message": self.message, "nit": self.nit, "timings": self.timings, "model_rule": self.model_rule,
                 "mesh_rule": self.mesh_rule, "strain_ratio": self.strain_ratio, "flags": self.flags,
                 "reference": self.reference, "one_step": self.one_step,
-                "misfit_model_strain": self.misfit_model_strain, "lateral_shortfall": self.lateral_shortfall}
+                "misfit_model_strain": self.misfit_model_strain, "lateral_shortfall": self.lateral_shortfall,
+                "uncertainty_calibrated": self.uncertainty_calibrated, "notes": self.notes}
         extra = {}
         if self.uncertainty is not None:
             extra["uncertainty"] = self.uncertainty
@@ -2302,7 +2362,9 @@ def load_inversion(path) -> InversionResult:
                            shear_modulus_kpa=d.get("shear_modulus_kpa"), reference=meta.get("reference"),
                            one_step=meta.get("one_step"),
                            misfit_model_strain=meta.get("misfit_model_strain", np.nan),
-                           lateral_shortfall=meta.get("lateral_shortfall", np.nan))
+                           lateral_shortfall=meta.get("lateral_shortfall", np.nan),
+                           # files written before the check: not assessed (None)
+                           uncertainty_calibrated=meta.get("uncertainty_calibrated"), notes=meta.get("notes", ()))
 
 
 def modulus_contrast(result: InversionResult, inside) -> dict:

@@ -1,0 +1,118 @@
+"""The uncertainty's own check (femreg.inversion.CALIBRATION_MAX_REGIONS): a modulus image that is not a few
+inclusions in a uniform background gets ``uncertainty_calibrated=False`` and a note (not a flag), the result file
+keeps both, and the plot says so.
+
+Ground truths: forward.tissue.RandomTissue (a smooth random log E, Q2 quads) and forward.solve_elasticity (a disk,
+P2 triangles), both different discretisations from the inversion's quads.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from femreg import inversion
+from femreg.inversion import (_calibration_regions, _Regularizer, _tensor_mesh, InversionResult, invert,
+                              load_inversion)
+
+from test_inversion import REGION, solution  # noqa: E402  (shared FE solutions and their cache)
+
+_TISSUE = {}
+TISSUE_REGION = ((3.0, 17.0), (-7.0, 7.0))
+
+
+def tissue():
+    from forward.tissue import RandomTissue
+
+    if "t" not in _TISSUE:
+        _TISSUE["t"] = RandomTissue(3, 0.01, "plane-stress", sigma=0.7, corr_mm=2.0, size_mm=(20.0, 20.0), h_mm=0.5)
+    return _TISSUE["t"]
+
+
+def test_region_count_of_blobs():
+    """Eight blobs of alternating level in a background: 8 regions besides the background, above the bound of
+    5; four of them: 4, below it."""
+    mesh = _tensor_mesh(0.0, 12.0, 0.0, 12.0, (1.0, 1.0))
+    reg = _Regularizer(mesh, "tv", 1.0, 144.0)
+    c = mesh.p[:, mesh.t].mean(axis=1)
+    theta = np.zeros(mesh.t.shape[1])
+    corners = [(i, j) for i in (1.0, 5.0, 9.0) for j in (1.0, 5.0, 9.0)][:8]
+    for k, (i, j) in enumerate(corners):
+        inside = (c[0] > i) & (c[0] < i + 2.0) & (c[1] > j) & (c[1] < j + 2.0)
+        theta[inside] = 0.8 if k % 2 else -0.8
+    assert _calibration_regions(theta, reg) == 8 > inversion.CALIBRATION_MAX_REGIONS
+    theta[(c[0] > 5.0) | (c[1] > 9.0)] = 0.0       # keeps the blobs at (1, 1), (1, 5), (1, 9)... four
+    assert _calibration_regions(theta, reg) <= inversion.CALIBRATION_MAX_REGIONS
+
+
+def test_heterogeneous_tissue_is_not_calibrated_and_says_so(tmp_path):
+    field = tissue()
+    res = invert(field.displacement, region=TISSUE_REGION, element_size=1.0, model="plane-stress", beta=0.01)
+    assert res.uncertainty_calibrated is False
+    assert len(res.notes) == 1 and res.notes[0].startswith("uncertainty not calibrated"), res.notes
+    assert not any("calibrated" in f for f in res.flags)      # a note, not a flag
+    # the file keeps both
+    back = load_inversion(res.save(tmp_path / "mu.npz"))
+    assert back.uncertainty_calibrated is False and back.notes == res.notes
+    # without the uncertainty there is nothing to call uncalibrated
+    res = invert(field.displacement, region=TISSUE_REGION, element_size=1.0, model="plane-stress", beta=0.01,
+                 uncertainty=False)
+    assert res.uncertainty_calibrated is True and res.notes == []
+
+
+def test_bias_term_widens_the_uncertainty_only_where_detected(monkeypatch):
+    field = tissue()
+    kw = dict(region=TISSUE_REGION, element_size=1.0, model="plane-stress", beta=0.01)
+    monkeypatch.setattr(inversion, "UNCALIBRATED_SPREAD", None)
+    plain = invert(field.displacement, **kw)
+    monkeypatch.setattr(inversion, "UNCALIBRATED_SPREAD", 0.5)
+    wide = invert(field.displacement, **kw)
+    np.testing.assert_allclose(wide.mu, plain.mu, rtol=1e-12)
+    ok = np.isfinite(plain.uncertainty)
+    spread = 1.4826 * np.median(np.abs(np.log(plain.mu[ok]) - np.median(np.log(plain.mu[ok]))))
+    np.testing.assert_allclose(wide.uncertainty[ok], np.hypot(plain.uncertainty[ok], 0.5 * spread), rtol=1e-9)
+
+    def within(r):
+        c = r.centroids
+        lt, le = np.log(field.modulus(c)), np.log(r.mu)
+        err = np.abs((le - np.median(le)) - (lt - np.median(lt)))
+        return float(np.mean(err[ok] <= r.uncertainty[ok]))
+
+    # exact data: the Laplace std is the noise's (none), the error the regulariser's bias
+    assert within(plain) < 0.2 and within(wide) > 2 * within(plain), (within(plain), within(wide))
+    # a disk is not touched
+    sol = solution("plane-stress", 40.0)
+    a = invert(sol.displacement, region=REGION, element_size=1.5, beta=0.01)
+    monkeypatch.setattr(inversion, "UNCALIBRATED_SPREAD", None)
+    b = invert(sol.displacement, region=REGION, element_size=1.5, beta=0.01)
+    assert a.uncertainty_calibrated and b.uncertainty_calibrated and a.notes == []
+    np.testing.assert_array_equal(a.uncertainty, b.uncertainty)
+
+
+def test_old_file_without_the_check_loads_as_not_assessed(tmp_path):
+    import json
+
+    mesh = _tensor_mesh(0.0, 4.0, 0.0, 4.0, (1.0, 1.0))
+    res = InversionResult(mesh=mesh, mu=np.ones(16), model="plane-stress", lambda_bar=2.0, beta=0.01,
+                          uncertainty=np.full(16, 0.1), uncertainty_calibrated=False, notes=["x"])
+    path = res.save(tmp_path / "mu.npz")
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    meta = json.loads(str(d["meta"]))
+    del meta["uncertainty_calibrated"], meta["notes"]
+    d["meta"] = np.str_(json.dumps(meta))
+    np.savez(path, **d)
+    back = load_inversion(path)
+    assert back.uncertainty_calibrated is None and back.notes == []
+
+
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_plot_title_says_when_not_calibrated(calibrated):
+    import matplotlib.pyplot as plt
+
+    mesh = _tensor_mesh(0.0, 4.0, 0.0, 4.0, (1.0, 1.0))
+    res = InversionResult(mesh=mesh, mu=np.ones(16), model="plane-stress", lambda_bar=2.0, beta=0.01,
+                          uncertainty=np.full(16, 0.1), uncertainty_calibrated=calibrated)
+    fig = res.plot()
+    titles = " ".join(ax.get_title() for ax in fig.axes)
+    plt.close(fig)
+    assert ("NOT calibrated" in titles) is (not calibrated), titles
