@@ -19,7 +19,8 @@ displacement on the same mesh: the floor) and ``1/strain`` (the axial strain's i
 stiffness, from the same registration).
 
 Run: ``python benchmarks/heterogeneous.py [--out DIR] [--cases WORDS] [--methods WORDS] [--refine none]
-[--invert [--regularization tikhonov]]`` (registration rows about 5 min on 2 cores; ``--invert`` about 2 min).
+[--invert [--regularization tikhonov]] [--check]`` (registration rows about 5 min on 2 cores; ``--invert`` about
+2 min; ``--check``: the four :data:`CHECK` pairs instead of :data:`CASES`).
 """
 from __future__ import annotations
 
@@ -56,6 +57,15 @@ CASES = [
            notes="SNR 10 dB"),
     R.Case("tissue0.7-pstrain1_L15", _tissue(18, 0.01, "plane-strain", 0.7, 1.5), "L15", (15, 15), 40,
            top_mm=10.0),
+]
+
+#: Four pairs drawn after the uncertainty's bias term (femreg.inversion.UNCALIBRATED_SPREAD) was chosen on CASES, to
+#: check it (``--check``): other seeds, probes and sigmas.
+CHECK = [
+    R.Case("xtissue0.7-pstrain1_L7", _tissue(21, 0.01, "plane-strain", 0.7, 2.0), "L7", (30, 30), 20),
+    R.Case("xtissue0.7-pstress2_L3", _tissue(22, 0.02, "plane-stress", 0.7, 2.5), "L3", (40, 40), 20),
+    R.Case("xtissue0.5-pstrain1_paper", _tissue(23, 0.01, "plane-strain", 0.5, 2.0), "paper", (40, 30), 25),
+    R.Case("xtissue1-pstress1_L12", _tissue(24, 0.01, "plane-stress", 1.0, 2.0), "L12", (25, 25), 25, top_mm=5.0),
 ]
 
 METHODS = ["R_P_sigma", "R_eps", "NCC BM", "B-spline (SimpleITK)", "TV-L1 (skimage)"]
@@ -162,8 +172,9 @@ def main(argv=None):
     ap.add_argument("--regularization", default=None, choices=("tv", "tikhonov"),
                     help="--invert: regularization= of femreg.invert (default: invert's own)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--check", action="store_true", help="the CHECK pairs instead of CASES")
     a = ap.parse_args(argv)
-    cases = R.select_cases(CASES, a.cases)
+    cases = R.select_cases(CHECK if a.check else CASES, a.cases)
     if not cases:
         ap.error(f"no case matches {a.cases!r}; cases: {', '.join(c.name for c in CASES)}")
     a.out.mkdir(parents=True, exist_ok=True)

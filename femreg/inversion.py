@@ -350,9 +350,10 @@ CALIBRATION_MIN_AREA = 4.0
 #: Where ``uncertainty_calibrated`` is False the std becomes sqrt(std^2 + (UNCALIBRATED_SPREAD x s)^2), s the
 #: robust spread (1.4826 x median absolute deviation) of log mu over the constrained elements: the bias of a
 #: disk-tuned TV solution on a field that varies everywhere grows with the field's own variation, which the image's
-#: (shrunk) spread estimates.  Chosen on the 8 pairs of benchmarks/heterogeneous.py: pooled within +-1 sigma 26 ->
-#: 67 % (per pair 26-97 %); 4 pairs drawn after: 14 -> 58 %; exact displacements of all 12: 9 -> 68 %
-#: (docs/inversion.md).  None: the note only.
+#: (shrunk) spread estimates.  Chosen on the 8 pairs of benchmarks/heterogeneous.py: true log E within +-1 sigma
+#: 23 -> 62 % (mean over the pairs; per pair 26-99 %; 26 -> 67 % pooled over their elements); 4 pairs drawn for the
+#: check: 15 -> 64 % (14 -> 57 % pooled); the exact displacements of the 8: 9 -> 61 % (docs/inversion.md).  None:
+#: the note only.
 UNCALIBRATED_SPREAD = 0.9
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
@@ -1627,8 +1628,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         :data:`DOF_ELEMENT_SIZE` / h); costs one dense Hessian of size n_el.  Calibrated on inclusions in a
         uniform background (55-80 % of the true log mu within +-1 sigma on registered disks); a 2D image of more
         than :data:`CALIBRATION_MAX_REGIONS` regions (tissue whose stiffness varies everywhere, where the std
-        alone held 26 % of the true log mu) returns ``uncertainty_calibrated=False``, a note in ``notes``, and the
-        std widened by the bias term of :data:`UNCALIBRATED_SPREAD` (67 % on such registered tissue).
+        alone held 23 % of the true log mu) returns ``uncertainty_calibrated=False``, a note in ``notes``, and the
+        std widened by the bias term of :data:`UNCALIBRATED_SPREAD` (62 % on such registered tissue).
 
     Returns
     -------
@@ -2038,8 +2039,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             spread = _robust_spread(theta[ok_s]) if ok_s.any() else 0.0
             std = np.sqrt(std ** 2 + (UNCALIBRATED_SPREAD * spread) ** 2)
             bias = (f"; a bias term {UNCALIBRATED_SPREAD:g} x the spread of log mu ({spread:.3g}) is added in "
-                    "quadrature (on registered random tissue 26 -> 67 % of the true log mu within +-1 sigma, per "
-                    "image 26-97 %): read the error bars as approximate")
+                    "quadrature (on registered random tissue 23 -> 62 % of the true log mu within +-1 sigma, per "
+                    "image 38-99 %): read the error bars as approximate")
         else:
             bias = "; read it as a lower bound"
         notes.append(f"uncertainty not calibrated: the modulus image has {n_regions} regions besides the largest "
@@ -2127,8 +2128,8 @@ class InversionResult:
         Standard deviation of log mu per element (Laplace approximation), NaN where not ``constrained``.
         It is the noise's spread at the chosen beta, not the regulariser's bias: calibrated on inclusions
         (55-80 % of the true log mu within +-1 sigma), over-confident on tissue whose stiffness varies within
-        two elements (26 %, docs/inversion.md "Heterogeneous tissue"), where ``uncertainty_calibrated`` is False
-        and a bias term is added (67 %).
+        two elements (23 %, docs/inversion.md "Heterogeneous tissue"), where ``uncertainty_calibrated`` is False
+        and a bias term is added (62 %).
     constrained : (n_el,) bool or None
         Elements the data constrain.
     uncertainty_calibrated : bool or None
