@@ -337,7 +337,7 @@ TV_REFIT_STD = True
 #: the refit's partition at :data:`CALIBRATION_LEVEL`, a region at least :data:`CALIBRATION_MIN_AREA`) is not
 #: piecewise uniform: the result's ``uncertainty_calibrated`` is False, a note says so, and the std gets the bias
 #: term of :data:`UNCALIBRATED_SPREAD`.  Measured (docs/inversion.md, "Heterogeneous tissue"): 7 of the 8 registered
-#: random-tissue pairs of benchmarks/heterogeneous.py (3-22 regions; the eighth has 3), 4 of 4 more drawn for the
+#: random-tissue pairs of benchmarks/heterogeneous.py (3-21 regions; the eighth has 3), 4 of 4 more drawn for the
 #: check, 1 of the 94 registered disk pairs of benchmarks/inversion.py (0-5 regions; the one with 5, a soft L3 disk,
 #: had 31 % of its true log mu within +-1 sigma); a bound of 5 missed a second tissue pair and found no disk.
 CALIBRATION_MAX_REGIONS = 4
@@ -2028,9 +2028,10 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             # refitted regions (TV_REFIT): the region model's std, one value per region (_region_refit)
             use = np.isfinite(refit_std) & np.isfinite(std)
             std = np.where(use, refit_std, std)
-    # 3D: not assessed (the check was measured on 2D images only)
-    calibrated, notes = (True if dim == 2 else None), []
-    n_regions = _calibration_regions(theta_part, reg, h * h) if dim == 2 else 0
+    # 3D and Tikhonov: not assessed (the check was measured on 2D TV images only)
+    checked = dim == 2 and regularization == "tv"
+    calibrated, notes = (True if checked else None), []
+    n_regions = _calibration_regions(theta_part, reg, h * h) if checked and std is not None else 0
     if n_regions > CALIBRATION_MAX_REGIONS and std is not None:
         # not a few inclusions in a background: the std misses the regulariser's bias (CALIBRATION_MAX_REGIONS)
         calibrated = False
@@ -2136,7 +2137,8 @@ class InversionResult:
         False when the modulus image is not a few inclusions in a uniform background (more than
         :data:`CALIBRATION_MAX_REGIONS` regions), where ``uncertainty`` misses the regulariser's bias (``notes``
         says so, and ``uncertainty`` carries the bias term of :data:`UNCALIBRATED_SPREAD`); True otherwise or
-        without ``uncertainty``; None where not assessed (3D results, files written before the check).  Not a flag:
+        without ``uncertainty``; None where not assessed (3D and Tikhonov results, files written before the
+        check).  Not a flag:
         ``success`` is about the modulus, this about its error bars.
     notes : list of str
         Remarks that do not make the result fail (the uncalibrated uncertainty).
