@@ -138,3 +138,22 @@ def test_plot_title_says_when_not_calibrated(calibrated):
     titles = " ".join(ax.get_title() for ax in fig.axes)
     plt.close(fig)
     assert ("NOT calibrated" in titles) is (not calibrated), titles
+
+
+def test_cli_prints_the_note_and_exits_0(tmp_path):
+    """``femreg invert`` on a registration file of the random tissue: the note on stdout, exit 0 (not a flag)."""
+    from skfem import MeshQuad1
+
+    import femreg
+    from test_inversion import _cli
+
+    mesh = MeshQuad1.init_tensor(np.linspace(3, 17, 15), np.linspace(-7, 7, 15))
+    v = tissue().displacement(mesh.p.T)
+    u = np.empty(2 * mesh.p.shape[1])
+    u[0::2], u[1::2] = v[:, 0], v[:, 1]
+    pair = tmp_path / "tissue.npz"
+    femreg.RegistrationResult(mesh, u, shape=(140, 140), spacing=(0.1, 0.1), origin=(3.0, -7.0)).save(pair)
+    r = _cli("invert", pair, "-o", tmp_path / "mu.npz", "--beta", "0.01", "--model", "plane-stress")
+    assert r.returncode == 0, r.stderr
+    assert "note: uncertainty not calibrated" in r.stdout, r.stdout
+    assert load_inversion(tmp_path / "mu.npz").uncertainty_calibrated is False
