@@ -13,12 +13,14 @@ Inversion (``--invert``): each pair registered with the defaults and inverted wi
 scored at the inversion's element centres inside the ROI against the true modulus, both divided by their
 median (the inversion is relative): the Pearson correlation of log mu with the true log E, the RMS of
 log(mu / E), the fraction of elements within 0.85-1.15 of the truth, the fraction whose true log E lies within
-+-1 sigma of the uncertainty, and the flags.  Rows: ``femreg`` (registered), ``exact`` (the forward model's own
++-1 sigma of the uncertainty, the flags, and whether the result calls its uncertainty calibrated
+(``uncertainty_calibrated``).  Rows: ``femreg`` (registered), ``exact`` (the forward model's own
 displacement on the same mesh: the floor) and ``1/strain`` (the axial strain's inverse, what users read as
 stiffness, from the same registration).
 
 Run: ``python benchmarks/heterogeneous.py [--out DIR] [--cases WORDS] [--methods WORDS] [--refine none]
-[--invert [--regularization tikhonov]]`` (registration rows about 5 min on 2 cores; ``--invert`` about 2 min).
+[--invert [--regularization tikhonov]] [--check]`` (registration rows about 5 min on 2 cores; ``--invert`` about
+2 min; ``--check``: the four :data:`CHECK` pairs instead of :data:`CASES`).
 """
 from __future__ import annotations
 
@@ -57,6 +59,15 @@ CASES = [
            top_mm=10.0),
 ]
 
+#: Four pairs drawn after the uncertainty's bias term (femreg.inversion.UNCALIBRATED_SPREAD) was chosen on CASES, to
+#: check it (``--check``): other seeds, probes and sigmas.
+CHECK = [
+    R.Case("xtissue0.7-pstrain1_L7", _tissue(21, 0.01, "plane-strain", 0.7, 2.0), "L7", (30, 30), 20),
+    R.Case("xtissue0.7-pstress2_L3", _tissue(22, 0.02, "plane-stress", 0.7, 2.5), "L3", (40, 40), 20),
+    R.Case("xtissue0.5-pstrain1_paper", _tissue(23, 0.01, "plane-strain", 0.5, 2.0), "paper", (40, 30), 25),
+    R.Case("xtissue1-pstress1_L12", _tissue(24, 0.01, "plane-stress", 1.0, 2.0), "L12", (25, 25), 25, top_mm=5.0),
+]
+
 METHODS = ["R_P_sigma", "R_eps", "NCC BM", "B-spline (SimpleITK)", "TV-L1 (skimage)"]
 
 
@@ -88,13 +99,15 @@ def invert_case(case, inv_kw=None):
         rows.append(dict(case=case.name, row=name, **_score(r.mesh, r.mu, getattr(r, "uncertainty", None),
                                                            field, roi), success=r.success,
                          flags="; ".join(r.flags)[:80], model=r.model, n_el=r.mesh.t.shape[1],
+                         uncertainty_calibrated=r.uncertainty_calibrated,
                          cpu_s=t_inv if name == "femreg" else float("nan")))
     # what users otherwise read as stiffness: 1 / |axial strain| of the same registration, per element
     centres = inv.mesh.p[:, inv.mesh.t].mean(axis=1).T
     exx = res.strain(centres, "element")[:, 0]
     stiff = 1.0 / np.maximum(np.abs(exx), 1e-6)
     rows.append(dict(case=case.name, row="1/strain", **_score(inv.mesh, stiff, None, field, roi),
-                     success=True, flags="", model="", n_el=inv.mesh.t.shape[1], cpu_s=float("nan")))
+                     success=True, flags="", model="", n_el=inv.mesh.t.shape[1], cpu_s=float("nan"),
+                     uncertainty_calibrated=None))
     for r in rows:
         r["reg_cpu_s"] = t_reg
     return rows
@@ -123,12 +136,15 @@ def _score(mesh, mu, sigma, field, roi) -> dict:
 
 def invert_table(rows) -> str:
     lines = ["| case | row | corr(log mu, log E) | RMS log(mu/E) | within 0.85-1.15 | within +-1 sigma | success "
-             "| model | elements | CPU s | flags |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| uncertainty calibrated | model | elements | CPU s | flags |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         cal = "" if not np.isfinite(r["calibrated"]) else f"{100 * r['calibrated']:.0f} %"
         cpu = "" if not np.isfinite(r["cpu_s"]) else f"{r['cpu_s']:.1f}"
         lines.append(f"| {r['case']} | {r['row']} | {r['corr']:.2f} | {r['rms_log']:.2f} | "
-                     f"{100 * r['in_band']:.0f} % | {cal} | {r['success']} | {r['model']} | {r['n_el']} | {cpu} | "
+                     f"{100 * r['in_band']:.0f} % | {cal} | {r['success']} | "
+                     f"{'' if r.get('uncertainty_calibrated') is None else r['uncertainty_calibrated']} | "
+                     f"{r['model']} | {r['n_el']} | {cpu} | "
                      f"{r['flags']} |")
     by = {}
     for r in rows:
@@ -140,7 +156,9 @@ def invert_table(rows) -> str:
                      f"(min {min(r['corr'] for r in rs):.2f}), median RMS log {np.median([r['rms_log'] for r in rs]):.2f}, "
                      f"median within 15 % {100 * np.median([r['in_band'] for r in rs]):.0f} %"
                      + (f", pooled within +-1 sigma {100 * np.mean(cal):.0f} %" if cal else "")
-                     + f", flagged {sum(not r['success'] for r in rs)}/{len(rs)}")
+                     + f", flagged {sum(not r['success'] for r in rs)}/{len(rs)}"
+                     + (f", uncertainty_calibrated False {sum(r.get('uncertainty_calibrated') is False for r in rs)}"
+                        f"/{len(rs)}" if any(r.get("uncertainty_calibrated") is not None for r in rs) else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -154,8 +172,9 @@ def main(argv=None):
     ap.add_argument("--regularization", default=None, choices=("tv", "tikhonov"),
                     help="--invert: regularization= of femreg.invert (default: invert's own)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--check", action="store_true", help="the CHECK pairs instead of CASES")
     a = ap.parse_args(argv)
-    cases = R.select_cases(CASES, a.cases)
+    cases = R.select_cases(CHECK if a.check else CASES, a.cases)
     if not cases:
         ap.error(f"no case matches {a.cases!r}; cases: {', '.join(c.name for c in CASES)}")
     a.out.mkdir(parents=True, exist_ok=True)

@@ -49,14 +49,15 @@ def run(out, settings, sets):
             _, _, z = bench.calibration(inv, field, c)
             rows.append(dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
                              success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
-                             rule=inv.beta_rule))
+                             rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated))
             print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
                   f"{'' if inv.success else ', flagged'}", flush=True)
     Path(out).write_text(json.dumps(rows))
 
 
 def summary(paths):
-    """Per set: in the band (0.85-1.15, unflagged, measurable ring) / cases, CV <= 15 %, wrong side, calibration."""
+    """Per set: in the band (0.85-1.15, unflagged, measurable ring) / cases, CV <= 15 %, wrong side, calibration,
+    results with ``uncertainty_calibrated`` False (all cases)."""
     for p in paths:
         rows = json.loads(Path(p).read_text())
         print(f"**{p}**")
@@ -68,8 +69,9 @@ def summary(paths):
             wrong = sum(r["success"] and (r["estimate"] - 1) * (r["contrast"] - 1) < 0
                         for r in rows if r["set"] == name)
             z = np.concatenate([np.asarray(r["z"], float) for r in rs] + [np.zeros(0)])
+            uncal = sum(r.get("uncertainty_calibrated") is False for r in rows if r["set"] == name)
             print(f"- {name}: {band}/{len(rs)} in the band, CV <= 15 % {cv}/{len(rs)}, wrong side {wrong}, "
-                  f"within +-1 sigma {100 * np.mean(z <= 1):.0f} %")
+                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}")
             tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong]
         print(f"- total: {tot[0]}/{tot[1]} in the band, CV <= 15 % {tot[2]}/{tot[1]}, wrong side {tot[3]}, "
               f"{sum(r['seconds'] for r in rows):.0f} s")

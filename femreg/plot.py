@@ -594,8 +594,10 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
     if unc is not None:
         blank = int(np.sum(~np.isfinite(unc)))              # NaN: elements the data do not constrain
         plot_mesh_values(p, t, unc, ax=axes[1], cmap="magma", vmin=0.0,
-                         title="uncertainty of $\\log\\mu$" + (f"\n(blank: {blank} of {unc.size} elements the data "
-                                                               "do not constrain)" if blank else ""),
+                         title="uncertainty of $\\log\\mu$"
+                         + ("\nNOT calibrated: tissue not piecewise uniform (see notes)"
+                            if getattr(res, "uncertainty_calibrated", True) is False else "")
+                         + (f"\n(blank: {blank} of {unc.size} elements the data do not constrain)" if blank else ""),
                          label="std of $\\log\\mu$ (-)")
     h = float(np.min(np.ptp(p[:, t], axis=1)))                # smallest element extent, mm
     um = np.asarray(res.u_measured, float)

@@ -416,7 +416,9 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
         top = float(np.nanmax(u)) if np.isfinite(u).any() else 1.0
         rows.append(dict(name=r"std of $\log\mu$", vol=u[cell], spacing=sp, origin=org, cmap="magma", vmin=0.0,
                          vmax=top if top > 0 else 1.0, norm=None, bad=grey, line="w", note=note,
-                         label="uncertainty: std of $\\log\\mu$\n(-, one value per element)"))
+                         label="uncertainty: std of $\\log\\mu$\n(-, one value per element)"
+                         + ("\nNOT calibrated (see notes)" if getattr(res, "uncertainty_calibrated", True) is False
+                            else "")))
     um = np.asarray(res.u_measured, float)
     if np.all(np.isfinite(um)) and np.any(um != 0):
         exx = loc.sample(um, pts, nodal_strain=recovered_strains_3d(res.mesh, um))["exx"].reshape(shape)

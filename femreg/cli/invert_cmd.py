@@ -226,6 +226,8 @@ def run(args) -> int:
     if res.uncertainty is not None:
         print(f"uncertainty: median std of log mu {np.nanmedian(res.uncertainty):.3g} over "
               f"{int(res.constrained.sum())}/{res.constrained.size} constrained elements")
+    for note in res.notes:
+        print(f"note: {note}")
     if res.youngs_modulus_kpa is not None:
         q5, q50, q95 = np.percentile(res.youngs_modulus_kpa, [5, 50, 95])
         print(f"Young's modulus E = 3 mu: median {q50:.4g} kPa (5-95 %: {q5:.4g}-{q95:.4g} kPa)")
