@@ -4,10 +4,14 @@ TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; TV_REFIT and its TV_REFIT_* c
 "Contrast-preserving TV" and "Region debias refit").
 
 Same registrations (``$FEMREG_CACHE/bench_inversion/<key>``, which must hold every case: nothing is registered here),
-the same contrast, ring, background CV and calibration as benchmarks/inversion.py; no exact, NCC or 1/SR rows.
+the same contrast, ring, background CV and calibration as benchmarks/inversion.py, and per case the strain ratio read
+as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1/SR row); no exact or NCC rows.
 
 Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets main,held-out,...]``, then
-``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts.
+``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts.  Rows of runs
+from before ``sr`` was recorded: ``python benchmarks/inversion_debias_study.py --add-sr IN.json OUT.json`` adds it
+from the cached registrations (no inversion).  ``--cv-detail IN.json`` re-inverts the cases of IN.json with a
+background CV above 15 % and splits their ring (:func:`ring_parts`).
 """
 from __future__ import annotations
 
@@ -22,6 +26,91 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 
 SETS = ("main", "held-out", "fresh", "fresh2", "fresh3", "fresh4")
+
+
+def strain_ratio(bench, reg, field):
+    """1/SR: mean |e_xx| of the ring (1.6-2.5 R) over that of the disk (inside 0.7 R), the stiffness contrast users
+    read off a strain image (benchmarks/inversion.py's 1/SR row)."""
+    strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
+    return 1.0 / bench.sampled_contrast(strain, field.centre, field.radius_mm)[0]
+
+
+def _spec(bench, name, case):
+    for spec in bench.SETS[name]:
+        if bench.case_name(*spec) == case:
+            return spec
+    raise KeyError(f"{case} is not in the set {name}")
+
+
+def add_sr(src, out):
+    """Add ``sr`` (1/SR of the cached registration) to every row of ``src``; write ``out``."""
+    import femreg
+    import inversion as bench
+
+    folder = bench.cache_folder()
+    rows = json.loads(Path(src).read_text())
+    for r in rows:
+        m, c, pr, snr, rad, lev, seed = _spec(bench, r["set"], r["case"])
+        reg = femreg.load_result(folder / f"{r['case']}.npz")
+        r["sr"] = strain_ratio(bench, reg, bench.truth_field(m, c, lev, rad))
+        print(f"{r['set']} {r['case']}: femreg ratio {r['ratio']:.3f}, 1/SR ratio {r['sr'] / c:.3f}", flush=True)
+    Path(out).write_text(json.dumps(rows))
+
+
+def ring_parts(fun, centre, R):
+    """The ring (1.6-2.5 R) of a callable points -> values, split into the caps above and below the disk (the
+    axial direction x, where a disk's strain lobes lie: |dx| > |dy|) and the sides: (CV of the whole ring, caps
+    mean / sides mean, CV of the caps, CV of the sides).  Same 0.25 mm grid as ``sampled_contrast``."""
+    g = np.arange(-2.5 * R, 2.5 * R + 1e-9, 0.25)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    X, Y = X.ravel(), Y.ravel()
+    r = np.hypot(X, Y)
+    v = fun(np.column_stack([X + centre[0], Y + centre[1]]))
+    ring = (r > 1.6 * R) & (r < 2.5 * R) & np.isfinite(v)
+    caps, sides = ring & (np.abs(X) > np.abs(Y)), ring & (np.abs(X) <= np.abs(Y))
+
+    def cv(m):
+        return float(np.std(v[m]) / np.mean(v[m]))
+    return cv(ring), float(np.mean(v[caps]) / np.mean(v[sides])), cv(caps), cv(sides)
+
+
+def cv_detail(src, limit=0.15):
+    """For every case of ``src`` with a background CV above ``limit``: the registered and the exact displacement
+    (the registration's mesh, its median element size, as benchmarks/inversion.py's exact row) inverted with the
+    defaults, each ring split by :func:`ring_parts`; and the registered axial strain's error in the ring (RMS of
+    e_xx - e_xx(truth) over the truth's mean |e_xx|)."""
+    import femreg
+    import inversion as bench
+
+    folder = bench.cache_folder()
+    for r in json.loads(Path(src).read_text()):
+        if r["cv"] <= limit:
+            continue
+        m, c, pr, snr, rad, lev, seed = _spec(bench, r["set"], r["case"])
+        reg = femreg.load_result(folder / f"{r['case']}.npz")
+        field = bench.truth_field(m, c, lev, rad)
+        p = reg.mesh.p
+        region = ((p[0].min(), p[0].max()), (p[1].min(), p[1].max()))
+        ext = p[:, reg.mesh.t].max(axis=1) - p[:, reg.mesh.t].min(axis=1)
+        h = tuple(np.median(ext, axis=1))
+        out = []
+        for name, inp, kw in (("femreg", reg, {}), ("exact", field.displacement, dict(region=region, element_size=h))):
+            inv = femreg.invert(inp, **kw)
+            est = bench.sampled_contrast(inv.shear_modulus, field.centre, field.radius_mm)[0] / c
+            cvr, cs, cvc, cvs = ring_parts(inv.shear_modulus, field.centre, field.radius_mm)
+            out.append(f"{name}: ratio {est:.2f}, ring CV {100 * cvr:.0f} % (caps {100 * cvc:.0f} %, sides "
+                       f"{100 * cvs:.0f} %), caps / sides mean {cs:.2f}, beta {inv.beta:.3g}")
+        R = field.radius_mm
+        g = np.arange(-2.5 * R, 2.5 * R + 1e-9, 0.25)
+        X, Y = np.meshgrid(g, g, indexing="ij")
+        rr = np.hypot(X, Y).ravel()
+        q = np.column_stack([X.ravel() + field.centre[0], Y.ravel() + field.centre[1]])[(rr > 1.6 * R) & (rr < 2.5 * R)]
+        e_reg, e_true = reg.strain(q)[:, 0], field.strain(q)[:, 0]
+        ok = np.isfinite(e_reg)
+        err = float(np.sqrt(np.mean((e_reg[ok] - e_true[ok]) ** 2)) / np.mean(np.abs(e_true[ok])))
+        print(f"{r['set']} {r['case']} (CV {100 * r['cv']:.1f} %, h {h[0]:.2f} x {h[1]:.2f} mm, R/h "
+              f"{R / np.sqrt(h[0] * h[1]):.1f}): " + "; ".join(out)
+              + f"; registered e_xx error in the ring {100 * err:.0f} % of the true mean", flush=True)
 
 
 def run(out, settings, sets):
@@ -49,7 +138,8 @@ def run(out, settings, sets):
             _, _, z = bench.calibration(inv, field, c)
             rows.append(dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
                              success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
-                             rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated))
+                             rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
+                             sr=strain_ratio(bench, reg, field)))
             print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
                   f"{'' if inv.success else ', flagged'}", flush=True)
     Path(out).write_text(json.dumps(rows))
@@ -57,11 +147,12 @@ def run(out, settings, sets):
 
 def summary(paths):
     """Per set: in the band (0.85-1.15, unflagged, measurable ring) / cases, CV <= 15 %, wrong side, calibration,
-    results with ``uncertainty_calibrated`` False (all cases)."""
+    results with ``uncertainty_calibrated`` False (all cases); where rows hold ``sr``: stiff cases (contrast > 1,
+    measurable ring) whose unflagged ratio is closer to 1 than 1/SR's, |log ratio| < |log (1/SR / contrast)|."""
     for p in paths:
         rows = json.loads(Path(p).read_text())
         print(f"**{p}**")
-        tot = [0, 0, 0, 0]
+        tot = [0, 0, 0, 0, 0, 0]
         for name in dict.fromkeys(r["set"] for r in rows):
             rs = [r for r in rows if r["set"] == name and r["ring"] >= 0.5]
             band = sum(r["success"] and 0.85 <= r["ratio"] <= 1.15 for r in rs)
@@ -70,10 +161,16 @@ def summary(paths):
                         for r in rows if r["set"] == name)
             z = np.concatenate([np.asarray(r["z"], float) for r in rs] + [np.zeros(0)])
             uncal = sum(r.get("uncertainty_calibrated") is False for r in rows if r["set"] == name)
+            stiff = [r for r in rs if r["contrast"] > 1 and "sr" in r]
+            closer = sum(r["success"] and abs(np.log(r["ratio"])) < abs(np.log(r["sr"] / r["contrast"]))
+                         for r in stiff)
+            sr_txt = f", stiff closer than 1/SR {closer}/{len(stiff)}" if stiff else ""
             print(f"- {name}: {band}/{len(rs)} in the band, CV <= 15 % {cv}/{len(rs)}, wrong side {wrong}, "
-                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}")
-            tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong]
-        print(f"- total: {tot[0]}/{tot[1]} in the band, CV <= 15 % {tot[2]}/{tot[1]}, wrong side {tot[3]}, "
+                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}{sr_txt}")
+            tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong, tot[4] + closer,
+                   tot[5] + len(stiff)]
+        sr_txt = f", stiff closer than 1/SR {tot[4]}/{tot[5]}" if tot[5] else ""
+        print(f"- total: {tot[0]}/{tot[1]} in the band, CV <= 15 % {tot[2]}/{tot[1]}, wrong side {tot[3]}{sr_txt}, "
               f"{sum(r['seconds'] for r in rows):.0f} s")
 
 
@@ -81,6 +178,10 @@ if __name__ == "__main__":
     args = sys.argv[1:]
     if args and args[0] == "--summary":
         summary(args[1:])
+    elif args and args[0] == "--cv-detail":
+        cv_detail(args[1])
+    elif args and args[0] == "--add-sr":
+        add_sr(args[1], args[2])
     else:
         sets = SETS
         settings = {}
