@@ -10,8 +10,8 @@ as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1
 Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets main,held-out,...]``, then
 ``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts.  Rows of runs
 from before ``sr`` was recorded: ``python benchmarks/inversion_debias_study.py --add-sr IN.json OUT.json`` adds it
-from the cached registrations (no inversion).  ``--cv-detail IN.json`` re-inverts the cases of IN.json with a
-background CV above 15 % and splits their ring (:func:`ring_parts`).
+from the cached registrations (no inversion).  ``--cv-detail IN.json [CASE ...]`` re-inverts the cases of IN.json
+with a background CV above 15 % (or the cases named) and splits their ring (:func:`ring_parts`).
 """
 from __future__ import annotations
 
@@ -74,17 +74,18 @@ def ring_parts(fun, centre, R):
     return cv(ring), float(np.mean(v[caps]) / np.mean(v[sides])), cv(caps), cv(sides)
 
 
-def cv_detail(src, limit=0.15):
-    """For every case of ``src`` with a background CV above ``limit``: the registered and the exact displacement
+def cv_detail(src, limit=0.15, cases=()):
+    """For every case of ``src`` with a background CV above ``limit`` (or named in ``cases``, e.g. cases below it
+    for comparison): the registered and the exact displacement
     (the registration's mesh, its median element size, as benchmarks/inversion.py's exact row) inverted with the
     defaults, each ring split by :func:`ring_parts`; and the registered axial strain's error in the ring (RMS of
-    e_xx - e_xx(truth) over the truth's mean |e_xx|)."""
+    e - e(truth) over the truth's mean |e|, axial e_xx and lateral e_yy)."""
     import femreg
     import inversion as bench
 
     folder = bench.cache_folder()
     for r in json.loads(Path(src).read_text()):
-        if r["cv"] <= limit:
+        if (r["case"] not in cases) if cases else r["cv"] <= limit:
             continue
         m, c, pr, snr, rad, lev, seed = _spec(bench, r["set"], r["case"])
         reg = femreg.load_result(folder / f"{r['case']}.npz")
@@ -105,12 +106,14 @@ def cv_detail(src, limit=0.15):
         X, Y = np.meshgrid(g, g, indexing="ij")
         rr = np.hypot(X, Y).ravel()
         q = np.column_stack([X.ravel() + field.centre[0], Y.ravel() + field.centre[1]])[(rr > 1.6 * R) & (rr < 2.5 * R)]
-        e_reg, e_true = reg.strain(q)[:, 0], field.strain(q)[:, 0]
-        ok = np.isfinite(e_reg)
-        err = float(np.sqrt(np.mean((e_reg[ok] - e_true[ok]) ** 2)) / np.mean(np.abs(e_true[ok])))
+        e_reg, e_true = reg.strain(q), field.strain(q)
+        ok = np.isfinite(e_reg[:, 0])
+        err = [float(np.sqrt(np.mean((e_reg[ok, k] - e_true[ok, k]) ** 2)) / np.mean(np.abs(e_true[ok, k])))
+               for k in (0, 1)]
         print(f"{r['set']} {r['case']} (CV {100 * r['cv']:.1f} %, h {h[0]:.2f} x {h[1]:.2f} mm, R/h "
               f"{R / np.sqrt(h[0] * h[1]):.1f}): " + "; ".join(out)
-              + f"; registered e_xx error in the ring {100 * err:.0f} % of the true mean", flush=True)
+              + f"; registered strain error in the ring (RMS / true mean |e|): e_xx {100 * err[0]:.0f} %, e_yy "
+                f"{100 * err[1]:.0f} %", flush=True)
 
 
 def run(out, settings, sets):
@@ -179,7 +182,7 @@ if __name__ == "__main__":
     if args and args[0] == "--summary":
         summary(args[1:])
     elif args and args[0] == "--cv-detail":
-        cv_detail(args[1])
+        cv_detail(args[1], cases=tuple(args[2:]))
     elif args and args[0] == "--add-sr":
         add_sr(args[1], args[2])
     else:

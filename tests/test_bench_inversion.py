@@ -39,3 +39,28 @@ def test_summary_reports_and_excludes_an_unmeasurable_ring():
     assert "ring not measurable" in text and "b (ring 37 % inside, ratio 1.30)" in text
     assert "counting every case: 1/3" in text
     assert "(ring not measurable)" in B.table(rows)
+
+
+def test_debias_study_counts_stiff_cases_closer_than_1_over_sr(tmp_path, capsys):
+    from benchmarks import inversion_debias_study as D
+
+    def row(case, contrast, ratio, sr_ratio, success=True, ring=1.0):
+        return dict(set="s", case=case, contrast=contrast, estimate=ratio * contrast, ratio=ratio, cv=0.05,
+                    ring=ring, success=success, z=[0.5], seconds=1.0, sr=sr_ratio * contrast)
+    # closer; farther (1/SR 0.95 against 0.9); flagged (a miss); unmeasurable ring (left out); soft (not counted)
+    rows = [row("a", 4.0, 0.95, 0.6), row("b", 2.0, 0.9, 0.95), row("c", 3.0, 1.0, 0.6, success=False),
+            row("d", 4.0, 1.0, 0.6, ring=0.3), row("e", 0.25, 1.0, 2.4)]
+    p = tmp_path / "rows.json"
+    p.write_text(__import__("json").dumps(rows))
+    D.summary([p])
+    out = capsys.readouterr().out
+    assert "- s: " in out and "stiff closer than 1/SR 1/3" in out
+
+
+def test_ring_parts_separates_caps_from_sides():
+    from benchmarks import inversion_debias_study as D
+
+    # 2 in the caps (|dx| > |dy|, x axial), 1 at the sides: caps / sides 2, each part flat
+    fun = lambda q: np.where(np.abs(q[:, 0] - 20.0) > np.abs(q[:, 1]), 2.0, 1.0)  # noqa: E731
+    cv, caps_over_sides, cv_caps, cv_sides = D.ring_parts(fun, (20.0, 0.0), 5.0)
+    assert abs(caps_over_sides - 2.0) < 1e-12 and cv_caps < 1e-12 and cv_sides < 1e-12 and cv > 0.3
