@@ -300,7 +300,7 @@ class Refinement:
         :attr:`coverage` applies at a median element NCC ``q`` of :attr:`coverage_ncc` or above too when the
         spread of the element NCC (:func:`ncc_spread`) is at least this many times ``1 - q``: speckle that
         decorrelates unevenly for its level (in vivo seq304 frames 1 -> 2: spread 0.13 at q 0.975, 5.4x; every
-        simulated pair of the benchmarks at most 3.0x, the clean pairs that mark as many rows / columns at most
+        simulated pair of the benchmarks at most 2.96x, the clean pairs that mark as many rows / columns at most
         2.5x).  None: no such clause (:data:`UNEVEN_DECORRELATION` in :data:`DEEP_REFINEMENT`).
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
@@ -560,7 +560,7 @@ NOISE_COVERAGE_NCC = 0.96
 #: Spread of the element NCC (:func:`ncc_spread`) over ``1 -`` its median at or above which :data:`NOISE_COVERAGE`
 #: applies whatever the median (:attr:`Refinement.coverage_uneven`).  Measured: in vivo seq304 frames 1 -> 2 5.4
 #: (0.97 of the columns marked), 2 -> 3 3.6 (0.90), 3 -> 4 5.5 (0.83); the simulated pairs of the robustness,
-#: inclusion, shear-band, heterogeneous and rotation benchmarks at most 3.0 (an 8 mm inclusion, 0.64 marked), those
+#: inclusion, shear-band, heterogeneous and rotation benchmarks at most 2.96 (an 8 mm inclusion, 0.64 marked), those
 #: marking 0.9 of the rows or columns at most 2.5 (bending).
 UNEVEN_DECORRELATION = 3.0
 

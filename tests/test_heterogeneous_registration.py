@@ -85,6 +85,8 @@ def test_no_split_where_nearly_every_row_is_marked_on_decorrelated_speckle(tmp_p
     assert (DEEP_REFINEMENT.coverage, DEEP_REFINEMENT.coverage_ncc) == (NOISE_COVERAGE, NOISE_COVERAGE_NCC)
     with pytest.raises(InputError, match="coverage"):
         Refinement(coverage=0.0)
+    with pytest.raises(InputError, match="coverage_uneven"):
+        Refinement(coverage_uneven=-1.0)
     # the command line says it on a line of its own
     from femreg.cli import main
 
