@@ -200,7 +200,7 @@ def _patchiness(res, depth=(5.0, 10.0)):
 def test_no_split_where_the_speckle_decorrelates_unevenly_for_its_level():
     """seq304 frames 1 -> 2: median element NCC 0.975 but spread 0.13 (5.4x 1 - median; simulated pairs at most
     3.0x) with 29 of 30 columns marked: the default splits nothing (femreg.refine.UNEVEN_DECORRELATION).  Split
-    (without that clause) e_xx at 5-10 mm was MEASURED_OLD x as patchy as unrefined; the default MEASURED_DEF x.
+    (without that clause) e_xx at 5-10 mm was 1.58x as patchy as unrefined (1380 -> 8236 elements); the default 1.00x.
     Bounds: 1.3x and 1.05x."""
     import dataclasses
 
