@@ -283,6 +283,25 @@ class Refinement:
         patches: their mean absolute gradient at 5-10 mm depth 1.37 / 1.66x the unrefined result's.  Uniform noise (a
         10 dB pair) lowers every element's NCC alike and keeps the spread small.  None: no such test
         (:data:`DECORRELATED_SPREAD` in :data:`DEEP_REFINEMENT`).
+    coverage : float, optional
+        When the first pass marks at least this fraction of the rows or of the columns and the median element NCC
+        of the unrefined solve is below :attr:`coverage_ncc`, split nothing (with ``settle``, one more step on the
+        unrefined mesh) and say so in the message: jumps of A[u] over nearly every row (column) of a noisy or evenly
+        decorrelated pair are its noise, which the momentum TV on the finer rows fits as patches, while a feature
+        (an inclusion's rim, a band's faces) marks the rows and columns it crosses only (benchmarks: at most 0.77 of
+        them on pairs below that NCC; heterogeneous tissue mixed with independent speckle, rho 0.35-0.5: 0.95-1.0 of
+        the rows, refined 0.9-2.7 points worse).  Clean pairs whose field varies everywhere mark as much and gain
+        from the split (bending, 0.92 of the columns at NCC 0.98), hence the NCC test.  None: no such test
+        (:data:`NOISE_COVERAGE` in :data:`DEEP_REFINEMENT`).  2D passes only (:func:`refine_passes`).
+    coverage_ncc : float
+        Median element NCC (:func:`femreg.repair.element_ncc` of the unrefined solve) below which :attr:`coverage`
+        applies (:data:`NOISE_COVERAGE_NCC`).
+    coverage_uneven : float, optional
+        :attr:`coverage` applies at a median element NCC ``q`` of :attr:`coverage_ncc` or above too when the
+        spread of the element NCC (:func:`ncc_spread`) is at least this many times ``1 - q``: speckle that
+        decorrelates unevenly for its level (in vivo seq304 frames 1 -> 2: spread 0.13 at q 0.975, 5.4x; every
+        simulated pair of the benchmarks at most 2.96x, the clean pairs that mark as many rows / columns at most
+        2.5x).  None: no such clause (:data:`UNEVEN_DECORRELATION` in :data:`DEEP_REFINEMENT`).
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
@@ -386,6 +405,9 @@ class Refinement:
     plane: float | None = None
     even: bool = False
     spread: float | None = None
+    coverage: float | None = None
+    coverage_ncc: float = 0.96
+    coverage_uneven: float | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -394,6 +416,9 @@ class Refinement:
                              f"got {self.plane!r}")
         _number(self, "fine", 1, optional=True)
         _number(self, "spread", 0, 2, optional=True, open_low=True, what="an NCC difference in (0, 2]")
+        _number(self, "coverage", 0, 1, optional=True, open_low=True, what="a fraction in (0, 1]")
+        _number(self, "coverage_ncc", -1, 1, open_low=True, what="an NCC in (-1, 1]")
+        _number(self, "coverage_uneven", 0, optional=True, open_low=True, what="a ratio > 0")
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
@@ -517,6 +542,28 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: (the 10 dB soft inclusion: uniform noise lowers every element's NCC alike); rotated pairs up to 0.32.
 DECORRELATED_SPREAD = 0.2
 
+#: Fraction of the rows or of the columns that the first pass marks at or above which :data:`DEEP_REFINEMENT` splits
+#: nothing when the median element NCC of the unrefined solve is below :data:`NOISE_COVERAGE_NCC`
+#: (:attr:`Refinement.coverage`).  Measured on the unrefined solve (rows / columns marked, median element NCC,
+#: refined minus unrefined total strain error): heterogeneous tissue mixed with independent speckle rho 0.35 / 0.5,
+#: L7 0.95 / 0.95 at 0.935 / 0.869 (+0.95 / +1.29 points), paper 1.0 / 1.0 at 0.937 / 0.875 (+1.59 / +2.74);
+#: heterogeneous 10 dB 0.97 at 0.898 (+1.25); where refinement helps below that NCC at most 0.77 (the 10 dB soft
+#: inclusion, 0.871, -1.96; heterogeneous 5 %, 0.76 at 0.939, -1.05); clean pairs up to 0.94 (bending 0.92 at
+#: 0.979, -1.35).  docs/robustness.md "Heterogeneous tissue".
+NOISE_COVERAGE = 0.9
+
+#: Median element NCC of the unrefined solve below which :data:`NOISE_COVERAGE` applies: the middle of the gap
+#: between the noisy pairs it should stop (at most 0.937) and the clean pairs that mark as many rows / columns and
+#: gain from the split (at least 0.979).
+NOISE_COVERAGE_NCC = 0.96
+
+#: Spread of the element NCC (:func:`ncc_spread`) over ``1 -`` its median at or above which :data:`NOISE_COVERAGE`
+#: applies whatever the median (:attr:`Refinement.coverage_uneven`).  Measured: in vivo seq304 frames 1 -> 2 5.4
+#: (0.97 of the columns marked), 2 -> 3 3.6 (0.90), 3 -> 4 5.5 (0.83); the simulated pairs of the robustness,
+#: inclusion, shear-band, heterogeneous and rotation benchmarks at most 2.96 (an 8 mm inclusion, 0.64 marked), those
+#: marking 0.9 of the rows or columns at most 2.5 (bending).
+UNEVEN_DECORRELATION = 3.0
+
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
@@ -529,14 +576,16 @@ DECORRELATED_SPREAD = 0.2
 #: :attr:`Refinement.relax_alpha`), relaxes (weight 0.1) and quarters the at most 2 rows between a layer's relaxed
 #: cells (:attr:`Refinement.relax_fill`) and solves once more relaxing only what stands out on its first solve
 #: (:attr:`Refinement.relax_passes`); nothing is split where the element NCC's spread shows the speckle
-#: decorrelated in parts of the image (:attr:`Refinement.spread`, :data:`DECORRELATED_SPREAD`).  Measured: module
-#: docstring and README ("Adaptive refinement").
+#: decorrelated in parts of the image (:attr:`Refinement.spread`, :data:`DECORRELATED_SPREAD`), nor where nearly every
+#: row or column is marked on a noisy or decorrelated pair (:attr:`Refinement.coverage`, :data:`NOISE_COVERAGE`).
+#: Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
-                             spread=DECORRELATED_SPREAD)
+                             spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
+                             coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION)
 
 #: Median element NCC of the unrefined solve below which a refined result says that its speckle is decorrelated:
 #: there refinement can turn the decorrelation noise into rectangular strain patches (heterogeneous tissue with an
@@ -793,6 +842,13 @@ def _spread(q) -> float:
         return 0.0
     lo, hi = np.percentile(q, SPREAD_PERCENTILES)
     return float(hi - lo)
+
+
+def marked_coverage(scores) -> float:
+    """The larger of the fractions of rows and of columns (per-axis slab scores over the cut, :func:`mark` with
+    ``scores``; marked where > 1) that the marking reaches: 0 to 1, 0 with no slabs."""
+    fr = [float(np.mean(np.asarray(s, float) > 1)) for s in scores if np.size(s)]
+    return max(fr, default=0.0)
 
 
 def jump_cut(jumps, opts: Refinement, scale: float) -> float:
@@ -1140,6 +1196,29 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
                 break
+        if k == 0 and opts.coverage is not None and getattr(sol, "data", None) is not None:
+            cover = marked_coverage(score)
+            if cover >= opts.coverage:
+                with np.errstate(invalid="ignore"):
+                    q0 = np.asarray(element_ncc(sol.data, sol.u, mesh.t.shape[1]), float)
+                fin = q0[np.isfinite(q0)]
+                q_med = float(np.median(fin)) if fin.size else float("nan")
+                lo, hi = np.percentile(fin, SPREAD_PERCENTILES) if fin.size else (0.0, 0.0)
+                uneven = (opts.coverage_uneven is not None and q_med < 1.0
+                          and hi - lo >= opts.coverage_uneven * (1.0 - q_med))
+                if q_med < opts.coverage_ncc or uneven:
+                    # jumps over nearly every row / column of a noisy pair: its noise, not a feature, which the
+                    # momentum TV on the finer rows would fit as patches
+                    why = (f"median element NCC {q_med:.2f} < {opts.coverage_ncc:g}" if q_med < opts.coverage_ncc
+                           else f"element NCC spread {hi - lo:.2f} >= {opts.coverage_uneven:g} x (1 - median "
+                                f"{q_med:.3f})")
+                    note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: nearly every "
+                            f"row or column marked ({cover:.2f} >= {opts.coverage:g}) on decorrelated or noisy "
+                            f"speckle ({why})")
+                    if opts.settle:
+                        sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
+                        note += "; one more step on the unrefined mesh"
+                    break
         if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
             # the feature test against a cut of its own (the scores of a marking at that z-score)
             fs = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.feature_threshold), data=sol.data,
