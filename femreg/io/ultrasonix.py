@@ -142,7 +142,7 @@ def write_ultrasonix(path, frames, spacing=None, *, sampling_frequency=None, sou
 
     ``sampling_frequency`` (Hz) defaults to ``c / (2 dx)`` from ``spacing`` so that reading back gives the same
     axial spacing.  Values are rounded to int16 (an error if out of range).  ``header`` overrides header fields
-(``txf``, the transmit frequency in Hz, is written as 0, unknown, unless given there).
+    (``txf``, the transmit frequency in Hz, is written as 0, unknown, unless given there).
     """
     path = Path(path)
     arr = np.asarray(frames)
