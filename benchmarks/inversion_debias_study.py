@@ -5,10 +5,15 @@ TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; TV_REFIT and its TV_REFIT_* c
 
 Same registrations (``$FEMREG_CACHE/bench_inversion/<key>``, which must hold every case: nothing is registered here),
 the same contrast, ring, background CV and calibration as benchmarks/inversion.py, and per case the strain ratio read
-as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1/SR row); no exact or NCC rows.
+as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1/SR row), the modulus edge width
+across the deep and the right edge (``edge_deep``, ``edge_right`` mm, :func:`edge_profile_width`; ``h``: the inversion
+mesh's median element size), the modulus CNR (``cnr``) and the registered strain's (``cnr_strain``, |e_xx|, 1/SR's
+source; :func:`sampled_cnr`); no NCC rows, the exact row (``exact``: edge widths and CNR only) with ``--exact``.
 
-Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets main,held-out,...]``, then
-``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts.  Rows of runs
+Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets=main,held-out,...]
+[--exact]``, then
+``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts (and the medians
+and ranges of the edge widths and CNRs where recorded).  Rows of runs
 from before ``sr`` was recorded: ``python benchmarks/inversion_debias_study.py --add-sr IN.json OUT.json`` adds it
 from the cached registrations (no inversion).  ``--cv-detail IN.json [CASE ...]`` re-inverts the cases of IN.json
 with a background CV above 15 % (or the cases named) and splits their ring (:func:`ring_parts`).
