@@ -135,15 +135,22 @@ def case_name(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0):
     return name
 
 
-def sampled_contrast(fun, centre, R):
-    """(contrast, background CV) of a callable points -> values: mean inside 0.7 R over mean in 1.6-2.5 R."""
+def sampled_regions(fun, centre, R):
+    """Values of a callable points -> values inside 0.7 R and in the ring 1.6-2.5 R of a disk of radius ``R`` mm
+    at ``centre`` (x, y mm), on a 0.25 mm grid, non-finite samples (outside the mesh) dropped: (inner, ring)."""
     g = np.arange(-2.5 * R, 2.5 * R + 1e-9, 0.25)
     X, Y = np.meshgrid(g, g, indexing="ij")
     r = np.hypot(X, Y).ravel()
     pts = np.column_stack([X.ravel() + centre[0], Y.ravel() + centre[1]])
     v = fun(pts)
     inner, ring = (r < 0.7 * R) & np.isfinite(v), (r > 1.6 * R) & (r < 2.5 * R) & np.isfinite(v)
-    return float(np.mean(v[inner]) / np.mean(v[ring])), float(np.std(v[ring]) / np.mean(v[ring]))
+    return v[inner], v[ring]
+
+
+def sampled_contrast(fun, centre, R):
+    """(contrast, background CV) of a callable points -> values: mean inside 0.7 R over mean in 1.6-2.5 R."""
+    vin, vring = sampled_regions(fun, centre, R)
+    return float(np.mean(vin) / np.mean(vring)), float(np.std(vring) / np.mean(vring))
 
 
 #: The ring (1.6-2.5 R) is measurable when at least this fraction of its sample points lies inside the inversion

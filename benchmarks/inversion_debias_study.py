@@ -5,10 +5,15 @@ TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; TV_REFIT and its TV_REFIT_* c
 
 Same registrations (``$FEMREG_CACHE/bench_inversion/<key>``, which must hold every case: nothing is registered here),
 the same contrast, ring, background CV and calibration as benchmarks/inversion.py, and per case the strain ratio read
-as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1/SR row); no exact or NCC rows.
+as stiffness (``sr``: 1/SR, :func:`strain_ratio`, as benchmarks/inversion.py's 1/SR row), the modulus edge width
+across the deep and the right edge (``edge_deep``, ``edge_right`` mm, :func:`edge_profile_width`; ``h``: the inversion
+mesh's median element size), the modulus CNR (``cnr``) and the registered strain's (``cnr_strain``, |e_xx|, 1/SR's
+source; :func:`sampled_cnr`); no NCC rows, the exact row (``exact``: edge widths and CNR only) with ``--exact``.
 
-Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets main,held-out,...]``, then
-``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts.  Rows of runs
+Usage: ``python benchmarks/inversion_debias_study.py OUT.json [CONST=VALUE ...] [--sets=main,held-out,...]
+[--exact]``, then
+``python benchmarks/inversion_debias_study.py --summary A.json B.json ...`` for the per-set counts (and the medians
+and ranges of the edge widths and CNRs where recorded).  Rows of runs
 from before ``sr`` was recorded: ``python benchmarks/inversion_debias_study.py --add-sr IN.json OUT.json`` adds it
 from the cached registrations (no inversion).  ``--cv-detail IN.json [CASE ...]`` re-inverts the cases of IN.json
 with a background CV above 15 % (or the cases named) and splits their ring (:func:`ring_parts`).
@@ -33,6 +38,60 @@ def strain_ratio(bench, reg, field):
     read off a strain image (benchmarks/inversion.py's 1/SR row)."""
     strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
     return 1.0 / bench.sampled_contrast(strain, field.centre, field.radius_mm)[0]
+
+
+def sampled_cnr(bench, fun, centre, R):
+    """CNR = 2 (mean_in - mean_bg)^2 / (var_in + var_bg) of a callable points -> values, inside 0.7 R and in the
+    ring 1.6-2.5 R (the regions and grid of the contrast, ``bench.sampled_regions``); NaN with fewer than 2
+    samples in a region."""
+    vin, vbg = bench.sampled_regions(fun, centre, R)
+    if len(vin) < 2 or len(vbg) < 2:
+        return float("nan")
+    return float(2.0 * (np.mean(vin) - np.mean(vbg)) ** 2 / (np.var(vin) + np.var(vbg)))
+
+
+def edge_profile_width(fun, centre, R, direction, step=0.25, reach=2.0):
+    """10-90 % width (mm) of the log of a positive callable points -> values (e.g. ``shear_modulus``) across a
+    disk's edge: sampled every ``step`` mm from the ``centre`` (x, y mm) out to ``reach`` R along ``direction``
+    ((1, 0): deeper, the deep edge; (0, 1): the right edge), cut at the first sample outside the mesh (non-finite),
+    plateaus the medians of the profile's first and last fifth (:func:`femreg.metrics.edge_width`).  NaN when the
+    profile stops before 1.6 R (no background plateau inside the mesh) or shows no step.  The estimate is constant
+    per element: a step sharp to the element shows as a jump between two samples (0.2 mm), each element the edge
+    crosses at an intermediate value adds about its size."""
+    from femreg.metrics import edge_width
+
+    s = np.arange(0.0, reach * R + 1e-9, step)
+    d = np.asarray(direction, float) / np.hypot(*direction)
+    v = np.asarray(fun(np.asarray(centre, float)[None, :] + s[:, None] * d[None, :]), float)
+    bad = ~(np.isfinite(v) & (v > 0))
+    n = int(np.argmax(bad)) if bad.any() else len(v)
+    if n == 0 or s[n - 1] < 1.6 * R:
+        return float("nan")
+    x, y = s[:n], np.log(v[:n])
+    n5 = max(1, n // 5)
+    levels = (float(np.median(y[:n5])), float(np.median(y[-n5:])))
+    if levels[0] == levels[1]:  # equal plateaus: no step to measure
+        return float("nan")
+    # edge_width starts from the sample nearest the step's middle: a jump between two samples (an element-constant
+    # modulus) has none, and the first sample of a plateau would be taken.  The profile interpolated linearly on a
+    # grid 8 x finer has the same crossings and a sample within 1/16 of the jump of the middle.
+    fine = np.linspace(x[0], x[-1], 8 * (n - 1) + 1)
+    return edge_width(fine, np.interp(fine, x, y), levels)
+
+
+def median_element_size(mesh):
+    """Median element extent (mm) along x (depth) and y (lateral) of a 2D mesh: (hx, hy)."""
+    ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
+    return tuple(float(e) for e in np.median(ext, axis=1))
+
+
+def edge_cnr(bench, inv, field):
+    """Edge widths (deep, right; mm, :func:`edge_profile_width`), modulus CNR and the inversion mesh's median
+    element size (hx, hy mm) of one inversion result."""
+    c, R = field.centre, field.radius_mm
+    return dict(edge_deep=edge_profile_width(inv.shear_modulus, c, R, (1.0, 0.0)),
+                edge_right=edge_profile_width(inv.shear_modulus, c, R, (0.0, 1.0)),
+                cnr=sampled_cnr(bench, inv.shear_modulus, c, R), h=median_element_size(inv.mesh))
 
 
 def _spec(bench, name, case):
@@ -116,7 +175,7 @@ def cv_detail(src, limit=0.15, cases=()):
                 f"{100 * err[1]:.0f} %", flush=True)
 
 
-def run(out, settings, sets):
+def run(out, settings, sets, exact=False):
     import femreg
     import femreg.inversion as inversion
     import inversion as bench
@@ -139,13 +198,25 @@ def run(out, settings, sets):
             est, cv = bench.sampled_contrast(inv.shear_modulus, field.centre, field.radius_mm)
             ring = bench.ring_coverage(inv.shear_modulus, field.centre, field.radius_mm)
             _, _, z = bench.calibration(inv, field, c)
-            rows.append(dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
-                             success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
-                             rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
-                             sr=strain_ratio(bench, reg, field)))
+            strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
+            row = dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
+                       success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
+                       rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
+                       sr=strain_ratio(bench, reg, field), **edge_cnr(bench, inv, field),
+                       cnr_strain=sampled_cnr(bench, strain, field.centre, field.radius_mm))
+            if exact:
+                # the forward model's displacement on the registration's mesh (benchmarks/inversion.py's exact row)
+                p = reg.mesh.p
+                region = ((p[0].min(), p[0].max()), (p[1].min(), p[1].max()))
+                ex = femreg.invert(field.displacement, region=region, element_size=median_element_size(reg.mesh))
+                row["exact"] = edge_cnr(bench, ex, field)
+            rows.append(row)
             print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
-                  f"{'' if inv.success else ', flagged'}", flush=True)
-    Path(out).write_text(json.dumps(rows))
+                  f"{'' if inv.success else ', flagged'}, edge {row['edge_deep']:.2f} / {row['edge_right']:.2f} mm"
+                  f" (h {row['h'][0]:.2f} x {row['h'][1]:.2f}), CNR {row['cnr']:.1f} (strain "
+                  f"{row['cnr_strain']:.1f})" + (f", exact edge {row['exact']['edge_deep']:.2f} / "
+                                                f"{row['exact']['edge_right']:.2f} mm" if exact else ""), flush=True)
+            Path(out).write_text(json.dumps(rows))     # after every case: a cut-short run keeps what it measured
 
 
 def summary(paths):
@@ -172,9 +243,39 @@ def summary(paths):
                   f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}{sr_txt}")
             tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong, tot[4] + closer,
                    tot[5] + len(stiff)]
+        edge_cnr_summary(rows)
         sr_txt = f", stiff closer than 1/SR {tot[4]}/{tot[5]}" if tot[5] else ""
         print(f"- total: {tot[0]}/{tot[1]} in the band, CV <= 15 % {tot[2]}/{tot[1]}, wrong side {tot[3]}{sr_txt}, "
               f"{sum(r['seconds'] for r in rows):.0f} s")
+
+
+def _med_range(values):
+    v = np.asarray([x for x in values if np.isfinite(x)], float)
+    if not v.size:
+        return "n/a"
+    return f"{np.median(v):.2f} ({v.min():.2f}-{v.max():.2f})"
+
+
+def edge_cnr_summary(rows):
+    """Where rows hold the edge widths and CNR (runs from :func:`run` since they were added): per set and over all,
+    median (range) of the deep and right edge widths (mm; in elements, over hx / hy), the modulus CNR and the
+    strain's (|e_xx|, 1/SR's source) CNR, and the exact row's edge widths where recorded; cases whose ring is not
+    measurable (< 50 % inside) are left out of the CNR."""
+    if not rows or "edge_deep" not in rows[0]:
+        return
+    groups = [(name, [r for r in rows if r["set"] == name]) for name in dict.fromkeys(r["set"] for r in rows)]
+    for name, rs in groups + [("all", rows)]:
+        ms = [r for r in rs if r["ring"] >= 0.5]
+        txt = (f"  - {name} edge width deep {_med_range(r['edge_deep'] for r in rs)} mm "
+               f"[{_med_range(r['edge_deep'] / r['h'][0] for r in rs)} el], right "
+               f"{_med_range(r['edge_right'] for r in rs)} mm [{_med_range(r['edge_right'] / r['h'][1] for r in rs)}"
+               f" el]; CNR modulus {_med_range(r['cnr'] for r in ms)}, strain {_med_range(r['cnr_strain'] for r in ms)}"
+               f", modulus > strain {sum(r['cnr'] > r['cnr_strain'] for r in ms)}/{len(ms)}")
+        ex = [r["exact"] for r in rs if "exact" in r]
+        if ex:
+            txt += (f"; exact edge deep {_med_range(e['edge_deep'] for e in ex)}, right "
+                    f"{_med_range(e['edge_right'] for e in ex)} mm, CNR {_med_range(e['cnr'] for e in ex)}")
+        print(txt)
 
 
 if __name__ == "__main__":
@@ -188,10 +289,13 @@ if __name__ == "__main__":
     else:
         sets = SETS
         settings = {}
+        exact = False
         for a in args[1:]:
             if a.startswith("--sets="):
                 sets = tuple(a.split("=", 1)[1].split(","))
+            elif a == "--exact":
+                exact = True
             else:
                 k, v = a.split("=", 1)
                 settings[k] = json.loads(v)
-        run(args[0], settings, sets)
+        run(args[0], settings, sets, exact)
