@@ -353,6 +353,12 @@ def edge_width(x_mm, values, levels=None, *, low: float = 0.1, high: float = 0.9
         raise ValueError("the step's two levels are equal: no step to measure")
     f = (v - lo) / (hi - lo)                             # 0 -> 1 across the step
     m = int(np.argmin(np.abs(f - 0.5)))
+    if not low < f[m] < high:
+        # no sample inside the step (a jump between two samples, e.g. element-wise values): the ties of |f - 0.5|
+        # would start the search on a plateau far from the step; start at the first crossing of the middle instead
+        up = np.nonzero((f[:-1] < 0.5) & (f[1:] >= 0.5))[0]
+        if up.size:
+            m = int(up[0])
 
     def crossing(level, direction):
         # from the middle outwards to the first sample on the far side of ``level``

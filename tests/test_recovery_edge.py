@@ -218,3 +218,15 @@ def _jittered():
     inner = (p[0] > X[0]) & (p[0] < X[-1]) & (p[1] > Y[0]) & (p[1] < Y[-1])
     p[:, inner] += 0.05 * np.random.default_rng(4).uniform(-1, 1, (2, inner.sum()))
     return MeshQuad1(p, m.t)
+
+
+def test_edge_width_of_a_jump_between_two_samples():
+    # a clean step with no sample inside it (element-wise values): one sample spacing or less, rising or falling
+    x = np.arange(40) * 0.25
+    v = np.where(x < 4.1, 1.0, 3.0)
+    assert 0.0 < edge_width(x, v) <= 0.25
+    assert 0.0 < edge_width(x, v[::-1]) <= 0.25
+    assert 0.0 < edge_width(x, -v, levels=(-1.0, -3.0)) <= 0.25
+    # a ramp over 2 mm keeps its 10-90 % width, 1.6 mm
+    r = np.clip((x - 3.0) / 2.0, 0.0, 1.0)
+    assert abs(edge_width(x, r) - 1.6) < 0.01
