@@ -72,9 +72,8 @@ def edge_profile_width(fun, centre, R, direction, step=0.25, reach=2.0):
     levels = (float(np.median(y[:n5])), float(np.median(y[-n5:])))
     if levels[0] == levels[1]:  # equal plateaus: no step to measure
         return float("nan")
-    # edge_width starts from the sample nearest the step's middle: a jump between two samples (an element-constant
-    # modulus) has none, and the first sample of a plateau would be taken.  The profile interpolated linearly on a
-    # grid 8 x finer has the same crossings and a sample within 1/16 of the jump of the middle.
+    # the profile interpolated linearly on a grid 8 x finer: the same crossings, and a jump between two samples (an
+    # element-constant modulus) read to 1/8 of a sample rather than to one sample
     fine = np.linspace(x[0], x[-1], 8 * (n - 1) + 1)
     return edge_width(fine, np.interp(fine, x, y), levels)
 

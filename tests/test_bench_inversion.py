@@ -87,8 +87,7 @@ def test_edge_width_of_a_sharp_disk_edge_on_a_mesh_is_about_one_element():
 
     # the disk's edge at 25 mm depth and 5 mm right crosses an element's middle; partial-volume elements make a
     # step about one element wide (measured 1.02-1.15 h, bound 0.75-1.3 h); the elements' centre values a jump
-    # between two 0.25 mm samples (0.2 mm; femreg.metrics.edge_width alone, on the samples, read 4.7 mm: the
-    # plateau's first sample taken as the middle)
+    # between two 0.25 mm samples (0.2 mm)
     for h in (1.0, 1.5):
         fun = _element_field(h, x0=0.5 * h + 0.05, y0=0.5 * h + 0.05)
         for direction in ((1.0, 0.0), (0.0, 1.0)):
