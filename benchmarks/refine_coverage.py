@@ -89,13 +89,7 @@ def mixed_row(name, probe, size, seed, rho, sigma=0.7, level=0.01, snr=25.0) -> 
     q = make_pair(F.compression(0.0), probe, size, snr_db=None, seed=seed + 100, top_mm=3.0)
     mov = np.sqrt(1 - rho ** 2) * p.mov + rho * q.ref * np.std(p.mov) / np.std(q.ref)
     sl = R.roi_slices(p.ref.shape, p.spacing)
-    ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
-    jj = np.arange(sl[1].start, sl[1].stop)
-    X, Y = np.meshgrid(p.origin[0] + ii * p.spacing[0], p.origin[1] + jj * p.spacing[1], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
-    u, e = f.displacement(P), f.strain(P)
-    t = {k: v.reshape(X.shape) for k, v in
-         dict(ux=u[:, 0], uy=u[:, 1], exx=e[:, 0], eyy=e[:, 1], exy=e[:, 2]).items()}
+    t = R.truth(p, None, sl)                 # the mixed moving frame moves as p's field
     return _pair(name, p.ref, mov, p.spacing, p.origin, t, sl, PROBES[probe].wavelength_mm)
 
 

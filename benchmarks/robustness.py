@@ -188,13 +188,13 @@ def run_method(method, case, data):
         warnings.simplefilter("ignore")
         if method in FEMREG_METHODS or paper:
             reg = FEMREG_METHODS.get(method, "momentum-stress")
-            if case.sequence:
+            if case is not None and case.sequence:
                 g, msg = _femreg_sequence(data.frames, data.spacing, data.origin, reg, paper)
             else:
                 g, msg = _femreg_pair(data.ref, data.mov, data.spacing, data.origin, reg, paper)
         else:
             fn = PEER_METHODS[method]
-            if case.sequence:
+            if case is not None and case.sequence:
                 g = _accumulate(data.frames, data.spacing, data.origin, fn)
             else:
                 g = fn(data.ref, data.mov, data.spacing, data.origin)
@@ -216,14 +216,15 @@ def roi_slices(shape, spacing):
 
 
 def truth(data, case, sl, frame=None):
-    """True fields on the ROI samples: dict of 2D arrays.  Sequences: frame 0 -> ``frame`` (default the last)."""
+    """True fields on the ROI samples: dict of 2D arrays.  Sequences: frame 0 -> ``frame`` (default the last).
+    ``case`` None: ``data`` is a pair (``forward.pairs.make_pair``)."""
     x0, y0 = data.origin
     dx, dy = data.spacing
     ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
     jj = np.arange(sl[1].start, sl[1].stop)
     X, Y = np.meshgrid(x0 + ii * dx, y0 + jj * dy, indexing="ij")
     P = np.column_stack([X.ravel(), Y.ravel()])
-    if case.sequence:
+    if case is not None and case.sequence:
         k = len(data.frames) - 1 if frame is None else int(frame)
         u, e = data.true_displacement(k, P), data.true_strain(k, P)
     else:
@@ -307,7 +308,7 @@ def draw_case(path, case, data, grids, results, t_full):
 
 def make_data(case):
     field = case.field()
-    if case.sequence:
+    if case is not None and case.sequence:
         return make_sequence(field, case.probe, case.size_mm, case.snr_db, case.seed, n_frames=10, step=0.01,
                              top_mm=case.top_mm, name=case.name)
     return make_pair(field, case.probe, case.size_mm, case.snr_db, case.seed, top_mm=case.top_mm, name=case.name)

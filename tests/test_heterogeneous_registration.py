@@ -12,18 +12,11 @@ def test_defaults_follow_heterogeneous_tissue(seed, bound):
     # measured: total strain error 0.130 (seed 21) / 0.139 (seed 23), NCC block matching 0.726 / 0.716;
     # bounds about 1.2x the measured value; the uniform field of the true mean strain (all a homogeneous
     # model can give: 0.328 / 0.417) must be at least twice as far
-    from benchmarks.robustness import errors, roi_slices
+    from benchmarks.robustness import errors
 
     f = RandomTissue(seed, 0.01, "plane-stress", sigma=0.7, corr_mm=2.0, size_mm=(30.0, 30.0))
     p = make_pair(f, "L7", (20.0, 20.0), snr_db=25.0, seed=seed, top_mm=3.0)
-    sl = roi_slices(p.ref.shape, p.spacing)
-    ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
-    jj = np.arange(sl[1].start, sl[1].stop)
-    X, Y = np.meshgrid(p.origin[0] + ii * p.spacing[0], p.origin[1] + jj * p.spacing[1], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
-    u, e = f.displacement(P), f.strain(P)
-    t = {k: v.reshape(X.shape) for k, v in
-         dict(ux=u[:, 0], uy=u[:, 1], exx=e[:, 0], eyy=e[:, 1], exy=e[:, 2]).items()}
+    t, sl = _truth_grids(p)
     r = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
     assert r.success, r.message
     err = errors(r.on_grid(), t, sl, 0.2)["e"]
@@ -35,17 +28,12 @@ def test_defaults_follow_heterogeneous_tissue(seed, bound):
     assert err < 0.5 * uniform
 
 
-def _truth_grids(f, p):
-    from benchmarks.robustness import roi_slices
+def _truth_grids(p):
+    """The true fields of the pair ``p`` on the robustness benchmark's ROI samples, and the ROI."""
+    from benchmarks.robustness import roi_slices, truth
 
     sl = roi_slices(p.ref.shape, p.spacing)
-    ii = np.arange(sl[0].start, sl[0].stop, sl[0].step)
-    jj = np.arange(sl[1].start, sl[1].stop)
-    X, Y = np.meshgrid(p.origin[0] + ii * p.spacing[0], p.origin[1] + jj * p.spacing[1], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
-    u, e = f.displacement(P), f.strain(P)
-    return {k: v.reshape(X.shape) for k, v in
-            dict(ux=u[:, 0], uy=u[:, 1], exx=e[:, 0], eyy=e[:, 1], exy=e[:, 2]).items()}, sl
+    return truth(p, None, sl), sl
 
 
 def test_no_split_where_nearly_every_row_is_marked_on_decorrelated_speckle(tmp_path, capsys):
@@ -67,7 +55,7 @@ def test_no_split_where_nearly_every_row_is_marked_on_decorrelated_speckle(tmp_p
     q = make_pair(F.compression(0.0), "L7", (30.0, 30.0), snr_db=None, seed=131, top_mm=3.0)
     rho = 0.5
     mov = np.sqrt(1 - rho ** 2) * p.mov + rho * q.ref * np.std(p.mov) / np.std(q.ref)
-    t, sl = _truth_grids(f, p)
+    t, sl = _truth_grids(p)
     kw = dict(spacing=p.spacing, origin=p.origin)
     clean = femreg.register(p.ref, p.mov, **kw)
     noisy = femreg.register(p.ref, mov, **kw)
