@@ -170,6 +170,22 @@ def ring_coverage(fun, centre, R):
     return float(np.mean(np.isfinite(fun(pts))))
 
 
+def registered_cases(sets, skip=()):
+    """``(set, case name, contrast, registration result, truth field)`` of every case of the named ``sets`` from
+    the cache (:func:`cache_folder`), leaving out the ``(set, case name)`` pairs in ``skip``; SystemExit naming the
+    first case not registered yet."""
+    folder = cache_folder()
+    for name in sets:
+        for (m, c, pr, snr, r, lev, seed) in SETS[name]:
+            case = case_name(m, c, pr, snr, r, lev, seed)
+            if (name, case) in skip:
+                continue
+            path = folder / f"{case}.npz"
+            if not path.exists():
+                raise SystemExit(f"{path}: not registered (run benchmarks/inversion.py --set {name} first)")
+            yield name, case, c, femreg.load_result(path), truth_field(m, c, lev, r)
+
+
 def cache_folder():
     """The registrations' cache: ``$FEMREG_CACHE/bench_inversion/<key>``, the key a hash of ``femreg.register``'s
     signature (its defaults) and the default refinement, so a change of the registration defaults registers

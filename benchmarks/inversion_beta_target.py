@@ -29,30 +29,20 @@ def run(out, sets):
     out = Path(out)
     rows = json.loads(out.read_text()) if out.exists() else []
     done = {(r["set"], r["case"]) for r in rows}
-    folder = bench.cache_folder()
     grid = tuple(inversion.BETA_GRID[0] * 10.0 ** (0.5 * np.arange(inversion.DOF_UP_STEPS, 0, -1))) + \
         tuple(inversion.BETA_GRID)
-    for name in sets:
-        for (m, c, pr, snr, r, lev, seed) in bench.SETS[name]:
-            case = bench.case_name(m, c, pr, snr, r, lev, seed)
-            if (name, case) in done:
-                continue
-            path = folder / f"{case}.npz"
-            if not path.exists():
-                raise SystemExit(f"{path}: not registered (run benchmarks/inversion.py --set {name} first)")
-            reg = femreg.load_result(path)
-            field = bench.truth_field(m, c, lev, r)
-            t = time.perf_counter()
-            sweep = []
-            for b in grid:
-                fi = femreg.invert(reg, beta=float(b), uncertainty=False)
-                ratio = bench.sampled_contrast(fi.shear_modulus, field.centre, field.radius_mm)[0] / c
-                sweep.append((float(b), float(ratio), bool(fi.success)))
-            best = min(sweep, key=lambda e: abs(np.log(e[1])))
-            rows.append(dict(set=name, case=case, best_beta=best[0], best_ratio=best[1], sweep=sweep,
-                             seconds=time.perf_counter() - t))
-            print(f"{name} {case}: truth-best beta {best[0]:.3g} (ratio {best[1]:.3f})", flush=True)
-            out.write_text(json.dumps(rows))
+    for name, case, c, reg, field in bench.registered_cases(sets, skip=done):
+        t = time.perf_counter()
+        sweep = []
+        for b in grid:
+            fi = femreg.invert(reg, beta=float(b), uncertainty=False)
+            ratio = bench.sampled_contrast(fi.shear_modulus, field.centre, field.radius_mm)[0] / c
+            sweep.append((float(b), float(ratio), bool(fi.success)))
+        best = min(sweep, key=lambda e: abs(np.log(e[1])))
+        rows.append(dict(set=name, case=case, best_beta=best[0], best_ratio=best[1], sweep=sweep,
+                         seconds=time.perf_counter() - t))
+        print(f"{name} {case}: truth-best beta {best[0]:.3g} (ratio {best[1]:.3f})", flush=True)
+        out.write_text(json.dumps(rows))
 
 
 def summary(rule_path, best_path):

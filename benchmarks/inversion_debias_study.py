@@ -181,41 +181,33 @@ def run(out, settings, sets, exact=False):
 
     for k, v in settings.items():
         setattr(inversion, k, v)
-    folder = bench.cache_folder()
     rows = []
-    for name in sets:
-        for (m, c, pr, snr, r, lev, seed) in bench.SETS[name]:
-            case = bench.case_name(m, c, pr, snr, r, lev, seed)
-            path = folder / f"{case}.npz"
-            if not path.exists():
-                raise SystemExit(f"{path}: not registered (run benchmarks/inversion.py --set {name} first)")
-            reg = femreg.load_result(path)
-            field = bench.truth_field(m, c, lev, r)
-            t = time.perf_counter()
-            inv = femreg.invert(reg)
-            dt = time.perf_counter() - t
-            est, cv = bench.sampled_contrast(inv.shear_modulus, field.centre, field.radius_mm)
-            ring = bench.ring_coverage(inv.shear_modulus, field.centre, field.radius_mm)
-            _, _, z = bench.calibration(inv, field, c)
-            strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
-            row = dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
-                       success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
-                       rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
-                       sr=strain_ratio(bench, reg, field), **edge_cnr(bench, inv, field),
-                       cnr_strain=sampled_cnr(bench, strain, field.centre, field.radius_mm))
-            if exact:
-                # the forward model's displacement on the registration's mesh (benchmarks/inversion.py's exact row)
-                p = reg.mesh.p
-                region = ((p[0].min(), p[0].max()), (p[1].min(), p[1].max()))
-                ex = femreg.invert(field.displacement, region=region, element_size=median_element_size(reg.mesh))
-                row["exact"] = edge_cnr(bench, ex, field)
-            rows.append(row)
-            print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
-                  f"{'' if inv.success else ', flagged'}, edge {row['edge_deep']:.2f} / {row['edge_right']:.2f} mm"
-                  f" (h {row['h'][0]:.2f} x {row['h'][1]:.2f}), CNR {row['cnr']:.1f} (strain "
-                  f"{row['cnr_strain']:.1f})" + (f", exact edge {row['exact']['edge_deep']:.2f} / "
-                                                f"{row['exact']['edge_right']:.2f} mm" if exact else ""), flush=True)
-            Path(out).write_text(json.dumps(rows))     # after every case: a cut-short run keeps what it measured
+    for name, case, c, reg, field in bench.registered_cases(sets):
+        t = time.perf_counter()
+        inv = femreg.invert(reg)
+        dt = time.perf_counter() - t
+        est, cv = bench.sampled_contrast(inv.shear_modulus, field.centre, field.radius_mm)
+        ring = bench.ring_coverage(inv.shear_modulus, field.centre, field.radius_mm)
+        _, _, z = bench.calibration(inv, field, c)
+        strain = lambda q: np.abs(reg.strain(q)[:, 0])  # noqa: E731
+        row = dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
+                   success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
+                   rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
+                   sr=strain_ratio(bench, reg, field), **edge_cnr(bench, inv, field),
+                   cnr_strain=sampled_cnr(bench, strain, field.centre, field.radius_mm))
+        if exact:
+            # the forward model's displacement on the registration's mesh (benchmarks/inversion.py's exact row)
+            p = reg.mesh.p
+            region = ((p[0].min(), p[0].max()), (p[1].min(), p[1].max()))
+            ex = femreg.invert(field.displacement, region=region, element_size=median_element_size(reg.mesh))
+            row["exact"] = edge_cnr(bench, ex, field)
+        rows.append(row)
+        print(f"{name} {case}: ratio {est / c:.3f}, CV {100 * cv:.0f} %, beta {inv.beta:.3g}"
+              f"{'' if inv.success else ', flagged'}, edge {row['edge_deep']:.2f} / {row['edge_right']:.2f} mm"
+              f" (h {row['h'][0]:.2f} x {row['h'][1]:.2f}), CNR {row['cnr']:.1f} (strain "
+              f"{row['cnr_strain']:.1f})" + (f", exact edge {row['exact']['edge_deep']:.2f} / "
+                                            f"{row['exact']['edge_right']:.2f} mm" if exact else ""), flush=True)
+        Path(out).write_text(json.dumps(rows))     # after every case: a cut-short run keeps what it measured
 
 
 def summary(paths):
