@@ -321,6 +321,11 @@ def test_directory_of_frames_natural_order(tmp_path, rf3):
     assert fr.metadata["files"][9] == "frame10.raw"
     np.testing.assert_array_equal(read_frames(d, shape=(6, 4), spacing=SP, frames=slice(2, 5)).frames[:, 0, 0],
                                   [2, 3, 4])
+    # a stop past the last frame is refused (it was cut short silently); no stop, or the end itself, is fine
+    with pytest.raises(InputError, match="reaches past the last frame.*has 12"):
+        read_frames(d, shape=(6, 4), spacing=SP, frames=slice(10, 40))
+    assert read_frames(d, shape=(6, 4), spacing=SP, frames=slice(10, 12)).frames.shape[0] == 2
+    assert read_frames(d, shape=(6, 4), spacing=SP, frames=slice(10, None)).frames.shape[0] == 2
     np.zeros((5, 4), np.float32).tofile(d / "frame13.raw")
     with pytest.raises(FileFormatError, match="frame13"):
         read_frames(d, shape=(6, 4), spacing=SP)

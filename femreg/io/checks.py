@@ -137,6 +137,12 @@ def select_frames(path, arr: np.ndarray, frames):
     if frames is None:
         return arr
     n = arr.shape[0]
+    if isinstance(frames, slice) and isinstance(frames.stop, (int, np.integer)) and (frames.step or 1) > 0 \
+            and frames.stop > n:
+        # a stop past the end would be cut short silently: the file is shorter than the user thinks
+        a = frames.start or 0
+        raise InputError(f"{path}: frame selection {a}:{frames.stop} reaches past the last frame (the file has {n}, "
+                         f"0 to {n - 1}); {a}: selects every frame from {a} on")
     try:
         if isinstance(frames, slice):
             idx = np.arange(n)[frames]
