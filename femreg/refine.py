@@ -844,6 +844,32 @@ def _spread(q) -> float:
     return float(hi - lo)
 
 
+def _noise_reason(opts: Refinement, marked: bool, scores, q) -> str | None:
+    """Why the first pass splits nothing although rows / columns are marked (:attr:`Refinement.spread`,
+    :attr:`Refinement.coverage`), or None: ``marked`` whether any is, ``scores`` the marking's per-axis slab scores
+    (:func:`mark`), ``q`` the unrefined solve's element NCC (NaN where none)."""
+    if opts.spread is not None and marked:
+        d = _spread(q)
+        if d > opts.spread:
+            # decorrelated in parts of the image only: rows and columns of a tensor mesh cross those parts
+            return f"the speckle decorrelates in parts of the image (element NCC spread {d:.2f} > {opts.spread:g})"
+    if opts.coverage is None:
+        return None
+    cover = marked_coverage(scores)
+    if cover < opts.coverage:
+        return None
+    fin = q[np.isfinite(q)]
+    q_med = float(np.median(fin)) if fin.size else float("nan")
+    d = _spread(q)
+    uneven = opts.coverage_uneven is not None and q_med < 1.0 and d >= opts.coverage_uneven * (1.0 - q_med)
+    if not (q_med < opts.coverage_ncc or uneven):
+        return None
+    why = (f"median element NCC {q_med:.2f} < {opts.coverage_ncc:g}" if q_med < opts.coverage_ncc
+           else f"element NCC spread {d:.2f} >= {opts.coverage_uneven:g} x (1 - median {q_med:.3f})")
+    return (f"nearly every row or column marked ({cover:.2f} >= {opts.coverage:g}) on decorrelated or noisy "
+            f"speckle ({why})")
+
+
 def marked_coverage(scores) -> float:
     """The larger of the fractions of rows and of columns (per-axis slab scores over the cut, :func:`mark` with
     ``scores``; marked where > 1) that the marking reaches: 0 to 1, 0 with no slabs."""
@@ -1176,7 +1202,15 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
-    unrefined = sol                 # its element NCC, only when a pass splits (DECORRELATED_NCC)
+    unrefined = sol                 # its element NCC: the tests of the first pass and the message of a split
+    memo = []
+
+    def unrefined_ncc():
+        if not memo:
+            with np.errstate(invalid="ignore"):
+                memo.append(np.asarray(element_ncc(unrefined.data, unrefined.u, unrefined.mesh.t.shape[1]), float))
+        return memo[0]
+
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
@@ -1185,40 +1219,17 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
         top = max(float(np.max(s, initial=0.0)) for s in score)
-        if k == 0 and opts.spread is not None and (np.any(rows) or np.any(cols)):
-            d = ncc_spread(getattr(sol, "data", None), sol.u, mesh.t.shape[1])
-            if d > opts.spread:
-                # the speckle decorrelates in parts of the image only: rows and columns of a tensor mesh cross
-                # those parts, whose jumps are noise, so a split there turns the noise into patches
-                note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: the speckle "
-                        f"decorrelates in parts of the image (element NCC spread {d:.2f} > {opts.spread:g})")
+        if k == 0 and getattr(sol, "data", None) is not None and (opts.spread is not None
+                                                                 or opts.coverage is not None):
+            why = _noise_reason(opts, np.any(rows) or np.any(cols), score, unrefined_ncc())
+            if why:
+                # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
+                # finer rows / columns would fit as patches
+                note = f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: {why}"
                 if opts.settle:
                     sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
                 break
-        if k == 0 and opts.coverage is not None and getattr(sol, "data", None) is not None:
-            cover = marked_coverage(score)
-            if cover >= opts.coverage:
-                with np.errstate(invalid="ignore"):
-                    q0 = np.asarray(element_ncc(sol.data, sol.u, mesh.t.shape[1]), float)
-                fin = q0[np.isfinite(q0)]
-                q_med = float(np.median(fin)) if fin.size else float("nan")
-                lo, hi = np.percentile(fin, SPREAD_PERCENTILES) if fin.size else (0.0, 0.0)
-                uneven = (opts.coverage_uneven is not None and q_med < 1.0
-                          and hi - lo >= opts.coverage_uneven * (1.0 - q_med))
-                if q_med < opts.coverage_ncc or uneven:
-                    # jumps over nearly every row / column of a noisy pair: its noise, not a feature, which the
-                    # momentum TV on the finer rows would fit as patches
-                    why = (f"median element NCC {q_med:.2f} < {opts.coverage_ncc:g}" if q_med < opts.coverage_ncc
-                           else f"element NCC spread {hi - lo:.2f} >= {opts.coverage_uneven:g} x (1 - median "
-                                f"{q_med:.3f})")
-                    note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: nearly every "
-                            f"row or column marked ({cover:.2f} >= {opts.coverage:g}) on decorrelated or noisy "
-                            f"speckle ({why})")
-                    if opts.settle:
-                        sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
-                        note += "; one more step on the unrefined mesh"
-                    break
         if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
             # the feature test against a cut of its own (the scores of a marking at that z-score)
             fs = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.feature_threshold), data=sol.data,
@@ -1314,8 +1325,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)
     if record and note is None and getattr(unrefined, "data", None) is not None:
-        with np.errstate(invalid="ignore"):
-            q0 = element_ncc(unrefined.data, unrefined.u, unrefined.mesh.t.shape[1])
+        q0 = unrefined_ncc()
         q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else float("nan")
         spread = _spread(q0)
         if q_med < DECORRELATED_NCC:
