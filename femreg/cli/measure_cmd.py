@@ -76,27 +76,35 @@ def _check_counts(dim, inclusion, background):
 def _check_regions(mesh, inclusion, background):
     """InputError unless the inclusion's centre lies in the mesh and the background (if given) overlaps it."""
     dim = np.shape(mesh.p)[0]
+    if dim == 3:
+        from ..volume_fields import HexLocator
+
+        def covers(c):
+            return bool(HexLocator(mesh).locate(c[None])[0][0])
+    else:
+        from ..pixels import PointLocator
+
+        def covers(c):
+            return bool(PointLocator(mesh).locate(c[None]).inside[0])
+    return _check_shapes(dim, _bounds(mesh), covers, inclusion, background, "the mesh")
+
+
+def _check_shapes(dim, b, covers, inclusion, background, where):
+    """InputError unless the inclusion's centre lies where ``covers(centre)`` and the background (if given)
+    overlaps the bounds ``b`` (x0, x1, y0, y1[, z0, z1]) mm of the measured region, named ``where`` in messages;
+    returns notes (an inclusion reaching beyond ``b``)."""
     _check_counts(dim, inclusion, background)
     c, r = np.asarray(inclusion[:-1], float), float(inclusion[-1])
-    b = _bounds(mesh)
     shape = "sphere" if dim == 3 else "disk"
     centre = ", ".join(f"{v:g}" for v in c)
     if not all(math.isfinite(v) for v in inclusion) or r <= 0:
         raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got "
                          f"{' '.join(f'{v:g}' for v in inclusion)}")
-    if dim == 3:
-        from ..volume_fields import HexLocator
-
-        inside = bool(HexLocator(mesh).locate(c[None])[0][0])
-    else:
-        from ..pixels import PointLocator
-
-        inside = bool(PointLocator(mesh).locate(c[None]).inside[0])
-    if not inside:
-        raise InputError(f"inclusion centre ({centre}) mm lies outside the mesh ({_bounds_text(b)})")
+    if not covers(c):
+        raise InputError(f"inclusion centre ({centre}) mm lies outside {where} ({_bounds_text(b)})")
     notes = []
     if any(c[a] - r < b[2 * a] or c[a] + r > b[2 * a + 1] for a in range(dim)):
-        notes.append(f"the inclusion {shape} extends beyond the mesh; its part inside is measured")
+        notes.append(f"the inclusion {shape} extends beyond {where}; its part inside is measured")
     if background is not None:
         lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
         text = " ".join(f"{v:g}" for v in background)
@@ -104,7 +112,7 @@ def _check_regions(mesh, inclusion, background):
             names = " and ".join(f"{a.upper()}0 < {a.upper()}1" for a in "xyz"[:dim])
             raise InputError(f"--background needs {names} (mm), got {text}")
         if any(hi[a] <= b[2 * a] or lo[a] >= b[2 * a + 1] for a in range(dim)):
-            raise InputError(f"--background {text} does not overlap the mesh ({_bounds_text(b)})")
+            raise InputError(f"--background {text} does not overlap {where} ({_bounds_text(b)})")
     return notes
 
 
@@ -202,10 +210,6 @@ def _measure_elastogram(path, inclusion, background) -> dict:
     normalisation of each pair's strain by its mean leaves them as they are."""
     from ..metrics import contrast_metrics
 
-    _check_counts(2, inclusion, background)
-    if not all(math.isfinite(v) for v in inclusion) or inclusion[-1] <= 0:
-        raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got "
-                         f"{' '.join(f'{v:g}' for v in inclusion)}")
     with np.load(path, allow_pickle=False) as z:
         exx = np.asarray(z["exx"], float)
         sp, org = np.asarray(z["spacing"], float), np.asarray(z["origin"], float)
@@ -216,25 +220,18 @@ def _measure_elastogram(path, inclusion, background) -> dict:
     if not cov.any():
         raise InputError(f"{path}: the elastogram covers no pixel")
     b = (float(X[cov].min()), float(X[cov].max()), float(Y[cov].min()), float(Y[cov].max()))
-    (cx, cy), r = inclusion[:2], float(inclusion[2])
-    i, j = int(np.argmin(np.abs(x - cx))), int(np.argmin(np.abs(y - cy)))
-    if not (x[0] - sp[0] / 2 <= cx <= x[-1] + sp[0] / 2 and y[0] - sp[1] / 2 <= cy <= y[-1] + sp[1] / 2
-            and cov[i, j]):
-        raise InputError(f"inclusion centre ({cx:g}, {cy:g}) mm lies outside the elastogram's covered area "
-                         f"({_bounds_text(b)})")
-    notes = []
-    if cx - r < b[0] or cx + r > b[1] or cy - r < b[2] or cy + r > b[3]:
-        notes.append("the inclusion disk extends beyond the covered area; its part inside is measured")
-    roi = (X - cx) ** 2 + (Y - cy) ** 2 < r * r
-    bg = None
-    if background is not None:
-        lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
-        if not all(math.isfinite(v) for v in background) or not np.all(lo < hi):
-            raise InputError(f"--background needs X0 < X1 and Y0 < Y1 (mm), got "
-                             f"{' '.join(f'{v:g}' for v in background)}")
-        bg = (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1])
+
+    def covers(c):      # the pixel nearest the centre, within the image, holds a strain
+        i, j = int(np.argmin(np.abs(x - c[0]))), int(np.argmin(np.abs(y - c[1])))
+        return bool(x[0] - sp[0] / 2 <= c[0] <= x[-1] + sp[0] / 2 and y[0] - sp[1] / 2 <= c[1] <= y[-1] + sp[1] / 2
+                    and cov[i, j])
+
+    notes = _check_shapes(2, b, covers, inclusion, background, "the elastogram's covered area")
+    roi, bg = _regions(inclusion, background)
+    P = np.column_stack([X.ravel(), Y.ravel()])
     try:
-        vals = contrast_metrics(_Grid(exx), roi, background=bg)
+        vals = contrast_metrics(_Grid(exx), roi(P).reshape(exx.shape),
+                                background=None if bg is None else bg(P).reshape(exx.shape))
     except ValueError as exc:
         raise InputError(f"{exc} (inclusion {inclusion}, covered area {_bounds_text(b)})") from None
     out = {"result": str(path), "kind": "elastogram", "success": True, "message": "", "flagged": False,
