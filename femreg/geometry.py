@@ -51,6 +51,7 @@ from skfem import MeshQuad1
 
 from .data_term import SSDTerm
 from .errors import InputError
+from .orientation import OrientationError
 from .image import SplineImage, normalize_pair
 from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
@@ -352,6 +353,31 @@ def beam_image_term(reference_image, moving_image, mesh, register_kwargs):
                      gradients=(on_samples(term._gx), on_samples(term._gy)))
 
 
+def _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c):
+    """The sample-space check's refusal in the probe's terms: its lateral spacing is the rays' distance
+    ``rho_c dtheta`` at the middle sample, set by ``angle_pitch_deg`` (and the radius), not a line pitch to swap
+    with the range step."""
+    from .orientation import MIN_LATERAL_CELL_PERIODS, OrientationError, diagnose
+
+    if getattr(exc, "problem", "") not in ("swapped", "spacing"):
+        return exc
+    rep = diagnose(ref, (dr, ds))
+    a = float(geometry.angle_pitch_deg)
+    what = (f"the rays are {ds:.4g} mm apart at the middle sample (angle pitch {a:g} deg at {rho_c:.4g} mm from the "
+            f"apex; range step {dr:g} mm)")
+    k = 180.0 / np.pi            # an angle pitch given in radians: the rays k x further apart
+    if rep.cell_periods < MIN_LATERAL_CELL_PERIODS and rep.cell_periods * k >= MIN_LATERAL_CELL_PERIODS:
+        hint = (f"the angle pitch looks given in radians: --angle-pitch takes degrees, {a:g} rad = {a * k:.4g} deg "
+                f"(angle_pitch_deg={a * k:.4g}; CLI: --angle-pitch {a * k:.4g})")
+    else:
+        hint = ("check --angle-pitch (degrees between neighbouring rays), --radius (mm from the apex to the face) "
+                "and the range step (the axial spacing, mm)")
+    return OrientationError(f"{geometry.kind} frames: {what}; lateral speckle {rep.lateral_cell_mm:.3g} mm, "
+                            f"{rep.cell_periods:.2f} of one axial RF period ({rep.period_mm:.3g} mm): narrower than "
+                            f"the diffraction limit allows; {hint}, or check_orientation=False (CLI: "
+                            "--no-orientation-check)", problem="spacing")
+
+
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
                   regularizer="momentum-stress", alpha=None, maxiter=20, tol=1e-3, linear_solver="auto",
                   normalize=True, callback=None, strain_tol=None, refine=None, **kw) -> BeamResult:
@@ -401,9 +427,12 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     # -- initial guess: the linear pipeline in sample space (r, s = rho_c theta) ------------------------------
     t = time.perf_counter()
     if start is None:
-        inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
-                         maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
-                         strain_tol=strain_tol, refine=None, **kw)
+        try:
+            inner = register(ref, mov, spacing=(dr, ds), origin=(r0, s0), regularizer=regularizer, alpha=alpha,
+                             maxiter=maxiter, tol=tol, linear_solver=linear_solver, normalize=normalize,
+                             strain_tol=strain_tol, refine=None, **kw)
+        except OrientationError as exc:
+            raise _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c) from None
         mesh_s, u0 = inner.mesh, to_physical_displacement(inner.mesh, inner.u, geometry, rho_c)
     else:
         inner, mesh_s, u0 = None, kw["mesh"], start

@@ -107,3 +107,83 @@ def test_convex_result_loads_with_its_geometry(convex_file, tmp_path):
     np.testing.assert_allclose(back.pixel_points(), res.pixel_points())
     a, b = res.on_grid("element"), back.on_grid("element")      # recomputed from the mesh, not the stored grid
     np.testing.assert_allclose(b["exx"], a["exx"], equal_nan=True, atol=1e-12)
+
+
+def test_axis_fields_find_evenly_spaced_vectors():
+    from femreg.io.checks import axis_fields
+
+    theta = (np.arange(80) - 39.5) * np.deg2rad(0.5)
+    ax = axis_fields([("theta", theta[None, :]), ("tgc", np.linspace(0, 1, 50) ** 2), ("fs", np.array(2e7)),
+                      ("depth", np.arange(3.0)), ("two", np.array([1.0, 2.0]))])
+    assert set(ax) == {"theta", "depth"}                        # a TGC curve is not an axis, nor two values
+    assert ax["theta"]["n"] == 80 and ax["theta"]["step"] == pytest.approx(np.deg2rad(0.5))
+    # a vector of the rays' angles with one value per line gives the pitch; a plane-wave sequence's 7 steering
+    # angles are not one per line
+    g = geometry_fields({"ROC": 0.0412}, ax, 80)
+    assert g["radius_mm"] == pytest.approx(41.2) and g["angle_pitch_deg"] == pytest.approx(0.5)
+    assert geometry_fields({"ROC": 0.0412}, ax) == {}            # the number of lines unknown: not used
+    steer = axis_fields([("angles", np.deg2rad(np.linspace(-9, 9, 7)))])
+    assert geometry_fields({}, steer, 128) == {} and geometry_fields({}, ax, 96) == {}
+    assert geometry_fields({}, axis_fields([("scan/theta_deg", np.linspace(-20, 20, 81))]), 81)[
+        "angle_pitch_deg"] == pytest.approx(0.5)
+
+
+@pytest.fixture(scope="module")
+def mat73_theta_file(tmp_path_factory):
+    """A MATLAB -v7.3 file as a user saves beamformed convex RF: rf(samples, rays, frames) int16, fs in Hz, the
+    radius in metres and a vector of the rays' angles in radians (no angle-pitch scalar)."""
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_pair
+
+    p = make_beam_pair(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                       depth_mm=12.0, n_rays=40, snr_db=30.0, seed=1)
+    path = tmp_path_factory.mktemp("mat73") / "scan.mat"
+    rf = np.round(np.stack([p.ref, p.mov]) * 1000).astype(np.int16)         # (frames, samples, rays)
+    with h5py.File(path, "w", userblock_size=512) as f:   # MATLAB's HDF5 holds the reversed index order
+        f["rf"] = np.ascontiguousarray(rf.transpose(0, 2, 1))
+        f["fs"] = np.array([[1540.0 / (2.0 * p.spacing[0] * 1e-3)]])
+        f["ROC"] = np.array([[0.040]])
+        f["theta"] = ((np.arange(40) - 19.5) * np.deg2rad(0.6))[:, None]
+    with open(path, "r+b") as f:
+        f.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116) + b"\x00" * 8 + b"\x00\x02IM")
+    return path, p
+
+
+def test_ray_angle_vector_states_the_probe(mat73_theta_file, tmp_path, capsys):
+    from femreg.cli import main
+
+    path, p = mat73_theta_file
+    dr = f"{p.spacing[0]:.4g}"
+
+    def cli(*argv):
+        rc = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    rc, out, _ = cli("info", path)
+    assert rc == 1 and "--geometry convex --radius 40 --angle-pitch 0.6" in out, out
+    assert f"--spacing {dr} auto" in out and "40 values from" in out, out
+    # read as a linear array's lines: refused, naming the flags (before, registered silently)
+    rc, _, err = cli("register", path, "--spacing", dr, 0.3, "-o", tmp_path / "lin.npz")
+    assert rc == 2 and "--geometry convex --radius 40 --angle-pitch 0.6" in err, err
+    # a probe contradicting the file's own header: refused (an angle pitch off by 10x passes the speckle check)
+    rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.06,
+                     "--spacing", dr, "auto", "-o", tmp_path / "c.npz")
+    assert rc == 2 and "--angle-pitch 0.06 deg against 0.6 deg" in err, err
+    rc, _, err = cli("track", path, "--geometry", "convex", "--radius", 45, "--angle-pitch", 0.6,
+                     "--spacing", dr, "auto", "-o", tmp_path / "run")
+    assert rc == 2 and "--radius 45 mm against 40 mm" in err, err
+    assert not (tmp_path / "c.npz").exists() and not (tmp_path / "run").exists()
+
+
+def test_angle_pitch_in_radians_is_named(mat73_theta_file):
+    """An angle pitch given in radians puts the rays 57x too close: the refusal names the degrees to pass, not a
+    swap of the axial and lateral spacings (which a convex frame does not have)."""
+    import femreg
+    from femreg.orientation import OrientationError
+
+    _, p = mat73_theta_file
+    with pytest.raises(OrientationError, match=r"looks given in radians.*--angle-pitch 0\.6"):
+        femreg.register(p.ref, p.mov, spacing=p.spacing[0], origin=p.origin,
+                        geometry=femreg.Convex(radius_mm=40.0, angle_pitch_deg=np.deg2rad(0.6)))

@@ -110,9 +110,10 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
 
 def _probe_need(info) -> str:
     """The ``--geometry`` a convex or phased array's frames need, from the header fields ("" for none)."""
-    from ..io.checks import geometry_hint, header_fields
+    from ..io.checks import geometry_hint, header_axes, header_fields
 
-    hint = geometry_hint(header_fields(info.get("metadata")))
+    meta = info.get("metadata")
+    hint = geometry_hint(header_fields(meta), header_axes(meta), (info.get("shape") or [None, None])[1])
     return (f"frames along the rays of a curved or phased array: register with the probe geometry; {hint} "
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
 
@@ -275,6 +276,9 @@ def run(args) -> int:
         info["variables"] = variables
     probe = _probe_need(info)
     if probe:
+        # a convex / phased array's lateral spacing is its angle pitch, not a line pitch the file should state
+        info["needs"] = [re.sub(r"(--spacing \S+) DY \(([^;]*); DY, the lateral line pitch .*?\)\)",
+                                r"\1 auto (\2; auto: the rays are --angle-pitch apart)", n) for n in info["needs"]]
         info["needs"].append(probe)
     # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
     rc = 1 if info["needs"] else 0
@@ -303,7 +307,11 @@ def run(args) -> int:
     for key, val in info.get("metadata", {}).items():
         if key == "dtype" and str(val) == info["dtype"]:
             continue                          # the sample type is printed above already
-        if isinstance(val, dict):
+        if key == "axes" and isinstance(val, dict):       # evenly spaced vectors (femreg.io.checks.axis_fields)
+            print("axes:")
+            for k, v in val.items():
+                print(f"  {k:24s} {v['n']} values from {v['first']:.6g}, step {v['step']:.6g}")
+        elif isinstance(val, dict):
             print(f"{key}:")
             for k, v in val.items():
                 print(f"  {k:24s} {v}")

@@ -124,12 +124,39 @@ def _refuse_curved(fr, path, advice: str = "") -> None:
     would be taken for parallel lines) unless ``--geometry`` is given (``advice``: what to do instead, for a
     command without ``--geometry``)."""
     from femreg.errors import InputError
-    from femreg.io.checks import geometry_hint, header_fields
+    from femreg.io.checks import geometry_hint, header_axes, header_fields
 
-    hint = geometry_hint(header_fields(fr.metadata))
+    hint = geometry_hint(header_fields(fr.metadata), header_axes(fr.metadata), fr.shape[1])
     if hint:
         raise InputError(f"{path}: {hint}; " + (advice or "pass those flags (or --geometry linear if the frames "
                                                            "are on a Cartesian grid already)"))
+
+
+def _check_stated_geometry(fr, path, beam, args) -> None:
+    """A ``--geometry convex|sector`` whose radius or angle pitch differs by more than 2 % from what the file's own
+    header states (:func:`femreg.io.checks.geometry_fields`: a radius field, an angle-pitch field or a vector of
+    the rays' angles) is refused: an angle pitch off by a factor scales every lateral displacement and strain and
+    passes the speckle check.  ``--no-orientation-check`` registers it as given."""
+    from femreg.errors import InputError
+    from femreg.io.checks import geometry_fields, geometry_hint, header_axes, header_fields
+
+    if getattr(args, "no_orientation_check", False):
+        return
+    fields, axes = header_fields(fr.metadata), header_axes(fr.metadata)
+    g = geometry_fields(fields, axes, fr.shape[1])
+    if not g:
+        return
+    given_r = float(getattr(beam, "radius_mm", 0.0) or 0.0)
+    wrong = []
+    if abs(float(beam.angle_pitch_deg) / g["angle_pitch_deg"] - 1.0) > 0.02:
+        wrong.append(f"--angle-pitch {float(beam.angle_pitch_deg):g} deg against {g['angle_pitch_deg']:.4g} deg")
+    if "radius_mm" in g and abs(given_r - g["radius_mm"]) > 0.02 * g["radius_mm"]:
+        wrong.append(f"--radius {given_r:g} mm against {g['radius_mm']:.4g} mm" if given_r else
+                     f"--geometry sector (apex on the face) against a convex radius of {g['radius_mm']:.4g} mm")
+    if wrong:
+        raise InputError(f"{path}: the probe given contradicts the file's own header ({'; '.join(wrong)}); "
+                         f"{geometry_hint(fields, axes, fr.shape[1])}, or --no-orientation-check to register "
+                         "with the values given")
 
 
 def run(args) -> int:
@@ -167,6 +194,8 @@ def run(args) -> int:
     ref_fr = frames_from_args(args, args.reference)
     if args.geometry == "linear" and not getattr(args, "geometry_given", False):
         _refuse_curved(ref_fr, args.reference)
+    if beam is not None:
+        _check_stated_geometry(ref_fr, args.reference, beam, args)
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr

@@ -13,7 +13,7 @@ from __future__ import annotations
 from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
                       frames_from_args, registration_kwargs, run_tracking)
-from .register_cmd import _geometry, _refuse_curved, _swept, add_geometry_args
+from .register_cmd import _check_stated_geometry, _geometry, _refuse_curved, _swept, add_geometry_args
 
 
 def add_parser(subparsers):
@@ -69,6 +69,7 @@ def run(args) -> int:
     if args.geometry in ("convex", "sector"):   # frames along rays: range step and first range from the file
         kw["geometry"] = _geometry(args)
         fr, spacing, origin = beam_frames_from_args(args, kw["geometry"])
+        _check_stated_geometry(fr, args.file, kw["geometry"], args)
     else:
         fr = frames_from_args(args)
         if not getattr(args, "geometry_given", False):

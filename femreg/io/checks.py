@@ -14,7 +14,7 @@ from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
-           "header_fields",
+           "axis_fields", "header_axes", "header_fields",
            "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
@@ -301,23 +301,40 @@ _RADIUS_NAMES = ("radius", "convexradius", "proberadius", "arrayradius", "curvat
                  "roc", "apexdistance", "transducerradius")
 _ANGLE_PITCH_NAMES = ("anglepitch", "angularpitch", "dtheta", "rayangle", "raypitch", "lineangle",
                       "angleincrement", "angularstep", "beamangle", "beamanglepitch", "lineanglepitch")
+# vectors of the rays' angles, one per line (e.g. a scan's ``theta``); a plane-wave sequence's steering ``angles``
+# has as many values as transmits, not lines, and is told apart by its length
+_ANGLE_VECTOR_NAMES = ("theta", "thetas", "angles", "rayangles", "beamangles", "lineangles", "scantheta",
+                       "scanangles", "azimuth", "azimuthangles", "steeringangles", "sectorangles")
 
 
 def _geometry_key(name: str) -> tuple:
     """(base, unit) of a header field for the probe geometry: ``probe/angle_pitch_deg`` -> ("anglepitch", "deg")."""
     k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
     for u in ("deg", "rad", "mm", "m"):
-        if k.endswith(u) and k[:-len(u)] in _RADIUS_NAMES + _ANGLE_PITCH_NAMES:
+        if k.endswith(u) and k[:-len(u)] in _RADIUS_NAMES + _ANGLE_PITCH_NAMES + _ANGLE_VECTOR_NAMES:
             return k[:-len(u)], u
     return k, ""
 
 
-def geometry_fields(fields: dict) -> dict:
+def geometry_fields(fields: dict, axes: dict | None = None, n_lines: int | None = None) -> dict:
     """The probe geometry a file's header fields state: ``{"radius_mm": R, "angle_pitch_deg": A, "names": (...)}``
     with the entries found (a convex radius in mm, the angle between rays in degrees), or {}.  Units from the
     name's suffix (``_mm``, ``_m``, ``_deg``, ``_rad``) or else the magnitude (a radius below 0.5 in metres, an
-    angle pitch below 0.05 in radians).  A hint only: never applied."""
+    angle pitch below 0.05 in radians).  ``axes`` (:func:`axis_fields`): an evenly spaced vector of the rays'
+    angles (``theta``, ``angles``, ...) with exactly ``n_lines`` values gives the angle pitch too (a vector of
+    another length, such as a plane-wave sequence's steering angles, is not a ray per line).  A hint only: never
+    applied."""
     out, names = {}, []
+    for name, ax in (axes or {}).items():
+        base, unit = _geometry_key(name)
+        if base not in _ANGLE_VECTOR_NAMES or n_lines is None or int(ax.get("n", 0)) != int(n_lines):
+            continue
+        step = abs(float(ax.get("step", 0.0)))
+        a = step * {"deg": 1.0, "rad": 180.0 / math.pi}.get(unit, 180.0 / math.pi if step < 0.05 else 1.0)
+        if 0.0 < a < 10.0:
+            out["angle_pitch_deg"] = a
+            names.append(f"{name} = {int(ax['n'])} ray angles {step:g} apart")
+            break
     for name, value in fields.items():
         v = _positive(value)
         if v is None:
@@ -336,6 +353,12 @@ def geometry_fields(fields: dict) -> dict:
     return {**out, "names": tuple(names)}
 
 
+def header_axes(metadata) -> dict:
+    """The evenly spaced vectors of a :class:`femreg.io.Frames`' header (:func:`axis_fields`), {} when none."""
+    meta = dict(metadata or {})
+    return dict(meta.get("axes") or (meta.get("file_metadata") or {}).get("axes") or {})
+
+
 def header_fields(metadata) -> dict:
     """The header fields of a :class:`femreg.io.Frames`' ``metadata`` (its own, or those of the file it was read
     from), {} when there are none."""
@@ -343,9 +366,9 @@ def header_fields(metadata) -> dict:
     return dict(meta.get("fields") or (meta.get("file_metadata") or {}).get("fields") or {})
 
 
-def geometry_hint(fields: dict) -> str:
+def geometry_hint(fields: dict, axes: dict | None = None, n_lines: int | None = None) -> str:
     """The ``--geometry`` flags a file's header fields imply, in words, or "" (:func:`geometry_fields`)."""
-    g = geometry_fields(fields)
+    g = geometry_fields(fields, axes, n_lines)
     if not g:
         return ""
     r = g.get("radius_mm")
@@ -385,6 +408,23 @@ def iq_frequency_hint(fields: dict) -> str:
                 return (f"its fields suggest --iq-frequency {f:.3g} ({name} = {v:g} read as {f:.6g} MHz"
                         f"{'; ' + why if why else ''})")
     return ""
+
+
+def axis_fields(items, max_size: int = 100_000) -> dict:
+    """{name: {"n", "first", "step"}} of the evenly spaced numeric vectors among ``(name, array)`` pairs (a file's
+    axes: ray angles, depths, line positions), 3 to ``max_size`` values, steps equal to 0.1 % of the step; other
+    vectors (a TGC curve) are left out.  JSON-friendly, so ``femreg info --json`` prints them."""
+    out = {}
+    for name, value in items:
+        v = np.asarray(value)
+        if v.dtype.kind not in "iuf" or not 3 <= v.size <= max_size or sum(d > 1 for d in v.shape) != 1:
+            continue
+        v = v.astype(float).ravel()
+        d = np.diff(v)
+        if not np.all(np.isfinite(v)) or d[0] == 0 or np.max(np.abs(d - d[0])) > 1e-3 * abs(d[0]):
+            continue
+        out[str(name)] = {"n": int(v.size), "first": float(v[0]), "step": float(np.mean(d))}
+    return out
 
 
 def scalar_fields(items) -> dict:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import (check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
+from .checks import (axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
                      validate_volumes)
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
+VECTOR_MAX = 100_000     # longest vector read as a possible axis (ray angles, depths), not as data
 _HDF5_SIG = b"\x89HDF\r\n\x1a\n"
 _NUMERIC_CLASSES = {"double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
                     "uint64", "logical"}
@@ -155,10 +156,12 @@ def _load_mat(path, variable, ndims):
                 data[a] = byname[a].array(order)
         data["scalars"] = {v.name: v.array(order) for v in variables
                            if v.numeric and v.name != name and int(np.prod(v.shape)) == 1}
+        data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name != name
+                           and 3 <= int(np.prod(v.shape)) <= VECTOR_MAX}
     else:
         data, cands, name = _read_mat4(path, variable, ndims)
     arr = data.pop(name)
-    return arr, {k: v for k, v in data.items() if k in AUX + ("scalars",)}, version, name, cands
+    return arr, {k: v for k, v in data.items() if k in AUX + ("scalars", "vectors")}, version, name, cands
 
 
 def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
@@ -172,6 +175,9 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     fields = scalar_fields((aux.get("scalars") or {}).items())
     if fields:
         meta["fields"] = fields
+    axes = axis_fields((aux.get("vectors") or {}).items())
+    if axes:
+        meta["axes"] = axes
     return validate_frames(path, _mat_layout(arr, meta), sp, origin, meta, frames)
 
 
@@ -252,7 +258,9 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 ctype = np.complex128 if arr.dtype["real"].itemsize == 8 else np.complex64
                 arr = arr["real"].astype(ctype) + 1j * arr["imag"].astype(ctype)
             aux = {"scalars": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1] and d.size == 1
-                               and not d.dtype.names}}
+                               and not d.dtype.names},
+                   "vectors": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1]
+                               and 3 <= d.size <= VECTOR_MAX and not d.dtype.names}}
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:
                     aux[a] = dsets[a][()]

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
-from .checks import check_origin, fail, merge_spacing, scalar_fields, spacing_hint
+from .checks import axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -197,29 +197,32 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     arr, raw_sp, raw_origin, key, other = _load_npz(path, variable, PREFERRED_KEYS)
     file_spacing = _npz_spacing(path, raw_sp, 2)
     origin = check_origin(raw_origin, path) if raw_origin is not None else None
-    fields = _npz_fields(path, key)
+    small = _npz_small(path, key)
+    fields, axes = scalar_fields(small), axis_fields(small)
     hint = spacing_hint(fields) if file_spacing is None else ""
     sp = merge_spacing(path, file_spacing, spacing,
                        required_msg="the .npz has no 'spacing' key" + (f"; {hint}" if hint else ""))
-    meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {})}
+    meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {}),
+            **({"axes": axes} if axes else {})}
     return finalize(path, arr, sp, origin, meta, frames)
 
 
-def _npz_fields(path, key) -> dict:
-    """The numeric scalars of an .npz besides ``key`` (header fields such as ``fs``, ``pitch``); small members
-    only, so the frames are not read twice.  {} if they cannot be read: they only inform."""
+def _npz_small(path, key) -> list:
+    """``(name, array)`` of the small members of an .npz besides ``key`` (header fields such as ``fs``, ``pitch``,
+    axes such as a scan's ``theta``); members under 1 MiB only, so the frames are not read twice.  [] if they
+    cannot be read: they only inform."""
     try:
         with zipfile.ZipFile(path) as zf:
-            small = [i for i in zf.infolist() if i.file_size < 4096 and i.filename[:-4] not in (key, "spacing",
-                                                                                                 "origin")]
+            small = [i for i in zf.infolist() if i.file_size < 1 << 20 and i.filename[:-4] not in (key, "spacing",
+                                                                                                    "origin")]
             items = []
             for info in small:
                 with zf.open(info) as fh:
                     items.append((info.filename[:-4] if info.filename.endswith(".npy") else info.filename,
                                   np.lib.format.read_array(fh, allow_pickle=False)))
     except Exception:  # header fields only inform: the frames were read already
-        return {}
-    return scalar_fields(items)
+        return []
+    return items
 
 
 # --------------------------------------------------------------------------------------------------- raw
