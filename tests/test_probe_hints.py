@@ -145,6 +145,7 @@ def mat73_theta_file(tmp_path_factory):
         f["fs"] = np.array([[1540.0 / (2.0 * p.spacing[0] * 1e-3)]])
         f["ROC"] = np.array([[0.040]])
         f["theta"] = ((np.arange(40) - 19.5) * np.deg2rad(0.6))[:, None]
+        f["t0"] = np.array([[2.0 * p.origin[0] * 1e-3 / 1540.0]])        # receive start, s: the first range
     with open(path, "r+b") as f:
         f.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116) + b"\x00" * 8 + b"\x00\x02IM")
     return path, p
@@ -175,6 +176,37 @@ def test_ray_angle_vector_states_the_probe(mat73_theta_file, tmp_path, capsys):
                      "--spacing", dr, "auto", "-o", tmp_path / "run")
     assert rc == 2 and "--radius 45 mm against 40 mm" in err, err
     assert not (tmp_path / "c.npz").exists() and not (tmp_path / "run").exists()
+    # the header's start time: named by info and register (the fan's geometry needs the first range), --origin
+    # applies it
+    r0 = f"{p.origin[0]:.4g}"
+    rc, out, _ = cli("info", path)
+    assert f"pass --origin {r0} 0" in out, out
+    rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
+                     "--spacing", dr, "auto", "--maxiter", 1, "-o", tmp_path / "c0.npz")
+    assert rc in (0, 1) and f"pass --origin {r0} 0" in err, err
+    rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
+                     "--spacing", dr, "auto", "--origin", r0, 0, "--maxiter", 1, "-o", tmp_path / "c1.npz")
+    assert rc in (0, 1) and "--origin" not in err, err
+    with np.load(tmp_path / "c0.npz") as a, np.load(tmp_path / "c1.npz") as b:
+        # the mesh's nodes lie on the fan of the given first range: the nearest to the apex at R + r0
+        ra, rb = (np.hypot(z["mesh_points"][0] + 40.0, z["mesh_points"][1]).min() - 40.0 for z in (a, b))
+    assert rb - ra == pytest.approx(p.origin[0], abs=0.05), (ra, rb)
+
+
+def test_origin_overrides_the_file(mat73_theta_file):
+    from femreg.errors import InputError
+
+    path, p = mat73_theta_file
+    fr = read_frames(path, spacing=(p.spacing[0], 0.6), origin=(2.5, 0.0))
+    assert fr.origin == (2.5, 0.0) and fr.metadata["origin_given"]
+    assert read_frames(path, spacing=(p.spacing[0], 0.6)).origin == (0.0, 0.0)
+    with pytest.raises(InputError, match="origin must be two finite numbers"):
+        read_frames(path, spacing=(p.spacing[0], 0.6), origin=(1.0, float("nan")))
+    from femreg.io.checks import origin_hint
+
+    assert origin_hint({"t0": 6.4935e-7})[0] == pytest.approx(0.5, rel=1e-3)
+    assert origin_hint({"start_depth_mm": 12.0})[0] == 12.0 and origin_hint({"r0": 0.02})[0] == pytest.approx(20.0)
+    assert origin_hint({"t0_us": 13.0})[0] == pytest.approx(10.01) and origin_hint({"fs": 4e7}) == (None, "")
 
 
 def test_angle_pitch_in_radians_is_named(mat73_theta_file):

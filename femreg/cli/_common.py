@@ -35,7 +35,8 @@ def _spacing_value(text: str):
 
 
 def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
-    """Add --variable, --shape, --dtype, --spacing, --byte-order, --frames, --sound-speed to ``parser``."""
+    """Add --variable, --shape, --dtype, --spacing, --origin, --byte-order, --frames, --sound-speed, --iq-frequency,
+    --iq-conjugate to ``parser``."""
     g = parser.add_argument_group(group_title)
     g.add_argument("--variable", metavar="NAME",
                    help="array name in .npz/.mat files (default: rf or frames, else the only 2D/3D array)")
@@ -46,6 +47,10 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--spacing", metavar=("DX", "DY"), nargs=2, type=_spacing_value,
                    help="axial and lateral pixel spacing in mm, overriding the file's ('auto' keeps the file's "
                         "value for one of them); required for npy/raw and the lateral pitch of .rf")
+    g.add_argument("--origin", metavar=("X0", "Y0"), nargs=2, type=float,
+                   help="position of the first sample in mm (depth of the first sample, lateral position of the "
+                        "first line; convex / sector: the first range and 0), overriding the file's (default the "
+                        "file's, else 0 0; femreg info names a start depth the header states)")
     g.add_argument("--byte-order", choices=("little", "big"), help="raw files: byte order (default little)")
     g.add_argument("--frames", metavar="SEL", type=_frame_selection,
                    help="frame selection: 3, 0:10, 0:10:2 or 1,3,5 (default all)")

@@ -118,6 +118,22 @@ def _probe_need(info) -> str:
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
 
 
+def _origin_note(info, args) -> str:
+    """A note when the header states a start depth (``t0``, ``start_depth``) that the frames' origin, 0 as read,
+    does not carry: depths are labelled from the first sample, and a convex / sector frame's geometry needs its
+    first range ("" otherwise)."""
+    from ..io.checks import header_fields, origin_hint
+
+    meta = info.get("metadata") or {}
+    if meta.get("origin_given") or abs(float(info["origin_mm"][0])) > 0:
+        return ""
+    depth, why = origin_hint(header_fields(meta), getattr(args, "sound_speed", None))
+    if depth is None or not depth > 0:
+        return ""
+    return (f"the first sample is read at depth 0, but the header states {depth:.4g} mm ({why}): pass --origin "
+            f"{depth:.4g} 0 if so (a convex or phased array's geometry needs its first range)")
+
+
 def _iq_needs(fr) -> list:
     """The problems :func:`femreg.io.read_frames` refuses remodulated IQ frames for (exchanged spacings, the
     other sign convention, another demodulation frequency), as a list of needs ([] when they pass)."""
@@ -274,6 +290,9 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    start = _origin_note(info, args)
+    if start:
+        info["note"] = "; ".join(n for n in (info.get("note"), start) if n)
     probe = _probe_need(info)
     if probe:
         # a convex / phased array's lateral spacing is its angle pitch, not a line pitch the file should state
@@ -305,8 +324,8 @@ def run(args) -> int:
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
     for key, val in info.get("metadata", {}).items():
-        if key == "dtype" and str(val) == info["dtype"]:
-            continue                          # the sample type is printed above already
+        if (key == "dtype" and str(val) == info["dtype"]) or key == "origin_given":
+            continue                          # the sample type and the origin are printed above already
         if key == "axes" and isinstance(val, dict):       # evenly spaced vectors (femreg.io.checks.axis_fields)
             print("axes:")
             for k, v in val.items():

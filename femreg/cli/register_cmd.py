@@ -159,6 +159,20 @@ def _check_stated_geometry(fr, path, beam, args) -> None:
                          "with the values given")
 
 
+def _note_start_depth(fr, path, args) -> None:
+    """On stderr: a convex / sector file whose header states a start depth its frames were not given (``--origin``);
+    the fan's geometry is computed from the first range."""
+    from femreg.io.checks import header_fields, origin_hint
+
+    if fr.metadata.get("origin_given") or abs(float(fr.origin[0])) > 0:
+        return
+    depth, why = origin_hint(header_fields(fr.metadata), getattr(args, "sound_speed", None))
+    if depth is not None and depth > 0:
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: {path}: the first sample is taken at range 0, but the header states {depth:.4g} mm "
+              f"({why}): pass --origin {depth:.4g} 0 if so (the rays' geometry depends on it)", file=sys.stderr)
+
+
 def run(args) -> int:
     import femreg
     from femreg.errors import InputError
@@ -196,6 +210,7 @@ def run(args) -> int:
         _refuse_curved(ref_fr, args.reference)
     if beam is not None:
         _check_stated_geometry(ref_fr, args.reference, beam, args)
+        _note_start_depth(ref_fr, args.reference, args)
     if args.moving is None:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr

@@ -14,7 +14,7 @@ from ..errors import FileFormatError, InputError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
-           "axis_fields", "header_axes", "header_fields",
+           "axis_fields", "header_axes", "header_fields", "origin_hint",
            "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
@@ -388,6 +388,38 @@ def _positive(value):
     if a.size != 1 or not (math.isfinite(float(a.ravel()[0])) and float(a.ravel()[0]) > 0):
         return None
     return float(a.ravel()[0])
+
+
+# header fields that state where the first sample lies: a receive start time (pulse-echo) or a start depth
+_T0_NAMES = ("t0", "starttime", "tstart", "receivestart", "firstsampletime", "timeoffirstsample")
+_DEPTH0_NAMES = ("startdepth", "depthstart", "firstsampledepth", "startrange", "rangestart", "r0", "depthoffset",
+                 "mindepth", "depthmin")
+
+
+def origin_hint(fields: dict, sound_speed: float | None = None) -> tuple:
+    """``(depth mm, words)`` of the first sample's depth a file's header fields state (a start time ``t0`` read as
+    pulse-echo, ``c t0 / 2``; a start depth such as ``start_depth``, ``r0``), or ``(None, "")``.  Units from the
+    name's suffix (``_s``, ``_us``, ``_mm``, ``_m``) or else the magnitude (a time below 1e-2 in seconds, else
+    microseconds; a depth below 0.5 in metres).  A hint only: readers never apply it (``--origin``)."""
+    c = float(sound_speed or 1540.0)
+    for name, value in fields.items():
+        v = _positive(value)
+        if v is None:
+            continue
+        k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
+        for unit in ("us", "s", "mm", "m", ""):
+            if k.endswith(unit) and k[:len(k) - len(unit)] in _T0_NAMES + _DEPTH0_NAMES:
+                base = k[:len(k) - len(unit)]
+                break
+        else:
+            continue
+        if base in _T0_NAMES:
+            t = v * {"us": 1e-6, "s": 1.0}.get(unit, 1.0 if v < 1e-2 else 1e-6)
+            d = c * t / 2.0 * 1e3
+            return d, f"{name} = {v:g} read as {t * 1e6:g} us, depth c t0 / 2 at c = {c:g} m/s"
+        d = v * {"mm": 1.0, "m": 1e3}.get(unit, 1e3 if v < 0.5 else 1.0)
+        return d, f"{name} = {v:g} read as {d:g} mm"
+    return None, ""
 
 
 def iq_frequency_hint(fields: dict) -> str:

@@ -362,7 +362,8 @@ def read_directory(path, *, frames=None, **options):
 # ------------------------------------------------------------------------------------------- entry point
 
 def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, byte_order=None, frames=None,
-                sound_speed=None, modulation_frequency=None, iq_conjugate=False, check_orientation=True) -> Frames:
+                sound_speed=None, modulation_frequency=None, iq_conjugate=False, check_orientation=True,
+                origin=None) -> Frames:
     """Read RF frames from ``path`` (a file, or a directory of per-frame files).
 
     Parameters
@@ -391,6 +392,11 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         own (this value overrides it); refused for real (RF) data.
     iq_conjugate : bool
         IQ data demodulated with ``exp(+2 pi i f t)`` (the opposite of the usual convention): conjugated first.
+    origin : (x0, y0) mm, optional
+        Position of sample ``[0, 0]`` (depth of the first sample, lateral position of the first line; for a
+        convex / sector frame the first range and 0); overrides the file's (default: the file's, else (0, 0)).
+        A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, never
+        applied.
     check_orientation : bool
         IQ data: refuse spacings that look exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks
         of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency) and, from
@@ -412,6 +418,9 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
                    sound_speed=sound_speed, modulation_frequency=modulation_frequency, iq_conjugate=iq_conjugate)
     fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed, iq_conjugate)
+    if origin is not None:
+        fr.origin = check_origin(origin)
+        fr.metadata["origin_given"] = True
     if check_orientation and "iq" in fr.metadata:
         from ..orientation import check_iq_sign, check_remodulated
 
