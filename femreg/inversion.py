@@ -197,7 +197,8 @@ __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "i
            "TV_REWEIGHT_STEPS", "TV_BREGMAN", "TV_BREGMAN_FRACTION", "TV_BREGMAN_START", "TV_REFIT",
            "TV_REFIT_MAX_REGIONS",
            "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE",
-           "TV_REFIT_STD", "CALIBRATION_MAX_REGIONS", "CALIBRATION_LEVEL", "CALIBRATION_MIN_AREA",
+           "TV_REFIT_STD", "LAYER_CONTRAST", "LAYER_EXPLAINED", "LAYER_MIN_AREA", "CALIBRATION_MAX_REGIONS",
+           "CALIBRATION_LEVEL", "CALIBRATION_MIN_AREA",
            "UNCALIBRATED_SPREAD"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
@@ -261,6 +262,14 @@ RANKED_RANGE = (0.01, 0.99)
 RANKED_CONTRAST = 1.05
 #: ... and flags when the stiffer part's mean |e_xx| exceeds the softer part's by more than this fraction.
 RANKED_MARGIN = 0.25
+#: Layers (:func:`_layer_contradiction`): a step of the depth profile of the row-median modulus at least this
+#: factor ...
+LAYER_CONTRAST = 1.5
+#: ... is flagged when the row-median axial strain moves by less than this fraction of it (in log): layers in
+#: series carry one axial stress, so the stiffer layer strains less by about the modulus ratio.
+LAYER_EXPLAINED = 0.1
+#: Each side of the step holds at least this fraction of the inner elements' area.
+LAYER_MIN_AREA = 0.2
 #: Misfit (dimensionless, module docstring: units of the squared displacement change across one element) above
 #: which the model is said not to explain the data: 4 x the largest misfit of the true field against a registered
 #: one on benchmarks/inversion.py (5.4e-3: 3 MHz probe, 20 dB; 1.3e-4 to 1.9e-3 at 5.5-7.5 MHz).
@@ -1071,10 +1080,61 @@ def _contradiction(mu, el_strain, mesh, area_el):
             if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
                 out.append(f"the {name} region ({int(sel.sum())} elements) strains {'more' if sign > 0 else 'less'} "
                            f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
-    ranked = _ranked_contradiction(mu, ax, inner if inner.sum() >= 8 else np.ones(mu.size, bool), area_el)
+    sel = inner if inner.sum() >= 8 else np.ones(mu.size, bool)
+    ranked = _ranked_contradiction(mu, ax, sel, area_el)
     if ranked:
         out.append(ranked)
+    layered = _layer_contradiction(mu, ax, mesh, sel, area_el)
+    if layered:
+        out.append(layered)
     return "; ".join(out)
+
+
+def _layer_contradiction(mu, ax, mesh, sel, area_el) -> str:
+    """The image's elements ``sel`` binned by depth (rows of about one element), each row's median log mu and
+    median |e_xx| ``ax``: where the profile of the rows' modulus steps by at least :data:`LAYER_CONTRAST` between
+    an upper and a lower part (the split of largest step, each side at least :data:`LAYER_MIN_AREA` of the area),
+    a layer over another in series carries the same axial stress, so the stiffer part should strain less by about
+    the modulus ratio.  When the strain's step is less than :data:`LAYER_EXPLAINED` of the modulus step (in log;
+    negative: the wrong way), the layers are not in the data: '...', else ''.  A nearly incompressible plane-strain
+    model with the measured displacement on every side admits such layers at equal strain (a pressure jump
+    balances the axial traction, the measured sides take the lateral one), and a small error of the registered
+    field's divergence selects them (a convex-probe pair: 2.6 x above 28 mm at equal strain).  An inclusion narrower
+    than half the image does not move the rows' medians."""
+    c = mesh.p[0, mesh.t].mean(axis=0)[sel]
+    th, e, w = np.log(mu[sel]), ax[sel], area_el[sel]
+    hx = float(np.median(np.ptp(mesh.p[0, mesh.t], axis=0)))
+    lo, hi = float(c.min()), float(c.max())
+    n_rows = int(np.clip(round((hi - lo) / max(hx, 1e-9)), 4, 60))
+    row = np.minimum(((c - lo) / max(hi - lo, 1e-12) * n_rows).astype(int), n_rows - 1)
+    m, s, a, z = (np.full(n_rows, np.nan) for _ in range(4))
+    for k in range(n_rows):
+        r = row == k
+        if r.sum() >= 2:
+            m[k], s[k], a[k], z[k] = np.median(th[r]), np.median(e[r]), w[r].sum(), np.mean(c[r])
+    ok = np.isfinite(m) & (s > 0)
+    m, s, a, z = m[ok], s[ok], a[ok], z[ok]
+    if m.size < 4:
+        return ""
+    ca = np.cumsum(a) / a.sum()
+    best, k_best = 0.0, -1
+    for k in range(1, m.size):
+        if ca[k - 1] < LAYER_MIN_AREA or 1.0 - ca[k - 1] < LAYER_MIN_AREA:
+            continue
+        step = np.average(m[:k], weights=a[:k]) - np.average(m[k:], weights=a[k:])
+        if abs(step) > abs(best):
+            best, k_best = step, k
+    if k_best < 0 or abs(best) < np.log(LAYER_CONTRAST):
+        return ""
+    e_up, e_down = np.average(s[:k_best], weights=a[:k_best]), np.average(s[k_best:], weights=a[k_best:])
+    explained = np.log(e_down / e_up) / best          # log(strain ratio below/above) / log(mu ratio above/below)
+    if explained >= LAYER_EXPLAINED:
+        return ""
+    depth = 0.5 * (z[k_best - 1] + z[k_best])
+    return (f"the rows above {depth:.3g} mm come out {np.exp(best):.3g} x as stiff as those below (row medians), "
+            f"but strain {e_up / e_down:.3g} x as much (|e_xx| {e_up:.3g} vs {e_down:.3g}): layers in series share "
+            f"one axial stress, so the stiffer should strain less by about the modulus ratio; the data do not show "
+            f"these layers (explained {explained:.2f} of the step, at least {LAYER_EXPLAINED:g} needed)")
 
 
 def _ranked_contradiction(mu, ax, sel, area_el) -> str:

@@ -162,3 +162,48 @@ class RandomTissue:
 
     def __repr__(self) -> str:
         return f"RandomTissue({self.name})"
+
+
+class LayeredTissue(RandomTissue):
+    """Horizontal layers (parallel to the probe face) in series under compression, FE ground truth as
+    :class:`RandomTissue` (free lateral sides, the top face pressed by ``level``, the bottom held axially).
+
+    Parameters
+    ----------
+    interfaces_mm : sequence of float
+        Depths of the interfaces between layers, mm, increasing.
+    moduli : sequence of float
+        Relative Young's (and shear) modulus of each layer from the top, ``len(interfaces_mm) + 1`` values.
+    level, model, size_mm, h_mm, poisson
+        As :class:`RandomTissue`.
+    """
+
+    def __init__(self, interfaces_mm=(10.0,), moduli=(2.0, 1.0), level: float = 0.01, model: str = "plane-strain",
+                 *, size_mm=(20.0, 20.0), h_mm: float = 0.5, poisson: float = 0.495):
+        z = [float(v) for v in interfaces_mm]
+        m = [float(v) for v in moduli]
+        if len(m) != len(z) + 1 or any(v <= 0 or not math.isfinite(v) for v in m):
+            raise ValueError(f"moduli must be {len(z) + 1} positive numbers, got {moduli!r}")
+        if any(b <= a for a, b in zip(z, z[1:])) or not all(0 < v < float(size_mm[0]) for v in z):
+            raise ValueError(f"interfaces_mm must increase inside the depth {size_mm[0]!r}, got {interfaces_mm!r}")
+        if model not in ("plane-stress", "plane-strain"):
+            raise ValueError(f"model must be 'plane-strain' or 'plane-stress', got {model!r}")
+        self.interfaces, self.moduli = tuple(z), tuple(m)
+        self.seed, self.level, self.model = 0, float(level), model
+        self.sigma, self.corr_mm, self.size_mm = 0.0, 1.0, tuple(float(v) for v in size_mm)
+        self.name = (f"layers {'/'.join(f'{v:g}' for v in m)} at {', '.join(f'{v:g}' for v in z)} mm {model} "
+                     f"{100 * self.level:g}%")
+        self._solve(h_mm, poisson)
+
+    def _log_modulus_grid(self):
+        g_h = self.GRID_MM
+        depth, width = self.size_mm
+        xs = np.arange(0.0, depth + 0.5 * g_h, g_h)
+        ys = np.arange(-width / 2, width / 2 + 0.5 * g_h, g_h)
+        layer = np.searchsorted(np.asarray(self.interfaces), xs)
+        logE = np.log(np.asarray(self.moduli))[layer]
+        return xs, ys, np.repeat(logE[:, None], len(ys), axis=1)
+
+    def __repr__(self) -> str:
+        return f"LayeredTissue({self.name})"
+
