@@ -64,13 +64,17 @@ class RandomTissue:
         self._solve(h_mm, poisson)
 
     # ------------------------------------------------------------------------------------------------------
+    def _grid_axes(self):
+        """(xs, ys) mm of the modulus grid: depth 0 .. depth, width centred on 0, every :attr:`GRID_MM`."""
+        g_h = self.GRID_MM
+        depth, width = self.size_mm
+        return np.arange(0.0, depth + 0.5 * g_h, g_h), np.arange(-width / 2, width / 2 + 0.5 * g_h, g_h)
+
     def _log_modulus_grid(self):
         from scipy.ndimage import gaussian_filter
 
         g_h = self.GRID_MM
-        depth, width = self.size_mm
-        xs = np.arange(0.0, depth + 0.5 * g_h, g_h)
-        ys = np.arange(-width / 2, width / 2 + 0.5 * g_h, g_h)
+        xs, ys = self._grid_axes()
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 20261205]))
         # periodic smoothing would tie the block's faces together; 'reflect' keeps the field stationary enough
         g = gaussian_filter(rng.standard_normal((len(xs), len(ys))), self.corr_mm / g_h, mode="reflect")
@@ -196,10 +200,7 @@ class LayeredTissue(RandomTissue):
         self._solve(h_mm, poisson)
 
     def _log_modulus_grid(self):
-        g_h = self.GRID_MM
-        depth, width = self.size_mm
-        xs = np.arange(0.0, depth + 0.5 * g_h, g_h)
-        ys = np.arange(-width / 2, width / 2 + 0.5 * g_h, g_h)
+        xs, ys = self._grid_axes()
         layer = np.searchsorted(np.asarray(self.interfaces), xs)
         logE = np.log(np.asarray(self.moduli))[layer]
         return xs, ys, np.repeat(logE[:, None], len(ys), axis=1)
