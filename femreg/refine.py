@@ -302,6 +302,28 @@ class Refinement:
         decorrelates unevenly for its level (in vivo seq304 frames 1 -> 2: spread 0.13 at q 0.975, 5.4x; every
         simulated pair of the benchmarks at most 2.96x, the clean pairs that mark as many rows / columns at most
         2.5x).  None: no such clause (:data:`UNEVEN_DECORRELATION` in :data:`DEEP_REFINEMENT`).
+    uneven_coverage : float, optional
+        Fraction of the rows or of the columns marked from which the :attr:`coverage_uneven` clause applies (None:
+        :attr:`coverage`; the clause of a median element NCC below :attr:`coverage_ncc` keeps :attr:`coverage`).
+        In vivo seq304 frames 3 -> 4 / 5 -> 6 mark 0.83 / 0.87 of the columns at 5.4 / 4.7x ``1 - q`` and were
+        split into patches (e_xx at 5-10 mm 1.70 / 1.58x as rough as unrefined); every simulated pair of the
+        benchmarks stays under 3x (:data:`UNEVEN_COVERAGE` in :data:`DEEP_REFINEMENT`).
+    strong_coverage : float, optional
+        On a pass below the :attr:`fine` gate whose marking reaches this fraction of the rows or of the columns,
+        every marked row / column is split once (no :attr:`strong` quartering): the jumps of a field that varies
+        everywhere (heterogeneous tissue, 0.76-1.0 of the rows) are not a feature's rim, and a quartered row's
+        lateral displacement rests on few pixels (the clean heterogeneous L7 pair: e_yy / e_xy worse in the
+        quartered rows).  None: no such rule (:data:`SPREAD_COVERAGE` in :data:`DEEP_REFINEMENT`).  2D only.
+    coarse_alpha : float, optional
+        Smallest factor on eq:objf's weight in the step of a pass below the :attr:`fine` gate that relaxes
+        nothing: ``clip((1 - q) / coarse_alpha_ncc, coarse_alpha, 1)``, ``q`` the unrefined solve's median element
+        NCC (as :attr:`fine_alpha`).  On clean heterogeneous tissue the unrefined weight holds the split rows at
+        the coarse field (README "Adaptive refinement").  None: 1.  2D only.
+    coarse_alpha_ncc : float, optional
+        The scale of :attr:`coarse_alpha`'s factor (None: ``coarse_alpha`` as given).  0.02
+        (:data:`CLEAN_ALPHA_NCC`): below 1 only where ``q`` is above 0.98; bending (0.979), rotated pairs
+        (at most 0.978) and tissue with 20 % independent speckle (0.974-0.976) keep the weight, which at the fine
+        pass's scale (0.08) made the last 2.9 points worse.
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
