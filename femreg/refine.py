@@ -1452,8 +1452,8 @@ def coarse_alpha_factor(opts: Refinement, sol, mesh) -> float:
     """The factor on eq:objf's weight of a pass below the fine gate that relaxes nothing
     (:attr:`Refinement.coarse_alpha`, :attr:`Refinement.coarse_alpha_ncc`): ``clip((1 - q) / coarse_alpha_ncc,
     coarse_alpha, 1)``, ``q`` the median element NCC of ``sol`` on ``mesh`` (the solve before the split); 1 where
-    ``coarse_alpha`` is None."""
-    if opts.coarse_alpha is None:
+    ``coarse_alpha`` is None or ``sol`` has no image term (no NCC to read)."""
+    if opts.coarse_alpha is None or getattr(sol, "data", None) is None:
         return 1.0
     return fine_alpha_factor(dataclasses.replace(opts, fine_alpha=opts.coarse_alpha,
                                                  fine_alpha_ncc=opts.coarse_alpha_ncc), sol, mesh)
