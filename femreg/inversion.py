@@ -169,7 +169,9 @@ no displacement of the model, such as an R_eps registration's), the misfit stays
 (:data:`MISFIT_LIMIT`, in units of the model's strain: noise inflates the data's own), or a stiff (soft) region
 strains more (less) than the background (:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least
 :data:`RANKED_CONTRAST`, the stiffer part of the image strains more than its softer part (:data:`RANKED_MARGIN`;
-:func:`_contradiction`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
+:func:`_contradiction`), or, in a 2D TV image whose region refit was not applied (more than
+:data:`TV_REFIT_MAX_REGIONS` regions), regions whose modulus step the axial strain does not show cover more than
+:data:`UNSUPPORTED_AREA` of it (:func:`_unsupported_regions`; elsewhere such regions leave a note).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
 displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
@@ -1650,13 +1652,16 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     -------
     InversionResult
         ``mu`` (n_el,) element values with median 1, ``shear_modulus(points)``, ``success``, ``message``,
-        ``flags`` (list of reasons), ``uncertainty_calibrated`` and ``notes`` (remarks that are no flag),
+        ``flags`` (list of reasons), ``uncertainty_calibrated``, ``unsupported_area`` and ``notes`` (remarks
+        that are no flag),
         convergence ``history``.  ``success=False`` with the reasons when the
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
         the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
         of registered fields), or a stiff (soft) region, or the stiffer (softer) part of an image of any contrast
-        (:func:`_contradiction`), strains more (less) than the rest.
+        (:func:`_contradiction`), strains more (less) than the rest, or a 2D TV image without the region refit
+        has more than :data:`UNSUPPORTED_AREA` of its area in regions the axial strain does not support
+        (``unsupported_area``, :func:`_unsupported_regions`; with the refit, or less, a note).
 
     Raises
     ------
