@@ -361,7 +361,7 @@ UNCALIBRATED_SPREAD = 0.9
 #: :data:`CALIBRATION_MAX_REGIONS` before the refit): a region at least :data:`CALIBRATION_MIN_AREA` whose mean log
 #: mu lies at least SUPPORT_LEVEL from the largest region's ...
 SUPPORT_LEVEL = 0.25
-#: ... is unsupported when the log of its mean |e_xx| against the largest region's (stiff: less strain) is below
+#: ... is unsupported when the log of its mean abs(e_xx) against the largest region's (stiff: less strain) is below
 #: SUPPORT_FRACTION x its log-modulus step (0 or the wrong side included).  Measured (docs/inversion.md, "Never
 #: silently wrong"): 0.19-1.9 on every supported region of the 94 disk pairs and the 14 curves; -0.14 to 0.05 on the
 #: unsupported ones (the 10 dB soft disk's 234 mm^2 region at 1.71 x the background: -0.01).
@@ -2126,12 +2126,12 @@ def _calibration_regions(theta, reg, element_area: float) -> int:
 
 def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, element_area: float):
     """Regions of a 2D TV image whose modulus step the axial strain does not show: (fraction of the inner
-    elements' area they cover, list of (area mm^2, mu / the largest region's, |e_xx| / the largest region's)).
+    elements' area they cover, list of (area mm^2, mu / the largest region's, abs(e_xx) / the largest region's)).
 
     The partition is :func:`_calibration_regions`' (``theta_part``, the TV solution before the refit: level
     :data:`CALIBRATION_LEVEL`, regions of at least :data:`CALIBRATION_MIN_AREA` mm^2, ``element_area`` the mean
     element area); each region's step d = mean log mu (``theta``, the result) minus the largest region's, and its
-    strain support s = log(mean |e_xx| of the largest / of the region) (area-weighted, inner elements only, as
+    strain support s = log(mean abs(e_xx) of the largest / of the region) (area-weighted, inner elements only, as
     :func:`_contradiction`: the boundary elements carry the data's edge).  A region is unsupported when
     |d| >= :data:`SUPPORT_LEVEL` and s / d < :data:`SUPPORT_FRACTION`: a stiffer region must strain less, a softer
     more, whatever its shape (the strain of a disk of contrast c, 2 / (1 + c) of the far field in plane strain,
