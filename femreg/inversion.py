@@ -370,7 +370,7 @@ SUPPORT_FRACTION = 0.1
 #: region refit was not applied (more than :data:`TV_REFIT_MAX_REGIONS` regions: every level is the regulariser's);
 #: otherwise, or smaller, they leave a note.  None: notes only.  Measured (docs/inversion.md): 0.345 on the 10 dB
 #: soft disk (ratio 0.53, refit not applied: flagged); 0 on the one disk pair without the refit (fresh2's L15 x4);
-#: 0.25-0.38 on four L3 plane-strain disks in the band with the refit (notes): the area alone does not separate.
+#: 0.25-0.38 on four L3 plane-strain disks with the refit (notes; ratios 0.85-0.99): the area alone does not separate.
 #: Random tissue (benchmarks/heterogeneous.py, 12 registered pairs, refit skipped on 10): 0.363 on one (flagged),
 #: 0-0.099 on the others; 0.2 was set after seeing them (0.1 came within 0.001 of one).
 UNSUPPORTED_AREA = 0.2
