@@ -100,6 +100,8 @@ def invert_case(case, inv_kw=None):
                                                            field, roi), success=r.success,
                          flags="; ".join(r.flags)[:80], model=r.model, n_el=r.mesh.t.shape[1],
                          uncertainty_calibrated=r.uncertainty_calibrated,
+                         unsupported_area=r.unsupported_area, refit_skipped="not applied" in r.beta_rule,
+                         notes="; ".join(r.notes)[:120],
                          cpu_s=t_inv if name == "femreg" else float("nan")))
     # what users otherwise read as stiffness: 1 / |axial strain| of the same registration, per element
     centres = inv.mesh.p[:, inv.mesh.t].mean(axis=1).T

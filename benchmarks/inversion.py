@@ -277,7 +277,8 @@ def run_case(model, contrast, probe, snr, radius=5.0, level=0.01, seed=0, beta_s
                    seed=seed, row=name, estimate=cest, ratio=cest / contrast, cv=cv, ring=ring, success=inv.success,
                    flags="; ".join(inv.flags), chosen_model=inv.model, beta=inv.beta, cal=cal, ncal=ncal,
                    calu=calu, ncalu=ncalu, z=z if name in ("femreg", "femreg base mesh") else [], seconds=dt,
-                   misfit=inv.misfit, n_el=int(inv.mesh.t.shape[1]), element_mm=float(np.sqrt(h[0] * h[1])))
+                   misfit=inv.misfit, n_el=int(inv.mesh.t.shape[1]), element_mm=float(np.sqrt(h[0] * h[1])),
+                   unsupported_area=inv.unsupported_area, notes="; ".join(inv.notes))
         if beta_study and name == "femreg":
             best = None
             up = femreg.inversion.BETA_GRID[0] * 10.0 ** (0.5 * np.arange(femreg.inversion.DOF_UP_STEPS, 0, -1))

@@ -193,6 +193,7 @@ def run(out, settings, sets, exact=False):
         row = dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
                    success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
                    rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
+                   unsupported_area=inv.unsupported_area, flags=list(inv.flags), notes=list(inv.notes),
                    sr=strain_ratio(bench, reg, field), **edge_cnr(bench, inv, field),
                    cnr_strain=sampled_cnr(bench, strain, field.centre, field.radius_mm))
         if exact:
@@ -230,8 +231,12 @@ def summary(paths):
             closer = sum(r["success"] and abs(np.log(r["ratio"])) < abs(np.log(r["sr"] / r["contrast"]))
                          for r in stiff)
             sr_txt = f", stiff closer than 1/SR {closer}/{len(stiff)}" if stiff else ""
+            flagged = sum(not r["success"] for r in rows if r["set"] == name)
+            un = [r.get("unsupported_area", np.nan) for r in rows if r["set"] == name]
+            un_txt = (f", unsupported area largest {np.nanmax(un):.3f}" if np.isfinite(un).any() else "")
             print(f"- {name}: {band}/{len(rs)} in the band, CV <= 15 % {cv}/{len(rs)}, wrong side {wrong}, "
-                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}{sr_txt}")
+                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}, flagged "
+                  f"{flagged}{un_txt}{sr_txt}")
             tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong, tot[4] + closer,
                    tot[5] + len(stiff)]
         edge_cnr_summary(rows)

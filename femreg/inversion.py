@@ -169,7 +169,9 @@ no displacement of the model, such as an R_eps registration's), the misfit stays
 (:data:`MISFIT_LIMIT`, in units of the model's strain: noise inflates the data's own), or a stiff (soft) region
 strains more (less) than the background (:data:`CONTRADICTION_MARGIN`), or, for any contrast of at least
 :data:`RANKED_CONTRAST`, the stiffer part of the image strains more than its softer part (:data:`RANKED_MARGIN`;
-:func:`_contradiction`).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
+:func:`_contradiction`), or, in a 2D TV image whose region refit was not applied (more than
+:data:`TV_REFIT_MAX_REGIONS` regions), regions whose modulus step the axial strain does not show cover more than
+:data:`UNSUPPORTED_AREA` of it (:func:`_unsupported_regions`; elsewhere such regions leave a note).  Uncertainty: a Laplace approximation (``uncertainty``, ``constrained``).
 Absolute moduli: ``reference=`` (kPa).  Boundary conditions: ``boundary=`` (:data:`BOUNDARIES`); the measured
 displacement on the whole boundary stays the default of 2D data (benchmarks/inversion.py, docs/inversion.md).
 
@@ -198,8 +200,8 @@ __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "i
            "TV_REFIT_MAX_REGIONS",
            "TV_REFIT_MIN_ELEMENTS", "TV_REFIT_SIGMA", "TV_REFIT_MAX_SHIFT", "TV_REFIT_CAP", "TV_REFIT_MODE",
            "TV_REFIT_STD", "LAYER_CONTRAST", "LAYER_EXPLAINED", "LAYER_MIN_AREA", "CALIBRATION_MAX_REGIONS",
-           "CALIBRATION_LEVEL", "CALIBRATION_MIN_AREA",
-           "UNCALIBRATED_SPREAD"]
+           "CALIBRATION_LEVEL", "CALIBRATION_MIN_AREA", "UNCALIBRATED_SPREAD", "SUPPORT_LEVEL", "SUPPORT_FRACTION",
+           "UNSUPPORTED_AREA"]
 
 #: Misfit weights (axial w_x, lateral w_y); see the module docstring.
 DEFAULT_WEIGHTS = (1.0, 0.1)
@@ -364,6 +366,23 @@ CALIBRATION_MIN_AREA = 4.0
 #: check: 15 -> 64 % (14 -> 57 % pooled); the exact displacements of the 8: 9 -> 61 % (docs/inversion.md).  None:
 #: the note only.
 UNCALIBRATED_SPREAD = 0.9
+#: Strain support of the regions of a 2D TV image (:func:`_unsupported_regions`, the partition of
+#: :data:`CALIBRATION_MAX_REGIONS` before the refit): a region at least :data:`CALIBRATION_MIN_AREA` whose mean log
+#: mu lies at least SUPPORT_LEVEL from the largest region's ...
+SUPPORT_LEVEL = 0.25
+#: ... is unsupported when the log of its mean abs(e_xx) against the largest region's (stiff: less strain) is below
+#: SUPPORT_FRACTION x its log-modulus step (0 or the wrong side included).  Measured (docs/inversion.md, "Never
+#: silently wrong"): 0.19-1.9 on every supported region of the 94 disk pairs and the 14 curves; -0.14 to 0.05 on the
+#: unsupported ones (the 10 dB soft disk's 234 mm^2 region at 1.71 x the background: -0.01).
+SUPPORT_FRACTION = 0.1
+#: Unsupported regions covering more than this fraction of the inner elements' area flag the result where the
+#: region refit was not applied (more than :data:`TV_REFIT_MAX_REGIONS` regions: every level is the regulariser's);
+#: otherwise, or smaller, they leave a note.  None: notes only.  Measured (docs/inversion.md): 0.345 on the 10 dB
+#: soft disk (ratio 0.53, refit not applied: flagged); 0 on the one disk pair without the refit (fresh2's L15 x4);
+#: 0.25-0.38 on four L3 plane-strain disks with the refit (notes; ratios 0.85-0.99): the area alone does not separate.
+#: Random tissue (benchmarks/heterogeneous.py, 12 registered pairs, refit skipped on 10): 0.363 on one (flagged),
+#: 0-0.099 on the others; 0.2 was set after seeing them (0.1 came within 0.001 of one).
+UNSUPPORTED_AREA = 0.2
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -1695,13 +1714,16 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     -------
     InversionResult
         ``mu`` (n_el,) element values with median 1, ``shear_modulus(points)``, ``success``, ``message``,
-        ``flags`` (list of reasons), ``uncertainty_calibrated`` and ``notes`` (remarks that are no flag),
+        ``flags`` (list of reasons), ``uncertainty_calibrated``, ``unsupported_area`` and ``notes`` (remarks
+        that are no flag),
         convergence ``history``.  ``success=False`` with the reasons when the
         optimisation fails, :math:`\beta` sits on the edge of its grid (the large edge only for an image that is
         not flat), :math:`|\log\mu|` reaches its bound,
         the model contradicts the data's strain ratio, the misfit stays above :data:`MISFIT_LIMIT` (the noise level
         of registered fields), or a stiff (soft) region, or the stiffer (softer) part of an image of any contrast
-        (:func:`_contradiction`), strains more (less) than the rest.
+        (:func:`_contradiction`), strains more (less) than the rest, or a 2D TV image without the region refit
+        has more than :data:`UNSUPPORTED_AREA` of its area in regions the axial strain does not support
+        (``unsupported_area``, :func:`_unsupported_regions`; with the refit, or less, a note).
 
     Raises
     ------
@@ -1941,6 +1963,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
         problem.g = info["boundary"]
     refit_std = theta_tv = None
+    refit_skipped = False       # the refit's partition had more than TV_REFIT_MAX_REGIONS regions
     theta_part = None       # the TV solution the calibration check partitions (before the refit)
     if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
         # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
@@ -1984,6 +2007,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                                          max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
                                          mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
             refit_std = refit["std_elements"]
+            refit_skipped = bool(refit["too_many"])
             done = [e for e in refit["candidates"] if e["applied"]]
             rule += (f"; region refit (level {TV_REFIT:g}): not applied, {refit['regions'] - 1} regions besides "
                      f"the reference (more than {TV_REFIT_MAX_REGIONS}: not piecewise constant)"
@@ -2070,6 +2094,21 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         why = _contradiction(mu / med, el_strain, mesh, area_el)
         if why:
             flags.append(f"modulus contradicts strain: {why}")
+    unsupported, notes = (np.nan, []), []
+    if dim == 2 and regularization == "tv":
+        # a region whose modulus step the axial strain does not show (SUPPORT_FRACTION): over a large part of the
+        # image the background's level, and every contrast read against it, is the inversion's, not the data's
+        frac, regs = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h)
+        unsupported = (frac, regs)
+        if regs:
+            what = (f"{len(regs)} region(s) of {sum(r[0] for r in regs):.3g} mm^2 ({100 * frac:.0f} % of the inner "
+                    "area; " + ", ".join(f"{r[0]:.3g} mm^2 at mu {r[1]:.3g} x the background, |e_xx| {r[2]:.3g} x"
+                                         for r in regs[:3]) + ") whose modulus step the axial strain does not show")
+            if UNSUPPORTED_AREA is not None and frac > UNSUPPORTED_AREA and refit_skipped:
+                flags.append(f"{what}, and the image is not a few regions (the region refit was not applied): "
+                             "its levels are the regulariser's (e.g. at a low SNR); the contrast is not reliable")
+            else:
+                notes.append(f"modulus not supported by strain: {what}; read them as artefacts of the inversion")
     if flags:
         ok = False
         message = "FLAGGED: " + "; ".join(flags) + f" (optimiser: {message})"
@@ -2090,7 +2129,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             std = np.where(use, refit_std, std)
     # 3D and Tikhonov: not assessed (the check was measured on 2D TV images only)
     checked = dim == 2 and regularization == "tv"
-    calibrated, notes = (True if checked else None), []
+    calibrated = True if checked else None
     n_regions = _calibration_regions(theta_part, reg, h * h) if checked and std is not None else 0
     if n_regions > CALIBRATION_MAX_REGIONS and std is not None:
         # not a few inclusions in a background: the std misses the regulariser's bias (CALIBRATION_MAX_REGIONS)
@@ -2131,7 +2170,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         model_rule=model_rule, mesh_rule=mesh_rule, strain_ratio=ratio, flags=flags, uncertainty=std,
         constrained=constrained,
         shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step,
-        misfit_model_strain=phi_model, lateral_shortfall=short, uncertainty_calibrated=calibrated, notes=notes)
+        misfit_model_strain=phi_model, lateral_shortfall=short, uncertainty_calibrated=calibrated, notes=notes,
+        unsupported_area=unsupported[0])
 
 
 def _calibration_regions(theta, reg, element_area: float) -> int:
@@ -2142,6 +2182,44 @@ def _calibration_regions(theta, reg, element_area: float) -> int:
     min_el = max(TV_REFIT_MIN_ELEMENTS, int(np.ceil(CALIBRATION_MIN_AREA / max(float(element_area), 1e-12))))
     _, cand, _ = _regions(np.asarray(theta, float), reg, CALIBRATION_LEVEL, min_el)
     return len(cand)
+
+
+def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, element_area: float):
+    """Regions of a 2D TV image whose modulus step the axial strain does not show: (fraction of the inner
+    elements' area they cover, list of (area mm^2, mu / the largest region's, abs(e_xx) / the largest region's)).
+
+    The partition is :func:`_calibration_regions`' (``theta_part``, the TV solution before the refit: level
+    :data:`CALIBRATION_LEVEL`, regions of at least :data:`CALIBRATION_MIN_AREA` mm^2, ``element_area`` the mean
+    element area); each region's step d = mean log mu (``theta``, the result) minus the largest region's, and its
+    strain support s = log(mean abs(e_xx) of the largest / of the region) (area-weighted, inner elements only, as
+    :func:`_contradiction`: the boundary elements carry the data's edge).  A region is unsupported when
+    |d| >= :data:`SUPPORT_LEVEL` and s / d < :data:`SUPPORT_FRACTION`: a stiffer region must strain less, a softer
+    more, whatever its shape (the strain of a disk of contrast c, 2 / (1 + c) of the far field in plane strain,
+    gives s / d of 0.3-0.8 for c 1/8-8)."""
+    min_el = max(TV_REFIT_MIN_ELEMENTS, int(np.ceil(CALIBRATION_MIN_AREA / max(float(element_area), 1e-12))))
+    labels, cand, _ = _regions(np.asarray(theta_part, float), reg, CALIBRATION_LEVEL, min_el)
+    inner = _inner_elements(mesh)
+    if inner.sum() < 8 or not cand:
+        return 0.0, []
+    ax = np.abs(el_strain[:, 0])
+    ref = inner & ~np.isin(labels, cand)
+
+    def mean(v, sel):
+        return float(np.sum(area_el[sel] * v[sel]) / np.sum(area_el[sel]))
+
+    if ref.sum() < 2 or not mean(ax, ref) > 0:
+        return 0.0, []
+    t0, e0 = mean(theta, ref), mean(ax, ref)
+    out = []
+    for k in cand:
+        sel = inner & (labels == k)
+        a = float(area_el[sel].sum())
+        if a < CALIBRATION_MIN_AREA or sel.sum() < 2:
+            continue
+        d, e = mean(theta, sel) - t0, mean(ax, sel)
+        if abs(d) >= SUPPORT_LEVEL and e > 0 and np.log(e0 / e) / d < SUPPORT_FRACTION:
+            out.append((a, float(np.exp(d)), e / e0))
+    return float(sum(x[0] for x in out) / area_el[inner].sum()), out
 
 
 def _robust_spread(v) -> float:
@@ -2201,7 +2279,12 @@ class InversionResult:
         check).  Not a flag:
         ``success`` is about the modulus, this about its error bars.
     notes : list of str
-        Remarks that do not make the result fail (the uncalibrated uncertainty).
+        Remarks that do not make the result fail (the uncalibrated uncertainty, regions the strain does not
+        support on a small part of the image).
+    unsupported_area : float
+        Fraction of the inner elements' area in regions whose modulus step the axial strain does not show
+        (:func:`_unsupported_regions`; above :data:`UNSUPPORTED_AREA` a flag); NaN where not assessed (3D,
+        Tikhonov, files written before the check).
     shear_modulus_kpa, youngs_modulus_kpa : (n_el,) float or None
         Absolute moduli, kPa, with ``reference`` (:func:`invert`).
     one_step : dict or None
@@ -2214,7 +2297,7 @@ class InversionResult:
                  regularizer_value=np.nan, history=(), success=False, message="", nit=0, timings=None,
                  model_rule="", mesh_rule="", strain_ratio=np.nan, flags=(), uncertainty=None, constrained=None,
                  shear_modulus_kpa=None, reference=None, one_step=None, misfit_model_strain=np.nan,
-                 lateral_shortfall=np.nan, uncertainty_calibrated=True, notes=()):
+                 lateral_shortfall=np.nan, uncertainty_calibrated=True, notes=(), unsupported_area=np.nan):
         self.mesh = mesh
         self.mu = np.asarray(mu, float)
         self.model = str(model)
@@ -2250,6 +2333,7 @@ class InversionResult:
         self.lateral_shortfall = float(lateral_shortfall)
         self.uncertainty_calibrated = None if uncertainty_calibrated is None else bool(uncertainty_calibrated)
         self.notes = list(notes)
+        self.unsupported_area = float(unsupported_area)
         self._locator = None
 
     @property
@@ -2340,7 +2424,8 @@ class InversionResult:
                 "mesh_rule": self.mesh_rule, "strain_ratio": self.strain_ratio, "flags": self.flags,
                 "reference": self.reference, "one_step": self.one_step,
                 "misfit_model_strain": self.misfit_model_strain, "lateral_shortfall": self.lateral_shortfall,
-                "uncertainty_calibrated": self.uncertainty_calibrated, "notes": self.notes}
+                "uncertainty_calibrated": self.uncertainty_calibrated, "notes": self.notes,
+                "unsupported_area": self.unsupported_area}
         extra = {}
         if self.uncertainty is not None:
             extra["uncertainty"] = self.uncertainty
@@ -2453,7 +2538,8 @@ def load_inversion(path) -> InversionResult:
                            misfit_model_strain=meta.get("misfit_model_strain", np.nan),
                            lateral_shortfall=meta.get("lateral_shortfall", np.nan),
                            # files written before the check: not assessed (None)
-                           uncertainty_calibrated=meta.get("uncertainty_calibrated"), notes=meta.get("notes", ()))
+                           uncertainty_calibrated=meta.get("uncertainty_calibrated"), notes=meta.get("notes", ()),
+                           unsupported_area=meta.get("unsupported_area", np.nan))
 
 
 def modulus_contrast(result: InversionResult, inside) -> dict:
