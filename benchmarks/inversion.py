@@ -188,14 +188,18 @@ def registered_cases(sets, skip=()):
 
 def cache_folder():
     """The registrations' cache: ``$FEMREG_CACHE/bench_inversion/<key>``, the key a hash of ``femreg.register``'s
-    signature (its defaults) and the default refinement, so a change of the registration defaults registers
-    again instead of reusing results of the former defaults."""
+    signature (its defaults), the default refinement's name and the rules it stands for
+    (:data:`femreg.refine.DEEP_REFINEMENT`), so a change of the registration defaults or of the refinement rules
+    registers again instead of reusing results of the former defaults."""
     import hashlib
     import inspect
 
+    from femreg.refine import DEEP_REFINEMENT
     from femreg.refine import DEFAULT as default_refine
 
-    key = hashlib.sha1((str(inspect.signature(femreg.register)) + repr(default_refine)).encode()).hexdigest()[:10]
+    # the default is a name ("default"): the rules it stands for key the cache too
+    key = hashlib.sha1((str(inspect.signature(femreg.register)) + repr(default_refine)
+                        + repr(DEEP_REFINEMENT)).encode()).hexdigest()[:10]
     folder = cache_dir() / "bench_inversion" / f"defaults-{key}"
     folder.mkdir(parents=True, exist_ok=True)
     return folder
