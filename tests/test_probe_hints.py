@@ -219,3 +219,14 @@ def test_angle_pitch_in_radians_is_named(mat73_theta_file):
     with pytest.raises(OrientationError, match=r"looks given in radians.*--angle-pitch 0\.6"):
         femreg.register(p.ref, p.mov, spacing=p.spacing[0], origin=p.origin,
                         geometry=femreg.Convex(radius_mm=40.0, angle_pitch_deg=np.deg2rad(0.6)))
+
+
+def test_origin_on_a_volume_is_refused(tmp_path, capsys):
+    from femreg.cli import main
+
+    rng = np.random.default_rng(0)
+    path = tmp_path / "vol.npz"
+    np.savez(path, rf=rng.standard_normal((2, 40, 8, 6)), spacing=np.array([0.02, 0.2, 0.4]))
+    for cmd in (["register", path, "-o", tmp_path / "r.npz"], ["track", path, "-o", tmp_path / "run"]):
+        assert main([str(a) for a in cmd] + ["--origin", "1", "0"]) == 2
+        assert "a volume's origin comes from its file" in capsys.readouterr().err

@@ -180,6 +180,9 @@ def run(args) -> int:
     kw = registration_kwargs(args)
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference, volume=args.volume)
+    if vol is not None and getattr(args, "origin", None) is not None:
+        raise InputError(f"{args.reference}: --origin places a frame's first sample; a volume's origin comes from its file "
+                         "(key or variable 'origin', three values in mm)")
     if vol is not None:                 # RF volumes (spacing with 3 values)
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
