@@ -196,25 +196,30 @@ def _patchiness(res, depth=(5.0, 10.0)):
                  + np.nanmean(np.abs(np.diff(e, axis=1))) / h[1])
 
 
-@needs_data
-def test_no_split_where_the_speckle_decorrelates_unevenly_for_its_level():
-    """seq304 frames 1 -> 2: median element NCC 0.975 but spread 0.13 (5.4x 1 - median; simulated pairs at most
-    3.0x) with 29 of 30 columns marked: the default splits nothing (femreg.refine.UNEVEN_DECORRELATION).  Split
-    (without that clause) e_xx at 5-10 mm was 1.58x as patchy as unrefined (1380 -> 8236 elements); the default 1.00x.
-    Bounds: 1.3x and 1.05x."""
+def _unsplit_against(i, j, **former):
+    """seq304 frames i -> j registered with refine=None, the default and the default with ``former`` options (the
+    rule before): (the default's result, patchiness of the three); the former splits, the default does not."""
     import dataclasses
 
     from femreg.refine import DEEP_REFINEMENT
 
     frames, spacing, origin = demo.load_sequence(DATA / "seq304")
     kw = dict(spacing=spacing, origin=origin)
-    r_none = femreg.register(frames[0], frames[1], refine=None, **kw)
-    r_def = femreg.register(frames[0], frames[1], **kw)
-    r_old = femreg.register(frames[0], frames[1], refine=dataclasses.replace(DEEP_REFINEMENT, coverage_uneven=None),
-                            **kw)
-    p = [_patchiness(r) for r in (r_none, r_def, r_old)]
+    r_none = femreg.register(frames[i], frames[j], refine=None, **kw)
+    r_def = femreg.register(frames[i], frames[j], **kw)
+    r_old = femreg.register(frames[i], frames[j], refine=dataclasses.replace(DEEP_REFINEMENT, **former), **kw)
     assert r_old.refinement.passes and r_old.mesh.t.shape[1] > r_none.mesh.t.shape[1]
     assert not r_def.refinement.passes and r_def.mesh.t.shape[1] == r_none.mesh.t.shape[1], r_def.message
+    return r_def, [_patchiness(r) for r in (r_none, r_def, r_old)]
+
+
+@needs_data
+def test_no_split_where_the_speckle_decorrelates_unevenly_for_its_level():
+    """seq304 frames 1 -> 2: median element NCC 0.975 but spread 0.13 (5.4x 1 - median; simulated pairs at most
+    3.0x) with 29 of 30 columns marked: the default splits nothing (femreg.refine.UNEVEN_DECORRELATION).  Split
+    (without that clause) e_xx at 5-10 mm was 1.58x as patchy as unrefined (1380 -> 8236 elements); the default 1.00x.
+    Bounds: 1.3x and 1.05x."""
+    r_def, p = _unsplit_against(0, 1, coverage_uneven=None)
     assert "element NCC spread 0.13 >= 3 x" in r_def.message, r_def.message
     assert p[2] > 1.3 * p[0], p
     assert p[1] < 1.05 * p[0], p
@@ -226,19 +231,7 @@ def test_no_split_where_the_speckle_decorrelates_unevenly_with_fewer_columns_mar
     element NCC 5.4x (1 - median 0.98): the uneven clause applies from 0.8 of them (UNEVEN_COVERAGE), so the default
     splits nothing.  Split (the clause at 0.9, the earlier default) e_xx at 5-10 mm was 1.70x as patchy as unrefined
     (1380 -> 8526 elements); the default 1.00x.  Bounds: 1.4x and 1.05x."""
-    import dataclasses
-
-    from femreg.refine import DEEP_REFINEMENT
-
-    frames, spacing, origin = demo.load_sequence(DATA / "seq304")
-    kw = dict(spacing=spacing, origin=origin)
-    r_none = femreg.register(frames[2], frames[3], refine=None, **kw)
-    r_def = femreg.register(frames[2], frames[3], **kw)
-    r_old = femreg.register(frames[2], frames[3], refine=dataclasses.replace(DEEP_REFINEMENT, uneven_coverage=None),
-                            **kw)
-    p = [_patchiness(r) for r in (r_none, r_def, r_old)]
-    assert r_old.refinement.passes and r_old.mesh.t.shape[1] > r_none.mesh.t.shape[1]
-    assert not r_def.refinement.passes and r_def.mesh.t.shape[1] == r_none.mesh.t.shape[1], r_def.message
+    r_def, p = _unsplit_against(2, 3, uneven_coverage=None)
     assert "(0.83 >= 0.8)" in r_def.message and "element NCC spread" in r_def.message, r_def.message
     assert p[2] > 1.4 * p[0], p
     assert p[1] < 1.05 * p[0], p
