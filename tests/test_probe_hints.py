@@ -168,6 +168,11 @@ def test_ray_angle_vector_states_the_probe(mat73_theta_file, tmp_path, capsys):
     # read as a linear array's lines: refused, naming the flags (before, registered silently)
     rc, _, err = cli("register", path, "--spacing", dr, 0.3, "-o", tmp_path / "lin.npz")
     assert rc == 2 and "--geometry convex --radius 40 --angle-pitch 0.6" in err, err
+    # the geometry given but no range step: the message asks for DX alone (the rays are --angle-pitch apart)
+    for cmd in ("register", "track"):
+        rc, _, err = cli(cmd, path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
+                         "-o", tmp_path / f"nodx_{cmd}")
+        assert rc == 2 and "pass --spacing DX auto" in err and f"DX = {dr}" in err and "DY" not in err, err
     # a probe contradicting the file's own header: refused (an angle pitch off by 10x passes the speckle check)
     rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.06,
                      "--spacing", dr, "auto", "-o", tmp_path / "c.npz")

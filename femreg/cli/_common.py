@@ -13,6 +13,7 @@ Use::
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from .. import options
@@ -92,6 +93,19 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
+def beam_spacing_error(exc, geometry):
+    """A reader's "spacing unknown" error said for convex / sector frames, whose only spacing is the range step
+    (``--spacing DX auto``); other errors as they are."""
+    text = str(exc)
+    if "spacing unknown" not in text:
+        return exc
+    m = re.search(r"its fields suggest --spacing (\S+) \S+ \((.*?); (DY|auto)", text)
+    hint = f"; its fields suggest DX = {m.group(1)} ({m.group(2)}): check it against the scanner's settings" if m else ""
+    where = text.split(": ", 1)[0]
+    return InputError(f"{where}: the range step (the axial spacing, mm) is not in the file: pass --spacing DX auto "
+                      f"(--geometry {geometry.kind}: the rays are --angle-pitch apart){hint}")
+
+
 def beam_frames_from_args(args, geometry, path=None):
     """Frames of a convex / sector file (``--geometry convex|sector``): ``(Frames, dr, (r0, 0))`` with the range
     step ``dr`` mm and the first sample's range ``r0`` mm of the file (or ``--spacing``).  The rays lie
@@ -99,7 +113,10 @@ def beam_frames_from_args(args, geometry, path=None):
     stores none, the frames carry the angle pitch (deg) as their lateral spacing (the convention of
     :class:`femreg.geometry.BeamResult`)."""
     sp = beam_spacing_args(args, geometry)
-    fr = frames_from_args(argparse.Namespace(**dict(vars(args), spacing=sp)), path)
+    try:
+        fr = frames_from_args(argparse.Namespace(**dict(vars(args), spacing=sp)), path)
+    except InputError as exc:
+        raise beam_spacing_error(exc, geometry) from None
     return fr, float(fr.spacing[0]), (float(fr.origin[0]), 0.0)
 
 

@@ -18,8 +18,8 @@ import sys
 
 import numpy as np
 
-from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_spacing_args, frames_from_args,
-                      registration_kwargs)
+from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_spacing_args, beam_spacing_error,
+                      frames_from_args, registration_kwargs)
 
 
 def add_parser(subparsers):
@@ -208,7 +208,10 @@ def run(args) -> int:
     beam = _geometry(args) if args.geometry in ("convex", "sector") else None
     if beam is not None:                # the range step alone: the rays are --angle-pitch apart
         args.spacing = beam_spacing_args(args, beam)
-    ref_fr = frames_from_args(args, args.reference)
+    try:
+        ref_fr = frames_from_args(args, args.reference)
+    except InputError as exc:
+        raise (beam_spacing_error(exc, beam) if beam is not None else exc) from None
     if args.geometry == "linear" and not getattr(args, "geometry_given", False):
         _refuse_curved(ref_fr, args.reference)
     if beam is not None:
