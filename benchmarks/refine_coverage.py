@@ -52,7 +52,7 @@ def _measured(sol, opts, solve_on, spacing, origin):
     _, _, _, (rs, cs) = FR.mark(sol.mesh, sol.u, opts, data=sol.data, scores=True)
     _seen.update(rows=float(np.mean(rs > 1)), cols=float(np.mean(cs > 1)),
                  coverage=FR.marked_coverage((rs, cs)), q_med=float(np.median(q)),
-                 spread=float(np.ptp(np.percentile(q, FR.SPREAD_PERCENTILES))),
+                 spread=FR.ncc_spread(q),
                  top=float(max(rs.max(initial=0.0), cs.max(initial=0.0))))
     _seen["uneven"] = _seen["spread"] / max(1e-9, 1.0 - _seen["q_med"])
     return _refine_passes(sol, opts, solve_on, spacing, origin)

@@ -882,20 +882,11 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
 SPREAD_PERCENTILES = (10.0, 90.0)
 
 
-def ncc_spread(data, u, n_el: int) -> float:
-    """Spread of the element NCC (:func:`femreg.repair.element_ncc` of the image term ``data`` at ``u``, ``n_el``
-    elements): its 90th minus its 10th percentile (:data:`SPREAD_PERCENTILES`); 0 when no element has one.
+def ncc_spread(q) -> float:
+    """Spread of the element NCC ``q`` (:func:`femreg.repair.element_ncc`; NaN where an element has none): its
+    90th minus its 10th percentile over the finite values (:data:`SPREAD_PERCENTILES`), 0 when none is finite.
     Large where the speckle decorrelates in parts of the image and correlates well elsewhere (out-of-plane
-    motion), small under uniform noise; 0 without an image term (``data`` None)."""
-    from .repair import element_ncc
-
-    if data is None:
-        return 0.0
-    return _spread(element_ncc(data, u, n_el))
-
-
-def _spread(q) -> float:
-    """90th minus 10th percentile of the finite element NCCs ``q`` (0 when none is finite)."""
+    motion), small under uniform noise."""
     q = np.asarray(q, float)
     q = q[np.isfinite(q)]
     if not q.size:
@@ -908,8 +899,8 @@ def _noise_reason(opts: Refinement, marked: bool, scores, q) -> str | None:
     """Why the first pass splits nothing although rows / columns are marked (:attr:`Refinement.spread`,
     :attr:`Refinement.coverage`), or None: ``marked`` whether any is, ``scores`` the marking's per-axis slab scores
     (:func:`mark`), ``q`` the unrefined solve's element NCC (NaN where none)."""
+    d = ncc_spread(q)
     if opts.spread is not None and marked:
-        d = _spread(q)
         if d > opts.spread:
             # decorrelated in parts of the image only: rows and columns of a tensor mesh cross those parts
             return f"the speckle decorrelates in parts of the image (element NCC spread {d:.2f} > {opts.spread:g})"
@@ -921,7 +912,6 @@ def _noise_reason(opts: Refinement, marked: bool, scores, q) -> str | None:
         return None
     fin = q[np.isfinite(q)]
     q_med = float(np.median(fin)) if fin.size else float("nan")
-    d = _spread(q)
     noisy = q_med < opts.coverage_ncc and cover >= opts.coverage
     uneven = (opts.coverage_uneven is not None and q_med < 1.0 and d >= opts.coverage_uneven * (1.0 - q_med)
               and cover >= at_uneven)
@@ -1396,7 +1386,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     if record and note is None and getattr(unrefined, "data", None) is not None:
         q0 = unrefined_ncc()
         q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else float("nan")
-        spread = _spread(q0)
+        spread = ncc_spread(q0)
         if q_med < DECORRELATED_NCC:
             note = (f"refined although the speckle is decorrelated (median element NCC {q_med:.2f} < "
                     f"{DECORRELATED_NCC:g}): check the strain image for rectangular patches against refine=None")
