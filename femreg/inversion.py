@@ -2094,12 +2094,17 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         why = _contradiction(mu / med, el_strain, mesh, area_el)
         if why:
             flags.append(f"modulus contradicts strain: {why}")
-    unsupported, notes = (np.nan, []), []
-    if dim == 2 and regularization == "tv":
+    unsupported_area, notes = np.nan, []
+    # 3D and Tikhonov: neither the strain support nor the calibration is assessed (measured on 2D TV images only)
+    checked = dim == 2 and regularization == "tv"
+    # the regions of the TV solution before the refit, read by the strain support and the calibration check
+    partition = _calibration_partition(theta_part, reg, h * h) if checked else None
+    if checked:
         # a region whose modulus step the axial strain does not show (SUPPORT_FRACTION): over a large part of the
         # image the background's level, and every contrast read against it, is the inversion's, not the data's
-        frac, regs = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h)
-        unsupported = (frac, regs)
+        frac, regs = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h,
+                                          partition=partition)
+        unsupported_area = frac
         if regs:
             what = (f"{len(regs)} region(s) of {sum(r[0] for r in regs):.3g} mm^2 ({100 * frac:.0f} % of the inner "
                     "area; " + ", ".join(f"{r[0]:.3g} mm^2 at mu {r[1]:.3g} x the background, |e_xx| {r[2]:.3g} x"
@@ -2127,10 +2132,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             # refitted regions (TV_REFIT): the region model's std, one value per region (_region_refit)
             use = np.isfinite(refit_std) & np.isfinite(std)
             std = np.where(use, refit_std, std)
-    # 3D and Tikhonov: not assessed (the check was measured on 2D TV images only)
-    checked = dim == 2 and regularization == "tv"
     calibrated = True if checked else None
-    n_regions = _calibration_regions(theta_part, reg, h * h) if checked and std is not None else 0
+    n_regions = len(partition[1]) if checked and std is not None else 0
     if n_regions > CALIBRATION_MAX_REGIONS and std is not None:
         # not a few inclusions in a background: the std misses the regulariser's bias (CALIBRATION_MAX_REGIONS)
         calibrated = False
@@ -2171,33 +2174,37 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         constrained=constrained,
         shear_modulus_kpa=mu_kpa, reference=None if ref is None else [list(ref[0]), ref[1]], one_step=one_step,
         misfit_model_strain=phi_model, lateral_shortfall=short, uncertainty_calibrated=calibrated, notes=notes,
-        unsupported_area=unsupported[0])
+        unsupported_area=unsupported_area)
+
+
+def _calibration_partition(theta, reg, element_area: float):
+    """(labels (n_el,), candidates) of the log-modulus image ``theta`` (n_el,): :func:`_regions` at
+    :data:`CALIBRATION_LEVEL`, a component smaller than :data:`CALIBRATION_MIN_AREA` mm^2, or than
+    :data:`TV_REFIT_MIN_ELEMENTS` elements, joining a neighbour; ``element_area`` the mean element area (mm^2)."""
+    min_el = max(TV_REFIT_MIN_ELEMENTS, int(np.ceil(CALIBRATION_MIN_AREA / max(float(element_area), 1e-12))))
+    labels, cand, _ = _regions(np.asarray(theta, float), reg, CALIBRATION_LEVEL, min_el)
+    return labels, cand
 
 
 def _calibration_regions(theta, reg, element_area: float) -> int:
-    """Regions of the log-modulus image ``theta`` (n_el,) besides the largest (:func:`_regions` at
-    :data:`CALIBRATION_LEVEL`; a component smaller than :data:`CALIBRATION_MIN_AREA` mm^2, or than
-    :data:`TV_REFIT_MIN_ELEMENTS` elements, joins a neighbour), ``element_area`` the mean element area (mm^2): the
-    count of :data:`CALIBRATION_MAX_REGIONS`."""
-    min_el = max(TV_REFIT_MIN_ELEMENTS, int(np.ceil(CALIBRATION_MIN_AREA / max(float(element_area), 1e-12))))
-    _, cand, _ = _regions(np.asarray(theta, float), reg, CALIBRATION_LEVEL, min_el)
-    return len(cand)
+    """Regions of the log-modulus image ``theta`` besides the largest (:func:`_calibration_partition`): the count
+    of :data:`CALIBRATION_MAX_REGIONS`."""
+    return len(_calibration_partition(theta, reg, element_area)[1])
 
 
-def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, element_area: float):
+def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, element_area: float, partition=None):
     """Regions of a 2D TV image whose modulus step the axial strain does not show: (fraction of the inner
     elements' area they cover, list of (area mm^2, mu / the largest region's, abs(e_xx) / the largest region's)).
 
-    The partition is :func:`_calibration_regions`' (``theta_part``, the TV solution before the refit: level
+    The partition is :func:`_calibration_partition`'s (``theta_part``, the TV solution before the refit: level
     :data:`CALIBRATION_LEVEL`, regions of at least :data:`CALIBRATION_MIN_AREA` mm^2, ``element_area`` the mean
-    element area); each region's step d = mean log mu (``theta``, the result) minus the largest region's, and its
+    element area; ``partition`` when the caller has it already); each region's step d = mean log mu (``theta``, the result) minus the largest region's, and its
     strain support s = log(mean abs(e_xx) of the largest / of the region) (area-weighted, inner elements only, as
     :func:`_contradiction`: the boundary elements carry the data's edge).  A region is unsupported when
     |d| >= :data:`SUPPORT_LEVEL` and s / d < :data:`SUPPORT_FRACTION`: a stiffer region must strain less, a softer
     more, whatever its shape (the strain of a disk of contrast c, 2 / (1 + c) of the far field in plane strain,
     gives s / d of 0.3-0.8 for c 1/8-8)."""
-    min_el = max(TV_REFIT_MIN_ELEMENTS, int(np.ceil(CALIBRATION_MIN_AREA / max(float(element_area), 1e-12))))
-    labels, cand, _ = _regions(np.asarray(theta_part, float), reg, CALIBRATION_LEVEL, min_el)
+    labels, cand = partition if partition is not None else _calibration_partition(theta_part, reg, element_area)
     inner = _inner_elements(mesh)
     if inner.sum() < 8 or not cand:
         return 0.0, []
