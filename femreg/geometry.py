@@ -357,7 +357,7 @@ def _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c):
     """The sample-space check's refusal in the probe's terms: its lateral spacing is the rays' distance
     ``rho_c dtheta`` at the middle sample, set by ``angle_pitch_deg`` (and the radius), not a line pitch to swap
     with the range step."""
-    from .orientation import MIN_LATERAL_CELL_PERIODS, OrientationError, diagnose
+    from .orientation import MIN_LATERAL_CELL_PERIODS, diagnose
 
     if getattr(exc, "problem", "") not in ("swapped", "spacing"):
         return exc

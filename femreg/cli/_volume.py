@@ -17,12 +17,21 @@ __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 _NOT_FOR_VOLUMES = ("geometry",)
 
 
-def read_volume_file(path, *, volume: bool = False):
+def read_volume_file(path, *, volume: bool = False, origin=None):
     """``(array, spacing (3,), origin (3,))`` when ``path`` holds RF volumes, else None: an .npz whose spacing has 3
     values; a file that can only hold volumes (a MetaImage of NDims 4, a MAT-file whose spacing has 3 values);
     with ``volume`` (CLI ``--volume``) any file :func:`femreg.io.read_volumes` reads, a 3D array one volume
-    (axial, lateral, elevational), e.g. a MetaImage of NDims 3, which is otherwise read as a stack of frames."""
-    p = Path(path)
+    (axial, lateral, elevational), e.g. a MetaImage of NDims 3, which is otherwise read as a stack of frames.
+    ``origin``: the frames' ``--origin``, refused for volumes (their origin comes from the file)."""
+    got = _read_volume_file(Path(path), volume)
+    if got is not None and origin is not None:
+        raise InputError(f"{path}: --origin places a frame's first sample; a volume's origin comes from its file "
+                         "(key or variable 'origin', three values in mm)")
+    return got
+
+
+def _read_volume_file(p: Path, volume: bool):
+    """:func:`read_volume_file` without its ``origin`` check."""
     if volume or _volumes_only(p):
         from ..io import read_volumes
 
@@ -40,10 +49,10 @@ def read_volume_file(path, *, volume: bool = False):
             return None
         key = "rf" if "rf" in z else next((k for k in z.files if k not in ("spacing", "origin")), None)
         if key is None:
-            raise InputError(f"{path}: no volume array in the file")
+            raise InputError(f"{p}: no volume array in the file")
         arr = np.asarray(z[key])
         if arr.ndim not in (3, 4):
-            raise InputError(f"{path}: spacing has 3 values but {key!r} has shape {arr.shape}; a volume is "
+            raise InputError(f"{p}: spacing has 3 values but {key!r} has shape {arr.shape}; a volume is "
                              f"(n_x, n_y, n_z), a volume sequence (n_frames, n_x, n_y, n_z)")
         origin = np.asarray(z["origin"], float).ravel() if "origin" in z else np.zeros(3)
         if origin.size != 3:

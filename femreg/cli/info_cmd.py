@@ -122,13 +122,10 @@ def _origin_note(info, args) -> str:
     """A note when the header states a start depth (``t0``, ``start_depth``) that the frames' origin, 0 as read,
     does not carry: depths are labelled from the first sample, and a convex / sector frame's geometry needs its
     first range ("" otherwise)."""
-    from ..io.checks import header_fields, origin_hint
+    from ..io.checks import unapplied_start_depth
 
-    meta = info.get("metadata") or {}
-    if meta.get("origin_given") or abs(float(info["origin_mm"][0])) > 0:
-        return ""
-    depth, why = origin_hint(header_fields(meta), getattr(args, "sound_speed", None))
-    if depth is None or not depth > 0:
+    depth, why = unapplied_start_depth(info.get("metadata"), info["origin_mm"], getattr(args, "sound_speed", None))
+    if depth is None:
         return ""
     return (f"the first sample is read at depth 0, but the header states {depth:.4g} mm ({why}): pass --origin "
             f"{depth:.4g} 0 if so (a convex or phased array's geometry needs its first range)")

@@ -162,12 +162,10 @@ def _check_stated_geometry(fr, path, beam, args) -> None:
 def _note_start_depth(fr, path, args) -> None:
     """On stderr: a convex / sector file whose header states a start depth its frames were not given (``--origin``);
     the fan's geometry is computed from the first range."""
-    from femreg.io.checks import header_fields, origin_hint
+    from femreg.io.checks import unapplied_start_depth
 
-    if fr.metadata.get("origin_given") or abs(float(fr.origin[0])) > 0:
-        return
-    depth, why = origin_hint(header_fields(fr.metadata), getattr(args, "sound_speed", None))
-    if depth is not None and depth > 0:
+    depth, why = unapplied_start_depth(fr.metadata, fr.origin, getattr(args, "sound_speed", None))
+    if depth is not None:
         who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
         print(f"{who}: note: {path}: the first sample is taken at range 0, but the header states {depth:.4g} mm "
               f"({why}): pass --origin {depth:.4g} 0 if so (the rays' geometry depends on it)", file=sys.stderr)
@@ -179,10 +177,7 @@ def run(args) -> int:
 
     kw = registration_kwargs(args)
     from ._volume import read_volume_file, register_volumes
-    vol = read_volume_file(args.reference, volume=args.volume)
-    if vol is not None and getattr(args, "origin", None) is not None:
-        raise InputError(f"{args.reference}: --origin places a frame's first sample; a volume's origin comes from its file "
-                         "(key or variable 'origin', three values in mm)")
+    vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
     if vol is not None:                 # RF volumes (spacing with 3 values)
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "

@@ -55,10 +55,7 @@ def run(args) -> int:
     from ..sequence import track
 
     from ._volume import read_volume_file, track_volumes
-    vol = read_volume_file(args.file, volume=args.volume)
-    if vol is not None and getattr(args, "origin", None) is not None:
-        raise InputError(f"{args.file}: --origin places a frame's first sample; a volume's origin comes from its file "
-                         "(key or variable 'origin', three values in mm)")
+    vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None))
     kw = registration_kwargs(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
         if args.geometry in ("convex", "sector"):

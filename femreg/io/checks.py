@@ -15,6 +15,7 @@ from ..errors import FileFormatError, InputError
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
            "axis_fields", "header_axes", "header_fields", "origin_hint",
+           "unapplied_start_depth", "AXIS_MAX",
            "iq_frequency_hint", "scalar_fields"]
 
 FORMATS = {
@@ -307,13 +308,19 @@ _ANGLE_VECTOR_NAMES = ("theta", "thetas", "angles", "rayangles", "beamangles", "
                        "scanangles", "azimuth", "azimuthangles", "steeringangles", "sectorangles")
 
 
-def _geometry_key(name: str) -> tuple:
-    """(base, unit) of a header field for the probe geometry: ``probe/angle_pitch_deg`` -> ("anglepitch", "deg")."""
+def _name_unit(name: str, units, bases) -> tuple:
+    """(base, unit) of a header field's name (last path component, lower-case alphanumerics): the unit suffix among
+    ``units`` removed where the rest is one of ``bases``; else (the whole name, "")."""
     k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
-    for u in ("deg", "rad", "mm", "m"):
-        if k.endswith(u) and k[:-len(u)] in _RADIUS_NAMES + _ANGLE_PITCH_NAMES + _ANGLE_VECTOR_NAMES:
+    for u in units:
+        if k.endswith(u) and k[:-len(u)] in bases:
             return k[:-len(u)], u
     return k, ""
+
+
+def _geometry_key(name: str) -> tuple:
+    """(base, unit) of a header field for the probe geometry: ``probe/angle_pitch_deg`` -> ("anglepitch", "deg")."""
+    return _name_unit(name, ("deg", "rad", "mm", "m"), _RADIUS_NAMES + _ANGLE_PITCH_NAMES + _ANGLE_VECTOR_NAMES)
 
 
 def geometry_fields(fields: dict, axes: dict | None = None, n_lines: int | None = None) -> dict:
@@ -406,12 +413,8 @@ def origin_hint(fields: dict, sound_speed: float | None = None) -> tuple:
         v = _positive(value)
         if v is None:
             continue
-        k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
-        for unit in ("us", "s", "mm", "m", ""):
-            if k.endswith(unit) and k[:len(k) - len(unit)] in _T0_NAMES + _DEPTH0_NAMES:
-                base = k[:len(k) - len(unit)]
-                break
-        else:
+        base, unit = _name_unit(name, ("us", "s", "mm", "m"), _T0_NAMES + _DEPTH0_NAMES)
+        if base not in _T0_NAMES + _DEPTH0_NAMES:
             continue
         if base in _T0_NAMES:
             t = v * {"us": 1e-6, "s": 1.0}.get(unit, 1.0 if v < 1e-2 else 1e-6)
@@ -420,6 +423,16 @@ def origin_hint(fields: dict, sound_speed: float | None = None) -> tuple:
         d = v * {"mm": 1.0, "m": 1e3}.get(unit, 1e3 if v < 0.5 else 1.0)
         return d, f"{name} = {v:g} read as {d:g} mm"
     return None, ""
+
+
+def unapplied_start_depth(metadata, origin, sound_speed: float | None = None) -> tuple:
+    """``(depth mm, words)`` of a start depth the header states (:func:`origin_hint`) that frames read with
+    ``metadata`` and ``origin`` do not carry (no ``--origin`` given, the first sample at depth 0), or
+    ``(None, "")``."""
+    if dict(metadata or {}).get("origin_given") or abs(float(origin[0])) > 0:
+        return None, ""
+    depth, why = origin_hint(header_fields(metadata), sound_speed)
+    return (depth, why) if depth is not None and depth > 0 else (None, "")
 
 
 def iq_frequency_hint(fields: dict) -> str:
@@ -442,7 +455,11 @@ def iq_frequency_hint(fields: dict) -> str:
     return ""
 
 
-def axis_fields(items, max_size: int = 100_000) -> dict:
+#: Longest vector a reader reads as a possible axis (ray angles, depths), not as data.
+AXIS_MAX = 100_000
+
+
+def axis_fields(items, max_size: int = AXIS_MAX) -> dict:
     """{name: {"n", "first", "step"}} of the evenly spaced numeric vectors among ``(name, array)`` pairs (a file's
     axes: ray angles, depths, line positions), 3 to ``max_size`` values, steps equal to 0.1 % of the step; other
     vectors (a TGC curve) are left out.  JSON-friendly, so ``femreg info --json`` prints them."""

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .checks import axis_fields, check_origin, fail, merge_spacing, spacing_hint, validate_frames
+from .checks import AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, spacing_hint, validate_frames
 
 __all__ = ["read_hdf5", "EXTENSIONS"]
 
@@ -136,7 +136,7 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
             scalars = {k: d[()] for k, d in dsets.items() if k != name and d.size == 1
                        and d.dtype.kind in "iuf"}
             attrs = {**_scalars(scalars), **_scalars(f.attrs), **_scalars(ds.attrs)}
-            axes = axis_fields((k, d[()]) for k, d in dsets.items() if k != name and 3 <= d.size <= 100_000
+            axes = axis_fields((k, d[()]) for k, d in dsets.items() if k != name and 3 <= d.size <= AXIS_MAX
                                and d.dtype.kind in "iuf")
     except (FileFormatError, InputError):
         raise

@@ -18,12 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import (axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
+from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
                      validate_volumes)
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
-VECTOR_MAX = 100_000     # longest vector read as a possible axis (ray angles, depths), not as data
 _HDF5_SIG = b"\x89HDF\r\n\x1a\n"
 _NUMERIC_CLASSES = {"double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
                     "uint64", "logical"}
@@ -157,7 +156,7 @@ def _load_mat(path, variable, ndims):
         data["scalars"] = {v.name: v.array(order) for v in variables
                            if v.numeric and v.name != name and int(np.prod(v.shape)) == 1}
         data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name != name
-                           and 3 <= int(np.prod(v.shape)) <= VECTOR_MAX}
+                           and 3 <= int(np.prod(v.shape)) <= AXIS_MAX}
     else:
         data, cands, name = _read_mat4(path, variable, ndims)
     arr = data.pop(name)
@@ -260,7 +259,7 @@ def _read_mat73(path, variable, ndims=(2, 3)):
             aux = {"scalars": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1] and d.size == 1
                                and not d.dtype.names},
                    "vectors": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1]
-                               and 3 <= d.size <= VECTOR_MAX and not d.dtype.names}}
+                               and 3 <= d.size <= AXIS_MAX and not d.dtype.names}}
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:
                     aux[a] = dsets[a][()]
