@@ -44,10 +44,12 @@ def sampled_cnr(bench, fun, centre, R):
     """CNR = 2 (mean_in - mean_bg)^2 / (var_in + var_bg) of a callable points -> values, inside 0.7 R and in the
     ring 1.6-2.5 R (the regions and grid of the contrast, ``bench.sampled_regions``); NaN with fewer than 2
     samples in a region."""
-    vin, vbg = bench.sampled_regions(fun, centre, R)
+    from femreg.metrics import cnr_e
+
+    vin, vbg = bench.sampled_regions(fun, centre, R)      # finite samples only
     if len(vin) < 2 or len(vbg) < 2:
         return float("nan")
-    return float(2.0 * (np.mean(vin) - np.mean(vbg)) ** 2 / (np.var(vin) + np.var(vbg)))
+    return float(cnr_e(np.r_[vbg, vin], np.r_[np.zeros(len(vbg), bool), np.ones(len(vin), bool)]))
 
 
 def edge_profile_width(fun, centre, R, direction, step=0.25, reach=2.0):
