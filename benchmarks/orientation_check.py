@@ -10,6 +10,9 @@ detections (transposed and swapped refused), false alarms (a correct pair or an 
 
 Run: ``python benchmarks/orientation_check.py [--paper] [--no-robustness]`` (about 2 min with the paper sequences
 cached).  Measured: 49 pairs, 98 of 98 transposed/swapped refused, 0 of 98 correct frames and envelopes refused.
+The envelope and log B-mode of each reference (no carrier) are checked with their spacings exchanged, in metres and
+in centimetres: on 45 pairs 0 of 45 B-modes refused, exchanged 90 of 90, metres 90 of 90, centimetres 13 of 90
+(the cells of 3-7 MHz probes 10 x smaller still look like a finer probe's).
 """
 from __future__ import annotations
 
@@ -79,25 +82,41 @@ def main(argv=None):
     sources = [simulated_pairs(), invivo_pairs(), paper_pairs(args.paper)]
     if not args.no_robustness:
         sources.insert(1, robustness_pairs())
-    n = detected = false_alarm = 0
+    n = detected = false_alarm = bmode_alarm = 0
+    env_found = [0, 0, 0]
     for src in sources:
         for name, ref, mov, sp in src:
             sp = tuple(float(s) for s in sp)
             ok = diagnose(ref, sp)
-            env = diagnose(envelope(ref), sp)
+            e = envelope(ref)
+            bm = 20.0 * np.log10(e / e.max() + 1e-6)            # log-compressed B-mode
+            env = diagnose(e, sp)
+            bmode = diagnose(bm, sp)
             tr = diagnose(np.ascontiguousarray(ref.T), sp[::-1])
             sw = diagnose(ref, sp[::-1])
+            # envelope / B-mode mistakes: exchanged spacings, metres and centimetres typed as mm
+            env_sw = [diagnose(x, sp[::-1]).problem for x in (e, bm)]
+            env_m = [diagnose(x, tuple(v / 1e3 for v in sp)).problem for x in (e, bm)]
+            env_cm = [diagnose(x, tuple(v / 10.0 for v in sp)).problem for x in (e, bm)]
             n += 1
             detected += bool(tr.problem) + bool(sw.problem)
             false_alarm += bool(ok.problem) + bool(env.problem)
+            bmode_alarm += bool(bmode.problem)
+            env_found[0] += sum(bool(p) for p in env_sw)
+            env_found[1] += sum(bool(p) for p in env_m)
+            env_found[2] += sum(bool(p) for p in env_cm)
             print(f"{name:42s} ok:{ok.problem or 'pass':10s} env:{env.problem or 'pass':10s} "
+                  f"B-mode:{bmode.problem or 'pass':8s} cells {env.axial_cell_mm:.3g} x {env.lateral_cell_mm:.3g} "
+                  f"mm, env/B-mode swapped {env_sw}, m {env_m}, cm {env_cm}; "
                   f"T:{tr.problem or 'MISSED':10s} swap:{sw.problem or 'MISSED':10s} "
                   f"f={ok.frequency_mhz:5.2f} MHz, lateral cell {ok.cell_periods:5.2f} periods "
                   f"(swapped {sw.cell_periods:4.2f}), carrier ratio {ok.carrier[0]:.3f}/{ok.carrier[1]:.2f}",
                   flush=True)
     print(f"\n{n} pairs: {detected} of {2 * n} transposed/swapped refused, {false_alarm} false alarms on "
-          f"{2 * n} correct frames and envelopes")
-    return 0 if detected == 2 * n and false_alarm == 0 else 1
+          f"{2 * n} correct frames and envelopes, {bmode_alarm} on {n} log B-modes; envelopes and B-modes: "
+          f"exchanged spacings refused on {env_found[0]}, metres on {env_found[1]}, centimetres on {env_found[2]} "
+          f"of {2 * n}")
+    return 0 if detected == 2 * n and false_alarm == 0 and bmode_alarm == 0 else 1
 
 
 if __name__ == "__main__":

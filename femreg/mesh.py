@@ -76,8 +76,10 @@ def roi_mesh(shape, spacing, origin=(0.0, 0.0), *, element_size=None, margin=Non
         lo = int(np.ceil(m[a] / spacing[a] - 1e-9))
         hi = n - lo
         if hi - lo < 1:
+            size = ", ".join(f"{k * d:.4g}" for k, d in zip(shape, spacing))
             raise InputError(f"margin {m[a]} mm leaves no pixels along axis {a} (image {n} pixels of "
-                             f"{spacing[a]} mm)")
+                             f"{spacing[a]} mm; the image is ({size}) mm (axial, lateral): a spacing in "
+                             f"centimetres or metres must be given in mm, or pass a smaller margin)")
         b = _breaks(n, lo, hi, max(1.0, h[a] / spacing[a]))
         # Pixel-edge index k sits at the centre of pixel k minus half a pixel.
         axes.append(origin[a] + (b - 0.5) * spacing[a])

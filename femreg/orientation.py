@@ -39,8 +39,17 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   0.5 / 0.8 / 1.2 / 2 times the right one, 27 / 25 / 24 / 34 of the 38 pairs are refused (the 0.1 % pairs and some
   in vivo pairs have too little motion to tell), none with the right one.
 
-Only strong evidence refuses: no carrier along axis 0 (envelope, B-mode, smooth synthetic images) passes, and so
-does anything too small to measure.  ``register(..., check_orientation=False)``, ``track(...,
+* **speckle of envelope and B-mode frames** -- without a carrier the speckle cells (FWHM of the envelope
+  autocorrelation, mm) are the spacing's witness: a probe's axial cell is about its pulse length, its lateral cell
+  about its beam width, the wider of the two.  Cells outside :data:`ENVELOPE_CELL_MM` are a spacing in the wrong
+  units (centimetres typed as mm make them 10 x too small); a lateral cell under :data:`ENVELOPE_MIN_ASPECT` of the
+  axial one that exchanging the spacings makes plausible is a swap.  On the envelopes, log B-modes and resampled
+  B-modes of the 3-15 MHz probes, the paper's and the in vivo frames (benchmarks/orientation_check.py, 45 pairs):
+  no false refusal, exchanged spacings refused on 90 of 90, metres on 90 of 90; centimetres on 13 of 90, where the
+  cells then fall under the bounds (the 12-15 MHz probes): on 3-7 MHz probes a spacing 10 x too small looks like
+  a finer probe's (the mesh's margin then names the image's size in mm).
+
+Only strong evidence refuses: smooth synthetic images and anything too small to measure pass.  ``register(..., check_orientation=False)``, ``track(...,
 check_orientation=False)`` and the CLI's ``--no-orientation-check`` skip the check.
 """
 from __future__ import annotations
@@ -54,7 +63,7 @@ from .errors import InputError
 __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "axial_carrier_ratio", "is_envelope", "diagnose",
            "check", "exchanged_shape",
            "check_raw_shape", "check_remodulated", "check_iq_sign", "FREQUENCY_MHZ", "MIN_SPECKLE_ASPECT",
-           "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S"]
+           "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S", "ENVELOPE_CELL_MM"]
 
 SOUND_SPEED_M_S = 1540.0
 #: Plausible RF centre frequencies of medical ultrasound (MHz): abdominal probes to preclinical high frequency.
@@ -75,6 +84,19 @@ MIN_SAMPLES = 16
 MIN_FFT = 256
 #: Rows of the block the speckle statistics are measured on (:func:`femreg.speckle.speckle_statistics`).
 SPECKLE_ROWS = 1024
+#: Plausible speckle cells (mm) of envelope and B-mode frames, ((axial min, max), (lateral min, max)): without a
+#: carrier the spacing's only witness is the speckle's physical size (module docstring).  Measured 0.08-1.2 axially
+#: and 0.2-3 laterally on envelopes, log B-modes and B-modes resampled to 0.05-0.1 mm pixels of the simulated
+#: 3-15 MHz probes, up to 3.6 x 10.8 on the in vivo frames' B-mode (benchmarks/orientation_check.py); the lower
+#: bounds leave room for 30-50 MHz preclinical probes (half a wavelength at 50 MHz is 0.015 mm).  A spacing in
+#: centimetres taken for millimetres makes the cells 10 x too small, metres 1000 x.
+ENVELOPE_CELL_MM = ((0.015, 10.0), (0.05, 50.0))
+#: Lateral / axial speckle cell of an envelope or B-mode frame below this, and at least
+#: :data:`ENVELOPE_SWAPPED_ASPECT` once the spacings are exchanged: the spacings are swapped (a linear array's
+#: lateral resolution is the coarser; measured 1.0-4.7, the 1.0 on square 0.1 mm pixels where exchanging changes
+#: nothing).
+ENVELOPE_MIN_ASPECT = 0.7
+ENVELOPE_SWAPPED_ASPECT = 1.4
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
 
@@ -142,7 +164,8 @@ class OrientationReport:
     """What the RF says about its own layout.  ``carrier`` = :func:`carrier_ratio` along (axis 0, axis 1);
     ``period_mm`` the axial RF period (:func:`femreg.speckle.speckle_statistics`), ``samples_per_period``,
     ``frequency_mhz`` = c / (2 period), ``lateral_cell_mm`` the lateral speckle cell and ``cell_periods`` its
-    ratio to the period (NaN where no carrier was found); ``problem`` "" or "transposed", "swapped",
+    ratio to the period (NaN where no carrier was found); ``axial_cell_mm`` the axial speckle cell of a frame
+    without a carrier (envelope, B-mode; NaN otherwise); ``problem`` "" or "transposed", "swapped",
     "spacing"; ``message`` the reason (one line)."""
 
     spacing: tuple
@@ -152,6 +175,7 @@ class OrientationReport:
     frequency_mhz: float = float("nan")
     lateral_cell_mm: float = float("nan")
     cell_periods: float = float("nan")
+    axial_cell_mm: float = float("nan")
     problem: str = ""
     message: str = ""
 
@@ -164,8 +188,10 @@ class OrientationReport:
         if self.problem:
             return self.message
         if not self.has_carrier:
+            cells = (f"; speckle cells {self.axial_cell_mm:.3g} x {self.lateral_cell_mm:.3g} mm (axial x lateral), "
+                     "a plausible spacing" if np.isfinite(self.axial_cell_mm) else "")
             return (f"no RF carrier along axis 0 (low/centre band power {self.carrier[0]:.2g}): envelope or "
-                    "B-mode data, orientation not checked")
+                    f"B-mode data, carrier checks skipped{cells}")
         return (f"RF carrier along axis 0: period {self.period_mm:.4g} mm ({self.samples_per_period:.1f} samples), "
                 f"{self.frequency_mhz:.2f} MHz at {SOUND_SPEED_M_S:g} m/s; lateral speckle "
                 f"{self.cell_periods:.1f} periods wide")
@@ -219,7 +245,9 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                        f"{shape}: transpose them ({how}) and {spacing_text}, or {OVERRIDE}")
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
-        return rep                                   # no carrier along axis 0: envelope / B-mode, nothing to say
+        if c0 > NO_CARRIER_RATIO and min(img.shape) >= MIN_SAMPLES:
+            _check_envelope(img, rep, keep, swapped, dz, order)
+        return rep                                   # no carrier along axis 0: envelope / B-mode
     st = speckle_statistics(_strongest_rows(img), (dx, dy))
     rep.period_mm = float(st.period)
     rep.samples_per_period = rep.period_mm / dx
@@ -258,6 +286,45 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                 break
     rep.message = f"{why}; {hint}, or {OVERRIDE}"
     return rep
+
+
+def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tuple, order: str) -> None:
+    """The spacing check of a frame without a carrier (envelope, B-mode): its speckle cells (mm) against
+    :data:`ENVELOPE_CELL_MM` (units) and their aspect against :data:`ENVELOPE_MIN_ASPECT` (swapped spacings);
+    sets ``rep``'s cells, ``problem`` and ``message``."""
+    from .speckle import speckle_statistics
+
+    dx, dy = rep.spacing
+    cell = np.asarray(speckle_statistics(_strongest_rows(img), (dx, dy)).cell, float)
+    rep.axial_cell_mm, rep.lateral_cell_mm = (float(c) for c in cell)
+    if not np.all(np.isfinite(cell) & (cell > 0)):
+        return
+    (a0, a1), (l0, l1) = ENVELOPE_CELL_MM
+    plausible = lambda c: a0 <= c[0] <= a1 and l0 <= c[1] <= l1  # noqa: E731
+    found = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives speckle cells of {cell[0]:.3g} mm axially and "
+             f"{cell[1]:.3g} mm laterally")
+    aspect = cell[1] / cell[0]
+    cell_sw = cell * np.array([dy / dx, dx / dy])    # exchanged: the axial cell scales by dy/dx, the lateral by dx/dy
+    aspect_sw = cell_sw[1] / cell_sw[0]
+    if (aspect < ENVELOPE_MIN_ASPECT or not plausible(cell)) and plausible(cell_sw) \
+            and aspect_sw >= ENVELOPE_SWAPPED_ASPECT:
+        rep.problem = "swapped"
+        rep.message = (f"{found}, the lateral cell {aspect:.2f} of the axial one, but a probe resolves depth "
+                       f"better than across its lines; the axial and lateral spacings look swapped: pass spacing "
+                       f"({swapped}) ({order}; cells {cell_sw[0]:.3g} x {cell_sw[1]:.3g} mm; CLI: --spacing "
+                       f"{swapped.replace(',', '')}), or {OVERRIDE}")
+    elif not plausible(cell):
+        rep.problem = "spacing"
+        hint = "check the spacing's units (mm) and order (axial, lateral)"
+        # a uniform change of units scales both cells by k
+        for k, unit in ((10.0, "centimetres"), (1e3, "metres"), (1e-3, "micrometres")):
+            if plausible(cell * k):
+                text = ", ".join(f"{v * k:.6g}" for v in (dx, dy) + dz)
+                hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; cells "
+                        f"{cell[0] * k:.3g} x {cell[1] * k:.3g} mm; CLI: --spacing {text.replace(',', '')})")
+                break
+        rep.message = (f"{found}, outside what ultrasound probes resolve ({a0:g}-{a1:g} mm axially, {l0:g}-{l1:g} "
+                       f"mm laterally); {hint}, or {OVERRIDE}")
 
 
 def _strongest_rows(img, n: int = SPECKLE_ROWS):

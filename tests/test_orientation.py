@@ -8,7 +8,8 @@ import pytest
 
 import femreg
 from femreg.errors import InputError
-from femreg.orientation import (CARRIER_RATIO, MIN_LATERAL_CELL_PERIODS, NO_CARRIER_RATIO, OrientationError,
+from femreg.orientation import (CARRIER_RATIO, ENVELOPE_CELL_MM, MIN_LATERAL_CELL_PERIODS, NO_CARRIER_RATIO,
+                                OrientationError,
                                 carrier_ratio, check, diagnose)
 from femreg.pyramid import envelope
 
@@ -102,3 +103,43 @@ def test_register_and_track_refuse_before_any_work(probes, tmp_path):
     assert not (tmp_path / "run").exists()                        # refused before the folder was made
     res = femreg.register(p.ref, p.mov, spacing=sp[::-1], check_orientation=False, maxiter=2, margin=0.1)
     assert res.mesh.p.shape[1] > 0                                # the override runs the registration
+
+
+def _bmode(rf):
+    env = envelope(rf)
+    return 20 * np.log10(env / env.max() + 1e-6)            # log-compressed, as scanners display it
+
+
+def test_envelope_and_bmode_spacing_mistakes_are_refused(probes):
+    """Without a carrier the speckle cells are the spacing's witness: on the L3-L15 envelopes and B-modes the
+    correct spacing passes, exchanged spacings are named as swapped and metres as metres (benchmarks/
+    orientation_check.py: 0 false alarms, every non-square exchange found)."""
+    for name, p in probes.items():
+        sp = tuple(p.spacing)
+        for img in (envelope(p.ref), _bmode(p.ref)):
+            ok = diagnose(img, sp)
+            assert ok.problem == "" and "a plausible spacing" in ok.summary(), (name, ok)
+            a0, l0 = ENVELOPE_CELL_MM[0][0], ENVELOPE_CELL_MM[1][0]
+            # the measured cells clear the lower bounds by at least the 1.5x the module's margin claims
+            assert ok.axial_cell_mm > 1.5 * a0 and ok.lateral_cell_mm > 1.5 * l0, (name, ok)
+            sw = diagnose(img, sp[::-1])
+            assert sw.problem == "swapped", (name, sw)
+            assert f"--spacing {sp[0]:g} {sp[1]:g}" in sw.message, sw.message
+            m = diagnose(img, tuple(v / 1000.0 for v in sp))
+            assert m.problem == "spacing" and "units look like metres" in m.message, (name, m.message)
+
+
+def test_scan_converted_bmode_in_centimetres_is_refused(probes):
+    """A clinic's scan-converted B-mode (square 0.1 mm pixels) whose header's 0.01 cm is typed as mm: the cells
+    come out 10 x too small for any probe, and the advice gives the spacing in mm."""
+    from scipy.ndimage import zoom
+
+    p = probes["L15"]
+    dx, dy = p.spacing
+    frames = [zoom(_bmode(f), (dx / 0.1, dy / 0.1), order=1) for f in (p.ref, p.mov)]
+    assert diagnose(frames[0], (0.1, 0.1)).problem == ""
+    rep = diagnose(frames[0], (0.01, 0.01))
+    assert rep.problem == "spacing" and "units look like centimetres" in rep.message, rep.message
+    assert "CLI: --spacing 0.1 0.1" in rep.message, rep.message
+    with pytest.raises(OrientationError, match="centimetres"):
+        femreg.track(np.stack(frames), spacing=(0.01, 0.01))
