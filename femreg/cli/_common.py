@@ -13,11 +13,10 @@ Use::
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 
 from .. import options
-from ..errors import InputError
+from ..errors import InputError, SpacingUnknownError
 
 
 def _frame_selection(text: str):
@@ -96,12 +95,11 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
 def beam_spacing_error(exc, geometry):
     """A reader's "spacing unknown" error said for convex / sector frames, whose only spacing is the range step
     (``--spacing DX auto``); other errors as they are."""
-    text = str(exc)
-    if "spacing unknown" not in text:
+    if not isinstance(exc, SpacingUnknownError):
         return exc
-    m = re.search(r"its fields suggest --spacing (\S+) \S+ \((.*?); (DY|auto)", text)
-    hint = f"; its fields suggest DX = {m.group(1)} ({m.group(2)}): check it against the scanner's settings" if m else ""
-    where = text.split(": ", 1)[0]
+    s = exc.suggestion
+    hint = f"; its fields suggest DX = {s.dx} ({s.why_x}): check it against the scanner's settings" if s else ""
+    where = str(exc).split(": ", 1)[0] if exc.path is None else exc.path
     return InputError(f"{where}: the range step (the axial spacing, mm) is not in the file: pass --spacing DX auto "
                       f"(--geometry {geometry.kind}: the rays are --angle-pitch apart){hint}")
 

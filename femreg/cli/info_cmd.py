@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FileFormatError, InputError
+from ..errors import FileFormatError, InputError, SpacingUnknownError
 from ._common import add_reader_args, array_headers, frames_from_args
 
 
@@ -56,17 +55,17 @@ def _variables(path: Path) -> dict:
     return {k: f"{'x'.join(map(str, shape)) or 'scalar'} {dtype}" for k, (shape, dtype) in array_headers(path).items()}
 
 
-def _what_is_missing(exc: InputError, path: Path, args) -> tuple[str, dict]:
-    """(the need in words, reader kwargs to read the file for its description anyway) from a reader error."""
-    text = str(exc)
-    if "spacing unknown" in text:
+def _what_is_missing(exc: InputError, path: Path, args):
+    """(the need in words as a function of ``beam`` -- convex / sector frames, whose lateral value is the angle
+    pitch --, reader kwargs to read the file for its description anyway) from a reader error."""
+    if isinstance(exc, SpacingUnknownError):
         given = list(getattr(args, "spacing", None) or [None, None])
-        hint = re.search(r"its fields suggest .*? against the scanner's settings", text)
         need = ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
                 "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)")
-        return need + (f"; {hint.group(0)}" if hint else ""), \
+        s = exc.suggestion
+        return (lambda beam=False: need + (f"; {s.text(beam=beam)}" if s else "")), \
             {"spacing": [v if v is not None else 1.0 for v in given]}
-    return text, {}
+    return (lambda beam=False: str(exc)), {}
 
 
 def describe(fr, *, spacing_known: bool = True) -> dict:
@@ -163,7 +162,7 @@ def describe_volumes(path: Path, args) -> dict:
         vol = read_volumes(path, **kw)
         known = True
     except InputError as exc:
-        if "spacing unknown" not in str(exc):
+        if not isinstance(exc, SpacingUnknownError):
             raise
         vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), **kw)
         known = False
@@ -242,6 +241,7 @@ def _run_volumes(path: Path, args) -> int:
 
 def run(args) -> int:
     path = Path(os.fspath(args.file))
+    spacing_need = None             # the missing spacing's need, said again for convex / sector frames
     if getattr(args, "volume", False):
         return _run_volumes(path, args)
     try:
@@ -254,7 +254,8 @@ def run(args) -> int:
         except ValueError:
             raise exc from None
     except InputError as exc:
-        need, retry = _what_is_missing(exc, path, args)
+        need_for, retry = _what_is_missing(exc, path, args)
+        need = need_for()
         info = None
         iq = getattr(exc, "iq_frames", None)
         if iq is None and retry:
@@ -283,6 +284,8 @@ def run(args) -> int:
             raise
         if need is None:
             need = info["needs"].pop(0)
+        else:
+            spacing_need = need_for
         info["needs"] = [need] + info.get("needs", [])
     variables = _variables(path) if path.is_file() else {}
     if variables:
@@ -293,8 +296,8 @@ def run(args) -> int:
     probe = _probe_need(info)
     if probe:
         # a convex / phased array's lateral spacing is its angle pitch, not a line pitch the file should state
-        info["needs"] = [re.sub(r"(--spacing \S+) DY \(([^;]*); DY, the lateral line pitch .*?\)\)",
-                                r"\1 auto (\2; auto: the rays are --angle-pitch apart)", n) for n in info["needs"]]
+        if spacing_need is not None:
+            info["needs"][0] = spacing_need(beam=True)
         info["needs"].append(probe)
     # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
     rc = 1 if info["needs"] else 0

@@ -6,14 +6,15 @@ those fields; :mod:`femreg.io.readers` turns them into :class:`~femreg.io.Frames
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FileFormatError, InputError
+from ..errors import FileFormatError, InputError, SpacingUnknownError
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
-           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
+           "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "spacing_suggestion", "SpacingSuggestion", "geometry_fields", "geometry_hint",
            "axis_fields", "header_axes", "header_fields", "origin_hint",
            "unapplied_start_depth", "AXIS_MAX",
            "iq_frequency_hint", "scalar_fields"]
@@ -114,8 +115,11 @@ def check_origin(value, path=None, n: int = 2):
     return tuple(float(v) for v in arr)
 
 
-def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None, n: int = 2):
-    """Spacing from the file, overridden component-wise by the user's (None entries keep the file's)."""
+def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None, n: int = 2,
+                  suggestion: "SpacingSuggestion | None" = None):
+    """Spacing from the file, overridden component-wise by the user's (None entries keep the file's); where a
+    value is still missing, :class:`~femreg.errors.SpacingUnknownError` with ``required_msg`` (why the file has
+    none) and the header's ``suggestion`` (:func:`spacing_suggestion`)."""
     user = check_spacing(user_spacing, allow_none=True, n=n)
     file_sp = list(file_spacing) if file_spacing is not None else [None] * n
     if user is not None:
@@ -126,7 +130,10 @@ def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None 
         msg = required_msg or "this format stores no pixel spacing"
         hint = "spacing=(dx, dy) in mm (CLI: --spacing DX DY)" if n == 2 else \
             "spacing=(dx, dy, dz) in mm (CLI: --spacing DX DY DZ)"
-        raise InputError(f"{path}: {missing} spacing unknown ({msg}); give {hint}")
+        if suggestion is not None:
+            msg = f"{msg}; {suggestion.text()}"
+        raise SpacingUnknownError(f"{path}: {missing} spacing unknown ({msg}); give {hint}", path=path,
+                                  missing=[a for a, v in zip(axes, file_sp) if v is None], suggestion=suggestion)
     try:
         return check_spacing(file_sp, what="spacing", n=n)
     except InputError as exc:
@@ -255,9 +262,33 @@ def _hz(value: float, unit: str) -> float:
     return value * {"mhz": 1e6, "khz": 1e3, "hz": 1.0}.get(unit, 1.0 if value > 1e4 else 1e6)
 
 
-def spacing_hint(fields: dict) -> str:
-    """The ``--spacing DX DY`` a file's header fields imply, in words, or "" when they hold neither a sampling
-    frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
+@dataclass(frozen=True)
+class SpacingSuggestion:
+    """The spacing a file's header fields imply (:func:`spacing_suggestion`): ``dx``, ``dy`` as CLI words (a number
+    in mm, or "DX" / "DY" where the file holds nothing for it, "auto" for a curved array's lateral), each with its
+    reason.  A hint only: readers never apply it."""
+
+    dx: str
+    dy: str
+    why_x: str
+    why_y: str
+
+    def text(self, beam: bool = False) -> str:
+        """The hint in words; ``beam``: for convex / sector frames, whose lateral value is not used (an unknown
+        line pitch becomes ``auto``)."""
+        dy, why_y = (("auto", "auto: the rays are --angle-pitch apart") if beam and self.dy == "DY"
+                     else (self.dy, self.why_y))
+        return (f"its fields suggest --spacing {self.dx} {dy} ({self.why_x}; {why_y}): check them against the "
+                "scanner's settings")
+
+
+_NO_PITCH = ("DY, the lateral line pitch in mm, is not in the file (for a linear array usually the probe's element "
+             "pitch; a convex or phased array takes --geometry convex / sector and --spacing DX auto)")
+
+
+def spacing_suggestion(fields: dict) -> "SpacingSuggestion | None":
+    """The ``--spacing DX DY`` a file's header fields imply (:class:`SpacingSuggestion`), or None when they hold
+    neither a sampling frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
     (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
     below 0.005 in metres).  A hint only: readers never apply it."""
     found = {}
@@ -273,7 +304,7 @@ def spacing_hint(fields: dict) -> str:
             if base in names and kind not in found:
                 found[kind] = (name, v, unit)
     if "fs" not in found and "pitch" not in found:
-        return ""
+        return None
     c_name, c, _ = found.get("c", ("", 1540.0, ""))
     if "fs" in found:
         fs_name, fs, fu = found["fs"]
@@ -291,10 +322,14 @@ def spacing_hint(fields: dict) -> str:
         dy, why_y = "auto", ("auto: the lateral value is not used for a convex or phased array, whose rays are "
                              "--angle-pitch apart")
     else:
-        dy, why_y = "DY", ("DY, the lateral line pitch in mm, is not in the file (for a linear array usually the "
-                           "probe's element pitch; a convex or phased array takes --geometry convex / sector "
-                           "and --spacing DX auto)")
-    return f"its fields suggest --spacing {dx} {dy} ({why_x}; {why_y}): check them against the scanner's settings"
+        dy, why_y = "DY", _NO_PITCH
+    return SpacingSuggestion(dx, dy, why_x, why_y)
+
+
+def spacing_hint(fields: dict) -> str:
+    """:func:`spacing_suggestion` in words, "" without one."""
+    sug = spacing_suggestion(fields)
+    return sug.text() if sug is not None else ""
 
 
 # convex / phased-array header fields (last path component, lower-case alphanumerics, unit suffix removed)

@@ -13,7 +13,7 @@ layout or naming.  What femreg reads:
   axis are transposed and ``metadata["layout"]`` says so.  IQ (complex) and envelope frames are read as stored;
 * spacing (mm) and origin: a dataset or an attribute (of the frames' dataset or of the file) named ``spacing`` /
   ``origin``.  Without one the error names the spacing the file's attributes imply, if they hold a sampling
-  frequency and a pitch (:func:`femreg.io.checks.spacing_hint`), but never applies it: units in attributes are
+  frequency and a pitch (:func:`femreg.io.checks.spacing_suggestion`), but never applies it: units in attributes are
   a guess.
 
 Scalar attributes of the file and of the dataset, and scalar datasets (by their path, e.g. ``probe/fs``), are kept
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .checks import AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, spacing_hint, validate_frames
+from .checks import AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, spacing_suggestion, validate_frames
 
 __all__ = ["read_hdf5", "EXTENSIONS"]
 
@@ -155,8 +155,7 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
             raise fail(path, "'spacing' is not numeric") from None
         if len(file_spacing) != 2:
             raise fail(path, f"'spacing' has {len(file_spacing)} values, expected 2 (dx, dy) mm")
-    hint = spacing_hint(attrs)
-    sp = merge_spacing(path, file_spacing, spacing, n=2,
-                       required_msg="no 'spacing' in the HDF5 file" + (f"; {hint}" if hint else ""))
+    sp = merge_spacing(path, file_spacing, spacing, n=2, required_msg="no 'spacing' in the HDF5 file",
+                       suggestion=spacing_suggestion(attrs))
     origin = check_origin(origin, path, n=2) if origin is not None else (0.0, 0.0)
     return validate_frames(path, arr, sp, origin, meta, frames)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint, validate_frames,
+from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion, validate_frames,
                      validate_volumes)
 
 PREFERRED = ("rf", "frames")
@@ -122,9 +122,8 @@ def _aux(path, values: dict, spacing, n=2):
                              f"{'(dx, dy)' if n == 2 else '(dx, dy, dz)'} mm{hint}")
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
-    hint = spacing_hint(values.get("scalars") or {}) if n == 2 else ""
-    sp = merge_spacing(path, file_spacing, spacing, n=n,
-                       required_msg="no 'spacing' variable in the MAT-file" + (f"; {hint}" if hint else ""))
+    sp = merge_spacing(path, file_spacing, spacing, n=n, required_msg="no 'spacing' variable in the MAT-file",
+                       suggestion=spacing_suggestion(values.get("scalars") or {}) if n == 2 else None)
     return sp, origin
 
 

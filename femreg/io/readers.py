@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
-from .checks import axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint
+from .checks import axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -199,9 +199,8 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     origin = check_origin(raw_origin, path) if raw_origin is not None else None
     small = _npz_small(path, key)
     fields, axes = scalar_fields(small), axis_fields(small)
-    hint = spacing_hint(fields) if file_spacing is None else ""
-    sp = merge_spacing(path, file_spacing, spacing,
-                       required_msg="the .npz has no 'spacing' key" + (f"; {hint}" if hint else ""))
+    sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key",
+                       suggestion=spacing_suggestion(fields) if file_spacing is None else None)
     meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {}),
             **({"axes": axes} if axes else {})}
     return finalize(path, arr, sp, origin, meta, frames)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .checks import check_spacing, fail, merge_spacing, select_frames, spacing_hint, validate_frames
+from .checks import check_spacing, fail, merge_spacing, select_frames, spacing_suggestion, validate_frames
 
 HEADER_FIELDS = ("type", "frames", "w", "h", "ss", "ul_x", "ul_y", "ur_x", "ur_y", "br_x", "br_y",
                  "bl_x", "bl_y", "probe", "txf", "sf", "dr", "ld", "extra")
@@ -109,9 +109,11 @@ def read_ultrasonix(path, *, spacing=None, frames=None, sound_speed=None, **_ign
     elif user is None or user[0] is None:
         raise fail(path, f"bad header field sf (sampling frequency) = {hdr['sf']}; give spacing=(dx, dy)")
     need = "Ultrasonix .rf files do not store the lateral line pitch"
+    sug = None
     if dx is not None:      # the half of the spacing the header gives (its field sf, in Hz)
-        need += " (fs_Hz below: the header's sf); " + spacing_hint({"fs_Hz": hdr["sf"], **({} if sound_speed is None else {"c": c})})
-    sp = merge_spacing(path, (dx, None), spacing, required_msg=need)
+        need += " (fs_Hz below: the header's sf)"
+        sug = spacing_suggestion({"fs_Hz": hdr["sf"], **({} if sound_speed is None else {"c": c})})
+    sp = merge_spacing(path, (dx, None), spacing, required_msg=need, suggestion=sug)
     meta = {"format": "ultrasonix", "header": hdr, "frame_tags": tagged, "sound_speed": c, "stored_dtype": "int16"}
     if tagged:
         meta["frame_numbers"] = tags
