@@ -39,6 +39,11 @@ def add_parser(subparsers):
     return p
 
 
+#: Metadata printed with the lines above (or, for a DICOM region, by its ``crop`` line), not again.
+_SHOWN = ("origin_given", "spacing_source", "origin_source", "frame_rate", "frame_rate_source", "region",
+          "header_spacing")
+
+
 def _plain(v):
     if isinstance(v, dict):
         return {str(k): _plain(x) for k, x in v.items()}
@@ -116,6 +121,23 @@ def _probe_need(info) -> str:
     hint = geometry_hint(header_fields(meta), header_axes(meta), (info.get("shape") or [None, None])[1])
     return (f"frames along the rays of a curved or phased array: register with the probe geometry; {hint} "
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
+
+
+def _spacing_conflict(info, args) -> list:
+    """The refusal of ``register`` / ``track`` for a ``--spacing`` that contradicts the file's calibration (a
+    DICOM ultrasound region's), as a list of needs ([] when it agrees or the file states none)."""
+    from ..io.frames import Frames
+    from ..io.readers import _check_given_spacing
+
+    meta = info.get("metadata") or {}
+    if getattr(args, "spacing", None) is None or meta.get("header_spacing") is None:
+        return []
+    try:
+        _check_given_spacing(Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]),
+                                    metadata=meta, source=info["file"]), args.spacing)
+    except InputError as exc:
+        return [str(exc)]
+    return []
 
 
 def _origin_note(info, args) -> str:
@@ -287,6 +309,7 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    info["needs"] += _spacing_conflict(info, args)
     start = _origin_note(info, args)
     if start:
         info["note"] = "; ".join(n for n in (info.get("note"), start) if n)
@@ -307,9 +330,15 @@ def run(args) -> int:
     print(f"shape     {info['shape'][0]} axial x {info['shape'][1]} lateral")
     print(f"dtype     {info['dtype']} as stored" + (f" (read as {info['dtype_in_memory']})"
                                                     if info["dtype_in_memory"] != info["dtype"] else ""))
+    meta = info.get("metadata", {})
     if info["spacing_mm"] is not None:
-        print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral")
-        print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm")
+        src = meta.get("spacing_source") or ""
+        if meta.get("header_spacing") is not None and not np.allclose(info["spacing_mm"], meta["header_spacing"]):
+            src = f"given; the file states {', '.join(f'{v:g}' for v in meta['header_spacing'])} mm, {src}"
+        src = f" ({src})" if src else ""
+        print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral{src}")
+        src = f" ({meta['origin_source']})" if meta.get("origin_source") else ""
+        print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm{src}")
         print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
     else:
         print(_no_spacing_line(info["needs"]))
@@ -320,9 +349,12 @@ def run(args) -> int:
         print(f"RF        {info['rf_check']}")
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
-    for key, val in info.get("metadata", {}).items():
-        if (key == "dtype" and str(val) == info["dtype"]) or key == "origin_given":
-            continue                          # the sample type and the origin are printed above already
+    if isinstance(meta.get("frame_rate"), (int, float)):
+        src = f" ({meta['frame_rate_source']})" if meta.get("frame_rate_source") else ""
+        print(f"frame rate {meta['frame_rate']:.4g} Hz{src}")
+    for key, val in meta.items():
+        if (key == "dtype" and str(val) == info["dtype"]) or key in _SHOWN:
+            continue                          # printed above already (sample type, origin, spacing, frame rate)
         if key == "axes" and isinstance(val, dict):       # evenly spaced vectors (femreg.io.checks.axis_fields)
             print("axes:")
             for k, v in val.items():
