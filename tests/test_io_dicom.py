@@ -110,6 +110,12 @@ def test_rgb_to_luma_weights_and_monochrome1(tmp_path):
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 100, 110, 120              # near grey: 20 levels apart, below 25
     fr = read_frames(write_dicom(tmp_path / "a.dcm", rgb, [region(0, 0, 59, 49)]))
     assert fr.frames[0, 0, 0] == pytest.approx(0.299 * 100 + 0.587 * 110 + 0.114 * 120, abs=1e-4)
+    # YBR_FULL (stored as a scanner's JPEG would decode it): the luma is its Y
+    ybr = np.zeros((1, 50, 60, 3), np.uint8)
+    ybr[..., 0] = np.arange(60, dtype=np.uint8)[None, None, :] * 4
+    ybr[..., 1:] = 128
+    fy = read_frames(write_dicom(tmp_path / "y.dcm", ybr, [region(0, 0, 59, 49)], photometric="YBR_FULL"))
+    np.testing.assert_allclose(fy.frames[0], ybr[0, ..., 0], atol=1.0)   # within pydicom's RGB rounding
     g = np.arange(50 * 60).reshape(1, 50, 60) % 256
     m1 = read_frames(write_dicom(tmp_path / "m1.dcm", g, [region(0, 0, 59, 49)], photometric="MONOCHROME1"))
     np.testing.assert_array_equal(m1.frames, 255 - g)                # MONOCHROME1: 0 is white
@@ -213,12 +219,32 @@ def test_given_spacing_against_the_calibration(loop, tmp_path, capsys):
     assert read_frames(path, spacing=(0.2, None), check_orientation=False).spacing == pytest.approx((0.2, 0.12))
 
 
-def test_compressed_without_a_decoder(loop, tmp_path, capsys):
+def test_compressed_with_a_decoder(loop, tmp_path):
     from pydicom.pixels import get_decoder
+    from pydicom.uid import RLELossless
+
+    if not get_decoder(RLELossless).is_available:       # pydicom's own RLE decoder: always there
+        pytest.fail("pydicom cannot decode RLE Lossless")
+    path, tissue = loop
+    ds = pydicom.dcmread(path)
+    ds.compress(RLELossless)
+    ds.save_as(tmp_path / "rle.dcm", enforce_file_format=True)
+    fr = read_frames(tmp_path / "rle.dcm")
+    assert fr.metadata["transfer_syntax"] == "RLE Lossless"
+    np.testing.assert_allclose(fr.frames, tissue, atol=1e-3)
+
+
+def test_compressed_without_a_decoder(loop, tmp_path, capsys, monkeypatch):
+    import pydicom.pixels
     from pydicom.uid import JPEGLSLossless
 
-    if get_decoder(JPEGLSLossless).is_available:
-        pytest.skip("a JPEG-LS decoder is installed here")
+    real = pydicom.pixels.get_decoder(JPEGLSLossless)
+    if real.is_available:           # a JPEG-LS plugin is installed here: the reader is told it is not
+        class Missing:
+            is_available = False
+            missing_dependencies = ["pylibjpeg - requires pylibjpeg>=2.0 and pylibjpeg-libjpeg>=2.1"]
+
+        monkeypatch.setattr(pydicom.pixels, "get_decoder", lambda uid: Missing())
     path, _ = loop
     ds = pydicom.dcmread(path)
     ds.file_meta.TransferSyntaxUID = JPEGLSLossless

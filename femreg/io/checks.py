@@ -6,6 +6,7 @@ those fields; :mod:`femreg.io.readers` turns them into :class:`~femreg.io.Frames
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_fra
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "geometry_fields", "geometry_hint",
            "axis_fields", "header_axes", "header_fields", "origin_hint",
            "unapplied_start_depth", "AXIS_MAX",
-           "iq_frequency_hint", "scalar_fields"]
+           "iq_frequency_hint", "scalar_fields", "natural_key"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
@@ -61,6 +62,11 @@ def parse_dtype(dtype, byte_order=None) -> np.dtype:
             raise InputError(f"dtype {dtype!r} and byte_order {byte_order!r} disagree")
         order = bo
     return np.dtype((order or "<") + code)
+
+
+def natural_key(name: str):
+    """Sort key with embedded integers compared as numbers (frame2 < frame10)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
 def fail(path, problem: str) -> FileFormatError:

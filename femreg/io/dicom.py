@@ -50,6 +50,7 @@ COLOUR_LEVELS = 0.1
 #: A tissue region with more coloured pixels than this fraction is refused (a caliper or focus marker in colour
 #: covers far less; a colour-flow box far more).
 COLOUR_FRACTION = 0.01
+_MAX_BYTES = 1 << 34           # as the other readers: a corrupt header, not an image
 _UNITS = {0: "none", 1: "percent", 2: "dB", 3: "cm", 4: "seconds", 5: "hertz", 6: "dB/seconds", 7: "cm/sec",
           8: "cm2", 9: "cm2/sec", 10: "cm3", 11: "cm3/sec", 12: "degrees"}
 _DATA_TYPES = {0: "none", 1: "tissue", 2: "colour flow", 3: "PW spectral Doppler", 4: "CW spectral Doppler",
@@ -159,7 +160,7 @@ def tissue_region(path, ds) -> tuple:
     return region, regions
 
 
-def _decoder_check(path, ds, pydicom):
+def _decoder_check(path, ds):
     """FileFormatError naming the packages when no installed plugin decodes the transfer syntax."""
     ts = ds.file_meta.get("TransferSyntaxUID", None) if hasattr(ds, "file_meta") else None
     if ts is None or not ts.is_compressed:
@@ -196,7 +197,7 @@ def _frame_rate(ds) -> tuple:
     return None, ""
 
 
-def _grey(path, frame, photometric, bits_stored, signed):
+def _grey(frame, photometric, bits_stored, signed):
     """One decoded frame (rows, cols[, 3]) as float32 grey levels and its coloured-pixel fraction."""
     if frame.ndim == 3:
         rgb = frame.astype(np.float32)
@@ -225,11 +226,13 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
     pydicom = _pydicom(path)
     ds = _dataset(path, pydicom)
     if "PixelData" not in ds:
+        if not is_dicom(path):
+            raise fail(path, "not a DICOM image (no 'DICM' marker at byte 128, and no pixel data read)")
         raise fail(path, "DICOM file without pixel data (a DICOMDIR, a report or a presentation state?)")
     for name in ("Rows", "Columns", "BitsStored"):
         if name not in ds and not (name == "BitsStored" and "BitsAllocated" in ds):
             raise fail(path, f"DICOM image without {name}")
-    _decoder_check(path, ds, pydicom)
+    _decoder_check(path, ds)
     photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip().upper()
     samples = int(ds.get("SamplesPerPixel", 1))
     n_total = int(ds.get("NumberOfFrames", 1) or 1)
@@ -245,13 +248,15 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
     signed = int(ds.get("PixelRepresentation", 0)) == 1
     from pydicom.pixels import apply_color_lut, iter_pixels
 
+    if idx.size * (r1 - r0) * (c1 - c0) * 4 > _MAX_BYTES:
+        raise fail(path, f"header claims {idx.size} frames of {rows} x {cols}: over 16 GiB as float32")
     out = np.empty((idx.size, r1 - r0, c1 - c0), np.float32)
     try:
         for k, frame in enumerate(iter_pixels(ds, indices=[int(i) for i in idx])):
             if photometric == "PALETTE COLOR":
                 frame = apply_color_lut(frame, ds)
                 bits = 8 * frame.dtype.itemsize
-            g, coloured = _grey(path, frame[r0:r1, c0:c1], photometric, bits, signed)
+            g, coloured = _grey(frame[r0:r1, c0:c1], photometric, bits, signed)
             if coloured > COLOUR_FRACTION:
                 raise fail(path, f"frame {int(idx[k])}: {100 * coloured:.1f} % of the tissue region's pixels are "
                                  f"coloured (R, G, B more than {100 * COLOUR_LEVELS:g} % of full scale apart): colour "
@@ -328,8 +333,7 @@ def dicom_files(folder) -> list:
 def read_dicom_series(folder, files, *, spacing=None, frames=None, **_ignored) -> dict:
     """Frames of a folder of DICOM files (one frame or loop each), in ``InstanceNumber`` order (file names in
     natural order where it is missing or tied); one series only, every file of one frame size and spacing."""
-    from .checks import validate_frames
-    from .readers import natural_key
+    from .checks import natural_key, validate_frames
 
     folder = Path(folder)
     pydicom = _pydicom(folder)

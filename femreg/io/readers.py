@@ -34,7 +34,6 @@ Every failure is a :class:`~femreg.errors.FileFormatError` (bad file) or :class:
 from __future__ import annotations
 
 import os
-import re
 import zipfile
 from pathlib import Path
 
@@ -42,7 +41,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
-from .checks import axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_hint
+from .checks import axis_fields, check_origin, fail, merge_spacing, natural_key, scalar_fields, spacing_hint
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -300,11 +299,6 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
 
 
 # ------------------------------------------------------------------------------------------- directories
-
-def natural_key(name: str):
-    """Sort key with embedded integers compared as numbers (frame2 < frame10)."""
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
-
 
 def is_result_file(path) -> bool:
     """True for an ``.npz`` that femreg wrote as a result (registration, volume or inversion: it holds
