@@ -111,13 +111,20 @@ def _region_info(item, k: int) -> dict:
     return g
 
 
+def _box(r) -> tuple:
+    """(x0, y0, x1, y1), inclusive pixel bounds of a region."""
+    return (r["RegionLocationMinX0"], r["RegionLocationMinY0"], r["RegionLocationMaxX1"], r["RegionLocationMaxY1"])
+
+
 def _area(r) -> float:
-    return (r["RegionLocationMaxX1"] - r["RegionLocationMinX0"] + 1) * (r["RegionLocationMaxY1"] - r["RegionLocationMinY0"] + 1)
+    x0, y0, x1, y1 = _box(r)
+    return (x1 - x0 + 1) * (y1 - y0 + 1)
 
 
 def _overlap(a, b) -> bool:
-    return not (a["RegionLocationMaxX1"] < b["RegionLocationMinX0"] or b["RegionLocationMaxX1"] < a["RegionLocationMinX0"]
-                or a["RegionLocationMaxY1"] < b["RegionLocationMinY0"] or b["RegionLocationMaxY1"] < a["RegionLocationMinY0"])
+    ax0, ay0, ax1, ay1 = _box(a)
+    bx0, by0, bx1, by1 = _box(b)
+    return not (ax1 < bx0 or bx1 < ax0 or ay1 < by0 or by1 < ay0)
 
 
 def tissue_region(path, ds) -> tuple:
@@ -344,8 +351,9 @@ def read_dicom_series(folder, files, *, spacing=None, frames=None, **_ignored) -
         heads.append((f, ds, int(inst) if inst not in (None, "") else None))
     series = sorted({str(ds.get("SeriesInstanceUID", "")) for _, ds, _ in heads})
     if len(series) > 1:
-        raise fail(folder, f"the folder holds {len(series)} DICOM series ({', '.join(s or '(none)' for s in series[:3])}"
-                           f"{', ...' if len(series) > 3 else ''}): move one series' files into a folder of their own")
+        names = ", ".join(s or "(none)" for s in series[:3]) + (", ..." if len(series) > 3 else "")
+        raise fail(folder, f"the folder holds {len(series)} DICOM series ({names}): move one series' files into a "
+                           "folder of their own")
     big = 10 ** 9
     heads.sort(key=lambda h: (h[2] if h[2] is not None else big, natural_key(h[0].name)))
     parts = [read_dicom(f, spacing=spacing) for f, _, _ in heads]

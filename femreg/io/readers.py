@@ -410,9 +410,10 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, never
         applied.
     check_orientation : bool
-        Refuse a ``spacing`` that contradicts the file's calibration (above).  IQ data: refuse spacings that look exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks
-        of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency) and, from
-        frames 0 and 1, the other sign convention (:func:`femreg.orientation.check_iq_sign`).
+        Refuse a ``spacing`` that contradicts the file's calibration (above).  IQ data: refuse spacings that look
+        exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks of :func:`femreg.register` cannot
+        see them once the carrier comes from the modulation frequency) and, from frames 0 and 1, the other sign
+        convention (:func:`femreg.orientation.check_iq_sign`).
 
     Returns
     -------
