@@ -40,7 +40,8 @@ import numpy as np
 from ..errors import FileFormatError
 from .checks import fail, merge_spacing, select_frames
 
-__all__ = ["is_dicom", "read_dicom", "read_dicom_series", "DICOM_SUFFIXES", "COLOUR_LEVELS", "COLOUR_FRACTION"]
+__all__ = ["is_dicom", "read_dicom", "read_dicom_series", "dicom_files", "tissue_region", "DICOM_SUFFIXES",
+           "COLOUR_LEVELS", "COLOUR_FRACTION"]
 
 #: File name suffixes read as DICOM (any other file is DICOM when bytes 128-131 are ``DICM``).
 DICOM_SUFFIXES = (".dcm", ".dicom")
@@ -253,6 +254,13 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
         r0, r1, c0, c1 = 0, rows, 0, cols
     bits = int(ds.get("BitsStored", ds.get("BitsAllocated", 8)))
     signed = int(ds.get("PixelRepresentation", 0)) == 1
+    if region is not None:      # the spacing first: a missing one is said before any pixel is decoded
+        header = (10.0 * region["PhysicalDeltaY"], 10.0 * region["PhysicalDeltaX"])
+        sp = merge_spacing(path, header, spacing)
+    else:
+        sp = merge_spacing(path, None, spacing,
+                           required_msg="the DICOM file has no SequenceOfUltrasoundRegions, the calibration of a "
+                                        "scanner's ultrasound image")
     from pydicom.pixels import apply_color_lut, iter_pixels
 
     if idx.size * (r1 - r0) * (c1 - c0) * 4 > _MAX_BYTES:
@@ -290,7 +298,6 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
     origin = (0.0, 0.0)
     if region is not None:
         dy_cm, dx_cm = region["PhysicalDeltaY"], region["PhysicalDeltaX"]
-        header = (10.0 * dy_cm, 10.0 * dx_cm)
         meta["header_spacing"] = list(header)
         meta["spacing_source"] = (f"DICOM ultrasound region {region['index']} of {len(regions)}: axial PhysicalDeltaY "
                                   f"{dy_cm:g} cm per row, lateral PhysicalDeltaX {dx_cm:g} cm per column")
@@ -307,13 +314,9 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
         origin = tuple(ax)
         if region["ReferencePixelY0"] is not None or region["ReferencePixelX0"] is not None:
             meta["origin_source"] = "from the region's ReferencePixelX0/Y0 and their physical values"
-        sp = merge_spacing(path, header, spacing)
     else:
         meta["crop"] = (f"none: no SequenceOfUltrasoundRegions, the whole {rows} x {cols} image is read (annotations "
                         "included: --roi registers the image part)")
-        sp = merge_spacing(path, None, spacing,
-                           required_msg="the DICOM file has no SequenceOfUltrasoundRegions, the calibration of a "
-                                        "scanner's ultrasound image")
         meta["spacing_source"] = "given (--spacing); the DICOM file states none"
     if rate is not None:
         meta["frame_rate"] = rate
