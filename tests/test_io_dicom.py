@@ -197,6 +197,11 @@ def test_colour_doppler_is_refused(tmp_path, capsys):
     assert main(["info", str(path2)]) == 2
     err = capsys.readouterr().err
     assert "colour-flow" in err and "meaningless" in err, err
+    # a scanner's power-Doppler image of a lymph node (pydicom's example, no regions): 6.0 % coloured
+    from pydicom.data import get_testdata_file
+
+    with pytest.raises(FileFormatError, match=r"6\.0 % of the image's .* meaningless"):
+        read_frames(get_testdata_file("examples_rgb_color.dcm"), spacing=(0.1, 0.1))
     # a small coloured marker (a caliper) in the tissue region is accepted
     frames = screen(tissue)
     frames[:, 100:104, 150:160] = (0, 255, 0)
@@ -323,3 +328,34 @@ def test_bmode_loop_as_dicom_registers_to_its_known_strain(tmp_path, capsys):
         # measured 0.79 um RMS (0.008 pixel) and axial strain -0.00997: bounds 6x and 5 % of the strain
         assert rms < 5e-3, rms
         assert abs(np.median(e[ok, 0]) - eps) < 0.05 * abs(eps), np.median(e[ok, 0])
+
+
+def test_a_scanners_export(tmp_path):
+    """pydicom's SonoSite cardiac loop (30 frames, YBR_FULL_422, JPEG baseline, decoded by Pillow): stored at half
+    the size its regions were written for, it is refused; with its region halved (and the deltas doubled) it is read,
+    cropped to the fan, its luma the Y the scanner stored, its green marker under the colour threshold."""
+    from pydicom.data import get_testdata_file
+    from pydicom.pixels import get_decoder, pixel_array
+
+    import femreg
+
+    src = get_testdata_file("examples_ybr_color.dcm")
+    assert src is not None, "pydicom's example files are part of its wheel"
+    ds = pydicom.dcmread(src)
+    if not get_decoder(ds.file_meta.TransferSyntaxUID).is_available:
+        pytest.fail("Pillow (a matplotlib dependency) decodes JPEG baseline")
+    with pytest.raises(FileFormatError, match="resized or cropped"):
+        read_frames(src)
+    r = ds.SequenceOfUltrasoundRegions[0]
+    for k in ("RegionLocationMinX0", "RegionLocationMinY0", "RegionLocationMaxX1", "RegionLocationMaxY1"):
+        setattr(r, k, int(getattr(r, k)) // 2)
+    r.PhysicalDeltaX, r.PhysicalDeltaY = 2 * r.PhysicalDeltaX, 2 * r.PhysicalDeltaY
+    ds.save_as(tmp_path / "sonosite.dcm")
+    fr = read_frames(tmp_path / "sonosite.dcm")
+    assert fr.frames.shape == (30, 193, 256)
+    assert fr.spacing == pytest.approx((1.02099, 1.02099), rel=1e-5)
+    assert fr.metadata["frame_rate"] == pytest.approx(30.0, rel=1e-4)
+    y = pixel_array(ds, index=0, as_rgb=False)[15:208, 42:298, 0].astype(np.float32)
+    # measured: mean 0.013 grey levels from the stored Y, 6.5 at most (the green marker, clipped in RGB)
+    assert np.mean(np.abs(fr.frames[0] - y)) < 0.1 and np.max(np.abs(fr.frames[0] - y)) < 10
+    assert femreg.orientation.is_envelope(fr.frames[0])

@@ -150,11 +150,17 @@ def tissue_region(path, ds) -> tuple:
         raise fail(path, f"colour-flow (colour Doppler) region {flow[0]['index']} lies over the tissue region "
                          f"{region['index']}: {_COLOUR_MSG}")
     rows, cols = int(ds.Rows), int(ds.Columns)
+    # a last column / row one past the image (an exclusive bound) is a common off-by-one of exporters
+    region["RegionLocationMaxX1"] = min(region["RegionLocationMaxX1"], cols - 1.0) if (
+        region["RegionLocationMaxX1"] == cols) else region["RegionLocationMaxX1"]
+    region["RegionLocationMaxY1"] = min(region["RegionLocationMaxY1"], rows - 1.0) if (
+        region["RegionLocationMaxY1"] == rows) else region["RegionLocationMaxY1"]
     if not (0 <= region["RegionLocationMinX0"] <= region["RegionLocationMaxX1"] < cols
             and 0 <= region["RegionLocationMinY0"] <= region["RegionLocationMaxY1"] < rows):
         raise fail(path, f"tissue region {region['index']} (columns {region['RegionLocationMinX0']:g}-"
                          f"{region['RegionLocationMaxX1']:g}, rows {region['RegionLocationMinY0']:g}-"
-                         f"{region['RegionLocationMaxY1']:g}) is not inside the {rows} x {cols} image")
+                         f"{region['RegionLocationMaxY1']:g}) is not inside the {rows} x {cols} image: an image "
+                         "resized or cropped after the scanner wrote its calibration, which then no longer applies")
     for axis, what in (("X", "lateral (columns)"), ("Y", "axial (rows)")):
         unit = region[f"PhysicalUnits{axis}Direction"]
         if unit != 3:
@@ -273,7 +279,8 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
                 bits = 8 * frame.dtype.itemsize
             g, coloured = _grey(frame[r0:r1, c0:c1], photometric, bits, signed)
             if coloured > COLOUR_FRACTION:
-                raise fail(path, f"frame {int(idx[k])}: {100 * coloured:.1f} % of the tissue region's pixels are "
+                where = "the tissue region's" if region is not None else "the image's (no region to crop to)"
+                raise fail(path, f"frame {int(idx[k])}: {100 * coloured:.1f} % of {where} pixels are "
                                  f"coloured (R, G, B more than {100 * COLOUR_LEVELS:g} % of full scale apart): colour "
                                  f"Doppler or a colour map; {_COLOUR_MSG}")
             out[k] = g
