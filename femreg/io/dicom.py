@@ -12,7 +12,7 @@ burned in around the image), calibrated by the ultrasound regions of the US Regi
 * spacing: rows are the depth (axial, ``PhysicalDeltaY``), columns the lateral direction (``PhysicalDeltaX``),
   both required in cm (``PhysicalUnitsX/YDirection`` = 3) and returned in mm; without regions the spacing must be
   given (``--spacing``), and the whole image is read;
-* origin: from ``ReferencePixelX0/Y0`` (relative to the region's top-left corner, PS3.3 C.8.5.5.1.3) and
+* origin: from ``ReferencePixelX0/Y0`` (counted from the region's top-left corner, PS3.3 C.8.5.5) and
   ``ReferencePixelPhysicalValueX/Y`` (0 where absent); without a reference pixel the region's first row is at
   depth 0 and its first column at lateral 0, as the other readers' default origin;
 * grey levels: MONOCHROME2 as stored, MONOCHROME1 inverted (its 0 is white); RGB, YBR_FULL, YBR_FULL_422 and
@@ -313,10 +313,11 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
         meta["crop"] = (f"rows {r0}-{r1 - 1}, columns {c0}-{c1 - 1} of the {rows} x {cols} image (tissue region "
                         f"{region['index']}; the rest, annotations included, left out)")
         ax = []
-        for axis, ref_pixel, ref_value, delta in (("Y", "ReferencePixelY0", "ReferencePixelPhysicalValueY", dy_cm),
-                                                  ("X", "ReferencePixelX0", "ReferencePixelPhysicalValueX", dx_cm)):
+        for ref_pixel, ref_value, delta in (("ReferencePixelY0", "ReferencePixelPhysicalValueY", dy_cm),
+                                            ("ReferencePixelX0", "ReferencePixelPhysicalValueX", dx_cm)):
             p, v = region[ref_pixel], region[ref_value]
-            # ReferencePixelX0/Y0 count from the region's top-left corner (PS3.3 C.8.5.5.1.3); cm -> mm
+            # ReferencePixelX0/Y0 count from the region's top-left corner (PS3.3 C.8.5.5; a Philips export's
+            # tissue region has its lateral 0 there at the region's centre column, its ECG region -MinX0, -MinY0)
             ax.append(10.0 * ((v or 0.0) - p * delta) if p is not None else 0.0)
         origin = tuple(ax)
         if region["ReferencePixelY0"] is not None or region["ReferencePixelX0"] is not None:
