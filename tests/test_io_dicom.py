@@ -103,6 +103,10 @@ def test_multiframe_rgb_crop_spacing_and_frame_rate(loop):
     assert "BT.601" in fr.metadata["colour"]
     two = read_frames(path, frames=[3, 1])
     np.testing.assert_allclose(two.frames, tissue[[3, 1]], atol=1e-3)
+    with pytest.raises(InputError, match="does not write it"):
+        fr.save(path.with_name("copy.dcm"))
+    fr.save(path.with_name("copy.npz"))                                  # what it says to do instead
+    assert read_frames(path.with_name("copy.npz")).spacing == pytest.approx((0.1, 0.12))
 
 
 def test_rgb_to_luma_weights_and_monochrome1(tmp_path):
