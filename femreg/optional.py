@@ -8,6 +8,7 @@ the extras of pyproject.toml add the rest::
     pip install "femreg[vtk]"      # meshio + pyvista: ParaView files (VTU/XDMF), mesh files, 3D renderings
     pip install "femreg[amg]"      # pyamg: the algebraic-multigrid linear solver option
     pip install "femreg[forward]"  # gmsh, meshio, pypardiso: the forward FE models and the RF simulator
+    pip install "femreg[dicom]"    # pydicom: clinical DICOM ultrasound images and cine loops (femreg.io.dicom)
     pip install "femreg[all]"      # all of the above
 """
 from __future__ import annotations
@@ -26,6 +27,7 @@ EXTRAS = {
     "pyamg": ("pyamg", "amg"),
     "gmsh": ("gmsh", "forward"),
     "pypardiso": ("pypardiso", "forward"),
+    "pydicom": ("pydicom", "dicom"),
 }
 
 

@@ -18,9 +18,9 @@ from ._common import add_reader_args, array_headers, frames_from_args
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "info", help="describe an RF data file (format, frames, shape, spacing, header)",
-        description="Read FILE (npy, npz, mat v5/v7.3, mhd/mha, raw, Ultrasonix .rf, or a directory of "
-                    "per-frame files) and print its format, number of frames, frame shape (axial x lateral), "
-                    "sample type as stored, spacing, value range, variables and header fields, and what is "
+        description="Read FILE (npy, npz, mat v5/v7.3, mhd/mha, raw, Ultrasonix .rf, UFF, HDF5, DICOM, or a "
+                    "directory of per-frame files) and print its format, number of frames, frame shape (axial x "
+                    "lateral), sample type as stored, spacing, value range, variables and header fields, and what is "
                     "missing to register it (spacing; frames that look transposed or a spacing that looks "
                     "swapped, from the RF carrier: femreg.orientation).  Exit 0 when described and ready to "
                     "register; 1 when described but something is needed first (no spacing, a transposed frame: "
@@ -36,6 +36,11 @@ def add_parser(subparsers):
                         "that can only be volumes (4D data, three spacing values) are read so without it")
     p.set_defaults(func=run)
     return p
+
+
+#: Metadata printed with the lines above (or, for a DICOM region, by its ``crop`` line), not again.
+_SHOWN = ("origin_given", "spacing_source", "origin_source", "frame_rate", "frame_rate_source", "region",
+          "header_spacing")
 
 
 def _plain(v):
@@ -115,6 +120,23 @@ def _probe_need(info) -> str:
     hint = geometry_hint(header_fields(meta), header_axes(meta), (info.get("shape") or [None, None])[1])
     return (f"frames along the rays of a curved or phased array: register with the probe geometry; {hint} "
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
+
+
+def _spacing_conflict(info, args) -> list:
+    """The refusal of ``register`` / ``track`` for a ``--spacing`` that contradicts the file's calibration (a
+    DICOM ultrasound region's), as a list of needs ([] when it agrees or the file states none)."""
+    from ..io.frames import Frames
+    from ..io.readers import _check_given_spacing
+
+    meta = info.get("metadata") or {}
+    if getattr(args, "spacing", None) is None or meta.get("header_spacing") is None:
+        return []
+    try:
+        _check_given_spacing(Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]),
+                                    metadata=meta, source=info["file"]), args.spacing)
+    except InputError as exc:
+        return [str(exc)]
+    return []
 
 
 def _origin_note(info, args) -> str:
@@ -290,6 +312,7 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    info["needs"] += _spacing_conflict(info, args)
     start = _origin_note(info, args)
     if start:
         info["note"] = "; ".join(n for n in (info.get("note"), start) if n)
@@ -310,9 +333,15 @@ def run(args) -> int:
     print(f"shape     {info['shape'][0]} axial x {info['shape'][1]} lateral")
     print(f"dtype     {info['dtype']} as stored" + (f" (read as {info['dtype_in_memory']})"
                                                     if info["dtype_in_memory"] != info["dtype"] else ""))
+    meta = info.get("metadata", {})
     if info["spacing_mm"] is not None:
-        print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral")
-        print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm")
+        src = meta.get("spacing_source") or ""
+        if meta.get("header_spacing") is not None and not np.allclose(info["spacing_mm"], meta["header_spacing"]):
+            src = f"given; the file states {', '.join(f'{v:g}' for v in meta['header_spacing'])} mm, {src}"
+        src = f" ({src})" if src else ""
+        print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral{src}")
+        src = f" ({meta['origin_source']})" if meta.get("origin_source") else ""
+        print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm{src}")
         print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
     else:
         print(_no_spacing_line(info["needs"]))
@@ -323,9 +352,12 @@ def run(args) -> int:
         print(f"RF        {info['rf_check']}")
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
-    for key, val in info.get("metadata", {}).items():
-        if (key == "dtype" and str(val) == info["dtype"]) or key == "origin_given":
-            continue                          # the sample type and the origin are printed above already
+    if isinstance(meta.get("frame_rate"), (int, float)):
+        src = f" ({meta['frame_rate_source']})" if meta.get("frame_rate_source") else ""
+        print(f"frame rate {meta['frame_rate']:.4g} Hz{src}")
+    for key, val in meta.items():
+        if (key == "dtype" and str(val) == info["dtype"]) or key in _SHOWN:
+            continue                          # printed above already (sample type, origin, spacing, frame rate)
         if key == "axes" and isinstance(val, dict):       # evenly spaced vectors (femreg.io.checks.axis_fields)
             print("axes:")
             for k, v in val.items():

@@ -1,7 +1,7 @@
 """Reading users' RF data and writing results.
 
-Readers: :func:`read_frames` (npy, npz, MATLAB v5 / v7.3, MetaImage, raw, Ultrasonix .rf, directories of
-frames) -> :class:`Frames`; :func:`read_volumes` (npy, npz, MATLAB, MetaImage) -> :class:`Volumes`.  Writers: :func:`save_frames` (every reader format), :func:`save_result` /
+Readers: :func:`read_frames` (npy, npz, MATLAB v5 / v7.3, MetaImage, raw, Ultrasonix .rf, UFF, HDF5, DICOM
+ultrasound images and cine loops, directories of frames) -> :class:`Frames`; :func:`read_volumes` (npy, npz, MATLAB, MetaImage) -> :class:`Volumes`.  Writers: :func:`save_frames` (every reader format), :func:`save_result` /
 :func:`load_result` (the result ``.npz`` contract), :func:`write_vtu`, :func:`write_xdmf`, :func:`export_result`
 (ParaView); :func:`atomic_savez` / :func:`atomic_write_text` (write to a temporary name, then rename, so a reader
 never sees a torn file).  Every failure is a :class:`~femreg.errors.FileFormatError` or :class:`~femreg.errors.InputError`.

@@ -6,6 +6,7 @@ those fields; :mod:`femreg.io.readers` turns them into :class:`~femreg.io.Frames
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,12 +18,13 @@ __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_fra
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "spacing_suggestion", "SpacingSuggestion", "geometry_fields", "geometry_hint",
            "axis_fields", "header_axes", "header_fields", "origin_hint",
            "unapplied_start_depth", "AXIS_MAX",
-           "iq_frequency_hint", "scalar_fields"]
+           "iq_frequency_hint", "scalar_fields", "natural_key"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
     ".raw": "raw", ".bin": "raw", ".dat": "raw", ".f32": "raw", ".i16": "raw", ".rf": "ultrasonix",
     ".uff": "uff", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".he5": "hdf5",
+    ".dcm": "dicom", ".dicom": "dicom",
 }
 _DTYPES = {"float32": "f4", "float": "f4", "single": "f4", "f4": "f4", "met_float": "f4",
            "float64": "f8", "double": "f8", "f8": "f8", "met_double": "f8",
@@ -61,6 +63,11 @@ def parse_dtype(dtype, byte_order=None) -> np.dtype:
             raise InputError(f"dtype {dtype!r} and byte_order {byte_order!r} disagree")
         order = bo
     return np.dtype((order or "<") + code)
+
+
+def natural_key(name: str):
+    """Sort key with embedded integers compared as numbers (frame2 < frame10)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
 def fail(path, problem: str) -> FileFormatError:

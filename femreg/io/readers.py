@@ -13,7 +13,11 @@ Formats (chosen by extension, verified by content):
 ``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
                        to RF; see :mod:`femreg.io.uff`
 ``.h5`` ``.hdf5``      plain HDF5: a dataset of frames, its layout told by the RF carrier; see :mod:`femreg.io.hdf5`
-directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names
+``.dcm`` ``.dicom``    DICOM ultrasound image or cine loop (also any file with ``DICM`` at byte 128): B-mode frames
+                       cropped to the tissue region, spacing from its calibration; needs pydicom (the ``dicom``
+                       extra); see :mod:`femreg.io.dicom`
+directory              one file per frame (e.g. ``frame1.raw ... frame6.raw``), natural sort of names; DICOM files
+                       by ``InstanceNumber``
 =====================  ============================================================================
 
 Volumes (:func:`read_volumes` -> :class:`~femreg.io.Volumes`, ``(n, axial, lateral, elevational)``): npy, npz
@@ -30,7 +34,6 @@ Every failure is a :class:`~femreg.errors.FileFormatError` (bad file) or :class:
 from __future__ import annotations
 
 import os
-import re
 import zipfile
 from pathlib import Path
 
@@ -38,7 +41,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
-from .checks import axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion
+from .checks import axis_fields, check_origin, fail, merge_spacing, natural_key, scalar_fields, spacing_suggestion
 from .frames import Frames, Volumes, finalize, finalize_volumes
 
 __all__ = ["read_frames", "read_volumes", "FORMATS", "detect_format", "parse_dtype"]
@@ -81,6 +84,8 @@ def detect_format(path) -> str:
     for magic, name in _MAGIC:
         if head.startswith(magic) or (name == "hdf5" and head[512:520] == magic):
             return name
+    if head[128:132] == b"DICM":        # DICOM's preamble marker (files named IM_0001, or by UID)
+        return "dicom"
     if head[:80].lstrip().lower().startswith((b"objecttype", b"ndims")):
         return "metaimage"
     raise fail(path, f"unknown file type {path.suffix!r}; supported: " + ", ".join(sorted(FORMATS))
@@ -294,11 +299,6 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
 
 # ------------------------------------------------------------------------------------------- directories
 
-def natural_key(name: str):
-    """Sort key with embedded integers compared as numbers (frame2 < frame10)."""
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
-
-
 def is_result_file(path) -> bool:
     """True for an ``.npz`` that femreg wrote as a result (registration, volume or inversion: it holds
     ``mesh_points`` and ``mesh_cells``), read from the archive's index only."""
@@ -332,6 +332,12 @@ def read_directory(path, *, frames=None, **options):
                 continue
             by_ext.setdefault(FORMATS[p.suffix.lower()], []).append(p)
     set_aside.sort(key=natural_key)
+    if set(by_ext) <= {"dicom"}:        # clinical exports name DICOM files without an extension (IM_0001)
+        from .dicom import dicom_files
+
+        found = dicom_files(path)
+        if found:
+            by_ext["dicom"] = found
     if "metaimage" in by_ext:  # the .raw files are the headers' data files
         by_ext.pop("raw", None)
     if not by_ext:
@@ -344,6 +350,10 @@ def read_directory(path, *, frames=None, **options):
         raise fail(path, f"directory mixes formats ({listing}); point at one file or move the others out")
     (fmt, files), = by_ext.items()
     files.sort(key=lambda p: natural_key(p.name))
+    if fmt == "dicom":                  # one series, in InstanceNumber order
+        from .dicom import read_dicom_series
+
+        return Frames(**read_dicom_series(path, files, frames=frames, **options))
     parts = [_read_stored(f, **options) for f in files]        # IQ stays complex: read_frames remodulates the stack
     first = parts[0]
     for f, part in zip(files[1:], parts[1:]):
@@ -377,7 +387,9 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         On-disk sample type of raw files (default float32): float32, float64, int16, uint16, int8, ...
     spacing : (dx, dy) mm, optional
         Axial and lateral pixel spacing; overrides the file's (a None entry keeps the file's value).
-        Required where the file stores none (npy, raw, the lateral pitch of Ultrasonix .rf).
+        Required where the file stores none (npy, raw, the lateral pitch of Ultrasonix .rf).  Where the file's
+        own calibration states one (a DICOM ultrasound region), a value more than 1 % from it is refused unless
+        ``check_orientation`` is False.
     byte_order : {'little', 'big'}, optional
         Raw files only (default little); headers say their own.
     frames : int, slice or sequence of int, optional
@@ -397,9 +409,10 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, never
         applied.
     check_orientation : bool
-        IQ data: refuse spacings that look exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks
-        of :func:`femreg.register` cannot see them once the carrier comes from the modulation frequency) and, from
-        frames 0 and 1, the other sign convention (:func:`femreg.orientation.check_iq_sign`).
+        Refuse a ``spacing`` that contradicts the file's calibration (above).  IQ data: refuse spacings that look
+        exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks of :func:`femreg.register` cannot
+        see them once the carrier comes from the modulation frequency) and, from frames 0 and 1, the other sign
+        convention (:func:`femreg.orientation.check_iq_sign`).
 
     Returns
     -------
@@ -417,6 +430,8 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
                    sound_speed=sound_speed, modulation_frequency=modulation_frequency, iq_conjugate=iq_conjugate)
     fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed, iq_conjugate)
+    if check_orientation and spacing is not None:
+        _check_given_spacing(fr, spacing)
     if origin is not None:
         fr.origin = check_origin(origin)
         fr.metadata["origin_given"] = True
@@ -428,6 +443,29 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
             fr.metadata["iq"]["convention_check"] = list(check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing,
                                                                        fr.metadata["iq"], where=f"{fr.source}: "))
     return fr
+
+
+#: A given spacing further than this (relative) from the one a file's calibration states is refused.
+SPACING_TOLERANCE = 0.01
+
+
+def _check_given_spacing(fr: Frames, spacing) -> None:
+    """InputError when a given spacing differs by more than :data:`SPACING_TOLERANCE` from the spacing the file's
+    own calibration states (``metadata["header_spacing"]``, a DICOM ultrasound region's): a wrong spacing scales
+    every displacement and strain and passes the speckle checks."""
+    header = fr.metadata.get("header_spacing")
+    if header is None:
+        return
+    from ..orientation import OVERRIDE
+    from .checks import check_spacing
+
+    given = check_spacing(spacing, allow_none=True)
+    wrong = [f"{name} {g:g} mm against {h:.6g} mm" for name, g, h in zip(("axial", "lateral"), given, header)
+             if g is not None and abs(g / h - 1.0) > SPACING_TOLERANCE]
+    if wrong:
+        raise InputError(f"{fr.source}: the spacing given contradicts the file's calibration ({'; '.join(wrong)}; "
+                         f"{fr.metadata.get('spacing_source', 'its header')}): leave --spacing out to use the "
+                         f"file's, or {OVERRIDE} to use the values given")
 
 
 def _read_stored(path, *, frames=None, **options) -> Frames:
@@ -516,6 +554,12 @@ def _read_uff(path, **kw):
     return Frames(**read_uff(path, **kw))
 
 
+def _read_dicom(path, **kw):
+    from .dicom import read_dicom
+
+    return Frames(**read_dicom(path, **kw))
+
+
 def _read_hdf5(path, **kw):
     from .hdf5 import read_hdf5
     from .matlab import mat_version
@@ -527,7 +571,7 @@ def _read_hdf5(path, **kw):
 
 
 _READERS = {"npy": read_npy, "npz": read_npz, "mat": _read_mat, "metaimage": _read_mhd, "raw": read_raw,
-            "ultrasonix": _read_rf, "uff": _read_uff, "hdf5": _read_hdf5}
+            "ultrasonix": _read_rf, "uff": _read_uff, "hdf5": _read_hdf5, "dicom": _read_dicom}
 
 
 # ------------------------------------------------------------------------------------------------ volumes

@@ -67,6 +67,8 @@ def save_frames(path, frames, spacing=None, *, origin=(0.0, 0.0), format=None, d
 
         return write_ultrasonix(path, arr, sp, sampling_frequency=sampling_frequency, sound_speed=sound_speed,
                                 frame_tags=frame_tags)
+    if fmt == "dicom":
+        raise InputError(f"{path}: femreg reads DICOM but does not write it; save the frames as .npz (spacing kept)")
     raise InputError(f"unknown format {fmt!r}")
 
 
