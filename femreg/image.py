@@ -7,10 +7,14 @@ Normalisation (why alpha is scale-free)
 ---------------------------------------
 The image term psi of eq:IR is quadratic in the intensities, so multiplying both RF frames by a gain ``c``
 multiplies psi by ``c**2`` and would change the meaning of every regularisation weight alpha.  femreg therefore
-divides each image of a pair by its root-mean-square, e.g. ``s = sqrt(mean(I_1**2))`` for the reference (no mean
-subtraction: RF data is zero-mean already and a shift would not be "zero outside the image").  After that the
-reference has unit RMS, psi is measured in mm^2 (unit-RMS intensity squared times area) and an alpha means the
-same thing for any RF amplitude scale.  :func:`normalize_pair` returns the scale so that callers can undo it.
+subtracts each image's mean and divides it by its standard deviation, e.g. ``s = sqrt(mean((I_1 - m_1)**2))`` for
+the reference.  RF is zero-mean already (the subtraction changes it by round-off, or removes a scanner's DC
+offset); envelope and B-mode frames are not: a display B-mode (8-bit grey levels, mean ~200, speckle std ~20)
+divided by its RMS kept its speckle at 0.1 of unit scale, psi 100 x weaker against alpha, and the default alpha
+flattened a 2.5 mm stiff inclusion of a scan-converted L12 loop into uniform strain (9.6 % strain error, the
+same as a uniform field's; 5.0 % with alpha 0.001).  The mean also sets what "zero outside the image" reads: the
+image's average level, not black.  After that the reference has unit variance, psi is measured in mm^2 and an
+alpha means the same thing for any amplitude scale or offset.  :func:`normalize_pair` returns the scale.
 
 A gain change between the frames (the user turned the gain, or one frame is stored as integer counts) would
 leave the moving image ``g`` times brighter than the reference: psi then holds ``(g - 1)**2 I**2``, which no motion
@@ -144,15 +148,17 @@ def pixel_axes(shape, spacing, origin):
 
 
 def normalize_pair(reference, moving):
-    """Divide each image by its own RMS (see module docstring).  Returns ``(ref, mov, scale)``, ``scale`` the
-    reference's RMS."""
-    scale = float(np.sqrt(np.mean(np.square(reference))))
-    if not scale > 0:
-        raise InputError("reference image has zero RMS: nothing to register")
-    s_mov = float(np.sqrt(np.mean(np.square(moving))))
-    if not s_mov > 0:
-        raise InputError("moving image has zero RMS: nothing to register")
-    return reference / scale, moving / s_mov, scale
+    """Each image minus its mean, over its standard deviation (see module docstring).  Returns ``(ref, mov,
+    scale)``, ``scale`` the reference's standard deviation."""
+    out = []
+    for img, what in ((reference, "reference"), (moving, "moving")):
+        img = np.asarray(img, float)
+        m = float(np.mean(img))
+        s = float(np.sqrt(np.mean(np.square(img - m))))
+        if not s > 0:
+            raise InputError(f"{what} image is constant: nothing to register")
+        out.append(((img - m) / s, s))
+    return out[0][0], out[1][0], out[0][1]
 
 
 class SplineImage:

@@ -67,11 +67,21 @@ def _image2d(a, name):
     return arr
 
 
+#: An image without an RF carrier whose mean exceeds this many standard deviations is log-compressed already (a
+#: scanner's display B-mode: mean / std 5-10 for 50-60 dB of grey levels); an envelope's amplitude is about 1.9
+#: (Rayleigh speckle) and at most about 3 with a noise floor.
+LOG_COMPRESSED_RATIO = 4.0
+
+
 def bmode(rf, dynamic_range=50.0, *, reference=None):
     """Log-compressed envelope of RF (axial along axis 0) in dB, clipped to ``[-dynamic_range, 0]``.
 
     Envelope = ``|hilbert(rf, axis=0)|`` (:func:`femreg.speckle.envelope`); 0 dB is its maximum (or ``reference``
-    if given, e.g. to put several frames on one scale).  Returns float64 (axial, lateral).
+    if given, e.g. to put several frames on one scale).  Frames without a carrier
+    (:func:`femreg.orientation.is_envelope`) are taken as they are: an envelope's amplitude is log-compressed, a
+    B-mode already log-compressed (negative values, or a mean above :data:`LOG_COMPRESSED_RATIO` standard
+    deviations: display grey levels) is mapped linearly from its darkest 0.5 % to its maximum.  Returns float64
+    (axial, lateral).
     """
     from .speckle import envelope
 
@@ -80,7 +90,19 @@ def bmode(rf, dynamic_range=50.0, *, reference=None):
         raise InputError("rf contains NaN/Inf")
     if not (np.isfinite(dynamic_range) and dynamic_range > 0):
         raise InputError(f"dynamic_range must be positive (dB), got {dynamic_range!r}")
-    env = envelope(arr)
+    from .orientation import is_envelope
+
+    if is_envelope(arr):
+        if arr.min() < 0 or float(np.mean(arr)) > LOG_COMPRESSED_RATIO * float(np.std(arr)):
+            # log-compressed already (dB, or a scanner's display grey levels): its levels as they are, from the
+            # darkest 0.5 % to the brightest mapped onto [-dynamic_range, 0]
+            lo, hi = float(np.percentile(arr, 0.5)), float(arr.max())
+            if not hi > lo:
+                return np.full(arr.shape, -float(dynamic_range))
+            return np.clip((arr - hi) / (hi - lo) * float(dynamic_range), -float(dynamic_range), 0.0)
+        env = np.abs(arr)                           # an envelope already: its amplitude
+    else:
+        env = envelope(arr)
     ref = float(reference) if reference is not None else float(env.max())
     if ref <= 0:
         return np.full(arr.shape, -float(dynamic_range))

@@ -10,7 +10,7 @@ with the jumps of A n across interior faces, A = lambda_bar div(u) I + 2 sym gra
 control of the hexahedra); alpha is rescaled by element volume (:mod:`femreg.scaling`); Gauss-Newton
 (:func:`femreg.solver.gauss_newton`, linear solver :class:`femreg.linsolve.SPDSolver`).
 
-Stages: validate -> normalise (each volume by its RMS) -> mesh -> initial guess (coarse to fine: a global search
+Stages: validate -> normalise (each volume minus its mean, over its spread: :func:`femreg.image.normalize_pair`) -> mesh -> initial guess (coarse to fine: a global search
 over axial strain and translation on decimated envelope volumes, then Gauss-Newton on the envelopes with a mesh
 twice as coarse, :func:`coarse_to_fine`) -> prefilter (the splines, and the image term's reference values and
 gradients, after which the reference volume is released) -> Gauss-Newton on the RF -> peak-hopping check
@@ -33,6 +33,7 @@ from . import orientation
 from .autoalpha import ImageTerm, choose_alpha, register_auto
 from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError
+from .image import normalize_pair
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
                      frame_flag, hop_note, hopped_fraction, lag_gain)
@@ -354,14 +355,13 @@ def _voxel_offset(offset, grid: VoxelGrid) -> np.ndarray:
 
 def voxel_image_term(reference_image, moving_image, mesh, register_kwargs) -> ImageTerm:
     """The :class:`femreg.autoalpha.ImageTerm` of a volume pair on ``mesh``, built as :func:`register_volume`
-    builds its image term (RMS-normalised volumes, tricubic splines, the offset S at the voxels): what
+    builds its image term (normalised volumes, tricubic splines, the offset S at the voxels): what
     ``alpha="auto"`` reads on volumes (the ``image_term`` of :func:`femreg.autoalpha.choose_alpha`)."""
     spacing, origin = validate_spacing_3d(register_kwargs["spacing"], register_kwargs.get("origin", (0.0, 0.0, 0.0)))
     ref = validate_volume(reference_image, "reference volume")
     mov = validate_volume(moving_image, "moving volume")
     if register_kwargs.get("normalize", True):
-        ref = ref / np.sqrt(np.mean(ref ** 2))
-        mov = mov / np.sqrt(np.mean(mov ** 2))
+        ref, mov, _ = normalize_pair(ref, mov)
     grid = VoxelGrid(mesh, ref.shape, spacing, origin)
     offset = register_kwargs.get("offset")
     S = None if offset is None else _voxel_offset(offset, grid)
@@ -573,8 +573,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         return copy.copy(user_reg)
 
     if normalize:
-        ref = ref / np.sqrt(np.mean(ref ** 2))
-        mov = mov / np.sqrt(np.mean(mov ** 2))
+        ref, mov, _ = normalize_pair(ref, mov)
 
     if mesh is None:
         mesh = roi_mesh_3d(ref.shape, spacing, origin,

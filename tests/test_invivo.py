@@ -4,6 +4,7 @@ pairs on real data and carries on.  Skipped when ../shared/data/invivo_rf is abs
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -220,7 +221,8 @@ def test_no_split_where_the_speckle_decorrelates_unevenly_for_its_level():
     (without that clause) e_xx at 5-10 mm was 1.58x as patchy as unrefined (1380 -> 8236 elements); the default 1.00x.
     Bounds: 1.3x and 1.05x."""
     r_def, p = _unsplit_against(0, 1, coverage_uneven=None)
-    assert "element NCC spread 0.13 >= 3 x" in r_def.message, r_def.message
+    spread = re.search(r"element NCC spread ([0-9.]+) >= 3 x", r_def.message)
+    assert spread and 0.12 <= float(spread.group(1)) <= 0.15, r_def.message     # 0.13-0.14 (round-off of 0.135)
     assert p[2] > 1.3 * p[0], p
     assert p[1] < 1.05 * p[0], p
 

@@ -191,11 +191,18 @@ def test_colour_doppler_is_refused(tmp_path, capsys):
     rng = np.random.default_rng(5)
     tissue = rng.integers(0, 256, (2, 160, 200)).astype(np.uint8)
     frames = screen(tissue)
-    frames[:, 80:140, 120:200] = (200, 20, 20)                           # red flow inside the tissue region
-    # colour pixels, no flow region declared
+    # red / blue flow inside the tissue region, its velocities changing from frame to frame; no flow region
+    flow = rng.integers(100, 256, (2, 60, 80))
+    frames[:, 80:140, 120:200, 0] = flow
+    frames[:, 80:140, 120:200, 1] = 20
+    frames[:, 80:140, 120:200, 2] = 255 - flow
     path = write_dicom(tmp_path / "cd.dcm", frames, [region()])
-    with pytest.raises(FileFormatError, match="coloured.*strain from colour-coded pixels is meaningless"):
+    with pytest.raises(FileFormatError, match="coloured .*differently from frame to frame.*strain from colour-coded "
+                                              "pixels is meaningless"):
         read_frames(path)
+    # one frame of it: nothing to tell flow from an overlay, every coloured pixel counts
+    with pytest.raises(FileFormatError, match="coloured.*meaningless"):
+        read_frames(write_dicom(tmp_path / "cd1.dcm", frames[:1], [region()]))
     # a colour-flow region over the tissue region
     path2 = write_dicom(tmp_path / "cd2.dcm", screen(tissue), [region(), region(100, 60, 200, 150, data_type=2)])
     assert main(["info", str(path2)]) == 2
@@ -210,6 +217,12 @@ def test_colour_doppler_is_refused(tmp_path, capsys):
     frames = screen(tissue)
     frames[:, 100:104, 150:160] = (0, 255, 0)
     assert read_frames(write_dicom(tmp_path / "cal.dcm", frames, [region()])).n_frames == 2
+    # a body marker / logo burned in at one place, alike in every frame (7.5 % of the region): an overlay, named
+    frames = screen(tissue)
+    frames[:, 60:100, 80:140] = (255, 200, 0)
+    fr = read_frames(write_dicom(tmp_path / "logo.dcm", frames, [region()]))
+    assert fr.metadata["overlay_fraction"] == pytest.approx(40 * 60 / (160 * 200))
+    assert "overlay fixed on the screen (7.5 %" in fr.metadata["colour"] and "--roi" in fr.metadata["colour"]
 
 
 def test_given_spacing_against_the_calibration(loop, tmp_path, capsys):

@@ -21,7 +21,9 @@ burned in around the image), calibrated by the ultrasound regions of the US Regi
   and a grey pixel, R = G = B, keeps its value);
 * refuses colour: a colour-flow region (``RegionDataType`` 2) over the tissue region, or a tissue region whose
   pixels are coloured (R, G, B apart by more than :data:`COLOUR_LEVELS` of full scale in more than
-  :data:`COLOUR_FRACTION` of its pixels): strain from colour-coded pixels is meaningless;
+  :data:`COLOUR_FRACTION` of its pixels) differently from frame to frame: strain from colour-coded pixels is
+  meaningless.  Pixels coloured alike in every frame (a body marker, a logo, calipers burned in at one place)
+  are an overlay, named in ``metadata["colour"]`` with its fraction (``metadata["overlay_fraction"]``);
 * frame rate (Hz) from ``FrameTime`` (ms), ``FrameTimeVector`` or ``CineRate`` into ``metadata["frame_rate"]``
   (as the UFF reader).
 
@@ -48,8 +50,8 @@ DICOM_SUFFIXES = (".dcm", ".dicom")
 #: A pixel is coloured when max(R, G, B) - min(R, G, B) exceeds this fraction of full scale (25 of 255 levels:
 #: above the chroma noise of lossy YBR_FULL_422 / JPEG grey images, below any colour-flow hue).
 COLOUR_LEVELS = 0.1
-#: A tissue region with more coloured pixels than this fraction is refused (a caliper or focus marker in colour
-#: covers far less; a colour-flow box far more).
+#: A tissue region with more coloured pixels than this fraction, besides those coloured alike in every frame (an
+#: overlay), is refused (a colour-flow box covers far more; in a single frame every coloured pixel counts).
 COLOUR_FRACTION = 0.01
 _MAX_BYTES = 1 << 34           # as the other readers: a corrupt header, not an image
 _UNITS = {0: "none", 1: "percent", 2: "dB", 3: "cm", 4: "seconds", 5: "hertz", 6: "dB/seconds", 7: "cm/sec",
@@ -212,19 +214,53 @@ def _frame_rate(ds) -> tuple:
 
 
 def _grey(frame, photometric, bits_stored, signed):
-    """One decoded frame (rows, cols[, 3]) as float32 grey levels and its coloured-pixel fraction."""
+    """One decoded frame (rows, cols[, 3]) as float32 grey levels and its coloured pixels ((rows, cols) bool,
+    None for grey frames)."""
     if frame.ndim == 3:
         rgb = frame.astype(np.float32)
         full = float(2 ** bits_stored - 1)
         chroma = rgb.max(axis=2) - rgb.min(axis=2)
-        coloured = float(np.mean(chroma > COLOUR_LEVELS * full))
         luma = 0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]
-        return luma.astype(np.float32), coloured
+        return luma.astype(np.float32), chroma > COLOUR_LEVELS * full
     g = frame.astype(np.float32)
     if photometric == "MONOCHROME1":     # 0 is white: invert within the stored range
         lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2 ** bits_stored - 1)
         g = np.float32(lo + hi) - g
-    return g, 0.0
+    return g, None
+
+
+class _ColourCheck:
+    """Coloured pixels of the tissue region, frame by frame.  Pixels coloured alike in every frame (a logo, a
+    body marker, a focus marker, calipers: overlays burned in at one place) are an overlay, not colour Doppler,
+    whose colours change between frames with the flow; more than :data:`COLOUR_FRACTION` of the region coloured
+    otherwise (or at all, in a single frame, where the two cannot be told apart) is refused."""
+
+    def __init__(self, path, where, full):
+        self.path, self.where = path, where
+        self.tol = 0.5 * COLOUR_LEVELS * full      # lossy (JPEG) frames repeat an overlay only approximately
+        self.first = self.static = None
+        self.n = 0
+
+    def add(self, k, crop, coloured, n_frames):
+        if coloured is None:
+            return
+        self.n += 1
+        if self.first is None:
+            self.first, self.static = np.array(crop, np.float32), coloured.copy()
+            changing = 0.0 if n_frames > 1 else float(np.mean(coloured))
+        else:
+            same = coloured & self.static & np.all(np.abs(crop - self.first) <= self.tol, axis=-1)
+            changing = float(np.mean(coloured & ~same))
+            self.static &= same
+        if changing > COLOUR_FRACTION:
+            raise fail(self.path, f"frame {k}: {100 * changing:.1f} % of {self.where} pixels are coloured (R, G, B "
+                                  f"more than {100 * COLOUR_LEVELS:g} % of full scale apart)"
+                                  + ("" if n_frames == 1 else ", differently from frame to frame")
+                                  + f": colour Doppler or a colour map; {_COLOUR_MSG}")
+
+    def overlay_fraction(self) -> float:
+        """Fraction of the region coloured alike in every frame (0 for a single frame or grey frames)."""
+        return float(np.mean(self.static)) if self.static is not None and self.n > 1 else 0.0
 
 
 def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
@@ -272,17 +308,16 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
     if idx.size * (r1 - r0) * (c1 - c0) * 4 > _MAX_BYTES:
         raise fail(path, f"header claims {idx.size} frames of {rows} x {cols}: over 16 GiB as float32")
     out = np.empty((idx.size, r1 - r0, c1 - c0), np.float32)
+    colour = _ColourCheck(path, "the tissue region's" if region is not None else "the image's (no region to crop to)",
+                          2.0 ** (8 if photometric == "PALETTE COLOR" else bits) - 1)
     try:
         for k, frame in enumerate(iter_pixels(ds, indices=[int(i) for i in idx])):
             if photometric == "PALETTE COLOR":
                 frame = apply_color_lut(frame, ds)
                 bits = 8 * frame.dtype.itemsize
-            g, coloured = _grey(frame[r0:r1, c0:c1], photometric, bits, signed)
-            if coloured > COLOUR_FRACTION:
-                where = "the tissue region's" if region is not None else "the image's (no region to crop to)"
-                raise fail(path, f"frame {int(idx[k])}: {100 * coloured:.1f} % of {where} pixels are "
-                                 f"coloured (R, G, B more than {100 * COLOUR_LEVELS:g} % of full scale apart): colour "
-                                 f"Doppler or a colour map; {_COLOUR_MSG}")
+            crop = frame[r0:r1, c0:c1]
+            g, coloured = _grey(crop, photometric, bits, signed)
+            colour.add(int(idx[k]), crop, coloured, idx.size)
             out[k] = g
     except FileFormatError:
         raise
@@ -295,8 +330,13 @@ def read_dicom(path, *, spacing=None, frames=None, **_ignored) -> dict:
             "transfer_syntax": str(ds.file_meta.TransferSyntaxUID.name) if "TransferSyntaxUID" in ds.file_meta
             else "", "image_size": [rows, cols], "frames_in_file": n_total}
     if samples == 3 or photometric == "PALETTE COLOR":
+        overlay = colour.overlay_fraction()
+        fixed = (f" but for a coloured overlay fixed on the screen ({100 * overlay:.1f} % of it: markers, text, a "
+                 "logo), which does not move with the tissue: leave it out with --roi")
         meta["colour"] = (f"{photometric} converted to luma 0.299 R + 0.587 G + 0.114 B (ITU-R BT.601); the "
-                          "tissue region is grey")
+                          "tissue region is grey" + ("" if overlay < 1e-4 else fixed))
+        if overlay >= 1e-4:
+            meta["overlay_fraction"] = overlay
     elif photometric == "MONOCHROME1":
         meta["colour"] = "MONOCHROME1 inverted (its 0 is white)"
     for name in ("Modality", "Manufacturer", "ManufacturerModelName", "TransducerData", "InstanceNumber"):
