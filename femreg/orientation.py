@@ -295,7 +295,10 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
     from .speckle import speckle_statistics
 
     dx, dy = rep.spacing
-    cell = np.asarray(speckle_statistics(_strongest_rows(img), (dx, dy)).cell, float)
+    block = _signal_columns(_strongest_rows(img))
+    if block is None:
+        return
+    cell = np.asarray(speckle_statistics(block, (dx, dy)).cell, float)
     rep.axial_cell_mm, rep.lateral_cell_mm = (float(c) for c in cell)
     if not np.all(np.isfinite(cell) & (cell > 0)):
         return
@@ -325,6 +328,28 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
                 break
         rep.message = (f"{found}, outside what ultrasound probes resolve ({a0:g}-{a1:g} mm axially, {l0:g}-{l1:g} "
                        f"mm laterally); {hint}, or {OVERRIDE}")
+
+
+def _signal_columns(block):
+    """The columns of ``block`` without fill: a value repeated over more than 2 % of the block (the black wedges
+    of a scan-converted convex or sector image, a blanked margin) marks fill, whose edges would otherwise set the
+    speckle cell (13 mm axially on a fan-masked L12 B-mode); None when fewer than :data:`MIN_SAMPLES` columns
+    remain (nothing measured)."""
+    values, counts = np.unique(block, return_counts=True)
+    k = int(np.argmax(counts))
+    if counts[k] > 0.02 * block.size:
+        keep = ~np.any(block == values[k], axis=0)
+        # the longest run of kept columns: the autocorrelation needs neighbouring lines
+        best, start, run = (0, 0), 0, 0
+        for j, ok in enumerate(np.r_[keep, False]):
+            if ok:
+                run += 1
+            else:
+                if run > best[1] - best[0]:
+                    best = (start, start + run)
+                start, run = j + 1, 0
+        block = block[:, best[0]:best[1]]
+    return block if block.shape[1] >= MIN_SAMPLES and block.shape[0] >= MIN_SAMPLES else None
 
 
 def _strongest_rows(img, n: int = SPECKLE_ROWS):
