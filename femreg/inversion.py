@@ -156,7 +156,8 @@ noise's spread at the chosen beta and misses the regulariser's bias where the st
 image of more than :data:`CALIBRATION_MAX_REGIONS` regions besides the largest (:func:`_calibration_regions`) is
 such tissue: ``uncertainty_calibrated`` is False with a note in ``notes`` (not a flag: the modulus is what TV gives
 for such data), and the std gets a bias term, :data:`UNCALIBRATED_SPREAD` x the image's robust spread of log mu in
-quadrature.
+quadrature.  A calibrated 2D TV std is widened to at least the background's own scatter (:data:`SCATTER_FLOOR`,
+:func:`_scatter_factor`): the robust spread of log mu over the largest region against the RMS of its Laplace std.
 
 Never silently wrong: ``success`` is False, with the reasons in ``flags`` and ``message``, when the optimiser
 fails, :math:`\beta` lands on the smallest value of its grid (or on the largest while the image is not flat:
