@@ -1,7 +1,8 @@
 """The femreg rows of benchmarks/inversion.py (the default path: cached registration -> ``femreg.invert`` defaults)
 with module constants of :mod:`femreg.inversion` set, for studies of the debiasing options (TV_REWEIGHT_STEPS,
 TV_BREGMAN, TV_BREGMAN_FRACTION, TV_BREGMAN_START; TV_REFIT and its TV_REFIT_* constants; docs/inversion.md,
-"Contrast-preserving TV" and "Region debias refit").
+"Contrast-preserving TV" and "Region debias refit"), and of the uncertainty's (SCATTER_FLOOR,
+SCATTER_FLOOR_REFITTED; "Scatter floor on the uncertainty").
 
 Same registrations (``$FEMREG_CACHE/bench_inversion/<key>``, which must hold every case: nothing is registered here),
 the same contrast, ring, background CV and calibration as benchmarks/inversion.py, and per case the strain ratio read
@@ -195,6 +196,7 @@ def run(out, settings, sets, exact=False):
         row = dict(set=name, case=case, contrast=c, estimate=est, ratio=est / c, cv=cv, ring=ring,
                    success=bool(inv.success), beta=inv.beta, z=z, seconds=dt, misfit=inv.misfit,
                    rule=inv.beta_rule, uncertainty_calibrated=inv.uncertainty_calibrated,
+                   uncertainty_scale=getattr(inv, "uncertainty_scale", None),
                    unsupported_area=inv.unsupported_area, flags=list(inv.flags), notes=list(inv.notes),
                    sr=strain_ratio(bench, reg, field), **edge_cnr(bench, inv, field),
                    cnr_strain=sampled_cnr(bench, strain, field.centre, field.radius_mm))
@@ -214,8 +216,10 @@ def run(out, settings, sets, exact=False):
 
 
 def summary(paths):
-    """Per set: in the band (0.85-1.15, unflagged, measurable ring) / cases, CV <= 15 %, wrong side, calibration,
-    results with ``uncertainty_calibrated`` False (all cases); where rows hold ``sr``: stiff cases (contrast > 1,
+    """Per set: in the band (0.85-1.15, unflagged, measurable ring) / cases, CV <= 15 %, wrong side, calibration
+    (over the elements of the cases with a measurable ring, as benchmarks/inversion.py's summary, and its range per
+    case), results with ``uncertainty_calibrated`` False (all cases), the scatter floor's factor (median, range and
+    the results it widened, where recorded: ``uncertainty_scale``); where rows hold ``sr``: stiff cases (contrast > 1,
     measurable ring) whose unflagged ratio is closer to 1 than 1/SR's, |log ratio| < |log (1/SR / contrast)|."""
     for p in paths:
         rows = json.loads(Path(p).read_text())
@@ -236,9 +240,14 @@ def summary(paths):
             flagged = sum(not r["success"] for r in rows if r["set"] == name)
             un = [r.get("unsupported_area", np.nan) for r in rows if r["set"] == name]
             un_txt = (f", unsupported area largest {np.nanmax(un):.3f}" if np.isfinite(un).any() else "")
+            per_case = [100 * np.mean(np.asarray(r["z"], float) <= 1) for r in rs if len(r["z"])]
+            cal_txt = (f" (per case {min(per_case):.0f}-{max(per_case):.0f} %)" if per_case else "")
+            scale = [r["uncertainty_scale"] for r in rows if r["set"] == name and r.get("uncertainty_scale")]
+            scale_txt = (f", scatter floor factor {np.median(scale):.2f} ({min(scale):.2f}-{max(scale):.2f}), "
+                         f"> 1 on {sum(x > 1 for x in scale)}/{len(scale)}" if scale else "")
             print(f"- {name}: {band}/{len(rs)} in the band, CV <= 15 % {cv}/{len(rs)}, wrong side {wrong}, "
-                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %, uncertainty not calibrated {uncal}, flagged "
-                  f"{flagged}{un_txt}{sr_txt}")
+                  f"within +-1 sigma {100 * np.mean(z <= 1):.1f} %{cal_txt}, uncertainty not calibrated {uncal}, "
+                  f"flagged {flagged}{un_txt}{sr_txt}{scale_txt}")
             tot = [tot[0] + band, tot[1] + len(rs), tot[2] + cv, tot[3] + wrong, tot[4] + closer,
                    tot[5] + len(stiff)]
         edge_cnr_summary(rows)
