@@ -47,11 +47,11 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "find_echo", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "find_echo", "find_fill", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
-#: is fill, not image (:func:`_fill_region`).
+#: is fill, not image (:func:`find_fill`).
 FILL_FRACTION = 0.02
 #: Echo SNR (dB, echo power over noise power) below which a row or line holds no usable echo.
 MIN_SNR_DB = 0.0
@@ -216,8 +216,9 @@ def _span(lo, hi, origin, step):
     return f"{origin + (lo - 0.5) * step:.1f}-{origin + (hi - 0.5) * step:.1f} mm"
 
 
-def _fill_region(ref, mov, spacing, origin) -> EchoRegion | None:
-    """The largest rectangle of an envelope / B-mode pair without fill, or None without fill.
+def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
+    """The largest rectangle of an envelope / B-mode pair (validated (n_axial, n_lateral) frames, ``spacing``,
+    ``origin`` mm) without fill, or None without fill.
 
     Fill is the reference's most frequent value where the moving frame has it too, in pieces that touch the
     frame's edge, together more than :data:`FILL_FRACTION` of it: the black wedges around a scan-converted convex
@@ -574,7 +575,7 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         region = region_from_mm(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi, depth=depth)
         return Crop(region, mp, True, time.perf_counter() - t)
     if not rf_like(ref):
-        region = _fill_region(ref, mov, spacing, origin)
+        region = find_fill(ref, mov, spacing, origin)
         if region is None:
             return None
     else:

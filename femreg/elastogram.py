@@ -41,6 +41,7 @@ from scipy import ndimage
 
 from ._atomic import atomic_savez, atomic_write_text, open_run_folder
 from .blockmatch import block_match
+from .echo import find_fill, rf_like
 from .errors import InputError
 from . import orientation
 from .image import validate_image, validate_spacing
@@ -72,7 +73,11 @@ class ElastogramResult:
         NaN where no pair covers.
     quality : (n_axial, n_lateral) float
         Its persistence weight ``W`` (0 where not covered).
-    ref_frame : int; spacing, origin : (2,) mm
+    ref_frame : int; spacing, origin : (2,) mm (of the registered rectangle)
+    region : ((r0, r1), (c0, c1)) or None
+        The rectangle of the input frames (pixel ranges, half-open) the loop was screened and registered on, when
+        envelope / B-mode frames hold fill (:func:`femreg.echo.find_fill`: the wedges of a scan-converted sector,
+        fixed on the screen while the tissue moves); None: the whole frames.  ``excluded`` says what was left out.
     cine : (n_cine, n_rows, n_lateral) float32
         Persistent normalised strain after each usable pair on every ``q``-th pixel row (``cine_spacing`` (2,) mm;
         ``q`` about a third of the axial speckle cell); ``cine_frames`` their reference frames.
@@ -94,6 +99,8 @@ class ElastogramResult:
     screen: dict
     cine_spacing: np.ndarray = None
     timings: dict = dc_field(default_factory=dict)
+    region: tuple | None = None
+    excluded: str | None = None
 
     @property
     def n_usable(self) -> int:
@@ -509,6 +516,14 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     spacing, origin = validate_spacing(spacing, origin)
     if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register
         orientation.check(np.asarray(seq[0], dtype=float), spacing)
+    region, excluded = None, None
+    first, last = (np.asarray(seq[k], dtype=float) for k in (0, len(seq) - 1))
+    fill = None if rf_like(first) else find_fill(first, last, spacing, origin)
+    if fill is not None:        # screen and register the rectangle without fill: its edges do not move
+        (a, b), (c, d) = region = (tuple(fill.rows), tuple(fill.cols))
+        seq = seq[:, a:b, c:d] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b, c:d] for f in seq]
+        origin = origin + np.array([a, c]) * spacing
+        excluded = fill.excluded
     lo, hi = _band(band)
     centre = float(np.sqrt(lo * hi))
     if not (0.0 <= float(persistence) < 1.0):
@@ -706,7 +721,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,
                             cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
                             cine_frames=cine_frames, pairs=rows,
-                            screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings)
+                            screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings, region=region,
+                            excluded=excluded)
 
 
 def write_pairs_csv(path, rows) -> None:

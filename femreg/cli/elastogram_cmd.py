@@ -173,8 +173,13 @@ def run(args) -> int:
     write_pairs_csv(out / "pairs.csv", res.pairs)
     atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
                  spacing=np.asarray(res.spacing), origin=np.asarray(res.origin))
-    write_picture(out / "elastogram.png", res, np.asarray(fr.frames[res.ref_frame], float), res.spacing, res.origin)
-    cine = write_cine(out, res, fr.frames, res.spacing, fps=args.fps)
+    frames = fr.frames
+    if res.region is not None:      # the rectangle registered (fill left out): its pixels, at res.origin
+        (a, b), (c, d) = res.region
+        frames = [np.asarray(f)[a:b, c:d] for f in frames]
+        print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
+    write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin)
+    cine = write_cine(out, res, frames, res.spacing, fps=args.fps)
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
     which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
