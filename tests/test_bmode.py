@@ -126,3 +126,19 @@ def test_largest_rectangle_against_brute_force():
         best = max(((i1 - i0) * (j1 - j0) for i0 in range(9) for i1 in range(i0 + 1, 10)
                     for j0 in range(11) for j1 in range(j0 + 1, 12) if mask[i0:i1, j0:j1].all()), default=0)
         assert (r1 - r0) * (c1 - c0) == best
+
+
+def test_fill_is_black_fill_touching_the_edge_only(pair):
+    """find_fill: black wedges are fill; a saturated bright layer across the image and black speckle inside the
+    tissue are not."""
+    from femreg.echo import find_fill
+
+    a, b = _bmode(pair.ref), _bmode(pair.mov)
+    bright_a, bright_b = a.copy(), b.copy()
+    bright_a[300:400], bright_b[300:400] = 255, 255            # 8 % of the frame, touching both sides
+    assert find_fill(bright_a, bright_b, pair.spacing, pair.origin) is None
+    assert np.mean(a == 0) > 0 and find_fill(a, b, pair.spacing, pair.origin) is None   # clipped speckle
+    fan = _fan(a.shape, pair.spacing, pair.origin)
+    r = find_fill(np.where(fan, a, 0), np.where(fan, b, 0), pair.spacing, pair.origin)
+    (r0, r1), (c0, c1) = r.rows, r.cols
+    assert fan[r0:r1, c0:c1].all() and (r1 - r0) * (c1 - c0) > 0.3 * fan.sum()
