@@ -142,3 +142,15 @@ def test_fill_is_black_fill_touching_the_edge_only(pair):
     r = find_fill(np.where(fan, a, 0), np.where(fan, b, 0), pair.spacing, pair.origin)
     (r0, r1), (c0, c1) = r.rows, r.cols
     assert fan[r0:r1, c0:c1].all() and (r1 - r0) * (c1 - c0) > 0.3 * fan.sum()
+
+
+def test_info_names_the_fill_it_will_leave_out(pair, tmp_path, capsys):
+    from femreg.cli import main
+
+    fan = _fan(pair.ref.shape, pair.spacing, pair.origin)
+    frames = np.stack([np.where(fan, _bmode(f), 0) for f in (pair.ref, pair.mov)]).astype(np.uint8)
+    path = tmp_path / "fan.npz"
+    np.savez(path, frames=frames, spacing=np.asarray(pair.spacing), origin=np.asarray(pair.origin))
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "fill      fill of value 0" in out and "largest rectangle" in out, out

@@ -39,7 +39,7 @@ def add_parser(subparsers):
 
 
 #: Metadata printed with the lines above (or, for a DICOM region, by its ``crop`` line), not again.
-_SHOWN = ("origin_given", "spacing_source", "origin_source", "frame_rate", "frame_rate_source", "region",
+_SHOWN = ("origin_given", "overlay_fraction", "spacing_source", "origin_source", "frame_rate", "frame_rate_source", "region",
           "header_spacing")
 
 
@@ -102,6 +102,12 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
             out["needs"] += _iq_needs(fr)
         if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
             out["needs"] += _raw_shape_hint(a[0])
+        if not rep.problem and not rep.has_carrier and fr.n_frames >= 2:
+            from ..echo import find_fill
+
+            fill = find_fill(np.asarray(a[0], float), np.asarray(a[-1], float), fr.spacing, fr.origin)
+            if fill is not None:        # what register, track and elastogram will leave out
+                out["fill"] = fill.excluded
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
@@ -350,6 +356,8 @@ def run(args) -> int:
           f"std {info['std']:.6g}")
     if info.get("rf_check"):
         print(f"RF        {info['rf_check']}")
+    if info.get("fill"):
+        print(f"fill      {info['fill']}")
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
     if isinstance(meta.get("frame_rate"), (int, float)):
