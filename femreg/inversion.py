@@ -1614,7 +1614,7 @@ def _check_images(displacement, region, reference_image, moving_image):
 
 def _image_term(src, mesh, images):
     """The image term of eq:IR (fixed reference gradient, eq:wfnew) of the registered pair ``images`` on the
-    inversion mesh, each image divided by its RMS as the registration does: pixel quadrature
+    inversion mesh, each image normalised (minus its mean, over its spread) as the registration does: pixel quadrature
     (:func:`femreg.registration.image_term`) in 2D, voxels (:class:`femreg.voxels.VoxelSSDTerm`) in 3D."""
     from .image import SplineImage, normalize_pair
 

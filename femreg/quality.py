@@ -41,7 +41,7 @@ def image_energy(result, reference_image, moving_image, *, normalize: bool = Tru
     reference_image, moving_image : (n_axial, n_lateral) array
         The pair that was registered (same grid as ``result``).
     normalize : bool
-        Divide both images by the reference RMS, as :func:`femreg.register` does by default, so that psi is the
+        Normalise each image (minus its mean, over its spread: :func:`femreg.image.normalize_pair`), as :func:`femreg.register` does by default, so that psi is the
         number the solver minimised.
 
     Returns

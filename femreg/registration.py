@@ -4,9 +4,9 @@ Convention: ``reference(x) ~ moving(x + u(x))``; images are (axial, lateral) = (
 at ``origin + (i dx, j dy)`` mm.  With ``offset=S`` the problem is eq:IR of a sequence:
 ``I_k(x + S(x)) ~ I_{k+1}(x + S(x) + u(x))`` (reference = I_k, moving = I_{k+1}).
 
-:func:`register` runs named stages passing plain data: validate the inputs -> normalise by the reference RMS and
-build the spline coefficients once (:mod:`femreg.image`) -> mesh (ROI sized from the speckle, or the user's;
-:mod:`femreg.mesh`) -> initial guess (:mod:`femreg.initial`: coarse-to-fine pyramid, :mod:`femreg.pyramid`, or
+:func:`register` runs named stages passing plain data: validate the inputs -> normalise each frame (minus its
+mean, over its spread) and build the spline coefficients once (:mod:`femreg.image`) -> mesh (ROI sized from the
+speckle, or the user's; :mod:`femreg.mesh`) -> initial guess (:mod:`femreg.initial`: coarse-to-fine pyramid, :mod:`femreg.pyramid`, or
 the paper's NCC block matching and coarse pass, :mod:`femreg.paperguess`) -> Gauss-Newton on the final mesh
 (:mod:`femreg.gnsolve`: SSD term with the fixed reference gradient, eq:wfnew, + a fresh regulariser weighted per
 2 x 2 mm element, :mod:`femreg.scaling`) -> repair and check (:mod:`femreg.repair`: peak hopping, failure rules,
@@ -155,7 +155,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         "momentum-strain" = R_P_eps, "strain" = R_eps, "strain-incompressible" = R_eps_i; or a Regularizer
         instance (copied, never changed).
     alpha : float or "auto", optional
-        :math:`\\alpha` of eq:objf for RMS-normalised images and 2 x 2 mm elements; on other meshes the weight is
+        :math:`\\alpha` of eq:objf for normalised images (:func:`femreg.image.normalize_pair`) and 2 x 2 mm elements; on other meshes the weight is
         scaled by 4 mm^2 / mean element area (:mod:`femreg.scaling`).  None = the regulariser's default
         (femreg/data/default_alphas.json, selected by the paper's procedure); "auto" = chosen from the pair
         without ground truth by :func:`femreg.autoalpha.choose_alpha` (several registrations).
@@ -183,7 +183,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         ``hourglass=1000``
         (:data:`femreg.strategy.DEFAULT_MOMENTUM_STRESS_OPTIONS`) unless given here.
     normalize : bool
-        Divide both images by the reference RMS (default; makes alpha scale-free).
+        Subtract each image's mean and divide it by its spread (default; makes alpha scale- and offset-free:
+        :func:`femreg.image.normalize_pair`).
     callback : callable(u, info), optional
         Called after each Gauss-Newton iteration of the final solve and of each refinement pass (``u`` then on
         the refined mesh, ``info["nit"]`` counted per solve).
@@ -267,7 +268,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     def reg_factory():                  # a fresh copy of the user's regulariser per solve
         return copy.copy(user_reg)
 
-    # -- images: normalised by the reference RMS, spline coefficients once -----------------------------------
+    # -- images: each normalised by its mean and spread, spline coefficients once ------------------------------
     t = time.perf_counter()
     if normalize:
         ref, mov, _ = normalize_pair(ref, mov)

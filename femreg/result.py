@@ -30,7 +30,7 @@ class RegistrationResult(ResultRecord):
     success, status, message, nit, energy_history
         From the Gauss-Newton solver (:class:`femreg.solver.GaussNewtonResult`).
     regularizer : str
-        Name of the regulariser; ``alpha`` its weight (for the RMS-normalised images).
+        Name of the regulariser; ``alpha`` its weight (for the normalised images).
     ncc_before, ncc_after : float
         NCC of reference vs moving over the mesh pixels, at u = 0 and at the result: a quality measure.
     shape, spacing, origin
