@@ -155,9 +155,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         "momentum-strain" = R_P_eps, "strain" = R_eps, "strain-incompressible" = R_eps_i; or a Regularizer
         instance (copied, never changed).
     alpha : float or "auto", optional
-        :math:`\\alpha` of eq:objf for normalised images (:func:`femreg.image.normalize_pair`) and 2 x 2 mm elements; on other meshes the weight is
-        scaled by 4 mm^2 / mean element area (:mod:`femreg.scaling`).  None = the regulariser's default
-        (femreg/data/default_alphas.json, selected by the paper's procedure); "auto" = chosen from the pair
+        :math:`\\alpha` of eq:objf for normalised images (:func:`femreg.image.normalize_pair`) and 2 x 2 mm
+        elements; on other meshes the weight is scaled by 4 mm^2 / mean element area (:mod:`femreg.scaling`).
+        None = the regulariser's default (femreg/data/default_alphas.json, selected by the paper's procedure); "auto" = chosen from the pair
         without ground truth by :func:`femreg.autoalpha.choose_alpha` (several registrations).
     mesh : skfem.MeshQuad1, meshio.Mesh or path, optional
         A user's quad mesh (mm, [x, y]); default: structured ROI mesh (:func:`femreg.mesh.roi_mesh`).
