@@ -37,6 +37,8 @@ what was left out.
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,6 +109,10 @@ class EchoRegion:
     excluded: str | None = None
     floor_db: float = float("nan")
     echo_db: float = float("nan")
+    #: (n_axial, n_lateral) bool, True at the fill pixels (:func:`find_fill`), or None
+    fill: np.ndarray | None = None
+    #: ((r0, r1), (c0, c1)) the largest rectangle without fill of a :func:`fan_region`, or None
+    rectangle: tuple | None = None
 
     @property
     def full(self) -> bool:
@@ -249,7 +255,67 @@ def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
            f"sector or a blanked margin, fixed while the tissue moves) excluded: registered on the largest "
            f"rectangle without it, depth {ox + (a - 0.5) * dx:.1f}-{ox + (b - 0.5) * dx:.1f} mm, lines at "
            f"{oy + (c - 0.5) * dy:.1f}-{oy + (d - 0.5) * dy:.1f} mm (roi= / --roi to choose another)")
-    return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why)
+    return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why, fill=fill)
+
+
+#: Fraction of the frames' depth (extent along the beam, mm) that the tissue may move, per axis: the fill mask is
+#: dilated by it (plus the spline support, :data:`SPLINE_SUPPORT` pixels) before the image term leaves it out.
+FAN_MOTION = 0.03
+#: Pixels of the cubic B-spline's support: a pixel closer than this to fill reads fill when interpolated.
+SPLINE_SUPPORT = 2.0
+
+
+def fan_weights(fill, spacing) -> np.ndarray:
+    """(n_axial, n_lateral) bool, True where eq:IR compares the frames inside a fan of ``fill`` (bool, True at
+    fill; ``spacing`` mm): farther than ``SPLINE_SUPPORT + max(SPLINE_SUPPORT, FAN_MOTION depth / spacing)``
+    pixels per axis (an ellipse) from any fill pixel.  Nearer, the reference spline reads the fill's step, and the
+    moving frame moved by up to :data:`FAN_MOTION` of the depth reads the fixed wedge instead of tissue."""
+    from scipy.ndimage import distance_transform_edt
+
+    fill = np.asarray(fill, bool)
+    sp = np.asarray(spacing, float)
+    depth = float(fill.shape[0] * sp[0])
+    r = SPLINE_SUPPORT + np.maximum(SPLINE_SUPPORT, FAN_MOTION * depth / sp)        # pixels per axis
+    if not fill.any():
+        return np.ones(fill.shape, bool)
+    return distance_transform_edt(~fill, sampling=1.0 / r) > 1.0
+
+
+def fan_region(region: EchoRegion) -> EchoRegion:
+    """The bounding box of the pixels without fill of a :func:`find_fill` region (the fan registered whole:
+    fill and its neighbourhood weighted 0 in eq:IR, :func:`fan_weights`)."""
+    fan = ~region.fill
+    rows, cols = np.flatnonzero(fan.any(axis=1)), np.flatnonzero(fan.any(axis=0))
+    (dx, dy), (ox, oy) = region.spacing, region.origin
+    v = region.excluded.split("fill of value ", 1)[1].split(" ", 1)[0]
+    why = (f"fill of value {v} ({100 * region.fill.mean():.0f} % of the frame: the wedges of a scan-converted "
+           f"sector or a blanked margin, fixed while the tissue moves) excluded: the image term left out there "
+           f"and within {SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried "
+           f"by the regulariser, results NaN outside the fan (roi= / --roi to choose a rectangle)")
+    return EchoRegion((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]), int(cols[-1]) + 1), region.shape,
+                      region.spacing, region.origin, why, fill=region.fill,
+                      rectangle=(tuple(region.rows), tuple(region.cols)))
+
+
+_DATA_MASK = ContextVar("femreg_data_mask", default=None)
+
+
+@contextmanager
+def data_mask(inside, weights, rectangle=None):
+    """Within the block, :func:`femreg.register` of frames of this shape normalises over ``inside`` (bool, True
+    in the fan), gives eq:IR weight 0 outside ``weights`` (:func:`fan_weights`) and takes its speckle statistics
+    and pyramid start on ``rectangle`` ((row slice, column slice) without fill; None: the whole frames)."""
+    token = _DATA_MASK.set((np.asarray(inside, bool), np.asarray(weights, bool), rectangle))
+    try:
+        yield
+    finally:
+        _DATA_MASK.reset(token)
+
+
+def active_mask(shape):
+    """(inside, weights, rectangle) of the enclosing :func:`data_mask` for frames of ``shape``, else None."""
+    m = _DATA_MASK.get()
+    return m if m is not None and m[0].shape == tuple(shape) else None
 
 
 def _largest_rectangle(mask):
@@ -493,6 +559,14 @@ class Crop:
         self.origin = (region.origin[0] + self.slices[0].start * region.spacing[0],
                        region.origin[1] + self.slices[1].start * region.spacing[1])
         self.seconds = float(seconds)
+        #: the fan (True) and the pixels of eq:IR (True) on the crop, for a :func:`fan_region`; else None
+        self.inside = self.weights = self.rectangle = None
+        if region.fill is not None:
+            self.inside = ~region.fill[self.slices]
+            self.weights = fan_weights(region.fill, region.spacing)[self.slices]
+            if region.rectangle is not None:    # the largest rectangle without fill, on the crop
+                self.rectangle = tuple(slice(lo - s.start, hi - s.start)
+                                       for (lo, hi), s in zip(region.rectangle, self.slices))
         for k, (s, mp) in enumerate(zip(self.slices, (mr, mc))):
             if s.stop - s.start - 2 * mp < 1:
                 raise InputError(f"the {'region' if pad else 'echo region'} {region.roi_mm[2 * k]:.2f} to "
@@ -522,6 +596,8 @@ class Crop:
             res.excluded = self.region.excluded
             res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded
         res.timings["echo"] = self.seconds
+        if self.region.fill is not None:       # nothing reported outside the fan: the regulariser's field there
+            res.data_mask = ~self.region.fill
         return res
 
 
@@ -551,14 +627,16 @@ def crop_request(roi, depth, mesh, initial, offset, *, volume: bool = False):
 
 
 def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
-             margin=None, initial=None, offset=None) -> Crop | None:
+             margin=None, initial=None, offset=None, fan=False) -> Crop | None:
     """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
 
     ``roi``: "auto" (default) detects the echo rectangle (:func:`find_echo`), None keeps the whole frames,
     (x0, x1, y0, y1) mm a given rectangle; ``depth`` (d0, d1) mm a given depth range over all lines (a given
     rectangle or depth disables the detection).  With a user ``mesh`` there is no crop (a given roi or depth is
     then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
-    The detection changes nothing (None) when what it excludes lies within the mesh margin."""
+    The detection changes nothing (None) when what it excludes lies within the mesh margin.  ``fan``: frames
+    with fill (:func:`find_fill`) are cut to the bounding box of their fan instead of the largest rectangle,
+    the crop's :attr:`Crop.inside` / :attr:`Crop.weights` saying where eq:IR holds (:func:`fan_region`)."""
     given = crop_request(roi, depth, mesh, initial, offset)
     if given is None:
         return None
@@ -576,6 +654,8 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         region = find_fill(ref, mov, spacing, origin)
         if region is None:
             return None
+        if fan:
+            return Crop(fan_region(region), mp, False, time.perf_counter() - t)
     else:
         region = _find_echo(ref, mov, spacing, origin)
     n, m = ref.shape

@@ -39,12 +39,17 @@ class Solve:
 def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=None) -> SSDTerm:
     """The SSD image term (eq:IR, fixed reference gradient eq:wfnew) of :func:`femreg.register` on ``mesh``:
     pixel-centre quadrature over the reference grid ``shape``/``spacing``/``origin`` (mm), both images sampled at
-    x + S(x) with ``offset`` S (callable, nodal vector or result; None = 0)."""
+    x + S(x) with ``offset`` S (callable, nodal vector or result; None = 0).  Pixels where ``I1.weights_mask``
+    (if set) is False get weight 0 (the fill of a scan-converted fan)."""
     quad = PixelQuadrature(mesh, shape, spacing, origin, locator=locator or PointLocator(mesh))
     if quad.n_pixels == 0:
         raise InputError("mesh outside the image: no pixel centre lies inside the mesh")
     S = None if offset is None else displacement_at(offset, mesh, quad.points, "offset")
-    return SSDTerm(quad, I1, I2, offset=S)
+    term = SSDTerm(quad, I1, I2, offset=S)
+    keep = getattr(I1, "weights_mask", None)      # a fan's fill and its neighbourhood (femreg.echo.fan_weights)
+    if keep is not None:
+        term.w = np.where(keep.ravel()[quad.index], term.w, 0.0)
+    return term
 
 
 def solve(I1, I2, mesh, shape, spacing, origin, reg_factory, u0, *, offset=None, locator=None, maxiter=20,

@@ -147,14 +147,16 @@ def pixel_axes(shape, spacing, origin):
     return (origin[0] + spacing[0] * np.arange(shape[0]), origin[1] + spacing[1] * np.arange(shape[1]))
 
 
-def normalize_pair(reference, moving):
-    """Each image minus its mean, over its standard deviation (see module docstring).  Returns ``(ref, mov,
-    scale)``, ``scale`` the reference's standard deviation."""
+def normalize_pair(reference, moving, mask=None):
+    """Each image minus its mean, over its standard deviation (see module docstring); ``mask`` (bool, the
+    images' shape): both taken over its True pixels only (the fan of a scan-converted frame, not its fill).
+    Returns ``(ref, mov, scale)``, ``scale`` the reference's standard deviation."""
     out = []
     for img, what in ((reference, "reference"), (moving, "moving")):
         img = np.asarray(img, float)
-        m = float(np.mean(img))
-        s = float(np.sqrt(np.mean(np.square(img - m))))
+        sel = img if mask is None else img[mask]
+        m = float(np.mean(sel))
+        s = float(np.sqrt(np.mean(np.square(sel - m))))
         if not s > 0:
             raise InputError(f"{what} image is constant: nothing to register")
         out.append(((img - m) / s, s))
@@ -175,6 +177,8 @@ class SplineImage:
         self.spacing = np.asarray(spacing, dtype=float)
         self.origin = np.asarray(origin, dtype=float)
         self.shape = self.data.shape
+        #: bool (shape), False where eq:IR leaves the reference pixel out (fill of a fan), or None
+        self.weights_mask = None
         # Prefilter once; every later evaluation uses prefilter=False.
         # Mirror-extend the coefficients by 2 (as scipy does internally) so that points within half a pixel of
         # the edge interpolate instead of dropping to zero through round-off; zero outside is applied

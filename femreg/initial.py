@@ -51,11 +51,14 @@ def _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset):
 def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory, *, alpha, regularizer,
                   strategy="auto", offset=None, stats=None, settings=None, element_size=None, margin=None,
                   maxiter=20, tol=1e-3, linear_solver="auto", blockmatch_options=None,
-                  coarse_to_fine="auto") -> InitialGuess:
+                  coarse_to_fine="auto", rectangle=None) -> InitialGuess:
     """u_1 on ``mesh`` for ``initial`` (a name of :data:`INITIAL_NAMES`, a callable, a nodal vector, a
     RegistrationResult or a BlockMatchResult; see :func:`femreg.register`).  ``ref``/``mov``: the normalised
     frames, ``I1``/``I2`` their splines; ``stats``/``settings``: the speckle statistics and pyramid settings of
-    the mesh stage, if it computed them."""
+    the mesh stage, if it computed them.  ``rectangle`` (row slice, column slice): the pyramid runs on this part
+    of the frames only (a scan-converted fan's largest rectangle without fill, whose fixed edges would pull its
+    search to zero), its field extended as constant beyond it (:func:`femreg.pyramid.field_at`) for the final
+    solve to correct."""
     if not isinstance(initial, str):
         bm = initial if isinstance(initial, BlockMatchResult) else None
         return InitialGuess(nodal_values(initial, mesh, "initial"), blockmatch=bm, stats=stats, settings=settings)
@@ -71,6 +74,9 @@ def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory,
                                  linear_solver=linear_solver)
         return InitialGuess(pg.u0, blockmatch=pg.blockmatch, stats=stats, settings=settings, timings=pg.timings)
     env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
+    if rectangle is not None:
+        a, b = a[rectangle], b[rectangle]
+        origin = np.asarray(origin, float) + np.array([rectangle[0].start, rectangle[1].start]) * np.asarray(spacing)
     if stats is None:
         stats = speckle_statistics(a, spacing)
         settings = default_settings(a.shape, spacing, stats, element_size, **element_rule(regularizer))

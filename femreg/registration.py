@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from . import autoalpha, orientation
-from .echo import crop_for
+from .echo import active_mask, crop_for, data_mask
 from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
@@ -80,15 +80,17 @@ def _validate(reference_image, moving_image, spacing, origin, *, regularizer, st
 
 
 def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, initial, regularizer,
-                allow_mesh_outside):
+                allow_mesh_outside, rectangle=None):
     """Mesh stage: the user's mesh, or the structured ROI mesh sized from the speckle (``strategy="auto"``, whose
     speckle statistics and pyramid settings are returned for the pyramid) or from ``element_size``.  Returns
-    ``(mesh, stats, settings)``."""
+    ``(mesh, stats, settings)``; ``rectangle`` (slices): the statistics from this part of ``ref`` only (a fan's
+    largest rectangle without fill)."""
     stats = settings = None
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
-        stats = speckle_statistics(ref, spacing)
-        settings = default_settings(ref.shape, spacing, stats, element_size, **element_rule(regularizer))
+        part = ref if rectangle is None else ref[rectangle]
+        stats = speckle_statistics(part, spacing)
+        settings = default_settings(part.shape, spacing, stats, element_size, **element_rule(regularizer))
     if mesh is None:
         h = settings.element_size if (settings is not None and element_size is None) else element_size
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),
@@ -98,6 +100,19 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     if not allow_mesh_outside:
         check_mesh_in_image(fe_mesh, ref.shape, spacing, origin)
     return fe_mesh, stats, settings
+
+
+def _image_stage(ref, mov, spacing, origin, normalize):
+    """Images stage: each frame normalised by its mean and spread (over the fan of a scan-converted frame,
+    :func:`femreg.echo.data_mask`), spline coefficients once; eq:IR weight 0 outside the fan's ``weights``.
+    Returns ``(ref, mov, I1, I2, rectangle)``, ``rectangle`` the fan's largest rectangle without fill or None."""
+    fan = active_mask(ref.shape)        # (inside, weights, rectangle) of a fan, or None
+    if normalize:
+        ref, mov, _ = normalize_pair(ref, mov, mask=None if fan is None else fan[0])
+    I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
+    if fan is not None:
+        I1.weights_mask = fan[1]        # read by femreg.gnsolve.image_term
+    return ref, mov, I1, I2, None if fan is None else fan[2]
 
 
 def _route(reference_image, moving_image, args: dict):
@@ -113,11 +128,15 @@ def _route(reference_image, moving_image, args: dict):
             return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
     crop = crop_for(reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"],
                     depth=args["depth"], mesh=args["mesh"], margin=args["margin"], initial=args["initial"],
-                    offset=args["offset"])
+                    offset=args["offset"], fan=True)
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
     kw.update(roi=None, depth=None)
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
-        return crop.widen(register(*crop.frames(reference_image, moving_image), **dict(kw, origin=crop.origin)))
+        frames, kw = crop.frames(reference_image, moving_image), dict(kw, origin=crop.origin)
+        if crop.inside is None:
+            return crop.widen(register(*frames, **kw))
+        with data_mask(crop.inside, crop.weights, crop.rectangle):   # the whole fan, fill weighted 0 in eq:IR (femreg.echo)
+            return crop.widen(register(*frames, **kw))
     if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         if args["check_orientation"]:   # once here, not in each candidate registration
             orientation.check(validate_image(reference_image, "reference image"),
@@ -270,16 +289,15 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- images: each normalised by its mean and spread, spline coefficients once ------------------------------
     t = time.perf_counter()
-    if normalize:
-        ref, mov, _ = normalize_pair(ref, mov)
-    I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
+    ref, mov, I1, I2, rect = _image_stage(ref, mov, spacing, origin, normalize)
     timings["prefilter"] = time.perf_counter() - t
 
     # -- mesh ------------------------------------------------------------------------------------------------
     t = time.perf_counter()
     fe_mesh, stats, settings = _mesh_stage(ref, spacing, origin, mesh=mesh, element_size=element_size,
                                            margin=margin, strategy=strategy, initial=initial,
-                                           regularizer=regularizer, allow_mesh_outside=allow_mesh_outside)
+                                           regularizer=regularizer, allow_mesh_outside=allow_mesh_outside,
+                                           rectangle=rect)
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
 
@@ -289,7 +307,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                           regularizer=regularizer, strategy=strategy, offset=offset, stats=stats,
                           settings=settings, element_size=element_size, margin=margin, maxiter=maxiter, tol=tol,
                           linear_solver=linear_solver, blockmatch_options=blockmatch_options,
-                          coarse_to_fine=coarse_to_fine)
+                          coarse_to_fine=coarse_to_fine, rectangle=rect)
     u0, stats = start.u0, start.stats
     timings.update(start.timings)
     timings["initial"] = time.perf_counter() - t

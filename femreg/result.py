@@ -79,6 +79,9 @@ class RegistrationResult(ResultRecord):
         self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
         self.excluded = None if excluded is None else str(excluded)
         self.roi = None if roi is None else tuple(float(v) for v in roi)
+        #: (n_axial, n_lateral) bool on the pixel grid, False where nothing was measured (outside the fan of a
+        #: scan-converted frame, :func:`femreg.echo.fan_region`): fields there are NaN; None: everywhere
+        self.data_mask = None
 
     # -- sampling -------------------------------------------------------------------------------------------
     @property
@@ -101,8 +104,22 @@ class RegistrationResult(ResultRecord):
         return PixelGrid.of(self.shape, self.spacing, self.origin)
 
     def displacement(self, points) -> np.ndarray:
-        """u at ``points`` (n, 2) [x, y] mm -> (n, 2) [ux, uy] mm; NaN outside the mesh."""
-        return sample_points(self.u, self.locator, points, ("ux", "uy"))
+        """u at ``points`` (n, 2) [x, y] mm -> (n, 2) [ux, uy] mm; NaN outside the mesh (and :attr:`data_mask`)."""
+        return self._masked(points, sample_points(self.u, self.locator, points, ("ux", "uy")))
+
+    def _masked(self, points, values):
+        """``values`` at ``points`` NaN where the nearest pixel lies outside :attr:`data_mask`."""
+        mask = getattr(self, "data_mask", None)
+        if mask is None:
+            return values
+        pts = np.asarray(points, float).reshape(-1, 2)
+        idx = np.rint((pts - np.asarray(self.origin, float)) / np.asarray(self.spacing, float)).astype(int)
+        ok = np.all((idx >= 0) & (idx < np.asarray(mask.shape)), axis=1)
+        off = ~ok
+        off[ok] = ~mask[idx[ok, 0], idx[ok, 1]]
+        values = np.array(values, float)
+        values[off] = np.nan
+        return values
 
     @property
     def nodal_strain(self) -> np.ndarray:
@@ -128,8 +145,8 @@ class RegistrationResult(ResultRecord):
         continuous; ``"edge"`` keeps strain steps); ``"element"``: the gradient of the bilinear field,
         discontinuous across element edges (a point on an edge takes one of its elements)."""
         check_strain_mode(strain)
-        return sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),
-                             nodal_strain=self.recovered(recovery) if strain == "recovered" else None)
+        return self._masked(points, sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),
+                            nodal_strain=self.recovered(recovery) if strain == "recovered" else None))
 
     def pixel_points(self) -> np.ndarray:
         """Centres of the reference pixels, (n_axial * n_lateral, 2) mm, C order."""
@@ -140,16 +157,25 @@ class RegistrationResult(ResultRecord):
         the mesh; strains as :meth:`strain` (``"recovered"`` or ``"element"``; ``recovery`` the method of the
         recovered strain, None the default)."""
         if check_strain_mode(strain) == "recovered" and recovery is not None and recovery != DEFAULT_RECOVERY:
-            return sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
-                               nodal_strain=self.recovered(recovery))
+            return self._masked_grid(sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
+                                                 nodal_strain=self.recovered(recovery)))
         if strain == "element":
             if self._grid_element is None:
-                self._grid_element = sample_grid(self.u, self.locator, self.pixel_grid, "element")
+                self._grid_element = self._masked_grid(sample_grid(self.u, self.locator, self.pixel_grid, "element"))
             return self._grid_element
         if self._grid is None:
-            self._grid = sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
-                                     nodal_strain=self.nodal_strain)
+            self._grid = self._masked_grid(sample_grid(self.u, self.locator, self.pixel_grid, "recovered",
+                                                       nodal_strain=self.nodal_strain))
         return self._grid
+
+    def _masked_grid(self, grid: dict) -> dict:
+        """The pixel-grid fields NaN outside :attr:`data_mask` (in place)."""
+        mask = getattr(self, "data_mask", None)
+        if mask is not None:
+            for v in grid.values():
+                if isinstance(v, np.ndarray) and v.shape == mask.shape and v.dtype.kind == "f":
+                    v[~mask] = np.nan
+        return grid
 
     # -- files ----------------------------------------------------------------------------------------------
     def save(self, path, **extra):

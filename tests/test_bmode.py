@@ -95,24 +95,29 @@ def _fan(shape, spacing, origin, apex_mm=20.0, top_half_width_mm=4.0):
     return np.abs(np.arctan2(Y - np.mean(y), X - (x[0] - apex_mm))) <= half
 
 
-def test_scan_converted_sector_registers_on_its_largest_rectangle():
+def test_scan_converted_sector_registers_the_whole_fan():
     """A B-mode pair inside a fan with black wedges (a convex probe's scan-converted image): the wedges are fixed
     on the screen while the tissue moves; registered whole they pulled the displacement to zero (a fan-masked L12
-    loop: 78 % strain error, FAILED).  The fill is found and the largest rectangle without it registered."""
+    loop: 78 % strain error, FAILED).  The fill is found, the mesh spans the fan's bounding box, eq:IR leaves the
+    fill and its neighbourhood out (femreg.echo.fan_weights), the pyramid starts on the largest rectangle without
+    fill, and nothing is reported outside the fan."""
     p = _inclusion_bmode_pair()
     fan = _fan(p.ref.shape, p.spacing, p.origin)
     a, b = (np.where(fan, _bmode(f), 0).astype(np.uint8) for f in (p.ref, p.mov))
     r = femreg.register(a, b, spacing=p.spacing, origin=p.origin)
-    assert r.success and "fill of value 0" in r.message and "largest rectangle" in r.message, r.message
+    assert r.success and "fill of value 0" in r.message and "NaN outside the fan" in r.message, r.message
     pts = r.pixel_points()
     e = r.strain(pts)[:, 0]
     ok = np.isfinite(e)
     assert not np.any(ok & ~fan.ravel())                  # nothing reported outside the fan
+    assert np.all(np.isnan(r.on_grid()["exx"][~fan]))
     t = p.field.strain(pts[ok])[:, 0]
     err = np.sqrt(np.mean((e[ok] - t) ** 2)) / np.mean(np.abs(t))
-    # measured 24.5 % on 48 % of the fan (a strip 8.4 mm wide around the 6 mm disk; the pair without the fan 15.4 %);
-    # registered whole (roi=None) 85.6 % and FAILED: bound 30 %
-    assert err < 0.30, err
+    cover = ok.sum() / fan.sum()
+    # measured 20.7 % on 85 % of the fan (the rest: the mesh margin); on its largest rectangle alone (before)
+    # 24.5 % on 48 %, the pair without the fan 15.4 %; the pyramid on the whole fan: 146 %, FAILED.  Bounds: 23 %
+    # and 80 %
+    assert err < 0.23 and cover > 0.80, (err, cover)
 
 
 def test_largest_rectangle_against_brute_force():
