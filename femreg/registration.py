@@ -229,7 +229,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         The region registered (volumes: :func:`femreg.echo_volume.find_echo_volume`, the full voxel grid kept).
         "auto" (default): the rectangle with usable echo (:func:`femreg.echo.find_echo`: depth and lines at the
         noise floor, saturated samples), the rest left out of the mesh and the image term and named in
-        ``result.excluded`` and the message (nothing changes where the frames hold echo everywhere); None: the
+        ``result.excluded`` and the message (nothing changes where the frames hold echo everywhere); envelope /
+        B-mode frames with fill around a scan-converted fan (:func:`femreg.echo.find_fill`): the whole fan, the
+        fill weighted 0 in eq:IR and the result NaN outside the fan (:func:`femreg.echo.fan_region`); None: the
         whole frames; a rectangle: that one (no detection).  The mesh covers the rectangle, less ``margin`` at
         the image edges; the result keeps the full frames' pixel grid.
     depth : (d0, d1) mm, optional
