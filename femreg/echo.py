@@ -287,7 +287,7 @@ def fan_region(region: EchoRegion) -> EchoRegion:
     fan = ~region.fill
     rows, cols = np.flatnonzero(fan.any(axis=1)), np.flatnonzero(fan.any(axis=0))
     (dx, dy), (ox, oy) = region.spacing, region.origin
-    v = region.excluded.split("fill of value ", 1)[1].split(" ", 1)[0]
+    v = region.excluded.split("fill of value ", 1)[1].split(" ", 1)[0]      # as find_fill wrote it
     why = (f"fill of value {v} ({100 * region.fill.mean():.0f} % of the frame: the wedges of a scan-converted "
            f"sector or a blanked margin, fixed while the tissue moves) excluded: the image term left out there "
            f"and within {SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried "
