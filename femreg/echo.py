@@ -109,8 +109,9 @@ class EchoRegion:
     excluded: str | None = None
     floor_db: float = float("nan")
     echo_db: float = float("nan")
-    #: (n_axial, n_lateral) bool, True at the fill pixels (:func:`find_fill`), or None
+    #: (n_axial, n_lateral) bool, True at the fill pixels (:func:`find_fill`), or None; ``fill_value`` its level
     fill: np.ndarray | None = None
+    fill_value: float = float("nan")
     #: ((r0, r1), (c0, c1)) the largest rectangle without fill of a :func:`fan_region`, or None
     rectangle: tuple | None = None
 
@@ -255,7 +256,7 @@ def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
            f"sector or a blanked margin, fixed while the tissue moves) excluded: registered on the largest "
            f"rectangle without it, depth {ox + (a - 0.5) * dx:.1f}-{ox + (b - 0.5) * dx:.1f} mm, lines at "
            f"{oy + (c - 0.5) * dy:.1f}-{oy + (d - 0.5) * dy:.1f} mm (roi= / --roi to choose another)")
-    return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why, fill=fill)
+    return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why, fill=fill, fill_value=v)
 
 
 #: Fraction of the frames' depth (extent along the beam, mm) that the tissue may move, per axis: the fill mask is
@@ -287,13 +288,12 @@ def fan_region(region: EchoRegion) -> EchoRegion:
     fan = ~region.fill
     rows, cols = np.flatnonzero(fan.any(axis=1)), np.flatnonzero(fan.any(axis=0))
     (dx, dy), (ox, oy) = region.spacing, region.origin
-    v = region.excluded.split("fill of value ", 1)[1].split(" ", 1)[0]      # as find_fill wrote it
-    why = (f"fill of value {v} ({100 * region.fill.mean():.0f} % of the frame: the wedges of a scan-converted "
+    why = (f"fill of value {region.fill_value:g} ({100 * region.fill.mean():.0f} % of the frame: the wedges of a scan-converted "
            f"sector or a blanked margin, fixed while the tissue moves) excluded: the image term left out there "
            f"and within {SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried "
            f"by the regulariser, results NaN outside the fan (roi= / --roi to choose a rectangle)")
     return EchoRegion((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]), int(cols[-1]) + 1), region.shape,
-                      region.spacing, region.origin, why, fill=region.fill,
+                      region.spacing, region.origin, why, fill=region.fill, fill_value=region.fill_value,
                       rectangle=(tuple(region.rows), tuple(region.cols)))
 
 
