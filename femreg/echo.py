@@ -561,7 +561,7 @@ class Crop:
         self.seconds = float(seconds)
         #: the fan (True) and the pixels of eq:IR (True) on the crop, for a :func:`fan_region`; else None
         self.inside = self.weights = self.rectangle = None
-        if region.fill is not None:
+        if getattr(region, "fill", None) is not None:      # volumes' boxes (femreg.echo_volume) hold no fill
             self.inside = ~region.fill[self.slices]
             self.weights = fan_weights(region.fill, region.spacing)[self.slices]
             if region.rectangle is not None:    # the largest rectangle without fill, on the crop
@@ -596,7 +596,7 @@ class Crop:
             res.excluded = self.region.excluded
             res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded
         res.timings["echo"] = self.seconds
-        if self.region.fill is not None:       # nothing reported outside the fan: the regulariser's field there
+        if getattr(self.region, "fill", None) is not None:    # nothing reported outside the fan: regulariser's field
             res.data_mask = ~self.region.fill
         return res
 
