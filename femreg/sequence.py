@@ -29,6 +29,7 @@ frames.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -36,7 +37,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
-from .echo import crop_for
+from .echo import crop_for, data_mask
 from . import orientation
 from .errors import InputError
 from .image import validate_image, validate_spacing
@@ -214,13 +215,17 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if check_orientation:
         orientation.check(seq[0], spacing)
     register_kwargs["check_orientation"] = False    # checked once, above
-    crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin)
+    crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True)
     if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
         seq, origin = crop.frames(*seq), np.asarray(crop.origin)
+    # a scan-converted fan: the fill weighted 0 in every pair's eq:IR (femreg.echo.data_mask)
+    fan = None if crop is None or crop.inside is None else (crop.inside, crop.weights, crop.rectangle)
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
-        # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings)
-        element_size = tuple(default_settings(shape, spacing, speckle_statistics(seq[0], spacing),
+        # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings; a
+        # fan's from its largest rectangle without fill)
+        part = seq[0] if fan is None or fan[2] is None else np.asarray(seq[0])[fan[2]]
+        element_size = tuple(default_settings(shape, spacing, speckle_statistics(part, spacing),
                                               **element_rule(regularizer)).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
@@ -313,6 +318,9 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame")
+    masked = contextlib.ExitStack()
+    if crop is not None and crop.inside is not None:      # a fan: its fill weighted 0 in every pair's eq:IR
+        masked.enter_context(data_mask(crop.inside, crop.weights, crop.rectangle))
     try:
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
@@ -364,6 +372,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 bar.set_postfix_str(f"ncc {res.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
                 bar.update(1)
     finally:
+        masked.close()
         if bar is not None:
             bar.close()
     return out

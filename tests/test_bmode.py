@@ -159,3 +159,20 @@ def test_info_names_the_fill_it_will_leave_out(pair, tmp_path, capsys):
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
     assert "fill      fill of value 0" in out and "largest rectangle" in out, out
+
+
+def test_track_keeps_the_whole_fan_too():
+    """femreg.track on the fan pair: the fill weighted 0 in every pair, results NaN outside the fan.  Measured
+    18.5 % on 85 % of the fan (register: 20.7 %; the largest rectangle: 24.5 % on 48 %): bounds 21 % and 80 %."""
+    p = _inclusion_bmode_pair()
+    fan = _fan(p.ref.shape, p.spacing, p.origin)
+    a, b = (np.where(fan, _bmode(f), 0).astype(np.uint8) for f in (p.ref, p.mov))
+    res = femreg.track(np.stack([a, b]), spacing=p.spacing, origin=p.origin)[-1]
+    assert res.success, res.message
+    pts = res.pixel_points()
+    e = res.strain(pts)[:, 0]
+    ok = np.isfinite(e)
+    assert not np.any(ok & ~fan.ravel()) and not np.any(np.isfinite(res.on_grid()["exx"]) & ~fan)
+    t = p.field.strain(pts[ok])[:, 0]
+    err = np.sqrt(np.mean((e[ok] - t) ** 2)) / np.mean(np.abs(t))
+    assert err < 0.21 and ok.sum() > 0.8 * fan.sum(), (err, ok.sum() / fan.sum())

@@ -106,8 +106,8 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
             from ..echo import find_fill
 
             fill = find_fill(np.asarray(a[0], float), np.asarray(a[-1], float), fr.spacing, fr.origin)
-            if fill is not None:        # what track and elastogram will leave out; register keeps the fan
-                out["fill"] = (f"{fill.excluded}; register: the whole fan, the fill weighted 0 "
+            if fill is not None:        # what elastogram will leave out; register and track keep the fan
+                out["fill"] = (f"{fill.excluded}; register and track: the whole fan, the fill weighted 0 "
                                f"(femreg.echo.fan_region)")
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
