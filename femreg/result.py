@@ -257,6 +257,7 @@ def load_result(path) -> RegistrationResult:
     mesh, u, kw, element_grid = read_result(path)
     base = kw.pop("refined_from", None)
     auto = kw.pop("auto_alpha", None)
+    mask = kw.pop("data_mask", None)
     geometry = kw.pop("geometry", None)
     if geometry is not None and _BEAM_RESULT:     # convex / sector frames: samples at their physical positions
         res = _BEAM_RESULT[0](mesh, u, geometry=geometry, **kw)
@@ -264,6 +265,7 @@ def load_result(path) -> RegistrationResult:
         res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
     res.auto_alpha = auto
+    res.data_mask = mask
     if base is not None:            # what the inversion and new meshes read: the size refinement started from
         from .result_base import RefinementRecord
 

@@ -25,6 +25,8 @@ strain             str                             how the grid strains were eva
 excluded           str                             what of the frames was not registered and why
                                                    (optional; absent: the whole frames)
 roi                (4,) mm                         the rectangle registered, x0 x1 y0 y1 (optional)
+data_mask          (n_axial, n_lateral) bool       False where nothing was measured (outside the fan of a
+                                                   scan-converted frame; optional; absent: everywhere)
 refined_from       (2,) mm                         median element size (axial, lateral) of the mesh adaptive
                                                    refinement started from (optional; absent: not refined)
 recovery           str                             recovered strains: the method of
@@ -60,7 +62,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "auto_alpha")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "auto_alpha", "data_mask")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -222,6 +224,10 @@ def _read(path) -> dict:
         if v is None or v.shape != (2,) or not np.all(np.isfinite(v)) or (k == "spacing" and v.min() <= 0):
             raise fail(path, f"key {k!r} must be two finite numbers{' > 0' if k == 'spacing' else ''}, "
                              f"got {out[k]!r}")
+    if "data_mask" in out and (np.asarray(out["data_mask"]).dtype != bool
+                               or np.shape(out["data_mask"]) != tuple(np.ravel(out["shape"]).astype(int))):
+        raise fail(path, f"key 'data_mask' must be a bool array of the grid's shape {tuple(np.ravel(out['shape']))}, "
+                         f"got {np.asarray(out['data_mask']).dtype} {np.shape(out['data_mask'])}")
     if "roi" in out and (np.shape(out["roi"]) != (4,) or np.asarray(out["roi"]).dtype.kind not in "iuf"
                          or not np.all(np.isfinite(np.asarray(out["roi"], float)))):
         raise fail(path, f"key 'roi' must be four finite numbers x0 x1 y0 y1 (mm), got {out['roi']!r}")
@@ -263,6 +269,8 @@ def read_result(path):
               grid=grid, quality=None if d.get("quality") is None else np.asarray(d["quality"], float),
               strategy=str(d.get("strategy", "")),
               excluded=None if d.get("excluded") is None else str(d["excluded"]), roi=d.get("roi"))
+    if d.get("data_mask") is not None:
+        kw["data_mask"] = np.asarray(d["data_mask"], bool)
     if d.get("refined_from") is not None:
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("auto_alpha") is not None:
