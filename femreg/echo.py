@@ -49,7 +49,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "find_echo", "find_fill", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "find_echo", "find_fill", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -223,6 +223,19 @@ def _span(lo, hi, origin, step):
     return f"{origin + (lo - 0.5) * step:.1f}-{origin + (hi - 0.5) * step:.1f} mm"
 
 
+def fill_level(frame) -> float | None:
+    """The candidate fill level of an envelope / B-mode ``frame``: its lowest value (fill is black; a saturated
+    bright layer is tissue) when that covers more than :data:`FILL_FRACTION` of it, else None."""
+    v = float(np.min(frame))
+    return v if np.count_nonzero(frame == v) > FILL_FRACTION * np.size(frame) else None
+
+
+def _fill_reason(value, fraction) -> str:
+    """The start of what a fill's exclusion says (:func:`find_fill`, :func:`fan_region`)."""
+    return (f"fill of value {value:g} ({100 * fraction:.0f} % of the frame: the wedges of a scan-converted sector or "
+            f"a blanked margin, fixed while the tissue moves) excluded: ")
+
+
 def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
     """The largest rectangle of an envelope / B-mode pair (validated (n_axial, n_lateral) frames, ``spacing``,
     ``origin`` mm) without fill, or None without fill.
@@ -235,8 +248,8 @@ def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
     (:func:`_largest_rectangle`)."""
     from scipy import ndimage
 
-    v = float(ref.min())         # fill is black: a saturated bright layer touching the sides is tissue
-    if np.count_nonzero(ref == v) <= FILL_FRACTION * ref.size:
+    v = fill_level(ref)
+    if v is None:
         return None
     # fill in both frames, in pieces that touch the frame's edge: speckle clipped to black inside the tissue
     # (a B-mode's darkest level) moves with it and lies inside
@@ -252,9 +265,8 @@ def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
                          f"reference is the fill value {v:g}; give roi=(x0, x1, y0, y1) mm (CLI: --roi)")
     dx, dy = (float(t) for t in spacing)
     ox, oy = (float(t) for t in origin)
-    why = (f"fill of value {v:g} ({100 * fill.mean():.0f} % of the frame: the wedges of a scan-converted "
-           f"sector or a blanked margin, fixed while the tissue moves) excluded: registered on the largest "
-           f"rectangle without it, depth {ox + (a - 0.5) * dx:.1f}-{ox + (b - 0.5) * dx:.1f} mm, lines at "
+    why = (_fill_reason(v, fill.mean()) + f"registered on the largest rectangle without it, depth "
+           f"{ox + (a - 0.5) * dx:.1f}-{ox + (b - 0.5) * dx:.1f} mm, lines at "
            f"{oy + (c - 0.5) * dy:.1f}-{oy + (d - 0.5) * dy:.1f} mm (roi= / --roi to choose another)")
     return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why, fill=fill, fill_value=v)
 
@@ -288,10 +300,9 @@ def fan_region(region: EchoRegion) -> EchoRegion:
     fan = ~region.fill
     rows, cols = np.flatnonzero(fan.any(axis=1)), np.flatnonzero(fan.any(axis=0))
     (dx, dy), (ox, oy) = region.spacing, region.origin
-    why = (f"fill of value {region.fill_value:g} ({100 * region.fill.mean():.0f} % of the frame: the wedges of a scan-converted "
-           f"sector or a blanked margin, fixed while the tissue moves) excluded: the image term left out there "
-           f"and within {SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried "
-           f"by the regulariser, results NaN outside the fan (roi= / --roi to choose a rectangle)")
+    why = (_fill_reason(region.fill_value, region.fill.mean()) + f"the image term left out there and within "
+           f"{SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried by the "
+           f"regulariser, results NaN outside the fan (roi= / --roi to choose a rectangle)")
     return EchoRegion((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]), int(cols[-1]) + 1), region.shape,
                       region.spacing, region.origin, why, fill=region.fill, fill_value=region.fill_value,
                       rectangle=(tuple(region.rows), tuple(region.cols)))

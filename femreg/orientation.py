@@ -274,18 +274,25 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
         hint = (f"the axial and lateral spacings look swapped: pass spacing ({swapped}) ({order}; "
                 f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {swapped.replace(',', '')})")
     else:
-        hint = "check the spacing's units (mm) and order (axial, lateral)"
         # a uniform change of units leaves the speckle-to-period ratio alone and scales the frequency by 1 / k
-        for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
-            if rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi \
-                    and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS:
-                mm = tuple(v * k for v in (dx, dy) + dz)
-                text = ", ".join(f"{v:.6g}" for v in mm)
-                hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; "
-                        f"{rep.frequency_mhz / k:.2f} MHz; CLI: --spacing {text.replace(',', '')})")
-                break
+        hint = _units_hint((dx, dy) + dz, order, ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")),
+                           lambda k: (rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi
+                                      and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS),
+                           lambda k: f"{rep.frequency_mhz / k:.2f} MHz")
     rep.message = f"{why}; {hint}, or {OVERRIDE}"
     return rep
+
+
+def _units_hint(spacing, order: str, units, fits, detail) -> str:
+    """The advice for a spacing given in other units than mm: the first ``(k, unit)`` of ``units`` for which
+    ``fits(k)`` (the data plausible with the spacing x k) names the unit and the spacing in mm (``spacing`` x k,
+    ``detail(k)`` what it then gives); without one, to check the units and order."""
+    for k, unit in units:
+        if fits(k):
+            text = ", ".join(f"{v * k:.6g}" for v in spacing)
+            return (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; {detail(k)}; CLI: "
+                    f"--spacing {text.replace(',', '')})")
+    return "check the spacing's units (mm) and order (axial, lateral)"
 
 
 def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tuple, order: str) -> None:
@@ -318,27 +325,23 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
                        f"{swapped.replace(',', '')}), or {OVERRIDE}")
     elif not plausible(cell):
         rep.problem = "spacing"
-        hint = "check the spacing's units (mm) and order (axial, lateral)"
         # a uniform change of units scales both cells by k
-        for k, unit in ((10.0, "centimetres"), (1e3, "metres"), (1e-3, "micrometres")):
-            if plausible(cell * k):
-                text = ", ".join(f"{v * k:.6g}" for v in (dx, dy) + dz)
-                hint = (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; cells "
-                        f"{cell[0] * k:.3g} x {cell[1] * k:.3g} mm; CLI: --spacing {text.replace(',', '')})")
-                break
+        hint = _units_hint((dx, dy) + dz, order, ((10.0, "centimetres"), (1e3, "metres"), (1e-3, "micrometres")),
+                           lambda k: plausible(cell * k), lambda k: f"cells {cell[0] * k:.3g} x {cell[1] * k:.3g} mm")
         rep.message = (f"{found}, outside what ultrasound probes resolve ({a0:g}-{a1:g} mm axially, {l0:g}-{l1:g} "
                        f"mm laterally); {hint}, or {OVERRIDE}")
 
 
 def _signal_columns(block):
-    """The columns of ``block`` without fill: a value repeated over more than 2 % of the block (the black wedges
-    of a scan-converted convex or sector image, a blanked margin) marks fill, whose edges would otherwise set the
+    """The columns of ``block`` without fill (:func:`femreg.echo.fill_level`: the black wedges of a
+    scan-converted convex or sector image, a blanked margin), whose edges would otherwise set the
     speckle cell (13 mm axially on a fan-masked L12 B-mode); None when fewer than :data:`MIN_SAMPLES` columns
     remain (nothing measured)."""
-    values, counts = np.unique(block, return_counts=True)
-    k = int(np.argmax(counts))
-    if counts[k] > 0.02 * block.size:
-        keep = ~np.any(block == values[k], axis=0)
+    from .echo import fill_level
+
+    v = fill_level(block)
+    if v is not None:
+        keep = ~np.any(block == v, axis=0)
         # the longest run of kept columns: the autocorrelation needs neighbouring lines
         best, start, run = (0, 0), 0, 0
         for j, ok in enumerate(np.r_[keep, False]):

@@ -218,13 +218,11 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True)
     if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
         seq, origin = crop.frames(*seq), np.asarray(crop.origin)
-    # a scan-converted fan: the fill weighted 0 in every pair's eq:IR (femreg.echo.data_mask)
-    fan = None if crop is None or crop.inside is None else (crop.inside, crop.weights, crop.rectangle)
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings; a
         # fan's from its largest rectangle without fill)
-        part = seq[0] if fan is None or fan[2] is None else np.asarray(seq[0])[fan[2]]
+        part = seq[0] if crop is None or crop.rectangle is None else np.asarray(seq[0])[crop.rectangle]
         element_size = tuple(default_settings(shape, spacing, speckle_statistics(part, spacing),
                                               **element_rule(regularizer)).element_size)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
