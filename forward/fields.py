@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 __all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
-           "Inclusion", "as_points"]
+           "Layers", "Inclusion", "as_points"]
 
 
 def as_points(points) -> np.ndarray:
@@ -242,6 +242,87 @@ class ShearBand:
 
     def __repr__(self) -> str:
         return f"ShearBand({self.name})"
+
+
+class Layers:
+    """Bonded layers of different stiffness parallel to the probe face, compressed axially, plane stress: the axial
+    strain steps at every interface (a true step, no near field).
+
+    Closed form for layers laterally unbounded and free (no lateral force over the stack's depth ``block_mm``): the
+    axial stress ``sigma`` is the same in every layer (equilibrium across the interfaces), the lateral strain
+    ``e_yy`` is common to all (bonded), so with Young's moduli ``E_i``, thicknesses ``t_i`` and Poisson's ratio
+    ``nu`` (plane stress, Hooke's law ``e_xx = (sigma - nu sigma_yy) / E``, ``e_yy = (sigma_yy - nu sigma) / E``):
+
+    ``e_yy = -nu sigma T / sum(t_i E_i)``,  ``e_xx,i = ((1 - nu^2) sigma - nu E_i e_yy) / E_i``,  ``e_xy = 0``,
+
+    ``T = sum(t_i)``; ``sigma`` is set so that the mean axial strain over ``[0, block_mm]`` is ``-level``.  Each
+    layer is in uniform stress, so the field solves the elasticity equations exactly; ``u_x(0) = 0`` (the probe
+    face), ``u_x`` piecewise linear in depth, ``u_y = e_yy y``.  In plane strain a nearly incompressible solid
+    keeps ``e_xx`` continuous across such an interface (``e_yy`` is, and ``e_xx ~ -e_yy``), which is why this
+    field is plane stress: the thickness takes the volume change.
+
+    Parameters
+    ----------
+    interfaces_mm : sequence of float
+        Depths of the interfaces, increasing, mm (inside ``(0, block_mm)``).
+    moduli : sequence of float
+        Relative Young's modulus of each layer, top first (``len(interfaces_mm) + 1`` values, > 0).
+    level : float
+        Mean axial compression over ``[0, block_mm]`` (fraction).
+    poisson : float
+        Poisson's ratio (default 0.5, incompressible).
+    block_mm : float
+        Depth of the stack (the last layer reaches it), mm.
+    """
+
+    def __init__(self, interfaces_mm=(15.0, 25.0), moduli=(1.0, 0.25, 1.0), level: float = 0.01, *,
+                 poisson: float = 0.5, block_mm: float = 60.0):
+        z = np.asarray(interfaces_mm, float).ravel()
+        E = np.asarray(moduli, float).ravel()
+        self.block_mm, self.poisson = float(block_mm), float(poisson)
+        if E.size != z.size + 1 or not np.all(np.isfinite(E)) or np.any(E <= 0):
+            raise ValueError(f"moduli must be {z.size + 1} positive numbers (one per layer), got {moduli!r}")
+        if not (np.all(np.isfinite(z)) and np.all(np.diff(z) > 0) and (z.size == 0 or (z[0] > 0 and
+                                                                                          z[-1] < self.block_mm))):
+            raise ValueError(f"interfaces_mm must increase inside (0, {self.block_mm:g}) mm, got {interfaces_mm!r}")
+        if not 0.0 <= self.poisson <= 0.5:
+            raise ValueError(f"poisson must lie in [0, 0.5], got {poisson!r}")
+        self.interfaces_mm, self.moduli = z, E
+        self.level = _level(level)
+        edges = np.r_[0.0, z, self.block_mm]
+        t = np.diff(edges)
+        nu = self.poisson
+        # unit stress sigma = -1: strains per layer, then scaled to the mean axial strain -level
+        eyy1 = nu * t.sum() / np.sum(t * E)
+        exx1 = (-(1.0 - nu**2) - nu * E * eyy1) / E
+        c = self.level / (np.sum(t * -exx1) / t.sum()) if self.level > 0 else 0.0
+        self.exx_layers, self.eyy = c * exx1, c * eyy1
+        # u_x at the top of each layer (continuous, 0 at the probe face)
+        self._ux_top = np.r_[0.0, np.cumsum(self.exx_layers[:-1] * t[:-1])]
+        self._tops = edges[:-1]
+        self.name = (f"layers E {'/'.join(f'{e:g}' for e in E)} at {'/'.join(f'{d:g}' for d in z)} mm"
+                     f" plane stress {100 * self.level:g}%")
+
+    def layer(self, points) -> np.ndarray:
+        """Index of the layer holding each point, (n,) int (depths above 0 in the first, below the stack in the last)."""
+        return np.searchsorted(self.interfaces_mm, as_points(points)[:, 0], side="right")
+
+    def displacement(self, points) -> np.ndarray:
+        p = as_points(points)
+        k = self.layer(p)
+        ux = self._ux_top[k] + self.exx_layers[k] * (p[:, 0] - self._tops[k])
+        return np.column_stack([ux, self.eyy * p[:, 1]])
+
+    def strain(self, points) -> np.ndarray:
+        p = as_points(points)
+        k = self.layer(p)
+        return np.column_stack([self.exx_layers[k], np.full(len(p), self.eyy), np.zeros(len(p))])
+
+    def at(self, level) -> "Layers":
+        return Layers(self.interfaces_mm, self.moduli, level, poisson=self.poisson, block_mm=self.block_mm)
+
+    def __repr__(self) -> str:
+        return f"Layers({self.name})"
 
 
 #: The small 2D inclusion model (mm, MPa) used by :class:`Inclusion`: a 80 mm block, bottom clamped, the whole top
