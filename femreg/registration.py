@@ -102,17 +102,26 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     return fe_mesh, stats, settings
 
 
-def _image_stage(ref, mov, spacing, origin, normalize, fan=None):
-    """Images stage: each frame normalised by its mean and spread (over ``fan.inside``, the fan of a
-    scan-converted frame, :class:`femreg.echo.DataMask`, or None), spline coefficients once; eq:IR weight 0
-    outside ``fan.weights``.  Returns ``(ref, mov, I1, I2, rectangle)``, ``rectangle`` the fan's largest rectangle
-    without fill or None."""
+def _image_stage(ref, mov, spacing, origin, normalize, data_mask=None):
+    """Images stage: each frame normalised by its mean and spread (over the fan of a scan-converted frame, the
+    ``data_mask`` of :func:`register` as :func:`femreg.echo.as_data_mask` reads it), spline coefficients once;
+    eq:IR weight 0 outside the fan's ``weights``.  Returns ``(ref, mov, I1, I2, fan)``, ``fan`` the
+    :class:`femreg.echo.DataMask` (its ``rectangle`` the largest rectangle without fill) or None."""
+    fan = as_data_mask(data_mask, ref.shape, spacing)
     if normalize:
         ref, mov, _ = normalize_pair(ref, mov, mask=None if fan is None else fan.inside)
     I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
     if fan is not None:
         I1.weights_mask = fan.weights   # read by femreg.gnsolve.image_term
-    return ref, mov, I1, I2, None if fan is None else fan.rectangle
+    return ref, mov, I1, I2, fan
+
+
+def _masked(res, fan, data_mask):
+    """``res`` NaN outside a user's ``data_mask`` on frames not cut to it (``fan`` its DataMask); a DataMask handed
+    down from a crop is the crop's to apply (:meth:`femreg.echo.Crop.widen`)."""
+    if fan is not None and not isinstance(data_mask, DataMask):
+        res.data_mask = fan.inside.copy()
+    return res
 
 
 def _route(reference_image, moving_image, args: dict):
@@ -303,8 +312,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- images: each normalised by its mean and spread, spline coefficients once ------------------------------
     t = time.perf_counter()
-    fan = as_data_mask(data_mask, ref.shape, spacing)       # a fan not cut to (roi=None, a user mesh), or None
-    ref, mov, I1, I2, rect = _image_stage(ref, mov, spacing, origin, normalize, fan)
+    ref, mov, I1, I2, fan = _image_stage(ref, mov, spacing, origin, normalize, data_mask)
+    rect = None if fan is None else fan.rectangle
     timings["prefilter"] = time.perf_counter() - t
 
     # -- mesh ------------------------------------------------------------------------------------------------
@@ -377,16 +386,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
                    f"{sol.gn.message.replace('converged: ', '')})")
-    res = with_refinement(RegistrationResult(sol.mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=sol.reg.name, alpha=user_reg.alpha, success=check.success,
-                              status=sol.gn.status, message=message,
-                              nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
-                              ncc_after=check.ncc_after, timings=timings, blockmatch=start.blockmatch,
-                              solver_result=sol.gn, locator=sol.locator, quality=check.quality, strategy=strategy,
-                              alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol)
-    if fan is not None and not isinstance(data_mask, DataMask):    # a user's mask on frames not cut to it
-        res.data_mask = fan.inside.copy()
-    return res
+    return _masked(with_refinement(RegistrationResult(
+        sol.mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
+        alpha=user_reg.alpha, success=check.success, status=sol.gn.status, message=message, nit=sol.gn.nit,
+        energy_history=sol.gn.energy_history, ncc_before=check.ncc_before, ncc_after=check.ncc_after,
+        timings=timings, blockmatch=start.blockmatch, solver_result=sol.gn, locator=sol.locator,
+        quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol),
+        fan, data_mask)
 
 
 autoalpha.ENGINE = register      # choose_alpha registers through this function (autoalpha never imports it)
