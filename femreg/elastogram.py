@@ -26,6 +26,14 @@ Stages (plain data between them):
    (``q_k`` the element NCC after registration, ``e_c`` the band centre: the inverse strain-noise variance of
    :func:`_weight`).  The best elastogram is the cine frame of largest mean weight.
 
+Envelope / B-mode loops in the fan of a scan-converted convex or phased array (fill fixed on the screen around
+it, :func:`femreg.echo.find_fill`, or a given ``data_mask``) are taken whole, as :func:`femreg.register` takes them:
+cut to the fan's bounding box, screened on the block-matching windows that see no fill (the affine fit and the
+median NCC over those; windows on the wedges read no motion), registered with the fill weighted 0 in eq:IR, and
+NaN outside the fan.  Measured (``benchmarks/elastogram_fan.py``, an L7 loop in a fan, 16 frames, seeds 5-7):
+82 % of the fan covered at 15.0-17.4 % normalised strain error, against 35-36 % at 18.6-21.7 % on the largest
+rectangle without fill.
+
 Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengths mm, images (axial, lateral).
 """
 from __future__ import annotations
