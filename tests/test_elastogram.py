@@ -281,6 +281,10 @@ def test_bmode_loop_in_a_fan_covers_the_whole_fan(loop, tmp_path):
         if r["usable"]:
             assert DEFAULT_BAND[0] <= abs(r["strain"]) <= DEFAULT_BAND[1], r
     assert _normalised_error(loop, full, res.ref_frame) < 17.0
+    # the same fan given: the same elastogram, with nothing detected
+    given = elastogram(bm, spacing=loop.spacing, origin=loop.origin, data_mask=fan)
+    np.testing.assert_array_equal(given.exx, res.exx)
+    assert "outside the given data_mask" in given.excluded
     # the command writes the fan with the elastogram; its pictures are empty outside it
     path = tmp_path / "fan.npz"
     np.savez(path, frames=bm, spacing=np.asarray(loop.spacing), origin=np.asarray(loop.origin))
