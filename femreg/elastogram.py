@@ -588,7 +588,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         crop = crop_for(first, last, spacing, origin, roi="auto", margin=register_kwargs.get("margin"), fan=True,
                         data_mask=data_mask)
         if data_mask is not None:
-            digest = hashlib.sha1(np.packbits(np.asarray(data_mask, bool)).tobytes()).hexdigest()
+            digest = hashlib.sha1(np.packbits(np.asarray(data_mask, bool)).tobytes()
+                                  + repr(np.shape(data_mask)).encode()).hexdigest()
         if crop is not None:
             (a, b), (c, d) = region = ((crop.slices[0].start, crop.slices[0].stop),
                                        (crop.slices[1].start, crop.slices[1].stop))
