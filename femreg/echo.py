@@ -37,8 +37,6 @@ what was left out.
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
-from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,7 +47,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "find_echo", "find_fill", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -258,17 +256,23 @@ def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
     fill = np.isin(labels, edge[edge > 0])
     if fill.sum() <= FILL_FRACTION * ref.size:
         return None
-    (a, b), (c, d) = _largest_rectangle(~fill)
-    n, m = ref.shape
-    if b - a < 2 or d - c < 2:
-        raise InputError(f"the frames hold no rectangle of image: {100 * fill.mean():.0f} % of the "
-                         f"reference is the fill value {v:g}; give roi=(x0, x1, y0, y1) mm (CLI: --roi)")
     dx, dy = (float(t) for t in spacing)
     ox, oy = (float(t) for t in origin)
+    (a, b), (c, d) = _fill_rectangle(fill, f"{100 * fill.mean():.0f} % of the reference is the fill value {v:g}")
     why = (_fill_reason(v, fill.mean()) + f"registered on the largest rectangle without it, depth "
            f"{ox + (a - 0.5) * dx:.1f}-{ox + (b - 0.5) * dx:.1f} mm, lines at "
            f"{oy + (c - 0.5) * dy:.1f}-{oy + (d - 0.5) * dy:.1f} mm (roi= / --roi to choose another)")
-    return EchoRegion((a, b), (c, d), (n, m), (dx, dy), (ox, oy), why, fill=fill, fill_value=v)
+    return EchoRegion((a, b), (c, d), fill.shape, (dx, dy), (ox, oy), why, fill=fill, fill_value=v)
+
+
+def _fill_rectangle(fill, what):
+    """((r0, r1), (c0, c1)): the largest rectangle without ``fill`` (:func:`_largest_rectangle`);
+    :class:`InputError` saying ``what`` when it holds fewer than 2 x 2 pixels."""
+    (a, b), (c, d) = _largest_rectangle(~fill)
+    if b - a < 2 or d - c < 2:
+        raise InputError(f"the frames hold no rectangle of image: {what}; give roi=(x0, x1, y0, y1) mm "
+                         f"(CLI: --roi)")
+    return (a, b), (c, d)
 
 
 #: Fraction of the frames' depth (extent along the beam, mm) that the tissue may move, per axis: the fill mask is
@@ -295,12 +299,13 @@ def fan_weights(fill, spacing) -> np.ndarray:
 
 
 def fan_region(region: EchoRegion) -> EchoRegion:
-    """The bounding box of the pixels without fill of a :func:`find_fill` region (the fan registered whole:
-    fill and its neighbourhood weighted 0 in eq:IR, :func:`fan_weights`)."""
+    """The bounding box of the pixels without fill of a :func:`find_fill` (or :func:`given_fan`) region (the fan
+    registered whole: fill and its neighbourhood weighted 0 in eq:IR, :func:`fan_weights`)."""
     fan = ~region.fill
     rows, cols = np.flatnonzero(fan.any(axis=1)), np.flatnonzero(fan.any(axis=0))
     (dx, dy), (ox, oy) = region.spacing, region.origin
-    why = (_fill_reason(region.fill_value, region.fill.mean()) + f"the image term left out there and within "
+    start = region.excluded if np.isnan(region.fill_value) else _fill_reason(region.fill_value, region.fill.mean())
+    why = (start + f"the image term left out there and within "
            f"{SPLINE_SUPPORT:g} pixels + {100 * FAN_MOTION:g} % of the depth of it, the field carried by the "
            f"regulariser, results NaN outside the fan (roi= / --roi to choose a rectangle)")
     return EchoRegion((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]), int(cols[-1]) + 1), region.shape,
@@ -308,25 +313,62 @@ def fan_region(region: EchoRegion) -> EchoRegion:
                       rectangle=(tuple(region.rows), tuple(region.cols)))
 
 
-_DATA_MASK = ContextVar("femreg_data_mask", default=None)
+def given_fan(mask, spacing, origin) -> EchoRegion | None:
+    """The :func:`fan_region` of a user's ``data_mask`` ((n_axial, n_lateral) bool, True where the frames hold
+    data, validated by :func:`as_data_mask`), or None when it is True everywhere."""
+    fill = ~np.asarray(mask, bool)
+    if not fill.any():
+        return None
+    dx, dy = (float(t) for t in spacing)
+    ox, oy = (float(t) for t in origin)
+    rect = _fill_rectangle(fill, f"{100 * fill.mean():.0f} % of the frame lies outside the given data_mask")
+    why = f"outside the given data_mask ({100 * fill.mean():.0f} % of the frame) excluded: "
+    return fan_region(EchoRegion(rect[0], rect[1], fill.shape, (dx, dy), (ox, oy), why, fill=fill))
 
 
-@contextmanager
-def data_mask(inside, weights, rectangle=None):
-    """Within the block, :func:`femreg.register` of frames of this shape normalises over ``inside`` (bool, True
-    in the fan), gives eq:IR weight 0 outside ``weights`` (:func:`fan_weights`) and takes its speckle statistics
-    and pyramid start on ``rectangle`` ((row slice, column slice) without fill; None: the whole frames)."""
-    token = _DATA_MASK.set((np.asarray(inside, bool), np.asarray(weights, bool), rectangle))
-    try:
-        yield
-    finally:
-        _DATA_MASK.reset(token)
+@dataclass(frozen=True)
+class DataMask:
+    """Where eq:IR compares a pair of frames of one shape: the form in which :func:`femreg.register` hands a fan
+    (:func:`fan_region`, or a user's ``data_mask``) to its registration on the cropped frames.
+
+    inside : (n_axial, n_lateral) bool
+        True where the frames hold data (the fan); the frames are normalised over it
+        (:func:`femreg.image.normalize_pair`).
+    weights : (n_axial, n_lateral) bool
+        True where eq:IR compares the frames (:func:`fan_weights`: the fill and its neighbourhood weighted 0).
+    rectangle : (row slice, column slice) or None
+        The largest rectangle without fill, where the speckle statistics and the pyramid start are taken; None:
+        the whole frames.
+    """
+
+    inside: np.ndarray
+    weights: np.ndarray
+    rectangle: tuple | None = None
 
 
-def active_mask(shape):
-    """(inside, weights, rectangle) of the enclosing :func:`data_mask` for frames of ``shape``, else None."""
-    m = _DATA_MASK.get()
-    return m if m is not None and m[0].shape == tuple(shape) else None
+def as_data_mask(mask, shape, spacing) -> DataMask | None:
+    """``mask`` as :func:`femreg.register` uses it on frames of ``shape`` (``spacing`` mm): None stays None; a
+    :class:`DataMask` is kept; a bool (n_axial, n_lateral) array, True where there are data, gives its
+    :func:`fan_weights` and largest rectangle (None when it is True everywhere).  :class:`InputError` for another
+    type, dtype or shape, or a mask without a 2 x 2 rectangle."""
+    if mask is None:
+        return None
+    shape = tuple(int(s) for s in shape)
+    if isinstance(mask, DataMask):
+        got = (np.shape(mask.inside), np.shape(mask.weights))
+        if got != (shape, shape):
+            raise InputError(f"data_mask is for frames of shape {got[0]}, the frames are {shape}")
+        return mask
+    arr = np.asarray(mask)
+    if arr.dtype != bool or arr.shape != shape:
+        raise InputError(f"data_mask must be a bool array of the frames' shape {shape} (True where there are "
+                         f"data), got {arr.dtype} {arr.shape}")
+    fill = ~arr
+    if not fill.any():
+        return None
+    (a, b), (c, d) = _fill_rectangle(fill, f"{100 * fill.mean():.0f} % of the frame lies outside the given "
+                                           f"data_mask")
+    return DataMask(arr.copy(), fan_weights(fill, spacing), (slice(a, b), slice(c, d)))
 
 
 def _largest_rectangle(mask):
@@ -588,6 +630,12 @@ class Crop:
     def roi_mm(self) -> tuple:
         return tuple(float(v) for v in self.region.roi_mm)
 
+    @property
+    def mask(self) -> DataMask | None:
+        """The fan on the crop as the registration there takes it (``data_mask`` of :func:`femreg.register`),
+        or None."""
+        return None if self.inside is None else DataMask(self.inside, self.weights, self.rectangle)
+
     def frames(self, *images):
         """The images (volumes) cut to :attr:`slices` (views)."""
         return [np.asarray(f)[self.slices] for f in images]
@@ -638,7 +686,7 @@ def crop_request(roi, depth, mesh, initial, offset, *, volume: bool = False):
 
 
 def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
-             margin=None, initial=None, offset=None, fan=False) -> Crop | None:
+             margin=None, initial=None, offset=None, fan=False, data_mask=None) -> Crop | None:
     """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
 
     ``roi``: "auto" (default) detects the echo rectangle (:func:`find_echo`), None keeps the whole frames,
@@ -647,8 +695,14 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
     then an error), nor for the detection when ``initial`` or ``offset`` is a nodal vector of the default mesh.
     The detection changes nothing (None) when what it excludes lies within the mesh margin.  ``fan``: frames
     with fill (:func:`find_fill`) are cut to the bounding box of their fan instead of the largest rectangle,
-    the crop's :attr:`Crop.inside` / :attr:`Crop.weights` saying where eq:IR holds (:func:`fan_region`)."""
+    the crop's :attr:`Crop.inside` / :attr:`Crop.weights` saying where eq:IR holds (:func:`fan_region`).
+    ``data_mask`` ((n_axial, n_lateral) bool, True where there are data): that fan instead of the detection (no
+    fill, echo or noise floor is looked for; with a given ``roi`` or ``depth`` an :class:`InputError`), None when
+    it is True everywhere."""
     given = crop_request(roi, depth, mesh, initial, offset)
+    if data_mask is not None and given:
+        raise InputError("give data_mask or roi / depth, not both (data_mask: the region registered is its "
+                         "bounding box)")
     if given is None:
         return None
     t = time.perf_counter()
@@ -658,6 +712,10 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
     spacing, origin = validate_spacing(spacing, origin)
     mp = _margin_pixels(margin, spacing)
+    if data_mask is not None:
+        mask = as_data_mask(data_mask, ref.shape, spacing)
+        region = None if mask is None else given_fan(mask.inside, spacing, origin)
+        return None if region is None else Crop(region, mp, False, time.perf_counter() - t)
     if given:
         region = region_from_mm(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi, depth=depth)
         return Crop(region, mp, True, time.perf_counter() - t)

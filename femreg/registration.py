@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from . import autoalpha, orientation
-from .echo import active_mask, crop_for, data_mask
+from .echo import DataMask, as_data_mask, crop_for
 from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
@@ -102,17 +102,26 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     return fe_mesh, stats, settings
 
 
-def _image_stage(ref, mov, spacing, origin, normalize):
-    """Images stage: each frame normalised by its mean and spread (over the fan of a scan-converted frame,
-    :func:`femreg.echo.data_mask`), spline coefficients once; eq:IR weight 0 outside the fan's ``weights``.
-    Returns ``(ref, mov, I1, I2, rectangle)``, ``rectangle`` the fan's largest rectangle without fill or None."""
-    fan = active_mask(ref.shape)        # (inside, weights, rectangle) of a fan, or None
+def _image_stage(ref, mov, spacing, origin, normalize, data_mask=None):
+    """Images stage: each frame normalised by its mean and spread (over the fan of a scan-converted frame, the
+    ``data_mask`` of :func:`register` as :func:`femreg.echo.as_data_mask` reads it), spline coefficients once;
+    eq:IR weight 0 outside the fan's ``weights``.  Returns ``(ref, mov, I1, I2, fan)``, ``fan`` the
+    :class:`femreg.echo.DataMask` (its ``rectangle`` the largest rectangle without fill) or None."""
+    fan = as_data_mask(data_mask, ref.shape, spacing)
     if normalize:
-        ref, mov, _ = normalize_pair(ref, mov, mask=None if fan is None else fan[0])
+        ref, mov, _ = normalize_pair(ref, mov, mask=None if fan is None else fan.inside)
     I1, I2 = SplineImage(ref, spacing, origin), SplineImage(mov, spacing, origin)
     if fan is not None:
-        I1.weights_mask = fan[1]        # read by femreg.gnsolve.image_term
-    return ref, mov, I1, I2, None if fan is None else fan[2]
+        I1.weights_mask = fan.weights   # read by femreg.gnsolve.image_term
+    return ref, mov, I1, I2, fan
+
+
+def _masked(res, fan, data_mask):
+    """``res`` NaN outside a user's ``data_mask`` on frames not cut to it (``fan`` its DataMask); a DataMask handed
+    down from a crop is the crop's to apply (:meth:`femreg.echo.Crop.widen`)."""
+    if fan is not None and not isinstance(data_mask, DataMask):
+        res.data_mask = fan.inside.copy()
+    return res
 
 
 def _route(reference_image, moving_image, args: dict):
@@ -124,19 +133,21 @@ def _route(reference_image, moving_image, args: dict):
     if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
         from .geometry import as_geometry, register_beam
         if as_geometry(geometry) is not None:
+            if args["data_mask"] is not None:
+                raise InputError("data_mask is on a Cartesian pixel grid: not with a convex / sector geometry")
             kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "geometry")}
             return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
-    crop = crop_for(reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"],
-                    depth=args["depth"], mesh=args["mesh"], margin=args["margin"], initial=args["initial"],
-                    offset=args["offset"], fan=True)
+    # a DataMask describes these very frames (the fan handed down from a crop): nothing more to crop
+    crop = None if isinstance(args["data_mask"], DataMask) else crop_for(
+        reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"], depth=args["depth"],
+        mesh=args["mesh"], margin=args["margin"], initial=args["initial"], offset=args["offset"], fan=True,
+        data_mask=args["data_mask"])
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
     kw.update(roi=None, depth=None)
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
-        frames, kw = crop.frames(reference_image, moving_image), dict(kw, origin=crop.origin)
-        if crop.inside is None:
-            return crop.widen(register(*frames, **kw))
-        with data_mask(crop.inside, crop.weights, crop.rectangle):   # the whole fan, fill weighted 0 in eq:IR (femreg.echo)
-            return crop.widen(register(*frames, **kw))
+        # a fan's fill weighted 0 in eq:IR, results NaN outside it (femreg.echo.fan_region)
+        frames, kw = crop.frames(reference_image, moving_image), dict(kw, origin=crop.origin, data_mask=crop.mask)
+        return crop.widen(register(*frames, **kw))
     if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         if args["check_orientation"]:   # once here, not in each candidate registration
             orientation.check(validate_image(reference_image, "reference image"),
@@ -154,7 +165,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              regularizer_options=None, normalize: bool = True, callback=None, allow_mesh_outside: bool = False,
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
-             check_orientation: bool = True, geometry=None, refine=DEFAULT_REFINE) -> RegistrationResult:
+             check_orientation: bool = True, geometry=None, refine=DEFAULT_REFINE,
+             data_mask=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -261,6 +273,15 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         volumes follow the same rule with their own refinement (:mod:`femreg.volume_refine`; off for
         :func:`femreg.track` and swept volumes).  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final
         mesh.
+    data_mask : None | (n_axial, n_lateral) bool array | femreg.echo.DataMask
+        Where the frames hold data (True), e.g. the fan of a scan-converted convex / phased frame.  None
+        (default): found from the frames with ``roi="auto"`` (:func:`femreg.echo.find_fill`, above).  An array:
+        that fan instead of any detection: the frames are cut to its bounding box (with ``roi=None``, a user
+        ``mesh`` or a nodal ``initial`` / ``offset``: not cut), normalised over it, eq:IR weighted 0 outside it
+        and within the fan's border band (:func:`femreg.echo.fan_weights`), the pyramid started on its largest
+        rectangle, and the result NaN outside it (``result.data_mask``); True everywhere is the same as
+        ``roi=None``.  Not with a given ``roi`` / ``depth`` or a ``geometry``; volumes take none.  A
+        :class:`femreg.echo.DataMask` is the form passed on to the registration of the cut frames (no crop).
 
     Returns
     -------
@@ -291,7 +312,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- images: each normalised by its mean and spread, spline coefficients once ------------------------------
     t = time.perf_counter()
-    ref, mov, I1, I2, rect = _image_stage(ref, mov, spacing, origin, normalize)
+    ref, mov, I1, I2, fan = _image_stage(ref, mov, spacing, origin, normalize, data_mask)
+    rect = None if fan is None else fan.rectangle
     timings["prefilter"] = time.perf_counter() - t
 
     # -- mesh ------------------------------------------------------------------------------------------------
@@ -364,13 +386,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "
                    f"{sol.gn.message.replace('converged: ', '')})")
-    return with_refinement(RegistrationResult(sol.mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin,
-                              regularizer=sol.reg.name, alpha=user_reg.alpha, success=check.success,
-                              status=sol.gn.status, message=message,
-                              nit=sol.gn.nit, energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
-                              ncc_after=check.ncc_after, timings=timings, blockmatch=start.blockmatch,
-                              solver_result=sol.gn, locator=sol.locator, quality=check.quality, strategy=strategy,
-                              alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol)
+    return _masked(with_refinement(RegistrationResult(
+        sol.mesh, check.u, shape=ref.shape, spacing=spacing, origin=origin, regularizer=sol.reg.name,
+        alpha=user_reg.alpha, success=check.success, status=sol.gn.status, message=message, nit=sol.gn.nit,
+        energy_history=sol.gn.energy_history, ncc_before=check.ncc_before, ncc_after=check.ncc_after,
+        timings=timings, blockmatch=start.blockmatch, solver_result=sol.gn, locator=sol.locator,
+        quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol),
+        fan, data_mask)
 
 
 autoalpha.ENGINE = register      # choose_alpha registers through this function (autoalpha never imports it)

@@ -29,7 +29,7 @@ frames.
 """
 from __future__ import annotations
 
-import contextlib
+import hashlib
 import json
 from pathlib import Path
 
@@ -37,7 +37,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
-from .echo import crop_for, data_mask
+from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError
 from .image import validate_image, validate_spacing
@@ -121,7 +121,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
-          on_frame=None, roi="auto", depth=None, check_orientation: bool = True,
+          on_frame=None, roi="auto", depth=None, check_orientation: bool = True, data_mask=None,
           **register_kwargs) -> SequenceResult:
     """Displacement from frame 0 to every later frame of a sequence.
 
@@ -173,6 +173,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     check_orientation : bool
         Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
         registration (:mod:`femreg.orientation`; as :func:`femreg.register`).  False skips the check.
+    data_mask : None | (n_axial, n_lateral) bool array
+        As in :func:`femreg.register`, for every frame: where the frames hold data (True; e.g. a scan-converted
+        fan); None: found from frames 0 and 1 with ``roi="auto"``.  Not for convex / sector geometries or volumes.
     geometry : femreg.Convex | femreg.Sector | femreg.Swept, optional (keyword)
         Convex / sector frames (n_samples, n_rays) along rays: ``spacing`` is the range step dr mm (or (dr mm,
         dtheta deg)), ``origin`` (r0 mm, 0); the first pair's registration makes the physical mesh (``roi``,
@@ -189,6 +192,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         common mesh in frame-0 coordinates.
     """
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
+        if data_mask is not None:
+            raise InputError("data_mask is for frames (n_axial, n_lateral); volumes take roi / depth")
         from .volume import track_volume
         return track_volume(frames, spacing=spacing, origin=origin, mode=mode, regularizer=regularizer, alpha=alpha,
                             mesh=mesh, element_size=element_size, margin=margin,
@@ -203,6 +208,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     seq = _validate_frames(frames)
     beam = as_geometry(register_kwargs.pop("geometry", None))
     if isinstance(beam, Convex):        # convex / sector frames: femreg.geometry, results in physical x, y
+        if data_mask is not None:
+            raise InputError("data_mask is on a Cartesian pixel grid: not with a convex / sector geometry")
         return _track_beam(seq, beam, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
                            mode=mode, grid=grid, init=init, mesh=mesh, element_size=element_size, margin=margin,
                            checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
@@ -215,9 +222,18 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if check_orientation:
         orientation.check(seq[0], spacing)
     register_kwargs["check_orientation"] = False    # checked once, above
-    crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True)
+    crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True,
+                    data_mask=data_mask)
     if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
         seq, origin = crop.frames(*seq), np.asarray(crop.origin)
+        # a fan: its fill weighted 0 in every pair's eq:IR (femreg.echo.DataMask)
+        register_kwargs["data_mask"] = crop.mask
+    else:                          # a user's mask on the frames not cut to it (roi=None, a user mesh)
+        register_kwargs["data_mask"] = as_data_mask(data_mask, seq[0].shape, spacing)
+    uncut = None if crop is not None or register_kwargs["data_mask"] is None else register_kwargs["data_mask"].inside
+    # a resume with another mask is refused (its digest; no key without a mask, as before)
+    record = None if data_mask is None else dict(data_mask=hashlib.sha1(
+        np.packbits(np.asarray(data_mask, bool)).tobytes() + repr(np.shape(data_mask)).encode()).hexdigest())
     shape = seq[0].shape
     if mesh is None and element_size is None and register_kwargs.get("strategy", "auto") == "auto":
         # the element size register would pick for frame 0 (speckle-sized, femreg.pyramid.default_settings; a
@@ -229,12 +245,13 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         else as_quad_mesh(mesh)
     if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
         from .autoalpha import choose_alpha
+        # without the fan's weights, as chosen so far (the weights start with the pairs)
         alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
-                             mesh=fe_mesh, **register_kwargs).alpha
+                             mesh=fe_mesh, **{k: v for k, v in register_kwargs.items() if k != "data_mask"}).alpha
     frame_kwargs = dict(spacing=spacing, origin=origin)
     return _run(seq, frame_kwargs, fe_mesh, crop, regularizer=regularizer, alpha=alpha, mode=mode, grid=grid,
                 init=init, checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
-                on_frame=on_frame, register_kwargs=register_kwargs)
+                on_frame=on_frame, register_kwargs=register_kwargs, record=record, uncut=uncut)
 
 
 def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, grid, init, mesh, element_size, margin,
@@ -288,10 +305,11 @@ def _frame_result(r, mesh, u):
 
 
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
-         min_ncc, on_frame, register_kwargs, first=None, record=None) -> SequenceResult:
+         min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
     the frame-0 mesh (None: the first pair's registration makes it, with the options ``first``), ``crop`` the
-    echo rectangle the frames were cut to (or None); ``record`` more parameters for ``track.json``."""
+    echo rectangle the frames were cut to (or None); ``record`` more parameters for ``track.json``; ``uncut``
+    a user's data_mask (bool, the frames' shape) on frames not cut to it: the results' ``data_mask``."""
     shape = seq[0].shape
     first = first or {}
     spacing, origin = frame_kwargs["spacing"], frame_kwargs["origin"]
@@ -299,7 +317,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     # every other registration setting too, so a resume with different settings is refused
     params["grid"] = grid
     params["register_kwargs"] = json.loads(json.dumps({k: v for k, v in register_kwargs.items()
-                                                       if k != "check_orientation"}, sort_keys=True, default=repr))
+                                                       if k not in ("check_orientation", "data_mask")},
+                                                      sort_keys=True, default=repr))
     if crop is not None:
         params["roi"] = list(crop.roi_mm)
     params.update(json.loads(json.dumps(record or {}, default=repr)))
@@ -316,9 +335,6 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame")
-    masked = contextlib.ExitStack()
-    if crop is not None and crop.inside is not None:      # a fan: its fill weighted 0 in every pair's eq:IR
-        masked.enter_context(data_mask(crop.inside, crop.weights, crop.rectangle))
     try:
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
@@ -351,6 +367,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                     res = _frame_result(r_inc, r_inc.mesh if fe_mesh is None else fe_mesh, S + inc)
                 if crop is not None:
                     crop.widen(res)
+                elif uncut is not None:
+                    res.data_mask = uncut
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 flag = frame_flag(res, min_ncc)
                 computed = True
@@ -370,7 +388,6 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 bar.set_postfix_str(f"ncc {res.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
                 bar.update(1)
     finally:
-        masked.close()
         if bar is not None:
             bar.close()
     return out

@@ -859,6 +859,8 @@ def volumes_to(register_2d):
     @functools.wraps(register_2d)
     def register(reference_image, moving_image, **kwargs):
         if np.ndim(reference_image) == 3:
+            if kwargs.pop("data_mask", None) is not None:
+                raise InputError("data_mask is for frames (n_axial, n_lateral); volumes take roi / depth")
             return register_volume(reference_image, moving_image, **kwargs)
         return register_2d(reference_image, moving_image, **kwargs)
     return register

@@ -163,7 +163,7 @@ def test_info_names_the_fill_it_will_leave_out(pair, tmp_path, capsys):
     np.savez(path, frames=frames, spacing=np.asarray(pair.spacing), origin=np.asarray(pair.origin))
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "fill      fill of value 0" in out and "largest rectangle" in out, out
+    assert "fill      fill of value 0" in out and "NaN outside the fan" in out and "elastogram" in out, out
 
 
 def test_track_keeps_the_whole_fan_too():
@@ -181,3 +181,66 @@ def test_track_keeps_the_whole_fan_too():
     t = p.field.strain(pts[ok])[:, 0]
     err = np.sqrt(np.mean((e[ok] - t) ** 2)) / np.mean(np.abs(t))
     assert err < 0.21 and ok.sum() > 0.8 * fan.sum(), (err, ok.sum() / fan.sum())
+
+
+def _fan_bmode_pair():
+    """The inclusion pair as 8-bit B-mode inside the fan of :func:`_fan` (wedges 0), and the fan."""
+    p = _inclusion_bmode_pair()
+    fan = _fan(p.ref.shape, p.spacing, p.origin)
+    a, b = (np.where(fan, _bmode(f), 0).astype(np.uint8) for f in (p.ref, p.mov))
+    return p, fan, a, b
+
+
+def _fan_score(r, mask, field):
+    """(axial strain error, fraction of ``mask`` with a finite strain, finite pixels outside ``mask``)."""
+    pts = r.pixel_points()
+    e = r.strain(pts)[:, 0]
+    ok = np.isfinite(e)
+    t = field.strain(pts[ok])[:, 0]
+    return (np.sqrt(np.mean((e[ok] - t) ** 2)) / np.mean(np.abs(t)), ok.sum() / mask.sum(),
+            int(np.sum(ok & ~mask.ravel())))
+
+
+def test_data_mask_given_explicitly():
+    """``data_mask=`` replaces the detection of the fill.  The detected fan given as the mask gives the very
+    result of ``data_mask=None`` (the detection); a narrower mask (the fan below 30 % of the depth) is cut to,
+    left out of eq:IR outside and reported: NaN outside it, ``result.data_mask`` the mask, the message naming it;
+    on frames not cut to it (``roi=None``) as well.  Measured: 20.5 % on 79 % of the mask (cut), 23.3 % on 86 %
+    (not cut); the detection 20.7 % on 85 % of the fan.  Bounds 23 / 26 % and 70 / 78 %."""
+    from femreg.echo import find_fill
+
+    p, fan, a, b = _fan_bmode_pair()
+    kw = dict(spacing=p.spacing, origin=p.origin)
+    auto = femreg.register(a, b, **kw)
+    detected = ~find_fill(a.astype(float), b.astype(float), p.spacing, p.origin).fill
+    given = femreg.register(a, b, data_mask=detected, **kw)
+    np.testing.assert_array_equal(given.u, auto.u)
+    np.testing.assert_array_equal(given.data_mask, auto.data_mask)
+    part = fan & (np.arange(fan.shape[0])[:, None] >= int(0.3 * fan.shape[0]))
+    for extra, bound, cover in ((dict(), 0.23, 0.70), (dict(roi=None), 0.26, 0.78)):
+        r = femreg.register(a, b, data_mask=part, **kw, **extra)
+        assert r.success, r.message
+        np.testing.assert_array_equal(r.data_mask, part)
+        err, frac, outside = _fan_score(r, part, p.field)
+        assert outside == 0 and np.all(np.isnan(r.on_grid()["exx"][~part]))
+        assert err < bound and frac > cover, (extra, err, frac)
+    assert "outside the given data_mask" in femreg.register(a, b, data_mask=part, **kw).message
+    res = femreg.track(np.stack([a, b]), data_mask=part, **kw)[-1]       # every pair of a track too
+    np.testing.assert_array_equal(res.data_mask, part)
+    assert not np.any(np.isfinite(res.on_grid()["exx"]) & ~part)
+
+
+def test_data_mask_refused_where_it_cannot_apply():
+    from femreg.errors import InputError
+
+    p, fan, a, b = _fan_bmode_pair()
+    kw = dict(spacing=p.spacing, origin=p.origin)
+    for bad in (fan.astype(np.uint8), fan[:-1], np.zeros_like(fan)):     # not bool, not the frames' shape, empty
+        with pytest.raises(InputError, match="data_mask"):
+            femreg.register(a, b, data_mask=bad, **kw)
+    with pytest.raises(InputError, match="data_mask or roi"):
+        femreg.register(a, b, data_mask=fan, roi=(5.0, 15.0, -3.0, 3.0), **kw)
+    with pytest.raises(InputError, match="convex / sector"):
+        femreg.register(a, b, data_mask=fan, geometry=femreg.Convex(), spacing=0.1)
+    with pytest.raises(InputError, match="volumes"):
+        femreg.register(np.ones((8, 8, 8)), np.ones((8, 8, 8)), spacing=1.0, data_mask=np.ones((8, 8), bool))

@@ -103,11 +103,11 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
             out["needs"] += _raw_shape_hint(a[0])
         if not rep.problem and not rep.has_carrier and fr.n_frames >= 2:
-            from ..echo import find_fill
+            from ..echo import fan_region, find_fill
 
             fill = find_fill(np.asarray(a[0], float), np.asarray(a[-1], float), fr.spacing, fr.origin)
-            if fill is not None:        # what elastogram will leave out; register and track keep the fan
-                out["fill"] = (f"{fill.excluded}; register and track: the whole fan, the fill weighted 0 "
+            if fill is not None:        # what register, track and elastogram leave out: the fan is kept whole
+                out["fill"] = (f"{fan_region(fill).excluded}; register, track and elastogram: the whole fan "
                                f"(femreg.echo.fan_region)")
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
