@@ -79,7 +79,8 @@ def _run(args) -> int:
     if args.reference:
         fr = frames_from_args(args, path=args.reference)
         if not -fr.n_frames <= args.frame < fr.n_frames:
-            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s)")
+            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s), "
+                             f"counted from 0: 0 to {fr.n_frames - 1}")
         reference = fr.frames[args.frame]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")

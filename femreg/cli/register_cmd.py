@@ -84,7 +84,8 @@ def _frame(fr, index, path):
     from femreg.errors import InputError
 
     if not -fr.n_frames <= index < fr.n_frames:
-        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s)")
+        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s), counted "
+                         f"from 0: 0 to {fr.n_frames - 1}")
     return fr.frames[index]
 
 
