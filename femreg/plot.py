@@ -135,9 +135,27 @@ def _spacing(spacing):
 
 
 def _colorbar(ax, mappable, label):
-    """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit."""
+    """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit;
+    a triangle at an end whose limit the data pass (:func:`colorbar_extend`), so saturated colours are not read
+    as values."""
     cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
-    return ax.figure.colorbar(mappable, cax=cax, label=label or "")
+    return ax.figure.colorbar(mappable, cax=cax, label=label or "", extend=colorbar_extend(mappable))
+
+
+def colorbar_extend(mappable) -> str:
+    """"neither", "min", "max" or "both": which ends of ``mappable``'s colour limits its finite data pass (by more
+    than 1e-6 of the range)."""
+    data = mappable.get_array()
+    vmin, vmax = mappable.norm.vmin, mappable.norm.vmax
+    if data is None or vmin is None or vmax is None:
+        return "neither"
+    data = np.ma.filled(np.ma.masked_invalid(np.ma.asarray(data, float)), np.nan)
+    finite = data[np.isfinite(data)]
+    if finite.size == 0:
+        return "neither"
+    tol = 1e-6 * max(abs(vmax - vmin), 1e-300)
+    low, high = bool(finite.min() < vmin - tol), bool(finite.max() > vmax + tol)
+    return {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[low, high]
 
 
 def fit_colorbars(fig, rows, tries=6):
