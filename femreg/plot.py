@@ -138,8 +138,20 @@ def _colorbar(ax, mappable, label):
     """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit;
     a triangle at an end whose limit the data pass (:func:`colorbar_extend`), so saturated colours are not read
     as values."""
-    cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
-    return ax.figure.colorbar(mappable, cax=cax, label=label or "", extend=colorbar_extend(mappable))
+    extend = colorbar_extend(mappable)
+    # the triangles (5 % of the bar each) stand beyond the image's top / bottom: the bar itself keeps its height
+    lo, hi = (_EXTEND_FRAC * (extend in ends) for ends in (("min", "both"), ("max", "both")))
+    cax = ax.inset_axes([1.03, -lo, 0.045, 1.0 + lo + hi])
+    cb = ax.figure.colorbar(mappable, cax=cax, label=label or "", extend=extend, extendfrac=_EXTEND_FRAC)
+    title = ax.get_title()
+    if hi and title and "\n" not in title:
+        # a one-line title clears the triangle (right of the image): kept level with the row's other titles
+        ax.set_title(title, y=1.0)
+    return cb
+
+
+#: Length of a colour bar's end triangle, as a fraction of the bar.
+_EXTEND_FRAC = 0.05
 
 
 def colorbar_extend(mappable) -> str:
