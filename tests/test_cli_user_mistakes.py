@@ -96,7 +96,7 @@ def test_frame_index_errors_name_the_valid_range(tmp_path, capsys):
         rc, out, err = _run(argv, capsys)
         assert rc == 2 and "counted from 0: 0 to 5" in err, (argv[0], err)
     rc, out, err = _run(["track", one, *sp, "-o", tmp_path / "run1", "--no-progress"], capsys)
-    assert rc == 2 and f"{one}: holds one frame" in err and "folder of per-frame files" in err, err
+    assert rc == 2 and f"{one}: one frame read" in err and "folder of per-frame files" in err, err
 
 
 @needs_invivo

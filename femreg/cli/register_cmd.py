@@ -32,7 +32,7 @@ def add_parser(subparsers):
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
                    help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
                         "single-frame files)")
-    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     add_geometry_args(p)
