@@ -144,3 +144,13 @@ def test_strain_cine_has_a_colour_bar():
     assert np.abs(top - np.asarray(viridis(1.0)[:3]) * 255).max() <= 2
     assert np.abs(bottom - np.asarray(viridis(0.0)[:3]) * 255).max() <= 2
     assert (leg[:, 21:] > 128).any()                    # the labels are drawn
+
+
+def test_frames_given_where_a_result_belongs(tmp_path, capsys):
+    # `femreg plot frames.npy` (frames, not a result) ended in a TypeError traceback and exit 1
+    frames = tmp_path / "frames.npy"
+    np.save(frames, np.random.default_rng(0).standard_normal((2, 64, 32)).astype(np.float32))
+    for argv in (["plot", frames, "-o", tmp_path / "p.png"], ["invert", frames, "-o", tmp_path / "mu.npz"],
+                 ["measure", frames, "--inclusion", "1", "1", "1"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "not a result file" in err and "Traceback" not in err, (argv[0], rc, err)

@@ -190,7 +190,7 @@ def is_elastogram_file(path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as z:
             return all(k in z.files for k in ELASTOGRAM_KEYS) and "mesh_points" not in z.files
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, TypeError):   # TypeError: a .npy (one array)
         return False
 
 
