@@ -649,8 +649,12 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
                          title="uncertainty of $\\log\\mu$"
                          + ("\nNOT calibrated: tissue not piecewise uniform (see notes)"
                             if getattr(res, "uncertainty_calibrated", True) is False else "")
-                         + (f"\n(blank: {blank} of {unc.size} elements the data do not constrain)" if blank else ""),
+                         + (f"\n(grey = blank: {blank} of {unc.size} elements the data do not constrain)"
+                            if blank else ""),
                          label="std of $\\log\\mu$ (-)")
+        # the unconstrained elements (NaN, drawn transparent) on grey: white would read as magma's top, the
+        # largest uncertainty
+        axes[1].set_facecolor("0.6")
     h = float(np.min(np.ptp(p[:, t], axis=1)))                # smallest element extent, mm
     um = np.asarray(res.u_measured, float)
     if np.all(np.isfinite(um)) and np.any(um != 0):
