@@ -77,7 +77,8 @@ def test_unwritable_output_is_refused_before_any_work(tmp_path, capsys):
     assert rc == 2 and "no such file" in err and not (tmp_path / "new").exists()
     # a file where the folder should be: refused before reading the frames, without a temporary name
     (tmp_path / "afile").write_text("")
-    for argv in (["register", frames, "--pair", "0", "1", "--spacing", "0.02", "0.2", "-o", tmp_path / "afile" / "x.npz"],
+    for argv in (["register", frames, "--pair", "0", "1", "--spacing", "0.02", "0.2",
+                  "-o", tmp_path / "afile" / "x.npz"],
                  ["invert", tmp_path / "missing.npz", "-o", tmp_path / "afile" / "mu.npz"],
                  ["measure", tmp_path / "missing.npz", "--inclusion", "1", "1", "1", "--json",
                   tmp_path / "afile" / "m.json"]):

@@ -46,7 +46,8 @@ def add_parser(subparsers):
     p.add_argument("--strain", choices=("element", "recovered"), default="element",
                    help="strain the region statistics use (default element: its region means follow from the "
                         "displacement on the region's boundary; recovered: the pictures' strain)")
-    p.add_argument("--json", "-o", dest="json", metavar="FILE", help="also write the numbers as JSON (missing folders are created)")
+    p.add_argument("--json", "-o", dest="json", metavar="FILE",
+                   help="also write the numbers as JSON (missing folders are created)")
     p.set_defaults(func=run)
     return p
 
