@@ -155,8 +155,8 @@ _EXTEND_FRAC = 0.05
 
 
 def colorbar_extend(mappable) -> str:
-    """"neither", "min", "max" or "both": which ends of ``mappable``'s colour limits its finite data pass (by more
-    than 1e-6 of the range)."""
+    """Which ends of ``mappable``'s colour limits its finite data pass (by more than 1e-6 of the range): "neither",
+    "min", "max" or "both", matplotlib's ``extend``."""
     data = mappable.get_array()
     vmin, vmax = mappable.norm.vmin, mappable.norm.vmax
     if data is None or vmin is None or vmax is None:
