@@ -97,6 +97,14 @@ ENVELOPE_CELL_MM = ((0.015, 10.0), (0.05, 50.0))
 #: nothing).
 ENVELOPE_MIN_ASPECT = 0.7
 ENVELOPE_SWAPPED_ASPECT = 1.4
+#: Above this RF centre frequency (MHz) only preclinical probes remain, whose whole frames are at least about
+#: 9 x 9 mm (30-70 MHz linear arrays).  A whole frame carrying a carrier above it yet smaller than
+#: :data:`SMALL_FRAME_MM` is a clinical frame whose spacing was given in centimetres: all the other witnesses
+#: (samples per period, speckle in periods) do not change with the units.
+PRECLINICAL_MHZ = 20.0
+#: (axial, lateral) extent in mm under which a whole frame above :data:`PRECLINICAL_MHZ` is refused; a 30-80 mm
+#: deep, 25-50 mm wide clinical frame read in centimetres measures 3-8 x 2.5-5 mm.
+SMALL_FRAME_MM = (8.0, 5.0)
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
 
@@ -178,6 +186,7 @@ class OrientationReport:
     axial_cell_mm: float = float("nan")
     problem: str = ""
     message: str = ""
+    small_frame: bool = False
 
     @property
     def has_carrier(self) -> bool:
@@ -198,11 +207,13 @@ class OrientationReport:
 
 
 def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
-             elevational: float | None = None) -> OrientationReport:
+             elevational: float | None = None, whole_frame: bool = False) -> OrientationReport:
     """Check one (axial, lateral) RF frame against ``spacing`` (dx, dy) mm (module docstring); never raises for
     the data (an image it cannot measure comes back without a problem).  ``elevational``: the elevational spacing
     dz (mm) when the frame is the central (axial, lateral) plane of a volume, so that the advice names the
-    volume's transpose and its three spacings."""
+    volume's transpose and its three spacings.  ``whole_frame``: the frame is one as the scanner wrote it (not a
+    crop), so its size in mm is a witness too: above :data:`PRECLINICAL_MHZ` and smaller than
+    :data:`SMALL_FRAME_MM` it is a spacing in centimetres (``small_frame`` True)."""
     from .speckle import speckle_statistics
 
     img = np.asarray(image, float)
@@ -268,6 +279,13 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
         rep.problem = "swapped" if swap_fits else "spacing"
         why = (f"axial spacing dx = {dx:g} mm gives an {found}: {rep.frequency_mhz:.3g} MHz is outside "
                f"{lo:g}-{hi:g} MHz")
+    elif (whole_frame and rep.frequency_mhz > PRECLINICAL_MHZ and lo <= rep.frequency_mhz / 10.0 <= hi
+          and img.shape[0] * dx < SMALL_FRAME_MM[0] and img.shape[1] * dy < SMALL_FRAME_MM[1]):
+        rep.problem, rep.small_frame = "spacing", True
+        why = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives an {found} and a whole frame of only "
+               f"{img.shape[0] * dx:.3g} x {img.shape[1] * dy:.3g} mm (axial x lateral): probes above "
+               f"{PRECLINICAL_MHZ:g} MHz are preclinical ones, whose frames are larger than {SMALL_FRAME_MM[0]:g} x "
+               f"{SMALL_FRAME_MM[1]:g} mm")
     else:
         return rep
     if rep.problem == "swapped":
@@ -375,10 +393,10 @@ def _centroid_samples(img) -> float:
 
 
 def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
-          elevational: float | None = None) -> OrientationReport:
+          elevational: float | None = None, whole_frame: bool = False) -> OrientationReport:
     """:func:`diagnose`, raising :class:`OrientationError` (an :class:`InputError`) with its message when the
     frame looks transposed or its spacing swapped or implausible."""
-    rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational)
+    rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational, whole_frame=whole_frame)
     if rep.problem:
         raise OrientationError(rep.message, problem=rep.problem)
     return rep

@@ -135,9 +135,39 @@ def _spacing(spacing):
 
 
 def _colorbar(ax, mappable, label):
-    """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit."""
-    cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
-    return ax.figure.colorbar(mappable, cax=cax, label=label or "")
+    """A colour bar exactly as tall as the (aspect-locked) image, right of it, labelled with quantity and unit;
+    a triangle at an end whose limit the data pass (:func:`colorbar_extend`), so saturated colours are not read
+    as values."""
+    extend = colorbar_extend(mappable)
+    # the triangles (5 % of the bar each) stand beyond the image's top / bottom: the bar itself keeps its height
+    lo, hi = (_EXTEND_FRAC * (extend in ends) for ends in (("min", "both"), ("max", "both")))
+    cax = ax.inset_axes([1.03, -lo, 0.045, 1.0 + lo + hi])
+    cb = ax.figure.colorbar(mappable, cax=cax, label=label or "", extend=extend, extendfrac=_EXTEND_FRAC)
+    title = ax.get_title()
+    if hi and title and "\n" not in title:
+        # a one-line title clears the triangle (right of the image): kept level with the row's other titles
+        ax.set_title(title, y=1.0)
+    return cb
+
+
+#: Length of a colour bar's end triangle, as a fraction of the bar.
+_EXTEND_FRAC = 0.05
+
+
+def colorbar_extend(mappable) -> str:
+    """Which ends of ``mappable``'s colour limits its finite data pass (by more than 1e-6 of the range): "neither",
+    "min", "max" or "both", matplotlib's ``extend``."""
+    data = mappable.get_array()
+    vmin, vmax = mappable.norm.vmin, mappable.norm.vmax
+    if data is None or vmin is None or vmax is None:
+        return "neither"
+    data = np.ma.filled(np.ma.masked_invalid(np.ma.asarray(data, float)), np.nan)
+    finite = data[np.isfinite(data)]
+    if finite.size == 0:
+        return "neither"
+    tol = 1e-6 * max(abs(vmax - vmin), 1e-300)
+    low, high = bool(finite.min() < vmin - tol), bool(finite.max() > vmax + tol)
+    return {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[low, high]
 
 
 def fit_colorbars(fig, rows, tries=6):
@@ -619,8 +649,12 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
                          title="uncertainty of $\\log\\mu$"
                          + ("\nNOT calibrated: tissue not piecewise uniform (see notes)"
                             if getattr(res, "uncertainty_calibrated", True) is False else "")
-                         + (f"\n(blank: {blank} of {unc.size} elements the data do not constrain)" if blank else ""),
+                         + (f"\n(grey = blank: {blank} of {unc.size} elements the data do not constrain)"
+                            if blank else ""),
                          label="std of $\\log\\mu$ (-)")
+        # the unconstrained elements (NaN, drawn transparent) on grey: white would read as magma's top, the
+        # largest uncertainty
+        axes[1].set_facecolor("0.6")
     h = float(np.min(np.ptp(p[:, t], axis=1)))                # smallest element extent, mm
     um = np.asarray(res.u_measured, float)
     if np.all(np.isfinite(um)) and np.any(um != 0):

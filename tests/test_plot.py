@@ -240,6 +240,10 @@ def test_inversion_figure_recovered_strain_and_labels_apart(tmp_path):
     fig = plot_inversion(res, dpi=40)
     title = [a for a in fig.axes if a.get_title()][1].get_title()
     assert f"blank: 3 of {m.t.shape[1]} elements the data do not constrain" in title, title
+    # the blank elements show the panel's grey, not white, which magma's top (largest uncertainty) nearly is
+    import matplotlib
+    face = np.asarray(matplotlib.colors.to_rgb([a for a in fig.axes if a.get_title()][1].get_facecolor()))
+    assert np.abs(face - np.asarray(matplotlib.colormaps["magma"](1.0)[:3])).max() > 0.3, face     # white: 0.25
     plt.close(fig)
     res.success, res.message = False, "beta at the edge of its grid"
     fig = plot_inversion(res, dpi=40)

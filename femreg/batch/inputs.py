@@ -200,6 +200,7 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
     if not s.get("no_orientation_check"):
         try:
             check_raw_shape(fr)
-            check(fr.frames[0], fr.spacing)
+            # a file's whole frame: its size counts too (a spacing in cm)
+            check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
         except OrientationError as exc:
             raise OrientationError(f"{job.input}: {exc}", problem=exc.problem) from None

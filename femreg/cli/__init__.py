@@ -77,6 +77,45 @@ def _header_spacing_note(args, exc) -> str:
             + "; --spacing DX DY (axial, lateral) overrides it")
 
 
+#: Options naming a file (or folder) a subcommand writes: their missing parent folders are created before the
+#: command runs, as track's and elastogram's -o folders are (removed again, if still empty, on bad input).
+OUTPUT_OPTIONS = ("output", "json", "vtu", "xdmf", "render", "png")
+
+
+def _output_folders(args) -> list:
+    """Create the missing parent folders of the outputs ``args`` names (:data:`OUTPUT_OPTIONS`); returns those
+    created, deepest last.  :class:`femreg.errors.InputError` before any work when one cannot be (a file in the
+    way, no write permission), instead of an error about a temporary file after the computation."""
+    from pathlib import Path
+
+    from femreg.errors import InputError
+
+    made = []
+    for name in OUTPUT_OPTIONS:
+        value = getattr(args, name, None)
+        if not isinstance(value, (str, os.PathLike)) or not str(value):
+            continue                    # unset, or a flag (info --json)
+        missing, folder = [], Path(value).absolute().parent
+        while not folder.exists() and folder != folder.parent:
+            missing.append(folder)
+            folder = folder.parent
+        if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+            why = "is not a folder" if not folder.is_dir() else "is not writable"
+            raise InputError(f"cannot write {value}: {folder} {why}")
+        for m in reversed(missing):
+            m.mkdir()
+            made.append(m)
+    return made
+
+
+def _remove_empty(folders) -> None:
+    for folder in reversed(folders):
+        try:
+            folder.rmdir()              # only if still empty
+        except OSError:
+            pass
+
+
 def main(argv=None) -> int:
     from femreg.errors import InputError
     from femreg.optional import MissingDependencyError
@@ -93,8 +132,13 @@ def main(argv=None) -> int:
         return f"femreg {args.command}: warning: {' '.join(str(message).split())}\n"
 
     saved, warnings.formatwarning = warnings.formatwarning, one_line
+    made = []
     try:
-        return int(args.func(args) or 0)
+        made = _output_folders(args)
+        rc = int(args.func(args) or 0)
+        if rc == 2:
+            _remove_empty(made)
+        return rc
     except BrokenPipeError:         # output piped into e.g. `head`, which closed early: not an error of femreg's
         try:                        # no second error when Python flushes stdout at exit
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -102,6 +146,7 @@ def main(argv=None) -> int:
             pass
         return 141                  # 128 + SIGPIPE, as for other Unix tools
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
+        _remove_empty(made)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         msg += _header_spacing_note(args, exc)
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)

@@ -89,7 +89,25 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             check_raw_shape(fr)
         except OrientationError as exc:
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
+        _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def _check_frame_size(fr, path, args) -> None:
+    """A whole frame of a linear array as read from ``path``: refuse a spacing in centimetres, which the RF checks
+    of register cannot see on a crop (:func:`femreg.orientation.diagnose`, ``whole_frame``); only that rule here,
+    the other checks stay where they were."""
+    import numpy as np
+
+    from ..orientation import OrientationError, diagnose
+
+    a = np.asarray(getattr(fr, "frames", None))
+    linear = getattr(args, "geometry", None) in (None, "linear") and not getattr(args, "volume", False)
+    if not linear or a.ndim != 3 or "iq" in fr.metadata or fr.spacing is None or len(fr.spacing) != 2:
+        return
+    rep = diagnose(a[0], fr.spacing, whole_frame=True)
+    if rep.small_frame:
+        raise OrientationError(f"{path}: {rep.message}", problem=rep.problem)
 
 
 def beam_spacing_error(exc, geometry):

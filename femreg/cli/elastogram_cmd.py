@@ -70,6 +70,32 @@ def _rgb(values, cmap, vmin, vmax):
     return rgb
 
 
+def _legend(height, width=44):
+    """The strain panel's colour bar for the cine (viridis, 0 at the bottom, 2 at the top), labelled 0, 1, 2:
+    without it the cine's colours have no scale."""
+    from PIL import Image, ImageDraw
+
+    rgb = np.zeros((height, width, 3), np.uint8)
+    ramp = np.linspace(2.0, 0.0, height)[:, None] * np.ones((1, 10))
+    rgb[:, 6:16] = _rgb(ramp, "viridis", 0.0, 2.0)
+    im = Image.fromarray(rgb)
+    draw = ImageDraw.Draw(im)
+    for v in (0, 1, 2):
+        y = int(round((2 - v) / 2 * (height - 1)))
+        draw.line([(16, y), (19, y)], fill=(255, 255, 255))
+        draw.text((21, min(max(y - 6, 0), height - 12)), f"{v}", fill=(255, 255, 255))
+    return np.asarray(im)
+
+
+def _caption(pic, text, rows=14):
+    """``pic`` with a black strip of ``rows`` on top holding ``text`` (what the panels are, the frame)."""
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray(np.concatenate([np.zeros((rows, pic.shape[1], 3), np.uint8), pic], axis=0))
+    ImageDraw.Draw(im).text((2, 1), text, fill=(255, 255, 255))
+    return np.asarray(im)
+
+
 def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
     """B-mode | normalised strain for every cine frame, in the colours of ``elastogram.png`` (viridis, 0-2 x the
     mean): ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
@@ -80,7 +106,10 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
         b = _display(bmode(np.asarray(frames[f], float)), spacing)
         s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
-        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", 0.0, 2.0)], axis=1)
+        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", 0.0, 2.0),
+                              _legend(bm.shape[0])], axis=1)
+        depth = np.shape(frames[f])[0] * float(spacing[0])
+        pic = _caption(pic, f"frame {f}: B-mode | axial strain / its mean; {depth:.0f} mm deep")
         h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
         pad = np.zeros((h, w, 3), np.uint8)
         pad[:pic.shape[0], :pic.shape[1]] = pic
@@ -190,8 +219,8 @@ def run(args) -> int:
           f"{res.n_usable} usable; "
           + (f"best elastogram on frame index {res.ref_frame}{which}; " if res.n_usable else
              "no elastogram (empty strain panels); ")
-          + f"{out / 'elastogram.npz'}, "
-          f"{cine.name} ({res.timings['total']:.1f} s)")
+          + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
+          + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
     if res.n_usable == 0:
         why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
         print(f"femreg elastogram: error: no pair was usable (none with strain in {lo:g}-{hi:g} % that "

@@ -95,7 +95,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
     if spacing_known:
         from ..orientation import diagnose
 
-        rep = diagnose(a[0], fr.spacing)
+        rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
         if "iq" in fr.metadata:      # remodulated IQ: what read_frames checks when registering (spacing, sign, f)

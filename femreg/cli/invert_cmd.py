@@ -31,7 +31,7 @@ def add_parser(subparsers):
                     "result (femreg register on RF volumes) is inverted on hexahedra with the 3D model; its "
                     "--region and --reference boxes take a z interval too.")
     p.add_argument("result", help="registration result .npz (femreg register -o ...)")
-    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     p.add_argument("--model", default="auto", choices=("auto", "plane-stress", "plane-strain", "3d"),
                    help="forward model (default auto: from the data's lateral/axial strain ratio; 3d for a "
                         "volume's result)")

@@ -46,7 +46,8 @@ def add_parser(subparsers):
     p.add_argument("--strain", choices=("element", "recovered"), default="element",
                    help="strain the region statistics use (default element: its region means follow from the "
                         "displacement on the region's boundary; recovered: the pictures' strain)")
-    p.add_argument("--json", "-o", dest="json", metavar="FILE", help="also write the numbers as JSON")
+    p.add_argument("--json", "-o", dest="json", metavar="FILE",
+                   help="also write the numbers as JSON (missing folders are created)")
     p.set_defaults(func=run)
     return p
 
@@ -190,7 +191,7 @@ def is_elastogram_file(path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as z:
             return all(k in z.files for k in ELASTOGRAM_KEYS) and "mesh_points" not in z.files
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, TypeError):   # TypeError: a .npy (one array)
         return False
 
 

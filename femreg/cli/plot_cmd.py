@@ -20,7 +20,8 @@ def add_parser(subparsers):
                     "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
                     "printed; 2 with a one-line reason on bad input.")
     p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
-    p.add_argument("-o", "--output", metavar="OUT.png", help="figure path (default: RESULT with .png)")
+    p.add_argument("-o", "--output", metavar="OUT.png",
+                   help="figure path (default: RESULT with .png; missing folders are created)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write the mesh, displacement and strains as VTU")
     p.add_argument("--xdmf", metavar="OUT.xdmf", help="also write them as XDMF (+ .h5)")
     p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
@@ -79,7 +80,8 @@ def _run(args) -> int:
     if args.reference:
         fr = frames_from_args(args, path=args.reference)
         if not -fr.n_frames <= args.frame < fr.n_frames:
-            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s)")
+            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s), "
+                             f"counted from 0: 0 to {fr.n_frames - 1}")
         reference = fr.frames[args.frame]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")

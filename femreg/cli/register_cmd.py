@@ -32,7 +32,7 @@ def add_parser(subparsers):
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
                    help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
                         "single-frame files)")
-    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     add_geometry_args(p)
@@ -84,7 +84,8 @@ def _frame(fr, index, path):
     from femreg.errors import InputError
 
     if not -fr.n_frames <= index < fr.n_frames:
-        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s)")
+        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s), counted "
+                         f"from 0: 0 to {fr.n_frames - 1}")
     return fr.frames[index]
 
 

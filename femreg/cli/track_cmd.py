@@ -78,6 +78,10 @@ def run(args) -> int:
         if not getattr(args, "geometry_given", False):
             _refuse_curved(fr, args.file)
         spacing, origin = fr.spacing, fr.origin
+    if fr.n_frames < 2:     # the file named, and where the other frames may be
+        raise InputError(f"{args.file}: one frame read: tracking needs at least 2 frames (a file of several "
+                         f"frames, a folder of per-frame files: femreg track FOLDER, or --frames selecting 2 or "
+                         f"more)")
     return run_tracking(args, lambda on_frame: track(
         fr.frames, spacing=spacing, origin=origin, mode=args.mode, grid=args.grid, init=args.init,
         checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,

@@ -171,7 +171,8 @@ def select_frames(path, arr: np.ndarray, frames):
         raise InputError(f"{path}: frame selection {frames!r} selects no frame (the file has {n})")
     bad = idx[(idx < -n) | (idx >= n)]
     if bad.size:
-        raise InputError(f"{path}: frame index {int(bad[0])} out of range (the file has {n} frame(s))")
+        raise InputError(f"{path}: frame index {int(bad[0])} out of range (the file has {n} frame(s), counted from "
+                         f"0: 0 to {n - 1})")
     return arr[idx]
 
 

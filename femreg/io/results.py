@@ -196,7 +196,10 @@ def _read(path) -> dict:
     if not path.is_file():
         raise fail(path, "no such result file")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):     # a .npy: one array (frames?), not a result
+            raise ValueError(f"one array of shape {np.shape(z)}")
+        with z:
             out = {k: _scalar(z[k]) for k in z.files}
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, RuntimeError, NotImplementedError) as exc:
         if path.suffix.lower() != ".npz":

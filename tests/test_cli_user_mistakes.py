@@ -1,0 +1,157 @@
+"""The mistakes a first user makes with the in vivo recordings, as the scanner wrote them (2000 x 128 float32 raw
+frames, 0.02 mm axial, 0.2 mm lateral): each one a one-line reason and exit 2 before any work, never a traceback,
+a silent wrong result or an error about a temporary file.  The in vivo tests skip when the data are absent."""
+import numpy as np
+import pytest
+
+from femreg.cli import main
+from femreg.orientation import SMALL_FRAME_MM, diagnose
+from test_io import INVIVO
+
+SEQ = INVIVO / "seq299"
+RAW = ["--shape", "2000", "128"]
+needs_invivo = pytest.mark.skipif(not (SEQ / "frame1.raw").is_file(), reason=f"in vivo data not found at {SEQ}")
+
+
+def _run(argv, capsys):
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _frame(k=1):
+    return np.fromfile(SEQ / f"frame{k}.raw", "<f4").reshape(2000, 128)
+
+
+@needs_invivo
+def test_spacing_in_centimetres_is_refused_by_every_command(tmp_path, capsys):
+    # 0.002 0.02 (cm read as mm) gave exit 0 and a registration of a 4 x 2.56 mm image at 46 MHz
+    cm = ["--spacing", "0.002", "0.02"]
+    for argv in (["register", SEQ / "frame1.raw", SEQ / "frame4.raw", *RAW, *cm, "-o", tmp_path / "x.npz"],
+                 ["track", SEQ, *RAW, *cm, "-o", tmp_path / "run", "--no-progress"],
+                 ["elastogram", SEQ, *RAW, *cm, "-o", tmp_path / "loop", "--no-progress"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2, (argv[0], rc, err)
+        assert "units look like centimetres" in err and "--spacing 0.02 0.2" in err, err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not any(tmp_path.iterdir())                  # nothing computed, nothing written
+    rc, out, err = _run(["info", SEQ / "frame1.raw", *RAW, *cm], capsys)
+    assert rc == 1 and "centimetres" in out             # described, but it needs the spacing in mm
+
+
+@needs_invivo
+def test_frame_size_rule_judges_whole_frames_only():
+    rf = _frame()
+    rep = diagnose(rf, (0.002, 0.02), whole_frame=True)
+    assert rep.problem == "spacing" and rep.small_frame and 40 < rep.frequency_mhz < 50
+    # a crop (register's echo rectangle, a user's roi) is not judged by its size: unchanged behaviour
+    assert diagnose(rf, (0.002, 0.02)).problem == ""
+    # a preclinical frame of its size passes: 23 MHz, 8 x 5.12 mm
+    assert 0.04 * 128 > SMALL_FRAME_MM[1]                # 5.12 mm wide
+    assert diagnose(rf, (0.004, 0.04), whole_frame=True).problem == ""
+    # the right spacing, and the mistakes caught before, are unchanged
+    assert diagnose(rf, (0.02, 0.2), whole_frame=True).problem == ""
+    assert diagnose(rf, (0.2, 0.02), whole_frame=True).problem == "swapped"
+    assert "metres" in diagnose(rf, (2e-5, 2e-4), whole_frame=True).message
+
+
+@needs_invivo
+def test_missing_output_folders_are_created_and_bad_input_leaves_none(tmp_path, capsys):
+    pair = tmp_path / "a" / "b" / "pair.npz"
+    rc, out, err = _run(["register", SEQ / "frame1.raw", SEQ / "frame4.raw", *RAW, "--spacing", "0.02", "0.2",
+                         "-o", pair], capsys)
+    assert rc == 0 and pair.is_file(), err
+    rc, out, err = _run(["measure", pair, "--inclusion", "11", "13", "2.5", "--json", tmp_path / "m" / "m.json"],
+                        capsys)
+    assert rc == 0 and (tmp_path / "m" / "m.json").is_file(), err
+    rc, out, err = _run(["plot", pair, "-o", tmp_path / "p" / "q" / "pair.png"], capsys)
+    assert rc == 0 and (tmp_path / "p" / "q" / "pair.png").is_file(), err
+
+
+def test_unwritable_output_is_refused_before_any_work(tmp_path, capsys):
+    frames = tmp_path / "frames.npy"
+    np.save(frames, np.random.default_rng(0).standard_normal((3, 64, 32)).astype(np.float32))
+    # bad input: the folders made for the output are removed again
+    rc, out, err = _run(["register", tmp_path / "missing.npy", frames, "--spacing", "0.02", "0.2",
+                         "-o", tmp_path / "new" / "sub" / "x.npz"], capsys)
+    assert rc == 2 and "no such file" in err and not (tmp_path / "new").exists()
+    # a file where the folder should be: refused before reading the frames, without a temporary name
+    (tmp_path / "afile").write_text("")
+    for argv in (["register", frames, "--pair", "0", "1", "--spacing", "0.02", "0.2",
+                  "-o", tmp_path / "afile" / "x.npz"],
+                 ["invert", tmp_path / "missing.npz", "-o", tmp_path / "afile" / "mu.npz"],
+                 ["measure", tmp_path / "missing.npz", "--inclusion", "1", "1", "1", "--json",
+                  tmp_path / "afile" / "m.json"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "is not a folder" in err and ".tmp" not in err, (argv[0], err)
+
+
+def test_frame_index_errors_name_the_valid_range(tmp_path, capsys):
+    frames = tmp_path / "frames.npy"
+    np.save(frames, np.random.default_rng(0).standard_normal((6, 64, 32)).astype(np.float32))
+    one = tmp_path / "one.npy"
+    np.save(one, np.random.default_rng(1).standard_normal((64, 32)).astype(np.float32))
+    sp = ["--spacing", "0.02", "0.2"]
+    for argv in (["register", frames, "--pair", "0", "9", *sp, "-o", tmp_path / "x.npz"],
+                 ["track", frames, "--frames", "1,9", *sp, "-o", tmp_path / "run"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "counted from 0: 0 to 5" in err, (argv[0], err)
+    rc, out, err = _run(["track", one, *sp, "-o", tmp_path / "run1", "--no-progress"], capsys)
+    assert rc == 2 and f"{one}: one frame read" in err and "folder of per-frame files" in err, err
+
+
+@needs_invivo
+def test_elastogram_names_every_file_it_writes(tmp_path, capsys):
+    out_dir = tmp_path / "loop"
+    rc, out, err = _run(["elastogram", SEQ, *RAW, "--spacing", "0.02", "0.2", "-o", out_dir, "--no-progress"],
+                        capsys)
+    assert rc == 0, err
+    line = [s for s in out.splitlines() if s.startswith("femreg elastogram:")][-1]
+    for name in ("elastogram.npz", "elastogram.png", "pairs.csv", "pairs/"):
+        assert name in line and (out_dir / name.rstrip("/")).exists(), (name, line)
+    cine = [p for p in out_dir.iterdir() if p.name.startswith("strain_cine.")]
+    assert len(cine) == 1 and cine[0].name in line
+
+
+def test_colour_bars_mark_saturated_ends():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from femreg.plot import colorbar_extend, plot_field
+
+    f = np.linspace(-1.0, 1.0, 50 * 40).reshape(50, 40)
+    for kw, want in (({}, "both"),                              # 1-99 % limits: both tails saturate
+                     ({"vmin": -2.0, "vmax": 2.0}, "neither"),
+                     ({"vmin": -2.0, "vmax": 0.5}, "max")):
+        fig, ax = plt.subplots()
+        plot_field(f, (0.1, 0.1), ax=ax, cmap="RdBu_r", label="x (mm)", **kw)
+        assert colorbar_extend(ax.images[0]) == want, kw
+        cb = ax.images[0].colorbar
+        assert cb.extend == want
+        plt.close(fig)
+
+
+def test_strain_cine_has_a_colour_bar():
+    import matplotlib
+
+    from femreg.cli.elastogram_cmd import _legend
+
+    leg = _legend(100)
+    viridis = matplotlib.colormaps["viridis"]
+    top, bottom = leg[0, 10].astype(int), leg[-1, 10].astype(int)
+    # 2 x the mean at the top, 0 at the bottom, in the strain panel's colours
+    assert np.abs(top - np.asarray(viridis(1.0)[:3]) * 255).max() <= 2
+    assert np.abs(bottom - np.asarray(viridis(0.0)[:3]) * 255).max() <= 2
+    assert (leg[:, 21:] > 128).any()                    # the labels are drawn
+
+
+def test_frames_given_where_a_result_belongs(tmp_path, capsys):
+    # `femreg plot frames.npy` (frames, not a result) ended in a TypeError traceback and exit 1
+    frames = tmp_path / "frames.npy"
+    np.save(frames, np.random.default_rng(0).standard_normal((2, 64, 32)).astype(np.float32))
+    for argv in (["plot", frames, "-o", tmp_path / "p.png"], ["invert", frames, "-o", tmp_path / "mu.npz"],
+                 ["measure", frames, "--inclusion", "1", "1", "1"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "not a result file" in err and "Traceback" not in err, (argv[0], rc, err)
