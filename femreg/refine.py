@@ -167,7 +167,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "pass_strong", "pass_solve_kw", "ncc_spread",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "layer_cells", "LAYER_FRACTION", "pass_strong", "pass_solve_kw", "ncc_spread",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -363,6 +363,14 @@ class Refinement:
         ``fine_alpha_ncc`` of a pass that relaxes a layer (``relax``; :attr:`relax_alpha` rides on it), None: the
         same.  A bonded inclusion's step wants a lighter weight than a relaxed band, whose slide a lighter weight
         spoils (``benchmarks/shear_bands.py``).
+    fine_layer : float, optional
+        On a pass that passes the ``fine`` gate with a weight factor below 1 (:attr:`fine_alpha`) and relaxes
+        nothing: the tangential part of the jumps in the two rows (columns) of cells beside each layer interface
+        found on the solve before the split (:func:`layer_cells`) keeps ``fine_layer`` times the unrefined weight.
+        At the lighter weight the thin split rows carry a small difference of the layers' lateral strain as shear
+        strain along the interface (a two-layer step at 2 %: e_xy RMS 0.38 % there, true 0); at a bonded disk's
+        rim the shear traction does jump, so the weight stays light there (no line of edges across the mesh
+        stands out).  None: off.
     fine_fill : int
         On a pass that passes the ``fine`` gate, a run of at most this many unmarked rows (columns) between two
         marked ones is split once too: the core of a 1-1.5 mm shear band that the unrefined solve spreads over a
@@ -424,6 +432,7 @@ class Refinement:
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     relax_alpha_ncc: float | None = None
+    fine_layer: float | None = None
     fine_fill: int = 0
     relax_full: bool = False
     relax_alpha: float | None = None
@@ -477,6 +486,7 @@ class Refinement:
                 what="a number in (0, 1)")
         _number(self, "relax_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="a number in (0, 1)")
+        _number(self, "fine_layer", 0, 10, optional=True, open_low=True, what="a factor in (0, 10]")
         _number(self, "strong", 1, optional=True)
         _number(self, "feature", 0)
         _number(self, "relax", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
@@ -582,6 +592,13 @@ SLIP_REFINEMENT = Refinement(passes=3, min_size=(0.15, 0.6), slip=0.003, maxiter
 #: (the 10 dB soft inclusion: uniform noise lowers every element's NCC alike); rotated pairs up to 0.32.
 DECORRELATED_SPREAD = 0.2
 
+#: Fraction of a line of edges (across the whole mesh) whose normal jump of A[u] stands out at or above which the
+#: line counts as a layer's interface (:func:`layer_cells`, :attr:`Refinement.fine_layer`).  Measured on the
+#: unrefined solve (largest fraction of a row line): layered pairs 1.00 (``benchmarks/layer_edges.py``, 7 pairs),
+#: bonded disks 0.29-0.72 (``inclusion_sizes.py``, the robustness benchmark), shear bands up to 0.64 (one 1.00 on
+#: a column line of the held-out L12 band: it relaxes, which the rule leaves alone).
+LAYER_FRACTION = 0.9
+
 #: Fraction of the rows or of the columns that the first pass marks at or above which :data:`DEEP_REFINEMENT` splits
 #: nothing when the median element NCC of the unrefined solve is below :data:`NOISE_COVERAGE_NCC`
 #: (:attr:`Refinement.coverage`).  Measured on the unrefined solve (rows / columns marked, median element NCC,
@@ -640,7 +657,8 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
-                             fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
+                             fine_layer=1.0, fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2,
+                             relax_fill_weight=0.1,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
@@ -1069,6 +1087,25 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     return segs[keep]
 
 
+def layer_cells(mesh, u, opts: Refinement, fraction: float | None = None) -> np.ndarray:
+    """Rectangles (k, 4) [x0, x1, y0, y1] mm of the two rows (columns) of cells beside each layer interface of a
+    tensor mesh: a line of axial (lateral) edges across which the normal part of the jump ``[[A]] n`` stands out
+    (the cut of :func:`mark`) on at least ``fraction`` (default :data:`LAYER_FRACTION`) of its edges
+    (:attr:`Refinement.fine_layer`)."""
+    xs, ys, _ = _need_tensor(mesh)
+    e = _centre_strains(mesh, u)
+    ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
+    cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
+    frac = LAYER_FRACTION if fraction is None else float(fraction)
+    na = np.sqrt(np.maximum(ja ** 2 - ta ** 2, 0.0))            # (n_rows - 1, n_cols): line i between rows i, i + 1
+    nl = np.sqrt(np.maximum(jl ** 2 - tl ** 2, 0.0))            # (n_rows, n_cols - 1)
+    rows = np.flatnonzero((na > cut).mean(axis=1) >= frac) if na.size else np.zeros(0, int)
+    cols = np.flatnonzero((nl > cut).mean(axis=0) >= frac) if nl.size else np.zeros(0, int)
+    return np.vstack([np.column_stack([xs[rows], xs[rows + 2], np.full(rows.size, ys[0]), np.full(rows.size, ys[-1])]),
+                      np.column_stack([np.full(cols.size, xs[0]), np.full(cols.size, xs[-1]), ys[cols], ys[cols + 2]])
+                      ]).reshape(-1, 4)
+
+
 def _covered_rows(xs, rects) -> np.ndarray:
     """Which rows of the tensor-mesh breaks ``xs`` lie inside one of the rectangles ``rects`` (k, 4)."""
     c = np.zeros(xs.size - 1, bool)
@@ -1358,6 +1395,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             f = fine_alpha_factor(opts, sol, mesh, relaxed=bool(len(relaxed)))
             if f != 1.0:
                 kw["alpha_factor"] = f
+            if opts.fine_layer is not None and f < 1.0 and not len(relaxed):
+                lay = layer_cells(mesh, sol.u, opts)
+                if len(lay):
+                    lw = slip_weights(lay, opts.fine_layer / f, new)
+                    st = lw if st is None else (lambda j, a=st, b=lw: a(j) * b(j))
         elif not finer and opts.coarse_alpha is not None and not len(relaxed):
             # clean speckle whose field varies everywhere (heterogeneous tissue): at the unrefined weight the step
             # leaves the split rows' e_yy / e_xy noisier than the coarse field; a lighter one follows the data
