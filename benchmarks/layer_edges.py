@@ -58,6 +58,18 @@ CASES = [
          seed=7),
     # under 5 MHz (outside the resolution target): the 3 MHz probe's axial PSF is twice the paper probe's
     Case("soft10_2pc_L3", _layers((15.0, 25.0), (1.0, 0.25, 1.0), 0.02), "L3", (30, 30), 20, top_mm=5.0, seed=1),
+    # held out: drawn after the interface rule (femreg.refine.Refinement.fine_layer), before its full solve
+    # (fine_layer_full) was chosen, and not used to choose it
+    Case("held_three_2pc_L7", _layers((12.0, 20.0, 28.0), (1.0, 3.0, 0.5, 1.0), 0.02), "L7", (35, 30), 25,
+         top_mm=3.0, seed=11),
+    Case("held_thin3_1pc_paper", _layers((18.0, 21.0), (1.0, 4.0, 1.0), 0.01), "paper", (30, 30), 20, top_mm=5.0,
+         seed=12),
+    Case("held_skin_1.5pc_L12", _layers((8.0,), (0.5, 1.0), 0.015), "L12", (20, 20), 25, top_mm=3.0, seed=13),
+    Case("held_soft5_4pc_L7", _layers((13.0, 18.0), (1.0, 0.3, 1.0), 0.04), "L7", (30, 30), 30, top_mm=3.0,
+         seed=14),
+    Case("held_deep_3pc_L3", _layers((20.0, 32.0), (1.0, 2.0, 1.0), 0.03), "L3", (40, 40), 20, top_mm=5.0, seed=15),
+    Case("held_L15_0.5pc", _layers((14.0, 17.0), (1.0, 0.5, 1.0), 0.005), "L15", (15, 15), 30, top_mm=8.0,
+         seed=16),
 ]
 FEMREG = ["R_P_sigma", "R_P_sigma no refine"]
 METHODS = FEMREG + [EXACT_ON_MESH] + list(PEER_METHODS)

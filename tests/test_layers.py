@@ -49,6 +49,16 @@ def test_layers_equilibrium_and_a_uniform_stack():
         Layers((20.0, 10.0), (1.0, 2.0, 1.0))
 
 
+def test_layer_refinement_options_are_checked():
+    from femreg.errors import InputError
+    from femreg.refine import Refinement
+
+    with pytest.raises(InputError, match="fine_layer "):
+        Refinement(fine_layer=0.0)
+    with pytest.raises(InputError, match="fine_layer_full"):
+        Refinement(fine_layer_full=1)
+
+
 def test_default_registration_keeps_a_layer_step_sharp():
     import femreg
     from femreg.metrics import edge_width
@@ -71,7 +81,7 @@ def test_default_registration_keeps_a_layer_step_sharp():
     kw = dict(spacing=d.spacing, origin=d.origin)
     w1 = widths(femreg.register(d.ref, d.mov, **kw))
     w0 = widths(femreg.register(d.ref, d.mov, refine=None, **kw))
-    # measured: 0.41 / 0.41 mm refined (default), 1.65 / 1.64 mm unrefined; the target is 1 mm
+    # measured: 0.43 / 0.42 mm refined (default), 1.65 / 1.64 mm unrefined; the target is 1 mm
     assert np.all(w1 <= 0.6), w1
     assert np.all(w1 < 0.4 * w0), (w1, w0)
 
@@ -106,7 +116,8 @@ def test_finer_pass_keeps_the_shear_weight_on_a_layer_interface():
         assert r.refinement.passes[0]["fine"]
         exy = np.asarray(r.on_grid()["exy"], float)
         out[v] = (field_errors(r, f.displacement, f.strain)["e"], np.sqrt(np.nanmean(exy[near] ** 2)))
-    # measured: total strain error 14.1 -> 7.6 %, RMS e_xy within 1 mm of the interface 0.44 -> 0.04 % (true 0)
+    # measured (the default also solves that pass in full, fine_layer_full): total strain error 14.1 -> 4.9 %,
+    # RMS e_xy within 1 mm of the interface 0.44 -> 0.02 % (true 0)
     (e_off, s_off), (e_on, s_on) = out[None], out[R.DEEP_REFINEMENT.fine_layer]
-    assert e_on < 0.7 * e_off and e_on < 0.10, out
+    assert e_on < 0.5 * e_off and e_on < 0.07, out
     assert s_on < 0.25 * s_off, out

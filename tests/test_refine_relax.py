@@ -155,7 +155,7 @@ def _run(opts, f):
     m = _mesh()
     calls = []
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
         calls.append((mesh, shear_traction, normal_traction, alpha_factor))
         return _fake_solve(mesh, _nodal(mesh, f))
 
