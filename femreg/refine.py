@@ -44,8 +44,12 @@ jumps just over the cut on most rows (largest 1.1-2.4x), features stand out furt
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
 the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
-1 instead of 4 and splits columns down to 0.4 mm (2 pixels under 7.5 MHz; the 0.7 mm columns of a 12 MHz image
-stay whole): ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.50 / 6.48 /
+1 instead of 4 and splits columns down to 0.25 mm (never below 2 pixels: 0.4 mm under 7.5 MHz, 0.6 mm under
+5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
+15 MHz image are halved; at 0.4 mm they stayed whole: held-out r 4 mm 12 MHz 6.97 -> 5.69 %, robustness
+soft-pstrain1_L15 10.12 -> 8.64 %, soft-pstress1_L12 7.63 -> 6.73 %, every other benchmark pair, the rotation
+sweep, shear bands, layers and heterogeneous tissue identical; CPU time of those three 0.89-1.24x).  Earlier, at
+0.4 mm: ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.50 / 6.48 /
 11.86 %, held out r 4 mm (12 MHz) 8.26 -> 8.23 %, soft r 5 mm 8.62 -> 8.24 % (at a z-score of 2: 8.56 / 6.50 /
 12.07 %, 8.23 / 8.44 %); columns down to 0.3 mm would give
 the 12 MHz r 4 mm 6.43 % but 3 % + 4 deg under L12, a rotated pair whose top is 46x the cut, 8.15 -> 8.76 %
@@ -651,7 +655,7 @@ SPREAD_COVERAGE = 0.8
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: whose extent is at least 20 mm: a layer across the image, not a staircase around speckle-scale features);
-#: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.4 mm
+#: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.25 mm
 #: (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve left
 #: (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
 #: between two marked ones (at most 2, :attr:`Refinement.fine_fill`: a shear band's core); a pass that relaxes
@@ -664,8 +668,8 @@ SPREAD_COVERAGE = 0.8
 #: Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
-                             settle=True, fine=4.6, fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04,
-                             fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2,
+                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_alpha=0.1, fine_alpha_ncc=0.08,
+                             relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2,
                              relax_fill_weight=0.1,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,

@@ -303,7 +303,7 @@ def _corner(x0, y0):
 
 
 def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
-    # Refinement.fine (DEEP_REFINEMENT: 4.6x the cut, columns down to 0.4 mm): the gate on the largest jump over
+    # Refinement.fine (DEEP_REFINEMENT: 4.6x the cut, columns down to 0.25 mm): the gate on the largest jump over
     # the cut (30x here, measured), the marking then at a z-score of 1 and down to fine_min_size
     from femreg.refine import DEEP_REFINEMENT
     from femreg.scaling import effective_alpha, refined_alpha
@@ -325,13 +325,36 @@ def test_a_pass_where_a_feature_stands_out_far_marks_lower_and_splits_finer():
     assert fine.t.shape[1] > coarse.t.shape[1]                                # 156 against 117 elements
     w0 = np.diff(tensor_structure(coarse)[1]).min()
     w = np.diff(tensor_structure(fine)[1]).min()
-    # columns: 0.6 mm (the default's min_size) -> 0.4 mm (fine_min_size; 2 pixels of 0.2 mm)
-    assert w0 >= DEEP_REFINEMENT.min_size[1] - 1e-9 and w == pytest.approx(DEEP_REFINEMENT.fine_min_size[1])
+    # columns: 0.6 mm (the default's min_size) -> 0.4 mm (fine_min_size 0.25 mm, held at 2 pixels of 0.2 mm)
+    assert DEEP_REFINEMENT.fine_min_size[1] < 2 * SPACING[1]
+    assert w0 >= DEEP_REFINEMENT.min_size[1] - 1e-9 and w == pytest.approx(2 * SPACING[1])
     # the weight of eq:objf stays the unrefined mesh's on the finer mesh too
     assert effective_alpha(refined_alpha(0.3, m, fine), fine) == pytest.approx(effective_alpha(0.3, m), rel=1e-12)
     # fine_levels 1: each marked row / column split once
     calls, rec = _run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_levels=1, fine_alpha=None), f)
     assert calls[0][0].t.shape[1] < fine.t.shape[1]
+
+
+def test_the_finer_pass_halves_the_columns_of_a_fine_pitch_image():
+    # fine_min_size 0.25 mm: a 15 MHz image's 0.55 mm columns (11 pixels of 0.05 mm) are halved on the finer pass
+    # (at 0.4 mm they stayed whole); measured on soft-pstrain1_L15 of the robustness benchmark 10.12 -> 8.64 %
+    from femreg.refine import DEEP_REFINEMENT
+
+    shape, spacing = (600, 240), (0.02, 0.05)
+    m = roi_mesh(shape, spacing, ORIGIN, element_size=(1.5, 0.55))
+    xs, ys, _ = tensor_structure(m)
+    f = _corner(xs[4], ys[len(ys) // 2])
+    calls = []
+
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+        calls.append(mesh)
+        return _fake_solve(mesh, _nodal(mesh, f))
+
+    opts = dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None)
+    _, rec = refine_passes(_fake_solve(m, _nodal(m, f)), opts, solve_on, spacing, ORIGIN)
+    assert rec.passes[0]["fine"] and rec.passes[0]["columns"] > 0
+    w0, w = np.diff(ys).min(), np.diff(tensor_structure(calls[0])[1]).min()
+    assert w0 > 0.5 and 0.25 - 1e-9 <= w < 0.4, (w0, w)
 
 
 @pytest.mark.parametrize("q, factor", [(0.98, 0.25), (0.99, 0.125), (0.9999, 0.1), (0.9, None)])
