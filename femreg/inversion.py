@@ -2551,10 +2551,15 @@ class InversionResult:
         return plot_inversion(self, out_png, **kw)
 
     def __repr__(self) -> str:
+        return self.summary()
+
+    def summary(self, message: bool = True) -> str:
+        """One line: model, beta, elements, the 5-95 % range of mu, the verdict and (``message``) the message
+        (the CLI leaves it out where it prints the message on its own line)."""
         q = np.percentile(self.mu, [5, 95])
         return (f"InversionResult(model={self.model!r}, beta={self.beta:.3g}, n_el={self.mesh.t.shape[1]}, "
-                f"mu 5-95 % {q[0]:.3g}-{q[1]:.3g}, success={self.success}, nit={self.nit}, "
-                f"message={self.message!r})")
+                f"mu 5-95 % {q[0]:.3g}-{q[1]:.3g}, success={self.success}, nit={self.nit}"
+                + (f", message={self.message!r})" if message else ")"))
 
 
 def is_inversion_file(path) -> bool:

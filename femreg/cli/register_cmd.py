@@ -30,7 +30,7 @@ def add_parser(subparsers):
     p.add_argument("reference", help="reference frame file (or a multi-frame file with --pair)")
     p.add_argument("moving", nargs="?", help="moving frame file (omit to take both frames from REFERENCE)")
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
-                   help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
+                   help="frame indices of reference and moving in multi-frame files, counted from 0 (default 0 1, or 0 0 with two "
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
@@ -81,12 +81,9 @@ def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
 
 
 def _frame(fr, index, path):
-    from femreg.errors import InputError
+    from ._common import frame_index
 
-    if not -fr.n_frames <= index < fr.n_frames:
-        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s), counted "
-                         f"from 0: 0 to {fr.n_frames - 1}")
-    return fr.frames[index]
+    return fr.frames[frame_index(index, fr.n_frames, path, "--pair")]
 
 
 def _swept(args):
