@@ -105,9 +105,12 @@ def register_volumes(args, vol, kw) -> int:
         mov = other[0] if other[0].ndim == 3 else other[0][frame_index(j, other[0].shape[0], args.moving, "--pair")]
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
+    from ..autoalpha import showing_progress
+
     try:
-        res = femreg.register(ref, mov, spacing=spacing, origin=origin, geometry=kw.get("geometry"),
-                              **_kwargs(kw))
+        with showing_progress(not getattr(args, "no_progress", False)):
+            res = femreg.register(ref, mov, spacing=spacing, origin=origin, geometry=kw.get("geometry"),
+                                  **_kwargs(kw))
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1)

@@ -35,6 +35,8 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (shown over the candidate registrations of --alpha auto)")
     add_geometry_args(p)
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
@@ -245,8 +247,11 @@ def run(args) -> int:
     if beam is not None:                # range step and first range from the file; rays centred on angle 0
         kw["geometry"] = beam
         spacing, origin = float(spacing[0]), (float(origin[0]), 0.0)
+    from ..autoalpha import showing_progress
+
     try:
-        res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)
+        with showing_progress(not args.no_progress):
+            res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)
     except InputError:
         raise                      # bad input: exit 2 from the dispatcher
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)
