@@ -94,7 +94,7 @@ def _tell_cold() -> None:
 
 def cache_is_cold() -> bool:
     """True when no loop of this file has an on-disk cache index at least as new as the file: the first run on a
-    machine (or after this file changed), when the first registration compiles them (about 10 s).  A stat of
+    machine (or after this file changed), when the first registration compiles them (10-15 s).  A stat of
     each index file (under a millisecond); False without numba or with the cache off."""
     if _numba is None:
         return False
