@@ -716,7 +716,7 @@ class _Problem:
 
 class _SweepBar:
     """The progress bar of :func:`invert`: one step per beta value of the sweep (its total the number of betas the
-    sweep may solve; a sweep that stops at its chosen beta ends the bar there), the current beta and its L-BFGS-B
+    sweep may solve; a sweep that ends at its chosen beta ends the bar there), the current beta and its L-BFGS-B
     iteration beside it, redrawn at most every :attr:`every` s.  ``update`` is the optimiser's per-iteration
     call (:func:`_optimise`)."""
 
@@ -753,7 +753,7 @@ class _SweepBar:
         self.bar.refresh()
 
     def close(self) -> None:
-        if self.bar.n < self.bar.total:     # stopped at its chosen beta: the rest was not needed
+        if self.bar.n < self.bar.total:     # ended at its chosen beta: the rest was not needed
             self.bar.total = self.bar.n
         self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved", refresh=False)
         self.bar.close()

@@ -45,7 +45,7 @@ def frame_selection(text: str):
 
 def negative_index(selection):
     """The first negative frame index of a selection of :func:`frame_selection` (an int, a list, or a slice's
-    start / stop), else None.  Frames are counted from 0 on the command line: a Python-style ``-1`` for the last
+    start and end), else None.  Frames are counted from 0 on the command line: a Python-style ``-1`` for the last
     frame is refused rather than read silently (a slice's negative step, which reverses the order, is kept)."""
     if isinstance(selection, slice):
         values = [selection.start, selection.stop]

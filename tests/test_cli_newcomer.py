@@ -1,4 +1,4 @@
-"""What a first session with the command line trips over: frame indices counted from 0 everywhere (a negative
+"""What a first use of the command line trips over: frame indices counted from 0 everywhere (a negative
 one refused with the valid range), a flagged inversion's message printed once, track.json saying which shape is
 the frames' and which the registered region's, progress bars with a total (invert's beta sweep, --alpha auto's
 candidates) and the one-line notice of a cold numba cache.  Small simulated L7 pairs (forward.pairs); the in vivo
