@@ -31,14 +31,16 @@ def atomic_savez(path, writer=None, **arrays) -> None:
 
 
 def open_run_folder(folder, params: dict, *, resume: bool, record: str, started, kind: str,
-                    argument: str = "output_dir", reselect=(), on_reselect=None):
+                    argument: str = "output_dir", reselect=(), on_reselect=None, described=None):
     """The output folder of a resumable run (``track``, ``elastogram``): create it, refuse a resume whose
     parameters differ from those recorded in ``folder/record`` (JSON), refuse to start over a run already there
     without ``resume`` (``started``: glob patterns of the files a run writes), then record ``params``.
 
     ``reselect``: names of parameters that only select among what the run computes first (an elastogram's band):
     a resume may change them; ``on_reselect(names)`` is then called with those that changed, so that the caller
-    drops what depended on them.
+    drops what depended on them.  ``described``: entries written to the record beside ``params`` but not
+    compared on resume (what the run is, e.g. the frames' shape beside the registered region's: a folder written
+    before they were recorded still resumes).
 
     Returns the folder as a Path, or None when ``folder`` is None (``resume`` then needs a folder: InputError
     naming ``argument``)."""
@@ -68,7 +70,7 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
             on_reselect(diff)
     elif not resume and any(any(out.glob(p)) for p in started):
         raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
-    atomic_write_text(pfile, json.dumps(params, indent=1))
+    atomic_write_text(pfile, json.dumps({**params, **(described or {})}, indent=1))
     return out
 
 

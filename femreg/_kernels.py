@@ -44,7 +44,8 @@ import os
 
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "use_compiled", "set_compiled", "compiled", "ENV_SWITCH"]
+__all__ = ["HAVE_NUMBA", "use_compiled", "set_compiled", "compiled", "ENV_SWITCH", "cache_is_cold", "notify_cold_cache",
+           "COLD_CACHE_MESSAGE"]
 
 #: Environment variable that turns the compiled loops off for a whole process and the processes it starts
 #: (batch workers, the CLI): ``FEMREG_NUMBA=0`` (also "false", "no", "off"); numba is then not even imported.
@@ -63,9 +64,56 @@ if os.environ.get(ENV_SWITCH, "").strip().lower() not in _OFF:
 HAVE_NUMBA = _numba is not None
 
 
+#: One line said (through :func:`notify_cold_cache`'s callable) before the first compiled call of a process that
+#: finds numba's on-disk cache of this file cold.
+COLD_CACHE_MESSAGE = "compiling numerical kernels once (cached for later runs)..."
+_notice = None
+
+
 def use_compiled() -> bool:
     """Whether the compiled (numba) kernels are used now (numba importable and :data:`HAVE_NUMBA` True)."""
-    return _numba is not None and HAVE_NUMBA
+    on = _numba is not None and HAVE_NUMBA
+    if on and _notice is not None:
+        _tell_cold()
+    return on
+
+
+def notify_cold_cache(write) -> None:
+    """Call ``write(COLD_CACHE_MESSAGE)`` once, at the first :func:`use_compiled` that finds the loops on, when
+    :func:`cache_is_cold` (the command line passes a writer to stderr); None: no notice."""
+    global _notice
+    _notice = write
+
+
+def _tell_cold() -> None:
+    global _notice
+    write, _notice = _notice, None
+    if cache_is_cold():
+        write(COLD_CACHE_MESSAGE)
+
+
+def cache_is_cold() -> bool:
+    """True when no loop of this file has an on-disk cache index at least as new as the file: the first run on a
+    machine (or after this file changed), when the first registration compiles them (10-15 s).  A stat of
+    each index file (under a millisecond); False without numba or with the cache off."""
+    if _numba is None:
+        return False
+    try:
+        stamp = os.stat(__file__).st_mtime
+    except OSError:
+        return False
+    paths = [getattr(getattr(getattr(f, "_cache", None), "_cache_file", None), "_index_path", None)
+             for f in globals().values() if hasattr(f, "py_func")]
+    paths = [p for p in paths if p]
+    if not paths:                   # no on-disk cache (not writable): every process compiles, nothing to say once
+        return False
+    for p in paths:
+        try:
+            if os.stat(p).st_mtime >= stamp:
+                return False
+        except OSError:
+            continue
+    return True
 
 
 def set_compiled(enabled: bool) -> bool:

@@ -59,6 +59,7 @@ same grid: see docs/study_report.md ("Automatic alpha").
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 from dataclasses import dataclass, field
 
@@ -76,7 +77,7 @@ from .solver import GN_STRAIN_TOL_TIGHT
 from .strategy import effective_regularizer_options
 
 __all__ = ["AutoAlpha", "choose_alpha", "register_auto", "DEFAULT_DECADES", "influence_trace", "quasi_optimal_index",
-           "successful_stretch", "ImageTerm", "pixel_image_term"]
+           "successful_stretch", "ImageTerm", "pixel_image_term", "PROGRESS", "showing_progress"]
 
 #: The registration function :func:`choose_alpha` calls (``register=`` overrides it): :func:`femreg.register`, set
 #: by :mod:`femreg.registration` when it is imported (it calls this module for ``alpha="auto"``; this module never
@@ -184,8 +185,25 @@ def successful_stretch(success) -> tuple[int, int]:
     return best if best[1] > best[0] else (len(s) // 2, len(s) // 2 + 1)
 
 
+#: Whether :func:`choose_alpha` shows a progress bar over its candidates when not told (``progress=None``);
+#: the command line turns it on for its commands (:func:`showing_progress`), a library call stays silent.
+PROGRESS = False
+
+
+@contextlib.contextmanager
+def showing_progress(enabled: bool = True):
+    """``with showing_progress(): ...``: :func:`choose_alpha` calls in the block (also those of
+    ``femreg.register(alpha="auto")``) show a tqdm bar over the candidate alphas on stderr."""
+    global PROGRESS
+    previous, PROGRESS = PROGRESS, bool(enabled)
+    try:
+        yield
+    finally:
+        PROGRESS = previous
+
+
 def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base_alpha=None,
-                 rule="quasi-optimality", keep_results=False, image_term=None, **register_kwargs):
+                 rule="quasi-optimality", keep_results=False, image_term=None, progress=None, **register_kwargs):
     """Choose alpha for one pair (module docstring).
 
     Parameters
@@ -199,6 +217,9 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     keep_results : also return every grid registration (``AutoAlpha.results``).
     image_term : callable ``(reference, moving, mesh, register_kwargs) -> ImageTerm``; default
         :func:`pixel_image_term` (frames); volumes: :func:`femreg.volume.voxel_image_term`.
+    progress : bool or None
+        A tqdm bar on stderr over the candidates (two steps per alpha: its registration and its influence
+        trace); None: :data:`PROGRESS`.
     **register_kwargs : every other keyword argument of :func:`femreg.register` (spacing, regularizer, mesh, ...);
         ``alpha`` must be absent or "auto"; ``register=`` another registration function of the same signature
         (default :data:`ENGINE`, i.e. :func:`femreg.register`).
@@ -227,23 +248,50 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
 
     if register_kwargs.get("strain_tol") is None:     # the rules compare strains 1-2 % apart: settle further
         register_kwargs["strain_tol"] = GN_STRAIN_TOL_TIGHT
-    results = [register(reference_image, moving_image, alpha=float(al), **register_kwargs) for al in alphas]
+    bar = None
+    if PROGRESS if progress is None else progress:
+        from tqdm.auto import tqdm
 
-    # the image term and its Hessian on the registrations' mesh (same construction as register / register_volume)
-    mesh = results[0].mesh
-    term = (image_term or pixel_image_term)(reference_image, moving_image, mesh, register_kwargs)
-    data = term.data
-    Hd = data.hessian().tocsr()
+        # two steps per candidate: its registration, then its influence trace (a dense solve on small meshes,
+        # often the longer of the two)
+        bar = tqdm(total=2 * alphas.size, desc="alpha auto", unit="step")
 
-    psi, dof = np.empty(alphas.size), np.empty(alphas.size)
-    opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer, options)
-    for i, (al, res) in enumerate(zip(alphas, results)):
-        reg = copy.copy(regularizer) if isinstance(regularizer, Regularizer) else make_regularizer(regularizer, **opts)
-        a_eff = getattr(res, "alpha_effective", float("nan"))
-        reg.alpha = a_eff if np.isfinite(a_eff) else effective_alpha(al, mesh)
-        reg.setup(mesh)
-        psi[i] = data.energy(res.u)
-        dof[i] = influence_trace(Hd, sp.csr_matrix(reg.hessian(res.u)))
+    def step(text):
+        if bar is not None:
+            bar.set_postfix_str(text)
+
+    try:
+        results = []
+        for al in alphas:
+            step(f"registering at alpha {al:.3g}")
+            results.append(register(reference_image, moving_image, alpha=float(al), **register_kwargs))
+            if bar is not None:
+                bar.update(1)
+
+        # the image term and its Hessian on the registrations' mesh (same construction as register /
+        # register_volume)
+        mesh = results[0].mesh
+        term = (image_term or pixel_image_term)(reference_image, moving_image, mesh, register_kwargs)
+        data = term.data
+        Hd = data.hessian().tocsr()
+
+        psi, dof = np.empty(alphas.size), np.empty(alphas.size)
+        opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer, options)
+        for i, (al, res) in enumerate(zip(alphas, results)):
+            step(f"scoring alpha {al:.3g}")
+            reg = (copy.copy(regularizer) if isinstance(regularizer, Regularizer)
+                   else make_regularizer(regularizer, **opts))
+            a_eff = getattr(res, "alpha_effective", float("nan"))
+            reg.alpha = a_eff if np.isfinite(a_eff) else effective_alpha(al, mesh)
+            reg.setup(mesh)
+            psi[i] = data.energy(res.u)
+            dof[i] = influence_trace(Hd, sp.csr_matrix(reg.hessian(res.u)))
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.set_postfix_str(f"{alphas.size} candidates", refresh=False)
+            bar.close()
 
     n = term.n_samples
     # a registration that reports failure is no candidate: the rules run on the longest unbroken stretch of

@@ -84,10 +84,11 @@ class ElastogramResult:
         Its persistence weight ``W`` (0 where not covered).
     ref_frame : int; spacing, origin : (2,) mm (of the registered rectangle)
     region : ((r0, r1), (c0, c1)) or None
-        The rectangle of the input frames (pixel ranges, half-open) the loop was screened and registered on: the
-        bounding box of the fan when envelope / B-mode frames hold fill (:func:`femreg.echo.find_fill`: the
-        wedges of a scan-converted sector, fixed on the screen while the tissue moves) or a ``data_mask`` is
-        given; None: the whole frames.  ``excluded`` says what was left out.
+        The rectangle of the input frames (pixel ranges, half-open) the loop was screened and registered on: a
+        given ``roi`` / ``depth`` (widened by the mesh margin), or the bounding box of the fan when envelope /
+        B-mode frames hold fill (:func:`femreg.echo.find_fill`: the wedges of a scan-converted sector, fixed on
+        the screen while the tissue moves) or a ``data_mask`` is given; None: the whole frames.  ``excluded``
+        says what was left out.
     data_mask : (n_axial, n_lateral) bool or None
         On the grid of ``exx``: True in the fan (``exx`` NaN and ``quality`` 0 outside it); None without a fan.
     cine : (n_cine, n_rows, n_lateral) float32
@@ -548,7 +549,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     progress : bool
         tqdm progress bars.
     regularizer, alpha, register_kwargs
-        Passed to :func:`femreg.register`.
+        Passed to :func:`femreg.register`; a ``roi`` (x0, x1, y0, y1) mm or ``depth`` (d0, d1) mm among them cuts
+        the whole loop to that rectangle before the screening (``region``), as :func:`femreg.register` cuts a
+        pair; ``roi="auto"`` (default): RF frames whole, envelope frames with fill on their fan (``data_mask``);
+        ``roi=None``: the whole frames.
     on_pair : callable(row), optional
         Called after each registered pair.
     workers : int
@@ -582,7 +586,19 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         orientation.check(np.asarray(seq[0], dtype=float), spacing)
     region, excluded, mask, digest = None, None, None, None
     first, last = (np.asarray(seq[k], dtype=float) for k in (0, len(seq) - 1))
-    if data_mask is not None or not rf_like(first):
+    roi, depth = register_kwargs.get("roi", "auto"), register_kwargs.get("depth")
+    given = depth is not None or (roi is not None and not isinstance(roi, str))
+    if given:
+        # a user's rectangle or depth range: the loop is cut to it (widened by the mesh margin) as register and
+        # track cut a pair; every pair is then registered on that crop's mesh
+        crop = crop_for(first, last, spacing, origin, roi=roi, depth=depth, margin=register_kwargs.get("margin"),
+                        data_mask=data_mask)
+        (a, b), (c, d) = region = ((crop.slices[0].start, crop.slices[0].stop),
+                                   (crop.slices[1].start, crop.slices[1].stop))
+        seq = seq[:, a:b, c:d] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b, c:d] for f in seq]
+        origin = np.asarray(crop.origin, float)
+        excluded = crop.region.excluded
+    elif data_mask is not None or (roi is not None and not rf_like(first)):
         # the fan whole: its wedges are fixed on the screen, so they are screened and registered with weight 0
         # (femreg.echo.fan_region); RF frames are registered whole
         crop = crop_for(first, last, spacing, origin, roi="auto", margin=register_kwargs.get("margin"), fan=True,
@@ -623,6 +639,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if digest is not None:          # a resume with another mask is refused
         params["data_mask"] = digest
     register_kwargs["check_orientation"] = False           # checked above
+    if given:                                              # cut above: the pairs' mesh defines the region
+        register_kwargs.update(roi=None, depth=None)
     reselected = []
     # the screen does not depend on how pairs are chosen from it: a resume with another band keeps the screen and
     # registers the newly chosen pairs afresh (their warm starts follow the band)

@@ -714,6 +714,51 @@ class _Problem:
         return phi + beta * R, grad, phi, R, u
 
 
+class _SweepBar:
+    """The progress bar of :func:`invert`: one step per beta value of the sweep (its total the number of betas the
+    sweep may solve; a sweep that ends at its chosen beta ends the bar there), the current beta and its L-BFGS-B
+    iteration beside it, redrawn at most every :attr:`every` s.  ``update`` is the optimiser's per-iteration
+    call (:func:`_optimise`)."""
+
+    every = 0.2
+
+    def __init__(self, n_beta: int, maxiter: int):
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=int(n_beta), desc="invert", unit="beta")
+        self.maxiter, self.beta, self.it, self.shown = int(maxiter), None, 0, 0.0
+
+    def start(self, beta) -> None:
+        """A solve at ``beta`` begins."""
+        self.beta, self.it = float(beta), 0
+        self._show(force=True)
+
+    def update(self, n: int = 1) -> None:
+        self.it += n
+        self._show()
+
+    def _show(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self.shown >= self.every:
+            self.bar.set_postfix_str(f"beta {self.beta:.3g}, iteration {self.it} of at most {self.maxiter}")
+            self.shown = now
+
+    def done(self) -> None:
+        """The solve at the current beta ended."""
+        self.bar.update(1)
+
+    def extend(self, n: int = 1) -> None:
+        """``n`` more betas to solve (the sweep goes past its grid)."""
+        self.bar.total += n
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar.n < self.bar.total:     # ended at its chosen beta: the rest was not needed
+            self.bar.total = self.bar.n
+        self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved", refresh=False)
+        self.bar.close()
+
+
 def _optimise(problem: _Problem, theta0, beta, *, maxiter, gtol, progress=None):
     """L-BFGS-B on J(theta); returns (theta, info dict with history)."""
     from scipy.optimize import minimize
@@ -1706,7 +1751,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     maxiter, gtol
         L-BFGS-B iteration limit and projected-gradient tolerance per solve.
     progress : bool
-        tqdm bar over the optimiser iterations.
+        tqdm bar over the beta values of the sweep, the current beta and its optimiser iteration beside it.
     reference : (((x0, x1), (y0, y1)), E_kPa), optional
         A region (mm) of known Young's modulus E (kPa), e.g. a phantom's documented background: the result
         then carries ``shear_modulus_kpa`` = mu scaled so that its area-weighted mean over the region's elements
@@ -1873,10 +1918,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     problem = _Problem(fem, reg, d, s2, fit_boundary=boundary == "fitted")
     t_setup = time.perf_counter() - t
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(desc="invert", unit="it")
+    bar = _SweepBar(1 if beta is not None else len(grid), maxiter) if progress else None
     theta = np.zeros(fem.n_el)
     sweep = []
     target_dof = _dof_target(fem.area, fem.n_el, h, dim, beta_method)
@@ -1887,7 +1929,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         runs = []
         chosen = None
         for b in betas:
+            if bar is not None:
+                bar.start(b)
             theta_b, info = _optimise(problem, theta, b, maxiter=maxiter, gtol=gtol, progress=bar)
+            if bar is not None:
+                bar.done()
             if np.any(np.abs(theta_b) >= THETA_BOUND - 1e-6):
                 info = dict(info, success=False, message=f"log-modulus reached its bound |log mu| = "
                                                          f"{THETA_BOUND:g} ({info['message']})")
@@ -1935,7 +1981,12 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             for k in range(1, DOF_UP_STEPS + 1):
                 b = grid[0] * 10.0 ** (0.5 * k)
                 up.insert(0, b)
+                if bar is not None:
+                    bar.extend()
+                    bar.start(b)
                 theta_b, info = _optimise(problem, chosen[1], b, maxiter=maxiter, gtol=gtol, progress=bar)
+                if bar is not None:
+                    bar.done()
                 phi, _ = problem.misfit(theta_b)
                 R, _ = reg(theta_b)
                 Hd_b = _data_hessian(fem, problem, theta_b)
@@ -2551,10 +2602,15 @@ class InversionResult:
         return plot_inversion(self, out_png, **kw)
 
     def __repr__(self) -> str:
+        return self.summary()
+
+    def summary(self, message: bool = True) -> str:
+        """One line: model, beta, elements, the 5-95 % range of mu, the verdict and (``message``) the message
+        (the CLI leaves it out where it prints the message on its own line)."""
         q = np.percentile(self.mu, [5, 95])
         return (f"InversionResult(model={self.model!r}, beta={self.beta:.3g}, n_el={self.mesh.t.shape[1]}, "
-                f"mu 5-95 % {q[0]:.3g}-{q[1]:.3g}, success={self.success}, nit={self.nit}, "
-                f"message={self.message!r})")
+                f"mu 5-95 % {q[0]:.3g}-{q[1]:.3g}, success={self.success}, nit={self.nit}"
+                + (f", message={self.message!r})" if message else ")"))
 
 
 def is_inversion_file(path) -> bool:

@@ -11,8 +11,8 @@ from .errors import InputError
 from .regularizers import available_regularizers
 from .registration import register
 
-__all__ = ["REGISTRATION_DEFAULTS", "READER_DEFAULTS", "frame_selection", "spacing_value", "reader_kwargs",
-           "registration_kwargs", "region_kwargs"]
+__all__ = ["REGISTRATION_DEFAULTS", "READER_DEFAULTS", "frame_selection", "negative_index", "spacing_value",
+           "reader_kwargs", "registration_kwargs", "region_kwargs"]
 
 _SIGNATURE = inspect.signature(register)
 #: The registration options and their defaults (``femreg.register``'s; ``hourglass`` None = the strategy's,
@@ -41,6 +41,19 @@ def frame_selection(text: str):
         return int(text)
     except ValueError:
         raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+
+
+def negative_index(selection):
+    """The first negative frame index of a selection of :func:`frame_selection` (an int, a list, or a slice's
+    start and end), else None.  Frames are counted from 0 on the command line: a Python-style ``-1`` for the last
+    frame is refused rather than read silently (a slice's negative step, which reverses the order, is kept)."""
+    if isinstance(selection, slice):
+        values = [selection.start, selection.stop]
+    elif isinstance(selection, (list, tuple)):
+        values = list(selection)
+    else:
+        values = [selection]
+    return next((int(v) for v in values if v is not None and int(v) < 0), None)
 
 
 def spacing_value(text: str):

@@ -6,7 +6,7 @@ Every ``plot_*`` function takes ``ax=`` (a new figure when None) and returns the
 
 Conventions of the figures femreg writes: strain in % and displacement in mm, the unit on every colour bar; a
 sequential colour map (bright = large magnitude) for data of one sign and a diverging one centred at 0 only when
-the sign changes within the robust range (percentiles 1-99, :func:`colour_scale`); a failed registration says so
+both signs carry a meaningful share of the robust range (percentiles 1-99, :func:`colour_scale`); a failed registration says so
 in a red banner with its message; the part of the image outside the registered mesh is hatched and labelled.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from .errors import InputError
 
 __all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
            "plot_inversion", "plot_mesh_values", "plot_quality", "fit_colorbars", "DIVERGING_CMAP",
-           "SEQUENTIAL_CMAP"]
+           "SEQUENTIAL_CMAP", "SIGNED_SHARE"]
 
 #: Colour maps: diverging for signed data (centred at 0), sequential for one-signed data; for negative data the
 #: sequential map is reversed, so that a larger magnitude (e.g. more compression: softer tissue) is brighter.
@@ -29,25 +29,33 @@ SEQUENTIAL_CMAP = "viridis"
 _DIVERGING = ("RdBu_r", "RdBu", "seismic", "bwr", "coolwarm", "PuOr", "PiYG")
 
 
+#: Least share of the larger end a robust end of the other sign must reach for the diverging map: below it the
+#: other sign is a sliver (e.g. an axial displacement negative almost everywhere whose 99th percentile is 2 % of
+#: its 1st), for which symmetric limits would leave about half the colour bar unused.
+SIGNED_SHARE = 0.15
+
+
 def colour_scale(values, percentiles=(1.0, 99.0)):
     """Colour map and limits for ``values`` (any shape, NaN ignored): ``(cmap, vmin, vmax)``.
 
-    The robust range ``[lo, hi]`` is the given percentiles of the finite values.  When it straddles 0 the map is
+    The robust range ``[lo, hi]`` is the given percentiles of the finite values.  When both signs carry a
+    meaningful share of it (``lo < 0 < hi`` and ``min(-lo, hi) >= SIGNED_SHARE * max(-lo, hi)``) the map is
     :data:`DIVERGING_CMAP` with limits symmetric about 0; otherwise :data:`SEQUENTIAL_CMAP` over ``[lo, hi]``
-    (reversed, ``"_r"``, for negative data).  No finite value: the diverging map over [-1, 1].
+    (reversed, ``"_r"``, for data mostly negative: ``-lo > hi``).  No finite value: the diverging map over
+    [-1, 1].
     """
     v = np.asarray(values, float)
     finite = v[np.isfinite(v)]
     if not finite.size:
         return DIVERGING_CMAP, -1.0, 1.0
     lo, hi = (float(q) for q in np.percentile(finite, percentiles))
-    if lo < 0.0 < hi:
+    if lo < 0.0 < hi and min(-lo, hi) >= SIGNED_SHARE * max(-lo, hi):
         m = max(-lo, hi)
         return DIVERGING_CMAP, -m, m
     if hi <= lo:                                   # constant data
         pad = abs(lo) * 0.05 or 1.0
         lo, hi = lo - pad, hi + pad
-    return (SEQUENTIAL_CMAP + "_r" if hi <= 0.0 else SEQUENTIAL_CMAP), lo, hi
+    return (SEQUENTIAL_CMAP + "_r" if -lo > hi else SEQUENTIAL_CMAP), lo, hi
 
 
 def _mpl():
@@ -238,7 +246,7 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=N
     ``overlay_bmode``: RF of the same shape drawn as a grey B-mode beneath the field, which is then drawn with
     opacity ``alpha``.  ``scale`` multiplies the field before drawing (100: a strain fraction drawn in %; ``label``
     names the quantity and its unit for the colour bar).  ``cmap=None``: chosen from the data by
-    :func:`colour_scale` (sequential for one sign, diverging centred at 0 when the sign changes); an explicit
+    :func:`colour_scale` (sequential for one sign, diverging centred at 0 when both signs matter); an explicit
     ``cmap`` has limits from the robust percentiles (1, 99), symmetric about 0 for diverging maps
     (``symmetric=None`` decides from ``cmap``).  ``positions``: physical (X, Y) of the samples of a convex /
     sector frame (scan-converted, :mod:`femreg.geometry`).  Returns the Axes.

@@ -116,6 +116,23 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
             "init": str(init)}
 
 
+def _region_record(shape, origin, crop) -> dict:
+    """The entries of ``track.json`` that say what ``shape`` and ``origin`` are: the frames' (and the results')
+    ``frame_shape`` / ``frame_origin``, and the ``registered_region`` (half-open pixel ``rows`` and ``cols`` of
+    the frames, its ``shape`` and ``origin`` in mm) that ``shape`` and ``origin`` describe, kept under those
+    names for the readers of earlier files."""
+    if crop is None:
+        full, full_origin, rows, cols = shape, origin, (0, shape[0]), (0, shape[1])
+    else:
+        full, full_origin = crop.region.shape, crop.region.origin
+        rows, cols = ((s.start, s.stop) for s in crop.slices)
+    return {"frame_shape": [int(v) for v in full], "frame_origin": [float(v) for v in full_origin],
+            "registered_region": {"rows": [int(v) for v in rows], "cols": [int(v) for v in cols],
+                                  "shape": [int(v) for v in shape], "origin": [float(v) for v in origin]},
+            "shape_note": "shape and origin: the registered region (registered_region, rows x lines of the "
+                          "frames); the frames and the results in frame_KKK.npz: frame_shape, frame_origin"}
+
+
 @single_blas_thread
 def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
           mode: str = "accumulate", grid: str = "current",
@@ -247,7 +264,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         from .autoalpha import choose_alpha
         # without the fan's weights, as chosen so far (the weights start with the pairs)
         alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
-                             mesh=fe_mesh, **{k: v for k, v in register_kwargs.items() if k != "data_mask"}).alpha
+                             mesh=fe_mesh, progress=progress,
+                             **{k: v for k, v in register_kwargs.items() if k != "data_mask"}).alpha
     frame_kwargs = dict(spacing=spacing, origin=origin)
     return _run(seq, frame_kwargs, fe_mesh, crop, regularizer=regularizer, alpha=alpha, mode=mode, grid=grid,
                 init=init, checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
@@ -282,7 +300,8 @@ def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, gri
         base = fresh_regularizer(regularizer, None, opts).alpha * (
             beam_alpha_factor(sp_s[1]) if isinstance(regularizer, str) else 1.0)
         alpha = choose_alpha(seq[0], seq[1], regularizer=regularizer, alpha=alpha, base_alpha=base,
-                             image_term=beam_image_term, mesh=None if mesh is None else as_quad_mesh(mesh),
+                             image_term=beam_image_term, progress=progress,
+                             mesh=None if mesh is None else as_quad_mesh(mesh),
                              **frame_kwargs, **first, **register_kwargs).alpha
     return _run(seq, frame_kwargs, None if mesh is None else as_quad_mesh(mesh), None, regularizer=regularizer,
                 alpha=alpha, mode=mode, grid=grid, init=init, checkpoint_dir=checkpoint_dir, resume=resume,
@@ -324,7 +343,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     params.update(json.loads(json.dumps(record or {}, default=repr)))
 
     ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json", started=("frame_*.npz",),
-                           kind="a tracking run", argument="checkpoint_dir")
+                           kind="a tracking run", argument="checkpoint_dir",
+                           described=_region_record(shape, origin, crop))
 
     inc_kwargs = dict(register_kwargs)
     if (mode == "accumulate" and register_kwargs.get("strategy", "auto") == "auto" and isinstance(regularizer, str)

@@ -774,7 +774,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         if register_kwargs["alpha"] != "auto":
             raise InputError(f"alpha must be a number or 'auto', got {register_kwargs['alpha']!r}")
         auto = choose_alpha(arr[0], arr[1], register=register_volume, image_term=voxel_image_term, spacing=spacing,
-                            origin=origin, mesh=mesh, **register_kwargs)
+                            origin=origin, mesh=mesh, progress=progress, **register_kwargs)
         auto.result = None
         register_kwargs["alpha"] = auto.alpha
     ckpt = None

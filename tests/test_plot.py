@@ -133,6 +133,28 @@ def test_colour_scale_follows_the_sign_of_the_data():
     assert colour_scale(np.full((3, 3), np.nan))[0] == DIVERGING_CMAP
 
 
+def test_a_sliver_of_the_other_sign_keeps_the_sequential_map():
+    """The axial displacement of the in vivo pair seq299 0 -> 1: negative almost everywhere, its 1st and 99th
+    percentiles -0.0804 and +0.0013 mm (measured).  Symmetric limits would leave half the colour bar unused; the
+    sequential map spans the data.  Both signs with a fair share (the strains there: -0.81 / +0.25 %) stay
+    diverging."""
+    from femreg.plot import DIVERGING_CMAP, SEQUENTIAL_CMAP, SIGNED_SHARE, colour_scale
+
+    ux = np.r_[np.linspace(-0.0885, -0.0001, 980), np.linspace(0.0001, 0.0027, 20)]
+    lo1, hi99 = np.percentile(ux, [1, 99])
+    assert lo1 < 0 < hi99 < 0.05 * -lo1
+    cmap, lo, hi = colour_scale(ux)
+    assert cmap == SEQUENTIAL_CMAP + "_r" and (lo, hi) == pytest.approx((lo1, hi99))
+    assert colour_scale(-ux)[0] == SEQUENTIAL_CMAP                  # mostly positive: bright = large
+    exx = np.r_[np.linspace(-0.81, 0.0, 800), np.linspace(0.0, 0.25, 200)]
+    cmap, lo, hi = colour_scale(exx)
+    assert cmap == DIVERGING_CMAP and lo == -hi
+    # the rule's edge: the smaller end at SIGNED_SHARE of the larger is diverging, just below it is not
+    for share, want in ((SIGNED_SHARE * 1.05, DIVERGING_CMAP), (SIGNED_SHARE * 0.95, SEQUENTIAL_CMAP + "_r")):
+        v = np.r_[np.full(50, -1.0), np.linspace(-1.0, share, 900), np.full(50, share)]
+        assert colour_scale(v)[0] == want, share
+
+
 def _compression_result(shape=(40, 30), **kw):
     p, t = _quad_mesh()
     res = _result(p, t, _affine_u(p, np.diag([-0.02, 0.01])), shape=shape)

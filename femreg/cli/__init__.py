@@ -42,7 +42,9 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     help lists them)."""
     parser = argparse.ArgumentParser(
         prog="femreg",
-        description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.")
+        description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.",
+        epilog="The first run on a machine compiles the numerical kernels (numba, 10-15 s, said once on a "
+               "terminal); later runs load them from the cache.  FEMREG_NUMBA=0 runs without them.")
     from femreg import __version__
     parser.add_argument("--version", action="version", version=f"femreg {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -116,6 +118,13 @@ def _remove_empty(folders) -> None:
             pass
 
 
+def _stderr_is_terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):    # replaced or closed stream
+        return False
+
+
 def main(argv=None) -> int:
     from femreg.errors import InputError
     from femreg.optional import MissingDependencyError
@@ -132,6 +141,10 @@ def main(argv=None) -> int:
         return f"femreg {args.command}: warning: {' '.join(str(message).split())}\n"
 
     saved, warnings.formatwarning = warnings.formatwarning, one_line
+    from femreg import _kernels
+
+    if _stderr_is_terminal():       # a log or a test reading stderr gets only the command's own lines
+        _kernels.notify_cold_cache(lambda text: print(f"femreg {args.command}: {text}", file=sys.stderr, flush=True))
     made = []
     try:
         made = _output_folders(args)
@@ -159,6 +172,7 @@ def main(argv=None) -> int:
         return 130
     finally:
         warnings.formatwarning = saved
+        _kernels.notify_cold_cache(None)
 
 
 if __name__ == "__main__":  # pragma: no cover

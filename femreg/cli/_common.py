@@ -53,7 +53,7 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
                         "file's, else 0 0; femreg info names a start depth the header states)")
     g.add_argument("--byte-order", choices=("little", "big"), help="raw files: byte order (default little)")
     g.add_argument("--frames", metavar="SEL", type=_frame_selection,
-                   help="frame selection: 3, 0:10, 0:10:2 or 1,3,5 (default all)")
+                   help="frame selection, counted from 0: 3, 0:10, 0:10:2 or 1,3,5 (default all)")
     g.add_argument("--sound-speed", metavar="C", type=float,
                    help="speed of sound in m/s for the axial spacing of Ultrasonix .rf and the remodulation of IQ "
                         "data (default 1540)")
@@ -83,6 +83,10 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     path = path if path is not None else args.file
     if check_shape is None:
         check_shape = not getattr(args, "no_orientation_check", False)
+    neg = options.negative_index(getattr(args, "frames", None))
+    if neg is not None:     # the frame count for the message: the file read whole, unchecked
+        n = read_frames(path, **{**reader_kwargs(args), "frames": None}, check_orientation=False).n_frames
+        frame_index(neg, n, path, "--frames")
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     if check_shape:
         try:
@@ -91,6 +95,18 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def frame_index(index: int, n: int, path, flag: str) -> int:
+    """``index`` of a frame (``flag`` names the option that gave it) in ``path`` holding ``n`` frames; an
+    InputError (exit 2) naming the valid range when it is outside 0 to n - 1.  A negative index is refused, not
+    read Python-style from the end: the command line counts frames from 0 everywhere (--pair, --frames, --frame)."""
+    index = int(index)
+    if 0 <= index < n:
+        return index
+    why = " (a negative index is not counted from the end)" if index < 0 else ""
+    raise InputError(f"{path}: {flag}: no frame {index}: the file holds {n} frame(s), counted from 0: 0 to "
+                     f"{n - 1}{why}")
 
 
 def _check_frame_size(fr, path, args) -> None:

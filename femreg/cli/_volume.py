@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ._common import frame_index
 
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
@@ -94,18 +95,22 @@ def register_volumes(args, vol, kw) -> int:
         if arr.ndim != 4:
             raise InputError(f"{args.reference}: one volume; give MOVING, or a file holding a volume sequence")
         i, j = args.pair or (0, 1)
-        ref, mov = arr[i], arr[j]
+        ref, mov = (arr[frame_index(k, arr.shape[0], args.reference, "--pair")] for k in (i, j))
     else:
         other = read_volume_file(args.moving, volume=True)
         if not np.allclose(other[1], spacing):
             raise InputError(f"spacing differs between volumes: {tuple(spacing)} vs {tuple(other[1])}")
-        ref = arr if arr.ndim == 3 else arr[(args.pair or (0, 0))[0]]
-        mov = other[0] if other[0].ndim == 3 else other[0][(args.pair or (0, 0))[1]]
+        i, j = args.pair or (0, 0)
+        ref = arr if arr.ndim == 3 else arr[frame_index(i, arr.shape[0], args.reference, "--pair")]
+        mov = other[0] if other[0].ndim == 3 else other[0][frame_index(j, other[0].shape[0], args.moving, "--pair")]
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
+    from ..autoalpha import showing_progress
+
     try:
-        res = femreg.register(ref, mov, spacing=spacing, origin=origin, geometry=kw.get("geometry"),
-                              **_kwargs(kw))
+        with showing_progress(not getattr(args, "no_progress", False)):
+            res = femreg.register(ref, mov, spacing=spacing, origin=origin, geometry=kw.get("geometry"),
+                                  **_kwargs(kw))
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1)

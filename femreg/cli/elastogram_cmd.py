@@ -3,8 +3,9 @@ cine and one best elastogram (:func:`femreg.elastogram.elastogram`).
 
 Writes ``OUT/pairs.csv`` (one row per candidate pair: ref, mov, axial_strain_percent, ncc, quality, selected),
 ``OUT/elastogram.npz`` (``exx`` normalised axial strain on the grid of frame ``ref_frame``, NaN where not covered;
-``quality``, ``spacing``, ``origin``; ``region`` and ``data_mask`` for a scan-converted fan: the bounding box of the
-input frames registered and, on it, True in the fan, outside which every picture is empty),
+``quality``, ``spacing``, ``origin``; ``region``: the rows and lines of the input frames registered, for a
+``--roi`` / ``--depth`` or a scan-converted fan's bounding box; ``data_mask`` for a fan: on ``region``, True in the
+fan, outside which every picture is empty),
 ``OUT/elastogram.png`` (B-mode | elastogram | quality) and
 ``OUT/strain_cine.mp4`` (imageio-ffmpeg; ``strain_cine.gif`` when it is not installed).  Per-pair results are in
 ``OUT/pairs/`` as soon as they are computed; ``--resume`` keeps them.
@@ -202,11 +203,13 @@ def run(args) -> int:
                      persistence=args.persistence, output_dir=out, resume=args.resume,
                      progress=not args.no_progress, on_pair=on_pair, workers=args.workers, **kw)
     write_pairs_csv(out / "pairs.csv", res.pairs)
-    fan = {} if res.data_mask is None else dict(data_mask=res.data_mask, region=np.asarray(res.region, np.int64))
+    fan = {} if res.data_mask is None else dict(data_mask=res.data_mask)
+    if res.region is not None:      # a fan's bounding box or a given --roi / --depth: where exx lies in the frames
+        fan["region"] = np.asarray(res.region, np.int64)
     atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
                  spacing=np.asarray(res.spacing), origin=np.asarray(res.origin), **fan)
     frames = fr.frames
-    if res.region is not None:      # the fan's bounding box registered (NaN outside the fan): its pixels, at res.origin
+    if res.region is not None:      # --roi / --depth, or the fan's bounding box (NaN outside the fan): its pixels
         (a, b), (c, d) = res.region
         frames = [np.asarray(f)[a:b, c:d] for f in frames]
         print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)

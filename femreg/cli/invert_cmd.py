@@ -92,6 +92,7 @@ def _volumes(args):
     ``femreg register`` reads volumes (an ``rf`` array, ``spacing`` of 3 values)."""
     from femreg.errors import InputError
 
+    from ._common import frame_index
     from ._volume import read_volume_file
 
     if len(args.images) > 2:
@@ -108,12 +109,10 @@ def _volumes(args):
     for arr, k, path in ((arrays[0], i, args.images[0]), (arrays[-1], j, args.images[-1])):
         if arr.ndim == 3:
             if k != 0:
-                raise InputError(f"{path} holds one volume; --pair index {k} does not exist")
+                raise InputError(f"{path} holds one volume; --pair index {k} does not exist (counted from 0: 0)")
             out.append(arr)
-        elif not 0 <= k < arr.shape[0]:
-            raise InputError(f"{path} holds {arr.shape[0]} volumes; --pair index {k} does not exist")
         else:
-            out.append(arr[k])
+            out.append(arr[frame_index(k, arr.shape[0], path, "--pair")])
     if len(arrays) == 1 and arrays[0].ndim == 3:
         raise InputError(f"{args.images[0]} holds one volume; the one-step inversion needs the reference and the "
                          "moving volume (a sequence file, or two files)")
@@ -213,7 +212,8 @@ def run(args) -> int:
         res.success = False
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
     res.save(out)
-    print(res)
+    # a failed or flagged result's message is printed once, on stderr below
+    print(res.summary(message=res.success or failed_reg))
     q5, q95 = np.percentile(res.mu, [5, 95])
     where = "over the region" if region is not None else "over the mesh"
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "

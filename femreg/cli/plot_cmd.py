@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import add_reader_args, failed_notice, frames_from_args  # noqa: F401  (failed_notice: also here)
+from ._common import add_reader_args, failed_notice, frame_index, frames_from_args  # noqa: F401  (failed_notice: also here)
 
 
 def add_parser(subparsers):
@@ -28,7 +28,7 @@ def add_parser(subparsers):
     p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
                    help="field for --render (default exx, element-centre values; strains in %%, displacement in mm)")
     p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
-    p.add_argument("--frame", type=int, default=0, help="frame of --reference to use (default 0)")
+    p.add_argument("--frame", type=int, default=0, help="frame of --reference to use, counted from 0 (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
     from .invert_cmd import add_slice_arg
@@ -79,10 +79,7 @@ def _run(args) -> int:
     reference = None
     if args.reference:
         fr = frames_from_args(args, path=args.reference)
-        if not -fr.n_frames <= args.frame < fr.n_frames:
-            raise InputError(f"--frame {args.frame} out of range: {args.reference} has {fr.n_frames} frame(s), "
-                             f"counted from 0: 0 to {fr.n_frames - 1}")
-        reference = fr.frames[args.frame]
+        reference = fr.frames[frame_index(args.frame, fr.n_frames, args.reference, "--frame")]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")
     out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")

@@ -30,11 +30,13 @@ def add_parser(subparsers):
     p.add_argument("reference", help="reference frame file (or a multi-frame file with --pair)")
     p.add_argument("moving", nargs="?", help="moving frame file (omit to take both frames from REFERENCE)")
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
-                   help="frame indices of reference and moving in multi-frame files (default 0 1, or 0 0 with two "
+                   help="frame indices of reference and moving in multi-frame files, counted from 0 (default 0 1, or 0 0 with two "
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
     p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (shown over the candidate registrations of --alpha auto)")
     add_geometry_args(p)
     g = p.add_argument_group("adaptive refinement (femreg.refine)")
     g.add_argument("--refine", metavar="N|auto|slip|none", default=None,
@@ -81,12 +83,9 @@ def add_geometry_args(p, choices=("linear", "convex", "sector", "swept")):
 
 
 def _frame(fr, index, path):
-    from femreg.errors import InputError
+    from ._common import frame_index
 
-    if not -fr.n_frames <= index < fr.n_frames:
-        raise InputError(f"{path}: frame {index} requested but the file holds {fr.n_frames} frame(s), counted "
-                         f"from 0: 0 to {fr.n_frames - 1}")
-    return fr.frames[index]
+    return fr.frames[frame_index(index, fr.n_frames, path, "--pair")]
 
 
 def _swept(args):
@@ -248,8 +247,11 @@ def run(args) -> int:
     if beam is not None:                # range step and first range from the file; rays centred on angle 0
         kw["geometry"] = beam
         spacing, origin = float(spacing[0]), (float(origin[0]), 0.0)
+    from ..autoalpha import showing_progress
+
     try:
-        res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)
+        with showing_progress(not args.no_progress):
+            res = femreg.register(ref, mov, spacing=spacing, origin=origin, **kw)
     except InputError:
         raise                      # bad input: exit 2 from the dispatcher
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)
