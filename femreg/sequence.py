@@ -245,9 +245,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         else as_quad_mesh(mesh)
     if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
         from .autoalpha import choose_alpha
-        # without the fan's weights, as chosen so far (the weights start with the pairs)
+        # with the fan's mask, as every pair is then registered (femreg.autoalpha.pixel_image_term, fan_nodes)
         alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
-                             mesh=fe_mesh, **{k: v for k, v in register_kwargs.items() if k != "data_mask"}).alpha
+                             mesh=fe_mesh, **register_kwargs).alpha
     frame_kwargs = dict(spacing=spacing, origin=origin)
     return _run(seq, frame_kwargs, fe_mesh, crop, regularizer=regularizer, alpha=alpha, mode=mode, grid=grid,
                 init=init, checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
