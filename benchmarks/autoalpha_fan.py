@@ -59,6 +59,15 @@ CASES = (
                                                            "L12", (14.0, 14.0), 30.0, 3, top_mm=10.0), 15.0, 3.0),
     ("L7 shear + 1 % compression, seed 7", lambda: make_pair(F.shear_rotation(0.01, shear=0.005, rotation_deg=0.2),
                                                              "L7", (18.0, 16.0), 25.0, 7, top_mm=8.0), 25.0, 4.0),
+    ("L7 stiff inclusion 2 %, seed 4", lambda: make_pair(F.Inclusion("stiff", "plane-strain", 0.02, radius_mm=3.0),
+                                                        "L7", (16.0, 14.0), 30.0, 4, top_mm=12.0), 20.0, 4.0),
+    ("L12 stiff inclusion 1 %, seed 8", lambda: make_pair(F.Inclusion("stiff", "plane-strain", 0.01, radius_mm=2.5),
+                                                         "L12", (14.0, 14.0), 25.0, 8, top_mm=10.0), 15.0, 3.0),
+    ("paper soft inclusion 1.5 %, seed 11", lambda: make_pair(F.Inclusion("soft", "plane-strain", 0.015,
+                                                                          radius_mm=4.0),
+                                                              "paper", (24.0, 20.0), 25.0, 11, top_mm=8.0), 25.0, 5.0),
+    ("L7 compression 2 %, seed 9", lambda: make_pair(F.compression(0.02), "L7", (16.0, 16.0), 20.0, 9, top_mm=10.0),
+     20.0, 4.0),
 )
 
 
