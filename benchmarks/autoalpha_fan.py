@@ -6,9 +6,9 @@ Each case: a forward.pairs pair (probe, field, seed) as 8-bit B-mode (50 dB) ins
 wedges (tests/test_bmode.py's ``_fan``).  Error: RMS of estimated minus true axial strain over the pixels with a
 finite estimate inside the fan, divided by the mean true strain magnitude there (tests/test_bmode.py's metric).
 
-Measured (2 cores; before: the candidates of alpha="auto" saw the fill -- in track unweighted, in register through
-an image term and a strain change that covered the wedges; after: the registration's fan mask throughout):
-see docs/autoalpha.md ("Fan frames") and CHANGELOG.md.
+Measured (2 cores; before: ``track`` registered the candidates without the fan's weights and ``choose_alpha`` read
+the image term and the strain change over the fill too; after: the fan's mask throughout): docs/autoalpha.md
+("Fan frames").
 
 Run: ``python benchmarks/autoalpha_fan.py [--cases 0 1 2 3] [--no-plain]``; prints one markdown row per case and
 call.  Runs on any checkout (``PYTHONPATH`` picks the one measured).

@@ -137,7 +137,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
     regularizer, alpha
         As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default; "auto" =
-        chosen on the first pair by :func:`femreg.autoalpha.choose_alpha` and reused for every pair).
+        chosen on the first pair by :func:`femreg.autoalpha.choose_alpha`, with the fan's mask of ``data_mask``,
+        and reused for every pair).
     mode : {"accumulate", "direct"}
         "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
         "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
