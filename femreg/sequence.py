@@ -154,7 +154,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
     regularizer, alpha
         As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default; "auto" =
-        chosen on the first pair by :func:`femreg.autoalpha.choose_alpha` and reused for every pair).
+        chosen on the first pair by :func:`femreg.autoalpha.choose_alpha`, with the fan's mask of ``data_mask``,
+        and reused for every pair).
     mode : {"accumulate", "direct"}
         "accumulate": eq:IR, increments between consecutive frames carried in frame-0 coordinates.
         "direct": frame 0 -> frame k registered independently (the paper's dual-frame comparisons).
@@ -262,10 +263,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         else as_quad_mesh(mesh)
     if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)
         from .autoalpha import choose_alpha
-        # without the fan's weights, as chosen so far (the weights start with the pairs)
+        # with the fan's mask, as every pair is then registered (femreg.autoalpha.pixel_image_term, fan_nodes)
         alpha = choose_alpha(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
-                             mesh=fe_mesh, progress=progress,
-                             **{k: v for k, v in register_kwargs.items() if k != "data_mask"}).alpha
+                             mesh=fe_mesh, progress=progress, **register_kwargs).alpha
     frame_kwargs = dict(spacing=spacing, origin=origin)
     return _run(seq, frame_kwargs, fe_mesh, crop, regularizer=regularizer, alpha=alpha, mode=mode, grid=grid,
                 init=init, checkpoint_dir=checkpoint_dir, resume=resume, progress=progress, min_ncc=min_ncc,
