@@ -520,6 +520,16 @@ def _row_csv(rows):
     return "\n".join(lines) + "\n"
 
 
+def _positive_number(v) -> bool:
+    if isinstance(v, (str, bool, np.bool_)):
+        return False
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return False
+    return bool(np.isfinite(f) and f > 0)
+
+
 def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc: float = 0.6,
                max_lateral_mm: float | None = None, max_span: int = 8, persistence: float = DEFAULT_PERSISTENCE,
                output_dir=None, resume: bool = False, progress: bool = False, regularizer="momentum-stress",
@@ -580,6 +590,12 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     """
     t_all = time.perf_counter()
     timings = {}
+    if alpha is not None and not _positive_number(alpha):
+        # one weight for every pair: a rule ("auto") would pick another weight per pair, so the strain images of
+        # the loop would not be comparable
+        raise InputError(f"elastogram alpha must be None (the default weight) or a positive number, got {alpha!r}: "
+                         "alpha='auto' is not supported here (choose it on one pair with femreg.register(..., "
+                         "alpha='auto') and pass its .alpha)")
     seq = _validate(frames)
     spacing, origin = validate_spacing(spacing, origin)
     if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register

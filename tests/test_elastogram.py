@@ -185,6 +185,9 @@ def test_bad_input_and_nothing_usable(loop, tmp_path, capsys):
         elastogram(sat, spacing=loop.spacing)
     with pytest.raises(InputError, match="band"):
         elastogram(loop.frames[:6], spacing=loop.spacing, band=(0.02, 0.01))
+    for a in ("auto", -1.0, float("nan"), [1.0, 2.0]):      # one weight for the whole loop, never a rule
+        with pytest.raises(InputError, match="alpha"):
+            elastogram(loop.frames[:6], spacing=loop.spacing, alpha=a)
     # a still probe: nothing in the band, computed but nothing usable -> exit 1
     still = np.repeat(loop.frames[:1], 6, axis=0) + 0.01 * np.random.default_rng(0).standard_normal((6,) + loop.frames.shape[1:])
     p = tmp_path / "still.npy"
