@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import hilbert
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -29,23 +28,12 @@ if str(ROOT) not in sys.path:
 
 import femreg  # noqa: E402
 from forward import fields as F  # noqa: E402
+from forward.display import bmode_uint8, sector_fan  # noqa: E402
 from forward.pairs import make_pair  # noqa: E402
 
 
-def bmode(rf):
-    """Log-compressed 8-bit B-mode (50 dB), as tests/test_bmode.py."""
-    env = np.abs(hilbert(rf, axis=0))
-    db = 20 * np.log10(env / env.max() + 1e-6)
-    return np.clip((db + 50) / 50 * 255, 0, 255).astype(np.uint8)
-
-
-def fan_of(shape, spacing, origin, apex_mm=20.0, top_half_width_mm=4.0):
-    """True inside a sector's fan from an apex ``apex_mm`` above the first row (tests/test_bmode.py)."""
-    x = origin[0] + spacing[0] * np.arange(shape[0])
-    y = origin[1] + spacing[1] * np.arange(shape[1])
-    X, Y = np.meshgrid(x, y, indexing="ij")
-    half = np.arctan2(top_half_width_mm, apex_mm)
-    return np.abs(np.arctan2(Y - np.mean(y), X - (x[0] - apex_mm))) <= half
+bmode = bmode_uint8          # log-compressed 8-bit B-mode (50 dB), as tests/test_bmode.py
+fan_of = sector_fan          # a sector's fan from an apex 20 mm above the first row
 
 
 #: (name, pair factory, fan apex mm, fan half width at the top mm)

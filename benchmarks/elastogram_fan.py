@@ -32,12 +32,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import hilbert
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from femreg.echo import find_fill  # noqa: E402
 from femreg.elastogram import elastogram  # noqa: E402
+from forward.display import bmode_uint8, sector_fan  # noqa: E402
 from forward.freehand import FreehandMotion, simulate_freehand  # noqa: E402
 
 MOTION = dict(press_hz=1.5, amplitude=0.02, pauses=((0.5, 0.7),), slide_mm_s=1.0, elevation_mm_s=1.0,
@@ -47,14 +47,10 @@ MOTION = dict(press_hz=1.5, amplitude=0.02, pauses=((0.5, 0.7),), slide_mm_s=1.0
 def fan_loop(n_frames, seed):
     """(B-mode frames (n, n_axial, n_lateral) uint8 with the wedges 0, the fan (bool), the loop)."""
     loop = simulate_freehand(FreehandMotion(n_frames=max(n_frames, 40), **MOTION), seed=seed)
-    frames = np.asarray(loop.frames[:n_frames], float)
-    env = np.abs(hilbert(frames, axis=1))
-    db = 20 * np.log10(env / env.max() + 1e-6)
-    bm = np.clip((db + 50) / 50 * 255, 0, 255).astype(np.uint8)
+    bm = bmode_uint8(np.asarray(loop.frames[:n_frames], float), axis=1)
     n, m = bm.shape[1:]
-    x = loop.spacing[0] * np.arange(n)[:, None] + 8.0           # an apex 8 mm above the first row
-    y = loop.spacing[1] * (np.arange(m)[None, :] - (m - 1) / 2)
-    fan = np.abs(np.arctan2(y, x)) <= np.arctan2(0.2 * m * loop.spacing[1], 8.0)
+    # an apex 8 mm above the first row, 74 % of the frame
+    fan = sector_fan((n, m), loop.spacing, apex_mm=8.0, top_half_width_mm=0.2 * m * loop.spacing[1])
     bm[:, ~fan] = 0
     return bm, fan, loop
 

@@ -139,19 +139,47 @@ def scores(exx, data, field, t_exx):
     return out
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def selected(argv, cases, methods, default_out, description):
+    """``(cases, methods, out folder)`` from ``--cases`` / ``--methods`` (comma-separated words: a case or method
+    whose name contains one; a method's full name selects it alone, "R_P_sigma" being part of every femreg
+    variant's name) and ``--out``; one BLAS thread per process."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--cases", default="")
     ap.add_argument("--methods", default="")
-    ap.add_argument("--out", default="out/inclusion_sizes")
+    ap.add_argument("--out", default=default_out)
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
     cw = [w for w in a.cases.split(",") if w]
     mw = [w for w in a.methods.split(",") if w]
-    cases = [c for c in CASES if not cw or any(w in c.name for w in cw)]
-    # a word naming a method exactly selects that one alone ("R_P_sigma" is part of every femreg variant's name)
-    methods = [m for m in METHODS if not mw or m in mw or any(w in m for w in mw if w not in METHODS)]
+    return ([c for c in cases if not cw or any(w in c.name for w in cw)],
+            [m for m in methods if not mw or m in mw or any(w in m for w in mw if w not in methods)], Path(a.out))
+
+
+def method_runs(case, data, methods):
+    """``(method, sampled grid, CPU s)`` of each method on ``data``; a method whose package is missing is
+    skipped (said on stderr)."""
+    for method in methods:
+        try:
+            t0 = time.process_time()
+            g = run_method(method, data)
+            dt = time.process_time() - t0
+        except ImportError as exc:
+            print(f"{case.name} {method}: skipped ({exc})", file=sys.stderr)
+            continue
+        yield method, g, dt
+
+
+def write_results(lines, out):
+    """The markdown table ``lines`` to ``out``/results.md and stdout."""
+    md = "".join(lines)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.md").write_text(md)
+    print("\n" + md)
+
+
+def main(argv=None):
+    cases, methods, out = selected(argv, CASES, METHODS, "out/inclusion_sizes", __doc__.split("\n\n")[0])
     lines = ["| case | method | total strain err % | edge axial mm | edge axial - truth mm | edge lateral mm | CNR_e "
              "| CPU s |\n", "|---|---|---|---|---|---|---|---|\n"]
     for case in cases:
@@ -163,25 +191,14 @@ def main(argv=None):
         lines.append(f"| {case.name} | truth | 0 | {ts['edge_ax']:.2f} | 0 | {ts['edge_lat']:.2f} | "
                      f"{ts['cnr']:.1f} | |\n")
         troi = truth(data, case, sl)
-        for method in methods:
-            try:
-                t0 = time.process_time()
-                g = run_method(method, data)
-                dt = time.process_time() - t0
-            except ImportError as exc:
-                print(f"{case.name} {method}: skipped ({exc})", file=sys.stderr)
-                continue
+        for method, g, dt in method_runs(case, data, methods):
             s = scores(np.asarray(g["exx"], float), data, field, t["exx"])
             e = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)["e"]
             lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {s['edge_ax']:.2f} | "
                          f"{s['edge_ax'] - ts['edge_ax']:+.2f} | {s['edge_lat']:.2f} | "
                          f"{s['cnr']:.1f} | {dt:.1f} |\n")
             print(lines[-1], end="", flush=True)
-    md = "".join(lines)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.md").write_text(md)
-    print("\n" + md)
+    write_results(lines, out)
     return 0
 
 

@@ -24,11 +24,7 @@ Run: ``python benchmarks/layer_edges.py [--cases ...] [--methods ...] [--out out
 """
 from __future__ import annotations
 
-import argparse
-import os
 import sys
-import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.inclusion_sizes import EXACT_ON_MESH, run_method  # noqa: E402
+from benchmarks.inclusion_sizes import EXACT_ON_MESH, method_runs, selected, write_results  # noqa: E402
 from benchmarks.robustness import PEER_METHODS, Case, errors, make_data, roi_slices, truth  # noqa: E402
 from forward import fields as F  # noqa: E402
 from forward.pairs import PROBES  # noqa: E402
@@ -116,17 +112,7 @@ def edge_scores(exx, data, field) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", default="")
-    ap.add_argument("--methods", default="")
-    ap.add_argument("--out", default="out/layer_edges")
-    a = ap.parse_args(argv)
-    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(v, "1")
-    cw = [w for w in a.cases.split(",") if w]
-    mw = [w for w in a.methods.split(",") if w]
-    cases = [c for c in CASES if not cw or any(w in c.name for w in cw)]
-    methods = [m for m in METHODS if not mw or m in mw or any(w in m for w in mw if w not in METHODS)]
+    cases, methods, out = selected(argv, CASES, METHODS, "out/layer_edges", __doc__.split("\n\n")[0])
     lines = ["| case | method | total strain err % | edge (median of columns) mm | edge (mean profile) mm "
              "| 50 % shift mm | CPU s |\n", "|---|---|---|---|---|---|---|\n"]
     for case in cases:
@@ -137,24 +123,13 @@ def main(argv=None):
         ts = edge_scores(truth(data, case, full)["exx"], data, field)
         lines.append(f"| {case.name} | truth | 0 | {ts['edge']:.2f} | {ts['edge_mean']:.2f} | 0 | |\n")
         troi = truth(data, case, sl)
-        for method in methods:
-            try:
-                t0 = time.process_time()
-                g = run_method(method, data)
-                dt = time.process_time() - t0
-            except ImportError as exc:
-                print(f"{case.name} {method}: skipped ({exc})", file=sys.stderr)
-                continue
+        for method, g, dt in method_runs(case, data, methods):
             s = edge_scores(np.asarray(g["exx"], float), data, field)
             e = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)["e"]
             lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {s['edge']:.2f} | {s['edge_mean']:.2f} | "
                          f"{s['shift']:.2f} | {dt:.1f} |\n")
             print(lines[-1], end="", flush=True)
-    md = "".join(lines)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.md").write_text(md)
-    print("\n" + md)
+    write_results(lines, out)
     return 0
 
 

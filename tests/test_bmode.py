@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.signal import hilbert
 
 import femreg
+from forward.display import bmode_uint8, sector_fan
 
 
 def _bmode(rf):
     """Log-compressed 8-bit B-mode (50 dB), as a scanner's video output stores it."""
-    env = np.abs(hilbert(rf, axis=0))
-    db = 20 * np.log10(env / env.max() + 1e-6)
-    return np.clip((db + 50) / 50 * 255, 0, 255).astype(np.uint8)
+    return bmode_uint8(rf)
 
 
 @pytest.fixture(scope="module")
@@ -86,13 +84,7 @@ def test_bmode_picture_of_display_levels_keeps_their_contrast(pair):
     np.testing.assert_allclose(bmode(env, 50.0), bmode(pair.ref, 50.0), atol=1e-9)   # an envelope: its amplitude
 
 
-def _fan(shape, spacing, origin, apex_mm=20.0, top_half_width_mm=4.0):
-    """A scan-converted sector's footprint: True inside the fan from an apex ``apex_mm`` above the first row."""
-    x = origin[0] + spacing[0] * np.arange(shape[0])
-    y = origin[1] + spacing[1] * np.arange(shape[1])
-    X, Y = np.meshgrid(x, y, indexing="ij")
-    half = np.arctan2(top_half_width_mm, apex_mm)
-    return np.abs(np.arctan2(Y - np.mean(y), X - (x[0] - apex_mm))) <= half
+_fan = sector_fan          # a scan-converted sector's footprint
 
 
 def test_scan_converted_sector_registers_the_whole_fan(tmp_path):
