@@ -1404,13 +1404,15 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["normal_traction"] = rw
             if opts.relax_parts in ("both", "tangential"):
                 st = rw if st is None else (lambda j, a=st, b=rw: a(j) * b(j))
+        n_lay = 0
         if finer and opts.fine_alpha is not None:
             f = fine_alpha_factor(opts, sol, mesh, relaxed=bool(len(relaxed)))
             if f != 1.0:
                 kw["alpha_factor"] = f
             if opts.fine_layer is not None and f < 1.0 and not len(relaxed):
                 lay = layer_cells(mesh, sol.u, opts)
-                if len(lay):
+                n_lay = len(lay)
+                if n_lay:
                     lw = slip_weights(lay, opts.fine_layer / f, new)
                     st = lw if st is None else (lambda j, a=st, b=lw: a(j) * b(j))
                     if opts.fine_layer_full:
@@ -1436,7 +1438,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         nit += n_pass
         record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=sx, columns=sy,
                            slip_cells=int(slip.sum()) if opts.slip is not None else 0, nit=n_pass,
-                           relaxed_edges=int(len(relaxed)), top=float(top), fine=bool(finer),
+                           relaxed_edges=int(len(relaxed)), layer_lines=int(n_lay), top=float(top), fine=bool(finer),
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
     finish_passes(sol, record, opts, base_gn, nit)

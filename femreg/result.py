@@ -183,10 +183,16 @@ class RegistrationResult(ResultRecord):
         fields, solver outcome, quality map, strategy), plus any ``extra`` arrays.  Returns the path."""
         return save_result(path, self, **extra)
 
-    def __repr__(self) -> str:
+    def summary(self, message: bool = True) -> str:
+        """One line: regulariser, alpha, success, iterations, nodes, NCC before -> after and (``message``) the
+        message; the command line leaves the message out where it follows as its error line."""
+        tail = f", message={self.message!r}" if message else ""
         return (f"RegistrationResult(regularizer={self.regularizer!r}, alpha={self.alpha:g}, "
                 f"success={self.success}, nit={self.nit}, n_nodes={self.mesh.p.shape[1]}, "
-                f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}, message={self.message!r})")
+                f"ncc {self.ncc_before:.3f} -> {self.ncc_after:.3f}{tail})")
+
+    def __repr__(self) -> str:
+        return self.summary()
 
 
 def displacement_at(spec, mesh, points, what: str):

@@ -139,6 +139,7 @@ class RefinementRecord:
                  + (f"{p['rows']} x-, {p['columns']} y-, {p['slices']} z-slabs split" if "slices" in p else
                     f"{p['rows']} rows, {p['columns']} columns split")
                  + (", finer marking" if p.get("fine") else "")
-                 + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "") + ")"
+                 + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "")
+                 + (f", {p['layer_lines']} layer interface lines solved sharp" if p.get("layer_lines") else "") + ")"
                  for p in self.passes]
         return "refinement: " + "; ".join(parts) + (f"; {self.note}" if self.note else "")

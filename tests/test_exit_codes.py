@@ -63,6 +63,8 @@ def test_register(data, results, capsys, tmp_path):
     assert "converged" not in failed.message, failed.message   # no "FAILED: converged: ..."
     rc, out, err = RUNS["unrelated"]                            # the fixture's runs, not registered again
     assert rc == 1 and results[1].is_file() and "registration failed" in err and "FAILED" not in err
+    reason = failed.message.removeprefix("FAILED: ")
+    assert (out + err).count(reason) == 1, out + err            # said once, as the error line
     rc, out, err = RUNS["good"]
     assert rc == 0 and err == "", err
     rc, out, err = _run(["register", data / "transposed.npz", "-o", tmp_path / "t.npz"], capsys)

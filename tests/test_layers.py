@@ -114,6 +114,8 @@ def test_finer_pass_keeps_the_shear_weight_on_a_layer_interface():
     for v in (None, R.DEEP_REFINEMENT.fine_layer):
         r = femreg.register(d.ref, d.mov, refine=dataclasses.replace(R.DEEP_REFINEMENT, fine_layer=v), **kw)
         assert r.refinement.passes[0]["fine"]
+        # the message says where the rule applied (the two row lines beside the interface)
+        assert ("layer interface lines" in r.refinement.summary()) == (v is not None), r.refinement.summary()
         exy = np.asarray(r.on_grid()["exy"], float)
         out[v] = (field_errors(r, f.displacement, f.strain)["e"], np.sqrt(np.nanmean(exy[near] ** 2)))
     # measured (the default also solves that pass in full, fine_layer_full): total strain error 14.1 -> 4.9 %,

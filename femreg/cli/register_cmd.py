@@ -259,7 +259,7 @@ def run(args) -> int:
         print(f"femreg register: error: registration failed ({type(exc).__name__}: {msg})", file=sys.stderr)
         return 1
     res.save(args.output)
-    print(res)
+    print(res.summary(message=res.success))        # a failure's message follows once, as the error line
     if res.excluded:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     note = getattr(getattr(res, "refinement", None), "note", None)
