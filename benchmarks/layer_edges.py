@@ -20,10 +20,12 @@ Per case x method (``e`` over the robustness ROI, :func:`benchmarks.robustness.e
 Rows: femreg's defaults ("R_P_sigma"), ``refine=None``, the true displacement on the defaults' refined mesh
 recovered as femreg's (the floor that mesh sets, no registration) and the robustness benchmark's peers.
 
-Run: ``python benchmarks/layer_edges.py [--cases ...] [--methods ...] [--out out/layer_edges]``.
+Run: ``python benchmarks/layer_edges.py [--cases ...] [--methods ...] [--out out/layer_edges]``; writes
+``results.md`` and one picture per case (e_xx of the truth and of every method) to the ``--out`` folder.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -34,7 +36,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.inclusion_sizes import EXACT_ON_MESH, method_runs, selected, write_results  # noqa: E402
-from benchmarks.robustness import PEER_METHODS, Case, errors, make_data, roi_slices, truth  # noqa: E402
+from benchmarks.robustness import PEER_METHODS, Case, draw_case, errors, make_data, roi_slices, truth  # noqa: E402
 from forward import fields as F  # noqa: E402
 from forward.pairs import PROBES  # noqa: E402
 
@@ -123,12 +125,19 @@ def main(argv=None):
         ts = edge_scores(truth(data, case, full)["exx"], data, field)
         lines.append(f"| {case.name} | truth | 0 | {ts['edge']:.2f} | {ts['edge_mean']:.2f} | 0 | |\n")
         troi = truth(data, case, sl)
+        grids, results = {}, {}
         for method, g, dt in method_runs(case, data, methods):
             s = edge_scores(np.asarray(g["exx"], float), data, field)
             e = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)["e"]
             lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {s['edge']:.2f} | {s['edge_mean']:.2f} | "
                          f"{s['shift']:.2f} | {dt:.1f} |\n")
             print(lines[-1], end="", flush=True)
+            grids[method], results[method] = g, dict(e=e, time_s=dt)
+        # e_xx of the truth and of every method, one picture per case (the robustness benchmark's layout)
+        t_exx = truth(data, case, full)["exx"]
+        out.mkdir(parents=True, exist_ok=True)
+        draw_case(out / f"{case.name}.png", dataclasses.replace(case, notes=field.name), data, grids, results,
+                  dict(exx=t_exx, exx_img=100 * t_exx))
     write_results(lines, out)
     return 0
 

@@ -275,7 +275,8 @@ def draw_case(path, case, data, grids, results, t_full):
     ncol = min(n, 5)
     nrow = int(math.ceil(n / ncol))
     aspect = (ext[2] - ext[3]) / (ext[1] - ext[0])
-    fig, axes = plt.subplots(nrow, ncol, figsize=(2.6 * ncol, 2.6 * aspect * nrow + 1.0), squeeze=False,
+    # at least 7.5 inches wide: the title of a one- or two-method picture fits
+    fig, axes = plt.subplots(nrow, ncol, figsize=(max(2.6 * ncol, 7.5), 2.6 * aspect * nrow + 1.0), squeeze=False,
                              constrained_layout=True)
     sl = roi_slices(shape, data.spacing)
     r0, r1 = x0 + sl[0].start * dx, x0 + (sl[0].stop - 1) * dx
@@ -298,7 +299,7 @@ def draw_case(path, case, data, grids, results, t_full):
     fig.colorbar(im, ax=axes, shrink=0.6, label="axial strain e_xx (%)")
     fig.suptitle(f"{case.name}: {case.notes or getattr(data, 'name', '')} -- probe {case.probe}, "
                  f"{case.size_mm[0]}x{case.size_mm[1]} mm, SNR {case.snr_db} dB", fontsize=8)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")      # the colour bar's label whole however few panels
     plt.close(fig)
 
 
