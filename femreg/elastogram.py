@@ -129,7 +129,8 @@ class _Screener:
     def __init__(self, frame0, spacing, origin, regularizer, mask=None):
         # a fan's speckle from its largest rectangle without fill (as femreg.register)
         part = frame0 if mask is None or mask.rectangle is None else frame0[mask.rectangle]
-        stats = speckle_statistics(part, spacing)
+        #: the first frame's speckle statistics (:func:`femreg.speckle.speckle_statistics`), a fan's without fill
+        self.stats = stats = speckle_statistics(part, spacing)
         st = default_settings(part.shape, spacing, stats, **element_rule(regularizer))
         self.q, self.ql = int(st.decimation), int(st.lateral_decimation)
         self.spacing = np.asarray(spacing, float) * (self.q, self.ql)
@@ -520,6 +521,14 @@ def _row_csv(rows):
     return "\n".join(lines) + "\n"
 
 
+def _cut(seq, crop):
+    """``(frames, region, origin, excluded)``: the loop cut to ``crop`` (:func:`femreg.echo.crop_for`), its
+    half-open pixel ranges ((r0, r1), (c0, c1)) in the input frames, the cut's origin (mm) and what it left out."""
+    (a, b), (c, d) = region = tuple((s.start, s.stop) for s in crop.slices)
+    seq = seq[:, a:b, c:d] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b, c:d] for f in seq]
+    return seq, region, np.asarray(crop.origin, float), crop.region.excluded
+
+
 def _positive_number(v) -> bool:
     if isinstance(v, (str, bool, np.bool_)):
         return False
@@ -609,11 +618,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         # track cut a pair; every pair is then registered on that crop's mesh
         crop = crop_for(first, last, spacing, origin, roi=roi, depth=depth, margin=register_kwargs.get("margin"),
                         data_mask=data_mask)
-        (a, b), (c, d) = region = ((crop.slices[0].start, crop.slices[0].stop),
-                                   (crop.slices[1].start, crop.slices[1].stop))
-        seq = seq[:, a:b, c:d] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b, c:d] for f in seq]
-        origin = np.asarray(crop.origin, float)
-        excluded = crop.region.excluded
+        seq, region, origin, excluded = _cut(seq, crop)
     elif data_mask is not None or (roi is not None and not rf_like(first)):
         # the fan whole: its wedges are fixed on the screen, so they are screened and registered with weight 0
         # (femreg.echo.fan_region); RF frames are registered whole
@@ -623,11 +628,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             digest = hashlib.sha1(np.packbits(np.asarray(data_mask, bool)).tobytes()
                                   + repr(np.shape(data_mask)).encode()).hexdigest()
         if crop is not None:
-            (a, b), (c, d) = region = ((crop.slices[0].start, crop.slices[0].stop),
-                                       (crop.slices[1].start, crop.slices[1].stop))
-            seq = seq[:, a:b, c:d] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b, c:d] for f in seq]
-            origin = np.asarray(crop.origin, float)
-            excluded, mask = crop.region.excluded, crop.mask
+            seq, region, origin, excluded = _cut(seq, crop)
+            mask = crop.mask
     lo, hi = _band(band)
     centre = float(np.sqrt(lo * hi))
     if not (0.0 <= float(persistence) < 1.0):
@@ -747,9 +749,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         mesh = register_kwargs.pop("mesh", None)
         if mesh is None and register_kwargs.get("element_size") is None and \
                 register_kwargs.get("strategy", "auto") == "auto":
-            part = frame(0) if mask is None else frame(0)[mask.rectangle]     # a fan's: without fill
-            es = tuple(default_settings(shape, spacing, speckle_statistics(part, spacing),
-                                        **element_rule(reg_name)).element_size)
+            es = tuple(default_settings(shape, spacing, scr.stats, **element_rule(reg_name)).element_size)
             mesh = roi_mesh(shape, spacing, origin, element_size=es, margin=register_kwargs.pop("margin", None))
         elif mesh is None:
             mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),

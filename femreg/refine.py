@@ -669,8 +669,8 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_alpha=0.1, fine_alpha_ncc=0.08,
-                             relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2,
-                             relax_fill_weight=0.1,
+                             relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True,
+                             relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
@@ -887,9 +887,7 @@ def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = Fals
     _, _, cell = _need_tensor(mesh)
     slip = np.zeros(cell.shape, bool)
     if opts.indicator == "jump":
-        e = _centre_strains(mesh, u)
-        ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
-        cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
+        ja, jl, ta, tl, cut = _jumps(mesh, u, opts)
         # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
         sa, sl = ta > cut, tl > cut
         slip[:-1] |= sa
@@ -966,6 +964,20 @@ def jump_cut(jumps, opts: Refinement, scale: float) -> float:
     return max(robust_cut(np.concatenate([np.ravel(j) for j in jumps]), opts.threshold), opts.relative * scale)
 
 
+def _jumps(mesh, u, opts: Refinement):
+    """``(ja, jl, ta, tl, cut)`` of the solve ``u`` on a tensor mesh: the jumps of A[u] across its axial / lateral
+    edges with their tangential parts (:func:`edge_jumps`) and the cut of the "jump" marking (:func:`jump_cut`),
+    as :func:`mark`, :func:`relaxed_edges` and :func:`layer_cells` read them."""
+    e = _centre_strains(mesh, u)
+    ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
+    return ja, jl, ta, tl, jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
+
+
+def _normal_part(jump, tangential):
+    """The normal part ``|n . [[A]] n|`` of edge jumps from their magnitude and tangential part."""
+    return np.sqrt(np.maximum(jump ** 2 - tangential ** 2, 0.0))
+
+
 def slab_scores(jumps) -> list:
     """Per axis a, the largest jump across the faces (edges) normal to axis a next to each slab of a tensor mesh:
     ``jumps[a]`` is over the cell grid with axis a one shorter (the faces between slabs i and i + 1), and a face
@@ -1039,16 +1051,14 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     from scipy.sparse.csgraph import connected_components
 
     xs, ys, cell = _need_tensor(mesh)
-    e = _centre_strains(mesh, u)
-    ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
     if opts.relax_threshold is not None:
         opts = dataclasses.replace(opts, threshold=opts.relax_threshold)
-    cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
+    ja, jl, ta, tl, cut = _jumps(mesh, u, opts)
     # the part of the jump that is relaxed must stand out itself (as the slip region of mark())
     if opts.relax_parts == "tangential":
         ja, jl = ta, tl
     elif opts.relax_parts == "normal":
-        ja, jl = np.sqrt(np.maximum(ja ** 2 - ta ** 2, 0)), np.sqrt(np.maximum(jl ** 2 - tl ** 2, 0))
+        ja, jl = _normal_part(ja, ta), _normal_part(jl, tl)
     ia, ka = np.nonzero(ja > cut)            # axial edge between rows i, i + 1 in column k: x = xs[i + 1]
     il, kl = np.nonzero(jl > cut)            # lateral edge between columns k, k + 1 in row i: y = ys[k + 1]
     segs = np.vstack([np.column_stack([xs[ia + 1], xs[ia + 1], ys[ka], ys[ka + 1]]),
@@ -1105,17 +1115,15 @@ def layer_cells(mesh, u, opts: Refinement, fraction: float | None = None) -> np.
     (the cut of :func:`mark`) on at least ``fraction`` (default :data:`LAYER_FRACTION`) of its edges
     (:attr:`Refinement.fine_layer`)."""
     xs, ys, _ = _need_tensor(mesh)
-    e = _centre_strains(mesh, u)
-    ja, jl, ta, tl = edge_jumps(mesh, u, tangential=True, e=e)
-    cut = jump_cut([ja, jl], opts, strain_scale(mesh, u, e=e))
+    ja, jl, ta, tl, cut = _jumps(mesh, u, opts)
     frac = LAYER_FRACTION if fraction is None else float(fraction)
-    na = np.sqrt(np.maximum(ja ** 2 - ta ** 2, 0.0))            # (n_rows - 1, n_cols): line i between rows i, i + 1
-    nl = np.sqrt(np.maximum(jl ** 2 - tl ** 2, 0.0))            # (n_rows, n_cols - 1)
+    na = _normal_part(ja, ta)            # (n_rows - 1, n_cols): line i between rows i and i + 1
+    nl = _normal_part(jl, tl)            # (n_rows, n_cols - 1)
     rows = np.flatnonzero((na > cut).mean(axis=1) >= frac) if na.size else np.zeros(0, int)
     cols = np.flatnonzero((nl > cut).mean(axis=0) >= frac) if nl.size else np.zeros(0, int)
-    return np.vstack([np.column_stack([xs[rows], xs[rows + 2], np.full(rows.size, ys[0]), np.full(rows.size, ys[-1])]),
-                      np.column_stack([np.full(cols.size, xs[0]), np.full(cols.size, xs[-1]), ys[cols], ys[cols + 2]])
-                      ]).reshape(-1, 4)
+    across_rows = np.column_stack([xs[rows], xs[rows + 2], np.full(rows.size, ys[0]), np.full(rows.size, ys[-1])])
+    across_cols = np.column_stack([np.full(cols.size, xs[0]), np.full(cols.size, xs[-1]), ys[cols], ys[cols + 2]])
+    return np.vstack([across_rows, across_cols]).reshape(-1, 4)
 
 
 def _covered_rows(xs, rects) -> np.ndarray:
