@@ -8,11 +8,16 @@ a width measured there is mostly the truth's own.  Layers parallel to the probe 
 (:class:`forward.fields.Layers`) are a true step of e_xx at every interface: the width measured there is what the
 method adds.
 
+Columns side by side that slide along vertical interfaces (:class:`forward.fields.SlidingColumns`, the ``col_``
+cases) are the lateral ruler: a bonded interface cannot carry a lateral step of e_xx, a frictionless one does.
+There the true shear strain is a line (the slip), which the total strain error counts against every method alike;
+the e_xx error does not.
+
 Per case x method (``e`` over the robustness ROI, :func:`benchmarks.robustness.errors`):
 
 * ``edge``: 10-90 % width (mm) of e_xx across each interface (:func:`femreg.metrics.edge_width`, levels the true
-  plateaus), on every image column inside the ROI, within ``+-min(4 mm, half the distance to the next interface)``
-  of it; the median over the columns, then the worst interface;
+  plateaus), on every image column (row, for the columns' interfaces) inside the ROI, within ``+-min(4 mm, half the
+  distance to the next interface)`` of it; the median over the lines, then the worst interface;
 * ``edge (mean)``: the same on the lateral mean profile (what a plot of the mean over the ROI shows);
 * ``shift``: depth of the measured 50 % crossing less the interface's (median over columns, mean |.| over the
   interfaces), mm.
@@ -69,44 +74,75 @@ CASES = [
     Case("held_L15_0.5pc", _layers((14.0, 17.0), (1.0, 0.5, 1.0), 0.005), "L15", (15, 15), 30, top_mm=8.0,
          seed=16),
 ]
+
+
+
+def _columns(interfaces, moduli, level, model="plane-stress"):
+    return lambda: F.SlidingColumns(interfaces, moduli, level, model=model)
+
+
+# lateral steps: columns sliding along vertical interfaces (a bonded interface carries no lateral step of e_xx);
+# the slip grows with depth from the probe face, 0.10-0.22 mm at the image's bottom here
+CASES += [
+    Case("col_soft10_0.5pc_paper", _columns((-5.0, 5.0), (1.0, 0.5, 1.0), 0.005), "paper", (30, 30), 20,
+         top_mm=5.0, seed=21),
+    Case("col_stiff8_1pc_L7", _columns((-4.0, 4.0), (1.0, 2.0, 1.0), 0.01), "L7", (30, 30), 25, top_mm=5.0,
+         seed=22),
+    Case("col_step_0.5pc_L12", _columns((1.0,), (1.5, 0.75), 0.005), "L12", (25, 25), 25, top_mm=5.0, seed=23),
+    Case("col_soft6_0.5pc_L15", _columns((-3.0, 3.0), (1.0, 0.5, 1.0), 0.005), "L15", (20, 20), 30, top_mm=5.0,
+         seed=24),
+    Case("col_pstrain_0.5pc_paper", _columns((-6.0, 4.0), (1.0, 0.6, 1.5), 0.005, "plane-strain"), "paper",
+         (35, 30), 25, top_mm=5.0, seed=25),
+    Case("col_step_1pc_L3", _columns((-2.0,), (1.0, 0.6), 0.01), "L3", (40, 40), 20, top_mm=5.0, seed=26),
+]
 FEMREG = ["R_P_sigma", "R_P_sigma no refine"]
 METHODS = FEMREG + [EXACT_ON_MESH] + list(PEER_METHODS)
 
 
+def _plateaus(field):
+    """(axis across the interfaces, interface positions mm, e_xx on each side) of a layered or column field."""
+    if isinstance(field, F.SlidingColumns):
+        return 1, field.interfaces_mm, field.exx_columns
+    return 0, field.interfaces_mm, field.exx_layers
+
+
 def edge_scores(exx, data, field) -> dict:
-    """``edge``, ``edge_mean``, ``shift`` (mm) of an e_xx image (module docstring)."""
+    """``edge``, ``edge_mean``, ``shift`` (mm) of an e_xx image (module docstring): across the layers' interfaces
+    along depth, across the columns' interfaces laterally."""
     from femreg.metrics import edge_width
 
-    x = data.origin[0] + np.arange(data.ref.shape[0]) * data.spacing[0]
+    axis, z, plateau = _plateaus(field)
     sl = roi_slices(data.ref.shape, data.spacing)
-    cols = np.arange(data.ref.shape[1])[sl[1]]
-    x_lo, x_hi = x[sl[0].start], x[sl[0].stop - 1]
-    z = field.interfaces_mm
+    x = data.origin[axis] + np.arange(data.ref.shape[axis]) * data.spacing[axis]
+    along = np.arange(data.ref.shape[axis])[sl[axis]]
+    lines = np.arange(data.ref.shape[1 - axis])[sl[1 - axis]]
+    img = exx if axis == 0 else exx.T
+    x_lo, x_hi = x[along[0]], x[along[-1]]
     bounds = np.r_[x_lo, z, x_hi]
     widths, means, shifts = [], [], []
     for k, d in enumerate(z):
         w = min(4.0, 0.5 * (d - bounds[k]), 0.5 * (bounds[k + 2] - d))
         sel = (x >= d - w) & (x <= d + w)
-        lo, hi = field.exx_layers[k], field.exx_layers[k + 1]
-        per_col, mids = [], []
-        for j in cols:
-            prof = exx[sel, j]
+        lo, hi = plateau[k], plateau[k + 1]
+        per_line, mids = [], []
+        for j in lines:
+            prof = img[sel, j]
             if not np.all(np.isfinite(prof)):
                 continue
             try:
-                per_col.append(edge_width(x[sel], prof, levels=(lo, hi)))
+                per_line.append(edge_width(x[sel], prof, levels=(lo, hi)))
             except ValueError:
-                per_col.append(np.nan)
+                per_line.append(np.nan)
             f = (prof - lo) / (hi - lo)
             up = np.nonzero((f[:-1] < 0.5) & (f[1:] >= 0.5))[0]
             if up.size:
                 i = up[0]
                 mids.append(x[sel][i] + (0.5 - f[i]) / (f[i + 1] - f[i]) * (x[sel][i + 1] - x[sel][i]) - d)
-        pc = np.asarray(per_col, float)
-        # a column whose profile never spans the step counts as infinitely wide (the median then reads it)
+        pc = np.asarray(per_line, float)
+        # a line whose profile never spans the step counts as infinitely wide (the median then reads it)
         widths.append(float(np.median(np.where(np.isfinite(pc), pc, np.inf))) if pc.size else np.nan)
         try:
-            means.append(edge_width(x[sel], np.nanmean(exx[sel][:, cols], axis=1), levels=(lo, hi)))
+            means.append(edge_width(x[sel], np.nanmean(img[sel][:, lines], axis=1), levels=(lo, hi)))
         except ValueError:
             means.append(np.nan)
         shifts.append(abs(float(np.median(mids))) if mids else np.nan)
@@ -115,21 +151,23 @@ def edge_scores(exx, data, field) -> dict:
 
 def main(argv=None):
     cases, methods, out = selected(argv, CASES, METHODS, "out/layer_edges", __doc__.split("\n\n")[0])
-    lines = ["| case | method | total strain err % | edge (median of columns) mm | edge (mean profile) mm "
-             "| 50 % shift mm | CPU s |\n", "|---|---|---|---|---|---|---|\n"]
+    lines = ["| case | method | total strain err % | e_xx err % | edge (median of lines) mm | edge (mean profile) mm "
+             "| 50 % shift mm | CPU s |\n", "|---|---|---|---|---|---|---|---|\n"]
     for case in cases:
         data = make_data(case)
         field = data.field
         sl = roi_slices(data.ref.shape, data.spacing)
         full = (slice(0, data.ref.shape[0], 1), slice(0, data.ref.shape[1]))
         ts = edge_scores(truth(data, case, full)["exx"], data, field)
-        lines.append(f"| {case.name} | truth | 0 | {ts['edge']:.2f} | {ts['edge_mean']:.2f} | 0 | |\n")
+        lines.append(f"| {case.name} | truth | 0 | 0 | {ts['edge']:.2f} | {ts['edge_mean']:.2f} | 0 | |\n")
         troi = truth(data, case, sl)
         grids, results = {}, {}
         for method, g, dt in method_runs(case, data, methods):
             s = edge_scores(np.asarray(g["exx"], float), data, field)
-            e = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)["e"]
-            lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {s['edge']:.2f} | {s['edge_mean']:.2f} | "
+            err = errors(g, troi, sl, PROBES[case.probe].wavelength_mm)
+            e = err["e"]
+            lines.append(f"| {case.name} | {method} | {100 * e:.1f} | {100 * err['exx']:.1f} | {s['edge']:.2f} | "
+                         f"{s['edge_mean']:.2f} | "
                          f"{s['shift']:.2f} | {dt:.1f} |\n")
             print(lines[-1], end="", flush=True)
             grids[method], results[method] = g, dict(e=e, time_s=dt)

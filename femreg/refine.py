@@ -171,7 +171,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "layer_cells", "LAYER_FRACTION", "pass_strong", "pass_solve_kw", "ncc_spread",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -399,6 +399,12 @@ class Refinement:
     relax_fill_weight : float, optional
         Weight of the shear-traction jump on the edges of the filled cells (the faces' own cells keep ``relax``).
         None: ``relax``.
+    beam_slip : bool
+        A slip along the beam (a relaxed run of lateral edges down the image, :func:`beam_slip_lines`) marks
+        nothing: the columns of cells over which it spreads are left out of the marking, and the message says
+        where it lies.  Finer columns there turn the echoes mixed across the slip into stripes of e_xx
+        (``benchmarks/layer_edges.py``, sliding columns: e_xx error 8.2 -> 51.5 % at 12 MHz, 12.5 -> 99.7 % at
+        3 MHz, refined without the rule against unrefined).  False: marked as any other edge.
     relax_fill_split : bool
         Split the filled rows ``levels`` times (the split of a strongly marked row) whatever their marking.
     relax_passes : int
@@ -448,6 +454,7 @@ class Refinement:
     relax_alpha: float | None = None
     relax_fill: int = 0
     relax_fill_weight: float | None = None
+    beam_slip: bool = False
     relax_fill_split: bool = False
     relax_passes: int = 1
     relax_keep: bool = True
@@ -499,6 +506,8 @@ class Refinement:
         _number(self, "fine_layer", 0, 10, optional=True, open_low=True, what="a factor in (0, 10]")
         if not isinstance(self.fine_layer_full, (bool, np.bool_)):
             raise InputError(f"refinement fine_layer_full must be True or False, got {self.fine_layer_full!r}")
+        if not isinstance(self.beam_slip, (bool, np.bool_)):
+            raise InputError(f"refinement beam_slip must be True or False, got {self.beam_slip!r}")
         _number(self, "strong", 1, optional=True)
         _number(self, "feature", 0)
         _number(self, "relax", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
@@ -670,7 +679,7 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_alpha=0.1, fine_alpha_ncc=0.08,
                              relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True,
-                             relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
+                             relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1, beam_slip=True,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
@@ -879,15 +888,22 @@ def robust_cut(values, threshold: float) -> float:
     return med + threshold * mad
 
 
-def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = False):
+def mark(mesh, u, opts: Refinement, data=None, quality=None, scores: bool = False, beam_lines=None):
     """Rows and columns of a tensor mesh to split: two boolean arrays (n_rows,), (n_cols,), and the cells of the
     slip region (n_rows, n_cols).  "jump": a row is marked where an axial edge next to it stands out, a column
     where a lateral edge does (module docstring); the other indicators mark the rows and columns of the marked
-    elements.  ``scores``: also each row's and column's largest indicator over the cut (marked where > 1)."""
+    elements.  ``scores``: also each row's and column's largest indicator over the cut (marked where > 1).
+    ``beam_lines``: column lines of :func:`beam_slip_lines`, whose two columns of cells mark nothing."""
     _, _, cell = _need_tensor(mesh)
     slip = np.zeros(cell.shape, bool)
     if opts.indicator == "jump":
         ja, jl, ta, tl, cut = _jumps(mesh, u, opts)
+        if beam_lines is not None and len(beam_lines):
+            ja, jl = ja.copy(), jl.copy()
+            cells = _beam_slip_cells(beam_lines, ja, jl, cut)
+            ja[:, cells] = 0.0
+            lines = np.unique(np.concatenate([cells - 1, cells]))
+            jl[:, lines[(lines >= 0) & (lines < jl.shape[1])]] = 0.0
         # cells on both sides of an edge whose shear-traction jump alone stands out: where layers may slide
         sa, sl = ta > cut, tl > cut
         slip[:-1] |= sa
@@ -1109,6 +1125,92 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
     return segs[keep]
 
 
+#: Fraction of the mesh's depth that a run of relaxed lateral edges must span (when shorter than
+#: :attr:`Refinement.relax_min_length`) to count as a slip along the beam (:func:`beam_slip_lines`).
+BEAM_SLIP_DEPTH = 0.6
+
+#: Median element NCC (of the solve the lines are found on) that the column of cells on each side of a slip along
+#: the beam must reach (:func:`beam_slip_lines` with ``ncc``).  Measured: 0.986-0.999 beside the slips of
+#: ``benchmarks/layer_edges.py``; a quarter of an image decorrelated as by out-of-plane motion has 0.41 (its edge
+#: a run of jumps as long as a slip's).
+BEAM_SLIP_NCC = 0.8
+
+#: Median over the rows of the largest |e_xy| in the cells a slip along the beam spreads over, in units of the
+#: mesh's median |e_xx|, that such a slip must reach (:func:`beam_slip_lines`).  Measured: 2.6-15 at the slips of
+#: ``benchmarks/layer_edges.py`` (0.10-0.22 mm); 0.17 on the run a soft disk (r 4 mm, 4 %, 12 MHz) leaves.
+BEAM_SLIP_SHEAR = 1.0
+
+
+def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
+    """Column lines (int array; line k between columns k and k + 1) of a tensor mesh along which tissue slides
+    parallel to the beam: a relaxed run (:func:`relaxed_edges`, a connected run of edges whose shear-traction jump
+    stands out) on lateral edges, over at least :data:`BEAM_SLIP_DEPTH` of the mesh's depth, whose shear strain
+    across the cells it spreads over is at least :data:`BEAM_SLIP_SHEAR` times the axial strain.  With ``ncc`` (the
+    element NCC of the solve ``u``, (n_elements,), or a callable returning it), a run counts only where the column
+    of cells on each side of the cells it spreads over has a median NCC of at least :data:`BEAM_SLIP_NCC`.  Empty
+    without :attr:`Refinement.beam_slip` or :attr:`Refinement.relax`.
+
+    Such a slip is a jump of the axial displacement across a vertical line.  Within a lateral beam width of it
+    each echo mixes scatterers from both sides, whose axial motion differs by the slip: columns finer than the
+    beam fit that mixture patch by patch, as stripes of e_xx one speckle long and several times the strain
+    (``benchmarks/layer_edges.py``, sliding columns), where the unrefined mesh averages it.  A slip parallel to
+    the probe face moves scatterers laterally across an axial resolution cell a few times smaller, which the
+    finer rows do resolve (shear bands)."""
+    if not opts.beam_slip or opts.relax is None or opts.indicator != "jump":
+        return np.zeros(0, int)
+    xs, ys, _ = _need_tensor(mesh)
+    # a slip along the beam runs down the image: a run over most of its depth counts, however shallow the image
+    depth = BEAM_SLIP_DEPTH * float(xs[-1] - xs[0])
+    seg = relaxed_edges(mesh, u, dataclasses.replace(opts, relax_min_length=min(opts.relax_min_length, depth)),
+                        cells=False)
+    lateral = seg[:, 2] == seg[:, 3]            # a lateral edge (constant y) lies on a column line
+    lines = np.unique(np.searchsorted(ys, seg[lateral, 2]) - 1).astype(int)
+    if not lines.size:
+        return lines
+    ja, jl, _, _, cut = _jumps(mesh, u, opts)
+    cell = _need_tensor(mesh)[2]
+    e = _centre_strains(mesh, u)
+    exx, exy = np.abs(e[:, 0])[cell], np.abs(e[:, 2])[cell]        # (n_rows, n_cols)
+    scale = float(np.median(exx))
+    q = None if ncc is None else np.asarray(ncc() if callable(ncc) else ncc, float)[cell]
+    keep = []
+    for run in np.split(lines, np.flatnonzero(np.diff(lines) > 1) + 1):
+        cells = _beam_slip_cells(run, ja, jl, cut)
+        # a slip is a jump of u_x: across the cells it spreads over its shear strain is several times the axial
+        # strain at every depth; a bonded inclusion's rim carries a shear strain below it
+        if not float(np.median(exy[:, cells].max(axis=1))) >= BEAM_SLIP_SHEAR * scale:
+            continue
+        if q is not None:
+            # a slip leaves the speckle on both sides matched; the edge of a decorrelated region (out-of-plane
+            # motion) has a run of jumps along it too, with poorly matched speckle on one side
+            sides = [q[:, k] for k in (cells.min() - 1, cells.max() + 1) if 0 <= k < q.shape[1]]
+            meds = [float(np.nanmedian(v)) if np.any(np.isfinite(v)) else 0.0 for v in sides]
+            if not meds or min(meds) < BEAM_SLIP_NCC:
+                continue
+        keep.extend(run.tolist())
+    return np.asarray(keep, int)
+
+
+def _beam_slip_cells(lines, ja, jl, cut) -> np.ndarray:
+    """Columns of cells (int array) of a beam-parallel slip: the two beside each of its ``lines``, grown sideways
+    over the neighbouring columns while an edge of theirs stands out (``ja``, ``jl`` over ``cut``): the slip
+    spreads over about a lateral beam width, several columns of a coarse mesh."""
+    n = ja.shape[1]
+    inside = np.zeros(n, bool)
+    for c in lines:
+        inside[c:c + 2] = True
+    col_out = ja.max(axis=0, initial=0.0) > cut if ja.size else np.zeros(n, bool)
+    line_out = jl.max(axis=0, initial=0.0) > cut if jl.size else np.zeros(max(n - 1, 0), bool)
+    grown = True
+    while grown:
+        grown = False
+        for k in np.flatnonzero(inside):
+            for j, line in ((k - 1, k - 1), (k + 1, k)):    # neighbour column j, the line between k and j
+                if 0 <= j < n and not inside[j] and (col_out[j] or line_out[line]):
+                    inside[j] = grown = True
+    return np.flatnonzero(inside)
+
+
 def layer_cells(mesh, u, opts: Refinement, fraction: float | None = None) -> np.ndarray:
     """Rectangles (k, 4) [x0, x1, y0, y1] mm of the two rows (columns) of cells beside each layer interface of a
     tensor mesh: a line of axial (lateral) edges across which the normal part of the jump ``[[A]] n`` stands out
@@ -1313,6 +1415,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
+    slides = np.zeros(0)            # lateral positions (mm) of the slips along the beam left unsplit
     unrefined = sol                 # its element NCC: the tests of the first pass and the message of a split
     memo = []
 
@@ -1326,7 +1429,13 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
-        rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True)
+        beam = beam_slip_lines(mesh, sol.u, opts, ncc=None if getattr(sol, "data", None) is None else (
+            unrefined_ncc if k == 0 else (lambda s=sol, m=mesh: element_ncc(s.data, s.u, m.t.shape[1]))))
+        if k == 0 and len(beam):
+            # one position per run of neighbouring lines (a slip spreads over a beam width)
+            runs = np.split(beam, np.flatnonzero(np.diff(beam) > 1) + 1)
+            slides = np.array([np.mean(_need_tensor(mesh)[1][r + 1]) for r in runs])
+        rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True, beam_lines=beam)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
         top = max(float(np.max(s, initial=0.0)) for s in score)
@@ -1344,7 +1453,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
             # the feature test against a cut of its own (the scores of a marking at that z-score)
             fs = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.feature_threshold), data=sol.data,
-                      quality=q, scores=True)[3]
+                      quality=q, scores=True, beam_lines=beam)[3]
             top = max(float(np.max(s, initial=0.0)) for s in fs)
         if top < opts.feature:
             # no row / column stands out that far: decorrelation noise, not a feature; split nothing
@@ -1360,7 +1469,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if finer:
             # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
             rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
-                                           data=sol.data, quality=q, scores=True)
+                                           data=sol.data, quality=q, scores=True, beam_lines=beam)
             min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
@@ -1461,6 +1570,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             note = (f"refined although the speckle decorrelates in parts of the image (element NCC spread "
                     f"{spread:.2f} > {DECORRELATED_SPREAD:g}): check the strain image for rectangular patches "
                     f"against refine=None")
+    if slides.size:
+        where = ", ".join(f"{y:.1f}" for y in slides)
+        said = (f"tissue slides along the beam near y = {where} mm: the columns there are not split (finer ones turn "
+                f"the echoes mixed across the slip into stripes of e_xx)")
+        note = said if note is None else f"{note}; {said}"
     return sol, RefinementRecord(record, base_size, note)
 
 

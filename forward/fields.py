@@ -1,5 +1,5 @@
 """Displacement fields with exact truth for simulated RF pairs: affine (compression, shear, rotation), bending,
-layers sliding across a shear band, and FE inclusions (plane strain / plane stress).
+layers sliding across a shear band, bonded layers, columns sliding along vertical interfaces, and FE inclusions (plane strain / plane stress).
 
 Every field is an object with
 
@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 __all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
-           "Layers", "Inclusion", "as_points"]
+           "Layers", "SlidingColumns", "Inclusion", "as_points"]
 
 
 def as_points(points) -> np.ndarray:
@@ -323,6 +323,102 @@ class Layers:
 
     def __repr__(self) -> str:
         return f"Layers({self.name})"
+
+
+class SlidingColumns:
+    """Columns of different stiffness side by side, each free to slide along its vertical neighbours (frictionless
+    contact), under a uniform axial pressure: a true lateral step of the axial strain.
+
+    A bonded interface cannot carry a lateral step of ``e_xx`` (``u_x`` is continuous along a vertical interface, so
+    its derivative along the interface is too); a frictionless one can.  Each column is in uniform uniaxial stress
+    ``sigma_xx = sigma``, ``sigma_yy = sigma_xy = 0``: zero contact pressure and zero shear on every interface, so
+    the field solves the elasticity equations exactly.  With Young's moduli ``E_i`` and Poisson's ratio ``nu``
+    (Hooke's law, plane stress: ``e_xx = sigma / E``, ``e_yy = -nu sigma / E``; plane strain: ``e_xx = (1 - nu^2)
+    sigma / E``, ``e_yy = -nu (1 + nu) sigma / E``):
+
+    ``u_x = e_xx,i x`` (0 at the probe face, so the columns slip past each other by ``(e_xx,i - e_xx,i+1) x`` at
+    depth ``x``),  ``u_y`` continuous, piecewise linear with slope ``e_yy,i``, 0 at ``y = 0``,  ``e_xy = 0`` away
+    from the interfaces (on them the slip is a jump of ``u_x``: its shear strain is a line, not a field).
+
+    ``sigma`` is set so that the width-weighted mean axial strain over ``[-width_mm / 2, width_mm / 2]`` is
+    ``-level``.
+
+    Parameters
+    ----------
+    interfaces_mm : sequence of float
+        Lateral positions of the vertical interfaces, increasing, mm (inside ``(-width_mm / 2, width_mm / 2)``).
+    moduli : sequence of float
+        Relative Young's modulus of each column, leftmost (most negative ``y``) first (``len(interfaces_mm) + 1``
+        values, > 0).
+    level : float
+        Mean axial compression over the width (fraction).
+    model : {"plane-stress", "plane-strain"}
+    poisson : float
+        Poisson's ratio (default 0.5, incompressible).
+    width_mm : float
+        Width over which the mean strain is ``-level``, mm.
+    """
+
+    def __init__(self, interfaces_mm=(-5.0, 5.0), moduli=(1.0, 0.25, 1.0), level: float = 0.01, *,
+                 model: str = "plane-stress", poisson: float = 0.5, width_mm: float = 40.0):
+        z = np.asarray(interfaces_mm, float).ravel()
+        E = np.asarray(moduli, float).ravel()
+        self.width_mm, self.poisson = float(width_mm), float(poisson)
+        if model not in ("plane-strain", "plane-stress"):
+            raise ValueError(f"model must be 'plane-strain' or 'plane-stress', got {model!r}")
+        self.model = model
+        if E.size != z.size + 1 or not np.all(np.isfinite(E)) or np.any(E <= 0):
+            raise ValueError(f"moduli must be {z.size + 1} positive numbers (one per column), got {moduli!r}")
+        half = 0.5 * self.width_mm
+        if not (np.all(np.isfinite(z)) and np.all(np.diff(z) > 0) and (z.size == 0 or (z[0] > -half and
+                                                                                          z[-1] < half))):
+            raise ValueError(f"interfaces_mm must increase inside (-{half:g}, {half:g}) mm, got {interfaces_mm!r}")
+        if not 0.0 <= self.poisson <= 0.5:
+            raise ValueError(f"poisson must lie in [0, 0.5], got {poisson!r}")
+        self.interfaces_mm, self.moduli = z, E
+        self.level = _level(level)
+        nu = self.poisson
+        # unit compressive stress: axial and lateral strain per column, then scaled to the mean axial strain -level
+        exx1 = -(1.0 if model == "plane-stress" else 1.0 - nu**2) / E
+        eyy1 = (nu if model == "plane-stress" else nu * (1.0 + nu)) / E
+        t = np.diff(np.clip(np.r_[-half, z, half], -half, half))
+        c = self.level / (np.sum(t * -exx1) / t.sum()) if self.level > 0 else 0.0
+        self.exx_columns, self.eyy_columns = c * exx1, c * eyy1
+        # u_y = G(y) - G(0), G the integral of e_yy from the first interface (continuous across every interface)
+        self._G_at = np.r_[0.0, np.cumsum(self.eyy_columns[1:-1] * np.diff(z))] if z.size else np.zeros(0)
+        self._uy0 = 0.0
+        self._uy0 = float(self._G(np.zeros(1))[0])
+        self.name = (f"sliding columns E {'/'.join(f'{e:g}' for e in E)} at y {'/'.join(f'{d:g}' for d in z)} mm"
+                     f" {model} {100 * self.level:g}%")
+
+    def column(self, points) -> np.ndarray:
+        """Index of the column holding each point, (n,) int."""
+        return np.searchsorted(self.interfaces_mm, as_points(points)[:, 1], side="right")
+
+    def _G(self, y) -> np.ndarray:
+        z = self.interfaces_mm
+        if not z.size:
+            return self.eyy_columns[0] * y
+        k = np.searchsorted(z, y, side="right")
+        left = z[np.maximum(k - 1, 0)]
+        return np.where(k == 0, 0.0, self._G_at[np.maximum(k - 1, 0)]) + self.eyy_columns[k] * (y - left)
+
+    def displacement(self, points) -> np.ndarray:
+        p = as_points(points)
+        k = self.column(p)
+        return np.column_stack([self.exx_columns[k] * p[:, 0], self._G(p[:, 1]) - self._uy0])
+
+    def strain(self, points) -> np.ndarray:
+        p = as_points(points)
+        k = self.column(p)
+        return np.column_stack([self.exx_columns[k], self.eyy_columns[k], np.zeros(len(p))])
+
+    def at(self, level) -> "SlidingColumns":
+        return SlidingColumns(self.interfaces_mm, self.moduli, level, model=self.model, poisson=self.poisson,
+                              width_mm=self.width_mm)
+
+    def __repr__(self) -> str:
+        return f"SlidingColumns({self.name})"
 
 
 #: The small 2D inclusion model (mm, MPa) used by :class:`Inclusion`: a 80 mm block, bottom clamped, the whole top

@@ -682,3 +682,34 @@ def test_the_1mm_bands_under_the_paper_probe_reach_their_peak_with_the_fill():
         assert new["peak_ratio"] > 0.8 and old["peak_ratio"] < 0.6, name       # 0.97 / 0.90 against 0.47 / 0.54
         assert new["e"] < 0.4 and old["e"] > 0.5, name                          # 26.9 / 32.8 against 51.3 / 57.3 %
         assert abs(new["slide_err"]) < 0.1 and abs(new["depth_err"]) < 0.1, name
+
+
+def test_a_slip_along_the_beam_is_found_and_told_from_a_rim_and_from_decorrelation(monkeypatch):
+    from femreg.refine import DEEP_REFINEMENT, beam_slip_lines
+    from forward.fields import Layers, SlidingColumns
+
+    shape, spacing = (1500, 100), (0.02, 0.2)                 # 30 x 20 mm
+    m = roi_mesh(shape, spacing, (5.0, -10.0), element_size=(1.5, 1.5))
+    ys = np.unique(m.p[1])
+    opts = dataclasses.replace(DEEP_REFINEMENT, relax_max_fraction=1.0)
+    slip = SlidingColumns((0.4,), (1.5, 0.75), 0.005)       # the interface inside a column of cells
+    lines = beam_slip_lines(m, _nodal(m, slip.displacement), opts)
+    assert len(lines) and np.all(np.abs(ys[lines + 1] - 0.4) < 2.0), ys[lines + 1]
+    # off by its flag
+    assert not len(beam_slip_lines(m, _nodal(m, slip.displacement), dataclasses.replace(opts, beam_slip=False)))
+    # a slip small against the strain (moduli 1 / 0.95 at 5 %): its run of jumps stands out (found with the shear
+    # test off), but its shear across the cells stays below the axial strain, as at a bonded rim: no slip
+    weak = _nodal(m, SlidingColumns((0.4,), (1.0, 0.95), 0.05).displacement)
+    assert not len(beam_slip_lines(m, weak, opts))
+    with monkeypatch.context() as mp:
+        mp.setattr("femreg.refine.BEAM_SLIP_SHEAR", 0.0)
+        assert len(beam_slip_lines(m, weak, opts))
+    # decorrelated speckle on one side (element NCC 0.4 there, 0.99 on the other): not a slip
+    c = m.p[:, m.t].mean(axis=1)
+    ncc = np.where(c[1] > 0.4, 0.4, 0.99)
+    assert not len(beam_slip_lines(m, _nodal(m, slip.displacement), opts, ncc=ncc))
+    assert np.array_equal(beam_slip_lines(m, _nodal(m, slip.displacement), opts, ncc=np.full(m.t.shape[1], 0.99)),
+                          lines)
+    # layers parallel to the probe face, a horizontal slip (a shear band): no slip along the beam
+    assert not len(beam_slip_lines(m, _nodal(m, Layers((15.0,), (2.0, 0.5), 0.02).displacement), opts))
+    assert not len(beam_slip_lines(m, _nodal(m, _band(15.0, 15.5)), opts))
