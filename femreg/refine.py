@@ -1158,7 +1158,7 @@ def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
     finer rows do resolve (shear bands)."""
     if not opts.beam_slip or opts.relax is None or opts.indicator != "jump":
         return np.zeros(0, int)
-    xs, ys, _ = _need_tensor(mesh)
+    xs, ys, cell = _need_tensor(mesh)
     # a slip along the beam runs down the image: a run over most of its depth counts, however shallow the image
     depth = BEAM_SLIP_DEPTH * float(xs[-1] - xs[0])
     seg = relaxed_edges(mesh, u, dataclasses.replace(opts, relax_min_length=min(opts.relax_min_length, depth)),
@@ -1168,7 +1168,6 @@ def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
     if not lines.size:
         return lines
     ja, jl, _, _, cut = _jumps(mesh, u, opts)
-    cell = _need_tensor(mesh)[2]
     e = _centre_strains(mesh, u)
     exx, exy = np.abs(e[:, 0])[cell], np.abs(e[:, 2])[cell]        # (n_rows, n_cols)
     scale = float(np.median(exx))
