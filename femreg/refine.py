@@ -1135,9 +1135,10 @@ BEAM_SLIP_DEPTH = 0.6
 #: a run of jumps as long as a slip's).
 BEAM_SLIP_NCC = 0.8
 
-#: Median over the rows of the largest |e_xy| in the cells a slip along the beam spreads over, in units of the
-#: mesh's median |e_xx|, that such a slip must reach (:func:`beam_slip_lines`).  Measured: 2.6-15 at the slips of
-#: ``benchmarks/layer_edges.py`` (0.10-0.22 mm); 0.17 on the run a soft disk (r 4 mm, 4 %, 12 MHz) leaves.
+#: Median over the rows of the largest absolute e_xy in the cells a slip along the beam spreads over, in units
+#: of the mesh's median absolute e_xx, that such a slip must reach (:func:`beam_slip_lines`).  Measured: 2.6-15
+#: at the slips of ``benchmarks/layer_edges.py`` (0.10-0.22 mm); 0.17 on the run a soft disk (r 4 mm, 4 %,
+#: 12 MHz) leaves.
 BEAM_SLIP_SHEAR = 1.0
 
 

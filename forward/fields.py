@@ -1,5 +1,6 @@
 """Displacement fields with exact truth for simulated RF pairs: affine (compression, shear, rotation), bending,
-layers sliding across a shear band, bonded layers, columns sliding along vertical interfaces, and FE inclusions (plane strain / plane stress).
+layers sliding across a shear band, bonded layers, columns sliding along vertical interfaces, and FE inclusions
+(plane strain / plane stress).
 
 Every field is an object with
 
