@@ -1000,6 +1000,11 @@ def _mesh_and_data(displacement, region, element_size):
                          "mesh (region outside the measured field?)")
     if mesh.t.shape[1] < 4:
         raise InputError(f"the inversion mesh has {mesh.t.shape[1]} element(s); need at least 2 x 2")
+    if not _inner_elements(mesh).any():     # the model tests and the region statistics read the inner elements
+        lo, hi = mesh.p.min(axis=1), mesh.p.max(axis=1)
+        raise InputError(f"the inversion mesh ({mesh.t.shape[1]} elements over x {lo[0]:.4g} to {hi[0]:.4g} mm, "
+                         f"y {lo[1]:.4g} to {hi[1]:.4g} mm) has no element off its boundary; need at least 3 x 3: "
+                         "a larger region (--region) or smaller elements (--element-size)")
     if rule is None:
         hh = mesh.p[:, mesh.t[2, 0]] - mesh.p[:, mesh.t[0, 0]]
         rule = f"tensor mesh of {abs(hh[0]):.3g} x {abs(hh[1]):.3g} mm over the region"

@@ -155,3 +155,37 @@ def test_frames_given_where_a_result_belongs(tmp_path, capsys):
                  ["measure", frames, "--inclusion", "1", "1", "1"]):
         rc, out, err = _run(argv, capsys)
         assert rc == 2 and "not a result file" in err and "Traceback" not in err, (argv[0], rc, err)
+
+
+def test_a_result_file_given_where_frames_belong(tmp_path, capsys):
+    # register / track / info said "no 'rf' or 'frames' array; keys: ... (choose one with --variable)", pointing
+    # at the result's fields; batch started its workers and ended with exit 1 and a failed task
+    res, mu, el = tmp_path / "pair.npz", tmp_path / "mu.npz", tmp_path / "elastogram.npz"
+    mesh = dict(mesh_points=np.zeros((4, 2)), mesh_cells=np.arange(4)[None], exx=np.zeros((8, 4)))
+    np.savez(res, **mesh)
+    np.savez(mu, mu=np.ones(1), **mesh)
+    np.savez(el, exx=np.zeros((8, 4)), ref_frame=1, quality=np.zeros((8, 4)))
+    sp = ["--spacing", "0.02", "0.2"]
+    for argv, says in ((["register", res, res, *sp, "-o", tmp_path / "x.npz"], "registration result"),
+                       (["track", mu, *sp, "-o", tmp_path / "run", "--no-progress"], "inversion result"),
+                       (["info", res], "registration result"),
+                       (["elastogram", el, *sp, "-o", tmp_path / "loop", "--no-progress"], "elastogram"),
+                       (["batch", res, *sp, "-o", tmp_path / "batch", "--workers", "0", "--no-progress"],
+                        "registration result")):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2, (argv[0], rc, err)
+        assert says in err and "not RF frames" in err and "--variable" not in err, (argv[0], err)
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "batch").exists()
+
+
+def test_batch_refuses_an_unreadable_recording_before_any_work(tmp_path, capsys):
+    # a folder of recordings (sub-folders) passed with --folders recording: exit 1 and a failed task before
+    data = tmp_path / "DATA"
+    for name in ("a", "b"):
+        (data / name).mkdir(parents=True)
+        np.save(data / name / "f0.npy", np.zeros((64, 32), np.float32))
+    rc, out, err = _run(["batch", data, "--folders", "recording", "--spacing", "0.02", "0.2", "-o",
+                         tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
+    assert rc == 2 and "no frame files" in err and "it holds folders (a, b)" in err, (rc, err)
+    assert not (tmp_path / "out").exists()

@@ -14,8 +14,8 @@ folder recording, with the flags' long names as keys (``regularizer = "strain"``
 Exit codes: 0 all tasks done and none flagged; 1 some task failed or was flagged (low NCC, a frame whose
 registration failed its check; the others finished; the summary names the error; ``--resume`` reruns the failed
 ones only); 2 bad input, found before anything runs (a missing input, bad settings, a folder of single-frame
-files without ``--folders recording``, frames that look transposed or a swapped spacing in the first
-recording of an input).
+files without ``--folders recording``, an input that is one recording and cannot be read, frames that look
+transposed or a swapped spacing in the first recording of an input).
 """
 from __future__ import annotations
 
@@ -85,7 +85,8 @@ def run(args) -> int:
         raise InputError("--pair applies to --task register")
     if args.scheduler is None and args.workers < 0:
         raise InputError(f"--workers must be >= 0, got {args.workers}")
-    jobs = jobs_from_inputs(args.inputs, settings_from_args(args), folders=args.folders, out_dir=args.output)
+    jobs = jobs_from_inputs(args.inputs, settings_from_args(args), folders=args.folders, out_dir=args.output,
+                            refuse_unreadable=True)
     summary = run_batch(jobs, args.output, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
                         progress=not args.no_progress, memory_limit=args.memory_limit)
     n = len(summary.records)
