@@ -87,6 +87,12 @@ def registration_kwargs(options) -> dict:
     es, alpha, name, hourglass = o["element_size"], o["alpha"], o["regularizer"], o["hourglass"]
     if es is not None and len(es) not in (1, 2):
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    if es is not None and not all(v > 0 and v < float("inf") for v in es):
+        raise InputError(f"--element-size must be > 0 mm, got {' '.join(f'{v:g}' for v in es)}")
+    if o["margin"] is not None and not (o["margin"] >= 0 and o["margin"] < float("inf")):
+        raise InputError(f"--margin must be a finite number >= 0 (mm), got {o['margin']:g}")
+    if o["tol"] is not None and not (o["tol"] > 0 and o["tol"] < float("inf")):
+        raise InputError(f"--tol must be a finite number > 0, got {o['tol']:g}")
     if alpha is not None and alpha != "auto" and not (alpha >= 0 and alpha < float("inf")):
         raise InputError(f"--alpha must be a finite number >= 0, got {alpha}")
     if name not in available_regularizers():
