@@ -168,3 +168,18 @@ def test_auto_alpha_without_a_successful_candidate_says_so(data, capsys, tmp_pat
     with pytest.warns(RuntimeWarning):
         rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "a.npz", "--alpha", "auto"], capsys)
     assert rc == 1 and "no successful candidate" in err
+
+
+def test_every_command_states_its_exit_codes_in_its_help():
+    # register, elastogram, batch and invert said nothing about them; info, plot, measure and track each in their
+    # own words.  Now every one ends with "exit codes: 0 ...; 1 ...; 2 bad input, found before any work ..."
+    from femreg.cli import EXIT_CODES, build_parser
+
+    sub = next(a for a in build_parser()._actions if getattr(a, "choices", None) and "register" in a.choices)
+    assert set(EXIT_CODES) == {"register", "track", "elastogram", "info", "plot", "measure", "batch", "invert"}
+    for name in EXIT_CODES:
+        text = " ".join(sub.choices[name].format_help().split())
+        assert "exit codes: 0 " in text and "; 1 " in text and "; 2 bad input, found before any work" in text, name
+    for name in ("track", "batch"):                              # --mode said what its two choices do
+        text = " ".join(sub.choices[name].format_help().split())
+        assert "direct: register frame 0 to each frame" in text, name

@@ -22,6 +22,39 @@ ORDER = ["register_cmd", "track_cmd", "elastogram_cmd", "info_cmd", "plot_cmd", 
 #: Entry-point group through which other packages contribute subcommands.
 ENTRY_POINT_GROUP = "femreg.commands"
 
+#: What exit codes 0 and 1 mean for each of femreg's own subcommands, and examples of the bad input of code 2
+#: (for all: found before any work, one line on stderr); shown at the end of every subcommand's --help, as the
+#: README's table says.
+EXIT_CODES = {
+    "register": ("registered", "registered, but the registration failed its check or its NCC after is below "
+                               "--min-ncc (the result is written, the reason printed)"),
+    "track": ("every frame registered", "a frame flagged (failed its check, low NCC) or not computed: finished "
+                                        "frames are kept, --resume continues"),
+    "elastogram": ("done", "nothing usable: no pair in the band registered (the screening is written)"),
+    "info": ("described, ready to register", "described, but something is needed first (no spacing, a transposed "
+                                             "frame: printed)",
+             "the file cannot be read: a raw file without --shape, the wrong --dtype, no such variable, a corrupt "
+             "file, a femreg result"),
+    "plot": ("drawn", "drawn, but the result is a failed or flagged registration or inversion (printed)",
+             "not a result file, bad flags"),
+    "measure": ("measured", "measured, but the result is a failed one (the numbers marked FLAGGED)",
+                "not a result file, a region outside the mesh (its bounds printed), bad flags"),
+    "batch": ("every task done, none flagged", "a task failed or was flagged (the summary names it; --resume "
+                                               "reruns the failed ones)"),
+    "invert": ("inverted", "inverted, but the optimisation failed or the result is flagged, or --allow-failed on a "
+                           "failed registration (the result is written, the reason printed)",
+               "not a result file, a failed registration without --allow-failed, a --region outside the mesh, bad "
+               "flags"),
+}
+
+
+def exit_code_epilog(name: str) -> str:
+    """The --help epilog stating ``name``'s exit codes (:data:`EXIT_CODES`)."""
+    done, flagged, *bad = EXIT_CODES[name]
+    bad = bad[0] if bad else "unreadable file, bad flags, frames that look transposed, a swapped spacing, ..."
+    return (f"exit codes: 0 {done}; 1 {flagged}; 2 bad input, found before any work, with a one-line reason on "
+            f"stderr ({bad}).")
+
 
 def _command_modules() -> list[str]:
     import pkgutil
@@ -50,6 +83,9 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _command_modules():
         importlib.import_module(f"femreg.cli.{name}").add_parser(sub)
+    for name, sp in sub.choices.items():
+        if name in EXIT_CODES and not sp.epilog:
+            sp.epilog = exit_code_epilog(name)
     plugins = _contributed()
     first = next((a for a in (argv or []) if not a.startswith("-")), None)
     wanted = [first] if first in plugins else ([] if first in sub.choices else sorted(plugins))

@@ -41,7 +41,9 @@ def add_parser(subparsers):
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2, action="append",
                    help="--task register: reference and moving frame indices (repeat for several pairs, one "
                         "task each; default 0 1)")
-    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate", help="track mode")
+    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate",
+                   help="track: accumulate (default): register each frame to the one before and sum the increments in "
+                        "first-frame coordinates (eq:IR); direct: register frame 0 to each frame")
     p.add_argument("--grid", choices=("current", "reference"), default="current",
                    help="track: pixel grid of accumulation (see femreg track --help)")
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",

@@ -16,9 +16,7 @@ def add_parser(subparsers):
                     "(OUT_quality.png) when the result holds one.  A file of `femreg invert` gets the modulus "
                     "image, its uncertainty and the axial strain (a volume's: three orthogonal slices of each "
                     "through --slice).  Optionally export the mesh with nodal "
-                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 0 when drawn; "
-                    "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
-                    "printed; 2 with a one-line reason on bad input.")
+                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.")
     p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
     p.add_argument("-o", "--output", metavar="OUT.png",
                    help="figure path (default: RESULT with .png; missing folders are created)")
