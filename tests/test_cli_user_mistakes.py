@@ -189,3 +189,15 @@ def test_batch_refuses_an_unreadable_recording_before_any_work(tmp_path, capsys)
                          tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
     assert rc == 2 and "no frame files" in err and "it holds folders (a, b)" in err, (rc, err)
     assert not (tmp_path / "out").exists()
+
+
+def test_frames_of_different_shapes_name_both_files(tmp_path, capsys):
+    # "image shape mismatch: reference (64, 32) vs moving (48, 32)": no file named, no hint what to check
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "a.npy", rng.standard_normal((64, 32)).astype(np.float32))
+    np.save(tmp_path / "b.npy", rng.standard_normal((48, 32)).astype(np.float32))
+    rc, out, err = _run(["register", tmp_path / "a.npy", tmp_path / "b.npy", "--spacing", "0.02", "0.2",
+                         "--no-orientation-check", "-o", tmp_path / "x.npz"], capsys)
+    assert rc == 2 and "a.npy and" in err and "b.npy hold frames of different shapes" in err, err
+    assert "64 x 32 and 48 x 32 (axial x lateral)" in err and "--shape" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.npz").exists()
