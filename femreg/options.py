@@ -56,6 +56,14 @@ def negative_index(selection):
     return next((int(v) for v in values if v is not None and int(v) < 0), None)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def spacing_value(text: str):
     """One spacing in mm from text; 'auto' (or 'header', '-') = None, the file's value."""
     if text.lower() in ("auto", "header", "-"):
@@ -63,7 +71,9 @@ def spacing_value(text: str):
     try:
         v = float(text)
     except ValueError:
-        raise InputError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's)") from None
+        point = text.replace(",", ".", 1) if text.count(",") == 1 else ""
+        hint = f": write it with a decimal point, {point}" if point and _is_number(point) else ""
+        raise InputError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's){hint}") from None
     if not (v > 0 and v < float("inf")):
         raise InputError(f"spacing must be positive, got {text!r}")
     return v

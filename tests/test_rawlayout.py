@@ -120,3 +120,22 @@ def test_a_file_read_with_the_wrong_sample_type_names_the_right_one(tmp_path, ca
     env = np.abs(rf).astype(np.float32)
     env.tofile(tmp_path / "env.raw")
     assert read_frames(tmp_path / "env.raw", shape=(1200, 64), spacing=sp).n_frames == 2
+
+
+def test_a_size_mismatch_names_the_type_that_shows_the_carrier(tmp_path, capsys):
+    # float32 frames read with --dtype double: the advice was "try --dtype int16" (the first type that divided
+    # the size), which reads them as garbage; a decimal comma in --spacing got no hint
+    from femreg.cli import main
+
+    rf, sp = _frames(PROBES[1], n=1)
+    rf.tofile(tmp_path / "f32.raw")
+    with pytest.raises(FileFormatError, match="whose samples show an RF carrier: try dtype=float32"):
+        read_frames(tmp_path / "f32.raw", shape=(1200, 64), dtype="float64", spacing=sp)
+    noise = np.random.default_rng(1).standard_normal(1200 * 64).astype(np.float32)
+    noise.tofile(tmp_path / "noise.raw")                        # no carrier in any type: the old advice stands
+    with pytest.raises(FileFormatError, match=r"whole number of int16 frames: try dtype=int16"):
+        read_frames(tmp_path / "noise.raw", shape=(1200, 64), dtype="float64", spacing=sp)
+    with pytest.raises(SystemExit) as stop:                     # argparse's own exit, code 2
+        main(["info", str(tmp_path / "f32.raw"), "--shape", "1200", "64", "--spacing", "0,02", "0.2"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "write it with a decimal point, 0.02" in err, err
