@@ -183,3 +183,20 @@ def test_every_command_states_its_exit_codes_in_its_help():
     for name in ("track", "batch"):                              # --mode said what its two choices do
         text = " ".join(sub.choices[name].format_help().split())
         assert "direct: register frame 0 to each frame" in text, name
+
+
+def test_no_progress_is_accepted_by_every_command(data, results, capsys, tmp_path):
+    # plot, measure and info stopped with "unrecognized arguments: --no-progress" (exit 2) in a script passing it
+    # to every command
+    argv = {"info": ["info", data / "good.npz"],
+            "plot": ["plot", results[0], "-o", tmp_path / "p.png", "--dpi", "30"],
+            "measure": ["measure", results[0], "--inclusion", "6", "4", "2"]}
+    for name, args in argv.items():
+        rc, out, err = _run([*args, "--no-progress"], capsys)
+        assert rc == 0, (name, rc, err)
+
+
+def test_an_empty_background_or_inclusion_says_which(results, capsys):
+    # "ROI mask must leave finite samples both inside and outside": neither which region was empty nor what to do
+    rc, out, err = _run(["measure", results[0], "--inclusion", "6", "4", "40"], capsys)
+    assert rc == 2 and "the background holds no finite sample" in err and "a smaller radius" in err, err

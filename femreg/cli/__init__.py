@@ -86,6 +86,10 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     for name, sp in sub.choices.items():
         if name in EXIT_CODES and not sp.epilog:
             sp.epilog = exit_code_epilog(name)
+        if name in EXIT_CODES and "--no-progress" not in sp._option_string_actions:
+            # a script passing it to every command must not stop at the ones that show no bar
+            sp.add_argument("--no-progress", action="store_true",
+                            help="accepted by every command; this one shows no progress bar")
     plugins = _contributed()
     first = next((a for a in (argv or []) if not a.startswith("-")), None)
     wanted = [first] if first in plugins else ([] if first in sub.choices else sorted(plugins))
