@@ -200,3 +200,12 @@ def test_an_empty_background_or_inclusion_says_which(results, capsys):
     # "ROI mask must leave finite samples both inside and outside": neither which region was empty nor what to do
     rc, out, err = _run(["measure", results[0], "--inclusion", "6", "4", "40"], capsys)
     assert rc == 2 and "the background holds no finite sample" in err and "a smaller radius" in err, err
+
+
+def test_a_frame_check_names_the_file_it_judged(data, capsys, tmp_path):
+    # "the frames look transposed: ..." named no file, where the checks on the file as read (centimetres, the
+    # raw --shape, the sample type) begin with it
+    for argv, lead in ((["register", data / "transposed.npz"], f"{data / 'transposed.npz'}: the frames look"),
+                       (["track", data / "transposed.npz", "--no-progress"], f"{data / 'transposed.npz'}: the frames")):
+        rc, out, err = _run([*argv, "-o", tmp_path / "x.npz" if argv[0] == "register" else tmp_path / "t"], capsys)
+        assert rc == 2 and err.startswith(f"femreg {argv[0]}: error: {lead}"), err

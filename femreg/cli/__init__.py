@@ -103,6 +103,19 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     return parser
 
 
+def _name_the_files(args, exc, msg: str) -> str:
+    """``msg`` of a frame check that ran on the frames, not the file (transposed, swapped spacing), led by the
+    input file(s) it judged, as the checks on the file as read are."""
+    from femreg.orientation import OrientationError
+
+    if not isinstance(exc, OrientationError):
+        return msg
+    files = [str(v) for v in (getattr(args, k, None) for k in ("reference", "moving", "file")) if v is not None]
+    if not files or any(msg.startswith(f) for f in files):
+        return msg
+    return f"{', '.join(files)}: {msg}"
+
+
 def _header_spacing_note(args, exc) -> str:
     """For a spacing judged swapped or implausible that the user did not give (read from the file's header): where
     it came from and how to override it; MetaImage headers list the fastest (lateral) axis first, a common
@@ -201,7 +214,7 @@ def main(argv=None) -> int:
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
         _remove_empty(made)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        msg += _header_spacing_note(args, exc)
+        msg = _name_the_files(args, exc, msg) + _header_spacing_note(args, exc)
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra
