@@ -209,3 +209,19 @@ def test_a_frame_check_names_the_file_it_judged(data, capsys, tmp_path):
                        (["track", data / "transposed.npz", "--no-progress"], f"{data / 'transposed.npz'}: the frames")):
         rc, out, err = _run([*argv, "-o", tmp_path / "x.npz" if argv[0] == "register" else tmp_path / "t"], capsys)
         assert rc == 2 and err.startswith(f"femreg {argv[0]}: error: {lead}"), err
+
+
+def test_plot_reference_takes_the_results_spacing(data, results, capsys, tmp_path):
+    # a raw / .npy reference needed --spacing again (exit 2, "spacing unknown") though the B-mode is drawn on the
+    # result's grid; a --spacing other than the result's was taken silently (exit 0)
+    from femreg.io import read_frames
+
+    fr = read_frames(data / "good.npz")
+    np.save(tmp_path / "ref.npy", fr.frames[0])
+    rc, out, err = _run(["plot", results[0], "--reference", tmp_path / "ref.npy", "-o", tmp_path / "p.png",
+                         "--dpi", "30"], capsys)
+    assert rc == 0 and (tmp_path / "p.png").is_file(), err
+    dx, dy = (float(v) for v in fr.spacing)
+    rc, out, err = _run(["plot", results[0], "--reference", tmp_path / "ref.npy", "--spacing", 2 * dx, 2 * dy,
+                         "-o", tmp_path / "q.png", "--dpi", "30"], capsys)
+    assert rc == 2 and "differs from the result's" in err and not (tmp_path / "q.png").exists(), err

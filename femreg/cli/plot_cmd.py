@@ -25,7 +25,9 @@ def add_parser(subparsers):
     p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
     p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
                    help="field for --render (default exx, element-centre values; strains in %%, displacement in mm)")
-    p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
+    p.add_argument("--reference", metavar="FILE",
+                   help="reference RF (any readable format) for the B-mode panel, drawn on the result's grid (a "
+                        "file that stores no spacing needs no --spacing: the result's is used)")
     p.add_argument("--frame", type=int, default=0, help="frame of --reference to use, counted from 0 (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
@@ -76,7 +78,22 @@ def _run(args) -> int:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
     reference = None
     if args.reference:
-        fr = frames_from_args(args, path=args.reference)
+        from ..errors import SpacingUnknownError
+
+        res_sp = np.ravel(res.get("spacing", []))[:2].astype(float)
+        try:
+            fr = frames_from_args(args, path=args.reference)
+        except SpacingUnknownError:
+            if args.spacing is not None or res_sp.size != 2:
+                raise
+            # the B-mode is drawn on the result's grid: its spacing serves a file that stores none
+            args.spacing = [float(v) for v in res_sp]
+            fr = frames_from_args(args, path=args.reference)
+        if res_sp.size == 2 and fr.spacing is not None and len(fr.spacing) == 2 \
+                and not np.allclose(fr.spacing, res_sp, rtol=0.01):
+            raise InputError(f"{args.reference}: spacing {tuple(float(v) for v in fr.spacing)} mm differs from the "
+                             f"result's {tuple(float(v) for v in res_sp)} (axial, lateral): not the frames it was "
+                             "registered from, or a wrong --spacing (leave it out: the result's is used)")
         reference = fr.frames[frame_index(args.frame, fr.n_frames, args.reference, "--frame")]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")
