@@ -225,3 +225,7 @@ def test_plot_reference_takes_the_results_spacing(data, results, capsys, tmp_pat
     rc, out, err = _run(["plot", results[0], "--reference", tmp_path / "ref.npy", "--spacing", 2 * dx, 2 * dy,
                          "-o", tmp_path / "q.png", "--dpi", "30"], capsys)
     assert rc == 2 and "differs from the result's" in err and not (tmp_path / "q.png").exists(), err
+    # invert --images reads its frames the same way (the refusal comes before any work)
+    rc, out, err = _run(["invert", results[0], "--images", tmp_path / "ref.npy", tmp_path / "ref.npy", "--spacing",
+                         2 * dx, 2 * dy, "-o", tmp_path / "mu.npz", "--no-progress"], capsys)
+    assert rc == 2 and "differs from the result's" in err and not (tmp_path / "mu.npz").exists(), err

@@ -4,7 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import add_reader_args, failed_notice, frame_index, frames_from_args  # noqa: F401  (failed_notice: also here)
+from ._common import (add_reader_args, failed_notice, frame_index, frames_from_args,  # noqa: F401
+                      frames_on_result_grid)  # failed_notice: also here
 
 
 def add_parser(subparsers):
@@ -78,22 +79,7 @@ def _run(args) -> int:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
     reference = None
     if args.reference:
-        from ..errors import SpacingUnknownError
-
-        res_sp = np.ravel(res.get("spacing", []))[:2].astype(float)
-        try:
-            fr = frames_from_args(args, path=args.reference)
-        except SpacingUnknownError:
-            if args.spacing is not None or res_sp.size != 2:
-                raise
-            # the B-mode is drawn on the result's grid: its spacing serves a file that stores none
-            args.spacing = [float(v) for v in res_sp]
-            fr = frames_from_args(args, path=args.reference)
-        if res_sp.size == 2 and fr.spacing is not None and len(fr.spacing) == 2 \
-                and not np.allclose(fr.spacing, res_sp, rtol=0.01):
-            raise InputError(f"{args.reference}: spacing {tuple(float(v) for v in fr.spacing)} mm differs from the "
-                             f"result's {tuple(float(v) for v in res_sp)} (axial, lateral): not the frames it was "
-                             "registered from, or a wrong --spacing (leave it out: the result's is used)")
+        fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
         reference = fr.frames[frame_index(args.frame, fr.n_frames, args.reference, "--frame")]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")
