@@ -201,3 +201,20 @@ def test_frames_of_different_shapes_name_both_files(tmp_path, capsys):
     assert rc == 2 and "a.npy and" in err and "b.npy hold frames of different shapes" in err, err
     assert "64 x 32 and 48 x 32 (axial x lateral)" in err and "--shape" in err and err.count("\n") == 1, err
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_batch_refuses_a_setting_every_recording_lacks(tmp_path, capsys):
+    # a folder of recordings without --spacing: every task failed after the workers started (exit 1, 4.2 s on the
+    # in vivo folders); femreg's own results beside the recordings were counted as recordings ("its 8 files")
+    from femreg.batch import jobs_from_inputs
+
+    data = tmp_path / "DATA"
+    data.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        np.save(data / f"{name}.npy", rng.standard_normal((2, 64, 32)).astype(np.float32))
+    np.savez(data / "pair.npz", mesh_points=np.zeros((2, 4)), mesh_cells=np.zeros((4, 1), int))
+    assert [j.name for j in jobs_from_inputs([data])] == ["a", "b"]
+    rc, out, err = _run(["batch", data, "-o", tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
+    assert rc == 2 and "spacing unknown" in err and "--spacing" in err and err.count("\n") == 1, (rc, err)
+    assert not (tmp_path / "out").exists()

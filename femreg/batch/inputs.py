@@ -72,8 +72,9 @@ def settings_file_for(path) -> Path | None:
 
 def _scan_folder(folder: Path, skip: Path | None) -> list[Path]:
     """The recordings of a folder: every frame file (supported extension) and every sub-folder, in name
-    order; MetaImage data files (the .raw of a .mhd) and hidden entries are left out."""
-    from ..io.readers import FORMATS, natural_key
+    order; MetaImage data files (the .raw of a .mhd), femreg's own result files (set aside as
+    :func:`femreg.io.read_frames` sets them aside in a folder of frames) and hidden entries are left out."""
+    from ..io.readers import FORMATS, is_result_file, natural_key
 
     entries = sorted((p for p in folder.iterdir() if not p.name.startswith(".")), key=lambda p: natural_key(p.name))
     data_files = set()
@@ -90,7 +91,7 @@ def _scan_folder(folder: Path, skip: Path | None) -> list[Path]:
             continue
         if p.is_dir():
             out.append(p)
-        elif p.is_file() and p.suffix.lower() in FORMATS and p.name not in data_files:
+        elif p.is_file() and p.suffix.lower() in FORMATS and p.name not in data_files and not is_result_file(p):
             out.append(p)
     return out
 
@@ -176,8 +177,10 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
     """Bad input a batch can see before it runs, from the first readable recordings of one input: a folder
     whose files hold one frame each (the frames of one recording, read as recordings of their own), and
     frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  With
-    ``refuse_unreadable``, an input that is one recording and cannot be read is refused; otherwise, and in a
+    ``refuse_unreadable``, an input that is one recording and cannot be read is refused, and so is a folder whose
+    recordings lack a setting (a raw file without --shape, no spacing); otherwise, and for a corrupt file in a
     folder of several, recordings that cannot be read are left to their tasks, which record the error."""
+    from ..errors import FileFormatError
     from ..io import read_frames
     from ..orientation import OrientationError, check, check_raw_shape
 
@@ -189,6 +192,8 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
         except (InputError, OSError) as exc:
             if refuse_unreadable and len(jobs) == 1 and isinstance(exc, InputError):   # nothing else would run
                 raise
+            if refuse_unreadable and isinstance(exc, InputError) and not isinstance(exc, FileFormatError):
+                raise       # a setting every recording lacks (--shape, --spacing), not one corrupt file
             if refuse_unreadable and len(jobs) == 1:
                 raise InputError(f"{job.input}: {exc}") from None
             continue
