@@ -218,3 +218,19 @@ def test_batch_refuses_a_setting_every_recording_lacks(tmp_path, capsys):
     rc, out, err = _run(["batch", data, "-o", tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
     assert rc == 2 and "spacing unknown" in err and "--spacing" in err and err.count("\n") == 1, (rc, err)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_given_region_without_signal_is_refused(tmp_path, capsys):
+    # --depth over the in vivo frames' last 1.5 mm (zero samples): "registration failed: ... NCC after -1.000",
+    # exit 1, as if the pair were bad rather than the region
+    frames = np.random.default_rng(0).standard_normal((2, 200, 32)).astype(np.float32)
+    frames[:, 120:] = 0.0                                  # nothing recorded below 6 mm
+    np.save(tmp_path / "f.npy", frames)
+    sp = ["--spacing", "0.05", "0.2", "--no-orientation-check", "--no-progress"]
+    rc, out, err = _run(["register", tmp_path / "f.npy", *sp, "--depth", "6.5", "9.9", "-o", tmp_path / "x.npz"],
+                        capsys)
+    assert rc == 2 and "the depth given holds no signal: 69 of 69 rows" in err, (rc, err)
+    rc, out, err = _run(["track", tmp_path / "f.npy", *sp, "--roi", "4", "9.9", "0", "6", "-o", tmp_path / "t"],
+                        capsys)
+    assert rc == 2 and "the roi given holds no signal" in err, (rc, err)
+    assert not (tmp_path / "x.npz").exists() and not (tmp_path / "t").exists()
