@@ -135,7 +135,7 @@ def test_a_size_mismatch_names_the_type_that_shows_the_carrier(tmp_path, capsys)
     noise.tofile(tmp_path / "noise.raw")                        # no carrier in any type: the old advice stands
     with pytest.raises(FileFormatError, match=r"whole number of int16 frames: try dtype=int16"):
         read_frames(tmp_path / "noise.raw", shape=(1200, 64), dtype="float64", spacing=sp)
-    with pytest.raises(SystemExit) as stop:                     # argparse's own exit, code 2
+    with pytest.raises(SystemExit) as leave:                    # argparse's own exit, code 2
         main(["info", str(tmp_path / "f32.raw"), "--shape", "1200", "64", "--spacing", "0,02", "0.2"])
     err = capsys.readouterr().err
-    assert stop.value.code == 2 and "write it with a decimal point, 0.02" in err, err
+    assert leave.value.code == 2 and "write it with a decimal point, 0.02" in err, err

@@ -87,7 +87,7 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
         if name in EXIT_CODES and not sp.epilog:
             sp.epilog = exit_code_epilog(name)
         if name in EXIT_CODES and "--no-progress" not in sp._option_string_actions:
-            # a script passing it to every command must not stop at the ones that show no bar
+            # a script passing it to every command must not fail on the ones that show no bar
             sp.add_argument("--no-progress", action="store_true",
                             help="accepted by every command; this one shows no progress bar")
     plugins = _contributed()
