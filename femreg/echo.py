@@ -685,6 +685,25 @@ def crop_request(roi, depth, mesh, initial, offset, *, volume: bool = False):
     return given
 
 
+#: Share of a given rectangle's rows (or lines) of zero samples above which it is refused: nothing recorded there.
+BLANK_REFUSED = 0.5
+
+
+def _refuse_blank(region, ref, mov, what) -> None:
+    """:class:`InputError` when more than :data:`BLANK_REFUSED` of the rows or of the lines of a user's rectangle
+    hold only zero samples in either frame (below the recorded depth, blanked lines): a registration there fails
+    on images that do not match (the in vivo frames' last 1.5 mm: NCC after -1.000, exit 1 before)."""
+    (a, b), (c, d) = region.rows, region.cols
+    for img, which in ((ref, "reference"), (mov, "moving")):
+        crop = img[a:b, c:d]
+        for axis, name in ((1, "rows"), (0, "lines")):
+            blank = ~np.any(crop != 0, axis=axis)
+            if blank.mean() > BLANK_REFUSED:
+                raise InputError(f"the {what} given holds no signal: {int(blank.sum())} of {blank.size} {name} of the "
+                                 f"{which} frame there are zero samples (nothing recorded); choose a region inside "
+                                 f"the echo, or leave --roi / --depth out to have it found")
+
+
 def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth=None, mesh=None,
              margin=None, initial=None, offset=None, fan=False, data_mask=None) -> Crop | None:
     """The crop :func:`femreg.register` / :func:`femreg.track` register on, or None for the whole frames.
@@ -718,6 +737,7 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         return None if region is None else Crop(region, mp, False, time.perf_counter() - t)
     if given:
         region = region_from_mm(ref.shape, spacing, origin, roi=None if isinstance(roi, str) else roi, depth=depth)
+        _refuse_blank(region, ref, mov, "roi" if depth is None else "depth")
         return Crop(region, mp, True, time.perf_counter() - t)
     if not rf_like(ref):
         region = find_fill(ref, mov, spacing, origin)

@@ -1000,6 +1000,11 @@ def _mesh_and_data(displacement, region, element_size):
                          "mesh (region outside the measured field?)")
     if mesh.t.shape[1] < 4:
         raise InputError(f"the inversion mesh has {mesh.t.shape[1]} element(s); need at least 2 x 2")
+    if not _inner_elements(mesh).any():     # the model tests and the region statistics read the inner elements
+        lo, hi = mesh.p.min(axis=1), mesh.p.max(axis=1)
+        raise InputError(f"the inversion mesh ({mesh.t.shape[1]} elements over x {lo[0]:.4g} to {hi[0]:.4g} mm, "
+                         f"y {lo[1]:.4g} to {hi[1]:.4g} mm) has no element off its boundary; need at least 3 x 3: "
+                         "a larger region (--region) or smaller elements (--element-size)")
     if rule is None:
         hh = mesh.p[:, mesh.t[2, 0]] - mesh.p[:, mesh.t[0, 0]]
         rule = f"tensor mesh of {abs(hh[0]):.3g} x {abs(hh[1]):.3g} mm over the region"
@@ -1054,6 +1059,22 @@ def _weighted_median(v, w):
 # ----------------------------------------------------------------------------------------------------------------
 # model choice, checks, uncertainty, absolute scale
 # ----------------------------------------------------------------------------------------------------------------
+def _reference_elements(mesh, bounds) -> np.ndarray:
+    """(n_el,) bool: the elements whose centre lies in the reference box ``bounds`` (x0, x1, y0, y1[, z0, z1]) mm;
+    :class:`InputError` naming the mesh's span when none does or the box has the wrong number of intervals."""
+    dim = mesh.p.shape[0]
+    c = mesh.p[:, mesh.t].mean(axis=1)
+    if len(bounds) != 2 * dim:
+        raise InputError(f"the reference region {tuple(bounds)} mm has {len(bounds) // 2} intervals; the data have "
+                         f"{dim} dimensions")
+    sel = np.all([(c[k] >= bounds[2 * k]) & (c[k] <= bounds[2 * k + 1]) for k in range(dim)], axis=0)
+    if not sel.any():
+        span = ", ".join(f"{'xyz'[k]} {mesh.p[k].min():.4g} to {mesh.p[k].max():.4g}" for k in range(dim))
+        raise InputError(f"the reference region {tuple(float(v) for v in bounds)} mm holds no element centre; the "
+                         f"mesh spans {span} mm")
+    return sel
+
+
 def _inner_elements(mesh) -> np.ndarray:
     """(n_el,) bool: elements with no node on the mesh boundary."""
     bnd = np.zeros(mesh.p.shape[1], bool)
@@ -1871,6 +1892,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         if model not in ("auto", "3d"):
             raise InputError(f"3D data take model='3d' (or 'auto'), got model={model!r}")
         w = np.r_[w, w[1]] if w.size == 2 else w     # (w_x, w_y) -> (w_x, w_y, w_y)
+    if ref is not None:
+        _reference_elements(mesh, ref[0])           # a box that misses the mesh: before the optimisation
     t = time.perf_counter()
     from skfem import Basis, ElementVector
 
@@ -2236,13 +2259,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     mu_kpa = None
     if ref is not None:
         bounds, e_kpa = ref
-        c = mesh.p[:, mesh.t].mean(axis=1)
-        if len(bounds) != 2 * dim:
-            raise InputError(f"the reference region {bounds} mm has {len(bounds) // 2} intervals; the data have "
-                             f"{dim} dimensions")
-        sel = np.all([(c[k] >= bounds[2 * k]) & (c[k] <= bounds[2 * k + 1]) for k in range(dim)], axis=0)
-        if not sel.any():
-            raise InputError(f"the reference region {tuple(bounds)} mm holds no element centre")
+        sel = _reference_elements(mesh, bounds)
         m_ref = float(np.sum(area_el[sel] * mu[sel]) / np.sum(area_el[sel]))
         mu_kpa = mu / m_ref * (e_kpa / 3.0)
     return InversionResult(

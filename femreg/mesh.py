@@ -67,9 +67,9 @@ def roi_mesh(shape, spacing, origin=(0.0, 0.0), *, element_size=None, margin=Non
     h = np.broadcast_to(np.asarray(DEFAULT_ELEMENT_SIZE if element_size is None else element_size, float), (2,))
     m = np.broadcast_to(np.asarray(DEFAULT_MARGIN if margin is None else margin, float), (2,))
     if np.any(~np.isfinite(h)) or np.any(h <= 0):
-        raise InputError(f"element_size must be > 0 mm, got {tuple(h)}")
+        raise InputError(f"element_size must be > 0 mm, got {tuple(float(v) for v in h)}")
     if np.any(~np.isfinite(m)) or np.any(m < 0):
-        raise InputError(f"margin must be >= 0 mm, got {tuple(m)}")
+        raise InputError(f"margin must be >= 0 mm, got {tuple(float(v) for v in m)}")
     axes = []
     for a in range(2):
         n = int(shape[a])

@@ -134,7 +134,10 @@ def _split(values, inside, weights=None):
     ok = np.isfinite(v)
     a, b = ok & ~m, ok & m
     if not a.any() or not b.any():
-        raise ValueError("ROI mask must leave finite samples both inside and outside")
+        what = ("the background holds no finite sample (the inclusion covers all of it): a smaller radius or "
+                "another background" if not a.any() else
+                "the inclusion holds no finite sample (none registered there): move it onto the registered region")
+        raise ValueError(f"{what}; the ROI mask must leave finite samples both inside and outside")
     mean = lambda s: float(np.sum(w[s] * v[s]) / np.sum(w[s]))  # noqa: E731
     var = lambda s, mu: float(np.sum(w[s] * (v[s] - mu) ** 2) / np.sum(w[s]))  # noqa: E731
     ea, eb = mean(a), mean(b)

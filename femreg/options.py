@@ -56,6 +56,14 @@ def negative_index(selection):
     return next((int(v) for v in values if v is not None and int(v) < 0), None)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def spacing_value(text: str):
     """One spacing in mm from text; 'auto' (or 'header', '-') = None, the file's value."""
     if text.lower() in ("auto", "header", "-"):
@@ -63,7 +71,9 @@ def spacing_value(text: str):
     try:
         v = float(text)
     except ValueError:
-        raise InputError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's)") from None
+        point = text.replace(",", ".", 1) if text.count(",") == 1 else ""
+        hint = f": write it with a decimal point, {point}" if point and _is_number(point) else ""
+        raise InputError(f"bad spacing {text!r} (mm, or 'auto' to keep the file's){hint}") from None
     if not (v > 0 and v < float("inf")):
         raise InputError(f"spacing must be positive, got {text!r}")
     return v
@@ -87,6 +97,12 @@ def registration_kwargs(options) -> dict:
     es, alpha, name, hourglass = o["element_size"], o["alpha"], o["regularizer"], o["hourglass"]
     if es is not None and len(es) not in (1, 2):
         raise InputError(f"--element-size takes 1 or 2 values (mm), got {es}")
+    if es is not None and not all(v > 0 and v < float("inf") for v in es):
+        raise InputError(f"--element-size must be > 0 mm, got {' '.join(f'{v:g}' for v in es)}")
+    if o["margin"] is not None and not (o["margin"] >= 0 and o["margin"] < float("inf")):
+        raise InputError(f"--margin must be a finite number >= 0 (mm), got {o['margin']:g}")
+    if o["tol"] is not None and not (o["tol"] > 0 and o["tol"] < float("inf")):
+        raise InputError(f"--tol must be a finite number > 0, got {o['tol']:g}")
     if alpha is not None and alpha != "auto" and not (alpha >= 0 and alpha < float("inf")):
         raise InputError(f"--alpha must be a finite number >= 0, got {alpha}")
     if name not in available_regularizers():

@@ -178,14 +178,23 @@ def colorbar_extend(mappable) -> str:
     return {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[low, high]
 
 
-def fit_colorbars(fig, rows, tries=6):
+#: Clear margin (inches) between the outermost labels and the figure's edge; a failed result's red frame
+#: (:func:`draw_failure`, 6 pt wide, half of it inside the figure) adds its own width.
+EDGE_MARGIN_IN = 0.05
+
+
+def fit_colorbars(fig, rows, tries=10):
     """Widen the gaps between panels until no colour bar (an inset of its panel, which the layout engine does not
-    reserve room for) with its label reaches the next panel's axis label in its row.  ``fig``: a figure with
-    constrained layout; ``rows``: lists of Axes left to right.  Call it last, before saving."""
+    reserve room for) with its label reaches the next panel's axis label in its row, and pull the panels in from
+    the figure's edges until the last colour bar's label and the first axis label lie inside it, clear of a red
+    failure frame.  ``fig``: a figure with constrained layout; ``rows``: lists of Axes left to right.  Call it
+    last, before saving."""
     engine = fig.get_layout_engine()
     if engine is None or not hasattr(engine, "set"):
         return
     wspace = 0.02
+    rect = [0.0, 0.0, 1.0, 1.0]
+    margin = (EDGE_MARGIN_IN + getattr(fig, "_femreg_frame_in", 0.0)) * fig.dpi     # px
     for _ in range(tries):
         fig.draw_without_rendering()   # the layout and every extent as a draw makes them, no pixels
         r = fig.canvas.get_renderer()
@@ -196,10 +205,21 @@ def fit_colorbars(fig, rows, tries=6):
                     continue
                 reach = max(c.get_tightbbox(r).x1 for c in left.child_axes)
                 need = max(need, reach + 0.15 * fig.dpi - right.get_tightbbox(r).x0)   # 0.15 in clear
-        if need <= 0:
+        boxes = [b for ax in fig.axes for b in [ax.get_tightbbox(r)] + [c.get_tightbbox(r) for c in ax.child_axes]
+                 if b is not None]
+        w, h = fig.bbox.width, fig.bbox.height
+        over = (max(0.0, margin - min(b.x0 for b in boxes)), max(0.0, max(b.x1 for b in boxes) - (w - margin)),
+                max(0.0, margin - min(b.y0 for b in boxes)))
+        if need <= 0 and max(over) <= 0.5:
             return
-        wspace += 1.2 * need / fig.bbox.width * len(rows[0])
-        engine.set(wspace=wspace)
+        if need > 0:
+            wspace += 1.2 * need / w * len(rows[0])
+        # inset colour bars lie outside what the layout places: shrink its rectangle by what sticks out
+        rect[0] += 1.1 * over[0] / w
+        rect[2] -= 1.1 * (over[0] + over[1]) / w
+        rect[1] += 1.1 * over[2] / h
+        rect[3] -= 1.1 * over[2] / h
+        engine.set(wspace=wspace, rect=tuple(rect))
 
 
 def _draw(ax, img, ext, positions, **kw):
@@ -336,6 +356,7 @@ def draw_failure(fig, text, width=110):
                  bbox=dict(boxstyle="square,pad=0.4", facecolor=FAILED_COLOUR, edgecolor="none"))
     fig.patches.append(Rectangle((0.0, 0.0), 1.0, 1.0, transform=fig.transFigure, fill=False,
                                  edgecolor=FAILED_COLOUR, linewidth=6, zorder=100))
+    fig._femreg_frame_in = 6 / 72 / 2          # the frame's inner half (inches): fit_colorbars keeps labels clear
 
 
 def _roi_rectangle(result, d):

@@ -176,3 +176,28 @@ def test_cold_cache_notice_on_a_terminal_only(data, tmp_path, capsys, monkeypatc
     monkeypatch.setattr(cli, "_stderr_is_terminal", lambda: False)
     rc, out, err = _run(["register", data / "pair.npz", "-o", tmp_path / "b.npz", "--no-progress"], capsys)
     assert rc == 0 and _kernels.COLD_CACHE_MESSAGE not in err, err
+
+
+# ---------------------------------------------------------------------------------------------- bad flags
+def test_bad_numbers_are_refused_before_any_work_in_the_flags_units(data, tmp_path, capsys):
+    d = data
+    cases = [
+        # a ZeroDivisionError traceback (exit 1) after the whole loop was registered
+        (["elastogram", d / "loop.npz", "--fps", "0", "-o", tmp_path / "e"], "--fps must be a number > 0"),
+        # said in fractions, "got (0.02, 0.01)", of a flag given in percent
+        (["elastogram", d / "loop.npz", "--band", "2", "1", "-o", tmp_path / "e"], "0 < LO < HI < 20 (percent"),
+        # "got (np.float64(0.0), np.float64(0.0))"
+        (["register", d / "pair.npz", "--element-size", "0", "-o", tmp_path / "r.npz"], "> 0 mm, got 0"),
+        (["track", d / "loop.npz", "--margin", "-1", "-o", tmp_path / "t"], ">= 0 (mm), got -1"),
+        # an IndexError traceback (exit 1): a 2 x 2 mesh has no element off its boundary
+        (["invert", d / "ok.npz", "--region", "4", "5", "3", "4", "-o", tmp_path / "m.npz", "--no-progress"],
+         "no element off its boundary"),
+        # refused only after the whole inversion had run (10.9 s on seq299), without the mesh's span
+        (["invert", d / "ok.npz", "--reference", "100", "200", "1", "2", "10", "-o", tmp_path / "m.npz",
+          "--no-progress"], "holds no element centre; the mesh spans x"),
+    ]
+    for argv, says in cases:
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and says in err and "np.float64" not in err, (argv[0], rc, err)
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert not any(tmp_path.iterdir())

@@ -155,3 +155,82 @@ def test_frames_given_where_a_result_belongs(tmp_path, capsys):
                  ["measure", frames, "--inclusion", "1", "1", "1"]):
         rc, out, err = _run(argv, capsys)
         assert rc == 2 and "not a result file" in err and "Traceback" not in err, (argv[0], rc, err)
+
+
+def test_a_result_file_given_where_frames_belong(tmp_path, capsys):
+    # register / track / info said "no 'rf' or 'frames' array; keys: ... (choose one with --variable)", pointing
+    # at the result's fields; batch started its workers and ended with exit 1 and a failed task
+    res, mu, el = tmp_path / "pair.npz", tmp_path / "mu.npz", tmp_path / "elastogram.npz"
+    mesh = dict(mesh_points=np.zeros((4, 2)), mesh_cells=np.arange(4)[None], exx=np.zeros((8, 4)))
+    np.savez(res, **mesh)
+    np.savez(mu, mu=np.ones(1), **mesh)
+    np.savez(el, exx=np.zeros((8, 4)), ref_frame=1, quality=np.zeros((8, 4)))
+    sp = ["--spacing", "0.02", "0.2"]
+    for argv, says in ((["register", res, res, *sp, "-o", tmp_path / "x.npz"], "registration result"),
+                       (["track", mu, *sp, "-o", tmp_path / "run", "--no-progress"], "inversion result"),
+                       (["info", res], "registration result"),
+                       (["elastogram", el, *sp, "-o", tmp_path / "loop", "--no-progress"], "elastogram"),
+                       (["batch", res, *sp, "-o", tmp_path / "batch", "--workers", "0", "--no-progress"],
+                        "registration result")):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2, (argv[0], rc, err)
+        assert says in err and "not RF frames" in err and "--variable" not in err, (argv[0], err)
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "batch").exists()
+
+
+def test_batch_refuses_an_unreadable_recording_before_any_work(tmp_path, capsys):
+    # a folder of recordings (sub-folders) passed with --folders recording: exit 1 and a failed task before
+    data = tmp_path / "DATA"
+    for name in ("a", "b"):
+        (data / name).mkdir(parents=True)
+        np.save(data / name / "f0.npy", np.zeros((64, 32), np.float32))
+    rc, out, err = _run(["batch", data, "--folders", "recording", "--spacing", "0.02", "0.2", "-o",
+                         tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
+    assert rc == 2 and "no frame files" in err and "it holds folders (a, b)" in err, (rc, err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_frames_of_different_shapes_name_both_files(tmp_path, capsys):
+    # "image shape mismatch: reference (64, 32) vs moving (48, 32)": no file named, no hint what to check
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "a.npy", rng.standard_normal((64, 32)).astype(np.float32))
+    np.save(tmp_path / "b.npy", rng.standard_normal((48, 32)).astype(np.float32))
+    rc, out, err = _run(["register", tmp_path / "a.npy", tmp_path / "b.npy", "--spacing", "0.02", "0.2",
+                         "--no-orientation-check", "-o", tmp_path / "x.npz"], capsys)
+    assert rc == 2 and "a.npy and" in err and "b.npy hold frames of different shapes" in err, err
+    assert "64 x 32 and 48 x 32 (axial x lateral)" in err and "--shape" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_batch_refuses_a_setting_every_recording_lacks(tmp_path, capsys):
+    # a folder of recordings without --spacing: every task failed after the workers started (exit 1, 4.2 s on the
+    # in vivo folders); femreg's own results beside the recordings were counted as recordings ("its 8 files")
+    from femreg.batch import jobs_from_inputs
+
+    data = tmp_path / "DATA"
+    data.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        np.save(data / f"{name}.npy", rng.standard_normal((2, 64, 32)).astype(np.float32))
+    np.savez(data / "pair.npz", mesh_points=np.zeros((2, 4)), mesh_cells=np.zeros((4, 1), int))
+    assert [j.name for j in jobs_from_inputs([data])] == ["a", "b"]
+    rc, out, err = _run(["batch", data, "-o", tmp_path / "out", "--workers", "0", "--no-progress"], capsys)
+    assert rc == 2 and "spacing unknown" in err and "--spacing" in err and err.count("\n") == 1, (rc, err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_given_region_without_signal_is_refused(tmp_path, capsys):
+    # --depth over the in vivo frames' last 1.5 mm (zero samples): "registration failed: ... NCC after -1.000",
+    # exit 1, as if the pair were bad rather than the region
+    frames = np.random.default_rng(0).standard_normal((2, 200, 32)).astype(np.float32)
+    frames[:, 120:] = 0.0                                  # nothing recorded below 6 mm
+    np.save(tmp_path / "f.npy", frames)
+    sp = ["--spacing", "0.05", "0.2", "--no-orientation-check", "--no-progress"]
+    rc, out, err = _run(["register", tmp_path / "f.npy", *sp, "--depth", "6.5", "9.9", "-o", tmp_path / "x.npz"],
+                        capsys)
+    assert rc == 2 and "the depth given holds no signal: 69 of 69 rows" in err, (rc, err)
+    rc, out, err = _run(["track", tmp_path / "f.npy", *sp, "--roi", "4", "9.9", "0", "6", "-o", tmp_path / "t"],
+                        capsys)
+    assert rc == 2 and "the roi given holds no signal" in err, (rc, err)
+    assert not (tmp_path / "x.npz").exists() and not (tmp_path / "t").exists()

@@ -168,3 +168,64 @@ def test_auto_alpha_without_a_successful_candidate_says_so(data, capsys, tmp_pat
     with pytest.warns(RuntimeWarning):
         rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "a.npz", "--alpha", "auto"], capsys)
     assert rc == 1 and "no successful candidate" in err
+
+
+def test_every_command_states_its_exit_codes_in_its_help():
+    # register, elastogram, batch and invert said nothing about them; info, plot, measure and track each in their
+    # own words.  Now every one ends with "exit codes: 0 ...; 1 ...; 2 bad input, found before any work ..."
+    from femreg.cli import EXIT_CODES, build_parser
+
+    sub = next(a for a in build_parser()._actions if getattr(a, "choices", None) and "register" in a.choices)
+    assert set(EXIT_CODES) == {"register", "track", "elastogram", "info", "plot", "measure", "batch", "invert"}
+    for name in EXIT_CODES:
+        text = " ".join(sub.choices[name].format_help().split())
+        assert "exit codes: 0 " in text and "; 1 " in text and "; 2 bad input, found before any work" in text, name
+    for name in ("track", "batch"):                              # --mode said what its two choices do
+        text = " ".join(sub.choices[name].format_help().split())
+        assert "direct: register frame 0 to each frame" in text, name
+
+
+def test_no_progress_is_accepted_by_every_command(data, results, capsys, tmp_path):
+    # plot, measure and info stopped with "unrecognized arguments: --no-progress" (exit 2) in a script passing it
+    # to every command
+    argv = {"info": ["info", data / "good.npz"],
+            "plot": ["plot", results[0], "-o", tmp_path / "p.png", "--dpi", "30"],
+            "measure": ["measure", results[0], "--inclusion", "6", "4", "2"]}
+    for name, args in argv.items():
+        rc, out, err = _run([*args, "--no-progress"], capsys)
+        assert rc == 0, (name, rc, err)
+
+
+def test_an_empty_background_or_inclusion_says_which(results, capsys):
+    # "ROI mask must leave finite samples both inside and outside": neither which region was empty nor what to do
+    rc, out, err = _run(["measure", results[0], "--inclusion", "6", "4", "40"], capsys)
+    assert rc == 2 and "the background holds no finite sample" in err and "a smaller radius" in err, err
+
+
+def test_a_frame_check_names_the_file_it_judged(data, capsys, tmp_path):
+    # "the frames look transposed: ..." named no file, where the checks on the file as read (centimetres, the
+    # raw --shape, the sample type) begin with it
+    for argv, lead in ((["register", data / "transposed.npz"], f"{data / 'transposed.npz'}: the frames look"),
+                       (["track", data / "transposed.npz", "--no-progress"], f"{data / 'transposed.npz'}: the frames")):
+        rc, out, err = _run([*argv, "-o", tmp_path / "x.npz" if argv[0] == "register" else tmp_path / "t"], capsys)
+        assert rc == 2 and err.startswith(f"femreg {argv[0]}: error: {lead}"), err
+
+
+def test_plot_reference_takes_the_results_spacing(data, results, capsys, tmp_path):
+    # a raw / .npy reference needed --spacing again (exit 2, "spacing unknown") though the B-mode is drawn on the
+    # result's grid; a --spacing other than the result's was taken silently (exit 0)
+    from femreg.io import read_frames
+
+    fr = read_frames(data / "good.npz")
+    np.save(tmp_path / "ref.npy", fr.frames[0])
+    rc, out, err = _run(["plot", results[0], "--reference", tmp_path / "ref.npy", "-o", tmp_path / "p.png",
+                         "--dpi", "30"], capsys)
+    assert rc == 0 and (tmp_path / "p.png").is_file(), err
+    dx, dy = (float(v) for v in fr.spacing)
+    rc, out, err = _run(["plot", results[0], "--reference", tmp_path / "ref.npy", "--spacing", 2 * dx, 2 * dy,
+                         "-o", tmp_path / "q.png", "--dpi", "30"], capsys)
+    assert rc == 2 and "differs from the result's" in err and not (tmp_path / "q.png").exists(), err
+    # invert --images reads its frames the same way (the refusal comes before any work)
+    rc, out, err = _run(["invert", results[0], "--images", tmp_path / "ref.npy", tmp_path / "ref.npy", "--spacing",
+                         2 * dx, 2 * dy, "-o", tmp_path / "mu.npz", "--no-progress"], capsys)
+    assert rc == 2 and "differs from the result's" in err and not (tmp_path / "mu.npz").exists(), err

@@ -290,3 +290,33 @@ def test_summary_colour_bars_clear_of_the_next_panel(shape, spacing):
             assert bar.x1 < right.get_tightbbox(r).x0, (left.get_title(), shape)
             assert abs(left.child_axes[0].get_window_extent(r).height - left.get_window_extent(r).height) < 2
     plt.close(fig)
+
+
+def test_labels_stay_inside_the_figure_and_clear_of_the_failure_frame():
+    """The in vivo mu.png (flagged, 1320 x 583 px): the depth label began 1 px from the left edge and the last
+    colour bar's label ended 1 px from the right one, both under the red frame (3 pt of it inside the figure)."""
+    from skfem import MeshQuad1
+
+    from femreg.inversion import InversionResult
+    from femreg.plot import EDGE_MARGIN_IN, plot_inversion
+
+    m = MeshQuad1.init_tensor(np.linspace(1, 37, 31), np.linspace(1, 24.5, 24))     # the in vivo mesh's extent
+    u = np.zeros(2 * m.p.shape[1])
+    u[0::2] = -0.01 * m.p[0]
+    for success in (True, False):
+        res = InversionResult(mesh=m, mu=np.exp(np.sin(m.p[:, m.t].mean(axis=1)[0])), model="plane-stress",
+                              lambda_bar=2.0, beta=0.1, u_measured=u, success=success,
+                              message="ok" if success else "FLAGGED: the misfit " + "stays above the limit " * 12)
+        res.uncertainty = np.full(m.t.shape[1], 2.5)
+        fig = plot_inversion(res, dpi=100)
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        clear = (EDGE_MARGIN_IN + (0 if success else 6 / 72 / 2)) * fig.dpi - 1      # px, 1 px of rounding
+        boxes = [b for a in fig.axes for b in [a.get_tightbbox(r)] + [c.get_tightbbox(r) for c in a.child_axes]]
+        assert min(b.x0 for b in boxes) >= clear, (success, min(b.x0 for b in boxes), clear)
+        assert max(b.x1 for b in boxes) <= fig.bbox.width - clear, (success, max(b.x1 for b in boxes))
+        assert min(b.y0 for b in boxes) >= clear, (success, min(b.y0 for b in boxes))
+        panels = [a for a in fig.axes if a.get_title()]
+        for left, right in zip(panels[:-1], panels[1:]):                 # and still apart from each other
+            assert left.child_axes[0].get_tightbbox(r).x1 < right.get_tightbbox(r).x0
+        plt.close(fig)

@@ -96,3 +96,46 @@ def test_invivo_frame_written_line_by_line(tmp_path):
     np.testing.assert_array_equal(fr.frames, ref)
     with pytest.raises(InputError, match="A-lines of 2000 samples"):
         read_frames(p, spacing=(0.02, 0.2))
+
+
+def test_a_file_read_with_the_wrong_sample_type_names_the_right_one(tmp_path, capsys):
+    # a float64 file read as float32 (the default) cut into two frames of garbage: `femreg info` said "ready to
+    # register" (exit 0), `femreg register` failed on an unrelated echo rule after a numpy warning
+    from femreg.cli import main
+
+    rf, sp = _frames(PROBES[1], n=2)
+    cases = {"f64.raw": (rf[0].astype("<f8"), None, "--dtype float64"),          # 2 frames as float32
+             "i16.raw": (rf.astype("<i2"), None, "--dtype int16"),               # 2 int16 frames: 1 as float32
+             "f64as16.raw": (rf[0].astype("<f8"), "int16", "--dtype float64")}
+    for name, (arr, dtype, advice) in cases.items():
+        arr.tofile(tmp_path / name)
+        with pytest.raises(FileFormatError, match=advice):
+            read_frames(tmp_path / name, shape=(1200, 64), dtype=dtype, spacing=sp)
+    rc = main(["info", str(tmp_path / "f64.raw"), "--shape", "1200", "64", "--spacing", *map(str, sp)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--dtype float64" in err and len(err.strip().splitlines()) == 1, err
+    # the right type reads; envelope data (no carrier in any type) are not refused
+    fr = read_frames(tmp_path / "f64.raw", shape=(1200, 64), dtype="float64", spacing=sp)
+    np.testing.assert_allclose(fr.frames[0], rf[0])
+    env = np.abs(rf).astype(np.float32)
+    env.tofile(tmp_path / "env.raw")
+    assert read_frames(tmp_path / "env.raw", shape=(1200, 64), spacing=sp).n_frames == 2
+
+
+def test_a_size_mismatch_names_the_type_that_shows_the_carrier(tmp_path, capsys):
+    # float32 frames read with --dtype double: the advice was "try --dtype int16" (the first type that divided
+    # the size), which reads them as garbage; a decimal comma in --spacing got no hint
+    from femreg.cli import main
+
+    rf, sp = _frames(PROBES[1], n=1)
+    rf.tofile(tmp_path / "f32.raw")
+    with pytest.raises(FileFormatError, match="whose samples show an RF carrier: try dtype=float32"):
+        read_frames(tmp_path / "f32.raw", shape=(1200, 64), dtype="float64", spacing=sp)
+    noise = np.random.default_rng(1).standard_normal(1200 * 64).astype(np.float32)
+    noise.tofile(tmp_path / "noise.raw")                        # no carrier in any type: the old advice stands
+    with pytest.raises(FileFormatError, match=r"whole number of int16 frames: try dtype=int16"):
+        read_frames(tmp_path / "noise.raw", shape=(1200, 64), dtype="float64", spacing=sp)
+    with pytest.raises(SystemExit) as leave:                    # argparse's own exit, code 2
+        main(["info", str(tmp_path / "f32.raw"), "--shape", "1200", "64", "--spacing", "0,02", "0.2"])
+    err = capsys.readouterr().err
+    assert leave.value.code == 2 and "write it with a decimal point, 0.02" in err, err

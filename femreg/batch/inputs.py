@@ -72,8 +72,9 @@ def settings_file_for(path) -> Path | None:
 
 def _scan_folder(folder: Path, skip: Path | None) -> list[Path]:
     """The recordings of a folder: every frame file (supported extension) and every sub-folder, in name
-    order; MetaImage data files (the .raw of a .mhd) and hidden entries are left out."""
-    from ..io.readers import FORMATS, natural_key
+    order; MetaImage data files (the .raw of a .mhd), femreg's own result files (set aside as
+    :func:`femreg.io.read_frames` sets them aside in a folder of frames) and hidden entries are left out."""
+    from ..io.readers import FORMATS, is_result_file, natural_key
 
     entries = sorted((p for p in folder.iterdir() if not p.name.startswith(".")), key=lambda p: natural_key(p.name))
     data_files = set()
@@ -90,7 +91,7 @@ def _scan_folder(folder: Path, skip: Path | None) -> list[Path]:
             continue
         if p.is_dir():
             out.append(p)
-        elif p.is_file() and p.suffix.lower() in FORMATS and p.name not in data_files:
+        elif p.is_file() and p.suffix.lower() in FORMATS and p.name not in data_files and not is_result_file(p):
             out.append(p)
     return out
 
@@ -116,14 +117,15 @@ def _names(paths: list[Path]) -> list[str]:
 
 
 def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "contents",
-                     out_dir=None) -> list[Job]:
+                     out_dir=None, refuse_unreadable: bool = False) -> list[Job]:
     """Jobs for ``inputs`` (files and folders), in a deterministic order.
 
     A file is one recording.  A folder is, with ``folders="contents"`` (default), a folder of recordings: each
     frame file in it and each sub-folder (a folder of per-frame files) is one; with ``folders="recording"`` the
     folder itself is one recording (per-frame files).  ``settings`` (see :func:`settings_keys`) apply to all;
     a recording's own settings file (:func:`settings_file_for`) overrides them for that recording.
-    Raises :class:`InputError` for a missing input, an empty folder, an unknown or bad setting.
+    Raises :class:`InputError` for a missing input, an empty folder, an unknown or bad setting, and with
+    ``refuse_unreadable`` (the command line) for an input that is one recording and cannot be read.
     """
     if folders not in ("contents", "recording"):
         raise InputError(f"folders must be 'contents' or 'recording', got {folders!r}")
@@ -162,7 +164,8 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
         jobs.append(job)
     by_input = {j.input: j for j in jobs}
     for item, found in groups:
-        _check_first_recordings(item, [by_input[str(f.resolve())] for f in found if str(f.resolve()) in by_input])
+        _check_first_recordings(item, [by_input[str(f.resolve())] for f in found if str(f.resolve()) in by_input],
+                                refuse_unreadable)
     return jobs
 
 
@@ -170,11 +173,14 @@ def _frames_needed(settings: dict) -> int:
     return 2 if settings["task"] == "track" else 1 + max(max(p) for p in settings["pairs"])
 
 
-def _check_first_recordings(item: Path, jobs: list) -> None:
+def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = False) -> None:
     """Bad input a batch can see before it runs, from the first readable recordings of one input: a folder
     whose files hold one frame each (the frames of one recording, read as recordings of their own), and
-    frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  Recordings that
-    cannot be read are left to their tasks, which record the error."""
+    frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  With
+    ``refuse_unreadable``, an input that is one recording and cannot be read is refused, and so is a folder whose
+    recordings lack a setting (a raw file without --shape, no spacing); otherwise, and for a corrupt file in a
+    folder of several, recordings that cannot be read are left to their tasks, which record the error."""
+    from ..errors import FileFormatError
     from ..io import read_frames
     from ..orientation import OrientationError, check, check_raw_shape
 
@@ -183,7 +189,13 @@ def _check_first_recordings(item: Path, jobs: list) -> None:
         try:
             reader_kw, _ = _check_settings(job.resolved(), job.input)
             probed.append((job, read_frames(job.input, **reader_kw)))
-        except (InputError, OSError):
+        except (InputError, OSError) as exc:
+            if refuse_unreadable and len(jobs) == 1 and isinstance(exc, InputError):   # nothing else would run
+                raise
+            if refuse_unreadable and isinstance(exc, InputError) and not isinstance(exc, FileFormatError):
+                raise       # a setting every recording lacks (--shape, --spacing), not one corrupt file
+            if refuse_unreadable and len(jobs) == 1:
+                raise InputError(f"{job.input}: {exc}") from None
             continue
         if len(probed) == 2 or probed[0][1].n_frames > 1:
             break

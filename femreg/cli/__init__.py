@@ -22,6 +22,39 @@ ORDER = ["register_cmd", "track_cmd", "elastogram_cmd", "info_cmd", "plot_cmd", 
 #: Entry-point group through which other packages contribute subcommands.
 ENTRY_POINT_GROUP = "femreg.commands"
 
+#: What exit codes 0 and 1 mean for each of femreg's own subcommands, and examples of the bad input of code 2
+#: (for all: found before any work, one line on stderr); shown at the end of every subcommand's --help, as the
+#: README's table says.
+EXIT_CODES = {
+    "register": ("registered", "registered, but the registration failed its check or its NCC after is below "
+                               "--min-ncc (the result is written, the reason printed)"),
+    "track": ("every frame registered", "a frame flagged (failed its check, low NCC) or not computed: finished "
+                                        "frames are kept, --resume continues"),
+    "elastogram": ("done", "nothing usable: no pair in the band registered (the screening is written)"),
+    "info": ("described, ready to register", "described, but something is needed first (no spacing, a transposed "
+                                             "frame: printed)",
+             "the file cannot be read: a raw file without --shape, the wrong --dtype, no such variable, a corrupt "
+             "file, a femreg result"),
+    "plot": ("drawn", "drawn, but the result is a failed or flagged registration or inversion (printed)",
+             "not a result file, bad flags"),
+    "measure": ("measured", "measured, but the result is a failed one (the numbers marked FLAGGED)",
+                "not a result file, a region outside the mesh (its bounds printed), bad flags"),
+    "batch": ("every task done, none flagged", "a task failed or was flagged (the summary names it; --resume "
+                                               "reruns the failed ones)"),
+    "invert": ("inverted", "inverted, but the optimisation failed or the result is flagged, or --allow-failed on a "
+                           "failed registration (the result is written, the reason printed)",
+               "not a result file, a failed registration without --allow-failed, a --region outside the mesh, bad "
+               "flags"),
+}
+
+
+def exit_code_epilog(name: str) -> str:
+    """The --help epilog stating ``name``'s exit codes (:data:`EXIT_CODES`)."""
+    done, flagged, *bad = EXIT_CODES[name]
+    bad = bad[0] if bad else "unreadable file, bad flags, frames that look transposed, a swapped spacing, ..."
+    return (f"exit codes: 0 {done}; 1 {flagged}; 2 bad input, found before any work, with a one-line reason on "
+            f"stderr ({bad}).")
+
 
 def _command_modules() -> list[str]:
     import pkgutil
@@ -50,6 +83,13 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _command_modules():
         importlib.import_module(f"femreg.cli.{name}").add_parser(sub)
+    for name, sp in sub.choices.items():
+        if name in EXIT_CODES and not sp.epilog:
+            sp.epilog = exit_code_epilog(name)
+        if name in EXIT_CODES and "--no-progress" not in sp._option_string_actions:
+            # a script passing it to every command must not fail on the ones that show no bar
+            sp.add_argument("--no-progress", action="store_true",
+                            help="accepted by every command; this one shows no progress bar")
     plugins = _contributed()
     first = next((a for a in (argv or []) if not a.startswith("-")), None)
     wanted = [first] if first in plugins else ([] if first in sub.choices else sorted(plugins))
@@ -61,6 +101,19 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
             continue
         add(sub)
     return parser
+
+
+def _name_the_files(args, exc, msg: str) -> str:
+    """``msg`` of a frame check that ran on the frames, not the file (transposed, swapped spacing), led by the
+    input file(s) it judged, as the checks on the file as read are."""
+    from femreg.orientation import OrientationError
+
+    if not isinstance(exc, OrientationError):
+        return msg
+    files = [str(v) for v in (getattr(args, k, None) for k in ("reference", "moving", "file")) if v is not None]
+    if not files or any(msg.startswith(f) for f in files):
+        return msg
+    return f"{', '.join(files)}: {msg}"
 
 
 def _header_spacing_note(args, exc) -> str:
@@ -161,7 +214,7 @@ def main(argv=None) -> int:
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
         _remove_empty(made)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        msg += _header_spacing_note(args, exc)
+        msg = _name_the_files(args, exc, msg) + _header_spacing_note(args, exc)
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra

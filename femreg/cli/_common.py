@@ -97,6 +97,30 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
+def frames_on_result_grid(args, path, result_spacing):
+    """Frames of ``path`` drawn or used on a result's pixel grid (``plot --reference``, ``invert --images``): a
+    file that stores no spacing takes the result's (``result_spacing``, mm), no --spacing needed; a spacing that
+    differs from it by more than 1 % is refused (another recording, or a wrong --spacing)."""
+    import numpy as np
+
+    from ..errors import SpacingUnknownError
+
+    res_sp = np.ravel(np.asarray([] if result_spacing is None else result_spacing, float))
+    try:
+        fr = frames_from_args(args, path)
+    except SpacingUnknownError:
+        if args.spacing is not None or res_sp.size != 2:
+            raise
+        args.spacing = [float(v) for v in res_sp]
+        fr = frames_from_args(args, path)
+    sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
+    if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
+        raise InputError(f"{path}: spacing {tuple(float(v) for v in sp)} mm differs from the result's "
+                         f"{tuple(float(v) for v in res_sp)} (axial, lateral): not the frames it was registered "
+                         "from, or a wrong --spacing (leave it out: the result's is used)")
+    return fr
+
+
 def frame_index(index: int, n: int, path, flag: str) -> int:
     """``index`` of a frame (``flag`` names the option that gave it) in ``path`` holding ``n`` frames; an
     InputError (exit 2) naming the valid range when it is outside 0 to n - 1.  A negative index is refused, not

@@ -14,8 +14,8 @@ folder recording, with the flags' long names as keys (``regularizer = "strain"``
 Exit codes: 0 all tasks done and none flagged; 1 some task failed or was flagged (low NCC, a frame whose
 registration failed its check; the others finished; the summary names the error; ``--resume`` reruns the failed
 ones only); 2 bad input, found before anything runs (a missing input, bad settings, a folder of single-frame
-files without ``--folders recording``, frames that look transposed or a swapped spacing in the first
-recording of an input).
+files without ``--folders recording``, an input that is one recording and cannot be read, frames that look
+transposed or a swapped spacing in the first recording of an input).
 """
 from __future__ import annotations
 
@@ -41,7 +41,9 @@ def add_parser(subparsers):
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2, action="append",
                    help="--task register: reference and moving frame indices (repeat for several pairs, one "
                         "task each; default 0 1)")
-    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate", help="track mode")
+    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate",
+                   help="track: accumulate (default): register each frame to the one before and sum the increments in "
+                        "first-frame coordinates (eq:IR); direct: register frame 0 to each frame")
     p.add_argument("--grid", choices=("current", "reference"), default="current",
                    help="track: pixel grid of accumulation (see femreg track --help)")
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
@@ -85,7 +87,8 @@ def run(args) -> int:
         raise InputError("--pair applies to --task register")
     if args.scheduler is None and args.workers < 0:
         raise InputError(f"--workers must be >= 0, got {args.workers}")
-    jobs = jobs_from_inputs(args.inputs, settings_from_args(args), folders=args.folders, out_dir=args.output)
+    jobs = jobs_from_inputs(args.inputs, settings_from_args(args), folders=args.folders, out_dir=args.output,
+                            refuse_unreadable=True)
     summary = run_batch(jobs, args.output, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
                         progress=not args.no_progress, memory_limit=args.memory_limit)
     n = len(summary.records)

@@ -180,6 +180,11 @@ def run(args) -> int:
     from .._atomic import atomic_savez
     from ..elastogram import band_advice, elastogram, write_pairs_csv
 
+    lo, hi = args.band
+    if not 0 < lo < hi < 20:            # the flags are in percent (the function's band in fractions)
+        raise InputError(f"--band LO HI must satisfy 0 < LO < HI < 20 (percent of axial strain), got {lo:g} {hi:g}")
+    if not (0 < args.fps < float("inf")):
+        raise InputError(f"--fps must be a number > 0 (frames per second of the strain cine), got {args.fps:g}")
     fr = frames_from_args(args)
     if not args.no_orientation_check:
         from .register_cmd import _refuse_curved
@@ -188,7 +193,6 @@ def run(args) -> int:
                                       "track and those flags (or --no-orientation-check if the frames are on a "
                                       "Cartesian grid already)")
     kw = registration_kwargs(args)
-    lo, hi = args.band
     out = Path(args.output)
 
     def on_pair(r):

@@ -22,11 +22,7 @@ def add_parser(subparsers):
                     "directory of per-frame files) and print its format, number of frames, frame shape (axial x "
                     "lateral), sample type as stored, spacing, value range, variables and header fields, and what is "
                     "missing to register it (spacing; frames that look transposed or a spacing that looks "
-                    "swapped, from the RF carrier: femreg.orientation).  Exit 0 when described and ready to "
-                    "register; 1 when described but something is needed first (no spacing, a transposed frame: "
-                    "printed); "
-                    "2 with a one-line reason if the file cannot be read (a raw file without --shape, no such "
-                    "variable, a corrupt file).")
+                    "swapped, from the RF carrier: femreg.orientation).")
     p.add_argument("file", help="data file or directory of frame files")
     add_reader_args(p)
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")

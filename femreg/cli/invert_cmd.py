@@ -67,22 +67,23 @@ def add_parser(subparsers):
     return p
 
 
-def _images(args):
-    """(reference, moving) frames of --images, read like ``femreg register`` reads them."""
+def _images(args, spacing=None):
+    """(reference, moving) frames of --images, read like ``femreg register`` reads them; ``spacing``: the
+    registration's (mm), which a file without its own takes (:func:`frames_on_result_grid`)."""
     from femreg.errors import InputError
 
-    from ._common import frames_from_args
+    from ._common import frames_on_result_grid
     from .register_cmd import _frame
 
     if len(args.images) > 2:
         raise InputError(f"--images takes one or two files, got {len(args.images)}")
-    ref_fr = frames_from_args(args, args.images[0])
+    ref_fr = frames_on_result_grid(args, args.images[0], spacing)
     if len(args.images) == 1:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr
     else:
         i, j = args.pair or (0, 0)
-        mov_fr = frames_from_args(args, args.images[1])
+        mov_fr = frames_on_result_grid(args, args.images[1], spacing)
     return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
 
 
@@ -202,7 +203,8 @@ def run(args) -> int:
     if failed_reg and not args.allow_failed:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")
-    ref_img, mov_img = (_volumes(args) if volume else _images(args)) if args.images else (None, None)
+    ref_img, mov_img = ((_volumes(args) if volume else _images(args, getattr(reg, "spacing", None)))
+                        if args.images else (None, None))
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),
                         regularization=args.regularization, poisson=args.poisson, maxiter=args.maxiter,

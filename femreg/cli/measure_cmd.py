@@ -33,8 +33,7 @@ def add_parser(subparsers):
         description="Contrast numbers of a circular inclusion in a result .npz of `femreg register` (strain ratio "
                     "SR = background / inclusion mean axial strain, CNR_e, SNR_e of the background) or of "
                     "`femreg invert` (the same, and the modulus contrast inclusion / background).  Coordinates in "
-                    "mm: x axial (depth), y lateral (a volume's result: z elevational, a spherical inclusion).  "
-                    "Exit 0; 1 for a failed result (numbers flagged); 2 on bad input.")
+                    "mm: x axial (depth), y lateral (a volume's result: z elevational, a spherical inclusion).")
     p.add_argument("result", help="result .npz of `femreg register`, `femreg track` or `femreg invert`, or the "
                                   "elastogram.npz of `femreg elastogram`")
     p.add_argument("--inclusion", required=True, type=float, nargs="+", metavar="MM",

@@ -4,7 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import add_reader_args, failed_notice, frame_index, frames_from_args  # noqa: F401  (failed_notice: also here)
+from ._common import (add_reader_args, failed_notice, frame_index, frames_from_args,  # noqa: F401
+                      frames_on_result_grid)  # failed_notice: also here
 
 
 def add_parser(subparsers):
@@ -16,9 +17,7 @@ def add_parser(subparsers):
                     "(OUT_quality.png) when the result holds one.  A file of `femreg invert` gets the modulus "
                     "image, its uncertainty and the axial strain (a volume's: three orthogonal slices of each "
                     "through --slice).  Optionally export the mesh with nodal "
-                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.  Exit 0 when drawn; "
-                    "1 when drawn but the result is a failed (or flagged) registration or inversion, which is "
-                    "printed; 2 with a one-line reason on bad input.")
+                    "displacement and strains to VTU/XDMF and render the mesh with pyvista.")
     p.add_argument("result", help="result .npz (keys mesh_points, mesh_cells, u, ux, uy, exx, eyy, exy, ...)")
     p.add_argument("-o", "--output", metavar="OUT.png",
                    help="figure path (default: RESULT with .png; missing folders are created)")
@@ -27,7 +26,9 @@ def add_parser(subparsers):
     p.add_argument("--render", metavar="OUT.png", help="also render the mesh coloured by --field with pyvista")
     p.add_argument("--field", default="exx", choices=("ux", "uy", "exx", "eyy", "exy"),
                    help="field for --render (default exx, element-centre values; strains in %%, displacement in mm)")
-    p.add_argument("--reference", metavar="FILE", help="reference RF (any readable format) for the B-mode panel")
+    p.add_argument("--reference", metavar="FILE",
+                   help="reference RF (any readable format) for the B-mode panel, drawn on the result's grid (a "
+                        "file that stores no spacing needs no --spacing: the result's is used)")
     p.add_argument("--frame", type=int, default=0, help="frame of --reference to use, counted from 0 (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
@@ -78,7 +79,7 @@ def _run(args) -> int:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
     reference = None
     if args.reference:
-        fr = frames_from_args(args, path=args.reference)
+        fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
         reference = fr.frames[frame_index(args.frame, fr.n_frames, args.reference, "--frame")]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")

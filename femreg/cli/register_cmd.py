@@ -235,6 +235,12 @@ def run(args) -> int:
                   "reads each file as one RF volume)", file=sys.stderr)
     ref = _frame(ref_fr, i, args.reference)
     mov = _frame(mov_fr, j, args.moving or args.reference)
+    if args.moving is not None and np.shape(ref) != np.shape(mov):
+        dims = " x ".join
+        raise InputError(f"{args.reference} and {args.moving} hold frames of different shapes, "
+                         f"{dims(map(str, np.shape(ref)))} and {dims(map(str, np.shape(mov)))} (axial x lateral"
+                         f"{' x elevational' if np.ndim(ref) == 3 else ''}): both frames of a pair come from one "
+                         "recording (check the files and --shape)")
     if args.moving is not None and "iq" in ref_fr.metadata and not args.no_orientation_check:
         # two IQ files: their sign convention is checked on the pair (one file of several frames is checked as read)
         from ..orientation import check_iq_sign

@@ -35,7 +35,9 @@ def add_parser(subparsers):
     p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, .rf, .uff/.h5, DICOM .dcm, or a "
                                 "folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
-    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate")
+    p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate",
+                   help="accumulate (default): register each frame to the one before and sum the increments in "
+                        "first-frame coordinates (eq:IR); direct: register frame 0 to each frame")
     p.add_argument("--grid", choices=("current", "reference"), default="current",
                    help="accumulation: register on each frame's pixel grid with the mesh moved by the accumulated "
                         "field (default), or on the first frame's grid as eq:IR is written (biased on noisy data)")

@@ -12,6 +12,8 @@ facts:
   other way round.  The reading whose neighbouring lines correlate is kept and ``metadata["layout"]`` says so;
   when neither correlates the choice is refused, naming both shapes.
 * :func:`byte_order_hint`: samples without a carrier (or not finite) that show one in the other byte order.
+* :func:`dtype_hint`: samples without a carrier (or not finite) whose bytes show one read as another sample type
+  (a float64 file read as float32 holds twice the frames, none of them RF).
 * :func:`guess_shape`: for a file read without ``shape``, the lines per depth (sample-major) or samples per line
   (line-major) and the sample type under which the carrier appears: the ``--shape`` to pass for one frame.
 
@@ -124,6 +126,42 @@ def byte_order_hint(first, dtype, *, axis=_UNKNOWN) -> str:
     other = "little" if dt.byteorder == ">" else "big"
     return (f"the samples show an RF carrier read {other}-endian, none as read"
             f"{'' if finite else ' (non-finite values)'}: pass byte_order='{other}' (CLI: --byte-order {other})")
+
+
+def dtype_hint(path, shape, dtype, *, offset=0, axis=_UNKNOWN, first=None) -> str:
+    """A ``--dtype`` to pass when the first frame of ``shape`` (axial, lateral) read as ``dtype`` shows no carrier
+    or non-finite samples, but the file's bytes read as one of :data:`GUESS_DTYPES` (in the same byte order)
+    show one along axis 0 and cut into whole frames of ``shape``; "" otherwise.  ``first``: the frame as read,
+    ``axis``: its :func:`carrier_axis`, when the caller has them already."""
+    dt = np.dtype(dtype)
+    a, b = int(shape[-2]), int(shape[-1])
+    try:
+        size = os.path.getsize(path) - int(offset)
+    except OSError:
+        return ""
+    with np.errstate(all="ignore"):
+        if first is None:
+            first = np.fromfile(path, dtype=dt, count=a * b, offset=int(offset)).reshape(a, b)
+        finite = bool(np.all(np.isfinite(first))) if dt.kind == "f" else True
+        if axis is _UNKNOWN:
+            axis = carrier_axis(first)
+        if finite and axis is not None:
+            return ""
+        order = ">" if dt.byteorder == ">" else "<"
+        for t in GUESS_DTYPES:
+            alt = np.dtype(order + t[1:])
+            if alt == dt or size % (a * b * alt.itemsize):
+                continue
+            other = np.fromfile(path, dtype=alt, count=a * b, offset=int(offset)).astype(float)
+            if other.size < a * b or not np.all(np.isfinite(other)) or not np.any(other):
+                continue
+            if carrier_axis(other.reshape(a, b)) == 0:
+                n_as, n_alt = size // (a * b * dt.itemsize), size // (a * b * alt.itemsize)
+                return (f"read as {dt.name} the samples show no RF carrier"
+                        f"{'' if finite else ' (non-finite values)'} and the file holds {n_as} frame(s) of "
+                        f"{a} x {b}; read as {alt.name} they show one, {n_alt} frame(s): the samples look stored "
+                        f"as {alt.name}, pass dtype='{alt.name}' (CLI: --dtype {alt.name})")
+    return ""
 
 
 def _divisors(n: int, low: int, high: int) -> list[int]:

@@ -161,6 +161,14 @@ def _load_npz(path, variable, preferred):
                 key = variable
             else:
                 key = next((k for k in preferred if k in members), None)
+                if key is None and {"mesh_points", "mesh_cells"} <= set(members):
+                    kind, readers = (("inversion", "plot and measure") if "mu" in members else
+                                     ("registration", "plot, measure and invert"))
+                    raise fail(path, f"a femreg {kind} result (mesh and fields), not RF frames: pass the frame "
+                                     f"files it was computed from; femreg {readers} read it")
+                if key is None and {"exx", "ref_frame"} <= set(members):
+                    raise fail(path, "a femreg elastogram (strain image), not RF frames: pass the frame files it "
+                                     "was computed from; femreg measure reads it")
                 if key is None:
                     raise fail(path, f"no {' or '.join(repr(k) for k in preferred)} array; keys: "
                                      f"{', '.join(sorted(members)) or 'none'} (choose one with variable= / --variable)")
@@ -266,12 +274,20 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     else:
         if body <= 0 or body % frame_bytes:
             hint = ""
-            for alt in ("i2", "f4", "f8"):
-                isz = np.dtype(alt).itemsize
-                if alt != dt.str[1:] and body > 0 and body % (shp[0] * shp[1] * isz) == 0:
-                    name = np.dtype(alt).name
-                    hint = f" (a whole number of {name} frames: try dtype={name}, CLI: --dtype {name})"
-                    break
+            fits = [np.dtype(dt.byteorder.replace("=", "<").replace("|", "<") + alt) for alt in ("i2", "f4", "f8")
+                    if alt != dt.str[1:] and body > 0 and body % (shp[0] * shp[1] * np.dtype(alt).itemsize) == 0]
+            if fits:                        # the type whose samples show an RF carrier first, if one does
+                from .rawlayout import carrier_axis
+
+                def carrier(t):
+                    with np.errstate(all="ignore"):
+                        first = np.fromfile(path, dtype=t, count=shp[0] * shp[1], offset=int(offset))
+                        return first.size == shp[0] * shp[1] and carrier_axis(first.reshape(shp)) == 0
+
+                best = next((t for t in fits if carrier(t)), None)
+                name = (best or fits[0]).name
+                shows = " whose samples show an RF carrier" if best is not None else ""
+                hint = f" (a whole number of {name} frames{shows}: try dtype={name}, CLI: --dtype {name})"
             raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
                              f"frames ({frame_bytes} bytes each){hint}")
         n = body // frame_bytes
@@ -282,11 +298,12 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     except (OSError, ValueError) as exc:
         raise fail(path, f"cannot read samples ({exc})") from None
     arr = arr.reshape(n, shp[-2], shp[-1])
-    from .rawlayout import byte_order_hint, carrier_axis, resolve_layout
+    from .rawlayout import byte_order_hint, carrier_axis, dtype_hint, resolve_layout
 
     with np.errstate(all="ignore"):                   # swapped bytes read as huge values: no warnings
         axis = carrier_axis(arr[0])                   # the carrier test, once for both checks
-    swap = byte_order_hint(arr[0], dt, axis=axis)
+    swap = byte_order_hint(arr[0], dt, axis=axis) or dtype_hint(path, shp, dt, offset=offset, axis=axis,
+                                                                 first=arr[0])
     if swap:
         raise fail(path, swap)
     arr, layout = resolve_layout(arr, path, axis=axis)
@@ -343,7 +360,11 @@ def read_directory(path, *, frames=None, **options):
     if not by_ext:
         aside = f"; {len(set_aside)} femreg result file(s) set aside ({', '.join(set_aside[:3])}" + (
             ", ...)" if len(set_aside) > 3 else ")") if set_aside else ""
-        raise fail(path, "directory holds no frame files (" + ", ".join(sorted(FORMATS)) + ")" + aside)
+        subs = sorted((q.name for q in path.iterdir() if q.is_dir() and not q.name.startswith(".")),
+                      key=natural_key)
+        inside = (f"; it holds folders ({', '.join(subs[:3])}{', ...' if len(subs) > 3 else ''}): pass one of "
+                  f"them (femreg batch: each is a recording without --folders recording)") if subs else ""
+        raise fail(path, "directory holds no frame files (" + ", ".join(sorted(FORMATS)) + ")" + aside + inside)
     if len(by_ext) > 1:
         listing = "; ".join(f"{fmt}: {', '.join(sorted((q.name for q in fs), key=natural_key)[:3])}"
                             + (", ..." if len(fs) > 3 else "") for fmt, fs in sorted(by_ext.items()))
