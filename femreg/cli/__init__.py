@@ -76,7 +76,7 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="femreg",
         description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.",
-        epilog="The first run on a machine compiles the numerical kernels (numba, 10-15 s, said once on a "
+        epilog="The first run on a machine compiles the numerical kernels (numba, about 9-14 s, said once on a "
                "terminal); later runs load them from the cache.  FEMREG_NUMBA=0 runs without them.")
     from femreg import __version__
     parser.add_argument("--version", action="version", version=f"femreg {__version__}")
