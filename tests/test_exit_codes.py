@@ -74,6 +74,10 @@ def test_register(data, results, capsys, tmp_path):
     assert rc in (0, 1) and (tmp_path / "t.npz").is_file()      # the override runs it
     rc, out, err = _run(["register", data / "perframe" / "frame1.npz", "-o", tmp_path / "one.npz"], capsys)
     assert rc == 2 and "holds one frame: give the moving frame's file too" in err and err.count("\n") == 1
+    # with --pair given, no advice to pass --pair: the file has no second frame to pick
+    rc, out, err = _run(["register", data / "perframe" / "frame1.npz", "--pair", "0", "1", "-o",
+                         tmp_path / "one.npz"], capsys)
+    assert rc == 2 and "--pair 0 1 has no second frame to pick" in err and "--pair I J" not in err, err
 
 
 def test_track(data, capsys, tmp_path):

@@ -216,6 +216,9 @@ def run(args) -> int:
         i, j = args.pair or (0, 1)
         mov_fr = ref_fr
         if ref_fr.n_frames < 2:
+            if args.pair is not None:
+                raise InputError(f"{args.reference} holds one frame, so --pair {i} {j} has no second frame to pick: "
+                                 f"give the moving frame's file too (femreg register REF MOV)")
             raise InputError(f"{args.reference} holds one frame: give the moving frame's file too "
                              f"(femreg register REF MOV), or a file of several frames (--pair I J picks two)")
         if args.pair is None and ref_fr.n_frames > 2:
