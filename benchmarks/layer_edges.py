@@ -96,6 +96,17 @@ CASES += [
     Case("col_pstrain_0.5pc_paper", _columns((-6.0, 4.0), (1.0, 0.6, 1.5), 0.005, "plane-strain"), "paper",
          (35, 30), 25, top_mm=5.0, seed=25),
     Case("col_step_1pc_L3", _columns((-2.0,), (1.0, 0.6), 0.01), "L3", (40, 40), 20, top_mm=5.0, seed=26),
+    # held out: drawn after the slip rule (femreg.refine.beam_slip_lines) was set, to choose the split at a slip
+    Case("held_col_soft_0.5pc_L7", _columns((-3.0, 4.0), (1.0, 0.6, 1.0), 0.005), "L7", (30, 30), 25, top_mm=4.0,
+         seed=31),
+    Case("held_col_step_0.5pc_paper", _columns((2.0,), (0.7, 1.4), 0.005), "paper", (30, 30), 25, top_mm=6.0,
+         seed=32),
+    Case("held_col_stiff_1pc_L3", _columns((-5.0, 5.0), (1.0, 1.8, 1.0), 0.01), "L3", (40, 40), 20, top_mm=5.0,
+         seed=33),
+    Case("held_col_step_0.5pc_L7_deep", _columns((0.0,), (1.0, 0.6), 0.005), "L7", (30, 30), 30, top_mm=10.0,
+         seed=34),
+    Case("held_col_pstrain_1pc_L12", _columns((-2.0, 2.5), (1.0, 0.5, 1.0), 0.01, "plane-strain"), "L12",
+         (20, 20), 25, top_mm=5.0, seed=35),
 ]
 FEMREG = ["R_P_sigma", "R_P_sigma no refine"]
 METHODS = FEMREG + [EXACT_ON_MESH] + list(PEER_METHODS)

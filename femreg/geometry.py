@@ -469,7 +469,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()
 
-        def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+        def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                     steps=None):
             def factory():
                 r = copy.copy(user_reg)
                 r.alpha = refined_alpha(r.alpha, mesh, m) * alpha_factor   # the unrefined mesh's weight of eq:objf
@@ -480,7 +481,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                 return r
             loc = PointLocator(m)
             tm = BeamSSDTerm(BeamQuadrature(m, shape, sp_idx, (r0, 0.0), geometry, locator=loc), I1, I2)
-            kw_m = pass_solve_kw(opts, solve_kw, maxiter, full)
+            kw_m = pass_solve_kw(opts, solve_kw, maxiter, full, steps)
             return solve(I1, I2, m, shape, sp_idx, (r0, 0.0), factory, u_start, locator=loc, term=tm, **kw_m)
 
         refined, record = refine_passes(sol, opts, solve_on, (dr, ds), (r0, s0))

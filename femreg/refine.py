@@ -405,6 +405,15 @@ class Refinement:
         where it lies.  Finer columns there turn the echoes mixed across the slip into stripes of e_xx
         (``benchmarks/layer_edges.py``, sliding columns: e_xx error 8.2 -> 51.5 % at 12 MHz, 12.5 -> 99.7 % at
         3 MHz, refined without the rule against unrefined).  False: marked as any other edge.
+    beam_split : float, optional
+        After the passes, the columns over which a slip along the beam spreads (:attr:`beam_slip`) are halved once
+        (down to ``min_size``) and solved :attr:`beam_steps` Gauss-Newton steps at the unrefined weight, the normal
+        part of the jumps across their axial edges weighed ``beam_split`` times: the step of e_xx across the slip
+        sharper, the axial strain along it held smooth in depth (at weight 1 the mixed echoes on the slip grow into
+        blobs of e_xx).  None: left unsplit.
+    beam_steps : int
+        Gauss-Newton steps of that solve (a full solve lets the blobs grow on some pairs: e_xx error 8.3 -> 14.0 %
+        on a 7.5 MHz pair, 6.5 -> 22.4 % on another; ``benchmarks/layer_edges.py``).
     relax_fill_split : bool
         Split the filled rows ``levels`` times (the split of a strongly marked row) whatever their marking.
     relax_passes : int
@@ -455,6 +464,8 @@ class Refinement:
     relax_fill: int = 0
     relax_fill_weight: float | None = None
     beam_slip: bool = False
+    beam_split: float | None = None
+    beam_steps: int = 3
     relax_fill_split: bool = False
     relax_passes: int = 1
     relax_keep: bool = True
@@ -508,6 +519,8 @@ class Refinement:
             raise InputError(f"refinement fine_layer_full must be True or False, got {self.fine_layer_full!r}")
         if not isinstance(self.beam_slip, (bool, np.bool_)):
             raise InputError(f"refinement beam_slip must be True or False, got {self.beam_slip!r}")
+        _number(self, "beam_split", 0, optional=True, open_low=True, what="a weight > 0")
+        _integer(self, "beam_steps", 1, 100)
         _number(self, "strong", 1, optional=True)
         _number(self, "feature", 0)
         _number(self, "relax", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
@@ -679,7 +692,7 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_alpha=0.1, fine_alpha_ncc=0.08,
                              relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True,
-                             relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1, beam_slip=True,
+                             relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1, beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
@@ -1211,6 +1224,37 @@ def _beam_slip_cells(lines, ja, jl, cut) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
+def _beam_pass_mesh(mesh, spans, opts: Refinement, spacing, origin):
+    """``(mesh, columns split)``: the tensor mesh with every column whose centre lies in one of ``spans`` ((y0, y1)
+    mm) halved once (down to ``opts.min_size``)."""
+    xs, ys, _ = _need_tensor(mesh)
+    mid = 0.5 * (ys[:-1] + ys[1:])
+    cols = np.zeros(mid.size, bool)
+    for a, b in spans:
+        cols |= (mid > a) & (mid < b)
+    new, _, sy = refine_tensor_mesh(mesh, np.zeros(xs.size - 1, bool), cols, spacing, origin, opts.min_size, 1)
+    return new, sy
+
+
+def _along_weights(spans, weight: float, mesh):
+    """``normal_traction`` callable: ``weight`` on the axial edges (constant x) inside ``spans`` ((y0, y1) mm, the
+    whole depth), 1 elsewhere: the axial strain along a slip kept smooth in depth."""
+    lg = logical_grid(mesh)
+
+    def w(jumps):
+        f = (mesh if lg is None else lg.mesh).facets[:, jumps.facets]
+        pts = (mesh if lg is None else lg.mesh).p
+        a, b = pts[:, f[0]], pts[:, f[1]]
+        mid = 0.5 * (a[1] + b[1])
+        axial = np.abs(b[0] - a[0]) < np.abs(b[1] - a[1])
+        inside = np.zeros(mid.size, bool)
+        for y0, y1 in spans:
+            inside |= (mid >= y0) & (mid <= y1)
+        return np.where(axial & inside, float(weight), 1.0)
+
+    return w
+
+
 def layer_cells(mesh, u, opts: Refinement, fraction: float | None = None) -> np.ndarray:
     """Rectangles (k, 4) [x0, x1, y0, y1] mm of the two rows (columns) of cells beside each layer interface of a
     tensor mesh: a line of axial (lateral) edges across which the normal part of the jump ``[[A]] n`` stands out
@@ -1385,11 +1429,13 @@ def transfer(u, mesh, new_mesh) -> np.ndarray:
     return out
 
 
-def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = False) -> dict:
+def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = False, steps=None) -> dict:
     """Gauss-Newton keywords of one refinement pass's solve: ``solve_kw`` with ``maxiter`` capped at
-    ``opts.maxiter``, unless the options leave it free or the pass solves in full (``full``:
-    :attr:`Refinement.relax_full` on a pass that relaxes, :attr:`Refinement.fine_layer_full` on one beside a
-    layer's interface)."""
+    ``opts.maxiter`` (at ``steps`` when given: :attr:`Refinement.beam_steps`), unless the options leave it free or
+    the pass solves in full (``full``: :attr:`Refinement.relax_full` on a pass that relaxes,
+    :attr:`Refinement.fine_layer_full` on one beside a layer's interface)."""
+    if steps is not None:
+        return dict(solve_kw, maxiter=min(int(steps), int(maxiter)))
     if opts.maxiter is None or full:
         return solve_kw
     return dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
@@ -1416,6 +1462,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
     slides = np.zeros(0)            # lateral positions (mm) of the slips along the beam left unsplit
+    spans = []                      # their cells' lateral extents (mm)
     unrefined = sol                 # its element NCC: the tests of the first pass and the message of a split
     memo = []
 
@@ -1435,6 +1482,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             # one position per run of neighbouring lines (a slip spreads over a beam width)
             runs = np.split(beam, np.flatnonzero(np.diff(beam) > 1) + 1)
             slides = np.array([np.mean(_need_tensor(mesh)[1][r + 1]) for r in runs])
+            ja_, jl_, _, _, cut_ = _jumps(mesh, sol.u, opts)
+            ys_ = _need_tensor(mesh)[1]
+            spans = [(float(ys_[c.min()]), float(ys_[c.max() + 1]))
+                     for c in (_beam_slip_cells(r, ja_, jl_, cut_) for r in runs)]
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True, beam_lines=beam)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
@@ -1558,6 +1609,19 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            relaxed_edges=int(len(relaxed)), layer_lines=int(n_lay), top=float(top), fine=bool(finer),
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
+    split_beam = False
+    if spans and opts.beam_split is not None:
+        t = time.perf_counter()
+        mesh = sol.mesh
+        new, info = _beam_pass_mesh(mesh, spans, opts, spacing, origin)
+        if new is not mesh:
+            sol = solve_on(new, transfer(sol.u, mesh, new), None,
+                           normal_traction=_along_weights(spans, opts.beam_split, new), steps=opts.beam_steps)
+            nit += int(sol.gn.nit)
+            record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=0,
+                               columns=info, slip_cells=0, nit=int(sol.gn.nit), relaxed_edges=0, layer_lines=0,
+                               top=0.0, fine=False, alpha_factor=1.0, beam=True, seconds=time.perf_counter() - t))
+            split_beam = True
     finish_passes(sol, record, opts, base_gn, nit)
     if record and note is None and getattr(unrefined, "data", None) is not None:
         q0 = unrefined_ncc()
@@ -1572,8 +1636,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     f"against refine=None")
     if slides.size:
         where = ", ".join(f"{y:.1f}" for y in slides)
-        said = (f"tissue slides along the beam near y = {where} mm: the columns there are not split (finer ones turn "
-                f"the echoes mixed across the slip into stripes of e_xx)")
+        said = (f"tissue slides along the beam near y = {where} mm: the columns there are "
+                + ("split once and solved with the axial strain held smooth along the slip" if split_beam else
+                   "not split")
+                + " (finer ones turn the echoes mixed across the slip into stripes of e_xx)")
         note = said if note is None else f"{note}; {said}"
     return sol, RefinementRecord(record, base_size, note)
 
@@ -1679,7 +1745,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     base = sol.mesh
     quad = sol.data.quad
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                 steps=None):
         def factory():
             r = reg_factory()
             r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
@@ -1688,7 +1755,7 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
             if normal_traction is not None and hasattr(r, "normal_traction"):
                 r.normal_traction = normal_traction
             return r
-        kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full)
+        kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full, steps)
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
