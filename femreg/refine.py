@@ -406,11 +406,11 @@ class Refinement:
         (``benchmarks/layer_edges.py``, sliding columns: e_xx error 8.2 -> 51.5 % at 12 MHz, 12.5 -> 99.7 % at
         3 MHz, refined without the rule against unrefined).  False: marked as any other edge.
     beam_split : float, optional
-        After the passes, the columns over which a slip along the beam spreads (:attr:`beam_slip`) are halved once
-        (down to ``min_size``) and solved :attr:`beam_steps` Gauss-Newton steps at the unrefined weight, the normal
-        part of the jumps across their axial edges weighed ``beam_split`` times: the step of e_xx across the slip
-        sharper, the axial strain along it held smooth in depth (at weight 1 the mixed echoes on the slip grow into
-        blobs of e_xx).  None: left unsplit.
+        After the passes, the columns over which a slip along the beam spreads (:attr:`beam_slip`) are split as the
+        finer pass splits (``fine_min_size``, ``levels``) and solved :attr:`beam_steps` Gauss-Newton steps at the
+        unrefined weight, the normal part of the jumps across their axial edges weighed ``beam_split`` times: the
+        step of e_xx across the slip sharper, the axial strain along it held smooth in depth (at weight 1 the mixed
+        echoes on the slip grow into blobs of e_xx).  None: left unsplit.
     beam_steps : int
         Gauss-Newton steps of that solve (a full solve lets the blobs grow on some pairs: e_xx error 8.3 -> 14.0 %
         on a 7.5 MHz pair, 6.5 -> 22.4 % on another; ``benchmarks/layer_edges.py``).
@@ -1226,13 +1226,15 @@ def _beam_slip_cells(lines, ja, jl, cut) -> np.ndarray:
 
 def _beam_pass_mesh(mesh, spans, opts: Refinement, spacing, origin):
     """``(mesh, columns split)``: the tensor mesh with every column whose centre lies in one of ``spans`` ((y0, y1)
-    mm) halved once (down to ``opts.min_size``)."""
+    mm) halved up to ``opts.fine_levels`` (or ``opts.levels``) times, down to ``opts.fine_min_size`` (the finer
+    pass's split)."""
     xs, ys, _ = _need_tensor(mesh)
     mid = 0.5 * (ys[:-1] + ys[1:])
     cols = np.zeros(mid.size, bool)
     for a, b in spans:
         cols |= (mid > a) & (mid < b)
-    new, _, sy = refine_tensor_mesh(mesh, np.zeros(xs.size - 1, bool), cols, spacing, origin, opts.min_size, 1)
+    new, _, sy = refine_tensor_mesh(mesh, np.zeros(xs.size - 1, bool), cols, spacing, origin, opts.fine_min_size,
+                                    opts.fine_levels or opts.levels)
     return new, sy
 
 
@@ -1637,7 +1639,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     if slides.size:
         where = ", ".join(f"{y:.1f}" for y in slides)
         said = (f"tissue slides along the beam near y = {where} mm: the columns there are "
-                + ("split once and solved with the axial strain held smooth along the slip" if split_beam else
+                + ("split and solved with the axial strain held smooth along the slip" if split_beam else
                    "not split")
                 + " (finer ones turn the echoes mixed across the slip into stripes of e_xx)")
         note = said if note is None else f"{note}; {said}"
