@@ -401,8 +401,8 @@ class Refinement:
         None: ``relax``.
     beam_slip : bool
         A slip along the beam (a relaxed run of lateral edges down the image, :func:`beam_slip_lines`) marks
-        nothing: the columns of cells over which it spreads are left out of the marking, and the message says
-        where it lies.  Finer columns there turn the echoes mixed across the slip into stripes of e_xx
+        nothing in the passes: the columns of cells over which it spreads are left out of the marking (see
+        :attr:`beam_split` for what follows), and the message says where it lies.  Finer columns there turn the echoes mixed across the slip into stripes of e_xx
         (``benchmarks/layer_edges.py``, sliding columns: e_xx error 8.2 -> 51.5 % at 12 MHz, 12.5 -> 99.7 % at
         3 MHz, refined without the rule against unrefined).  False: marked as any other edge.
     beam_split : float, optional
@@ -1463,7 +1463,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     base_gn, nit = sol.gn, int(sol.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
-    slides = np.zeros(0)            # lateral positions (mm) of the slips along the beam left unsplit
+    slides = np.zeros(0)            # lateral positions (mm) of the slips along the beam found
     spans = []                      # their cells' lateral extents (mm)
     unrefined = sol                 # its element NCC: the tests of the first pass and the message of a split
     memo = []
