@@ -107,6 +107,9 @@ CASES += [
          seed=34),
     Case("held_col_pstrain_1pc_L12", _columns((-2.0, 2.5), (1.0, 0.5, 1.0), 0.01, "plane-strain"), "L12",
          (20, 20), 25, top_mm=5.0, seed=35),
+    # slips of 0.02-0.04 mm (moduli 1 / 0.9), below the first shear test of the slip rule
+    Case("col_tiny_0.5pc_L7", _columns((0.0,), (1.0, 0.9), 0.005), "L7", (30, 30), 25, top_mm=5.0, seed=56),
+    Case("col_tiny_1pc_paper", _columns((-3.0,), (1.0, 0.9), 0.01), "paper", (30, 30), 25, top_mm=5.0, seed=58),
 ]
 FEMREG = ["R_P_sigma", "R_P_sigma no refine"]
 METHODS = FEMREG + [EXACT_ON_MESH] + list(PEER_METHODS)
