@@ -1484,9 +1484,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         if k == 0 and len(beam):
             # one position per run of neighbouring lines (a slip spreads over a beam width)
             runs = np.split(beam, np.flatnonzero(np.diff(beam) > 1) + 1)
-            slides = np.array([np.mean(_need_tensor(mesh)[1][r + 1]) for r in runs])
-            ja_, jl_, _, _, cut_ = _jumps(mesh, sol.u, opts)
             ys_ = _need_tensor(mesh)[1]
+            slides = np.array([np.mean(ys_[r + 1]) for r in runs])
+            ja_, jl_, _, _, cut_ = _jumps(mesh, sol.u, opts)
             spans = [(float(ys_[c.min()]), float(ys_[c.max() + 1]))
                      for c in (_beam_slip_cells(r, ja_, jl_, cut_) for r in runs)]
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True, beam_lines=beam)
@@ -1642,7 +1642,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         said = (f"tissue slides along the beam near y = {where} mm: the columns there are "
                 + ("split and solved with the axial strain held smooth along the slip" if split_beam else
                    "not split")
-                + " (finer ones turn the echoes mixed across the slip into stripes of e_xx)")
+                + " (left to the finer pass, the echoes mixed across a slip give stripes of e_xx)")
         note = said if note is None else f"{note}; {said}"
     return sol, RefinementRecord(record, base_size, note)
 
