@@ -1903,6 +1903,13 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                          f"{eps_rms:.3g}): the modulus cannot be identified")
     ratio = strain_ratio(el_strain, mesh)
     flags = []
+    slides = [v for v in getattr(getattr(displacement, "refinement", None), "slides", ())
+              if mesh.p[1].min() < v < mesh.p[1].max()]      # the slips inside the inverted region
+    if slides:
+        # a frictionless slip is no continuum: the model would put the slip's shear into the modulus
+        flags.append(f"the registration found tissue sliding along the beam near y = "
+                     f"{', '.join(f'{v:.1f}' for v in slides)} mm: a bonded elastic model does not hold across a "
+                     "slip; invert a region on one side of it (region=)")
     if dim == 3:
         # 3D elasticity is the model of 3D data itself: no lambda_bar to measure, no model to check
         lb = lambda_bar("3d", poisson)

@@ -1644,7 +1644,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                    "not split")
                 + " (left to the finer pass, the echoes mixed across a slip give stripes of e_xx)")
         note = said if note is None else f"{note}; {said}"
-    return sol, RefinementRecord(record, base_size, note)
+    return sol, RefinementRecord(record, base_size, note, slides=tuple(float(v) for v in slides))
 
 
 def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):

@@ -262,6 +262,7 @@ def load_result(path) -> RegistrationResult:
         return load_volume_result(path)
     mesh, u, kw, element_grid = read_result(path)
     base = kw.pop("refined_from", None)
+    slides = kw.pop("slides", ())
     auto = kw.pop("auto_alpha", None)
     mask = kw.pop("data_mask", None)
     geometry = kw.pop("geometry", None)
@@ -272,8 +273,8 @@ def load_result(path) -> RegistrationResult:
     res._grid_element = element_grid
     res.auto_alpha = auto
     res.data_mask = mask
-    if base is not None:            # what the inversion and new meshes read: the size refinement started from
+    if base is not None or len(slides):     # what the inversion and new meshes read
         from .result_base import RefinementRecord
 
-        res.refinement = RefinementRecord(passes=None, base_size=base)
+        res.refinement = RefinementRecord(passes=None, base_size=base, slides=tuple(slides))
     return res

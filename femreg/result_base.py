@@ -123,16 +123,24 @@ class RefinementRecord:
     also ``top``, the largest row / column jump over the feature test's cut, :attr:`femreg.refine.Refinement.feature`);
     and
     ``base_size``, the median element size (axial, lateral[, elevational]) mm of the mesh refinement started from (what a
-    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller).  ``passes``
-    is None for a result read from a file (:func:`femreg.load_result` keeps ``base_size`` only)."""
+    caller sizing a new mesh from the result's should read: the refined mesh's median is smaller); ``slides``, the
+    lateral positions (mm) of the slips along the beam found (:func:`femreg.refine.beam_slip_lines`), which a
+    bonded elastic model does not describe (:func:`femreg.invert` flags them).  ``passes`` is None for a result
+    read from a file (:func:`femreg.load_result` keeps ``base_size`` and ``slides``)."""
 
     passes: list
     base_size: tuple | None = None
     note: str | None = None         # why nothing was split although something was marked
+    slides: tuple = ()              # lateral positions (mm) where tissue slides along the beam
 
     def summary(self) -> str:
-        if self.passes is None:         # read back from a result file, which keeps the starting size only
-            return f"refinement: refined from {' x '.join(f'{v:.3g}' for v in self.base_size)} mm elements"
+        if self.passes is None:         # read back from a result file: the starting size and the slips only
+            text = ("refinement: refined from " + " x ".join(f"{v:.3g}" for v in self.base_size) + " mm elements"
+                    if self.base_size is not None else "refinement: read from a file")
+            if self.slides:
+                text += ("; tissue slides along the beam near y = " + ", ".join(f"{v:.1f}" for v in self.slides)
+                         + " mm")
+            return text
         if not self.passes:
             return f"refinement: {self.note}" if self.note else "refinement: nothing marked"
         parts = [f"{p['elements']} -> {p['elements_after']} elements ("

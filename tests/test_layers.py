@@ -209,7 +209,7 @@ def test_a_slip_along_the_beam_is_found_and_said_without_stripes():
         assert len(R.beam_slip_lines(rc.mesh, rc.u, R.DEEP_REFINEMENT)) == 0, fld
 
 
-def test_a_slip_along_the_beam_is_split_with_the_strain_along_it_held_smooth():
+def test_a_slip_along_the_beam_is_split_with_the_strain_along_it_held_smooth(tmp_path):
     import femreg
     from femreg.errors import InputError
     from femreg.metrics import edge_width
@@ -236,6 +236,21 @@ def test_a_slip_along_the_beam_is_split_with_the_strain_along_it_held_smooth():
     # measured: e_xx error 12.2 -> 9.1 %, lateral edge (median over rows) 2.19 -> 1.25 mm
     assert e1 < 0.9 * e0, (e1, e0)
     assert w1 < 0.7 * w0, (w1, w0)
+    # the slip is kept with the result (in memory and in its file), and the inversion flags a region across it
+    assert len(r1.refinement.slides) == 1 and abs(r1.refinement.slides[0] - 2.0) < 1.0, r1.refinement.slides
+    path = tmp_path / "slip.npz"
+    r1.save(path)
+    back = femreg.load_result(path)
+    assert back.refinement.slides == r1.refinement.slides and "slides along the beam" in back.refinement.summary()
+    inv = femreg.invert(back)
+    assert not inv.success and "sliding along the beam near y = " in inv.message
+    one_side = femreg.invert(back, region=((8.0, 29.0), (-11.0, -1.0)))
+    assert "sliding along the beam" not in one_side.message
+    with np.load(path) as z:
+        data = dict(z)
+    np.savez(tmp_path / "bad.npz", **dict(data, slides=np.array([np.nan])))
+    with pytest.raises(InputError, match="slides"):
+        femreg.load_result(tmp_path / "bad.npz")
     with pytest.raises(InputError, match="beam_split"):
         Refinement(beam_split=0.0)
     with pytest.raises(InputError, match="beam_steps"):

@@ -29,6 +29,8 @@ data_mask          (n_axial, n_lateral) bool       False where nothing was measu
                                                    scan-converted frame; optional; absent: everywhere)
 refined_from       (2,) mm                         median element size (axial, lateral) of the mesh adaptive
                                                    refinement started from (optional; absent: not refined)
+slides             (k,) mm                         lateral positions where the refinement found tissue sliding
+                                                   along the beam (optional; absent: none)
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
@@ -62,7 +64,8 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "auto_alpha", "data_mask")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "slides", "auto_alpha",
+               "data_mask")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -161,6 +164,9 @@ def _from_object(res) -> dict:
     base = getattr(getattr(res, "refinement", None), "base_size", None)
     if base is not None:
         out["refined_from"] = np.asarray(base, float)
+    slides = getattr(getattr(res, "refinement", None), "slides", ())
+    if len(slides):
+        out["slides"] = np.asarray(slides, float)
     record = getattr(res, "_auto_alpha_record", None)
     if callable(record):
         out.update(record())
@@ -238,6 +244,9 @@ def _read(path) -> dict:
                                   or np.asarray(out["refined_from"]).dtype.kind not in "iuf"
                                   or not np.all(np.asarray(out["refined_from"], float) > 0)):
         raise fail(path, f"key 'refined_from' must be two element sizes > 0 (mm), got {out['refined_from']!r}")
+    if "slides" in out and (np.ndim(out["slides"]) != 1 or np.asarray(out["slides"]).dtype.kind not in "iuf"
+                            or not np.all(np.isfinite(np.asarray(out["slides"], float)))):
+        raise fail(path, f"key 'slides' must be finite lateral positions (mm), got {out['slides']!r}")
     n_el = np.shape(out["mesh_cells"])[1]
     if "quality" in out and np.shape(out["quality"]) != (n_el,):
         raise fail(path, f"key 'quality' must have one value per element ({n_el},), got {np.shape(out['quality'])}")
@@ -276,6 +285,8 @@ def read_result(path):
         kw["data_mask"] = np.asarray(d["data_mask"], bool)
     if d.get("refined_from") is not None:
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
+    if d.get("slides") is not None:
+        kw["slides"] = tuple(float(v) for v in np.ravel(d["slides"]))
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
     geometry = beam_geometry(d)
