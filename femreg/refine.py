@@ -1171,8 +1171,15 @@ def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
     (``benchmarks/layer_edges.py``, sliding columns), where the unrefined mesh averages it.  A slip parallel to
     the probe face moves scatterers laterally across an axial resolution cell a few times smaller, which the
     finer rows do resolve (shear bands)."""
+    slips = _beam_slips(mesh, u, opts, ncc)
+    return np.concatenate([run for run, _ in slips]).astype(int) if slips else np.zeros(0, int)
+
+
+def _beam_slips(mesh, u, opts: Refinement, ncc=None) -> list:
+    """The slips along the beam of :func:`beam_slip_lines` (same arguments), each as ``(lines, cells)``: its run of
+    neighbouring column lines and the columns of cells it spreads over (:func:`_beam_slip_cells`), int arrays."""
     if not opts.beam_slip or opts.relax is None or opts.indicator != "jump":
-        return np.zeros(0, int)
+        return []
     xs, ys, cell = _need_tensor(mesh)
     # a slip along the beam runs down the image: a run over most of its depth counts, however shallow the image
     depth = BEAM_SLIP_DEPTH * float(xs[-1] - xs[0])
@@ -1181,7 +1188,7 @@ def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
     lateral = seg[:, 2] == seg[:, 3]            # a lateral edge (constant y) lies on a column line
     lines = np.unique(np.searchsorted(ys, seg[lateral, 2]) - 1).astype(int)
     if not lines.size:
-        return lines
+        return []
     ja, jl, _, _, cut = _jumps(mesh, u, opts)
     e = _centre_strains(mesh, u)
     exx, exy = np.abs(e[:, 0])[cell], np.abs(e[:, 2])[cell]        # (n_rows, n_cols)
@@ -1201,8 +1208,8 @@ def beam_slip_lines(mesh, u, opts: Refinement, ncc=None) -> np.ndarray:
             meds = [float(np.nanmedian(v)) if np.any(np.isfinite(v)) else 0.0 for v in sides]
             if not meds or min(meds) < BEAM_SLIP_NCC:
                 continue
-        keep.extend(run.tolist())
-    return np.asarray(keep, int)
+        keep.append((run, cells))
+    return keep
 
 
 def _beam_slip_cells(lines, ja, jl, cut) -> np.ndarray:
@@ -1479,16 +1486,14 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
         t = time.perf_counter()
         mesh = sol.mesh
         q = element_ncc(sol.data, sol.u, mesh.t.shape[1]) if opts.indicator == "ncc" else None
-        beam = beam_slip_lines(mesh, sol.u, opts, ncc=None if getattr(sol, "data", None) is None else (
+        slips = _beam_slips(mesh, sol.u, opts, ncc=None if getattr(sol, "data", None) is None else (
             unrefined_ncc if k == 0 else (lambda s=sol, m=mesh: element_ncc(s.data, s.u, m.t.shape[1]))))
-        if k == 0 and len(beam):
+        beam = np.concatenate([run for run, _ in slips]).astype(int) if slips else np.zeros(0, int)
+        if k == 0 and slips:
             # one position per run of neighbouring lines (a slip spreads over a beam width)
-            runs = np.split(beam, np.flatnonzero(np.diff(beam) > 1) + 1)
             ys_ = _need_tensor(mesh)[1]
-            slides = np.array([np.mean(ys_[r + 1]) for r in runs])
-            ja_, jl_, _, _, cut_ = _jumps(mesh, sol.u, opts)
-            spans = [(float(ys_[c.min()]), float(ys_[c.max() + 1]))
-                     for c in (_beam_slip_cells(r, ja_, jl_, cut_) for r in runs)]
+            slides = np.array([np.mean(ys_[run + 1]) for run, _ in slips])
+            spans = [(float(ys_[c.min()]), float(ys_[c.max() + 1])) for _, c in slips]
         rows, cols, slip, score = mark(mesh, sol.u, opts, data=sol.data, quality=q, scores=True, beam_lines=beam)
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
@@ -1612,7 +1617,6 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            relaxed_edges=int(len(relaxed)), layer_lines=int(n_lay), top=float(top), fine=bool(finer),
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
-    split_beam = False
     if spans and opts.beam_split is not None:
         t = time.perf_counter()
         mesh = sol.mesh
@@ -1624,7 +1628,6 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
             record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=0,
                                columns=info, slip_cells=0, nit=int(sol.gn.nit), relaxed_edges=0, layer_lines=0,
                                top=0.0, fine=False, alpha_factor=1.0, beam=True, seconds=time.perf_counter() - t))
-            split_beam = True
     finish_passes(sol, record, opts, base_gn, nit)
     if record and note is None and getattr(unrefined, "data", None) is not None:
         q0 = unrefined_ncc()
@@ -1638,6 +1641,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                     f"{spread:.2f} > {DECORRELATED_SPREAD:g}): check the strain image for rectangular patches "
                     f"against refine=None")
     if slides.size:
+        split_beam = any(p.get("beam") for p in record)
         where = ", ".join(f"{y:.1f}" for y in slides)
         said = (f"tissue slides along the beam near y = {where} mm: the columns there are "
                 + ("split and solved with the axial strain held smooth along the slip" if split_beam else

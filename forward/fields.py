@@ -387,7 +387,6 @@ class SlidingColumns:
         self.exx_columns, self.eyy_columns = c * exx1, c * eyy1
         # u_y = G(y) - G(0), G the integral of e_yy from the first interface (continuous across every interface)
         self._G_at = np.r_[0.0, np.cumsum(self.eyy_columns[1:-1] * np.diff(z))] if z.size else np.zeros(0)
-        self._uy0 = 0.0
         self._uy0 = float(self._G(np.zeros(1))[0])
         self.name = (f"sliding columns E {'/'.join(f'{e:g}' for e in E)} at y {'/'.join(f'{d:g}' for d in z)} mm"
                      f" {model} {100 * self.level:g}%")
