@@ -42,7 +42,7 @@ from .quadrature import ELEMENT_CENTRE_RULE
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
            "edge_aware_strains", "edge_aware_corners", "location_corners",
            "recovered_strains", "projected_strains", "check_strain_mode", "element_strain_operator",
-           "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators"]
+           "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators", "inner_elements", "lateral_ratio"]
 
 #: Names of the sampled fields, in order.
 FIELDS = ("ux", "uy", "exx", "eyy", "exy")
@@ -485,3 +485,28 @@ def centre_gradient_operators(mesh) -> tuple[dict[str, sp.csr_matrix], np.ndarra
             G[an + bn] = sp.csr_matrix((grads[:, a, b].ravel(), (rows, dofs.ravel())), shape=(n_el, basis.N))
     areas = basis.dx[:, 0].copy()
     return G, areas
+
+
+def inner_elements(mesh) -> np.ndarray:
+    """(n_el,) bool: the elements of ``mesh`` with no node on its boundary."""
+    bnd = np.zeros(mesh.p.shape[1], bool)
+    bnd[mesh.boundary_nodes()] = True
+    return ~bnd[mesh.t].any(axis=0)
+
+
+def lateral_ratio(el_strain, mesh) -> float:
+    r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of a displacement field
+    (``el_strain`` (n_el, 3) element strains [exx, eyy, exy] on ``mesh``): the median of the element ratios over the
+    inner elements (:func:`inner_elements`) whose axial strain is at least half the median one, so that a near-zero
+    :math:`\varepsilon_{xx}` does not dominate.  About 1/2 for incompressible plane stress, :math:`\nu/(1-\nu)`
+    (0.98 at :math:`\nu` = 0.495) for plane strain (:func:`femreg.material.model_ratio`).  NaN when fewer than 4
+    such elements."""
+    el_strain = np.asarray(el_strain, float)
+    inner = inner_elements(mesh)
+    if inner.sum() < 4:
+        inner = np.ones(mesh.t.shape[1], bool)
+    ex, ey = el_strain[inner, 0], el_strain[inner, 1]
+    big = np.abs(ex) >= 0.5 * np.median(np.abs(ex))
+    if big.sum() < 4 or not np.any(np.abs(ex) > 0):
+        return float("nan")
+    return float(np.median(-ey[big] / ex[big]))

@@ -189,9 +189,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import FileFormatError, InputError
+from .fields import inner_elements, lateral_ratio
 from .linsolve import SPDSolver, single_blas_thread
 from .material import MODELS
 from .material import lambda_bar as material_lambda_bar
+from .material import lambda_bar_from_ratio, model_ratio
 
 __all__ = ["invert", "InversionResult", "load_inversion", "modulus_contrast", "is_inversion_file", "lambda_bar",
            "strain_ratio", "model_ratio", "AUTO_RATIO",
@@ -1076,30 +1078,15 @@ def _reference_elements(mesh, bounds) -> np.ndarray:
 
 
 def _inner_elements(mesh) -> np.ndarray:
-    """(n_el,) bool: elements with no node on the mesh boundary."""
-    bnd = np.zeros(mesh.p.shape[1], bool)
-    bnd[mesh.boundary_nodes()] = True
-    return ~bnd[mesh.t].any(axis=0)
+    """(n_el,) bool: elements with no node on the mesh boundary (:func:`femreg.fields.inner_elements`)."""
+    return inner_elements(mesh)
 
 
 def strain_ratio(el_strain, mesh) -> float:
-    r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of the data: the median over
-    the inner elements whose axial strain is at least half the median one (so that a near-zero
-    :math:`\varepsilon_{xx}` does not dominate).  NaN when fewer than 4 such elements."""
-    inner = _inner_elements(mesh)
-    if inner.sum() < 4:
-        inner = np.ones(mesh.t.shape[1], bool)
-    ex, ey = el_strain[inner, 0], el_strain[inner, 1]
-    big = np.abs(ex) >= 0.5 * np.median(np.abs(ex))
-    if big.sum() < 4 or not np.any(np.abs(ex) > 0):
-        return float("nan")
-    return float(np.median(-ey[big] / ex[big]))
-
-
-def model_ratio(lam_bar: float) -> float:
-    r"""The lateral-to-axial strain ratio :math:`\bar\lambda/(\bar\lambda + 2)` of uniaxial stress in the 2D model
-    (:math:`\sigma_{yy} = \mu(\bar\lambda\,\mathrm{tr}\,\varepsilon + 2\varepsilon_{yy}) = 0`)."""
-    return lam_bar / (lam_bar + 2.0)
+    r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of the data
+    (:func:`femreg.fields.lateral_ratio`: the median over the inner elements whose axial strain is at least half
+    the median one).  NaN when fewer than 4 such elements."""
+    return lateral_ratio(el_strain, mesh)
 
 
 def _auto_model(ratio: float):
@@ -1115,7 +1102,7 @@ def _auto_model(ratio: float):
     if ratio >= AUTO_RATIO[1]:
         return ("plane-strain", lambda_bar("plane-strain"), True,
                 f"auto: strain ratio {ratio:.3f} >= {AUTO_RATIO[1]:g}: plane strain (nu {DEFAULT_POISSON:g})")
-    lb = 2.0 * ratio / (1.0 - ratio)
+    lb = lambda_bar_from_ratio(ratio)
     return ("effective", lb, lb > 10.0,
             f"auto: strain ratio {ratio:.3f}: effective lambda_bar = 2 r / (1 - r) = {lb:.3g}")
 

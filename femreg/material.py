@@ -13,7 +13,8 @@ import math
 
 from .errors import InputError
 
-__all__ = ["MODELS", "lambda_bar", "LAMBDA_BAR_PLANE_STRAIN", "LAMBDA_BAR_PLANE_STRESS"]
+__all__ = ["MODELS", "lambda_bar", "LAMBDA_BAR_PLANE_STRAIN", "LAMBDA_BAR_PLANE_STRESS", "model_ratio",
+           "lambda_bar_from_ratio"]
 
 #: The two 2D models.
 MODELS = ("plane-stress", "plane-strain")
@@ -36,3 +37,20 @@ def lambda_bar(model: str, poisson: float) -> float:
     if not (math.isfinite(nu) and -1.0 < nu and (nu < 0.5 if strain else nu <= 0.5)):
         raise InputError(f"poisson must lie in (-1, 0.5{')' if strain else ']'} for {model}, got {poisson!r}")
     return 2.0 * nu / (1.0 - 2.0 * nu) if strain else 2.0 * nu / (1.0 - nu)
+
+
+def model_ratio(lam_bar: float) -> float:
+    r"""The lateral-to-axial strain ratio :math:`r = \bar\lambda/(\bar\lambda + 2)` of uniaxial stress in the 2D
+    model (:math:`\sigma_{yy} = \mu(\bar\lambda\,\mathrm{tr}\,\varepsilon + 2\varepsilon_{yy}) = 0`):
+    1/2 for incompressible plane stress, :math:`\nu/(1-\nu)` for plane strain."""
+    return lam_bar / (lam_bar + 2.0)
+
+
+def lambda_bar_from_ratio(ratio: float) -> float:
+    r""":math:`\bar\lambda = 2r/(1-r)`, the inverse of :func:`model_ratio`: the 2D model whose uniaxial stress
+    expands laterally as the data do (``ratio`` :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}`, dimensionless);
+    infinite at r >= 1, NaN for a NaN ratio."""
+    r = float(ratio)
+    if math.isnan(r):
+        return math.nan
+    return math.inf if r >= 1.0 else 2.0 * r / (1.0 - r)

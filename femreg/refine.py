@@ -1451,12 +1451,15 @@ def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = F
     return dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
 
 
-def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
+def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
     per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``
     and ``full``, the registration's own stopping rules, as the options ask) from the previous solution
-    carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  Stops early when
+    carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  ``start``: a
+    solve on the same mesh that the first pass starts from instead (and returned when no pass solves), ``sol``
+    then only marked: the registration's solve with R_P_sigma's lambda_bar taken from the data
+    (:func:`femreg.strategy.data_lambda_bar`), whose marking the indicator's cuts were not set on.  Stops early when
     nothing is marked.  Returns ``(sol, RefinementRecord)``."""
     import time
 
@@ -1468,7 +1471,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
     rects = np.zeros((0, 4))
     relaxed, standing = np.zeros((0, 4)), None     # relaxed segments (all passes); standing out the pass before
     budget = np.inf if opts.max_growth is None else opts.max_growth * sol.mesh.t.shape[1]
-    base_gn, nit = sol.gn, int(sol.gn.nit)
+    first = sol if start is None else start     # the solve the first pass starts from
+    base_gn, nit = first.gn, int(first.gn.nit)
     relaxing = opts.relax is not None and opts.indicator == "jump"
     note = None
     slides = np.zeros(0)            # lateral positions (mm) of the slips along the beam found
@@ -1506,7 +1510,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 # finer rows / columns would fit as patches
                 note = f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: {why}"
                 if opts.settle:
-                    sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
+                    sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
                 break
         if opts.feature_threshold is not None and opts.feature_threshold != opts.threshold:
@@ -1520,7 +1524,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, none standing out "
                         f"(largest jump {top:.2g}x the cut, below {opts.feature:g}): not split")
                 if opts.settle and k == 0:
-                    sol = _settled(solve_on(mesh, sol.u), base_gn, nit)
+                    sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
         min_size, levels = opts.min_size, opts.levels
@@ -1606,7 +1610,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                 kw["alpha_factor"] = kw.get("alpha_factor", 1.0) * opts.relax_alpha
             if opts.relax_full:
                 kw["full"] = True
-        sol = solve_on(new, transfer(sol.u, mesh, new), st, **kw)
+        sol = solve_on(new, transfer((first if k == 0 else sol).u, mesh, new), st, **kw)
         n_pass = int(sol.gn.nit)
         if len(relaxed) and not opts.relax_persist and opts.relax_passes > 1:
             sol, relaxed, n_again = _relax_again(sol, relaxed, opts, solve_on, kw)
@@ -1617,6 +1621,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin):
                            relaxed_edges=int(len(relaxed)), layer_lines=int(n_lay), top=float(top), fine=bool(finer),
                            alpha_factor=float(kw.get("alpha_factor", 1.0)),
                            seconds=time.perf_counter() - t))
+    if sol is unrefined:            # no pass solved: the solve it would have started from
+        sol = first
     if spans and opts.beam_split is not None:
         t = time.perf_counter()
         mesh = sol.mesh
@@ -1732,14 +1738,16 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
 
 
-def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings):
+def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None):
     """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
     :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
     :func:`femreg.gnsolve.solve` of the images ``I1``, ``I2`` on the pixel grid of ``sol``'s image term with
     ``solve_kw``, the regulariser's alpha keeping the unrefined mesh's weight (:func:`femreg.scaling.refined_alpha`)
     and, with ``slip``, the per-edge shear-traction weights.  Appends its summary to ``notes`` and its time to
     ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
-    ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``."""
+    ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``.  ``marked``: a
+    solve on the same mesh that the passes mark on instead of ``sol``, which they start from
+    (:func:`refine_passes`)."""
     import time
 
     from .gnsolve import solve
@@ -1765,7 +1773,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
         kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full, steps)
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
-    sol, record = refine_passes(sol, opts, solve_on, quad.spacing, quad.origin)
+    sol, record = refine_passes(sol if marked is None else marked, opts, solve_on, quad.spacing, quad.origin,
+                                start=None if marked is None else sol)
     if sol.mesh is not base:
         u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
     sol.refinement = record

@@ -40,7 +40,8 @@ from .result import RegistrationResult, displacement_at, load_result, nodal_valu
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, single_blas_thread
 from .volume import volumes_to
 from .strategy import (DEFAULT_HOURGLASS, DEFAULT_MOMENTUM_STRESS_OPTIONS, STRATEGIES,  # noqa: F401
-                       component_tol, effective_regularizer_options, fresh_regularizer)
+                       component_tol, effective_regularizer_options, fresh_regularizer, lambda_bar_follows_data,
+                       lambda_bar_stage)
 
 __all__ = ["register", "load_result", "ncc", "nodal_values", "displacement_at",
            "COARSE_TO_FINE_STRAIN", "STRATEGIES"]
@@ -333,8 +334,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                           linear_solver=linear_solver, blockmatch_options=blockmatch_options,
                           coarse_to_fine=coarse_to_fine, rectangle=rect)
     u0, stats = start.u0, start.stats
-    timings.update(start.timings)
-    timings["initial"] = time.perf_counter() - t
+    timings.update(start.timings, initial=time.perf_counter() - t)
 
     # -- Gauss-Newton on the final mesh ----------------------------------------------------------------------
     t = time.perf_counter()
@@ -343,26 +343,27 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         st = float(strain_tol) if strain_tol is not None else (
             GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
         solve_kw.update(mask_outside=True, tol=component_tol(tol, u0), strain_tol=st if st > 0 else None)
-    sol = solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u0, locator=locator, callback=callback,
-                **solve_kw)
-    timings["gauss_newton"] = time.perf_counter() - t
-    timings["per_iteration"] = list(sol.gn.timings)
+    def fine_solve(u, **kw):            # Gauss-Newton on the final mesh from the nodal displacement u
+        return solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw)
+    sol = fine_solve(u0, callback=callback, **solve_kw)
+    timings.update(gauss_newton=time.perf_counter() - t, per_iteration=list(sol.gn.timings))
 
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
     notes, hops = [ENVELOPE_NOTE] * (envelope := orientation.is_envelope(ref)), np.zeros(fe_mesh.p.shape[1], int)
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
-        kw = dict(solve_kw)
-        if kw.get("strain_tol") is not None:
-            kw["strain_tol"] = min(kw["strain_tol"], GN_STRAIN_TOL_TIGHT)
+        tight = None if solve_kw.get("strain_tol") is None else min(solve_kw["strain_tol"], GN_STRAIN_TOL_TIGHT)
         sol, hops, notes = repair_peak_hopping(
-            sol, lambda u: solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw),
-            fe_mesh, stats.period if stats is not None else rf_period(ref, spacing),
+            sol, lambda u: fine_solve(u, **dict(solve_kw, strain_tol=tight)), fe_mesh,
+            stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
+    marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
+                                   follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
+                                   and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
     unrefined = (sol, u0, hops, list(notes))
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
-                                 notes, timings)                                          # femreg.refine
+                                 notes, timings, marked=marked)                           # femreg.refine
 
     period = check_period(ref, spacing, stats) if ref.shape[0] > 1 and not envelope else None
     global_ncc = None if start.pyramid is None else start.pyramid.global_ncc
