@@ -17,7 +17,7 @@ from .regularizers import make_regularizer
 
 __all__ = ["STRATEGIES", "DEFAULT_HOURGLASS", "DEFAULT_MOMENTUM_STRESS_OPTIONS", "effective_regularizer_options",
            "component_tol", "fresh_regularizer", "LAMBDA_BAR_RANGE", "LAMBDA_BAR_STEP", "lambda_bar_follows_data",
-           "data_lambda_bar", "lambda_bar_stage"]
+           "data_lambda_bar", "lambda_bar_stage", "AXIAL_SHARE"]
 
 #: ``strategy`` values of :func:`femreg.register`.
 STRATEGIES = ("auto", "paper")
@@ -78,6 +78,12 @@ LAMBDA_BAR_RANGE = (LAMBDA_BAR_PLANE_STRESS, LAMBDA_BAR_PLANE_STRAIN)
 LAMBDA_BAR_STEP = 1.2
 
 
+#: The data's ratio is read only where the median axial strain is at least this share of the field's RMS strain
+#: (sqrt(mean(e_xx^2 + e_yy^2 + 2 e_xy^2)) over the elements): uniaxial compression 0.58-0.71, with as much
+#: shear 0.53; pure shear and rotation, or bending (whose axial strain changes sign), read the ratio of noise.
+AXIAL_SHARE = 0.25
+
+
 def lambda_bar_follows_data(strategy, regularizer, options=None, maxiter=1) -> bool:
     """Whether :func:`femreg.register` sets R_P_sigma's :math:`\bar\lambda` from the data
     (:func:`data_lambda_bar`): under ``strategy="auto"``, for ``regularizer="momentum-stress"`` given by name,
@@ -90,7 +96,8 @@ def data_lambda_bar(mesh, u) -> tuple:
     r"""``(lambda_bar, ratio)``: the lateral-to-axial strain ratio ``ratio`` of the displacement ``u`` (nodal,
     interleaved, mm) on ``mesh`` (:func:`femreg.fields.lateral_ratio`) and the momentum regulariser's
     :math:`\bar\lambda = 2r/(1-r)` (eq:meq; :func:`femreg.material.lambda_bar_from_ratio`) of the 2D model that
-    expands laterally as the data do, within :data:`LAMBDA_BAR_RANGE` (its lower end where the ratio is undefined).
+    expands laterally as the data do, within :data:`LAMBDA_BAR_RANGE`; its lower end and a NaN ratio where the
+    median axial strain is under :data:`AXIAL_SHARE` of the field's RMS strain or the ratio is undefined.
 
     Why: R_P_sigma's A (eq:meq, :math:`\bar\lambda` = 2) is the stress of incompressible plane stress.  Where the
     tissue is held in plane strain (a long inclusion, a wide probe on deep tissue: the lateral strain as large as
@@ -98,8 +105,12 @@ def data_lambda_bar(mesh, u) -> tuple:
     element edges everywhere and the TV penalty (eq:dmreg2) bends the lateral and shear strain towards a
     plane-stress field away from the features; with the :math:`\bar\lambda` of
     the data's own ratio the smooth part of the field costs little again (measured at :data:`LAMBDA_BAR_RANGE`)."""
-    ratio = lateral_ratio(element_strains(mesh.p, mesh.t, np.asarray(u, float)), mesh)
+    e = element_strains(mesh.p, mesh.t, np.asarray(u, float))
+    scale = np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2 + 2.0 * e[:, 2] ** 2))
     lo, hi = LAMBDA_BAR_RANGE
+    if not abs(np.median(e[:, 0])) >= AXIAL_SHARE * scale:
+        return lo, float("nan")     # no axial compression or stretch to read a ratio from
+    ratio = lateral_ratio(e, mesh)
     lb = lambda_bar_from_ratio(ratio)
     return (lo if not np.isfinite(ratio) else float(np.clip(lb, lo, hi))), ratio
 
