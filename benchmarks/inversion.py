@@ -189,17 +189,20 @@ def registered_cases(sets, skip=()):
 def cache_folder():
     """The registrations' cache: ``$FEMREG_CACHE/bench_inversion/<key>``, the key a hash of ``femreg.register``'s
     signature (its defaults), the default refinement's name and the rules it stands for
-    (:data:`femreg.refine.DEEP_REFINEMENT`), so a change of the registration defaults or of the refinement rules
-    registers again instead of reusing results of the former defaults."""
+    (:data:`femreg.refine.DEEP_REFINEMENT`) and R_P_sigma's options under strategy="auto" with the rule its
+    lambda_bar follows (:mod:`femreg.strategy`), so a change of the registration defaults or of the refinement
+    rules registers again instead of reusing results of the former defaults."""
     import hashlib
     import inspect
 
+    from femreg import strategy as S
     from femreg.refine import DEEP_REFINEMENT
     from femreg.refine import DEFAULT as default_refine
 
     # the default is a name ("default"): the rules it stands for key the cache too
+    rules = (S.DEFAULT_MOMENTUM_STRESS_OPTIONS, S.LAMBDA_BAR_RANGE, S.LAMBDA_BAR_STEP, S.AXIAL_SHARE)
     key = hashlib.sha1((str(inspect.signature(femreg.register)) + repr(default_refine)
-                        + repr(DEEP_REFINEMENT)).encode()).hexdigest()[:10]
+                        + repr(DEEP_REFINEMENT) + repr(rules)).encode()).hexdigest()[:10]
     folder = cache_dir() / "bench_inversion" / f"defaults-{key}"
     folder.mkdir(parents=True, exist_ok=True)
     return folder
