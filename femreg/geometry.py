@@ -395,7 +395,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     from .repair import check_period, check_result
     from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
-    from .strategy import component_tol, effective_regularizer_options, fresh_regularizer
+    from .strategy import (component_tol, effective_regularizer_options, fresh_regularizer, lambda_bar_follows_data,
+                           lambda_bar_stage)
 
     t_all = time.perf_counter()
     geometry = as_geometry(geometry)
@@ -456,6 +457,14 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                     strain_tol=st if (strategy == "auto" and st > 0) else None)
     sol = solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u0, locator=locator,
                 term=term, **solve_kw)
+    # R_P_sigma's lambda_bar from the physical field's strain ratio, as femreg.register; the refinement marks on
+    # the solve before it
+    notes = []
+    marked, sol = lambda_bar_stage(
+        sol, user_reg, notes, lambda u: solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u,
+                                              locator=locator, term=term, **solve_kw),
+        follows=lambda_bar_follows_data(strategy, regularizer, kw.get("regularizer_options"), maxiter)
+        and shape[0] > 1)
     timings = dict(sample_space=t_inner, gauss_newton=time.perf_counter() - t)
     period = check_period(ref, (dr, ds)) if shape[0] > 1 else None
 
@@ -465,7 +474,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     # -- adaptive refinement (femreg.refine) on the (r, s) lattice, the physical solve on each refined mesh -----
     # "auto" here: the two-pass refinement measured on these frames (benchmarks/convex_refine.py)
     opts = as_refinement(Refinement() if isinstance(refine, str) and refine == "auto" else refine)
-    refined, notes = None, []
+    refined = None
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()
 
@@ -484,7 +493,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
             kw_m = pass_solve_kw(opts, solve_kw, maxiter, full, steps)
             return solve(I1, I2, m, shape, sp_idx, (r0, 0.0), factory, u_start, locator=loc, term=tm, **kw_m)
 
-        refined, record = refine_passes(sol, opts, solve_on, (dr, ds), (r0, s0))
+        refined, record = refine_passes(sol if marked is None else marked, opts, solve_on, (dr, ds), (r0, s0),
+                                        start=None if marked is None else sol)
         timings["refine"] = time.perf_counter() - t
         notes.append(record.summary())
     if refined is not None and refined.mesh is not mesh:

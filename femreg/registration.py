@@ -213,7 +213,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         Extra keyword arguments of the regulariser factory.  With ``strategy="auto"`` the momentum regularisers
         get ``hourglass=``:data:`femreg.strategy.DEFAULT_HOURGLASS`, R_P_sigma ``dilatation="centre"`` and
         ``hourglass=1000``
-        (:data:`femreg.strategy.DEFAULT_MOMENTUM_STRESS_OPTIONS`) unless given here.
+        (:data:`femreg.strategy.DEFAULT_MOMENTUM_STRESS_OPTIONS`) unless given here; and R_P_sigma's
+        ``lambda_bar`` (eq:meq) follows the data's lateral-to-axial strain ratio (2 to 9: the solve is repeated
+        with it where the data expand laterally more than incompressible plane stress,
+        :func:`femreg.strategy.data_lambda_bar`; said in the message) unless ``lambda_bar`` is given here.
     normalize : bool
         Subtract each image's mean and divide it by its spread (default; makes alpha scale- and offset-free:
         :func:`femreg.image.normalize_pair`).
