@@ -723,9 +723,9 @@ class _SweepBar:
     every = 0.2
 
     def __init__(self, n_beta: int, maxiter: int):
-        from tqdm.auto import tqdm
+        from .progress import bar
 
-        self.bar = tqdm(total=int(n_beta), desc="invert", unit="beta")
+        self.bar = bar(total=int(n_beta), desc="invert", unit="beta")
         self.maxiter, self.beta, self.it, self.shown = int(maxiter), None, 0, 0.0
 
     def start(self, beta) -> None:

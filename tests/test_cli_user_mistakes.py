@@ -234,3 +234,48 @@ def test_a_given_region_without_signal_is_refused(tmp_path, capsys):
                         capsys)
     assert rc == 2 and "the roi given holds no signal" in err, (rc, err)
     assert not (tmp_path / "x.npz").exists() and not (tmp_path / "t").exists()
+
+
+def test_elastogram_colour_range_follows_the_good_pixels():
+    from femreg.elastogram import display_range
+
+    rng = np.random.default_rng(0)
+    exx = rng.lognormal(0.0, 0.8, (200, 100))               # a heavy right tail, as in vivo
+    exx /= exx.mean()
+    q = np.ones_like(exx)
+    q[:, :20] = 0.01                                        # a decorrelated strip: low weight, wild values
+    exx[:, :20] = rng.normal(0.0, 20.0, (200, 20))
+    lo, hi = display_range(exx, q)
+    good = exx[:, 20:]
+    outside = np.mean((good < lo) | (good > hi))
+    assert lo <= 1.0 <= hi and outside < 0.05, (lo, hi, outside)   # 2 + 2 % by construction
+    assert hi < 10.0 and lo > -1.0, (lo, hi)                 # the strip's +-20 did not set it
+    assert np.mean((good < 0) | (good > 2)) > 0.08           # the old fixed 0-2 saturated more (measured 0.10)
+    assert display_range(np.full((4, 4), np.nan), np.zeros((4, 4))) == (0.0, 2.0)
+
+
+@needs_invivo
+def test_elastogram_in_vivo_not_saturated(tmp_path, capsys):
+    # seq299 with 0-2 x the mean: 31 % of the covered pixels saturated (16 % above 2, 15 % below 0)
+    base = ["elastogram", SEQ, *RAW, "--spacing", "0.02", "0.2", "--band", "0.2", "2", "--no-progress"]
+    rc, out, err = _run(base + ["-o", tmp_path / "loop"], capsys)
+    assert rc == 0, err
+    z = np.load(tmp_path / "loop" / "elastogram.npz")
+    lo, hi = z["strain_range"]
+    e = z["exx"][np.isfinite(z["exx"]) & (z["quality"] > 0)]
+    sat = np.mean((e < lo) | (e > hi))
+    assert sat < 0.08 and np.mean((e < 0) | (e > 2)) > 0.25, (lo, hi, sat)    # measured 4.8 % against 30.9 %
+    rc, out, err = _run(base + ["-o", tmp_path / "fixed", "--strain-range", "0", "2"], capsys)
+    assert rc == 0 and list(np.load(tmp_path / "fixed" / "elastogram.npz")["strain_range"]) == [0.0, 2.0]
+    rc, out, err = _run(base + ["-o", tmp_path / "bad", "--strain-range", "2", "0"], capsys)
+    assert rc == 2 and "--strain-range" in err and not (tmp_path / "bad").exists(), err
+
+
+def test_strain_cine_legend_follows_the_range():
+    from femreg.cli.elastogram_cmd import _legend
+
+    leg = _legend(100, -0.2, 3.6)
+    # the tick of 1 (the mean) lies across the bar at its height, dark; no dash beside the number (read as minus)
+    y = int(round((3.6 - 1.0) / 3.8 * 99))
+    assert leg[y, 10].max() < 40 and leg[y + 3, 10].max() > 40
+    assert not (leg[:, 16:19] > 128).any()

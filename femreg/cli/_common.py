@@ -36,7 +36,7 @@ def _spacing_value(text: str):
 
 def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
     """Add --variable, --shape, --dtype, --spacing, --origin, --byte-order, --frames, --sound-speed, --iq-frequency,
-    --iq-conjugate to ``parser``."""
+    --transpose, --iq-conjugate to ``parser``."""
     g = parser.add_argument_group(group_title)
     g.add_argument("--variable", metavar="NAME",
                    help="array name in .npz/.mat files (default: rf or frames, else the only 2D/3D array)")
@@ -60,6 +60,9 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--iq-frequency", metavar="MHZ", type=float, dest="modulation_frequency",
                    help="IQ data (complex samples): the demodulation frequency in MHz; the frames are remodulated "
                         "to RF (UFF files store their own, which this overrides)")
+    g.add_argument("--transpose", action="store_true",
+                   help="the file stores each frame lines first (lateral x axial, e.g. saved as frame.T or from "
+                        "MATLAB): transpose every frame as read; --spacing stays axial, lateral")
     g.add_argument("--iq-conjugate", action="store_true",
                    help="IQ data demodulated with exp(+2 pi i f t), the opposite of the usual sign (the frames say "
                         "so when they need it)")
@@ -286,7 +289,7 @@ def run_tracking(args, call, noun: str) -> int:
         k = (done[-1] if done else 0) + 1
         msg = " ".join(str(exc).split()) or type(exc).__name__
         kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
-        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
+        print(f"femreg track: failed: frame {k} could not be computed ({type(exc).__name__}: {msg}); {kept}; "
               f"rerun with --resume to continue", file=sys.stderr)
         return 1
     if len(out) and getattr(out[0], "excluded", None):

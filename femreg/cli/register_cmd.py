@@ -179,6 +179,9 @@ def run(args) -> int:
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
     if vol is not None:                 # RF volumes (spacing with 3 values)
+        if getattr(args, "transpose", False):
+            raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "
+                             "saving it (axial, lateral, elevational)")
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
                              "swept")
@@ -265,7 +268,7 @@ def run(args) -> int:
         raise                      # bad input: exit 2 from the dispatcher
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"femreg register: error: registration failed ({type(exc).__name__}: {msg})", file=sys.stderr)
+        print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {msg})", file=sys.stderr)
         return 1
     res.save(args.output)
     print(res.summary(message=res.success))        # a failure's message follows once, as the error line
@@ -276,8 +279,8 @@ def run(args) -> int:
         print(f"femreg register: note: {note.replace('refine=None', '--refine none')}")
     print(f"wrote {args.output}")
     if not res.success:
-        print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
-              file=sys.stderr)
+        reason = res.message.removeprefix("FAILED: ")
+        print(f"femreg register: failed: the registration failed its checks: {reason}", file=sys.stderr)
         return 1
     if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
         print(f"femreg register: FLAGGED: low-quality pair (NCC after {res.ncc_after:.3f} < --min-ncc "
