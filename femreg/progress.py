@@ -82,7 +82,8 @@ class LineProgress:
     def close(self) -> None:
         if not self.closed:
             self.closed = True
-            if self.said != (self.n, self.total, self.postfix):    # the last line said it already
+            # nothing to say when the last line said it, or when there was nothing to do (a total of 0)
+            if self.said != (self.n, self.total, self.postfix) and (self.total != 0 or self.n):
                 self._line(final=True)
 
     def __enter__(self):

@@ -27,6 +27,8 @@ def test_a_slow_step_still_says_something(capsys, monkeypatch):
     b.update(1)
     b.close()
     lines = capsys.readouterr().err.splitlines()
+    progress.LineProgress(total=0, desc="register", unit="pair").close()      # nothing to do: no line
+    assert capsys.readouterr().err == ""
     assert lines[0] == "invert: 0/1000 betas (0 %), 0.0 s, beta 0.1, iteration 120 of at most 400", lines
     assert lines[1].startswith("invert: 1/1001 beta (0 %)") and len(lines) == 2, lines
 
