@@ -279,3 +279,14 @@ def test_strain_cine_legend_follows_the_range():
     y = int(round((3.6 - 1.0) / 3.8 * 99))
     assert leg[y, 10].max() < 40 and leg[y + 3, 10].max() > 40
     assert not (leg[:, 16:19] > 128).any()
+
+
+@needs_invivo
+def test_the_same_frame_twice_is_refused(tmp_path, capsys):
+    # --pair 1 1 (a typo for 1 4) ran 21 Gauss-Newton iterations on zero motion and exited 0
+    sp = ["--spacing", "0.02", "0.2"]
+    for argv in (["register", SEQ, *RAW, *sp, "--pair", "1", "1", "-o", tmp_path / "a.npz"],
+                 ["register", SEQ / "frame2.raw", SEQ / "frame2.raw", *RAW, *sp, "-o", tmp_path / "b.npz"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "identical frames" in err and len(err.strip().splitlines()) == 1, err
+    assert not any(tmp_path.iterdir())

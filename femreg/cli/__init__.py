@@ -53,7 +53,8 @@ EXIT_CODES = {
 def exit_code_epilog(name: str) -> str:
     """The --help epilog stating ``name``'s exit codes (:data:`EXIT_CODES`)."""
     done, flagged, *bad = EXIT_CODES[name]
-    bad = bad[0] if bad else "unreadable file, bad flags, frames that look transposed, a swapped spacing, ..."
+    bad = bad[0] if bad else ("unreadable file, bad flags, frames that look transposed (--transpose reads frames "
+                              "stored lines first), a swapped spacing, ...")
     return (f"exit codes: 0 {done}; 1 {flagged}, said on stderr as 'failed:', 'FAILED:' or 'FLAGGED:'; 2 bad "
             f"input, found before any work, with a one-line 'error:' reason on stderr ({bad}).")
 

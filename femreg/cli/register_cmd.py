@@ -247,6 +247,12 @@ def run(args) -> int:
                          f"{dims(map(str, np.shape(ref)))} and {dims(map(str, np.shape(mov)))} (axial x lateral"
                          f"{' x elevational' if np.ndim(ref) == 3 else ''}): both frames of a pair come from one "
                          "recording (check the files and --shape)")
+    if np.array_equal(ref, mov):
+        # nothing moved: the solve would run to its iteration limit on ||du|| / ||u|| with u = 0 and exit 0
+        which = (f"--pair {i} {j} names frame {i} twice" if args.moving is None else
+                 f"{args.reference} frame {i} and {args.moving} frame {j} hold the same samples")
+        pick = "--pair I J, counted from 0" if args.moving is None else "the moving frame's file, or --pair I J"
+        raise InputError(f"{which}: identical frames, nothing to register (pick two different frames: {pick})")
     if args.moving is not None and "iq" in ref_fr.metadata and not args.no_orientation_check:
         # two IQ files: their sign convention is checked on the pair (one file of several frames is checked as read)
         from ..orientation import check_iq_sign
