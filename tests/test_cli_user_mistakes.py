@@ -290,3 +290,18 @@ def test_the_same_frame_twice_is_refused(tmp_path, capsys):
         rc, out, err = _run(argv, capsys)
         assert rc == 2 and "identical frames" in err and len(err.strip().splitlines()) == 1, err
     assert not any(tmp_path.iterdir())
+
+
+@needs_invivo
+def test_frames_of_two_recordings_fail_without_numpy_noise(tmp_path, capsys):
+    # seq299 frame 1 against seq304 frame 1: before, a "warning: invalid value encountered in divide" line from
+    # the block matching's sub-sample fit came first
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:     # as the command shows them, not as pytest collects
+        warnings.simplefilter("always")
+        rc, out, err = _run(["register", SEQ / "frame1.raw", INVIVO / "seq304" / "frame1.raw", *RAW, "--spacing",
+                             "0.02", "0.2", "-o", tmp_path / "m.npz"], capsys)
+    assert not [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
+    assert rc == 1 and "warning" not in err and err.startswith("femreg register: failed: "), err
+    assert "do not match" in err and (tmp_path / "m.npz").is_file()
