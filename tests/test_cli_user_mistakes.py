@@ -305,3 +305,26 @@ def test_frames_of_two_recordings_fail_without_numpy_noise(tmp_path, capsys):
     assert not [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
     assert rc == 1 and "warning" not in err and err.startswith("femreg register: failed: "), err
     assert "do not match" in err and (tmp_path / "m.npz").is_file()
+
+
+@needs_invivo
+def test_elastogram_quality_panel_not_saturated(tmp_path, capsys):
+    # the weight / its median on a linear 0-3 scale saturated 22.5 % of seq299's covered pixels
+    import types
+
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import elastogram_figure
+
+    rc, out, err = _run(["elastogram", SEQ, *RAW, "--spacing", "0.02", "0.2", "--band", "0.2", "2", "--no-progress",
+                         "-o", tmp_path / "loop"], capsys)
+    assert rc == 0, err
+    z = np.load(tmp_path / "loop" / "elastogram.npz")
+    res = types.SimpleNamespace(exx=z["exx"], quality=z["quality"], ref_frame=int(z["ref_frame"]), n_usable=2)
+    fig = elastogram_figure(res, np.ones_like(z["exx"]), z["spacing"], z["origin"])
+    im = fig.axes[2].images[-1]
+    q = z["quality"][z["quality"] > 0]
+    lq = np.log10(q / np.median(q))
+    outside = np.mean((lq < im.norm.vmin) | (lq > im.norm.vmax))
+    plt.close(fig)
+    assert outside < 0.05 and im.norm.vmax - im.norm.vmin > 1.0, (outside, im.norm.vmin, im.norm.vmax)

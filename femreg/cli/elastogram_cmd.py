@@ -169,9 +169,17 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None):
                vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
-    # relative to the median, saturated at 3x: static near-field echoes (NCC ~1) would take the whole range
-    plot_field(q / med, spacing, origin, ax=axs[2], title="quality (persistence weight)", cmap="magma", vmin=0.0,
-               vmax=3.0, label="persistence weight / its median")
+    # relative to the median on a log scale over its 2-98 % percentiles: the weight spans 20x and more (static
+    # near-field echoes, NCC ~1), which a linear 0-3x range saturated on a quarter of the in vivo pixels
+    lq = np.log10(q / med)
+    qlo, qhi = np.nanpercentile(lq, [2.0, 98.0]) if np.isfinite(lq).any() else (-1.0, 1.0)
+    qlo, qhi = min(qlo, -0.1), max(qhi, 0.1)
+    plot_field(lq, spacing, origin, ax=axs[2], title="quality (persistence weight)", cmap="magma", vmin=qlo,
+               vmax=qhi, label="persistence weight / its median (log scale)")
+    cb = axs[2].images[-1].colorbar
+    if cb is not None:
+        ticks = [v for v in (0.01, 0.03, 0.1, 0.3, 1, 3, 10, 30, 100) if qlo <= np.log10(v) <= qhi]
+        cb.set_ticks(np.log10(ticks), labels=[f"{v:g}" for v in ticks])
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
