@@ -253,6 +253,12 @@ def test_transposed_frames_fixed_by_the_transpose_flag(data, capsys, tmp_path):
     assert rc == 0 and "transposed as read" in out, out + err
     rc, out, err = _run(["track", t, "-o", tmp_path / "run", "--transpose", "--no-progress"], capsys)
     assert rc == 0 and (tmp_path / "run" / "frame_001.npz").is_file(), out + err
+    # without a spacing (npy): info already says what the frames need besides it
+    np.save(tmp_path / "t.npy", np.load(t)["rf"])
+    rc, out, err = _run(["info", tmp_path / "t.npy"], capsys)
+    assert rc == 1 and "no spacing found" in out and "pass --transpose" in out, out
+    rc, out, err = _run(["info", tmp_path / "t.npy", "--transpose"], capsys)
+    assert rc == 1 and "--transpose" not in out.split("needs", 1)[1], out
     # one spacing given, one from the file, would mix the two orders
     rc, out, err = _run(["info", t, "--transpose", "--spacing", "auto", "0.2"], capsys)
     assert rc == 2 and "both spacings" in err, err
