@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 import time
 
-__all__ = ["bar", "LineProgress", "stderr_is_terminal", "LINE_STEP", "LINE_SECONDS"]
+__all__ = ["bar", "iterate", "LineProgress", "stderr_is_terminal", "LINE_STEP", "LINE_SECONDS"]
 
 #: A line each time the count passes a further fraction of the total.
 LINE_STEP = 0.1
@@ -100,3 +100,15 @@ def bar(total=None, desc: str = "", unit: str = "it", **kwargs):
 
         return tqdm(total=total, desc=desc, unit=unit, **kwargs)
     return LineProgress(total=total, desc=desc, unit=unit)
+
+
+def iterate(items, desc: str = "", unit: str = "it"):
+    """Yield from ``items`` with a progress :func:`bar` over them (closed at the end, or when the loop stops)."""
+    items = list(items)
+    b = bar(total=len(items), desc=desc, unit=unit)
+    try:
+        for item in items:
+            yield item
+            b.update(1)
+    finally:
+        b.close()

@@ -33,6 +33,12 @@ def test_a_slow_step_still_says_something(capsys, monkeypatch):
     assert lines[1].startswith("invert: 1/1001 beta (0 %)") and len(lines) == 2, lines
 
 
+def test_iterate_yields_everything_with_lines(capsys):
+    assert list(progress.iterate(range(3), desc="data sets", unit="set")) == [0, 1, 2]
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1].startswith("data sets: 3/3 sets (100 %)") and len(lines) == 3, lines
+
+
 def test_track_on_a_log_writes_lines(tmp_path, capsys):
     from femreg.cli import main
     from femreg.synthetic import speckle_pair
