@@ -265,6 +265,8 @@ def test_elastogram_in_vivo_not_saturated(tmp_path, capsys):
     e = z["exx"][np.isfinite(z["exx"]) & (z["quality"] > 0)]
     sat = np.mean((e < lo) | (e > hi))
     assert sat < 0.08 and np.mean((e < 0) | (e > 2)) > 0.25, (lo, hi, sat)    # measured 4.8 % against 30.9 %
+    rc, out, err = _run(["measure", tmp_path / "loop" / "elastogram.npz", "--inclusion", "12", "12", "2"], capsys)
+    assert rc == 0 and "background: rest of the covered pixels" in out, out     # an elastogram has no mesh
     rc, out, err = _run(base + ["-o", tmp_path / "fixed", "--strain-range", "0", "2"], capsys)
     assert rc == 0 and list(np.load(tmp_path / "fixed" / "elastogram.npz")["strain_range"]) == [0.0, 2.0]
     rc, out, err = _run(base + ["-o", tmp_path / "bad", "--strain-range", "2", "0"], capsys)
