@@ -253,6 +253,15 @@ def test_transposed_frames_fixed_by_the_transpose_flag(data, capsys, tmp_path):
     assert rc == 0 and "transposed as read" in out, out + err
     rc, out, err = _run(["track", t, "-o", tmp_path / "run", "--transpose", "--no-progress"], capsys)
     assert rc == 0 and (tmp_path / "run" / "frame_001.npz").is_file(), out + err
+    # a result's pictures and its one-step inversion from frames stored lines first
+    rc, out, err = _run(["plot", tmp_path / "r.npz", "-o", tmp_path / "r.png", "--reference", t], capsys)
+    assert rc == 2 and "--transpose" in err, err
+    rc, out, err = _run(["plot", tmp_path / "r.npz", "-o", tmp_path / "r.png", "--reference", t, "--transpose"],
+                        capsys)
+    assert rc == 0 and (tmp_path / "r.png").is_file(), err
+    rc, out, err = _run(["invert", tmp_path / "r.npz", "-o", tmp_path / "mu.npz", "--images", t, "--no-progress"],
+                        capsys)
+    assert rc == 2 and "--transpose" in err, err
     # without a spacing (npy): info already says what the frames need besides it
     np.save(tmp_path / "t.npy", np.load(t)["rf"])
     rc, out, err = _run(["info", tmp_path / "t.npy"], capsys)
