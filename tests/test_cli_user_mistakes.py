@@ -330,3 +330,20 @@ def test_elastogram_quality_panel_not_saturated(tmp_path, capsys):
     outside = np.mean((lq < im.norm.vmin) | (lq > im.norm.vmax))
     plt.close(fig)
     assert outside < 0.05 and im.norm.vmax - im.norm.vmin > 1.0, (outside, im.norm.vmin, im.norm.vmax)
+
+
+@needs_invivo
+def test_no_usable_pair_is_marked_on_the_picture(tmp_path, capsys, monkeypatch):
+    # seq304 with the default band (0.5-2 %; it compresses 0.38 %): exit 1, and elastogram.png, whose strain panels
+    # are empty, carries the reason as a failed result's red banner (before: blank panels, nothing said)
+    import femreg.plot
+
+    banners = []
+    real = femreg.plot.draw_failure
+    monkeypatch.setattr(femreg.plot, "draw_failure", lambda fig, text, **kw: (banners.append(text),
+                                                                               real(fig, text, **kw)))
+    rc, out, err = _run(["elastogram", INVIVO / "seq304", *RAW, "--spacing", "0.02", "0.2", "--no-progress", "-o",
+                         tmp_path / "loop"], capsys)
+    assert rc == 1 and err.startswith("femreg elastogram: failed: no pair was usable"), err
+    assert len(banners) == 1 and banners[0].startswith("NO ELASTOGRAM: no pair was usable"), banners
+    assert "--band 0.3 2" in banners[0] and (tmp_path / "loop" / "elastogram.png").is_file()

@@ -151,14 +151,15 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Pa
     return path
 
 
-def elastogram_figure(res, frame, spacing, origin, strain_range=None):
+def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None):
     """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram (colours over
     ``strain_range``, default :func:`femreg.elastogram.display_range`) | its persistence weight, each colour bar
-    clear of the next panel's axis label."""
+    clear of the next panel's axis label.  ``failure``: the reason no pair was usable, drawn as the red banner
+    of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels."""
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range
-    from ..plot import fit_colorbars, plot_bmode, plot_field
+    from ..plot import draw_failure, fit_colorbars, plot_bmode, plot_field
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
@@ -183,15 +184,17 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None):
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
+    if failure:
+        draw_failure(fig, f"NO ELASTOGRAM: {failure}")
     fit_colorbars(fig, [list(axs)])
     return fig
 
 
-def write_picture(path, res, frame, spacing, origin, strain_range=None) -> None:
+def write_picture(path, res, frame, spacing, origin, strain_range=None, failure=None) -> None:
     """Write :func:`elastogram_figure` to ``path`` (PNG, written under a temporary name and renamed)."""
     import matplotlib.pyplot as plt
 
-    fig = elastogram_figure(res, frame, spacing, origin, strain_range)
+    fig = elastogram_figure(res, frame, spacing, origin, strain_range, failure)
     tmp = Path(path).with_name(".elastogram.tmp.png")
     fig.savefig(tmp, dpi=90)
     plt.close(fig)
@@ -247,8 +250,13 @@ def run(args) -> int:
         (a, b), (c, d) = res.region
         frames = [np.asarray(f)[a:b, c:d] for f in frames]
         print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
+    failure = None
+    if res.n_usable == 0:
+        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
+        failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
+                   f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
     write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin,
-                  shown)
+                  shown, failure)
     cine = write_cine(out, res, frames, res.spacing, fps=args.fps, strain_range=shown)
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
@@ -259,9 +267,7 @@ def run(args) -> int:
              "no elastogram (empty strain panels); ")
           + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
-    if res.n_usable == 0:
-        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
-        print(f"femreg elastogram: failed: no pair was usable (none with strain in {lo:g}-{hi:g} % that "
-              f"registered; see {out / 'pairs.csv'})" + (f": {why}" if why else ""), file=sys.stderr)
+    if failure:
+        print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1
     return 0
