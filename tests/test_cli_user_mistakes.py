@@ -347,3 +347,15 @@ def test_no_usable_pair_is_marked_on_the_picture(tmp_path, capsys, monkeypatch):
     assert rc == 1 and err.startswith("femreg elastogram: failed: no pair was usable"), err
     assert len(banners) == 1 and banners[0].startswith("NO ELASTOGRAM: no pair was usable"), banners
     assert "--band 0.3 2" in banners[0] and (tmp_path / "loop" / "elastogram.png").is_file()
+
+
+def test_raw_only_flags_on_a_file_with_a_header_are_noted(tmp_path, capsys):
+    # --shape / --dtype given for an .npy (which states its own) were ignored without a word
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "f.npy", rng.standard_normal((2, 64, 32)).astype(np.float32))
+    base = ["info", tmp_path / "f.npy", "--spacing", "0.05", "0.2"]
+    rc, out, err = _run(base + ["--shape", "32", "64", "--dtype", "int16"], capsys)
+    assert "--shape 32 64 (the file's frames: 2 x 64 x 32); --dtype int16 (stored as float32) ignored" in err, err
+    assert "shape     64 axial x 32 lateral" in out, out                    # read as stored
+    rc, out, err = _run(base + ["--shape", "64", "32", "--dtype", "float32"], capsys)
+    assert "note" not in err, err                                            # what the file holds: nothing to say

@@ -91,6 +91,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
         n = read_frames(path, **{**reader_kwargs(args), "frames": None}, check_orientation=False).n_frames
         frame_index(neg, n, path, "--frames")
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
+    _note_raw_only_flags(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -98,6 +99,36 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def _note_raw_only_flags(fr, path, args) -> None:
+    """On stderr: --shape, --dtype or --byte-order given for a file that states its own (npy, npz, mat, ...) and
+    read otherwise; the file's header wins, but a flag that is silently ignored hides a wrong idea of the data."""
+    meta = fr.metadata or {}
+    formats = f"{meta.get('format', '')} {(meta.get('file_metadata') or {}).get('format', '')}"
+    if "raw" in formats:
+        return
+    stored = str(meta.get("stored_dtype") or (meta.get("file_metadata") or {}).get("stored_dtype") or "")
+    ignored = []
+    shape = getattr(args, "shape", None)
+    if shape and tuple(int(v) for v in shape[-2:]) != tuple(fr.shape):
+        ignored.append(f"--shape {' '.join(str(v) for v in shape)} (the file's frames: {fr.n_frames} x "
+                       f"{fr.shape[0]} x {fr.shape[1]})")
+    dtype = getattr(args, "dtype", None)
+    if dtype and stored and str(dtype).lower() != stored.lower():
+        ignored.append(f"--dtype {dtype} (stored as {stored})")
+    if getattr(args, "byte_order", None):
+        ignored.append(f"--byte-order {args.byte_order}")
+    key = (str(path), tuple(ignored))
+    if ignored and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: {path}: {'; '.join(ignored)} ignored: they apply to headerless raw files, and this "
+              f"{meta.get('format', 'file')} file states its own", file=sys.stderr)
+
+
+#: Notes already given in this process (register reads the same file's flags for each frame file).
+_NOTED: set = set()
 
 
 def frames_on_result_grid(args, path, result_spacing):
