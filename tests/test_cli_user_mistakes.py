@@ -359,3 +359,11 @@ def test_raw_only_flags_on_a_file_with_a_header_are_noted(tmp_path, capsys):
     assert "shape     64 axial x 32 lateral" in out, out                    # read as stored
     rc, out, err = _run(base + ["--shape", "64", "32", "--dtype", "float32"], capsys)
     assert "note" not in err, err                                            # what the file holds: nothing to say
+
+
+@needs_invivo
+def test_pair_of_a_folder_names_its_files(tmp_path, capsys):
+    # --pair 1 4 meant as frame1.raw -> frame4.raw registers frame2.raw -> frame5.raw: the files are named
+    rc, out, err = _run(["register", SEQ, *RAW, "--spacing", "0.02", "0.2", "--pair", "1", "4", "-o",
+                         tmp_path / "p.npz", "--maxiter", "2", "--refine", "none"], capsys)
+    assert rc in (0, 1) and "registering frame2.raw -> frame5.raw (frames 1 -> 4" in err, err
