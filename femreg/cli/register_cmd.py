@@ -241,11 +241,6 @@ def run(args) -> int:
                   "reads each file as one RF volume)", file=sys.stderr)
     ref = _frame(ref_fr, i, args.reference)
     mov = _frame(mov_fr, j, args.moving or args.reference)
-    files = (ref_fr.metadata or {}).get("files")
-    if args.moving is None and args.pair is not None and files and len(files) == ref_fr.n_frames:
-        # a folder of numbered files: name them, frame1.raw is frame 0 (a 1-based --pair registers other frames)
-        print(f"femreg register: note: registering {files[i]} -> {files[j]} (frames {i} -> {j} of "
-              f"{args.reference}, counted from 0)", file=sys.stderr)
     if args.moving is not None and np.shape(ref) != np.shape(mov):
         dims = " x ".join
         raise InputError(f"{args.reference} and {args.moving} hold frames of different shapes, "
@@ -266,6 +261,11 @@ def run(args) -> int:
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
 
+    files = (ref_fr.metadata or {}).get("files")
+    if args.moving is None and args.pair is not None and files and len(files) == ref_fr.n_frames:
+        # a folder of numbered files: name them, frame1.raw is frame 0 (a 1-based --pair registers other frames)
+        print(f"femreg register: note: registering {files[i]} -> {files[j]} (frames {i} -> {j} of "
+              f"{args.reference}, counted from 0)", file=sys.stderr)
     spacing, origin = ref_fr.spacing, ref_fr.origin
     if beam is not None:                # range step and first range from the file; rays centred on angle 0
         kw["geometry"] = beam
