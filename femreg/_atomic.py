@@ -88,9 +88,10 @@ def load_frame_record(path) -> tuple:
 
 
 def progress_bar(progress: bool, total: int, desc: str, unit: str):
-    """A tqdm bar for a tracking run, or None without ``progress``."""
+    """A progress bar for a tracking run (:func:`femreg.progress.bar`: tqdm on a terminal, plain lines
+    otherwise), or None without ``progress``."""
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from .progress import bar
 
-    return tqdm(total=total, desc=desc, unit=unit)
+    return bar(total=total, desc=desc, unit=unit)

@@ -286,11 +286,11 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         register_kwargs["strain_tol"] = GN_STRAIN_TOL_TIGHT
     bar = None
     if PROGRESS if progress is None else progress:
-        from tqdm.auto import tqdm
+        from .progress import bar as make_bar
 
         # two steps per candidate: its registration, then its influence trace (a dense solve on small meshes,
         # often the longer of the two)
-        bar = tqdm(total=2 * alphas.size, desc="alpha auto", unit="step")
+        bar = make_bar(total=2 * alphas.size, desc="alpha auto", unit="step")
 
     def step(text):
         if bar is not None:

@@ -218,7 +218,10 @@ def _block_match_once(reference, moving, spacing, origin=(0.0, 0.0), *, window=(
                 else:
                     cm, c0, cp = ncc[idx, pa[ok], p[ok] - 1], ncc[idx, pa[ok], p[ok]], ncc[idx, pa[ok], p[ok] + 1]
                 den = cm - 2 * c0 + cp
-                off = np.where(np.isfinite(den) & (den < 0), 0.5 * (cm - cp) / np.where(den < 0, den, -1), 0.0)
+                # a neighbour at -inf (an NCC above 1, discarded) makes den non-finite: such peaks keep offset 0,
+                # and the division's invalid value must not reach the user as a warning
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    off = np.where(np.isfinite(den) & (den < 0), 0.5 * (cm - cp) / np.where(den < 0, den, -1), 0.0)
                 d[idx, ax] += np.clip(off, -0.5, 0.5)
     na, nl = ia.size, il.size
     raw = (d * spacing).reshape(na, nl, 2)

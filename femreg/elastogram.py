@@ -58,7 +58,8 @@ from .mesh import roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
 
-__all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "DEFAULT_BAND", "PAIR_COLUMNS"]
+__all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "display_range", "DEFAULT_BAND",
+           "PAIR_COLUMNS", "DISPLAY_PERCENTILES"]
 
 #: Default band of axial strain magnitude (fraction) of the pairs registered.
 DEFAULT_BAND = (0.005, 0.02)
@@ -69,6 +70,28 @@ PAIR_COLUMNS = ("ref", "mov", "axial_strain_percent", "ncc", "quality", "selecte
 RHO_MAX = 0.98
 #: Default persistence factor rho (weight of the previous cine frame).
 DEFAULT_PERSISTENCE = 0.7
+#: Percentiles of the normalised strain over the good-quality pixels that set the pictures' colour range
+#: (:func:`display_range`).
+DISPLAY_PERCENTILES = (2.0, 98.0)
+
+
+def display_range(exx, quality, percentiles=DISPLAY_PERCENTILES) -> tuple:
+    """Colour range ``(lo, hi)`` of a normalised strain image (mean 1): the ``percentiles`` of ``exx`` over the
+    pixels whose ``quality`` (persistence weight, same shape) is at least its median over the covered pixels,
+    widened to hold 1 (the mean).  A fixed 0-2 range saturated 31 % of the in vivo elastogram of seq299 (16 %
+    above 2, 15 % below 0); low-weight pixels are left out so that decorrelated patches do not set it.
+    (0, 2) when no pixel is covered."""
+    e = np.asarray(exx, float)
+    q = np.broadcast_to(np.asarray(quality, float), e.shape)
+    ok = np.isfinite(e) & np.isfinite(q) & (q > 0)
+    if not ok.any():
+        return 0.0, 2.0
+    good = ok & (q >= np.median(q[ok]))
+    lo, hi = (float(v) for v in np.percentile(e[good if good.any() else ok], percentiles))
+    lo, hi = min(lo, 1.0), max(hi, 1.0)
+    if not hi > lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    return lo, hi
 
 
 @dataclass
@@ -674,8 +697,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     def bar(total, desc):
         if not progress:
             return None
-        from tqdm.auto import tqdm
-        return tqdm(total=total, desc=desc, unit="pair")
+        from .progress import bar as make_bar
+        return make_bar(total=total, desc=desc, unit="pair")
 
     with _pool(n_workers, client, seq) as (client, fpath):
         # -- 1. screening ----------------------------------------------------------------------------------------------

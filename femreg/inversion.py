@@ -725,9 +725,9 @@ class _SweepBar:
     every = 0.2
 
     def __init__(self, n_beta: int, maxiter: int):
-        from tqdm.auto import tqdm
+        from .progress import bar
 
-        self.bar = tqdm(total=int(n_beta), desc="invert", unit="beta")
+        self.bar = bar(total=int(n_beta), desc="invert", unit="beta")
         self.maxiter, self.beta, self.it, self.shown = int(maxiter), None, 0, 0.0
 
     def start(self, beta) -> None:
@@ -1660,8 +1660,10 @@ def _check_images(displacement, region, reference_image, moving_image):
     images = (check(reference_image, "reference image" if not three else "reference volume"),
               check(moving_image, "moving image" if not three else "moving volume"))
     if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
+        swapped = ("; their axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
+                   "--transpose)" if not three and images[0].shape == tuple(displacement.shape)[::-1] else "")
         raise InputError(f"{'volumes' if three else 'images'} {images[0].shape} / {images[1].shape} do not match "
-                         f"the registration grid {tuple(displacement.shape)}")
+                         f"the registration grid {tuple(displacement.shape)}{swapped}")
     return images
 
 

@@ -24,7 +24,7 @@ REGISTRATION_DEFAULTS = {"regularizer": _SIGNATURE.parameters["regularizer"].def
                          "tol": _SIGNATURE.parameters["tol"].default, "no_orientation_check": False}
 #: The reader options of :func:`femreg.io.read_frames` (None: the file's own, or the reader's default).
 READER_DEFAULTS = {"variable": None, "shape": None, "dtype": None, "spacing": None, "byte_order": None,
-                   "frames": None, "sound_speed": None, "origin": None}
+                   "frames": None, "sound_speed": None, "origin": None, "transpose": False}
 
 
 def frame_selection(text: str):
@@ -87,7 +87,8 @@ def reader_kwargs(options) -> dict:
     return dict(variable=options.get("variable"), shape=shape, dtype=options.get("dtype"),
                 spacing=options.get("spacing"), byte_order=options.get("byte_order"), frames=options.get("frames"),
                 sound_speed=options.get("sound_speed"), modulation_frequency=options.get("modulation_frequency"),
-                iq_conjugate=bool(options.get("iq_conjugate")), origin=options.get("origin"))
+                iq_conjugate=bool(options.get("iq_conjugate")), origin=options.get("origin"),
+                transpose=bool(options.get("transpose")))
 
 
 def registration_kwargs(options) -> dict:

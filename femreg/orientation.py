@@ -239,7 +239,8 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
             what, shape, how = ("volumes", "(axial samples, lateral lines, elevational planes)",
                                 "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
         else:
-            what, shape, how = "frames", "(axial samples, lateral lines)", "frame.T, frames.transpose(0, 2, 1)"
+            what, shape, how = ("frames", "(axial samples, lateral lines)",
+                                "CLI: --transpose; frame.T, frames.transpose(0, 2, 1) in Python")
         # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
         # spacing as (axial, lateral) already while the array is stored lines-first)
         f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))

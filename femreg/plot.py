@@ -443,7 +443,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     if reference is not None:
         reference = _image2d(reference, "reference")
         if reference.shape != shape:
-            raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}")
+            swapped = ("; its axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
+                       "--transpose)" if reference.shape == tuple(shape)[::-1] else "")
+            raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}{swapped}")
     positions = _beam_positions(result, d, shape, sp, origin)
     plt = _mpl()
     n_ax, n_lat = shape

@@ -923,9 +923,9 @@ def run_study(outdir, *, settings: StudySettings | None = None, quick: bool = Fa
 
 
 def _tqdm(it, desc):
-    from tqdm.auto import tqdm
+    from femreg.progress import iterate      # a bar on a terminal, plain lines in a log
 
-    return tqdm(it, desc=desc, unit="set")
+    return iterate(it, desc=desc, unit="set")
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -148,7 +148,7 @@ def test_no_import_cycle_inside_femreg():
 PUBLIC_MODULES = {"femreg", "femreg.errors", "femreg.io", "femreg.plot", "femreg.speckle", "femreg.metrics",
                   "femreg.mesh", "femreg.regularizers", "femreg.inversion", "femreg.autoalpha", "femreg.batch",
                   "femreg.sequence", "femreg.quality", "femreg.synthetic", "femreg.registration", "femreg.result",
-                  "femreg.optional", "femreg.echo", "femreg.orientation", "femreg.elastogram"}
+                  "femreg.optional", "femreg.echo", "femreg.orientation", "femreg.elastogram", "femreg.progress"}
 
 
 def _femreg_imports(package: str):

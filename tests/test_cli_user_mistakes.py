@@ -234,3 +234,136 @@ def test_a_given_region_without_signal_is_refused(tmp_path, capsys):
                         capsys)
     assert rc == 2 and "the roi given holds no signal" in err, (rc, err)
     assert not (tmp_path / "x.npz").exists() and not (tmp_path / "t").exists()
+
+
+def test_elastogram_colour_range_follows_the_good_pixels():
+    from femreg.elastogram import display_range
+
+    rng = np.random.default_rng(0)
+    exx = rng.lognormal(0.0, 0.8, (200, 100))               # a heavy right tail, as in vivo
+    exx /= exx.mean()
+    q = np.ones_like(exx)
+    q[:, :20] = 0.01                                        # a decorrelated strip: low weight, wild values
+    exx[:, :20] = rng.normal(0.0, 20.0, (200, 20))
+    lo, hi = display_range(exx, q)
+    good = exx[:, 20:]
+    outside = np.mean((good < lo) | (good > hi))
+    assert lo <= 1.0 <= hi and outside < 0.05, (lo, hi, outside)   # 2 + 2 % by construction
+    assert hi < 10.0 and lo > -1.0, (lo, hi)                 # the strip's +-20 did not set it
+    assert np.mean((good < 0) | (good > 2)) > 0.08           # the old fixed 0-2 saturated more (measured 0.10)
+    assert display_range(np.full((4, 4), np.nan), np.zeros((4, 4))) == (0.0, 2.0)
+
+
+@needs_invivo
+def test_elastogram_in_vivo_not_saturated(tmp_path, capsys):
+    # seq299 with 0-2 x the mean: 31 % of the covered pixels saturated (16 % above 2, 15 % below 0)
+    base = ["elastogram", SEQ, *RAW, "--spacing", "0.02", "0.2", "--band", "0.2", "2", "--no-progress"]
+    rc, out, err = _run(base + ["-o", tmp_path / "loop"], capsys)
+    assert rc == 0, err
+    z = np.load(tmp_path / "loop" / "elastogram.npz")
+    lo, hi = z["strain_range"]
+    e = z["exx"][np.isfinite(z["exx"]) & (z["quality"] > 0)]
+    sat = np.mean((e < lo) | (e > hi))
+    assert sat < 0.08 and np.mean((e < 0) | (e > 2)) > 0.25, (lo, hi, sat)    # measured 4.8 % against 30.9 %
+    rc, out, err = _run(["measure", tmp_path / "loop" / "elastogram.npz", "--inclusion", "12", "12", "2"], capsys)
+    assert rc == 0 and "background: rest of the covered pixels" in out, out     # an elastogram has no mesh
+    rc, out, err = _run(base + ["-o", tmp_path / "fixed", "--strain-range", "0", "2"], capsys)
+    assert rc == 0 and list(np.load(tmp_path / "fixed" / "elastogram.npz")["strain_range"]) == [0.0, 2.0]
+    rc, out, err = _run(base + ["-o", tmp_path / "bad", "--strain-range", "2", "0"], capsys)
+    assert rc == 2 and "--strain-range" in err and not (tmp_path / "bad").exists(), err
+
+
+def test_strain_cine_legend_follows_the_range():
+    from femreg.cli.elastogram_cmd import _legend
+
+    leg = _legend(100, -0.2, 3.6)
+    # the tick of 1 (the mean) lies across the bar at its height, dark; no dash beside the number (read as minus)
+    y = int(round((3.6 - 1.0) / 3.8 * 99))
+    assert leg[y, 10].max() < 40 and leg[y + 3, 10].max() > 40
+    assert not (leg[:, 16:19] > 128).any()
+
+
+@needs_invivo
+def test_the_same_frame_twice_is_refused(tmp_path, capsys):
+    # --pair 1 1 (a typo for 1 4) ran 21 Gauss-Newton iterations on zero motion and exited 0
+    sp = ["--spacing", "0.02", "0.2"]
+    for argv in (["register", SEQ, *RAW, *sp, "--pair", "1", "1", "-o", tmp_path / "a.npz"],
+                 ["register", SEQ / "frame2.raw", SEQ / "frame2.raw", *RAW, *sp, "-o", tmp_path / "b.npz"]):
+        rc, out, err = _run(argv, capsys)
+        assert rc == 2 and "identical frames" in err and len(err.strip().splitlines()) == 1, err
+    assert not any(tmp_path.iterdir())
+
+
+@needs_invivo
+def test_frames_of_two_recordings_fail_without_numpy_noise(tmp_path, capsys):
+    # seq299 frame 1 against seq304 frame 1: before, a "warning: invalid value encountered in divide" line from
+    # the block matching's sub-sample fit came first
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:     # as the command shows them, not as pytest collects
+        warnings.simplefilter("always")
+        rc, out, err = _run(["register", SEQ / "frame1.raw", INVIVO / "seq304" / "frame1.raw", *RAW, "--spacing",
+                             "0.02", "0.2", "-o", tmp_path / "m.npz"], capsys)
+    assert not [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
+    assert rc == 1 and "warning" not in err and err.startswith("femreg register: failed: "), err
+    assert "do not match" in err and (tmp_path / "m.npz").is_file()
+
+
+@needs_invivo
+def test_elastogram_quality_panel_not_saturated(tmp_path, capsys):
+    # the weight / its median on a linear 0-3 scale saturated 22.5 % of seq299's covered pixels
+    import types
+
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import elastogram_figure
+
+    rc, out, err = _run(["elastogram", SEQ, *RAW, "--spacing", "0.02", "0.2", "--band", "0.2", "2", "--no-progress",
+                         "-o", tmp_path / "loop"], capsys)
+    assert rc == 0, err
+    z = np.load(tmp_path / "loop" / "elastogram.npz")
+    res = types.SimpleNamespace(exx=z["exx"], quality=z["quality"], ref_frame=int(z["ref_frame"]), n_usable=2)
+    fig = elastogram_figure(res, np.ones_like(z["exx"]), z["spacing"], z["origin"])
+    im = fig.axes[2].images[-1]
+    q = z["quality"][z["quality"] > 0]
+    lq = np.log10(q / np.median(q))
+    outside = np.mean((lq < im.norm.vmin) | (lq > im.norm.vmax))
+    plt.close(fig)
+    assert outside < 0.05 and im.norm.vmax - im.norm.vmin > 1.0, (outside, im.norm.vmin, im.norm.vmax)
+
+
+@needs_invivo
+def test_no_usable_pair_is_marked_on_the_picture(tmp_path, capsys, monkeypatch):
+    # seq304 with the default band (0.5-2 %; it compresses 0.38 %): exit 1, and elastogram.png, whose strain panels
+    # are empty, carries the reason as a failed result's red banner (before: blank panels, nothing said)
+    import femreg.plot
+
+    banners = []
+    real = femreg.plot.draw_failure
+    monkeypatch.setattr(femreg.plot, "draw_failure", lambda fig, text, **kw: (banners.append(text),
+                                                                               real(fig, text, **kw)))
+    rc, out, err = _run(["elastogram", INVIVO / "seq304", *RAW, "--spacing", "0.02", "0.2", "--no-progress", "-o",
+                         tmp_path / "loop"], capsys)
+    assert rc == 1 and err.startswith("femreg elastogram: failed: no pair was usable"), err
+    assert len(banners) == 1 and banners[0].startswith("NO ELASTOGRAM: no pair was usable"), banners
+    assert "--band 0.3 2" in banners[0] and (tmp_path / "loop" / "elastogram.png").is_file()
+
+
+def test_raw_only_flags_on_a_file_with_a_header_are_noted(tmp_path, capsys):
+    # --shape / --dtype given for an .npy (which states its own) were ignored without a word
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "f.npy", rng.standard_normal((2, 64, 32)).astype(np.float32))
+    base = ["info", tmp_path / "f.npy", "--spacing", "0.05", "0.2"]
+    rc, out, err = _run(base + ["--shape", "32", "64", "--dtype", "int16"], capsys)
+    assert "--shape 32 64 (the file's frames: 2 x 64 x 32); --dtype int16 (stored as float32) ignored" in err, err
+    assert "shape     64 axial x 32 lateral" in out, out                    # read as stored
+    rc, out, err = _run(base + ["--shape", "64", "32", "--dtype", "float32"], capsys)
+    assert "note" not in err, err                                            # what the file holds: nothing to say
+
+
+@needs_invivo
+def test_pair_of_a_folder_names_its_files(tmp_path, capsys):
+    # --pair 1 4 meant as frame1.raw -> frame4.raw registers frame2.raw -> frame5.raw: the files are named
+    rc, out, err = _run(["register", SEQ, *RAW, "--spacing", "0.02", "0.2", "--pair", "1", "4", "-o",
+                         tmp_path / "p.npz", "--maxiter", "2", "--refine", "none"], capsys)
+    assert rc in (0, 1) and "registering frame2.raw -> frame5.raw (frames 1 -> 4" in err, err

@@ -63,6 +63,8 @@ def test_register(data, results, capsys, tmp_path):
     assert "converged" not in failed.message, failed.message   # no "FAILED: converged: ..."
     rc, out, err = RUNS["unrelated"]                            # the fixture's runs, not registered again
     assert rc == 1 and results[1].is_file() and "registration failed" in err and "FAILED" not in err
+    # a failed computation reads differently from bad input (exit 2, "error:"), so a log tells them apart
+    assert err.startswith("femreg register: failed: ") and "error:" not in err, err
     reason = failed.message.removeprefix("FAILED: ")
     assert (out + err).count(reason) == 1, out + err            # said once, as the error line
     rc, out, err = RUNS["good"]
@@ -233,3 +235,67 @@ def test_plot_reference_takes_the_results_spacing(data, results, capsys, tmp_pat
     rc, out, err = _run(["invert", results[0], "--images", tmp_path / "ref.npy", tmp_path / "ref.npy", "--spacing",
                          2 * dx, 2 * dy, "-o", tmp_path / "mu.npz", "--no-progress"], capsys)
     assert rc == 2 and "differs from the result's" in err and not (tmp_path / "mu.npz").exists(), err
+
+
+def test_transposed_frames_fixed_by_the_transpose_flag(data, capsys, tmp_path):
+    # frames stored lines first: the refusal names --transpose, and the flag reads them right in every command
+    # that reads frames (the file's own spacing, stored in its axes' order, goes with them)
+    t = data / "transposed.npz"
+    rc, out, err = _run(["register", t, "-o", tmp_path / "r.npz"], capsys)
+    assert rc == 2 and "--transpose" in err, err
+    rc, out, err = _run(["register", t, "-o", tmp_path / "r.npz", "--transpose"], capsys)
+    assert rc == 0 and (tmp_path / "r.npz").is_file(), err
+    import femreg
+
+    good = femreg.load_result(tmp_path / "r.npz")
+    assert good.shape == tuple(np.load(data / "good.npz")["rf"].shape[1:]), good.shape
+    rc, out, err = _run(["info", t, "--transpose"], capsys)
+    assert rc == 0 and "transposed as read" in out, out + err
+    rc, out, err = _run(["track", t, "-o", tmp_path / "run", "--transpose", "--no-progress"], capsys)
+    assert rc == 0 and (tmp_path / "run" / "frame_001.npz").is_file(), out + err
+    # a result's pictures and its one-step inversion from frames stored lines first
+    rc, out, err = _run(["plot", tmp_path / "r.npz", "-o", tmp_path / "r.png", "--reference", t], capsys)
+    assert rc == 2 and "--transpose" in err, err
+    rc, out, err = _run(["plot", tmp_path / "r.npz", "-o", tmp_path / "r.png", "--reference", t, "--transpose"],
+                        capsys)
+    assert rc == 0 and (tmp_path / "r.png").is_file(), err
+    rc, out, err = _run(["invert", tmp_path / "r.npz", "-o", tmp_path / "mu.npz", "--images", t, "--no-progress"],
+                        capsys)
+    assert rc == 2 and "--transpose" in err, err
+    # without a spacing (npy): info already says what the frames need besides it
+    np.save(tmp_path / "t.npy", np.load(t)["rf"])
+    rc, out, err = _run(["info", tmp_path / "t.npy"], capsys)
+    assert rc == 1 and "no spacing found" in out and "pass --transpose" in out, out
+    rc, out, err = _run(["info", tmp_path / "t.npy", "--transpose"], capsys)
+    assert rc == 1 and "--transpose" not in out.split("needs", 1)[1], out
+    # one spacing given, one from the file, would mix the two orders
+    rc, out, err = _run(["info", t, "--transpose", "--spacing", "auto", "0.2"], capsys)
+    assert rc == 2 and "both spacings" in err, err
+
+
+def test_batch_stores_and_compares_transpose(data, capsys, tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "t.npz").write_bytes((data / "transposed.npz").read_bytes())
+    base = ["batch", "--workers", "0", "--no-progress", src, "-o", tmp_path / "b"]
+    rc, out, err = _run(base + ["--transpose"], capsys)
+    assert rc == 0, out + err
+    manifest = json.loads(next((tmp_path / "b").glob("*.json")).read_text())
+    assert [t["settings"]["transpose"] for t in manifest["tasks"].values()] == [True]
+    rc, out, err = _run(base + ["--transpose", "--resume"], capsys)
+    assert rc == 0 and "1 kept" in out, out + err
+    rc, out, err = _run(base + ["--resume", "--no-orientation-check"], capsys)   # the flag dropped: changed
+    assert rc == 2 and "settings or inputs changed" in err and "transpose)" in err, err
+
+
+def test_failed_computation_reads_differently_from_bad_input(data, capsys, tmp_path):
+    # exit 1 (computed, failed) says "failed:", exit 2 (bad input) "error:"
+    rc, out, err = _run(["register", data / "unrelated.npz", "-o", tmp_path / "f.npz", "--maxiter", "3"], capsys)
+    assert rc == 1 and err.startswith("femreg register: failed: ") and "error:" not in err, err
+    rc, out, err = _run(["register", data / "missing.npz", "-o", tmp_path / "m.npz"], capsys)
+    assert rc == 2 and err.startswith("femreg register: error: "), err
+    from femreg.cli import build_parser
+
+    sub = next(a for a in build_parser(["register"])._actions if hasattr(a, "choices") and a.choices)
+    epilog = sub.choices["register"].epilog
+    assert "'failed:'" in epilog and "'error:'" in epilog, epilog

@@ -127,9 +127,9 @@ def _describe_error(exc: BaseException) -> str:
 def _bar(total, desc, progress):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from ..progress import bar
 
-    return tqdm(total=total, desc=desc, unit="task", smoothing=0.1)
+    return bar(total=total, desc=desc, unit="task", smoothing=0.1)
 
 
 def run_tasks(tasks, *, client=None, workers: int = 2, scheduler: str | None = None, progress: bool = True,

@@ -50,7 +50,8 @@ def _task_specs(job: Job) -> list[dict]:
         parts = [(_pair_id(p), [int(p[0]), int(p[1])]) for p in s["pairs"]]
         unused = ("pairs", "mode", "grid", "init")
     # The hash covers what changes a task's result (its own pair, not the job's other pairs) and the input.
-    used = {k: v for k, v in s.items() if k not in unused}
+    # transpose off is left out, so the tasks of runs from before the flag existed still match on --resume
+    used = {k: v for k, v in s.items() if k not in unused and not (k == "transpose" and not v)}
     specs = []
     for tid, pair in parts:
         ident = json.dumps({"settings": used, "pair": pair, "input": fp}, sort_keys=True, default=str)

@@ -64,6 +64,7 @@ def _check_settings(settings: dict, where: str) -> dict:
              "roi": lambda v: isinstance(v, str) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "depth": lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(real(x) for x in v),
              "strategy": lambda v: isinstance(v, str), "no_orientation_check": lambda v: isinstance(v, bool),
+             "transpose": lambda v: isinstance(v, bool),
              "dtype": lambda v: isinstance(v, str), "byte_order": lambda v: v in ("little", "big"),
              "frames": lambda v: isinstance(v, (int, str)) or (isinstance(v, (list, tuple))
                                                                and all(isinstance(x, int) for x in v))}

@@ -7,8 +7,10 @@ entry-point group (``NAME = "package.module:add_parser"`` in their pyproject.tom
 femreg itself never imports those packages.
 
 Bad input -> one line ``femreg <cmd>: error: <reason>`` on stderr and exit code 2 (raise
-:class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).  A missing optional
-package (:class:`femreg.optional.MissingDependencyError`) -> one line naming the extra to install, exit code 1.
+:class:`femreg.errors.InputError` or ``ValueError`` from a subcommand; both are caught here).  A computation that
+fails (exit code 1) reads ``femreg <cmd>: failed: <reason>`` (or ``FAILED:`` / ``FLAGGED:`` for a result written
+and marked so), never ``error:``, so a log tells the two apart.  A missing optional package
+(:class:`femreg.optional.MissingDependencyError`) -> one line ``failed:`` naming the extra to install, exit code 1.
 """
 from __future__ import annotations
 
@@ -51,9 +53,10 @@ EXIT_CODES = {
 def exit_code_epilog(name: str) -> str:
     """The --help epilog stating ``name``'s exit codes (:data:`EXIT_CODES`)."""
     done, flagged, *bad = EXIT_CODES[name]
-    bad = bad[0] if bad else "unreadable file, bad flags, frames that look transposed, a swapped spacing, ..."
-    return (f"exit codes: 0 {done}; 1 {flagged}; 2 bad input, found before any work, with a one-line reason on "
-            f"stderr ({bad}).")
+    bad = bad[0] if bad else ("unreadable file, bad flags, frames that look transposed (--transpose reads frames "
+                              "stored lines first), a swapped spacing, ...")
+    return (f"exit codes: 0 {done}; 1 {flagged}, said on stderr as 'failed:', 'FAILED:' or 'FLAGGED:'; 2 bad "
+            f"input, found before any work, with a one-line 'error:' reason on stderr ({bad}).")
 
 
 def _command_modules() -> list[str]:
@@ -218,7 +221,7 @@ def main(argv=None) -> int:
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra
-        print(f"femreg {args.command}: error: {exc}", file=sys.stderr)
+        print(f"femreg {args.command}: failed: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"femreg {args.command}: interrupted (finished work is kept)", file=sys.stderr)

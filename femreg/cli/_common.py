@@ -36,7 +36,7 @@ def _spacing_value(text: str):
 
 def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
     """Add --variable, --shape, --dtype, --spacing, --origin, --byte-order, --frames, --sound-speed, --iq-frequency,
-    --iq-conjugate to ``parser``."""
+    --transpose, --iq-conjugate to ``parser``."""
     g = parser.add_argument_group(group_title)
     g.add_argument("--variable", metavar="NAME",
                    help="array name in .npz/.mat files (default: rf or frames, else the only 2D/3D array)")
@@ -60,6 +60,9 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--iq-frequency", metavar="MHZ", type=float, dest="modulation_frequency",
                    help="IQ data (complex samples): the demodulation frequency in MHz; the frames are remodulated "
                         "to RF (UFF files store their own, which this overrides)")
+    g.add_argument("--transpose", action="store_true",
+                   help="the file stores each frame lines first (lateral x axial, e.g. saved as frame.T or from "
+                        "MATLAB): transpose every frame as read; --spacing stays axial, lateral")
     g.add_argument("--iq-conjugate", action="store_true",
                    help="IQ data demodulated with exp(+2 pi i f t), the opposite of the usual sign (the frames say "
                         "so when they need it)")
@@ -88,6 +91,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
         n = read_frames(path, **{**reader_kwargs(args), "frames": None}, check_orientation=False).n_frames
         frame_index(neg, n, path, "--frames")
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
+    _note_raw_only_flags(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -95,6 +99,36 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def _note_raw_only_flags(fr, path, args) -> None:
+    """On stderr: --shape, --dtype or --byte-order given for a file that states its own (npy, npz, mat, ...) and
+    read otherwise; the file's header wins, but a flag that is silently ignored hides a wrong idea of the data."""
+    meta = fr.metadata or {}
+    formats = f"{meta.get('format', '')} {(meta.get('file_metadata') or {}).get('format', '')}"
+    if "raw" in formats:
+        return
+    stored = str(meta.get("stored_dtype") or (meta.get("file_metadata") or {}).get("stored_dtype") or "")
+    ignored = []
+    shape = getattr(args, "shape", None)
+    if shape and tuple(int(v) for v in shape[-2:]) != tuple(fr.shape):
+        ignored.append(f"--shape {' '.join(str(v) for v in shape)} (the file's frames: {fr.n_frames} x "
+                       f"{fr.shape[0]} x {fr.shape[1]})")
+    dtype = getattr(args, "dtype", None)
+    if dtype and stored and str(dtype).lower() != stored.lower():
+        ignored.append(f"--dtype {dtype} (stored as {stored})")
+    if getattr(args, "byte_order", None):
+        ignored.append(f"--byte-order {args.byte_order}")
+    key = (str(path), tuple(ignored))
+    if ignored and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: {path}: {'; '.join(ignored)} ignored: they apply to headerless raw files, and this "
+              f"{meta.get('format', 'file')} file states its own", file=sys.stderr)
+
+
+#: Notes already given in this process (register reads the same file's flags for each frame file).
+_NOTED: set = set()
 
 
 def frames_on_result_grid(args, path, result_spacing):
@@ -115,9 +149,14 @@ def frames_on_result_grid(args, path, result_spacing):
         fr = frames_from_args(args, path)
     sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
     if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
+        # the file's own spacing exchanged: its frames are stored lines first (a --spacing given swapped is not)
+        lines_first = (np.allclose(sp[::-1], res_sp, rtol=0.01) and args.spacing is None
+                       and not getattr(args, "transpose", False))
         raise InputError(f"{path}: spacing {tuple(float(v) for v in sp)} mm differs from the result's "
-                         f"{tuple(float(v) for v in res_sp)} (axial, lateral): not the frames it was registered "
-                         "from, or a wrong --spacing (leave it out: the result's is used)")
+                         f"{tuple(float(v) for v in res_sp)} (axial, lateral): "
+                         + ("exchanged, as for frames stored lines first: pass --transpose" if lines_first else
+                            "not the frames it was registered from, or a wrong --spacing (leave it out: the "
+                            "result's is used)"))
     return fr
 
 
@@ -286,7 +325,7 @@ def run_tracking(args, call, noun: str) -> int:
         k = (done[-1] if done else 0) + 1
         msg = " ".join(str(exc).split()) or type(exc).__name__
         kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
-        print(f"femreg track: error: frame {k} failed ({type(exc).__name__}: {msg}); {kept}; "
+        print(f"femreg track: failed: frame {k} could not be computed ({type(exc).__name__}: {msg}); {kept}; "
               f"rerun with --resume to continue", file=sys.stderr)
         return 1
     if len(out) and getattr(out[0], "excluded", None):

@@ -114,7 +114,7 @@ def register_volumes(args, vol, kw) -> int:
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1)
-        print(f"femreg register: error: registration failed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {exc})", file=sys.stderr)
         return 1
     res.save(args.output)
     print(res)
@@ -122,8 +122,8 @@ def register_volumes(args, vol, kw) -> int:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
     if not res.success:
-        print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
-              file=sys.stderr)
+        reason = res.message.removeprefix("FAILED: ")
+        print(f"femreg register: failed: the registration failed its checks: {reason}", file=sys.stderr)
         return 1
     return 0
 

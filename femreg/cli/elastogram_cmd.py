@@ -39,6 +39,10 @@ def add_parser(subparsers):
     p.add_argument("--max-lateral", type=float, metavar="MM",
                    help="largest lateral motion within a pair, mm (default a tenth of the image width)")
     p.add_argument("--persistence", type=float, default=0.7, help="persistence factor in [0, 1) (default 0.7)")
+    p.add_argument("--strain-range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="colour range of the normalised strain (1 = the mean) in elastogram.png and the cine "
+                        "(default: its 2-98 %% percentiles over the pixels of at least median quality, "
+                        "femreg.elastogram.display_range; e.g. 0 2 to compare loops on one fixed scale)")
     p.add_argument("--fps", type=float, default=10.0, help="frame rate of the strain cine (default 10)")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished pairs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -71,20 +75,23 @@ def _rgb(values, cmap, vmin, vmax):
     return rgb
 
 
-def _legend(height, width=44):
-    """The strain panel's colour bar for the cine (viridis, 0 at the bottom, 2 at the top), labelled 0, 1, 2:
-    without it the cine's colours have no scale."""
+def _legend(height, lo=0.0, hi=2.0, width=44):
+    """The strain panel's colour bar for the cine (viridis, ``lo`` at the bottom, ``hi`` at the top), labelled lo,
+    1 (the mean) and hi: without it the cine's colours have no scale."""
     from PIL import Image, ImageDraw
 
     rgb = np.zeros((height, width, 3), np.uint8)
-    ramp = np.linspace(2.0, 0.0, height)[:, None] * np.ones((1, 10))
-    rgb[:, 6:16] = _rgb(ramp, "viridis", 0.0, 2.0)
+    ramp = np.linspace(hi, lo, height)[:, None] * np.ones((1, 10))
+    rgb[:, 6:16] = _rgb(ramp, "viridis", lo, hi)
     im = Image.fromarray(rgb)
     draw = ImageDraw.Draw(im)
-    for v in (0, 1, 2):
-        y = int(round((2 - v) / 2 * (height - 1)))
-        draw.line([(16, y), (19, y)], fill=(255, 255, 255))
-        draw.text((21, min(max(y - 6, 0), height - 12)), f"{v}", fill=(255, 255, 255))
+    ticks = [lo, hi] + ([1.0] if 0.12 < (1.0 - lo) / (hi - lo) < 0.88 else [])    # 1 unless it crowds an end
+    for v in ticks:
+        y = int(round((hi - v) / (hi - lo) * (height - 1)))
+        # the tick across the bar: a dash just left of the number would read as a minus sign
+        if 0 < y < height - 1:      # the bar's ends are their own ticks
+            draw.line([(6, y), (15, y)], fill=(0, 0, 0))
+        draw.text((19, min(max(y - 6, 0), height - 12)), f"{v:.2g}", fill=(255, 255, 255))
     return np.asarray(im)
 
 
@@ -97,18 +104,22 @@ def _caption(pic, text, rows=14):
     return np.asarray(im)
 
 
-def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
-    """B-mode | normalised strain for every cine frame, in the colours of ``elastogram.png`` (viridis, 0-2 x the
-    mean): ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
+def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Path:
+    """B-mode | normalised strain for every cine frame, in the colours of ``elastogram.png`` (viridis over
+    ``strain_range``, default :func:`femreg.elastogram.display_range`): ``strain_cine.mp4`` with imageio-ffmpeg,
+    else a GIF."""
+    from ..elastogram import display_range
     from ..plot import bmode
+
+    lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
     pics = []
     for k, f in enumerate(res.cine_frames):
         b = _display(bmode(np.asarray(frames[f], float)), spacing)
         s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
-        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", 0.0, 2.0),
-                              _legend(bm.shape[0])], axis=1)
+        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", lo, hi),
+                              _legend(bm.shape[0], lo, hi)], axis=1)
         depth = np.shape(frames[f])[0] * float(spacing[0])
         pic = _caption(pic, f"frame {f}: B-mode | axial strain / its mean; {depth:.0f} mm deep")
         h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
@@ -140,36 +151,50 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0) -> Path:
     return path
 
 
-def elastogram_figure(res, frame, spacing, origin):
-    """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram | its persistence weight,
-    each colour bar clear of the next panel's axis label."""
+def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None):
+    """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram (colours over
+    ``strain_range``, default :func:`femreg.elastogram.display_range`) | its persistence weight, each colour bar
+    clear of the next panel's axis label.  ``failure``: the reason no pair was usable, drawn as the red banner
+    of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels."""
     import matplotlib.pyplot as plt
 
-    from ..plot import fit_colorbars, plot_bmode, plot_field
+    from ..elastogram import display_range
+    from ..plot import draw_failure, fit_colorbars, plot_bmode, plot_field
+
+    lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
-    # fixed limits: 1 is the mean strain of every pair, so elastograms of different loops compare by eye
     pairs = f"{res.n_usable} pair" + ("" if res.n_usable == 1 else "s")
     plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs})", cmap="viridis",
-               vmin=0.0, vmax=2.0, label="axial strain / its mean (1 = mean; bright = soft)")
+               vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
-    # relative to the median, saturated at 3x: static near-field echoes (NCC ~1) would take the whole range
-    plot_field(q / med, spacing, origin, ax=axs[2], title="quality (persistence weight)", cmap="magma", vmin=0.0,
-               vmax=3.0, label="persistence weight / its median")
+    # relative to the median on a log scale over its 2-98 % percentiles: the weight spans 20x and more (static
+    # near-field echoes, NCC ~1), which a linear 0-3x range saturated on a quarter of the in vivo pixels
+    lq = np.log10(q / med)
+    qlo, qhi = np.nanpercentile(lq, [2.0, 98.0]) if np.isfinite(lq).any() else (-1.0, 1.0)
+    qlo, qhi = min(qlo, -0.1), max(qhi, 0.1)
+    plot_field(lq, spacing, origin, ax=axs[2], title="quality (persistence weight)", cmap="magma", vmin=qlo,
+               vmax=qhi, label="persistence weight / its median (log scale)")
+    cb = axs[2].images[-1].colorbar
+    if cb is not None:
+        ticks = [v for v in (0.01, 0.03, 0.1, 0.3, 1, 3, 10, 30, 100) if qlo <= np.log10(v) <= qhi]
+        cb.set_ticks(np.log10(ticks), labels=[f"{v:g}" for v in ticks])
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
+    if failure:
+        draw_failure(fig, f"NO ELASTOGRAM: {failure}")
     fit_colorbars(fig, [list(axs)])
     return fig
 
 
-def write_picture(path, res, frame, spacing, origin) -> None:
+def write_picture(path, res, frame, spacing, origin, strain_range=None, failure=None) -> None:
     """Write :func:`elastogram_figure` to ``path`` (PNG, written under a temporary name and renamed)."""
     import matplotlib.pyplot as plt
 
-    fig = elastogram_figure(res, frame, spacing, origin)
+    fig = elastogram_figure(res, frame, spacing, origin, strain_range, failure)
     tmp = Path(path).with_name(".elastogram.tmp.png")
     fig.savefig(tmp, dpi=90)
     plt.close(fig)
@@ -183,6 +208,10 @@ def run(args) -> int:
     lo, hi = args.band
     if not 0 < lo < hi < 20:            # the flags are in percent (the function's band in fractions)
         raise InputError(f"--band LO HI must satisfy 0 < LO < HI < 20 (percent of axial strain), got {lo:g} {hi:g}")
+    if args.strain_range is not None and not (np.all(np.isfinite(args.strain_range))
+                                              and args.strain_range[0] < args.strain_range[1]):
+        raise InputError("--strain-range LO HI must be finite with LO < HI (normalised strain, 1 = the mean), got "
+                         f"{args.strain_range[0]:g} {args.strain_range[1]:g}")
     if not (0 < args.fps < float("inf")):
         raise InputError(f"--fps must be a number > 0 (frames per second of the strain cine), got {args.fps:g}")
     fr = frames_from_args(args)
@@ -210,15 +239,25 @@ def run(args) -> int:
     fan = {} if res.data_mask is None else dict(data_mask=res.data_mask)
     if res.region is not None:      # a fan's bounding box or a given --roi / --depth: where exx lies in the frames
         fan["region"] = np.asarray(res.region, np.int64)
+    from ..elastogram import display_range
+
+    shown = tuple(args.strain_range) if args.strain_range is not None else display_range(res.exx, res.quality)
     atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
-                 spacing=np.asarray(res.spacing), origin=np.asarray(res.origin), **fan)
+                 spacing=np.asarray(res.spacing), origin=np.asarray(res.origin),
+                 strain_range=np.asarray(shown, float), **fan)
     frames = fr.frames
     if res.region is not None:      # --roi / --depth, or the fan's bounding box (NaN outside the fan): its pixels
         (a, b), (c, d) = res.region
         frames = [np.asarray(f)[a:b, c:d] for f in frames]
         print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
-    write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin)
-    cine = write_cine(out, res, frames, res.spacing, fps=args.fps)
+    failure = None
+    if res.n_usable == 0:
+        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
+        failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
+                   f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
+    write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin,
+                  shown, failure)
+    cine = write_cine(out, res, frames, res.spacing, fps=args.fps, strain_range=shown)
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
     which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
@@ -228,9 +267,7 @@ def run(args) -> int:
              "no elastogram (empty strain panels); ")
           + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
-    if res.n_usable == 0:
-        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
-        print(f"femreg elastogram: error: no pair was usable (none with strain in {lo:g}-{hi:g} % that "
-              f"registered; see {out / 'pairs.csv'})" + (f": {why}" if why else ""), file=sys.stderr)
+    if failure:
+        print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1
     return 0

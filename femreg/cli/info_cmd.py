@@ -108,10 +108,15 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         if fr.n_frames < 2:
             out["note"] = "one frame: register it against a second file (femreg register REF MOV)"
     else:
-        from ..orientation import CARRIER_RATIO, axial_carrier_ratio
+        from ..orientation import CARRIER_RATIO, NO_CARRIER_RATIO, axial_carrier_ratio, carrier_ratio
 
         c0 = axial_carrier_ratio(a[0])       # the carrier needs no spacing
         out["needs"] = _raw_shape_hint(a[0]) if "raw" in str(out["format"]) and not c0 < CARRIER_RATIO else []
+        if not out["needs"] and "raw" not in str(out["format"]) and c0 > NO_CARRIER_RATIO:
+            # lines first: said now, not only once a spacing is given (the carrier's axis needs none)
+            if carrier_ratio(np.asarray(a[0], float)[::max(1, a.shape[1] // 1024)].T) < CARRIER_RATIO:
+                out["needs"] = ["the frames look transposed: the RF carrier runs along axis 1 (lines x samples): "
+                                "pass --transpose (and --spacing DX DY as axial, lateral)"]
     return out
 
 

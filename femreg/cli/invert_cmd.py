@@ -246,7 +246,7 @@ def run(args) -> int:
         print(f"femreg invert: FLAGGED: inverted from a failed registration ({args.result})", file=sys.stderr)
         return 1
     if not res.success:
-        what = "" if res.flags else "error: the optimisation failed: "
+        what = "" if res.flags else "failed: the optimisation failed: "
         print(f"femreg invert: {what}{res.message}", file=sys.stderr)
         return 1
     return 0

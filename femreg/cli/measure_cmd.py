@@ -283,7 +283,8 @@ def _report(m) -> str:
     bg = m["background_mm"]
     lines = [f"{m['kind']} result {m['result']}",
              f"inclusion: {'sphere' if 'z' in inc else 'disk'}, centre ({centre}) mm, radius {inc['r']:g} mm; "
-             "background: " + ("rest of the mesh" if bg is None else
+             "background: " + (("rest of the covered pixels" if m["kind"] == "elastogram" else "rest of the mesh")
+                               if bg is None else
                                ", ".join(f"{a} {bg[a + '0']:g}-{bg[a + '1']:g}" for a in "xyz" if a + "0" in bg)
                                + " mm"),
              f"strain ratio SR (background / inclusion, {m['strain']} strain): {m['SR']:.4g}",

@@ -179,6 +179,9 @@ def run(args) -> int:
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
     if vol is not None:                 # RF volumes (spacing with 3 values)
+        if getattr(args, "transpose", False):
+            raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "
+                             "saving it (axial, lateral, elevational)")
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
                              "swept")
@@ -244,6 +247,12 @@ def run(args) -> int:
                          f"{dims(map(str, np.shape(ref)))} and {dims(map(str, np.shape(mov)))} (axial x lateral"
                          f"{' x elevational' if np.ndim(ref) == 3 else ''}): both frames of a pair come from one "
                          "recording (check the files and --shape)")
+    if np.array_equal(ref, mov):
+        # nothing moved: the solve would run to its iteration limit on ||du|| / ||u|| with u = 0 and exit 0
+        which = (f"--pair {i} {j} names frame {i} twice" if args.moving is None else
+                 f"{args.reference} frame {i} and {args.moving} frame {j} hold the same samples")
+        pick = "--pair I J, counted from 0" if args.moving is None else "the moving frame's file, or --pair I J"
+        raise InputError(f"{which}: identical frames, nothing to register (pick two different frames: {pick})")
     if args.moving is not None and "iq" in ref_fr.metadata and not args.no_orientation_check:
         # two IQ files: their sign convention is checked on the pair (one file of several frames is checked as read)
         from ..orientation import check_iq_sign
@@ -252,6 +261,11 @@ def run(args) -> int:
     if not str(args.output).endswith(".npz"):
         raise InputError(f"output must be a .npz file, got {args.output}")
 
+    files = (ref_fr.metadata or {}).get("files")
+    if args.moving is None and args.pair is not None and files and len(files) == ref_fr.n_frames:
+        # a folder of numbered files: name them, frame1.raw is frame 0 (a 1-based --pair registers other frames)
+        print(f"femreg register: note: registering {files[i]} -> {files[j]} (frames {i} -> {j} of "
+              f"{args.reference}, counted from 0)", file=sys.stderr)
     spacing, origin = ref_fr.spacing, ref_fr.origin
     if beam is not None:                # range step and first range from the file; rays centred on angle 0
         kw["geometry"] = beam
@@ -265,7 +279,7 @@ def run(args) -> int:
         raise                      # bad input: exit 2 from the dispatcher
     except Exception as exc:  # noqa: BLE001 - a computation that fails is a failed pair (1), not bad input (2)
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"femreg register: error: registration failed ({type(exc).__name__}: {msg})", file=sys.stderr)
+        print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {msg})", file=sys.stderr)
         return 1
     res.save(args.output)
     print(res.summary(message=res.success))        # a failure's message follows once, as the error line
@@ -276,8 +290,8 @@ def run(args) -> int:
         print(f"femreg register: note: {note.replace('refine=None', '--refine none')}")
     print(f"wrote {args.output}")
     if not res.success:
-        print(f"femreg register: error: registration failed: {res.message.removeprefix('FAILED: ')}",
-              file=sys.stderr)
+        reason = res.message.removeprefix("FAILED: ")
+        print(f"femreg register: failed: the registration failed its checks: {reason}", file=sys.stderr)
         return 1
     if not (np.isfinite(res.ncc_after) and res.ncc_after >= args.min_ncc):
         print(f"femreg register: FLAGGED: low-quality pair (NCC after {res.ncc_after:.3f} < --min-ncc "

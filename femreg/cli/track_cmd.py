@@ -61,6 +61,9 @@ def run(args) -> int:
     vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None))
     kw = registration_kwargs(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
+        if getattr(args, "transpose", False):
+            raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "
+                             "saving it (axial, lateral, elevational)")
         if args.geometry in ("convex", "sector"):
             raise InputError(f"--geometry {args.geometry} is for frames; a swept probe's volumes take --geometry "
                              "swept")

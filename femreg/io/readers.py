@@ -393,7 +393,7 @@ def read_directory(path, *, frames=None, **options):
 
 def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, byte_order=None, frames=None,
                 sound_speed=None, modulation_frequency=None, iq_conjugate=False, check_orientation=True,
-                origin=None) -> Frames:
+                origin=None, transpose=False) -> Frames:
     """Read RF frames from ``path`` (a file, or a directory of per-frame files).
 
     Parameters
@@ -429,6 +429,10 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         convex / sector frame the first range and 0); overrides the file's (default: the file's, else (0, 0)).
         A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, never
         applied.
+    transpose : bool
+        Frames stored (lateral lines, axial samples), e.g. written from MATLAB or saved as ``frame.T``: each frame
+        is transposed to (axial, lateral) as read.  A given ``spacing`` is that of the transposed frames (axial,
+        lateral); a spacing the file stores goes with its axes (exchanged too).
     check_orientation : bool
         Refuse a ``spacing`` that contradicts the file's calibration (above).  IQ data: refuse spacings that look
         exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks of :func:`femreg.register` cannot
@@ -450,7 +454,10 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     """
     options = dict(variable=variable, shape=shape, dtype=dtype, spacing=spacing, byte_order=byte_order,
                    sound_speed=sound_speed, modulation_frequency=modulation_frequency, iq_conjugate=iq_conjugate)
-    fr = _rf_from_iq(_read_stored(path, frames=frames, **options), modulation_frequency, sound_speed, iq_conjugate)
+    stored = _read_stored(path, frames=frames, **options)
+    if transpose:
+        stored = _transposed(stored, spacing)
+    fr = _rf_from_iq(stored, modulation_frequency, sound_speed, iq_conjugate)
     if check_orientation and spacing is not None:
         _check_given_spacing(fr, spacing)
     if origin is not None:
@@ -463,6 +470,25 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         if fr.n_frames >= 2:
             fr.metadata["iq"]["convention_check"] = list(check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing,
                                                                        fr.metadata["iq"], where=f"{fr.source}: "))
+    return fr
+
+
+def _transposed(fr: Frames, spacing) -> Frames:
+    """``fr`` with every frame transposed, (n, a, b) -> (n, b, a); the file's own spacing exchanged with its axes,
+    a given ``spacing`` (already axial, lateral) kept.  One value given and one taken from the file would mix the
+    two orders: refused."""
+    a = np.asarray(fr.frames)
+    if a.ndim != 3:
+        raise InputError(f"{fr.source}: transpose applies to frames (n, samples, lines), got an array of shape "
+                         f"{a.shape}")
+    if spacing is not None and any(v is None for v in spacing):
+        raise InputError(f"{fr.source}: with --transpose give both spacings (axial, lateral of the transposed "
+                         "frames): 'auto' for one of them would take the file's value for the other axis")
+    fr.frames = np.ascontiguousarray(a.transpose(0, 2, 1))
+    if spacing is None and fr.spacing is not None and len(fr.spacing) == 2:
+        fr.spacing = (float(fr.spacing[1]), float(fr.spacing[0]))
+    what = "each frame transposed as read (transpose=True; CLI --transpose)"
+    fr.metadata["layout"] = f"{fr.metadata['layout']}; {what}" if fr.metadata.get("layout") else what
     return fr
 
 
