@@ -17,7 +17,7 @@ from .regularizers import make_regularizer
 
 __all__ = ["STRATEGIES", "DEFAULT_HOURGLASS", "DEFAULT_MOMENTUM_STRESS_OPTIONS", "effective_regularizer_options",
            "component_tol", "fresh_regularizer", "LAMBDA_BAR_RANGE", "LAMBDA_BAR_STEP", "lambda_bar_follows_data",
-           "data_lambda_bar", "lambda_bar_stage", "AXIAL_SHARE"]
+           "data_lambda_bar", "lambda_bar_stage", "AXIAL_SHARE", "RATIO_MAX"]
 
 #: ``strategy`` values of :func:`femreg.register`.
 STRATEGIES = ("auto", "paper")
@@ -82,6 +82,10 @@ LAMBDA_BAR_STEP = 1.2
 #: (sqrt(mean(e_xx^2 + e_yy^2 + 2 e_xy^2)) over the elements): uniaxial compression 0.58-0.71, with as much
 #: shear 0.53; pure shear and rotation, or bending (whose axial strain changes sign), read the ratio of noise.
 AXIAL_SHARE = 0.25
+#: A ratio above this (incompressible plane strain is 1) is no 2D model's: tissue flowing in from out of the plane
+#: or a lateral strain of noise; R_P_sigma keeps its lambda_bar.  1 + the tolerance of femreg.invert's model="auto"
+#: (AUTO_RATIO_TOLERANCE 0.2).  In vivo, seq299 frames 2 -> 5 read 1.05.
+RATIO_MAX = 1.2
 
 
 def lambda_bar_follows_data(strategy, regularizer, options=None, maxiter=1) -> bool:
@@ -96,8 +100,9 @@ def data_lambda_bar(mesh, u) -> tuple:
     r"""``(lambda_bar, ratio)``: the lateral-to-axial strain ratio ``ratio`` of the displacement ``u`` (nodal,
     interleaved, mm) on ``mesh`` (:func:`femreg.fields.lateral_ratio`) and the momentum regulariser's
     :math:`\bar\lambda = 2r/(1-r)` (eq:meq; :func:`femreg.material.lambda_bar_from_ratio`) of the 2D model that
-    expands laterally as the data do, within :data:`LAMBDA_BAR_RANGE`; its lower end and a NaN ratio where the
-    median axial strain is under :data:`AXIAL_SHARE` of the field's RMS strain or the ratio is undefined.
+    expands laterally as the data do, within :data:`LAMBDA_BAR_RANGE`; its lower end where the ratio is above
+    :data:`RATIO_MAX` or undefined, and with a NaN ratio where the median axial strain is under
+    :data:`AXIAL_SHARE` of the field's RMS strain.
 
     Why: R_P_sigma's A (eq:meq, :math:`\bar\lambda` = 2) is the stress of incompressible plane stress.  Where the
     tissue is held in plane strain (a long inclusion, a wide probe on deep tissue: the lateral strain as large as
@@ -111,6 +116,8 @@ def data_lambda_bar(mesh, u) -> tuple:
     if not abs(np.median(e[:, 0])) >= AXIAL_SHARE * scale:
         return lo, float("nan")     # no axial compression or stretch to read a ratio from
     ratio = lateral_ratio(e, mesh)
+    if ratio > RATIO_MAX:
+        return lo, ratio            # more lateral expansion than any 2D model has: out-of-plane motion or noise
     lb = lambda_bar_from_ratio(ratio)
     return (lo if not np.isfinite(ratio) else float(np.clip(lb, lo, hi))), ratio
 

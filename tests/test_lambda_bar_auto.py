@@ -49,6 +49,8 @@ def test_data_lambda_bar_is_clipped_to_the_two_models_and_falls_back_without_axi
     assert lb == pytest.approx(2 * 0.7 / 0.3) and r == pytest.approx(0.7)
     lb, r = data_lambda_bar(mesh, _affine(mesh, 0.0, 0.0, 0.01))                # pure shear: no axial strain
     assert np.isnan(r) and lb == lo
+    lb, r = data_lambda_bar(mesh, _affine(mesh, -0.01, 0.013))                  # more than incompressible
+    assert r == pytest.approx(1.3) and lb == lo
 
 
 def test_only_r_p_sigma_by_name_under_auto_follows_the_data():
