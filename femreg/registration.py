@@ -214,8 +214,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         get ``hourglass=``:data:`femreg.strategy.DEFAULT_HOURGLASS`, R_P_sigma ``dilatation="centre"`` and
         ``hourglass=1000``
         (:data:`femreg.strategy.DEFAULT_MOMENTUM_STRESS_OPTIONS`) unless given here; and R_P_sigma's
-        ``lambda_bar`` (eq:meq) follows the data's lateral-to-axial strain ratio (2 to 9: the solve is repeated
-        with it where the data expand laterally more than incompressible plane stress,
+        ``lambda_bar`` (eq:meq) follows the data's lateral-to-axial strain ratio (plane stress's 2 or plane
+        strain's 9: the solve is repeated with 9 where the data read plane strain,
         :func:`femreg.strategy.data_lambda_bar`; said in the message) unless ``lambda_bar`` is given here.
     normalize : bool
         Subtract each image's mean and divide it by its spread (default; makes alpha scale- and offset-free:

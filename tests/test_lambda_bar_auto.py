@@ -4,7 +4,7 @@ import pytest
 
 from femreg.fields import lateral_ratio
 from femreg.material import lambda_bar_from_ratio, model_ratio
-from femreg.strategy import LAMBDA_BAR_RANGE, data_lambda_bar, lambda_bar_follows_data
+from femreg.strategy import LAMBDA_BAR_MODELS, PLANE_STRAIN_RATIO, data_lambda_bar, lambda_bar_follows_data
 
 
 def _mesh():
@@ -39,18 +39,19 @@ def test_lateral_ratio_of_a_uniaxial_field(ratio):
     assert lateral_ratio(element_strains(mesh.p, mesh.t, u), mesh) == pytest.approx(ratio, rel=1e-9)
 
 
-def test_data_lambda_bar_is_clipped_to_the_two_models_and_falls_back_without_axial_strain():
+def test_data_lambda_bar_reads_plane_strain_or_plane_stress_and_falls_back_without_axial_strain():
     mesh = _mesh()
-    lo, hi = LAMBDA_BAR_RANGE
-    assert (lo, hi) == (2.0, 9.0)
-    assert data_lambda_bar(mesh, _affine(mesh, -0.01, 0.0098))[0] == hi         # plane strain, nu 0.495: 98
-    assert data_lambda_bar(mesh, _affine(mesh, -0.01, 0.003))[0] == lo          # below plane stress
-    lb, r = data_lambda_bar(mesh, _affine(mesh, -0.01, 0.007))
-    assert lb == pytest.approx(2 * 0.7 / 0.3) and r == pytest.approx(0.7)
+    stress, strain = LAMBDA_BAR_MODELS
+    assert (stress, strain, PLANE_STRAIN_RATIO) == (2.0, 9.0, 0.75)
+    assert data_lambda_bar(mesh, _affine(mesh, -0.01, 0.0098))[0] == strain      # plane strain, nu 0.495: 0.98
+    assert data_lambda_bar(mesh, _affine(mesh, -0.01, 0.0076))[0] == strain
+    lb, r = data_lambda_bar(mesh, _affine(mesh, -0.01, 0.0074))                  # just under the midway ratio
+    assert lb == stress and r == pytest.approx(0.74)
+    assert data_lambda_bar(mesh, _affine(mesh, -0.01, 0.005))[0] == stress       # incompressible plane stress
     lb, r = data_lambda_bar(mesh, _affine(mesh, 0.0, 0.0, 0.01))                # pure shear: no axial strain
-    assert np.isnan(r) and lb == lo
+    assert np.isnan(r) and lb == stress
     lb, r = data_lambda_bar(mesh, _affine(mesh, -0.01, 0.013))                  # more than incompressible
-    assert r == pytest.approx(1.3) and lb == lo
+    assert r == pytest.approx(1.3) and lb == stress
 
 
 def test_only_r_p_sigma_by_name_under_auto_follows_the_data():
@@ -84,7 +85,7 @@ def test_plane_strain_pair_takes_a_plane_strain_lambda_bar_and_gains(plane_strai
     fixed = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin,
                             regularizer_options={"lambda_bar": 2.0})
     assert res.success and fixed.success
-    assert "lambda_bar 9 from the lateral-to-axial strain ratio" in res.message
+    assert "plane strain (lambda_bar 9) from the lateral-to-axial strain ratio" in res.message
     assert "lambda_bar" not in fixed.message
     sl = roi_slices(res.shape, res.spacing)
     e_auto, e_fixed = _errors(res, d, sl)["e"], _errors(fixed, d, sl)["e"]
