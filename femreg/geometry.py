@@ -522,7 +522,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                       energy_history=sol.gn.energy_history, ncc_before=check.ncc_before,
                       ncc_after=check.ncc_after, timings=timings, solver_result=sol.gn, locator=sol.locator,
                       quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha,
-                      hop_gain=check.hop_gain, geometry=geometry, sample_space=inner)
+                      hop_gain=check.hop_gain, geometry=geometry, sample_space=inner,
+                      lambda_bar=getattr(sol.reg, "lambda_bar", None))
     return with_refinement(res, sol)
 
 

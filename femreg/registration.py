@@ -382,8 +382,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         why = "; ".join(n for n in check.notes if not n.startswith("the pair is strongly decorrelated"))
         check = checked(sol, u0, hops)
         notes.append(f"refinement dropped (the refined result failed its check: {why})")
-    timings["check"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_all
+    timings.update(check=time.perf_counter() - t, total=time.perf_counter() - t_all)
     # -- result ----------------------------------------------------------------------------------------------
     notes += check.notes
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
@@ -395,7 +394,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         alpha=user_reg.alpha, success=check.success, status=sol.gn.status, message=message, nit=sol.gn.nit,
         energy_history=sol.gn.energy_history, ncc_before=check.ncc_before, ncc_after=check.ncc_after,
         timings=timings, blockmatch=start.blockmatch, solver_result=sol.gn, locator=sol.locator,
-        quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain), sol),
+        quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain,
+        lambda_bar=getattr(sol.reg, "lambda_bar", None)), sol),
         fan, data_mask)
 
 

@@ -76,7 +76,7 @@ def plane_strain_pair():
                      top_mm=8.0)
 
 
-def test_plane_strain_pair_takes_a_plane_strain_lambda_bar_and_gains(plane_strain_pair):
+def test_plane_strain_pair_takes_a_plane_strain_lambda_bar(plane_strain_pair):
     import femreg
     from benchmarks.robustness import roi_slices
 
@@ -87,6 +87,35 @@ def test_plane_strain_pair_takes_a_plane_strain_lambda_bar_and_gains(plane_strai
     assert res.success and fixed.success
     assert "plane strain (lambda_bar 9) from the lateral-to-axial strain ratio" in res.message
     assert "lambda_bar" not in fixed.message
+    assert res.lambda_bar == 9.0 and fixed.lambda_bar == 2.0
+
+
+def test_the_lambda_bar_that_solved_is_kept_in_the_result_file(plane_strain_pair, tmp_path):
+    import femreg
+    from femreg.errors import FileFormatError
+
+    d = plane_strain_pair
+    res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=None)
+    res.save(tmp_path / "r.npz")
+    assert femreg.load_result(tmp_path / "r.npz").lambda_bar == 9.0
+    strain = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, regularizer="strain", refine=None)
+    strain.save(tmp_path / "s.npz")
+    assert strain.lambda_bar is None and femreg.load_result(tmp_path / "s.npz").lambda_bar is None
+    bad = dict(np.load(tmp_path / "r.npz", allow_pickle=False))
+    bad["lambda_bar"] = np.array(-1.0)
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(FileFormatError, match="lambda_bar"):
+        femreg.load_result(tmp_path / "bad.npz")
+
+
+def test_plane_strain_pair_gains_with_the_plane_strain_lambda_bar(plane_strain_pair):
+    import femreg
+    from benchmarks.robustness import roi_slices
+
+    d = plane_strain_pair
+    res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin)
+    fixed = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin,
+                            regularizer_options={"lambda_bar": 2.0})
     sl = roi_slices(res.shape, res.spacing)
     e_auto, e_fixed = _errors(res, d, sl)["e"], _errors(fixed, d, sl)["e"]
     # measured 0.0985 against 0.1221 (total strain error): bound at half the gain

@@ -31,6 +31,8 @@ refined_from       (2,) mm                         median element size (axial, l
                                                    refinement started from (optional; absent: not refined)
 slides             (k,) mm                         lateral positions where the refinement found tissue sliding
                                                    along the beam (optional; absent: none)
+lambda_bar         float                           lambda_bar of the momentum regulariser that solved (2 or 9
+                                                   for R_P_sigma; optional; absent: another regulariser)
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
@@ -65,7 +67,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
                "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "slides", "auto_alpha",
-               "data_mask")
+               "data_mask", "lambda_bar")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -244,6 +246,9 @@ def _read(path) -> dict:
                                   or np.asarray(out["refined_from"]).dtype.kind not in "iuf"
                                   or not np.all(np.asarray(out["refined_from"], float) > 0)):
         raise fail(path, f"key 'refined_from' must be two element sizes > 0 (mm), got {out['refined_from']!r}")
+    if "lambda_bar" in out and (np.ndim(out["lambda_bar"]) != 0 or np.asarray(out["lambda_bar"]).dtype.kind not in "iuf"
+                                or not np.isfinite(float(out["lambda_bar"])) or float(out["lambda_bar"]) < 0):
+        raise fail(path, f"key 'lambda_bar' must be a number >= 0, got {out['lambda_bar']!r}")
     if "slides" in out and (np.ndim(out["slides"]) != 1 or np.asarray(out["slides"]).dtype.kind not in "iuf"
                             or not np.all(np.isfinite(np.asarray(out["slides"], float)))):
         raise fail(path, f"key 'slides' must be finite lateral positions (mm), got {out['slides']!r}")
@@ -287,6 +292,8 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("slides") is not None:
         kw["slides"] = tuple(float(v) for v in np.ravel(d["slides"]))
+    if d.get("lambda_bar") is not None:
+        kw["lambda_bar"] = float(d["lambda_bar"])
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
     geometry = beam_geometry(d)
