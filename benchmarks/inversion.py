@@ -200,7 +200,8 @@ def cache_folder():
     from femreg.refine import DEFAULT as default_refine
 
     # the default is a name ("default"): the rules it stands for key the cache too
-    rules = (S.DEFAULT_MOMENTUM_STRESS_OPTIONS, S.LAMBDA_BAR_MODELS, S.PLANE_STRAIN_RATIO, S.AXIAL_SHARE, S.RATIO_MAX)
+    rules = (S.DEFAULT_MOMENTUM_STRESS_OPTIONS, S.LAMBDA_BAR_MODELS, S.PLANE_STRAIN_RATIO, S.AXIAL_SHARE, S.RATIO_MAX,
+             inspect.getsource(S.data_lambda_bar))
     key = hashlib.sha1((str(inspect.signature(femreg.register)) + repr(default_refine)
                         + repr(DEEP_REFINEMENT) + repr(rules)).encode()).hexdigest()[:10]
     folder = cache_dir() / "bench_inversion" / f"defaults-{key}"

@@ -42,7 +42,8 @@ from .quadrature import ELEMENT_CENTRE_RULE
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
            "edge_aware_strains", "edge_aware_corners", "location_corners",
            "recovered_strains", "projected_strains", "check_strain_mode", "element_strain_operator",
-           "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators", "inner_elements", "lateral_ratio"]
+           "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators", "inner_elements", "lateral_ratio",
+           "quadrant_ratios"]
 
 #: Names of the sampled fields, in order.
 FIELDS = ("ux", "uy", "exx", "eyy", "exy")
@@ -510,3 +511,25 @@ def lateral_ratio(el_strain, mesh) -> float:
     if big.sum() < 4 or not np.any(np.abs(ex) > 0):
         return float("nan")
     return float(np.median(-ey[big] / ex[big]))
+
+
+def quadrant_ratios(el_strain, mesh) -> np.ndarray:
+    r"""(4,) lateral-to-axial strain ratios :math:`-\varepsilon_{yy}/\varepsilon_{xx}` of the four quadrants of
+    the inner elements (:func:`inner_elements`), split at their median depth and lateral position (shallow-left,
+    shallow-right, deep-left, deep-right): each the median of the element ratios whose axial strain is at least half
+    the median one over all inner elements (as :func:`lateral_ratio`); NaN for a quadrant with fewer than 4 such
+    elements.  ``el_strain`` (n_el, 3) element strains on ``mesh``."""
+    el_strain = np.asarray(el_strain, float)
+    inner = inner_elements(mesh)
+    if inner.sum() < 4:
+        inner = np.ones(mesh.t.shape[1], bool)
+    c = mesh.p[:, mesh.t].mean(axis=1)
+    xm, ym = np.median(c[0, inner]), np.median(c[1, inner])
+    ex, ey = el_strain[:, 0], el_strain[:, 1]
+    big = inner & (np.abs(ex) >= 0.5 * np.median(np.abs(ex[inner]))) & (np.abs(ex) > 0)
+    out = []
+    for deep in (c[0] < xm, c[0] >= xm):
+        for side in (c[1] < ym, c[1] >= ym):
+            m = big & deep & side
+            out.append(float(np.median(-ey[m] / ex[m])) if m.sum() >= 4 else float("nan"))
+    return np.array(out)

@@ -133,3 +133,20 @@ def test_plane_stress_pair_keeps_r_p_sigma_exactly():
                             regularizer_options={"lambda_bar": 2.0})
     assert "lambda_bar" not in res.message
     np.testing.assert_array_equal(res.u, fixed.u)
+
+
+def test_every_quadrant_must_read_plane_strain():
+    from femreg.fields import element_strains, quadrant_ratios
+
+    mesh = _mesh()                                  # x 0-20 mm, y -10-10 mm
+    u = _affine(mesh, -0.01, 0.0098)
+    assert np.allclose(quadrant_ratios(element_strains(mesh.p, mesh.t, u), mesh), 0.98)
+    assert data_lambda_bar(mesh, u)[0] == 9.0
+    # the deep-right quadrant expands as plane stress: the image's median still reads 0.98, the quadrant 0.5
+    x, y = mesh.p
+    deep_right = (x >= 10.0) & (y >= 0.0)
+    u[1::2] = np.where(deep_right, 0.005 * y, 0.0098 * y)
+    q = quadrant_ratios(element_strains(mesh.p, mesh.t, u), mesh)
+    assert np.allclose(q[:3], 0.98) and q[3] == pytest.approx(0.5)
+    lb, r = data_lambda_bar(mesh, u)
+    assert r == pytest.approx(0.98) and lb == 2.0
