@@ -495,6 +495,18 @@ def inner_elements(mesh) -> np.ndarray:
     return ~bnd[mesh.t].any(axis=0)
 
 
+def _ratio_elements(el_strain, mesh):
+    """``(selected, inner, ex, ey)``: the elements :func:`lateral_ratio` and :func:`quadrant_ratios` read, the inner
+    ones (all, on a mesh with fewer than 4) whose axial strain is at least half the median one over them; the inner
+    ones; and the element strains' axial and lateral columns."""
+    el_strain = np.asarray(el_strain, float)
+    inner = inner_elements(mesh)
+    if inner.sum() < 4:
+        inner = np.ones(mesh.t.shape[1], bool)
+    ex, ey = el_strain[:, 0], el_strain[:, 1]
+    return inner & (np.abs(ex) >= 0.5 * np.median(np.abs(ex[inner]))), inner, ex, ey
+
+
 def lateral_ratio(el_strain, mesh) -> float:
     r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of a displacement field
     (``el_strain`` (n_el, 3) element strains [exx, eyy, exy] on ``mesh``): the median of the element ratios over the
@@ -502,13 +514,8 @@ def lateral_ratio(el_strain, mesh) -> float:
     :math:`\varepsilon_{xx}` does not dominate.  About 1/2 for incompressible plane stress, :math:`\nu/(1-\nu)`
     (0.98 at :math:`\nu` = 0.495) for plane strain (:func:`femreg.material.model_ratio`).  NaN when fewer than 4
     such elements."""
-    el_strain = np.asarray(el_strain, float)
-    inner = inner_elements(mesh)
-    if inner.sum() < 4:
-        inner = np.ones(mesh.t.shape[1], bool)
-    ex, ey = el_strain[inner, 0], el_strain[inner, 1]
-    big = np.abs(ex) >= 0.5 * np.median(np.abs(ex))
-    if big.sum() < 4 or not np.any(np.abs(ex) > 0):
+    big, _, ex, ey = _ratio_elements(el_strain, mesh)
+    if big.sum() < 4 or not np.any(np.abs(ex[big]) > 0):
         return float("nan")
     return float(np.median(-ey[big] / ex[big]))
 
@@ -519,14 +526,10 @@ def quadrant_ratios(el_strain, mesh) -> np.ndarray:
     shallow-right, deep-left, deep-right): each the median of the element ratios whose axial strain is at least half
     the median one over all inner elements (as :func:`lateral_ratio`); NaN for a quadrant with fewer than 4 such
     elements.  ``el_strain`` (n_el, 3) element strains on ``mesh``."""
-    el_strain = np.asarray(el_strain, float)
-    inner = inner_elements(mesh)
-    if inner.sum() < 4:
-        inner = np.ones(mesh.t.shape[1], bool)
+    big, inner, ex, ey = _ratio_elements(el_strain, mesh)
     c = mesh.p[:, mesh.t].mean(axis=1)
     xm, ym = np.median(c[0, inner]), np.median(c[1, inner])
-    ex, ey = el_strain[:, 0], el_strain[:, 1]
-    big = inner & (np.abs(ex) >= 0.5 * np.median(np.abs(ex[inner]))) & (np.abs(ex) > 0)
+    big = big & (np.abs(ex) > 0)
     out = []
     for deep in (c[0] < xm, c[0] >= xm):
         for side in (c[1] < ym, c[1] >= ym):

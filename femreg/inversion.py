@@ -1002,7 +1002,7 @@ def _mesh_and_data(displacement, region, element_size):
                          "mesh (region outside the measured field?)")
     if mesh.t.shape[1] < 4:
         raise InputError(f"the inversion mesh has {mesh.t.shape[1]} element(s); need at least 2 x 2")
-    if not _inner_elements(mesh).any():     # the model tests and the region statistics read the inner elements
+    if not inner_elements(mesh).any():     # the model tests and the region statistics read the inner elements
         lo, hi = mesh.p.min(axis=1), mesh.p.max(axis=1)
         raise InputError(f"the inversion mesh ({mesh.t.shape[1]} elements over x {lo[0]:.4g} to {hi[0]:.4g} mm, "
                          f"y {lo[1]:.4g} to {hi[1]:.4g} mm) has no element off its boundary; need at least 3 x 3: "
@@ -1077,11 +1077,6 @@ def _reference_elements(mesh, bounds) -> np.ndarray:
     return sel
 
 
-def _inner_elements(mesh) -> np.ndarray:
-    """(n_el,) bool: elements with no node on the mesh boundary (:func:`femreg.fields.inner_elements`)."""
-    return inner_elements(mesh)
-
-
 def strain_ratio(el_strain, mesh) -> float:
     r"""Lateral-to-axial strain ratio :math:`r = -\varepsilon_{yy}/\varepsilon_{xx}` of the data
     (:func:`femreg.fields.lateral_ratio`: the median over the inner elements whose axial strain is at least half
@@ -1111,17 +1106,17 @@ def _lateral_shortfall(el_data, el_model, mesh, area_el, model: str):
     """(shortfall, reason): how much less the model's field expands laterally than the data's, and a reason string
     when that exceeds :data:`MODEL_RATIO_TOLERANCE` ('' otherwise).
 
-    The inner elements (:func:`_inner_elements`) are split into four quadrants at their area-weighted median depth
-    and lateral position; in each, the shortfall is ``1 - R_model / R_data`` with R = -mean(e_yy) / mean(e_xx)
-    (area-weighted means of the element strains ``el_data``, ``el_model``), and the shortfall returned is the
-    smallest of the four.  A lateral displacement biased by the registration (R_eps: lateral strain shrunk around an
+    The inner elements (:func:`femreg.fields.inner_elements`) are split into four quadrants at their area-weighted
+    median depth and lateral position; in each, the shortfall is ``1 - R_model / R_data`` with R = -mean(e_yy) /
+    mean(e_xx) (area-weighted means of the element strains ``el_data``, ``el_model``), and the shortfall returned is
+    the smallest of the four.  A lateral displacement biased by the registration (R_eps: lateral strain shrunk around an
     inclusion, raised inside) makes the data expand more than the model throughout the image, in every quadrant;
     noise in the lateral displacement moves the quadrants' ratios both ways (white lateral noise as large as the
     lateral strain: quadrant minima -0.02 to -0.29 over 24 fields), so it is not flagged.  One-sided: a model that
     expands more than the data is ``model="auto"``'s choice of plane strain for every ratio from
     :data:`AUTO_RATIO` [1] up, or noise.  The means, not medians of element ratios, so that a near-zero e_xx weighs
     nothing; NaN (no flag) with fewer than 4 elements in a quadrant."""
-    inner = _inner_elements(mesh)
+    inner = inner_elements(mesh)
     c = mesh.p[:, mesh.t].mean(axis=1)
     split = [c[k] < _weighted_median(c[k][inner], area_el[inner]) for k in (0, 1)]
     shorts = []
@@ -1157,7 +1152,7 @@ def _contradiction(mu, el_strain, mesh, area_el):
       flagged.
     - any contrast (:func:`_ranked_contradiction`): the stiffer against the softer part of the image, which sees a
       small contrast on the wrong side of 1 that no element of it takes beyond :data:`CONTRAST_REGION`."""
-    inner = _inner_elements(mesh)
+    inner = inner_elements(mesh)
     ax = np.abs(el_strain[:, 0])
     bg = inner & (np.abs(np.log(mu)) < np.log(1.2))
     out = []
@@ -2299,7 +2294,7 @@ def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, eleme
     more, whatever its shape (the strain of a disk of contrast c, 2 / (1 + c) of the far field in plane strain,
     gives s / d of 0.3-0.8 for c 1/8-8)."""
     labels, cand = partition if partition is not None else _calibration_partition(theta_part, reg, element_area)
-    inner = _inner_elements(mesh)
+    inner = inner_elements(mesh)
     if inner.sum() < 8 or not cand:
         return 0.0, []
     ax = np.abs(el_strain[:, 0])
