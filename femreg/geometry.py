@@ -455,16 +455,16 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     solve_kw = dict(maxiter=maxiter, tol=component_tol(tol, u0) if strategy == "auto" else tol,
                     linear_solver=linear_solver, callback=callback, mask_outside=strategy == "auto",
                     strain_tol=st if (strategy == "auto" and st > 0) else None)
-    sol = solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u0, locator=locator,
-                term=term, **solve_kw)
+    def physical_solve(u):          # Gauss-Newton on the physical mesh from the nodal displacement u
+        return solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u, locator=locator,
+                     term=term, **solve_kw)
+    sol = physical_solve(u0)
     # R_P_sigma's lambda_bar from the physical field's strain ratio, as femreg.register; the refinement marks on
     # the solve before it
     notes = []
-    marked, sol = lambda_bar_stage(
-        sol, user_reg, notes, lambda u: solve(I1, I2, mesh, shape, sp_idx, (r0, 0.0), lambda: copy.copy(user_reg), u,
-                                              locator=locator, term=term, **solve_kw),
-        follows=lambda_bar_follows_data(strategy, regularizer, kw.get("regularizer_options"), maxiter)
-        and shape[0] > 1)
+    marked, sol = lambda_bar_stage(sol, user_reg, notes, physical_solve,
+                                   follows=lambda_bar_follows_data(strategy, regularizer, kw.get("regularizer_options"),
+                                                                   maxiter) and shape[0] > 1)
     timings = dict(sample_space=t_inner, gauss_newton=time.perf_counter() - t)
     period = check_period(ref, (dr, ds)) if shape[0] > 1 else None
 
