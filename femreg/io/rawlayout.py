@@ -12,6 +12,7 @@ facts:
   other way round.  The reading whose neighbouring lines correlate is kept and ``metadata["layout"]`` says so;
   when neither correlates the choice is refused, naming both shapes.
 * :func:`byte_order_hint`: samples without a carrier (or not finite) that show one in the other byte order.
+* :func:`shows_carrier`: whether a file's first frame read as a given sample type carries an RF carrier.
 * :func:`dtype_hint`: samples without a carrier (or not finite) whose bytes show one read as another sample type
   (a float64 file read as float32 holds twice the frames, none of them RF).
 * :func:`guess_shape`: for a file read without ``shape``, the lines per depth (sample-major) or samples per line
@@ -128,6 +129,17 @@ def byte_order_hint(first, dtype, *, axis=_UNKNOWN) -> str:
             f"{'' if finite else ' (non-finite values)'}: pass byte_order='{other}' (CLI: --byte-order {other})")
 
 
+def shows_carrier(path, shape, dtype, *, offset=0) -> bool:
+    """Whether the first frame of ``shape`` (axial, lateral) in ``path`` read as ``dtype`` from byte ``offset`` is
+    whole, finite, not all zero and carries an RF carrier along axis 0 (:func:`carrier_axis`)."""
+    a, b = int(shape[-2]), int(shape[-1])
+    with np.errstate(all="ignore"):
+        first = np.fromfile(path, dtype=np.dtype(dtype), count=a * b, offset=int(offset)).astype(float)
+        if first.size < a * b or not np.all(np.isfinite(first)) or not np.any(first):
+            return False
+        return carrier_axis(first.reshape(a, b)) == 0
+
+
 def dtype_hint(path, shape, dtype, *, offset=0, axis=_UNKNOWN, first=None) -> str:
     """A ``--dtype`` to pass when the first frame of ``shape`` (axial, lateral) read as ``dtype`` shows no carrier
     or non-finite samples, but the file's bytes read as one of :data:`GUESS_DTYPES` (in the same byte order)
@@ -152,10 +164,7 @@ def dtype_hint(path, shape, dtype, *, offset=0, axis=_UNKNOWN, first=None) -> st
             alt = np.dtype(order + t[1:])
             if alt == dt or size % (a * b * alt.itemsize):
                 continue
-            other = np.fromfile(path, dtype=alt, count=a * b, offset=int(offset)).astype(float)
-            if other.size < a * b or not np.all(np.isfinite(other)) or not np.any(other):
-                continue
-            if carrier_axis(other.reshape(a, b)) == 0:
+            if shows_carrier(path, (a, b), alt, offset=offset):
                 n_as, n_alt = size // (a * b * dt.itemsize), size // (a * b * alt.itemsize)
                 return (f"read as {dt.name} the samples show no RF carrier"
                         f"{'' if finite else ' (non-finite values)'} and the file holds {n_as} frame(s) of "

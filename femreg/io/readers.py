@@ -277,14 +277,9 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
             fits = [np.dtype(dt.byteorder.replace("=", "<").replace("|", "<") + alt) for alt in ("i2", "f4", "f8")
                     if alt != dt.str[1:] and body > 0 and body % (shp[0] * shp[1] * np.dtype(alt).itemsize) == 0]
             if fits:                        # the type whose samples show an RF carrier first, if one does
-                from .rawlayout import carrier_axis
+                from .rawlayout import shows_carrier
 
-                def carrier(t):
-                    with np.errstate(all="ignore"):
-                        first = np.fromfile(path, dtype=t, count=shp[0] * shp[1], offset=int(offset))
-                        return first.size == shp[0] * shp[1] and carrier_axis(first.reshape(shp)) == 0
-
-                best = next((t for t in fits if carrier(t)), None)
+                best = next((t for t in fits if shows_carrier(path, shp, t, offset=offset)), None)
                 name = (best or fits[0]).name
                 shows = " whose samples show an RF carrier" if best is not None else ""
                 hint = f" (a whole number of {name} frames{shows}: try dtype={name}, CLI: --dtype {name})"
