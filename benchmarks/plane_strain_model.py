@@ -27,34 +27,28 @@ from benchmarks.robustness import Case, errors, make_data, roi_slices, truth  # 
 from forward.pairs import PROBES  # noqa: E402
 
 
-def _inc(kind, model, level, radius):
-    return lambda: F.Inclusion(kind, model, level, radius_mm=radius)
+#: (kind, model, compression %, radius mm, probe, size mm, SNR dB, top mm, seed) of each pair
+PAIRS = (("soft", "plane-strain", 4, 5.0, "paper", (35, 30), 25, 2.5, 2),
+         ("stiff", "plane-strain", 2, 6.0, "L12", (30, 30), 25, 5.0, 101),
+         ("soft", "plane-strain", 3, 5.0, "L7", (30, 30), 20, 5.0, 102),
+         ("stiff", "plane-strain", 1, 4.0, "L3", (40, 40), 25, 5.0, 103),
+         ("soft", "plane-strain", 0.5, 3.0, "paper", (30, 30), 20, 5.0, 104),
+         ("stiff", "plane-strain", 6, 5.0, "L7", (30, 30), 25, 5.0, 107),
+         ("soft", "plane-strain", 0.2, 5.0, "L12", (30, 30), 25, 5.0, 108),
+         ("stiff", "plane-strain", 3, 8.0, "L7", (35, 35), 15, 3.0, 109),
+         ("stiff", "plane-stress", 2, 5.0, "L15", (20, 20), 30, 8.0, 105),
+         ("soft", "plane-stress", 3, 6.0, "paper", (35, 30), 20, 5.0, 106),
+         ("soft", "plane-stress", 1, 3.0, "L7", (30, 30), 25, 5.0, 110))
 
 
-CASES = [
-    Case("soft plane strain 4 %, r 5 mm, 5.5 MHz", _inc("soft", "plane-strain", 0.04, 5.0), "paper", (35, 30), 25,
-         top_mm=2.5, seed=2),
-    Case("stiff plane strain 2 %, r 6 mm, 12 MHz", _inc("stiff", "plane-strain", 0.02, 6.0), "L12", (30, 30), 25,
-         top_mm=5.0, seed=101),
-    Case("soft plane strain 3 %, r 5 mm, 7.5 MHz", _inc("soft", "plane-strain", 0.03, 5.0), "L7", (30, 30), 20,
-         top_mm=5.0, seed=102),
-    Case("stiff plane strain 1 %, r 4 mm, 3 MHz", _inc("stiff", "plane-strain", 0.01, 4.0), "L3", (40, 40), 25,
-         top_mm=5.0, seed=103),
-    Case("soft plane strain 0.5 %, r 3 mm, 5.5 MHz", _inc("soft", "plane-strain", 0.005, 3.0), "paper", (30, 30), 20,
-         top_mm=5.0, seed=104),
-    Case("stiff plane strain 6 %, r 5 mm, 7.5 MHz", _inc("stiff", "plane-strain", 0.06, 5.0), "L7", (30, 30), 25,
-         top_mm=5.0, seed=107),
-    Case("soft plane strain 0.2 %, r 5 mm, 12 MHz", _inc("soft", "plane-strain", 0.002, 5.0), "L12", (30, 30), 25,
-         top_mm=5.0, seed=108),
-    Case("stiff plane strain 3 %, r 8 mm, 7.5 MHz, 15 dB", _inc("stiff", "plane-strain", 0.03, 8.0), "L7", (35, 35),
-         15, top_mm=3.0, seed=109),
-    Case("stiff plane stress 2 %, r 5 mm, 15 MHz", _inc("stiff", "plane-stress", 0.02, 5.0), "L15", (20, 20), 30,
-         top_mm=8.0, seed=105),
-    Case("soft plane stress 3 %, r 6 mm, 5.5 MHz", _inc("soft", "plane-stress", 0.03, 6.0), "paper", (35, 30), 20,
-         top_mm=5.0, seed=106),
-    Case("soft plane stress 1 %, r 3 mm, 7.5 MHz", _inc("soft", "plane-stress", 0.01, 3.0), "L7", (30, 30), 25,
-         top_mm=5.0, seed=110),
-]
+def _case(kind, model, percent, radius, probe, size, snr, top, seed):
+    name = (f"{kind} {model.replace('-', ' ')} {percent:g} %, r {radius:g} mm, {PROBES[probe].f0_mhz:g} MHz"
+            + (f", {snr:g} dB" if snr < 20 else ""))
+    return Case(name, lambda: F.Inclusion(kind, model, percent / 100.0, radius_mm=radius), probe, size, snr,
+                top_mm=top, seed=seed)
+
+
+CASES = [_case(*p) for p in PAIRS]
 VARIANTS = {"fixed lambda_bar 2": {"regularizer_options": {"lambda_bar": 2.0}}, "default": {}}
 
 
