@@ -53,7 +53,7 @@ from .blockmatch import block_match
 from .echo import crop_for, rf_like
 from .errors import InputError
 from . import orientation
-from .image import validate_image, validate_spacing
+from .image import repeated_frames, validate_image, validate_spacing
 from .mesh import roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
@@ -122,6 +122,9 @@ class ElastogramResult:
     screen : dict
         Consecutive-pair screening: ``strain``, ``lateral_mm``, ``ncc`` (each (n - 1,)).
     timings : dict, seconds per stage.
+    repeated : list of int
+        Frames k whose samples equal frame k - 1's (written twice by the scanner or the export): no motion between
+        them, so a pair ending on one is the pair ending on the frame before.
     """
 
     exx: np.ndarray
@@ -138,6 +141,7 @@ class ElastogramResult:
     region: tuple | None = None
     excluded: str | None = None
     data_mask: np.ndarray | None = None
+    repeated: list = dc_field(default_factory=list)
 
     @property
     def n_usable(self) -> int:
@@ -596,7 +600,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         pair; ``roi="auto"`` (default): RF frames whole, envelope frames with fill on their fan (``data_mask``);
         ``roi=None``: the whole frames.
     on_pair : callable(row), optional
-        Called after each registered pair.
+        Called after each registered pair.  One with a true ``reports_progress`` attribute prints its own line
+        per pair: off a terminal the registration's progress lines are then left out (one line per pair).
     workers : int
         Local Dask worker processes (:func:`femreg.batch.engine.open_client`, one thread each) for the screening
         and the registrations; 1: all in this process.  With more, the chosen pairs are registered in
@@ -629,6 +634,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                          "alpha='auto' is not supported here (choose it on one pair with femreg.register(..., "
                          "alpha='auto') and pass its .alpha)")
     seq = _validate(frames)
+    repeats = repeated_frames(seq)      # frames written twice: said in the result, nothing to register
+    if len(repeats) == len(seq) - 1:
+        raise InputError(f"all {len(seq)} frames hold the same samples: nothing moved, no strain to image (an "
+                         "elastogram needs a loop whose frames differ)")
     spacing, origin = validate_spacing(spacing, origin)
     if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register
         orientation.check(np.asarray(seq[0], dtype=float), spacing)
@@ -694,10 +703,13 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if out is not None:
         (out / "pairs").mkdir(exist_ok=True)
 
-    def bar(total, desc):
+    def bar(total, desc, on_item=None):
         if not progress:
             return None
-        from .progress import bar as make_bar
+        from .progress import bar as make_bar, stderr_is_terminal
+
+        if getattr(on_item, "reports_progress", False) and not stderr_is_terminal():
+            return None                 # on_pair writes a line per pair: not those and a bar's as well
         return make_bar(total=total, desc=desc, unit="pair")
 
     with _pool(n_workers, client, seq) as (client, fpath):
@@ -781,7 +793,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                         **register_kwargs)
         todo = [(r["ref"], r["mov"], r["strain"], direct[(r["ref"], r["mov"])]) for r in chosen]
         by_key = {(r["ref"], r["mov"]): r for r in chosen}
-        b = bar(len(chosen), "register")
+        b = bar(len(chosen), "register", on_pair)
 
         def done(i, j, rec):
             r = by_key[(i, j)]
@@ -859,7 +871,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                             cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
                             cine_frames=cine_frames, pairs=rows,
                             screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings, region=region,
-                            excluded=excluded, data_mask=None if mask is None else mask.inside.copy())
+                            excluded=excluded, data_mask=None if mask is None else mask.inside.copy(),
+                            repeated=repeats)
 
 
 def write_pairs_csv(path, rows) -> None:

@@ -804,7 +804,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     S = None
     prev = None
     from ._atomic import load_frame_record, progress_bar, save_frame
-    bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume")
+    bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume", on_frame)
     try:
         for k in range(1, len(arr)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"

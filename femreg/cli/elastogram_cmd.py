@@ -15,6 +15,7 @@ Exit codes: 0 done, 1 computed but no pair usable, 2 bad input (before any work)
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -224,10 +225,20 @@ def run(args) -> int:
     kw = registration_kwargs(args)
     out = Path(args.output)
 
+    from ..progress import stderr_is_terminal
+
+    start, said = time.monotonic(), []
+    as_progress = not args.no_progress and not stderr_is_terminal()
+
     def on_pair(r):
-        line = (f"pair {r['ref']:4d} -> {r['mov']:4d}: strain {100 * r['strain']:+.2f} %"
+        said.append(r)
+        # off a terminal this line is the progress (no register bar): the count and elapsed time with it
+        count = f" ({len(said)} registered, {time.monotonic() - start:.1f} s)" if as_progress else ""
+        line = (f"pair {r['ref']:4d} -> {r['mov']:4d}: strain {100 * r['strain']:+.2f} %{count}"
                 + ("" if r["usable"] else f"  REJECTED: {r['message']}"))
         print(line, file=sys.stdout if args.no_progress else sys.stderr)
+
+    on_pair.reports_progress = True
 
     if fr.n_frames < 3:
         raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
@@ -267,6 +278,11 @@ def run(args) -> int:
              "no elastogram (empty strain panels); ")
           + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
+    if res.repeated:        # frames written twice: a loop that holds fewer distinct frames than it seems
+        shown = ", ".join(f"{k} = {k - 1}" for k in res.repeated[:10]) + (", ..." if len(res.repeated) > 10 else "")
+        print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {'repeats' if len(res.repeated) == 1 else 'repeat'} the one before "
+              f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "
+              "ending on the frame before")
     if failure:
         print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1
