@@ -351,6 +351,27 @@ def _move(images, coef, spacing, origin, field=None):
     return [ndimage.map_coordinates(im, [fi, fj], order=1, mode="constant", cval=0.0) for im in images]
 
 
+def _to_pixel_rows(strain, weight, shape, step):
+    """Normalised strain and persistence weight on every ``step``-th pixel row, each (n_rows, n_lateral), to every
+    pixel row of ``shape`` by linear interpolation between the rows, the strain weighted.  Rows without weight
+    (outside the mesh) are filled from the nearest covered row first: interpolating towards their zero weight
+    drew a ramp of low weight along the mesh's top and bottom edges (a line on the quality picture).  Pixels
+    nearer an uncovered row than a covered one get weight 0."""
+    W = np.asarray(weight, float)
+    D = np.where(W > 0, np.nan_to_num(np.asarray(strain, float)), 0.0)
+    covered = W > 0
+    if covered.any() and not covered.all():
+        idx = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
+        Wf, WDf = W[tuple(idx)], (W * D)[tuple(idx)]
+    else:
+        Wf, WDf = W, W * D
+    ii, jj = np.meshgrid(np.arange(shape[0]) / step, np.arange(shape[1]), indexing="ij")
+    WD, Q = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (WDf, Wf))
+    near = ndimage.map_coordinates(covered.astype(float), [ii, jj], order=0, mode="nearest") > 0.5
+    Q = np.where(near, Q, 0.0)
+    return np.where(Q > 0, WD / np.where(Q > 0, Q, 1.0), np.nan), Q
+
+
 def _weight(rho, strain_ratio):
     """Inverse strain-noise variance (up to a constant): the Cramer-Rao bound of time-delay estimation (Walker and
     Trahey 1995, IEEE UFFC 42:301) gives a delay variance proportional to ``1 / rho**2 - 1`` (``rho`` the
@@ -860,11 +881,9 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         cine_frames.append(int(r["ref"]))
         if W.mean() > best_mean:
             best_mean, best, qual, ref_frame = float(W.mean()), D.copy(), W.copy(), int(r["ref"])
-    # back to every pixel row: weighted linear interpolation between the combined rows
-    ii, jj = np.meshgrid(np.arange(shape[0]) / qa, np.arange(shape[1]), indexing="ij")
-    WD, qual = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (qual * best, qual))
+    best, qual = _to_pixel_rows(best, qual, shape, qa)
     qual = np.where(inside, qual, 0.0)
-    best = np.where(qual > 0, WD / np.where(qual > 0, qual, 1.0), np.nan)
+    best = np.where(qual > 0, best, np.nan)
     timings["combine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,

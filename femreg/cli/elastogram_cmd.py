@@ -280,7 +280,8 @@ def run(args) -> int:
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
     if res.repeated:        # frames written twice: a loop that holds fewer distinct frames than it seems
         shown = ", ".join(f"{k} = {k - 1}" for k in res.repeated[:10]) + (", ..." if len(res.repeated) > 10 else "")
-        print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {'repeats' if len(res.repeated) == 1 else 'repeat'} the one before "
+        verb = "repeats" if len(res.repeated) == 1 else "repeat"
+        print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {verb} the one before "
               f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "
               "ending on the frame before")
     if failure:
