@@ -159,7 +159,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels."""
     import matplotlib.pyplot as plt
 
-    from ..elastogram import display_range
+    from ..elastogram import display_range, saturated_fraction
     from ..plot import draw_failure, fit_colorbars, plot_bmode, plot_field
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
@@ -167,8 +167,11 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
     pairs = f"{res.n_usable} pair" + ("" if res.n_usable == 1 else "s")
-    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs})", cmap="viridis",
-               vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
+    # the share drawn in an end colour: the picture says how much of it the colour bar does not resolve
+    sat = saturated_fraction(res.exx, res.quality, (lo, hi))
+    beyond = f"\n{100 * sat:.1f} % of the pixels beyond the colour bar" if np.isfinite(sat) else ""
+    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs}){beyond}",
+               cmap="viridis", vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
     # relative to the median on a log scale over its 2-98 % percentiles: the weight spans 20x and more (static
