@@ -276,11 +276,12 @@ def _band(band):
     return lo, hi
 
 
-def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
+def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8, cli: bool = False) -> str:
     """Why no pair of a loop fell in the strain band, from the consecutive screening (``ElastogramResult.screen``),
     and what to pass instead: the largest strain any pair at most ``max_span`` frames apart reaches (accumulated as
     :func:`screen_pairs` does), or the smallest consecutive strain when every step overshoots; "" when the band
-    was reachable (the pairs in it then failed their NCC or registration)."""
+    was reachable (the pairs in it then failed their NCC or registration).  ``cli``: the advice in the command's
+    flags only (``--band``, ``--resume``, ``--max-span``)."""
     lo, hi = _band(band)
     e = np.asarray(screen.get("strain", ()), float)
     if e.size == 0 or not np.all(np.isfinite(e)):
@@ -293,17 +294,20 @@ def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
             best, where = float(acc[k]), (i, i + k + 1)
     if abs(best) < lo:
         lo_new = max(0.05, np.floor(abs(best) * 0.8 * 2000) / 20)        # percent, 0.05 % steps, below the largest
+        how = (f"--band {lo_new:g} {100 * hi:g} (with --resume the screening is kept)" if cli else
+               f"band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g}; with resume=True, "
+               f"--resume, the screening is kept)")
+        longer = "--max-span" if cli else "max_span, --max-span"
         return (f"the loop compresses less than the band: the largest axial strain between frames at most "
                 f"{int(max_span)} apart is {100 * best:+.2f} % (frames {where[0]} -> {where[1]}); lower the band, "
-                f"e.g. band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g}; with resume=True, "
-                f"--resume, the screening is kept)"
-                + (", or allow longer spans (max_span, --max-span)" if e.size > int(max_span) else ""))
+                f"e.g. {how}" + (f", or allow longer spans ({longer})" if e.size > int(max_span) else ""))
     small = float(np.min(np.abs(e)))
     if small > hi:
         hi_new = min(19.0, np.ceil(small * 1.25 * 200) / 2)                # percent, 0.5 % steps, above the smallest
+        how = (f"--band {100 * lo:g} {hi_new:g}" if cli else
+               f"band=({lo:g}, {hi_new / 100:g}) (CLI: --band {100 * lo:g} {hi_new:g})")
         return (f"every consecutive pair strains more than the band: the smallest axial strain is "
-                f"{100 * small:.2f} %; raise the band, e.g. band=({lo:g}, {hi_new / 100:g}) (CLI: --band "
-                f"{100 * lo:g} {hi_new:g}), or record at a higher frame rate")
+                f"{100 * small:.2f} %; raise the band, e.g. {how}, or record at a higher frame rate")
     return ""
 
 

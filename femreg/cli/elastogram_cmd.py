@@ -189,7 +189,10 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
     if failure:
-        draw_failure(fig, f"NO ELASTOGRAM: {failure}")
+        # the whole advice: the band to pass is at its end
+        draw_failure(fig, f"NO ELASTOGRAM: {failure}", max_lines=None)
+        for ax in axs[1:]:
+            ax.text(0.5, 0.5, "no usable pair", transform=ax.transAxes, ha="center", va="center", color="0.4")
     fit_colorbars(fig, [list(axs)])
     return fig
 
@@ -266,7 +269,7 @@ def run(args) -> int:
         print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
     failure = None
     if res.n_usable == 0:
-        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
+        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span, cli=True)
         failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
                    f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
     write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin,
