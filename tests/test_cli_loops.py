@@ -92,6 +92,10 @@ def test_elastogram_names_the_repeated_frames(pair, tmp_path, capsys):
     assert rc in (0, 1), err
     assert "note: 1 of 4 frames repeats the one before (identical samples; frames 2 = 1)" in out, out
     assert elastogram(np.stack([ref, mid, mid, mov]), spacing=(0.025, 0.2)).repeated == [2]
+    rc, out, err = _run(["info", f, *SP], capsys)                   # said before any run
+    assert rc == 0 and "repeats   1 of 4 frames repeats the one before (identical samples; frames 2 = 1)" in out
+    rc, out, err = _run(["info", _save(tmp_path / "g.npy", [ref, ref, mov]), *SP], capsys)
+    assert "frames 1 = 0): track cannot start on a repeat of frame 0, start it at frame 1 (--frames 1:)" in out
     assert elastogram(np.stack([ref, mid, mov]), spacing=(0.025, 0.2)).repeated == []
 
 
