@@ -222,3 +222,16 @@ def test_display_range_holds_a_low_but_real_weight_region():
     # the good pixels alone set hi near 1.8 (the near field, 15 % of the image, all saturated); now held
     assert hi > 4.0 and np.mean(exx > hi) < 0.05, (lo, hi)
     assert display_range(exx, q, weighted=None)[1] < 2.5
+
+
+def test_left_over_words_are_named_by_the_command_with_the_option_before_them(pair, tmp_path, capsys):
+    ref, mid, mov = pair
+    f = _save(tmp_path / "f.npy", [ref, mid, mov])
+    # --frames 0 1 2 (a list as other tools take it) stopped with argparse's "femreg: error: unrecognized
+    # arguments: 1 2" under the top-level usage
+    rc, out, err = _run(["track", f, *SP, "-o", tmp_path / "t", "--frames", "0", "1", "2"], capsys)
+    assert rc == 2 and err.startswith("femreg track: error: unrecognized arguments: 1 2 (--frames takes one "
+                                      "selection, counted from 0: 3, 0:10, 0:10:2 or 1,3,5"), err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "t").exists(), err
+    rc, out, err = _run(["track", f, "stray", *SP, "-o", tmp_path / "t"], capsys)
+    assert rc == 2 and err.strip() == "femreg track: error: unrecognized arguments: stray", err
