@@ -227,7 +227,7 @@ def test_display_range_holds_a_low_but_real_weight_region():
 def test_left_over_words_are_named_by_the_command_with_the_option_before_them(pair, tmp_path, capsys):
     ref, mid, mov = pair
     f = _save(tmp_path / "f.npy", [ref, mid, mov])
-    # --frames 0 1 2 (a list as other tools take it) stopped with argparse's "femreg: error: unrecognized
+    # --frames 0 1 2 (a list as other tools take it) ended in argparse's "femreg: error: unrecognized
     # arguments: 1 2" under the top-level usage
     rc, out, err = _run(["track", f, *SP, "-o", tmp_path / "t", "--frames", "0", "1", "2"], capsys)
     assert rc == 2 and err.startswith("femreg track: error: unrecognized arguments: 1 2 (--frames takes one "
