@@ -235,3 +235,17 @@ def test_left_over_words_are_named_by_the_command_with_the_option_before_them(pa
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "t").exists(), err
     rc, out, err = _run(["track", f, "stray", *SP, "-o", tmp_path / "t"], capsys)
     assert rc == 2 and err.strip() == "femreg track: error: unrecognized arguments: stray", err
+
+
+def test_volume_sequence_repeats_as_frames(tmp_path):
+    from _volumes import affine_field, volume_pair
+
+    import femreg
+
+    field, _ = affine_field(compression=0.01, shear=0.0, rotation_deg=0.0)
+    ref, mov, spacing, origin = volume_pair(field, shape=(200, 24, 20), seed=0)
+    out = femreg.track([ref, mov, mov], spacing=spacing, origin=origin, checkpoint_dir=tmp_path / "run")
+    assert out.repeated == [2] and np.array_equal(out[1].u, out[0].u) and not np.any(out.results[1].u)
+    assert "frame 2 repeats frame 1" in out[1].message and "repeats" not in out[0].message
+    with pytest.raises(femreg.InputError, match="frames 0-1 hold the same samples"):
+        femreg.track([ref, ref, mov], spacing=spacing, origin=origin)
