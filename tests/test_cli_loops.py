@@ -249,3 +249,10 @@ def test_volume_sequence_repeats_as_frames(tmp_path):
     assert "frame 2 repeats frame 1" in out[1].message and "repeats" not in out[0].message
     with pytest.raises(femreg.InputError, match="frames 0-1 hold the same samples"):
         femreg.track([ref, ref, mov], spacing=spacing, origin=origin)
+
+
+@needs_invivo
+def test_info_of_a_folder_leaves_out_empty_metadata(capsys):
+    rc, out, err = _run(["info", INVIVO / "seq299", *RAW], capsys)
+    # "set_aside []" was printed for a folder without result files in it
+    assert rc == 0 and "set_aside" not in out and "files     ['frame1.raw'" in out, out
