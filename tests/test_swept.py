@@ -225,12 +225,14 @@ def test_swept_bad_input():
                         grid_spacing=(0.1,))
     with pytest.raises(InputError, match="volumes"):
         femreg.register(vol[:, :, 0], vol[:, :, 0], spacing=0.025, geometry=geo)
+    # frames that differ: identical frames are refused first, as nothing to register
+    moved = [vol + 1e-3 * k * np.random.default_rng(k).standard_normal(vol.shape) for k in range(3)]
     with pytest.raises(InputError, match="mesh="):
-        femreg.track(np.stack([vol, vol, vol]), spacing=(0.025, 0.2, 1.0), origin=(3.0, 0.0, 0.0), geometry=geo,
+        femreg.track(np.stack(moved), spacing=(0.025, 0.2, 1.0), origin=(3.0, 0.0, 0.0), geometry=geo,
                      mesh=object())
     with pytest.raises(InputError, match="femreg.Swept"):
-        femreg.track(np.stack([vol, vol]), spacing=(0.025, 0.2, 1.0), geometry=femreg.Convex(40.0, 0.5))
+        femreg.track(np.stack(moved[:2]), spacing=(0.025, 0.2, 1.0), geometry=femreg.Convex(40.0, 0.5))
     with pytest.raises(InputError, match="one shape"):
         femreg.track([vol, vol[:, :, :-1]], spacing=(0.025, 0.2, 1.0), origin=(3.0, 0.0, 0.0), geometry=geo)
     with pytest.raises(InputError, match="grid_spacing"):
-        femreg.track(np.stack([vol, vol]), spacing=(0.025, 0.2, 1.0), grid_spacing=(0.2, 0.2))
+        femreg.track(np.stack(moved[:2]), spacing=(0.025, 0.2, 1.0), grid_spacing=(0.2, 0.2))
