@@ -227,6 +227,12 @@ DOF_ELEMENT_SIZE = 1.4
 DOF_EXPONENT = 1.0
 #: Half-decade steps the default rule may take above the largest beta of the grid.
 DOF_UP_STEPS = 2
+#: The dof rules' target lies between two grid betas, the nearer taken.  Where the nearer is the bracket's smaller
+#: beta and its debiased image shows more than the data support (its modulus contradicts the axial strain, its TV
+#: solution is not a few regions: :data:`CALIBRATION_MAX_REGIONS`, or unsupported regions cover more than
+#: :data:`UNSUPPORTED_AREA` of an image the refit skipped), the bracket's larger beta is taken if its image shows none
+#: of these (docs/inversion.md, "The beta rule's step back").  False: always the nearer.
+DOF_STEP_BACK = True
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
 TV_DELTA = 1e-2
 #: Bound on |log mu| during the optimisation (mu within a factor e^7 ~ 1100 of the start).
@@ -2046,66 +2052,119 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
     if chosen is None:
         chosen = runs[-1]
-    b, theta, info, phi, R = chosen
-    if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
-        problem.g = info["boundary"]
-    refit_std = theta_tv = None
-    refit_skipped = False       # the refit's partition had more than TV_REFIT_MAX_REGIONS regions
-    theta_part = None       # the TV solution the calibration check partitions (before the refit)
-    if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
-        # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
-        # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
-        # data, a modulus that differs mostly in the inclusions' contrast)
-        def accept(theta_r, info_r):
-            nonlocal theta, info
-            if np.all(np.isfinite(theta_r)):
-                theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
-                if info.get("boundary") is not None:
-                    problem.g = info["boundary"]
+    def debiased(cand):
+        """The debiased TV (reweighting, Bregman, region refit) of one sweep result ``cand`` = (beta, theta, info,
+        phi, R): (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, rule text)."""
+        b, theta, info, phi, R = cand
+        if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
+            problem.g = info["boundary"]
+        refit_std = theta_tv = None
+        refit_skipped = False       # the refit's partition had more than TV_REFIT_MAX_REGIONS regions
+        theta_part = None       # the TV solution the calibration check partitions (before the refit)
+        text = ""
+        if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
+            # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and
+            # the Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh
+            # and data, a modulus that differs mostly in the inclusions' contrast)
+            def accept(theta_r, info_r):
+                nonlocal theta, info
+                if np.all(np.isfinite(theta_r)):
+                    theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
+                    if info.get("boundary") is not None:
+                        problem.g = info["boundary"]
 
-        for _ in range(TV_REWEIGHT_STEPS):
-            reg.reweight(theta, TV_REWEIGHT)
-            accept(*_optimise(problem, theta, b, maxiter=maxiter, gtol=gtol))   # the bar is closed here
-        if TV_BREGMAN:
-            # Bregman iteration (TV_BREGMAN, option): R(theta) - p.theta with p the subgradient of R at the previous
-            # iterate (= p_k - grad misfit / beta at its optimum), each solve adding back what the last one shrank
-            b_breg = b * TV_BREGMAN_START
-            phi_stop = problem.misfit(chosen[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
-            if TV_BREGMAN_START != 1.0:
-                accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
-            for _ in range(TV_BREGMAN):
-                if problem.misfit(theta)[0] <= phi_stop:
-                    break
-                reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
-                try:
+            for _ in range(TV_REWEIGHT_STEPS):
+                reg.reweight(theta, TV_REWEIGHT)
+                accept(*_optimise(problem, theta, b, maxiter=maxiter, gtol=gtol))   # the bar is closed here
+            if TV_BREGMAN:
+                # Bregman iteration (TV_BREGMAN, option): R(theta) - p.theta with p the subgradient of R at the
+                # previous iterate (= p_k - grad misfit / beta at its optimum), each solve adding back what the last
+                # one shrank
+                b_breg = b * TV_BREGMAN_START
+                phi_stop = problem.misfit(cand[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
+                if TV_BREGMAN_START != 1.0:
                     accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
-                finally:
-                    reg.linear = None
-        passes = "once" if TV_REWEIGHT_STEPS == 1 else f"{TV_REWEIGHT_STEPS} times"
-        rule += f"; TV reweighted {passes} (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
-        if TV_REFIT:
-            # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit alone
-            # where the data constrain it
-            factor = _registered_factor(displacement, h, dim)
-            theta_tv = theta if TV_REFIT_STD else None
-            theta_part = theta
-            theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
-                                         min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
-                                         max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
-                                         mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
-            refit_std = refit["std_elements"]
-            refit_skipped = bool(refit["too_many"])
-            done = [e for e in refit["candidates"] if e["applied"]]
-            rule += (f"; region refit (level {TV_REFIT:g}): not applied, {refit['regions'] - 1} regions besides "
-                     f"the reference (more than {TV_REFIT_MAX_REGIONS}: not piecewise constant)"
-                     if refit["too_many"] else
-                     f"; region refit (level {TV_REFIT:g}): {len(done)} of {len(refit['candidates'])} regions, "
-                     f"log mu changed by {[round(e['shift'], 3) for e in done]}")
-        phi, _ = problem.misfit(theta)
-        R, _ = reg(theta)
-        if TV_BREGMAN:
-            rule += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
-                     f"fraction {TV_BREGMAN_FRACTION:g}")
+                for _ in range(TV_BREGMAN):
+                    if problem.misfit(theta)[0] <= phi_stop:
+                        break
+                    reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
+                    try:
+                        accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
+                    finally:
+                        reg.linear = None
+            passes = "once" if TV_REWEIGHT_STEPS == 1 else f"{TV_REWEIGHT_STEPS} times"
+            text += f"; TV reweighted {passes} (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
+            if TV_REFIT:
+                # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit
+                # alone where the data constrain it
+                factor = _registered_factor(displacement, h, dim)
+                theta_tv = theta if TV_REFIT_STD else None
+                theta_part = theta
+                theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
+                                             min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
+                                             max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
+                                             mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
+                refit_std = refit["std_elements"]
+                refit_skipped = bool(refit["too_many"])
+                done = [e for e in refit["candidates"] if e["applied"]]
+                text += (f"; region refit (level {TV_REFIT:g}): not applied, {refit['regions'] - 1} regions "
+                         f"besides the reference (more than {TV_REFIT_MAX_REGIONS}: not piecewise constant)"
+                         if refit["too_many"] else
+                         f"; region refit (level {TV_REFIT:g}): {len(done)} of {len(refit['candidates'])} regions, "
+                         f"log mu changed by {[round(e['shift'], 3) for e in done]}")
+            phi, _ = problem.misfit(theta)
+            R, _ = reg(theta)
+            if TV_BREGMAN:
+                text += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
+                         f"fraction {TV_BREGMAN_FRACTION:g}")
+        return theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text
+
+    def overfitted(theta, theta_part, refit_skipped) -> str:
+        """Why a debiased 2D TV image shows more than the data support (DOF_STEP_BACK), else '': its modulus
+        contradicts the axial strain (:func:`_contradiction`), its TV solution is not a few regions
+        (:data:`CALIBRATION_MAX_REGIONS`), or unsupported regions cover more than :data:`UNSUPPORTED_AREA` of an
+        image the refit skipped."""
+        tp = theta if theta_part is None else theta_part
+        mu_c = np.exp(theta)
+        area = fem.basis.dx.sum(axis=1)
+        why = _contradiction(mu_c / _weighted_median(mu_c, area), el_strain, mesh, area)
+        if why:
+            return "its modulus contradicts the strain"
+        part = _calibration_partition(tp, reg, h * h)
+        if len(part[1]) > CALIBRATION_MAX_REGIONS:
+            return f"its TV image has {len(part[1])} regions besides the largest (more than {CALIBRATION_MAX_REGIONS})"
+        frac, _ = _unsupported_regions(tp, theta, reg, el_strain, mesh, area, h * h, partition=part)
+        if UNSUPPORTED_AREA is not None and frac > UNSUPPORTED_AREA and refit_skipped:
+            return f"{100 * frac:.0f} % of it is not supported by the strain"
+        return ""
+
+    b = chosen[0]
+    (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text) = debiased(chosen)
+    rule_base, rule = rule, rule + text
+    # the bracket's smaller beta (gamma at or above the target) against its larger one (below it): both lie within
+    # half a decade of the target, which cannot tell them apart; where the smaller one's image shows what the data
+    # do not (DOF_STEP_BACK), its extra parameters fitted the noise, and the larger one is taken if its image does not
+    larger = runs[-1] if runs and runs[-1][0] > b else None
+    if (DOF_STEP_BACK and beta is None and beta_method in ("dof", "dof-area") and larger is not None
+            and dim == 2 and regularization == "tv" and TV_REWEIGHT is not None and images is None
+            and not sweep[-1].get("stop") and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0)
+            >= target_dof):
+        why = overfitted(theta, theta_part, refit_skipped)
+        if why:
+            keep = (reg.length.copy(), None if problem.g is None else np.array(problem.g, copy=True))
+            alt = debiased(larger)
+            why_alt = overfitted(alt[0], alt[4], alt[7])
+            if not why_alt:
+                chosen = larger
+                b = larger[0]
+                (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text) = alt
+                rule = (rule_base + f"; stepped back to the bracket's larger beta {b:.3g} (gamma "
+                        f"{next(e['gamma'] for e in sweep if e['beta'] == b):.3g}): at the smaller one {why}" + text)
+            else:
+                reg.length = keep[0]
+                if keep[1] is not None:
+                    problem.g = keep[1]
+                rule += f"; the bracket's larger beta {larger[0]:.3g} was tried too ({why_alt}) and not taken"
     if theta_part is None:
         theta_part = theta
     q5, q95 = np.percentile(theta, [5, 95])
