@@ -110,7 +110,9 @@ gives more, up to :data:`DOF_UP_STEPS` half decades above it are tried).  :math:
 falls.  The target is the geometric mean of one parameter per 20 mm^2 and one per ten elements (the two coincide at
 :math:`h = \sqrt 2` mm): a registration's element size follows the speckle size, so finer elements carry
 displacement data of finer resolution, but each node's error is correlated with its neighbours' over a length, so
-the information grows more slowly than the element count.  Measured on the fixed-beta sweeps of
+the information grows more slowly than the element count.  Where the nearer grid value is the smaller of the two
+about the target and its image fails the tests of :func:`_overfit_reason`, the larger is taken if its image passes
+them (:data:`DOF_STEP_BACK`).  Measured on the fixed-beta sweeps of
 benchmarks/inversion.py (main and held-out sets, benchmarks/inversion_beta_sweep.py): area / :math:`\gamma` at the
 truth-best :math:`\beta` falls as :math:`h^{1.0-1.2}` (median 16-17 mm^2 on 1.4-1.5 mm elements, 7 mm^2 on
 0.68 mm ones).  The per-area target alone (``beta_method="dof-area"``, the former default) put the fine 12 / 15 MHz
@@ -231,7 +233,7 @@ DOF_UP_STEPS = 2
 #: beta and its debiased image shows more than the data support (its modulus contradicts the axial strain, its TV
 #: solution is not a few regions: :data:`CALIBRATION_MAX_REGIONS`, or unsupported regions cover more than
 #: :data:`UNSUPPORTED_AREA` of an image the refit skipped), the bracket's larger beta is taken if its image shows none
-#: of these (docs/inversion.md, "The beta rule's step back").  False: always the nearer.
+#: of these (docs/inversion.md, "The beta rule's step back and unsupported regions").  False: always the nearer.
 DOF_STEP_BACK = True
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
 TV_DELTA = 1e-2
@@ -412,7 +414,8 @@ SUPPORT_FRACTION = 0.1
 UNSUPPORTED_AREA = 0.2
 #: 2D TV with the region refit applied: a region of the TV solution whose modulus step the axial strain does not show
 #: (:func:`_unsupported_regions`) takes the background's mean log mu, and the refit runs again against that
-#: background (docs/inversion.md, "The beta rule's step back").  False: such regions keep their values (a note).
+#: background (docs/inversion.md, "The beta rule's step back and unsupported regions").  False: such regions keep
+#: their values (a note).
 SUPPORT_MERGE = True
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2

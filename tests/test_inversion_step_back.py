@@ -63,3 +63,32 @@ def test_overfit_reason_names_an_image_of_many_regions():
     # the result's theta is read for the strain check, the TV solution (theta_part) for the regions
     disk = _image("disk")[0]
     assert _overfit_reason(theta, disk, False, reg, strain, mesh, area, H) == ""
+
+
+def test_unsupported_region_takes_the_background_level(monkeypatch):
+    """SUPPORT_MERGE end to end on the exact stiff disk x4 (plane stress, 3 mm elements, beta 0.01): its disk
+    strains about 0.4 x the background, supported, and comes out near 4 with or without the merge.  With
+    SUPPORT_FRACTION raised past that ratio the disk counts as unsupported: it takes the background's level (contrast
+    within 0.1 of 1; 3.9 without the merge), ``unsupported_area`` still reports the TV solution's region and a note
+    says it was set to the background."""
+    from test_inversion import REGION, inclusion, solution
+
+    from femreg.inversion import UNSUPPORTED_AREA, invert, modulus_contrast
+
+    sol = solution("plane-stress", 40.0)
+    kw = dict(region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
+    clean = invert(sol.displacement, **kw)
+    c_clean = modulus_contrast(clean, inclusion)["contrast"]
+    assert clean.success and not clean.notes and 3.5 < c_clean < 4.5, (c_clean, clean.notes)
+    monkeypatch.setattr(inversion, "SUPPORT_FRACTION", 5.0)
+    monkeypatch.setattr(inversion, "SUPPORT_MERGE", False)
+    kept = invert(sol.displacement, **kw)
+    assert modulus_contrast(kept, inclusion)["contrast"] == pytest.approx(c_clean, rel=1e-9)
+    monkeypatch.setattr(inversion, "SUPPORT_MERGE", True)
+    merged = invert(sol.displacement, **kw)
+    c = modulus_contrast(merged, inclusion)["contrast"]
+    assert merged.success and abs(c - 1.0) < 0.1, c
+    assert merged.unsupported_area == pytest.approx(kept.unsupported_area)
+    assert merged.unsupported_area > UNSUPPORTED_AREA
+    assert any("set to the background's level" in n for n in merged.notes), merged.notes
+    assert "set to the background's level, refit again" in merged.beta_rule
