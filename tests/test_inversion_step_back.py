@@ -18,7 +18,7 @@ H = 1.5
 
 def _image(kind):
     """(theta, el_strain, mesh, reg, area) of a 30 x 30 mm tensor mesh of 1.5 mm elements: ``"disk"`` a stiff
-    disk (x4, radius 6 mm) whose |e_xx| is 1/4 of the background's; ``"layers"`` the deeper half 2 x stiffer at
+    disk (x4, radius 6 mm) whose abs(e_xx) is 1/4 of the background's; ``"layers"`` the deeper half 2 x stiffer at
     one strain; ``"speckle"`` ten 4.5 mm squares at alternating levels x1.8 / x0.55, each straining 1 / its
     modulus (supported, but no few regions)."""
     mesh = _tensor_mesh(0.0, 30.0, -15.0, 15.0, (H, H))
