@@ -2088,11 +2088,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 # previous iterate (= p_k - grad misfit / beta at its optimum), each solve adding back what the last
                 # one shrank
                 b_breg = b * TV_BREGMAN_START
-                phi_stop = problem.misfit(cand[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
+                phi_floor = problem.misfit(cand[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
                 if TV_BREGMAN_START != 1.0:
                     accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
                 for _ in range(TV_BREGMAN):
-                    if problem.misfit(theta)[0] <= phi_stop:
+                    if problem.misfit(theta)[0] <= phi_floor:
                         break
                     reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
                     try:
@@ -2135,8 +2135,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     larger = runs[-1] if runs and runs[-1][0] > b else None
     if (DOF_STEP_BACK and beta is None and beta_method in ("dof", "dof-area") and larger is not None
             and dim == 2 and regularization == "tv" and TV_REWEIGHT is not None and images is None
-            and not sweep[-1].get("stop") and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0)
-            >= target_dof):
+            and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0) >= target_dof):
         area_c = fem.basis.dx.sum(axis=1)
         why = _overfit_reason(theta, theta_part, refit_skipped, reg, el_strain, mesh, area_c, h)
         if why:
