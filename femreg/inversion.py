@@ -110,7 +110,9 @@ gives more, up to :data:`DOF_UP_STEPS` half decades above it are tried).  :math:
 falls.  The target is the geometric mean of one parameter per 20 mm^2 and one per ten elements (the two coincide at
 :math:`h = \sqrt 2` mm): a registration's element size follows the speckle size, so finer elements carry
 displacement data of finer resolution, but each node's error is correlated with its neighbours' over a length, so
-the information grows more slowly than the element count.  Measured on the fixed-beta sweeps of
+the information grows more slowly than the element count.  Where the nearer grid value is the smaller of the two
+about the target and its image fails the tests of :func:`_overfit_reason`, the larger is taken if its image passes
+them (:data:`DOF_STEP_BACK`).  Measured on the fixed-beta sweeps of
 benchmarks/inversion.py (main and held-out sets, benchmarks/inversion_beta_sweep.py): area / :math:`\gamma` at the
 truth-best :math:`\beta` falls as :math:`h^{1.0-1.2}` (median 16-17 mm^2 on 1.4-1.5 mm elements, 7 mm^2 on
 0.68 mm ones).  The per-area target alone (``beta_method="dof-area"``, the former default) put the fine 12 / 15 MHz
@@ -227,6 +229,12 @@ DOF_ELEMENT_SIZE = 1.4
 DOF_EXPONENT = 1.0
 #: Half-decade steps the default rule may take above the largest beta of the grid.
 DOF_UP_STEPS = 2
+#: The dof rules' target lies between two grid betas, the nearer taken.  Where the nearer is the bracket's smaller
+#: beta and its debiased image shows more than the data support (its modulus contradicts the axial strain, its TV
+#: solution is not a few regions: :data:`CALIBRATION_MAX_REGIONS`, or unsupported regions cover more than
+#: :data:`UNSUPPORTED_AREA` of an image the refit skipped), the bracket's larger beta is taken if its image shows none
+#: of these (docs/inversion.md, "The beta rule's step back and unsupported regions").  False: always the nearer.
+DOF_STEP_BACK = True
 #: Smoothing of the TV term, in log-modulus units (a jump of 0.01 = 1 % in mu is "small").
 TV_DELTA = 1e-2
 #: Bound on |log mu| during the optimisation (mu within a factor e^7 ~ 1100 of the start).
@@ -404,6 +412,11 @@ SUPPORT_FRACTION = 0.1
 #: Random tissue (benchmarks/heterogeneous.py, 12 registered pairs, refit skipped on 10): 0.363 on one (flagged),
 #: 0-0.099 on the others; 0.2 was set after seeing them (0.1 came within 0.001 of one).
 UNSUPPORTED_AREA = 0.2
+#: 2D TV with the region refit applied: a region of the TV solution whose modulus step the axial strain does not show
+#: (:func:`_unsupported_regions`) takes the background's mean log mu, and the refit runs again against that
+#: background (docs/inversion.md, "The beta rule's step back and unsupported regions").  False: such regions keep
+#: their values (a note).
+SUPPORT_MERGE = True
 #: An element is constrained when its data information is at least this fraction of the median.
 CONSTRAINED_INFO = 1e-2
 _FORMAT = "femreg-inversion-1"
@@ -2046,66 +2059,127 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
     if chosen is None:
         chosen = runs[-1]
-    b, theta, info, phi, R = chosen
-    if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
-        problem.g = info["boundary"]
-    refit_std = theta_tv = None
-    refit_skipped = False       # the refit's partition had more than TV_REFIT_MAX_REGIONS regions
-    theta_part = None       # the TV solution the calibration check partitions (before the refit)
-    if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
-        # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and the
-        # Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh and
-        # data, a modulus that differs mostly in the inclusions' contrast)
-        def accept(theta_r, info_r):
-            nonlocal theta, info
-            if np.all(np.isfinite(theta_r)):
-                theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
-                if info.get("boundary") is not None:
-                    problem.g = info["boundary"]
+    def debiased(cand):
+        """The debiased TV (reweighting, Bregman, region refit) of one sweep result ``cand`` = (beta, theta, info,
+        phi, R): (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, rule text)."""
+        b, theta, info, phi, R = cand
+        if info.get("boundary") is not None:     # the boundary fitted with the chosen theta
+            problem.g = info["boundary"]
+        refit_std = theta_tv = None
+        refit_skipped = False       # the refit's partition had more than TV_REFIT_MAX_REGIONS regions
+        theta_part = None       # the TV solution the calibration check partitions (before the refit)
+        text = ""
+        if TV_REWEIGHT is not None and dim == 2 and regularization == "tv":
+            # debiased TV (TV_REWEIGHT): one solve more at the chosen beta, from its solution; the rule's gamma and
+            # the Laplace step keep the data Hessian of the plain-TV solution (computed by the rule; the same mesh
+            # and data, a modulus that differs mostly in the inclusions' contrast)
+            def accept(theta_r, info_r):
+                nonlocal theta, info
+                if np.all(np.isfinite(theta_r)):
+                    theta, info = theta_r, dict(info_r, boundary=info_r.get("boundary"))
+                    if info.get("boundary") is not None:
+                        problem.g = info["boundary"]
 
-        for _ in range(TV_REWEIGHT_STEPS):
-            reg.reweight(theta, TV_REWEIGHT)
-            accept(*_optimise(problem, theta, b, maxiter=maxiter, gtol=gtol))   # the bar is closed here
-        if TV_BREGMAN:
-            # Bregman iteration (TV_BREGMAN, option): R(theta) - p.theta with p the subgradient of R at the previous
-            # iterate (= p_k - grad misfit / beta at its optimum), each solve adding back what the last one shrank
-            b_breg = b * TV_BREGMAN_START
-            phi_stop = problem.misfit(chosen[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
-            if TV_BREGMAN_START != 1.0:
-                accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
-            for _ in range(TV_BREGMAN):
-                if problem.misfit(theta)[0] <= phi_stop:
-                    break
-                reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
-                try:
+            for _ in range(TV_REWEIGHT_STEPS):
+                reg.reweight(theta, TV_REWEIGHT)
+                accept(*_optimise(problem, theta, b, maxiter=maxiter, gtol=gtol))   # the bar is closed here
+            if TV_BREGMAN:
+                # Bregman iteration (TV_BREGMAN, option): R(theta) - p.theta with p the subgradient of R at the
+                # previous iterate (= p_k - grad misfit / beta at its optimum), each solve adding back what the last
+                # one shrank
+                b_breg = b * TV_BREGMAN_START
+                phi_floor = problem.misfit(cand[1])[0] if TV_BREGMAN_START != 1.0 else -np.inf
+                if TV_BREGMAN_START != 1.0:
                     accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
-                finally:
-                    reg.linear = None
-        passes = "once" if TV_REWEIGHT_STEPS == 1 else f"{TV_REWEIGHT_STEPS} times"
-        rule += f"; TV reweighted {passes} (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
-        if TV_REFIT:
-            # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit alone
-            # where the data constrain it
-            factor = _registered_factor(displacement, h, dim)
-            theta_tv = theta if TV_REFIT_STD else None
-            theta_part = theta
-            theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
-                                         min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
-                                         max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
-                                         mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
-            refit_std = refit["std_elements"]
-            refit_skipped = bool(refit["too_many"])
-            done = [e for e in refit["candidates"] if e["applied"]]
-            rule += (f"; region refit (level {TV_REFIT:g}): not applied, {refit['regions'] - 1} regions besides "
-                     f"the reference (more than {TV_REFIT_MAX_REGIONS}: not piecewise constant)"
-                     if refit["too_many"] else
-                     f"; region refit (level {TV_REFIT:g}): {len(done)} of {len(refit['candidates'])} regions, "
-                     f"log mu changed by {[round(e['shift'], 3) for e in done]}")
-        phi, _ = problem.misfit(theta)
-        R, _ = reg(theta)
-        if TV_BREGMAN:
-            rule += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
-                     f"fraction {TV_BREGMAN_FRACTION:g}")
+                for _ in range(TV_BREGMAN):
+                    if problem.misfit(theta)[0] <= phi_floor:
+                        break
+                    reg.linear = reg(theta)[1] * TV_BREGMAN_FRACTION
+                    try:
+                        accept(*_optimise(problem, theta, b_breg, maxiter=maxiter, gtol=gtol))
+                    finally:
+                        reg.linear = None
+            passes = "once" if TV_REWEIGHT_STEPS == 1 else f"{TV_REWEIGHT_STEPS} times"
+            text += f"; TV reweighted {passes} (1 / (1 + |jump| / {TV_REWEIGHT:g}))"
+            if TV_REFIT:
+                # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit
+                # alone where the data constrain it
+                factor = _registered_factor(displacement, h, dim)
+                theta_tv = theta if TV_REFIT_STD else None
+                theta_part = theta
+                theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
+                                             min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
+                                             max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
+                                             mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
+                refit_std = refit["std_elements"]
+                refit_skipped = bool(refit["too_many"])
+                done = [e for e in refit["candidates"] if e["applied"]]
+                text += (f"; region refit (level {TV_REFIT:g}): not applied, {refit['regions'] - 1} regions "
+                         f"besides the reference (more than {TV_REFIT_MAX_REGIONS}: not piecewise constant)"
+                         if refit["too_many"] else
+                         f"; region refit (level {TV_REFIT:g}): {len(done)} of {len(refit['candidates'])} regions, "
+                         f"log mu changed by {[round(e['shift'], 3) for e in done]}")
+            phi, _ = problem.misfit(theta)
+            R, _ = reg(theta)
+            if TV_BREGMAN:
+                text += (f"; Bregman iteration, at most {TV_BREGMAN} steps at beta {b * TV_BREGMAN_START:.3g}, "
+                         f"fraction {TV_BREGMAN_FRACTION:g}")
+        return theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text
+
+    b = chosen[0]
+    (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text) = debiased(chosen)
+    rule_base, rule = rule, rule + text
+    # the bracket's smaller beta (gamma at or above the target) against its larger one (below it): both lie within
+    # half a decade of the target, which cannot tell them apart; where the smaller one's image shows what the data
+    # do not (DOF_STEP_BACK), its extra parameters fitted the noise, and the larger one is taken if its image does not
+    larger = runs[-1] if runs and runs[-1][0] > b else None
+    if (DOF_STEP_BACK and beta is None and beta_method in ("dof", "dof-area") and larger is not None
+            and dim == 2 and regularization == "tv" and TV_REWEIGHT is not None and images is None
+            and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0) >= target_dof):
+        area_c = fem.basis.dx.sum(axis=1)
+        why = _overfit_reason(theta, theta_part, refit_skipped, reg, el_strain, mesh, area_c, h)
+        if why:
+            keep = (reg.length.copy(), None if problem.g is None else np.array(problem.g, copy=True))
+            alt = debiased(larger)
+            why_alt = _overfit_reason(alt[0], alt[4], alt[7], reg, el_strain, mesh, area_c, h)
+            if not why_alt:
+                chosen = larger
+                b = larger[0]
+                (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text) = alt
+                rule = (rule_base + f"; stepped back to the bracket's larger beta {b:.3g} (gamma "
+                        f"{next(e['gamma'] for e in sweep if e['beta'] == b):.3g}): at the smaller one {why}" + text)
+            else:
+                reg.length = keep[0]
+                if keep[1] is not None:
+                    problem.g = keep[1]
+                rule += f"; the bracket's larger beta {larger[0]:.3g} was tried too ({why_alt}) and not taken"
+    support = None      # (fraction, regions) of the TV solution's unsupported regions, before any merge
+    if SUPPORT_MERGE and refit_std is not None and not refit_skipped and images is None:
+        # a region whose modulus step the axial strain does not show (_unsupported_regions) has no evidence in the
+        # data for its step: it takes the background's level, and the region refit runs again, so that the other
+        # regions are fitted against a background without it (SUPPORT_MERGE)
+        area_m = fem.basis.dx.sum(axis=1)
+        part_m = _calibration_partition(theta_part, reg, h * h)
+        support = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_m, h * h, partition=part_m)
+        if support[1]:
+            inner_m = inner_elements(mesh)
+            ref_m = inner_m & ~np.isin(part_m[0], part_m[1])
+            t0 = float(np.sum(area_m[ref_m] * theta[ref_m]) / np.sum(area_m[ref_m]))
+            gone = np.isin(part_m[0], [r[3] for r in support[1]])
+            theta, refit2 = _region_refit(fem, problem, reg, np.where(gone, t0, theta), fem.I.size,
+                                          _registered_factor(displacement, h, dim), level=TV_REFIT,
+                                          min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
+                                          max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP, mode=TV_REFIT_MODE,
+                                          max_regions=TV_REFIT_MAX_REGIONS)
+            std2 = refit2["std_elements"]
+            # the merged elements are background now: the Laplace std (NaN here), the refitted ones the new std
+            refit_std = np.where(np.isfinite(std2), std2, np.where(gone, np.nan, refit_std))
+            done2 = [e for e in refit2["candidates"] if e["applied"]]
+            rule += (f"; {len(support[1])} region(s) the axial strain does not support set to the background's "
+                     f"level, refit again: {len(done2)} of {len(refit2['candidates'])} regions, log mu changed by "
+                     f"{[round(e['shift'], 3) for e in done2]}")
+            phi, _ = problem.misfit(theta)
+            R, _ = reg(theta)
     if theta_part is None:
         theta_part = theta
     q5, q95 = np.percentile(theta, [5, 95])
@@ -2189,8 +2263,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if checked:
         # a region whose modulus step the axial strain does not show (SUPPORT_FRACTION): over a large part of the
         # image the background's level, and every contrast read against it, is the inversion's, not the data's
-        frac, regs = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h,
-                                          partition=partition)
+        frac, regs = (support if support is not None else
+                      _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h,
+                                           partition=partition))
         unsupported_area = frac
         if regs:
             what = (f"{len(regs)} region(s) of {sum(r[0] for r in regs):.3g} mm^2 ({100 * frac:.0f} % of the inner "
@@ -2199,6 +2274,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             if UNSUPPORTED_AREA is not None and frac > UNSUPPORTED_AREA and refit_skipped:
                 flags.append(f"{what}, and the image is not a few regions (the region refit was not applied): "
                              "its levels are the regulariser's (e.g. at a low SNR); the contrast is not reliable")
+            elif support is not None:
+                notes.append(f"modulus not supported by strain: {what}; set to the background's level and the "
+                             "other regions refitted against it (SUPPORT_MERGE)")
             else:
                 notes.append(f"modulus not supported by strain: {what}; read them as artefacts of the inversion")
     if flags:
@@ -2266,6 +2344,29 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         unsupported_area=unsupported_area, uncertainty_scale=scale)
 
 
+def _overfit_reason(theta, theta_part, refit_skipped, reg, el_strain, mesh, area_el, h) -> str:
+    """Why a debiased 2D TV image shows more than its data support (:data:`DOF_STEP_BACK`), else ''.
+
+    ``theta`` (n_el,) the result's log mu, ``theta_part`` (n_el,) the TV solution before the region refit (None:
+    ``theta``), ``refit_skipped`` whether the refit was skipped (too many regions), ``el_strain`` (n_el, 3) the data's
+    element strain, ``area_el`` (n_el,) element areas mm^2, ``h`` the mean element size mm.  Reasons, in this order:
+    the modulus contradicts the axial strain (:func:`_contradiction`, the flag's test: eq:meq's stiffer region must
+    strain less); the TV solution is not a few regions (more than :data:`CALIBRATION_MAX_REGIONS` of
+    :func:`_calibration_partition`); unsupported regions (:func:`_unsupported_regions`) cover more than
+    :data:`UNSUPPORTED_AREA` of an image whose refit was skipped (the flag's condition)."""
+    tp = theta if theta_part is None else theta_part
+    mu = np.exp(theta)
+    if _contradiction(mu / _weighted_median(mu, area_el), el_strain, mesh, area_el):
+        return "its modulus contradicts the strain"
+    part = _calibration_partition(tp, reg, h * h)
+    if len(part[1]) > CALIBRATION_MAX_REGIONS:
+        return f"its TV image has {len(part[1])} regions besides the largest (more than {CALIBRATION_MAX_REGIONS})"
+    frac, _ = _unsupported_regions(tp, theta, reg, el_strain, mesh, area_el, h * h, partition=part)
+    if UNSUPPORTED_AREA is not None and frac > UNSUPPORTED_AREA and refit_skipped:
+        return f"{100 * frac:.0f} % of it is not supported by the strain"
+    return ""
+
+
 def _calibration_partition(theta, reg, element_area: float):
     """(labels (n_el,), candidates) of the log-modulus image ``theta`` (n_el,): :func:`_regions` at
     :data:`CALIBRATION_LEVEL`, a component smaller than :data:`CALIBRATION_MIN_AREA` mm^2, or than
@@ -2314,7 +2415,7 @@ def _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, eleme
             continue
         d, e = mean(theta, sel) - t0, mean(ax, sel)
         if abs(d) >= SUPPORT_LEVEL and e > 0 and np.log(e0 / e) / d < SUPPORT_FRACTION:
-            out.append((a, float(np.exp(d)), e / e0))
+            out.append((a, float(np.exp(d)), e / e0, int(k)))
     return float(sum(x[0] for x in out) / area_el[inner].sum()), out
 
 

@@ -200,6 +200,8 @@ def test_unsupported_regions_flag_the_result_and_the_cli_exits_1(monkeypatch, tm
     clean = invert(sol.displacement, region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
     assert clean.success and clean.unsupported_area == 0.0 and not clean.notes, (clean.flags, clean.notes)
     monkeypatch.setattr(inversion, "SUPPORT_FRACTION", 5.0)
+    # the note alone: SUPPORT_MERGE would set the disk to the background (tests/test_inversion_step_back.py)
+    monkeypatch.setattr(inversion, "SUPPORT_MERGE", False)
     noted = invert(sol.displacement, region=REGION, element_size=3.0, beta=0.01, uncertainty=False)
     assert noted.success and noted.unsupported_area > UNSUPPORTED_AREA, noted.flags
     assert any("not supported by strain" in n for n in noted.notes), noted.notes

@@ -41,11 +41,15 @@ def test_reps_registration_is_flagged(key, truth, tmp_path):
     """R_eps shrinks the lateral strain around the disk: the model chosen for the data's ratio (effective, ratio
     0.85 / 0.78; plane stress, 0.43) fits the axial strain with 5-8 % less lateral expansion than the data show in
     every quadrant, and
-    its contrast is far off (ratios to the truth 3.49, 1.43, 2.07 over the disk; 3.15, 1.24, 1.96 with the benchmark's
-    ring contrast)."""
+    its contrast was far off (ratios to the truth 3.49, 1.34, 2.07 over the disk).  With the rule's step back
+    (DOF_STEP_BACK: 8 and 5 regions at the smaller beta on the plane-strain pairs) 2.52, 0.94, 2.07: the stiff disk
+    now lands in the band, flagged all the same (the flag reads the lateral strain, not the contrast)."""
     res = invert(_registration(key), uncertainty=False)
     c = modulus_contrast(res, _disk)["contrast"]
-    assert abs(c / truth - 1) > 0.15, c                     # the result is wrong ...
+    if key == "stiff_plane_strain":
+        assert "stepped back" in res.beta_rule and abs(c / truth - 1) < 0.15, (c, res.beta_rule)
+    else:
+        assert abs(c / truth - 1) > 0.15, c                 # the result is wrong ...
     # measured smallest quadrant shortfalls 0.060 (soft plane strain), 0.075 (stiff), 0.051 (soft plane stress)
     assert res.lateral_shortfall > MODEL_RATIO_TOLERANCE, res.lateral_shortfall
     assert not res.success and any("expands laterally less" in f for f in res.flags), res.flags
