@@ -87,11 +87,16 @@ def load_frame_record(path) -> tuple:
         return np.asarray(z["increment"], float), str(z["flag"])
 
 
-def progress_bar(progress: bool, total: int, desc: str, unit: str):
+def progress_bar(progress: bool, total: int, desc: str, unit: str, on_item=None):
     """A progress bar for a tracking run (:func:`femreg.progress.bar`: tqdm on a terminal, plain lines
-    otherwise), or None without ``progress``."""
+    otherwise), or None without ``progress``.  ``on_item``: the run's per-item callback; when it has a true
+    ``reports_progress`` attribute it prints a line per item itself, so off a terminal there is no bar (one line
+    per item, not those lines and the bar's as well)."""
     if not progress:
         return None
-    from .progress import bar
+    from .progress import bar, stderr_is_terminal
+
+    if getattr(on_item, "reports_progress", False) and not stderr_is_terminal():
+        return None
 
     return bar(total=total, desc=desc, unit=unit)

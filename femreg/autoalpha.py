@@ -292,21 +292,28 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
         # often the longer of the two)
         bar = make_bar(total=2 * alphas.size, desc="alpha auto", unit="step")
 
-    def step(text):
+    def step(text, refresh=True):
         if bar is not None:
-            bar.set_postfix_str(text)
+            bar.set_postfix_str(text, refresh=refresh)
+
+    def finished(text):
+        # the count moves with the step's own name in the past tense: a line written on the count (a log) names
+        # the step it counts, not the one starting next
+        if bar is not None:
+            step(text, refresh=False)
+            bar.update(1)
 
     try:
         results = []
         for al in alphas:
             step(f"registering at alpha {al:.3g}")
             results.append(register(reference_image, moving_image, alpha=float(al), **register_kwargs))
-            if bar is not None:
-                bar.update(1)
+            finished(f"registered at alpha {al:.3g}")
 
         # the image term and its Hessian on the registrations' mesh (same construction as register /
         # register_volume)
         mesh = results[0].mesh
+        step("image term for the scores")
         term = (image_term or pixel_image_term)(reference_image, moving_image, mesh, register_kwargs)
         data = term.data
         Hd = data.hessian().tocsr()
@@ -322,8 +329,7 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
             reg.setup(mesh)
             psi[i] = data.energy(res.u)
             dof[i] = influence_trace(Hd, sp.csr_matrix(reg.hessian(res.u)))
-            if bar is not None:
-                bar.update(1)
+            finished(f"scored alpha {al:.3g}")
     finally:
         if bar is not None:
             bar.set_postfix_str(f"{alphas.size} candidates", refresh=False)

@@ -53,13 +53,13 @@ from .blockmatch import block_match
 from .echo import crop_for, rf_like
 from .errors import InputError
 from . import orientation
-from .image import validate_image, validate_spacing
+from .image import repeated_frames, validate_image, validate_spacing
 from .mesh import roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
 
 __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "display_range", "DEFAULT_BAND",
-           "PAIR_COLUMNS", "DISPLAY_PERCENTILES"]
+           "PAIR_COLUMNS", "DISPLAY_PERCENTILES", "WEIGHTED_PERCENTILES", "saturated_fraction"]
 
 #: Default band of axial strain magnitude (fraction) of the pairs registered.
 DEFAULT_BAND = (0.005, 0.02)
@@ -73,14 +73,30 @@ DEFAULT_PERSISTENCE = 0.7
 #: Percentiles of the normalised strain over the good-quality pixels that set the pictures' colour range
 #: (:func:`display_range`).
 DISPLAY_PERCENTILES = (2.0, 98.0)
+#: Percentiles of the normalised strain over all covered pixels, weighted by their persistence weight, that the
+#: colour range is widened to hold (:func:`display_range`): at most 1 % of the image's weight saturates at
+#: either end.
+WEIGHTED_PERCENTILES = (1.0, 99.0)
 
 
-def display_range(exx, quality, percentiles=DISPLAY_PERCENTILES) -> tuple:
+def _weighted_percentiles(x, w, percentiles):
+    """Percentiles (0-100) of the values ``x`` weighted by ``w`` (both 1D, ``w`` > 0): the midpoint rule of the
+    cumulative weight, linear between the sorted values."""
+    order = np.argsort(x)
+    x, w = x[order], w[order]
+    c = np.cumsum(w)
+    c = (c - 0.5 * w) / c[-1]
+    return [float(np.interp(p / 100.0, c, x)) for p in percentiles]
+
+
+def display_range(exx, quality, percentiles=DISPLAY_PERCENTILES, weighted=WEIGHTED_PERCENTILES) -> tuple:
     """Colour range ``(lo, hi)`` of a normalised strain image (mean 1): the ``percentiles`` of ``exx`` over the
     pixels whose ``quality`` (persistence weight, same shape) is at least its median over the covered pixels,
-    widened to hold 1 (the mean).  A fixed 0-2 range saturated 31 % of the in vivo elastogram of seq299 (16 %
-    above 2, 15 % below 0); low-weight pixels are left out so that decorrelated patches do not set it.
-    (0, 2) when no pixel is covered."""
+    widened to hold the ``weighted`` percentiles over every covered pixel weighted by its ``quality``, and 1
+    (the mean).  A fixed 0-2 range saturated 31 % of the in vivo elastogram of seq299 (16 % above 2, 15 % below
+    0); the good pixels alone left 17.4 % of seq304's saturated (its near field at 5-12 mm, of low but not
+    negligible weight, read 3-8 x the mean), the weighted widening 7.6 % (seq299: 4.8 %, unchanged), while a
+    decorrelated patch of negligible weight still cannot set it.  (0, 2) when no pixel is covered."""
     e = np.asarray(exx, float)
     q = np.broadcast_to(np.asarray(quality, float), e.shape)
     ok = np.isfinite(e) & np.isfinite(q) & (q > 0)
@@ -88,10 +104,25 @@ def display_range(exx, quality, percentiles=DISPLAY_PERCENTILES) -> tuple:
         return 0.0, 2.0
     good = ok & (q >= np.median(q[ok]))
     lo, hi = (float(v) for v in np.percentile(e[good if good.any() else ok], percentiles))
+    if weighted is not None:
+        wlo, whi = _weighted_percentiles(e[ok], q[ok], weighted)
+        lo, hi = min(lo, wlo), max(hi, whi)
     lo, hi = min(lo, 1.0), max(hi, 1.0)
     if not hi > lo:
         lo, hi = lo - 0.5, hi + 0.5
     return lo, hi
+
+
+def saturated_fraction(exx, quality, strain_range) -> float:
+    """Fraction of the covered pixels (finite ``exx``, ``quality`` > 0) whose normalised strain lies outside
+    ``strain_range`` (lo, hi): drawn in the colour of the nearer end.  NaN when no pixel is covered."""
+    e = np.asarray(exx, float)
+    q = np.broadcast_to(np.asarray(quality, float), e.shape)
+    ok = np.isfinite(e) & np.isfinite(q) & (q > 0)
+    if not ok.any():
+        return float("nan")
+    lo, hi = strain_range
+    return float(np.mean((e[ok] < lo) | (e[ok] > hi)))
 
 
 @dataclass
@@ -122,6 +153,9 @@ class ElastogramResult:
     screen : dict
         Consecutive-pair screening: ``strain``, ``lateral_mm``, ``ncc`` (each (n - 1,)).
     timings : dict, seconds per stage.
+    repeated : list of int
+        Frames k whose samples equal frame k - 1's (written twice by the scanner or the export): no motion between
+        them, so a pair ending on one is the pair ending on the frame before.
     """
 
     exx: np.ndarray
@@ -138,6 +172,7 @@ class ElastogramResult:
     region: tuple | None = None
     excluded: str | None = None
     data_mask: np.ndarray | None = None
+    repeated: list = dc_field(default_factory=list)
 
     @property
     def n_usable(self) -> int:
@@ -241,11 +276,12 @@ def _band(band):
     return lo, hi
 
 
-def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
+def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8, cli: bool = False) -> str:
     """Why no pair of a loop fell in the strain band, from the consecutive screening (``ElastogramResult.screen``),
     and what to pass instead: the largest strain any pair at most ``max_span`` frames apart reaches (accumulated as
     :func:`screen_pairs` does), or the smallest consecutive strain when every step overshoots; "" when the band
-    was reachable (the pairs in it then failed their NCC or registration)."""
+    was reachable (the pairs in it then failed their NCC or registration).  ``cli``: the advice in the command's
+    flags only (``--band``, ``--resume``, ``--max-span``)."""
     lo, hi = _band(band)
     e = np.asarray(screen.get("strain", ()), float)
     if e.size == 0 or not np.all(np.isfinite(e)):
@@ -258,17 +294,20 @@ def band_advice(screen: dict, band=DEFAULT_BAND, max_span: int = 8) -> str:
             best, where = float(acc[k]), (i, i + k + 1)
     if abs(best) < lo:
         lo_new = max(0.05, np.floor(abs(best) * 0.8 * 2000) / 20)        # percent, 0.05 % steps, below the largest
+        how = (f"--band {lo_new:g} {100 * hi:g} (with --resume the screening is kept)" if cli else
+               f"band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g}; with resume=True, "
+               f"--resume, the screening is kept)")
+        longer = "--max-span" if cli else "max_span, --max-span"
         return (f"the loop compresses less than the band: the largest axial strain between frames at most "
                 f"{int(max_span)} apart is {100 * best:+.2f} % (frames {where[0]} -> {where[1]}); lower the band, "
-                f"e.g. band=({lo_new / 100:g}, {hi:g}) (CLI: --band {lo_new:g} {100 * hi:g}; with resume=True, "
-                f"--resume, the screening is kept)"
-                + (", or allow longer spans (max_span, --max-span)" if e.size > int(max_span) else ""))
+                f"e.g. {how}" + (f", or allow longer spans ({longer})" if e.size > int(max_span) else ""))
     small = float(np.min(np.abs(e)))
     if small > hi:
         hi_new = min(19.0, np.ceil(small * 1.25 * 200) / 2)                # percent, 0.5 % steps, above the smallest
+        how = (f"--band {100 * lo:g} {hi_new:g}" if cli else
+               f"band=({lo:g}, {hi_new / 100:g}) (CLI: --band {100 * lo:g} {hi_new:g})")
         return (f"every consecutive pair strains more than the band: the smallest axial strain is "
-                f"{100 * small:.2f} %; raise the band, e.g. band=({lo:g}, {hi_new / 100:g}) (CLI: --band "
-                f"{100 * lo:g} {hi_new:g}), or record at a higher frame rate")
+                f"{100 * small:.2f} %; raise the band, e.g. {how}, or record at a higher frame rate")
     return ""
 
 
@@ -345,6 +384,27 @@ def _move(images, coef, spacing, origin, field=None):
             vy = ndimage.map_coordinates(uy, [fi, fj], order=1, mode="nearest")
             fi, fj = ii - vx / spacing[0], jj - vy / spacing[1]
     return [ndimage.map_coordinates(im, [fi, fj], order=1, mode="constant", cval=0.0) for im in images]
+
+
+def _to_pixel_rows(strain, weight, shape, step):
+    """Normalised strain and persistence weight on every ``step``-th pixel row, each (n_rows, n_lateral), to every
+    pixel row of ``shape`` by linear interpolation between the rows, the strain weighted.  Rows without weight
+    (outside the mesh) are filled from the nearest covered row first: interpolating towards their zero weight
+    drew a ramp of low weight along the mesh's top and bottom edges (a line on the quality picture).  Pixels
+    nearer an uncovered row than a covered one get weight 0."""
+    W = np.asarray(weight, float)
+    D = np.where(W > 0, np.nan_to_num(np.asarray(strain, float)), 0.0)
+    covered = W > 0
+    if covered.any() and not covered.all():
+        idx = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
+        Wf, WDf = W[tuple(idx)], (W * D)[tuple(idx)]
+    else:
+        Wf, WDf = W, W * D
+    ii, jj = np.meshgrid(np.arange(shape[0]) / step, np.arange(shape[1]), indexing="ij")
+    WD, Q = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (WDf, Wf))
+    near = ndimage.map_coordinates(covered.astype(float), [ii, jj], order=0, mode="nearest") > 0.5
+    Q = np.where(near, Q, 0.0)
+    return np.where(Q > 0, WD / np.where(Q > 0, Q, 1.0), np.nan), Q
 
 
 def _weight(rho, strain_ratio):
@@ -596,7 +656,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         pair; ``roi="auto"`` (default): RF frames whole, envelope frames with fill on their fan (``data_mask``);
         ``roi=None``: the whole frames.
     on_pair : callable(row), optional
-        Called after each registered pair.
+        Called after each registered pair.  One with a true ``reports_progress`` attribute prints its own line
+        per pair: off a terminal the registration's progress lines are then left out (one line per pair).
     workers : int
         Local Dask worker processes (:func:`femreg.batch.engine.open_client`, one thread each) for the screening
         and the registrations; 1: all in this process.  With more, the chosen pairs are registered in
@@ -629,6 +690,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                          "alpha='auto' is not supported here (choose it on one pair with femreg.register(..., "
                          "alpha='auto') and pass its .alpha)")
     seq = _validate(frames)
+    repeats = repeated_frames(seq)      # frames written twice: said in the result, nothing to register
+    if len(repeats) == len(seq) - 1:
+        raise InputError(f"all {len(seq)} frames hold the same samples: nothing moved, no strain to image (an "
+                         "elastogram needs a loop whose frames differ)")
     spacing, origin = validate_spacing(spacing, origin)
     if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register
         orientation.check(np.asarray(seq[0], dtype=float), spacing)
@@ -694,10 +759,13 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if out is not None:
         (out / "pairs").mkdir(exist_ok=True)
 
-    def bar(total, desc):
+    def bar(total, desc, on_item=None):
         if not progress:
             return None
-        from .progress import bar as make_bar
+        from .progress import bar as make_bar, stderr_is_terminal
+
+        if getattr(on_item, "reports_progress", False) and not stderr_is_terminal():
+            return None                 # on_pair writes a line per pair: not those and a bar's as well
         return make_bar(total=total, desc=desc, unit="pair")
 
     with _pool(n_workers, client, seq) as (client, fpath):
@@ -781,7 +849,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                         **register_kwargs)
         todo = [(r["ref"], r["mov"], r["strain"], direct[(r["ref"], r["mov"])]) for r in chosen]
         by_key = {(r["ref"], r["mov"]): r for r in chosen}
-        b = bar(len(chosen), "register")
+        b = bar(len(chosen), "register", on_pair)
 
         def done(i, j, rec):
             r = by_key[(i, j)]
@@ -848,18 +916,17 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         cine_frames.append(int(r["ref"]))
         if W.mean() > best_mean:
             best_mean, best, qual, ref_frame = float(W.mean()), D.copy(), W.copy(), int(r["ref"])
-    # back to every pixel row: weighted linear interpolation between the combined rows
-    ii, jj = np.meshgrid(np.arange(shape[0]) / qa, np.arange(shape[1]), indexing="ij")
-    WD, qual = (ndimage.map_coordinates(a, [ii, jj], order=1, mode="nearest") for a in (qual * best, qual))
+    best, qual = _to_pixel_rows(best, qual, shape, qa)
     qual = np.where(inside, qual, 0.0)
-    best = np.where(qual > 0, WD / np.where(qual > 0, qual, 1.0), np.nan)
+    best = np.where(qual > 0, best, np.nan)
     timings["combine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,
                             cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
                             cine_frames=cine_frames, pairs=rows,
                             screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings, region=region,
-                            excluded=excluded, data_mask=None if mask is None else mask.inside.copy())
+                            excluded=excluded, data_mask=None if mask is None else mask.inside.copy(),
+                            repeated=repeats)
 
 
 def write_pairs_csv(path, rows) -> None:

@@ -49,7 +49,7 @@ from .errors import InputError
 
 from . import _kernels
 
-__all__ = ["validate_image", "validate_samples", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
+__all__ = ["validate_image", "repeated_frames", "refuse_repeated_start", "validate_samples", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
 
 #: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
 SATURATED_FRACTION = 0.5
@@ -100,6 +100,30 @@ def validate_spacing(spacing, origin=(0.0, 0.0), *, n: int = 2):
         raise InputError(f"origin must be two finite numbers (mm), got {origin!r}" if n == 2 else
                          f"a volume needs origin (x0, y0, z0) as three finite numbers (mm), got {origin!r}")
     return sp, org
+
+
+def repeated_frames(frames) -> list:
+    """Indices k >= 1 of the frames whose samples equal frame k - 1's exactly (a scanner or an export that wrote
+    one frame twice): nothing moved between them, so there is nothing to register.  ``frames``: a sequence of
+    arrays of one shape."""
+    return [k for k in range(1, len(frames)) if np.array_equal(frames[k], frames[k - 1])]
+
+
+def refuse_repeated_start(repeats, n_frames: int, what: str = "tracking") -> None:
+    """InputError when every frame repeats frame 0 (nothing moved), or when frame 1 does: the first pair sets
+    the mesh and the region registered, so the run starts at the last frame of the leading repeats instead (the
+    message names it, counted from 0)."""
+    rep = set(repeats)
+    if n_frames >= 2 and all(k in rep for k in range(1, n_frames)):
+        raise InputError(f"all {n_frames} frames hold the same samples: nothing moved, nothing to register "
+                         f"({what} needs frames that differ)")
+    if 1 in rep:
+        last = 1
+        while last + 1 in rep:
+            last += 1
+        raise InputError(f"frames 0-{last} hold the same samples (the recording repeats frame 0): the first pair "
+                         f"sets the mesh and the region registered, so {what} cannot start on a repeat; start at "
+                         f"frame {last} (frames=slice({last}, None); CLI: --frames {last}:)")
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:

@@ -344,15 +344,18 @@ def _wrap(text, width=110, max_lines=3):
     import textwrap
 
     lines = textwrap.wrap(text, width)
+    if max_lines is None:
+        return "\n".join(lines)
     return "\n".join(lines[:max_lines]) + (" ..." if len(lines) > max_lines else "")
 
 
-def draw_failure(fig, text, width=110):
-    """Red banner (the figure's title) with ``text`` (lines of at most ``width`` characters) and a red frame
-    around the figure: a failed result must not pass for a good one when the PNG travels without its log."""
+def draw_failure(fig, text, width=110, max_lines=3):
+    """Red banner (the figure's title) with ``text`` (lines of at most ``width`` characters, at most
+    ``max_lines`` of them, None: all) and a red frame around the figure: a failed result must not pass for a good
+    one when the PNG travels without its log."""
     from matplotlib.patches import Rectangle
 
-    fig.suptitle(_wrap(text, width), color="white", fontweight="bold", fontsize="medium",
+    fig.suptitle(_wrap(text, width, max_lines), color="white", fontweight="bold", fontsize="medium",
                  bbox=dict(boxstyle="square,pad=0.4", facecolor=FAILED_COLOUR, edgecolor="none"))
     fig.patches.append(Rectangle((0.0, 0.0), 1.0, 1.0, transform=fig.transFigure, fill=False,
                                  edgecolor=FAILED_COLOUR, linewidth=6, zorder=100))

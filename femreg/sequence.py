@@ -29,6 +29,7 @@ frames.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from pathlib import Path
@@ -40,7 +41,7 @@ from ._atomic import load_frame_record, open_run_folder, progress_bar, save_fram
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError
-from .image import validate_image, validate_spacing
+from .image import refuse_repeated_start, repeated_frames, validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
@@ -78,6 +79,9 @@ class SequenceResult(list):
         '' for a good frame, otherwise why it is flagged (NCC after registration below ``min_ncc``).
     computed : list of bool
         True where the frame was computed in this call, False where it was loaded from a checkpoint.
+    repeated : list of int
+        Frames k whose samples equal frame k - 1's (a frame written twice): not registered, their entry is frame
+        k - 1's field (accumulate: a zero increment), the message saying so.
     """
 
     def __init__(self, results=(), *, mode="accumulate"):
@@ -86,6 +90,7 @@ class SequenceResult(list):
         self.increments = []
         self.flags = []
         self.computed = []
+        self.repeated = []
 
 
 def _validate_frames(frames):
@@ -182,7 +187,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         Frames whose registration NCC (after) is below this, or whose registration failed its own check
         (``success=False``), are flagged (the run continues).
     on_frame : callable(k, result, flag), optional
-        Called after each frame (computed or loaded).
+        Called after each frame (computed or loaded).  One with a true ``reports_progress`` attribute prints its
+        own line per frame: off a terminal the progress lines are then left out (one line per frame).
     roi, depth
         As in :func:`femreg.register`: the region tracked, from frames 0 and 1 ("auto", default: the echo
         rectangle of :func:`femreg.echo.find_echo`), the whole frames (None), or a given rectangle / depth range
@@ -224,6 +230,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if init not in ("blockmatch", "previous"):
         raise InputError(f"init must be 'blockmatch' or 'previous', got {init!r}")
     seq = _validate_frames(frames)
+    # a frame written twice: nothing moved, registering it would run to the iteration limit on u = 0
+    repeats = repeated_frames(seq)
+    refuse_repeated_start(repeats, len(seq))
     beam = as_geometry(register_kwargs.pop("geometry", None))
     if isinstance(beam, Convex):        # convex / sector frames: femreg.geometry, results in physical x, y
         if data_mask is not None:
@@ -351,10 +360,12 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             and regularizer.startswith("momentum")):
         inc_kwargs["regularizer_options"] = dict(register_kwargs.get("regularizer_options") or {})
         inc_kwargs["regularizer_options"].setdefault("hourglass", TRACK_HOURGLASS)
+    # frames written twice: frame k - 1's field kept (frame 1 is refused by track: it has no earlier field)
+    repeats = set(k for k in repeated_frames(seq) if k >= 2)
     out = SequenceResult(mode=mode)
     S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
-    bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame")
+    bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame", on_frame)
     try:
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
@@ -362,6 +373,15 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 res = load_result(path)
                 inc, flag = load_frame_record(path)
                 computed = False
+            elif k in repeats:
+                # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1
+                res = copy.copy(out[-1])
+                note = f"frame {k} repeats frame {k - 1} (identical samples): not registered, its field kept"
+                res.message = f"{res.message}; {note}" if res.message else note
+                res.repeats = k - 1     # for on_frame (not saved: the message says it in the file)
+                inc, flag, computed = np.zeros_like(np.asarray(out.increments[-1], float)), out.flags[-1], True
+                if path is not None:
+                    save_frame(path, res, inc, flag, k, mode)
             else:
                 # the first pair makes the mesh when there is none yet (convex / sector frames), later ones reuse it
                 where = dict(first) if fe_mesh is None else dict(roi=None, depth=None) if first else {}
@@ -397,7 +417,10 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             if fe_mesh is None:         # the first pair's mesh: every later frame's
                 fe_mesh = res.mesh
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
-            prev_inc = inc
+            if k in repeats:
+                out.repeated.append(k)
+            else:                       # a repeat's zero increment is no guess for the next one
+                prev_inc = inc
             out.append(res)
             out.increments.append(inc)
             out.flags.append(flag)

@@ -696,6 +696,7 @@ class VolumeTrack:
     flags: list = field(default_factory=list)
     computed: list = field(default_factory=list)
     swept: object = None
+    repeated: list = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -738,6 +739,11 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if min_ncc is not None and not np.isfinite(float(min_ncc)):
         raise InputError(f"min_ncc must be a finite number or None, got {min_ncc!r}")
+    from .image import refuse_repeated_start, repeated_frames
+    # a volume written twice: nothing moved (as femreg.track's frames: kept, not registered)
+    repeats = repeated_frames(arr)
+    refuse_repeated_start(repeats, len(arr))
+    repeats = set(repeats)
     swept = None
     if geometry is not None:            # a swept probe's volumes: one Cartesian grid for all (femreg.swept)
         from .probes import Swept, as_geometry
@@ -804,7 +810,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     S = None
     prev = None
     from ._atomic import load_frame_record, progress_bar, save_frame
-    bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume")
+    bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume", on_frame)
     try:
         for k in range(1, len(arr)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
@@ -816,6 +822,18 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                 if r is not a:
                     r.u, r._nodal_strain, r._grids = inc, None, {}
                 computed = False
+            elif k in repeats:
+                # frame 0 -> k is frame 0 -> k - 1; the increment is zero
+                note = f"frame {k} repeats frame {k - 1} (identical samples): not registered, its field kept"
+                a = copy.copy(out.accumulated[-1])
+                a.message = f"{a.message}; {note}" if a.message else note
+                a.repeats = k - 1
+                r = a if mode == "direct" else copy.copy(out.results[-1])
+                if r is not a:
+                    r.u, r._nodal_strain, r._grids = np.zeros_like(np.asarray(r.u, float)), None, {}
+                flag, computed = out.flags[-1], True
+                if path is not None:
+                    save_frame(path, a, np.asarray(r.u, float), flag, k, mode)
             else:
                 if mode == "direct":
                     r = finish(register_volume(arr[0], arr[k], spacing=spacing, origin=origin, mesh=mesh,
@@ -840,7 +858,9 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
             out.accumulated.append(a)
             out.flags.append(flag)
             out.computed.append(computed)
-            if mode == "accumulate":
+            if k in repeats:
+                out.repeated.append(k)      # prev stays the last registered increment: the next one's start
+            elif mode == "accumulate":
                 S, prev = np.asarray(a.u, float), r
             if on_frame is not None:
                 on_frame(k, a, flag)

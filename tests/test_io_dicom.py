@@ -241,6 +241,29 @@ def test_given_spacing_against_the_calibration(loop, tmp_path, capsys):
     assert read_frames(path, spacing=(0.2, None), check_orientation=False).spacing == pytest.approx((0.2, 0.12))
 
 
+def test_transpose_exchanges_the_calibration_before_comparing_a_given_spacing(tmp_path, capsys):
+    # a loop stored lines first (rows lateral, 0.1 mm; columns axial, 0.12 mm), as a frame.T export leaves it
+    tissue = np.random.default_rng(4).integers(0, 256, (3, 160, 200)).astype(np.uint8)
+    path = write_dicom(tmp_path / "T.dcm", screen(tissue), [region(ref=(100, 0, 0.0, 0.5))])
+    fr = read_frames(path, transpose=True)
+    assert fr.frames.shape == (3, 200, 160) and fr.spacing == pytest.approx((0.12, 0.1))
+    assert fr.metadata["header_spacing"] == pytest.approx([0.12, 0.1])
+    assert fr.origin == pytest.approx((-12.0, 5.0), abs=1e-9)           # the reference pixel's, exchanged too
+    # the transposed frames' spacing (axial, lateral) agrees with the calibration: read (refused before)
+    assert read_frames(path, transpose=True, spacing=(0.12, 0.1)).spacing == (0.12, 0.1)
+    with pytest.raises(InputError, match=r"axial 0.1 mm against 0.12 mm; lateral 0.12 mm against 0.1 mm"):
+        read_frames(path, transpose=True, spacing=(0.1, 0.12))          # the file's order: contradicts
+    assert main(["info", str(path), "--transpose", "--spacing", "0.12", "0.1"]) in (0, 1)
+    out, err = capsys.readouterr()
+    assert "contradicts" not in err and "0.12 mm axial, 0.1 mm lateral" in out, (out, err)
+    assert main(["info", str(path), "--transpose", "--spacing", "0.1", "0.12"]) == 1   # described, needs a fix
+    assert "contradicts the file's calibration" in capsys.readouterr().out
+    assert main(["track", str(path), "--transpose", "--spacing", "0.1", "0.12", "-o", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err
+    assert "contradicts the file's calibration" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "t").exists()
+
+
 def test_compressed_with_a_decoder(loop, tmp_path):
     from pydicom.pixels import get_decoder
     from pydicom.uid import RLELossless

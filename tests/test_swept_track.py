@@ -72,12 +72,13 @@ def test_swept_sequence_accumulates_like_the_scan_converted_volumes(sequence, tm
 
 @pytest.fixture(scope="module")
 def still_file(tmp_path_factory):
-    """Three identical swept convex volumes (9 mm of range, 24 rays, 21 frames) in a volume-sequence file."""
+    """Three swept convex volumes of still tissue (9 mm of range, 24 rays, 21 frames) in a volume-sequence file,
+    each with its own 40 dB noise (identical volumes are refused: nothing to register)."""
     from forward.swept import make_swept_sequence
 
     geo = femreg.Swept(30.0, 1.0, femreg.Convex(40.0, 0.5))
     zero = [lambda q: np.zeros_like(q)] * 2
-    s = make_swept_sequence(zero, geo, "matrix7", depth_mm=9.0, n_lines=24, n_frames=21, top_mm=3.0, snr_db=None)
+    s = make_swept_sequence(zero, geo, "matrix7", depth_mm=9.0, n_lines=24, n_frames=21, top_mm=3.0, snr_db=40.0)
     path = tmp_path_factory.mktemp("swept") / "seq.npz"
     np.savez(path, rf=s.frames, spacing=np.array(s.spacing), origin=np.array(s.origin))
     return geo, path
@@ -112,5 +113,6 @@ def test_cli_tracks_swept_volumes_with_resume_and_exit_codes(still_file, tmp_pat
     assert "2 volumes in" in (o := capsys.readouterr().out) and "1 computed, 1 resumed" in o
     res = femreg.load_result(out / "frame_002.npz")
     assert isinstance(res, femreg.SweptResult) and res.geometry == geo
-    assert np.nanmax(np.abs(res.on_grid()["ux"])) < 1e-6        # identical volumes (measured 5.2e-11 mm)
+    # still tissue under 40 dB noise: measured 3.4e-5 mm (identical volumes gave 5.2e-11 mm), margin 3x
+    assert np.nanmax(np.abs(res.on_grid()["ux"])) < 1e-4
     assert main(args) == 2 and "already holds" in capsys.readouterr().err          # a run there, no --resume

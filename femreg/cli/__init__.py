@@ -181,13 +181,35 @@ def _stderr_is_terminal() -> bool:
         return False
 
 
+def _extra_hint(argv, extra, command) -> str:
+    """Why words were left over: the option before them takes fewer values (``--frames 1 2 3`` for
+    ``--frames 1,2,3``); "" when no option precedes them."""
+    try:
+        i = argv.index(extra[0])
+    except ValueError:
+        return ""
+    opt = next((a for a in reversed(argv[:i]) if a.startswith("-") and not a.lstrip("-+.").replace(".", "")
+                .isdigit()), None)
+    if opt is None:
+        return ""
+    name = opt.split("=", 1)[0]
+    if name == "--frames":
+        return (" (--frames takes one selection, counted from 0: 3, 0:10, 0:10:2 or 1,3,5 -- commas, no "
+                "spaces)")
+    return f" (after {name}: femreg {command or ''} --help gives how many values it takes)".replace("  ", " ")
+
+
 def main(argv=None) -> int:
     from femreg.errors import InputError
     from femreg.optional import MissingDependencyError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:                       # said by the command, with the option the words followed
+        print(f"femreg {getattr(args, 'command', None) or ''}".rstrip() + ": error: unrecognized arguments: "
+              f"{' '.join(extra)}{_extra_hint(argv, extra, getattr(args, 'command', None))}", file=sys.stderr)
+        return 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -17,6 +17,7 @@ import sys
 
 from .. import options
 from ..errors import InputError, SpacingUnknownError
+from ..progress import stderr_is_terminal
 
 
 def _frame_selection(text: str):
@@ -304,18 +305,31 @@ def failed_notice(path, success, message, flag="") -> int:
     return 0
 
 
-def run_tracking(args, call, noun: str) -> int:
+def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     """Run ``call(on_frame)`` (a tracking run writing one file per frame into ``args.output``), print a line per
     frame and the run's summary; the exit code: 0 done, 1 a frame flagged or failed (finished frames kept, the
     message says how to resume); bad input (:class:`InputError`) propagates (exit 2).  ``noun``: "frame" or
-    "volume", for the summary."""
+    "volume", for the summary; ``total``: the number of frames registered (frames - 1), named in each line.
+
+    With progress on and stderr not a terminal (a log, a pipe) the per-frame line is the progress: it carries
+    the count and the elapsed time, and the run draws no progress lines of its own (``reports_progress``)."""
+    import time
+
     done = []
+    start = time.monotonic()
+    as_progress = not args.no_progress and not stderr_is_terminal()
 
     def on_frame(k, res, flag):
         done.append(k)
+        count = f" ({len(done)}/{total}, {time.monotonic() - start:.1f} s)" if as_progress and total else ""
+        rep = getattr(res, "repeats", None)
+        what = (f"repeats frame {rep} (identical samples): not registered, frame {rep}'s field kept" if rep is not None
+                else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         # with the progress bar on, the per-frame line goes to stderr beside the bar
-        print(f"frame {k:3d}: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}"
-              + (f"  FLAGGED: {flag}" if flag else ""), file=sys.stdout if args.no_progress else sys.stderr)
+        print(f"frame {k:3d}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
+              file=sys.stdout if args.no_progress else sys.stderr)
+
+    on_frame.reports_progress = True
 
     try:
         out = call(on_frame)
@@ -330,6 +344,12 @@ def run_tracking(args, call, noun: str) -> int:
         return 1
     if len(out) and getattr(out[0], "excluded", None):
         print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
+    repeated = list(getattr(out, "repeated", ()))
+    if repeated:            # a recording that writes frames twice: say so once, with the frames
+        shown = ", ".join(f"{k} = {k - 1}" for k in repeated[:10]) + (", ..." if len(repeated) > 10 else "")
+        one = len(repeated) == 1
+        print(f"femreg track: note: {len(repeated)} {noun}{'' if one else 's'} {'repeats' if one else 'repeat'} "
+              f"the one before (identical samples; {noun}s {shown}): not registered, the field before kept")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} {noun}{'' if len(out) == 1 else 's'} in {args.output} ({n_new} computed, "

@@ -141,4 +141,4 @@ def track_volumes(args, vol, kw) -> int:
 
     return run_tracking(args, lambda on_frame: track_volume(
         list(arr), spacing=spacing, origin=origin, mode=args.mode, checkpoint_dir=args.output, resume=args.resume,
-        progress=not args.no_progress, min_ncc=args.min_ncc, on_frame=on_frame, **kw), "volume")
+        progress=not args.no_progress, min_ncc=args.min_ncc, on_frame=on_frame, **kw), "volume", total=len(arr) - 1)

@@ -15,6 +15,7 @@ Exit codes: 0 done, 1 computed but no pair usable, 2 bad input (before any work)
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -158,7 +159,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels."""
     import matplotlib.pyplot as plt
 
-    from ..elastogram import display_range
+    from ..elastogram import display_range, saturated_fraction
     from ..plot import draw_failure, fit_colorbars, plot_bmode, plot_field
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
@@ -166,8 +167,11 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
     pairs = f"{res.n_usable} pair" + ("" if res.n_usable == 1 else "s")
-    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs})", cmap="viridis",
-               vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
+    # the share drawn in an end colour: the picture says how much of it the colour bar does not resolve
+    sat = saturated_fraction(res.exx, res.quality, (lo, hi))
+    beyond = f"\n{100 * sat:.1f} % of the pixels beyond the colour bar" if np.isfinite(sat) else ""
+    plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs}){beyond}",
+               cmap="viridis", vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
     # relative to the median on a log scale over its 2-98 % percentiles: the weight spans 20x and more (static
@@ -185,7 +189,10 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("depth x (mm)")
     if failure:
-        draw_failure(fig, f"NO ELASTOGRAM: {failure}")
+        # the whole advice: the band to pass is at its end
+        draw_failure(fig, f"NO ELASTOGRAM: {failure}", max_lines=None)
+        for ax in axs[1:]:
+            ax.text(0.5, 0.5, "no usable pair", transform=ax.transAxes, ha="center", va="center", color="0.4")
     fit_colorbars(fig, [list(axs)])
     return fig
 
@@ -224,10 +231,20 @@ def run(args) -> int:
     kw = registration_kwargs(args)
     out = Path(args.output)
 
+    from ..progress import stderr_is_terminal
+
+    start, said = time.monotonic(), []
+    as_progress = not args.no_progress and not stderr_is_terminal()
+
     def on_pair(r):
-        line = (f"pair {r['ref']:4d} -> {r['mov']:4d}: strain {100 * r['strain']:+.2f} %"
+        said.append(r)
+        # off a terminal this line is the progress (no register bar): the count and elapsed time with it
+        count = f" ({len(said)} registered, {time.monotonic() - start:.1f} s)" if as_progress else ""
+        line = (f"pair {r['ref']:4d} -> {r['mov']:4d}: strain {100 * r['strain']:+.2f} %{count}"
                 + ("" if r["usable"] else f"  REJECTED: {r['message']}"))
         print(line, file=sys.stdout if args.no_progress else sys.stderr)
+
+    on_pair.reports_progress = True
 
     if fr.n_frames < 3:
         raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
@@ -252,7 +269,7 @@ def run(args) -> int:
         print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
     failure = None
     if res.n_usable == 0:
-        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span)
+        why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span, cli=True)
         failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
                    f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
     write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin,
@@ -267,6 +284,12 @@ def run(args) -> int:
              "no elastogram (empty strain panels); ")
           + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
+    if res.repeated:        # frames written twice: a loop that holds fewer distinct frames than it seems
+        shown = ", ".join(f"{k} = {k - 1}" for k in res.repeated[:10]) + (", ..." if len(res.repeated) > 10 else "")
+        verb = "repeats" if len(res.repeated) == 1 else "repeat"
+        print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {verb} the one before "
+              f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "
+              "ending on the frame before")
     if failure:
         print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1

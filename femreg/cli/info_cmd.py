@@ -85,6 +85,24 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         "min": float(v.min()), "max": float(v.max()), "mean": float(v.mean()), "std": float(v.std()),
         "metadata": _plain(meta),
     }
+    if a.ndim == 3 and a.shape[0] >= 2:      # frames written twice: what track and elastogram will say
+        from ..image import repeated_frames
+
+        rep = repeated_frames(a)
+        if rep:
+            shown = ", ".join(f"{k} = {k - 1}" for k in rep[:10]) + (", ..." if len(rep) > 10 else "")
+            last = 0
+            while last + 1 in rep:
+                last += 1
+            verb = "repeats" if len(rep) == 1 else "repeat"
+            head = f"{len(rep)} of {fr.n_frames} frames {verb} the one before (identical samples; frames {shown})"
+            if len(rep) == fr.n_frames - 1:
+                out["repeats"] = f"{head}: every frame the same, nothing to register"
+            elif last:
+                out["repeats"] = (f"{head}: track cannot start on a repeat of frame 0, start it at frame {last} "
+                                  f"(--frames {last}:)")
+            else:
+                out["repeats"] = f"{head}: track keeps the field of the one before, elastogram names them"
     if iq:      # the RF checks need the carrier, which needs the modulation frequency
         out.update(values_of="|IQ|", needs=[])
         return out
@@ -362,12 +380,16 @@ def run(args) -> int:
         print(f"fill      {info['fill']}")
     for name, desc in info.get("variables", {}).items():
         print(f"array     {name:16s} {desc}")
+    if info.get("repeats"):
+        print(f"repeats   {info['repeats']}")
     if isinstance(meta.get("frame_rate"), (int, float)):
         src = f" ({meta['frame_rate_source']})" if meta.get("frame_rate_source") else ""
         print(f"frame rate {meta['frame_rate']:.4g} Hz{src}")
     for key, val in meta.items():
         if (key == "dtype" and str(val) == info["dtype"]) or key in _SHOWN:
             continue                          # printed above already (sample type, origin, spacing, frame rate)
+        if val is None or (isinstance(val, (list, tuple, dict, str)) and len(val) == 0):
+            continue                          # nothing to say (e.g. no result file set aside in a folder)
         if key == "axes" and isinstance(val, dict):       # evenly spaced vectors (femreg.io.checks.axis_fields)
             print("axes:")
             for k, v in val.items():

@@ -90,4 +90,4 @@ def run(args) -> int:
     return run_tracking(args, lambda on_frame: track(
         fr.frames, spacing=spacing, origin=origin, mode=args.mode, grid=args.grid, init=args.init,
         checkpoint_dir=args.output, resume=args.resume, progress=not args.no_progress, min_ncc=args.min_ncc,
-        on_frame=on_frame, **kw), "frame")
+        on_frame=on_frame, **kw), "frame", total=fr.n_frames - 1)

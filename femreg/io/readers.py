@@ -482,6 +482,15 @@ def _transposed(fr: Frames, spacing) -> Frames:
     fr.frames = np.ascontiguousarray(a.transpose(0, 2, 1))
     if spacing is None and fr.spacing is not None and len(fr.spacing) == 2:
         fr.spacing = (float(fr.spacing[1]), float(fr.spacing[0]))
+    # the file's calibration and origin go with its axes too: a given spacing (axial, lateral of the transposed
+    # frames) is compared with the calibration in that order
+    header = fr.metadata.get("header_spacing")
+    if header is not None and len(header) == 2:
+        fr.metadata["header_spacing"] = [header[1], header[0]]
+        if fr.metadata.get("spacing_source"):
+            fr.metadata["spacing_source"] += " (of the file's axes, exchanged with them: transposed)"
+    if fr.origin is not None and len(fr.origin) == 2:
+        fr.origin = (float(fr.origin[1]), float(fr.origin[0]))
     what = "each frame transposed as read (transpose=True; CLI --transpose)"
     fr.metadata["layout"] = f"{fr.metadata['layout']}; {what}" if fr.metadata.get("layout") else what
     return fr
