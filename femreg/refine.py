@@ -63,6 +63,12 @@ a fixed factor (0.25) made the noisier plane-stress inclusions of the robustness
 worse, the factor that follows the noise at most 0.22 (0.03 at the scale 0.04).  What is left of the inclusions'
 error is the ring at the interface, which a tensor mesh of 2-pixel columns and the nodal-average recovery hold at
 a floor (r 8 mm: 8.33 % with the exact displacement), and the noise off it (README "Adaptive refinement").
+That pass takes two Gauss-Newton steps, not one (:attr:`Refinement.fine_maxiter`; a pass under the gate keeps
+one): the first leaves the rim's split rows and columns between the coarse field it starts from and the data
+(robustness benchmark, seeds 0 / 7: stiff plane strain 1 % paper 8.04 / 8.22 -> 7.98 / 7.94 %, soft 4 % paper
+8.00 / 7.22 -> 7.44 / 7.04 %, stiff plane stress 4 % paper 8.20 / 7.93 -> 7.54 / 7.42 %; at most +0.15 on the
+others, soft 1 % L15 7.48 -> 7.63); three steps gained no more (stiff 1 % paper 8.02 %), a full solve neither
+(8.05 %), and two steps on the passes under the gate made bending 3.81 -> 4.2 %.
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
@@ -351,6 +357,10 @@ class Refinement:
         ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
     fine_levels : int, optional
         ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
+    fine_maxiter : int, optional
+        Gauss-Newton steps of a pass that passes the ``fine`` gate and does not solve in full (None:
+        :attr:`maxiter`).  The second step settles the rim's split rows and columns that the first leaves between
+        the coarse field it starts from and the data (README "Adaptive refinement").
     fine_alpha : float, optional
         Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
         :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
@@ -453,6 +463,7 @@ class Refinement:
     fine_threshold: float = 1.0
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
+    fine_maxiter: int | None = None
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     relax_alpha_ncc: float | None = None
@@ -499,6 +510,7 @@ class Refinement:
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
+        _integer(self, "fine_maxiter", 1, None, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
         _integer(self, "relax_fill", 0, None)
@@ -678,8 +690,8 @@ SPREAD_COVERAGE = 0.8
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
 #: whose extent is at least 20 mm: a layer across the image, not a staircase around speckle-scale features);
 #: where a row / column stands out 4.6x the cut, the marking at a z-score of 1 and columns down to 0.25 mm
-#: (:attr:`Refinement.fine`), whose one step weighs the regulariser by the noise the unrefined solve left
-#: (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
+#: (:attr:`Refinement.fine`), whose two steps (:attr:`Refinement.fine_maxiter`) weigh the regulariser by the noise
+#: the unrefined solve left (:attr:`Refinement.fine_alpha`, :attr:`Refinement.fine_alpha_ncc`) and halves the unmarked rows / columns
 #: between two marked ones (at most 2, :attr:`Refinement.fine_fill`: a shear band's core); a pass that relaxes
 #: solves to the registration's stopping rules at 0.4x that weight (:attr:`Refinement.relax_full`,
 #: :attr:`Refinement.relax_alpha`), relaxes (weight 0.1) and quarters the at most 2 rows between a layer's relaxed
@@ -690,8 +702,8 @@ SPREAD_COVERAGE = 0.8
 #: Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
-                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_alpha=0.1, fine_alpha_ncc=0.08,
-                             relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True,
+                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
+                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True, fine_fill=2, relax_full=True,
                              relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1, beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
@@ -1610,6 +1622,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None):
                 kw["alpha_factor"] = kw.get("alpha_factor", 1.0) * opts.relax_alpha
             if opts.relax_full:
                 kw["full"] = True
+        if finer and opts.fine_maxiter is not None and not kw.get("full"):
+            kw["steps"] = opts.fine_maxiter
         sol = solve_on(new, transfer((first if k == 0 else sol).u, mesh, new), st, **kw)
         n_pass = int(sol.gn.nit)
         if len(relaxed) and not opts.relax_persist and opts.relax_passes > 1:

@@ -155,7 +155,8 @@ def _run(opts, f):
     m = _mesh()
     calls = []
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                 steps=None):
         calls.append((mesh, shear_traction, normal_traction, alpha_factor))
         return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -346,7 +347,8 @@ def test_the_finer_pass_halves_the_columns_of_a_fine_pitch_image():
     f = _corner(xs[4], ys[len(ys) // 2])
     calls = []
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                 steps=None):
         calls.append(mesh)
         return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -381,8 +383,39 @@ def test_a_finer_pass_weighs_the_regulariser_by_the_noise_left(monkeypatch, q, f
     assert not rec.passes[0]["fine"] and calls[0][3] == 1.0
 
 
+def test_a_finer_pass_takes_two_gauss_newton_steps_and_a_pass_under_the_gate_one():
+    # Refinement.fine_maxiter (DEEP_REFINEMENT 2): the finer pass asks its solve for 2 steps (steps=2), a pass
+    # under the fine gate keeps maxiter's one (steps not given), None leaves the finer pass at maxiter too
+    from femreg.refine import DEEP_REFINEMENT
+
+    assert (DEEP_REFINEMENT.fine_maxiter, DEEP_REFINEMENT.maxiter) == (2, 1)
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    f = _corner(xs[4], ys[4])
+
+    def run(opts):
+        asked = []
+
+        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                     steps=None):
+            asked.append(steps)
+            return _fake_solve(mesh, _nodal(mesh, f))
+
+        _, rec = refine_passes(_fake_solve(m, _nodal(m, f)), opts, solve_on, SPACING, ORIGIN)
+        return asked, rec
+
+    steps, rec = run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None))
+    assert rec.passes[0]["fine"] and steps == [2]
+    top = rec.passes[0]["top"]
+    steps, rec = run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None, fine=1.01 * top))
+    assert not rec.passes[0]["fine"] and steps == [None]
+    steps, rec = run(dataclasses.replace(DEEP_REFINEMENT, relax=None, fine_alpha=None, fine_maxiter=None))
+    assert rec.passes[0]["fine"] and steps == [None]
+
+
 @pytest.mark.parametrize("kw", [dict(fine=0.5), dict(fine=float("nan")), dict(fine_threshold=-1.0),
                                 dict(fine_min_size=(0.1, -0.3)), dict(fine_levels=0), dict(fine_levels=True),
+                                dict(fine_maxiter=0), dict(fine_maxiter=1.5), dict(fine_maxiter=True),
                                 dict(fine_alpha=0.0), dict(fine_alpha=1.5), dict(fine_alpha=float("nan")),
                                 dict(fine_alpha_ncc=1.0), dict(fine_alpha_ncc=0.0), dict(relax_alpha_ncc=0.0),
                                 dict(relax_alpha_ncc=1.0), dict(relax_alpha_ncc=float("nan"))])
@@ -512,7 +545,8 @@ def test_a_relaxing_pass_solves_to_the_stopping_rules_at_a_lower_weight():
     def run(opts, f):
         calls = []
 
-        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                     steps=None):
             calls.append((shear_traction, alpha_factor, full))
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -613,7 +647,8 @@ def test_a_relaxing_pass_splits_and_weighs_the_filled_rows_and_solves_again():
     def run(**kw):
         calls = []
 
-        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                     steps=None):
             calls.append((mesh, shear_traction, alpha_factor, full))
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -639,7 +674,8 @@ def test_a_relaxing_pass_splits_and_weighs_the_filled_rows_and_solves_again():
     # a pass that relaxes nothing solves once, whatever the fill and the further passes
     m_calls = []
 
-    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False):
+    def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                 steps=None):
         m_calls.append(shear_traction)
         return _fake_solve(mesh, _nodal(mesh, _step(xs[4])))
 
