@@ -8,7 +8,8 @@ calibration's 1/h on it and held-out),
 ``held-out`` (:data:`HELD_OUT`), ``fresh`` (:data:`FRESH`, drawn after the rule was fixed), ``fresh2``
 (:data:`FRESH2`, drawn before the rule's second revision and not looked at until it was fixed), ``fresh3``
 (:data:`FRESH3`, drawn before the soft-disk work, radii 4-8 mm, and not looked at until it was fixed), ``fresh4``
-(:data:`FRESH4`, 14 cases drawn after fresh3's misses were diagnosed, first run with the code of that time), ``curves``
+(:data:`FRESH4`, 14 cases drawn after fresh3's misses were diagnosed, first run with the code of that time), ``fresh5``
+(:data:`FRESH5`, 20 cases drawn after the beta rule's step back, first run with the code of that time), ``curves``
 (:data:`CURVES`, outside the targets' range), ``quick`` (4 L7 plane-strain main cases, for iteration). Each pair is
 registered with femreg's defaults and inverted with ``femreg.invert`` defaults (``model="auto"``, beta by the
 effective-parameter rule, uncertainty).
@@ -105,6 +106,16 @@ FRESH4 = tuple((m, c, pr, snr, r, lev, seed)
                                                 (0.6, "paper", 25.0, 5.5, 0.03, 53), (3.5, "L7", 15.0, 6.0, 0.01, 54),
                                                 (0.25, "L12", 30.0, 4.0, 0.04, 55), (1.5, "L3", 30.0, 6.5, 0.01, 56),
                                                 (4.0, "paper", 20.0, 7.0, 0.02, 57)))
+#: Drawn after the beta rule's step back (seeded draws, numpy default_rng 20261207: contrast log-uniform 0.25-4, any
+#: probe, SNR 15-30 dB, radius 4-8 mm, 1-4 %; then rng 202612071: three soft disks 0.25-0.6 under L3, where the
+#: misses of the sets before sat), first run with the code of that time.
+FRESH5 = tuple((m, c, pr, snr, r, lev, seed)
+               for m in MODELS
+               for c, pr, snr, r, lev, seed in ((2.83, "L7", 25.0, 5.5, 0.03, 61), (0.9, "L7", 30.0, 5.5, 0.02, 62),
+                                                (1.03, "paper", 30.0, 4.5, 0.01, 63), (0.6, "L15", 25.0, 6.5, 0.03, 64),
+                                                (2.52, "L12", 25.0, 8.0, 0.01, 65), (0.25, "L7", 15.0, 4.5, 0.01, 66),
+                                                (1.17, "L7", 15.0, 5.0, 0.01, 67), (0.49, "L3", 30.0, 7.0, 0.03, 68),
+                                                (0.46, "L3", 15.0, 6.5, 0.03, 69), (0.51, "L3", 30.0, 7.0, 0.04, 70)))
 #: Outside the targets' range, for the contrast-recovery curves (plane strain, L7, 1 %, seed 6, one parameter
 #: varied from the 5 mm / 20 dB / contrast 4 or 0.25 case): radius, contrast, SNR.
 CURVES = (tuple(("plane-strain", c, "L7", 20.0, r, 0.01, 6) for c in (0.25, 4.0) for r in (1.5, 2.5, 3.5, 8.0))
@@ -505,7 +516,7 @@ def curves_figure(rows, path):
 
 
 SETS = {"main": tuple((m, c, pr, snr, 5.0, 0.01, 0) for pr, snr in SETTINGS for m in MODELS for c in CONTRASTS),
-        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3, "fresh4": FRESH4, "curves": CURVES,
+        "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3, "fresh4": FRESH4, "fresh5": FRESH5, "curves": CURVES,
         "quick": tuple(("plane-strain", c, "L7", 20.0, 5.0, 0.01, 0) for c in CONTRASTS)}
 
 
