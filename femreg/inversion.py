@@ -1954,6 +1954,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     try:
         betas = [beta] if beta is not None else list(grid)
         runs = []
+        above = None        # a solve above the grid kept out by the up-steps: the bracket's larger beta (DOF_STEP_BACK)
         chosen = None
         for b in betas:
             if bar is not None:
@@ -2027,6 +2028,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
                 if gam <= target_dof:
                     if abs(np.log(gam / target_dof)) < abs(np.log(g_prev / target_dof)):
                         chosen = cand
+                    else:
+                        above = cand
                     break
                 chosen, g_prev = cand, gam
             grid = tuple(up) + tuple(grid)
@@ -2132,7 +2135,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     # the bracket's smaller beta (gamma at or above the target) against its larger one (below it): both lie within
     # half a decade of the target, which cannot tell them apart; where the smaller one's image shows what the data
     # do not (DOF_STEP_BACK), its extra parameters fitted the noise, and the larger one is taken if its image does not
-    larger = runs[-1] if runs and runs[-1][0] > b else None
+    larger = runs[-1] if runs and runs[-1][0] > b else above
     if (DOF_STEP_BACK and beta is None and beta_method in ("dof", "dof-area") and larger is not None
             and dim == 2 and regularization == "tv" and TV_REWEIGHT is not None and images is None
             and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0) >= target_dof):

@@ -139,3 +139,30 @@ def test_rule_steps_back_to_the_larger_beta_of_the_bracket(monkeypatch):
     kept = invert(f, uncertainty=False, **kw)
     assert kept.beta == pytest.approx(plain.beta) and "was tried too (always) and not taken" in kept.beta_rule
     assert np.allclose(kept.mu, plain.mu, rtol=1e-9, atol=0)     # the smaller beta's image, as without the try
+
+
+def test_rule_steps_back_to_a_beta_above_the_grid(monkeypatch):
+    """The bracket's larger beta may come from the half-decade steps above the grid (DOF_UP_STEPS: more parameters
+    than the target already at the grid's largest beta, as on fine meshes).  With the grid starting at 0.00316 the
+    soft disk's target (21.0) lies between that beta (25.1, the nearer) and the step above it, 0.01 (17.0): where
+    the smaller one's image fails, the rule takes 0.01 from those steps, as it does inside the grid."""
+    from test_inversion import REGION
+
+    from femreg.inversion import invert
+
+    f = _soft_noisy()
+    kw = dict(region=REGION, element_size=3.0, uncertainty=False)
+    monkeypatch.setattr(inversion, "BETA_GRID", tuple(10.0 ** e for e in np.arange(-2.5, -4.01, -0.5)))
+    plain = invert(f, **kw)
+    assert plain.beta == pytest.approx(10 ** -2.5) and "stepped back" not in plain.beta_rule, plain.beta_rule
+    assert any(e["beta"] == pytest.approx(1e-2) for e in plain.sweep), plain.sweep       # solved by the up-steps
+    calls = []
+
+    def first_fails(*a, **k):
+        calls.append(1)
+        return "a stand-in reason" if len(calls) == 1 else ""
+
+    monkeypatch.setattr(inversion, "_overfit_reason", first_fails)
+    back = invert(f, **kw)
+    assert back.beta == pytest.approx(1e-2) and len(calls) == 2, back.beta_rule
+    assert "stepped back to the bracket's larger beta 0.01" in back.beta_rule
