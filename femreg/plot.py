@@ -349,6 +349,35 @@ def _wrap(text, width=110, max_lines=3):
     return "\n".join(lines[:max_lines]) + (" ..." if len(lines) > max_lines else "")
 
 
+def flag_gist(text: str) -> str:
+    """A flag without its parenthesised detail (numbers, the optimiser's message): the sentence a banner has room
+    for; the whole text stays in the result's message and the command's output."""
+    out, depth = [], 0
+    for ch in str(text).replace("(s)", "s"):
+        if ch == "(":
+            depth += 1
+        elif ch == ")" and depth:
+            depth -= 1
+        elif not depth:
+            out.append(ch)
+    gist = " ".join("".join(out).split())
+    for a, b in ((" :", ":"), (" ,", ","), (" ;", ";"), (" .", ".")):
+        gist = gist.replace(a, b)
+    return gist.strip(" ,;:")
+
+
+def inversion_banner(res, head: str) -> str:
+    """Banner text of a failed or flagged :class:`femreg.inversion.InversionResult` (2D and 3D pictures): every
+    flag's gist (:func:`flag_gist`), one after another, so that a long first flag does not hide the others behind
+    the banner's last line (the whole text is in the message); ``head`` (model, beta) in brackets."""
+    msg = str(res.message)
+    kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
+    flags = [str(f) for f in (getattr(res, "flags", None) or []) if str(f).strip()]
+    why = (" | ".join(flag_gist(f) for f in flags) if flags
+           else msg.removeprefix("FAILED: ").removeprefix("FLAGGED: "))
+    return f"INVERSION {kind}: {why}  [{head}]"
+
+
 def draw_failure(fig, text, width=110, max_lines=3):
     """Red banner (the figure's title) with ``text`` (lines of at most ``width`` characters, at most
     ``max_lines`` of them, None: all) and a red frame around the figure: a failed result must not pass for a good
@@ -706,9 +735,7 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
     if res.success:
         fig.suptitle(head)
     else:
-        msg = str(res.message)
-        kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
-        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]")
+        draw_failure(fig, inversion_banner(res, head), max_lines=6)
     fit_colorbars(fig, [list(axes)])
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)

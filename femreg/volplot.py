@@ -379,7 +379,7 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     """
     from matplotlib.colors import LogNorm
 
-    from .plot import draw_failure
+    from .plot import draw_failure, inversion_banner
     from .volume_fields import recovered_strains_3d
 
     res = result
@@ -435,11 +435,9 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     if res.success:
         fig.suptitle(head, fontsize=10)
     else:
-        msg = str(res.message)
-        kind = "FLAGGED" if msg.startswith("FLAGGED") else "FAILED"
         # lines that fit the figure (bold 10 pt: about 7.5 pt a character)
-        draw_failure(fig, f"INVERSION {kind}: {msg.removeprefix('FAILED: ').removeprefix('FLAGGED: ')}  [{head}]",
-                     width=max(40, int(fig.get_figwidth() * 72 / 7.5)))
+        draw_failure(fig, inversion_banner(res, head), width=max(40, int(fig.get_figwidth() * 72 / 7.5)),
+                     max_lines=6)
     fit_colorbars(fig, axes_rows)
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
