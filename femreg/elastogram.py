@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ._atomic import atomic_savez, atomic_write_text, open_run_folder
+from ._atomic import atomic_savez, atomic_write_text, open_run_folder, progress_bar
 from .blockmatch import block_match
 from .echo import crop_for, rf_like
 from .errors import InputError
@@ -759,15 +759,6 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if out is not None:
         (out / "pairs").mkdir(exist_ok=True)
 
-    def bar(total, desc, on_item=None):
-        if not progress:
-            return None
-        from .progress import bar as make_bar, stderr_is_terminal
-
-        if getattr(on_item, "reports_progress", False) and not stderr_is_terminal():
-            return None                 # on_pair writes a line per pair: not those and a bar's as well
-        return make_bar(total=total, desc=desc, unit="pair")
-
     with _pool(n_workers, client, seq) as (client, fpath):
         # -- 1. screening ----------------------------------------------------------------------------------------------
         t = time.perf_counter()
@@ -788,7 +779,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             parts = client.gather(futs)
             coef_c, e_c, lat_c, ncc_c = (np.concatenate([p[m] for p in parts]) for m in range(4))
         else:
-            b = bar(n - 1, "screen")
+            b = progress_bar(progress, n - 1, "screen", "pair")
             parts = []
             try:
                 for k0, k1 in _chunks(n - 1, 1 if b is None else n - 1):
@@ -849,7 +840,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                         **register_kwargs)
         todo = [(r["ref"], r["mov"], r["strain"], direct[(r["ref"], r["mov"])]) for r in chosen]
         by_key = {(r["ref"], r["mov"]): r for r in chosen}
-        b = bar(len(chosen), "register", on_pair)
+        # off a terminal an on_pair that writes a line per pair is the progress: no bar's lines as well
+        b = progress_bar(progress, len(chosen), "register", "pair", on_pair)
 
         def done(i, j, rec):
             r = by_key[(i, j)]

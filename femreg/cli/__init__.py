@@ -19,6 +19,8 @@ import importlib
 import os
 import sys
 
+from ..progress import stderr_is_terminal
+
 #: Subcommand modules are discovered (every ``*_cmd`` module of this package); this fixes the --help order.
 ORDER = ["register_cmd", "track_cmd", "elastogram_cmd", "info_cmd", "plot_cmd", "measure_cmd"]
 #: Entry-point group through which other packages contribute subcommands.
@@ -174,11 +176,8 @@ def _remove_empty(folders) -> None:
             pass
 
 
-def _stderr_is_terminal() -> bool:
-    try:
-        return sys.stderr.isatty()
-    except (AttributeError, ValueError):    # replaced or closed stream
-        return False
+# the module attribute the command reads (tests replace it)
+_stderr_is_terminal = stderr_is_terminal
 
 
 def _extra_hint(argv, extra, command) -> str:
