@@ -49,7 +49,7 @@ from .errors import InputError
 
 from . import _kernels
 
-__all__ = ["validate_image", "repeated_frames", "refuse_repeated_start", "validate_samples", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
+__all__ = ["validate_image", "repeated_frames", "leading_repeats", "repeats_listed", "repeat_note", "refuse_repeated_start", "validate_samples", "validate_spacing", "normalize_pair", "SplineImage", "pixel_axes", "cubic_at_index", "ncc"]
 
 #: A frame with more than this fraction of its samples at its largest magnitude is clipped (saturated).
 SATURATED_FRACTION = 0.5
@@ -109,18 +109,35 @@ def repeated_frames(frames) -> list:
     return [k for k in range(1, len(frames)) if np.array_equal(frames[k], frames[k - 1])]
 
 
+def leading_repeats(repeats) -> int:
+    """The last frame of the run of frames that repeat frame 0 (:func:`repeated_frames`' ``repeats``): 0 when frame
+    1 differs from it."""
+    rep, last = set(repeats), 0
+    while last + 1 in rep:
+        last += 1
+    return last
+
+
+def repeats_listed(repeats, limit: int = 10) -> str:
+    """The repeated frames as "k = k - 1" pairs, the first ``limit`` of them (", ..." after)."""
+    rep = list(repeats)
+    return ", ".join(f"{k} = {k - 1}" for k in rep[:limit]) + (", ..." if len(rep) > limit else "")
+
+
+def repeat_note(k: int) -> str:
+    """The message a tracking run gives frame ``k`` when it repeats frame ``k - 1`` (not registered)."""
+    return f"frame {k} repeats frame {k - 1} (identical samples): not registered, its field kept"
+
+
 def refuse_repeated_start(repeats, n_frames: int, what: str = "tracking") -> None:
     """InputError when every frame repeats frame 0 (nothing moved), or when frame 1 does: the first pair sets
     the mesh and the region registered, so the run starts at the last frame of the leading repeats instead (the
     message names it, counted from 0)."""
-    rep = set(repeats)
-    if n_frames >= 2 and all(k in rep for k in range(1, n_frames)):
+    last = leading_repeats(repeats)
+    if n_frames >= 2 and last >= n_frames - 1:
         raise InputError(f"all {n_frames} frames hold the same samples: nothing moved, nothing to register "
                          f"({what} needs frames that differ)")
-    if 1 in rep:
-        last = 1
-        while last + 1 in rep:
-            last += 1
+    if last:
         raise InputError(f"frames 0-{last} hold the same samples (the recording repeats frame 0): the first pair "
                          f"sets the mesh and the region registered, so {what} cannot start on a repeat; start at "
                          f"frame {last} (frames=slice({last}, None); CLI: --frames {last}:)")

@@ -41,7 +41,7 @@ from ._atomic import load_frame_record, open_run_folder, progress_bar, save_fram
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError
-from .image import refuse_repeated_start, repeated_frames, validate_image, validate_spacing
+from .image import refuse_repeated_start, repeat_note, repeated_frames, validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
@@ -376,7 +376,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             elif k in repeats:
                 # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1
                 res = copy.copy(out[-1])
-                note = f"frame {k} repeats frame {k - 1} (identical samples): not registered, its field kept"
+                note = repeat_note(k)
                 res.message = f"{res.message}; {note}" if res.message else note
                 res.repeats = k - 1     # for on_frame (not saved: the message says it in the file)
                 inc, flag, computed = np.zeros_like(np.asarray(out.increments[-1], float)), out.flags[-1], True

@@ -739,7 +739,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
         raise InputError(f"mode must be 'accumulate' or 'direct', got {mode!r}")
     if min_ncc is not None and not np.isfinite(float(min_ncc)):
         raise InputError(f"min_ncc must be a finite number or None, got {min_ncc!r}")
-    from .image import refuse_repeated_start, repeated_frames
+    from .image import refuse_repeated_start, repeat_note, repeated_frames
     # a volume written twice: nothing moved (as femreg.track's frames: kept, not registered)
     repeats = repeated_frames(arr)
     refuse_repeated_start(repeats, len(arr))
@@ -824,7 +824,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                 computed = False
             elif k in repeats:
                 # frame 0 -> k is frame 0 -> k - 1; the increment is zero
-                note = f"frame {k} repeats frame {k - 1} (identical samples): not registered, its field kept"
+                note = repeat_note(k)
                 a = copy.copy(out.accumulated[-1])
                 a.message = f"{a.message}; {note}" if a.message else note
                 a.repeats = k - 1

@@ -346,7 +346,9 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         print(f"femreg track: left out of the mesh (the rest is registered): {out[0].excluded}")
     repeated = list(getattr(out, "repeated", ()))
     if repeated:            # a recording that writes frames twice: say so once, with the frames
-        shown = ", ".join(f"{k} = {k - 1}" for k in repeated[:10]) + (", ..." if len(repeated) > 10 else "")
+        from ..image import repeats_listed
+
+        shown = repeats_listed(repeated)
         one = len(repeated) == 1
         print(f"femreg track: note: {len(repeated)} {noun}{'' if one else 's'} {'repeats' if one else 'repeat'} "
               f"the one before (identical samples; {noun}s {shown}): not registered, the field before kept")

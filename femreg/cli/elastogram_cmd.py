@@ -285,7 +285,9 @@ def run(args) -> int:
           + f"wrote {out / 'elastogram.npz'}, elastogram.png, {cine.name}, pairs.csv"
           + (" and the registered pairs in pairs/" if n_sel else "") + f" ({res.timings['total']:.1f} s)")
     if res.repeated:        # frames written twice: a loop that holds fewer distinct frames than it seems
-        shown = ", ".join(f"{k} = {k - 1}" for k in res.repeated[:10]) + (", ..." if len(res.repeated) > 10 else "")
+        from ..image import repeats_listed
+
+        shown = repeats_listed(res.repeated)
         verb = "repeats" if len(res.repeated) == 1 else "repeat"
         print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {verb} the one before "
               f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "

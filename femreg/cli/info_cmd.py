@@ -86,14 +86,11 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         "metadata": _plain(meta),
     }
     if a.ndim == 3 and a.shape[0] >= 2:      # frames written twice: what track and elastogram will say
-        from ..image import repeated_frames
+        from ..image import leading_repeats, repeated_frames, repeats_listed
 
         rep = repeated_frames(a)
         if rep:
-            shown = ", ".join(f"{k} = {k - 1}" for k in rep[:10]) + (", ..." if len(rep) > 10 else "")
-            last = 0
-            while last + 1 in rep:
-                last += 1
+            shown, last = repeats_listed(rep), leading_repeats(rep)
             verb = "repeats" if len(rep) == 1 else "repeat"
             head = f"{len(rep)} of {fr.n_frames} frames {verb} the one before (identical samples; frames {shown})"
             if len(rep) == fr.n_frames - 1:
