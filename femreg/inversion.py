@@ -2062,6 +2062,13 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         rule = f"{name}: no corner on {[f'{x:.3g}' for x in grid]}; smallest beta reached"
     if chosen is None:
         chosen = runs[-1]
+    def region_refit(theta_start):
+        """:func:`_region_refit` of ``theta_start`` with the module's refit settings (TV_REFIT and its kin)."""
+        return _region_refit(fem, problem, reg, theta_start, fem.I.size, _registered_factor(displacement, h, dim),
+                             level=TV_REFIT, min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
+                             max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP, mode=TV_REFIT_MODE,
+                             max_regions=TV_REFIT_MAX_REGIONS)
+
     def debiased(cand):
         """The debiased TV (reweighting, Bregman, region refit) of one sweep result ``cand`` = (beta, theta, info,
         phi, R): (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, rule text)."""
@@ -2107,13 +2114,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
             if TV_REFIT:
                 # region debias refit (TV_REFIT): one log mu per region of the TV solution, fitted to the misfit
                 # alone where the data constrain it
-                factor = _registered_factor(displacement, h, dim)
                 theta_tv = theta if TV_REFIT_STD else None
                 theta_part = theta
-                theta, refit = _region_refit(fem, problem, reg, theta, fem.I.size, factor, level=TV_REFIT,
-                                             min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
-                                             max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP,
-                                             mode=TV_REFIT_MODE, max_regions=TV_REFIT_MAX_REGIONS)
+                theta, refit = region_refit(theta)
                 refit_std = refit["std_elements"]
                 refit_skipped = bool(refit["too_many"])
                 done = [e for e in refit["candidates"] if e["applied"]]
@@ -2131,6 +2134,7 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
 
     b = chosen[0]
     (theta, info, phi, R, theta_part, theta_tv, refit_std, refit_skipped, text) = debiased(chosen)
+    area_el = fem.basis.dx.sum(axis=1)      # element areas (mm^2)
     rule_base, rule = rule, rule + text
     # the bracket's smaller beta (gamma at or above the target) against its larger one (below it): both lie within
     # half a decade of the target, which cannot tell them apart; where the smaller one's image shows what the data
@@ -2139,12 +2143,11 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if (DOF_STEP_BACK and beta is None and beta_method in ("dof", "dof-area") and larger is not None
             and dim == 2 and regularization == "tv" and TV_REWEIGHT is not None and images is None
             and next((e.get("gamma", -1.0) for e in sweep if e["beta"] == b), -1.0) >= target_dof):
-        area_c = fem.basis.dx.sum(axis=1)
-        why = _overfit_reason(theta, theta_part, refit_skipped, reg, el_strain, mesh, area_c, h)
+        why = _overfit_reason(theta, theta_part, refit_skipped, reg, el_strain, mesh, area_el, h)
         if why:
             keep = (reg.length.copy(), None if problem.g is None else np.array(problem.g, copy=True))
             alt = debiased(larger)
-            why_alt = _overfit_reason(alt[0], alt[4], alt[7], reg, el_strain, mesh, area_c, h)
+            why_alt = _overfit_reason(alt[0], alt[4], alt[7], reg, el_strain, mesh, area_el, h)
             if not why_alt:
                 chosen = larger
                 b = larger[0]
@@ -2161,19 +2164,14 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         # a region whose modulus step the axial strain does not show (_unsupported_regions) has no evidence in the
         # data for its step: it takes the background's level, and the region refit runs again, so that the other
         # regions are fitted against a background without it (SUPPORT_MERGE)
-        area_m = fem.basis.dx.sum(axis=1)
         part_m = _calibration_partition(theta_part, reg, h * h)
-        support = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_m, h * h, partition=part_m)
+        support = _unsupported_regions(theta_part, theta, reg, el_strain, mesh, area_el, h * h, partition=part_m)
         if support[1]:
             inner_m = inner_elements(mesh)
             ref_m = inner_m & ~np.isin(part_m[0], part_m[1])
-            t0 = float(np.sum(area_m[ref_m] * theta[ref_m]) / np.sum(area_m[ref_m]))
+            t0 = float(np.sum(area_el[ref_m] * theta[ref_m]) / np.sum(area_el[ref_m]))
             gone = np.isin(part_m[0], [r[3] for r in support[1]])
-            theta, refit2 = _region_refit(fem, problem, reg, np.where(gone, t0, theta), fem.I.size,
-                                          _registered_factor(displacement, h, dim), level=TV_REFIT,
-                                          min_elements=TV_REFIT_MIN_ELEMENTS, sigma_max=TV_REFIT_SIGMA,
-                                          max_shift=TV_REFIT_MAX_SHIFT, cap=TV_REFIT_CAP, mode=TV_REFIT_MODE,
-                                          max_regions=TV_REFIT_MAX_REGIONS)
+            theta, refit2 = region_refit(np.where(gone, t0, theta))
             std2 = refit2["std_elements"]
             # the merged elements are background now: the Laplace std (NaN here), the refitted ones the new std
             refit_std = np.where(np.isfinite(std2), std2, np.where(gone, np.nan, refit_std))
@@ -2232,7 +2230,6 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         R, _ = reg(theta)
 
     mu = np.exp(theta)
-    area_el = fem.basis.dx.sum(axis=1)
     med = _weighted_median(mu, area_el)
     ok = bool(info["success"]) and np.all(np.isfinite(mu)) and med > 0
     message = info["message"]
