@@ -883,7 +883,7 @@ def indicators(mesh, u, indicator: str = "jump", data=None, quality=None) -> np.
         out[cell.ravel()] = g.ravel()
         return out
     if indicator == "gradient":
-        s = recovered_strains(mesh.p, mesh.t, u)[mesh.t]             # (4, n_el, 3)
+        s = recovered_strains(mesh.p, mesh.t, u, "average")[mesh.t]  # (4, n_el, 3); marking as measured
         return np.linalg.norm(s.max(axis=0) - s.min(axis=0), axis=1)
     if indicator == "ncc":
         if quality is None:

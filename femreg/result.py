@@ -9,7 +9,8 @@ import numpy as np
 
 from .blockmatch import BlockMatchResult
 from .errors import InputError
-from .fields import DEFAULT_RECOVERY, check_strain_mode, recovered_strains
+from .fields import (DEFAULT_RECOVERY, adaptive_strains, adaptive_weight, check_strain_mode, recovered_strains,
+                     strain_roughness)
 from .io.results import read_result, save_result
 from .pixels import PointLocator
 from .result_base import ResultRecord
@@ -130,8 +131,19 @@ class RegistrationResult(ResultRecord):
     def nodal_strain(self) -> np.ndarray:
         """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy] (:func:`femreg.fields.recovered_strains`)."""
         if self._nodal_strain is None:
-            self._nodal_strain = recovered_strains(self.mesh.p, self.mesh.t, self.u)
+            self._nodal_strain = (adaptive_strains(self.mesh.p, self.mesh.t, self.u, self.recovery_weight)
+                                  if DEFAULT_RECOVERY == "adaptive" else
+                                  recovered_strains(self.mesh.p, self.mesh.t, self.u))
         return self._nodal_strain
+
+    @property
+    def recovery_weight(self) -> float:
+        """Weight of the L2 projection in the default (adaptive) recovered strain, 0 (the nodal average, noisy
+        element strains) to 1 (clean ones): :func:`femreg.fields.adaptive_weight` of
+        :func:`femreg.fields.strain_roughness`."""
+        if "_recovery_weight" not in self.__dict__:
+            self._recovery_weight = adaptive_weight(strain_roughness(self.mesh.p, self.mesh.t, self.u))
+        return self._recovery_weight
 
     def recovered(self, recovery: str | None = None) -> np.ndarray:
         """Recovered strains of method ``recovery`` (:data:`femreg.fields.RECOVERY_METHODS`; None: the default,
@@ -146,8 +158,8 @@ class RegistrationResult(ResultRecord):
     def strain(self, points, strain: str = "recovered", recovery: str | None = None) -> np.ndarray:
         """Small strain at ``points`` (n, 2) mm -> (n, 3) [exx, eyy, exy], exy = (dux/dy + duy/dx) / 2;
         NaN outside the mesh.  ``strain="recovered"`` (default): the recovered strain interpolated bilinearly
-        (:mod:`femreg.fields`; ``recovery`` its method, default the nodal average of the element-centre strains,
-        continuous; ``"edge"`` keeps strain steps); ``"element"``: the gradient of the bilinear field,
+        (:mod:`femreg.fields`; ``recovery`` its method, default the adaptive blend of the nodal average and the L2
+        projection of the element-centre strains, continuous; ``"edge"`` keeps strain steps); ``"element"``: the gradient of the bilinear field,
         discontinuous across element edges (a point on an edge takes one of its elements)."""
         check_strain_mode(strain)
         return self._masked(points, sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),

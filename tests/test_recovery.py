@@ -15,7 +15,7 @@ C, R = (10.0, 0.0), 4.0
 LEVEL = -0.01 * (1 + 0.4) / 2            # half contrast between background (-1 %) and inclusion (-0.4 %)
 
 
-@pytest.mark.parametrize("method", ["projection", "average"])
+@pytest.mark.parametrize("method", ["projection", "average", "adaptive"])
 def test_recoveries_exact_for_affine_fields(method):
     x = np.array([0.0, 0.7, 1.9, 2.4, 3.5])                      # non-uniform tensor mesh
     m = MeshQuad1.init_tensor(x, np.array([-1.0, -0.2, 0.9, 1.3]))
@@ -42,7 +42,7 @@ def test_projection_weight_ends_and_errors():
     u2[2 * corner:2 * corner + 2] += 1e-3
     assert np.abs(projected_strains(m.p, m.t, u2, 0.0)[far] - lumped[far]).max() == 0.0
     assert np.abs(projected_strains(m.p, m.t, u2, 1.0)[far] - full[far]).max() > 1e-6
-    assert DEFAULT_RECOVERY == "average"
+    assert DEFAULT_RECOVERY == "adaptive"
     with pytest.raises(InputError, match="recovery method"):
         recovered_strains(m.p, m.t, u, "spr")
     with pytest.raises(InputError, match="consistent_weight"):

@@ -163,6 +163,8 @@ def _from_object(res) -> dict:
         from ..fields import DEFAULT_RECOVERY
 
         out["recovery"] = DEFAULT_RECOVERY
+        if getattr(res, "mesh", None) is not None and hasattr(res, "recovery_weight"):
+            out["recovery_weight"] = float(res.recovery_weight)
     base = getattr(getattr(res, "refinement", None), "base_size", None)
     if base is not None:
         out["refined_from"] = np.asarray(base, float)
