@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fields import check_strain_mode, recovered_strains, strain_components
+from .fields import (DEFAULT_RECOVERY, adaptive_strains, adaptive_weight, check_strain_mode, recovered_strains,
+                     strain_components, strain_roughness)
 from .quadrature import GAUSS_3X3
 
 __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
@@ -51,10 +52,11 @@ def mesh_quadrature(mesh, intorder: int = GAUSS_3X3):
     return pts, w, basis
 
 
-def _fields_at_quadrature(nodal_u, mesh, basis, strain: str):
+def _fields_at_quadrature(nodal_u, mesh, basis, strain: str, weight: float | None = None):
     """u (n, 2) and strain (n, 3) [exx, eyy, exy] of a nodal field at the basis' quadrature points, the strain as
-    ``strain`` ("recovered" or "element", :mod:`femreg.fields`); a hexahedral mesh: u (n, 3) and strain (n, 6)
-    in :data:`femreg.volume_fields.STRAIN_COMPONENTS_3D` order."""
+    ``strain`` ("recovered" or "element", :mod:`femreg.fields`; ``weight`` the adaptive recovery's, None: the
+    field's own); a hexahedral mesh: u (n, 3) and strain (n, 6) in
+    :data:`femreg.volume_fields.STRAIN_COMPONENTS_3D` order."""
     from skfem import Basis
 
     nodal_u = np.asarray(nodal_u, float)
@@ -70,7 +72,8 @@ def _fields_at_quadrature(nodal_u, mesh, basis, strain: str):
         return u, np.column_stack([0.5 * (G[i, j] + G[j, i]).ravel() for i, j in pairs])
     scalar = Basis(mesh, _nodal_element(mesh), quadrature=basis.quadrature)
     if dim == 2:
-        ns = recovered_strains(mesh.p, mesh.t, nodal_u)
+        ns = (recovered_strains(mesh.p, mesh.t, nodal_u) if weight is None or DEFAULT_RECOVERY != "adaptive"
+              else adaptive_strains(mesh.p, mesh.t, nodal_u, weight))
     else:
         from .volume_fields import recovered_strains_3d
 
@@ -249,8 +252,10 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
     um_nodal = np.asarray(getattr(result, "u", result), float)
     ut_nodal = interpolate_truth(mesh, true_displacement)
 
-    um, em = _fields_at_quadrature(um_nodal, mesh, basis, strain)
-    ut, et = _fields_at_quadrature(ut_nodal, mesh, basis, strain)
+    # the registration's recovery on both (its adaptive weight), so a registration equal to u^t_h scores 0
+    wr = adaptive_weight(strain_roughness(mesh.p, mesh.t, um_nodal)) if mesh.p.shape[0] == 2 else None
+    um, em = _fields_at_quadrature(um_nodal, mesh, basis, strain, wr)
+    ut, et = _fields_at_quadrature(ut_nodal, mesh, basis, strain, wr)
     return _relative_errors(w, um, ut, em, et)
 
 

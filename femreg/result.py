@@ -20,7 +20,7 @@ __all__ = ["RegistrationResult", "load_result", "displacement_at", "nodal_values
 
 
 class RegistrationResult(ResultRecord):
-    """A registered displacement field on a quad mesh.
+    r"""A registered displacement field on a quad mesh.
 
     Attributes
     ----------

@@ -1,4 +1,4 @@
-"""The two strategies of :func:`femreg.register` ("auto" and "paper") and the settings that differ between them:
+r"""The two strategies of :func:`femreg.register` ("auto" and "paper") and the settings that differ between them:
 the momentum regularisers' hourglass control and R_P_sigma's dilatation rule under "auto"
 (:func:`effective_regularizer_options`), R_P_sigma's :math:`\bar\lambda` following the data under "auto"
 (:func:`lambda_bar_follows_data`, :func:`data_lambda_bar`), the Gauss-Newton tolerance of "auto"
@@ -96,7 +96,7 @@ RATIO_MAX = 1.2
 
 
 def lambda_bar_follows_data(strategy, regularizer, options=None, maxiter=1) -> bool:
-    """Whether :func:`femreg.register` sets R_P_sigma's :math:`\bar\lambda` from the data
+    r"""Whether :func:`femreg.register` sets R_P_sigma's :math:`\bar\lambda` from the data
     (:func:`data_lambda_bar`): under ``strategy="auto"``, for ``regularizer="momentum-stress"`` given by name,
     unless the user's ``regularizer_options`` fix ``lambda_bar`` or ``maxiter`` is 0 (no solve asked)."""
     return (strategy == "auto" and isinstance(regularizer, str) and regularizer == "momentum-stress"
@@ -134,7 +134,7 @@ def data_lambda_bar(mesh, u) -> tuple:
 
 
 def lambda_bar_stage(sol, user_reg, notes, resolve, *, follows: bool):
-    """The :math:`\bar\lambda` stage of :func:`femreg.register`: with ``follows``
+    r"""The :math:`\bar\lambda` stage of :func:`femreg.register`: with ``follows``
     (:func:`lambda_bar_follows_data` and a solve worth reading), the data's :math:`\bar\lambda`
     (:func:`data_lambda_bar`) of the solve ``sol``; where it differs from the regulariser's (``user_reg``, set to
     it), ``resolve(u)`` solves again from ``sol.u`` and a note goes to ``notes``.  Returns
