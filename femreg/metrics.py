@@ -102,7 +102,8 @@ def field_errors(result, true_displacement, true_strain=None, *, mesh=None, into
     if mesh is None:
         raise ValueError("field_errors needs result.mesh or mesh=")
     pts, w, basis = mesh_quadrature(mesh, intorder)
-    um, em = _fields_at_quadrature(getattr(result, "u", result), mesh, basis, strain)
+    um, em = _fields_at_quadrature(getattr(result, "u", result), mesh, basis, strain,
+                                   getattr(result, "recovery_weight", None))
     ut = np.asarray(true_displacement(pts), float)
     if true_strain is not None:
         et = np.asarray(true_strain(pts), float)
@@ -253,7 +254,9 @@ def field_errors_nodal(result, true_displacement, *, mesh=None, intorder: int = 
     ut_nodal = interpolate_truth(mesh, true_displacement)
 
     # the registration's recovery on both (its adaptive weight), so a registration equal to u^t_h scores 0
-    wr = adaptive_weight(strain_roughness(mesh.p, mesh.t, um_nodal)) if mesh.p.shape[0] == 2 else None
+    wr = getattr(result, "recovery_weight", None)
+    if wr is None:
+        wr = adaptive_weight(strain_roughness(mesh.p, mesh.t, um_nodal))
     um, em = _fields_at_quadrature(um_nodal, mesh, basis, strain, wr)
     ut, et = _fields_at_quadrature(ut_nodal, mesh, basis, strain, wr)
     return _relative_errors(w, um, ut, em, et)

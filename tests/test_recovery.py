@@ -5,7 +5,7 @@ import pytest
 from skfem import MeshQuad1
 
 from femreg.errors import InputError
-from femreg.fields import DEFAULT_RECOVERY, projected_strains, recovered_strains
+from femreg.fields import DEFAULT_RECOVERY, adaptive_strains, projected_strains, recovered_strains
 from femreg.metrics import contour_radii
 from femreg.registration import RegistrationResult
 
@@ -86,7 +86,7 @@ def test_projection_keeps_the_inclusion_rounder_than_the_average():
     assert stats["projection"][1] < stats["average"][1] - 0.01, stats
     # the default is what the result reports
     res._nodal_strain, res._grid = None, None
-    np.testing.assert_allclose(res.nodal_strain, recovered_strains(res.mesh.p, res.mesh.t, res.u, DEFAULT_RECOVERY))
+    np.testing.assert_allclose(res.nodal_strain, adaptive_strains(res.mesh.p, res.mesh.t, res.u, res.recovery_weight))
 
 
 def test_result_files_record_the_recovery_and_older_ones_load(tmp_path):
