@@ -173,9 +173,9 @@ def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
 def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY) -> np.ndarray:
     """Recovered strains [exx, eyy, exy], shape (n_nodes, 3) (``"edge"``: (4, n_el, 3)), interpolated bilinearly.
 
-    ``method="adaptive"`` (default): see the end.  ``"average"``: the mean of the element-centre strains (:func:`element_strains`) of the
-    elements around each node (Zienkiewicz & Zhu 1987, simple averaging).  ``"projection"``:
-    :func:`projected_strains`.
+    ``method="adaptive"`` (default): see the end.  ``"average"``: the mean of the element-centre strains
+    (:func:`element_strains`) of the elements around each node (Zienkiewicz & Zhu 1987, simple averaging).
+    ``"projection"``: :func:`projected_strains`.
 
     Measured, projection against average (R_P_sigma defaults; ``benchmarks/recovery.py``):
 

@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fields import (DEFAULT_RECOVERY, adaptive_strains, adaptive_weight, check_strain_mode, recovered_strains,
-                     strain_components, strain_roughness)
+from .fields import (adaptive_strains, adaptive_weight, check_strain_mode, recovered_strains, strain_components,
+                     strain_roughness)
 from .quadrature import GAUSS_3X3
 
 __all__ = ["field_errors", "strain_ratio", "cnr_e", "contrast_metrics", "mesh_quadrature", "interpolate_truth",
@@ -72,7 +72,7 @@ def _fields_at_quadrature(nodal_u, mesh, basis, strain: str, weight: float | Non
         return u, np.column_stack([0.5 * (G[i, j] + G[j, i]).ravel() for i, j in pairs])
     scalar = Basis(mesh, _nodal_element(mesh), quadrature=basis.quadrature)
     if dim == 2:
-        ns = (recovered_strains(mesh.p, mesh.t, nodal_u) if weight is None or DEFAULT_RECOVERY != "adaptive"
+        ns = (recovered_strains(mesh.p, mesh.t, nodal_u) if weight is None
               else adaptive_strains(mesh.p, mesh.t, nodal_u, weight))
     else:
         from .volume_fields import recovered_strains_3d

@@ -129,11 +129,10 @@ class RegistrationResult(ResultRecord):
 
     @property
     def nodal_strain(self) -> np.ndarray:
-        """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy] (:func:`femreg.fields.recovered_strains`)."""
+        """Recovered nodal strains (n_nodes, 3) [exx, eyy, exy]: the adaptive recovery with :attr:`recovery_weight`
+        (:func:`femreg.fields.adaptive_strains`, :func:`femreg.fields.recovered_strains`)."""
         if self._nodal_strain is None:
-            self._nodal_strain = (adaptive_strains(self.mesh.p, self.mesh.t, self.u, self.recovery_weight)
-                                  if DEFAULT_RECOVERY == "adaptive" else
-                                  recovered_strains(self.mesh.p, self.mesh.t, self.u))
+            self._nodal_strain = adaptive_strains(self.mesh.p, self.mesh.t, self.u, self.recovery_weight)
         return self._nodal_strain
 
     @property
@@ -168,8 +167,9 @@ class RegistrationResult(ResultRecord):
         """Small strain at ``points`` (n, 2) mm -> (n, 3) [exx, eyy, exy], exy = (dux/dy + duy/dx) / 2;
         NaN outside the mesh.  ``strain="recovered"`` (default): the recovered strain interpolated bilinearly
         (:mod:`femreg.fields`; ``recovery`` its method, default the adaptive blend of the nodal average and the L2
-        projection of the element-centre strains, continuous; ``"edge"`` keeps strain steps); ``"element"``: the gradient of the bilinear field,
-        discontinuous across element edges (a point on an edge takes one of its elements)."""
+        projection of the element-centre strains, continuous; ``"edge"`` keeps strain steps); ``"element"``: the
+        gradient of the bilinear field, discontinuous across element edges (a point on an edge takes one of its
+        elements)."""
         check_strain_mode(strain)
         return self._masked(points, sample_points(self.u, self.locator, points, ("exx", "eyy", "exy"),
                             nodal_strain=self.recovered(recovery) if strain == "recovered" else None))
