@@ -46,7 +46,7 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
     naming ``argument``)."""
     import json
 
-    from .errors import InputError
+    from .errors import InputError, pass_as
 
     if folder is None:
         if resume:
@@ -69,7 +69,8 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
         if diff and on_reselect is not None:
             on_reselect(diff)
     elif not resume and any(any(out.glob(p)) for p in started):
-        raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
+        raise InputError(f"{out} already holds {kind}; use "
+                         + pass_as("resume=True (--resume)", "--resume") + " or another folder")
     atomic_write_text(pfile, json.dumps({**params, **(described or {})}, indent=1))
     return out
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .errors import InputError
+from .errors import InputError, pass_as
 from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
@@ -270,8 +270,8 @@ def _fill_rectangle(fill, what):
     :class:`InputError` saying ``what`` when it holds fewer than 2 x 2 pixels."""
     (a, b), (c, d) = _largest_rectangle(~fill)
     if b - a < 2 or d - c < 2:
-        raise InputError(f"the frames hold no rectangle of image: {what}; give roi=(x0, x1, y0, y1) mm "
-                         f"(CLI: --roi)")
+        raise InputError(f"the frames hold no rectangle of image: {what}; give "
+                         + pass_as("roi=(x0, x1, y0, y1) mm (CLI: --roi)", "--roi X0 X1 Y0 Y1 (mm)"))
     return (a, b), (c, d)
 
 

@@ -190,7 +190,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import FileFormatError, InputError
+from .errors import FileFormatError, InputError, pass_as
 from .fields import inner_elements, lateral_ratio
 from .linsolve import SPDSolver, single_blas_thread
 from .material import MODELS
@@ -1668,8 +1668,9 @@ def _check_images(displacement, region, reference_image, moving_image):
     images = (check(reference_image, "reference image" if not three else "reference volume"),
               check(moving_image, "moving image" if not three else "moving volume"))
     if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
-        swapped = ("; their axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
-                   "--transpose)" if not three and images[0].shape == tuple(displacement.shape)[::-1] else "")
+        swapped = ("; their axes are the grid's exchanged: frames stored lines first, transpose them ("
+                   + pass_as("CLI: --transpose", "--transpose") + ")"
+                   if not three and images[0].shape == tuple(displacement.shape)[::-1] else "")
         raise InputError(f"{'volumes' if three else 'images'} {images[0].shape} / {images[1].shape} do not match "
                          f"the registration grid {tuple(displacement.shape)}{swapped}")
     return images

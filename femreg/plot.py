@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 __all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
            "plot_inversion", "plot_mesh_values", "plot_quality", "fit_colorbars", "DIVERGING_CMAP",
@@ -475,8 +475,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     if reference is not None:
         reference = _image2d(reference, "reference")
         if reference.shape != shape:
-            swapped = ("; its axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
-                       "--transpose)" if reference.shape == tuple(shape)[::-1] else "")
+            swapped = ("; its axes are the grid's exchanged: frames stored lines first, transpose them ("
+                       + pass_as("CLI: --transpose", "--transpose") + ")"
+                       if reference.shape == tuple(shape)[::-1] else "")
             raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}{swapped}")
     positions = _beam_positions(result, d, shape, sp, origin)
     plt = _mpl()

@@ -1,0 +1,88 @@
+"""On the command line, messages that say what to pass name the command's flags only (``--spacing 0.02 0.2``,
+``--no-orientation-check``, ``--resume``, ``--shape NAX NLAT``), not the library's arguments beside them
+(``check_orientation=False (CLI: ...)``, ``resume=True (--resume)``); from Python the same messages keep naming
+the arguments (femreg.errors.pass_as).  A small simulated L7 pair (forward.pairs)."""
+import numpy as np
+import pytest
+
+from femreg.cli import main
+from femreg.errors import InputError, cli_wording, pass_as
+from femreg.io import save_frames
+from femreg.orientation import check
+
+#: what only a Python caller can pass: never in a message of the command
+PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=slice", "spacing (dx, dy)", "dtype=")
+
+
+def _run(argv, capsys):
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """``pair.npz`` (two frames, 1 % compression), its frames as ``.raw`` files and the spacing."""
+    from forward import fields as F
+    from forward.pairs import make_pair
+
+    d = tmp_path_factory.mktemp("flags")
+    p = make_pair(F.compression(0.01), "L7", (12.0, 8.0), 30, seed=0)
+    save_frames(d / "pair.npz", np.stack([p.ref, p.mov]), tuple(p.spacing))
+    np.save(d / "frames.npy", np.stack([p.ref, p.mov]))
+    for k, f in enumerate((p.ref, p.mov)):
+        np.asarray(f, "<f4").tofile(d / f"f{k}.raw")
+    return d, tuple(float(s) for s in p.spacing), p.ref.shape
+
+
+def _python_free(err):
+    assert not [w for w in PYTHON_WORDS if w in err], err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+
+
+def test_pass_as_words_by_caller():
+    assert pass_as("resume=True (--resume)", "--resume") == "resume=True (--resume)"
+    with cli_wording():
+        assert pass_as("resume=True (--resume)", "--resume") == "--resume"
+        with cli_wording():
+            pass
+        assert pass_as("a", "b") == "b"             # nested: still the command's wording
+    assert pass_as("a", "b") == "a"
+
+
+def test_swapped_spacing_names_flags_only(pair, tmp_path, capsys):
+    d, sp, _ = pair
+    with pytest.raises(InputError) as e:             # the library keeps its arguments, with the flag beside them
+        check(np.load(d / "frames.npy")[0], sp[::-1])
+    assert "check_orientation=False (CLI: --no-orientation-check)" in str(e.value)
+    assert f"CLI: --spacing {sp[0]:g} {sp[1]:g}" in str(e.value)
+    rc, out, err = _run(["register", d / "pair.npz", "--spacing", sp[1], sp[0], "-o", tmp_path / "x.npz"], capsys)
+    assert rc == 2 and "swapped" in err, err
+    assert f"pass --spacing {sp[0]:g} {sp[1]:g} (axial, lateral" in err and "or --no-orientation-check" in err, err
+    _python_free(err)
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_raw_mistakes_name_flags_only(pair, capsys):
+    d, sp, shape = pair
+    rc, out, err = _run(["info", d / "f0.raw"], capsys)
+    assert rc == 2 and "needs --shape NAX NLAT" in err and f"--shape {shape[0]} {shape[1]}" in err, err
+    _python_free(err)
+    rc, out, err = _run(["info", d / "f0.raw", "--shape", *shape, "--dtype", "float64"], capsys)
+    assert rc == 2 and "try --dtype float32" in err, err
+    _python_free(err)
+
+
+def test_resume_and_repeated_start_name_flags_only(pair, tmp_path, capsys):
+    d, sp, _ = pair
+    f0, f1 = np.load(d / "frames.npy")
+    loop = d / "repeat.npz"                 # frame 1 repeats frame 0: track must start at frame 1
+    save_frames(loop, np.stack([f0, f0, f1]), sp)
+    rc, out, err = _run(["track", loop, "-o", tmp_path / "run", "--no-progress"], capsys)
+    assert rc == 2 and "start at frame 1 (--frames 1:)" in err, err
+    _python_free(err)
+    run = tmp_path / "run2"
+    assert _run(["track", d / "pair.npz", "-o", run, "--no-progress"], capsys)[0] == 0
+    rc, out, err = _run(["track", d / "pair.npz", "-o", run, "--no-progress"], capsys)
+    assert rc == 2 and "use --resume or another folder" in err, err
+    _python_free(err)
