@@ -155,7 +155,8 @@ class ElastogramResult:
     timings : dict, seconds per stage.
     repeated : list of int
         Frames k whose samples equal frame k - 1's (written twice by the scanner or the export): no motion between
-        them, so a pair ending on one is the pair ending on the frame before.
+        them, so a pair ending on one is the pair ending on the frame before, and a pair starting on one is no
+        candidate of its own (``pairs`` holds none: the pair starting on the frame before covers it).
     """
 
     exx: np.ndarray
@@ -316,17 +317,23 @@ def _strain_factor(e, lo, hi):
     return float(max(0.0, 1.0 - abs(np.log(abs(e) / c)) / np.log(hi / c))) if e != 0 else 0.0
 
 
-def screen_pairs(strain, lateral, ncc, *, band=DEFAULT_BAND, max_span=8, min_ncc=0.6, max_lateral_mm=1.0):
+def screen_pairs(strain, lateral, ncc, *, band=DEFAULT_BAND, max_span=8, min_ncc=0.6, max_lateral_mm=1.0,
+                 repeated=()):
     """Candidate pairs from the consecutive screening (stage 2 of the module docstring, before the direct check).
 
-    Parameters: ``strain``, ``lateral``, ``ncc`` (n - 1,) of the consecutive pairs.  Returns a list of dict rows
-    ``ref, mov, strain (fraction), lateral_mm, ncc, quality, selected`` (selected: bool, greedy by quality with
-    non-overlapping intervals)."""
+    Parameters: ``strain``, ``lateral``, ``ncc`` (n - 1,) of the consecutive pairs; ``repeated`` the frames that
+    repeat the one before (:func:`femreg.image.repeated_frames`): a pair starting on one is the pair starting on
+    the frame before, so it is no candidate of its own.  Returns a list of dict rows ``ref, mov, strain
+    (fraction), lateral_mm, ncc, quality, selected`` (selected: bool, greedy by quality with non-overlapping
+    intervals), none starting on a repeated frame."""
     lo, hi = _band(band)
     c = np.sqrt(lo * hi)
     n = len(strain) + 1
     rows = []
+    skip = set(int(k) for k in repeated)
     for i in range(n - 1):
+        if i in skip:               # the same images as frame i - 1: its candidate covers this one
+            continue
         acc, lat, worst, best = 1.0, 0.0, 1.0, None
         for j in range(i + 1, min(n, i + 1 + int(max_span))):
             acc *= 1.0 + strain[j - 1]
@@ -797,7 +804,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         # -- 2. choose -------------------------------------------------------------------------------------------------
         t = time.perf_counter()
         rows = screen_pairs(e_c, lat_c, ncc_c, band=(lo, hi), max_span=max_span, min_ncc=min_ncc,
-                            max_lateral_mm=max_lat)
+                            max_lateral_mm=max_lat, repeated=repeats)
         for r in rows:
             r.update(registered=False, usable=False, message="")
         # pairs over more than one frame step: screened directly (envelopes of i and j)

@@ -289,9 +289,12 @@ def run(args) -> int:
 
         shown = repeats_listed(res.repeated)
         verb = "repeats" if len(res.repeated) == 1 else "repeat"
+        merged = sum(1 for k in res.repeated if k < fr.n_frames - 1)     # the last frame starts no pair
         print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {verb} the one before "
               f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "
-              "ending on the frame before")
+              "ending on the frame before"
+              + (f"; {merged} candidate pair{'s' if merged != 1 else ''} starting on one merged into the pair "
+                 "starting on the frame before (not listed in pairs.csv)" if merged else ""))
     if failure:
         print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1
