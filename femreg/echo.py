@@ -569,8 +569,11 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         v = np.array([np.nan])
     need = 4 if roi is not None else 2
     if v.size != need or not np.all(np.isfinite(v)) or v[0] >= v[1] or (need == 4 and v[2] >= v[3]):
-        form = "(x0, x1, y0, y1)" if need == 4 else "(d0, d1)"
-        raise InputError(f"{what} must be {form} mm with x0 < x1{' and y0 < y1' if need == 4 else ''}, got {val!r}")
+        form, order, flag = (("(x0, x1, y0, y1)", "x0 < x1 and y0 < y1", "--roi X0 X1 Y0 Y1") if need == 4 else
+                             ("(d0, d1)", "d0 < d1", "--depth D0 D1"))
+        got = " ".join(f"{x:g}" for x in v)
+        raise InputError(pass_as(f"{what} must be {form} mm with {order}, got {val!r}",
+                                 f"{flag} needs {order.upper().replace('AND', 'and')} (mm), got {got}"))
     sp, org = np.asarray(spacing, float), np.asarray(origin, float)
     lo = org - 0.5 * sp
     hi = lo + np.asarray(shape, float) * sp

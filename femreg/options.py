@@ -33,7 +33,7 @@ def frame_selection(text: str):
     try:
         if ":" in text:
             parts = [int(p) if p.strip() else None for p in text.split(":")]
-            if len(parts) > 3:
+            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):     # a step of 0 selects nothing
                 raise ValueError
             return slice(*parts)
         if "," in text:

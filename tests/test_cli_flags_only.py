@@ -15,7 +15,10 @@ PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=s
 
 
 def _run(argv, capsys):
-    rc = main([str(a) for a in argv])
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:               # argparse's refusal of a flag's value
+        rc = exc.code
     out, err = capsys.readouterr()
     return rc, out, err
 
@@ -86,3 +89,27 @@ def test_resume_and_repeated_start_name_flags_only(pair, tmp_path, capsys):
     rc, out, err = _run(["track", d / "pair.npz", "-o", run, "--no-progress"], capsys)
     assert rc == 2 and "use --resume or another folder" in err, err
     _python_free(err)
+
+
+def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
+    d, sp, _ = pair
+    out = tmp_path / "x"
+    cases = [
+        # a threshold above 1: every pair flagged (exit 1) after the whole registration
+        (["register", d / "pair.npz", "--min-ncc", "2", "-o", f"{out}.npz"], "--min-ncc: an NCC lies in -1 to 1, got '2'"),
+        (["track", d / "pair.npz", "--min-ncc", "1.5", "-o", out], "--min-ncc: an NCC lies in -1 to 1"),
+        # "depth must be (d0, d1) mm with x0 < x1, got (5.0, 2.0)"
+        (["register", d / "pair.npz", "--depth", "5", "2", "-o", f"{out}.npz"], "--depth D0 D1 needs D0 < D1 (mm), got 5 2"),
+        (["register", d / "pair.npz", "--roi", "1", "5", "4", "2", "-o", f"{out}.npz"],
+         "--roi X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm), got 1 5 4 2"),
+        # "frames must be an int, a slice or a list of ints, got slice(0, 2, 0)"
+        (["track", d / "pair.npz", "--frames", "0:2:0", "-o", out], "bad frame selection '0:2:0'"),
+        # "frame selection slice(2, None, None) selects no frame (the file has 2)"
+        (["track", d / "pair.npz", "--frames", "2:", "-o", out],
+         "frame selection 2: selects no frame (the file has 2, counted from 0: 0 to 1)"),
+    ]
+    for argv, says in cases:
+        rc, o, err = _run([*argv, "--no-progress"], capsys)
+        assert rc == 2 and says in err and "slice(" not in err, (argv, rc, err)
+        _python_free(err.strip().splitlines()[-1])        # argparse puts its usage lines first
+    assert not any(tmp_path.iterdir())

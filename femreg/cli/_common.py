@@ -237,6 +237,17 @@ def _alpha_arg(text):
         raise argparse.ArgumentTypeError(f"must be a number or 'auto', got {text!r}") from None
 
 
+def ncc_arg(text):
+    """``--min-ncc``: a correlation, -1 to 1 (a threshold above 1 would flag every pair after all the work)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not -1.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"an NCC lies in -1 to 1, got {text!r}")
+    return v
+
+
 def add_registration_args(parser: argparse.ArgumentParser) -> None:
     """Flags shared by ``register`` and ``track``: regulariser, alpha, mesh and solver settings."""
     from ..regularizers import available_regularizers

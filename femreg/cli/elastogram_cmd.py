@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from ._common import add_reader_args, add_registration_args, frames_from_args, ncc_arg, registration_kwargs
 
 
 def add_parser(subparsers):
@@ -35,7 +35,7 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
     p.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"), default=(0.5, 2.0),
                    help="axial strain magnitude of the pairs to register, percent (default 0.5 2)")
-    p.add_argument("--min-ncc", type=float, default=0.6, help="least envelope NCC of a pair (default 0.6)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.6, help="least envelope NCC of a pair (default 0.6)")
     p.add_argument("--max-span", type=int, default=8, help="largest frame distance of a pair (default 8)")
     p.add_argument("--max-lateral", type=float, metavar="MM",
                    help="largest lateral motion within a pair, mm (default a tenth of the image width)")

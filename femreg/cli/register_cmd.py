@@ -19,7 +19,7 @@ import sys
 import numpy as np
 
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_spacing_args, beam_spacing_error,
-                      frames_from_args, registration_kwargs)
+                      frames_from_args, ncc_arg, registration_kwargs)
 
 
 def add_parser(subparsers):
@@ -34,7 +34,7 @@ def add_parser(subparsers):
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
-    p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bar (shown over the candidate registrations of --alpha auto)")
     add_geometry_args(p)

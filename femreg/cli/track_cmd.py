@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
-                      frames_from_args, registration_kwargs, run_tracking)
+                      frames_from_args, ncc_arg, registration_kwargs, run_tracking)
 from .register_cmd import (_check_stated_geometry, _geometry, _note_start_depth, _refuse_curved, _swept,
                            add_geometry_args)
 
@@ -44,7 +44,7 @@ def add_parser(subparsers):
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
                    help="initial guess of each increment: the previous increment (default) or block matching")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
-    p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_volume_arg(p)
     add_geometry_args(p)

@@ -168,7 +168,10 @@ def select_frames(path, arr: np.ndarray, frames):
     except (TypeError, ValueError):
         raise InputError(f"frames must be an int, a slice or a list of ints, got {frames!r}") from None
     if idx.size == 0:
-        raise InputError(f"{path}: frame selection {frames!r} selects no frame (the file has {n})")
+        shown = (":".join("" if v is None else str(v) for v in (frames.start, frames.stop))
+                 + ("" if frames.step is None else f":{frames.step}")) if isinstance(frames, slice) else repr(frames)
+        raise InputError(f"{path}: frame selection {shown} selects no frame (the file has {n}, counted from 0: 0 to "
+                         f"{n - 1})")
     bad = idx[(idx < -n) | (idx >= n)]
     if bad.size:
         raise InputError(f"{path}: frame index {int(bad[0])} out of range (the file has {n} frame(s), counted from "
