@@ -607,6 +607,12 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
 # ----------------------------------------------------------------------------------------------------------------
 # shear-modulus images (femreg.invert)
 # ----------------------------------------------------------------------------------------------------------------
+def _plain_tick(v, _pos=None) -> str:
+    """A log colour bar's tick as a plain number: 0.1, 2.5, 100 (``:.2g`` alone writes 100 as 1e+02)."""
+    text = f"{v:.2g}"
+    return f"{v:.0f}" if "e+" in text else text
+
+
 def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
                      vmin=None, vmax=None, label=None):
     """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
@@ -642,7 +648,7 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
     if log:                                         # plain numbers (0.5, 2, 4), not powers of ten
         from matplotlib.ticker import FuncFormatter
 
-        fmt = FuncFormatter(lambda v, _: f"{v:.2g}")
+        fmt = FuncFormatter(_plain_tick)
         cb.ax.yaxis.set_major_formatter(fmt)
         if hi / lo < 10:                            # within a decade the minor ticks are the only labels;
             cb.ax.yaxis.set_minor_formatter(fmt)    # across decades labelling them would overprint

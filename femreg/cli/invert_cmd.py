@@ -178,7 +178,7 @@ def run(args) -> int:
 
     out = Path(args.output)
     if out.suffix.lower() != ".npz":
-        raise InputError(f"output must be a .npz file, got {out}")
+        raise InputError(f"-o must name a .npz file, got {out}")
     for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")

@@ -259,7 +259,7 @@ def run(args) -> int:
 
         check_iq_sign(ref, mov, ref_fr.spacing, ref_fr.metadata["iq"], where=f"{args.reference}, {args.moving}: ")
     if not str(args.output).endswith(".npz"):
-        raise InputError(f"output must be a .npz file, got {args.output}")
+        raise InputError(f"-o must name a .npz file, got {args.output}")
 
     files = (ref_fr.metadata or {}).get("files")
     if args.moving is None and args.pair is not None and files and len(files) == ref_fr.n_frames:
