@@ -102,6 +102,9 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         (["register", d / "pair.npz", "--depth", "5", "2", "-o", f"{out}.npz"], "--depth D0 D1 needs D0 < D1 (mm), got 5 2"),
         (["register", d / "pair.npz", "--roi", "1", "5", "4", "2", "-o", f"{out}.npz"],
          "--roi X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm), got 1 5 4 2"),
+        # "output must be a .npz file": the flag is -o
+        (["register", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
+        (["invert", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
         # "frames must be an int, a slice or a list of ints, got slice(0, 2, 0)"
         (["track", d / "pair.npz", "--frames", "0:2:0", "-o", out], "bad frame selection '0:2:0'"),
         # "frame selection slice(2, None, None) selects no frame (the file has 2)"
