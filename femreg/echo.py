@@ -556,6 +556,11 @@ def _extent_text(shape, spacing, origin) -> str:
     return ", ".join(f"{name} {lo[k]:.4g} to {hi[k]:.4g} mm" for k, name in enumerate(_AXES[:len(shape)]))
 
 
+def _given(what: str, v) -> str:
+    """A given ``roi`` / ``depth`` (mm) in the caller's words: the argument's tuple, or the flag as typed."""
+    return pass_as(f"{what} {tuple(float(x) for x in v)} mm", f"--{what} {' '.join(f'{x:g}' for x in v)} (mm)")
+
+
 def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegion:
     """The pixel rectangle of a user's ``roi`` (x0, x1, y0, y1) or ``depth`` (d0, d1) mm: the pixels whose centres
     lie inside it.  :class:`InputError` naming the image extent when it leaves the image or holds no pixel."""
@@ -580,7 +585,7 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
     tol = 1e-6 * sp
     box = np.array([v[0], v[1], v[2], v[3]]) if need == 4 else np.array([v[0], v[1], lo[1], hi[1]])
     if box[0] < lo[0] - tol[0] or box[1] > hi[0] + tol[0] or box[2] < lo[1] - tol[1] or box[3] > hi[1] + tol[1]:
-        raise InputError(f"{what} {tuple(float(x) for x in v)} mm leaves the image; the image extent is "
+        raise InputError(f"{_given(what, v)} leaves the image; the image extent is "
                          f"{_extent_text(shape, spacing, origin)}")
     idx = []
     for k, axis in ((0, 0), (2, 1)):          # pixel centres c_i = origin + i * spacing inside [box_k, box_k+1]
@@ -588,7 +593,7 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         i1 = int(np.floor((box[k + 1] - org[axis]) / sp[axis] + 1e-6)) + 1
         idx.append((max(0, i0), min(int(shape[axis]), i1)))
     if idx[0][1] - idx[0][0] < 2 or idx[1][1] - idx[1][0] < 2:
-        raise InputError(f"{what} {tuple(float(x) for x in v)} mm holds fewer than 2 x 2 pixels; the image extent "
+        raise InputError(f"{_given(what, v)} holds fewer than 2 x 2 pixels; the image extent "
                          f"is {_extent_text(shape, spacing, origin)}")
     region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
                         tuple(float(s) for s in org))

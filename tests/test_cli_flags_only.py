@@ -102,6 +102,9 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         (["register", d / "pair.npz", "--depth", "5", "2", "-o", f"{out}.npz"], "--depth D0 D1 needs D0 < D1 (mm), got 5 2"),
         (["register", d / "pair.npz", "--roi", "1", "5", "4", "2", "-o", f"{out}.npz"],
          "--roi X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm), got 1 5 4 2"),
+        # "roi (0.0, 50.0, 0.0, 4.0) mm leaves the image"
+        (["register", d / "pair.npz", "--roi", "0", "50", "0", "4", "-o", f"{out}.npz"],
+         "--roi 0 50 0 4 (mm) leaves the image; the image extent is x (axial)"),
         # "output must be a .npz file": the flag is -o
         (["register", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
         (["invert", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),

@@ -263,7 +263,7 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
-    g.add_argument("--roi", nargs="+", metavar="X0 X1 Y0 Y1 [Z0 Z1]|auto|full",
+    g.add_argument("--roi", nargs="+", metavar=("X0 X1 Y0 Y1|auto|full", "Z0 Z1"),
                    help="region registered, mm (axial x0 x1, lateral y0 y1; a volume also elevational z0 z1); "
                         "default auto: where the frames hold "
                         "usable echo (depth or lines at the noise floor and saturated samples left out, and said "
