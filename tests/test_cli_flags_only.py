@@ -119,3 +119,14 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         assert rc == 2 and says in err and "slice(" not in err, (argv, rc, err)
         _python_free(err.strip().splitlines()[-1])        # argparse puts its usage lines first
     assert not any(tmp_path.iterdir())
+
+
+def test_batch_folder_of_single_frames_names_the_flag_only(pair, tmp_path, capsys):
+    d, sp, _ = pair
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    for k, f in enumerate(np.load(d / "frames.npy")):
+        np.save(rec / f"frame{k}.npy", f)
+    rc, out, err = _run(["batch", rec, "-o", tmp_path / "out", "--spacing", *sp, "--no-progress"], capsys)
+    assert rc == 2 and "pass --folders recording" in err and "folders=" not in err, err
+    _python_free(err)
