@@ -130,3 +130,16 @@ def test_batch_folder_of_single_frames_names_the_flag_only(pair, tmp_path, capsy
     rc, out, err = _run(["batch", rec, "-o", tmp_path / "out", "--spacing", *sp, "--no-progress"], capsys)
     assert rc == 2 and "pass --folders recording" in err and "folders=" not in err, err
     _python_free(err)
+
+
+def test_plot_frame_without_reference_is_refused(pair, tmp_path, capsys):
+    # --frame 3 without --reference was ignored: exit 0 and a picture of something else than asked
+    d, sp, _ = pair
+    res = tmp_path / "r.npz"
+    assert _run(["register", d / "pair.npz", "-o", res, "--no-progress"], capsys)[0] == 0
+    rc, out, err = _run(["plot", res, "--frame", "3", "-o", tmp_path / "p.png"], capsys)
+    assert rc == 2 and "--frame 3 picks a frame of --reference FILE, and none was given" in err, err
+    assert not (tmp_path / "p.png").exists()
+    rc, out, err = _run(["plot", res, "--reference", d / "pair.npz", "--frame", "1", "-o", tmp_path / "p.png"],
+                        capsys)
+    assert rc == 0 and (tmp_path / "p.png").is_file(), err
