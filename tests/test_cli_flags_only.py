@@ -132,7 +132,7 @@ def test_batch_folder_of_single_frames_names_the_flag_only(pair, tmp_path, capsy
     _python_free(err)
 
 
-def test_plot_frame_without_reference_is_refused(pair, tmp_path, capsys):
+def test_frame_flags_without_their_file_are_refused(pair, tmp_path, capsys):
     # --frame 3 without --reference was ignored: exit 0 and a picture of something else than asked
     d, sp, _ = pair
     res = tmp_path / "r.npz"
@@ -140,6 +140,10 @@ def test_plot_frame_without_reference_is_refused(pair, tmp_path, capsys):
     rc, out, err = _run(["plot", res, "--frame", "3", "-o", tmp_path / "p.png"], capsys)
     assert rc == 2 and "--frame 3 picks a frame of --reference FILE, and none was given" in err, err
     assert not (tmp_path / "p.png").exists()
+    # likewise invert's --pair without --images (the one-step inversion it asks for was not run)
+    rc, out, err = _run(["invert", res, "--pair", "0", "1", "-o", tmp_path / "m.npz", "--no-progress"], capsys)
+    assert rc == 2 and "--pair 0 1 picks the frames of --images FILE(S), and none were given" in err, err
+    assert not (tmp_path / "m.npz").exists()
     rc, out, err = _run(["plot", res, "--reference", d / "pair.npz", "--frame", "1", "-o", tmp_path / "p.png"],
                         capsys)
     assert rc == 0 and (tmp_path / "p.png").is_file(), err

@@ -182,6 +182,9 @@ def run(args) -> int:
     for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    if args.pair is not None and not args.images:        # it would be ignored
+        raise InputError(f"--pair {' '.join(str(k) for k in args.pair)} picks the frames of --images FILE(S), and "
+                         "none were given")
     reg = femreg.load_result(args.result)
     volume = np.shape(reg.mesh.p)[0] == 3
     kind = "a volume's result" if volume else "a 2D result"
