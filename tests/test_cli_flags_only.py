@@ -147,3 +147,15 @@ def test_frame_flags_without_their_file_are_refused(pair, tmp_path, capsys):
     rc, out, err = _run(["plot", res, "--reference", d / "pair.npz", "--frame", "1", "-o", tmp_path / "p.png"],
                         capsys)
     assert rc == 0 and (tmp_path / "p.png").is_file(), err
+
+
+def test_resume_with_another_spacing_names_the_setting_first(pair, tmp_path, capsys):
+    # before: "spacing: ...; n_nodes: 1014 recorded, 1053 now; mesh_checksum: ...; roi: ...; pass the recorded
+    # ones" (in vivo seq299, --spacing 0.02 0.21): settings nobody can pass, listed as if they could be
+    d, sp, _ = pair
+    run = tmp_path / "run"
+    assert _run(["track", d / "pair.npz", "-o", run, "--no-progress"], capsys)[0] == 0
+    rc, out, err = _run(["track", d / "pair.npz", "-o", run, "--resume", "--spacing", sp[0], 1.05 * sp[1],
+                         "--no-progress"], capsys)
+    assert rc == 2 and "parameters differ (spacing: " in err and "(and with it n_nodes" in err, err
+    assert "n_nodes: " not in err and "mesh_checksum: " not in err, err
