@@ -50,7 +50,7 @@ import numpy as np
 from skfem import MeshQuad1
 
 from .data_term import SSDTerm
-from .errors import InputError
+from .errors import InputError, pass_as
 from .orientation import OrientationError, override
 from .image import SplineImage, normalize_pair
 from .mesh import as_quad_mesh
