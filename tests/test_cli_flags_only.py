@@ -11,7 +11,8 @@ from femreg.io import save_frames
 from femreg.orientation import check
 
 #: what only a Python caller can pass: never in a message of the command
-PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=slice", "spacing (dx, dy)", "dtype=")
+PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=slice", "spacing (dx, dy)", "dtype=",
+                "max_span", "max_lateral_mm", "alpha=", "femreg.register(")
 
 
 def _run(argv, capsys):
@@ -33,6 +34,7 @@ def pair(tmp_path_factory):
     p = make_pair(F.compression(0.01), "L7", (12.0, 8.0), 30, seed=0)
     save_frames(d / "pair.npz", np.stack([p.ref, p.mov]), tuple(p.spacing))
     np.save(d / "frames.npy", np.stack([p.ref, p.mov]))
+    save_frames(d / "loop.npz", np.stack([p.ref, p.mov, p.ref]), tuple(p.spacing))
     for k, f in enumerate((p.ref, p.mov)):
         np.asarray(f, "<f4").tofile(d / f"f{k}.raw")
     return d, tuple(float(s) for s in p.spacing), p.ref.shape
@@ -105,6 +107,12 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         # "roi (0.0, 50.0, 0.0, 4.0) mm leaves the image"
         (["register", d / "pair.npz", "--roi", "0", "50", "0", "4", "-o", f"{out}.npz"],
          "--roi 0 50 0 4 (mm) leaves the image; the image extent is x (axial)"),
+        # elastogram's settings were named as its Python arguments (max_span, max_lateral_mm, workers, alpha='auto')
+        (["elastogram", d / "loop.npz", "--max-span", "0", "-o", out], "--max-span must be an integer >= 1, got 0"),
+        (["elastogram", d / "loop.npz", "--max-lateral", "0", "-o", out], "--max-lateral must be > 0 mm"),
+        (["elastogram", d / "loop.npz", "--workers", "0", "-o", out], "--workers must be an integer >= 1, got 0"),
+        (["elastogram", d / "loop.npz", "--persistence", "1", "-o", out], "--persistence must be at least 0 and below"),
+        (["elastogram", d / "loop.npz", "--alpha", "auto", "-o", out], "femreg register LOOP --pair I J --alpha auto"),
         # "output must be a .npz file": the flag is -o
         (["register", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
         (["invert", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
