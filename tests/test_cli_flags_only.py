@@ -100,6 +100,9 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         # a threshold above 1: every pair flagged (exit 1) after the whole registration
         (["register", d / "pair.npz", "--min-ncc", "2", "-o", f"{out}.npz"], "--min-ncc: an NCC lies in -1 to 1, got '2'"),
         (["track", d / "pair.npz", "--min-ncc", "1.5", "-o", out], "--min-ncc: an NCC lies in -1 to 1"),
+        # exit 0: --maxiter 0 returned the initial guess as "success", --sound-speed 0 passed unnoticed
+        (["register", d / "pair.npz", "--maxiter", "0", "-o", f"{out}.npz"], "--maxiter must be an integer >= 1"),
+        (["register", d / "pair.npz", "--sound-speed", "0", "-o", f"{out}.npz"], "--sound-speed must be a finite"),
         # "depth must be (d0, d1) mm with x0 < x1, got (5.0, 2.0)"
         (["register", d / "pair.npz", "--depth", "5", "2", "-o", f"{out}.npz"], "--depth D0 D1 needs D0 < D1 (mm), got 5 2"),
         (["register", d / "pair.npz", "--roi", "1", "5", "4", "2", "-o", f"{out}.npz"],
