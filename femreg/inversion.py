@@ -844,14 +844,18 @@ def _check_region(region):
     except (TypeError, ValueError):
         raise InputError(f"region must be ((x0, x1), (y0, y1)) in mm, got {region!r}") from None
     if not all(np.isfinite(v) for v in (x0, x1, y0, y1)) or x1 <= x0 or y1 <= y0:
-        raise InputError(f"region must be ((x0, x1), (y0, y1)) mm with x0 < x1 and y0 < y1, got {region!r}")
+        raise InputError(pass_as(f"region must be ((x0, x1), (y0, y1)) mm with x0 < x1 and y0 < y1, got {region!r}",
+                                 f"--region X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm), got {x0:g} {x1:g} {y0:g} "
+                                 f"{y1:g}"))
     return x0, x1, y0, y1
 
 
 def _check_element_size(element_size):
     h = np.broadcast_to(np.asarray(element_size, float), (2,)).copy() if element_size is not None else None
     if h is not None and (np.any(~np.isfinite(h)) or np.any(h <= 0)):
-        raise InputError(f"element_size must be > 0 mm, got {element_size!r}")
+        raise InputError(pass_as(f"element_size must be > 0 mm, got {element_size!r}",
+                                 f"--element-size must be > 0 mm, got "
+                                 f"{' '.join(f'{v:g}' for v in np.atleast_1d(np.asarray(element_size, float)))}"))
     return h
 
 
@@ -1846,7 +1850,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         return res
     if model == "auto":
         if poisson is not None and not _is_3d(displacement, region):
-            raise InputError("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)")
+            raise InputError(pass_as("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)",
+                                     "--poisson applies to --model plane-strain only (--model auto measures the "
+                                     "material's lambda-bar from the data)"))
     else:
         lb = lambda_bar(model, poisson)
     ref = None if reference is None else _check_reference(reference)
@@ -1870,7 +1876,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         except (TypeError, ValueError):
             raise InputError(f"beta must be a number >= 0 or None, got {beta!r}") from None
         if not (np.isfinite(beta) and beta >= 0):
-            raise InputError(f"beta must be a finite number >= 0, got {beta!r}")
+            raise InputError(pass_as(f"beta must be a finite number >= 0, got {beta!r}",
+                                     f"--beta must be a finite number >= 0, got {beta:g}"))
     grid = BETA_GRID if beta_grid is None else tuple(sorted((float(b) for b in beta_grid), reverse=True))
     if not grid or not all(np.isfinite(b) and b >= 0 for b in grid):
         raise InputError(f"beta_grid must hold finite numbers >= 0, got {beta_grid!r}")
@@ -1879,7 +1886,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if beta_method not in BETA_METHODS:
         raise InputError(f"beta_method must be one of {BETA_METHODS}, got {beta_method!r}")
     if int(maxiter) < 1 or not (np.isfinite(gtol) and gtol > 0):
-        raise InputError(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}")
+        raise InputError(pass_as(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}",
+                                 f"--maxiter must be an integer >= 1, got {maxiter}"))
 
     mesh, d, mesh_rule = _mesh_and_data(displacement, region, element_size)
     dim = mesh.p.shape[0]

@@ -12,7 +12,7 @@ from femreg.orientation import check
 
 #: what only a Python caller can pass: never in a message of the command
 PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=slice", "spacing (dx, dy)", "dtype=",
-                "max_span", "max_lateral_mm", "alpha=", "femreg.register(")
+                "max_span", "max_lateral_mm", "alpha=", "femreg.register(", "model=", "maxiter=", "element_size")
 
 
 def _run(argv, capsys):
@@ -125,6 +125,15 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         (["track", d / "pair.npz", "--frames", "2:", "-o", out],
          "frame selection 2: selects no frame (the file has 2, counted from 0: 0 to 1)"),
     ]
+    res = tmp_path.parent / "flags_r.npz"          # invert's flags were named as femreg.invert's arguments
+    if not res.exists():
+        assert _run(["register", d / "pair.npz", "-o", res, "--no-progress"], capsys)[0] == 0
+    inv = ["invert", res, "-o", f"{out}.npz"]
+    cases += [([*inv, "--beta", "-1"], "--beta must be a finite number >= 0, got -1"),
+              ([*inv, "--poisson", "0.3"], "--poisson applies to --model plane-strain only"),
+              ([*inv, "--maxiter", "0"], "--maxiter must be an integer >= 1, got 0"),
+              ([*inv, "--element-size", "0"], "--element-size must be > 0 mm, got 0"),
+              ([*inv, "--region", "30", "10", "0", "2"], "--region X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm)")]
     for argv, says in cases:
         rc, o, err = _run([*argv, "--no-progress"], capsys)
         assert rc == 2 and says in err and "slice(" not in err, (argv, rc, err)
