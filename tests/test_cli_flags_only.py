@@ -12,7 +12,8 @@ from femreg.orientation import check
 
 #: what only a Python caller can pass: never in a message of the command
 PYTHON_WORDS = ("CLI:", "check_orientation", "resume=True", "shape=(", "frames=slice", "spacing (dx, dy)", "dtype=",
-                "max_span", "max_lateral_mm", "alpha=", "femreg.register(", "model=", "maxiter=", "element_size")
+                "max_span", "max_lateral_mm", "alpha=", "femreg.register(", "model=", "maxiter=", "element_size",
+                "angle_pitch_deg", "radius_mm")
 
 
 def _run(argv, capsys):
@@ -116,6 +117,12 @@ def test_mistyped_flag_values_are_refused_in_flag_words(pair, tmp_path, capsys):
         (["elastogram", d / "loop.npz", "--workers", "0", "-o", out], "--workers must be an integer >= 1, got 0"),
         (["elastogram", d / "loop.npz", "--persistence", "1", "-o", out], "--persistence must be at least 0 and below"),
         (["elastogram", d / "loop.npz", "--alpha", "auto", "-o", out], "femreg register LOOP --pair I J --alpha auto"),
+        # a probe's parameters without --geometry were ignored (exit 0, registered as a linear array)
+        (["track", d / "pair.npz", "--radius", "50", "-o", out], "--radius describes a convex, sector or swept probe"),
+        (["register", d / "pair.npz", "--angle-pitch", "0.5", "-o", f"{out}.npz"], "pass --geometry convex, sector"),
+        # "sector angle_pitch_deg must be a number in (0, 10) degrees"
+        (["track", d / "pair.npz", "--geometry", "sector", "--angle-pitch", "0", "-o", out],
+         "--geometry sector needs --angle-pitch above 0 and below 10 degrees"),
         # "output must be a .npz file": the flag is -o
         (["register", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),
         (["invert", d / "pair.npz", "-o", f"{out}.png"], "-o must name a .npz file"),

@@ -104,6 +104,22 @@ def _swept(args):
     return femreg.Swept(sweep_radius_mm=args.sweep_radius, angle_step_deg=args.angle_step, array=array)
 
 
+def refuse_unused_geometry(args) -> None:
+    """A probe's parameters given without ``--geometry`` would be ignored (the frames registered as a linear
+    array's): :class:`femreg.errors.InputError` naming the geometry they belong to."""
+    from femreg.errors import InputError
+
+    if args.geometry != "linear":
+        return
+    given = [f for f, v in (("--radius", args.radius), ("--angle-pitch", args.angle_pitch),
+                            ("--sweep-radius", args.sweep_radius), ("--angle-step", args.angle_step)) if v is not None]
+    if given:
+        raise InputError(f"{' and '.join(given)} describe{'s' if len(given) == 1 else ''} a convex, sector or swept "
+                         "probe, and the geometry is linear: pass --geometry convex, sector or swept with "
+                         f"{'it' if len(given) == 1 else 'them'} (or leave {'it' if len(given) == 1 else 'them'} "
+                         "out)")
+
+
 def _geometry(args):
     import femreg
     from femreg.errors import InputError
@@ -176,6 +192,7 @@ def run(args) -> int:
     from femreg.errors import InputError
 
     kw = registration_kwargs(args)
+    refuse_unused_geometry(args)
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
     if vol is not None:                 # RF volumes (spacing with 3 values)

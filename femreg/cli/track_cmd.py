@@ -14,7 +14,7 @@ from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
                       frames_from_args, ncc_arg, registration_kwargs, run_tracking)
 from .register_cmd import (_check_stated_geometry, _geometry, _note_start_depth, _refuse_curved, _swept,
-                           add_geometry_args)
+                           add_geometry_args, refuse_unused_geometry)
 
 
 def add_parser(subparsers):
@@ -60,6 +60,7 @@ def run(args) -> int:
     from ._volume import read_volume_file, track_volumes
     vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None))
     kw = registration_kwargs(args)
+    refuse_unused_geometry(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
         if getattr(args, "transpose", False):
             raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "
