@@ -407,7 +407,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if kw.get("offset") is not None:
         raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
     if isinstance(alpha, str):
-        raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry")
+        raise InputError(pass_as(f"alpha='auto' is not supported with a {geometry.kind} geometry",
+                                 f"--alpha auto is not supported with --geometry {geometry.kind}"))
     ref = validate_image(reference_image, "reference image")
     mov = validate_image(moving_image, "moving image")
     if ref.shape != mov.shape:

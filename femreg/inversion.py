@@ -1942,7 +1942,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         model_rule = "given"
         if np.isfinite(ratio) and abs(ratio - model_ratio(lb)) > RATIO_TOLERANCE:
             flags.append(f"the data's lateral/axial strain ratio {ratio:.2f} contradicts the {model} model "
-                         f"({model_ratio(lb):.2f}, tolerance {RATIO_TOLERANCE:g}); try model='auto'")
+                         f"({model_ratio(lb):.2f}, tolerance {RATIO_TOLERANCE:g}); try "
+                         + pass_as("model='auto'", "--model auto"))
     fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w, boundary=boundary)
     ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
     if dim == 2:

@@ -186,3 +186,14 @@ def test_resume_with_another_spacing_names_the_setting_first(pair, tmp_path, cap
                          "--no-progress"], capsys)
     assert rc == 2 and "parameters differ (spacing: " in err and "(and with it n_nodes" in err, err
     assert "n_nodes: " not in err and "mesh_checksum: " not in err, err
+
+
+def test_flagged_inversion_advises_the_flag(pair, tmp_path, capsys):
+    # plane stress on a plane-strain compression: flagged (exit 1), advising "try model='auto'" before
+    d, sp, _ = pair
+    res = tmp_path / "r.npz"
+    assert _run(["register", d / "pair.npz", "-o", res, "--no-progress"], capsys)[0] == 0
+    rc, out, err = _run(["invert", res, "-o", tmp_path / "mu.npz", "--model", "plane-stress", "--no-progress"],
+                        capsys)
+    assert rc == 1 and "contradicts the plane-stress model" in err and "try --model auto" in err, err
+    assert "model='auto'" not in out + err, (out, err)
