@@ -109,9 +109,11 @@ SMALL_FRAME_MM = (8.0, 5.0)
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
 
 
-def _given(dx: float, dy: float) -> str:
-    """The spacing a refusal judged, in the words of the caller (argument or flag)."""
-    return pass_as(f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm", f"--spacing {dx:g} {dy:g} (axial, lateral mm)")
+def _given(dx: float, dy: float, dz: tuple = ()) -> str:
+    """The spacing a refusal judged, in the words of the caller (argument or flag; a volume's ``dz`` as typed)."""
+    typed = " ".join(f"{v:g}" for v in (dx, dy, *dz))
+    return pass_as(f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm",
+                   f"--spacing {typed} (axial, lateral{', elevational' if dz else ''} mm)")
 
 
 def override() -> str:
@@ -289,7 +291,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
              f"at {sound_speed:g} m/s), lateral speckle {rep.lateral_cell_mm:.3g} mm")
     if rep.cell_periods < MIN_LATERAL_CELL_PERIODS:
         rep.problem = "swapped" if swap_fits else "spacing"
-        why = (f"{_given(dx, dy)} gives an {found}, narrower than one axial RF period "
+        why = (f"{_given(dx, dy, dz)} gives an {found}, narrower than one axial RF period "
                f"({rep.cell_periods:.2f} of one), below the diffraction limit")
     elif not lo <= rep.frequency_mhz <= hi:
         rep.problem = "swapped" if swap_fits else "spacing"
@@ -298,7 +300,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     elif (whole_frame and rep.frequency_mhz > PRECLINICAL_MHZ and lo <= rep.frequency_mhz / 10.0 <= hi
           and img.shape[0] * dx < SMALL_FRAME_MM[0] and img.shape[1] * dy < SMALL_FRAME_MM[1]):
         rep.problem, rep.small_frame = "spacing", True
-        why = (f"{_given(dx, dy)} gives an {found} and a whole frame of only "
+        why = (f"{_given(dx, dy, dz)} gives an {found} and a whole frame of only "
                f"{img.shape[0] * dx:.3g} x {img.shape[1] * dy:.3g} mm (axial x lateral): probes above "
                f"{PRECLINICAL_MHZ:g} MHz are preclinical ones, whose frames are larger than {SMALL_FRAME_MM[0]:g} x "
                f"{SMALL_FRAME_MM[1]:g} mm")
@@ -348,7 +350,7 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
         return
     (a0, a1), (l0, l1) = ENVELOPE_CELL_MM
     plausible = lambda c: a0 <= c[0] <= a1 and l0 <= c[1] <= l1  # noqa: E731
-    found = (f"{_given(dx, dy)} gives speckle cells of {cell[0]:.3g} mm axially and "
+    found = (f"{_given(dx, dy, dz)} gives speckle cells of {cell[0]:.3g} mm axially and "
              f"{cell[1]:.3g} mm laterally")
     aspect = cell[1] / cell[0]
     cell_sw = cell * np.array([dy / dx, dx / dy])    # exchanged: the axial cell scales by dy/dx, the lateral by dx/dy
