@@ -197,3 +197,15 @@ def test_flagged_inversion_advises_the_flag(pair, tmp_path, capsys):
                         capsys)
     assert rc == 1 and "contradicts the plane-stress model" in err and "try --model auto" in err, err
     assert "model='auto'" not in out + err, (out, err)
+
+
+def test_a_frame_selection_names_the_files_frames(pair, tmp_path, capsys):
+    # --frames 1,2: "frame 1" and frame_001.npz are the file's frame 2, which the lines did not say
+    d, sp, _ = pair
+    rc, out, err = _run(["track", d / "loop.npz", "--frames", "1,2", "-o", tmp_path / "run", "--no-progress"], capsys)
+    assert rc == 0, err
+    assert "frame   1 (the file's frame 2): ncc" in out, out
+    assert "--frames selected the file's frames 1, 2: frame K and" in out, out
+    rc, out, err = _run(["track", d / "loop.npz", "--frames", "0:2", "-o", tmp_path / "run2", "--no-progress"],
+                        capsys)
+    assert rc == 0 and "frame   1: ncc" in out and "the file's frame" not in out, out
