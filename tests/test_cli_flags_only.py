@@ -209,3 +209,10 @@ def test_a_frame_selection_names_the_files_frames(pair, tmp_path, capsys):
     rc, out, err = _run(["track", d / "loop.npz", "--frames", "0:2", "-o", tmp_path / "run2", "--no-progress"],
                         capsys)
     assert rc == 0 and "frame   1: ncc" in out and "the file's frame" not in out, out
+    # elastogram: its frame indices and pairs.csv count the selection too
+    f0, f1 = np.load(d / "frames.npy")
+    save_frames(tmp_path / "loop4.npz", np.stack([f0, f1, f0, f1]), sp)
+    rc, out, err = _run(["elastogram", tmp_path / "loop4.npz", "--frames", "1:4", "-o", tmp_path / "e",
+                         "--no-progress"], capsys)
+    assert rc in (0, 1), err
+    assert "--frames selected the file's frames 1, 2, 3: the frame indices here and in pairs.csv" in out, out
