@@ -768,9 +768,13 @@ class _SweepBar:
         self.bar.refresh()
 
     def close(self) -> None:
+        planned = self.bar.total
         if self.bar.n < self.bar.total:     # ended at its chosen beta: the rest was not needed
             self.bar.total = self.bar.n
-        self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved", refresh=False)
+        # a count that ends below the total shown before says why (a log reads "1/7", then "done, 2/2")
+        self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved" + (
+            f" of up to {planned}: the sweep stopped at its chosen beta" if self.bar.n < planned else ""),
+            refresh=False)
         self.bar.close()
 
 

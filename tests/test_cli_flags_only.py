@@ -216,3 +216,18 @@ def test_a_frame_selection_names_the_files_frames(pair, tmp_path, capsys):
                          "--no-progress"], capsys)
     assert rc in (0, 1), err
     assert "--frames selected the file's frames 1, 2, 3: the frame indices here and in pairs.csv" in out, out
+
+
+def test_invert_progress_says_why_its_count_ends_below_the_total(capsys):
+    # a log read "invert: 1/7 beta", "2/8 betas", then "done, 2/2 betas": the total shrank without a word
+    from femreg.inversion import _SweepBar
+
+    bar = _SweepBar(7, 10)
+    for beta in (0.1, 0.3):
+        bar.start(beta)
+        bar.done()
+        if beta == 0.1:
+            bar.extend()            # the sweep goes past its grid
+    bar.close()
+    err = capsys.readouterr().err
+    assert "2 beta value(s) solved of up to 8: the sweep stopped at its chosen beta" in err, err
