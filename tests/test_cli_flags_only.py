@@ -77,6 +77,10 @@ def test_raw_mistakes_name_flags_only(pair, capsys):
     rc, out, err = _run(["info", d / "f0.raw", "--shape", *shape, "--dtype", "float64"], capsys)
     assert rc == 2 and "try --dtype float32" in err, err
     _python_free(err)
+    # AXIAL LATERAL FRAMES for FRAMES AXIAL LATERAL: "frame shape (n, 1) is degenerate"
+    rc, out, err = _run(["info", d / "f0.raw", "--shape", *shape, 1], capsys)
+    assert rc == 2 and f"three numbers --shape is FRAMES AXIAL LATERAL, e.g. --shape 1 {shape[0]} {shape[1]}" in err
+    _python_free(err)
 
 
 def test_resume_and_repeated_start_name_flags_only(pair, tmp_path, capsys):

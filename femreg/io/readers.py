@@ -268,6 +268,13 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     _sniff_mislabel(path, head, "raw")
     body = size - int(offset)
     frame_bytes = shp[-2] * shp[-1] * dt.itemsize
+    if len(shp) == 3 and min(shp[1:]) < 2:
+        # three numbers are FRAMES AXIAL LATERAL: AXIAL LATERAL FRAMES leaves frames one sample wide
+        f, a, b = shp[2], shp[0], shp[1]
+        hint = f", e.g. {pass_as(f'({f}, {a}, {b})', f'--shape {f} {a} {b}')}" if shp[2] < 2 else ""
+        raise fail(path, f"shape {shp} reads {shp[0]} frame(s) of {shp[1]} x {shp[2]} samples, one sample wide: "
+                         "with three numbers " + pass_as("shape is (frames, axial, lateral)",
+                                                         "--shape is FRAMES AXIAL LATERAL") + hint)
     if len(shp) == 3:
         need = shp[0] * frame_bytes
         if body != need:
