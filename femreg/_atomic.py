@@ -30,6 +30,11 @@ def atomic_savez(path, writer=None, **arrays) -> None:
     os.replace(tmp, path)
 
 
+#: Entries of a run's record that follow from its settings (the mesh a spacing makes, the region it registers):
+#: a resume refused names the settings that differ first.
+DERIVED = ("n_nodes", "mesh_checksum", "roi")
+
+
 def open_run_folder(folder, params: dict, *, resume: bool, record: str, started, kind: str,
                     argument: str = "output_dir", reselect=(), on_reselect=None, described=None):
     """The output folder of a resumable run (``track``, ``elastogram``): create it, refuse a resume whose
@@ -46,7 +51,7 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
     naming ``argument``)."""
     import json
 
-    from .errors import InputError
+    from .errors import InputError, pass_as
 
     if folder is None:
         if resume:
@@ -63,13 +68,18 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
         diff = [k for k in params if old.get(k) != params[k]]
         fixed = [k for k in diff if k not in reselect]
         if fixed:
-            was = "; ".join(f"{k}: {old.get(k)!r} recorded, {params[k]!r} now" for k in fixed)
+            # what follows from the settings (the mesh, the region) is named after them, not as something to pass
+            given = [k for k in fixed if k not in DERIVED] or fixed
+            was = "; ".join(f"{k}: {old.get(k)!r} recorded, {params[k]!r} now" for k in given)
+            if len(given) < len(fixed):
+                was += f" (and with it {', '.join(k for k in fixed if k not in given)})"
             raise InputError(f"cannot resume from {out}: parameters differ ({was}); pass the recorded ones, or "
                              f"start over in another folder")
         if diff and on_reselect is not None:
             on_reselect(diff)
     elif not resume and any(any(out.glob(p)) for p in started):
-        raise InputError(f"{out} already holds {kind}; use resume=True (--resume) or another folder")
+        raise InputError(f"{out} already holds {kind}; use "
+                         + pass_as("resume=True (--resume)", "--resume") + " or another folder")
     atomic_write_text(pfile, json.dumps({**params, **(described or {})}, indent=1))
     return out
 

@@ -75,7 +75,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .echo import as_data_mask
-from .errors import InputError
+from .errors import InputError, pass_as
 from .gnsolve import image_term as ssd_term
 from .image import SplineImage, normalize_pair, validate_image, validate_spacing
 from .regularizers import Regularizer, make_regularizer
@@ -97,6 +97,11 @@ DEFAULT_DECADES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)
 #: Above this many unknowns the trace T is estimated (Hutchinson, seeded Rademacher probes) instead of exact.
 EXACT_TRACE_MAX_DOF = 3000
 TRACE_PROBES = 40
+
+
+def _auto_words() -> str:
+    """How a message names the automatic choice: the argument, or the flag on the command line."""
+    return pass_as("alpha='auto'", "--alpha auto")
 
 
 def influence_trace(Hd, Hr, *, seed: int = 0) -> float:
@@ -359,8 +364,8 @@ def choose_alpha(reference_image, moving_image, *, decades=DEFAULT_DECADES, base
     if n_ok == 0:
         import warnings
 
-        warnings.warn(f"alpha='auto': none of the {alphas.size} candidate registrations succeeded; no alpha was "
-                      f"chosen, the grid centre {alphas[k]:.4g} is used", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"{_auto_words()}: none of the {alphas.size} candidate registrations succeeded; no alpha "
+                      f"was chosen, the grid centre {alphas[k]:.4g} is used", RuntimeWarning, stacklevel=2)
     return AutoAlpha(alpha=float(alphas[k]), alphas=alphas, psi=psi, dof=dof, upre=upre, c=c, sigma2=float(sigma2),
                      n_registrations=int(alphas.size), result=results[k], rule=rule,
                      results=results if keep_results else None, strain_change=change, n_successful=n_ok)
@@ -379,7 +384,7 @@ def register_auto(reference_image, moving_image, **register_kwargs):
     res.auto_alpha = choice
     if choice.n_successful == 0:    # the failure is the registration's; the message also says no alpha was chosen
         res.success = False
-        res.message = (f"FAILED: alpha='auto' found no successful candidate ({choice.n_registrations} registrations "
+        res.message = (f"FAILED: {_auto_words()} found no successful candidate ({choice.n_registrations} registrations "
                        f"failed), the result at the grid centre alpha {choice.alpha:.4g} is returned: "
                        + res.message.removeprefix("FAILED: "))
     return res

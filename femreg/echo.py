@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .errors import InputError
+from .errors import InputError, pass_as
 from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
@@ -270,8 +270,8 @@ def _fill_rectangle(fill, what):
     :class:`InputError` saying ``what`` when it holds fewer than 2 x 2 pixels."""
     (a, b), (c, d) = _largest_rectangle(~fill)
     if b - a < 2 or d - c < 2:
-        raise InputError(f"the frames hold no rectangle of image: {what}; give roi=(x0, x1, y0, y1) mm "
-                         f"(CLI: --roi)")
+        raise InputError(f"the frames hold no rectangle of image: {what}; give "
+                         + pass_as("roi=(x0, x1, y0, y1) mm (CLI: --roi)", "--roi X0 X1 Y0 Y1 (mm)"))
     return (a, b), (c, d)
 
 
@@ -556,6 +556,11 @@ def _extent_text(shape, spacing, origin) -> str:
     return ", ".join(f"{name} {lo[k]:.4g} to {hi[k]:.4g} mm" for k, name in enumerate(_AXES[:len(shape)]))
 
 
+def _given(what: str, v) -> str:
+    """A given ``roi`` / ``depth`` (mm) in the caller's words: the argument's tuple, or the flag as typed."""
+    return pass_as(f"{what} {tuple(float(x) for x in v)} mm", f"--{what} {' '.join(f'{x:g}' for x in v)} (mm)")
+
+
 def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegion:
     """The pixel rectangle of a user's ``roi`` (x0, x1, y0, y1) or ``depth`` (d0, d1) mm: the pixels whose centres
     lie inside it.  :class:`InputError` naming the image extent when it leaves the image or holds no pixel."""
@@ -569,15 +574,18 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         v = np.array([np.nan])
     need = 4 if roi is not None else 2
     if v.size != need or not np.all(np.isfinite(v)) or v[0] >= v[1] or (need == 4 and v[2] >= v[3]):
-        form = "(x0, x1, y0, y1)" if need == 4 else "(d0, d1)"
-        raise InputError(f"{what} must be {form} mm with x0 < x1{' and y0 < y1' if need == 4 else ''}, got {val!r}")
+        form, order, flag = (("(x0, x1, y0, y1)", "x0 < x1 and y0 < y1", "--roi X0 X1 Y0 Y1") if need == 4 else
+                             ("(d0, d1)", "d0 < d1", "--depth D0 D1"))
+        got = " ".join(f"{x:g}" for x in v)
+        raise InputError(pass_as(f"{what} must be {form} mm with {order}, got {val!r}",
+                                 f"{flag} needs {order.upper().replace('AND', 'and')} (mm), got {got}"))
     sp, org = np.asarray(spacing, float), np.asarray(origin, float)
     lo = org - 0.5 * sp
     hi = lo + np.asarray(shape, float) * sp
     tol = 1e-6 * sp
     box = np.array([v[0], v[1], v[2], v[3]]) if need == 4 else np.array([v[0], v[1], lo[1], hi[1]])
     if box[0] < lo[0] - tol[0] or box[1] > hi[0] + tol[0] or box[2] < lo[1] - tol[1] or box[3] > hi[1] + tol[1]:
-        raise InputError(f"{what} {tuple(float(x) for x in v)} mm leaves the image; the image extent is "
+        raise InputError(f"{_given(what, v)} leaves the image; the image extent is "
                          f"{_extent_text(shape, spacing, origin)}")
     idx = []
     for k, axis in ((0, 0), (2, 1)):          # pixel centres c_i = origin + i * spacing inside [box_k, box_k+1]
@@ -585,7 +593,7 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         i1 = int(np.floor((box[k + 1] - org[axis]) / sp[axis] + 1e-6)) + 1
         idx.append((max(0, i0), min(int(shape[axis]), i1)))
     if idx[0][1] - idx[0][0] < 2 or idx[1][1] - idx[1][0] < 2:
-        raise InputError(f"{what} {tuple(float(x) for x in v)} mm holds fewer than 2 x 2 pixels; the image extent "
+        raise InputError(f"{_given(what, v)} holds fewer than 2 x 2 pixels; the image extent "
                          f"is {_extent_text(shape, spacing, origin)}")
     region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
                         tuple(float(s) for s in org))

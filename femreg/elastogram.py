@@ -51,7 +51,7 @@ from scipy import ndimage
 from ._atomic import atomic_savez, atomic_write_text, open_run_folder, progress_bar
 from .blockmatch import block_match
 from .echo import crop_for, rf_like
-from .errors import InputError
+from .errors import InputError, pass_as
 from . import orientation
 from .image import repeated_frames, validate_image, validate_spacing
 from .mesh import roi_mesh
@@ -155,7 +155,8 @@ class ElastogramResult:
     timings : dict, seconds per stage.
     repeated : list of int
         Frames k whose samples equal frame k - 1's (written twice by the scanner or the export): no motion between
-        them, so a pair ending on one is the pair ending on the frame before.
+        them, so a pair ending on one is the pair ending on the frame before, and a pair starting on one is no
+        candidate of its own (``pairs`` holds none: the pair starting on the frame before covers it).
     """
 
     exx: np.ndarray
@@ -316,17 +317,23 @@ def _strain_factor(e, lo, hi):
     return float(max(0.0, 1.0 - abs(np.log(abs(e) / c)) / np.log(hi / c))) if e != 0 else 0.0
 
 
-def screen_pairs(strain, lateral, ncc, *, band=DEFAULT_BAND, max_span=8, min_ncc=0.6, max_lateral_mm=1.0):
+def screen_pairs(strain, lateral, ncc, *, band=DEFAULT_BAND, max_span=8, min_ncc=0.6, max_lateral_mm=1.0,
+                 repeated=()):
     """Candidate pairs from the consecutive screening (stage 2 of the module docstring, before the direct check).
 
-    Parameters: ``strain``, ``lateral``, ``ncc`` (n - 1,) of the consecutive pairs.  Returns a list of dict rows
-    ``ref, mov, strain (fraction), lateral_mm, ncc, quality, selected`` (selected: bool, greedy by quality with
-    non-overlapping intervals)."""
+    Parameters: ``strain``, ``lateral``, ``ncc`` (n - 1,) of the consecutive pairs; ``repeated`` the frames that
+    repeat the one before (:func:`femreg.image.repeated_frames`): a pair starting on one is the pair starting on
+    the frame before, so it is no candidate of its own.  Returns a list of dict rows ``ref, mov, strain
+    (fraction), lateral_mm, ncc, quality, selected`` (selected: bool, greedy by quality with non-overlapping
+    intervals), none starting on a repeated frame."""
     lo, hi = _band(band)
     c = np.sqrt(lo * hi)
     n = len(strain) + 1
     rows = []
+    skip = set(int(k) for k in repeated)
     for i in range(n - 1):
+        if i in skip:               # the same images as frame i - 1: its candidate covers this one
+            continue
         acc, lat, worst, best = 1.0, 0.0, 1.0, None
         for j in range(i + 1, min(n, i + 1 + int(max_span))):
             acc *= 1.0 + strain[j - 1]
@@ -543,7 +550,8 @@ def _check_workers(workers, client):
     if client is not None:
         return max(1, len(client.scheduler_info().get("workers", {})))
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
-        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+        raise InputError(pass_as(f"workers must be an integer >= 1, got {workers!r}",
+                                 f"--workers must be an integer >= 1, got {workers!r}"))
     return int(workers)
 
 
@@ -686,9 +694,12 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if alpha is not None and not _positive_number(alpha):
         # one weight for every pair: a rule ("auto") would pick another weight per pair, so the strain images of
         # the loop would not be comparable
-        raise InputError(f"elastogram alpha must be None (the default weight) or a positive number, got {alpha!r}: "
-                         "alpha='auto' is not supported here (choose it on one pair with femreg.register(..., "
-                         "alpha='auto') and pass its .alpha)")
+        raise InputError(pass_as(f"elastogram alpha must be None (the default weight) or a positive number, got "
+                                 f"{alpha!r}: alpha='auto' is not supported here (choose it on one pair with "
+                                 "femreg.register(..., alpha='auto') and pass its .alpha)",
+                                 f"elastogram --alpha must be a positive number, got {alpha!r}: one weight for every "
+                                 "pair (choose it on one pair with femreg register LOOP --pair I J --alpha auto and "
+                                 "pass the alpha it prints)"))
     seq = _validate(frames)
     repeats = repeated_frames(seq)      # frames written twice: said in the result, nothing to register
     if len(repeats) == len(seq) - 1:
@@ -721,9 +732,11 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     lo, hi = _band(band)
     centre = float(np.sqrt(lo * hi))
     if not (0.0 <= float(persistence) < 1.0):
-        raise InputError(f"persistence must be in [0, 1), got {persistence!r}")
+        raise InputError(pass_as(f"persistence must be in [0, 1), got {persistence!r}",
+                                 f"--persistence must be at least 0 and below 1, got {persistence!r}"))
     if isinstance(max_span, bool) or int(max_span) != max_span or max_span < 1:
-        raise InputError(f"max_span must be an integer >= 1, got {max_span!r}")
+        raise InputError(pass_as(f"max_span must be an integer >= 1, got {max_span!r}",
+                                 f"--max-span must be an integer >= 1, got {max_span!r}"))
     if not (np.isfinite(min_ncc) and -1.0 <= min_ncc <= 1.0):
         raise InputError(f"min_ncc must be in [-1, 1], got {min_ncc!r}")
     n_workers = _check_workers(workers, client)
@@ -732,7 +745,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     extent = np.asarray(shape) * spacing
     max_lat = 0.1 * extent[1] if max_lateral_mm is None else float(max_lateral_mm)
     if not max_lat > 0:
-        raise InputError(f"max_lateral_mm must be > 0, got {max_lateral_mm!r}")
+        raise InputError(pass_as(f"max_lateral_mm must be > 0, got {max_lateral_mm!r}",
+                                 f"--max-lateral must be > 0 mm, got {max_lateral_mm!r}"))
     reg_name = regularizer if isinstance(regularizer, str) else getattr(regularizer, "name", "custom")
 
     def frame(k):
@@ -797,7 +811,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         # -- 2. choose -------------------------------------------------------------------------------------------------
         t = time.perf_counter()
         rows = screen_pairs(e_c, lat_c, ncc_c, band=(lo, hi), max_span=max_span, min_ncc=min_ncc,
-                            max_lateral_mm=max_lat)
+                            max_lateral_mm=max_lat, repeated=repeats)
         for r in rows:
             r.update(registered=False, usable=False, message="")
         # pairs over more than one frame step: screened directly (envelopes of i and j)

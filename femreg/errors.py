@@ -1,6 +1,30 @@
-"""Typed errors.  All are ValueError subclasses so generic callers can catch ValueError."""
+"""Typed errors.  All are ValueError subclasses so generic callers can catch ValueError.
 
-__all__ = ["InputError", "FileFormatError", "SpacingUnknownError"]
+Messages that tell what to pass name the library's argument with the command's flag beside it
+(``check_orientation=False (CLI: --no-orientation-check)``); while the ``femreg`` command runs
+(:func:`cli_wording`) they name the flag alone (:func:`pass_as`), so a command-line user reads only flags."""
+import contextlib
+
+__all__ = ["InputError", "FileFormatError", "SpacingUnknownError", "cli_wording", "pass_as"]
+
+# a process-wide switch, not a context variable: worker threads of the command word their messages alike
+_cli = [False]
+
+
+@contextlib.contextmanager
+def cli_wording():
+    """Within it, :func:`pass_as` gives the command's wording (``femreg.cli.main`` runs every subcommand so)."""
+    before, _cli[0] = _cli[0], True
+    try:
+        yield
+    finally:
+        _cli[0] = before
+
+
+def pass_as(python: str, cli: str) -> str:
+    """How a message names what to pass: ``cli`` (the command's flags only) within :func:`cli_wording`,
+    ``python`` (the library's arguments, usually with the flag beside them) otherwise."""
+    return cli if _cli[0] else python
 
 
 class InputError(ValueError):

@@ -50,8 +50,8 @@ import numpy as np
 from skfem import MeshQuad1
 
 from .data_term import SSDTerm
-from .errors import InputError
-from .orientation import OrientationError
+from .errors import InputError, pass_as
+from .orientation import OrientationError, override
 from .image import SplineImage, normalize_pair
 from .mesh import as_quad_mesh
 from .pixels import PixelQuadrature, PointLocator
@@ -375,14 +375,15 @@ def _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c):
     k = 180.0 / np.pi            # an angle pitch given in radians: the rays k x further apart
     if rep.cell_periods < MIN_LATERAL_CELL_PERIODS and rep.cell_periods * k >= MIN_LATERAL_CELL_PERIODS:
         hint = (f"the angle pitch looks given in radians: --angle-pitch takes degrees, {a:g} rad = {a * k:.4g} deg "
-                f"(angle_pitch_deg={a * k:.4g}; CLI: --angle-pitch {a * k:.4g})")
+                "(" + pass_as(f"angle_pitch_deg={a * k:.4g}; CLI: --angle-pitch {a * k:.4g}",
+                              f"--angle-pitch {a * k:.4g}")
+                + ")")
     else:
         hint = ("check --angle-pitch (degrees between neighbouring rays), --radius (mm from the apex to the face) "
                 "and the range step (the axial spacing, mm)")
     return OrientationError(f"{geometry.kind} frames: {what}; lateral speckle {rep.lateral_cell_mm:.3g} mm, "
                             f"{rep.cell_periods:.2f} of one axial RF period ({rep.period_mm:.3g} mm): narrower than "
-                            f"the diffraction limit allows; {hint}, or check_orientation=False (CLI: "
-                            "--no-orientation-check)", problem="spacing")
+                            f"the diffraction limit allows; {hint}, or {override()}", problem="spacing")
 
 
 def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0.0, 0.0), register,
@@ -413,7 +414,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if kw.get("offset") is not None:
         raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
     if isinstance(alpha, str):
-        raise InputError(f"alpha='auto' is not supported with a {geometry.kind} geometry")
+        raise InputError(pass_as(f"alpha='auto' is not supported with a {geometry.kind} geometry",
+                                 f"--alpha auto is not supported with --geometry {geometry.kind}"))
     ref = validate_image(reference_image, "reference image")
     mov = validate_image(moving_image, "moving image")
     if ref.shape != mov.shape:

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 from . import _kernels
 
@@ -140,7 +140,9 @@ def refuse_repeated_start(repeats, n_frames: int, what: str = "tracking") -> Non
     if last:
         raise InputError(f"frames 0-{last} hold the same samples (the recording repeats frame 0): the first pair "
                          f"sets the mesh and the region registered, so {what} cannot start on a repeat; start at "
-                         f"frame {last} (frames=slice({last}, None); CLI: --frames {last}:)")
+                         f"frame {last} ("
+                         + pass_as(f"frames=slice({last}, None); CLI: --frames {last}:", f"--frames {last}:")
+                         + ")")
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:

@@ -190,7 +190,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import FileFormatError, InputError
+from .errors import FileFormatError, InputError, pass_as
 from .fields import inner_elements, lateral_ratio
 from .linsolve import SPDSolver, single_blas_thread
 from .material import MODELS
@@ -768,9 +768,13 @@ class _SweepBar:
         self.bar.refresh()
 
     def close(self) -> None:
+        planned = self.bar.total
         if self.bar.n < self.bar.total:     # ended at its chosen beta: the rest was not needed
             self.bar.total = self.bar.n
-        self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved", refresh=False)
+        # a count that ends below the total shown before says why (a log reads "1/7", then "done, 2/2")
+        self.bar.set_postfix_str(f"{self.bar.n} beta value(s) solved" + (
+            f" of up to {planned}: the sweep stopped at its chosen beta" if self.bar.n < planned else ""),
+            refresh=False)
         self.bar.close()
 
 
@@ -844,14 +848,18 @@ def _check_region(region):
     except (TypeError, ValueError):
         raise InputError(f"region must be ((x0, x1), (y0, y1)) in mm, got {region!r}") from None
     if not all(np.isfinite(v) for v in (x0, x1, y0, y1)) or x1 <= x0 or y1 <= y0:
-        raise InputError(f"region must be ((x0, x1), (y0, y1)) mm with x0 < x1 and y0 < y1, got {region!r}")
+        raise InputError(pass_as(f"region must be ((x0, x1), (y0, y1)) mm with x0 < x1 and y0 < y1, got {region!r}",
+                                 f"--region X0 X1 Y0 Y1 needs X0 < X1 and Y0 < Y1 (mm), got {x0:g} {x1:g} {y0:g} "
+                                 f"{y1:g}"))
     return x0, x1, y0, y1
 
 
 def _check_element_size(element_size):
     h = np.broadcast_to(np.asarray(element_size, float), (2,)).copy() if element_size is not None else None
     if h is not None and (np.any(~np.isfinite(h)) or np.any(h <= 0)):
-        raise InputError(f"element_size must be > 0 mm, got {element_size!r}")
+        raise InputError(pass_as(f"element_size must be > 0 mm, got {element_size!r}",
+                                 f"--element-size must be > 0 mm, got "
+                                 f"{' '.join(f'{v:g}' for v in np.atleast_1d(np.asarray(element_size, float)))}"))
     return h
 
 
@@ -1668,8 +1676,9 @@ def _check_images(displacement, region, reference_image, moving_image):
     images = (check(reference_image, "reference image" if not three else "reference volume"),
               check(moving_image, "moving image" if not three else "moving volume"))
     if images[0].shape != tuple(displacement.shape) or images[1].shape != images[0].shape:
-        swapped = ("; their axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
-                   "--transpose)" if not three and images[0].shape == tuple(displacement.shape)[::-1] else "")
+        swapped = ("; their axes are the grid's exchanged: frames stored lines first, transpose them ("
+                   + pass_as("CLI: --transpose", "--transpose") + ")"
+                   if not three and images[0].shape == tuple(displacement.shape)[::-1] else "")
         raise InputError(f"{'volumes' if three else 'images'} {images[0].shape} / {images[1].shape} do not match "
                          f"the registration grid {tuple(displacement.shape)}{swapped}")
     return images
@@ -1845,7 +1854,9 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         return res
     if model == "auto":
         if poisson is not None and not _is_3d(displacement, region):
-            raise InputError("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)")
+            raise InputError(pass_as("poisson applies to model='plane-strain' only (model='auto' measures lambda_bar)",
+                                     "--poisson applies to --model plane-strain only (--model auto measures the "
+                                     "material's lambda-bar from the data)"))
     else:
         lb = lambda_bar(model, poisson)
     ref = None if reference is None else _check_reference(reference)
@@ -1869,7 +1880,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         except (TypeError, ValueError):
             raise InputError(f"beta must be a number >= 0 or None, got {beta!r}") from None
         if not (np.isfinite(beta) and beta >= 0):
-            raise InputError(f"beta must be a finite number >= 0, got {beta!r}")
+            raise InputError(pass_as(f"beta must be a finite number >= 0, got {beta!r}",
+                                     f"--beta must be a finite number >= 0, got {beta:g}"))
     grid = BETA_GRID if beta_grid is None else tuple(sorted((float(b) for b in beta_grid), reverse=True))
     if not grid or not all(np.isfinite(b) and b >= 0 for b in grid):
         raise InputError(f"beta_grid must hold finite numbers >= 0, got {beta_grid!r}")
@@ -1878,7 +1890,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
     if beta_method not in BETA_METHODS:
         raise InputError(f"beta_method must be one of {BETA_METHODS}, got {beta_method!r}")
     if int(maxiter) < 1 or not (np.isfinite(gtol) and gtol > 0):
-        raise InputError(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}")
+        raise InputError(pass_as(f"need maxiter >= 1 and gtol > 0, got maxiter={maxiter}, gtol={gtol}",
+                                 f"--maxiter must be an integer >= 1, got {maxiter}"))
 
     mesh, d, mesh_rule = _mesh_and_data(displacement, region, element_size)
     dim = mesh.p.shape[0]
@@ -1933,7 +1946,8 @@ def invert(displacement, *, model: str = "auto", region=None, element_size=None,
         model_rule = "given"
         if np.isfinite(ratio) and abs(ratio - model_ratio(lb)) > RATIO_TOLERANCE:
             flags.append(f"the data's lateral/axial strain ratio {ratio:.2f} contradicts the {model} model "
-                         f"({model_ratio(lb):.2f}, tolerance {RATIO_TOLERANCE:g}); try model='auto'")
+                         f"({model_ratio(lb):.2f}, tolerance {RATIO_TOLERANCE:g}); try "
+                         + pass_as("model='auto'", "--model auto"))
     fem = _Model(mesh, lb, reduced_volumetric=reduced, weights=w, boundary=boundary)
     ext = mesh.p[:, mesh.t].max(axis=1) - mesh.p[:, mesh.t].min(axis=1)
     if dim == 2:

@@ -33,7 +33,7 @@ def frame_selection(text: str):
     try:
         if ":" in text:
             parts = [int(p) if p.strip() else None for p in text.split(":")]
-            if len(parts) > 3:
+            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):     # a step of 0 selects nothing
                 raise ValueError
             return slice(*parts)
         if "," in text:
@@ -84,6 +84,9 @@ def reader_kwargs(options) -> dict:
     shape = options.get("shape")
     if shape is not None and len(shape) not in (2, 3):
         raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
+    c = options.get("sound_speed")
+    if c is not None and not (c > 0 and c < float("inf")):     # unused by most formats: it would pass unnoticed
+        raise InputError(f"--sound-speed must be a finite number > 0 (m/s), got {c:g}")
     return dict(variable=options.get("variable"), shape=shape, dtype=options.get("dtype"),
                 spacing=options.get("spacing"), byte_order=options.get("byte_order"), frames=options.get("frames"),
                 sound_speed=options.get("sound_speed"), modulation_frequency=options.get("modulation_frequency"),
@@ -104,6 +107,8 @@ def registration_kwargs(options) -> dict:
         raise InputError(f"--margin must be a finite number >= 0 (mm), got {o['margin']:g}")
     if o["tol"] is not None and not (o["tol"] > 0 and o["tol"] < float("inf")):
         raise InputError(f"--tol must be a finite number > 0, got {o['tol']:g}")
+    if o["maxiter"] is not None and not o["maxiter"] >= 1:     # 0: the initial guess, returned as converged
+        raise InputError(f"--maxiter must be an integer >= 1 (Gauss-Newton iterations), got {o['maxiter']}")
     if alpha is not None and alpha != "auto" and not (alpha >= 0 and alpha < float("inf")):
         raise InputError(f"--alpha must be a finite number >= 0, got {alpha}")
     if name not in available_regularizers():

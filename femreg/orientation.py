@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "axial_carrier_ratio", "is_envelope", "diagnose",
            "check", "exchanged_shape",
@@ -107,6 +107,18 @@ PRECLINICAL_MHZ = 20.0
 SMALL_FRAME_MM = (8.0, 5.0)
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
+
+
+def _given(dx: float, dy: float, dz: tuple = ()) -> str:
+    """The spacing a refusal judged, in the words of the caller (argument or flag; a volume's ``dz`` as typed)."""
+    typed = " ".join(f"{v:g}" for v in (dx, dy, *dz))
+    return pass_as(f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm",
+                   f"--spacing {typed} (axial, lateral{', elevational' if dz else ''} mm)")
+
+
+def override() -> str:
+    """How a refusal names the way past the check: :data:`OVERRIDE`, the flag alone on the command line."""
+    return pass_as(OVERRIDE, "--no-orientation-check")
 
 
 class OrientationError(InputError):
@@ -240,21 +252,26 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                                 "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
         else:
             what, shape, how = ("frames", "(axial samples, lateral lines)",
-                                "CLI: --transpose; frame.T, frames.transpose(0, 2, 1) in Python")
+                                pass_as("CLI: --transpose; frame.T, frames.transpose(0, 2, 1) in Python",
+                                        "--transpose"))
         # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
         # spacing as (axial, lateral) already while the array is stored lines-first)
         f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
         if lo <= f_keep <= hi and not lo <= f_swap <= hi:
-            spacing_text = (f"keep the spacing ({keep}) mm ({order}; {f_keep:.2f} MHz; CLI: --spacing "
-                            f"{keep.replace(',', '')})")
+            spacing_text = pass_as(f"keep the spacing ({keep}) mm ({order}; {f_keep:.2f} MHz; CLI: --spacing "
+                                   f"{keep.replace(',', '')})",
+                                   f"keep --spacing {keep.replace(',', '')} ({order}; {f_keep:.2f} MHz)")
         elif lo <= f_swap <= hi and not lo <= f_keep <= hi:
-            spacing_text = (f"give the spacing in that order, ({swapped}) mm ({order}; {f_swap:.2f} MHz; CLI: "
-                            f"--spacing {swapped.replace(',', '')})")
+            spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm ({order}; {f_swap:.2f} MHz; "
+                                   f"CLI: --spacing {swapped.replace(',', '')})",
+                                   f"give the spacing in that order, --spacing {swapped.replace(',', '')} "
+                                   f"({order}; {f_swap:.2f} MHz)")
         else:
-            spacing_text = f"give the spacing in that order, ({swapped}) mm"
+            spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
+                                   f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
         rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
                        f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
-                       f"{shape}: transpose them ({how}) and {spacing_text}, or {OVERRIDE}")
+                       f"{shape}: transpose them ({how}) and {spacing_text}, or {override()}")
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         if c0 > NO_CARRIER_RATIO and min(img.shape) >= MIN_SAMPLES:
@@ -274,7 +291,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
              f"at {sound_speed:g} m/s), lateral speckle {rep.lateral_cell_mm:.3g} mm")
     if rep.cell_periods < MIN_LATERAL_CELL_PERIODS:
         rep.problem = "swapped" if swap_fits else "spacing"
-        why = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives an {found}, narrower than one axial RF period "
+        why = (f"{_given(dx, dy, dz)} gives an {found}, narrower than one axial RF period "
                f"({rep.cell_periods:.2f} of one), below the diffraction limit")
     elif not lo <= rep.frequency_mhz <= hi:
         rep.problem = "swapped" if swap_fits else "spacing"
@@ -283,22 +300,24 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     elif (whole_frame and rep.frequency_mhz > PRECLINICAL_MHZ and lo <= rep.frequency_mhz / 10.0 <= hi
           and img.shape[0] * dx < SMALL_FRAME_MM[0] and img.shape[1] * dy < SMALL_FRAME_MM[1]):
         rep.problem, rep.small_frame = "spacing", True
-        why = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives an {found} and a whole frame of only "
+        why = (f"{_given(dx, dy, dz)} gives an {found} and a whole frame of only "
                f"{img.shape[0] * dx:.3g} x {img.shape[1] * dy:.3g} mm (axial x lateral): probes above "
                f"{PRECLINICAL_MHZ:g} MHz are preclinical ones, whose frames are larger than {SMALL_FRAME_MM[0]:g} x "
                f"{SMALL_FRAME_MM[1]:g} mm")
     else:
         return rep
     if rep.problem == "swapped":
-        hint = (f"the axial and lateral spacings look swapped: pass spacing ({swapped}) ({order}; "
-                f"{f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing {swapped.replace(',', '')})")
+        hint = "the axial and lateral spacings look swapped: pass " + pass_as(
+            f"spacing ({swapped}) ({order}; {f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing "
+            f"{swapped.replace(',', '')})",
+            f"--spacing {swapped.replace(',', '')} ({order}; {f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods)")
     else:
         # a uniform change of units leaves the speckle-to-period ratio alone and scales the frequency by 1 / k
         hint = _units_hint((dx, dy) + dz, order, ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")),
                            lambda k: (rep.problem == "spacing" and lo <= rep.frequency_mhz / k <= hi
                                       and rep.cell_periods >= MIN_LATERAL_CELL_PERIODS),
                            lambda k: f"{rep.frequency_mhz / k:.2f} MHz")
-    rep.message = f"{why}; {hint}, or {OVERRIDE}"
+    rep.message = f"{why}; {hint}, or {override()}"
     return rep
 
 
@@ -309,8 +328,9 @@ def _units_hint(spacing, order: str, units, fits, detail) -> str:
     for k, unit in units:
         if fits(k):
             text = ", ".join(f"{v * k:.6g}" for v in spacing)
-            return (f"the spacing's units look like {unit}: pass it in mm, ({text}) ({order}; {detail(k)}; CLI: "
-                    f"--spacing {text.replace(',', '')})")
+            return f"the spacing's units look like {unit}: pass it in mm, " + pass_as(
+                f"({text}) ({order}; {detail(k)}; CLI: --spacing {text.replace(',', '')})",
+                f"--spacing {text.replace(',', '')} ({order}; {detail(k)})")
     return "check the spacing's units (mm) and order (axial, lateral)"
 
 
@@ -330,7 +350,7 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
         return
     (a0, a1), (l0, l1) = ENVELOPE_CELL_MM
     plausible = lambda c: a0 <= c[0] <= a1 and l0 <= c[1] <= l1  # noqa: E731
-    found = (f"spacing (dx, dy) = ({dx:g}, {dy:g}) mm gives speckle cells of {cell[0]:.3g} mm axially and "
+    found = (f"{_given(dx, dy, dz)} gives speckle cells of {cell[0]:.3g} mm axially and "
              f"{cell[1]:.3g} mm laterally")
     aspect = cell[1] / cell[0]
     cell_sw = cell * np.array([dy / dx, dx / dy])    # exchanged: the axial cell scales by dy/dx, the lateral by dx/dy
@@ -339,16 +359,19 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
             and aspect_sw >= ENVELOPE_SWAPPED_ASPECT:
         rep.problem = "swapped"
         rep.message = (f"{found}, the lateral cell {aspect:.2f} of the axial one, but a probe resolves depth "
-                       f"better than across its lines; the axial and lateral spacings look swapped: pass spacing "
-                       f"({swapped}) ({order}; cells {cell_sw[0]:.3g} x {cell_sw[1]:.3g} mm; CLI: --spacing "
-                       f"{swapped.replace(',', '')}), or {OVERRIDE}")
+                       f"better than across its lines; the axial and lateral spacings look swapped: pass "
+                       + pass_as(f"spacing ({swapped}) ({order}; cells {cell_sw[0]:.3g} x {cell_sw[1]:.3g} mm; CLI: "
+                                 f"--spacing {swapped.replace(',', '')})",
+                                 f"--spacing {swapped.replace(',', '')} ({order}; cells {cell_sw[0]:.3g} x "
+                                 f"{cell_sw[1]:.3g} mm)")
+                       + f", or {override()}")
     elif not plausible(cell):
         rep.problem = "spacing"
         # a uniform change of units scales both cells by k
         hint = _units_hint((dx, dy) + dz, order, ((10.0, "centimetres"), (1e3, "metres"), (1e-3, "micrometres")),
                            lambda k: plausible(cell * k), lambda k: f"cells {cell[0] * k:.3g} x {cell[1] * k:.3g} mm")
         rep.message = (f"{found}, outside what ultrasound probes resolve ({a0:g}-{a1:g} mm axially, {l0:g}-{l1:g} "
-                       f"mm laterally); {hint}, or {OVERRIDE}")
+                       f"mm laterally); {hint}, or {override()}")
 
 
 def _signal_columns(block):
@@ -427,7 +450,7 @@ def check_raw_shape(frames) -> None:
         return
     msg = exchanged_shape(frames.frames[0])
     if msg:
-        raise OrientationError(f"{msg}; or check_orientation=False (CLI: --no-orientation-check)", problem="shape")
+        raise OrientationError(f"{msg}; or {override()}", problem="shape")
 
 
 def check_remodulated(frames) -> None:
@@ -452,8 +475,12 @@ def check_remodulated(frames) -> None:
     raise OrientationError(
         f"IQ data read with spacing ({dx:g}, {dy:g}) mm: the lateral speckle ({lat:.3g} mm) is narrower than the "
         f"axial ({ax:.3g} mm), {aspect:.2f} of it, while a linear array's lateral resolution is the coarser; the "
-        f"axial and lateral spacings look swapped: pass spacing ({dy:g}, {dx:g}) (axial IQ sample spacing, then "
-        f"line spacing; lateral / axial speckle {swapped:.1f}; CLI: --spacing {dy:g} {dx:g}), or {OVERRIDE}",
+        f"axial and lateral spacings look swapped: pass "
+        + pass_as(f"spacing ({dy:g}, {dx:g}) (axial IQ sample spacing, then line spacing; lateral / axial speckle "
+                  f"{swapped:.1f}; CLI: --spacing {dy:g} {dx:g})",
+                  f"--spacing {dy:g} {dx:g} (axial IQ sample spacing, then line spacing; lateral / axial speckle "
+                  f"{swapped:.1f})")
+        + f", or {override()}",
         problem="swapped")
 
 
@@ -473,13 +500,14 @@ def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "") -> tu
     verdict = iq_convention(a, b, spacing[0], f, sound_speed=c)
     given = bool(iq.get("conjugate"))
     if verdict[0] == "conjugate":
-        fix = ("leave out --iq-conjugate (read_frames(..., iq_conjugate=False))" if given else
-               "pass --iq-conjugate (read_frames(..., iq_conjugate=True))")
+        fix = (pass_as("leave out --iq-conjugate (read_frames(..., iq_conjugate=False))",
+                       "leave out --iq-conjugate") if given else
+               pass_as("pass --iq-conjugate (read_frames(..., iq_conjugate=True))", "pass --iq-conjugate"))
         raise OrientationError(
             f"{where}the IQ phase turns against the envelope's motion between the frames ({verdict[2]} windows; the "
             f"other sign convention explains the phases {1 / verdict[1]:.1f} times better): the data look "
             f"demodulated with exp({'-' if given else '+'}2 pi i f t), and registered as they are they would give a "
-            f"wrong strain; {fix}, or {OVERRIDE}", problem="iq-sign")
+            f"wrong strain; {fix}, or {override()}", problem="iq-sign")
     if verdict[0] == "frequency":
         fb = verdict[3]
         sign = "" if (fb > 0) != given else " with the other sign convention (--iq-conjugate)"
@@ -487,5 +515,5 @@ def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "") -> tu
             f"{where}the IQ phase between the frames turns as for a {abs(fb):.3g} MHz demodulation{sign}, not the "
             f"{f:g} MHz given ({verdict[2]} windows): with the wrong frequency the strain comes out scaled by about "
             f"their ratio; give the demodulation frequency the scanner recorded (--iq-frequency MHZ; the sampling "
-            f"frequency or the probe's nominal centre frequency are not it), or {OVERRIDE}", problem="iq-frequency")
+            f"frequency or the probe's nominal centre frequency are not it), or {override()}", problem="iq-frequency")
     return verdict

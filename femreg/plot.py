@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 __all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
            "plot_inversion", "plot_mesh_values", "plot_quality", "fit_colorbars", "DIVERGING_CMAP",
@@ -475,8 +475,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     if reference is not None:
         reference = _image2d(reference, "reference")
         if reference.shape != shape:
-            swapped = ("; its axes are the grid's exchanged: frames stored lines first, transpose them (CLI: "
-                       "--transpose)" if reference.shape == tuple(shape)[::-1] else "")
+            swapped = ("; its axes are the grid's exchanged: frames stored lines first, transpose them ("
+                       + pass_as("CLI: --transpose", "--transpose") + ")"
+                       if reference.shape == tuple(shape)[::-1] else "")
             raise InputError(f"reference shape {reference.shape} differs from the result grid {shape}{swapped}")
     positions = _beam_positions(result, d, shape, sp, origin)
     plt = _mpl()
@@ -606,6 +607,12 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
 # ----------------------------------------------------------------------------------------------------------------
 # shear-modulus images (femreg.invert)
 # ----------------------------------------------------------------------------------------------------------------
+def _plain_tick(v, _pos=None) -> str:
+    """A log colour bar's tick as a plain number: 0.1, 2.5, 100 (``:.2g`` alone writes 100 as 1e+02)."""
+    text = f"{v:.2g}"
+    return f"{v:.0f}" if "e+" in text else text
+
+
 def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
                      vmin=None, vmax=None, label=None):
     """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
@@ -641,7 +648,7 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
     if log:                                         # plain numbers (0.5, 2, 4), not powers of ten
         from matplotlib.ticker import FuncFormatter
 
-        fmt = FuncFormatter(lambda v, _: f"{v:.2g}")
+        fmt = FuncFormatter(_plain_tick)
         cb.ax.yaxis.set_major_formatter(fmt)
         if hi / lo < 10:                            # within a decade the minor ticks are the only labels;
             cb.ax.yaxis.set_minor_formatter(fmt)    # across decades labelling them would overprint

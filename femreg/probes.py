@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 __all__ = ["Convex", "Sector", "Swept", "as_geometry"]
 
@@ -35,9 +35,12 @@ class Convex:
         r, a = self.radius_mm, self.angle_pitch_deg
         ok_r = isinstance(r, (int, float)) and np.isfinite(r) and r >= (0 if self.kind == "sector" else 1e-9)
         if not ok_r:
-            raise InputError(f"{self.kind} radius_mm must be a finite number > 0 mm, got {r!r}")
+            raise InputError(pass_as(f"{self.kind} radius_mm must be a finite number > 0 mm, got {r!r}",
+                                     f"--geometry {self.kind} needs --radius > 0 mm, got {r!r}"))
         if not (isinstance(a, (int, float)) and np.isfinite(a) and 0 < a < 10):
-            raise InputError(f"{self.kind} angle_pitch_deg must be a number in (0, 10) degrees, got {a!r}")
+            raise InputError(pass_as(f"{self.kind} angle_pitch_deg must be a number in (0, 10) degrees, got {a!r}",
+                                     f"--geometry {self.kind} needs --angle-pitch above 0 and below 10 degrees, "
+                                     f"got {a!r}"))
 
     kind = "convex"
 

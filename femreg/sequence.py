@@ -40,7 +40,7 @@ from skfem import MeshQuad1
 from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
 from .echo import as_data_mask, crop_for
 from . import orientation
-from .errors import InputError
+from .errors import InputError, pass_as
 from .image import refuse_repeated_start, repeat_note, repeated_frames, validate_image, validate_spacing
 from .mesh import as_quad_mesh, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
@@ -289,8 +289,10 @@ def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, gri
     of frames 0 and 1), every later increment on that mesh moved by S_k (eq:IR on frame k's samples, as
     ``grid="current"``), the results :class:`femreg.geometry.BeamResult` in physical coordinates."""
     if grid != "current":
-        raise InputError(f"grid='reference' is not supported with a {geometry.kind} geometry (the increments are "
-                         "registered on each frame's own samples, grid='current')")
+        raise InputError(pass_as(f"grid='reference' is not supported with a {geometry.kind} geometry (the "
+                                 "increments are registered on each frame's own samples, grid='current')",
+                                 f"--grid reference is not supported with --geometry {geometry.kind} (the increments "
+                                 "are registered on each frame's own samples, --grid current)"))
     dr, r0 = beam_spacing(spacing, geometry, origin)
     _, sp_s, _ = sample_space(geometry, seq[0].shape, dr, r0)
     if check_orientation:           # in sample space, where the frame is a linear image (femreg.geometry)

@@ -38,7 +38,7 @@ import numpy as np
 
 from skfem import MeshHex1
 
-from .errors import InputError
+from .errors import InputError, pass_as
 from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
                      slab_scores, slabs_within_budget, strong_levels)
 from .regularizers.momentum import LAMBDA_BAR_3D
@@ -87,7 +87,8 @@ def as_volume_refinement(spec) -> Refinement | None:
         if spec.indicator != "jump":
             raise InputError(f"volumes refine with the 'jump' indicator only, got {spec.indicator!r}")
         if spec.slip is not None:
-            raise InputError("the slip region of refinement is not available on volumes (slip=None)")
+            raise InputError("the slip region of refinement is not available on volumes ("
+                             + pass_as("slip=None", "--refine auto or a number of passes") + ")")
         return spec if spec.passes > 0 else None
     raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
 

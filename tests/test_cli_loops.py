@@ -99,6 +99,26 @@ def test_elastogram_names_the_repeated_frames(pair, tmp_path, capsys):
     assert elastogram(np.stack([ref, mid, mov]), spacing=(0.025, 0.2)).repeated == []
 
 
+def test_elastogram_merges_candidates_starting_on_a_repeated_frame(pair, tmp_path, capsys):
+    from femreg.elastogram import screen_pairs
+
+    # a steady 0.3 %/frame compression with frame 3 written twice (no motion from 2 to 3): the candidate from 3
+    # is the one from 2, listed once
+    e = np.full(8, -0.003)
+    e[2] = 0.0
+    rows = screen_pairs(e, np.zeros(8), np.full(8, 0.95), band=(0.005, 0.02), repeated=[3])
+    assert [r["ref"] for r in rows] == [0, 1, 2, 4, 5, 6, 7], rows
+    assert [r["ref"] for r in screen_pairs(e, np.zeros(8), np.full(8, 0.95), band=(0.005, 0.02))] == list(range(8))
+    ref, mid, mov = pair
+    f = _save(tmp_path / "f.npy", [ref, mid, mid, mov])
+    rc, out, err = _run(["elastogram", f, *SP, "-o", tmp_path / "e", "--band", "0.3", "2"], capsys)
+    assert rc in (0, 1), err
+    refs = [int(line.split(",")[0]) for line in (tmp_path / "e" / "pairs.csv").read_text().splitlines()[1:]]
+    assert refs == [0, 1], refs                       # before: 0, 1, 2 (2 -> 3 the same images as 1 -> 3)
+    assert "3 frames, 2 candidate pairs" not in out and "4 frames, 2 candidate pairs" in out, out
+    assert "1 candidate pair starting on one merged into the pair starting on the frame before" in out, out
+
+
 # ------------------------------------------------------------------------------------------- off a terminal
 def test_track_off_a_terminal_writes_one_line_per_frame(pair, tmp_path, capsys):
     ref, mid, mov = pair

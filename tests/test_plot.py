@@ -320,3 +320,20 @@ def test_labels_stay_inside_the_figure_and_clear_of_the_failure_frame():
         for left, right in zip(panels[:-1], panels[1:]):                 # and still apart from each other
             assert left.child_axes[0].get_tightbbox(r).x1 < right.get_tightbbox(r).x0
         plt.close(fig)
+
+
+def test_log_colour_bar_ticks_are_plain_numbers():
+    # a modulus image over three decades (in vivo seq304 frames 0 -> 3: 0.07-500 x the median) labelled its 100
+    # "1e+02" beside 0.1, 1 and 10
+    from femreg.plot import plot_mesh_values
+
+    pts = np.array([[0.0, 0.0, 1.0, 1.0, 2.0, 2.0], [0.0, 1.0, 0.0, 1.0, 0.0, 1.0]])
+    cells = np.array([[0, 2], [2, 4], [3, 5], [1, 3]])
+    fig, ax = plt.subplots()
+    plot_mesh_values(pts, cells, np.array([0.05, 500.0]), ax=ax, log=True)
+    fig.canvas.draw()
+    cax = ax.collections[0].colorbar.ax
+    labels = [t.get_text() for t in cax.get_yticklabels() if t.get_text()]
+    plt.close(fig)
+    assert "100" in labels and "10" in labels, labels
+    assert not any("e+" in s or "e-" in s for s in labels), labels

@@ -9,7 +9,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import InputError, pass_as
 from .settings import _check_settings, default_settings
 
 __all__ = ["Job", "jobs_from_inputs", "settings_file_for"]
@@ -207,8 +207,8 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
     if item.is_dir() and len(jobs) > 1 and all(f.n_frames == 1 for _, f in probed) and need > 1:
         what = "tracking needs 2" if s["task"] == "track" else f"pair {s['pairs'][0]} needs {need}"
         raise InputError(f"{item}: its {len(jobs)} files hold one frame each, and each file is a recording of its "
-                         f"own ({what}); if they are the frames of one recording, pass --folders recording "
-                         f"(folders='recording')")
+                         f"own ({what}); if they are the frames of one recording, pass "
+                         + pass_as("--folders recording (folders='recording')", "--folders recording"))
     if not s.get("no_orientation_check"):
         try:
             check_raw_shape(fr)

@@ -16,7 +16,7 @@ import traceback
 from pathlib import Path
 
 from .._atomic import atomic_savez, atomic_write_text
-from ..errors import InputError
+from ..errors import InputError, pass_as
 from .engine import Task, _describe_error, open_client, run_tasks
 from .inputs import Job
 from .settings import _check_settings
@@ -228,7 +228,8 @@ def run_batch(jobs, out_dir, *, client=None, workers: int = 2, scheduler: str | 
     finished = {}
     if manifest is not None or any(out_dir.glob("*/*.record.json")):
         if not resume:
-            raise InputError(f"{out_dir} already holds a batch; use resume=True (--resume) or another folder")
+            raise InputError(f"{out_dir} already holds a batch; use "
+                             + pass_as("resume=True (--resume)", "--resume") + " or another folder")
         changed = []
         for sp in specs:
             rec = _read_record(_record_path(out_dir, sp))

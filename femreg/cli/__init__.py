@@ -199,7 +199,7 @@ def _extra_hint(argv, extra, command) -> str:
 
 
 def main(argv=None) -> int:
-    from femreg.errors import InputError
+    from femreg.errors import InputError, cli_wording
     from femreg.optional import MissingDependencyError
 
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -225,7 +225,8 @@ def main(argv=None) -> int:
     made = []
     try:
         made = _output_folders(args)
-        rc = int(args.func(args) or 0)
+        with cli_wording():         # the library's messages name the command's flags only
+            rc = int(args.func(args) or 0)
         if rc == 2:
             _remove_empty(made)
         return rc

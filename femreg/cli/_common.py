@@ -237,6 +237,17 @@ def _alpha_arg(text):
         raise argparse.ArgumentTypeError(f"must be a number or 'auto', got {text!r}") from None
 
 
+def ncc_arg(text):
+    """``--min-ncc``: a correlation, -1 to 1 (a threshold above 1 would flag every pair after all the work)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not -1.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"an NCC lies in -1 to 1, got {text!r}")
+    return v
+
+
 def add_registration_args(parser: argparse.ArgumentParser) -> None:
     """Flags shared by ``register`` and ``track``: regulariser, alpha, mesh and solver settings."""
     from ..regularizers import available_regularizers
@@ -252,7 +263,7 @@ def add_registration_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--element-size", metavar="MM", type=float, nargs="+",
                    help="element size in mm (one value, or axial and lateral)")
     g.add_argument("--margin", type=float, help="strip of the image left out of the mesh, mm")
-    g.add_argument("--roi", nargs="+", metavar="X0 X1 Y0 Y1 [Z0 Z1]|auto|full",
+    g.add_argument("--roi", nargs="+", metavar=("X0 X1 Y0 Y1|auto|full", "Z0 Z1"),
                    help="region registered, mm (axial x0 x1, lateral y0 y1; a volume also elevational z0 z1); "
                         "default auto: where the frames hold "
                         "usable echo (depth or lines at the noise floor and saturated samples left out, and said "
@@ -305,6 +316,16 @@ def failed_notice(path, success, message, flag="") -> int:
     return 0
 
 
+def file_frame(selection, k: int) -> int:
+    """The file's index of frame ``k`` of a ``--frames`` selection (counted from 0, as the run counts them): a
+    list's k-th entry, a slice's start + k x step (negative indices are refused before)."""
+    if isinstance(selection, slice):
+        return (selection.start or 0) + k * (selection.step or 1)
+    if isinstance(selection, (list, tuple)):
+        return int(selection[k])
+    return int(selection) + k
+
+
 def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     """Run ``call(on_frame)`` (a tracking run writing one file per frame into ``args.output``), print a line per
     frame and the run's summary; the exit code: 0 done, 1 a frame flagged or failed (finished frames kept, the
@@ -318,6 +339,9 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     done = []
     start = time.monotonic()
     as_progress = not args.no_progress and not stderr_is_terminal()
+    sel = getattr(args, "frames", None)
+    # a selection counts its own frames from 0: the line names the file's frame too, where they differ
+    moved = sel is not None and any(file_frame(sel, k) != k for k in range(1, (total or 0) + 1))
 
     def on_frame(k, res, flag):
         done.append(k)
@@ -326,7 +350,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         what = (f"repeats frame {rep} (identical samples): not registered, frame {rep}'s field kept" if rep is not None
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         # with the progress bar on, the per-frame line goes to stderr beside the bar
-        print(f"frame {k:3d}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
+        where = f" (the file's frame {file_frame(sel, k)})" if moved else ""
+        print(f"frame {k:3d}{where}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
               file=sys.stdout if args.no_progress else sys.stderr)
 
     on_frame.reports_progress = True
@@ -352,6 +377,10 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         one = len(repeated) == 1
         print(f"femreg track: note: {len(repeated)} {noun}{'' if one else 's'} {'repeats' if one else 'repeat'} "
               f"the one before (identical samples; {noun}s {shown}): not registered, the field before kept")
+    if moved:
+        print(f"femreg track: note: --frames selected the file's frames "
+              f"{', '.join(str(file_frame(sel, k)) for k in range(len(out) + 1))}: frame K and {args.output}/"
+              f"frame_KKK.npz count the selection from 0")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
     print(f"femreg track: {len(out)} {noun}{'' if len(out) == 1 else 's'} in {args.output} ({n_new} computed, "

@@ -104,7 +104,7 @@ def register_volumes(args, vol, kw) -> int:
         ref = arr if arr.ndim == 3 else arr[frame_index(i, arr.shape[0], args.reference, "--pair")]
         mov = other[0] if other[0].ndim == 3 else other[0][frame_index(j, other[0].shape[0], args.moving, "--pair")]
     if not str(args.output).endswith(".npz"):
-        raise InputError(f"output must be a .npz file, got {args.output}")
+        raise InputError(f"-o must name a .npz file, got {args.output}")
     from ..autoalpha import showing_progress
 
     try:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import sys
 
-from ._common import add_reader_args, add_registration_args
+from ._common import add_reader_args, add_registration_args, ncc_arg
 
 
 def add_parser(subparsers):
@@ -48,7 +48,7 @@ def add_parser(subparsers):
                    help="track: pixel grid of accumulation (see femreg track --help)")
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
                    help="track: initial guess of each increment")
-    p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--folders", choices=("contents", "recording"), default="contents",
                    help="an INPUT folder holds recordings (default), or is one recording of per-frame files")
     g = p.add_argument_group("where the tasks run")

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._common import add_reader_args, add_registration_args, frames_from_args, registration_kwargs
+from ._common import (add_reader_args, add_registration_args, file_frame, frames_from_args, ncc_arg,
+                      registration_kwargs)
 
 
 def add_parser(subparsers):
@@ -35,7 +36,7 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
     p.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"), default=(0.5, 2.0),
                    help="axial strain magnitude of the pairs to register, percent (default 0.5 2)")
-    p.add_argument("--min-ncc", type=float, default=0.6, help="least envelope NCC of a pair (default 0.6)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.6, help="least envelope NCC of a pair (default 0.6)")
     p.add_argument("--max-span", type=int, default=8, help="largest frame distance of a pair (default 8)")
     p.add_argument("--max-lateral", type=float, metavar="MM",
                    help="largest lateral motion within a pair, mm (default a tenth of the image width)")
@@ -278,6 +279,10 @@ def run(args) -> int:
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
     which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
+    sel = getattr(args, "frames", None)
+    moved = sel is not None and any(file_frame(sel, k) != k for k in range(fr.n_frames))
+    if moved:               # a --frames selection counts its own frames from 0, as pairs.csv does
+        which = f" (the file's frame {file_frame(sel, res.ref_frame)})"
     print(f"femreg elastogram: {fr.n_frames} frames, {len(res.pairs)} candidate pairs, {n_sel} registered, "
           f"{res.n_usable} usable; "
           + (f"best elastogram on frame index {res.ref_frame}{which}; " if res.n_usable else
@@ -289,9 +294,16 @@ def run(args) -> int:
 
         shown = repeats_listed(res.repeated)
         verb = "repeats" if len(res.repeated) == 1 else "repeat"
+        merged = sum(1 for k in res.repeated if k < fr.n_frames - 1)     # the last frame starts no pair
         print(f"femreg elastogram: note: {len(res.repeated)} of {fr.n_frames} frames {verb} the one before "
               f"(identical samples; frames {shown}): no motion between them, pairs ending on one are the pairs "
-              "ending on the frame before")
+              "ending on the frame before"
+              + (f"; {merged} candidate pair{'s' if merged != 1 else ''} starting on one merged into the pair "
+                 "starting on the frame before (not listed in pairs.csv)" if merged else ""))
+    if moved:
+        print(f"femreg elastogram: note: --frames selected the file's frames "
+              f"{', '.join(str(file_frame(sel, k)) for k in range(fr.n_frames))}: the frame indices here and in "
+              "pairs.csv count the selection from 0")
     if failure:
         print(f"femreg elastogram: failed: {failure}", file=sys.stderr)
         return 1

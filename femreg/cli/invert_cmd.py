@@ -178,10 +178,13 @@ def run(args) -> int:
 
     out = Path(args.output)
     if out.suffix.lower() != ".npz":
-        raise InputError(f"output must be a .npz file, got {out}")
+        raise InputError(f"-o must name a .npz file, got {out}")
     for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    if args.pair is not None and not args.images:        # it would be ignored
+        raise InputError(f"--pair {' '.join(str(k) for k in args.pair)} picks the frames of --images FILE(S), and "
+                         "none were given")
     reg = femreg.load_result(args.result)
     volume = np.shape(reg.mesh.p)[0] == 3
     kind = "a volume's result" if volume else "a 2D result"

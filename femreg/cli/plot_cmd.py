@@ -29,7 +29,8 @@ def add_parser(subparsers):
     p.add_argument("--reference", metavar="FILE",
                    help="reference RF (any readable format) for the B-mode panel, drawn on the result's grid (a "
                         "file that stores no spacing needs no --spacing: the result's is used)")
-    p.add_argument("--frame", type=int, default=0, help="frame of --reference to use, counted from 0 (default 0)")
+    p.add_argument("--frame", type=int, default=None,
+                   help="frame of --reference to use, counted from 0 (default 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
     from .invert_cmd import add_slice_arg
@@ -60,6 +61,9 @@ def _run(args) -> int:
                             ("--render", args.render, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    if args.frame is not None and not args.reference:     # it would be ignored: the picture is not what was asked
+        raise InputError(f"--frame {args.frame} picks a frame of --reference FILE, and none was given (a track's "
+                         "frame K is its file OUT/frame_KKK.npz)")
     # ---- a shear-modulus file of `femreg invert` has its own figure
     from .invert_cmd import is_inversion_file, plot_inversion_file
     if is_inversion_file(args.result):
@@ -80,7 +84,7 @@ def _run(args) -> int:
     reference = None
     if args.reference:
         fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
-        reference = fr.frames[frame_index(args.frame, fr.n_frames, args.reference, "--frame")]
+        reference = fr.frames[frame_index(args.frame or 0, fr.n_frames, args.reference, "--frame")]
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")
     out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")

@@ -19,7 +19,7 @@ import sys
 import numpy as np
 
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_spacing_args, beam_spacing_error,
-                      frames_from_args, registration_kwargs)
+                      frames_from_args, ncc_arg, registration_kwargs)
 
 
 def add_parser(subparsers):
@@ -34,7 +34,7 @@ def add_parser(subparsers):
                         "single-frame files)")
     p.add_argument("-o", "--output", required=True, help="output .npz (missing folders are created)")
     add_volume_arg(p)
-    p.add_argument("--min-ncc", type=float, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag the pair if NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bar (shown over the candidate registrations of --alpha auto)")
     add_geometry_args(p)
@@ -102,6 +102,22 @@ def _swept(args):
     elif args.radius is not None:
         raise InputError("a swept convex array needs --angle-pitch with --radius")
     return femreg.Swept(sweep_radius_mm=args.sweep_radius, angle_step_deg=args.angle_step, array=array)
+
+
+def refuse_unused_geometry(args) -> None:
+    """A probe's parameters given without ``--geometry`` would be ignored (the frames registered as a linear
+    array's): :class:`femreg.errors.InputError` naming the geometry they belong to."""
+    from femreg.errors import InputError
+
+    if args.geometry != "linear":
+        return
+    given = [f for f, v in (("--radius", args.radius), ("--angle-pitch", args.angle_pitch),
+                            ("--sweep-radius", args.sweep_radius), ("--angle-step", args.angle_step)) if v is not None]
+    if given:
+        raise InputError(f"{' and '.join(given)} describe{'s' if len(given) == 1 else ''} a convex, sector or swept "
+                         "probe, and the geometry is linear: pass --geometry convex, sector or swept with "
+                         f"{'it' if len(given) == 1 else 'them'} (or leave {'it' if len(given) == 1 else 'them'} "
+                         "out)")
 
 
 def _geometry(args):
@@ -176,6 +192,7 @@ def run(args) -> int:
     from femreg.errors import InputError
 
     kw = registration_kwargs(args)
+    refuse_unused_geometry(args)
     from ._volume import read_volume_file, register_volumes
     vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
     if vol is not None:                 # RF volumes (spacing with 3 values)
@@ -259,7 +276,7 @@ def run(args) -> int:
 
         check_iq_sign(ref, mov, ref_fr.spacing, ref_fr.metadata["iq"], where=f"{args.reference}, {args.moving}: ")
     if not str(args.output).endswith(".npz"):
-        raise InputError(f"output must be a .npz file, got {args.output}")
+        raise InputError(f"-o must name a .npz file, got {args.output}")
 
     files = (ref_fr.metadata or {}).get("files")
     if args.moving is None and args.pair is not None and files and len(files) == ref_fr.n_frames:

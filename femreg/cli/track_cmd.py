@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
-                      frames_from_args, registration_kwargs, run_tracking)
+                      frames_from_args, ncc_arg, registration_kwargs, run_tracking)
 from .register_cmd import (_check_stated_geometry, _geometry, _note_start_depth, _refuse_curved, _swept,
-                           add_geometry_args)
+                           add_geometry_args, refuse_unused_geometry)
 
 
 def add_parser(subparsers):
@@ -44,7 +44,7 @@ def add_parser(subparsers):
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
                    help="initial guess of each increment: the previous increment (default) or block matching")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
-    p.add_argument("--min-ncc", type=float, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
+    p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_volume_arg(p)
     add_geometry_args(p)
@@ -60,6 +60,7 @@ def run(args) -> int:
     from ._volume import read_volume_file, track_volumes
     vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None))
     kw = registration_kwargs(args)
+    refuse_unused_geometry(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)
         if getattr(args, "transpose", False):
             raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FileFormatError, InputError, SpacingUnknownError
+from ..errors import FileFormatError, InputError, SpacingUnknownError, pass_as
 
 __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_frames", "validate_frames",
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "spacing_suggestion", "SpacingSuggestion", "geometry_fields", "geometry_hint",
@@ -135,8 +135,8 @@ def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None 
         axes = ("axial dx", "lateral dy", "elevational dz")
         missing = " and ".join(a for a, v in zip(axes, file_sp) if v is None)
         msg = required_msg or "this format stores no pixel spacing"
-        hint = "spacing=(dx, dy) in mm (CLI: --spacing DX DY)" if n == 2 else \
-            "spacing=(dx, dy, dz) in mm (CLI: --spacing DX DY DZ)"
+        hint = pass_as("spacing=(dx, dy) in mm (CLI: --spacing DX DY)", "--spacing DX DY (mm)") if n == 2 else \
+            pass_as("spacing=(dx, dy, dz) in mm (CLI: --spacing DX DY DZ)", "--spacing DX DY DZ (mm)")
         if suggestion is not None:
             msg = f"{msg}; {suggestion.text()}"
         raise SpacingUnknownError(f"{path}: {missing} spacing unknown ({msg}); give {hint}", path=path,
@@ -168,7 +168,10 @@ def select_frames(path, arr: np.ndarray, frames):
     except (TypeError, ValueError):
         raise InputError(f"frames must be an int, a slice or a list of ints, got {frames!r}") from None
     if idx.size == 0:
-        raise InputError(f"{path}: frame selection {frames!r} selects no frame (the file has {n})")
+        shown = (":".join("" if v is None else str(v) for v in (frames.start, frames.stop))
+                 + ("" if frames.step is None else f":{frames.step}")) if isinstance(frames, slice) else repr(frames)
+        raise InputError(f"{path}: frame selection {shown} selects no frame (the file has {n}, counted from 0: 0 to "
+                         f"{n - 1})")
     bad = idx[(idx < -n) | (idx >= n)]
     if bad.size:
         raise InputError(f"{path}: frame index {int(bad[0])} out of range (the file has {n} frame(s), counted from "

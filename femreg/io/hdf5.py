@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FileFormatError, InputError
+from ..errors import FileFormatError, InputError, pass_as
 from .checks import AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, spacing_suggestion, validate_frames
 
 __all__ = ["read_hdf5", "EXTENSIONS"]
@@ -77,8 +77,8 @@ def _choose(path, dsets: dict, variable) -> str:
         return good[0]
     if not good:
         raise fail(path, f"no 2D/3D numeric dataset found (datasets: {', '.join(sorted(dsets)) or 'none'})")
-    raise fail(path, f"several 2D/3D datasets ({', '.join(sorted(good))}); choose one with variable= "
-                     "(CLI: --variable NAME)")
+    raise fail(path, f"several 2D/3D datasets ({', '.join(sorted(good))}); choose one with "
+                     + pass_as("variable= (CLI: --variable NAME)", "--variable NAME"))
 
 
 def _named(f, ds, name):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, pass_as
 from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion, validate_frames,
                      validate_volumes)
 
@@ -79,8 +79,8 @@ def _choose(path, candidates: dict, variable, ndims=(2, 3)):
     dims = "/".join(f"{d}D" for d in ndims)
     if not good:
         raise fail(path, f"no {dims} numeric variable found (variables: {', '.join(sorted(candidates)) or 'none'})")
-    raise fail(path, f"several {dims} variables ({', '.join(sorted(good))}); choose one with variable= "
-                     "(CLI: --variable NAME)")
+    raise fail(path, f"several {dims} variables ({', '.join(sorted(good))}); choose one with "
+                     + pass_as("variable= (CLI: --variable NAME)", "--variable NAME"))
 
 
 #: Fewest samples along an axis of an RF frame: an array whose MATLAB-order frame would be thinner, while its

@@ -26,7 +26,7 @@ import os
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, pass_as
 
 #: Neighbouring-line correlation a reading must reach, and lead the other by, to be chosen (RF, not envelope):
 #: adjacent A-lines of the in vivo recordings correlate 0.38 (median), consecutive segments of one line
@@ -126,7 +126,8 @@ def byte_order_hint(first, dtype, *, axis=_UNKNOWN) -> str:
             return ""
     other = "little" if dt.byteorder == ">" else "big"
     return (f"the samples show an RF carrier read {other}-endian, none as read"
-            f"{'' if finite else ' (non-finite values)'}: pass byte_order='{other}' (CLI: --byte-order {other})")
+            f"{'' if finite else ' (non-finite values)'}: pass "
+            + pass_as(f"byte_order='{other}' (CLI: --byte-order {other})", f"--byte-order {other}"))
 
 
 def shows_carrier(path, shape, dtype, *, offset=0) -> bool:
@@ -169,7 +170,8 @@ def dtype_hint(path, shape, dtype, *, offset=0, axis=_UNKNOWN, first=None) -> st
                 return (f"read as {dt.name} the samples show no RF carrier"
                         f"{'' if finite else ' (non-finite values)'} and the file holds {n_as} frame(s) of "
                         f"{a} x {b}; read as {alt.name} they show one, {n_alt} frame(s): the samples look stored "
-                        f"as {alt.name}, pass dtype='{alt.name}' (CLI: --dtype {alt.name})")
+                        f"as {alt.name}, pass "
+                        + pass_as(f"dtype='{alt.name}' (CLI: --dtype {alt.name})", f"--dtype {alt.name}"))
     return ""
 
 

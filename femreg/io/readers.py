@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FileFormatError, InputError
+from ..errors import FileFormatError, InputError, pass_as
 from .checks import FORMATS, parse_dtype  # noqa: F401  (API)
 from .checks import axis_fields, check_origin, fail, merge_spacing, natural_key, scalar_fields, spacing_suggestion
 from .frames import Frames, Volumes, finalize, finalize_volumes
@@ -253,7 +253,10 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
         from .rawlayout import guess_shape
 
         hint = guess_shape(path, offset=offset, dtype=dtype, byte_order=byte_order)
-        raise InputError(f"{path}: raw file needs shape=(axial, lateral) (CLI: --shape NAX NLAT); "
+        raise InputError(f"{path}: raw file needs "
+                         + pass_as("shape=(axial, lateral) (CLI: --shape NAX NLAT)",
+                                   "--shape NAX NLAT (axial, lateral)")
+                         + "; "
                          "no header to read it from" + (f"; {hint}" if hint else ""))
     dt = parse_dtype(dtype, byte_order)
     try:
@@ -265,6 +268,13 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     _sniff_mislabel(path, head, "raw")
     body = size - int(offset)
     frame_bytes = shp[-2] * shp[-1] * dt.itemsize
+    if len(shp) == 3 and min(shp[1:]) < 2:
+        # three numbers are FRAMES AXIAL LATERAL: AXIAL LATERAL FRAMES leaves frames one sample wide
+        f, a, b = shp[2], shp[0], shp[1]
+        hint = f", e.g. {pass_as(f'({f}, {a}, {b})', f'--shape {f} {a} {b}')}" if shp[2] < 2 else ""
+        raise fail(path, f"shape {shp} reads {shp[0]} frame(s) of {shp[1]} x {shp[2]} samples, one sample wide: "
+                         "with three numbers " + pass_as("shape is (frames, axial, lateral)",
+                                                         "--shape is FRAMES AXIAL LATERAL") + hint)
     if len(shp) == 3:
         need = shp[0] * frame_bytes
         if body != need:
@@ -282,7 +292,8 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
                 best = next((t for t in fits if shows_carrier(path, shp, t, offset=offset)), None)
                 name = (best or fits[0]).name
                 shows = " whose samples show an RF carrier" if best is not None else ""
-                hint = f" (a whole number of {name} frames{shows}: try dtype={name}, CLI: --dtype {name})"
+                hint = (f" (a whole number of {name} frames{shows}: try "
+                        + pass_as(f"dtype={name}, CLI: --dtype {name}", f"--dtype {name}") + ")")
             raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
                              f"frames ({frame_bytes} bytes each){hint}")
         n = body // frame_bytes
@@ -491,7 +502,7 @@ def _transposed(fr: Frames, spacing) -> Frames:
             fr.metadata["spacing_source"] += " (of the file's axes, exchanged with them: transposed)"
     if fr.origin is not None and len(fr.origin) == 2:
         fr.origin = (float(fr.origin[1]), float(fr.origin[0]))
-    what = "each frame transposed as read (transpose=True; CLI --transpose)"
+    what = "each frame transposed as read (" + pass_as("transpose=True; CLI --transpose", "--transpose") + ")"
     fr.metadata["layout"] = f"{fr.metadata['layout']}; {what}" if fr.metadata.get("layout") else what
     return fr
 
@@ -507,7 +518,7 @@ def _check_given_spacing(fr: Frames, spacing) -> None:
     header = fr.metadata.get("header_spacing")
     if header is None:
         return
-    from ..orientation import OVERRIDE
+    from ..orientation import override
     from .checks import check_spacing
 
     given = check_spacing(spacing, allow_none=True)
@@ -516,7 +527,7 @@ def _check_given_spacing(fr: Frames, spacing) -> None:
     if wrong:
         raise InputError(f"{fr.source}: the spacing given contradicts the file's calibration ({'; '.join(wrong)}; "
                          f"{fr.metadata.get('spacing_source', 'its header')}): leave --spacing out to use the "
-                         f"file's, or {OVERRIDE} to use the values given")
+                         f"file's, or {override()} to use the values given")
 
 
 def _read_stored(path, *, frames=None, **options) -> Frames:
@@ -564,7 +575,9 @@ def _rf_from_iq(fr: Frames, modulation_frequency, sound_speed, conjugate=False) 
         hint = iq_frequency_hint(fr.metadata.get("fields") or {})
         exc = InputError(f"{fr.source}: complex samples ({fr.metadata.get('stored_dtype', fr.frames.dtype)}): IQ "
                          "data, not RF. Give the demodulation frequency (the scanner's IQ export records it) to "
-                         "remodulate them to RF: read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)"
+                         "remodulate them to RF: "
+                         + pass_as("read_frames(..., modulation_frequency=MHZ) (CLI: --iq-frequency MHZ)",
+                                   "--iq-frequency MHZ")
                          + (f"; {hint}" if hint else ""))
         exc.iq_frames = fr          # what was read, for a description of the file (femreg info)
         raise exc
