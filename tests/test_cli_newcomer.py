@@ -201,3 +201,11 @@ def test_bad_numbers_are_refused_before_any_work_in_the_flags_units(data, tmp_pa
         assert rc == 2 and says in err and "np.float64" not in err, (argv[0], rc, err)
         assert err.count("\n") == 1 and "Traceback" not in err, err
     assert not any(tmp_path.iterdir())
+
+
+def test_register_prints_a_readable_result_line(data, tmp_path, capsys):
+    # before: the library's repr, "RegistrationResult(regularizer='momentum-stress', alpha=0.133, success=True, ..."
+    rc, out, err = _run(["register", data / "pair.npz", "-o", tmp_path / "r.npz", "--no-progress"], capsys)
+    line = out.splitlines()[0]
+    assert rc == 0 and line.startswith("pair: ncc ") and " nodes, regularizer momentum-stress, alpha " in line, out
+    assert "RegistrationResult(" not in out and "=" not in line.split(";")[0], out

@@ -299,7 +299,9 @@ def run(args) -> int:
         print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {msg})", file=sys.stderr)
         return 1
     res.save(args.output)
-    print(res.summary(message=res.success))        # a failure's message follows once, as the error line
+    # a line to read (the result's repr is the library's); a failure's message follows once, as the error line
+    print(f"pair: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}, {res.mesh.p.shape[1]} nodes, "
+          f"regularizer {res.regularizer}, alpha {res.alpha:g}" + (f"; {res.message}" if res.success else ""))
     if res.excluded:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     note = getattr(getattr(res, "refinement", None), "note", None)
