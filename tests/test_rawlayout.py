@@ -139,3 +139,38 @@ def test_a_size_mismatch_names_the_type_that_shows_the_carrier(tmp_path, capsys)
         main(["info", str(tmp_path / "f32.raw"), "--shape", "1200", "64", "--spacing", "0,02", "0.2"])
     err = capsys.readouterr().err
     assert leave.value.code == 2 and "write it with a decimal point, 0.02" in err, err
+
+
+@pytest.mark.parametrize("probe", PROBES, ids=lambda p: f"{p[0]:g}MHz-{p[1]:g}mm")
+def test_a_shape_that_cuts_frames_into_pieces_is_refused_with_the_whole_shape(tmp_path, probe):
+    """Frames of 1200 x 256 read as 600 rows (sample by sample), or of 1200 x 64 read as 32 lines (line by line),
+    give frames whose boundaries join neighbouring samples: refused, with the whole frame's shape (before: read as
+    twice the frames, half-frames registered as pairs).  Separate frames (deep rows against shallow ones, the last
+    line against the first) of 64 or 256 lines are read as they are.  Where the speckle leaves too few independent
+    samples at a boundary (64 lines cut along depth) the test is skipped, not guessed."""
+    from femreg.io.rawlayout import continued_frames
+
+    q = tmp_path / "samples.raw"
+    for lines in (64, 256):
+        rf, sp = _frames(probe, n=3, shape=(1200, lines))
+        rf.tofile(q)
+        assert read_frames(q, shape=(1200, lines), spacing=sp).frames.shape == (3, 1200, lines)
+        assert continued_frames(rf) == ""
+    for shape in [(600, 256), (2, 600, 256)]:
+        (rf[:1] if len(shape) == 3 else rf).tofile(q)
+        with pytest.raises(FileFormatError, match=r"continue one another.*shape=\(1200, 256\)"):
+            read_frames(q, shape=shape, spacing=sp)
+    rf, sp = _frames(probe, n=3, shape=(1200, 64))
+    p = tmp_path / "lines.raw"
+    np.ascontiguousarray(rf.transpose(0, 2, 1)).tofile(p)       # line by line, 32 lines taken for a frame
+    with pytest.raises(FileFormatError, match=r"last columns.*shape=\(1200, 64\)"):
+        read_frames(p, shape=(1200, 32), spacing=sp)
+
+
+@pytest.mark.skipif(not INVIVO.is_file(), reason=f"in vivo data not found at {INVIVO}")
+def test_invivo_frames_are_not_taken_for_pieces_and_half_frames_are(tmp_path):
+    frames = np.stack([np.fromfile(INVIVO.with_name(f"frame{k}.raw"), "<f4").reshape(2000, 128) for k in range(1, 7)])
+    from femreg.io.rawlayout import continued_frames
+
+    assert continued_frames(frames) == ""
+    assert "into 2 pieces" in continued_frames(frames.reshape(12, 1000, 128))

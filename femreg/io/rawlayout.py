@@ -107,6 +107,82 @@ def resolve_layout(arr, path="", *, axis=_UNKNOWN):
     return np.ascontiguousarray(arr.transpose(0, 2, 1)), note
 
 
+#: Frame boundaries (:func:`continued_frames`): rows (or columns) on each side compared, the match a boundary
+#: must reach (1: as alike as L neighbouring rows within a frame), and how many null spreads above 0 it must lie.
+CONTINUITY_ROWS, CONTINUED_MATCH, CONTINUED_SIGMAS = 48, 0.5, 5.0
+
+
+def _rows_corr(a, b):
+    """Normalised correlations of every row of ``a`` (p, s) with every row of ``b`` (q, s): (p, q)."""
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    na, nb = np.sqrt(np.sum(a * a, axis=1)), np.sqrt(np.sum(b * b, axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (a @ b.T) / np.outer(na, nb)
+
+
+def _match(before, after, rho):
+    """How far the rows ``after`` continue the rows ``before`` (each (L, s), ``before`` in file order): the
+    correlations of row ``L-1-i`` of ``before`` with row ``j`` of ``after`` projected on ``rho[i + j + 1]``, the
+    correlation of rows that far apart within a frame; 1 for a continuation, about 0 for unrelated rows."""
+    c = _rows_corr(before[::-1], after)
+    L = c.shape[0]
+    r = rho[np.add.outer(np.arange(L), np.arange(L)) + 1]
+    ok = np.isfinite(c)
+    den = np.sum((r * r)[ok])
+    return float(np.sum((c * r)[ok]) / den) if den > 0 else float("nan")
+
+
+def continued_frames(frames) -> str:
+    """A note where the frames (n, axial, lateral), n >= 2, continue one another, so that ``shape`` cut each frame
+    into pieces; "" otherwise.
+
+    Per axis, the rows (columns) of each boundary's two sides, :data:`CONTINUITY_ROWS` on each, are matched
+    against the correlation of rows that far apart within the first frame (:func:`_match`: 1 where the next frame
+    continues this one, 0 for unrelated rows, as separate frames' deep rows against shallow ones, or last lines
+    against first).  A boundary is joined where its match is at least :data:`CONTINUED_MATCH` and
+    :data:`CONTINUED_SIGMAS` times the spread of the match between unrelated blocks of the first frame (half a
+    frame apart; the test is skipped where that spread leaves no room).  At least half of the first 8 boundaries
+    joined: the frames are pieces, as many per frame as the longest run of joined boundaries plus one."""
+    f = np.asarray(frames)
+    if f.ndim != 3 or f.shape[0] < 2 or not np.all(np.isfinite(f[:9])):
+        return ""
+    for axis, name in ((0, "rows"), (1, "columns")):
+        rows0 = np.moveaxis(f[0], axis, 0).astype(float)
+        m = rows0.shape[0]
+        L = min(CONTINUITY_ROWS, m // 4)
+        if L < 4 or rows0.shape[1] < 8:
+            continue
+        z = rows0[: 512 + 2 * L] - rows0[: 512 + 2 * L].mean(axis=1, keepdims=True)
+        z /= np.where(np.linalg.norm(z, axis=1) > 0, np.linalg.norm(z, axis=1), np.nan)[:, None]
+        lags = np.array([np.nanmedian(np.sum(z[: z.shape[0] - d] * z[d:], axis=1)) for d in range(1, 2 * L)])
+        rho = np.concatenate([[1.0], lags])
+        starts = np.linspace(L, m // 2 - L, 8).astype(int)
+        null = np.array([_match(rows0[s - L:s], rows0[s + m // 2 - L: s + m // 2], rho) for s in starts])
+        spread = float(np.sqrt(np.nanmean(null ** 2)))
+        bar = max(CONTINUED_MATCH, CONTINUED_SIGMAS * spread)
+        if not bar < 0.9:                        # a continuation (about 1) would not stand out
+            continue
+        ends = np.array([_match(np.moveaxis(f[k], axis, 0)[-L:], np.moveaxis(f[k + 1], axis, 0)[:L], rho)
+                         for k in range(min(f.shape[0] - 1, 8))])
+        joined = np.isfinite(ends) & (ends >= bar)
+        if 2 * joined.sum() < joined.size:
+            continue
+        run = longest = 0
+        for j in joined:
+            run = run + 1 if j else 0
+            longest = max(longest, run)
+        n, a, b = f.shape
+        whole = ((longest + 1) * a, b) if axis == 0 else (a, (longest + 1) * b)
+        return (f"the frames of {a} x {b} samples continue one another: {int(joined.sum())} of {joined.size} "
+                f"frame boundaries join a frame's last {name} to the next frame's first (match {np.nanmax(ends):.2f} "
+                f"of a continuation, unrelated {name} {spread:.2f}), so the shape cuts each frame into "
+                f"{longest + 1} pieces; for frames of {whole[0]} x {whole[1]} samples pass "
+                + pass_as(f"shape=({whole[0]}, {whole[1]}) (CLI: --shape {whole[0]} {whole[1]})",
+                          f"--shape {whole[0]} {whole[1]}"))
+    return ""
+
+
 def byte_order_hint(first, dtype, *, axis=_UNKNOWN) -> str:
     """A ``--byte-order`` to pass when the first frame (a, b) as read in ``dtype`` (the stored type) shows no
     carrier or non-finite samples but shows a carrier byte-swapped; "" otherwise (one-byte types: "").

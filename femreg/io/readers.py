@@ -304,7 +304,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     except (OSError, ValueError) as exc:
         raise fail(path, f"cannot read samples ({exc})") from None
     arr = arr.reshape(n, shp[-2], shp[-1])
-    from .rawlayout import byte_order_hint, carrier_axis, dtype_hint, resolve_layout
+    from .rawlayout import byte_order_hint, carrier_axis, continued_frames, dtype_hint, resolve_layout
 
     with np.errstate(all="ignore"):                   # swapped bytes read as huge values: no warnings
         axis = carrier_axis(arr[0])                   # the carrier test, once for both checks
@@ -313,6 +313,10 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     if swap:
         raise fail(path, swap)
     arr, layout = resolve_layout(arr, path, axis=axis)
+    # RF only: envelope rows far apart can be alike (a shadow down the image), RF rows carry random phases
+    pieces = continued_frames(arr) if axis is not None else ""
+    if pieces:
+        raise fail(path, pieces)
     sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
     if layout:
