@@ -292,11 +292,14 @@ def load_result(path) -> RegistrationResult:
     auto = kw.pop("auto_alpha", None)
     mask = kw.pop("data_mask", None)
     geometry = kw.pop("geometry", None)
+    weight = kw.pop("recovery_weight", None)
     if geometry is not None and _BEAM_RESULT:     # convex / sector frames: samples at their physical positions
         res = _BEAM_RESULT[0](mesh, u, geometry=geometry, **kw)
     else:
         res = RegistrationResult(mesh, u, **kw)
     res._grid_element = element_grid
+    if weight is not None:
+        res._recovery_weight = weight            # the strains as the file's grid holds them
     res.auto_alpha = auto
     res.data_mask = mask
     if base is not None or len(slides):     # what the inversion and new meshes read

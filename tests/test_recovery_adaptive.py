@@ -122,3 +122,30 @@ def test_registered_clean_inclusion_takes_the_projection_and_a_noisy_bend_the_av
         else:
             assert r.recovery_weight == 1.0
             assert e < e_avg - 0.004, (e, e_avg)          # measured 0.0697 against 0.0763
+
+
+def test_files_of_earlier_versions_and_exports_keep_their_recovery(tmp_path):
+    """A file without ``recovery_weight`` (written before the adaptive recovery) loads with the nodal average it
+    was written with, even where its refinement and clean strains would now take the projection; a VTU export
+    carries the result's own recovered strains as point data."""
+    import femreg
+    from femreg.io.results import as_result_dict, export_result, save_result
+
+    m = MeshQuad1.init_tensor(np.arange(0, 20.01, 1.5), np.arange(-10, 10.01, 1.5))
+    res = _refined(RegistrationResult(m, nodal_u(m.p), shape=(201, 201), spacing=(0.1, 0.1), origin=(0.0, -10.0),
+                                      success=True))
+    assert res.recovery_weight == 1.0
+    old = as_result_dict(res)
+    old.pop("recovery_weight")
+    old["recovery"] = "average"
+    save_result(tmp_path / "old.npz", old)
+    back = femreg.load_result(tmp_path / "old.npz")
+    assert back.recovery_weight == 0.0
+    np.testing.assert_allclose(back.nodal_strain, recovered_strains(m.p, m.t, res.u, "average"))
+    save_result(tmp_path / "new.npz", res)
+    assert femreg.load_result(tmp_path / "new.npz").recovery_weight == 1.0
+    meshio = pytest.importorskip("meshio")
+    export_result(tmp_path / "new.npz", tmp_path / "r.vtu")
+    pts = meshio.read(tmp_path / "r.vtu").point_data
+    np.testing.assert_allclose(pts["exx"], res.nodal_strain[:, 0], atol=1e-12)
+    assert np.abs(pts["exx"] - recovered_strains(m.p, m.t, res.u, "average")[:, 0]).max() > 1e-5

@@ -36,6 +36,8 @@ lambda_bar         float                           lambda_bar of the momentum re
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
+recovery_weight    float                           the adaptive recovery's projection weight (optional;
+                                                   absent: 0, the nodal average)
 auto_alpha         str (JSON)                      ``alpha="auto"``: the choice and the rule's data over
                                                    the candidate grid (optional;
                                                    :class:`femreg.result_base.AutoAlpha`)
@@ -66,8 +68,8 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
-               "quality", "strategy", "strain", "excluded", "roi", "recovery", "refined_from", "slides", "auto_alpha",
-               "data_mask", "lambda_bar")
+               "quality", "strategy", "strain", "excluded", "roi", "recovery", "recovery_weight", "refined_from",
+               "slides", "auto_alpha", "data_mask", "lambda_bar")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -77,12 +79,14 @@ def _scalar(v):
     return v.item() if v.ndim == 0 else v
 
 
-def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None,
+                recovery_weight=None):
     """meshio-ready (points (n, 3), cells, point_data, cell_data) for a registration result.
 
     Point data ``displacement`` (n_nodes, 3) with z = 0; strains ``exx``, ``eyy``, ``exy`` as element-centre cell
     data (``strains='cell'``), the recovered nodal strains (:func:`femreg.fields.recovered_strains`, what the
-    pictures show) as point data (``'point'``), or both (default).
+    pictures show; ``recovery_weight`` the result's adaptive weight, None: from ``u`` alone) as point data
+    (``'point'``), or both (default).
     """
     p, t, uu = check_mesh(mesh_points, mesh_cells, u)
     if strains not in ("cell", "point", "both", "none", None):
@@ -99,9 +103,10 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
         if strains in ("cell", "both"):
             cdata.update({name: [e[:, k]] for k, name in enumerate(("exx", "eyy", "exy"))})
         if strains in ("point", "both"):
-            from ..fields import recovered_strains
+            from ..fields import adaptive_strains, recovered_strains
 
-            en = recovered_strains(p, t, uu)
+            en = (recovered_strains(p, t, uu) if recovery_weight is None
+                  else adaptive_strains(p, t, uu, float(recovery_weight)))
             pdata.update({name: en[:, k] for k, name in enumerate(("exx", "eyy", "exy"))})
     for k, v in (point_data or {}).items():
         v = np.asarray(v, dtype=float)
@@ -116,7 +121,8 @@ def mesh_fields(mesh_points, mesh_cells, u, *, strains="both", point_data=None, 
     return pts, [("quad", t.T)], pdata, cdata
 
 
-def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None,
+              recovery_weight=None):
     """Write the mesh, nodal displacement (point data, z = 0) and strains to a VTU file (ParaView).
 
     Parameters
@@ -125,25 +131,28 @@ def write_vtu(path, mesh_points, mesh_cells, u, *, strains="both", point_data=No
     strains : {'both', 'cell', 'point', 'none'}
         Element-centre strains as cell data and/or their nodal averages as point data.
     point_data, cell_data : dict of extra arrays, (n_nodes, ...) / (n_el, ...).
+    recovery_weight : float, optional
+        The result's adaptive recovery weight (:attr:`femreg.registration.RegistrationResult.recovery_weight`).
     """
     from ..optional import require
 
     meshio = require("meshio", feature="VTU/XDMF export")
 
     pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
-                                           cell_data=cell_data)
+                                           cell_data=cell_data, recovery_weight=recovery_weight)
     meshio.Mesh(pts, cells, point_data=pdata, cell_data=cdata).write(str(path), file_format="vtu")
     return Path(path)
 
 
-def write_xdmf(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None):
+def write_xdmf(path, mesh_points, mesh_cells, u, *, strains="both", point_data=None, cell_data=None,
+              recovery_weight=None):
     """As :func:`write_vtu`, in XDMF (+ HDF5 heavy data next to it, ``<stem>.h5``)."""
     from ..optional import require
 
     meshio = require("meshio", feature="VTU/XDMF export")
 
     pts, cells, pdata, cdata = mesh_fields(mesh_points, mesh_cells, u, strains=strains, point_data=point_data,
-                                           cell_data=cell_data)
+                                           cell_data=cell_data, recovery_weight=recovery_weight)
     meshio.Mesh(pts, cells, point_data=pdata, cell_data=cdata).write(str(path), file_format="xdmf")
     return Path(path)
 
@@ -294,6 +303,9 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("slides") is not None:
         kw["slides"] = tuple(float(v) for v in np.ravel(d["slides"]))
+    # the weight the file's strains were recovered with (files of earlier versions: the nodal average)
+    kw["recovery_weight"] = float(d.get("recovery_weight", 0.0)) if str(d.get("recovery", "average")) in (
+        "average", "adaptive") else None
     if d.get("lambda_bar") is not None:
         kw["lambda_bar"] = float(d["lambda_bar"])
     if d.get("auto_alpha") is not None:
@@ -348,4 +360,6 @@ def export_result(result, path, *, strains="both"):
     writer = {".vtu": write_vtu, ".xdmf": write_xdmf}.get(ext)
     if writer is None:
         raise InputError(f"{path}: export format must be .vtu, .xdmf or .npz, not {ext!r}")
-    return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains)
+    # the point strains as the result reports them: its weight, or files of earlier versions' nodal average
+    w = d.get("recovery_weight", 0.0 if str(d.get("recovery", "average")) == "average" else None)
+    return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains, recovery_weight=w)
