@@ -231,8 +231,9 @@ class BeamResult(RegistrationResult):
     @property
     def recovery_weight(self) -> float:
         """0: a beam frame's strain is the nodal average.  With the opt-in refinement of the (range, angle)
-        lattice the adaptive blend raised every uniform fan of ``benchmarks/convex_refine.py`` (e.g. convex R40
-        0.3 deg 1 % 2.19 -> 3.00 %, sector 1 % 4.04 -> 4.90 %): the refinement splits there without a feature."""
+        lattice the adaptive blend (measured before its projection was held within the element strains) raised
+        every uniform fan of ``benchmarks/convex_refine.py`` (e.g. convex R40 0.3 deg 1 % 2.19 -> 3.00 %, sector
+        1 % 4.04 -> 4.90 %): the refinement splits there without a feature."""
         return 0.0
 
     def pixel_points(self) -> np.ndarray:
