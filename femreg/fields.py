@@ -273,11 +273,15 @@ def strain_roughness(mesh_points, mesh_cells, u) -> float:
         return float("nan")
     e = element_strains(mesh_points, mesh_cells, uu)
     t = np.asarray(mesh_cells)
-    a = nodal_average(t, e, np.asarray(mesh_points).shape[1])[t].mean(axis=0)
+    return _roughness(e, t, nodal_average(t, e, np.asarray(mesh_points).shape[1]))
+
+
+def _roughness(e, t, avg) -> float:
+    """:func:`strain_roughness` of the element-centre strains ``e`` (n_el, 3) and their nodal average ``avg``."""
     scale = float(np.sqrt(np.median(np.sum(e[:, :2] ** 2, axis=1))))
     if not scale > 0.0:
         return float("nan")
-    return float(np.median(np.linalg.norm(e - a, axis=1)) / scale)
+    return float(np.median(np.linalg.norm(e - avg[t].mean(axis=0), axis=1)) / scale)
 
 
 def adaptive_weight(roughness: float) -> float:
@@ -295,16 +299,16 @@ def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None) ->
     projection (:func:`projected_strains` with consistent weight 1) held, per node and component, within the
     element-centre strains of the elements around the node (a bound-preserving limit: the projection's ringing at
     a step leaves no false stripes), ``w`` the :func:`adaptive_weight` of the field's :func:`strain_roughness` (or
-    ``weight`` given).  ``w = 0`` is the nodal average exactly.  Exact for affine fields (both are).  ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    ``weight`` given).  ``w = 0`` is the nodal average exactly.  Exact for affine fields (both are).
+    ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
-    uu = np.asarray(u, float)
-    w = adaptive_weight(strain_roughness(mesh_points, mesh_cells, uu)) if weight is None else float(weight)
-    if not 0.0 <= w <= 1.0:
+    if weight is not None and not 0.0 <= float(weight) <= 1.0:
         raise InputError(f"weight must lie in [0, 1], got {weight!r}")
-    e = element_strains(mesh_points, mesh_cells, uu)
+    e = element_strains(mesh_points, mesh_cells, u)                   # validates the mesh and u
     t = np.asarray(mesh_cells)
     n = np.asarray(mesh_points).shape[1]
     avg = nodal_average(t, e, n)
+    w = adaptive_weight(_roughness(e, t, avg)) if weight is None else float(weight)
     if w == 0.0:
         return avg
     # the projection rings at a step (up to about 15 % of it, either side); held within the range of the
@@ -313,7 +317,7 @@ def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None) ->
     for k in range(t.shape[0]):
         np.minimum.at(lo, t[k], e)
         np.maximum.at(hi, t[k], e)
-    return (1.0 - w) * avg + w * np.clip(projected_strains(mesh_points, mesh_cells, uu, 1.0), lo, hi)
+    return (1.0 - w) * avg + w * np.clip(_project(mesh_points, mesh_cells, e, 1.0), lo, hi)
 
 
 def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | None = None) -> np.ndarray:
@@ -328,14 +332,19 @@ def projected_strains(mesh_points, mesh_cells, u, consistent_weight: float | Non
     projection (Hinton & Campbell 1974), sharpest and least smooth.  Exact for affine ``u``.
     ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
     """
-    import scipy.sparse as sps
-    from scipy.sparse.linalg import splu
-    from skfem import Basis, BilinearForm, ElementQuad1, LinearForm, MeshQuad1
-
     w = PROJECTION_CONSISTENT_WEIGHT if consistent_weight is None else float(consistent_weight)
     if not 0.0 <= w <= 1.0:
         raise InputError(f"consistent_weight must lie in [0, 1], got {consistent_weight!r}")
     e = element_strains(mesh_points, mesh_cells, u)                   # validates the mesh and u
+    return _project(mesh_points, mesh_cells, e, w)
+
+
+def _project(mesh_points, mesh_cells, e, w: float) -> np.ndarray:
+    """:func:`projected_strains` of the element-centre strains ``e`` (n_el, 3), consistent weight ``w``."""
+    import scipy.sparse as sps
+    from scipy.sparse.linalg import splu
+    from skfem import Basis, BilinearForm, ElementQuad1, LinearForm, MeshQuad1
+
     basis = Basis(MeshQuad1(np.asarray(mesh_points, float), np.asarray(mesh_cells, np.int64)), ElementQuad1(),
                   intorder=2)
     M = BilinearForm(lambda a, b, _: a * b).assemble(basis)

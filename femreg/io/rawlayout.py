@@ -154,7 +154,8 @@ def continued_frames(frames) -> str:
         if L < 4 or rows0.shape[1] < 8:
             continue
         z = rows0[: 512 + 2 * L] - rows0[: 512 + 2 * L].mean(axis=1, keepdims=True)
-        z /= np.where(np.linalg.norm(z, axis=1) > 0, np.linalg.norm(z, axis=1), np.nan)[:, None]
+        norm = np.linalg.norm(z, axis=1)
+        z /= np.where(norm > 0, norm, np.nan)[:, None]
         lags = np.array([np.nanmedian(np.sum(z[: z.shape[0] - d] * z[d:], axis=1)) for d in range(1, 2 * L)])
         rho = np.concatenate([[1.0], lags])
         starts = np.linspace(L, m // 2 - L, 8).astype(int)

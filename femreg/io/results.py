@@ -272,6 +272,15 @@ def _read(path) -> dict:
     return out
 
 
+def written_recovery_weight(d) -> float | None:
+    """The adaptive recovery weight a result's strains were written with (its ``recovery_weight``; files of earlier
+    versions, without ``recovery`` or with ``"average"``: 0, the nodal average); None where the contract's keys do
+    not say (the result's own rule then decides)."""
+    if d.get("recovery_weight") is not None:
+        return float(d["recovery_weight"])
+    return 0.0 if str(d.get("recovery", "average")) == "average" else None
+
+
 def read_result(path):
     """Read a result ``.npz`` (see the module docstring): ``(mesh, u, kwargs, element_grid)`` -- the skfem mesh, the
     nodal vector, the keyword arguments of :class:`femreg.RegistrationResult` (plus ``refined_from``, mm,
@@ -303,9 +312,7 @@ def read_result(path):
         kw["refined_from"] = tuple(float(v) for v in np.ravel(d["refined_from"]))
     if d.get("slides") is not None:
         kw["slides"] = tuple(float(v) for v in np.ravel(d["slides"]))
-    # the weight the file's strains were recovered with (files of earlier versions: the nodal average)
-    kw["recovery_weight"] = float(d.get("recovery_weight", 0.0)) if str(d.get("recovery", "average")) in (
-        "average", "adaptive") else None
+    kw["recovery_weight"] = written_recovery_weight(d)
     if d.get("lambda_bar") is not None:
         kw["lambda_bar"] = float(d["lambda_bar"])
     if d.get("auto_alpha") is not None:
@@ -360,6 +367,5 @@ def export_result(result, path, *, strains="both"):
     writer = {".vtu": write_vtu, ".xdmf": write_xdmf}.get(ext)
     if writer is None:
         raise InputError(f"{path}: export format must be .vtu, .xdmf or .npz, not {ext!r}")
-    # the point strains as the result reports them: its weight, or files of earlier versions' nodal average
-    w = d.get("recovery_weight", 0.0 if str(d.get("recovery", "average")) == "average" else None)
-    return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains, recovery_weight=w)
+    return writer(path, d["mesh_points"], d["mesh_cells"], d["u"], strains=strains,
+                  recovery_weight=written_recovery_weight(d))
