@@ -116,6 +116,13 @@ def _given(dx: float, dy: float, dz: tuple = ()) -> str:
                    f"--spacing {typed} (axial, lateral{', elevational' if dz else ''} mm)")
 
 
+def _pass_spacing(values: str, detail: str, lead: str = "spacing ", unit: str = "") -> str:
+    """A spacing to pass, ``values`` as "a, b" mm: ``{lead}(a, b){unit} (detail; CLI: --spacing a b)`` from Python,
+    ``--spacing a b (detail)`` on the command line (:func:`femreg.errors.pass_as`)."""
+    flag = values.replace(",", "")
+    return pass_as(f"{lead}({values}){unit} ({detail}; CLI: --spacing {flag})", f"--spacing {flag} ({detail})")
+
+
 def override() -> str:
     """How a refusal names the way past the check: :data:`OVERRIDE`, the flag alone on the command line."""
     return pass_as(OVERRIDE, "--no-orientation-check")
@@ -258,14 +265,11 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
         # spacing as (axial, lateral) already while the array is stored lines-first)
         f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
         if lo <= f_keep <= hi and not lo <= f_swap <= hi:
-            spacing_text = pass_as(f"keep the spacing ({keep}) mm ({order}; {f_keep:.2f} MHz; CLI: --spacing "
-                                   f"{keep.replace(',', '')})",
-                                   f"keep --spacing {keep.replace(',', '')} ({order}; {f_keep:.2f} MHz)")
+            spacing_text = "keep " + _pass_spacing(keep, f"{order}; {f_keep:.2f} MHz", lead="the spacing ",
+                                                   unit=" mm")
         elif lo <= f_swap <= hi and not lo <= f_keep <= hi:
-            spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm ({order}; {f_swap:.2f} MHz; "
-                                   f"CLI: --spacing {swapped.replace(',', '')})",
-                                   f"give the spacing in that order, --spacing {swapped.replace(',', '')} "
-                                   f"({order}; {f_swap:.2f} MHz)")
+            spacing_text = "give the spacing in that order, " + _pass_spacing(
+                swapped, f"{order}; {f_swap:.2f} MHz", lead="", unit=" mm")
         else:
             spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
                                    f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
@@ -307,10 +311,8 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     else:
         return rep
     if rep.problem == "swapped":
-        hint = "the axial and lateral spacings look swapped: pass " + pass_as(
-            f"spacing ({swapped}) ({order}; {f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods; CLI: --spacing "
-            f"{swapped.replace(',', '')})",
-            f"--spacing {swapped.replace(',', '')} ({order}; {f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods)")
+        hint = "the axial and lateral spacings look swapped: pass " + _pass_spacing(
+            swapped, f"{order}; {f_sw:.2f} MHz, lateral speckle {cells_sw:.1f} periods")
     else:
         # a uniform change of units leaves the speckle-to-period ratio alone and scales the frequency by 1 / k
         hint = _units_hint((dx, dy) + dz, order, ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")),
@@ -328,9 +330,8 @@ def _units_hint(spacing, order: str, units, fits, detail) -> str:
     for k, unit in units:
         if fits(k):
             text = ", ".join(f"{v * k:.6g}" for v in spacing)
-            return f"the spacing's units look like {unit}: pass it in mm, " + pass_as(
-                f"({text}) ({order}; {detail(k)}; CLI: --spacing {text.replace(',', '')})",
-                f"--spacing {text.replace(',', '')} ({order}; {detail(k)})")
+            return f"the spacing's units look like {unit}: pass it in mm, " + _pass_spacing(
+                text, f"{order}; {detail(k)}", lead="")
     return "check the spacing's units (mm) and order (axial, lateral)"
 
 
@@ -360,10 +361,7 @@ def _check_envelope(img, rep: OrientationReport, keep: str, swapped: str, dz: tu
         rep.problem = "swapped"
         rep.message = (f"{found}, the lateral cell {aspect:.2f} of the axial one, but a probe resolves depth "
                        f"better than across its lines; the axial and lateral spacings look swapped: pass "
-                       + pass_as(f"spacing ({swapped}) ({order}; cells {cell_sw[0]:.3g} x {cell_sw[1]:.3g} mm; CLI: "
-                                 f"--spacing {swapped.replace(',', '')})",
-                                 f"--spacing {swapped.replace(',', '')} ({order}; cells {cell_sw[0]:.3g} x "
-                                 f"{cell_sw[1]:.3g} mm)")
+                       + _pass_spacing(swapped, f"{order}; cells {cell_sw[0]:.3g} x {cell_sw[1]:.3g} mm")
                        + f", or {override()}")
     elif not plausible(cell):
         rep.problem = "spacing"
@@ -476,10 +474,8 @@ def check_remodulated(frames) -> None:
         f"IQ data read with spacing ({dx:g}, {dy:g}) mm: the lateral speckle ({lat:.3g} mm) is narrower than the "
         f"axial ({ax:.3g} mm), {aspect:.2f} of it, while a linear array's lateral resolution is the coarser; the "
         f"axial and lateral spacings look swapped: pass "
-        + pass_as(f"spacing ({dy:g}, {dx:g}) (axial IQ sample spacing, then line spacing; lateral / axial speckle "
-                  f"{swapped:.1f}; CLI: --spacing {dy:g} {dx:g})",
-                  f"--spacing {dy:g} {dx:g} (axial IQ sample spacing, then line spacing; lateral / axial speckle "
-                  f"{swapped:.1f})")
+        + _pass_spacing(f"{dy:g}, {dx:g}", "axial IQ sample spacing, then line spacing; lateral / axial speckle "
+                        f"{swapped:.1f}")
         + f", or {override()}",
         problem="swapped")
 
