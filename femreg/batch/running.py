@@ -18,7 +18,7 @@ from pathlib import Path
 from .._atomic import atomic_savez, atomic_write_text
 from ..errors import InputError, pass_as
 from .engine import Task, _describe_error, open_client, run_tasks
-from .inputs import Job
+from .inputs import Job, pair_beyond
 from .settings import _check_settings
 from .summary import BatchSummary
 
@@ -139,9 +139,10 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
 
     fr = read_frames(spec["input"], **reader_kw)
     i, j = spec["pair"]
-    if max(i, j) >= fr.n_frames:
+    why = pair_beyond((i, j), fr.n_frames)
+    if why:
         hint = " (a folder of per-frame files is one recording with --folders recording)" if fr.n_frames == 1 else ""
-        raise InputError(f"{spec['input']}: pair {i} {j} requested but it holds {fr.n_frames} frame(s){hint}")
+        raise InputError(f"{spec['input']}: {why}{hint}")
     res = register(fr.frames[i], fr.frames[j], spacing=fr.spacing, origin=fr.origin, **reg_kw)
     flag = _quality(res, spec["settings"]["min_ncc"])
     out = folder / f"{spec['task_id']}.npz"

@@ -58,13 +58,23 @@ def add_parser(subparsers):
     return p
 
 
-def _display(img, spacing, height=320):
-    """Nearest-neighbour resampling to square display pixels, ``height`` rows."""
+def _display(img, spacing, height=320, average=False):
+    """Resampling to square display pixels, ``height`` rows: nearest neighbour, or with ``average`` the mean of
+    the samples each display pixel covers along an axis that is reduced (a B-mode: picking one of several
+    samples per pixel aliases the speckle into salt-and-pepper noise)."""
     ext = np.asarray(img.shape) * np.asarray(spacing, float)
     width = max(2, int(round(height * ext[1] / ext[0])))
-    ii = np.minimum((np.arange(height) + 0.5) * img.shape[0] / height, img.shape[0] - 1).astype(int)
-    jj = np.minimum((np.arange(width) + 0.5) * img.shape[1] / width, img.shape[1] - 1).astype(int)
-    return img[np.ix_(ii, jj)]
+    out = np.asarray(img)
+    for axis, n in ((0, height), (1, width)):
+        m = out.shape[axis]
+        if average and m > n:
+            edges = np.round(np.arange(n + 1) * m / n).astype(int)
+            out = np.add.reduceat(out, edges[:-1], axis=axis) / np.diff(edges).reshape(
+                (-1, 1) if axis == 0 else (1, -1))
+        else:
+            idx = np.minimum((np.arange(n) + 0.5) * m / n, m - 1).astype(int)
+            out = np.take(out, idx, axis=axis)
+    return out
 
 
 def _rgb(values, cmap, vmin, vmax):
@@ -117,7 +127,7 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Pa
 
     pics = []
     for k, f in enumerate(res.cine_frames):
-        b = _display(bmode(np.asarray(frames[f], float)), spacing)
+        b = _display(bmode(np.asarray(frames[f], float)), spacing, average=True)
         s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
         pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", lo, hi),
