@@ -178,3 +178,51 @@ def test_strain_cine_bmode_averages_the_samples_of_a_pixel():
     steps = [float(np.mean(np.abs(np.diff(d, axis=0)))) for d in (near, mean)]
     assert steps[1] < 4.8 < steps[0]
     assert abs(float(np.mean(mean)) - float(np.mean(b))) < 0.1          # the level kept
+
+
+# ------------------------------------------------------------------------------------------------- femreg info
+def test_info_of_a_lines_first_export(export, capsys):
+    d, _ = export
+    rc, out, err = _run(["info", d / "scan.mat"], capsys)
+    assert rc == 1, err
+    # before: "shape  40 axial x 623 lateral" above a needs line saying the frames are lines x samples
+    assert "shape     40 x 623 as stored: lines x samples, 623 axial x 40 lateral with --transpose" in out
+    assert "axial x 623 lateral" not in out
+    assert "its fields suggest --spacing 0.01925 0.2" in out and "--transpose" in out
+    # the header struct's numbers are listed with the other fields
+    assert "header/txFreq" in out
+    rc, out, err = _run(["info", d / "scan.mat", "--transpose", *SPACING], capsys)
+    assert rc == 0 and "shape     623 axial x 40 lateral" in out and "ready to register" in out, out
+
+
+def test_settings_inside_a_header_struct_suggest_the_spacing(export, tmp_path, capsys):
+    _, frames = export
+    path = tmp_path / "p.mat"
+    # the settings only in structs, one of them nested (an export's P.fs, P.Trans.pitch_mm)
+    sio.savemat(path, {"rf": frames.astype(np.int16).transpose(2, 1, 0),
+                       "P": {"fs": FS_HZ, "c": C_M_S, "Trans": {"pitch_mm": 0.2, "name": "L7-4"}, "id": "x"},
+                       "when": "2026-11-30"})
+    rc, out, err = _run(["info", path], capsys)
+    # before: "no spacing found: pass --spacing DX DY", the struct's fields unseen
+    assert rc == 1 and "P/fs" in out and "P/Trans/pitch_mm" in out, out
+    assert "its fields suggest --spacing 0.01925 0.2" in out, out
+    rc, out, err = _run(["register", path, "-o", tmp_path / "r.npz"], capsys)
+    assert rc == 2 and "--spacing 0.01925 0.2" in err, err
+
+
+def test_struct_fields_of_a_corrupt_struct_are_left_out(tmp_path):
+    from femreg.io.mat5 import read_mat5
+
+    path = tmp_path / "s.mat"
+    sio.savemat(path, {"a": np.arange(6.0).reshape(2, 3), "h": {"fs": 1.0, "g": {"pitch": 2.0}}},
+                do_compression=False)
+    order, variables = read_mat5(path, path.read_bytes())
+    h = {v.name: v for v in variables}["h"]
+    assert {m.name: float(m.array(order).ravel()[0]) for m in h.members} == {"fs": 1.0, "g/pitch": 2.0}
+    blob = bytearray(path.read_bytes())
+    i = blob.find(b"pitch")
+    blob[i - 8:i - 4] = (7).to_bytes(4, "little")      # the field-name element's type broken
+    order, variables = read_mat5(path, bytes(blob))     # the struct's numbers dropped, the file still read
+    byname = {v.name: v for v in variables}
+    assert np.array_equal(byname["a"].array(order), np.arange(6.0).reshape(2, 3))
+    assert [m.name for m in byname["h"].members] == ["fs"]
