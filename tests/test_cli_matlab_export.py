@@ -226,3 +226,31 @@ def test_struct_fields_of_a_corrupt_struct_are_left_out(tmp_path):
     byname = {v.name: v for v in variables}
     assert np.array_equal(byname["a"].array(order), np.arange(6.0).reshape(2, 3))
     assert [m.name for m in byname["h"].members] == ["fs"]
+
+
+# ------------------------------------------------------------------------------------- numbers in other units
+def test_sound_speed_and_iq_frequency_in_other_units_are_refused(export, tmp_path, capsys):
+    d, _ = export
+    # before: --sound-speed 1.54 passed unnoticed (exit 0); --iq-frequency in Hz upsampled every line about
+    # 3e6-fold (an RF period of 0.2 nm at 4.16e6 MHz) before anything was said
+    for flag, value, say in (("--sound-speed", "1.54", "km/s; pass it in m/s, --sound-speed 1540"),
+                             ("--sound-speed", "1540000", "mm/s; pass it in m/s, --sound-speed 1540"),
+                             ("--iq-frequency", "4160000", "Hz; pass it in MHz, --iq-frequency 4.16"),
+                             ("--iq-frequency", "4160", "kHz; pass it in MHz, --iq-frequency 4.16")):
+        for cmd in (["info", d / "scan.mat"], ["register", d / "scan.mat", "-o", tmp_path / "r.npz"]):
+            rc, out, err = _run(cmd + ["--transpose", *SPACING, flag, value], capsys)
+            assert rc == 2 and say in err and err.count("\n") == 1, (cmd, err)
+    assert not list(tmp_path.iterdir())
+    rc, out, err = _run(["info", d / "scan.mat", "--transpose", *SPACING, "--sound-speed", "1480"], capsys)
+    assert rc == 0, err
+
+
+def test_remodulate_refuses_a_frequency_in_hz():
+    from femreg.errors import InputError
+    from femreg.io.iq import remodulate
+
+    iq = np.ones((16, 2), np.complex64)
+    with pytest.raises(InputError, match=r"modulation_frequency=4.16 \(CLI: --iq-frequency 4.16\)"):
+        remodulate(iq, 0.08, 4.16e6)
+    rf, dz, up = remodulate(iq, 0.08, 4.16)
+    assert up == 4 and rf.shape == (61, 2)          # 8 samples per RF period of 0.185 mm

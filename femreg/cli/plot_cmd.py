@@ -90,10 +90,10 @@ def _run(args) -> int:
         pair = np.ravel(res["pair"]) if res.get("pair") is not None else None
         own = int(pair[0]) if pair is not None and pair.size == 2 else None
         k = args.frame if args.frame is not None else (own if own is not None and own < fr.n_frames else 0)
+        reference = fr.frames[frame_index(k, fr.n_frames, args.reference, "--frame")]
         if own is not None and k != own:
             print(f"femreg plot: note: {args.result} registered frames {own} -> {int(pair[1])}: the B-mode of "
                   f"--frame {k} is not its reference frame ({own}, the default)", file=sys.stderr)
-        reference = fr.frames[frame_index(k, fr.n_frames, args.reference, "--frame")]
         if fr.n_frames > 1:
             bmode_title = f"B-mode, frame {k}"
     elif args.overlay:
