@@ -254,3 +254,16 @@ def test_remodulate_refuses_a_frequency_in_hz():
         remodulate(iq, 0.08, 4.16e6)
     rf, dz, up = remodulate(iq, 0.08, 4.16)
     assert up == 4 and rf.shape == (61, 2)          # 8 samples per RF period of 0.185 mm
+
+
+def test_measure_names_metres_and_a_background_beyond_the_mesh(pair12, tmp_path, capsys):
+    rc, out, err = _run(["measure", pair12, "--inclusion", "0.006", "0.004", "0.002"], capsys)
+    # before: only "lies outside the mesh", the metres unnamed
+    assert rc == 2 and "look like metres: pass them in mm, --inclusion 6 4 2" in err, err
+    rc, out, err = _run(["measure", pair12, "--inclusion", "6", "4", "2", "--background", "1", "11", "-5", "20",
+                         "--json", tmp_path / "m.json"], capsys)
+    # before: cut to the mesh without a word, where an inclusion reaching beyond it got a note
+    assert rc == 0 and "note: the background box extends beyond the mesh" in out, out
+    rc, out, err = _run(["measure", pair12, "--inclusion", "6", "4", "2", "--background", "2", "10", "2", "6"],
+                        capsys)
+    assert rc == 0 and "note:" not in out, out
