@@ -267,3 +267,19 @@ def test_measure_names_metres_and_a_background_beyond_the_mesh(pair12, tmp_path,
     rc, out, err = _run(["measure", pair12, "--inclusion", "6", "4", "2", "--background", "2", "10", "2", "6"],
                         capsys)
     assert rc == 0 and "note:" not in out, out
+
+
+def test_invert_names_a_reference_modulus_in_pa(pair12, tmp_path, capsys):
+    from femreg.cli.invert_cmd import _boxes
+
+    args = type("A", (), {"region": None, "reference": [2.0, 10.0, 2.0, 6.0, 10000.0]})()
+    region, reference = _boxes(args, False)
+    err = capsys.readouterr().err
+    # before: 10000 kPa taken as given, Young's moduli of 10 MPa written without a word
+    assert reference[1] == 10000.0 and "if it is in Pa, pass 10" in err, err
+    args.reference[-1] = 0.01
+    _boxes(args, False)
+    assert "if it is in MPa, pass 10" in capsys.readouterr().err
+    args.reference[-1] = 25.0
+    _boxes(args, False)
+    assert capsys.readouterr().err == ""

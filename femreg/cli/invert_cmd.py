@@ -68,6 +68,11 @@ def add_parser(subparsers):
     return p
 
 
+#: Young's moduli (kPa) of soft tissue and elastography phantoms, about; a --reference outside is likely given in
+#: Pa or MPa
+KPA_RANGE = (0.1, 2000.0)
+
+
 def _registered_pair(path):
     """The frame indices (I, J) a result of ``femreg register --pair`` / ``femreg batch`` was registered from,
     None when the file does not say."""
@@ -155,6 +160,13 @@ def _boxes(args, volume):
             raise InputError(f"--reference takes {n + 1} numbers ({names} mm, then KPA) for {kind}, got "
                              f"{len(args.reference)}: {' '.join(f'{v:g}' for v in args.reference)}")
         reference = (box(args.reference[:n]), float(args.reference[n]))
+        kpa = reference[1]
+        lo, hi = KPA_RANGE
+        if not lo <= kpa <= hi:     # the moduli in kPa all scale with it: say so before they are written
+            other = ("Pa", kpa / 1e3) if kpa > hi else ("MPa", kpa * 1e3)
+            print(f"femreg invert: note: --reference {kpa:g} kPa lies outside the Young's moduli of soft tissue and "
+                  f"phantoms ({lo:g}-{hi:g} kPa), and every modulus in kPa scales with it; if it is in {other[0]}, "
+                  f"pass {other[1]:g}", file=sys.stderr)
     return region, reference
 
 
