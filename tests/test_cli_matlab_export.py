@@ -283,3 +283,13 @@ def test_invert_names_a_reference_modulus_in_pa(pair12, tmp_path, capsys):
     args.reference[-1] = 25.0
     _boxes(args, False)
     assert capsys.readouterr().err == ""
+
+
+def test_invert_prints_a_readable_result_line(pair12, tmp_path, capsys):
+    rc, out, err = _run(["invert", pair12, "-o", tmp_path / "mu.npz", "--beta", "0.1", "--no-uncertainty",
+                         "--no-progress"], capsys)
+    line = out.splitlines()[0]
+    # before: the library's repr, "InversionResult(model='plane-strain', beta=0.1, n_el=..., success=True, ..."
+    assert rc in (0, 1) and line.startswith("inversion: ") and ", model plane-" in line, out
+    assert "InversionResult(" not in out and "=" not in line.split(";")[0], out
+    assert ("flagged" in line) == (rc == 1)

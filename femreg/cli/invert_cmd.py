@@ -242,8 +242,12 @@ def run(args) -> int:
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
     res.save(out)
     # a failed or flagged result's message is printed once, on stderr below
-    print(res.summary(message=res.success or failed_reg))
+    # a line to read (the library's repr names Python fields: success=False, n_el=...)
     q5, q95 = np.percentile(res.mu, [5, 95])
+    said = res.message if (res.success or failed_reg) and res.message else ""
+    print(f"inversion: {'done' if res.success else 'flagged'}, model {res.model}, beta {res.beta:.3g}, "
+          f"{res.mesh.t.shape[1]} elements, mu 5-95 % {q5:.3g}-{q95:.3g} (median 1), {res.nit} iterations"
+          + (f"; {said}" if said else ""))
     where = "over the region" if region is not None else "over the mesh"
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
           f"median 1)")
