@@ -293,3 +293,22 @@ def test_invert_prints_a_readable_result_line(pair12, tmp_path, capsys):
     assert rc in (0, 1) and line.startswith("inversion: ") and ", model plane-" in line, out
     assert "InversionResult(" not in out and "=" not in line.split(";")[0], out
     assert ("flagged" in line) == (rc == 1)
+
+
+def test_a_file_spacing_written_axial_first_under_transpose(export, tmp_path, capsys):
+    _, frames = export
+    path = tmp_path / "s.mat"
+    # lines-first frames with their spacing written as (axial, lateral): --transpose exchanges it with the axes
+    sio.savemat(path, {"rf": frames.astype(np.int16).transpose(2, 1, 0), "spacing": [0.01925, 0.2]})
+    for cmd in (["info", path, "--transpose"], ["register", path, "--transpose", "-o", tmp_path / "r.npz"]):
+        rc, out, err = _run(cmd, capsys)
+        text = out if cmd[0] == "info" else err
+        # before: "--spacing 0.2 0.01925 (axial, lateral mm) gives ...", a flag never typed, the cause unnamed
+        assert rc == (1 if cmd[0] == "info" else 2), text
+        assert "the file's spacing 0.2 0.01925 (axial, lateral mm) gives" in text, text
+        assert "pass --spacing 0.01925 0.2" in text and "--transpose exchanged it with the file's axes" in text
+    assert not (tmp_path / "r.npz").exists()
+    # typed on the command line, the same spacing is named as the flag
+    rc, out, err = _run(["register", path, "--transpose", "--spacing", "0.2", "0.01925", "-o", tmp_path / "r.npz"],
+                        capsys)
+    assert rc == 2 and "--spacing 0.2 0.01925 (axial, lateral mm) gives" in err and "the file's" not in err, err

@@ -110,6 +110,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
         out["transposed"] = rep.problem == "transposed"
+        out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
         if "iq" in fr.metadata:      # remodulated IQ: what read_frames checks when registering (spacing, sign, f)
             out["needs"] += _iq_needs(fr)
         if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
@@ -337,6 +338,14 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    if info.get("spacing_problem") and args.spacing is None and info["needs"]:
+        # the spacing judged is the file's: say so, as register does
+        from ..orientation import OrientationError
+        from . import _header_spacing_note, file_spacing_wording
+
+        note = _header_spacing_note(args, OrientationError("", problem=info["spacing_problem"]))
+        info["needs"][0] = file_spacing_wording(info["needs"][0]) + note
+    info.pop("spacing_problem", None)
     info["needs"] += _spacing_conflict(info, args)
     start = _origin_note(info, args)
     if start:
