@@ -312,3 +312,27 @@ def test_a_file_spacing_written_axial_first_under_transpose(export, tmp_path, ca
     rc, out, err = _run(["register", path, "--transpose", "--spacing", "0.2", "0.01925", "-o", tmp_path / "r.npz"],
                         capsys)
     assert rc == 2 and "--spacing 0.2 0.01925 (axial, lateral mm) gives" in err and "the file's" not in err, err
+
+
+def test_plot_of_a_track_run_on_a_selection_draws_its_first_frame(export, tmp_path, capsys, monkeypatch):
+    import json
+
+    import femreg.plot
+
+    d, frames = export
+    run = tmp_path / "run"
+    rc, out, err = _run(["track", d / "scan.mat", "--transpose", *SPACING, "--frames", "1:", "-o", run,
+                         "--no-progress"], capsys)
+    assert rc == 0 and json.loads((run / "track.json").read_text())["file_frames"] == [1, 2], err
+    drawn = {}
+    plot_result = femreg.plot.plot_result
+    monkeypatch.setattr(femreg.plot, "plot_result", lambda res, out, **kw: (drawn.update(kw),
+                                                                            plot_result(res, out, **kw))[1])
+    rc, out, err = _run(["plot", run / "frame_001.npz", "--reference", d / "scan.mat", "--transpose",
+                         "-o", tmp_path / "f.png"], capsys)
+    # before: the file's frame 0 under a run registered on its frame 1
+    assert rc == 0 and np.array_equal(drawn["reference"], frames[1]) and drawn["bmode_title"] == "B-mode, frame 1"
+    # the selection given to plot too: its frame 0, as before
+    rc, out, err = _run(["plot", run / "frame_001.npz", "--reference", d / "scan.mat", "--transpose",
+                         "--frames", "1:", "-o", tmp_path / "g.png"], capsys)
+    assert rc == 0 and np.array_equal(drawn["reference"], frames[1]) and not err, err

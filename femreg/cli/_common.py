@@ -326,6 +326,23 @@ def file_frame(selection, k: int) -> int:
     return int(selection) + k
 
 
+def _record_file_frames(folder, frames) -> None:
+    """Add the file's indices of a --frames selection to ``folder/track.json`` (``file_frames``), so that
+    ``femreg plot --reference FILE`` draws the B-mode of the frame the run starts from."""
+    import json
+    from pathlib import Path
+
+    from .._atomic import atomic_write_text
+
+    path = Path(folder) / "track.json"
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    record["file_frames"] = [int(k) for k in frames]
+    atomic_write_text(path, json.dumps(record, indent=1))
+
+
 def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     """Run ``call(on_frame)`` (a tracking run writing one file per frame into ``args.output``), print a line per
     frame and the run's summary; the exit code: 0 done, 1 a frame flagged or failed (finished frames kept, the
@@ -377,6 +394,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         one = len(repeated) == 1
         print(f"femreg track: note: {len(repeated)} {noun}{'' if one else 's'} {'repeats' if one else 'repeat'} "
               f"the one before (identical samples; {noun}s {shown}): not registered, the field before kept")
+    if sel is not None:
+        _record_file_frames(args.output, [file_frame(sel, k) for k in range(len(out) + 1)])
     if moved:
         print(f"femreg track: note: --frames selected the file's frames "
               f"{', '.join(str(file_frame(sel, k)) for k in range(len(out) + 1))}: frame K and {args.output}/"

@@ -9,6 +9,29 @@ from ._common import (add_reader_args, failed_notice, frame_index, frames_from_a
                       frames_on_result_grid)  # failed_notice: also here
 
 
+def _reference_frame(path, res) -> tuple:
+    """(the file's index of the frame ``res`` is registered on, what says so) or (None, ""): frame I of a pair of
+    ``femreg register FILE --pair I J`` / ``femreg batch``; the first frame of a track run on a --frames
+    selection (its ``track.json``'s ``file_frames``), whose results count the selection from 0."""
+    import json
+
+    import numpy as np
+
+    pair = np.ravel(res["pair"]) if res.get("pair") is not None else np.empty(0)
+    if pair.size == 2:
+        return int(pair[0]), f"registered frames {int(pair[0])} -> {int(pair[1])}"
+    if "frame" in res and "increment" in res:
+        try:
+            frames = json.loads((Path(path).parent / "track.json").read_text()).get("file_frames")
+        except (OSError, ValueError):
+            frames = None
+        if frames:
+            k = int(np.ravel(res["frame"])[0])
+            return int(frames[0]), (f"is frame {k} of a track run on the file's frames {frames[0]}-{frames[-1]}, "
+                                    f"registered on frame {frames[0]}")
+    return None, ""
+
+
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "plot", help="figures (PNG) and ParaView files (VTU/XDMF) of a registration result",
@@ -31,8 +54,9 @@ def add_parser(subparsers):
                    help="reference RF (any readable format) for the B-mode panel, drawn on the result's grid (a "
                         "file that stores no spacing needs no --spacing: the result's is used)")
     p.add_argument("--frame", type=int, default=None,
-                   help="frame of --reference to use, counted from 0 (default: the reference frame I of a "
-                        "result of femreg register --pair I J or femreg batch, else 0)")
+                   help="frame of --reference to use, counted from 0 (default: the frame the result is "
+                        "registered on: I of femreg register FILE --pair I J or femreg batch, the first of a "
+                        "femreg track --frames selection; else 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
     from .invert_cmd import add_slice_arg
@@ -86,14 +110,12 @@ def _run(args) -> int:
     reference, bmode_title = None, "B-mode"
     if args.reference:
         fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
-        # a pair of `femreg register --pair I J` / `femreg batch` knows its reference frame I
-        pair = np.ravel(res["pair"]) if res.get("pair") is not None else None
-        own = int(pair[0]) if pair is not None and pair.size == 2 else None
+        own, what = (None, "") if getattr(args, "frames", None) else _reference_frame(args.result, res)
         k = args.frame if args.frame is not None else (own if own is not None and own < fr.n_frames else 0)
         reference = fr.frames[frame_index(k, fr.n_frames, args.reference, "--frame")]
         if own is not None and k != own:
-            print(f"femreg plot: note: {args.result} registered frames {own} -> {int(pair[1])}: the B-mode of "
-                  f"--frame {k} is not its reference frame ({own}, the default)", file=sys.stderr)
+            print(f"femreg plot: note: {args.result} {what}: the B-mode of --frame {k} is not its reference "
+                  f"frame ({own}, the default)", file=sys.stderr)
         if fr.n_frames > 1:
             bmode_title = f"B-mode, frame {k}"
     elif args.overlay:
