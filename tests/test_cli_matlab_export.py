@@ -336,3 +336,12 @@ def test_plot_of_a_track_run_on_a_selection_draws_its_first_frame(export, tmp_pa
     rc, out, err = _run(["plot", run / "frame_001.npz", "--reference", d / "scan.mat", "--transpose",
                          "--frames", "1:", "-o", tmp_path / "g.png"], capsys)
     assert rc == 0 and np.array_equal(drawn["reference"], frames[1]) and not err, err
+
+
+def test_elastogram_band_given_as_fractions_is_refused(export, tmp_path, capsys):
+    d, _ = export
+    # before: the loop was screened, then exit 1 with "raise the band, e.g. --band 0.005 0.5"
+    rc, out, err = _run(["elastogram", d / "scan.mat", "--transpose", *SPACING, "--band", "0.005", "0.02",
+                         "-o", tmp_path / "e", "--no-progress"], capsys)
+    assert rc == 2 and "as fractions it is --band 0.5 2" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "e").exists()

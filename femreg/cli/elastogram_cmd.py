@@ -58,6 +58,10 @@ def add_parser(subparsers):
     return p
 
 
+#: A --band whose top is at most this (percent) is fractions typed as percent: freehand pairs strain 0.1-10 %.
+MIN_BAND_TOP = 0.05
+
+
 def _display(img, spacing, height=320, average=False):
     """Resampling to square display pixels, ``height`` rows: nearest neighbour, or with ``average`` the mean of
     the samples each display pixel covers along an axis that is reduced (a B-mode: picking one of several
@@ -226,6 +230,9 @@ def run(args) -> int:
     lo, hi = args.band
     if not 0 < lo < hi < 20:            # the flags are in percent (the function's band in fractions)
         raise InputError(f"--band LO HI must satisfy 0 < LO < HI < 20 (percent of axial strain), got {lo:g} {hi:g}")
+    if hi <= MIN_BAND_TOP:              # 0.005 0.02: fractions typed where percent are asked
+        raise InputError(f"--band {lo:g} {hi:g} is in percent: a band up to {hi:g} % of axial strain is below what "
+                         f"elastography registers (0.1-10 %); as fractions it is --band {lo * 100:g} {hi * 100:g}")
     if args.strain_range is not None and not (np.all(np.isfinite(args.strain_range))
                                               and args.strain_range[0] < args.strain_range[1]):
         raise InputError("--strain-range LO HI must be finite with LO < HI (normalised strain, 1 = the mean), got "
