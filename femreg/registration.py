@@ -27,7 +27,7 @@ from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.r
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
 from .initial import INITIAL_NAMES, initial_guess
-from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
+from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
 from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage,
@@ -308,6 +308,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                                    regularizer=regularizer, strategy=strategy, initial=initial,
                                                    maxiter=maxiter, tol=tol, strain_tol=strain_tol,
                                                    check_orientation=check_orientation, refine=refine)
+    check_element_size(element_size, spacing, mesh)
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(strategy, regularizer,
                                                                                    regularizer_options))
 

@@ -345,3 +345,29 @@ def test_elastogram_band_given_as_fractions_is_refused(export, tmp_path, capsys)
                          "-o", tmp_path / "e", "--no-progress"], capsys)
     assert rc == 2 and "as fractions it is --band 0.5 2" in err and err.count("\n") == 1, err
     assert not (tmp_path / "e").exists()
+
+
+def test_element_size_in_metres_is_refused_before_any_work(export, tmp_path, capsys):
+    d, frames = export
+    # before: 0.0015 mm meshed one pixel per element (623 x 40 frames: about 24000 elements; 1923 x 128 in vivo:
+    # about 246000) and register, track and batch ran on without end; elastogram after its screening
+    for cmd in (["register", d / "scan.mat", "--pair", "0", "1", "-o", tmp_path / "r.npz"],
+                ["track", d / "scan.mat", "-o", tmp_path / "t"], ["elastogram", d / "scan.mat", "-o", tmp_path / "e"],
+                ["batch", d / "scan.mat", "-o", tmp_path / "b", "--workers", "0"]):
+        rc, out, err = _run(cmd + ["--transpose", *SPACING, "--element-size", "0.0015", "--no-progress"], capsys)
+        assert rc == 2 and "is smaller than a pixel (0.01925 x 0.2 mm" in err, (cmd[0], err)
+        assert "read as metres it is --element-size 1.5" in err and err.count("\n") == 1, err
+    assert not list(tmp_path.iterdir())
+
+
+def test_register_refuses_an_element_size_below_a_pixel():
+    import femreg
+    from femreg.errors import InputError
+    from femreg.mesh import check_element_size
+
+    ref = np.random.default_rng(0).standard_normal((64, 16))
+    with pytest.raises(InputError, match=r"element_size 0.001 0.002 mm is smaller than a pixel .*"
+                                         r"element_size=1 2 \(CLI: --element-size 1 2\)"):
+        femreg.register(ref, ref, spacing=(0.02, 0.2), element_size=(0.001, 0.002))
+    check_element_size((0.5, 0.1), (0.02, 0.2))     # below a pixel laterally only: one line per element, allowed
+    check_element_size(0.001, (0.02, 0.2), mesh=object())     # a given mesh: its own elements

@@ -219,6 +219,15 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
         raise InputError(f"{item}: its {len(jobs)} files hold one frame each, and each file is a recording of its "
                          f"own ({what}); if they are the frames of one recording, pass "
                          + pass_as("--folders recording (folders='recording')", "--folders recording"))
+    import numpy as np
+
+    from ..mesh import check_element_size
+
+    es = s.get("element_size")
+    try:        # an element size in metres: every task would mesh one pixel per element
+        check_element_size(None if es is None else np.ravel(np.asarray(es, float)), fr.spacing)
+    except InputError as exc:
+        raise InputError(f"{job.input}: {exc}") from None
     if len(jobs) == 1 and s["task"] == "register":
         # one recording: a pair beyond its last frame (often counted from 1) fails every task of it
         for pair in s["pairs"]:

@@ -266,6 +266,9 @@ def run(args) -> int:
 
     if fr.n_frames < 3:
         raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
+    from ..mesh import check_element_size
+
+    check_element_size(kw.get("element_size"), fr.spacing)      # before the screening writes anything
     res = elastogram(fr.frames, spacing=fr.spacing, origin=fr.origin, band=(lo / 100.0, hi / 100.0),
                      min_ncc=args.min_ncc, max_span=args.max_span, max_lateral_mm=args.max_lateral,
                      persistence=args.persistence, output_dir=out, resume=args.resume,
