@@ -371,3 +371,17 @@ def test_register_refuses_an_element_size_below_a_pixel():
         femreg.register(ref, ref, spacing=(0.02, 0.2), element_size=(0.001, 0.002))
     check_element_size((0.5, 0.1), (0.02, 0.2))     # below a pixel laterally only: one line per element, allowed
     check_element_size(0.001, (0.02, 0.2), mesh=object())     # a given mesh: its own elements
+
+
+def test_roi_and_depth_in_metres_are_named(export, tmp_path, capsys):
+    d, _ = export
+    # before: "holds fewer than 2 x 2 pixels" and the image extent, the metres unnamed
+    for flag, values, say in (("--roi", ["0.002", "0.01", "0.001", "0.007"], "--roi 2 10 1 7"),
+                              ("--depth", ["0.002", "0.01"], "--depth 2 10")):
+        rc, out, err = _run(["register", d / "scan.mat", "--transpose", *SPACING, "--pair", "0", "1", flag, *values,
+                             "-o", tmp_path / "r.npz"], capsys)
+        assert rc == 2 and f"the numbers look like metres: pass them in mm, {say}" in err, err
+    # a region really too small gets no such hint
+    rc, out, err = _run(["register", d / "scan.mat", "--transpose", *SPACING, "--pair", "0", "1", "--roi", "2", "2.01",
+                         "1", "7", "-o", tmp_path / "r.npz"], capsys)
+    assert rc == 2 and "fewer than 2 x 2 pixels" in err and "metres" not in err, err
