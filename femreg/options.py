@@ -40,7 +40,13 @@ def frame_selection(text: str):
             return [int(p) for p in text.split(",") if p.strip()]
         return int(text)
     except ValueError:
-        raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+        import re
+
+        # a MATLAB or prose range, 1-5 / 1..5: its frames inclusive are the slice K:L+1
+        m = re.fullmatch(r"\s*(\d+)\s*(?:-|\.\.)\s*(\d+)\s*", text)
+        hint = (f"; frames {m[1]} to {m[2]} are {m[1]}:{int(m[2]) + 1} (a slice's end is left out, frames count "
+                f"from 0)" if m and int(m[1]) <= int(m[2]) else "")
+        raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5){hint}") from None
 
 
 def negative_index(selection):

@@ -385,3 +385,16 @@ def test_roi_and_depth_in_metres_are_named(export, tmp_path, capsys):
     rc, out, err = _run(["register", d / "scan.mat", "--transpose", *SPACING, "--pair", "0", "1", "--roi", "2", "2.01",
                          "1", "7", "-o", tmp_path / "r.npz"], capsys)
     assert rc == 2 and "fewer than 2 x 2 pixels" in err and "metres" not in err, err
+
+
+def test_a_range_written_as_in_prose_gets_its_slice():
+    from femreg.errors import InputError
+    from femreg.options import frame_selection
+
+    for text, say in (("1-5", "frames 1 to 5 are 1:6"), ("0..4", "frames 0 to 4 are 0:5")):
+        with pytest.raises(InputError, match=say):         # before: only the forms, the slice's end unexplained
+            frame_selection(text)
+    with pytest.raises(InputError) as info:
+        frame_selection("a-b")
+    assert "are" not in str(info.value)
+    assert frame_selection("1:6") == slice(1, 6)
