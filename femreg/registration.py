@@ -86,6 +86,7 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     speckle statistics and pyramid settings are returned for the pyramid) or from ``element_size``.  Returns
     ``(mesh, stats, settings)``; ``rectangle`` (slices): the statistics from this part of ``ref`` only (a fan's
     largest rectangle without fill)."""
+    check_element_size(element_size, spacing, mesh)
     stats = settings = None
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
@@ -308,7 +309,6 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                                    regularizer=regularizer, strategy=strategy, initial=initial,
                                                    maxiter=maxiter, tol=tol, strain_tol=strain_tol,
                                                    check_orientation=check_orientation, refine=refine)
-    check_element_size(element_size, spacing, mesh)
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(strategy, regularizer,
                                                                                    regularizer_options))
 
