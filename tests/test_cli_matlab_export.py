@@ -398,3 +398,22 @@ def test_a_range_written_as_in_prose_gets_its_slice():
         frame_selection("a-b")
     assert "are" not in str(info.value)
     assert frame_selection("1:6") == slice(1, 6)
+
+
+def test_batch_task_errors_speak_in_flags_and_name_the_settings_file(export, tmp_path, capsys):
+    import shutil
+
+    d, _ = export
+    src = tmp_path / "data"
+    src.mkdir()
+    for name in ("a.mat", "b.mat"):
+        shutil.copy(d / "scan.mat", src / name)
+    (src / "b.femreg.toml").write_text("spacing = [1.925e-05, 2e-04]\n")     # metres, in b's own settings
+    rc, out, err = _run(["batch", src, "-o", tmp_path / "out", "--transpose", *SPACING, "--task", "register",
+                         "--workers", "0", "--no-progress"], capsys)
+    failed = [line for line in err.splitlines() if line.startswith("femreg batch: FAILED")]
+    # before: "FAILED b/pair_000-001: OrientationError: ... pass it in mm, (0.01925, 0.2) (...; CLI: --spacing
+    # 0.01925 0.2), or check_orientation=False (CLI: --no-orientation-check)", the settings file unnamed
+    assert rc == 1 and len(failed) == 1 and "b/pair_000-001: bad input: " in failed[0], err
+    assert "--spacing 0.01925 0.2" in failed[0] and "check_orientation" not in failed[0], failed
+    assert "b.femreg.toml beside the recording sets its own settings" in failed[0], failed
