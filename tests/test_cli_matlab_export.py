@@ -336,6 +336,15 @@ def test_plot_of_a_track_run_on_a_selection_draws_its_first_frame(export, tmp_pa
     rc, out, err = _run(["plot", run / "frame_001.npz", "--reference", d / "scan.mat", "--transpose",
                          "--frames", "1:", "-o", tmp_path / "g.png"], capsys)
     assert rc == 0 and np.array_equal(drawn["reference"], frames[1]) and not err, err
+    # invert --images: the run's frames 0 -> 1 are the file's 1 -> 2 (before: the file's 0 and 1; on the in vivo
+    # seq304, frame 5 of a track run: image term 743 with frames 0, 1 against 117 with frames 0, 5)
+    from femreg.cli import build_parser
+    from femreg.cli.invert_cmd import _images
+
+    args = build_parser().parse_args(["invert", str(run / "frame_001.npz"), "-o", "m.npz", "--images",
+                                      str(d / "scan.mat"), "--transpose"])
+    ref, mov = _images(args, (0.01925, 0.2))
+    assert np.array_equal(ref, frames[1]) and np.array_equal(mov, frames[2])
 
 
 def test_elastogram_band_given_as_fractions_is_refused(export, tmp_path, capsys):
@@ -417,3 +426,18 @@ def test_batch_task_errors_speak_in_flags_and_name_the_settings_file(export, tmp
     assert rc == 1 and len(failed) == 1 and "b/pair_000-001: bad input: " in failed[0], err
     assert "--spacing 0.01925 0.2" in failed[0] and "check_orientation" not in failed[0], failed
     assert "b.femreg.toml beside the recording sets its own settings" in failed[0], failed
+
+
+def test_registered_frames_of_each_kind_of_result(tmp_path):
+    import json
+
+    from femreg.cli._common import registered_frames
+
+    np.savez(tmp_path / "p.npz", pair=np.array([3, 7]))
+    np.savez(tmp_path / "frame_004.npz", frame=np.array(4), increment=np.zeros(2))
+    np.savez(tmp_path / "other.npz", u=np.zeros(2))
+    assert registered_frames(tmp_path / "p.npz")[:2] == (3, 7)
+    assert registered_frames(tmp_path / "frame_004.npz")[:2] == (0, 4)        # accumulated: frames 0 -> 4
+    assert registered_frames(tmp_path / "other.npz") is None
+    (tmp_path / "track.json").write_text(json.dumps({"file_frames": [2, 4, 6, 8, 10]}))
+    assert registered_frames(tmp_path / "frame_004.npz")[:2] == (2, 10)       # a run on --frames 2::2

@@ -326,6 +326,36 @@ def file_frame(selection, k: int) -> int:
     return int(selection) + k
 
 
+def registered_frames(path, res=None):
+    """``(i, j, what)``: the file's frames a result file was registered from, reference i and moving j, and the
+    words saying so; None when the file does not say.  A pair of ``femreg register FILE --pair I J`` / ``femreg
+    batch`` (its ``pair``); frame K of a ``femreg track`` run: frames 0 -> K (accumulate or direct, both in
+    frame 0's coordinates), through its ``track.json``'s ``file_frames`` when the run took a --frames
+    selection.  ``res``: the file's arrays when already read."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    if res is None:
+        with np.load(path, allow_pickle=False) as z:
+            res = {k: z[k] for k in ("pair", "frame", "increment") if k in z.files}
+    pair = np.ravel(res["pair"]) if res.get("pair") is not None else np.empty(0)
+    if pair.size == 2:
+        return int(pair[0]), int(pair[1]), f"registered frames {int(pair[0])} -> {int(pair[1])}"
+    if "frame" not in res or "increment" not in res:
+        return None
+    k = int(np.ravel(res["frame"])[0])
+    try:
+        frames = json.loads((Path(path).parent / "track.json").read_text()).get("file_frames")
+    except (OSError, ValueError):
+        frames = None
+    if frames and k < len(frames):
+        return (int(frames[0]), int(frames[k]), f"is frame {k} of a track run on the file's frames "
+                f"{frames[0]}-{frames[-1]}: frames {frames[0]} -> {frames[k]} of the file")
+    return 0, k, f"is frame {k} of a track run: frames 0 -> {k}"
+
+
 def _record_file_frames(folder, frames) -> None:
     """Add the file's indices of a --frames selection to ``folder/track.json`` (``file_frames``), so that
     ``femreg plot --reference FILE`` draws the B-mode of the frame the run starts from."""

@@ -52,8 +52,9 @@ def add_parser(subparsers):
                    help="the registered frames (reference and moving file, or one multi-frame file with --pair; a "
                         "volume's result: its .npz volume file(s)): also run the one-step inversion from the images")
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
-                   help="with --images: frame indices of reference and moving (default: the pair the result "
-                        "was registered from (femreg register --pair), else 0 1 in one file, 0 0 in two)")
+                   help="with --images: frame indices of reference and moving (default: the frames the result "
+                        "was registered from (femreg register FILE --pair, femreg batch, femreg track's frame "
+                        "K: 0 K), else 0 1 in one file, 0 0 in two)")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (optimiser iterations)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
@@ -73,30 +74,21 @@ def add_parser(subparsers):
 KPA_RANGE = (0.1, 2000.0)
 
 
-def _registered_pair(path):
-    """The frame indices (I, J) a result of ``femreg register --pair`` / ``femreg batch`` was registered from,
-    None when the file does not say."""
-    import numpy as np
-
-    with np.load(path, allow_pickle=False) as z:
-        pair = np.ravel(z["pair"]) if "pair" in z.files else None
-    return (int(pair[0]), int(pair[1])) if pair is not None and pair.size == 2 else None
-
-
 def _images(args, spacing=None):
     """(reference, moving) frames of --images, read like ``femreg register`` reads them; ``spacing``: the
     registration's (mm), which a file without its own takes (:func:`frames_on_result_grid`).  One file: frames
     ``--pair``, by default those the result was registered from (0 1 when it does not say)."""
     from femreg.errors import InputError
 
-    from ._common import frames_on_result_grid
+    from ._common import frames_on_result_grid, registered_frames
     from .register_cmd import _frame
 
     if len(args.images) > 2:
         raise InputError(f"--images takes one or two files, got {len(args.images)}")
     ref_fr = frames_on_result_grid(args, args.images[0], spacing)
     if len(args.images) == 1:
-        i, j = args.pair or _registered_pair(args.result) or (0, 1)
+        found = None if getattr(args, "frames", None) else registered_frames(args.result)
+        i, j = args.pair or (found[:2] if found else (0, 1))
         mov_fr = ref_fr
     else:
         i, j = args.pair or (0, 0)

@@ -6,30 +6,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ._common import (add_reader_args, failed_notice, frame_index, frames_from_args,  # noqa: F401
-                      frames_on_result_grid)  # failed_notice: also here
-
-
-def _reference_frame(path, res) -> tuple:
-    """(the file's index of the frame ``res`` is registered on, what says so) or (None, ""): frame I of a pair of
-    ``femreg register FILE --pair I J`` / ``femreg batch``; the first frame of a track run on a --frames
-    selection (its ``track.json``'s ``file_frames``), whose results count the selection from 0."""
-    import json
-
-    import numpy as np
-
-    pair = np.ravel(res["pair"]) if res.get("pair") is not None else np.empty(0)
-    if pair.size == 2:
-        return int(pair[0]), f"registered frames {int(pair[0])} -> {int(pair[1])}"
-    if "frame" in res and "increment" in res:
-        try:
-            frames = json.loads((Path(path).parent / "track.json").read_text()).get("file_frames")
-        except (OSError, ValueError):
-            frames = None
-        if frames:
-            k = int(np.ravel(res["frame"])[0])
-            return int(frames[0]), (f"is frame {k} of a track run on the file's frames {frames[0]}-{frames[-1]}, "
-                                    f"registered on frame {frames[0]}")
-    return None, ""
+                      frames_on_result_grid, registered_frames)  # failed_notice: also here
 
 
 def add_parser(subparsers):
@@ -110,7 +87,8 @@ def _run(args) -> int:
     reference, bmode_title = None, "B-mode"
     if args.reference:
         fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
-        own, what = (None, "") if getattr(args, "frames", None) else _reference_frame(args.result, res)
+        found = None if getattr(args, "frames", None) else registered_frames(args.result, res)
+        own, what = (found[0], found[2]) if found else (None, "")
         k = args.frame if args.frame is not None else (own if own is not None and own < fr.n_frames else 0)
         reference = fr.frames[frame_index(k, fr.n_frames, args.reference, "--frame")]
         if own is not None and k != own:
