@@ -441,3 +441,18 @@ def test_registered_frames_of_each_kind_of_result(tmp_path):
     assert registered_frames(tmp_path / "other.npz") is None
     (tmp_path / "track.json").write_text(json.dumps({"file_frames": [2, 4, 6, 8, 10]}))
     assert registered_frames(tmp_path / "frame_004.npz")[:2] == (2, 10)       # a run on --frames 2::2
+
+
+def test_no_elastogram_draws_no_colour_bar_over_empty_panels(export, tmp_path, capsys, monkeypatch):
+    import femreg.cli.elastogram_cmd as E
+
+    d, _ = export
+    figs = []
+    draw = E.elastogram_figure
+    monkeypatch.setattr(E, "elastogram_figure", lambda *a, **k: figs.append(draw(*a, **k)) or figs[-1])
+    rc, out, err = _run(["elastogram", d / "scan.mat", "--transpose", *SPACING, "--band", "5", "10",
+                         "-o", tmp_path / "e", "--no-progress"], capsys)
+    assert rc == 1 and "no pair was usable" in err and len(figs) == 1, err
+    # before: the empty strain and quality panels kept colour bars over 0-2 and 0.1-10, ranges of no data
+    shown = [ax.images[-1].colorbar.ax.get_visible() for ax in figs[0].axes]
+    assert shown == [True, False, False], shown

@@ -209,6 +209,11 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         for ax in axs[1:]:
             ax.text(0.5, 0.5, "no usable pair", transform=ax.transAxes, ha="center", va="center", color="0.4")
     fit_colorbars(fig, [list(axs)])
+    if failure:
+        for ax in axs[1:]:
+            cb = ax.images[-1].colorbar if ax.images else None
+            if cb is not None:          # a scale over no data would read as a measured range
+                cb.ax.set_visible(False)
     return fig
 
 
