@@ -456,3 +456,13 @@ def test_no_elastogram_draws_no_colour_bar_over_empty_panels(export, tmp_path, c
     # before: the empty strain and quality panels kept colour bars over 0-2 and 0.1-10, ranges of no data
     shown = [ax.images[-1].colorbar.ax.get_visible() for ax in figs[0].axes]
     assert shown == [True, False, False], shown
+
+
+def test_a_spacing_against_the_files_fields_is_noted(export, capsys):
+    d, _ = export
+    rc, out, err = _run(["info", d / "scan.mat", "--transpose", "--spacing", "0.025", "0.2"], capsys)
+    # before: "needs nothing: ready to register", every depth 30 % off without a word
+    assert rc == 0 and "--spacing differs from what the file's fields imply (axial 0.025 mm against 0.01925" in err
+    assert "lateral" not in err.split("imply (")[1].split(":")[0], err
+    rc, out, err = _run(["info", d / "scan.mat", "--transpose", *SPACING], capsys)
+    assert rc == 0 and "note" not in err, err

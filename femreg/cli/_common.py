@@ -93,6 +93,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
         frame_index(neg, n, path, "--frames")
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     _note_raw_only_flags(fr, path, args)
+    _note_spacing_against_fields(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -126,6 +127,44 @@ def _note_raw_only_flags(fr, path, args) -> None:
         who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
         print(f"{who}: note: {path}: {'; '.join(ignored)} ignored: they apply to headerless raw files, and this "
               f"{meta.get('format', 'file')} file states its own", file=sys.stderr)
+
+
+#: A given --spacing further than this (relative) from what the file's fields imply is noted.
+FIELD_SPACING_TOLERANCE = 0.05
+
+
+def _note_spacing_against_fields(fr, path, args) -> None:
+    """On stderr: a typed --spacing that differs from the one the file's header fields imply (``fs``, ``c``,
+    ``pitch``: :func:`femreg.io.checks.spacing_suggestion`) by more than :data:`FIELD_SPACING_TOLERANCE`.  Only a
+    note: the fields can be wrong too (a sampling rate before decimation), but a spacing off by a quarter puts
+    every depth and lateral position a quarter off without any other sign."""
+    import numpy as np
+
+    from ..io.checks import spacing_suggestion
+
+    given = getattr(args, "spacing", None)
+    fields = (fr.metadata or {}).get("fields")
+    if given is None or not fields or fr.spacing is None:
+        return
+    sug = spacing_suggestion(fields)
+    if sug is None:
+        return
+    off = []
+    for axis, (name, typed, value) in enumerate((("axial", given[0], sug.dx), ("lateral", given[1], sug.dy))):
+        try:
+            implied = float(value)
+        except (TypeError, ValueError):
+            continue                    # "DX" / "DY" / "auto": the fields do not say
+        read = float(np.ravel(fr.spacing)[axis])
+        if typed is not None and str(typed) != "auto" and abs(read / implied - 1.0) > FIELD_SPACING_TOLERANCE:
+            off.append(f"{name} {read:g} mm against {implied:g}")
+    key = (str(path), "fields", tuple(off))
+    if off and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: {path}: --spacing differs from what the file's fields imply ({'; '.join(off)}: "
+              f"{sug.why_x}; {sug.why_y}): every depth and lateral position scales with it; check it against the "
+              f"scanner's settings", file=sys.stderr)
 
 
 #: Notes already given in this process (register reads the same file's flags for each frame file).
