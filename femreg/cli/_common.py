@@ -149,15 +149,26 @@ def _note_spacing_against_fields(fr, path, args) -> None:
     sug = spacing_suggestion(fields)
     if sug is None:
         return
-    off = []
-    for axis, (name, typed, value) in enumerate((("axial", given[0], sug.dx), ("lateral", given[1], sug.dy))):
+    off, tol = [], FIELD_SPACING_TOLERANCE
+    read = [float(v) for v in np.ravel(fr.spacing)[:2]]
+    try:
+        implied = [float(sug.dx), float(sug.dy)]
+    except (TypeError, ValueError):     # "DX" / "DY" / "auto": the fields do not say both
+        implied = [None, None]
+    if None not in implied and any(all(abs(r / (i * k) - 1.0) <= tol for r, i in zip(order, implied))
+                                   for order in (read[::-1], read) for k in (1.0, 1e-3, 1e3, 0.1, 10.0)
+                                   if not (order is read and k == 1.0)):
+        return                          # exchanged or in other units: the orientation checks say so, better
+    for axis, name in enumerate(("axial", "lateral")):
         try:
-            implied = float(value)
+            i = float((sug.dx, sug.dy)[axis])
         except (TypeError, ValueError):
-            continue                    # "DX" / "DY" / "auto": the fields do not say
-        read = float(np.ravel(fr.spacing)[axis])
-        if typed is not None and str(typed) != "auto" and abs(read / implied - 1.0) > FIELD_SPACING_TOLERANCE:
-            off.append(f"{name} {read:g} mm against {implied:g}")
+            continue
+        ratio = read[axis] / i
+        units = any(abs(ratio / k - 1.0) <= tol for k in (1e-3, 1e3, 0.1, 10.0))   # the units checks name them
+        typed = given[axis]
+        if typed is not None and str(typed) != "auto" and abs(ratio - 1.0) > tol and not units:
+            off.append(f"{name} {read[axis]:g} mm against {i:g}")
     key = (str(path), "fields", tuple(off))
     if off and key not in _NOTED:
         _NOTED.add(key)
