@@ -593,8 +593,16 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         i1 = int(np.floor((box[k + 1] - org[axis]) / sp[axis] + 1e-6)) + 1
         idx.append((max(0, i0), min(int(shape[axis]), i1)))
     if idx[0][1] - idx[0][0] < 2 or idx[1][1] - idx[1][0] < 2:
+        # numbers in metres (a MATLAB script's): inside the image and a few pixels wide once read as mm
+        big = np.r_[box[:2] * 1e3, box[2:] * (1e3 if need == 4 else 1.0)]
+        metres = (big[0] >= lo[0] - tol[0] and big[1] <= hi[0] + tol[0] and big[2] >= lo[1] - tol[1]
+                  and big[3] <= hi[1] + tol[1] and big[1] - big[0] >= 2 * sp[0] and big[3] - big[2] >= 2 * sp[1])
+        mm = " ".join(f"{x * 1e3:g}" for x in v)
+        hint = ("; the numbers look like metres: pass them in mm, "
+                + pass_as(f"{what}=({mm.replace(' ', ', ')}) (CLI: --{what} {mm})", f"--{what} {mm}")
+                if metres else "")
         raise InputError(f"{_given(what, v)} holds fewer than 2 x 2 pixels; the image extent "
-                         f"is {_extent_text(shape, spacing, origin)}")
+                         f"is {_extent_text(shape, spacing, origin)}{hint}")
     region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
                         tuple(float(s) for s in org))
     x0, x1, y0, y1 = region.roi_mm

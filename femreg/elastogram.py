@@ -54,7 +54,7 @@ from .echo import crop_for, rf_like
 from .errors import InputError, pass_as
 from . import orientation
 from .image import repeated_frames, validate_image, validate_spacing
-from .mesh import roi_mesh
+from .mesh import check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
 from .speckle import envelope, speckle_statistics
 
@@ -848,6 +848,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             es = tuple(default_settings(shape, spacing, scr.stats, **element_rule(reg_name)).element_size)
             mesh = roi_mesh(shape, spacing, origin, element_size=es, margin=register_kwargs.pop("margin", None))
         elif mesh is None:
+            check_element_size(register_kwargs.get("element_size"), spacing)
             mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),
                             margin=register_kwargs.pop("margin", None))
         reg_args = dict(spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha, data_mask=mask,

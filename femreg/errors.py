@@ -21,6 +21,11 @@ def cli_wording():
         _cli[0] = before
 
 
+def cli_wording_on() -> bool:
+    """True within :func:`cli_wording` (a batch passes it on to its tasks, which run in other processes)."""
+    return bool(_cli[0])
+
+
 def pass_as(python: str, cli: str) -> str:
     """How a message names what to pass: ``cli`` (the command's flags only) within :func:`cli_wording`,
     ``python`` (the library's arguments, usually with the flag beside them) otherwise."""

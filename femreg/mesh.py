@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from skfem import MeshQuad1
 
-from .errors import InputError
+from .errors import InputError, pass_as
 
 __all__ = ["DEFAULT_ELEMENT_SIZE", "DEFAULT_MARGIN", "roi_mesh", "as_quad_mesh", "check_mesh_in_image",
            "tensor_structure", "check_mesh"]
@@ -40,6 +40,23 @@ def _breaks(n_pix: int, lo_pix: int, hi_pix: int, size_pix: float) -> np.ndarray
     n_cells = hi_pix - lo_pix
     n_el = max(1, int(round(n_cells / size_pix)))
     return np.unique(np.round(np.linspace(lo_pix, hi_pix, n_el + 1)).astype(int))
+
+
+def check_element_size(element_size, spacing, mesh=None) -> None:
+    """InputError for a given element size below one pixel along both axes (mm; a size in metres, 0.0015 for 1.5
+    mm): the mesh would take one pixel per element, about a thousand times the elements meant, and the solve
+    would not end in useful time."""
+    if element_size is None or mesh is not None:
+        return
+    h = np.broadcast_to(np.asarray(element_size, float), (2,))
+    sp = np.broadcast_to(np.asarray(spacing, float).ravel()[:2], (2,))
+    if np.all(np.isfinite(h)) and np.all(h > 0) and np.all(h < sp):
+        text = " ".join(f"{v:g}" for v in np.ravel(element_size))
+        mm = " ".join(f"{v * 1e3:g}" for v in np.ravel(element_size))
+        metres = pass_as(f"element_size={mm} (CLI: --element-size {mm})", f"--element-size {mm}")
+        raise InputError(pass_as(f"element_size {text} mm", f"--element-size {text} (mm)")
+                         + f" is smaller than a pixel ({sp[0]:g} x {sp[1]:g} mm, axial x lateral): element sizes "
+                           f"are in mm" + (f"; read as metres it is {metres}" if np.all(h * 1e3 >= sp) else ""))
 
 
 def roi_mesh(shape, spacing, origin=(0.0, 0.0), *, element_size=None, margin=None) -> MeshQuad1:

@@ -40,7 +40,13 @@ def frame_selection(text: str):
             return [int(p) for p in text.split(",") if p.strip()]
         return int(text)
     except ValueError:
-        raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5)") from None
+        import re
+
+        # a MATLAB or prose range, 1-5 / 1..5: its frames inclusive are the slice K:L+1
+        m = re.fullmatch(r"\s*(\d+)\s*(?:-|\.\.)\s*(\d+)\s*", text)
+        hint = (f"; frames {m[1]} to {m[2]} are {m[1]}:{int(m[2]) + 1} (a slice's end is left out, frames count "
+                f"from 0)" if m and int(m[1]) <= int(m[2]) else "")
+        raise InputError(f"bad frame selection {text!r} (use 3, 0:10, 0:10:2 or 1,3,5){hint}") from None
 
 
 def negative_index(selection):
@@ -84,9 +90,13 @@ def reader_kwargs(options) -> dict:
     shape = options.get("shape")
     if shape is not None and len(shape) not in (2, 3):
         raise InputError(f"--shape takes 2 or 3 integers (AXIAL LATERAL or FRAMES AXIAL LATERAL), got {shape}")
+    from .io.iq import check_modulation_frequency, check_sound_speed
+
     c = options.get("sound_speed")
-    if c is not None and not (c > 0 and c < float("inf")):     # unused by most formats: it would pass unnoticed
-        raise InputError(f"--sound-speed must be a finite number > 0 (m/s), got {c:g}")
+    if c is not None:           # unused by most formats: a number in other units would pass unnoticed
+        check_sound_speed(c)
+    if options.get("modulation_frequency") is not None:   # in Hz it would upsample each line a million-fold
+        check_modulation_frequency(options["modulation_frequency"])
     return dict(variable=options.get("variable"), shape=shape, dtype=options.get("dtype"),
                 spacing=options.get("spacing"), byte_order=options.get("byte_order"), frames=options.get("frames"),
                 sound_speed=options.get("sound_speed"), modulation_frequency=options.get("modulation_frequency"),

@@ -271,8 +271,18 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
             spacing_text = "give the spacing in that order, " + _pass_spacing(
                 swapped, f"{order}; {f_swap:.2f} MHz", lead="", unit=" mm")
         else:
-            spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
-                                   f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
+            # neither order fits: a spacing in other units than mm (metres, as MATLAB exports store it) is
+            # recognised by the order that fits once rescaled; exchanging it would make a wrong suggestion worse
+            spacing_text = ""
+            for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
+                for vals, f in (((dx, dy), f_keep), ((dy, dx), f_swap)):
+                    if not spacing_text and lo <= f / k <= hi:
+                        text = ", ".join(f"{v * k:.6g}" for v in vals + dz)
+                        spacing_text = (f"pass the spacing in mm (its units look like {unit}), "
+                                        + _pass_spacing(text, f"{order}; {f / k:.2f} MHz", lead=""))
+            if not spacing_text:
+                spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
+                                       f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
         rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
                        f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
                        f"{shape}: transpose them ({how}) and {spacing_text}, or {override()}")

@@ -222,12 +222,19 @@ def fit_colorbars(fig, rows, tries=10):
         engine.set(wspace=wspace, rect=tuple(rect))
 
 
+#: How a B-mode is drawn on a pixel grid: a full-depth frame holds several samples per screen pixel (2000 rows in
+#: about 330), and picking the nearest one aliases the speckle into pixel-sized salt-and-pepper noise; matplotlib's
+#: anti-aliasing filter averages them (nearest where the image is enlarged).
+_BMODE_IMSHOW = {"interpolation": "antialiased"}
+
+
 def _draw(ax, img, ext, positions, **kw):
     """imshow of a pixel-grid image, or (``positions`` = physical (X, Y) of every sample of a convex / sector
     frame, :mod:`femreg.geometry`) a scan-converted pcolormesh at the samples' physical positions."""
     if positions is None:
-        return ax.imshow(img, extent=ext, interpolation="nearest", **kw)
+        return ax.imshow(img, extent=ext, **{"interpolation": "nearest", **kw})
     X, Y = positions
+    kw.pop("interpolation", None)                  # pcolormesh draws each sample's cell
     aspect = kw.pop("aspect", "equal")
     im = ax.pcolormesh(Y, X, img, shading="nearest", rasterized=True, **kw)
     ax.set_aspect(aspect)
@@ -251,7 +258,7 @@ def plot_bmode(rf, spacing, origin=(0.0, 0.0), ax=None, *, dynamic_range=50.0, t
     img = bmode(rf, dynamic_range)
     ax = _ax(ax)
     im = _draw(ax, img, extent_mm(img.shape, sp, origin), positions, cmap="gray", vmin=-dynamic_range, vmax=0,
-               aspect=aspect)
+               aspect=aspect, **_BMODE_IMSHOW)
     _label(ax, title)
     if colorbar:
         _colorbar(ax, im, "echo level (dB)")
@@ -280,7 +287,7 @@ def plot_field(field, spacing, origin=(0.0, 0.0), ax=None, *, title=None, cmap=N
         if b.shape != f.shape:
             raise InputError(f"overlay_bmode shape {b.shape} differs from the field's {f.shape}")
         _draw(ax, bmode(b, dynamic_range), ext, positions, cmap="gray", vmin=-dynamic_range, vmax=0,
-              aspect=aspect)
+              aspect=aspect, **_BMODE_IMSHOW)
     if cmap is None and symmetric is None:
         cmap, lo, hi = colour_scale(f)
     else:
@@ -444,7 +451,7 @@ def _shade_outside(ax, outside, spacing, origin, roi, label=None, positions=None
 
 
 def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100, dynamic_range=50.0,
-                figsize=None):
+                figsize=None, bmode_title="B-mode"):
     """Summary figure of a registration result: B-mode (if ``reference`` RF, or a ``reference``/``rf`` key in
     the result, is available; the mesh otherwise) and ux, uy (mm), exx, eyy, exy (%) on the pixel grid.
 
@@ -460,6 +467,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         Where to save the figure (PNG).  The figure is returned either way.
     reference : (axial, lateral) RF of the reference image, optional.
     overlay : draw each field over the B-mode.
+    bmode_title : the B-mode panel's title (which frame it shows).
     """
     from .io.results import as_result_dict, check_mesh
 
@@ -493,7 +501,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     aspect = "equal" if 0.2 < aspect_ratio < 5 else "auto"  # very tall/flat grids fill the panel
     if reference is not None:
         plot_bmode(reference, sp, origin, ax=axes[0], dynamic_range=dynamic_range, aspect=aspect,
-                   positions=positions)
+                   positions=positions, title=bmode_title)
     else:
         p, t, _ = check_mesh(d["mesh_points"], d["mesh_cells"], d["u"])
         ax = axes[0]
@@ -529,6 +537,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
     if "alpha" in d:
         info.append(f"alpha {float(d['alpha']):.3g}")
     step = ""
+    pair = np.ravel(d["pair"]) if d.get("pair") is not None else np.empty(0)
+    if pair.size == 2 and "frame" not in d:        # a pair of `femreg register --pair I J` or `femreg batch`
+        info.insert(0, f"frames {int(pair[0])} -> {int(pair[1])}")
     if "frame" in d and "increment" in d:          # a frame of `femreg track`: say what the picture accumulates
         k = int(d["frame"])
         accumulated = str(d["mode"]) != "direct" if "mode" in d else True

@@ -27,7 +27,7 @@ from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.r
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
 from .initial import INITIAL_NAMES, initial_guess
-from .mesh import as_quad_mesh, check_mesh_in_image, roi_mesh
+from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
 from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage,
@@ -86,6 +86,7 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     speckle statistics and pyramid settings are returned for the pyramid) or from ``element_size``.  Returns
     ``(mesh, stats, settings)``; ``rectangle`` (slices): the statistics from this part of ``ref`` only (a fan's
     largest rectangle without fill)."""
+    check_element_size(element_size, spacing, mesh)
     stats = settings = None
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:

@@ -42,7 +42,7 @@ from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
 from .image import refuse_repeated_start, repeat_note, repeated_frames, validate_image, validate_spacing
-from .mesh import as_quad_mesh, roi_mesh
+from .mesh import as_quad_mesh, check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
 from .probes import Convex, as_geometry
@@ -268,6 +268,7 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         part = seq[0] if crop is None or crop.rectangle is None else np.asarray(seq[0])[crop.rectangle]
         element_size = tuple(default_settings(shape, spacing, speckle_statistics(part, spacing),
                                               **element_rule(regularizer)).element_size)
+    check_element_size(element_size, spacing, mesh)
     fe_mesh = roi_mesh(shape, spacing, origin, element_size=element_size, margin=margin) if mesh is None \
         else as_quad_mesh(mesh)
     if isinstance(alpha, str):          # alpha="auto": chosen on the first pair, reused (femreg.autoalpha)

@@ -85,9 +85,11 @@ def test_a_flagged_inversion_says_its_message_once(data, tmp_path, capsys):
     message = inv.load_inversion(tmp_path / "mu.npz").message
     assert rc == 1 and "contradicts the plane-stress model" in message, (rc, message)
     assert (out + err).count(message) == 1 and "FLAGGED" in err and "message=" not in out, (out, err)
+    assert out.startswith("inversion: flagged, model plane-stress"), out
     # a successful one keeps its message in the summary line
     rc, out, err = _run(["invert", data / "ok.npz", "-o", tmp_path / "ok.npz", "--no-progress"], capsys)
-    assert rc == 0 and "message='" in out, out
+    ok = inv.load_inversion(tmp_path / "ok.npz").message
+    assert rc == 0 and ok and out.splitlines()[0].endswith(f"; {ok}"), out
 
 
 def test_invert_progress_bar_counts_beta_values(data, tmp_path, capsys):

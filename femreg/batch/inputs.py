@@ -169,6 +169,16 @@ def jobs_from_inputs(inputs, settings: dict | None = None, *, folders: str = "co
     return jobs
 
 
+def pair_beyond(pair, n_frames: int) -> str:
+    """Why the frame ``pair`` (I, J) cannot be taken from a recording of ``n_frames`` frames, in the words of
+    ``femreg register --pair``; "" when it can."""
+    bad = [int(k) for k in pair if not 0 <= int(k) < n_frames]
+    if not bad:
+        return ""
+    return (f"--pair {pair[0]} {pair[1]}: no frame {bad[0]}: the recording holds {n_frames} frame(s), counted "
+            f"from 0: 0 to {n_frames - 1}")
+
+
 def _frames_needed(settings: dict) -> int:
     return 2 if settings["task"] == "track" else 1 + max(max(p) for p in settings["pairs"])
 
@@ -209,6 +219,21 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
         raise InputError(f"{item}: its {len(jobs)} files hold one frame each, and each file is a recording of its "
                          f"own ({what}); if they are the frames of one recording, pass "
                          + pass_as("--folders recording (folders='recording')", "--folders recording"))
+    import numpy as np
+
+    from ..mesh import check_element_size
+
+    es = s.get("element_size")
+    try:        # an element size in metres: every task would mesh one pixel per element
+        check_element_size(None if es is None else np.ravel(np.asarray(es, float)), fr.spacing)
+    except InputError as exc:
+        raise InputError(f"{job.input}: {exc}") from None
+    if len(jobs) == 1 and s["task"] == "register":
+        # one recording: a pair beyond its last frame (often counted from 1) fails every task of it
+        for pair in s["pairs"]:
+            why = pair_beyond(pair, fr.n_frames)
+            if why:
+                raise InputError(f"{job.input}: {why}")
     if not s.get("no_orientation_check"):
         try:
             check_raw_shape(fr)

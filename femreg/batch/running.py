@@ -16,9 +16,9 @@ import traceback
 from pathlib import Path
 
 from .._atomic import atomic_savez, atomic_write_text
-from ..errors import InputError, pass_as
+from ..errors import InputError, cli_wording, cli_wording_on, pass_as
 from .engine import Task, _describe_error, open_client, run_tasks
-from .inputs import Job
+from .inputs import Job, pair_beyond, settings_file_for
 from .settings import _check_settings
 from .summary import BatchSummary
 
@@ -110,18 +110,33 @@ def run_recording_task(spec: dict, out_dir) -> dict:
     rec = {k: spec[k] for k in ("key", "name", "task_id", "input", "task", "pair", "hash")}
     rec.update(worker=f"{socket.gethostname()}:{os.getpid()}",
                blas_threads=os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS"))
-    try:
-        reader_kw, reg_kw = _check_settings(spec["settings"], spec["key"])
-        rec.update(_run_track(spec, folder, reader_kw, reg_kw) if spec["task"] == "track"
-                   else _run_pair(spec, folder, reader_kw, reg_kw))
-        rec["status"], rec["error"] = "ok", None
-    except Exception as exc:  # noqa: BLE001 - a failing recording is recorded; the batch goes on
-        rec.update(status="failed", error=_describe_error(exc), traceback=traceback.format_exc(limit=20))
+    with cli_wording() if spec.get("cli") else contextlib.nullcontext():
+        try:
+            reader_kw, reg_kw = _check_settings(spec["settings"], spec["key"])
+            rec.update(_run_track(spec, folder, reader_kw, reg_kw) if spec["task"] == "track"
+                       else _run_pair(spec, folder, reader_kw, reg_kw))
+            rec["status"], rec["error"] = "ok", None
+        except Exception as exc:  # noqa: BLE001 - a failing recording is recorded; the batch goes on
+            rec.update(status="failed", error=_task_error(exc, spec), traceback=traceback.format_exc(limit=20))
     rec["wall_s"] = round(time.perf_counter() - t0, 3)
     rec["cpu_s"] = round(time.process_time() - c0, 3)  # the worker process's CPU time: wall on a busy machine lies
     rec["peak_rss_mb"] = _peak_rss_mb()
     atomic_write_text(rpath, json.dumps(rec, indent=1, default=str))
     return {**rec, "computed": True}
+
+
+def _task_error(exc, spec) -> str:
+    """The error of a failed task as its record keeps it: the exception's class and message; on the command line
+    bad input reads "bad input: ..." and names the recording's settings file, whose values override the flags."""
+    if not (spec.get("cli") and isinstance(exc, InputError)):
+        return _describe_error(exc)
+    msg = " ".join(str(exc).split())
+    try:
+        sf = settings_file_for(spec["input"])
+    except InputError:
+        sf = None
+    where = f" ({sf.name} beside the recording sets its own settings, which override the command line)" if sf else ""
+    return f"bad input: {msg}{where}"
 
 
 def _quality(res, min_ncc) -> str:
@@ -139,9 +154,10 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
 
     fr = read_frames(spec["input"], **reader_kw)
     i, j = spec["pair"]
-    if max(i, j) >= fr.n_frames:
+    why = pair_beyond((i, j), fr.n_frames)
+    if why:
         hint = " (a folder of per-frame files is one recording with --folders recording)" if fr.n_frames == 1 else ""
-        raise InputError(f"{spec['input']}: pair {i} {j} requested but it holds {fr.n_frames} frame(s){hint}")
+        raise InputError(f"{spec['input']}: {why}{hint}")
     res = register(fr.frames[i], fr.frames[j], spacing=fr.spacing, origin=fr.origin, **reg_kw)
     flag = _quality(res, spec["settings"]["min_ncc"])
     out = folder / f"{spec['task_id']}.npz"
@@ -256,7 +272,9 @@ def run_batch(jobs, out_dir, *, client=None, workers: int = 2, scheduler: str | 
         indent=1, default=str))
 
     todo = [sp for sp in specs if sp["key"] not in finished]
-    tasks = [Task(sp["key"], run_recording_task, (sp, str(out_dir.resolve())),
+    # the command line's wording travels with the tasks (their messages name flags, not Python arguments)
+    wording = {"cli": True} if cli_wording_on() else {}
+    tasks = [Task(sp["key"], run_recording_task, ({**sp, **wording}, str(out_dir.resolve())),
                   priority=int(sp["size"] // 1024) * (4 if sp["task"] == "track" else 1)) for sp in todo]
     workers_desc = "this process (serial)"
 

@@ -134,7 +134,23 @@ def _header_spacing_note(args, exc) -> str:
     meta = any(p.endswith((".mhd", ".mha")) for p in paths)
     return ("; this spacing was read from the file" + (" (a MetaImage header's ElementSpacing lists the lateral "
                                                        "spacing first: lateral, axial)" if meta else "")
+            + (TRANSPOSED_FILE_SPACING if getattr(args, "transpose", False) and exc.problem == "swapped" else "")
             + "; --spacing DX DY (axial, lateral) overrides it")
+
+
+#: Why a spacing read from a file looks swapped under --transpose: the file's spacing goes with its stored axes.
+TRANSPOSED_FILE_SPACING = (", and --transpose exchanged it with the file's axes (a file's spacing is taken in the "
+                           "order of its stored axes, lines first here; this one looks written axial, lateral "
+                           "already)")
+
+
+def file_spacing_wording(msg: str) -> str:
+    """``msg`` of a refusal that judged a spacing the user did not type: its leading ``--spacing DX DY (axial,
+    lateral`` says it is the file's (no --spacing was given)."""
+    import re
+
+    return re.sub(r"^(.*?)--spacing ([-+\d.e ]+) \(axial, lateral", r"\1the file's spacing \2 (axial, lateral", msg,
+                  count=1)
 
 
 #: Options naming a file (or folder) a subcommand writes: their missing parent folders are created before the
@@ -239,7 +255,8 @@ def main(argv=None) -> int:
     except (InputError, ValueError, OSError) as exc:  # OSError: missing file, unwritable output, full disk
         _remove_empty(made)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        msg = _name_the_files(args, exc, msg) + _header_spacing_note(args, exc)
+        note = _header_spacing_note(args, exc)
+        msg = _name_the_files(args, exc, file_spacing_wording(msg) if note else msg) + note
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra

@@ -93,6 +93,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
         frame_index(neg, n, path, "--frames")
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     _note_raw_only_flags(fr, path, args)
+    _note_spacing_against_fields(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -126,6 +127,55 @@ def _note_raw_only_flags(fr, path, args) -> None:
         who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
         print(f"{who}: note: {path}: {'; '.join(ignored)} ignored: they apply to headerless raw files, and this "
               f"{meta.get('format', 'file')} file states its own", file=sys.stderr)
+
+
+#: A given --spacing further than this (relative) from what the file's fields imply is noted.
+FIELD_SPACING_TOLERANCE = 0.05
+
+
+def _note_spacing_against_fields(fr, path, args) -> None:
+    """On stderr: a typed --spacing that differs from the one the file's header fields imply (``fs``, ``c``,
+    ``pitch``: :func:`femreg.io.checks.spacing_suggestion`) by more than :data:`FIELD_SPACING_TOLERANCE`.  Only a
+    note: the fields can be wrong too (a sampling rate before decimation), but a spacing off by a quarter puts
+    every depth and lateral position a quarter off without any other sign."""
+    import numpy as np
+
+    from ..io.checks import spacing_suggestion
+
+    given = getattr(args, "spacing", None)
+    fields = (fr.metadata or {}).get("fields")
+    if given is None or not fields or fr.spacing is None:
+        return
+    sug = spacing_suggestion(fields)
+    if sug is None:
+        return
+    off, tol = [], FIELD_SPACING_TOLERANCE
+    read = [float(v) for v in np.ravel(fr.spacing)[:2]]
+    try:
+        implied = [float(sug.dx), float(sug.dy)]
+    except (TypeError, ValueError):     # "DX" / "DY" / "auto": the fields do not say both
+        implied = [None, None]
+    if None not in implied and any(all(abs(r / (i * k) - 1.0) <= tol for r, i in zip(order, implied))
+                                   for order in (read[::-1], read) for k in (1.0, 1e-3, 1e3, 0.1, 10.0)
+                                   if not (order is read and k == 1.0)):
+        return                          # exchanged or in other units: the orientation checks say so, better
+    for axis, name in enumerate(("axial", "lateral")):
+        try:
+            i = float((sug.dx, sug.dy)[axis])
+        except (TypeError, ValueError):
+            continue
+        ratio = read[axis] / i
+        units = any(abs(ratio / k - 1.0) <= tol for k in (1e-3, 1e3, 0.1, 10.0))   # the units checks name them
+        typed = given[axis]
+        if typed is not None and str(typed) != "auto" and abs(ratio - 1.0) > tol and not units:
+            off.append(f"{name} {read[axis]:g} mm against {i:g}")
+    key = (str(path), "fields", tuple(off))
+    if off and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: {path}: --spacing differs from what the file's fields imply ({'; '.join(off)}: "
+              f"{sug.why_x}; {sug.why_y}): every depth and lateral position scales with it; check it against the "
+              f"scanner's settings", file=sys.stderr)
 
 
 #: Notes already given in this process (register reads the same file's flags for each frame file).
@@ -326,6 +376,53 @@ def file_frame(selection, k: int) -> int:
     return int(selection) + k
 
 
+def registered_frames(path, res=None):
+    """``(i, j, what)``: the file's frames a result file was registered from, reference i and moving j, and the
+    words saying so; None when the file does not say.  A pair of ``femreg register FILE --pair I J`` / ``femreg
+    batch`` (its ``pair``); frame K of a ``femreg track`` run: frames 0 -> K (accumulate or direct, both in
+    frame 0's coordinates), through its ``track.json``'s ``file_frames`` when the run took a --frames
+    selection.  ``res``: the file's arrays when already read."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    if res is None:
+        with np.load(path, allow_pickle=False) as z:
+            res = {k: z[k] for k in ("pair", "frame", "increment") if k in z.files}
+    pair = np.ravel(res["pair"]) if res.get("pair") is not None else np.empty(0)
+    if pair.size == 2:
+        return int(pair[0]), int(pair[1]), f"registered frames {int(pair[0])} -> {int(pair[1])}"
+    if "frame" not in res or "increment" not in res:
+        return None
+    k = int(np.ravel(res["frame"])[0])
+    try:
+        frames = json.loads((Path(path).parent / "track.json").read_text()).get("file_frames")
+    except (OSError, ValueError):
+        frames = None
+    if frames and k < len(frames):
+        return (int(frames[0]), int(frames[k]), f"is frame {k} of a track run on the file's frames "
+                f"{frames[0]}-{frames[-1]}: frames {frames[0]} -> {frames[k]} of the file")
+    return 0, k, f"is frame {k} of a track run: frames 0 -> {k}"
+
+
+def _record_file_frames(folder, frames) -> None:
+    """Add the file's indices of a --frames selection to ``folder/track.json`` (``file_frames``), so that
+    ``femreg plot --reference FILE`` draws the B-mode of the frame the run starts from."""
+    import json
+    from pathlib import Path
+
+    from .._atomic import atomic_write_text
+
+    path = Path(folder) / "track.json"
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    record["file_frames"] = [int(k) for k in frames]
+    atomic_write_text(path, json.dumps(record, indent=1))
+
+
 def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     """Run ``call(on_frame)`` (a tracking run writing one file per frame into ``args.output``), print a line per
     frame and the run's summary; the exit code: 0 done, 1 a frame flagged or failed (finished frames kept, the
@@ -377,6 +474,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         one = len(repeated) == 1
         print(f"femreg track: note: {len(repeated)} {noun}{'' if one else 's'} {'repeats' if one else 'repeat'} "
               f"the one before (identical samples; {noun}s {shown}): not registered, the field before kept")
+    if sel is not None:
+        _record_file_frames(args.output, [file_frame(sel, k) for k in range(len(out) + 1)])
     if moved:
         print(f"femreg track: note: --frames selected the file's frames "
               f"{', '.join(str(file_frame(sel, k)) for k in range(len(out) + 1))}: frame K and {args.output}/"

@@ -58,13 +58,27 @@ def add_parser(subparsers):
     return p
 
 
-def _display(img, spacing, height=320):
-    """Nearest-neighbour resampling to square display pixels, ``height`` rows."""
+#: A --band whose top is at most this (percent) is fractions typed as percent: freehand pairs strain 0.1-10 %.
+MIN_BAND_TOP = 0.05
+
+
+def _display(img, spacing, height=320, average=False):
+    """Resampling to square display pixels, ``height`` rows: nearest neighbour, or with ``average`` the mean of
+    the samples each display pixel covers along an axis that is reduced (a B-mode: picking one of several
+    samples per pixel aliases the speckle into salt-and-pepper noise)."""
     ext = np.asarray(img.shape) * np.asarray(spacing, float)
     width = max(2, int(round(height * ext[1] / ext[0])))
-    ii = np.minimum((np.arange(height) + 0.5) * img.shape[0] / height, img.shape[0] - 1).astype(int)
-    jj = np.minimum((np.arange(width) + 0.5) * img.shape[1] / width, img.shape[1] - 1).astype(int)
-    return img[np.ix_(ii, jj)]
+    out = np.asarray(img)
+    for axis, n in ((0, height), (1, width)):
+        m = out.shape[axis]
+        if average and m > n:
+            edges = np.round(np.arange(n + 1) * m / n).astype(int)
+            out = np.add.reduceat(out, edges[:-1], axis=axis) / np.diff(edges).reshape(
+                (-1, 1) if axis == 0 else (1, -1))
+        else:
+            idx = np.minimum((np.arange(n) + 0.5) * m / n, m - 1).astype(int)
+            out = np.take(out, idx, axis=axis)
+    return out
 
 
 def _rgb(values, cmap, vmin, vmax):
@@ -117,7 +131,7 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Pa
 
     pics = []
     for k, f in enumerate(res.cine_frames):
-        b = _display(bmode(np.asarray(frames[f], float)), spacing)
+        b = _display(bmode(np.asarray(frames[f], float)), spacing, average=True)
         s = _display(res.cine[k].astype(float), res.cine_spacing)
         bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
         pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", lo, hi),
@@ -195,6 +209,11 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         for ax in axs[1:]:
             ax.text(0.5, 0.5, "no usable pair", transform=ax.transAxes, ha="center", va="center", color="0.4")
     fit_colorbars(fig, [list(axs)])
+    if failure:
+        for ax in axs[1:]:
+            cb = ax.images[-1].colorbar if ax.images else None
+            if cb is not None:          # a scale over no data would read as a measured range
+                cb.ax.set_visible(False)
     return fig
 
 
@@ -216,6 +235,9 @@ def run(args) -> int:
     lo, hi = args.band
     if not 0 < lo < hi < 20:            # the flags are in percent (the function's band in fractions)
         raise InputError(f"--band LO HI must satisfy 0 < LO < HI < 20 (percent of axial strain), got {lo:g} {hi:g}")
+    if hi <= MIN_BAND_TOP:              # 0.005 0.02: fractions typed where percent are asked
+        raise InputError(f"--band {lo:g} {hi:g} is in percent: a band up to {hi:g} % of axial strain is below what "
+                         f"elastography registers (0.1-10 %); as fractions it is --band {lo * 100:g} {hi * 100:g}")
     if args.strain_range is not None and not (np.all(np.isfinite(args.strain_range))
                                               and args.strain_range[0] < args.strain_range[1]):
         raise InputError("--strain-range LO HI must be finite with LO < HI (normalised strain, 1 = the mean), got "
@@ -249,6 +271,9 @@ def run(args) -> int:
 
     if fr.n_frames < 3:
         raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
+    from ..mesh import check_element_size
+
+    check_element_size(kw.get("element_size"), fr.spacing)      # before the screening writes anything
     res = elastogram(fr.frames, spacing=fr.spacing, origin=fr.origin, band=(lo / 100.0, hi / 100.0),
                      min_ncc=args.min_ncc, max_span=args.max_span, max_lateral_mm=args.max_lateral,
                      persistence=args.persistence, output_dir=out, resume=args.resume,

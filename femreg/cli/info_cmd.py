@@ -109,6 +109,8 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] = [rep.message] if rep.problem else []
+        out["transposed"] = rep.problem == "transposed"
+        out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
         if "iq" in fr.metadata:      # remodulated IQ: what read_frames checks when registering (spacing, sign, f)
             out["needs"] += _iq_needs(fr)
         if not rep.problem and not rep.has_carrier and "raw" in str(out["format"]):
@@ -132,6 +134,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
             if carrier_ratio(np.asarray(a[0], float)[::max(1, a.shape[1] // 1024)].T) < CARRIER_RATIO:
                 out["needs"] = ["the frames look transposed: the RF carrier runs along axis 1 (lines x samples): "
                                 "pass --transpose (and --spacing DX DY as axial, lateral)"]
+                out["transposed"] = True
     return out
 
 
@@ -335,6 +338,14 @@ def run(args) -> int:
     variables = _variables(path) if path.is_file() else {}
     if variables:
         info["variables"] = variables
+    if info.get("spacing_problem") and args.spacing is None and info["needs"]:
+        # the spacing judged is the file's: say so, as register does
+        from ..orientation import OrientationError
+        from . import _header_spacing_note, file_spacing_wording
+
+        note = _header_spacing_note(args, OrientationError("", problem=info["spacing_problem"]))
+        info["needs"][0] = file_spacing_wording(info["needs"][0]) + note
+    info.pop("spacing_problem", None)
     info["needs"] += _spacing_conflict(info, args)
     start = _origin_note(info, args)
     if start:
@@ -353,7 +364,11 @@ def run(args) -> int:
     print(f"file      {info['file']}")
     print(f"format    {info['format']}")
     print(f"frames    {info['frames']}")
-    print(f"shape     {info['shape'][0]} axial x {info['shape'][1]} lateral")
+    if info.get("transposed"):         # axis 0 holds the lines: calling it axial would contradict the needs line
+        print(f"shape     {info['shape'][0]} x {info['shape'][1]} as stored: lines x samples, "
+              f"{info['shape'][1]} axial x {info['shape'][0]} lateral with --transpose")
+    else:
+        print(f"shape     {info['shape'][0]} axial x {info['shape'][1]} lateral")
     print(f"dtype     {info['dtype']} as stored" + (f" (read as {info['dtype_in_memory']})"
                                                     if info["dtype_in_memory"] != info["dtype"] else ""))
     meta = info.get("metadata", {})
@@ -365,7 +380,8 @@ def run(args) -> int:
         print(f"spacing   {info['spacing_mm'][0]:g} mm axial, {info['spacing_mm'][1]:g} mm lateral{src}")
         src = f" ({meta['origin_source']})" if meta.get("origin_source") else ""
         print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm{src}")
-        print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm")
+        print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm"
+              + (" as read without --transpose" if info.get("transposed") else ""))
     else:
         print(_no_spacing_line(info["needs"]))
     print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "

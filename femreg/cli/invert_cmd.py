@@ -52,7 +52,9 @@ def add_parser(subparsers):
                    help="the registered frames (reference and moving file, or one multi-frame file with --pair; a "
                         "volume's result: its .npz volume file(s)): also run the one-step inversion from the images")
     p.add_argument("--pair", metavar=("I", "J"), type=int, nargs=2,
-                   help="with --images: frame indices of reference and moving (default 0 1 in one file, 0 0 in two)")
+                   help="with --images: frame indices of reference and moving (default: the frames the result "
+                        "was registered from (femreg register FILE --pair, femreg batch, femreg track's frame "
+                        "K: 0 K), else 0 1 in one file, 0 0 in two)")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the uncertainty map (Laplace approximation)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (optimiser iterations)")
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
@@ -67,19 +69,26 @@ def add_parser(subparsers):
     return p
 
 
+#: Young's moduli (kPa) of soft tissue and elastography phantoms, about; a --reference outside is likely given in
+#: Pa or MPa
+KPA_RANGE = (0.1, 2000.0)
+
+
 def _images(args, spacing=None):
     """(reference, moving) frames of --images, read like ``femreg register`` reads them; ``spacing``: the
-    registration's (mm), which a file without its own takes (:func:`frames_on_result_grid`)."""
+    registration's (mm), which a file without its own takes (:func:`frames_on_result_grid`).  One file: frames
+    ``--pair``, by default those the result was registered from (0 1 when it does not say)."""
     from femreg.errors import InputError
 
-    from ._common import frames_on_result_grid
+    from ._common import frames_on_result_grid, registered_frames
     from .register_cmd import _frame
 
     if len(args.images) > 2:
         raise InputError(f"--images takes one or two files, got {len(args.images)}")
     ref_fr = frames_on_result_grid(args, args.images[0], spacing)
     if len(args.images) == 1:
-        i, j = args.pair or (0, 1)
+        found = None if getattr(args, "frames", None) else registered_frames(args.result)
+        i, j = args.pair or (found[:2] if found else (0, 1))
         mov_fr = ref_fr
     else:
         i, j = args.pair or (0, 0)
@@ -143,6 +152,13 @@ def _boxes(args, volume):
             raise InputError(f"--reference takes {n + 1} numbers ({names} mm, then KPA) for {kind}, got "
                              f"{len(args.reference)}: {' '.join(f'{v:g}' for v in args.reference)}")
         reference = (box(args.reference[:n]), float(args.reference[n]))
+        kpa = reference[1]
+        lo, hi = KPA_RANGE
+        if not lo <= kpa <= hi:     # the moduli in kPa all scale with it: say so before they are written
+            other = ("Pa", kpa / 1e3) if kpa > hi else ("MPa", kpa * 1e3)
+            print(f"femreg invert: note: --reference {kpa:g} kPa lies outside the Young's moduli of soft tissue and "
+                  f"phantoms ({lo:g}-{hi:g} kPa), and every modulus in kPa scales with it; if it is in {other[0]}, "
+                  f"pass {other[1]:g}", file=sys.stderr)
     return region, reference
 
 
@@ -218,8 +234,12 @@ def run(args) -> int:
         res.message = f"inverted from a failed registration ({args.result}); " + res.message
     res.save(out)
     # a failed or flagged result's message is printed once, on stderr below
-    print(res.summary(message=res.success or failed_reg))
+    # a line to read (the library's repr names Python fields: success=False, n_el=...)
     q5, q95 = np.percentile(res.mu, [5, 95])
+    said = res.message if (res.success or failed_reg) and res.message else ""
+    print(f"inversion: {'done' if res.success else 'flagged'}, model {res.model}, beta {res.beta:.3g}, "
+          f"{res.mesh.t.shape[1]} elements, mu 5-95 % {q5:.3g}-{q95:.3g} (median 1), {res.nit} iterations"
+          + (f"; {said}" if said else ""))
     where = "over the region" if region is not None else "over the mesh"
     print(f"modulus contrast {where}: {q95 / q5:.3g} (95th / 5th percentile of mu: {q95:.3g} / {q5:.3g}; "
           f"median 1)")

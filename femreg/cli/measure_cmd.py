@@ -101,7 +101,11 @@ def _check_shapes(dim, b, covers, inclusion, background, where):
         raise InputError(f"--inclusion needs a finite centre and a radius > 0 mm, got "
                          f"{' '.join(f'{v:g}' for v in inclusion)}")
     if not covers(c):
-        raise InputError(f"inclusion centre ({centre}) mm lies outside {where} ({_bounds_text(b)})")
+        # numbers copied from a MATLAB script in metres: a thousand times smaller, and inside once in mm
+        metres = (covers(c * 1e3) and r * 1e3 < max(b[2 * a + 1] - b[2 * a] for a in range(dim)))
+        hint = (f"; the numbers look like metres: pass them in mm, --inclusion "
+                f"{' '.join(f'{v * 1e3:g}' for v in inclusion)}" if metres else "")
+        raise InputError(f"inclusion centre ({centre}) mm lies outside {where} ({_bounds_text(b)}){hint}")
     notes = []
     if any(c[a] - r < b[2 * a] or c[a] + r > b[2 * a + 1] for a in range(dim)):
         notes.append(f"the inclusion {shape} extends beyond {where}; its part inside is measured")
@@ -113,6 +117,9 @@ def _check_shapes(dim, b, covers, inclusion, background, where):
             raise InputError(f"--background needs {names} (mm), got {text}")
         if any(hi[a] <= b[2 * a] or lo[a] >= b[2 * a + 1] for a in range(dim)):
             raise InputError(f"--background {text} does not overlap {where} ({_bounds_text(b)})")
+        if any(lo[a] < b[2 * a] or hi[a] > b[2 * a + 1] for a in range(dim)):   # as the inclusion's note
+            notes.append(f"the background box extends beyond {where} ({_bounds_text(b)}); its part inside is "
+                         "measured")
     return notes
 
 

@@ -1,11 +1,12 @@
 """``femreg plot RESULT.npz``: summary PNG of a registration result and optional VTU/XDMF exports."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..errors import InputError
 from ._common import (add_reader_args, failed_notice, frame_index, frames_from_args,  # noqa: F401
-                      frames_on_result_grid)  # failed_notice: also here
+                      frames_on_result_grid, registered_frames)  # failed_notice: also here
 
 
 def add_parser(subparsers):
@@ -30,7 +31,9 @@ def add_parser(subparsers):
                    help="reference RF (any readable format) for the B-mode panel, drawn on the result's grid (a "
                         "file that stores no spacing needs no --spacing: the result's is used)")
     p.add_argument("--frame", type=int, default=None,
-                   help="frame of --reference to use, counted from 0 (default 0)")
+                   help="frame of --reference to use, counted from 0 (default: the frame the result is "
+                        "registered on: I of femreg register FILE --pair I J or femreg batch, the first of a "
+                        "femreg track --frames selection; else 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
     from .invert_cmd import add_slice_arg
@@ -81,10 +84,18 @@ def _run(args) -> int:
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
-    reference = None
+    reference, bmode_title = None, "B-mode"
     if args.reference:
         fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
-        reference = fr.frames[frame_index(args.frame or 0, fr.n_frames, args.reference, "--frame")]
+        found = None if getattr(args, "frames", None) else registered_frames(args.result, res)
+        own, what = (found[0], found[2]) if found else (None, "")
+        k = args.frame if args.frame is not None else (own if own is not None and own < fr.n_frames else 0)
+        reference = fr.frames[frame_index(k, fr.n_frames, args.reference, "--frame")]
+        if own is not None and k != own:
+            print(f"femreg plot: note: {args.result} {what}: the B-mode of --frame {k} is not its reference "
+                  f"frame ({own}, the default)", file=sys.stderr)
+        if fr.n_frames > 1:
+            bmode_title = f"B-mode, frame {k}"
     elif args.overlay:
         raise InputError("--overlay needs --reference FILE")
     out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
@@ -92,12 +103,10 @@ def _run(args) -> int:
         raise InputError(f"-o must name a .png file, got {out}")
     import matplotlib.pyplot as plt
 
-    fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi)
+    fig = plot_result(res, out, reference=reference, overlay=args.overlay, dpi=args.dpi, bmode_title=bmode_title)
     plt.close(fig)
     print(f"wrote {out}")
     if "success" in res and not bool(res["success"]):
-        import sys
-
         print(f"femreg plot: note: {args.result} is a failed registration ({res.get('message', '')}); the figure "
               "says so in its title", file=sys.stderr)
     if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:

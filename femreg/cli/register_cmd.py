@@ -298,7 +298,9 @@ def run(args) -> int:
         msg = " ".join(str(exc).split()) or type(exc).__name__
         print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {msg})", file=sys.stderr)
         return 1
-    res.save(args.output)
+    # the frames of one file registered, so that `femreg plot --reference FILE` draws the reference frame's B-mode
+    one_file = args.moving is None and not getattr(args, "frames", None)
+    res.save(args.output, **({"pair": np.asarray([i, j], np.int64)} if one_file else {}))
     # a line to read (the result's repr is the library's); a failure's message follows once, as the error line
     print(f"pair: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}, {res.mesh.p.shape[1]} nodes, "
           f"regularizer {res.regularizer}, alpha {res.alpha:g}" + (f"; {res.message}" if res.success else ""))

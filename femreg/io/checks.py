@@ -260,7 +260,7 @@ _UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
 
 def _key(name: str) -> tuple:
     """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
-    k = "".join(ch for ch in str(name).lower() if ch.isalnum())
+    k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())   # a struct's field: its own name
     for u in _UNITS:
         if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES:
             return k[:-len(u)], u

@@ -30,6 +30,58 @@ SOUND_SPEED = 1540.0
 SAMPLES_PER_PERIOD = 8
 
 
+#: Demodulation frequencies above this (MHz) belong to no ultrasound probe: a value in Hz where MHz are asked
+#: (4e6 for 4 MHz) would otherwise upsample each line a million-fold (an RF period of 0.2 nm).
+MAX_MODULATION_MHZ = 100.0
+#: Sound speeds (m/s) of soft tissue, water, phantoms and bone lie well inside this range; outside it the number
+#: is in other units (1.54 km/s, 1.54e6 mm/s).
+SOUND_SPEED_RANGE = (1000.0, 5000.0)
+
+
+def check_modulation_frequency(f) -> float:
+    """``f`` (MHz) as a float; an :class:`InputError` naming the value in MHz when it looks given in Hz or kHz."""
+    from ..errors import pass_as
+
+    f = float(f)
+    if not (np.isfinite(f) and f > 0):
+        raise InputError(pass_as(f"modulation_frequency must be a positive number (MHz), got {f!r}",
+                                 f"--iq-frequency must be a positive number (MHz), got {f:g}"))
+    if f > MAX_MODULATION_MHZ:
+        for k, unit in ((1e6, "Hz"), (1e3, "kHz")):
+            if 0.5 <= f / k <= MAX_MODULATION_MHZ:
+                raise InputError(pass_as(
+                    f"modulation_frequency {f:g} MHz is above any ultrasound probe's ({MAX_MODULATION_MHZ:g} MHz "
+                    f"at most): it looks given in {unit}; pass it in MHz, modulation_frequency={f / k:g} "
+                    f"(CLI: --iq-frequency {f / k:g})",
+                    f"--iq-frequency {f:g} MHz is above any ultrasound probe's ({MAX_MODULATION_MHZ:g} MHz at "
+                    f"most): it looks given in {unit}; pass it in MHz, --iq-frequency {f / k:g}"))
+        raise InputError(pass_as(f"modulation_frequency {f:g} MHz is above any ultrasound probe's "
+                                 f"({MAX_MODULATION_MHZ:g} MHz at most)",
+                                 f"--iq-frequency {f:g} MHz is above any ultrasound probe's "
+                                 f"({MAX_MODULATION_MHZ:g} MHz at most)"))
+    return f
+
+
+def check_sound_speed(c) -> float:
+    """``c`` (m/s) as a float; an :class:`InputError` naming the value in m/s when it looks given in km/s or
+    mm/s."""
+    from ..errors import pass_as
+
+    c = float(c)
+    lo, hi = SOUND_SPEED_RANGE
+    if np.isfinite(c) and lo <= c <= hi:
+        return c
+    if not (np.isfinite(c) and c > 0):
+        raise InputError(pass_as(f"sound_speed must be a finite number > 0 (m/s), got {c:g}",
+                                 f"--sound-speed must be a finite number > 0 (m/s), got {c:g}"))
+    hint = next((f": it looks given in {unit}; pass it in m/s, " + pass_as(f"sound_speed={c * k:g} (CLI: "
+                 f"--sound-speed {c * k:g})", f"--sound-speed {c * k:g}")
+                 for k, unit in ((1e3, "km/s"), (1e-3, "mm/s")) if np.isfinite(c) and lo <= c * k <= hi), "")
+    raise InputError(pass_as(f"sound_speed {c:g} m/s", f"--sound-speed {c:g} m/s")
+                     + f" is outside the speeds of sound in tissue, water and phantoms ({lo:g}-{hi:g} m/s; soft "
+                       f"tissue about 1540){hint}")
+
+
 def remodulate(iq, axial_spacing, modulation_frequency, *, axial_origin=0.0, sound_speed=SOUND_SPEED, axis=-2,
                conjugate=False, samples_per_period=SAMPLES_PER_PERIOD):
     """RF samples from IQ samples (module docstring).
@@ -64,6 +116,7 @@ def remodulate(iq, axial_spacing, modulation_frequency, *, axial_origin=0.0, sou
     for name, v in (("modulation frequency (MHz)", f), ("axial spacing (mm)", dz), ("sound speed (m/s)", c)):
         if not (np.isfinite(v) and v > 0):
             raise InputError(f"{name} must be a positive number, got {v!r}")
+    check_modulation_frequency(f)
     if not np.iscomplexobj(iq):
         raise InputError(f"IQ data must be complex, got {iq.dtype}")
     period = c / (2e3 * f)                       # mm of depth per RF period

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import FileFormatError
 from .checks import fail
 
 _MI = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 9: "f8", 12: "i8", 13: "u8"}
@@ -39,6 +40,8 @@ class MatVar:
     _buf: bytes = b""
     _real: tuple = ()
     _imag: tuple = ()
+    #: a 1 x 1 struct's numeric fields, nested structs flattened, named by their path in it ("fs", "probe/pitch")
+    members: tuple = ()
 
     def array(self, order: str) -> np.ndarray:
         """The value in MATLAB index order (float/int dtype of its class; complex if stored so)."""
@@ -55,6 +58,8 @@ class MatVar:
 
 
 _CLASS_INV = {v: k for k, v in CLASS_NAMES.items()}
+#: how deep nested structs are read for their numeric fields
+_MAX_STRUCT_DEPTH = 3
 
 
 class _Walker:
@@ -79,7 +84,39 @@ class _Walker:
                                   f"of {where} ({end - start} bytes left)")
         return w0, n, start, start + ((n + 7) // 8) * 8
 
-    def matrix(self, buf, start, end, where) -> MatVar:
+    def _struct_fields(self, buf, pos, end, where, name, depth) -> tuple:
+        """The numeric fields of a 1 x 1 struct whose field-name length element starts at ``pos`` (MAT-file
+        format: name length, names, then one miMATRIX per field), nested ones flattened; exports keep the
+        scanner's settings there (``header.fs``, ``P.pitch``).  A layout not understood gives none."""
+        try:
+            mtype, n, s, pos = self.tag(buf, pos, end, where)
+            if mtype != 5 or n != 4:
+                return ()
+            width = int(np.frombuffer(buf, self.order + "i4", 1, s)[0])
+            mtype, n, s, pos = self.tag(buf, pos, end, where)
+            if mtype not in (1, 2) or width <= 0 or n % width:
+                return ()
+            names = [bytes(buf[s + k:s + k + width]).split(b"\0")[0].decode("ascii", "replace")
+                     for k in range(0, n, width)]
+            out = []
+            for field in names:
+                mtype, n, s, pos = self.tag(buf, pos, end, where)
+                if mtype != MI_MATRIX:
+                    return tuple(out)
+                if not n:
+                    continue
+                var = self.matrix(buf, s, s + n, f"field {field!r} of {name!r}", depth + 1)
+                if var.numeric:
+                    var.name = field
+                    out.append(var)
+                for m in var.members:
+                    m.name = f"{field}/{m.name}"
+                    out.append(m)
+            return tuple(out)
+        except FileFormatError:
+            return ()
+
+    def matrix(self, buf, start, end, where, depth: int = 0) -> MatVar:
         mtype, n, s, pos = self.tag(buf, start, end, where)
         if mtype != 6 or n != 8:
             raise fail(self.path, f"corrupt MAT-file: bad array flags element in {where}")
@@ -103,6 +140,8 @@ class _Walker:
             raise fail(self.path, f"corrupt MAT-file: non-ASCII variable name in {where}") from None
         numeric = cls_id in _CLASS_DTYPE
         var = MatVar(name, cls, dims, numeric, is_complex, buf)
+        if cls == "struct" and int(np.prod(dims)) == 1 and depth < _MAX_STRUCT_DEPTH:
+            var.members = self._struct_fields(buf, pos, end, where, name, depth)
         if not numeric:
             return var
         count = int(np.prod(dims))

@@ -154,6 +154,9 @@ def _load_mat(path, variable, ndims):
                 data[a] = byname[a].array(order)
         data["scalars"] = {v.name: v.array(order) for v in variables
                            if v.numeric and v.name != name and int(np.prod(v.shape)) == 1}
+        # a struct's scalars too (an export's header.fs, P.pitch), named by their path: header/fs
+        data["scalars"].update({f"{v.name}/{m.name}": m.array(order) for v in variables for m in v.members
+                                if int(np.prod(m.shape)) == 1})
         data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name != name
                            and 3 <= int(np.prod(v.shape)) <= AXIS_MAX}
     else:
