@@ -1785,8 +1785,7 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
 
 
-def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None,
-                 lateral_cell=None):
+def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None, stats=None):
     """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
     :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
     :func:`femreg.gnsolve.solve` of the images ``I1``, ``I2`` on the pixel grid of ``sol``'s image term with
@@ -1795,7 +1794,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
     ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``.  ``marked``: a
     solve on the same mesh that the passes mark on instead of ``sol``, which they start from
-    (:func:`refine_passes`), ``lateral_cell`` the image's lateral pulse cell (mm) if measured."""
+    (:func:`refine_passes`); ``stats`` the image's :class:`femreg.speckle.SpeckleStats` if measured (its lateral
+    pulse cell: :attr:`Refinement.fine_alpha_beam`)."""
     import time
 
     from .gnsolve import solve
@@ -1822,7 +1822,9 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol if marked is None else marked, opts, solve_on, quad.spacing, quad.origin,
-                                start=None if marked is None else sol, lateral_cell=lateral_cell)
+                                start=None if marked is None else sol,
+                                lateral_cell=None if getattr(stats, "pulse_cell", None) is None
+                                else float(np.ravel(stats.pulse_cell)[1]))
     if sol.mesh is not base:
         u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
     sol.refinement = record
