@@ -69,6 +69,13 @@ one): the first leaves the rim's split rows and columns between the coarse field
 8.00 / 7.22 -> 7.44 / 7.04 %, stiff plane stress 4 % paper 8.20 / 7.93 -> 7.54 / 7.42 %; at most +0.15 on the
 others, soft 1 % L15 7.48 -> 7.63); three steps gained no more (stiff 1 % paper 8.02 %), a full solve neither
 (8.05 %), and two steps on the passes under the gate made bending 3.81 -> 4.2 %.
+The noise rule reads the speckle match, which a beam wider than the split columns leaves high while a column's
+lateral displacement rests on its neighbours: that factor is at least ``clip(0.1 + 0.4 (s - 2), 0.1, 1)``,
+``s`` the lateral pulse cell over the narrowest refined column (:attr:`Refinement.fine_alpha_beam`,
+:func:`beam_alpha_floor`; 0.5 under the simulated 3-7.5 MHz probes, whose 2-pixel columns are a third of the
+pulse cell, nothing at 12-15 MHz): r 8 mm under the paper's probe 9.87 -> 9.39 %, r 3 mm 6.21 -> 5.96 % and its
+lateral edge 1.84 -> 1.49 mm; the held-out probes with the beam narrowed (s <= 2) unchanged, 12 MHz with the
+beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
