@@ -69,6 +69,13 @@ one): the first leaves the rim's split rows and columns between the coarse field
 8.00 / 7.22 -> 7.44 / 7.04 %, stiff plane stress 4 % paper 8.20 / 7.93 -> 7.54 / 7.42 %; at most +0.15 on the
 others, soft 1 % L15 7.48 -> 7.63); three steps gained no more (stiff 1 % paper 8.02 %), a full solve neither
 (8.05 %), and two steps on the passes under the gate made bending 3.81 -> 4.2 %.
+The noise rule reads the speckle match, which a beam wider than the split columns leaves high while a column's
+lateral displacement rests on its neighbours: that factor is at least ``clip(0.1 + 0.4 (s - 2), 0.1, 1)``,
+``s`` the lateral pulse cell over the narrowest refined column (:attr:`Refinement.fine_alpha_beam`,
+:func:`beam_alpha_floor`; 0.5 under the simulated 3-7.5 MHz probes, whose 2-pixel columns are a third of the
+pulse cell, nothing at 12-15 MHz): r 8 mm under the paper's probe 9.87 -> 9.39 %, r 3 mm 6.21 -> 5.96 % and its
+lateral edge 1.84 -> 1.49 mm; the held-out probes with the beam narrowed (s <= 2) unchanged, 12 MHz with the
+beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
@@ -177,7 +184,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -343,6 +350,14 @@ class Refinement:
         (:data:`CLEAN_ALPHA_NCC`): below 1 only where ``q`` is above 0.98; bending (0.979), rotated pairs
         (at most 0.978) and tissue with 20 % independent speckle (0.974-0.976) keep the weight, which at the fine
         pass's scale (0.08) made the last 2.9 points worse.
+    fine_alpha_beam : float, optional
+        On a pass that passes the ``fine`` gate and relaxes nothing, the least factor :attr:`fine_alpha` takes
+        where the split columns are narrower than the lateral resolution: ``clip(fine_alpha + fine_alpha_beam *
+        (s - BEAM_OVERSAMPLING), fine_alpha, 1)`` with ``s`` the lateral width of the image's pulse cell
+        (:class:`femreg.speckle.SpeckleStats`, ``pulse_cell[1]``) over the narrowest column of the refined mesh
+        (:func:`beam_alpha_floor`).  Columns well inside the beam's width carry no lateral detail of their own;
+        the data leave them to the regulariser, whose lighter weight then follows the noise.  None: no floor.
+        Tensor meshes in (axial, lateral) mm only (not a fan's logical grid).  2D passes only.
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
@@ -491,6 +506,7 @@ class Refinement:
     strong_coverage: float | None = None
     coarse_alpha: float | None = None
     coarse_alpha_ncc: float | None = None
+    fine_alpha_beam: float | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -507,6 +523,7 @@ class Refinement:
         _number(self, "coarse_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="an NCC scale in (0, 1)")
         _number(self, "coverage_uneven", 0, optional=True, open_low=True, what="a ratio > 0")
+        _number(self, "fine_alpha_beam", 0, optional=True, open_low=True, what="a slope > 0")
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
@@ -703,7 +720,7 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
-                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_layer=1.0, fine_layer_full=True,
+                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
@@ -1464,7 +1481,7 @@ def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = F
     return dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
 
 
-def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None):
+def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
     per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``
@@ -1472,8 +1489,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None):
     carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  ``start``: a
     solve on the same mesh that the first pass starts from instead (and returned when no pass solves), ``sol``
     then only marked: the registration's solve with R_P_sigma's lambda_bar taken from the data
-    (:func:`femreg.strategy.data_lambda_bar`), whose marking the indicator's cuts were not set on.  Stops early when
-    nothing is marked.  Returns ``(sol, RefinementRecord)``."""
+    (:func:`femreg.strategy.data_lambda_bar`), whose marking the indicator's cuts were not set on.
+    ``lateral_cell``: the image's lateral pulse cell (mm; :attr:`Refinement.fine_alpha_beam`), None: unknown.
+    Stops early when nothing is marked.  Returns ``(sol, RefinementRecord)``."""
     import time
 
     from .repair import element_ncc
@@ -1600,6 +1618,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None):
         n_lay = 0
         if finer and opts.fine_alpha is not None:
             f = fine_alpha_factor(opts, sol, mesh, relaxed=bool(len(relaxed)))
+            if not len(relaxed):
+                f = max(f, beam_alpha_floor(opts, lateral_cell, new))
             if f != 1.0:
                 kw["alpha_factor"] = f
             if opts.fine_layer is not None and f < 1.0 and not len(relaxed):
@@ -1713,6 +1733,25 @@ def fine_alpha_factor(opts: Refinement, sol, mesh, relaxed: bool = False) -> flo
     return float(np.clip((1.0 - np.median(q)) / scale, opts.fine_alpha, 1.0))
 
 
+#: Lateral pulse cell over the narrowest refined column at and below which :attr:`Refinement.fine_alpha_beam` adds
+#: nothing: there the columns are at least half the lateral resolution and the data hold them (module docstring).
+BEAM_OVERSAMPLING = 2.0
+
+
+def beam_alpha_floor(opts: Refinement, lateral_cell, mesh) -> float:
+    """The least factor on eq:objf's weight of a fine pass on the refined tensor ``mesh``
+    (:attr:`Refinement.fine_alpha_beam`): ``clip(fine_alpha + fine_alpha_beam * (s - BEAM_OVERSAMPLING),
+    fine_alpha, 1)``, ``s = lateral_cell / (narrowest column)`` (both mm); 0 where the option or the cell is
+    missing, or the mesh is a fan's logical grid (columns in degrees)."""
+    if opts.fine_alpha_beam is None or opts.fine_alpha is None or lateral_cell is None:
+        return 0.0
+    if not np.isfinite(lateral_cell) or lateral_cell <= 0 or logical_grid(mesh) is not None:
+        return 0.0
+    cols = np.diff(_need_tensor(mesh)[1])
+    s = float(lateral_cell) / float(np.min(cols))
+    return float(np.clip(opts.fine_alpha + opts.fine_alpha_beam * (s - BEAM_OVERSAMPLING), opts.fine_alpha, 1.0))
+
+
 def coarse_alpha_factor(opts: Refinement, sol, mesh) -> float:
     """The factor on eq:objf's weight of a pass below the fine gate that relaxes nothing
     (:attr:`Refinement.coarse_alpha`, :attr:`Refinement.coarse_alpha_ncc`): ``clip((1 - q) / coarse_alpha_ncc,
@@ -1753,7 +1792,7 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
 
 
-def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None):
+def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None, stats=None):
     """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
     :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
     :func:`femreg.gnsolve.solve` of the images ``I1``, ``I2`` on the pixel grid of ``sol``'s image term with
@@ -1762,7 +1801,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     ``timings["refine"]``; the record goes with the solve (``sol.refinement``, :func:`with_refinement`).  Returns
     ``(sol, u0, hops)`` on the final mesh.  Nothing happens with ``maxiter=0`` in ``solve_kw``.  ``marked``: a
     solve on the same mesh that the passes mark on instead of ``sol``, which they start from
-    (:func:`refine_passes`)."""
+    (:func:`refine_passes`); ``stats`` the image's :class:`femreg.speckle.SpeckleStats` if measured (its lateral
+    pulse cell: :attr:`Refinement.fine_alpha_beam`)."""
     import time
 
     from .gnsolve import solve
@@ -1789,7 +1829,9 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
     sol, record = refine_passes(sol if marked is None else marked, opts, solve_on, quad.spacing, quad.origin,
-                                start=None if marked is None else sol)
+                                start=None if marked is None else sol,
+                                lateral_cell=None if getattr(stats, "pulse_cell", None) is None
+                                else float(np.ravel(stats.pulse_cell)[1]))
     if sol.mesh is not base:
         u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
     sol.refinement = record

@@ -367,7 +367,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
     unrefined = (sol, u0, hops, list(notes))
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
-                                 notes, timings, marked=marked)                           # femreg.refine
+                                 notes, timings, marked=marked, stats=stats)              # femreg.refine
 
     period = check_period(ref, spacing, stats) if ref.shape[0] > 1 and not envelope else None
     global_ncc = None if start.pyramid is None else start.pyramid.global_ncc

@@ -383,6 +383,49 @@ def test_a_finer_pass_weighs_the_regulariser_by_the_noise_left(monkeypatch, q, f
     assert not rec.passes[0]["fine"] and calls[0][3] == 1.0
 
 
+def test_the_least_weight_of_a_finer_pass_follows_the_lateral_pulse_cell(monkeypatch):
+    # Refinement.fine_alpha_beam (DEEP_REFINEMENT 0.4): the finer pass's factor is at least
+    # clip(0.1 + 0.4 (s - 2), 0.1, 1), s = lateral pulse cell / narrowest refined column; the noise rule's factor
+    # where it is larger; nothing where the cell is unknown or the option is off
+    from femreg import repair
+    from femreg.refine import BEAM_OVERSAMPLING, DEEP_REFINEMENT, beam_alpha_floor
+
+    assert (DEEP_REFINEMENT.fine_alpha_beam, BEAM_OVERSAMPLING) == (0.4, 2.0)
+    m = _mesh()
+    xs, ys, _ = tensor_structure(m)
+    f = _corner(xs[4], ys[4])
+    opts = dataclasses.replace(DEEP_REFINEMENT, relax=None)
+
+    def run(q, cell, o=opts):
+        monkeypatch.setattr(repair, "element_ncc", lambda data, u, n, groups=None: np.full(n, q))
+        calls = []
+
+        def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
+                     steps=None):
+            calls.append((mesh, alpha_factor))
+            return _fake_solve(mesh, _nodal(mesh, f))
+
+        _, rec = refine_passes(_fake_solve(m, _nodal(m, f)), o, solve_on, SPACING, ORIGIN, lateral_cell=cell)
+        assert rec.passes[0]["fine"] and len(calls) == 1
+        return calls[0]
+
+    mesh, a = run(0.9999, None)                       # no cell: the noise rule's 0.1
+    assert a == pytest.approx(0.1)
+    col = float(np.min(np.diff(tensor_structure(mesh)[1])))
+    assert col == pytest.approx(0.4)                  # 1.5 mm columns split down to 2 pixels of 0.2 mm
+    for s, want in ((1.0, 0.1), (2.0, 0.1), (3.0, 0.5), (4.0, 0.9), (6.0, 1.0)):
+        assert run(0.9999, s * col)[1] == pytest.approx(want, abs=1e-9), s
+        assert beam_alpha_floor(opts, s * col, mesh) == pytest.approx(want, abs=1e-9)
+    assert run(0.96, 3.0 * col)[1] == pytest.approx(0.5)       # the noise rule's own 0.5 at q 0.96
+    assert run(0.95, 3.0 * col)[1] == pytest.approx(0.625)     # above the floor: the noise rule's
+    assert run(0.9999, 3.0 * col, dataclasses.replace(opts, fine_alpha_beam=None))[1] == pytest.approx(0.1)
+    for bad in (None, float("nan"), 0.0, -1.0):
+        assert beam_alpha_floor(opts, bad, mesh) == 0.0
+    for kw in (dict(fine_alpha_beam=0.0), dict(fine_alpha_beam=-0.4), dict(fine_alpha_beam=float("nan"))):
+        with pytest.raises(InputError, match="fine_alpha_beam"):
+            Refinement(**kw)
+
+
 def test_a_finer_pass_takes_two_gauss_newton_steps_and_a_pass_under_the_gate_one():
     # Refinement.fine_maxiter (DEEP_REFINEMENT 2): the finer pass asks its solve for 2 steps (steps=2), a pass
     # under the fine gate keeps maxiter's one (steps not given), None leaves the finer pass at maxiter too
