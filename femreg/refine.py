@@ -507,6 +507,7 @@ class Refinement:
     coarse_alpha: float | None = None
     coarse_alpha_ncc: float | None = None
     fine_alpha_beam: float | None = None
+    fine_min_pixels: int | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -720,7 +721,7 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
-                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_layer=1.0, fine_layer_full=True,
+                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1, fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
@@ -1373,15 +1374,15 @@ def slip_weights(rects, weight: float, mesh=None):
     return w
 
 
-def _split(breaks, marked, origin, spacing, min_size):
+def _split(breaks, marked, origin, spacing, min_size, min_pixels: int = 2):
     """Breaks (mm, on pixel-cell boundaries) with each marked interval split at the pixel edge nearest its middle
-    when both halves stay >= ``min_size`` and >= 2 pixels."""
+    when both halves stay >= ``min_size`` and >= ``min_pixels`` pixels."""
     k = np.rint((np.asarray(breaks) - origin) / spacing + 0.5).astype(np.int64)     # pixel-edge indices
     new = []
     for i in np.flatnonzero(marked):
         a, b = k[i], k[i + 1]
         m = int(np.rint(0.5 * (a + b)))
-        if min(m - a, b - m) >= 2 and min(m - a, b - m) * spacing >= min_size * (1 - 1e-9):
+        if min(m - a, b - m) >= min_pixels and min(m - a, b - m) * spacing >= min_size * (1 - 1e-9):
             new.append(m)
     if not new:
         return np.asarray(breaks, float), 0
@@ -1389,20 +1390,20 @@ def _split(breaks, marked, origin, spacing, min_size):
     return origin + (kk - 0.5) * spacing, len(new)
 
 
-def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels):
+def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels=2):
     xs, ys, _ = _need_tensor(mesh)
     rows, cols = np.asarray(rows), np.asarray(cols)
     if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
         raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
                          f"and {cols.shape}")
-    (nx, ny), (sx, sy) = refined_axes([xs, ys], [rows, cols], spacing, origin, min_size, levels)
+    (nx, ny), (sx, sy) = refined_axes([xs, ys], [rows, cols], spacing, origin, min_size, levels, min_pixels)
     return nx, ny, sx, sy
 
 
-def refined_axes(breaks, marked, spacing, origin, min_size, levels):
+def refined_axes(breaks, marked, spacing, origin, min_size, levels, min_pixels=2):
     """``(new_breaks, splits)`` per axis of a tensor mesh (any dimension): each axis' ``breaks`` with the
     intervals inside its ``marked`` slabs halved ``levels`` times (:func:`_split`: on pixel / voxel-cell
-    boundaries, both halves at least ``min_size[a]`` and 2 pixels), and the number of new breaks."""
+    boundaries, both halves at least ``min_size[a]`` and ``min_pixels`` pixels), and the number of new breaks."""
     out, counts = [], []
     for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
         m = np.asarray(m)
@@ -1415,7 +1416,7 @@ def refined_axes(breaks, marked, spacing, origin, min_size, levels):
             inside = np.zeros(mid.shape, bool)
             for a, c in zip(lo, hi):
                 inside |= (mid > a) & (mid < c)
-            nb, k = _split(nb, inside, float(o), float(h), float(ms))
+            nb, k = _split(nb, inside, float(o), float(h), float(ms), int(min_pixels))
             total += k
             if k == 0:
                 break
@@ -1424,12 +1425,12 @@ def refined_axes(breaks, marked, spacing, origin, min_size, levels):
     return out, counts
 
 
-def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1):
+def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1, min_pixels: int = 2):
     """The graded tensor mesh with the marked rows / columns of ``mesh`` split in two, ``levels`` times (each
     level halves every interval inside a marked one again; breaks on pixel-cell boundaries, see :func:`_split`).
     Returns ``(mesh, n_rows_split, n_cols_split)`` (splits of all levels); the same mesh object when nothing was
     split."""
-    nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels)
+    nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels)
     if sx == 0 and sy == 0:
         return mesh, 0, 0
     lg = logical_grid(mesh)
@@ -1558,13 +1559,17 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
-        min_size, levels = opts.min_size, opts.levels
+        min_size, levels, min_px = opts.min_size, opts.levels, 2
         finer = opts.fine is not None and top >= opts.fine
         if finer:
             # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
             rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
                                            data=sol.data, quality=q, scores=True, beam_lines=beam)
             min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
+            if (opts.fine_min_pixels is not None and lateral_cell is not None and logical_grid(mesh) is None
+                    and lateral_cell >= THIN_COLUMN_CELL * float(np.ravel(spacing)[1])):
+                # the pulse cell spans several lines: the finer pass's weight (its floor) holds thinner columns
+                min_px = opts.fine_min_pixels
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
                                             dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
@@ -1583,7 +1588,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 sel = _covered_rows(xs_, pre) & ~_covered_rows(xs_, own)
                 lev[sel] = np.maximum(lev[sel], int(levels))
                 rows = lev
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels, min_px)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -1732,6 +1737,9 @@ def fine_alpha_factor(opts: Refinement, sol, mesh, relaxed: bool = False) -> flo
         return 1.0
     return float(np.clip((1.0 - np.median(q)) / scale, opts.fine_alpha, 1.0))
 
+
+#: Lines the lateral pulse cell must span for :attr:`Refinement.fine_min_pixels` to apply.
+THIN_COLUMN_CELL = 4.0
 
 #: Lateral pulse cell over the narrowest refined column at and below which :attr:`Refinement.fine_alpha_beam` adds
 #: nothing: there the columns are at least half the lateral resolution and the data hold them (module docstring).
