@@ -1605,6 +1605,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 r = relaxed_edges(mesh, sol.u, opts) if pre is None else pre
                 if len(r):
                     relaxed = np.vstack([relaxed, r])
+        if min_px < 2 and len(relaxed):
+            # a layer relaxed: its cells keep their weight, which does not hold single-line columns
+            new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break
