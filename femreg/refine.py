@@ -44,8 +44,8 @@ jumps just over the cut on most rows (largest 1.1-2.4x), features stand out furt
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
 the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
-1 instead of 4 and splits columns down to 0.25 mm (never below 2 pixels: 0.4 mm under 7.5 MHz, 0.6 mm under
-5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
+1 instead of 4 and splits columns down to 0.25 mm (not below 2 pixels unless the beam spans 4 lines, see below:
+0.4 mm under 7.5 MHz, 0.6 mm under 5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
 15 MHz image are halved; at 0.4 mm they stayed whole: held-out r 4 mm 12 MHz 6.97 -> 5.69 %, robustness
 soft-pstrain1_L15 10.12 -> 8.64 %, soft-pstress1_L12 7.63 -> 6.73 %, every other benchmark pair, the rotation
 sweep, shear bands, layers and heterogeneous tissue identical; CPU time of those three 0.89-1.24x).  Earlier, at
@@ -76,6 +76,13 @@ lateral displacement rests on its neighbours: that factor is at least ``clip(0.1
 pulse cell, nothing at 12-15 MHz): r 8 mm under the paper's probe 9.87 -> 9.39 %, r 3 mm 6.21 -> 5.96 % and its
 lateral edge 1.84 -> 1.49 mm; the held-out probes with the beam narrowed (s <= 2) unchanged, 12 MHz with the
 beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (README "Adaptive refinement").
+Where that cell spans 4 lines or more (:data:`THIN_COLUMN_CELL`) the pass splits columns down to one line
+(:attr:`Refinement.fine_min_pixels`; still >= 0.25 mm, so under the 0.3 mm pitch of the paper's probe and the
+0.5 mm of a 3 MHz one; a pass that relaxes a layer keeps two lines: a 3 mm band under 3 MHz, whose faces mark
+columns too, lost 28.4 -> 29.7 %), s doubles and the weight is the full one: the rim's lateral third is no longer
+held at two lines (r 8 mm paper 9.39 -> 9.23 %, its exact displacement on the final mesh 7.5 -> 6.2 %; r 3 mm
+5.96 -> 5.74 % and its lateral edge 1.49 -> 1.35 mm; 3 MHz robustness pairs 8.75 / 8.45 -> 8.06 / 7.97 %), at
+1.13-1.40x the CPU time (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
@@ -358,6 +365,11 @@ class Refinement:
         (:func:`beam_alpha_floor`).  Columns well inside the beam's width carry no lateral detail of their own;
         the data leave them to the regulariser, whose lighter weight then follows the noise.  None: no floor.
         Tensor meshes in (axial, lateral) mm only (not a fan's logical grid).  2D passes only.
+    fine_min_pixels : int, optional
+        On a pass that passes the ``fine`` gate, the fewest lines a split column keeps where the image's lateral
+        pulse cell spans at least :data:`THIN_COLUMN_CELL` lines (2 elsewhere, and on a pass that relaxes a layer);
+        ``fine_min_size`` still applies, so 1 splits columns of one line only under a pitch of at least 0.25 mm
+        (3-5.5 MHz probes).  With :attr:`fine_alpha_beam` such columns take the full weight.  None: 2 everywhere.
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
@@ -369,7 +381,8 @@ class Refinement:
         Robust z-score of the marking on a pass that passes the ``fine`` gate (the relaxation keeps its own cut,
         :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
     fine_min_size : (2,) or (3,) mm
-        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
+        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either, except columns under
+        :attr:`fine_min_pixels`).
     fine_levels : int, optional
         ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
     fine_maxiter : int, optional
@@ -528,6 +541,7 @@ class Refinement:
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
+        _integer(self, "fine_min_pixels", 1, 2, optional=True)
         _integer(self, "fine_maxiter", 1, None, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
@@ -721,7 +735,8 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
-                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1, fine_layer=1.0, fine_layer_full=True,
+                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1,
+                             fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
@@ -1741,7 +1756,8 @@ def fine_alpha_factor(opts: Refinement, sol, mesh, relaxed: bool = False) -> flo
     return float(np.clip((1.0 - np.median(q)) / scale, opts.fine_alpha, 1.0))
 
 
-#: Lines the lateral pulse cell must span for :attr:`Refinement.fine_min_pixels` to apply.
+#: Lines the lateral pulse cell must span for :attr:`Refinement.fine_min_pixels` to apply: a beam twice as wide as
+#: two lines, whose columns' lateral displacement the regulariser carries at its full weight (module docstring).
 THIN_COLUMN_CELL = 4.0
 
 #: Lateral pulse cell over the narrowest refined column at and below which :attr:`Refinement.fine_alpha_beam` adds
