@@ -7,20 +7,9 @@ import pytest
 
 import femreg
 from femreg.refine import DEEP_REFINEMENT
+from _strain_error import total_strain_error
 
 pytest.importorskip("forward")
-
-
-def _total_strain_error(res, data) -> float:
-    """Total strain error % (e_xx, e_yy, 2 e_xy) over the pixels 2 mm inside the image, every 5th row."""
-    n0, n1 = res.shape
-    truth = data.true_strain(res.pixel_points()).reshape(n0, n1, 3)
-    g = res.on_grid()
-    est = np.stack([g["exx"], g["eyy"], g["exy"]], -1)
-    i0, j0 = int(2 / res.spacing[0]), int(2 / res.spacing[1])
-    sl = (slice(i0, n0 - i0, 5), slice(j0, n1 - j0))
-    w = np.array([1.0, 1.0, 2.0])
-    return 100 * float(np.sqrt(np.sum(w * (est[sl] - truth[sl]) ** 2) / np.sum(w * truth[sl] ** 2)))
 
 
 def _narrowest_column(res) -> float:
@@ -32,7 +21,7 @@ def _both(d):
     out = []
     for opts in ("auto", dataclasses.replace(DEEP_REFINEMENT, fine_min_pixels=None)):
         res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=opts)
-        out.append((_total_strain_error(res, d), _narrowest_column(res), res))
+        out.append((total_strain_error(res, d), _narrowest_column(res), res))
     return out
 
 
