@@ -44,8 +44,8 @@ jumps just over the cut on most rows (largest 1.1-2.4x), features stand out furt
 bands 9.9-51x).  Rows marked without standing out are not split; the pass's step is then taken on the unrefined
 mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
 the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
-1 instead of 4 and splits columns down to 0.25 mm (never below 2 pixels: 0.4 mm under 7.5 MHz, 0.6 mm under
-5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
+1 instead of 4 and splits columns down to 0.25 mm (not below 2 pixels unless the beam spans 4 lines, see below:
+0.4 mm under 7.5 MHz, 0.6 mm under 5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
 15 MHz image are halved; at 0.4 mm they stayed whole: held-out r 4 mm 12 MHz 6.97 -> 5.69 %, robustness
 soft-pstrain1_L15 10.12 -> 8.64 %, soft-pstress1_L12 7.63 -> 6.73 %, every other benchmark pair, the rotation
 sweep, shear bands, layers and heterogeneous tissue identical; CPU time of those three 0.89-1.24x).  Earlier, at
@@ -76,6 +76,13 @@ lateral displacement rests on its neighbours: that factor is at least ``clip(0.1
 pulse cell, nothing at 12-15 MHz): r 8 mm under the paper's probe 9.87 -> 9.39 %, r 3 mm 6.21 -> 5.96 % and its
 lateral edge 1.84 -> 1.49 mm; the held-out probes with the beam narrowed (s <= 2) unchanged, 12 MHz with the
 beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (README "Adaptive refinement").
+Where that cell spans 4 lines or more (:data:`THIN_COLUMN_CELL`) the pass splits columns down to one line
+(:attr:`Refinement.fine_min_pixels`; still >= 0.25 mm, so under the 0.3 mm pitch of the paper's probe and the
+0.5 mm of a 3 MHz one; a pass that relaxes a layer keeps two lines: a 3 mm band under 3 MHz, whose faces mark
+columns too, lost 28.4 -> 29.7 %), s doubles and the weight is the full one: the rim's lateral third is no longer
+held at two lines (r 8 mm paper 9.39 -> 9.23 %, its exact displacement on the final mesh 7.5 -> 6.2 %; r 3 mm
+5.96 -> 5.74 % and its lateral edge 1.49 -> 1.35 mm; 3 MHz robustness pairs 8.75 / 8.45 -> 8.06 / 7.97 %), at
+1.13-1.40x the CPU time (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
@@ -358,6 +365,11 @@ class Refinement:
         (:func:`beam_alpha_floor`).  Columns well inside the beam's width carry no lateral detail of their own;
         the data leave them to the regulariser, whose lighter weight then follows the noise.  None: no floor.
         Tensor meshes in (axial, lateral) mm only (not a fan's logical grid).  2D passes only.
+    fine_min_pixels : int, optional
+        On a pass that passes the ``fine`` gate, the fewest lines a split column keeps where the image's lateral
+        pulse cell spans at least :data:`THIN_COLUMN_CELL` lines (2 elsewhere, and on a pass that relaxes a layer);
+        ``fine_min_size`` still applies, so 1 splits columns of one line only under a pitch of at least 0.25 mm
+        (3-5.5 MHz probes).  With :attr:`fine_alpha_beam` such columns take the full weight.  None: 2 everywhere.
     fine : float, optional
         A second, finer marking when some row / column stands out this far (its largest jump ``fine`` times the
         cut, measured as :attr:`feature` is): the pass then marks at the robust z-score ``fine_threshold`` (more of
@@ -369,7 +381,8 @@ class Refinement:
         Robust z-score of the marking on a pass that passes the ``fine`` gate (the relaxation keeps its own cut,
         :attr:`relax_threshold` or ``threshold``; :attr:`strong` is then measured against this cut).
     fine_min_size : (2,) or (3,) mm
-        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either).
+        ``min_size`` of a pass that passes the ``fine`` gate (never below 2 pixels either, except columns under
+        :attr:`fine_min_pixels`).
     fine_levels : int, optional
         ``levels`` of a pass that passes the ``fine`` gate (None: ``levels``).
     fine_maxiter : int, optional
@@ -507,6 +520,7 @@ class Refinement:
     coarse_alpha: float | None = None
     coarse_alpha_ncc: float | None = None
     fine_alpha_beam: float | None = None
+    fine_min_pixels: int | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -527,6 +541,7 @@ class Refinement:
         _number(self, "fine_threshold", 0)
         _lengths(self, "fine_min_size")
         _integer(self, "fine_levels", 1, 4, optional=True)
+        _integer(self, "fine_min_pixels", 1, 2, optional=True)
         _integer(self, "fine_maxiter", 1, None, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
@@ -720,7 +735,8 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
-                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_layer=1.0, fine_layer_full=True,
+                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1,
+                             fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
@@ -1373,15 +1389,15 @@ def slip_weights(rects, weight: float, mesh=None):
     return w
 
 
-def _split(breaks, marked, origin, spacing, min_size):
+def _split(breaks, marked, origin, spacing, min_size, min_pixels: int = 2):
     """Breaks (mm, on pixel-cell boundaries) with each marked interval split at the pixel edge nearest its middle
-    when both halves stay >= ``min_size`` and >= 2 pixels."""
+    when both halves stay >= ``min_size`` and >= ``min_pixels`` pixels."""
     k = np.rint((np.asarray(breaks) - origin) / spacing + 0.5).astype(np.int64)     # pixel-edge indices
     new = []
     for i in np.flatnonzero(marked):
         a, b = k[i], k[i + 1]
         m = int(np.rint(0.5 * (a + b)))
-        if min(m - a, b - m) >= 2 and min(m - a, b - m) * spacing >= min_size * (1 - 1e-9):
+        if min(m - a, b - m) >= min_pixels and min(m - a, b - m) * spacing >= min_size * (1 - 1e-9):
             new.append(m)
     if not new:
         return np.asarray(breaks, float), 0
@@ -1389,20 +1405,20 @@ def _split(breaks, marked, origin, spacing, min_size):
     return origin + (kk - 0.5) * spacing, len(new)
 
 
-def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels):
+def _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels=2):
     xs, ys, _ = _need_tensor(mesh)
     rows, cols = np.asarray(rows), np.asarray(cols)
     if rows.shape != (xs.size - 1,) or cols.shape != (ys.size - 1,):
         raise InputError(f"marked rows / columns must be ({xs.size - 1},) and ({ys.size - 1},), got {rows.shape} "
                          f"and {cols.shape}")
-    (nx, ny), (sx, sy) = refined_axes([xs, ys], [rows, cols], spacing, origin, min_size, levels)
+    (nx, ny), (sx, sy) = refined_axes([xs, ys], [rows, cols], spacing, origin, min_size, levels, min_pixels)
     return nx, ny, sx, sy
 
 
-def refined_axes(breaks, marked, spacing, origin, min_size, levels):
+def refined_axes(breaks, marked, spacing, origin, min_size, levels, min_pixels=2):
     """``(new_breaks, splits)`` per axis of a tensor mesh (any dimension): each axis' ``breaks`` with the
     intervals inside its ``marked`` slabs halved ``levels`` times (:func:`_split`: on pixel / voxel-cell
-    boundaries, both halves at least ``min_size[a]`` and 2 pixels), and the number of new breaks."""
+    boundaries, both halves at least ``min_size[a]`` and ``min_pixels`` pixels), and the number of new breaks."""
     out, counts = [], []
     for b, m, o, h, ms in zip(breaks, marked, origin, spacing, min_size):
         m = np.asarray(m)
@@ -1415,7 +1431,7 @@ def refined_axes(breaks, marked, spacing, origin, min_size, levels):
             inside = np.zeros(mid.shape, bool)
             for a, c in zip(lo, hi):
                 inside |= (mid > a) & (mid < c)
-            nb, k = _split(nb, inside, float(o), float(h), float(ms))
+            nb, k = _split(nb, inside, float(o), float(h), float(ms), int(min_pixels))
             total += k
             if k == 0:
                 break
@@ -1424,12 +1440,12 @@ def refined_axes(breaks, marked, spacing, origin, min_size, levels):
     return out, counts
 
 
-def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1):
+def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), levels: int = 1, min_pixels: int = 2):
     """The graded tensor mesh with the marked rows / columns of ``mesh`` split in two, ``levels`` times (each
     level halves every interval inside a marked one again; breaks on pixel-cell boundaries, see :func:`_split`).
     Returns ``(mesh, n_rows_split, n_cols_split)`` (splits of all levels); the same mesh object when nothing was
     split."""
-    nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels)
+    nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels)
     if sx == 0 and sy == 0:
         return mesh, 0, 0
     lg = logical_grid(mesh)
@@ -1558,13 +1574,17 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
             break
-        min_size, levels = opts.min_size, opts.levels
+        min_size, levels, min_px = opts.min_size, opts.levels, 2
         finer = opts.fine is not None and top >= opts.fine
         if finer:
             # a feature standing out far above any noise: mark at the lower cut, split down to the finer size
             rows, cols, slip, score = mark(mesh, sol.u, dataclasses.replace(opts, threshold=opts.fine_threshold),
                                            data=sol.data, quality=q, scores=True, beam_lines=beam)
             min_size, levels = opts.fine_min_size, opts.fine_levels or opts.levels
+            if (opts.fine_min_pixels is not None and lateral_cell is not None and logical_grid(mesh) is None
+                    and lateral_cell >= THIN_COLUMN_CELL * float(np.ravel(spacing)[1])):
+                # the pulse cell spans several lines: the finer pass's weight (its floor) holds thinner columns
+                min_px = opts.fine_min_pixels
             if np.isfinite(budget):
                 rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin,
                                             dataclasses.replace(opts, min_size=min_size, levels=levels), budget)
@@ -1583,7 +1603,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 sel = _covered_rows(xs_, pre) & ~_covered_rows(xs_, own)
                 lev[sel] = np.maximum(lev[sel], int(levels))
                 rows = lev
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
+        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels, min_px)
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -1600,6 +1620,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 r = relaxed_edges(mesh, sol.u, opts) if pre is None else pre
                 if len(r):
                     relaxed = np.vstack([relaxed, r])
+        if min_px < 2 and len(relaxed):
+            # a layer relaxed: its cells keep their weight, which does not hold single-line columns
+            new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break
@@ -1732,6 +1755,10 @@ def fine_alpha_factor(opts: Refinement, sol, mesh, relaxed: bool = False) -> flo
         return 1.0
     return float(np.clip((1.0 - np.median(q)) / scale, opts.fine_alpha, 1.0))
 
+
+#: Lines the lateral pulse cell must span for :attr:`Refinement.fine_min_pixels` to apply: a beam twice as wide as
+#: two lines, whose columns' lateral displacement the regulariser carries at its full weight (module docstring).
+THIN_COLUMN_CELL = 4.0
 
 #: Lateral pulse cell over the narrowest refined column at and below which :attr:`Refinement.fine_alpha_beam` adds
 #: nothing: there the columns are at least half the lateral resolution and the data hold them (module docstring).

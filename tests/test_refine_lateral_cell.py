@@ -2,25 +2,13 @@
 (femreg.refine.Refinement.fine_alpha_beam): on a registration under a wide beam and under a narrow one."""
 import dataclasses
 
-import numpy as np
 import pytest
 
 import femreg
 from femreg.refine import DEEP_REFINEMENT
+from _strain_error import total_strain_error
 
 pytest.importorskip("forward")
-
-
-def _total_strain_error(res, data) -> float:
-    """Total strain error % (e_xx, e_yy, 2 e_xy) over the pixels 2 mm inside the image, every 5th row."""
-    n0, n1 = res.shape
-    truth = data.true_strain(res.pixel_points()).reshape(n0, n1, 3)
-    g = res.on_grid()
-    est = np.stack([g["exx"], g["eyy"], g["exy"]], -1)
-    i0, j0 = int(2 / res.spacing[0]), int(2 / res.spacing[1])
-    sl = (slice(i0, n0 - i0, 5), slice(j0, n1 - j0))
-    w = np.array([1.0, 1.0, 2.0])
-    return 100 * float(np.sqrt(np.sum(w * (est[sl] - truth[sl]) ** 2) / np.sum(w * truth[sl] ** 2)))
 
 
 def _pair(probe, seed):
@@ -36,7 +24,7 @@ def _both(d):
     for opts in ("auto", dataclasses.replace(DEEP_REFINEMENT, fine_alpha_beam=None)):
         res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=opts)
         (p,) = [q for q in res.refinement.passes if q["fine"]]
-        out.append((_total_strain_error(res, d), p["alpha_factor"]))
+        out.append((total_strain_error(res, d), p["alpha_factor"]))
     return out
 
 
