@@ -57,9 +57,10 @@ def _validate(reference_image, moving_image, spacing, origin, *, regularizer, st
     mov = validate_image(moving_image, "moving image")
     if ref.shape != mov.shape:
         raise InputError(f"image shape mismatch: reference {ref.shape} vs moving {mov.shape}")
+    one_value = np.ndim(spacing) == 0
     spacing, origin = validate_spacing(spacing, origin)
     if check_orientation:
-        orientation.check(ref, spacing)
+        orientation.check(ref, spacing, one_value=one_value)
     if strategy not in STRATEGIES:
         raise InputError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
     if not isinstance(regularizer, (str, Regularizer)):
