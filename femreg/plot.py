@@ -2,7 +2,9 @@
 figure of a registration result, and an off-screen pyvista render of the FE mesh coloured by a field.
 
 Axes: lateral y (mm) horizontal, axial x (mm) vertical and increasing downwards (depth), as on a scanner.
-Every ``plot_*`` function takes ``ax=`` (a new figure when None) and returns the Axes.
+The panels (:func:`plot_bmode`, :func:`plot_field`, :func:`plot_mesh_values`) take ``ax=`` (a new figure when
+None) and return the Axes; the whole figures (:func:`plot_result`, :func:`plot_inversion`, :func:`plot_quality`,
+which takes ``ax=`` too) return the Figure, written to ``out_png`` when given.
 
 Conventions of the figures femreg writes: strain in % and displacement in mm, the unit on every colour bar; a
 sequential colour map (bright = large magnitude) for data of one sign and a diverging one centred at 0 only when
@@ -71,7 +73,9 @@ def _mpl():
 def _image2d(a, name):
     arr = np.asarray(a, dtype=float)
     if arr.ndim != 2 or min(arr.shape) < 2:
-        raise InputError(f"{name} must be a 2D (axial, lateral) array, got shape {arr.shape}")
+        flat = (" (one value per pixel point: the image's shape is the result's, e.g. res.on_grid()['exx'] or "
+                "values.reshape(res.shape))" if arr.ndim == 1 else "")
+        raise InputError(f"{name} must be a 2D (axial, lateral) array, got shape {arr.shape}{flat}")
     return arr
 
 

@@ -330,6 +330,10 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                            rectangle=rect)
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
+    if offset is None and np.array_equal(ref, mov):
+        # as track refuses a repeated frame: Gauss-Newton's relative step never falls below tol at u = 0
+        raise InputError("the reference and moving images hold the same samples: nothing moved, nothing to "
+                         "register (the same frame twice, e.g. frames[0] and frames[0]?)")
 
     # -- initial guess ---------------------------------------------------------------------------------------
     t = time.perf_counter()
