@@ -882,7 +882,8 @@ def volumes_to(register_2d):
             raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs): 0.0193 mm at "
                              "40 MHz and 1540 m/s) and the lateral line pitch, e.g. spacing=(0.02, 0.2); a volume "
                              "takes (dx, dy, dz)")
-        if np.ndim(reference_image) == 3 and np.size(kwargs["spacing"]) == 2 and kwargs.get("geometry") is None:
+        if (np.ndim(reference_image) == 3 and np.shape(reference_image)[0] >= 2 and np.size(kwargs["spacing"]) == 2
+                and kwargs.get("geometry") is None):
             raise InputError(f"reference_image is 3D, shape {np.shape(reference_image)}, with a spacing of two "
                              "values: a stack of frames? register takes one frame each, register(frames[0], "
                              "frames[1], ...), and femreg.track(frames, ...) follows a sequence; a volume takes "

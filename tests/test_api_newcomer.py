@@ -128,7 +128,7 @@ def test_nan_and_frames_of_other_shapes_are_named():
         femreg.track([a, _rf(seed=2), a[:590]], spacing=SP)
 
 
-def test_int16_float64_and_a_list_of_frames_give_the_same_answer():
+def test_int16_and_float64_frames_give_the_same_answer():
     f = _invivo()
     i16 = [np.round(x / np.abs(x).max() * 30000).astype(np.int16) for x in f]
     r32 = femreg.register(f[0], f[1], spacing=SP)
