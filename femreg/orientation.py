@@ -448,6 +448,15 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     return rep
 
 
+def transposed_as_told(message: str, where: str = "") -> str:
+    """A refusal of frames that look transposed once ``--transpose`` was applied, reworded: they were stored the
+    right way round, so the advice is to leave the flag out (``where``: for which recording, e.g. its settings
+    file), not to pass it."""
+    return message.replace("transpose them (--transpose)",
+                           "leave out --transpose" + (f" {where}" if where else "")
+                           + " (the file stores them samples first, as femreg reads them)")
+
+
 def exchanged_shape(frame) -> str:
     """Advice when a raw (headerless) frame was read with its two sizes exchanged, else "".
 

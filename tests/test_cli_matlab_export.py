@@ -547,9 +547,14 @@ def test_batch_checks_every_recording_before_any_work(export, tmp_path, capsys):
     out = tmp_path / "out"
     rc, _, err = _run(["batch", src, "-o", out, "--transpose", *SPACING, "--task", "register", "--workers", "0",
                        "--no-progress"], capsys)
-    # before: a registered, b's task ran and failed on its orientation (exit 1)
+    # before: a registered, b's task ran and failed on its orientation (exit 1), advised to pass --transpose
     assert rc == 2 and "b.mat: " in err and "transposed" in err and "a.mat" not in err, err
+    assert "leave out --transpose for this recording (b.femreg.toml beside it: transpose = false)" in err, err
     assert err.count("\n") == 1 and not out.exists(), err
+    rc, _, err = _run(["register", src / "b.mat", "--transpose", *SPACING, "-o", tmp_path / "r.npz"], capsys)
+    # before: "transpose them (--transpose)", the flag given
+    assert rc == 2 and "leave out --transpose (the file stores them samples first" in err, err
+    assert "transpose them (--transpose)" not in err
     (src / "b.femreg.toml").write_text("transpose = false\n")      # b's own settings right: both run
     rc, _, err = _run(["batch", src, "-o", out, "--transpose", *SPACING, "--task", "register", "--workers", "0",
                        "--no-progress"], capsys)

@@ -249,7 +249,7 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
 def _check_orientation(job, fr) -> None:
     """:class:`OrientationError` naming ``job``'s recording when its frames ``fr`` look transposed or its spacing
     swapped (:mod:`femreg.orientation`); nothing when its settings turn the check off."""
-    from ..orientation import OrientationError, check, check_raw_shape
+    from ..orientation import OrientationError, check, check_raw_shape, transposed_as_told
 
     if job.resolved().get("no_orientation_check"):
         return
@@ -258,4 +258,9 @@ def _check_orientation(job, fr) -> None:
         # a file's whole frame: its size counts too (a spacing in cm)
         check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
     except OrientationError as exc:
-        raise OrientationError(f"{job.input}: {exc}", problem=exc.problem) from None
+        msg = str(exc)
+        if job.resolved().get("transpose"):
+            p = Path(job.input)
+            own = settings_file_for(p) or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
+            msg = transposed_as_told(msg, f"for this recording ({own.name} beside it: transpose = false)")
+        raise OrientationError(f"{job.input}: {msg}", problem=exc.problem) from None
