@@ -2756,7 +2756,10 @@ def load_inversion(path) -> InversionResult:
     try:
         with np.load(path, allow_pickle=False) as z:
             if "format" not in z.files or str(z["format"]) != _FORMAT:
-                raise FileFormatError(f"{path}: not a femreg inversion file")
+                reg = all(k in z.files for k in ("u", "mesh_points", "spacing"))
+                raise FileFormatError(f"{path}: not a femreg inversion file" + (
+                    ": a registration result, read by femreg.load_result (femreg.invert(result) makes an "
+                    "inversion of it)" if reg else ""))
             d = {k: z[k] for k in z.files}
         meta = json.loads(str(d["meta"]))
     except FileFormatError:

@@ -162,3 +162,18 @@ def test_plot_docs_say_what_each_function_returns_and_takes():
         P.plot_field(e, SP)
     ax = P.plot_field(e.reshape(res.shape), SP)
     plt.close(ax.figure)
+
+
+def test_a_result_file_read_by_the_other_loader_names_the_right_one(tmp_path):
+    from femreg.errors import FileFormatError
+    from femreg.inversion import _FORMAT
+
+    np.savez(tmp_path / "mu.npz", format=np.array(_FORMAT), meta=np.array("{}"))
+    # before: "not a femreg result: missing key(s) u, spacing, origin, shape"
+    with pytest.raises(FileFormatError, match="a shear-modulus image, not a registration result: read it with "
+                                              "femreg.load_inversion"):
+        femreg.load_result(tmp_path / "mu.npz")
+    np.savez(tmp_path / "pair.npz", u=np.zeros(8), mesh_points=np.zeros((2, 4)), spacing=np.array(SP))
+    # before: "not a femreg inversion file"
+    with pytest.raises(FileFormatError, match="a registration result, read by femreg.load_result"):
+        femreg.load_inversion(tmp_path / "pair.npz")
