@@ -420,12 +420,13 @@ def test_batch_task_errors_speak_in_flags_and_name_the_settings_file(export, tmp
     (src / "b.femreg.toml").write_text("spacing = [1.925e-05, 2e-04]\n")     # metres, in b's own settings
     rc, out, err = _run(["batch", src, "-o", tmp_path / "out", "--transpose", *SPACING, "--task", "register",
                          "--workers", "0", "--no-progress"], capsys)
-    failed = [line for line in err.splitlines() if line.startswith("femreg batch: FAILED")]
     # before: "FAILED b/pair_000-001: OrientationError: ... pass it in mm, (0.01925, 0.2) (...; CLI: --spacing
-    # 0.01925 0.2), or check_orientation=False (CLI: --no-orientation-check)", the settings file unnamed
-    assert rc == 1 and len(failed) == 1 and "b/pair_000-001: bad input: " in failed[0], err
-    assert "--spacing 0.01925 0.2" in failed[0] and "check_orientation" not in failed[0], failed
-    assert "b.femreg.toml beside the recording sets its own settings" in failed[0], failed
+    # 0.01925 0.2), or check_orientation=False (CLI: --no-orientation-check)", the settings file unnamed; then a
+    # failed task (exit 1); now every recording is checked before any work (exit 2)
+    assert rc == 2 and err.count("\n") == 1 and "b.mat: " in err and "metres" in err, err
+    assert "--spacing 0.01925 0.2" in err and "check_orientation" not in err, err
+    assert "b.femreg.toml beside the recording sets its own settings" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_registered_frames_of_each_kind_of_result(tmp_path):

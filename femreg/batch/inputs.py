@@ -258,9 +258,11 @@ def _check_orientation(job, fr) -> None:
         # a file's whole frame: its size counts too (a spacing in cm)
         check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
     except OrientationError as exc:
-        msg = str(exc)
+        msg, p = str(exc), Path(job.input)
+        sf = settings_file_for(p)
         if job.resolved().get("transpose"):
-            p = Path(job.input)
-            own = settings_file_for(p) or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
+            own = sf or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
             msg = transposed_as_told(msg, f"for this recording ({own.name} beside it: transpose = false)")
+        if sf is not None and sf.name not in msg:
+            msg += f" ({sf.name} beside the recording sets its own settings, which override the command line)"
         raise OrientationError(f"{job.input}: {msg}", problem=exc.problem) from None
