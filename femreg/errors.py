@@ -5,7 +5,7 @@ Messages that tell what to pass name the library's argument with the command's f
 (:func:`cli_wording`) they name the flag alone (:func:`pass_as`), so a command-line user reads only flags."""
 import contextlib
 
-__all__ = ["InputError", "FileFormatError", "SpacingUnknownError", "cli_wording", "pass_as"]
+__all__ = ["InputError", "FileFormatError", "SpacingUnknownError", "cli_wording", "counted", "pass_as"]
 
 # a process-wide switch, not a context variable: worker threads of the command word their messages alike
 _cli = [False]
@@ -30,6 +30,11 @@ def pass_as(python: str, cli: str) -> str:
     """How a message names what to pass: ``cli`` (the command's flags only) within :func:`cli_wording`,
     ``python`` (the library's arguments, usually with the flag beside them) otherwise."""
     return cli if _cli[0] else python
+
+
+def counted(n, noun: str, plural=None) -> str:
+    """``n`` and ``noun`` in the number it takes: "1 node", "3 nodes" (``plural`` for an irregular one)."""
+    return f"{n} {noun if int(n) == 1 else (plural or noun + 's')}"
 
 
 class InputError(ValueError):

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError, pass_as
+from .errors import InputError, counted, pass_as
 
 from . import _kernels
 
@@ -93,7 +93,7 @@ def validate_spacing(spacing, origin=(0.0, 0.0), *, n: int = 2):
         raise InputError(f"spacing must be (dx, dy) in mm, got {spacing!r}" if n == 2 else
                          f"a volume needs spacing (dx, dy, dz) in mm, got {spacing!r}")
     if not np.all(np.isfinite(sp)) or np.any(sp <= 0):
-        raise InputError(f"spacing must be finite and > 0 mm, got {tuple(sp)}")
+        raise InputError(f"spacing must be finite and > 0 mm, got ({', '.join(f'{v:g}' for v in sp)})")
     if n == 3 and org.size == 2 and np.all(org == 0):       # the 2D default origin
         org = np.zeros(3)
     if org.size != n or not np.all(np.isfinite(org)):
@@ -166,14 +166,15 @@ def validate_samples(image, name: str = "image", *, ndim: int = 2) -> np.ndarray
                              f"(axial, lateral, elevational) with 3 spacing values; got ndim={a.ndim} "
                              f"shape={a.shape}")
         raise InputError(f"{name} must be 3D (axial, lateral, elevational), got ndim={a.ndim} shape={a.shape}")
-    unit = "pixels" if ndim == 2 else "voxels"
+    unit = "pixel" if ndim == 2 else "voxel"
     if min(a.shape) < 4:
         raise InputError(f"{name} is too small: shape {a.shape}, need at least "
                          + ("4 x 4 pixels" if ndim == 2 else "4 voxels along every axis"))
     bad = ~np.isfinite(a)
     if bad.any():
         first = ", ".join(str(int(i)) for i in np.argwhere(bad)[0])
-        raise InputError(f"{name} has {int(bad.sum())} NaN/Inf {unit} (first at [{first}])")
+        raise InputError(f"{name} has NaN/Inf at {counted(int(bad.sum()), unit)} (first at [{first}]): every "
+                         f"sample must be finite; crop the frames to where they hold data or set those samples")
     if np.ptp(a) == 0:
         raise InputError(f"{name} is constant (value {a.flat[0]:g}): nothing to register"
                          + (" (all zero: an empty or blanked frame)" if a.flat[0] == 0 else ""))

@@ -190,7 +190,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import FileFormatError, InputError, pass_as
+from .errors import FileFormatError, InputError, counted, pass_as
 from .fields import inner_elements, lateral_ratio
 from .linsolve import SPDSolver, single_blas_thread
 from .material import MODELS
@@ -942,8 +942,9 @@ def _mesh_and_data_3d(displacement, region, element_size):
     if v.shape != (n, 3):
         raise InputError(f"a 3D displacement must return shape ({n}, 3) for ({n}, 3) points, got {v.shape}")
     if not np.all(np.isfinite(v)):
-        raise InputError(f"the displacement has {int((~np.all(np.isfinite(v), axis=1)).sum())} NaN/Inf nodes on "
-                         "the inversion mesh (region outside the measured field?)")
+        bad = counted(int((~np.all(np.isfinite(v), axis=1)).sum()), "node")
+        raise InputError(f"the displacement has NaN/Inf at {bad} of the inversion mesh (region outside the measured "
+                         "field?)")
     if mesh.t.shape[1] < 8:
         raise InputError(f"the inversion mesh has {mesh.t.shape[1]} element(s); need at least 2 x 2 x 2")
     return mesh, v.ravel().copy()
@@ -995,7 +996,7 @@ def _mesh_and_data(displacement, region, element_size):
             v = res.displacement(mesh.p.T)
             if not np.all(np.isfinite(v)):
                 raise InputError(f"region {((x0, x1), (y0, y1))} mm reaches outside the registration mesh "
-                                 f"({int((~np.isfinite(v[:, 0])).sum())} nodes); the mesh spans x "
+                                 f"({counted(int((~np.isfinite(v[:, 0])).sum()), 'node')}); the mesh spans x "
                                  f"{p[0].min():.4g} to {p[0].max():.4g} mm, y {p[1].min():.4g} to {p[1].max():.4g} mm")
             d = np.empty(2 * mesh.p.shape[1])
             d[0::2], d[1::2] = v[:, 0], v[:, 1]
@@ -1185,7 +1186,7 @@ def _contradiction(mu, el_strain, mesh, area_el):
                 continue
             e_r = float(np.sum(area_el[sel] * ax[sel]) / np.sum(area_el[sel]))
             if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
-                out.append(f"the {name} region ({int(sel.sum())} elements) strains {'more' if sign > 0 else 'less'} "
+                out.append(f"the {name} region ({counted(int(sel.sum()), 'element')}) strains {'more' if sign > 0 else 'less'} "
                            f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
     sel = inner if inner.sum() >= 8 else np.ones(mu.size, bool)
     ranked = _ranked_contradiction(mu, ax, sel, area_el)
@@ -2755,7 +2756,10 @@ def load_inversion(path) -> InversionResult:
     try:
         with np.load(path, allow_pickle=False) as z:
             if "format" not in z.files or str(z["format"]) != _FORMAT:
-                raise FileFormatError(f"{path}: not a femreg inversion file")
+                reg = all(k in z.files for k in ("u", "mesh_points", "spacing"))
+                raise FileFormatError(f"{path}: not a femreg inversion file" + (
+                    ": a registration result, read by femreg.load_result (femreg.invert(result) makes an "
+                    "inversion of it)" if reg else ""))
             d = {k: z[k] for k in z.files}
         meta = json.loads(str(d["meta"]))
     except FileFormatError:

@@ -75,6 +75,9 @@ NO_CARRIER_RATIO = 0.2
 #: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-13 on correct
 #: spacing, 0.04-0.29 with the spacings exchanged).
 MIN_LATERAL_CELL_PERIODS = 1.0
+#: The same ratio below this with one spacing value (square pixels): the line pitch taken for the axial sample
+#: spacing (in vivo seq304 read so: 1.2, seq299: 0.96; correct spacings 5.8-13).
+MIN_SQUARE_CELL_PERIODS = 2.0
 #: Lateral / axial speckle cell (mm) of remodulated IQ data below this (and above it with the spacings exchanged):
 #: the spacings are swapped (measured 2.2-5.7 correct, 0.13-0.42 exchanged).
 MIN_SPECKLE_ASPECT = 1.0
@@ -259,8 +262,8 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                                 "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
         else:
             what, shape, how = ("frames", "(axial samples, lateral lines)",
-                                pass_as("CLI: --transpose; frame.T, frames.transpose(0, 2, 1) in Python",
-                                        "--transpose"))
+                                pass_as("frame.T, frames.transpose(0, 2, 1); read_frames(..., transpose=True); "
+                                        "CLI: --transpose", "--transpose"))
         # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
         # spacing as (axial, lateral) already while the array is stored lines-first)
         f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
@@ -425,13 +428,33 @@ def _centroid_samples(img) -> float:
 
 
 def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
-          elevational: float | None = None, whole_frame: bool = False) -> OrientationReport:
+          elevational: float | None = None, whole_frame: bool = False, one_value: bool = False) -> OrientationReport:
     """:func:`diagnose`, raising :class:`OrientationError` (an :class:`InputError`) with its message when the
-    frame looks transposed or its spacing swapped or implausible."""
+    frame looks transposed or its spacing swapped or implausible.  ``one_value``: the spacing was given as one
+    number (square pixels), refused too when its lateral speckle is narrower than
+    :data:`MIN_SQUARE_CELL_PERIODS` axial RF periods -- RF lines are rarely as close as the axial samples."""
     rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational, whole_frame=whole_frame)
     if rep.problem:
         raise OrientationError(rep.message, problem=rep.problem)
+    if one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS:
+        dx = float(np.ravel(spacing)[0])
+        raise OrientationError(
+            f"spacing {dx:g} (one value) means square pixels, {dx:g} x {dx:g} mm: the lateral speckle is then "
+            f"{rep.lateral_cell_mm:.3g} mm, {rep.cell_periods:.2g} axial RF periods, narrower than a wavelength (2 "
+            f"periods) -- RF lines are rarely as close as the axial samples; give both, "
+            + pass_as(f"spacing=({dx:g}, DY) (axial sample spacing, lateral line pitch in mm; CLI: --spacing {dx:g} "
+                      "DY)", f"--spacing {dx:g} DY (axial sample spacing, lateral line pitch in mm)")
+            + f", or {override()}", problem="spacing")
     return rep
+
+
+def transposed_as_told(message: str, where: str = "") -> str:
+    """A refusal of frames that look transposed once ``--transpose`` was applied, reworded: they were stored the
+    right way round, so the advice is to leave the flag out (``where``: for which recording, e.g. its settings
+    file), not to pass it."""
+    return message.replace("transpose them (--transpose)",
+                           "leave out --transpose" + (f" {where}" if where else "")
+                           + " (the file stores them samples first, as femreg reads them)")
 
 
 def exchanged_shape(frame) -> str:
@@ -447,7 +470,9 @@ def exchanged_shape(frame) -> str:
     if not axial_carrier_ratio(alt) < CARRIER_RATIO:
         return ""
     return (f"no RF carrier when read as {n0} x {n1}, but one along axis 0 when read as {n1} x {n0}: the "
-            f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)")
+            + pass_as(f"shape looks exchanged, pass shape=({n1}, {n0}) (axial, lateral: samples per line, then "
+                      f"lines; CLI: --shape {n1} {n0})",
+                      f"--shape looks exchanged, pass --shape {n1} {n0} (AXIAL LATERAL: samples per line, then lines)"))
 
 
 def check_raw_shape(frames) -> None:

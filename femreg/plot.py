@@ -2,7 +2,9 @@
 figure of a registration result, and an off-screen pyvista render of the FE mesh coloured by a field.
 
 Axes: lateral y (mm) horizontal, axial x (mm) vertical and increasing downwards (depth), as on a scanner.
-Every ``plot_*`` function takes ``ax=`` (a new figure when None) and returns the Axes.
+The panels (:func:`plot_bmode`, :func:`plot_field`, :func:`plot_mesh_values`) take ``ax=`` (a new figure when
+None) and return the Axes; the whole figures (:func:`plot_result`, :func:`plot_inversion`, :func:`plot_quality`,
+which takes ``ax=`` too) return the Figure, written to ``out_png`` when given.
 
 Conventions of the figures femreg writes: strain in % and displacement in mm, the unit on every colour bar; a
 sequential colour map (bright = large magnitude) for data of one sign and a diverging one centred at 0 only when
@@ -71,7 +73,9 @@ def _mpl():
 def _image2d(a, name):
     arr = np.asarray(a, dtype=float)
     if arr.ndim != 2 or min(arr.shape) < 2:
-        raise InputError(f"{name} must be a 2D (axial, lateral) array, got shape {arr.shape}")
+        flat = (" (one value per pixel point: the image's shape is the result's, e.g. res.on_grid()['exx'] or "
+                "values.reshape(res.shape))" if arr.ndim == 1 else "")
+        raise InputError(f"{name} must be a 2D (axial, lateral) array, got shape {arr.shape}{flat}")
     return arr
 
 
@@ -624,6 +628,28 @@ def _plain_tick(v, _pos=None) -> str:
     return f"{v:.0f}" if "e+" in text else text
 
 
+#: Least span of an uncertainty colour scale (std of log mu, -): 0.05, about 5 % of mu, so a nearly uniform
+#: uncertainty is not stretched over the whole scale and read as a pattern.
+UNCERTAINTY_MIN_SPAN = 0.05
+#: What the uncertainty colour bar's ends mean, beside its quantity.
+UNCERTAINTY_ENDS = "low: more certain, high: less certain"
+
+
+def uncertainty_range(unc) -> tuple:
+    """Colour limits of an uncertainty map (std of log mu per element, -): 1-99 % of its finite values, not 0 --
+    the dark end at 0 would stand for a certain element, which none is -- widened to
+    :data:`UNCERTAINTY_MIN_SPAN` about their middle, never below 0."""
+    v = np.asarray(unc, float).ravel()
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return 0.0, 1.0
+    lo, hi = (float(x) for x in np.percentile(v, [1, 99]))
+    if hi - lo < UNCERTAINTY_MIN_SPAN:
+        lo = max(0.0, 0.5 * (lo + hi) - 0.5 * UNCERTAINTY_MIN_SPAN)
+        hi = lo + UNCERTAINTY_MIN_SPAN
+    return lo, hi
+
+
 def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
                      vmin=None, vmax=None, label=None):
     """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
@@ -726,13 +752,14 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
                      title="shear modulus $\\mu$", label="$\\mu$ / median (relative, -)")
     if unc is not None:
         blank = int(np.sum(~np.isfinite(unc)))              # NaN: elements the data do not constrain
-        plot_mesh_values(p, t, unc, ax=axes[1], cmap="magma", vmin=0.0,
+        lo, hi = uncertainty_range(unc)
+        plot_mesh_values(p, t, unc, ax=axes[1], cmap="magma", vmin=lo, vmax=hi,
                          title="uncertainty of $\\log\\mu$"
                          + ("\nNOT calibrated: tissue not piecewise uniform (see notes)"
                             if getattr(res, "uncertainty_calibrated", True) is False else "")
                          + (f"\n(grey = blank: {blank} of {unc.size} elements the data do not constrain)"
                             if blank else ""),
-                         label="std of $\\log\\mu$ (-)")
+                         label=f"std of $\\log\\mu$ (-)\n{UNCERTAINTY_ENDS}")
         # the unconstrained elements (NaN, drawn transparent) on grey: white would read as magma's top, the
         # largest uncertainty
         axes[1].set_facecolor("0.6")

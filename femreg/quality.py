@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from .data_term import SSDTerm
-from .errors import InputError
+from .errors import InputError, counted
 from .image import SplineImage, normalize_pair, pixel_axes, validate_image
 from .pixels import PixelQuadrature
 from .registration import ncc, nodal_values
@@ -105,7 +105,7 @@ def strain_snr(result, window, component: str = "exx") -> dict:
     e = result.on_grid()[component]
     vals = e[window_mask(result.shape, result.spacing, result.origin, window) & np.isfinite(e)]
     if vals.size < 2:
-        raise InputError(f"window {window!r} holds {vals.size} pixels of the mesh; need at least 2")
+        raise InputError(f"window {window!r} holds {counted(vals.size, 'pixel')} of the mesh; need at least 2")
     mean, std = float(np.mean(vals)), float(np.std(vals))
     return {"mean": mean, "std": std, "snr": abs(mean) / std if std > 0 else float("inf"), "n": int(vals.size)}
 

@@ -183,7 +183,7 @@ from dataclasses import dataclass
 import numpy as np
 from skfem import MeshQuad1
 
-from .errors import InputError
+from .errors import InputError, counted
 from .fields import element_strain_operator, element_strains, recovered_strains
 from .mesh import tensor_structure
 from .pixels import PointLocator
@@ -1555,7 +1555,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
             if why:
                 # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
                 # finer rows / columns would fit as patches
-                note = f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, not split: {why}"
+                note = f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked, not split: {why}"
                 if opts.settle:
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
@@ -1568,7 +1568,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
         if top < opts.feature:
             # no row / column stands out that far: decorrelation noise, not a feature; split nothing
             if np.any(rows) or np.any(cols):
-                note = (f"{int(np.sum(rows))} rows, {int(np.sum(cols))} columns marked, none standing out "
+                note = (f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked, none standing out "
                         f"(largest jump {top:.2g}x the cut, below {opts.feature:g}): not split")
                 if opts.settle and k == 0:
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)

@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import _kernels
+from .errors import counted
 from .image import ncc
 from .mesh import tensor_node_grid, tensor_structure
 from .pixels import pixel_values  # noqa: F401  (also femreg.repair.pixel_values)
@@ -397,7 +398,7 @@ def repair_peak_hopping(sol, resolve, mesh, period: float, reference=None):
         checked = sol
         if not hops.any():
             break
-        notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes reseeded")
+        notes.append(f"peak hopping at {counted(int(np.count_nonzero(hops)), 'node')} reseeded")
         again = resolve(reseed(sol.u, hops, period))
         if total(again) <= total(sol) or reference is not None:
             sol = again
@@ -411,7 +412,7 @@ def repair_peak_hopping(sol, resolve, mesh, period: float, reference=None):
         again = resolve(reseed(sol.u, islands, period))
         if not total(again) <= total(sol):
             break
-        notes.append(f"peak hopping at {int(np.count_nonzero(islands))} nodes off their neighbours reseeded")
+        notes.append(f"peak hopping at {counted(int(np.count_nonzero(islands)), 'node')} off their neighbours reseeded")
         sol = again
     if sol is not checked:      # a repair moved the result: test it again against the coarse level
         hops = hop_nodes(mesh, sol.u[0::2], period, reference)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import FileFormatError
+from .errors import FileFormatError, counted
 
 __all__ = ["ResultRecord", "RefinementRecord", "AutoAlpha", "read_auto_alpha"]
 
@@ -145,7 +145,7 @@ class RefinementRecord:
             return f"refinement: {self.note}" if self.note else "refinement: nothing marked"
         parts = [f"{p['elements']} -> {p['elements_after']} elements ("
                  + (f"{p['rows']} x-, {p['columns']} y-, {p['slices']} z-slabs split" if "slices" in p else
-                    f"{p['rows']} rows, {p['columns']} columns split")
+                    f"{counted(p['rows'], 'row')}, {counted(p['columns'], 'column')} split")
                  + (", finer marking" if p.get("fine") else "")
                  + (f", {p['relaxed_edges']} edges relaxed" if p.get("relaxed_edges") else "")
                  + (f", {p['layer_lines']} layer interface lines solved sharp" if p.get("layer_lines") else "") + ")"

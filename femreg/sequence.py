@@ -103,9 +103,10 @@ def _validate_frames(frames):
     if len(seq) < 2:
         raise InputError(f"need at least 2 frames to track, got {len(seq)}")
     seq = [validate_image(f, f"frame {k}") for k, f in enumerate(seq)]
-    shapes = {f.shape for f in seq}
-    if len(shapes) != 1:
-        raise InputError(f"all frames must have the same shape, got {sorted(shapes)}")
+    odd = [k for k, f in enumerate(seq) if f.shape != seq[0].shape]
+    if odd:
+        raise InputError(f"all frames must have the same shape: frame 0 {seq[0].shape}, frame {odd[0]} "
+                         f"{seq[odd[0]].shape}" + (f" ({len(odd)} frames differ from frame 0)" if len(odd) > 1 else ""))
     return seq
 
 
@@ -139,7 +140,7 @@ def _region_record(shape, origin, crop) -> dict:
 
 
 @single_blas_thread
-def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
+def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
           resume: bool = False, progress: bool = False, min_ncc: float = DEFAULT_MIN_NCC,
@@ -156,7 +157,8 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         onto one Cartesian grid and tracked there (results :class:`femreg.SweptResult`; ``grid_spacing`` as in
         :func:`femreg.register`).
     spacing, origin : (2,) mm
-        Pixel spacing (axial, lateral) and the centre of pixel [0, 0].
+        Pixel spacing (axial, lateral) and the centre of pixel [0, 0]; ``spacing`` is required (None: an
+        :class:`~femreg.errors.InputError` saying what it is).
     regularizer, alpha
         As in :func:`femreg.register` (name or Regularizer instance; None alpha = documented default; "auto" =
         chosen on the first pair by :func:`femreg.autoalpha.choose_alpha`, with the fan's mask of ``data_mask``,
@@ -215,6 +217,9 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
         Entry k-1 is frame 0 -> frame k, a RegistrationResult (BeamResult with a convex / sector geometry) on the
         common mesh in frame-0 coordinates.
     """
+    if spacing is None:
+        raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs)) and the lateral "
+                         "line pitch, e.g. spacing=(0.02, 0.2); volumes take (dx, dy, dz)")
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
         if data_mask is not None:
             raise InputError("data_mask is for frames (n_axial, n_lateral); volumes take roi / depth")
@@ -245,9 +250,10 @@ def track(frames, *, spacing, origin=(0.0, 0.0), regularizer="momentum-stress", 
     if beam is not None:
         raise InputError("a femreg.Swept geometry is a swept probe's: track its volumes (n_samples, n_lines, "
                          "n_frames), not frames")
+    one_value = np.ndim(spacing) == 0
     spacing, origin = validate_spacing(spacing, origin)
     if check_orientation:
-        orientation.check(seq[0], spacing)
+        orientation.check(seq[0], spacing, one_value=one_value)
     register_kwargs["check_orientation"] = False    # checked once, above
     crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True,
                     data_mask=data_mask)

@@ -379,7 +379,7 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     """
     from matplotlib.colors import LogNorm
 
-    from .plot import draw_failure, inversion_banner
+    from .plot import UNCERTAINTY_ENDS, draw_failure, inversion_banner, uncertainty_range
     from .volume_fields import recovered_strains_3d
 
     res = result
@@ -413,10 +413,10 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
                  note=note if unc is None else None)]
     if unc is not None:
         u = np.where(free, np.nan, unc)
-        top = float(np.nanmax(u)) if np.isfinite(u).any() else 1.0
-        rows.append(dict(name=r"std of $\log\mu$", vol=u[cell], spacing=sp, origin=org, cmap="magma", vmin=0.0,
-                         vmax=top if top > 0 else 1.0, norm=None, bad=grey, line="w", note=note,
-                         label="uncertainty: std of $\\log\\mu$\n(-, one value per element)"
+        ulo, uhi = uncertainty_range(u)
+        rows.append(dict(name=r"std of $\log\mu$", vol=u[cell], spacing=sp, origin=org, cmap="magma", vmin=ulo,
+                         vmax=uhi, norm=None, bad=grey, line="w", note=note,
+                         label="uncertainty: std of $\\log\\mu$\n(-, one value per element)\n" + UNCERTAINTY_ENDS
                          + ("\nNOT calibrated (see notes)" if getattr(res, "uncertainty_calibrated", True) is False
                             else "")))
     um = np.asarray(res.u_measured, float)

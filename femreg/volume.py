@@ -32,7 +32,7 @@ from scipy import ndimage
 from . import orientation
 from .autoalpha import ImageTerm, choose_alpha, register_auto
 from .echo_volume import crop_for_volume, route_volume
-from .errors import InputError
+from .errors import InputError, counted
 from .image import normalize_pair
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
@@ -315,12 +315,12 @@ def _repair(sol, resolve, mesh, period):
     new = resolve(u)
     if new.gn.fun < sol.gn.fun:
         left = hop_nodes_3d(mesh, new.u[0::3], period)
-        note = f"peak hopping repaired at {int(np.count_nonzero(k))} nodes"
+        note = f"peak hopping repaired at {counted(int(np.count_nonzero(k)), 'node')}"
         if left.any():
             note += f" ({int(np.count_nonzero(left))} still off)"
         return new, left, [note]
-    return sol, k, [f"{int(np.count_nonzero(k))} nodes look a period off their neighbourhood; reseeding them "
-                    f"did not lower the energy (kept)"]
+    return sol, k, [f"{counted(int(np.count_nonzero(k)), 'node')} look{'s' if np.count_nonzero(k) == 1 else ''} a period off "
+                    f"their neighbourhood; reseeding them did not lower the energy (kept)"]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -470,7 +470,7 @@ def _check(sol, u0, hops, notes, period) -> dict:
         notes.append(f"{poor:.0%} of the elements match below NCC {MIN_NCC}")
     if hops.any():
         success = False
-        notes.append(f"peak hopping at {int(np.count_nonzero(hops))} nodes could not be repaired")
+        notes.append(f"peak hopping at {counted(int(np.count_nonzero(hops)), 'node')} could not be repaired")
     if hop_notes:
         success = False
         notes += hop_notes
@@ -878,6 +878,16 @@ def volumes_to(register_2d):
     :func:`register_volume` with the same keywords, anything else by ``register_2d`` unchanged."""
     @functools.wraps(register_2d)
     def register(reference_image, moving_image, **kwargs):
+        if kwargs.get("spacing") is None:
+            raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs): 0.0193 mm at "
+                             "40 MHz and 1540 m/s) and the lateral line pitch, e.g. spacing=(0.02, 0.2); a volume "
+                             "takes (dx, dy, dz)")
+        if (np.ndim(reference_image) == 3 and np.shape(reference_image)[0] >= 2 and np.size(kwargs["spacing"]) == 2
+                and kwargs.get("geometry") is None):
+            raise InputError(f"reference_image is 3D, shape {np.shape(reference_image)}, with a spacing of two "
+                             "values: a stack of frames? register takes one frame each, register(frames[0], "
+                             "frames[1], ...), and femreg.track(frames, ...) follows a sequence; a volume takes "
+                             "spacing (dx, dy, dz)")
         if np.ndim(reference_image) == 3:
             if kwargs.pop("data_mask", None) is not None:
                 raise InputError("data_mask is for frames (n_axial, n_lateral); volumes take roi / depth")

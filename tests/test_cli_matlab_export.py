@@ -420,12 +420,13 @@ def test_batch_task_errors_speak_in_flags_and_name_the_settings_file(export, tmp
     (src / "b.femreg.toml").write_text("spacing = [1.925e-05, 2e-04]\n")     # metres, in b's own settings
     rc, out, err = _run(["batch", src, "-o", tmp_path / "out", "--transpose", *SPACING, "--task", "register",
                          "--workers", "0", "--no-progress"], capsys)
-    failed = [line for line in err.splitlines() if line.startswith("femreg batch: FAILED")]
     # before: "FAILED b/pair_000-001: OrientationError: ... pass it in mm, (0.01925, 0.2) (...; CLI: --spacing
-    # 0.01925 0.2), or check_orientation=False (CLI: --no-orientation-check)", the settings file unnamed
-    assert rc == 1 and len(failed) == 1 and "b/pair_000-001: bad input: " in failed[0], err
-    assert "--spacing 0.01925 0.2" in failed[0] and "check_orientation" not in failed[0], failed
-    assert "b.femreg.toml beside the recording sets its own settings" in failed[0], failed
+    # 0.01925 0.2), or check_orientation=False (CLI: --no-orientation-check)", the settings file unnamed; then a
+    # failed task (exit 1); now every recording is checked before any work (exit 2)
+    assert rc == 2 and err.count("\n") == 1 and "b.mat: " in err and "metres" in err, err
+    assert "--spacing 0.01925 0.2" in err and "check_orientation" not in err, err
+    assert "b.femreg.toml beside the recording sets its own settings" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_registered_frames_of_each_kind_of_result(tmp_path):
@@ -466,3 +467,114 @@ def test_a_spacing_against_the_files_fields_is_noted(export, capsys):
     assert "lateral" not in err.split("imply (")[1].split(":")[0], err
     rc, out, err = _run(["info", d / "scan.mat", "--transpose", *SPACING], capsys)
     assert rc == 0 and "note" not in err, err
+
+
+# ------------------------------------------------------------------------------------------ a later newcomer pass
+def test_text_variables_are_listed_with_their_text(export, tmp_path, capsys):
+    d, _ = export
+    rc, out, err = _run(["info", d / "scan.mat"], capsys)
+    # before: "array     timestamp        1 char", the text (and its length) unseen
+    assert "array     timestamp        1x19 char '2026-11-30T10:19:00'" in out, out
+    # before: a note that "--spacing" (never typed: info's stand-in 1 mm) differs from the file's fields
+    assert rc == 1 and "--spacing differs" not in err, err
+    path = tmp_path / "t.mat"
+    sio.savemat(path, {"fs": FS_HZ, "when": "2026-11-30", "note": "compression by hand, " * 5})
+    rc, out, err = _run(["register", path, *SPACING, "-o", tmp_path / "r.npz"], capsys)
+    # before: "(variables: fs, note, when)"
+    assert rc == 2 and "(variables: fs, note = 'compression by hand, compression by h...', when = '2026-11-30')" \
+        in err, err
+    rc, out, err = _run(["info", path, "--variable", "rf"], capsys)
+    assert rc == 2 and "available: fs, note = " in err and "when = '2026-11-30'" in err, err
+
+
+def test_text_of_a_v73_char_variable_is_listed(tmp_path, capsys):
+    import h5py
+
+    from femreg.io.matlab import write_mat
+
+    path = tmp_path / "s73.mat"
+    write_mat(path, np.zeros((2, 20, 20), np.float32), version="7.3")
+    with h5py.File(path, "a") as f:
+        del f["rf"]
+        ds = f.create_dataset("when", data=np.array([[ord(c)] for c in "2026-11-30"], np.uint16))
+        ds.attrs["MATLAB_class"] = np.bytes_("char")
+    rc, out, err = _run(["info", path], capsys)
+    assert rc == 2 and "(variables: origin, when = '2026-11-30')" in err, err
+
+
+def _inversion_with_uncertainty(unc):
+    from skfem import MeshQuad1
+
+    from femreg.inversion import InversionResult
+
+    m = MeshQuad1.init_tensor(np.linspace(0, 20, 11), np.linspace(-8, 8, 9))
+    u = np.zeros(2 * m.p.shape[1])
+    u[0::2] = -0.01 * m.p[0]
+    res = InversionResult(mesh=m, mu=np.ones(m.t.shape[1]), model="plane-stress", lambda_bar=2.0, beta=0.01,
+                          u_measured=u, success=True, message="ok")
+    res.uncertainty = unc(m.t.shape[1])
+    return res
+
+
+def test_uncertainty_colour_bar_spans_the_data_and_names_its_ends():
+    import matplotlib.pyplot as plt
+
+    from femreg.plot import UNCERTAINTY_MIN_SPAN, plot_inversion
+
+    res = _inversion_with_uncertainty(lambda n: np.linspace(0.2, 0.3, n))
+    fig = plot_inversion(res, dpi=40)
+    ax = [a for a in fig.axes if a.get_title()][1]
+    norm, label = ax.collections[0].norm, ax.child_axes[0].get_ylabel()
+    # before: 0 to 0.3, the darkest third of the scale (0 = certain) on no element, the ends unnamed
+    assert norm.vmin == pytest.approx(0.201, abs=1e-3) and norm.vmax == pytest.approx(0.299, abs=1e-3)
+    assert "low: more certain, high: less certain" in label, label
+    plt.close(fig)
+    fig = plot_inversion(_inversion_with_uncertainty(lambda n: np.full(n, 0.01)), dpi=40)
+    norm = [a for a in fig.axes if a.get_title()][1].collections[0].norm
+    # a uniform uncertainty: the least span, never below 0 (not a pattern stretched over the scale)
+    assert norm.vmin == 0.0 and norm.vmax == pytest.approx(UNCERTAINTY_MIN_SPAN)
+    plt.close(fig)
+
+
+def test_batch_checks_every_recording_before_any_work(export, tmp_path, capsys):
+    import shutil
+
+    d, frames = export
+    src = tmp_path / "data"
+    src.mkdir()
+    shutil.copy(d / "scan.mat", src / "a.mat")
+    # b stored samples first: under --transpose (right for a) its frames are lines x samples
+    sio.savemat(src / "b.mat", {"RFdata": frames.astype(np.int16).transpose(1, 2, 0)})
+    out = tmp_path / "out"
+    rc, _, err = _run(["batch", src, "-o", out, "--transpose", *SPACING, "--task", "register", "--workers", "0",
+                       "--no-progress"], capsys)
+    # before: a registered, b's task ran and failed on its orientation (exit 1), advised to pass --transpose
+    assert rc == 2 and "b.mat: " in err and "transposed" in err and "a.mat" not in err, err
+    assert "leave out --transpose for this recording (b.femreg.toml beside it: transpose = false)" in err, err
+    assert err.count("\n") == 1 and not out.exists(), err
+    rc, _, err = _run(["register", src / "b.mat", "--transpose", *SPACING, "-o", tmp_path / "r.npz"], capsys)
+    # before: "transpose them (--transpose)", the flag given
+    assert rc == 2 and "leave out --transpose (the file stores them samples first" in err, err
+    assert "transpose them (--transpose)" not in err
+    (src / "b.femreg.toml").write_text("transpose = false\n")      # b's own settings right: both run
+    rc, _, err = _run(["batch", src, "-o", out, "--transpose", *SPACING, "--task", "register", "--workers", "0",
+                       "--no-progress"], capsys)
+    assert rc in (0, 1) and "FAILED" not in err, err
+
+
+def test_counts_take_their_number():
+    import re
+    from pathlib import Path
+
+    import femreg
+    from femreg.batch.summary import BatchSummary
+    from femreg.errors import counted
+
+    assert (counted(1, "node"), counted(0, "node"), counted(3, "node")) == ("1 node", "0 nodes", "3 nodes")
+    s = BatchSummary(out_dir=Path("."), records=[{"key": "a/track", "status": "ok"}], wall_s=1.0, workers="0")
+    assert s.to_markdown().startswith("# femreg batch: 1 task, 0 failed")      # before: "1 tasks"
+    # before: "peak hopping at 1 nodes reseeded" and alike, a count of any size before a plural noun
+    bare = re.compile(r"\{int\([^{}]*\)\} (nodes|elements|rows|columns)\b")
+    found = [f"{p.name}:{k + 1}" for p in Path(femreg.__file__).parent.rglob("*.py")
+             for k, line in enumerate(p.read_text().splitlines()) if bare.search(line)]
+    assert not found, found

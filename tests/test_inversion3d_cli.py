@@ -179,7 +179,11 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     assert "grey: 4 of 1920 elements the data do not" in titles[3].replace("\n", " ")
     bars = [a.child_axes[0].get_ylabel().replace("\n", " ") for a in panels[2::3]]
     assert bars[0] == "shear modulus $\\mu$ / median (relative, one value per element)"
-    assert bars[1] == "uncertainty: std of $\\log\\mu$ (-, one value per element)"
+    assert bars[1] == ("uncertainty: std of $\\log\\mu$ (-, one value per element) low: more certain, high: less "
+                       "certain")
+    # the scale over the data (0.05 + 0.01 x depth: 1-99 % of it), not from 0, which no element is
+    unorm = panels[3].images[0].norm
+    assert 0.05 < unorm.vmin < 0.06 and 0.19 < unorm.vmax < 0.21, (unorm.vmin, unorm.vmax)
     assert bars[2] == "recovered axial strain $\\varepsilon_{xx}$ (%)"
     assert [len(a.child_axes) for a in panels] == [0, 0, 1] * 3          # one colour bar per row
     # the axial-lateral modulus slice at z = -0.5 mm: each element's value over its whole box, mm extents

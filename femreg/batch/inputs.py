@@ -185,14 +185,14 @@ def _frames_needed(settings: dict) -> int:
 
 def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = False) -> None:
     """Bad input a batch can see before it runs, from the first readable recordings of one input: a folder
-    whose files hold one frame each (the frames of one recording, read as recordings of their own), and
-    frames that look transposed or a spacing that looks swapped (:mod:`femreg.orientation`).  With
+    whose files hold one frame each (the frames of one recording, read as recordings of their own), and, from
+    each recording's first frame, frames that look transposed or a spacing that looks swapped
+    (:mod:`femreg.orientation`).  With
     ``refuse_unreadable``, an input that is one recording and cannot be read is refused, and so is a folder whose
     recordings lack a setting (a raw file without --shape, no spacing); otherwise, and for a corrupt file in a
     folder of several, recordings that cannot be read are left to their tasks, which record the error."""
     from ..errors import FileFormatError
     from ..io import read_frames
-    from ..orientation import OrientationError, check, check_raw_shape
 
     probed = []
     for job in jobs[:3]:
@@ -234,10 +234,35 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
             why = pair_beyond(pair, fr.n_frames)
             if why:
                 raise InputError(f"{job.input}: {why}")
-    if not s.get("no_orientation_check"):
+    _check_orientation(job, fr)
+    for other in jobs:          # each recording's first frame: one transposed file among many fails only its tasks
+        if other is job or other.resolved().get("no_orientation_check"):
+            continue
         try:
-            check_raw_shape(fr)
-            # a file's whole frame: its size counts too (a spacing in cm)
-            check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
-        except OrientationError as exc:
-            raise OrientationError(f"{job.input}: {exc}", problem=exc.problem) from None
+            reader_kw, _ = _check_settings(other.resolved(), other.input)
+            first = read_frames(other.input, **{**reader_kw, "frames": slice(0, 1)})
+        except (InputError, OSError):
+            continue            # unreadable: left to its tasks, which record the error
+        _check_orientation(other, first)
+
+
+def _check_orientation(job, fr) -> None:
+    """:class:`OrientationError` naming ``job``'s recording when its frames ``fr`` look transposed or its spacing
+    swapped (:mod:`femreg.orientation`); nothing when its settings turn the check off."""
+    from ..orientation import OrientationError, check, check_raw_shape, transposed_as_told
+
+    if job.resolved().get("no_orientation_check"):
+        return
+    try:
+        check_raw_shape(fr)
+        # a file's whole frame: its size counts too (a spacing in cm)
+        check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
+    except OrientationError as exc:
+        msg, p = str(exc), Path(job.input)
+        sf = settings_file_for(p)
+        if job.resolved().get("transpose"):
+            own = sf or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
+            msg = transposed_as_told(msg, f"for this recording ({own.name} beside it: transpose = false)")
+        if sf is not None and sf.name not in msg:
+            msg += f" ({sf.name} beside the recording sets its own settings, which override the command line)"
+        raise OrientationError(f"{job.input}: {msg}", problem=exc.problem) from None

@@ -8,6 +8,8 @@ import io
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import counted
+
 
 __all__ = ["BatchSummary"]
 
@@ -64,7 +66,7 @@ class BatchSummary:
 
     def to_markdown(self) -> str:
         cols = [c for c in _COLUMNS if c not in ("input", "worker")]
-        lines = [f"# femreg batch: {len(self.records)} tasks, {len(self.failed)} failed, "
+        lines = [f"# femreg batch: {counted(len(self.records), 'task')}, {len(self.failed)} failed, "
                  f"{self.n_computed} computed in this run",
                  "", f"Workers: {self.workers}; wall time {self.wall_s:.1f} s.", "",
                  "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -77,7 +79,7 @@ class BatchSummary:
         return "\n".join(lines) + "\n"
 
     def __repr__(self) -> str:
-        return (f"BatchSummary({len(self.records)} tasks, {len(self.failed)} failed, {self.n_computed} computed, "
+        return (f"BatchSummary({counted(len(self.records), 'task')}, {len(self.failed)} failed, {self.n_computed} computed, "
                 f"{self.wall_s:.1f} s, {self.out_dir})")
 
 

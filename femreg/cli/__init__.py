@@ -257,6 +257,10 @@ def main(argv=None) -> int:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         note = _header_spacing_note(args, exc)
         msg = _name_the_files(args, exc, file_spacing_wording(msg) if note else msg) + note
+        if getattr(args, "transpose", False):      # the flag given made them look transposed
+            from femreg.orientation import transposed_as_told
+
+            msg = transposed_as_told(msg)
         print(f"femreg {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except MissingDependencyError as exc:  # an optional package this subcommand needs; the message names the extra

@@ -144,7 +144,7 @@ def _note_spacing_against_fields(fr, path, args) -> None:
 
     given = getattr(args, "spacing", None)
     fields = (fr.metadata or {}).get("fields")
-    if given is None or not fields or fr.spacing is None:
+    if given is None or not fields or fr.spacing is None or getattr(args, "spacing_stand_in", False):
         return
     sug = spacing_suggestion(fields)
     if sug is None:
@@ -514,13 +514,25 @@ def array_headers(path) -> dict:
         elif path.suffix.lower() == ".mat":
             from ..io.matlab import mat_version
 
-            if mat_version(path) == "7.3":
+            from ..io.mat5 import read_mat5, shown_text
+            from ..io.matlab import text73
+
+            version = mat_version(path)
+            if version == "7.3":
                 import h5py
 
                 with h5py.File(path, "r") as h5:
                     for k, v in h5.items():
                         if hasattr(v, "shape"):
-                            out[k] = (tuple(v.shape[::-1]), str(v.dtype))
+                            cls = v.attrs.get("MATLAB_class", b"")
+                            cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
+                            text = text73(v) if cls == "char" and v.size <= 4096 else None
+                            out[k] = (tuple(v.shape[::-1]), "char " + shown_text(text) if text is not None
+                                      else str(v.dtype))
+            elif version == "5":        # a char variable with its text (scipy's whosmat gives it shape (1,))
+                order, variables = read_mat5(path, path.read_bytes())
+                for v in variables:
+                    out[v.name] = (tuple(v.shape), f"{v.cls} {shown_text(v.text)}" if v.text is not None else v.cls)
             else:
                 from scipy.io import whosmat
 

@@ -15,7 +15,7 @@ Exit codes: 0 all tasks done and none flagged; 1 some task failed or was flagged
 registration failed its check; the others finished; the summary names the error; ``--resume`` reruns the failed
 ones only); 2 bad input, found before anything runs (a missing input, bad settings, a folder of single-frame
 files without ``--folders recording``, an input that is one recording and cannot be read, frames that look
-transposed or a swapped spacing in the first recording of an input).
+transposed or a swapped spacing in any recording, each checked on its first frame).
 """
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, counted
 from ._common import (add_reader_args, add_registration_args, file_frame, frames_from_args, ncc_arg,
                       registration_kwargs)
 
@@ -308,7 +308,7 @@ def run(args) -> int:
     moved = sel is not None and any(file_frame(sel, k) != k for k in range(fr.n_frames))
     if moved:               # a --frames selection counts its own frames from 0, as pairs.csv does
         which = f" (the file's frame {file_frame(sel, res.ref_frame)})"
-    print(f"femreg elastogram: {fr.n_frames} frames, {len(res.pairs)} candidate pairs, {n_sel} registered, "
+    print(f"femreg elastogram: {fr.n_frames} frames, {counted(len(res.pairs), 'candidate pair')}, {n_sel} registered, "
           f"{res.n_usable} usable; "
           + (f"best elastogram on frame index {res.ref_frame}{which}; " if res.n_usable else
              "no elastogram (empty strain panels); ")

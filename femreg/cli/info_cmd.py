@@ -310,6 +310,7 @@ def run(args) -> int:
             # described with a stand-in spacing; IQ data are described as stored (a remodulation needs the spacing)
             saved = args.spacing, getattr(args, "modulation_frequency", None)
             args.spacing, args.modulation_frequency = retry["spacing"], None
+            args.spacing_stand_in = True        # not typed: no note that it differs from the file's fields
             try:
                 info = describe(frames_from_args(args, allow_sector=True, check_shape=False), spacing_known=False)
             except InputError as again:
@@ -318,6 +319,7 @@ def run(args) -> int:
                     raise
             finally:
                 args.spacing, args.modulation_frequency = saved
+                args.spacing_stand_in = False
         if iq is not None:
             info = describe(iq, spacing_known=not retry)
             if getattr(args, "modulation_frequency", None) is None:

@@ -42,6 +42,8 @@ class MatVar:
     _imag: tuple = ()
     #: a 1 x 1 struct's numeric fields, nested structs flattened, named by their path in it ("fs", "probe/pitch")
     members: tuple = ()
+    #: a char array's text (rows joined by " / "), None for other classes or text that cannot be decoded
+    text: str | None = None
 
     def array(self, order: str) -> np.ndarray:
         """The value in MATLAB index order (float/int dtype of its class; complex if stored so)."""
@@ -116,6 +118,32 @@ class _Walker:
         except FileFormatError:
             return ()
 
+    def _text(self, buf, pos, end, where, dims):
+        """A char array's characters (stored column-major as miUINT16, miUTF8/16/32 or bytes), its rows joined by
+        " / "; None where the element does not hold that many characters (the listing is a courtesy)."""
+        try:
+            mtype, n, s, _ = self.tag(buf, pos, end, where)
+        except FileFormatError:
+            return None
+        raw = bytes(buf[s:s + n])
+        try:
+            if mtype in (3, 4):
+                chars = [chr(c) for c in np.frombuffer(raw, self.order + "u2")]
+            elif mtype in (1, 2):
+                chars = list(raw.decode("latin-1"))
+            elif mtype in (16, 17, 18):
+                enc = {16: "utf-8", 17: "utf-16-le" if self.order == "<" else "utf-16-be",
+                       18: "utf-32-le" if self.order == "<" else "utf-32-be"}[mtype]
+                chars = list(raw.decode(enc))
+            else:
+                return None
+        except (UnicodeDecodeError, ValueError):
+            return None
+        if len(dims) != 2 or len(chars) != dims[0] * dims[1]:
+            return None
+        rows = np.array(chars, dtype=object).reshape(dims, order="F") if chars else np.empty(dims, object)
+        return " / ".join("".join(r) for r in rows)
+
     def matrix(self, buf, start, end, where, depth: int = 0) -> MatVar:
         mtype, n, s, pos = self.tag(buf, start, end, where)
         if mtype != 6 or n != 8:
@@ -142,6 +170,8 @@ class _Walker:
         var = MatVar(name, cls, dims, numeric, is_complex, buf)
         if cls == "struct" and int(np.prod(dims)) == 1 and depth < _MAX_STRUCT_DEPTH:
             var.members = self._struct_fields(buf, pos, end, where, name, depth)
+        if cls == "char":
+            var.text = self._text(buf, pos, end, where, dims)
         if not numeric:
             return var
         count = int(np.prod(dims))
@@ -158,6 +188,12 @@ class _Walker:
         var._real = parts[0]
         var._imag = parts[1] if is_complex else ()
         return var
+
+
+def shown_text(text: str, limit: int = 40) -> str:
+    """A text variable as a listing shows it: quoted, cut to ``limit`` characters with an ellipsis."""
+    text = " ".join(str(text).split())
+    return repr(text if len(text) <= limit else text[:limit - 3] + "...")
 
 
 def read_mat5(path, blob: bytes):

@@ -63,11 +63,20 @@ def mat_version(path) -> str:
     raise fail(path, "not a MATLAB MAT-file (no 'MATLAB' header, not HDF5)")
 
 
-def _choose(path, candidates: dict, variable, ndims=(2, 3)):
-    """Pick the frames variable among ``{name: (shape, numeric)}`` (the only one with ``ndims`` dimensions)."""
+def _listed(names, texts=None) -> str:
+    """Variable names for a message, a text variable with its (cut) text: ``a, when = '2026-11-30'``."""
+    from .mat5 import shown_text
+
+    texts = texts or {}
+    return ", ".join(f"{k} = {shown_text(texts[k])}" if texts.get(k) is not None else k for k in sorted(names)) or "none"
+
+
+def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None):
+    """Pick the frames variable among ``{name: (shape, numeric)}`` (the only one with ``ndims`` dimensions);
+    ``texts``: ``{name: text}`` of the char variables, shown in the messages that list the variables."""
     if variable is not None:
         if variable not in candidates:
-            raise fail(path, f"missing variable {variable!r}; available: {', '.join(sorted(candidates)) or 'none'}")
+            raise fail(path, f"missing variable {variable!r}; available: {_listed(candidates, texts)}")
         return variable
     for name in PREFERRED:
         if name in candidates:
@@ -78,7 +87,7 @@ def _choose(path, candidates: dict, variable, ndims=(2, 3)):
         return good[0]
     dims = "/".join(f"{d}D" for d in ndims)
     if not good:
-        raise fail(path, f"no {dims} numeric variable found (variables: {', '.join(sorted(candidates)) or 'none'})")
+        raise fail(path, f"no {dims} numeric variable found (variables: {_listed(candidates, texts)})")
     raise fail(path, f"several {dims} variables ({', '.join(sorted(good))}); choose one with "
                      + pass_as("variable= (CLI: --variable NAME)", "--variable NAME"))
 
@@ -144,7 +153,7 @@ def _load_mat(path, variable, ndims):
         order, variables = read_mat5(path, blob)
         byname = {v.name: v for v in variables}
         cands = {v.name: (v.shape, v.numeric) for v in variables}
-        name = _choose(path, cands, variable, ndims)
+        name = _choose(path, cands, variable, ndims, {v.name: v.text for v in variables})
         var = byname[name]
         if not var.numeric:
             raise fail(path, f"variable {name!r} is a MATLAB {var.cls}, not a numeric array")
@@ -223,12 +232,21 @@ def _complex_compound(dtype) -> bool:
     return set(names) == {"real", "imag"} and all(dtype[k].kind in "iuf" for k in names)
 
 
+def text73(ds):
+    """A v7.3 char dataset's text (MATLAB writes it as uint16 codes, transposed): rows joined by " / "."""
+    codes = np.asarray(ds[()]).T
+    try:
+        return " / ".join("".join(chr(int(c)) for c in row) for row in codes)
+    except (ValueError, OverflowError):
+        return None
+
+
 def _read_mat73(path, variable, ndims=(2, 3)):
     import h5py
 
     try:
         with h5py.File(path, "r") as f:
-            cands, dsets = {}, {}
+            cands, dsets, texts = {}, {}, {}
             for key in f.keys():
                 if key.startswith("#"):
                     continue
@@ -243,7 +261,9 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                            and not empty)
                 cands[key] = (tuple(obj.shape[::-1]), numeric)
                 dsets[key] = obj
-            name = _choose(path, cands, variable, ndims)
+                if cls == "char" and obj.dtype.kind in "iu" and obj.ndim == 2 and obj.size <= 4096:
+                    texts[key] = text73(obj)
+            name = _choose(path, cands, variable, ndims, texts)
             if name not in dsets or not cands[name][1]:
                 ds = dsets.get(name)
                 what = "a struct/cell" if ds is None else (f"compound {ds.dtype}" if ds.dtype.names

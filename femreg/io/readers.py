@@ -444,7 +444,9 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         is transposed to (axial, lateral) as read.  A given ``spacing`` is that of the transposed frames (axial,
         lateral); a spacing the file stores goes with its axes (exchanged too).
     check_orientation : bool
-        Refuse a ``spacing`` that contradicts the file's calibration (above).  IQ data: refuse spacings that look
+        Refuse a ``spacing`` that contradicts the file's calibration (above), and a raw file read with its two
+        sizes exchanged (``shape`` given lines first: the frames come out scrambled,
+        :func:`femreg.orientation.check_raw_shape`).  IQ data: refuse spacings that look
         exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks of :func:`femreg.register` cannot
         see them once the carrier comes from the modulation frequency) and, from frames 0 and 1, the other sign
         convention (:func:`femreg.orientation.check_iq_sign`).
@@ -468,6 +470,13 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     if transpose:
         stored = _transposed(stored, spacing)
     fr = _rf_from_iq(stored, modulation_frequency, sound_speed, iq_conjugate)
+    if check_orientation:       # a raw frame read with its sizes exchanged is scrambled, and registers as envelope
+        from ..orientation import OrientationError, check_raw_shape
+
+        try:
+            check_raw_shape(fr)
+        except OrientationError as exc:
+            raise OrientationError(f"{fr.source}: {exc}", problem=exc.problem) from None
     if check_orientation and spacing is not None:
         _check_given_spacing(fr, spacing)
     if origin is not None:

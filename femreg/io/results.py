@@ -55,7 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, pass_as
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
 from ..mesh import check_mesh  # noqa: F401  (also femreg.io.results.check_mesh)
 from .._atomic import atomic_savez
@@ -232,6 +232,9 @@ def _read(path) -> dict:
     if missing and all(k in out for k in ("ref", "mov", "exx", "u")):
         raise fail(path, "a pair checkpoint of `femreg elastogram` (no mesh): register the pair with `femreg "
                          f"register LOOP --pair {out['ref']} {out['mov']}` for a result to plot or invert")
+    if missing and str(out.get("format", "")).startswith("femreg-inversion"):
+        raise fail(path, "a shear-modulus image, not a registration result: " + pass_as(
+            "read it with femreg.load_inversion", "`femreg plot` draws it; this command reads a registration result"))
     if missing:
         raise fail(path, f"not a femreg result: missing key(s) {', '.join(missing)}")
     try:
