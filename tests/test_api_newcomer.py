@@ -61,6 +61,23 @@ def test_one_spacing_value_on_rf_frames_is_refused():
     assert check(a, 0.02 * np.ones(2), one_value=False).problem == ""    # two equal values typed: not judged
 
 
+@pytest.mark.parametrize("f0, beam_wavelengths", [(15.0, 1.5), (7.5, 1.5), (15.0, 3.0)])
+def test_one_spacing_value_on_a_square_rf_grid_passes(f0, beam_wavelengths):
+    # RF beamformed onto a square grid (a research scanner's plane-wave reconstruction) with a beam of 1.5
+    # wavelengths (F-number about 1.5, near the diffraction limit): the lateral speckle spans 3.0 axial periods
+    # (5.6 at 3 wavelengths), above the 2 of the one-value check, so the right square spacing is not refused
+    pytest.importorskip("forward")
+    from forward import fields as F
+    from forward.pairs import Probe, make_pair
+    from femreg.orientation import MIN_SQUARE_CELL_PERIODS, check
+
+    pixel = 1.54 / (2 * 80.0 if f0 == 15.0 else 2 * 40.0)
+    probe = Probe(f0, 80.0 if f0 == 15.0 else 40.0, pixel, beam_wavelengths * 1.54 / f0, name="square")
+    d = make_pair(F.compression(0.01), probe, (4, 4), 30, 1, top_mm=5.0)
+    rep = check(d.ref, (pixel, pixel), one_value=True)
+    assert rep.cell_periods > 1.4 * MIN_SQUARE_CELL_PERIODS, rep.cell_periods
+
+
 def test_one_spacing_value_on_the_invivo_frames_is_refused():
     f = _invivo()
     # seq304 with square pixels: lateral speckle 1.2 periods (seq299: 0.96, refused before as implausible)
