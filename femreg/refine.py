@@ -389,6 +389,11 @@ class Refinement:
         Gauss-Newton steps of a pass that passes the ``fine`` gate and does not solve in full (None:
         :attr:`maxiter`).  The second step settles the rim's split rows and columns that the first leaves between
         the coarse field it starts from and the data (README "Adaptive refinement").
+    fine_maxiter_stress : int, optional
+        :attr:`fine_maxiter` where the regulariser is the plane-stress model (R_P_sigma with
+        :math:`\bar\lambda` at most :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS`): its weaker volumetric term
+        leaves the split columns' lateral field further from the data after two steps (README "Adaptive
+        refinement").  None: :attr:`fine_maxiter` everywhere.
     fine_alpha : float, optional
         Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
         :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
@@ -492,6 +497,7 @@ class Refinement:
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
     fine_maxiter: int | None = None
+    fine_maxiter_stress: int | None = None
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     relax_alpha_ncc: float | None = None
@@ -543,6 +549,7 @@ class Refinement:
         _integer(self, "fine_levels", 1, 4, optional=True)
         _integer(self, "fine_min_pixels", 1, 2, optional=True)
         _integer(self, "fine_maxiter", 1, None, optional=True)
+        _integer(self, "fine_maxiter_stress", 1, None, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
         _integer(self, "relax_fill", 0, None)
@@ -734,7 +741,8 @@ SPREAD_COVERAGE = 0.8
 #: Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
-                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
+                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_maxiter_stress=5,
+                             fine_alpha=0.1,
                              fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1,
                              fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
@@ -1819,6 +1827,15 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
 
 
+def plane_stress_model(reg) -> bool:
+    """Whether the regulariser ``reg`` is R_P_sigma's plane-stress model: a :math:`\bar\lambda` of at most
+    :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS` (:attr:`Refinement.fine_maxiter_stress`)."""
+    from .material import LAMBDA_BAR_PLANE_STRESS
+
+    lb = getattr(reg, "lambda_bar", None)
+    return lb is not None and np.isfinite(lb) and float(lb) <= LAMBDA_BAR_PLANE_STRESS
+
+
 def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None, stats=None):
     """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
     :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
@@ -1838,6 +1855,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     opts = as_refinement(refine)
     if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
         return sol, u0, hops
+    if opts.fine_maxiter_stress is not None and plane_stress_model(reg_factory()):
+        opts = dataclasses.replace(opts, fine_maxiter=opts.fine_maxiter_stress)
     t = time.perf_counter()
     base = sol.mesh
     quad = sol.data.quad
