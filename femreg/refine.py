@@ -84,7 +84,7 @@ held at two lines (r 8 mm paper 9.39 -> 9.23 %, its exact displacement on the fi
 5.96 -> 5.74 % and its lateral edge 1.49 -> 1.35 mm; 3 MHz robustness pairs 8.75 / 8.45 -> 8.06 / 7.97 %), at
 1.13-1.40x the CPU time (README "Adaptive refinement").
 Under R_P_sigma's plane-stress model that pass takes up to five steps (:attr:`Refinement.fine_maxiter_stress`):
-every plane-stress inclusion gained with each step (soft 3 % 5.5 MHz 8.85 / 8.39 / 8.14 % at 2 / 3 / 5), the
+every plane-stress inclusion of the sweep gained (soft 3 % 5.5 MHz 8.85 / 8.39 / 8.14 % at 2 / 3 / 5), the
 plane-strain ones did not (stiff 1 % paper 7.27 / 7.35 / 7.44 %); held out, 46 of 57 plane-stress pairs lower by
 up to 0.73, 3 higher by at most 0.12 (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
