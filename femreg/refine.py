@@ -83,6 +83,10 @@ columns too, lost 28.4 -> 29.7 %), s doubles and the weight is the full one: the
 held at two lines (r 8 mm paper 9.39 -> 9.23 %, its exact displacement on the final mesh 7.5 -> 6.2 %; r 3 mm
 5.96 -> 5.74 % and its lateral edge 1.49 -> 1.35 mm; 3 MHz robustness pairs 8.75 / 8.45 -> 8.06 / 7.97 %), at
 1.13-1.40x the CPU time (README "Adaptive refinement").
+Under R_P_sigma's plane-stress model that pass takes up to five steps (:attr:`Refinement.fine_maxiter_stress`):
+every plane-stress inclusion of the sweep gained (soft 3 % 5.5 MHz 8.85 / 8.39 / 8.14 % at 2 / 3 / 5), the
+plane-strain ones did not (stiff 1 % paper 7.27 / 7.35 / 7.44 %); held out, 46 of 57 plane-stress pairs lower by
+up to 0.73, 3 higher by at most 0.12 (README "Adaptive refinement").
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
@@ -389,6 +393,11 @@ class Refinement:
         Gauss-Newton steps of a pass that passes the ``fine`` gate and does not solve in full (None:
         :attr:`maxiter`).  The second step settles the rim's split rows and columns that the first leaves between
         the coarse field it starts from and the data (README "Adaptive refinement").
+    fine_maxiter_stress : int, optional
+        :attr:`fine_maxiter` where the regulariser is the plane-stress model (R_P_sigma with
+        :math:`\bar\lambda` at most :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS`): its weaker volumetric term
+        leaves the split columns' lateral field further from the data after two steps (README "Adaptive
+        refinement").  None: :attr:`fine_maxiter` everywhere.
     fine_alpha : float, optional
         Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
         :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
@@ -492,6 +501,7 @@ class Refinement:
     fine_min_size: tuple = (0.15, 0.4)
     fine_levels: int | None = None
     fine_maxiter: int | None = None
+    fine_maxiter_stress: int | None = None
     fine_alpha: float | None = None
     fine_alpha_ncc: float | None = None
     relax_alpha_ncc: float | None = None
@@ -543,6 +553,7 @@ class Refinement:
         _integer(self, "fine_levels", 1, 4, optional=True)
         _integer(self, "fine_min_pixels", 1, 2, optional=True)
         _integer(self, "fine_maxiter", 1, None, optional=True)
+        _integer(self, "fine_maxiter_stress", 1, None, optional=True)
         _integer(self, "fine_fill", 0, None)
         _integer(self, "relax_passes", 1, 4)
         _integer(self, "relax_fill", 0, None)
@@ -734,7 +745,8 @@ SPREAD_COVERAGE = 0.8
 #: Measured: module docstring and README ("Adaptive refinement").
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
-                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_alpha=0.1,
+                             settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_maxiter_stress=5,
+                             fine_alpha=0.1,
                              fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1,
                              fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
@@ -1819,6 +1831,15 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
         sol.gn = dataclasses.replace(sol.gn, nit=nit)
 
 
+def plane_stress_model(reg) -> bool:
+    """Whether the regulariser ``reg`` is R_P_sigma's plane-stress model: a :math:`\bar\lambda` of at most
+    :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS` (:attr:`Refinement.fine_maxiter_stress`)."""
+    from .material import LAMBDA_BAR_PLANE_STRESS
+
+    lb = getattr(reg, "lambda_bar", None)
+    return lb is not None and np.isfinite(lb) and float(lb) <= LAMBDA_BAR_PLANE_STRESS
+
+
 def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, timings, marked=None, stats=None):
     """The refinement stage of :func:`femreg.register` (``refine``: its option, :func:`as_refinement`):
     :func:`refine_passes`, nothing when it is off or peak hopping remains (``hops`` any), each pass a
@@ -1838,6 +1859,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     opts = as_refinement(refine)
     if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
         return sol, u0, hops
+    if opts.fine_maxiter_stress is not None and plane_stress_model(reg_factory()):
+        opts = dataclasses.replace(opts, fine_maxiter=opts.fine_maxiter_stress)
     t = time.perf_counter()
     base = sol.mesh
     quad = sol.data.quad
