@@ -118,10 +118,11 @@ def test_finer_pass_keeps_the_shear_weight_on_a_layer_interface():
         assert ("layer interface lines" in r.refinement.summary()) == (v is not None), r.refinement.summary()
         exy = np.asarray(r.on_grid()["exy"], float)
         out[v] = (field_errors(r, f.displacement, f.strain)["e"], np.sqrt(np.nanmean(exy[near] ** 2)))
-    # measured (the default also solves that pass in full, fine_layer_full): total strain error 14.1 -> 4.9 %,
-    # RMS e_xy within 1 mm of the interface 0.44 -> 0.02 % (true 0)
+    # measured (the default also solves that pass in full, fine_layer_full): total strain error 8.4 -> 4.6 % (14.1
+    # -> 4.9 when the pass without the rule took two steps; it takes five under the plane-stress model), RMS e_xy
+    # within 1 mm of the interface 0.21 -> 0.03 % (true 0)
     (e_off, s_off), (e_on, s_on) = out[None], out[R.DEEP_REFINEMENT.fine_layer]
-    assert e_on < 0.5 * e_off and e_on < 0.07, out
+    assert e_on < 0.62 * e_off and e_on < 0.07, out
     assert s_on < 0.25 * s_off, out
 
 
