@@ -1186,8 +1186,8 @@ def _contradiction(mu, el_strain, mesh, area_el):
                 continue
             e_r = float(np.sum(area_el[sel] * ax[sel]) / np.sum(area_el[sel]))
             if sign * (e_r / e_bg - 1.0) > CONTRADICTION_MARGIN:
-                out.append(f"the {name} region ({counted(int(sel.sum()), 'element')}) strains {'more' if sign > 0 else 'less'} "
-                           f"than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
+                out.append(f"the {name} region ({counted(int(sel.sum()), 'element')}) strains "
+                           f"{'more' if sign > 0 else 'less'} than the background (|e_xx| {e_r:.3g} vs {e_bg:.3g})")
     sel = inner if inner.sum() >= 8 else np.ones(mu.size, bool)
     ranked = _ranked_contradiction(mu, ax, sel, area_el)
     if ranked:

@@ -45,8 +45,9 @@ bands 9.9-51x).  Rows marked without standing out are not split; the pass's step
 mesh (:attr:`Refinement.settle`).  Where some row / column reaches 4.6x the cut (:attr:`Refinement.fine`; above
 the rotated pairs' 2.3-4.2x and bending's 2.5-3.1x, below the inclusions' 5.1-26.9x) the pass marks at a z-score of
 1 instead of 4 and splits columns down to 0.25 mm (not below 2 pixels unless the beam spans 4 lines, see below:
-0.4 mm under 7.5 MHz, 0.6 mm under 5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a 12 MHz image and the 0.55 mm ones of a
-15 MHz image are halved; at 0.4 mm they stayed whole: held-out r 4 mm 12 MHz 6.97 -> 5.69 %, robustness
+0.4 mm under 7.5 MHz, 0.6 mm under 5.5 MHz, so only fine-pitch probes gain columns: the 0.7 mm columns of a
+12 MHz image and the 0.55 mm ones of a 15 MHz image are halved; at 0.4 mm they stayed whole:
+held-out r 4 mm 12 MHz 6.97 -> 5.69 %, robustness
 soft-pstrain1_L15 10.12 -> 8.64 %, soft-pstress1_L12 7.63 -> 6.73 %, every other benchmark pair, the rotation
 sweep, shear bands, layers and heterogeneous tissue identical; CPU time of those three 0.89-1.24x).  Earlier, at
 0.4 mm: ``benchmarks/inclusion_sizes.py`` r 3 mm at 1 % / 4 %, r 8 mm 8.60 / 6.80 / 12.39 -> 8.50 / 6.48 /
@@ -189,6 +190,7 @@ from skfem import MeshQuad1
 
 from .errors import InputError, counted
 from .fields import element_strain_operator, element_strains, recovered_strains
+from .material import LAMBDA_BAR_PLANE_STRESS
 from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
@@ -746,9 +748,8 @@ SPREAD_COVERAGE = 0.8
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_maxiter_stress=5,
-                             fine_alpha=0.1,
-                             fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4, fine_min_pixels=1,
-                             fine_layer=1.0, fine_layer_full=True,
+                             fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4,
+                             fine_min_pixels=1, fine_layer=1.0, fine_layer_full=True,
                              fine_fill=2, relax_full=True, relax_alpha=0.4, relax_fill=2, relax_fill_weight=0.1,
                              beam_slip=True, beam_split=10.0,
                              relax_fill_split=True, relax_passes=2, relax_keep=False,
@@ -1509,6 +1510,11 @@ def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = F
     return dict(solve_kw, maxiter=min(opts.maxiter, int(maxiter)))
 
 
+def _marked(rows, cols) -> str:
+    """How many rows and columns a marking holds, for a pass's note: "3 rows, 1 column marked"."""
+    return f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked"
+
+
 def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
@@ -1567,7 +1573,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
             if why:
                 # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
                 # finer rows / columns would fit as patches
-                note = f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked, not split: {why}"
+                note = f"{_marked(rows, cols)}, not split: {why}"
                 if opts.settle:
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
@@ -1580,8 +1586,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
         if top < opts.feature:
             # no row / column stands out that far: decorrelation noise, not a feature; split nothing
             if np.any(rows) or np.any(cols):
-                note = (f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked, none standing out "
-                        f"(largest jump {top:.2g}x the cut, below {opts.feature:g}): not split")
+                note = (f"{_marked(rows, cols)}, none standing out (largest jump {top:.2g}x the cut, below "
+                        f"{opts.feature:g}): not split")
                 if opts.settle and k == 0:
                     sol = _settled(solve_on(mesh, first.u), base_gn, nit)
                     note += "; one more step on the unrefined mesh"
@@ -1834,8 +1840,6 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
 def plane_stress_model(reg) -> bool:
     """Whether the regulariser ``reg`` is R_P_sigma's plane-stress model: a :math:`\bar\lambda` of at most
     :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS` (:attr:`Refinement.fine_maxiter_stress`)."""
-    from .material import LAMBDA_BAR_PLANE_STRESS
-
     lb = getattr(reg, "lambda_bar", None)
     return lb is not None and np.isfinite(lb) and float(lb) <= LAMBDA_BAR_PLANE_STRESS
 

@@ -319,7 +319,8 @@ def _repair(sol, resolve, mesh, period):
         if left.any():
             note += f" ({int(np.count_nonzero(left))} still off)"
         return new, left, [note]
-    return sol, k, [f"{counted(int(np.count_nonzero(k)), 'node')} look{'s' if np.count_nonzero(k) == 1 else ''} a period off "
+    n = int(np.count_nonzero(k))
+    return sol, k, [f"{counted(n, 'node')} look{'s' if n == 1 else ''} a period off "
                     f"their neighbourhood; reseeding them did not lower the energy (kept)"]
 
 

@@ -79,7 +79,8 @@ class BatchSummary:
         return "\n".join(lines) + "\n"
 
     def __repr__(self) -> str:
-        return (f"BatchSummary({counted(len(self.records), 'task')}, {len(self.failed)} failed, {self.n_computed} computed, "
+        return (f"BatchSummary({counted(len(self.records), 'task')}, {len(self.failed)} failed, "
+                f"{self.n_computed} computed, "
                 f"{self.wall_s:.1f} s, {self.out_dir})")
 
 

@@ -68,7 +68,8 @@ def _listed(names, texts=None) -> str:
     from .mat5 import shown_text
 
     texts = texts or {}
-    return ", ".join(f"{k} = {shown_text(texts[k])}" if texts.get(k) is not None else k for k in sorted(names)) or "none"
+    shown = (f"{k} = {shown_text(texts[k])}" if texts.get(k) is not None else k for k in sorted(names))
+    return ", ".join(shown) or "none"
 
 
 def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None):
