@@ -63,7 +63,7 @@ left (:attr:`Refinement.fine_alpha` 0.1, :attr:`Refinement.fine_alpha_ncc` 0.08:
 a fixed factor (0.25) made the noisier plane-stress inclusions of the robustness benchmark up to 0.86 points
 worse, the factor that follows the noise at most 0.22 (0.03 at the scale 0.04).  What is left of the inclusions'
 error is the ring at the interface, which a tensor mesh of 2-pixel columns and the nodal-average recovery hold at
-a floor (r 8 mm: 8.33 % with the exact displacement), and the noise off it (README "Adaptive refinement").
+a floor (r 8 mm: 8.33 % with the exact displacement), and the noise off it (docs/refinement.md).
 That pass takes two Gauss-Newton steps, not one (:attr:`Refinement.fine_maxiter`; a pass under the gate keeps
 one): the first leaves the rim's split rows and columns between the coarse field it starts from and the data
 (robustness benchmark, seeds 0 / 7: stiff plane strain 1 % paper 8.04 / 8.22 -> 7.98 / 7.94 %, soft 4 % paper
@@ -76,24 +76,24 @@ lateral displacement rests on its neighbours: that factor is at least ``clip(0.1
 :func:`beam_alpha_floor`; 0.5 under the simulated 3-7.5 MHz probes, whose 2-pixel columns are a third of the
 pulse cell, nothing at 12-15 MHz): r 8 mm under the paper's probe 9.87 -> 9.39 %, r 3 mm 6.21 -> 5.96 % and its
 lateral edge 1.84 -> 1.49 mm; the held-out probes with the beam narrowed (s <= 2) unchanged, 12 MHz with the
-beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (README "Adaptive refinement").
+beam widened to 1.2 mm (s 4) 6.29 / 9.15 / 10.03 -> 5.75 / 8.56 / 8.21 % (docs/refinement.md).
 Where that cell spans 4 lines or more (:data:`THIN_COLUMN_CELL`) the pass splits columns down to one line
 (:attr:`Refinement.fine_min_pixels`; still >= 0.25 mm, so under the 0.3 mm pitch of the paper's probe and the
 0.5 mm of a 3 MHz one; a pass that relaxes a layer keeps two lines: a 3 mm band under 3 MHz, whose faces mark
 columns too, lost 28.4 -> 29.7 %), s doubles and the weight is the full one: the rim's lateral third is no longer
 held at two lines (r 8 mm paper 9.39 -> 9.23 %, its exact displacement on the final mesh 7.5 -> 6.2 %; r 3 mm
 5.96 -> 5.74 % and its lateral edge 1.49 -> 1.35 mm; 3 MHz robustness pairs 8.75 / 8.45 -> 8.06 / 7.97 %), at
-1.13-1.40x the CPU time (README "Adaptive refinement").
+1.13-1.40x the CPU time (docs/refinement.md).
 Under R_P_sigma's plane-stress model that pass takes up to five steps (:attr:`Refinement.fine_maxiter_stress`):
 every plane-stress inclusion of the sweep gained (soft 3 % 5.5 MHz 8.85 / 8.39 / 8.14 % at 2 / 3 / 5), the
 plane-strain ones did not (stiff 1 % paper 7.27 / 7.35 / 7.44 %); held out, 46 of 57 plane-stress pairs lower by
-up to 0.73, 3 higher by at most 0.12 (README "Adaptive refinement").
+up to 0.73, 3 higher by at most 0.12 (docs/refinement.md).
 On that pass a run of at most two unmarked rows (columns) between two marked ones is halved too
 (:attr:`Refinement.fine_fill`, :func:`fill_gaps`): a 1 mm band across a node of the 1.5 mm rows (5.5 MHz) is
 spread by the unrefined solve over four rows whose faces stand out and whose two inner rows do not; left whole,
 the rows split beside them undershot at the lowered weight and the band lost 20.6 % of its slide
 (``benchmarks/shear_bands.py``; -9.0 % at the unrefined weight), halved -8.7 %, every inclusion and robustness
-pair unchanged (README "Adaptive refinement").
+pair unchanged (docs/refinement.md).
 Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run whose extent is at least 20 mm (a layer across the image; an
@@ -141,7 +141,7 @@ NCC (90th minus 10th percentile, :func:`ncc_spread`) is large, and the default s
 is heterogeneous everywhere, so the marking reached every row and column (seq304 frames 1 -> 3: 34 of 46 rows and
 29 of 30 columns at the cut, the finer marking 37 and 30) and the refined e_xx / e_yy broke into rectangular
 patches in the decorrelated parts; neither the finer pass's weight (its factor was 0.91 there, 1 on seq299) nor
-leaving out the jumps beside elements of low NCC removed them.  Measured (README "Adaptive refinement"): in vivo
+leaving out the jumps beside elements of low NCC removed them.  Measured (docs/refinement.md): in vivo
 frames 1 -> 3, 2 -> 5, 1 -> 6 of both sequences (spread 0.34-0.83) now as smooth as the unrefined result; the
 robustness benchmark (seeds 0 and 7), the inclusions, the shear bands and heterogeneous tissue unchanged, 4 of 48
 rotated pairs 0.3-1.9 points better.
@@ -153,13 +153,13 @@ points worse than unrefined, its e_yy / e_xy noisier in the quartered rows.  Suc
 marking reaches 0.8 of the rows or columns and steps at ``clip((1 - q) / 0.02, 0.1, 1)`` of the weight (lighter only
 above q = 0.98, where the unrefined weight's smoothing, not the noise, holds the finer rows back): that pair 10.73
 -> 8.52 % (unrefined 10.31 %), ``benchmarks/heterogeneous.py`` 4 of 8 cases 0.7-2.8 points lower, every
-robustness, inclusion, shear-band and rotated pair unchanged (README "Adaptive refinement").
+robustness, inclusion, shear-band and rotated pair unchanged (docs/refinement.md).
 
 Cost: each refined solve is one Gauss-Newton step from the previous solution (:attr:`Refinement.maxiter`); with
 more passes a later one runs only when it adds 20 % of the elements (:attr:`Refinement.min_added`), and an
 element budget is counted once per pass (:func:`_within_budget`).
 
-Measured (README, "Adaptive refinement"; ``benchmarks/refine_cost.py``, CPU time, against ``refine=None`` and the
+Measured (docs/refinement.md; ``benchmarks/refine_cost.py``, CPU time, against ``refine=None`` and the
 two-pass refinement that was the default before): on the robustness benchmark (18 pairs, seeds 0 and 7) no case
 more than 0.22 points worse than the two-pass default (bending 4.35 -> 4.57 %, seed 0; 8 % compression under L3
 0.57 -> 0.70 %, seed 7, which the two-pass default dropped), the inclusions 0.04-1.32 points better (seed 0:
@@ -174,7 +174,7 @@ the default mesh (:func:`default_refine`).  Measured, not the default: the marki
 z-score of 2 with columns down to 0.3 mm (the relaxation and the feature test on cuts of their own at 4:
 :attr:`Refinement.relax_threshold`, :attr:`Refinement.feature_threshold`) lowers the inclusions' error (r 4 mm
 under 12 MHz 8.26 -> 6.43 %, r 3 mm 6.80 -> 6.50 / 8.60 -> 8.56 %) but makes rotated pairs up to 1.4 points worse
-(``benchmarks/rotation_sweep.py``; README "Adaptive refinement"); its feature test at 4.3x the cut keeps the
+(``benchmarks/rotation_sweep.py``; docs/refinement.md); its feature test at 4.3x the cut keeps the
 rotated pairs unsplit but also bending (2.5-3.1x the cut): 1.1-1.4 points worse there, not the default either.
 Refinement alone leaves a shear band as wide as without it (the total variation of its two faces does not depend
 on the mesh); the relaxation is what lets it through, :data:`SLIP_REFINEMENT` any 1-2 mm band's peak to
@@ -357,7 +357,7 @@ class Refinement:
         Smallest factor on eq:objf's weight in the step of a pass below the :attr:`fine` gate that relaxes
         nothing: ``clip((1 - q) / coarse_alpha_ncc, coarse_alpha, 1)``, ``q`` the unrefined solve's median element
         NCC (as :attr:`fine_alpha`).  On clean heterogeneous tissue the unrefined weight holds the split rows at
-        the coarse field (README "Adaptive refinement").  None: 1.  2D only.
+        the coarse field (docs/refinement.md).  None: 1.  2D only.
     coarse_alpha_ncc : float, optional
         The scale of :attr:`coarse_alpha`'s factor (None: ``coarse_alpha`` as given).  0.02
         (:data:`CLEAN_ALPHA_NCC`): below 1 only where ``q`` is above 0.98; bending (0.979), rotated pairs
@@ -394,7 +394,7 @@ class Refinement:
     fine_maxiter : int, optional
         Gauss-Newton steps of a pass that passes the ``fine`` gate and does not solve in full (None:
         :attr:`maxiter`).  The second step settles the rim's split rows and columns that the first leaves between
-        the coarse field it starts from and the data (README "Adaptive refinement").
+        the coarse field it starts from and the data (docs/refinement.md).
     fine_maxiter_stress : int, optional
         :attr:`fine_maxiter` where the regulariser is the plane-stress model (R_P_sigma with
         :math:`\bar\lambda` at most :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS`): its weaker volumetric term
@@ -722,7 +722,7 @@ UNEVEN_COVERAGE = 0.8
 #: eq:objf by ``clip((1 - q) / 0.02, 0.1, 1)``, so only where the unrefined solve's median element NCC ``q`` is
 #: above 0.98 (clean heterogeneous tissue 0.987-0.999; bending 0.979, every rotated pair of
 #: ``benchmarks/rotation_sweep.py`` at most 0.978 and heterogeneous tissue with 20 % independent speckle 0.975
-#: keep the weight).  README "Adaptive refinement".
+#: keep the weight).  docs/refinement.md.
 CLEAN_ALPHA_NCC = 0.02
 
 #: :attr:`Refinement.strong_coverage` of :data:`DEEP_REFINEMENT`: a pass below the fine gate whose marking reaches
@@ -744,7 +744,7 @@ SPREAD_COVERAGE = 0.8
 #: (:attr:`Refinement.relax_passes`); nothing is split where the element NCC's spread shows the speckle
 #: decorrelated in parts of the image (:attr:`Refinement.spread`, :data:`DECORRELATED_SPREAD`), nor where nearly every
 #: row or column is marked on a noisy or decorrelated pair (:attr:`Refinement.coverage`, :data:`NOISE_COVERAGE`).
-#: Measured: module docstring and README ("Adaptive refinement").
+#: Measured: module docstring and docs/refinement.md.
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
                              relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_maxiter_stress=5,

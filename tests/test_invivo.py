@@ -172,7 +172,7 @@ def test_default_register_strain_has_no_row_alternation(seq):
     assert _row_alternation(res) < alt_bound, _row_alternation(res)
     assert res.ncc_after > ncc_bound, res.ncc_after
     assert _shear_stripes(res) < stripe_bound, _shear_stripes(res)
-    # partly decorrelated speckle: the default refinement splits nothing (its patches, README "Adaptive refinement")
+    # partly decorrelated speckle: the default refinement splits nothing (its patches, docs/refinement.md)
     assert not res.refinement.passes and "decorrelates in parts of the image" in res.message, res.message
 
 
