@@ -399,8 +399,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     sample-space stage); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
-    from .refine import (Refinement, as_refinement, pass_solve_kw, refine_passes, transfer, with_logical_grid,
-                         with_refinement)
+    from .refine import (Refinement, as_refinement, pass_solve_kw, refine_name, refine_passes, transfer,
+                         with_logical_grid, with_refinement)
     from .repair import check_period, check_result
     from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
@@ -483,7 +483,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                             period, None)
     # -- adaptive refinement (femreg.refine) on the (r, s) lattice, the physical solve on each refined mesh -----
     # "auto" here: the two-pass refinement measured on these frames (benchmarks/convex_refine.py)
-    opts = as_refinement(Refinement() if isinstance(refine, str) and refine == "auto" else refine)
+    opts = as_refinement(Refinement() if refine_name(refine) == "auto" else refine)
     refined = None
     if opts is not None and int(maxiter) > 0:
         t = time.perf_counter()

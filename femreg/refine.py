@@ -397,9 +397,9 @@ class Refinement:
         the coarse field it starts from and the data (docs/refinement.md).
     fine_maxiter_stress : int, optional
         :attr:`fine_maxiter` where the regulariser is the plane-stress model (R_P_sigma with
-        :math:`\bar\lambda` at most :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS`): its weaker volumetric term
-        leaves the split columns' lateral field further from the data after two steps (README "Adaptive
-        refinement").  None: :attr:`fine_maxiter` everywhere.
+        lambda_bar at most :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS`): its weaker volumetric term
+        leaves the split columns' lateral field further from the data after two steps
+        (docs/refinement.md).  None: :attr:`fine_maxiter` everywhere.
     fine_alpha : float, optional
         Factor on the regulariser's weight of eq:objf (the unrefined mesh's ``alpha_eff``,
         :func:`femreg.scaling.refined_alpha`) in the solve of a pass that passes the ``fine`` gate.  That solve
@@ -794,10 +794,21 @@ def default_refine(spec, *, strategy, regularizer="momentum-stress", mesh=None, 
     return "auto" if plain else None
 
 
+#: The names ``refine=`` takes, as the CLI's ``--refine`` (any case): "auto", "slip", "none" / "off".
+REFINE_NAMES = ("auto", "slip", "none", "off")
+
+
+def refine_name(spec):
+    """A ``refine=`` string in lower case without spaces (the CLI's spelling); anything else as given."""
+    return spec.strip().lower() if isinstance(spec, str) and spec != DEFAULT else spec
+
+
 def as_refinement(spec) -> Refinement | None:
-    """``refine=`` of :func:`femreg.register`: None / False / 0 -> None (off); an int N -> N passes of the
-    defaults of :class:`Refinement`; "auto" -> :data:`DEEP_REFINEMENT`; a :class:`Refinement` as it is."""
-    if spec is None or spec is False:
+    """``refine=`` of :func:`femreg.register`: None / False / 0 / "none" / "off" -> None (off); an int N -> N passes
+    of the defaults of :class:`Refinement`; "auto" -> :data:`DEEP_REFINEMENT`; "slip" -> :data:`SLIP_REFINEMENT`;
+    a :class:`Refinement` as it is."""
+    spec = refine_name(spec)
+    if spec is None or spec is False or spec in ("none", "off"):
         return None
     if isinstance(spec, Refinement):
         if spec.interior:
@@ -810,12 +821,16 @@ def as_refinement(spec) -> Refinement | None:
     if isinstance(spec, str):
         if spec == DEFAULT:
             raise InputError("refine='default' must be resolved first (femreg.refine.default_refine)")
-        if spec != "auto":
-            raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
-        return DEEP_REFINEMENT
+        if spec not in ("auto", "slip"):
+            raise InputError(f"refine must be None, an integer number of passes, 'auto', 'slip', 'none' or a "
+                             f"Refinement, got {spec!r}")
+        return SLIP_REFINEMENT if spec == "slip" else DEEP_REFINEMENT
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        if spec < 0:
+            raise InputError(f"refine's number of passes must be 0 or more, got {spec}")
         return Refinement(passes=int(spec)) if spec else None
-    raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+    raise InputError(f"refine must be None, an integer number of passes, 'auto', 'slip', 'none' or a Refinement, "
+                     f"got {spec!r}")
 
 
 @dataclass(frozen=True)
@@ -1838,7 +1853,7 @@ def finish_passes(sol, record, opts: Refinement, base_gn, nit: int) -> None:
 
 
 def plane_stress_model(reg) -> bool:
-    """Whether the regulariser ``reg`` is R_P_sigma's plane-stress model: a :math:`\bar\lambda` of at most
+    """Whether the regulariser ``reg`` is R_P_sigma's plane-stress model: a lambda_bar (eq:meq) of at most
     :data:`femreg.material.LAMBDA_BAR_PLANE_STRESS` (:attr:`Refinement.fine_maxiter_stress`)."""
     lb = getattr(reg, "lambda_bar", None)
     return lb is not None and np.isfinite(lb) and float(lb) <= LAMBDA_BAR_PLANE_STRESS

@@ -275,19 +275,21 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         a :class:`femreg.geometry.BeamResult`, in physical Cartesian coordinates (conventions:
         :mod:`femreg.geometry`).  None: a linear array (the pixel grid above).  Volumes take a
         :class:`femreg.Swept` (a swept probe's fan of frames, :mod:`femreg.swept`).
-    refine : "default" | None | int | "auto" | femreg.refine.Refinement
+    refine : "default" | None | int | "auto" | "slip" | "none" | femreg.refine.Refinement
         Adaptive refinement after the solve (:mod:`femreg.refine`): mark the elements where the data ask for more
         resolution (jumps of A[u] across edges by default), split their rows / columns of the tensor mesh and solve
         again from the solution, one Gauss-Newton step each: ``N`` passes of :class:`femreg.refine.Refinement`
         (each halving the marked rows / columns), "auto": :data:`femreg.refine.DEEP_REFINEMENT` (one pass
         quartering them, with the local relaxation of layers across the image, and a lower marking cut with
-        columns down to 0.4 mm where a feature stands out far); the weight of eq:objf stays the unrefined mesh's.
+        columns down to 0.4 mm where a feature stands out far); "slip": :data:`femreg.refine.SLIP_REFINEMENT`
+        (shear bands: the band's rows thinned and its shear traction let through); the weight of eq:objf stays
+        the unrefined mesh's.  Names in any case, as the CLI's ``--refine``.
         "default": "auto" for ``strategy="auto"`` with R_P_sigma (the default regulariser) on the default ROI mesh, off for ``strategy="paper"``, the other regularisers, a user's mesh
         or ``element_size`` (so every increment of
         :func:`femreg.track`), an offset, a convex / sector geometry (where ``"auto"`` / N refines the (range,
         angle) lattice: opt-in, docs/geometry.md) and ``alpha="auto"`` (:func:`femreg.refine.default_refine`);
         volumes follow the same rule with their own refinement (:mod:`femreg.volume_refine`; off for
-        :func:`femreg.track` and swept volumes).  None or 0: off.  The result's mesh, ``u`` and ``quality`` are those of the final
+        :func:`femreg.track` and swept volumes).  None, 0, "none" or "off": off.  The result's mesh, ``u`` and ``quality`` are those of the final
         mesh.
     data_mask : None | (n_axial, n_lateral) bool array | femreg.echo.DataMask
         Where the frames hold data (True), e.g. the fan of a scan-converted convex / phased frame.  None

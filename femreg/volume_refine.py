@@ -39,8 +39,8 @@ import numpy as np
 from skfem import MeshHex1
 
 from .errors import InputError, pass_as
-from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refined_axes,
-                     slab_scores, slabs_within_budget, strong_levels)
+from .refine import (DEFAULT, Refinement, RefinementRecord, finish_passes, jump_cut, marked_slabs, refine_name,
+                     refined_axes, slab_scores, slabs_within_budget, strong_levels)
 from .regularizers.momentum import LAMBDA_BAR_3D
 from .volume_fields import HexLocator, element_strain_operator_3d
 from .voxels import tensor_axes_3d
@@ -75,11 +75,16 @@ def as_volume_refinement(spec) -> Refinement | None:
     :data:`VOLUME_REFINEMENT`; an int N -> it with N passes; a :class:`femreg.refine.Refinement` as it is (the
     "jump" indicator only; ``slip`` and ``relax`` are not used on volumes; a two-value ``min_size`` takes the
     lateral one elevationally)."""
-    if spec is None or spec is False or (isinstance(spec, str) and spec == DEFAULT):
+    spec = refine_name(spec)
+    if spec is None or spec is False or (isinstance(spec, str) and spec in (DEFAULT, "none", "off")):
         return None
     if isinstance(spec, str):
+        if spec == "slip":
+            raise InputError("refine='slip' (the slip region of a shear band) is 2D only; volumes take None, an "
+                             "integer number of passes, 'auto' or a Refinement")
         if spec != "auto":
-            raise InputError(f"refine must be None, an integer number of passes, 'auto' or a Refinement, got {spec!r}")
+            raise InputError(f"refine must be None, an integer number of passes, 'auto', 'none' or a Refinement, "
+                             f"got {spec!r}")
         return VOLUME_REFINEMENT
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         return dataclasses.replace(VOLUME_REFINEMENT, passes=int(spec)) if spec else None
