@@ -21,7 +21,7 @@ import numpy as np
 from .errors import InputError, pass_as
 
 __all__ = ["bmode", "plot_bmode", "plot_field", "plot_result", "render_mesh", "extent_mm", "colour_scale",
-           "plot_inversion", "plot_mesh_values", "plot_quality", "fit_colorbars", "DIVERGING_CMAP",
+           "plot_inversion", "plot_mesh_values", "plot_quality", "plot_shear", "fit_colorbars", "DIVERGING_CMAP",
            "SEQUENTIAL_CMAP", "SIGNED_SHARE"]
 
 #: Colour maps: diverging for signed data (centred at 0), sequential for one-signed data; for negative data the
@@ -810,3 +810,52 @@ def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, thr
     if out_png is not None:
         ax.figure.savefig(out_png, dpi=dpi)
     return ax.figure
+
+
+def plot_shear(mesh_points, mesh_cells, shear, out_png=None, *, dpi=100, title=None):
+    """The shear-strain product (:func:`femreg.shear.shear_strain_map`) on the mesh: e_xy per element (%), its
+    predicted precision ``sigma`` relative to the image's median (logarithmic; the bound ranks elements by the
+    lateral and axial information they hold, its constant is 30-80x loose, so no absolute value is drawn) and
+    ``lateral_cells``, the element's width in lateral
+    speckle cells; elements narrower than one (their du_y/dx rests on less than one speckle laterally) are
+    outlined in the e_xy panel (unless every element is).  ``shear``: the dict of :func:`femreg.shear.shear_strain_map`.  Returns the
+    Figure (saved to ``out_png`` when given)."""
+    from matplotlib.collections import PolyCollection
+
+    plt = _mpl()
+    p = np.asarray(mesh_points, float)
+    t = np.asarray(mesh_cells, np.int64)
+    exy = 100.0 * np.asarray(shear["exy"], float).ravel()
+    sigma = 100.0 * np.asarray(shear["sigma"], float).ravel()
+    cells = np.asarray(shear["lateral_cells"], float).ravel()
+    if not (exy.size == sigma.size == cells.size == t.shape[1]):
+        raise InputError(f"shear map has {exy.size} values, the mesh {t.shape[1]} elements")
+    extent = (np.ptp(p[1]), np.ptp(p[0]))
+    w = 4.4 * min(max(extent[0] / max(extent[1], 1e-9), 0.5), 2.0)
+    fig, axes = plt.subplots(1, 3, figsize=(3 * w + 1.5, 5.4), constrained_layout=True)
+    finite = exy[np.isfinite(exy)]
+    lim = float(np.percentile(np.abs(finite), 99)) if finite.size else 1.0
+    lim = lim if lim > 0 else 1.0
+    narrow = np.isfinite(cells) & (cells < 1.0)
+    some = narrow.any() and not narrow.all()      # outlining every element would hide the image
+    note = (f"\noutlined: {int(narrow.sum())} below 1 lateral cell" if some else
+            "\nevery element below 1 lateral cell" if narrow.any() else "")
+    ax = plot_mesh_values(p, t, exy, ax=axes[0], cmap=DIVERGING_CMAP, vmin=-lim, vmax=lim, label="e_xy (%)",
+                          title="shear strain e_xy per element" + note)
+    if some:
+        polys = np.stack([p[1, t].T, p[0, t].T], axis=-1)
+        ax.add_collection(PolyCollection(polys[narrow], facecolors="none", edgecolors="k", linewidths=0.8))
+    ok = np.isfinite(sigma) & (sigma > 0)
+    # relative to its median: the bound's constant is 30-80x loose (femreg.shear), so only the ranking is shown
+    rel = np.where(ok, sigma / (np.median(sigma[ok]) if ok.any() else 1.0), np.nan)
+    plot_mesh_values(p, t, rel, ax=axes[1], log=True, cmap=SEQUENTIAL_CMAP,
+                     label="predicted sigma of e_xy / its median",
+                     title="precision of e_xy, relative\n(higher: less certain)")
+    plot_mesh_values(p, t, np.where(np.isfinite(cells), np.maximum(cells, 1e-3), np.nan), ax=axes[2], log=True,
+                     cmap=SEQUENTIAL_CMAP, label="element width / lateral speckle cell",
+                     title="element width in lateral speckle\ncells (below 1: du_y/dx poorly measured)")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig

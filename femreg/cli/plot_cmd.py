@@ -35,6 +35,11 @@ def add_parser(subparsers):
                         "registered on: I of femreg register FILE --pair I J or femreg batch, the first of a "
                         "femreg track --frames selection; else 0)")
     p.add_argument("--overlay", action="store_true", help="draw the fields over the B-mode (needs --reference)")
+    p.add_argument("--shear", action="store_true",
+                   help="also draw the shear-strain product OUT_shear.png: e_xy per element, its predicted "
+                        "precision relative to the image's median (from the element's NCC and size and the "
+                        "speckle cell of --reference, which it needs) and the element's width in lateral speckle "
+                        "cells (below 1 outlined)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
     from .invert_cmd import add_slice_arg
 
@@ -96,8 +101,10 @@ def _run(args) -> int:
                   f"frame ({own}, the default)", file=sys.stderr)
         if fr.n_frames > 1:
             bmode_title = f"B-mode, frame {k}"
-    elif args.overlay:
-        raise InputError("--overlay needs --reference FILE")
+    elif args.overlay or args.shear:
+        flag = "--overlay" if args.overlay else "--shear"
+        why = "" if args.overlay else " (its speckle cell sets the precision of e_xy)"
+        raise InputError(f"{flag} needs --reference FILE{why}")
     out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
     if out.suffix.lower() != ".png":
         raise InputError(f"-o must name a .png file, got {out}")
@@ -115,6 +122,8 @@ def _run(args) -> int:
         qout = out.with_name(out.stem + "_quality.png")
         plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi))
         print(f"wrote {qout}")
+    if args.shear:
+        _shear_figure(res, reference, out, args.dpi)
     for path in (args.vtu, args.xdmf):
         if path:
             export_result(res, path)
@@ -130,3 +139,32 @@ def _run(args) -> int:
         render_mesh(p, t, vals, args.render, name=name)
         print(f"wrote {args.render}")
     return failed_notice(args.result, res.get("success", True), res.get("message", ""), res.get("flag", ""))
+
+
+def _shear_figure(res, reference, out, dpi):
+    """OUT_shear.png: :func:`femreg.shear.shear_strain_map` of the result on ``reference`` (the registered frame,
+    on the result's grid), drawn by :func:`femreg.plot.plot_shear`."""
+    from types import SimpleNamespace
+
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from ..plot import plot_shear
+    from ..shear import shear_strain_map
+
+    q = res.get("quality")
+    n_el = np.shape(res["mesh_cells"])[1]
+    if q is None or np.size(q) != n_el:
+        raise InputError("--shear needs the result's per-element quality (element NCC), which this file does not "
+                         "hold: register the pair again with femreg register")
+    mesh = SimpleNamespace(p=np.asarray(res["mesh_points"], float), t=np.asarray(res["mesh_cells"], np.int64))
+    result = SimpleNamespace(mesh=mesh, u=np.asarray(res["u"], float), quality=np.asarray(q, float),
+                             spacing=tuple(np.asarray(res["spacing"], float).ravel()))
+    sm = shear_strain_map(result, reference)
+    sout = out.with_name(out.stem + "_shear.png")
+    narrow = int(np.sum(sm["lateral_cells"] < 1.0))
+    cell = sm["cell"]
+    plt.close(plot_shear(mesh.p, mesh.t, sm, sout, dpi=dpi,
+                         title=f"speckle cell {cell[0]:.2f} x {cell[1]:.2f} mm (axial x lateral)"))
+    print(f"wrote {sout} (e_xy per element, its relative predicted precision; speckle cell {cell[0]:.2f} x {cell[1]:.2f} "
+          f"mm; {narrow} of {n_el} elements narrower than a lateral speckle cell)")
