@@ -56,3 +56,15 @@ def test_shear_figure_needs_the_reference(band_files, capsys):
     assert main(["plot", str(tmp / "pair.npz"), "--shear", "-o", str(tmp / "p2.png")]) == 2
     err = capsys.readouterr().err
     assert "--shear needs --reference" in err and "Traceback" not in err
+
+
+def test_shear_figure_refuses_a_result_without_element_quality(band_files, capsys):
+    tmp, sp, _ = band_files
+    with np.load(tmp / "pair.npz", allow_pickle=False) as z:
+        kept = {k: z[k] for k in z.files if k != "quality"}
+    np.savez(tmp / "noq.npz", **kept)
+    capsys.readouterr()
+    assert main(["plot", str(tmp / "noq.npz"), "--reference", str(tmp / "a.npy"), "--spacing", *sp, "--shear",
+                 "-o", str(tmp / "noq.png")]) == 2
+    err = capsys.readouterr().err
+    assert "per-element quality" in err and "Traceback" not in err
