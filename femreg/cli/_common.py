@@ -151,6 +151,9 @@ def _note_spacing_against_fields(fr, path, args) -> None:
         return
     off, tol = [], FIELD_SPACING_TOLERANCE
     read = [float(v) for v in np.ravel(fr.spacing)[:2]]
+    iq = (fr.metadata or {}).get("iq") or {}
+    if iq.get("iq_spacing_mm"):         # remodulated IQ: the fields' sampling rate is the IQ samples', not the RF's
+        read[0] = float(iq["iq_spacing_mm"])
     try:
         implied = [float(sug.dx), float(sug.dy)]
     except (TypeError, ValueError):     # "DX" / "DY" / "auto": the fields do not say both
@@ -182,10 +185,12 @@ def _note_spacing_against_fields(fr, path, args) -> None:
 _NOTED: set = set()
 
 
-def frames_on_result_grid(args, path, result_spacing):
+def frames_on_result_grid(args, path, result_spacing, result_shape=None):
     """Frames of ``path`` drawn or used on a result's pixel grid (``plot --reference``, ``invert --images``): a
     file that stores no spacing takes the result's (``result_spacing``, mm), no --spacing needed; a spacing that
-    differs from it by more than 1 % is refused (another recording, or a wrong --spacing)."""
+    differs from it by more than 1 % is refused (another recording, or a wrong --spacing).  IQ frames take the IQ
+    sample spacing whose remodulation gives the result's grid (``result_shape``, (axial, lateral) pixels:
+    :func:`_iq_stand_in`)."""
     import numpy as np
 
     from ..errors import SpacingUnknownError
@@ -196,7 +201,7 @@ def frames_on_result_grid(args, path, result_spacing):
     except SpacingUnknownError:
         if args.spacing is not None or res_sp.size != 2:
             raise
-        args.spacing = [float(v) for v in res_sp]
+        args.spacing = _iq_stand_in(args, path, [float(v) for v in res_sp], result_shape)
         fr = frames_from_args(args, path)
     sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
     if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
@@ -209,6 +214,28 @@ def frames_on_result_grid(args, path, result_spacing):
                             "not the frames it was registered from, or a wrong --spacing (leave it out: the "
                             "result's is used)"))
     return fr
+
+
+def _iq_stand_in(args, path, res_sp, result_shape):
+    """The spacing that stands in for a file's missing one on a result's grid: ``res_sp`` (mm), but for IQ frames
+    (``--iq-frequency``) the spacing of the IQ samples, the result's axial step times the upsampling of the
+    remodulation, ``up = (n_rf - 1) / (n_iq - 1)`` (:func:`femreg.io.iq.remodulate`); with the RF step as the IQ
+    step the phases would be read for a frequency ``up`` times too high and the frames refused."""
+    if getattr(args, "modulation_frequency", None) is None or result_shape is None:
+        return res_sp
+    from ..io import read_frames
+
+    try:
+        read_frames(path, **{**reader_kwargs(args), "spacing": res_sp, "modulation_frequency": None},
+                    check_orientation=False)
+    except InputError as exc:
+        stored = getattr(exc, "iq_frames", None)
+        if stored is None:
+            return res_sp
+        n_iq, n_rf = int(stored.frames.shape[1]), int(result_shape[0])
+        if n_iq > 1 and n_rf > n_iq and (n_rf - 1) % (n_iq - 1) == 0:
+            return [res_sp[0] * ((n_rf - 1) // (n_iq - 1)), res_sp[1]]
+    return res_sp
 
 
 def frame_index(index: int, n: int, path, flag: str) -> int:
