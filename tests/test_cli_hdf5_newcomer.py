@@ -214,3 +214,37 @@ def test_invivo_iq_export_through_plot_without_spacing(tmp_path, capsys):
     rc, out, err = _run(["plot", tmp_path / "p.npz", "--reference", tmp_path / "iq.h5", "-o", tmp_path / "p.png",
                          *flags], capsys)
     assert rc == 0, err
+    # the bright spot at 15, 20 mm typed in cm: measured (exit 0) with a note naming the numbers in mm
+    rc, out, err = _run(["measure", tmp_path / "p.npz", "--inclusion", 1.5, 2.0, 0.3], capsys)
+    assert rc == 0 and "narrower than one element" in out and "--inclusion 15 20 3" in out, out
+
+
+# ---------------------------------------------------------------------------------------------- centimetres
+def test_a_region_in_centimetres_gets_a_note(scan, capsys):
+    """--depth 0.5 3.5 on a 40 mm in vivo frame (a scanner's display in cm) registered a 3 mm strip of the near
+    field without a word (exit 0)."""
+    import argparse
+
+    from femreg.cli import _common
+
+    fr = read_frames(scan["dir"] / "rf.h5", spacing=(scan["dx"], scan["dy"]))
+    depth_mm = fr.spacing[0] * (fr.frames.shape[1] - 1)                   # 12 mm
+    cases = [(dict(depth=[0.3, 1.1]), "--depth 3 11"), (dict(roi=["0.2", "1.0", "0.1", "0.7"]), "--roi 2 10 1 7"),
+             (dict(depth=[3.0, 11.0]), None), (dict(depth=[0.3, 0.9 * depth_mm]), None),
+             (dict(roi=["full"]), None), (dict(depth=[0.2, 2.0]), None)]      # 20 mm lies beyond the frame
+    for kw, want in cases:
+        args = argparse.Namespace(command="track", **kw)
+        _common._note_region_in_centimetres(fr, "rf.h5", args)
+        err = capsys.readouterr().err
+        assert (f"in centimetres it would be {want} (mm)" in err) if want else err == "", (kw, err)
+
+
+def test_measure_notes_an_inclusion_narrower_than_an_element(scan, capsys):
+    d = scan["dir"]
+    rc, out, err = _run(["measure", d / "iq.npz", "--inclusion", 5, 4, 0.2], capsys)
+    # ten times it lies outside this 12 x 8 mm mesh: no centimetre hint (the in vivo test below has one)
+    assert rc == 0 and "narrower than one element" in out and "centimetres" not in out, out
+    rc, out, err = _run(["measure", d / "iq.npz", "--inclusion", 5, 4, 1.5, "--json", d / "m.json"], capsys)
+    assert rc == 0 and "narrower" not in out, out
+    bounds = json.loads((d / "m.json").read_text())["mesh_bounds_mm"]
+    assert all(v == round(v, 6) for v in bounds.values()), bounds

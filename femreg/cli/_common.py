@@ -94,6 +94,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
+    _note_region_in_centimetres(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -179,6 +180,44 @@ def _note_spacing_against_fields(fr, path, args) -> None:
         print(f"{who}: note: {path}: --spacing differs from what the file's fields imply ({'; '.join(off)}: "
               f"{sug.why_x}; {sug.why_y}): every depth and lateral position scales with it; check it against the "
               f"scanner's settings", file=sys.stderr)
+
+
+#: A --depth / --roi span under this share of the frame's along each axis it limits, whose ten times lies inside
+#: the frame, is noted as likely given in centimetres.
+CM_REGION_SHARE = 0.25
+
+
+def _note_region_in_centimetres(fr, path, args) -> None:
+    """On stderr: a --depth or --roi that reads as centimetres (a scanner's display gives depths in cm): a small
+    part of the frame (under :data:`CM_REGION_SHARE` of it along each axis given) whose values times ten lie inside
+    the frame.  Only a note: a small region can be meant, but one in cm registers a strip of the near field."""
+    import numpy as np
+
+    depth, roi = getattr(args, "depth", None), getattr(args, "roi", None)
+    a = np.asarray(getattr(fr, "frames", None))
+    if fr.spacing is None or len(fr.spacing) != 2 or a.ndim != 3:
+        return
+    if depth is not None:
+        flag, vals, axes = "--depth", [float(v) for v in depth], (0,)
+    elif roi is not None and len(roi) == 4:
+        try:
+            flag, vals, axes = "--roi", [float(v) for v in roi], (0, 1)
+        except (TypeError, ValueError):     # auto / full
+            return
+    else:
+        return
+    lo = [float(fr.origin[k]) for k in (0, 1)]
+    hi = [lo[k] + float(fr.spacing[k]) * (a.shape[1 + k] - 1) for k in (0, 1)]
+    small = all(abs(vals[2 * k + 1] - vals[2 * k]) < CM_REGION_SHARE * (hi[k] - lo[k]) for k in axes)
+    fits = all(lo[k] <= 10 * v <= hi[k] for k in axes for v in vals[2 * k: 2 * k + 2])
+    key = (str(path), flag, tuple(vals))
+    if small and fits and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        extent = " x ".join(f"{h - lo_:.3g}" for lo_, h in zip(lo, hi))
+        print(f"{who}: note: {path}: {flag} {' '.join(f'{v:g}' for v in vals)} (mm) is a small part of the "
+              f"{extent} mm frame: in centimetres it would be {flag} {' '.join(f'{10 * v:g}' for v in vals)} "
+              "(mm)", file=sys.stderr)
 
 
 #: Notes already given in this process (register reads the same file's flags for each frame file).
