@@ -787,10 +787,25 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
     return fig
 
 
-def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100):
+def quality_pair(d) -> str:
+    """The frames a result's quality map compares, from its saved fields ``d``: ``"frames I -> J"`` (``femreg
+    register --pair``, ``femreg batch``), ``"frame K-1 -> K"`` (a track's accumulated frame K, whose quality is of
+    its last increment), ``"frame 0 -> K"``; "" when the result does not say."""
+    pair = np.ravel(d["pair"]) if d.get("pair") is not None else np.empty(0)
+    if "frame" in d and "increment" in d:
+        k = int(d["frame"])
+        accumulated = str(d["mode"]) != "direct" if "mode" in d else True
+        return f"frame {k - 1} -> {k}" if accumulated and k > 1 else f"frame 0 -> {k}"
+    if pair.size == 2:
+        return f"frames {int(pair[0])} -> {int(pair[1])}"
+    return ""
+
+
+def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100, pair=""):
     """Per-element quality map of a registration (NCC of reference and warped moving image over each element,
     :attr:`femreg.RegistrationResult.quality`) drawn on the mesh, mm axes; elements below ``threshold`` are
-    outlined in black.  Returns the Figure (saved to ``out_png`` when given)."""
+    outlined in black; ``pair`` (e.g. ``"frame 4 -> 5"``, :func:`quality_pair`) names the frames compared in the
+    title.  Returns the Figure (saved to ``out_png`` when given)."""
     from matplotlib.collections import PolyCollection
 
     p = np.asarray(mesh_points, float)
@@ -801,7 +816,8 @@ def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, thr
                          f"{t.shape}, {q.size}")
     qmin = np.nanmin(q) if np.isfinite(q).any() else float("nan")
     bad = np.isfinite(q) & (q < threshold)
-    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality (min {qmin:.2f})\noutlined: "
+    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality{', ' + pair if pair else ''} "
+                          f"(min {qmin:.2f})\noutlined: "
                           f"{int(bad.sum())} of {q.size} elements below {threshold:g}", vmin=0.0, vmax=1.0,
                           label="element NCC (reference vs warped moving)")
     if bad.any():

@@ -248,3 +248,29 @@ def test_measure_notes_an_inclusion_narrower_than_an_element(scan, capsys):
     assert rc == 0 and "narrower" not in out, out
     bounds = json.loads((d / "m.json").read_text())["mesh_bounds_mm"]
     assert all(v == round(v, 6) for v in bounds.values()), bounds
+
+
+# ---------------------------------------------------------------------------------------------- pictures
+def test_the_quality_map_names_the_frames_it_compares(scan, tmp_path, monkeypatch, capsys):
+    """Three frame_KKK_quality.png of a track looked alike: their title did not say which pair each one is."""
+    import matplotlib.pyplot as plt
+
+    import femreg.plot as fplot
+
+    assert fplot.quality_pair({"frame": 5, "increment": 0, "mode": "accumulate"}) == "frame 4 -> 5"
+    assert fplot.quality_pair({"frame": 1, "increment": 0, "mode": "accumulate"}) == "frame 0 -> 1"
+    assert fplot.quality_pair({"frame": 3, "increment": 0, "mode": "direct"}) == "frame 0 -> 3"
+    assert fplot.quality_pair({"pair": np.array([2, 4])}) == "frames 2 -> 4"
+    assert fplot.quality_pair({}) == ""
+    titles = []
+    real = fplot.plot_quality
+
+    def spy(*a, **kw):
+        fig = real(*a, **kw)
+        titles.append(fig.axes[0].get_title())
+        return fig
+
+    monkeypatch.setattr(fplot, "plot_quality", spy)
+    rc, out, err = _run(["plot", scan["dir"] / "iq.npz", "-o", tmp_path / "p.png"], capsys)
+    plt.close("all")
+    assert rc == 0 and titles and titles[0].startswith("registration quality, frames 0 -> 1 "), titles

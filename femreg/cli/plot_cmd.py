@@ -115,10 +115,11 @@ def _run(args) -> int:
         print(f"femreg plot: note: {args.result} is a failed registration ({res.get('message', '')}); the figure "
               "says so in its title", file=sys.stderr)
     if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:
-        from ..plot import plot_quality
+        from ..plot import plot_quality, quality_pair
 
         qout = out.with_name(out.stem + "_quality.png")
-        plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi))
+        plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi,
+                               pair=quality_pair(res)))
         print(f"wrote {qout}")
     for path in (args.vtu, args.xdmf):
         if path:
