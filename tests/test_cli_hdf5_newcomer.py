@@ -274,3 +274,21 @@ def test_the_quality_map_names_the_frames_it_compares(scan, tmp_path, monkeypatc
     rc, out, err = _run(["plot", scan["dir"] / "iq.npz", "-o", tmp_path / "p.png"], capsys)
     plt.close("all")
     assert rc == 0 and titles and titles[0].startswith("registration quality, frames 0 -> 1 "), titles
+
+
+def test_a_swapped_spacing_for_the_reference_is_named_swapped(scan, tmp_path):
+    """plot --reference / invert --images with --spacing typed lateral first: before, 'not the frames it was
+    registered from, or a wrong --spacing', which sends a user looking for another file."""
+    import argparse
+
+    from femreg.cli._common import frames_on_result_grid
+    from femreg.cli.plot_cmd import add_parser
+    from femreg.errors import InputError
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    dx, dy = scan["dx"], scan["dy"]
+    args = parser.parse_args(["plot", "r.npz", "--reference", str(scan["dir"] / "rf.h5"),
+                              "--spacing", str(dy), str(dx)])
+    with pytest.raises(InputError, match=rf"look swapped: leave --spacing out .* or pass --spacing {dx:g} {dy:g}"):
+        frames_on_result_grid(args, scan["dir"] / "rf.h5", (dx, dy), None)

@@ -245,11 +245,14 @@ def frames_on_result_grid(args, path, result_spacing, result_shape=None):
     sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
     if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
         # the file's own spacing exchanged: its frames are stored lines first (a --spacing given swapped is not)
-        lines_first = (np.allclose(sp[::-1], res_sp, rtol=0.01) and args.spacing is None
-                       and not getattr(args, "transpose", False))
+        exchanged = np.allclose(sp[::-1], res_sp, rtol=0.01)
+        lines_first = exchanged and args.spacing is None and not getattr(args, "transpose", False)
+        typed_swapped = exchanged and args.spacing is not None
         raise InputError(f"{path}: spacing {tuple(float(v) for v in sp)} mm differs from the result's "
                          f"{tuple(float(v) for v in res_sp)} (axial, lateral): "
                          + ("exchanged, as for frames stored lines first: pass --transpose" if lines_first else
+                            "the axial and lateral spacings look swapped: leave --spacing out (the result's is "
+                            f"used) or pass --spacing {res_sp[0]:g} {res_sp[1]:g}" if typed_swapped else
                             "not the frames it was registered from, or a wrong --spacing (leave it out: the "
                             "result's is used)"))
     return fr
