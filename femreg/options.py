@@ -24,7 +24,8 @@ REGISTRATION_DEFAULTS = {"regularizer": _SIGNATURE.parameters["regularizer"].def
                          "tol": _SIGNATURE.parameters["tol"].default, "no_orientation_check": False}
 #: The reader options of :func:`femreg.io.read_frames` (None: the file's own, or the reader's default).
 READER_DEFAULTS = {"variable": None, "shape": None, "dtype": None, "spacing": None, "byte_order": None,
-                   "frames": None, "sound_speed": None, "origin": None, "transpose": False}
+                   "frames": None, "sound_speed": None, "origin": None, "transpose": False,
+                   "modulation_frequency": None, "iq_conjugate": False}
 
 
 def frame_selection(text: str):

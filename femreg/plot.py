@@ -692,8 +692,27 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
         else:
             from matplotlib.ticker import NullFormatter
 
+            # decades alone left 0.17-86 labelled 1 and 10 only: round values near both ends too
+            cb.set_ticks(_log_ticks(lo, hi))
+            cb.ax.yaxis.set_major_formatter(fmt)
             cb.ax.yaxis.set_minor_formatter(NullFormatter())
     return ax
+
+
+def _log_ticks(lo, hi, n=6):
+    """Round values in [lo, hi] for a log colour bar, at least about 1/n of the range apart on the log scale
+    (their labels cannot overlap): 1 when in range, then mantissas 2 and 5, 3 and 4, 1.5, 2.5 and 8, others."""
+    lo, hi = float(lo), float(hi)
+    rank = {1: 0, 2: 1, 5: 1, 3: 2, 4: 2, 1.5: 3, 2.5: 3, 8: 3, 6: 4, 1.25: 4}
+    cands = [(r, abs(k), m * 10.0 ** k) for k in range(int(np.floor(np.log10(lo))) - 1,
+                                                        int(np.ceil(np.log10(hi))) + 1) for m, r in rank.items()]
+    cands = sorted(c for c in cands if lo * (1 - 1e-9) <= c[2] <= hi * (1 + 1e-9))
+    gap = 0.95 * np.log10(hi / lo) / n
+    ticks = []
+    for _, _, v in cands:
+        if all(abs(np.log10(v / t)) >= gap for t in ticks):
+            ticks.append(v)
+    return sorted(ticks)
 
 
 def _nodal_on_grid(mesh, nodal, step_mm):
@@ -787,10 +806,25 @@ def plot_inversion(result, out_png=None, *, dpi=100, figsize=None, title=None, a
     return fig
 
 
-def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100):
+def quality_pair(d) -> str:
+    """The frames a result's quality map compares, from its saved fields ``d``: ``"frames I -> J"`` (``femreg
+    register --pair``, ``femreg batch``), ``"frame K-1 -> K"`` (a track's accumulated frame K, whose quality is of
+    its last increment), ``"frame 0 -> K"``; "" when the result does not say."""
+    pair = np.ravel(d["pair"]) if d.get("pair") is not None else np.empty(0)
+    if "frame" in d and "increment" in d:
+        k = int(d["frame"])
+        accumulated = str(d["mode"]) != "direct" if "mode" in d else True
+        return f"frame {k - 1} -> {k}" if accumulated and k > 1 else f"frame 0 -> {k}"
+    if pair.size == 2:
+        return f"frames {int(pair[0])} -> {int(pair[1])}"
+    return ""
+
+
+def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, threshold=0.5, dpi=100, pair=""):
     """Per-element quality map of a registration (NCC of reference and warped moving image over each element,
     :attr:`femreg.RegistrationResult.quality`) drawn on the mesh, mm axes; elements below ``threshold`` are
-    outlined in black.  Returns the Figure (saved to ``out_png`` when given)."""
+    outlined in black; ``pair`` (e.g. ``"frame 4 -> 5"``, :func:`quality_pair`) names the frames compared in the
+    title.  Returns the Figure (saved to ``out_png`` when given)."""
     from matplotlib.collections import PolyCollection
 
     p = np.asarray(mesh_points, float)
@@ -801,7 +835,8 @@ def plot_quality(mesh_points, mesh_cells, quality, out_png=None, *, ax=None, thr
                          f"{t.shape}, {q.size}")
     qmin = np.nanmin(q) if np.isfinite(q).any() else float("nan")
     bad = np.isfinite(q) & (q < threshold)
-    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality (min {qmin:.2f})\noutlined: "
+    ax = plot_mesh_values(p, t, q, ax=ax, title=f"registration quality{', ' + pair if pair else ''} "
+                          f"(min {qmin:.2f})\noutlined: "
                           f"{int(bad.sum())} of {q.size} elements below {threshold:g}", vmin=0.0, vmax=1.0,
                           label="element NCC (reference vs warped moving)")
     if bad.any():

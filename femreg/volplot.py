@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .plot import DIVERGING_CMAP, _colorbar, _mpl, colour_scale, fit_colorbars
+from .plot import DIVERGING_CMAP, _colorbar, _log_ticks, _mpl, colour_scale, fit_colorbars
 
 __all__ = ["plot_volume_slices", "plot_inversion_volume", "render_volume", "volume_bmode", "FIELD_LABELS",
            "STRAIN_KEYS", "SLICE_CHOICES"]
@@ -172,22 +172,6 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
     if out_png is not None:
         fig.savefig(out_png, dpi=dpi)
     return fig
-
-
-def _log_ticks(lo, hi, n=6):
-    """Round values in [lo, hi] for a log colour bar, at least about 1/n of the range apart on the log scale
-    (their labels cannot overlap): 1 when in range, then mantissas 2 and 5, 3 and 4, 1.5, 2.5 and 8, others."""
-    lo, hi = float(lo), float(hi)
-    rank = {1: 0, 2: 1, 5: 1, 3: 2, 4: 2, 1.5: 3, 2.5: 3, 8: 3, 6: 4, 1.25: 4}
-    cands = [(r, abs(k), m * 10.0 ** k) for k in range(int(np.floor(np.log10(lo))) - 1,
-                                                        int(np.ceil(np.log10(hi))) + 1) for m, r in rank.items()]
-    cands = sorted(c for c in cands if lo * (1 - 1e-9) <= c[2] <= hi * (1 + 1e-9))
-    gap = 0.95 * np.log10(hi / lo) / n
-    ticks = []
-    for _, _, v in cands:
-        if all(abs(np.log10(v / t)) >= gap for t in ticks):
-            ticks.append(v)
-    return sorted(ticks)
 
 
 def _slice_figure(rows, at, panel_inches):

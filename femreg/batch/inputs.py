@@ -52,6 +52,8 @@ def _read_settings_file(path: Path) -> dict:
         key = k.replace("-", "_")
         if key == "pair":  # one pair, as the --pair flag
             key, v = "pairs", [v]
+        elif key == "iq_frequency":  # the flag's name; its setting is read_frames' argument
+            key = "modulation_frequency"
         out[key] = v
     return out
 

@@ -39,6 +39,10 @@ def _pair_id(pair) -> str:
     return f"pair_{int(pair[0]):03d}-{int(pair[1]):03d}"
 
 
+#: Settings added after batches were first written (transpose; the IQ flags --iq-frequency, --iq-conjugate).
+_LATER_FLAGS = ("transpose", "modulation_frequency", "iq_conjugate")
+
+
 def _task_specs(job: Job) -> list[dict]:
     """The tasks of a job: one per pair (register) or one (track); each a JSON-able dict."""
     s = job.resolved()
@@ -50,8 +54,9 @@ def _task_specs(job: Job) -> list[dict]:
         parts = [(_pair_id(p), [int(p[0]), int(p[1])]) for p in s["pairs"]]
         unused = ("pairs", "mode", "grid", "init")
     # The hash covers what changes a task's result (its own pair, not the job's other pairs) and the input.
-    # transpose off is left out, so the tasks of runs from before the flag existed still match on --resume
-    used = {k: v for k, v in s.items() if k not in unused and not (k == "transpose" and not v)}
+    # flags added later are left out at their defaults, so the tasks of runs from before they existed still match
+    # on --resume
+    used = {k: v for k, v in s.items() if k not in unused and not (k in _LATER_FLAGS and not v)}
     specs = []
     for tid, pair in parts:
         ident = json.dumps({"settings": used, "pair": pair, "input": fp}, sort_keys=True, default=str)

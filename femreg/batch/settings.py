@@ -57,6 +57,7 @@ def _check_settings(settings: dict, where: str) -> dict:
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 
     types = {"alpha": real, "margin": real, "hourglass": real, "tol": real, "sound_speed": real, "min_ncc": real,
+             "modulation_frequency": real, "iq_conjugate": lambda v: isinstance(v, bool),
              "maxiter": lambda v: isinstance(v, int) and not isinstance(v, bool),
              "element_size": lambda v: real(v) or (isinstance(v, (list, tuple)) and all(real(x) for x in v)),
              "shape": lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) for x in v),

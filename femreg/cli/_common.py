@@ -94,6 +94,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     fr = read_frames(path, **reader_kwargs(args), check_orientation=check_shape)
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
+    _note_region_in_centimetres(fr, path, args)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -151,6 +152,9 @@ def _note_spacing_against_fields(fr, path, args) -> None:
         return
     off, tol = [], FIELD_SPACING_TOLERANCE
     read = [float(v) for v in np.ravel(fr.spacing)[:2]]
+    iq = (fr.metadata or {}).get("iq") or {}
+    if iq.get("iq_spacing_mm"):         # remodulated IQ: the fields' sampling rate is the IQ samples', not the RF's
+        read[0] = float(iq["iq_spacing_mm"])
     try:
         implied = [float(sug.dx), float(sug.dy)]
     except (TypeError, ValueError):     # "DX" / "DY" / "auto": the fields do not say both
@@ -178,14 +182,54 @@ def _note_spacing_against_fields(fr, path, args) -> None:
               f"scanner's settings", file=sys.stderr)
 
 
+#: A --depth / --roi span under this share of the frame's along each axis it limits, whose ten times lies inside
+#: the frame, is noted as likely given in centimetres.
+CM_REGION_SHARE = 0.25
+
+
+def _note_region_in_centimetres(fr, path, args) -> None:
+    """On stderr: a --depth or --roi that reads as centimetres (a scanner's display gives depths in cm): a small
+    part of the frame (under :data:`CM_REGION_SHARE` of it along each axis given) whose values times ten lie inside
+    the frame.  Only a note: a small region can be meant, but one in cm registers a strip of the near field."""
+    import numpy as np
+
+    depth, roi = getattr(args, "depth", None), getattr(args, "roi", None)
+    a = np.asarray(getattr(fr, "frames", None))
+    if fr.spacing is None or len(fr.spacing) != 2 or a.ndim != 3:
+        return
+    if depth is not None:
+        flag, vals, axes = "--depth", [float(v) for v in depth], (0,)
+    elif roi is not None and len(roi) == 4:
+        try:
+            flag, vals, axes = "--roi", [float(v) for v in roi], (0, 1)
+        except (TypeError, ValueError):     # auto / full
+            return
+    else:
+        return
+    lo = [float(fr.origin[k]) for k in (0, 1)]
+    hi = [lo[k] + float(fr.spacing[k]) * (a.shape[1 + k] - 1) for k in (0, 1)]
+    small = all(abs(vals[2 * k + 1] - vals[2 * k]) < CM_REGION_SHARE * (hi[k] - lo[k]) for k in axes)
+    fits = all(lo[k] <= 10 * v <= hi[k] for k in axes for v in vals[2 * k: 2 * k + 2])
+    key = (str(path), flag, tuple(vals))
+    if small and fits and key not in _NOTED:
+        _NOTED.add(key)
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        extent = " x ".join(f"{h - lo_:.3g}" for lo_, h in zip(lo, hi))
+        print(f"{who}: note: {path}: {flag} {' '.join(f'{v:g}' for v in vals)} (mm) is a small part of the "
+              f"{extent} mm frame: in centimetres it would be {flag} {' '.join(f'{10 * v:g}' for v in vals)} "
+              "(mm)", file=sys.stderr)
+
+
 #: Notes already given in this process (register reads the same file's flags for each frame file).
 _NOTED: set = set()
 
 
-def frames_on_result_grid(args, path, result_spacing):
+def frames_on_result_grid(args, path, result_spacing, result_shape=None):
     """Frames of ``path`` drawn or used on a result's pixel grid (``plot --reference``, ``invert --images``): a
     file that stores no spacing takes the result's (``result_spacing``, mm), no --spacing needed; a spacing that
-    differs from it by more than 1 % is refused (another recording, or a wrong --spacing)."""
+    differs from it by more than 1 % is refused (another recording, or a wrong --spacing).  IQ frames take the IQ
+    sample spacing whose remodulation gives the result's grid (``result_shape``, (axial, lateral) pixels:
+    :func:`_iq_stand_in`)."""
     import numpy as np
 
     from ..errors import SpacingUnknownError
@@ -196,19 +240,44 @@ def frames_on_result_grid(args, path, result_spacing):
     except SpacingUnknownError:
         if args.spacing is not None or res_sp.size != 2:
             raise
-        args.spacing = [float(v) for v in res_sp]
+        args.spacing = _iq_stand_in(args, path, [float(v) for v in res_sp], result_shape)
         fr = frames_from_args(args, path)
     sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
     if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
         # the file's own spacing exchanged: its frames are stored lines first (a --spacing given swapped is not)
-        lines_first = (np.allclose(sp[::-1], res_sp, rtol=0.01) and args.spacing is None
-                       and not getattr(args, "transpose", False))
+        exchanged = np.allclose(sp[::-1], res_sp, rtol=0.01)
+        lines_first = exchanged and args.spacing is None and not getattr(args, "transpose", False)
+        typed_swapped = exchanged and args.spacing is not None
         raise InputError(f"{path}: spacing {tuple(float(v) for v in sp)} mm differs from the result's "
                          f"{tuple(float(v) for v in res_sp)} (axial, lateral): "
                          + ("exchanged, as for frames stored lines first: pass --transpose" if lines_first else
+                            "the axial and lateral spacings look swapped: leave --spacing out (the result's is "
+                            f"used) or pass --spacing {res_sp[0]:g} {res_sp[1]:g}" if typed_swapped else
                             "not the frames it was registered from, or a wrong --spacing (leave it out: the "
                             "result's is used)"))
     return fr
+
+
+def _iq_stand_in(args, path, res_sp, result_shape):
+    """The spacing that stands in for a file's missing one on a result's grid: ``res_sp`` (mm), but for IQ frames
+    (``--iq-frequency``) the spacing of the IQ samples, the result's axial step times the upsampling of the
+    remodulation, ``up = (n_rf - 1) / (n_iq - 1)`` (:func:`femreg.io.iq.remodulate`); with the RF step as the IQ
+    step the phases would be read for a frequency ``up`` times too high and the frames refused."""
+    if getattr(args, "modulation_frequency", None) is None or result_shape is None:
+        return res_sp
+    from ..io import read_frames
+
+    try:
+        read_frames(path, **{**reader_kwargs(args), "spacing": res_sp, "modulation_frequency": None},
+                    check_orientation=False)
+    except InputError as exc:
+        stored = getattr(exc, "iq_frames", None)
+        if stored is None:
+            return res_sp
+        n_iq, n_rf = int(stored.frames.shape[1]), int(result_shape[0])
+        if n_iq > 1 and n_rf > n_iq and (n_rf - 1) % (n_iq - 1) == 0:
+            return [res_sp[0] * ((n_rf - 1) // (n_iq - 1)), res_sp[1]]
+    return res_sp
 
 
 def frame_index(index: int, n: int, path, flag: str) -> int:

@@ -60,6 +60,9 @@ def add_parser(subparsers):
     p.add_argument("--vtu", metavar="OUT.vtu", help="also write a ParaView file")
     p.add_argument("--png", metavar="OUT.png", help="also draw the modulus image beside the axial strain")
     add_slice_arg(p)
+    p.add_argument("--no-orientation-check", action="store_true",
+                   help="with --images: read them without the checks that refuse frames that look transposed, a "
+                        "swapped spacing or IQ phases against --iq-frequency (femreg.orientation)")
     p.add_argument("--allow-failed", action="store_true",
                    help="invert a registration that failed its own check anyway (the result is flagged, exit 1)")
     from ._common import add_reader_args
@@ -74,7 +77,7 @@ def add_parser(subparsers):
 KPA_RANGE = (0.1, 2000.0)
 
 
-def _images(args, spacing=None):
+def _images(args, spacing=None, shape=None):
     """(reference, moving) frames of --images, read like ``femreg register`` reads them; ``spacing``: the
     registration's (mm), which a file without its own takes (:func:`frames_on_result_grid`).  One file: frames
     ``--pair``, by default those the result was registered from (0 1 when it does not say)."""
@@ -85,14 +88,14 @@ def _images(args, spacing=None):
 
     if len(args.images) > 2:
         raise InputError(f"--images takes one or two files, got {len(args.images)}")
-    ref_fr = frames_on_result_grid(args, args.images[0], spacing)
+    ref_fr = frames_on_result_grid(args, args.images[0], spacing, shape)
     if len(args.images) == 1:
         found = None if getattr(args, "frames", None) else registered_frames(args.result)
         i, j = args.pair or (found[:2] if found else (0, 1))
         mov_fr = ref_fr
     else:
         i, j = args.pair or (0, 0)
-        mov_fr = frames_on_result_grid(args, args.images[1], spacing)
+        mov_fr = frames_on_result_grid(args, args.images[1], spacing, shape)
     return _frame(ref_fr, i, args.images[0]), _frame(mov_fr, j, args.images[-1])
 
 
@@ -198,6 +201,8 @@ def run(args) -> int:
     for flag, path, ext in (("--vtu", args.vtu, ".vtu"), ("--png", args.png, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    if args.no_orientation_check and not args.images:    # it would be ignored
+        raise InputError("--no-orientation-check applies to the frames of --images FILE(S), and none were given")
     if args.pair is not None and not args.images:        # it would be ignored
         raise InputError(f"--pair {' '.join(str(k) for k in args.pair)} picks the frames of --images FILE(S), and "
                          "none were given")
@@ -222,7 +227,7 @@ def run(args) -> int:
     if failed_reg and not args.allow_failed:
         raise InputError(f"{args.result} is a failed registration ({reg.message.removeprefix('FAILED: ')}); its "
                          "displacement is not trustworthy: register the pair again, or pass --allow-failed")
-    ref_img, mov_img = ((_volumes(args) if volume else _images(args, getattr(reg, "spacing", None)))
+    ref_img, mov_img = ((_volumes(args) if volume else _images(args, getattr(reg, "spacing", None), getattr(reg, "shape", None)))
                         if args.images else (None, None))
     res = femreg.invert(reg, model=args.model, beta=args.beta, region=region,
                         element_size=None if es is None else (es[0] if len(es) == 1 else tuple(es)),

@@ -123,6 +123,29 @@ def _check_shapes(dim, b, covers, inclusion, background, where):
     return notes
 
 
+def _small_inclusion_notes(mesh, inclusion) -> list:
+    """A note when the inclusion is narrower than one element (median element size per axis): its element strain
+    is then the strain of the one or two elements it touches, not a region's mean; with a hint when the numbers
+    read in centimetres (ten times them lies inside the mesh, as a scanner's display gives depths in cm)."""
+    p, t = np.asarray(mesh.p, float), np.asarray(mesh.t)
+    dim = p.shape[0]
+    corners = p[:, t]                                   # (dim, corners, elements)
+    size = np.median(corners.max(axis=1) - corners.min(axis=1), axis=1)
+    c, r = np.asarray(inclusion[:-1], float), float(inclusion[-1])
+    if 2 * r >= float(np.min(size)):
+        return []
+    b = _bounds(mesh)
+    shape = "sphere" if dim == 3 else "disk"
+    note = (f"the inclusion {shape} ({2 * r:g} mm across) is narrower than one element "
+            f"({' x '.join(f'{v:.2g}' for v in size)} mm): its numbers are those of the element(s) it touches, not "
+            "of a region")
+    inside = all(b[2 * a] <= 10 * c[a] <= b[2 * a + 1] for a in range(dim)) and 20 * r < max(
+        b[2 * a + 1] - b[2 * a] for a in range(dim))
+    if inside:
+        note += f"; in centimetres? pass mm, --inclusion {' '.join(f'{10 * v:g}' for v in inclusion)}"
+    return [note]
+
+
 def _regions(inclusion, background):
     """(roi, background) callables on points (n, dim) mm: the disk / sphere and the box (None: everything)."""
     c, r = np.asarray(inclusion[:-1], float), float(inclusion[-1])
@@ -245,7 +268,8 @@ def _measure_elastogram(path, inclusion, background) -> dict:
            "inclusion_mm": dict(zip(("x", "y", "r"), (float(v) for v in inclusion))),
            "background_mm": None if background is None else dict(zip(("x0", "x1", "y0", "y1"),
                                                                      (float(v) for v in background))),
-           "strain": "normalised elastogram", "mesh_bounds_mm": dict(zip(("x0", "x1", "y0", "y1"), b))}
+           "strain": "normalised elastogram",
+           "mesh_bounds_mm": dict(zip(("x0", "x1", "y0", "y1"), (round(v, 6) for v in b)))}
     out.update({k: float(v) for k, v in vals.items()})
     out["notes"] = notes
     return out
@@ -263,7 +287,8 @@ def measure(path, inclusion, background=None, strain="element") -> dict:
         return _measure_elastogram(path, inclusion, background)
     inversion = is_inversion_file(path)
     res = load_inversion(path) if inversion else load_result(path)
-    notes = _check_regions(res.mesh, inclusion, background)
+    small = _small_inclusion_notes(res.mesh, inclusion)
+    notes = _check_regions(res.mesh, inclusion, background) + small
     roi, bg = _regions(inclusion, background)
     dim = np.shape(res.mesh.p)[0]
     box_keys = ("x0", "x1", "y0", "y1", "z0", "z1")[:2 * dim]
@@ -272,14 +297,15 @@ def measure(path, inclusion, background=None, strain="element") -> dict:
            "inclusion_mm": dict(zip(("x", "y", "z", "r") if dim == 3 else ("x", "y", "r"),
                                     (float(v) for v in inclusion))),
            "background_mm": None if background is None else dict(zip(box_keys, (float(v) for v in background))),
-           "strain": strain, "mesh_bounds_mm": dict(zip(box_keys, _bounds(res.mesh)))}
+           "strain": strain, "mesh_bounds_mm": dict(zip(box_keys, (round(v, 6) for v in _bounds(res.mesh))))}
     source = _Displacement(res.mesh, res.u_measured) if inversion else res
     try:
         out.update({k: float(v) for k, v in contrast_metrics(source, roi, background=bg, strain=strain).items()})
         if inversion:
             out.update({f"modulus_{k}": v for k, v in _modulus(res, roi, bg).items()})
     except (ValueError, InputError) as exc:            # a region without samples: the regions, not the data, are wrong
-        raise InputError(f"{exc} (inclusion {inclusion}, mesh {_bounds_text(_bounds(res.mesh))})") from None
+        raise InputError(f"{exc} (inclusion {inclusion}, mesh {_bounds_text(_bounds(res.mesh))})"
+                         + "".join(f"; {n}" for n in small)) from None
     out["notes"] = notes
     return out
 

@@ -41,6 +41,9 @@ def add_parser(subparsers):
                         "speckle cell of --reference, which it needs) and the element's width in lateral speckle "
                         "cells (below 1 outlined)")
     p.add_argument("--dpi", type=int, default=100, help="figure resolution (default 100)")
+    p.add_argument("--no-orientation-check", action="store_true",
+                   help="with --reference: read it without the checks that refuse frames that look transposed, a "
+                        "swapped spacing or IQ phases against --iq-frequency (femreg.orientation)")
     from .invert_cmd import add_slice_arg
 
     add_slice_arg(p)
@@ -69,6 +72,8 @@ def _run(args) -> int:
                             ("--render", args.render, ".png")):
         if path and Path(path).suffix.lower() != ext:
             raise InputError(f"{flag} must name a {ext} file, got {path}")
+    if args.no_orientation_check and not args.reference:     # it would be ignored
+        raise InputError("--no-orientation-check applies to the frames of --reference FILE, and none was given")
     if args.frame is not None and not args.reference:     # it would be ignored: the picture is not what was asked
         raise InputError(f"--frame {args.frame} picks a frame of --reference FILE, and none was given (a track's "
                          "frame K is its file OUT/frame_KKK.npz)")
@@ -91,7 +96,7 @@ def _run(args) -> int:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
     reference, bmode_title = None, "B-mode"
     if args.reference:
-        fr = frames_on_result_grid(args, args.reference, res.get("spacing"))
+        fr = frames_on_result_grid(args, args.reference, res.get("spacing"), res.get("shape"))
         found = None if getattr(args, "frames", None) else registered_frames(args.result, res)
         own, what = (found[0], found[2]) if found else (None, "")
         k = args.frame if args.frame is not None else (own if own is not None and own < fr.n_frames else 0)
@@ -117,10 +122,11 @@ def _run(args) -> int:
         print(f"femreg plot: note: {args.result} is a failed registration ({res.get('message', '')}); the figure "
               "says so in its title", file=sys.stderr)
     if res.get("quality") is not None and np.size(res["quality"]) == np.shape(res["mesh_cells"])[1]:
-        from ..plot import plot_quality
+        from ..plot import plot_quality, quality_pair
 
         qout = out.with_name(out.stem + "_quality.png")
-        plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi))
+        plt.close(plot_quality(res["mesh_points"], res["mesh_cells"], res["quality"], qout, dpi=args.dpi,
+                               pair=quality_pair(res)))
         print(f"wrote {qout}")
     if args.shear:
         _shear_figure(res, reference, out, args.dpi)

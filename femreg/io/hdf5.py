@@ -5,6 +5,11 @@ layout or naming.  What femreg reads:
 
 * the dataset: ``variable=`` (a path, e.g. ``"acq/rf"``), else one whose name is ``rf`` or ``frames`` anywhere in
   the file, else the only numeric dataset of 2 or 3 dimensions (each at least 2 long);
+* IQ frames stored as two real datasets, the in-phase and quadrature parts side by side in one group (``I`` /
+  ``Q``, ``I_data`` / ``Q_data``, ``rf_i`` / ``rf_q``, ``real`` / ``imag``, ``iq_re`` / ``iq_im``: names that
+  differ only in that part, of the same shape), or one compound dataset of such fields (MATLAB's ``real`` /
+  ``imag``, ``r`` / ``i``, ``I`` / ``Q``), are read as one complex dataset ``I + 1j Q`` (:func:`_iq_pairs`): either
+  half alone is not RF and no envelope either, and would register as such without a word;
 * its layout: a 3D dataset holds the frames on its first axis (numpy's ``(frame, axial, lateral)``, and MATLAB's
   ``h5write`` of ``rf(axial, lateral, frame)``, which HDF5 shows reversed as ``(frame, lateral, axial)``), unless
   that leaves frames thinner than :data:`femreg.io.matlab.MIN_FRAME_SAMPLES` while the last axis would not (then
@@ -63,16 +68,63 @@ def _datasets(f) -> dict:
     return found
 
 
-def _choose(path, dsets: dict, variable) -> str:
+#: Name parts of the in-phase and quadrature halves of IQ data stored as two datasets (lower case).
+IQ_PARTS = (("i", "q"), ("real", "imag"), ("re", "im"))
+#: Field names of a compound dataset holding complex samples (lower case): in-phase, quadrature.
+IQ_FIELDS = (("real", "imag"), ("r", "i"), ("re", "im"), ("i", "q"))
+
+
+def _iq_pairs(dsets: dict) -> dict:
+    """{in-phase path: quadrature path} of IQ data stored as two real datasets in one group: names equal but for
+    one of :data:`IQ_PARTS` (a whole word of the name, at its start or after ``_`` / ``-``, or followed by ``data``
+    / a separator), numeric, 2D or 3D, of the same shape."""
+    import re
+
+    by_lower = {k.lower(): k for k in dsets}
+    pairs = {}
+    for key, d in dsets.items():
+        if d.dtype.kind not in "iuf" or d.ndim not in (2, 3):
+            continue
+        group, _, base = key.rpartition("/")
+        low = base.lower()
+        for a, b in IQ_PARTS:
+            for m in re.finditer(rf"(?:^|(?<=[_\-])){a}(?=$|[_\-]|data)", low):
+                other = low[:m.start()] + b + low[m.end():]
+                partner = by_lower.get(f"{group}/{other}".lower().lstrip("/"))
+                q = dsets.get(partner) if partner else None
+                if q is not None and q.shape == d.shape and q.dtype.kind in "iuf":
+                    pairs[key] = partner
+    return pairs
+
+
+def _compound_iq(dtype):
+    """(in-phase field, quadrature field) of a compound dtype that holds complex samples (:data:`IQ_FIELDS`), or
+    None."""
+    names = dtype.names or ()
+    if len(names) != 2 or not all(dtype[k].kind in "iuf" for k in names):
+        return None
+    low = {k.lower(): k for k in names}
+    for a, b in IQ_FIELDS:
+        if a in low and b in low:
+            return low[a], low[b]
+    return None
+
+
+def _choose(path, dsets: dict, variable, pairs=None) -> str:
+    """The frames' dataset (module docstring); of an in-phase / quadrature pair (``pairs``) the in-phase path,
+    whichever half ``variable`` names."""
+    pairs = pairs or {}
     if variable is not None:
         key = str(variable).strip("/")
         if key not in dsets:
             raise fail(path, f"missing dataset {variable!r}; available: {', '.join(sorted(dsets)) or 'none'}")
-        return key
+        return next((i for i, q in pairs.items() if q == key), key)
     for key in sorted(dsets):
         if key.rsplit("/", 1)[-1].lower() in PREFERRED:
             return key
-    good = [k for k, d in dsets.items() if d.dtype.kind in "iufc" and d.ndim in (2, 3) and min(d.shape) > 1]
+    quadrature = set(pairs.values())
+    good = [k for k, d in dsets.items() if k not in quadrature and min(d.shape or (0,)) > 1 and d.ndim in (2, 3)
+            and (d.dtype.kind in "iufc" or _compound_iq(d.dtype) is not None)]
     if len(good) == 1:
         return good[0]
     if not good:
@@ -114,6 +166,14 @@ def _layout(arr, meta):
     return arr
 
 
+def _as_complex(real, imag):
+    """``real + 1j imag``, complex64 unless either part is double precision."""
+    real, imag = np.asarray(real), np.asarray(imag)
+    ctype = np.complex128 if max(real.dtype.itemsize, imag.dtype.itemsize) == 8 and "f" in (
+        real.dtype.kind, imag.dtype.kind) else np.complex64
+    return real.astype(ctype) + 1j * imag.astype(ctype)
+
+
 def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> dict:
     """Read RF (or IQ) frames from a plain HDF5 file: the fields of a :class:`~femreg.io.Frames` (module
     docstring)."""
@@ -123,14 +183,26 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
     try:
         with h5py.File(path, "r") as f:
             dsets = _datasets(f)
-            name = _choose(path, dsets, variable)
+            pairs = _iq_pairs(dsets)
+            name = _choose(path, dsets, variable, pairs)
             ds = dsets[name]
-            if ds.dtype.kind not in "iufc":
+            fields = _compound_iq(ds.dtype)
+            if ds.dtype.kind not in "iufc" and fields is None:
                 raise fail(path, f"dataset {name!r} is not numeric ({ds.dtype})")
             if ds.size * ds.dtype.itemsize > 1 << 34:
                 raise fail(path, f"dataset {name!r} claims {ds.shape} {ds.dtype} (over 16 GiB)")
             arr = ds[()]
-            stored = str(ds.dtype) if ds.dtype.kind != "c" else f"complex {np.dtype(ds.dtype).name}"
+            quadrature = pairs.get(name)
+            stored = np.dtype(ds.dtype).name
+            if fields is not None:          # one compound dataset: the complex samples as two numeric fields
+                part = arr[fields[0]]
+                stored = f"complex {part.dtype.name} (fields {fields[0]!r}, {fields[1]!r})"
+                arr = _as_complex(part, arr[fields[1]])
+            elif quadrature is not None:    # the two halves of IQ data as two datasets
+                stored = f"complex {arr.dtype.name} (datasets {name!r} + 1j {quadrature!r})"
+                arr = _as_complex(arr, dsets[quadrature][()])
+            elif ds.dtype.kind == "c":
+                stored = f"complex {stored}" if not stored.startswith("complex") else stored
             file_spacing, origin = _named(f, ds, "spacing"), _named(f, ds, "origin")
             # scalar datasets are header fields too (an export's probe/fs, as MATLAB's scalar variables)
             scalars = {k: d[()] for k, d in dsets.items() if k != name and d.size == 1
@@ -143,6 +215,8 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
     except Exception as exc:  # h5py raises OSError, KeyError, RuntimeError on corrupt files
         raise fail(path, f"corrupt or truncated HDF5 file ({type(exc).__name__}: {exc})") from None
     meta = {"format": "hdf5", "variable": name, "variables": sorted(dsets), "stored_dtype": stored}
+    if name in pairs:
+        meta["iq_datasets"] = [name, pairs[name]]
     if attrs:
         meta["fields"] = attrs
     if axes:
