@@ -2,10 +2,11 @@
 those its rules were tuned on (the robustness, inclusion-size and plane-strain-model benchmarks).
 
 Each pair is registered twice with R_P_sigma, ``femreg.register(ref, mov, spacing=..., origin=...)`` (the default
-``refine``) and with ``refine=None``.  Measured per pair: the total strain error ``e`` (%, relative L2 of
-``e_xx, e_yy, e_xy`` over the robustness ROI, :func:`benchmarks.robustness.errors`), CPU seconds of each
-registration (``time.process_time``, one run), the elements of each final mesh, ``res.success`` /
-``res.message`` and the refinement's note.  A pair is flagged where the default is
+``refine``) and with ``refine=None``.  Measured per pair: the total strain error ``e`` (%, relative L2 of ``e_xx,
+e_yy, e_xy`` over the robustness ROI, :func:`benchmarks.robustness.errors`), CPU seconds of each registration
+(``time.process_time``, the least of ``--repeats`` runs, default 3: a registration takes 0.05-1 s here, one run's
+CPU time varies by up to 2x), the elements of each final mesh, ``res.success`` / ``res.message`` and the
+refinement's note.  A pair is flagged where the default is
 
 * ``worse``: more than 0.3 points above ``refine=None``;
 * ``fail``: ``success`` False where ``refine=None`` succeeds;
@@ -23,13 +24,15 @@ Pairs (:data:`CASES`, a fixed seed each; :func:`forward.pairs.make_pair`, exact 
 * out-of-plane decorrelation: the moving frame ``sqrt(1 - rho^2) mov + rho mov'``, ``mov'`` an independent speckle
   realisation moved by the same field (rho 0.2, 0.3 and 0.55, i.e. 4 %, 9 % and 30 % of the energy new);
 * SNR 10 dB; 10 x 10 mm and 60 x 40 mm images;
-* a 5 degree in-plane rotation about the probe-face centre composed with an inclusion
-  (``u(X) = R (X + u_inc(X)) - X``, strain by central differences of that ``u``).
+* an in-plane rotation about the probe-face centre composed with an inclusion (``u(X) = R (X + u_inc(X)) - X``,
+  strain by central differences of that ``u``): 5 degrees under the paper's probe, 7.5 MHz and 15 MHz, 3-4 degrees
+  under 12 MHz (``benchmarks/rotation_sweep.py`` stops at 4 degrees: beyond, the speckle decorrelates and the
+  registration should say it failed).
 
 Outputs (``--out``, default ``out/refine_stress/``): ``results.md`` (the table printed) and ``results.csv``.
 
-Run: ``python benchmarks/refine_stress.py [--cases words] [--out dir] [--list]`` (``--cases``: comma-separated
-words, cases whose name contains one; about 3 min for all 30 pairs on one core, most of it the simulation).
+Run: ``python benchmarks/refine_stress.py [--cases words] [--out dir] [--repeats 3] [--list]``
+(``--cases``: comma-separated words, cases whose name contains one; about 4 min for all 33 pairs on one core).
 """
 from __future__ import annotations
 
@@ -165,6 +168,12 @@ CASES = [
                2.0, 129),
     StressCase("rot5_soft-pstress2_r3_L7", _inc("soft", "plane-stress", 0.02, 3, rot=5.0), "L7", (30, 30), 25, 5.0,
                130),
+    StressCase("rot5_stiff-pstrain1_r3_L15", _inc("stiff", "plane-strain", 0.01, 3, rot=5.0), "L15", (15, 15), 25,
+               12.5, 133),
+    StressCase("rot4_soft-pstress2_r3_L12", _inc("soft", "plane-stress", 0.02, 3, rot=4.0), "L12", (30, 30), 25, 5.0,
+               132),
+    StressCase("rot3_stiff-pstrain1_r4_L12", _inc("stiff", "plane-strain", 0.01, 4, rot=3.0), "L12", (30, 30), 25,
+               5.0, 131),
 ]
 
 
@@ -189,17 +198,21 @@ def make_stress_pair(case: StressCase):
     return data, mov
 
 
-def _register(ref, mov, data, kw):
+def _register(ref, mov, data, kw, repeats=1):
+    """(result, least CPU seconds over ``repeats`` runs) of ``femreg.register`` with the keywords ``kw``."""
     import femreg
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        c0 = time.process_time()
-        res = femreg.register(ref, mov, spacing=data.spacing, origin=data.origin, **kw)
-        return res, time.process_time() - c0
+    best = np.inf
+    for _ in range(max(1, int(repeats))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            c0 = time.process_time()
+            res = femreg.register(ref, mov, spacing=data.spacing, origin=data.origin, **kw)
+            best = min(best, time.process_time() - c0)
+    return res, best
 
 
-def measure(case: StressCase) -> dict:
+def measure(case: StressCase, repeats: int = 1) -> dict:
     """Errors, CPU seconds, elements, success and message of ``refine=None`` ("off") and the default ("on")."""
     t0 = time.perf_counter()
     data, mov = make_stress_pair(case)
@@ -210,7 +223,7 @@ def measure(case: StressCase) -> dict:
     row = dict(case=case.name, shape="x".join(map(str, data.ref.shape)), sim_s=t_sim)
     for key, kw in (("off", dict(refine=None)), ("on", {})):
         try:
-            res, cpu = _register(data.ref, mov, data, kw)
+            res, cpu = _register(data.ref, mov, data, kw, repeats)
             rec = getattr(res, "refinement", None)
             row.update({f"e_{key}": 100 * errors(res.on_grid(), t, sl, lam)["e"], f"cpu_{key}": cpu,
                         f"el_{key}": int(res.mesh.t.shape[1]), f"ok_{key}": bool(res.success),
@@ -272,6 +285,7 @@ def main(argv=None):
     ap.add_argument("--cases", default="", help="comma-separated words; run cases whose name contains one")
     ap.add_argument("--out", default="out/refine_stress", help="output folder (default out/refine_stress)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per registration; CPU time: the least (default 3)")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
@@ -294,7 +308,7 @@ def main(argv=None):
         w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
         for c in cases:
-            r = measure(c)
+            r = measure(c, a.repeats)
             rows.append(r)
             w.writerow(r)
             fh.flush()
