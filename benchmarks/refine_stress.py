@@ -31,13 +31,14 @@ Pairs (:data:`CASES`, a fixed seed each; :func:`forward.pairs.make_pair`, exact 
 
 Outputs (``--out``, default ``out/refine_stress/``): ``results.md`` (the table printed) and ``results.csv``.
 
-Run: ``python benchmarks/refine_stress.py [--cases words] [--out dir] [--repeats 3] [--list]``
+Run: ``python benchmarks/refine_stress.py [--cases words] [--out dir] [--repeats 3] [--seed 0] [--list]``
 (``--cases``: comma-separated words, cases whose name contains one; about 4 min for all 33 pairs on one core).
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import os
 import sys
@@ -286,11 +287,15 @@ def main(argv=None):
     ap.add_argument("--out", default="out/refine_stress", help="output folder (default out/refine_stress)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--repeats", type=int, default=3, help="runs per registration; CPU time: the least (default 3)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="added to every case's seed: other speckle and noise realisations of the same pairs")
     a = ap.parse_args(argv)
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
     ws = [w for w in a.cases.split(",") if w]
     cases = [c for c in CASES if not ws or any(w in c.name for w in ws)]
+    if a.seed:
+        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
     if a.list:
         for c in CASES:
             print(f"{c.name:36s} probe {c.probe:6s} {c.size_mm[0]}x{c.size_mm[1]} mm SNR {c.snr_db} dB seed {c.seed}")
