@@ -55,7 +55,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.robustness import errors, roi_slices, truth  # noqa: E402
 from forward import fields as F  # noqa: E402
-from forward.pairs import PROBES, Probe, as_probe, make_pair  # noqa: E402
+from forward.pairs import Probe, as_probe, make_pair  # noqa: E402
 
 #: Probes not among the presets the refinement rules were tuned on.
 STRESS_PROBES = {
@@ -96,6 +96,9 @@ class Rotated:
 
 @dataclass
 class StressCase:
+    """One pair: the field (built lazily), the probe, the image (depth, width) mm from ``top_mm``, SNR dB, seed, and
+    what is done to the moving frame after rendering (``gain``, ``ramp_db``, ``rho``)."""
+
     name: str
     field: object            # callable () -> field
     probe: str               # a key of STRESS_PROBES or PROBES
