@@ -195,7 +195,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread",
            "with_refinement", "RefinementRecord"]
@@ -260,6 +260,12 @@ class Refinement:
         How a run is measured against ``relax_min_length``: the summed length of its edges, or its extent (the
         larger side of its bounding box), which a layer across the image has and a staircase of short edges
         around small features has not.
+    relax_ring : float, optional
+        With ``relax_run="extent"``: a run that reaches no border of the mesh and whose bounding box's shorter
+        side is at least this fraction of its longer side is not relaxed, however long (:data:`RING_ASPECT`): the
+        run of jumps around an inclusion's rim (or half of it) lies inside the image and is not thin; a layer or a
+        slip crosses the image to its borders, and a band's face broken off before them is a thin line.  None:
+        no such test.
     relax_max_fraction : float
         At most this fraction of the mesh's interior edges is relaxed (the edges that stand out most).
     relax_cells : bool
@@ -489,6 +495,7 @@ class Refinement:
     relax_parts: str = "tangential"
     relax_min_length: float = 4.0
     relax_run: str = "length"
+    relax_ring: float | None = None
     relax_max_fraction: float = 0.05
     relax_cells: bool = True
     relax_solve: bool = False
@@ -586,6 +593,7 @@ class Refinement:
         _number(self, "relax_threshold", 0, optional=True)
         _number(self, "relax_min_length", 0, what="a length >= 0 (mm)")
         _choice(self, "relax_run", ("length", "extent"))
+        _number(self, "relax_ring", 0, 1, optional=True, open_low=True, what="a ratio in (0, 1]")
         _number(self, "relax_max_fraction", 0, 1, open_low=True, what="a fraction in (0, 1]")
         _integer(self, "maxiter", 1, None, optional=True)
         _number(self, "min_added", 0, 1, open_high=True, what="a fraction in [0, 1)")
@@ -730,6 +738,15 @@ CLEAN_ALPHA_NCC = 0.02
 #: the pairs below the gate that mark fewer, 8 % compression under L3 0.41, keep the quartering).
 SPREAD_COVERAGE = 0.8
 
+#: :attr:`Refinement.relax_ring` of :data:`DEEP_REFINEMENT`: a run of standing-out shear-traction jumps that reaches
+#: no border of the mesh and whose bounding box's shorter side is at least this fraction of its longer is an
+#: inclusion's rim, not a layer.  Measured (runs of 20 mm and more on the unrefined solve): a soft r 5 mm
+#: plane-stress inclusion at 2 % in a 60 x 40 mm image (7.5 MHz, ``benchmarks/refine_stress.py``) two half rims,
+#: 24 x 13 mm, 0.53-0.55, relaxed as a layer before this test (total strain error 7.48 % unrefined, 12.68 %
+#: refined); runs inside the mesh on the shear bands (``benchmarks/shear_bands.py``) at most 0.018 (faces broken off
+#: before the border); runs reaching a border are not tested (sliding columns up to 0.45, bands up to 0.19).
+RING_ASPECT = 0.25
+
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
@@ -746,7 +763,8 @@ SPREAD_COVERAGE = 0.8
 #: row or column is marked on a noisy or decorrelated pair (:attr:`Refinement.coverage`, :data:`NOISE_COVERAGE`).
 #: Measured: module docstring and docs/refinement.md.
 DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growth=None, relax=0.02,
-                             relax_persist=False, relax_min_length=20.0, relax_run="extent", strong=3.0, feature=2.2,
+                             relax_persist=False, relax_min_length=20.0, relax_run="extent",
+                             relax_ring=RING_ASPECT, strong=3.0, feature=2.2,
                              settle=True, fine=4.6, fine_min_size=(0.15, 0.25), fine_maxiter=2, fine_maxiter_stress=5,
                              fine_alpha=0.1, fine_alpha_ncc=0.08, relax_alpha_ncc=0.04, fine_alpha_beam=0.4,
                              fine_min_pixels=1, fine_layer=1.0, fine_layer_full=True,
@@ -1192,6 +1210,13 @@ def relaxed_edges(mesh, u, opts: Refinement, previous=None, cells: bool | None =
         np.minimum.at(lo_x, lab, segs[:, 0]), np.minimum.at(lo_y, lab, segs[:, 2])
         np.maximum.at(hi_x, lab, segs[:, 1]), np.maximum.at(hi_y, lab, segs[:, 3])
         run = np.maximum(hi_x - lo_x, hi_y - lo_y)
+        if opts.relax_ring is not None:
+            # an inclusion's rim inside a large image reaches 20 mm too: inside the mesh and not thin, it is no
+            # layer across the image
+            eps = 1e-6 * max(float(xs[-1] - xs[0]), float(ys[-1] - ys[0]))
+            inside = (lo_x > xs[0] + eps) & (hi_x < xs[-1] - eps) & (lo_y > ys[0] + eps) & (hi_y < ys[-1] - eps)
+            ring = inside & (np.minimum(hi_x - lo_x, hi_y - lo_y) >= opts.relax_ring * run)
+            run = np.where(ring, 0.0, run)
     else:
         length = (segs[:, 1] - segs[:, 0]) + (segs[:, 3] - segs[:, 2])
         run = np.bincount(lab, weights=length)
