@@ -69,7 +69,7 @@ def main(argv=None):
                     ax.axvline(y, color="k", lw=0.2, alpha=0.35)
             ax.set_title(f"{name}, {title}", fontsize=10)
             ax.set_xlabel("lateral y (mm)")
-            ax.set_ylabel("depth x (mm)")
+            ax.set_ylabel("axial x (mm)")
         fig.colorbar(im, ax=axes[i], shrink=0.8, label=name)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=80)

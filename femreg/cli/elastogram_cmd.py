@@ -202,7 +202,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         cb.set_ticks(np.log10(ticks), labels=[f"{v:g}" for v in ticks])
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
-        ax.set_ylabel("depth x (mm)")
+        ax.set_ylabel("axial x (mm)")
     if failure:
         # the whole advice: the band to pass is at its end
         draw_failure(fig, f"NO ELASTOGRAM: {failure}", max_lines=None)
