@@ -68,8 +68,8 @@ def _span_hint(covers, b, c) -> str:
     inside = [x for x in xs if covers(np.array([x, c[1]]))]
     if not inside:
         return f"; it is not a rectangle (e.g. a convex or sector fan): nothing at y = {c[1]:g} mm"
-    return (f"; it is not a rectangle (e.g. a convex or sector fan): at y = {c[1]:g} mm it spans x {min(inside):.2f} to "
-            f"{max(inside):.2f} mm")
+    return (f"; it is not a rectangle (e.g. a convex or sector fan): at y = {c[1]:g} mm it spans x "
+            f"{min(inside):.2f} to {max(inside):.2f} mm")
 
 
 def _check_counts(dim, inclusion, background):
