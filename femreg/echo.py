@@ -47,7 +47,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
