@@ -166,3 +166,25 @@ def test_dead_rows_stay_with_the_echo_finder(pair):
     ref, mov = pair.ref.copy(), pair.mov.copy()
     ref[-60:], mov[-60:] = 0.0, 0.0
     assert find_rf_fan(ref, mov, (pair.spacing[0], 0.4), (3.0, 0.0)) is None
+
+
+def test_elastogram_of_scan_converted_rf_takes_the_fan(tmp_path):
+    """A scan-converted RF loop (zero wedges): the elastogram is registered over the fan, as a B-mode loop's.
+    Before: every pair of the 3.5 MHz loop was rejected (FAILED, peak hopping at the wedges) and no elastogram
+    came out."""
+    from femreg import Convex
+    from femreg.elastogram import elastogram
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=R_MM, angle_pitch_deg=PITCH_DEG), probe="L7",
+                             depth_mm=12.0, n_rays=40, snr_db=30.0, seed=2, n_frames=3, step=0.008)
+    frames = []
+    for k in range(1, 3):
+        p = type("P", (), dict(ref=seq.frames[k - 1], mov=seq.frames[k], spacing=seq.spacing, origin=seq.origin,
+                               geometry=seq.geometry))
+        (a, b), sp, org, inside = _scan_convert(p)
+        frames += [a, b] if k == 1 else [b]
+    out = elastogram(np.stack(frames), spacing=sp, origin=org, maxiter=8)
+    assert out.data_mask is not None and "fill of value 0" in (out.excluded or ""), out.excluded
+    assert np.isnan(out.exx[0, 0]) and np.isfinite(out.exx[out.exx.shape[0] // 2, out.exx.shape[1] // 2])
