@@ -48,6 +48,16 @@ def files(pair, tmp_path_factory):
     return d
 
 
+def test_angle_step_names():
+    from femreg.io.checks import geometry_fields
+
+    for name in ("line_angle_step", "rayAngleIncrement", "beam_angle_spacing_deg", "d_line_angle"):
+        assert geometry_fields({name: 0.3})["angle_pitch_deg"] == pytest.approx(0.3), name
+    assert geometry_fields({"line_angle_step_rad": 0.005236})["angle_pitch_deg"] == pytest.approx(0.3, rel=1e-3)
+    # a linear array's plane-wave steering step is no ray pitch: such a file stays registrable as linear
+    assert geometry_fields({"angle_step": 1.0}) == {} and geometry_fields({"theta_increment": 0.5}) == {}
+
+
 def test_header_struct_names_the_probe(files, capsys):
     """``header.line_angle_step`` (deg) and ``header.probe_radius`` (m), or a vector ``header.line_angles``
     (rad) inside the struct: info names the flags.  Before: neither was recognised, info suggested a lateral

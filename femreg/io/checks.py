@@ -354,8 +354,9 @@ _ANGLE_VECTOR_NAMES = ("theta", "thetas", "angles", "rayangles", "beamangles", "
                        "scanangles", "azimuth", "azimuthangles", "steeringangles", "sectorangles")
 
 
-# an angle-pitch field is also named stem + step word (``line_angle_step``, ``angle_increment``, ``delta_theta``)
-_ANGLE_STEMS = ("angle", "angular", "lineangle", "rayangle", "beamangle", "scanangle", "theta")
+# an angle-pitch field is also named stem + step word (``line_angle_step``, ``ray_angle_increment``); a bare
+# ``angle_step`` / ``theta_step`` is left out: a plane-wave sequence's steering step on a linear array reads so
+_ANGLE_STEMS = ("lineangle", "rayangle", "beamangle", "scanangle", "scanlineangle")
 _STEP_WORDS = ("pitch", "step", "increment", "inc", "spacing", "delta", "interval", "separation")
 
 
