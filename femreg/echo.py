@@ -47,7 +47,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -232,6 +232,34 @@ def _fill_reason(value, fraction) -> str:
     """The start of what a fill's exclusion says (:func:`find_fill`, :func:`fan_region`)."""
     return (f"fill of value {value:g} ({100 * fraction:.0f} % of the frame: the wedges of a scan-converted sector or "
             f"a blanked margin, fixed while the tissue moves) excluded: ")
+
+
+def find_rf_fan(ref, mov, spacing, origin) -> EchoRegion | None:
+    """The fan of an RF pair scan-converted onto a Cartesian grid (validated (n_axial, n_lateral) frames,
+    ``spacing``, ``origin`` mm): zero samples in both frames, in pieces touching the frame's edge, together more
+    than :data:`FILL_FRACTION` of it and not only whole rows or lines (those are dead rows / lines,
+    :func:`find_echo`), as :func:`find_fill` for a B-mode; None otherwise.  Registered over the rectangle, the
+    fixed zero wedges pull the field (a 3.5 MHz convex pair, 1617 x 666 samples, 39 % wedges: FAILED, peak
+    hopping at the wedges' edges)."""
+    from scipy import ndimage
+
+    zero = (ref == 0) & (mov == 0)
+    if zero.sum() <= FILL_FRACTION * ref.size:
+        return None
+    labels, _ = ndimage.label(zero)
+    edge = np.unique(np.r_[labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    fill = np.isin(labels, edge[edge > 0])
+    rows, cols = np.flatnonzero((~fill).any(axis=1)), np.flatnonzero((~fill).any(axis=0))
+    if rows.size < 2 or cols.size < 2:
+        return None
+    box = fill[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    if box.sum() <= FILL_FRACTION * ref.size:
+        return None                     # zero rows or lines at the edges only: find_echo's dead ones
+    dx, dy = (float(t) for t in spacing)
+    ox, oy = (float(t) for t in origin)
+    (a, b), (c, d) = _fill_rectangle(fill, f"{100 * fill.mean():.0f} % of the reference is zero samples")
+    return EchoRegion((a, b), (c, d), fill.shape, (dx, dy), (ox, oy), _fill_reason(0.0, fill.mean()), fill=fill,
+                      fill_value=0.0)
 
 
 def find_fill(ref, mov, spacing, origin) -> EchoRegion | None:
@@ -762,6 +790,9 @@ def crop_for(reference, moving, spacing, origin=(0.0, 0.0), *, roi="auto", depth
         if fan:
             return Crop(fan_region(region), mp, False, time.perf_counter() - t)
     else:
+        fan_rf = find_rf_fan(ref, mov, spacing, origin) if fan else None
+        if fan_rf is not None:          # RF scan-converted onto a Cartesian grid: the fan, as a B-mode's
+            return Crop(fan_region(fan_rf), mp, False, time.perf_counter() - t)
         region = _find_echo(ref, mov, spacing, origin)
     n, m = ref.shape
     (a, b), (c, d) = region.rows, region.cols

@@ -50,7 +50,7 @@ from scipy import ndimage
 
 from ._atomic import atomic_savez, atomic_write_text, open_run_folder, progress_bar
 from .blockmatch import block_match
-from .echo import crop_for, rf_like
+from .echo import crop_for, find_rf_fan, rf_like
 from .errors import InputError, pass_as
 from . import orientation
 from .image import repeated_frames, validate_image, validate_spacing
@@ -718,9 +718,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         crop = crop_for(first, last, spacing, origin, roi=roi, depth=depth, margin=register_kwargs.get("margin"),
                         data_mask=data_mask)
         seq, region, origin, excluded = _cut(seq, crop)
-    elif data_mask is not None or (roi is not None and not rf_like(first)):
+    elif data_mask is not None or (roi is not None and (not rf_like(first) or find_rf_fan(
+            first, last, spacing, origin) is not None)):
         # the fan whole: its wedges are fixed on the screen, so they are screened and registered with weight 0
-        # (femreg.echo.fan_region); RF frames are registered whole
+        # (femreg.echo.fan_region); RF frames are registered whole unless scan-converted, zero around a fan
         crop = crop_for(first, last, spacing, origin, roi="auto", margin=register_kwargs.get("margin"), fan=True,
                         data_mask=data_mask)
         if data_mask is not None:

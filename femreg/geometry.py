@@ -367,6 +367,12 @@ def _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c):
     with the range step."""
     from .orientation import MIN_LATERAL_CELL_PERIODS, diagnose
 
+    if getattr(exc, "problem", "") == "transposed":
+        # the lateral value checked is the rays' distance at the middle sample, not one the user gave or can
+        # keep: a convex / sector frame's spacing is the range step alone
+        msg = str(exc).replace(f"--spacing {dr:g} {ds:g} (axial, lateral;", f"--spacing {dr:g} auto (range step;")
+        msg = msg.replace(f"({dr:g}, {ds:g}) mm (axial, lateral;", f"{dr:g} mm (range step;")
+        return OrientationError(msg, problem="transposed") if msg != str(exc) else exc
     if getattr(exc, "problem", "") not in ("swapped", "spacing"):
         return exc
     rep = diagnose(ref, (dr, ds))

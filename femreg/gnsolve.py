@@ -49,6 +49,7 @@ def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=Non
     keep = getattr(I1, "weights_mask", None)      # a fan's fill and its neighbourhood (femreg.echo.fan_weights)
     if keep is not None:
         term.w = np.where(keep.ravel()[quad.index], term.w, 0.0)
+        term.fan_keep = keep.ravel()[quad.index]      # femreg.repair.element_ncc: quality over the fan only
     return term
 
 

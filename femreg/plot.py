@@ -14,6 +14,7 @@ in a red banner with its message; the part of the image outside the registered m
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,8 @@ _DIVERGING = ("RdBu_r", "RdBu", "seismic", "bwr", "coolwarm", "PuOr", "PiYG")
 #: other sign is a sliver (e.g. an axial displacement negative almost everywhere whose 99th percentile is 2 % of
 #: its 1st), for which symmetric limits would leave about half the colour bar unused.
 SIGNED_SHARE = 0.15
+#: Characters per line of a result figure's footer (the hatching's note and what was left out).
+SUPXLABEL_WIDTH = 150
 
 
 def colour_scale(values, percentiles=(1.0, 99.0)):
@@ -533,8 +536,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
             _shade_outside(ax, outside, sp, origin, roi,
                            label=(str(excluded) if excluded else "not registered (outside the mesh)")
                            if i == 0 else None, positions=positions)
-        fig.supxlabel("hatched: outside the registered mesh (no displacement or strain there)"
-                      + (f"; {excluded}" if excluded else ""), fontsize="small")
+        # wrapped: an exclusion's reason (a fan's fill) runs past the figure's edges on one line
+        fig.supxlabel(textwrap.fill("hatched: outside the registered mesh (no displacement or strain there)"
+                                    + (f"; {excluded}" if excluded else ""), SUPXLABEL_WIDTH), fontsize="small")
     info = []
     if "regularizer" in d:
         info.append(f"regulariser {d['regularizer']}")

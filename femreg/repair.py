@@ -84,10 +84,19 @@ def element_ncc(data, u, n_elements: int, groups=None) -> np.ndarray:
     """NCC of reference and warped moving image over each element's pixels, (n_elements,); NaN for elements
     with fewer than 4 pixels.  ``data`` is the :class:`femreg.data_term.SSDTerm` of the solve.  ``groups``
     (n_elements,) int: the NCC over the pixels of each group of elements instead (a refined mesh's unrefined
-    parent cells, :func:`femreg.refine.parent_cells`), (groups.max() + 1,)."""
+    parent cells, :func:`femreg.refine.parent_cells`), (groups.max() + 1,).  Pixels a fan's fill leaves out of
+    eq:IR (``data.fan_keep`` False, :func:`femreg.gnsolve.image_term`) are left out here too."""
     a = data.ref_values
     b = data.residual(u) + a
     gr = data.quad.location.grid
+    keep = getattr(data, "fan_keep", None)
+    if keep is not None and not np.all(keep):
+        # a fan's fill is the same in both frames (constant, or zero RF): its pixels would read as a mismatch
+        el = _pixel_elements(data.quad) if groups is None else np.asarray(groups, np.int64)[_pixel_elements(data.quad)]
+        n = n_elements if groups is None else int(np.max(groups)) + 1
+        q, cnt = _group_ncc(el[keep], a[keep], b[keep], n)
+        q[cnt < 4] = np.nan
+        return q
     if groups is not None:
         groups = np.asarray(groups, np.int64)
         q, cnt = _group_ncc(groups[_pixel_elements(data.quad)], a, b, int(groups.max()) + 1)

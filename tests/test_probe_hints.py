@@ -20,7 +20,9 @@ def test_geometry_fields_units_and_names():
     g = geometry_fields({"ROC": 0.06, "dtheta": np.deg2rad(0.5)})
     assert g["radius_mm"] == pytest.approx(60.0) and g["angle_pitch_deg"] == pytest.approx(0.5)
     assert geometry_fields({"angle_pitch": 60.0}) == {}        # a field of view, not the angle between rays
-    assert geometry_fields({"radius_mm": 50.0}) == {}           # no angle between rays: nothing to register with
+    # a radius without the angle between rays is still a convex array: the flag named, its value asked for
+    assert geometry_fields({"radius_mm": 50.0}) == {"radius_mm": 50.0, "names": ("radius_mm = 50",)}
+    assert "--geometry convex --radius 50 --angle-pitch DEG" in geometry_hint({"radius_mm": 50.0})
     assert "--geometry sector --angle-pitch 0.35" in geometry_hint({"line_angle_deg": 0.35})
     assert geometry_hint({"fs": 40e6, "pitch": 0.3}) == ""      # a linear array's header
     # with the rays' angle known, the lateral spacing is not asked for
@@ -121,7 +123,7 @@ def test_axis_fields_find_evenly_spaced_vectors():
     # angles are not one per line
     g = geometry_fields({"ROC": 0.0412}, ax, 80)
     assert g["radius_mm"] == pytest.approx(41.2) and g["angle_pitch_deg"] == pytest.approx(0.5)
-    assert geometry_fields({"ROC": 0.0412}, ax) == {}            # the number of lines unknown: not used
+    assert "angle_pitch_deg" not in geometry_fields({"ROC": 0.0412}, ax)   # the number of lines unknown: unused
     steer = axis_fields([("angles", np.deg2rad(np.linspace(-9, 9, 7)))])
     assert geometry_fields({}, steer, 128) == {} and geometry_fields({}, ax, 96) == {}
     assert geometry_fields({}, axis_fields([("scan/theta_deg", np.linspace(-20, 20, 81))]), 81)[

@@ -196,9 +196,32 @@ def _remove_empty(folders) -> None:
 _stderr_is_terminal = stderr_is_terminal
 
 
+#: the probe-geometry flags of register / track / batch, and what a command without them does instead
+_GEOMETRY_FLAGS = ("--geometry", "--radius", "--angle-pitch", "--sweep-radius", "--angle-step")
+_GEOMETRY_ELSEWHERE = {
+    "elastogram": "it reads a linear array's frames; a convex or sector loop is tracked with femreg track LOOP -o "
+                  "run/ --geometry convex --radius MM --angle-pitch DEG",
+    "plot": "the probe geometry is stored in the result",
+    "invert": "the probe geometry is stored in the result",
+    "measure": "the probe geometry is stored in the result",
+    "info": "it names the geometry the file's header states",
+}
+
+
+def _unknown_option_hint(name, command) -> str:
+    """Why an option was left over: the command has no such option (not a value count: the words after it are
+    its values); for a probe-geometry flag, what the command does instead."""
+    cmd = f"femreg {command}" if command else "femreg"
+    why = _GEOMETRY_ELSEWHERE.get(command or "", "") if name in _GEOMETRY_FLAGS else ""
+    return f" ({cmd} has no {name} option{': ' + why if why else ''}; {cmd} --help lists its options)"
+
+
 def _extra_hint(argv, extra, command) -> str:
     """Why words were left over: the option before them takes fewer values (``--frames 1 2 3`` for
     ``--frames 1,2,3``); "" when no option precedes them."""
+    first = str(extra[0])
+    if first.startswith("-") and not first.lstrip("-+.").replace(".", "").isdigit():
+        return _unknown_option_hint(first.split("=", 1)[0], command)
     try:
         i = argv.index(extra[0])
     except ValueError:

@@ -61,6 +61,17 @@ def _bounds_text(b):
     return ", ".join(f"{a} {b[2 * k]:.2f} to {b[2 * k + 1]:.2f} mm" for k, a in enumerate("xyz"[:len(b) // 2]))
 
 
+def _span_hint(covers, b, c) -> str:
+    """A centre inside the bounds ``b`` but outside the region (a convex or sector fan, whose corners are not
+    registered): where the region spans at the centre's lateral position ``c[1]``, in words."""
+    xs = np.linspace(b[0], b[1], 401)
+    inside = [x for x in xs if covers(np.array([x, c[1]]))]
+    if not inside:
+        return f"; it is not a rectangle (e.g. a convex or sector fan): nothing at y = {c[1]:g} mm"
+    return (f"; it is not a rectangle (e.g. a convex or sector fan): at y = {c[1]:g} mm it spans x "
+            f"{min(inside):.2f} to {max(inside):.2f} mm")
+
+
 def _check_counts(dim, inclusion, background):
     """InputError unless --inclusion / --background have the counts of a ``dim``-D result."""
     kind = "a volume's result" if dim == 3 else "a 2D result"
@@ -105,6 +116,8 @@ def _check_shapes(dim, b, covers, inclusion, background, where):
         metres = (covers(c * 1e3) and r * 1e3 < max(b[2 * a + 1] - b[2 * a] for a in range(dim)))
         hint = (f"; the numbers look like metres: pass them in mm, --inclusion "
                 f"{' '.join(f'{v * 1e3:g}' for v in inclusion)}" if metres else "")
+        if not hint and dim == 2 and b[0] <= c[0] <= b[1] and b[2] <= c[1] <= b[3]:
+            hint = _span_hint(covers, b, c)
         raise InputError(f"inclusion centre ({centre}) mm lies outside {where} ({_bounds_text(b)}){hint}")
     notes = []
     if any(c[a] - r < b[2 * a] or c[a] + r > b[2 * a + 1] for a in range(dim)):

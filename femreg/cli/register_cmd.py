@@ -120,6 +120,27 @@ def refuse_unused_geometry(args) -> None:
                          "out)")
 
 
+#: Tightest curvature of a convex array, mm (microconvex and endocavity arrays: 8-25 mm, abdominal 40-80 mm).
+MIN_CONVEX_RADIUS_MM = 8.0
+
+
+def _check_radius_units(args) -> None:
+    """A ``--radius`` no convex array has: below 1 mm it reads as metres and is refused (the fan's geometry would be
+    a sector's, every lateral position wrong); below :data:`MIN_CONVEX_RADIUS_MM` it reads as centimetres, a note
+    on stderr (registered as given)."""
+    from femreg.errors import InputError
+
+    r = float(args.radius)
+    if r < 1.0:
+        raise InputError(f"--radius {r:g} mm: no convex array is that tight (microconvex 8-25 mm, abdominal 40-80 "
+                         f"mm); in metres it would be --radius {1e3 * r:g} (mm); a phased array, apex on the face: "
+                         "--geometry sector")
+    if r < MIN_CONVEX_RADIUS_MM:
+        who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+        print(f"{who}: note: --radius {r:g} mm is tighter than convex arrays are (microconvex 8-25 mm, abdominal "
+              f"40-80 mm): in centimetres it would be --radius {10 * r:g}; registered as given", file=sys.stderr)
+
+
 def _geometry(args):
     import femreg
     from femreg.errors import InputError
@@ -129,7 +150,9 @@ def _geometry(args):
     if args.geometry == "convex":
         if args.radius is None:
             raise InputError("--geometry convex needs --radius (mm from the apex to the face)")
-        return femreg.Convex(radius_mm=args.radius, angle_pitch_deg=args.angle_pitch)
+        geo = femreg.Convex(radius_mm=args.radius, angle_pitch_deg=args.angle_pitch)
+        _check_radius_units(args)
+        return geo
     if args.radius not in (None, 0.0):
         raise InputError("--geometry sector has its apex on the face: no --radius")
     return femreg.Sector(angle_pitch_deg=args.angle_pitch)
@@ -164,7 +187,7 @@ def _check_stated_geometry(fr, path, beam, args) -> None:
         return
     given_r = float(getattr(beam, "radius_mm", 0.0) or 0.0)
     wrong = []
-    if abs(float(beam.angle_pitch_deg) / g["angle_pitch_deg"] - 1.0) > 0.02:
+    if "angle_pitch_deg" in g and abs(float(beam.angle_pitch_deg) / g["angle_pitch_deg"] - 1.0) > 0.02:
         wrong.append(f"--angle-pitch {float(beam.angle_pitch_deg):g} deg against {g['angle_pitch_deg']:.4g} deg")
     if "radius_mm" in g and abs(given_r - g["radius_mm"]) > 0.02 * g["radius_mm"]:
         wrong.append(f"--radius {given_r:g} mm against {g['radius_mm']:.4g} mm" if given_r else

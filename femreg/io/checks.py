@@ -354,12 +354,30 @@ _ANGLE_VECTOR_NAMES = ("theta", "thetas", "angles", "rayangles", "beamangles", "
                        "scanangles", "azimuth", "azimuthangles", "steeringangles", "sectorangles")
 
 
+# an angle-pitch field is also named stem + step word (``line_angle_step``, ``ray_angle_increment``); a bare
+# ``angle_step`` / ``theta_step`` is left out: a plane-wave sequence's steering step on a linear array reads so
+_ANGLE_STEMS = ("lineangle", "rayangle", "beamangle", "scanangle", "scanlineangle")
+_STEP_WORDS = ("pitch", "step", "increment", "inc", "spacing", "delta", "interval", "separation")
+
+
+def _is_angle_pitch(base: str) -> bool:
+    """True for a header field's base name (:func:`_name_unit`) that names the angle between neighbouring rays."""
+    if base in _ANGLE_PITCH_NAMES:
+        return True
+    for stem in _ANGLE_STEMS:
+        if base.startswith(stem) and base[len(stem):] in _STEP_WORDS:
+            return True
+        if base in (f"d{stem}", f"delta{stem}"):
+            return True
+    return False
+
+
 def _name_unit(name: str, units, bases) -> tuple:
     """(base, unit) of a header field's name (last path component, lower-case alphanumerics): the unit suffix among
     ``units`` removed where the rest is one of ``bases``; else (the whole name, "")."""
     k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())
     for u in units:
-        if k.endswith(u) and k[:-len(u)] in bases:
+        if k.endswith(u) and (k[:-len(u)] in bases or _is_angle_pitch(k[:-len(u)])):
             return k[:-len(u)], u
     return k, ""
 
@@ -371,7 +389,8 @@ def _geometry_key(name: str) -> tuple:
 
 def geometry_fields(fields: dict, axes: dict | None = None, n_lines: int | None = None) -> dict:
     """The probe geometry a file's header fields state: ``{"radius_mm": R, "angle_pitch_deg": A, "names": (...)}``
-    with the entries found (a convex radius in mm, the angle between rays in degrees), or {}.  Units from the
+    with the entries found (a convex radius in mm, the angle between rays in degrees; a radius alone where the file
+    holds no angle, still a convex array), or {}.  Units from the
     name's suffix (``_mm``, ``_m``, ``_deg``, ``_rad``) or else the magnitude (a radius below 0.5 in metres, an
     angle pitch below 0.05 in radians).  ``axes`` (:func:`axis_fields`): an evenly spaced vector of the rays'
     angles (``theta``, ``angles``, ...) with exactly ``n_lines`` values gives the angle pitch too (a vector of
@@ -396,12 +415,12 @@ def geometry_fields(fields: dict, axes: dict | None = None, n_lines: int | None 
         if base in _RADIUS_NAMES and "radius_mm" not in out:
             out["radius_mm"] = v * {"mm": 1.0, "m": 1e3}.get(unit, 1e3 if v < 0.5 else 1.0)
             names.append(f"{name} = {v:g}")
-        elif base in _ANGLE_PITCH_NAMES and "angle_pitch_deg" not in out:
+        elif _is_angle_pitch(base) and "angle_pitch_deg" not in out:
             a = v * {"deg": 1.0, "rad": 180.0 / math.pi}.get(unit, 180.0 / math.pi if v < 0.05 else 1.0)
             if 0.0 < a < 10.0:        # degrees between neighbouring rays, not a field of view
                 out["angle_pitch_deg"] = a
                 names.append(f"{name} = {v:g}")
-    if "angle_pitch_deg" not in out:
+    if not out:
         return {}
     return {**out, "names": tuple(names)}
 
@@ -425,8 +444,11 @@ def geometry_hint(fields: dict, axes: dict | None = None, n_lines: int | None = 
     if not g:
         return ""
     r = g.get("radius_mm")
-    flags = (f"--geometry convex --radius {r:.4g} --angle-pitch {g['angle_pitch_deg']:.4g}" if r else
-             f"--geometry sector --angle-pitch {g['angle_pitch_deg']:.4g}")
+    # a radius without the angle between rays still means a convex array: the flag is named, its value not known
+    pitch = (f"{g['angle_pitch_deg']:.4g}" if "angle_pitch_deg" in g
+             else "DEG (the angle between rays, not in the file)")
+    flags = (f"--geometry convex --radius {r:.4g} --angle-pitch {pitch}" if r else
+             f"--geometry sector --angle-pitch {pitch}")
     kind = "a convex array" if r else "a phased (sector) array, apex on the face"
     return (f"its fields suggest {kind}: {flags} ({', '.join(g['names'])}; radius in mm, angle in degrees): "
             "check them against the probe's specification")

@@ -169,6 +169,9 @@ def _load_mat(path, variable, ndims):
                                 if int(np.prod(m.shape)) == 1})
         data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name != name
                            and 3 <= int(np.prod(v.shape)) <= AXIS_MAX}
+        # a struct's vectors too (an export's header.line_angles): a convex probe's ray angles live there
+        data["vectors"].update({f"{v.name}/{m.name}": m.array(order) for v in variables for m in v.members
+                                if 3 <= int(np.prod(m.shape)) <= AXIS_MAX})
     else:
         data, cands, name = _read_mat4(path, variable, ndims)
     arr = data.pop(name)
