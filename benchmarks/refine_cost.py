@@ -124,6 +124,16 @@ def measure(case, specs, repeats):
     return out
 
 
+def selected_cases(all_cases, words: str, seed: int = 0) -> list:
+    """The cases whose name contains one of the comma-separated ``words`` (all when empty), their seeds moved by
+    ``seed``; BLAS set to one thread (before numpy's first use) so that CPU times compare run to run."""
+    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(v, "1")
+    ws = [w for w in words.split(",") if w]
+    cases = [c for c in all_cases if not ws or any(w in c.name for w in ws)]
+    return [dataclasses.replace(c, seed=c.seed + seed) for c in cases] if seed else cases
+
+
 def warm_up():
     import femreg
     from forward import fields as F
@@ -152,12 +162,7 @@ def main(argv=None):
     ap.add_argument("--out", default="out/refine_cost")
     ap.add_argument("--seed", type=int, default=0, help="added to every case's seed (other speckle and noise)")
     a = ap.parse_args(argv)
-    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(v, "1")
-    words = [w for w in a.cases.split(",") if w]
-    cases = [c for c in CASES if not words or any(w in c.name for w in words)]
-    if a.seed:
-        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
+    cases = selected_cases(CASES, a.cases, a.seed)
     warm_up()
     specs = {"off": None, "refine": _spec(a.refine)}
     if a.against is not None:

@@ -38,9 +38,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import math
-import os
 import sys
 import time
 import warnings
@@ -293,12 +291,9 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0,
                     help="added to every case's seed: other speckle and noise realisations of the same pairs")
     a = ap.parse_args(argv)
-    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(v, "1")
-    ws = [w for w in a.cases.split(",") if w]
-    cases = [c for c in CASES if not ws or any(w in c.name for w in ws)]
-    if a.seed:
-        cases = [dataclasses.replace(c, seed=c.seed + a.seed) for c in cases]
+    from benchmarks.refine_cost import selected_cases
+
+    cases = selected_cases(CASES, a.cases, a.seed)
     if a.list:
         for c in CASES:
             print(f"{c.name:36s} probe {c.probe:6s} {c.size_mm[0]}x{c.size_mm[1]} mm SNR {c.snr_db} dB seed {c.seed}")

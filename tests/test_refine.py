@@ -15,6 +15,7 @@ from femreg.refine import (DEEP_REFINEMENT, Refinement, as_refinement, edge_jump
                            slip_weights, transfer)
 from femreg.regularizers import make_regularizer
 from femreg.scaling import effective_alpha, refined_alpha
+from _nodal_field import nodal as _nodal
 
 SHAPE, SPACING, ORIGIN = (600, 60), (0.02, 0.2), (0.0, 0.0)
 
@@ -32,13 +33,6 @@ def _graded():
     cols[[0, 3]] = True
     fine, sx, sy = refine_tensor_mesh(m, rows, cols, SPACING, ORIGIN, min_size=(0.1, 0.4))
     return m, fine, sx, sy
-
-
-def _nodal(mesh, f):
-    v = f(mesh.p.T)
-    u = np.empty(2 * mesh.p.shape[1])
-    u[0::2], u[1::2] = v[:, 0], v[:, 1]
-    return u
 
 
 def test_graded_mesh_pixel_quadrature_sums_to_the_mesh_area():

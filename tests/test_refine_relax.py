@@ -10,6 +10,7 @@ from femreg.errors import InputError
 from femreg.mesh import roi_mesh, tensor_structure
 from femreg.refine import SLIP_REFINEMENT, Refinement, refine_passes, relaxed_edges, slip_weights
 from femreg.regularizers import make_regularizer
+from _nodal_field import nodal as _nodal
 
 SHAPE, SPACING, ORIGIN = (600, 60), (0.02, 0.2), (0.0, 0.0)      # 12 x 12 mm
 #: no cap on the relaxed edges: the test meshes have 8 x 8 elements (the default cap, 5 % of the interior edges,
@@ -19,13 +20,6 @@ ALL = dict(relax_max_fraction=1.0)
 
 def _mesh():
     return roi_mesh(SHAPE, SPACING, ORIGIN, element_size=(1.5, 1.5))
-
-
-def _nodal(mesh, f):
-    v = f(mesh.p.T)
-    u = np.empty(2 * mesh.p.shape[1])
-    u[0::2], u[1::2] = v[:, 0], v[:, 1]
-    return u
 
 
 def _band(x0, x1, slide=0.2):

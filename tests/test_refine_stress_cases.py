@@ -12,6 +12,7 @@ import pytest
 
 from femreg.mesh import roi_mesh, tensor_structure
 from femreg.refine import DEEP_REFINEMENT, RING_ASPECT, relaxed_edges
+from _nodal_field import nodal as _nodal
 
 SPACING, ORIGIN = (0.04, 0.3), (2.0, -20.0)
 SHAPE = (1000, 134)                  # 40 x 40 mm
@@ -21,13 +22,6 @@ OPTS = dataclasses.replace(DEEP_REFINEMENT, relax_cells=False, relax_max_fractio
 
 def _mesh():
     return roi_mesh(SHAPE, SPACING, ORIGIN, element_size=(1.5, 1.5))
-
-
-def _nodal(mesh, f):
-    v = f(mesh.p.T)
-    u = np.empty(2 * mesh.p.shape[1])
-    u[0::2], u[1::2] = v[:, 0], v[:, 1]
-    return u
 
 
 def _turning_disk(centre, radius, width=2.0, angle=0.01):
