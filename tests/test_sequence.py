@@ -150,3 +150,19 @@ def test_default_track_on_real_data_beats_block_matching_without_checkerboard():
     assert tracked > 0.85 and tracked > bm + 0.1, (tracked, bm)        # measured 0.879 vs 0.674
     # measured 2.2 um; 4.1 um with the single-pair weight (100) on the increments, 6.5 um without hourglass control
     assert hourglass(last)["uy"] < 0.0033, hourglass(last)
+
+
+def test_track_frames_keep_the_lambda_bar_they_were_registered_with(tmp_path):
+    # R_P_sigma reads plane strain from a nearly incompressible field (lambda_bar 9): each accumulated frame
+    # result says so, in memory and in its file (an inversion reads it from there)
+    from forward import fields as F
+    from forward.pairs import make_sequence
+
+    d = make_sequence(F.compression(0.01), "L7", (12.0, 10.0), 30.0, 0, n_frames=3, step=0.01)
+    pair = femreg.register(d.frames[0], d.frames[1], spacing=d.spacing, origin=d.origin, refine=None)
+    assert pair.lambda_bar is not None
+    res = femreg.track(d.frames, spacing=d.spacing, origin=d.origin, checkpoint_dir=tmp_path)
+    assert all(r.success for r in res)
+    assert [r.lambda_bar for r in res] == [pair.lambda_bar] * len(res)
+    saved = femreg.load_result(sorted(Path(tmp_path).glob("frame_*.npz"))[-1])
+    assert saved.lambda_bar == pair.lambda_bar
