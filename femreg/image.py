@@ -78,6 +78,14 @@ def cubic_at_index(padded, idx, shape, out=None):
     return v
 
 
+def require_spacing(spacing) -> None:
+    """Raise :class:`InputError` saying what ``spacing`` is when it was not given (None)."""
+    if spacing is None:
+        raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs): 0.0193 mm at "
+                         "40 MHz and 1540 m/s) and the lateral line pitch, e.g. spacing=(0.02, 0.2); a volume "
+                         "takes (dx, dy, dz)")
+
+
 def validate_spacing(spacing, origin=(0.0, 0.0), *, n: int = 2):
     """Return ``(spacing, origin)`` as float arrays of shape (n,) mm, ``n`` = 2 (dx, dy) or 3 (dx, dy, dz),
     raising :class:`InputError` if invalid.  One number is the spacing of every axis; for a volume the 2D

@@ -41,7 +41,8 @@ from ._atomic import load_frame_record, open_run_folder, progress_bar, save_fram
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
-from .image import refuse_repeated_start, repeat_note, repeated_frames, validate_image, validate_spacing
+from .image import (refuse_repeated_start, repeat_note, repeated_frames, require_spacing, validate_image,
+                    validate_spacing)
 from .mesh import as_quad_mesh, check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
@@ -217,9 +218,7 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
         Entry k-1 is frame 0 -> frame k, a RegistrationResult (BeamResult with a convex / sector geometry) on the
         common mesh in frame-0 coordinates.
     """
-    if spacing is None:
-        raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs)) and the lateral "
-                         "line pitch, e.g. spacing=(0.02, 0.2); volumes take (dx, dy, dz)")
+    require_spacing(spacing)
     if len(frames) and np.ndim(frames[0]) == 3:     # a sequence of RF volumes: femreg.volume
         if data_mask is not None:
             raise InputError("data_mask is for frames (n_axial, n_lateral); volumes take roi / depth")

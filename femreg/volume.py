@@ -33,7 +33,7 @@ from . import orientation
 from .autoalpha import ImageTerm, choose_alpha, register_auto
 from .echo_volume import crop_for_volume, route_volume
 from .errors import InputError, counted
-from .image import normalize_pair
+from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
                      frame_flag, hop_note, hopped_fraction, lag_gain)
@@ -879,10 +879,7 @@ def volumes_to(register_2d):
     :func:`register_volume` with the same keywords, anything else by ``register_2d`` unchanged."""
     @functools.wraps(register_2d)
     def register(reference_image, moving_image, **kwargs):
-        if kwargs.get("spacing") is None:
-            raise InputError("spacing is required: (dx, dy) mm, the axial sample spacing (c / (2 fs): 0.0193 mm at "
-                             "40 MHz and 1540 m/s) and the lateral line pitch, e.g. spacing=(0.02, 0.2); a volume "
-                             "takes (dx, dy, dz)")
+        require_spacing(kwargs.get("spacing"))
         if (np.ndim(reference_image) == 3 and np.shape(reference_image)[0] >= 2 and np.size(kwargs["spacing"]) == 2
                 and kwargs.get("geometry") is None):
             raise InputError(f"reference_image is 3D, shape {np.shape(reference_image)}, with a spacing of two "
