@@ -232,15 +232,13 @@ def run(args) -> int:
         raise InputError(f"--geometry swept needs a volume file (.npz with spacing of 3 values), got "
                          f"{args.reference}")
     if args.refine is not None:
-        from femreg.refine import SLIP_REFINEMENT
+        from femreg.refine import REFINE_NAMES, refine_name
 
-        r = args.refine.strip().lower()
-        if r in ("auto", "slip"):
-            kw["refine"] = SLIP_REFINEMENT if r == "slip" else "auto"
-        elif r in ("none", "off"):
-            kw["refine"] = None
-        elif r.isdigit():
+        r = refine_name(args.refine)            # the names femreg.register takes ("slip": SLIP_REFINEMENT)
+        if r.isdigit():
             kw["refine"] = int(r)
+        elif r in REFINE_NAMES:
+            kw["refine"] = None if r in ("none", "off") else r
         else:
             raise InputError(f"--refine takes a number of passes, auto, slip or none, got {args.refine!r}")
     beam = _geometry(args) if args.geometry in ("convex", "sector") else None
