@@ -875,7 +875,9 @@ def plot_shear(mesh_points, mesh_cells, shear, out_png=None, *, dpi=100, title=N
     finite = exy[np.isfinite(exy)]
     lim = float(np.percentile(np.abs(finite), 99)) if finite.size else 1.0
     lim = lim if lim > 0 else 1.0
-    narrow = np.isfinite(cells) & (cells < 1.0)
+    from .shear import narrow_elements
+
+    narrow = narrow_elements(shear)
     some = narrow.any() and not narrow.all()      # outlining every element would hide the image
     note = (f"\noutlined: {int(narrow.sum())} below 1 lateral cell" if some else
             "\nevery element below 1 lateral cell" if narrow.any() else "")

@@ -29,7 +29,7 @@ import numpy as np
 from .errors import InputError
 from .fields import element_strains
 
-__all__ = ["shear_strain_map", "slip_settings", "SLIP_AXIAL_MM", "SLIP_TRACTION"]
+__all__ = ["shear_strain_map", "narrow_elements", "slip_settings", "SLIP_AXIAL_MM", "SLIP_TRACTION"]
 
 #: Axial element size (mm) and tangential-traction weight of :func:`slip_settings`: on 1 % compression with 1-2 mm
 #: bands sliding 0.1-0.3 mm (benchmarks/shear_bands.py, 7.5 and 5.5 MHz) they brought the band's peak e_xy from
@@ -52,8 +52,8 @@ def shear_strain_map(result, reference_image=None, *, cell=None) -> dict:
     result : RegistrationResult
         With its per-element NCC ``quality`` (:func:`femreg.register` sets it).
     reference_image : (n_axial, n_lateral) array, optional
-        The registered reference image, for the speckle cell (:func:`femreg.speckle.speckle_statistics`, the
-        envelope autocorrelation FWHM); or give ``cell``.
+        The registered reference image, for the speckle cell (:func:`femreg.speckle.speckle_cell`, the
+        envelope autocorrelation FWHM with tissue structure divided out); or give ``cell``.
     cell : (2,) mm, optional
         (axial, lateral) speckle cell.
 
@@ -70,9 +70,9 @@ def shear_strain_map(result, reference_image=None, *, cell=None) -> dict:
         if reference_image is None:
             raise InputError("shear_strain_map needs the reference image or the speckle cell "
                              "(cell=(axial, lateral) mm)")
-        from .speckle import speckle_statistics
+        from .speckle import speckle_cell
 
-        cell = speckle_statistics(np.asarray(reference_image, float), result.spacing).cell
+        cell = speckle_cell(np.asarray(reference_image, float), result.spacing)
     c = np.asarray(cell, float).ravel()
     if c.shape != (2,) or not np.all(np.isfinite(c)) or not np.all(c > 0):
         raise InputError(f"cell must be two positive lengths (axial, lateral) mm, got {cell!r}")
@@ -88,6 +88,14 @@ def shear_strain_map(result, reference_image=None, *, cell=None) -> dict:
         sigma = np.sqrt((c[0] * s / hy) ** 2 + (c[1] * s / hx) ** 2) / np.sqrt(2.0)
         snr = np.where(np.isfinite(sigma) & (sigma > 0), np.abs(exy) / sigma, 0.0)
     return {"exy": exy, "sigma": sigma, "snr": snr, "lateral_cells": hy / c[1], "cell": c}
+
+
+def narrow_elements(shear_map) -> np.ndarray:
+    """(n_elements,) bool: the elements of :func:`shear_strain_map`'s ``shear_map`` narrower than one lateral speckle
+    cell.  An element exactly one cell wide (4 lines of 0.2 mm under a 0.8 mm cell) is not: the ratio of the two
+    lengths, each a sum of pixel steps, is compared with a relative tolerance of 1e-6 against rounding."""
+    cells = np.asarray(shear_map["lateral_cells"], float).ravel()
+    return np.isfinite(cells) & (cells < 1.0 - 1e-6)
 
 
 def slip_settings(result, *, axial_mm: float = SLIP_AXIAL_MM, shear_traction: float = SLIP_TRACTION) -> dict:

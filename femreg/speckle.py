@@ -11,7 +11,7 @@ import numpy as np
 
 from . import _kernels
 
-__all__ = ["SpeckleStats", "envelope", "rf_period", "speckle_statistics"]
+__all__ = ["SpeckleStats", "envelope", "rf_period", "speckle_statistics", "speckle_cell", "STRUCTURE_WINDOW_MM"]
 
 
 @dataclass
@@ -146,3 +146,38 @@ def speckle_statistics(image, spacing) -> SpeckleStats:
         k += 1
     pulse.append(2.0 * k * dy)
     return SpeckleStats(period=period, cell=np.array(cell), envelope=env, pulse_cell=np.array(pulse))
+
+
+#: Window (axial, lateral) mm over which :func:`speckle_cell` normalises the envelope by its local RMS: several
+#: speckle cells of any probe here (the 3 MHz beam's 3 mm lateral cell fits three times), so uniform speckle keeps
+#: its cell, while tissue structure larger than it is divided out.
+STRUCTURE_WINDOW_MM = (5.0, 10.0)
+
+
+def speckle_cell(image, spacing, window=STRUCTURE_WINDOW_MM, stats: SpeckleStats | None = None) -> np.ndarray:
+    """(axial, lateral) speckle cell (mm, (2,)) of the speckle itself: the envelope autocorrelation FWHM, as
+    :attr:`SpeckleStats.cell`, of the envelope divided by its local RMS over ``window`` (mm, axial and lateral).
+
+    Why: :func:`speckle_statistics`'s cell reads the whole envelope, so tissue structure (bright layers, a
+    brightness falling with depth) widens it: on the in vivo frames 0.72-0.92 x 2.4-3.2 mm, where this reads 0.48 x
+    0.80 mm.  Simulated (forward.pairs, 1 % compression, 30 dB): uniform speckle under 3-12 MHz reads the same cell
+    both ways (0.15-0.62 x 0.60-3.00 mm); with a layered echogenicity of 6 dB RMS in 2 x 10 mm patches the whole
+    envelope reads 1.31-1.58 x 4.8-5.2 mm and this the uniform speckle's cell exactly; patches of 1 x 8 mm or 12 dB
+    leave it 15-43 % wide (against 1.7-10x).  ``stats``: the image's :func:`speckle_statistics`, if already
+    computed (its envelope is reused)."""
+    from scipy.ndimage import uniform_filter
+
+    dx, dy = float(spacing[0]), float(spacing[1])
+    env = (stats if stats is not None else speckle_statistics(image, spacing)).envelope
+    w = (max(3, int(round(float(window[0]) / dx))), max(3, int(round(float(window[1]) / dy))))
+    # no echo (zero fill below the echo, a fan's wedge) is left out of the local RMS (normalised convolution) and
+    # left at zero: neither a block of constant envelope nor a brightened rim along its border
+    echo = env > 1e-3 * float(np.median(env[env > 0])) if np.any(env > 0) else env > 0
+    share = uniform_filter(echo.astype(float), w, mode="reflect")
+    valid = echo & (share > 0.25)
+    if not np.any(valid):
+        return np.array([np.nan, np.nan])
+    local = np.sqrt(uniform_filter(np.where(echo, env * env, 0.0), w, mode="reflect") / np.maximum(share, 1e-12))
+    e = np.where(valid, env / np.where(valid, local, 1.0), 0.0)
+    e = np.where(valid, e - float(np.mean(e[valid])), 0.0)
+    return np.array([_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)])

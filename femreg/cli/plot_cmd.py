@@ -156,7 +156,7 @@ def _shear_figure(res, reference, out, dpi):
     import numpy as np
 
     from ..plot import plot_shear
-    from ..shear import shear_strain_map
+    from ..shear import narrow_elements, shear_strain_map
 
     q = res.get("quality")
     n_el = np.shape(res["mesh_cells"])[1]
@@ -168,7 +168,7 @@ def _shear_figure(res, reference, out, dpi):
                              spacing=tuple(np.asarray(res["spacing"], float).ravel()))
     sm = shear_strain_map(result, reference)
     sout = out.with_name(out.stem + "_shear.png")
-    narrow = int(np.sum(sm["lateral_cells"] < 1.0))
+    narrow = int(np.sum(narrow_elements(sm)))
     cell = sm["cell"]
     plt.close(plot_shear(mesh.p, mesh.t, sm, sout, dpi=dpi,
                          title=f"speckle cell {cell[0]:.2f} x {cell[1]:.2f} mm (axial x lateral)"))
