@@ -48,10 +48,12 @@ class FileFormatError(InputError):
 class SpacingUnknownError(InputError):
     """A file without the pixel spacing it needs.  ``path`` the file, ``missing`` the axes without one ("axial
     dx", "lateral dy", ...), ``suggestion`` what its header fields imply
-    (:class:`femreg.io.checks.SpacingSuggestion`) or None."""
+    (:class:`femreg.io.checks.SpacingSuggestion`) or None; ``frame_shape`` the (axial, lateral) samples of each
+    frame as the file stores it (before a transpose), None where the reader does not say."""
 
-    def __init__(self, message: str = "", *, path=None, missing=(), suggestion=None):
+    def __init__(self, message: str = "", *, path=None, missing=(), suggestion=None, frame_shape=None):
         super().__init__(message)
         self.path = path
         self.missing = tuple(missing)
         self.suggestion = suggestion
+        self.frame_shape = None if frame_shape is None else tuple(int(v) for v in frame_shape)

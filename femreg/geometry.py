@@ -365,14 +365,14 @@ def _beam_orientation_error(exc, ref, geometry, dr, ds, rho_c):
     """The sample-space check's refusal in the probe's terms: its lateral spacing is the rays' distance
     ``rho_c dtheta`` at the middle sample, set by ``angle_pitch_deg`` (and the radius), not a line pitch to swap
     with the range step."""
-    from .orientation import MIN_LATERAL_CELL_PERIODS, diagnose
+    from .orientation import MIN_LATERAL_CELL_PERIODS, diagnose, transposed_message
 
     if getattr(exc, "problem", "") == "transposed":
         # the lateral value checked is the rays' distance at the middle sample, not one the user gave or can
         # keep: a convex / sector frame's spacing is the range step alone
-        msg = str(exc).replace(f"--spacing {dr:g} {ds:g} (axial, lateral;", f"--spacing {dr:g} auto (range step;")
-        msg = msg.replace(f"({dr:g}, {ds:g}) mm (axial, lateral;", f"{dr:g} mm (range step;")
-        return OrientationError(msg, problem="transposed") if msg != str(exc) else exc
+        rep = getattr(exc, "report", None)
+        return exc if rep is None else OrientationError(transposed_message(rep, range_step=True),
+                                                        problem="transposed", report=rep)
     if getattr(exc, "problem", "") not in ("swapped", "spacing"):
         return exc
     rep = diagnose(ref, (dr, ds))

@@ -61,7 +61,7 @@ import numpy as np
 from .errors import InputError, pass_as
 
 __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "axial_carrier_ratio", "is_envelope", "diagnose",
-           "check", "exchanged_shape",
+           "check", "transposed_message", "exchanged_shape",
            "check_raw_shape", "check_remodulated", "check_iq_sign", "FREQUENCY_MHZ", "MIN_SPECKLE_ASPECT",
            "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S", "ENVELOPE_CELL_MM"]
 
@@ -135,11 +135,12 @@ class OrientationError(InputError):
     """The frames look transposed, or their spacing swapped or implausible; the message says which and how to
     override the check.  ``problem``: "transposed", "swapped" or "spacing" (:class:`OrientationReport`), "shape" (a raw file read
     with its sizes exchanged), or ""
-    when not known."""
+    when not known; ``report`` the :class:`OrientationReport` refused (from :func:`check`), else None."""
 
-    def __init__(self, message: str = "", problem: str = ""):
+    def __init__(self, message: str = "", problem: str = "", report=None):
         super().__init__(message)
         self.problem = problem
+        self.report = report
 
 
 def _power_spectrum(img):
@@ -196,7 +197,9 @@ class OrientationReport:
     ``frequency_mhz`` = c / (2 period), ``lateral_cell_mm`` the lateral speckle cell and ``cell_periods`` its
     ratio to the period (NaN where no carrier was found); ``axial_cell_mm`` the axial speckle cell of a frame
     without a carrier (envelope, B-mode; NaN otherwise); ``problem`` "" or "transposed", "swapped",
-    "spacing"; ``message`` the reason (one line)."""
+    "spacing"; ``message`` the reason (one line).  ``carrier_samples``: samples per RF period along axis 1 of a
+    frame that looks transposed (NaN otherwise); ``sound_speed`` (m/s) and ``elevational`` (dz mm of a volume's
+    central plane, or None) as :func:`diagnose` was given them."""
 
     spacing: tuple
     carrier: tuple
@@ -209,6 +212,9 @@ class OrientationReport:
     problem: str = ""
     message: str = ""
     small_frame: bool = False
+    carrier_samples: float = float("nan")
+    sound_speed: float = SOUND_SPEED_M_S
+    elevational: float | None = None
 
     @property
     def has_carrier(self) -> bool:
@@ -246,49 +252,17 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     # a few percent of a registration's time on a paper-size frame
     c0 = axial_carrier_ratio(img)
     c1 = carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
-    rep = OrientationReport((dx, dy), (c0, c1))
+    rep = OrientationReport((dx, dy), (c0, c1), sound_speed=sound_speed,
+                            elevational=None if elevational is None else float(elevational))
     # the advice's spacings, as given and with axial and lateral exchanged, a volume's dz kept in third place
-    volume = elevational is not None
-    dz = (float(elevational),) if volume else ()
+    dz = () if elevational is None else (float(elevational),)
     keep, swapped = (", ".join(f"{v:g}" for v in pair + dz) for pair in ((dx, dy), (dy, dx)))
-    order = "axial, lateral, elevational" if volume else "axial, lateral"
+    order = "axial, lateral, elevational" if dz else "axial, lateral"
     c_mm_us = sound_speed * 1e-3                     # m/s -> mm/us
     lo, hi = FREQUENCY_MHZ
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
-        n1 = _centroid_samples(img.T)
-        rep.problem = "transposed"
-        if volume:
-            what, shape, how = ("volumes", "(axial samples, lateral lines, elevational planes)",
-                                "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
-        else:
-            what, shape, how = ("frames", "(axial samples, lateral lines)",
-                                pass_as("frame.T, frames.transpose(0, 2, 1); read_frames(..., transpose=True); "
-                                        "CLI: --transpose", "--transpose"))
-        # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
-        # spacing as (axial, lateral) already while the array is stored lines-first)
-        f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
-        if lo <= f_keep <= hi and not lo <= f_swap <= hi:
-            spacing_text = "keep " + _pass_spacing(keep, f"{order}; {f_keep:.2f} MHz", lead="the spacing ",
-                                                   unit=" mm")
-        elif lo <= f_swap <= hi and not lo <= f_keep <= hi:
-            spacing_text = "give the spacing in that order, " + _pass_spacing(
-                swapped, f"{order}; {f_swap:.2f} MHz", lead="", unit=" mm")
-        else:
-            # neither order fits: a spacing in other units than mm (metres, as MATLAB exports store it) is
-            # recognised by the order that fits once rescaled; exchanging it would make a wrong suggestion worse
-            spacing_text = ""
-            for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
-                for vals, f in (((dx, dy), f_keep), ((dy, dx), f_swap)):
-                    if not spacing_text and lo <= f / k <= hi:
-                        text = ", ".join(f"{v * k:.6g}" for v in vals + dz)
-                        spacing_text = (f"pass the spacing in mm (its units look like {unit}), "
-                                        + _pass_spacing(text, f"{order}; {f / k:.2f} MHz", lead=""))
-            if not spacing_text:
-                spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
-                                       f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
-        rep.message = (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
-                       f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
-                       f"{shape}: transpose them ({how}) and {spacing_text}, or {override()}")
+        rep.problem, rep.carrier_samples = "transposed", _centroid_samples(img.T)
+        rep.message = transposed_message(rep)
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         if c0 > NO_CARRIER_RATIO and min(img.shape) >= MIN_SAMPLES:
@@ -334,6 +308,68 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                            lambda k: f"{rep.frequency_mhz / k:.2f} MHz")
     rep.message = f"{why}; {hint}, or {override()}"
     return rep
+
+
+def transposed_message(rep: OrientationReport, *, range_step: bool = False) -> str:
+    """The refusal of a frame that looks transposed (``rep.problem == "transposed"``, from :func:`diagnose`): the
+    transpose to apply and the spacing to pass, the axial one the one whose RF frequency is plausible along the
+    carrier's axis (``rep.carrier_samples`` samples per period).  ``range_step``: the frame is a convex / sector
+    frame in sample space (:mod:`femreg.geometry`) whose lateral value is the rays' distance at the middle sample,
+    not one the user gave: the spacing to keep is the range step alone (``--spacing DR auto``)."""
+    (dx, dy), (c0, c1), n1 = rep.spacing, rep.carrier, rep.carrier_samples
+    dz = () if rep.elevational is None else (float(rep.elevational),)
+    keep, swapped = (", ".join(f"{v:g}" for v in pair + dz) for pair in ((dx, dy), (dy, dx)))
+    order = "axial, lateral, elevational" if dz else "axial, lateral"
+    c_mm_us = rep.sound_speed * 1e-3                 # m/s -> mm/us
+    lo, hi = FREQUENCY_MHZ
+    if dz:
+        what, shape, how = ("volumes", "(axial samples, lateral lines, elevational planes)",
+                            "volume.transpose(1, 0, 2), volumes.transpose(0, 2, 1, 3)")
+    else:
+        what, shape, how = ("frames", "(axial samples, lateral lines)",
+                            pass_as("frame.T, frames.transpose(0, 2, 1); read_frames(..., transpose=True); "
+                                    "CLI: --transpose", "--transpose"))
+    # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
+    # spacing as (axial, lateral) already while the array is stored lines-first)
+    f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
+    if range_step:
+        spacing_text = _range_step_text(dx, f_keep)
+    elif lo <= f_keep <= hi and not lo <= f_swap <= hi:
+        spacing_text = "keep " + _pass_spacing(keep, f"{order}; {f_keep:.2f} MHz", lead="the spacing ", unit=" mm")
+    elif lo <= f_swap <= hi and not lo <= f_keep <= hi:
+        spacing_text = "give the spacing in that order, " + _pass_spacing(
+            swapped, f"{order}; {f_swap:.2f} MHz", lead="", unit=" mm")
+    else:
+        # neither order fits: a spacing in other units than mm (metres, as MATLAB exports store it) is
+        # recognised by the order that fits once rescaled; exchanging it would make a wrong suggestion worse
+        spacing_text = ""
+        for k, unit in ((1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
+            for vals, f in (((dx, dy), f_keep), ((dy, dx), f_swap)):
+                if not spacing_text and lo <= f / k <= hi:
+                    text = ", ".join(f"{v * k:.6g}" for v in vals + dz)
+                    spacing_text = (f"pass the spacing in mm (its units look like {unit}), "
+                                    + _pass_spacing(text, f"{order}; {f / k:.2f} MHz", lead=""))
+        if not spacing_text:
+            spacing_text = pass_as(f"give the spacing in that order, ({swapped}) mm",
+                                   f"give the spacing in that order, --spacing {swapped.replace(',', '')}")
+    return (f"the {what} look transposed: the RF carrier runs along axis 1 ({n1:.1f} samples per "
+            f"period), axis 0 has none (low/centre band power {c0:.2g} vs {c1:.2g}); arrays must be "
+            f"{shape}: transpose them ({how}) and {spacing_text}, or {override()}")
+
+
+def _range_step_text(dr: float, f: float) -> str:
+    """The spacing advice of a transposed convex / sector frame whose range step ``dr`` mm gives ``f`` MHz along
+    the carrier: keep it, or the range step in mm when its units look like metres, micrometres or centimetres.
+    Nothing is exchanged: the lateral value checked is the rays' distance, which the user did not give."""
+    lo, hi = FREQUENCY_MHZ
+    for k, unit in ((1.0, ""), (1e3, "metres"), (1e-3, "micrometres"), (10.0, "centimetres")):
+        if lo <= f / k <= hi:
+            v = f"{dr:g}" if k == 1.0 else f"{dr * k:.6g}"
+            text = pass_as(f"the spacing {v} mm (range step; {f / k:.2f} MHz; CLI: --spacing {v} auto)",
+                           f"--spacing {v} auto (range step; {f / k:.2f} MHz)")
+            return "keep " + text if k == 1.0 else f"pass the range step in mm (its units look like {unit}), {text}"
+    return (f"check the range step (the axial spacing, mm): {dr:g} mm gives {f:.3g} MHz, outside {lo:g}-{hi:g} "
+            "MHz")
 
 
 def _units_hint(spacing, order: str, units, fits, detail) -> str:
@@ -432,10 +468,12 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     """:func:`diagnose`, raising :class:`OrientationError` (an :class:`InputError`) with its message when the
     frame looks transposed or its spacing swapped or implausible.  ``one_value``: the spacing was given as one
     number (square pixels), refused too when its lateral speckle is narrower than
-    :data:`MIN_SQUARE_CELL_PERIODS` axial RF periods -- RF lines are rarely as close as the axial samples."""
+    :data:`MIN_SQUARE_CELL_PERIODS` axial RF periods -- RF lines are rarely as close as the axial samples.  The
+    error carries the report (``report``), from which a caller that knows the frame's kind words it anew
+    (:func:`transposed_message`)."""
     rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational, whole_frame=whole_frame)
     if rep.problem:
-        raise OrientationError(rep.message, problem=rep.problem)
+        raise OrientationError(rep.message, problem=rep.problem, report=rep)
     if one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS:
         dx = float(np.ravel(spacing)[0])
         raise OrientationError(

@@ -1498,7 +1498,12 @@ def refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size=(0.3, 0.6), l
     level halves every interval inside a marked one again; breaks on pixel-cell boundaries, see :func:`_split`).
     Returns ``(mesh, n_rows_split, n_cols_split)`` (splits of all levels); the same mesh object when nothing was
     split."""
-    nx, ny, sx, sy = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels)
+    return _tensor_mesh(mesh, *_refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels))
+
+
+def _tensor_mesh(mesh, nx, ny, sx, sy):
+    """:func:`refine_tensor_mesh`'s result from the breaks ``nx``, ``ny`` (mm) and split counts ``sx``, ``sy`` of
+    :func:`_refined_breaks` on ``mesh``: ``mesh`` itself when nothing was split."""
     if sx == 0 and sy == 0:
         return mesh, 0, 0
     lg = logical_grid(mesh)
@@ -1661,7 +1666,9 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 sel = _covered_rows(xs_, pre) & ~_covered_rows(xs_, own)
                 lev[sel] = np.maximum(lev[sel], int(levels))
                 rows = lev
-        new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels, min_px)
+        # the breaks first, the mesh once: a relaxed layer below changes the columns' least width
+        breaks = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_px)
+        splits = breaks[2] > 0 or breaks[3] > 0
         if opts.slip is not None:
             rects = np.vstack([rects, slip_region(mesh, slip)])
         more = False           # edges to relax that the last solve did not have
@@ -1673,14 +1680,15 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                     more = not np.all(_on_segments(mid, relaxed))
                     relaxed = np.vstack([relaxed, r])
             standing = relaxed_edges(mesh, sol.u, opts, cells=False)
-            if not opts.relax_persist and new is not mesh:
+            if not opts.relax_persist and splits:
                 # relaxed on the split's own solve, found on the solve before it (no second pass needed)
                 r = relaxed_edges(mesh, sol.u, opts) if pre is None else pre
                 if len(r):
                     relaxed = np.vstack([relaxed, r])
         if min_px < 2 and len(relaxed):
             # a layer relaxed: its cells keep their weight, which does not hold single-line columns
-            new, sx, sy = refine_tensor_mesh(mesh, rows, cols, spacing, origin, min_size, levels)
+            breaks = _refined_breaks(mesh, rows, cols, spacing, origin, min_size, levels)
+        new, sx, sy = _tensor_mesh(mesh, *breaks)
         too_few = new is mesh or (k > 0 and new.t.shape[1] < (1 + opts.min_added) * mesh.t.shape[1])
         if too_few and not (more and opts.relax_solve):
             break

@@ -153,6 +153,36 @@ def test_invert_images_reads_iq_at_its_own_sample_spacing(scan, tmp_path, capsys
     assert args.spacing[0] == pytest.approx(Q * scan["dx"], rel=1e-6)
 
 
+def test_the_iq_stand_in_spacing_needs_no_read_of_its_own(scan, tmp_path, monkeypatch):
+    """The IQ sample count comes from the refusal of the file without a spacing (``frame_shape``): two reads, the
+    refused one and the frames' (before: a third, in between, to count the IQ samples)."""
+    import argparse
+
+    import femreg.io
+    from femreg.cli._common import _iq_stand_in, frames_on_result_grid
+    from femreg.cli.plot_cmd import add_parser
+
+    d = scan["dir"]
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    args = parser.parse_args(["plot", str(d / "iq.npz"), "--reference", str(d / "iq.h5"),
+                              "--iq-frequency", scan["iq_flags"][-1], "-o", str(tmp_path / "p.png")])
+    res = np.load(d / "iq.npz")
+    reads = []
+    real = femreg.io.read_frames
+    monkeypatch.setattr(femreg.io, "read_frames", lambda *a, **k: reads.append(a[0]) or real(*a, **k))
+    fr = frames_on_result_grid(args, d / "iq.h5", res["spacing"], res["shape"])
+    assert len(reads) == 2 and fr.frames.shape[1:] == tuple(res["shape"]), reads
+    assert args.spacing[0] == pytest.approx(Q * scan["dx"], rel=1e-6)
+    # frames stored lines first (--transpose): the samples are the file's second axis
+    n_iq, n_rf = 51, 201
+    stand = argparse.Namespace(modulation_frequency=5.0, transpose=True)
+    assert _iq_stand_in(stand, (40, n_iq), [0.05, 0.2], (n_rf, 40)) == [0.05 * Q, 0.2]
+    assert _iq_stand_in(stand, (n_iq, 40), [0.05, 0.2], (n_rf, 40)) == [0.05, 0.2]
+    assert _iq_stand_in(argparse.Namespace(modulation_frequency=None), (n_iq, 40), [0.05, 0.2], (n_rf, 40)) \
+        == [0.05, 0.2]
+
+
 def test_plot_and_invert_take_no_orientation_check_with_their_frames_only(scan, tmp_path, capsys):
     """The IQ checks' messages name --no-orientation-check; plot and invert did not accept it (argparse: exit 2,
     'unrecognized arguments')."""

@@ -10,7 +10,7 @@ import femreg
 from femreg.errors import InputError
 from femreg.orientation import (CARRIER_RATIO, ENVELOPE_CELL_MM, MIN_LATERAL_CELL_PERIODS, NO_CARRIER_RATIO,
                                 OrientationError,
-                                carrier_ratio, check, diagnose)
+                                carrier_ratio, check, diagnose, transposed_message)
 from femreg.pyramid import envelope
 
 INVIVO = Path(__file__).resolve().parents[2] / "shared" / "data" / "invivo_rf"
@@ -46,6 +46,30 @@ def test_simulated_probes_pass_and_their_mistakes_are_refused(probes):
             check(p.ref, sp[::-1])
         assert f"({sp[0]:g}, {sp[1]:g})" in str(e.value)                  # names the spacing to pass
         assert f"CLI: --spacing {sp[0]:g} {sp[1]:g}" in str(e.value)        # and the flag that passes it
+
+
+def test_transposed_refusal_words_a_range_step(probes):
+    """A convex / sector frame's spacing is the range step alone (its lateral value is the rays' distance at the
+    middle sample): the refusal's report words it so, ``--spacing DR auto``, with no lateral value to keep,
+    exchange or rescale; a linear frame's wording is the one the check raised."""
+    from femreg.errors import cli_wording
+
+    p = probes["L7"]
+    dx, dy = (float(v) for v in p.spacing)
+    with pytest.raises(OrientationError, match="transposed") as e:
+        check(p.ref.T, (dx, dy))
+    rep = e.value.report
+    assert rep.problem == "transposed" and transposed_message(rep) == str(e.value)
+    beam = transposed_message(rep, range_step=True)
+    assert f"keep the spacing {dx:g} mm (range step; " in beam and f"CLI: --spacing {dx:g} auto)" in beam, beam
+    assert f"{dy:g}" not in beam, beam
+    with cli_wording():
+        assert f"keep --spacing {dx:g} auto (range step; " in transposed_message(rep, range_step=True)
+        metres = transposed_message(diagnose(p.ref.T, (dx * 1e-3, dy * 1e-3)), range_step=True)
+    assert f"units look like metres), --spacing {dx:g} auto (range step; " in metres, metres
+    # ten times the range step: 7.5 MHz read as 0.75, no unit explains it
+    far = transposed_message(diagnose(p.ref.T, (dx * 10, dy)), range_step=True)
+    assert f"check the range step (the axial spacing, mm): {dx * 10:g} mm gives" in far, far
 
 
 @pytest.mark.parametrize("seq", ["seq299", "seq304"])

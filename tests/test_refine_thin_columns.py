@@ -65,3 +65,33 @@ def test_a_relaxed_layer_keeps_two_line_columns():
 def test_fine_min_pixels_is_checked(bad):
     with pytest.raises(femreg.InputError, match="fine_min_pixels"):
         dataclasses.replace(DEEP_REFINEMENT, fine_min_pixels=bad)
+
+
+def test_a_relaxed_layer_builds_its_mesh_once(monkeypatch):
+    # the pass that relaxes the 3 mm band's faces under the 3 MHz probe asks for single-line columns, then keeps
+    # the 2-line floor: its mesh is built once, at that floor (before: the single-line mesh too, then dropped)
+    import femreg.refine as R
+    from benchmarks import robustness as RB
+    from benchmarks import shear_bands as SB
+
+    (case,) = [c for c in SB.CASES if c.name == "held_band3_s0.4_d12_L3"]
+    d = RB.make_data(case)
+    floors, built = [], []
+    breaks, tensor = R._refined_breaks, R._tensor_mesh
+
+    def counted_breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels=2):
+        floors.append(min_pixels)
+        return breaks(mesh, rows, cols, spacing, origin, min_size, levels, min_pixels)
+
+    def counted_mesh(mesh, *args):
+        out = tensor(mesh, *args)
+        built.append(out[0] is not mesh)
+        return out
+
+    monkeypatch.setattr(R, "_refined_breaks", counted_breaks)
+    monkeypatch.setattr(R, "_tensor_mesh", counted_mesh)
+    res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin)
+    (p,) = [q for q in res.refinement.passes if q["fine"]]
+    assert p["relaxed_edges"] > 0 and floors == [1, 2], (p, floors)       # the path: 1 line asked, 2 kept
+    assert built == [True] and len(res.refinement.passes) == 1, (built, res.refinement.passes)
+    assert _narrowest_column(res) == pytest.approx(1.5)

@@ -237,10 +237,10 @@ def frames_on_result_grid(args, path, result_spacing, result_shape=None):
     res_sp = np.ravel(np.asarray([] if result_spacing is None else result_spacing, float))
     try:
         fr = frames_from_args(args, path)
-    except SpacingUnknownError:
+    except SpacingUnknownError as exc:
         if args.spacing is not None or res_sp.size != 2:
             raise
-        args.spacing = _iq_stand_in(args, path, [float(v) for v in res_sp], result_shape)
+        args.spacing = _iq_stand_in(args, exc.frame_shape, [float(v) for v in res_sp], result_shape)
         fr = frames_from_args(args, path)
     sp = None if fr.spacing is None else np.ravel(np.asarray(fr.spacing, float))
     if res_sp.size == 2 and sp is not None and sp.size == 2 and not np.allclose(sp, res_sp, rtol=0.01):
@@ -258,25 +258,20 @@ def frames_on_result_grid(args, path, result_spacing, result_shape=None):
     return fr
 
 
-def _iq_stand_in(args, path, res_sp, result_shape):
+def _iq_stand_in(args, frame_shape, res_sp, result_shape):
     """The spacing that stands in for a file's missing one on a result's grid: ``res_sp`` (mm), but for IQ frames
     (``--iq-frequency``) the spacing of the IQ samples, the result's axial step times the upsampling of the
     remodulation, ``up = (n_rf - 1) / (n_iq - 1)`` (:func:`femreg.io.iq.remodulate`); with the RF step as the IQ
-    step the phases would be read for a frequency ``up`` times too high and the frames refused."""
-    if getattr(args, "modulation_frequency", None) is None or result_shape is None:
+    step the phases would be read for a frequency ``up`` times too high and the frames refused.  ``frame_shape``:
+    the (axial, lateral) samples the reader found (:class:`femreg.errors.SpacingUnknownError`), so that the file
+    is not read again to count them."""
+    if (getattr(args, "modulation_frequency", None) is None or result_shape is None or frame_shape is None
+            or len(frame_shape) != 2):
         return res_sp
-    from ..io import read_frames
-
-    try:
-        read_frames(path, **{**reader_kwargs(args), "spacing": res_sp, "modulation_frequency": None},
-                    check_orientation=False)
-    except InputError as exc:
-        stored = getattr(exc, "iq_frames", None)
-        if stored is None:
-            return res_sp
-        n_iq, n_rf = int(stored.frames.shape[1]), int(result_shape[0])
-        if n_iq > 1 and n_rf > n_iq and (n_rf - 1) % (n_iq - 1) == 0:
-            return [res_sp[0] * ((n_rf - 1) // (n_iq - 1)), res_sp[1]]
+    # --transpose: the file's lateral axis holds the samples
+    n_iq, n_rf = int(frame_shape[1] if getattr(args, "transpose", False) else frame_shape[0]), int(result_shape[0])
+    if n_iq > 1 and n_rf > n_iq and (n_rf - 1) % (n_iq - 1) == 0:
+        return [res_sp[0] * ((n_rf - 1) // (n_iq - 1)), res_sp[1]]
     return res_sp
 
 

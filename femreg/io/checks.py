@@ -123,10 +123,11 @@ def check_origin(value, path=None, n: int = 2):
 
 
 def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None = None, n: int = 2,
-                  suggestion: "SpacingSuggestion | None" = None):
+                  suggestion: "SpacingSuggestion | None" = None, frame_shape=None):
     """Spacing from the file, overridden component-wise by the user's (None entries keep the file's); where a
     value is still missing, :class:`~femreg.errors.SpacingUnknownError` with ``required_msg`` (why the file has
-    none) and the header's ``suggestion`` (:func:`spacing_suggestion`)."""
+    none), the header's ``suggestion`` (:func:`spacing_suggestion`) and the reader's ``frame_shape`` (axial,
+    lateral samples as stored)."""
     user = check_spacing(user_spacing, allow_none=True, n=n)
     file_sp = list(file_spacing) if file_spacing is not None else [None] * n
     if user is not None:
@@ -140,7 +141,8 @@ def merge_spacing(path, file_spacing, user_spacing, *, required_msg: str | None 
         if suggestion is not None:
             msg = f"{msg}; {suggestion.text()}"
         raise SpacingUnknownError(f"{path}: {missing} spacing unknown ({msg}); give {hint}", path=path,
-                                  missing=[a for a, v in zip(axes, file_sp) if v is None], suggestion=suggestion)
+                                  missing=[a for a, v in zip(axes, file_sp) if v is None], suggestion=suggestion,
+                                  frame_shape=frame_shape)
     try:
         return check_spacing(file_sp, what="spacing", n=n)
     except InputError as exc:

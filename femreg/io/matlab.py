@@ -116,7 +116,7 @@ def _mat_layout(arr, meta=None):
     return arr
 
 
-def _aux(path, values: dict, spacing, n=2):
+def _aux(path, values: dict, spacing, n=2, frame_shape=None):
     file_spacing = None
     if "spacing" in values:
         try:
@@ -133,7 +133,8 @@ def _aux(path, values: dict, spacing, n=2):
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
     sp = merge_spacing(path, file_spacing, spacing, n=n, required_msg="no 'spacing' variable in the MAT-file",
-                       suggestion=spacing_suggestion(values.get("scalars") or {}) if n == 2 else None)
+                       suggestion=spacing_suggestion(values.get("scalars") or {}) if n == 2 else None,
+                       frame_shape=frame_shape)
     return sp, origin
 
 
@@ -182,7 +183,7 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
     path = Path(path)
     arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
-    sp, origin = _aux(path, aux, spacing)
+    sp, origin = _aux(path, aux, spacing, frame_shape=_mat_layout(arr).shape[-2:])
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]

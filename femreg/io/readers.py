@@ -142,7 +142,7 @@ def read_npy(path, *, spacing=None, frames=None, **_ignored):
             arr = _parse_npy(fh, size, path, "npy")
     except OSError as exc:
         raise fail(path, f"cannot read ({exc.strerror or exc})") from None
-    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing")
+    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing", frame_shape=arr.shape[-2:])
     return finalize(path, arr, sp, (0.0, 0.0), {"format": "npy"}, frames)
 
 
@@ -213,7 +213,8 @@ def read_npz(path, *, variable=None, spacing=None, frames=None, **_ignored):
     small = _npz_small(path, key)
     fields, axes = scalar_fields(small), axis_fields(small)
     sp = merge_spacing(path, file_spacing, spacing, required_msg="the .npz has no 'spacing' key",
-                       suggestion=spacing_suggestion(fields) if file_spacing is None else None)
+                       suggestion=spacing_suggestion(fields) if file_spacing is None else None,
+                       frame_shape=arr.shape[-2:])
     meta = {"format": "npz", "variable": key, "keys": other, **({"fields": fields} if fields else {}),
             **({"axes": axes} if axes else {})}
     return finalize(path, arr, sp, origin, meta, frames)
@@ -317,7 +318,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     pieces = continued_frames(arr) if axis is not None else ""
     if pieces:
         raise fail(path, pieces)
-    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
+    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing", frame_shape=arr.shape[-2:])
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
     if layout:
         meta["layout"] = layout
