@@ -112,47 +112,56 @@ def _cine_bmode(res, frame, spacing):
     return out, np.asarray(spacing, float) * np.asarray(b.shape) / np.asarray(out.shape)
 
 
-def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
-    """The frames of the strain cine, each (height, width, 3) uint8: the B-mode of the cine frame's reference
-    frame | the persistent normalised strain after its pair (viridis over ``strain_range``, default
-    :func:`femreg.elastogram.display_range`, as ``elastogram.png``), both on mm axes (axial x, lateral y) with
-    their colour bars (echo level dB; the strain over its mean) and a title naming the frame and the pair's mean
-    axial strain (%).  A convex / sector loop is drawn scan-converted (``res.geometry``).  One figure is drawn
-    and its images replaced frame by frame."""
+def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dynamic_range=50.0):
+    """The strain cine's figure for one frame: the B-mode ``bmode_db`` (dB, on ``bmode_spacing`` mm from
+    ``res.origin``) | the normalised strain ``strain`` (on ``res.cine_spacing``; viridis over ``strain_range``),
+    both on mm axes (axial x, lateral y) with their colour bars (echo level dB; the strain over its mean),
+    ``title`` above.  Returns ``(fig, (ax_bmode, ax_strain))``."""
     import matplotlib.pyplot as plt
 
-    from ..elastogram import display_range
     from ..plot import fit_colorbars, plot_field
 
-    lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
-    strain_of = {int(p["ref"]): 100.0 * float(p["strain"]) for p in res.pairs if p["usable"]}
+    lo, hi = strain_range
     ext = np.asarray(res.exx.shape) * np.asarray(res.spacing, float)        # mm, axial and lateral
     aspect = float(np.clip(ext[1] / max(ext[0], 1e-9), 0.25, 3.0))
     fig, axs = plt.subplots(1, 2, figsize=(2 * aspect * (CINE_HEIGHT_IN - 1.0) + 3.4, CINE_HEIGHT_IN),
                             dpi=CINE_DPI, constrained_layout=True)
-    pics, drawn = [], None
+    plot_field(bmode_db, bmode_spacing, res.origin, ax=axs[0], cmap="gray", vmin=-dynamic_range, vmax=0.0,
+               label="echo level (dB)", title="B-mode")
+    plot_field(strain, res.cine_spacing, res.origin, ax=axs[1], cmap="viridis", vmin=lo, vmax=hi,
+               label=STRAIN_LABEL, title="normalised axial strain")
+    for ax in axs:
+        ax.set_facecolor("black")       # outside a fan and where no pair covers
+    fig.suptitle(title)
+    fit_colorbars(fig, [list(axs)])
+    return fig, tuple(axs)
+
+
+def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
+    """The frames of the strain cine, each (height, width, 3) uint8: :func:`cine_figure` of every cine frame,
+    the B-mode of its reference frame beside the persistent normalised strain after its pair (colours over
+    ``strain_range``, default :func:`femreg.elastogram.display_range`, as ``elastogram.png``), titled with the
+    frame and its pair's mean axial strain (%).  A convex / sector loop is drawn scan-converted
+    (``res.geometry``).  One figure is drawn and its images replaced frame by frame."""
+    import matplotlib.pyplot as plt
+
+    from ..elastogram import display_range
+
+    rng = tuple(strain_range) if strain_range is not None else display_range(res.exx, res.quality)
+    strain_of = {int(p["ref"]): 100.0 * float(p["strain"]) for p in res.pairs if p["usable"]}
+    pics, fig = [], None
     try:
         for k, f in enumerate(res.cine_frames):
             b, bsp = _cine_bmode(res, frames[f], spacing)
             s = np.asarray(res.cine[k], float)
             what = f"frame {f}" + (f": pair strain {strain_of[f]:+.2f} %" if f in strain_of else "")
-            if drawn is None:
-                # the B-mode's pixels are as wide as the strain's and as many rows as averaged: one extent
-                plot_field(b, bsp, res.origin, ax=axs[0], cmap="gray", vmin=-dynamic_range, vmax=0.0,
-                           label="echo level (dB)", title="B-mode")
-                plot_field(s, res.cine_spacing, res.origin, ax=axs[1], cmap="viridis", vmin=lo, vmax=hi,
-                           label=STRAIN_LABEL, title="normalised axial strain")
-                for ax in axs:
-                    ax.set_xlabel("lateral y (mm)")
-                    ax.set_ylabel("axial x (mm)")
-                    ax.set_facecolor("black")       # outside a fan and where no pair covers
-                title = fig.suptitle(what)
-                fit_colorbars(fig, [list(axs)])
+            if fig is None:
+                fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range)
                 drawn = [axs[0].images[-1], axs[1].images[-1]]
             else:
                 drawn[0].set_data(np.ma.masked_invalid(b))
                 drawn[1].set_data(np.ma.masked_invalid(s))
-                title.set_text(what)
+                fig._suptitle.set_text(what)
             fig.canvas.draw()
             pic = np.asarray(fig.canvas.buffer_rgba())[..., :3]
             h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
@@ -160,7 +169,8 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
             pad[:pic.shape[0], :pic.shape[1]] = pic
             pics.append(pad)
     finally:
-        plt.close(fig)
+        if fig is not None:
+            plt.close(fig)
     return pics
 
 
