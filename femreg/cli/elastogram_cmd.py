@@ -104,8 +104,9 @@ def _cine_bmode(res, frame, spacing):
     outside the fan)."""
     from ..plot import bmode
 
-    b = res.to_grid(bmode(np.asarray(frame, float)))
-    if res.geometry is not None:
+    b = bmode(np.asarray(frame, float))
+    if getattr(res, "geometry", None) is not None:
+        b = res.to_grid(b)
         return b, np.asarray(res.spacing, float)
     rows = max(2, int(CINE_HEIGHT_IN * 100))
     out = _display(b, spacing, height=min(rows, b.shape[0]), average=True)
@@ -216,7 +217,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
     title = f"B-mode, frame index {res.ref_frame}"
-    if res.geometry is not None:        # the (range, angle) frame at its samples' physical positions
+    if getattr(res, "geometry", None) is not None:      # the (range, angle) frame at its samples' positions
         pos = res.geometry.sample_positions(np.shape(frame), res.sample_spacing, res.sample_origin)
         plot_bmode(frame, res.sample_spacing, res.sample_origin, ax=axs[0], title=title, positions=pos)
         ext = extent_mm(res.exx.shape, res.spacing, res.origin)
