@@ -149,13 +149,14 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
     from ..elastogram import display_range
 
     rng = tuple(strain_range) if strain_range is not None else display_range(res.exx, res.quality)
-    strain_of = {int(p["ref"]): 100.0 * float(p["strain"]) for p in res.pairs if p["usable"]}
+    pair_of = {int(p["ref"]): (int(p["mov"]), 100.0 * float(p["strain"])) for p in res.pairs if p["usable"]}
     pics, fig = [], None
     try:
         for k, f in enumerate(res.cine_frames):
             b, bsp = _cine_bmode(res, frames[f], spacing)
             s = np.asarray(res.cine[k], float)
-            what = f"frame {f}" + (f": pair strain {strain_of[f]:+.2f} %" if f in strain_of else "")
+            what = f"frame {f}" + (f" (pair {f} -> {pair_of[f][0]}, mean axial strain {pair_of[f][1]:+.2f} %)"
+                                   if f in pair_of else "")
             if fig is None:
                 fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range)
                 drawn = [axs[0].images[-1], axs[1].images[-1]]
