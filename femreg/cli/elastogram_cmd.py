@@ -160,11 +160,26 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
             if fig is None:
                 fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range)
                 drawn = [axs[0].images[-1], axs[1].images[-1]]
+                # the axes, colour bars and labels drawn once, without the images and the title: each frame then
+                # draws only those on that background (a whole draw took 0.23 s a frame)
+                fig.canvas.draw()           # the layout, with the title in its place
+                fig.set_layout_engine("none")
+                for a in drawn + [fig._suptitle]:
+                    a.set_visible(False)
+                fig.canvas.draw()
+                background = fig.canvas.copy_from_bbox(fig.bbox)
+                for a in drawn + [fig._suptitle]:
+                    a.set_visible(True)
             else:
                 drawn[0].set_data(np.ma.masked_invalid(b))
                 drawn[1].set_data(np.ma.masked_invalid(s))
                 fig._suptitle.set_text(what)
-            fig.canvas.draw()
+            fig.canvas.restore_region(background)
+            for ax, im in zip(axs, drawn):
+                ax.draw_artist(im)
+                for spine in ax.spines.values():    # the frame over the image's edge, as a whole draw has it
+                    ax.draw_artist(spine)
+            fig.draw_artist(fig._suptitle)
             pic = np.asarray(fig.canvas.buffer_rgba())[..., :3]
             h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
             pad = np.full((h, w, 3), 255, np.uint8)
