@@ -34,6 +34,11 @@ NaN outside the fan.  Measured (``benchmarks/elastogram_fan.py``, an L7 loop in 
 82 % of the fan covered at 15.0-17.4 % normalised strain error, against 35-36 % at 18.6-21.7 % on the largest
 rectangle without fill.
 
+Convex / phased-array loops in their native (range, angle) samples (``geometry=femreg.Convex(...)`` or
+``femreg.Sector(...)``): the screening runs in sample space, each pair is registered in physical x, y
+(:func:`femreg.geometry.register_beam`, one physical mesh), and the results are scan-converted onto a Cartesian
+grid that holds the fan (docs/geometry.md, "Elastograms").
+
 Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengths mm, images (axial, lateral).
 """
 from __future__ import annotations
