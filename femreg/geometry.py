@@ -314,7 +314,7 @@ def to_cartesian(values, geometry: Convex, dr: float, r0: float, grid, order: in
     """Scan conversion: ``values`` on a beam frame's samples (n_samples, n_rays), or a stack (n, n_samples,
     n_rays), -> the Cartesian ``grid`` = ``(grid_shape, spacing, origin)`` (:func:`frame_grid`), interpolated at
     each pixel's fractional sample index (``order`` 1: bilinear in (r, theta)); NaN outside the fan and where an
-    interpolated neighbour is NaN.  Returns float (grid_shape) or (n, *grid_shape)."""
+    interpolated neighbour is NaN.  Returns float, shape ``grid_shape`` or ``(n,) + grid_shape``."""
     v = np.asarray(values, float)
     stack = v if v.ndim == 3 else v[None]
     gshape, (dx, dy), (x0, y0) = grid
