@@ -34,6 +34,11 @@ NaN outside the fan.  Measured (``benchmarks/elastogram_fan.py``, an L7 loop in 
 82 % of the fan covered at 15.0-17.4 % normalised strain error, against 35-36 % at 18.6-21.7 % on the largest
 rectangle without fill.
 
+Convex / phased-array loops in their native (range, angle) samples (``geometry=femreg.Convex(...)`` or
+``femreg.Sector(...)``): the screening runs in sample space, each pair is registered in physical x, y
+(:func:`femreg.geometry.register_beam`, one physical mesh), and the results are scan-converted onto a Cartesian
+grid that holds the fan (docs/geometry.md, "Elastograms").
+
 Units: strains are fractions (percent only in ``pairs.csv`` and messages), lengths mm, images (axial, lateral).
 """
 from __future__ import annotations
@@ -157,6 +162,13 @@ class ElastogramResult:
         Frames k whose samples equal frame k - 1's (written twice by the scanner or the export): no motion between
         them, so a pair ending on one is the pair ending on the frame before, and a pair starting on one is no
         candidate of its own (``pairs`` holds none: the pair starting on the frame before covers it).
+    geometry : femreg.Convex | femreg.Sector or None
+        The probe of a loop of (range, angle) frames: ``exx``, ``quality``, ``cine`` and ``data_mask`` are then
+        scan-converted onto a Cartesian grid (``spacing``, ``origin``: x depth, y lateral, mm;
+        :func:`femreg.geometry.frame_grid`), the strain the physical axial one; None: a linear array's frames.
+    sample_spacing, sample_origin : (2,) or None
+        With a ``geometry``: the registered frames' range step (mm) and angle pitch (deg), and their first range
+        (mm) and 0, as :func:`femreg.register` takes them (after a ``depth`` cut).
     """
 
     exx: np.ndarray
@@ -174,10 +186,32 @@ class ElastogramResult:
     excluded: str | None = None
     data_mask: np.ndarray | None = None
     repeated: list = dc_field(default_factory=list)
+    geometry: object = None
+    sample_spacing: tuple | None = None
+    sample_origin: tuple | None = None
 
     @property
     def n_usable(self) -> int:
         return sum(1 for p in self.pairs if p["usable"])
+
+    def to_grid(self, values, step: int = 1) -> np.ndarray:
+        """``values`` on the registered frames' pixels (the input frames cut to ``region``; (n_axial,
+        n_lateral)) -> on the grid of ``exx`` (``step`` = the cine's row step: on the grid of ``cine``), e.g. a
+        B-mode to draw beside it; with a ``geometry`` scan-converted (:func:`femreg.geometry.to_cartesian`, NaN
+        outside the fan), else every ``step``-th row as it is."""
+        v = np.asarray(values, float)
+        if self.geometry is None:
+            return v[::step]
+        from .geometry import frame_grid, to_cartesian
+
+        dr, r0 = float(self.sample_spacing[0]), float(self.sample_origin[0])
+        return to_cartesian(v, self.geometry, dr, r0, _row_grid(frame_grid(self.geometry, v.shape, dr, r0), step))
+
+
+def _row_grid(grid, step):
+    """Every ``step``-th row of a Cartesian ``grid`` (:func:`femreg.geometry.frame_grid`): the cine's."""
+    (nx, ny), (dx, dy), origin = grid
+    return (len(range(0, nx, step)), ny), (step * dx, dy), origin
 
 
 # -- screening -----------------------------------------------------------------------------------------------
@@ -441,9 +475,13 @@ def _pixel_quality(res, step):
         X, Y = np.meshgrid(x, y, indexing="ij")
         f = RegularGridInterpolator((xs, ys), V, bounds_error=False, fill_value=np.nan)
         return f(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape)
+    # any other mesh (a convex / sector frame's annular one): at the pixels' (samples') physical positions
+    from .sampling import sample_points
+
     vec = np.zeros(2 * p.shape[1])
     vec[0::2] = qn
-    return res._interpolate_grid(vec, res._grid_location())["ux"][::step]
+    pts = res.pixel_points().reshape(tuple(res.shape) + (2,))[::step].reshape(-1, 2)
+    return sample_points(vec, res.locator, pts, ("ux",))[:, 0].reshape(-1, res.shape[1])
 
 
 # -- the work of stages 1 and 3, in this process or on Dask workers --------------------------------------------
@@ -486,16 +524,25 @@ def _verdict(rec, lo, hi):
     return True, ""
 
 
-def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=None):
+def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=None, lattice=None):
     """Register ``pairs`` [(i, j, screened strain, screened affine coef (3, 2))] in order, each warm-started from
     the last usable one (module docstring, stage 3); ``frame(k)`` gives frame k as float.  Returns
     ``{(i, j): rec}`` (rec: exx, ux, uy on every ``qa``-th row, quality, mean_strain, success, ncc_after,
     message, u); ``on_rec(i, j, rec)`` after each.  ``out``: folder of the per-pair files (kept with
-    ``resume``)."""
+    ``resume``).  ``lattice``: ``(mesh_s, geometry, rho_c)`` of convex / sector frames, ``mesh`` being
+    ``mesh_s`` (sample space, where the screening's affine fits hold) mapped to physical x, y."""
     from .registration import register
 
     lo, hi = band
-    nodes = mesh.p.T
+    nodes = mesh.p.T if lattice is None else lattice[0].p.T
+
+    def physical(v):        # a sample-space nodal displacement as the physical mesh's
+        if lattice is None:
+            return v
+        from .geometry import to_physical_displacement
+
+        return to_physical_displacement(lattice[0], v, lattice[1], lattice[2])
+
     per_pair = {}
     prev = None                      # (u, strain, coef) of the last good registration
     for i, j, strain, coef in pairs:
@@ -513,7 +560,7 @@ def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=No
             if 0.2 <= abs(s) <= 5.0:        # release mirrors compression: a negative scale is a start too
                 A_now = np.column_stack([coef[0, c] + nodes @ coef[1:, c] for c in range(2)])
                 A_prev = np.column_stack([prev[2][0, c] + nodes @ prev[2][1:, c] for c in range(2)])
-                u0 = s * prev[0] + (A_now - s * A_prev).ravel()
+                u0 = s * prev[0] + physical((A_now - s * A_prev).ravel())
                 res = register(frame(i), frame(j), mesh=mesh, initial=u0, **reg_args)
                 if not res.success:
                     res = None
@@ -540,9 +587,9 @@ def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=No
     return per_pair
 
 
-def _register_task(path, pairs, mesh, qa, band, out, resume, reg_args):
+def _register_task(path, pairs, mesh, qa, band, out, resume, reg_args, lattice=None):
     """:func:`_register_run` on a worker, the frames read from ``path``."""
-    return _register_run(_stored_frames(path), pairs, mesh, qa, band, out, resume, reg_args)
+    return _register_run(_stored_frames(path), pairs, mesh, qa, band, out, resume, reg_args, lattice=lattice)
 
 
 def _check_workers(workers, client):
@@ -620,6 +667,29 @@ def _cut(seq, crop):
     return seq, region, np.asarray(crop.origin, float), crop.region.excluded
 
 
+def _beam(geometry, data_mask, roi):
+    """The convex / sector geometry of a loop (:func:`femreg.probes.as_geometry`), or None for a linear array's;
+    an :class:`InputError` for what it does not go with."""
+    if geometry is None:
+        return None
+    from .probes import Convex, as_geometry
+
+    beam = as_geometry(geometry)
+    if beam is None:
+        return None
+    if not isinstance(beam, Convex):
+        raise InputError("a femreg.Swept geometry is a swept probe's volumes: an elastogram takes the frames of a "
+                         "linear, convex or phased array")
+    if data_mask is not None:
+        raise InputError("data_mask is on a Cartesian pixel grid: not with a convex / sector geometry")
+    if roi is not None and not isinstance(roi, str):
+        raise InputError(pass_as(f"roi {roi!r} is a Cartesian rectangle: with a {beam.kind} geometry give depth="
+                                 "(d0, d1), a range along the rays in mm",
+                                 f"--roi with --geometry {beam.kind}: give --depth D0 D1 (a range along the rays, "
+                                 "mm) instead"))
+    return beam
+
+
 def _positive_number(v) -> bool:
     if isinstance(v, (str, bool, np.bool_)):
         return False
@@ -633,7 +703,7 @@ def _positive_number(v) -> bool:
 def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc: float = 0.6,
                max_lateral_mm: float | None = None, max_span: int = 8, persistence: float = DEFAULT_PERSISTENCE,
                output_dir=None, resume: bool = False, progress: bool = False, regularizer="momentum-stress",
-               alpha=None, on_pair=None, workers: int = 1, client=None, data_mask=None,
+               alpha=None, on_pair=None, workers: int = 1, client=None, data_mask=None, geometry=None,
                **register_kwargs) -> ElastogramResult:
     """Cine loop -> normalised-strain cine and best elastogram (module docstring).
 
@@ -679,6 +749,14 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         taken on their fan; RF frames whole.  The loop is cut to the fan's bounding box, screened on the windows
         that see no fill, registered with the fill weighted 0 in eq:IR (``data_mask`` of
         :func:`femreg.register`), and the elastogram is NaN outside the fan.
+    geometry : femreg.Convex | femreg.Sector, optional
+        Frames (n_samples, n_rays) of a convex or phased array, ``spacing`` the range step dr mm (or (dr, angle
+        pitch deg)), ``origin`` (first range mm, 0) (:mod:`femreg.geometry`).  The loop is screened in sample
+        space (range, rho_c theta), where a frame is a linear image; every pair is registered by
+        :func:`femreg.geometry.register_beam` on one physical mesh (the sample-space mesh mapped), so each strain
+        image is the physical axial strain e_xx; they are combined on the samples, and the results are
+        scan-converted onto a Cartesian grid (:attr:`ElastogramResult.geometry`).  A ``depth`` (d0, d1) is a
+        range along the rays; a rectangle ``roi`` is not supported (no ``data_mask`` either).
 
     Returns
     -------
@@ -705,6 +783,12 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     if len(repeats) == len(seq) - 1:
         raise InputError(f"all {len(seq)} frames hold the same samples: nothing moved, no strain to image (an "
                          "elastogram needs a loop whose frames differ)")
+    beam = _beam(geometry, data_mask, register_kwargs.get("roi", "auto"))
+    if beam is not None:            # sample space: the frames as linear images (femreg.geometry)
+        from .geometry import beam_spacing, sample_space
+
+        dr, r0 = beam_spacing(spacing, beam, origin)
+        spacing, origin = sample_space(beam, np.shape(seq[0]), dr, r0)[1:]
     spacing, origin = validate_spacing(spacing, origin)
     if register_kwargs.pop("check_orientation", True):     # once, before any work, not in every pair's register
         orientation.check(np.asarray(seq[0], dtype=float), spacing)
@@ -712,7 +796,16 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     first, last = (np.asarray(seq[k], dtype=float) for k in (0, len(seq) - 1))
     roi, depth = register_kwargs.get("roi", "auto"), register_kwargs.get("depth")
     given = depth is not None or (roi is not None and not isinstance(roi, str))
-    if given:
+    if beam is not None:
+        if depth is not None:       # a range window over every ray: rows only, the rays stay centred on 0
+            crop = crop_for(first, last, spacing, origin, roi=None, depth=depth, margin=register_kwargs.get("margin"))
+            (a, b) = (crop.slices[0].start, crop.slices[0].stop)
+            n_rays = np.shape(seq[0])[1]
+            seq = seq[:, a:b] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b] for f in seq]
+            region, excluded = ((a, b), (0, n_rays)), crop.region.excluded
+            r0 = r0 + a * dr
+            spacing, origin = validate_spacing(*sample_space(beam, np.shape(seq[0]), dr, r0)[1:])
+    elif given:
         # a user's rectangle or depth range: the loop is cut to it (widened by the mesh margin) as register and
         # track cut a pair; every pair is then registered on that crop's mesh
         crop = crop_for(first, last, spacing, origin, roi=roi, depth=depth, margin=register_kwargs.get("margin"),
@@ -759,6 +852,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                   register_kwargs=json.loads(json.dumps(register_kwargs, sort_keys=True, default=repr)))
     if digest is not None:          # a resume with another mask is refused
         params["data_mask"] = digest
+    if beam is not None:            # nor one with another probe
+        params["geometry"] = beam.to_dict()
     register_kwargs["check_orientation"] = False           # checked above
     if given:                                              # cut above: the pairs' mesh defines the region
         register_kwargs.update(roi=None, depth=None)
@@ -852,8 +947,20 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             check_element_size(register_kwargs.get("element_size"), spacing)
             mesh = roi_mesh(shape, spacing, origin, element_size=register_kwargs.pop("element_size", None),
                             margin=register_kwargs.pop("margin", None))
-        reg_args = dict(spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha, data_mask=mask,
-                        **register_kwargs)
+        lattice = None
+        if beam is not None:
+            # one physical mesh: the sample-space one mapped; register_beam maps its nodes back for its
+            # sample-space stage (femreg.geometry)
+            from .geometry import physical_mesh
+
+            rho_c = float(beam.radius_mm + r0 + 0.5 * (shape[0] - 1) * dr)
+            lattice = (mesh, beam, rho_c)
+            mesh = physical_mesh(mesh, beam, rho_c)
+            reg_args = dict(spacing=dr, origin=(r0, 0.0), geometry=beam, regularizer=regularizer, alpha=alpha,
+                            **register_kwargs)
+        else:
+            reg_args = dict(spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha, data_mask=mask,
+                            **register_kwargs)
         todo = [(r["ref"], r["mov"], r["strain"], direct[(r["ref"], r["mov"])]) for r in chosen]
         by_key = {(r["ref"], r["mov"]): r for r in chosen}
         # off a terminal an on_pair that writes a line per pair is the progress: no bar's lines as well
@@ -879,14 +986,15 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                 for a0, a1 in _chunks(len(todo), n_workers):
                     part = todo[a0:a1]
                     futs.append(client.submit(_register_task, fpath, part, mesh, qa, (lo, hi), out, resume, reg_args,
-                                              pure=False))
+                                              lattice, pure=False))
                 per_pair = {}
                 for got in client.gather(futs):
                     per_pair.update(got)
                 for i, j, _, _ in todo:
                     done(i, j, per_pair[(i, j)])
             else:
-                per_pair = _register_run(frame, todo, mesh, qa, (lo, hi), out, resume, reg_args, on_rec=done)
+                per_pair = _register_run(frame, todo, mesh, qa, (lo, hi), out, resume, reg_args, on_rec=done,
+                                         lattice=lattice)
         finally:
             if b is not None:
                 b.close()
@@ -914,7 +1022,12 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             # previous reference -> its moving frame by the registered field, then on by the screened motion
             i0, j0 = prev_pair
             p_rec = per_pair[prev_pair]
-            WD, Wm = _move([W * D, W], cum[r["ref"]] - cum[j0], cspacing, origin, field=(p_rec["ux"], p_rec["uy"]))
+            field = (p_rec["ux"], p_rec["uy"])
+            if beam is not None:        # the physical field as the motion of the samples (sample space)
+                from .geometry import to_sample_displacement
+
+                field = to_sample_displacement(*field, beam, cspacing[0], r0, cspacing[1])
+            WD, Wm = _move([W * D, W], cum[r["ref"]] - cum[j0], cspacing, origin, field=field)
             W = w + persistence * Wm
             D = np.where(W > 0, (w * s + persistence * WD) / np.where(W > 0, W, 1.0), 0.0)
         else:
@@ -927,14 +1040,30 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     best, qual = _to_pixel_rows(best, qual, shape, qa)
     qual = np.where(inside, qual, 0.0)
     best = np.where(qual > 0, best, np.nan)
+    cine = np.array(cine, dtype=np.float32).reshape((-1,) + cshape)
+    data_mask = None if mask is None else mask.inside.copy()
+    beam_kw = {}
+    if beam is not None:            # results in physical x, y: scan-converted, NaN outside the fan
+        from .geometry import frame_grid, to_cartesian
+
+        grid = frame_grid(beam, shape, dr, r0)
+        cgrid = _row_grid(grid, qa)
+        best = to_cartesian(best, beam, dr, r0, grid)
+        fan = np.isfinite(to_cartesian(np.ones(shape), beam, dr, r0, grid))
+        # uncovered samples NaN, not 0: interpolated towards 0 the fan's edge read as pixels of no weight
+        qual = np.where(qual > 0, qual, np.nan)
+        qual = np.where(fan, np.nan_to_num(to_cartesian(qual, beam, dr, r0, grid), nan=0.0), 0.0)
+        best = np.where(qual > 0, best, np.nan)
+        cine = to_cartesian(cine, beam, cspacing[0], r0, cgrid).astype(np.float32).reshape((-1,) + tuple(cgrid[0]))
+        spacing, origin, cspacing, data_mask = np.asarray(grid[1]), np.asarray(grid[2]), np.asarray(cgrid[1]), fan
+        beam_kw = dict(geometry=beam, sample_spacing=(dr, float(beam.angle_pitch_deg)), sample_origin=(r0, 0.0))
     timings["combine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     return ElastogramResult(exx=best, quality=qual, ref_frame=int(ref_frame), spacing=spacing, origin=origin,
-                            cine=np.array(cine, dtype=np.float32).reshape((-1,) + cshape), cine_spacing=cspacing,
+                            cine=cine, cine_spacing=cspacing,
                             cine_frames=cine_frames, pairs=rows,
                             screen=dict(strain=e_c, lateral_mm=lat_c, ncc=ncc_c), timings=timings, region=region,
-                            excluded=excluded, data_mask=None if mask is None else mask.inside.copy(),
-                            repeated=repeats)
+                            excluded=excluded, data_mask=data_mask, repeated=repeats, **beam_kw)
 
 
 def write_pairs_csv(path, rows) -> None:

@@ -61,13 +61,14 @@ def test_angle_step_names():
 def test_header_struct_names_the_probe(files, capsys):
     """``header.line_angle_step`` (deg) and ``header.probe_radius`` (m), or a vector ``header.line_angles``
     (rad) inside the struct: info names the flags.  Before: neither was recognised, info suggested a lateral
-    line pitch, and elastogram ran the fan as a linear array's lines (exit 0)."""
+    line pitch, and elastogram ran the fan as a linear array's lines (exit 0); now it refuses without
+    --geometry, naming the flags it takes."""
     for name in ("step.mat", "angles.mat"):
         rc, out, err = _cli(["info", files / name], capsys)
         assert rc == 1 and "--geometry convex --radius 40 --angle-pitch 0.6" in out, out
         assert "auto" in out                                # no lateral pitch asked for
     rc, out, err = _cli(["elastogram", files / "step.mat", "--spacing", 0.0385, 0.2, "-o", files / "el"], capsys)
-    assert rc == 2 and "femreg track" in err and "--radius 40" in err, err
+    assert rc == 2 and "--geometry convex --radius 40 --angle-pitch 0.6" in err and "--geometry linear" in err, err
 
 
 def test_radius_in_centimetres_is_caught(files, pair, tmp_path, capsys):
@@ -88,9 +89,9 @@ def test_radius_in_centimetres_is_caught(files, pair, tmp_path, capsys):
 def test_geometry_flags_on_a_command_without_them(files, tmp_path, capsys):
     """Before: 'unrecognized arguments: --geometry convex ... (after -o: femreg elastogram --help gives how many
     values it takes)', which points at -o."""
-    rc, out, err = _cli(["elastogram", files / "step.mat", "-o", tmp_path / "e", "--geometry", "convex",
-                         "--radius", 40, "--angle-pitch", 0.6], capsys)
-    assert rc == 2 and "has no --geometry option" in err and "femreg track" in err and "after -o" not in err, err
+    rc, out, err = _cli(["measure", files / "step.mat", "--inclusion", 4, 0, 1, "--geometry", "convex"], capsys)
+    assert rc == 2 and "has no --geometry option" in err and "stored in the result" in err, err
+    assert "after" not in err, err
     rc, out, err = _cli(["info", files / "step.mat", "--bogus"], capsys)
     assert rc == 2 and "femreg info has no --bogus option" in err, err
 

@@ -133,18 +133,43 @@ def test_colour_bars_mark_saturated_ends():
         plt.close(fig)
 
 
-def test_strain_cine_has_a_colour_bar():
+def _cine_result(shape=(200, 60), spacing=(0.05, 0.2), step=4):
+    """A stand-in elastogram result of a linear loop: two cine frames of a strain ramp."""
+    from types import SimpleNamespace
+
+    ramp = np.linspace(0.0, 2.0, shape[0])[:, None] * np.ones(shape)
+    cine = np.stack([ramp[::step], ramp[::step][::-1]]).astype(np.float32)
+    return SimpleNamespace(exx=ramp, quality=np.ones(shape), spacing=np.asarray(spacing), origin=np.array([3.0, -6.0]),
+                           cine=cine, cine_spacing=np.array([step * spacing[0], spacing[1]]), cine_frames=[0, 2],
+                           pairs=[dict(ref=0, mov=2, strain=-0.01, usable=True)], geometry=None,
+                           to_grid=lambda v, step=1: np.asarray(v, float)[::step])
+
+
+def test_strain_cine_has_mm_axes_and_colour_bars():
+    """Before: the cine was two bare pixel panels, a scale of three numbers and no unit, no axes."""
     import matplotlib
 
-    from femreg.cli.elastogram_cmd import _legend
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-    leg = _legend(100)
-    viridis = matplotlib.colormaps["viridis"]
-    top, bottom = leg[0, 10].astype(int), leg[-1, 10].astype(int)
-    # 2 x the mean at the top, 0 at the bottom, in the strain panel's colours
-    assert np.abs(top - np.asarray(viridis(1.0)[:3]) * 255).max() <= 2
-    assert np.abs(bottom - np.asarray(viridis(0.0)[:3]) * 255).max() <= 2
-    assert (leg[:, 21:] > 128).any()                    # the labels are drawn
+    from femreg.cli.elastogram_cmd import STRAIN_LABEL, cine_figure, cine_frames
+
+    res = _cine_result()
+    b = np.random.default_rng(0).uniform(-50, 0, res.exx.shape)
+    fig, (ab, ae) = cine_figure(res, b, res.spacing, res.cine[0], (0.0, 2.0), "frame 0")
+    for ax in (ab, ae):
+        assert ax.get_xlabel() == "lateral y (mm)" and ax.get_ylabel() == "axial x (mm)"
+        # both panels on the same mm extent: depth 3 to 13 mm, lateral -6 to 6 mm (within a pixel)
+        lo, hi = sorted(ax.get_ylim())
+        assert abs(lo - 3.0) < 0.25 and abs(hi - 13.0) < 0.25 and abs(min(ax.get_xlim()) + 6.0) < 0.25
+    assert ab.images[-1].colorbar.ax.get_ylabel() == "echo level (dB)"
+    cb = ae.images[-1].colorbar
+    assert cb.ax.get_ylabel() == STRAIN_LABEL and ae.images[-1].get_cmap().name == "viridis"
+    assert ae.images[-1].get_clim() == (0.0, 2.0)
+    plt.close(fig)
+    pics = cine_frames(res, np.random.default_rng(1).normal(size=(3,) + res.exx.shape), res.spacing, (0.0, 2.0))
+    assert len(pics) == 2 and pics[0].shape == pics[1].shape and pics[0].shape[0] % 16 == 0
+    assert not np.array_equal(pics[0], pics[1])         # each frame its own strain image
 
 
 def test_frames_given_where_a_result_belongs(tmp_path, capsys):
@@ -273,14 +298,19 @@ def test_elastogram_in_vivo_not_saturated(tmp_path, capsys):
     assert rc == 2 and "--strain-range" in err and not (tmp_path / "bad").exists(), err
 
 
-def test_strain_cine_legend_follows_the_range():
-    from femreg.cli.elastogram_cmd import _legend
+def test_strain_cine_colour_bar_follows_the_range():
+    import matplotlib
 
-    leg = _legend(100, -0.2, 3.6)
-    # the tick of 1 (the mean) lies across the bar at its height, dark; no dash beside the number (read as minus)
-    y = int(round((3.6 - 1.0) / 3.8 * 99))
-    assert leg[y, 10].max() < 40 and leg[y + 3, 10].max() > 40
-    assert not (leg[:, 16:19] > 128).any()
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import cine_figure
+
+    res = _cine_result()
+    fig, (_, ae) = cine_figure(res, np.zeros(res.exx.shape) - 20, res.spacing, res.cine[0], (-0.2, 3.6))
+    cb = ae.images[-1].colorbar
+    assert ae.images[-1].get_clim() == (-0.2, 3.6) and 1.0 in list(cb.get_ticks())     # the mean marked
+    plt.close(fig)
 
 
 @needs_invivo

@@ -75,8 +75,8 @@ def test_cli_convex_file(convex_file, tmp_path, capsys):
     assert not (tmp_path / "lin.npz").exists()
     bad = cli(["track", path, "--spacing", dr, 0.3, "-o", tmp_path / "run"])       # a cine loop alike
     assert bad.returncode == 2 and "--geometry convex --radius 40" in bad.stderr, bad.stderr
-    bad = cli(["elastogram", path, "--spacing", dr, 0.3, "-o", tmp_path / "el"])
-    assert bad.returncode == 2 and "femreg track" in bad.stderr, bad.stderr
+    bad = cli(["elastogram", path, "--spacing", dr, 0.3, "-o", tmp_path / "el"])   # it takes those flags too
+    assert bad.returncode == 2 and "--geometry convex --radius 40" in bad.stderr, bad.stderr
     # the geometry given: no lateral spacing needed; a given one is said to be unused
     ok = cli(["register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
               "--spacing", dr, "auto", "-o", tmp_path / "convex.npz"])
@@ -183,21 +183,21 @@ def test_ray_angle_vector_states_the_probe(mat73_theta_file, tmp_path, capsys):
                      "--spacing", dr, "auto", "-o", tmp_path / "run")
     assert rc == 2 and "--radius 45 mm against 40 mm" in err, err
     assert not (tmp_path / "c.npz").exists() and not (tmp_path / "run").exists()
-    # the header's start time: named by info and register (the fan's geometry needs the first range), --origin
-    # applies it
+    # the header's start time: named by info; register applies it as the first range of convex frames (the
+    # fan's geometry needs it), saying so; a given --origin wins
     r0 = f"{p.origin[0]:.4g}"
     rc, out, _ = cli("info", path)
-    assert f"pass --origin {r0} 0" in out, out
+    assert f"pass --origin {r0} 0" in out and "applied as the first range" in out, out
     rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
                      "--spacing", dr, "auto", "--maxiter", 1, "-o", tmp_path / "c0.npz")
-    assert rc in (0, 1) and f"pass --origin {r0} 0" in err, err
+    assert rc in (0, 1) and f"taken at range {r0} mm" in err, err
     rc, _, err = cli("register", path, "--geometry", "convex", "--radius", 40, "--angle-pitch", 0.6,
-                     "--spacing", dr, "auto", "--origin", r0, 0, "--maxiter", 1, "-o", tmp_path / "c1.npz")
-    assert rc in (0, 1) and "--origin" not in err, err
+                     "--spacing", dr, "auto", "--origin", 0, 0, "--maxiter", 1, "-o", tmp_path / "c1.npz")
+    assert rc in (0, 1) and "start depth" not in err, err
     with np.load(tmp_path / "c0.npz") as a, np.load(tmp_path / "c1.npz") as b:
-        # the mesh's nodes lie on the fan of the given first range: the nearest to the apex at R + r0
+        # the mesh's nodes lie on the fan of the first range used: the nearest to the apex at R + r0
         ra, rb = (np.hypot(z["mesh_points"][0] + 40.0, z["mesh_points"][1]).min() - 40.0 for z in (a, b))
-    assert rb - ra == pytest.approx(p.origin[0], abs=0.05), (ra, rb)
+    assert ra - rb == pytest.approx(p.origin[0], abs=0.05), (ra, rb)
 
 
 def test_origin_overrides_the_file(mat73_theta_file):

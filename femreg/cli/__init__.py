@@ -199,8 +199,6 @@ _stderr_is_terminal = stderr_is_terminal
 #: the probe-geometry flags of register / track / batch, and what a command without them does instead
 _GEOMETRY_FLAGS = ("--geometry", "--radius", "--angle-pitch", "--sweep-radius", "--angle-step")
 _GEOMETRY_ELSEWHERE = {
-    "elastogram": "it reads a linear array's frames; a convex or sector loop is tracked with femreg track LOOP -o "
-                  "run/ --geometry convex --radius MM --angle-pitch DEG",
     "plot": "the probe geometry is stored in the result",
     "invert": "the probe geometry is stored in the result",
     "measure": "the probe geometry is stored in the result",

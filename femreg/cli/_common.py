@@ -51,7 +51,8 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
     g.add_argument("--origin", metavar=("X0", "Y0"), nargs=2, type=float,
                    help="position of the first sample in mm (depth of the first sample, lateral position of the "
                         "first line; convex / sector: the first range and 0), overriding the file's (default the "
-                        "file's, else 0 0; femreg info names a start depth the header states)")
+                        "file's, else 0 0; a start depth the header states is named by femreg info, and applied "
+                        "as the first range of --geometry convex / sector frames)")
     g.add_argument("--byte-order", choices=("little", "big"), help="raw files: byte order (default little)")
     g.add_argument("--frames", metavar="SEL", type=_frame_selection,
                    help="frame selection, counted from 0: 3, 0:10, 0:10:2 or 1,3,5 (default all)")

@@ -10,7 +10,14 @@ fan, outside which every picture is empty),
 ``OUT/strain_cine.mp4`` (imageio-ffmpeg; ``strain_cine.gif`` when it is not installed).  Per-pair results are in
 ``OUT/pairs/`` as soon as they are computed; ``--resume`` keeps them.
 
-Exit codes: 0 done, 1 computed but no pair usable, 2 bad input (before any work).
+``--geometry convex|sector`` (``--radius``, ``--angle-pitch``): frames (samples, rays) of a convex or phased
+array, each pair registered in physical x, y (:func:`femreg.geometry.register_beam`); ``exx``, ``quality`` and the
+pictures are scan-converted onto a Cartesian grid (``spacing``, ``origin`` in mm, ``data_mask`` the fan; the npz
+also names the probe: ``geometry_kind``, ``geometry_radius_mm``, ``geometry_angle_pitch_deg``).  Only the range
+step of the spacing is read (``--spacing DX auto``); the first range is ``--origin``, else the file's, else the
+start depth its header states.
+
+Exit codes: 0 done, 1 computed but no pair usable, or the computation failed, 2 bad input (before any work).
 """
 from __future__ import annotations
 
@@ -21,8 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, counted
-from ._common import (add_reader_args, add_registration_args, file_frame, frames_from_args, ncc_arg,
-                      registration_kwargs)
+from ._common import (add_reader_args, add_registration_args, beam_frames_from_args, file_frame, frames_from_args,
+                      ncc_arg, registration_kwargs)
+from .register_cmd import (_check_stated_geometry, _geometry, _refuse_curved, add_geometry_args, beam_start_range,
+                           refuse_unused_geometry)
 
 
 def add_parser(subparsers):
@@ -52,6 +61,7 @@ def add_parser(subparsers):
                    help="local worker processes for the screening and the registrations (default 1: this "
                         "process; on 2 free cores, 2 workers register every consecutive pair at 24 instead of 19 "
                         "frames/s, and gain nothing when one pair in four is registered)")
+    add_geometry_args(p, choices=("linear", "convex", "sector"))
     add_registration_args(p)
     add_reader_args(p)
     p.set_defaults(func=run)
@@ -81,67 +91,109 @@ def _display(img, spacing, height=320, average=False):
     return out
 
 
-def _rgb(values, cmap, vmin, vmax):
-    import matplotlib
-
-    cm = matplotlib.colormaps[cmap]
-    v = np.clip((np.nan_to_num(values, nan=vmin) - vmin) / (vmax - vmin), 0.0, 1.0)
-    rgb = (cm(v)[..., :3] * 255).astype(np.uint8)
-    rgb[~np.isfinite(values)] = 0
-    return rgb
+#: Label of the normalised strain's colour bar (elastogram.png and the cine): its unit is the image's mean.
+STRAIN_LABEL = "axial strain / its mean (1 = mean; bright = soft)"
+#: Height of the strain cine's frames, inches at :data:`CINE_DPI`.
+CINE_HEIGHT_IN, CINE_DPI = 4.6, 90
 
 
-def _legend(height, lo=0.0, hi=2.0, width=44):
-    """The strain panel's colour bar for the cine (viridis, ``lo`` at the bottom, ``hi`` at the top), labelled lo,
-    1 (the mean) and hi: without it the cine's colours have no scale."""
-    from PIL import Image, ImageDraw
+def _cine_bmode(res, frame, spacing):
+    """The B-mode (dB) of ``frame`` (the input frame cut to ``res.region``) on the grid of ``res.exx``: averaged
+    to about :data:`CINE_HEIGHT_IN` x 100 rows (picking one of several samples per display pixel aliases the
+    speckle into salt-and-pepper noise) with its spacing (mm); a convex / sector frame's scan-converted (NaN
+    outside the fan)."""
+    from ..plot import bmode
 
-    rgb = np.zeros((height, width, 3), np.uint8)
-    ramp = np.linspace(hi, lo, height)[:, None] * np.ones((1, 10))
-    rgb[:, 6:16] = _rgb(ramp, "viridis", lo, hi)
-    im = Image.fromarray(rgb)
-    draw = ImageDraw.Draw(im)
-    ticks = [lo, hi] + ([1.0] if 0.12 < (1.0 - lo) / (hi - lo) < 0.88 else [])    # 1 unless it crowds an end
-    for v in ticks:
-        y = int(round((hi - v) / (hi - lo) * (height - 1)))
-        # the tick across the bar: a dash just left of the number would read as a minus sign
-        if 0 < y < height - 1:      # the bar's ends are their own ticks
-            draw.line([(6, y), (15, y)], fill=(0, 0, 0))
-        draw.text((19, min(max(y - 6, 0), height - 12)), f"{v:.2g}", fill=(255, 255, 255))
-    return np.asarray(im)
+    b = bmode(np.asarray(frame, float))
+    if getattr(res, "geometry", None) is not None:
+        b = res.to_grid(b)
+        return b, np.asarray(res.spacing, float)
+    rows = max(2, int(CINE_HEIGHT_IN * 100))
+    out = _display(b, spacing, height=min(rows, b.shape[0]), average=True)
+    return out, np.asarray(spacing, float) * np.asarray(b.shape) / np.asarray(out.shape)
 
 
-def _caption(pic, text, rows=14):
-    """``pic`` with a black strip of ``rows`` on top holding ``text`` (what the panels are, the frame)."""
-    from PIL import Image, ImageDraw
+def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dynamic_range=50.0):
+    """The strain cine's figure for one frame: the B-mode ``bmode_db`` (dB, on ``bmode_spacing`` mm from
+    ``res.origin``) | the normalised strain ``strain`` (on ``res.cine_spacing``; viridis over ``strain_range``),
+    both on mm axes (axial x, lateral y) with their colour bars (echo level dB; the strain over its mean),
+    ``title`` above.  Returns ``(fig, (ax_bmode, ax_strain))``."""
+    import matplotlib.pyplot as plt
 
-    im = Image.fromarray(np.concatenate([np.zeros((rows, pic.shape[1], 3), np.uint8), pic], axis=0))
-    ImageDraw.Draw(im).text((2, 1), text, fill=(255, 255, 255))
-    return np.asarray(im)
+    from ..plot import fit_colorbars, plot_field
+
+    lo, hi = strain_range
+    ext = np.asarray(res.exx.shape) * np.asarray(res.spacing, float)        # mm, axial and lateral
+    aspect = float(np.clip(ext[1] / max(ext[0], 1e-9), 0.25, 3.0))
+    fig, axs = plt.subplots(1, 2, figsize=(2 * aspect * (CINE_HEIGHT_IN - 1.0) + 3.4, CINE_HEIGHT_IN),
+                            dpi=CINE_DPI, constrained_layout=True)
+    plot_field(bmode_db, bmode_spacing, res.origin, ax=axs[0], cmap="gray", vmin=-dynamic_range, vmax=0.0,
+               label="echo level (dB)", title="B-mode")
+    plot_field(strain, res.cine_spacing, res.origin, ax=axs[1], cmap="viridis", vmin=lo, vmax=hi,
+               label=STRAIN_LABEL, title="normalised axial strain")
+    for ax in axs:
+        ax.set_facecolor("black")       # outside a fan and where no pair covers
+    fig.suptitle(title)
+    fit_colorbars(fig, [list(axs)])
+    return fig, tuple(axs)
+
+
+def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
+    """The frames of the strain cine, each (height, width, 3) uint8: :func:`cine_figure` of every cine frame,
+    the B-mode of its reference frame beside the persistent normalised strain after its pair (colours over
+    ``strain_range``, default :func:`femreg.elastogram.display_range`, as ``elastogram.png``), titled with the
+    frame and its pair's mean axial strain (%).  A convex / sector loop is drawn scan-converted
+    (``res.geometry``).  One figure is drawn and its images replaced frame by frame."""
+    import matplotlib.pyplot as plt
+
+    from ..elastogram import display_range
+
+    rng = tuple(strain_range) if strain_range is not None else display_range(res.exx, res.quality)
+    pair_of = {int(p["ref"]): (int(p["mov"]), 100.0 * float(p["strain"])) for p in res.pairs if p["usable"]}
+    pics, fig = [], None
+    try:
+        for k, f in enumerate(res.cine_frames):
+            b, bsp = _cine_bmode(res, frames[f], spacing)
+            s = np.asarray(res.cine[k], float)
+            what = f"frame {f}" + (f" (pair {f} -> {pair_of[f][0]}, mean axial strain {pair_of[f][1]:+.2f} %)"
+                                   if f in pair_of else "")
+            if fig is None:
+                fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range)
+                drawn = [axs[0].images[-1], axs[1].images[-1]]
+                # the axes, colour bars and labels drawn once, without the images and the title: each frame then
+                # draws only those on that background (a whole draw took 0.23 s a frame)
+                fig.canvas.draw()           # the layout, with the title in its place
+                fig.set_layout_engine("none")
+                for a in drawn + [fig._suptitle]:
+                    a.set_visible(False)
+                fig.canvas.draw()
+                background = fig.canvas.copy_from_bbox(fig.bbox)
+                for a in drawn + [fig._suptitle]:
+                    a.set_visible(True)
+            else:
+                drawn[0].set_data(np.ma.masked_invalid(b))
+                drawn[1].set_data(np.ma.masked_invalid(s))
+                fig._suptitle.set_text(what)
+            fig.canvas.restore_region(background)
+            for ax, im in zip(axs, drawn):
+                ax.draw_artist(im)
+                for spine in ax.spines.values():    # the frame over the image's edge, as a whole draw has it
+                    ax.draw_artist(spine)
+            fig.draw_artist(fig._suptitle)
+            pic = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+            h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
+            pad = np.full((h, w, 3), 255, np.uint8)
+            pad[:pic.shape[0], :pic.shape[1]] = pic
+            pics.append(pad)
+    finally:
+        if fig is not None:
+            plt.close(fig)
+    return pics
 
 
 def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Path:
-    """B-mode | normalised strain for every cine frame, in the colours of ``elastogram.png`` (viridis over
-    ``strain_range``, default :func:`femreg.elastogram.display_range`): ``strain_cine.mp4`` with imageio-ffmpeg,
-    else a GIF."""
-    from ..elastogram import display_range
-    from ..plot import bmode
-
-    lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
-
-    pics = []
-    for k, f in enumerate(res.cine_frames):
-        b = _display(bmode(np.asarray(frames[f], float)), spacing, average=True)
-        s = _display(res.cine[k].astype(float), res.cine_spacing)
-        bm = np.repeat(((b - b.min()) / max(np.ptp(b), 1e-12) * 255).astype(np.uint8)[..., None], 3, axis=2)
-        pic = np.concatenate([bm, np.zeros((bm.shape[0], 8, 3), np.uint8), _rgb(s, "viridis", lo, hi),
-                              _legend(bm.shape[0], lo, hi)], axis=1)
-        depth = np.shape(frames[f])[0] * float(spacing[0])
-        pic = _caption(pic, f"frame {f}: B-mode | axial strain / its mean; {depth:.0f} mm deep")
-        h, w = (-(-pic.shape[0] // 16) * 16, -(-pic.shape[1] // 16) * 16)   # codec macro blocks
-        pad = np.zeros((h, w, 3), np.uint8)
-        pad[:pic.shape[0], :pic.shape[1]] = pic
-        pics.append(pad)
+    """The strain cine of :func:`cine_frames`: ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
+    pics = cine_frames(res, frames, spacing, strain_range)
     try:
         import imageio_ffmpeg
     except ImportError:
@@ -175,18 +227,26 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range, saturated_fraction
-    from ..plot import draw_failure, fit_colorbars, plot_bmode, plot_field
+    from ..plot import draw_failure, extent_mm, fit_colorbars, plot_bmode, plot_field
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
     fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
-    plot_bmode(frame, spacing, origin, ax=axs[0], title=f"B-mode, frame index {res.ref_frame}")
+    title = f"B-mode, frame index {res.ref_frame}"
+    if getattr(res, "geometry", None) is not None:      # the (range, angle) frame at its samples' positions
+        pos = res.geometry.sample_positions(np.shape(frame), res.sample_spacing, res.sample_origin)
+        plot_bmode(frame, res.sample_spacing, res.sample_origin, ax=axs[0], title=title, positions=pos)
+        ext = extent_mm(res.exx.shape, res.spacing, res.origin)
+        axs[0].set_xlim(ext[0], ext[1])
+        axs[0].set_ylim(ext[2], ext[3])
+    else:
+        plot_bmode(frame, spacing, origin, ax=axs[0], title=title)
     pairs = f"{res.n_usable} pair" + ("" if res.n_usable == 1 else "s")
     # the share drawn in an end colour: the picture says how much of it the colour bar does not resolve
     sat = saturated_fraction(res.exx, res.quality, (lo, hi))
     beyond = f"\n{100 * sat:.1f} % of the pixels beyond the colour bar" if np.isfinite(sat) else ""
     plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs}){beyond}",
-               cmap="viridis", vmin=lo, vmax=hi, label="axial strain / its mean (1 = mean; bright = soft)")
+               cmap="viridis", vmin=lo, vmax=hi, label=STRAIN_LABEL)
     q = np.where(res.quality > 0, res.quality, np.nan)
     med = float(np.nanmedian(q)) if np.isfinite(q).any() else 1.0
     # relative to the median on a log scale over its 2-98 % percentiles: the weight spans 20x and more (static
@@ -244,13 +304,24 @@ def run(args) -> int:
                          f"{args.strain_range[0]:g} {args.strain_range[1]:g}")
     if not (0 < args.fps < float("inf")):
         raise InputError(f"--fps must be a number > 0 (frames per second of the strain cine), got {args.fps:g}")
-    fr = frames_from_args(args)
-    if not args.no_orientation_check:
-        from .register_cmd import _refuse_curved
+    refuse_unused_geometry(args)
+    beam = None
+    if args.geometry in ("convex", "sector"):   # frames along rays: range step and first range from the file
+        from ..geometry import sample_space
 
-        _refuse_curved(fr, args.file, "femreg elastogram reads a linear array's frames: track them with femreg "
-                                      "track and those flags (or --no-orientation-check if the frames are on a "
-                                      "Cartesian grid already)")
+        beam = _geometry(args)
+        fr, dr, _ = beam_frames_from_args(args, beam)
+        _check_stated_geometry(fr, args.file, beam, args)
+        spacing, origin = dr, (beam_start_range(fr, args.file, args), 0.0)
+        if args.roi is not None and [str(v).lower() for v in args.roi] not in (["auto"], ["full"]):
+            raise InputError(f"--roi is a Cartesian rectangle: with --geometry {beam.kind} give --depth D0 D1 (a "
+                             "range along the rays, mm) instead")
+        mesh_spacing = sample_space(beam, fr.shape, dr, origin[0])[1]   # the frames as linear images (mm)
+    else:
+        fr = frames_from_args(args)
+        if not args.no_orientation_check and not getattr(args, "geometry_given", False):
+            _refuse_curved(fr, args.file)
+        spacing, origin, mesh_spacing = fr.spacing, fr.origin, fr.spacing
     kw = registration_kwargs(args)
     out = Path(args.output)
 
@@ -273,11 +344,19 @@ def run(args) -> int:
         raise InputError(f"{args.file}: need at least 3 frames for an elastogram, got {fr.n_frames}")
     from ..mesh import check_element_size
 
-    check_element_size(kw.get("element_size"), fr.spacing)      # before the screening writes anything
-    res = elastogram(fr.frames, spacing=fr.spacing, origin=fr.origin, band=(lo / 100.0, hi / 100.0),
-                     min_ncc=args.min_ncc, max_span=args.max_span, max_lateral_mm=args.max_lateral,
-                     persistence=args.persistence, output_dir=out, resume=args.resume,
-                     progress=not args.no_progress, on_pair=on_pair, workers=args.workers, **kw)
+    check_element_size(kw.get("element_size"), mesh_spacing)    # before the screening writes anything
+    try:
+        res = elastogram(fr.frames, spacing=spacing, origin=origin, band=(lo / 100.0, hi / 100.0),
+                         min_ncc=args.min_ncc, max_span=args.max_span, max_lateral_mm=args.max_lateral,
+                         persistence=args.persistence, output_dir=out, resume=args.resume,
+                         progress=not args.no_progress, on_pair=on_pair, workers=args.workers, geometry=beam, **kw)
+    except InputError:
+        raise                   # bad input: exit 2 from the dispatcher
+    except Exception as exc:  # noqa: BLE001 - a computation that fails is exit 1, finished pairs kept
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"femreg elastogram: failed: the elastogram could not be computed ({type(exc).__name__}: {msg}); "
+              f"finished pairs are kept in {out / 'pairs'} (--resume continues)", file=sys.stderr)
+        return 1
     write_pairs_csv(out / "pairs.csv", res.pairs)
     fan = {} if res.data_mask is None else dict(data_mask=res.data_mask)
     if res.region is not None:      # a fan's bounding box or a given --roi / --depth: where exx lies in the frames
@@ -285,6 +364,10 @@ def run(args) -> int:
     from ..elastogram import display_range
 
     shown = tuple(args.strain_range) if args.strain_range is not None else display_range(res.exx, res.quality)
+    if beam is not None:        # the probe whose (range, angle) frames exx was scan-converted from
+        fan.update(geometry_kind=np.array(beam.kind), geometry_radius_mm=np.array(float(beam.radius_mm)),
+                   geometry_angle_pitch_deg=np.array(float(beam.angle_pitch_deg)),
+                   sample_origin=np.asarray(res.sample_origin, float))
     atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
                  spacing=np.asarray(res.spacing), origin=np.asarray(res.origin),
                  strain_range=np.asarray(shown, float), **fan)

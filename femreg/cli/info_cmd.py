@@ -167,15 +167,17 @@ def _spacing_conflict(info, args) -> list:
 
 def _origin_note(info, args) -> str:
     """A note when the header states a start depth (``t0``, ``start_depth``) that the frames' origin, 0 as read,
-    does not carry: depths are labelled from the first sample, and a convex / sector frame's geometry needs its
-    first range ("" otherwise)."""
+    does not carry: a linear array's depths are labelled from the first sample unless ``--origin`` is given; with
+    ``--geometry convex|sector`` the commands take it as the first range, which the rays' geometry needs ("" when
+    the header states none)."""
     from ..io.checks import unapplied_start_depth
 
     depth, why = unapplied_start_depth(info.get("metadata"), info["origin_mm"], getattr(args, "sound_speed", None))
     if depth is None:
         return ""
-    return (f"the first sample is read at depth 0, but the header states {depth:.4g} mm ({why}): pass --origin "
-            f"{depth:.4g} 0 if so (a convex or phased array's geometry needs its first range)")
+    return (f"the first sample is read at depth 0, but the header states {depth:.4g} mm ({why}): for a linear "
+            f"array pass --origin {depth:.4g} 0 to label depths from it; with --geometry convex or sector it is "
+            "applied as the first range (the rays' geometry depends on it; --origin R0 0 overrides)")
 
 
 def _iq_needs(fr) -> list:

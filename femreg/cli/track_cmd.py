@@ -13,8 +13,8 @@ from __future__ import annotations
 from ..errors import InputError
 from ._common import (add_reader_args, add_registration_args, add_volume_arg, beam_frames_from_args,
                       frames_from_args, ncc_arg, registration_kwargs, run_tracking)
-from .register_cmd import (_check_stated_geometry, _geometry, _note_start_depth, _refuse_curved, _swept,
-                           add_geometry_args, refuse_unused_geometry)
+from .register_cmd import (_check_stated_geometry, _geometry, _refuse_curved, _swept, add_geometry_args,
+                           beam_start_range, refuse_unused_geometry)
 
 
 def add_parser(subparsers):
@@ -78,7 +78,7 @@ def run(args) -> int:
         kw["geometry"] = _geometry(args)
         fr, spacing, origin = beam_frames_from_args(args, kw["geometry"])
         _check_stated_geometry(fr, args.file, kw["geometry"], args)
-        _note_start_depth(fr, args.file, args)
+        origin = (beam_start_range(fr, args.file, args), 0.0)
     else:
         fr = frames_from_args(args)
         if not getattr(args, "geometry_given", False):

@@ -438,8 +438,8 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
     origin : (x0, y0) mm, optional
         Position of sample ``[0, 0]`` (depth of the first sample, lateral position of the first line; for a
         convex / sector frame the first range and 0); overrides the file's (default: the file's, else (0, 0)).
-        A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, never
-        applied.
+        A header field such as ``t0`` or ``start_depth`` is named by :func:`femreg.io.checks.origin_hint`, not
+        applied here (the command line applies it to convex / sector frames only, whose geometry needs it).
     transpose : bool
         Frames stored (lateral lines, axial samples), e.g. written from MATLAB or saved as ``frame.T``: each frame
         is transposed to (axial, lateral) as read.  A given ``spacing`` is that of the transposed frames (axial,
