@@ -340,6 +340,31 @@ def _frame_result(r, mesh, u):
     return RegistrationResult(mesh, u, **kw)
 
 
+TAINT_PREFIX = "FAILED: accumulated through frame "
+
+
+def _mark_tainted(res, k: int, why: str) -> None:
+    """Frame 0 -> j > ``k`` adds frame ``k``'s flagged increment (eq:IR): its field is no better than that one,
+    whatever its own increment's check says, so it is failed too (plot, measure and invert then say so)."""
+    own = res.message.removeprefix("FAILED: ")
+    own = own if res.success else f"FAILED: {own}"
+    res.success = False
+    res.message = (f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}); "
+                   f"this frame's own increment: {own}")
+
+
+def _own_flag(res, flag: str, min_ncc) -> str:
+    """The flag of frame k's own increment, without the one :func:`_mark_tainted` added (a loaded frame too)."""
+    head, sep, own = res.message.partition("; this frame's own increment: ")
+    if not (sep and head.startswith(TAINT_PREFIX)):
+        return flag
+    if own.startswith("FAILED: "):
+        return f"registration failed: {own.removeprefix('FAILED: ')}"
+    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
+        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+    return ""
+
+
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
          min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
@@ -373,6 +398,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     out = SequenceResult(mode=mode)
     S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
+    tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
+    prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame", on_frame)
     try:
         for k in range(1, len(seq)):
@@ -398,7 +425,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                    **frame_kwargs, **where, **register_kwargs)
                     inc = res.u.copy()
                 else:
-                    fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
+                    fresh = init == "blockmatch" or prev_inc is None or bool(prev_own_flag)
                     # a fresh start is the strategy's own (pyramid with "auto"), or the paper's block matching
                     initial = ("blockmatch" if init == "blockmatch" else None) if fresh else prev_inc
                     if fe_mesh is None:
@@ -417,6 +444,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                     crop.widen(res)
                 elif uncut is not None:
                     res.data_mask = uncut
+                if tainted is not None:
+                    _mark_tainted(res, *tainted)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 flag = frame_flag(res, min_ncc)
                 computed = True
@@ -429,6 +458,11 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 out.repeated.append(k)
             else:                       # a repeat's zero increment is no guess for the next one
                 prev_inc = inc
+            own = _own_flag(res, flag, min_ncc)
+            if own and mode == "accumulate" and tainted is None:
+                tainted = (k, own)      # every later frame adds this increment
+            if k not in repeats:
+                prev_own_flag = own
             out.append(res)
             out.increments.append(inc)
             out.flags.append(flag)
