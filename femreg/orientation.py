@@ -434,7 +434,8 @@ def _strongest_rows(img, n: int = SPECKLE_ROWS):
 
 def _lateral_cell(env, dy: float) -> float:
     """Lateral speckle cell (mm, FWHM of the envelope autocorrelation across lines) of an envelope block
-    (n_rows, n_lines), each row minus its own mean over its own spread first.  A level that changes with depth
+    (n_rows, n_lines), each row minus its own mean first (not divided by its spread: rows of noise below the
+    floor, one line wide, would then weigh as much as the echo).  A level that changes with depth
     alone (attenuation without time-gain compensation, a bright skin line over hypoechoic fat) is the same in
     every line: left in, it correlates the lines over the whole width (a 12.5 MHz frame with 0.35 mm beam read
     6 mm, 97 RF periods; swapped still 3.6, above the limit of 1, so the swap passed)."""
@@ -442,8 +443,6 @@ def _lateral_cell(env, dy: float) -> float:
 
     e = np.asarray(env, float)
     e = e - e.mean(axis=1, keepdims=True)
-    s = e.std(axis=1, keepdims=True)
-    e = np.divide(e, s, out=np.zeros_like(e), where=s > 0)
     return float(_envelope_cell(np.ascontiguousarray(e.T), 0, dy))
 
 
