@@ -182,3 +182,43 @@ def test_failed_accumulated_frame_is_drawn_and_measured_as_failed(track_file, tm
     cap = capsys.readouterr()
     assert "FLAGGED" in cap.out + cap.err, cap
     assert main(["invert", str(last), "-o", str(tmp_path / "mu.npz"), "--no-progress"]) == 2
+
+
+# --- a JSON sidecar beside the .npy (fs Hz, c m/s, pitch m) --------------------------------------------------------
+
+def _with_sidecar(lines_first, tmp_path, text):
+    _, path = lines_first
+    npy = tmp_path / "rec.npy"
+    npy.write_bytes(path.read_bytes())
+    (tmp_path / "rec.json").write_text(text)
+    return npy
+
+
+def test_info_names_the_spacing_a_sidecar_implies(lines_first, tmp_path, capsys):
+    npy = _with_sidecar(lines_first, tmp_path, '{"fs": 40e6, "c": 1540, "pitch": 1e-4, "f0": 12.5e6, '
+                                               '"probe": {"name": "L12-5", "frame_rate": 20}}')
+    assert main(["info", str(npy), "--transpose"]) == 1
+    out = capsys.readouterr().out
+    assert "sidecar   rec.json" in out and "probe/frame_rate" in out, out
+    assert "its fields suggest --spacing 0.01925 0.1" in out, out
+    # the suggestion is never applied: register still needs --spacing, and says which
+    rc = main(["register", str(npy), "--transpose", "-o", str(tmp_path / "p.npz"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "its fields suggest --spacing 0.01925 0.1" in err, err
+
+
+def test_spacing_against_the_sidecar_is_noted(lines_first, tmp_path, capsys):
+    npy = _with_sidecar(lines_first, tmp_path, '{"fs": 40e6, "c": 1540, "pitch": 1e-4}')
+    rc = main(["register", str(npy), "--transpose", "--spacing", "0.01925", "0.125", "-o", str(tmp_path / "p.npz"),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "differs from what the file's fields imply (lateral 0.125 mm against 0.1" in err, err
+
+
+def test_unreadable_sidecar_only_informs(lines_first, tmp_path, capsys):
+    npy = _with_sidecar(lines_first, tmp_path, "{not json")
+    assert main(["info", str(npy), "--transpose"]) == 1
+    out = capsys.readouterr().out
+    assert "sidecar   rec.json not read (JSONDecodeError" in out and "no spacing found" in out, out
+    assert "its fields suggest" not in out, out
