@@ -17,9 +17,10 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   spacing is wrong (units, or swapped).
 * **lateral speckle against the period** -- the lateral speckle cell (FWHM of the envelope autocorrelation) is
   about the beam width, at least about half a wavelength (the diffraction limit), i.e. one axial RF period.
-  Measured 5.8-13 periods on the data above; with the spacings exchanged the ratio falls by ``(dx / dy)^2`` to
-  0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap is seen when
-  ``dx / dy`` is below 1 / sqrt(the ratio), 0.27-0.41 on these data.
+  Measured 4.8-13 periods on the data above (each envelope row minus its mean: a level that changes with depth
+  only is the same in every line and would widen the cell); with the spacings exchanged the ratio falls by
+  ``(dx / dy)^2`` to 0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap
+  is seen when ``dx / dy`` is below 1 / sqrt(the ratio), 0.28-0.46 on these data.
 
 * **speckle aspect of IQ data** -- IQ data remodulated to RF (:func:`femreg.io.iq.remodulate`) carry the carrier
   of the modulation frequency whatever the spacing given, so the two checks above cannot see exchanged spacings.
@@ -72,11 +73,11 @@ FREQUENCY_MHZ = (1.0, 60.0)
 CARRIER_RATIO = 0.1
 #: :func:`carrier_ratio` above this: no carrier (between the two thresholds nothing is concluded).
 NO_CARRIER_RATIO = 0.2
-#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-13 on correct
-#: spacing, 0.04-0.29 with the spacings exchanged).
+#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 4.8-13 on correct
+#: spacing, 0.04-0.29 with the spacings exchanged; each envelope row minus its mean, :func:`_lateral_cell`).
 MIN_LATERAL_CELL_PERIODS = 1.0
 #: The same ratio below this with one spacing value (square pixels): the line pitch taken for the axial sample
-#: spacing (in vivo seq304 read so: 1.2, seq299: 0.96; correct spacings 5.8-13).
+#: spacing (in vivo seq304 read so: 0.48, seq299: 0.72; correct spacings 4.8-13).
 MIN_SQUARE_CELL_PERIODS = 2.0
 #: Lateral / axial speckle cell (mm) of remodulated IQ data below this (and above it with the spacings exchanged):
 #: the spacings are swapped (measured 2.2-5.7 correct, 0.13-0.42 exchanged).
