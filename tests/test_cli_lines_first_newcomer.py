@@ -137,6 +137,7 @@ def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsy
     err = capsys.readouterr().err
     assert rc == 1, err
     assert "3 of 4 frame(s)" in err, err
+    assert "--init blockmatch starts each afresh" in err, err
     res = {k: femreg.load_result(out / f"frame_{k:03d}.npz") for k in (1, 2, 3, 4)}
     assert res[1].success and not res[2].success
     for k in (3, 4):
