@@ -349,6 +349,7 @@ def _mark_tainted(res, k: int, why: str) -> None:
     own = res.message.removeprefix("FAILED: ")
     own = own if res.success else f"FAILED: {own}"
     res.success = False
+    why = why.split("; ")[0]           # its reason; what it left out is this frame's too, said below
     res.message = (f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}); "
                    f"this frame's own increment: {own}")
 

@@ -223,3 +223,19 @@ def test_unreadable_sidecar_only_informs(lines_first, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "sidecar   rec.json not read (JSONDecodeError" in out and "no spacing found" in out, out
     assert "its fields suggest" not in out, out
+
+
+def test_measure_says_how_much_of_a_disk_off_the_edge_is_measured(lines_first, tmp_path, capsys):
+    # a file without an origin puts the first line at y = 0: a disk meant at the centre line, typed at y = 1,
+    # lies half outside the mesh
+    _, path = lines_first
+    out = tmp_path / "p.npz"
+    assert main(["register", str(path), "--transpose", "--spacing", "0.01925", "0.1", "-o", str(out),
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["measure", str(out), "--inclusion", "8", "1", "2.5"]) == 0
+    cap = capsys.readouterr()
+    text = cap.out + cap.err
+    assert "extends beyond the mesh (x " in text and "% of it, is measured" in text, text
+    share = float(text.split("its part inside, ")[1].split(" %")[0])
+    assert 35 <= share <= 65, share        # the mesh starts about 1 mm in: about half the disk
