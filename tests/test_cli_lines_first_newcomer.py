@@ -241,3 +241,13 @@ def test_measure_says_how_much_of_a_disk_off_the_edge_is_measured(lines_first, t
     assert "extends beyond the mesh (x " in text and "% of it, is measured" in text, text
     share = float(text.split("its part inside, ")[1].split(" %")[0])
     assert 35 <= share <= 65, share        # the mesh starts about 1 mm in: about half the disk
+
+
+def test_raw_file_reads_its_sidecar_too(lines_first, tmp_path, capsys):
+    _, path = lines_first
+    raw = tmp_path / "rec.raw"
+    np.load(path).tofile(raw)                     # (frames, lines, samples) float32, no header
+    (tmp_path / "rec.json").write_text('{"fs": 40e6, "c": 1540, "pitch": 1e-4}')
+    assert main(["info", str(raw), "--shape", "2", "1039", "128"]) == 1
+    out = capsys.readouterr().out
+    assert "sidecar   rec.json" in out and "its fields suggest --spacing 0.01925 0.1" in out, out

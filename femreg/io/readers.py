@@ -158,7 +158,7 @@ _SIDECAR_KEY = "\0sidecar"
 
 def sidecar_fields(path) -> dict:
     """Numeric scalars of a JSON sidecar beside a headerless file (``scan.json`` or ``scan.npy.json`` beside
-    ``scan.npy``), nested objects' keys joined by ``/``, as a .mat file's struct fields: header fields that
+    ``scan.npy``, likewise ``.raw``), nested objects' keys joined by ``/``, as a .mat file's struct fields: header fields that
     :func:`~femreg.io.checks.spacing_suggestion` reads (``fs`` Hz, ``c`` m/s, ``pitch`` m).  They only inform
     (never applied); {} without a sidecar, else the sidecar's name (and why it could not be read) under a private
     key."""
@@ -359,8 +359,14 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     pieces = continued_frames(arr) if axis is not None else ""
     if pieces:
         raise fail(path, pieces)
-    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing")
+    fields = sidecar_fields(path)
+    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing",
+                       suggestion=spacing_suggestion(fields) if fields else None)
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
+    if fields:
+        meta["sidecar"] = fields.pop(_SIDECAR_KEY)
+        if fields:
+            meta["fields"] = fields
     if layout:
         meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
