@@ -461,9 +461,11 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     number (square pixels), refused too when its lateral speckle is narrower than
     :data:`MIN_SQUARE_CELL_PERIODS` axial RF periods -- RF lines are rarely as close as the axial samples."""
     rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational, whole_frame=whole_frame)
-    if rep.problem:
+    square = (one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS
+              and FREQUENCY_MHZ[0] <= rep.frequency_mhz <= FREQUENCY_MHZ[1] and not rep.small_frame)
+    if rep.problem and not (square and rep.problem != "transposed"):
         raise OrientationError(rep.message, problem=rep.problem)
-    if one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS:
+    if square:     # one value: the line pitch is missing, which says more than "narrower than a period"
         dx = float(np.ravel(spacing)[0])
         raise OrientationError(
             f"spacing {dx:g} (one value) means square pixels, {dx:g} x {dx:g} mm: the lateral speckle is then "
