@@ -366,6 +366,27 @@ def _own_flag(res, flag: str, min_ncc) -> str:
     return ""
 
 
+def summarise_flags(flags) -> str:
+    """The flags of a run's frames (1-based) in one line: each frame's own reason, and the frames flagged only for
+    adding an earlier flagged increment (:func:`_mark_tainted`) named once, not each with that reason again."""
+    parts, tainted, source = [], [], None
+    for k, f in enumerate(flags, start=1):
+        if not f:
+            continue
+        head, sep, own = f.partition("; this frame's own increment: ")
+        if sep and TAINT_PREFIX.removeprefix("FAILED: ") in head:
+            tainted.append(k)
+            source = source or head.split(TAINT_PREFIX.removeprefix("FAILED: "))[1].split(",")[0]
+            if own.startswith("FAILED: "):
+                parts.append(f"frame {k}: registration failed: {own.removeprefix('FAILED: ')}")
+        else:
+            parts.append(f"frame {k}: {f}")
+    if tainted:
+        parts.append(f"frame{'s' if len(tainted) > 1 else ''} {', '.join(map(str, tainted))}: accumulated through "
+                     f"frame {source}'s flagged increment")
+    return "; ".join(parts)
+
+
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
          min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``

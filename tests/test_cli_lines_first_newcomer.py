@@ -251,3 +251,16 @@ def test_raw_file_reads_its_sidecar_too(lines_first, tmp_path, capsys):
     assert main(["info", str(raw), "--shape", "2", "1039", "128"]) == 1
     out = capsys.readouterr().out
     assert "sidecar   rec.json" in out and "its fields suggest --spacing 0.01925 0.1" in out, out
+
+
+def test_flag_summary_names_accumulated_frames_once():
+    from femreg.sequence import summarise_flags
+
+    own = "registration failed: peak hopping: 47% of the elements"
+    taint = ("registration failed: accumulated through frame 2, whose increment was flagged (" + own + "); "
+             "this frame's own increment: ")
+    text = summarise_flags(["", own, taint + "converged", taint + "FAILED: peak hopping: 40%", ""])
+    assert text == (f"frame 2: {own}; frame 4: registration failed: peak hopping: 40%; "
+                    "frames 3, 4: accumulated through frame 2's flagged increment"), text
+    assert summarise_flags(["", "low NCC after registration (0.4 < 0.5)"]) == \
+        "frame 2: low NCC after registration (0.4 < 0.5)"
