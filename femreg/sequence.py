@@ -49,7 +49,7 @@ from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spaci
 from .probes import Convex, as_geometry
 from .registration import RegistrationResult, register
 from .result import load_result
-from .repair import frame_flag
+from .repair import frame_flag, mark_tainted, own_flag
 from .solver import single_blas_thread
 
 __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
@@ -340,53 +340,6 @@ def _frame_result(r, mesh, u):
     return RegistrationResult(mesh, u, **kw)
 
 
-TAINT_PREFIX = "FAILED: accumulated through frame "
-
-
-def _mark_tainted(res, k: int, why: str) -> None:
-    """Frame 0 -> j > ``k`` adds frame ``k``'s flagged increment (eq:IR): its field is no better than that one,
-    whatever its own increment's check says, so it is failed too (plot, measure and invert then say so)."""
-    own = res.message.removeprefix("FAILED: ")
-    own = own if res.success else f"FAILED: {own}"
-    res.success = False
-    why = why.split("; ")[0]           # its reason; what it left out is this frame's too, said below
-    res.message = (f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}); "
-                   f"this frame's own increment: {own}")
-
-
-def _own_flag(res, flag: str, min_ncc) -> str:
-    """The flag of frame k's own increment, without the one :func:`_mark_tainted` added (a loaded frame too)."""
-    head, sep, own = res.message.partition("; this frame's own increment: ")
-    if not (sep and head.startswith(TAINT_PREFIX)):
-        return flag
-    if own.startswith("FAILED: "):
-        return f"registration failed: {own.removeprefix('FAILED: ')}"
-    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
-        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
-    return ""
-
-
-def summarise_flags(flags) -> str:
-    """The flags of a run's frames (1-based) in one line: each frame's own reason, and the frames flagged only for
-    adding an earlier flagged increment (:func:`_mark_tainted`) named once, not each with that reason again."""
-    parts, tainted, source = [], [], None
-    for k, f in enumerate(flags, start=1):
-        if not f:
-            continue
-        head, sep, own = f.partition("; this frame's own increment: ")
-        if sep and TAINT_PREFIX.removeprefix("FAILED: ") in head:
-            tainted.append(k)
-            source = source or head.split(TAINT_PREFIX.removeprefix("FAILED: "))[1].split(",")[0]
-            if own.startswith("FAILED: "):
-                parts.append(f"frame {k}: registration failed: {own.removeprefix('FAILED: ')}")
-        else:
-            parts.append(f"frame {k}: {f}")
-    if tainted:
-        parts.append(f"frame{'s' if len(tainted) > 1 else ''} {', '.join(map(str, tainted))}: accumulated through "
-                     f"frame {source}'s flagged increment")
-    return "; ".join(parts)
-
-
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
          min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
@@ -467,7 +420,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 elif uncut is not None:
                     res.data_mask = uncut
                 if tainted is not None:
-                    _mark_tainted(res, *tainted)
+                    mark_tainted(res, *tainted)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 flag = frame_flag(res, min_ncc)
                 computed = True
@@ -480,7 +433,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 out.repeated.append(k)
             else:                       # a repeat's zero increment is no guess for the next one
                 prev_inc = inc
-            own = _own_flag(res, flag, min_ncc)
+            own = own_flag(res, flag, min_ncc)
             if own and mode == "accumulate" and tainted is None:
                 tainted = (k, own)      # every later frame adds this increment
             if k not in repeats:

@@ -254,7 +254,7 @@ def test_raw_file_reads_its_sidecar_too(lines_first, tmp_path, capsys):
 
 
 def test_flag_summary_names_accumulated_frames_once():
-    from femreg.sequence import summarise_flags
+    from femreg.repair import summarise_flags
 
     own = "registration failed: peak hopping: 47% of the elements"
     taint = ("registration failed: accumulated through frame 2, whose increment was flagged (" + own + "); "
@@ -264,3 +264,27 @@ def test_flag_summary_names_accumulated_frames_once():
                     "frames 3, 4: accumulated through frame 2's flagged increment"), text
     assert summarise_flags(["", "low NCC after registration (0.4 < 0.5)"]) == \
         "frame 2: low NCC after registration (0.4 < 0.5)"
+
+
+def test_volume_frames_after_a_flagged_increment_are_failed(monkeypatch):
+    import femreg.volume
+    from _volumes import affine_field, volume_pair
+
+    shape, spacing = (300, 30, 24), (0.02, 0.2, 0.25)
+    field, _ = affine_field(0.01, 0.005, 0.5, centre=np.array(shape) * spacing / 2)
+    ref, mov, spacing, _ = volume_pair(field, shape=shape, f_mhz=7.0, seed=0)
+    real, calls = femreg.volume.register_volume, []
+
+    def failing_second(*a, **kw):
+        r = real(*a, **kw)
+        calls.append(r)
+        if len(calls) == 2:
+            r.success, r.message = False, "FAILED: peak hopping (simulated)"
+        return r
+
+    monkeypatch.setattr(femreg.volume, "register_volume", failing_second)
+    tr = femreg.track([ref, mov, ref, mov], spacing=spacing, element_size=2.0)
+    assert len(tr) == 3 and [bool(f) for f in tr.flags] == [False, True, True], tr.flags
+    assert tr.accumulated[0].success and not tr.accumulated[2].success
+    assert tr.accumulated[2].message.startswith("FAILED: accumulated through frame 2"), tr.accumulated[2].message
+    assert tr.results[2].success        # the increment itself is kept as it came out

@@ -176,7 +176,8 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
 
 def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
     from ..io import read_frames
-    from ..sequence import summarise_flags, track
+    from ..repair import summarise_flags
+    from ..sequence import track
 
     fr = read_frames(spec["input"], **reader_kw)
     if fr.n_frames < 2:
