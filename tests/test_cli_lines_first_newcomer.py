@@ -288,3 +288,19 @@ def test_volume_frames_after_a_flagged_increment_are_failed(monkeypatch):
     assert tr.accumulated[0].success and not tr.accumulated[2].success
     assert tr.accumulated[2].message.startswith("FAILED: accumulated through frame 2"), tr.accumulated[2].message
     assert tr.results[2].success        # the increment itself is kept as it came out
+
+
+def test_modulus_colour_bar_within_a_decade_labels_the_lesion():
+    """The lesion's modulus, 1.68 x the median over a 0.88-1.68 colour bar, had only 0.9 and 1 labelled."""
+    import matplotlib.pyplot as plt
+
+    from femreg.plot import plot_mesh_values
+
+    pts = np.array([[0.0, 0.0, 1.0, 1.0, 2.0, 2.0], [0.0, 1.0, 0.0, 1.0, 0.0, 1.0]])
+    cells = np.array([[0, 2], [2, 4], [3, 5], [1, 3]])
+    fig, ax = plt.subplots()
+    plot_mesh_values(pts, cells, np.array([0.877, 1.682]), ax=ax, log=True, vmin=0.877, vmax=1.682)
+    fig.canvas.draw()
+    labels = [t.get_text() for t in ax.collections[0].colorbar.ax.get_yticklabels() if t.get_text()]
+    plt.close(fig)
+    assert labels == ["1", "1.25", "1.5"], labels
