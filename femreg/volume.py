@@ -852,7 +852,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                     a._nodal_strain = None
                     a._grids = {}
                     r, a = finish(r), finish(a)
-                    if tainted is not None:     # the accumulated field adds a flagged increment (femreg.repair.mark_tainted)
+                    if tainted is not None:     # the accumulated field adds a flagged increment
                         mark_tainted(a, *tainted)
                 flag = frame_flag(a, min_ncc)
                 computed = True

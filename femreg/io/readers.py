@@ -158,10 +158,10 @@ _SIDECAR_KEY = "\0sidecar"
 
 def sidecar_fields(path) -> dict:
     """Numeric scalars of a JSON sidecar beside a headerless file (``scan.json`` or ``scan.npy.json`` beside
-    ``scan.npy``, likewise ``.raw``), nested objects' keys joined by ``/``, as a .mat file's struct fields: header fields that
-    :func:`~femreg.io.checks.spacing_suggestion` reads (``fs`` Hz, ``c`` m/s, ``pitch`` m).  They only inform
-    (never applied); {} without a sidecar, else the sidecar's name (and why it could not be read) under a private
-    key."""
+    ``scan.npy``, likewise ``.raw``), nested objects' keys joined by ``/`` as a .mat file's struct fields: header
+    fields that :func:`~femreg.io.checks.spacing_suggestion` reads (``fs`` Hz, ``c`` m/s, ``pitch`` m).  They only
+    inform (never applied); {} without a sidecar, else the sidecar's name (and why it could not be read) under a
+    private key."""
     import json
 
     path = Path(path)
