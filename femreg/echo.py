@@ -218,7 +218,9 @@ def _clipped(mags):
 
 def _span(lo, hi, origin, step):
     """'a-b mm' of pixel indices [lo, hi) (cell edges)."""
-    return f"{origin + (lo - 0.5) * step:.1f}-{origin + (hi - 0.5) * step:.1f} mm"
+    # + 0.0: the first cell's edge half a sample above a zero origin reads 0.0, not -0.0
+    a, b = (round(origin + (k - 0.5) * step, 1) + 0.0 for k in (lo, hi))
+    return f"{a:.1f}-{b:.1f} mm"
 
 
 def fill_level(frame) -> float | None:

@@ -17,9 +17,10 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   spacing is wrong (units, or swapped).
 * **lateral speckle against the period** -- the lateral speckle cell (FWHM of the envelope autocorrelation) is
   about the beam width, at least about half a wavelength (the diffraction limit), i.e. one axial RF period.
-  Measured 5.8-13 periods on the data above; with the spacings exchanged the ratio falls by ``(dx / dy)^2`` to
-  0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap is seen when
-  ``dx / dy`` is below 1 / sqrt(the ratio), 0.27-0.41 on these data.
+  Measured 4.8-13 periods on the data above (each envelope row minus its mean: a level that changes with depth
+  only is the same in every line and would widen the cell); with the spacings exchanged the ratio falls by
+  ``(dx / dy)^2`` to 0.04-0.29.  Below :data:`MIN_LATERAL_CELL_PERIODS` the spacing is swapped (or wrong).  A swap
+  is seen when ``dx / dy`` is below 1 / sqrt(the ratio), 0.28-0.46 on these data.
 
 * **speckle aspect of IQ data** -- IQ data remodulated to RF (:func:`femreg.io.iq.remodulate`) carry the carrier
   of the modulation frequency whatever the spacing given, so the two checks above cannot see exchanged spacings.
@@ -72,11 +73,11 @@ FREQUENCY_MHZ = (1.0, 60.0)
 CARRIER_RATIO = 0.1
 #: :func:`carrier_ratio` above this: no carrier (between the two thresholds nothing is concluded).
 NO_CARRIER_RATIO = 0.2
-#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 5.8-13 on correct
-#: spacing, 0.04-0.29 with the spacings exchanged).
+#: Lateral speckle cell / axial RF period below this is below the diffraction limit (measured 4.8-13 on correct
+#: spacing, 0.04-0.29 with the spacings exchanged; each envelope row minus its mean, :func:`_lateral_cell`).
 MIN_LATERAL_CELL_PERIODS = 1.0
 #: The same ratio below this with one spacing value (square pixels): the line pitch taken for the axial sample
-#: spacing (in vivo seq304 read so: 1.2, seq299: 0.96; correct spacings 5.8-13).
+#: spacing (in vivo seq304 read so: 0.48, seq299: 0.72; correct spacings 4.8-13).
 MIN_SQUARE_CELL_PERIODS = 2.0
 #: Lateral / axial speckle cell (mm) of remodulated IQ data below this (and above it with the spacings exchanged):
 #: the spacings are swapped (measured 2.2-5.7 correct, 0.13-0.42 exchanged).
@@ -199,7 +200,9 @@ class OrientationReport:
     without a carrier (envelope, B-mode; NaN otherwise); ``problem`` "" or "transposed", "swapped",
     "spacing"; ``message`` the reason (one line).  ``carrier_samples``: samples per RF period along axis 1 of a
     frame that looks transposed (NaN otherwise); ``sound_speed`` (m/s) and ``elevational`` (dz mm of a volume's
-    central plane, or None) as :func:`diagnose` was given them."""
+    central plane, or None) as :func:`diagnose` was given them; ``axial_given``: of a transposed frame for which
+    both orders of the spacing give a plausible carrier, which given value the lateral speckle reads as the axial
+    one ("axial": the first, "lateral": the second; None otherwise)."""
 
     spacing: tuple
     carrier: tuple
@@ -215,6 +218,7 @@ class OrientationReport:
     carrier_samples: float = float("nan")
     sound_speed: float = SOUND_SPEED_M_S
     elevational: float | None = None
+    axial_given: str | None = None
 
     @property
     def has_carrier(self) -> bool:
@@ -262,17 +266,27 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     lo, hi = FREQUENCY_MHZ
     if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
         rep.problem, rep.carrier_samples = "transposed", _centroid_samples(img.T)
+        n1 = rep.carrier_samples
+        if all(lo <= c_mm_us / (2.0 * n1 * v) <= hi for v in (dx, dy)):
+            # both orders give a plausible carrier (a 12.5 MHz frame of 0.019 x 0.1 mm pixels: 12.4 or 2.4 MHz):
+            # the lateral speckle, at least one RF period wide, says which; a units guess would be wrong here
+            from .speckle import envelope
+
+            lines = _lateral_cell(envelope(_strongest_rows(np.ascontiguousarray(img.T))), 1.0)
+            keep_ok, swap_ok = (lines * b / (n1 * a) >= MIN_LATERAL_CELL_PERIODS for a, b in ((dx, dy), (dy, dx)))
+            rep.axial_given = "lateral" if (swap_ok and not keep_ok) else "axial"
         rep.message = transposed_message(rep)
         return rep
     if not c0 < CARRIER_RATIO or img.shape[1] < 4:
         if c0 > NO_CARRIER_RATIO and min(img.shape) >= MIN_SAMPLES:
             _check_envelope(img, rep, keep, swapped, dz, order)
         return rep                                   # no carrier along axis 0: envelope / B-mode
-    st = speckle_statistics(_strongest_rows(img), (dx, dy))
+    block = _strongest_rows(img)
+    st = speckle_statistics(block, (dx, dy))
     rep.period_mm = float(st.period)
     rep.samples_per_period = rep.period_mm / dx
     rep.frequency_mhz = c_mm_us / (2.0 * rep.period_mm)
-    rep.lateral_cell_mm = float(st.cell[1])
+    rep.lateral_cell_mm = _lateral_cell(st.envelope, dy)
     rep.cell_periods = rep.lateral_cell_mm / rep.period_mm
     # with the spacings exchanged: the period scales by dy/dx, the lateral cell by dx/dy
     f_sw = rep.frequency_mhz * dx / dy
@@ -332,6 +346,10 @@ def transposed_message(rep: OrientationReport, *, range_step: bool = False) -> s
     # which of the two given spacings is the axial one: the carrier's frequency says (users often give the
     # spacing as (axial, lateral) already while the array is stored lines-first)
     f_keep, f_swap = (c_mm_us / (2.0 * n1 * a) for a in (dx, dy))
+    if rep.axial_given == "lateral":          # both plausible; the lateral speckle read the order (diagnose)
+        f_keep = float("nan")
+    elif rep.axial_given == "axial":
+        f_swap = float("nan")
     if range_step:
         spacing_text = _range_step_text(dx, f_keep)
     elif lo <= f_keep <= hi and not lo <= f_swap <= hi:
@@ -456,6 +474,20 @@ def _strongest_rows(img, n: int = SPECKLE_ROWS):
     return img[s:s + n]
 
 
+def _lateral_cell(env, dy: float) -> float:
+    """Lateral speckle cell (mm, FWHM of the envelope autocorrelation across lines) of an envelope block
+    (n_rows, n_lines), each row minus its own mean first (not divided by its spread: rows of noise below the
+    floor, one line wide, would then weigh as much as the echo).  A level that changes with depth
+    alone (attenuation without time-gain compensation, a bright skin line over hypoechoic fat) is the same in
+    every line: left in, it correlates the lines over the whole width (a 12.5 MHz frame with 0.35 mm beam read
+    6 mm, 97 RF periods; swapped still 3.6, above the limit of 1, so the swap passed)."""
+    from .speckle import _envelope_cell
+
+    e = np.asarray(env, float)
+    e = e - e.mean(axis=1, keepdims=True)
+    return float(_envelope_cell(np.ascontiguousarray(e.T), 0, dy))
+
+
 def _centroid_samples(img) -> float:
     """1 / spectral centroid along axis 0 in samples (:func:`femreg.speckle.rf_period` with unit spacing)."""
     from .speckle import rf_period
@@ -472,9 +504,11 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     error carries the report (``report``), from which a caller that knows the frame's kind words it anew
     (:func:`transposed_message`)."""
     rep = diagnose(image, spacing, sound_speed=sound_speed, elevational=elevational, whole_frame=whole_frame)
-    if rep.problem:
+    square = (one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS
+              and FREQUENCY_MHZ[0] <= rep.frequency_mhz <= FREQUENCY_MHZ[1] and not rep.small_frame)
+    if rep.problem and not (square and rep.problem != "transposed"):
         raise OrientationError(rep.message, problem=rep.problem, report=rep)
-    if one_value and np.isfinite(rep.cell_periods) and rep.cell_periods < MIN_SQUARE_CELL_PERIODS:
+    if square:     # one value: the line pitch is missing, which says more than "narrower than a period"
         dx = float(np.ravel(spacing)[0])
         raise OrientationError(
             f"spacing {dx:g} (one value) means square pixels, {dx:g} x {dx:g} mm: the lateral speckle is then "

@@ -627,8 +627,9 @@ def render_mesh(mesh_points, mesh_cells, values=None, out_png=None, *, name="val
 # shear-modulus images (femreg.invert)
 # ----------------------------------------------------------------------------------------------------------------
 def _plain_tick(v, _pos=None) -> str:
-    """A log colour bar's tick as a plain number: 0.1, 2.5, 100 (``:.2g`` alone writes 100 as 1e+02)."""
-    text = f"{v:.2g}"
+    """A log colour bar's tick as a plain number: 0.1, 2.5, 1.25, 100 (``:.2g`` alone writes 100 as 1e+02, and
+    1.25 as 1.2)."""
+    text = f"{v:.3g}"
     return f"{v:.0f}" if "e+" in text else text
 
 
@@ -691,8 +692,16 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
 
         fmt = FuncFormatter(_plain_tick)
         cb.ax.yaxis.set_major_formatter(fmt)
-        if hi / lo < 10:                            # within a decade the minor ticks are the only labels;
+        inner = _log_ticks(lo, hi) if hi / lo < 10 else []
+        if hi / lo < 10 and len(inner) < 3:         # within a decade the minor ticks are the only labels;
             cb.ax.yaxis.set_minor_formatter(fmt)    # across decades labelling them would overprint
+        elif hi / lo < 10:
+            from matplotlib.ticker import NullFormatter
+
+            # 0.88-1.68 x the median (a stiff lesion) was labelled 0.9 and 1 only: nothing near the lesion's value
+            cb.set_ticks(inner)
+            cb.ax.yaxis.set_major_formatter(fmt)
+            cb.ax.yaxis.set_minor_formatter(NullFormatter())
         else:
             from matplotlib.ticker import NullFormatter
 

@@ -39,7 +39,8 @@ from .speckle import rf_period
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "repair_peak_hopping", "envelope_lag_ncc", "envelope_lag_ncc_3d",
            "lag_gain", "hop_note", "check_result", "frame_flag", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
-           "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION"]
+           "HOP_FRACTION", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION",
+           "mark_tainted", "own_flag", "summarise_flags", "TAINT_PREFIX"]
 
 #: A node is hopping when ``|u_x - reference|`` exceeds this fraction of the RF period.
 HOP_FRACTION = 0.35
@@ -549,3 +550,50 @@ def frame_flag(res, min_ncc) -> str:
     if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
         return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
     return ""
+
+
+TAINT_PREFIX = "FAILED: accumulated through frame "
+
+
+def mark_tainted(res, k: int, why: str) -> None:
+    """Frame 0 -> j > ``k`` adds frame ``k``'s flagged increment (eq:IR): its field is no better than that one,
+    whatever its own increment's check says, so it is failed too (plot, measure and invert then say so)."""
+    own = res.message.removeprefix("FAILED: ")
+    own = own if res.success else f"FAILED: {own}"
+    res.success = False
+    why = why.split("; ")[0]           # its reason; what it left out is this frame's too, said below
+    res.message = (f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}); "
+                   f"this frame's own increment: {own}")
+
+
+def own_flag(res, flag: str, min_ncc) -> str:
+    """The flag of frame k's own increment, without the one :func:`mark_tainted` added (a loaded frame too)."""
+    head, sep, own = res.message.partition("; this frame's own increment: ")
+    if not (sep and head.startswith(TAINT_PREFIX)):
+        return flag
+    if own.startswith("FAILED: "):
+        return f"registration failed: {own.removeprefix('FAILED: ')}"
+    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
+        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
+    return ""
+
+
+def summarise_flags(flags) -> str:
+    """The flags of a run's frames (1-based) in one line: each frame's own reason, and the frames flagged only for
+    adding an earlier flagged increment (:func:`mark_tainted`) named once, not each with that reason again."""
+    parts, tainted, source = [], [], None
+    for k, f in enumerate(flags, start=1):
+        if not f:
+            continue
+        head, sep, own = f.partition("; this frame's own increment: ")
+        if sep and TAINT_PREFIX.removeprefix("FAILED: ") in head:
+            tainted.append(k)
+            source = source or head.split(TAINT_PREFIX.removeprefix("FAILED: "))[1].split(",")[0]
+            if own.startswith("FAILED: "):
+                parts.append(f"frame {k}: registration failed: {own.removeprefix('FAILED: ')}")
+        else:
+            parts.append(f"frame {k}: {f}")
+    if tainted:
+        parts.append(f"frame{'s' if len(tainted) > 1 else ''} {', '.join(map(str, tainted))}: accumulated through "
+                     f"frame {source}'s flagged increment")
+    return "; ".join(parts)

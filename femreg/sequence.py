@@ -49,7 +49,7 @@ from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spaci
 from .probes import Convex, as_geometry
 from .registration import RegistrationResult, register
 from .result import load_result
-from .repair import frame_flag
+from .repair import frame_flag, mark_tainted, own_flag
 from .solver import single_blas_thread
 
 __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
@@ -373,6 +373,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     out = SequenceResult(mode=mode)
     S = 0.0                             # the accumulated field S_k (nodal, frame-0 mesh)
     prev_inc = None
+    tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
+    prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame", on_frame)
     try:
         for k in range(1, len(seq)):
@@ -398,7 +400,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                    **frame_kwargs, **where, **register_kwargs)
                     inc = res.u.copy()
                 else:
-                    fresh = init == "blockmatch" or prev_inc is None or (out.flags and out.flags[-1])
+                    fresh = init == "blockmatch" or prev_inc is None or bool(prev_own_flag)
                     # a fresh start is the strategy's own (pyramid with "auto"), or the paper's block matching
                     initial = ("blockmatch" if init == "blockmatch" else None) if fresh else prev_inc
                     if fe_mesh is None:
@@ -417,6 +419,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                     crop.widen(res)
                 elif uncut is not None:
                     res.data_mask = uncut
+                if tainted is not None:
+                    mark_tainted(res, *tainted)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
                 flag = frame_flag(res, min_ncc)
                 computed = True
@@ -429,6 +433,11 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 out.repeated.append(k)
             else:                       # a repeat's zero increment is no guess for the next one
                 prev_inc = inc
+            own = own_flag(res, flag, min_ncc)
+            if own and mode == "accumulate" and tainted is None:
+                tainted = (k, own)      # every later frame adds this increment
+            if k not in repeats:
+                prev_own_flag = own
             out.append(res)
             out.increments.append(inc)
             out.flags.append(flag)

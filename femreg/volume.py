@@ -36,7 +36,7 @@ from .errors import InputError, counted
 from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
-                     frame_flag, hop_note, hopped_fraction, lag_gain)
+                     frame_flag, hop_note, hopped_fraction, lag_gain, mark_tainted, own_flag)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -810,6 +810,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     out = VolumeTrack(results=[], accumulated=[], swept=swept)
     S = None
     prev = None
+    tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
     from ._atomic import load_frame_record, progress_bar, save_frame
     bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume", on_frame)
     try:
@@ -851,10 +852,15 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                     a._nodal_strain = None
                     a._grids = {}
                     r, a = finish(r), finish(a)
-                flag = frame_flag(r, min_ncc)
+                    if tainted is not None:     # the accumulated field adds a flagged increment
+                        mark_tainted(a, *tainted)
+                flag = frame_flag(a, min_ncc)
                 computed = True
                 if path is not None:
                     save_frame(path, a, r.u, flag, k, mode)
+            own = own_flag(a, flag, min_ncc)
+            if own and mode == "accumulate" and tainted is None and k not in repeats:
+                tainted = (k, own)
             out.results.append(r)
             out.accumulated.append(a)
             out.flags.append(flag)

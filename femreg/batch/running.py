@@ -176,6 +176,7 @@ def _run_pair(spec, folder: Path, reader_kw, reg_kw) -> dict:
 
 def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
     from ..io import read_frames
+    from ..repair import summarise_flags
     from ..sequence import track
 
     fr = read_frames(spec["input"], **reader_kw)
@@ -198,7 +199,7 @@ def _run_track(spec, folder: Path, reader_kw, reg_kw) -> dict:
     last = out[-1]
     return {"output": f"{folder.name}/", "ncc_before": last.ncc_before, "ncc_after": last.ncc_after,
             "nit": int(sum(r.nit for r in out)), "success": bool(all(r.success for r in out)),
-            "flag": "; ".join(f"frame {k + 1}: {f}" for k, f in enumerate(out.flags) if f),
+            "flag": summarise_flags(out.flags),
             "n_frames": len(out) + 1, "frames_resumed": int(sum(not c for c in out.computed))}
 
 

@@ -551,8 +551,14 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
           f"{len(out) - n_new} resumed, {n_flag} flagged)")
     if n_flag:
         first = next(k for k, f in enumerate(out.flags, start=1) if f)
-        print(f"femreg track: FLAGGED: {n_flag} of {len(out)} {noun}(s) (frame {first}: {out.flags[first - 1]})",
-              file=sys.stderr)
+        hint = ""
+        if (getattr(args, "init", None) == "previous" and getattr(args, "mode", None) == "accumulate"
+                and any("peak hopping" in f for f in out.flags if f)):
+            # a freehand loop's compression per frame varies: the previous increment can start a whole RF period off
+            hint = ("; each increment started from the previous one (--init previous): where the compression per "
+                    "frame varies, as in a freehand loop, --init blockmatch starts each afresh")
+        print(f"femreg track: FLAGGED: {n_flag} of {len(out)} {noun}(s) (frame {first}: {out.flags[first - 1]})"
+              f"{hint}", file=sys.stderr)
         return 1
     return 0
 

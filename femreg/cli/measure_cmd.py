@@ -121,7 +121,14 @@ def _check_shapes(dim, b, covers, inclusion, background, where):
         raise InputError(f"inclusion centre ({centre}) mm lies outside {where} ({_bounds_text(b)}){hint}")
     notes = []
     if any(c[a] - r < b[2 * a] or c[a] + r > b[2 * a + 1] for a in range(dim)):
-        notes.append(f"the inclusion {shape} extends beyond {where}; its part inside is measured")
+        # how much of it: a disk half off the edge (lateral positions counted from the first line, not the
+        # centre) measures a different region from the one meant
+        g = np.linspace(-1.0, 1.0, 41)
+        pts = np.stack(np.meshgrid(*([g] * dim), indexing="ij"), -1).reshape(-1, dim)
+        pts = c + r * pts[np.sum(pts ** 2, axis=1) <= 1.0]
+        share = np.mean(np.all([(pts[:, a] >= b[2 * a]) & (pts[:, a] <= b[2 * a + 1]) for a in range(dim)], axis=0))
+        notes.append(f"the inclusion {shape} extends beyond {where} ({_bounds_text(b)}); its part inside, "
+                     f"{100 * share:.0f} % of it, is measured")
     if background is not None:
         lo, hi = np.asarray(background[0::2], float), np.asarray(background[1::2], float)
         text = " ".join(f"{v:g}" for v in background)

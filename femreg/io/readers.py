@@ -33,6 +33,7 @@ Every failure is a :class:`~femreg.errors.FileFormatError` (bad file) or :class:
 """
 from __future__ import annotations
 
+import math
 import os
 import zipfile
 from pathlib import Path
@@ -142,8 +143,49 @@ def read_npy(path, *, spacing=None, frames=None, **_ignored):
             arr = _parse_npy(fh, size, path, "npy")
     except OSError as exc:
         raise fail(path, f"cannot read ({exc.strerror or exc})") from None
-    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing", frame_shape=arr.shape[-2:])
-    return finalize(path, arr, sp, (0.0, 0.0), {"format": "npy"}, frames)
+    fields, meta = sidecar_fields(path), {"format": "npy"}
+    sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing", frame_shape=arr.shape[-2:],
+                       suggestion=spacing_suggestion(fields) if fields else None)
+    if fields:
+        meta["sidecar"] = fields.pop(_SIDECAR_KEY)
+        if fields:
+            meta["fields"] = fields
+    return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
+
+
+_SIDECAR_KEY = "\0sidecar"
+
+
+def sidecar_fields(path) -> dict:
+    """Numeric scalars of a JSON sidecar beside a headerless file (``scan.json`` or ``scan.npy.json`` beside
+    ``scan.npy``, likewise ``.raw``), nested objects' keys joined by ``/`` as a .mat file's struct fields: header
+    fields that :func:`~femreg.io.checks.spacing_suggestion` reads (``fs`` Hz, ``c`` m/s, ``pitch`` m).  They only
+    inform (never applied); {} without a sidecar, else the sidecar's name (and why it could not be read) under a
+    private key."""
+    import json
+
+    path = Path(path)
+    for side in (path.with_suffix(".json"), path.with_name(path.name + ".json")):
+        if side.is_file() and not side.name.endswith(".femreg.json"):   # batch's own settings file
+            try:
+                data = json.loads(side.read_text())
+            except (OSError, ValueError) as exc:    # said by femreg info, not fatal: the frames are read
+                return {_SIDECAR_KEY: f"{side.name} not read ({type(exc).__name__}: {exc})"}
+            out = {}
+
+            def walk(d, pre=""):
+                for k, v in d.items():
+                    if isinstance(v, dict):
+                        walk(v, f"{pre}{k}/")
+                    elif isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+                        out[f"{pre}{k}"] = v
+
+            if isinstance(data, dict):
+                walk(data)
+            if out:
+                out[_SIDECAR_KEY] = side.name
+            return out
+    return {}
 
 
 def _load_npz(path, variable, preferred):
@@ -318,8 +360,14 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     pieces = continued_frames(arr) if axis is not None else ""
     if pieces:
         raise fail(path, pieces)
-    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing", frame_shape=arr.shape[-2:])
+    fields = sidecar_fields(path)
+    sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing", frame_shape=arr.shape[-2:],
+                       suggestion=spacing_suggestion(fields) if fields else None)
     meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
+    if fields:
+        meta["sidecar"] = fields.pop(_SIDECAR_KEY)
+        if fields:
+            meta["fields"] = fields
     if layout:
         meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
