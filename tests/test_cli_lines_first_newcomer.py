@@ -14,7 +14,7 @@ import femreg
 import femreg.sequence
 from femreg.cli import main
 from femreg.orientation import diagnose
-from femreg.synthetic import speckle_image, warp_image
+from _track_loop import ARGS, colorbar_labels, write_loop
 
 AXIAL = 1540e3 / (2 * 40e6)        # c / (2 fs), mm: 0.01925
 SPACING = (AXIAL, 0.1)
@@ -63,38 +63,37 @@ def test_lateral_speckle_ignores_the_depth_level(lines_first):
     assert swapped.problem == "swapped" and swapped.cell_periods < 0.5, (swapped.problem, swapped.cell_periods)
 
 
+def _register_transposed(path, spacing, out, capsys):
+    """``femreg register`` of the lines-first file with --transpose: (exit code, stderr)."""
+    rc = main(["register", str(path), "--transpose", "--spacing", *spacing, "-o", str(out), "--no-progress"])
+    return rc, capsys.readouterr().err
+
+
 def test_swapped_spacing_is_refused_naming_the_right_one(lines_first, tmp_path, capsys):
-    _, path = lines_first
     out = tmp_path / "p.npz"
-    rc = main(["register", str(path), "--transpose", "--spacing", "0.1", "0.01925", "-o", str(out), "--no-progress"])
-    err = capsys.readouterr().err
+    rc, err = _register_transposed(lines_first[1], ("0.1", "0.01925"), out, capsys)
     assert rc == 2, err
     assert "look swapped" in err and "--spacing 0.01925 0.1" in err, err
     assert not out.exists()
 
 
-def test_transposed_advice_keeps_a_spacing_that_fits(lines_first, tmp_path, capsys):
+@pytest.mark.parametrize("given", [("0.01925", "0.1"), ("0.1", "0.01925")], ids=["kept", "exchanged"])
+def test_transposed_advice_names_the_spacing_that_fits(lines_first, tmp_path, capsys, given):
+    # either order of a spacing both of whose values give a plausible carrier: the lateral speckle says which is
+    # axial (before: "units look like centimetres, --spacing 0.1925 1")
     _, path = lines_first
-    rc = main(["register", str(path), "--spacing", "0.01925", "0.1", "-o", str(tmp_path / "p.npz"), "--no-progress"])
+    rc = main(["register", str(path), "--spacing", *given, "-o", str(tmp_path / "p.npz"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert "--transpose" in err and "keep --spacing 0.01925 0.1" in err, err
+    assert "--transpose" in err and "--spacing 0.01925 0.1" in err, err
     assert "centimetres" not in err and "0.1925" not in err, err
-
-
-def test_transposed_advice_exchanges_a_swapped_spacing(lines_first, tmp_path, capsys):
-    _, path = lines_first
-    rc = main(["register", str(path), "--spacing", "0.1", "0.01925", "-o", str(tmp_path / "p.npz"), "--no-progress"])
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    assert "--transpose" in err and "--spacing 0.01925 0.1" in err and "centimetres" not in err, err
+    if given[0] == "0.01925":
+        assert "keep --spacing 0.01925 0.1" in err, err
 
 
 def test_right_spacing_registers(lines_first, tmp_path, capsys):
-    pair, path = lines_first
     out = tmp_path / "p.npz"
-    rc = main(["register", str(path), "--transpose", "--spacing", "0.01925", "0.1", "-o", str(out), "--no-progress"])
-    err = capsys.readouterr().err
+    rc, err = _register_transposed(lines_first[1], ("0.01925", "0.1"), out, capsys)
     assert rc == 0, err
     res = femreg.load_result(out)
     # the noise floor at 15 mm is found (the echo measured from the first sample's edge, 0.0 mm, not -0.0)
@@ -106,20 +105,9 @@ def test_right_spacing_registers(lines_first, tmp_path, capsys):
 
 # --- track: a frame accumulated through a flagged increment ------------------------------------------------------
 
-TRACK_SPACING = (0.05, 0.2)
-TRACK_ARGS = ["-r", "strain", "--alpha", "3", "--element-size", "1", "--margin", "1", "--spacing", "0.05", "0.2",
-              "--no-progress"]
-
-
 @pytest.fixture(scope="module")
 def track_file(tmp_path_factory):
-    rng = np.random.default_rng(11)
-    ref = speckle_image((200, 50), TRACK_SPACING, rng)
-    frames = [ref] + [warp_image(ref, TRACK_SPACING, (0, 0), lambda p, s=s: np.column_stack(
-        [-s * 0.004 * p[:, 0], s * 0.002 * (p[:, 1] - 5.0)])) for s in (1, 2, 3, 4)]
-    path = tmp_path_factory.mktemp("seq") / "frames.npy"
-    np.save(path, np.stack(frames).astype(np.float32))
-    return path
+    return write_loop(tmp_path_factory.mktemp("seq") / "frames.npy")
 
 
 def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsys, monkeypatch):
@@ -135,7 +123,7 @@ def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsy
 
     monkeypatch.setattr(femreg.sequence, "register", failing_second)
     out = tmp_path / "run"
-    rc = main(["track", str(track_file), "-o", str(out)] + TRACK_ARGS)
+    rc = main(["track", str(track_file), "-o", str(out)] + ARGS)
     err = capsys.readouterr().err
     assert rc == 1, err
     assert "3 of 4 frame(s)" in err, err
@@ -158,7 +146,7 @@ def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsy
         return real(*a, **kw)
 
     monkeypatch.setattr(femreg.sequence, "register", spy)
-    assert main(["track", str(track_file), "-o", str(out), "--resume"] + TRACK_ARGS) == 1
+    assert main(["track", str(track_file), "-o", str(out), "--resume"] + ARGS) == 1
     capsys.readouterr()
     assert calls == [False], calls
     assert femreg.load_result(out / "frame_004.npz").message.startswith("FAILED: accumulated through frame 2")
@@ -177,7 +165,7 @@ def test_failed_accumulated_frame_is_drawn_and_measured_as_failed(track_file, tm
 
     monkeypatch.setattr(femreg.sequence, "register", failing_second)
     out = tmp_path / "run"
-    assert main(["track", str(track_file), "-o", str(out)] + TRACK_ARGS) == 1
+    assert main(["track", str(track_file), "-o", str(out)] + ARGS) == 1
     monkeypatch.undo()
     capsys.readouterr()
     last = out / "frame_004.npz"
@@ -292,15 +280,5 @@ def test_volume_frames_after_a_flagged_increment_are_failed(monkeypatch):
 
 def test_modulus_colour_bar_within_a_decade_labels_the_lesion():
     """The lesion's modulus, 1.68 x the median over a 0.88-1.68 colour bar, had only 0.9 and 1 labelled."""
-    import matplotlib.pyplot as plt
-
-    from femreg.plot import plot_mesh_values
-
-    pts = np.array([[0.0, 0.0, 1.0, 1.0, 2.0, 2.0], [0.0, 1.0, 0.0, 1.0, 0.0, 1.0]])
-    cells = np.array([[0, 2], [2, 4], [3, 5], [1, 3]])
-    fig, ax = plt.subplots()
-    plot_mesh_values(pts, cells, np.array([0.877, 1.682]), ax=ax, log=True, vmin=0.877, vmax=1.682)
-    fig.canvas.draw()
-    labels = [t.get_text() for t in ax.collections[0].colorbar.ax.get_yticklabels() if t.get_text()]
-    plt.close(fig)
+    labels = colorbar_labels([0.877, 1.682], 0.877, 1.682)
     assert labels == ["1", "1.25", "1.5"], labels

@@ -5,22 +5,11 @@ import pytest
 
 import femreg.sequence
 from femreg.cli import main
-from femreg.synthetic import speckle_image, warp_image
-
-SPACING = (0.05, 0.2)
-ARGS = ["-r", "strain", "--alpha", "3", "--element-size", "1", "--margin", "1", "--spacing", "0.05", "0.2",
-        "--no-progress"]
-
+from _track_loop import ARGS, write_loop
 
 @pytest.fixture(scope="module")
 def npy_sequence(tmp_path_factory):
-    rng = np.random.default_rng(11)
-    ref = speckle_image((200, 50), SPACING, rng)
-    frames = [ref] + [warp_image(ref, SPACING, (0, 0), lambda p, s=s: np.column_stack(
-        [-s * 0.004 * p[:, 0], s * 0.002 * (p[:, 1] - 5.0)])) for s in (1, 2, 3, 4)]
-    path = tmp_path_factory.mktemp("seq") / "frames.npy"
-    np.save(path, np.stack(frames).astype(np.float32))
-    return path
+    return write_loop(tmp_path_factory.mktemp("seq") / "frames.npy")
 
 
 def _fail_at_call(monkeypatch, n_fail, exc):
