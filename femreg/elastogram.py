@@ -815,8 +815,17 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         crop = crop_for(first, last, spacing, origin, roi=roi, depth=depth, margin=register_kwargs.get("margin"),
                         data_mask=data_mask)
         seq, region, origin, excluded = _cut(seq, crop)
-    elif data_mask is not None or (roi is not None and (not rf_like(first) or find_rf_fan(
-            first, last, spacing, origin) is not None)):
+    elif roi is not None and data_mask is None and rf_like(first) and find_rf_fan(first, last, spacing,
+                                                                                  origin) is None:
+        # RF: the echo rectangle register and track detect (femreg.echo.find_echo on the first two frames that
+        # differ); below the noise floor the strain would be drawn as if it were data
+        skip = set(repeats)
+        second = next((k for k in range(1, len(seq)) if k not in skip), 1)
+        crop = crop_for(first, np.asarray(seq[second], dtype=float), spacing, origin, roi="auto",
+                        margin=register_kwargs.get("margin"), fan=True)
+        if crop is not None:
+            seq, region, origin, excluded = _cut(seq, crop)
+    elif data_mask is not None or roi is not None:
         # the fan whole: its wedges are fixed on the screen, so they are screened and registered with weight 0
         # (femreg.echo.fan_region); RF frames are registered whole unless scan-converted, zero around a fan
         crop = crop_for(first, last, spacing, origin, roi="auto", margin=register_kwargs.get("margin"), fan=True,
