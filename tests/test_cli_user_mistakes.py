@@ -289,7 +289,9 @@ def test_elastogram_in_vivo_not_saturated(tmp_path, capsys):
     lo, hi = z["strain_range"]
     e = z["exx"][np.isfinite(z["exx"]) & (z["quality"] > 0)]
     sat = np.mean((e < lo) | (e > hi))
-    assert sat < 0.08 and np.mean((e < 0) | (e > 2)) > 0.25, (lo, hi, sat)    # measured 4.8 % against 30.9 %
+    # measured 3.5 % against 22.8 % (30.9 % before the screening read the speckle's own cell and the zero rows
+    # below 38.5 mm were left out)
+    assert sat < 0.08 and np.mean((e < 0) | (e > 2)) > 0.15, (lo, hi, sat)
     rc, out, err = _run(["measure", tmp_path / "loop" / "elastogram.npz", "--inclusion", "12", "12", "2"], capsys)
     assert rc == 0 and "background: rest of the covered pixels" in out, out     # an elastogram has no mesh
     rc, out, err = _run(base + ["-o", tmp_path / "fixed", "--strain-range", "0", "2"], capsys)
