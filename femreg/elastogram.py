@@ -6,7 +6,9 @@ Stages (plain data between them):
 1. **Screen** every consecutive pair ``(k, k+1)`` fast: NCC block matching (:func:`femreg.blockmatch.block_match`,
    sub-sample peaks) of low-passed, decimated envelopes (:mod:`femreg.pyramid`: ~3 samples per speckle cell),
    each frame's envelope normalised to zero mean and unit variance, so a gain change does not matter.  The
-   least-squares affine fit of the window displacements gives the axial strain ``e_k = du_x/dx`` and the lateral
+   windows, decimation and search are sized from the speckle's own cell (:func:`femreg.speckle.speckle_cell`:
+   a skin line or the echo's fall with depth widen the whole envelope's).  The least-squares affine fit of the
+   window displacements gives the axial strain ``e_k = du_x/dx`` and the lateral
    shift; the median window NCC measures what the fit cannot explain: out-of-plane motion, decorrelation.
 2. **Choose** pairs: for every frame ``i`` the later frame ``j`` (at most ``max_span`` frames on) whose accumulated
    strain ``prod(1 + e_k) - 1`` lies in the band and closest to its geometric centre; a candidate's quality is its
@@ -144,7 +146,10 @@ class ElastogramResult:
     ref_frame : int; spacing, origin : (2,) mm (of the registered rectangle)
     region : ((r0, r1), (c0, c1)) or None
         The rectangle of the input frames (pixel ranges, half-open) the loop was screened and registered on: a
-        given ``roi`` / ``depth`` (widened by the mesh margin), or the bounding box of the fan when envelope /
+        given ``roi`` / ``depth`` (widened by the mesh margin), the echo rectangle of RF frames
+        (:func:`femreg.echo.find_echo`, as :func:`femreg.register` and :func:`femreg.track` detect it with
+        ``roi="auto"``: the noise floor, dead lines, saturation left out), or the bounding box of the fan when
+        envelope /
         B-mode frames hold fill (:func:`femreg.echo.find_fill`: the wedges of a scan-converted sector, fixed on
         the screen while the tissue moves) or a ``data_mask`` is given; None: the whole frames.  ``excluded``
         says what was left out.
@@ -735,7 +740,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     regularizer, alpha, register_kwargs
         Passed to :func:`femreg.register`; a ``roi`` (x0, x1, y0, y1) mm or ``depth`` (d0, d1) mm among them cuts
         the whole loop to that rectangle before the screening (``region``), as :func:`femreg.register` cuts a
-        pair; ``roi="auto"`` (default): RF frames whole, envelope frames with fill on their fan (``data_mask``);
+        pair; ``roi="auto"`` (default): RF frames on their echo rectangle (:func:`femreg.echo.find_echo` on the
+        first two frames that differ), envelope frames with fill on their fan (``data_mask``);
         ``roi=None``: the whole frames.
     on_pair : callable(row), optional
         Called after each registered pair.  One with a true ``reports_progress`` attribute prints its own line

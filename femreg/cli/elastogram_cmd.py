@@ -3,8 +3,9 @@ cine and one best elastogram (:func:`femreg.elastogram.elastogram`).
 
 Writes ``OUT/pairs.csv`` (one row per candidate pair: ref, mov, axial_strain_percent, ncc, quality, selected),
 ``OUT/elastogram.npz`` (``exx`` normalised axial strain on the grid of frame ``ref_frame``, NaN where not covered;
-``quality``, ``spacing``, ``origin``; ``region``: the rows and lines of the input frames registered, for a
-``--roi`` / ``--depth`` or a scan-converted fan's bounding box; ``data_mask`` for a fan: on ``region``, True in the
+``quality``, ``spacing``, ``origin``; ``region``: the rows and lines of the input frames registered, for RF
+frames' echo rectangle (as ``femreg register``), a ``--roi`` / ``--depth`` or a scan-converted fan's bounding box,
+and ``excluded``: what was left out and why (the pictures hatch it); ``data_mask`` for a fan: on ``region``, True in the
 fan, outside which every picture is empty),
 ``OUT/elastogram.png`` (B-mode | elastogram | quality) and
 ``OUT/strain_cine.mp4`` (imageio-ffmpeg; ``strain_cine.gif`` when it is not installed).  Per-pair results are in
@@ -435,7 +436,7 @@ def run(args) -> int:
                  strain_range=np.asarray(shown, float), **fan)
     frames, shown_res, hatch = fr.frames, res, {}
     if res.excluded:
-        print(f"femreg elastogram: left out of the mesh (the rest is registered): {res.excluded}", file=sys.stderr)
+        print(f"femreg elastogram: left out of the mesh (the rest is registered): {res.excluded}")
     put = on_frames(res, np.shape(fr.frames[0]), spacing, origin)
     if put is not None:             # a rectangle of the frames: the pictures on the whole frames, the rest hatched
         shown_res, outside, roi, a0 = put
