@@ -78,7 +78,7 @@ def test_pictures_hatch_what_was_left_out(run):
 
 
 def test_screening_reads_each_step_strain(run):
-    """Each consecutive step's screened strain against the truth: measured at most 0.024 percentage points off
+    """Each consecutive step's screened strain against the truth: measured at most 0.023 percentage points off
     (before: the skin line and the fall-off with depth widened the screening's speckle cell to 1.2 x 7.8 mm, and
     the steps read 0.18-0.40 points high: pair 2 -> 3 -0.74 % for -0.47 %).  Bound 0.08 points."""
     rc, out, frames = run

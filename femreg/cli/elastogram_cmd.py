@@ -125,12 +125,12 @@ def on_frames(res, shape, spacing, origin):
     return view, outside, roi, a0
 
 
-def _hatch(axs, outside, spacing, origin, roi, note=None):
-    """Hatch ``outside`` (left out of the mesh) on every panel of ``axs``, ``note`` written on the first."""
+def _hatch(axs, outside, spacing, origin, roi):
+    """Hatch ``outside`` (left out of the mesh) on every panel of ``axs`` and outline ``roi``."""
     from ..plot import _shade_outside
 
-    for i, ax in enumerate(axs):
-        _shade_outside(ax, outside, spacing, origin, roi, label=note if i == 0 else None)
+    for ax in axs:
+        _shade_outside(ax, outside, spacing, origin, roi)
 
 
 #: Label of the normalised strain's colour bar (elastogram.png and the cine): its unit is the image's mean.
@@ -275,7 +275,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     clear of the next panel's axis label.  ``failure``: the reason no pair was usable, drawn as the red banner
     of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels.  ``outside`` (bool, on
     ``res.exx``'s grid): pixels left out of the mesh, hatched on every panel with ``roi`` (x0, x1, y0, y1) mm
-    outlined and ``excluded`` (why) written on the B-mode and below the panels (:func:`on_frames`)."""
+    outlined and ``excluded`` (why) written below the panels (:func:`on_frames`)."""
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range, saturated_fraction
