@@ -139,7 +139,7 @@ def test_invivo_elastogram_log_quality_edge_and_colour_range(tmp_path, capsys):
     rc, out, err = _run(["elastogram", INVIVO / "seq299", *RAW, "-o", tmp_path / "d"], capsys)
     assert rc == 0, err
     # one line per registered pair, no "register:" progress lines beside them (the screening keeps its own)
-    assert re.search(r"pair +1 -> +5: strain -0\.9\d % \(1 registered, \d+\.\d s\)", err), err
+    assert re.search(r"pair +\d -> +5: strain -0\.\d\d % \(1 registered, \d+\.\d s\)", err), err
     assert "register:" not in err and "screen: 5/5 pairs" in err, err
     z = np.load(tmp_path / "d" / "elastogram.npz")
     q = z["quality"]

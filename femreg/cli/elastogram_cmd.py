@@ -3,8 +3,9 @@ cine and one best elastogram (:func:`femreg.elastogram.elastogram`).
 
 Writes ``OUT/pairs.csv`` (one row per candidate pair: ref, mov, axial_strain_percent, ncc, quality, selected),
 ``OUT/elastogram.npz`` (``exx`` normalised axial strain on the grid of frame ``ref_frame``, NaN where not covered;
-``quality``, ``spacing``, ``origin``; ``region``: the rows and lines of the input frames registered, for a
-``--roi`` / ``--depth`` or a scan-converted fan's bounding box; ``data_mask`` for a fan: on ``region``, True in the
+``quality``, ``spacing``, ``origin``; ``region``: the rows and lines of the input frames registered, for RF
+frames' echo rectangle (as ``femreg register``), a ``--roi`` / ``--depth`` or a scan-converted fan's bounding box,
+and ``excluded``: what was left out and why (the pictures hatch it); ``data_mask`` for a fan: on ``region``, True in the
 fan, outside which every picture is empty),
 ``OUT/elastogram.png`` (B-mode | elastogram | quality) and
 ``OUT/strain_cine.mp4`` (imageio-ffmpeg; ``strain_cine.gif`` when it is not installed).  Per-pair results are in
@@ -91,6 +92,47 @@ def _display(img, spacing, height=320, average=False):
     return out
 
 
+def on_frames(res, shape, spacing, origin):
+    """``(view, outside, roi, row0)``: a result cut to a rectangle of the input frames (``res.region``: the echo
+    rectangle of :func:`femreg.echo.find_echo`, a given ``--roi`` / ``--depth``) put back on the frames
+    (``shape`` (n_axial, n_lateral), ``spacing``, ``origin`` mm) for the pictures: ``view`` a copy whose
+    ``exx`` / ``cine`` are NaN and ``quality`` 0 outside the rectangle, ``outside`` (bool, ``view.exx``'s shape)
+    those pixels, ``roi`` (x0, x1, y0, y1) mm the rectangle, ``row0`` the first input row of ``view``'s grid
+    (fewer than the cine's row step: its rows stay on the cine's).  None for a whole-frame, fan or convex /
+    sector result (its pictures keep its own grid)."""
+    import dataclasses
+
+    if res.region is None or res.data_mask is not None or getattr(res, "geometry", None) is not None:
+        return None
+    (a, b), (c, d) = res.region
+    n, m = (int(v) for v in shape)
+    dx, dy = (float(v) for v in spacing)
+    qa = max(1, int(round(float(res.cine_spacing[0]) / dx))) if res.cine_spacing is not None else 1
+    a0 = a % qa
+    nv = n - a0
+    exx, quality = np.full((nv, m), np.nan), np.zeros((nv, m))
+    exx[a - a0:b - a0, c:d], quality[a - a0:b - a0, c:d] = res.exx, res.quality
+    cine = np.full((len(res.cine), len(range(0, nv, qa)), m), np.nan, np.float32)
+    k0 = (a - a0) // qa
+    cine[:, k0:k0 + res.cine.shape[1], c:d] = res.cine
+    outside = np.ones((nv, m), bool)
+    outside[a - a0:b - a0, c:d] = False
+    ox = float(origin[0]) + a0 * dx
+    roi = (ox + (a - a0 - 0.5) * dx, ox + (b - a0 - 0.5) * dx, float(origin[1]) + (c - 0.5) * dy,
+           float(origin[1]) + (d - 0.5) * dy)
+    view = dataclasses.replace(res, exx=exx, quality=quality, cine=cine, origin=np.array([ox, float(origin[1])]),
+                               spacing=np.array([dx, dy]), region=None)
+    return view, outside, roi, a0
+
+
+def _hatch(axs, outside, spacing, origin, roi):
+    """Hatch ``outside`` (left out of the mesh) on every panel of ``axs`` and outline ``roi``."""
+    from ..plot import _shade_outside
+
+    for ax in axs:
+        _shade_outside(ax, outside, spacing, origin, roi)
+
+
 #: Label of the normalised strain's colour bar (elastogram.png and the cine): its unit is the image's mean.
 STRAIN_LABEL = "axial strain / its mean (1 = mean; bright = soft)"
 #: Height of the strain cine's frames, inches at :data:`CINE_DPI`.
@@ -113,11 +155,13 @@ def _cine_bmode(res, frame, spacing):
     return out, np.asarray(spacing, float) * np.asarray(b.shape) / np.asarray(out.shape)
 
 
-def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dynamic_range=50.0):
+def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dynamic_range=50.0, outside=None,
+                roi=None):
     """The strain cine's figure for one frame: the B-mode ``bmode_db`` (dB, on ``bmode_spacing`` mm from
     ``res.origin``) | the normalised strain ``strain`` (on ``res.cine_spacing``; viridis over ``strain_range``),
     both on mm axes (axial x, lateral y) with their colour bars (echo level dB; the strain over its mean),
-    ``title`` above.  Returns ``(fig, (ax_bmode, ax_strain))``."""
+    ``title`` above; ``outside`` (bool, on ``res.exx``'s grid) hatched on both, ``roi`` (x0, x1, y0, y1) mm
+    outlined (:func:`on_frames`).  Returns ``(fig, (ax_bmode, ax_strain))``."""
     import matplotlib.pyplot as plt
 
     from ..plot import fit_colorbars, plot_field
@@ -133,17 +177,20 @@ def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dy
                label=STRAIN_LABEL, title="normalised axial strain")
     for ax in axs:
         ax.set_facecolor("black")       # outside a fan and where no pair covers
+    if outside is not None:
+        _hatch(axs, outside, res.spacing, res.origin, roi)
     fig.suptitle(title)
     fit_colorbars(fig, [list(axs)])
     return fig, tuple(axs)
 
 
-def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
+def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0, outside=None, roi=None):
     """The frames of the strain cine, each (height, width, 3) uint8: :func:`cine_figure` of every cine frame,
     the B-mode of its reference frame beside the persistent normalised strain after its pair (colours over
     ``strain_range``, default :func:`femreg.elastogram.display_range`, as ``elastogram.png``), titled with the
     frame and its pair's mean axial strain (%).  A convex / sector loop is drawn scan-converted
-    (``res.geometry``).  One figure is drawn and its images replaced frame by frame."""
+    (``res.geometry``); ``outside`` / ``roi`` hatched (:func:`cine_figure`).  One figure is drawn and its images
+    replaced frame by frame."""
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range
@@ -158,7 +205,7 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
             what = f"frame {f}" + (f" (pair {f} -> {pair_of[f][0]}, mean axial strain {pair_of[f][1]:+.2f} %)"
                                    if f in pair_of else "")
             if fig is None:
-                fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range)
+                fig, axs = cine_figure(res, b, bsp, s, rng, what, dynamic_range, outside, roi)
                 drawn = [axs[0].images[-1], axs[1].images[-1]]
                 # the axes, colour bars and labels drawn once, without the images and the title: each frame then
                 # draws only those on that background (a whole draw took 0.23 s a frame)
@@ -177,6 +224,8 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
             fig.canvas.restore_region(background)
             for ax, im in zip(axs, drawn):
                 ax.draw_artist(im)
+                for a in ax.collections + ax.patches:   # the hatching over what was left out
+                    ax.draw_artist(a)
                 for spine in ax.spines.values():    # the frame over the image's edge, as a whole draw has it
                     ax.draw_artist(spine)
             fig.draw_artist(fig._suptitle)
@@ -191,9 +240,9 @@ def cine_frames(res, frames, spacing, strain_range=None, dynamic_range=50.0):
     return pics
 
 
-def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Path:
+def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None, outside=None, roi=None) -> Path:
     """The strain cine of :func:`cine_frames`: ``strain_cine.mp4`` with imageio-ffmpeg, else a GIF."""
-    pics = cine_frames(res, frames, spacing, strain_range)
+    pics = cine_frames(res, frames, spacing, strain_range, outside=outside, roi=roi)
     try:
         import imageio_ffmpeg
     except ImportError:
@@ -219,11 +268,14 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None) -> Pa
     return path
 
 
-def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None):
+def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None, outside=None, roi=None,
+                      excluded=None):
     """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram (colours over
     ``strain_range``, default :func:`femreg.elastogram.display_range`) | its persistence weight, each colour bar
     clear of the next panel's axis label.  ``failure``: the reason no pair was usable, drawn as the red banner
-    of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels."""
+    of a failed result (:func:`femreg.plot.draw_failure`) over the empty panels.  ``outside`` (bool, on
+    ``res.exx``'s grid): pixels left out of the mesh, hatched on every panel with ``roi`` (x0, x1, y0, y1) mm
+    outlined and ``excluded`` (why) written below the panels (:func:`on_frames`)."""
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range, saturated_fraction
@@ -263,6 +315,14 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     for ax in axs:
         ax.set_xlabel("lateral y (mm)")
         ax.set_ylabel("axial x (mm)")
+    if outside is not None and outside.any():
+        import textwrap
+
+        from ..plot import SUPXLABEL_WIDTH
+
+        _hatch(axs, outside, spacing, origin, roi)         # why: below the panels (a narrow panel cuts it)
+        fig.supxlabel(textwrap.fill("hatched: left out of the mesh (no strain there)"
+                                    + (f"; {excluded}" if excluded else ""), SUPXLABEL_WIDTH), fontsize="small")
     if failure:
         # the whole advice: the band to pass is at its end
         draw_failure(fig, f"NO ELASTOGRAM: {failure}", max_lines=None)
@@ -277,11 +337,12 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     return fig
 
 
-def write_picture(path, res, frame, spacing, origin, strain_range=None, failure=None) -> None:
-    """Write :func:`elastogram_figure` to ``path`` (PNG, written under a temporary name and renamed)."""
+def write_picture(path, res, frame, spacing, origin, strain_range=None, failure=None, **hatch) -> None:
+    """Write :func:`elastogram_figure` to ``path`` (PNG, written under a temporary name and renamed); ``hatch``:
+    its ``outside``, ``roi``, ``excluded``."""
     import matplotlib.pyplot as plt
 
-    fig = elastogram_figure(res, frame, spacing, origin, strain_range, failure)
+    fig = elastogram_figure(res, frame, spacing, origin, strain_range, failure, **hatch)
     tmp = Path(path).with_name(".elastogram.tmp.png")
     fig.savefig(tmp, dpi=90)
     plt.close(fig)
@@ -359,8 +420,10 @@ def run(args) -> int:
         return 1
     write_pairs_csv(out / "pairs.csv", res.pairs)
     fan = {} if res.data_mask is None else dict(data_mask=res.data_mask)
-    if res.region is not None:      # a fan's bounding box or a given --roi / --depth: where exx lies in the frames
+    if res.region is not None:      # the echo rectangle, a fan's bounding box or a given --roi / --depth
         fan["region"] = np.asarray(res.region, np.int64)
+    if res.excluded:
+        fan["excluded"] = np.str_(res.excluded)
     from ..elastogram import display_range
 
     shown = tuple(args.strain_range) if args.strain_range is not None else display_range(res.exx, res.quality)
@@ -371,19 +434,25 @@ def run(args) -> int:
     atomic_savez(out / "elastogram.npz", exx=res.exx, ref_frame=np.int64(res.ref_frame), quality=res.quality,
                  spacing=np.asarray(res.spacing), origin=np.asarray(res.origin),
                  strain_range=np.asarray(shown, float), **fan)
-    frames = fr.frames
-    if res.region is not None:      # --roi / --depth, or the fan's bounding box (NaN outside the fan): its pixels
+    frames, shown_res, hatch = fr.frames, res, {}
+    if res.excluded:
+        print(f"femreg elastogram: left out of the mesh (the rest is registered): {res.excluded}")
+    put = on_frames(res, np.shape(fr.frames[0]), spacing, origin)
+    if put is not None:             # a rectangle of the frames: the pictures on the whole frames, the rest hatched
+        shown_res, outside, roi, a0 = put
+        frames = [np.asarray(f)[a0:] for f in frames]
+        hatch = dict(outside=outside, roi=roi)
+    elif res.region is not None:    # the fan's bounding box (NaN outside the fan): its pixels
         (a, b), (c, d) = res.region
         frames = [np.asarray(f)[a:b, c:d] for f in frames]
-        print(f"femreg elastogram: left out (the rest is registered): {res.excluded}", file=sys.stderr)
     failure = None
     if res.n_usable == 0:
         why = band_advice(res.screen, (lo / 100.0, hi / 100.0), args.max_span, cli=True)
         failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
                    f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
-    write_picture(out / "elastogram.png", res, np.asarray(frames[res.ref_frame], float), res.spacing, res.origin,
-                  shown, failure)
-    cine = write_cine(out, res, frames, res.spacing, fps=args.fps, strain_range=shown)
+    write_picture(out / "elastogram.png", shown_res, np.asarray(frames[res.ref_frame], float), shown_res.spacing,
+                  shown_res.origin, shown, failure, excluded=res.excluded if hatch else None, **hatch)
+    cine = write_cine(out, shown_res, frames, shown_res.spacing, fps=args.fps, strain_range=shown, **hatch)
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too
     which = f" ({files[res.ref_frame]})" if files and len(files) == fr.n_frames else ""
