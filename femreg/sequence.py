@@ -518,5 +518,7 @@ def load_track(checkpoint_dir) -> SequenceResult:
         with np.load(path, allow_pickle=False) as z:
             out.increments.append(np.asarray(z["increment"], float))
             out.flags.append(str(z["flag"]))
+            if "retried" in z.files:
+                out.retried.append(k)
         out.computed.append(False)
     return out
