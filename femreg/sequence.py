@@ -178,11 +178,12 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
     init : {"previous", "blockmatch"}
         Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
         increments of a compression sequence are alike), or NCC block matching every time (paper).  The first
-        increment, and any increment after a flagged or retried one, starts afresh (the strategy's own initial guess: the
-        pyramid of ``strategy="auto"``, block matching with ``"paper"``); direct mode always starts afresh.  An
-        increment started from the previous one that is flagged (e.g. peak hopping where the compression per frame
-        varies) is registered again from a fresh start, and the fresh result is kept unless it is flagged too
-        (then the one with the higher NCC after registration); ``SequenceResult.retried`` lists those frames.
+        increment, and any increment after a flagged or retried one, starts afresh (the strategy's own initial
+        guess: the pyramid of ``strategy="auto"``, block matching with ``"paper"``); direct mode always starts
+        afresh.  An increment started from the previous one that is flagged (e.g. peak hopping where the
+        compression per frame varies) is registered again from a fresh start, and the fresh result is kept unless
+        it is flagged too (then the one with the higher NCC after registration); ``SequenceResult.retried`` lists
+        those frames.
     mesh, element_size, margin
         One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`, elements sized
         from frame 0's speckle as :func:`femreg.register` does with ``strategy="auto"``).
