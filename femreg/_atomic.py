@@ -84,17 +84,26 @@ def open_run_folder(folder, params: dict, *, resume: bool, record: str, started,
     return out
 
 
-def save_frame(path, result, increment, flag: str, k: int, mode: str) -> None:
+def save_frame(path, result, increment, flag: str, k: int, mode: str, retried: str = "") -> None:
     """Write a tracking run's frame ``k`` (frame 0 -> k) atomically: ``result.save`` with the increment of eq:IR,
-    the flag ('' or why it is flagged), the frame index and the run's mode."""
+    the flag ('' or why it is flagged), the frame index and the run's mode; ``retried`` ('' or why the increment
+    was registered again from a fresh start), written only when not empty."""
+    extra = dict(retried=np.str_(retried)) if retried else {}
     atomic_savez(path, writer=lambda tmp: result.save(tmp, increment=increment, flag=np.str_(flag),
-                                                      frame=np.int64(k), mode=np.str_(mode)))
+                                                      frame=np.int64(k), mode=np.str_(mode), **extra))
 
 
 def load_frame_record(path) -> tuple:
     """``(increment, flag)`` of a frame file written by :func:`save_frame`."""
     with np.load(path, allow_pickle=False) as z:
         return np.asarray(z["increment"], float), str(z["flag"])
+
+
+def load_frame_retry(path) -> str:
+    """Why frame ``path``'s increment was registered again from a fresh start ('' when it was not; files written
+    before retries were recorded read '')."""
+    with np.load(path, allow_pickle=False) as z:
+        return str(z["retried"]) if "retried" in z.files else ""
 
 
 def progress_bar(progress: bool, total: int, desc: str, unit: str, on_item=None):

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from skfem import MeshQuad1
 
-from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
+from ._atomic import load_frame_record, load_frame_retry, open_run_folder, progress_bar, save_frame
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
@@ -83,6 +83,9 @@ class SequenceResult(list):
     repeated : list of int
         Frames k whose samples equal frame k - 1's (a frame written twice): not registered, their entry is frame
         k - 1's field (accumulate: a zero increment), the message saying so.
+    retried : list of int
+        Frames k whose increment, started from the previous increment (``init="previous"``), was flagged and was
+        registered again from a fresh start (accumulate mode); the message of each says why and which was kept.
     """
 
     def __init__(self, results=(), *, mode="accumulate"):
@@ -92,6 +95,7 @@ class SequenceResult(list):
         self.flags = []
         self.computed = []
         self.repeated = []
+        self.retried = []
 
 
 def _validate_frames(frames):
@@ -174,8 +178,12 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
     init : {"previous", "blockmatch"}
         Initial guess of each increment (accumulate mode): the previous increment (default: consecutive
         increments of a compression sequence are alike), or NCC block matching every time (paper).  The first
-        increment, and any increment after a flagged one, starts afresh (the strategy's own initial guess: the
-        pyramid of ``strategy="auto"``, block matching with ``"paper"``); direct mode always starts afresh.
+        increment, and any increment after a flagged or retried one, starts afresh (the strategy's own initial
+        guess: the pyramid of ``strategy="auto"``, block matching with ``"paper"``); direct mode always starts
+        afresh.  An increment started from the previous one that is flagged (e.g. peak hopping where the
+        compression per frame varies) is registered again from a fresh start, and the fresh result is kept unless
+        it is flagged too (then the one with the higher NCC after registration); ``SequenceResult.retried`` lists
+        those frames.
     mesh, element_size, margin
         One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`, elements sized
         from frame 0's speckle as :func:`femreg.register` does with ``strategy="auto"``).
@@ -340,6 +348,37 @@ def _frame_result(r, mesh, u):
     return RegistrationResult(mesh, u, **kw)
 
 
+def _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer, alpha, inc_kwargs):
+    """The increment u_k of eq:IR from frame k - 1 to k started from ``initial``: (frame 0 -> k result, the
+    increment (2 n_nodes,) mm)."""
+    r_inc = register(seq[k - 1], seq[k], regularizer=regularizer, alpha=alpha, initial=initial, **frame_kwargs,
+                     **where, **inc_kwargs)
+    inc = r_inc.u.copy()
+    return _frame_result(r_inc, r_inc.mesh if fe_mesh is None else fe_mesh, S + inc), inc
+
+
+def _keep(res, inc, why, again, inc_again, min_ncc, k):
+    """Of frame ``k``'s increment started from the previous one (``res``, ``inc``; flagged for ``why``) and the
+    one registered again from a fresh start (``again``, ``inc_again``): the fresh one unless it is flagged too,
+    then the one with the higher NCC after registration.  Returns (result, increment, retry note); the note is
+    added to the kept result's message."""
+    why = why.split("; ")[0]
+    again_flag = frame_flag(again, min_ncc)
+    if not again_flag:
+        kept, k_inc, which = again, inc_again, "kept the fresh start"
+    else:
+        a, b = again.ncc_after, res.ncc_after
+        fresh_better = np.isfinite(a) and not (np.isfinite(b) and b > a)
+        kept, k_inc = (again, inc_again) if fresh_better else (res, inc)
+        which = (f"the fresh start flagged too ({again_flag.split('; ')[0]}): kept the "
+                 f"{'fresh start' if fresh_better else 'start from the previous increment'} (NCC after {a:.3f} "
+                 f"fresh, {b:.3f} from the previous increment)")
+    note = (f"retried from a fresh start: the increment started from frame {k - 1}'s was flagged ({why}); "
+            f"{which}")
+    kept.message = f"{kept.message}; {note}" if kept.message else note
+    return kept, k_inc, note
+
+
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
          min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
@@ -379,9 +418,11 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     try:
         for k in range(1, len(seq)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
+            retried = ""
             if resume and path is not None and path.exists():
                 res = load_result(path)
                 inc, flag = load_frame_record(path)
+                retried = load_frame_retry(path)
                 computed = False
             elif k in repeats:
                 # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1
@@ -411,10 +452,15 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                      allow_mesh_outside=True)
                     else:
                         where.update(mesh=fe_mesh, offset=S if k > 1 else None)
-                    r_inc = register(seq[k - 1], seq[k], regularizer=regularizer, alpha=alpha, initial=initial,
-                                     **frame_kwargs, **where, **inc_kwargs)
-                    inc = r_inc.u.copy()
-                    res = _frame_result(r_inc, r_inc.mesh if fe_mesh is None else fe_mesh, S + inc)
+                    res, inc = _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer, alpha,
+                                          inc_kwargs)
+                    first_flag = "" if fresh else frame_flag(res, min_ncc)
+                    if first_flag:
+                        # the previous increment can start a whole RF period off (a freehand loop's compression
+                        # per frame varies): register the pair again from the strategy's own start
+                        again, inc_again = _increment(seq, k, "blockmatch" if init == "blockmatch" else None, S,
+                                                      fe_mesh, frame_kwargs, where, regularizer, alpha, inc_kwargs)
+                        res, inc, retried = _keep(res, inc, first_flag, again, inc_again, min_ncc, k)
                 if crop is not None:
                     crop.widen(res)
                 elif uncut is not None:
@@ -425,10 +471,13 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 flag = frame_flag(res, min_ncc)
                 computed = True
                 if path is not None:
-                    save_frame(path, res, inc, flag, k, mode)
+                    save_frame(path, res, inc, flag, k, mode, retried)
             if fe_mesh is None:         # the first pair's mesh: every later frame's
                 fe_mesh = res.mesh
             S = np.asarray(res.u, float).copy() if mode == "accumulate" else S
+            if retried:
+                out.retried.append(k)
+                res.retried = retried   # for on_frame (the file keeps it as "retried")
             if k in repeats:
                 out.repeated.append(k)
             else:                       # a repeat's zero increment is no guess for the next one
@@ -437,7 +486,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             if own and mode == "accumulate" and tainted is None:
                 tainted = (k, own)      # every later frame adds this increment
             if k not in repeats:
-                prev_own_flag = own
+                # a retried increment's start from the previous one failed: the next starts fresh as well
+                prev_own_flag = own or retried
             out.append(res)
             out.increments.append(inc)
             out.flags.append(flag)
@@ -469,5 +519,7 @@ def load_track(checkpoint_dir) -> SequenceResult:
         with np.load(path, allow_pickle=False) as z:
             out.increments.append(np.asarray(z["increment"], float))
             out.flags.append(str(z["flag"]))
+            if "retried" in z.files:
+                out.retried.append(k)
         out.computed.append(False)
     return out

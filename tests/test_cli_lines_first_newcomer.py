@@ -117,7 +117,7 @@ def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsy
     def failing_second(*a, **kw):
         inits.append(kw.get("initial") is None)
         r = real(*a, **kw)
-        if len(inits) == 2:         # frame 1 -> 2 fails its check
+        if len(inits) in (2, 3):    # frame 1 -> 2 fails its check, from the previous increment and afresh
             r.success, r.message = False, "FAILED: peak hopping (simulated)"
         return r
 
@@ -130,11 +130,12 @@ def test_frames_after_a_flagged_increment_are_failed(track_file, tmp_path, capsy
     assert "--init blockmatch starts each afresh" in err, err
     res = {k: femreg.load_result(out / f"frame_{k:03d}.npz") for k in (1, 2, 3, 4)}
     assert res[1].success and not res[2].success
+    assert "retried from a fresh start" in res[2].message and "flagged too" in res[2].message, res[2].message
     for k in (3, 4):
         assert not res[k].success
         assert res[k].message.startswith("FAILED: accumulated through frame 2"), res[k].message
-    # the increments start as before: afresh after the failed one only, frame 4 from frame 3's increment
-    assert inits == [True, False, True, False], inits
+    # frame 2 from frame 1's increment, then again afresh; afresh after the failed one only, frame 4 from frame 3's
+    assert inits == [True, False, True, True, False], inits
 
     # a resumed run reads the same verdicts and starts frame 4 as the uninterrupted run did
     monkeypatch.undo()
@@ -159,7 +160,7 @@ def test_failed_accumulated_frame_is_drawn_and_measured_as_failed(track_file, tm
     def failing_second(*a, **kw):
         n["k"] += 1
         r = real(*a, **kw)
-        if n["k"] == 2:
+        if n["k"] in (2, 3):        # frame 2, from frame 1's increment and again afresh
             r.success, r.message = False, "FAILED: peak hopping (simulated)"
         return r
 

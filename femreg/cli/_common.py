@@ -511,6 +511,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         rep = getattr(res, "repeats", None)
         what = (f"repeats frame {rep} (identical samples): not registered, frame {rep}'s field kept" if rep is not None
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
+        if getattr(res, "retried", ""):     # the start from the previous increment was flagged
+            what += ", retried from a fresh start"
         # with the progress bar on, the per-frame line goes to stderr beside the bar
         where = f" (the file's frame {file_frame(sel, k)})" if moved else ""
         print(f"frame {k:3d}{where}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
@@ -547,8 +549,11 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
               f"frame_KKK.npz count the selection from 0")
     n_new = sum(out.computed)
     n_flag = sum(1 for f in out.flags if f)
+    retried = list(getattr(out, "retried", ()))
+    again = (f", {len(retried)} retried from a fresh start ({noun}{'' if len(retried) == 1 else 's'} "
+             f"{', '.join(map(str, retried))})") if retried else ""
     print(f"femreg track: {len(out)} {noun}{'' if len(out) == 1 else 's'} in {args.output} ({n_new} computed, "
-          f"{len(out) - n_new} resumed, {n_flag} flagged)")
+          f"{len(out) - n_new} resumed, {n_flag} flagged{again})")
     if n_flag:
         first = next(k for k, f in enumerate(out.flags, start=1) if f)
         hint = ""

@@ -43,8 +43,8 @@ def add_parser(subparsers):
                         "field (default), or on the first frame's grid as eq:IR is written (biased on noisy data)")
     p.add_argument("--init", choices=("previous", "blockmatch"), default="previous",
                    help="initial guess of each increment: the previous increment (default; a compression "
-                        "sequence's increments are alike) or block matching (each afresh: a freehand loop whose "
-                        "compression per frame varies)")
+                        "sequence's increments are alike; one flagged from it is registered again afresh) or block "
+                        "matching (each afresh: a freehand loop whose compression per frame varies)")
     p.add_argument("--resume", action="store_true", help="continue a run in OUTDIR, keeping finished frames")
     p.add_argument("--min-ncc", type=ncc_arg, default=0.5, help="flag pairs whose NCC after is below (default 0.5)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
