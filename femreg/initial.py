@@ -12,8 +12,7 @@ import numpy as np
 from .blockmatch import BlockMatchResult
 from .image import pixel_axes
 from .paperguess import paper_initial_guess, wants_coarse_pass
-from .pyramid import PyramidGuess, default_settings, element_rule, pyramid_initial_guess, speckle_statistics
-from .speckle import structure_free
+from .pyramid import PyramidGuess, image_settings, pyramid_initial_guess
 from .result import displacement_at, nodal_values
 
 __all__ = ["InitialGuess", "initial_guess", "INITIAL_NAMES"]
@@ -79,8 +78,7 @@ def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory,
         a, b = a[rectangle], b[rectangle]
         origin = np.asarray(origin, float) + np.array([rectangle[0].start, rectangle[1].start]) * np.asarray(spacing)
     if stats is None:
-        stats = structure_free(speckle_statistics(a, spacing), a, spacing)
-        settings = default_settings(a.shape, spacing, stats, element_size, **element_rule(regularizer))
+        stats, settings = image_settings(a, spacing, element_size, regularizer)
         env_a = stats.envelope
     guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=alpha, stats=stats,
                                   settings=settings, margin=margin, tol=tol, linear_solver=linear_solver,

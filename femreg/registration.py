@@ -32,8 +32,8 @@ from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
 from .refine import (DEFAULT as DEFAULT_REFINE, as_refinement, default_refine, parent_cells, refine_stage,
                      with_refinement)
-from .pyramid import default_settings, element_rule
-from .speckle import rf_period, speckle_statistics, structure_free
+from .pyramid import image_settings
+from .speckle import rf_period
 from .regularizers import Regularizer, available_regularizers
 from .repair import ENVELOPE_NOTE, check_period, check_result, repair_peak_hopping
 from .result import RegistrationResult, displacement_at, load_result, nodal_values  # noqa: F401
@@ -101,8 +101,7 @@ def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, i
     need_stats = mesh is None or (isinstance(initial, str) and initial == "pyramid")
     if strategy == "auto" and need_stats:
         part = ref if rectangle is None else ref[rectangle]
-        stats = structure_free(speckle_statistics(part, spacing), part, spacing)
-        settings = default_settings(part.shape, spacing, stats, element_size, **element_rule(regularizer))
+        stats, settings = image_settings(part, spacing, element_size, regularizer)
     if mesh is None:
         h = settings.element_size if (settings is not None and element_size is None) else element_size
         fe_mesh = roi_mesh(ref.shape, spacing, origin, element_size=None if h is None else tuple(np.ravel(h)),

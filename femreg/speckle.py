@@ -11,8 +11,7 @@ import numpy as np
 
 from . import _kernels
 
-__all__ = ["SpeckleStats", "envelope", "rf_period", "speckle_statistics", "speckle_cell", "structure_free",
-           "STRUCTURE_WINDOW_MM"]
+__all__ = ["SpeckleStats", "envelope", "rf_period", "speckle_statistics", "speckle_cell", "STRUCTURE_WINDOW_MM"]
 
 
 @dataclass
@@ -182,13 +181,3 @@ def speckle_cell(image, spacing, window=STRUCTURE_WINDOW_MM, stats: SpeckleStats
     e = np.where(valid, env / np.where(valid, local, 1.0), 0.0)
     e = np.where(valid, e - float(np.mean(e[valid])), 0.0)
     return np.array([_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)])
-
-
-def structure_free(stats: SpeckleStats, image, spacing) -> SpeckleStats:
-    """``stats`` with :attr:`SpeckleStats.cell` replaced by the smaller (per axis, mm) of it and
-    :func:`speckle_cell` of ``image`` (the speckle's own cell, structure divided out); a non-finite speckle cell
-    keeps the envelope's.  On uniform speckle both agree; on tissue the envelope's cell reads the structure."""
-    from dataclasses import replace
-
-    own = speckle_cell(image, spacing, stats=stats)
-    return replace(stats, cell=np.where(np.isfinite(own), np.fmin(own, stats.cell), stats.cell))
