@@ -47,7 +47,8 @@ def test_an_exact_previous_increment_is_not_refused(monkeypatch):
     # registered again from a fresh start
     assert ok and not any("explains less" in n for n in notes), notes
     assert len(seen) == 3 and seq.retried == [] and seq.flags == ["", "", ""], (seq.retried, seq.flags)
-    # the kept increment is right: frame 0 -> 3 measured 0.6 um axial RMS error; bound 3 um as test_track_retry
+    # the kept increment is right: frame 0 -> 3 measured 0.88 um axial RMS error (0.86 um with the fresh start of
+    # the retry before); bound 3 um as test_track_retry
     assert _axial_error_um(seq[-1], cum[-1]) < 3.0
 
 
