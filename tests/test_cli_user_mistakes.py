@@ -172,6 +172,37 @@ def test_strain_cine_has_mm_axes_and_colour_bars():
     assert not np.array_equal(pics[0], pics[1])         # each frame its own strain image
 
 
+def test_strain_cine_bmode_panel_has_no_strip_beside_the_frame():
+    """An in vivo frame's size (2000 x 128 at 0.02 x 0.2 mm), cut above a noise floor: the B-mode is resampled to
+    display pixels (459 x 294).  Before, that image sat half a display pixel off the frame's edge, the outline of
+    the registered rectangle (on the frame's edge) stuck out past it, and autoscale's 5 % margin left a black strip
+    1.28 mm wide down the B-mode panel's left edge (measured limit -7.38 mm for a frame edge at -6.1 mm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import _cine_bmode, cine_figure
+    from femreg.plot import extent_mm
+
+    res = _cine_result(shape=(2000, 128), spacing=(0.02, 0.2))
+    outside = np.zeros(res.exx.shape, bool)
+    outside[1923:] = True                              # below the echo: left out of the mesh
+    dx, dy = res.spacing
+    roi = (3.0 - 0.5 * dx, 3.0 + 1922.5 * dx, -6.0 - 0.5 * dy, -6.0 + 127.5 * dy)     # as on_frames draws it
+    frame = np.random.default_rng(2).normal(size=res.exx.shape)
+    b, bsp = _cine_bmode(res, frame, res.spacing)
+    assert b.shape == (459, 294)                       # resampled: the case the offset appeared in
+    fig, axs = cine_figure(res, b, bsp, res.cine[0], (0.0, 2.0), outside=outside, roi=roi)
+    want = extent_mm(res.exx.shape, res.spacing, res.origin)           # -6.1 ... 19.5 mm, 2.99 ... 42.99 mm
+    for ax in axs:
+        # rounding only (1e-9 mm); before, the B-mode panel's left limit was 1.28 mm beyond the frame's edge
+        assert np.allclose([*ax.get_xlim(), *ax.get_ylim()], want, rtol=0, atol=1e-9), (ax.get_xlim(), want)
+    # the B-mode image itself covers the frame's pixels (before: 0.056 mm short on the left, 0.034 mm at the top)
+    assert np.allclose(axs[0].images[-1].get_extent(), want, rtol=0, atol=1e-9), axs[0].images[-1].get_extent()
+    plt.close(fig)
+
+
 def test_frames_given_where_a_result_belongs(tmp_path, capsys):
     # `femreg plot frames.npy` (frames, not a result) ended in a TypeError traceback and exit 1
     frames = tmp_path / "frames.npy"

@@ -164,14 +164,17 @@ def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dy
     outlined (:func:`on_frames`).  Returns ``(fig, (ax_bmode, ax_strain))``."""
     import matplotlib.pyplot as plt
 
-    from ..plot import fit_colorbars, plot_field
+    from ..plot import extent_mm, fit_colorbars, plot_field
 
     lo, hi = strain_range
     ext = np.asarray(res.exx.shape) * np.asarray(res.spacing, float)        # mm, axial and lateral
     aspect = float(np.clip(ext[1] / max(ext[0], 1e-9), 0.25, 3.0))
     fig, axs = plt.subplots(1, 2, figsize=(2 * aspect * (CINE_HEIGHT_IN - 1.0) + 3.4, CINE_HEIGHT_IN),
                             dpi=CINE_DPI, constrained_layout=True)
-    plot_field(bmode_db, bmode_spacing, res.origin, ax=axs[0], cmap="gray", vmin=-dynamic_range, vmax=0.0,
+    # the B-mode resampled to display pixels (_cine_bmode) covers the frame's pixels: its first pixel centre lies
+    # half a display pixel inside the frame's edge, not on the frame's first pixel centre
+    b_origin = np.asarray(res.origin, float) + (np.asarray(bmode_spacing, float) - np.asarray(res.spacing, float)) / 2
+    plot_field(bmode_db, bmode_spacing, b_origin, ax=axs[0], cmap="gray", vmin=-dynamic_range, vmax=0.0,
                label="echo level (dB)", title="B-mode")
     plot_field(strain, res.cine_spacing, res.origin, ax=axs[1], cmap="viridis", vmin=lo, vmax=hi,
                label=STRAIN_LABEL, title="normalised axial strain")
@@ -179,6 +182,12 @@ def cine_figure(res, bmode_db, bmode_spacing, strain, strain_range, title="", dy
         ax.set_facecolor("black")       # outside a fan and where no pair covers
     if outside is not None:
         _hatch(axs, outside, res.spacing, res.origin, roi)
+    # both panels on the frame's pixels: an outline on the frame's edge just outside an image's would otherwise
+    # add autoscale's 5 % margin on that side, a black strip (1.3 mm on a 25.6 mm wide frame)
+    left, right, bottom, top = extent_mm(res.exx.shape, res.spacing, res.origin)
+    for ax in axs:
+        ax.set_xlim(left, right)
+        ax.set_ylim(bottom, top)
     fig.suptitle(title)
     fit_colorbars(fig, [list(axs)])
     return fig, tuple(axs)
