@@ -97,7 +97,8 @@ def on_frames(res, shape, spacing, origin):
     rectangle of :func:`femreg.echo.find_echo`, a given ``--roi`` / ``--depth``) put back on the frames
     (``shape`` (n_axial, n_lateral), ``spacing``, ``origin`` mm) for the pictures: ``view`` a copy whose
     ``exx`` / ``cine`` are NaN and ``quality`` 0 outside the rectangle, ``outside`` (bool, ``view.exx``'s shape)
-    those pixels, ``roi`` (x0, x1, y0, y1) mm the rectangle, ``row0`` the first input row of ``view``'s grid
+    those pixels and the rectangle's own pixels without strain (the mesh's margin), ``roi`` (x0, x1, y0, y1) mm the
+    rectangle, ``row0`` the first input row of ``view``'s grid
     (fewer than the cine's row step: its rows stay on the cine's).  None for a whole-frame, fan or convex /
     sector result (its pictures keep its own grid)."""
     import dataclasses
@@ -117,6 +118,7 @@ def on_frames(res, shape, spacing, origin):
     cine[:, k0:k0 + res.cine.shape[1], c:d] = res.cine
     outside = np.ones((nv, m), bool)
     outside[a - a0:b - a0, c:d] = False
+    outside |= ~np.isfinite(exx)        # the mesh's own margin inside the rectangle: no strain there either
     ox = float(origin[0]) + a0 * dx
     roi = (ox + (a - a0 - 0.5) * dx, ox + (b - a0 - 0.5) * dx, float(origin[1]) + (c - 0.5) * dy,
            float(origin[1]) + (d - 0.5) * dy)
