@@ -61,7 +61,7 @@ from .result import RegistrationResult, nodal_values, register_beam_result
 from .sampling import sample_points
 
 __all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
-           "register_beam", "frame_grid", "to_cartesian", "to_sample_displacement"]
+           "register_beam", "frame_grid", "has_strain_feature", "to_cartesian", "to_sample_displacement"]
 
 
 def beam_strain(strain, angle) -> np.ndarray:
