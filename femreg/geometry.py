@@ -61,7 +61,7 @@ from .result import RegistrationResult, nodal_values, register_beam_result
 from .sampling import sample_points
 
 __all__ = ["as_geometry", "beam_strain", "BeamResult", "BeamQuadrature", "BeamSSDTerm",
-           "register_beam", "frame_grid", "to_cartesian", "to_sample_displacement"]
+           "register_beam", "frame_grid", "has_strain_feature", "to_cartesian", "to_sample_displacement"]
 
 
 def beam_strain(strain, angle) -> np.ndarray:
@@ -231,11 +231,20 @@ class BeamResult(RegistrationResult):
 
     @property
     def recovery_weight(self) -> float:
-        """0: a beam frame's strain is the nodal average.  With the opt-in refinement of the (range, angle)
-        lattice the adaptive blend (measured before its projection was held within the element strains) raised
-        every uniform fan of ``benchmarks/convex_refine.py`` (e.g. convex R40 0.3 deg 1 % 2.19 -> 3.00 %, sector
-        1 % 4.04 -> 4.90 %): the refinement splits there without a feature."""
-        return 0.0
+        """Weight of the L2 projection in the recovered strain: :func:`femreg.fields.adaptive_weight` of
+        :func:`femreg.fields.strain_roughness` where the element strains hold a feature
+        (:func:`has_strain_feature`) of an unrefined result, else 0 (the nodal average).  The average read a
+        stiff disk's contrast 10 % weak on a coarse fan (``benchmarks/elastogram_convex.py``, docs/geometry.md); on
+        uniform fans the projection only spreads the registration's own defects (sector 1 % +0.3 points).  A
+        refined result keeps the average: its elements fit the noise of a uniform fan past the feature test
+        (sector 0.3 deg 1 % 4.04 -> 4.74 % with the blend)."""
+        if "_recovery_weight" not in self.__dict__:
+            from .fields import adaptive_weight, element_strains, strain_roughness
+            e = element_strains(self.mesh.p, self.mesh.t, self.u)
+            refined = getattr(self, "refinement", None) is not None
+            self._recovery_weight = (adaptive_weight(strain_roughness(self.mesh.p, self.mesh.t, self.u))
+                                     if not refined and has_strain_feature(e[:, 0]) else 0.0)
+        return self._recovery_weight
 
     def pixel_points(self) -> np.ndarray:
         X, Y = self.geometry.sample_positions(self.shape, self.spacing, self.origin)
@@ -275,6 +284,24 @@ class BeamResult(RegistrationResult):
         extra.setdefault("geometry_radius_mm", np.array(float(self.geometry.radius_mm)))
         extra.setdefault("geometry_angle_pitch_deg", np.array(float(self.geometry.angle_pitch_deg)))
         return super().save(path, **extra)
+
+
+#: Spread of the element axial strains, ``(p90 - p10) / |median|``, from which a beam frame's strain holds a
+#: feature (measured on ``benchmarks/convex_refine.py``'s 58 pairs: uniform fans 0.002-0.038, inclusions and
+#: bending 0.125-1.24).
+STRAIN_FEATURE_SPREAD = 0.07
+
+
+def has_strain_feature(exx) -> bool:
+    """Whether element axial strains ``exx`` (n_el,) vary by more than noise about a uniform strain:
+    ``(p90 - p10) / |median| >= STRAIN_FEATURE_SPREAD`` (finite values only; False where the median is 0)."""
+    x = np.asarray(exx, float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return False
+    med = abs(float(np.median(x)))
+    p10, p90 = np.percentile(x, [10.0, 90.0])
+    return bool(med > 0.0 and (p90 - p10) / med >= STRAIN_FEATURE_SPREAD)
 
 
 def sample_space(geometry: Convex, shape, dr: float, r0: float) -> tuple:
