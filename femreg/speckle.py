@@ -173,6 +173,10 @@ def speckle_cell(image, spacing, window=STRUCTURE_WINDOW_MM, stats: SpeckleStats
     # no echo (zero fill below the echo, a fan's wedge) is left out of the local RMS (normalised convolution) and
     # left at zero: neither a block of constant envelope nor a brightened rim along its border
     echo = env > 1e-3 * float(np.median(env[env > 0])) if np.any(env > 0) else env > 0
+    if echo.all():      # echo everywhere (most frames): the same values without the masks (share is exactly 1)
+        e = env / np.sqrt(uniform_filter(env * env, w, mode="reflect"))
+        e -= float(np.mean(e))
+        return np.array([_envelope_cell(e, 0, dx), _envelope_cell(np.ascontiguousarray(e.T), 0, dy)])
     share = uniform_filter(echo.astype(float), w, mode="reflect")
     valid = echo & (share > 0.25)
     if not np.any(valid):
