@@ -694,8 +694,8 @@ def _beam(geometry, data_mask, roi):
     if roi is not None and not isinstance(roi, str):
         raise InputError(pass_as(f"roi {roi!r} is a Cartesian rectangle: with a {beam.kind} geometry give depth="
                                  "(d0, d1), a range along the rays in mm",
-                                 f"--roi with --geometry {beam.kind}: give --depth D0 D1 (a range along the rays, "
-                                 "mm) instead"))
+                                 f"--roi is a Cartesian rectangle: with --geometry {beam.kind} give --depth D0 D1 "
+                                 "(a range along the rays, mm) instead"))
     return beam
 
 

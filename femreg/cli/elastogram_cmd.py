@@ -385,9 +385,6 @@ def run(args) -> int:
         fr, dr, _ = beam_frames_from_args(args, beam)
         _check_stated_geometry(fr, args.file, beam, args)
         spacing, origin = dr, (beam_start_range(fr, args.file, args), 0.0)
-        if args.roi is not None and [str(v).lower() for v in args.roi] not in (["auto"], ["full"]):
-            raise InputError(f"--roi is a Cartesian rectangle: with --geometry {beam.kind} give --depth D0 D1 (a "
-                             "range along the rays, mm) instead")
         mesh_spacing = sample_space(beam, fr.shape, dr, origin[0])[1]   # the frames as linear images (mm)
     else:
         fr = frames_from_args(args)
