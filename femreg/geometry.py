@@ -229,22 +229,19 @@ class BeamResult(RegistrationResult):
         self.geometry = geometry
         self.sample_space = sample_space
 
-    @property
-    def recovery_weight(self) -> float:
-        """Weight of the L2 projection in the recovered strain: :func:`femreg.fields.adaptive_weight` of
-        :func:`femreg.fields.strain_roughness` where the element strains hold a feature
-        (:func:`has_strain_feature`) of an unrefined result, else 0 (the nodal average).  The average read a
-        stiff disk's contrast 10 % weak on a coarse fan (``benchmarks/elastogram_convex.py``, docs/geometry.md); on
-        uniform fans the projection only spreads the registration's own defects (sector 1 % +0.3 points).  A
-        refined result keeps the average: its elements fit the noise of a uniform fan past the feature test
-        (sector 0.3 deg 1 % 4.04 -> 4.74 % with the blend)."""
-        if "_recovery_weight" not in self.__dict__:
-            from .fields import adaptive_weight, element_strains, strain_roughness
-            e = element_strains(self.mesh.p, self.mesh.t, self.u)
-            refined = getattr(self, "refinement", None) is not None
-            self._recovery_weight = (adaptive_weight(strain_roughness(self.mesh.p, self.mesh.t, self.u))
-                                     if not refined and has_strain_feature(e[:, 0]) else 0.0)
-        return self._recovery_weight
+    def _recovery_blends(self) -> bool:
+        """:attr:`recovery_weight` blends in the projection (:func:`femreg.fields.adaptive_weight` of
+        :func:`femreg.fields.strain_roughness`) where the element strains of an unrefined result hold a feature
+        (:func:`has_strain_feature`); elsewhere 0, the nodal average.  The average read a stiff disk's contrast
+        10 % weak on a coarse fan (``benchmarks/elastogram_convex.py``, docs/geometry.md); on uniform fans the
+        projection only spreads the registration's own defects (sector 1 % +0.3 points).  A refined result keeps
+        the average: its elements fit the noise of a uniform fan past the feature test (sector 0.3 deg 1 % 4.04 ->
+        4.74 % with the blend)."""
+        if getattr(self, "refinement", None) is not None:
+            return False
+        from .fields import element_strains
+
+        return has_strain_feature(element_strains(self.mesh.p, self.mesh.t, self.u)[:, 0])
 
     def pixel_points(self) -> np.ndarray:
         X, Y = self.geometry.sample_positions(self.shape, self.spacing, self.origin)

@@ -144,14 +144,18 @@ class RegistrationResult(ResultRecord):
         at a slip along the beam it rings about the displacement step (sliding-column pairs of
         ``benchmarks/layer_edges.py``: e_xx error 7.3 -> 7.8 %), so a result with slides keeps the average too."""
         if "_recovery_weight" not in self.__dict__:
-            rec = getattr(self, "refinement", None)
-            passes = getattr(rec, "passes", None)
-            split = (any(p.get("elements_after", 0) > p.get("elements", 0) for p in passes) if passes is not None
-                     else getattr(rec, "base_size", None) is not None)
-            slides = getattr(rec, "slides", ())
             self._recovery_weight = (adaptive_weight(strain_roughness(self.mesh.p, self.mesh.t, self.u))
-                                     if split and not len(slides) else 0.0)
+                                     if self._recovery_blends() else 0.0)
         return self._recovery_weight
+
+    def _recovery_blends(self) -> bool:
+        """Whether :attr:`recovery_weight` blends in the projection: the refinement split elements and found no
+        slide (the property's docstring); a subclass's results may have their own rule."""
+        rec = getattr(self, "refinement", None)
+        passes = getattr(rec, "passes", None)
+        split = (any(p.get("elements_after", 0) > p.get("elements", 0) for p in passes) if passes is not None
+                 else getattr(rec, "base_size", None) is not None)
+        return split and not len(getattr(rec, "slides", ()))
 
     def recovered(self, recovery: str | None = None) -> np.ndarray:
         """Recovered strains of method ``recovery`` (:data:`femreg.fields.RECOVERY_METHODS`; None: the default,
