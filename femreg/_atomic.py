@@ -94,16 +94,12 @@ def save_frame(path, result, increment, flag: str, k: int, mode: str, retried: s
 
 
 def load_frame_record(path) -> tuple:
-    """``(increment, flag)`` of a frame file written by :func:`save_frame`."""
+    """``(increment, flag, retried)`` of a frame file written by :func:`save_frame`: ``retried`` why the increment
+    was registered again from a fresh start ('' when it was not; files written before retries were recorded read
+    '')."""
     with np.load(path, allow_pickle=False) as z:
-        return np.asarray(z["increment"], float), str(z["flag"])
-
-
-def load_frame_retry(path) -> str:
-    """Why frame ``path``'s increment was registered again from a fresh start ('' when it was not; files written
-    before retries were recorded read '')."""
-    with np.load(path, allow_pickle=False) as z:
-        return str(z["retried"]) if "retried" in z.files else ""
+        return (np.asarray(z["increment"], float), str(z["flag"]),
+                str(z["retried"]) if "retried" in z.files else "")
 
 
 def progress_bar(progress: bool, total: int, desc: str, unit: str, on_item=None):

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from skfem import MeshQuad1
 
-from ._atomic import load_frame_record, load_frame_retry, open_run_folder, progress_bar, save_frame
+from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
@@ -421,8 +421,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             retried = ""
             if resume and path is not None and path.exists():
                 res = load_result(path)
-                inc, flag = load_frame_record(path)
-                retried = load_frame_retry(path)
+                inc, flag, retried = load_frame_record(path)
                 computed = False
             elif k in repeats:
                 # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1

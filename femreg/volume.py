@@ -819,7 +819,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
             if resume and path is not None and path.exists():
                 from .volume_result import load_volume_result
                 a = load_volume_result(path)
-                inc, flag = load_frame_record(path)
+                inc, flag, _ = load_frame_record(path)
                 r = a if mode == "direct" else copy.copy(a)
                 if r is not a:
                     r.u, r._nodal_strain, r._grids = inc, None, {}
