@@ -574,6 +574,8 @@ def frame_flag(res, min_ncc) -> str:
 
 
 TAINT_PREFIX = "FAILED: accumulated through frame "
+#: Between a tainted frame's reason and its own increment's message (:func:`mark_tainted`).
+OWN_INCREMENT = "; this frame's own increment: "
 
 
 def mark_tainted(res, k: int, why: str) -> None:
@@ -583,20 +585,19 @@ def mark_tainted(res, k: int, why: str) -> None:
     own = own if res.success else f"FAILED: {own}"
     res.success = False
     why = why.split("; ")[0]           # its reason; what it left out is this frame's too, said below
-    res.message = (f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}); "
-                   f"this frame's own increment: {own}")
+    res.message = f"{TAINT_PREFIX}{k}, whose increment was flagged ({why}){OWN_INCREMENT}{own}"
 
 
 def own_flag(res, flag: str, min_ncc) -> str:
     """The flag of frame k's own increment, without the one :func:`mark_tainted` added (a loaded frame too)."""
-    head, sep, own = res.message.partition("; this frame's own increment: ")
+    head, sep, own = res.message.partition(OWN_INCREMENT)
     if not (sep and head.startswith(TAINT_PREFIX)):
         return flag
-    if own.startswith("FAILED: "):
-        return f"registration failed: {own.removeprefix('FAILED: ')}"
-    if min_ncc is not None and not (np.isfinite(res.ncc_after) and res.ncc_after >= min_ncc):
-        return f"low NCC after registration ({res.ncc_after:.3f} < {min_ncc})"
-    return ""
+    from types import SimpleNamespace
+
+    # frame_flag of the increment as it was before mark_tainted: its success and message, the same NCC
+    return frame_flag(SimpleNamespace(success=not own.startswith("FAILED: "), message=own, ncc_after=res.ncc_after),
+                      min_ncc)
 
 
 def summarise_flags(flags) -> str:
@@ -606,7 +607,7 @@ def summarise_flags(flags) -> str:
     for k, f in enumerate(flags, start=1):
         if not f:
             continue
-        head, sep, own = f.partition("; this frame's own increment: ")
+        head, sep, own = f.partition(OWN_INCREMENT)
         if sep and TAINT_PREFIX.removeprefix("FAILED: ") in head:
             tainted.append(k)
             source = source or head.split(TAINT_PREFIX.removeprefix("FAILED: "))[1].split(",")[0]
