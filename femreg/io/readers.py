@@ -143,17 +143,27 @@ def read_npy(path, *, spacing=None, frames=None, **_ignored):
             arr = _parse_npy(fh, size, path, "npy")
     except OSError as exc:
         raise fail(path, f"cannot read ({exc.strerror or exc})") from None
-    fields, meta = sidecar_fields(path), {"format": "npy"}
+    suggestion, side = _sidecar(path)
     sp = merge_spacing(path, None, spacing, required_msg=".npy stores no spacing", frame_shape=arr.shape[-2:],
-                       suggestion=spacing_suggestion(fields) if fields else None)
-    if fields:
-        meta["sidecar"] = fields.pop(_SIDECAR_KEY)
-        if fields:
-            meta["fields"] = fields
-    return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
+                       suggestion=suggestion)
+    return finalize(path, arr, sp, (0.0, 0.0), {"format": "npy", **side}, frames)
 
 
 _SIDECAR_KEY = "\0sidecar"
+
+
+def _sidecar(path) -> tuple:
+    """``(suggestion, metadata)`` of a headerless file's JSON sidecar (:func:`sidecar_fields`): the spacing its
+    fields imply (:func:`~femreg.io.checks.spacing_suggestion`, or None) and the metadata entries ``sidecar``
+    (its name, or why it could not be read) and ``fields`` ({} without a sidecar)."""
+    fields = sidecar_fields(path)
+    if not fields:
+        return None, {}
+    suggestion = spacing_suggestion(fields)
+    meta = {"sidecar": fields.pop(_SIDECAR_KEY)}
+    if fields:
+        meta["fields"] = fields
+    return suggestion, meta
 
 
 def sidecar_fields(path) -> dict:
@@ -360,14 +370,10 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     pieces = continued_frames(arr) if axis is not None else ""
     if pieces:
         raise fail(path, pieces)
-    fields = sidecar_fields(path)
+    suggestion, side = _sidecar(path)
     sp = merge_spacing(path, None, spacing, required_msg="raw files store no spacing", frame_shape=arr.shape[-2:],
-                       suggestion=spacing_suggestion(fields) if fields else None)
-    meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little"}
-    if fields:
-        meta["sidecar"] = fields.pop(_SIDECAR_KEY)
-        if fields:
-            meta["fields"] = fields
+                       suggestion=suggestion)
+    meta = {"format": "raw", "dtype": dt.name, "byte_order": "big" if dt.byteorder == ">" else "little", **side}
     if layout:
         meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
