@@ -76,6 +76,9 @@ KW = dict(models=("plane-stress",), betas=(("fixed", INV.FIXED_BETA),), jobs=1, 
 
 
 def test_section_from_cases_cached_and_equal_to_direct_invert(study, monkeypatch):
+    import shutil
+
+    shutil.rmtree(study.outdir / "inversions", ignore_errors=True)     # computed here, whatever ran before
     stats = {}
     lines = INV.hypothesis_section(study, stats=stats, **KW)
     text = "\n".join(lines)
