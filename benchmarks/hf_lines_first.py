@@ -11,7 +11,9 @@ float32 ``(frames, lines, samples)`` .npy with a JSON sidecar (fs Hz, c m/s, pit
 Prints, for ``femreg register --pair 2 3`` and ``femreg track`` (``--init previous`` and ``blockmatch``): the total
 strain error (e_xx, e_yy, 2 e_xy) over the registered echo, the same outside the sliding interface (|x - 6| > 1 mm),
 the axial strain error, u RMS error, the lesion's strain ratio and the recovered slide.  Measured (2026-12-07):
-pair 2 -> 3 total 61.7 % (25.7 % outside the interface), e_xx 7.5 %, SR 1.50 (true 2.07), slide 9.6 of 19.9 um;
+pair 2 -> 3 total 60.6 % (22.2 % outside the interface), e_xx 5.0 %, SR 1.70 (true 2.07), slide 10.7 of 19.9 um
+(refined: 756 -> 1560 elements; 61.7 %, 25.7 %, 7.5 %, SR 1.50, 9.6 um while the noise floor's NCC read as
+decorrelation and nothing was split);
 track frame 0 -> 8 with the default start: 3 of 8 increments (2, 4, 6) flagged from the previous increment (peak
 hopping, 38-47 % of the elements), each registered again from the pyramid and then passing: none flagged, e_xx
 6.3 %, total 54.2 % (20.9 % outside), u_x 4.8 um RMS, SR 1.58, slide 77 of 160 um (before the retry the flagged

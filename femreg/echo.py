@@ -36,6 +36,8 @@ what was left out.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import time
 from dataclasses import dataclass
 
@@ -47,7 +49,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "DataMask", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "DataMask", "noise_share", "registering_crop", "crop_noise_share", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -112,10 +114,14 @@ class EchoRegion:
     fill_value: float = float("nan")
     #: ((r0, r1), (c0, c1)) the largest rectangle without fill of a :func:`fan_region`, or None
     rectangle: tuple | None = None
+    #: whether rows were left out at ``floor_db`` that did not match the other frame: the noise itself was seen
+    #: (not only the quietest echo)
+    noise_seen: bool = False
 
     @property
     def full(self) -> bool:
         return tuple(self.rows) == (0, self.shape[0]) and tuple(self.cols) == (0, self.shape[1])
+
 
     @property
     def roi_mm(self) -> tuple:
@@ -500,6 +506,8 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     if b < n:
         reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
                        + _why(has_floor and live_r[b:].any(), echo, floor, at))
+    # rows left out for their level that the veto did not keep: noise, its floor seen
+    seen = has_floor and (bool(live_r[b:].any()) or bool(live_r[:a].any()))
     # the lines, over the rows kept
     # the line profile from the RF power: no envelope of every line needed; for Gaussian RF (speckle and noise
     # alike) the median of RF^2 is the envelope's median power times a constant
@@ -550,7 +558,8 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         if inner.size:
             reasons.append(f"saturated rows at {_span(a + int(inner[0]), a + int(inner[-1]) + 1, ox, dx)} kept "
                            f"(inside the echo region)")
-    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo)
+    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo,
+                      noise_seen=seen)
 
 
 def _why(has_floor, lvl, flr, echo_at=""):
@@ -638,6 +647,42 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
     x0, x1, y0, y1 = region.roi_mm
     region.excluded = f"outside the given {what} x {x0:.1f}-{x1:.1f} mm, y {y0:.1f}-{y1:.1f} mm excluded"
     return region
+
+
+#: The receiver noise of the frames :func:`femreg.register` registers after its crop (:func:`noise_share`), read
+#: by its refinement stage (:func:`femreg.refine.noise_ncc`); None: unknown.  A context variable, not an argument
+#: of the public ``register``: it describes the cut frames of one call, not a user's choice.
+_NOISE_SHARE = contextvars.ContextVar("femreg_echo_noise_share", default=None)
+
+
+def noise_share(region: EchoRegion, reference) -> float | None:
+    """The receiver noise's mean envelope power over the mean envelope power of ``reference`` (the frame cut to
+    the echo rectangle), where the detection left rows out at the noise floor (:attr:`EchoRegion.noise_seen`),
+    else None.
+
+    The floor is the median envelope power of the quietest rows; noise alone has a Rayleigh envelope, whose
+    power's median is ln 2 times its mean (Goodman 2007, ch. 3).  A ratio of powers: the same after the
+    registration normalises the frames."""
+    if not region.noise_seen:
+        return None
+    env = envelope(np.asarray(reference, float))
+    mean = float(np.mean(env * env))
+    return 10.0 ** (region.floor_db / 10.0) / np.log(2.0) / mean if mean > 0 else None
+
+
+@contextlib.contextmanager
+def registering_crop(share):
+    """Context in which :func:`crop_noise_share` is ``share`` (the registration of a crop's frames)."""
+    token = _NOISE_SHARE.set(share)
+    try:
+        yield
+    finally:
+        _NOISE_SHARE.reset(token)
+
+
+def crop_noise_share() -> float | None:
+    """:func:`noise_share` of the crop being registered (:func:`registering_crop`), or None."""
+    return _NOISE_SHARE.get()
 
 
 class Crop:

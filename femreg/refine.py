@@ -197,7 +197,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -1044,11 +1044,43 @@ def ncc_spread(q) -> float:
     return float(hi - lo)
 
 
-def _noise_reason(opts: Refinement, marked: bool, scores, q) -> str | None:
+def noise_ncc(reference, data, n_elements: int, share) -> np.ndarray | None:
+    """The element NCC that receiver noise alone leaves, (n_elements,): ``S / (S + N) = 1 - share * P / P_e`` (two
+    frames of the same echo S, each with its own noise N), ``P_e`` the mean envelope power of ``reference`` (the
+    registered, normalised reference frame, (n_axial, n_lateral)) over an element's pixels, ``P`` over all of them,
+    ``share`` the noise's power over ``P`` (:func:`femreg.echo.noise_share`); clipped to [0.1, 1].  None without a
+    ``share`` or off a tensor mesh's pixel grid.  ``data``: the solve's :class:`femreg.data_term.SSDTerm`."""
+    from .repair import _pixel_elements
+    from .speckle import envelope
+
+    gr = getattr(data.quad.location, "grid", None)
+    if share is None or gr is None:
+        return None
+    env = envelope(np.asarray(reference, float))
+    p = (env * env)[gr.rows[:, None], gr.cols[None, :]].ravel()
+    el = _pixel_elements(data.quad)
+    cnt = np.bincount(el, minlength=n_elements)
+    pe = np.bincount(el, weights=p, minlength=n_elements) / np.maximum(cnt, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = 1.0 - float(share) * float(np.mean(p)) / pe
+    rho = np.clip(np.where(cnt > 0, rho, 1.0), 0.1, 1.0)
+    return rho
+
+
+def decorrelation_ncc(q, rho=None) -> np.ndarray:
+    """The element NCC ``q`` with the part receiver noise explains taken out, ``min(1, q / rho)`` (``rho``:
+    :func:`noise_ncc`; None: ``q`` as it is): what is left is decorrelation of the speckle itself."""
+    q = np.asarray(q, float)
+    return q if rho is None else np.minimum(1.0, q / rho)
+
+
+def _noise_reason(opts: Refinement, marked: bool, scores, q, rho=None) -> str | None:
     """Why the first pass splits nothing although rows / columns are marked (:attr:`Refinement.spread`,
     :attr:`Refinement.coverage`), or None: ``marked`` whether any is, ``scores`` the marking's per-axis slab scores
-    (:func:`mark`), ``q`` the unrefined solve's element NCC (NaN where none)."""
-    d = ncc_spread(q)
+    (:func:`mark`), ``q`` the unrefined solve's element NCC (NaN where none); its spread is read with the
+    receiver noise's part ``rho`` (:func:`noise_ncc`, where the noise floor is known) taken out: an echo fading
+    into the noise with depth lowers the NCC in parts of the image without any decorrelation to fit."""
+    d = ncc_spread(decorrelation_ncc(q, rho))
     if opts.spread is not None and marked:
         if d > opts.spread:
             # decorrelated in parts of the image only: rows and columns of a tensor mesh cross those parts
@@ -1560,7 +1592,7 @@ def _marked(rows, cols) -> str:
     return f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked"
 
 
-def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None):
+def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None, noise=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
     per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``
@@ -1570,7 +1602,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     then only marked: the registration's solve with R_P_sigma's lambda_bar taken from the data
     (:func:`femreg.strategy.data_lambda_bar`), whose marking the indicator's cuts were not set on.
     ``lateral_cell``: the image's lateral pulse cell (mm; :attr:`Refinement.fine_alpha_beam`), None: unknown.
-    Stops early when nothing is marked.  Returns ``(sol, RefinementRecord)``."""
+    ``noise``: the element NCC receiver noise alone leaves on the unrefined mesh (:func:`noise_ncc`), None:
+    unknown.  Stops early when nothing is marked.  Returns ``(sol, RefinementRecord)``."""
     import time
 
     from .repair import element_ncc
@@ -1614,7 +1647,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
         top = max(float(np.max(s, initial=0.0)) for s in score)
         if k == 0 and getattr(sol, "data", None) is not None and (opts.spread is not None
                                                                  or opts.coverage is not None):
-            why = _noise_reason(opts, np.any(rows) or np.any(cols), score, unrefined_ncc())
+            why = _noise_reason(opts, np.any(rows) or np.any(cols), score, unrefined_ncc(), noise)
             if why:
                 # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
                 # finer rows / columns would fit as patches
@@ -1762,7 +1795,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     if record and note is None and getattr(unrefined, "data", None) is not None:
         q0 = unrefined_ncc()
         q_med = float(np.nanmedian(q0)) if np.any(np.isfinite(q0)) else float("nan")
-        spread = ncc_spread(q0)
+        spread = ncc_spread(decorrelation_ncc(q0, noise))
         if q_med < DECORRELATED_NCC:
             note = (f"refined although the speckle is decorrelated (median element NCC {q_med:.2f} < "
                     f"{DECORRELATED_NCC:g}): check the strain image for rectangular patches against refine=None")
@@ -1905,6 +1938,7 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     pulse cell: :attr:`Refinement.fine_alpha_beam`)."""
     import time
 
+    from .echo import crop_noise_share
     from .gnsolve import solve
     from .scaling import refined_alpha
 
@@ -1930,10 +1964,12 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
         kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full, steps)
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
-    sol, record = refine_passes(sol if marked is None else marked, opts, solve_on, quad.spacing, quad.origin,
+    first = sol if marked is None else marked
+    sol, record = refine_passes(first, opts, solve_on, quad.spacing, quad.origin,
                                 start=None if marked is None else sol,
                                 lateral_cell=None if getattr(stats, "pulse_cell", None) is None
-                                else float(np.ravel(stats.pulse_cell)[1]))
+                                else float(np.ravel(stats.pulse_cell)[1]),
+                                noise=noise_ncc(I1.data, first.data, first.mesh.t.shape[1], crop_noise_share()))
     if sol.mesh is not base:
         u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
     sol.refinement = record

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from . import autoalpha, orientation
-from .echo import DataMask, as_data_mask, crop_for
+from .echo import DataMask, as_data_mask, crop_for, noise_share, registering_crop
 from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
@@ -158,7 +158,8 @@ def _route(reference_image, moving_image, args: dict):
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
         # a fan's fill weighted 0 in eq:IR, results NaN outside it (femreg.echo.fan_region)
         frames, kw = crop.frames(reference_image, moving_image), dict(kw, origin=crop.origin, data_mask=crop.mask)
-        return crop.widen(register(*frames, **kw))
+        with registering_crop(noise_share(crop.region, frames[0])):   # the floor left out, for femreg.refine
+            return crop.widen(register(*frames, **kw))
     if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         if args["check_orientation"]:   # once here, not in each candidate registration
             orientation.check(validate_image(reference_image, "reference image"),

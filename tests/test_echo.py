@@ -72,6 +72,7 @@ def test_noise_floor_found_and_registered_as_cropped(probe, size, frac):
     assert abs(x1 - depth) < DEPTH_TOL_MM, (x1, depth)
     assert region.rows[0] == 0 and region.cols == (0, p.ref.shape[1])
     assert "depth below" in region.excluded and "noise floor" in region.excluded
+    assert region.noise_seen        # the rows left out are noise: its level is known (femreg.echo.noise_share)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         auto = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
@@ -99,7 +100,8 @@ def test_weak_echo_without_noise_is_kept():
     pr = PROBES["L7"]
     gain = attenuation_gain_db(alpha_for_floor(20.0, SNR, pr.f0_mhz), pr.f0_mhz)
     p = make_pair(F.compression(0.01), "L7", (30.0, 20.0), None, 0, top_mm=TOP, echo_gain_db=gain)
-    assert find_echo(p.ref, p.mov, spacing=p.spacing, origin=p.origin).full
+    region = find_echo(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
+    assert region.full and not region.noise_seen
     assert crop_for(p.ref, p.mov, p.spacing, p.origin) is None
 
 
@@ -112,7 +114,7 @@ def test_noise_lifted_by_tgc_does_not_cut_off_the_echo():
     p = make_pair(F.compression(0.01), "L7", (30.0, 25.0), SNR, 0, top_mm=TOP, echo_gain_db=gain,
                   tgc_db=lambda x: -gain(x))
     region = find_echo(p.ref, p.mov, spacing=p.spacing, origin=p.origin)
-    assert region.rows[0] == 0
+    assert region.rows[0] == 0 and not region.noise_seen
 
 
 @pytest.mark.parametrize("case", ["comp1_paper", "shear_L7", "stiff-pstress1_L3", "soft-pstress4_L7"])
@@ -137,6 +139,7 @@ def test_invivo_full_depth_loses_only_its_zero_rows(seq):
         # the last echo rows are 20-30 dB below the rest but follow the tissue (frame-to-frame NCC 0.83-0.99)
         region = find_echo(f[0], mov, spacing=(0.02, 0.2))
         assert region.rows == (0, zero) and region.cols == (0, 128), region
+        assert not region.noise_seen    # the quietest rows are echo: no noise level to take out of the NCC
         assert region.excluded == f"depth below {(zero - 0.5) * 0.02:.1f} mm excluded: no signal (zero samples)"
 
 
