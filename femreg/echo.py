@@ -49,7 +49,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "DataMask", "noise_share", "registering_crop", "crop_noise_share", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "DataMask", "unmatched_crop", "MATCHED_NCC", "UNMATCHED_FRACTION", "noise_share", "registering_crop", "crop_noise_share", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -574,6 +574,49 @@ def _echo_span(row_db, echo, ox, dx) -> str:
     """Where the depth profile is within 3 dB of the echo level."""
     k = np.flatnonzero(row_db >= echo - 3.0)
     return _span(int(k[0]), int(k[-1]) + 1, ox, dx) if k.size else "-"
+
+
+#: Median block-matching NCC (90th percentile over the rows of windows) the frames must reach for
+#: :func:`unmatched_crop` to look for noise at depth: below it the whole pair matches poorly (a rotation, large
+#: strain) and a low row says nothing.
+MATCHED_NCC = 0.7
+#: Rows of windows at the bottom whose median NCC is below this fraction of that level hold noise
+#: (:func:`unmatched_crop`; NCC S / (S + N): half at an echo as strong as the noise).
+UNMATCHED_FRACTION = 0.5
+
+
+def unmatched_crop(blockmatch, shape, spacing, origin=(0.0, 0.0), margin=None) -> Crop | None:
+    """The frames cut above the rows of block-matching windows at their bottom that do not match, or None.
+
+    Noise that a time-gain compensation lifts with depth keeps the level of the echo, so :func:`find_echo` cannot
+    tell it (module docstring); it does not move with the tissue, so windows there find no match even after
+    block matching has searched out the motion.  ``blockmatch``: the registration's
+    :class:`femreg.blockmatch.BlockMatchResult` on these frames ((n_axial, n_lateral) ``shape``, ``spacing``,
+    ``origin`` mm).  Where the rows' median NCC reaches :data:`MATCHED_NCC` (90th percentile) and at least two
+    rows at the bottom, and no more than half of them, fall below :data:`UNMATCHED_FRACTION` of it, the frames
+    are cut half-way between the last matching row and the first that does not; None when nothing lies beyond
+    the mesh margin."""
+    if blockmatch is None or np.ndim(blockmatch.ncc) != 2 or len(blockmatch.x) < 4:
+        return None
+    med = np.median(np.asarray(blockmatch.ncc, float), axis=1)
+    top = float(np.percentile(med, 90))
+    if not top >= MATCHED_NCC:
+        return None
+    k = med.size
+    while k > 0 and med[k - 1] < UNMATCHED_FRACTION * top:
+        k -= 1
+    if med.size - k < 2 or k < med.size / 2:
+        return None
+    (n, m), (dx, _), (ox, _) = shape, spacing, origin
+    x = np.asarray(blockmatch.x, float)
+    b = int(np.clip(np.ceil((0.5 * (x[k - 1] + x[k]) - ox) / dx), 1, n))
+    mp = _margin_pixels(margin, spacing)
+    if b >= n - mp[0]:
+        return None
+    why = (f"depth below {ox + (b - 0.5) * dx:.1f} mm excluded: the frames do not match there (block-matching NCC "
+           f"{float(med[k:].min()):.2f}-{float(med[k:].max()):.2f} against {top:.2f} above: noise, e.g. lifted by a "
+           f"time-gain compensation)")
+    return Crop(EchoRegion((0, b), (0, m), (n, m), tuple(spacing), tuple(origin), why), mp, False)
 
 
 def _margin_pixels(margin, spacing, default=DEFAULT_MARGIN) -> np.ndarray:

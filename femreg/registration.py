@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from . import autoalpha, orientation
-from .echo import DataMask, as_data_mask, crop_for, noise_share, registering_crop
+from .echo import DataMask, as_data_mask, crop_for, noise_share, registering_crop, unmatched_crop
 from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
@@ -135,6 +135,27 @@ def _masked(res, fan, data_mask):
     return res
 
 
+def _registered_crop(crop, args: dict):
+    """:func:`register` (keyword arguments ``args``) on the frames cut to ``crop`` (:class:`femreg.echo.Crop`), the
+    result on the full frames' pixel grid; a fan's fill weighted 0 in eq:IR and the result NaN outside it
+    (:func:`femreg.echo.fan_region`); the noise floor left out known to the refinement (:func:`femreg.echo.noise_share`)."""
+    frames = crop.frames(args["reference_image"], args["moving_image"])
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
+    kw.update(roi=None, depth=None, origin=crop.origin, data_mask=crop.mask)
+    with registering_crop(noise_share(crop.region, frames[0])):
+        return crop.widen(register(*frames, **kw))
+
+
+def _noise_at_depth(start, args: dict, shape):
+    """The crop above rows at the bottom that the block matching of the default start found no match in
+    (:func:`femreg.echo.unmatched_crop`: noise a time-gain compensation lifts to the echo's level), or None; only
+    where :func:`register` detects the echo itself (``roi="auto"``, nothing given that fixes the region)."""
+    auto = (isinstance(args["roi"], str) and args["depth"] is None and args["mesh"] is None
+            and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
+    return unmatched_crop(start.blockmatch, shape, *validate_spacing(args["spacing"], args["origin"]),
+                          margin=args["margin"]) if auto else None
+
+
 def _route(reference_image, moving_image, args: dict):
     """The calls :func:`register` hands on before its own stages, each calling :func:`register` back: convex /
     sector frames (:func:`femreg.geometry.register_beam`), the echo rectangle (:func:`femreg.echo.crop_for`) and
@@ -156,10 +177,7 @@ def _route(reference_image, moving_image, args: dict):
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
     kw.update(roi=None, depth=None)
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)
-        # a fan's fill weighted 0 in eq:IR, results NaN outside it (femreg.echo.fan_region)
-        frames, kw = crop.frames(reference_image, moving_image), dict(kw, origin=crop.origin, data_mask=crop.mask)
-        with registering_crop(noise_share(crop.region, frames[0])):   # the floor left out, for femreg.refine
-            return crop.widen(register(*frames, **kw))
+        return _registered_crop(crop, args)
     if isinstance(args["alpha"], str):  # alpha="auto": chosen from the pair alone (femreg.autoalpha)
         if args["check_orientation"]:   # once here, not in each candidate registration
             orientation.check(validate_image(reference_image, "reference image"),
@@ -313,7 +331,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     """
     refine = default_refine(refine, strategy=strategy, regularizer=regularizer, mesh=mesh, element_size=element_size,
                             offset=offset, geometry=geometry, alpha=alpha, allow_mesh_outside=allow_mesh_outside)
-    routed = _route(reference_image, moving_image, dict(locals()))
+    args = dict(locals())
+    routed = _route(reference_image, moving_image, args)
     if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
         return routed
     t_all, timings = time.perf_counter(), {}
@@ -352,6 +371,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                           coarse_to_fine=coarse_to_fine, rectangle=rect)
     u0, stats = start.u0, start.stats
     timings.update(start.timings, initial=time.perf_counter() - t)
+    if (noise := _noise_at_depth(start, args, ref.shape)) is not None:     # no match at depth: cut and again
+        return _registered_crop(noise, args)
 
     # -- Gauss-Newton on the final mesh ----------------------------------------------------------------------
     t = time.perf_counter()
