@@ -36,7 +36,7 @@ from .errors import InputError, counted
 from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
-                     frame_flag, hop_note, hopped_fraction, lag_gain, mark_tainted, own_flag)
+                     frame_flag, hop_note, hopped_fraction, lag_gain, mark_tainted, own_flag, retry_flagged)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -689,7 +689,9 @@ class VolumeTrack:
     :class:`VolumeResult` on the frame-0 mesh, eq:IR with S the accumulated field), ``accumulated[k]`` frame 0 ->
     k + 1 (u = S + du on the same mesh); ``success`` all increments succeeded.  ``flags[k]``: '' or why frame
     k + 1 is flagged (its registration failed its own check, or its NCC after is below ``min_ncc``);
-    ``computed[k]``: False where the frame was loaded from a checkpoint.  A swept probe's sequence holds
+    ``computed[k]``: False where the frame was loaded from a checkpoint; ``retried``: the frames whose increment,
+    started from the previous one, was flagged and registered again from a fresh start (as
+    :attr:`femreg.sequence.SequenceResult.retried`).  A swept probe's sequence holds
     :class:`~femreg.volume_result.SweptResult` entries and ``swept`` its :class:`femreg.swept.SweptConversion`."""
 
     results: list
@@ -698,6 +700,7 @@ class VolumeTrack:
     computed: list = field(default_factory=list)
     swept: object = None
     repeated: list = field(default_factory=list)
+    retried: list = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -717,7 +720,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                  grid_spacing=None, **register_kwargs) -> VolumeTrack:
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
-    starts the next), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
+    starts the next; one flagged from it is registered again from a fresh start, :func:`register_volume`'s own
+    start of an increment, zero motion relative to S, and the fresh result kept unless it is flagged too, then the
+    one with the higher NCC after, as :func:`femreg.track` does with frames; an increment after a flagged or
+    retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
     :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
     ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
     registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice.
@@ -811,15 +817,17 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     S = None
     prev = None
     tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
+    prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
     from ._atomic import load_frame_record, progress_bar, save_frame
     bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume", on_frame)
     try:
         for k in range(1, len(arr)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
+            retried = ""
             if resume and path is not None and path.exists():
                 from .volume_result import load_volume_result
                 a = load_volume_result(path)
-                inc, flag, _ = load_frame_record(path)
+                inc, flag, retried = load_frame_record(path)
                 r = a if mode == "direct" else copy.copy(a)
                 if r is not a:
                     r.u, r._nodal_strain, r._grids = inc, None, {}
@@ -842,25 +850,41 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                                                **register_kwargs))
                     a = r
                 else:
-                    kw = dict(register_kwargs)
-                    if S is not None:
-                        kw.setdefault("initial", prev.u if prev is not None else "zero")
-                    r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
-                                        mesh=mesh if S is None else out.accumulated[-1].mesh, **kw)
-                    a = copy.copy(r)
-                    a.u = r.u if S is None else S + r.u
-                    a._nodal_strain = None
-                    a._grids = {}
-                    r, a = finish(r), finish(a)
+                    def increment(start):
+                        """(frame 0 -> k, the increment k - 1 -> k) registered from ``start``."""
+                        kw = dict(register_kwargs)
+                        if S is not None:
+                            kw["initial"] = start
+                        r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
+                                            mesh=mesh if S is None else out.accumulated[-1].mesh, **kw)
+                        a = copy.copy(r)
+                        a.u = r.u if S is None else S + r.u
+                        a._nodal_strain = None
+                        a._grids = {}
+                        return finish(a), finish(r)
+
+                    # a user's start is every increment's; else the previous increment, and when that is flagged
+                    # register_volume's own (zero motion relative to S), as femreg.track does with frames
+                    fresh = S is None or bool(prev_own_flag) or "initial" in register_kwargs
+                    a, r, retried = retry_flagged(increment, prev.u if prev is not None else "zero",
+                                                  register_kwargs.get("initial"), fresh, min_ncc, k)
+                    if retried:
+                        r.message = a.message   # the increment's result says so too
                     if tainted is not None:     # the accumulated field adds a flagged increment
                         mark_tainted(a, *tainted)
                 flag = frame_flag(a, min_ncc)
                 computed = True
                 if path is not None:
-                    save_frame(path, a, r.u, flag, k, mode)
+                    save_frame(path, a, r.u, flag, k, mode, retried)
+            if retried:
+                out.retried.append(k)
+                a.retried = retried     # for on_frame (the file keeps it as "retried")
             own = own_flag(a, flag, min_ncc)
             if own and mode == "accumulate" and tainted is None and k not in repeats:
                 tainted = (k, own)
+            if k not in repeats:
+                # a retried increment's start from the previous one failed: the next starts fresh as well
+                prev_own_flag = own or retried
             out.results.append(r)
             out.accumulated.append(a)
             out.flags.append(flag)
