@@ -1,0 +1,68 @@
+"""Volume tracking's retry of a flagged increment (``femreg.track`` on volumes, accumulate mode): simulated 7 MHz RF
+volumes, 6 x 6 x 6 mm (300 x 30 x 24 voxels, tests/_volumes.py), under uniaxial compression.
+
+* ``reversal``: frame compressions 0, 2.5, 5, 2.5, 3 % -- frame 3 releases half the compression, so frame 2's
+  increment (+2.5 %) is a start 5 % off (150 um, 1.4 RF periods, at the top and bottom) for frame 3's -2.5 %.
+* ``steady``: 0, 0.5, 1, 1.5, 2 % -- every increment alike; nothing is flagged, nothing retried (the results
+  must be those of the code without a retry: ``--save`` / ``--compare``).
+
+Prints per frame: flag, whether it was retried, the NCC after, and the axial displacement error of frame 0 -> k
+(RMS over the mesh nodes, um), and the wall time of each track.
+
+    python benchmarks/volume_track_retry.py                        # seeds 0 1 2, both loops
+    python benchmarks/volume_track_retry.py --code /path/to/other  # another checkout's femreg (before / after)
+    python benchmarks/volume_track_retry.py --save a.npz / --compare a.npz   # nodal u equality between codes
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+LOOPS = {"reversal": (0.0, 0.025, 0.05, 0.025, 0.03), "steady": (0.0, 0.005, 0.01, 0.015, 0.02)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--loops", nargs="+", default=list(LOOPS), choices=list(LOOPS))
+    ap.add_argument("--code", help="a checkout whose femreg is run (default: this one)")
+    ap.add_argument("--save", help="write every frame's nodal u to this .npz")
+    ap.add_argument("--compare", help="print max |u - u_saved| per frame against a --save file")
+    a = ap.parse_args(argv)
+    sys.path.insert(0, str(ROOT / "tests"))
+    sys.path.insert(0, str(Path(a.code).resolve() if a.code else ROOT))
+    import femreg
+    from _volumes import compression_sequence
+
+    print(f"femreg from {Path(femreg.__file__).parent}")
+    saved, ref = {}, np.load(a.compare) if a.compare else None
+    for name in a.loops:
+        for seed in a.seeds:
+            frames, spacing, field = compression_sequence(LOOPS[name], seed=seed)
+            t0 = time.perf_counter()
+            tr = femreg.track(frames, spacing=spacing, element_size=2.0)
+            wall = time.perf_counter() - t0
+            retried = list(getattr(tr, "retried", []))
+            print(f"{name} seed {seed}: {len(tr)} increments in {wall:.2f} s, "
+                  f"{sum(bool(f) for f in tr.flags)} flagged, retried {retried}")
+            for k, (res, flag) in enumerate(zip(tr.accumulated, tr.flags), start=1):
+                pts = res.mesh.p.T
+                err = 1e3 * np.sqrt(np.mean((res.displacement(pts)[:, 0] - field(k, pts)[:, 0]) ** 2))
+                key = f"{name}_{seed}_{k}"
+                saved[key] = np.asarray(res.u, float)
+                diff = ""
+                if ref is not None and key in ref.files:
+                    diff = f"  max |u - saved| {np.max(np.abs(saved[key] - ref[key])):.3g} mm"
+                print(f"  frame {k}: ncc {res.ncc_after:.3f}, axial u error {err:8.2f} um"
+                      f"{'  RETRIED' if k in retried else ''}{'  FLAGGED: ' + flag[:90] if flag else ''}{diff}")
+    if a.save:
+        np.savez(a.save, **saved)
+
+
+if __name__ == "__main__":
+    main()
