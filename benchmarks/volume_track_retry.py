@@ -3,6 +3,8 @@ volumes, 6 x 6 x 6 mm (300 x 30 x 24 voxels, tests/_volumes.py), under uniaxial 
 
 * ``reversal``: frame compressions 0, 2.5, 5, 2.5, 3 % -- frame 3 releases half the compression, so frame 2's
   increment (+2.5 %) is a start 5 % off (150 um, 1.4 RF periods, at the top and bottom) for frame 3's -2.5 %.
+* ``jump``: 0, 0.5, 1, 6, 6.5 % -- frame 3 jumps 5 %: frame 2's increment is a start 4.5 % off (135 um), zero
+  motion 5 % (150 um); only the pair's own coarse-to-fine search finds it.
 * ``steady``: 0, 0.5, 1, 1.5, 2 % -- every increment alike; nothing is flagged, nothing retried (the results
   must be those of the code without a retry: ``--save`` / ``--compare``).
 
@@ -23,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-LOOPS = {"reversal": (0.0, 0.025, 0.05, 0.025, 0.03), "steady": (0.0, 0.005, 0.01, 0.015, 0.02)}
+LOOPS = {"reversal": (0.0, 0.025, 0.05, 0.025, 0.03), "jump": (0.0, 0.005, 0.01, 0.06, 0.065),
+         "steady": (0.0, 0.005, 0.01, 0.015, 0.02)}
 
 
 def main(argv=None):

@@ -186,10 +186,11 @@ def _nodal(fn, mesh) -> np.ndarray:
 
 
 def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, tol=1e-3, linear_solver="auto",
-                   period=None):
+                   period=None, at=None):
     """The initial guess on ``mesh``: global search (:func:`global_search_3d`) on envelope volumes decimated
     axially to about half the lateral spacing, then Gauss-Newton on the (undecimated axially low-passed)
-    envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes.
+    envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes, or at the
+    points ``at`` (n_nodes, 3) mm (a sequence increment: the nodes moved by S of eq:IR).
     Returns ``(u0, info)``."""
     t0 = time.perf_counter()
     q = max(1, int(round(0.5 * min(spacing[1], spacing[2]) / spacing[0])))
@@ -230,7 +231,8 @@ def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, 
     except InputError:
         pass
     loc = HexLocator(coarse)
-    u0 = np.column_stack([v for k, v in loc.sample(u_c, mesh.p.T).items() if k in ("ux", "uy", "uz")]).ravel()
+    pts = mesh.p.T if at is None else np.asarray(at, float)
+    u0 = np.column_stack([v for k, v in loc.sample(u_c, pts).items() if k in ("ux", "uy", "uz")]).ravel()
     u0 = np.nan_to_num(u0)
     info["timings"] = {"global_search": t_global, "envelope_level": time.perf_counter() - t1}
     return u0, info
@@ -352,6 +354,13 @@ def _voxel_offset(offset, grid: VoxelGrid) -> np.ndarray:
         return np.nan_to_num(offset.displacement(grid.points()))
     s_nodes = _start(offset, grid.mesh, "offset")
     return np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
+
+
+def _offset_nodes(offset, mesh) -> np.ndarray:
+    """S of eq:IR at ``mesh``'s nodes, (3 n_nodes,) mm, from a VolumeResult, a callable or a nodal vector."""
+    if isinstance(offset, VolumeResult):
+        return np.nan_to_num(offset.displacement(mesh.p.T)).ravel()
+    return _start(offset, mesh, "offset")
 
 
 def voxel_image_term(reference_image, moving_image, mesh, register_kwargs) -> ImageTerm:
@@ -509,7 +518,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         An axis-aligned tensor hexahedral mesh (mm); default :func:`femreg.voxels.roi_mesh_3d` with
         ``element_size`` (default :data:`femreg.voxels.DEFAULT_ELEMENT_SIZE_3D`) and ``margin``.
     initial : None | "pyramid" | "zero" | VolumeResult | callable | (3 n_nodes,) array
-        The start; None / "pyramid": :func:`coarse_to_fine`.
+        The start; None / "pyramid": :func:`coarse_to_fine`.  With an ``offset`` (a sequence increment) None is
+        zero motion relative to S, and "pyramid" the pair's own coarse-to-fine field read at the nodes moved by S
+        (eq:IR: I_1(x + S) ~ I_2(x + S + u)).
     offset : VolumeResult | callable | (3 n_nodes,) array, optional
         S of eq:IR (both volumes sampled at x + S(x)).
     refine : "default" | None | int | "auto" | femreg.refine.Refinement
@@ -588,9 +599,10 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     period = _rf_period_3d(ref, spacing)
     info = {}
     if initial is None or (isinstance(initial, str) and initial == "pyramid"):
-        if S is None:
+        if S is None or initial is not None:     # an increment afresh: the pair's pyramid at x + S
+            at = None if S is None else mesh.p.T + _offset_nodes(offset, mesh).reshape(-1, 3)
             u0, info = coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, maxiter=maxiter, tol=tol,
-                                      linear_solver=linear_solver, period=period)
+                                      linear_solver=linear_solver, period=period, at=at)
             timings.update(info.pop("timings"))
         else:       # a sequence increment: start from zero motion relative to S
             u0 = np.zeros(3 * mesh.p.shape[1])
@@ -720,10 +732,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                  grid_spacing=None, **register_kwargs) -> VolumeTrack:
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
-    starts the next; one flagged from it is registered again from a fresh start, :func:`register_volume`'s own
-    start of an increment, zero motion relative to S, and the fresh result kept unless it is flagged too, then the
-    one with the higher NCC after, as :func:`femreg.track` does with frames; an increment after a flagged or
-    retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
+    starts the next; one flagged from it is registered again from a fresh start, the pair's coarse-to-fine field
+    read at x + S (``initial="pyramid"`` of :func:`register_volume`), and the fresh result kept unless it is
+    flagged too, then the one with the higher NCC after, as :func:`femreg.track` does with frames; an increment
+    after a flagged or retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
     :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
     ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
     registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice.
@@ -864,10 +876,10 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                         return finish(a), finish(r)
 
                     # a user's start is every increment's; else the previous increment, and when that is flagged
-                    # register_volume's own (zero motion relative to S), as femreg.track does with frames
+                    # the pair's own pyramid read at x + S (zero motion relative to S cannot follow a jump)
                     fresh = S is None or bool(prev_own_flag) or "initial" in register_kwargs
                     a, r, retried = retry_flagged(increment, prev.u if prev is not None else "zero",
-                                                  register_kwargs.get("initial"), fresh, min_ncc, k)
+                                                  register_kwargs.get("initial", "pyramid"), fresh, min_ncc, k)
                     if retried:
                         r.message = a.message   # the increment's result says so too
                     if tainted is not None:     # the accumulated field adds a flagged increment

@@ -557,7 +557,7 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     if n_flag:
         first = next(k for k, f in enumerate(out.flags, start=1) if f)
         hint = ""
-        # (volumes have no block matching: their flagged increments were already retried from zero motion)
+        # (volumes have no block matching: their flagged increments were already retried from their pyramid)
         if (noun == "frame" and getattr(args, "init", None) == "previous"
                 and getattr(args, "mode", None) == "accumulate" and any("peak hopping" in f for f in out.flags if f)):
             # a freehand loop's compression per frame varies: the previous increment can start a whole RF period off
