@@ -735,8 +735,9 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     starts the next; one flagged from it is registered again from a fresh start, the pair's coarse-to-fine field
     read at x + S (``initial="pyramid"`` of :func:`register_volume`), and the fresh result kept unless it is
     flagged too, then the one with the higher NCC after, as :func:`femreg.track` does with frames; an increment
-    after a flagged or retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
-    :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
+    after a flagged or retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.
+    ``roi`` / ``depth`` (as in :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered
+    inside the same box.
     ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
     registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice.
 
@@ -873,7 +874,8 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                         a.u = r.u if S is None else S + r.u
                         a._nodal_strain = None
                         a._grids = {}
-                        return finish(a), finish(r)
+                        r, a = finish(r), finish(a)
+                        return a, r
 
                     # a user's start is every increment's; else the previous increment, and when that is flagged
                     # the pair's own pyramid read at x + S (zero motion relative to S cannot follow a jump)
