@@ -39,6 +39,7 @@ from .speckle import rf_period
 __all__ = ["element_ncc", "pixel_values", "hop_nodes", "reseed", "poor_fraction", "hop_gain", "hopped_fraction",
            "repair_peak_hopping", "envelope_lag_ncc", "envelope_lag_ncc_3d",
            "lag_gain", "hop_note", "check_result", "frame_flag", "check_period", "Check", "MAX_POOR_FRACTION_DECORRELATED",
+           "retry_flagged", "keep_retry",
            "HOP_FRACTION", "PSI_SLACK", "MIN_NCC", "MAX_POOR_FRACTION", "HOP_GAIN", "MAX_HOPPED_FRACTION",
            "mark_tainted", "own_flag", "summarise_flags", "TAINT_PREFIX"]
 
@@ -598,6 +599,43 @@ def own_flag(res, flag: str, min_ncc) -> str:
     # frame_flag of the increment as it was before mark_tainted: its success and message, the same NCC
     return frame_flag(SimpleNamespace(success=not own.startswith("FAILED: "), message=own, ncc_after=res.ncc_after),
                       min_ncc)
+
+
+def retry_flagged(register_from, previous, fresh_start, fresh: bool, min_ncc, k: int):
+    """Frame ``k``'s increment of an accumulated track (:func:`femreg.track`, frames and volumes alike), where the
+    previous increment's solution can start a whole RF period off (a freehand loop's compression per frame
+    varies).  ``register_from(start)`` registers the pair from ``start`` and returns (frame 0 -> k result, the
+    increment); it is called from ``previous`` unless ``fresh``, and when that result is flagged
+    (:func:`frame_flag`) again from ``fresh_start`` (the registration's own start), the better kept
+    (:func:`keep_retry`).  Returns (result, increment, retry note: '' when it was not retried)."""
+    res, inc = register_from(fresh_start if fresh else previous)
+    why = "" if fresh else frame_flag(res, min_ncc)
+    if not why:
+        return res, inc, ""
+    again, inc_again = register_from(fresh_start)
+    return keep_retry(res, inc, why, again, inc_again, min_ncc, k)
+
+
+def keep_retry(res, inc, why: str, again, inc_again, min_ncc, k: int):
+    """Of frame ``k``'s increment started from the previous one (``res``, ``inc``; flagged for ``why``) and the
+    one registered again from a fresh start (``again``, ``inc_again``): the fresh one unless it is flagged too,
+    then the one with the higher NCC after registration.  Returns (result, increment, retry note); the note is
+    added to the kept result's message."""
+    why = why.split("; ")[0]
+    again_flag = frame_flag(again, min_ncc)
+    if not again_flag:
+        kept, k_inc, which = again, inc_again, "kept the fresh start"
+    else:
+        a, b = again.ncc_after, res.ncc_after
+        fresh_better = np.isfinite(a) and not (np.isfinite(b) and b > a)
+        kept, k_inc = (again, inc_again) if fresh_better else (res, inc)
+        which = (f"the fresh start flagged too ({again_flag.split('; ')[0]}): kept the "
+                 f"{'fresh start' if fresh_better else 'start from the previous increment'} (NCC after {a:.3f} "
+                 f"fresh, {b:.3f} from the previous increment)")
+    note = (f"retried from a fresh start: the increment started from frame {k - 1}'s was flagged ({why}); "
+            f"{which}")
+    kept.message = f"{kept.message}; {note}" if kept.message else note
+    return kept, k_inc, note
 
 
 def summarise_flags(flags) -> str:

@@ -49,7 +49,7 @@ from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spaci
 from .probes import Convex, as_geometry
 from .registration import RegistrationResult, register
 from .result import load_result
-from .repair import frame_flag, mark_tainted, own_flag
+from .repair import frame_flag, mark_tainted, own_flag, retry_flagged
 from .solver import single_blas_thread
 
 __all__ = ["track", "SequenceResult", "load_track", "TRACK_HOURGLASS"]
@@ -357,28 +357,6 @@ def _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer, al
     return _frame_result(r_inc, r_inc.mesh if fe_mesh is None else fe_mesh, S + inc), inc
 
 
-def _keep(res, inc, why, again, inc_again, min_ncc, k):
-    """Of frame ``k``'s increment started from the previous one (``res``, ``inc``; flagged for ``why``) and the
-    one registered again from a fresh start (``again``, ``inc_again``): the fresh one unless it is flagged too,
-    then the one with the higher NCC after registration.  Returns (result, increment, retry note); the note is
-    added to the kept result's message."""
-    why = why.split("; ")[0]
-    again_flag = frame_flag(again, min_ncc)
-    if not again_flag:
-        kept, k_inc, which = again, inc_again, "kept the fresh start"
-    else:
-        a, b = again.ncc_after, res.ncc_after
-        fresh_better = np.isfinite(a) and not (np.isfinite(b) and b > a)
-        kept, k_inc = (again, inc_again) if fresh_better else (res, inc)
-        which = (f"the fresh start flagged too ({again_flag.split('; ')[0]}): kept the "
-                 f"{'fresh start' if fresh_better else 'start from the previous increment'} (NCC after {a:.3f} "
-                 f"fresh, {b:.3f} from the previous increment)")
-    note = (f"retried from a fresh start: the increment started from frame {k - 1}'s was flagged ({why}); "
-            f"{which}")
-    kept.message = f"{kept.message}; {note}" if kept.message else note
-    return kept, k_inc, note
-
-
 def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, init, checkpoint_dir, resume, progress,
          min_ncc, on_frame, register_kwargs, first=None, record=None, uncut=None) -> SequenceResult:
     """The frame loop of :func:`track`: ``frame_kwargs`` place the frames (spacing, origin, geometry), ``fe_mesh``
@@ -442,7 +420,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 else:
                     fresh = init == "blockmatch" or prev_inc is None or bool(prev_own_flag)
                     # a fresh start is the strategy's own (pyramid with "auto"), or the paper's block matching
-                    initial = ("blockmatch" if init == "blockmatch" else None) if fresh else prev_inc
+                    fresh_start = "blockmatch" if init == "blockmatch" else None
                     if fe_mesh is None:
                         where.update(mesh=None)
                     elif grid == "current":
@@ -451,15 +429,10 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                      allow_mesh_outside=True)
                     else:
                         where.update(mesh=fe_mesh, offset=S if k > 1 else None)
-                    res, inc = _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer, alpha,
-                                          inc_kwargs)
-                    first_flag = "" if fresh else frame_flag(res, min_ncc)
-                    if first_flag:
-                        # the previous increment can start a whole RF period off (a freehand loop's compression
-                        # per frame varies): register the pair again from the strategy's own start
-                        again, inc_again = _increment(seq, k, "blockmatch" if init == "blockmatch" else None, S,
-                                                      fe_mesh, frame_kwargs, where, regularizer, alpha, inc_kwargs)
-                        res, inc, retried = _keep(res, inc, first_flag, again, inc_again, min_ncc, k)
+                    # flagged from the previous increment: registered again from the fresh start
+                    res, inc, retried = retry_flagged(
+                        lambda initial: _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer,
+                                                   alpha, inc_kwargs), prev_inc, fresh_start, fresh, min_ncc, k)
                 if crop is not None:
                     crop.widen(res)
                 elif uncut is not None:

@@ -36,7 +36,7 @@ from .errors import InputError, counted
 from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
 from .repair import (HOP_FRACTION, MAX_HOPPED_FRACTION, MAX_POOR_FRACTION, MIN_NCC, envelope_lag_ncc_3d,
-                     frame_flag, hop_note, hopped_fraction, lag_gain, mark_tainted, own_flag)
+                     frame_flag, hop_note, hopped_fraction, lag_gain, mark_tainted, own_flag, retry_flagged)
 from .scaling import effective_alpha
 from .linsolve import SPDSolver
 from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT, Objective, gauss_newton, single_blas_thread
@@ -186,10 +186,11 @@ def _nodal(fn, mesh) -> np.ndarray:
 
 
 def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, tol=1e-3, linear_solver="auto",
-                   period=None):
+                   period=None, at=None):
     """The initial guess on ``mesh``: global search (:func:`global_search_3d`) on envelope volumes decimated
     axially to about half the lateral spacing, then Gauss-Newton on the (undecimated axially low-passed)
-    envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes.
+    envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes, or at the
+    points ``at`` (n_nodes, 3) mm (a sequence increment: the nodes moved by S of eq:IR).
     Returns ``(u0, info)``."""
     t0 = time.perf_counter()
     q = max(1, int(round(0.5 * min(spacing[1], spacing[2]) / spacing[0])))
@@ -230,7 +231,8 @@ def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, 
     except InputError:
         pass
     loc = HexLocator(coarse)
-    u0 = np.column_stack([v for k, v in loc.sample(u_c, mesh.p.T).items() if k in ("ux", "uy", "uz")]).ravel()
+    pts = mesh.p.T if at is None else np.asarray(at, float)
+    u0 = np.column_stack([v for k, v in loc.sample(u_c, pts).items() if k in ("ux", "uy", "uz")]).ravel()
     u0 = np.nan_to_num(u0)
     info["timings"] = {"global_search": t_global, "envelope_level": time.perf_counter() - t1}
     return u0, info
@@ -352,6 +354,13 @@ def _voxel_offset(offset, grid: VoxelGrid) -> np.ndarray:
         return np.nan_to_num(offset.displacement(grid.points()))
     s_nodes = _start(offset, grid.mesh, "offset")
     return np.column_stack([grid.expand(U).ravel() for U in grid.nodal_grid(s_nodes)])
+
+
+def _offset_nodes(offset, mesh) -> np.ndarray:
+    """S of eq:IR at ``mesh``'s nodes, (3 n_nodes,) mm, from a VolumeResult, a callable or a nodal vector."""
+    if isinstance(offset, VolumeResult):
+        return np.nan_to_num(offset.displacement(mesh.p.T)).ravel()
+    return _start(offset, mesh, "offset")
 
 
 def voxel_image_term(reference_image, moving_image, mesh, register_kwargs) -> ImageTerm:
@@ -509,7 +518,9 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         An axis-aligned tensor hexahedral mesh (mm); default :func:`femreg.voxels.roi_mesh_3d` with
         ``element_size`` (default :data:`femreg.voxels.DEFAULT_ELEMENT_SIZE_3D`) and ``margin``.
     initial : None | "pyramid" | "zero" | VolumeResult | callable | (3 n_nodes,) array
-        The start; None / "pyramid": :func:`coarse_to_fine`.
+        The start; None / "pyramid": :func:`coarse_to_fine`.  With an ``offset`` (a sequence increment) None is
+        zero motion relative to S, and "pyramid" the pair's own coarse-to-fine field read at the nodes moved by S
+        (eq:IR: I_1(x + S) ~ I_2(x + S + u)).
     offset : VolumeResult | callable | (3 n_nodes,) array, optional
         S of eq:IR (both volumes sampled at x + S(x)).
     refine : "default" | None | int | "auto" | femreg.refine.Refinement
@@ -588,9 +599,10 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     period = _rf_period_3d(ref, spacing)
     info = {}
     if initial is None or (isinstance(initial, str) and initial == "pyramid"):
-        if S is None:
+        if S is None or initial is not None:     # an increment afresh: the pair's pyramid at x + S
+            at = None if S is None else mesh.p.T + _offset_nodes(offset, mesh).reshape(-1, 3)
             u0, info = coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, maxiter=maxiter, tol=tol,
-                                      linear_solver=linear_solver, period=period)
+                                      linear_solver=linear_solver, period=period, at=at)
             timings.update(info.pop("timings"))
         else:       # a sequence increment: start from zero motion relative to S
             u0 = np.zeros(3 * mesh.p.shape[1])
@@ -689,7 +701,9 @@ class VolumeTrack:
     :class:`VolumeResult` on the frame-0 mesh, eq:IR with S the accumulated field), ``accumulated[k]`` frame 0 ->
     k + 1 (u = S + du on the same mesh); ``success`` all increments succeeded.  ``flags[k]``: '' or why frame
     k + 1 is flagged (its registration failed its own check, or its NCC after is below ``min_ncc``);
-    ``computed[k]``: False where the frame was loaded from a checkpoint.  A swept probe's sequence holds
+    ``computed[k]``: False where the frame was loaded from a checkpoint; ``retried``: the frames whose increment,
+    started from the previous one, was flagged and registered again from a fresh start (as
+    :attr:`femreg.sequence.SequenceResult.retried`).  A swept probe's sequence holds
     :class:`~femreg.volume_result.SweptResult` entries and ``swept`` its :class:`femreg.swept.SweptConversion`."""
 
     results: list
@@ -698,6 +712,7 @@ class VolumeTrack:
     computed: list = field(default_factory=list)
     swept: object = None
     repeated: list = field(default_factory=list)
+    retried: list = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -717,8 +732,12 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                  grid_spacing=None, **register_kwargs) -> VolumeTrack:
     """Track a volume sequence (n_frames, n_x, n_y, n_z): ``mode="accumulate"`` registers frame k to k + 1 on
     the frame-0 grid with S = the accumulated field (eq:IR, both frames sampled at x + S; the previous increment
-    starts the next), ``"direct"`` frame 0 to every later frame independently.  ``roi`` / ``depth`` (as in
-    :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered inside the same box.
+    starts the next; one flagged from it is registered again from a fresh start, the pair's coarse-to-fine field
+    read at x + S (``initial="pyramid"`` of :func:`register_volume`), and the fresh result kept unless it is
+    flagged too, then the one with the higher NCC after, as :func:`femreg.track` does with frames; an increment
+    after a flagged or retried one starts afresh), ``"direct"`` frame 0 to every later frame independently.
+    ``roi`` / ``depth`` (as in :func:`register_volume`; "auto" from frames 0 and 1): every frame is registered
+    inside the same box.
     ``alpha="auto"``: chosen on frames 0 -> 1 (:func:`femreg.autoalpha.choose_alpha`) and used for every
     registration, as :func:`femreg.track` does; every result's ``auto_alpha`` records the choice.
 
@@ -811,15 +830,17 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     S = None
     prev = None
     tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
+    prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
     from ._atomic import load_frame_record, progress_bar, save_frame
     bar = progress_bar(progress, len(arr) - 1, f"track volumes ({mode})", "volume", on_frame)
     try:
         for k in range(1, len(arr)):
             path = None if ckpt is None else ckpt / f"frame_{k:03d}.npz"
+            retried = ""
             if resume and path is not None and path.exists():
                 from .volume_result import load_volume_result
                 a = load_volume_result(path)
-                inc, flag, _ = load_frame_record(path)
+                inc, flag, retried = load_frame_record(path)
                 r = a if mode == "direct" else copy.copy(a)
                 if r is not a:
                     r.u, r._nodal_strain, r._grids = inc, None, {}
@@ -842,25 +863,42 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                                                **register_kwargs))
                     a = r
                 else:
-                    kw = dict(register_kwargs)
-                    if S is not None:
-                        kw.setdefault("initial", prev.u if prev is not None else "zero")
-                    r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
-                                        mesh=mesh if S is None else out.accumulated[-1].mesh, **kw)
-                    a = copy.copy(r)
-                    a.u = r.u if S is None else S + r.u
-                    a._nodal_strain = None
-                    a._grids = {}
-                    r, a = finish(r), finish(a)
+                    def increment(start):
+                        """(frame 0 -> k, the increment k - 1 -> k) registered from ``start``."""
+                        kw = dict(register_kwargs)
+                        if S is not None:
+                            kw["initial"] = start
+                        r = register_volume(arr[k - 1], arr[k], spacing=spacing, origin=origin, offset=S,
+                                            mesh=mesh if S is None else out.accumulated[-1].mesh, **kw)
+                        a = copy.copy(r)
+                        a.u = r.u if S is None else S + r.u
+                        a._nodal_strain = None
+                        a._grids = {}
+                        r, a = finish(r), finish(a)
+                        return a, r
+
+                    # a user's start is every increment's; else the previous increment, and when that is flagged
+                    # the pair's own pyramid read at x + S (zero motion relative to S cannot follow a jump)
+                    fresh = S is None or bool(prev_own_flag) or "initial" in register_kwargs
+                    a, r, retried = retry_flagged(increment, prev.u if prev is not None else "zero",
+                                                  register_kwargs.get("initial", "pyramid"), fresh, min_ncc, k)
+                    if retried:
+                        r.message = a.message   # the increment's result says so too
                     if tainted is not None:     # the accumulated field adds a flagged increment
                         mark_tainted(a, *tainted)
                 flag = frame_flag(a, min_ncc)
                 computed = True
                 if path is not None:
-                    save_frame(path, a, r.u, flag, k, mode)
+                    save_frame(path, a, r.u, flag, k, mode, retried)
+            if retried:
+                out.retried.append(k)
+                a.retried = retried     # for on_frame (the file keeps it as "retried")
             own = own_flag(a, flag, min_ncc)
             if own and mode == "accumulate" and tainted is None and k not in repeats:
                 tainted = (k, own)
+            if k not in repeats:
+                # a retried increment's start from the previous one failed: the next starts fresh as well
+                prev_own_flag = own or retried
             out.results.append(r)
             out.accumulated.append(a)
             out.flags.append(flag)

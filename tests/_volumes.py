@@ -45,12 +45,9 @@ def render(scat, amp, axes, f_mhz, lat_fwhm, elev_fwhm, cycles=2.0, chunk=20000)
     return out.reshape(x.size, y.size, z.size)
 
 
-def volume_pair(field, *, shape=(200, 24, 20), spacing=(0.02, 0.2, 0.25), f_mhz=7.0, lat_fwhm=None,
-                elev_fwhm=None, density=60.0, seed=0, snr_db=None):
-    """``(ref, mov, spacing, origin)`` for ``field`` callable (n, 3) mm -> (n, 3) mm.  Beam widths default to
-    about 1.5 wavelengths laterally and 2.5 elevationally (at least 1.5 pitches); ``density`` scatterers / mm^3."""
-    rng = np.random.default_rng(seed)
-    spacing = np.asarray(spacing, float)
+def _scene(shape, spacing, f_mhz, lat_fwhm, elev_fwhm, density, rng):
+    """Scatterers (n, 3) mm and amplitudes (n,) over the grid of ``shape`` and ``spacing`` plus a PSF's pad, the
+    grid's axes and the lateral and elevational beam FWHM (mm)."""
     lam = C_MM_PER_US / f_mhz
     lat = lat_fwhm if lat_fwhm is not None else max(1.5 * lam, 3.0 * spacing[1])
     ele = elev_fwhm if elev_fwhm is not None else max(2.5 * lam, 3.0 * spacing[2])
@@ -61,6 +58,16 @@ def volume_pair(field, *, shape=(200, 24, 20), spacing=(0.02, 0.2, 0.25), f_mhz=
     n = rng.poisson(density * np.prod(hi - lo))
     X = lo + (hi - lo) * rng.random((n, 3))
     amp = rng.standard_normal(n)
+    return X, amp, axes, lat, ele
+
+
+def volume_pair(field, *, shape=(200, 24, 20), spacing=(0.02, 0.2, 0.25), f_mhz=7.0, lat_fwhm=None,
+                elev_fwhm=None, density=60.0, seed=0, snr_db=None):
+    """``(ref, mov, spacing, origin)`` for ``field`` callable (n, 3) mm -> (n, 3) mm.  Beam widths default to
+    about 1.5 wavelengths laterally and 2.5 elevationally (at least 1.5 pitches); ``density`` scatterers / mm^3."""
+    rng = np.random.default_rng(seed)
+    spacing = np.asarray(spacing, float)
+    X, amp, axes, lat, ele = _scene(shape, spacing, f_mhz, lat_fwhm, elev_fwhm, density, rng)
     ref = render(X, amp, axes, f_mhz, lat, ele)
     mov = render(X + np.asarray(field(X), float), amp, axes, f_mhz, lat, ele)
     if snr_db is not None:
@@ -68,6 +75,23 @@ def volume_pair(field, *, shape=(200, 24, 20), spacing=(0.02, 0.2, 0.25), f_mhz=
         ref = ref + s * rng.standard_normal(ref.shape)
         mov = mov + s * rng.standard_normal(mov.shape)
     return ref, mov, spacing, np.zeros(3)
+
+
+def compression_sequence(compressions, *, shape=(300, 30, 24), spacing=(0.02, 0.2, 0.25), f_mhz=7.0, seed=0):
+    """A volume sequence (n_frames, n_x, n_y, n_z) of one scatterer set under uniaxial compression: frame k
+    compressed axially by ``compressions[k]`` (fraction; frame 0 usually 0) about the grid's centre, with a
+    lateral and elevational expansion of half of it.  Returns ``(frames, spacing, field)``, ``field(k, X)`` the
+    exact displacement (n, 3) mm from frame 0 to frame k at frame-0 positions X (n, 3) mm."""
+    rng = np.random.default_rng(seed)
+    spacing = np.asarray(spacing, float)
+    X, amp, axes, lat, ele = _scene(shape, spacing, f_mhz, None, None, 60.0, rng)
+    centre = np.asarray(shape) * spacing / 2
+
+    def field(k, P):
+        return (np.asarray(P, float) - centre) * (compressions[k] * np.array([-1.0, 0.5, 0.5]))
+
+    frames = np.stack([render(X + field(k, X), amp, axes, f_mhz, lat, ele) for k in range(len(compressions))])
+    return frames, spacing, field
 
 
 def affine_field(compression=0.01, shear=0.005, rotation_deg=0.5, centre=(2.0, 2.4, 2.5)):

@@ -557,8 +557,9 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     if n_flag:
         first = next(k for k, f in enumerate(out.flags, start=1) if f)
         hint = ""
-        if (getattr(args, "init", None) == "previous" and getattr(args, "mode", None) == "accumulate"
-                and any("peak hopping" in f for f in out.flags if f)):
+        # (volumes have no block matching: their flagged increments were already retried from their pyramid)
+        if (noun == "frame" and getattr(args, "init", None) == "previous"
+                and getattr(args, "mode", None) == "accumulate" and any("peak hopping" in f for f in out.flags if f)):
             # a freehand loop's compression per frame varies: the previous increment can start a whole RF period off
             hint = ("; each increment started from the previous one (--init previous): where the compression per "
                     "frame varies, as in a freehand loop, --init blockmatch starts each afresh")
