@@ -1,0 +1,39 @@
+"""A convex frame's echo crop is said in the result, in the probe's terms: the sample-space stage leaves out the
+rows past the echo (femreg.echo), and the BeamResult, its message, its file and the picture name them as ranges
+along the rays (before, the result said nothing: `excluded` None, the hatched fan unexplained)."""
+import numpy as np
+import pytest
+
+
+def test_beam_excluded_text():
+    from femreg.geometry import beam_excluded
+
+    rho = 100.0
+    t = beam_excluded("depth below 92.4 mm excluded: no signal (zero samples); lines at -52.4--43.6 mm (left) "
+                      "excluded: no signal (zero samples)", rho)
+    assert t.startswith("range beyond 92.4 mm (along the rays) excluded"), t
+    a0, a1 = np.rad2deg(-52.4 / rho), np.rad2deg(-43.6 / rho)
+    assert f"rays at {a0:.1f} to {a1:.1f} deg (left)" in t, t
+    g = beam_excluded("outside the given depth x 0.0-40.0 mm, y -10.0-10.0 mm excluded", rho)
+    assert g == (f"outside the given depth: range 0.0-40.0 mm, rays at {np.rad2deg(-0.1):.1f} to "
+                 f"{np.rad2deg(0.1):.1f} deg excluded"), g
+
+
+def test_convex_result_names_the_rows_left_out(tmp_path):
+    import femreg
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_pair
+
+    p = make_beam_pair(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                       depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1)
+    ref, mov = p.ref.copy(), p.mov.copy()
+    n = ref.shape[0]
+    ref[3 * n // 4:] = 0.0          # the recording stops: no samples past 3/4 of the range
+    mov[3 * n // 4:] = 0.0
+    res = femreg.register(ref, mov, spacing=p.spacing, origin=p.origin, geometry=p.geometry, maxiter=3)
+    r_cut = p.origin[0] + (3 * n // 4 - 0.5) * p.spacing[0]
+    assert res.excluded is not None and res.excluded.startswith(f"range beyond {r_cut:.1f} mm"), res.excluded
+    assert res.excluded in res.message
+    res.save(tmp_path / "r.npz")
+    assert femreg.load_result(tmp_path / "r.npz").excluded == res.excluded
