@@ -344,7 +344,8 @@ def _frame_result(r, mesh, u):
               solver_result=r.solver_result, quality=r.quality, strategy=r.strategy,
               alpha_effective=r.alpha_effective, lambda_bar=getattr(r, "lambda_bar", None))
     if isinstance(r, BeamResult):
-        return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, **kw)
+        # the first pair's sample-space echo crop (femreg.geometry.register_beam) is said by the frame too
+        return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, excluded=r.excluded, **kw)
     return RegistrationResult(mesh, u, **kw)
 
 
@@ -414,6 +415,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     prev_inc = None
     tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
     prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
+    beam_excluded = None                # what the first pair of a beam track left out of the mesh
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame", on_frame)
     try:
         for k in range(1, len(seq)):
@@ -423,6 +425,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 res = load_result(path)
                 inc, flag, retried = load_frame_record(path)
                 computed = False
+                if beam_excluded is None and isinstance(res, BeamResult):
+                    beam_excluded = res.excluded
             elif k in repeats:
                 # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1
                 res = copy.copy(out[-1])
@@ -464,6 +468,13 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                     crop.widen(res)
                 elif uncut is not None:
                     res.data_mask = uncut
+                if crop is None and isinstance(res, BeamResult):
+                    # a beam track's mesh is the first pair's, cut by its echo crop: every frame says so
+                    if beam_excluded is None:
+                        beam_excluded = res.excluded
+                    elif res.excluded is None:
+                        res.excluded = beam_excluded
+                        res.message = f"{res.message}; {beam_excluded}" if res.message else beam_excluded
                 if tainted is not None:
                     mark_tainted(res, *tainted)
                 # A pair is flagged by image evidence, or when the registration's own check failed.

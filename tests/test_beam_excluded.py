@@ -37,3 +37,22 @@ def test_convex_result_names_the_rows_left_out(tmp_path):
     assert res.excluded in res.message
     res.save(tmp_path / "r.npz")
     assert femreg.load_result(tmp_path / "r.npz").excluded == res.excluded
+
+
+def test_convex_track_frames_name_the_rows_left_out(tmp_path):
+    import femreg
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1, n_frames=3, step=0.005)
+    frames = seq.frames.copy()
+    n = frames.shape[1]
+    frames[:, 3 * n // 4:] = 0.0
+    out = femreg.track(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry, maxiter=3,
+                       checkpoint_dir=tmp_path / "run")
+    r_cut = seq.origin[0] + (3 * n // 4 - 0.5) * seq.spacing[0]
+    for k, res in enumerate(out, start=1):
+        assert res.excluded is not None and res.excluded.startswith(f"range beyond {r_cut:.1f} mm"), (k, res.excluded)
+        assert femreg.load_result(tmp_path / "run" / f"frame_{k:03d}.npz").excluded == res.excluded
