@@ -56,3 +56,24 @@ def test_convex_track_frames_name_the_rows_left_out(tmp_path):
     for k, res in enumerate(out, start=1):
         assert res.excluded is not None and res.excluded.startswith(f"range beyond {r_cut:.1f} mm"), (k, res.excluded)
         assert femreg.load_result(tmp_path / "run" / f"frame_{k:03d}.npz").excluded == res.excluded
+
+
+def test_convex_elastogram_leaves_out_the_rows_past_the_echo():
+    # a convex loop whose recording stops at 3/4 of the range: the elastogram's pairs are registered on the rows
+    # with echo, as register and track do (before: every pair on the whole frames, the zeros included, and the
+    # result said nothing)
+    from femreg import Convex
+    from femreg.elastogram import elastogram
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=2, n_frames=5, step=0.008)
+    frames = seq.frames.copy()
+    n = frames.shape[1]
+    frames[:, 3 * n // 4:] = 0.0
+    res = elastogram(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry)
+    r_cut = seq.origin[0] + (3 * n // 4 - 0.5) * seq.spacing[0]
+    assert res.excluded is not None and res.excluded.startswith(f"range beyond {r_cut:.1f} mm"), res.excluded
+    assert res.region is not None and tuple(res.region[0]) == (0, 3 * n // 4), res.region
+    assert res.n_usable >= 1
