@@ -516,8 +516,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
 
         polys = np.stack([p[1][t].T, p[0][t].T], axis=-1)  # (n_el, 4, [y, x])
         ax.add_collection(PolyCollection(polys, facecolor="none", edgecolor="k", linewidth=0.3))
+        # a fan: the field panels' limits (the whole fan, as _draw sets them), so the panels line up
         ext = extent_mm(shape, sp, origin) if positions is None else (
-            p[1].min(), p[1].max(), p[0].max(), p[0].min())
+            np.min(positions[1]), np.max(positions[1]), np.max(positions[0]), min(np.min(positions[0]), 0.0))
         ax.set_xlim(ext[0], ext[1])
         ax.set_ylim(ext[2], ext[3])
         ax.set_aspect(aspect)

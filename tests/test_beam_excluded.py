@@ -77,3 +77,25 @@ def test_convex_elastogram_leaves_out_the_rows_past_the_echo():
     assert res.excluded is not None and res.excluded.startswith(f"range beyond {r_cut:.1f} mm"), res.excluded
     assert res.region is not None and tuple(res.region[0]) == (0, 3 * n // 4), res.region
     assert res.n_usable >= 1
+
+
+def test_convex_mesh_panel_on_the_fields_axes():
+    # without --reference the first panel draws the mesh: for a fan on the field panels' limits (before, zoomed on
+    # the mesh: the panels did not line up and the rows left out were hatched as a rectangle)
+    import femreg
+    from femreg import Convex
+    from femreg.plot import plot_result
+    from forward import fields as F
+    from forward.beam import make_beam_pair
+
+    p = make_beam_pair(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                       depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1)
+    ref, mov = p.ref.copy(), p.mov.copy()
+    n = ref.shape[0]
+    ref[3 * n // 4:] = 0.0
+    mov[3 * n // 4:] = 0.0
+    res = femreg.register(ref, mov, spacing=p.spacing, origin=p.origin, geometry=p.geometry, maxiter=2)
+    fig = plot_result(res)
+    mesh_ax, ux_ax = fig.axes[0], fig.axes[1]
+    assert mesh_ax.get_xlim() == pytest.approx(ux_ax.get_xlim()) and mesh_ax.get_ylim() == pytest.approx(
+        ux_ax.get_ylim()), (mesh_ax.get_xlim(), ux_ax.get_xlim(), mesh_ax.get_ylim(), ux_ax.get_ylim())
