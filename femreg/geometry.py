@@ -501,6 +501,13 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                          "n_frames), not a frame")
     if kw.get("offset") is not None:
         raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
+    roi = kw.get("roi")
+    if roi is not None and not isinstance(roi, str) and kw.get("mesh") is None:
+        # the sample-space stage would read it as (range, arc length at the middle sample), not as x, y
+        raise InputError(pass_as(f"roi {roi!r} is a Cartesian rectangle: with a {geometry.kind} geometry give depth="
+                                 "(d0, d1), a range along the rays in mm",
+                                 f"--roi is a Cartesian rectangle: with --geometry {geometry.kind} give --depth D0 D1 "
+                                 "(a range along the rays, mm) instead"))
     if isinstance(alpha, str):
         raise InputError(pass_as(f"alpha='auto' is not supported with a {geometry.kind} geometry",
                                  f"--alpha auto is not supported with --geometry {geometry.kind}"))

@@ -399,6 +399,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
         params["roi"] = list(crop.roi_mm)
     params.update(json.loads(json.dumps(record or {}, default=repr)))
 
+    fresh = checkpoint_dir is not None and not (Path(checkpoint_dir) / "track.json").exists()
+    existed = checkpoint_dir is not None and Path(checkpoint_dir).exists()
     ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json", started=("frame_*.npz",),
                            kind="a tracking run", argument="checkpoint_dir",
                            described=_region_record(shape, origin, crop))
@@ -507,6 +509,14 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             if bar is not None:
                 bar.set_postfix_str(f"ncc {res.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
                 bar.update(1)
+    except InputError:
+        # bad input found by the first pair (a convex / sector track's region is checked there): no run was
+        # started, so the record this call wrote goes too and the folder is left as it was
+        if fresh and ckpt is not None and not any(ckpt.glob("frame_*.npz")):
+            (ckpt / "track.json").unlink(missing_ok=True)
+            if not existed and not any(ckpt.iterdir()):
+                ckpt.rmdir()
+        raise
     finally:
         if bar is not None:
             bar.close()

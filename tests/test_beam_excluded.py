@@ -99,3 +99,35 @@ def test_convex_mesh_panel_on_the_fields_axes():
     mesh_ax, ux_ax = fig.axes[0], fig.axes[1]
     assert mesh_ax.get_xlim() == pytest.approx(ux_ax.get_xlim()) and mesh_ax.get_ylim() == pytest.approx(
         ux_ax.get_ylim()), (mesh_ax.get_xlim(), ux_ax.get_xlim(), mesh_ax.get_ylim(), ux_ax.get_ylim())
+
+
+def test_convex_register_refuses_a_cartesian_roi(tmp_path, capsys):
+    # --roi X0 X1 Y0 Y1 was read in the sample space's (range, arc length at the middle sample) and registered a
+    # different region than asked, exit 0; the elastogram refused it already: register and track do too
+    import femreg
+    from femreg import Convex
+    from femreg.cli import main
+    from femreg.errors import InputError
+    from forward import fields as F
+    from forward.beam import make_beam_pair
+
+    p = make_beam_pair(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                       depth_mm=12.0, n_rays=40, snr_db=30.0, seed=1)
+    with pytest.raises(InputError, match="depth="):
+        femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin, geometry=p.geometry, roi=(5, 12, -3, 3))
+    path = tmp_path / "pair.npz"
+    np.savez(path, frames=np.stack([p.ref, p.mov]))
+    flags = ["--geometry", "convex", "--radius", "40", "--angle-pitch", "0.6", "--spacing", f"{p.spacing[0]:.6g}",
+             "auto", "--origin", f"{p.origin[0]:g}", "0", "--roi", "5", "12", "-3", "3"]
+    for cmd, out in (("register", tmp_path / "r.npz"), ("track", tmp_path / "run")):
+        rc = main([cmd, str(path), "-o", str(out), *flags])
+        err = capsys.readouterr().err
+        assert rc == 2 and "--depth D0 D1" in err, err
+        assert not out.exists()
+    # a --depth outside the frames, found by the first pair of a convex track: exit 2, and the run folder this
+    # command made is gone again (before: left with a track.json)
+    flags = flags[:-5] + ["--depth", "500", "600"]
+    rc = main(["track", str(path), "-o", str(tmp_path / "run2"), *flags])
+    err = capsys.readouterr().err
+    assert rc == 2 and "leaves the image" in err, err
+    assert not (tmp_path / "run2").exists()
