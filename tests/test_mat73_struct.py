@@ -58,3 +58,18 @@ def test_info_names_spacing_and_geometry_from_structs(export, capsys):
     dr = 1540.0 / (2 * 20.83e6) * 1e3
     assert f"--spacing {dr:.4g} auto" in out, out
     assert "--geometry convex --radius 49.57 --angle-pitch 0.5" in out, out
+
+
+def test_info_takes_the_suggested_range_step(export, capsys):
+    # the spacing info suggests for a convex file, --spacing DX auto, given back: the range step is complete (the
+    # rays are --angle-pitch apart); only the geometry flags are still needed (before: "spacing incomplete: pass
+    # both values", suggesting the very flag given)
+    from femreg.cli import main
+
+    dr = f"{1540.0 / (2 * 20.83e6) * 1e3:.4g}"
+    rc = main(["info", str(export), "--spacing", dr, "auto"])
+    out = capsys.readouterr().out
+    assert rc == 1
+    assert "incomplete" not in out and f"spacing   {dr} mm range step (given)" in out, out
+    needs = [line for line in out.splitlines() if line.startswith("needs")]
+    assert len(needs) == 1 and "--geometry convex --radius 49.57 --angle-pitch 0.5" in needs[0], needs
