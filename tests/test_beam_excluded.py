@@ -131,3 +131,30 @@ def test_convex_register_refuses_a_cartesian_roi(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "leaves the image" in err, err
     assert not (tmp_path / "run2").exists()
+
+
+def test_convex_track_record_names_the_rows_registered(tmp_path):
+    # track.json's registered_region held the whole frames for a convex track whose first pair left rows out
+    import json
+
+    import femreg
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1, n_frames=3, step=0.005)
+    frames = seq.frames.copy()
+    n = frames.shape[1]
+    frames[:, 3 * n // 4:] = 0.0
+    femreg.track(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry, maxiter=3,
+                 checkpoint_dir=tmp_path / "run")
+    rec = json.loads((tmp_path / "run" / "track.json").read_text())
+    reg = rec["registered_region"]
+    assert reg["rows"] == [0, 3 * n // 4] and reg["cols"] == [0, 40], reg
+    assert rec["frame_shape"] == [n, 40]
+    # a resume keeps it (the record is written again at the start, before the first pair is read back)
+    femreg.track(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry, maxiter=3,
+                 checkpoint_dir=tmp_path / "run", resume=True)
+    rec = json.loads((tmp_path / "run" / "track.json").read_text())
+    assert rec["registered_region"] == reg, rec["registered_region"]
