@@ -669,7 +669,12 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
     v = np.asarray(values, float).ravel()
     if v.size != t.shape[1]:
         raise InputError(f"values has {v.size} entries, the mesh {t.shape[1]} elements")
-    ax = _ax(ax)
+    if ax is None:
+        # the figure shaped as the mesh (a convex fan is wider than deep): about 1.4 in of its width go to the
+        # colour bar and the labels, 1.2 in of its height to the title and the axis label
+        depth, width = float(np.ptp(p[0])), float(np.ptp(p[1]))
+        h = 3.6 * depth / width + 1.2 if width > 0 else 6.0
+        ax = _ax(None, figsize=(5.0, float(np.clip(h, 2.5, 8.0))))
     finite = v[np.isfinite(v)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.1, 1.0))
     if log:

@@ -158,3 +158,20 @@ def test_convex_track_record_names_the_rows_registered(tmp_path):
                  checkpoint_dir=tmp_path / "run", resume=True)
     rec = json.loads((tmp_path / "run" / "track.json").read_text())
     assert rec["registered_region"] == reg, rec["registered_region"]
+
+
+def test_quality_map_shaped_as_the_fan():
+    # a fan wider than deep: the quality map's figure follows the mesh (before: a fixed 5 x 6 in portrait, the
+    # abdominal fan's axes filling 30 % of it; now 49 %)
+    from skfem import MeshQuad1
+
+    from femreg.plot import plot_quality
+
+    m = MeshQuad1.init_tensor(np.linspace(0.0, 90.0, 10), np.linspace(-75.0, 75.0, 16))
+    fig = plot_quality(m.p, m.t, np.full(m.t.shape[1], 0.9))
+    w, h = fig.get_size_inches()
+    assert h < w, (w, h)
+    fig.canvas.draw()
+    bb = fig.axes[0].get_window_extent()
+    W, H = fig.canvas.get_width_height()
+    assert bb.width * bb.height / (W * H) > 0.4
