@@ -27,8 +27,10 @@ range, where the echo power equals the noise near 94 mm.  register 2 -> 3: 5.7-8
 5.3 %, total 6.6 %, SR 2.14 (true 2.54); track 0 -> 6: 43-66 s, e_xx 5.0 %, total 6.2 %, u RMS 9.8 / 19.3 um,
 SR 2.17 (true 2.52), none flagged (frames 2 and 6 retried from a fresh start); elastogram: 3 of 3 pairs usable,
 25-30 s, normalised-strain error 4.7 %, ratio 2.36 (true 2.57).  Before the beam echo crop and the deep-strip veto
-(same data): the full 151 mm registered, register 2 -> 3 FAILED (peak hopping in the noise, 16 % of the elements
-unmatched; e_xx 4.9 % over 5-95 mm), track 6 of 6 frames flagged (93 s), elastogram 0 of 3 pairs usable (57 s).
+(same data, femreg a5b28b2): the full 151 mm registered, register 2 -> 3 FAILED (peak hopping in the noise, 16 % of
+the elements unmatched; e_xx 4.9 % over 5-95 mm), track 6 of 6 frames flagged (93 s), elastogram 0 of 3 pairs
+usable (57 s); with the block-matching cut of femreg.echo.unmatched_crop alone the pair registers, its mesh to
+115.8 mm of range (21 mm of noise kept, nothing said).
 The lesion's contrast is low because of the regulariser: the default alpha of a beam frame is the linear one x
 ``femreg.geometry.beam_alpha_factor`` ((1.09 mm / 0.3 mm)^3.5 = 92 here, 12.3); ``--alpha`` 0.133 / 0.4 / 1.2 / 4
 gives e_xx 4.4 / 3.7 / 3.7 / 4.3 %, total 5.7 / 4.8 / 4.7 / 5.4 %, SR 2.55 / 2.57 / 2.57 / 2.46 (pair 2 -> 3);
