@@ -175,3 +175,39 @@ def test_quality_map_shaped_as_the_fan():
     bb = fig.axes[0].get_window_extent()
     W, H = fig.canvas.get_width_height()
     assert bb.width * bb.height / (W * H) > 0.4
+
+
+def test_convex_elastogram_picture_says_what_is_not_shown(tmp_path, monkeypatch):
+    # elastogram.png of a convex loop cut to its echo: the footer says what was left out (before: nothing, the fan
+    # simply ended), in a figure as tall as the fan's panels need (before: a fixed 13 x 5 in)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import femreg.cli.elastogram_cmd as ec
+    from femreg import Convex
+    from femreg.cli import main
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=2, n_frames=5, step=0.008)
+    frames = seq.frames.copy()
+    frames[:, 3 * frames.shape[1] // 4:] = 0.0
+    path = tmp_path / "loop.npz"
+    np.savez(path, frames=frames)
+    seen = {}
+    original = ec.elastogram_figure
+
+    def spy(*a, **k):
+        seen["fig"] = original(*a, **k)
+        return seen["fig"]
+
+    monkeypatch.setattr(ec, "elastogram_figure", spy)
+    rc = main(["elastogram", str(path), "-o", str(tmp_path / "el"), "--geometry", "convex", "--radius", "40",
+               "--angle-pitch", "0.6", "--spacing", f"{seq.spacing[0]:.6g}", "auto", "--origin",
+               f"{seq.origin[0]:g}", "0", "--no-progress"])
+    assert rc == 0
+    fig = seen["fig"]
+    label = fig._supxlabel.get_text() if fig._supxlabel is not None else ""
+    assert "not shown: range beyond" in " ".join(label.split()), label
+    assert fig.get_size_inches()[1] < 5.0
