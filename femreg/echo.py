@@ -23,7 +23,8 @@ Phenomena in Optics*, 2007, ch. 3), so the statistics cannot tell them apart; th
 * a veto from the pair: electronic noise is independent from frame to frame while echo moves with the tissue,
   so a strip whose envelope still matches the other frame anywhere (best NCC over small shifts at least
   :data:`ECHO_NCC`) holds echo and is kept (a weak deep echo without noise floor, e.g. uncompensated attenuation,
-  or echo beyond an anechoic band);
+  or echo beyond an anechoic band); a deep strip as far as it matches (its pieces scanned from the bottom up,
+  :func:`_followed_rows`): the noise below a weak echo that still matches is left out with the rest;
 * saturation: a frame with more than :data:`CLIP_FRACTION` of its samples at its extreme magnitude is clipped;
   rows and lines at the region's edges with more than :data:`CLIP_ROW_FRACTION` clipped samples are excluded.
 
@@ -175,38 +176,67 @@ def _echo_run(level_db, floor_db, min_len, live):
     return (a, b), snr
 
 
+def _chunk_cuts(rows, n, cols, row_step, chunk):
+    """Row boundaries of the pieces :func:`_strip_ncc` measures ``rows`` in: equal heights, none shorter than
+    ``chunk`` rows taken every ``row_step``-th row (and enough samples for a noise NCC near 0)."""
+    q = int(row_step)
+    chunk = max(int(chunk), -(-VETO_SAMPLES // max(1, cols[1] - cols[0])))
+    top, bottom = rows[0], min(rows[1], n)
+    k = max(1, (bottom - top) // (chunk * q))
+    return np.linspace(top, bottom, k + 1).round().astype(int)
+
+
+def _chunk_ncc(ea, eb, r0, r1, cols, max_shift, q, max_lat) -> float:
+    """Best NCC of the envelope ``ea[r0:r1, cols]`` (every ``q``-th row) against ``eb`` shifted by up to
+    ``max_shift`` rows and ``max_lat`` lines; stops at :data:`ECHO_NCC`."""
+    best = -1.0
+    n, m = eb.shape
+    c0, c1 = max(0, cols[0]), min(m, cols[1])
+    for s in range(-max_shift, max_shift + 1, q):
+        lo, hi = max(r0, -s), min(r1, n - s)
+        if hi - lo < 2 * q:
+            continue
+        for t in range(-max_lat, max_lat + 1):
+            cl, ch = max(c0, -t), min(c1, m - t)
+            if ch - cl < 1:
+                continue
+            a = ea[lo:hi:q, cl:ch].ravel()
+            b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
+            a = a - a.mean()
+            b = b - b.mean()
+            d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
+            if d > 0:
+                best = max(best, float(np.dot(a, b)) / d)
+                if best >= ECHO_NCC:
+                    return best
+    return best
+
+
 def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, chunk=256) -> float:
     """Best NCC of the envelope ``ea[rows, cols]`` against ``eb`` shifted by up to ``max_shift`` rows (steps of
     ``row_step``) and ``max_lat`` lines, in chunks of at most ``chunk`` rows taken every ``row_step``-th row (the
     envelope is smooth over it): the best over the chunks, so that echo anywhere in the strip counts; stops at
     :data:`ECHO_NCC`."""
-    q = int(row_step)
     best = -1.0
-    n, m = eb.shape
-    c0, c1 = max(0, cols[0]), min(m, cols[1])
-    chunk = max(int(chunk), -(-VETO_SAMPLES // max(1, c1 - c0)))     # enough samples for a noise NCC near 0
-    top, bottom = rows[0], min(rows[1], n)
-    k = max(1, (bottom - top) // (chunk * q))          # pieces of equal height, none shorter than ``chunk``
-    cuts = np.linspace(top, bottom, k + 1).round().astype(int)
+    cuts = _chunk_cuts(rows, eb.shape[0], cols, row_step, chunk)
     for r0, r1 in zip(cuts[:-1], cuts[1:]):
-        for s in range(-max_shift, max_shift + 1, q):
-            lo, hi = max(r0, -s), min(r1, n - s)
-            if hi - lo < 2 * q:
-                continue
-            for t in range(-max_lat, max_lat + 1):
-                cl, ch = max(c0, -t), min(c1, m - t)
-                if ch - cl < 1:
-                    continue
-                a = ea[lo:hi:q, cl:ch].ravel()
-                b = eb[lo + s:hi + s:q, cl + t:ch + t].ravel()
-                a = a - a.mean()
-                b = b - b.mean()
-                d = float(np.sqrt(np.dot(a, a) * np.dot(b, b)))
-                if d > 0:
-                    best = max(best, float(np.dot(a, b)) / d)
-                    if best >= ECHO_NCC:
-                        return best
+        best = max(best, _chunk_ncc(ea, eb, r0, r1, cols, max_shift, int(row_step), max_lat))
+        if best >= ECHO_NCC:
+            return best
     return best
+
+
+def _followed_rows(ea, eb, rows, cols, max_shift, row_step, *, from_bottom, max_lat=1, chunk=256):
+    """The row a depth strip's echo reaches: scanning the strip's chunks (:func:`_strip_ncc`) from its far end
+    (the bottom with ``from_bottom``, else the top), the far edge of the first chunk whose envelope still matches
+    the other frame; None when none does.  Noise beyond the echo is independent from frame to frame, so the
+    chunks that hold only noise are left out with the rest of the strip."""
+    cuts = _chunk_cuts(rows, eb.shape[0], cols, row_step, chunk)
+    pieces = list(zip(cuts[:-1], cuts[1:]))
+    for r0, r1 in (pieces[::-1] if from_bottom else pieces):
+        if _chunk_ncc(ea, eb, r0, r1, cols, max_shift, int(row_step), max_lat) >= ECHO_NCC:
+            return int(r1) if from_bottom else int(r0)
+    return None
 
 
 def _clipped(mags):
@@ -479,17 +509,29 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     row_db, floor, echo = _profile(row_med, live_r, w)
     reasons = []
 
-    def veto(rows, cols):
-        """True when the strip still matches the other frame (echo moving with the tissue)."""
-        if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
-            return False
+    def veto_args(rows):
         if not envs:
             envs.extend([envelope(ref), envelope(mov)])
         depth = ox + rows[1] * dx
         max_shift = int(np.ceil(max(3.0 * period, 0.05 * abs(depth)) / dx))
         step = max(1, int(round(period / (2.0 * dx))))     # the envelope varies over a pulse length
         chunk = max(8, int(round(VETO_PERIODS * period / (step * dx))))
+        return max_shift, step, chunk
+
+    def veto(rows, cols):
+        """True when the strip still matches the other frame (echo moving with the tissue)."""
+        if mov is None or rows[1] - rows[0] < 2 or cols[1] - cols[0] < 1:
+            return False
+        max_shift, step, chunk = veto_args(rows)
         return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, chunk=chunk) >= ECHO_NCC
+
+    def followed(rows, from_bottom):
+        """The row the echo of a depth strip reaches from the kept rows (:func:`_followed_rows`), or None."""
+        if mov is None or rows[1] - rows[0] < 2:
+            return None
+        max_shift, step, chunk = veto_args(rows)
+        return _followed_rows(envs[0], envs[1], rows, (0, m), max_shift, step, from_bottom=from_bottom,
+                              chunk=chunk)
 
     has_floor = echo - floor >= MIN_RANGE_DB
     (a, b) = _echo_run(row_db, floor, max(w, n // 20), live_r)[0] if has_floor else _live_span(live_r)
@@ -501,8 +543,12 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     if a > 0:
         reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "
                        + _why(has_floor and live_r[:a].any(), echo, floor, at))
-    if b < n and has_floor and veto((b, n), (0, m)):
-        b = _live_span(live_r)[1]
+    # a deep strip that still follows the tissue is kept as far as it does (to the live span's end at most): the
+    # noise below a weak deep echo is cut off, not kept with it
+    if b < n and has_floor:
+        k = followed((b, n), from_bottom=True)
+        if k is not None:
+            b = min(k, _live_span(live_r)[1])
     if b < n:
         reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
                        + _why(has_floor and live_r[b:].any(), echo, floor, at))

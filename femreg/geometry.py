@@ -501,6 +501,13 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                          "n_frames), not a frame")
     if kw.get("offset") is not None:
         raise InputError(f"offset= is not supported with a {geometry.kind} geometry")
+    roi = kw.get("roi")
+    if roi is not None and not isinstance(roi, str) and kw.get("mesh") is None:
+        # the sample-space stage would read it as (range, arc length at the middle sample), not as x, y
+        raise InputError(pass_as(f"roi {roi!r} is a Cartesian rectangle: with a {geometry.kind} geometry give depth="
+                                 "(d0, d1), a range along the rays in mm",
+                                 f"--roi is a Cartesian rectangle: with --geometry {geometry.kind} give --depth D0 D1 "
+                                 "(a range along the rays, mm) instead"))
     if isinstance(alpha, str):
         raise InputError(pass_as(f"alpha='auto' is not supported with a {geometry.kind} geometry",
                                  f"--alpha auto is not supported with --geometry {geometry.kind}"))
@@ -621,7 +628,35 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
                       quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha,
                       hop_gain=check.hop_gain, geometry=geometry, sample_space=inner,
                       lambda_bar=getattr(sol.reg, "lambda_bar", None))
+    if inner is not None and inner.excluded:
+        # what the sample-space stage left out (femreg.echo), in the probe's own terms: ranges along the rays and
+        # ray angles, not the (r, s) rectangle it was cut in
+        res.excluded = beam_excluded(inner.excluded, rho_c)
+        res.message = f"{res.message}; {res.excluded}"
     return with_refinement(res, sol)
+
+
+_NUM = r"(-?\d+(?:\.\d+)?)"
+
+
+def beam_excluded(text: str, rho_c: float) -> str:
+    """A sample-space crop's ``excluded`` text (:mod:`femreg.echo`, in (range r, arc s at ``rho_c``) mm) for a beam
+    frame: ``depth below D mm`` reads ``range beyond D mm (along the rays)``, lateral spans in arc mm become ray
+    angles in degrees."""
+    import re
+
+    def deg(v):
+        return np.rad2deg(float(v) / rho_c) + 0.0
+
+    t = re.sub(r"\bdepth below ", "range beyond ", str(text))
+    t = re.sub(r"\bdepth above ", "range before ", t)
+    t = re.sub(r"(range (?:beyond|before) " + _NUM + r" mm)", r"\1 (along the rays)", t)
+    t = re.sub(r"\blines at " + _NUM + "-" + _NUM + r" mm",
+               lambda m: f"rays at {deg(m.group(1)):.1f} to {deg(m.group(2)):.1f} deg", t)
+    t = re.sub(r"\bthe given (roi|depth) x " + _NUM + "-" + _NUM + r" mm, y " + _NUM + "-" + _NUM + r" mm",
+               lambda m: (f"the given {m.group(1)}: range {m.group(2)}-{m.group(3)} mm, rays at "
+                          f"{deg(m.group(4)):.1f} to {deg(m.group(5)):.1f} deg"), t)
+    return t
 
 
 def _judged_on_objf(sol, u0):

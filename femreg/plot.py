@@ -516,8 +516,9 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
 
         polys = np.stack([p[1][t].T, p[0][t].T], axis=-1)  # (n_el, 4, [y, x])
         ax.add_collection(PolyCollection(polys, facecolor="none", edgecolor="k", linewidth=0.3))
+        # a fan: the field panels' limits (the whole fan, as _draw sets them), so the panels line up
         ext = extent_mm(shape, sp, origin) if positions is None else (
-            p[1].min(), p[1].max(), p[0].max(), p[0].min())
+            np.min(positions[1]), np.max(positions[1]), np.max(positions[0]), min(np.min(positions[0]), 0.0))
         ax.set_xlim(ext[0], ext[1])
         ax.set_ylim(ext[2], ext[3])
         ax.set_aspect(aspect)
@@ -668,7 +669,12 @@ def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cm
     v = np.asarray(values, float).ravel()
     if v.size != t.shape[1]:
         raise InputError(f"values has {v.size} entries, the mesh {t.shape[1]} elements")
-    ax = _ax(ax)
+    if ax is None:
+        # the figure shaped as the mesh (a convex fan is wider than deep): about 1.4 in of its width go to the
+        # colour bar and the labels, 1.2 in of its height to the title and the axis label
+        depth, width = float(np.ptp(p[0])), float(np.ptp(p[1]))
+        h = 3.6 * depth / width + 1.2 if width > 0 else 6.0
+        ax = _ax(None, figsize=(5.0, float(np.clip(h, 2.5, 8.0))))
     finite = v[np.isfinite(v)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.1, 1.0))
     if log:

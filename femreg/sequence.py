@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from skfem import MeshQuad1
 
-from ._atomic import load_frame_record, open_run_folder, progress_bar, save_frame
+from ._atomic import atomic_write_text, load_frame_record, open_run_folder, progress_bar, save_frame
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
@@ -125,6 +125,23 @@ def _params_record(n_frames, shape, spacing, origin, mode, regularizer, alpha, m
             "n_nodes": None if n is None else int(n),
             "mesh_checksum": None if n is None else float(np.round(np.sum(mesh.p * np.arange(1, n + 1)), 6)),
             "init": str(init)}
+
+
+def _record_beam_region(pfile, res) -> None:
+    """``registered_region`` of a convex / sector track's record from its first pair's sample-space crop
+    (``res.sample_space.roi``, (range, arc) mm): the rows and rays of the frames registered, its shape and its
+    first range (the record written at the start, before the first pair, holds the whole frames)."""
+    inner = getattr(res, "sample_space", None)
+    roi = None if inner is None else getattr(inner, "roi", None)
+    if roi is None:
+        return
+    (dr, ds), (r0, s0) = inner.spacing, inner.origin
+    rows = [int(round((roi[0] - r0) / dr + 0.5)), int(round((roi[1] - r0) / dr + 0.5))]
+    cols = [int(round((roi[2] - s0) / ds + 0.5)), int(round((roi[3] - s0) / ds + 0.5))]
+    rec = json.loads(pfile.read_text())
+    rec["registered_region"] = {"rows": rows, "cols": cols, "shape": [rows[1] - rows[0], cols[1] - cols[0]],
+                                "origin": [float(r0 + rows[0] * dr), 0.0]}
+    atomic_write_text(pfile, json.dumps(rec, indent=1))
 
 
 def _region_record(shape, origin, crop) -> dict:
@@ -344,7 +361,8 @@ def _frame_result(r, mesh, u):
               solver_result=r.solver_result, quality=r.quality, strategy=r.strategy,
               alpha_effective=r.alpha_effective, lambda_bar=getattr(r, "lambda_bar", None))
     if isinstance(r, BeamResult):
-        return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, **kw)
+        # the first pair's sample-space echo crop (femreg.geometry.register_beam) is said by the frame too
+        return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, excluded=r.excluded, **kw)
     return RegistrationResult(mesh, u, **kw)
 
 
@@ -376,9 +394,15 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
         params["roi"] = list(crop.roi_mm)
     params.update(json.loads(json.dumps(record or {}, default=repr)))
 
+    fresh = checkpoint_dir is not None and not (Path(checkpoint_dir) / "track.json").exists()
+    existed = checkpoint_dir is not None and Path(checkpoint_dir).exists()
+    described = _region_record(shape, origin, crop)
+    if resume and not fresh and crop is None and "geometry" in (record or {}):
+        # a beam track's region was recorded after its first pair (_record_beam_region): a resume keeps it
+        old = json.loads((Path(checkpoint_dir) / "track.json").read_text()).get("registered_region")
+        described["registered_region"] = old or described["registered_region"]
     ckpt = open_run_folder(checkpoint_dir, params, resume=resume, record="track.json", started=("frame_*.npz",),
-                           kind="a tracking run", argument="checkpoint_dir",
-                           described=_region_record(shape, origin, crop))
+                           kind="a tracking run", argument="checkpoint_dir", described=described)
 
     inc_kwargs = dict(register_kwargs)
     if (mode == "accumulate" and register_kwargs.get("strategy", "auto") == "auto" and isinstance(regularizer, str)
@@ -392,6 +416,7 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
     prev_inc = None
     tainted = None                      # (frame, why) of the first flagged increment, accumulate mode
     prev_own_flag = ""                  # the last increment's own flag: a fresh start follows it, not a taint
+    beam_excluded = None                # what the first pair of a beam track left out of the mesh
     bar = progress_bar(progress, len(seq) - 1, f"track ({mode})", "frame", on_frame)
     try:
         for k in range(1, len(seq)):
@@ -401,6 +426,8 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                 res = load_result(path)
                 inc, flag, retried = load_frame_record(path)
                 computed = False
+                if beam_excluded is None and isinstance(res, BeamResult):
+                    beam_excluded = res.excluded
             elif k in repeats:
                 # nothing moved between frames k - 1 and k: frame 0 -> k is frame 0 -> k - 1
                 res = copy.copy(out[-1])
@@ -437,6 +464,15 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                     crop.widen(res)
                 elif uncut is not None:
                     res.data_mask = uncut
+                if crop is None and isinstance(res, BeamResult):
+                    # a beam track's mesh is the first pair's, cut by its echo crop: every frame says so
+                    if beam_excluded is None:
+                        beam_excluded = res.excluded
+                        if ckpt is not None and res.excluded:
+                            _record_beam_region(ckpt / "track.json", res)
+                    elif res.excluded is None:
+                        res.excluded = beam_excluded
+                        res.message = f"{res.message}; {beam_excluded}" if res.message else beam_excluded
                 if tainted is not None:
                     mark_tainted(res, *tainted)
                 # A pair is flagged by image evidence, or when the registration's own check failed.
@@ -469,6 +505,14 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
             if bar is not None:
                 bar.set_postfix_str(f"ncc {res.ncc_after:.2f}" + (" FLAGGED" if flag else ""))
                 bar.update(1)
+    except InputError:
+        # bad input found by the first pair (a convex / sector track's region is checked there): no run was
+        # started, so the record this call wrote goes too and the folder is left as it was
+        if fresh and ckpt is not None and not any(ckpt.glob("frame_*.npz")):
+            (ckpt / "track.json").unlink(missing_ok=True)
+            if not existed and not any(ckpt.iterdir()):
+                ckpt.rmdir()
+        raise
     finally:
         if bar is not None:
             bar.close()

@@ -294,7 +294,12 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
-    fig, axs = plt.subplots(1, 3, figsize=(13, 5), constrained_layout=True)
+    height = 5.0
+    if getattr(res, "geometry", None) is not None:
+        # a fan is wider than deep: the figure as tall as its panels need (a fixed 5 in left 40 % of it white)
+        e = extent_mm(res.exx.shape, res.spacing, res.origin)
+        height = float(np.clip(3.2 * abs(e[2] - e[3]) / max(abs(e[1] - e[0]), 1e-9) + 1.9, 3.2, 7.0))
+    fig, axs = plt.subplots(1, 3, figsize=(13, height), constrained_layout=True)
     title = f"B-mode, frame index {res.ref_frame}"
     if getattr(res, "geometry", None) is not None:      # the (range, angle) frame at its samples' positions
         pos = res.geometry.sample_positions(np.shape(frame), res.sample_spacing, res.sample_origin)
@@ -334,6 +339,12 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
         _hatch(axs, outside, spacing, origin, roi)         # why: below the panels (a narrow panel cuts it)
         fig.supxlabel(textwrap.fill("hatched: left out of the mesh (no strain there)"
                                     + (f"; {excluded}" if excluded else ""), SUPXLABEL_WIDTH), fontsize="small")
+    elif excluded:                  # the loop cut before the registration (a fan's ranges past the echo): not drawn
+        import textwrap
+
+        from ..plot import SUPXLABEL_WIDTH
+
+        fig.supxlabel(textwrap.fill(f"not shown: {excluded}", SUPXLABEL_WIDTH), fontsize="small")
     if failure:
         # the whole advice: the band to pass is at its end
         draw_failure(fig, f"NO ELASTOGRAM: {failure}", max_lines=None)
@@ -459,7 +470,8 @@ def run(args) -> int:
         failure = (f"no pair was usable (none with strain in {lo:g}-{hi:g} % that registered; see "
                    f"{out / 'pairs.csv'})" + (f": {why}" if why else ""))
     write_picture(out / "elastogram.png", shown_res, np.asarray(frames[res.ref_frame], float), shown_res.spacing,
-                  shown_res.origin, shown, failure, excluded=res.excluded if hatch else None, **hatch)
+                  shown_res.origin, shown, failure,
+                  excluded=res.excluded if hatch or getattr(res, "geometry", None) is not None else None, **hatch)
     cine = write_cine(out, shown_res, frames, shown_res.spacing, fps=args.fps, strain_range=shown, **hatch)
     n_sel = sum(1 for p in res.pairs if p["registered"])
     files = (getattr(fr, "metadata", None) or {}).get("files")   # a folder of frame files: name the file too

@@ -64,8 +64,12 @@ def _what_is_missing(exc: InputError, path: Path, args):
         need = ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
                 "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)")
         s = exc.suggestion
-        return (lambda beam=False: need + (f"; {s.text(beam=beam)}" if s else "")), \
-            {"spacing": [v if v is not None else 1.0 for v in given]}
+
+        def need_for(beam=False):
+            if beam and given[0] is not None and given[1] is None:
+                return None         # --spacing DX auto: a convex / phased array's rays are --angle-pitch apart
+            return need + (f"; {s.text(beam=beam)}" if s else "")
+        return need_for, {"spacing": [v if v is not None else 1.0 for v in given]}
     return (lambda beam=False: str(exc)), {}
 
 
@@ -358,7 +362,12 @@ def run(args) -> int:
     if probe:
         # a convex / phased array's lateral spacing is its angle pitch, not a line pitch the file should state
         if spacing_need is not None:
-            info["needs"][0] = spacing_need(beam=True)
+            beam_need = spacing_need(beam=True)
+            if beam_need is None:
+                info["needs"].pop(0)
+                info["range_step_mm"] = float(args.spacing[0])
+            else:
+                info["needs"][0] = beam_need
         info["needs"].append(probe)
     # 0: ready to register; 1: described, but it needs something first (printed); 2 (raised): unreadable
     rc = 1 if info["needs"] else 0
@@ -386,6 +395,8 @@ def run(args) -> int:
         print(f"origin    {info['origin_mm'][0]:g}, {info['origin_mm'][1]:g} mm{src}")
         print(f"extent    {info['extent_mm'][0]:g} mm x {info['extent_mm'][1]:g} mm"
               + (" as read without --transpose" if info.get("transposed") else ""))
+    elif info.get("range_step_mm") is not None:
+        print(f"spacing   {info['range_step_mm']:g} mm range step (given); the rays are --angle-pitch apart")
     else:
         print(_no_spacing_line(info["needs"]))
     print(f"values    {info.get('values_of', '')}{' ' if info.get('values_of') else ''}min {info['min']:.6g}, "

@@ -246,6 +246,35 @@ def text73(ds):
         return None
 
 
+def _struct_members73(f, depth: int = 3):
+    """(path, dataset) of the numeric fields of a v7.3 file's scalar structs, nested ``depth`` levels at most: a
+    struct is an HDF5 group, its fields datasets or groups (``P/Trans/radiusMm``); struct arrays and cells hold
+    object references instead and are left out."""
+    import h5py
+
+    out = []
+
+    def walk(group, prefix, level):
+        for key in group.keys():
+            obj = group.get(key)
+            if isinstance(obj, h5py.Group):
+                if level < depth:
+                    walk(obj, f"{prefix}{key}/", level + 1)
+                continue
+            if not isinstance(obj, h5py.Dataset) or obj.dtype.kind not in "biuf" or obj.dtype.names:
+                continue
+            cls = obj.attrs.get("MATLAB_class", b"double")
+            cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
+            if cls in _NUMERIC_CLASSES and "MATLAB_empty" not in obj.attrs:
+                out.append((f"{prefix}{key}", obj))
+
+    for key in f.keys():
+        obj = f.get(key)
+        if not key.startswith("#") and isinstance(obj, h5py.Group):
+            walk(obj, f"{key}/", 1)
+    return out
+
+
 def _read_mat73(path, variable, ndims=(2, 3)):
     import h5py
 
@@ -287,6 +316,12 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                                and not d.dtype.names},
                    "vectors": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1]
                                and 3 <= d.size <= AXIS_MAX and not d.dtype.names}}
+            # a struct's numbers too (P.fs, P.Trans.radiusMm), named by their path as the v5 reader names them
+            for key, d in _struct_members73(f):
+                if d.size == 1:
+                    aux["scalars"][key] = d[()]
+                elif 3 <= d.size <= AXIS_MAX:
+                    aux["vectors"][key] = d[()]
             for a in AUX:
                 if a in dsets and a != name and cands[a][1]:
                     aux[a] = dsets[a][()]
