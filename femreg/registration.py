@@ -331,15 +331,13 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     """
     refine = default_refine(refine, strategy=strategy, regularizer=regularizer, mesh=mesh, element_size=element_size,
                             offset=offset, geometry=geometry, alpha=alpha, allow_mesh_outside=allow_mesh_outside)
-    args = dict(locals())
-    routed = _route(reference_image, moving_image, args)
+    routed = _route(reference_image, moving_image, args := dict(locals()))
     if routed is not None:              # probe geometry, echo crop or alpha="auto": register is called back
         return routed
     t_all, timings = time.perf_counter(), {}
-    ref, mov, spacing, origin, initial = _validate(reference_image, moving_image, spacing, origin,
-                                                   regularizer=regularizer, strategy=strategy, initial=initial,
-                                                   maxiter=maxiter, tol=tol, strain_tol=strain_tol,
-                                                   check_orientation=check_orientation, refine=refine)
+    ref, mov, spacing, origin, initial = _validate(
+        reference_image, moving_image, spacing, origin, regularizer=regularizer, strategy=strategy, initial=initial,
+        maxiter=maxiter, tol=tol, strain_tol=strain_tol, check_orientation=check_orientation, refine=refine)
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(strategy, regularizer,
                                                                                    regularizer_options))
 
@@ -378,8 +376,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     t = time.perf_counter()
     solve_kw = dict(offset=offset, maxiter=maxiter, tol=tol, linear_solver=linear_solver)
     if strategy == "auto":
-        st = float(strain_tol) if strain_tol is not None else (
-            GN_STRAIN_TOL_TIGHT if getattr(user_reg, "quadratic", False) else GN_STRAIN_TOL)
+        st = (GN_STRAIN_TOL_TIGHT if user_reg.quadratic else GN_STRAIN_TOL) if strain_tol is None else float(strain_tol)
         solve_kw.update(mask_outside=True, tol=component_tol(tol, u0), strain_tol=st if st > 0 else None)
     def fine_solve(u, **kw):            # Gauss-Newton on the final mesh from the nodal displacement u
         return solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw)
