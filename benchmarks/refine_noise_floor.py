@@ -35,9 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.refine_stress import STRESS_PROBES, Rotated  # noqa: E402
+from benchmarks.refine_stress import STRESS_PROBES, _comp, _inc  # noqa: E402
 from benchmarks.robustness import errors, roi_slices, truth  # noqa: E402
-from forward import fields as F  # noqa: E402
 from forward.pairs import alpha_for_floor, as_probe, attenuation_gain_db, make_pair  # noqa: E402
 
 
@@ -52,17 +51,6 @@ class FloorCase:
     top_mm: float = 2.0
     seed: int = 0
     rho: float | None = None
-
-
-def _inc(kind, model, level, r, rot=None):
-    def build():
-        f = F.Inclusion(kind, model, level, radius_mm=r)
-        return f if rot is None else Rotated(f, rot)
-    return build
-
-
-def _comp(level):
-    return lambda: F.compression(level)
 
 
 CASES = [

@@ -34,3 +34,15 @@ def colorbar_labels(values, vmin, vmax):
     labels = [t.get_text() for t in ax.collections[0].colorbar.ax.get_yticklabels() if t.get_text()]
     plt.close(fig)
     return labels
+
+
+def assert_retry_recorded(folder, frame: int = 3):
+    """A track folder's record of a retried increment: ``load_track`` lists ``frame``, its file holds the note and
+    the frame before it holds none."""
+    import femreg
+
+    assert femreg.load_track(folder).retried == [frame]
+    with np.load(folder / f"frame_{frame:03d}.npz") as z:
+        assert str(z["retried"]).startswith("retried from a fresh start")
+    with np.load(folder / f"frame_{frame - 1:03d}.npz") as z:
+        assert "retried" not in z.files
