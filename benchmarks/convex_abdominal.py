@@ -55,6 +55,7 @@ from scipy import ndimage
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+from forward.fields import imaged_points  # noqa: E402
 from forward.pairs import SCATTERERS_PER_CELL, Probe  # noqa: E402
 from forward.ultrasound import ImagingGrid, make_scatterers, noise_sigma, render_rf  # noqa: E402
 
@@ -133,13 +134,7 @@ def motion(k, X):
 
 def tissue_points(i, x):
     """Tissue points imaged at x in frame i (fixed point of motion(i, X) = x)."""
-    X = np.array(x, float)
-    for _ in range(60):
-        Xn = X - (motion(i, X) - x)
-        if np.max(np.abs(Xn - X)) < 1e-10:
-            return Xn
-        X = Xn
-    return X
+    return imaged_points(lambda X: motion(i, X), x)
 
 
 def true_u(i, j, x):

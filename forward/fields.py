@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 __all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
-           "Layers", "SlidingColumns", "Inclusion", "as_points"]
+           "Layers", "SlidingColumns", "Inclusion", "as_points", "imaged_points"]
 
 
 def as_points(points) -> np.ndarray:
@@ -34,6 +34,20 @@ def as_points(points) -> np.ndarray:
     if p.ndim != 2 or p.shape[1] != 2:
         raise ValueError(f"points must be an (n, 2) array of [x, y] mm, got shape {p.shape}")
     return p
+
+
+def imaged_points(motion, x, tol: float = 1e-12, maxiter: int = 60) -> np.ndarray:
+    """The tissue points X a frame images at ``x`` (n, 2) mm: the fixed point of ``motion(X) = x`` by the iteration
+    X <- X - (motion(X) - x), from X = x (``motion``: tissue point -> where the frame images it, a small
+    deformation of the identity); stops when no point moves by more than ``tol`` mm."""
+    x = np.asarray(x, float)
+    X = np.array(x, float)
+    for _ in range(int(maxiter)):
+        Xn = X - (motion(X) - x)
+        if np.max(np.abs(Xn - X)) < tol:
+            return Xn
+        X = Xn
+    return X
 
 
 def _level(level) -> float:
