@@ -5,6 +5,20 @@ import numpy as np
 import pytest
 
 
+
+def _loop_with_zero_rows():
+    """A 3-frame convex loop (R 40 mm, 0.6 deg, 40 rays, 16 mm of range) whose last quarter of samples is zero on
+    every frame: (the sequence, its frames)."""
+    from femreg import Convex
+    from forward import fields as F
+    from forward.beam import make_beam_sequence
+
+    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
+                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1, n_frames=3, step=0.005)
+    frames = seq.frames.copy()
+    frames[:, 3 * frames.shape[1] // 4:] = 0.0
+    return seq, frames
+
 def test_beam_excluded_text():
     from femreg.geometry import beam_excluded
 
@@ -41,15 +55,9 @@ def test_convex_result_names_the_rows_left_out(tmp_path):
 
 def test_convex_track_frames_name_the_rows_left_out(tmp_path):
     import femreg
-    from femreg import Convex
-    from forward import fields as F
-    from forward.beam import make_beam_sequence
 
-    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
-                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1, n_frames=3, step=0.005)
-    frames = seq.frames.copy()
+    seq, frames = _loop_with_zero_rows()
     n = frames.shape[1]
-    frames[:, 3 * n // 4:] = 0.0
     out = femreg.track(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry, maxiter=3,
                        checkpoint_dir=tmp_path / "run")
     r_cut = seq.origin[0] + (3 * n // 4 - 0.5) * seq.spacing[0]
@@ -138,15 +146,9 @@ def test_convex_track_record_names_the_rows_registered(tmp_path):
     import json
 
     import femreg
-    from femreg import Convex
-    from forward import fields as F
-    from forward.beam import make_beam_sequence
 
-    seq = make_beam_sequence(F.compression(0.01), Convex(radius_mm=40.0, angle_pitch_deg=0.6), probe="L7",
-                             depth_mm=16.0, n_rays=40, snr_db=30.0, seed=1, n_frames=3, step=0.005)
-    frames = seq.frames.copy()
+    seq, frames = _loop_with_zero_rows()
     n = frames.shape[1]
-    frames[:, 3 * n // 4:] = 0.0
     femreg.track(frames, spacing=seq.spacing[0], origin=seq.origin, geometry=seq.geometry, maxiter=3,
                  checkpoint_dir=tmp_path / "run")
     rec = json.loads((tmp_path / "run" / "track.json").read_text())
