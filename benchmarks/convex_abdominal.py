@@ -55,7 +55,7 @@ from scipy import ndimage
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-from forward.fields import imaged_points  # noqa: E402
+from forward.fields import LoopTruth  # noqa: E402
 from forward.pairs import SCATTERERS_PER_CELL, Probe  # noqa: E402
 from forward.ultrasound import ImagingGrid, make_scatterers, noise_sigma, render_rf  # noqa: E402
 
@@ -132,23 +132,14 @@ def motion(k, X):
     return m
 
 
-def tissue_points(i, x):
-    """Tissue points imaged at x in frame i (fixed point of motion(i, X) = x)."""
-    return imaged_points(lambda X: motion(i, X), x)
-
-
 def true_u(i, j, x):
     """Frame i -> j displacement at frame-i physical points x (n, 2) mm."""
-    X = tissue_points(i, x)
-    return motion(j, X) - motion(i, X)
+    return LoopTruth(motion).displacement(i, j, x)
 
 
 def true_strain(i, j, x, h=0.02):
     """Small strain [e_xx, e_yy, e_xy] of frame i -> j at frame-i points (central differences, h mm)."""
-    x = np.asarray(x, float)
-    gx = (true_u(i, j, x + [h, 0]) - true_u(i, j, x - [h, 0])) / (2 * h)
-    gy = (true_u(i, j, x + [0, h]) - true_u(i, j, x - [0, h])) / (2 * h)
-    return np.column_stack([gx[:, 0], gy[:, 1], 0.5 * (gy[:, 0] + gx[:, 1])])
+    return LoopTruth(motion).strain(i, j, x, h)
 
 
 def render():

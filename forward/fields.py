@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 __all__ = ["Affine", "translation", "compression", "shear_rotation", "compression_rotation", "Bending", "ShearBand",
-           "Layers", "SlidingColumns", "Inclusion", "as_points", "imaged_points"]
+           "Layers", "SlidingColumns", "Inclusion", "as_points", "imaged_points", "LoopTruth"]
 
 
 def as_points(points) -> np.ndarray:
@@ -48,6 +48,25 @@ def imaged_points(motion, x, tol: float = 1e-12, maxiter: int = 60) -> np.ndarra
             return Xn
         X = Xn
     return X
+
+
+class LoopTruth:
+    """The exact truth of a loop given by ``motion(k, X)``: where frame k images the tissue point X (frame-0
+    coordinates, (n, 2) mm).  ``displacement(i, j, x)``: frame i -> j at frame-i points x (n, 2) mm;
+    ``strain(i, j, x, h)``: its small strain [e_xx, e_yy, e_xy] by central differences of step h mm."""
+
+    def __init__(self, motion):
+        self.motion = motion
+
+    def displacement(self, i, j, x) -> np.ndarray:
+        X = imaged_points(lambda P: self.motion(i, P), x)
+        return self.motion(j, X) - self.motion(i, X)
+
+    def strain(self, i, j, x, h: float = 1e-4) -> np.ndarray:
+        x = np.asarray(x, float)
+        gx = (self.displacement(i, j, x + [h, 0]) - self.displacement(i, j, x - [h, 0])) / (2 * h)
+        gy = (self.displacement(i, j, x + [0, h]) - self.displacement(i, j, x - [0, h])) / (2 * h)
+        return np.column_stack([gx[:, 0], gy[:, 1], 0.5 * (gy[:, 0] + gx[:, 1])])
 
 
 def _level(level) -> float:
