@@ -432,3 +432,18 @@ def test_pair_of_a_folder_names_its_files(tmp_path, capsys):
     rc, out, err = _run(["register", SEQ, *RAW, "--spacing", "0.02", "0.2", "--pair", "1", "4", "-o",
                          tmp_path / "p.npz", "--maxiter", "2", "--refine", "none"], capsys)
     assert rc in (0, 1) and "registering frame2.raw -> frame5.raw (frames 1 -> 4" in err, err
+
+
+@pytest.mark.parametrize("command", ["register", "track", "info"])
+def test_one_spacing_value_says_which_two_are_wanted(tmp_path, capsys, command):
+    # argparse alone said "expected 2 arguments"; a convex / sector user needs the 'auto' form too
+    path = tmp_path / "f.npy"
+    np.save(path, np.zeros((3, 64, 16), np.float32))
+    with pytest.raises(SystemExit) as exc:
+        main([command, str(path), "--spacing", "0.02"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert "expected 2 arguments" in err and "--spacing DX DY" in err and "--spacing DR auto" in err, err
+    with pytest.raises(SystemExit) as exc:
+        main([command, str(path), "--spacing", "0.02", "0.1", "--origin", "5"])
+    assert exc.value.code == 2 and "--origin X0 Y0" in capsys.readouterr().err

@@ -75,10 +75,30 @@ def _contributed() -> dict:
     return {ep.name: ep for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)}
 
 
+#: What argparse's "expected N arguments" error of an option leaves out: the values it takes.
+_NARGS_HINTS = {
+    "--spacing": "give the axial and the lateral spacing in mm (--spacing DX DY); 'auto' keeps the file's value for "
+                 "one of them (convex / sector frames: --spacing DR auto, the range step with the angle from the "
+                 "geometry)",
+    "--origin": "give the depth of the first sample and the lateral position of the first line in mm "
+                "(--origin X0 Y0)",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors of an option given too few values say which values it takes."""
+
+    def error(self, message):
+        for opt, hint in _NARGS_HINTS.items():
+            if message.startswith(f"argument {opt}: expected"):
+                message = f"{message}: {hint}"
+        super().error(message)
+
+
 def build_parser(argv=None) -> argparse.ArgumentParser:
     """The parser; when ``argv`` names a contributed subcommand only that one is imported, otherwise all are (the
     help lists them)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="femreg",
         description="Finite-element ultrasound elastography with momentum (SPREME) regularisation.",
         epilog="The first run on a machine compiles the numerical kernels (numba, about 9-14 s, said once on a "
