@@ -38,6 +38,8 @@ SNR, TOP = 30.0, 2.0
 CASES = {
     "L7": ("L7", (30.0, 20.0), 24.0, lambda: F.Inclusion("stiff", "plane-strain", 0.01, radius_mm=3.0), 4, 0.01),
     "L12": ("L12", (20.0, 12.0), 15.0, lambda: F.compression(0.01), 4, 0.01),
+    "paper": ("paper", (40.0, 30.0), 34.0, lambda: F.Inclusion("stiff", "plane-strain", 0.01, radius_mm=3.0), 4,
+              0.01),
 }
 
 
@@ -117,12 +119,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--what", nargs="*", default=["track", "elastogram"])
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, nargs="*", default=[0])
     a = ap.parse_args(argv)
     print(f"femreg from {Path(femreg.__file__).parent}")
-    for name in a.cases:
-        s, floor = tgc_loop(name, a.seed)
-        print(f"{name}: frames {s.frames.shape}, floor {floor} mm")
+    for name, seed in ((c, sd) for c in a.cases for sd in a.seeds):
+        s, floor = tgc_loop(name, seed)
+        print(f"{name} seed {seed}: frames {s.frames.shape}, floor {floor} mm")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             if "track" in a.what:
