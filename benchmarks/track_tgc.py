@@ -101,14 +101,17 @@ def run_elastogram(s, floor):
         X, Y = np.meshgrid(x, y, indexing="ij")
         P = np.column_stack([X.ravel(), Y.ravel()])
         i = res.ref_frame
-        j = next(r["mov"] for r in res.pairs if r["ref"] == i and r["usable"])
+        usable = sum(bool(r["usable"]) for r in res.pairs)
+        j = next((r["mov"] for r in res.pairs if r["ref"] == i and r["usable"]), None)
+        if j is None:
+            print(f"  elastogram {how:5s} region rows {r0}-{r1}  nothing usable  wall {wall:6.1f} s")
+            continue
         # the pair's strain frame i -> j at frame-i points: small strain, difference of the frame-0 fields
         true = (s.true_strain(j, P)[:, 0] - s.true_strain(i, P)[:, 0]).reshape(X.shape)
         est = res.exx
         inside = (X >= 4.0) & (X <= floor - 3.0)
         ok = np.isfinite(est) & inside
         err = 100 * float(np.sqrt(np.mean((est[ok] / np.mean(est[ok]) - true[ok] / np.mean(true[ok])) ** 2)))
-        usable = sum(bool(r["usable"]) for r in res.pairs)
         print(f"  elastogram {how:5s} region rows {r0}-{r1}  normalised error {err:6.2f} % over "
               f"{ok.sum() / max(inside.sum(), 1):.2f} of the echo  pairs usable {usable}  wall {wall:6.1f} s")
         if how == "auto" and res.excluded:
