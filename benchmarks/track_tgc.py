@@ -11,8 +11,14 @@ Scores: track, total strain error (%, e_xy weighted 2) of frame 0 -> k over the 
 less 3 mm above the floor), elements, flags, wall time; elastogram, RMS of the normalised axial strain error (%,
 truth of the best frame's pair normalised the same way) over the same box, pairs usable, wall time.
 
-Run: ``python benchmarks/track_tgc.py [--cases L7 L12] [--what track elastogram]`` (about 1-2 min per case and
-code on one core).  ``PYTHONPATH`` chooses the code measured.
+Measured (seeds 0-1, 2026-12-07): track before meshed the noise (L7 / paper / L12: 2624 / 2436 / 3690 elements),
+12.8-17.8 % / 7.3-13.3 % / 18.1-59.6 % (L12 frames 2-3 failed); now cut at 22.9-24.2 / 33.3-35.0 / 12.4-13.9 mm,
+7.4-8.3 % / 7.7-10.5 % / 0.3-1.7 % on 380-460 / 462-483 / 195-361 elements, the hand cut 7.4-7.9 % / 7.4-8.6 % /
+0.6-2.3 %.  Elastogram: within 0.1 points of the hand cut (before 10.7 / 8.4 % against 6.7 / 6.8 % on L7, one or
+no usable pair on L12).
+
+Run: ``python benchmarks/track_tgc.py [--cases L7 L12 paper] [--seeds 0 1] [--what track elastogram]`` (about
+1 min for all on one core).  ``PYTHONPATH`` chooses the code measured (``PYTHONPATH=. python ...`` this tree's).
 """
 from __future__ import annotations
 
