@@ -17,7 +17,8 @@ Phenomena in Optics*, 2007, ch. 3), so the statistics cannot tell them apart; th
   region spans every run of at least a smoothing length of rows reaching :data:`SEED_SNR_DB` and extends from
   there while the SNR stays at or above :data:`MIN_SNR_DB` (0 dB: the echo as strong as the noise, the level
   3 dB above the floor).  Noise that a time-gain compensation lifts with depth above the floor counts as echo
-  (a limitation: the level cannot tell it; nothing is cut off then);
+  (the level cannot tell it; :func:`unmatched_crop` finds it where the block matching of the registration's
+  start does not match, for :func:`femreg.register`, :func:`femreg.track` and :func:`femreg.elastogram`);
 * the same along the lines, on the rows kept (the median RF power of each line, which for Gaussian RF is the
   envelope's times :data:`RF_TO_ENVELOPE_POWER`), against the depth profile's floor;
 * a veto from the pair: electronic noise is independent from frame to frame while echo moves with the tissue,

@@ -148,9 +148,9 @@ class ElastogramResult:
         The rectangle of the input frames (pixel ranges, half-open) the loop was screened and registered on: a
         given ``roi`` / ``depth`` (widened by the mesh margin), the echo rectangle of RF frames
         (:func:`femreg.echo.find_echo`, as :func:`femreg.register` and :func:`femreg.track` detect it with
-        ``roi="auto"``: the noise floor, dead lines, saturation left out), or the bounding box of the fan when
-        envelope /
-        B-mode frames hold fill (:func:`femreg.echo.find_fill`: the wedges of a scan-converted sector, fixed on
+        ``roi="auto"``: the noise floor, dead lines, saturation left out; noise a time-gain compensation lifts
+        at depth, where the frames do not match), or the bounding box of the fan when envelope / B-mode frames
+        hold fill (:func:`femreg.echo.find_fill`: the wedges of a scan-converted sector, fixed on
         the screen while the tissue moves) or a ``data_mask`` is given; None: the whole frames.  ``excluded``
         says what was left out.
     data_mask : (n_axial, n_lateral) bool or None
@@ -741,8 +741,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         Passed to :func:`femreg.register`; a ``roi`` (x0, x1, y0, y1) mm or ``depth`` (d0, d1) mm among them cuts
         the whole loop to that rectangle before the screening (``region``), as :func:`femreg.register` cuts a
         pair; ``roi="auto"`` (default): RF frames on their echo rectangle (:func:`femreg.echo.find_echo` on the
-        first two frames that differ), envelope frames with fill on their fan (``data_mask``);
-        ``roi=None``: the whole frames.
+        first two frames that differ), envelope frames with fill on their fan (``data_mask``); where neither cuts
+        anything, the loop is cut above the rows at depth where those two frames do not match after register's
+        default start (noise a time-gain compensation lifts to the echo's level:
+        :func:`femreg.registration.noise_at_depth`); ``roi=None``: the whole frames.
     on_pair : callable(row), optional
         Called after each registered pair.  One with a true ``reports_progress`` attribute prints its own line
         per pair: off a terminal the registration's progress lines are then left out (one line per pair).
@@ -860,6 +862,16 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
         if crop is not None:
             seq, region, origin, excluded = _cut(seq, crop)
             mask = crop.mask
+    if region is None and beam is None and roi is not None and not given and data_mask is None:
+        # nothing cut by level or fill: noise a time-gain compensation lifts to the echo's level at depth, where
+        # the first two frames that differ do not match (femreg.echo.unmatched_crop), as register cuts a pair
+        from .registration import noise_at_depth
+
+        second = next((k for k in range(1, len(seq)) if k not in set(repeats)), 1)
+        crop = noise_at_depth(first, np.asarray(seq[second], dtype=float), spacing=spacing, origin=origin,
+                              regularizer=regularizer, alpha=alpha, **register_kwargs)
+        if crop is not None:
+            seq, region, origin, excluded = _cut(seq, crop)
     lo, hi = _band(band)
     centre = float(np.sqrt(lo * hi))
     if not (0.0 <= float(persistence) < 1.0):

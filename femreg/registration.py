@@ -16,6 +16,7 @@ never worse than the start) -> :class:`femreg.result.RegistrationResult`.  The s
 from __future__ import annotations
 
 import copy
+import inspect
 import time
 
 import numpy as np
@@ -146,14 +147,59 @@ def _registered_crop(crop, args: dict):
         return crop.widen(register(*frames, **kw))
 
 
+def _cuts_at_depth(args: dict) -> bool:
+    """Whether :func:`register` (keyword arguments ``args``) looks for noise at depth after its start: only where
+    it detects the echo itself (``roi="auto"``, nothing given that fixes the region)."""
+    return (isinstance(args["roi"], str) and args["depth"] is None and args["mesh"] is None
+            and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
+
+
 def _noise_at_depth(start, args: dict, shape):
     """The crop above rows at the bottom that the block matching of the default start found no match in
     (:func:`femreg.echo.unmatched_crop`: noise a time-gain compensation lifts to the echo's level), or None; only
-    where :func:`register` detects the echo itself (``roi="auto"``, nothing given that fixes the region)."""
-    auto = (isinstance(args["roi"], str) and args["depth"] is None and args["mesh"] is None
-            and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
+    where :func:`register` detects the echo itself (:func:`_cuts_at_depth`)."""
     return unmatched_crop(start.blockmatch, shape, *validate_spacing(args["spacing"], args["origin"]),
-                          margin=args["margin"]) if auto else None
+                          margin=args["margin"]) if _cuts_at_depth(args) else None
+
+
+def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), **register_kwargs):
+    """The crop :func:`register` would cut the pair to after its default start for noise at depth (a time-gain
+    compensation lifting the receiver noise to the echo's level: :func:`femreg.echo.unmatched_crop`), or None.
+
+    For :func:`femreg.track` and :func:`femreg.elastogram`, which choose one crop for a whole loop from one pair
+    and register every pair on one mesh: called where :func:`femreg.echo.crop_for` found nothing to cut by level
+    (register's own order).  ``reference_image``, ``moving_image``: (n_axial, n_lateral) frames; ``spacing``,
+    ``origin`` mm; ``register_kwargs``: :func:`register`'s keyword arguments (``roi``, ``depth``, ``mesh``,
+    ``data_mask``, ``initial``, ``offset`` decide whether it looks at all, as in register; ``strategy``,
+    ``regularizer``, ``element_size``, ``margin``, ``blockmatch_options``, ... make the start).  Runs the images,
+    mesh and initial-guess stages of :func:`register` (the pyramid's block matching with ``strategy="auto"``);
+    the returned :class:`femreg.echo.Crop` is on these frames."""
+    args = {k: p.default for k, p in inspect.signature(register).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+    unknown = set(register_kwargs) - set(args)
+    if unknown:
+        raise InputError(f"unknown keyword arguments of register: {sorted(unknown)}")
+    args.update(register_kwargs, spacing=spacing, origin=origin)
+    if not _cuts_at_depth(args) or args["geometry"] is not None:
+        return None
+    ref, mov, spacing, origin, initial = _validate(
+        reference_image, moving_image, spacing, origin, regularizer=args["regularizer"], strategy=args["strategy"],
+        initial=None, maxiter=args["maxiter"], tol=args["tol"], strain_tol=args["strain_tol"],
+        check_orientation=False)
+    alpha = None if isinstance(args["alpha"], str) else args["alpha"]       # "auto": the start needs none chosen
+    user_reg = fresh_regularizer(args["regularizer"], alpha, effective_regularizer_options(
+        args["strategy"], args["regularizer"], args["regularizer_options"]))
+    ref, mov, I1, I2, _ = _image_stage(ref, mov, spacing, origin, args["normalize"])
+    fe_mesh, stats, settings = _mesh_stage(ref, spacing, origin, mesh=None, element_size=args["element_size"],
+                                           margin=args["margin"], strategy=args["strategy"], initial=initial,
+                                           regularizer=args["regularizer"], allow_mesh_outside=False)
+    # only the start's block matching is read: no Gauss-Newton after it (maxiter 0; it comes before any solve)
+    start = initial_guess(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, lambda: copy.copy(user_reg),
+                          alpha=user_reg.alpha, regularizer=args["regularizer"], strategy=args["strategy"],
+                          stats=stats, settings=settings, element_size=args["element_size"], margin=args["margin"],
+                          maxiter=0, tol=args["tol"], linear_solver=args["linear_solver"],
+                          blockmatch_options=args["blockmatch_options"], coarse_to_fine=args["coarse_to_fine"])
+    return _noise_at_depth(start, args, ref.shape)
 
 
 def _route(reference_image, moving_image, args: dict):

@@ -47,7 +47,7 @@ from .mesh import as_quad_mesh, check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
 from .probes import Convex, as_geometry
-from .registration import RegistrationResult, register
+from .registration import RegistrationResult, noise_at_depth, register
 from .result import load_result
 from .repair import frame_flag, mark_tainted, own_flag, retry_flagged
 from .solver import single_blas_thread
@@ -219,8 +219,11 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
         own line per frame: off a terminal the progress lines are then left out (one line per frame).
     roi, depth
         As in :func:`femreg.register`: the region tracked, from frames 0 and 1 ("auto", default: the echo
-        rectangle of :func:`femreg.echo.find_echo`), the whole frames (None), or a given rectangle / depth range
-        (mm); every frame is registered inside it and the results say what was excluded.  Volumes: the box of
+        rectangle of :func:`femreg.echo.find_echo`; where it cuts nothing, the rows at depth where frames 0 and 1
+        do not match after the default start's block matching, noise a time-gain compensation lifts to the echo's
+        level, as :func:`femreg.register` cuts a pair: :func:`femreg.registration.noise_at_depth`), the whole
+        frames (None), or a given rectangle / depth range (mm); every frame is registered inside it and the
+        results say what was excluded.  Volumes: the box of
         :mod:`femreg.echo_volume`, a given (x0, x1, y0, y1, z0, z1) or depth range.
     check_orientation : bool
         Refuse frames that look transposed or a spacing that looks swapped, from frame 0's RF carrier, before any
@@ -281,6 +284,10 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
     register_kwargs["check_orientation"] = False    # checked once, above
     crop = crop_for(seq[0], seq[1], spacing, origin, roi=roi, depth=depth, mesh=mesh, margin=margin, fan=True,
                     data_mask=data_mask)
+    if crop is None:               # nothing cut by level: noise lifted by a TGC at depth, as register cuts it
+        crop = noise_at_depth(seq[0], seq[1], spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
+                              mesh=mesh, element_size=element_size, margin=margin, roi=roi, depth=depth,
+                              data_mask=data_mask, **register_kwargs)
     if crop is not None:           # every frame inside the echo rectangle; results widened to the full grid
         seq, origin = crop.frames(*seq), np.asarray(crop.origin)
         # a fan: its fill weighted 0 in every pair's eq:IR (femreg.echo.DataMask)
