@@ -37,7 +37,8 @@ if str(ROOT) not in sys.path:
 import femreg  # noqa: E402
 from femreg.elastogram import elastogram  # noqa: E402
 from forward import fields as F  # noqa: E402
-from forward.pairs import PROBES, alpha_for_floor, attenuation_gain_db, make_sequence  # noqa: E402
+from forward.pairs import (PROBES, alpha_for_floor, attenuation_gain_db, box_points, make_sequence,  # noqa: E402
+                           total_strain_error)
 
 SNR, TOP = 30.0, 2.0
 #: name: probe, (depth, width) mm, floor mm, field, frames, step per frame
@@ -59,15 +60,10 @@ def tgc_loop(name, seed=0):
 
 
 def total_error(res, s, k, box, step=2):
-    x0, x1, y0, y1 = box
-    x = s.origin[0] + np.arange(s.frames.shape[1]) * s.spacing[0]
-    y = s.origin[1] + np.arange(s.frames.shape[2]) * s.spacing[1]
-    X, Y = np.meshgrid(x[(x >= x0) & (x <= x1)][::step], y[(y >= y0) & (y <= y1)], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
+    P = box_points(s.frames.shape[1:], s.spacing, s.origin, box, step)
     e, est = s.true_strain(k, P), res.strain(P)
-    w = np.array([1.0, 1.0, 2.0])
     ok = np.all(np.isfinite(est), axis=1)
-    return 100.0 * np.sqrt(np.sum(w * (est[ok] - e[ok]) ** 2) / np.sum(w * e[ok] ** 2)), ok.mean()
+    return total_strain_error(est[ok], e[ok]), ok.mean()
 
 
 def _box(meshes, floor):

@@ -26,7 +26,7 @@ import numpy as np
 from .ultrasound import PSF, ImagingGrid, make_scatterers, noise_sigma, positive, render_rf
 
 __all__ = ["Probe", "PROBES", "as_probe", "Pair", "SequencePair", "make_pair", "make_sequence", "FunctionField",
-           "attenuation_gain_db", "alpha_for_floor", "noise_floor_depth"]
+           "attenuation_gain_db", "alpha_for_floor", "noise_floor_depth", "box_points", "total_strain_error"]
 
 #: Scatterers per (sigma_x * sigma_y) mm^2 of the PSF: 30 per mm^2 x 0.1406 mm x 0.5945 mm, the paper's density.
 SCATTERERS_PER_CELL = 30.0 * 0.14060 * 0.59451
@@ -435,3 +435,21 @@ class _ZeroField:
 
     def strain(self, points):
         return np.zeros((len(points), 3))
+
+
+def box_points(shape, spacing, origin, box, step: int = 2) -> np.ndarray:
+    """The pixel centres of a (n_axial, n_lateral) ``shape`` grid (``spacing``, ``origin`` mm) inside ``box``
+    (x0, x1, y0, y1) mm, every ``step``-th row: (n, 2) mm."""
+    x0, x1, y0, y1 = box
+    x = origin[0] + np.arange(shape[0]) * spacing[0]
+    y = origin[1] + np.arange(shape[1]) * spacing[1]
+    X, Y = np.meshgrid(x[(x >= x0) & (x <= x1)][::step], y[(y >= y0) & (y <= y1)], indexing="ij")
+    return np.column_stack([X.ravel(), Y.ravel()])
+
+
+def total_strain_error(estimate, truth) -> float:
+    """Total strain error (%) of (n, 3) [e_xx, e_yy, e_xy] against the truth: relative L2, e_xy weighted 2."""
+    w = np.array([1.0, 1.0, 2.0])
+    est, e = np.asarray(estimate, float), np.asarray(truth, float)
+    return 100.0 * float(np.sqrt(np.sum(w * (est - e) ** 2) / np.sum(w * e ** 2)))
+

@@ -11,7 +11,8 @@ import femreg
 from femreg.echo import crop_for, find_echo, unmatched_crop
 from femreg.errors import InputError
 from forward import fields as F
-from forward.pairs import PROBES, alpha_for_floor, attenuation_gain_db, make_pair, make_sequence, noise_floor_depth
+from forward.pairs import (PROBES, alpha_for_floor, attenuation_gain_db, box_points, make_pair, make_sequence,
+                           noise_floor_depth, total_strain_error)
 
 INVIVO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "invivo_rf"
 TOP, SNR = 2.0, 30.0
@@ -39,15 +40,10 @@ def floor_pair(probe, size, frac, seed=0, field=None):
 
 def strain_error(res, pair, box, step=2):
     """Total strain error (%, e_xy weighted 2) of ``res`` against the truth on the pixel centres inside ``box``."""
-    x0, x1, y0, y1 = box
-    x = pair.origin[0] + np.arange(pair.ref.shape[0]) * pair.spacing[0]
-    y = pair.origin[1] + np.arange(pair.ref.shape[1]) * pair.spacing[1]
-    X, Y = np.meshgrid(x[(x >= x0) & (x <= x1)][::step], y[(y >= y0) & (y <= y1)], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
+    P = box_points(pair.ref.shape, pair.spacing, pair.origin, box, step)
     e, est = pair.true_strain(P), res.strain(P)
     assert np.isfinite(est).all()          # the box lies inside the mesh
-    w = np.array([1.0, 1.0, 2.0])
-    return 100.0 * np.sqrt(np.sum(w * (est - e) ** 2) / np.sum(w * e ** 2))
+    return total_strain_error(est, e)
 
 
 def test_forward_echo_gain_sets_the_floor_depth():

@@ -18,7 +18,7 @@ from femreg.elastogram import elastogram
 from femreg.echo import find_echo
 from femreg.registration import noise_at_depth
 from forward import fields as F
-from forward.pairs import PROBES, alpha_for_floor, attenuation_gain_db, make_sequence
+from forward.pairs import PROBES, alpha_for_floor, attenuation_gain_db, box_points, make_sequence, total_strain_error
 
 SNR, TOP, FLOOR = 30.0, 2.0, 15.0
 #: Strain error over the echo, the loop as given minus the loop cut by hand at the floor: measured -3.55 / -0.43
@@ -36,15 +36,10 @@ def loop():
 
 def _error(res, s, k, box, step=2):
     """Total strain error (%, e_xy weighted 2) of frame 0 -> k inside ``box`` (x0, x1, y0, y1) mm."""
-    x0, x1, y0, y1 = box
-    x = s.origin[0] + np.arange(s.frames.shape[1]) * s.spacing[0]
-    y = s.origin[1] + np.arange(s.frames.shape[2]) * s.spacing[1]
-    X, Y = np.meshgrid(x[(x >= x0) & (x <= x1)][::step], y[(y >= y0) & (y <= y1)], indexing="ij")
-    P = np.column_stack([X.ravel(), Y.ravel()])
+    P = box_points(s.frames.shape[1:], s.spacing, s.origin, box, step)
     e, est = s.true_strain(k, P), res.strain(P)
     assert np.isfinite(est).all()
-    w = np.array([1.0, 1.0, 2.0])
-    return 100.0 * np.sqrt(np.sum(w * (est - e) ** 2) / np.sum(w * e ** 2))
+    return total_strain_error(est, e)
 
 
 def test_track_cuts_the_noise_as_register_cuts_the_first_pair(loop):
