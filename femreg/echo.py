@@ -714,8 +714,9 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
     tol = 1e-6 * sp
     box = np.array([v[0], v[1], v[2], v[3]]) if need == 4 else np.array([v[0], v[1], lo[1], hi[1]])
     if box[0] < lo[0] - tol[0] or box[1] > hi[0] + tol[0] or box[2] < lo[1] - tol[1] or box[3] > hi[1] + tol[1]:
-        raise InputError(f"{_given(what, v)} leaves the image; the image extent is "
-                         f"{_extent_text(shape, spacing, origin)}")
+        # a depth spans every line: only the axial extent is said (a convex frame's lines are arcs, not mm of y)
+        extent = _extent_text(shape[:1] if need == 2 else shape, spacing, origin)
+        raise InputError(f"{_given(what, v)} leaves the image; the image extent is {extent}")
     idx = []
     for k, axis in ((0, 0), (2, 1)):          # pixel centres c_i = origin + i * spacing inside [box_k, box_k+1]
         i0 = int(np.ceil((box[k] - org[axis]) / sp[axis] - 1e-6))
