@@ -227,16 +227,15 @@ def _strip_ncc(ea, eb, rows, cols, max_shift, row_step, max_lat=1, chunk=256) ->
     return best
 
 
-def _followed_rows(ea, eb, rows, cols, max_shift, row_step, *, from_bottom, max_lat=1, chunk=256):
-    """The row a depth strip's echo reaches: scanning the strip's chunks (:func:`_strip_ncc`) from its far end
-    (the bottom with ``from_bottom``, else the top), the far edge of the first chunk whose envelope still matches
-    the other frame; None when none does.  Noise beyond the echo is independent from frame to frame, so the
-    chunks that hold only noise are left out with the rest of the strip."""
+def _followed_rows(ea, eb, rows, cols, max_shift, row_step, *, max_lat=1, chunk=256):
+    """The row a deep strip's echo reaches: scanning the strip's chunks (:func:`_strip_ncc`) from its bottom up,
+    the lower edge of the first chunk whose envelope still matches the other frame; None when none does.  Noise
+    below the echo is independent from frame to frame, so the chunks that hold only noise are left out with the
+    rest of the strip."""
     cuts = _chunk_cuts(rows, eb.shape[0], cols, row_step, chunk)
-    pieces = list(zip(cuts[:-1], cuts[1:]))
-    for r0, r1 in (pieces[::-1] if from_bottom else pieces):
+    for r0, r1 in reversed(list(zip(cuts[:-1], cuts[1:]))):
         if _chunk_ncc(ea, eb, r0, r1, cols, max_shift, int(row_step), max_lat) >= ECHO_NCC:
-            return int(r1) if from_bottom else int(r0)
+            return int(r1)
     return None
 
 
@@ -526,13 +525,12 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         max_shift, step, chunk = veto_args(rows)
         return _strip_ncc(envs[0], envs[1], rows, cols, max_shift, step, chunk=chunk) >= ECHO_NCC
 
-    def followed(rows, from_bottom):
-        """The row the echo of a depth strip reaches from the kept rows (:func:`_followed_rows`), or None."""
+    def followed(rows):
+        """The row the echo of a deep strip reaches (:func:`_followed_rows`), or None."""
         if mov is None or rows[1] - rows[0] < 2:
             return None
         max_shift, step, chunk = veto_args(rows)
-        return _followed_rows(envs[0], envs[1], rows, (0, m), max_shift, step, from_bottom=from_bottom,
-                              chunk=chunk)
+        return _followed_rows(envs[0], envs[1], rows, (0, m), max_shift, step, chunk=chunk)
 
     has_floor = echo - floor >= MIN_RANGE_DB
     (a, b) = _echo_run(row_db, floor, max(w, n // 20), live_r)[0] if has_floor else _live_span(live_r)
@@ -547,7 +545,7 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     # a deep strip that still follows the tissue is kept as far as it does (to the live span's end at most): the
     # noise below a weak deep echo is cut off, not kept with it
     if b < n and has_floor:
-        k = followed((b, n), from_bottom=True)
+        k = followed((b, n))
         if k is not None:
             b = min(k, _live_span(live_r)[1])
     if b < n:

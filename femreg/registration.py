@@ -154,12 +154,13 @@ def _cuts_at_depth(args: dict) -> bool:
             and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
 
 
-def _noise_at_depth(start, args: dict, shape):
+def _noise_at_depth(start, args: dict, shape, spacing, origin):
     """The crop above rows at the bottom that the block matching of the default start found no match in
     (:func:`femreg.echo.unmatched_crop`: noise a time-gain compensation lifts to the echo's level), or None; only
-    where :func:`register` detects the echo itself (:func:`_cuts_at_depth`)."""
-    return unmatched_crop(start.blockmatch, shape, *validate_spacing(args["spacing"], args["origin"]),
-                          margin=args["margin"]) if _cuts_at_depth(args) else None
+    where :func:`register` detects the echo itself (:func:`_cuts_at_depth`).  ``spacing``, ``origin``: validated."""
+    if not _cuts_at_depth(args):
+        return None
+    return unmatched_crop(start.blockmatch, shape, spacing, origin, margin=args["margin"])
 
 
 def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), **register_kwargs):
@@ -199,7 +200,7 @@ def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0),
                           stats=stats, settings=settings, element_size=args["element_size"], margin=args["margin"],
                           maxiter=0, tol=args["tol"], linear_solver=args["linear_solver"],
                           blockmatch_options=args["blockmatch_options"], coarse_to_fine=args["coarse_to_fine"])
-    return _noise_at_depth(start, args, ref.shape)
+    return _noise_at_depth(start, args, ref.shape, spacing, origin)
 
 
 def _route(reference_image, moving_image, args: dict):
@@ -415,7 +416,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                           coarse_to_fine=coarse_to_fine, rectangle=rect)
     u0, stats = start.u0, start.stats
     timings.update(start.timings, initial=time.perf_counter() - t)
-    if (noise := _noise_at_depth(start, args, ref.shape)) is not None:     # no match at depth: cut and again
+    if (noise := _noise_at_depth(start, args, ref.shape, spacing, origin)) is not None:  # no match at depth: cut, again
         return _registered_crop(noise, args)
 
     # -- Gauss-Newton on the final mesh ----------------------------------------------------------------------
