@@ -12,10 +12,10 @@ import numpy as np
 from .blockmatch import BlockMatchResult
 from .image import pixel_axes
 from .paperguess import paper_initial_guess, wants_coarse_pass
-from .pyramid import PyramidGuess, image_settings, pyramid_initial_guess
+from .pyramid import PyramidGuess, PyramidSearch, image_settings, pyramid_search, pyramid_solve
 from .result import displacement_at, nodal_values
 
-__all__ = ["InitialGuess", "initial_guess", "INITIAL_NAMES"]
+__all__ = ["InitialGuess", "initial_guess", "start_search", "INITIAL_NAMES"]
 
 #: The named starts of ``register(initial=...)``.
 INITIAL_NAMES = ("pyramid", "blockmatch", "zero")
@@ -51,21 +51,21 @@ def _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset):
 def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory, *, alpha, regularizer,
                   strategy="auto", offset=None, stats=None, settings=None, element_size=None, margin=None,
                   maxiter=20, tol=1e-3, linear_solver="auto", blockmatch_options=None,
-                  coarse_to_fine="auto", rectangle=None) -> InitialGuess:
+                  coarse_to_fine="auto", rectangle=None, search: PyramidSearch | None = None) -> InitialGuess:
     """u_1 on ``mesh`` for ``initial`` (a name of :data:`INITIAL_NAMES`, a callable, a nodal vector, a
     RegistrationResult or a BlockMatchResult; see :func:`femreg.register`).  ``ref``/``mov``: the normalised
     frames, ``I1``/``I2`` their splines; ``stats``/``settings``: the speckle statistics and pyramid settings of
     the mesh stage, if it computed them.  ``rectangle`` (row slice, column slice): the pyramid runs on this part
     of the frames only (a scan-converted fan's largest rectangle without fill, whose fixed edges would pull its
     search to zero), its field extended as constant beyond it (:func:`femreg.pyramid.field_at`) for the final
-    solve to correct."""
+    solve to correct.  ``search``: :func:`start_search`'s result on these arguments, if already computed."""
     if not isinstance(initial, str):
         bm = initial if isinstance(initial, BlockMatchResult) else None
         return InitialGuess(nodal_values(initial, mesh, "initial"), blockmatch=bm, stats=stats, settings=settings)
     if initial == "zero":
         return InitialGuess(np.zeros(2 * mesh.p.shape[1]), stats=stats, settings=settings)
-    a, b = _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset)
     if initial == "blockmatch":
+        a, b = _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset)
         coarse = strategy == "paper" and offset is None
         pg = paper_initial_guess(a, b, I1, I2, mesh, spacing, origin, reg_factory,
                                  blockmatch_options=blockmatch_options,
@@ -73,6 +73,27 @@ def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory,
                                  element_size=element_size, margin=margin, maxiter=maxiter, tol=tol,
                                  linear_solver=linear_solver)
         return InitialGuess(pg.u0, blockmatch=pg.blockmatch, stats=stats, settings=settings, timings=pg.timings)
+    if search is None:
+        search = start_search(initial, ref, mov, I1, I2, mesh, spacing, origin, regularizer=regularizer, offset=offset,
+                              stats=stats, settings=settings, element_size=element_size, rectangle=rectangle)
+    guess = pyramid_solve(search, regularizer_factory=reg_factory, margin=margin, tol=tol, linear_solver=linear_solver)
+    v = guess(mesh.p.T)
+    u0 = np.empty(2 * len(v))
+    u0[0::2], u0[1::2] = v[:, 0], v[:, 1]
+    return InitialGuess(u0, blockmatch=guess.blockmatch, pyramid=guess, coarse_u0=u0.copy(), stats=search.stats,
+                        settings=search.settings, timings={f"pyramid_{k}": v for k, v in guess.timings.items()})
+
+
+def start_search(initial, ref, mov, I1, I2, mesh, spacing, origin, *, regularizer, offset=None, stats=None,
+                 settings=None, element_size=None, rectangle=None) -> PyramidSearch | None:
+    """The part of :func:`initial_guess` before any solve, whose block matching tells where the frames do not
+    match (:func:`femreg.echo.unmatched_crop`): for ``initial="pyramid"`` the pyramid's envelopes, global and
+    local search (:func:`femreg.pyramid.pyramid_search`), on ``rectangle`` (row slice, column slice) of the frames
+    when given; None for the other starts (the paper's block matching comes with its coarse pass and solve).
+    Arguments as :func:`initial_guess`'s; hand the result to it as ``search``."""
+    if not (isinstance(initial, str) and initial == "pyramid"):
+        return None
+    a, b = _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset)
     env_a = None if (stats is None or offset is not None) else stats.envelope   # envelope of `a`
     if rectangle is not None:
         a, b = a[rectangle], b[rectangle]
@@ -80,11 +101,4 @@ def initial_guess(initial, ref, mov, I1, I2, mesh, spacing, origin, reg_factory,
     if stats is None:
         stats, settings = image_settings(a, spacing, element_size, regularizer)
         env_a = stats.envelope
-    guess = pyramid_initial_guess(a, b, spacing, origin, regularizer_factory=reg_factory, alpha=alpha, stats=stats,
-                                  settings=settings, margin=margin, tol=tol, linear_solver=linear_solver,
-                                  ref_envelope=env_a)
-    v = guess(mesh.p.T)
-    u0 = np.empty(2 * len(v))
-    u0[0::2], u0[1::2] = v[:, 0], v[:, 1]
-    return InitialGuess(u0, blockmatch=guess.blockmatch, pyramid=guess, coarse_u0=u0.copy(), stats=stats,
-                        settings=settings, timings={f"pyramid_{k}": v for k, v in guess.timings.items()})
+    return pyramid_search(a, b, spacing, origin, stats=stats, settings=settings, ref_envelope=env_a)

@@ -43,8 +43,8 @@ from .speckle import (SpeckleStats, envelope, rf_period, speckle_cell,  # noqa: 
 
 __all__ = ["SpeckleStats", "PyramidSettings", "speckle_statistics", "rf_period", "default_settings", "envelope",
            "global_search", "local_search", "field_at", "pyramid_initial_guess", "PyramidGuess",
-           "MAX_ELEMENT_SIZE", "element_rule", "refine_affine", "gaussian_decimate", "image_settings",
-           "STRUCTURE_RATIO"]
+           "pyramid_search", "pyramid_solve", "PyramidSearch", "MAX_ELEMENT_SIZE", "element_rule", "refine_affine",
+           "gaussian_decimate", "image_settings", "STRUCTURE_RATIO"]
 
 #: Largest motion the top level searches, as a fraction of the image extent (axial, lateral).
 SEARCH_FRACTION = (0.10, 0.10)
@@ -431,14 +431,30 @@ class PyramidGuess:
         return field_at(self.mesh, self.u, points)
 
 
-def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alpha, stats: SpeckleStats,
-                          settings: PyramidSettings, margin=None, maxiter: int = 20, tol: float = 1e-3,
-                          linear_solver: str = "splu", ref_envelope=None) -> PyramidGuess:
-    """Steps 2-3 of the module docstring on normalised RF images ``ref``, ``mov`` (n_a, n_l).
+@dataclass
+class PyramidSearch:
+    """Output of :func:`pyramid_search` (steps 2 and the search of 3): the decimated envelopes ``er``, ``em`` on
+    the spacing ``sp_c`` mm from ``origin`` mm, the global search's NCC, the local search's field and its block
+    matching (:class:`femreg.blockmatch.BlockMatchResult`, read by :func:`femreg.echo.unmatched_crop` before any
+    solve), seconds per sub-stage."""
 
-    ``regularizer_factory()`` returns a fresh regulariser (user alpha set); its weight on the coarse mesh is
-    scaled by :func:`femreg.scaling.effective_alpha`.  ``ref_envelope``: :func:`envelope` of ``ref`` if already
-    computed (e.g. ``stats.envelope`` when the statistics come from ``ref`` itself)."""
+    er: np.ndarray
+    em: np.ndarray
+    sp_c: np.ndarray
+    origin: np.ndarray
+    global_ncc: float
+    field: object
+    blockmatch: object
+    stats: SpeckleStats
+    settings: PyramidSettings
+    timings: dict
+
+
+def pyramid_search(ref, mov, spacing, origin, *, stats: SpeckleStats, settings: PyramidSettings,
+                   ref_envelope=None) -> PyramidSearch:
+    """The envelopes, global search and local search of :func:`pyramid_initial_guess` on normalised RF images
+    ``ref``, ``mov`` (n_a, n_l), spacing and origin mm: everything before the coarse Gauss-Newton solve (which
+    :func:`pyramid_solve` adds).  ``ref_envelope``: :func:`envelope` of ``ref`` if already computed."""
     import time
 
     timings = {}
@@ -473,7 +489,18 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
             break
         coef, field, bm = new, field2, bm2
     timings["local_search"] = time.perf_counter() - t
+    return PyramidSearch(er, em, sp_c, origin, gncc, field, bm, stats, settings, timings)
 
+
+def pyramid_solve(search: PyramidSearch, *, regularizer_factory, margin=None, maxiter: int = 20, tol: float = 1e-3,
+                  linear_solver: str = "splu") -> PyramidGuess:
+    """Step 3's Gauss-Newton on the envelopes of ``search`` (:func:`pyramid_search`), on a mesh of twice the
+    final element size, from the local search's field; kept only where it lowers the envelopes' SSD."""
+    import time
+
+    er, em, sp_c, origin, settings, field = (search.er, search.em, search.sp_c, search.origin, search.settings,
+                                             search.field)
+    timings = dict(search.timings)
     t = time.perf_counter()
     mesh = roi_mesh(er.shape, sp_c, origin, element_size=tuple(2.0 * settings.element_size), margin=margin)
     quad = PixelQuadrature(mesh, er.shape, sp_c, origin)
@@ -489,5 +516,19 @@ def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alp
     gn = gauss_newton(Objective(data, reg), u0, maxiter=maxiter, tol=tol, linear_solver=linear_solver)
     u = gn.x if data.energy(gn.x) <= psi0 else u0
     timings["envelope_gauss_newton"] = time.perf_counter() - t
-    return PyramidGuess(mesh=mesh, u=u, stats=stats, settings=settings, global_ncc=gncc, blockmatch=bm,
-                        timings=timings)
+    return PyramidGuess(mesh=mesh, u=u, stats=search.stats, settings=settings, global_ncc=search.global_ncc,
+                        blockmatch=search.blockmatch, timings=timings)
+
+
+def pyramid_initial_guess(ref, mov, spacing, origin, *, regularizer_factory, alpha, stats: SpeckleStats,
+                          settings: PyramidSettings, margin=None, maxiter: int = 20, tol: float = 1e-3,
+                          linear_solver: str = "splu", ref_envelope=None) -> PyramidGuess:
+    """Steps 2-3 of the module docstring on normalised RF images ``ref``, ``mov`` (n_a, n_l):
+    :func:`pyramid_search`, then :func:`pyramid_solve`.
+
+    ``regularizer_factory()`` returns a fresh regulariser (user alpha set); its weight on the coarse mesh is
+    scaled by :func:`femreg.scaling.effective_alpha`.  ``ref_envelope``: :func:`envelope` of ``ref`` if already
+    computed (e.g. ``stats.envelope`` when the statistics come from ``ref`` itself)."""
+    search = pyramid_search(ref, mov, spacing, origin, stats=stats, settings=settings, ref_envelope=ref_envelope)
+    return pyramid_solve(search, regularizer_factory=regularizer_factory, margin=margin, maxiter=maxiter, tol=tol,
+                         linear_solver=linear_solver)

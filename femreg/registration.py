@@ -16,6 +16,7 @@ never worse than the start) -> :class:`femreg.result.RegistrationResult`.  The s
 from __future__ import annotations
 
 import copy
+import functools
 import inspect
 import time
 
@@ -27,7 +28,7 @@ from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
-from .initial import INITIAL_NAMES, initial_guess
+from .initial import INITIAL_NAMES, initial_guess, start_search
 from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
@@ -154,13 +155,15 @@ def _cuts_at_depth(args: dict) -> bool:
             and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
 
 
-def _noise_at_depth(start, args: dict, shape, spacing, origin):
+def _noise_at_depth(found, args: dict, shape, spacing, origin):
     """The crop above rows at the bottom that the block matching of the default start found no match in
     (:func:`femreg.echo.unmatched_crop`: noise a time-gain compensation lifts to the echo's level), or None; only
-    where :func:`register` detects the echo itself (:func:`_cuts_at_depth`).  ``spacing``, ``origin``: validated."""
-    if not _cuts_at_depth(args):
+    where :func:`register` detects the echo itself (:func:`_cuts_at_depth`).  ``found``: the start's first part
+    that holds its block matching (:func:`femreg.initial.start_search`'s pyramid search, or the paper's
+    :class:`femreg.initial.InitialGuess`), or None; ``spacing``, ``origin``: validated."""
+    if found is None or not _cuts_at_depth(args):
         return None
-    return unmatched_crop(start.blockmatch, shape, spacing, origin, margin=args["margin"])
+    return unmatched_crop(found.blockmatch, shape, spacing, origin, margin=args["margin"])
 
 
 def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), **register_kwargs):
@@ -187,20 +190,24 @@ def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0),
         reference_image, moving_image, spacing, origin, regularizer=args["regularizer"], strategy=args["strategy"],
         initial=None, maxiter=args["maxiter"], tol=args["tol"], strain_tol=args["strain_tol"],
         check_orientation=False)
-    alpha = None if isinstance(args["alpha"], str) else args["alpha"]       # "auto": the start needs none chosen
-    user_reg = fresh_regularizer(args["regularizer"], alpha, effective_regularizer_options(
-        args["strategy"], args["regularizer"], args["regularizer_options"]))
     ref, mov, I1, I2, _ = _image_stage(ref, mov, spacing, origin, args["normalize"])
     fe_mesh, stats, settings = _mesh_stage(ref, spacing, origin, mesh=None, element_size=args["element_size"],
                                            margin=args["margin"], strategy=args["strategy"], initial=initial,
                                            regularizer=args["regularizer"], allow_mesh_outside=False)
-    # only the start's block matching is read: no Gauss-Newton after it (maxiter 0; it comes before any solve)
-    start = initial_guess(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, lambda: copy.copy(user_reg),
-                          alpha=user_reg.alpha, regularizer=args["regularizer"], strategy=args["strategy"],
-                          stats=stats, settings=settings, element_size=args["element_size"], margin=args["margin"],
-                          maxiter=0, tol=args["tol"], linear_solver=args["linear_solver"],
-                          blockmatch_options=args["blockmatch_options"], coarse_to_fine=args["coarse_to_fine"])
-    return _noise_at_depth(start, args, ref.shape, spacing, origin)
+    # register's own order: the pyramid's search decides before any solve; the paper's block matching comes with
+    # its start (no Gauss-Newton after it: maxiter 0)
+    found = start_search(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=args["regularizer"],
+                         stats=stats, settings=settings, element_size=args["element_size"])
+    if found is None:
+        alpha = None if isinstance(args["alpha"], str) else args["alpha"]       # "auto": the start needs none chosen
+        user_reg = fresh_regularizer(args["regularizer"], alpha, effective_regularizer_options(
+            args["strategy"], args["regularizer"], args["regularizer_options"]))
+        found = initial_guess(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, functools.partial(copy.copy, user_reg),
+                              alpha=user_reg.alpha, regularizer=args["regularizer"], strategy=args["strategy"],
+                              stats=stats, settings=settings, element_size=args["element_size"], margin=args["margin"],
+                              maxiter=0, tol=args["tol"], linear_solver=args["linear_solver"],
+                              blockmatch_options=args["blockmatch_options"], coarse_to_fine=args["coarse_to_fine"])
+    return _noise_at_depth(found, args, ref.shape, spacing, origin)
 
 
 def _route(reference_image, moving_image, args: dict):
@@ -387,10 +394,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         maxiter=maxiter, tol=tol, strain_tol=strain_tol, check_orientation=check_orientation, refine=refine)
     user_reg = fresh_regularizer(regularizer, alpha, effective_regularizer_options(strategy, regularizer,
                                                                                    regularizer_options))
-
-    def reg_factory():                  # a fresh copy of the user's regulariser per solve
-        return copy.copy(user_reg)
-
+    reg_factory = functools.partial(copy.copy, user_reg)       # a fresh copy of the user's regulariser per solve
     # -- images: each normalised by its mean and spread, spline coefficients once ------------------------------
     t = time.perf_counter()
     ref, mov, I1, I2, fan = _image_stage(ref, mov, spacing, origin, normalize, data_mask)
@@ -409,15 +413,17 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- initial guess ---------------------------------------------------------------------------------------
     t = time.perf_counter()
-    start = initial_guess(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, reg_factory, alpha=user_reg.alpha,
-                          regularizer=regularizer, strategy=strategy, offset=offset, stats=stats,
-                          settings=settings, element_size=element_size, margin=margin, maxiter=maxiter, tol=tol,
-                          linear_solver=linear_solver, blockmatch_options=blockmatch_options,
-                          coarse_to_fine=coarse_to_fine, rectangle=rect)
+    search = start_search(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=regularizer, offset=offset,
+                          stats=stats, settings=settings, element_size=element_size, rectangle=rect)
+    start = None if (noise := _noise_at_depth(search, args, ref.shape, spacing, origin)) is not None else initial_guess(
+        initial, ref, mov, I1, I2, fe_mesh, spacing, origin, reg_factory, alpha=user_reg.alpha, regularizer=regularizer,
+        strategy=strategy, offset=offset, stats=stats, settings=settings, element_size=element_size, margin=margin,
+        maxiter=maxiter, tol=tol, linear_solver=linear_solver, blockmatch_options=blockmatch_options,
+        coarse_to_fine=coarse_to_fine, rectangle=rect, search=search)
+    if noise is not None or (search is None and (noise := _noise_at_depth(start, args, ref.shape, spacing, origin))):
+        return _registered_crop(noise, args)    # no match at depth (the pyramid's search, or the paper's start): cut
     u0, stats = start.u0, start.stats
     timings.update(start.timings, initial=time.perf_counter() - t)
-    if (noise := _noise_at_depth(start, args, ref.shape, spacing, origin)) is not None:  # no match at depth: cut, again
-        return _registered_crop(noise, args)
 
     # -- Gauss-Newton on the final mesh ----------------------------------------------------------------------
     t = time.perf_counter()
