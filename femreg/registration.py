@@ -15,6 +15,7 @@ never worse than the start) -> :class:`femreg.result.RegistrationResult`.  The s
 """
 from __future__ import annotations
 
+import contextvars
 import copy
 import functools
 import inspect
@@ -155,15 +156,33 @@ def _cuts_at_depth(args: dict) -> bool:
             and args["initial"] is None and args["offset"] is None and args["data_mask"] is None)
 
 
+#: Set while :func:`noise_at_depth` runs :func:`register` for its cut alone (:class:`_CutDecided`).
+_DECIDING = contextvars.ContextVar("femreg_registration_deciding", default=False)
+
+
+class _CutDecided(Exception):
+    """Raised by :func:`register`'s noise-at-depth decision in :func:`noise_at_depth`'s context: the decision
+    (``crop``, a :class:`femreg.echo.Crop` or None) is all it asked for, no solve follows."""
+
+    def __init__(self, crop):
+        super().__init__("noise at depth decided")
+        self.crop = crop
+
+
 def _noise_at_depth(found, args: dict, shape, spacing, origin):
     """The crop above rows at the bottom that the block matching of the default start found no match in
     (:func:`femreg.echo.unmatched_crop`: noise a time-gain compensation lifts to the echo's level), or None; only
     where :func:`register` detects the echo itself (:func:`_cuts_at_depth`).  ``found``: the start's first part
     that holds its block matching (:func:`femreg.initial.start_search`'s pyramid search, or the paper's
-    :class:`femreg.initial.InitialGuess`), or None; ``spacing``, ``origin``: validated."""
-    if found is None or not _cuts_at_depth(args):
+    :class:`femreg.initial.InitialGuess`), or None; ``spacing``, ``origin``: validated.  Under
+    :func:`noise_at_depth` the decision ends the registration (:class:`_CutDecided`)."""
+    if found is None:
         return None
-    return unmatched_crop(found.blockmatch, shape, spacing, origin, margin=args["margin"])
+    crop = unmatched_crop(found.blockmatch, shape, spacing, origin, margin=args["margin"]) if _cuts_at_depth(
+        args) else None
+    if _DECIDING.get():
+        raise _CutDecided(crop)
+    return crop
 
 
 def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), **register_kwargs):
@@ -175,46 +194,40 @@ def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0),
     (register's own order).  ``reference_image``, ``moving_image``: (n_axial, n_lateral) frames; ``spacing``,
     ``origin`` mm; ``register_kwargs``: :func:`register`'s keyword arguments (``roi``, ``depth``, ``mesh``,
     ``data_mask``, ``initial``, ``offset`` decide whether it looks at all, as in register; ``strategy``,
-    ``regularizer``, ``element_size``, ``margin``, ``blockmatch_options``, ... make the start).  Runs the images,
-    mesh and initial-guess stages of :func:`register` (the pyramid's block matching with ``strategy="auto"``);
-    the returned :class:`femreg.echo.Crop` is on these frames."""
+    ``regularizer``, ``element_size``, ``margin``, ``blockmatch_options``, ... make the start).  :func:`register`
+    itself runs, up to its decision: validate, images, mesh and the start's block matching (the pyramid's search
+    with ``strategy="auto"``, before any solve; the paper's start with no Gauss-Newton after it); none of its
+    hand-offs (probe geometry, echo crop, ``alpha="auto"``: the caller has made those choices).  The returned
+    :class:`femreg.echo.Crop` is on these frames."""
     args = {k: p.default for k, p in inspect.signature(register).parameters.items()
             if p.default is not inspect.Parameter.empty}
     unknown = set(register_kwargs) - set(args)
     if unknown:
         raise InputError(f"unknown keyword arguments of register: {sorted(unknown)}")
-    args.update(register_kwargs, spacing=spacing, origin=origin)
+    args.update(register_kwargs)
     if not _cuts_at_depth(args) or args["geometry"] is not None:
         return None
-    ref, mov, spacing, origin, initial = _validate(
-        reference_image, moving_image, spacing, origin, regularizer=args["regularizer"], strategy=args["strategy"],
-        initial=None, maxiter=args["maxiter"], tol=args["tol"], strain_tol=args["strain_tol"],
-        check_orientation=False)
-    ref, mov, I1, I2, _ = _image_stage(ref, mov, spacing, origin, args["normalize"])
-    fe_mesh, stats, settings = _mesh_stage(ref, spacing, origin, mesh=None, element_size=args["element_size"],
-                                           margin=args["margin"], strategy=args["strategy"], initial=initial,
-                                           regularizer=args["regularizer"], allow_mesh_outside=False)
-    # register's own order: the pyramid's search decides before any solve; the paper's block matching comes with
-    # its start (no Gauss-Newton after it: maxiter 0)
-    found = start_search(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=args["regularizer"],
-                         stats=stats, settings=settings, element_size=args["element_size"])
-    if found is None:
-        alpha = None if isinstance(args["alpha"], str) else args["alpha"]       # "auto": the start needs none chosen
-        user_reg = fresh_regularizer(args["regularizer"], alpha, effective_regularizer_options(
-            args["strategy"], args["regularizer"], args["regularizer_options"]))
-        found = initial_guess(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, functools.partial(copy.copy, user_reg),
-                              alpha=user_reg.alpha, regularizer=args["regularizer"], strategy=args["strategy"],
-                              stats=stats, settings=settings, element_size=args["element_size"], margin=args["margin"],
-                              maxiter=0, tol=args["tol"], linear_solver=args["linear_solver"],
-                              blockmatch_options=args["blockmatch_options"], coarse_to_fine=args["coarse_to_fine"])
-    return _noise_at_depth(found, args, ref.shape, spacing, origin)
+    # "auto": the start needs no alpha chosen; maxiter 0: no Gauss-Newton in the paper's start
+    kw = dict(register_kwargs, alpha=None if isinstance(args["alpha"], str) else args["alpha"], maxiter=0,
+              check_orientation=False)
+    token = _DECIDING.set(True)
+    try:
+        register(reference_image, moving_image, spacing=spacing, origin=origin, **kw)
+    except _CutDecided as decided:
+        return decided.crop
+    finally:
+        _DECIDING.reset(token)
+    raise RuntimeError("register returned without deciding its noise-at-depth cut")
 
 
 def _route(reference_image, moving_image, args: dict):
     """The calls :func:`register` hands on before its own stages, each calling :func:`register` back: convex /
     sector frames (:func:`femreg.geometry.register_beam`), the echo rectangle (:func:`femreg.echo.crop_for`) and
     ``alpha="auto"`` (:func:`femreg.autoalpha.register_auto`).  ``args``: register's keyword arguments.  Returns
-    the result, or None when the pair is registered as given."""
+    the result, or None when the pair is registered as given (always under :func:`noise_at_depth`, whose caller
+    made those choices)."""
+    if _DECIDING.get():
+        return None
     geometry = args["geometry"]
     if geometry is not None:            # convex / sector frames: femreg.geometry (calls back for sample space)
         from .geometry import as_geometry, register_beam
