@@ -51,7 +51,7 @@ from .image import validate_image, validate_spacing
 from .mesh import DEFAULT_MARGIN
 from .speckle import envelope, rf_period
 
-__all__ = ["EchoRegion", "DataMask", "unmatched_crop", "MATCHED_NCC", "UNMATCHED_FRACTION", "noise_share", "registering_crop", "crop_noise_share", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
+__all__ = ["EchoRegion", "Cut", "DataMask", "unmatched_crop", "MATCHED_NCC", "UNMATCHED_FRACTION", "noise_share", "registering_crop", "crop_noise_share", "as_data_mask", "find_echo", "find_fill", "find_rf_fan", "fill_level", "crop_for", "crop_request", "Crop", "region_from_mm", "rf_like", "MIN_SNR_DB", "SEED_SNR_DB",
            "MIN_RANGE_DB", "ECHO_NCC", "CLIP_FRACTION", "CLIP_ROW_FRACTION"]
 
 #: A value covering more than this fraction of an envelope / B-mode frame (and the same pixels of the other frame)
@@ -93,6 +93,55 @@ CLIP_FRACTION = 1e-3
 CLIP_ROW_FRACTION = 0.02
 
 
+def _mm_span(lo, hi) -> str:
+    """'a-b mm' of two cell edges (mm), each to 0.1 mm."""
+    # + 0.0: the first cell's edge half a sample above a zero origin reads 0.0, not -0.0
+    a, b = (round(v, 1) + 0.0 for v in (lo, hi))
+    return f"{a:.1f}-{b:.1f} mm"
+
+
+@dataclass(frozen=True)
+class Cut:
+    """One strip of the frames an :class:`EchoRegion` leaves out (or names), as data; :attr:`text` is its part of
+    the region's ``excluded``.
+
+    axis : "depth" (rows) or "lines" (columns).  side : "above" / "below" (rows cut at the top / bottom), "left" /
+    "right" (lines), None (a strip named by its span: saturated rows or lines), "kept" (saturated rows inside the
+    region, kept).  lo, hi : the strip's outer pixel-cell edges, mm along ``axis``.  why : the reason, as said after
+    the place ("excluded: no signal (zero samples)", "excluded: the frames do not match there (...)", ...)."""
+
+    axis: str
+    side: str | None
+    lo: float
+    hi: float
+    why: str
+
+    @property
+    def edge(self) -> float:
+        """mm: where the region begins (``side`` "above") or ends ("below")."""
+        return self.hi if self.side == "above" else self.lo
+
+    @property
+    def span(self) -> str:
+        """'a-b mm' of :attr:`lo`, :attr:`hi`, each to 0.1 mm."""
+        return _mm_span(self.lo, self.hi)
+
+    @property
+    def text(self) -> str:
+        if self.side in ("above", "below"):
+            return f"{self.axis} {self.side} {self.edge:.1f} mm {self.why}"
+        if self.side == "kept":
+            return f"saturated rows at {self.span} {self.why}"
+        if self.side is None:
+            return f"{self.axis} {self.span} {self.why}"
+        return f"lines at {self.span} ({self.side}) {self.why}"
+
+
+def _said(cuts) -> str | None:
+    """An :class:`EchoRegion`'s ``excluded`` from its :class:`Cut` s (None: nothing cut)."""
+    return "; ".join(c.text for c in cuts) or None
+
+
 @dataclass
 class EchoRegion:
     """The rectangle of usable echo of a frame pair (:func:`find_echo`).
@@ -119,6 +168,16 @@ class EchoRegion:
     #: whether rows were left out at ``floor_db`` that did not match the other frame: the noise itself was seen
     #: (not only the quietest echo)
     noise_seen: bool = False
+    #: what was cut, strip by strip (:class:`Cut`; ``excluded`` is their text), for a detected region; () for a
+    #: given box or a fan's fill, whose ``excluded`` is its own
+    cuts: tuple = ()
+    #: "roi" / "depth" for a user's box (:func:`region_from_mm`: ``roi_mm`` is the box kept), else None
+    given: str | None = None
+
+    @property
+    def row_cuts(self) -> tuple:
+        """The :class:`Cut` s of rows left out (at the top, the bottom, or saturated; not the saturated rows kept)."""
+        return tuple(c for c in self.cuts if c.axis == "depth" and c.side != "kept")
 
     @property
     def full(self) -> bool:
@@ -254,9 +313,12 @@ def _clipped(mags):
 
 def _span(lo, hi, origin, step):
     """'a-b mm' of pixel indices [lo, hi) (cell edges)."""
-    # + 0.0: the first cell's edge half a sample above a zero origin reads 0.0, not -0.0
-    a, b = (round(origin + (k - 0.5) * step, 1) + 0.0 for k in (lo, hi))
-    return f"{a:.1f}-{b:.1f} mm"
+    return _mm_span(*_edges(lo, hi, origin, step))
+
+
+def _edges(lo, hi, origin, step):
+    """The outer cell edges (mm) of pixel indices [lo, hi)."""
+    return origin + (lo - 0.5) * step, origin + (hi - 0.5) * step
 
 
 def fill_level(frame) -> float | None:
@@ -540,8 +602,8 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
     if a > 0 and has_floor and veto((0, a), (0, m)):
         a = _live_span(live_r)[0]
     if a > 0:
-        reasons.append(f"depth above {ox + (a - 0.5) * dx:.1f} mm "
-                       + _why(has_floor and live_r[:a].any(), echo, floor, at))
+        reasons.append(Cut("depth", "above", *_edges(0, a, ox, dx), _why(has_floor and live_r[:a].any(), echo, floor,
+                                                                        at)))
     # a deep strip that still follows the tissue is kept as far as it does (to the live span's end at most): the
     # noise below a weak deep echo is cut off, not kept with it
     if b < n and has_floor:
@@ -549,8 +611,8 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         if k is not None:
             b = min(k, _live_span(live_r)[1])
     if b < n:
-        reasons.append(f"depth below {ox + (b - 0.5) * dx:.1f} mm "
-                       + _why(has_floor and live_r[b:].any(), echo, floor, at))
+        reasons.append(Cut("depth", "below", *_edges(b, n, ox, dx), _why(has_floor and live_r[b:].any(), echo, floor,
+                                                                        at)))
     # rows left out for their level that the veto did not keep: noise, its floor seen
     seen = has_floor and (bool(live_r[b:].any()) or bool(live_r[:a].any()))
     # the lines, over the rows kept
@@ -574,10 +636,10 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
             lo, hi = (0, c0) if side == "left" else (c1, m)
             if hi <= lo:
                 continue
-            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) " + _why(False, 0, 0))
+            reasons.append(Cut("lines", side, *_edges(lo, hi, oy, dy), _why(False, 0, 0)))
         else:
-            reasons.append(f"lines at {_span(lo, hi, oy, dy)} ({side}) "
-                           + _why(c_floor and live_c[lo:hi].any(), cecho, cfloor))
+            reasons.append(Cut("lines", side, *_edges(lo, hi, oy, dy), _why(c_floor and live_c[lo:hi].any(), cecho,
+                                                                             cfloor)))
     # saturation at the edges of the rectangle
     clip = _clipped([mag] if mov is None else [mag, np.abs(mov)])
     if clip is not None:
@@ -597,14 +659,14 @@ def _find_echo(ref, mov, spacing, origin) -> EchoRegion:
         for lo, hi, what, o, st in ((a0, a, "depth", ox, dx), (b, b0, "depth", ox, dx), (k0, c0, "lines", oy, dy),
                                     (c1, k1, "lines", oy, dy)):
             if hi > lo:
-                reasons.append(f"{what} {_span(lo, hi, o, st)} excluded: saturated (more than "
-                               f"{CLIP_ROW_FRACTION:.0%} of the samples clipped; {frac:.1%} of the frame)")
+                reasons.append(Cut(what, None, *_edges(lo, hi, o, st), f"excluded: saturated (more than "
+                                   f"{CLIP_ROW_FRACTION:.0%} of the samples clipped; {frac:.1%} of the frame)"))
         inner = np.flatnonzero(np.mean(clip[a:b, c0:c1], axis=1) > CLIP_ROW_FRACTION)
         if inner.size:
-            reasons.append(f"saturated rows at {_span(a + int(inner[0]), a + int(inner[-1]) + 1, ox, dx)} kept "
-                           f"(inside the echo region)")
-    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), "; ".join(reasons) or None, floor, echo,
-                      noise_seen=seen)
+            reasons.append(Cut("depth", "kept", *_edges(a + int(inner[0]), a + int(inner[-1]) + 1, ox, dx),
+                               "kept (inside the echo region)"))
+    return EchoRegion((a, b), (c0, c1), (n, m), (dx, dy), (ox, oy), _said(reasons), floor, echo, noise_seen=seen,
+                      cuts=tuple(reasons))
 
 
 def _why(has_floor, lvl, flr, echo_at=""):
@@ -658,10 +720,10 @@ def unmatched_crop(blockmatch, shape, spacing, origin=(0.0, 0.0), margin=None) -
     mp = _margin_pixels(margin, spacing)
     if b >= n - mp[0]:
         return None
-    why = (f"depth below {ox + (b - 0.5) * dx:.1f} mm excluded: the frames do not match there (block-matching NCC "
-           f"{float(med[k:].min()):.2f}-{float(med[k:].max()):.2f} against {top:.2f} above: noise, e.g. lifted by a "
-           f"time-gain compensation)")
-    return Crop(EchoRegion((0, b), (0, m), (n, m), tuple(spacing), tuple(origin), why), mp, False)
+    cut = Cut("depth", "below", *_edges(b, n, ox, dx), (
+        f"excluded: the frames do not match there (block-matching NCC {float(med[k:].min()):.2f}-"
+        f"{float(med[k:].max()):.2f} against {top:.2f} above: noise, e.g. lifted by a time-gain compensation)"))
+    return Crop(EchoRegion((0, b), (0, m), (n, m), tuple(spacing), tuple(origin), cut.text, cuts=(cut,)), mp, False)
 
 
 def _margin_pixels(margin, spacing, default=DEFAULT_MARGIN) -> np.ndarray:
@@ -732,7 +794,7 @@ def region_from_mm(shape, spacing, origin, *, roi=None, depth=None) -> EchoRegio
         raise InputError(f"{_given(what, v)} holds fewer than 2 x 2 pixels; the image extent "
                          f"is {_extent_text(shape, spacing, origin)}{hint}")
     region = EchoRegion(idx[0], idx[1], tuple(int(s) for s in shape), tuple(float(s) for s in sp),
-                        tuple(float(s) for s in org))
+                        tuple(float(s) for s in org), given=what)
     x0, x1, y0, y1 = region.roi_mm
     region.excluded = f"outside the given {what} x {x0:.1f}-{x1:.1f} mm, y {y0:.1f}-{y1:.1f} mm excluded"
     return region
@@ -831,6 +893,7 @@ class Crop:
         res.origin = np.asarray(self.region.origin, float)
         self._clear_grids(res)                         # grid fields are recomputed on the full grid
         res.roi = self.roi_mm
+        res.echo_region = self.region                  # what was cut, as data (femreg.geometry.beam_excluded)
         if self.region.excluded and getattr(res, "excluded", None) != self.region.excluded:
             res.excluded = self.region.excluded
             res.message = f"{res.message}; {self.region.excluded}" if res.message else self.region.excluded

@@ -809,10 +809,9 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
     roi, depth = register_kwargs.get("roi", "auto"), register_kwargs.get("depth")
     given = depth is not None or (roi is not None and not isinstance(roi, str))
     if beam is not None:
-        crop, why = None, None
+        crop = None
         if depth is not None:       # a range window over every ray: rows only, the rays stay centred on 0
             crop = crop_for(first, last, spacing, origin, roi=None, depth=depth, margin=register_kwargs.get("margin"))
-            why = crop.region.excluded
         elif roi is not None and rf_like(first):
             # RF: the ranges with echo, as register and track find them (femreg.echo.find_echo on the first two
             # frames that differ); below the noise floor the strain would be drawn as if it were data.  Rows only:
@@ -821,10 +820,8 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             second = next((k for k in range(1, len(seq)) if k not in skip), 1)
             crop = crop_for(first, np.asarray(seq[second], dtype=float), spacing, origin, roi="auto",
                             margin=register_kwargs.get("margin"), fan=True)
-            if crop is not None:
-                why = "; ".join(w for w in (crop.region.excluded or "").split("; ") if w.startswith("depth")) or None
-                if why is None:
-                    crop = None
+            if crop is not None and not crop.region.row_cuts:
+                crop = None
         if crop is not None:
             from .geometry import beam_excluded
 
@@ -832,7 +829,7 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
             n_rays = np.shape(seq[0])[1]
             rho_c = sample_space(beam, np.shape(seq[0]), dr, r0)[0]
             seq = seq[:, a:b] if isinstance(seq, np.ndarray) else [np.asarray(f)[a:b] for f in seq]
-            region, excluded = ((a, b), (0, n_rays)), beam_excluded(why, rho_c) if why else None
+            region, excluded = ((a, b), (0, n_rays)), beam_excluded(crop.region, rho_c, rows_only=True)
             r0 = r0 + a * dr
             spacing, origin = validate_spacing(*sample_space(beam, np.shape(seq[0]), dr, r0)[1:])
     elif given:

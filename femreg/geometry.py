@@ -631,32 +631,41 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     if inner is not None and inner.excluded:
         # what the sample-space stage left out (femreg.echo), in the probe's own terms: ranges along the rays and
         # ray angles, not the (r, s) rectangle it was cut in
-        res.excluded = beam_excluded(inner.excluded, rho_c)
+        cut = getattr(inner, "echo_region", None)
+        res.excluded = inner.excluded if cut is None else beam_excluded(cut, rho_c)
         res.message = f"{res.message}; {res.excluded}"
     return with_refinement(res, sol)
 
 
-_NUM = r"(-?\d+(?:\.\d+)?)"
-
-
-def beam_excluded(text: str, rho_c: float) -> str:
-    """A sample-space crop's ``excluded`` text (:mod:`femreg.echo`, in (range r, arc s at ``rho_c``) mm) for a beam
-    frame: ``depth below D mm`` reads ``range beyond D mm (along the rays)``, lateral spans in arc mm become ray
-    angles in degrees."""
-    import re
-
+def beam_excluded(region, rho_c: float, *, rows_only: bool = False) -> str | None:
+    """What a sample-space crop leaves out, said in a beam frame's terms: ``region`` the
+    :class:`femreg.echo.EchoRegion` (in range r, arc s at ``rho_c`` mm) it was cut to.  From its data: rows cut at
+    the top / bottom read ``range before / beyond R mm (along the rays)``, lines cut at a side (arc mm) ray angles
+    in degrees (``rays at A to B deg``), a given box its range and rays; ``rows_only``: the rows' cuts alone (a
+    crop that keeps every ray).  None when nothing is said; a region without cut data (a fan's fill) says its own
+    ``excluded``."""
     def deg(v):
         return np.rad2deg(float(v) / rho_c) + 0.0
 
-    t = re.sub(r"\bdepth below ", "range beyond ", str(text))
-    t = re.sub(r"\bdepth above ", "range before ", t)
-    t = re.sub(r"(range (?:beyond|before) " + _NUM + r" mm)", r"\1 (along the rays)", t)
-    t = re.sub(r"\blines at " + _NUM + "-" + _NUM + r" mm",
-               lambda m: f"rays at {deg(m.group(1)):.1f} to {deg(m.group(2)):.1f} deg", t)
-    t = re.sub(r"\bthe given (roi|depth) x " + _NUM + "-" + _NUM + r" mm, y " + _NUM + "-" + _NUM + r" mm",
-               lambda m: (f"the given {m.group(1)}: range {m.group(2)}-{m.group(3)} mm, rays at "
-                          f"{deg(m.group(4)):.1f} to {deg(m.group(5)):.1f} deg"), t)
-    return t
+    def rays(c):
+        return f"rays at {deg(c.lo):.1f} to {deg(c.hi):.1f} deg"
+
+    if region.given is not None:
+        x0, x1, y0, y1 = region.roi_mm
+        return (f"outside the given {region.given}: range {x0:.1f}-{x1:.1f} mm, rays at {deg(y0):.1f} to "
+                f"{deg(y1):.1f} deg excluded")
+    if not region.cuts and not rows_only:
+        return region.excluded          # no cut data: a fan's fill says its own
+    parts = []
+    for c in region.row_cuts if rows_only else region.cuts:
+        if c.axis == "depth" and c.side in ("above", "below"):
+            where = "before" if c.side == "above" else "beyond"
+            parts.append(f"range {where} {c.edge:.1f} mm (along the rays) {c.why}")
+        elif c.axis == "depth":         # saturated ranges: cut (no side), or kept inside the region
+            parts.append(f"{'saturated ranges at' if c.side == 'kept' else 'range'} {c.span} (along the rays) {c.why}")
+        else:
+            parts.append(f"{rays(c)} ({c.side}) {c.why}" if c.side else f"{rays(c)} {c.why}")
+    return "; ".join(parts) or None
 
 
 def _judged_on_objf(sol, u0):

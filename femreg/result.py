@@ -85,6 +85,8 @@ class RegistrationResult(ResultRecord):
         self.hop_gain = None if hop_gain is None else np.asarray(hop_gain, float)
         self.excluded = None if excluded is None else str(excluded)
         self.roi = None if roi is None else tuple(float(v) for v in roi)
+        #: the :class:`femreg.echo.EchoRegion` the frames were cut to (what ``excluded`` says, as data; not saved)
+        self.echo_region = None
         #: (n_axial, n_lateral) bool on the pixel grid, False where nothing was measured (outside the fan of a
         #: scan-converted frame, :func:`femreg.echo.fan_region`): fields there are NaN; None: everywhere
         self.data_mask = None

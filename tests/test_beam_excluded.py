@@ -20,17 +20,24 @@ def _loop_with_zero_rows():
     return seq, frames
 
 def test_beam_excluded_text():
+    # the sentence is built from the crop's data (femreg.echo.Cut), not by rewriting echo's sentence
+    from femreg.echo import Cut, EchoRegion, region_from_mm
     from femreg.geometry import beam_excluded
 
     rho = 100.0
-    t = beam_excluded("depth below 92.4 mm excluded: no signal (zero samples); lines at -52.4--43.6 mm (left) "
-                      "excluded: no signal (zero samples)", rho)
+    dead = "excluded: no signal (zero samples)"
+    cuts = (Cut("depth", "below", 92.4, 100.0, dead), Cut("lines", "left", -52.4, -43.6, dead))
+    region = EchoRegion((0, 10), (3, 9), (11, 10), (1.0, 1.0), (0.0, 0.0), "; ".join(c.text for c in cuts), cuts=cuts)
+    assert region.excluded == f"depth below 92.4 mm {dead}; lines at -52.4--43.6 mm (left) {dead}", region.excluded
+    t = beam_excluded(region, rho)
     assert t.startswith("range beyond 92.4 mm (along the rays) excluded"), t
     a0, a1 = np.rad2deg(-52.4 / rho), np.rad2deg(-43.6 / rho)
     assert f"rays at {a0:.1f} to {a1:.1f} deg (left)" in t, t
-    g = beam_excluded("outside the given depth x 0.0-40.0 mm, y -10.0-10.0 mm excluded", rho)
-    assert g == (f"outside the given depth: range 0.0-40.0 mm, rays at {np.rad2deg(-0.1):.1f} to "
-                 f"{np.rad2deg(0.1):.1f} deg excluded"), g
+    assert beam_excluded(region, rho, rows_only=True) == f"range beyond 92.4 mm (along the rays) {dead}"
+    g = region_from_mm((41, 20), (1.0, 1.0), (0.5, -9.5), depth=(0.0, 40.0))
+    assert g.excluded == "outside the given depth x 0.0-40.0 mm, y -10.0-10.0 mm excluded", g.excluded
+    assert beam_excluded(g, rho) == (f"outside the given depth: range 0.0-40.0 mm, rays at {np.rad2deg(-0.1):.1f} to "
+                                     f"{np.rad2deg(0.1):.1f} deg excluded")
 
 
 def test_convex_result_names_the_rows_left_out(tmp_path):
