@@ -63,6 +63,7 @@ from . import orientation
 from .image import repeated_frames, validate_image, validate_spacing
 from .mesh import check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
+from .registration import sharing_start
 from .speckle import envelope, speckle_cell, speckle_statistics
 
 __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "display_range", "DEFAULT_BAND",
@@ -709,6 +710,7 @@ def _positive_number(v) -> bool:
     return bool(np.isfinite(f) and f > 0)
 
 
+@sharing_start()    # a pair registered in this process takes the start the noise-at-depth decision made on it
 def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc: float = 0.6,
                max_lateral_mm: float | None = None, max_span: int = 8, persistence: float = DEFAULT_PERSISTENCE,
                output_dir=None, resume: bool = False, progress: bool = False, regularizer="momentum-stress",

@@ -15,8 +15,10 @@ never worse than the start) -> :class:`femreg.result.RegistrationResult`.  The s
 """
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import copy
+import dataclasses
 import functools
 import inspect
 import time
@@ -183,6 +185,60 @@ def _noise_at_depth(found, args: dict, shape, spacing, origin):
     if _DECIDING.get():
         raise _CutDecided(crop)
     return crop
+
+
+#: While a loop shares its first pair's start (:func:`sharing_start`): a dict that :func:`noise_at_depth` leaves
+#: the search it made in (``"search"``: :class:`_Handed`), for the loop's own registration of that pair.
+_SHARED = contextvars.ContextVar("femreg_registration_shared_start", default=None)
+
+
+@dataclasses.dataclass
+class _Handed:
+    """A start's search (:class:`femreg.pyramid.PyramidSearch`) with what it was computed from: the normalised
+    frames, their grid, the speckle statistics and settings (:func:`_search_stage`)."""
+
+    ref: np.ndarray
+    mov: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    search: object
+
+    def fits(self, ref, mov, spacing, origin, stats, settings) -> bool:
+        """Whether a search on these (normalised frames, grid, statistics, settings) is this one."""
+        same = [(self.spacing, spacing), (self.origin, origin), (self.ref, ref), (self.mov, mov)]
+        for a, b in ((self.search.stats, stats), (self.search.settings, settings)):
+            same += [(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.compare]
+        return all(np.shape(x) == np.shape(y) and np.array_equal(x, y) for x, y in same)
+
+
+@contextlib.contextmanager
+def sharing_start():
+    """Context in which :func:`noise_at_depth` hands the start it computed for its decision (the pyramid's search)
+    to a later :func:`register` of the same frames with the same statistics and settings, which takes it instead of
+    searching again (bit-identical: the search depends on nothing else).  :func:`femreg.track` and
+    :func:`femreg.elastogram` decide their cut on the first pair that differs and then register it."""
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
+def _search_stage(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, *, regularizer, offset, stats, settings,
+                  element_size, rectangle):
+    """:func:`femreg.initial.start_search` (arguments as there), or the search :func:`noise_at_depth` made on these
+    very frames and settings (:func:`sharing_start`); a search made under :func:`noise_at_depth` is left for it."""
+    box = _SHARED.get()
+    plain = box is not None and offset is None and rectangle is None and stats is not None
+    handed = box.get("search") if plain else None
+    if handed is not None and isinstance(initial, str) and initial == "pyramid" and handed.fits(
+            ref, mov, spacing, origin, stats, settings):
+        return handed.search
+    search = start_search(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=regularizer, offset=offset,
+                          stats=stats, settings=settings, element_size=element_size, rectangle=rectangle)
+    if plain and search is not None and _DECIDING.get():
+        box["search"] = _Handed(ref, mov, np.asarray(spacing, float), np.asarray(origin, float), search)
+    return search
 
 
 def noise_at_depth(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), **register_kwargs):
@@ -426,8 +482,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
 
     # -- initial guess ---------------------------------------------------------------------------------------
     t = time.perf_counter()
-    search = start_search(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=regularizer, offset=offset,
-                          stats=stats, settings=settings, element_size=element_size, rectangle=rect)
+    search = _search_stage(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, regularizer=regularizer, offset=offset,
+                           stats=stats, settings=settings, element_size=element_size, rectangle=rect)
     start = None if (noise := _noise_at_depth(search, args, ref.shape, spacing, origin)) is not None else initial_guess(
         initial, ref, mov, I1, I2, fe_mesh, spacing, origin, reg_factory, alpha=user_reg.alpha, regularizer=regularizer,
         strategy=strategy, offset=offset, stats=stats, settings=settings, element_size=element_size, margin=margin,

@@ -47,7 +47,7 @@ from .mesh import as_quad_mesh, check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
 from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
 from .probes import Convex, as_geometry
-from .registration import RegistrationResult, noise_at_depth, register
+from .registration import RegistrationResult, noise_at_depth, register, sharing_start
 from .result import load_result
 from .repair import frame_flag, mark_tainted, own_flag, retry_flagged
 from .solver import single_blas_thread
@@ -162,6 +162,7 @@ def _region_record(shape, origin, crop) -> dict:
 
 
 @single_blas_thread
+@sharing_start()    # the first pair's registration takes the start its noise-at-depth decision made on it
 def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stress", alpha=None,
           mode: str = "accumulate", grid: str = "current",
           init: str = "previous", mesh=None, element_size=None, margin=None, checkpoint_dir=None,
