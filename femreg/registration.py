@@ -7,7 +7,9 @@ at ``origin + (i dx, j dy)`` mm.  With ``offset=S`` the problem is eq:IR of a se
 :func:`register` runs named stages passing plain data: validate the inputs -> normalise each frame (minus its
 mean, over its spread) and build the spline coefficients once (:mod:`femreg.image`) -> mesh (ROI sized from the
 speckle, or the user's; :mod:`femreg.mesh`) -> initial guess (:mod:`femreg.initial`: coarse-to-fine pyramid, :mod:`femreg.pyramid`, or
-the paper's NCC block matching and coarse pass, :mod:`femreg.paperguess`) -> Gauss-Newton on the final mesh
+the paper's NCC block matching and coarse pass, :mod:`femreg.paperguess`; the pyramid's search first, whose block
+matching decides a cut of noise at depth before any solve: :func:`noise_at_depth` runs register up to that
+decision) -> Gauss-Newton on the final mesh
 (:mod:`femreg.gnsolve`: SSD term with the fixed reference gradient, eq:wfnew, + a fresh regulariser weighted per
 2 x 2 mm element, :mod:`femreg.scaling`) -> repair and check (:mod:`femreg.repair`: peak hopping, failure rules,
 never worse than the start) -> :class:`femreg.result.RegistrationResult`.  The strategies' settings live in
