@@ -9,6 +9,10 @@ crop's texts).
 Run: ``PYTHONPATH=OLD python benchmarks/staging_identity.py save old.npz``, the same with the new tree, then
 ``python benchmarks/staging_identity.py compare old.npz new.npz`` (exit 1 on a difference).  About 1-2 min a save on
 one core (``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``).
+
+Measured (2026-12-07): the search staged before the pyramid's coarse solve, noise_at_depth run as register up to its
+decision, track / elastogram taking the first pair's search from it, and the echo cuts as data against the code
+before them: 110 arrays compared, none differs.
 """
 from __future__ import annotations
 
