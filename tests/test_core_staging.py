@@ -98,3 +98,22 @@ def test_the_crop_data_says_the_sentence():
     assert crop.region.excluded == cut.text and cut.side == "below" and "do not match" in cut.why
     assert cut.lo == q.origin[0] + (crop.slices[0].stop - 0.5) * q.spacing[0]
     assert unmatched_crop(None, q.ref.shape, q.spacing, q.origin) is None
+
+
+def test_beam_sentence_of_saturated_strips_is_in_the_probe_terms():
+    # saturated strips were left in sample-space words by the rewriting ("depth a-b mm", "lines a-b mm" of arc)
+    from femreg.echo import Cut, EchoRegion
+    from femreg.geometry import beam_excluded
+
+    sat = "excluded: saturated (more than 2% of the samples clipped; 0.5% of the frame)"
+    cuts = (Cut("depth", None, 5.0, 7.5, sat), Cut("lines", None, 10.0, 12.0, sat),
+            Cut("depth", "kept", 9.0, 9.5, "kept (inside the echo region)"))
+    region = EchoRegion((0, 10), (0, 10), (10, 10), (1.0, 1.0), (0.0, 0.0), "; ".join(c.text for c in cuts),
+                        cuts=cuts)
+    assert region.excluded.startswith(f"depth 5.0-7.5 mm {sat}; lines 10.0-12.0 mm {sat}"), region.excluded
+    rho = 40.0
+    t = beam_excluded(region, rho)
+    a0, a1 = np.rad2deg(10.0 / rho), np.rad2deg(12.0 / rho)
+    assert t == (f"range 5.0-7.5 mm (along the rays) {sat}; rays at {a0:.1f} to {a1:.1f} deg {sat}; "
+                 "saturated ranges at 9.0-9.5 mm (along the rays) kept (inside the echo region)"), t
+    assert beam_excluded(region, rho, rows_only=True) == f"range 5.0-7.5 mm (along the rays) {sat}"
