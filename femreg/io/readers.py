@@ -10,6 +10,8 @@ Formats (chosen by extension, verified by content):
 ``.mhd`` / ``.mha``    MetaImage header + data; see :mod:`femreg.io.metaimage` for the axis mapping
 ``.raw`` ``.bin``...   headerless samples: ``shape`` required, ``dtype`` (default float32), ``byte_order``
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
+``.raw`` (Clarius)     a Clarius research export (5-field header, time-stamped int16 frames stored line by line,
+                       told by its size), settings from the YAML beside it; see :mod:`femreg.io.clarius`
 ``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
                        to RF; see :mod:`femreg.io.uff`
 ``.h5`` ``.hdf5``      plain HDF5: a dataset of frames, its layout told by the RF carrier; see :mod:`femreg.io.hdf5`
@@ -296,6 +298,11 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     """Headerless samples.  ``shape`` (axial, lateral) reads as many whole frames as the file holds;
     (n, axial, lateral) requires exactly n.  Layout C-order: lateral fastest (as ``np.fromfile(...).reshape``)."""
     path = Path(path)
+    if not offset:
+        from .clarius import read_clarius, sniff
+
+        if sniff(path) is not None:     # a Clarius export: its header states the shape and type
+            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames)
     shp = _check_shape(shape)
     if shp is None:
         sibling = path.with_suffix(".mhd")
