@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from femreg.cli import main
-from femreg.errors import InputError
+from femreg.errors import FileFormatError, InputError
 from femreg.io import read_frames
 from femreg.io.clarius import settings_fields, sniff
 
@@ -72,14 +72,12 @@ def test_settings_nesting_units_and_comments(tmp_path):
 def test_recognised_by_size_only(tmp_path):
     p = _clarius(tmp_path / "a_rf.raw", _coded(), yml=None)
     assert sniff(p) == {"id": 2, "frames": 3, "lines": 6, "samples": 40, "samplesize": 2}
-    # cut by one byte, or headerless samples of the same length: a plain raw file, which needs --shape
-    (tmp_path / "cut.raw").write_bytes(p.read_bytes()[:-1])
+    # headerless samples of the same length: a plain raw file, which needs --shape
     (tmp_path / "plain.raw").write_bytes(np.random.default_rng(0).integers(-999, 999, p.stat().st_size // 2,
                                                                            dtype="<i2").tobytes())
-    for q in ("cut.raw", "plain.raw"):
-        assert sniff(tmp_path / q) is None
-        with pytest.raises(InputError, match="shape"):
-            read_frames(tmp_path / q, spacing=(0.02, 0.3))
+    assert sniff(tmp_path / "plain.raw") is None
+    with pytest.raises(InputError, match="shape"):
+        read_frames(tmp_path / "plain.raw", spacing=(0.02, 0.3))
     # a --shape or --dtype against the header's is refused, naming the header's
     with pytest.raises(InputError, match="40 samples x 6 lines"):
         read_frames(p, shape=(40, 5), spacing=(0.02, 0.3))
@@ -102,3 +100,18 @@ def test_info_names_the_spacing_then_is_ready(tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["format"] == "clarius" and info["frames"] == 2
     assert "--spacing 0.01925 0.3" in json.dumps(info)
+
+
+def test_cut_short_and_headers_are_named(tmp_path):
+    p = _clarius(tmp_path / "a_rf.raw", _coded(), yml=None)
+    blob = p.read_bytes()
+    # a copy cut short: the header's frames, and the whole frames the file holds
+    (tmp_path / "cut_rf.raw").write_bytes(blob[:-5])
+    assert sniff(tmp_path / "cut_rf.raw") is None
+    with pytest.raises(FileFormatError, match=r"truncated Clarius raw export.*room for 2 whole frame"):
+        read_frames(tmp_path / "cut_rf.raw", spacing=(0.02, 0.3))
+    # a headered file read as headerless samples: the bytes over the whole frames are counted as a header
+    (tmp_path / "h.raw").write_bytes(b"\1" * 36 + bytes(3 * 480) + b"\2" * 12)
+    for shape in ((40, 6), (3, 40, 6)):
+        with pytest.raises(FileFormatError, match=r"48 bytes over 3 whole frame\(s\), as a header"):
+            read_frames(tmp_path / "h.raw", shape=shape, dtype="int16", spacing=(0.02, 0.3))

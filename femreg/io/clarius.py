@@ -54,6 +54,30 @@ def sniff(path) -> dict | None:
     return hdr if size == HEADER_SIZE + hdr["frames"] * (STAMP_SIZE + frame) else None
 
 
+def cut_short(path) -> str:
+    """A message when ``path`` starts with a plausible Clarius header (RF or envelope samples, sizes in range) but
+    is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else ""."""
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            raw = fh.read(HEADER_SIZE)
+    except OSError:
+        return ""
+    if len(raw) < HEADER_SIZE:
+        return ""
+    hdr = dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
+    if not (0 < hdr["frames"] <= 1 << 16 and 0 < hdr["lines"] <= 4096 and 16 <= hdr["samples"] <= 1 << 16
+            and hdr["samplesize"] in SAMPLE_TYPES):
+        return ""
+    stride = STAMP_SIZE + hdr["lines"] * hdr["samples"] * hdr["samplesize"]
+    need = HEADER_SIZE + hdr["frames"] * stride
+    if not size < need:
+        return ""
+    return (f"truncated Clarius raw export: its header states {hdr['frames']} frame(s) of {hdr['samples']} samples "
+            f"x {hdr['lines']} lines ({need} bytes), the file has {size}; room for "
+            f"{(size - HEADER_SIZE) // stride} whole frame(s)")
+
+
 _NUMBER = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z/]*)\s*$")
 
 

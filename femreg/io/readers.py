@@ -303,6 +303,12 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
 
         if sniff(path) is not None:     # a Clarius export: its header states the shape and type
             return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames)
+        if shape is None:
+            from .clarius import cut_short
+
+            cut = cut_short(path)
+            if cut:
+                raise fail(path, cut)
     shp = _check_shape(shape)
     if shp is None:
         sibling = path.with_suffix(".mhd")
@@ -339,7 +345,8 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
         need = shp[0] * frame_bytes
         if body != need:
             kind = "truncated" if body < need else "size mismatch"
-            raise fail(path, f"{kind}: {body} bytes, shape {shp} {dt.name} needs {need}")
+            raise fail(path, f"{kind}: {body} bytes, shape {shp} {dt.name} needs {need}"
+                             + _surplus_hint(body, frame_bytes, shp[0]))
         n = shp[0]
     else:
         if body <= 0 or body % frame_bytes:
@@ -355,7 +362,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
                 hint = (f" (a whole number of {name} frames{shows}: try "
                         + pass_as(f"dtype={name}, CLI: --dtype {name}", f"--dtype {name}") + ")")
             raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
-                             f"frames ({frame_bytes} bytes each){hint}")
+                             f"frames ({frame_bytes} bytes each){hint or _surplus_hint(body, frame_bytes)}")
         n = body // frame_bytes
     if n * frame_bytes > _MAX_BYTES:
         raise fail(path, "over 16 GiB of samples; select frames or split the file")
@@ -384,6 +391,18 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     if layout:
         meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
+
+
+def _surplus_hint(body: int, frame_bytes: int, n_frames: int | None = None) -> str:
+    """Where a headerless read leaves bytes over: how many, beyond how many whole frames, and that they look like
+    a header (a file header and/or one before each frame), which a raw read cannot skip; "" otherwise."""
+    n = body // frame_bytes if n_frames is None else int(n_frames)
+    extra = body - n * frame_bytes
+    if n < 1 or extra <= 0 or extra >= frame_bytes:
+        return ""
+    return (f"; {extra} bytes over {n} whole frame(s), as a header would leave (before the data, or before each "
+            "frame), which a headerless read cannot skip.  femreg reads the headers of Ultrasonix .rf and Clarius "
+            "raw exports (femreg info FILE names the format); other files: write the samples alone")
 
 
 # ------------------------------------------------------------------------------------------- directories
