@@ -30,7 +30,8 @@ def _clarius(path, frames_ls, stamps=None, size=2, yml=YML):
     stamps = np.arange(n, dtype="<i8") * 50_000_000 + 10**18 if stamps is None else stamps
     blob = np.array([2, n, nl, ns, size], "<i4").tobytes()
     for k in range(n):
-        blob += np.int64(stamps[k]).astype("<i8").tobytes() + frames_ls[k].astype("<i2" if size == 2 else "u1").tobytes()
+        data = frames_ls[k].astype("<i2" if size == 2 else "u1")
+        blob += np.int64(stamps[k]).astype("<i8").tobytes() + data.tobytes()
     path.write_bytes(blob)
     if yml is not None:
         path.with_suffix(".yml").write_text(yml)

@@ -41,8 +41,8 @@ def add_parser(subparsers):
         description="Screen every consecutive pair of FRAMES on decimated envelopes, choose pairs whose axial "
                     "strain lies in the band with little lateral and out-of-plane motion, register them, "
                     "normalise each strain image by its mean and combine them by quality-weighted persistence.")
-    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, .rf, .uff/.h5, DICOM .dcm, or a "
-                                "folder of per-frame files)")
+    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, Clarius raw, .rf, .uff/.h5, DICOM .dcm, "
+                                "or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
     p.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"), default=(0.5, 2.0),
                    help="axial strain magnitude of the pairs to register, percent (default 0.5 2)")
