@@ -202,6 +202,7 @@ def fit_colorbars(fig, rows, tries=10):
     wspace = 0.02
     rect = [0.0, 0.0, 1.0, 1.0]
     margin = (EDGE_MARGIN_IN + getattr(fig, "_femreg_frame_in", 0.0)) * fig.dpi     # px
+    _wrap_suptitle(fig, margin)
     for _ in range(tries):
         fig.draw_without_rendering()   # the layout and every extent as a draw makes them, no pixels
         r = fig.canvas.get_renderer()
@@ -227,6 +228,24 @@ def fit_colorbars(fig, rows, tries=10):
         rect[1] += 1.1 * over[2] / h
         rect[3] -= 1.1 * over[2] / h
         engine.set(wspace=wspace, rect=tuple(rect))
+
+
+def _wrap_suptitle(fig, margin_px: float) -> None:
+    """Wrap the figure's title onto as many lines as keep it inside the figure, ``margin_px`` from its edges: one
+    line of a track frame's title (frames, regulariser, alpha, NCC of the last step) ran past both edges of a
+    three-panel figure, its first and last words cut off."""
+    t = getattr(fig, "_suptitle", None)
+    if t is None or not t.get_text():
+        return
+    r = fig.canvas.get_renderer()
+    room = fig.bbox.width - 2.0 * margin_px
+    for _ in range(3):
+        width = t.get_window_extent(r).width
+        if width <= room:
+            return
+        text = " ".join(t.get_text().split())
+        longest = max(len(line) for line in t.get_text().splitlines())
+        t.set_text(textwrap.fill(text, max(20, int(longest * room / width) - 2)))
 
 
 #: How a B-mode is drawn on a pixel grid: a full-depth frame holds several samples per screen pixel (2000 rows in
