@@ -288,6 +288,12 @@ def frame_index(index: int, n: int, path, flag: str) -> int:
                      f"{n - 1}{why}")
 
 
+#: Lateral speckle narrower than this many axial RF periods over a whole frame: no spacing order explains it (a
+#: swap reads 0.04-0.29 and is said so, :mod:`femreg.orientation`); the units are wrong (0.0001 typed for 0.1 mm:
+#: 0.01).
+IMPLAUSIBLE_CELL_PERIODS = 0.1
+
+
 def _check_frame_size(fr, path, args) -> None:
     """A whole frame of a linear array as read from ``path``: refuse a spacing in centimetres, which the RF checks
     of register cannot see on a crop (:func:`femreg.orientation.diagnose`, ``whole_frame``); only that rule here,
@@ -303,6 +309,15 @@ def _check_frame_size(fr, path, args) -> None:
     rep = diagnose(a[0], fr.spacing, whole_frame=True)
     if rep.small_frame:
         raise OrientationError(f"{path}: {rep.message}", problem=rep.problem)
+    if rep.problem == "spacing" and np.isfinite(rep.cell_periods) and rep.cell_periods < IMPLAUSIBLE_CELL_PERIODS:
+        # a lateral pitch in metres (a header's pitch copied as it stands): before register's own check, which runs
+        # on the echo's crop, the echo finder refused a frame 0.03 mm wide as "too small for a mesh"
+        from ..io.checks import spacing_suggestion
+
+        fields = (fr.metadata or {}).get("fields") or {}
+        sug = spacing_suggestion(fields) if fields else None
+        hint = f"; {sug.text()}" if sug is not None and "DX" not in (sug.dx, sug.dy) else ""
+        raise OrientationError(f"{path}: {rep.message}{hint}", problem=rep.problem)
 
 
 def beam_spacing_error(exc, geometry):
