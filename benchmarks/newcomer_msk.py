@@ -153,9 +153,11 @@ def errors(path, i, j, lateral0=None):
     P, est, u = P[ok], est[ok], u[ok]
     t, tu = TRUTH.strain(i, j, P), TRUTH.displacement(i, j, P)
     w = np.array([1.0, 1.0, 2.0])
-    r = np.hypot(P[:, 0] - NOD["xc"], P[:, 1] - NOD["yc"])
+    # the nodule's centre and the band's depth where frame i images them
+    (xc, yc), (xb, _) = motion(i, np.array([[NOD["xc"], NOD["yc"]], [BAND[0], 0.0]]))
+    r = np.hypot(P[:, 0] - xc, P[:, 1] - yc)
     inl, bg = r < 1.2, (r > 3.0) & (r < 4.5)
-    above, below = np.abs(P[:, 0] - (BAND[0] - 2)) < 0.3, np.abs(P[:, 0] - (BAND[0] + 2)) < 0.3
+    above, below = np.abs(P[:, 0] - (xb - 2)) < 0.3, np.abs(P[:, 0] - (xb + 2)) < 0.3
     return dict(total=100 * math.sqrt(np.sum(w * (est - t) ** 2) / np.sum(w * t ** 2)),
                 exx=100 * math.sqrt(np.sum((est[:, 0] - t[:, 0]) ** 2) / np.sum(t[:, 0] ** 2)),
                 ux_um=1e3 * math.sqrt(np.mean((u[:, 0] - tu[:, 0]) ** 2)),
@@ -172,14 +174,14 @@ def say(name, e):
         return
     print(f"  {name}: total {e['total']:5.1f} %, e_xx {e['exx']:5.1f} %, u RMS {e['ux_um']:.1f} / "
           f"{e['uy_um']:.1f} um, SR {e['sr']:.2f} (true {e['sr_true']:.2f}), slide {e['slide_um']:.1f} um "
-          f"(true {e['slide_true_um']:.1f}), success {e['success']}")
+          f"(true {e['slide_true_um']:.1f}), success {e['success']}", flush=True)
 
 
 def femreg_cli(*args):
     """Run the command as a user does (a fresh process); returns its exit code and prints its wall time."""
     t = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "femreg", *map(str, args)], capture_output=True, text=True)
-    print(f"$ femreg {' '.join(map(str, args))}\n  exit {p.returncode} in {time.perf_counter() - t:.1f} s")
+    print(f"$ femreg {' '.join(map(str, args))}\n  exit {p.returncode} in {time.perf_counter() - t:.1f} s", flush=True)
     for line in (p.stdout + p.stderr).strip().splitlines()[-8:]:
         print("  | " + line[:220])
     return p.returncode
@@ -205,6 +207,11 @@ def main(argv=None):
         femreg_cli("register", raw, "--pair", i, j, "-o", out / f"p{i}{j}.npz", *sp)
         if (out / f"p{i}{j}.npz").exists():
             say(f"register {i} -> {j}", errors(out / f"p{i}{j}.npz", i, j))
+    for alpha in ("auto", "0.00133"):          # the default alpha smooths the nodule and the slide away
+        femreg_cli("register", raw, "--pair", 2, 3, "-o", out / f"p23_{alpha}.npz", "--alpha", alpha, *sp)
+        if (out / f"p23_{alpha}.npz").exists():
+            say(f"register 2 -> 3 --alpha {alpha}", errors(out / f"p23_{alpha}.npz", 2, 3))
+    femreg_cli("register", raw, "--pair", 2, 3, "-o", out / "metres.npz", "--spacing", "0.01925", "0.0001")
     femreg_cli("plot", out / "p23.npz", "--reference", raw, *sp)
     femreg_cli("measure", out / "p23.npz", "--inclusion", NOD["xc"], NOD["yc"] + 0.5 * WIDTH - 0.5 * PITCH, 1.2)
     if not a.skip_track:
@@ -212,6 +219,7 @@ def main(argv=None):
         last = out / "run" / "frame_011.npz"
         if last.exists():
             say("track 0 -> 11", errors(last, 0, 11))
+            femreg_cli("plot", last, "--reference", raw, *sp)
     if not a.skip_elastogram:
         femreg_cli("elastogram", raw, "-o", out / "loop", *sp)
     print(f"outputs in {out}")
