@@ -116,3 +116,16 @@ def test_cut_short_and_headers_are_named(tmp_path):
     for shape in ((40, 6), (3, 40, 6)):
         with pytest.raises(FileFormatError, match=r"48 bytes over 3 whole frame\(s\), as a header"):
             read_frames(tmp_path / "h.raw", shape=shape, dtype="int16", spacing=(0.02, 0.3))
+
+
+def test_unpacked_export_folder_names_the_files(tmp_path):
+    # a Clarius export unpacked: the RF and envelope loops side by side (the folder reader took them for one frame
+    # per file and stopped at "frame shape (40, 6) differs from a_env.raw's (30, 4)")
+    _clarius(tmp_path / "a_rf.raw", _coded())
+    _clarius(tmp_path / "a_env.raw", _coded(3, 4, 30) % 250, size=1, yml=None)
+    with pytest.raises(FileFormatError, match=r"Clarius exports.*a_rf.raw: RF, 3 frame\(s\) of 40 x 6.*pass one "
+                                              r"file, e\.g\. .*a_rf\.raw"):
+        read_frames(tmp_path, spacing=(0.02, 0.3))
+    (tmp_path / "a_env.raw").unlink()       # one loop alone in its folder reads as that file
+    np.testing.assert_array_equal(read_frames(tmp_path, spacing=(0.02, 0.3)).frames,
+                                  read_frames(tmp_path / "a_rf.raw", spacing=(0.02, 0.3)).frames)

@@ -462,6 +462,17 @@ def read_directory(path, *, frames=None, **options):
         raise fail(path, f"directory mixes formats ({listing}); point at one file or move the others out")
     (fmt, files), = by_ext.items()
     files.sort(key=lambda p: natural_key(p.name))
+    if fmt == "raw" and len(files) > 1:
+        from .clarius import sniff
+
+        loops = [(f, sniff(f)) for f in files]
+        loops = [(f, h) for f, h in loops if h is not None]
+        if loops:   # an unpacked Clarius export: RF and envelope loops side by side, not one frame per file
+            listing = "; ".join(f"{f.name}: {'RF' if h['samplesize'] == 2 else 'envelope'}, {h['frames']} frame(s) "
+                                f"of {h['samples']} x {h['lines']}" for f, h in loops[:3])
+            rf = next((f for f, h in loops if h["samplesize"] == 2), loops[0][0])
+            raise fail(path, f"directory holds Clarius exports, each a whole loop ({listing}"
+                             f"{'; ...' if len(loops) > 3 else ''}): pass one file, e.g. {rf}")
     if fmt == "dicom":                  # one series, in InstanceNumber order
         from .dicom import read_dicom_series
 
