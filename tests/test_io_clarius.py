@@ -129,3 +129,13 @@ def test_unpacked_export_folder_names_the_files(tmp_path):
     (tmp_path / "a_env.raw").unlink()       # one loop alone in its folder reads as that file
     np.testing.assert_array_equal(read_frames(tmp_path, spacing=(0.02, 0.3)).frames,
                                   read_frames(tmp_path / "a_rf.raw", spacing=(0.02, 0.3)).frames)
+
+
+def test_dtype_words_are_compared_as_types(tmp_path, capsys):
+    rf = np.random.default_rng(1).standard_normal((2, 6, 40)) * 500
+    p = _clarius(tmp_path / "scan_rf.raw", rf)
+    # "short" is int16: the header's type, no note that it was ignored (there was one, comparing the words)
+    assert main(["info", str(p), "--dtype", "short", "--spacing", "0.01925", "0.3"]) in (0, 1)
+    assert "ignored" not in capsys.readouterr().err
+    assert main(["info", str(p), "--dtype", "float32", "--spacing", "0.01925", "0.3"]) == 2
+    assert "states int16 samples" in capsys.readouterr().err

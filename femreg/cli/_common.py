@@ -105,6 +105,16 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
+def _dtype_name(dtype) -> str:
+    """numpy's name of a --dtype word (``short`` -> ``int16``), the word itself where it names none."""
+    from ..io.checks import parse_dtype
+
+    try:
+        return parse_dtype(dtype).name
+    except (InputError, TypeError, ValueError):
+        return str(dtype).lower()
+
+
 def _note_raw_only_flags(fr, path, args) -> None:
     """On stderr: --shape, --dtype or --byte-order given for a file that states its own (npy, npz, mat, ...) and
     read otherwise; the file's header wins, but a flag that is silently ignored hides a wrong idea of the data."""
@@ -119,7 +129,7 @@ def _note_raw_only_flags(fr, path, args) -> None:
         ignored.append(f"--shape {' '.join(str(v) for v in shape)} (the file's frames: {fr.n_frames} x "
                        f"{fr.shape[0]} x {fr.shape[1]})")
     dtype = getattr(args, "dtype", None)
-    if dtype and stored and str(dtype).lower() != stored.lower():
+    if dtype and stored and _dtype_name(dtype) != stored.lower():
         ignored.append(f"--dtype {dtype} (stored as {stored})")
     if getattr(args, "byte_order", None):
         ignored.append(f"--byte-order {args.byte_order}")

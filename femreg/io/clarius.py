@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, pass_as
-from .checks import fail, merge_spacing, spacing_suggestion
+from .checks import fail, merge_spacing, parse_dtype, spacing_suggestion
 from .frames import finalize
 
 HEADER_FIELDS = ("id", "frames", "lines", "samples", "samplesize")
@@ -137,7 +137,7 @@ def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, **_
     if given is not None and given[-2:] != (ns, nl) and given[-2:] != (nl, ns):
         raise InputError(f"{path}: its Clarius header states {n} frame(s) of {ns} samples x {nl} lines; "
                          + pass_as("shape", "--shape") + f" {' '.join(map(str, given))} disagrees: leave it out")
-    if dtype is not None and np.dtype(str(dtype) if not isinstance(dtype, np.dtype) else dtype).itemsize != sz:
+    if dtype is not None and parse_dtype(dtype, None).itemsize != sz:
         raise InputError(f"{path}: its Clarius header states {stored.name} samples ({sz} byte(s)); "
                          + pass_as("dtype", "--dtype") + f" {dtype} disagrees: leave it out")
     rec = np.dtype([("stamp", "<i8"), ("data", stored, (nl, ns))])
