@@ -675,6 +675,10 @@ def uncertainty_range(unc) -> tuple:
     return lo, hi
 
 
+#: Least colour range of the shear map's element width in lateral speckle cells (log scale, around 1).
+CELLS_RANGE = (0.5, 4.0)
+
+
 def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
                      vmin=None, vmax=None, label=None):
     """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
@@ -926,8 +930,14 @@ def plot_shear(mesh_points, mesh_cells, shear, out_png=None, *, dpi=100, title=N
     plot_mesh_values(p, t, rel, ax=axes[1], log=True, cmap=SEQUENTIAL_CMAP,
                      label="predicted sigma of e_xy / its median",
                      title="precision of e_xy, relative\n(higher: less certain)")
-    plot_mesh_values(p, t, np.where(np.isfinite(cells), np.maximum(cells, 1e-3), np.nan), ax=axes[2], log=True,
-                     cmap=SEQUENTIAL_CMAP, label="element width / lateral speckle cell",
+    cells = np.where(np.isfinite(cells), np.maximum(cells, 1e-3), np.nan)
+    fin = cells[np.isfinite(cells)]
+    c_lo, c_hi = (np.percentile(fin, [1, 99]) if fin.size else (0.5, 2.0))
+    # the colours span at least 0.5-2 cells around the threshold 1: over the data's own range alone, element widths
+    # of 5 and 6 lines (2.0 and 2.5 cells) alternated in full-scale stripes (a 15 MHz frame, 0.1 mm pitch)
+    plot_mesh_values(p, t, cells, ax=axes[2], log=True, vmin=min(float(c_lo), CELLS_RANGE[0]),
+                     vmax=max(float(c_hi), CELLS_RANGE[1]), cmap=SEQUENTIAL_CMAP,
+                     label="element width / lateral speckle cell",
                      title="element width in lateral speckle\ncells (below 1: du_y/dx poorly measured)")
     if title:
         fig.suptitle(title, fontsize=10)
