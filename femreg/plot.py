@@ -245,7 +245,9 @@ def _wrap_suptitle(fig, margin_px: float) -> None:
             return
         text = " ".join(t.get_text().split())
         longest = max(len(line) for line in t.get_text().splitlines())
-        t.set_text(textwrap.fill(text, max(20, int(longest * room / width) - 2)))
+        # whole words only: a break after a hyphen ("plane-" / "stress") would change the words a reader greps
+        t.set_text(textwrap.fill(text, max(20, int(longest * room / width) - 2), break_on_hyphens=False,
+                                 break_long_words=False))
 
 
 #: How a B-mode is drawn on a pixel grid: a full-depth frame holds several samples per screen pixel (2000 rows in
