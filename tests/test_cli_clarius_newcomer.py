@@ -40,6 +40,7 @@ def test_pitch_in_metres_is_refused_as_units_with_the_settings_spacing(scan, tmp
                       capsys)
     assert rc == 2, err
     assert "too small for a mesh" not in err and "units" in err, err
+    assert "the 64 lines then span 0.0064 mm" in err, err
     assert "its fields suggest --spacing 0.01283 0.1" in err, err
     assert not (tmp_path / "p.npz").exists()
     # the spacing the settings imply passes the same check (info: described and ready)

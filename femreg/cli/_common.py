@@ -327,7 +327,9 @@ def _check_frame_size(fr, path, args) -> None:
         fields = (fr.metadata or {}).get("fields") or {}
         sug = spacing_suggestion(fields) if fields else None
         hint = f"; {sug.text()}" if sug is not None and "DX" not in (sug.dx, sug.dy) else ""
-        raise OrientationError(f"{path}: {rep.message}{hint}", problem=rep.problem)
+        n, dy = a.shape[2], float(fr.spacing[1])
+        width = f" (the {n} lines then span {n * dy:.3g} mm)" if n * dy < 1.0 else ""
+        raise OrientationError(f"{path}: {rep.message}{width}{hint}", problem=rep.problem)
 
 
 def beam_spacing_error(exc, geometry):
