@@ -202,6 +202,7 @@ def fit_colorbars(fig, rows, tries=10):
     wspace = 0.02
     rect = [0.0, 0.0, 1.0, 1.0]
     margin = (EDGE_MARGIN_IN + getattr(fig, "_femreg_frame_in", 0.0)) * fig.dpi     # px
+    _wrap_suptitle(fig, margin)
     for _ in range(tries):
         fig.draw_without_rendering()   # the layout and every extent as a draw makes them, no pixels
         r = fig.canvas.get_renderer()
@@ -227,6 +228,26 @@ def fit_colorbars(fig, rows, tries=10):
         rect[1] += 1.1 * over[2] / h
         rect[3] -= 1.1 * over[2] / h
         engine.set(wspace=wspace, rect=tuple(rect))
+
+
+def _wrap_suptitle(fig, margin_px: float) -> None:
+    """Wrap the figure's title onto as many lines as keep it inside the figure, ``margin_px`` from its edges: one
+    line of a track frame's title (frames, regulariser, alpha, NCC of the last step) ran past both edges of a
+    three-panel figure, its first and last words cut off."""
+    t = getattr(fig, "_suptitle", None)
+    if t is None or not t.get_text():
+        return
+    r = fig.canvas.get_renderer()
+    room = fig.bbox.width - 2.0 * margin_px
+    for _ in range(3):
+        width = t.get_window_extent(r).width
+        if width <= room:
+            return
+        text = " ".join(t.get_text().split())
+        longest = max(len(line) for line in t.get_text().splitlines())
+        # whole words only: a break after a hyphen ("plane-" / "stress") would change the words a reader greps
+        t.set_text(textwrap.fill(text, max(20, int(longest * room / width) - 2), break_on_hyphens=False,
+                                 break_long_words=False))
 
 
 #: How a B-mode is drawn on a pixel grid: a full-depth frame holds several samples per screen pixel (2000 rows in
@@ -656,6 +677,10 @@ def uncertainty_range(unc) -> tuple:
     return lo, hi
 
 
+#: Least colour range of the shear map's element width in lateral speckle cells (log scale, around 1).
+CELLS_RANGE = (0.5, 4.0)
+
+
 def plot_mesh_values(mesh_points, mesh_cells, values, ax=None, *, title=None, cmap="viridis", log=False,
                      vmin=None, vmax=None, label=None):
     """Element values (n_el,) on a quad mesh (``mesh_points`` (2, n_nodes) [x, y] mm, ``mesh_cells`` (4, n_el)),
@@ -907,8 +932,14 @@ def plot_shear(mesh_points, mesh_cells, shear, out_png=None, *, dpi=100, title=N
     plot_mesh_values(p, t, rel, ax=axes[1], log=True, cmap=SEQUENTIAL_CMAP,
                      label="predicted sigma of e_xy / its median",
                      title="precision of e_xy, relative\n(higher: less certain)")
-    plot_mesh_values(p, t, np.where(np.isfinite(cells), np.maximum(cells, 1e-3), np.nan), ax=axes[2], log=True,
-                     cmap=SEQUENTIAL_CMAP, label="element width / lateral speckle cell",
+    cells = np.where(np.isfinite(cells), np.maximum(cells, 1e-3), np.nan)
+    fin = cells[np.isfinite(cells)]
+    c_lo, c_hi = (np.percentile(fin, [1, 99]) if fin.size else (0.5, 2.0))
+    # the colours span at least 0.5-2 cells around the threshold 1: over the data's own range alone, element widths
+    # of 5 and 6 lines (2.0 and 2.5 cells) alternated in full-scale stripes (a 15 MHz frame, 0.1 mm pitch)
+    plot_mesh_values(p, t, cells, ax=axes[2], log=True, vmin=min(float(c_lo), CELLS_RANGE[0]),
+                     vmax=max(float(c_hi), CELLS_RANGE[1]), cmap=SEQUENTIAL_CMAP,
+                     label="element width / lateral speckle cell",
                      title="element width in lateral speckle\ncells (below 1: du_y/dx poorly measured)")
     if title:
         fig.suptitle(title, fontsize=10)

@@ -217,6 +217,24 @@ def test_strain_title_gives_the_share_beyond_the_colour_bar():
     plt.close(fig)
 
 
+def test_a_narrow_colour_range_is_said_in_the_title():
+    import matplotlib.pyplot as plt
+
+    from femreg.cli.elastogram_cmd import elastogram_figure
+
+    # a 15 MHz loop's elastogram spanned 0.975-1.03 of the mean, drawn full scale
+    exx = np.tile(np.linspace(0.975, 1.03, 20), (60, 1))
+    res = SimpleNamespace(exx=exx, quality=np.ones_like(exx), ref_frame=0, n_usable=1)
+    fig = elastogram_figure(res, np.ones((60, 20)), (0.05, 0.2), (0.0, 0.0))
+    title = fig.axes[1].get_title()
+    lo, hi = fig.axes[1].images[-1].get_clim()
+    assert hi - lo < 0.06 and f"colours span {100 * (hi - lo):.1f} % of the mean strain" in title, title
+    plt.close(fig)
+    fig = elastogram_figure(res, np.ones((60, 20)), (0.05, 0.2), (0.0, 0.0), strain_range=(0.0, 2.0))
+    assert "colours span" not in fig.axes[1].get_title()
+    plt.close(fig)
+
+
 def test_weight_at_the_mesh_edge_rows_is_not_ramped():
     from femreg.elastogram import _to_pixel_rows
 

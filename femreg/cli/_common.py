@@ -105,6 +105,16 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
+def _dtype_name(dtype) -> str:
+    """numpy's name of a --dtype word (``short`` -> ``int16``), the word itself where it names none."""
+    from ..io.checks import parse_dtype
+
+    try:
+        return parse_dtype(dtype).name
+    except (InputError, TypeError, ValueError):
+        return str(dtype).lower()
+
+
 def _note_raw_only_flags(fr, path, args) -> None:
     """On stderr: --shape, --dtype or --byte-order given for a file that states its own (npy, npz, mat, ...) and
     read otherwise; the file's header wins, but a flag that is silently ignored hides a wrong idea of the data."""
@@ -119,7 +129,7 @@ def _note_raw_only_flags(fr, path, args) -> None:
         ignored.append(f"--shape {' '.join(str(v) for v in shape)} (the file's frames: {fr.n_frames} x "
                        f"{fr.shape[0]} x {fr.shape[1]})")
     dtype = getattr(args, "dtype", None)
-    if dtype and stored and str(dtype).lower() != stored.lower():
+    if dtype and stored and _dtype_name(dtype) != stored.lower():
         ignored.append(f"--dtype {dtype} (stored as {stored})")
     if getattr(args, "byte_order", None):
         ignored.append(f"--byte-order {args.byte_order}")
@@ -288,6 +298,12 @@ def frame_index(index: int, n: int, path, flag: str) -> int:
                      f"{n - 1}{why}")
 
 
+#: Lateral speckle narrower than this many axial RF periods over a whole frame: no spacing order explains it (a
+#: swap reads 0.04-0.29 and is said so, :mod:`femreg.orientation`); the units are wrong (0.0001 typed for 0.1 mm:
+#: 0.01).
+IMPLAUSIBLE_CELL_PERIODS = 0.1
+
+
 def _check_frame_size(fr, path, args) -> None:
     """A whole frame of a linear array as read from ``path``: refuse a spacing in centimetres, which the RF checks
     of register cannot see on a crop (:func:`femreg.orientation.diagnose`, ``whole_frame``); only that rule here,
@@ -303,6 +319,17 @@ def _check_frame_size(fr, path, args) -> None:
     rep = diagnose(a[0], fr.spacing, whole_frame=True)
     if rep.small_frame:
         raise OrientationError(f"{path}: {rep.message}", problem=rep.problem)
+    if rep.problem == "spacing" and np.isfinite(rep.cell_periods) and rep.cell_periods < IMPLAUSIBLE_CELL_PERIODS:
+        # a lateral pitch in metres (a header's pitch copied as it stands): before register's own check, which runs
+        # on the echo's crop, the echo finder refused a frame 0.03 mm wide as "too small for a mesh"
+        from ..io.checks import spacing_suggestion
+
+        fields = (fr.metadata or {}).get("fields") or {}
+        sug = spacing_suggestion(fields) if fields else None
+        hint = f"; {sug.text()}" if sug is not None and "DX" not in (sug.dx, sug.dy) else ""
+        n, dy = a.shape[2], float(fr.spacing[1])
+        width = f" (the {n} lines then span {n * dy:.3g} mm)" if n * dy < 1.0 else ""
+        raise OrientationError(f"{path}: {rep.message}{width}{hint}", problem=rep.problem)
 
 
 def beam_spacing_error(exc, geometry):

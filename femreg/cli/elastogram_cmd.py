@@ -41,8 +41,8 @@ def add_parser(subparsers):
         description="Screen every consecutive pair of FRAMES on decimated envelopes, choose pairs whose axial "
                     "strain lies in the band with little lateral and out-of-plane motion, register them, "
                     "normalise each strain image by its mean and combine them by quality-weighted persistence.")
-    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, .rf, .uff/.h5, DICOM .dcm, or a "
-                                "folder of per-frame files)")
+    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, Clarius raw, .rf, .uff/.h5, DICOM .dcm, "
+                                "or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
     p.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"), default=(0.5, 2.0),
                    help="axial strain magnitude of the pairs to register, percent (default 0.5 2)")
@@ -279,6 +279,10 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None, outsi
     return path
 
 
+#: A colour range of the normalised strain narrower than this (of the mean) is said in the panel's title.
+NARROW_SPAN = 0.2
+
+
 def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None, outside=None, roi=None,
                       excluded=None):
     """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram (colours over
@@ -313,6 +317,10 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     # the share drawn in an end colour: the picture says how much of it the colour bar does not resolve
     sat = saturated_fraction(res.exx, res.quality, (lo, hi))
     beyond = f"\n{100 * sat:.1f} % of the pixels beyond the colour bar" if np.isfinite(sat) else ""
+    if hi - lo < NARROW_SPAN:
+        # full-scale colours over a few percent read as strong contrast (a 15 MHz loop: 0.975-1.03 drawn as a
+        # stiff column under a soft blob, where the nodule's truth spans 0.4-1.24)
+        beyond += f"\ncolours span {100 * (hi - lo):.1f} % of the mean strain"
     plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs}){beyond}",
                cmap="viridis", vmin=lo, vmax=hi, label=STRAIN_LABEL)
     q = np.where(res.quality > 0, res.quality, np.nan)

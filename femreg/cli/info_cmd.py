@@ -18,8 +18,9 @@ from ._common import add_reader_args, array_headers, frames_from_args
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "info", help="describe an RF data file (format, frames, shape, spacing, header)",
-        description="Read FILE (npy, npz, mat v5/v7.3, mhd/mha, raw, Ultrasonix .rf, UFF, HDF5, DICOM, or a "
-                    "directory of per-frame files) and print its format, number of frames, frame shape (axial x "
+        description="Read FILE (npy, npz, mat v5/v7.3, mhd/mha, raw, Clarius raw exports (told by their header), "
+                    "Ultrasonix .rf, UFF, HDF5, DICOM, or a directory of per-frame files) and print its format, "
+                    "number of frames, frame shape (axial x "
                     "lateral), sample type as stored, spacing, value range, variables and header fields, and what is "
                     "missing to register it (spacing; frames that look transposed or a spacing that looks "
                     "swapped, from the RF carrier: femreg.orientation).")

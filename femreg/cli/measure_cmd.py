@@ -1,4 +1,5 @@
-"""``femreg measure RESULT --inclusion X Y R``: contrast numbers of a registration or inversion result.
+"""``femreg measure RESULT --inclusion X Y R``: contrast numbers of a registration or inversion result;
+``--slide X0 X1``: the lateral slide across a sliding interface (:func:`measure_slide`).
 
 A volume's result (``femreg register`` on RF volumes, or its ``femreg invert``): ``--inclusion X Y Z R`` is a
 sphere and ``--background X0 X1 Y0 Y1 Z0 Z1`` a box; the same numbers over volumes instead of areas.
@@ -32,13 +33,20 @@ def add_parser(subparsers):
         "measure", help="strain ratio, CNR_e, SNR_e (and modulus contrast) of an inclusion in a result",
         description="Contrast numbers of a circular inclusion in a result .npz of `femreg register` (strain ratio "
                     "SR = background / inclusion mean axial strain, CNR_e, SNR_e of the background) or of "
-                    "`femreg invert` (the same, and the modulus contrast inclusion / background).  Coordinates in "
+                    "`femreg invert` (the same, and the modulus contrast inclusion / background); with --slide, "
+                    "the lateral slide across a sliding interface.  Coordinates in "
                     "mm: x axial (depth), y lateral (a volume's result: z elevational, a spherical inclusion).")
     p.add_argument("result", help="result .npz of `femreg register`, `femreg track` or `femreg invert`, or the "
                                   "elastogram.npz of `femreg elastogram`")
-    p.add_argument("--inclusion", required=True, type=float, nargs="+", metavar="MM",
+    p.add_argument("--inclusion", type=float, nargs="+", metavar="MM",
                    help="X Y R: inclusion centre (axial X, lateral Y) and radius R, mm (a volume's result: "
                         "X Y Z R, a sphere)")
+    p.add_argument("--slide", type=float, nargs=2, metavar=("X0", "X1"),
+                   help="depths X0 < X1 (mm) on either side of a sliding interface (fascia, tendon sheath): the "
+                        "lateral slide of the tissue at X1 against X0, median u_y along each depth over the mesh's "
+                        "width (--lateral Y0 Y1 to limit it), with its spread; a 2D register or track result")
+    p.add_argument("--lateral", type=float, nargs=2, metavar=("Y0", "Y1"),
+                   help="with --slide: the lateral span (mm) the two depths are read over (default the mesh's)")
     p.add_argument("--background", type=float, nargs="+", metavar="MM",
                    help="X0 X1 Y0 Y1: background rectangle, mm (a volume's: X0 X1 Y0 Y1 Z0 Z1, a box), the "
                         "inclusion left out; default: the rest of the mesh")
@@ -364,13 +372,76 @@ def _report(m) -> str:
     return "\n".join(lines)
 
 
+#: Rows of points along each depth of ``--slide`` (per mm of width; at least 16 points).
+SLIDE_POINTS_PER_MM = 10
+
+
+def measure_slide(path, depths, lateral=None) -> dict:
+    """The lateral slide across an interface of a 2D registration result (``femreg register`` / ``track``): the
+    median lateral displacement u_y (mm) along depth ``depths[1]`` minus that along ``depths[0]`` over the mesh's
+    width (or ``lateral`` = (y0, y1) mm), and the interquartile range of the difference point by point (the slide's
+    spread along the width).  InputError on bad input (depths not increasing, outside the mesh, no 2D result)."""
+    from ..inversion import is_inversion_file
+    from ..result import load_result
+
+    x0, x1 = (float(v) for v in depths)
+    if not x0 < x1:
+        raise InputError(f"--slide X0 X1 takes two increasing depths (mm) on either side of the interface, got "
+                         f"{x0:g} {x1:g}")
+    if (Path(path).is_file() and is_elastogram_file(path)) or is_inversion_file(path):
+        raise InputError(f"{path}: --slide reads the lateral displacement of a `femreg register` or `femreg track` "
+                         "result; this file holds none")
+    res = load_result(path)
+    if np.shape(res.mesh.p)[0] != 2:
+        raise InputError(f"{path}: --slide measures 2D results; this one is a volume's")
+    b = _bounds(res.mesh)
+    y0, y1 = (b[2], b[3]) if lateral is None else (float(lateral[0]), float(lateral[1]))
+    for x in (x0, x1):
+        if not b[0] <= x <= b[1]:
+            raise InputError(f"--slide depth {x:g} mm lies outside the mesh ({_bounds_text(b)})")
+    if not (y0 < y1 and b[2] <= y0 and y1 <= b[3]):
+        raise InputError(f"--lateral {y0:g} {y1:g} must be an increasing span inside the mesh ({_bounds_text(b)})")
+    y = np.linspace(y0, y1, max(16, int(SLIDE_POINTS_PER_MM * (y1 - y0)) + 1))
+    u0 = res.displacement(np.column_stack([np.full_like(y, x0), y]))[:, 1]
+    u1 = res.displacement(np.column_stack([np.full_like(y, x1), y]))[:, 1]
+    ok = np.isfinite(u0) & np.isfinite(u1)
+    if ok.sum() < 2:
+        raise InputError(f"--slide: the depths {x0:g} and {x1:g} mm hold no displacement over {y0:g}-{y1:g} mm")
+    d = u1[ok] - u0[ok]
+    q1, q3 = np.percentile(d, [25, 75])
+    return {"depths_mm": [x0, x1], "lateral_mm": [float(y0), float(y1)],
+            "slide_mm": float(np.median(u1[ok]) - np.median(u0[ok])), "slide_iqr_mm": float(q3 - q1),
+            "uy_shallow_mm": float(np.median(u0[ok])), "uy_deep_mm": float(np.median(u1[ok])),
+            "success": bool(res.success), "message": str(res.message)}
+
+
+def _slide_report(s) -> str:
+    x0, x1 = s["depths_mm"]
+    return (f"slide (lateral u_y at {x1:g} mm minus at {x0:g} mm, median over y {s['lateral_mm'][0]:.3g}-"
+            f"{s['lateral_mm'][1]:.3g} mm): {1e3 * s['slide_mm']:.4g} um (interquartile range along the width "
+            f"{1e3 * s['slide_iqr_mm']:.3g} um; u_y {1e3 * s['uy_shallow_mm']:.4g} / {1e3 * s['uy_deep_mm']:.4g} um)")
+
+
 def run(args) -> int:
     out = Path(args.json) if args.json else None
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--json must name a .json file, got {out}")
-    m = measure(args.result, tuple(args.inclusion), None if args.background is None else tuple(args.background),
-                args.strain)
-    print(_report(m))
+    if args.inclusion is None and args.slide is None:
+        raise InputError("pass --inclusion X Y R (strain ratio, CNR_e) or --slide X0 X1 (the slide across an "
+                         "interface), or both")
+    if args.lateral is not None and args.slide is None:
+        raise InputError("--lateral qualifies --slide: pass --slide X0 X1 with it")
+    slide = None if args.slide is None else measure_slide(args.result, args.slide, args.lateral)
+    if args.inclusion is None:
+        m = {"result": str(args.result), "kind": "registration", "flagged": not slide["success"],
+             "message": slide["message"], "slide": slide}
+        print(f"registration result {args.result}\n{_slide_report(slide)}")
+    else:
+        m = measure(args.result, tuple(args.inclusion),
+                    None if args.background is None else tuple(args.background), args.strain)
+        if slide is not None:
+            m["slide"] = slide
+        print(_report(m) + ("" if slide is None else "\n" + _slide_report(slide)))
     if out is not None:
         from .._atomic import atomic_write_text
 

@@ -1,7 +1,8 @@
 """``femreg register REF [MOVING] -o OUT.npz``: two-frame registration of RF frames from any supported file.
 
 REF and MOVING are read with :func:`femreg.io.read_frames` (npy/npz with ``rf`` and ``spacing``, mat, mhd, raw,
-Ultrasonix .rf, a folder of frame files).  With one file, ``--pair I J`` picks the two frames (default 0 1).
+Ultrasonix .rf, Clarius raw, a folder of frame files).  With one file, ``--pair I J`` picks the two frames
+(default 0 1).
 OUT is written by :meth:`femreg.RegistrationResult.save` (mesh, nodal u, ux/uy/exx/eyy/exy on the pixel grid).
 A pair whose NCC after registration is below ``--min-ncc`` is flagged (message, result still written).
 

@@ -32,8 +32,8 @@ def add_parser(subparsers):
                     "onto one Cartesian grid.  --geometry convex / sector: frames (samples, rays) of a convex or "
                     "phased array, tracked in physical x, y (--radius, --angle-pitch; only the range step of "
                     "--spacing is read: --spacing DX auto).")
-    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, .rf, .uff/.h5, DICOM .dcm, or a "
-                                "folder of per-frame files)")
+    p.add_argument("file", help="RF or B-mode frames (npy, npz, mat, mhd, raw, Clarius raw, .rf, .uff/.h5, DICOM .dcm, "
+                                "or a folder of per-frame files)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="folder for frame_KKK.npz results")
     p.add_argument("--mode", choices=("accumulate", "direct"), default="accumulate",
                    help="accumulate (default): register each frame to the one before and sum the increments in "

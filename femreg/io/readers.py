@@ -10,6 +10,8 @@ Formats (chosen by extension, verified by content):
 ``.mhd`` / ``.mha``    MetaImage header + data; see :mod:`femreg.io.metaimage` for the axis mapping
 ``.raw`` ``.bin``...   headerless samples: ``shape`` required, ``dtype`` (default float32), ``byte_order``
 ``.rf``                Ultrasonix RF (76-byte header, int16); see :mod:`femreg.io.ultrasonix`
+``.raw`` (Clarius)     a Clarius research export (5-field header, time-stamped int16 frames stored line by line,
+                       told by its size), settings from the YAML beside it; see :mod:`femreg.io.clarius`
 ``.uff``               USTB's Ultrasound File Format (HDF5): beamformed frames and their scan, IQ remodulated
                        to RF; see :mod:`femreg.io.uff`
 ``.h5`` ``.hdf5``      plain HDF5: a dataset of frames, its layout told by the RF carrier; see :mod:`femreg.io.hdf5`
@@ -296,6 +298,17 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     """Headerless samples.  ``shape`` (axial, lateral) reads as many whole frames as the file holds;
     (n, axial, lateral) requires exactly n.  Layout C-order: lateral fastest (as ``np.fromfile(...).reshape``)."""
     path = Path(path)
+    if not offset:
+        from .clarius import read_clarius, sniff
+
+        if sniff(path) is not None:     # a Clarius export: its header states the shape and type
+            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames)
+        if shape is None:
+            from .clarius import cut_short
+
+            cut = cut_short(path)
+            if cut:
+                raise fail(path, cut)
     shp = _check_shape(shape)
     if shp is None:
         sibling = path.with_suffix(".mhd")
@@ -332,7 +345,8 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
         need = shp[0] * frame_bytes
         if body != need:
             kind = "truncated" if body < need else "size mismatch"
-            raise fail(path, f"{kind}: {body} bytes, shape {shp} {dt.name} needs {need}")
+            raise fail(path, f"{kind}: {body} bytes, shape {shp} {dt.name} needs {need}"
+                             + _surplus_hint(body, frame_bytes, shp[0]))
         n = shp[0]
     else:
         if body <= 0 or body % frame_bytes:
@@ -348,7 +362,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
                 hint = (f" (a whole number of {name} frames{shows}: try "
                         + pass_as(f"dtype={name}, CLI: --dtype {name}", f"--dtype {name}") + ")")
             raise fail(path, f"size mismatch: {body} bytes is not a whole number of {shp[0]} x {shp[1]} {dt.name} "
-                             f"frames ({frame_bytes} bytes each){hint}")
+                             f"frames ({frame_bytes} bytes each){hint or _surplus_hint(body, frame_bytes)}")
         n = body // frame_bytes
     if n * frame_bytes > _MAX_BYTES:
         raise fail(path, "over 16 GiB of samples; select frames or split the file")
@@ -377,6 +391,18 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     if layout:
         meta["layout"] = layout
     return finalize(path, arr, sp, (0.0, 0.0), meta, frames)
+
+
+def _surplus_hint(body: int, frame_bytes: int, n_frames: int | None = None) -> str:
+    """Where a headerless read leaves bytes over: how many, beyond how many whole frames, and that they look like
+    a header (a file header and/or one before each frame), which a raw read cannot skip; "" otherwise."""
+    n = body // frame_bytes if n_frames is None else int(n_frames)
+    extra = body - n * frame_bytes
+    if n < 1 or extra <= 0 or extra >= frame_bytes:
+        return ""
+    return (f"; {extra} bytes over {n} whole frame(s), as a header would leave (before the data, or before each "
+            "frame), which a headerless read cannot skip.  femreg reads the headers of Ultrasonix .rf and Clarius "
+            "raw exports (femreg info FILE names the format); other files: write the samples alone")
 
 
 # ------------------------------------------------------------------------------------------- directories
@@ -436,6 +462,17 @@ def read_directory(path, *, frames=None, **options):
         raise fail(path, f"directory mixes formats ({listing}); point at one file or move the others out")
     (fmt, files), = by_ext.items()
     files.sort(key=lambda p: natural_key(p.name))
+    if fmt == "raw" and len(files) > 1:
+        from .clarius import sniff
+
+        loops = [(f, sniff(f)) for f in files]
+        loops = [(f, h) for f, h in loops if h is not None]
+        if loops:   # an unpacked Clarius export: RF and envelope loops side by side, not one frame per file
+            listing = "; ".join(f"{f.name}: {'RF' if h['samplesize'] == 2 else 'envelope'}, {h['frames']} frame(s) "
+                                f"of {h['samples']} x {h['lines']}" for f, h in loops[:3])
+            rf = next((f for f, h in loops if h["samplesize"] == 2), loops[0][0])
+            raise fail(path, f"directory holds Clarius exports, each a whole loop ({listing}"
+                             f"{'; ...' if len(loops) > 3 else ''}): pass one file, e.g. {rf}")
     if fmt == "dicom":                  # one series, in InstanceNumber order
         from .dicom import read_dicom_series
 
