@@ -31,7 +31,6 @@ if str(ROOT) not in sys.path:
 import femreg  # noqa: E402
 import femreg.geometry as G  # noqa: E402
 from femreg.metrics import field_errors  # noqa: E402
-from femreg.speckle import speckle_cell  # noqa: E402
 from forward import fields as F  # noqa: E402
 from forward.beam import make_beam_pair  # noqa: E402
 from forward.pairs import as_probe  # noqa: E402
@@ -55,18 +54,34 @@ def strain_ratio(res, pair):
 
 def register_with_factor(pair, factor):
     """Register with the beam factor of the default alpha fixed at ``factor``."""
-    keep = G.beam_alpha_factor
-    G.beam_alpha_factor = lambda s: float(factor)
+    keep = G.default_beam_alpha_factor
+    G.default_beam_alpha_factor = lambda frame, dr, ds: float(factor)
     try:
         return femreg.register(pair.ref, pair.mov, spacing=pair.spacing, origin=pair.origin,
                                geometry=pair.geometry)
     finally:
-        G.beam_alpha_factor = keep
+        G.default_beam_alpha_factor = keep
 
 
-def cases(quick=False):
-    pitches = (0.35, 0.6, 0.85) if not quick else (0.6,)
-    lpbs = (2.0, 3.0, 4.5) if not quick else (2.0, 4.5)
+def cell_lines(image) -> float:
+    """Lateral speckle cell of an RF frame in lines: the FWHM of the envelope's autocorrelation across lines,
+    each row over its RMS and minus its mean, interpolated between lags (femreg.speckle's cell counts whole
+    lags: 2, 4, 6 lines on these frames)."""
+    from femreg.speckle import envelope
+
+    env = envelope(np.asarray(image, float))
+    e = env / np.sqrt(np.mean(env**2, axis=1, keepdims=True) + 1e-300)
+    e = e - e.mean(axis=1, keepdims=True)
+    n = e.shape[1]
+    ac = np.array([1.0] + [float(np.vdot(e[:, :-k], e[:, k:])) / float(np.vdot(e, e)) * n / (n - k)
+                           for k in range(1, min(12, n - 1))])
+    k = int(np.flatnonzero(ac < 0.5)[0])
+    return 2.0 * (k - 1 + (ac[k - 1] - 0.5) / (ac[k - 1] - ac[k]))
+
+
+def cases(a):
+    pitches = a.pitches or ((0.35, 0.6, 0.85) if not a.quick else (0.6,))
+    lpbs = a.lpbs or ((2.0, 3.0, 4.5) if not a.quick else (2.0, 4.5))
     return [(p, b) for p in pitches for b in lpbs]
 
 
@@ -77,32 +92,37 @@ def main(argv=None):
     ap.add_argument("--probe", default="paper")
     ap.add_argument("--fields", nargs="+", default=["compression", "inclusion"])
     ap.add_argument("--factors", type=float, nargs="+", default=list(FACTORS))
+    ap.add_argument("--pitches", type=float, nargs="+")
+    ap.add_argument("--lpbs", type=float, nargs="+", help="lines per beam")
+    ap.add_argument("--level", type=float, default=0.01, help="compression of both fields (fraction)")
+    ap.add_argument("--radius", type=float, default=50.0, help="convex radius mm")
     ap.add_argument("--json", help="append each row (one JSON object a line) here")
     a = ap.parse_args(argv)
     # the beam's width from lines_per_beam alone (the probe's own width below every case's)
     probe = replace(as_probe(a.probe), beam_fwhm_mm=0.05)
-    fields = dict(compression=F.compression(0.01), inclusion=F.Inclusion("stiff", "plane-strain", 0.01))
-    geo_r = 50.0
+    fields = dict(compression=F.compression(a.level), inclusion=F.Inclusion("stiff", "plane-strain", a.level))
+    geo_r = a.radius
     print("| pitch deg | line spacing mm | lines per beam | cell lines | field | seed | factor | alpha | "
           "total strain error % | strain ratio (true) | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for pitch, lpb in cases(a.quick):
+    for pitch, lpb in cases(a):
         geo = femreg.Convex(geo_r, pitch)
         for fname in a.fields:
             for seed in a.seeds:
                 pair = make_beam_pair(fields[fname], geo, probe=probe, depth_mm=40, n_rays=int(round(32 / pitch)),
                                       seed=seed, lines_per_beam=lpb)
                 rho_c, (_, ds), _ = G.sample_space(geo, pair.ref.shape, pair.spacing[0], pair.origin[0])
-                cell = float(speckle_cell(pair.ref, (pair.spacing[0], ds))[1] / ds)
-                old = G.beam_alpha_factor(ds)
-                for fac in sorted(set(a.factors) | {round(old, 3)}):
+                cell = cell_lines(pair.ref)
+                old = G.beam_alpha_factor(ds)           # the line spacing alone
+                new = G.default_beam_alpha_factor(pair.ref, pair.spacing[0], ds)
+                for fac in sorted(set(a.factors) | {round(old, 3), round(new, 3)}):
                     t = time.perf_counter()
                     res = register_with_factor(pair, fac)
                     dt = time.perf_counter() - t
                     e = 100 * field_errors(res, pair.true_displacement, pair.true_strain)["e"]
                     sr, srt = strain_ratio(res, pair) if fname == "inclusion" else (math.nan, math.nan)
                     row = dict(pitch=pitch, ds=ds, lpb=lpb, cell_lines=cell, field=fname, seed=seed, factor=fac,
-                               old_factor=old, alpha=res.alpha, e=e, sr=sr, sr_true=srt, success=bool(res.success),
+                               old_factor=old, new_factor=new, level=a.level, radius=geo_r, alpha=res.alpha, e=e, sr=sr, sr_true=srt, success=bool(res.success),
                                probe=a.probe, s=dt)
                     print(f"| {pitch} | {ds:.3f} | {lpb:g} | {cell:.2f} | {fname} | {seed} | {fac:g} | "
                           f"{res.alpha:.3g} | {e:.2f} | {sr:.3f} ({srt:.3f}) | {dt:.1f} |", flush=True)

@@ -31,7 +31,8 @@ run in sample space, where the frame is treated as a linear image of spacing ``(
 lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exactly through the mapping,
 ``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
 eq:objf on the physical mesh, so the regulariser sees physical displacements and strains; with the default alpha,
-its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines).
+its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines),
+scaled down for pulses longer than the paper probe's (the frame's RF period).
 
 Adaptive refinement (``refine="auto" | N | Refinement(...)``, off by default here: docs/geometry.md): the physical
 mesh carries its (range, angle) lattice (:class:`femreg.refine.LogicalGrid`), so :func:`femreg.refine.refine_passes`
@@ -391,19 +392,44 @@ def beam_spacing(spacing, geometry: Convex, origin):
 
 #: Line spacing (mm) at which the default alphas hold: the paper probe's lines (femreg/data/default_alphas.json).
 REFERENCE_LINE_SPACING = 0.3
+#: Axial RF period (mm, :func:`femreg.speckle.rf_period`) at which the default alphas hold: the paper probe's
+#: 5.5 MHz at 1540 m/s (its frames read 0.139-0.140 mm).
+REFERENCE_RF_PERIOD = 0.14
 #: Power of the line spacing in :func:`beam_alpha_factor` (measured, docs/geometry.md).
 BEAM_ALPHA_EXPONENT = 3.5
 
 
-def beam_alpha_factor(line_spacing_mm: float) -> float:
+def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None) -> float:
     """Factor on the default alpha of the physical solve of a beam frame whose lines are ``line_spacing_mm`` apart
-    at the middle sample: ``max(1, s / 0.3 mm)**3.5``.  Coarse fans over-estimate the across-ray strain (the
-    speckle of a beam-aligned PSF several lines wide does not follow a uniform physical strain off axis, and the
-    images prefer the biased field: see docs/geometry.md); the weakly determined across-ray stretch needs the
-    stronger regulariser.  The power 3.5 (:data:`BEAM_ALPHA_EXPONENT`) is the measured balance: 3 leaves 2.2-2.5 %
-    error at 2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear array's error.
-    1 for lines at most 0.3 mm apart.  A user's alpha is used as given."""
-    return max(1.0, float(line_spacing_mm) / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
+    at the middle sample and whose axial RF period (:func:`femreg.speckle.rf_period` of the reference frame, mm)
+    is ``rf_period_mm``: ``max(1, s_eff / 0.3 mm)**3.5`` with ``s_eff = s min(1, 0.14 mm / rf_period_mm)``, the
+    line spacing counted in the paper probe's RF periods once the pulse is longer than its (None: ``s_eff = s``).
+
+    Coarse fans over-estimate the across-ray strain (the speckle of a beam-aligned PSF several lines wide does not
+    follow a uniform physical strain off axis, and the images prefer the biased field: see docs/geometry.md); the
+    weakly determined across-ray stretch needs the stronger regulariser.  The power 3.5
+    (:data:`BEAM_ALPHA_EXPONENT`) is the measured balance on the paper probe (5.5 MHz): 3 leaves 2.2-2.5 % error at
+    2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear array's error.  A
+    longer pulse both biases less and is smoothed more by the same weight (benchmarks/convex_alpha_beam.py, R50,
+    1.08 mm lines, 3 lines per beam, 1 % compression / stiff inclusion, total strain error at factor 1 and its
+    best: 3 MHz 5.0 / 9.8 % -> best near 30 / 3; 5.5 MHz 8.1 / 14.0 % -> 300 / 30-100), so the spacing is
+    scaled by the period: the 3 MHz probe's factor is 0.12 x the paper probe's (89 -> 11 at 1.08 mm lines), which
+    took its inclusion from 12.6 to 9.3 % and left its compression at 1.3-1.8 %.  Shorter periods keep the paper
+    probe's factor (7.5 MHz: no gain measured).  The beam's width in lines is not used: a beam of 2 lines moves
+    the inclusion's best factor down 3x from 3 lines, but biases uniform compression nearly as much (6.4 against
+    8.1 % at factor 1).  1 for lines at most 0.3 mm apart.  A user's alpha is used as given."""
+    s = float(line_spacing_mm)
+    if rf_period_mm is not None and np.isfinite(rf_period_mm) and rf_period_mm > REFERENCE_RF_PERIOD:
+        s *= REFERENCE_RF_PERIOD / float(rf_period_mm)
+    return max(1.0, s / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
+
+
+def default_beam_alpha_factor(frame, dr: float, ds: float) -> float:
+    """:func:`beam_alpha_factor` of a beam frame (n_samples, n_rays) in sample space (range step ``dr`` mm, line
+    spacing ``ds`` mm at the middle sample), its RF period measured on the frame."""
+    from .speckle import rf_period
+
+    return beam_alpha_factor(ds, rf_period(frame, (dr, ds)))
 
 
 def _image_term(ref, mov, mesh, geometry, dr, r0, normalize=True):
@@ -550,7 +576,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     opts = effective_regularizer_options(strategy, regularizer, kw.get("regularizer_options"))
     user_reg = fresh_regularizer(regularizer, alpha, opts)
     if alpha is None and isinstance(regularizer, str):
-        user_reg = fresh_regularizer(regularizer, user_reg.alpha * beam_alpha_factor(ds), opts)
+        user_reg = fresh_regularizer(regularizer, user_reg.alpha * default_beam_alpha_factor(ref, dr, ds), opts)
     sp_idx = (dr, geometry.pitch_rad)
     I1, I2, term = _image_term(ref, mov, mesh, geometry, dr, r0, normalize)
     locator = term.quad.locator
