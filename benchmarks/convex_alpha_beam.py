@@ -6,12 +6,16 @@ each registered with the default alpha's factor ``femreg.geometry.beam_alpha_fac
 fixed factors (the sample-space start keeps the linear default, as in the default path).  Recorded: the total
 strain error (femreg.metrics.field_errors ``e``), the inclusion's strain ratio (e_xx over the ring 1.5-2.5 r
 over that within 0.6 r, on the result's samples; the truth's beside it) and the lateral speckle cell of the
-reference frame in lines (femreg.speckle.speckle_cell in sample space).
+reference frame in lines (femreg.geometry.lateral_cell_lines).  Every pair is also registered at the factor of the
+line spacing alone (``beam_alpha_factor(ds)``) and at femreg's default (``default_beam_alpha_factor``, which
+counts the spacing in RF periods for pulses longer than the paper probe's; docs/geometry.md).
 
-    python benchmarks/convex_alpha_beam.py [--quick] [--seeds 0] [--probe paper] [--json FILE]
+    python benchmarks/convex_alpha_beam.py [--quick] [--seeds 0] [--probe paper|L3|L7] [--pitches P ..]
+        [--lpbs B ..] [--level 0.01] [--fields compression inclusion] [--factors F ..] [--json FILE]
 
-The paper probe's axial pulse by default; ``--probe L3`` the 3 MHz one.  About 1.5 s per registration
-(2 shared cores, OMP_NUM_THREADS=1).
+The paper probe's axial pulse by default (the probe's own beam width is replaced by ``--lpbs`` line spacings);
+``--probe L3`` the 3 MHz one.  1.5-3 s per registration (2 shared cores, OMP_NUM_THREADS=1).  The measured
+table: docs/geometry.md, "The probe's pulse and beam width".
 """
 from __future__ import annotations
 
@@ -63,22 +67,6 @@ def register_with_factor(pair, factor):
         G.default_beam_alpha_factor = keep
 
 
-def cell_lines(image) -> float:
-    """Lateral speckle cell of an RF frame in lines: the FWHM of the envelope's autocorrelation across lines,
-    each row over its RMS and minus its mean, interpolated between lags (femreg.speckle's cell counts whole
-    lags: 2, 4, 6 lines on these frames)."""
-    from femreg.speckle import envelope
-
-    env = envelope(np.asarray(image, float))
-    e = env / np.sqrt(np.mean(env**2, axis=1, keepdims=True) + 1e-300)
-    e = e - e.mean(axis=1, keepdims=True)
-    n = e.shape[1]
-    ac = np.array([1.0] + [float(np.vdot(e[:, :-k], e[:, k:])) / float(np.vdot(e, e)) * n / (n - k)
-                           for k in range(1, min(12, n - 1))])
-    k = int(np.flatnonzero(ac < 0.5)[0])
-    return 2.0 * (k - 1 + (ac[k - 1] - 0.5) / (ac[k - 1] - ac[k]))
-
-
 def cases(a):
     pitches = a.pitches or ((0.35, 0.6, 0.85) if not a.quick else (0.6,))
     lpbs = a.lpbs or ((2.0, 3.0, 4.5) if not a.quick else (2.0, 4.5))
@@ -112,7 +100,7 @@ def main(argv=None):
                 pair = make_beam_pair(fields[fname], geo, probe=probe, depth_mm=40, n_rays=int(round(32 / pitch)),
                                       seed=seed, lines_per_beam=lpb)
                 rho_c, (_, ds), _ = G.sample_space(geo, pair.ref.shape, pair.spacing[0], pair.origin[0])
-                cell = cell_lines(pair.ref)
+                cell = G.lateral_cell_lines(pair.ref)
                 old = G.beam_alpha_factor(ds)           # the line spacing alone
                 new = G.default_beam_alpha_factor(pair.ref, pair.spacing[0], ds)
                 for fac in sorted(set(a.factors) | {round(old, 3), round(new, 3)}):
@@ -122,8 +110,8 @@ def main(argv=None):
                     e = 100 * field_errors(res, pair.true_displacement, pair.true_strain)["e"]
                     sr, srt = strain_ratio(res, pair) if fname == "inclusion" else (math.nan, math.nan)
                     row = dict(pitch=pitch, ds=ds, lpb=lpb, cell_lines=cell, field=fname, seed=seed, factor=fac,
-                               old_factor=old, new_factor=new, level=a.level, radius=geo_r, alpha=res.alpha, e=e, sr=sr, sr_true=srt, success=bool(res.success),
-                               probe=a.probe, s=dt)
+                               old_factor=old, new_factor=new, level=a.level, radius=geo_r, alpha=res.alpha, e=e,
+                               sr=sr, sr_true=srt, success=bool(res.success), probe=a.probe, s=dt)
                     print(f"| {pitch} | {ds:.3f} | {lpb:g} | {cell:.2f} | {fname} | {seed} | {fac:g} | "
                           f"{res.alpha:.3g} | {e:.2f} | {sr:.3f} ({srt:.3f}) | {dt:.1f} |", flush=True)
                     if a.json:

@@ -417,11 +417,12 @@ def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None,
     leaves 2.2-2.5 % error at 2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear
     array's error.  A pulse longer than the paper probe's biases less and is smoothed more by the same weight, so
     the spacing is counted in its RF periods (benchmarks/convex_alpha_beam.py: 3 MHz, 1.08 mm lines, 3 lines per
-    beam, stiff inclusion 12.6 -> 9.3 % total strain error, uniform 1 % compression 1.3 -> 1.8 %); a beam wider in
-    lines than the calibration's gives part of that back (3 MHz, 4.5 lines per beam: uniform compression 0.7 % at
-    the spacing's factor, 6.1 % at the period's alone).  A shorter pulse or a narrower beam keeps the spacing's
-    factor: with the paper probe's pulse, 2 lines per beam bias uniform compression nearly as much as 3 (6.4
-    against 8.1 % at factor 1, 1.08 mm lines).  A user's alpha is used as given."""
+    beam, stiff inclusion 12.6 -> 9.4 % total strain error, uniform 1 % / 2 % compression 1.3 / 0.9 -> 1.8 / 2.5
+    %); a beam wider in lines than the calibration's gives part of that back (3 MHz, 4.5 lines per beam: uniform
+    compression 0.7 % at the spacing's factor, 6.1 % at the period's alone, 1.8 % with the width).  A shorter
+    pulse or a narrower beam keeps the spacing's factor: with the paper probe's pulse, 2 lines per beam bias
+    uniform compression nearly as much as 3 (6.4 against 8.1 % at factor 1, 1.08 mm lines).  A user's alpha is
+    used as given."""
     s = float(line_spacing_mm)
     if rf_period_mm is not None and np.isfinite(rf_period_mm) and rf_period_mm > REFERENCE_RF_PERIOD:
         wide = float(cell_lines) / REFERENCE_CELL_LINES if cell_lines is not None and np.isfinite(cell_lines) else 1.0
