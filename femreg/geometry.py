@@ -400,12 +400,15 @@ REFERENCE_RF_PERIOD = 0.14
 REFERENCE_CELL_LINES = 2.8
 #: Power of the line spacing in :func:`beam_alpha_factor` (measured, docs/geometry.md).
 BEAM_ALPHA_EXPONENT = 3.5
+#: Power of a beam wider in lines than :data:`REFERENCE_CELL_LINES` that gives back a long pulse's reduction in
+#: :func:`beam_alpha_factor` (measured: a 3 MHz bending pair whose cell reads 3.5 lines needs at least 1.7).
+BEAM_WIDTH_EXPONENT = 2.0
 
 
 def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None,
                       cell_lines: float | None = None) -> float:
     """Factor on the default alpha of the physical solve of a beam frame whose lines are ``line_spacing_mm`` apart
-    at the middle sample: ``max(1, s_eff / 0.3 mm)**3.5``, ``s_eff = s min(1, (0.14 mm / P) max(1, c / 2.8))``
+    at the middle sample: ``max(1, s_eff / 0.3 mm)**3.5``, ``s_eff = s min(1, (0.14 mm / P) max(1, c / 2.8)**2)``
     with ``P = rf_period_mm`` the frame's axial RF period (:func:`femreg.speckle.rf_period`) and ``c =
     cell_lines`` its lateral speckle cell in lines (:func:`lateral_cell_lines`); None for either: that term is 1,
     so ``beam_alpha_factor(s) = max(1, s / 0.3)**3.5``.  1 for lines at most 0.3 mm apart.
@@ -426,7 +429,7 @@ def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None,
     s = float(line_spacing_mm)
     if rf_period_mm is not None and np.isfinite(rf_period_mm) and rf_period_mm > REFERENCE_RF_PERIOD:
         wide = float(cell_lines) / REFERENCE_CELL_LINES if cell_lines is not None and np.isfinite(cell_lines) else 1.0
-        s *= min(1.0, REFERENCE_RF_PERIOD / float(rf_period_mm) * max(1.0, wide))
+        s *= min(1.0, REFERENCE_RF_PERIOD / float(rf_period_mm) * max(1.0, wide) ** BEAM_WIDTH_EXPONENT)
     return max(1.0, s / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
 
 
