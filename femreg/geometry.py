@@ -421,8 +421,10 @@ def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None,
     array's error.  A pulse longer than the paper probe's biases less and is smoothed more by the same weight, so
     the spacing is counted in its RF periods (benchmarks/convex_alpha_beam.py: 3 MHz, 1.08 mm lines, 3 lines per
     beam, stiff inclusion 12.6 -> 9.4 % total strain error, uniform 1 % / 2 % compression 1.3 / 0.9 -> 1.8 / 2.5
-    %); a beam wider in lines than the calibration's gives part of that back (3 MHz, 4.5 lines per beam: uniform
-    compression 0.7 % at the spacing's factor, 6.1 % at the period's alone, 1.8 % with the width).  A shorter
+    %); a beam wider in lines than the calibration's gives that back as the square of its width (uniform strain is
+    biased more: 3 MHz, 4.5 lines per beam, 1 % compression 0.7 % at the spacing's factor, 6.1 % at the period's
+    alone; a bending pair whose cell reads 3.5 lines 4.87 % at the spacing's factor, 5.96 % with the width's first
+    power, 4.85 % with its square).  A shorter
     pulse or a narrower beam keeps the spacing's factor: with the paper probe's pulse, 2 lines per beam bias
     uniform compression nearly as much as 3 (6.4 against 8.1 % at factor 1, 1.08 mm lines).  A user's alpha is
     used as given."""

@@ -41,10 +41,10 @@ def test_a_longer_pulse_gets_a_smaller_factor(pairs):
     assert _ds(l3) == pytest.approx(ds, rel=1e-3)                   # the same lines and beam
     f_paper = G.default_beam_alpha_factor(paper.ref, paper.spacing[0], ds)
     f_l3 = G.default_beam_alpha_factor(l3.ref, l3.spacing[0], _ds(l3))
-    # measured: 88.9 (the paper probe reads 0.1402 mm, the line spacing alone 89.3) and 12.2 (0.255 mm, the
-    # cell 2.89 lines giving back 3 % of the period's reduction)
+    # measured: 88.9 (the paper probe reads 0.1402 mm, the line spacing alone 89.3) and 13.7 (0.255 mm, the
+    # cell 2.89 lines giving back 6.5 % of the period's reduction)
     assert f_paper == pytest.approx(G.beam_alpha_factor(ds), rel=0.02)
-    assert 0.09 < f_l3 / f_paper < 0.16
+    assert 0.10 < f_l3 / f_paper < 0.20                             # measured 0.154
 
 
 def test_3mhz_inclusion_is_smoothed_less_than_with_the_spacing_alone(pairs, monkeypatch):
@@ -56,6 +56,6 @@ def test_3mhz_inclusion_is_smoothed_less_than_with_the_spacing_alone(pairs, monk
     old = femreg.register(p.ref, p.mov, spacing=p.spacing, origin=p.origin, geometry=GEO)
     e_old = field_errors(old, p.true_displacement, p.true_strain)["e"]
     assert new.alpha < 0.2 * old.alpha
-    # measured 9.43 % against 12.63 %: at least 2 points of the 3.2 gained
+    # measured 9.50 % against 12.63 %: at least 2 points of the 3.1 gained
     assert e_new < e_old - 0.02, (e_new, e_old)
     assert e_new < 0.11
