@@ -23,19 +23,22 @@ strain ratio (background ring 1.5-2.5 r over disk within 0.6 r, element-free: th
 and the true one, and the elastogram's normalised-strain error and ratio.
 
 Measured (2026-12-07, 2 shared cores): the echo found to 92.4 mm (pair 2 -> 3) / 99.5 mm (track, elastogram) of
-range, where the echo power equals the noise near 94 mm.  register 2 -> 3: 5.7-8 s, u RMS 1.8 / 3.4 um, e_xx
-5.3 %, total 6.6 %, SR 2.14 (true 2.54); track 0 -> 6: 43-66 s, e_xx 5.0 %, total 6.2 %, u RMS 9.8 / 19.3 um,
-SR 2.17 (true 2.52), none flagged (frames 2 and 6 retried from a fresh start); elastogram: 3 of 3 pairs usable,
-25-30 s, normalised-strain error 4.7 %, ratio 2.36 (true 2.57).  Before the beam echo crop and the deep-strip veto
+range, where the echo power equals the noise near 94 mm.  register 2 -> 3: 8-17 s, u RMS 1.1 / 2.4 um, e_xx
+4.0 %, total 5.1 %, SR 2.50 (true 2.54); track 0 -> 6: 44 s, e_xx 3.9 %, total 4.9 %, u RMS 6.1 / 14.1 um,
+SR 2.50 (true 2.52), none flagged (frames 2 and 6 retried from a fresh start); elastogram: 3 of 3 pairs usable,
+16 s, normalised-strain error 3.8 %, ratio 2.54 (true 2.57).  Before the beam echo crop and the deep-strip veto
 (same data, femreg a5b28b2): the full 151 mm registered, register 2 -> 3 FAILED (peak hopping in the noise, 16 % of
 the elements unmatched; e_xx 4.9 % over 5-95 mm), track 6 of 6 frames flagged (93 s), elastogram 0 of 3 pairs
 usable (57 s); with the block-matching cut of femreg.echo.unmatched_crop alone the pair registers, its mesh to
 115.8 mm of range (21 mm of noise kept, nothing said).
-The lesion's contrast is low because of the regulariser: the default alpha of a beam frame is the linear one x
-``femreg.geometry.beam_alpha_factor`` ((1.09 mm / 0.3 mm)^3.5 = 92 here, 12.3); ``--alpha`` 0.133 / 0.4 / 1.2 / 4
-gives e_xx 4.4 / 3.7 / 3.7 / 4.3 %, total 5.7 / 4.8 / 4.7 / 5.4 %, SR 2.55 / 2.57 / 2.57 / 2.46 (pair 2 -> 3);
-``--refine auto`` e_xx 4.5 %, SR 2.42.  NCC block matching (benchmarks/peers.py, 2 x 3.3 mm windows in (range,
-arc)): e_rr 11.7 % against femreg's 6.3 % over 5-90 mm and |theta| < 32 deg, SR 2.42 (femreg 2.06, true 2.45).
+The default alpha of a beam frame is the linear one x ``femreg.geometry.beam_alpha_factor``, whose line spacing
+(1.09 mm) is counted in the paper probe's RF periods for this longer pulse (0.215 mm read on the frame; lateral
+cell 2.4 lines): 21.4 here, alpha 2.85.  The line spacing alone gave 92 (alpha 12.3): register 2 -> 3 e_xx 5.3 %,
+total 6.6 %, SR 2.14; track e_xx 5.0 %, total 6.2 %, u RMS 9.8 / 19.3 um, SR 2.17; elastogram 4.7 %, ratio 2.36.
+``--alpha`` 0.133 / 0.4 / 1.2 / 4 gives e_xx 4.4 / 3.7 / 3.7 / 4.3 %, total 5.7 / 4.8 / 4.7 / 5.4 %, SR 2.55 / 2.57
+/ 2.57 / 2.46 (pair 2 -> 3); with the factor 92, ``--refine auto`` e_xx 4.5 %, SR 2.42, and NCC block matching
+(benchmarks/peers.py, 2 x 3.3 mm windows in (range, arc)): e_rr 11.7 % against femreg's 6.3 % over 5-90 mm and
+|theta| < 32 deg, SR 2.42 (femreg 2.06, true 2.45).
 
 Run: ``python benchmarks/convex_abdominal.py [OUTDIR] [--skip-track] [--skip-elastogram]`` (about 3 min).
 """

@@ -31,7 +31,8 @@ run in sample space, where the frame is treated as a linear image of spacing ``(
 lattice; its nodal displacement ``(u_r, u_s)`` is carried to physical space exactly through the mapping,
 ``u(node) = T(r + u_r, (s + u_s) / rho_c) - T(r, s / rho_c)``.  The final Gauss-Newton solve then minimises
 eq:objf on the physical mesh, so the regulariser sees physical displacements and strains; with the default alpha,
-its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines).
+its weight is the default times :func:`beam_alpha_factor` of the line spacing at ``rho_c`` (1 up to 0.3 mm lines),
+scaled down for pulses longer than the paper probe's (the frame's RF period and lateral speckle cell).
 
 Adaptive refinement (``refine="auto" | N | Refinement(...)``, off by default here: docs/geometry.md): the physical
 mesh carries its (range, angle) lattice (:class:`femreg.refine.LogicalGrid`), so :func:`femreg.refine.refine_passes`
@@ -391,19 +392,85 @@ def beam_spacing(spacing, geometry: Convex, origin):
 
 #: Line spacing (mm) at which the default alphas hold: the paper probe's lines (femreg/data/default_alphas.json).
 REFERENCE_LINE_SPACING = 0.3
+#: Axial RF period (mm, :func:`femreg.speckle.rf_period`) at which the default alphas hold: the paper probe's
+#: 5.5 MHz at 1540 m/s (its frames read 0.139-0.140 mm).
+REFERENCE_RF_PERIOD = 0.14
+#: Lateral speckle cell (lines, :func:`lateral_cell_lines`) of the simulated fans on which the power below was
+#: measured (3 line spacings per beam at 0.45-0.6 degrees: 2.7-2.9 lines).
+REFERENCE_CELL_LINES = 2.8
 #: Power of the line spacing in :func:`beam_alpha_factor` (measured, docs/geometry.md).
 BEAM_ALPHA_EXPONENT = 3.5
+#: Power of a beam wider in lines than :data:`REFERENCE_CELL_LINES` that gives back a long pulse's reduction in
+#: :func:`beam_alpha_factor` (measured: a 3 MHz bending pair whose cell reads 3.5 lines needs at least 1.7).
+BEAM_WIDTH_EXPONENT = 2.0
 
 
-def beam_alpha_factor(line_spacing_mm: float) -> float:
+def beam_alpha_factor(line_spacing_mm: float, rf_period_mm: float | None = None,
+                      cell_lines: float | None = None) -> float:
     """Factor on the default alpha of the physical solve of a beam frame whose lines are ``line_spacing_mm`` apart
-    at the middle sample: ``max(1, s / 0.3 mm)**3.5``.  Coarse fans over-estimate the across-ray strain (the
-    speckle of a beam-aligned PSF several lines wide does not follow a uniform physical strain off axis, and the
-    images prefer the biased field: see docs/geometry.md); the weakly determined across-ray stretch needs the
-    stronger regulariser.  The power 3.5 (:data:`BEAM_ALPHA_EXPONENT`) is the measured balance: 3 leaves 2.2-2.5 %
-    error at 2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear array's error.
-    1 for lines at most 0.3 mm apart.  A user's alpha is used as given."""
-    return max(1.0, float(line_spacing_mm) / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
+    at the middle sample: ``max(1, s_eff / 0.3 mm)**3.5``, ``s_eff = s min(1, (0.14 mm / P) max(1, c / 2.8)**2)``
+    with ``P = rf_period_mm`` the frame's axial RF period (:func:`femreg.speckle.rf_period`) and ``c =
+    cell_lines`` its lateral speckle cell in lines (:func:`lateral_cell_lines`); None for either: that term is 1,
+    so ``beam_alpha_factor(s) = max(1, s / 0.3)**3.5``.  1 for lines at most 0.3 mm apart.
+
+    Coarse fans over-estimate the across-ray strain (the speckle of a beam-aligned PSF several lines wide does not
+    follow a uniform physical strain off axis, and the images prefer the biased field: see docs/geometry.md); the
+    weakly determined across-ray stretch needs the stronger regulariser.  The power 3.5
+    (:data:`BEAM_ALPHA_EXPONENT`) is the measured balance on the paper probe (5.5 MHz, 3 lines per beam): 3
+    leaves 2.2-2.5 % error at 2 % compression and 0.6 degrees per line, 4 puts the stiff inclusion 1.2 x the linear
+    array's error.  A pulse longer than the paper probe's biases less and is smoothed more by the same weight, so
+    the spacing is counted in its RF periods (benchmarks/convex_alpha_beam.py: 3 MHz, 1.08 mm lines, 3 lines per
+    beam, stiff inclusion 12.6 -> 9.4 % total strain error, uniform 1 % / 2 % compression 1.3 / 0.9 -> 1.8 / 2.5
+    %); a beam wider in lines than the calibration's gives that back as the square of its width (uniform strain is
+    biased more: 3 MHz, 4.5 lines per beam, 1 % compression 0.7 % at the spacing's factor, 6.1 % at the period's
+    alone; a bending pair whose cell reads 3.5 lines 4.87 % at the spacing's factor, 5.96 % with the width's first
+    power, 4.85 % with its square).  A shorter
+    pulse or a narrower beam keeps the spacing's factor: with the paper probe's pulse, 2 lines per beam bias
+    uniform compression nearly as much as 3 (6.4 against 8.1 % at factor 1, 1.08 mm lines).  A user's alpha is
+    used as given."""
+    s = float(line_spacing_mm)
+    if rf_period_mm is not None and np.isfinite(rf_period_mm) and rf_period_mm > REFERENCE_RF_PERIOD:
+        wide = float(cell_lines) / REFERENCE_CELL_LINES if cell_lines is not None and np.isfinite(cell_lines) else 1.0
+        s *= min(1.0, REFERENCE_RF_PERIOD / float(rf_period_mm) * max(1.0, wide) ** BEAM_WIDTH_EXPONENT)
+    return max(1.0, s / REFERENCE_LINE_SPACING) ** BEAM_ALPHA_EXPONENT
+
+
+def lateral_cell_lines(frame) -> float:
+    """Lateral speckle cell of an RF frame (n_samples, n_lines) in lines: the full width at half maximum of the
+    envelope's autocorrelation across lines, each row divided by its RMS and less its mean (a level that changes
+    with depth alone is the same in every line), interpolated linearly between lags (femreg.speckle's cell counts
+    whole lags: 2, 4 or 6 lines on fans whose beam spans 2-4.5 lines).  NaN when it cannot be read (under 4 lines,
+    no echo, or no half maximum within 12 lags).  Simulated fans (forward.beam) read 0.9 x their lines per beam
+    (2 / 3 / 4.5: 1.8 / 2.7-2.9 / 3.8-4.2)."""
+    from .speckle import envelope
+
+    img = np.asarray(frame, float)
+    if img.ndim != 2 or img.shape[1] < 4 or not np.all(np.isfinite(img)):
+        return float("nan")
+    env = envelope(img)
+    rms = np.sqrt(np.mean(env * env, axis=1, keepdims=True))
+    e = np.divide(env, rms, out=np.zeros_like(env), where=rms > 0)
+    e -= e.mean(axis=1, keepdims=True)
+    n, a0 = e.shape[1], float(np.vdot(e, e))
+    if a0 <= 0:
+        return float("nan")
+    ac = [1.0]
+    for k in range(1, min(12, n - 1)):
+        ac.append(float(np.vdot(e[:, :-k], e[:, k:])) / a0 * n / (n - k))      # unbiased: fewer pairs per lag
+        if ac[-1] < 0.5:
+            return 2.0 * (k - 1 + (ac[-2] - 0.5) / (ac[-2] - ac[-1]))
+    return float("nan")
+
+
+def default_beam_alpha_factor(frame, dr: float, ds: float) -> float:
+    """:func:`beam_alpha_factor` of a beam frame (n_samples, n_rays) in sample space (range step ``dr`` mm, line
+    spacing ``ds`` mm at the middle sample), its RF period and (for a pulse longer than the paper probe's) its
+    lateral speckle cell measured on the frame."""
+    from .speckle import rf_period
+
+    period = rf_period(frame, (dr, ds))
+    cell = lateral_cell_lines(frame) if period > REFERENCE_RF_PERIOD else None
+    return beam_alpha_factor(ds, period, cell)
 
 
 def _image_term(ref, mov, mesh, geometry, dr, r0, normalize=True):
@@ -550,7 +617,7 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     opts = effective_regularizer_options(strategy, regularizer, kw.get("regularizer_options"))
     user_reg = fresh_regularizer(regularizer, alpha, opts)
     if alpha is None and isinstance(regularizer, str):
-        user_reg = fresh_regularizer(regularizer, user_reg.alpha * beam_alpha_factor(ds), opts)
+        user_reg = fresh_regularizer(regularizer, user_reg.alpha * default_beam_alpha_factor(ref, dr, ds), opts)
     sp_idx = (dr, geometry.pitch_rad)
     I1, I2, term = _image_term(ref, mov, mesh, geometry, dr, r0, normalize)
     locator = term.quad.locator

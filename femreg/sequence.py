@@ -45,7 +45,7 @@ from .image import (refuse_repeated_start, repeat_note, repeated_frames, require
                     validate_spacing)
 from .mesh import as_quad_mesh, check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, speckle_statistics
-from .geometry import BeamResult, beam_alpha_factor, beam_image_term, beam_spacing, sample_space
+from .geometry import BeamResult, beam_image_term, beam_spacing, default_beam_alpha_factor, sample_space
 from .probes import Convex, as_geometry
 from .registration import RegistrationResult, noise_at_depth, register, sharing_start
 from .result import load_result
@@ -348,7 +348,7 @@ def _track_beam(seq, geometry, *, spacing, origin, regularizer, alpha, mode, gri
         opts = effective_regularizer_options(register_kwargs.get("strategy", "auto"), regularizer,
                                              register_kwargs.get("regularizer_options"))
         base = fresh_regularizer(regularizer, None, opts).alpha * (
-            beam_alpha_factor(sp_s[1]) if isinstance(regularizer, str) else 1.0)
+            default_beam_alpha_factor(seq[0], dr, sp_s[1]) if isinstance(regularizer, str) else 1.0)
         alpha = choose_alpha(seq[0], seq[1], regularizer=regularizer, alpha=alpha, base_alpha=base,
                              image_term=beam_image_term, progress=progress,
                              mesh=None if mesh is None else as_quad_mesh(mesh),

@@ -74,16 +74,18 @@ def test_beam_track_refuses_grid_reference(sequence):
 
 def test_auto_alpha_is_chosen_once_on_the_beam_grid(sequence):
     from femreg.autoalpha import DEFAULT_DECADES
-    from femreg.geometry import beam_alpha_factor, sample_space
+    from femreg.geometry import beam_alpha_factor, default_beam_alpha_factor, sample_space
     from femreg.strategy import fresh_regularizer
 
     out = _track(sequence, alpha="auto")
     alphas = {r.alpha for r in out}
     assert len(alphas) == 1, alphas                       # chosen on the first pair, reused for every increment
-    # the candidates are centred on the beam's default alpha (the linear default times beam_alpha_factor)
+    # the candidates are centred on the beam's default alpha (the linear default times beam_alpha_factor of the
+    # first frame)
     ds = sample_space(GEO, sequence.frames.shape[1:], sequence.spacing[0], sequence.origin[0])[1][1]
-    base = fresh_regularizer("momentum-stress", None, {}).alpha * beam_alpha_factor(ds)
-    assert beam_alpha_factor(ds) > 1
+    factor = default_beam_alpha_factor(sequence.frames[0], sequence.spacing[0], ds)
+    base = fresh_regularizer("momentum-stress", None, {}).alpha * factor
+    assert factor > 1 and factor == pytest.approx(beam_alpha_factor(ds), rel=0.02)     # the paper probe's pulse
     assert np.any(np.isclose(alphas.pop(), base * 10.0 ** np.asarray(DEFAULT_DECADES), rtol=1e-9))
     assert out.flags == ["", ""]
 
