@@ -1090,65 +1090,75 @@ BAND_LEVEL = 0.1
 BAND_SMOOTH = 9
 
 
-def band_decorrelation(data, u) -> float:
+def band_decorrelation(data, u, n_elements: int | None = None):
     """``1 -`` the NCC of the reference and the warped moving frame over the solve's pixels, both filtered to the
     pair's own 2D band (where the smoothed power spectrum of the two is at least :data:`BAND_LEVEL` of its peak):
     the decorrelation that shares the speckle's band.  Receiver noise spreads over the whole sampled band and
     mostly falls outside it (10 dB white noise: element NCC 0.89-0.91, 0.005-0.03 left in band); an independent
     speckle realisation mixed in (out-of-plane motion) lies in it (rho 0.2: 0.022 of 0.024).  ``data``: the
     solve's :class:`femreg.data_term.SSDTerm` on a tensor mesh's pixel grid; ``u`` its nodal displacement.
-    NaN off a pixel grid or on fewer than 8 x 8 pixels."""
+    A float over all pixels, or with ``n_elements`` the filtered pair's ``1 -`` NCC over each element's pixels,
+    (n_elements,) (NaN for elements with fewer than 4 pixels).  NaN off a pixel grid or on fewer than 8 x 8 pixels."""
     from scipy.ndimage import uniform_filter
 
+    from .repair import _group_ncc, _pixel_elements
+
     gr = getattr(data.quad.location, "grid", None)
-    if gr is None or len(gr.rows) < 8 or len(gr.cols) < 8:
-        return float("nan")
-    shape = (len(gr.rows), len(gr.cols))
     a = np.asarray(data.ref_values, float)
+    if gr is None or len(gr.rows) < 8 or len(gr.cols) < 8 or a.size != len(gr.rows) * len(gr.cols):
+        return float("nan") if n_elements is None else np.full(int(n_elements), np.nan)
+    shape = (len(gr.rows), len(gr.cols))
     b = np.asarray(data.residual(u), float) + a
-    if a.size != shape[0] * shape[1]:
-        return float("nan")
     fa, fb = np.fft.fft2(a.reshape(shape)), np.fft.fft2(b.reshape(shape))
     power = uniform_filter(np.abs(fa) ** 2 + np.abs(fb) ** 2, BAND_SMOOTH, mode="wrap")
     keep = power >= BAND_LEVEL * power.max()
-    x, y = np.real(np.fft.ifft2(fa * keep)), np.real(np.fft.ifft2(fb * keep))
+    x, y = np.real(np.fft.ifft2(fa * keep)).ravel(), np.real(np.fft.ifft2(fb * keep)).ravel()
+    if n_elements is not None:
+        q, cnt = _group_ncc(_pixel_elements(data.quad), x, y, int(n_elements))
+        q = np.ravel(q)
+        q[np.asarray(cnt) < 4] = np.nan
+        return 1.0 - q
     x, y = x - x.mean(), y - y.mean()
     den = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
     return float(1.0 - np.sum(x * y) / den) if den > 0 else float("nan")
 
 
-def strain_level(mesh, u) -> float:
-    """Median over the elements of the largest principal strain magnitude at the element centre (a fraction):
-    the strain a noise in the displacement is read against."""
+def strain_level(mesh, u, per_element: bool = False):
+    """The largest principal strain magnitude at the element centres (a fraction): its median over the elements,
+    or with ``per_element`` each element's, (n_el,): the strain a noise in the displacement is read against."""
     e = _centre_strains(mesh, u)
-    mean, rad = 0.5 * (e[:, 0] + e[:, 1]), np.sqrt((0.5 * (e[:, 0] - e[:, 1])) ** 2 + e[:, 2] ** 2)
-    return float(np.median(np.abs(mean) + rad))
+    mag = np.abs(0.5 * (e[:, 0] + e[:, 1])) + np.sqrt((0.5 * (e[:, 0] - e[:, 1])) ** 2 + e[:, 2] ** 2)
+    return mag if per_element else float(np.median(mag))
 
 
-def even_noise(data, u, mesh, pulse_cell, band=None) -> float:
-    """The band's decorrelation (:func:`band_decorrelation`; ``band`` when known) times the area of the image's pulse
-    cell (mm^2, :attr:`femreg.speckle.SpeckleStats.pulse_cell`) over the strain (:func:`strain_level`, %): how far
-    noise that shares the speckle's band stands against the strain it is read on (:attr:`Refinement.even_noise`).
-    A pulse cell holds about one independent speckle: the wider it is, the fewer an element averages.  NaN where a
-    part is unknown."""
+def even_noise(data, u, mesh, pulse_cell) -> float:
+    """The median over the elements of each element's band decorrelation (:func:`band_decorrelation`) times the
+    area of the image's pulse cell (mm^2, :attr:`femreg.speckle.SpeckleStats.pulse_cell`) over its strain
+    (:func:`strain_level`, %): how far noise that shares the speckle's band stands against the strain it is read on
+    (:attr:`Refinement.even_noise`).  A pulse cell holds about one independent speckle: the wider it is, the fewer
+    an element averages.  Element by element, so that the decorrelation a large strain brings where it is (a soft
+    layer) is read against that strain.  NaN where a part is unknown."""
     if pulse_cell is None:
         return float("nan")
     cell = np.ravel(np.asarray(pulse_cell, float))
-    level = 100.0 * strain_level(mesh, u)
-    if cell.size < 2 or not np.all(np.isfinite(cell)) or not level > 0:
+    if cell.size < 2 or not np.all(np.isfinite(cell)):
         return float("nan")
-    return (band_decorrelation(data, u) if band is None else float(band)) * float(cell[0] * cell[1]) / level
+    n = mesh.t.shape[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = band_decorrelation(data, u, n) * float(cell[0] * cell[1]) / (100.0 * strain_level(mesh, u, True))
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
 
 
 def _even_reason(opts: Refinement, sol, pulse_cell) -> str | None:
     """Why the first pass splits nothing on speckle that decorrelates evenly in its own band for the strain it
     carries (:attr:`Refinement.even_noise`), or None; ``sol`` the unrefined solve."""
-    band = band_decorrelation(sol.data, sol.u)
-    x = even_noise(sol.data, sol.u, sol.mesh, pulse_cell, band=band)
+    x = even_noise(sol.data, sol.u, sol.mesh, pulse_cell)
     if not x > opts.even_noise:
         return None
-    return (f"the speckle decorrelates evenly for this strain (band NCC {1 - band:.3f} x pulse cell "
-            f"{np.prod(np.ravel(pulse_cell)[:2]):.2g} mm^2 / strain {100 * strain_level(sol.mesh, sol.u):.2g} % = "
+    band = band_decorrelation(sol.data, sol.u)
+    return (f"the speckle decorrelates evenly for the strain it carries (band NCC {1 - band:.3f}, pulse cell "
+            f"{np.prod(np.ravel(pulse_cell)[:2]):.2g} mm^2, strain {100 * strain_level(sol.mesh, sol.u):.2g} %: "
             f"{x:.2g} > {opts.even_noise:g})")
 
 
