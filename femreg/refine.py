@@ -747,11 +747,11 @@ CLEAN_ALPHA_NCC = 0.02
 #: the pairs below the gate that mark fewer, 8 % compression under L3 0.41, keep the quartering).
 SPREAD_COVERAGE = 0.8
 
-#: :attr:`Refinement.even_noise` of :data:`DEEP_REFINEMENT` (mm^2 per %).  Measured on 51 simulated inclusion,
-#: compression and stress pairs (out-of-plane rho 0.1-0.3, 10-15 dB, gain ramps, 0.1-10 % strain, 3-13 MHz probes;
-#: docs/refinement.md): every pair the refinement made worse reads 0.0093-0.027 (stiff r 4 mm 1 %, paper probe,
-#: rho 0.2: +2.56 points; 3 MHz soft r 5 mm 3 %: +0.49), every pair it improved or left alone 0.0001-0.0080 (10 dB
-#: soft r 5 mm under L3: +0.08; rho 0.15 paper probe: -1.02).
+#: :attr:`Refinement.even_noise` of :data:`DEEP_REFINEMENT` (mm^2 per %).  Measured on 79 simulated inclusion,
+#: compression and stress pairs (out-of-plane rho 0.1-0.3, 10-15 dB, gain ramps, 0.1-10 % strain, 3-15 MHz probes;
+#: docs/refinement.md): 12 of the 16 pairs the refinement made worse read 0.0099-0.023 (stiff r 4 mm 1 %, paper
+#: probe, rho 0.2: +2.56 points), four 0.0057-0.0071; the pairs it improved 0.0001-0.0069, but two at 0.0094 and
+#: 0.0099 (a 12 dB L3 pair loses 0.26 points).
 EVEN_NOISE = 0.0085
 
 #: :attr:`Refinement.relax_ring` of :data:`DEEP_REFINEMENT`: a run of standing-out shear-traction jumps that reaches
