@@ -197,7 +197,7 @@ from .result_base import RefinementRecord  # noqa: F401  (part of this module's 
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc", "EVEN_NOISE", "BAND_LEVEL", "BAND_SMOOTH", "band_decorrelation", "strain_level", "even_noise",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -328,6 +328,13 @@ class Refinement:
         patches: their mean absolute gradient at 5-10 mm depth 1.37 / 1.66x the unrefined result's.  Uniform noise (a
         10 dB pair) lowers every element's NCC alike and keeps the spread small.  None: no such test
         (:data:`DECORRELATED_SPREAD` in :data:`DEEP_REFINEMENT`).
+    even_noise : float, optional
+        When the first pass marks rows / columns and the unrefined solve's decorrelation in the speckle's own band
+        times the pulse cell's area over the strain (:func:`even_noise`, mm^2 per %) is above this, split nothing
+        (with ``settle``, one more step on the unrefined mesh) and say so: speckle that decorrelates evenly (slight
+        out-of-plane motion) puts noise of the speckle's own size into every element, which the finer rows and
+        columns fit as strain where the strain is small against it; receiver noise mostly falls outside that band.
+        None: no such test (:data:`EVEN_NOISE` in :data:`DEEP_REFINEMENT`).  2D, with the image's pulse cell known.
     coverage : float, optional
         When the first pass marks at least this fraction of the rows or of the columns and the median element NCC
         of the unrefined solve is below :attr:`coverage_ncc`, split nothing (with ``settle``, one more step on the
@@ -540,6 +547,7 @@ class Refinement:
     coarse_alpha_ncc: float | None = None
     fine_alpha_beam: float | None = None
     fine_min_pixels: int | None = None
+    even_noise: float | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -548,6 +556,7 @@ class Refinement:
                              f"got {self.plane!r}")
         _number(self, "fine", 1, optional=True)
         _number(self, "spread", 0, 2, optional=True, open_low=True, what="an NCC difference in (0, 2]")
+        _number(self, "even_noise", 0, optional=True, open_low=True, what="a positive number (mm^2 per %)")
         _number(self, "coverage", 0, 1, optional=True, open_low=True, what="a fraction in (0, 1]")
         _number(self, "coverage_ncc", -1, 1, open_low=True, what="an NCC in (-1, 1]")
         _number(self, "uneven_coverage", 0, 1, optional=True, open_low=True, what="a fraction in (0, 1]")
@@ -738,6 +747,13 @@ CLEAN_ALPHA_NCC = 0.02
 #: the pairs below the gate that mark fewer, 8 % compression under L3 0.41, keep the quartering).
 SPREAD_COVERAGE = 0.8
 
+#: :attr:`Refinement.even_noise` of :data:`DEEP_REFINEMENT` (mm^2 per %).  Measured on 79 simulated inclusion,
+#: compression and stress pairs (out-of-plane rho 0.1-0.3, 10-15 dB, gain ramps, 0.1-10 % strain, 3-15 MHz probes;
+#: docs/refinement.md): 12 of the 16 pairs the refinement made worse read 0.0099-0.023 (stiff r 4 mm 1 %, paper
+#: probe, rho 0.2: +2.56 points), four 0.0057-0.0071; the pairs it improved 0.0001-0.0069, but two at 0.0094 and
+#: 0.0099 (a 12 dB L3 pair loses 0.26 points).
+EVEN_NOISE = 0.0085
+
 #: :attr:`Refinement.relax_ring` of :data:`DEEP_REFINEMENT`: a run of standing-out shear-traction jumps that reaches
 #: no border of the mesh and whose bounding box's shorter side is at least this fraction of its longer is an
 #: inclusion's rim, not a layer.  Measured (runs of 20 mm and more on the unrefined solve): a soft r 5 mm
@@ -774,7 +790,8 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              spread=DECORRELATED_SPREAD, coverage=NOISE_COVERAGE,
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
                              uneven_coverage=UNEVEN_COVERAGE, coarse_alpha=0.1,
-                             coarse_alpha_ncc=CLEAN_ALPHA_NCC, strong_coverage=SPREAD_COVERAGE)
+                             coarse_alpha_ncc=CLEAN_ALPHA_NCC, strong_coverage=SPREAD_COVERAGE,
+                             even_noise=EVEN_NOISE)
 
 #: Median element NCC of the unrefined solve below which a refined result says that its speckle is decorrelated:
 #: there refinement can turn the decorrelation noise into rectangular strain patches (heterogeneous tissue with an
@@ -1065,6 +1082,84 @@ def noise_ncc(reference, data, n_elements: int, share) -> np.ndarray | None:
         rho = 1.0 - float(share) * float(np.mean(p)) / pe
     rho = np.clip(np.where(cnt > 0, rho, 1.0), 0.1, 1.0)
     return rho
+
+
+#: Level of the pair's smoothed 2D power spectrum (over its peak) that bounds the band of :func:`band_decorrelation`.
+BAND_LEVEL = 0.1
+#: Width (frequency bins) of the moving average that smooths the power spectrum before it is cut.
+BAND_SMOOTH = 9
+
+
+def band_decorrelation(data, u, n_elements: int | None = None):
+    """``1 -`` the NCC of the reference and the warped moving frame over the solve's pixels, both filtered to the
+    pair's own 2D band (where the smoothed power spectrum of the two is at least :data:`BAND_LEVEL` of its peak):
+    the decorrelation that shares the speckle's band.  Receiver noise spreads over the whole sampled band and
+    mostly falls outside it (10 dB white noise: element NCC 0.89-0.91, 0.005-0.03 left in band); an independent
+    speckle realisation mixed in (out-of-plane motion) lies in it (rho 0.2: 0.022 of 0.024).  ``data``: the
+    solve's :class:`femreg.data_term.SSDTerm` on a tensor mesh's pixel grid; ``u`` its nodal displacement.
+    A float over all pixels, or with ``n_elements`` the filtered pair's ``1 -`` NCC over each element's pixels,
+    (n_elements,) (NaN for elements with fewer than 4 pixels).  NaN off a pixel grid or on fewer than 8 x 8 pixels."""
+    from scipy.ndimage import uniform_filter
+
+    from .repair import _group_ncc, _pixel_elements
+
+    gr = getattr(data.quad.location, "grid", None)
+    a = np.asarray(data.ref_values, float)
+    if gr is None or len(gr.rows) < 8 or len(gr.cols) < 8 or a.size != len(gr.rows) * len(gr.cols):
+        return float("nan") if n_elements is None else np.full(int(n_elements), np.nan)
+    shape = (len(gr.rows), len(gr.cols))
+    b = np.asarray(data.residual(u), float) + a
+    fa, fb = np.fft.fft2(a.reshape(shape)), np.fft.fft2(b.reshape(shape))
+    power = uniform_filter(np.abs(fa) ** 2 + np.abs(fb) ** 2, BAND_SMOOTH, mode="wrap")
+    keep = power >= BAND_LEVEL * power.max()
+    x, y = np.real(np.fft.ifft2(fa * keep)).ravel(), np.real(np.fft.ifft2(fb * keep)).ravel()
+    if n_elements is not None:
+        q, cnt = _group_ncc(_pixel_elements(data.quad), x, y, int(n_elements))
+        q = np.ravel(q)
+        q[np.asarray(cnt) < 4] = np.nan
+        return 1.0 - q
+    x, y = x - x.mean(), y - y.mean()
+    den = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
+    return float(1.0 - np.sum(x * y) / den) if den > 0 else float("nan")
+
+
+def strain_level(mesh, u, per_element: bool = False):
+    """The largest principal strain magnitude at the element centres (a fraction): its median over the elements,
+    or with ``per_element`` each element's, (n_el,): the strain a noise in the displacement is read against."""
+    e = _centre_strains(mesh, u)
+    mag = np.abs(0.5 * (e[:, 0] + e[:, 1])) + np.sqrt((0.5 * (e[:, 0] - e[:, 1])) ** 2 + e[:, 2] ** 2)
+    return mag if per_element else float(np.median(mag))
+
+
+def even_noise(data, u, mesh, pulse_cell) -> float:
+    """The median over the elements of each element's band decorrelation (:func:`band_decorrelation`) times the
+    area of the image's pulse cell (mm^2, :attr:`femreg.speckle.SpeckleStats.pulse_cell`) over its strain
+    (:func:`strain_level`, %): how far noise that shares the speckle's band stands against the strain it is read on
+    (:attr:`Refinement.even_noise`).  A pulse cell holds about one independent speckle: the wider it is, the fewer
+    an element averages.  Element by element, so that the decorrelation a large strain brings where it is (a soft
+    layer) is read against that strain.  NaN where a part is unknown."""
+    if pulse_cell is None:
+        return float("nan")
+    cell = np.ravel(np.asarray(pulse_cell, float))
+    if cell.size < 2 or not np.all(np.isfinite(cell)):
+        return float("nan")
+    n = mesh.t.shape[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = band_decorrelation(data, u, n) * float(cell[0] * cell[1]) / (100.0 * strain_level(mesh, u, True))
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
+
+
+def _even_reason(opts: Refinement, sol, pulse_cell) -> str | None:
+    """Why the first pass splits nothing on speckle that decorrelates evenly in its own band for the strain it
+    carries (:attr:`Refinement.even_noise`), or None; ``sol`` the unrefined solve."""
+    x = even_noise(sol.data, sol.u, sol.mesh, pulse_cell)
+    if not x > opts.even_noise:
+        return None
+    band = band_decorrelation(sol.data, sol.u)
+    return (f"the speckle decorrelates evenly for the strain it carries (band NCC {1 - band:.3f}, pulse cell "
+            f"{np.prod(np.ravel(pulse_cell)[:2]):.2g} mm^2, strain {100 * strain_level(sol.mesh, sol.u):.2g} %: "
+            f"{x:.2g} > {opts.even_noise:g})")
 
 
 def decorrelation_ncc(q, rho=None) -> np.ndarray:
@@ -1592,7 +1687,8 @@ def _marked(rows, cols) -> str:
     return f"{counted(int(np.sum(rows)), 'row')}, {counted(int(np.sum(cols)), 'column')} marked"
 
 
-def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None, noise=None):
+def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, lateral_cell=None, noise=None,
+                  pulse_cell=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
     per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``
@@ -1603,6 +1699,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     (:func:`femreg.strategy.data_lambda_bar`), whose marking the indicator's cuts were not set on.
     ``lateral_cell``: the image's lateral pulse cell (mm; :attr:`Refinement.fine_alpha_beam`), None: unknown.
     ``noise``: the element NCC receiver noise alone leaves on the unrefined mesh (:func:`noise_ncc`), None:
+    unknown.  ``pulse_cell``: the image's (axial, lateral) pulse cell (mm; :attr:`Refinement.even_noise`), None:
     unknown.  Stops early when nothing is marked.  Returns ``(sol, RefinementRecord)``."""
     import time
 
@@ -1645,9 +1742,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
         if np.isfinite(budget):
             rows, cols = _within_budget(mesh, rows, cols, score, spacing, origin, opts, budget)
         top = max(float(np.max(s, initial=0.0)) for s in score)
-        if k == 0 and getattr(sol, "data", None) is not None and (opts.spread is not None
-                                                                 or opts.coverage is not None):
+        if k == 0 and getattr(sol, "data", None) is not None and (opts.spread is not None or opts.coverage is not None
+                                                                 or opts.even_noise is not None):
             why = _noise_reason(opts, np.any(rows) or np.any(cols), score, unrefined_ncc(), noise)
+            if not why and opts.even_noise is not None and (np.any(rows) or np.any(cols)):
+                why = _even_reason(opts, unrefined, pulse_cell)
             if why:
                 # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
                 # finer rows / columns would fit as patches
@@ -1969,7 +2068,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
                                 start=None if marked is None else sol,
                                 lateral_cell=None if getattr(stats, "pulse_cell", None) is None
                                 else float(np.ravel(stats.pulse_cell)[1]),
-                                noise=noise_ncc(I1.data, first.data, first.mesh.t.shape[1], crop_noise_share()))
+                                noise=noise_ncc(I1.data, first.data, first.mesh.t.shape[1], crop_noise_share()),
+                                pulse_cell=getattr(stats, "pulse_cell", None))
     if sol.mesh is not base:
         u0, hops = transfer(u0, base, sol.mesh), np.zeros(sol.mesh.p.shape[1], int)
     sol.refinement = record
