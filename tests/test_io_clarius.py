@@ -139,3 +139,20 @@ def test_dtype_words_are_compared_as_types(tmp_path, capsys):
     assert "ignored" not in capsys.readouterr().err
     assert main(["info", str(p), "--dtype", "float32", "--spacing", "0.01925", "0.3"]) == 2
     assert "states int16 samples" in capsys.readouterr().err
+
+
+def test_iq_export_is_named_and_refused(tmp_path):
+    """An IQ export (header id 0) holds I and Q per depth: twice the RF frame's bytes; named, not misread."""
+    n, nl, ns = 2, 6, 40
+    blob = np.array([0, n, nl, ns, 2], "<i4").tobytes()
+    for k in range(n):
+        blob += np.int64(k).astype("<i8").tobytes() + np.zeros((nl, 2 * ns), "<i2").tobytes()
+    p = tmp_path / "scan_iq.raw"
+    p.write_bytes(blob)
+    assert sniff(p)["iq"] is True
+    with pytest.raises(InputError, match="Clarius IQ export .*export the RF data"):
+        read_frames(p, spacing=(0.02, 0.3))
+    assert main(["info", str(p)]) == 2
+    # an RF export of the same sizes is not read as IQ
+    q = _clarius(tmp_path / "scan_rf.raw", _coded(n, nl, ns))
+    assert "iq" not in sniff(q)

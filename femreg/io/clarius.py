@@ -34,6 +34,8 @@ HEADER_SIZE = 20
 STAMP_SIZE = 8
 #: sample size in bytes -> stored type
 SAMPLE_TYPES = {2: "<i2", 1: "u1"}
+#: header ids of IQ exports (0: B-mode IQ, 3: pulsed-wave Doppler IQ): two samples per depth, I and Q
+IQ_IDS = (0, 3)
 
 
 def sniff(path) -> dict | None:
@@ -51,7 +53,12 @@ def sniff(path) -> dict | None:
             and hdr["samplesize"] in (1, 2, 4, 8)):
         return None
     frame = hdr["lines"] * hdr["samples"] * hdr["samplesize"]
-    return hdr if size == HEADER_SIZE + hdr["frames"] * (STAMP_SIZE + frame) else None
+    if size == HEADER_SIZE + hdr["frames"] * (STAMP_SIZE + frame):
+        return hdr
+    if hdr["id"] in IQ_IDS and size == HEADER_SIZE + hdr["frames"] * (STAMP_SIZE + 2 * frame):
+        # IQ exports hold an I and a Q sample per depth: recognised, to be refused by name
+        return dict(hdr, iq=True)
+    return None
 
 
 def cut_short(path) -> str:
@@ -129,6 +136,10 @@ def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, **_
     if hdr is None:
         raise fail(path, "not a Clarius raw file (its size does not match a 5-field header's frames)")
     n, nl, ns, sz = hdr["frames"], hdr["lines"], hdr["samples"], hdr["samplesize"]
+    if hdr.get("iq"):
+        raise fail(path, f"a Clarius IQ export (header id {hdr['id']}: I and Q of {ns} depths x {nl} lines per "
+                         "frame): its demodulation frequency is not stored with it, so it cannot be remodulated to "
+                         "RF here; export the RF data (`*_rf.raw`, header id 2) from the Clarius app instead")
     if sz not in SAMPLE_TYPES:
         raise fail(path, f"Clarius raw file of {sz}-byte samples: only RF (2-byte int16) and envelope (1-byte) "
                          "data are read")
