@@ -154,6 +154,8 @@ ROWS = [
     ("flattened", {}, True, {}),
     ("flattened, alpha 0.04", {}, True, {"alpha": 0.04}),
     ("flattened, alpha 0.0133", {}, True, {"alpha": 0.0133}),
+    ("alpha auto", {}, False, {"alpha": "auto"}),
+    ("flattened, alpha auto", {}, True, {"alpha": "auto"}),
     ("no attenuation", {"floor": None}, False, {}),
     ("no attenuation, alpha 0.0133", {"floor": None}, False, {"alpha": 0.0133}),
     ("pitch 0.2 mm", {"pitch": 0.2}, False, {}),
@@ -167,7 +169,7 @@ ROWS = [
     ("7.5 MHz, flattened", L7, True, {}),
     ("7.5 MHz, no attenuation", dict(L7, floor=None), False, {}),
 ]
-QUICK = 8
+QUICK = 10
 
 
 def main(argv=None):
