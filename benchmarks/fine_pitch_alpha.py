@@ -36,7 +36,7 @@ is marked), pitch 0.2 mm, 80 MHz sampling, the cut at 22 mm and no layers 1.01-1
 1.03 as recorded, 1.39 flattened, 1.99 without attenuation.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/fine_pitch_alpha.py [--quick]`` (``PYTHONPATH`` chooses the femreg
-measured; ``--quick``: the first rows only).
+measured; ``--quick``: the first rows only; ``--seed N``: another scatterer realisation).
 """
 from __future__ import annotations
 
@@ -181,6 +181,7 @@ QUICK = 11
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help=f"the first {QUICK} rows only")
+    ap.add_argument("--seed", type=int, default=7, help="scatterer seed (default 7)")
     a = ap.parse_args(argv)
     rows = ROWS[:QUICK] if a.quick else ROWS
     print(f"femreg {femreg.__version__} from {Path(femreg.__file__).parent}")
@@ -191,7 +192,7 @@ def main(argv=None):
     for name, pk, flat, rk in rows:
         key = tuple(sorted(pk.items()))
         if key not in cache:
-            cache[key] = make_pair(**pk)
+            cache[key] = make_pair(seed=a.seed, **pk)
         ref, mov, sp, org, truth = cache[key]
         if flat is not False:
             if flat is not True:            # the depth register's level rule cuts the recording at
