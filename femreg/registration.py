@@ -31,7 +31,7 @@ from . import autoalpha, orientation
 from .echo import DataMask, as_data_mask, crop_for, noise_share, registering_crop, unmatched_crop
 from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
-from .image import SplineImage, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
+from .image import SplineImage, depth_fall_note, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
 from .initial import INITIAL_NAMES, initial_guess, start_search
 from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
@@ -517,6 +517,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: fine_solve(u, **dict(solve_kw, strain_tol=tight)), fe_mesh,
             stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
+    notes += depth_fall_note(ref, spacing)          # an echo weakening with depth: one alpha weighs it unevenly
     marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
                                    follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
