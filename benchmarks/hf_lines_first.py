@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from forward.fields import LoopTruth  # noqa: E402
 from forward.pairs import SCATTERERS_PER_CELL, Probe, _grid, alpha_for_floor, attenuation_gain_db  # noqa: E402
-from forward.ultrasound import make_scatterers, noise_sigma, render_rf  # noqa: E402
+from forward.ultrasound import make_scatterers, render_elevation_loop  # noqa: E402
 
 N = 9                                           # frames
 F0, FS, PITCH, C = 12.5, 40.0, 0.1, 1540.0      # MHz, MHz, mm, m/s
@@ -101,16 +101,7 @@ def write(out):
     amp[(X[:, 0] >= FAT[0]) & (X[:, 0] < FAT[1])] *= 0.6            # hypoechoic fat
     amp[(X[:, 0] - LES["xc"]) ** 2 + (X[:, 1] - LES["yc"]) ** 2 < LES["R"] ** 2] *= 1.4
     gain = 10 ** (attenuation_gain_db(alpha_for_floor(FLOOR, SNR, F0), F0)(grid.x) / 20)
-    frames = np.empty((N,) + grid.shape, np.float32)
-    sigma = 0.0
-    nrng = np.random.default_rng(11)
-    for k in range(N):
-        w = np.exp(-0.5 * ((z - ELEV[k]) / SIG_E) ** 2)
-        keep = w > 1e-3
-        clean = render_rf(motion(k, X[keep]), amp[keep] * w[keep], grid, psf)
-        if k == 0:
-            sigma = noise_sigma(float(np.mean(clean ** 2)), SNR)
-        frames[k] = clean * gain[:, None] + sigma * nrng.standard_normal(clean.shape)
+    frames = render_elevation_loop(motion, X, amp, z, ELEV[:N], SIG_E, grid, psf, gain, SNR)
     np.save(out / "scan.npy", np.ascontiguousarray(frames.transpose(0, 2, 1)))   # lines first
     side = {"fs": FS * 1e6, "c": C, "pitch": PITCH * 1e-3, "f0": F0 * 1e6, "frame_rate": 20.0}
     (out / "scan.json").write_text(json.dumps(side, indent=1))

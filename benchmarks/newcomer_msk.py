@@ -54,7 +54,7 @@ if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))      # after PYTHONPATH: it chooses the femreg measured
 from forward.fields import LoopTruth, ShearBand  # noqa: E402
 from forward.pairs import SCATTERERS_PER_CELL, Probe, _grid, alpha_for_floor, attenuation_gain_db  # noqa: E402
-from forward.ultrasound import make_scatterers, noise_sigma, render_rf  # noqa: E402
+from forward.ultrasound import make_scatterers, render_elevation_loop  # noqa: E402
 
 N = 24                                          # frames
 F0, FS, PITCH, C = 15.0, 40.0, 0.1, 1540.0      # MHz, MHz, mm, m/s
@@ -126,16 +126,7 @@ def write(out, name="msk_rf"):
     amp[np.abs(X[:, 0] - BAND[0]) < 0.5 * BAND[1]] *= 1.8            # bright fascia
     amp[(X[:, 0] - NOD["xc"]) ** 2 + (X[:, 1] - NOD["yc"]) ** 2 < NOD["R"] ** 2] *= 0.7   # hypoechoic nodule
     gain = 10 ** (attenuation_gain_db(alpha_for_floor(FLOOR, SNR, F0), F0)(grid.x) / 20)
-    frames = np.empty((N,) + grid.shape, np.float32)
-    sigma = 0.0
-    nrng = np.random.default_rng(11)
-    for k in range(N):
-        w = np.exp(-0.5 * ((z - ELEV[k]) / SIG_E) ** 2)
-        keep = w > 1e-3
-        clean = render_rf(motion(k, X[keep]), amp[keep] * w[keep], grid, psf)
-        if k == 0:
-            sigma = noise_sigma(float(np.mean(clean ** 2)), SNR)
-        frames[k] = clean * gain[:, None] + sigma * nrng.standard_normal(clean.shape)
+    frames = render_elevation_loop(motion, X, amp, z, ELEV[:N], SIG_E, grid, psf, gain, SNR)
     counts = np.round(frames * (12000.0 / np.abs(frames).max())).astype("<i2")   # int16 counts
     n, ns, nl = counts.shape
     raw = Path(out) / f"{name}.raw"

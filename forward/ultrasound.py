@@ -377,6 +377,26 @@ def render_rf(positions, amplitudes, grid: ImagingGrid, psf: PSF | None = None) 
     return (A.tocsr() @ L).toarray()
 
 
+def render_elevation_loop(motion, positions, amplitudes, elevation, plane_mm, sigma_elev_mm: float,
+                          grid: ImagingGrid, psf: PSF, gain, snr_db: float, noise_seed: int = 11) -> np.ndarray:
+    """The frames (n_frames, n_axial, n_lateral) float32 of a loop whose scatterers move in plane and the imaging
+    plane out of it: frame ``k`` renders ``motion(k, positions)`` ((n, 2) mm) with amplitudes weighted by a
+    Gaussian elevational beam of ``sigma_elev_mm`` centred on ``plane_mm[k]`` (``elevation``: each scatterer's
+    elevational position, mm), times the depth ``gain`` ((n_axial,) per row), plus receiver noise at ``snr_db``
+    of frame 0's clean power (seeded ``noise_seed``; the same sigma for every frame)."""
+    frames = np.empty((len(plane_mm),) + tuple(grid.shape), np.float32)
+    sigma = 0.0
+    rng = np.random.default_rng(noise_seed)
+    for k in range(len(plane_mm)):
+        w = np.exp(-0.5 * ((elevation - plane_mm[k]) / sigma_elev_mm) ** 2)
+        keep = w > 1e-3
+        clean = render_rf(motion(k, positions[keep]), amplitudes[keep] * w[keep], grid, psf)
+        if k == 0:
+            sigma = noise_sigma(float(np.mean(clean ** 2)), snr_db)
+        frames[k] = clean * np.asarray(gain)[:, None] + sigma * rng.standard_normal(clean.shape)
+    return frames
+
+
 def noise_sigma(signal_power: float, snr_db: float) -> float:
     """Noise standard deviation for ``SNR = 10 log10(signal_power / sigma^2)`` dB."""
     snr = float(snr_db)
