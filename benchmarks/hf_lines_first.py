@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from forward.fields import LoopTruth  # noqa: E402
-from forward.pairs import SCATTERERS_PER_CELL, Probe, _grid, alpha_for_floor, attenuation_gain_db  # noqa: E402
-from forward.ultrasound import make_scatterers, render_elevation_loop  # noqa: E402
+from forward.pairs import Probe, _grid, alpha_for_floor, attenuation_gain_db, elevation_scatterers  # noqa: E402
+from forward.ultrasound import render_elevation_loop  # noqa: E402
 
 N = 9                                           # frames
 F0, FS, PITCH, C = 12.5, 40.0, 0.1, 1540.0      # MHz, MHz, mm, m/s
@@ -89,14 +89,7 @@ def write(out):
     hx, hy = psf.half_support_mm()
     x0, x1, y0, y1 = grid.extent()
     box = (0.0, 1.06 * x1 + hx + 1, y0 - hy - 1.5 - DRIFT.max(), y1 + hy + 1.5)
-    zlo, zhi = -3 * SIG_E, ELEV.max() + 3 * SIG_E
-    rng = np.random.default_rng(7)
-    dens = PROBE.density_per_mm2(SCATTERERS_PER_CELL) * (zhi - zlo) / (math.sqrt(2 * math.pi) * SIG_E)
-    scat = make_scatterers(rng, box, density_per_mm2=dens, inclusion_radius_mm=None,
-                           cell_aspect=psf.sigma_axial_mm / psf.sigma_lateral_mm)
-    X = scat.positions
-    z = rng.uniform(zlo, zhi, len(X))
-    amp = scat.amplitudes.copy()
+    X, z, amp = elevation_scatterers(PROBE, box, SIG_E, ELEV.max())
     amp[X[:, 0] < FAT[0]] *= 2.0                                    # bright skin
     amp[(X[:, 0] >= FAT[0]) & (X[:, 0] < FAT[1])] *= 0.6            # hypoechoic fat
     amp[(X[:, 0] - LES["xc"]) ** 2 + (X[:, 1] - LES["yc"]) ** 2 < LES["R"] ** 2] *= 1.4

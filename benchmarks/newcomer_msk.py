@@ -53,8 +53,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))      # after PYTHONPATH: it chooses the femreg measured
 from forward.fields import LoopTruth, ShearBand  # noqa: E402
-from forward.pairs import SCATTERERS_PER_CELL, Probe, _grid, alpha_for_floor, attenuation_gain_db  # noqa: E402
-from forward.ultrasound import make_scatterers, render_elevation_loop  # noqa: E402
+from forward.pairs import Probe, _grid, alpha_for_floor, attenuation_gain_db, elevation_scatterers  # noqa: E402
+from forward.ultrasound import render_elevation_loop  # noqa: E402
 
 N = 24                                          # frames
 F0, FS, PITCH, C = 15.0, 40.0, 0.1, 1540.0      # MHz, MHz, mm, m/s
@@ -113,14 +113,7 @@ def write(out, name="msk_rf"):
     x0, x1, y0, y1 = grid.extent()
     pad = 0.5 * COMP[-1] * max(abs(y0), abs(y1)) + SLIDE[-1] + 0.5
     box = (0.0, (1 + COMP[-1] + 0.02) * x1 + hx + 0.5, y0 - hy - pad, y1 + hy + pad + DRIFT.max())
-    zlo, zhi = -3 * SIG_E, ELEV.max() + 3 * SIG_E
-    rng = np.random.default_rng(7)
-    dens = PROBE.density_per_mm2(SCATTERERS_PER_CELL) * (zhi - zlo) / (math.sqrt(2 * math.pi) * SIG_E)
-    scat = make_scatterers(rng, box, density_per_mm2=dens, inclusion_radius_mm=None,
-                           cell_aspect=psf.sigma_axial_mm / psf.sigma_lateral_mm)
-    X = scat.positions
-    z = rng.uniform(zlo, zhi, len(X))
-    amp = scat.amplitudes.copy()
+    X, z, amp = elevation_scatterers(PROBE, box, SIG_E, ELEV.max())
     amp[X[:, 0] < SKIN] *= 2.5                                       # bright skin
     amp[(X[:, 0] >= SKIN) & (X[:, 0] < FAT)] *= 0.6                  # hypoechoic fat
     amp[np.abs(X[:, 0] - BAND[0]) < 0.5 * BAND[1]] *= 1.8            # bright fascia

@@ -453,3 +453,18 @@ def total_strain_error(estimate, truth) -> float:
     est, e = np.asarray(estimate, float), np.asarray(truth, float)
     return 100.0 * float(np.sqrt(np.sum(w * (est - e) ** 2) / np.sum(w * e ** 2)))
 
+
+
+def elevation_scatterers(probe, box, sigma_elev_mm: float, elevation_max_mm: float, seed: int = 7):
+    """``(positions (n, 2) mm, elevation (n,) mm, amplitudes (n,))`` of a scatterer slab for a loop whose imaging
+    plane moves from 0 to ``elevation_max_mm`` out of plane under a Gaussian elevational beam of ``sigma_elev_mm``
+    (:func:`forward.ultrasound.render_elevation_loop`): 3 sigma beyond either end, as dense as the in-plane speckle
+    of :data:`SCATTERERS_PER_CELL` per resolution cell of ``probe`` (:class:`Probe`); ``box`` the in-plane extent
+    (x0, x1, y0, y1) mm."""
+    psf = probe.psf()
+    zlo, zhi = -3 * sigma_elev_mm, elevation_max_mm + 3 * sigma_elev_mm
+    rng = np.random.default_rng(seed)
+    dens = probe.density_per_mm2(SCATTERERS_PER_CELL) * (zhi - zlo) / (math.sqrt(2 * math.pi) * sigma_elev_mm)
+    scat = make_scatterers(rng, box, density_per_mm2=dens, inclusion_radius_mm=None,
+                           cell_aspect=psf.sigma_axial_mm / psf.sigma_lateral_mm)
+    return scat.positions, rng.uniform(zlo, zhi, len(scat.positions)), scat.amplitudes.copy()
