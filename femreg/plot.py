@@ -352,6 +352,26 @@ _PANELS = (("ux", "axial displacement $u_x$", "axial displacement $u_x$ (mm)", 1
 FAILED_COLOUR = "#c00000"
 
 
+#: A colour range of the axial strain panel narrower than this fraction of its mean magnitude is said in its title.
+NARROW_SPAN = 0.2
+
+
+def narrow_span_note(exx) -> str:
+    """``"\ncolours span N % of the mean strain"`` where the panel's colour range of ``exx`` (its robust 1-99 %
+    percentiles, as :func:`plot_field` draws it) is under :data:`NARROW_SPAN` of the mean magnitude, else "":
+    full-scale colours over a few percent read as strong contrast (a 15 MHz pair: -0.74 to -0.78 % drawn from
+    yellow to purple where the truth's stiff nodule spans a factor 2)."""
+    e = np.asarray(exx, float)
+    finite = e[np.isfinite(e)]
+    if finite.size < 2:
+        return ""
+    lo, hi = np.percentile(finite, [1, 99])
+    mean = abs(float(np.mean(finite)))
+    if not mean > 0 or (hi - lo) >= NARROW_SPAN * mean:
+        return ""
+    return f"\ncolours span {100 * (hi - lo) / mean:.1f} % of the mean strain"
+
+
 def _attr(result, d, key):
     """``result.key`` (an engine object) or ``d[key]`` (a file's dict), None when neither has it."""
     v = getattr(result, key, None)
@@ -545,6 +565,7 @@ def plot_result(result, out_png=None, *, reference=None, overlay=False, dpi=100,
         ax.set_aspect(aspect)
         _label(ax, f"mesh ({t.shape[1]} quads)")
     for ax, (key, title, label, scale) in zip(axes[1:], _PANELS):
+        title += narrow_span_note(d[key]) if key == "exx" else ""
         plot_field(d[key], sp, origin, ax=ax, title=title, label=label, scale=scale,
                    overlay_bmode=reference if overlay else None, aspect=aspect, dynamic_range=dynamic_range,
                    positions=positions)

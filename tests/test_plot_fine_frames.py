@@ -62,3 +62,25 @@ def test_shear_map_cells_panel_keeps_a_range_around_one():
     norm = fig.axes[2].collections[0].norm
     assert norm.vmin <= 0.2 + 1e-9 and norm.vmax >= 9.0 - 1e-9
     plt.close(fig)
+
+
+def test_narrow_axial_strain_range_is_said_in_its_title():
+    """Full-scale colours over a few percent of the mean read as contrast that is not there: the axial strain
+    panel's title says how narrow its range is (femreg.plot.narrow_span_note); a strain image with contrast gets
+    nothing."""
+    from femreg.plot import NARROW_SPAN, narrow_span_note, plot_result
+
+    rng = np.random.default_rng(1)
+    flat = -0.0076 + 0.0001 * rng.standard_normal((60, 40))          # -0.74 .. -0.78 %: 5 % of the mean
+    lesion = flat.copy()
+    lesion[20:40, 15:25] *= 0.45                                      # a stiff lesion at strain ratio 2.2
+    note = narrow_span_note(flat)
+    span = float(note.split("span ")[1].split(" %")[0])
+    assert 2.0 < span < 100 * NARROW_SPAN, note
+    assert narrow_span_note(lesion) == ""
+    d = dict(ux=np.zeros((60, 40)), uy=np.zeros((60, 40)), exx=flat, eyy=-0.5 * flat, exy=0 * flat,
+             spacing=np.array([0.1, 0.1]), origin=np.zeros(2))
+    fig = plot_result(d, reference=rng.standard_normal((60, 40)))
+    titles = [ax.get_title() for ax in fig.axes]
+    assert any("axial strain" in t and "colours span" in t for t in titles), titles
+    plt.close(fig)
