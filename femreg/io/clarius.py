@@ -38,8 +38,9 @@ SAMPLE_TYPES = {2: "<i2", 1: "u1"}
 IQ_IDS = (0, 3)
 
 
-def sniff(path) -> dict | None:
-    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None."""
+def _header(path) -> tuple | None:
+    """``(file size in bytes, header fields)`` of the first :data:`HEADER_SIZE` bytes of ``path`` read as a Clarius
+    header, or None where the file cannot be read or is shorter."""
     try:
         size = os.path.getsize(path)
         with open(path, "rb") as fh:
@@ -48,7 +49,15 @@ def sniff(path) -> dict | None:
         return None
     if len(raw) < HEADER_SIZE:
         return None
-    hdr = dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
+    return size, dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
+
+
+def sniff(path) -> dict | None:
+    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None."""
+    head = _header(path)
+    if head is None:
+        return None
+    size, hdr = head
     if not (0 < hdr["frames"] <= 1 << 20 and 0 < hdr["lines"] <= 1 << 16 and 0 < hdr["samples"] <= 1 << 20
             and hdr["samplesize"] in (1, 2, 4, 8)):
         return None
@@ -64,15 +73,10 @@ def sniff(path) -> dict | None:
 def cut_short(path) -> str:
     """A message when ``path`` starts with a plausible Clarius header (RF or envelope samples, sizes in range) but
     is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else ""."""
-    try:
-        size = os.path.getsize(path)
-        with open(path, "rb") as fh:
-            raw = fh.read(HEADER_SIZE)
-    except OSError:
+    head = _header(path)
+    if head is None:
         return ""
-    if len(raw) < HEADER_SIZE:
-        return ""
-    hdr = dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
+    size, hdr = head
     if not (0 < hdr["frames"] <= 1 << 16 and 0 < hdr["lines"] <= 4096 and 16 <= hdr["samples"] <= 1 << 16
             and hdr["samplesize"] in SAMPLE_TYPES):
         return ""
