@@ -352,24 +352,30 @@ _PANELS = (("ux", "axial displacement $u_x$", "axial displacement $u_x$ (mm)", 1
 FAILED_COLOUR = "#c00000"
 
 
-#: A colour range of the axial strain panel narrower than this fraction of its mean magnitude is said in its title.
+#: A strain colour range narrower than this fraction of the mean strain is said in the panel's title.
 NARROW_SPAN = 0.2
 
 
+def span_note(lo, hi, mean) -> str:
+    """``"\ncolours span N % of the mean strain"`` where a strain panel's colour range ``lo``-``hi`` is under
+    :data:`NARROW_SPAN` of ``mean`` (its mean magnitude, same units), else "": full-scale colours over a few percent
+    read as strong contrast (a 15 MHz pair: -0.74 to -0.78 % drawn from yellow to purple where the truth's stiff
+    nodule spans a factor 2; its elastogram 0.975-1.03 of the mean)."""
+    mean = abs(float(mean))
+    if not mean > 0 or (hi - lo) >= NARROW_SPAN * mean:
+        return ""
+    return f"\ncolours span {100 * (hi - lo) / mean:.1f} % of the mean strain"
+
+
 def narrow_span_note(exx) -> str:
-    """``"\ncolours span N % of the mean strain"`` where the panel's colour range of ``exx`` (its robust 1-99 %
-    percentiles, as :func:`plot_field` draws it) is under :data:`NARROW_SPAN` of the mean magnitude, else "":
-    full-scale colours over a few percent read as strong contrast (a 15 MHz pair: -0.74 to -0.78 % drawn from
-    yellow to purple where the truth's stiff nodule spans a factor 2)."""
+    """:func:`span_note` of the axial strain panel of :func:`plot_result`: ``exx``'s robust 1-99 % percentiles (as
+    :func:`plot_field` draws it) against its mean."""
     e = np.asarray(exx, float)
     finite = e[np.isfinite(e)]
     if finite.size < 2:
         return ""
     lo, hi = np.percentile(finite, [1, 99])
-    mean = abs(float(np.mean(finite)))
-    if not mean > 0 or (hi - lo) >= NARROW_SPAN * mean:
-        return ""
-    return f"\ncolours span {100 * (hi - lo) / mean:.1f} % of the mean strain"
+    return span_note(lo, hi, np.mean(finite))
 
 
 def _attr(result, d, key):

@@ -279,10 +279,6 @@ def write_cine(out_dir, res, frames, spacing, fps=10.0, strain_range=None, outsi
     return path
 
 
-#: A colour range of the normalised strain narrower than this (of the mean) is said in the panel's title.
-NARROW_SPAN = 0.2
-
-
 def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=None, outside=None, roi=None,
                       excluded=None):
     """The figure of ``elastogram.png``: B-mode of the reference frame | best elastogram (colours over
@@ -294,7 +290,7 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     import matplotlib.pyplot as plt
 
     from ..elastogram import display_range, saturated_fraction
-    from ..plot import draw_failure, extent_mm, fit_colorbars, plot_bmode, plot_field
+    from ..plot import draw_failure, extent_mm, fit_colorbars, plot_bmode, plot_field, span_note
 
     lo, hi = strain_range if strain_range is not None else display_range(res.exx, res.quality)
 
@@ -317,10 +313,9 @@ def elastogram_figure(res, frame, spacing, origin, strain_range=None, failure=No
     # the share drawn in an end colour: the picture says how much of it the colour bar does not resolve
     sat = saturated_fraction(res.exx, res.quality, (lo, hi))
     beyond = f"\n{100 * sat:.1f} % of the pixels beyond the colour bar" if np.isfinite(sat) else ""
-    if hi - lo < NARROW_SPAN:
-        # full-scale colours over a few percent read as strong contrast (a 15 MHz loop: 0.975-1.03 drawn as a
-        # stiff column under a soft blob, where the nodule's truth spans 0.4-1.24)
-        beyond += f"\ncolours span {100 * (hi - lo):.1f} % of the mean strain"
+    # full-scale colours over a few percent read as strong contrast (a 15 MHz loop: 0.975-1.03 drawn as a stiff
+    # column under a soft blob, where the nodule's truth spans 0.4-1.24); the strain is normalised: mean 1
+    beyond += span_note(lo, hi, 1.0)
     plot_field(res.exx, spacing, origin, ax=axs[1], title=f"normalised axial strain ({pairs}){beyond}",
                cmap="viridis", vmin=lo, vmax=hi, label=STRAIN_LABEL)
     q = np.where(res.quality > 0, res.quality, np.nan)
