@@ -1153,10 +1153,9 @@ def even_noise(data, u, mesh, pulse_cell) -> float:
     return float(np.median(x)) if x.size else float("nan")
 
 
-def _even_reason(opts: Refinement, sol, pulse_cell) -> str | None:
+def _even_reason(opts: Refinement, sol, pulse_cell, x) -> str | None:
     """Why the first pass splits nothing on speckle that decorrelates evenly in its own band for the strain it
-    carries (:attr:`Refinement.even_noise`), or None; ``sol`` the unrefined solve."""
-    x = even_noise(sol.data, sol.u, sol.mesh, pulse_cell)
+    carries (:attr:`Refinement.even_noise`), or None; ``sol`` the unrefined solve, ``x`` its :func:`even_noise`."""
     if not x > opts.even_noise:
         return None
     band = band_decorrelation(sol.data, sol.u)
@@ -1729,6 +1728,13 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 memo.append(np.asarray(element_ncc(unrefined.data, unrefined.u, unrefined.mesh.t.shape[1]), float))
         return memo[0]
 
+    even = []           # the unrefined solve's even_noise: the first pass's test and the closing note read it
+
+    def unrefined_even():
+        if not even:
+            even.append(even_noise(unrefined.data, unrefined.u, unrefined.mesh, pulse_cell))
+        return even[0]
+
     for k in range(opts.passes):
         t = time.perf_counter()
         mesh = sol.mesh
@@ -1749,7 +1755,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                                                                  or opts.even_noise is not None):
             why = _noise_reason(opts, np.any(rows) or np.any(cols), score, unrefined_ncc(), noise)
             if not why and opts.even_noise is not None and (np.any(rows) or np.any(cols)):
-                why = _even_reason(opts, unrefined, pulse_cell)
+                why = _even_reason(opts, unrefined, pulse_cell, unrefined_even())
             if why:
                 # the jumps of a decorrelated or noisy pair are noise, not a feature, which the momentum TV on the
                 # finer rows / columns would fit as patches
@@ -1905,8 +1911,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
             note = (f"refined although the speckle decorrelates in parts of the image (element NCC spread "
                     f"{spread:.2f} > {DECORRELATED_SPREAD:g}): check the strain image for rectangular patches "
                     f"against refine=None")
-        elif opts.even_noise is not None and (x := even_noise(unrefined.data, unrefined.u, unrefined.mesh,
-                                                              pulse_cell)) > EVEN_NOTE * opts.even_noise:
+        elif opts.even_noise is not None and (x := unrefined_even()) > EVEN_NOTE * opts.even_noise:
             note = (f"refined although the speckle decorrelates evenly near the cut for its strain ({x:.2g} of "
                     f"{opts.even_noise:g} mm^2 per %): compare with refine=None")
     if slides.size:
