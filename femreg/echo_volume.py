@@ -38,7 +38,7 @@ from .errors import InputError
 from .speckle import envelope, rf_period
 
 __all__ = ["EchoBox", "find_echo_volume", "crop_for_volume", "region_from_mm_volume", "VolumeCrop", "route_volume",
-           "VETO_PLANES"]
+           "unmatched_crop_volume", "VETO_PLANES"]
 
 #: Elevational planes (at most) a strip's frame-to-frame veto is measured on.
 VETO_PLANES = 8
@@ -335,3 +335,59 @@ def route_volume(register_volume, args: dict):
         return None
     kw.update(extra, origin=crop.origin, roi=None, depth=None)
     return crop.widen(register_volume(*crop.frames(args["reference_image"], args["moving_image"]), **kw))
+
+
+def unmatched_crop_volume(reference, moving, start, mesh, spacing, origin, margin=None) -> VolumeCrop | None:
+    """The volumes cut above the depth where they stop matching after the start has searched out the motion, or
+    None: :func:`femreg.echo.unmatched_crop` (its rule and constants: noise a time-gain compensation lifts to the
+    echo's level at depth) on the block matching of up to :data:`VETO_PLANES` elevational planes.
+
+    ``reference``, ``moving``: (n_x, n_y, n_z) RF volumes (validated); ``start``: the registration's start, nodal
+    u (3 n_nodes,) of the tensor hexahedral ``mesh`` (:func:`femreg.volume.coarse_to_fine`); ``spacing``,
+    ``origin`` mm; ``margin``: the mesh margin (mm, default :data:`femreg.voxels.DEFAULT_MARGIN_3D`).  On each
+    plane z the reference envelope is block-matched (:func:`femreg.blockmatch.block_match`, the windows and
+    search of the 2D pyramid's local search, :func:`femreg.pyramid.image_settings`) against the moving envelope
+    read at (x, y, z) + u(x, y, z); the planes' windows side by side make the rows whose median NCC the 2D rule
+    reads.  Only the depth can be cut: rows of windows at the box's bottom."""
+    from scipy import ndimage
+
+    from .blockmatch import BlockMatchResult, block_match
+    from .echo import unmatched_crop
+    from .pyramid import image_settings
+    from .volume_fields import HexLocator
+    from .voxels import DEFAULT_MARGIN_3D
+
+    t = time.perf_counter()
+    ref, mov = np.asarray(reference, float), np.asarray(moving, float)
+    nx, ny, nz = ref.shape
+    sp, org = np.asarray(spacing, float), np.asarray(origin, float)
+    zs = np.unique(np.linspace(0, nz - 1, min(nz, VETO_PLANES)).round().astype(int))
+    _, settings = image_settings(ref[:, :, nz // 2], sp[:2])
+    mov_env = np.empty_like(mov)
+    for k in range(nz):
+        mov_env[:, :, k] = envelope(mov[:, :, k])
+    X, Y = np.meshgrid(org[0] + sp[0] * np.arange(nx), org[1] + sp[1] * np.arange(ny), indexing="ij")
+    loc = HexLocator(mesh)
+    planes = []
+    for z in zs:
+        P = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, org[2] + sp[2] * z)])
+        s = loc.sample(np.asarray(start, float), P)
+        u = np.nan_to_num(np.column_stack([s["ux"], s["uy"], s["uz"]]))
+        warped = ndimage.map_coordinates(mov_env, [(P[:, a] + u[:, a] - org[a]) / sp[a] for a in range(3)],
+                                         order=1, mode="constant").reshape(nx, ny)
+        bm = block_match(envelope(ref[:, :, z]), warped, sp[:2], org[:2], window=tuple(settings.window),
+                         overlap=(0.5, 0.5), search=tuple(settings.search), median_size=3, subsample=True,
+                         compand_strain=None)
+        planes.append(bm)
+    # the planes' windows side by side: one row of windows per depth, as in a frame
+    found = BlockMatchResult(planes[0].x, np.concatenate([p.y for p in planes]),
+                             *(np.concatenate([getattr(p, k) for p in planes], axis=1)
+                               for k in ("raw", "displacement", "ncc")))
+    m3 = np.broadcast_to(np.asarray(DEFAULT_MARGIN_3D if margin is None else margin, float), (3,))
+    cut = unmatched_crop(found, (nx, ny), sp[:2], org[:2], margin=m3[:2])
+    if cut is None:
+        return None
+    b = int(cut.region.rows[1])
+    region = EchoBox(((0, b), (0, ny), (0, nz)), (nx, ny, nz), tuple(float(v) for v in sp),
+                     tuple(float(v) for v in org), cut.region.excluded)
+    return VolumeCrop(region, _margin_pixels(m3, sp), False, time.perf_counter() - t)
