@@ -212,17 +212,23 @@ def describe_volumes(path: Path, args) -> dict:
     from ..io import read_volumes
 
     kw = dict(variable=getattr(args, "variable", None), frames=getattr(args, "frames", None))
+    given = getattr(args, "spacing", None)
+    if given is not None and len(given) != 3:
+        raise InputError(f"{path}: volumes take --spacing DX DY DZ (axial, lateral, elevational, mm), got "
+                         f"{len(given)} values")
     needs = []
     try:
-        vol = read_volumes(path, **kw)
+        vol = read_volumes(path, spacing=given, **kw)
         known = True
     except InputError as exc:
         if not isinstance(exc, SpacingUnknownError):
             raise
         vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), **kw)
         known = False
+        sug = getattr(exc, "suggestion", None)
         needs.append("no spacing found: volumes need spacing (dx, dy, dz) in mm stored with them (npz key "
-                     "'spacing', MAT variable 'spacing', MetaImage ElementSpacing)")
+                     "'spacing', MAT variable 'spacing', MetaImage ElementSpacing) or --spacing DX DY DZ"
+                     + (f"; {sug.text()}" if sug is not None else ""))
     a = vol.frames
     meta = dict(vol.metadata)
     stored = meta.pop("stored_dtype", None)
@@ -297,7 +303,9 @@ def _run_volumes(path: Path, args) -> int:
 def run(args) -> int:
     path = Path(os.fspath(args.file))
     spacing_need = None             # the missing spacing's need, said again for convex / sector frames
-    if getattr(args, "volume", False):
+    from ._volume import _volumes_only
+
+    if getattr(args, "volume", False) or _volumes_only(path):   # as register and track read it
         return _run_volumes(path, args)
     try:
         info = describe(frames_from_args(args, allow_sector=True, check_shape=False))

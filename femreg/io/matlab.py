@@ -133,7 +133,7 @@ def _aux(path, values: dict, spacing, n=2, frame_shape=None):
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
     sp = merge_spacing(path, file_spacing, spacing, n=n, required_msg="no 'spacing' variable in the MAT-file",
-                       suggestion=spacing_suggestion(values.get("scalars") or {}) if n == 2 else None,
+                       suggestion=spacing_suggestion(values.get("scalars") or {}, volume=n == 3),
                        frame_shape=frame_shape)
     return sp, origin
 
