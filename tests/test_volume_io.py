@@ -164,6 +164,11 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2", "0.25"]) == 0
     res = load_volume_result(out_npz)
     assert res.spacing == pytest.approx((0.025, 0.2, 0.25)) and res.success
+    # the result drawn: three slices of u_x, e_xx, e_yy, e_zz and the quality (before: refused, pointing to Python)
+    png = tmp_path / "r.png"
+    assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "3", "2"]) == 0 and png.stat().st_size > 0
+    assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "0"]) == 2
+    assert "takes X Y Z" in capsys.readouterr().err
     assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2"]) == 2
     assert "volumes take --spacing DX DY DZ" in capsys.readouterr().err
     np.save(tmp_path / "frames.npy", pair.ref[:, :, :2].transpose(2, 0, 1))      # two frames

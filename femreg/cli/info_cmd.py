@@ -243,7 +243,7 @@ def describe_volumes(path: Path, args) -> dict:
     if known:
         from ..orientation import diagnose
 
-        rep = diagnose(a[0][:, :, a.shape[3] // 2], vol.spacing[:2])     # the central axial-lateral plane
+        rep = diagnose(a[0][:, :, a.shape[3] // 2], vol.spacing[:2], elevational=vol.spacing[2])  # the central plane
         out["rf_check"] = "" if rep.problem else rep.summary()
         out["needs"] += [rep.message] if rep.problem else []
         if vol.n_frames < 2:
