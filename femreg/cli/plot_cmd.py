@@ -222,7 +222,8 @@ def plot_volume_result(args) -> int:
     ok = bool(getattr(res, "success", True))
     title = f"{Path(args.result).name}: slices through x, y, z = {at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f} mm"
     if not ok:
-        title = f"FAILED: {res.message} -- {title}"
+        why = str(res.message or "")
+        title = f"{why if why.startswith('FAILED') else 'FAILED: ' + why} -- {title}"
     out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
     fig = plot_volume_slices(grid, spacing, origin, keys=[k for k in VOLUME_KEYS if k in grid], at=at,
                              out_png=out, title=title, dpi=args.dpi)
