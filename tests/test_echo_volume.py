@@ -210,3 +210,20 @@ def test_track_cuts_the_loop_once_from_its_first_volumes(tgc_sequence):
     # (0 -> 2 flagged); bound 1.5 x seed 0's
     errs = [_echo_error(r, seq, k + 1) for k, r in enumerate(tr.accumulated)]
     assert max(errs) < 8.0, errs
+
+
+def test_info_names_the_carrier_above_the_noise(tgc_sequence, tmp_path, capsys):
+    # the whole depth of the central plane reads no carrier (its deepest quarter is broadband noise at the echo's
+    # level): before, "no RF carrier along axis 0 ...: envelope or B-mode data"
+    from femreg.cli import main
+    from femreg.orientation import CARRIER_RATIO, axial_carrier_ratio
+
+    seq = tgc_sequence
+    plane = seq.frames[0][:, :, seq.frames[0].shape[2] // 2]
+    assert axial_carrier_ratio(plane) > CARRIER_RATIO
+    f = tmp_path / "vols.npz"
+    np.savez(f, rf=np.asarray(seq.frames), spacing=np.asarray(seq.spacing), origin=np.asarray(seq.origin))
+    assert main(["info", str(f)]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("RF"))
+    assert "RF carrier along axis 0" in line and "broadband" in line and "envelope" not in line, line
+    assert "7.0" in line.split("MHz")[0][-6:], line      # the 7 MHz probe's carrier

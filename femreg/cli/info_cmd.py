@@ -112,7 +112,7 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         from ..orientation import diagnose
 
         rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
-        out["rf_check"] = "" if rep.problem else rep.summary()
+        out["rf_check"] = "" if rep.problem else _rf_line(rep, a[0], fr.spacing, fr.origin)
         out["needs"] = [rep.message] if rep.problem else []
         out["transposed"] = rep.problem == "transposed"
         out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
@@ -207,6 +207,34 @@ def _raw_shape_hint(frame) -> list:
     return [msg] if msg else []
 
 
+#: Top parts of the depth (fractions) read for a carrier where the whole depth shows none (:func:`_rf_line`).
+TOP_PARTS = (0.75, 0.5, 0.25)
+
+
+def _rf_line(rep, frame, spacing, origin) -> str:
+    """The ``RF`` line of ``femreg info``: ``rep.summary()``, except for zero-mean frames whose whole depth shows no
+    carrier but whose top part does (:data:`TOP_PARTS`; :data:`femreg.orientation.CARRIER_RATIO`): RF whose deep
+    samples are broadband noise (e.g. lifted by a time-gain compensation), said so, not "envelope or B-mode"."""
+    from ..echo import rf_like
+    from ..orientation import CARRIER_RATIO, axial_carrier_ratio, diagnose
+
+    if rep.problem or rep.has_carrier or not rf_like(frame):
+        return rep.summary()
+    n = frame.shape[0]
+    for part in TOP_PARTS:
+        k = int(part * n)
+        if axial_carrier_ratio(frame[:k]) < CARRIER_RATIO:
+            top = diagnose(frame[:k], spacing)
+            if top.problem or not top.has_carrier:
+                break
+            below = axial_carrier_ratio(frame[k:])
+            depth = origin[0] + (k - 0.5) * spacing[0]
+            return (f"above {depth:.1f} mm: {top.summary()}; below it the samples are broadband (low/centre band "
+                    f"power {below:.2g}, the whole depth {rep.carrier[0]:.2g}): receiver noise, e.g. lifted by a "
+                    "time-gain compensation (registration leaves out what does not match)")
+    return rep.summary()
+
+
 def describe_volumes(path: Path, args) -> dict:
     """The description of a volume file (:func:`femreg.io.read_volumes`); spacing from the file."""
     from ..io import read_volumes
@@ -243,8 +271,9 @@ def describe_volumes(path: Path, args) -> dict:
     if known:
         from ..orientation import diagnose
 
-        rep = diagnose(a[0][:, :, a.shape[3] // 2], vol.spacing[:2], elevational=vol.spacing[2])  # the central plane
-        out["rf_check"] = "" if rep.problem else rep.summary()
+        plane = a[0][:, :, a.shape[3] // 2]                # the central axial-lateral plane
+        rep = diagnose(plane, vol.spacing[:2], elevational=vol.spacing[2])
+        out["rf_check"] = "" if rep.problem else _rf_line(rep, plane, vol.spacing[:2], vol.origin[:2])
         out["needs"] += [rep.message] if rep.problem else []
         if vol.n_frames < 2:
             out["note"] = "one volume: register it against a second file"
