@@ -171,6 +171,9 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     assert "takes X Y Z" in capsys.readouterr().err
     assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2"]) == 2
     assert "volumes take --spacing DX DY DZ" in capsys.readouterr().err
+    # elastogram takes frames: said before it asks for a spacing (before: the spacing, then "4 dimension(s)")
+    assert main(["elastogram", str(path), "-o", str(tmp_path / "el")]) == 2
+    assert "holds RF volumes" in capsys.readouterr().err
     np.save(tmp_path / "frames.npy", pair.ref[:, :, :2].transpose(2, 0, 1))      # two frames
     assert main(["info", str(tmp_path / "frames.npy"), "--spacing", "0.025", "0.2", "0.25"]) == 2
     assert "three values (DX DY DZ) is for RF volumes" in capsys.readouterr().err

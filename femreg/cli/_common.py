@@ -88,6 +88,15 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
 
     path = path if path is not None else args.file
     if len(getattr(args, "spacing", None) or ()) == 3:
+        from pathlib import Path
+
+        from ._volume import _volumes_only
+
+        who = f"femreg {getattr(args, 'command', '') or ''}".strip()
+        if not hasattr(args, "volume"):     # elastogram, batch, plot --reference: frames only
+            held = "holds RF volumes" if _volumes_only(Path(path)) else "is read as frames (axial, lateral)"
+            raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes, and {who} takes "
+                             f"frames; the file {held} (femreg register and femreg track take volumes)")
         raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes; these are read as frames "
                          "(axial, lateral): give --volume to read the file as volumes, or --spacing DX DY")
     if check_shape is None:
