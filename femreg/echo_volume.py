@@ -40,8 +40,11 @@ from .speckle import envelope, rf_period
 __all__ = ["EchoBox", "find_echo_volume", "crop_for_volume", "region_from_mm_volume", "VolumeCrop", "route_volume",
            "unmatched_crop_volume", "VETO_PLANES"]
 
-#: Elevational planes (at most) a strip's frame-to-frame veto is measured on.
+#: Elevational planes (at most) a strip's frame-to-frame veto is measured on (and the block matching of
+#: :func:`unmatched_crop_volume`).
 VETO_PLANES = 8
+#: Depth step (mm) at which :func:`unmatched_crop_volume` samples the start's displacement (linear between).
+STEP_MM = 0.25
 
 
 @dataclass
@@ -350,6 +353,7 @@ def unmatched_crop_volume(reference, moving, start, mesh, spacing, origin, margi
     read at (x, y, z) + u(x, y, z); the planes' windows side by side make the rows whose median NCC the 2D rule
     reads.  Only the depth can be cut: rows of windows at the box's bottom."""
     from scipy import ndimage
+    from scipy.interpolate import interp1d
 
     from .blockmatch import BlockMatchResult, block_match
     from .echo import unmatched_crop
@@ -363,18 +367,29 @@ def unmatched_crop_volume(reference, moving, start, mesh, spacing, origin, margi
     sp, org = np.asarray(spacing, float), np.asarray(origin, float)
     zs = np.unique(np.linspace(0, nz - 1, min(nz, VETO_PLANES)).round().astype(int))
     _, settings = image_settings(ref[:, :, nz // 2], sp[:2])
-    mov_env = np.empty_like(mov)
-    for k in range(nz):
-        mov_env[:, :, k] = envelope(mov[:, :, k])
-    X, Y = np.meshgrid(org[0] + sp[0] * np.arange(nx), org[1] + sp[1] * np.arange(ny), indexing="ij")
+    # u of the start on every plane, sampled every STEP_MM of depth and read linearly between (the start is
+    # trilinear on elements of about 2 mm)
+    rows = np.unique(np.r_[np.arange(0, nx, max(1, int(STEP_MM / sp[0]))), nx - 1])
+    Xs, Y = np.meshgrid(org[0] + sp[0] * rows, org[1] + sp[1] * np.arange(ny), indexing="ij")
     loc = HexLocator(mesh)
+    P = np.column_stack([np.tile(Xs.ravel(), zs.size), np.tile(Y.ravel(), zs.size),
+                         np.repeat(org[2] + sp[2] * zs, Xs.size)])
+    s = loc.sample(np.asarray(start, float), P)
+    U = np.nan_to_num(np.stack([s["ux"], s["uy"], s["uz"]], axis=-1)).reshape(zs.size, rows.size, ny, 3)
+    U = interp1d(rows, U, axis=1, assume_sorted=True)(np.arange(nx))          # (planes, nx, ny, 3)
+    # the moving envelope on the planes the warped points reach
+    reach = zs[:, None] + np.stack([U[..., 2].min(axis=(1, 2)), U[..., 2].max(axis=(1, 2))], axis=1) / sp[2]
+    need = np.unique(np.concatenate([np.arange(np.floor(a), np.ceil(b) + 1) for a, b in reach]).clip(0, nz - 1)
+                     .astype(int))
+    mov_env = np.zeros_like(mov)
+    for k in need:
+        mov_env[:, :, k] = envelope(mov[:, :, k])
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     planes = []
-    for z in zs:
-        P = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, org[2] + sp[2] * z)])
-        s = loc.sample(np.asarray(start, float), P)
-        u = np.nan_to_num(np.column_stack([s["ux"], s["uy"], s["uz"]]))
-        warped = ndimage.map_coordinates(mov_env, [(P[:, a] + u[:, a] - org[a]) / sp[a] for a in range(3)],
-                                         order=1, mode="constant").reshape(nx, ny)
+    for n, z in enumerate(zs):
+        u = U[n]
+        warped = ndimage.map_coordinates(mov_env, [ii + u[..., 0] / sp[0], jj + u[..., 1] / sp[1],
+                                                   z + u[..., 2] / sp[2]], order=1, mode="constant")
         bm = block_match(envelope(ref[:, :, z]), warped, sp[:2], org[:2], window=tuple(settings.window),
                          overlap=(0.5, 0.5), search=tuple(settings.search), median_size=3, subsample=True,
                          compand_strain=None)
