@@ -337,3 +337,54 @@ class SSDTerm:
             H.sum_duplicates()
             self._H = H
         return self._H
+
+
+#: Depth (mm) over which the residual's per-row level is averaged: a few pulse lengths at 5-15 MHz.
+DEPTH_WEIGHT_SMOOTH_MM = 2.0
+#: How the weights are scaled: "mean" (mean weight 1), "variance" (w = mean sigma^2 / sigma^2: the default's
+#: one global variance kept), "geometric" (geometric mean 1).
+DEPTH_WEIGHT_NORM = "mean"
+
+
+def depth_weights(term: SSDTerm, u, n_rows: int, spacing_x: float, *, smooth_mm: float = DEPTH_WEIGHT_SMOOTH_MM,
+                  floor: float | None = None) -> np.ndarray:
+    """Maximum-likelihood weights of eq:IR for a residual whose variance changes with depth, (n_rows,) one per
+    image row, mean 1 over the quadrature pixels (so alpha keeps its meaning where the residual is level).
+
+    ``sigma^2(x)``: the median of ``r^2`` (``r = I_2(x + S + u) - I_1(x + S)`` at the pixels of ``term`` weighted
+    > 0; ``u`` (2 n_nodes,) mm) over each pixel row, averaged over ``smooth_mm`` of depth; the weight is
+    ``1 / sigma^2``.  Where the residual is speckle decorrelation it scales with the echo power and the weights
+    level the echo; where it is receiver noise it is flat and they do not.  ``floor``: a lower bound of
+    ``sigma^2`` in the normalised images' units (None: the smallest row's level / 100).  Rows without a pixel
+    take their nearest row's weight."""
+    from scipy.ndimage import uniform_filter1d
+
+    quad = term.quad
+    r = np.asarray(term.residual(u), float)
+    rows = quad.index // quad.shape[1]
+    keep = np.asarray(term.w) > 0
+    rows, r2 = rows[keep], np.square(r[keep])
+    order = np.lexsort((r2, rows))
+    rows, r2 = rows[order], r2[order]
+    present, start, count = np.unique(rows, return_index=True, return_counts=True)
+    if present.size == 0:
+        return np.ones(n_rows)
+    med = np.array([np.median(r2[s:s + c]) for s, c in zip(start, count)])   # robust: edges, mis-registered patches
+    sig = np.interp(np.arange(n_rows), present, med)
+    n = max(1, int(round(smooth_mm / float(spacing_x))))
+    sig = uniform_filter1d(sig, n, mode="nearest")
+    lo = float(np.min(sig[present])) / 100.0 if floor is None else float(floor)
+    sig = np.maximum(sig, max(lo, np.finfo(float).tiny))
+    w = 1.0 / sig
+    norm = DEPTH_WEIGHT_NORM
+    if norm == "variance":
+        return w * float(np.sum(sig[present] * count) / np.sum(count))
+    if norm == "geometric":
+        return w / float(np.exp(np.sum(np.log(w[present]) * count) / np.sum(count)))
+    return w / float(np.sum(w[present] * count) / np.sum(count))
+
+
+def apply_row_weights(term: SSDTerm, row_weights) -> None:
+    """Multiply the pixel weights of ``term`` by ``row_weights`` (n_axial,) of the image rows they lie on."""
+    rows = term.quad.index // term.quad.shape[1]
+    term.w = term.w * np.asarray(row_weights, float)[rows]
