@@ -1,10 +1,15 @@
-"""eq:IR weighted by the residual's variance at each depth (maximum likelihood, one re-solve) against register's
-default, on the pairs an echo that falls with depth concerns and on pairs whose echo is level.
+"""eq:IR weighted by the residual's variance at each depth (maximum likelihood, iteratively reweighted) against
+register's default, on the pairs an echo that falls with depth concerns and on pairs whose echo is level.
 
-``register(..., depth_weight=k)``: after the unrefined solve, each image row's weight in eq:IR is ``1 / sigma^2``,
-``sigma^2`` the median of the image residual ``r^2`` over that row smoothed over 2 mm of depth
-(:func:`femreg.data_term.depth_weights`), normalised to mean 1 over the registered pixels; the final mesh solved
-again from the solution (``k`` times, reweighted each time), then refined as usual.
+The weighting (measured, not adopted: docs/robustness.md, "An echo that falls with depth"; :func:`weighted`
+installs it around :func:`femreg.register`): after register's unrefined solve (its lambda_bar stage), each image
+row's weight in eq:IR becomes ``1 / sigma^2(x)``, ``sigma^2`` the median of the image residual
+``r^2 = (I_2(x + u) - I_1(x))^2`` (normalised frames) over that row, averaged over 2 mm of depth
+(:func:`depth_weights`), scaled by ``--norm``: "mean" (mean weight 1 over the registered pixels), "variance"
+(``mean sigma^2 / sigma^2``: the unweighted term's single variance kept) or "geometric" (geometric mean 1); the
+final mesh is solved again from the solution (``--passes`` times, reweighted each time) and then refined as usual,
+the weights reaching the refined solves too.  Under speckle decorrelation the residual scales with the echo power
+(the weights level the echo), under receiver noise it is flat (they do not).
 
 Sections (``--sections``):
 
@@ -27,7 +32,10 @@ import time
 import warnings
 from pathlib import Path
 
+import contextlib
+
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -36,8 +44,74 @@ if str(ROOT) not in sys.path:
 import femreg  # noqa: E402
 
 
-def _reg(ref, mov, sp, org, **kw):
-    with warnings.catch_warnings():
+SMOOTH_MM = 2.0          # depth over which the per-row residual level is averaged (a few pulse lengths)
+
+
+def depth_weights(term, u, n_rows, spacing_x, norm="mean"):
+    """(n_rows,) weights of the image rows: ``1 / sigma^2``, ``sigma^2`` the median of ``r^2`` over each row's
+    pixels of ``term`` (:class:`femreg.data_term.SSDTerm`, weight > 0) at ``u``, averaged over :data:`SMOOTH_MM`;
+    rows without a pixel take the nearest row's value; scaled as ``norm`` says (module docstring)."""
+    quad = term.quad
+    r = np.asarray(term.residual(u), float)
+    keep = np.asarray(term.w) > 0
+    rows, r2 = (quad.index // quad.shape[1])[keep], np.square(r[keep])
+    order = np.lexsort((r2, rows))
+    rows, r2 = rows[order], r2[order]
+    present, start, count = np.unique(rows, return_index=True, return_counts=True)
+    med = np.array([np.median(r2[s:s + c]) for s, c in zip(start, count)])
+    sig = uniform_filter1d(np.interp(np.arange(n_rows), present, med), max(1, int(round(SMOOTH_MM / spacing_x))),
+                           mode="nearest")
+    sig = np.maximum(sig, 1e-12 * float(sig.max()))
+    w, c = 1.0 / sig, count / count.sum()
+    if norm == "variance":
+        return w * float(np.sum(sig[present] * c))
+    if norm == "geometric":
+        return w / float(np.exp(np.sum(np.log(w[present]) * c)))
+    return w / float(np.sum(w[present] * c))
+
+
+@contextlib.contextmanager
+def weighted(passes=1, norm="mean"):
+    """Within: :func:`femreg.register` re-solves its unrefined solution with eq:IR weighted by
+    :func:`depth_weights` (``passes`` times, reweighted each time) before refining (module docstring)."""
+    import femreg.gnsolve as G
+    import femreg.registration as R
+
+    term0, stage0 = G.image_term, R.lambda_bar_stage
+
+    def image_term(I1, I2, mesh, shape, spacing, origin, **kw):
+        term = term0(I1, I2, mesh, shape, spacing, origin, **kw)
+        term.reference_image = I1
+        rw = getattr(I1, "row_weights", None)
+        if rw is not None:
+            term.w = term.w * rw[term.quad.index // term.quad.shape[1]]
+        return term
+
+    def stage(sol, user_reg, notes, resolve, *, follows):
+        marked, sol = stage0(sol, user_reg, notes, resolve, follows=follows)
+        I1, q = sol.data.reference_image, sol.data.quad
+        for _ in range(passes):
+            I1.row_weights = depth_weights(sol.data, sol.u, q.shape[0], float(q.spacing[0]), norm)
+            LAST.update(weights=I1.row_weights, origin=float(q.origin[0]), dx=float(q.spacing[0]))
+            sol = resolve(sol.u)
+        return marked, sol
+
+    G.image_term, R.lambda_bar_stage = image_term, stage
+    try:
+        yield
+    finally:
+        G.image_term, R.lambda_bar_stage = term0, stage0
+
+
+#: The row weights of the last weighted solve, with the image's depth origin and spacing (mm).
+LAST = {}
+#: (passes, norm) of the weighted runs (``--passes``, ``--norm``)
+WEIGHTING = [1, "mean"]
+
+
+def _reg(ref, mov, sp, org, depth_weight=False, **kw):
+    """:func:`femreg.register` with its defaults, or weighted (:func:`weighted`); (result, seconds)."""
+    with warnings.catch_warnings(), (weighted(*WEIGHTING) if depth_weight else contextlib.nullcontext()):
         warnings.simplefilter("ignore")
         t = time.perf_counter()
         res = femreg.register(ref, mov, spacing=sp, origin=org, **kw)
@@ -47,15 +121,19 @@ def _reg(ref, mov, sp, org, **kw):
 def fine(passes):
     from benchmarks.fine_pitch_alpha import L7, make_pair, measure
 
-    print("| pair | weighting | SR (true) | slide um (true) | e_xx % | total % | outside band % | fat % | s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| pair | weighting | SR (true) | slide um (true) | e_xx % | total % | outside band % | fat % | weight at "
+          "3 / 16 / 22 mm | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, pk in (("15 MHz, 0.1 mm pitch, no TGC", {}), ("7.5 MHz, 0.2 mm pitch, no TGC", L7)):
         ref, mov, sp, org, truth = make_pair(seed=7, **pk)
         for label, kw in (("default", {}), (f"depth weight x{passes}", {"depth_weight": passes})):
+            LAST.clear()
             res, dt = _reg(ref, mov, sp, org, **kw)
             m = measure(res, truth, 2.0, 25.6)
+            w = " / ".join(f"{LAST['weights'][int(round((x - LAST['origin']) / LAST['dx']))]:.2f}"
+                           for x in (3.0, 16.0, 22.0)) if LAST else "1"
             print(f"| {name} | {label} | {m['sr']:.2f} ({m['sr_true']:.2f}) | {m['slide']:.1f} ({m['slide_true']:.1f})"
-                  f" | {m['exx']:.1f} | {m['total']:.1f} | {m['outside']:.1f} | {m['fat']:.1f} | {dt:.0f} |",
+                  f" | {m['exx']:.1f} | {m['total']:.1f} | {m['outside']:.1f} | {m['fat']:.1f} | {w} | {dt:.0f} |",
                   flush=True)
 
 
@@ -158,13 +236,12 @@ def main(argv=None):
     ap.add_argument("--cases", default="", help="comma-separated words: floor / robust pairs whose name holds one")
     ap.add_argument("--pairs", default="", help="in vivo pair indices (0 = frames 1 -> 2), comma-separated")
     ap.add_argument("--pictures", default=None, help="folder for the in vivo strain pictures")
-    ap.add_argument("--norm", default="mean", help="femreg.data_term.DEPTH_WEIGHT_NORM")
+    ap.add_argument("--norm", default="mean", help="mean | variance | geometric (module docstring)")
     a = ap.parse_args(argv)
-    import femreg.data_term
-    femreg.data_term.DEPTH_WEIGHT_NORM = a.norm
+    WEIGHTING[:] = [a.passes, a.norm]
     words = [w for w in a.cases.split(",") if w]
     pairs = [int(p) for p in a.pairs.split(",") if p] or None
-    print(f"femreg from {Path(femreg.__file__).parent}; norm {a.norm}, passes {a.passes}")
+    print(f"femreg {femreg.__version__} from {Path(femreg.__file__).parent}; norm {a.norm}, passes {a.passes}")
     for s in a.sections.split(","):
         print(f"\n## {s}\n")
         if s == "fine":

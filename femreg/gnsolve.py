@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .data_term import SSDTerm, apply_row_weights
+from .data_term import SSDTerm
 from .errors import InputError
 from .fields import element_strain_operator
 from .pixels import PixelQuadrature, PointLocator
@@ -50,9 +50,6 @@ def image_term(I1, I2, mesh, shape, spacing, origin, *, offset=None, locator=Non
     if keep is not None:
         term.w = np.where(keep.ravel()[quad.index], term.w, 0.0)
         term.fan_keep = keep.ravel()[quad.index]      # femreg.repair.element_ncc: quality over the fan only
-    rw = getattr(I1, "row_weights", None)         # a residual level that changes with depth (depth_weights)
-    if rw is not None:
-        apply_row_weights(term, rw)
     return term
 
 

@@ -321,7 +321,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
              coarse_to_fine="auto", strategy: str = "auto", repair: bool = True,
              strain_tol: float | None = None, roi="auto", depth=None,
              check_orientation: bool = True, geometry=None, refine=DEFAULT_REFINE,
-             data_mask=None, depth_weight=False) -> RegistrationResult:
+             data_mask=None) -> RegistrationResult:
     """Register ``moving_image`` to ``reference_image``: find u minimising eq:objf = psi (eq:IR) + R[u].
 
     Stages (each passes plain data to the next): validate -> images -> mesh -> initial guess
@@ -521,13 +521,6 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
                                    follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
-    if depth_weight:
-        from .data_term import depth_weights
-        I1.row_weights = depth_weights(sol.data, sol.u, ref.shape[0], spacing[0])
-        for _ in range(int(depth_weight)):
-            if _:
-                I1.row_weights = depth_weights(sol.data, sol.u, ref.shape[0], spacing[0])
-            sol = fine_solve(sol.u, callback=callback, **solve_kw)
     unrefined = (sol, u0, hops, list(notes))
     sol, u0, hops = refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, dict(solve_kw, callback=callback),
                                  notes, timings, marked=marked, stats=stats)              # femreg.refine
