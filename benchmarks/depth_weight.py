@@ -105,6 +105,8 @@ def weighted(passes=1, norm="mean"):
 
 #: The row weights of the last weighted solve, with the image's depth origin and spacing (mm).
 LAST = {}
+#: ``[factor]``: the floor and robust sections add the default with R_P_sigma's alpha times it (``--alpha-factor``)
+ALPHA_FACTOR = []
 #: (passes, norm) of the weighted runs (``--passes``, ``--norm``)
 WEIGHTING = [1, "mean"]
 
@@ -137,12 +139,20 @@ def fine(passes):
                   flush=True)
 
 
+def _control(kw):
+    """``kw`` with R_P_sigma's alpha times ``--alpha-factor`` (the control: a global change of the balance)."""
+    from femreg.regularizers import make_regularizer
+
+    return dict(kw, alpha=ALPHA_FACTOR[0] * make_regularizer("momentum-stress").alpha)
+
+
 def floor(passes, words=()):
     from benchmarks.refine_noise_floor import CASES, _scored, make_floor_pair
     from benchmarks.robustness import roi_slices, truth
 
-    print("| pair | default % | depth weight % | change | success default / weighted |")
-    print("|---|---|---|---|---|")
+    ctl = f" default, alpha x {ALPHA_FACTOR[0]:g} % |" if ALPHA_FACTOR else ""
+    print(f"| pair | default % | depth weight % | change | success default / weighted |{ctl}")
+    print("|---|---|---|---|---|" + "---|" * bool(ctl))
     for case in CASES:
         if words and not any(w in case.name for w in words):
             continue
@@ -150,11 +160,12 @@ def floor(passes, words=()):
         sl = roi_slices(data.ref.shape, data.spacing)
         t = truth(data, None, sl)
         out = []
-        for kw in ({}, {"depth_weight": passes}):
+        for kw in ({}, {"depth_weight": passes}) + ((_control({}),) if ALPHA_FACTOR else ()):
             res, _ = _reg(data.ref, mov, data.spacing, data.origin, **kw)
             out.append((_scored(res, t, sl, pr.wavelength_mm), res.success))
+        extra = f" {out[2][0]:.2f} |" if ALPHA_FACTOR else ""
         print(f"| {case.name} | {out[0][0]:.2f} | {out[1][0]:.2f} | {out[1][0] - out[0][0]:+.2f} "
-              f"| {out[0][1]} / {out[1][1]} |", flush=True)
+              f"| {out[0][1]} / {out[1][1]} |{extra}", flush=True)
 
 
 def robust(passes, words=()):
@@ -162,8 +173,9 @@ def robust(passes, words=()):
     from femreg.image import depth_trend_db
     from forward.pairs import PROBES
 
-    print("| pair | fall (dB) | default % | depth weight % | change |")
-    print("|---|---|---|---|---|")
+    ctl = f" default, alpha x {ALPHA_FACTOR[0]:g} % |" if ALPHA_FACTOR else ""
+    print(f"| pair | fall (dB) | default % | depth weight % | change |{ctl}")
+    print("|---|---|---|---|---|" + "---|" * bool(ctl))
     for case in CASES:
         if case.sequence or (words and not any(w in case.name for w in words)):
             continue
@@ -173,10 +185,11 @@ def robust(passes, words=()):
         tr = depth_trend_db(data.ref, data.spacing)
         wl = PROBES[case.probe].wavelength_mm if case.probe in PROBES else 0.2
         e = []
-        for kw in ({}, {"depth_weight": passes}):
+        for kw in ({}, {"depth_weight": passes}) + ((_control({}),) if ALPHA_FACTOR else ()):
             res, _ = _reg(data.ref, data.mov, data.spacing, data.origin, **kw)
             e.append(100 * errors(res.on_grid(), t, sl, wl)["e"])
-        print(f"| {case.name} | {tr[0] - tr[-1]:.1f} | {e[0]:.2f} | {e[1]:.2f} | {e[1] - e[0]:+.2f} |", flush=True)
+        extra = f" {e[2]:.2f} |" if ALPHA_FACTOR else ""
+        print(f"| {case.name} | {tr[0] - tr[-1]:.1f} | {e[0]:.2f} | {e[1]:.2f} | {e[1] - e[0]:+.2f} |{extra}", flush=True)
 
 
 def invivo(passes, pictures=None, pairs=None):
@@ -236,9 +249,12 @@ def main(argv=None):
     ap.add_argument("--cases", default="", help="comma-separated words: floor / robust pairs whose name holds one")
     ap.add_argument("--pairs", default="", help="in vivo pair indices (0 = frames 1 -> 2), comma-separated")
     ap.add_argument("--pictures", default=None, help="folder for the in vivo strain pictures")
+    ap.add_argument("--alpha-factor", type=float, default=None,
+                    help="floor / robust: also the default with R_P_sigma's alpha times this (a control)")
     ap.add_argument("--norm", default="mean", help="mean | variance | geometric (module docstring)")
     a = ap.parse_args(argv)
     WEIGHTING[:] = [a.passes, a.norm]
+    ALPHA_FACTOR[:] = [a.alpha_factor] if a.alpha_factor else []
     words = [w for w in a.cases.split(",") if w]
     pairs = [int(p) for p in a.pairs.split(",") if p] or None
     print(f"femreg {femreg.__version__} from {Path(femreg.__file__).parent}; norm {a.norm}, passes {a.passes}")
