@@ -33,7 +33,7 @@ from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, depth_fall_note, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
-from .initial import INITIAL_NAMES, initial_guess, start_search
+from .initial import INITIAL_NAMES, Previous, initial_guess, previous_or_fresh, start_search
 from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
@@ -82,6 +82,8 @@ def _validate(reference_image, moving_image, spacing, origin, *, regularizer, st
     as_refinement(refine)
     if initial is None:
         initial = "pyramid" if strategy == "auto" else "blockmatch"
+    if isinstance(initial, Previous) and initial.fresh is None:
+        initial = Previous(initial.u, "pyramid" if strategy == "auto" else "blockmatch")
     if isinstance(initial, str) and initial not in INITIAL_NAMES:
         raise InputError(f"initial must be 'pyramid', 'blockmatch', 'zero', a callable or a nodal vector, "
                          f"got {initial!r}")
@@ -480,6 +482,9 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                            rectangle=rect)
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
+    # a track's previous increment, unless the frames match better without it (femreg.initial.Previous)
+    initial, fresh_note = previous_or_fresh(initial, lambda: image_term(I1, I2, fe_mesh, ref.shape, spacing, origin,
+                                                                        offset=offset, locator=locator), fe_mesh)
     _refuse_the_same_frame(ref, mov, initial, offset)
 
     # -- initial guess ---------------------------------------------------------------------------------------
@@ -510,6 +515,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
     notes, hops = [ENVELOPE_NOTE] * (envelope := orientation.is_envelope(ref)), np.zeros(fe_mesh.p.shape[1], int)
+    notes += [fresh_note] if fresh_note else []
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         tight = None if solve_kw.get("strain_tol") is None else min(solve_kw["strain_tol"], GN_STRAIN_TOL_TIGHT)

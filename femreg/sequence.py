@@ -41,6 +41,7 @@ from ._atomic import atomic_write_text, load_frame_record, open_run_folder, prog
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
+from .initial import Previous
 from .image import (refuse_repeated_start, repeat_note, repeated_frames, require_spacing, validate_image,
                     validate_spacing)
 from .mesh import as_quad_mesh, check_element_size, roi_mesh
@@ -464,10 +465,14 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                      allow_mesh_outside=True)
                     else:
                         where.update(mesh=fe_mesh, offset=S if k > 1 else None)
+                    # the previous increment unless the frames match better with no motion (a still frame after a
+                    # moving one: femreg.initial.Previous); not on convex / sector frames (their own register)
+                    previous = prev_inc if prev_inc is None or "geometry" in frame_kwargs else \
+                        Previous(prev_inc, fresh_start)
                     # flagged from the previous increment: registered again from the fresh start
                     res, inc, retried = retry_flagged(
                         lambda initial: _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer,
-                                                   alpha, inc_kwargs), prev_inc, fresh_start, fresh, min_ncc, k)
+                                                   alpha, inc_kwargs), previous, fresh_start, fresh, min_ncc, k)
                 if crop is not None:
                     crop.widen(res)
                 elif uncut is not None:
