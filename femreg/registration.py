@@ -515,7 +515,6 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     # -- repair and check ------------------------------------------------------------------------------------
     t = time.perf_counter()
     notes, hops = [ENVELOPE_NOTE] * (envelope := orientation.is_envelope(ref)), np.zeros(fe_mesh.p.shape[1], int)
-    notes += [fresh_note] if fresh_note else []
     if repair and strategy == "auto" and ref.shape[0] > 1 and not envelope:
         # the reseeded start is far from converged around the moved nodes: the tight strain tolerance
         tight = None if solve_kw.get("strain_tol") is None else min(solve_kw["strain_tol"], GN_STRAIN_TOL_TIGHT)
@@ -524,6 +523,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
     notes += depth_fall_note(ref, spacing)          # an echo weakening with depth: one alpha weighs it unevenly
+    notes += [fresh_note] if fresh_note else []     # a track's previous increment left for the fresh start
     marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
                                    follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
