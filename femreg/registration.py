@@ -216,16 +216,25 @@ class _Handed:
 
 
 @contextlib.contextmanager
-def sharing_start():
+def sharing_start(handed=None):
     """Context in which :func:`noise_at_depth` hands the start it computed for its decision (the pyramid's search)
     to a later :func:`register` of the same frames with the same statistics and settings, which takes it instead of
     searching again (bit-identical: the search depends on nothing else).  :func:`femreg.track` and
-    :func:`femreg.elastogram` decide their cut on the first pair that differs and then register it."""
-    token = _SHARED.set({})
+    :func:`femreg.elastogram` decide their cut on the first pair that differs and then register it.  ``handed``:
+    a search :func:`shared_search` took from such a context in another process or thread (an elastogram's Dask
+    workers, which do not see this one's context), offered there in the same way."""
+    token = _SHARED.set({} if handed is None else {"search": handed})
     try:
         yield
     finally:
         _SHARED.reset(token)
+
+
+def shared_search():
+    """The search :func:`noise_at_depth` left in the current :func:`sharing_start` context (picklable), or None:
+    for :func:`sharing_start` (``handed``) where the pair is registered."""
+    box = _SHARED.get()
+    return None if box is None else box.get("search")
 
 
 def _search_stage(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, *, regularizer, offset, stats, settings,
