@@ -202,7 +202,9 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
         afresh.  An increment started from the previous one that is flagged (e.g. peak hopping where the
         compression per frame varies) is registered again from a fresh start, and the fresh result is kept unless
         it is flagged too (then the one with the higher NCC after registration); ``SequenceResult.retried`` lists
-        those frames.
+        those frames.  An increment whose frames match at least as well with no motion as with the previous
+        increment (a nearly still frame after a moving one) starts afresh at once, its message saying "started
+        afresh" (:class:`femreg.initial.Previous`): from the previous increment the solve stayed an RF period off.
     mesh, element_size, margin
         One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`, elements sized
         from frame 0's speckle as :func:`femreg.register` does with ``strategy="auto"``).
