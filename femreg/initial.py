@@ -53,7 +53,9 @@ class Previous:
 
 
 def previous_or_fresh(initial, term_for, mesh):
-    """``(initial, note)``: the start :func:`femreg.register` uses for ``initial``, and a note ('' when none).
+    """``(initial, note, term)``: the start :func:`femreg.register` uses for ``initial``, a note ('' when none),
+    and the image term built to decide (None when none was built or the start is not its field): the first solve
+    from that field takes it rather than build its twin (0.05 s on a 40 x 25.6 mm 15 MHz frame; the decision's own warps 0.015 s).
 
     For a :class:`Previous`, its field unless the SSD image term (eq:IR; ``term_for()`` builds it on ``mesh``)
     is at zero at most its value at the field, over the pixels that the field keeps inside the moving image: a
@@ -62,15 +64,15 @@ def previous_or_fresh(initial, term_for, mesh):
     iteration, 20x its value at the fresh start's solution, and the result then set to zero by the check);
     the fresh start there converged in 3.  Anything else is returned as is."""
     if not isinstance(initial, Previous):
-        return initial, ""
+        return initial, "", None
     u = nodal_values(initial.u, mesh, "initial")
     term = term_for()
     keep = term.w * ~term.outside_mask(u)          # the pixels the start keeps; both starts judged on them
     psi_prev, psi_zero = (float(np.dot(keep * r, r)) for r in (term.residual(v) for v in (u, np.zeros_like(u))))
     if psi_prev < psi_zero:
-        return u, ""
+        return u, "", term
     return initial.fresh, (f"{FRESH_NOTE}: the frames match better with no motion than with the previous "
-                           f"increment (image term {psi_zero / psi_prev:.2f} of its value there)")
+                           f"increment (image term {psi_zero / psi_prev:.2f} of its value there)"), None
 
 
 def _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset):

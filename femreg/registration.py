@@ -492,7 +492,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
     # a track's previous increment, unless the frames match better without it (femreg.initial.Previous)
-    initial, fresh_note = previous_or_fresh(initial, lambda: image_term(I1, I2, fe_mesh, ref.shape, spacing, origin,
+    initial, fresh_note, decided_on = previous_or_fresh(initial, lambda: image_term(I1, I2, fe_mesh, ref.shape, spacing, origin,
                                                                         offset=offset, locator=locator), fe_mesh)
     _refuse_the_same_frame(ref, mov, initial, offset)
 
@@ -518,7 +518,8 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         solve_kw.update(mask_outside=True, tol=component_tol(tol, u0), strain_tol=st if st > 0 else None)
     def fine_solve(u, **kw):            # Gauss-Newton on the final mesh from the nodal displacement u
         return solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw)
-    sol = fine_solve(u0, callback=callback, **solve_kw)
+    sol = fine_solve(u0, callback=callback, term=decided_on, **solve_kw)
+    del decided_on
     timings.update(gauss_newton=time.perf_counter() - t, per_iteration=list(sol.gn.timings))
 
     # -- repair and check ------------------------------------------------------------------------------------

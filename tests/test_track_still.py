@@ -61,5 +61,5 @@ def test_other_starts_pass_through():
     from femreg.initial import previous_or_fresh
 
     u = np.arange(4.0)
-    assert previous_or_fresh(u, lambda: pytest.fail("no image term for a plain start"), None) == (u, "")
-    assert previous_or_fresh("zero", None, None) == ("zero", "")
+    assert previous_or_fresh(u, lambda: pytest.fail("no image term for a plain start"), None) == (u, "", None)
+    assert previous_or_fresh("zero", None, None) == ("zero", "", None)
