@@ -72,7 +72,7 @@ def previous_or_fresh(initial, term_for, mesh):
     if psi_prev < psi_zero:
         return u, "", term
     return initial.fresh, (f"{FRESH_NOTE}: the frames match better with no motion than with the previous "
-                           f"increment (image term {psi_zero / psi_prev:.2f} of its value there)"), None
+                           f"increment (image term {psi_zero / psi_prev:.2g} of its value there)"), None
 
 
 def _matched_images(ref, mov, I1, I2, mesh, spacing, origin, offset):
