@@ -55,7 +55,8 @@ class Previous:
 def previous_or_fresh(initial, term_for, mesh):
     """``(initial, note, term)``: the start :func:`femreg.register` uses for ``initial``, a note ('' when none),
     and the image term built to decide (None when none was built or the start is not its field): the first solve
-    from that field takes it rather than build its twin (0.05 s on a 40 x 25.6 mm 15 MHz frame; the decision's own warps 0.015 s).
+    from that field takes it rather than build its twin (0.05 s on a 40 x 25.6 mm 15 MHz frame; the decision's
+    own warps 0.015 s).
 
     For a :class:`Previous`, its field unless the SSD image term (eq:IR; ``term_for()`` builds it on ``mesh``)
     is at zero at most its value at the field, over the pixels that the field keeps inside the moving image: a

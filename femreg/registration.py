@@ -99,6 +99,16 @@ def _refuse_the_same_frame(ref, mov, initial, offset) -> None:
                          "register (the same frame twice, e.g. frames[0] and frames[0]?)")
 
 
+def _chosen_start(initial, ref, mov, I1, I2, mesh, spacing, origin, offset, locator):
+    """``(initial, note, term)`` of :func:`femreg.initial.previous_or_fresh`: a track's previous increment
+    (:class:`femreg.initial.Previous`) unless the frames match better without it, the image term on ``mesh``
+    built to decide; then the refusal of the same frame twice from the strategy's own start."""
+    initial, note, term = previous_or_fresh(initial, lambda: image_term(I1, I2, mesh, ref.shape, spacing, origin,
+                                                                        offset=offset, locator=locator), mesh)
+    _refuse_the_same_frame(ref, mov, initial, offset)
+    return initial, note, term
+
+
 def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, initial, regularizer,
                 allow_mesh_outside, rectangle=None):
     """Mesh stage: the user's mesh, or the structured ROI mesh sized from the speckle (``strategy="auto"``, whose
@@ -491,10 +501,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                            rectangle=rect)
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
-    # a track's previous increment, unless the frames match better without it (femreg.initial.Previous)
-    initial, fresh_note, decided_on = previous_or_fresh(initial, lambda: image_term(I1, I2, fe_mesh, ref.shape, spacing, origin,
-                                                                        offset=offset, locator=locator), fe_mesh)
-    _refuse_the_same_frame(ref, mov, initial, offset)
+    initial, fresh_note, term0 = _chosen_start(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, offset, locator)
 
     # -- initial guess ---------------------------------------------------------------------------------------
     t = time.perf_counter()
@@ -518,8 +525,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         solve_kw.update(mask_outside=True, tol=component_tol(tol, u0), strain_tol=st if st > 0 else None)
     def fine_solve(u, **kw):            # Gauss-Newton on the final mesh from the nodal displacement u
         return solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw)
-    sol = fine_solve(u0, callback=callback, term=decided_on, **solve_kw)
-    del decided_on
+    sol = fine_solve(u0, callback=callback, term=term0, **solve_kw)
     timings.update(gauss_newton=time.perf_counter() - t, per_iteration=list(sol.gn.timings))
 
     # -- repair and check ------------------------------------------------------------------------------------
@@ -532,8 +538,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: fine_solve(u, **dict(solve_kw, strain_tol=tight)), fe_mesh,
             stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
-    notes += depth_fall_note(ref, spacing)          # an echo weakening with depth: one alpha weighs it unevenly
-    notes += [fresh_note] if fresh_note else []     # a track's previous increment left for the fresh start
+    notes += depth_fall_note(ref, spacing) + [fresh_note] * bool(fresh_note)   # echo weakening; started afresh
     marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
                                    follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
