@@ -81,3 +81,16 @@ def test_other_starts_pass_through():
     u = np.arange(4.0)
     assert previous_or_fresh(u, lambda: pytest.fail("no image term for a plain start"), None) == (u, "", None)
     assert previous_or_fresh("zero", None, None) == ("zero", "", None)
+
+
+def test_the_command_line_says_started_afresh(tmp_path, capsys):
+    from femreg.cli import main
+
+    frames, grid, _ = _render_frames([compression(lv) for lv in (0.0, 0.01, 0.01)], as_probe("paper"),
+                                     SIZES["paper"], 30.0, 3, 2.0, SCATTERERS_PER_CELL)
+    np.save(tmp_path / "loop.npy", np.stack(frames).astype(np.float32))
+    sp = [f"{v:.6g}" for v in grid.spacing]
+    assert main(["track", str(tmp_path / "loop.npy"), "-o", str(tmp_path / "run"), "--spacing", *sp,
+                 "--no-progress"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("frame")]
+    assert "started afresh" not in lines[0] and "started afresh" in lines[1], lines
