@@ -52,9 +52,10 @@ def _header(path) -> tuple | None:
     return size, dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
 
 
-def sniff(path) -> dict | None:
-    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None."""
-    head = _header(path)
+def sniff(path, head=None) -> dict | None:
+    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None.
+    ``head``: :func:`_header`'s reading of ``path``, if already made (read here otherwise)."""
+    head = _header(path) if head is None else head
     if head is None:
         return None
     size, hdr = head
@@ -70,10 +71,11 @@ def sniff(path) -> dict | None:
     return None
 
 
-def cut_short(path) -> str:
+def cut_short(path, head=None) -> str:
     """A message when ``path`` starts with a plausible Clarius header (RF or envelope samples, sizes in range) but
-    is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else ""."""
-    head = _header(path)
+    is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else "".
+    ``head`` as :func:`sniff`'s."""
+    head = _header(path) if head is None else head
     if head is None:
         return ""
     size, hdr = head
@@ -130,13 +132,14 @@ def settings_fields(path) -> tuple:
     return None, {}
 
 
-def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, **_ignored):
+def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, header=None, **_ignored):
     """Read a Clarius raw file: the fields of a :class:`~femreg.io.Frames` (see the module doc), frames
-    ``(n, samples, lines)`` float32, the time stamps (ns) and the settings file's numbers in the metadata."""
+    ``(n, samples, lines)`` float32, the time stamps (ns) and the settings file's numbers in the metadata.
+    ``header``: :func:`sniff`'s fields of ``path`` where the caller has them (the file's header is not read again)."""
     from .checks import select_frames
 
     path = Path(path)
-    hdr = sniff(path)
+    hdr = sniff(path) if header is None else header
     if hdr is None:
         raise fail(path, "not a Clarius raw file (its size does not match a 5-field header's frames)")
     n, nl, ns, sz = hdr["frames"], hdr["lines"], hdr["samples"], hdr["samplesize"]

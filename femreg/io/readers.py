@@ -299,14 +299,13 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     (n, axial, lateral) requires exactly n.  Layout C-order: lateral fastest (as ``np.fromfile(...).reshape``)."""
     path = Path(path)
     if not offset:
-        from .clarius import read_clarius, sniff
+        from .clarius import _header, cut_short, read_clarius, sniff
 
-        if sniff(path) is not None:     # a Clarius export: its header states the shape and type
-            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames)
+        head = _header(path)            # the first bytes, read once for both questions below
+        if (hdr := sniff(path, head)) is not None:     # a Clarius export: its header states the shape and type
+            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames, header=hdr)
         if shape is None:
-            from .clarius import cut_short
-
-            cut = cut_short(path)
+            cut = cut_short(path, head)
             if cut:
                 raise fail(path, cut)
     shp = _check_shape(shape)
