@@ -96,6 +96,11 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
     _note_region_in_centimetres(fr, path, args)
+    for note in (fr.metadata or {}).get("sampling_notes") or []:     # femreg.orientation.check_sampling
+        if (str(path), note) not in _NOTED:
+            _NOTED.add((str(path), note))
+            who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+            print(f"{who}: note: {note}", file=sys.stderr)
     if check_shape:
         try:
             check_raw_shape(fr)

@@ -109,11 +109,20 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         out.update(values_of="|IQ|", needs=[])
         return out
     if spacing_known:
-        from ..orientation import diagnose
+        from ..orientation import OrientationError, check_sampling, diagnose, frequency_note
 
         rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
-        out["rf_check"] = "" if rep.problem else rep.summary()
+        out["rf_check"] = "" if rep.problem else "; ".join(
+            t for t in (rep.summary(), frequency_note(rep.frequency_mhz) if rep.has_carrier else "") if t)
         out["needs"] = [rep.message] if rep.problem else []
+        if not rep.problem and "iq" not in fr.metadata:    # the carrier against the header's transmit frequency
+            try:
+                notes = check_sampling(fr)
+            except OrientationError as exc:
+                out["needs"].append(str(exc))
+            else:
+                if notes:
+                    out["note"] = "; ".join(notes)
         out["transposed"] = rep.problem == "transposed"
         out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
         if "iq" in fr.metadata:      # remodulated IQ: what read_frames checks when registering (spacing, sign, f)
@@ -155,16 +164,23 @@ def _probe_need(info) -> str:
 
 def _spacing_conflict(info, args) -> list:
     """The refusal of ``register`` / ``track`` for a ``--spacing`` that contradicts the file's calibration (a
-    DICOM ultrasound region's), as a list of needs ([] when it agrees or the file states none)."""
+    DICOM ultrasound region's) or its RF sampling rate (:func:`femreg.orientation.check_sampling`), as a list of
+    needs ([] when it agrees or the file states none)."""
     from ..io.frames import Frames
     from ..io.readers import _check_given_spacing
 
-    meta = info.get("metadata") or {}
-    if getattr(args, "spacing", None) is None or meta.get("header_spacing") is None:
+    from ..orientation import check_sampling
+
+    meta = dict(info.get("metadata") or {}, format=info.get("format", ""))
+    if getattr(args, "spacing", None) is None or getattr(args, "spacing_stand_in", False) \
+            or info.get("spacing_mm") is None:
         return []
+    # no samples: only the spacing is held against the header (its carrier is described above)
+    fr = Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]), metadata=meta, source=info["file"])
     try:
-        _check_given_spacing(Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]),
-                                    metadata=meta, source=info["file"]), args.spacing)
+        if meta.get("header_spacing") is not None:
+            _check_given_spacing(fr, args.spacing)
+        check_sampling(fr, args.spacing, sound_speed=getattr(args, "sound_speed", None), where=f"{info['file']}: ")
     except InputError as exc:
         return [str(exc)]
     return []
