@@ -583,6 +583,15 @@ def period_notes(frame, period_mm) -> list:
     return [note] if note else []
 
 
+#: Line pitches (mm) of linear arrays, 0.05-0.5 mm on the simulated probes, with room: which value of a spacing
+#: in other units than mm is a pitch once converted (:func:`check_sampling`).
+LINE_PITCH_MM = (0.01, 5.0)
+
+
+def _pitch_plausible(dy: float) -> bool:
+    return LINE_PITCH_MM[0] <= dy <= LINE_PITCH_MM[1]
+
+
 def _sampling_mistake(ratio: float, c: float) -> str:
     """The likely mistake behind an axial spacing ``ratio`` times ``c / (2 fs)``, in words ("" for none)."""
     for k, text in ((2.0, "twice c / (2 fs): the factor 2 of the two-way travel left out (c / fs), or half the "
@@ -620,27 +629,46 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
     c = float(sound_speed) if sound_speed is not None else float(known.get("sound_speed", (SOUND_SPEED_M_S,))[0])
     c_words = f"c = {c:g} m/s" + ("" if sound_speed is not None or "sound_speed" in known else " assumed")
     dx, dy = (float(v) for v in np.ravel(frames.spacing)[:2])
-    typed = None if spacing is None else check_spacing(spacing, allow_none=True)[0]
+    typed, typed_y = (None, None) if spacing is None else check_spacing(spacing, allow_none=True)
+    notes, nlo, nhi = [], *TRANSMIT_NOTE_RATIO
+    f = float("nan")                                # the carrier at the axial spacing the frames carry
+    if "transmit_mhz" in known:
+        ft, t_words = known["transmit_mhz"]
+        f = carrier_frequency(np.asarray(frames.frames[0]), dx, c)
     if "fs_mhz" in known and typed is not None:
         fs, words = known["fs_mhz"]
         dx_h = c * 1e-3 / (2.0 * fs)               # m/s -> mm/us over MHz: mm
         ratio = typed / dx_h
-        if abs(ratio - 1.0) > SAMPLING_TOLERANCE:
-            fix = pass_as(f"spacing=({dx_h:.5g}, {dy:g})", f"--spacing {dx_h:.5g} {dy:g}")
+        swapped = typed_y is not None and abs(typed_y / dx_h - 1.0) <= SAMPLING_TOLERANCE
+        said = (f"the axial spacing {typed:g} mm given implies {c * 1e-3 / (2.0 * typed):.4g} MHz sampling at "
+                f"{c_words}, but the file states {fs:g} MHz ({words}): the axial spacing c / (2 fs) is {dx_h:.5g} mm")
+        if abs(ratio - 1.0) <= SAMPLING_TOLERANCE or swapped:       # a swap: the orientation checks name it
+            pass
+        elif np.isfinite(f) and nlo <= f / ft <= nhi:
+            # the carrier at the given spacing is the transmit frequency's: the header's rate is not the samples'
+            # (frames decimated after sampling, the rate before it kept)
+            notes.append(f"{where}{said}; the RF carrier at the spacing given reads {f:.3g} MHz, as the transmit "
+                         f"frequency ({ft:g} MHz, {t_words}): the value given is used, the header's rate taken for "
+                         "one before decimation")
+        else:
+            # a spacing in other units: the line pitch too, where only that makes it a pitch (LINE_PITCH_MM)
+            k = next((k for k in (1e3, 1e-3, 10.0, 0.1) if abs(ratio / k - 1.0) <= SAMPLING_TOLERANCE), 1.0)
+            y = dy / k if not _pitch_plausible(dy) and _pitch_plausible(dy / k) else dy
+            fix = pass_as(f"spacing=({dx_h:.5g}, {y:.6g})", f"--spacing {dx_h:.5g} {y:.6g}")
+            m = round(ratio)
+            kept = (f"; frames decimated after sampling (every {m}th sample kept) do have {m} times the header's "
+                    "spacing: then use the value given" if 2 <= m <= 8 and abs(ratio / m - 1.0) <= 0.02 else "")
             raise OrientationError(
-                f"{where}the axial spacing {typed:g} mm given implies {c * 1e-3 / (2.0 * typed):.4g} MHz sampling "
-                f"at {c_words}, but the file states {fs:g} MHz ({words}): the axial spacing c / (2 fs) is "
-                f"{dx_h:.5g} mm, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} (axial, lateral mm), "
-                f"or {override()} to use the value given", problem="sampling")
-    notes = []
+                f"{where}{said}, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} (axial, lateral mm)"
+                f"{kept}, or {override()} to use the value given", problem="sampling")
     if "transmit_mhz" in known:
-        ft, words = known["transmit_mhz"]
-        f = carrier_frequency(np.asarray(frames.frames[0]), dx, c)
-        if not np.isfinite(f):
+        if not np.isfinite(f) or notes:
             return notes
         r = f / ft
+        if not nlo <= r <= nhi and nlo <= r * dx / dy <= nhi:
+            return notes                # the spacings exchanged fit: a swap, which the orientation checks name
         found = (f"the RF carrier reads {f:.3g} MHz at the axial spacing {dx:g} mm ({c_words}), {r:.2f} times the "
-                 f"transmit frequency the file states, {ft:g} MHz ({words})")
+                 f"transmit frequency the file states, {ft:g} MHz ({t_words})")
         cure = (f"an axial spacing of {dx * r:.4g} mm would put the carrier at {ft:g} MHz; the axial spacing is "
                 "c / (2 fs), fs the RF sampling rate")
         lo, hi = TRANSMIT_RATIO
@@ -648,7 +676,6 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
             raise OrientationError(
                 f"{where}{found}: outside the {lo:g}-{hi:g} times that attenuation and harmonic imaging explain, "
                 f"so the axial spacing looks wrong ({cure}); check it, or {override()}", problem="sampling")
-        nlo, nhi = TRANSMIT_NOTE_RATIO
         if not nlo <= r <= nhi:
             also = " (tissue harmonic imaging receives at twice the transmit frequency)" if r > nhi else \
                 " (attenuation lowers the carrier with depth, though rarely this far)"
