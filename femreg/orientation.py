@@ -128,8 +128,9 @@ TRANSMIT_RATIO = (0.45, 2.5)
 TRANSMIT_NOTE_RATIO = (0.7, 1.45)
 #: RF centre frequencies (MHz) of clinical probes' echoes: an implied carrier outside them, inside
 #: :data:`FREQUENCY_MHZ`, gets a note (:func:`frequency_note`).  Measured 2.99-15.45 MHz on the simulated 3-15 MHz
-#: probes and 4.60-4.65 MHz on the in vivo frames; abdominal and cardiac probes transmit at 2-3.5 MHz, clinical
-#: linear arrays at up to 18 MHz, preclinical ones at 20-70 MHz.
+#: probes and 4.52-4.65 MHz on the in vivo frames (benchmarks/spacing_check.py); abdominal and cardiac probes
+#: transmit at 2-3.5 MHz, clinical linear arrays at up to 18 MHz, preclinical ones at 20-70 MHz.  An axial spacing
+#: 2.7 times too large puts a 3-5 MHz probe below it, 2.7 times too small a 7.5-15 MHz probe above it.
 TYPICAL_MHZ = (2.0, 20.0)
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
