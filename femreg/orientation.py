@@ -657,7 +657,7 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
             y = dy / k if not _pitch_plausible(dy) and _pitch_plausible(dy / k) else dy
             fix = pass_as(f"spacing=({dx_h:.5g}, {y:.6g})", f"--spacing {dx_h:.5g} {y:.6g}")
             m = round(ratio)
-            kept = (f"; frames decimated after sampling (every {m}th sample kept) do have {m} times the header's "
+            kept = (f"; frames decimated after sampling (one sample in {m} kept) have {m} times the header's "
                     "spacing: then use the value given" if 2 <= m <= 8 and abs(ratio / m - 1.0) <= 0.02 else "")
             raise OrientationError(
                 f"{where}{said}, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} (axial, lateral mm)"
