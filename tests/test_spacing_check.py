@@ -192,3 +192,15 @@ def test_cli_refuses_with_exit_2_and_info_names_it(rf_files, pairs, tmp_path, ca
     assert rc == 1 and "implies 20 MHz sampling" in out, out
     rc = main(["info", str(rf_files["paper"]), "--spacing", "auto", str(dy)])
     assert rc == 0, capsys.readouterr().out
+
+
+def test_track_says_the_carrier_note_once(pairs, tmp_path, capsys):
+    """track prints no pair's message: the band note comes on stderr from the frames as read."""
+    p = pairs["L15"]
+    dx, dy = p.spacing
+    np.save(tmp_path / "l15.npy", np.stack([p.ref, p.mov]).astype("f4"))
+    for k, noted in ((1.0, False), (1 / 2.7, True)):
+        rc = main(["track", str(tmp_path / "l15.npy"), "--spacing", f"{dx * k:.6g}", str(dy), "-o",
+                   str(tmp_path / f"t{k:.2f}"), "--no-progress", "--maxiter", "3"])
+        err = capsys.readouterr().err
+        assert rc == 0 and ("outside the 2-20 MHz of clinical probes" in err) == noted, err
