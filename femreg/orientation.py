@@ -619,14 +619,19 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
       it outside :data:`TRANSMIT_RATIO` is refused, outside :data:`TRANSMIT_NOTE_RATIO` noted.
 
     ``sound_speed`` (m/s): the one given (else the header's, else 1540).  IQ data (``metadata["iq"]``: the carrier
-    is the demodulation frequency's whatever the spacing; their own checks, :func:`check_iq_sign`) and frames
-    without a carrier (the transmit check) are skipped."""
+    is the demodulation frequency's whatever the spacing; their own checks, :func:`check_iq_sign`), frames that
+    look transposed (:func:`diagnose` names their spacing with the transpose) and, for the transmit check, frames
+    without a carrier are skipped."""
     from .io.checks import check_spacing, header_frequencies
 
     meta = dict(frames.metadata or {})
     known = header_frequencies(meta)
     if "iq" in meta or not known or frames.spacing is None:
         return []
+    img = np.asarray(frames.frames[0])
+    if img.ndim == 2 and min(img.shape) >= MIN_SAMPLES and axial_carrier_ratio(img) > NO_CARRIER_RATIO \
+            and carrier_ratio(np.asarray(img, float)[::max(1, img.shape[0] // 1024)].T) < CARRIER_RATIO:
+        return []       # transposed: that refusal (diagnose) names the spacing along with the transpose
     c = float(sound_speed) if sound_speed is not None else float(known.get("sound_speed", (SOUND_SPEED_M_S,))[0])
     c_words = f"c = {c:g} m/s" + ("" if sound_speed is not None or "sound_speed" in known else " assumed")
     dx, dy = (float(v) for v in np.ravel(frames.spacing)[:2])
