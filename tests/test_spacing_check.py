@@ -204,3 +204,23 @@ def test_track_says_the_carrier_note_once(pairs, tmp_path, capsys):
                    str(tmp_path / f"t{k:.2f}"), "--no-progress", "--maxiter", "3"])
         err = capsys.readouterr().err
         assert rc == 0 and ("outside the 2-20 MHz of clinical probes" in err) == noted, err
+
+
+def test_batch_refuses_before_any_work_and_honours_the_override(rf_files, pairs, tmp_path, capsys):
+    import shutil
+
+    p = pairs["paper"]
+    dx, dy = p.spacing
+    src = tmp_path / "data"
+    src.mkdir()
+    shutil.copy(rf_files["paper"], src / "a.rf")
+    args = ["batch", str(src), "--task", "register", "--workers", "0", "--no-progress", "--spacing", f"{2 * dx:g}",
+            str(dy)]
+    rc = main(args + ["-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "a.rf: " in err and "states 40 MHz" in err, err
+    assert not (tmp_path / "out").exists()                               # refused before any task ran
+    # the override reaches the batch's reader too (before, its reader checks ran whatever the settings said)
+    rc = main(args + ["-o", str(tmp_path / "out2"), "--no-orientation-check", "--maxiter", "3"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "states 40 MHz" not in err, err
