@@ -96,6 +96,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
     _note_region_in_centimetres(fr, path, args)
+    _note_sampling(fr, path, args, check_shape)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -103,6 +104,28 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def _note_sampling(fr, path, args, checked: bool) -> None:
+    """On stderr: the notes of :func:`femreg.orientation.check_sampling` (the carrier a little off the header's
+    transmit frequency), and for ``track`` and ``elastogram``, whose pairs' messages are not printed, a carrier
+    outside clinical probes' band (:func:`femreg.orientation.frequency_note`, which ``register`` puts in its
+    message); once per file and text."""
+    import numpy as np
+
+    from ..orientation import carrier_frequency, frequency_note
+
+    meta = fr.metadata or {}
+    notes = list(meta.get("sampling_notes") or [])
+    if checked and not notes and getattr(args, "command", None) in ("track", "elastogram") \
+            and fr.spacing is not None and "iq" not in meta and not np.iscomplexobj(fr.frames):
+        note = frequency_note(carrier_frequency(fr.frames[0], fr.spacing[0]))
+        notes += [f"{path}: {note}"] if note else []
+    who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+    for note in notes:
+        if (str(path), note) not in _NOTED:
+            _NOTED.add((str(path), note))
+            print(f"{who}: note: {note}", file=sys.stderr)
 
 
 def _dtype_name(dtype) -> str:

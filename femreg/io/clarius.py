@@ -14,7 +14,11 @@ headerless ``.raw`` file matches that by chance essentially never.
 Settings: the export writes a YAML file beside the data (``scan_rf.yml`` for ``scan_rf.raw``) with the sampling
 rate (e.g. ``sampling rate: 40 MHz``) and the probe.  Its numbers are listed and the ``--spacing`` they imply is
 named (``c / (2 fs)`` axially, the probe's pitch laterally where stated), as a headerless file's JSON sidecar;
-never applied: the spacing is the user's to pass.
+never applied: the spacing is the user's to pass.  The sampling rate and transmit frequency are what a given
+spacing is held against (:func:`femreg.orientation.check_sampling`).  ``delay samples`` is listed, not taken for
+the first sample's depth: Clarius's example readers and PyQuantUS's parser leave it out (the latter spaces the
+samples from 0 to the imaging depth), and on Clarius's example exports ``samples x c / (2 fs)`` equals the
+``imaging depth`` (3120 samples at 60 MHz: 40.0 mm of 40), which a record starting 62 samples deep would overshoot.
 """
 from __future__ import annotations
 
