@@ -28,7 +28,10 @@ register 2 -> 3 (0.75 %): 10 s, total 41.2 %, e_xx 8.3 %, u RMS 1.0 / 6.4 um, SR
 (true 24.7); ``--alpha auto`` chose 0.42: the same (SR 1.00, 7.1 um); ``--alpha 0.00133``: 31.7 %, 8.0 %, 0.4 /
 2.0 um, SR 1.55, 22.3 um.  register 14 -> 15 (the jolt, 1.5 % and 0.4 mm slip): 17.7 %, 8.5 %, 2.0 / 5.2 um, SR
 1.04 (true 2.29), slide 6.2 um (true 18.0).  ``measure --slide`` at the band +-2 mm: 7.3 / 22.4 um.  track 0 -> 11
-(42 s, none flagged, 4 increments retried from a fresh start, the still frames at the iteration limit): 34.1 %,
+(42 s, none flagged, 4 increments retried from a fresh start, the still frames at the iteration limit;
+since a still frame after a moving one starts afresh, frames 0-11 through femreg.track on the same quantised frames:
+3 and 5 iterations, their increments' lateral error 23.4 / 18.4 -> 4.2 / 4.3 um, 0 -> 11 u RMS 10.3 / 53.7 um, slide
+61.7 um, total and e_xx unchanged): 34.1 %,
 e_xx 8.2 %, u RMS 10.1 / 71.5 um, SR 1.01 (true 2.14), slide 51.6 um (true 213.2).  elastogram: 15 pairs
 registered, 13 usable, best on frame 15 (after the jolt), 36 s; its colours span 5.6 % of the mean, the nodule's
 SR 1.03.  Before ``femreg.io.clarius`` the file could not be read (``needs --shape``; with the shape, 212 bytes

@@ -63,7 +63,7 @@ from . import orientation
 from .image import repeated_frames, validate_image, validate_spacing
 from .mesh import check_element_size, roi_mesh
 from .pyramid import default_settings, element_rule, gaussian_decimate
-from .registration import sharing_start
+from .registration import shared_search, sharing_start
 from .speckle import envelope, speckle_cell, speckle_statistics
 
 __all__ = ["elastogram", "ElastogramResult", "screen_pairs", "band_advice", "display_range", "DEFAULT_BAND",
@@ -597,9 +597,12 @@ def _register_run(frame, pairs, mesh, qa, band, out, resume, reg_args, on_rec=No
     return per_pair
 
 
-def _register_task(path, pairs, mesh, qa, band, out, resume, reg_args, lattice=None):
-    """:func:`_register_run` on a worker, the frames read from ``path``."""
-    return _register_run(_stored_frames(path), pairs, mesh, qa, band, out, resume, reg_args, lattice=lattice)
+def _register_task(path, pairs, mesh, qa, band, out, resume, reg_args, lattice=None, handed=None):
+    """:func:`_register_run` on a worker, the frames read from ``path``; ``handed``: the start's search the cut
+    decision made on the first pair (:func:`femreg.registration.shared_search`), taken by that pair's registration
+    if it is this run's (a worker does not see the caller's context)."""
+    with sharing_start(handed):
+        return _register_run(_stored_frames(path), pairs, mesh, qa, band, out, resume, reg_args, lattice=lattice)
 
 
 def _check_workers(workers, client):
@@ -1033,8 +1036,10 @@ def elastogram(frames, *, spacing, origin=(0.0, 0.0), band=DEFAULT_BAND, min_ncc
                 futs = []
                 for a0, a1 in _chunks(len(todo), n_workers):
                     part = todo[a0:a1]
+                    # the first run's first pair is the cut decision's (when it is the pair that decision searched):
+                    # its search goes with it, as one process shares it (femreg.registration.sharing_start)
                     futs.append(client.submit(_register_task, fpath, part, mesh, qa, (lo, hi), out, resume, reg_args,
-                                              lattice, pure=False))
+                                              lattice, shared_search() if a0 == 0 else None, pure=False))
                 per_pair = {}
                 for got in client.gather(futs):
                     per_pair.update(got)

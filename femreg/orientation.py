@@ -50,6 +50,15 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   cells then fall under the bounds (the 12-15 MHz probes): on 3-7 MHz probes a spacing 10 x too small looks like
   a finer probe's (the mesh's margin then names the image's size in mm).
 
+* **axial spacing against the file's header** -- none of the above sees an axial spacing off by a factor that
+  keeps it plausible (a sampling rate typed 20 for 40 MHz, the factor 2 of the two-way travel left out): the
+  strain is scale-free, the displacements and depths in mm are not.  Where the header states the RF sampling rate
+  or the transmit frequency (:func:`femreg.io.checks.header_frequencies`), :func:`check_sampling` holds a given
+  axial spacing against ``c / (2 fs)`` and the carrier against the transmit frequency (``read_frames`` runs it);
+  without either, a carrier outside the clinical band :data:`TYPICAL_MHZ` is noted (:func:`frequency_note`,
+  ``register``'s message).  benchmarks/spacing_check.py: 21 simulated references, no false refusal or note, 0.5 /
+  2 / 2.7 / 1/2.7 / 10 / 0.1 times the spacing refused 21 of 21 each.
+
 Only strong evidence refuses: smooth synthetic images and anything too small to measure pass.  ``register(..., check_orientation=False)``, ``track(...,
 check_orientation=False)`` and the CLI's ``--no-orientation-check`` skip the check.
 """
@@ -64,7 +73,9 @@ from .errors import InputError, pass_as
 __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "axial_carrier_ratio", "is_envelope", "diagnose",
            "check", "transposed_message", "exchanged_shape",
            "check_raw_shape", "check_remodulated", "check_iq_sign", "FREQUENCY_MHZ", "MIN_SPECKLE_ASPECT",
-           "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S", "ENVELOPE_CELL_MM"]
+           "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S", "ENVELOPE_CELL_MM",
+           "check_sampling", "frequency_note", "period_notes", "carrier_frequency", "SAMPLING_TOLERANCE",
+           "TRANSMIT_RATIO", "TRANSMIT_NOTE_RATIO", "TYPICAL_MHZ"]
 
 SOUND_SPEED_M_S = 1540.0
 #: Plausible RF centre frequencies of medical ultrasound (MHz): abdominal probes to preclinical high frequency.
@@ -109,6 +120,27 @@ PRECLINICAL_MHZ = 20.0
 #: (axial, lateral) extent in mm under which a whole frame above :data:`PRECLINICAL_MHZ` is refused; a 30-80 mm
 #: deep, 25-50 mm wide clinical frame read in centimetres measures 3-8 x 2.5-5 mm.
 SMALL_FRAME_MM = (8.0, 5.0)
+
+#: A given axial spacing further than this (relative) from ``c / (2 fs)`` of the sampling rate the file's header
+#: states is refused (:func:`check_sampling`): tissue's speed of sound, 1450-1600 m/s, moves ``c / (2 fs)`` by
+#: up to 6 % from its value at 1540 m/s; the mistakes it is for are a factor 2 (two-way travel, 20 vs 40 MHz),
+#: 2.7 or more (units, a wrong rate).
+SAMPLING_TOLERANCE = 0.10
+#: The RF carrier's frequency (:func:`carrier_frequency`) over the transmit frequency a header states: outside
+#: this range the axial spacing is refused (:func:`check_sampling`).  Measured 0.977-1.077 on the simulated 3-15
+#: MHz probes (benchmarks/spacing_check.py), which have no frequency-dependent attenuation: in tissue the centroid
+#: falls below the transmit frequency with depth (to about 0.7 of it deep in the abdomen), and tissue harmonic
+#: imaging receives at twice it.  An axial spacing 2.7 times too large or too small reads 0.36-0.40 or 2.6-2.9.
+TRANSMIT_RATIO = (0.45, 2.5)
+#: The same ratio outside this range, inside :data:`TRANSMIT_RATIO`: a note (a spacing 2 times off reads 0.49-0.54
+#: or 1.95-2.15, as harmonic imaging or a strong downshift can).
+TRANSMIT_NOTE_RATIO = (0.7, 1.45)
+#: RF centre frequencies (MHz) of clinical probes' echoes: an implied carrier outside them, inside
+#: :data:`FREQUENCY_MHZ`, gets a note (:func:`frequency_note`).  Measured 2.99-15.45 MHz on the simulated 3-15 MHz
+#: probes and 4.52-4.65 MHz on the in vivo frames (benchmarks/spacing_check.py); abdominal and cardiac probes
+#: transmit at 2-3.5 MHz, clinical linear arrays at up to 18 MHz, preclinical ones at 20-70 MHz.  An axial spacing
+#: 2.7 times too large puts a 3-5 MHz probe below it, 2.7 times too small a 7.5-15 MHz probe above it.
+TYPICAL_MHZ = (2.0, 20.0)
 
 OVERRIDE = "check_orientation=False (CLI: --no-orientation-check)"
 
@@ -518,6 +550,153 @@ def check(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
                       "DY)", f"--spacing {dx:g} DY (axial sample spacing, lateral line pitch in mm)")
             + f", or {override()}", problem="spacing")
     return rep
+
+
+def carrier_frequency(frame, dx: float, sound_speed: float = SOUND_SPEED_M_S) -> float:
+    """The RF centre frequency (MHz) the carrier along the depth of ``frame`` (axial, lateral) reads at axial
+    spacing ``dx`` mm: ``c / (2 T)`` with ``T`` the spectral-centroid period (:func:`femreg.speckle.rf_period`) of
+    at most about 64 of its lines; NaN without a carrier (envelope, B-mode: :func:`axial_carrier_ratio` not below
+    :data:`CARRIER_RATIO`) or too few samples to tell."""
+    img = np.asarray(frame, float)
+    if img.ndim != 2 or img.shape[0] < MIN_SAMPLES or not axial_carrier_ratio(img) < CARRIER_RATIO:
+        return float("nan")
+    n = _centroid_samples(img[:, ::max(1, img.shape[1] // 64)])
+    return float(sound_speed * 1e-3 / (2.0 * n * float(dx))) if np.isfinite(n) and n > 0 else float("nan")
+
+
+def frequency_note(f_mhz: float) -> str:
+    """A note for an RF carrier that reads ``f_mhz`` MHz at the axial spacing given, outside :data:`TYPICAL_MHZ`
+    but inside :data:`FREQUENCY_MHZ` (outside that :func:`diagnose` refuses it): the likely mistakes in the
+    spacing; "" inside the typical range or when not measured.  Only a note: low-frequency and preclinical probes
+    read so."""
+    lo, hi = TYPICAL_MHZ
+    if not (np.isfinite(f_mhz) and FREQUENCY_MHZ[0] <= f_mhz <= FREQUENCY_MHZ[1]) or lo <= f_mhz <= hi:
+        return ""
+    if f_mhz < lo:
+        why = ("if the probe is not a low-frequency one the axial spacing is too large (c / (2 fs): a sampling rate "
+               "taken too low, e.g. 20 for 40 MHz, or the factor 2 of the two-way travel left out)")
+    else:
+        why = ("if the probe is not a preclinical high-frequency one the axial spacing is too small (c / (2 fs): a "
+               "sampling rate taken too high, e.g. 40 for 20 MHz, or the factor 2 counted twice)")
+    return (f"the RF carrier reads {f_mhz:.3g} MHz at the axial spacing given, outside the {lo:g}-{hi:g} MHz of "
+            f"clinical probes: {why}; displacements and depths in mm scale with it")
+
+
+def period_notes(frame, period_mm) -> list:
+    """``[frequency_note]`` for a frame (axial, lateral) with a carrier whose RF period (mm, at the axial spacing
+    given; None where not measured) implies a frequency outside :data:`TYPICAL_MHZ`, else []: the note register
+    adds to its message."""
+    if period_mm is None or not (np.isfinite(period_mm) and period_mm > 0) \
+            or not axial_carrier_ratio(frame) < CARRIER_RATIO:
+        return []
+    note = frequency_note(SOUND_SPEED_M_S * 1e-3 / (2.0 * float(period_mm)))
+    return [note] if note else []
+
+
+#: Line pitches (mm) of linear arrays, 0.05-0.5 mm on the simulated probes, with room: which value of a spacing
+#: in other units than mm is a pitch once converted (:func:`check_sampling`).
+LINE_PITCH_MM = (0.01, 5.0)
+
+
+def _pitch_plausible(dy: float) -> bool:
+    return LINE_PITCH_MM[0] <= dy <= LINE_PITCH_MM[1]
+
+
+def _sampling_mistake(ratio: float, c: float) -> str:
+    """The likely mistake behind an axial spacing ``ratio`` times ``c / (2 fs)``, in words ("" for none)."""
+    for k, text in ((2.0, "twice c / (2 fs): the factor 2 of the two-way travel left out (c / fs), or half the "
+                          "sampling rate"),
+                    (0.5, "half c / (2 fs): twice the sampling rate, or the factor 2 counted twice"),
+                    (1e3, "1000 times c / (2 fs): micrometres taken for mm"),
+                    (1e-3, "1/1000 of c / (2 fs): metres taken for mm"),
+                    (10.0, "10 times c / (2 fs): a sampling rate a decade off, or a unit slip"),
+                    (0.1, "1/10 of c / (2 fs): centimetres taken for mm, or a sampling rate a decade off")):
+        if abs(ratio / k - 1.0) <= SAMPLING_TOLERANCE:
+            return text
+    return (f"{ratio:.3g} times c / (2 fs): a sampling rate other than the header's, or a speed of sound of "
+            f"{c * ratio:.0f} m/s, which no soft tissue has")
+
+
+def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -> list:
+    """Hold the axial spacing of :class:`femreg.io.Frames` against what the file's header states about the RF
+    (:func:`femreg.io.checks.header_frequencies`); returns notes (a list of strings), raises
+    :class:`OrientationError` (problem "sampling") for a clear contradiction:
+
+    * a sampling rate ``fs``: an axial value given in ``spacing`` (the user's, not the file's) further than
+      :data:`SAMPLING_TOLERANCE` from ``c / (2 fs)`` is refused, naming both and the value to pass;
+    * a transmit frequency: the carrier the frames read at their axial spacing (:func:`carrier_frequency`) over
+      it outside :data:`TRANSMIT_RATIO` is refused, outside :data:`TRANSMIT_NOTE_RATIO` noted.
+
+    ``sound_speed`` (m/s): the one given (else the header's, else 1540).  IQ data (``metadata["iq"]``: the carrier
+    is the demodulation frequency's whatever the spacing; their own checks, :func:`check_iq_sign`), frames that
+    look transposed (:func:`diagnose` names their spacing with the transpose) and, for the transmit check, frames
+    without a carrier are skipped."""
+    from .io.checks import check_spacing, header_frequencies
+
+    meta = dict(frames.metadata or {})
+    known = header_frequencies(meta)
+    if "iq" in meta or not known or frames.spacing is None:
+        return []
+    img = np.asarray(frames.frames[0])
+    if img.ndim == 2 and min(img.shape) >= MIN_SAMPLES and axial_carrier_ratio(img) > NO_CARRIER_RATIO \
+            and carrier_ratio(np.asarray(img, float)[::max(1, img.shape[0] // 1024)].T) < CARRIER_RATIO:
+        return []       # transposed: that refusal (diagnose) names the spacing along with the transpose
+    c = float(sound_speed) if sound_speed is not None else float(known.get("sound_speed", (SOUND_SPEED_M_S,))[0])
+    c_words = f"c = {c:g} m/s" + ("" if sound_speed is not None or "sound_speed" in known else " assumed")
+    dx, dy = (float(v) for v in np.ravel(frames.spacing)[:2])
+    typed, typed_y = (None, None) if spacing is None else check_spacing(spacing, allow_none=True)
+    notes, nlo, nhi = [], *TRANSMIT_NOTE_RATIO
+    f = float("nan")                                # the carrier at the axial spacing the frames carry
+    if "transmit_mhz" in known:
+        ft, t_words = known["transmit_mhz"]
+        f = carrier_frequency(np.asarray(frames.frames[0]), dx, c)
+    if "fs_mhz" in known and typed is not None:
+        fs, words = known["fs_mhz"]
+        dx_h = c * 1e-3 / (2.0 * fs)               # m/s -> mm/us over MHz: mm
+        ratio = typed / dx_h
+        swapped = typed_y is not None and abs(typed_y / dx_h - 1.0) <= SAMPLING_TOLERANCE
+        said = (f"the axial spacing {typed:g} mm given implies {c * 1e-3 / (2.0 * typed):.4g} MHz sampling at "
+                f"{c_words}, but the file states {fs:g} MHz ({words}): the axial spacing c / (2 fs) is {dx_h:.5g} mm")
+        if abs(ratio - 1.0) <= SAMPLING_TOLERANCE or swapped:       # a swap: the orientation checks name it
+            pass
+        elif np.isfinite(f) and nlo <= f / ft <= nhi:
+            # the carrier at the given spacing is the transmit frequency's: the header's rate is not the samples'
+            # (frames decimated after sampling, the rate before it kept)
+            notes.append(f"{where}{said}; the RF carrier at the spacing given reads {f:.3g} MHz, as the transmit "
+                         f"frequency ({ft:g} MHz, {t_words}): the value given is used, the header's rate taken for "
+                         "one before decimation")
+        else:
+            # a spacing in other units: the line pitch too, where only that makes it a pitch (LINE_PITCH_MM)
+            k = next((k for k in (1e3, 1e-3, 10.0, 0.1) if abs(ratio / k - 1.0) <= SAMPLING_TOLERANCE), 1.0)
+            y = dy / k if not _pitch_plausible(dy) and _pitch_plausible(dy / k) else dy
+            fix = pass_as(f"spacing=({dx_h:.5g}, {y:.6g})", f"--spacing {dx_h:.5g} {y:.6g}")
+            m = round(ratio)
+            kept = (f"; frames decimated after sampling (one sample in {m} kept) have {m} times the header's "
+                    "spacing: then use the value given" if 2 <= m <= 8 and abs(ratio / m - 1.0) <= 0.02 else "")
+            raise OrientationError(
+                f"{where}{said}, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} (axial, lateral mm)"
+                f"{kept}, or {override()} to use the value given", problem="sampling")
+    if "transmit_mhz" in known:
+        if not np.isfinite(f) or notes:
+            return notes
+        r = f / ft
+        if not nlo <= r <= nhi and nlo <= r * dx / dy <= nhi:
+            return notes                # the spacings exchanged fit: a swap, which the orientation checks name
+        found = (f"the RF carrier reads {f:.3g} MHz at the axial spacing {dx:g} mm ({c_words}), {r:.2f} times the "
+                 f"transmit frequency the file states, {ft:g} MHz ({t_words})")
+        cure = (f"an axial spacing of {dx * r:.4g} mm would put the carrier at {ft:g} MHz; the axial spacing is "
+                "c / (2 fs), fs the RF sampling rate")
+        lo, hi = TRANSMIT_RATIO
+        if not lo <= r <= hi:
+            raise OrientationError(
+                f"{where}{found}: outside the {lo:g}-{hi:g} times that attenuation and harmonic imaging explain, "
+                f"so the axial spacing looks wrong ({cure}); check it, or {override()}", problem="sampling")
+        if not nlo <= r <= nhi:
+            also = " (tissue harmonic imaging receives at twice the transmit frequency)" if r > nhi else \
+                " (attenuation lowers the carrier with depth, though rarely this far)"
+            notes.append(f"{where}{found}{also}: if the frames are not so, the axial spacing is off by about that "
+                         f"factor ({cure})")
+    return notes
 
 
 def transposed_as_told(message: str, where: str = "") -> str:

@@ -33,7 +33,7 @@ from .errors import InputError
 from .gnsolve import image_term, solve  # noqa: F401  (image_term: also femreg.registration.image_term)
 from .image import SplineImage, depth_fall_note, ncc, normalize_pair  # noqa: F401  (ncc: also femreg.registration.ncc)
 from .image import validate_image, validate_spacing
-from .initial import INITIAL_NAMES, initial_guess, start_search
+from .initial import INITIAL_NAMES, Previous, initial_guess, previous_or_fresh, start_search
 from .mesh import as_quad_mesh, check_element_size, check_mesh_in_image, roi_mesh
 from .paperguess import COARSE_TO_FINE_STRAIN  # noqa: F401
 from .pixels import PointLocator
@@ -82,6 +82,8 @@ def _validate(reference_image, moving_image, spacing, origin, *, regularizer, st
     as_refinement(refine)
     if initial is None:
         initial = "pyramid" if strategy == "auto" else "blockmatch"
+    if isinstance(initial, Previous) and initial.fresh is None:
+        initial = Previous(initial.u, "pyramid" if strategy == "auto" else "blockmatch")
     if isinstance(initial, str) and initial not in INITIAL_NAMES:
         raise InputError(f"initial must be 'pyramid', 'blockmatch', 'zero', a callable or a nodal vector, "
                          f"got {initial!r}")
@@ -95,6 +97,16 @@ def _refuse_the_same_frame(ref, mov, initial, offset) -> None:
     if offset is None and isinstance(initial, str) and np.array_equal(ref, mov):
         raise InputError("the reference and moving images hold the same samples: nothing moved, nothing to "
                          "register (the same frame twice, e.g. frames[0] and frames[0]?)")
+
+
+def _chosen_start(initial, ref, mov, I1, I2, mesh, spacing, origin, offset, locator):
+    """``(initial, note, term)`` of :func:`femreg.initial.previous_or_fresh`: a track's previous increment
+    (:class:`femreg.initial.Previous`) unless the frames match better without it, the image term on ``mesh``
+    built to decide; then the refusal of the same frame twice from the strategy's own start."""
+    initial, note, term = previous_or_fresh(initial, lambda: image_term(I1, I2, mesh, ref.shape, spacing, origin,
+                                                                        offset=offset, locator=locator), mesh)
+    _refuse_the_same_frame(ref, mov, initial, offset)
+    return initial, note, term
 
 
 def _mesh_stage(ref, spacing, origin, *, mesh, element_size, margin, strategy, initial, regularizer,
@@ -214,16 +226,25 @@ class _Handed:
 
 
 @contextlib.contextmanager
-def sharing_start():
+def sharing_start(handed=None):
     """Context in which :func:`noise_at_depth` hands the start it computed for its decision (the pyramid's search)
     to a later :func:`register` of the same frames with the same statistics and settings, which takes it instead of
     searching again (bit-identical: the search depends on nothing else).  :func:`femreg.track` and
-    :func:`femreg.elastogram` decide their cut on the first pair that differs and then register it."""
-    token = _SHARED.set({})
+    :func:`femreg.elastogram` decide their cut on the first pair that differs and then register it.  ``handed``:
+    a search :func:`shared_search` took from such a context in another process or thread (an elastogram's Dask
+    workers, which do not see this one's context), offered there in the same way."""
+    token = _SHARED.set({} if handed is None else {"search": handed})
     try:
         yield
     finally:
         _SHARED.reset(token)
+
+
+def shared_search():
+    """The search :func:`noise_at_depth` left in the current :func:`sharing_start` context (picklable), or None:
+    for :func:`sharing_start` (``handed``) where the pair is registered."""
+    box = _SHARED.get()
+    return None if box is None else box.get("search")
 
 
 def _search_stage(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, *, regularizer, offset, stats, settings,
@@ -480,7 +501,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
                                            rectangle=rect)
     locator = PointLocator(fe_mesh)
     timings["mesh"] = time.perf_counter() - t
-    _refuse_the_same_frame(ref, mov, initial, offset)
+    initial, fresh_note, term0 = _chosen_start(initial, ref, mov, I1, I2, fe_mesh, spacing, origin, offset, locator)
 
     # -- initial guess ---------------------------------------------------------------------------------------
     t = time.perf_counter()
@@ -504,7 +525,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         solve_kw.update(mask_outside=True, tol=component_tol(tol, u0), strain_tol=st if st > 0 else None)
     def fine_solve(u, **kw):            # Gauss-Newton on the final mesh from the nodal displacement u
         return solve(I1, I2, fe_mesh, ref.shape, spacing, origin, reg_factory, u, locator=locator, **kw)
-    sol = fine_solve(u0, callback=callback, **solve_kw)
+    sol = fine_solve(u0, callback=callback, term=term0, **solve_kw)
     timings.update(gauss_newton=time.perf_counter() - t, per_iteration=list(sol.gn.timings))
 
     # -- repair and check ------------------------------------------------------------------------------------
@@ -517,7 +538,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
             sol, lambda u: fine_solve(u, **dict(solve_kw, strain_tol=tight)), fe_mesh,
             stats.period if stats is not None else rf_period(ref, spacing),
             None if start.coarse_u0 is None else start.coarse_u0[0::2])
-    notes += depth_fall_note(ref, spacing)          # an echo weakening with depth: one alpha weighs it unevenly
+    notes += depth_fall_note(ref, spacing) + [fresh_note] * bool(fresh_note)   # echo weakening; started afresh
     marked, sol = lambda_bar_stage(sol, user_reg, notes, lambda u: fine_solve(u, callback=callback, **solve_kw),
                                    follows=lambda_bar_follows_data(strategy, regularizer, regularizer_options, maxiter)
                                    and not (envelope or any(hops)))       # R_P_sigma's lambda_bar from the data
@@ -542,6 +563,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
     timings.update(check=time.perf_counter() - t, total=time.perf_counter() - t_all)
     # -- result ----------------------------------------------------------------------------------------------
     notes += check.notes
+    notes += orientation.period_notes(ref, period)     # a carrier outside clinical probes' band: dx suspect
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "

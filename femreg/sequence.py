@@ -41,6 +41,7 @@ from ._atomic import atomic_write_text, load_frame_record, open_run_folder, prog
 from .echo import as_data_mask, crop_for
 from . import orientation
 from .errors import InputError, pass_as
+from .initial import Previous
 from .image import (refuse_repeated_start, repeat_note, repeated_frames, require_spacing, validate_image,
                     validate_spacing)
 from .mesh import as_quad_mesh, check_element_size, roi_mesh
@@ -201,7 +202,9 @@ def track(frames, *, spacing=None, origin=(0.0, 0.0), regularizer="momentum-stre
         afresh.  An increment started from the previous one that is flagged (e.g. peak hopping where the
         compression per frame varies) is registered again from a fresh start, and the fresh result is kept unless
         it is flagged too (then the one with the higher NCC after registration); ``SequenceResult.retried`` lists
-        those frames.
+        those frames.  An increment whose frames match at least as well with no motion as with the previous
+        increment (a nearly still frame after a moving one) starts afresh at once, its message saying "started
+        afresh" (:class:`femreg.initial.Previous`): from the previous increment the solve stayed an RF period off.
     mesh, element_size, margin
         One mesh over frame 0 for every frame (default ROI mesh of :func:`femreg.mesh.roi_mesh`, elements sized
         from frame 0's speckle as :func:`femreg.register` does with ``strategy="auto"``).
@@ -464,10 +467,14 @@ def _run(seq, frame_kwargs, fe_mesh, crop, *, regularizer, alpha, mode, grid, in
                                      allow_mesh_outside=True)
                     else:
                         where.update(mesh=fe_mesh, offset=S if k > 1 else None)
+                    # the previous increment unless the frames match better with no motion (a still frame after a
+                    # moving one: femreg.initial.Previous); not on convex / sector frames (their own register)
+                    previous = prev_inc if prev_inc is None or "geometry" in frame_kwargs else \
+                        Previous(prev_inc, fresh_start)
                     # flagged from the previous increment: registered again from the fresh start
                     res, inc, retried = retry_flagged(
                         lambda initial: _increment(seq, k, initial, S, fe_mesh, frame_kwargs, where, regularizer,
-                                                   alpha, inc_kwargs), prev_inc, fresh_start, fresh, min_ncc, k)
+                                                   alpha, inc_kwargs), previous, fresh_start, fresh, min_ncc, k)
                 if crop is not None:
                     crop.widen(res)
                 elif uncut is not None:

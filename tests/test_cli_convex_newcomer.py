@@ -67,7 +67,7 @@ def test_header_struct_names_the_probe(files, capsys):
         rc, out, err = _cli(["info", files / name], capsys)
         assert rc == 1 and "--geometry convex --radius 40 --angle-pitch 0.6" in out, out
         assert "auto" in out                                # no lateral pitch asked for
-    rc, out, err = _cli(["elastogram", files / "step.mat", "--spacing", 0.0385, 0.2, "-o", files / "el"], capsys)
+    rc, out, err = _cli(["elastogram", files / "step.mat", "--spacing", 0.01925, 0.2, "-o", files / "el"], capsys)
     assert rc == 2 and "--geometry convex --radius 40 --angle-pitch 0.6" in err and "--geometry linear" in err, err
 
 

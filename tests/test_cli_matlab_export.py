@@ -462,9 +462,13 @@ def test_no_elastogram_draws_no_colour_bar_over_empty_panels(export, tmp_path, c
 def test_a_spacing_against_the_files_fields_is_noted(export, capsys):
     d, _ = export
     rc, out, err = _run(["info", d / "scan.mat", "--transpose", "--spacing", "0.025", "0.2"], capsys)
-    # before: "needs nothing: ready to register", every depth 30 % off without a word
-    assert rc == 0 and "--spacing differs from what the file's fields imply (axial 0.025 mm against 0.01925" in err
+    # before: "needs nothing: ready to register", every depth 30 % off without a word; 30 % from c / (2 fs) is
+    # more than tissue's speed of sound explains: a need now (register refuses it, femreg.orientation.check_sampling)
+    assert rc == 1 and "the axial spacing 0.025 mm given implies 30.8 MHz sampling" in out, out
+    assert "--spacing differs from what the file's fields imply (axial 0.025 mm against 0.01925" in err
     assert "lateral" not in err.split("imply (")[1].split(":")[0], err
+    rc, out, err = _run(["info", d / "scan.mat", "--transpose", "--spacing", "0.0205", "0.2"], capsys)
+    assert rc == 0 and "implies" not in out and "(axial 0.0205 mm against 0.01925" in err   # 6.5 %: a note only
     rc, out, err = _run(["info", d / "scan.mat", "--transpose", *SPACING], capsys)
     assert rc == 0 and "note" not in err, err
 

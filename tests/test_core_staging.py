@@ -56,6 +56,28 @@ def test_the_first_pair_is_searched_once(plain_loop, monkeypatch, run):
     assert max(seen.values()) == 1, f"a pair searched {max(seen.values())} times: {list(seen.values())}"
 
 
+def test_the_workers_path_shares_the_first_search(plain_loop, monkeypatch):
+    # the pairs registered on Dask workers: the first run's first pair took the cut decision's search only in the
+    # caller's process (a worker does not see its context), so frames 0 and 1 were searched twice.  One worker of
+    # threads runs the workers path in this process (the counter sees it) on one run of pairs: the same order of
+    # warm starts as workers=1, so the same arrays
+    distributed = pytest.importorskip("distributed")
+    s = plain_loop
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        one = elastogram(s.frames, spacing=s.spacing, origin=s.origin, maxiter=3)
+        seen = _count_searches(monkeypatch)
+        with distributed.Client(processes=False, n_workers=1, threads_per_worker=1,
+                                dashboard_address=None) as client:
+            pool = elastogram(s.frames, spacing=s.spacing, origin=s.origin, maxiter=3, client=client)
+    assert sum(r["registered"] for r in pool.pairs) >= 2, pool.pairs      # the workers path (more than one pair)
+    assert sum(seen.values()) >= 1, "the counter saw no search"
+    assert max(seen.values()) == 1, f"a pair searched {max(seen.values())} times: {list(seen.values())}"
+    for name in ("exx", "quality", "cine"):
+        assert np.array_equal(getattr(one, name), getattr(pool, name), equal_nan=True), name
+    assert [r["strain"] for r in one.pairs] == [r["strain"] for r in pool.pairs]
+
+
 def test_noise_at_depth_stops_at_the_decision(plain_loop, monkeypatch):
     # register runs up to its decision and no further: no Gauss-Newton (neither the pyramid's coarse solve nor the
     # final one), and the decision is the one register makes on the pair

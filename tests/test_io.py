@@ -256,7 +256,10 @@ def test_ultrasonix_layout_header_and_tags(tmp_path, tags):
         assert fr.metadata["frame_numbers"] == [100, 101, 102]
     assert read_frames(tmp_path / "a.rf", spacing=(None, 0.3), sound_speed=1500).spacing[0] == \
         pytest.approx(1500e3 / 80e6)
-    assert read_frames(tmp_path / "a.rf", spacing=(0.05, 0.3)).spacing == (0.05, 0.3)
+    # a given axial spacing 2.6 x c / (2 sf) contradicts the header: refused, unless the check is overridden
+    with pytest.raises(InputError, match=r"file states 40 MHz .* c / \(2 fs\) is 0\.01925 mm"):
+        read_frames(tmp_path / "a.rf", spacing=(0.05, 0.3))
+    assert read_frames(tmp_path / "a.rf", spacing=(0.05, 0.3), check_orientation=False).spacing == (0.05, 0.3)
     np.testing.assert_array_equal(read_frames(tmp_path / "a.rf", spacing=(None, 0.3), frames=[2, 0]).frames,
                                   fr.frames[[2, 0]])
 

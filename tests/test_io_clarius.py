@@ -156,3 +156,22 @@ def test_iq_export_is_named_and_refused(tmp_path):
     # an RF export of the same sizes is not read as IQ
     q = _clarius(tmp_path / "scan_rf.raw", _coded(n, nl, ns))
     assert "iq" not in sniff(q)
+
+
+def test_the_header_is_read_once(tmp_path, monkeypatch):
+    # read_raw asked whether the file is a Clarius export and read_clarius read its header again: two reads of it
+    # (and, for a file that is none, one more by the truncation check)
+    import femreg.io.clarius as clarius
+
+    reads = []
+    header = clarius._header
+    monkeypatch.setattr(clarius, "_header", lambda path: reads.append(path) or header(path))
+    p = _clarius(tmp_path / "scan_rf.raw", _coded())
+    assert read_frames(p, spacing=(0.01925, 0.3)).frames.shape == (3, 40, 6)
+    assert len(reads) == 1, reads
+    reads.clear()
+    short = tmp_path / "short_rf.raw"
+    short.write_bytes(p.read_bytes()[:-10])          # cut short: named, from the same single reading
+    with pytest.raises(FileFormatError, match="truncated Clarius raw export"):
+        read_frames(short, spacing=(0.01925, 0.3))
+    assert len(reads) == 1, reads

@@ -195,6 +195,7 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
     folder of several, recordings that cannot be read are left to their tasks, which record the error."""
     from ..errors import FileFormatError
     from ..io import read_frames
+    from ..orientation import OrientationError
 
     probed = []
     for job in jobs[:3]:
@@ -202,6 +203,8 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
             reader_kw, _ = _check_settings(job.resolved(), job.input)
             probed.append((job, read_frames(job.input, **reader_kw)))
         except (InputError, OSError) as exc:
+            if isinstance(exc, OrientationError) and exc.problem == "sampling":
+                raise _named(job, exc) from None   # a spacing against the file's sampling rate: before any work
             if refuse_unreadable and len(jobs) == 1 and isinstance(exc, InputError):   # nothing else would run
                 raise
             if refuse_unreadable and isinstance(exc, InputError) and not isinstance(exc, FileFormatError):
@@ -243,7 +246,9 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
         try:
             reader_kw, _ = _check_settings(other.resolved(), other.input)
             first = read_frames(other.input, **{**reader_kw, "frames": slice(0, 1)})
-        except (InputError, OSError):
+        except (InputError, OSError) as exc:
+            if isinstance(exc, OrientationError) and exc.problem == "sampling":
+                raise _named(other, exc) from None   # a spacing against the file's sampling rate
             continue            # unreadable: left to its tasks, which record the error
         _check_orientation(other, first)
 
@@ -251,7 +256,7 @@ def _check_first_recordings(item: Path, jobs: list, refuse_unreadable: bool = Fa
 def _check_orientation(job, fr) -> None:
     """:class:`OrientationError` naming ``job``'s recording when its frames ``fr`` look transposed or its spacing
     swapped (:mod:`femreg.orientation`); nothing when its settings turn the check off."""
-    from ..orientation import OrientationError, check, check_raw_shape, transposed_as_told
+    from ..orientation import OrientationError, check, check_raw_shape
 
     if job.resolved().get("no_orientation_check"):
         return
@@ -260,11 +265,22 @@ def _check_orientation(job, fr) -> None:
         # a file's whole frame: its size counts too (a spacing in cm)
         check(fr.frames[0], fr.spacing, whole_frame=fr.frames.ndim == 3)
     except OrientationError as exc:
-        msg, p = str(exc), Path(job.input)
-        sf = settings_file_for(p)
-        if job.resolved().get("transpose"):
-            own = sf or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
-            msg = transposed_as_told(msg, f"for this recording ({own.name} beside it: transpose = false)")
-        if sf is not None and sf.name not in msg:
-            msg += f" ({sf.name} beside the recording sets its own settings, which override the command line)"
-        raise OrientationError(f"{job.input}: {msg}", problem=exc.problem) from None
+        raise _named(job, exc) from None
+
+
+def _named(job, exc):
+    """The :class:`OrientationError` ``exc`` of ``job``'s recording, naming it and the settings file beside it
+    (whose settings override the command line); a transposed refusal of frames already read with ``transpose``
+    says to leave it out."""
+    from ..orientation import OrientationError, transposed_as_told
+
+    msg, p = str(exc), Path(job.input)
+    sf = settings_file_for(p)
+    if job.resolved().get("transpose"):
+        own = sf or p.with_name(f"{p.name if p.is_dir() else p.stem}.femreg.toml")
+        msg = transposed_as_told(msg, f"for this recording ({own.name} beside it: transpose = false)")
+    if sf is not None and sf.name not in msg:
+        msg += f" ({sf.name} beside the recording sets its own settings, which override the command line)"
+    if not msg.startswith(f"{job.input}: ") and not msg.startswith(f"{Path(job.input)}: "):
+        msg = f"{job.input}: {msg}"
+    return OrientationError(msg, problem=exc.problem)

@@ -88,7 +88,9 @@ def _check_settings(settings: dict, where: str) -> dict:
         if v is not None and not isinstance(v, (list, tuple)):
             s[key] = [v]
     try:
-        reader = reader_kwargs(s)
+        # the reader's checks (the file's calibration, sampling rate, IQ) go with the orientation check, as on
+        # the command line
+        reader = dict(reader_kwargs(s), check_orientation=not s.get("no_orientation_check", False))
         reg = registration_kwargs(s)
     except (InputError, TypeError) as exc:
         raise InputError(f"{where}: {exc}") from None

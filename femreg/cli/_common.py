@@ -109,6 +109,7 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
     _note_region_in_centimetres(fr, path, args)
+    _note_sampling(fr, path, args, check_shape)
     if check_shape:
         try:
             check_raw_shape(fr)
@@ -116,6 +117,28 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
+
+
+def _note_sampling(fr, path, args, checked: bool) -> None:
+    """On stderr: the notes of :func:`femreg.orientation.check_sampling` (the carrier a little off the header's
+    transmit frequency), and for ``track`` and ``elastogram``, whose pairs' messages are not printed, a carrier
+    outside clinical probes' band (:func:`femreg.orientation.frequency_note`, which ``register`` puts in its
+    message); once per file and text."""
+    import numpy as np
+
+    from ..orientation import carrier_frequency, frequency_note
+
+    meta = fr.metadata or {}
+    notes = list(meta.get("sampling_notes") or [])
+    if checked and not notes and getattr(args, "command", None) in ("track", "elastogram") \
+            and fr.spacing is not None and "iq" not in meta and not np.iscomplexobj(fr.frames):
+        note = frequency_note(carrier_frequency(fr.frames[0], fr.spacing[0]))
+        notes += [f"{path}: {note}"] if note else []
+    who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
+    for note in notes:
+        if (str(path), note) not in _NOTED:
+            _NOTED.add((str(path), note))
+            print(f"{who}: note: {note}", file=sys.stderr)
 
 
 def _dtype_name(dtype) -> str:
@@ -538,6 +561,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     the count and the elapsed time, and the run draws no progress lines of its own (``reports_progress``)."""
     import time
 
+    from ..initial import FRESH_NOTE
+
     done = []
     start = time.monotonic()
     as_progress = not args.no_progress and not stderr_is_terminal()
@@ -553,6 +578,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         if getattr(res, "retried", ""):     # the start from the previous increment was flagged
             what += ", retried from a fresh start"
+        elif FRESH_NOTE in (getattr(res, "message", "") or ""):     # femreg.initial.previous_or_fresh
+            what += ", started afresh (no motion matched better than the previous increment)"
         # with the progress bar on, the per-frame line goes to stderr beside the bar
         where = f" (the file's frame {file_frame(sel, k)})" if moved else ""
         print(f"frame {k:3d}{where}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),

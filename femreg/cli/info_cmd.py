@@ -109,10 +109,12 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
         out.update(values_of="|IQ|", needs=[])
         return out
     if spacing_known:
-        from ..orientation import diagnose
+        from ..orientation import diagnose, frequency_note
 
         rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
-        out["rf_check"] = "" if rep.problem else _rf_line(rep, a[0], fr.spacing, fr.origin)
+        out["rf_check"] = "" if rep.problem else "; ".join(
+            t for t in (_rf_line(rep, a[0], fr.spacing, fr.origin),
+                        frequency_note(rep.frequency_mhz) if rep.has_carrier else "") if t)
         out["needs"] = [rep.message] if rep.problem else []
         out["transposed"] = rep.problem == "transposed"
         out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
@@ -153,20 +155,31 @@ def _probe_need(info) -> str:
             "(--geometry linear if the frames are on a Cartesian grid already)") if hint else ""
 
 
-def _spacing_conflict(info, args) -> list:
+def _spacing_conflict(info, args, fr=None) -> list:
     """The refusal of ``register`` / ``track`` for a ``--spacing`` that contradicts the file's calibration (a
-    DICOM ultrasound region's), as a list of needs ([] when it agrees or the file states none)."""
+    DICOM ultrasound region's), and of frames whose axial spacing contradicts the file's RF sampling rate or
+    transmit frequency (:func:`femreg.orientation.check_sampling`, on ``fr``, the frames as read), as a list of
+    needs ([] when they agree or the file states none); the latter's notes go to ``info["note"]``."""
     from ..io.frames import Frames
     from ..io.readers import _check_given_spacing
+    from ..orientation import check_sampling
 
-    meta = info.get("metadata") or {}
-    if getattr(args, "spacing", None) is None or meta.get("header_spacing") is None:
-        return []
+    meta = dict(info.get("metadata") or {}, format=info.get("format", ""))
+    if info.get("spacing_mm") is None or getattr(args, "spacing_stand_in", False):
+        return []           # no spacing, or a stand-in
+    given = getattr(args, "spacing", None)
+    if fr is None:          # no samples: only the spacing is held against the header
+        fr = Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]), metadata=meta,
+                    source=info["file"])
     try:
-        _check_given_spacing(Frames(frames=np.zeros((1, 2, 2)), spacing=tuple(info["spacing_mm"]),
-                                    metadata=meta, source=info["file"]), args.spacing)
+        if given is not None and meta.get("header_spacing") is not None:
+            _check_given_spacing(fr, given)
+        notes = [] if info.get("rf_check") == "" else check_sampling(   # "": refused by the orientation checks
+            fr, given, sound_speed=getattr(args, "sound_speed", None), where=f"{info['file']}: ")
     except InputError as exc:
         return [str(exc)]
+    if notes:
+        info["note"] = "; ".join(n for n in (info.get("note"), *notes) if n)
     return []
 
 
@@ -336,8 +349,10 @@ def run(args) -> int:
 
     if getattr(args, "volume", False) or _volumes_only(path):   # as register and track read it
         return _run_volumes(path, args)
+    fr = None
     try:
-        info = describe(frames_from_args(args, allow_sector=True, check_shape=False))
+        fr = frames_from_args(args, allow_sector=True, check_shape=False)
+        info = describe(fr)
     except FileFormatError as exc:    # a file that can only hold volumes names the volume reader
         if "read_volumes" not in str(exc):
             raise
@@ -392,7 +407,7 @@ def run(args) -> int:
         note = _header_spacing_note(args, OrientationError("", problem=info["spacing_problem"]))
         info["needs"][0] = file_spacing_wording(info["needs"][0]) + note
     info.pop("spacing_problem", None)
-    info["needs"] += _spacing_conflict(info, args)
+    info["needs"] += _spacing_conflict(info, args, fr)
     start = _origin_note(info, args)
     if start:
         info["note"] = "; ".join(n for n in (info.get("note"), start) if n)

@@ -18,7 +18,7 @@ __all__ = ["fail", "check_spacing", "check_origin", "merge_spacing", "select_fra
            "validate_volumes", "FORMATS", "parse_dtype", "spacing_hint", "spacing_suggestion", "SpacingSuggestion", "geometry_fields", "geometry_hint",
            "axis_fields", "header_axes", "header_fields", "origin_hint",
            "unapplied_start_depth", "AXIS_MAX",
-           "iq_frequency_hint", "scalar_fields", "natural_key"]
+           "iq_frequency_hint", "scalar_fields", "natural_key", "header_frequencies"]
 
 FORMATS = {
     ".npy": "npy", ".npz": "npz", ".mat": "mat", ".mhd": "metaimage", ".mha": "metaimage",
@@ -546,6 +546,38 @@ def iq_frequency_hint(fields: dict) -> str:
                 return (f"its fields suggest --iq-frequency {f:.3g} ({name} = {v:g} read as {f:.6g} MHz"
                         f"{'; ' + why if why else ''})")
     return ""
+
+
+def header_frequencies(metadata) -> dict:
+    """The RF sampling rate, transmit (centre) frequency and speed of sound a :class:`femreg.io.Frames`' header
+    states, as ``{"fs_mhz": (MHz, words), "transmit_mhz": (MHz, words), "sound_speed": (m/s, words)}`` with the
+    entries found ({} for none): an Ultrasonix header's ``sf`` and ``txf`` (Hz; 0 is unknown), else the header
+    fields (:func:`header_fields`: a Clarius settings file's ``sampling rate`` and ``transmit frequency``, a
+    sidecar's ``fs_MHz``, ``f0``, ``center_frequency``, ``c``).  Units from the name's suffix or else the magnitude
+    (above 1e4: Hz).  A frequency outside 0.1-1000 MHz is no ultrasound setting and is left out.  What
+    :func:`femreg.orientation.check_sampling` holds a given spacing and the RF carrier against."""
+    meta = dict(metadata or {})
+    inner = dict(meta.get("file_metadata") or {})
+    out = {}
+    for m in (meta, inner):
+        hdr = m.get("header")
+        if str(m.get("format", "")) == "ultrasonix" and isinstance(hdr, dict):
+            for key, name in (("fs_mhz", "sf"), ("transmit_mhz", "txf")):
+                v = _positive(hdr.get(name))
+                if v is not None and 0.1 <= v / 1e6 <= 1000.0 and key not in out:
+                    out[key] = (v / 1e6, f"its Ultrasonix header's {name} = {v:g} Hz")
+    for name, value in header_fields(metadata).items():
+        v = _positive(value)
+        if v is None:
+            continue
+        base, unit = _key(name)
+        for key, names in (("fs_mhz", _FS_NAMES), ("transmit_mhz", _CENTRE_NAMES)):
+            f = _hz(v, unit) / 1e6
+            if base in names and key not in out and 0.1 <= f <= 1000.0:
+                out[key] = (f, f"its field {name} = {v:g}" + ("" if unit == "mhz" else f", read as {f:g} MHz"))
+        if base in _C_NAMES and "sound_speed" not in out and 1000.0 <= v <= 2000.0:
+            out["sound_speed"] = (v, f"its field {name} = {v:g} m/s")
+    return out
 
 
 #: Longest vector a reader reads as a possible axis (ray angles, depths), not as data.

@@ -14,7 +14,11 @@ headerless ``.raw`` file matches that by chance essentially never.
 Settings: the export writes a YAML file beside the data (``scan_rf.yml`` for ``scan_rf.raw``) with the sampling
 rate (e.g. ``sampling rate: 40 MHz``) and the probe.  Its numbers are listed and the ``--spacing`` they imply is
 named (``c / (2 fs)`` axially, the probe's pitch laterally where stated), as a headerless file's JSON sidecar;
-never applied: the spacing is the user's to pass.
+never applied: the spacing is the user's to pass.  The sampling rate and transmit frequency are what a given
+spacing is held against (:func:`femreg.orientation.check_sampling`).  ``delay samples`` is listed, not taken for
+the first sample's depth: Clarius's example readers and PyQuantUS's parser leave it out (the latter spaces the
+samples from 0 to the imaging depth), and on Clarius's example exports ``samples x c / (2 fs)`` equals the
+``imaging depth`` (3120 samples at 60 MHz: 40.0 mm of 40), which a record starting 62 samples deep would overshoot.
 """
 from __future__ import annotations
 
@@ -52,9 +56,10 @@ def _header(path) -> tuple | None:
     return size, dict(zip(HEADER_FIELDS, (int(v) for v in np.frombuffer(raw, "<i4"))))
 
 
-def sniff(path) -> dict | None:
-    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None."""
-    head = _header(path)
+def sniff(path, head=None) -> dict | None:
+    """The header fields when ``path`` is a Clarius raw file (its size matches the header exactly), else None.
+    ``head``: :func:`_header`'s reading of ``path``, if already made (read here otherwise)."""
+    head = _header(path) if head is None else head
     if head is None:
         return None
     size, hdr = head
@@ -70,10 +75,11 @@ def sniff(path) -> dict | None:
     return None
 
 
-def cut_short(path) -> str:
+def cut_short(path, head=None) -> str:
     """A message when ``path`` starts with a plausible Clarius header (RF or envelope samples, sizes in range) but
-    is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else ""."""
-    head = _header(path)
+    is shorter than its frames need (a copy or transfer cut short), naming the whole frames it holds; else "".
+    ``head`` as :func:`sniff`'s."""
+    head = _header(path) if head is None else head
     if head is None:
         return ""
     size, hdr = head
@@ -130,13 +136,14 @@ def settings_fields(path) -> tuple:
     return None, {}
 
 
-def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, **_ignored):
+def read_clarius(path, *, spacing=None, frames=None, shape=None, dtype=None, header=None, **_ignored):
     """Read a Clarius raw file: the fields of a :class:`~femreg.io.Frames` (see the module doc), frames
-    ``(n, samples, lines)`` float32, the time stamps (ns) and the settings file's numbers in the metadata."""
+    ``(n, samples, lines)`` float32, the time stamps (ns) and the settings file's numbers in the metadata.
+    ``header``: :func:`sniff`'s fields of ``path`` where the caller has them (the file's header is not read again)."""
     from .checks import select_frames
 
     path = Path(path)
-    hdr = sniff(path)
+    hdr = sniff(path) if header is None else header
     if hdr is None:
         raise fail(path, "not a Clarius raw file (its size does not match a 5-field header's frames)")
     n, nl, ns, sz = hdr["frames"], hdr["lines"], hdr["samples"], hdr["samplesize"]

@@ -299,14 +299,13 @@ def read_raw(path, *, shape=None, dtype=None, byte_order=None, spacing=None, fra
     (n, axial, lateral) requires exactly n.  Layout C-order: lateral fastest (as ``np.fromfile(...).reshape``)."""
     path = Path(path)
     if not offset:
-        from .clarius import read_clarius, sniff
+        from .clarius import _header, cut_short, read_clarius, sniff
 
-        if sniff(path) is not None:     # a Clarius export: its header states the shape and type
-            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames)
+        head = _header(path)            # the first bytes, read once for both questions below
+        if (hdr := sniff(path, head)) is not None:     # a Clarius export: its header states the shape and type
+            return read_clarius(path, shape=shape, dtype=dtype, spacing=spacing, frames=frames, header=hdr)
         if shape is None:
-            from .clarius import cut_short
-
-            cut = cut_short(path)
+            cut = cut_short(path, head)
             if cut:
                 raise fail(path, cut)
     shp = _check_shape(shape)
@@ -536,7 +535,9 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         is transposed to (axial, lateral) as read.  A given ``spacing`` is that of the transposed frames (axial,
         lateral); a spacing the file stores goes with its axes (exchanged too).
     check_orientation : bool
-        Refuse a ``spacing`` that contradicts the file's calibration (above), and a raw file read with its two
+        Refuse a ``spacing`` that contradicts the file's calibration (above) or its header's RF sampling rate or
+        transmit frequency (:func:`femreg.orientation.check_sampling`; a milder mismatch of the carrier with the
+        transmit frequency is noted in ``metadata["sampling_notes"]``), and a raw file read with its two
         sizes exchanged (``shape`` given lines first: the frames come out scrambled,
         :func:`femreg.orientation.check_raw_shape`).  IQ data: refuse spacings that look
         exchanged (:func:`femreg.orientation.check_remodulated`; the RF checks of :func:`femreg.register` cannot
@@ -571,6 +572,12 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
             raise OrientationError(f"{fr.source}: {exc}", problem=exc.problem) from None
     if check_orientation and spacing is not None:
         _check_given_spacing(fr, spacing)
+    if check_orientation:       # the axial spacing against the header's sampling rate and transmit frequency
+        from ..orientation import check_sampling
+
+        notes = check_sampling(fr, spacing, sound_speed=sound_speed, where=f"{fr.source}: ")
+        if notes:
+            fr.metadata["sampling_notes"] = notes
     if origin is not None:
         fr.origin = check_origin(origin)
         fr.metadata["origin_given"] = True
