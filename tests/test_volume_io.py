@@ -169,6 +169,9 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "3", "2"]) == 0 and png.stat().st_size > 0
     assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "0"]) == 2
     assert "takes X Y Z" in capsys.readouterr().err
+    # an axial spacing twice c / (2 fs) of the file's fs (the frames' check, now on volumes): before, registered
+    assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.05", "0.2", "0.25"]) == 2
+    assert "pass --spacing 0.025 0.2 0.25 (axial, lateral, elevational mm)" in capsys.readouterr().err
     assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2"]) == 2
     assert "volumes take --spacing DX DY DZ" in capsys.readouterr().err
     # elastogram takes frames: said before it asks for a spacing (before: the spacing, then "4 dimension(s)")

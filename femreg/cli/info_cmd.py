@@ -264,7 +264,7 @@ def describe_volumes(path: Path, args) -> dict:
     except InputError as exc:
         if not isinstance(exc, SpacingUnknownError):
             raise
-        vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), **kw)
+        vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), check_sampling=False, **kw)
         known = False
         sug = getattr(exc, "suggestion", None)
         needs.append("no spacing found: volumes need spacing (dx, dy, dz) in mm stored with them (npz key "

@@ -207,6 +207,9 @@ def read_mat_volume(path, *, variable=None, spacing=None, frames=None, **_ignore
     if arr.ndim == 4:
         arr = np.moveaxis(arr, -1, 0)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    fields = scalar_fields((aux.get("scalars") or {}).items())
+    if fields:                      # the sampling rate a given spacing is held against (read_volumes)
+        meta["fields"] = fields
     return validate_volumes(path, arr, sp, origin, meta, frames)
 
 
