@@ -377,19 +377,25 @@ def unmatched_crop_volume(reference, moving, start, mesh, spacing, origin, margi
     s = loc.sample(np.asarray(start, float), P)
     U = np.nan_to_num(np.stack([s["ux"], s["uy"], s["uz"]], axis=-1)).reshape(zs.size, rows.size, ny, 3)
     U = interp1d(rows, U, axis=1, assume_sorted=True)(np.arange(nx))          # (planes, nx, ny, 3)
-    # the moving envelope on the planes the warped points reach
+    # the moving envelope on the planes each plane's warped points reach (a few planes in memory, not a volume)
     reach = zs[:, None] + np.stack([U[..., 2].min(axis=(1, 2)), U[..., 2].max(axis=(1, 2))], axis=1) / sp[2]
-    need = np.unique(np.concatenate([np.arange(np.floor(a), np.ceil(b) + 1) for a, b in reach]).clip(0, nz - 1)
-                     .astype(int))
-    mov_env = np.zeros_like(mov)
-    for k in need:
-        mov_env[:, :, k] = envelope(mov[:, :, k])
+    cache = {}
+
+    def mov_env(k):
+        if k not in cache:
+            cache[k] = envelope(mov[:, :, k])
+        return cache[k]
+
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     planes = []
     for n, z in enumerate(zs):
         u = U[n]
-        warped = ndimage.map_coordinates(mov_env, [ii + u[..., 0] / sp[0], jj + u[..., 1] / sp[1],
-                                                   z + u[..., 2] / sp[2]], order=1, mode="constant")
+        lo, hi = (int(np.clip(v, 0, nz - 1)) for v in (np.floor(reach[n, 0]), np.ceil(reach[n, 1])))
+        sub = np.stack([mov_env(k) for k in range(lo, hi + 1)], axis=2)
+        for k in [k for k in cache if k < lo]:      # planes left behind (zs ascends)
+            del cache[k]
+        warped = ndimage.map_coordinates(sub, [ii + u[..., 0] / sp[0], jj + u[..., 1] / sp[1],
+                                               z - lo + u[..., 2] / sp[2]], order=1, mode="constant")
         bm = block_match(envelope(ref[:, :, z]), warped, sp[:2], org[:2], window=tuple(settings.window),
                          overlap=(0.5, 0.5), search=tuple(settings.search), median_size=3, subsample=True,
                          compand_strain=None)
