@@ -38,10 +38,13 @@ from .errors import InputError
 from .speckle import envelope, rf_period
 
 __all__ = ["EchoBox", "find_echo_volume", "crop_for_volume", "region_from_mm_volume", "VolumeCrop", "route_volume",
-           "VETO_PLANES"]
+           "unmatched_crop_volume", "VETO_PLANES"]
 
-#: Elevational planes (at most) a strip's frame-to-frame veto is measured on.
+#: Elevational planes (at most) a strip's frame-to-frame veto is measured on (and the block matching of
+#: :func:`unmatched_crop_volume`).
 VETO_PLANES = 8
+#: Depth step (mm) at which :func:`unmatched_crop_volume` samples the start's displacement (linear between).
+STEP_MM = 0.25
 
 
 @dataclass
@@ -335,3 +338,77 @@ def route_volume(register_volume, args: dict):
         return None
     kw.update(extra, origin=crop.origin, roi=None, depth=None)
     return crop.widen(register_volume(*crop.frames(args["reference_image"], args["moving_image"]), **kw))
+
+
+def unmatched_crop_volume(reference, moving, start, mesh, spacing, origin, margin=None) -> VolumeCrop | None:
+    """The volumes cut above the depth where they stop matching after the start has searched out the motion, or
+    None: :func:`femreg.echo.unmatched_crop` (its rule and constants: noise a time-gain compensation lifts to the
+    echo's level at depth) on the block matching of up to :data:`VETO_PLANES` elevational planes.
+
+    ``reference``, ``moving``: (n_x, n_y, n_z) RF volumes (validated); ``start``: the registration's start, nodal
+    u (3 n_nodes,) of the tensor hexahedral ``mesh`` (:func:`femreg.volume.coarse_to_fine`); ``spacing``,
+    ``origin`` mm; ``margin``: the mesh margin (mm, default :data:`femreg.voxels.DEFAULT_MARGIN_3D`).  On each
+    plane z the reference envelope is block-matched (:func:`femreg.blockmatch.block_match`, the windows and
+    search of the 2D pyramid's local search, :func:`femreg.pyramid.image_settings`) against the moving envelope
+    read at (x, y, z) + u(x, y, z); the planes' windows side by side make the rows whose median NCC the 2D rule
+    reads.  Only the depth can be cut: rows of windows at the box's bottom."""
+    from scipy import ndimage
+    from scipy.interpolate import interp1d
+
+    from .blockmatch import BlockMatchResult, block_match
+    from .echo import unmatched_crop
+    from .pyramid import image_settings
+    from .volume_fields import HexLocator
+    from .voxels import DEFAULT_MARGIN_3D
+
+    t = time.perf_counter()
+    ref, mov = np.asarray(reference, float), np.asarray(moving, float)
+    nx, ny, nz = ref.shape
+    sp, org = np.asarray(spacing, float), np.asarray(origin, float)
+    zs = np.unique(np.linspace(0, nz - 1, min(nz, VETO_PLANES)).round().astype(int))
+    _, settings = image_settings(ref[:, :, nz // 2], sp[:2])
+    # u of the start on every plane, sampled every STEP_MM of depth and read linearly between (the start is
+    # trilinear on elements of about 2 mm)
+    rows = np.unique(np.r_[np.arange(0, nx, max(1, int(STEP_MM / sp[0]))), nx - 1])
+    Xs, Y = np.meshgrid(org[0] + sp[0] * rows, org[1] + sp[1] * np.arange(ny), indexing="ij")
+    loc = HexLocator(mesh)
+    P = np.column_stack([np.tile(Xs.ravel(), zs.size), np.tile(Y.ravel(), zs.size),
+                         np.repeat(org[2] + sp[2] * zs, Xs.size)])
+    s = loc.sample(np.asarray(start, float), P)
+    U = np.nan_to_num(np.stack([s["ux"], s["uy"], s["uz"]], axis=-1)).reshape(zs.size, rows.size, ny, 3)
+    U = interp1d(rows, U, axis=1, assume_sorted=True)(np.arange(nx))          # (planes, nx, ny, 3)
+    # the moving envelope on the planes each plane's warped points reach (a few planes in memory, not a volume)
+    reach = zs[:, None] + np.stack([U[..., 2].min(axis=(1, 2)), U[..., 2].max(axis=(1, 2))], axis=1) / sp[2]
+    cache = {}
+
+    def mov_env(k):
+        if k not in cache:
+            cache[k] = envelope(mov[:, :, k])
+        return cache[k]
+
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    planes = []
+    for n, z in enumerate(zs):
+        u = U[n]
+        lo, hi = (int(np.clip(v, 0, nz - 1)) for v in (np.floor(reach[n, 0]), np.ceil(reach[n, 1])))
+        sub = np.stack([mov_env(k) for k in range(lo, hi + 1)], axis=2)
+        for k in [k for k in cache if k < lo]:      # planes left behind (zs ascends)
+            del cache[k]
+        warped = ndimage.map_coordinates(sub, [ii + u[..., 0] / sp[0], jj + u[..., 1] / sp[1],
+                                               z - lo + u[..., 2] / sp[2]], order=1, mode="constant")
+        bm = block_match(envelope(ref[:, :, z]), warped, sp[:2], org[:2], window=tuple(settings.window),
+                         overlap=(0.5, 0.5), search=tuple(settings.search), median_size=3, subsample=True,
+                         compand_strain=None)
+        planes.append(bm)
+    # the planes' windows side by side: one row of windows per depth, as in a frame
+    found = BlockMatchResult(planes[0].x, np.concatenate([p.y for p in planes]),
+                             *(np.concatenate([getattr(p, k) for p in planes], axis=1)
+                               for k in ("raw", "displacement", "ncc")))
+    m3 = np.broadcast_to(np.asarray(DEFAULT_MARGIN_3D if margin is None else margin, float), (3,))
+    cut = unmatched_crop(found, (nx, ny), sp[:2], org[:2], margin=m3[:2])
+    if cut is None:
+        return None
+    b = int(cut.region.rows[1])
+    region = EchoBox(((0, b), (0, ny), (0, nz)), (nx, ny, nz), tuple(float(v) for v in sp),
+                     tuple(float(v) for v in org), cut.region.excluded)
+    return VolumeCrop(region, _margin_pixels(m3, sp), False, time.perf_counter() - t)

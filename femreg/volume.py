@@ -31,7 +31,7 @@ from scipy import ndimage
 
 from . import orientation
 from .autoalpha import ImageTerm, choose_alpha, register_auto
-from .echo_volume import crop_for_volume, route_volume
+from .echo_volume import crop_for_volume, route_volume, unmatched_crop_volume
 from .errors import InputError, counted
 from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
@@ -50,7 +50,7 @@ from .voxels import (DEFAULT_ELEMENT_SIZE_3D, SplineVolume, VoxelGrid, VoxelSSDT
                      validate_spacing_3d, validate_volume)
 
 __all__ = ["register_volume", "track_volume", "volumes_to", "coarse_to_fine", "global_search_3d", "VolumeTrack",
-           "GLOBAL_STRAINS_3D", "hop_check", "voxel_image_term"]
+           "GLOBAL_STRAINS_3D", "hop_check", "voxel_image_term", "noise_at_depth_volume"]
 
 #: Axial strains tried by the global search (-8 % to +4 %, steps of 0.5 %).
 GLOBAL_STRAINS_3D = tuple(np.round(np.arange(-0.08, 0.04 + 1e-9, 0.005), 4))
@@ -604,6 +604,10 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
             u0, info = coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, maxiter=maxiter, tol=tol,
                                       linear_solver=linear_solver, period=period, at=at)
             timings.update(info.pop("timings"))
+            noise = unmatched_crop_volume(ref, mov, u0, mesh, spacing, origin, margin) if _cuts_at_depth(
+                args) else None
+            if noise is not None:       # no match at depth after the start: registered above it (femreg.echo)
+                return _registered_crop(noise, args)
         else:       # a sequence increment: start from zero motion relative to S
             u0 = np.zeros(3 * mesh.p.shape[1])
     elif isinstance(initial, str) and initial == "zero":
@@ -672,6 +676,41 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
     return res
 
 
+def _cuts_at_depth(args: dict) -> bool:
+    """Whether :func:`register_volume` (its arguments ``args``) looks for noise at depth after its start (the 2D
+    rule, :func:`femreg.registration.register`): only where it detects the echo itself (``roi="auto"``, nothing
+    given that fixes the region)."""
+    extra = args.get("ignored") or {}
+    return (isinstance(extra.get("roi", "auto"), str) and extra.get("depth") is None and args["mesh"] is None
+            and args["initial"] is None and args["offset"] is None)
+
+
+def _registered_crop(crop, args: dict):
+    """:func:`register_volume` (arguments ``args``) on the volumes cut to ``crop``, widened to the full grid."""
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
+    kw.update(args.get("ignored") or {}, origin=crop.origin, roi=None, depth=None)
+    return crop.widen(register_volume(*crop.frames(args["reference_image"], args["moving_image"]), **kw))
+
+
+def noise_at_depth_volume(reference, moving, *, spacing, origin=(0.0, 0.0, 0.0), regularizer="momentum-stress",
+                          alpha=None, element_size=None, margin=None, maxiter: int = 20, tol: float = 1e-3,
+                          linear_solver: str = "auto", regularizer_options=None, normalize: bool = True, **ignored):
+    """The crop :func:`register_volume` would cut the pair to after its start for noise at depth
+    (:func:`femreg.echo_volume.unmatched_crop_volume`), or None; the volumes' :func:`femreg.registration.noise_at_depth`
+    for :func:`track_volume`, which chooses one box for the loop from its first two volumes.  The start is
+    register_volume's (:func:`coarse_to_fine` on the default mesh); ``alpha="auto"`` starts from the default."""
+    ref, mov, spacing, origin = _validate(reference, moving, spacing, origin, regularizer, "auto", maxiter, tol)
+    reg = fresh_regularizer(regularizer, None if isinstance(alpha, str) else alpha,
+                            effective_regularizer_options("auto", regularizer, regularizer_options))
+    if normalize:
+        ref, mov, _ = normalize_pair(ref, mov)
+    mesh = roi_mesh_3d(ref.shape, spacing, origin,
+                       element_size=DEFAULT_ELEMENT_SIZE_3D if element_size is None else element_size, margin=margin)
+    u0, _ = coarse_to_fine(ref, mov, spacing, origin, mesh, lambda: copy.copy(reg), maxiter=maxiter, tol=tol,
+                           linear_solver=linear_solver)
+    return unmatched_crop_volume(ref, mov, u0, mesh, spacing, origin, margin)
+
+
 def _register_auto(args: dict) -> VolumeResult:
     """``register_volume(..., alpha="auto")`` (``args``: its arguments, the region already routed):
     :func:`femreg.autoalpha.register_auto` with this module's registration and image term; the pair is
@@ -689,6 +728,10 @@ def _register_auto(args: dict) -> VolumeResult:
     kw["refine"] = _default_refine(args["refine"], args)       # the default is off for alpha="auto" (as in 2D)
     return register_auto(ref, mov, register=register_volume, image_term=voxel_image_term, **kw)
 
+
+#: Options of :func:`register_volume` that make its start (:func:`noise_at_depth_volume`).
+_START_OPTIONS = ("regularizer", "alpha", "element_size", "margin", "maxiter", "tol", "linear_solver",
+                  "regularizer_options", "normalize")
 
 #: Options of the 2D :func:`femreg.register` that have no meaning on volumes and are accepted and ignored.
 _IGNORED_2D_OPTIONS = ("roi", "depth", "geometry", "blockmatch_options", "coarse_to_fine",
@@ -787,10 +830,16 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
     register_kwargs["check_orientation"] = False    # checked once, above
     # refinement is opt-in for a sequence, as in 2D (femreg.track): its meshes are the frame-0 one
     register_kwargs["refine"] = _default_refine(register_kwargs.get("refine", DEFAULT_REFINE), {"mesh": True})
-    crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=register_kwargs.pop("roi", "auto"),
-                           depth=register_kwargs.pop("depth", None), mesh=register_kwargs.get("mesh"),
+    roi, depth = register_kwargs.pop("roi", "auto"), register_kwargs.pop("depth", None)
+    crop = crop_for_volume(arr[0], arr[1], spacing, origin, roi=roi, depth=depth, mesh=register_kwargs.get("mesh"),
                            margin=register_kwargs.get("margin"))
     shape = tuple(int(v) for v in arr[0].shape)
+    if crop is None and _cuts_at_depth({"ignored": {"roi": roi, "depth": depth}, "mesh": register_kwargs.get("mesh"),
+                                        "initial": register_kwargs.get("initial"),
+                                        "offset": register_kwargs.get("offset")}):
+        # noise a TGC lifts at depth: the cut register_volume makes, decided once from frames 0 and 1
+        crop = noise_at_depth_volume(arr[0], arr[1], spacing=spacing, origin=origin, **{
+            k: v for k, v in register_kwargs.items() if k in _START_OPTIONS})
     if crop is not None:                # every frame inside the box of frames 0 and 1 (femreg.echo_volume)
         arr, origin = crop.frames(*arr), crop.origin
     register_kwargs.update(roi=None, depth=None)

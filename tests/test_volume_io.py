@@ -127,3 +127,56 @@ def test_cli_info_describes_volumes(tmp_path, capsys):
     np.save(tmp_path / "v.npy", pair.ref)                         # 3D array: 2D frames unless --volume
     rc, out, _ = _info(tmp_path / "v.npy", "--volume")
     assert rc == 1 and "no spacing found" in out
+
+
+def _scanner_mat73(path, vols, fs_hz, pitch_m, elevation_m):
+    """``vols`` (n, axial, lateral, elevational) as MATLAB's ``save -v7.3`` stores ``rf(sample, line, plane,
+    volume)`` int16 beside its scanner's fields in SI units, with no spacing variable."""
+    import h5py
+
+    with h5py.File(path, "w", userblock_size=512) as f:       # MATLAB's HDF5 holds the reversed index order
+        f["rf"] = np.ascontiguousarray(np.round(vols * 1000).astype(np.int16).transpose(0, 3, 2, 1))
+        f["fs"] = np.array([[fs_hz]])
+        f["pitch"] = np.array([[pitch_m]])
+        f["elevation_pitch"] = np.array([[elevation_m]])
+    with open(path, "r+b") as f:
+        f.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116) + b"\x00" * 8 + b"\x00\x02IM")
+
+
+def test_cli_volume_file_without_spacing(tmp_path, capsys):
+    """A scanner's 4D MAT-file without a spacing variable: info describes it as volumes without --volume and names
+    the --spacing DX DY DZ its fields imply; register takes three --spacing values (before: info refused it
+    naming femreg.io.read_volumes, and --spacing took two values while the error asked for three)."""
+    from femreg.cli import main
+    from femreg.volume_result import load_volume_result
+    from forward.volume import Affine3D, make_volume_pair
+
+    pair = make_volume_pair(Affine3D(0.01), "matrix7", (6.0, 6.0, 5.0), seed=0, snr_db=30.0)
+    path = tmp_path / "scan.mat"
+    _scanner_mat73(path, pair.frames / np.abs(pair.frames).max() * 30, 30.8e6, 0.2e-3, 0.25e-3)
+    assert main(["info", str(path)]) == 1
+    out = capsys.readouterr().out
+    assert "(volumes)" in out and "volumes   2" in out
+    assert "its fields suggest --spacing 0.025 0.2 0.25" in out, out
+    assert main(["info", str(path), "--spacing", "0.025", "0.2", "0.25"]) == 0
+    assert "0.25 mm elevational" in capsys.readouterr().out
+    out_npz = tmp_path / "r.npz"
+    assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2", "0.25"]) == 0
+    res = load_volume_result(out_npz)
+    assert res.spacing == pytest.approx((0.025, 0.2, 0.25)) and res.success
+    # the result drawn: three slices of u_x, e_xx, e_yy, e_zz and the quality (before: refused, pointing to Python)
+    png = tmp_path / "r.png"
+    assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "3", "2"]) == 0 and png.stat().st_size > 0
+    assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "0"]) == 2
+    assert "takes X Y Z" in capsys.readouterr().err
+    # an axial spacing twice c / (2 fs) of the file's fs (the frames' check, now on volumes): before, registered
+    assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.05", "0.2", "0.25"]) == 2
+    assert "pass --spacing 0.025 0.2 0.25 (axial, lateral, elevational mm)" in capsys.readouterr().err
+    assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2"]) == 2
+    assert "volumes take --spacing DX DY DZ" in capsys.readouterr().err
+    # elastogram takes frames: said before it asks for a spacing (before: the spacing, then "4 dimension(s)")
+    assert main(["elastogram", str(path), "-o", str(tmp_path / "el")]) == 2
+    assert "holds RF volumes" in capsys.readouterr().err
+    np.save(tmp_path / "frames.npy", pair.ref[:, :, :2].transpose(2, 0, 1))      # two frames
+    assert main(["info", str(tmp_path / "frames.npy"), "--spacing", "0.025", "0.2", "0.25"]) == 2
+    assert "three values (DX DY DZ) is for RF volumes" in capsys.readouterr().err

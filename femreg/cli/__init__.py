@@ -255,6 +255,24 @@ def _extra_hint(argv, extra, command) -> str:
     return f" (after {name}: femreg {command or ''} --help gives how many values it takes)".replace("  ", " ")
 
 
+def _volume_spacing(argv, args, extra) -> list:
+    """``--spacing DX DY DZ`` (a volume's three values; argparse takes two, for frames): the third value, left over
+    right after the option's two, joins ``args.spacing``; the words left over without it."""
+    from femreg.options import spacing_value
+
+    if not extra or getattr(args, "spacing", None) is None or len(args.spacing) != 2:
+        return extra
+    for i, word in enumerate(argv[:-3]):
+        if word == "--spacing" and argv[i + 3] == extra[0]:
+            try:
+                dz = spacing_value(extra[0])
+            except Exception:       # not a spacing value: left over, said as before
+                return extra
+            args.spacing = [*args.spacing, dz]
+            return extra[1:]
+    return extra
+
+
 def main(argv=None) -> int:
     from femreg.errors import InputError, cli_wording
     from femreg.optional import MissingDependencyError
@@ -262,6 +280,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args, extra = parser.parse_known_args(argv)
+    extra = _volume_spacing(argv, args, extra)
     if extra:                       # said by the command, with the option the words followed
         print(f"femreg {getattr(args, 'command', None) or ''}".rstrip() + ": error: unrecognized arguments: "
               f"{' '.join(extra)}{_extra_hint(argv, extra, getattr(args, 'command', None))}", file=sys.stderr)

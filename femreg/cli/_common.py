@@ -47,7 +47,8 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
                    help="raw files: sample type float32 (default), float64, int16, uint16, int8, uint8, ...")
     g.add_argument("--spacing", metavar=("DX", "DY"), nargs=2, type=_spacing_value,
                    help="axial and lateral pixel spacing in mm, overriding the file's ('auto' keeps the file's "
-                        "value for one of them); required for npy/raw and the lateral pitch of .rf")
+                        "value for one of them); required for npy/raw and the lateral pitch of .rf; volumes: "
+                        "--spacing DX DY DZ (DZ the elevational plane spacing)")
     g.add_argument("--origin", metavar=("X0", "Y0"), nargs=2, type=float,
                    help="position of the first sample in mm (depth of the first sample, lateral position of the "
                         "first line; convex / sector: the first range and 0), overriding the file's (default the "
@@ -86,6 +87,18 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     from ..orientation import OrientationError, check_raw_shape
 
     path = path if path is not None else args.file
+    if len(getattr(args, "spacing", None) or ()) == 3:
+        from pathlib import Path
+
+        from ._volume import _volumes_only
+
+        who = f"femreg {getattr(args, 'command', '') or ''}".strip()
+        if not hasattr(args, "volume"):     # elastogram, batch, plot --reference: frames only
+            held = "holds RF volumes" if _volumes_only(Path(path)) else "is read as frames (axial, lateral)"
+            raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes, and {who} takes "
+                             f"frames; the file {held} (femreg register and femreg track take volumes)")
+        raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes; these are read as frames "
+                         "(axial, lateral): give --volume to read the file as volumes, or --spacing DX DY")
     if check_shape is None:
         check_shape = not getattr(args, "no_orientation_check", False)
     neg = options.negative_index(getattr(args, "frames", None))

@@ -18,25 +18,32 @@ __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 _NOT_FOR_VOLUMES = ("geometry",)
 
 
-def read_volume_file(path, *, volume: bool = False, origin=None):
+def read_volume_file(path, *, volume: bool = False, origin=None, spacing=None, variable=None,
+                     check_sampling: bool = True):
     """``(array, spacing (3,), origin (3,))`` when ``path`` holds RF volumes, else None: an .npz whose spacing has 3
     values; a file that can only hold volumes (a MetaImage of NDims 4, a MAT-file whose spacing has 3 values);
     with ``volume`` (CLI ``--volume``) any file :func:`femreg.io.read_volumes` reads, a 3D array one volume
     (axial, lateral, elevational), e.g. a MetaImage of NDims 3, which is otherwise read as a stack of frames.
-    ``origin``: the frames' ``--origin``, refused for volumes (their origin comes from the file)."""
-    got = _read_volume_file(Path(path), volume)
+    ``origin``: the frames' ``--origin``, refused for volumes (their origin comes from the file); ``spacing``:
+    ``--spacing DX DY DZ`` (mm; "auto" / None entries keep the file's), overriding the file's; ``variable``:
+    ``--variable``, the array's name; ``check_sampling``: unless ``--no-orientation-check``, a given axial spacing
+    held against the file's sampling rate (:func:`femreg.io.read_volumes`)."""
+    got = _read_volume_file(Path(path), volume, spacing, variable, check_sampling)
     if got is not None and origin is not None:
         raise InputError(f"{path}: --origin places a frame's first sample; a volume's origin comes from its file "
                          "(key or variable 'origin', three values in mm)")
     return got
 
 
-def _read_volume_file(p: Path, volume: bool):
+def _read_volume_file(p: Path, volume: bool, spacing=None, variable=None, check_sampling: bool = True):
     """:func:`read_volume_file` without its ``origin`` check."""
+    if spacing is not None and len(spacing) != 3 and (volume or _volumes_only(p)):
+        raise InputError(f"{p}: volumes take --spacing DX DY DZ (axial, lateral, elevational, mm), got "
+                         f"{len(spacing)} values")
     if volume or _volumes_only(p):
         from ..io import read_volumes
 
-        v = read_volumes(p)
+        v = read_volumes(p, spacing=spacing, variable=variable, check_sampling=check_sampling)
         arr = v.frames[0] if v.n_frames == 1 else v.frames
         return arr, np.asarray(v.spacing, float).ravel(), np.asarray(v.origin, float).ravel()
     if p.suffix.lower() != ".npz" or not p.exists():
@@ -58,7 +65,13 @@ def _read_volume_file(p: Path, volume: bool):
         origin = np.asarray(z["origin"], float).ravel() if "origin" in z else np.zeros(3)
         if origin.size != 3:
             origin = np.zeros(3)
-        return arr, np.asarray(z["spacing"], float).ravel(), origin
+        sp = np.asarray(z["spacing"], float).ravel()
+        if spacing is not None:         # --spacing DX DY DZ over the file's ('auto' keeps its value)
+            if len(spacing) != 3:
+                raise InputError(f"{p}: volumes take --spacing DX DY DZ (axial, lateral, elevational, mm), got "
+                                 f"{len(spacing)} values")
+            sp = np.array([sp[k] if v is None else float(v) for k, v in enumerate(spacing)])
+        return arr, sp, origin
 
 
 def _volumes_only(p: Path) -> bool:
@@ -97,7 +110,9 @@ def register_volumes(args, vol, kw) -> int:
         i, j = args.pair or (0, 1)
         ref, mov = (arr[frame_index(k, arr.shape[0], args.reference, "--pair")] for k in (i, j))
     else:
-        other = read_volume_file(args.moving, volume=True)
+        other = read_volume_file(args.moving, volume=True, spacing=getattr(args, "spacing", None),
+                                 variable=getattr(args, "variable", None),
+                                 check_sampling=not getattr(args, "no_orientation_check", False))
         if not np.allclose(other[1], spacing):
             raise InputError(f"spacing differs between volumes: {tuple(spacing)} vs {tuple(other[1])}")
         i, j = args.pair or (0, 0)

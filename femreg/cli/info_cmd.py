@@ -113,7 +113,8 @@ def describe(fr, *, spacing_known: bool = True) -> dict:
 
         rep = diagnose(a[0], fr.spacing, whole_frame=True)     # a file's frames are whole: their size counts
         out["rf_check"] = "" if rep.problem else "; ".join(
-            t for t in (rep.summary(), frequency_note(rep.frequency_mhz) if rep.has_carrier else "") if t)
+            t for t in (_rf_line(rep, a[0], fr.spacing, fr.origin),
+                        frequency_note(rep.frequency_mhz) if rep.has_carrier else "") if t)
         out["needs"] = [rep.message] if rep.problem else []
         out["transposed"] = rep.problem == "transposed"
         out["spacing_problem"] = rep.problem if rep.problem in ("swapped", "spacing") else ""
@@ -219,22 +220,56 @@ def _raw_shape_hint(frame) -> list:
     return [msg] if msg else []
 
 
+#: Top parts of the depth (fractions) read for a carrier where the whole depth shows none (:func:`_rf_line`).
+TOP_PARTS = (0.75, 0.5, 0.25)
+
+
+def _rf_line(rep, frame, spacing, origin) -> str:
+    """The ``RF`` line of ``femreg info``: ``rep.summary()``, except for zero-mean frames whose whole depth shows no
+    carrier but whose top part does (:data:`TOP_PARTS`; :data:`femreg.orientation.CARRIER_RATIO`): RF whose deep
+    samples are broadband noise (e.g. lifted by a time-gain compensation), said so, not "envelope or B-mode"."""
+    from ..echo import rf_like
+    from ..orientation import CARRIER_RATIO, axial_carrier_ratio, diagnose
+
+    if rep.problem or rep.has_carrier or not rf_like(frame):
+        return rep.summary()
+    n = frame.shape[0]
+    for part in TOP_PARTS:
+        k = int(part * n)
+        if axial_carrier_ratio(frame[:k]) < CARRIER_RATIO:
+            top = diagnose(frame[:k], spacing)
+            if top.problem or not top.has_carrier:
+                break
+            below = axial_carrier_ratio(frame[k:])
+            depth = origin[0] + (k - 0.5) * spacing[0]
+            return (f"above {depth:.1f} mm: {top.summary()}; below it the samples are broadband (low/centre band "
+                    f"power {below:.2g}, the whole depth {rep.carrier[0]:.2g}): receiver noise, e.g. lifted by a "
+                    "time-gain compensation (registration leaves out what does not match)")
+    return rep.summary()
+
+
 def describe_volumes(path: Path, args) -> dict:
     """The description of a volume file (:func:`femreg.io.read_volumes`); spacing from the file."""
     from ..io import read_volumes
 
     kw = dict(variable=getattr(args, "variable", None), frames=getattr(args, "frames", None))
+    given = getattr(args, "spacing", None)
+    if given is not None and len(given) != 3:
+        raise InputError(f"{path}: volumes take --spacing DX DY DZ (axial, lateral, elevational, mm), got "
+                         f"{len(given)} values")
     needs = []
     try:
-        vol = read_volumes(path, **kw)
+        vol = read_volumes(path, spacing=given, **kw)
         known = True
     except InputError as exc:
         if not isinstance(exc, SpacingUnknownError):
             raise
-        vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), **kw)
+        vol = read_volumes(path, spacing=(1.0, 1.0, 1.0), check_sampling=False, **kw)
         known = False
+        sug = getattr(exc, "suggestion", None)
         needs.append("no spacing found: volumes need spacing (dx, dy, dz) in mm stored with them (npz key "
-                     "'spacing', MAT variable 'spacing', MetaImage ElementSpacing)")
+                     "'spacing', MAT variable 'spacing', MetaImage ElementSpacing) or --spacing DX DY DZ"
+                     + (f"; {sug.text()}" if sug is not None else ""))
     a = vol.frames
     meta = dict(vol.metadata)
     stored = meta.pop("stored_dtype", None)
@@ -249,8 +284,9 @@ def describe_volumes(path: Path, args) -> dict:
     if known:
         from ..orientation import diagnose
 
-        rep = diagnose(a[0][:, :, a.shape[3] // 2], vol.spacing[:2])     # the central axial-lateral plane
-        out["rf_check"] = "" if rep.problem else rep.summary()
+        plane = a[0][:, :, a.shape[3] // 2]                # the central axial-lateral plane
+        rep = diagnose(plane, vol.spacing[:2], elevational=vol.spacing[2])
+        out["rf_check"] = "" if rep.problem else _rf_line(rep, plane, vol.spacing[:2], vol.origin[:2])
         out["needs"] += [rep.message] if rep.problem else []
         if vol.n_frames < 2:
             out["note"] = "one volume: register it against a second file"
@@ -309,7 +345,9 @@ def _run_volumes(path: Path, args) -> int:
 def run(args) -> int:
     path = Path(os.fspath(args.file))
     spacing_need = None             # the missing spacing's need, said again for convex / sector frames
-    if getattr(args, "volume", False):
+    from ._volume import _volumes_only
+
+    if getattr(args, "volume", False) or _volumes_only(path):   # as register and track read it
         return _run_volumes(path, args)
     fr = None
     try:

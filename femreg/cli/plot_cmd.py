@@ -82,15 +82,12 @@ def _run(args) -> int:
     if is_inversion_file(args.result):
         return plot_inversion_file(args)
     # ----
-    if getattr(args, "slice", None) is not None:
-        raise InputError("--slice applies to the picture of a volume's inversion (a file of femreg invert)")
     from ..volume_result import is_volume_result
 
     if is_volume_result(args.result):
-        raise InputError(f"{args.result} is a volume's registration result: femreg plot draws 2D results and "
-                         "inversions (femreg invert it, or draw its slices with femreg.volplot.plot_volume_slices"
-                         "(result.on_grid(), result.spacing, result.origin); a swept probe's result: "
-                         "(result.cartesian_grid(), *result.cartesian[1:]))")
+        return plot_volume_result(args)
+    if getattr(args, "slice", None) is not None:
+        raise InputError("--slice applies to the picture of a volume's result or inversion; this result is 2D")
     res = as_result_dict(args.result)
     if args.dpi <= 0:
         raise InputError(f"--dpi must be positive, got {args.dpi}")
@@ -174,3 +171,68 @@ def _shear_figure(res, reference, out, dpi):
                          title=f"speckle cell {cell[0]:.2f} x {cell[1]:.2f} mm (axial x lateral)"))
     print(f"wrote {sout} (e_xy per element, its relative predicted precision; speckle cell {cell[0]:.2f} x {cell[1]:.2f} "
           f"mm; {narrow} of {n_el} elements narrower than a lateral speckle cell)")
+
+
+#: The fields of a volume's registration picture (three orthogonal slices each), in order.
+VOLUME_KEYS = ("ux", "exx", "eyy", "ezz", "quality")
+
+
+def plot_volume_result(args) -> int:
+    """``femreg plot`` of a volume's registration result (``register`` / ``track`` on volumes): three orthogonal
+    slices of u_x, e_xx, e_yy, e_zz and the quality (:func:`femreg.volplot.plot_volume_slices`) through
+    ``--slice X Y Z`` (default: the centre of the registered box), a failed result's title saying so, and
+    ``--vtu`` / ``--xdmf``.  Exit 1 for a failed result (the picture is written)."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from ..volplot import plot_volume_slices
+    from ..volume_result import SweptResult, load_volume_result
+
+    for flag in ("reference", "frame"):
+        if getattr(args, flag, None) is not None:
+            raise InputError(f"--{flag} draws a frame's B-mode beside a 2D result; a volume's result is drawn "
+                             "without it")
+    if args.overlay or args.shear or args.render or args.field != "exx":
+        raise InputError("--overlay, --shear, --render and --field are options of a 2D result's picture; a "
+                         "volume's draws u_x, e_xx, e_yy, e_zz and the quality")
+    res = load_volume_result(args.result)
+    if isinstance(res, SweptResult):    # the scan-converted Cartesian grid the result lives on
+        grid, (_, spacing, origin) = res.cartesian_grid(), res.cartesian
+    else:
+        grid, spacing, origin = res.on_grid(), res.spacing, res.origin
+    # the picture covers the registered box (the fields are NaN outside it: a depth cut left blank otherwise)
+    lo, hi = res.mesh.p.min(axis=1), res.mesh.p.max(axis=1)
+    sp, org = np.asarray(spacing, float), np.asarray(origin, float)
+    n = np.asarray(next(iter(grid.values())).shape)
+    i0 = np.clip(np.floor((lo - org) / sp).astype(int), 0, n - 1)
+    i1 = np.clip(np.ceil((hi - org) / sp).astype(int) + 1, i0 + 1, n)
+    box = tuple(slice(a, b) for a, b in zip(i0, i1))
+    grid = {k: v[box] for k, v in grid.items() if np.ndim(v) == 3}
+    origin = tuple(float(v) for v in org + i0 * sp)
+    at = getattr(args, "slice", None)
+    if at is None or list(at) == ["centre"]:
+        at = tuple(float(v) for v in 0.5 * (lo + hi))
+    else:
+        try:
+            at = tuple(float(v) for v in at)
+        except ValueError:
+            at = ()
+        if len(at) != 3:
+            raise InputError(f"--slice of a volume's result takes X Y Z (mm) or centre, got {' '.join(args.slice)}")
+    ok = bool(getattr(res, "success", True))
+    title = f"{Path(args.result).name}: slices through x, y, z = {at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f} mm"
+    if not ok:
+        why = str(res.message or "")
+        title = f"{why if why.startswith('FAILED') else 'FAILED: ' + why} -- {title}"
+    out = Path(args.output) if args.output else Path(args.result).with_suffix(".png")
+    fig = plot_volume_slices(grid, spacing, origin, keys=[k for k in VOLUME_KEYS if k in grid], at=at,
+                             out_png=out, title=title, dpi=args.dpi)
+    plt.close(fig)
+    print(f"wrote {out}")
+    if args.vtu:
+        res.write_vtu(args.vtu)
+        print(f"wrote {args.vtu}")
+    if args.xdmf:
+        res.write_xdmf(args.xdmf)
+        print(f"wrote {args.xdmf}")
+    return 0 if ok else 1

@@ -227,7 +227,9 @@ def run(args) -> int:
     kw = registration_kwargs(args)
     refuse_unused_geometry(args)
     from ._volume import read_volume_file, register_volumes
-    vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None))
+    vol = read_volume_file(args.reference, volume=args.volume, origin=getattr(args, "origin", None),
+                           spacing=getattr(args, "spacing", None), variable=getattr(args, "variable", None),
+                           check_sampling=not getattr(args, "no_orientation_check", False))
     if vol is not None:                 # RF volumes (spacing with 3 values)
         if getattr(args, "transpose", False):
             raise InputError("--transpose is for frames (lines x samples); transpose a volume's axes before "

@@ -60,7 +60,9 @@ def run(args) -> int:
     from ..sequence import track
 
     from ._volume import read_volume_file, track_volumes
-    vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None))
+    vol = read_volume_file(args.file, volume=args.volume, origin=getattr(args, "origin", None),
+                           spacing=getattr(args, "spacing", None), variable=getattr(args, "variable", None),
+                           check_sampling=not getattr(args, "no_orientation_check", False))
     kw = registration_kwargs(args)
     refuse_unused_geometry(args)
     if vol is not None:                 # a volume sequence (spacing with 3 values)

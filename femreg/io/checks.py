@@ -252,6 +252,9 @@ _FS_NAMES = ("fs", "samplingfrequency", "samplingrate", "samplerate", "samplefre
              "fsample", "fsampling")
 _PITCH_NAMES = ("pitch", "elementpitch", "linespacing", "linepitch", "lateralspacing", "linedensity")
 _C_NAMES = ("c", "c0", "soundspeed", "speedofsound", "sos")
+# a matrix array's or swept probe's elevational plane spacing (volumes)
+_ELEVATION_NAMES = ("elevationpitch", "elevationalpitch", "elevationspacing", "elevationalspacing",
+                    "elevationalstep", "elevationstep", "planepitch", "planespacing", "slicespacing", "zpitch")
 _DEMOD_NAMES = ("fdemod", "demodfrequency", "demodulationfrequency", "modulationfrequency", "demodfreq", "fmod",
                 "iqfrequency", "fdemodulation", "demodulationfreq")
 # the probe's centre / transmit frequency: most IQ exports demodulate at it, so it is a weaker hint
@@ -264,7 +267,8 @@ def _key(name: str) -> tuple:
     """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
     k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())   # a struct's field: its own name
     for u in _UNITS:
-        if k.endswith(u) and k[:-len(u)] in _FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES:
+        if k.endswith(u) and k[:-len(u)] in (_FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES
+                                             + _ELEVATION_NAMES):
             return k[:-len(u)], u
     return k, ""
 
@@ -285,25 +289,29 @@ class SpacingSuggestion:
     dy: str
     why_x: str
     why_y: str
+    dz: str | None = None           # volumes: the elevational plane spacing ("DZ" where the file holds none)
+    why_z: str = ""
 
     def text(self, beam: bool = False) -> str:
         """The hint in words; ``beam``: for convex / sector frames, whose lateral value is not used (an unknown
         line pitch becomes ``auto``)."""
         dy, why_y = (("auto", "auto: the rays are --angle-pitch apart") if beam and self.dy == "DY"
                      else (self.dy, self.why_y))
-        return (f"its fields suggest --spacing {self.dx} {dy} ({self.why_x}; {why_y}): check them against the "
-                "scanner's settings")
+        dz, why_z = ("", "") if self.dz is None else (f" {self.dz}", f"; {self.why_z}")
+        return (f"its fields suggest --spacing {self.dx} {dy}{dz} ({self.why_x}; {why_y}{why_z}): check them "
+                "against the scanner's settings")
 
 
 _NO_PITCH = ("DY, the lateral line pitch in mm, is not in the file (for a linear array usually the probe's element "
              "pitch; a convex or phased array takes --geometry convex / sector and --spacing DX auto)")
 
 
-def spacing_suggestion(fields: dict) -> "SpacingSuggestion | None":
+def spacing_suggestion(fields: dict, volume: bool = False) -> "SpacingSuggestion | None":
     """The ``--spacing DX DY`` a file's header fields imply (:class:`SpacingSuggestion`), or None when they hold
     neither a sampling frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
     (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
-    below 0.005 in metres).  A hint only: readers never apply it."""
+    below 0.005 in metres).  A hint only: readers never apply it.  ``volume``: also the elevational plane
+    spacing ``DZ`` (``elevation_pitch``, ``elevational_spacing``, ...; :data:`_ELEVATION_NAMES`)."""
     found = {}
     for name, value in fields.items():
         try:
@@ -313,7 +321,8 @@ def spacing_suggestion(fields: dict) -> "SpacingSuggestion | None":
         if v is None or not (math.isfinite(v) and v > 0):
             continue
         base, unit = _key(name)
-        for kind, names in (("fs", _FS_NAMES), ("pitch", _PITCH_NAMES), ("c", _C_NAMES)):
+        for kind, names in (("fs", _FS_NAMES), ("pitch", _PITCH_NAMES), ("c", _C_NAMES),
+                            ("elevation", _ELEVATION_NAMES)):
             if base in names and kind not in found:
                 found[kind] = (name, v, unit)
     if "fs" not in found and "pitch" not in found:
@@ -329,14 +338,28 @@ def spacing_suggestion(fields: dict) -> "SpacingSuggestion | None":
         dx, why_x = "DX", "DX, the axial sample step c / (2 fs) in mm, is not in the file (no sampling frequency)"
     if "pitch" in found:
         p_name, p, pu = found["pitch"]
-        p_mm = p * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(pu, 1e3 if p < 0.005 else 1.0)
+        p_mm = _pitch_mm(p, pu)
         dy, why_y = f"{p_mm:.4g}", f"lateral {p_name} = {p:g} read as {p_mm:g} mm"
     elif geometry_fields(fields):
         dy, why_y = "auto", ("auto: the lateral value is not used for a convex or phased array, whose rays are "
                              "--angle-pitch apart")
     else:
         dy, why_y = "DY", _NO_PITCH
-    return SpacingSuggestion(dx, dy, why_x, why_y)
+    if not volume:
+        return SpacingSuggestion(dx, dy, why_x, why_y)
+    if "elevation" in found:
+        e_name, e, eu = found["elevation"]
+        e_mm = _pitch_mm(e, eu)
+        dz, why_z = f"{e_mm:.4g}", f"elevational {e_name} = {e:g} read as {e_mm:g} mm"
+    else:
+        dz, why_z = "DZ", "DZ, the elevational plane spacing in mm, is not in the file"
+    return SpacingSuggestion(dx, dy, why_x, why_y, dz, why_z)
+
+
+def _pitch_mm(value: float, unit: str) -> float:
+    """A header pitch in mm: unit from the name's suffix ("mm", "um", "m"), else from the magnitude (below 0.005:
+    metres)."""
+    return value * {"mm": 1.0, "um": 1e-3, "m": 1e3}.get(unit, 1e3 if value < 0.005 else 1.0)
 
 
 def spacing_hint(fields: dict) -> str:

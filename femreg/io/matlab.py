@@ -133,7 +133,7 @@ def _aux(path, values: dict, spacing, n=2, frame_shape=None):
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
     sp = merge_spacing(path, file_spacing, spacing, n=n, required_msg="no 'spacing' variable in the MAT-file",
-                       suggestion=spacing_suggestion(values.get("scalars") or {}) if n == 2 else None,
+                       suggestion=spacing_suggestion(values.get("scalars") or {}, volume=n == 3),
                        frame_shape=frame_shape)
     return sp, origin
 
@@ -207,6 +207,9 @@ def read_mat_volume(path, *, variable=None, spacing=None, frames=None, **_ignore
     if arr.ndim == 4:
         arr = np.moveaxis(arr, -1, 0)
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
+    fields = scalar_fields((aux.get("scalars") or {}).items())
+    if fields:                      # the sampling rate a given spacing is held against (read_volumes)
+        meta["fields"] = fields
     return validate_volumes(path, arr, sp, origin, meta, frames)
 
 

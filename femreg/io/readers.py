@@ -786,10 +786,35 @@ def _mhd_volume(path, **kw):
     return Volumes(**read_metaimage_volume(path, **kw))
 
 
+def _check_volume_sampling(vol, spacing) -> None:
+    """:func:`femreg.orientation.check_sampling` for volumes: the central axial-lateral plane of the first volume
+    as a frame, its header fields and a given ``spacing``'s axial and lateral values; notes kept in
+    ``metadata["sampling_notes"]``."""
+    import re
+    from types import SimpleNamespace
+
+    from ..orientation import OrientationError, check_sampling
+
+    a = vol.frames[0]
+    plane = SimpleNamespace(frames=[a[:, :, a.shape[2] // 2]], spacing=tuple(vol.spacing[:2]), metadata=vol.metadata)
+    try:
+        notes = check_sampling(plane, None if spacing is None else tuple(spacing)[:2], where=f"{vol.source}: ")
+    except OrientationError as exc:     # the spacing to pass, with the volume's elevational value
+        dz = f"{float(vol.spacing[2]):g}"
+        text = re.sub(r"(--spacing \S+ \S+) \(axial, lateral mm\)", rf"\1 {dz} (axial, lateral, elevational mm)",
+                      str(exc))
+        text = re.sub(r"spacing=\(([^)]*)\) \(axial, lateral mm\)", rf"spacing=(\1, {dz}) (axial, lateral, "
+                      "elevational mm)", text)
+        text = text.replace("check_orientation=False (CLI", "check_sampling=False (CLI")   # read_volumes' name
+        raise OrientationError(text, problem=exc.problem, report=exc.report) from None
+    if notes:
+        vol.metadata["sampling_notes"] = notes
+
+
 _VOLUME_READERS = {"npy": _npy_volume, "npz": _npz_volume, "mat": _mat_volume, "metaimage": _mhd_volume}
 
 
-def read_volumes(path, *, variable=None, spacing=None, frames=None) -> Volumes:
+def read_volumes(path, *, variable=None, spacing=None, frames=None, check_sampling: bool = True) -> Volumes:
     """Read one RF volume or a sequence of RF volumes from ``path``.
 
     Parameters
@@ -804,6 +829,9 @@ def read_volumes(path, *, variable=None, spacing=None, frames=None) -> Volumes:
         where the file stores none (npy).
     frames : int, slice or sequence of int, optional
         Volume selection (default all).
+    check_sampling : bool
+        Hold a given axial spacing against the sampling rate the file's fields state, as :func:`read_frames` does
+        (:func:`femreg.orientation.check_sampling` on the central axial-lateral plane of the first volume).
 
     Returns
     -------
@@ -840,7 +868,10 @@ def read_volumes(path, *, variable=None, spacing=None, frames=None) -> Volumes:
         if not head:
             raise fail(path, f"empty file (expected {fmt})")
         _sniff_mislabel(path, head, fmt)
-        return _VOLUME_READERS[fmt](path, variable=variable, spacing=spacing, frames=frames)
+        vol = _VOLUME_READERS[fmt](path, variable=variable, spacing=spacing, frames=frames)
+        if check_sampling:
+            _check_volume_sampling(vol, spacing)
+        return vol
     except (FileFormatError, InputError):
         raise
     except MemoryError:
