@@ -562,8 +562,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         notes.append(f"refinement dropped (the refined result failed its check: {why})")
     timings.update(check=time.perf_counter() - t, total=time.perf_counter() - t_all)
     # -- result ----------------------------------------------------------------------------------------------
-    notes += check.notes
-    notes += orientation.period_notes(ref, period)     # a carrier outside clinical probes' band: dx suspect
+    notes += check.notes + orientation.period_notes(ref, period)    # a carrier outside clinical probes' band
     message = "; ".join([sol.gn.message] + notes) if notes else sol.gn.message
     if not check.success:   # the reasons first; the solver's own stop ("converged ...") is no verdict on the result
         message = (f"FAILED: {'; '.join(notes)} (Gauss-Newton stopped after {sol.gn.nit} iterations: "

@@ -90,11 +90,9 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     if len(getattr(args, "spacing", None) or ()) == 3:
         from pathlib import Path
 
-        from ._volume import _volumes_only
-
         who = f"femreg {getattr(args, 'command', '') or ''}".strip()
         if not hasattr(args, "volume"):     # elastogram, batch, plot --reference: frames only
-            held = "holds RF volumes" if _volumes_only(Path(path)) else "is read as frames (axial, lateral)"
+            held = "holds RF volumes" if volumes_only(Path(path)) else "is read as frames (axial, lateral)"
             raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes, and {who} takes "
                              f"frames; the file {held} (femreg register and femreg track take volumes)")
         raise InputError(f"{path}: --spacing with three values (DX DY DZ) is for RF volumes; these are read as frames "
@@ -694,3 +692,24 @@ def add_volume_arg(p) -> None:
                         "a 4D one a sequence; spacing (dx, dy, dz) from the file (a MetaImage of NDims 3 is "
                         "otherwise read as a stack of frames); files that can only hold volumes (4D data, three "
                         "spacing values) are read so without it")
+
+
+def volumes_only(p: Path) -> bool:
+    """Whether ``p`` can only hold volumes, judged from its header without reading the data: a MetaImage of NDims
+    4, or a MAT-file whose ``spacing`` has 3 values or that holds a 4D array (the frame reader refuses both)."""
+    suffix = p.suffix.lower()
+    if not p.is_file() or suffix not in (".mhd", ".mha", ".mat"):
+        return False
+    if suffix in (".mhd", ".mha"):
+        from ..errors import FileFormatError
+        from ..io.metaimage import _parse_header
+
+        try:
+            fields = _parse_header(p)[0]
+        except FileFormatError:
+            return False            # the frame reader says what is wrong with it
+        return fields.get("ndims", "").strip() == "4"
+    import numpy as np
+
+    shapes = {k: shape for k, (shape, _) in array_headers(p).items()}
+    return int(np.prod(shapes.get("spacing", (0,)))) == 3 or any(len(s) == 4 for s in shapes.values())

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._common import frame_index
+from ._common import frame_index, volumes_only
 
 __all__ = ["read_volume_file", "register_volumes", "track_volumes"]
 
@@ -37,10 +37,10 @@ def read_volume_file(path, *, volume: bool = False, origin=None, spacing=None, v
 
 def _read_volume_file(p: Path, volume: bool, spacing=None, variable=None, check_sampling: bool = True):
     """:func:`read_volume_file` without its ``origin`` check."""
-    if spacing is not None and len(spacing) != 3 and (volume or _volumes_only(p)):
+    if spacing is not None and len(spacing) != 3 and (volume or volumes_only(p)):
         raise InputError(f"{p}: volumes take --spacing DX DY DZ (axial, lateral, elevational, mm), got "
                          f"{len(spacing)} values")
-    if volume or _volumes_only(p):
+    if volume or volumes_only(p):
         from ..io import read_volumes
 
         v = read_volumes(p, spacing=spacing, variable=variable, check_sampling=check_sampling)
@@ -72,27 +72,6 @@ def _read_volume_file(p: Path, volume: bool, spacing=None, variable=None, check_
                                  f"{len(spacing)} values")
             sp = np.array([sp[k] if v is None else float(v) for k, v in enumerate(spacing)])
         return arr, sp, origin
-
-
-def _volumes_only(p: Path) -> bool:
-    """Whether ``p`` can only hold volumes, judged from its header without reading the data: a MetaImage of NDims
-    4, or a MAT-file whose ``spacing`` has 3 values or that holds a 4D array (the frame reader refuses both)."""
-    suffix = p.suffix.lower()
-    if not p.is_file() or suffix not in (".mhd", ".mha", ".mat"):
-        return False
-    if suffix in (".mhd", ".mha"):
-        from ..errors import FileFormatError
-        from ..io.metaimage import _parse_header
-
-        try:
-            fields = _parse_header(p)[0]
-        except FileFormatError:
-            return False            # the frame reader says what is wrong with it
-        return fields.get("ndims", "").strip() == "4"
-    from ._common import array_headers
-
-    shapes = {k: shape for k, (shape, _) in array_headers(p).items()}
-    return int(np.prod(shapes.get("spacing", (0,)))) == 3 or any(len(s) == 4 for s in shapes.values())
 
 
 def _kwargs(kw):

@@ -391,9 +391,9 @@ def run(args) -> int:
     if not (0 < args.fps < float("inf")):
         raise InputError(f"--fps must be a number > 0 (frames per second of the strain cine), got {args.fps:g}")
     refuse_unused_geometry(args)
-    from ._volume import _volumes_only
+    from ._common import volumes_only
 
-    if _volumes_only(Path(args.file)):          # before its spacing is asked for: it would not be used
+    if volumes_only(Path(args.file)):          # before its spacing is asked for: it would not be used
         raise InputError(f"{args.file} holds RF volumes (4D data or three spacing values): femreg elastogram takes "
                          "a loop of frames; femreg track registers a volume loop")
     beam = None

@@ -345,9 +345,9 @@ def _run_volumes(path: Path, args) -> int:
 def run(args) -> int:
     path = Path(os.fspath(args.file))
     spacing_need = None             # the missing spacing's need, said again for convex / sector frames
-    from ._volume import _volumes_only
+    from ._common import volumes_only
 
-    if getattr(args, "volume", False) or _volumes_only(path):   # as register and track read it
+    if getattr(args, "volume", False) or volumes_only(path):   # as register and track read it
         return _run_volumes(path, args)
     fr = None
     try:
