@@ -107,7 +107,7 @@ def test_cli_tracks_swept_volumes_with_resume_and_exit_codes(still_file, tmp_pat
     monkeypatch.setattr(femreg.volume, "register_volume", flaky)
     assert main(args) == 1
     err = capsys.readouterr().err
-    assert "failed: frame 2 could not be computed" in err and "--resume" in err
+    assert "failed: volume 2 could not be computed" in err and "--resume" in err
     assert (out / "frame_001.npz").exists() and not (out / "frame_002.npz").exists()
     assert main(args + ["--resume"]) == 0, capsys.readouterr().err
     assert "2 volumes in" in (o := capsys.readouterr().out) and "1 computed, 1 resumed" in o

@@ -104,6 +104,6 @@ def test_cli_names_the_retried_volume(loop, tmp_path, capsys):
     rc = main(["track", str(path), "-o", str(tmp_path / "run"), "--element-size", "2", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out
-    assert "frame   3: " in out and "retried from a fresh start" in out.split("frame   3: ")[1].splitlines()[0], out
-    assert "retried" not in out.split("frame   4: ")[1].splitlines()[0], out
+    assert "volume   3: " in out and "retried from a fresh start" in out.split("volume   3: ")[1].splitlines()[0], out
+    assert "retried" not in out.split("volume   4: ")[1].splitlines()[0], out
     assert "0 flagged, 1 retried from a fresh start (volume 3))" in out, out

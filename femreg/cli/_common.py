@@ -572,7 +572,7 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
         done.append(k)
         count = f" ({len(done)}/{total}, {time.monotonic() - start:.1f} s)" if as_progress and total else ""
         rep = getattr(res, "repeats", None)
-        what = (f"repeats frame {rep} (identical samples): not registered, frame {rep}'s field kept" if rep is not None
+        what = (f"repeats {noun} {rep} (identical samples): not registered, {noun} {rep}'s field kept" if rep is not None
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         if getattr(res, "retried", ""):     # the start from the previous increment was flagged
             what += ", retried from a fresh start"
@@ -580,7 +580,7 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
             what += ", started afresh (no motion matched better than the previous increment)"
         # with the progress bar on, the per-frame line goes to stderr beside the bar
         where = f" (the file's frame {file_frame(sel, k)})" if moved else ""
-        print(f"frame {k:3d}{where}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
+        print(f"{noun} {k:3d}{where}: {what}{count}" + (f"  FLAGGED: {flag}" if flag else ""),
               file=sys.stdout if args.no_progress else sys.stderr)
 
     on_frame.reports_progress = True
@@ -592,8 +592,8 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - a frame failed: say which, and that finished frames are kept
         k = (done[-1] if done else 0) + 1
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        kept = f"frames 1-{k - 1} are saved in {args.output}" if k > 1 else "no frame was finished"
-        print(f"femreg track: failed: frame {k} could not be computed ({type(exc).__name__}: {msg}); {kept}; "
+        kept = f"{noun}s 1-{k - 1} are saved in {args.output}" if k > 1 else f"no {noun} was finished"
+        print(f"femreg track: failed: {noun} {k} could not be computed ({type(exc).__name__}: {msg}); {kept}; "
               f"rerun with --resume to continue", file=sys.stderr)
         return 1
     if len(out) and getattr(out[0], "excluded", None):
