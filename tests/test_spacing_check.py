@@ -195,7 +195,8 @@ def test_cli_refuses_with_exit_2_and_info_names_it(rf_files, pairs, tmp_path, ca
 
 
 def test_track_says_the_carrier_note_once(pairs, tmp_path, capsys):
-    """track prints no pair's message: the band note comes on stderr from the frames as read."""
+    """track prints no pair's message: the band note comes on stderr from the frames as read; register prints it
+    as a note line."""
     p = pairs["L15"]
     dx, dy = p.spacing
     np.save(tmp_path / "l15.npy", np.stack([p.ref, p.mov]).astype("f4"))
@@ -204,6 +205,11 @@ def test_track_says_the_carrier_note_once(pairs, tmp_path, capsys):
                    str(tmp_path / f"t{k:.2f}"), "--no-progress", "--maxiter", "3"])
         err = capsys.readouterr().err
         assert rc == 0 and ("outside the 2-20 MHz of clinical probes" in err) == noted, err
+        # register prints it as a note line of its own, not only inside the pair's message
+        rc = main(["register", str(tmp_path / "l15.npy"), "--spacing", f"{dx * k:.6g}", str(dy), "-o",
+                   str(tmp_path / f"r{k:.2f}.npz"), "--no-progress", "--maxiter", "3"])
+        out = capsys.readouterr().out
+        assert rc == 0 and ("femreg register: note: the RF carrier reads" in out) == noted, out
 
 
 def test_batch_refuses_before_any_work_and_honours_the_override(rf_files, pairs, tmp_path, capsys):

@@ -342,6 +342,9 @@ def run(args) -> int:
     note = getattr(getattr(res, "refinement", None), "note", None)
     if note and "decorrel" in note:        # decorrelated speckle (refined anyway, or not split for it)
         print(f"femreg register: note: {note.replace('refine=None', '--refine none')}")
+    for part in (res.message or "").split("; "):       # femreg.orientation.frequency_note: the spacing suspect
+        if part.startswith("the RF carrier reads "):
+            print(f"femreg register: note: {part}")
     print(f"wrote {args.output}")
     if not res.success:
         reason = res.message.removeprefix("FAILED: ")
