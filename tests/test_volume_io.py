@@ -162,6 +162,8 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     assert "0.25 mm elevational" in capsys.readouterr().out
     out_npz = tmp_path / "r.npz"
     assert main(["register", str(path), "-o", str(out_npz), "--spacing", "0.025", "0.2", "0.25"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]      # the frames' summary line, not the library's repr
+    assert line.startswith("pair: ncc ") and " nodes, regularizer momentum-stress" in line, line
     res = load_volume_result(out_npz)
     assert res.spacing == pytest.approx((0.025, 0.2, 0.25)) and res.success
     # the result drawn: three slices of u_x, e_xx, e_yy, e_zz and the quality (before: refused, pointing to Python)

@@ -111,7 +111,9 @@ def register_volumes(args, vol, kw) -> int:
         print(f"femreg register: failed: the registration stopped ({type(exc).__name__}: {exc})", file=sys.stderr)
         return 1
     res.save(args.output)
-    print(res)
+    # the frames' one line (femreg.cli.register_cmd), not the library's repr
+    print(f"pair: ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}, {res.mesh.p.shape[1]} nodes, "
+          f"regularizer {res.regularizer}, alpha {res.alpha:g}" + (f"; {res.message}" if res.success else ""))
     if res.excluded:
         print(f"femreg register: left out of the mesh (the rest is registered): {res.excluded}")
     print(f"wrote {args.output}")
