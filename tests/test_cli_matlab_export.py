@@ -83,31 +83,44 @@ def pair12(export, tmp_path_factory):
     return out
 
 
-def test_plot_draws_the_reference_frame_the_result_was_registered_from(export, pair12, tmp_path, capsys,
-                                                                        monkeypatch):
+def _spy_plot_result(monkeypatch) -> dict:
+    """Record what ``femreg plot`` passes to femreg.plot.plot_result.  The first call draws the figure (kept under
+    ``"fig"``); later ones only record their arguments and return an empty figure: the tests below ask which frame
+    the command passes, and each summary figure takes seconds to draw."""
+    import matplotlib.pyplot as plt
+
     import femreg.plot
 
-    d, frames = export
-    with np.load(pair12) as z:
-        assert z["pair"].tolist() == [1, 2]
     drawn = {}
     plot_result = femreg.plot.plot_result
 
     def spy(res, out, **kw):
         drawn.update(kw)
-        return plot_result(res, out, **kw)
+        if "fig" in drawn:
+            return plt.figure()
+        drawn["fig"] = plot_result(res, out, **kw)
+        return drawn["fig"]
 
     monkeypatch.setattr(femreg.plot, "plot_result", spy)
+    return drawn
+
+
+def test_plot_draws_the_reference_frame_the_result_was_registered_from(export, pair12, tmp_path, capsys,
+                                                                        monkeypatch):
+    d, frames = export
+    with np.load(pair12) as z:
+        assert z["pair"].tolist() == [1, 2]
+    drawn = _spy_plot_result(monkeypatch)
     rc, out, err = _run(["plot", pair12, "--reference", d / "scan.mat", "--transpose", "-o", tmp_path / "p.png"],
                         capsys)
     # before: frame 0, silently, under a result of frames 1 -> 2
     assert rc == 0 and not err, err
     assert np.array_equal(drawn["reference"], frames[1]) and drawn["bmode_title"] == "B-mode, frame 1"
+    fig = drawn["fig"]                                  # the figure the command drew
     rc, out, err = _run(["plot", pair12, "--reference", d / "scan.mat", "--transpose", "--frame", "0",
                          "-o", tmp_path / "p0.png"], capsys)
     assert rc == 0 and np.array_equal(drawn["reference"], frames[0])
     assert "registered frames 1 -> 2" in err and "not its reference frame (1" in err, err
-    fig = plot_result(str(pair12), None, reference=frames[1], bmode_title="B-mode, frame 1")
     assert fig._suptitle.get_text().startswith("frames 1 -> 2, ")
     assert fig.axes[0].get_title() == "B-mode, frame 1"
 
@@ -317,17 +330,12 @@ def test_a_file_spacing_written_axial_first_under_transpose(export, tmp_path, ca
 def test_plot_of_a_track_run_on_a_selection_draws_its_first_frame(export, tmp_path, capsys, monkeypatch):
     import json
 
-    import femreg.plot
-
     d, frames = export
     run = tmp_path / "run"
     rc, out, err = _run(["track", d / "scan.mat", "--transpose", *SPACING, "--frames", "1:", "-o", run,
                          "--no-progress"], capsys)
     assert rc == 0 and json.loads((run / "track.json").read_text())["file_frames"] == [1, 2], err
-    drawn = {}
-    plot_result = femreg.plot.plot_result
-    monkeypatch.setattr(femreg.plot, "plot_result", lambda res, out, **kw: (drawn.update(kw),
-                                                                            plot_result(res, out, **kw))[1])
+    drawn = _spy_plot_result(monkeypatch)
     rc, out, err = _run(["plot", run / "frame_001.npz", "--reference", d / "scan.mat", "--transpose",
                          "-o", tmp_path / "f.png"], capsys)
     # before: the file's frame 0 under a run registered on its frame 1

@@ -36,7 +36,9 @@ def solution(model, E_inc):
 
     key = (model, E_inc)
     if key not in _SOLUTIONS:
-        _SOLUTIONS[key] = forward.solve_elasticity(model, inclusion_modulus=E_inc, background_modulus=10.0, **FE)
+        # the disk cache shares a solve across test files and worker processes (a fresh checkout solves each once)
+        _SOLUTIONS[key] = forward.solve_elasticity(model, inclusion_modulus=E_inc, background_modulus=10.0,
+                                                   cache=True, **FE)
     return _SOLUTIONS[key]
 
 

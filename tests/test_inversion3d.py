@@ -96,10 +96,9 @@ def test_two_layers_in_series_recover_the_modulus_ratio():
 
 
 def test_plane_strain_field_extruded_in_z_gives_the_plane_strain_answer():
-    import forward
+    from test_inversion import solution   # the shared FE solution and its cache
 
-    sol = forward.solve_elasticity("plane-strain", inclusion_modulus=40.0, background_modulus=10.0,
-                                   mesh_size_mm=1.0, refine_region_mm=(50.0, 20.0))
+    sol = solution("plane-strain", 40.0)
     region2 = ((15.0, 45.0), (-15.0, 15.0))
     r2 = invert(sol.displacement, region=region2, element_size=3.0, model="plane-strain", beta=1e-3,
                 uncertainty=False)

@@ -10,6 +10,7 @@ import pytest
 
 from femreg import inversion
 from femreg.inversion import _Regularizer, _tensor_mesh, invert, modulus_contrast
+from test_inversion import solution  # noqa: E402  (shared FE solutions and their cache)
 
 REGION = ((15.0, 45.0), (-15.0, 15.0))
 
@@ -37,10 +38,7 @@ def test_reweight_divides_each_edge_by_its_jump_and_restores():
 
 
 def test_soft_plane_strain_inclusion_less_shrunk_than_with_plain_tv(monkeypatch):
-    import forward
-
-    sol = forward.solve_elasticity("plane-strain", inclusion_modulus=2.5, background_modulus=10.0,
-                                   mesh_size_mm=1.0, refine_region_mm=(50.0, 20.0))
+    sol = solution("plane-strain", 2.5)
     kw = dict(model="plane-strain", region=REGION, element_size=1.5, beta=0.01, uncertainty=False)
     monkeypatch.setattr(inversion, "TV_REFIT", None)     # the reweighting alone (the refit: test_inversion_refit)
     debiased = modulus_contrast(invert(sol.displacement, **kw), inclusion)["contrast"]
@@ -67,10 +65,7 @@ def test_bregman_linear_term_shifts_value_and_gradient():
 
 
 def test_bregman_step_lifts_more_of_the_soft_disk_bias(monkeypatch):
-    import forward
-
-    sol = forward.solve_elasticity("plane-strain", inclusion_modulus=2.5, background_modulus=10.0,
-                                   mesh_size_mm=1.0, refine_region_mm=(50.0, 20.0))
+    sol = solution("plane-strain", 2.5)
     kw = dict(model="plane-strain", region=REGION, element_size=1.5, beta=0.01, uncertainty=False)
     monkeypatch.setattr(inversion, "TV_REFIT", None)     # the reweighting and Bregman alone
     default = modulus_contrast(invert(sol.displacement, **kw), inclusion)["contrast"]

@@ -11,6 +11,7 @@ import pytest
 
 from femreg import inversion
 from femreg.inversion import _Regularizer, _regions, _tensor_mesh, invert, modulus_contrast
+from test_inversion import solution  # noqa: E402  (shared FE solutions and their cache)
 
 REGION = ((15.0, 45.0), (-15.0, 15.0))
 KW = dict(model="plane-strain", region=REGION, element_size=1.5, beta=0.01, uncertainty=False)
@@ -21,16 +22,8 @@ def inclusion(points):
     return (p[:, 0] - 30.0) ** 2 + p[:, 1] ** 2 < 7.5 ** 2
 
 
-_SOL = {}
-
-
 def soft_disk():
-    import forward
-
-    if "sol" not in _SOL:
-        _SOL["sol"] = forward.solve_elasticity("plane-strain", inclusion_modulus=2.5, background_modulus=10.0,
-                                               mesh_size_mm=1.0, refine_region_mm=(50.0, 20.0))
-    return _SOL["sol"]
+    return solution("plane-strain", 2.5)
 
 
 def refit_on(monkeypatch, **constants):
@@ -96,10 +89,7 @@ def test_refit_keeps_the_tv_value_of_an_unconstrained_or_implausible_region(monk
 def test_refit_of_a_stiff_disk_from_exact_data_at_a_small_beta(model, tv_ratio, refit_ratio, monkeypatch):
     """At a small beta the TV bias is small and the region model's own error (a constant disk on 1.5 mm quads)
     is of the same size: the stiff plane-stress disk reads higher after the refit, the plane-strain one lower."""
-    import forward
-
-    sol = forward.solve_elasticity(model, inclusion_modulus=40.0, background_modulus=10.0, mesh_size_mm=1.0,
-                                   refine_region_mm=(50.0, 20.0))
+    sol = solution(model, 40.0)
     kw = dict(model=model, region=REGION, element_size=1.5, beta=3e-4, uncertainty=False)
     monkeypatch.setattr(inversion, "TV_REFIT", None)
     tv = modulus_contrast(invert(sol.displacement, **kw), inclusion)["contrast"] / 4.0

@@ -270,7 +270,7 @@ def fe_fields():
     mesh = MeshQuad1.init_tensor(np.arange(0, 72.01, 1.0), np.arange(-22, 22.01, 1.0))
     for model, nu in (("plane-stress", 0.499), ("plane-strain", 0.45)):
         sol = forward.solve_elasticity(model, inclusion_modulus=40.0, poisson=nu, compression_mm=1.0,
-                                       mesh_size_mm=1.0, refine_region_mm=(75.0, 25.0))
+                                       mesh_size_mm=1.0, refine_region_mm=(75.0, 25.0), cache=True)
         d = sol.displacement(mesh.p.T)
         out["forward", model] = (mesh, nodal(mesh, lambda x, y: (d[:, 0], d[:, 1])))
     return out
@@ -346,7 +346,7 @@ def test_plane_stress_pair_momentum_beats_strain_laterally():
     from femreg.synthetic import speckle_pair
 
     sol = forward.solve_elasticity("plane-stress", inclusion_modulus=40.0, poisson=0.495, compression_mm=1.0,
-                                   mesh_size_mm=1.0, refine_region_mm=(50.0, 16.0))
+                                   mesh_size_mm=1.0, refine_region_mm=(50.0, 16.0), cache=True)
     spacing = (0.0192, 0.3)
     x0, Lx, Ly = 15.0, 30.0, 21.0                      # 30 x 21 mm around the inclusion (centre 30 mm deep)
     shape = (int(round(Lx / spacing[0])), int(round(Ly / spacing[1])) + 1)
