@@ -182,3 +182,21 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     np.save(tmp_path / "frames.npy", pair.ref[:, :, :2].transpose(2, 0, 1))      # two frames
     assert main(["info", str(tmp_path / "frames.npy"), "--spacing", "0.025", "0.2", "0.25"]) == 2
     assert "three values (DX DY DZ) is for RF volumes" in capsys.readouterr().err
+
+
+def test_cli_failed_volume_names_the_exchanged_spacing(tmp_path, capsys):
+    """Lateral and elevational spacings typed the other way round: nothing in the RF tells them apart, so a failed
+    volume registration names the exchanged order (here 5 mm of elevation read as 4 mm is one element across, and
+    the registration fails); spacings within 10 % of each other get no such hint."""
+    from femreg.cli import main
+    from femreg.cli._volume import _exchanged_hint
+    from forward.volume import Affine3D, make_volume_pair
+
+    pair = make_volume_pair(Affine3D(0.01), "matrix7", (6.0, 6.0, 5.0), seed=0, snr_db=30.0)
+    path = tmp_path / "scan.mat"
+    _scanner_mat73(path, pair.frames / np.abs(pair.frames).max() * 30, 30.8e6, 0.2e-3, 0.25e-3)
+    assert main(["register", str(path), "-o", str(tmp_path / "r.npz"), "--spacing", "0.025", "0.25", "0.2",
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "failed its checks" in err and "exchanged" in err and "--spacing 0.025 0.2 0.25" in err, err
+    assert _exchanged_hint((0.025, 0.2, 0.21)) == "" and "--spacing 0.1 0.3 0.2" in _exchanged_hint((0.1, 0.2, 0.3))

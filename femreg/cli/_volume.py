@@ -119,9 +119,21 @@ def register_volumes(args, vol, kw) -> int:
     print(f"wrote {args.output}")
     if not res.success:
         reason = res.message.removeprefix("FAILED: ")
-        print(f"femreg register: failed: the registration failed its checks: {reason}", file=sys.stderr)
+        print(f"femreg register: failed: the registration failed its checks: {reason}{_exchanged_hint(spacing)}",
+              file=sys.stderr)
         return 1
     return 0
+
+
+def _exchanged_hint(spacing) -> str:
+    """A failed volume's hint where the lateral and elevational spacings differ: nothing in the RF tells them
+    apart (the carrier checks only the axial one), and the 7 MHz matrix loop of benchmarks/volume_tgc.py given
+    ``DX DZ DY`` failed on peak hopping (NCC after 0.54) where ``DX DY DZ`` registers at 0.96."""
+    dx, dy, dz = (float(v) for v in spacing)
+    if max(dy, dz) < 1.1 * min(dy, dz):
+        return ""
+    return (f" (if the lateral and elevational spacings are exchanged, the order is axial, lateral, elevational: "
+            f"--spacing {dx:g} {dz:g} {dy:g})")
 
 
 def track_volumes(args, vol, kw) -> int:
