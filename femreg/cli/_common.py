@@ -107,13 +107,13 @@ def frames_from_args(args, path=None, *, allow_sector: bool = False, check_shape
     _note_raw_only_flags(fr, path, args)
     _note_spacing_against_fields(fr, path, args)
     _note_region_in_centimetres(fr, path, args)
-    _note_sampling(fr, path, args, check_shape)
     if check_shape:
         try:
             check_raw_shape(fr)
         except OrientationError as exc:
             raise OrientationError(f"{path}: {exc}", problem=exc.problem) from None
         _check_frame_size(fr, path, args)
+    _note_sampling(fr, path, args, check_shape)      # after the refusals: a refused spacing gets one line
     return fr if allow_sector else require_cartesian(fr, f"femreg {getattr(args, 'command', '')}".strip())
 
 
