@@ -38,7 +38,7 @@ from .errors import InputError
 from .speckle import envelope, rf_period
 
 __all__ = ["EchoBox", "find_echo_volume", "crop_for_volume", "region_from_mm_volume", "VolumeCrop", "route_volume",
-           "unmatched_crop_volume", "VETO_PLANES"]
+           "unmatched_crop_volume", "registered_crop_volume", "VETO_PLANES"]
 
 #: Elevational planes (at most) a strip's frame-to-frame veto is measured on (and the block matching of
 #: :func:`unmatched_crop_volume`).
@@ -334,9 +334,14 @@ def route_volume(register_volume, args: dict):
     crop = crop_for_volume(args["reference_image"], args["moving_image"], kw["spacing"], kw["origin"], roi=roi,
                            depth=depth, mesh=kw["mesh"], margin=kw["margin"], initial=kw["initial"],
                            offset=kw["offset"])
-    if crop is None:
-        return None
-    kw.update(extra, origin=crop.origin, roi=None, depth=None)
+    return None if crop is None else registered_crop_volume(register_volume, crop, args)
+
+
+def registered_crop_volume(register_volume, crop, args: dict):
+    """``register_volume`` (:func:`femreg.volume.register_volume`; ``args`` its arguments, ``ignored`` holding roi /
+    depth) on the volumes cut to ``crop`` (:class:`VolumeCrop`), widened to the full voxel grid."""
+    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
+    kw.update(args.get("ignored") or {}, origin=crop.origin, roi=None, depth=None)
     return crop.widen(register_volume(*crop.frames(args["reference_image"], args["moving_image"]), **kw))
 
 

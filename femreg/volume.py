@@ -20,6 +20,7 @@ matches better one RF period off, :func:`hop_check`) -> :class:`VolumeResult`.
 """
 from __future__ import annotations
 
+import contextvars
 import copy
 import functools
 import json
@@ -31,7 +32,7 @@ from scipy import ndimage
 
 from . import orientation
 from .autoalpha import ImageTerm, choose_alpha, register_auto
-from .echo_volume import crop_for_volume, route_volume, unmatched_crop_volume
+from .echo_volume import crop_for_volume, registered_crop_volume, route_volume, unmatched_crop_volume
 from .errors import InputError, counted
 from .image import normalize_pair, require_spacing
 from .regularizers import Regularizer, available_regularizers
@@ -564,7 +565,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
             kw["refine"] = _default_refine(refine, args, geometry=geo)     # not measured on swept volumes: off
             return register_swept(reference_image, moving_image, geometry=geo, spacing=spacing, origin=origin,
                                   register=register_volume, **kw, **ignored)
-    routed = route_volume(register_volume, args)
+    routed = None if _DECIDING.get() else route_volume(register_volume, args)
     if routed is not None:              # inside the echo box or a given roi / depth (femreg.echo_volume)
         return routed
     unknown = {k for k in ignored if k not in _IGNORED_2D_OPTIONS}
@@ -606,8 +607,10 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
             timings.update(info.pop("timings"))
             noise = unmatched_crop_volume(ref, mov, u0, mesh, spacing, origin, margin) if _cuts_at_depth(
                 args) else None
+            if _DECIDING.get():         # noise_at_depth_volume: the decision is all it asked for
+                raise _CutDecided(noise)
             if noise is not None:       # no match at depth after the start: registered above it (femreg.echo)
-                return _registered_crop(noise, args)
+                return registered_crop_volume(register_volume, noise, args)
         else:       # a sequence increment: start from zero motion relative to S
             u0 = np.zeros(3 * mesh.p.shape[1])
     elif isinstance(initial, str) and initial == "zero":
@@ -685,30 +688,36 @@ def _cuts_at_depth(args: dict) -> bool:
             and args["initial"] is None and args["offset"] is None)
 
 
-def _registered_crop(crop, args: dict):
-    """:func:`register_volume` (arguments ``args``) on the volumes cut to ``crop``, widened to the full grid."""
-    kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "ignored")}
-    kw.update(args.get("ignored") or {}, origin=crop.origin, roi=None, depth=None)
-    return crop.widen(register_volume(*crop.frames(args["reference_image"], args["moving_image"]), **kw))
+#: Set while :func:`noise_at_depth_volume` runs :func:`register_volume` for its cut alone (:class:`_CutDecided`).
+_DECIDING = contextvars.ContextVar("femreg_volume_deciding", default=False)
 
 
-def noise_at_depth_volume(reference, moving, *, spacing, origin=(0.0, 0.0, 0.0), regularizer="momentum-stress",
-                          alpha=None, element_size=None, margin=None, maxiter: int = 20, tol: float = 1e-3,
-                          linear_solver: str = "auto", regularizer_options=None, normalize: bool = True, **ignored):
+class _CutDecided(Exception):
+    """Ends :func:`register_volume` under :func:`noise_at_depth_volume` once its start's cut is decided."""
+
+    def __init__(self, crop):
+        super().__init__("the cut at depth is decided")
+        self.crop = crop
+
+
+def noise_at_depth_volume(reference, moving, *, spacing, origin=(0.0, 0.0, 0.0), **register_kwargs):
     """The crop :func:`register_volume` would cut the pair to after its start for noise at depth
     (:func:`femreg.echo_volume.unmatched_crop_volume`), or None; the volumes' :func:`femreg.registration.noise_at_depth`
-    for :func:`track_volume`, which chooses one box for the loop from its first two volumes.  The start is
-    register_volume's (:func:`coarse_to_fine` on the default mesh); ``alpha="auto"`` starts from the default."""
-    ref, mov, spacing, origin = _validate(reference, moving, spacing, origin, regularizer, "auto", maxiter, tol)
-    reg = fresh_regularizer(regularizer, None if isinstance(alpha, str) else alpha,
-                            effective_regularizer_options("auto", regularizer, regularizer_options))
-    if normalize:
-        ref, mov, _ = normalize_pair(ref, mov)
-    mesh = roi_mesh_3d(ref.shape, spacing, origin,
-                       element_size=DEFAULT_ELEMENT_SIZE_3D if element_size is None else element_size, margin=margin)
-    u0, _ = coarse_to_fine(ref, mov, spacing, origin, mesh, lambda: copy.copy(reg), maxiter=maxiter, tol=tol,
-                           linear_solver=linear_solver)
-    return unmatched_crop_volume(ref, mov, u0, mesh, spacing, origin, margin)
+    for :func:`track_volume`, which chooses one box for the loop from its first two volumes.  :func:`register_volume`
+    itself runs up to that decision (validation, normalisation, the default mesh, :func:`coarse_to_fine`), with
+    the options of ``register_kwargs`` that make its start (:data:`_START_OPTIONS`; ``alpha="auto"`` starts from
+    the default) and none of its hand-offs (echo box, ``alpha="auto"``: the caller has made those choices)."""
+    kw = {k: v for k, v in register_kwargs.items() if k in _START_OPTIONS}
+    if isinstance(kw.get("alpha"), str):
+        kw["alpha"] = None
+    token = _DECIDING.set(True)
+    try:
+        register_volume(reference, moving, spacing=spacing, origin=origin, check_orientation=False, **kw)
+    except _CutDecided as decided:
+        return decided.crop
+    finally:
+        _DECIDING.reset(token)
+    return None
 
 
 def _register_auto(args: dict) -> VolumeResult:
@@ -838,8 +847,7 @@ def track_volume(frames, *, spacing, origin=(0.0, 0.0, 0.0), mode: str = "accumu
                                         "initial": register_kwargs.get("initial"),
                                         "offset": register_kwargs.get("offset")}):
         # noise a TGC lifts at depth: the cut register_volume makes, decided once from frames 0 and 1
-        crop = noise_at_depth_volume(arr[0], arr[1], spacing=spacing, origin=origin, **{
-            k: v for k, v in register_kwargs.items() if k in _START_OPTIONS})
+        crop = noise_at_depth_volume(arr[0], arr[1], spacing=spacing, origin=origin, **register_kwargs)
     if crop is not None:                # every frame inside the box of frames 0 and 1 (femreg.echo_volume)
         arr, origin = crop.frames(*arr), crop.origin
     register_kwargs.update(roi=None, depth=None)

@@ -99,6 +99,8 @@ def test_cli_tracks_swept_volumes_with_resume_and_exit_codes(still_file, tmp_pat
     real = femreg.volume.register_volume
 
     def flaky(*a, **k):
+        if femreg.volume._DECIDING.get():       # the loop's cut decision (noise_at_depth_volume), no volume's
+            return real(*a, **k)
         calls.append(1)
         if len(calls) == 2:
             raise FloatingPointError("simulated failure")
