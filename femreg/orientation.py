@@ -159,9 +159,10 @@ def _pass_spacing(values: str, detail: str, lead: str = "spacing ", unit: str = 
     return pass_as(f"{lead}({values}){unit} ({detail}; CLI: --spacing {flag})", f"--spacing {flag} ({detail})")
 
 
-def override() -> str:
-    """How a refusal names the way past the check: :data:`OVERRIDE`, the flag alone on the command line."""
-    return pass_as(OVERRIDE, "--no-orientation-check")
+def override(python: str = OVERRIDE) -> str:
+    """How a refusal names the way past the check: ``python`` (default :data:`OVERRIDE`), the flag alone on the
+    command line."""
+    return pass_as(python, "--no-orientation-check")
 
 
 class OrientationError(InputError):
@@ -617,7 +618,8 @@ def _sampling_mistake(ratio: float, c: float) -> str:
             f"{c * ratio:.0f} m/s, which no soft tissue has")
 
 
-def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -> list:
+def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "", elevational=None,
+                   override_as: str = OVERRIDE) -> list:
     """Hold the axial spacing of :class:`femreg.io.Frames` against what the file's header states about the RF
     (:func:`femreg.io.checks.header_frequencies`); returns notes (a list of strings), raises
     :class:`OrientationError` (problem "sampling") for a clear contradiction:
@@ -630,7 +632,9 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
     ``sound_speed`` (m/s): the one given (else the header's, else 1540).  IQ data (``metadata["iq"]``: the carrier
     is the demodulation frequency's whatever the spacing; their own checks, :func:`check_iq_sign`), frames that
     look transposed (:func:`diagnose` names their spacing with the transpose) and, for the transmit check, frames
-    without a carrier are skipped."""
+    without a carrier are skipped.  ``elevational``: a volume's plane spacing (mm), kept in third place in the
+    spacing a refusal names; ``override_as``: the Python argument that skips the check (the CLI's flag is
+    ``--no-orientation-check`` either way)."""
     from .io.checks import check_spacing, header_frequencies
 
     meta = dict(frames.metadata or {})
@@ -669,13 +673,16 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
             # a spacing in other units: the line pitch too, where only that makes it a pitch (LINE_PITCH_MM)
             k = next((k for k in (1e3, 1e-3, 10.0, 0.1) if abs(ratio / k - 1.0) <= SAMPLING_TOLERANCE), 1.0)
             y = dy / k if not _pitch_plausible(dy) and _pitch_plausible(dy / k) else dy
-            fix = pass_as(f"spacing=({dx_h:.5g}, {y:.6g})", f"--spacing {dx_h:.5g} {y:.6g}")
+            z = () if elevational is None else (f"{float(elevational):g}",)
+            fix = pass_as(f"spacing=({', '.join((f'{dx_h:.5g}', f'{y:.6g}') + z)})",
+                          f"--spacing {' '.join((f'{dx_h:.5g}', f'{y:.6g}') + z)}")
+            order = "axial, lateral, elevational" if z else "axial, lateral"
             m = round(ratio)
             kept = (f"; frames decimated after sampling (one sample in {m} kept) have {m} times the header's "
                     "spacing: then use the value given" if 2 <= m <= 8 and abs(ratio / m - 1.0) <= 0.02 else "")
             raise OrientationError(
-                f"{where}{said}, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} (axial, lateral mm)"
-                f"{kept}, or {override()} to use the value given", problem="sampling")
+                f"{where}{said}, and {typed:g} is {_sampling_mistake(ratio, c)}; pass {fix} ({order} mm)"
+                f"{kept}, or {override(override_as)} to use the value given", problem="sampling")
     if "transmit_mhz" in known:
         if not np.isfinite(f) or notes:
             return notes
@@ -690,7 +697,7 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "") -
         if not lo <= r <= hi:
             raise OrientationError(
                 f"{where}{found}: outside the {lo:g}-{hi:g} times that attenuation and harmonic imaging explain, "
-                f"so the axial spacing looks wrong ({cure}); check it, or {override()}", problem="sampling")
+                f"so the axial spacing looks wrong ({cure}); check it, or {override(override_as)}", problem="sampling")
         if not nlo <= r <= nhi:
             also = " (tissue harmonic imaging receives at twice the transmit frequency)" if r > nhi else \
                 " (attenuation lowers the carrier with depth, though rarely this far)"

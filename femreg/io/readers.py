@@ -788,25 +788,17 @@ def _mhd_volume(path, **kw):
 
 def _check_volume_sampling(vol, spacing) -> None:
     """:func:`femreg.orientation.check_sampling` for volumes: the central axial-lateral plane of the first volume
-    as a frame, its header fields and a given ``spacing``'s axial and lateral values; notes kept in
-    ``metadata["sampling_notes"]``."""
-    import re
+    as a frame, its header fields and a given ``spacing``'s axial and lateral values (a refusal names the
+    volume's elevational value too); notes kept in ``metadata["sampling_notes"]``."""
     from types import SimpleNamespace
 
-    from ..orientation import OrientationError, check_sampling
+    from ..orientation import check_sampling
 
     a = vol.frames[0]
     plane = SimpleNamespace(frames=[a[:, :, a.shape[2] // 2]], spacing=tuple(vol.spacing[:2]), metadata=vol.metadata)
-    try:
-        notes = check_sampling(plane, None if spacing is None else tuple(spacing)[:2], where=f"{vol.source}: ")
-    except OrientationError as exc:     # the spacing to pass, with the volume's elevational value
-        dz = f"{float(vol.spacing[2]):g}"
-        text = re.sub(r"(--spacing \S+ \S+) \(axial, lateral mm\)", rf"\1 {dz} (axial, lateral, elevational mm)",
-                      str(exc))
-        text = re.sub(r"spacing=\(([^)]*)\) \(axial, lateral mm\)", rf"spacing=(\1, {dz}) (axial, lateral, "
-                      "elevational mm)", text)
-        text = text.replace("check_orientation=False (CLI", "check_sampling=False (CLI")   # read_volumes' name
-        raise OrientationError(text, problem=exc.problem, report=exc.report) from None
+    notes = check_sampling(plane, None if spacing is None else tuple(spacing)[:2], where=f"{vol.source}: ",
+                           elevational=vol.spacing[2],
+                           override_as="check_sampling=False (CLI: --no-orientation-check)")   # read_volumes' name
     if notes:
         vol.metadata["sampling_notes"] = notes
 
