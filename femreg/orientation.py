@@ -287,8 +287,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
         return OrientationReport((dx, dy), (float("nan"), float("nan")))
     # spectra from a subset (at least 64 lines / 1024 rows) and the speckle from the strongest block of rows:
     # a few percent of a registration's time on a paper-size frame
-    c0 = axial_carrier_ratio(img)
-    c1 = carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
+    c0, c1 = _carrier_ratios(img)
     rep = OrientationReport((dx, dy), (c0, c1), sound_speed=sound_speed,
                             elevational=None if elevational is None else float(elevational))
     # the advice's spacings, as given and with axial and lateral exchanged, a volume's dz kept in third place
@@ -297,7 +296,7 @@ def diagnose(image, spacing, *, sound_speed: float = SOUND_SPEED_M_S,
     order = "axial, lateral, elevational" if dz else "axial, lateral"
     c_mm_us = sound_speed * 1e-3                     # m/s -> mm/us
     lo, hi = FREQUENCY_MHZ
-    if c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO:
+    if _looks_transposed(c0, c1):
         rep.problem, rep.carrier_samples = "transposed", _centroid_samples(img.T)
         n1 = rep.carrier_samples
         if all(lo <= c_mm_us / (2.0 * n1 * v) <= hi for v in (dx, dy)):
@@ -521,6 +520,18 @@ def _lateral_cell(env, dy: float) -> float:
     return float(_envelope_cell(np.ascontiguousarray(e.T), 0, dy))
 
 
+def _carrier_ratios(img) -> tuple:
+    """(along axis 0, along axis 1) carrier ratios of a frame (:func:`axial_carrier_ratio`, :func:`carrier_ratio`
+    of at most about 1024 of its rows)."""
+    img = np.asarray(img, float)
+    return axial_carrier_ratio(img), carrier_ratio(img[::max(1, img.shape[0] // 1024)].T)
+
+
+def _looks_transposed(c0: float, c1: float) -> bool:
+    """The carrier runs along the lines (axis 1) and not along the depth (axis 0): frames stored lines first."""
+    return c1 < CARRIER_RATIO and c0 > NO_CARRIER_RATIO
+
+
 def _centroid_samples(img) -> float:
     """1 / spectral centroid along axis 0 in samples (:func:`femreg.speckle.rf_period` with unit spacing)."""
     from .speckle import rf_period
@@ -642,8 +653,7 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "", e
     if "iq" in meta or not known or frames.spacing is None:
         return []
     img = np.asarray(frames.frames[0])
-    if img.ndim == 2 and min(img.shape) >= MIN_SAMPLES and axial_carrier_ratio(img) > NO_CARRIER_RATIO \
-            and carrier_ratio(np.asarray(img, float)[::max(1, img.shape[0] // 1024)].T) < CARRIER_RATIO:
+    if img.ndim == 2 and min(img.shape) >= MIN_SAMPLES and _looks_transposed(*_carrier_ratios(img)):
         return []       # transposed: that refusal (diagnose) names the spacing along with the transpose
     c = float(sound_speed) if sound_speed is not None else float(known.get("sound_speed", (SOUND_SPEED_M_S,))[0])
     c_words = f"c = {c:g} m/s" + ("" if sound_speed is not None or "sound_speed" in known else " assumed")
