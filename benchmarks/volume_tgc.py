@@ -46,32 +46,18 @@ WEIGHTS = np.array([1, 1, 1, 2, 2, 2.0])
 SCORE = (3.0, FLOOR - 3.0)          # depth range scored (mm)
 
 
-class _Scaled:
-    def __init__(self, unit, scale, name):
-        self.unit, self.scale, self.name = unit, scale, name
-
-    def displacement(self, points):
-        return self.scale * self.unit.displacement(points)
-
-    def strain(self, points):
-        return self.scale * self.unit.strain(points)
-
-    def inside(self, points):
-        return self.unit.inside(points)
-
-
 def make_loop(seed: int = 0, n_volumes: int = N_VOLUMES, step: float = STEP):
     """The loop (forward.volume.VolumeSequence, float frames) and its int16 frames."""
     from forward.elasticity import solve_elasticity
     from forward.pairs import alpha_for_floor, attenuation_gain_db
-    from forward.volume import VOLUME_PROBES, FEVolumeField, ImagingVolume, make_volume_sequence
+    from forward.volume import VOLUME_PROBES, FEVolumeField, ImagingVolume, ScaledField, make_volume_sequence
 
     sol = solve_elasticity("3d", cache=True, **INCLUSION)
     unit = FEVolumeField(sol, 1.0, name="3d-sphere8")
     pr = VOLUME_PROBES["matrix7"]
     g = ImagingVolume.centred(SIZE, (0.25, 0.25, 0.25), top_mm=TOP)
     mean_exx = float(np.nanmean(unit.strain(g.points()[::5])[:, 0]))
-    fields = [_Scaled(unit, k * step / -mean_exx, f"sphere8 x{k}") for k in range(1, n_volumes)]
+    fields = [ScaledField(unit, k * step / -mean_exx, f"sphere8 x{k}") for k in range(1, n_volumes)]
     gain = attenuation_gain_db(alpha_for_floor(FLOOR, SNR, pr.f0_mhz), pr.f0_mhz)
     seq = make_volume_sequence(fields, "matrix7", SIZE, top_mm=TOP, snr_db=SNR, seed=seed, echo_gain_db=gain,
                                tgc_db=lambda x: -gain(x))

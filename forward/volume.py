@@ -55,7 +55,7 @@ from .ultrasound import PSF, SPEED_OF_SOUND_MM_PER_S, noise_sigma, positive
 __all__ = ["PSF3D", "VolumeProbe", "VOLUME_PROBES", "as_volume_probe", "ImagingVolume", "Scatterers3D",
            "make_scatterers_3d", "render_volume", "Affine3D", "FEVolumeField", "FunctionField3D", "VolumePair",
            "VolumeSequence", "make_volume_pair", "make_volume_sequence", "paper_volume_sequence",
-           "load_volume_sequence", "central_plane", "STRAIN_COMPONENTS_3D", "SCATTERERS_PER_CELL_3D"]
+           "load_volume_sequence", "central_plane", "ScaledField", "STRAIN_COMPONENTS_3D", "SCATTERERS_PER_CELL_3D"]
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 #: Order of the six strain components everywhere in 3D (tensor shear, not engineering).
@@ -792,8 +792,9 @@ def make_volume_pair(field, probe="matrix7", size_mm=(20.0, 20.0, 15.0), **kwarg
 # The paper's 3D phantom imaged as volumes
 # --------------------------------------------------------------------------------------------------------------
 
-class _ScaledTable:
-    """``scale * U(X)`` with ``U`` the unit-compression FE field, evaluated once at the scatterers."""
+class ScaledField:
+    """``scale * U(X)`` with ``U`` a unit field (e.g. the unit-compression FE field, evaluated once at the
+    scatterers): ``displacement``, ``strain`` and ``inside`` of ``base`` scaled; ``name`` for the params."""
 
     def __init__(self, base, scale, name):
         self.base, self.scale, self.name = base, float(scale), name
@@ -893,7 +894,7 @@ def paper_volume_sequence(inclusion: str = "HI", *, frames=(0, 6), probe="paper3
     scat.amplitudes[unit.inside(scat.positions)] *= 2.0
     t_field = time.perf_counter() - t0
     log(f"  {len(scat)} scatterers, FE displacement {t_field:.1f} s")
-    fields = [_ScaledTable(unit, s, f"3d-{inclusion} x{s:.4f}") for s in scales]
+    fields = [ScaledField(unit, s, f"3d-{inclusion} x{s:.4f}") for s in scales]
     vol, sigma, t_render = _render_frames(fields, grid, psf, scat, _snr(snr_db), ss_noise, log,
                                           u_cache=lambda k: scales[k] * U)
     params = dict(kw, inclusion=inclusion, scales=[float(s) for s in scales], mean_exx_unit=mean_exx,
@@ -919,7 +920,7 @@ def load_volume_sequence(path, unit_field=None) -> VolumeSequence:
     grid = ImagingVolume(tuple(g["shape"]), tuple(g["spacing"]), tuple(g["origin"]))
     if frames.shape[1:] != grid.shape or len(params["scales"]) != frames.shape[0]:
         raise ValueError(f"{path}: frames {frames.shape} do not match the grid {grid.shape}")
-    fields = ([_ScaledTable(unit_field, s, f"x{s:.4f}") for s in params["scales"]] if unit_field is not None
+    fields = ([ScaledField(unit_field, s, f"x{s:.4f}") for s in params["scales"]] if unit_field is not None
               else [])
     return VolumeSequence(frames=frames, grid=grid, fields=fields, params=params, path=Path(path))
 
