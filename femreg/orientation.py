@@ -629,6 +629,64 @@ def _sampling_mistake(ratio: float, c: float) -> str:
             f"{c * ratio:.0f} m/s, which no soft tissue has")
 
 
+#: Whole decimations of the sampling rate an IQ sample spacing is taken for (:func:`iq_decimation`), and how close
+#: to one the spacing must be (relative).
+IQ_DECIMATIONS = range(1, 17)
+IQ_DECIMATION_TOLERANCE = 0.02
+
+
+def iq_decimation(dx_iq: float, dx_fs: float):
+    """The whole decimation ``q`` (:data:`IQ_DECIMATIONS`) with ``dx_iq`` within :data:`IQ_DECIMATION_TOLERANCE`
+    of ``q dx_fs``, else None."""
+    ratio = dx_iq / dx_fs
+    q = int(round(ratio))
+    return q if q in IQ_DECIMATIONS and abs(ratio / q - 1.0) <= IQ_DECIMATION_TOLERANCE else None
+
+
+#: How far (relative) a given demodulation frequency may lie from the one the file states.
+IQ_FREQUENCY_TOLERANCE = 0.02
+
+
+def _iq_sampling_notes(iq: dict, known: dict, sound_speed, where: str, spacing_given: bool = True,
+                       override_as: str = OVERRIDE) -> list:
+    """The IQ part of :func:`check_sampling`.  A demodulation frequency given more than
+    :data:`IQ_FREQUENCY_TOLERANCE` from the one the header states is refused (problem "iq-frequency"): with
+    another frequency the strain comes out scaled, or, at a spacing off by the same factor, every depth and
+    displacement.  A given IQ sample spacing is held against the sampling rate the header states: IQ is usually
+    decimated after sampling, so a whole multiple ``q`` of ``c / (2 fs)`` is what the data can have (noted for ``q
+    > 1``); any other value is noted as unlike the header, not refused, since beamformers also write IQ onto grids
+    of their own.  A spacing wrong by a factor shows in the IQ phases between moving frames, which
+    :func:`check_iq_sign` refuses naming the spacing they fit."""
+    f = iq.get("modulation_frequency_mhz")
+    if "demod_mhz" in known and f is not None:
+        fd, d_words = known["demod_mhz"]
+        if abs(float(f) / fd - 1.0) > IQ_FREQUENCY_TOLERANCE:
+            raise OrientationError(
+                f"{where}" + pass_as(f"modulation_frequency {float(f):g} MHz", f"--iq-frequency {float(f):g} MHz")
+                + f" given, but the file states the demodulation frequency {fd:g} MHz ({d_words}): remodulated at "
+                f"another frequency the strain comes out scaled by about their ratio (or, with the axial spacing off "
+                f"by the same factor, every depth and displacement); pass "
+                + pass_as(f"modulation_frequency={fd:.6g} (CLI: --iq-frequency {fd:.6g})", f"--iq-frequency {fd:.6g}")
+                + f", or {override(override_as)} to use the value given", problem="iq-frequency")
+    if not spacing_given or "fs_mhz" not in known or "iq_spacing_mm" not in iq:
+        return []
+    fs, words = known["fs_mhz"]
+    c = float(sound_speed if sound_speed is not None else iq.get("sound_speed", SOUND_SPEED_M_S))
+    dx_fs = c * 1e-3 / (2.0 * fs)
+    dx = float(iq["iq_spacing_mm"])
+    q = iq_decimation(dx, dx_fs)
+    if q == 1:
+        return []
+    said = (f"the IQ sample spacing {dx:g} mm given is {dx / dx_fs:.3g} times c / (2 fs) = {dx_fs:.5g} mm of the "
+            f"sampling rate the file states, {fs:g} MHz ({words}; c = {c:g} m/s)")
+    if q is not None:
+        return [f"{where}{said}: IQ decimated {q}x after sampling"]
+    whole = max(1, int(round(dx / dx_fs)))
+    return [f"{where}{said}, no whole decimation of it (IQ decimated q times after sampling has q x {dx_fs:.5g} "
+            f"mm, e.g. {whole * dx_fs:.5g}): unless the beamformer wrote the IQ onto a grid of its own, the axial "
+            f"spacing is off and every depth and displacement with it"]
+
+
 def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "", elevational=None,
                    override_as: str = OVERRIDE) -> list:
     """Hold the axial spacing of :class:`femreg.io.Frames` against what the file's header states about the RF
@@ -650,6 +708,8 @@ def check_sampling(frames, spacing=None, *, sound_speed=None, where: str = "", e
 
     meta = dict(frames.metadata or {})
     known = header_frequencies(meta)
+    if "iq" in meta and known:
+        return _iq_sampling_notes(meta["iq"], known, sound_speed, where, spacing is not None, override_as)
     if "iq" in meta or not known or frames.spacing is None:
         return []
     img = np.asarray(frames.frames[0])
@@ -783,12 +843,38 @@ def check_remodulated(frames) -> None:
         problem="swapped")
 
 
-def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "") -> tuple:
+def _iq_spacing_fix(iq: dict, spacing, f: float, fb: float, metadata, c: float) -> tuple:
+    """``(axial spacing mm, words)`` at which IQ phases that turn as for ``fb`` MHz (:func:`iq_convention`) fit the
+    ``f`` MHz given: the phase per sample is ``4 pi f dx / c``, so a spacing ``k`` times too large reads as ``f /
+    k``.  Rounded to a whole decimation of the header's sampling rate (:func:`iq_decimation`) where one is within
+    10 %; ``(None, "")`` for the other sign."""
+    from .io.checks import header_frequencies
+
+    if fb <= 0:
+        return None, ""
+    dx_iq = float(iq.get("iq_spacing_mm", spacing[0]))
+    dx = dx_iq * fb / f
+    known = header_frequencies(metadata)
+    if "fs_mhz" in known:
+        fs, words = known["fs_mhz"]
+        dx_fs = c * 1e-3 / (2.0 * fs)
+        q = int(round(dx / dx_fs))
+        if q in IQ_DECIMATIONS and abs(dx / (q * dx_fs) - 1.0) <= SAMPLING_TOLERANCE:
+            how = "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
+            return q * dx_fs, f"{how}, with fs = {fs:g} MHz ({words}) and c = {c:g} m/s"
+    return dx, f"the spacing at which the phases fit {f:g} MHz"
+
+
+def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "", metadata=None) -> tuple:
     """Refuse two RF frames remodulated from IQ data (``iq``: the ``metadata["iq"]`` record of
     :func:`femreg.io.read_frames`) whose carrier moves against the envelope (module docstring, sign convention),
     or whose phase turns as for another demodulation frequency than the one given: :class:`OrientationError`
     naming ``--iq-conjugate`` (problem "iq-sign") or the frequency the phases show ("iq-frequency").  Returns
     :func:`femreg.io.iq.iq_convention`'s verdict (``"unknown"`` passes: too little motion or correlation to tell).
+
+    An axial spacing ``k`` times off turns the phases as for ``f / k`` (the phase per sample is ``4 pi f dx / c``):
+    the refusal names the spacing at which they fit the frequency given too (:func:`_iq_spacing_fix`), first where
+    that frequency is the demodulation frequency the header (``metadata``, the frames') states.
 
     The RF goes back to baseband on its own (upsampled) grid rather than using the IQ as stored: on the in vivo
     frames decimated to 0.08 mm the phases then show 4.26 MHz for the true 4.16 (4.70 from the stored IQ)."""
@@ -808,11 +894,29 @@ def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "") -> tu
             f"demodulated with exp({'-' if given else '+'}2 pi i f t), and registered as they are they would give a "
             f"wrong strain; {fix}, or {override()}", problem="iq-sign")
     if verdict[0] == "frequency":
+        from .io.checks import header_frequencies
+
         fb = verdict[3]
         sign = "" if (fb > 0) != given else " with the other sign convention (--iq-conjugate)"
-        raise OrientationError(
-            f"{where}the IQ phase between the frames turns as for a {abs(fb):.3g} MHz demodulation{sign}, not the "
-            f"{f:g} MHz given ({verdict[2]} windows): with the wrong frequency the strain comes out scaled by about "
-            f"their ratio; give the demodulation frequency the scanner recorded (--iq-frequency MHZ; the sampling "
-            f"frequency or the probe's nominal centre frequency are not it), or {override()}", problem="iq-frequency")
+        found = (f"{where}the IQ phase between the frames turns as for a {abs(fb):.3g} MHz demodulation{sign}, not "
+                 f"the {f:g} MHz given ({verdict[2]} windows)")
+        freq = ("give the demodulation frequency the scanner recorded (--iq-frequency MHZ; the sampling frequency or "
+                "the probe's nominal centre frequency are not it)")
+        dx_fix, why = _iq_spacing_fix(iq, spacing, f, fb if (fb > 0) != given else -1.0, metadata, c)
+        if dx_fix is None:
+            raise OrientationError(f"{found}: with the wrong frequency the strain comes out scaled by about their "
+                                   f"ratio; {freq}, or {override()}", problem="iq-frequency")
+        dx_iq = float(iq.get("iq_spacing_mm", spacing[0]))
+        fix = _pass_spacing(f"{dx_fix:.5g}, {float(spacing[1]):g}", why)
+        k = dx_fix / dx_iq
+        off = f"{k:.3g} times too small" if k > 1 else f"{1 / k:.3g} times too large"
+        spacing_words = (f"the axial spacing {dx_iq:g} mm looks {off} (a spacing off by a factor turns the phases "
+                         f"as a frequency off by its inverse): pass {fix}")
+        demod = header_frequencies(metadata).get("demod_mhz")
+        if demod is not None and abs(demod[0] / f - 1.0) <= 0.01:      # the frequency is the file's own
+            raise OrientationError(f"{found}, which is the demodulation frequency the file states ({demod[1]}): "
+                                   f"{spacing_words}; or {override()}", problem="iq-spacing")
+        raise OrientationError(f"{found}: with the wrong frequency the strain comes out scaled by about their ratio; "
+                               f"{freq}; or, if {f:g} MHz is right, {spacing_words}; or {override()}",
+                               problem="iq-frequency")
     return verdict

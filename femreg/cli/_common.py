@@ -195,10 +195,12 @@ def _note_spacing_against_fields(fr, path, args) -> None:
     sug = spacing_suggestion(fields)
     if sug is None:
         return
+    from ..orientation import iq_decimation
+
     off, tol = [], FIELD_SPACING_TOLERANCE
     read = [float(v) for v in np.ravel(fr.spacing)[:2]]
     iq = (fr.metadata or {}).get("iq") or {}
-    if iq.get("iq_spacing_mm"):         # remodulated IQ: the fields' sampling rate is the IQ samples', not the RF's
+    if iq.get("iq_spacing_mm"):         # remodulated IQ: the given spacing is the IQ samples', a whole decimation
         read[0] = float(iq["iq_spacing_mm"])
     try:
         implied = [float(sug.dx), float(sug.dy)]
@@ -216,6 +218,8 @@ def _note_spacing_against_fields(fr, path, args) -> None:
         ratio = read[axis] / i
         units = any(abs(ratio / k - 1.0) <= tol for k in (1e-3, 1e3, 0.1, 10.0))   # the units checks name them
         typed = given[axis]
+        if axis == 0 and iq and iq_decimation(read[0], i):
+            continue                    # IQ decimated after sampling: femreg.orientation.check_sampling notes it
         if typed is not None and str(typed) != "auto" and abs(ratio - 1.0) > tol and not units:
             off.append(f"{name} {read[axis]:g} mm against {i:g}")
     key = (str(path), "fields", tuple(off))

@@ -206,7 +206,7 @@ def _iq_needs(fr) -> list:
     try:
         check_remodulated(fr)
         if fr.n_frames >= 2:
-            check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing, fr.metadata["iq"])
+            check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing, fr.metadata["iq"], metadata=fr.metadata)
     except OrientationError as exc:
         return [str(exc)]
     return []
@@ -295,7 +295,7 @@ def describe_volumes(path: Path, args) -> dict:
 
 def _no_spacing_line(needs) -> str:
     """The ``spacing`` line of a file read without one: whether its header fields suggest one (needs lines)."""
-    if any("its fields suggest" in n for n in needs):
+    if any("its fields suggest --spacing" in n for n in needs):
         return "spacing   not stored as such; the header fields suggest one (needs, below)"
     return "spacing   none in the file"
 

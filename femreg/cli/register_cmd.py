@@ -307,7 +307,8 @@ def run(args) -> int:
         # two IQ files: their sign convention is checked on the pair (one file of several frames is checked as read)
         from ..orientation import check_iq_sign
 
-        check_iq_sign(ref, mov, ref_fr.spacing, ref_fr.metadata["iq"], where=f"{args.reference}, {args.moving}: ")
+        check_iq_sign(ref, mov, ref_fr.spacing, ref_fr.metadata["iq"], where=f"{args.reference}, {args.moving}: ",
+                      metadata=ref_fr.metadata)
     if not str(args.output).endswith(".npz"):
         raise InputError(f"-o must name a .npz file, got {args.output}")
 

@@ -249,7 +249,7 @@ def validate_volumes(path, arr, spacing, origin=(0.0, 0.0, 0.0), metadata=None, 
 
 
 _FS_NAMES = ("fs", "samplingfrequency", "samplingrate", "samplerate", "samplefrequency", "rfsamplingfrequency",
-             "fsample", "fsampling")
+             "fsample", "fsampling", "decimsamplerate")
 _PITCH_NAMES = ("pitch", "elementpitch", "linespacing", "linepitch", "lateralspacing", "linedensity")
 _C_NAMES = ("c", "c0", "soundspeed", "speedofsound", "sos")
 # a matrix array's or swept probe's elevational plane spacing (volumes)
@@ -261,15 +261,27 @@ _DEMOD_NAMES = ("fdemod", "demodfrequency", "demodulationfrequency", "modulation
 _CENTRE_NAMES = ("f0", "fc", "fcentre", "fcenter", "centrefrequency", "centerfrequency", "centralfrequency",
                  "transmitfrequency", "txfrequency", "probefrequency", "carrierfrequency", "ftx")
 _UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
+# a probe's struct (Verasonics' ``Trans``) names its element pitch ``spacing`` and its centre frequency
+# ``frequency``: read as such only there, where they cannot be a sample spacing or another frequency
+_PROBE_STRUCTS = ("trans", "transducer", "probe", "xdc")
+_PROBE_MEMBERS = {"spacing": "pitch", "frequency": "f0"}
 
 
 def _key(name: str) -> tuple:
-    """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz")."""
-    k = "".join(ch for ch in str(name).split("/")[-1].lower() if ch.isalnum())   # a struct's field: its own name
-    for u in _UNITS:
-        if k.endswith(u) and k[:-len(u)] in (_FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES
-                                             + _ELEVATION_NAMES):
-            return k[:-len(u)], u
+    """(base name, unit suffix or "") of a header field name: ``fs_MHz`` -> ("fs", "mhz"); a probe struct's
+    ``Trans/spacingMm`` -> ("pitch", "mm") and ``Trans/frequency`` -> ("f0", "")."""
+    parts = str(name).lower().split("/")
+    k = "".join(ch for ch in parts[-1] if ch.isalnum())   # a struct's field: its own name
+    parent = "".join(ch for ch in parts[-2] if ch.isalnum()) if len(parts) > 1 else ""
+    members = _PROBE_MEMBERS if parent in _PROBE_STRUCTS else {}
+    for u in ("",) + _UNITS:
+        if u and not k.endswith(u):
+            continue
+        base = k[:len(k) - len(u)]
+        if base in members:
+            return members[base], u
+        if u and base in (_FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES + _ELEVATION_NAMES):
+            return base, u
     return k, ""
 
 
@@ -543,15 +555,15 @@ def iq_frequency_hint(fields: dict) -> str:
                 f = _hz(v, unit) / 1e6
                 if not 0.1 <= f <= 100.0:  # no ultrasound carrier: not this field
                     continue
-                return (f"its fields suggest --iq-frequency {f:.3g} ({name} = {v:g} read as {f:.6g} MHz"
+                return (f"its fields suggest --iq-frequency {f:.4g} ({name} = {v:g} read as {f:.6g} MHz"
                         f"{'; ' + why if why else ''})")
     return ""
 
 
 def header_frequencies(metadata) -> dict:
-    """The RF sampling rate, transmit (centre) frequency and speed of sound a :class:`femreg.io.Frames`' header
-    states, as ``{"fs_mhz": (MHz, words), "transmit_mhz": (MHz, words), "sound_speed": (m/s, words)}`` with the
-    entries found ({} for none): an Ultrasonix header's ``sf`` and ``txf`` (Hz; 0 is unknown), else the header
+    """The RF sampling rate, transmit (centre) frequency, IQ demodulation frequency and speed of sound a
+    :class:`femreg.io.Frames`' header states, as ``{"fs_mhz": (MHz, words), "transmit_mhz": (MHz, words),
+    "demod_mhz": (MHz, words), "sound_speed": (m/s, words)}`` with the entries found ({} for none): an Ultrasonix header's ``sf`` and ``txf`` (Hz; 0 is unknown), else the header
     fields (:func:`header_fields`: a Clarius settings file's ``sampling rate`` and ``transmit frequency``, a
     sidecar's ``fs_MHz``, ``f0``, ``center_frequency``, ``c``).  Units from the name's suffix or else the magnitude
     (above 1e4: Hz).  A frequency outside 0.1-1000 MHz is no ultrasound setting and is left out.  What
@@ -571,7 +583,7 @@ def header_frequencies(metadata) -> dict:
         if v is None:
             continue
         base, unit = _key(name)
-        for key, names in (("fs_mhz", _FS_NAMES), ("transmit_mhz", _CENTRE_NAMES)):
+        for key, names in (("fs_mhz", _FS_NAMES), ("transmit_mhz", _CENTRE_NAMES), ("demod_mhz", _DEMOD_NAMES)):
             f = _hz(v, unit) / 1e6
             if base in names and key not in out and 0.1 <= f <= 1000.0:
                 out[key] = (f, f"its field {name} = {v:g}" + ("" if unit == "mhz" else f", read as {f:g} MHz"))

@@ -26,6 +26,7 @@ in ``metadata["fields"]``.
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -74,16 +75,16 @@ IQ_PARTS = (("i", "q"), ("real", "imag"), ("re", "im"))
 IQ_FIELDS = (("real", "imag"), ("r", "i"), ("re", "im"), ("i", "q"))
 
 
-def _iq_pairs(dsets: dict) -> dict:
-    """{in-phase path: quadrature path} of IQ data stored as two real datasets in one group: names equal but for
-    one of :data:`IQ_PARTS` (a whole word of the name, at its start or after ``_`` / ``-``, or followed by ``data``
-    / a separator), numeric, 2D or 3D, of the same shape."""
-    import re
-
-    by_lower = {k.lower(): k for k in dsets}
+def iq_pair_names(arrays: dict) -> dict:
+    """{in-phase name: quadrature name} of IQ data stored as two real arrays side by side, from ``{name: (shape,
+    real)}`` (``real``: a real numeric array): names equal but for one of :data:`IQ_PARTS` (a whole word of the
+    name, at its start or after ``_`` / ``-``, or followed by ``data`` / a separator), in one group (the same path
+    up to the last ``/``), 2D or 3D, of the same shape.  HDF5 datasets and MATLAB variables (``IData`` /
+    ``QData``) alike."""
+    by_lower = {k.lower(): k for k in arrays}
     pairs = {}
-    for key, d in dsets.items():
-        if d.dtype.kind not in "iuf" or d.ndim not in (2, 3):
+    for key, (shape, real) in arrays.items():
+        if not real or len(shape) not in (2, 3):
             continue
         group, _, base = key.rpartition("/")
         low = base.lower()
@@ -91,10 +92,16 @@ def _iq_pairs(dsets: dict) -> dict:
             for m in re.finditer(rf"(?:^|(?<=[_\-])){a}(?=$|[_\-]|data)", low):
                 other = low[:m.start()] + b + low[m.end():]
                 partner = by_lower.get(f"{group}/{other}".lower().lstrip("/"))
-                q = dsets.get(partner) if partner else None
-                if q is not None and q.shape == d.shape and q.dtype.kind in "iuf":
+                if partner is not None and partner in arrays and tuple(arrays[partner][0]) == tuple(shape) \
+                        and arrays[partner][1]:
                     pairs[key] = partner
     return pairs
+
+
+def _iq_pairs(dsets: dict) -> dict:
+    """{in-phase path: quadrature path} of IQ data stored as two real datasets in one group
+    (:func:`iq_pair_names`)."""
+    return iq_pair_names({k: (d.shape, d.dtype.kind in "iuf") for k, d in dsets.items()})
 
 
 def _compound_iq(dtype):

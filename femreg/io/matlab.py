@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, pass_as
+from .hdf5 import _as_complex, iq_pair_names
 from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion, validate_frames,
                      validate_volumes)
 
@@ -72,18 +73,22 @@ def _listed(names, texts=None) -> str:
     return ", ".join(shown) or "none"
 
 
-def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None):
+def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None, pairs=None):
     """Pick the frames variable among ``{name: (shape, numeric)}`` (the only one with ``ndims`` dimensions);
-    ``texts``: ``{name: text}`` of the char variables, shown in the messages that list the variables."""
+    ``texts``: ``{name: text}`` of the char variables, shown in the messages that list the variables; ``pairs``:
+    ``{in-phase: quadrature}`` of IQ stored as two real variables (one candidate, named by its in-phase half,
+    whichever half ``variable`` names)."""
+    pairs = pairs or {}
     if variable is not None:
         if variable not in candidates:
             raise fail(path, f"missing variable {variable!r}; available: {_listed(candidates, texts)}")
-        return variable
+        return next((i for i, q in pairs.items() if q == variable), variable)
     for name in PREFERRED:
         if name in candidates:
             return name
+    quadrature = set(pairs.values())
     good = [k for k, (shape, numeric) in candidates.items()
-            if numeric and len(shape) in ndims and k not in AUX and min(shape, default=0) > 1]
+            if numeric and len(shape) in ndims and k not in AUX and k not in quadrature and min(shape, default=0) > 1]
     if len(good) == 1:
         return good[0]
     dims = "/".join(f"{d}D" for d in ndims)
@@ -155,20 +160,27 @@ def _load_mat(path, variable, ndims):
         order, variables = read_mat5(path, blob)
         byname = {v.name: v for v in variables}
         cands = {v.name: (v.shape, v.numeric) for v in variables}
-        name = _choose(path, cands, variable, ndims, {v.name: v.text for v in variables})
+        pairs = iq_pair_names({v.name: (v.shape, v.numeric and not v.complex) for v in variables})
+        name = _choose(path, cands, variable, ndims, {v.name: v.text for v in variables}, pairs)
         var = byname[name]
         if not var.numeric:
             raise fail(path, f"variable {name!r} is a MATLAB {var.cls}, not a numeric array")
         data = {name: var.array(order)}
+        if name in pairs:       # IQ as two real variables (IData / QData): one complex array
+            quad = pairs[name]
+            data["stored_dtype"] = f"complex {var.cls} (variables {name!r} + 1j {quad!r})"
+            data["iq_variables"] = [name, quad]
+            data[name] = _as_complex(data[name], byname[quad].array(order))
+        skip = {name, pairs.get(name)}
         for a in AUX:
             if a in byname and a != name and byname[a].numeric:
                 data[a] = byname[a].array(order)
         data["scalars"] = {v.name: v.array(order) for v in variables
-                           if v.numeric and v.name != name and int(np.prod(v.shape)) == 1}
+                           if v.numeric and v.name not in skip and int(np.prod(v.shape)) == 1}
         # a struct's scalars too (an export's header.fs, P.pitch), named by their path: header/fs
         data["scalars"].update({f"{v.name}/{m.name}": m.array(order) for v in variables for m in v.members
                                 if int(np.prod(m.shape)) == 1})
-        data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name != name
+        data["vectors"] = {v.name: v.array(order) for v in variables if v.numeric and v.name not in skip
                            and 3 <= int(np.prod(v.shape)) <= AXIS_MAX}
         # a struct's vectors too (an export's header.line_angles): a convex probe's ray angles live there
         data["vectors"].update({f"{v.name}/{m.name}": m.array(order) for v in variables for m in v.members
@@ -176,7 +188,8 @@ def _load_mat(path, variable, ndims):
     else:
         data, cands, name = _read_mat4(path, variable, ndims)
     arr = data.pop(name)
-    return arr, {k: v for k, v in data.items() if k in AUX + ("scalars", "vectors")}, version, name, cands
+    return arr, {k: v for k, v in data.items() if k in AUX + ("scalars", "vectors", "stored_dtype", "iq_variables")}, \
+        version, name, cands
 
 
 def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
@@ -187,6 +200,8 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]
+    if "iq_variables" in aux:
+        meta["iq_variables"] = aux["iq_variables"]
     fields = scalar_fields((aux.get("scalars") or {}).items())
     if fields:
         meta["fields"] = fields
@@ -300,7 +315,9 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 dsets[key] = obj
                 if cls == "char" and obj.dtype.kind in "iu" and obj.ndim == 2 and obj.size <= 4096:
                     texts[key] = text73(obj)
-            name = _choose(path, cands, variable, ndims, texts)
+            pairs = iq_pair_names({k: (cands[k][0], cands[k][1] and d.dtype.kind in "iuf" and not d.dtype.names)
+                                   for k, d in dsets.items()})
+            name = _choose(path, cands, variable, ndims, texts, pairs)
             if name not in dsets or not cands[name][1]:
                 ds = dsets.get(name)
                 what = "a struct/cell" if ds is None else (f"compound {ds.dtype}" if ds.dtype.names
@@ -315,9 +332,16 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 stored = f"complex {arr.dtype['real'].name}"
                 ctype = np.complex128 if arr.dtype["real"].itemsize == 8 else np.complex64
                 arr = arr["real"].astype(ctype) + 1j * arr["imag"].astype(ctype)
-            aux = {"scalars": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1] and d.size == 1
+            elif name in pairs:     # IQ as two real variables (IData / QData): one complex array
+                quad = pairs[name]
+                cls = ds.attrs.get("MATLAB_class", b"double")
+                cls = cls.decode("ascii", "replace") if isinstance(cls, bytes) else str(cls)
+                stored = f"complex {cls} (variables {name!r} + 1j {quad!r})"
+                arr = _as_complex(arr, dsets[quad][()].T)
+            skip = {name, pairs.get(name)}
+            aux = {"scalars": {k: d[()] for k, d in dsets.items() if k not in skip and cands[k][1] and d.size == 1
                                and not d.dtype.names},
-                   "vectors": {k: d[()] for k, d in dsets.items() if k != name and cands[k][1]
+                   "vectors": {k: d[()] for k, d in dsets.items() if k not in skip and cands[k][1]
                                and 3 <= d.size <= AXIS_MAX and not d.dtype.names}}
             # a struct's numbers too (P.fs, P.Trans.radiusMm), named by their path as the v5 reader names them
             for key, d in _struct_members73(f):
@@ -330,6 +354,8 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                     aux[a] = dsets[a][()]
             if stored:
                 aux["stored_dtype"] = stored
+            if name in pairs:
+                aux["iq_variables"] = [name, pairs[name]]
     except InputError:
         raise
     except Exception as exc:  # h5py raises OSError, KeyError, ValueError, RuntimeError on corrupt files

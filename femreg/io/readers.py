@@ -587,7 +587,8 @@ def read_frames(path, *, variable=None, shape=None, dtype=None, spacing=None, by
         check_remodulated(fr)
         if fr.n_frames >= 2:
             fr.metadata["iq"]["convention_check"] = list(check_iq_sign(fr.frames[0], fr.frames[1], fr.spacing,
-                                                                       fr.metadata["iq"], where=f"{fr.source}: "))
+                                                                       fr.metadata["iq"], where=f"{fr.source}: ",
+                                                                       metadata=fr.metadata))
     return fr
 
 
