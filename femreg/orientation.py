@@ -72,7 +72,7 @@ from .errors import InputError, pass_as
 
 __all__ = ["OrientationError", "OrientationReport", "carrier_ratio", "axial_carrier_ratio", "is_envelope", "diagnose",
            "check", "transposed_message", "exchanged_shape",
-           "check_raw_shape", "check_remodulated", "check_iq_sign", "FREQUENCY_MHZ", "MIN_SPECKLE_ASPECT",
+           "check_raw_shape", "check_remodulated", "check_iq_sign", "iq_decimation_from_phases", "iq_decimation", "FREQUENCY_MHZ", "MIN_SPECKLE_ASPECT",
            "CARRIER_RATIO", "NO_CARRIER_RATIO", "MIN_LATERAL_CELL_PERIODS", "SOUND_SPEED_M_S", "ENVELOPE_CELL_MM",
            "check_sampling", "frequency_note", "period_notes", "carrier_frequency", "SAMPLING_TOLERANCE",
            "TRANSMIT_RATIO", "TRANSMIT_NOTE_RATIO", "TYPICAL_MHZ"]
@@ -653,8 +653,8 @@ def _iq_sampling_notes(iq: dict, known: dict, sound_speed, where: str, spacing_g
     :data:`IQ_FREQUENCY_TOLERANCE` from the one the header states is refused (problem "iq-frequency"): with
     another frequency the strain comes out scaled, or, at a spacing off by the same factor, every depth and
     displacement.  A given IQ sample spacing is held against the sampling rate the header states: IQ is usually
-    decimated after sampling, so a whole multiple ``q`` of ``c / (2 fs)`` is what the data can have (noted for ``q
-    > 1``); any other value is noted as unlike the header, not refused, since beamformers also write IQ onto grids
+    decimated after sampling, so a whole multiple ``q`` of ``c / (2 fs)`` is what the data can have (no note);
+    any other value is noted as unlike the header, not refused, since beamformers also write IQ onto grids
     of their own.  A spacing wrong by a factor shows in the IQ phases between moving frames, which
     :func:`check_iq_sign` refuses naming the spacing they fit."""
     f = iq.get("modulation_frequency_mhz")
@@ -675,12 +675,10 @@ def _iq_sampling_notes(iq: dict, known: dict, sound_speed, where: str, spacing_g
     dx_fs = c * 1e-3 / (2.0 * fs)
     dx = float(iq["iq_spacing_mm"])
     q = iq_decimation(dx, dx_fs)
-    if q == 1:
-        return []
     said = (f"the IQ sample spacing {dx:g} mm given is {dx / dx_fs:.3g} times c / (2 fs) = {dx_fs:.5g} mm of the "
             f"sampling rate the file states, {fs:g} MHz ({words}; c = {c:g} m/s)")
     if q is not None:
-        return [f"{where}{said}: IQ decimated {q}x after sampling"]
+        return []           # IQ decimated q times after sampling: what such data have, no note
     whole = max(1, int(round(dx / dx_fs)))
     return [f"{where}{said}, no whole decimation of it (IQ decimated q times after sampling has q x {dx_fs:.5g} "
             f"mm, e.g. {whole * dx_fs:.5g}): unless the beamformer wrote the IQ onto a grid of its own, the axial "
@@ -863,6 +861,27 @@ def _iq_spacing_fix(iq: dict, spacing, f: float, fb: float, metadata, c: float) 
             how = "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
             return q * dx_fs, f"{how}, with fs = {fs:g} MHz ({words}) and c = {c:g} m/s"
     return dx, f"the spacing at which the phases fit {f:g} MHz"
+
+
+def iq_decimation_from_phases(iq_a, iq_b, dx_fs: float, f: float, sound_speed: float = SOUND_SPEED_M_S):
+    """The whole decimation ``q`` (1 to 4) of IQ frames ``(axial, lateral)`` demodulated at ``f`` MHz whose header
+    states a sampling rate of axial step ``dx_fs`` mm (``c / (2 fs)``), from the IQ phases between the two frames
+    (:func:`femreg.io.iq.iq_convention`, as :func:`check_iq_sign` reads them: remodulated at ``dx_fs``, back to
+    baseband): at a step ``q`` times too small they turn as for ``q f``.  None when they cannot tell (too little
+    motion or correlation, the other sign, no whole ``q`` within :data:`SAMPLING_TOLERANCE`)."""
+    from .io.iq import baseband, iq_convention, remodulate
+
+    c = float(sound_speed)
+    rf = [remodulate(np.asarray(x), dx_fs, f, sound_speed=c, axis=0) for x in (iq_a, iq_b)]
+    dz = rf[0][1]
+    a, b = (baseband(r[0], dz, f, sound_speed=c, axis=0) for r in rf)
+    verdict, _, _, fb = iq_convention(a, b, dz, f, sound_speed=c)
+    if verdict == "standard":
+        return 1
+    if verdict != "frequency" or fb <= 0:
+        return None
+    q = int(round(fb / f))
+    return q if 2 <= q <= 4 and abs(fb / (q * f) - 1.0) <= SAMPLING_TOLERANCE else None
 
 
 def check_iq_sign(frame_a, frame_b, spacing, iq: dict, *, where: str = "", metadata=None) -> tuple:

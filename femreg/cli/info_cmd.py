@@ -5,6 +5,7 @@ Exit codes: 0 described, ready to register; 1 described, but it needs something 
 frames that look transposed or a spacing that looks swapped: the ``needs`` lines); 2 the file cannot be read."""
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
@@ -64,14 +65,49 @@ def _what_is_missing(exc: InputError, path: Path, args):
         given = list(getattr(args, "spacing", None) or [None, None])
         need = ("no spacing found: pass --spacing DX DY (axial, lateral mm)" if given == [None, None] else
                 "spacing incomplete: pass both values, --spacing DX DY (axial, lateral mm)")
-        s = exc.suggestion
-
-        def need_for(beam=False):
+        def need_for(beam=False, suggestion=None):
             if beam and given[0] is not None and given[1] is None:
                 return None         # --spacing DX auto: a convex / phased array's rays are --angle-pitch apart
+            s = suggestion or exc.suggestion
             return need + (f"; {s.text(beam=beam)}" if s else "")
         return need_for, {"spacing": [v if v is not None else 1.0 for v in given]}
     return (lambda beam=False: str(exc)), {}
+
+
+def _iq_spacing_suggestion(iq, exc, args):
+    """The header's spacing suggestion for IQ frames read without a spacing, its axial value the IQ samples' where
+    the IQ phases between frames 0 and 1 show the IQ decimated after sampling at the header's rate
+    (:func:`femreg.orientation.iq_decimation_from_phases`, at the demodulation frequency given or the file
+    states); None where the suggestion stands or nothing can tell."""
+    import dataclasses
+
+    from ..io.checks import header_frequencies
+    from ..orientation import iq_decimation_from_phases
+
+    sug = getattr(exc, "suggestion", None)
+    try:
+        dx_fs = float(sug.dx)
+    except (AttributeError, TypeError, ValueError):
+        return None                 # no suggestion, or no sampling rate in it
+    known = header_frequencies(iq.metadata)
+    f = getattr(args, "modulation_frequency", None)
+    f_words = f"{f:g} MHz, the frequency given" if f is not None else ""
+    if f is None and "demod_mhz" in known:
+        f, f_words = known["demod_mhz"][0], f"{known['demod_mhz'][0]:g} MHz, the demodulation frequency the file states"
+    if f is None or iq.n_frames < 2 or not np.iscomplexobj(iq.frames):
+        return None
+    c = getattr(args, "sound_speed", None) or known.get("sound_speed", (1540.0,))[0]
+    try:
+        q = iq_decimation_from_phases(iq.frames[0], iq.frames[1], dx_fs, float(f), float(c))
+    except (InputError, ValueError):
+        return None
+    if q is None or q == 1:
+        return None
+    rate = sug.why_x[len("axial "):] if sug.why_x.startswith("axial ") else sug.why_x
+    rate = rate.split(", the step of IQ")[0]        # the caveat the phases settle
+    return dataclasses.replace(sug, dx=f"{q * dx_fs:.5g}", why_x=(
+        f"axial {q} x {rate}: the IQ phases between frames 0 and 1 fit {f_words}, at {q} times that step (IQ "
+        f"decimated {q}x after sampling)"))
 
 
 def describe(fr, *, spacing_known: bool = True) -> dict:
@@ -381,6 +417,10 @@ def run(args) -> int:
                 args.spacing_stand_in = False
         if iq is not None:
             info = describe(iq, spacing_known=not retry)
+            better = _iq_spacing_suggestion(iq, exc, args) if retry else None
+            if better is not None:
+                need_for = functools.partial(need_for, suggestion=better)
+                need = need_for()
             if getattr(args, "modulation_frequency", None) is None:
                 from ..io.checks import iq_frequency_hint
 

@@ -318,12 +318,14 @@ _NO_PITCH = ("DY, the lateral line pitch in mm, is not in the file (for a linear
              "pitch; a convex or phased array takes --geometry convex / sector and --spacing DX auto)")
 
 
-def spacing_suggestion(fields: dict, volume: bool = False) -> "SpacingSuggestion | None":
+def spacing_suggestion(fields: dict, volume: bool = False, iq: bool = False) -> "SpacingSuggestion | None":
     """The ``--spacing DX DY`` a file's header fields imply (:class:`SpacingSuggestion`), or None when they hold
     neither a sampling frequency nor a pitch (with one of them, the other value is named as missing).  ``dx = c / (2 fs)``
     (pulse-echo), ``c`` 1540 m/s unless a field gives it; units from the name's suffix (``fs_MHz``, ``pitch_mm``) or else from the magnitude (a sampling frequency above 1e4 is in Hz, a pitch
     below 0.005 in metres).  A hint only: readers never apply it.  ``volume``: also the elevational plane
-    spacing ``DZ`` (``elevation_pitch``, ``elevational_spacing``, ...; :data:`_ELEVATION_NAMES`)."""
+    spacing ``DZ`` (``elevation_pitch``, ``elevational_spacing``, ...; :data:`_ELEVATION_NAMES`).  ``iq``: the
+    frames are IQ, often decimated after sampling, so ``c / (2 fs)`` may be a whole fraction of their step: said
+    in the reason (``femreg info`` reads the decimation from the IQ phases)."""
     found = {}
     for name, value in fields.items():
         try:
@@ -346,6 +348,9 @@ def spacing_suggestion(fields: dict, volume: bool = False) -> "SpacingSuggestion
         dx = f"{c * 1e3 / (2.0 * fs_hz):.4g}"
         why_x = (f"axial c / (2 fs) with {fs_name} = {fs:g} read as {fs_hz / 1e6:g} MHz and c = {c:g} m/s"
                  f"{'' if c_name else ' assumed'}")
+        if iq:
+            why_x += (", the step of IQ sampled at that rate; IQ decimated q times after sampling has q times it "
+                      "(femreg info FILE reads q from the IQ phases between frames 0 and 1)")
     else:
         dx, why_x = "DX", "DX, the axial sample step c / (2 fs) in mm, is not in the file (no sampling frequency)"
     if "pitch" in found:

@@ -237,6 +237,7 @@ def read_hdf5(path, *, variable=None, spacing=None, frames=None, **_ignored) -> 
         if len(file_spacing) != 2:
             raise fail(path, f"'spacing' has {len(file_spacing)} values, expected 2 (dx, dy) mm")
     sp = merge_spacing(path, file_spacing, spacing, n=2, required_msg="no 'spacing' in the HDF5 file",
-                       suggestion=spacing_suggestion(attrs), frame_shape=arr.shape[-2:])
+                       suggestion=spacing_suggestion(attrs, iq=np.iscomplexobj(arr)),
+                       frame_shape=arr.shape[-2:])
     origin = check_origin(origin, path, n=2) if origin is not None else (0.0, 0.0)
     return validate_frames(path, arr, sp, origin, meta, frames)

@@ -121,7 +121,7 @@ def _mat_layout(arr, meta=None):
     return arr
 
 
-def _aux(path, values: dict, spacing, n=2, frame_shape=None):
+def _aux(path, values: dict, spacing, n=2, frame_shape=None, iq=False):
     file_spacing = None
     if "spacing" in values:
         try:
@@ -138,7 +138,7 @@ def _aux(path, values: dict, spacing, n=2, frame_shape=None):
         file_spacing = tuple(sp)
     origin = check_origin(values["origin"], path, n=n) if "origin" in values else (0.0,) * n
     sp = merge_spacing(path, file_spacing, spacing, n=n, required_msg="no 'spacing' variable in the MAT-file",
-                       suggestion=spacing_suggestion(values.get("scalars") or {}, volume=n == 3),
+                       suggestion=spacing_suggestion(values.get("scalars") or {}, volume=n == 3, iq=iq),
                        frame_shape=frame_shape)
     return sp, origin
 
@@ -196,7 +196,7 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
     path = Path(path)
     arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
-    sp, origin = _aux(path, aux, spacing, frame_shape=_mat_layout(arr).shape[-2:])
+    sp, origin = _aux(path, aux, spacing, frame_shape=_mat_layout(arr).shape[-2:], iq=np.iscomplexobj(arr))
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]
