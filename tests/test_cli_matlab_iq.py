@@ -145,3 +145,17 @@ def test_an_iq_spacing_no_decimation_explains_is_noted(scan):
     with pytest.raises(OrientationError, match="demodulation frequency 5 MHz") as err:
         read_frames(scan["dir"] / "iq.mat", spacing=(DX_IQ, PITCH), modulation_frequency=1.3 * F0)
     assert err.value.problem == "iq-frequency"
+
+
+def test_a_verasonics_section_axis_is_dropped(scan, tmp_path, capsys):
+    """IData{1} / ImgData{1} are (axial, lateral, 1, frame).  Before: 'no 3D/4D numeric variable found' (info) and
+    'volumes take --spacing DX DY DZ' (register): the one-long third axis read as a volume's."""
+    d = scipy.io.loadmat(str(scan["dir"] / "iq.mat"))
+    path = tmp_path / "sections.mat"
+    scipy.io.savemat(str(path), {"IData": d["IData"][:, :, None, :], "QData": d["QData"][:, :, None, :],
+                                 "Trans": d["Trans"], "Receive": d["Receive"]})
+    rc, out, err = _run(["info", path, "--spacing", DX_IQ, PITCH, "--iq-frequency", F0], capsys)
+    assert rc == 0 and "(axial, lateral, 1, frame): 2 frames of" in out, (out, err)
+    a = read_frames(path, spacing=(DX_IQ, PITCH), modulation_frequency=F0)
+    b = read_frames(scan["dir"] / "iq.mat", spacing=(DX_IQ, PITCH), modulation_frequency=F0)
+    np.testing.assert_array_equal(a.frames, b.frames)

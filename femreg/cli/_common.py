@@ -715,5 +715,9 @@ def volumes_only(p: Path) -> bool:
         return fields.get("ndims", "").strip() == "4"
     import numpy as np
 
+    from ..io.matlab import frames_shape
+
     shapes = {k: shape for k, (shape, _) in array_headers(p).items()}
-    return int(np.prod(shapes.get("spacing", (0,)))) == 3 or any(len(s) == 4 for s in shapes.values())
+    # (axial, lateral, 1, frame), a Verasonics IData / ImgData with its one section, holds frames
+    return int(np.prod(shapes.get("spacing", (0,)))) == 3 or any(len(s) == 4 and len(frames_shape(s)) == 4
+                                                                  for s in shapes.values())

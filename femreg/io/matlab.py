@@ -73,6 +73,14 @@ def _listed(names, texts=None) -> str:
     return ", ".join(shown) or "none"
 
 
+def frames_shape(shape) -> tuple:
+    """The MATLAB shape of a frames variable as femreg reads it: ``(axial, lateral, 1, frame)`` -- a Verasonics
+    ``IData{1}`` / ``ImgData{1}``, whose third axis holds its one section (plane) -- as ``(axial, lateral,
+    frame)``; other shapes as they are."""
+    shape = tuple(shape)
+    return shape[:2] + shape[3:] if len(shape) == 4 and shape[2] == 1 else shape
+
+
 def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None, pairs=None):
     """Pick the frames variable among ``{name: (shape, numeric)}`` (the only one with ``ndims`` dimensions);
     ``texts``: ``{name: text}`` of the char variables, shown in the messages that list the variables; ``pairs``:
@@ -87,6 +95,8 @@ def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None, pairs=No
         if name in candidates:
             return name
     quadrature = set(pairs.values())
+    if 4 not in ndims:              # frames: a Verasonics (axial, lateral, 1, frame) is one too
+        candidates = {k: (frames_shape(shape), numeric) for k, (shape, numeric) in candidates.items()}
     good = [k for k, (shape, numeric) in candidates.items()
             if numeric and len(shape) in ndims and k not in AUX and k not in quadrature and min(shape, default=0) > 1]
     if len(good) == 1:
@@ -160,7 +170,7 @@ def _load_mat(path, variable, ndims):
         order, variables = read_mat5(path, blob)
         byname = {v.name: v for v in variables}
         cands = {v.name: (v.shape, v.numeric) for v in variables}
-        pairs = iq_pair_names({v.name: (v.shape, v.numeric and not v.complex) for v in variables})
+        pairs = iq_pair_names({v.name: (frames_shape(v.shape), v.numeric and not v.complex) for v in variables})
         name = _choose(path, cands, variable, ndims, {v.name: v.text for v in variables}, pairs)
         var = byname[name]
         if not var.numeric:
@@ -196,12 +206,18 @@ def read_mat(path, *, variable=None, spacing=None, frames=None, **_ignored):
     """Read a MATLAB file (any version): the fields of a :class:`~femreg.io.Frames` (see module docstring)."""
     path = Path(path)
     arr, aux, version, name, cands = _load_mat(path, variable, (2, 3))
+    sections = np.ndim(arr) == 4 and np.shape(arr)[2] == 1
+    if sections:                    # (axial, lateral, 1, frame): Verasonics' one section dropped
+        arr = np.asarray(arr)[:, :, 0, :]
     sp, origin = _aux(path, aux, spacing, frame_shape=_mat_layout(arr).shape[-2:], iq=np.iscomplexobj(arr))
     meta = {"format": f"mat-v{version}", "variable": name, "variables": sorted(cands)}
     if "stored_dtype" in aux:
         meta["stored_dtype"] = aux["stored_dtype"]
     if "iq_variables" in aux:
         meta["iq_variables"] = aux["iq_variables"]
+    if sections:
+        meta["layout"] = (f"(axial, lateral, 1, frame): {arr.shape[-1]} frames of {arr.shape[0]} x {arr.shape[1]}, "
+                          "the one-long third axis (a Verasonics IData / ImgData's section) dropped")
     fields = scalar_fields((aux.get("scalars") or {}).items())
     if fields:
         meta["fields"] = fields
@@ -315,7 +331,8 @@ def _read_mat73(path, variable, ndims=(2, 3)):
                 dsets[key] = obj
                 if cls == "char" and obj.dtype.kind in "iu" and obj.ndim == 2 and obj.size <= 4096:
                     texts[key] = text73(obj)
-            pairs = iq_pair_names({k: (cands[k][0], cands[k][1] and d.dtype.kind in "iuf" and not d.dtype.names)
+            pairs = iq_pair_names({k: (frames_shape(cands[k][0]), cands[k][1] and d.dtype.kind in "iuf"
+                                       and not d.dtype.names)
                                    for k, d in dsets.items()})
             name = _choose(path, cands, variable, ndims, texts, pairs)
             if name not in dsets or not cands[name][1]:
