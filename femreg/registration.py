@@ -316,10 +316,19 @@ def _route(reference_image, moving_image, args: dict):
             kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image", "geometry")}
             return register_beam(reference_image, moving_image, geometry=geometry, register=register, **kw)
     # a DataMask describes these very frames (the fan handed down from a crop): nothing more to crop
-    crop = None if isinstance(args["data_mask"], DataMask) else crop_for(
-        reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"], depth=args["depth"],
-        mesh=args["mesh"], margin=args["margin"], initial=args["initial"], offset=args["offset"], fan=True,
-        data_mask=args["data_mask"])
+    try:
+        crop = None if isinstance(args["data_mask"], DataMask) else crop_for(
+            reference_image, moving_image, args["spacing"], args["origin"], roi=args["roi"], depth=args["depth"],
+            mesh=args["mesh"], margin=args["margin"], initial=args["initial"], offset=args["offset"], fan=True,
+            data_mask=args["data_mask"])
+    except InputError:
+        # frames read with their spacings exchanged (or transposed) leave the echo search a sliver of the frame:
+        # the orientation check on the whole frame names the cause, where the crop's refusal names the sliver
+        if args["check_orientation"]:
+            orientation.check(validate_image(reference_image, "reference image"),
+                              validate_spacing(args["spacing"], args["origin"])[0],
+                              one_value=np.ndim(args["spacing"]) == 0)
+        raise
     kw = {k: v for k, v in args.items() if k not in ("reference_image", "moving_image")}
     kw.update(roi=None, depth=None)
     if crop is not None:                # inside the echo rectangle, on the full frames' grid (femreg.echo)

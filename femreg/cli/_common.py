@@ -130,7 +130,12 @@ def _note_sampling(fr, path, args, checked: bool) -> None:
     notes = list(meta.get("sampling_notes") or [])
     if checked and not notes and getattr(args, "command", None) in ("track", "elastogram") \
             and fr.spacing is not None and "iq" not in meta and not np.iscomplexobj(fr.frames):
+        from ..orientation import diagnose
+
         note = frequency_note(carrier_frequency(fr.frames[0], fr.spacing[0]))
+        # spacings exchanged or frames transposed: the refusal that follows names them, not an axial value
+        if note and diagnose(np.asarray(fr.frames[0]), fr.spacing).problem in ("swapped", "transposed"):
+            note = ""
         notes += [f"{path}: {note}"] if note else []
     who = " ".join(["femreg", getattr(args, "command", None) or ""]).strip()
     for note in notes:
