@@ -91,6 +91,8 @@ def test_a_probe_structs_spacing_and_frequency_are_read():
     assert "decimated q times" in spacing_suggestion({"Receive/decimSampleRate": FS}, iq=True).why_x
     # a field named spacing outside a probe's struct is no pitch (it may be any spacing)
     assert spacing_suggestion({"Receive/spacingMm": PITCH}) is None
+    # Verasonics' bare Trans.spacing is in wavelengths: no pitch in mm
+    assert spacing_suggestion({"Trans/spacing": 0.97}) is None
     known = header_frequencies({"fields": {"Trans/frequency": F0, "Receive/demodFrequency": F0}})
     assert known["transmit_mhz"][0] == F0 and known["demod_mhz"][0] == F0, known
 

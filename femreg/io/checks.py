@@ -262,9 +262,11 @@ _CENTRE_NAMES = ("f0", "fc", "fcentre", "fcenter", "centrefrequency", "centerfre
                  "transmitfrequency", "txfrequency", "probefrequency", "carrierfrequency", "ftx")
 _UNITS = ("mhz", "khz", "hz", "mm", "um", "m", "mps", "ms")
 # a probe's struct (Verasonics' ``Trans``) names its element pitch ``spacing`` and its centre frequency
-# ``frequency``: read as such only there, where they cannot be a sample spacing or another frequency
+# ``frequency``: read as such only there, where they cannot be a sample spacing or another frequency; the pitch only
+# with a length unit in its name (``spacingMm``): Verasonics' bare ``Trans.spacing`` is in wavelengths
 _PROBE_STRUCTS = ("trans", "transducer", "probe", "xdc")
 _PROBE_MEMBERS = {"spacing": "pitch", "frequency": "f0"}
+_LENGTH_UNITS = ("mm", "um", "m")
 
 
 def _key(name: str) -> tuple:
@@ -278,7 +280,7 @@ def _key(name: str) -> tuple:
         if u and not k.endswith(u):
             continue
         base = k[:len(k) - len(u)]
-        if base in members:
+        if base in members and (members[base] != "pitch" or u in _LENGTH_UNITS):
             return members[base], u
         if u and base in (_FS_NAMES + _PITCH_NAMES + _C_NAMES + _DEMOD_NAMES + _CENTRE_NAMES + _ELEVATION_NAMES):
             return base, u
