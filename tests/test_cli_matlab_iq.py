@@ -161,3 +161,11 @@ def test_a_verasonics_section_axis_is_dropped(scan, tmp_path, capsys):
     a = read_frames(path, spacing=(DX_IQ, PITCH), modulation_frequency=F0)
     b = read_frames(scan["dir"] / "iq.mat", spacing=(DX_IQ, PITCH), modulation_frequency=F0)
     np.testing.assert_array_equal(a.frames, b.frames)
+
+
+@pytest.mark.parametrize("factor, words", [(2.0, "2 times too large"), (1 / 3, "3 times too small")])
+def test_an_iq_spacing_off_by_a_factor_is_named(scan, capsys, factor, words):
+    """Before: refused as a wrong demodulation frequency (the phases turn as for f / factor)."""
+    rc, out, err = _run(["info", scan["dir"] / "iq.mat", "--spacing", f"{factor * DX_IQ:.6g}", PITCH,
+                         "--iq-frequency", F0], capsys)
+    assert rc == 1 and words in out and f"pass --spacing {DX_IQ:.5g} {PITCH:g}" in out, out
