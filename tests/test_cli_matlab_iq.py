@@ -169,3 +169,19 @@ def test_an_iq_spacing_off_by_a_factor_is_named(scan, capsys, factor, words):
     rc, out, err = _run(["info", scan["dir"] / "iq.mat", "--spacing", f"{factor * DX_IQ:.6g}", PITCH,
                          "--iq-frequency", F0], capsys)
     assert rc == 1 and words in out and f"pass --spacing {DX_IQ:.5g} {PITCH:g}" in out, out
+
+
+def test_a_struct_arrays_shared_fields_are_read(scan, tmp_path, capsys):
+    """Verasonics' Receive is a struct array, one element per acquisition.  Before: none of its fields read, so
+    neither the sampling rate nor the demodulation frequency was suggested."""
+    d = scipy.io.loadmat(str(scan["dir"] / "iq.mat"))
+    rec = np.zeros((1, 3), dtype=[("demodFrequency", "O"), ("decimSampleRate", "O"), ("startDepth", "O")])
+    for k in range(3):
+        rec[0, k] = (F0, FS, 0.5 * k)                  # startDepth differs between the elements: left out
+    path = tmp_path / "array.mat"
+    scipy.io.savemat(str(path), {"IData": d["IData"], "QData": d["QData"], "Trans": d["Trans"], "Receive": rec})
+    fields = read_frames(path, spacing=(DX_IQ, PITCH), modulation_frequency=F0).metadata["fields"]
+    assert fields["Receive/demodFrequency"] == F0 and fields["Receive/decimSampleRate"] == FS, fields
+    assert "Receive/startDepth" not in fields, fields
+    rc, out, err = _run(["info", path], capsys)
+    assert rc == 1 and f"--spacing {DX_IQ:.5g} {PITCH:g}" in out and "Receive/demodFrequency" in out, out

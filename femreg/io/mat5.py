@@ -62,6 +62,8 @@ class MatVar:
 _CLASS_INV = {v: k for k, v in CLASS_NAMES.items()}
 #: how deep nested structs are read for their numeric fields
 _MAX_STRUCT_DEPTH = 3
+#: struct arrays up to this many elements are read for the fields their elements share
+_MAX_STRUCT_ELEMENTS = 256
 
 
 class _Walker:
@@ -86,10 +88,14 @@ class _Walker:
                                   f"of {where} ({end - start} bytes left)")
         return w0, n, start, start + ((n + 7) // 8) * 8
 
-    def _struct_fields(self, buf, pos, end, where, name, depth) -> tuple:
+    def _struct_fields(self, buf, pos, end, where, name, depth, count: int = 1) -> tuple:
         """The numeric fields of a 1 x 1 struct whose field-name length element starts at ``pos`` (MAT-file
         format: name length, names, then one miMATRIX per field), nested ones flattened; exports keep the
-        scanner's settings there (``header.fs``, ``P.pitch``).  A layout not understood gives none."""
+        scanner's settings there (``header.fs``, ``P.pitch``).  A struct array of ``count`` elements (Verasonics'
+        ``Receive(1:n)``: one per acquisition, element after element) gives the numeric fields every element
+        holds alike (``Receive.demodFrequency``), no nested ones.  A layout not understood gives none."""
+        if count > 1:
+            return self._struct_array_fields(buf, pos, end, where, name, depth, count)
         try:
             mtype, n, s, pos = self.tag(buf, pos, end, where)
             if mtype != 5 or n != 4:
@@ -114,6 +120,39 @@ class _Walker:
                 for m in var.members:
                     m.name = f"{field}/{m.name}"
                     out.append(m)
+            return tuple(out)
+        except FileFormatError:
+            return ()
+
+    def _struct_array_fields(self, buf, pos, end, where, name, depth, count) -> tuple:
+        """The numeric fields equal in all ``count`` elements of a struct array (:meth:`_struct_fields`)."""
+        try:
+            mtype, n, s, pos = self.tag(buf, pos, end, where)
+            if mtype != 5 or n != 4:
+                return ()
+            width = int(np.frombuffer(buf, self.order + "i4", 1, s)[0])
+            mtype, n, s, pos = self.tag(buf, pos, end, where)
+            if mtype not in (1, 2) or width <= 0 or n % width:
+                return ()
+            names = [bytes(buf[s + k:s + k + width]).split(b"\0")[0].decode("ascii", "replace")
+                     for k in range(0, n, width)]
+            values = {field: [] for field in names}
+            for _ in range(count):
+                for field in names:
+                    mtype, n, s, pos = self.tag(buf, pos, end, where)
+                    if mtype != MI_MATRIX:
+                        return ()
+                    var = self.matrix(buf, s, s + n, f"field {field!r} of {name!r}", _MAX_STRUCT_DEPTH) if n \
+                        else None
+                    values[field].append(var if var is not None and var.numeric else None)
+            out = []
+            for field, vs in values.items():
+                if any(v is None for v in vs):
+                    continue
+                first = vs[0].array(self.order)
+                if all(v.shape == vs[0].shape and np.array_equal(v.array(self.order), first) for v in vs[1:]):
+                    vs[0].name = field
+                    out.append(vs[0])
             return tuple(out)
         except FileFormatError:
             return ()
@@ -168,8 +207,8 @@ class _Walker:
             raise fail(self.path, f"corrupt MAT-file: non-ASCII variable name in {where}") from None
         numeric = cls_id in _CLASS_DTYPE
         var = MatVar(name, cls, dims, numeric, is_complex, buf)
-        if cls == "struct" and int(np.prod(dims)) == 1 and depth < _MAX_STRUCT_DEPTH:
-            var.members = self._struct_fields(buf, pos, end, where, name, depth)
+        if cls == "struct" and 1 <= int(np.prod(dims)) <= _MAX_STRUCT_ELEMENTS and depth < _MAX_STRUCT_DEPTH:
+            var.members = self._struct_fields(buf, pos, end, where, name, depth, int(np.prod(dims)))
         if cls == "char":
             var.text = self._text(buf, pos, end, where, dims)
         if not numeric:
