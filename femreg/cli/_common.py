@@ -559,8 +559,6 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     the count and the elapsed time, and the run draws no progress lines of its own (``reports_progress``)."""
     import time
 
-    from ..initial import FRESH_NOTE
-
     done = []
     start = time.monotonic()
     as_progress = not args.no_progress and not stderr_is_terminal()
@@ -576,7 +574,7 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         if getattr(res, "retried", ""):     # the start from the previous increment was flagged
             what += ", retried from a fresh start"
-        elif FRESH_NOTE in (getattr(res, "message", "") or ""):     # femreg.initial.previous_or_fresh
+        elif getattr(res, "started_afresh", False):     # femreg.initial.previous_or_fresh
             what += ", started afresh (no motion matched better than the previous increment)"
         # with the progress bar on, the per-frame line goes to stderr beside the bar
         where = f" (the file's frame {file_frame(sel, k)})" if moved else ""
