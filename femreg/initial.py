@@ -14,6 +14,7 @@ from .image import pixel_axes
 from .paperguess import paper_initial_guess, wants_coarse_pass
 from .pyramid import PyramidGuess, PyramidSearch, image_settings, pyramid_search, pyramid_solve
 from .result import displacement_at, nodal_values
+from .result_base import FRESH_NOTE  # noqa: F401  (also femreg.initial.FRESH_NOTE)
 
 __all__ = ["InitialGuess", "initial_guess", "start_search", "INITIAL_NAMES", "Previous", "previous_or_fresh"]
 
@@ -37,8 +38,6 @@ class InitialGuess:
     timings: dict = field(default_factory=dict)
 
 
-#: How a result started afresh by :func:`previous_or_fresh` says so (its message): a track does not retry it.
-FRESH_NOTE = "started afresh"
 
 
 @dataclass(frozen=True, eq=False)

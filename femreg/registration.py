@@ -582,7 +582,7 @@ def register(reference_image, moving_image, *, spacing, origin=(0.0, 0.0), regul
         energy_history=sol.gn.energy_history, ncc_before=check.ncc_before, ncc_after=check.ncc_after,
         timings=timings, blockmatch=start.blockmatch, solver_result=sol.gn, locator=sol.locator,
         quality=check.quality, strategy=strategy, alpha_effective=sol.reg.alpha, hop_gain=check.hop_gain,
-        lambda_bar=getattr(sol.reg, "lambda_bar", None)), sol),
+        lambda_bar=getattr(sol.reg, "lambda_bar", None), started_afresh=bool(fresh_note)), sol),
         fan, data_mask)
 
 

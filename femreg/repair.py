@@ -31,7 +31,6 @@ from scipy import ndimage
 from . import _kernels
 from .errors import counted
 from .image import ncc
-from .initial import FRESH_NOTE
 from .mesh import tensor_node_grid, tensor_structure
 from .pixels import pixel_values  # noqa: F401  (also femreg.repair.pixel_values)
 from .pyramid import ROTATION_SCAN_NCC
@@ -611,7 +610,7 @@ def retry_flagged(register_from, previous, fresh_start, fresh: bool, min_ncc, k:
     (:func:`keep_retry`).  Returns (result, increment, retry note: '' when it was not retried)."""
     res, inc = register_from(fresh_start if fresh else previous)
     # a start the registration already replaced by the fresh one (femreg.initial.previous_or_fresh): no retry
-    why = "" if fresh or FRESH_NOTE in (res.message or "") else frame_flag(res, min_ncc)
+    why = "" if fresh or res.started_afresh else frame_flag(res, min_ncc)
     if not why:
         return res, inc, ""
     again, inc_again = register_from(fresh_start)

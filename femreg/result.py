@@ -59,6 +59,10 @@ class RegistrationResult(ResultRecord):
         :math:`\bar\lambda` (eq:meq) of the momentum regulariser that solved: R_P_sigma's 2 (plane stress) or,
         where the data read plane strain, 9 (:func:`femreg.strategy.data_lambda_bar`); None for the other
         regularisers.
+    started_afresh : bool
+        True where a track's increment started from the strategy's own start rather than the previous increment,
+        the frames matching better with no motion (:func:`femreg.initial.previous_or_fresh`; the message says so
+        too): a track does not retry it.  Saved with the result.
     """
 
     #: Names of the columns of :meth:`strain` and :meth:`displacement` (a volume's result has six and three:
@@ -71,13 +75,14 @@ class RegistrationResult(ResultRecord):
                  status=-1, message="", nit=0, energy_history=(), ncc_before=float("nan"),
                  ncc_after=float("nan"), timings=None, blockmatch=None, solver_result=None, grid=None,
                  locator=None, quality=None, strategy="", alpha_effective=float("nan"), hop_gain=None,
-                 excluded=None, roi=None, lambda_bar=None):
+                 excluded=None, roi=None, lambda_bar=None, started_afresh=False):
         self._record(mesh, u, shape=shape, spacing=spacing, origin=origin, regularizer=regularizer, alpha=alpha,
                      success=success, status=status, message=message, nit=nit, energy_history=energy_history,
                      ncc_before=ncc_before, ncc_after=ncc_after, timings=timings, quality=quality,
                      strategy=strategy, alpha_effective=alpha_effective, solver_result=solver_result)
         self.blockmatch = blockmatch
         self.lambda_bar = None if lambda_bar is None else float(lambda_bar)
+        self.started_afresh = bool(started_afresh)
         self._locator = locator
         self._grid = grid
         self._grid_element = None

@@ -9,7 +9,11 @@ import numpy as np
 
 from .errors import FileFormatError, counted
 
-__all__ = ["ResultRecord", "RefinementRecord", "AutoAlpha", "read_auto_alpha"]
+__all__ = ["ResultRecord", "RefinementRecord", "AutoAlpha", "read_auto_alpha", "FRESH_NOTE"]
+
+#: The words of the note a result started afresh by :func:`femreg.initial.previous_or_fresh` carries in its
+#: message (:attr:`ResultRecord.started_afresh` is the flag; files of earlier versions have the note only).
+FRESH_NOTE = "started afresh"
 
 
 class ResultRecord:
@@ -17,9 +21,12 @@ class ResultRecord:
 
     ``u``: nodal displacement, interleaved per node (2 or 3 values), mm; ``shape``: the reference's samples;
     ``spacing``, ``origin``: mm; ``quality``: one value per element (local NCC) or None; ``auto_alpha``: the
-    :class:`AutoAlpha` record of ``alpha="auto"`` (None otherwise)."""
+    :class:`AutoAlpha` record of ``alpha="auto"`` (None otherwise); ``started_afresh``: True where a track's
+    increment was registered from the strategy's own start instead of the previous increment
+    (:func:`femreg.initial.previous_or_fresh`; a volume's increment never is)."""
 
     auto_alpha = None
+    started_afresh = False
 
     def _auto_alpha_record(self) -> dict:
         """The ``auto_alpha`` entry of a saved result (JSON text of :meth:`femreg.autoalpha.AutoAlpha.as_dict`;

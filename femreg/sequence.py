@@ -370,7 +370,8 @@ def _frame_result(r, mesh, u):
               success=r.success, status=r.status, message=r.message, nit=r.nit, energy_history=r.energy_history,
               ncc_before=r.ncc_before, ncc_after=r.ncc_after, timings=r.timings, blockmatch=r.blockmatch,
               solver_result=r.solver_result, quality=r.quality, strategy=r.strategy,
-              alpha_effective=r.alpha_effective, lambda_bar=getattr(r, "lambda_bar", None))
+              alpha_effective=r.alpha_effective, lambda_bar=getattr(r, "lambda_bar", None),
+              started_afresh=r.started_afresh)
     if isinstance(r, BeamResult):
         # the first pair's sample-space echo crop (femreg.geometry.register_beam) is said by the frame too
         return BeamResult(mesh, u, geometry=r.geometry, sample_space=r.sample_space, excluded=r.excluded, **kw)

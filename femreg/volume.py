@@ -187,7 +187,7 @@ def _nodal(fn, mesh) -> np.ndarray:
 
 
 def coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, *, maxiter=20, tol=1e-3, linear_solver="auto",
-                   period=None, at=None):
+                   at=None):
     """The initial guess on ``mesh``: global search (:func:`global_search_3d`) on envelope volumes decimated
     axially to about half the lateral spacing, then Gauss-Newton on the (undecimated axially low-passed)
     envelopes on a mesh twice as coarse from that affine field; the coarse field at ``mesh``'s nodes, or at the
@@ -603,7 +603,7 @@ def register_volume(reference_image, moving_image, *, spacing, origin=(0.0, 0.0,
         if S is None or initial is not None:     # an increment afresh: the pair's pyramid at x + S
             at = None if S is None else mesh.p.T + _offset_nodes(offset, mesh).reshape(-1, 3)
             u0, info = coarse_to_fine(ref, mov, spacing, origin, mesh, reg_factory, maxiter=maxiter, tol=tol,
-                                      linear_solver=linear_solver, period=period, at=at)
+                                      linear_solver=linear_solver, at=at)
             timings.update(info.pop("timings"))
             noise = unmatched_crop_volume(ref, mov, u0, mesh, spacing, origin, margin) if _cuts_at_depth(
                 args) else None

@@ -32,7 +32,7 @@ def test_still_increment_starts_afresh_and_converges(probe, still):
     r = seq[1]
     # measured 3-5 iterations (was 14-20), converged; 6 leaves one to spare
     assert r.nit <= 6 and r.status in (0, 2, 4) and r.success, r.message
-    assert "started afresh" in r.message
+    assert "started afresh" in r.message and r.started_afresh and not seq[0].started_afresh
     assert seq.retried == [] and seq.flags[1] == ""
     # measured: increment error 0.02-0.26 um (paper), 0.01-0.90 um (15 MHz); at 0.05 % the truth is 9.4 / 3.5 um
     # (paper), 4.2 / 1.6 um (15 MHz), the error before the change (the increment was set to zero); NCC after
@@ -62,7 +62,7 @@ def test_small_step_after_a_large_one_at_15_mhz():
 def test_moving_increment_keeps_the_previous_start():
     seq, err = _track("paper", 0.01)          # 1 % after 1 %: the previous increment is the start
     r = seq[1]
-    assert "started afresh" not in r.message and seq.retried == []
+    assert "started afresh" not in r.message and not r.started_afresh and seq.retried == []
     # measured 3 iterations, error 1.89 / 0.56 um of a 2 x 1 % increment (the same before the change)
     assert r.nit <= 5 and err.max() < 3.0, (r.nit, err)
 
@@ -94,3 +94,9 @@ def test_the_command_line_says_started_afresh(tmp_path, capsys):
                  "--no-progress"]) == 0
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("frame")]
     assert "started afresh" not in lines[0] and "started afresh" in lines[1], lines
+    # a resumed run reads both frames from their files (the flag saved with each) and says the same
+    assert main(["track", str(tmp_path / "loop.npy"), "-o", str(tmp_path / "run"), "--spacing", *sp,
+                 "--no-progress", "--resume"]) == 0
+    again = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("frame")]
+    assert "started afresh" not in again[0] and "started afresh" in again[1], again
+    assert femreg.load_result(tmp_path / "run" / "frame_002.npz").started_afresh

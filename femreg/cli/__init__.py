@@ -77,16 +77,33 @@ def _contributed() -> dict:
 
 #: What argparse's "expected N arguments" error of an option leaves out: the values it takes.
 _NARGS_HINTS = {
-    "--spacing": "give the axial and the lateral spacing in mm (--spacing DX DY); 'auto' keeps the file's value for "
-                 "one of them (convex / sector frames: --spacing DR auto, the range step with the angle from the "
-                 "geometry)",
+    "--spacing": "give the axial and the lateral spacing in mm (--spacing DX DY), for volumes the elevational plane "
+                 "spacing too (--spacing DX DY DZ); 'auto' keeps the file's value for one of them (convex / sector "
+                 "frames: --spacing DR auto, the range step with the angle from the geometry)",
     "--origin": "give the depth of the first sample and the lateral position of the first line in mm "
                 "(--origin X0 Y0)",
 }
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse's parser whose errors of an option given too few values say which values it takes."""
+    """argparse's parser whose errors of an option given too few values say which values it takes, and whose
+    ``--spacing`` (two or three values) leaves the files written after its values to the command
+    (:func:`femreg.cli._common.spacing_values_first`)."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        if args is not None and "--spacing" in self._option_string_actions:
+            from ._common import spacing_values_first
+
+            args = spacing_values_first(args)
+        return super().parse_known_args(args, namespace)
+
+    def _get_formatter(self):
+        formatter = super()._get_formatter()
+        plain = formatter._format_args
+        # an option taking a set of counts (--spacing DX DY [DZ]) shows them, not argparse's "X [X ...]"
+        formatter._format_args = lambda action, default: getattr(action, "usage_metavar", None) or plain(action,
+                                                                                                         default)
+        return formatter
 
     def error(self, message):
         for opt, hint in _NARGS_HINTS.items():
@@ -255,24 +272,6 @@ def _extra_hint(argv, extra, command) -> str:
     return f" (after {name}: femreg {command or ''} --help gives how many values it takes)".replace("  ", " ")
 
 
-def _volume_spacing(argv, args, extra) -> list:
-    """``--spacing DX DY DZ`` (a volume's three values; argparse takes two, for frames): the third value, left over
-    right after the option's two, joins ``args.spacing``; the words left over without it."""
-    from femreg.options import spacing_value
-
-    if not extra or getattr(args, "spacing", None) is None or len(args.spacing) != 2:
-        return extra
-    for i, word in enumerate(argv[:-3]):
-        if word == "--spacing" and argv[i + 3] == extra[0]:
-            try:
-                dz = spacing_value(extra[0])
-            except Exception:       # not a spacing value: left over, said as before
-                return extra
-            args.spacing = [*args.spacing, dz]
-            return extra[1:]
-    return extra
-
-
 def main(argv=None) -> int:
     from femreg.errors import InputError, cli_wording
     from femreg.optional import MissingDependencyError
@@ -280,7 +279,6 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args, extra = parser.parse_known_args(argv)
-    extra = _volume_spacing(argv, args, extra)
     if extra:                       # said by the command, with the option the words followed
         print(f"femreg {getattr(args, 'command', None) or ''}".rstrip() + ": error: unrecognized arguments: "
               f"{' '.join(extra)}{_extra_hint(argv, extra, getattr(args, 'command', None))}", file=sys.stderr)

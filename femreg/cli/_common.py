@@ -35,6 +35,57 @@ def _spacing_value(text: str):
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+#: How many values ``--spacing`` takes: axial and lateral for frames, and the elevational plane spacing for volumes.
+SPACING_COUNTS = {2: "DX DY", 3: "DX DY DZ"}
+
+
+class _SpacingAction(argparse.Action):
+    """``--spacing``: two values (frames: axial, lateral) or three (volumes: axial, lateral, elevational), mm;
+    any other count is argparse's error naming the count given (exit 2).  Three values for frames are refused
+    where the file is read (:func:`frames_from_args`), which knows whether it holds volumes."""
+
+    #: the values as help and usage show them (argparse would write "MM [MM ...]"; femreg.cli._Parser reads this)
+    usage_metavar = "DX DY [DZ]"
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if len(values) not in SPACING_COUNTS:
+            raise argparse.ArgumentError(self, f"expected 2 arguments (DX DY) or 3 for volumes (DX DY DZ), got "
+                                               f"{len(values)}")
+        setattr(namespace, self.dest, list(values))
+
+
+def _spacing_word(word: str) -> bool:
+    """Whether ``word`` is meant as a spacing value (a number, 'auto' / 'header' / '-', or a mistyped number such as
+    0,02, which the option's own error names), not a file or folder given after the option."""
+    import re
+
+    word = word.lower()
+    return word in ("auto", "header", "-") or re.fullmatch(r"[-+]?[\d.,]+(e[-+]?\d+)?", word) is not None
+
+
+def spacing_values_first(argv: list) -> list:
+    """``argv`` with the words left after ``--spacing``'s values moved before the option: the option takes two or
+    three values, and argparse, which cannot tell a value from a file, would give it the files written after it
+    (``--spacing 0.02 0.2 ref.npy mov.npy``)."""
+    argv = list(argv)
+    i = 0
+    while i < len(argv):
+        if argv[i] != "--spacing":
+            i += 1
+            continue
+        j = i + 1
+        while j < len(argv) and _spacing_word(argv[j]):
+            j += 1
+        k = j
+        while k < len(argv) and not (argv[k].startswith("-") and argv[k] != "-"):
+            k += 1
+        if j > i + 1 and k > j:         # values, then words that are none: those words go before the option
+            argv[i:k] = argv[j:k] + argv[i:j]
+            i += k - j
+        i += 1
+    return argv
+
+
 def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "input file options") -> None:
     """Add --variable, --shape, --dtype, --spacing, --origin, --byte-order, --frames, --sound-speed, --iq-frequency,
     --transpose, --iq-conjugate to ``parser``."""
@@ -45,7 +96,7 @@ def add_reader_args(parser: argparse.ArgumentParser, *, group_title: str = "inpu
                    help="raw files: AXIAL LATERAL (whole frames read) or FRAMES AXIAL LATERAL")
     g.add_argument("--dtype", metavar="TYPE",
                    help="raw files: sample type float32 (default), float64, int16, uint16, int8, uint8, ...")
-    g.add_argument("--spacing", metavar=("DX", "DY"), nargs=2, type=_spacing_value,
+    g.add_argument("--spacing", nargs="+", type=_spacing_value, action=_SpacingAction,
                    help="axial and lateral pixel spacing in mm, overriding the file's ('auto' keeps the file's "
                         "value for one of them); required for npy/raw and the lateral pitch of .rf; volumes: "
                         "--spacing DX DY DZ (DZ the elevational plane spacing)")
@@ -568,8 +619,6 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
     the count and the elapsed time, and the run draws no progress lines of its own (``reports_progress``)."""
     import time
 
-    from ..initial import FRESH_NOTE
-
     done = []
     start = time.monotonic()
     as_progress = not args.no_progress and not stderr_is_terminal()
@@ -585,7 +634,7 @@ def run_tracking(args, call, noun: str, total: int | None = None) -> int:
                 else f"ncc {res.ncc_before:.3f} -> {res.ncc_after:.3f}, nit {res.nit}")
         if getattr(res, "retried", ""):     # the start from the previous increment was flagged
             what += ", retried from a fresh start"
-        elif FRESH_NOTE in (getattr(res, "message", "") or ""):     # femreg.initial.previous_or_fresh
+        elif getattr(res, "started_afresh", False):     # femreg.initial.previous_or_fresh
             what += ", started afresh (no motion matched better than the previous increment)"
         # with the progress bar on, the per-frame line goes to stderr beside the bar
         where = f" (the file's frame {file_frame(sel, k)})" if moved else ""

@@ -126,8 +126,10 @@ def register_volumes(args, vol, kw) -> int:
 
 
 def _exchanged_hint(spacing) -> str:
-    """A failed volume's hint where the lateral and elevational spacings differ: nothing in the RF tells them
-    apart (the carrier checks only the axial one), and the 7 MHz matrix loop of benchmarks/volume_tgc.py given
+    """A failed volume's hint where the lateral and elevational spacings differ: the carrier checks only the axial
+    one, and the speckle cannot tell them apart before registering (benchmarks/volume_spacing_swap.py: exchanged,
+    the elevational over lateral cell aspect of the 7 MHz matrix probe reads 1.41, of a 3.5 MHz swept probe 0.97,
+    where right volumes of other probes read 0.71-3.16); the 7 MHz matrix loop of benchmarks/volume_tgc.py given
     ``DX DZ DY`` failed on peak hopping (NCC after 0.54) where ``DX DY DZ`` registers at 0.96."""
     dx, dy, dz = (float(v) for v in spacing)
     if max(dy, dz) < 1.1 * min(dy, dz):

@@ -33,6 +33,9 @@ slides             (k,) mm                         lateral positions where the r
                                                    along the beam (optional; absent: none)
 lambda_bar         float                           lambda_bar of the momentum regulariser that solved (2 or 9
                                                    for R_P_sigma; optional; absent: another regulariser)
+started_afresh     bool                            a track's increment started from the strategy's own start,
+                                                   not the previous increment (optional; absent: read from
+                                                   the message, as files of earlier versions say it)
 recovery           str                             recovered strains: the method of
                                                    :func:`femreg.fields.recovered_strains` (optional;
                                                    absent: files of earlier versions, nodal averages)
@@ -59,7 +62,7 @@ from ..errors import InputError, pass_as
 from ..fields import element_strains, nodal_average  # noqa: F401  (part of this module's API; one implementation)
 from ..mesh import check_mesh  # noqa: F401  (also femreg.io.results.check_mesh)
 from .._atomic import atomic_savez
-from ..result_base import read_auto_alpha
+from ..result_base import FRESH_NOTE, read_auto_alpha
 from .checks import fail
 
 __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_strains",
@@ -69,7 +72,7 @@ __all__ = ["RESULT_KEYS", "GRID_FIELDS", "read_result", "save_result", "element_
 RESULT_KEYS = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape", "ux", "uy", "exx", "eyy", "exy",
                "regularizer", "alpha", "success", "nit", "message", "ncc_before", "ncc_after", "energy_history",
                "quality", "strategy", "strain", "excluded", "roi", "recovery", "recovery_weight", "refined_from",
-               "slides", "auto_alpha", "data_mask", "lambda_bar")
+               "slides", "auto_alpha", "data_mask", "lambda_bar", "started_afresh")
 REQUIRED = ("mesh_points", "mesh_cells", "u", "spacing", "origin", "shape")
 GRID_FIELDS = ("ux", "uy", "exx", "eyy", "exy")
 
@@ -263,6 +266,8 @@ def _read(path) -> dict:
     if "lambda_bar" in out and (np.ndim(out["lambda_bar"]) != 0 or np.asarray(out["lambda_bar"]).dtype.kind not in "iuf"
                                 or not np.isfinite(float(out["lambda_bar"])) or float(out["lambda_bar"]) < 0):
         raise fail(path, f"key 'lambda_bar' must be a number >= 0, got {out['lambda_bar']!r}")
+    if "started_afresh" in out and not isinstance(out["started_afresh"], (bool, np.bool_)):
+        raise fail(path, f"key 'started_afresh' must be a bool, got {out['started_afresh']!r}")
     if "slides" in out and (np.ndim(out["slides"]) != 1 or np.asarray(out["slides"]).dtype.kind not in "iuf"
                             or not np.all(np.isfinite(np.asarray(out["slides"], float)))):
         raise fail(path, f"key 'slides' must be finite lateral positions (mm), got {out['slides']!r}")
@@ -282,6 +287,14 @@ def written_recovery_weight(d) -> float | None:
     if d.get("recovery_weight") is not None:
         return float(d["recovery_weight"])
     return 0.0 if str(d.get("recovery", "average")) == "average" else None
+
+
+def started_afresh(d) -> bool:
+    """Whether a result file's increment started afresh (:func:`femreg.initial.previous_or_fresh`): its
+    ``started_afresh``; files of earlier versions, without the key, said so in the message only."""
+    if d.get("started_afresh") is not None:
+        return bool(d["started_afresh"])
+    return FRESH_NOTE in str(d.get("message", ""))
 
 
 def read_result(path):
@@ -318,6 +331,7 @@ def read_result(path):
     kw["recovery_weight"] = written_recovery_weight(d)
     if d.get("lambda_bar") is not None:
         kw["lambda_bar"] = float(d["lambda_bar"])
+    kw["started_afresh"] = started_afresh(d)
     if d.get("auto_alpha") is not None:
         kw["auto_alpha"] = read_auto_alpha(d["auto_alpha"], path)
     geometry = beam_geometry(d)
