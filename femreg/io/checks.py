@@ -602,6 +602,11 @@ def header_frequencies(metadata) -> dict:
 #: Longest vector a reader reads as a possible axis (ray angles, depths), not as data.
 AXIS_MAX = 100_000
 
+#: Fewest samples along an axis of an RF frame: an array whose MATLAB-order frame would be thinner, while its
+#: first axis read as the frame axis leaves frames at least this size, was written frames first (numpy's order,
+#: e.g. ``scipy.io.savemat`` of an ``(n, axial, lateral)`` stack).
+MIN_FRAME_SAMPLES = 16
+
 
 def axis_fields(items, max_size: int = AXIS_MAX) -> dict:
     """{name: {"n", "first", "step"}} of the evenly spaced numeric vectors among ``(name, array)`` pairs (a file's

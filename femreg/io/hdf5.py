@@ -12,7 +12,7 @@ layout or naming.  What femreg reads:
   half alone is not RF and no envelope either, and would register as such without a word;
 * its layout: a 3D dataset holds the frames on its first axis (numpy's ``(frame, axial, lateral)``, and MATLAB's
   ``h5write`` of ``rf(axial, lateral, frame)``, which HDF5 shows reversed as ``(frame, lateral, axial)``), unless
-  that leaves frames thinner than :data:`femreg.io.matlab.MIN_FRAME_SAMPLES` while the last axis would not (then
+  that leaves frames thinner than :data:`femreg.io.checks.MIN_FRAME_SAMPLES` while the last axis would not (then
   the frames are last).  Whether a frame is ``(axial, lateral)`` or ``(lateral, axial)`` the RF carrier tells
   (:func:`femreg.orientation.axial_carrier_ratio`: along the depth only); frames carrying it along their second
   axis are transposed and ``metadata["layout"]`` says so.  IQ (complex) and envelope frames are read as stored;
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError, InputError, pass_as
-from .checks import AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, spacing_suggestion, validate_frames
+from .checks import AXIS_MAX, MIN_FRAME_SAMPLES, axis_fields, check_origin, fail, merge_spacing, spacing_suggestion, validate_frames
 
 __all__ = ["read_hdf5", "EXTENSIONS"]
 
@@ -154,7 +154,6 @@ def _named(f, ds, name):
 
 def _layout(arr, meta):
     """(frame, axial, lateral) from the stored array (module docstring), ``meta["layout"]`` saying what was done."""
-    from .matlab import MIN_FRAME_SAMPLES
 
     if arr.ndim == 3 and min(arr.shape[1:]) < MIN_FRAME_SAMPLES <= min(arr.shape[:2]):
         arr = np.moveaxis(arr, -1, 0)

@@ -19,8 +19,8 @@ import numpy as np
 
 from ..errors import InputError, pass_as
 from .hdf5 import _as_complex, iq_pair_names
-from .checks import (AXIS_MAX, axis_fields, check_origin, fail, merge_spacing, scalar_fields, spacing_suggestion, validate_frames,
-                     validate_volumes)
+from .checks import (AXIS_MAX, MIN_FRAME_SAMPLES, axis_fields, check_origin, fail, merge_spacing, scalar_fields,
+                     spacing_suggestion, validate_frames, validate_volumes)
 
 PREFERRED = ("rf", "frames")
 AUX = ("spacing", "origin")
@@ -106,12 +106,6 @@ def _choose(path, candidates: dict, variable, ndims=(2, 3), texts=None, pairs=No
         raise fail(path, f"no {dims} numeric variable found (variables: {_listed(candidates, texts)})")
     raise fail(path, f"several {dims} variables ({', '.join(sorted(good))}); choose one with "
                      + pass_as("variable= (CLI: --variable NAME)", "--variable NAME"))
-
-
-#: Fewest samples along an axis of an RF frame: an array whose MATLAB-order frame would be thinner, while its
-#: first axis read as the frame axis leaves frames at least this size, was written frames first (numpy's order,
-#: e.g. ``scipy.io.savemat`` of an ``(n, axial, lateral)`` stack).
-MIN_FRAME_SAMPLES = 16
 
 
 def _mat_layout(arr, meta=None):
