@@ -195,7 +195,7 @@ from .mesh import tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "REFINED_HOURGLASS", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc", "EVEN_NOISE", "EVEN_NOTE", "BAND_LEVEL", "BAND_SMOOTH", "band_decorrelation", "strain_level", "even_noise",
            "with_refinement", "RefinementRecord"]
@@ -485,6 +485,11 @@ class Refinement:
         carried into them).  1: one solve.
     relax_keep : bool
         Those further solves keep the cells relaxed before (True) or relax only what stands out on the last solve.
+    refined_hourglass : float, optional
+        Upper bound on the hourglass weight (relative to alpha, :class:`femreg.regularizers.momentum.MomentumRegularizer`)
+        of the solves on a refined mesh; None keeps the registration's (1000 for R_P_sigma's defaults).  The
+        unrefined solve and a step that stays on the unrefined mesh keep theirs.  Measured in docs/refinement.md
+        ("The hourglass weight on the refined mesh").
     """
 
     passes: int = 2
@@ -548,6 +553,7 @@ class Refinement:
     fine_alpha_beam: float | None = None
     fine_min_pixels: int | None = None
     even_noise: float | None = None
+    refined_hourglass: float | None = None
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -555,6 +561,7 @@ class Refinement:
             raise InputError(f"refinement plane must be None or a finite elevational coordinate (mm), "
                              f"got {self.plane!r}")
         _number(self, "fine", 1, optional=True)
+        _number(self, "refined_hourglass", 0, optional=True, what="a weight >= 0")
         _number(self, "spread", 0, 2, optional=True, open_low=True, what="an NCC difference in (0, 2]")
         _number(self, "even_noise", 0, optional=True, open_low=True, what="a positive number (mm^2 per %)")
         _number(self, "coverage", 0, 1, optional=True, open_low=True, what="a fraction in (0, 1]")
@@ -766,6 +773,11 @@ EVEN_NOTE = 0.65
 #: before the border); runs reaching a border are not tested (sliding columns up to 0.45, bands up to 0.19).
 RING_ASPECT = 0.25
 
+#: :attr:`Refinement.refined_hourglass` of :data:`DEEP_REFINEMENT`: the hourglass weight (relative to alpha) of the
+#: solves on a refined mesh, R_P_sigma's 1000 elsewhere.  Measured (docs/refinement.md): the inclusions of
+#: ``benchmarks/inclusion_sizes.py`` 0.07-0.09 points lower (r 8 mm paper 9.23 -> 9.14 %), the same at 10 and 0.
+REFINED_HOURGLASS = 100.0
+
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
 #: the local relaxation on that pass's own solve (:attr:`Refinement.relax_persist` off; weight 0.02 on the
 #: unrefined cells beside the edges whose shear-traction jump stands out on the solve before the split, on a run
@@ -794,7 +806,7 @@ DEEP_REFINEMENT = Refinement(passes=1, levels=2, min_size=(0.15, 0.6), max_growt
                              coverage_ncc=NOISE_COVERAGE_NCC, coverage_uneven=UNEVEN_DECORRELATION,
                              uneven_coverage=UNEVEN_COVERAGE, coarse_alpha=0.1,
                              coarse_alpha_ncc=CLEAN_ALPHA_NCC, strong_coverage=SPREAD_COVERAGE,
-                             even_noise=EVEN_NOISE)
+                             even_noise=EVEN_NOISE, refined_hourglass=REFINED_HOURGLASS)
 
 #: Median element NCC of the unrefined solve below which a refined result says that its speckle is decorrelated:
 #: there refinement can turn the decorrelation noise into rectangular strain patches (heterogeneous tissue with an
@@ -2067,6 +2079,9 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
         def factory():
             r = reg_factory()
             r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
+            if opts.refined_hourglass is not None and mesh is not base and getattr(r, "hourglass", 0.0) > 0:
+                # the element-scale control holds the true cross-derivative of u at a rim's small elements
+                r.hourglass = min(float(r.hourglass), float(opts.refined_hourglass))
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             if normal_traction is not None and hasattr(r, "normal_traction"):
