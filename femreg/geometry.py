@@ -650,10 +650,12 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         t = time.perf_counter()
 
         def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                     steps=None):
+                     steps=None, hourglass=None):
             def factory():
                 r = copy.copy(user_reg)
                 r.alpha = refined_alpha(r.alpha, mesh, m) * alpha_factor   # the unrefined mesh's weight of eq:objf
+                if hourglass is not None and getattr(r, "hourglass", 0.0) > 0:
+                    r.hourglass = min(float(r.hourglass), float(hourglass))
                 if shear_traction is not None and hasattr(r, "shear_traction"):
                     r.shear_traction = shear_traction
                 if normal_traction is not None and hasattr(r, "normal_traction"):

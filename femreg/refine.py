@@ -94,6 +94,15 @@ spread by the unrefined solve over four rows whose faces stand out and whose two
 the rows split beside them undershot at the lowered weight and the band lost 20.6 % of its slide
 (``benchmarks/shear_bands.py``; -9.0 % at the unrefined weight), halved -8.7 %, every inclusion and robustness
 pair unchanged (docs/refinement.md).
+That pass's solve, where it relaxes no layer, caps R_P_sigma's hourglass weight at 100 instead of 1000
+(:attr:`Refinement.refined_hourglass`, :data:`REFINED_HOURGLASS`): at 1000 the element-scale control held back
+the true cross-derivative of u in the rim's small elements (every inclusion of ``benchmarks/inclusion_sizes.py``
+0.07-0.09 points lower: r 8 mm paper 9.23 -> 9.14 %, r 3 mm 5.74 -> 5.67 % and its axial edge 1.37 -> 1.34 mm);
+the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it).  What is left over the mesh's
+floor is the objective's own: Gauss-Newton to convergence on the refined mesh from the exact displacement ends at
+9.16 / 5.75 % (``benchmarks/inclusion_rim.py --minimum``), and neither the weight (0.03-4x), a lighter momentum
+TV at the rim, breaks on the interface, a third level nor a second pass brought r 8 mm under 9.1 %
+(docs/refinement.md, "What holds an inclusion above its mesh's floor").
 Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run whose extent is at least 20 mm (a layer across the image; an
@@ -487,9 +496,9 @@ class Refinement:
         Those further solves keep the cells relaxed before (True) or relax only what stands out on the last solve.
     refined_hourglass : float, optional
         Upper bound on the hourglass weight (relative to alpha, :class:`femreg.regularizers.momentum.MomentumRegularizer`)
-        of the solves on a refined mesh; None keeps the registration's (1000 for R_P_sigma's defaults).  The
-        unrefined solve and a step that stays on the unrefined mesh keep theirs.  Measured in docs/refinement.md
-        ("The hourglass weight on the refined mesh").
+        of the solve of a pass that passes the fine gate (:attr:`fine`) and neither relaxes nor weighs a layer
+        (:attr:`relax`, :attr:`fine_layer`); None keeps the registration's (1000 for R_P_sigma's defaults), as every
+        other solve does.  Measured in docs/refinement.md ("The hourglass weight of the finer pass").
     """
 
     passes: int = 2
@@ -774,8 +783,9 @@ EVEN_NOTE = 0.65
 RING_ASPECT = 0.25
 
 #: :attr:`Refinement.refined_hourglass` of :data:`DEEP_REFINEMENT`: the hourglass weight (relative to alpha) of the
-#: solves on a refined mesh, R_P_sigma's 1000 elsewhere.  Measured (docs/refinement.md): the inclusions of
-#: ``benchmarks/inclusion_sizes.py`` 0.07-0.09 points lower (r 8 mm paper 9.23 -> 9.14 %), the same at 10 and 0.
+#: finer pass's solve where it relaxes no layer, R_P_sigma's 1000 elsewhere.  Measured (docs/refinement.md): the
+#: inclusions of ``benchmarks/inclusion_sizes.py`` 0.07-0.09 points lower (r 8 mm paper 9.23 -> 9.14 %), the same
+#: at 10 and 0; on the layers' passes too, the shear bands lost 0.3-0.8 points.
 REFINED_HOURGLASS = 100.0
 
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
@@ -1705,8 +1715,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                   pulse_cell=None):
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
-    per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``
-    and ``full``, the registration's own stopping rules, as the options ask) from the previous solution
+    per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``,
+    ``full`` (the registration's own stopping rules) and ``hourglass`` (a cap on its weight), as the options ask) from the previous solution
     carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  ``start``: a
     solve on the same mesh that the first pass starts from instead (and returned when no pass solves), ``sol``
     then only marked: the registration's solve with R_P_sigma's lambda_bar taken from the data
@@ -1885,6 +1895,10 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 kw["alpha_factor"] = kw.get("alpha_factor", 1.0) * opts.relax_alpha
             if opts.relax_full:
                 kw["full"] = True
+        if finer and opts.refined_hourglass is not None and not len(relaxed) and not n_lay:
+            # the element-scale control at 1000 holds the true cross-derivative of u in the rim's small elements;
+            # a layer's passes keep it (their bands lost 0.3-0.8 points without it)
+            kw["hourglass"] = opts.refined_hourglass
         if finer and opts.fine_maxiter is not None and not kw.get("full"):
             kw["steps"] = opts.fine_maxiter
         sol = solve_on(new, transfer((first if k == 0 else sol).u, mesh, new), st, **kw)
@@ -2075,13 +2089,12 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     quad = sol.data.quad
 
     def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                 steps=None):
+                 steps=None, hourglass=None):
         def factory():
             r = reg_factory()
             r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
-            if opts.refined_hourglass is not None and mesh is not base and getattr(r, "hourglass", 0.0) > 0:
-                # the element-scale control holds the true cross-derivative of u at a rim's small elements
-                r.hourglass = min(float(r.hourglass), float(opts.refined_hourglass))
+            if hourglass is not None and getattr(r, "hourglass", 0.0) > 0:
+                r.hourglass = min(float(r.hourglass), float(hourglass))
             if shear_traction is not None and hasattr(r, "shear_traction"):
                 r.shear_traction = shear_traction
             if normal_traction is not None and hasattr(r, "normal_traction"):
