@@ -45,6 +45,23 @@ def test_a_pair_with_nothing_split_keeps_its_result():
     assert n_new == n_old and e_new == e_old, (e_new, e_old, n_new, n_old)
 
 
+def test_a_pass_that_relaxes_a_layer_keeps_its_weight():
+    # a 1 mm band sliding 0.15 mm (7.5 MHz): its pass relaxes the band's faces and keeps 1000 (with the cap there
+    # the bands' total strain error rose 0.3-0.8 points, this one 26.4 -> 26.8 %), so the result is the same
+    from benchmarks import robustness as RB
+    from benchmarks import shear_bands as SB
+
+    (case,) = [c for c in SB.CASES if c.name == "band1_s0.15_d15_L7"]
+    d = RB.make_data(case)
+    out = []
+    for opts in ("auto", dataclasses.replace(DEEP_REFINEMENT, refined_hourglass=None)):
+        res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin, refine=opts)
+        out.append(res)
+    (p,) = [q for q in out[0].refinement.passes if q["fine"]]
+    assert p["relaxed_edges"] > 0, p
+    assert out[0].mesh.t.shape == out[1].mesh.t.shape and (out[0].u == out[1].u).all()
+
+
 def test_the_default_caps_the_weight():
     assert DEEP_REFINEMENT.refined_hourglass == REFINED_HOURGLASS == 100.0
 
