@@ -94,11 +94,13 @@ spread by the unrefined solve over four rows whose faces stand out and whose two
 the rows split beside them undershot at the lowered weight and the band lost 20.6 % of its slide
 (``benchmarks/shear_bands.py``; -9.0 % at the unrefined weight), halved -8.7 %, every inclusion and robustness
 pair unchanged (docs/refinement.md).
-That pass's solve, where it relaxes no layer, caps R_P_sigma's hourglass weight at 100 instead of 1000
+That pass's solve, where it relaxes no layer and the model is plane strain, caps R_P_sigma's hourglass weight at
+100 instead of 1000
 (:attr:`Refinement.refined_hourglass`, :data:`REFINED_HOURGLASS`): at 1000 the element-scale control held back
 the true cross-derivative of u in the rim's small elements (every inclusion of ``benchmarks/inclusion_sizes.py``
 0.07-0.09 points lower: r 8 mm paper 9.23 -> 9.14 %, r 3 mm 5.74 -> 5.67 % and its axial edge 1.37 -> 1.34 mm);
-the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it).  What is left over the mesh's
+the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it), and so does the five-step pass of
+the plane-stress model (soft plane-stress disks of ``benchmarks/refine_stress.py`` lost 0.3-2.4 points).  What is left over the mesh's
 floor is the objective's own: Gauss-Newton to convergence on the refined mesh from the exact displacement ends at
 9.16 / 5.75 % (``benchmarks/inclusion_rim.py --minimum``), and neither the weight (0.03-4x), a lighter momentum
 TV at the rim, breaks on the interface, a third level nor a second pass brought r 8 mm under 9.1 %
@@ -497,8 +499,8 @@ class Refinement:
     refined_hourglass : float, optional
         Upper bound on the hourglass weight (relative to alpha, :class:`femreg.regularizers.momentum.MomentumRegularizer`)
         of the solve of a pass that passes the fine gate (:attr:`fine`) and neither relaxes nor weighs a layer
-        (:attr:`relax`, :attr:`fine_layer`); None keeps the registration's (1000 for R_P_sigma's defaults), as every
-        other solve does.  Measured in docs/refinement.md ("The hourglass weight of the finer pass").
+        (:attr:`relax`, :attr:`fine_layer`), under the plane-strain model (:attr:`fine_maxiter_stress`'s pass keeps
+        it); None keeps the registration's (1000 for R_P_sigma's defaults), as every other solve does.  Measured in docs/refinement.md ("The hourglass weight of the finer pass").
     """
 
     passes: int = 2
@@ -785,7 +787,8 @@ RING_ASPECT = 0.25
 #: :attr:`Refinement.refined_hourglass` of :data:`DEEP_REFINEMENT`: the hourglass weight (relative to alpha) of the
 #: finer pass's solve where it relaxes no layer, R_P_sigma's 1000 elsewhere.  Measured (docs/refinement.md): the
 #: inclusions of ``benchmarks/inclusion_sizes.py`` 0.07-0.09 points lower (r 8 mm paper 9.23 -> 9.14 %), the same
-#: at 10 and 0; on the layers' passes too, the shear bands lost 0.3-0.8 points.
+#: at 10 and 0; on the layers' passes too, the shear bands lost 0.3-0.8 points, and on the plane-stress model's
+#: five steps soft plane-stress disks 0.3-2.4 (``benchmarks/refine_stress.py``).
 REFINED_HOURGLASS = 100.0
 
 #: One refinement pass quartering the marked rows / columns down to 0.15 mm axially, with no element budget, and
@@ -2083,7 +2086,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
         return sol, u0, hops
     if opts.fine_maxiter_stress is not None and plane_stress_model(reg_factory()):
-        opts = dataclasses.replace(opts, fine_maxiter=opts.fine_maxiter_stress)
+        # its five steps keep the hourglass weight: capped, soft plane-stress disks lost 0.3-2.4 points
+        opts = dataclasses.replace(opts, fine_maxiter=opts.fine_maxiter_stress, refined_hourglass=None)
     t = time.perf_counter()
     base = sol.mesh
     quad = sol.data.quad
