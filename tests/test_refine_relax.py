@@ -150,7 +150,7 @@ def _run(opts, f):
     calls = []
 
     def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                 steps=None):
+                 steps=None, hourglass=None):
         calls.append((mesh, shear_traction, normal_traction, alpha_factor))
         return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -342,7 +342,7 @@ def test_the_finer_pass_halves_the_columns_of_a_fine_pitch_image():
     calls = []
 
     def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                 steps=None):
+                 steps=None, hourglass=None):
         calls.append(mesh)
         return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -395,7 +395,7 @@ def test_the_least_weight_of_a_finer_pass_follows_the_lateral_pulse_cell(monkeyp
         calls = []
 
         def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                     steps=None):
+                     steps=None, hourglass=None):
             calls.append((mesh, alpha_factor))
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -434,7 +434,7 @@ def test_a_finer_pass_takes_two_gauss_newton_steps_and_a_pass_under_the_gate_one
         asked = []
 
         def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                     steps=None):
+                     steps=None, hourglass=None):
             asked.append(steps)
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -583,7 +583,7 @@ def test_a_relaxing_pass_solves_to_the_stopping_rules_at_a_lower_weight():
         calls = []
 
         def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                     steps=None):
+                     steps=None, hourglass=None):
             calls.append((shear_traction, alpha_factor, full))
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -685,7 +685,7 @@ def test_a_relaxing_pass_splits_and_weighs_the_filled_rows_and_solves_again():
         calls = []
 
         def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                     steps=None):
+                     steps=None, hourglass=None):
             calls.append((mesh, shear_traction, alpha_factor, full))
             return _fake_solve(mesh, _nodal(mesh, f))
 
@@ -712,7 +712,7 @@ def test_a_relaxing_pass_splits_and_weighs_the_filled_rows_and_solves_again():
     m_calls = []
 
     def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
-                 steps=None):
+                 steps=None, hourglass=None):
         m_calls.append(shear_traction)
         return _fake_solve(mesh, _nodal(mesh, _step(xs[4])))
 
