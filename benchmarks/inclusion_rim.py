@@ -22,8 +22,8 @@ r 3 mm 1 % paper 5.75 against 5.67 %; floor 6.19 / 3.71 %), on the held-out r 4 
 probe the points over the floor are the objective's (the image term at this speckle with the momentum TV), not
 the refinement's path (docs/refinement.md, "What holds an inclusion above its mesh's floor").
 
-Run: ``python benchmarks/inclusion_rim.py [--cases r8,r3_1pc] [--minimum]`` (one thread; about 10 s per case after the FE
-solves are cached).
+Run: ``python benchmarks/inclusion_rim.py [--cases r8,r3_1pc] [--minimum]`` (one thread; about 10 s per case after
+the FE solves are cached).
 """
 from __future__ import annotations
 

@@ -100,8 +100,8 @@ That pass's solve, where it relaxes no layer and the model is plane strain, caps
 the true cross-derivative of u in the rim's small elements (every inclusion of ``benchmarks/inclusion_sizes.py``
 0.07-0.09 points lower: r 8 mm paper 9.23 -> 9.14 %, r 3 mm 5.74 -> 5.67 % and its axial edge 1.37 -> 1.34 mm);
 the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it), and so does the five-step pass of
-the plane-stress model (soft plane-stress disks of ``benchmarks/refine_stress.py`` lost 0.3-2.4 points).  What is left over the mesh's
-floor is the objective's own: Gauss-Newton to convergence on the refined mesh from the exact displacement ends at
+the plane-stress model (soft plane-stress disks of ``benchmarks/refine_stress.py`` lost 0.3-2.4 points).  What is
+left over the mesh's floor is the objective's own: Gauss-Newton to convergence on the refined mesh from the exact displacement ends at
 9.16 / 5.75 % (``benchmarks/inclusion_rim.py --minimum``), and neither the weight (0.03-4x), a lighter momentum
 TV at the rim, breaks on the interface, a third level nor a second pass brought r 8 mm under 9.1 %
 (docs/refinement.md, "What holds an inclusion above its mesh's floor").
@@ -497,10 +497,11 @@ class Refinement:
     relax_keep : bool
         Those further solves keep the cells relaxed before (True) or relax only what stands out on the last solve.
     refined_hourglass : float, optional
-        Upper bound on the hourglass weight (relative to alpha, :class:`femreg.regularizers.momentum.MomentumRegularizer`)
-        of the solve of a pass that passes the fine gate (:attr:`fine`) and neither relaxes nor weighs a layer
+        Upper bound on the hourglass weight (relative to alpha,
+        :class:`femreg.regularizers.momentum.MomentumRegularizer`) of the solve of a pass that passes the fine gate (:attr:`fine`) and neither relaxes nor weighs a layer
         (:attr:`relax`, :attr:`fine_layer`), under the plane-strain model (:attr:`fine_maxiter_stress`'s pass keeps
-        it); None keeps the registration's (1000 for R_P_sigma's defaults), as every other solve does.  Measured in docs/refinement.md ("The hourglass weight of the finer pass").
+        it); None keeps the registration's (1000 for R_P_sigma's defaults), as every other solve does.  Measured in
+        docs/refinement.md ("The hourglass weight of the finer pass").
     """
 
     passes: int = 2
@@ -1719,7 +1720,8 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     """The refinement stage of :func:`femreg.register`: up to ``opts.passes`` times mark (:func:`mark`), refine
     (:func:`refine_tensor_mesh`) and solve again with ``solve_on(mesh, u_start, shear_traction)`` (None, or the
     per-edge weights of :func:`slip_weights` with ``opts.slip``; keywords ``normal_traction``, ``alpha_factor``,
-    ``full`` (the registration's own stopping rules) and ``hourglass`` (a cap on its weight), as the options ask) from the previous solution
+    ``full`` (the registration's own stopping rules) and ``hourglass`` (a cap on its weight), as the options ask)
+    from the previous solution
     carried over (:func:`transfer`).  ``sol``: the first solve (:class:`femreg.gnsolve.Solve`).  ``start``: a
     solve on the same mesh that the first pass starts from instead (and returned when no pass solves), ``sol``
     then only marked: the registration's solve with R_P_sigma's lambda_bar taken from the data
