@@ -94,17 +94,16 @@ spread by the unrefined solve over four rows whose faces stand out and whose two
 the rows split beside them undershot at the lowered weight and the band lost 20.6 % of its slide
 (``benchmarks/shear_bands.py``; -9.0 % at the unrefined weight), halved -8.7 %, every inclusion and robustness
 pair unchanged (docs/refinement.md).
-That pass's solve, where it relaxes no layer and the model is plane strain, caps R_P_sigma's hourglass weight at
-100 instead of 1000
-(:attr:`Refinement.refined_hourglass`, :data:`REFINED_HOURGLASS`): at 1000 the element-scale control held back
-the true cross-derivative of u in the rim's small elements (every inclusion of ``benchmarks/inclusion_sizes.py``
-0.07-0.09 points lower: r 8 mm paper 9.23 -> 9.14 %, r 3 mm 5.74 -> 5.67 % and its axial edge 1.37 -> 1.34 mm);
-the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it), and so does the five-step pass of
-the plane-stress model (soft plane-stress disks of ``benchmarks/refine_stress.py`` lost 0.3-2.4 points).  What is
-left over the mesh's floor is the objective's own: Gauss-Newton to convergence on the refined mesh from the exact displacement ends at
-9.16 / 5.75 % (``benchmarks/inclusion_rim.py --minimum``), and neither the weight (0.03-4x), a lighter momentum
-TV at the rim, breaks on the interface, a third level nor a second pass brought r 8 mm under 9.1 %
-(docs/refinement.md, "What holds an inclusion above its mesh's floor").
+That pass's solve, where it relaxes no layer and the model is plane strain, caps R_P_sigma's hourglass weight at 100
+instead of 1000 (:attr:`Refinement.refined_hourglass`, :data:`REFINED_HOURGLASS`): at 1000 the element-scale control
+held back the true cross-derivative of u in the rim's small elements (every inclusion of
+``benchmarks/inclusion_sizes.py`` 0.07-0.09 points lower: r 8 mm paper 9.23 -> 9.14 %, r 3 mm 5.74 -> 5.67 % and its
+axial edge 1.37 -> 1.34 mm); the layers' passes keep 1000 (the shear bands lost 0.3-0.8 points without it), and so
+does the five-step pass of the plane-stress model (soft plane-stress disks of ``benchmarks/refine_stress.py`` lost
+0.3-2.4 points). What is left over the mesh's floor is the objective's own: Gauss-Newton to convergence on the
+refined mesh from the exact displacement ends at 9.16 / 5.75 % (``benchmarks/inclusion_rim.py --minimum``), and
+neither the weight (0.03-4x), a lighter momentum TV at the rim, breaks on the interface, a third level nor a second
+pass brought r 8 mm under 9.1 % (docs/refinement.md, "What holds an inclusion above its mesh's floor").
 Its local relaxation (:attr:`Refinement.relax` 0.02, :attr:`Refinement.relax_persist` off) rides
 on that step: the unrefined edges whose shear-traction jump ``|t . [[A]] n|`` stands out on the solve before the
 split (the cut of the marking), on a connected run whose extent is at least 20 mm (a layer across the image; an
@@ -498,10 +497,11 @@ class Refinement:
         Those further solves keep the cells relaxed before (True) or relax only what stands out on the last solve.
     refined_hourglass : float, optional
         Upper bound on the hourglass weight (relative to alpha,
-        :class:`femreg.regularizers.momentum.MomentumRegularizer`) of the solve of a pass that passes the fine gate (:attr:`fine`) and neither relaxes nor weighs a layer
-        (:attr:`relax`, :attr:`fine_layer`), under the plane-strain model (:attr:`fine_maxiter_stress`'s pass keeps
-        it); None keeps the registration's (1000 for R_P_sigma's defaults), as every other solve does.  Measured in
-        docs/refinement.md ("The hourglass weight of the finer pass").
+        :class:`femreg.regularizers.momentum.MomentumRegularizer`) of the solve of a pass that passes the fine gate
+        (:attr:`fine`) and neither relaxes nor weighs a layer (:attr:`relax`, :attr:`fine_layer`), under the
+        plane-strain model (:attr:`fine_maxiter_stress`'s pass keeps it); None keeps the registration's (1000 for
+        R_P_sigma's defaults), as every other solve does. Measured in docs/refinement.md ("The hourglass weight of
+        the finer pass").
     """
 
     passes: int = 2
