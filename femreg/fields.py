@@ -530,9 +530,28 @@ def edge_aware_corners(mesh_points, mesh_cells, values, low: float = EDGE_LOW, h
 
 
 def element_strain_operator(mesh):
-    """(3 n_elements, 2 n_nodes) operator: [e_xx; e_yy; e_xy] at the element centres (1-point rule), per mm."""
+    """(3 n_elements, 2 n_nodes) operator: [e_xx; e_yy; e_xy] at the element centres (1-point rule), per mm.
+
+    Built once per mesh object and kept on it with a stamp of its node and element arrays (as
+    :func:`femreg.mesh.tensor_structure`): a registration with refinement asks for the operator of the same mesh
+    up to ten times (the solve's strain rule, the marking, the check).  Read-only (shared by every caller)."""
+    stamp = _mesh.mesh_stamp(mesh)
+    hit = getattr(mesh, _STRAIN_OP_ATTR, None)
+    if hit is not None and hit[0] == stamp:
+        return hit[1]
     G, _ = centre_gradient_operators(mesh)
-    return sp.vstack([G["xx"], G["yy"], 0.5 * (G["xy"] + G["yx"])]).tocsr()
+    op = sp.vstack([G["xx"], G["yy"], 0.5 * (G["xy"] + G["yx"])]).tocsr()
+    for a in (op.data, op.indices, op.indptr):
+        a.flags.writeable = False
+    try:
+        setattr(mesh, _STRAIN_OP_ATTR, (stamp, op))
+    except (AttributeError, TypeError):   # pragma: no cover - a mesh type that takes no attributes: not kept
+        pass
+    return op
+
+
+#: Attribute of a mesh holding its :func:`element_strain_operator` (with the stamp it was built for).
+_STRAIN_OP_ATTR = "_femreg_strain_operator"
 
 
 @functools.lru_cache(maxsize=1)

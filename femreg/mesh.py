@@ -26,7 +26,7 @@ from skfem import MeshQuad1
 from .errors import InputError, pass_as
 
 __all__ = ["DEFAULT_ELEMENT_SIZE", "DEFAULT_MARGIN", "roi_mesh", "as_quad_mesh", "check_mesh_in_image",
-           "tensor_structure", "check_mesh"]
+           "tensor_structure", "mesh_stamp", "check_mesh"]
 
 #: Default element size (axial, lateral) in mm.
 DEFAULT_ELEMENT_SIZE = (2.0, 2.0)
@@ -163,7 +163,7 @@ def tensor_structure(mesh: MeshQuad1):
     Built once per mesh object and kept on it (a registration asks about its two meshes about ten times, ~1 ms
     each on 3000 nodes), with a stamp of its node and element arrays, so a mesh changed in place is looked at
     again; the arrays are read-only (shared by every caller)."""
-    stamp = (mesh.p.ctypes.data, mesh.p.shape, float(np.sum(mesh.p)), int(np.sum(mesh.t)))
+    stamp = mesh_stamp(mesh)
     hit = getattr(mesh, _TENSOR_ATTR, None)
     if hit is not None and hit[0] == stamp:
         return hit[1]
@@ -176,6 +176,12 @@ def tensor_structure(mesh: MeshQuad1):
     except (AttributeError, TypeError):   # pragma: no cover - a mesh type that takes no attributes: not kept
         pass
     return out
+
+
+def mesh_stamp(mesh) -> tuple:
+    """A cheap stamp of a mesh's node and element arrays (address, shape, sums): what is kept on a mesh object
+    (:func:`tensor_structure`, :func:`femreg.fields.element_strain_operator`) is built again when it changes."""
+    return (mesh.p.ctypes.data, mesh.p.shape, float(np.sum(mesh.p)), int(np.sum(mesh.t)))
 
 
 #: Attribute of a mesh holding its :func:`tensor_structure` (with the stamp it was built for).
