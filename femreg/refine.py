@@ -1129,8 +1129,6 @@ def band_decorrelation(data, u, n_elements: int | None = None):
     solve's :class:`femreg.data_term.SSDTerm` on a tensor mesh's pixel grid; ``u`` its nodal displacement.
     A float over all pixels, or with ``n_elements`` the filtered pair's ``1 -`` NCC over each element's pixels,
     (n_elements,) (NaN for elements with fewer than 4 pixels).  NaN off a pixel grid or on fewer than 8 x 8 pixels."""
-    from scipy.ndimage import uniform_filter
-
     from .repair import _group_ncc, _pixel_elements
 
     gr = getattr(data.quad.location, "grid", None)
@@ -1144,10 +1142,7 @@ def band_decorrelation(data, u, n_elements: int | None = None):
     else:
         shape = (len(gr.rows), len(gr.cols))
         b = np.asarray(data.residual(u), float) + a
-        fa, fb = np.fft.fft2(a.reshape(shape)), np.fft.fft2(b.reshape(shape))
-        power = uniform_filter(np.abs(fa) ** 2 + np.abs(fb) ** 2, BAND_SMOOTH, mode="wrap")
-        keep = power >= BAND_LEVEL * power.max()
-        x, y = np.real(np.fft.ifft2(fa * keep)).ravel(), np.real(np.fft.ifft2(fb * keep)).ravel()
+        x, y = _band_filtered(a.reshape(shape), b.reshape(shape))
         for v in (x, y):
             v.flags.writeable = False
         with contextlib.suppress(AttributeError, TypeError):
@@ -1160,6 +1155,24 @@ def band_decorrelation(data, u, n_elements: int | None = None):
     x, y = x - x.mean(), y - y.mean()
     den = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
     return float(1.0 - np.sum(x * y) / den) if den > 0 else float("nan")
+
+
+def _band_filtered(a, b):
+    """The real frames ``a``, ``b`` (same 2D shape) filtered to their pair's band (:func:`band_decorrelation`),
+    raveled.  Half spectra (real transforms, a third of the time of complex ones): the power's smoothing wraps
+    over the whole spectrum, rebuilt from its half by the symmetry of a real frame's spectrum."""
+    from scipy.ndimage import uniform_filter
+
+    n0, n1 = a.shape
+    fa, fb = np.fft.rfft2(a), np.fft.rfft2(b)
+    half = np.abs(fa) ** 2 + np.abs(fb) ** 2                  # (n0, n1 // 2 + 1)
+    power = np.empty((n0, n1))
+    power[:, :half.shape[1]] = half
+    k = np.arange(half.shape[1], n1)                            # P[i, k] = P[-i, n1 - k]
+    power[:, k] = half[(-np.arange(n0)) % n0][:, n1 - k]
+    power = uniform_filter(power, BAND_SMOOTH, mode="wrap")
+    keep = (power >= BAND_LEVEL * power.max())[:, :half.shape[1]]
+    return np.fft.irfft2(fa * keep, s=(n0, n1)).ravel(), np.fft.irfft2(fb * keep, s=(n0, n1)).ravel()
 
 
 #: Attribute of an image term holding :func:`band_decorrelation`'s filtered pair for the last displacement.
