@@ -74,18 +74,24 @@ class BandedPattern:
         self.n = n
         self._scatter = None
         if H.nnz <= BAND_CHUNK:         # small (2D) patterns: every candidate's indices at once, the scatter now
-            col = np.repeat(np.arange(n), np.diff(H.indptr))
+            # the candidates compared in 32-bit indices (a 2D pattern's are: several times faster than 64-bit
+            # gathers), the winner's scatter in 64-bit
+            it = np.int32 if n < 2 ** 31 - 1 else np.int64
+            col = np.repeat(np.arange(n, dtype=it), np.diff(H.indptr))
+            rows = H.indices.astype(it, copy=False)
             best = None
             for perm in cands:
-                iperm = np.empty(n, dtype=np.int64)
-                iperm[perm] = np.arange(n)
-                i, j = iperm[H.indices], iperm[col]
-                bw = int(np.max(np.abs(i - j), initial=0))
+                iperm = np.empty(n, dtype=it)
+                iperm[perm] = np.arange(n, dtype=it)
+                d = iperm[rows]
+                d -= iperm[col]
+                bw = max(int(d.max(initial=0)), -int(d.min(initial=0)))
                 if best is None or bw < best[0]:
-                    best = (bw, perm, i, j)
-            bw, self.perm, i, j = best
-            self.bandwidth = bw if self.upper else int(np.max(i - j, initial=0))
-            self._scatter = self._scatter_of(i, j)
+                    best = (bw, perm, iperm, int(d.max(initial=0)))
+            bw, self.perm, iperm, lower = best
+            self.bandwidth = bw if self.upper else lower
+            iperm = iperm.astype(np.int64)
+            self._scatter = self._scatter_of(iperm[H.indices], iperm[col])
             return
         # large (3D) patterns: the band widths a block of columns at a time; the scatter into the band is made on
         # the first factorisation, which a pattern too wide for "auto" (sent to a sparse direct solver) never has
