@@ -199,6 +199,7 @@ from dataclasses import dataclass
 import numpy as np
 from skfem import MeshQuad1
 
+from . import _kernels
 from .errors import InputError, counted
 from .fields import element_strain_operator, element_strains, recovered_strains
 from .material import LAMBDA_BAR_PLANE_STRESS
@@ -1137,7 +1138,8 @@ def band_decorrelation(data, u, n_elements: int | None = None):
         return float("nan") if n_elements is None else np.full(int(n_elements), np.nan)
     u = np.asarray(u, float)
     hit = getattr(data, _BAND_ATTR, None)
-    if hit is not None and hit[0].shape == u.shape and np.array_equal(hit[0], u):
+    on = _kernels.use_compiled()        # the warp's switch: its numpy twin is computed when it is off
+    if hit is not None and hit[2] == on and hit[0].shape == u.shape and np.array_equal(hit[0], u):
         x, y = hit[1]           # the first pass's test and the closing note read the same solve
     else:
         shape = (len(gr.rows), len(gr.cols))
@@ -1146,7 +1148,7 @@ def band_decorrelation(data, u, n_elements: int | None = None):
         for v in (x, y):
             v.flags.writeable = False
         with contextlib.suppress(AttributeError, TypeError):
-            setattr(data, _BAND_ATTR, (u.copy(), (x, y)))
+            setattr(data, _BAND_ATTR, (u.copy(), (x, y), on))
     if n_elements is not None:
         q, cnt = _group_ncc(_pixel_elements(data.quad), x, y, int(n_elements))
         q = np.ravel(q)
