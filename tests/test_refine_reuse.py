@@ -1,6 +1,7 @@
 """What a registration with the default refinement computes once instead of again: the element strain operator of a
-mesh (femreg.fields.element_strain_operator), the edge jumps of a solve (femreg.refine._jump_parts), the band-filtered
-pair (femreg.refine._band_filtered, real transforms against the complex ones it replaced), and the band ordering's
+mesh (femreg.fields.element_strain_operator), the edge jumps of a solve (femreg.refine._jump_parts), the envelope
+windows the check reads per element and per parent cell (femreg.repair._lag_windows), the band-filtered pair
+(femreg.refine._band_filtered, real transforms against the complex ones it replaced), and the band ordering's
 candidates compared in 32-bit indices (femreg.linsolve.BandedPattern) -- each against the form it replaced."""
 import collections
 
@@ -13,6 +14,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 import femreg
 import femreg.fields as fields
 import femreg.refine as R
+import femreg.repair as repair
 from femreg.linsolve import BandedPattern
 from femreg.mesh import roi_mesh
 
@@ -78,10 +80,31 @@ def test_a_default_registration_computes_each_solve_s_jumps_once(monkeypatch):
     for mod, name in ((R, "edge_jumps"), (fields, "centre_gradient_operators")):
         f = getattr(mod, name)
         monkeypatch.setattr(mod, name, lambda *a, _f=f, _n=name, **k: (calls.update([_n]), _f(*a, **k))[1])
+    # the check reads the hop gain's envelope windows per element and per parent cell: computed once, and each
+    # reading equal to one computed afresh
+    windows, lag = repair._lag_windows_of, repair.envelope_lag_ncc
+    fresh = []
+
+    def counted_windows(*a, **k):
+        calls.update(["windows"])
+        return windows(*a, **k)
+
+    def checked_lag(data, *a, **k):
+        got = lag(data, *a, **k)
+        kept = data.__dict__.pop(repair._LAG_ATTR)
+        fresh.append(np.array_equal(got, lag(data, *a, **k), equal_nan=True))
+        setattr(data, repair._LAG_ATTR, kept)
+        return got
+
+    monkeypatch.setattr(repair, "_lag_windows_of", counted_windows)
+    monkeypatch.setattr(repair, "envelope_lag_ncc", checked_lag)
     res = femreg.register(d.ref, d.mov, spacing=d.spacing, origin=d.origin)
     assert res.success and res.refinement.passes and res.mesh.t.shape[1] > 1000, res.message
     assert calls["edge_jumps"] == 1, calls
     assert calls["centre_gradient_operators"] <= 2, calls
+    # 2 readings (elements, parent cells), each also computed afresh here: 1 + 2 computations (was 2 + 2)
+    assert len(fresh) == 2 and all(fresh), fresh
+    assert calls["windows"] == 3, calls
 
 
 def _complex_band(a, b):
