@@ -178,7 +178,11 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
 #: colour bars: every panel keeps its mm aspect, and the whole is drawn at one scale (inches per mm).
 PAGE_INCHES = (15.0, 10.0)
 #: The narrowest panel is at least this wide or tall (inches): a volume too thin for the page enlarges it.
-MIN_PANEL_INCHES = 1.0
+MIN_PANEL_INCHES = 0.6
+#: A volume's longest extent over its shortest drawn at most this: a shorter axis is stretched to
+#: longest / MAX_ASPECT and its axis label says so ("stretched 2.5x"); the 7 MHz matrix probe's 48 x 10 x 8 mm
+#: volumes (6.0) are drawn to scale.
+MAX_ASPECT = 6.0
 #: Names of the three slice orientations, in the order of a quantity's panels.
 PLANES = ("axial-lateral", "axial-elevational", "lateral-elevational")
 # room (inches) for what is not a panel: the first column's axial tick labels and label, the gap between
@@ -230,7 +234,11 @@ def _slice_figure(rows, at, panel_inches):
         at = tuple(o + 0.5 * (n - 1) * d for o, n, d in zip(org0, shape0, sp0))
     at = _vec3(at, "at")
     plt = _mpl()
-    L = [n * d for n, d in zip(shape0, sp0)]
+    mm = [n * d for n, d in zip(shape0, sp0)]
+    # drawn lengths: an axis shorter than 1 / MAX_ASPECT of the longest stretched to it (a 50 x 50 x 5 mm
+    # volume's axial slices would be strips, a 100 x 2 x 2 mm one's lateral slices threads)
+    stretch = [max(1.0, max(mm) / (MAX_ASPECT * v)) for v in mm]
+    L = [v * f for v, f in zip(mm, stretch)]
     nq = len(rows)
     kind, s, _ = _arrangement(L, nq)
     s = min(s, float(panel_inches) / max(L))
@@ -261,31 +269,33 @@ def _slice_figure(rows, at, panel_inches):
         c = [o[a] + n * sp[a] for a, n in enumerate((i, j, k))]          # the cuts, mm
         edge = [(o[a] - 0.5 * sp[a], o[a] + (vol.shape[a] - 0.5) * sp[a]) for a in range(3)]
         cmap = plt.get_cmap(row["cmap"]).with_extremes(bad=row.get("bad", (0, 0, 0, 0)))
-        kw = dict(cmap=cmap, interpolation=row.get("interpolation", "nearest"), aspect="equal")
+        kw = dict(cmap=cmap, interpolation=row.get("interpolation", "nearest"))
         if row["norm"] is not None:
             kw["norm"] = row["norm"]
         else:
             kw.update(vmin=row["vmin"], vmax=row["vmax"])
-        panels = [   # image, extent, x label, y label, where, marker lines (vertical, horizontal)
-            (vol[:, :, k], [*edge[1], edge[0][1], edge[0][0]], "lateral y (mm)", "axial x (mm)",
-             f"z = {c[2]:.1f} mm", (c[1], c[0])),
-            (vol[:, j, :], [*edge[2], edge[0][1], edge[0][0]], "elevational z (mm)", "axial x (mm)",
-             f"y = {c[1]:.1f} mm", (c[2], c[0])),
-            (vol[i, :, :].T, [*edge[1], *edge[2]], "lateral y (mm)", "elevational z (mm)",
-             f"x = {c[0]:.1f} mm", (c[1], c[2])),
+        names = [f"{w} (mm){f'{chr(10)}stretched {f:.1f}x' if f > 1.0005 else ''}"
+                 for w, f in zip(("axial x", "lateral y", "elevational z"), stretch)]
+        panels = [   # image, extent, (x, y) axes, where, marker lines (vertical, horizontal)
+            (vol[:, :, k], [*edge[1], edge[0][1], edge[0][0]], (1, 0), f"z = {c[2]:.1f} mm", (c[1], c[0])),
+            (vol[:, j, :], [*edge[2], edge[0][1], edge[0][0]], (2, 0), f"y = {c[1]:.1f} mm", (c[2], c[0])),
+            (vol[i, :, :].T, [*edge[1], *edge[2]], (1, 2), f"x = {c[0]:.1f} mm", (c[1], c[2])),
         ]
         line = row.get("line", "w" if name == "B-mode" else "k")
         images = []
-        for p, (img, ext, xl, yl, where, (v, h)) in enumerate(panels):
+        for p, (img, ext, (ah, av), where, (v, h)) in enumerate(panels):
             r, col = cell(q, p)
+            xl, yl = names[ah], names[av]
             ax = fig.add_subplot(gs[r, col])
-            im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if p < 2 else "lower", **kw)
+            # screen length of a mm of y over one of x: 1 but where an axis is stretched
+            im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if p < 2 else "lower",
+                           aspect=stretch[av] / stretch[ah], **kw)
             images.append(im)
             ax.axvline(v, color=line, lw=0.7, ls="--", alpha=0.7, gid="slice")
             ax.axhline(h, color=line, lw=0.7, ls="--", alpha=0.7, gid="slice")
             ax.set_xlabel(xl, fontsize=8)
             # about one tick label per 0.5 in: five-character labels of a narrow panel would touch
-            w_in, h_in = s * abs(ext[1] - ext[0]), s * abs(ext[3] - ext[2])
+            w_in, h_in = s * stretch[ah] * abs(ext[1] - ext[0]), s * stretch[av] * abs(ext[3] - ext[2])
             ax.xaxis.set_major_locator(MaxNLocator(nbins=max(2, min(6, int(w_in / 0.5))), steps=[1, 2, 5, 10]))
             ax.yaxis.set_major_locator(MaxNLocator(nbins=max(2, min(8, int(h_in / 0.4))), steps=[1, 2, 5, 10]))
             ax.tick_params(labelsize=7)
