@@ -100,6 +100,18 @@ def _check_fields(fields, keys):
     return keys, arrs
 
 
+def _scale(values):
+    """:func:`femreg.plot.colour_scale`, with a range below 1e-9 of the values' size (round-off on a uniform
+    field: a recovered strain of -1 % +- 1e-15) taken as constant, padded 5 %: not a scale whose ticks read
+    -1.0000000000000."""
+    cmap, lo, hi = colour_scale(values)
+    if hi - lo <= 1e-9 * max(abs(lo), abs(hi)):
+        mid = 0.5 * (lo + hi)
+        pad = 0.05 * abs(mid) or 1.0
+        cmap, lo, hi = colour_scale(np.array([mid - pad, mid + pad]))
+    return cmap, lo, hi
+
+
 def _style(key, values):
     """(values to draw, cmap, vmin, vmax, norm, label)."""
     label = FIELD_LABELS.get(key, key)
@@ -117,7 +129,7 @@ def _style(key, values):
             hi = max(hi, lo * 1.01)
             return np.where(v > 0, v, np.nan), "viridis", None, None, LogNorm(lo, hi), label
         return v, "viridis", None, None, None, label
-    cmap, lo, hi = colour_scale(v)
+    cmap, lo, hi = _scale(v)
     return v, cmap, lo, hi, None, label
 
 
@@ -259,6 +271,7 @@ def _slice_figure(rows, at, panel_inches):
     fig = plt.figure(figsize=(s * w_mm + w_in, s * h_mm + h_in), layout="constrained")
     gs = fig.add_gridspec(**grid)
     chars = max(16, int(col_in * 72 / 4.5))         # characters across a quantity's column (7-8 pt text)
+    note_chars = max(16, int(s * Ly * 72 / 4.5))     # across its first panel
     grid_rows = [[] for _ in range(grid["nrows"])]
     fig.volume_axes, fig.volume_colorbars = {}, {}
     for q, row in enumerate(rows):
@@ -306,7 +319,7 @@ def _slice_figure(rows, at, panel_inches):
                 ax.set_ylabel(yl, fontsize=8)
             title = f"{name}, {where}"
             if p == 0 and row.get("note"):
-                title += "\n" + textwrap.fill(row["note"], chars)
+                title += "\n" + textwrap.fill(row["note"], note_chars)
             ax.set_title(title, fontsize=8)
             grid_rows[r].append(ax)
             fig.volume_axes[(name, PLANES[p])] = ax
@@ -490,7 +503,7 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     else:                                   # no displacement stored: the element-mean strain
         exx = np.asarray(res.strain_measured, float)[:, 0][cell]
         label, name = "axial strain $\\varepsilon_{xx}$ (%)\n(element mean)", r"$\varepsilon_{xx}$"
-    cmap, slo, shi = colour_scale(100.0 * exx)
+    cmap, slo, shi = _scale(100.0 * exx)
     # the recovered strain is trilinear: drawn bilinearly between the samples, not as blocks it does not have
     rows.append(dict(name=name, vol=100.0 * exx, spacing=sp, origin=org, cmap=cmap, vmin=slo, vmax=shi, norm=None,
                      label=label, interpolation="bilinear" if "recovered" in label else "nearest"))
