@@ -9,8 +9,12 @@ is drawn as background.
 
 The three slices (:func:`plot_volume_slices`): axial-lateral at elevation ``z`` (the scanner's B-mode plane),
 axial-elevational at lateral ``y`` (depth down in both), lateral-elevational at depth ``x`` (a C-plane); dashed
-lines in each mark where the other two cut it.  One colour bar per row, sharing its limits across the row
-(:func:`femreg.plot.colour_scale` conventions: diverging about 0 only for data that changes sign).
+lines in each mark where the other two cut it, the titles say where the slice lies.  Each quantity is a column
+with one colour bar under its three slices, which share its limits (:func:`femreg.plot.colour_scale`
+conventions: diverging about 0 only for data that changes sign).  Every panel is drawn at its mm aspect, all at
+one scale, as large as :data:`PAGE_INCHES` allows: one row per orientation for a shallow, wide volume, a 2 x 2
+block per quantity (the two axial slices side by side) for a deep, narrow one; an axis shorter than
+1 / :data:`MAX_ASPECT` of the longest is stretched, which its label says.
 
 A 3D modulus inversion (:func:`femreg.invert` on a volume's result) is drawn the same way by
 :func:`plot_inversion_volume` (``InversionResult.plot``, ``femreg plot MU.npz --slice``): the relative modulus
@@ -29,7 +33,7 @@ from .errors import InputError
 from .plot import DIVERGING_CMAP, _log_ticks, _mpl, colour_scale, fit_colorbars
 
 __all__ = ["plot_volume_slices", "plot_inversion_volume", "render_volume", "volume_bmode", "FIELD_LABELS",
-           "STRAIN_KEYS", "SLICE_CHOICES"]
+           "STRAIN_KEYS", "SLICE_CHOICES", "PLANES", "PAGE_INCHES", "MAX_ASPECT"]
 
 STRAIN_KEYS = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 #: Colour-bar label (quantity and unit) of every field key drawn.
@@ -155,8 +159,10 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
 
     Returns
     -------
-    matplotlib.figure.Figure, one row per quantity, columns axial-lateral (at z), axial-elevational (at y),
-    lateral-elevational (at x).
+    matplotlib.figure.Figure: per quantity the slices axial-lateral (at z), axial-elevational (at y) and
+    lateral-elevational (at x) and a colour bar under them; ``fig.volume_axes[(name, plane)]`` is a slice's Axes
+    (``name`` "B-mode" or the key, ``plane`` of :data:`PLANES`), ``fig.volume_colorbars[name]`` its colour bar.
+    ``panel_inches``: the longest side of a panel at most this (inches).
     """
     keys, arrs = _check_fields(fields, keys)
     if reference is None and not keys:
@@ -269,6 +275,8 @@ def _slice_figure(rows, at, panel_inches):
         col_in = s * (Ly + Lz)
     h_in += _BAR_IN + _TITLE_IN + 0.15 * max(1, max(len(textwrap.wrap(r.get("note") or "", 200)) for r in rows))
     fig = plt.figure(figsize=(s * w_mm + w_in, s * h_mm + h_in), layout="constrained")
+    # a pad past femreg.plot.EDGE_MARGIN_IN: fit_colorbars then finds every label inside at its first draw
+    fig.get_layout_engine().set(w_pad=0.06, h_pad=0.06)
     gs = fig.add_gridspec(**grid)
     chars = max(16, int(col_in * 72 / 4.5))         # characters across a quantity's column (7-8 pt text)
     note_chars = max(16, int(s * Ly * 72 / 4.5))     # across its first panel
@@ -445,9 +453,10 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
       (trilinear between the nodal averages of the element strains, :func:`femreg.volume_fields.
       recovered_strains_3d`).
 
-    Columns: axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at depth x (mm
-    axes, equal aspect, depth down); dashed lines mark where the other two slices cut.  ``at``: the point (x, y,
-    z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` / ``"softest"``
+    Each as three slices, axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at
+    depth x (mm axes, equal aspect, depth down), with one colour bar under them, laid out as
+    :func:`plot_volume_slices` lays them out; dashed lines mark where the other two slices cut.  ``at``: the
+    point (x, y, z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` / ``"softest"``
     (the element centre nearest to the centroid of the stiffest / softest region: the elements connected to
     the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
     ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result
