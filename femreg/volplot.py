@@ -275,8 +275,6 @@ def _slice_figure(rows, at, panel_inches):
         col_in = s * (Ly + Lz)
     h_in += _BAR_IN + _TITLE_IN + 0.15 * max(1, max(len(textwrap.wrap(r.get("note") or "", 200)) for r in rows))
     fig = plt.figure(figsize=(s * w_mm + w_in, s * h_mm + h_in), layout="constrained")
-    # a pad past femreg.plot.EDGE_MARGIN_IN: fit_colorbars then finds every label inside at its first draw
-    fig.get_layout_engine().set(w_pad=0.06, h_pad=0.06)
     gs = fig.add_gridspec(**grid)
     chars = max(16, int(col_in * 72 / 4.5))         # characters across a quantity's column (7-8 pt text)
     note_chars = max(16, int(s * Ly * 72 / 4.5))     # across its first panel
