@@ -180,7 +180,9 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
                      "echo level (dB)"))
     for k in keys:
         v, cmap, lo, hi, norm, label = _style(k, arrs[k])
-        rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm), label))
+        # titles read as the bars' labels do: e_xx, not the key exx
+        rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm,
+                                         title=k[0] + "_" + k[1:] if k in _ORDER[:9] else k), label))
     rows = [dict(name=name, vol=vol, spacing=s, origin=o, label=label, **style)
             for name, vol, s, o, style, label in rows]
     fig, axes_rows = _slice_figure(rows, at, panel_inches)
@@ -237,7 +239,7 @@ def _slice_figure(rows, at, panel_inches):
     by the three slices).  In every panel dashed lines (gid ``"slice"``) mark where the other two slices cut; the
     titles name the quantity and where the slice lies, the axes are in mm.
 
-    ``rows``: dicts with ``name`` (panel titles), ``vol`` (nx, ny, nz), ``spacing``, ``origin`` (voxel centres),
+    ``rows``: dicts with ``name`` (panel titles unless ``title``), ``vol`` (nx, ny, nz), ``spacing``, ``origin`` (voxel centres),
     ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or None), ``label`` (colour bar: quantity and unit), and
     optionally ``bad`` (colour of NaN voxels, default transparent: the background shows through), ``line``
     (colour of the dashed lines), ``note`` (a line under the first title of the quantity) and ``interpolation``
@@ -323,7 +325,7 @@ def _slice_figure(rows, at, panel_inches):
                 ax.tick_params(labelleft=False)
             else:
                 ax.set_ylabel(yl, fontsize=8)
-            title = f"{name}, {where}"
+            title = f"{row.get('title', name)}, {where}"
             if p == 0 and row.get("note"):
                 title += "\n" + textwrap.fill(row["note"], note_chars)
             ax.set_title(title, fontsize=8)

@@ -103,7 +103,8 @@ def test_layout_readable_for_deep_and_shallow_volumes(shape, spacing, kind):
         assert len(marks) == 2
         v, hz = marks[0].get_xdata()[0], marks[1].get_ydata()[0]
         assert (v, hz) == pytest.approx((at[hor], at[ver]), abs=0.5 * max(spacing)), (name, plane)
-        assert ax.get_title().startswith(f"{name}, {'xyz'[({0, 1, 2} - {hor, ver}).pop()]} = ")
+        symbol = {"ux": "u_x", "exx": "e_xx", "eyy": "e_yy", "ezz": "e_zz"}.get(name, name)
+        assert ax.get_title().startswith(f"{symbol}, {'xyz'[({0, 1, 2} - {hor, ver}).pop()]} = ")
         tb = ax.title.get_window_extent(r)
         assert tb.x0 >= -1 and tb.x1 <= fig.bbox.x1 + 1 and not tb.overlaps(fig._suptitle.get_window_extent(r))
     bars = fig.volume_colorbars
