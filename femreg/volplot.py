@@ -531,14 +531,16 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
 
 
 def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key="exx", mode="slices", at=None,
-                  iso=None, window_size=(900, 700), cmap=None):
+                  iso=None, window_size=None, cmap=None):
     """Off-screen pyvista rendering of one field of a volume, written to ``out_png``.
 
     ``fields``: dict as :func:`plot_volume_slices` (or one 3D array, named ``key``).  ``mode="slices"``: the
     three orthogonal slices through ``at`` (default centre) in 3D; ``mode="iso"``: the iso-surface(s) of the
     field at ``iso`` (one value or a list, in the drawn unit: % for strain; default the middle of the robust
     range) inside the volume's outline, with the axial-lateral slice at ``at`` for context.  Depth points down,
-    lateral to the right, elevation into the screen at an oblique view; NaN voxels are not drawn.  Returns the
+    lateral to the right, elevation into the screen at an oblique view; NaN voxels are not drawn.
+    ``window_size``: pixels (width, height); default 900 x 700, or 700 x 1000 for a volume deeper than 1.5 x its
+    wider cross extent (a 48 x 10 x 8 mm one filled a fifth of the landscape window).  Returns the
     Path.  Needs pyvista (``pip install femreg[vtk]``).
     """
     if out_png is None:
@@ -566,7 +568,11 @@ def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key=
     grid.point_data[label] = np.asfortranarray(data).ravel(order="F")
     centre = [o + 0.5 * (n - 1) * d for o, n, d in zip(org, v.shape, sp)]
     a = _vec3(at, "at") if at is not None else tuple(centre)
-    bar = {"title": label, "vertical": True, "position_x": 0.86, "position_y": 0.1, "height": 0.8,
+    if window_size is None:
+        L = [n * d for n, d in zip(v.shape, sp)]
+        window_size = (700, 1000) if L[0] > 1.5 * max(L[1], L[2]) else (900, 700)
+    # the bar's title (about 150 px) centred on it: inside a narrow window too
+    bar = {"title": label, "vertical": True, "position_x": 0.86 if window_size[0] >= 900 else 0.8, "position_y": 0.1, "height": 0.8,
            "title_font_size": 14, "label_font_size": 12}
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
@@ -594,6 +600,7 @@ def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key=
         plotter.view_xy()
         plotter.camera.azimuth = -30
         plotter.camera.elevation = 20
+        plotter.reset_camera()                 # refit the rotated box: its bounds labels inside the window
         plotter.camera.zoom(0.9)
         plotter.screenshot(str(out_png))
     finally:

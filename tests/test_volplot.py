@@ -157,3 +157,19 @@ def test_pyvista_rendering_written(tmp_path):
         assert img.shape[:2] == (700, 900)
         colours = np.unique((img[..., :3] * 255).astype(np.uint8).reshape(-1, 3), axis=0)
         assert len(colours) > 50, f"{mode}: a nearly blank picture ({len(colours)} colours)"
+
+
+def test_pyvista_rendering_of_a_deep_volume_is_portrait(tmp_path):
+    """A 40 x 5 x 4 mm volume renders in a 700 x 1000 window, the box spanning at least 650 px of its height
+    (measured 691 px; in the former 900 x 700 window 603 px)."""
+    pytest.importorskip("pyvista")
+    import matplotlib.image as mpimg
+
+    i, j, k = np.indices((40, 5, 4)).astype(float)
+    out = render_volume(dict(exx=-0.01 + 1e-4 * i + 1e-4 * j), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0),
+                        tmp_path / "deep.png", key="exx")
+    img = mpimg.imread(out)
+    assert img.shape[:2] == (1000, 700)
+    body = img[:, : int(0.75 * img.shape[1]), :3]               # left of the colour bar
+    rows = np.nonzero((body < 0.9).any(axis=(1, 2)))[0]
+    assert rows.max() - rows.min() >= 650 and rows.min() > 0 and rows.max() < img.shape[0] - 1
