@@ -239,12 +239,12 @@ def _slice_figure(rows, at, panel_inches):
     by the three slices).  In every panel dashed lines (gid ``"slice"``) mark where the other two slices cut; the
     titles name the quantity and where the slice lies, the axes are in mm.
 
-    ``rows``: dicts with ``name`` (panel titles unless ``title``), ``vol`` (nx, ny, nz), ``spacing``, ``origin`` (voxel centres),
-    ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or None), ``label`` (colour bar: quantity and unit), and
-    optionally ``bad`` (colour of NaN voxels, default transparent: the background shows through), ``line``
-    (colour of the dashed lines), ``note`` (a line under the first title of the quantity) and ``interpolation``
-    (imshow's, default "nearest": every voxel drawn as its own value).  ``panel_inches``: the longest side of a
-    panel at most this (inches)."""
+    ``rows``: dicts with ``name`` (the key of the panels and bar, and the titles' name unless ``title``), ``vol``
+    (nx, ny, nz), ``spacing``, ``origin`` (voxel centres), ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or
+    None), ``label`` (colour bar: quantity and unit), and optionally ``bad`` (colour of NaN voxels, default
+    transparent: the background shows through), ``line`` (colour of the dashed lines), ``note`` (a line under the
+    first title of the quantity) and ``interpolation`` (imshow's, default "nearest": every voxel drawn as its own
+    value).  ``panel_inches``: the longest side of a panel at most this (inches)."""
     from matplotlib.ticker import FuncFormatter, MaxNLocator, NullLocator
 
     from .plot import colorbar_extend
@@ -281,6 +281,8 @@ def _slice_figure(rows, at, panel_inches):
     chars = max(16, int(col_in * 72 / 4.5))         # characters across a quantity's column (7-8 pt text)
     note_chars = max(16, int(s * Ly * 72 / 4.5))     # across its first panel
     grid_rows = [[] for _ in range(grid["nrows"])]
+    names = [f"{w} (mm)" + (f"\nstretched {f:.1f}x" if f > 1.0005 else "")
+             for w, f in zip(("axial x", "lateral y", "elevational z"), stretch)]
     fig.volume_axes, fig.volume_colorbars = {}, {}
     for q, row in enumerate(rows):
         name, vol, sp, o, label = row["name"], row["vol"], row["spacing"], row["origin"], row["label"]
@@ -295,8 +297,6 @@ def _slice_figure(rows, at, panel_inches):
             kw["norm"] = row["norm"]
         else:
             kw.update(vmin=row["vmin"], vmax=row["vmax"])
-        names = [f"{w} (mm){f'{chr(10)}stretched {f:.1f}x' if f > 1.0005 else ''}"
-                 for w, f in zip(("axial x", "lateral y", "elevational z"), stretch)]
         panels = [   # image, extent, (x, y) axes, where, marker lines (vertical, horizontal)
             (vol[:, :, k], [*edge[1], edge[0][1], edge[0][0]], (1, 0), f"z = {c[2]:.1f} mm", (c[1], c[0])),
             (vol[:, j, :], [*edge[2], edge[0][1], edge[0][0]], (2, 0), f"y = {c[1]:.1f} mm", (c[2], c[0])),
@@ -456,12 +456,12 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     Each as three slices, axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at
     depth x (mm axes, equal aspect, depth down), with one colour bar under them, laid out as
     :func:`plot_volume_slices` lays them out; dashed lines mark where the other two slices cut.  ``at``: the
-    point (x, y, z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` / ``"softest"``
-    (the element centre nearest to the centroid of the stiffest / softest region: the elements connected to
-    the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
-    ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result
-    that failed or is flagged gets the red banner of :func:`femreg.plot.draw_failure`.  Writes ``out_png`` when
-    given; returns the figure.
+    point (x, y, z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` /
+    ``"softest"`` (the element centre nearest to the centroid of the stiffest / softest region: the elements
+    connected to the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
+    ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result that
+    failed or is flagged gets the red banner of :func:`femreg.plot.draw_failure`.  Writes ``out_png`` when given;
+    returns the figure.
     """
     from matplotlib.colors import LogNorm
 
@@ -572,7 +572,8 @@ def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key=
         L = [n * d for n, d in zip(v.shape, sp)]
         window_size = (700, 1000) if L[0] > 1.5 * max(L[1], L[2]) else (900, 700)
     # the bar's title (about 150 px) centred on it: inside a narrow window too
-    bar = {"title": label, "vertical": True, "position_x": 0.86 if window_size[0] >= 900 else 0.8, "position_y": 0.1, "height": 0.8,
+    bar = {"title": label, "vertical": True, "position_x": 0.86 if window_size[0] >= 900 else 0.8,
+           "position_y": 0.1, "height": 0.8,
            "title_font_size": 14, "label_font_size": 12}
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
