@@ -9,8 +9,12 @@ is drawn as background.
 
 The three slices (:func:`plot_volume_slices`): axial-lateral at elevation ``z`` (the scanner's B-mode plane),
 axial-elevational at lateral ``y`` (depth down in both), lateral-elevational at depth ``x`` (a C-plane); dashed
-lines in each mark where the other two cut it.  One colour bar per row, sharing its limits across the row
-(:func:`femreg.plot.colour_scale` conventions: diverging about 0 only for data that changes sign).
+lines in each mark where the other two cut it, the titles say where the slice lies.  Each quantity is a column
+with one colour bar under its three slices, which share its limits (:func:`femreg.plot.colour_scale`
+conventions: diverging about 0 only for data that changes sign).  Every panel is drawn at its mm aspect, all at
+one scale, as large as :data:`PAGE_INCHES` allows: one row per orientation for a shallow, wide volume, a 2 x 2
+block per quantity (the two axial slices side by side) for a deep, narrow one; an axis shorter than
+1 / :data:`MAX_ASPECT` of the longest is stretched, which its label says.
 
 A 3D modulus inversion (:func:`femreg.invert` on a volume's result) is drawn the same way by
 :func:`plot_inversion_volume` (``InversionResult.plot``, ``femreg plot MU.npz --slice``): the relative modulus
@@ -26,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .plot import DIVERGING_CMAP, _colorbar, _log_ticks, _mpl, colour_scale, fit_colorbars
+from .plot import DIVERGING_CMAP, _log_ticks, _mpl, colour_scale, fit_colorbars
 
 __all__ = ["plot_volume_slices", "plot_inversion_volume", "render_volume", "volume_bmode", "FIELD_LABELS",
-           "STRAIN_KEYS", "SLICE_CHOICES"]
+           "STRAIN_KEYS", "SLICE_CHOICES", "PLANES", "PAGE_INCHES", "MAX_ASPECT"]
 
 STRAIN_KEYS = ("exx", "eyy", "ezz", "exy", "exz", "eyz")
 #: Colour-bar label (quantity and unit) of every field key drawn.
@@ -100,6 +104,18 @@ def _check_fields(fields, keys):
     return keys, arrs
 
 
+def _scale(values):
+    """:func:`femreg.plot.colour_scale`, with a range below 1e-9 of the values' size (round-off on a uniform
+    field: a recovered strain of -1 % +- 1e-15) taken as constant, padded 5 %: not a scale whose ticks read
+    -1.0000000000000."""
+    cmap, lo, hi = colour_scale(values)
+    if hi - lo <= 1e-9 * max(abs(lo), abs(hi)):
+        mid = 0.5 * (lo + hi)
+        pad = 0.05 * abs(mid) or 1.0
+        cmap, lo, hi = colour_scale(np.array([mid - pad, mid + pad]))
+    return cmap, lo, hi
+
+
 def _style(key, values):
     """(values to draw, cmap, vmin, vmax, norm, label)."""
     label = FIELD_LABELS.get(key, key)
@@ -117,13 +133,13 @@ def _style(key, values):
             hi = max(hi, lo * 1.01)
             return np.where(v > 0, v, np.nan), "viridis", None, None, LogNorm(lo, hi), label
         return v, "viridis", None, None, None, label
-    cmap, lo, hi = colour_scale(v)
+    cmap, lo, hi = _scale(v)
     return v, cmap, lo, hi, None, label
 
 
 def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, reference=None, keys=None, at=None,
                        out_png=None, dynamic_range: float = 50.0, title=None, dpi: int = 100,
-                       reference_spacing=None, reference_origin=None, panel_inches: float = 2.6):
+                       reference_spacing=None, reference_origin=None, panel_inches: float = 8.0):
     """Three orthogonal slices per quantity: B-mode of ``reference`` (if given) and each field in ``keys``.
 
     Parameters
@@ -143,8 +159,10 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
 
     Returns
     -------
-    matplotlib.figure.Figure, one row per quantity, columns axial-lateral (at z), axial-elevational (at y),
-    lateral-elevational (at x).
+    matplotlib.figure.Figure: per quantity the slices axial-lateral (at z), axial-elevational (at y) and
+    lateral-elevational (at x) and a colour bar under them; ``fig.volume_axes[(name, plane)]`` is a slice's Axes
+    (``name`` "B-mode" or the key, ``plane`` of :data:`PLANES`), ``fig.volume_colorbars[name]`` its colour bar.
+    ``panel_inches``: the longest side of a panel at most this (inches).
     """
     keys, arrs = _check_fields(fields, keys)
     if reference is None and not keys:
@@ -162,7 +180,9 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
                      "echo level (dB)"))
     for k in keys:
         v, cmap, lo, hi, norm, label = _style(k, arrs[k])
-        rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm), label))
+        # titles read as the bars' labels do: e_xx, not the key exx
+        rows.append((k, v, sp, org, dict(cmap=cmap, vmin=lo, vmax=hi, norm=norm,
+                                         title=k[0] + "_" + k[1:] if k in _ORDER[:9] else k), label))
     rows = [dict(name=name, vol=vol, spacing=s, origin=o, label=label, **style)
             for name, vol, s, o, style, label in rows]
     fig, axes_rows = _slice_figure(rows, at, panel_inches)
@@ -174,81 +194,162 @@ def plot_volume_slices(fields=None, spacing=None, origin=(0.0, 0.0, 0.0), *, ref
     return fig
 
 
-def _slice_figure(rows, at, panel_inches):
-    """The three orthogonal slices of every row through ``at`` (x, y, z) mm (None: the centre of the first
-    row's grid); returns ``(figure, [[3 Axes] per row])``.
+#: Largest page (inches, width x height) the slices of a volume are scaled to fit, panels with their labels and
+#: colour bars: every panel keeps its mm aspect, and the whole is drawn at one scale (inches per mm).
+PAGE_INCHES = (15.0, 10.0)
+#: The narrowest panel is at least this wide or tall (inches): a volume too thin for the page enlarges it.
+MIN_PANEL_INCHES = 0.6
+#: A volume's longest extent over its shortest drawn at most this: a shorter axis is stretched to
+#: longest / MAX_ASPECT and its axis label says so ("stretched 2.5x"); the 7 MHz matrix probe's 48 x 10 x 8 mm
+#: volumes (6.0) are drawn to scale.
+MAX_ASPECT = 6.0
+#: Names of the three slice orientations, in the order of a quantity's panels.
+PLANES = ("axial-lateral", "axial-elevational", "lateral-elevational")
+# room (inches) for what is not a panel: the first column's axial tick labels and label, the gap between
+# columns (a quantity's panels share their colour bar, so no bar between them), a row of panels' title and
+# x tick labels and label, the colour-bar row under the panels and the figure's title
+_Y_LABELS_IN, _GAP_IN, _ROW_IN, _BAR_IN, _TITLE_IN = 0.75, 0.2, 0.75, 0.7, 0.45
 
-    ``rows``: dicts with ``name`` (panel titles), ``vol`` (nx, ny, nz), ``spacing``, ``origin`` (voxel centres),
-    ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or None), ``label`` (colour bar: quantity and unit; a
-    label of the form "name symbol (unit)" is broken before the symbol), and optionally ``bad`` (colour of NaN
-    voxels, default transparent: the background shows through), ``line`` (colour of the dashed lines where the
-    other slices cut), ``note`` (a second title line over the first panel of the row) and ``interpolation``
-    (imshow's, default "nearest": every voxel drawn as its own value)."""
+
+def _arrangement(L, n_q, page=PAGE_INCHES):
+    """How the ``3 n_q`` panels of ``n_q`` quantities of a volume of mm extents ``L`` (x, y, z) are laid out:
+    ``(kind, scale in / mm, (width, height) in)``, kind ``"rows"`` (one row per orientation: axial-lateral,
+    axial-elevational, lateral-elevational; one column per quantity) or ``"ortho"`` (every quantity a 2 x 2
+    block: axial-lateral and axial-elevational side by side sharing depth, lateral-elevational under
+    axial-lateral sharing the lateral axis).  The one whose panels come out larger on the ``page`` wins: "rows"
+    for shallow and wide volumes, "ortho" for deep and narrow ones, whose axial panels are tall."""
+    Lx, Ly, Lz = L
+    cand = {"rows": (n_q * max(Ly, Lz), 2 * Lx + Lz, _Y_LABELS_IN + n_q * _GAP_IN, 3 * _ROW_IN),
+            "ortho": (n_q * (Ly + Lz), Lx + Lz, _Y_LABELS_IN + 2 * n_q * _GAP_IN, 2 * _ROW_IN)}
+    best = None
+    for kind, (w_mm, h_mm, w_in, h_in) in cand.items():
+        h_in += _BAR_IN + _TITLE_IN
+        s = min((page[0] - w_in) / w_mm, (page[1] - h_in) / h_mm)
+        s = max(s, MIN_PANEL_INCHES / min(L))
+        if best is None or s > best[1] * 1.001:
+            best = (kind, s, (s * w_mm + w_in, s * h_mm + h_in))
+    return best
+
+
+def _slice_figure(rows, at, panel_inches):
+    """The three orthogonal slices of every quantity (``rows``) through ``at`` (x, y, z) mm (None: the centre of
+    the first quantity's grid), laid out by :func:`_arrangement`; returns ``(figure, [[Axes] per figure row])``.
+    The figure's ``volume_axes`` maps ``(name, plane)`` (``plane`` of :data:`PLANES`) to the panel's Axes and
+    ``volume_colorbars`` every ``name`` to its colour bar (one per quantity, under its panels, its limits shared
+    by the three slices).  In every panel dashed lines (gid ``"slice"``) mark where the other two slices cut; the
+    titles name the quantity and where the slice lies, the axes are in mm.
+
+    ``rows``: dicts with ``name`` (the key of the panels and bar, and the titles' name unless ``title``), ``vol``
+    (nx, ny, nz), ``spacing``, ``origin`` (voxel centres), ``cmap``, ``vmin``, ``vmax``, ``norm`` (a Normalize or
+    None), ``label`` (colour bar: quantity and unit), and optionally ``bad`` (colour of NaN voxels, default
+    transparent: the background shows through), ``line`` (colour of the dashed lines), ``note`` (a line under the
+    first title of the quantity) and ``interpolation`` (imshow's, default "nearest": every voxel drawn as its own
+    value).  ``panel_inches``: the longest side of a panel at most this (inches)."""
+    from matplotlib.ticker import FuncFormatter, MaxNLocator, NullLocator
+
+    from .plot import colorbar_extend
+
     shape0, sp0, org0 = rows[0]["vol"].shape, rows[0]["spacing"], rows[0]["origin"]
     if at is None:
         at = tuple(o + 0.5 * (n - 1) * d for o, n, d in zip(org0, shape0, sp0))
     at = _vec3(at, "at")
     plt = _mpl()
-    L = [n * d for n, d in zip(shape0, sp0)]
-    widths = [L[1], L[2], L[1]]
-    n_notes = sum(1 for r in rows if r.get("note"))
-    fig = plt.figure(figsize=(panel_inches * sum(widths) / max(L[1], 1e-9) + 1.6,
-                              panel_inches * len(rows) * max(L[0], L[2]) / max(L[1], 1e-9) + 0.8
-                              + 0.15 * n_notes), constrained_layout=True)
-    gs = fig.add_gridspec(len(rows), 3, width_ratios=widths)
-    axes_rows = []
-    for r, row in enumerate(rows):
-        name, vol, s, o, label = row["name"], row["vol"], row["spacing"], row["origin"], row["label"]
-        i = _index(at[0], o[0], s[0], vol.shape[0], "x")
-        j = _index(at[1], o[1], s[1], vol.shape[1], "y")
-        k = _index(at[2], o[2], s[2], vol.shape[2], "z")
-        edge = [(o[a] - 0.5 * s[a], o[a] + (vol.shape[a] - 0.5) * s[a]) for a in range(3)]
+    mm = [n * d for n, d in zip(shape0, sp0)]
+    # drawn lengths: an axis shorter than 1 / MAX_ASPECT of the longest stretched to it (a 50 x 50 x 5 mm
+    # volume's axial slices would be strips, a 100 x 2 x 2 mm one's lateral slices threads)
+    stretch = [max(1.0, max(mm) / (MAX_ASPECT * v)) for v in mm]
+    L = [v * f for v, f in zip(mm, stretch)]
+    nq = len(rows)
+    kind, s, _ = _arrangement(L, nq)
+    s = min(s, float(panel_inches) / max(L))
+    Lx, Ly, Lz = L
+    if kind == "rows":
+        w_mm, h_mm = nq * max(Ly, Lz), 2 * Lx + Lz
+        w_in, h_in = _Y_LABELS_IN + nq * _GAP_IN, 3 * _ROW_IN
+        grid = dict(nrows=3, ncols=nq, width_ratios=[max(Ly, Lz)] * nq, height_ratios=[Lx, Lx, Lz])
+        cell = lambda q, p: (p, q)                                  # noqa: E731
+        col_in = s * max(Ly, Lz)
+    else:
+        w_mm, h_mm = nq * (Ly + Lz), Lx + Lz
+        w_in, h_in = _Y_LABELS_IN + 2 * nq * _GAP_IN, 2 * _ROW_IN
+        grid = dict(nrows=2, ncols=2 * nq, width_ratios=[Ly, Lz] * nq, height_ratios=[Lx, Lz])
+        cell = lambda q, p: ((0, 2 * q), (0, 2 * q + 1), (1, 2 * q))[p]      # noqa: E731
+        col_in = s * (Ly + Lz)
+    h_in += _BAR_IN + _TITLE_IN + 0.15 * max(1, max(len(textwrap.wrap(r.get("note") or "", 200)) for r in rows))
+    fig = plt.figure(figsize=(s * w_mm + w_in, s * h_mm + h_in), layout="constrained")
+    gs = fig.add_gridspec(**grid)
+    chars = max(16, int(col_in * 72 / 4.5))         # characters across a quantity's column (7-8 pt text)
+    note_chars = max(16, int(s * Ly * 72 / 4.5))     # across its first panel
+    grid_rows = [[] for _ in range(grid["nrows"])]
+    names = [f"{w} (mm)" + (f"\nstretched {f:.1f}x" if f > 1.0005 else "")
+             for w, f in zip(("axial x", "lateral y", "elevational z"), stretch)]
+    fig.volume_axes, fig.volume_colorbars = {}, {}
+    for q, row in enumerate(rows):
+        name, vol, sp, o, label = row["name"], row["vol"], row["spacing"], row["origin"], row["label"]
+        i = _index(at[0], o[0], sp[0], vol.shape[0], "x")
+        j = _index(at[1], o[1], sp[1], vol.shape[1], "y")
+        k = _index(at[2], o[2], sp[2], vol.shape[2], "z")
+        c = [o[a] + n * sp[a] for a, n in enumerate((i, j, k))]          # the cuts, mm
+        edge = [(o[a] - 0.5 * sp[a], o[a] + (vol.shape[a] - 0.5) * sp[a]) for a in range(3)]
         cmap = plt.get_cmap(row["cmap"]).with_extremes(bad=row.get("bad", (0, 0, 0, 0)))
-        kw = dict(cmap=cmap, interpolation=row.get("interpolation", "nearest"), aspect="equal")
+        kw = dict(cmap=cmap, interpolation=row.get("interpolation", "nearest"))
         if row["norm"] is not None:
             kw["norm"] = row["norm"]
         else:
             kw.update(vmin=row["vmin"], vmax=row["vmax"])
-        panels = [
-            (vol[:, :, k], [edge[1][0], edge[1][1], edge[0][1], edge[0][0]], "lateral y (mm)", "axial x (mm)",
-             f"z = {o[2] + k * s[2]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[0] + i * s[0])]),
-            (vol[:, j, :], [edge[2][0], edge[2][1], edge[0][1], edge[0][0]], "elevational z (mm)", "axial x (mm)",
-             f"y = {o[1] + j * s[1]:.1f} mm", [("v", o[2] + k * s[2]), ("h", o[0] + i * s[0])]),
-            (vol[i, :, :].T, [edge[1][0], edge[1][1], edge[2][0], edge[2][1]], "lateral y (mm)",
-             "elevational z (mm)", f"x = {o[0] + i * s[0]:.1f} mm", [("v", o[1] + j * s[1]), ("h", o[2] + k * s[2])]),
+        panels = [   # image, extent, (x, y) axes, where, marker lines (vertical, horizontal)
+            (vol[:, :, k], [*edge[1], edge[0][1], edge[0][0]], (1, 0), f"z = {c[2]:.1f} mm", (c[1], c[0])),
+            (vol[:, j, :], [*edge[2], edge[0][1], edge[0][0]], (2, 0), f"y = {c[1]:.1f} mm", (c[2], c[0])),
+            (vol[i, :, :].T, [*edge[1], *edge[2]], (1, 2), f"x = {c[0]:.1f} mm", (c[1], c[2])),
         ]
         line = row.get("line", "w" if name == "B-mode" else "k")
-        row_axes = []
-        for c, (img, ext, xl, yl, where, lines) in enumerate(panels):
-            ax = fig.add_subplot(gs[r, c])
-            im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if c < 2 else "lower", **kw)
-            for kind, pos in lines:
-                (ax.axvline if kind == "v" else ax.axhline)(pos, color=line, lw=0.6, ls="--", alpha=0.6)
+        images = []
+        for p, (img, ext, (ah, av), where, (v, h)) in enumerate(panels):
+            r, col = cell(q, p)
+            xl, yl = names[ah], names[av]
+            ax = fig.add_subplot(gs[r, col])
+            # screen length of a mm of y over one of x: 1 but where an axis is stretched
+            im = ax.imshow(np.ma.masked_invalid(img), extent=ext, origin="upper" if p < 2 else "lower",
+                           aspect=stretch[av] / stretch[ah], **kw)
+            images.append(im)
+            ax.axvline(v, color=line, lw=0.7, ls="--", alpha=0.7, gid="slice")
+            ax.axhline(h, color=line, lw=0.7, ls="--", alpha=0.7, gid="slice")
             ax.set_xlabel(xl, fontsize=8)
-            ax.set_ylabel(yl, fontsize=8)
+            # about one tick label per 0.5 in: five-character labels of a narrow panel would touch
+            w_in, h_in = s * stretch[ah] * abs(ext[1] - ext[0]), s * stretch[av] * abs(ext[3] - ext[2])
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=max(2, min(6, int(w_in / 0.5))), steps=[1, 2, 5, 10]))
+            ax.yaxis.set_major_locator(MaxNLocator(nbins=max(2, min(8, int(h_in / 0.4))), steps=[1, 2, 5, 10]))
             ax.tick_params(labelsize=7)
-            note = ""
-            if c == 0 and row.get("note"):          # wrapped to the panel's width (about 5 pt a character)
-                note = "\n" + textwrap.fill(row["note"], max(20, int(panel_inches * widths[0] / max(L[1], 1e-9)
-                                                                      * 72 / 5.0)))
-            ax.set_title(f"{name}, {where}{note}", fontsize=8)
-            row_axes.append(ax)
-        if "\n" not in label:
-            parts = label.rsplit(" ", 2)
-            if len(parts) == 3 and "_" in parts[1]:         # two lines: the name, then symbol and unit
-                label = parts[0] + "\n" + " ".join(parts[1:])
-        cb = _colorbar(row_axes[-1], im, label)
-        cb.ax.tick_params(labelsize=7)
+            # the axial / elevational tick labels once per figure row: panels left of it show the same mm
+            if any(b.get_ylabel() == yl and tuple(b.get_ylim()) == tuple(ax.get_ylim()) for b in grid_rows[r]):
+                ax.tick_params(labelleft=False)
+            else:
+                ax.set_ylabel(yl, fontsize=8)
+            title = f"{row.get('title', name)}, {where}"
+            if p == 0 and row.get("note"):
+                title += "\n" + textwrap.fill(row["note"], note_chars)
+            ax.set_title(title, fontsize=8)
+            grid_rows[r].append(ax)
+            fig.volume_axes[(name, PLANES[p])] = ax
+        # one bar for the three slices (same norm): the triangle at an end any of them passes
+        ends = {colorbar_extend(im) for im in images}
+        low = any(e in ("min", "both") for e in ends)
+        high = any(e in ("max", "both") for e in ends)
+        extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[
+            low, high]
+        label = "\n".join(textwrap.fill(part, chars) for part in label.split("\n"))
+        cb = fig.colorbar(images[0], ax=[fig.volume_axes[(name, pl)] for pl in PLANES], location="bottom",
+                          extend=extend, extendfrac=0.05, shrink=0.9, aspect=max(8.0, col_in / 0.14))
         cb.set_label(label, fontsize=8)
+        cb.ax.tick_params(labelsize=7)
         if row["norm"] is not None and type(row["norm"]).__name__ == "LogNorm":   # plain numbers, not 4 x 10^0
-            from matplotlib.ticker import FuncFormatter, NullLocator
-
-            plain = FuncFormatter(lambda val, _: f"{val:g}")
             cb.set_ticks(_log_ticks(row["norm"].vmin, row["norm"].vmax))
-            cb.ax.yaxis.set_minor_locator(NullLocator())
-            cb.ax.yaxis.set_major_formatter(plain)
-        axes_rows.append(row_axes)
-    return fig, axes_rows
+            cb.ax.xaxis.set_minor_locator(NullLocator())
+            cb.ax.xaxis.set_major_formatter(FuncFormatter(lambda val, _: f"{val:g}"))
+        else:
+            cb.ax.xaxis.set_major_locator(MaxNLocator(nbins=max(3, int(col_in / 0.6))))
+        fig.volume_colorbars[name] = cb
+    return fig, [r for r in grid_rows if r]
 
 
 #: Words that ``at`` of :func:`plot_inversion_volume` takes besides a point.
@@ -338,7 +439,7 @@ def _slice_point(result, at, loc):
 
 
 def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, title=None,
-                          samples_per_element: int = 5, panel_inches: float = 2.6):
+                          samples_per_element: int = 5, panel_inches: float = 8.0):
     r"""Three orthogonal slices of a 3D modulus inversion (:func:`femreg.invert` with ``model="3d"``), drawn as
     :func:`plot_volume_slices` draws a registration: one row each for
 
@@ -352,14 +453,15 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
       (trilinear between the nodal averages of the element strains, :func:`femreg.volume_fields.
       recovered_strains_3d`).
 
-    Columns: axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at depth x (mm
-    axes, equal aspect, depth down); dashed lines mark where the other two slices cut.  ``at``: the point (x, y,
-    z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` / ``"softest"``
-    (the element centre nearest to the centroid of the stiffest / softest region: the elements connected to
-    the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
-    ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result
-    that failed or is flagged gets the red banner of :func:`femreg.plot.draw_failure`.  Writes ``out_png`` when
-    given; returns the figure.
+    Each as three slices, axial-lateral at elevation z, axial-elevational at lateral y, lateral-elevational at
+    depth x (mm axes, equal aspect, depth down), with one colour bar under them, laid out as
+    :func:`plot_volume_slices` lays them out; dashed lines mark where the other two slices cut.  ``at``: the
+    point (x, y, z) mm the slices pass through, or ``"centre"`` (default: the mesh's centre), ``"stiffest"`` /
+    ``"softest"`` (the element centre nearest to the centroid of the stiffest / softest region: the elements
+    connected to the extreme whose mean log modulus over their 3 x 3 x 3 neighbourhood reaches half of it).
+    ``samples_per_element``: picture samples across an element (odd: an element centre is a sample).  A result that
+    failed or is flagged gets the red banner of :func:`femreg.plot.draw_failure`.  Writes ``out_png`` when given;
+    returns the figure.
     """
     from matplotlib.colors import LogNorm
 
@@ -410,7 +512,7 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
     else:                                   # no displacement stored: the element-mean strain
         exx = np.asarray(res.strain_measured, float)[:, 0][cell]
         label, name = "axial strain $\\varepsilon_{xx}$ (%)\n(element mean)", r"$\varepsilon_{xx}$"
-    cmap, slo, shi = colour_scale(100.0 * exx)
+    cmap, slo, shi = _scale(100.0 * exx)
     # the recovered strain is trilinear: drawn bilinearly between the samples, not as blocks it does not have
     rows.append(dict(name=name, vol=100.0 * exx, spacing=sp, origin=org, cmap=cmap, vmin=slo, vmax=shi, norm=None,
                      label=label, interpolation="bilinear" if "recovered" in label else "nearest"))
@@ -429,14 +531,16 @@ def plot_inversion_volume(result, out_png=None, *, at=None, dpi: int = 100, titl
 
 
 def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key="exx", mode="slices", at=None,
-                  iso=None, window_size=(900, 700), cmap=None):
+                  iso=None, window_size=None, cmap=None):
     """Off-screen pyvista rendering of one field of a volume, written to ``out_png``.
 
     ``fields``: dict as :func:`plot_volume_slices` (or one 3D array, named ``key``).  ``mode="slices"``: the
     three orthogonal slices through ``at`` (default centre) in 3D; ``mode="iso"``: the iso-surface(s) of the
     field at ``iso`` (one value or a list, in the drawn unit: % for strain; default the middle of the robust
     range) inside the volume's outline, with the axial-lateral slice at ``at`` for context.  Depth points down,
-    lateral to the right, elevation into the screen at an oblique view; NaN voxels are not drawn.  Returns the
+    lateral to the right, elevation into the screen at an oblique view; NaN voxels are not drawn.
+    ``window_size``: pixels (width, height); default 900 x 700, or 700 x 1000 for a volume deeper than 1.5 x its
+    wider cross extent (a 48 x 10 x 8 mm one filled a fifth of the landscape window).  Returns the
     Path.  Needs pyvista (``pip install femreg[vtk]``).
     """
     if out_png is None:
@@ -464,7 +568,12 @@ def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key=
     grid.point_data[label] = np.asfortranarray(data).ravel(order="F")
     centre = [o + 0.5 * (n - 1) * d for o, n, d in zip(org, v.shape, sp)]
     a = _vec3(at, "at") if at is not None else tuple(centre)
-    bar = {"title": label, "vertical": True, "position_x": 0.86, "position_y": 0.1, "height": 0.8,
+    if window_size is None:
+        L = [n * d for n, d in zip(v.shape, sp)]
+        window_size = (700, 1000) if L[0] > 1.5 * max(L[1], L[2]) else (900, 700)
+    # the bar's title (about 150 px) centred on it: inside a narrow window too
+    bar = {"title": label, "vertical": True, "position_x": 0.86 if window_size[0] >= 900 else 0.8,
+           "position_y": 0.1, "height": 0.8,
            "title_font_size": 14, "label_font_size": 12}
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
@@ -492,6 +601,7 @@ def render_volume(fields, spacing, origin=(0.0, 0.0, 0.0), out_png=None, *, key=
         plotter.view_xy()
         plotter.camera.azimuth = -30
         plotter.camera.elevation = 20
+        plotter.reset_camera()                 # refit the rotated box: its bounds labels inside the window
         plotter.camera.zoom(0.9)
         plotter.screenshot(str(out_png))
     finally:

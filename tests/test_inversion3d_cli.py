@@ -177,7 +177,8 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     assert titles[2] == r"$\mu$, x = 8.5 mm"
     assert titles[3].startswith(r"std of $\log\mu$") and titles[6].startswith(r"$\varepsilon_{xx}$")
     assert "grey: 4 of 1920 elements the data do not" in titles[3].replace("\n", " ")
-    bars = [a.child_axes[0].get_ylabel().replace("\n", " ") for a in panels[2::3]]
+    cbs = list(fig.volume_colorbars.values())                         # one per quantity, under its slices
+    bars = [cb.ax.get_xlabel().replace("\n", " ") for cb in cbs]
     assert bars[0] == "shear modulus $\\mu$ / median (relative, one value per element)"
     assert bars[1] == ("uncertainty: std of $\\log\\mu$ (-, one value per element) low: more certain, high: less "
                        "certain")
@@ -185,7 +186,7 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     unorm = panels[3].images[0].norm
     assert 0.05 < unorm.vmin < 0.06 and 0.19 < unorm.vmax < 0.21, (unorm.vmin, unorm.vmax)
     assert bars[2] == "recovered axial strain $\\varepsilon_{xx}$ (%)"
-    assert [len(a.child_axes) for a in panels] == [0, 0, 1] * 3          # one colour bar per row
+    assert len(cbs) == 3 and all(cb.mappable in a.images for cb, a in zip(cbs, panels[::3]))
     # the axial-lateral modulus slice at z = -0.5 mm: each element's value over its whole box, mm extents
     al = panels[0].images[0]
     assert al.get_extent() == pytest.approx([-6.0, 6.0, 16.0, 0.0])  # lateral, then depth downwards
@@ -207,16 +208,16 @@ def test_volume_inversion_picture_panels_labels_and_values(tmp_path):
     # modulus colour scale: 1-99 % of the elements (1 and 3 here), log, ticks at round values
     norm = panels[0].images[0].norm
     assert type(norm).__name__ == "LogNorm" and (norm.vmin, norm.vmax) == pytest.approx((0.8, 3.0))
-    assert list(panels[2].child_axes[0].get_yticks()) == [0.8, 1.0, 1.5, 2.0, 3.0]
+    assert list(cbs[0].ax.get_xticks()) == [0.8, 1.0, 1.5, 2.0, 3.0]
     # no text over another panel: titles and colour bars clear of the other panels, tick labels apart
     fig.canvas.draw()
     r = fig.canvas.get_renderer()
-    for a in panels[2::3]:
-        tl = [t.get_window_extent(r) for t in a.child_axes[0].get_yticklabels() if t.get_text()]
+    for cb in cbs:
+        tl = [t.get_window_extent(r) for t in cb.ax.get_xticklabels() if t.get_text()]
         assert len(tl) >= 2 and not any(x.overlaps(y) for i, x in enumerate(tl) for y in tl[i + 1:])
     boxes = [a.get_window_extent(r) for a in panels]
     for k, a in enumerate(panels):
-        things = [a.title.get_window_extent(r)] + [b.get_tightbbox(r) for b in a.child_axes]
+        things = [a.title.get_window_extent(r)] + ([cbs[k // 3].ax.get_tightbbox(r)] if k % 3 == 0 else [])
         for t in things:
             assert t.x0 >= -1 and t.x1 <= fig.bbox.x1 + 1, titles[k]       # inside the figure
             for j, b in enumerate(boxes):
