@@ -143,7 +143,7 @@ def _scanner_mat73(path, vols, fs_hz, pitch_m, elevation_m):
         f.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116) + b"\x00" * 8 + b"\x00\x02IM")
 
 
-def test_cli_volume_file_without_spacing(tmp_path, capsys):
+def test_cli_volume_file_without_spacing(tmp_path, capsys, monkeypatch):
     """A scanner's 4D MAT-file without a spacing variable: info describes it as volumes without --volume and names
     the --spacing DX DY DZ its fields imply; register takes three --spacing values (before: info refused it
     naming femreg.io.read_volumes, and --spacing took two values while the error asked for three)."""
@@ -169,6 +169,21 @@ def test_cli_volume_file_without_spacing(tmp_path, capsys):
     # the result drawn: three slices of u_x, e_xx, e_yy, e_zz and the quality (before: refused, pointing to Python)
     png = tmp_path / "r.png"
     assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "3", "2"]) == 0 and png.stat().st_size > 0
+    # the figure's title names the voxel each panel shows, not the point typed (3.9 typed, 3.8 drawn before)
+    import re
+
+    import femreg.volplot as volplot
+    figs = []
+    draw = volplot.plot_volume_slices
+    monkeypatch.setattr(volplot, "plot_volume_slices", lambda *a, **k: figs.append(draw(*a, **k)) or figs[-1])
+    for typed in ((4.03, 3.07, 2.13), (3.91, 2.96, 2.37)):
+        assert main(["plot", str(out_npz), "-o", str(png), "--slice", *map(str, typed)]) == 0
+        fig = figs[-1]
+        said = dict(zip("xyz", re.search(r"x, y, z = ([-\d.]+), ([-\d.]+), ([-\d.]+) mm", fig._suptitle.get_text())
+                        .groups()))
+        shown = {m.group(1): m.group(2) for ax in fig.axes
+                 for m in [re.search(r"\b([xyz]) = ([-\d.]+) mm", ax.get_title())] if m}
+        assert shown and all(said[a] == v for a, v in shown.items()), (said, shown)
     assert main(["plot", str(out_npz), "-o", str(png), "--slice", "4", "0"]) == 2
     assert "takes X Y Z" in capsys.readouterr().err
     # an axial spacing twice c / (2 fs) of the file's fs (the frames' check, now on volumes): before, registered

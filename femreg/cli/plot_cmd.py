@@ -219,6 +219,8 @@ def plot_volume_result(args) -> int:
             at = ()
         if len(at) != 3:
             raise InputError(f"--slice of a volume's result takes X Y Z (mm) or centre, got {' '.join(args.slice)}")
+    # the title names the voxel centres the panels show (femreg.volplot snaps each slice to the nearest voxel)
+    at = tuple(float(o + round((a - o) / d) * d) for a, o, d in zip(at, origin, sp))
     ok = bool(getattr(res, "success", True))
     title = f"{Path(args.result).name}: slices through x, y, z = {at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f} mm"
     if not ok:
