@@ -38,11 +38,8 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/newcomer_iq.py [OUTDIR] [--skip-track
 """
 from __future__ import annotations
 
-import argparse
 import math
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -52,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))      # after PYTHONPATH: it chooses the femreg measured
 from forward.fields import Inclusion  # noqa: E402
+from newcomer_msk import femreg_cli as _femreg_cli, walk_args  # noqa: E402
 from forward.pairs import Probe, alpha_for_floor, attenuation_gain_db, make_sequence  # noqa: E402
 
 N, STEP = 6, 0.005                               # frames, compression per frame
@@ -152,23 +150,12 @@ def say(name, e):
 
 
 def femreg_cli(*args):
-    """Run the command as a user does (a fresh process); returns its exit code and prints its wall time."""
-    t = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "femreg", *map(str, args)], capture_output=True, text=True)
-    print(f"$ femreg {' '.join(map(str, args))}\n  exit {p.returncode} in {time.perf_counter() - t:.1f} s", flush=True)
-    for line in (p.stdout + p.stderr).strip().splitlines()[-8:]:
-        print("  | " + line[:400])
-    return p.returncode
+    """:func:`newcomer_msk.femreg_cli`, its lines shown up to 400 characters (the IQ refusals are long)."""
+    return _femreg_cli(*args, width=400)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("out", nargs="?")
-    ap.add_argument("--skip-track", action="store_true")
-    ap.add_argument("--skip-elastogram", action="store_true")
-    a = ap.parse_args(argv)
-    out = Path(a.out or tempfile.mkdtemp(prefix="newcomer_iq_"))
-    out.mkdir(parents=True, exist_ok=True)
+    a, out = walk_args(argv, __doc__, "newcomer_iq_")
     t = time.perf_counter()
     seq = render()
     mat = write(out, seq)

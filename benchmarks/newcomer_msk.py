@@ -177,24 +177,32 @@ def say(name, e):
           f"(true {e['slide_true_um']:.1f}), success {e['success']}", flush=True)
 
 
-def femreg_cli(*args):
-    """Run the command as a user does (a fresh process); returns its exit code and prints its wall time."""
+def femreg_cli(*args, width: int = 220):
+    """Run the command as a user does (a fresh process); returns its exit code and prints its wall time and the
+    last lines of its output (``width`` characters each)."""
     t = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "femreg", *map(str, args)], capture_output=True, text=True)
     print(f"$ femreg {' '.join(map(str, args))}\n  exit {p.returncode} in {time.perf_counter() - t:.1f} s", flush=True)
     for line in (p.stdout + p.stderr).strip().splitlines()[-8:]:
-        print("  | " + line[:220])
+        print("  | " + line[:width])
     return p.returncode
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def walk_args(argv, doc: str, prefix: str):
+    """A newcomer walk's command line (an output folder, ``--skip-track``, ``--skip-elastogram``): the parsed
+    arguments and the output folder, made (a fresh temporary one named ``prefix...`` when none is given)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
     ap.add_argument("out", nargs="?")
     ap.add_argument("--skip-track", action="store_true")
     ap.add_argument("--skip-elastogram", action="store_true")
     a = ap.parse_args(argv)
-    out = Path(a.out or tempfile.mkdtemp(prefix="newcomer_msk_"))
+    out = Path(a.out or tempfile.mkdtemp(prefix=prefix))
     out.mkdir(parents=True, exist_ok=True)
+    return a, out
+
+
+def main(argv=None):
+    a, out = walk_args(argv, __doc__, "newcomer_msk_")
     t = time.perf_counter()
     raw = write(out)
     print(f"wrote {raw} in {time.perf_counter() - t:.1f} s; compression per frame (%): "

@@ -97,15 +97,7 @@ class _Walker:
         if count > 1:
             return self._struct_array_fields(buf, pos, end, where, name, depth, count)
         try:
-            mtype, n, s, pos = self.tag(buf, pos, end, where)
-            if mtype != 5 or n != 4:
-                return ()
-            width = int(np.frombuffer(buf, self.order + "i4", 1, s)[0])
-            mtype, n, s, pos = self.tag(buf, pos, end, where)
-            if mtype not in (1, 2) or width <= 0 or n % width:
-                return ()
-            names = [bytes(buf[s + k:s + k + width]).split(b"\0")[0].decode("ascii", "replace")
-                     for k in range(0, n, width)]
+            names, pos = self._field_names(buf, pos, end, where)
             out = []
             for field in names:
                 mtype, n, s, pos = self.tag(buf, pos, end, where)
@@ -124,18 +116,23 @@ class _Walker:
         except FileFormatError:
             return ()
 
+    def _field_names(self, buf, pos, end, where) -> tuple[list, int]:
+        """A struct's field names (its name-length and names elements) and the position after them; no names where
+        the layout is not understood."""
+        mtype, n, s, pos = self.tag(buf, pos, end, where)
+        if mtype != 5 or n != 4:
+            return [], pos
+        width = int(np.frombuffer(buf, self.order + "i4", 1, s)[0])
+        mtype, n, s, pos = self.tag(buf, pos, end, where)
+        if mtype not in (1, 2) or width <= 0 or n % width:
+            return [], pos
+        return [bytes(buf[s + k:s + k + width]).split(b"\0")[0].decode("ascii", "replace")
+                for k in range(0, n, width)], pos
+
     def _struct_array_fields(self, buf, pos, end, where, name, depth, count) -> tuple:
         """The numeric fields equal in all ``count`` elements of a struct array (:meth:`_struct_fields`)."""
         try:
-            mtype, n, s, pos = self.tag(buf, pos, end, where)
-            if mtype != 5 or n != 4:
-                return ()
-            width = int(np.frombuffer(buf, self.order + "i4", 1, s)[0])
-            mtype, n, s, pos = self.tag(buf, pos, end, where)
-            if mtype not in (1, 2) or width <= 0 or n % width:
-                return ()
-            names = [bytes(buf[s + k:s + k + width]).split(b"\0")[0].decode("ascii", "replace")
-                     for k in range(0, n, width)]
+            names, pos = self._field_names(buf, pos, end, where)
             values = {field: [] for field in names}
             for _ in range(count):
                 for field in names:
