@@ -45,7 +45,7 @@ from .mesh import check_mesh
 from .quadrature import ELEMENT_CENTRE_RULE
 
 __all__ = ["FIELDS", "STRAIN_MODES", "strain_components", "sample", "element_strains", "nodal_average",
-           "edge_aware_strains", "edge_aware_corners", "location_corners",
+           "edge_aware_strains", "edge_aware_corners", "location_corners", "graded_weights",
            "recovered_strains", "projected_strains", "adaptive_strains", "adaptive_weight", "strain_roughness",
            "ROUGHNESS_SHARP", "ROUGHNESS_SMOOTH", "check_strain_mode", "element_strain_operator",
            "RECOVERY_METHODS", "DEFAULT_RECOVERY", "centre_gradient_operators", "inner_elements", "lateral_ratio",
@@ -154,21 +154,43 @@ def element_strains(mesh_points, mesh_cells, u) -> np.ndarray:
     return strain_components(np.asarray(basis.interpolate(uu).grad)[:, :, :, 0])
 
 
-def nodal_average(mesh_cells, cell_values, n_nodes) -> np.ndarray:
+def nodal_average(mesh_cells, cell_values, n_nodes, cell_weights=None) -> np.ndarray:
     """Average of the values of the cells around each node: (n_el, k) -> (n_nodes, k); ``mesh_cells`` (4, n_el)
-    as everywhere in femreg (scikit-fem's ``mesh.t``)."""
+    as everywhere in femreg (scikit-fem's ``mesh.t``).  ``cell_weights`` (n_el,) weights each cell's value
+    (None: all equal; :func:`graded_weights` for the recovered strain on a graded mesh)."""
     t = np.asarray(mesh_cells)
     if t.ndim != 2 or t.shape[1] != np.shape(cell_values)[0]:
         raise InputError(f"mesh_cells must be (4, n_el) with n_el = {np.shape(cell_values)[0]}, got {t.shape}")
     v = np.asarray(cell_values, dtype=float)
     v2 = v.reshape(v.shape[0], -1)
     out = np.zeros((n_nodes, v2.shape[1]))
-    count = np.bincount(t.ravel(), minlength=n_nodes).astype(float)
+    cw = np.ones(t.shape[1]) if cell_weights is None else np.asarray(cell_weights, float)
+    count = np.bincount(t.ravel(), weights=np.tile(cw, t.shape[0]), minlength=n_nodes)
     for k in range(v2.shape[1]):
-        out[:, k] = np.bincount(t.ravel(), weights=np.tile(v2[:, k], t.shape[0]), minlength=n_nodes)
+        out[:, k] = np.bincount(t.ravel(), weights=np.tile(cw * v2[:, k], t.shape[0]), minlength=n_nodes)
     with np.errstate(invalid="ignore", divide="ignore"):
         out /= count[:, None]
     return out.reshape((n_nodes,) + v.shape[1:])
+
+
+def graded_weights(mesh_points, mesh_cells) -> np.ndarray:
+    """Weights (n_el,) of the element-centre strains in the recovered nodal average: 1 / element area.
+
+    At an interior node of a tensor mesh the four element centres lie at half their element's width and height
+    from it; weighting each by ``1 / (h_x h_y)`` makes the average the bilinear interpolation of the four centre
+    values at the node, exact for a strain linear in x and y.  The plain average (equal weights) is exact only
+    where the two sizes agree: where a graded mesh changes element size it is off by ``g (h_2 - h_1) / 4`` (``g``
+    the strain gradient), a kink at every change of size that the picture shows as steps along the refined rows
+    and columns.  Uniform meshes: equal weights, the plain average exactly.  ``mesh_points`` (2, n_nodes) mm,
+    ``mesh_cells`` (4, n_el).
+    """
+    c = np.asarray(mesh_points, float)[:, np.asarray(mesh_cells)]            # (2, 4, n_el)
+    # shoelace area of each quad (corners in cell order, counter-clockwise or not)
+    area = 0.5 * np.abs(np.sum(c[0] * np.roll(c[1], -1, axis=0) - np.roll(c[0], -1, axis=0) * c[1], axis=0))
+    with np.errstate(divide="ignore"):
+        w = 1.0 / area
+    # a degenerate quad is refused by element_strains before this matters; keep the weights finite regardless
+    return np.where(np.isfinite(w), w / np.max(w[np.isfinite(w)], initial=1.0), 1.0)
 
 
 def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY) -> np.ndarray:
@@ -253,7 +275,7 @@ def recovered_strains(mesh_points, mesh_cells, u, method: str = DEFAULT_RECOVERY
         return edge_aware_strains(mesh_points, mesh_cells, uu)
     # the average is local: a non-finite displacement spoils only its own neighbourhood
     e = element_strains(mesh_points, mesh_cells, uu)
-    return nodal_average(mesh_cells, e, np.asarray(mesh_points).shape[1])
+    return nodal_average(mesh_cells, e, np.asarray(mesh_points).shape[1], graded_weights(mesh_points, mesh_cells))
 
 
 def strain_roughness(mesh_points, mesh_cells, u) -> float:
@@ -307,8 +329,11 @@ def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None) ->
     e = element_strains(mesh_points, mesh_cells, u)                   # validates the mesh and u
     t = np.asarray(mesh_cells)
     n = np.asarray(mesh_points).shape[1]
-    avg = nodal_average(t, e, n)
-    w = adaptive_weight(_roughness(e, t, avg)) if weight is None else float(weight)
+    if weight is None:
+        # the roughness (and so the weight) is defined on the plain average, as the registration's weight is
+        weight = adaptive_weight(_roughness(e, t, nodal_average(t, e, n)))
+    w = float(weight)
+    avg = nodal_average(t, e, n, graded_weights(mesh_points, mesh_cells))
     if w == 0.0:
         return avg
     # the projection rings at a step (up to about 15 % of it, either side); held within the range of the
