@@ -4,9 +4,9 @@ Per pair (shear bands of ``benchmarks/shear_bands.py`` and inclusions of ``bench
 registration with the defaults, and its strain recovered several ways from the same nodal displacement, sampled on
 the reference pixel grid as ``RegistrationResult.on_grid`` does:
 
-* ``reg plain`` / ``reg graded``: the registration's displacement, the default adaptive recovery with the nodal
-  average's element strains weighted equally (as before) / by 1 / element area
-  (:func:`femreg.fields.graded_weights`, the default now);
+* ``reg plain`` / ``reg graded``: the registration's displacement, the default adaptive recovery
+  (:func:`femreg.fields.adaptive_strains`, its nodal average weighting the element strains equally) / the same
+  with the average weighted by 1 / element area (:func:`femreg.fields.graded_weights`);
 * ``reg avg plain`` / ``reg avg graded``: the same with the average alone (adaptive weight 0);
 * ``exact plain`` / ``exact graded`` (and ``exact avg ...``): the true displacement at the same mesh's nodes,
   recovered alike -- what mesh, recovery and sampling alone do to the picture;
@@ -44,13 +44,14 @@ from forward.pairs import PROBES  # noqa: E402
 DEFAULT_CASES = ("band2_s0.3_d15_L7", "held_band3_s0.4_d12_L3", "r3_4pc_L7", "r8_2pc_paper", "held_r2_2pc_L3")
 
 
-def plain_recovery(p, t, u, w):
-    """The adaptive recovery with an equal-weight nodal average (femreg before the graded weights)."""
+def graded_recovery(p, t, u, w):
+    """femreg's adaptive recovery (:func:`femreg.fields.adaptive_strains`, weight ``w``) with its nodal average's
+    element strains weighted by 1 / element area (:func:`femreg.fields.graded_weights`)."""
     from femreg import fields as FL
 
     e = FL.element_strains(p, t, u)
     n = p.shape[1]
-    avg = FL.nodal_average(t, e, n)
+    avg = FL.nodal_average(t, e, n, FL.graded_weights(p, t))
     if w == 0.0:
         return avg
     lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
@@ -102,19 +103,20 @@ def run(names, out: Path):
             if ns is None:
                 return sample_grid(uu, res.locator, res.pixel_grid, "element")
             return sample_grid(uu, res.locator, res.pixel_grid, "recovered", nodal_strain=ns)
-        grids = {"reg plain": grid(u, plain_recovery(p, t, u, w)),
-                 "reg graded": grid(u, FL.adaptive_strains(p, t, u, w)),
-                 "reg avg plain": grid(u, plain_recovery(p, t, u, 0.0)),
-                 "reg avg graded": grid(u, FL.adaptive_strains(p, t, u, 0.0)),
-                 "exact plain": grid(ue, plain_recovery(p, t, ue, w)),
-                 "exact graded": grid(ue, FL.adaptive_strains(p, t, ue, w)),
-                 "exact avg plain": grid(ue, plain_recovery(p, t, ue, 0.0)),
-                 "exact avg graded": grid(ue, FL.adaptive_strains(p, t, ue, 0.0)),
+        grids = {"reg plain": grid(u, FL.adaptive_strains(p, t, u, w)),
+                 "reg graded": grid(u, graded_recovery(p, t, u, w)),
+                 "reg avg plain": grid(u, FL.adaptive_strains(p, t, u, 0.0)),
+                 "reg avg graded": grid(u, graded_recovery(p, t, u, 0.0)),
+                 "exact plain": grid(ue, FL.adaptive_strains(p, t, ue, w)),
+                 "exact graded": grid(ue, graded_recovery(p, t, ue, w)),
+                 "exact avg plain": grid(ue, FL.adaptive_strains(p, t, ue, 0.0)),
+                 "exact avg graded": grid(ue, graded_recovery(p, t, ue, 0.0)),
                  "element": grid(u)}
         for k, g in grids.items():
             img = np.nan_to_num(np.asarray(g["exy"], float)[sl])
             (rx, ry), (tx, ty) = roughness(img, tr["exy"])
-            row = dict(case=nm, recovery=k, weight=round(w, 3), n_el=int(t.shape[1]), e=100 * errors(g, tr, sl, lam)["e"],
+            row = dict(case=nm, recovery=k, weight=round(w, 3), n_el=int(t.shape[1]),
+                       e=100 * errors(g, tr, sl, lam)["e"],
                        exy=100 * float(np.sqrt(np.sum((img - tr["exy"]) ** 2) / np.sum(tr["exy"] ** 2))),
                        rough_x=rx / tx if tx > 0 else float("nan"),
                        rough_y=ry / ty if ty > 0 else float("nan"), rough_y_abs=ry)

@@ -1,8 +1,11 @@
 """Recovered strain on a graded tensor mesh (element sizes changing across rows and columns, as refinement leaves
-them): no kink where the size changes (the steps of a staircase in the e_xy picture), and a true step kept."""
+them): the nodal average weighted by 1 / element area (femreg.fields.graded_weights) has no kink where the size
+changes, the equal-weight one (femreg's recoveries) has; a true step keeps its width either way."""
 import numpy as np
+import pytest
 from skfem import MeshQuad1
 
+from femreg.errors import InputError
 from femreg.fields import adaptive_strains, element_strains, graded_weights, nodal_average, recovered_strains
 from femreg.pixels import PointLocator
 from femreg.sampling import PixelGrid, sample_grid
@@ -38,26 +41,29 @@ def test_graded_average_has_no_kink_where_the_element_size_changes():
     m = _mesh()
     u, truth = _linear_shear(m)
     loc = PointLocator(m)
-    for ns in (recovered_strains(m.p, m.t, u, "average"), adaptive_strains(m.p, m.t, u, 0.0)):
-        g = sample_grid(u, loc, GRID, "recovered", nodal_strain=ns)
-        sx, sy = _staircase(g["exy"], truth)
-        # measured below 1e-15 of the strain range (rounding); bound 1e-9
-        assert sx < 1e-9 and sy < 1e-9, (sx, sy)
-    # the equal-weight average of the same element strains kinks at every size change
-    plain = nodal_average(m.t, element_strains(m.p, m.t, u), m.p.shape[1])
-    sx, sy = _staircase(sample_grid(u, loc, GRID, "recovered", nodal_strain=plain)["exy"], truth)
+    e = element_strains(m.p, m.t, u)
+    graded = nodal_average(m.t, e, m.p.shape[1], graded_weights(m.p, m.t))
+    sx, sy = _staircase(sample_grid(u, loc, GRID, "recovered", nodal_strain=graded)["exy"], truth)
+    # measured below 1e-15 of the strain range (rounding); bound 1e-9
+    assert sx < 1e-9 and sy < 1e-9, (sx, sy)
+    # the equal-weight average (femreg's "average" recovery, and the adaptive one at weight 0) kinks at every size
+    # change
+    for plain in (recovered_strains(m.p, m.t, u, "average"), adaptive_strains(m.p, m.t, u, 0.0)):
+        sx, sy = _staircase(sample_grid(u, loc, GRID, "recovered", nodal_strain=plain)["exy"], truth)
     # measured 1.2e-3 (x) and 2.6e-4 (y) of the range: what the weights remove (bound a tenth of it)
-    assert sx > 1.2e-4 and sy > 2.6e-5, (sx, sy)
+        assert sx > 1.2e-4 and sy > 2.6e-5, (sx, sy)
 
 
 def test_uniform_mesh_weights_are_the_plain_average():
     m = MeshQuad1.init_tensor(np.linspace(0, 6, 7), np.linspace(0, 4, 9))
-    np.testing.assert_array_equal(graded_weights(m.p, m.t), np.ones(m.t.shape[1]))
+    np.testing.assert_allclose(graded_weights(m.p, m.t), 1.0, rtol=1e-12)
     rng = np.random.default_rng(3)
     u = rng.normal(size=2 * m.p.shape[1]) * 1e-3
     e = element_strains(m.p, m.t, u)
-    np.testing.assert_allclose(recovered_strains(m.p, m.t, u, "average"), nodal_average(m.t, e, m.p.shape[1]),
-                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(nodal_average(m.t, e, m.p.shape[1], graded_weights(m.p, m.t)),
+                               recovered_strains(m.p, m.t, u, "average"), rtol=0, atol=1e-15)
+    with pytest.raises(InputError, match="cell_weights"):
+        nodal_average(m.t, e, m.p.shape[1], np.ones(3))
 
 
 def _band(m, lo, hi, slide=0.1):
@@ -78,10 +84,11 @@ def test_a_band_face_stays_sharp():
     x = GRID.axes()[0]
     for lo, hi in ((5.0, 6.0), (4.0, 6.0)):          # faces inside the fine rows, and on the size change at 4 mm
         u, peak = _band(m, lo, hi)
-        plain = nodal_average(m.t, element_strains(m.p, m.t, u), m.p.shape[1])
+        e = element_strains(m.p, m.t, u)
         rises = {}
-        for name, ns in (("graded", recovered_strains(m.p, m.t, u, "average")),
-                         ("adaptive", adaptive_strains(m.p, m.t, u)), ("plain", plain)):
+        for name, ns in (("graded", nodal_average(m.t, e, m.p.shape[1], graded_weights(m.p, m.t))),
+                         ("adaptive", adaptive_strains(m.p, m.t, u)),
+                         ("plain", recovered_strains(m.p, m.t, u, "average"))):
             prof = sample_grid(u, loc, GRID, "recovered", nodal_strain=ns)["exy"][:, 45]
             face = (x >= lo - 1.5) & (x <= lo + 0.5)
             rises[name] = _rise(prof[face], x[face], peak)
