@@ -13,14 +13,16 @@ region, the exact field at most 0.24.  So the registration adds 0.7-3.0 points o
 them at the rim.
 
 ``--minimum`` adds the minimum of eq:objf on the default's refined mesh (``MINIMUM``): Gauss-Newton to its own
-stopping rules from the exact displacement, at the refined pass's weight (the unrefined mesh's ``alpha_eff``,
-:func:`femreg.scaling.refined_alpha`), lambda_bar and hourglass weight (:data:`femreg.refine.REFINED_HOURGLASS`),
-no refinement, no repair: where the objective itself puts the field, whatever path the registration takes to it.
-Measured: on 6 of the 8 pairs it lies 0.02-0.43 points above the default (r 8 mm 2 % paper 9.16 against 9.14 %,
-r 3 mm 1 % paper 5.75 against 5.67 %; floor 6.19 / 3.71 %), on the held-out r 4 mm under 12 MHz and r 2 mm under
-3 MHz 0.32 / 0.09 below (4.05 / 4.12 %; the r 4 mm's e_xy off the ring 1.23 -> 0.03 %^2).  So under the paper's
-probe the points over the floor are the objective's (the image term at this speckle with the momentum TV), not
-the refinement's path (docs/refinement.md, "What holds an inclusion above its mesh's floor").
+stopping rules from the exact displacement, at the finer pass's own weight (the unrefined mesh's ``alpha_eff``,
+:func:`femreg.scaling.refined_alpha`, times the pass's noise factor, :func:`femreg.refine.fine_alpha_factor`;
+``--minimum-weight unrefined``: without that factor), lambda_bar and hourglass weight
+(:data:`femreg.refine.REFINED_HOURGLASS`), no refinement, no repair; the solver's own field, read with the
+default's strain recovery (a row whose field fails the registration's check says so): where the objective itself
+puts the field near the truth.  Measured (2026-12-08): 0.04-0.25 points below the default on all 8 pairs (r 8 mm 2 %
+paper 8.99 against 9.14 %, r 3 mm 1 % paper 5.53 against 5.67 %, held-out r 4 mm under 12 MHz 4.25 against 4.37 %,
+the r 4 mm's e_xy off the ring 1.23 -> 1.47 %^2); at the unrefined weight the r 4 mm's field (4.96 %) raises the
+image term over its start's and fails the check.  No start of the finer pass without the truth reaches that
+minimum (docs/refinement.md, "What holds an inclusion above its mesh's floor").
 
 Run: ``python benchmarks/inclusion_rim.py [--cases r8,r3_1pc] [--minimum]`` (one thread; about 10 s per case after
 the FE solves are cached).
