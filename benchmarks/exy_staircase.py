@@ -49,16 +49,7 @@ def graded_recovery(p, t, u, w):
     element strains weighted by 1 / element area (:func:`femreg.fields.graded_weights`)."""
     from femreg import fields as FL
 
-    e = FL.element_strains(p, t, u)
-    n = p.shape[1]
-    avg = FL.nodal_average(t, e, n, FL.graded_weights(p, t))
-    if w == 0.0:
-        return avg
-    lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
-    for k in range(t.shape[0]):
-        np.minimum.at(lo, t[k], e)
-        np.maximum.at(hi, t[k], e)
-    return (1 - w) * avg + w * np.clip(FL._project(p, t, e, 1.0), lo, hi)
+    return FL.adaptive_strains(p, t, u, weight=w, cell_weights=FL.graded_weights(p, t))
 
 
 def roughness(img, t_exy):

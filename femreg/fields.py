@@ -331,7 +331,7 @@ def adaptive_weight(roughness: float) -> float:
     return float(np.clip((ROUGHNESS_SMOOTH - roughness) / (ROUGHNESS_SMOOTH - ROUGHNESS_SHARP), 0.0, 1.0))
 
 
-def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None) -> np.ndarray:
+def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None, cell_weights=None) -> np.ndarray:
     """The default recovery: ``(1 - w) average + w projection``, shape (n_nodes, 3) [exx, eyy, exy].
 
     ``average`` the nodal average (:func:`nodal_average` of :func:`element_strains`), ``projection`` the plain L2
@@ -339,14 +339,15 @@ def adaptive_strains(mesh_points, mesh_cells, u, weight: float | None = None) ->
     element-centre strains of the elements around the node (a bound-preserving limit: the projection's ringing at
     a step leaves no false stripes), ``w`` the :func:`adaptive_weight` of the field's :func:`strain_roughness` (or
     ``weight`` given).  ``w = 0`` is the nodal average exactly.  Exact for affine fields (both are).
-    ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm.
+    ``mesh_points`` (2, n_nodes) mm, ``mesh_cells`` (4, n_el), ``u`` (2 n_nodes,) mm; ``cell_weights``: the nodal
+    average's (:func:`nodal_average`; e.g. :func:`graded_weights`), None the equal weights of the default.
     """
     if weight is not None and not 0.0 <= float(weight) <= 1.0:
         raise InputError(f"weight must lie in [0, 1], got {weight!r}")
     e = element_strains(mesh_points, mesh_cells, u)                   # validates the mesh and u
     t = np.asarray(mesh_cells)
     n = np.asarray(mesh_points).shape[1]
-    avg = nodal_average(t, e, n)
+    avg = nodal_average(t, e, n, cell_weights)
     w = adaptive_weight(_roughness(e, t, avg)) if weight is None else float(weight)
     if w == 0.0:
         return avg
