@@ -512,6 +512,8 @@ class Refinement:
     face_fraction : float
         :func:`face_breaks`: a step is a local maximum of the row-to-row jump of the lateral median of ``A[u]``
         at least this fraction of the largest one among the split rows.
+    face_hold : float
+        :func:`face_breaks`: a step whose neighbouring jump is below this fraction of its own stays on its break.
     """
 
     passes: int = 2
@@ -578,6 +580,7 @@ class Refinement:
     refined_hourglass: float | None = None
     face_rows: bool = False
     face_fraction: float = 0.3
+    face_hold: float = 0.33
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -614,6 +617,7 @@ class Refinement:
             _fail("relax_full", "True or False", self.relax_full)
         _number(self, "relax_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "face_fraction", 0, 1, open_low=True, what="a fraction in (0, 1]")
+        _number(self, "face_hold", 0, 1, what="a ratio in [0, 1]")
         _number(self, "fine_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "fine_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="a number in (0, 1)")
@@ -1999,7 +2003,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
         mesh = sol.mesh
         coarse, u_start, st, kw, relaxed_rows = split_rows
         nx, moved = face_breaks(mesh, sol.u, _need_tensor(coarse)[0], float(np.ravel(spacing)[0]),
-                                float(np.ravel(origin)[0]), opts.face_fraction)
+                                float(np.ravel(origin)[0]), opts.face_fraction, opts.face_hold)
         if moved:
             # that pass's solve again, from the same start, on its mesh with the breaks moved
             new = MeshQuad1.init_tensor(nx, _need_tensor(mesh)[1])
@@ -2050,7 +2054,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     return sol, RefinementRecord(record, base_size, note, slides=tuple(float(v) for v in slides))
 
 
-def face_breaks(mesh, u, coarse, spacing: float, origin: float, fraction: float = 0.3):
+def face_breaks(mesh, u, coarse, spacing: float, origin: float, fraction: float = 0.3, hold: float = 0.33):
     """Row breaks (mm) of the tensor ``mesh`` with the break nearest each strain step moved onto it
     (:attr:`Refinement.face_rows`), and how many moved.
 
@@ -2059,8 +2063,11 @@ def face_breaks(mesh, u, coarse, spacing: float, origin: float, fraction: float 
     breaks before the split, mm), a local maximum at least ``fraction`` of the largest there; its position the
     jump-weighted mean of that break and its neighbour with the larger jump in the same direction (a step inside
     the row between them mixes the row's strain from both sides by their lengths),
-    rounded to a pixel-cell boundary (``spacing``, ``origin`` of the axial pixel grid, mm).  A break moves only
-    between its neighbours with at least 2 pixels to each."""
+    rounded to a pixel-cell boundary (``spacing``, ``origin`` of the axial pixel grid, mm).  A step whose
+    neighbour's jump is below ``hold`` times its own (within a quarter of the row of the break) is taken to lie on
+    the break, which stays: the regulariser spreads a step on a break over the rows beside it, and a layer's
+    interface on a break moved off it lost its sharp element strain.  A break moves only between its neighbours
+    with at least 2 pixels to each."""
     xs, ys, cell = _need_tensor(mesh)
     xs = np.asarray(xs, float)
     Axx, _, Axy = (np.median(a[cell], axis=1) for a in _momentum(_centre_strains(mesh, u)))
@@ -2088,11 +2095,10 @@ def face_breaks(mesh, u, coarse, spacing: float, origin: float, fraction: float 
         # divides the row as the two jumps do
         nb = [n for n in (i - 1, i + 1) if 0 <= n < d.size]
         part = np.array([max(float(dv[n] @ dv[i]) / d[i], 0.0) for n in nb])
-        if part.size and part.max() > 0:
-            n = nb[int(np.argmax(part))]
-            x = float((d[i] * xs[i + 1] + part.max() * xs[n + 1]) / (d[i] + part.max()))
-        else:
-            x = float(xs[i + 1])
+        if not part.size or part.max() < hold * d[i]:
+            continue            # the step on the break itself: the regulariser's smear alone jumps beside it
+        n = nb[int(np.argmax(part))]
+        x = float((d[i] * xs[i + 1] + part.max() * xs[n + 1]) / (d[i] + part.max()))
         x = origin + (np.rint((x - origin) / spacing + 0.5) - 0.5) * spacing     # a pixel-cell boundary
         b = int(np.argmin(np.abs(new[1:-1] - x))) + 1
         if b in used or abs(new[b] - x) < 0.5 * spacing:
