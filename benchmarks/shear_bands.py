@@ -24,7 +24,10 @@ down so that layers may slide), "R_P_sigma refine+slip"
 (:data:`femreg.refine.SLIP_REFINEMENT`: three passes, and the tangential traction weight 0.03 only where the
 shear-traction jump stands out), "R_P_sigma refine deep"
 (:func:`benchmarks.refine_cost.deep_refinement`: :data:`femreg.refine.DEEP_REFINEMENT`, which the defaults use too),
-the peers
+"R_P_sigma face rows" (the defaults with
+:attr:`femreg.refine.Refinement.face_rows`: the row break nearest each strain step of the refined solve moved onto
+it, and that pass solved again; its strain the default recovery, the element gradient ("... element") or the
+edge-aware recovery ("... edge", ``on_grid(recovery="edge")``)), the peers
 (:mod:`benchmarks.peers`: NCC block matching, SimpleITK B-spline, scikit-image TV-L1; a peer whose package is
 missing is reported as such).
 
@@ -36,6 +39,7 @@ likewise, a method's full name selects that method alone; ``--out`` default ``ou
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import csv
 import os
 import sys
@@ -74,10 +78,12 @@ CASES = [
 ]
 
 FEMREG = ("R_P_sigma", "R_P_sigma no refine", "R_P_sigma no relax", "R_P_sigma alpha/10", "R_P_sigma slip",
-          "R_P_sigma refine+slip", "R_P_sigma refine deep", "R_P_sigma interface")
+          "R_P_sigma refine+slip", "R_P_sigma refine deep", "R_P_sigma interface", "R_P_sigma face rows",
+          "R_P_sigma face rows element", "R_P_sigma face rows edge")
 #: ``refine=`` of the variants that set it (:mod:`femreg.refine`; the others: register's default)
 REFINE = {"R_P_sigma no refine": None, "R_P_sigma no relax": "norelax", "R_P_sigma refine+slip": "slip",
-          "R_P_sigma refine deep": "deep"}
+          "R_P_sigma refine deep": "deep", "R_P_sigma face rows": "face", "R_P_sigma face rows element": "face",
+          "R_P_sigma face rows edge": "face"}
 METHODS = list(FEMREG) + list(PEER_METHODS)
 WINDOW_MM = 3.0
 
@@ -99,7 +105,8 @@ def run_method(method, data):
                 from femreg.refine import SLIP_REFINEMENT, Refinement
 
                 kw["refine"] = {"slip": SLIP_REFINEMENT, "norelax": Refinement(relax=None),
-                                "deep": deep_refinement()}.get(REFINE[method], REFINE[method])
+                                "deep": deep_refinement(),
+                                "face": dataclasses.replace(deep_refinement(), face_rows=True)}.get(REFINE[method], REFINE[method])
             elif method.endswith("slip"):
                 from femreg.shear import slip_settings
 
@@ -108,6 +115,10 @@ def run_method(method, data):
                 from femreg.refine import SLIP_REFINEMENT
 
                 g = sliding_interface(data, femreg.register(data.ref, data.mov, refine=SLIP_REFINEMENT, **kw))
+            elif method.endswith("rows element"):
+                g = femreg.register(data.ref, data.mov, **kw).on_grid("element")
+            elif method.endswith("rows edge"):
+                g = femreg.register(data.ref, data.mov, **kw).on_grid(recovery="edge")
             else:
                 g = femreg.register(data.ref, data.mov, **kw).on_grid()
         else:

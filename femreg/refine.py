@@ -207,7 +207,7 @@ from .mesh import mesh_stamp, tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
 
-__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "REFINED_HOURGLASS", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh",
+__all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "REFINED_HOURGLASS", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh", "face_breaks",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
            "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc", "EVEN_NOISE", "EVEN_NOTE", "BAND_LEVEL", "BAND_SMOOTH", "band_decorrelation", "strain_level", "even_noise",
            "with_refinement", "RefinementRecord"]
@@ -504,6 +504,16 @@ class Refinement:
         plane-strain model (:attr:`fine_maxiter_stress`'s pass keeps it); None keeps the registration's (1000 for
         R_P_sigma's defaults), as every other solve does. Measured in docs/refinement.md ("The hourglass weight of
         the finer pass").
+    face_rows : bool
+        Opt-in, off by default: after the last pass that split rows, move the row break nearest each strain step
+        found on that pass's solution (:func:`face_breaks`) onto the step (to the pixel-cell boundary) and solve
+        once more with that pass's weights and steps, so that a band's faces lie on rows of nodes.  Not on a
+        fan's logical grid.  Measured in docs/refinement.md ("Rows on a band's faces").
+    face_fraction : float
+        :func:`face_breaks`: a step is a local maximum of the row-to-row jump of the lateral median of ``A[u]``
+        at least this fraction of the largest one among the split rows.
+    face_hold : float
+        :func:`face_breaks`: a step whose neighbouring jump is below this fraction of its own stays on its break.
     """
 
     passes: int = 2
@@ -568,6 +578,9 @@ class Refinement:
     fine_min_pixels: int | None = None
     even_noise: float | None = None
     refined_hourglass: float | None = None
+    face_rows: bool = False
+    face_fraction: float = 0.3
+    face_hold: float = 0.33
 
     def __post_init__(self):
         if self.plane is not None and not (isinstance(self.plane, (int, float, np.integer, np.floating))
@@ -597,12 +610,14 @@ class Refinement:
         _integer(self, "relax_passes", 1, 4)
         _integer(self, "relax_fill", 0, None)
         _number(self, "relax_fill_weight", 0, 1, optional=True, open_low=True, what="a weight in (0, 1]")
-        for name in ("relax_keep", "relax_fill_split"):
+        for name in ("relax_keep", "relax_fill_split", "face_rows"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 _fail(name, "True or False", getattr(self, name))
         if not isinstance(self.relax_full, (bool, np.bool_)):
             _fail("relax_full", "True or False", self.relax_full)
         _number(self, "relax_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
+        _number(self, "face_fraction", 0, 1, open_low=True, what="a fraction in (0, 1]")
+        _number(self, "face_hold", 0, 1, what="a ratio in [0, 1]")
         _number(self, "fine_alpha", 0, 1, optional=True, open_low=True, what="a factor in (0, 1]")
         _number(self, "fine_alpha_ncc", 0, 1, optional=True, open_low=True, open_high=True,
                 what="a number in (0, 1)")
@@ -1808,6 +1823,7 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
     spans = []                      # their cells' lateral extents (mm)
     unrefined = sol                 # its element NCC: the tests of the first pass and the message of a split
     memo = []
+    split_rows = None               # the coarse row breaks, weights and keywords of the last pass that split rows
 
     def unrefined_ncc():
         if not memo:
@@ -1966,8 +1982,11 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
             kw["hourglass"] = opts.refined_hourglass
         if finer and opts.fine_maxiter is not None and not kw.get("full"):
             kw["steps"] = opts.fine_maxiter
+        prev = sol
         sol = solve_on(new, transfer((first if k == 0 else sol).u, mesh, new), st, **kw)
         n_pass = int(sol.gn.nit)
+        if sx > 0:
+            split_rows = (mesh, (first if k == 0 else prev).u, st, dict(kw), relaxed)
         if len(relaxed) and not opts.relax_persist and opts.relax_passes > 1:
             sol, relaxed, n_again = _relax_again(sol, relaxed, opts, solve_on, kw)
             n_pass += n_again
@@ -1979,6 +1998,25 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                            seconds=time.perf_counter() - t))
     if sol is unrefined:            # no pass solved: the solve it would have started from
         sol = first
+    if opts.face_rows and split_rows is not None and logical_grid(sol.mesh) is None:
+        t = time.perf_counter()
+        mesh = sol.mesh
+        coarse, u_start, st, kw, relaxed_rows = split_rows
+        nx, moved = face_breaks(mesh, sol.u, _need_tensor(coarse)[0], float(np.ravel(spacing)[0]),
+                                float(np.ravel(origin)[0]), opts.face_fraction, opts.face_hold)
+        if moved:
+            # that pass's solve again, from the same start, on its mesh with the breaks moved
+            new = MeshQuad1.init_tensor(nx, _need_tensor(mesh)[1])
+            sol = solve_on(new, transfer(u_start, coarse, new), st, **kw)
+            n_face = int(sol.gn.nit)
+            if len(relaxed_rows) and not opts.relax_persist and opts.relax_passes > 1:
+                sol, _, n_again = _relax_again(sol, relaxed_rows, opts, solve_on, kw)
+                n_face += n_again
+            nit += n_face
+            record.append(dict(elements=int(mesh.t.shape[1]), elements_after=int(new.t.shape[1]), rows=0,
+                               columns=0, slip_cells=0, nit=n_face, relaxed_edges=0, layer_lines=0,
+                               top=0.0, fine=False, alpha_factor=float(kw.get("alpha_factor", 1.0)),
+                               face_rows=int(moved), seconds=time.perf_counter() - t))
     if spans and opts.beam_split is not None:
         t = time.perf_counter()
         mesh = sol.mesh
@@ -2014,6 +2052,63 @@ def refine_passes(sol, opts: Refinement, solve_on, spacing, origin, start=None, 
                 + " (left to the finer pass, the echoes mixed across a slip give stripes of e_xx)")
         note = said if note is None else f"{note}; {said}"
     return sol, RefinementRecord(record, base_size, note, slides=tuple(float(v) for v in slides))
+
+
+def face_breaks(mesh, u, coarse, spacing: float, origin: float, fraction: float = 0.3, hold: float = 0.33):
+    """Row breaks (mm) of the tensor ``mesh`` with the break nearest each strain step moved onto it
+    (:attr:`Refinement.face_rows`), and how many moved.
+
+    The step: the row-to-row jump ``|[[A]] n|`` (n axial) of the lateral median of ``A[u]`` over the columns
+    (eq:meq, :func:`edge_jumps`' lambda_bar) at each interior break of the rows finer than ``coarse`` (the row
+    breaks before the split, mm), a local maximum at least ``fraction`` of the largest there; its position the
+    jump-weighted mean of that break and its neighbour with the larger jump in the same direction (a step inside
+    the row between them mixes the row's strain from both sides by their lengths),
+    rounded to a pixel-cell boundary (``spacing``, ``origin`` of the axial pixel grid, mm).  A step whose
+    neighbour's jump is below ``hold`` times its own (within a quarter of the row of the break) is taken to lie on
+    the break, which stays: the regulariser spreads a step on a break over the rows beside it, and a layer's
+    interface on a break moved off it lost its sharp element strain.  A break moves only between its neighbours
+    with at least 2 pixels to each."""
+    xs, ys, cell = _need_tensor(mesh)
+    xs = np.asarray(xs, float)
+    Axx, _, Axy = (np.median(a[cell], axis=1) for a in _momentum(_centre_strains(mesh, u)))
+    dv = np.stack([np.diff(Axx), np.diff(Axy)], axis=1)              # at the interior breaks xs[1:-1]
+    d = np.hypot(dv[:, 0], dv[:, 1])
+    h = np.diff(xs)
+    c = np.diff(np.asarray(coarse, float))
+    size = c[np.clip(np.searchsorted(coarse, 0.5 * (xs[:-1] + xs[1:])) - 1, 0, c.size - 1)]
+    fine = h < size * (1 - 1e-9)                                     # rows the split made
+    inner = fine[:-1] | fine[1:]                                     # breaks beside a split row
+    if d.size == 0 or not np.any(inner) or not np.all(np.isfinite(d)):
+        return xs, 0
+    top = float(np.max(d[inner]))
+    if top <= 0:
+        return xs, 0
+    new = xs.copy()
+    moved = 0
+    used = set()
+    for i in np.flatnonzero(inner):
+        lo, hi = d[i - 1] if i > 0 else -np.inf, d[i + 1] if i + 1 < d.size else -np.inf
+        if d[i] < fraction * top or d[i] < lo or d[i] <= hi:
+            continue
+        # a step inside the row between break i and its neighbour with the larger jump the same way (the other
+        # face of a thin band jumps back): the row's strain mixes the two sides by their lengths, so the step
+        # divides the row as the two jumps do
+        nb = [n for n in (i - 1, i + 1) if 0 <= n < d.size]
+        part = np.array([max(float(dv[n] @ dv[i]) / d[i], 0.0) for n in nb])
+        if not part.size or part.max() < hold * d[i]:
+            continue            # the step on the break itself: the regulariser's smear alone jumps beside it
+        n = nb[int(np.argmax(part))]
+        x = float((d[i] * xs[i + 1] + part.max() * xs[n + 1]) / (d[i] + part.max()))
+        x = origin + (np.rint((x - origin) / spacing + 0.5) - 0.5) * spacing     # a pixel-cell boundary
+        b = int(np.argmin(np.abs(new[1:-1] - x))) + 1
+        if b in used or abs(new[b] - x) < 0.5 * spacing:
+            continue
+        if x - new[b - 1] < 2 * spacing * (1 - 1e-9) or new[b + 1] - x < 2 * spacing * (1 - 1e-9):
+            continue
+        new[b] = x
+        used.add(b)
+        moved += 1
+    return new, moved
 
 
 def _relax_again(sol, relaxed, opts: Refinement, solve_on, kw):
