@@ -553,10 +553,9 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
     sample-space stage); ``refine`` refines the physical mesh (module docstring)."""
     from .gnsolve import solve
     from .image import validate_image
-    from .refine import (Refinement, as_refinement, pass_solve_kw, refine_name, refine_passes, transfer,
-                         with_logical_grid, with_refinement)
+    from .refine import (Refinement, as_refinement, pass_regularizer, pass_solve_kw, refine_name, refine_passes,
+                         transfer, with_logical_grid, with_refinement)
     from .repair import check_period, check_result
-    from .scaling import refined_alpha
     from .solver import GN_STRAIN_TOL, GN_STRAIN_TOL_TIGHT
     from .strategy import (component_tol, effective_regularizer_options, fresh_regularizer, lambda_bar_follows_data,
                            lambda_bar_stage)
@@ -652,15 +651,8 @@ def register_beam(reference_image, moving_image, *, geometry, spacing, origin=(0
         def solve_on(m, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
                      steps=None, hourglass=None):
             def factory():
-                r = copy.copy(user_reg)
-                r.alpha = refined_alpha(r.alpha, mesh, m) * alpha_factor   # the unrefined mesh's weight of eq:objf
-                if hourglass is not None and getattr(r, "hourglass", 0.0) > 0:
-                    r.hourglass = min(float(r.hourglass), float(hourglass))
-                if shear_traction is not None and hasattr(r, "shear_traction"):
-                    r.shear_traction = shear_traction
-                if normal_traction is not None and hasattr(r, "normal_traction"):
-                    r.normal_traction = normal_traction
-                return r
+                return pass_regularizer(copy.copy(user_reg), mesh, m, alpha_factor, hourglass, shear_traction,
+                                        normal_traction)
             loc = PointLocator(m)
             tm = BeamSSDTerm(BeamQuadrature(m, shape, sp_idx, (r0, 0.0), geometry, locator=loc), I1, I2)
             kw_m = pass_solve_kw(opts, solve_kw, maxiter, full, steps)

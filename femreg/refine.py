@@ -206,10 +206,11 @@ from .material import LAMBDA_BAR_PLANE_STRESS
 from .mesh import mesh_stamp, tensor_structure
 from .pixels import PointLocator
 from .result_base import RefinementRecord  # noqa: F401  (part of this module's API; a result's record)
+from .scaling import refined_alpha
 
 __all__ = ["Refinement", "SLIP_REFINEMENT", "DEEP_REFINEMENT", "RING_ASPECT", "REFINED_HOURGLASS", "INDICATORS", "DEFAULT", "DECORRELATED_NCC", "DECORRELATED_SPREAD", "CLEAN_ALPHA_NCC", "SPREAD_COVERAGE", "UNEVEN_COVERAGE", "DEFAULT_REGULARIZERS", "default_refine", "as_refinement", "indicators", "edge_jumps", "mark", "refine_tensor_mesh", "face_breaks",
            "transfer", "parent_cells", "relaxed_edges", "LogicalGrid", "logical_grid", "with_logical_grid", "slip_region", "slip_weights", "refine_passes", "refine_stage", "finish_passes",
-           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc", "EVEN_NOISE", "EVEN_NOTE", "BAND_LEVEL", "BAND_SMOOTH", "band_decorrelation", "strain_level", "even_noise",
+           "jump_cut", "slab_scores", "marked_slabs", "slabs_within_budget", "refined_axes", "strong_levels", "fill_gaps", "fine_alpha_factor", "coarse_alpha_factor", "beam_alpha_floor", "BEAM_OVERSAMPLING", "layer_cells", "LAYER_FRACTION", "beam_slip_lines", "BEAM_SLIP_DEPTH", "BEAM_SLIP_NCC", "BEAM_SLIP_SHEAR", "pass_strong", "pass_regularizer", "pass_solve_kw", "ncc_spread", "noise_ncc", "decorrelation_ncc", "EVEN_NOISE", "EVEN_NOTE", "BAND_LEVEL", "BAND_SMOOTH", "band_decorrelation", "strain_level", "even_noise",
            "with_refinement", "RefinementRecord"]
 
 #: Names of the indicators of :func:`indicators`.
@@ -1773,6 +1774,23 @@ def transfer(u, mesh, new_mesh) -> np.ndarray:
     return out
 
 
+def pass_regularizer(r, base, mesh, alpha_factor: float = 1.0, hourglass=None, shear_traction=None,
+                     normal_traction=None):
+    """The regulariser ``r`` (a fresh copy, changed in place and returned) of a pass's solve on ``mesh``, refined
+    from ``base``: eq:objf's weight of the unrefined mesh (:func:`femreg.scaling.refined_alpha`) times
+    ``alpha_factor``, the hourglass weight capped at ``hourglass`` (:attr:`Refinement.refined_hourglass`) and the
+    per-edge traction weights of a relaxed layer where the regulariser takes them (``solve_on`` of
+    :func:`refine_passes`)."""
+    r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
+    if hourglass is not None and getattr(r, "hourglass", 0.0) > 0:
+        r.hourglass = min(float(r.hourglass), float(hourglass))
+    if shear_traction is not None and hasattr(r, "shear_traction"):
+        r.shear_traction = shear_traction
+    if normal_traction is not None and hasattr(r, "normal_traction"):
+        r.normal_traction = normal_traction
+    return r
+
+
 def pass_solve_kw(opts: Refinement, solve_kw: dict, maxiter: int, full: bool = False, steps=None) -> dict:
     """Gauss-Newton keywords of one refinement pass's solve: ``solve_kw`` with ``maxiter`` capped at
     ``opts.maxiter`` (at ``steps`` when given: :attr:`Refinement.beam_steps`), unless the options leave it free or
@@ -2237,7 +2255,6 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
 
     from .echo import crop_noise_share
     from .gnsolve import solve
-    from .scaling import refined_alpha
 
     opts = as_refinement(refine)
     if opts is None or np.any(hops) or int(solve_kw.get("maxiter", 1)) == 0:      # maxiter=0: no solve asked
@@ -2252,15 +2269,8 @@ def refine_stage(sol, u0, hops, refine, reg_factory, I1, I2, solve_kw, notes, ti
     def solve_on(mesh, u_start, shear_traction=None, normal_traction=None, alpha_factor=1.0, full=False,
                  steps=None, hourglass=None):
         def factory():
-            r = reg_factory()
-            r.alpha = refined_alpha(r.alpha, base, mesh) * alpha_factor
-            if hourglass is not None and getattr(r, "hourglass", 0.0) > 0:
-                r.hourglass = min(float(r.hourglass), float(hourglass))
-            if shear_traction is not None and hasattr(r, "shear_traction"):
-                r.shear_traction = shear_traction
-            if normal_traction is not None and hasattr(r, "normal_traction"):
-                r.normal_traction = normal_traction
-            return r
+            return pass_regularizer(reg_factory(), base, mesh, alpha_factor, hourglass, shear_traction,
+                                    normal_traction)
         kw = pass_solve_kw(opts, solve_kw, solve_kw["maxiter"], full, steps)
         return solve(I1, I2, mesh, quad.shape, quad.spacing, quad.origin, factory, u_start, **kw)
 
