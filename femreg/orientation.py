@@ -30,6 +30,9 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   exchanged, the spacings are swapped (:func:`check_remodulated`).  benchmarks/iq_orientation.py: no false
   refusal on 66 IQ frames, exchanged spacings refused on 58 of them; missed where the IQ sample spacing is over
   half the line spacing (then the aspect's own spread, 2.2-5.7, covers the exchange's factor ``(dx / dy)^2``).
+  An axial spacing several times too large narrows the aspect too (0.87 / 0.64 at 5 / 6 times a 5 MHz IQ's 0.077
+  mm, past its 0.3 mm pitch): where the header states a sampling rate, the swap is named only if the exchanged
+  axial value fits it (the IQ phases' decimation, else a whole decimation), else the spacing that fits is.
 
 * **sign convention of IQ data** -- IQ demodulated with ``exp(+2 pi i f t)`` instead of ``exp(-2 pi i f t)``
   remodulates to an RF whose carrier moves *against* its envelope between frames: registered, it gives a wrong
