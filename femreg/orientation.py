@@ -30,6 +30,9 @@ lines x samples (transposed) and the two spacings exchanged.  The RF itself tell
   exchanged, the spacings are swapped (:func:`check_remodulated`).  benchmarks/iq_orientation.py: no false
   refusal on 66 IQ frames, exchanged spacings refused on 58 of them; missed where the IQ sample spacing is over
   half the line spacing (then the aspect's own spread, 2.2-5.7, covers the exchange's factor ``(dx / dy)^2``).
+  An axial spacing several times too large narrows the aspect too (0.87 / 0.64 at 5 / 6 times a 5 MHz IQ's 0.077
+  mm, past its 0.3 mm pitch): where the header states a sampling rate, the swap is named only if the exchanged
+  axial value fits it (the IQ phases' decimation, else a whole decimation), else the spacing that fits is.
 
 * **sign convention of IQ data** -- IQ demodulated with ``exp(+2 pi i f t)`` instead of ``exp(-2 pi i f t)``
   remodulates to an RF whose carrier moves *against* its envelope between frames: registered, it gives a wrong
@@ -831,14 +834,77 @@ def check_remodulated(frames) -> None:
     swapped = aspect * (dx / dy) ** 2
     if aspect >= MIN_SPECKLE_ASPECT or swapped < MIN_SPECKLE_ASPECT:
         return
+    found = (f"IQ data read with spacing ({dx:g}, {dy:g}) mm: the lateral speckle ({lat:.3g} mm) is narrower than "
+             f"the axial ({ax:.3g} mm), {aspect:.2f} of it, while a linear array's lateral resolution is the coarser")
+    header = _iq_header_step(frames)
+    if header is not None:
+        # an axial spacing several times too large (0.37 mm for 0.074) narrows the speckle's aspect as a swap
+        # does: exchange the spacings only where the header's sampling rate and the IQ phases agree with it
+        _refuse_unlike_header(frames, found, dx, dy, *header)
     raise OrientationError(
-        f"IQ data read with spacing ({dx:g}, {dy:g}) mm: the lateral speckle ({lat:.3g} mm) is narrower than the "
-        f"axial ({ax:.3g} mm), {aspect:.2f} of it, while a linear array's lateral resolution is the coarser; the "
-        f"axial and lateral spacings look swapped: pass "
+        f"{found}; the axial and lateral spacings look swapped: pass "
         + _pass_spacing(f"{dy:g}, {dx:g}", "axial IQ sample spacing, then line spacing; lateral / axial speckle "
                         f"{swapped:.1f}")
         + f", or {override()}",
         problem="swapped")
+
+
+def _iq_header_step(frames):
+    """``(dx_fs mm, fs MHz, words, c m/s)``: the axial step ``c / (2 fs)`` of the sampling rate the header of IQ
+    :class:`femreg.io.Frames` states, else None."""
+    from .io.checks import header_frequencies
+
+    meta = dict(frames.metadata or {})
+    known = header_frequencies(meta)
+    if "fs_mhz" not in known:
+        return None
+    fs, words = known["fs_mhz"]
+    c = float(meta["iq"].get("sound_speed", SOUND_SPEED_M_S))
+    return c * 1e-3 / (2.0 * fs), fs, words, c
+
+
+def _refuse_unlike_header(frames, found: str, dx: float, dy: float, dx_fs: float, fs: float, words: str,
+                          c: float) -> None:
+    """Part of :func:`check_remodulated` for IQ whose header states a sampling rate (axial step ``dx_fs`` mm):
+    returns (the swap is named) where the exchanged axial value ``dy`` fits it, raises :class:`OrientationError`
+    (problem "iq-spacing") naming the spacing that does where it does not.  The IQ phases between frames 0 and 1
+    (:func:`iq_decimation_from_phases`) give the decimation ``q`` (1-4), hence the axial step ``q dx_fs``; without
+    them, ``dy`` must be a whole decimation (:func:`iq_decimation`) of ``dx_fs``."""
+    from .io.iq import baseband
+
+    iq = dict(frames.metadata)["iq"]
+    f = float(iq["modulation_frequency_mhz"])
+    q = None
+    if frames.n_frames >= 2:
+        up = max(1, int(iq.get("upsampled", 1)))
+        dz = float(frames.spacing[0])
+        # back to the stored IQ samples (standard sign: the remodulation applied the convention given)
+        pair = [baseband(np.asarray(frames.frames[i], float), dz, f, sound_speed=c, axis=0)[::up] for i in (0, 1)]
+        try:
+            q = iq_decimation_from_phases(pair[0], pair[1], dx_fs, f, c)
+        except ValueError:
+            q = None
+    if q is not None:
+        if abs(dy / (q * dx_fs) - 1.0) <= SAMPLING_TOLERANCE:
+            return
+        right = q * dx_fs
+        how = "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
+        k = dx / right
+        off = f"{k:.3g} times too large" if k > 1 else f"{1 / k:.3g} times too small"
+        raise OrientationError(
+            f"{found}; exchanged, the axial spacing {dy:g} mm would be {dy / dx_fs:.3g} times c / (2 fs) = "
+            f"{dx_fs:.5g} mm of the sampling rate the file states, {fs:g} MHz ({words}; c = {c:g} m/s), while the "
+            f"IQ phases between the frames turn as for {how}: the axial spacing {dx:g} mm looks {off}, not "
+            f"swapped; pass " + _pass_spacing(f"{right:.5g}, {dy:g}", f"{how}, axial IQ sample spacing, then line "
+                                              "spacing") + f", or {override()}", problem="iq-spacing")
+    if iq_decimation(dy, dx_fs) is not None:
+        return
+    raise OrientationError(
+        f"{found}; but exchanged, the axial spacing {dy:g} mm would be {dy / dx_fs:.3g} times c / (2 fs) = "
+        f"{dx_fs:.5g} mm of the sampling rate the file states, {fs:g} MHz ({words}; c = {c:g} m/s), no whole "
+        f"decimation of it, and the given {dx:g} mm is {dx / dx_fs:.3g} times it: the axial spacing looks off (IQ "
+        f"decimated q times after sampling has q x {dx_fs:.5g} mm, e.g. {2 * dx_fs:.5g} for q = 2); check it, "
+        f"or {override()}", problem="iq-spacing")
 
 
 def _iq_spacing_fix(iq: dict, spacing, f: float, fb: float, metadata, c: float) -> tuple:

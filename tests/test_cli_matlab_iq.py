@@ -185,3 +185,42 @@ def test_a_struct_arrays_shared_fields_are_read(scan, tmp_path, capsys):
     assert "Receive/startDepth" not in fields, fields
     rc, out, err = _run(["info", path], capsys)
     assert rc == 1 and f"--spacing {DX_IQ:.5g} {PITCH:g}" in out and "Receive/demodFrequency" in out, out
+
+
+@pytest.mark.parametrize("factor", [5.0, 6.0])
+def test_an_axial_spacing_past_the_pitch_is_not_taken_for_a_swap(scan, capsys, factor):
+    """An axial spacing 5-6 times too large (0.385 / 0.462 mm, past the 0.3 mm pitch) narrows the speckle's aspect
+    (measured lateral / axial 0.87 / 0.64) as exchanged spacings do.  Before: 'the axial and lateral spacings look
+    swapped: pass --spacing 0.3 0.385', itself wrong (0.3 mm is 7.79 times the header rate's step, no decimation);
+    the IQ phases at that rate show the 2x decimation, so the refusal names 0.077."""
+    out_file = scan["dir"] / f"big{factor:g}.npz"
+    rc, out, err = _run(["register", scan["dir"] / "iq.mat", "--pair", 0, 1, "--spacing", f"{factor * DX_IQ:.6g}",
+                         PITCH, "--iq-frequency", F0, "-o", out_file], capsys)
+    assert rc == 2 and "look swapped" not in err and f"--spacing {PITCH:g} " not in err, err
+    assert f"looks {factor:g} times too large, not swapped" in err, err
+    assert f"pass --spacing {DX_IQ:.5g} {PITCH:g}" in err and "IQ decimated 2x" in err, err
+    assert not out_file.exists()
+
+
+def test_exchanged_spacings_are_still_named_a_swap(scan, capsys):
+    rc, out, err = _run(["register", scan["dir"] / "iq.mat", "--pair", 0, 1, "--spacing", PITCH, DX_IQ,
+                         "--iq-frequency", F0, "-o", scan["dir"] / "swap.npz"], capsys)
+    assert rc == 2 and "look swapped" in err and f"pass --spacing {DX_IQ:g} {PITCH:g}" in err, err
+
+
+def test_without_phases_a_swap_unlike_the_header_is_not_suggested(scan):
+    """One frame: no phases to read the decimation from; exchanged, the axial 0.3 mm would be 7.79 times the
+    header rate's step (over 2 % from a whole decimation), so no swap is named."""
+    import dataclasses
+
+    from femreg.orientation import check_remodulated
+
+    fr = read_frames(scan["dir"] / "iq.mat", spacing=(5 * DX_IQ, PITCH), modulation_frequency=F0,
+                     check_orientation=False)
+    with pytest.raises(OrientationError, match="no whole decimation") as err:
+        check_remodulated(dataclasses.replace(fr, frames=fr.frames[:1]))
+    assert err.value.problem == "iq-spacing" and "look swapped" not in str(err.value), str(err.value)
+    with pytest.raises(OrientationError, match="look swapped"):      # the same frame with exchanged spacings
+        fs = read_frames(scan["dir"] / "iq.mat", spacing=(PITCH, DX_IQ), modulation_frequency=F0,
+                         check_orientation=False)
+        check_remodulated(dataclasses.replace(fs, frames=fs.frames[:1]))
