@@ -9,7 +9,7 @@ from skfem import MeshQuad1
 import femreg
 from femreg.errors import InputError
 from femreg.refine import DEEP_REFINEMENT, Refinement, face_breaks
-from _nodal_field import nodal as _nodal
+from _nodal_field import band as _band, nodal as _nodal, step as _step
 
 DX, X0 = 0.02, 0.0          # axial pixel spacing and origin (mm): pixel-cell boundaries at X0 + (k - 0.5) DX
 COARSE = np.arange(0.0, 12.01, 2.0)
@@ -18,20 +18,6 @@ FINE = np.unique(np.concatenate([COARSE, np.arange(4.0, 10.01, 0.5)]))      # ro
 
 def _mesh():
     return MeshQuad1.init_tensor(FINE, np.arange(0.0, 12.01, 1.5))
-
-
-def _band(x0, x1, slide=0.2):
-    def f(p):
-        x = p[:, 0]
-        return np.column_stack([-0.01 * x, slide * np.clip((x - x0) / (x1 - x0), 0.0, 1.0)])
-    return f
-
-
-def _step(x0, e1=-0.01, e2=-0.004):
-    def f(p):
-        x, y = p[:, 0], p[:, 1]
-        return np.column_stack([np.where(x < x0, e1 * x, e1 * x0 + e2 * (x - x0)), 0.005 * y])
-    return f
 
 
 def test_the_breaks_move_onto_a_band_s_faces_inside_rows():

@@ -10,7 +10,7 @@ from femreg.errors import InputError
 from femreg.mesh import roi_mesh, tensor_structure
 from femreg.refine import SLIP_REFINEMENT, Refinement, refine_passes, relaxed_edges, slip_weights
 from femreg.regularizers import make_regularizer
-from _nodal_field import nodal as _nodal
+from _nodal_field import band as _band, nodal as _nodal, step as _step
 
 SHAPE, SPACING, ORIGIN = (600, 60), (0.02, 0.2), (0.0, 0.0)      # 12 x 12 mm
 #: no cap on the relaxed edges: the test meshes have 8 x 8 elements (the default cap, 5 % of the interior edges,
@@ -20,22 +20,6 @@ ALL = dict(relax_max_fraction=1.0)
 
 def _mesh():
     return roi_mesh(SHAPE, SPACING, ORIGIN, element_size=(1.5, 1.5))
-
-
-def _band(x0, x1, slide=0.2):
-    """1 % compression and a lateral slide across the layer x0 < x < x1 (its two faces: shear-traction jumps)."""
-    def f(p):
-        x = p[:, 0]
-        return np.column_stack([-0.01 * x, slide * np.clip((x - x0) / (x1 - x0), 0.0, 1.0)])
-    return f
-
-
-def _step(x0, e1=-0.01, e2=-0.004):
-    """Axial strain e1 above depth x0, e2 below: a jump of the normal traction only."""
-    def f(p):
-        x, y = p[:, 0], p[:, 1]
-        return np.column_stack([np.where(x < x0, e1 * x, e1 * x0 + e2 * (x - x0)), 0.005 * y])
-    return f
 
 
 def test_the_faces_of_a_sliding_band_are_relaxed_and_nothing_else():
