@@ -14,7 +14,7 @@ from .image import pixel_axes
 from .paperguess import paper_initial_guess, wants_coarse_pass
 from .pyramid import PyramidGuess, PyramidSearch, image_settings, pyramid_search, pyramid_solve
 from .result import displacement_at, nodal_values
-from .result_base import FRESH_NOTE  # noqa: F401  (also femreg.initial.FRESH_NOTE)
+from .result_base import FRESH_NOTE
 
 __all__ = ["InitialGuess", "initial_guess", "start_search", "INITIAL_NAMES", "Previous", "previous_or_fresh"]
 
@@ -36,8 +36,6 @@ class InitialGuess:
     stats: object = None
     settings: object = None
     timings: dict = field(default_factory=dict)
-
-
 
 
 @dataclass(frozen=True, eq=False)

@@ -849,6 +849,11 @@ def check_remodulated(frames) -> None:
         problem="swapped")
 
 
+def _decimation_words(q: int) -> str:
+    """How an IQ axial step of ``q`` times ``c / (2 fs)`` is named in a refusal."""
+    return "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
+
+
 def _iq_header_step(frames):
     """``(dx_fs mm, fs MHz, words, c m/s)``: the axial step ``c / (2 fs)`` of the sampling rate the header of IQ
     :class:`femreg.io.Frames` states, else None."""
@@ -888,7 +893,7 @@ def _refuse_unlike_header(frames, found: str, dx: float, dy: float, dx_fs: float
         if abs(dy / (q * dx_fs) - 1.0) <= SAMPLING_TOLERANCE:
             return
         right = q * dx_fs
-        how = "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
+        how = _decimation_words(q)
         k = dx / right
         off = f"{k:.3g} times too large" if k > 1 else f"{1 / k:.3g} times too small"
         raise OrientationError(
@@ -924,7 +929,7 @@ def _iq_spacing_fix(iq: dict, spacing, f: float, fb: float, metadata, c: float) 
         dx_fs = c * 1e-3 / (2.0 * fs)
         q = int(round(dx / dx_fs))
         if q in IQ_DECIMATIONS and abs(dx / (q * dx_fs) - 1.0) <= SAMPLING_TOLERANCE:
-            how = "c / (2 fs)" if q == 1 else f"{q} x c / (2 fs), IQ decimated {q}x after sampling"
+            how = _decimation_words(q)
             return q * dx_fs, f"{how}, with fs = {fs:g} MHz ({words}) and c = {c:g} m/s"
     return dx, f"the spacing at which the phases fit {f:g} MHz"
 
